@@ -1,0 +1,234 @@
+"""Message base class, the type registry, and the raw message for unknown types.
+
+Every message is a frozen dataclass. Common header fields are keyword-only and shared by all
+types; each type adds its content fields and implements two narrow hooks:
+
+- ``pack_content(self) -> bytes``: the content bytes (the v1 body, or the v2 body between the
+  extended header and the metadata);
+- ``unpack_content(cls, content, common) -> Message`` (classmethod): the inverse, raising
+  :class:`igtl.errors.ContentError` (with ``offset`` relative to the content) on bad content.
+
+Type names map to classes through :data:`REGISTRY`; one class may serve several names (the
+query families), in which case it stores the name in a ``message_type`` field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, TypeVar
+
+from .. import wire
+from ..errors import ContentError, InvalidTextError
+
+M = TypeVar("M", bound="Message")
+
+#: type name -> message class. Filled by :func:`register`.
+REGISTRY: dict[str, type[Message]] = {}
+
+
+
+def register(*names: str) -> Callable[[type[M]], type[M]]:
+    """Class decorator: decode messages of these type names with this class."""
+
+    def deco(cls: type[M]) -> type[M]:
+        for name in names or (cls.TYPE,):
+            if not name or len(name) > wire.TYPE_SIZE:
+                raise ValueError(f"type name {name!r} must be 1..12 characters")
+            REGISTRY[name] = cls
+        return cls
+
+    return deco
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Message:
+    """Fields common to every OpenIGTLink message.
+
+    ``timestamp`` is float seconds since the Unix epoch (0 = unused, the reference default).
+    ``raw_timestamp`` keeps the exact 64-bit header value of a decoded message so it re-encodes
+    bit for bit; it is ignored once ``timestamp`` no longer matches it (e.g. after ``replace``).
+    ``metadata_encoding`` lists IANA encodings for values that should not use the default
+    (US-ASCII when possible, else UTF-8). Header version 2 is needed for metadata and message_id.
+    """
+
+    TYPE: ClassVar[str] = ""
+
+    device_name: str = ""
+    timestamp: float = 0.0
+    header_version: int = 1
+    metadata: Mapping[str, str] = field(default_factory=dict)
+    message_id: int = 0
+    metadata_encoding: Mapping[str, int] = field(default_factory=dict, repr=False)
+    raw_timestamp: int | None = field(default=None, repr=False, compare=False)
+
+    # ---------------------------------------------------------------- hooks for subclasses
+    def pack_content(self) -> bytes:
+        raise NotImplementedError
+
+    @classmethod
+    def unpack_content(cls: type[M], content: bytes, common: dict[str, Any]) -> M:
+        raise NotImplementedError
+
+    # ---------------------------------------------------------------- public API
+    @property
+    def message_type(self) -> str:
+        """The TYPE field on the wire."""
+        return self.TYPE
+
+    def replace(self: M, **changes: Any) -> M:
+        """A copy with some fields changed (dataclasses.replace)."""
+        return dataclasses.replace(self, **changes)
+
+    def stamped(self: M, t: float | None = None) -> M:
+        """A copy stamped with ``t`` (default: now, wall-clock)."""
+        return dataclasses.replace(self, timestamp=time.time() if t is None else t)
+
+    def header_timestamp(self) -> int:
+        """The 64-bit header timestamp this message encodes to."""
+        raw = self.raw_timestamp
+        if raw is not None and wire.raw_to_seconds(raw) == self.timestamp:
+            return raw
+        return wire.seconds_to_raw(self.timestamp)
+
+    def pack(self, header_version: int | None = None) -> bytes:
+        """Encode the whole message (header + body).
+
+        ``header_version`` overrides the message's own version, as a server does when it answers a
+        client in the version that client speaks: packing as version 1 then drops metadata and
+        message ID on purpose. Without the override, metadata on a version-1 message is an error.
+        """
+        version = self.header_version if header_version is None else header_version
+        content = self.pack_content()
+        if version == 1:
+            if header_version is None and (self.metadata or self.message_id):
+                raise ValueError(
+                    "metadata and message_id need header_version=2 "
+                    f"({self.message_type} {self.device_name!r})"
+                )
+            body = content
+        elif version == 2:
+            meta_header, meta_data = wire.pack_metadata(self.metadata, self.metadata_encoding)
+            if not 0 <= self.message_id <= 0xFFFFFFFF:
+                raise ValueError(f"message_id {self.message_id} does not fit uint32")
+            body = b"".join(
+                (
+                    wire.EXT_HEADER.pack(
+                        wire.EXT_HEADER_SIZE, len(meta_header), len(meta_data), self.message_id
+                    ),
+                    content,
+                    meta_header,
+                    meta_data,
+                )
+            )
+        else:
+            raise ValueError(f"header_version must be 1 or 2, got {version}")
+        return (
+            wire.pack_header(
+                version, self.message_type, self.device_name, self.header_timestamp(), body
+            )
+            + body
+        )
+
+    def content_summary(self) -> dict[str, Any]:
+        """Content fields as JSON-friendly values (used by ``igtl listen --json`` and dumps)."""
+        out: dict[str, Any] = {}
+        for f in dataclasses.fields(self):
+            if f.name in _COMMON_FIELDS:
+                continue
+            out[f.name] = _jsonable(getattr(self, f.name))
+        return out
+
+
+_COMMON_FIELDS = frozenset(f.name for f in dataclasses.fields(Message))
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, bytes):
+        try:
+            return value.decode("utf-8")
+        except UnicodeDecodeError:
+            return value.hex()
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if hasattr(value, "tolist"):  # numpy arrays and scalars
+        return value.tolist()
+    if hasattr(value, "value") and hasattr(value, "name"):  # enums
+        return value.value
+    return value
+
+
+@dataclass(frozen=True, slots=True)
+class RawMessage(Message):
+    """A message of a type this library does not decode: kept whole, never dropped.
+
+    ``content`` is the content (for v2: without extended header and metadata, which are decoded
+    into the common fields as for any type), so a RawMessage re-encodes to the same bytes.
+    """
+
+    type_name: str = ""
+    content: bytes = b""
+
+    @property
+    def message_type(self) -> str:
+        return self.type_name
+
+    def pack_content(self) -> bytes:
+        return bytes(self.content)
+
+    @classmethod
+    def unpack_content(cls, content: bytes, common: dict[str, Any]) -> RawMessage:
+        return cls(type_name=common.pop("message_type"), content=bytes(content), **common)
+
+
+# ------------------------------------------------------------------------------------------
+# Helpers for content codecs.
+def need_size(content: bytes, size: int, what: str) -> None:
+    """ContentError unless the content is exactly ``size`` bytes."""
+    if len(content) != size:
+        raise ContentError(f"{what} content must be {size} bytes, got {len(content)}", offset=0)
+
+
+def need_multiple(content: bytes, element: int, what: str, header: int = 0) -> int:
+    """Number of elements in a count-by-size content; ContentError if it does not divide."""
+    rest = len(content) - header
+    if rest < 0 or rest % element:
+        raise ContentError(
+            f"{what} content of {len(content)} bytes is not {header} + a multiple of {element}",
+            offset=0,
+        )
+    return rest // element
+
+
+def decode_text(raw: bytes, encoding: int, what: str, offset: int = 0) -> str:
+    """Decode text in an IANA encoding; InvalidTextError on bad bytes or unknown encoding."""
+    codec = wire.IANA_ENCODINGS.get(encoding)
+    if codec is None:
+        raise InvalidTextError(f"{what}: unknown text encoding {encoding}", offset=offset)
+    try:
+        return raw.decode(codec)
+    except UnicodeDecodeError as err:
+        raise InvalidTextError(
+            f"{what}: bytes {err.start}..{err.end} are not valid {codec}", offset=offset + err.start
+        ) from err
+
+
+def encode_text(text: str, encoding: int, what: str) -> bytes:
+    try:
+        return text.encode(wire.codec_for(encoding))
+    except UnicodeEncodeError as err:
+        raise ValueError(f"{what} cannot be encoded in encoding {encoding}") from err
+
+
+def fixed(text: str, size: int, what: str) -> bytes:
+    """NUL-padded fixed-size field for struct 's' formats (ValueError when too long)."""
+    return wire.encode_fixed(text, size, what)
+
+
+unfixed = wire.decode_fixed

@@ -1,0 +1,52 @@
+"""The exception tree of the ``occ`` package.
+
+::
+
+    OCCError                      anything the daemon core raises on purpose
+     +-- ConfigError              a configuration file is invalid (names file, line, field path)
+     +-- StateError               a request is not allowed in the current state (e.g. Run while FAULT)
+     +-- DriverError              hardware I/O failed or a driver was misused
+     |    +-- LimitError          a command violated a joint limit and the policy is "fault"
+     +-- KinematicsError          no inverse-kinematics solution, singular pose, bad model
+     +-- CommandError             an operator command is unknown or malformed
+
+``ValueError``/``TypeError`` remain for programming mistakes (bad arguments).
+"""
+
+from __future__ import annotations
+
+
+class OCCError(Exception):
+    """Base class of every error raised on purpose by :mod:`occ`."""
+
+
+class ConfigError(OCCError):
+    """A configuration file is invalid.
+
+    ``errors`` holds one human-readable line per problem, each of the form
+    ``FILE:LINE field.path: message``.
+    """
+
+    def __init__(self, message: str, errors: list[str] | None = None) -> None:
+        super().__init__(message)
+        self.errors: list[str] = list(errors) if errors else [message]
+
+
+class StateError(OCCError):
+    """The robot (or a component) is not in a state that allows the request."""
+
+
+class DriverError(OCCError):
+    """A driver could not talk to its hardware, or was used out of its lifecycle."""
+
+
+class LimitError(DriverError):
+    """A joint command exceeded a limit and the configured policy is to fault."""
+
+
+class KinematicsError(OCCError):
+    """Kinematics failed: unreachable target, singularity, or an unusable model."""
+
+
+class CommandError(OCCError):
+    """An operator command was unknown, malformed or refused."""
