@@ -1,0 +1,174 @@
+"""Operator requests over OpenIGTLink: parsing and replies.
+
+Three forms are accepted (shared/IGTL-PROTOCOL.md §3.18, §6.1, §6.2):
+
+- ``COMMAND`` (protocol 3, what 3D Slicer and PLUS clients send): the command name is the
+  COMMAND_NAME field, or the ``Name`` attribute of an XML ``<Command Name="..." .../>`` content;
+  other XML attributes become arguments. Answered by ``RTS_COMMAND`` with the same COMMAND_ID,
+  metadata ``Status`` = ``SUCCESS``/``FAIL`` (plus ``Message``/``Error``) and an XML
+  ``<CommandReply .../>`` content, as PlusServer does.
+- PLUS-style ``STRING`` with device name ``CMD_<uid>``: content ``<Command Name="..."/>`` or a bare
+  word (``Enable``). Answered by ``STRING`` ``ACK_<uid>`` holding ``<CommandReply .../>``.
+- Queries ``GET_STATUS``, ``GET_CAPABIL``, ``GET_TRANS`` ... (and STT_/STP_). Answered with the
+  requested type; refused ones with a ``STATUS`` carrying the error code.
+
+An unknown or refused request always gets an error reply and changes nothing.
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from typing import Any
+from xml.sax.saxutils import quoteattr
+
+import igtl
+from igtl.messages.base import REGISTRY, Message
+
+from .errors import CommandError
+
+#: Operator commands understood by every robot (robots may add their own).
+BASE_COMMANDS = (
+    "Enable",
+    "Disable",
+    "Run",
+    "Stop",
+    "EStop",
+    "Reset",
+    "GetState",
+    "GetStats",
+)
+
+
+@dataclass
+class Request:
+    """A parsed operator request."""
+
+    kind: str  # "command" | "string" | "query"
+    name: str  # command name, or the query type (e.g. "GET_STATUS")
+    args: dict[str, str] = field(default_factory=dict)
+    msg: Message | None = None
+
+
+def _parse_xml_command(text: str) -> tuple[str, dict[str, str]] | None:
+    text = text.strip()
+    if not text.startswith("<"):
+        return None
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError as err:
+        raise CommandError(f"malformed XML command: {err}") from err
+    attrs = dict(root.attrib)
+    name = attrs.pop("Name", "") or attrs.pop("name", "")
+    return name, attrs
+
+
+def parse_request(msg: Message) -> Request:
+    """Turn an operator message into a :class:`Request`; CommandError if it is malformed."""
+    mtype = msg.message_type
+    if mtype == "COMMAND":
+        name = str(getattr(msg, "command_name", "")).strip()
+        text = str(getattr(msg, "command", "") or "")
+        parsed = _parse_xml_command(text) if text else None
+        args: dict[str, str] = {}
+        if parsed is not None:
+            xml_name, args = parsed
+            if xml_name:
+                name = xml_name
+        if not name:
+            raise CommandError("COMMAND without a command name")
+        return Request("command", name, args, msg)
+    if mtype == "STRING":
+        text = str(getattr(msg, "string", "")).strip()
+        parsed = _parse_xml_command(text)
+        if parsed is not None:
+            name, args = parsed
+        else:
+            name, args = text, {}
+        if not name:
+            raise CommandError(f"empty command in STRING {msg.device_name!r}")
+        return Request("string", name, args, msg)
+    if mtype.startswith(("GET_", "STT_", "STP_")):
+        return Request("query", mtype, {}, msg)
+    raise CommandError(f"{mtype} is not an operator request")
+
+
+def _reply_xml(name: str, ok: bool, message: str) -> str:
+    status = "SUCCESS" if ok else "FAIL"
+    name_attr = f" Name={quoteattr(name)}" if name else ""
+    err_attr = "" if ok else f" Error={quoteattr(message)}"
+    return f"<CommandReply{name_attr} Status=\"{status}\"{err_attr} Message={quoteattr(message)} />"
+
+
+def _rts_command(msg: Message, name: str, ok: bool, message: str, timestamp: float) -> Message:
+    cls = REGISTRY["RTS_COMMAND"]
+    meta = {"Status": "SUCCESS" if ok else "FAIL", "Message": message}
+    if not ok:
+        meta["Error"] = message
+    return cls(
+        command_id=int(getattr(msg, "command_id", 0)),
+        command_name=name[:128],
+        command=_reply_xml(name, ok, message),
+        device_name=msg.device_name,
+        header_version=2,
+        metadata=meta,
+        timestamp=timestamp,
+    )
+
+
+def _ack_string(msg: Message, name: str, ok: bool, message: str, timestamp: float) -> Message:
+    uid = msg.device_name[4:]
+    return igtl.StringMessage(
+        _reply_xml(name, ok, message),
+        device_name=("ACK_" + uid)[:20],
+        header_version=msg.header_version,
+        timestamp=timestamp,
+    )
+
+
+def success_reply(req: Request, message: str = "", *, timestamp: float = 0.0) -> Message:
+    """The success answer to a command or string request (queries build their own replies)."""
+    assert req.msg is not None
+    if req.kind == "command":
+        return _rts_command(req.msg, req.name, True, message, timestamp)
+    if req.kind == "string":
+        return _ack_string(req.msg, req.name, True, message, timestamp)
+    raise ValueError("queries are answered with the requested message type")
+
+
+def error_reply(
+    msg: Message,
+    text: str,
+    *,
+    code: int = igtl.StatusCode.UNKNOWN_ERROR,
+    timestamp: float = 0.0,
+) -> Message:
+    """The error answer to any operator message, in the form its sender expects."""
+    mtype = msg.message_type
+    if mtype == "COMMAND":
+        name = str(getattr(msg, "command_name", "") or "")
+        return _rts_command(msg, name, False, text, timestamp)
+    if mtype == "STRING" and msg.device_name.startswith("CMD_"):
+        return _ack_string(msg, "", False, text, timestamp)
+    if mtype.startswith("STT_") or mtype.startswith("STP_"):
+        rts = "RTS_" + mtype[4:]
+        cls = REGISTRY.get(rts)
+        if cls is not None and getattr(cls, "NEEDS_TYPE_NAME", False):
+            try:
+                return cls(message_type=rts, status=1, device_name=msg.device_name,
+                           header_version=msg.header_version, timestamp=timestamp)
+            except TypeError:
+                pass
+    return igtl.StatusMessage(
+        code=int(code),
+        subcode=0,
+        error_name=igtl.StatusCode(int(code)).name[:20],
+        status_message=text,
+        device_name=msg.device_name,
+        header_version=msg.header_version,
+        timestamp=timestamp,
+    )
+
+
+def describe(args: dict[str, Any]) -> str:
+    return ", ".join(f"{k}={v}" for k, v in args.items())

@@ -1,0 +1,345 @@
+"""Master-slave teleoperation (the system of Arata et al., IJCARS 2010).
+
+Master daemon (:class:`MasterController`)
+    The operator moves the master handle. The handle target comes from one of:
+
+    - ``input: sim``: simulated operator motion, the paper's test: X = A·sin(2πft),
+      Y = A·cos(2πft), Z constant (defaults A = 50 mm, f = 0.1 Hz, Z = 20 mm), relative to
+      the handle position at zero joint values (the workspace centre);
+    - ``input: igtl``: a TRANSFORM or POSITION stream (a tracker, a haptic-device server, a
+      script) arriving on ``input_interface``;
+    - ``input: driver``: the master's own drivers read a real device moved by hand (e.g. the
+      ``can`` driver); the controller commands no motion.
+
+    A master whose joint home is (0, A, Z) starts on the simulated trajectory without a jump.
+    The master's joints follow the target (IK on the master's Frame), and the *measured* handle
+    position (FK) is streamed by the output source ``teleop``: POSITION, 24-byte variant
+    (position + 3-element quaternion, as the OCC paper sends), header version 2, the message ID a
+    sequence number (+1 per packet, for the slave's loss monitor), and metadata ``run`` (``1``
+    while the master is RUNNING) and ``clutch`` (``1`` while the operator has the clutch pressed).
+    The stream never stops while the daemon runs, so the slave can tell a stopped master from a
+    dead one.
+
+    Virtual fixtures: VFIXTURE messages (spheres, hardness N/mm) from 3D Slicer define forbidden
+    regions. While the handle target lies inside a sphere the controller computes the reaction
+    force ``hardness × penetration`` along the outward normal (reported as ``fixture_force_n``)
+    and, for position-controlled (simulated) masters, projects the target back onto the sphere
+    surface, which is what a perfectly stiff haptic rendering would do to the hand.
+
+Slave daemon (:class:`SlaveController`)
+    Follows the master's POSITION stream: ``target = slave_ref + scale · R · (master - master_ref)``
+    with motion scaling ``scale`` (default 0.1, i.e. 10:1) and an optional master-to-slave
+    rotation ``R``. References are re-taken (clutch re-indexing, as OCC re-references and dVRK
+    re-aligns) whenever following (re)starts: on entering RUNNING, when the master's ``run``
+    becomes 1, and when its clutch is released. So the slave never jumps: it keeps its pose and
+    follows from there. Inverse kinematics on the RCM model every tick; a target outside the
+    workspace is clamped to the limits (counted). The base pose comes from the config
+    (``base_mm``) or from a tracker's TRANSFORM (``base_interface``, device ``base_device``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+import igtl
+from igtl.messages.base import Message
+
+from ..errors import CommandError, ConfigError, KinematicsError, OCCError
+from ..safety import RobotState
+from . import Controller
+
+if TYPE_CHECKING:
+    from ..commands import Request
+    from ..interfaces import Inbound
+    from ..robot import Output, Robot
+
+log = logging.getLogger(__name__)
+
+MM = 1e-3
+
+
+def make_teleop_controller(params: dict[str, Any]) -> Controller:
+    role = params.get("role")
+    if role == "master":
+        return MasterController(params)
+    if role == "slave":
+        return SlaveController(params)
+    raise ConfigError(f"teleop.role must be 'master' or 'slave', got {role!r}")
+
+
+def _vec3(value: Any, what: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=float)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise ConfigError(f"teleop.{what}: expected 3 finite numbers, got {value!r}")
+    return arr
+
+
+class MasterController(Controller):
+    name = "teleop-master"
+
+    def __init__(self, params: dict[str, Any]) -> None:
+        super().__init__(params)
+        self.input = params.get("input", "sim")
+        if self.input not in ("sim", "igtl", "driver"):
+            raise ConfigError(f"teleop.input must be sim, igtl or driver, got {self.input!r}")
+        self.amplitude = _vec3(params.get("amplitude_mm", [50.0, 50.0, 0.0]), "amplitude_mm") * MM
+        self.offset = _vec3(params.get("offset_mm", [0.0, 0.0, 20.0]), "offset_mm") * MM
+        self.frequency = float(params.get("frequency_hz", 0.1))
+        self.input_interface = params.get("input_interface")
+        self.input_device = params.get("input_device")
+        self.clutch = bool(params.get("clutch", False))
+        self.seq = int(params.get("first_seq", 0)) & 0xFFFFFFFF
+        self.spheres: list[tuple[np.ndarray, float]] = []
+        self.hardness = 0.0
+        self.fixture_force = np.zeros(3)
+        self.fixture_contacts = 0
+        self.target: np.ndarray | None = None
+        self._t_run = 0.0
+        self.ik_failures = 0
+        self.samples = 0
+
+    def bind(self, robot: Robot) -> None:
+        super().bind(robot)
+        robot.sources["teleop"] = self._source_teleop
+        self.origin = robot.frame.position([0.0] * len(robot.joints)).copy()
+
+    # -------------------------------------------------------------- inputs
+    def on_sample(self, item: Inbound, now: float) -> None:
+        msg = item.msg
+        mtype = msg.message_type
+        if mtype == "VFIXTURE":
+            self._set_fixtures(msg)
+            return
+        if self.input != "igtl" or (self.input_interface and item.interface != self.input_interface):
+            return
+        if self.input_device and msg.device_name != self.input_device:
+            return
+        if mtype == "TRANSFORM":
+            x, y, z = msg.translation  # type: ignore[attr-defined]
+        elif mtype == "POSITION":
+            x, y, z = msg.position  # type: ignore[attr-defined]
+        else:
+            return
+        self.samples += 1
+        self.target = np.array([x, y, z]) * MM
+
+    def _set_fixtures(self, msg: Message) -> None:
+        spheres = getattr(msg, "spheres", ())
+        self.hardness = float(getattr(msg, "hardness", 0.0))
+        self.spheres = [(np.array(s[:3], dtype=float) * MM, float(s[3]) * MM) for s in spheres]
+        log.info("virtual fixtures: %d spheres, hardness %.3g N/mm", len(self.spheres), self.hardness)
+
+    def on_command(self, request: Request, now: float) -> str | None:
+        key = request.name.lower()
+        if key == "clutch":
+            value = request.args.get("Value", request.args.get("value", "1"))
+            self.clutch = value.strip().lower() in ("1", "true", "on", "yes")
+            return f"clutch {'pressed' if self.clutch else 'released'}"
+        if key == "clearfixtures":
+            self.spheres = []
+            return "fixtures cleared"
+        raise CommandError(f"unknown command {request.name!r}")
+
+    def commands(self) -> tuple[str, ...]:
+        return ("Clutch", "ClearFixtures")
+
+    def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
+        if new is RobotState.RUNNING:
+            self._t_run = now
+
+    # -------------------------------------------------------------- loop
+    def operator_target(self, now: float) -> np.ndarray | None:
+        if self.input == "sim":
+            t = now - self._t_run
+            w = 2.0 * math.pi * self.frequency
+            return self.origin + self.offset + self.amplitude * np.array([math.sin(w * t), math.cos(w * t), 0.0])
+        return self.target
+
+    def update(self, now: float) -> Sequence[float] | None:
+        robot = self.robot
+        assert robot is not None
+        if self.input == "driver":
+            return list(robot.q)
+        target = self.operator_target(now)
+        if target is None:
+            return None
+        target = self._apply_fixtures(target)
+        try:
+            q = robot.frame.ik(target, robot.q, clamp=True)
+        except (KinematicsError, ValueError):
+            self.ik_failures += 1
+            return None
+        return q.tolist()
+
+    def _apply_fixtures(self, target: np.ndarray) -> np.ndarray:
+        force = np.zeros(3)
+        out = target
+        for centre, radius in self.spheres:
+            d = out - centre
+            dist = float(np.linalg.norm(d))
+            if dist < radius:
+                normal = d / dist if dist > 1e-12 else np.array([0.0, 0.0, 1.0])
+                depth_mm = (radius - dist) / MM
+                force += self.hardness * depth_mm * normal
+                out = centre + normal * radius
+                self.fixture_contacts += 1
+        self.fixture_force = force
+        return out
+
+    # -------------------------------------------------------------- output
+    def _source_teleop(self, out: Output, now: float) -> Message:
+        robot = self.robot
+        assert robot is not None
+        p = robot.tip[:3, 3] / MM
+        running = robot.state is RobotState.RUNNING
+        self.seq = (self.seq + 1) & 0xFFFFFFFF
+        layout = 24 if out.type == "POSITION" else 28
+        if out.type != "POSITION":
+            raise OCCError("teleop output must be of type POSITION")
+        return igtl.PositionMessage(
+            (float(p[0]), float(p[1]), float(p[2])),
+            (0.0, 0.0, 0.0, 1.0),
+            layout,
+            device_name=out.device,
+            timestamp=robot.clock.wall_time(),
+            header_version=2,
+            message_id=self.seq,
+            metadata={"run": "1" if running else "0", "clutch": "1" if self.clutch else "0"},
+        )
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "input": self.input,
+            "seq": self.seq,
+            "clutch": self.clutch,
+            "fixtures": len(self.spheres),
+            "fixture_contacts": self.fixture_contacts,
+            "fixture_force_n": [round(float(v), 4) for v in self.fixture_force],
+            "ik_failures": self.ik_failures,
+        }
+
+
+class SlaveController(Controller):
+    name = "teleop-slave"
+
+    def __init__(self, params: dict[str, Any]) -> None:
+        super().__init__(params)
+        self.scale = float(params.get("scale", 0.1))
+        if not 0.0 < self.scale <= 10.0:
+            raise ConfigError(f"teleop.scale must be in (0, 10], got {self.scale}")
+        rot = params.get("rotation")
+        self.rotation = np.eye(3) if rot is None else np.asarray(rot, dtype=float).reshape(3, 3)
+        self.input_interface = params.get("input_interface")
+        self.input_device = params.get("input_device")
+        self.base_mm = params.get("base_mm")
+        self.base_interface = params.get("base_interface")
+        self.base_device = params.get("base_device", "Base")
+        self.master_pos: np.ndarray | None = None
+        self.master_run = False
+        self.master_clutch = False
+        self.master_ref: np.ndarray | None = None
+        self.slave_ref: np.ndarray | None = None
+        self._q_last: list[float] | None = None
+        self.last_seq: int | None = None
+        self.last_sample_t: float | None = None
+        self.samples = 0
+        self.reindexes = 0
+        self.clamped = 0
+        self.ik_failures = 0
+        # latency probe: master sample time (its POSITION timestamp, wall clock) to the tick
+        # whose driver write used it (same machine, same clock)
+        self.pending_ts: float | None = None
+        self.latencies: list[float] = []
+
+    def bind(self, robot: Robot) -> None:
+        super().bind(robot)
+        if self.base_mm is not None:
+            b = np.eye(4)
+            b[:3, 3] = _vec3(self.base_mm, "base_mm") * MM
+            robot.base = b
+
+    def on_sample(self, item: Inbound, now: float) -> None:
+        msg = item.msg
+        if self.base_interface and item.interface == self.base_interface:
+            if msg.message_type == "TRANSFORM" and msg.device_name == self.base_device:
+                m = msg.matrix  # type: ignore[attr-defined]
+                m[:3, 3] *= MM
+                assert self.robot is not None
+                self.robot.base = m
+            return
+        if self.input_interface and item.interface != self.input_interface:
+            return
+        if self.input_device and msg.device_name != self.input_device:
+            return
+        if msg.message_type == "POSITION":
+            pos = msg.position  # type: ignore[attr-defined]
+        elif msg.message_type == "TRANSFORM":
+            pos = msg.translation  # type: ignore[attr-defined]
+        else:
+            return
+        self.samples += 1
+        self.last_seq = msg.message_id
+        self.last_sample_t = item.t_rx
+        self.pending_ts = msg.timestamp
+        self.master_pos = np.array(pos, dtype=float) * MM
+        run = msg.metadata.get("run", "1") == "1"
+        clutch = msg.metadata.get("clutch", "0") == "1"
+        if (run and not self.master_run) or (self.master_clutch and not clutch):
+            self.master_ref = None  # re-index on the next update
+        self.master_run, self.master_clutch = run, clutch
+
+    def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
+        if new is RobotState.RUNNING:
+            self.master_ref = None
+
+    def update(self, now: float) -> Sequence[float] | None:
+        robot = self.robot
+        assert robot is not None
+        if self.master_pos is None or not self.master_run or self.master_clutch:
+            self.master_ref = None
+            return self._q_last if self._q_last is not None else None
+        if self.master_ref is None:
+            self.master_ref = self.master_pos.copy()
+            self.slave_ref = robot.frame.position(robot.q).copy()
+            self.reindexes += 1
+            self._q_last = list(robot.q)
+        assert self.slave_ref is not None
+        target = self.slave_ref + self.scale * (self.rotation @ (self.master_pos - self.master_ref))
+        try:
+            res = robot.frame.solve_ik(target, robot.q, clamp=True)
+        except (KinematicsError, ValueError):
+            self.ik_failures += 1
+            return self._q_last
+        if res.clamped:
+            self.clamped += 1
+        self._q_last = res.q.tolist()
+        if self.pending_ts is not None:
+            if len(self.latencies) < 200_000:
+                self.latencies.append(robot.clock.wall_time() - self.pending_ts)
+            self.pending_ts = None
+        return self._q_last
+
+    def stats(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "samples": self.samples,
+            "last_seq": self.last_seq,
+            "master_run": self.master_run,
+            "master_clutch": self.master_clutch,
+            "reindexes": self.reindexes,
+            "ik_clamped": self.clamped,
+            "ik_failures": self.ik_failures,
+        }
+        if self.latencies:
+            lat = np.asarray(self.latencies) * 1e6
+            out["sample_to_write_us"] = {
+                "n": int(lat.size),
+                "p50": round(float(np.percentile(lat, 50)), 1),
+                "p99": round(float(np.percentile(lat, 99)), 1),
+                "max": round(float(lat.max()), 1),
+            }
+        return out

@@ -1,0 +1,367 @@
+"""InterfaceManager: all network I/O of a daemon, and the queues that feed the control loop.
+
+Each configured interface is one igtl transport (TCP server, TCP client or UDP endpoint) with its
+own I/O thread. Those threads never touch robot state: they only put what arrives into queues
+whose meaning is explicit (shared/DESIGN.md, "Queues"):
+
+- :class:`StreamQueue` for pose streams (POSITION/TRANSFORM at up to 500 Hz): bounded, drained
+  fully every tick, so the loop sees every sequence number (for the loss monitor) and uses the
+  newest sample. When the loop falls behind, the oldest samples are dropped and counted.
+- :class:`CommandQueue` for operator commands and other discrete requests (COMMAND, STRING
+  ``CMD_*``, GET_*, VFIXTURE...): a bounded FIFO, never merged or silently dropped. A full queue
+  answers the sender at once with an error reply; nothing is lost without the sender knowing.
+
+Outgoing messages go through :meth:`InterfaceManager.send`, which only queues them on the
+transport (never blocks the loop). Rate decimation of outputs is done by the robot's output
+scheduler; a slow TCP client loses its own oldest data inside the transport.
+
+Routing of an incoming message on interface *I*:
+
+1. Operator requests (COMMAND, STRING whose device name starts with ``CMD_``, and every
+   GET_/STT_/STP_ query): if *I* has ``commands: true`` they enter the command queue, else they
+   are refused at once with an error reply (RTS_COMMAND / ``ACK_`` STRING / STATUS
+   ACCESS_DENIED), logged and counted.
+2. A type listed in *I*'s ``inputs``: into that input's queue (``stream`` or ``command``).
+3. STATUS (3D Slicer's greeting, PLUS keep-alives): counted as keep-alive, not an error.
+4. Anything else: counted as ``unexpected`` and logged once per (interface, type).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import igtl
+from igtl.messages.base import Message
+from igtl.transport import Peer, TCPClient, TCPServer, UDPEndpoint
+
+log = logging.getLogger(__name__)
+
+COMMAND_TYPES = frozenset({"COMMAND"})
+QUERY_PREFIXES = ("GET_", "STT_", "STP_")
+
+
+@dataclass(slots=True)
+class Inbound:
+    """One received message, as the loop sees it."""
+
+    interface: str
+    peer: Peer
+    msg: Message
+    t_rx: float  # clock time at reception (the daemon clock, monotonic seconds)
+
+
+class StreamQueue:
+    """Bounded queue of pose samples, drained fully each tick; oldest dropped when full."""
+
+    __slots__ = ("_dq", "depth", "received", "dropped")
+
+    def __init__(self, depth: int = 10) -> None:
+        self._dq: deque[Inbound] = deque(maxlen=depth)
+        self.depth = depth
+        self.received = 0
+        self.dropped = 0
+
+    def put(self, item: Inbound) -> bool:
+        if len(self._dq) >= self.depth:
+            self.dropped += 1
+        self._dq.append(item)  # deque(maxlen) evicts the oldest atomically
+        self.received += 1
+        return True
+
+    def drain(self) -> list[Inbound]:
+        out: list[Inbound] = []
+        pop = self._dq.popleft
+        while self._dq:
+            try:
+                out.append(pop())
+            except IndexError:  # pragma: no cover - raced with nothing: single consumer
+                break
+        return out
+
+    def __len__(self) -> int:
+        return len(self._dq)
+
+
+class CommandQueue:
+    """Bounded FIFO of discrete requests; ``put`` returns False when full (caller must answer)."""
+
+    __slots__ = ("_dq", "_lock", "depth", "received", "refused")
+
+    def __init__(self, depth: int = 64) -> None:
+        self._dq: deque[Inbound] = deque()
+        self._lock = threading.Lock()
+        self.depth = depth
+        self.received = 0
+        self.refused = 0
+
+    def put(self, item: Inbound) -> bool:
+        with self._lock:
+            if len(self._dq) >= self.depth:
+                self.refused += 1
+                return False
+            self._dq.append(item)
+            self.received += 1
+            return True
+
+    def drain(self, limit: int | None = None) -> list[Inbound]:
+        out: list[Inbound] = []
+        with self._lock:
+            while self._dq and (limit is None or len(out) < limit):
+                out.append(self._dq.popleft())
+        return out
+
+    def __len__(self) -> int:
+        return len(self._dq)
+
+
+def is_operator_request(msg: Message) -> bool:
+    """COMMAND, a PLUS-style ``CMD_<id>`` STRING, or a GET_/STT_/STP_ query."""
+    mtype = msg.message_type
+    if mtype in COMMAND_TYPES or mtype.startswith(QUERY_PREFIXES):
+        return True
+    return mtype == "STRING" and msg.device_name.startswith("CMD_")
+
+
+@dataclass
+class InterfaceCounters:
+    received: int = 0
+    keepalive: int = 0
+    unexpected: int = 0
+    refused: int = 0
+    malformed: int = 0
+    sent: int = 0
+    send_dropped: int = 0
+    unexpected_types: set[str] = field(default_factory=set)
+
+
+class Interface:
+    """One configured network interface: a transport plus routing rules."""
+
+    def __init__(
+        self,
+        cfg: Any,
+        manager: InterfaceManager,
+        *,
+        clock_now: Callable[[], float],
+    ) -> None:
+        self.cfg = cfg
+        self.name: str = cfg.name
+        self.commands: bool = bool(cfg.commands)
+        self.manager = manager
+        self._now = clock_now
+        self.counters = InterfaceCounters()
+        # type name -> queue for this interface's declared inputs
+        self.streams: dict[str, StreamQueue] = {}
+        self.command_inputs: set[str] = set()
+        self.input_devices: dict[str, str | None] = {}
+        for inp in cfg.inputs:
+            self.input_devices[inp.type] = inp.device
+            if inp.queue == "stream":
+                self.streams[inp.type] = StreamQueue(inp.depth)
+            else:
+                self.command_inputs.add(inp.type)
+        self.transport = self._make_transport()
+
+    def _make_transport(self) -> TCPServer | TCPClient | UDPEndpoint:
+        cfg = self.cfg
+        allowed = [str(p) for p in cfg.allowed_peers] if cfg.allowed_peers else None
+        common: dict[str, Any] = {"on_message": self._on_message, "on_error": self._on_error}
+        if cfg.transport == "tcp-server":
+            return TCPServer(
+                cfg.host,
+                cfg.port,
+                allowed_peers=allowed,
+                max_clients=cfg.max_clients,
+                send_queue=cfg.send_queue,
+                idle_timeout=cfg.idle_timeout_s,
+                name=f"igtl-{self.name}",
+                on_connect=self._on_connect,
+                on_disconnect=self._on_disconnect,
+                **common,
+            )
+        if cfg.transport == "tcp-client":
+            host, port = _split_remote(cfg.remote)
+            return TCPClient(
+                host,
+                port,
+                send_queue=cfg.send_queue,
+                name=f"igtl-{self.name}",
+                on_connect=self._on_connect,
+                on_disconnect=self._on_disconnect,
+                **common,
+            )
+        if cfg.transport == "udp":
+            remote = _split_remote(cfg.remote) if cfg.remote else None
+            return UDPEndpoint(
+                cfg.host, cfg.port, remote=remote, allowed_peers=allowed, name=f"igtl-{self.name}",
+                **common,
+            )
+        raise ValueError(f"unknown transport {cfg.transport!r}")
+
+    # ------------------------------------------------------------------ I/O thread side
+    def _on_connect(self, peer: Peer) -> None:
+        log.info("%s: %s:%s connected", self.name, *peer.address[:2])
+        self.manager._notify_connect(self, peer)
+
+    def _on_disconnect(self, peer: Peer, reason: str) -> None:
+        log.info("%s: %s:%s disconnected (%s)", self.name, *peer.address[:2], reason)
+
+    def _on_error(self, peer: Peer | None, exc: BaseException) -> None:
+        self.counters.malformed += 1
+        addr = f"{peer.address[0]}:{peer.address[1]}" if peer is not None else "?"
+        # The transport logs each one too; keep ours at debug to avoid double lines.
+        log.debug("%s: malformed message from %s: %s", self.name, addr, exc)
+
+    def _on_message(self, peer: Peer, msg: Message) -> None:
+        c = self.counters
+        c.received += 1
+        mtype = msg.message_type
+        item = Inbound(self.name, peer, msg, self._now())
+        stream = self.streams.get(mtype)
+        if stream is not None:
+            want = self.input_devices.get(mtype)
+            if want is None or want == msg.device_name:
+                stream.put(item)
+                return
+        if is_operator_request(msg) or mtype in self.command_inputs:
+            if not self.commands and mtype not in self.command_inputs:
+                c.refused += 1
+                log.warning(
+                    "%s: refused %s %r from %s:%s: interface does not accept commands",
+                    self.name, mtype, msg.device_name, *peer.address[:2],
+                )
+                self.manager.reply_error(item, "interface does not accept commands",
+                                         code=igtl.StatusCode.ACCESS_DENIED)
+                return
+            if not self.manager.commands.put(item):
+                c.refused += 1
+                log.warning("%s: command queue full, refused %s from %s:%s",
+                            self.name, mtype, *peer.address[:2])
+                self.manager.reply_error(item, "command queue full", code=igtl.StatusCode.BUSY)
+            return
+        if mtype == "STATUS":
+            c.keepalive += 1
+            return
+        c.unexpected += 1
+        if mtype not in c.unexpected_types:
+            c.unexpected_types.add(mtype)
+            log.info("%s: ignoring unexpected %s from %s:%s (counted)",
+                     self.name, mtype, *peer.address[:2])
+
+    # ------------------------------------------------------------------ loop side
+    def send(self, msg: Message, peer: Peer | int | None = None) -> int:
+        t = self.transport
+        if isinstance(t, TCPServer):
+            n = t.send(msg, peer)
+        else:
+            n = 1 if t.send(msg) else 0
+        if n:
+            self.counters.sent += 1
+        else:
+            self.counters.send_dropped += 1
+        return n
+
+    def send_to_peer(self, msg: Message, peer: Peer) -> bool:
+        t = self.transport
+        if isinstance(t, TCPServer):
+            return t.send(msg, peer) > 0
+        if isinstance(t, UDPEndpoint):
+            return bool(t.send(msg, tuple(peer.address)))
+        return bool(t.send(msg))
+
+    def stats(self) -> dict[str, Any]:
+        c = self.counters
+        t = self.transport.stats()
+        streams = {k: {"received": q.received, "dropped": q.dropped} for k, q in self.streams.items()}
+        return {
+            "transport": self.cfg.transport,
+            "address": list(self.address) if self.address else None,
+            "received": c.received,
+            "sent": int(t.get("sent", c.sent)),
+            "dropped": int(t.get("dropped", 0)) + c.send_dropped + sum(q.dropped for q in self.streams.values()),
+            "malformed": int(t.get("malformed", c.malformed)),
+            "refused": c.refused,
+            "keepalive": c.keepalive,
+            "unexpected": c.unexpected,
+            "streams": streams,
+            "peers": len(getattr(self.transport, "peers", []) or []),
+        }
+
+    @property
+    def address(self) -> tuple[str, int] | None:
+        return getattr(self.transport, "address", None)
+
+
+class InterfaceManager:
+    """Owns every interface of a daemon (OCC's InterfaceManager: reusable on any robot)."""
+
+    def __init__(
+        self,
+        interface_configs: Iterable[Any],
+        *,
+        clock_now: Callable[[], float],
+        command_depth: int = 64,
+    ) -> None:
+        self.commands = CommandQueue(command_depth)
+        self.interfaces: dict[str, Interface] = {}
+        self._connect_listeners: list[Callable[[Interface, Peer], None]] = []
+        for cfg in interface_configs:
+            self.interfaces[cfg.name] = Interface(cfg, self, clock_now=clock_now)
+        self._started = False
+
+    def __getitem__(self, name: str) -> Interface:
+        return self.interfaces[name]
+
+    def start(self) -> None:
+        for iface in self.interfaces.values():
+            iface.transport.start()
+            log.info("interface %s: %s on %s", iface.name, iface.cfg.transport, iface.address)
+        self._started = True
+
+    def stop(self) -> None:
+        for iface in self.interfaces.values():
+            try:
+                iface.transport.stop()
+            except Exception:  # noqa: BLE001 - stopping must reach every interface
+                log.exception("interface %s: error while stopping", iface.name)
+        self._started = False
+
+    def on_connect(self, listener: Callable[[Interface, Peer], None]) -> None:
+        self._connect_listeners.append(listener)
+
+    def _notify_connect(self, iface: Interface, peer: Peer) -> None:
+        for listener in self._connect_listeners:
+            try:
+                listener(iface, peer)
+            except Exception:  # noqa: BLE001 - a listener must not kill the I/O thread
+                log.exception("connect listener failed")
+
+    def operator_interfaces(self) -> list[Interface]:
+        return [i for i in self.interfaces.values() if i.commands]
+
+    def broadcast_operators(self, msg: Message) -> None:
+        """Send to every client of every command-capable interface (state changes, alerts)."""
+        for iface in self.operator_interfaces():
+            iface.send(msg)
+
+    def reply(self, item: Inbound, msg: Message) -> bool:
+        return self.interfaces[item.interface].send_to_peer(msg, item.peer)
+
+    def reply_error(self, item: Inbound, text: str, *, code: int = igtl.StatusCode.UNKNOWN_ERROR) -> None:
+        """Answer a request with an error in the form its sender expects."""
+        from .commands import error_reply  # local: commands imports this module
+
+        self.reply(item, error_reply(item.msg, text, code=code))
+
+    def stats(self) -> dict[str, Any]:
+        return {name: iface.stats() for name, iface in self.interfaces.items()}
+
+
+def _split_remote(remote: str) -> tuple[str, int]:
+    host, _, port = remote.rpartition(":")
+    return host.strip("[]"), int(port)

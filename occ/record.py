@@ -1,0 +1,299 @@
+"""Recording: every message in and out plus the loop's state, in one file ``igtl dump`` reads.
+
+File format: a plain concatenation of OpenIGTLink header-version-2 messages.
+
+- Each message the daemon received or sent is stored with its content and metadata unchanged,
+  plus three metadata entries: ``rec.dir`` (``in``/``out``), ``rec.if`` (interface name, ``*`` for
+  a broadcast) and ``rec.t`` (daemon clock, seconds, 6 decimals). Its original header version is
+  in ``rec.hv``.
+- The loop state is an ``NDARRAY`` (float64) with device name ``OCCState`` written at
+  ``rate_hz``: ``[t, state code, q..., setpoint..., tip x y z (mm)]``; metadata ``columns`` names
+  the columns.
+
+The loop thread only packs bytes into a bounded in-memory queue; a writer thread does the file
+I/O. If the writer falls behind by more than ``max_backlog`` bytes, new records are dropped
+and counted (``dropped``), never blocking the loop.
+
+``occ-record`` (console script) exports a recording to CSV and replays one into a peer.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import logging
+import sys
+import threading
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import igtl
+from igtl.messages.base import REGISTRY, Message
+
+log = logging.getLogger(__name__)
+
+STATE_DEVICE = "OCCState"
+STATE_CODES = {"INIT": 0, "READY": 1, "ENABLED": 2, "RUNNING": 3, "STOPPED": 4, "FAULT": 5,
+               "ESTOP": 6, "SHUTDOWN": 7}
+
+
+class Recorder:
+    """Writes a recording; call :meth:`start` before the loop, :meth:`close` after."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        rate_hz: float = 100.0,
+        include_messages: bool = True,
+        max_backlog: int = 64 * 1024 * 1024,
+    ) -> None:
+        self.path = Path(path)
+        self.rate_hz = float(rate_hz)
+        self.include_messages = include_messages
+        self.max_backlog = max_backlog
+        self._q: deque[bytes] = deque()
+        self._backlog = 0
+        self._next_state = 0.0
+        self._cond = threading.Condition()
+        self._closed = False
+        self._thread: threading.Thread | None = None
+        self._file: Any = None
+        self.records = 0
+        self.bytes_written = 0
+        self.dropped = 0
+        self.errors = 0
+        self._columns: str | None = None
+
+    def start(self) -> Recorder:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        self._thread = threading.Thread(target=self._writer, name="occ-recorder", daemon=True)
+        self._thread.start()
+        log.info("recording to %s (state at %g Hz)", self.path, self.rate_hz)
+        return self
+
+    # ------------------------------------------------------------------ loop thread
+    def _put(self, data: bytes) -> None:
+        if self._backlog + len(data) > self.max_backlog:
+            self.dropped += 1
+            return
+        self._q.append(data)
+        self._backlog += len(data)
+        self.records += 1
+
+    def record_message(self, msg: Message, direction: str, interface: str, now: float) -> None:
+        if not self.include_messages or self._file is None:
+            return
+        meta = dict(msg.metadata)
+        meta["rec.dir"] = direction
+        meta["rec.if"] = interface
+        meta["rec.t"] = f"{now:.6f}"
+        meta["rec.hv"] = str(msg.header_version)
+        try:
+            self._put(msg.replace(metadata=meta, header_version=2).pack())
+        except (ValueError, TypeError, igtl.IGTLError):
+            self.errors += 1
+
+    def record_state(self, robot: Any, now: float) -> None:
+        if self._file is None or now < self._next_state:
+            return
+        self._next_state = now + 1.0 / self.rate_hz
+        if self._columns is None:
+            names = [j.name for j in robot.joints]
+            self._columns = ",".join(
+                ["t", "state"] + [f"q.{n}" for n in names] + [f"sp.{n}" for n in names]
+                + ["tip.x_mm", "tip.y_mm", "tip.z_mm"]
+            )
+        tip = robot.tip
+        row = [now, float(STATE_CODES.get(robot.state.value, -1)), *robot.q,
+               *(robot.setpoint if robot.state.value == "RUNNING" else robot.hold_setpoint),
+               tip[0, 3] * 1000.0, tip[1, 3] * 1000.0, tip[2, 3] * 1000.0]
+        msg = REGISTRY["NDARRAY"](
+            array=np.asarray(row, dtype=np.float64),
+            device_name=STATE_DEVICE,
+            header_version=2,
+            metadata={"columns": self._columns},
+            timestamp=robot.clock.wall_time(),
+        )
+        self._put(msg.pack())
+
+    # ------------------------------------------------------------------ writer thread
+    def _writer(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait(0.05)
+                closed = self._closed
+            self._flush()
+            if closed:
+                return
+
+    def _flush(self) -> None:
+        chunks = []
+        while self._q:
+            try:
+                chunks.append(self._q.popleft())
+            except IndexError:  # pragma: no cover
+                break
+        if chunks and self._file is not None:
+            data = b"".join(chunks)
+            self._backlog -= sum(len(c) for c in chunks)
+            try:
+                self._file.write(data)
+                self.bytes_written += len(data)
+            except OSError:
+                self.errors += 1
+                log.exception("recorder: write failed")
+
+    def close(self) -> None:
+        if self._file is None:
+            return
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        self._flush()
+        self._file.close()
+        self._file = None
+        log.info("recording closed: %d records, %d bytes, %d dropped", self.records,
+                 self.bytes_written, self.dropped)
+
+    def stats(self) -> dict[str, int]:
+        return {"records": self.records, "bytes": self.bytes_written, "dropped": self.dropped,
+                "errors": self.errors}
+
+
+# ---------------------------------------------------------------------- reading
+def read_recording(path: str | Path) -> list[Message]:
+    """All messages of a recording (raises igtl.DecodeError on a damaged file)."""
+    dec = igtl.StreamDecoder()
+    dec.feed(Path(path).read_bytes())
+    out = list(dec)
+    dec.close()
+    return out
+
+
+def export_csv(path: str | Path, out_dir: str | Path) -> tuple[Path, Path]:
+    """Write ``state.csv`` (the loop state rows) and ``messages.csv`` (one row per message)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    state_path, msg_path = out / "state.csv", out / "messages.csv"
+    msgs = read_recording(path)
+    with open(state_path, "w", newline="") as fs, open(msg_path, "w", newline="") as fm:
+        ws, wm = csv.writer(fs), csv.writer(fm)
+        header_written = False
+        wm.writerow(["t", "dir", "interface", "type", "device", "message_id", "timestamp", "content"])
+        for m in msgs:
+            if m.message_type == "NDARRAY" and m.device_name == STATE_DEVICE:
+                if not header_written:
+                    ws.writerow(m.metadata.get("columns", "").split(","))
+                    header_written = True
+                ws.writerow([f"{v:.9g}" for v in np.asarray(m.array).ravel().tolist()])  # type: ignore[attr-defined]
+                continue
+            meta = m.metadata
+            wm.writerow([meta.get("rec.t", ""), meta.get("rec.dir", ""), meta.get("rec.if", ""),
+                         m.message_type, m.device_name, m.message_id, f"{m.timestamp:.6f}",
+                         _short(m)])
+    return state_path, msg_path
+
+
+def _short(m: Message) -> str:
+    import json
+
+    text = json.dumps(m.content_summary(), separators=(",", ":"), default=str)
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+def original(m: Message) -> Message:
+    """A recorded message as it was on the wire (recording metadata removed)."""
+    meta = {k: v for k, v in m.metadata.items() if not k.startswith("rec.")}
+    hv = int(m.metadata.get("rec.hv", m.header_version))
+    return m.replace(metadata=meta if hv == 2 else {}, header_version=hv,
+                     message_id=m.message_id if hv == 2 else 0)
+
+
+def replay(
+    path: str | Path,
+    target: tuple[str, int],
+    *,
+    udp: bool = False,
+    speed: float = 1.0,
+    direction: str = "in",
+    interface: str | None = None,
+    types: set[str] | None = None,
+) -> int:
+    """Send the recorded messages of one direction to a peer with their original timing."""
+    from igtl.transport import TCPClient, UDPEndpoint
+
+    msgs = [m for m in read_recording(path)
+            if m.metadata.get("rec.dir") == direction
+            and (interface is None or m.metadata.get("rec.if") == interface)
+            and (types is None or m.message_type in types)]
+    if not msgs:
+        return 0
+    if udp:
+        ep = UDPEndpoint("127.0.0.1", 0, remote=target).start()
+        send = ep.send
+    else:
+        cl = TCPClient(target[0], target[1], reconnect=False).start()
+        if not cl.wait_connected(5.0):
+            cl.stop()
+            raise ConnectionError(f"cannot connect to {target[0]}:{target[1]}")
+        ep = cl
+        send = cl.send
+    try:
+        t0 = float(msgs[0].metadata.get("rec.t", 0.0))
+        start = time.perf_counter()
+        sent = 0
+        for m in msgs:
+            due = (float(m.metadata.get("rec.t", t0)) - t0) / speed
+            delay = start + due - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            if send(original(m)):
+                sent += 1
+        return sent
+    finally:
+        ep.stop()
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="occ-record", description="Export or replay an occd recording.")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    e = sub.add_parser("export", help="write state.csv and messages.csv")
+    e.add_argument("file", type=Path)
+    e.add_argument("out_dir", type=Path)
+    r = sub.add_parser("replay", help="send recorded messages to HOST:PORT with original timing")
+    r.add_argument("file", type=Path)
+    r.add_argument("target", help="HOST:PORT")
+    r.add_argument("--udp", action="store_true")
+    r.add_argument("--speed", type=float, default=1.0)
+    r.add_argument("--direction", choices=["in", "out"], default="in")
+    r.add_argument("--interface", default=None)
+    r.add_argument("--type", action="append", dest="types", default=None)
+    args = p.parse_args(argv)
+    try:
+        if args.cmd == "export":
+            s, m = export_csv(args.file, args.out_dir)
+            print(f"wrote {s} and {m}")
+            return 0
+        host, _, port = args.target.rpartition(":")
+        if not host or not port.isdigit():
+            p.error(f"target must be HOST:PORT, got {args.target!r}")
+        n = replay(args.file, (host, int(port)), udp=args.udp, speed=args.speed,
+                   direction=args.direction, interface=args.interface,
+                   types=set(args.types) if args.types else None)
+        print(f"replayed {n} messages")
+        return 0
+    except (OSError, igtl.IGTLError) as err:
+        print(f"occ-record: {err}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
