@@ -142,7 +142,9 @@ class Joint:
             raise ValueError(f"joint {name!r}: type must be one of {_JOINT_TYPES}, got {type!r}")
         self.name: str = name
         self.type: JointType = type
-        self.limits: JointLimits = limits if limits is not None else JointLimits(-math.inf, math.inf)
+        if limits is None:
+            limits = JointLimits(-math.inf, math.inf)
+        self.limits: JointLimits = limits
         home = float(home)
         if not self.limits.contains(home):
             raise ValueError(

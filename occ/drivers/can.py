@@ -1,0 +1,291 @@
+"""Joint drives on a CAN bus, through python-can.
+
+Frame protocol (classic CAN, 11-bit identifiers, DLC 8, all integers big-endian)
+================================================================================
+
+Command, host -> drive, identifier = the joint's ``can_id``::
+
+    byte 0..3  int32   value: position in encoder counts (mode 1)
+                              or effort in milli-units, mN*m or mN (mode 2)
+    byte 4     uint8   mode: 0 = disabled (brake/hold, value ignored), 1 = position, 2 = effort
+    byte 5     uint8   sequence number, +1 per command frame of this joint, wraps at 256
+    byte 6..7          reserved, 0
+
+Feedback, drive -> host, identifier = the joint's ``feedback_id``::
+
+    byte 0..3  int32   position, encoder counts
+    byte 4..5  int16   velocity, counts per millisecond (saturating)
+    byte 6..7  int16   effort, milli-units (saturating at +-32.767 N*m or N)
+
+Scaling: ``position = counts / counts_per_unit`` (counts per radian or per metre),
+``velocity = counts_per_ms * 1000 / counts_per_unit``, ``effort = milli / 1000``. Commands are
+rounded to the nearest count and saturated to int32.
+
+A drive answers every command frame with one feedback frame and may also send feedback
+cyclically. Each :meth:`CANDriver.read` drains the receive queue without blocking and keeps
+the newest feedback per joint; a joint whose last feedback is older than ``feedback_timeout``
+(on the loop clock, counted from the first read after configure/activate) raises
+:class:`~occ.errors.DriverError`, which latches FAULT in the driver base. ``deactivate``
+sends mode-0 frames so the drives brake.
+
+Parameters
+==========
+
+===================  ===============  ===================================================
+key                  default          meaning
+===================  ===============  ===================================================
+interface            ``"socketcan"``  python-can interface name (``"virtual"`` in tests)
+channel              ``"can0"``       python-can channel
+bitrate              1000000          bit/s
+bus_kwargs           {}               extra keyword arguments for ``can.Bus``
+joints               required         ``{joint_name: {can_id, feedback_id, counts_per_unit}}``
+                                      or a list of such dicts in joint order
+feedback_timeout     0.01             s without feedback before the driver faults
+send_timeout         0.0005           s a send may block on a full transmit queue
+command_interface    ``"position"``   or ``"effort"`` (the base's PID makes the efforts)
+period               0.001            nominal loop period (driver base)
+===================  ===============  ===================================================
+
+Real hardware (Linux SocketCAN)::
+
+    sudo ip link set can0 up type can bitrate 1000000
+    # params: {interface: socketcan, channel: can0, bitrate: 1000000, joints: {...}}
+
+SocketCAN takes its bitrate from ``ip link``, not from python-can. Without hardware use
+``interface: virtual`` (every ``can.Bus`` opened on the same virtual channel name in one
+process is connected) together with :class:`occ.drivers.can_sim.SimulatedDriveNode`.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import can
+
+from occ.drivers.base import CommandInterface, Driver, LimitPolicy
+from occ.errors import DriverError
+from occ.joint import Joint
+
+__all__ = [
+    "CANDriver",
+    "COMMAND_FRAME",
+    "FEEDBACK_FRAME",
+    "MODE_DISABLED",
+    "MODE_POSITION",
+    "MODE_EFFORT",
+    "EFFORT_SCALE",
+    "VELOCITY_SCALE",
+]
+
+COMMAND_FRAME = struct.Struct(">iBBxx")
+FEEDBACK_FRAME = struct.Struct(">ihh")
+MODE_DISABLED = 0
+MODE_POSITION = 1
+MODE_EFFORT = 2
+EFFORT_SCALE = 1000.0  # milli-units per unit
+VELOCITY_SCALE = 1000.0  # counts/ms -> counts/s
+
+_INT32_MAX = 2**31 - 1
+_INT32_MIN = -(2**31)
+_DEFAULTS: dict[str, Any] = {
+    "interface": "socketcan",
+    "channel": "can0",
+    "bitrate": 1_000_000,
+    "bus_kwargs": {},
+    "joints": None,
+    "feedback_timeout": 0.01,
+    "send_timeout": 0.0005,
+    "command_interface": "position",
+    "period": 0.001,
+}
+
+
+def _to_int32(value: float) -> int:
+    """Round to nearest and saturate: a command must never wrap around to the other sign."""
+    if value != value:
+        raise ValueError("NaN cannot be sent")
+    if value >= _INT32_MAX:
+        return _INT32_MAX
+    if value <= _INT32_MIN:
+        return _INT32_MIN
+    return int(math.floor(value + 0.5))
+
+
+class CANDriver(Driver):
+    """Joints driven over CAN with the frame protocol of the module docstring."""
+
+    supported_interfaces = ("position", "effort")
+
+    def __init__(
+        self,
+        name: str,
+        joints: Sequence[Joint],
+        params: Mapping[str, Any] | None = None,
+        on_limit: LimitPolicy = "clamp",
+        command_interface: CommandInterface | None = None,
+    ) -> None:
+        params = dict(params or {})
+        unknown = set(params) - set(_DEFAULTS)
+        if unknown:
+            raise ValueError(f"can driver {name!r}: unknown params {sorted(unknown)}")
+        super().__init__(name, joints, params, on_limit, command_interface)
+        p = {**_DEFAULTS, **params}
+        self._bus_args: dict[str, Any] = {
+            "interface": p["interface"],
+            "channel": p["channel"],
+            "bitrate": int(p["bitrate"]),
+            **dict(p["bus_kwargs"]),
+        }
+        self._timeout = float(p["feedback_timeout"])
+        self._send_timeout = float(p["send_timeout"])
+        if not self._timeout > 0.0:
+            raise ValueError("can driver: feedback_timeout must be > 0")
+        axes = self._parse_axes(p["joints"])
+        self._can_ids = [a[0] for a in axes]
+        self._feedback_ids = [a[1] for a in axes]
+        self._counts_per_unit = [a[2] for a in axes]
+        self._index_of_feedback = {fid: i for i, fid in enumerate(self._feedback_ids)}
+        if len(self._index_of_feedback) != len(axes):
+            raise ValueError("can driver: feedback_id values must be distinct")
+        if len(set(self._can_ids)) != len(axes):
+            raise ValueError("can driver: can_id values must be distinct")
+
+        n = len(self.joints)
+        self._bus: can.BusABC | None = None
+        self._messages = [
+            can.Message(arbitration_id=cid, is_extended_id=False, data=bytearray(8))
+            for cid in self._can_ids
+        ]
+        self._seq = [0] * n
+        self._pos = [0.0] * n
+        self._vel = [0.0] * n
+        self._eff = [0.0] * n
+        self._last_rx = [math.nan] * n
+        self._feedback_frames = 0
+        self._ignored_frames = 0
+
+    def _parse_axes(self, spec: Any) -> list[tuple[int, int, float]]:
+        if spec is None:
+            raise ValueError("can driver: params['joints'] is required (can_id, feedback_id, ...)")
+        if isinstance(spec, Mapping):
+            missing = [j.name for j in self.joints if j.name not in spec]
+            extra = set(spec) - {j.name for j in self.joints}
+            if missing or extra:
+                raise ValueError(f"can driver: joints params missing {missing}, unknown {extra}")
+            entries = [spec[j.name] for j in self.joints]
+        else:
+            entries = list(spec)
+            if len(entries) != len(self.joints):
+                raise ValueError("can driver: one joints entry per joint is required")
+        axes = []
+        for joint, entry in zip(self.joints, entries, strict=True):
+            try:
+                can_id = int(entry["can_id"])
+                feedback_id = int(entry["feedback_id"])
+                cpu = float(entry.get("counts_per_unit", 1.0))
+            except (KeyError, TypeError, ValueError) as err:
+                raise ValueError(f"can driver: joint {joint.name!r}: bad entry {entry!r}") from err
+            for ident in (can_id, feedback_id):
+                if not 0 <= ident <= 0x7FF:
+                    raise ValueError(f"can driver: joint {joint.name!r}: id {ident:#x} not 11-bit")
+            if cpu == 0.0 or not math.isfinite(cpu):
+                raise ValueError(f"can driver: joint {joint.name!r}: counts_per_unit must be != 0")
+            axes.append((can_id, feedback_id, cpu))
+        return axes
+
+    def stats(self) -> dict[str, int]:
+        """Base counters plus ``feedback_frames`` and ``ignored_frames`` (foreign/malformed)."""
+        out = super().stats()
+        out["feedback_frames"] = self._feedback_frames
+        out["ignored_frames"] = self._ignored_frames
+        return out
+
+    # ------------------------------------------------------------------ hooks
+    def _configure(self) -> None:
+        try:
+            bus = can.Bus(**self._bus_args)
+        except (can.CanError, OSError, ImportError, ValueError, TypeError) as err:
+            raise DriverError(
+                f"can driver {self.name!r}: cannot open bus {self._bus_args}: {err}"
+            ) from err
+        bus.set_filters(
+            [{"can_id": fid, "can_mask": 0x7FF, "extended": False} for fid in self._feedback_ids]
+        )
+        self._bus = bus
+        self._last_rx = [math.nan] * len(self.joints)
+
+    def _activate(self) -> None:
+        # Restart the feedback deadline: the drives may only start talking once commanded.
+        self._last_rx = [math.nan] * len(self.joints)
+
+    def _deactivate(self) -> None:
+        for i in range(len(self.joints)):
+            self._send(i, MODE_DISABLED, 0)
+
+    def _shutdown(self) -> None:
+        bus, self._bus = self._bus, None
+        if bus is not None:
+            bus.shutdown()
+
+    def _read(self, now: float) -> tuple[Sequence[float], Sequence[float], Sequence[float]]:
+        bus = self._bus
+        assert bus is not None  # the base only reads once configured
+        index_of = self._index_of_feedback
+        unpack = FEEDBACK_FRAME.unpack_from
+        last_rx = self._last_rx
+        # Bounded drain: a babbling node must not keep the loop here forever.
+        for _ in range(64 * len(last_rx)):
+            try:
+                msg = bus.recv(timeout=0.0)
+            except can.CanError as err:
+                raise DriverError(f"can driver {self.name!r}: receive failed: {err}") from err
+            if msg is None:
+                break
+            i = index_of.get(msg.arbitration_id)
+            if i is None or msg.is_error_frame or msg.is_remote_frame or msg.dlc < 8:
+                self._ignored_frames += 1
+                continue
+            counts, vel, eff = unpack(msg.data)
+            cpu = self._counts_per_unit[i]
+            self._pos[i] = counts / cpu
+            self._vel[i] = vel * VELOCITY_SCALE / cpu
+            self._eff[i] = eff / EFFORT_SCALE
+            last_rx[i] = now
+            self._feedback_frames += 1
+        timeout = self._timeout
+        for i, t in enumerate(last_rx):
+            if t != t:
+                last_rx[i] = now  # deadline starts at the first read
+            elif now - t > timeout:
+                raise DriverError(
+                    f"can driver {self.name!r}: joint {self.joints[i].name}: no feedback on id "
+                    f"{self._feedback_ids[i]:#x} for {(now - t) * 1e3:.1f} ms "
+                    f"(timeout {timeout * 1e3:.1f} ms)"
+                )
+        return self._pos, self._vel, self._eff
+
+    def _write(self, values: Sequence[float], now: float) -> None:
+        if self.command_interface == "position":
+            for i, x in enumerate(values):
+                self._send(i, MODE_POSITION, _to_int32(x * self._counts_per_unit[i]))
+        else:
+            for i, u in enumerate(values):
+                self._send(i, MODE_EFFORT, _to_int32(u * EFFORT_SCALE))
+
+    def _send(self, i: int, mode: int, value: int) -> None:
+        bus = self._bus
+        if bus is None:
+            return
+        msg = self._messages[i]
+        seq = self._seq[i]
+        COMMAND_FRAME.pack_into(msg.data, 0, value, mode, seq)
+        self._seq[i] = (seq + 1) & 0xFF
+        try:
+            bus.send(msg, timeout=self._send_timeout)
+        except can.CanError as err:
+            raise DriverError(
+                f"can driver {self.name!r}: send to id {msg.arbitration_id:#x} failed: {err}"
+            ) from err

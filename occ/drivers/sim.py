@@ -1,0 +1,317 @@
+"""A simulated driver with real joint dynamics: the default driver everywhere.
+
+Each joint is a rigid body on a viscous bearing, ``J * a = u - b * v``, so that tracking
+error, settling time and saturation mean something in tests and demos. What drives it
+depends on the command interface:
+
+* ``position`` (default): an internal drive servo, evaluated at every integration substep
+  (like a drive's fast inner loop), places the closed-loop poles at the configured bandwidth
+  ``wn = 2*pi*bandwidth_hz`` and damping ratio ``zeta``:
+  ``u = J*wn**2 * (r - x) - (2*zeta*wn*J - b) * v``, which gives
+  ``x'' + 2*zeta*wn*x' + wn**2*x = wn**2*r``. The effort is clamped to the joint's
+  ``limits.effort`` (a large step saturates, as on real hardware).
+* ``effort``: the effort computed by the driver base with each joint's PID is applied
+  directly, held constant between writes (zero-order hold).
+
+Time is whatever ``now`` the loop passes to ``read``/``write``: the model integrates from the
+previous ``now`` to the new one with semi-implicit (symplectic) Euler, splitting the interval
+into equal substeps no longer than ``max_substep`` (and short enough for the servo poles).
+The same sequence of ``now`` values therefore gives bit-identical results under a real or a
+simulated clock. Cost is linear in elapsed simulated time, except that a joint at rest with
+no effort is skipped.
+
+Measurement: position gets optional Gaussian noise (``noise_std``, from a seeded
+``random.Random``, so runs are deterministic) and is then quantised to ``encoder_resolution``;
+velocity and effort are reported exactly (a drive reports its filtered estimates).
+
+When not ACTIVE the servo is off; with ``brakes`` (default) the joints are locked, otherwise
+they coast on their damping. Joints stop hard (velocity zeroed) at their position limits,
+which stand in for the mechanical end stops.
+
+Parameters (``params``; each per-joint value may be a scalar, a list in joint order, or a
+mapping ``{joint_name: value}``):
+
+====================  ==========================  ==========================================
+key                   default                     meaning
+====================  ==========================  ==========================================
+command_interface     ``"position"``              ``"position"`` or ``"effort"``
+inertia               0.01                        kg*m^2 (revolute) or kg (prismatic)
+damping               0.1                         viscous, N*m*s/rad or N*s/m
+bandwidth_hz          10.0                        internal servo natural frequency (position)
+damping_ratio         1.0                         internal servo damping ratio (position)
+encoder_resolution    2*pi/2**17 rad; 1e-6 m      quantum of measured position; 0 = exact
+noise_std             0.0                         Gaussian noise on measured position
+seed                  0                           noise seed (one stream per driver)
+initial_positions     each joint's ``home``       where the joints start at ``configure``
+max_substep           0.0005                      s, longest integration substep
+brakes                True                        lock joints while not ACTIVE
+period                0.001                       s, nominal loop period (driver base)
+====================  ==========================  ==========================================
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from occ.drivers.base import CommandInterface, Driver, LimitPolicy
+from occ.joint import Joint
+
+__all__ = ["SimDriver", "SIM_DEFAULTS"]
+
+_REVOLUTE_RESOLUTION = 2.0 * math.pi / 2**17  # a common 17-bit absolute rotary encoder
+_PRISMATIC_RESOLUTION = 1e-6  # a 1 um linear scale
+
+SIM_DEFAULTS: dict[str, Any] = {
+    "command_interface": "position",
+    "inertia": 0.01,
+    "damping": 0.1,
+    "bandwidth_hz": 10.0,
+    "damping_ratio": 1.0,
+    "encoder_resolution": None,  # by joint type, see the module docstring
+    "noise_std": 0.0,
+    "seed": 0,
+    "initial_positions": None,
+    "max_substep": 0.0005,
+    "brakes": True,
+    "period": 0.001,
+}
+
+# A substep must stay well inside the stability region of semi-implicit Euler for the
+# fastest pole of the model; 0.1 / rate keeps the discretisation error around 1 %.
+_STEP_PER_RATE = 0.1
+
+
+def _per_joint(
+    key: str, value: Any, joints: Sequence[Joint], defaults: Sequence[float] | None = None
+) -> list[float]:
+    """Expand a scalar / list / {name: value} parameter into one float per joint.
+
+    Joints missing from a mapping take ``defaults`` (per joint) or the scalar default.
+    """
+    n = len(joints)
+    if isinstance(value, Mapping):
+        unknown = set(value) - {j.name for j in joints}
+        if unknown:
+            raise ValueError(f"sim param {key!r}: unknown joints {sorted(unknown)}")
+        fallback = list(defaults) if defaults is not None else [SIM_DEFAULTS[key]] * n
+        out = [value.get(j.name, fallback[i]) for i, j in enumerate(joints)]
+    elif isinstance(value, (list, tuple)):
+        if len(value) != n:
+            raise ValueError(f"sim param {key!r}: expected {n} values, got {len(value)}")
+        out = list(value)
+    else:
+        out = [value] * n
+    try:
+        return [float(v) for v in out]
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"sim param {key!r}: not a number: {value!r}") from err
+
+
+class SimDriver(Driver):
+    """Simulated joints (see the module docstring for the model and the parameters)."""
+
+    supported_interfaces = ("position", "effort")
+
+    def __init__(
+        self,
+        name: str,
+        joints: Sequence[Joint],
+        params: Mapping[str, Any] | None = None,
+        on_limit: LimitPolicy = "clamp",
+        command_interface: CommandInterface | None = None,
+    ) -> None:
+        params = dict(params or {})
+        unknown = set(params) - set(SIM_DEFAULTS)
+        if unknown:
+            raise ValueError(
+                f"sim driver {name!r}: unknown params {sorted(unknown)}; "
+                f"known: {sorted(SIM_DEFAULTS)}"
+            )
+        super().__init__(name, joints, params, on_limit, command_interface)
+        p = {**SIM_DEFAULTS, **params}
+        js = self.joints
+        self._inertia = _per_joint("inertia", p["inertia"], js)
+        self._damping = _per_joint("damping", p["damping"], js)
+        bandwidth = _per_joint("bandwidth_hz", p["bandwidth_hz"], js)
+        zeta = _per_joint("damping_ratio", p["damping_ratio"], js)
+        noise = _per_joint("noise_std", p["noise_std"], js)
+        by_type = [
+            _REVOLUTE_RESOLUTION if j.type == "revolute" else _PRISMATIC_RESOLUTION for j in js
+        ]
+        resolution = (
+            by_type
+            if p["encoder_resolution"] is None
+            else _per_joint("encoder_resolution", p["encoder_resolution"], js, by_type)
+        )
+        homes = [j.home for j in js]
+        self._initial = (
+            homes
+            if p["initial_positions"] is None
+            else _per_joint("initial_positions", p["initial_positions"], js, homes)
+        )
+        for i, j in enumerate(js):
+            if self._inertia[i] <= 0.0 or self._damping[i] < 0.0:
+                raise ValueError(f"sim joint {j.name!r}: inertia must be > 0 and damping >= 0")
+            if bandwidth[i] <= 0.0 or zeta[i] <= 0.0:
+                raise ValueError(f"sim joint {j.name!r}: bandwidth and damping ratio must be > 0")
+            if resolution[i] < 0.0 or noise[i] < 0.0:
+                raise ValueError(f"sim joint {j.name!r}: resolution and noise must be >= 0")
+            if not j.limits.contains(self._initial[i]):
+                raise ValueError(f"sim joint {j.name!r}: initial position outside limits")
+        max_substep = float(p["max_substep"])
+        if not max_substep > 0.0:
+            raise ValueError("sim param 'max_substep' must be > 0")
+
+        # Servo gains placing the closed-loop poles (position interface).
+        wn = [2.0 * math.pi * f for f in bandwidth]
+        self._kp = [self._inertia[i] * wn[i] ** 2 for i in range(len(js))]
+        self._kd = [
+            max(0.0, 2.0 * zeta[i] * wn[i] * self._inertia[i] - self._damping[i])
+            for i in range(len(js))
+        ]
+        fastest = 0.0
+        for i in range(len(js)):
+            rate = self._damping[i] / self._inertia[i]
+            if self.command_interface == "position":
+                rate = max(rate, wn[i], (self._damping[i] + self._kd[i]) / self._inertia[i])
+            fastest = max(fastest, rate)
+        self._substep = min(max_substep, _STEP_PER_RATE / fastest) if fastest > 0 else max_substep
+        self._resolution = resolution
+        self._noise = noise
+        self._brakes = bool(p["brakes"])
+        self._seed = p["seed"]
+        self._rng = random.Random(self._seed)
+        self._effort_limit = [j.limits.effort for j in js]
+        self._lo = [j.limits.min for j in js]
+        self._hi = [j.limits.max for j in js]
+
+        n = len(js)
+        self._x = list(self._initial)
+        self._v = [0.0] * n
+        self._u = [0.0] * n  # applied effort
+        self._cmd = [0.0] * n  # position target or effort command
+        self._t = math.nan
+        self._enabled = False
+        self._measured = [0.0] * n
+
+    # ------------------------------------------------------------------ inspection
+    @property
+    def true_positions(self) -> list[float]:
+        """The model's exact positions (not what the encoder reports); for tests and plots."""
+        return list(self._x)
+
+    @property
+    def substep(self) -> float:
+        """The integration substep actually used (s)."""
+        return self._substep
+
+    # ------------------------------------------------------------------ hooks
+    def _configure(self) -> None:
+        n = len(self.joints)
+        self._x = list(self._initial)
+        self._v = [0.0] * n
+        self._u = [0.0] * n
+        self._cmd = [0.0] * n
+        self._t = math.nan
+        self._enabled = False
+        self._rng = random.Random(self._seed)
+
+    def _activate(self) -> None:
+        # Hold where we are: position target = current position, zero effort.
+        if self.command_interface == "position":
+            self._cmd[:] = self._x
+        else:
+            self._cmd[:] = [0.0] * len(self._cmd)
+        self._enabled = True
+
+    def _deactivate(self) -> None:
+        self._enabled = False
+        for i in range(len(self._u)):
+            self._u[i] = 0.0
+            if self._brakes:
+                self._v[i] = 0.0
+
+    def _reset(self) -> None:
+        self._deactivate()
+
+    def _shutdown(self) -> None:
+        self._enabled = False
+
+    def _read(self, now: float) -> tuple[Sequence[float], Sequence[float], Sequence[float]]:
+        self._advance(now)
+        out = self._measured
+        rng = self._rng
+        for i, x in enumerate(self._x):
+            sigma = self._noise[i]
+            if sigma > 0.0:
+                x += rng.gauss(0.0, sigma)
+            res = self._resolution[i]
+            if res > 0.0:
+                x = math.floor(x / res + 0.5) * res
+            out[i] = x
+        return out, self._v, self._u
+
+    def _write(self, values: Sequence[float], now: float) -> None:
+        self._advance(now)  # the previous command acts until now (zero-order hold)
+        cmd = self._cmd
+        for i in range(len(cmd)):
+            cmd[i] = values[i]
+
+    # ------------------------------------------------------------------ model
+    def _advance(self, now: float) -> None:
+        t = self._t
+        if t != t:  # first call: the model starts at this instant
+            self._t = now
+            return
+        dt = now - t
+        if dt <= 0.0:
+            return  # a repeated (or backwards) time does not move the model
+        self._t = now
+        steps = math.ceil(dt / self._substep - 1e-9)
+        h = dt / steps
+        enabled = self._enabled
+        position_mode = self.command_interface == "position"
+        x_all, v_all, u_all, cmd = self._x, self._v, self._u, self._cmd
+        for i in range(len(x_all)):
+            x = x_all[i]
+            v = v_all[i]
+            if not enabled:
+                u_all[i] = 0.0
+                if self._brakes or v == 0.0:
+                    v_all[i] = 0.0
+                    continue
+            inv_j = 1.0 / self._inertia[i]
+            b = self._damping[i]
+            lo = self._lo[i]
+            hi = self._hi[i]
+            if enabled and position_mode:
+                kp = self._kp[i]
+                kd = self._kd[i]
+                r = cmd[i]
+                ulim = self._effort_limit[i]
+                u = 0.0
+                for _ in range(steps):
+                    u = kp * (r - x) - kd * v
+                    if u > ulim:
+                        u = ulim
+                    elif u < -ulim:
+                        u = -ulim
+                    v += (u - b * v) * inv_j * h
+                    x += v * h
+                    if x < lo or x > hi:  # end stop
+                        x = lo if x < lo else hi
+                        v = 0.0
+            else:
+                u = cmd[i] if enabled else 0.0
+                for _ in range(steps):
+                    v += (u - b * v) * inv_j * h
+                    x += v * h
+                    if x < lo or x > hi:
+                        x = lo if x < lo else hi
+                        v = 0.0
+            x_all[i] = x
+            v_all[i] = v
+            u_all[i] = u

@@ -1,0 +1,526 @@
+"""Kinematics of one serial chain, on pinocchio: forward, Jacobian, inverse, RCM.
+
+A :class:`Frame` wraps a pinocchio model and one tip frame, expressed in a base frame
+(the model root by default). Poses are 4x4 homogeneous numpy arrays in metres.
+
+Inverse kinematics
+------------------
+Both shipped robots are 3-DOF and position-only, so a target is a 3-vector (or a 4x4 whose
+orientation is ignored when the chain has fewer than 6 DOF). The solver:
+
+1. tries an *analytic* solver registered for the model's name (``occ_slave``: RCM geometry,
+   ``master3``: Cartesian stage). A factory inspects the model and checks its closed form
+   numerically against pinocchio at load time; if the URDF was edited into a shape the
+   closed form does not describe, the factory declines and DLS is used, so a wrong closed
+   form can never silently drive a robot;
+2. otherwise runs damped least squares (Levenberg-Marquardt style,
+   ``dq = J^T (J J^T + lambda^2 I)^-1 e``) with every iterate projected onto the joint limits.
+
+Joint limits: by default a target that needs a joint outside its limits raises
+:class:`~occ.errors.KinematicsError` (naming joint, value and limit). With ``clamp=True`` the
+solution is clamped and :class:`IKResult` reports which joints were clamped and the remaining
+Cartesian error, so a teleoperation controller can hold the workspace boundary.
+
+Performance: ``fk`` reuses one ``pin.Data`` and updates only the tip frame
+(``forwardKinematics`` + ``updateFramePlacement``); a Frame is therefore not thread-safe: use
+one per thread (``Frame.copy()``). See ``benchmarks/bench_frame.py`` for timings.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import pinocchio as pin
+
+from occ.errors import KinematicsError
+
+__all__ = [
+    "Frame",
+    "IKResult",
+    "BUILTIN_MODELS",
+    "register_analytic_ik",
+    "robots_dir",
+]
+
+FloatArray = npt.NDArray[np.float64]
+#: An analytic solver: (target position in the base frame, q0) -> candidate solutions.
+AnalyticSolver = Callable[[FloatArray, FloatArray], list[FloatArray]]
+#: A factory builds a solver for one Frame, or returns None if the model does not fit.
+AnalyticFactory = Callable[["Frame"], AnalyticSolver | None]
+
+#: Shipped models: name -> (URDF file name, tip link).
+BUILTIN_MODELS: dict[str, tuple[str, str]] = {
+    "occ_slave": ("occ_slave.urdf", "tool_tip"),
+    "master3": ("master3.urdf", "handle"),
+}
+
+_ANALYTIC: dict[str, AnalyticFactory] = {}
+_LIMIT_TOL = 1e-12  # a solution this close past a limit is on the limit
+_CHECK_TOL = 1e-9  # metres; closed form vs pinocchio at load time
+
+
+def robots_dir() -> Path:
+    """Directory of the shipped URDFs (``$OCC_ROBOTS_DIR`` overrides ``configs/robots``)."""
+    env = os.environ.get("OCC_ROBOTS_DIR")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parent.parent / "configs" / "robots"
+
+
+def register_analytic_ik(model_name: str, factory: AnalyticFactory) -> None:
+    """Register an analytic IK factory for models whose URDF ``<robot name>`` is ``model_name``."""
+    _ANALYTIC[model_name] = factory
+
+
+@dataclass(frozen=True, slots=True)
+class IKResult:
+    """What :meth:`Frame.solve_ik` found.
+
+    ``error`` is the Cartesian residual (metres for a position task; the norm of the 6-D
+    log error for a pose task) at ``q``; ``clamped`` names the joints held at a limit because
+    the target needed them beyond it (only non-empty with ``clamp=True``).
+    """
+
+    q: FloatArray
+    method: str
+    iterations: int
+    error: float
+    clamped: tuple[str, ...]
+
+
+class Frame:
+    """Kinematics of the chain from ``base_link`` to ``tip_link`` of a pinocchio model.
+
+    DLS settings: ``damping`` (lambda, in the task's units), ``max_iterations``,
+    ``tolerance`` (Cartesian residual that counts as converged, metres).
+    """
+
+    def __init__(
+        self,
+        model: pin.Model,
+        tip_link: str,
+        base_link: str | None = None,
+        *,
+        damping: float = 1e-3,
+        max_iterations: int = 100,
+        tolerance: float = 1e-8,
+    ) -> None:
+        if model.nq != model.nv:
+            raise KinematicsError(
+                f"model {model.name!r}: only revolute/prismatic joints are supported "
+                f"(nq={model.nq} != nv={model.nv})"
+            )
+        if not model.existFrame(tip_link):
+            raise KinematicsError(f"model {model.name!r} has no link {tip_link!r}")
+        if damping < 0.0 or max_iterations < 1 or tolerance <= 0.0:
+            raise ValueError("damping >= 0, max_iterations >= 1 and tolerance > 0 required")
+        self.model: pin.Model = model
+        self.data: pin.Data = model.createData()
+        self.name: str = model.name
+        self.tip_link: str = tip_link
+        self.base_link: str | None = base_link
+        self.damping = float(damping)
+        self.max_iterations = int(max_iterations)
+        self.tolerance = float(tolerance)
+        self._tip_id: int = model.getFrameId(tip_link)
+        self._damping_eye3: FloatArray = self.damping**2 * np.eye(3)
+        self._damping_eye6: FloatArray = self.damping**2 * np.eye(6)
+        self.nq: int = model.nq
+        self.joint_names: tuple[str, ...] = tuple(model.names[1:])
+        self.lower: FloatArray = np.array(model.lowerPositionLimit, dtype=np.float64)
+        self.upper: FloatArray = np.array(model.upperPositionLimit, dtype=np.float64)
+        # Plain-float copies: for 3-6 joints, Python comparisons beat numpy's call overhead.
+        self._lo: list[float] = self.lower.tolist()
+        self._hi: list[float] = self.upper.tolist()
+        self._neutral: FloatArray = self._clip(np.zeros(model.nq))
+
+        # The base must be rigidly attached to the root, so base <- root is a constant.
+        self._base_inv: pin.SE3 | None = None
+        self._base_rot_t: FloatArray | None = None
+        if base_link is not None:
+            if not model.existFrame(base_link):
+                raise KinematicsError(f"model {model.name!r} has no link {base_link!r}")
+            base_frame = model.frames[model.getFrameId(base_link)]
+            if base_frame.parentJoint != 0:
+                raise KinematicsError(
+                    f"base link {base_link!r} moves with joint "
+                    f"{model.names[base_frame.parentJoint]!r}; it must be fixed to the root"
+                )
+            if not base_frame.placement.isIdentity():
+                self._base_inv = base_frame.placement.inverse()
+                self._base_rot_t = np.ascontiguousarray(base_frame.placement.rotation.T)
+
+        self._rcm: FloatArray | None = None
+        if model.existFrame("rcm"):
+            rcm_frame = model.frames[model.getFrameId("rcm")]
+            if rcm_frame.parentJoint == 0:
+                self._rcm = self._to_base_point(np.array(rcm_frame.placement.translation))
+
+        self._analytic: AnalyticSolver | None = None
+        factory = _ANALYTIC.get(self.name)
+        if factory is not None:
+            self._analytic = factory(self)
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_urdf(
+        cls, path: str | os.PathLike[str], tip_link: str, base_link: str | None = None, **kw: Any
+    ) -> Frame:
+        """Load a URDF (pinocchio's parser) and build the chain to ``tip_link``."""
+        path = Path(path)
+        if not path.is_file():
+            raise KinematicsError(f"URDF not found: {path}")
+        try:
+            model = pin.buildModelFromUrdf(str(path))
+        except (RuntimeError, ValueError) as err:
+            raise KinematicsError(f"cannot load URDF {path}: {err}") from err
+        return cls(model, tip_link, base_link, **kw)
+
+    @classmethod
+    def builtin(cls, name: str, **kw: Any) -> Frame:
+        """One of the shipped robots: ``'occ_slave'`` (tip ``tool_tip``) or ``'master3'``
+        (tip ``handle``)."""
+        try:
+            file_name, tip = BUILTIN_MODELS[name]
+        except KeyError as err:
+            raise KinematicsError(
+                f"unknown built-in model {name!r}; known: {', '.join(sorted(BUILTIN_MODELS))}"
+            ) from err
+        return cls.from_urdf(robots_dir() / file_name, tip, **kw)
+
+    def copy(self) -> Frame:
+        """An independent Frame on the same model (its own ``pin.Data``), for another thread."""
+        return Frame(
+            self.model,
+            self.tip_link,
+            self.base_link,
+            damping=self.damping,
+            max_iterations=self.max_iterations,
+            tolerance=self.tolerance,
+        )
+
+    def __repr__(self) -> str:
+        return (
+            f"Frame({self.name!r}, tip={self.tip_link!r}, joints={list(self.joint_names)}, "
+            f"analytic_ik={self.has_analytic_ik})"
+        )
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def has_analytic_ik(self) -> bool:
+        """True when a registered closed form matched this model at load time."""
+        return self._analytic is not None
+
+    @property
+    def rcm(self) -> FloatArray | None:
+        """Remote centre of motion in the base frame, or None.
+
+        Taken from the URDF's fixed ``rcm`` link, else from the RCM analytic solver.
+        """
+        return None if self._rcm is None else self._rcm.copy()
+
+    @property
+    def neutral(self) -> FloatArray:
+        """The zero configuration clamped into the limits: the default IK seed."""
+        return self._neutral.copy()
+
+    def within_limits(self, q: Sequence[float] | FloatArray) -> bool:
+        """True when every joint of ``q`` is inside its limits."""
+        values = q.tolist() if isinstance(q, np.ndarray) else list(q)
+        for v, lo, hi in zip(values, self._lo, self._hi, strict=True):
+            if not (lo - _LIMIT_TOL <= v <= hi + _LIMIT_TOL):
+                return False
+        return True
+
+    def _clip(self, q: FloatArray) -> FloatArray:
+        # np.minimum(np.maximum()) is about 3x faster than np.clip on tiny arrays.
+        return np.minimum(np.maximum(q, self.lower), self.upper)
+
+    # ------------------------------------------------------------------ forward
+    def _q(self, q: Sequence[float] | FloatArray) -> FloatArray:
+        qa = np.asarray(q, dtype=np.float64)
+        if qa.shape != (self.nq,):
+            raise ValueError(f"{self.name}: q must have shape ({self.nq},), got {qa.shape}")
+        return qa
+
+    def _placement(self, q: FloatArray) -> pin.SE3:
+        pin.forwardKinematics(self.model, self.data, q)
+        placement = pin.updateFramePlacement(self.model, self.data, self._tip_id)
+        if self._base_inv is not None:
+            return self._base_inv * placement
+        return placement
+
+    def fk(self, q: Sequence[float] | FloatArray) -> FloatArray:
+        """Tip pose in the base frame, 4x4 homogeneous (metres)."""
+        return self._placement(self._q(q)).homogeneous
+
+    def position(self, q: Sequence[float] | FloatArray) -> FloatArray:
+        """Tip position in the base frame (3,), metres; a little cheaper than ``fk``."""
+        return np.array(self._placement(self._q(q)).translation)
+
+    def jacobian(self, q: Sequence[float] | FloatArray) -> FloatArray:
+        """6 x nq Jacobian of the tip: rows 0-2 linear velocity of the tip point, rows 3-5
+        angular velocity, both expressed in base-frame axes."""
+        qa = self._q(q)
+        jac = pin.computeFrameJacobian(
+            self.model, self.data, qa, self._tip_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+        )
+        if self._base_rot_t is not None:
+            jac = np.vstack((self._base_rot_t @ jac[:3], self._base_rot_t @ jac[3:]))
+        return np.asarray(jac)
+
+    def _to_base_point(self, p_root: FloatArray) -> FloatArray:
+        if self._base_inv is None:
+            return p_root
+        return np.asarray(self._base_inv.act(p_root), dtype=np.float64)
+
+    # ------------------------------------------------------------------ inverse
+    def ik(
+        self,
+        target: Sequence[float] | FloatArray,
+        q0: Sequence[float] | FloatArray | None = None,
+        *,
+        clamp: bool = False,
+        method: str = "auto",
+    ) -> FloatArray:
+        """Joint positions that put the tip at ``target`` (see :meth:`solve_ik`)."""
+        return self.solve_ik(target, q0, clamp=clamp, method=method).q
+
+    def solve_ik(
+        self,
+        target: Sequence[float] | FloatArray,
+        q0: Sequence[float] | FloatArray | None = None,
+        *,
+        clamp: bool = False,
+        method: str = "auto",
+    ) -> IKResult:
+        """Inverse kinematics with a report.
+
+        ``target``: a 3-vector tip position or a 4x4 pose (orientation used only when the
+        chain has 6 or more DOF). ``q0``: seed and tie-breaker (closest analytic branch);
+        default :attr:`neutral`. ``method``: ``'auto'`` (analytic if available), ``'analytic'``
+        or ``'dls'``. Raises :class:`KinematicsError` if the target is unreachable within the
+        limits (unless ``clamp``), or if DLS does not converge.
+        """
+        if method not in ("auto", "analytic", "dls"):
+            raise ValueError(f"method must be 'auto', 'analytic' or 'dls', got {method!r}")
+        tgt = np.asarray(target, dtype=np.float64)
+        pose: pin.SE3 | None = None
+        if tgt.shape == (4, 4):
+            if self.nq >= 6:
+                pose = pin.SE3(tgt)
+            position = np.array(tgt[:3, 3])
+        elif tgt.shape == (3,):
+            position = tgt
+        else:
+            raise ValueError(f"target must be a 3-vector or a 4x4 pose, got shape {tgt.shape}")
+        if not all(math.isfinite(v) for v in tgt.flat):
+            raise ValueError("target must be finite")
+        seed = self.neutral if q0 is None else self._q(q0)
+
+        if pose is None and method != "dls" and self._analytic is not None:
+            return self._solve_analytic(position, seed, clamp)
+        if method == "analytic":
+            raise KinematicsError(f"model {self.name!r}: no analytic IK for this target")
+        return self._solve_dls(position, pose, seed, clamp)
+
+    def _solve_analytic(self, position: FloatArray, seed: FloatArray, clamp: bool) -> IKResult:
+        assert self._analytic is not None
+        candidates = self._analytic(position, seed)
+        inside = [q for q in candidates if self.within_limits(q)]
+        if inside:
+            if len(inside) == 1:
+                best = inside[0]
+            else:
+                s = seed.tolist()
+                best = min(inside, key=lambda q: sum((a - b) ** 2 for a, b in zip(q.tolist(), s)))
+            best = self._clip(best)
+            return IKResult(best, "analytic", 0, self._residual(best, position), ())
+        if not candidates:
+            raise KinematicsError(f"{self.name}: no solution for target {position.tolist()}")
+        best = min(candidates, key=self._violation)
+        if not clamp:
+            raise KinematicsError(
+                f"{self.name}: target {np.round(position, 6).tolist()} unreachable within "
+                f"limits: {self._describe_violation(best)}"
+            )
+        clamped = self._clamped_names(best)
+        q = self._clip(best)
+        return IKResult(q, "analytic", 0, self._residual(q, position), clamped)
+
+    def dls_step(
+        self, q: Sequence[float] | FloatArray, target: Sequence[float] | FloatArray
+    ) -> FloatArray:
+        """One damped-least-squares step toward a 3-vector ``target`` (projected on limits)."""
+        qa = self._q(q)
+        tgt = np.asarray(target, dtype=np.float64)
+        err = tgt - self._placement(qa).translation
+        return self._dls_update(qa, err, None)
+
+    def _dls_update(self, q: FloatArray, err: FloatArray, pose_task: bool | None) -> FloatArray:
+        if pose_task:
+            jac = pin.computeFrameJacobian(
+                self.model, self.data, q, self._tip_id, pin.ReferenceFrame.LOCAL
+            )
+        else:
+            jac = pin.computeFrameJacobian(
+                self.model, self.data, q, self._tip_id, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+            )[:3]
+            if self._base_rot_t is not None:
+                jac = self._base_rot_t @ jac
+        jjt = jac @ jac.T
+        jjt += self._damping_eye6 if pose_task else self._damping_eye3
+        dq = jac.T @ np.linalg.solve(jjt, err)
+        return self._clip(q + dq)
+
+    def _solve_dls(
+        self, position: FloatArray, pose: pin.SE3 | None, seed: FloatArray, clamp: bool
+    ) -> IKResult:
+        q = self._clip(seed)
+        error = math.inf
+        iterations = 0
+        stalled = False
+        for iterations in range(1, self.max_iterations + 1):
+            placement = self._placement(q)
+            if pose is None:
+                err = position - placement.translation
+            else:
+                err = pin.log6(placement.actInv(pose)).vector
+            error = math.sqrt(float(err @ err))
+            if error < self.tolerance:
+                return IKResult(q, "dls", iterations - 1, error, ())
+            q_next = self._dls_update(q, err, pose is not None)
+            if float(np.max(np.abs(q_next - q))) < 1e-14:
+                stalled = True
+                break
+            q = q_next
+        at_limit = self._at_limit_names(q)
+        if stalled and at_limit:
+            if clamp:
+                return IKResult(q, "dls", iterations, error, at_limit)
+            raise KinematicsError(
+                f"{self.name}: target unreachable within limits (DLS stopped at joints "
+                f"{list(at_limit)} on their limits, residual {error:.3g})"
+            )
+        raise KinematicsError(
+            f"{self.name}: DLS did not converge in {iterations} iterations "
+            f"(residual {error:.3g}, tolerance {self.tolerance:.3g})"
+        )
+
+    # ------------------------------------------------------------------ helpers
+    def _residual(self, q: FloatArray, position: FloatArray) -> float:
+        d = self._placement(q).translation - position
+        return math.sqrt(float(d @ d))
+
+    def _violation(self, q: FloatArray) -> float:
+        return float(np.sum(np.maximum(self.lower - q, 0.0) + np.maximum(q - self.upper, 0.0)))
+
+    def _clamped_names(self, q: FloatArray) -> tuple[str, ...]:
+        return tuple(
+            name
+            for name, v, lo, hi in zip(self.joint_names, q, self.lower, self.upper, strict=True)
+            if v < lo - _LIMIT_TOL or v > hi + _LIMIT_TOL
+        )
+
+    def _at_limit_names(self, q: FloatArray) -> tuple[str, ...]:
+        return tuple(
+            name
+            for name, v, lo, hi in zip(self.joint_names, q, self.lower, self.upper, strict=True)
+            if v <= lo + _LIMIT_TOL or v >= hi - _LIMIT_TOL
+        )
+
+    def _describe_violation(self, q: FloatArray) -> str:
+        parts = []
+        for name, v, lo, hi in zip(self.joint_names, q, self.lower, self.upper, strict=True):
+            if v < lo - _LIMIT_TOL or v > hi + _LIMIT_TOL:
+                parts.append(f"joint {name} needs {v:.6g}, limits [{lo:.6g}, {hi:.6g}]")
+        return "; ".join(parts)
+
+
+# ---------------------------------------------------------------------- analytic solvers
+def _check_closed_form(frame: Frame, closed: Callable[[FloatArray], FloatArray]) -> bool:
+    """Compare a closed-form tip position with pinocchio at fixed pseudo-random configurations."""
+    rng = np.random.default_rng(12345)
+    lo = np.where(np.isfinite(frame.lower), frame.lower, -1.0)
+    hi = np.where(np.isfinite(frame.upper), frame.upper, 1.0)
+    for _ in range(8):
+        q = rng.uniform(lo, hi)
+        if np.max(np.abs(frame.position(q) - closed(q))) > _CHECK_TOL:
+            return False
+    return True
+
+
+def _rcm_factory(frame: Frame) -> AnalyticSolver | None:
+    """Closed form of a yaw(z) / pitch(x) / insertion(-z) chain through an RCM point.
+
+    tip = rcm + (d0 + q2) * (-sin q0 sin q1, cos q0 sin q1, -cos q1), where ``rcm`` is the
+    origin of the first joint and ``d0`` the tip's distance past the RCM at zero insertion.
+    Two branches, (yaw, pitch) and (yaw - pi, -pitch); the caller keeps the one in limits.
+    """
+    if frame.nq != 3:
+        return None
+    model = frame.model
+    rcm = frame._to_base_point(np.array(model.jointPlacements[1].translation))
+    tip0 = frame.position(np.zeros(3))
+    d0 = float(rcm[2] - tip0[2])
+
+    def closed(q: FloatArray) -> FloatArray:
+        d = d0 + q[2]
+        s1 = math.sin(q[1])
+        return rcm + d * np.array((-math.sin(q[0]) * s1, math.cos(q[0]) * s1, -math.cos(q[1])))
+
+    if not _check_closed_form(frame, closed):
+        return None
+    if frame._rcm is None:
+        frame._rcm = rcm
+
+    def solve(target: FloatArray, q0: FloatArray) -> list[FloatArray]:
+        wx, wy, wz = (float(v) for v in target - rcm)
+        dist = math.sqrt(wx * wx + wy * wy + wz * wz)
+        if dist < 1e-9:
+            raise KinematicsError(f"{frame.name}: target at the RCM point: direction undefined")
+        insertion = dist - d0
+        radial = math.hypot(wx, wy)
+        if radial < 1e-12 * dist:
+            # On the vertical axis: yaw is free, keep the seed's.
+            pitch = math.atan2(0.0, -wz)
+            return [np.array((float(q0[0]), pitch, insertion))]
+        pitch = math.atan2(radial, -wz)
+        yaw = math.atan2(-wx, wy)
+        yaw_b = yaw - math.pi if yaw > 0.0 else yaw + math.pi
+        return [np.array((yaw, pitch, insertion)), np.array((yaw_b, -pitch, insertion))]
+
+    return solve
+
+
+def _cartesian_factory(frame: Frame) -> AnalyticSolver | None:
+    """Closed form of a chain of prismatic joints: tip = p0 + A q, A constant and invertible."""
+    if frame.nq != 3:
+        return None
+    p0 = frame.position(np.zeros(3))
+    axes = np.column_stack([frame.position(np.eye(3)[i]) - p0 for i in range(3)])
+    if abs(np.linalg.det(axes)) < 1e-12:
+        return None
+    inverse = np.linalg.inv(axes)
+
+    def closed(q: FloatArray) -> FloatArray:
+        return p0 + axes @ q
+
+    if not _check_closed_form(frame, closed):
+        return None
+
+    def solve(target: FloatArray, q0: FloatArray) -> list[FloatArray]:
+        return [inverse @ (target - p0)]
+
+    return solve
+
+
+register_analytic_ik("occ_slave", _rcm_factory)
+register_analytic_ik("master3", _cartesian_factory)

@@ -1,0 +1,325 @@
+"""Driver registry, the base lifecycle and limit policy, and the simulated driver's dynamics."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import pytest
+
+import occ.drivers as drivers
+from occ.drivers import Driver, DriverState, available_drivers, create_driver, register_driver
+from occ.drivers.sim import SimDriver
+from occ.errors import DriverError, LimitError, StateError
+from occ.joint import Joint, JointLimits, PIDGains
+
+
+def joints(n: int = 2, velocity: float = 100.0, gains: PIDGains | None = None) -> list[Joint]:
+    return [
+        Joint(f"j{i}", "revolute", JointLimits(-1.0, 1.0, velocity, 50.0), gains=gains)
+        for i in range(n)
+    ]
+
+
+class MirrorDriver(Driver):
+    """ros2_control's mock system: commands become states. Records hook calls."""
+
+    supported_interfaces = ("position", "effort")
+
+    def __init__(self, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+        super().__init__(*args, **kwargs)
+        self.calls: list[str] = []
+        self.last: list[float] = [j.home for j in self.joints]
+        self.fail_read = False
+
+    def _configure(self) -> None:
+        self.calls.append("configure")
+
+    def _activate(self) -> None:
+        self.calls.append("activate")
+
+    def _deactivate(self) -> None:
+        self.calls.append("deactivate")
+
+    def _shutdown(self) -> None:
+        self.calls.append("shutdown")
+
+    def _read(self, now: float) -> tuple[Sequence[float], Sequence[float], Sequence[float]]:
+        if self.fail_read:
+            raise OSError("bus gone")
+        n = len(self.last)
+        return self.last, [0.0] * n, [0.0] * n
+
+    def _write(self, values: Sequence[float], now: float) -> None:
+        self.last = list(values)
+
+
+# ---------------------------------------------------------------------------- registry
+def test_registry_builtins_and_unknown_name() -> None:
+    names = available_drivers()
+    assert {"sim", "can"} <= set(names)
+    with pytest.raises(DriverError, match="known: .*sim"):
+        create_driver("nope", "x", joints())
+
+
+def test_register_driver_class_and_lazy_string() -> None:
+    register_driver("mirror", MirrorDriver)
+    d = create_driver("mirror", "m", joints())
+    assert isinstance(d, MirrorDriver) and "mirror" in available_drivers()
+    register_driver("lazy_mirror", "tests.occ.test_drivers:MirrorDriver")
+    assert drivers.load_driver_class("lazy_mirror").__name__ == "MirrorDriver"
+    register_driver("broken", "no_such_module_xyz:Driver")
+    with pytest.raises(DriverError, match="cannot import") as info:
+        create_driver("broken", "b", joints())
+    assert isinstance(info.value.__cause__, ImportError)
+    with pytest.raises(ValueError):
+        register_driver("bad", "not-a-target")
+
+
+def test_entry_points_are_read_lazily(monkeypatch: pytest.MonkeyPatch) -> None:
+    from importlib.metadata import EntryPoint
+
+    fake = [
+        EntryPoint("extdrv", "tests.occ.test_drivers:MirrorDriver", "occ.drivers"),
+        EntryPoint("sim", "evil:Driver", "occ.drivers"),  # may not shadow a built-in
+    ]
+    monkeypatch.setattr(drivers, "_entry_point_table", None)
+    monkeypatch.setattr(drivers, "entry_points", lambda group: fake)
+    assert "extdrv" in available_drivers()
+    assert drivers.load_driver_class("extdrv") is MirrorDriver
+    assert drivers.load_driver_class("sim") is SimDriver
+
+
+# ---------------------------------------------------------------------------- lifecycle
+def test_lifecycle_and_state_errors() -> None:
+    d = MirrorDriver("m", joints())
+    assert d.state is DriverState.UNCONFIGURED
+    with pytest.raises(StateError):
+        d.read(0.0)
+    with pytest.raises(StateError):
+        d.activate()
+    d.configure()
+    d.read(0.0)  # INACTIVE: states readable
+    with pytest.raises(StateError, match="refused"):
+        d.write([0.0, 0.0], 0.0)
+    d.activate()
+    d.write([0.0, 0.0], 0.001)
+    d.deactivate()
+    assert d.state is DriverState.INACTIVE
+    d.shutdown()
+    d.shutdown()  # safe twice
+    assert d.state is DriverState.SHUTDOWN
+    assert d.calls == ["configure", "activate", "deactivate", "shutdown"]
+    assert d.stats() == {"reads": 1, "writes": 1, "limit_events": 0, "errors": 0}
+
+
+def test_context_manager_shuts_down_active_driver() -> None:
+    with MirrorDriver("m", joints()) as d:
+        d.configure()
+        d.activate()
+    assert d.state is DriverState.SHUTDOWN and d.calls[-2:] == ["deactivate", "shutdown"]
+
+
+def test_hook_error_latches_fault_until_reset() -> None:
+    d = MirrorDriver("m", joints())
+    d.configure()
+    d.activate()
+    d.fail_read = True
+    with pytest.raises(DriverError, match="read failed") as info:
+        d.read(0.0)
+    assert isinstance(info.value.__cause__, OSError)
+    assert d.state is DriverState.FAULT and "bus gone" in (d.fault_reason or "")
+    assert d.calls[-1] == "deactivate"  # hardware told to stop on fault
+    with pytest.raises(StateError, match="reset"):
+        d.activate()
+    d.fail_read = False
+    d.reset()
+    assert d.state is DriverState.INACTIVE and d.stats()["errors"] == 1
+    d.activate()
+    d.shutdown()
+
+
+def test_bad_arguments() -> None:
+    with pytest.raises(ValueError):
+        MirrorDriver("m", joints(), on_limit="ignore")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="PID gains"):
+        MirrorDriver("m", joints(), command_interface="effort")
+    with pytest.raises(ValueError, match="duplicate"):
+        MirrorDriver("m", [Joint("a"), Joint("a")])
+    d = MirrorDriver("m", joints())
+    d.configure()
+    d.activate()
+    with pytest.raises(ValueError, match="expected 2"):
+        d.write([0.0], 0.0)
+    d.shutdown()
+
+
+# ---------------------------------------------------------------------------- limits
+def active(on_limit: str, velocity: float = 100.0) -> MirrorDriver:
+    d = MirrorDriver("m", joints(velocity=velocity), on_limit=on_limit)  # type: ignore[arg-type]
+    d.configure()
+    d.read(0.0)
+    d.activate()
+    return d
+
+
+def test_clamp_position_counts_events() -> None:
+    d = active("clamp")
+    d.write([1.5, -0.5], 0.001)
+    assert d.last == [pytest.approx(0.1), -0.1]  # position clamp, then velocity ramp 100 rad/s
+    d = active("clamp", velocity=1e6)
+    d.write([1.5, -2.0], 0.001)
+    assert d.last == [1.0, -1.0] and d.stats()["limit_events"] == 2
+    assert d.joints[0].command_position == 1.0
+
+
+def test_clamp_velocity_against_previous_setpoint() -> None:
+    d = active("clamp", velocity=1.0)  # 1 rad/s -> 1 mrad per 1 ms tick
+    d.write([0.0, 0.0], 0.001)
+    d.write([0.5, -0.0005], 0.002)
+    assert d.last[0] == pytest.approx(0.001) and d.last[1] == pytest.approx(-0.0005)
+    d.write([0.5, 0.0], 0.004)  # 2 ms later: 2 mrad allowed
+    assert d.last[0] == pytest.approx(0.003)
+    assert d.stats()["limit_events"] == 2
+
+
+def test_fault_policy_raises_limit_error_and_latches() -> None:
+    d = active("fault")
+    with pytest.raises(LimitError, match=r"joint j1: position 1\.2 outside limits \[-1, 1\]"):
+        d.write([0.0, 1.2], 0.001)
+    assert d.state is DriverState.FAULT
+    with pytest.raises(StateError):
+        d.write([0.0, 0.0], 0.002)
+    d.reset()
+    d.activate()
+    d.write([0.0, 0.0], 0.003)
+    with pytest.raises(LimitError, match="velocity 500 exceeds limit 100"):
+        d.write([0.5, 0.0], 0.004)
+
+
+def test_first_write_after_activation_is_checked_against_measurement() -> None:
+    d = active("fault")
+    with pytest.raises(LimitError, match="velocity"):
+        d.write([0.9, 0.0], 0.0)  # 0.9 rad in one 1 ms period from the measured 0
+
+
+def test_non_finite_setpoint_always_faults() -> None:
+    d = active("clamp")
+    with pytest.raises(LimitError):
+        d.write([math.nan, 0.0], 0.001)
+    assert d.state is DriverState.FAULT
+
+
+def test_effort_interface_uses_joint_pid() -> None:
+    gains = PIDGains(kp=10.0)
+    d = MirrorDriver("m", joints(gains=gains), command_interface="effort")
+    d.configure()
+    d.read(0.0)
+    d.activate()
+    d.write([0.05, -0.02], 0.001)
+    assert d.last == [pytest.approx(0.5), pytest.approx(-0.2)]
+
+
+# ---------------------------------------------------------------------------- sim dynamics
+def run_step(params: dict, step: float = 0.01, ticks: int = 400) -> tuple[list[float], SimDriver]:
+    js = joints(1)
+    d = create_driver("sim", "sim", js, params)
+    assert isinstance(d, SimDriver)
+    d.configure()
+    d.read(0.0)
+    d.activate()
+    trace = []
+    for k in range(ticks):
+        now = k * 0.001
+        d.read(now)
+        trace.append(js[0].position)
+        d.write([step], now)
+    d.shutdown()
+    return trace, d
+
+
+def settling_time(trace: list[float], final: float, band: float) -> float:
+    last_out = max(i for i, x in enumerate(trace) if abs(x - final) > band * abs(final))
+    return (last_out + 1) * 0.001
+
+
+@pytest.mark.parametrize("bandwidth", [5.0, 10.0, 20.0])
+def test_sim_step_settles_at_bandwidth_implied_time(bandwidth: float) -> None:
+    # Critically damped 2nd order: 2 % settling at wn * t = 5.834 (1 - (1 + x) e^-x = 0.98).
+    trace, _ = run_step({"bandwidth_hz": bandwidth, "encoder_resolution": 0.0}, ticks=600)
+    expected = 5.834 / (2 * math.pi * bandwidth)
+    assert settling_time(trace, 0.01, 0.02) == pytest.approx(expected, rel=0.06)
+    assert max(trace) <= 0.01 * 1.001  # no overshoot at zeta = 1
+
+
+def test_sim_underdamped_overshoot() -> None:
+    trace, _ = run_step({"damping_ratio": 0.5, "encoder_resolution": 0.0})
+    overshoot = max(trace) / 0.01 - 1.0
+    assert overshoot == pytest.approx(math.exp(-math.pi * 0.5 / math.sqrt(0.75)), abs=0.01)
+
+
+def test_sim_encoder_quantisation() -> None:
+    trace, d = run_step({"encoder_resolution": 0.001}, step=0.0123)
+    assert all(abs(x / 0.001 - round(x / 0.001)) < 1e-9 for x in trace)
+    assert trace[-1] == pytest.approx(0.012)
+    assert d.true_positions[0] == pytest.approx(0.0123, abs=1e-6)
+
+
+def test_sim_deterministic_with_seed_and_simulated_clock() -> None:
+    a, _ = run_step({"noise_std": 1e-4, "seed": 7})
+    b, _ = run_step({"noise_std": 1e-4, "seed": 7})
+    c, _ = run_step({"noise_std": 1e-4, "seed": 8})
+    assert a == b and a != c
+
+
+def test_sim_substeps_make_large_dt_equivalent() -> None:
+    js = joints(1)
+    d = SimDriver("s", js, {"encoder_resolution": 0.0})
+    d.configure()
+    d.read(0.0)
+    d.activate()
+    d.write([0.01], 0.0)
+    d.read(0.5)  # one big jump: integrated in substeps, stays stable
+    assert js[0].position == pytest.approx(0.01, abs=1e-5)
+    assert d.substep <= 0.0005
+
+
+def test_sim_effort_interface_tracks_with_pid() -> None:
+    gains = PIDGains(kp=4.0, ki=2.0, kd=0.2)
+    js = joints(1, gains=gains)
+    d = create_driver("sim", "s", js, {"command_interface": "effort", "encoder_resolution": 0.0})
+    d.configure()
+    d.read(0.0)
+    d.activate()
+    for k in range(2000):
+        d.read(k * 0.001)
+        d.write([0.1], k * 0.001)
+    assert js[0].position == pytest.approx(0.1, abs=2e-3)
+    d.shutdown()
+
+
+def test_sim_brakes_hold_when_inactive_and_params_are_validated() -> None:
+    js = joints(1)
+    d = SimDriver("s", js, {"initial_positions": [0.3], "encoder_resolution": 0.0})
+    d.configure()
+    d.read(0.0)
+    d.read(1.0)
+    assert js[0].position == 0.3 and js[0].velocity == 0.0
+    with pytest.raises(ValueError, match="unknown params"):
+        SimDriver("s", joints(1), {"bandwidth": 3})
+    with pytest.raises(ValueError, match="expected 1 values"):
+        SimDriver("s", joints(1), {"inertia": [1.0, 2.0]})
+
+
+def test_sim_per_joint_mapping_params() -> None:
+    js = [
+        Joint("rot", "revolute", JointLimits(-1.0, 1.0, 100.0, 50.0)),
+        Joint("lin", "prismatic", JointLimits(0.0, 0.1, 1.0, 50.0)),
+    ]
+    params = {"encoder_resolution": {"rot": 0.01}, "initial_positions": {"lin": 0.05}}
+    d = SimDriver("s", js, params)
+    d.configure()
+    d.read(0.0)
+    assert js[0].position == 0.0 and js[1].position == pytest.approx(0.05)
+    assert d._resolution == [0.01, 1e-6]
+    d.shutdown()

@@ -1,0 +1,162 @@
+"""Frame: forward kinematics, Jacobian, analytic vs DLS inverse kinematics, limits, RCM."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from occ.errors import KinematicsError
+from occ.frame import Frame, robots_dir
+
+RCM_HEIGHT = 0.30
+TIP_PAST_RCM = 0.02
+
+
+@pytest.fixture(scope="module")
+def slave() -> Frame:
+    return Frame.builtin("occ_slave")
+
+
+@pytest.fixture(scope="module")
+def master() -> Frame:
+    return Frame.builtin("master3")
+
+
+def expected_slave_tip(yaw: float, pitch: float, insertion: float) -> np.ndarray:
+    d = TIP_PAST_RCM + insertion
+    return np.array(
+        (-math.sin(yaw) * math.sin(pitch) * d, math.cos(yaw) * math.sin(pitch) * d,
+         RCM_HEIGHT - math.cos(pitch) * d)
+    )
+
+
+def random_q(frame: Frame, n: int, seed: int = 1) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(frame.lower, frame.upper, size=(n, frame.nq))
+
+
+def test_models_load_with_limits(slave: Frame, master: Frame) -> None:
+    assert slave.joint_names == ("yaw", "pitch", "insertion")
+    np.testing.assert_allclose(slave.lower, [-math.pi / 3, -math.pi / 3, 0.0])
+    np.testing.assert_allclose(slave.upper, [math.pi / 3, math.pi / 3, 0.15])
+    assert master.joint_names == ("x", "y", "z")
+    assert slave.has_analytic_ik and master.has_analytic_ik
+    np.testing.assert_allclose(slave.rcm, [0.0, 0.0, RCM_HEIGHT])
+    assert master.rcm is None
+
+
+def test_fk_known_poses(slave: Frame, master: Frame) -> None:
+    home = slave.fk([0.0, 0.0, 0.0])
+    np.testing.assert_allclose(home[:3, 3], [0, 0, RCM_HEIGHT - TIP_PAST_RCM], atol=1e-12)
+    np.testing.assert_allclose(home[:3, :3], np.eye(3), atol=1e-12)
+    # Pitch +90 deg about x swings the tool axis (-z) to +y.
+    pose = slave.fk([0.0, math.pi / 2, 0.08])
+    np.testing.assert_allclose(pose[:3, 3], [0, 0.10, RCM_HEIGHT], atol=1e-12)
+    for q in random_q(slave, 20):
+        np.testing.assert_allclose(slave.fk(q)[:3, 3], expected_slave_tip(*q), atol=1e-12)
+        # The tool axis always passes through the RCM.
+        tip = slave.position(q)
+        axis = slave.fk(q)[:3, 2]
+        np.testing.assert_allclose(np.cross(tip - slave.rcm, axis), 0.0, atol=1e-12)
+    np.testing.assert_allclose(master.fk([0.05, -0.02, 0.1])[:3, 3], [0.05, -0.02, 0.35])
+    with pytest.raises(ValueError):
+        slave.fk([0.0, 0.0])
+
+
+def test_jacobian_matches_finite_differences(slave: Frame) -> None:
+    q = np.array([0.3, -0.4, 0.07])
+    jac = slave.jacobian(q)
+    assert jac.shape == (6, 3)
+    eps = 1e-7
+    for i in range(3):
+        dq = np.zeros(3)
+        dq[i] = eps
+        numeric = (slave.position(q + dq) - slave.position(q - dq)) / (2 * eps)
+        np.testing.assert_allclose(jac[:3, i], numeric, atol=1e-7)
+
+
+@pytest.mark.parametrize("name", ["occ_slave", "master3"])
+def test_analytic_equals_dls_on_random_reachable_targets(name: str) -> None:
+    frame = Frame.builtin(name)
+    for q in random_q(frame, 25, seed=3):
+        target = frame.position(q)
+        analytic = frame.solve_ik(target)
+        dls = frame.solve_ik(target, method="dls")
+        assert analytic.method == "analytic" and dls.method == "dls"
+        np.testing.assert_allclose(analytic.q, q, atol=1e-9)
+        np.testing.assert_allclose(dls.q, analytic.q, atol=1e-6)
+        assert analytic.error < 1e-12 and dls.error < frame.tolerance
+        # fk(ik(x)) == x
+        np.testing.assert_allclose(frame.position(frame.ik(target)), target, atol=1e-12)
+
+
+def test_ik_accepts_a_pose_and_picks_branch_in_limits(slave: Frame) -> None:
+    q = np.array([-0.9, 0.5, 0.1])
+    pose = slave.fk(q)
+    np.testing.assert_allclose(slave.ik(pose), q, atol=1e-9)
+    # Directly below the RCM yaw is free: the seed's yaw is kept.
+    q_down = slave.ik([0.0, 0.0, RCM_HEIGHT - 0.1], q0=[0.4, 0.0, 0.0])
+    np.testing.assert_allclose(q_down, [0.4, 0.0, 0.08], atol=1e-12)
+
+
+def test_unreachable_targets_raise(slave: Frame, master: Frame) -> None:
+    too_deep = [0.0, 0.0, RCM_HEIGHT - 0.5]  # insertion 0.48 > 0.15
+    with pytest.raises(KinematicsError, match=r"joint insertion needs 0\.48"):
+        slave.ik(too_deep)
+    with pytest.raises(KinematicsError, match="unreachable"):
+        slave.ik(too_deep, method="dls")
+    beside = expected_slave_tip(0.0, 1.4, 0.05)  # pitch 1.4 rad > 60 deg
+    with pytest.raises(KinematicsError, match="joint pitch"):
+        slave.ik(beside)
+    with pytest.raises(KinematicsError):
+        slave.ik([0.0, 0.0, RCM_HEIGHT])  # the RCM itself
+    with pytest.raises(KinematicsError, match="joint x"):
+        master.ik([0.5, 0.0, 0.25])
+
+
+def test_clamp_reports_limited_joints(slave: Frame, master: Frame) -> None:
+    result = slave.solve_ik([0.0, 0.0, RCM_HEIGHT - 0.5], clamp=True)
+    assert result.clamped == ("insertion",)
+    np.testing.assert_allclose(result.q, [0.0, 0.0, 0.15], atol=1e-12)
+    assert result.error == pytest.approx(0.5 - 0.17)
+    assert slave.within_limits(result.q)
+    dls = slave.solve_ik([0.0, 0.0, RCM_HEIGHT - 0.5], clamp=True, method="dls")
+    assert "insertion" in dls.clamped and dls.q[2] == pytest.approx(0.15)
+    res = master.solve_ik([0.5, 0.0, 0.25], clamp=True)
+    assert res.clamped == ("x",) and res.q[0] == 0.1
+
+
+def test_from_urdf_with_base_link_and_errors(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    frame = Frame.from_urdf(robots_dir() / "occ_slave.urdf", "tool_tip", base_link="rcm")
+    np.testing.assert_allclose(frame.rcm, [0, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(frame.position([0, 0, 0]), [0, 0, -TIP_PAST_RCM], atol=1e-12)
+    q = np.array([0.2, 0.3, 0.1])
+    np.testing.assert_allclose(frame.ik(frame.position(q)), q, atol=1e-9)
+    with pytest.raises(KinematicsError, match="no link"):
+        Frame.from_urdf(robots_dir() / "occ_slave.urdf", "nope")
+    with pytest.raises(KinematicsError, match="must be fixed"):
+        Frame.from_urdf(robots_dir() / "occ_slave.urdf", "tool_tip", base_link="yaw_link")
+    with pytest.raises(KinematicsError, match="not found"):
+        Frame.from_urdf(tmp_path / "missing.urdf", "tip")
+    bad = tmp_path / "bad.urdf"
+    bad.write_text("<robot name='x'><link name='a'></robot>")
+    with pytest.raises(KinematicsError, match="cannot load") as info:
+        Frame.from_urdf(bad, "a")
+    assert info.value.__cause__ is not None
+    with pytest.raises(KinematicsError, match="known: master3, occ_slave"):
+        Frame.builtin("nope")
+
+
+def test_dls_six_dof_pose_and_non_convergence() -> None:
+    model = pin.buildSampleModelManipulator()
+    frame = Frame(model, model.frames[-1].name)
+    assert not frame.has_analytic_ik
+    q = np.array([0.3, -0.2, 0.4, 0.1, 0.5, -0.3])
+    pose = frame.fk(q)
+    result = frame.solve_ik(pose, q0=q + 0.1)
+    np.testing.assert_allclose(frame.fk(result.q), pose, atol=1e-6)
+    strict = Frame(model, model.frames[-1].name, max_iterations=1)
+    with pytest.raises(KinematicsError, match="did not converge"):
+        strict.ik(pose, q0=q + 0.3)

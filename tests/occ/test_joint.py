@@ -1,0 +1,98 @@
+"""Joint, JointLimits and the PID servo law."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from occ.joint import Joint, JointLimits, PIDGains
+
+
+def make_joint(**gains: float) -> Joint:
+    return Joint(
+        "j1", "revolute", JointLimits(-1.0, 1.0, velocity=2.0, effort=5.0), home=0.0,
+        gains=PIDGains(**gains) if gains else None,
+    )
+
+
+def test_limits_validate_and_clamp() -> None:
+    lim = JointLimits(-0.5, 0.5, 1.0, 2.0)
+    assert lim.clamp(0.7) == 0.5 and lim.clamp(-0.7) == -0.5 and lim.clamp(0.1) == 0.1
+    assert lim.contains(0.5) and not lim.contains(math.nan)
+    with pytest.raises(ValueError):
+        JointLimits(1.0, -1.0)
+    with pytest.raises(ValueError):
+        JointLimits(-1.0, 1.0, velocity=0.0)
+    with pytest.raises(ValueError):
+        PIDGains(kp=-1.0)
+
+
+def test_joint_construction_and_state() -> None:
+    j = Joint("ins", "prismatic", JointLimits(0.0, 0.15), home=0.05)
+    assert j.position == 0.05 and not j.measured and math.isnan(j.command_position)
+    j.set_measured(0.06, 0.01, 1.5, now=2.0)
+    assert (j.position, j.velocity, j.effort, j.measured, j.stamp) == (0.06, 0.01, 1.5, True, 2.0)
+    with pytest.raises(ValueError):
+        Joint("bad", "spherical")  # type: ignore[arg-type]
+    with pytest.raises(ValueError):
+        Joint("x", "prismatic", JointLimits(0.0, 0.1), home=0.2)
+
+
+def test_servo_without_gains_is_a_configuration_error() -> None:
+    with pytest.raises(ValueError, match="no PID gains"):
+        make_joint().servo(0.1, 0.001)
+
+
+def test_proportional_and_output_limit() -> None:
+    j = make_joint(kp=10.0)
+    assert j.servo(0.1, 0.001) == pytest.approx(1.0)
+    # Output is bounded by the joint's effort limit (5) even if out_limit is larger.
+    assert j.servo(1.0, 0.001) == pytest.approx(5.0)
+    j2 = make_joint(kp=10.0, out_limit=2.0)
+    assert j2.servo(-1.0, 0.001) == pytest.approx(-2.0)
+
+
+def test_derivative_on_measurement_has_no_setpoint_kick() -> None:
+    j = make_joint(kp=0.0, kd=1.0)
+    j.position = 0.0
+    assert j.servo(0.0, 0.001) == 0.0  # first call: no previous measurement
+    # A setpoint step with the joint standing still gives no derivative action...
+    assert j.servo(0.5, 0.001) == 0.0
+    # ...but motion of the joint is damped: d/dt(position) = 0.001/0.001 = 1 -> -kd * 1.
+    j.position = 0.001
+    assert j.servo(0.5, 0.001) == pytest.approx(-1.0)
+
+
+def test_integral_limit_and_conditional_integration() -> None:
+    j = make_joint(kp=0.0, ki=100.0, i_limit=0.3)
+    for _ in range(100):
+        out = j.servo(0.1, 0.001)
+    assert out == pytest.approx(0.3)  # integral term clamped to i_limit
+
+    # Saturated output: the integrator must not wind up while saturated.
+    j = make_joint(kp=100.0, ki=100.0)  # kp * 1.0 = 100 >> effort limit 5
+    for _ in range(1000):
+        assert j.servo(1.0, 0.001) == pytest.approx(5.0)
+    assert j._integral == 0.0  # frozen while saturated in the error's direction
+    # Once the error reverses, the output leaves saturation immediately.
+    assert j.servo(-0.01, 0.001) < 0.0
+
+
+def test_reset_servo_clears_memory() -> None:
+    j = make_joint(kp=0.0, ki=10.0, kd=1.0)
+    for _ in range(10):
+        j.servo(0.2, 0.01)
+    assert j._integral > 0.0
+    j.reset_servo()
+    assert j._integral == 0.0 and math.isnan(j.command_effort)
+    assert j.servo(0.0, 0.01) == 0.0
+
+
+def test_zero_dt_uses_p_and_held_integral_only() -> None:
+    j = make_joint(kp=2.0, ki=10.0, kd=5.0)
+    j.servo(0.1, 0.01)
+    held = j._integral
+    j.position = 0.05
+    out = j.servo(0.1, 0.0)
+    assert out == pytest.approx(2.0 * 0.05 + held)
