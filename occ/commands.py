@@ -155,9 +155,9 @@ def error_reply(
         cls = REGISTRY.get(rts)
         if cls is not None and getattr(cls, "NEEDS_TYPE_NAME", False):
             try:
-                return cls(message_type=rts, status=1, device_name=msg.device_name,
+                return cls(type_name=rts, status=1, device_name=msg.device_name,
                            header_version=msg.header_version, timestamp=timestamp)
-            except TypeError:
+            except (TypeError, ValueError):
                 pass
     return igtl.StatusMessage(
         code=int(code),

@@ -285,7 +285,7 @@ class SlaveController(Controller):
         self.samples += 1
         self.last_seq = msg.message_id
         self.last_sample_t = item.t_rx
-        self.pending_ts = msg.timestamp
+        self.pending_ts = msg.timestamp if msg.timestamp > 0.0 else None
         self.master_pos = np.array(pos, dtype=float) * MM
         run = msg.metadata.get("run", "1") == "1"
         clutch = msg.metadata.get("clutch", "0") == "1"
