@@ -3,7 +3,7 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="${OCC_VENV:-$ROOT/.venv}"
 PY="${PYTHON:-python3}"
-EXTRAS="${1:-}"
+EXTRAS="${OCC_EXTRAS:-}"
 if [ ! -x "$VENV/bin/python" ]; then
     echo "[setup] creating virtual environment $VENV"
     "$PY" -m venv "$VENV"
