@@ -331,6 +331,25 @@ class InterfaceManager:
                 log.exception("interface %s: error while stopping", iface.name)
         self._started = False
 
+    def set_thread_priority(self, priority: int) -> str:
+        """SCHED_FIFO ``priority`` for every interface's I/O thread; returns what applied."""
+        import os
+
+        done, failed = [], []
+        for iface in self.interfaces.values():
+            thread = getattr(iface.transport, "thread", None) or getattr(iface.transport, "_thread", None)
+            tid = getattr(thread, "native_id", None)
+            if tid is None:
+                failed.append(f"{iface.name} (no thread)")
+                continue
+            try:
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+                done.append(iface.name)
+            except (OSError, AttributeError) as err:
+                failed.append(f"{iface.name} ({err.__class__.__name__})")
+        text = f"SCHED_FIFO {priority} on {', '.join(done) or 'none'}"
+        return text + (f"; refused for {', '.join(failed)}" if failed else "")
+
     def on_connect(self, listener: Callable[[Interface, Peer], None]) -> None:
         self._connect_listeners.append(listener)
 

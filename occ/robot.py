@@ -299,8 +299,17 @@ class Robot:
         self.state_machine.request("configure", "configured")
 
     def activate(self) -> None:
-        """Start the network interfaces."""
+        """Start the network interfaces.
+
+        When the loop runs SCHED_FIFO, the interface threads get SCHED_FIFO one priority below
+        it: otherwise a busy machine can leave a datagram in the socket buffer for milliseconds
+        (measured here: 7 ms gaps under load), which the loss monitor rightly calls a loss.
+        """
         self.interfaces.start()
+        prio = self.config.robot.realtime.fifo_priority
+        if prio:
+            report = self.interfaces.set_thread_priority(max(1, prio - 1))
+            log.info("interface threads: %s", report)
 
     def run(self, duration: float | None = None, ticks: int | None = None) -> LoopStats:
         return self.loop.run(duration=duration, ticks=ticks)

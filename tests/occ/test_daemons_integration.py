@@ -1,0 +1,163 @@
+"""Real-time integration on loopback: occd slave + occd master processes + the Slicer stand-in.
+
+Checks behaviour, not timing numbers (this machine is shared): the tip streams to the stand-in
+at about 10 Hz, the slave follows the master, operator commands work over IGTL, and killing the
+master stops the slave with a STATUS alert naming the cause. Benchmarks measure the numbers.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "tools"))
+
+from slicer_standin import SlicerStandIn  # noqa: E402
+
+pytestmark = pytest.mark.realtime
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def write_configs(tmp: Path) -> dict[str, int]:
+    ports = {"slave_tcp": free_port(), "slave_udp": free_port(socket.SOCK_DGRAM), "master_tcp": free_port()}
+    slave = yaml.safe_load((ROOT / "configs" / "slave.yaml").read_text())
+    master = yaml.safe_load((ROOT / "configs" / "master.yaml").read_text())
+    for itf in slave["interfaces"]:
+        itf["port"] = ports["slave_tcp"] if itf["transport"] == "tcp-server" else ports["slave_udp"]
+    for itf in master["interfaces"]:
+        if itf["transport"] == "tcp-server":
+            itf["port"] = ports["master_tcp"]
+        else:
+            itf["remote"] = f"127.0.0.1:{ports['slave_udp']}"
+    (tmp / "slave.yaml").write_text(yaml.safe_dump(slave))
+    (tmp / "master.yaml").write_text(yaml.safe_dump(master))
+    return ports
+
+
+def start(cfg: Path, stats: Path, *extra: str) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "occ.cli", str(cfg), "--stats", str(stats), "--log-level", "WARNING", *extra],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )
+
+
+def wait_port(port: int, timeout: float = 20.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return True
+        time.sleep(0.05)
+    return False
+
+
+def wait_for(pred, timeout: float) -> bool:  # type: ignore[no-untyped-def]
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+@pytest.fixture
+def daemons(tmp_path: Path):  # type: ignore[no-untyped-def]
+    ports = write_configs(tmp_path)
+    procs: list[subprocess.Popen[bytes]] = []
+    slave = start(tmp_path / "slave.yaml", tmp_path / "slave.json")
+    procs.append(slave)
+    assert wait_port(ports["slave_tcp"]), slave.stderr.read().decode() if slave.poll() is not None else "slave did not listen"
+    master = start(tmp_path / "master.yaml", tmp_path / "master.json", "--start", "running")
+    procs.append(master)
+    assert wait_port(ports["master_tcp"]), "master did not listen"
+    yield ports, slave, master, tmp_path
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    for p in procs:
+        try:
+            p.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+def test_slicer_sees_tip_follow_master_and_dead_master_stops_slave(daemons) -> None:  # type: ignore[no-untyped-def]
+    ports, slave, master, tmp = daemons
+    with SlicerStandIn("127.0.0.1", ports["slave_tcp"]) as s:
+        assert s.connected.wait(5.0)
+        # operator: Enable + Run over COMMAND / RTS_COMMAND
+        for name in ("Enable", "Run"):
+            cid = s.send_command(name)
+            reply = s.wait_reply(cid, 5.0)
+            assert reply is not None and reply.metadata["Status"] == "SUCCESS", reply
+        assert wait_for(lambda: len(s.arrivals.get("Tip", [])) >= 20, 10.0)
+        first = s.last["Tip"].translation
+        # the master's simulated hand moves 50 mm at 0.1 Hz, scaled 10:1: the tip moves
+        assert wait_for(lambda: max(abs(a - b) for a, b in zip(s.last["Tip"].translation, first)) > 0.3, 10.0)
+        summary = s.summary()
+        assert 5.0 < summary["Tip"]["rate_hz"] < 15.0
+        # kill the master: the slave stops and tells the operator why
+        master.send_signal(signal.SIGKILL)
+        assert wait_for(
+            lambda: any(st.error_name == "STOPPED" and "packet loss" in st.status_message for st in s.statuses),
+            5.0,
+        ), [f"{st.error_name}: {st.status_message}" for st in s.statuses]
+        # GetState confirms, and nothing moves any more
+        cid = s.send_command("GetState")
+        reply = s.wait_reply(cid, 5.0)
+        assert reply is not None and "STOPPED" in reply.metadata["Message"]
+
+
+def test_occd_check_and_bad_config(tmp_path: Path) -> None:
+    ok = subprocess.run([sys.executable, "-m", "occ.cli", "--check", str(ROOT / "configs" / "slave.yaml")],
+                        capture_output=True, text=True, timeout=60)
+    assert ok.returncode == 0, ok.stderr
+    bad = tmp_path / "bad.yaml"
+    bad.write_text((ROOT / "configs" / "slave.yaml").read_text().replace("rate_hz: 1000", "rate_hz: fast"))
+    res = subprocess.run([sys.executable, "-m", "occ.cli", "--check", str(bad)], capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == 2
+    assert "robot.rate_hz" in res.stderr and "bad.yaml:" in res.stderr
+
+
+def test_sigterm_stops_cleanly_and_writes_stats(tmp_path: Path) -> None:
+    write_configs(tmp_path)
+    p = start(tmp_path / "slave.yaml", tmp_path / "s.json")
+    try:
+        cfg = yaml.safe_load((tmp_path / "slave.yaml").read_text())
+        assert wait_port(cfg["interfaces"][0]["port"])
+        # the loop is running once the 10 Hz Tip stream flows
+        with SlicerStandIn("127.0.0.1", cfg["interfaces"][0]["port"]) as s:
+            assert wait_for(lambda: len(s.arrivals.get("Tip", [])) >= 2, 10.0)
+        p.send_signal(signal.SIGTERM)
+        assert p.wait(timeout=15) == 0
+    finally:
+        if p.poll() is None:
+            p.kill()
+    import json
+
+    d = json.loads((tmp_path / "s.json").read_text())
+    for key in ("ticks", "rate_hz", "lateness_us", "compute_us", "late_over_1ms", "overruns",
+                "cpu_percent", "interfaces"):
+        assert key in d
+    for key in ("p50", "p99", "p99_9", "max"):
+        assert key in d["lateness_us"] and key in d["compute_us"]
+    for itf in d["interfaces"].values():
+        for key in ("received", "sent", "dropped", "malformed"):
+            assert key in itf
+    assert d["ticks"] > 0 and os.path.getsize(tmp_path / "s.json") > 0
