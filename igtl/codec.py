@@ -14,6 +14,9 @@ What happens after a bad message (``DecodeError.recoverable``):
 - the header itself is unusable (unknown version, oversized body): the stream cannot be
   re-framed. The decoder raises the error, enters the failed state and raises
   :class:`DecoderFailedError` on every later call. Transports close such a connection.
+
+No other exception leaves :func:`unpack` or :class:`StreamDecoder` for any input bytes: a
+content codec that trips over values its type cannot hold is reported as ContentError.
 """
 
 from __future__ import annotations
@@ -31,64 +34,112 @@ from .errors import (
 )
 from .messages.base import REGISTRY, Message, RawMessage
 
+_HEADER_SIZE = wire.HEADER_SIZE
+_header_fields = wire.header_fields
+_crc64 = wire.crc64
+_T0, _T1, _T2, _T3 = wire._T0, wire._T1, wire._T2, wire._T3  # frac -> ns tables
+_registry_get = REGISTRY.get
+# Classes that want the wire type name in ``common`` (query families, COLORT/COLORTABLE...).
+_needs_type_name: dict[type, bool] = {}
 
-def decode_body(header: wire.Header, body: bytes | memoryview, *, crc_check: bool = True) -> Message:
-    """Decode a message from its parsed header and its complete body."""
-    if crc_check and header.body_size:
-        crc = wire.crc64(body)
-        if crc != header.crc:
+
+def _decode(
+    version: int,
+    message_type: str,
+    device_name: str,
+    ts: int,
+    crc: int,
+    body: bytes,
+    crc_check: bool,
+) -> Message:
+    """Decode a complete body (bytes) whose header fields are already validated."""
+    if crc_check and body:
+        actual = _crc64(body)
+        if actual != crc:
             raise CRCError(
-                f"CRC mismatch: header says {header.crc:#018x}, body gives {crc:#018x}",
-                offset=wire.HEADER_SIZE,
-                message_type=header.message_type,
-                device_name=header.device_name,
+                f"CRC mismatch: header says {crc:#018x}, body gives {actual:#018x}",
+                offset=_HEADER_SIZE,
+                message_type=message_type,
+                device_name=device_name,
             )
+    frac = ts & 0xFFFFFFFF
     common: dict[str, Any] = {
-        "device_name": header.device_name,
-        "timestamp": wire.raw_to_seconds(header.timestamp_raw),
-        "raw_timestamp": header.timestamp_raw,
-        "header_version": header.version,
+        "device_name": device_name,
+        "timestamp": (
+            (ts >> 32)
+            + (_T0[frac >> 24] + _T1[(frac >> 16) & 0xFF] + _T2[(frac >> 8) & 0xFF] + _T3[frac & 0xFF])
+            * 1e-9
+            if frac
+            else float(ts >> 32)
+        ),
+        "raw_timestamp": ts,
+        "header_version": version,
     }
     try:
-        if header.version == 2:
+        if version == 2:
             layout = wire.split_v2_body(body)
             content = body[layout.content_start : layout.content_end]
             meta_start = layout.content_end
             meta, encodings = wire.unpack_metadata(
                 body[meta_start : meta_start + layout.meta_header_size],
                 body[meta_start + layout.meta_header_size :],
-                base_offset=wire.HEADER_SIZE + meta_start,
+                base_offset=_HEADER_SIZE + meta_start,
             )
             common["metadata"] = meta
             if encodings:
                 common["metadata_encoding"] = encodings
             common["message_id"] = layout.message_id
-            content_offset = wire.HEADER_SIZE + layout.content_start
+            content_offset = _HEADER_SIZE + layout.content_start
         else:
             content = body
-            content_offset = wire.HEADER_SIZE
-        cls = REGISTRY.get(header.message_type)
+            content_offset = _HEADER_SIZE
+        cls = _registry_get(message_type)
         if cls is None:
-            common["message_type"] = header.message_type
-            return RawMessage.unpack_content(bytes(content), common)
-        if getattr(cls, "NEEDS_TYPE_NAME", False):
-            common["message_type"] = header.message_type
+            common["message_type"] = message_type
+            return RawMessage.unpack_content(content, common)
+        needs = _needs_type_name.get(cls)
+        if needs is None:
+            needs = _needs_type_name[cls] = bool(getattr(cls, "NEEDS_TYPE_NAME", False))
+        if needs:
+            common["message_type"] = message_type
         try:
-            return cls.unpack_content(bytes(content), common)
+            return cls.unpack_content(content, common)
         except DecodeError as err:
             if err.offset is not None:
                 err.offset += content_offset
             raise
-        except (ValueError, TypeError, IndexError, OverflowError) as err:
-            # A content codec tripped over values its type cannot hold: still the peer's error.
+        except Exception as err:  # noqa: BLE001 - any failure on peer bytes is the peer's error
             raise ContentError(
-                f"invalid {header.message_type} content: {err}", offset=content_offset
+                f"invalid {message_type} content: {type(err).__name__}: {err}",
+                offset=content_offset,
             ) from err
     except DecodeError as err:
         if err.message_type is None:
-            err.message_type = header.message_type
-            err.device_name = header.device_name
+            err.message_type = message_type
+            err.device_name = device_name
         raise
+
+
+def decode_body(
+    header: wire.Header, body: bytes | bytearray | memoryview, *, crc_check: bool = True
+) -> Message:
+    """Decode a message from its parsed header and its complete body."""
+    if len(body) != header.body_size:
+        raise TruncatedMessageError(
+            f"body of {len(body)} bytes, header announces {header.body_size}",
+            offset=_HEADER_SIZE + min(len(body), header.body_size),
+            message_type=header.message_type,
+            device_name=header.device_name,
+        )
+    return _decode(
+        header.version,
+        header.message_type,
+        header.device_name,
+        header.timestamp_raw,
+        header.crc,
+        body if type(body) is bytes else bytes(body),
+        crc_check,
+    )
 
 
 def unpack(
@@ -98,23 +149,27 @@ def unpack(
     max_body_size: int = wire.DEFAULT_MAX_BODY_SIZE,
 ) -> Message:
     """Decode exactly one complete encoded message (header + body), CRC verified."""
-    header = wire.unpack_header(data, 0, max_body_size=max_body_size)
-    end = wire.HEADER_SIZE + header.body_size
-    if len(data) < end:
-        raise TruncatedMessageError(
-            f"message announces {header.body_size} body bytes, only {len(data) - 58} present",
-            offset=len(data),
-            message_type=header.message_type,
-            device_name=header.device_name,
-        )
-    if len(data) > end:
+    version, mtype, device, ts, body_size, crc = _header_fields(data, 0, max_body_size)
+    end = _HEADER_SIZE + body_size
+    n = len(data)
+    if n != end:
+        if n < end:
+            raise TruncatedMessageError(
+                f"message announces {body_size} body bytes, only {n - _HEADER_SIZE} present",
+                offset=n,
+                message_type=mtype,
+                device_name=device,
+            )
         raise DecodeError(
-            f"{len(data) - end} bytes follow the message; use StreamDecoder for a stream",
+            f"{n - end} bytes follow the message; use StreamDecoder for a stream",
             offset=end,
-            message_type=header.message_type,
-            device_name=header.device_name,
+            message_type=mtype,
+            device_name=device,
         )
-    return decode_body(header, memoryview(data)[wire.HEADER_SIZE : end], crc_check=crc_check)
+    # One copy of the body, whatever the input type: bytes slicing copies, and a memoryview or
+    # bytearray slice is materialised once here.
+    body = data[_HEADER_SIZE:] if type(data) is bytes else bytes(memoryview(data)[_HEADER_SIZE:])
+    return _decode(version, mtype, device, ts, crc, body, crc_check)
 
 
 class StreamDecoder:
@@ -123,6 +178,7 @@ class StreamDecoder:
     ``feed(data)`` appends bytes; iterating yields every complete message fed so far and stops
     when more data is needed. Bad messages raise :class:`DecodeError` subclasses (see the module
     docstring for what happens next). ``buffered`` tells how many bytes wait for completion.
+    Offsets in errors are stream offsets (bytes since the decoder was created).
     """
 
     __slots__ = ("_buf", "_pos", "_crc_check", "_max_body", "_failed", "_pending", "offset",
@@ -136,7 +192,7 @@ class StreamDecoder:
         self._crc_check = crc_check
         self._max_body = max_body_size
         self._failed: DecodeError | None = None
-        self._pending: wire.Header | None = None
+        self._pending: tuple[int, str, str, int, int, int] | None = None
         #: Stream offset of the next unread byte (for error reports).
         self.offset = 0
         #: Counters: messages decoded, errors raised.
@@ -174,27 +230,28 @@ class StreamDecoder:
         pos = self._pos
         header = self._pending
         if header is None:
-            if len(buf) - pos < wire.HEADER_SIZE:
+            if len(buf) - pos < _HEADER_SIZE:
                 return None
             try:
-                header = wire.unpack_header(buf, pos, max_body_size=self._max_body)
+                header = _header_fields(buf, pos, self._max_body)
             except DecodeError as err:
-                err.offset = self.offset + (err.offset or pos) - pos
+                err.offset = self.offset + (pos if err.offset is None else err.offset) - pos
                 self._failed = err
                 self.errors += 1
                 raise
             self._pending = header
-        end = pos + wire.HEADER_SIZE + header.body_size
+        version, mtype, device, ts, body_size, crc = header
+        end = pos + _HEADER_SIZE + body_size
         if len(buf) < end:
             return None
         self._pending = None
         self._pos = end
         start_offset = self.offset
         self.offset += end - pos
+        with memoryview(buf) as view:
+            body = bytes(view[pos + _HEADER_SIZE : end])
         try:
-            msg = decode_body(
-                header, memoryview(buf)[pos + wire.HEADER_SIZE : end], crc_check=self._crc_check
-            )
+            msg = _decode(version, mtype, device, ts, crc, body, self._crc_check)
         except DecodeError as err:
             self.errors += 1
             if err.offset is not None:
@@ -209,5 +266,6 @@ class StreamDecoder:
             raise TruncatedMessageError(
                 f"stream ended inside a message ({self.buffered} bytes buffered)",
                 offset=self.offset,
-                message_type=self._pending.message_type if self._pending else None,
+                message_type=self._pending[1] if self._pending else None,
+                device_name=self._pending[2] if self._pending else None,
             )

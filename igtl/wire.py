@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import struct
+from bisect import bisect_right as _bisect_right
 import warnings
 from collections.abc import Mapping
 from typing import NamedTuple
@@ -102,8 +103,8 @@ def frac_to_nanosec(frac: int) -> int:
     )
 
 
-def nanosec_to_frac(ns: int) -> int:
-    """Reference conversion of nanoseconds (0 <= ns < 1e9) to a 32-bit binary fraction."""
+def nanosec_to_frac_reference(ns: int) -> int:
+    """The reference greedy conversion, bit by bit (igtl_util.c); kept as the test oracle."""
     result = 0
     for base, mask in _FRAC_BITS:
         if ns >= base:
@@ -112,9 +113,44 @@ def nanosec_to_frac(ns: int) -> int:
     return result
 
 
+# The greedy search returns the numerically largest fraction whose reference nanosecond value
+# does not exceed ns (setting a bit whenever the rest can stay zero is the lexicographic, hence
+# numeric, maximum). Done a byte at a time: the largest byte v with T[v] <= rest is found by
+# bisecting the suffix minima of T (non-decreasing), because T itself is not monotone in its
+# low bits (the last bases are 8, 4, 2, 1, 1, 1). Proven equal to the greedy in test_wire.py.
+def _suffix_min(table: tuple[int, ...]) -> tuple[int, ...]:
+    out = list(table)
+    for v in range(254, -1, -1):
+        out[v] = min(out[v], out[v + 1])
+    return tuple(out)
+
+
+_M0, _M1, _M2, _M3 = (_suffix_min(t) for t in (_T0, _T1, _T2, _T3))
+
+
+def nanosec_to_frac(ns: int) -> int:
+    """Reference conversion of nanoseconds (0 <= ns < 1e9) to a 32-bit binary fraction.
+
+    Bit-exact with the reference's 32-step greedy (:func:`nanosec_to_frac_reference`) in four
+    table bisections.
+    """
+    b0 = _bisect_right(_M0, ns) - 1
+    ns -= _T0[b0]
+    b1 = _bisect_right(_M1, ns) - 1
+    ns -= _T1[b1]
+    b2 = _bisect_right(_M2, ns) - 1
+    ns -= _T2[b2]
+    b3 = _bisect_right(_M3, ns) - 1
+    return (b0 << 24) | (b1 << 16) | (b2 << 8) | b3
+
+
 def raw_to_seconds(raw: int) -> float:
     """Header timestamp (uint64) to float seconds since the Unix epoch."""
-    return (raw >> 32) + frac_to_nanosec(raw & 0xFFFFFFFF) * 1e-9
+    if not raw & 0xFFFFFFFF:
+        return float(raw >> 32)
+    return (raw >> 32) + (
+        _T0[(raw >> 24) & 0xFF] + _T1[(raw >> 16) & 0xFF] + _T2[(raw >> 8) & 0xFF] + _T3[raw & 0xFF]
+    ) * 1e-9
 
 
 def seconds_to_raw(t: float) -> int:
@@ -126,7 +162,18 @@ def seconds_to_raw(t: float) -> int:
     if ns >= 1_000_000_000:
         sec += 1
         ns -= 1_000_000_000
-    return ((sec & 0xFFFFFFFF) << 32) | nanosec_to_frac(ns)
+    if not ns:
+        return (sec & 0xFFFFFFFF) << 32
+    b0 = _bisect_right(_M0, ns) - 1
+    ns -= _T0[b0]
+    b1 = _bisect_right(_M1, ns) - 1
+    ns -= _T1[b1]
+    b2 = _bisect_right(_M2, ns) - 1
+    ns -= _T2[b2]
+    return (
+        ((sec & 0xFFFFFFFF) << 32) | (b0 << 24) | (b1 << 16) | (b2 << 8)
+        | (_bisect_right(_M3, ns) - 1)
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -147,10 +194,40 @@ def encode_fixed(text: str, size: int, what: str) -> bytes:
     """
     try:
         raw = text.encode("latin-1")
-    except UnicodeEncodeError as err:
+    except (UnicodeEncodeError, AttributeError) as err:
         raise ValueError(f"{what} {text!r} is not latin-1/ASCII text") from err
     if len(raw) > size:
         raise ValueError(f"{what} {text!r} is {len(raw)} bytes; OpenIGTLink allows {size}")
+    return raw
+
+
+# Type and device names repeat on every message of a stream: decoding and encoding them is
+# memoised in small dicts (keyed by the raw 12/20 header bytes, or by the str). The dicts are
+# cleared when full, so a peer sending ever-new names costs memory bounded by _NAME_CACHE_MAX.
+_NAME_CACHE_MAX = 4096
+_decoded_names: dict[bytes, str] = {}
+_encoded_types: dict[str, bytes] = {}
+_encoded_devices: dict[str, bytes] = {}
+
+
+def _decode_name(raw: bytes) -> str:
+    name = _decoded_names.get(raw)
+    if name is None:
+        end = raw.find(b"\x00")
+        name = (raw if end < 0 else raw[:end]).decode("latin-1")
+        if len(_decoded_names) >= _NAME_CACHE_MAX:
+            _decoded_names.clear()
+        _decoded_names[raw] = name
+    return name
+
+
+def _encode_name(text: str, cache: dict[str, bytes], size: int, what: str) -> bytes:
+    raw = cache.get(text)
+    if raw is None:
+        raw = encode_fixed(text, size, what)
+        if len(cache) >= _NAME_CACHE_MAX:
+            cache.clear()
+        cache[text] = raw
     return raw
 
 
@@ -166,25 +243,23 @@ class Header(NamedTuple):
     crc: int
 
 
-def unpack_header(
-    data: bytes | bytearray | memoryview,
-    offset: int = 0,
-    *,
-    max_body_size: int = DEFAULT_MAX_BODY_SIZE,
-) -> Header:
-    """Parse and sanity-check a header at ``data[offset:offset+58]``.
+_unpack_header_from = HEADER.unpack_from
 
-    Raises UnknownHeaderVersionError or BodyTooLargeError (both unrecoverable: the stream cannot
-    be re-framed) and TruncatedMessageError when fewer than 58 bytes are given.
-    """
+
+def header_fields(
+    data: bytes | bytearray | memoryview, offset: int, max_body_size: int
+) -> tuple[int, str, str, int, int, int]:
+    """:func:`unpack_header` as a plain tuple (the decoders' hot path; same checks)."""
     if len(data) - offset < HEADER_SIZE:
         raise TruncatedMessageError(
             f"header needs {HEADER_SIZE} bytes, got {len(data) - offset}", offset=offset
         )
-    version, mtype, device, ts, body_size, crc = HEADER.unpack_from(data, offset)
-    message_type = decode_fixed(mtype)
-    device_name = decode_fixed(device)
-    if version not in SUPPORTED_HEADER_VERSIONS:
+    version, mtype, device, ts, body_size, crc = _unpack_header_from(data, offset)
+    message_type = _decoded_names.get(mtype) or _decode_name(mtype)
+    device_name = _decoded_names.get(device)
+    if device_name is None:
+        device_name = _decode_name(device)
+    if version != 1 and version != 2:
         raise UnknownHeaderVersionError(
             f"unknown header version {version} (supported: 1, 2)",
             offset=offset,
@@ -198,21 +273,42 @@ def unpack_header(
             message_type=message_type,
             device_name=device_name,
         )
-    return Header(version, message_type, device_name, ts, body_size, crc)
+    return version, message_type, device_name, ts, body_size, crc
+
+
+def unpack_header(
+    data: bytes | bytearray | memoryview,
+    offset: int = 0,
+    *,
+    max_body_size: int = DEFAULT_MAX_BODY_SIZE,
+) -> Header:
+    """Parse and sanity-check a header at ``data[offset:offset+58]``.
+
+    Raises UnknownHeaderVersionError or BodyTooLargeError (both unrecoverable: the stream cannot
+    be re-framed; BODY_SIZE is checked before anything is allocated for the body) and
+    TruncatedMessageError when fewer than 58 bytes are given.
+    """
+    return Header._make(header_fields(data, offset, max_body_size))
+
+
+_pack_header = HEADER.pack
 
 
 def pack_header(
     version: int, message_type: str, device_name: str, timestamp_raw: int, body: bytes
 ) -> bytes:
     """The 58-byte header for ``body`` (CRC computed here)."""
-    return HEADER.pack(
-        version,
-        encode_fixed(message_type, TYPE_SIZE, "message type"),
-        encode_fixed(device_name, DEVICE_NAME_SIZE, "device name"),
-        timestamp_raw,
-        len(body),
-        crc64(body) if body else 0,
-    )
+    try:
+        return _pack_header(
+            version,
+            _encode_name(message_type, _encoded_types, TYPE_SIZE, "message type"),
+            _encode_name(device_name, _encoded_devices, DEVICE_NAME_SIZE, "device name"),
+            timestamp_raw,
+            len(body),
+            crc64(body) if body else 0,
+        )
+    except struct.error as err:
+        raise ValueError(f"cannot pack header: {err}") from err
 
 
 # --------------------------------------------------------------------------------------------
@@ -275,7 +371,12 @@ def default_encoding(text: str) -> int:
 def pack_metadata(metadata: Mapping[str, str], encodings: Mapping[str, int]) -> tuple[bytes, bytes]:
     """Return (metadata header, metadata data). Entries are written sorted by key, like the
     reference's std::map; the 2-byte INDEX_COUNT is always present."""
-    keys = sorted(metadata, key=lambda k: k.encode("utf-8"))
+    if not metadata:
+        return b"\x00\x00", b""
+    for key in metadata:
+        if not isinstance(key, str):
+            raise TypeError(f"metadata key {key!r} must be str, got {type(key).__name__}")
+    keys = sorted(metadata, key=lambda k: k.encode("utf-8", "surrogatepass"))
     if len(keys) > 0xFFFF:
         raise ValueError(f"{len(keys)} metadata entries; at most 65535 fit the index count")
     index = [META_INDEX_COUNT.pack(len(keys))]
@@ -285,13 +386,20 @@ def pack_metadata(metadata: Mapping[str, str], encodings: Mapping[str, int]) -> 
         if not isinstance(value, str):
             raise TypeError(f"metadata value for {key!r} must be str, got {type(value).__name__}")
         kraw = key.encode("utf-8")
-        enc = encodings.get(key) or default_encoding(value)
+        enc = encodings.get(key)
+        if enc is None:
+            enc = default_encoding(value)
+        if not 0 <= enc <= 0xFFFF:
+            raise ValueError(f"metadata encoding {enc} for {key!r} does not fit uint16")
+        # Unknown codes: the value was decoded as latin-1 (see unpack_metadata), so it re-encodes.
         try:
-            vraw = value.encode(codec_for(enc))
+            vraw = value.encode(IANA_ENCODINGS.get(enc, "latin-1"))
         except UnicodeEncodeError as err:
             raise ValueError(f"metadata value for {key!r} cannot be encoded as {enc}") from err
         if len(kraw) > 0xFFFF:
             raise ValueError(f"metadata key {key[:40]!r}... is longer than 65535 bytes")
+        if len(vraw) > 0xFFFFFFFF:
+            raise ValueError(f"metadata value for {key!r} is longer than 2**32-1 bytes")
         index.append(META_ENTRY.pack(len(kraw), enc, len(vraw)))
         data.append(kraw)
         data.append(vraw)
@@ -314,7 +422,7 @@ def unpack_metadata(
             offset=base_offset,
         )
     (count,) = META_INDEX_COUNT.unpack_from(meta_header, 0)
-    if 2 + 8 * count > len(meta_header):
+    if 2 + 8 * count != len(meta_header):
         raise MetadataError(
             f"metadata index of {count} entries needs {2 + 8 * count} bytes, "
             f"META_HEADER_SIZE is {len(meta_header)}",
@@ -350,6 +458,11 @@ def unpack_metadata(
         if enc != default_encoding(value):
             encodings[key] = enc
         pos = end
+    if pos != len(meta_data):
+        raise MetadataError(
+            f"metadata entries hold {pos} bytes, META_DATA_SIZE is {len(meta_data)}",
+            offset=base_offset + len(meta_header) + pos,
+        )
     return values, encodings
 
 

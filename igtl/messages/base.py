@@ -143,6 +143,52 @@ class Message:
 
 
 _COMMON_FIELDS = frozenset(f.name for f in dataclasses.fields(Message))
+_COMMON_ORDER = tuple(f.name for f in dataclasses.fields(Message))
+
+
+def common_equal(a: Message, b: Message) -> bool:
+    """True when two messages agree on every compared common field (for custom ``__eq__``)."""
+    return (
+        a.device_name == b.device_name
+        and a.timestamp == b.timestamp
+        and a.header_version == b.header_version
+        and a.metadata == b.metadata
+        and a.message_id == b.message_id
+        and a.metadata_encoding == b.metadata_encoding
+    )
+
+
+def fast_builder(cls: type[M]) -> Callable[..., M]:
+    """A constructor for decoders: ``build(common, *content_fields)`` in field order.
+
+    A frozen dataclass ``__init__`` pays a keyword parse and an ``object.__setattr__`` lookup per
+    field (~1.2 us for TRANSFORM). Decoded values are already valid, so this fills the slots
+    directly through their descriptors (no ``__post_init__``; use only where none is needed).
+    ``common`` is the dict the codec passes to ``unpack_content``.
+    """
+    content = [f.name for f in dataclasses.fields(cls) if f.name not in _COMMON_FIELDS]
+    ns: dict[str, Any] = {"_new": object.__new__, "_cls": cls}
+    for name in (*_COMMON_ORDER, *content):
+        ns[f"_s_{name}"] = getattr(cls, name).__set__
+    args = "".join(f", {n}" for n in content)
+    src = [
+        f"def build(common{args}):",
+        "    self = _new(_cls)",
+        "    g = common.get",
+        "    _s_device_name(self, common['device_name'])",
+        "    _s_timestamp(self, common['timestamp'])",
+        "    _s_header_version(self, common['header_version'])",
+        "    m = g('metadata')",
+        "    _s_metadata(self, {} if m is None else m)",
+        "    _s_message_id(self, g('message_id', 0))",
+        "    m = g('metadata_encoding')",
+        "    _s_metadata_encoding(self, {} if m is None else m)",
+        "    _s_raw_timestamp(self, g('raw_timestamp'))",
+        *(f"    _s_{n}(self, {n})" for n in content),
+        "    return self",
+    ]
+    exec("\n".join(src), ns)  # noqa: S102 - generated from dataclass field names only
+    return ns["build"]  # type: ignore[no-any-return]
 
 
 def _jsonable(value: Any) -> Any:
@@ -189,6 +235,13 @@ class RawMessage(Message):
 
 # ------------------------------------------------------------------------------------------
 # Helpers for content codecs.
+def check_uint(value: int, bits: int, what: str) -> int:
+    """ValueError unless ``value`` is an int in [0, 2**bits)."""
+    if not isinstance(value, int) or not 0 <= value < (1 << bits):
+        raise ValueError(f"{what} must be an integer in 0..{(1 << bits) - 1}, got {value!r}")
+    return value
+
+
 def need_size(content: bytes, size: int, what: str) -> None:
     """ContentError unless the content is exactly ``size`` bytes."""
     if len(content) != size:
@@ -201,7 +254,7 @@ def need_multiple(content: bytes, element: int, what: str, header: int = 0) -> i
     if rest < 0 or rest % element:
         raise ContentError(
             f"{what} content of {len(content)} bytes is not {header} + a multiple of {element}",
-            offset=0,
+            offset=header + (rest // element) * element if rest > 0 else 0,
         )
     return rest // element
 

@@ -11,7 +11,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from ..errors import ContentError
-from .base import Message, need_size, register
+from .base import Message, fast_builder, need_size, register
 
 _F12 = struct.Struct(">12f")
 _F7 = struct.Struct(">7f")
@@ -68,9 +68,13 @@ class TransformMessage(Message):
 
     @classmethod
     def unpack_content(cls, content: bytes, common: dict[str, Any]) -> TransformMessage:
-        need_size(content, 48, "TRANSFORM")
-        return cls(_F12.unpack(content), **common)
+        if len(content) != 48:
+            need_size(content, 48, "TRANSFORM")
+        return _build_transform(common, _F12_unpack(content))
 
+
+_F12_unpack = _F12.unpack
+_build_transform = fast_builder(TransformMessage)
 
 #: Content sizes of the three POSITION variants.
 POSITION_ALL = 28
@@ -112,7 +116,7 @@ class PositionMessage(Message):
         n = len(content)
         if n == POSITION_ALL:
             v = _F7.unpack(content)
-            return cls(v[:3], v[3:], POSITION_ALL, **common)
+            return _build_position(common, v[:3], v[3:], POSITION_ALL)
         if n == POSITION_QUATERNION3:
             x, y, z, ox, oy, oz = _F6.unpack(content)
             s = 1.0 - (ox * ox + oy * oy + oz * oz)
@@ -121,3 +125,6 @@ class PositionMessage(Message):
         if n == POSITION_ONLY:
             return cls(_F3.unpack(content), (0.0, 0.0, 0.0, 1.0), POSITION_ONLY, **common)
         raise ContentError(f"POSITION content must be 28, 24 or 12 bytes, got {n}", offset=0)
+
+
+_build_position = fast_builder(PositionMessage)

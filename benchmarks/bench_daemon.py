@@ -1,0 +1,143 @@
+#!/usr/bin/env python3
+"""The slave daemon's loop under full load, and the teleoperation latencies.
+
+Load (issue "occ core", section 6): the slave occd with recording on; the master occd in another
+process streaming POSITION at 500 Hz over UDP; two TCP clients (Slicer stand-ins) receiving the
+10 Hz TRANSFORMs. Runs for --duration seconds (default 60) and reports, from the daemons' own
+statistics JSON and the stand-ins:
+
+- slave loop lateness p50 / p99 / p99.9 / max, ticks > 1 ms late, overruns, CPU %;
+- master sample -> slave driver write latency p50 / p99 (master's POSITION timestamp to the
+  slave tick whose write used it; both on this machine's wall clock);
+- the tip stream at each stand-in: rate and interval jitter;
+- losses seen by the slave's loss monitor.
+
+Examples::
+
+    python benchmarks/bench_daemon.py --duration 60
+    python benchmarks/bench_daemon.py --duration 60 --no-fifo      # SCHED_OTHER for comparison
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tools"))
+
+from slicer_standin import SlicerStandIn  # noqa: E402
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_port(port: int, timeout: float = 20.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return True
+        time.sleep(0.05)
+    return False
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--duration", type=float, default=60.0)
+    p.add_argument("--no-fifo", action="store_true", help="run both loops SCHED_OTHER")
+    p.add_argument("--cpu", type=int, default=None, help="pin the slave loop to this CPU")
+    p.add_argument("--out", type=Path, default=None)
+    args = p.parse_args(argv)
+    out = args.out or Path(tempfile.mkdtemp(prefix="occ-bench-"))
+    out.mkdir(parents=True, exist_ok=True)
+    tcp, udp, mtcp = free_port(), free_port(socket.SOCK_DGRAM), free_port()
+    slave = yaml.safe_load((ROOT / "configs" / "slave.yaml").read_text())
+    master = yaml.safe_load((ROOT / "configs" / "master.yaml").read_text())
+    for itf in slave["interfaces"]:
+        itf["port"] = tcp if itf["transport"] == "tcp-server" else udp
+    for itf in master["interfaces"]:
+        if itf["transport"] == "tcp-server":
+            itf["port"] = mtcp
+        else:
+            itf["remote"] = f"127.0.0.1:{udp}"
+    if args.no_fifo:
+        slave["robot"]["realtime"]["fifo_priority"] = None
+        master["robot"]["realtime"]["fifo_priority"] = None
+    if args.cpu is not None:
+        slave["robot"]["realtime"]["cpu"] = args.cpu
+    slave["recording"] = {"path": str(out / "slave.igtl"), "rate_hz": 100, "include_messages": True}
+    slave["stats"] = {"log_every_s": 3600.0}
+    (out / "slave.yaml").write_text(yaml.safe_dump(slave))
+    (out / "master.yaml").write_text(yaml.safe_dump(master))
+
+    def occd(name: str) -> subprocess.Popen[bytes]:
+        return subprocess.Popen(
+            [sys.executable, "-m", "occ.cli", str(out / f"{name}.yaml"), "--start", "running",
+             "--stats", str(out / f"{name}.json"), "--log-level", "WARNING"],
+            cwd=ROOT, stderr=open(out / f"{name}.log", "wb"),
+        )
+
+    procs = [occd("slave")]
+    clients: list[SlicerStandIn] = []
+    try:
+        if not wait_port(tcp):
+            print("slave did not start; see", out / "slave.log", file=sys.stderr)
+            return 1
+        procs.append(occd("master"))
+        if not wait_port(mtcp):
+            print("master did not start", file=sys.stderr)
+            return 1
+        clients = [SlicerStandIn("127.0.0.1", tcp).start() for _ in range(2)]
+        for c in clients:
+            c.connected.wait(5.0)
+        print(f"running {args.duration:.0f} s ({'SCHED_OTHER' if args.no_fifo else 'SCHED_FIFO where permitted'}); "
+              f"files in {out}", flush=True)
+        time.sleep(args.duration)
+        summaries = [c.summary() for c in clients]
+    finally:
+        for c in clients:
+            c.stop()
+        for proc in procs:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+        for proc in procs:
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+    s = json.loads((out / "slave.json").read_text())
+    m = json.loads((out / "master.json").read_text())
+    result = {
+        "duration_s": args.duration,
+        "fifo": not args.no_fifo,
+        "slave_realtime": s.get("realtime"),
+        "slave_loop": {k: s[k] for k in ("ticks", "lateness_us", "compute_us", "late_over_1ms",
+                                         "late_over_1ms_percent", "overruns", "missed_ticks", "cpu_percent")},
+        "master_loop": {k: m[k] for k in ("ticks", "lateness_us", "late_over_1ms", "cpu_percent")},
+        "sample_to_write_us": s.get("controller", {}).get("sample_to_write_us"),
+        "loss": s.get("loss"),
+        "slave_state_at_end": s.get("state"),
+        "udp_in": s["interfaces"]["master"],
+        "tip_stream": [x.get("Tip") for x in summaries],
+        "recording_bytes": (out / "slave.igtl").stat().st_size if (out / "slave.igtl").exists() else 0,
+    }
+    (out / "result.json").write_text(json.dumps(result, indent=2))
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,210 @@
+"""Codec errors, recovery and framing (unpack and StreamDecoder).
+
+Vectors: OpenIGTLink project test data (github.com/openigtlink/OpenIGTLink, BSD-style licence,
+Copyright Insight Software Consortium).
+"""
+
+from __future__ import annotations
+
+import struct
+import tracemalloc
+
+import pytest
+
+import igtl
+from igtl import wire
+from igtl.errors import (
+    BodyTooLargeError,
+    ContentError,
+    CRCError,
+    DecodeError,
+    DecoderFailedError,
+    ExtendedHeaderError,
+    InvalidTextError,
+    MetadataError,
+    TruncatedMessageError,
+    UnknownHeaderVersionError,
+)
+
+from .conftest import vector
+
+TRANSFORM = vector("transform.bin")
+TRANSFORM2 = vector("transformFormat2.bin")
+
+
+def raw_message(mtype: str, content: bytes, version: int = 1, device: str = "Dev") -> bytes:
+    return igtl.RawMessage(type_name=mtype, content=content, device_name=device,
+                           header_version=version).pack()
+
+
+def with_body_size(data: bytes, size: int) -> bytes:
+    return data[:42] + struct.pack(">Q", size) + data[50:]
+
+
+def test_crc_error():
+    bad = TRANSFORM[:-1] + bytes((TRANSFORM[-1] ^ 1,))
+    with pytest.raises(CRCError) as e:
+        igtl.unpack(bad)
+    assert e.value.offset == 58 and e.value.recoverable
+    assert e.value.message_type == "TRANSFORM" and e.value.device_name == "DeviceName"
+    assert igtl.unpack(bad, crc_check=False).message_type == "TRANSFORM"
+
+
+def test_truncated_and_trailing():
+    with pytest.raises(TruncatedMessageError) as e:
+        igtl.unpack(TRANSFORM[:-3])
+    assert e.value.offset == len(TRANSFORM) - 3
+    with pytest.raises(TruncatedMessageError):
+        igtl.unpack(TRANSFORM[:30])
+    with pytest.raises(DecodeError, match="follow"):
+        igtl.unpack(TRANSFORM + b"\0")
+
+
+def test_unknown_header_version():
+    with pytest.raises(UnknownHeaderVersionError) as e:
+        igtl.unpack(b"\x00\x03" + TRANSFORM[2:])
+    assert not e.value.recoverable and e.value.offset == 0
+
+
+def test_body_size_2_63_costs_nothing():
+    huge = with_body_size(TRANSFORM[:58], 2**63)
+    tracemalloc.start()
+    try:
+        with pytest.raises(BodyTooLargeError) as e:
+            igtl.unpack(huge)
+        dec = igtl.StreamDecoder()
+        dec.feed(huge)
+        with pytest.raises(BodyTooLargeError):
+            list(dec)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 1_000_000
+    assert e.value.offset == 42 and not e.value.recoverable
+    assert dec.failed
+    with pytest.raises(DecoderFailedError):
+        dec.feed(TRANSFORM)
+    with pytest.raises(DecoderFailedError):
+        dec.next_message()
+
+
+def test_configurable_limit():
+    with pytest.raises(BodyTooLargeError):
+        igtl.unpack(TRANSFORM, max_body_size=47)
+    assert igtl.unpack(TRANSFORM, max_body_size=48).message_type == "TRANSFORM"
+
+
+def test_extended_header_error():
+    # v2 body whose ext header claims more metadata than the body holds
+    body = wire.EXT_HEADER.pack(12, 2, 1000, 0) + b"\0\0"
+    data = wire.pack_header(2, "STRING", "D", 0, body) + body
+    with pytest.raises(ExtendedHeaderError) as e:
+        igtl.unpack(data)
+    assert e.value.offset == 58 and e.value.recoverable
+
+
+def test_metadata_error_offset():
+    bad = bytearray(TRANSFORM2)
+    # First metadata key starts right after content + meta header: 58 + 12 + 48 + 18
+    bad[58 + 12 + 48 + 18] = 0xFF
+    body = bytes(bad[58:])
+    bad[50:58] = struct.pack(">Q", wire.crc64(body))
+    with pytest.raises(MetadataError) as e:
+        igtl.unpack(bytes(bad))
+    assert e.value.offset == 58 + 12 + 48 + 18
+
+
+def test_content_count_does_not_divide():
+    with pytest.raises(ContentError) as e:
+        igtl.unpack(raw_message("TDATA", bytes(71)))
+    assert e.value.offset == 58 + 70
+    assert "multiple of 70" in str(e.value)
+    with pytest.raises(ContentError) as e:
+        igtl.unpack(raw_message("POINT", bytes(137), version=2))
+    assert e.value.offset == 58 + 12 + 136
+
+
+def test_invalid_text():
+    content = struct.pack(">HH", 3, 2) + b"\xff\xfe"
+    with pytest.raises(InvalidTextError) as e:
+        igtl.unpack(raw_message("STRING", content))
+    assert e.value.offset == 58 + 4
+    assert isinstance(e.value, ContentError)
+
+
+def test_v2_content_size_excludes_metadata():
+    m = igtl.CapabilityMessage(types=("A", "B"), header_version=2, metadata={"k": "v" * 11})
+    assert igtl.unpack(m.pack()) == m
+
+
+def test_unknown_type_is_raw_message():
+    data = raw_message("FOOBAR", b"\x01\x02\x03", version=2)
+    m = igtl.unpack(data)
+    assert isinstance(m, igtl.RawMessage)
+    assert (m.message_type, m.content) == ("FOOBAR", b"\x01\x02\x03")
+    assert m.pack() == data
+
+
+def test_decoder_recovers_after_recoverable_error():
+    bad_crc = TRANSFORM[:-1] + bytes((TRANSFORM[-1] ^ 1,))
+    bad_content = raw_message("TDATA", bytes(71))
+    stream = TRANSFORM + bad_crc + TRANSFORM2 + bad_content + TRANSFORM
+    dec = igtl.StreamDecoder()
+    dec.feed(stream)
+    got: list = []
+    errors: list = []
+    while True:
+        try:
+            m = dec.next_message()
+        except DecodeError as err:
+            errors.append(err)
+            continue
+        if m is None:
+            break
+        got.append(m)
+    assert [m.header_version for m in got] == [1, 2, 1]
+    assert [type(e) for e in errors] == [CRCError, ContentError]
+    assert errors[0].offset == len(TRANSFORM) + 58  # stream offset of the bad body
+    assert errors[1].offset == 2 * len(TRANSFORM) + len(TRANSFORM2) + 58 + 70
+    assert not dec.failed and dec.messages == 3 and dec.errors == 2
+    dec.close()
+
+
+def test_decoder_failed_state():
+    dec = igtl.StreamDecoder()
+    dec.feed(TRANSFORM + b"\x00\x07" + TRANSFORM[2:] + TRANSFORM)
+    assert dec.next_message() is not None
+    with pytest.raises(UnknownHeaderVersionError) as e:
+        dec.next_message()
+    assert e.value.offset == len(TRANSFORM)
+    assert dec.failed
+    with pytest.raises(DecoderFailedError):
+        list(dec)
+
+
+def test_v1_v2_interleaved_and_split():
+    msgs = [igtl.unpack(TRANSFORM), igtl.unpack(TRANSFORM2),
+            igtl.StatusMessage(device_name="", header_version=1),
+            igtl.StatusMessage(device_name="", header_version=2, metadata={"dummy": "dummy"})]
+    stream = b"".join(m.pack() for m in msgs)
+    for step in (1, 3, 57, 58, 59, 1000):
+        dec = igtl.StreamDecoder()
+        out = []
+        for i in range(0, len(stream), step):
+            dec.feed(stream[i : i + step])
+            out.extend(dec)
+        assert out == msgs, step
+        dec.close()
+
+
+def test_close_with_partial_message():
+    dec = igtl.StreamDecoder()
+    dec.feed(TRANSFORM[:70])
+    assert list(dec) == []
+    with pytest.raises(TruncatedMessageError) as e:
+        dec.close()
+    assert e.value.message_type == "TRANSFORM"
+
+
+def test_memoryview_and_bytearray_input():
+    assert igtl.unpack(bytearray(TRANSFORM)) == igtl.unpack(memoryview(TRANSFORM))

@@ -1,0 +1,308 @@
+"""Property tests (hypothesis): round trips for every registered type in both header versions,
+stream splitting, and corruption that must only ever raise IGTLError.
+
+Seed messages include the OpenIGTLink project's reference vectors (github.com/openigtlink/
+OpenIGTLink test data; BSD-style licence, Copyright Insight Software Consortium).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+import igtl
+from igtl import wire
+from igtl.messages import base
+
+from .conftest import VECTORS_DIR
+
+SETTINGS = settings(max_examples=10, deadline=None,
+                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+
+# ---------------------------------------------------------------------------- strategies
+def name(max_size: int, min_size: int = 0) -> st.SearchStrategy[str]:
+    return st.text(st.characters(min_codepoint=1, max_codepoint=255), min_size=min_size,
+                   max_size=max_size).filter(lambda s: len(s.encode("latin-1")) <= max_size)
+
+
+text = st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters="\0"),
+               max_size=30)
+f32 = st.floats(width=32, allow_nan=False)
+f64 = st.floats(allow_nan=False)
+u8, u16, u32 = st.integers(0, 255), st.integers(0, 0xFFFF), st.integers(0, 0xFFFFFFFF)
+
+
+def J(c: dict) -> dict:
+    """Common field values as strategies for st.builds."""
+    return {k: st.just(v) for k, v in c.items()}
+
+
+def floats(n: int, s=f32):
+    return st.tuples(*[s] * n)
+
+
+rgba = st.tuples(u8, u8, u8, u8)
+small3 = st.tuples(st.integers(0, 40), st.integers(0, 40), st.integers(0, 40))
+meta_key = st.text(st.characters(blacklist_categories=("Cs",)), max_size=12)
+meta_val = st.text(st.characters(blacklist_categories=("Cs",)), max_size=12)
+
+
+@st.composite
+def common(draw, version: int) -> dict:
+    raw = draw(st.sampled_from([0, 1234567892, 0xFFFFFFFF]) | st.integers(0, 2**64 - 1))
+    out = {"device_name": draw(name(20)), "timestamp": wire.raw_to_seconds(raw),
+           "raw_timestamp": raw, "header_version": version}
+    if version == 2:
+        out["metadata"] = draw(st.dictionaries(meta_key, meta_val, max_size=4))
+        out["message_id"] = draw(u32)
+    return out
+
+
+def arrays(dtypes, max_dims=3):
+    return st.sampled_from(dtypes).flatmap(
+        lambda dt: hnp.arrays(dt, hnp.array_shapes(min_dims=0, max_dims=max_dims, max_side=4),
+                              elements=hnp.from_dtype(np.dtype(dt), allow_nan=False)))
+
+
+def cells():
+    return st.lists(st.tuples(*[]) | st.lists(u32, max_size=4).map(tuple), max_size=4).map(tuple)
+
+
+@st.composite
+def image(draw, c):
+    dt = draw(st.sampled_from(["i1", "u1", "<i2", ">u2", "i4", "u4", "f4", ">f8"]))
+    shape = draw(st.tuples(st.integers(1, 3), st.integers(1, 3), st.integers(1, 3),
+                           st.integers(1, 3)))
+    px = draw(hnp.arrays(dt, shape, elements=hnp.from_dtype(np.dtype(dt), allow_nan=False)))
+    off = draw(small3)
+    extra = draw(small3)
+    size = tuple(o + s + e for o, s, e in zip(off, (shape[2], shape[1], shape[0]), extra,
+                                              strict=True))
+    return igtl.ImageMessage(pixels=px, elements=draw(floats(12)), size=size, offset=off,
+                             coordinate=draw(st.sampled_from([1, 2])),
+                             endian=draw(st.sampled_from([1, 2])), **c)
+
+
+def encoded_text():
+    return (st.tuples(st.text(st.characters(max_codepoint=127, blacklist_characters="\0"),
+                              max_size=30), st.just(3))
+            | st.tuples(text, st.just(106)))
+
+
+def bind_child():
+    return st.builds(igtl.BindChild, name(12, 1), name(20).filter(lambda s: "\0" not in s),
+                     st.binary(max_size=9))
+
+
+def request():
+    return st.lists(st.tuples(name(12, 1), name(20)), max_size=3).map(tuple)
+
+
+CONTENT = {
+    igtl.TransformMessage: lambda c: st.builds(igtl.TransformMessage, floats(12), **J(c)),
+    igtl.PositionMessage: lambda c: st.builds(igtl.PositionMessage, floats(3), floats(4),
+                                              st.just(28), **J(c))
+    | st.builds(igtl.PositionMessage, floats(3), st.just((0.0, 0.0, 0.0, 1.0)), st.just(12),
+                **J(c)),
+    igtl.StatusMessage: lambda c: st.builds(igtl.StatusMessage, u16,
+                                            st.integers(-(2**63), 2**63 - 1), name(20), text,
+                                            **J(c)),
+    igtl.StringMessage: lambda c: encoded_text().map(
+        lambda t: igtl.StringMessage(t[0], t[1], **c)),
+    igtl.CapabilityMessage: lambda c: st.builds(igtl.CapabilityMessage,
+                                                st.lists(name(12, 1), max_size=4).map(tuple), **J(c)),
+    igtl.PointMessage: lambda c: st.builds(igtl.PointMessage, st.lists(st.builds(
+        igtl.PointElement, name(64), name(32), rgba, floats(3), f32, name(20)), max_size=3), **J(c)),
+    igtl.TrajectoryMessage: lambda c: st.builds(igtl.TrajectoryMessage, st.lists(st.builds(
+        igtl.TrajectoryElement, name(64), name(32), st.integers(-128, 127), rgba, floats(3),
+        floats(3), f32, name(20)), max_size=3), **J(c)),
+    igtl.TrackingDataMessage: lambda c: st.builds(igtl.TrackingDataMessage, st.lists(st.builds(
+        igtl.TrackingElement, name(20), u8, floats(12)), max_size=3), **J(c)),
+    igtl.QuaternionTrackingDataMessage: lambda c: st.builds(
+        igtl.QuaternionTrackingDataMessage, st.lists(st.builds(
+            igtl.QuaternionTrackingElement, name(20), u8, floats(3), floats(4)), max_size=3), **J(c)),
+    igtl.SensorMessage: lambda c: st.builds(igtl.SensorMessage, st.lists(f64, max_size=8),
+                                            st.integers(0, 2**64 - 1).map(igtl.Unit.unpack), u8,
+                                            **J(c)),
+    igtl.NDArrayMessage: lambda c: st.builds(igtl.NDArrayMessage, arrays(
+        ["i1", "u1", ">i2", "<u2", "i4", "u4", "f4", "f8", "c16"]), **J(c)),
+    igtl.ImageMessage: lambda c: image(c),
+    igtl.ImageMetaMessage: lambda c: st.builds(igtl.ImageMetaMessage, st.lists(st.builds(
+        igtl.ImageMetaElement, name(64), name(20), name(32), name(64), name(64),
+        st.integers(0, 2**64 - 1), st.tuples(u16, u16, u16), u8), max_size=2), **J(c)),
+    igtl.LabelMetaMessage: lambda c: st.builds(igtl.LabelMetaMessage, st.lists(st.builds(
+        igtl.LabelMetaElement, name(64), name(20), u8, rgba, st.tuples(u16, u16, u16), name(20)),
+        max_size=2), **J(c)),
+    igtl.ColorTableMessage: lambda c: st.builds(
+        igtl.ColorTableMessage,
+        st.sampled_from([(256,), (256, 3)]).flatmap(lambda s: hnp.arrays(np.uint8, s))
+        | hnp.arrays(np.uint16, (256,)),
+        st.sampled_from(["COLORT", "COLORTABLE"]), **J(c)),
+    igtl.PolyDataMessage: lambda c: st.builds(
+        igtl.PolyDataMessage, hnp.arrays(np.float32, st.tuples(st.integers(0, 4), st.just(3)),
+                                         elements=f32),
+        cells(), cells(), cells(), cells(),
+        st.lists(st.builds(igtl.PolyDataAttribute, u8,
+                           name(20).filter(lambda s: "\0" not in s),
+                           hnp.arrays(np.float32, st.tuples(st.integers(0, 3),
+                                                            st.integers(1, 4)), elements=f32)),
+                 max_size=3).map(tuple), **J(c)),
+    igtl.BindMessage: lambda c: st.builds(igtl.BindMessage, st.lists(bind_child(), max_size=3)
+                                          .map(tuple), **J(c)),
+    igtl.GetBindMessage: lambda c: st.builds(igtl.GetBindMessage, request(), **J(c)),
+    igtl.StartBindMessage: lambda c: st.builds(igtl.StartBindMessage,
+                                               st.integers(0, 2**64 - 1), request(), **J(c)),
+    igtl.CommandMessage: lambda c: st.tuples(u32, name(128), encoded_text()).map(
+        lambda t: igtl.CommandMessage(t[0], t[1], t[2][0], t[2][1], **c)),
+    igtl.RTSCommandMessage: lambda c: st.tuples(u32, name(128), encoded_text()).map(
+        lambda t: igtl.RTSCommandMessage(t[0], t[1], t[2][0], t[2][1], **c)),
+    igtl.QueryMessage: lambda c: st.builds(igtl.QueryMessage,
+                                           st.sampled_from(igtl.QueryMessage.TYPES), **J(c)),
+    igtl.RTSMessage: lambda c: st.builds(igtl.RTSMessage, st.sampled_from(igtl.RTSMessage.TYPES),
+                                         st.none() | u8, **J(c)),
+    igtl.StartTrackingMessage: lambda c: st.builds(
+        igtl.StartTrackingMessage, st.sampled_from(["STT_TDATA", "STT_QTDATA"]),
+        st.integers(-(2**31), 2**31 - 1), name(32), **J(c)),
+    igtl.StartPolyDataMessage: lambda c: st.builds(igtl.StartPolyDataMessage,
+                                                   st.none() | st.integers(0, 2**64 - 1), **J(c)),
+    igtl.StartVideoMessage: lambda c: st.builds(igtl.StartVideoMessage, name(4), u32, u8, **J(c)),
+    igtl.VideoMetaMessage: lambda c: st.builds(igtl.VideoMetaMessage, st.lists(st.builds(
+        igtl.VideoMetaElement, name(64), name(64), name(64), name(64),
+        st.integers(-32768, 32767), f64, st.tuples(u16, u16, u16), floats(12), u8),
+        max_size=2), **J(c)),
+    igtl.VideoMessage: lambda c: st.builds(
+        igtl.VideoMessage, st.binary(max_size=20), name(4), u16, u8, u8,
+        st.tuples(u16, u16, u16), floats(12), st.tuples(u16, u16, u16), st.tuples(u16, u16, u16),
+        **J(c)),
+    igtl.VirtualFixtureMessage: lambda c: st.builds(
+        igtl.VirtualFixtureMessage, f32, st.lists(floats(4), max_size=4), u8, **J(c)),
+}
+
+
+def test_every_registered_class_has_a_strategy():
+    assert set(base.REGISTRY.values()) <= set(CONTENT)
+
+
+def messages(version: int | None = None):
+    versions = st.sampled_from([1, 2]) if version is None else st.just(version)
+    return versions.flatmap(common).flatmap(
+        lambda c: st.sampled_from(sorted(CONTENT, key=lambda k: k.__name__)).flatmap(
+            lambda cls: CONTENT[cls](c)))
+
+
+@pytest.mark.parametrize("cls", sorted(CONTENT, key=lambda k: k.__name__), ids=lambda c: c.__name__)
+@pytest.mark.parametrize("version", [1, 2])
+@SETTINGS
+@given(data=st.data())
+def test_round_trip_every_type(cls, version, data):
+    msg = data.draw(common(version).flatmap(CONTENT[cls]))
+    packed = msg.pack()
+    again = igtl.unpack(packed)
+    assert type(again) is cls
+    assert again == msg
+    assert again.pack() == packed
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(
+    st.text("ABCDEFGHIJKLMNOPQRSTUVWXYZ_0123456789", min_size=1, max_size=12).filter(
+        lambda s: s not in base.REGISTRY),
+    st.binary(max_size=30), st.sampled_from([1, 2])), max_size=3))
+def test_unknown_types_round_trip(items):
+    for t, content, v in items:
+        m = igtl.RawMessage(type_name=t, content=content, header_version=v)
+        assert igtl.unpack(m.pack()) == m
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(messages(), min_size=1, max_size=5), st.data())
+def test_stream_splits(msgs, data):
+    stream = b"".join(m.pack() for m in msgs)
+    cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=8)))
+    dec = igtl.StreamDecoder()
+    out = []
+    prev = 0
+    for cut in [*cuts, len(stream)]:
+        dec.feed(stream[prev:cut])
+        out.extend(dec)
+        prev = cut
+    assert out == msgs
+    dec = igtl.StreamDecoder()
+    out = []
+    for i in range(len(stream)):
+        dec.feed(stream[i : i + 1])
+        out.extend(dec)
+    assert out == msgs
+    dec.close()
+
+
+# ---------------------------------------------------------------------------- corruption
+SEEDS = [p.read_bytes() for p in sorted(VECTORS_DIR.glob("*.bin")) if p.name != "rtpwrapper.bin"
+         and p.stat().st_size < 1500]
+
+
+def decode_all(data: bytes, *, crc_check: bool) -> None:
+    """Decode ``data`` both ways; only IGTLError may escape."""
+    try:
+        igtl.unpack(data, crc_check=crc_check)
+    except igtl.IGTLError:
+        pass
+    dec = igtl.StreamDecoder(crc_check=crc_check, max_body_size=1 << 20)
+    dec.feed(data)
+    while True:
+        try:
+            if dec.next_message() is None:
+                break
+        except igtl.DecodeError as err:
+            if not err.recoverable:
+                break
+    try:
+        dec.close()
+    except igtl.IGTLError:
+        pass
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.sampled_from(SEEDS), st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 7)),
+                                        min_size=1, max_size=4), st.booleans())
+def test_bit_flips(seed, flips, crc_check):
+    data = bytearray(seed)
+    for pos, bit in flips:
+        data[pos % len(data)] ^= 1 << bit
+    decode_all(bytes(data), crc_check=crc_check)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.sampled_from(SEEDS), st.integers(0, 10**6), st.binary(max_size=80))
+def test_truncation_and_garbage(seed, cut, garbage):
+    decode_all(seed[: cut % (len(seed) + 1)], crc_check=True)
+    decode_all(garbage, crc_check=False)
+    decode_all(seed + garbage, crc_check=True)
+    decode_all(garbage + seed, crc_check=True)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(0, 3), st.sampled_from(sorted(base.REGISTRY)) | name(12), name(20),
+       st.integers(0, 2**64 - 1), st.integers(0, 2**64 - 1) | st.integers(0, 200),
+       st.binary(max_size=200))
+def test_random_headers_with_any_body(version, mtype, device, ts, size, body):
+    """Random headers (incl. huge sizes) followed by random bodies, CRC right or wrong."""
+    for crc in (wire.crc64(body[:size]), 0):
+        header = wire.HEADER.pack(version, mtype.encode("latin-1"), device.encode("latin-1"), ts,
+                                  size, crc)
+        decode_all(header + body, crc_check=crc == 0)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.sampled_from(sorted(base.REGISTRY)), st.binary(max_size=300), st.sampled_from([1, 2]))
+def test_random_content_for_every_type(mtype, content, version):
+    """Any content bytes under any registered type: decoded or a DecodeError, nothing else."""
+    data = igtl.RawMessage(type_name=mtype, content=content, header_version=version).pack()
+    try:
+        m = igtl.unpack(data)
+    except igtl.DecodeError:
+        return
+    assert m.message_type == mtype

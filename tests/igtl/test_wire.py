@@ -1,0 +1,191 @@
+"""Wire layer: CRC-64, timestamps, header, metadata (protocol doc sections 1 and 2).
+
+The header vector ``barray`` is from the OpenIGTLink project's ``igtl_header_test.c``
+(github.com/openigtlink/OpenIGTLink, BSD-style licence, Copyright Insight Software Consortium).
+"""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from igtl import wire
+from igtl.errors import (
+    BodyTooLargeError,
+    ExtendedHeaderError,
+    MetadataError,
+    TruncatedMessageError,
+    UnknownHeaderVersionError,
+)
+
+BARRAY = bytes.fromhex(
+    "00 01 54 59 50 45 4e 41 4d 45 00 00 00 00 44 65 76 69 63 65 4e 61 6d 65 00 00 00 00 00 00"
+    "00 00 00 00 00 00 00 00 49 96 02 d2 00 00 00 07 50 88 ff 06 00 00 00 00 00 14 7e a7"
+)
+
+
+def test_crc_check_value():
+    assert wire.crc64(b"123456789") == 0x6C40DF5F0B497347
+    assert wire.crc64(b"") == 0
+
+
+@pytest.mark.parametrize(
+    ("ns", "frac"),
+    [(500_000_000, 0x80000000), (123_456_789, 0x1F9ADD24), (999_999_999, 0xFFFFFFD8), (0, 0)],
+)
+def test_nanosec_to_frac_examples(ns, frac):
+    assert wire.nanosec_to_frac(ns) == frac
+    assert wire.nanosec_to_frac_reference(ns) == frac
+    assert wire.frac_to_nanosec(frac) == ns  # round trip
+
+
+@pytest.mark.parametrize(("frac", "ns"), [(0x499602D4, 287_445_240), (0xFFFFFFFF, 1_000_000_010)])
+def test_frac_to_nanosec_examples(frac, ns):
+    assert wire.frac_to_nanosec(frac) == ns
+
+
+def _edges() -> list[int]:
+    """Every boundary of the byte tables (where the greedy's choices change), +-2."""
+    out = set()
+    for table in (wire._T0, wire._T1, wire._T2, wire._T3):
+        for v in table:
+            for d in (-2, -1, 0, 1, 2):
+                if 0 <= v + d < 1_000_000_000:
+                    out.add(v + d)
+    out.update(range(0, 5000))
+    out.update(range(999_995_000, 1_000_000_000))
+    return sorted(out)
+
+
+def test_fast_nanosec_to_frac_matches_greedy_on_edges():
+    for ns in _edges():
+        assert wire.nanosec_to_frac(ns) == wire.nanosec_to_frac_reference(ns), ns
+
+
+def test_fast_nanosec_to_frac_matches_greedy_strided():
+    # A stride coprime with every table period sweeps all byte positions.
+    for ns in range(7, 1_000_000_000, 24989):
+        assert wire.nanosec_to_frac(ns) == wire.nanosec_to_frac_reference(ns), ns
+
+
+@settings(max_examples=3000, deadline=None)
+@given(st.integers(0, 999_999_999))
+def test_fast_nanosec_to_frac_matches_greedy(ns):
+    frac = wire.nanosec_to_frac(ns)
+    assert frac == wire.nanosec_to_frac_reference(ns)
+    assert wire.frac_to_nanosec(frac) == ns
+
+
+@settings(max_examples=500, deadline=None)
+@given(st.floats(0.0, 4e9, allow_nan=False))
+def test_seconds_to_raw_matches_reference(t):
+    raw = wire.seconds_to_raw(t)
+    if t <= 0:
+        assert raw == 0
+        return
+    sec = int(t)
+    ns = round((t - sec) * 1e9)
+    if ns >= 1_000_000_000:
+        sec, ns = sec + 1, ns - 1_000_000_000
+    assert raw == ((sec & 0xFFFFFFFF) << 32) | wire.nanosec_to_frac_reference(ns)
+
+
+def test_barray_header():
+    h = wire.unpack_header(BARRAY, max_body_size=2**64)
+    assert h == wire.Header(1, "TYPENAME", "DeviceName", 1234567890, 31415926534, 1343143)
+    assert wire.HEADER.pack(1, b"TYPENAME", b"DeviceName", 1234567890, 31415926534,
+                            1343143) == BARRAY
+
+
+def test_barray_rejected_by_default_limit():
+    with pytest.raises(BodyTooLargeError) as e:
+        wire.unpack_header(BARRAY)
+    assert e.value.offset == 42 and e.value.message_type == "TYPENAME"
+
+
+def test_header_errors():
+    with pytest.raises(TruncatedMessageError):
+        wire.unpack_header(BARRAY[:57])
+    with pytest.raises(UnknownHeaderVersionError) as e:
+        wire.unpack_header(b"\x00\x03" + BARRAY[2:], max_body_size=2**64)
+    assert e.value.offset == 0
+
+
+def test_full_names_without_terminator():
+    raw = wire.HEADER.pack(1, b"ABCDEFGHIJKL", b"D" * 20, 0, 0, 0)
+    h = wire.unpack_header(raw)
+    assert (h.message_type, h.device_name) == ("ABCDEFGHIJKL", "D" * 20)
+    assert wire.pack_header(1, "ABCDEFGHIJKL", "D" * 20, 0, b"") == raw
+
+
+def test_pack_header_rejects_long_names():
+    with pytest.raises(ValueError, match="device name"):
+        wire.pack_header(1, "T", "D" * 21, 0, b"")
+    with pytest.raises(ValueError, match="message type"):
+        wire.pack_header(1, "T" * 13, "D", 0, b"")
+
+
+# -------------------------------------------------------------------------------- metadata
+def test_metadata_sorted_and_counted():
+    head, data = wire.pack_metadata({"b": "2", "a": ""}, {})
+    assert head == bytes.fromhex("0002" "0001 0003 00000000" "0001 0003 00000001")
+    assert data == b"ab2"
+    assert wire.unpack_metadata(head, data) == ({"a": "", "b": "2"}, {})
+
+
+def test_metadata_empty_always_has_count():
+    assert wire.pack_metadata({}, {}) == (b"\x00\x00", b"")
+    assert wire.unpack_metadata(b"\x00\x00", b"") == ({}, {})
+    assert wire.unpack_metadata(b"", b"") == ({}, {})
+
+
+def test_metadata_non_ascii_and_explicit_encoding():
+    head, data = wire.pack_metadata({"Név": "Größe", "k": "v"}, {"k": 106})
+    values, enc = wire.unpack_metadata(head, data)
+    assert values == {"Név": "Größe", "k": "v"}
+    assert enc == {"k": 106}  # UTF-8 on an ASCII value is not the default: kept
+
+
+def test_metadata_unknown_encoding_round_trips():
+    head = bytes.fromhex("0001" "0001 2710 00000002")  # encoding 10000: unknown
+    values, enc = wire.unpack_metadata(head, b"k\xff\x01")
+    assert values == {"k": "\xff\x01"} and enc == {"k": 10000}
+    assert wire.pack_metadata(values, enc) == (head, b"k\xff\x01")
+
+
+@pytest.mark.parametrize(
+    ("head", "data", "match"),
+    [
+        (b"\x00", b"", "index count"),
+        (bytes.fromhex("0002 0001 0003 00000001"), b"ab", "needs 18"),
+        (bytes.fromhex("0001 0001 0003 00000005"), b"ab", "entry 0"),
+        (bytes.fromhex("0001 0001 0003 00000001"), b"abc", "META_DATA_SIZE"),
+        (bytes.fromhex("0001 0001 0003 00000001"), b"\xffa", "UTF-8"),
+        (bytes.fromhex("0001 0001 0003 00000001"), b"a\xff", "encoding 3"),
+    ],
+)
+def test_metadata_errors(head, data, match):
+    with pytest.raises(MetadataError, match=match) as e:
+        wire.unpack_metadata(head, data, base_offset=100)
+    assert e.value.offset is not None and e.value.offset >= 100
+
+
+def test_metadata_caller_errors():
+    with pytest.raises(TypeError):
+        wire.pack_metadata({"k": 1}, {})  # type: ignore[dict-item]
+    with pytest.raises(ValueError):
+        wire.pack_metadata({"k": "é"}, {"k": 3})
+    with pytest.raises(ValueError):
+        wire.pack_metadata({"k": "v"}, {"k": 70000})
+
+
+def test_split_v2_body():
+    body = wire.EXT_HEADER.pack(12, 2, 0, 7) + b"content" + b"\x00\x00"
+    assert wire.split_v2_body(body) == wire.BodyLayout(12, 19, 2, 0, 7)
+    with pytest.raises(ExtendedHeaderError):
+        wire.split_v2_body(body[:11])
+    with pytest.raises(ExtendedHeaderError):
+        wire.split_v2_body(wire.EXT_HEADER.pack(8, 0, 0, 0))
+    with pytest.raises(ExtendedHeaderError):
+        wire.split_v2_body(wire.EXT_HEADER.pack(12, 2, 100, 0) + b"\0\0")
