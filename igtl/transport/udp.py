@@ -1,0 +1,391 @@
+"""OpenIGTLink over UDP: :class:`UDPEndpoint`, one message per datagram, RTP for large ones.
+
+Sending happens in the caller's thread on a non-blocking socket: ``send`` never waits. A full
+socket buffer drops the message (counted in ``dropped``, ``send`` returns False); any other
+socket error is counted in ``send_errors``. A packed message longer than ``max_datagram`` (or
+every message, with ``rtp=True``) goes out with the reference library's RTP fragmentation
+(:mod:`igtl.rtp`, ``rtp_payload`` bytes of RTP payload per datagram); since that scheme needs
+header version 2, such a message is packed as v2. Its message ID must be below 2**16.
+
+Receiving runs on the endpoint's I/O thread. A datagram whose first byte is 0x80 (an RTP header;
+an OpenIGTLink header starts with 0x00) goes to a per-sender :class:`igtl.rtp.Reassembler`
+(incomplete messages expire after ``reassembly_timeout`` seconds; memory is capped); any other
+datagram must be exactly one complete message. Decoding uses :func:`igtl.unpack` (CRC checked
+unless ``crc_check=False``). Every bad datagram or reassembly error is counted (``malformed``,
+per peer and in total), passed to ``on_error(peer, err)`` and logged as a rate-limited WARNING;
+nothing is ever raised into the receive loop. Datagrams from senders outside ``allowed_peers``
+are dropped and counted (``denied``). Messages go to ``on_message(peer, msg)`` when set, else to
+a bounded inbox read with ``receive(timeout)`` (full: oldest dropped, ``receive_dropped``).
+
+A :class:`~igtl.transport.common.Peer` is kept per remote address (at most ``max_peers``, the
+least recently created is forgotten first); ``peer.header_version`` is the highest version it
+sent, as on TCP.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import selectors
+import socket
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, Self
+
+from .. import rtp as _rtp
+from .. import wire
+from ..codec import unpack
+from ..errors import DecodeError
+from ..messages.base import Message
+from .common import (
+    PEER_COUNTERS,
+    AccessList,
+    CallbackGuard,
+    IdCounter,
+    Inbox,
+    Peer,
+    RateLimit,
+    Waker,
+    addr_text,
+    encode,
+)
+
+log = logging.getLogger("igtl.transport.udp")
+
+OnMessage = Callable[[Peer, Message], Any]
+OnError = Callable[["Peer | None", BaseException], Any]
+Sendable = Message | bytes | bytearray | memoryview
+
+MAX_UDP_PAYLOAD = 65507  # IPv4: 65535 - 20 (IP) - 8 (UDP)
+_RECV_BATCH = 64  # datagrams read per readiness event before looking at the selector again
+
+
+class UDPEndpoint:
+    """A UDP socket speaking OpenIGTLink (see the module docstring)."""
+
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        *,
+        remote: tuple[str, int] | None = None,
+        on_message: OnMessage | None = None,
+        on_error: OnError | None = None,
+        allowed_peers: list[str] | None = None,
+        max_datagram: int = MAX_UDP_PAYLOAD,
+        rtp: bool = False,
+        rtp_payload: int = _rtp.DEFAULT_PAYLOAD_LENGTH,
+        rtp_payload_type: int = _rtp.DEFAULT_PAYLOAD_TYPE,
+        rtp_ssrc: int | None = None,
+        reassembly_timeout: float = 1.0,
+        max_peers: int = 1024,
+        receive_queue: int = 1024,
+        rcvbuf: int | None = None,
+        max_body_size: int = wire.DEFAULT_MAX_BODY_SIZE,
+        crc_check: bool = True,
+        name: str = "igtl-udp",
+    ) -> None:
+        if not 1 <= max_datagram <= MAX_UDP_PAYLOAD:
+            raise ValueError(f"max_datagram must be 1..{MAX_UDP_PAYLOAD}, got {max_datagram}")
+        if not _rtp.PREFIX_SIZE < rtp_payload <= MAX_UDP_PAYLOAD - _rtp.RTP_HEADER_SIZE:
+            raise ValueError(f"rtp_payload must be 71..{MAX_UDP_PAYLOAD - 12}, got {rtp_payload}")
+        if not 0 <= rtp_payload_type <= 0x7F:
+            raise ValueError(f"rtp_payload_type must be 0..127, got {rtp_payload_type}")
+        self.host = host
+        self.port = port
+        self.remote = remote
+        self.on_message = on_message
+        self.on_error = on_error
+        self.max_datagram = max_datagram
+        self.rtp = rtp
+        self.rtp_payload = rtp_payload
+        self.rtp_payload_type = rtp_payload_type
+        self.rtp_ssrc = (
+            int.from_bytes(os.urandom(4), "big") if rtp_ssrc is None else rtp_ssrc & 0xFFFFFFFF
+        )
+        self.max_peers = max_peers
+        self.rcvbuf = rcvbuf
+        self.name = name
+        self.address: tuple[str, int] = (host, port)
+        self._access = AccessList(allowed_peers)
+        self._crc_check = crc_check
+        self._max_body = max_body_size
+        self._reassembler = _rtp.Reassembler(
+            timeout=reassembly_timeout, max_body_size=max_body_size
+        )
+        self._inbox = Inbox(receive_queue)
+        self._guard = CallbackGuard(name)
+        self._next_id = IdCounter()
+        self._peers: dict[Any, Peer] = {}
+        self._peers_lock = threading.Lock()
+        self._seq = int.from_bytes(os.urandom(2), "big")
+        self._seq_lock = threading.Lock()
+        self._sock: socket.socket | None = None
+        self._sendto: Callable[[bytes, Any], int] | None = None
+        self._waker = Waker()
+        self._sel = selectors.DefaultSelector()
+        self._state_lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._running = False
+        self._stopped = False
+        self._denied_log = RateLimit()
+        self._error_log = RateLimit()
+        self._rxbuf = bytearray(65536)
+        # Endpoint-wide counters (per-peer ones live on the Peers).
+        self._sent = 0
+        self._dropped = 0
+        self._send_errors = 0
+        self._datagrams_sent = 0
+        self._datagrams_received = 0
+        self._denied = 0
+        self._receive_errors = 0
+        self._forgotten = dict.fromkeys(PEER_COUNTERS, 0)
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> UDPEndpoint:
+        """Bind (errors raise here) and start the receive thread."""
+        with self._state_lock:
+            if self._thread is not None or self._stopped:
+                raise RuntimeError(f"{self.name}: start() may be called once")
+            family = socket.AF_INET6 if ":" in self.host else socket.AF_INET
+            sock = socket.socket(family, socket.SOCK_DGRAM)
+            try:
+                if self.rcvbuf:
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.rcvbuf)
+                sock.bind((self.host, self.port))
+                sock.setblocking(False)
+            except OSError:
+                sock.close()
+                raise
+            self._sock = sock
+            self._sendto = sock.sendto
+            self.address = sock.getsockname()[:2]
+            self._sel.register(sock, selectors.EVENT_READ, "sock")
+            self._sel.register(self._waker.r, selectors.EVENT_READ, "wake")
+            self._running = True
+            self._thread = threading.Thread(target=self._thread_main, name=self.name, daemon=True)
+            self._thread.start()
+        log.info("%s: bound to %s", self.name, addr_text(self.address))
+        return self
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Stop the receive thread and close the socket. Safe to call twice, or before start."""
+        with self._state_lock:
+            if self._stopped:
+                return
+            self._stopped = True
+            self._running = False
+            self._sendto = None
+            thread = self._thread
+        if thread is None:
+            self._release()
+            return
+        self._waker.wake()
+        if thread is not threading.current_thread():
+            thread.join(timeout)
+            if thread.is_alive():
+                log.warning("%s: I/O thread did not stop within %.1f s", self.name, timeout)
+
+    def __enter__(self) -> Self:
+        if self._thread is None:
+            self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def _release(self) -> None:
+        self._sel.close()
+        self._waker.close()
+        if self._sock is not None:
+            self._sock.close()
+
+    # ------------------------------------------------------------------ public, any thread
+    @property
+    def peers(self) -> list[Peer]:
+        with self._peers_lock:
+            return list(self._peers.values())
+
+    def send(self, msg: Sendable, addr: tuple[str, int] | None = None) -> bool:
+        """Send ``msg`` to ``addr`` (default ``remote``) without blocking. Returns False, and
+        counts, when the socket buffer is full or the socket fails; ValueError for a message
+        that cannot be sent (no destination, RTP limits)."""
+        dest = addr if addr is not None else self.remote
+        if dest is None:
+            raise ValueError("no destination: pass addr or construct with remote=(host, port)")
+        if self.rtp and isinstance(msg, Message):
+            data = msg.pack(2)
+        else:
+            data = encode(msg)
+        if self.rtp or len(data) > self.max_datagram:
+            datagrams = self._fragment(msg, data)
+        else:
+            datagrams = [data]
+        peer = self._peer_for(dest)
+        sendto = self._sendto
+        if sendto is None:  # not started, or stopped
+            self._dropped += 1
+            peer.dropped += 1
+            return False
+        try:
+            for datagram in datagrams:
+                sendto(datagram, dest)
+                self._datagrams_sent += 1
+        except (BlockingIOError, InterruptedError):
+            # Socket buffer full: the 1 kHz caller must not wait, so this message is lost.
+            self._dropped += 1
+            peer.dropped += 1
+            return False
+        except OSError as err:
+            self._send_errors += 1
+            peer.dropped += 1
+            if self._error_log.allow():
+                log.warning("%s: send to %s failed: %s", self.name, addr_text(dest), err)
+            return False
+        self._sent += 1
+        peer.sent += 1
+        return True
+
+    def receive(self, timeout: float | None = None) -> tuple[Peer, Message] | None:
+        """Next (peer, message), or None after ``timeout`` seconds (None: wait)."""
+        if self.on_message is not None:
+            raise RuntimeError("on_message is set, so messages never reach receive()")
+        return self._inbox.get(timeout)
+
+    def stats(self) -> dict[str, Any]:
+        peers = self.peers
+        totals = dict(self._forgotten)
+        for peer in peers:
+            for name in PEER_COUNTERS:
+                totals[name] += getattr(peer, name)
+        reasm = self._reassembler
+        return {
+            "received": totals["received"],
+            "sent": self._sent,
+            "dropped": self._dropped,
+            "send_errors": self._send_errors,
+            "malformed": totals["malformed"],
+            "denied": self._denied,
+            "receive_errors": self._receive_errors,
+            "datagrams_sent": self._datagrams_sent,
+            "datagrams_received": self._datagrams_received,
+            "reassembled": reasm.completed,
+            "reassembly_expired": reasm.expired,
+            "reassembly_evicted": reasm.evicted,
+            "reassembly_pending": reasm.pending,
+            "receive_dropped": self._inbox.dropped,
+            "callback_errors": self._guard.errors,
+            "peers": [p.as_dict() for p in peers],
+        }
+
+    # ------------------------------------------------------------------ internals
+    def _fragment(self, msg: Sendable, data: bytes) -> list[bytes]:
+        if data[:2] != b"\x00\x02":
+            if not isinstance(msg, Message):
+                raise ValueError("RTP needs a header-version-2 message; these bytes are not one")
+            data = msg.pack(2)
+        chunk = self.rtp_payload - _rtp.PREFIX_SIZE
+        count = max(1, -(-(len(data) - _rtp.PREFIX_SIZE) // chunk))
+        with self._seq_lock:
+            seq = self._seq
+            self._seq = (seq + count) & 0xFFFF
+        return _rtp.fragment(
+            data,
+            seq_start=seq,
+            payload_type=self.rtp_payload_type,
+            ssrc=self.rtp_ssrc,
+            payload_length=self.rtp_payload,
+        )
+
+    def _peer_for(self, address: Any) -> Peer:
+        key = (address[0], address[1])
+        peer = self._peers.get(key)
+        if peer is not None:
+            return peer
+        with self._peers_lock:
+            peer = self._peers.get(key)
+            if peer is None:
+                while len(self._peers) >= self.max_peers:
+                    old = self._peers.pop(next(iter(self._peers)))
+                    for name in PEER_COUNTERS:
+                        self._forgotten[name] += getattr(old, name)
+                peer = Peer(self._next_id(), key)
+                self._peers[key] = peer
+        return peer
+
+    def _thread_main(self) -> None:
+        try:
+            self._run()
+        except Exception:  # pragma: no cover - a bug; keep the cause visible
+            log.exception("%s: I/O thread failed", self.name)
+        finally:
+            self._release()
+            log.info("%s: stopped", self.name)
+
+    def _run(self) -> None:
+        reasm = self._reassembler
+        tick = min(reasm.timeout / 4, 0.25)
+        while self._running:
+            for key, _mask in self._sel.select(tick):
+                if key.data == "wake":
+                    self._waker.drain()
+                else:
+                    self._read_batch()
+            if reasm.pending:
+                reasm.expire()
+
+    def _read_batch(self) -> None:
+        sock = self._sock
+        assert sock is not None
+        buf = self._rxbuf
+        view = memoryview(buf)
+        for _ in range(_RECV_BATCH):
+            if not self._running:
+                return
+            try:
+                n, address = sock.recvfrom_into(buf)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as err:  # e.g. ICMP errors reported on the socket
+                self._receive_errors += 1
+                if self._error_log.allow():
+                    log.warning("%s: receive failed: %s", self.name, err)
+                return
+            self._datagrams_received += 1
+            self._datagram(bytes(view[:n]), address)
+
+    def _datagram(self, data: bytes, address: Any) -> None:
+        if not self._access.allows(address[0]):
+            self._denied += 1
+            if self._denied_log.allow():
+                log.warning(
+                    "%s: datagram from %s dropped (not in allowed_peers)",
+                    self.name,
+                    addr_text(address),
+                )
+            return
+        peer = self._peer_for(address)
+        peer.last_received = time.monotonic()
+        try:
+            if data[:1] == b"\x80":
+                whole = self._reassembler.feed(data, (address[0], address[1]))
+                if whole is None:
+                    return
+                data = whole
+            msg = unpack(data, crc_check=self._crc_check, max_body_size=self._max_body)
+        except DecodeError as err:
+            peer.malformed += 1
+            if peer.log_limit.allow():
+                log.warning(
+                    "%s: malformed datagram from %s: %s", self.name, addr_text(address), err
+                )
+            self._guard(self.on_error, peer, err)
+            return
+        peer.received += 1
+        if msg.header_version > peer.header_version:
+            peer.note_version(msg.header_version)
+        if self.on_message is not None:
+            self._guard(self.on_message, peer, msg)
+        else:
+            self._inbox.put((peer, msg))
