@@ -12,7 +12,8 @@
      |    +-- ExtendedHeaderError      v2 extended-header sizes do not add up
      |    +-- MetadataError            v2 metadata index/sizes inconsistent or text undecodable
      |    +-- ContentError             the content does not fit its type (sizes, counts, values)
-     |         +-- InvalidTextError    text bytes not valid in their declared encoding
+     |    |    +-- InvalidTextError    text bytes not valid in their declared encoding
+     |    +-- FragmentError            an RTP datagram that is not a valid fragment (UDP)
      +-- DecoderFailedError            a StreamDecoder was used after an unrecoverable error
      +-- TransportError                a socket-level problem (transports only)
           +-- ConnectionClosedError    the peer went away
@@ -100,6 +101,11 @@ class ContentError(DecodeError):
 
 class InvalidTextError(ContentError):
     """Text bytes that are not valid in their declared encoding."""
+
+
+class FragmentError(DecodeError):
+    """A datagram that is not a valid RTP-wrapped OpenIGTLink fragment, or fragments that do
+    not fit together. Recoverable: only that datagram (or that message) is lost."""
 
 
 class DecoderFailedError(IGTLError):

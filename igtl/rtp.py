@@ -27,7 +27,7 @@ from collections.abc import Callable, Hashable
 from typing import Any
 
 from . import wire
-from .errors import DecodeError
+from .errors import DecodeError, FragmentError
 
 RTP_HEADER = struct.Struct(">BBHII")
 RTP_HEADER_SIZE = 12
@@ -48,10 +48,6 @@ FRAGMENT_LAST = 0xE000
 #: The last fragment's index lives in 13 bits (0xE000 + k), which caps a message's fragments.
 MAX_FRAGMENTS = 0x2000
 
-
-class FragmentError(DecodeError):
-    """A datagram that is not a valid RTP-wrapped OpenIGTLink fragment, or fragments that do
-    not fit together. Recoverable: only that datagram (or that message) is lost."""
 
 
 def rtp_timestamp(t: float | None = None) -> int:
