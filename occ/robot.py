@@ -371,7 +371,10 @@ class Robot:
                 self._safety_stop(f"packet loss on {self.loss_input}: {event.cause}", self.loss_policy)
         state = self.state_machine.state
         # controller and drivers
-        if state is RobotState.RUNNING:
+        if not self.controller.drives_joints:
+            if state is RobotState.RUNNING:
+                self.controller.update(now)
+        elif state is RobotState.RUNNING:
             target = self.controller.update(now)
             sp = self.setpoint
             if target is not None:

@@ -30,6 +30,9 @@ class Controller:
     """Base controller: holds position (returns None) and handles nothing."""
 
     name = "hold"
+    #: False for devices moved by hand (a passive haptic master): the robot then never writes
+    #: position commands to the drivers, it only reads them.
+    drives_joints = True
 
     def __init__(self, params: dict[str, Any] | None = None) -> None:
         self.params = dict(params or {})

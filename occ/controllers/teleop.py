@@ -92,6 +92,9 @@ class MasterController(Controller):
         self.frequency = float(params.get("frequency_hz", 0.1))
         self.input_interface = params.get("input_interface")
         self.input_device = params.get("input_device")
+        # a hand-moved device is read, never position-commanded (fixture forces would need an
+        # effort-interface driver; they are computed and reported)
+        self.drives_joints = self.input != "driver"
         self.clutch = bool(params.get("clutch", False))
         self.seq = int(params.get("first_seq", 0)) & 0xFFFFFFFF
         self.spheres: list[tuple[np.ndarray, float]] = []
@@ -164,7 +167,8 @@ class MasterController(Controller):
         robot = self.robot
         assert robot is not None
         if self.input == "driver":
-            return list(robot.q)
+            self._apply_fixtures(robot.tip[:3, 3])
+            return None
         target = self.operator_target(now)
         if target is None:
             return None

@@ -1,0 +1,64 @@
+"""A CAN haptic master: the master's joints come from CAN drives (python-can `virtual` bus with a
+simulated drive node), and the hand-moved handle position streams to the slave as POSITION."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+
+import igtl
+from occ.config import load_config
+from occ.drivers.can_sim import DriveAxis, SimulatedDriveNode
+from occ.robot import build_robot
+from occ.safety import RobotState
+
+ROOT = Path(__file__).resolve().parents[2]
+COUNTS_PER_M = 1_000_000  # 1 count = 1 um
+
+
+@pytest.mark.realtime
+def test_can_master_streams_hand_motion() -> None:
+    channel = f"occ-test-{time.monotonic_ns()}"
+    cfg = load_config(ROOT / "configs" / "master.yaml")
+    joints = {name: {"can_id": 0x100 + i, "feedback_id": 0x180 + i, "counts_per_unit": COUNTS_PER_M}
+              for i, name in enumerate(("x", "y", "z"))}
+    driver = cfg.robot.drivers[0].model_copy(update={
+        "plugin": "can",
+        "params": {"interface": "virtual", "channel": channel, "joints": joints, "feedback_timeout": 0.05},
+    })
+    robot_cfg = cfg.robot.model_copy(update={"drivers": (driver,),
+                                             "realtime": cfg.robot.realtime.model_copy(update={"fifo_priority": None})})
+    cfg = cfg.model_copy(update={"robot": robot_cfg, "teleop": {**cfg.teleop, "input": "driver"}})
+    axes = [DriveAxis(0x100, 0x180, position=0.0), DriveAxis(0x101, 0x181, position=50_000.0),
+            DriveAxis(0x102, 0x182, position=20_000.0)]
+    sent: list[igtl.Message] = []
+    with SimulatedDriveNode(axes, channel=channel, tau=0.0, feedback_period=0.001):
+        robot = build_robot(cfg)
+        robot.interfaces["slave"].send = lambda m, peer=None: sent.append(m) or 1  # type: ignore[method-assign]
+        try:
+            robot.configure()
+            robot.state_machine.request("enable")
+            robot.state_machine.request("run")
+            robot.loop.run_in_thread(duration=3.0)
+            assert _wait(lambda: len(sent) > 20, 2.0)
+            # the operator pushes the handle 12 mm along x (the drive reports it)
+            axes[0].position = 12_000.0
+            axes[0].target = 12_000.0
+            assert _wait(lambda: abs(sent[-1].position[0] - robot.controller.origin[0] * 1e3 - 12.0) < 0.05, 2.0), sent[-1]
+            assert robot.state is RobotState.RUNNING
+        finally:
+            robot.loop.stop()
+            robot.loop.join(5.0)
+            robot.shutdown()
+    assert robot.drivers[0][0].stats()["errors"] == 0
+
+
+def _wait(pred, timeout: float) -> bool:  # type: ignore[no-untyped-def]
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.01)
+    return False
