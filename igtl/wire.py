@@ -178,13 +178,24 @@ def seconds_to_raw(t: float) -> int:
 
 # --------------------------------------------------------------------------------------------
 # Fixed-size, NUL-padded text fields (type name, device name, and the content-level names).
+def _text(raw: bytes) -> str:
+    """Name bytes as text: UTF-8 (what 3D Slicer and pyigtl write), else latin-1 (never fails).
+
+    The protocol only promises ASCII; UTF-8 is what real peers send for other characters.
+    """
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        return raw.decode("latin-1")
+
+
 def decode_fixed(raw: bytes | memoryview) -> str:
-    """Decode a NUL-padded field: up to the first NUL, latin-1 (never fails, round-trips bytes)."""
+    """Decode a NUL-padded field: up to the first NUL, UTF-8 with a latin-1 fallback."""
     raw = bytes(raw)
     end = raw.find(b"\x00")
     if end >= 0:
         raw = raw[:end]
-    return raw.decode("latin-1")
+    return _text(raw)
 
 
 def encode_fixed(text: str, size: int, what: str) -> bytes:
@@ -193,9 +204,9 @@ def encode_fixed(text: str, size: int, what: str) -> bytes:
     The reference truncates silently, which breaks name matching in 3D Slicer; we refuse instead.
     """
     try:
-        raw = text.encode("latin-1")
+        raw = text.encode("utf-8")
     except (UnicodeEncodeError, AttributeError) as err:
-        raise ValueError(f"{what} {text!r} is not latin-1/ASCII text") from err
+        raise ValueError(f"{what} {text!r} is not encodable text") from err
     if len(raw) > size:
         raise ValueError(f"{what} {text!r} is {len(raw)} bytes; OpenIGTLink allows {size}")
     return raw
@@ -214,7 +225,7 @@ def _decode_name(raw: bytes) -> str:
     name = _decoded_names.get(raw)
     if name is None:
         end = raw.find(b"\x00")
-        name = (raw if end < 0 else raw[:end]).decode("latin-1")
+        name = _text(raw if end < 0 else raw[:end])
         if len(_decoded_names) >= _NAME_CACHE_MAX:
             _decoded_names.clear()
         _decoded_names[raw] = name

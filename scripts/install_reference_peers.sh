@@ -8,8 +8,18 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 CACHE="${OCC_IGTL_EXAMPLES:-$ROOT/.cache/igtl-examples}"
 SRC=/usr/share/doc/openigtlink-examples/examples
 
-if [ ! -d "$SRC" ] || ! ls /usr/lib/*/cmake/OpenIGTLink*/OpenIGTLinkConfig.cmake >/dev/null 2>&1 \
-        && ! ls /usr/lib/cmake/OpenIGTLink*/OpenIGTLinkConfig.cmake >/dev/null 2>&1; then
+have_library() {
+    # Debian/Ubuntu put the CMake package in /usr/lib/openigtlink; other layouts use cmake/ dirs
+    local f
+    for f in /usr/lib/openigtlink/OpenIGTLinkConfig.cmake \
+             /usr/lib/*/openigtlink/OpenIGTLinkConfig.cmake \
+             /usr/lib/*/cmake/OpenIGTLink*/OpenIGTLinkConfig.cmake \
+             /usr/lib/cmake/OpenIGTLink*/OpenIGTLinkConfig.cmake; do
+        [ -e "$f" ] && return 0
+    done
+    return 1
+}
+if [ ! -d "$SRC" ] || ! have_library; then
     if [ "$(id -u)" != 0 ]; then
         echo "[peers] not root: cannot apt-get install libopenigtlink-dev openigtlink-examples" >&2
         exit 1
@@ -24,7 +34,7 @@ if [ -x "$CACHE/bin/TrackerClient" ] && [ -x "$CACHE/bin/ReceiveServer" ]; then
 fi
 command -v cmake >/dev/null || { echo "[peers] cmake missing" >&2; exit 1; }
 echo "[peers] building the reference examples into $CACHE (about 15 s)"
-rm -rf "$CACHE/build"
+rm -rf "$CACHE/build" "$CACHE/src"  # src: left over by an interrupted run, cp -r would nest
 mkdir -p "$CACHE/build" "$CACHE/bin"
 cp -r "$SRC" "$CACHE/src"
 # Debian ships some example sources gzip-compressed.

@@ -94,7 +94,7 @@ def _read_names(content: bytes, pos: int, n: int, what: str) -> tuple[list[str],
             raise ContentError(f"{what}: name table holds fewer than {n} names", offset=start + p)
         if e - p > wire.DEVICE_NAME_SIZE:
             raise ContentError(f"{what}: child name longer than 20 bytes", offset=start + p)
-        names.append(table[p:e].decode("latin-1"))
+        names.append(wire.decode_fixed(table[p:e]))
         p = e + 1
     if table[p:] not in (b"", b"\0"):
         raise ContentError(f"{what}: {tsize - p} unexpected bytes in the name table",

@@ -15,6 +15,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from .. import wire
 from ..errors import ContentError, InvalidTextError
 from .base import Message, common_equal, register
 
@@ -40,9 +41,9 @@ class PolyDataAttribute:
     def __post_init__(self) -> None:
         if not isinstance(self.type, int) or not 0 <= self.type <= 255:
             raise ValueError(f"attribute type must fit uint8, got {self.type!r}")
-        raw = self.name.encode("latin-1") if isinstance(self.name, str) else b"\0"
+        raw = self.name.encode("utf-8") if isinstance(self.name, str) else b"\0"
         if b"\0" in raw or len(raw) > 255:
-            raise ValueError(f"attribute name {self.name!r}: <= 255 latin-1 bytes, no NUL")
+            raise ValueError(f"attribute name {self.name!r}: <= 255 UTF-8 bytes, no NUL")
         d = np.asarray(self.data, dtype=np.float32)
         if d.ndim == 1:
             d = d[:, np.newaxis]
@@ -142,7 +143,7 @@ class PolyDataMessage(Message):
             counts[2], len(blocks[2]), counts[3], len(blocks[3]),
             len(self.attributes),
         )
-        names = b"".join(a.name.encode("latin-1") + b"\0" for a in self.attributes)
+        names = b"".join(a.name.encode("utf-8") + b"\0" for a in self.attributes)
         if len(names) % 2:
             names += b"\0"
         return b"".join((
@@ -187,7 +188,7 @@ class PolyDataMessage(Message):
             if end - pos > 255:
                 raise InvalidTextError("POLYDATA attribute name longer than 255 bytes",
                                        offset=pos)
-            names.append(content[pos:end].decode("latin-1"))
+            names.append(wire.decode_fixed(content[pos:end]))
             pos = end + 1
         if pos % 2:  # the names block is padded to an even length (content starts even)
             pos += 1

@@ -25,7 +25,7 @@ SETTINGS = settings(max_examples=10, deadline=None,
 # ---------------------------------------------------------------------------- strategies
 def name(max_size: int, min_size: int = 0) -> st.SearchStrategy[str]:
     return st.text(st.characters(min_codepoint=1, max_codepoint=255), min_size=min_size,
-                   max_size=max_size).filter(lambda s: len(s.encode("latin-1")) <= max_size)
+                   max_size=max_size).filter(lambda s: len(s.encode("utf-8")) <= max_size)
 
 
 text = st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters="\0"),
