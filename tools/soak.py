@@ -1,0 +1,1059 @@
+#!/usr/bin/env python3
+"""Packet-loss soak of the slave's loss monitor: simulated time (exact) and real loopback.
+
+The safety requirement under test (OCC, Arata et al. 2010; ``configs/slave.yaml``): the master
+streams POSITION at 500 Hz; the slave tolerates up to 2 consecutive lost packets; 3 consecutive
+losses (or a silent master) stop the robot within 7 ms of the last good packet and alert the
+operators with a STATUS.
+
+``sim``
+    The slave :class:`~occ.robot.Robot` (``configs/slave.yaml``) stepped tick by tick on a
+    :class:`~occ.clock.SimClock` (no sockets: datagrams enter through the UDP interface's routing
+    callback, packed and decoded like real ones; operator COMMANDs through the TCP interface's).
+    The simulated master sends one POSITION every 2 ms (even ticks); a seeded
+    :class:`loss_proxy.LossPattern` drops some. An independent oracle (this file, not the loss
+    monitor) follows the drops and checks EXACTLY: the robot stops iff a run of >= 3
+    consecutive losses starts while the monitor is armed, at the tick 7 ms after the tick that
+    took the last good packet; runs of 1-2 never stop it; every stop alerts the operators
+    (STATUS STOPPED "packet loss ..."). After each stop the operator sends Run ``--pause-ms``
+    later, so the soak continues. Runs that start while the robot is stopped, or after a Run
+    before the first packet (the monitor is armed by the first packet), are *masked*: counted,
+    not judged.
+
+``real``
+    ``occd`` slave and master processes on loopback, with temporary config copies (in the
+    report folder): all ports moved to free ones, the master's POSITION ``remote`` pointed at a
+    :class:`loss_proxy.LossProxy` (in this process) that forwards to the slave. An operator
+    client (:class:`slicer_standin.SlicerStandIn`, COMMAND over TCP) records every STATUS and
+    sends Run ``--pause-ms`` after each loss stop. At the end both daemons get SIGINT and write
+    their statistics JSON. Stops are matched to the proxy's runs of drops by wall time (same
+    machine, same clock): a loss stop must follow a run of >= 3 drops (or be a *deadline* stop:
+    the master itself fell silent for longer than the 6.5 ms deadline, which happens on a loaded
+    machine); a run of <= 2 drops must not stop the robot unless the stream was silent longer
+    than the deadline at the proxy anyway; every run of >= 3 drops that starts while the slave
+    is RUNNING and armed must stop it exactly once. Latencies are estimated (stop STATUS time -
+    arrival of the last good datagram at the proxy) and reported, never judged: wall-clock
+    numbers depend on the machine's load.
+
+Both modes write a report folder: ``report.json``, ``report.md``, ``runs.csv`` (every run of
+drops and its outcome), plots (``drops_over_time.png``, ``run_lengths.png``,
+``stop_latency.png``), and for ``real`` also the drop log, both stats JSON files and daemon logs.
+Exit code 0 when every check passes, 1 otherwise, 2 on a usage error.
+
+Examples::
+
+    python tools/soak.py sim --sim-seconds 3600 --out /tmp/soak-sim
+    python tools/soak.py sim --sim-seconds 30 --drop-runs 1:20 --drop-runs 2:20 --drop-runs 3:10
+    python tools/soak.py real --duration 60 --out /tmp/soak-real
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import logging
+import math
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tools"))
+if str(ROOT) not in sys.path:
+    sys.path.insert(1, str(ROOT))
+
+from loss_proxy import LossPattern, LossProxy, add_pattern_arguments, pattern_from_args  # noqa: E402
+
+#: the requirement (configs/slave.yaml safety.loss): 2 tolerated, 3 stop, within 7 ms
+MAX_TOLERATED = 2
+STOP_WITHIN_MS = 7.0
+PERIOD_MS = 2.0
+
+
+# =============================================================================================
+# results shared by both modes
+# =============================================================================================
+
+
+@dataclass
+class Check:
+    name: str
+    passed: bool
+    detail: str
+    severity: str = "fail"  # "fail" or "warn" (a warn never changes the exit code)
+
+    @property
+    def label(self) -> str:
+        if self.passed:
+            return "PASS"
+        return "FAIL" if self.severity == "fail" else "WARN"
+
+
+@dataclass
+class RunOutcome:
+    """One run of consecutive dropped packets and what the slave did about it."""
+
+    t_s: float  # time of the first drop, seconds since the start of the stream
+    length: int
+    first_seq: int | None
+    category: str  # "stop", "no-stop", "masked", "bad-stop" (a <=2 run followed by a stop), "missed"
+    latency_ms: float | None = None
+    note: str = ""
+
+
+@dataclass
+class Report:
+    mode: str
+    checks: list[Check] = field(default_factory=list)
+    numbers: dict[str, Any] = field(default_factory=dict)
+    runs: list[RunOutcome] = field(default_factory=list)
+    stops: list[dict[str, Any]] = field(default_factory=list)
+    failures: list[str] = field(default_factory=list)
+    command: str = ""
+
+    @property
+    def passed(self) -> bool:
+        return all(c.passed or c.severity != "fail" for c in self.checks)
+
+    def check(self, name: str, passed: bool, detail: str, severity: str = "fail") -> None:
+        self.checks.append(Check(name, bool(passed), detail, severity))
+
+
+def histogram(values: list[int]) -> dict[str, int]:
+    c = Counter(values)
+    return {str(k): c[k] for k in sorted(c)}
+
+
+def summarize(values: list[float]) -> dict[str, float] | None:
+    if not values:
+        return None
+    v = sorted(values)
+    n = len(v)
+
+    def pct(p: float) -> float:
+        return round(v[min(n - 1, max(0, int(math.ceil(p / 100.0 * n)) - 1))], 3)
+
+    return {"n": n, "min": round(v[0], 3), "p50": pct(50), "p99": pct(99), "max": round(v[-1], 3),
+            "mean": round(sum(v) / n, 3)}
+
+
+# =============================================================================================
+# sim mode
+# =============================================================================================
+
+
+class SimSlave:
+    """The slave Robot stepped tick by tick (1 kHz) on a SimClock; no sockets are opened."""
+
+    def __init__(self, config: Path, *, first_seq: int = 0) -> None:
+        import igtl
+        from igtl.transport import Peer
+        from occ.clock import SimClock
+        from occ.config import load_config
+        from occ.robot import build_robot
+
+        self.igtl = igtl
+        cfg = load_config(config)
+        self.cfg = cfg
+        self.clock = SimClock()
+        self.robot = build_robot(cfg, clock=self.clock)
+        self.robot.configure()
+        self.loss_iface = self.robot.interfaces[cfg.safety.loss.input]
+        ops = self.robot.interfaces.operator_interfaces()
+        if not ops:
+            raise SystemExit(f"{config}: no operator (commands: true) interface")
+        self.op_iface = ops[0]
+        self.master_peer = Peer(1, ("127.0.0.1", 40000))
+        self.operator_peer = Peer(2, ("127.0.0.1", 40001))
+        self.k = 0
+        self.seq = first_seq & 0xFFFFFFFF
+        self.statuses: list[Any] = []  # STATUS messages to operators (alerts)
+        self.replies: list[Any] = []  # RTS_COMMAND replies
+        self.other_out = 0
+        self._cmd_id = 100
+        for iface in self.robot.interfaces.interfaces.values():
+            iface.send_to_peer = self._capture_peer  # type: ignore[method-assign]
+            iface.send = self._capture_send  # type: ignore[method-assign]
+
+    def _capture(self, msg: Any) -> None:
+        t = msg.message_type
+        if t == "STATUS":
+            self.statuses.append((self.k, msg))
+        elif t == "RTS_COMMAND":
+            self.replies.append(msg)
+        else:
+            self.other_out += 1
+
+    def _capture_peer(self, msg: Any, peer: Any) -> bool:
+        self._capture(msg)
+        return True
+
+    def _capture_send(self, msg: Any, peer: Any = None) -> int:
+        self._capture(msg)
+        return 1
+
+    def next_seq(self) -> int:
+        self.seq = (self.seq + 1) & 0xFFFFFFFF
+        return self.seq
+
+    def deliver(self, seq: int, pos_mm: tuple[float, float, float], *, run: bool = True) -> None:
+        """One POSITION from the master, through the wire format (pack + CRC-checked decode)."""
+        igtl = self.igtl
+        msg = igtl.PositionMessage(
+            pos_mm, (0.0, 0.0, 0.0, 1.0), 24, device_name="Master",
+            timestamp=self.clock.wall_time(), header_version=2, message_id=seq,
+            metadata={"run": "1" if run else "0", "clutch": "0"},
+        )
+        self.loss_iface._on_message(self.master_peer, igtl.unpack(msg.pack()))
+
+    def inject_command(self, name: str) -> int:
+        """Queue an operator COMMAND; it is handled by the next tick."""
+        self._cmd_id += 1
+        cls = self.igtl.REGISTRY["COMMAND"]
+        msg = cls(command_id=self._cmd_id, command_name=name, command="", device_name="command",
+                  header_version=2)
+        self.op_iface._on_message(self.operator_peer, msg)
+        return self._cmd_id
+
+    def reply_to(self, command_id: int) -> Any | None:
+        for r in reversed(self.replies[-8:]):
+            if getattr(r, "command_id", None) == command_id:
+                return r
+        return None
+
+    def tick(self) -> None:
+        now = self.k * 0.001
+        self.clock.set(now)
+        self.robot.tick(now, self.k)
+        self.k += 1
+
+    def command(self, name: str) -> Any:
+        cid = self.inject_command(name)
+        self.tick()
+        return self.reply_to(cid)
+
+
+def run_sim(args: argparse.Namespace, out: Path) -> Report:
+    from occ.safety import RobotState
+
+    RUNNING, STOPPED = RobotState.RUNNING, RobotState.STOPPED
+    rep = Report("sim")
+    sim_s = float(args.sim_seconds)
+    total_ticks = int(round(sim_s * 1000.0))
+    pause = max(1, int(round(args.pause_ms)))
+    packets = total_ticks // 2
+    # scheduled runs must not fall into the stop-and-resume window of the previous one
+    min_gap_default = int(math.ceil((pause + 100) / PERIOD_MS))
+    try:
+        pattern = pattern_from_args(args, sim_s, expected=packets, min_gap_default=min_gap_default)
+    except ValueError as err:
+        raise SystemExit(f"soak sim: {err}") from None
+    if not (args.loss or args.burst or args.drop_runs):
+        # default: Gilbert-Elliott bursts (mean length 2) plus 0.5 % independent loss
+        pattern = LossPattern(seed=args.seed, loss=0.005, burst=(0.002, 0.5, 1.0))
+    slave = SimSlave(Path(args.config), first_seq=args.first_seq)
+    robot = slave.robot
+    for name in ("Enable", "Run"):
+        r = slave.command(name)
+        if r is None or r.metadata.get("Status") != "SUCCESS":
+            raise SystemExit(f"soak sim: {name} refused: {r}")
+    if robot.state is not RUNNING:
+        raise SystemExit(f"soak sim: robot is {robot.state.value}, not RUNNING")
+    t_origin = slave.k  # tick of the first packet
+    w = 2.0 * math.pi * 0.1
+
+    armed = False  # oracle: the monitor has seen a good packet since the last (re)start
+    last_good: int | None = None
+    open_run: dict[str, Any] | None = None  # the current run of drops
+    expected_stop: int | None = None
+    resume_at: int | None = None
+    resume_cid: int | None = None
+    stop_latencies: list[float] = []
+    all_lengths: list[int] = []
+    failures = rep.failures
+    stops_ok = unexpected = missed = resumes = resume_failed = 0
+    drops = 0
+    t_wall0 = time.perf_counter()
+    next_progress = t_wall0 + 30.0
+    end_tick = slave.k + total_ticks
+    status_seen = 0
+    alert_ok = 0
+    alert_bad: list[str] = []
+
+    def close_run(k: int) -> None:
+        nonlocal open_run
+        assert open_run is not None
+        run = open_run
+        open_run = None
+        length = run["length"]
+        all_lengths.append(length)
+        if not run["evaluated"]:
+            cat = "masked"
+        elif run["stopped"]:
+            cat = "stop" if length > MAX_TOLERATED else "bad-stop"
+        else:
+            cat = "no-stop" if length <= MAX_TOLERATED else "missed"
+        rep.runs.append(RunOutcome(round((run["tick"] - t_origin) / 1000.0, 3), length, run["seq"], cat,
+                                   run.get("latency")))
+
+    while slave.k < end_tick:
+        k = slave.k
+        if time.perf_counter() > next_progress and args.progress:
+            next_progress += 30.0
+            print(f"soak sim: {(k - t_origin) / 1000.0:.0f}/{sim_s:.0f} simulated s, "
+                  f"{stops_ok} stops, {len(failures)} failures, "
+                  f"{time.perf_counter() - t_wall0:.0f} s", file=sys.stderr, flush=True)
+        pre = robot.state
+        is_packet = k % 2 == 0
+        drop = False
+        seq = 0
+        if is_packet:
+            seq = slave.next_seq()
+            drop = pattern.decide() is not None
+            if not drop:
+                t = (k - t_origin) * 0.001
+                slave.deliver(seq, (50.0 * math.sin(w * t), 50.0 * math.cos(w * t), 20.0))
+            else:
+                drops += 1
+        is_resume = resume_at == k
+        if is_resume:
+            resume_cid = slave.inject_command("Run")
+        slave.tick()
+        post = robot.state
+
+        # ---- oracle: what should have happened at this tick
+        if is_packet:
+            if drop:
+                if open_run is None:
+                    open_run = {"tick": k, "seq": seq, "length": 0, "evaluated": armed and pre is RUNNING,
+                                "last_good": last_good, "stopped": False}
+                open_run["length"] += 1
+                if open_run["evaluated"] and open_run["length"] == MAX_TOLERATED + 1:
+                    expected_stop = open_run["last_good"] + int(STOP_WITHIN_MS)
+            else:
+                if open_run is not None:
+                    close_run(k)
+                if pre is RUNNING and not is_resume:
+                    armed = True  # the first good packet after a (re)start arms the monitor
+                    last_good = k
+        if is_resume:
+            resumes += 1
+            r = slave.reply_to(resume_cid) if resume_cid is not None else None
+            if r is None or r.metadata.get("Status") != "SUCCESS" or post is not RUNNING:
+                resume_failed += 1
+                failures.append(f"tick {k}: operator Run failed: {r and r.metadata}, state {post.value}")
+            armed = False  # reset by entering RUNNING: armed again by the next packet
+            resume_at = None
+        if pre is RUNNING and post is STOPPED:
+            reason = robot.state_machine.last_reason
+            if expected_stop == k and open_run is not None:
+                stops_ok += 1
+                lat = float(k - open_run["last_good"])
+                open_run["stopped"] = True
+                open_run["latency"] = lat
+                stop_latencies.append(lat)
+                rep.stops.append({"t_s": round((k - t_origin) / 1000.0, 3), "latency_ms": lat,
+                                  "first_lost_seq": open_run["seq"], "reason": reason})
+            else:
+                unexpected += 1
+                if open_run is not None:
+                    open_run["stopped"] = True
+                failures.append(
+                    f"tick {k}: UNEXPECTED stop ({reason}); open run "
+                    f"{open_run['length'] if open_run else 0}, armed {armed}, last good {last_good}"
+                )
+                rep.stops.append({"t_s": round((k - t_origin) / 1000.0, 3), "latency_ms": None,
+                                  "reason": reason, "unexpected": True})
+            expected_stop = None
+            armed = False
+            resume_at = k + pause
+        elif expected_stop == k:
+            missed += 1
+            failures.append(f"tick {k}: MISSED stop: run of {open_run and open_run['length']} losses "
+                            f"from seq {open_run and open_run['seq']}, robot {post.value}")
+            expected_stop = None
+        if post is not RUNNING and post is not STOPPED:
+            failures.append(f"tick {k}: robot left RUNNING/STOPPED: {post.value} "
+                            f"({robot.state_machine.last_reason}); soak aborted")
+            break
+        # every STATUS to the operators: a STOPPED one must name the packet loss
+        while status_seen < len(slave.statuses):
+            tk, st = slave.statuses[status_seen]
+            status_seen += 1
+            if st.error_name == "STOPPED":
+                if "packet loss" in st.status_message:
+                    alert_ok += 1
+                else:
+                    alert_bad.append(f"tick {tk}: {st.status_message}")
+        if len(failures) > 1000:
+            failures.append("more than 1000 failures: soak aborted")
+            break
+    if open_run is not None:
+        # the soak ended inside a run: judge it only if its outcome is already decided
+        if open_run["evaluated"] and (open_run["stopped"] or open_run["length"] > MAX_TOLERATED):
+            close_run(slave.k)
+        else:
+            all_lengths.append(open_run["length"])
+    elapsed = time.perf_counter() - t_wall0
+    counters = robot.loss_monitor.counters() if robot.loss_monitor is not None else {}
+    robot.shutdown()
+
+    cats = Counter(r.category for r in rep.runs)
+    evaluated = [r for r in rep.runs if r.category != "masked"]
+    ev_short = [r for r in evaluated if r.length <= MAX_TOLERATED]
+    ev_long = [r for r in evaluated if r.length > MAX_TOLERATED]
+    n_stops = stops_ok + unexpected
+    rep.numbers = {
+        "sim_seconds": sim_s,
+        "ticks": slave.k - t_origin,
+        "packets": pattern.index,
+        "dropped": drops,
+        "drop_fraction": round(drops / pattern.index, 6) if pattern.index else 0.0,
+        "pattern": pattern.describe(),
+        "first_seq": args.first_seq,
+        "last_seq": slave.seq,
+        "pause_ms": pause,
+        "runs_total": len(all_lengths),
+        "runs_evaluated": len(evaluated),
+        "runs_masked": cats.get("masked", 0),
+        "runs_by_outcome": dict(sorted(cats.items())),
+        "run_length_histogram_all": histogram(all_lengths),
+        "run_length_histogram_evaluated": histogram([r.length for r in evaluated]),
+        "stops": n_stops,
+        "stops_expected": len(ev_long),
+        "stops_unexpected": unexpected,
+        "stops_missed": missed,
+        "stop_latency_ms": summarize(stop_latencies),
+        "stop_latency_histogram_ms": histogram([int(v) for v in stop_latencies]),
+        "operator_runs": resumes,
+        "operator_runs_failed": resume_failed,
+        "status_alerts_stopped": alert_ok + len(alert_bad),
+        "loss_monitor": counters,
+        "wall_seconds": round(elapsed, 1),
+        "speed_x_realtime": round((slave.k - t_origin) / 1000.0 / elapsed, 2) if elapsed else None,
+    }
+    rep.check("stop iff run >= 3",
+              unexpected == 0 and missed == 0 and cats.get("missed", 0) == 0 and stops_ok == len(ev_long),
+              f"{len(ev_long)} evaluated runs >= 3 -> {stops_ok} stops at the expected tick; "
+              f"{unexpected} unexpected stops, {missed} missed")
+    rep.check("runs of 1-2 never stop",
+              cats.get("bad-stop", 0) == 0 and all(r.category == "no-stop" for r in ev_short),
+              f"{len(ev_short)} evaluated runs of 1-2 losses, {cats.get('bad-stop', 0)} followed by a stop")
+    worst = max(stop_latencies) if stop_latencies else None
+    rep.check("every stop within 7 ms of the last good packet",
+              unexpected == 0 and (worst is None or worst <= STOP_WITHIN_MS),
+              f"{len(stop_latencies)} stops, latency {summarize(stop_latencies)} ms (tick = 1 ms)")
+    rep.check("every stop alerts the operators",
+              alert_ok == n_stops and not alert_bad,
+              f"{alert_ok} STATUS STOPPED 'packet loss' alerts for {n_stops} stops"
+              + (f"; other: {alert_bad[:3]}" if alert_bad else ""))
+    rep.check("loss monitor trips == stops", counters.get("trips") == n_stops,
+              f"loss monitor trips {counters.get('trips')}, observed stops {n_stops}")
+    rep.check("operator Run resumes after every stop", resume_failed == 0 and resumes >= n_stops - 1,
+              f"{resumes} Runs after {n_stops} stops, {resume_failed} failed")
+    rep.check("enough evidence", len(ev_long) > 0 and len(ev_short) > 0,
+              f"{len(ev_long)} runs >= 3 and {len(ev_short)} runs of 1-2 were judged", severity="warn")
+    return rep
+
+
+# =============================================================================================
+# real mode
+# =============================================================================================
+
+
+def free_port(kind: int) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_port(port: int, timeout: float, proc: subprocess.Popen[bytes] | None = None) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if proc is not None and proc.poll() is not None:
+            return False
+        with socket.socket() as s:
+            s.settimeout(0.2)
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return True
+        time.sleep(0.05)
+    return False
+
+
+def write_configs(out: Path, slave_cfg: Path, master_cfg: Path) -> dict[str, Any]:
+    """Temporary copies with every port moved to a free one and the master sent to the proxy."""
+    import yaml
+
+    slave = yaml.safe_load(slave_cfg.read_text())
+    master = yaml.safe_load(master_cfg.read_text())
+    loss_input = slave["safety"]["loss"]["input"]
+    ports: dict[str, Any] = {}
+    for cfg in (slave, master):
+        frame = cfg["robot"].get("frame", {})
+        if frame.get("urdf"):
+            base = slave_cfg.parent if cfg is slave else master_cfg.parent
+            frame["urdf"] = str((base / frame["urdf"]).resolve())
+        if cfg.get("recording"):
+            cfg["recording"]["path"] = None
+    for iface in slave["interfaces"]:
+        if iface["transport"] == "tcp-server":
+            iface["port"] = ports.setdefault("slave_tcp", free_port(socket.SOCK_STREAM))
+            iface["host"] = "127.0.0.1"
+        elif iface["name"] == loss_input:
+            iface["port"] = ports["slave_udp"] = free_port(socket.SOCK_DGRAM)
+            iface["host"] = "127.0.0.1"
+    for iface in master["interfaces"]:
+        if iface["transport"] == "tcp-server":
+            iface["port"] = ports.setdefault("master_tcp", free_port(socket.SOCK_STREAM))
+            iface["host"] = "127.0.0.1"
+        elif iface["transport"] == "udp" and iface.get("remote"):
+            iface["port"] = 0
+            iface["host"] = "127.0.0.1"
+            ports["master_udp_iface"] = iface["name"]
+    if "slave_udp" not in ports or "master_udp_iface" not in ports or "slave_tcp" not in ports:
+        raise SystemExit("soak real: could not find the slave's loss input / the master's UDP output "
+                         "/ the slave's operator interface in the configs")
+    ports["slave_yaml"] = str(out / "slave.yaml")
+    ports["master_yaml"] = str(out / "master.yaml")
+    ports["_slave"] = slave
+    ports["_master"] = master
+    return ports
+
+
+def set_master_remote(ports: dict[str, Any], proxy_port: int) -> None:
+    import yaml
+
+    master = ports.pop("_master")
+    slave = ports.pop("_slave")
+    for iface in master["interfaces"]:
+        if iface["name"] == ports["master_udp_iface"]:
+            iface["remote"] = f"127.0.0.1:{proxy_port}"
+    Path(ports["slave_yaml"]).write_text(yaml.safe_dump(slave, sort_keys=False))
+    Path(ports["master_yaml"]).write_text(yaml.safe_dump(master, sort_keys=False))
+
+
+def start_occd(config: str, stats: Path, log: Path, duration: float) -> subprocess.Popen[bytes]:
+    cmd = [sys.executable, "-m", "occ.cli", config, "--start", "running", "--stats", str(stats),
+           "--log-level", "WARNING", "--duration", f"{duration:.1f}"]
+    fh = open(log, "wb")  # noqa: SIM115 - closed by the caller via proc.stderr_file
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT)
+    proc.log_file = fh  # type: ignore[attr-defined]
+    return proc
+
+
+def stop_proc(proc: subprocess.Popen[bytes], timeout: float = 10.0) -> int | None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=5.0)
+    fh = getattr(proc, "log_file", None)
+    if fh is not None:
+        fh.close()
+    return proc.returncode
+
+
+def run_real(args: argparse.Namespace, out: Path) -> Report:
+    from slicer_standin import SlicerStandIn
+
+    rep = Report("real")
+    duration = float(args.duration)
+    rate = float(args.rate_hz)
+    if not (args.loss or args.burst or args.drop_runs):
+        n = max(1, int(duration // 6))
+        args.drop_runs = [f"1:{4 * n}", f"2:{2 * n}", f"3:{n}", f"5:{max(1, n // 2)}"]
+    # runs at least 0.6 s apart (stop + pause + Run round trip fits in between)
+    min_gap_default = int(math.ceil(max(0.6, args.pause_ms / 1000.0 + 0.4) * rate))
+    try:
+        pattern = pattern_from_args(args, duration, min_gap_default=min_gap_default)
+    except ValueError as err:
+        raise SystemExit(f"soak real: {err}") from None
+    ports = write_configs(out, Path(args.config), Path(args.master_config))
+    deadline_ms = PERIOD_MS * (MAX_TOLERATED + 1) + PERIOD_MS / 4.0  # LossMonitor default: 6.5 ms
+    bound = duration + 30.0  # hard bound of every process, whatever happens here
+    proxy = LossProxy(("127.0.0.1", 0), ("127.0.0.1", ports["slave_udp"]), pattern,
+                      delay_ms=args.delay_ms, jitter_ms=args.jitter_ms, duration=bound, seed=args.seed)
+    set_master_remote(ports, proxy.address[1])
+    rep.numbers["ports"] = {k: v for k, v in ports.items() if not k.startswith("_")}
+    rep.numbers["proxy_listen"] = list(proxy.address)
+    procs: list[subprocess.Popen[bytes]] = []
+    names: list[str] = []
+    standin = None
+    runs_sent: list[dict[str, Any]] = []
+    t_end_wall = t_start_wall = time.time()
+    codes: dict[str, int | None] = {}
+    try:
+        slave = start_occd(ports["slave_yaml"], out / "slave-stats.json", out / "slave.log", bound)
+        procs.append(slave)
+        names.append("slave")
+        if not wait_port(ports["slave_tcp"], 30.0, slave):
+            raise SystemExit(f"soak real: the slave did not start (see {out / 'slave.log'})")
+        standin = SlicerStandIn("127.0.0.1", ports["slave_tcp"]).start()
+        if not standin.connected.wait(10.0):
+            raise SystemExit("soak real: the operator client could not connect to the slave")
+        proxy.start()
+        master = start_occd(ports["master_yaml"], out / "master-stats.json", out / "master.log", bound)
+        procs.append(master)
+        names.append("master")
+        if not wait_port(ports["master_tcp"], 30.0, master):
+            raise SystemExit(f"soak real: the master did not start (see {out / 'master.log'})")
+        # the soak window starts with the stream
+        t0 = time.monotonic()
+        while proxy.counters.received == 0 and time.monotonic() - t0 < 10.0:
+            time.sleep(0.01)
+        t_start_wall = time.time()
+        end = time.monotonic() + duration
+        seen = 0
+        resume_due: float | None = None
+        while time.monotonic() < end:
+            time.sleep(0.01)
+            for proc in procs:
+                if proc.poll() is not None:
+                    raise SystemExit(f"soak real: a daemon exited early with {proc.returncode}")
+            with standin._lock:
+                new = standin.statuses[seen:]
+                seen += len(new)
+            for st in new:
+                if st.error_name == "STOPPED" and resume_due is None:
+                    resume_due = time.monotonic() + args.pause_ms / 1000.0
+            if resume_due is not None and time.monotonic() >= resume_due:
+                resume_due = None
+                t_send = time.time()
+                cid = standin.send_command("Run")
+                r = standin.wait_reply(cid, timeout=2.0)
+                runs_sent.append({"t_wall": t_send, "status": r.metadata.get("Status") if r else "no reply",
+                                  "text": getattr(r, "command", "") if r else ""})
+        t_end_wall = time.time()
+    finally:
+        # the master first: the slave will then trip its deadline, after the window (ignored)
+        for name, proc in reversed(list(zip(names, procs, strict=True))):
+            codes[name] = stop_proc(proc)
+        proxy.stop()
+        if standin is not None:
+            standin.stop()
+    proxy.write_csv(out / "drops.csv")
+    proxy.write_runs_csv(out / "proxy_runs.csv")
+    statuses = list(standin.statuses) if standin is not None else []
+    stats: dict[str, Any] = {}
+    for name in ("slave", "master"):
+        f = out / f"{name}-stats.json"
+        try:
+            stats[name] = json.loads(f.read_text())
+        except (OSError, ValueError):
+            stats[name] = None
+    analyse_real(rep, proxy, statuses, runs_sent, stats, codes, t_start_wall, t_end_wall,
+                 deadline_ms, args)
+    return rep
+
+
+_SEQ_RE = re.compile(r"(\d+) consecutive packets lost \(seq (\d+)-(\d+)\)")
+_DEADLINE_RE = re.compile(r"no packet for ([\d.]+) ms")
+
+
+def parse_stop_reason(msg: str) -> dict[str, Any]:
+    """What the slave says about a loss stop: its sequence evidence or its silence."""
+    m = _SEQ_RE.search(msg)
+    if m:
+        return {"kind": "sequence", "lost": int(m.group(1)), "first": int(m.group(2)),
+                "last": int(m.group(3))}
+    m = _DEADLINE_RE.search(msg)
+    if m:
+        return {"kind": "deadline", "silence_ms": float(m.group(1))}
+    return {"kind": "other"}
+
+
+def analyse_real(rep: Report, proxy: LossProxy, statuses: list[Any], runs_sent: list[dict[str, Any]],
+                 stats: dict[str, Any], codes: dict[str, int | None], t_start: float, t_end: float,
+                 deadline_ms: float, args: argparse.Namespace) -> None:
+    """Match the slave's stops (STATUS, wall time) to the proxy's runs of drops.
+
+    The slave says why it stopped: "N consecutive packets lost (seq a-b)" (a late packet showed
+    the gap) or "no packet for X ms" (its deadline; X is loop time since the tick that took the
+    last good packet). A deadline stop at wall time T covers the slave's silent interval
+    [T - X, T]; it is attributed to the proxy's run of drops that overlaps that interval (with
+    ``--match-tolerance-ms`` for the delivery from the proxy to the slave's loop).
+    """
+    wall = proxy.mono_to_wall
+    tol = args.match_tolerance_ms * 1e-3
+    timeline = sorted((float(st.timestamp), st.error_name, st.status_message) for st in statuses)
+    stops = [(t, msg) for t, state, msg in timeline
+             if state == "STOPPED" and "->" in msg and t_start <= t <= t_end]
+
+    def state_at(t: float) -> tuple[str, float]:
+        state, since = "UNKNOWN", -math.inf
+        for tt, s, msg in timeline:
+            if tt > t:
+                break
+            if s in ("RUNNING", "STOPPED", "ENABLED", "READY", "FAULT", "ESTOP") and s != state:
+                state, since = s, tt
+        return state, since
+
+    runs = [r for r in proxy.runs if t_start <= r.t_wall_first <= t_end - 0.05]
+    dropped_seqs = {d.seq for d in proxy.drops if d.seq is not None}
+    run_of_seq = {}
+    for i, r in enumerate(runs):
+        if r.first_seq is not None and r.last_seq is not None:
+            for s in range(r.first_seq, r.first_seq + r.length):
+                run_of_seq[s & 0xFFFFFFFF] = i
+    attributed: dict[int, list[float]] = {}
+    stop_rows: list[dict[str, Any]] = []
+    fails: list[str] = []  # stops that contradict the requirement
+    late_short: list[str] = []  # a run of 1-2 plus late delivery: the slave's deadline, legitimately
+    deadline_only: list[str] = []
+    other_stops: list[str] = []
+    latencies: list[float] = []
+    for t_stop, msg in stops:
+        rel = round(t_stop - t_start, 4)
+        row: dict[str, Any] = {"t_s": rel, "reason": msg}
+        stop_rows.append(row)
+        if "packet loss" not in msg:
+            row["kind"] = "other"
+            other_stops.append(f"{rel:.3f} s: {msg}")
+            continue
+        why = parse_stop_reason(msg)
+        row.update(why)
+        idx: int | None = None
+        if why["kind"] == "sequence":
+            seqs = [(why["first"] + j) & 0xFFFFFFFF for j in range(why["lost"])]
+            by_proxy = sum(1 for s in seqs if s in dropped_seqs)
+            if why["lost"] <= MAX_TOLERATED or by_proxy < why["lost"]:
+                row["kind"] = "sequence stop not explained by the proxy (FAIL)"
+                fails.append(f"{rel:.3f} s: slave lost {why['lost']} (seq {why['first']}-{why['last']}), "
+                             f"proxy dropped {by_proxy} of them: {msg}")
+                continue
+            idx = run_of_seq.get(seqs[0])
+        else:
+            silence = why.get("silence_ms")
+            if silence is None or silence < deadline_ms:
+                row["kind"] = "deadline shorter than 6.5 ms (FAIL)"
+                fails.append(f"{rel:.3f} s: stopped after only {silence} ms without a packet: {msg}")
+                continue
+            lo = t_stop - silence * 1e-3 - tol
+            over = [i for i, r in enumerate(runs)
+                    if wall(r.t_mono_first) <= t_stop and wall(r.t_mono_last) >= lo]  # type: ignore[operator]
+            idx = max(over, key=lambda i: runs[i].length) if over else None
+        if idx is None:
+            lo = t_stop - (why.get("silence_ms") or 0.0) * 1e-3 - tol
+            stall = max((g for t0, g in proxy.gaps if wall(t0) <= t_stop and wall(t0) + g >= lo),  # type: ignore[operator]
+                        default=None)
+            where = (f"the stream arrived {stall * 1e3:.1f} ms late at the proxy (master stalled)"
+                     if stall is not None else "no gap at the proxy: late inside the slave")
+            row["kind"] = "deadline (no drop)"
+            row["diagnosis"] = where
+            deadline_only.append(f"{rel:.3f} s: {msg}; {where}")
+            continue
+        run = runs[idx]
+        attributed.setdefault(idx, []).append(t_stop)
+        prev_good = wall(run.t_prev_good)
+        s_proxy = ((run.t_next_good - run.t_prev_good) * 1e3
+                   if run.t_next_good is not None and run.t_prev_good is not None else None)
+        row.update(run_length=run.length, run_first_seq=run.first_seq,
+                   silence_at_proxy_ms=None if s_proxy is None else round(s_proxy, 3))
+        if prev_good is not None:
+            row["latency_est_ms"] = round((t_stop - prev_good) * 1e3, 3)
+        if run.length > MAX_TOLERATED:
+            row["kind"] = "run>=3"
+            if prev_good is not None:
+                latencies.append((t_stop - prev_good) * 1e3)
+        else:
+            row["kind"] = "run<=2 + late delivery"
+            late_short.append(f"{rel:.3f} s: run of {run.length} (seq {run.first_seq}), proxy silence "
+                              f"{s_proxy if s_proxy is None else round(s_proxy, 2)} ms, slave silence "
+                              f"{why.get('silence_ms')} ms")
+    rep.stops = stop_rows
+
+    missed: list[str] = []
+    double: list[str] = []
+    for i, r in enumerate(runs):
+        prev_good = wall(r.t_prev_good)
+        state, since = state_at(prev_good if prev_good is not None else r.t_wall_first)
+        # armed: RUNNING, and a packet got through after the (re)start (10 ms margin)
+        evaluable = state == "RUNNING" and prev_good is not None and prev_good - since >= 0.010
+        hits = attributed.get(i, [])
+        if len(hits) > 1:
+            double.append(f"run at {r.t_wall_first - t_start:.3f} s: {len(hits)} stops")
+        if r.length > MAX_TOLERATED:
+            if hits:
+                cat = "stop"
+            elif evaluable:
+                cat = "missed"
+                missed.append(f"run of {r.length} from seq {r.first_seq} at {r.t_wall_first - t_start:.3f} s")
+            else:
+                cat = "masked"
+        elif hits:
+            cat = "deadline-stop"
+        else:
+            cat = "no-stop" if evaluable else "masked"
+        lat = round((hits[0] - prev_good) * 1e3, 3) if hits and prev_good is not None else None
+        rep.runs.append(RunOutcome(round(r.t_wall_first - t_start, 4), r.length, r.first_seq, cat, lat))
+
+    cats = Counter(r.category for r in rep.runs)
+    loss_stops = [s for s in stop_rows if s.get("kind") != "other"]
+    judged_long = sum(1 for r in rep.runs if r.length > MAX_TOLERATED and r.category != "masked")
+    short = [r for r in rep.runs if r.length <= MAX_TOLERATED]
+    slave_stats = stats.get("slave") or {}
+    master_stats = stats.get("master") or {}
+    run_ok = [r for r in runs_sent if r["status"] == "SUCCESS"]
+    rep.numbers.update({
+        "duration_s": round(t_end - t_start, 3),
+        "proxy": proxy.summary(),
+        "runs_in_window": len(runs),
+        "runs_by_outcome": dict(sorted(cats.items())),
+        "run_length_histogram": histogram([r.length for r in runs]),
+        "stops": len(stops),
+        "stops_by_kind": dict(Counter(s["kind"] for s in stop_rows)),
+        "runs_ge3_judged": judged_long,
+        "stop_latency_est_ms": summarize(latencies),
+        "stop_latency_est_within_8ms": sum(1 for v in latencies if v <= STOP_WITHIN_MS + 1.0),
+        "operator_runs": len(runs_sent),
+        "operator_runs_ok": len(run_ok),
+        "status_messages": len(statuses),
+        "slave_loss_monitor": slave_stats.get("loss"),
+        "slave_state_at_exit": slave_stats.get("state"),
+        "slave_lateness_us": slave_stats.get("lateness_us"),
+        "slave_watchdog": slave_stats.get("watchdog"),
+        "slave_sample_to_write_us": (slave_stats.get("controller") or {}).get("sample_to_write_us"),
+        "slave_master_iface": (slave_stats.get("interfaces") or {}).get("master"),
+        "master_ticks": master_stats.get("ticks"),
+        "master_lateness_us": master_stats.get("lateness_us"),
+        "master_seq": (master_stats.get("controller") or {}).get("seq"),
+        "exit_codes": codes,
+        "deadline_ms": deadline_ms,
+        "match_tolerance_ms": args.match_tolerance_ms,
+    })
+    rep.check("every loss stop follows a run >= 3 (or a deadline)", not fails,
+              f"{len(loss_stops)} loss stops: {sum(1 for s in stop_rows if s.get('kind') == 'run>=3')} "
+              f"after runs >= 3, {len(late_short)} after a run of 1-2 plus > {deadline_ms} ms of silence "
+              f"at the slave, {len(deadline_only)} deadline stops without drops, {len(fails)} contradicting "
+              f"the requirement" + (f": {fails[:3]}" if fails else ""))
+    rep.check("runs of 1-2 drops caused no stop by themselves", not fails,
+              f"{len(short)} runs of 1-2: {cats.get('no-stop', 0)} no stop, {cats.get('deadline-stop', 0)} "
+              f"stopped by the deadline because the next packet reached the slave late (slave silence "
+              f"> {deadline_ms} ms)")
+    rep.check("every run >= 3 (slave RUNNING) stopped the robot exactly once", not missed and not double,
+              f"{judged_long} runs >= 3 judged, {cats.get('stop', 0)} stopped, {len(missed)} missed; "
+              f"{sum(1 for r in rep.runs if r.length > MAX_TOLERATED and r.category == 'masked')} masked "
+              f"(slave already stopped)" + (f": {missed[:3]}" if missed else "")
+              + (f"; {double[:3]}" if double else ""))
+    rep.check("operator Run resumed after every stop",
+              len(run_ok) == len(runs_sent) and len(runs_sent) >= len(stops) - 1,
+              f"{len(run_ok)}/{len(runs_sent)} Runs succeeded for {len(stops)} stops")
+    rep.check("no stop other than packet loss", not other_stops,
+              f"{len(other_stops)} other stops" + (f": {other_stops[:3]}" if other_stops else ""),
+              severity="warn" if args.tolerate_other_stops else "fail")
+    rep.check("daemons ran and wrote statistics",
+              bool(slave_stats) and bool(master_stats) and all(c == 0 for c in codes.values()),
+              f"exit codes {codes}, stats: slave {'ok' if slave_stats else 'missing'}, "
+              f"master {'ok' if master_stats else 'missing'}")
+    rep.check("no deadline stop without drops", not deadline_only,
+              f"{len(deadline_only)} (timing, not loss: the stream paused > {deadline_ms} ms)"
+              + (f": {deadline_only[:3]}" if deadline_only else ""), severity="warn")
+    rep.check("no run of 1-2 stopped the robot (even with late delivery)", not late_short,
+              f"{len(late_short)}" + (f": {late_short[:3]}" if late_short else ""), severity="warn")
+    trips = (slave_stats.get("loss") or {}).get("trips")
+    rep.check("slave loss-monitor trips match the loss stops",
+              trips is not None and len(loss_stops) <= trips <= len(loss_stops) + 1,
+              f"trips {trips} (one more is the end-of-soak master shutdown), loss stops {len(loss_stops)}",
+              severity="warn")
+    rep.check("enough evidence", judged_long > 0 and cats.get("no-stop", 0) > 0,
+              f"{judged_long} runs >= 3 and {cats.get('no-stop', 0)} runs of 1-2 judged", severity="warn")
+
+
+# =============================================================================================
+# report folder
+# =============================================================================================
+
+
+def write_runs_csv(rep: Report, path: Path) -> None:
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t_s", "length", "first_seq", "category", "latency_ms"])
+        for r in rep.runs:
+            w.writerow([r.t_s, r.length, "" if r.first_seq is None else r.first_seq, r.category,
+                        "" if r.latency_ms is None else r.latency_ms])
+
+
+COLORS = {"stop": "tab:red", "no-stop": "tab:green", "masked": "tab:gray", "bad-stop": "black",
+          "missed": "tab:purple", "deadline-stop": "tab:orange"}
+
+
+def plot(rep: Report, out: Path) -> list[str]:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("soak: matplotlib missing, no plots (pip install matplotlib)", file=sys.stderr)
+        return []
+    files = []
+    # 1. drops over time, stops marked
+    fig, ax = plt.subplots(figsize=(11, 4))
+    for cat in sorted({r.category for r in rep.runs}):
+        pts = [r for r in rep.runs if r.category == cat]
+        ax.scatter([r.t_s for r in pts], [r.length for r in pts], s=8, color=COLORS.get(cat, "tab:blue"),
+                   label=f"{cat} ({len(pts)})", zorder=3)
+    stop_t = [s["t_s"] for s in rep.stops]
+    if stop_t:
+        ymax = max([r.length for r in rep.runs] + [3])
+        ax.vlines(stop_t, 0, ymax + 0.5, colors="tab:red", alpha=0.25 if len(stop_t) > 50 else 0.6,
+                  linewidth=0.8, label=f"robot stopped ({len(stop_t)})", zorder=1)
+    ax.axhline(MAX_TOLERATED + 0.5, color="k", linestyle="--", linewidth=0.8, label="stop threshold (3)")
+    ax.set_xlabel("time since the stream started (s)")
+    ax.set_ylabel("consecutive packets dropped")
+    ax.set_title(f"{rep.mode}: runs of dropped POSITION packets and robot stops")
+    ax.yaxis.get_major_locator().set_params(integer=True)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "drops_over_time.png", dpi=110)
+    plt.close(fig)
+    files.append("drops_over_time.png")
+    # 2. run-length histogram by outcome
+    fig, ax = plt.subplots(figsize=(7, 4))
+    lengths = sorted({r.length for r in rep.runs})
+    bottom = {n: 0 for n in lengths}
+    for cat in ("no-stop", "stop", "masked", "deadline-stop", "bad-stop", "missed"):
+        counts = Counter(r.length for r in rep.runs if r.category == cat)
+        if not counts:
+            continue
+        vals = [counts.get(n, 0) for n in lengths]
+        ax.bar(lengths, vals, bottom=[bottom[n] for n in lengths], color=COLORS[cat], label=cat)
+        for n, v in zip(lengths, vals, strict=True):
+            bottom[n] += v
+    if max(bottom.values() or [1]) > 100:
+        ax.set_yscale("log")
+        ax.set_ylim(bottom=0.5)
+    ax.set_xlabel("run length (consecutive drops)")
+    ax.set_ylabel("runs")
+    ax.set_title(f"{rep.mode}: run-length histogram by outcome")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "run_lengths.png", dpi=110)
+    plt.close(fig)
+    files.append("run_lengths.png")
+    # 3. stop latency histogram
+    lat = [s.get("latency_ms", s.get("latency_est_ms")) for s in rep.stops]
+    lat = [v for v in lat if v is not None]
+    fig, ax = plt.subplots(figsize=(7, 4))
+    if lat:
+        if rep.mode == "sim":
+            c = Counter(lat)
+            ax.bar(list(c), list(c.values()), width=0.6, color="tab:red")
+        else:
+            ax.hist(lat, bins=30, color="tab:red")
+    ax.axvline(STOP_WITHIN_MS, color="k", linestyle="--", label="7 ms requirement")
+    ax.set_xlabel("last good packet -> robot stopped (ms)"
+                  + (" [estimated: proxy arrival -> STATUS time]" if rep.mode == "real" else ""))
+    ax.set_ylabel("stops")
+    ax.set_title(f"{rep.mode}: stop latency ({len(lat)} stops)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "stop_latency.png", dpi=110)
+    plt.close(fig)
+    files.append("stop_latency.png")
+    return files
+
+
+def write_report(rep: Report, out: Path) -> None:
+    write_runs_csv(rep, out / "runs.csv")
+    plots = plot(rep, out)
+    data = {
+        "mode": rep.mode,
+        "passed": rep.passed,
+        "command": rep.command,
+        "checks": [asdict(c) | {"label": c.label} for c in rep.checks],
+        "numbers": rep.numbers,
+        "failures": rep.failures[:200],
+        "stops": rep.stops[:5000],
+        "plots": plots,
+    }
+    (out / "report.json").write_text(json.dumps(data, indent=2, default=str) + "\n")
+    n = rep.numbers
+    lines = [f"# Loss soak ({rep.mode}): {'PASS' if rep.passed else 'FAIL'}", "",
+             f"Command: `{rep.command}`", "", "## Checks", "", "| check | result | detail |",
+             "|---|---|---|"]
+    for c in rep.checks:
+        lines.append(f"| {c.name} | {c.label} | {c.detail.replace('|', '/')} |")
+    lines += ["", "## Numbers", ""]
+    for key, val in n.items():
+        if isinstance(val, dict):
+            val = json.dumps(val, default=str)
+        lines.append(f"- **{key}**: {val}")
+    if rep.failures:
+        lines += ["", "## Failures (first 50)", ""] + [f"- {f}" for f in rep.failures[:50]]
+    if plots:
+        lines += ["", "## Plots", ""] + [f"![{p}]({p})" for p in plots]
+    (out / "report.md").write_text("\n".join(lines) + "\n")
+
+
+# =============================================================================================
+# command line
+# =============================================================================================
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="soak", description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="mode", required=True)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--out", type=Path, default=None, help="report folder (default: a new temp dir)")
+    common.add_argument("--config", default=str(ROOT / "configs" / "slave.yaml"), help="slave config")
+    common.add_argument("--pause-ms", type=float, default=100.0,
+                        help="operator's pause between a stop and its Run (default 100)")
+    add_pattern_arguments(common)
+    s = sub.add_parser("sim", parents=[common], help="the slave in simulated time (exact checks)")
+    s.add_argument("--sim-seconds", type=float, default=60.0, help="simulated seconds (default 60)")
+    s.add_argument("--first-seq", type=int, default=0,
+                   help="sequence number before the first packet (e.g. 4294960000 tests the wrap)")
+    s.add_argument("--progress", action="store_true", help="progress on stderr every 30 s")
+    r = sub.add_parser("real", parents=[common], help="occd slave + master through the loss proxy")
+    r.add_argument("--duration", type=float, default=30.0, help="soak seconds (default 30)")
+    r.add_argument("--master-config", default=str(ROOT / "configs" / "master.yaml"))
+    r.add_argument("--delay-ms", type=float, default=0.0, help="proxy delay (ms)")
+    r.add_argument("--jitter-ms", type=float, default=0.0, help="proxy jitter (ms)")
+    r.add_argument("--match-tolerance-ms", type=float, default=5.0,
+                   help="slack between the proxy's clock and the slave's silent interval when "
+                        "matching a stop to a run of drops (default 5 ms)")
+    r.add_argument("--tolerate-other-stops", action="store_true",
+                   help="a stop not caused by packet loss (watchdog: an overloaded machine) is a "
+                        "warning, not a failure")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    out = args.out or Path(tempfile.mkdtemp(prefix=f"occ-soak-{args.mode}-"))
+    out.mkdir(parents=True, exist_ok=True)
+    if args.mode == "sim":
+        # the simulated slave logs every safety stop: to a file, not the terminal
+        logging.basicConfig(filename=str(out / "slave-sim.log"), level=logging.WARNING,
+                            format="%(levelname)s %(name)s: %(message)s")
+    try:
+        rep = run_sim(args, out) if args.mode == "sim" else run_real(args, out)
+    except SystemExit as err:
+        if isinstance(err.code, str):
+            print(err.code, file=sys.stderr)
+            return 2
+        raise
+    rep.command = " ".join(["tools/soak.py", *(argv if argv is not None else sys.argv[1:])])
+    write_report(rep, out)
+    for c in rep.checks:
+        print(f"[{c.label}] {c.name}: {c.detail}")
+    print(f"soak {rep.mode}: {'PASS' if rep.passed else 'FAIL'}; report in {out}")
+    return 0 if rep.passed else 1
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("MPLBACKEND", "Agg")
+    sys.exit(main())
