@@ -337,7 +337,7 @@ class InterfaceManager:
 
         done, failed = [], []
         for iface in self.interfaces.values():
-            thread = getattr(iface.transport, "thread", None) or getattr(iface.transport, "_thread", None)
+            thread = iface.transport.thread
             tid = getattr(thread, "native_id", None)
             if tid is None:
                 failed.append(f"{iface.name} (no thread)")

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -33,7 +32,7 @@ import igtl
 from igtl.messages.base import REGISTRY, Message
 
 from .clock import Clock, RealClock
-from .commands import BASE_COMMANDS, Request, error_reply, parse_request, success_reply
+from .commands import Request, error_reply, parse_request, success_reply
 from .config import DaemonConfig
 from .controllers import Controller
 from .drivers import create_driver
@@ -190,6 +189,7 @@ class Robot:
         if fc.model is not None:
             self.frame = Frame.builtin(fc.model)
         else:
+            assert fc.tip_link is not None  # the schema requires it with urdf
             self.frame = Frame.from_urdf(str(fc.urdf), fc.tip_link, fc.base_link)
         self.drivers: list[tuple[Driver, list[int]]] = []
         for dc in rc.drivers:
@@ -567,10 +567,9 @@ class Robot:
                 header_version=msg.header_version, timestamp=wall,
             )
         if name == "GET_CAPABIL":
-            cls = REGISTRY["CAPABILITY"]
             types = ["TRANSFORM", "POSITION", "STATUS", "STRING", "COMMAND", "CAPABILITY",
                      "GET_STATUS", "GET_CAPABIL", "GET_TRANS"]
-            return cls(types=tuple(types), device_name=msg.device_name,
+            return igtl.CapabilityMessage(types=tuple(types), device_name=msg.device_name,
                        header_version=msg.header_version, timestamp=wall)
         if name in ("GET_TRANS", "GET_TRANSFOR"):
             want = msg.device_name or "Tip"
@@ -604,11 +603,8 @@ class Robot:
         )
 
     def _source_joints(self, out: Output, now: float) -> Message:
-        cls = REGISTRY.get("NDARRAY")
         arr = np.array(self.q, dtype=np.float64)
-        if cls is None:
-            raise OCCError("NDARRAY not available")
-        return cls(array=arr, device_name=out.device, header_version=out.header_version,
+        return igtl.NDArrayMessage(array=arr, device_name=out.device, header_version=out.header_version,
                    timestamp=self.clock.wall_time())
 
     # ================================================================== reporting
@@ -636,4 +632,3 @@ def build_robot(config: DaemonConfig, *, clock: Clock | None = None, recorder: A
     return Robot(config, clock=clock, controller=controller, recorder=recorder)
 
 
-_ = time  # (time is used by type checkers only in some paths)

@@ -363,3 +363,70 @@ class IdCounter:
 
 def addr_text(address: Address) -> str:
     return f"{address[0]}:{address[1]}"
+
+
+class IOThreadOwner:
+    """Lifecycle shared by every transport: one daemon I/O thread, ``stop()`` safe twice or
+    before ``start()``, context manager. Subclasses set up ``_waker``, call
+    :meth:`_init_io_thread` in their constructor, start with :meth:`_launch`, and implement
+    ``start``, ``_thread_main`` and ``_release`` (close what the I/O thread owned)."""
+
+    name: str
+    _waker: Waker
+
+    def _init_io_thread(self) -> None:
+        self._state_lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._running = False
+        self._stopped = False
+
+    @property
+    def thread(self) -> threading.Thread | None:
+        """The I/O thread (e.g. to raise its scheduling priority), None before start()."""
+        return self._thread
+
+    def start(self) -> Any:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def _thread_main(self) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def _release(self) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def _on_stopping(self) -> None:
+        """Called under the state lock when stop() begins (e.g. to refuse further sends)."""
+
+    def _launch(self) -> None:
+        """Start the I/O thread; the caller holds ``_state_lock`` or passes ``locked=False``."""
+        if self._thread is not None or self._stopped:
+            raise RuntimeError(f"{self.name}: start() may be called once")
+        self._running = True
+        self._thread = threading.Thread(target=self._thread_main, name=self.name, daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Stop the I/O thread and close every socket. Safe to call twice, or before start."""
+        with self._state_lock:
+            if self._stopped:
+                return
+            self._stopped = True
+            self._running = False
+            self._on_stopping()
+            thread = self._thread
+        if thread is None:
+            self._release()
+            return
+        self._waker.wake()
+        if thread is not threading.current_thread():
+            thread.join(timeout)
+            if thread.is_alive():
+                log.warning("%s: I/O thread did not stop within %.1f s", self.name, timeout)
+
+    def __enter__(self) -> Any:
+        if self._thread is None:
+            self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

@@ -71,6 +71,7 @@ from .common import (
     CallbackGuard,
     Connection,
     IdCounter,
+    IOThreadOwner,
     Inbox,
     Peer,
     Waker,
@@ -106,7 +107,7 @@ def _connect_failure(where: str, err: OSError) -> TransportError:
     return exc
 
 
-class _StreamTransport:
+class _StreamTransport(IOThreadOwner):
     """What the server and the client share: one selector loop serving Connections."""
 
     def __init__(
@@ -142,10 +143,7 @@ class _StreamTransport:
         self._rxbuf = bytearray(IO_CHUNK)
         self._rxview = memoryview(self._rxbuf)
         self._cond = threading.Condition()
-        self._state_lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-        self._running = False
-        self._stopped = False
+        self._init_io_thread()
         self._closed_totals = dict.fromkeys(PEER_COUNTERS, 0)
 
     # ------------------------------------------------------------------ public, any thread
@@ -155,41 +153,9 @@ class _StreamTransport:
             raise RuntimeError("on_message is set, so messages never reach receive()")
         return self._inbox.get(timeout)
 
-    def __enter__(self) -> Any:
-        if self._thread is None:
-            self.start()  # type: ignore[attr-defined]
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-
-    def start(self) -> Any:  # pragma: no cover - overridden
-        raise NotImplementedError
-
-    def stop(self, timeout: float = 2.0) -> None:
-        """Stop the I/O thread and close every socket. Safe to call twice, or before start."""
-        with self._state_lock:
-            if self._stopped:
-                return
-            self._stopped = True
-            self._running = False
-            thread = self._thread
-        if thread is None:
-            self._release()
-            return
-        self._waker.wake()
-        if thread is not threading.current_thread():
-            thread.join(timeout)
-            if thread.is_alive():
-                log.warning("%s: I/O thread did not stop within %.1f s", self.name, timeout)
-
     def _launch(self) -> None:
         with self._state_lock:
-            if self._thread is not None or self._stopped:
-                raise RuntimeError(f"{self.name}: start() may be called once")
-            self._running = True
-            self._thread = threading.Thread(target=self._thread_main, name=self.name, daemon=True)
-        self._thread.start()
+            super()._launch()
 
     def _thread_main(self) -> None:
         try:

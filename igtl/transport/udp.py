@@ -31,7 +31,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, Self
+from typing import Any
 
 from .. import rtp as _rtp
 from .. import wire
@@ -43,6 +43,7 @@ from .common import (
     AccessList,
     CallbackGuard,
     IdCounter,
+    IOThreadOwner,
     Inbox,
     Peer,
     RateLimit,
@@ -61,7 +62,7 @@ MAX_UDP_PAYLOAD = 65507  # IPv4: 65535 - 20 (IP) - 8 (UDP)
 _RECV_BATCH = 64  # datagrams read per readiness event before looking at the selector again
 
 
-class UDPEndpoint:
+class UDPEndpoint(IOThreadOwner):
     """A UDP socket speaking OpenIGTLink (see the module docstring)."""
 
     def __init__(
@@ -125,10 +126,7 @@ class UDPEndpoint:
         self._sendto: Callable[[bytes, Any], int] | None = None
         self._waker = Waker()
         self._sel = selectors.DefaultSelector()
-        self._state_lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-        self._running = False
-        self._stopped = False
+        self._init_io_thread()
         self._denied_log = RateLimit()
         self._error_log = RateLimit()
         self._rxbuf = bytearray(65536)
@@ -163,37 +161,12 @@ class UDPEndpoint:
             self.address = sock.getsockname()[:2]
             self._sel.register(sock, selectors.EVENT_READ, "sock")
             self._sel.register(self._waker.r, selectors.EVENT_READ, "wake")
-            self._running = True
-            self._thread = threading.Thread(target=self._thread_main, name=self.name, daemon=True)
-            self._thread.start()
+            self._launch()
         log.info("%s: bound to %s", self.name, addr_text(self.address))
         return self
 
-    def stop(self, timeout: float = 2.0) -> None:
-        """Stop the receive thread and close the socket. Safe to call twice, or before start."""
-        with self._state_lock:
-            if self._stopped:
-                return
-            self._stopped = True
-            self._running = False
-            self._sendto = None
-            thread = self._thread
-        if thread is None:
-            self._release()
-            return
-        self._waker.wake()
-        if thread is not threading.current_thread():
-            thread.join(timeout)
-            if thread.is_alive():
-                log.warning("%s: I/O thread did not stop within %.1f s", self.name, timeout)
-
-    def __enter__(self) -> Self:
-        if self._thread is None:
-            self.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
+    def _on_stopping(self) -> None:
+        self._sendto = None
 
     def _release(self) -> None:
         self._sel.close()
