@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 import igtl
-from igtl.messages.base import REGISTRY, Message
+from igtl.messages.base import Message
 
 from .clock import Clock, RealClock
 from .commands import Request, error_reply, parse_request, success_reply
