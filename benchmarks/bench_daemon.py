@@ -85,9 +85,20 @@ def main(argv: list[str] | None = None) -> int:
 
     def occd(name: str) -> subprocess.Popen[bytes]:
         return subprocess.Popen(
-            [sys.executable, "-m", "occ.cli", str(out / f"{name}.yaml"), "--start", "running",
-             "--stats", str(out / f"{name}.json"), "--log-level", "WARNING"],
-            cwd=ROOT, stderr=open(out / f"{name}.log", "wb"),
+            [
+                sys.executable,
+                "-m",
+                "occ.cli",
+                str(out / f"{name}.yaml"),
+                "--start",
+                "running",
+                "--stats",
+                str(out / f"{name}.json"),
+                "--log-level",
+                "WARNING",
+            ],
+            cwd=ROOT,
+            stderr=open(out / f"{name}.log", "wb"),
         )
 
     procs = [occd("slave")]
@@ -103,8 +114,11 @@ def main(argv: list[str] | None = None) -> int:
         clients = [SlicerStandIn("127.0.0.1", tcp).start() for _ in range(2)]
         for c in clients:
             c.connected.wait(5.0)
-        print(f"running {args.duration:.0f} s ({'SCHED_OTHER' if args.no_fifo else 'SCHED_FIFO where permitted'}); "
-              f"files in {out}", flush=True)
+        print(
+            f"running {args.duration:.0f} s ({'SCHED_OTHER' if args.no_fifo else 'SCHED_FIFO where permitted'}); "
+            f"files in {out}",
+            flush=True,
+        )
         time.sleep(args.duration)
         summaries = [c.summary() for c in clients]
     finally:
@@ -124,15 +138,28 @@ def main(argv: list[str] | None = None) -> int:
         "duration_s": args.duration,
         "fifo": not args.no_fifo,
         "slave_realtime": s.get("realtime"),
-        "slave_loop": {k: s[k] for k in ("ticks", "lateness_us", "compute_us", "late_over_1ms",
-                                         "late_over_1ms_percent", "overruns", "missed_ticks", "cpu_percent")},
+        "slave_loop": {
+            k: s[k]
+            for k in (
+                "ticks",
+                "lateness_us",
+                "compute_us",
+                "late_over_1ms",
+                "late_over_1ms_percent",
+                "overruns",
+                "missed_ticks",
+                "cpu_percent",
+            )
+        },
         "master_loop": {k: m[k] for k in ("ticks", "lateness_us", "late_over_1ms", "cpu_percent")},
         "sample_to_write_us": s.get("controller", {}).get("sample_to_write_us"),
         "loss": s.get("loss"),
         "slave_state_at_end": s.get("state"),
         "udp_in": s["interfaces"]["master"],
         "tip_stream": [x.get("Tip") for x in summaries],
-        "recording_bytes": (out / "slave.igtl").stat().st_size if (out / "slave.igtl").exists() else 0,
+        "recording_bytes": (out / "slave.igtl").stat().st_size
+        if (out / "slave.igtl").exists()
+        else 0,
     }
     (out / "result.json").write_text(json.dumps(result, indent=2))
     print(json.dumps(result, indent=2))
