@@ -191,12 +191,16 @@ def fast_builder(cls: type[M]) -> Callable[..., M]:
     return ns["build"]  # type: ignore[no-any-return]
 
 
+#: Arrays and byte strings longer than this are summarised in content_summary(), not dumped.
+SUMMARY_LIMIT = 64
+
+
 def _jsonable(value: Any) -> Any:
     if isinstance(value, bytes):
-        try:
-            return value.decode("utf-8")
-        except UnicodeDecodeError:
-            return value.hex()
+        # always hex, so the reader never has to guess (the form `igtl send --json-body` takes)
+        if len(value) > SUMMARY_LIMIT:
+            return {"bytes": len(value), "head_hex": value[:SUMMARY_LIMIT].hex()}
+        return {"hex": value.hex()}
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
     if isinstance(value, (list, tuple)):
@@ -204,6 +208,12 @@ def _jsonable(value: Any) -> Any:
     if isinstance(value, Mapping):
         return {str(k): _jsonable(v) for k, v in value.items()}
     if hasattr(value, "tolist"):  # numpy arrays and scalars
+        size = getattr(value, "size", 1)
+        if size > SUMMARY_LIMIT:
+            flat = value.reshape(-1)
+            return {"shape": list(value.shape), "dtype": str(value.dtype),
+                    "min": flat.min().tolist(), "max": flat.max().tolist(),
+                    "head": flat[:8].tolist()}
         return value.tolist()
     if hasattr(value, "value") and hasattr(value, "name"):  # enums
         return value.value

@@ -609,6 +609,7 @@ class TCPClient(_StreamTransport):
         self._conn: Connection | None = None
         self._peer: Peer | None = None
         self._drop_lock = threading.Lock()
+        self._gave_up = False
         self._dropped_offline = 0
         self._connects = 0
         self._connect_failures = 0
@@ -630,8 +631,12 @@ class TCPClient(_StreamTransport):
         return self._peer
 
     def wait_connected(self, timeout: float = 5.0) -> bool:
+        """True once connected; False after ``timeout``, or at once when a client without
+        ``reconnect`` has given up (or was stopped)."""
         with self._cond:
-            return self._cond.wait_for(lambda: self.connected, timeout)
+            return self._cond.wait_for(
+                lambda: self.connected or self._gave_up or self._stopped, timeout
+            ) and self.connected
 
     def send(self, msg: Sendable) -> bool:
         """Queue ``msg`` (in its own header version); False, counted as dropped, when not
@@ -682,6 +687,10 @@ class TCPClient(_StreamTransport):
                 break
             self._pause(delay)
             delay = min(delay * 2, cap)
+        # wake wait_connected() callers: this client will not connect any more
+        self._gave_up = True
+        with self._cond:
+            self._cond.notify_all()
 
     def _pause(self, seconds: float) -> None:
         """Wait, but return at once when stop() wakes us."""
