@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from types import MappingProxyType
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
@@ -24,6 +25,9 @@ from .. import wire
 from ..errors import ContentError, InvalidTextError
 
 M = TypeVar("M", bound="Message")
+
+#: The metadata of decoded messages that carry none: shared and read-only (messages are frozen).
+EMPTY_MAPPING: Mapping[str, Any] = MappingProxyType({})
 
 #: type name -> message class. Filled by :func:`register`.
 REGISTRY: dict[str, type[Message]] = {}
@@ -125,12 +129,11 @@ class Message:
             )
         else:
             raise ValueError(f"header_version must be 1 or 2, got {version}")
-        return (
-            wire.pack_header(
-                version, self.message_type, self.device_name, self.header_timestamp(), body
-            )
-            + body
-        )
+        raw = self.raw_timestamp
+        ts = self.timestamp
+        if raw is None or wire.raw_to_seconds(raw) != ts:
+            raw = wire.seconds_to_raw(ts)
+        return wire.pack_header(version, self.message_type, self.device_name, raw, body) + body
 
     def content_summary(self) -> dict[str, Any]:
         """Content fields as JSON-friendly values (used by ``igtl listen --json`` and dumps)."""
@@ -167,7 +170,7 @@ def fast_builder(cls: type[M]) -> Callable[..., M]:
     ``common`` is the dict the codec passes to ``unpack_content``.
     """
     content = [f.name for f in dataclasses.fields(cls) if f.name not in _COMMON_FIELDS]
-    ns: dict[str, Any] = {"_new": object.__new__, "_cls": cls}
+    ns: dict[str, Any] = {"_new": object.__new__, "_cls": cls, "_EMPTY": EMPTY_MAPPING}
     for name in (*_COMMON_ORDER, *content):
         ns[f"_s_{name}"] = getattr(cls, name).__set__
     args = "".join(f", {n}" for n in content)
@@ -179,10 +182,10 @@ def fast_builder(cls: type[M]) -> Callable[..., M]:
         "    _s_timestamp(self, common['timestamp'])",
         "    _s_header_version(self, common['header_version'])",
         "    m = g('metadata')",
-        "    _s_metadata(self, {} if m is None else m)",
+        "    _s_metadata(self, _EMPTY if m is None else m)",
         "    _s_message_id(self, g('message_id', 0))",
         "    m = g('metadata_encoding')",
-        "    _s_metadata_encoding(self, {} if m is None else m)",
+        "    _s_metadata_encoding(self, _EMPTY if m is None else m)",
         "    _s_raw_timestamp(self, g('raw_timestamp'))",
         *(f"    _s_{n}(self, {n})" for n in content),
         "    return self",
