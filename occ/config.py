@@ -68,6 +68,7 @@ __all__ = [
     "LossConfig",
     "RecordingConfig",
     "StatsConfig",
+    "TeleopConfig",
     "BUILTIN_MODELS",
     "load_config",
     "parse_config",
@@ -559,6 +560,57 @@ class StatsConfig(_Model):
     log_every_s: PosFloat = Field(10.0, description="Log a statistics summary this often (s).")
 
 
+Vec3 = tuple[Float, Float, Float]
+
+
+class TeleopConfig(_Model):
+    """Master-slave teleoperation (occ/controllers/teleop.py). Lengths in mm, as on the wire."""
+
+    role: Literal["master", "slave"] = Field(description="Which side of the pair this daemon is.")
+    # --- master
+    input: Literal["sim", "igtl", "driver"] = Field(
+        "sim",
+        description="Master: where the operator's motion comes from: `sim` (the OCC paper's "
+        "test motion), `igtl` (a TRANSFORM/POSITION stream), `driver` (a hand-moved device "
+        "read by the master's drivers, e.g. CAN).",
+    )
+    amplitude_mm: Vec3 = Field(
+        (50.0, 50.0, 0.0), description="Master `sim`: amplitudes of X = A sin, Y = A cos, Z (mm)."
+    )
+    offset_mm: Vec3 = Field(
+        (0.0, 0.0, 20.0),
+        description="Master `sim`: constant offset (mm) from the handle at zero joint values.",
+    )
+    frequency_hz: PosFloat = Field(0.1, description="Master `sim`: frequency of the motion (Hz).")
+    clutch: Bool = Field(False, description="Master: clutch pressed at start.")
+    first_seq: Annotated[Int, Field(ge=0, le=0xFFFFFFFF)] = Field(
+        0, description="Master: sequence number before the first POSITION (the first is +1)."
+    )
+    # --- both
+    input_interface: Name | None = Field(
+        None,
+        description="Master `igtl`: interface of the input stream. Slave: interface of the "
+        "master's POSITION stream (null = any).",
+    )
+    input_device: DeviceName | None = Field(
+        None, description="Only samples with this device name are used (null = any)."
+    )
+    # --- slave
+    scale: Annotated[Float, Field(gt=0, le=10)] = Field(
+        0.1, description="Slave: motion scaling, slave motion / master motion (0.1 = 10:1)."
+    )
+    rotation: tuple[Vec3, Vec3, Vec3] | None = Field(
+        None, description="Slave: 3x3 rotation from master to slave axes (rows); null = identity."
+    )
+    base_mm: Vec3 | None = Field(
+        None, description="Slave: base position in the world (mm), sent as TRANSFORM `Base`."
+    )
+    base_interface: Name | None = Field(
+        None, description="Slave: interface on which a tracker sends the base TRANSFORM."
+    )
+    base_device: DeviceName = Field("Base", description="Slave: device name of that TRANSFORM.")
+
+
 class DaemonConfig(_Model):
     """The whole configuration of one daemon."""
 
@@ -569,8 +621,8 @@ class DaemonConfig(_Model):
     safety: SafetyConfig = Field(SafetyConfig(), description="Safety monitors.")
     recording: RecordingConfig = Field(RecordingConfig(), description="Recorder.")
     stats: StatsConfig = Field(StatsConfig(), description="Timing statistics.")
-    teleop: dict[str, Any] | None = Field(
-        None, description="Teleoperation settings (free-form for now); null = no teleoperation."
+    teleop: TeleopConfig | None = Field(
+        None, description="Teleoperation (master or slave); null = no teleoperation."
     )
 
     def interface(self, name: str) -> InterfaceConfig:
@@ -630,6 +682,17 @@ class DaemonConfig(_Model):
                     f"(robot.rate_hz = {loop_hz})",
                 )
             )
+        if self.teleop is not None:
+            for key in ("input_interface", "base_interface"):
+                ref = getattr(self.teleop, key)
+                if ref is not None and ref not in names:
+                    problems.append(
+                        (("teleop", key), f"unknown interface '{ref}'" + _did_you_mean(ref, list(names)))
+                    )
+            if self.teleop.input == "igtl" and self.teleop.role == "master" and (
+                self.teleop.input_interface is None
+            ):
+                problems.append((("teleop", "input_interface"), "required with input: igtl"))
         loss_input = self.safety.loss.input
         if loss_input is not None and loss_input not in names:
             problems.append(

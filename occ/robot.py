@@ -628,7 +628,7 @@ def build_robot(config: DaemonConfig, *, clock: Clock | None = None, recorder: A
     if config.teleop:
         from .controllers.teleop import make_teleop_controller
 
-        controller = make_teleop_controller(config.teleop)
+        controller = make_teleop_controller(config.teleop.model_dump())
     return Robot(config, clock=clock, controller=controller, recorder=recorder)
 
 

@@ -135,9 +135,13 @@ def test_dump_and_revalidate_round_trip() -> None:
     assert again == cfg
 
 
-def test_teleop_is_free_form() -> None:
-    cfg = parse_config(MINIMAL_ROBOT + "teleop: {scale: 0.2, clutch: {pedal: 1}}\n")
-    assert cfg.teleop == {"scale": 0.2, "clutch": {"pedal": 1}}
+def test_teleop_is_validated() -> None:
+    cfg = parse_config(MINIMAL_ROBOT + "teleop: {role: slave, scale: 0.2}\n")
+    assert cfg.teleop is not None and cfg.teleop.scale == 0.2 and cfg.teleop.role == "slave"
+    with pytest.raises(ConfigError) as exc:
+        parse_config(MINIMAL_ROBOT + "teleop: {role: slave, scael: 0.2, input_interface: nope}\n")
+    text = "\n".join(exc.value.errors)
+    assert "teleop.scael: unknown field 'scael' (did you mean 'scale'?)" in text
 
 
 # ---------------------------------------------------------------------------- paths

@@ -30,7 +30,7 @@ def test_can_master_streams_hand_motion() -> None:
     })
     robot_cfg = cfg.robot.model_copy(update={"drivers": (driver,),
                                              "realtime": cfg.robot.realtime.model_copy(update={"fifo_priority": None})})
-    cfg = cfg.model_copy(update={"robot": robot_cfg, "teleop": {**cfg.teleop, "input": "driver"}})
+    cfg = cfg.model_copy(update={"robot": robot_cfg, "teleop": cfg.teleop.model_copy(update={"input": "driver"})})
     axes = [DriveAxis(0x100, 0x180, position=0.0), DriveAxis(0x101, 0x181, position=50_000.0),
             DriveAxis(0x102, 0x182, position=20_000.0)]
     sent: list[igtl.Message] = []

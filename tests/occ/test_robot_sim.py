@@ -28,7 +28,7 @@ class SimSlave:
     def __init__(self, **teleop: object) -> None:
         cfg = load_config(ROOT / "configs" / "slave.yaml")
         if teleop:
-            cfg = cfg.model_copy(update={"teleop": {**cfg.teleop, **teleop}})
+            cfg = cfg.model_copy(update={"teleop": cfg.teleop.model_copy(update=teleop)})
         self.clock = SimClock()
         self.robot = build_robot(cfg, clock=self.clock)
         self.robot.configure()
