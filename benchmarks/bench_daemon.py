@@ -59,6 +59,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, default=60.0)
     p.add_argument("--no-fifo", action="store_true", help="run both loops SCHED_OTHER")
     p.add_argument("--cpu", type=int, default=None, help="pin the slave loop to this CPU")
+    p.add_argument("--spin-us", type=float, default=None, help="override robot.realtime.spin_us")
+    p.add_argument("--switch-us", type=float, default=None,
+                   help="override robot.realtime.switch_interval_us (both daemons)")
+    p.add_argument("--phase-lock-us", type=float, default=None,
+                   help="override the slave's teleop.phase_lock_us (negative = off)")
+    p.add_argument("--no-load", action="store_true",
+                   help="the slave alone (no master stream, no TCP clients): the baseline")
+    p.add_argument("--cpu-load-only", action="store_true",
+                   help="the master runs (same CPU use) but streams to an unused port, and no "
+                        "TCP clients connect: separates machine load from the slave's own I/O")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
     out = args.out or Path(tempfile.mkdtemp(prefix="occ-bench-"))
@@ -72,12 +82,20 @@ def main(argv: list[str] | None = None) -> int:
         if itf["transport"] == "tcp-server":
             itf["port"] = mtcp
         else:
-            itf["remote"] = f"127.0.0.1:{udp}"
+            itf["remote"] = f"127.0.0.1:{free_port(socket.SOCK_DGRAM) if args.cpu_load_only else udp}"
     if args.no_fifo:
         slave["robot"]["realtime"]["fifo_priority"] = None
         master["robot"]["realtime"]["fifo_priority"] = None
     if args.cpu is not None:
         slave["robot"]["realtime"]["cpu"] = args.cpu
+    if args.phase_lock_us is not None:
+        slave["teleop"]["phase_lock_us"] = None if args.phase_lock_us < 0 else args.phase_lock_us
+    if args.switch_us is not None:
+        slave["robot"]["realtime"]["switch_interval_us"] = args.switch_us
+        master["robot"]["realtime"]["switch_interval_us"] = args.switch_us
+    if args.spin_us is not None:
+        slave["robot"]["realtime"]["spin_us"] = args.spin_us
+        master["robot"]["realtime"]["spin_us"] = args.spin_us
     slave["recording"] = {"path": str(out / "slave.igtl"), "rate_hz": 100, "include_messages": True}
     slave["stats"] = {"log_every_s": 3600.0}
     (out / "slave.yaml").write_text(yaml.safe_dump(slave))
@@ -107,19 +125,34 @@ def main(argv: list[str] | None = None) -> int:
         if not wait_port(tcp):
             print("slave did not start; see", out / "slave.log", file=sys.stderr)
             return 1
-        procs.append(occd("master"))
-        if not wait_port(mtcp):
-            print("master did not start", file=sys.stderr)
-            return 1
-        clients = [SlicerStandIn("127.0.0.1", tcp).start() for _ in range(2)]
-        for c in clients:
-            c.connected.wait(5.0)
+        if not args.no_load:
+            procs.append(occd("master"))
+            if not wait_port(mtcp):
+                print("master did not start", file=sys.stderr)
+                return 1
+            clients = [] if args.cpu_load_only else [
+                SlicerStandIn("127.0.0.1", tcp).start() for _ in range(2)
+            ]
+            for c in clients:
+                c.connected.wait(5.0)
         print(
             f"running {args.duration:.0f} s ({'SCHED_OTHER' if args.no_fifo else 'SCHED_FIFO where permitted'}); "
             f"files in {out}",
             flush=True,
         )
-        time.sleep(args.duration)
+        # an operator: a loss stop (e.g. a master stall on this busy VM) is followed by Run
+        end = time.monotonic() + args.duration
+        seen = 0
+        reruns = 0
+        while time.monotonic() < end:
+            time.sleep(0.05)
+            if clients:
+                sts = clients[0].statuses
+                for st in sts[seen:]:
+                    if st.error_name == "STOPPED":
+                        clients[0].send_command("Run")
+                        reruns += 1
+                seen = len(sts)
         summaries = [c.summary() for c in clients]
     finally:
         for c in clients:
@@ -133,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
             except subprocess.TimeoutExpired:
                 proc.kill()
     s = json.loads((out / "slave.json").read_text())
-    m = json.loads((out / "master.json").read_text())
+    m = json.loads((out / "master.json").read_text()) if not args.no_load else None
     result = {
         "duration_s": args.duration,
         "fifo": not args.no_fifo,
@@ -151,9 +184,14 @@ def main(argv: list[str] | None = None) -> int:
                 "cpu_percent",
             )
         },
-        "master_loop": {k: m[k] for k in ("ticks", "lateness_us", "late_over_1ms", "cpu_percent")},
+        "no_load": args.no_load,
+        "cpu_load_only": args.cpu_load_only,
+        "master_loop": (
+            {k: m[k] for k in ("ticks", "lateness_us", "late_over_1ms", "cpu_percent")} if m else None
+        ),
         "sample_to_write_us": s.get("controller", {}).get("sample_to_write_us"),
         "loss": s.get("loss"),
+        "operator_reruns": reruns if not args.no_load else 0,
         "slave_state_at_end": s.get("state"),
         "udp_in": s["interfaces"]["master"],
         "tip_stream": [x.get("Tip") for x in summaries],

@@ -48,16 +48,22 @@ class RealClock:
     price of ``spin_us / period`` of one core (20 % at 1 kHz). ``spin_us=0`` gives a plain
     sleep.
 
-    While spinning the thread holds the GIL; other Python threads get it back when the loop
-    sleeps or at the interpreter's switch interval (see ``sys.setswitchinterval``).
+    A plain busy-wait holds the GIL for the whole spin, so an interface thread that receives
+    a packet then cannot even enqueue it until the tick is over: the sample misses the tick it
+    arrived before and waits a whole period. With ``yield_gil`` the spin releases the GIL on
+    every turn (``time.sleep(0)``), so interface threads run during the spin; measured in the
+    full daemon here that made the loop itself much later (p99 lateness 610 us vs 110-215 us:
+    any thread that takes the GIL keeps it up to the switch interval), so it is off by default;
+    the slave instead phase-locks its ticks so the master's packets arrive before the spin.
     """
 
-    __slots__ = ("_spin_s",)
+    __slots__ = ("_spin_s", "_yield")
 
-    def __init__(self, spin_us: float = 200.0) -> None:
+    def __init__(self, spin_us: float = 200.0, *, yield_gil: bool = False) -> None:
         if spin_us < 0:
             raise ValueError(f"spin_us must be >= 0, got {spin_us}")
         self._spin_s = spin_us * 1e-6
+        self._yield = yield_gil
 
     @property
     def spin_us(self) -> float:
@@ -74,8 +80,13 @@ class RealClock:
         coarse = remaining - self._spin_s
         if coarse > 0.0:
             time.sleep(coarse)
-        while perf_counter() < deadline:
-            pass
+        if self._yield:
+            sleep = time.sleep
+            while perf_counter() < deadline:
+                sleep(0)  # releases the GIL for a moment: interface threads may run
+        else:
+            while perf_counter() < deadline:
+                pass
 
     def wall_time(self) -> float:
         return time.time()

@@ -181,6 +181,9 @@ class ControlLoop:
         self.switch_interval_s: float | None = rt.get("switch_interval_s")
         self.realtime_report = ""
         self.missed_ticks = 0
+        self.t0 = math.nan  # deadline k is t0 + k / rate_hz (updated by shift())
+        self._shift = 0.0
+        self.shifts = 0
         self.gc_collections = 0
         self.ticks_run = 0
         self.error: BaseException | None = None
@@ -195,6 +198,17 @@ class ControlLoop:
     def stop(self) -> None:
         """Ask the loop to end after the current tick. Safe from a signal handler (a flag)."""
         self._stop_requested = True
+
+    def shift(self, dt: float) -> None:
+        """Move every later deadline by ``dt`` seconds (|dt| < one period), from the next tick.
+
+        Used to phase-lock the loop to a periodic input (the slave to the master's stream), so
+        a sample waits a fixed short time for the tick that uses it. Call from the tick.
+        """
+        if not -self.period_s < dt < self.period_s:
+            raise ValueError(f"shift must be within one period, got {dt}")
+        self._shift += dt
+        self.shifts += 1
 
     @property
     def running(self) -> bool:
@@ -307,12 +321,18 @@ class ControlLoop:
         gc_count = 0
 
         t0 = now()
+        self.t0 = t0
         end_deadline = math.inf if duration is None else t0 + duration
         stats.begin(t0)
         k = 0
         n = 0
         prev_start: float | None = None
         while not self._stop_requested and n != tick_limit:
+            if self._shift:
+                t0 += self._shift
+                end_deadline += self._shift
+                self._shift = 0.0
+                self.t0 = t0
             deadline = t0 + k * period
             if deadline >= end_deadline:
                 break

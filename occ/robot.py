@@ -161,7 +161,9 @@ class Robot:
         self.config = config
         rc = config.robot
         self.name = rc.name
-        self.clock: Clock = clock if clock is not None else RealClock()
+        self.clock: Clock = (
+            clock if clock is not None else RealClock(spin_us=rc.realtime.spin_us)
+        )
         self.rate_hz = rc.rate_hz
         self.period = 1.0 / rc.rate_hz
         self.state_machine = StateMachine(clock=self.clock)
@@ -263,6 +265,11 @@ class Robot:
                 "fifo_priority": rc.realtime.fifo_priority,
                 "cpu": rc.realtime.cpu,
                 "gc": rc.realtime.gc,
+                "switch_interval_s": (
+                    rc.realtime.switch_interval_us * 1e-6
+                    if rc.realtime.switch_interval_us is not None
+                    else None
+                ),
             },
         )
 

@@ -243,12 +243,19 @@ class SlaveController(Controller):
         self.base_mm = params.get("base_mm")
         self.base_interface = params.get("base_interface")
         self.base_device = params.get("base_device", "Base")
+        lock = params.get("phase_lock_us", 350.0)
+        self.phase_lock = None if lock is None else float(lock) * 1e-6
+        self._phases: list[float] = []
+        self.phase_shifts = 0
+        self.phase_error_us: float | None = None
+        self.phase_history: list[float] = []
         self.master_pos: np.ndarray | None = None
         self.master_run = False
         self.master_clutch = False
         self.master_ref: np.ndarray | None = None
         self.slave_ref: np.ndarray | None = None
         self._q_last: list[float] | None = None
+        self._fresh = False
         self.last_seq: int | None = None
         self.last_sample_t: float | None = None
         self.samples = 0
@@ -259,6 +266,8 @@ class SlaveController(Controller):
         # whose driver write used it (same machine, same clock)
         self.pending_ts: float | None = None
         self.latencies: list[float] = []
+        self.rx_latencies: list[float] = []
+        self.pending_rx = 0.0
 
     def bind(self, robot: Robot) -> None:
         super().bind(robot)
@@ -289,13 +298,52 @@ class SlaveController(Controller):
         self.samples += 1
         self.last_seq = msg.message_id
         self.last_sample_t = item.t_rx
+        if self.phase_lock is not None:
+            self._track_phase(item.t_rx)
         self.pending_ts = msg.timestamp if msg.timestamp > 0.0 else None
+        self.pending_rx = item.t_rx
         self.master_pos = np.array(pos, dtype=float) * MM
+        self._fresh = True
         run = msg.metadata.get("run", "1") == "1"
         clutch = msg.metadata.get("clutch", "0") == "1"
         if (run and not self.master_run) or (self.master_clutch and not clutch):
             self.master_ref = None  # re-index on the next update
         self.master_run, self.master_clutch = run, clutch
+
+    def _track_phase(self, t_rx: float) -> None:
+        """Phase-lock the loop to the master's stream.
+
+        Both loops tick at 1 kHz on the same clock but with an arbitrary phase between them, so
+        without this a sample waits anywhere from 0 to 1 ms (constant for a whole run) before
+        the tick that uses it. Every 250 samples the median arrival phase within the period is
+        compared with ``phase_lock_us`` before the next deadline, and the deadlines are shifted
+        when it is off by more than 100 us. Median: robust to the odd late packet. The target
+        must lie before the clock's spin (which holds the GIL, so an interface thread cannot
+        enqueue a packet arriving during it): default 350 us = 200 us spin + 150 us margin.
+        """
+        robot = self.robot
+        assert robot is not None
+        loop = robot.loop
+        t0 = loop.t0
+        if t0 != t0:  # NaN: the loop is not running (simulated-time tests stepping ticks)
+            return
+        period = loop.period_s
+        # deviation from the target phase, wrapped to [-period/2, period/2): taking the median
+        # of raw phases would be wrong when they straddle the wrap-around point
+        target = period - self.phase_lock
+        half = period / 2
+        self._phases.append((t_rx - t0 - target + half) % period - half)
+        if len(self._phases) < 250:
+            return
+        phases = sorted(self._phases)
+        self._phases.clear()
+        error = phases[len(phases) // 2]
+        self.phase_error_us = round(error * 1e6, 1)
+        self.phase_history.append(self.phase_error_us)
+        del self.phase_history[:-20]
+        if abs(error) > 100e-6:  # arrivals jitter by ~100 us here: don't chase the noise
+            loop.shift(error)
+            self.phase_shifts += 1
 
     def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
         if new is RobotState.RUNNING:
@@ -308,11 +356,15 @@ class SlaveController(Controller):
             self.master_ref = None
             return self._q_last if self._q_last is not None else None
         if self.master_ref is None:
+            self._fresh = True
             self.master_ref = self.master_pos.copy()
             self.slave_ref = robot.frame.position(robot.q).copy()
             self.reindexes += 1
             self._q_last = list(robot.q)
         assert self.slave_ref is not None
+        if not self._fresh and self._q_last is not None:
+            return self._q_last  # no new master sample since the last solve: same target
+        self._fresh = False
         target = self.slave_ref + self.scale * (self.rotation @ (self.master_pos - self.master_ref))
         try:
             res = robot.frame.solve_ik(target, robot.q, clamp=True)
@@ -324,7 +376,10 @@ class SlaveController(Controller):
         self._q_last = res.q.tolist()
         if self.pending_ts is not None:
             if len(self.latencies) < 200_000:
-                self.latencies.append(robot.clock.wall_time() - self.pending_ts)
+                wall, mono = robot.clock.wall_time(), robot.clock.now()
+                self.latencies.append(wall - self.pending_ts)
+                # split: master timestamp -> received by our interface thread -> used here
+                self.rx_latencies.append(wall - (mono - self.pending_rx) - self.pending_ts)
             self.pending_ts = None
         return self._q_last
 
@@ -337,6 +392,9 @@ class SlaveController(Controller):
             "reindexes": self.reindexes,
             "ik_clamped": self.clamped,
             "ik_failures": self.ik_failures,
+            "phase_shifts": self.phase_shifts,
+            "phase_error_us": self.phase_error_us,
+            "phase_history_us": list(self.phase_history),
         }
         if self.latencies:
             lat = np.asarray(self.latencies) * 1e6
@@ -345,5 +403,10 @@ class SlaveController(Controller):
                 "p50": round(float(np.percentile(lat, 50)), 1),
                 "p99": round(float(np.percentile(lat, 99)), 1),
                 "max": round(float(lat.max()), 1),
+            }
+            rx = np.asarray(self.rx_latencies) * 1e6
+            out["sample_to_rx_us"] = {
+                "p50": round(float(np.percentile(rx, 50)), 1),
+                "p99": round(float(np.percentile(rx, 99)), 1),
             }
         return out

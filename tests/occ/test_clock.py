@@ -82,6 +82,7 @@ class _FakeTime:
     def __init__(self) -> None:
         self.t = 0.0
         self.sleeps: list[float] = []
+        self.yields = 0
         self.reads = 0
 
     def perf_counter(self) -> float:
@@ -90,6 +91,9 @@ class _FakeTime:
         return self.t
 
     def sleep(self, dt: float) -> None:
+        if dt == 0:
+            self.yields += 1  # RealClock's spin releases the GIL with sleep(0): not a sleep
+            return
         self.sleeps.append(dt)
         self.t += dt
 
@@ -141,3 +145,11 @@ def test_realclock_wall_time_and_validation(fake_time: _FakeTime) -> None:
     assert c.wall_time() == pytest.approx(1_700_000_000.0)
     with pytest.raises(ValueError):
         RealClock(spin_us=-1)
+
+
+def test_realclock_spin_yields_the_gil_only_when_asked(fake_time: _FakeTime) -> None:
+    clock_mod.RealClock(spin_us=200, yield_gil=True).sleep_until(100e-6)
+    assert fake_time.yields > 0
+    fake_time.yields = 0
+    clock_mod.RealClock(spin_us=200).sleep_until(fake_time.t + 100e-6)
+    assert fake_time.yields == 0

@@ -1,0 +1,60 @@
+"""Deadline shifting (ControlLoop.shift) and the slave's phase lock to the master's stream."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+
+from occ.clock import SimClock
+from occ.controllers.teleop import SlaveController
+from occ.loop import ControlLoop
+
+
+def test_shift_moves_every_later_deadline() -> None:
+    clock = SimClock()
+    starts: list[float] = []
+    loop: ControlLoop
+
+    def tick(now: float, k: int) -> None:
+        starts.append(now)
+        if k == 10:
+            loop.shift(0.0003)
+
+    loop = ControlLoop(1000, tick, clock=clock)
+    loop.run(ticks=20)
+    assert starts[10] - starts[0] == pytest.approx(0.010)
+    assert starts[11] - starts[10] == pytest.approx(0.0013)  # one longer period, then steady
+    assert starts[19] - starts[11] == pytest.approx(0.008)
+    assert loop.shifts == 1
+    with pytest.raises(ValueError):
+        loop.shift(0.002)
+
+
+def test_phase_lock_brings_arrivals_to_the_target_phase() -> None:
+    shifts: list[float] = []
+    fake_loop = SimpleNamespace(t0=0.0, period_s=0.001, shift=shifts.append)
+    ctrl = SlaveController({"role": "slave", "phase_lock_us": 200.0})
+    ctrl.robot = SimpleNamespace(loop=fake_loop)  # type: ignore[assignment]
+    # packets arrive 0.35 ms after each deadline: they would wait 0.65 ms for the next tick
+    for i in range(250):
+        ctrl._track_phase(i * 0.002 + 0.00035 + (1e-5 if i % 7 == 0 else 0.0))
+    assert len(shifts) == 1
+    # target (phase_lock_us=200): arrive 0.2 ms before a deadline, at phase 0.8 ms -> shift -0.45 ms
+    assert shifts[0] == pytest.approx(-0.00045, abs=1e-6)
+    # once locked (arrivals around phase 0.8 ms), no further shifts
+    fake_loop.t0 = shifts[0]
+    for i in range(250):
+        ctrl._track_phase(i * 0.002 + 0.00035 + (0.00015, -0.00015, 0.0)[i % 3])
+    assert len(shifts) == 1 and abs(ctrl.phase_error_us or 0.0) < 1.0
+
+
+def test_phase_lock_median_survives_the_wrap_around() -> None:
+    shifts: list[float] = []
+    fake_loop = SimpleNamespace(t0=0.0, period_s=0.001, shift=shifts.append)
+    ctrl = SlaveController({"role": "slave", "phase_lock_us": 50.0})
+    ctrl.robot = SimpleNamespace(loop=fake_loop)  # type: ignore[assignment]
+    # target phase 0.95 ms; arrivals at 0.95 +- 0.15 ms, half of them past the deadline (0.1)
+    for i in range(250):
+        ctrl._track_phase(i * 0.002 + 0.00095 + (0.00015, -0.00015, 0.0)[i % 3])
+    assert shifts == [] and abs(ctrl.phase_error_us or 0.0) < 1.0
