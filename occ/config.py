@@ -621,11 +621,10 @@ class TeleopConfig(_Model):
     )
     base_device: DeviceName = Field("Base", description="Slave: device name of that TRANSFORM.")
     phase_lock_us: Annotated[Float, Field(ge=0)] | None = Field(
-        350.0,
-        description="Slave: shift the loop's deadlines so the master's packets arrive this "
-        "long before a tick (a sample then waits ~this long, not up to a whole period, for the "
-        "tick that uses it). Keep it above robot.realtime.spin_us: the spin holds the "
-        "interpreter, so a packet arriving during it waits for the tick after; null = off.",
+        400.0,
+        description="Slave: shift the loop's deadlines so the master samples this long before "
+        "a tick (by its POSITION timestamps): a sample then waits about this long, not up to a "
+        "whole period, for the tick that uses it. Must cover the transport time; null = off.",
     )
 
 

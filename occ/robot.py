@@ -30,6 +30,7 @@ import numpy as np
 
 import igtl
 from igtl.messages.base import Message
+from igtl.transport import UDPEndpoint
 
 from .clock import Clock, RealClock
 from .commands import Request, error_reply, parse_request, success_reply
@@ -205,6 +206,11 @@ class Robot:
         # --- Interfaces
         self.interfaces = InterfaceManager(config.interfaces, clock_now=self.clock.now)
         self.interfaces.on_connect(self._on_peer_connect)
+        self._pollers = [
+            iface.transport.poll
+            for iface in self.interfaces.interfaces.values()
+            if iface.streams and isinstance(iface.transport, UDPEndpoint)
+        ]
 
         # --- Safety
         sc = config.safety
@@ -354,7 +360,11 @@ class Robot:
         except OCCError as err:
             self._fault(f"driver read failed: {err}")
             state = self.state_machine.state
-        # streams: every sample, in order
+        # streams: every sample, in order. UDP stream sockets are polled here first: a datagram
+        # that arrived while this thread held the interpreter (the clock's spin) is used now,
+        # not one tick later.
+        for poll in self._pollers:
+            poll()
         for iface in self.interfaces.interfaces.values():
             for q in iface.streams.values():
                 if not len(q):

@@ -127,6 +127,7 @@ class UDPEndpoint(IOThreadOwner):
         self._waker = Waker()
         self._sel = selectors.DefaultSelector()
         self._init_io_thread()
+        self._rx_lock = threading.Lock()  # one reader at a time: the I/O thread or poll()
         self._denied_log = RateLimit()
         self._error_log = RateLimit()
         self._rxbuf = bytearray(65536)
@@ -306,27 +307,58 @@ class UDPEndpoint(IOThreadOwner):
                 else:
                     self._read_batch()
             if reasm.pending:
-                reasm.expire()
+                with self._rx_lock:  # poll() may be feeding the reassembler
+                    reasm.expire()
+
+    def poll(self, limit: int = 64) -> int:
+        """Receive and deliver the datagrams already waiting, on the calling thread; never blocks.
+
+        For a periodic loop that wants a sample the moment it ticks: the I/O thread delivers
+        datagrams as they arrive, but in a Python process it cannot while another thread holds
+        the interpreter (a loop spinning before its deadline does). The two readers take turns
+        datagram by datagram (a lock keeps delivery in arrival order); if the I/O thread is
+        busy delivering, poll returns 0 and leaves the rest to it. Returns the number delivered.
+        """
+        if self._sock is None or not self._running:
+            return 0
+        done = 0
+        for _ in range(limit):
+            if not self._rx_lock.acquire(blocking=False):
+                return done
+            try:
+                if not self._receive_one():
+                    return done
+            finally:
+                self._rx_lock.release()
+            done += 1
+        return done
 
     def _read_batch(self) -> None:
-        sock = self._sock
-        assert sock is not None
-        buf = self._rxbuf
-        view = memoryview(buf)
         for _ in range(_RECV_BATCH):
             if not self._running:
                 return
-            try:
-                n, address = sock.recvfrom_into(buf)
-            except (BlockingIOError, InterruptedError):
-                return
-            except OSError as err:  # e.g. ICMP errors reported on the socket
-                self._receive_errors += 1
-                if self._error_log.allow():
-                    log.warning("%s: receive failed: %s", self.name, err)
-                return
-            self._datagrams_received += 1
-            self._datagram(bytes(view[:n]), address)
+            with self._rx_lock:
+                if not self._receive_one():
+                    return
+
+    def _receive_one(self) -> bool:
+        """Read one datagram and deliver it; False when none is waiting (or on an error)."""
+        sock = self._sock
+        if sock is None:
+            return False
+        buf = self._rxbuf
+        try:
+            n, address = sock.recvfrom_into(buf)
+        except (BlockingIOError, InterruptedError):
+            return False
+        except OSError as err:  # e.g. ICMP errors reported on the socket
+            self._receive_errors += 1
+            if self._error_log.allow():
+                log.warning("%s: receive failed: %s", self.name, err)
+            return False
+        self._datagrams_received += 1
+        self._datagram(bytes(memoryview(buf)[:n]), address)
+        return True
 
     def _datagram(self, data: bytes, address: Any) -> None:
         if not self._access.allows(address[0]):

@@ -243,7 +243,7 @@ class SlaveController(Controller):
         self.base_mm = params.get("base_mm")
         self.base_interface = params.get("base_interface")
         self.base_device = params.get("base_device", "Base")
-        lock = params.get("phase_lock_us", 350.0)
+        lock = params.get("phase_lock_us", 400.0)
         self.phase_lock = None if lock is None else float(lock) * 1e-6
         self._phases: list[float] = []
         self.phase_shifts = 0
@@ -299,7 +299,11 @@ class SlaveController(Controller):
         self.last_seq = msg.message_id
         self.last_sample_t = item.t_rx
         if self.phase_lock is not None:
-            self._track_phase(item.t_rx)
+            clock = self.robot.clock  # type: ignore[union-attr]
+            if msg.timestamp > 0.0:  # when the master sampled, on our loop's clock
+                self._track_phase(msg.timestamp - (clock.wall_time() - clock.now()))
+            else:
+                self._track_phase(item.t_rx)
         self.pending_ts = msg.timestamp if msg.timestamp > 0.0 else None
         self.pending_rx = item.t_rx
         self.master_pos = np.array(pos, dtype=float) * MM
@@ -310,16 +314,19 @@ class SlaveController(Controller):
             self.master_ref = None  # re-index on the next update
         self.master_run, self.master_clutch = run, clutch
 
-    def _track_phase(self, t_rx: float) -> None:
+    def _track_phase(self, t_sample: float) -> None:
         """Phase-lock the loop to the master's stream.
 
         Both loops tick at 1 kHz on the same clock but with an arbitrary phase between them, so
         without this a sample waits anywhere from 0 to 1 ms (constant for a whole run) before
-        the tick that uses it. Every 250 samples the median arrival phase within the period is
-        compared with ``phase_lock_us`` before the next deadline, and the deadlines are shifted
-        when it is off by more than 100 us. Median: robust to the odd late packet. The target
-        must lie before the clock's spin (which holds the GIL, so an interface thread cannot
-        enqueue a packet arriving during it): default 350 us = 200 us spin + 150 us margin.
+        the tick that uses it. The phase used is the master's *sample time* (its POSITION
+        timestamp, same machine clock; the reception time for peers without timestamps), which
+        does not depend on which of our threads read the datagram. Every 250 samples the
+        median phase within the period is compared with ``phase_lock_us`` before the next
+        deadline, and the deadlines are shifted when it is off by more than 100 us (median:
+        robust to the odd late packet). ``phase_lock_us`` must cover the transport time
+        (p50 ~50-200 us here); the tick polls the socket itself, so a packet that arrived
+        during the clock's spin is still used at once.
         """
         robot = self.robot
         assert robot is not None
@@ -332,7 +339,7 @@ class SlaveController(Controller):
         # of raw phases would be wrong when they straddle the wrap-around point
         target = period - self.phase_lock
         half = period / 2
-        self._phases.append((t_rx - t0 - target + half) % period - half)
+        self._phases.append((t_sample - t0 - target + half) % period - half)
         if len(self._phases) < 250:
             return
         phases = sorted(self._phases)

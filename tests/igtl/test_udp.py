@@ -229,3 +229,25 @@ def test_bad_arguments():
 def test_rtp_wire_constants_match_the_reference():
     assert rtp.PREFIX_SIZE == wire.HEADER_SIZE + wire.EXT_HEADER_SIZE == 70
     assert struct.calcsize(">BBHII") == rtp.RTP_HEADER_SIZE == 12
+
+
+def test_poll_delivers_waiting_datagrams_once_in_order() -> None:
+    got: list[int] = []
+    rx = UDPEndpoint("127.0.0.1", 0, on_message=lambda peer, msg: got.append(msg.message_id)).start()
+    tx = UDPEndpoint("127.0.0.1", 0, remote=rx.address).start()
+    try:
+        # with the reader lock taken (the I/O thread delivering), poll() returns at once
+        with rx._rx_lock:
+            for i in range(1, 6):
+                assert tx.send(igtl.PositionMessage(header_version=2, message_id=i))
+            assert rx.poll() == 0
+        # then the caller and the I/O thread take turns: every datagram once, in arrival order
+        end = time.monotonic() + 2.0
+        while len(got) < 5 and time.monotonic() < end:
+            rx.poll()
+            time.sleep(0.001)
+        assert got == [1, 2, 3, 4, 5]
+    finally:
+        tx.stop()
+        rx.stop()
+    assert rx.poll() == 0  # stopped: nothing delivered, no error
