@@ -30,28 +30,12 @@ import tempfile
 import time
 from pathlib import Path
 
-import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))
 
+from loopback import free_port, pair_configs, wait_port, write_yaml  # noqa: E402
 from slicer_standin import SlicerStandIn  # noqa: E402
-
-
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def wait_port(port: int, timeout: float = 20.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        with socket.socket() as s:
-            if s.connect_ex(("127.0.0.1", port)) == 0:
-                return True
-        time.sleep(0.05)
-    return False
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -73,16 +57,12 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     out = args.out or Path(tempfile.mkdtemp(prefix="occ-bench-"))
     out.mkdir(parents=True, exist_ok=True)
-    tcp, udp, mtcp = free_port(), free_port(socket.SOCK_DGRAM), free_port()
-    slave = yaml.safe_load((ROOT / "configs" / "slave.yaml").read_text())
-    master = yaml.safe_load((ROOT / "configs" / "master.yaml").read_text())
-    for itf in slave["interfaces"]:
-        itf["port"] = tcp if itf["transport"] == "tcp-server" else udp
-    for itf in master["interfaces"]:
-        if itf["transport"] == "tcp-server":
-            itf["port"] = mtcp
-        else:
-            itf["remote"] = f"127.0.0.1:{free_port(socket.SOCK_DGRAM) if args.cpu_load_only else udp}"
+    slave, master, ports = pair_configs()
+    tcp, mtcp = ports["slave_tcp"], ports["master_tcp"]
+    if args.cpu_load_only:  # the master streams to a port nobody reads
+        for itf in master["interfaces"]:
+            if itf["transport"] == "udp":
+                itf["remote"] = f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}"
     if args.no_fifo:
         slave["robot"]["realtime"]["fifo_priority"] = None
         master["robot"]["realtime"]["fifo_priority"] = None
@@ -98,8 +78,8 @@ def main(argv: list[str] | None = None) -> int:
         master["robot"]["realtime"]["spin_us"] = args.spin_us
     slave["recording"] = {"path": str(out / "slave.igtl"), "rate_hz": 100, "include_messages": True}
     slave["stats"] = {"log_every_s": 3600.0}
-    (out / "slave.yaml").write_text(yaml.safe_dump(slave))
-    (out / "master.yaml").write_text(yaml.safe_dump(master))
+    write_yaml(out / "slave.yaml", slave)
+    write_yaml(out / "master.yaml", master)
 
     def occd(name: str) -> subprocess.Popen[bytes]:
         return subprocess.Popen(

@@ -72,6 +72,7 @@ sys.path.insert(0, str(ROOT / "tools"))
 if str(ROOT) not in sys.path:
     sys.path.insert(1, str(ROOT))
 
+from loopback import free_port, wait_port  # noqa: E402
 from loss_proxy import LossPattern, LossProxy, add_pattern_arguments, pattern_from_args  # noqa: E402
 
 #: the requirement (configs/slave.yaml safety.loss): 2 tolerated, 3 stop, within 7 ms
@@ -469,25 +470,6 @@ def run_sim(args: argparse.Namespace, out: Path) -> Report:
 # =============================================================================================
 # real mode
 # =============================================================================================
-
-
-def free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def wait_port(port: int, timeout: float, proc: subprocess.Popen[bytes] | None = None) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if proc is not None and proc.poll() is not None:
-            return False
-        with socket.socket() as s:
-            s.settimeout(0.2)
-            if s.connect_ex(("127.0.0.1", port)) == 0:
-                return True
-        time.sleep(0.05)
-    return False
 
 
 def write_configs(out: Path, slave_cfg: Path, master_cfg: Path) -> dict[str, Any]:

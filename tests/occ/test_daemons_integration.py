@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -21,30 +20,16 @@ import yaml
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tools"))
 
+from loopback import pair_configs, wait_port, write_yaml  # noqa: E402
 from slicer_standin import SlicerStandIn  # noqa: E402
 
 pytestmark = pytest.mark.realtime
 
 
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def write_configs(tmp: Path) -> dict[str, int]:
-    ports = {"slave_tcp": free_port(), "slave_udp": free_port(socket.SOCK_DGRAM), "master_tcp": free_port()}
-    slave = yaml.safe_load((ROOT / "configs" / "slave.yaml").read_text())
-    master = yaml.safe_load((ROOT / "configs" / "master.yaml").read_text())
-    for itf in slave["interfaces"]:
-        itf["port"] = ports["slave_tcp"] if itf["transport"] == "tcp-server" else ports["slave_udp"]
-    for itf in master["interfaces"]:
-        if itf["transport"] == "tcp-server":
-            itf["port"] = ports["master_tcp"]
-        else:
-            itf["remote"] = f"127.0.0.1:{ports['slave_udp']}"
-    (tmp / "slave.yaml").write_text(yaml.safe_dump(slave))
-    (tmp / "master.yaml").write_text(yaml.safe_dump(master))
+    slave, master, ports = pair_configs()
+    write_yaml(tmp / "slave.yaml", slave)
+    write_yaml(tmp / "master.yaml", master)
     return ports
 
 
@@ -53,16 +38,6 @@ def start(cfg: Path, stats: Path, *extra: str) -> subprocess.Popen[bytes]:
         [sys.executable, "-m", "occ.cli", str(cfg), "--stats", str(stats), "--log-level", "WARNING", *extra],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
     )
-
-
-def wait_port(port: int, timeout: float = 20.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        with socket.socket() as s:
-            if s.connect_ex(("127.0.0.1", port)) == 0:
-                return True
-        time.sleep(0.05)
-    return False
 
 
 def wait_for(pred, timeout: float) -> bool:  # type: ignore[no-untyped-def]

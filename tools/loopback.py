@@ -1,0 +1,64 @@
+"""Helpers for running the daemons on loopback: free ports, waiting for a listener, and copies
+of the master/slave configurations moved to free ports (tests, benchmarks, soaks, the demo)."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    """A port on 127.0.0.1 that was free a moment ago (TCP by default, UDP with SOCK_DGRAM)."""
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_port(port: int, timeout: float = 20.0, proc: subprocess.Popen[bytes] | None = None) -> bool:
+    """True once a TCP listener accepts on 127.0.0.1:port; False on timeout or if ``proc`` exits."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if proc is not None and proc.poll() is not None:
+            return False
+        with socket.socket() as s:
+            s.settimeout(0.2)
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return True
+        time.sleep(0.05)
+    return False
+
+
+def pair_configs(
+    slave_cfg: Path = ROOT / "configs" / "slave.yaml",
+    master_cfg: Path = ROOT / "configs" / "master.yaml",
+) -> tuple[dict[str, Any], dict[str, Any], dict[str, int]]:
+    """The two configurations (as YAML data) with every listening port moved to a free one and
+    the master's UDP output aimed at the slave's UDP input. Returns (slave, master, ports) with
+    ports ``slave_tcp``, ``slave_udp``, ``master_tcp``."""
+    ports = {
+        "slave_tcp": free_port(),
+        "slave_udp": free_port(socket.SOCK_DGRAM),
+        "master_tcp": free_port(),
+    }
+    slave = yaml.safe_load(slave_cfg.read_text())
+    master = yaml.safe_load(master_cfg.read_text())
+    for itf in slave["interfaces"]:
+        itf["port"] = ports["slave_tcp"] if itf["transport"] == "tcp-server" else ports["slave_udp"]
+    for itf in master["interfaces"]:
+        if itf["transport"] == "tcp-server":
+            itf["port"] = ports["master_tcp"]
+        else:
+            itf["remote"] = f"127.0.0.1:{ports['slave_udp']}"
+    return slave, master, ports
+
+
+def write_yaml(path: Path, data: dict[str, Any]) -> Path:
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
