@@ -146,3 +146,18 @@ def test_sigterm_stops_cleanly_and_writes_stats(tmp_path: Path) -> None:
         for key in ("received", "sent", "dropped", "malformed"):
             assert key in itf
     assert d["ticks"] > 0 and os.path.getsize(tmp_path / "s.json") > 0
+
+
+def test_port_in_use_exits_1_with_a_clear_error(tmp_path: Path) -> None:
+    import socket
+
+    ports = write_configs(tmp_path)
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", ports["slave_tcp"]))
+        busy.listen()
+        res = subprocess.run(
+            [sys.executable, "-m", "occ.cli", str(tmp_path / "slave.yaml"), "--duration", "1"],
+            cwd=ROOT, capture_output=True, text=True, timeout=60,
+        )
+    assert res.returncode == 1, res.stderr
+    assert "Address already in use" in res.stderr or "in use" in res.stderr.lower()
