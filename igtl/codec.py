@@ -67,7 +67,12 @@ def _decode(
         "device_name": device_name,
         "timestamp": (
             (ts >> 32)
-            + (_T0[frac >> 24] + _T1[(frac >> 16) & 0xFF] + _T2[(frac >> 8) & 0xFF] + _T3[frac & 0xFF])
+            + (
+                _T0[frac >> 24]
+                + _T1[(frac >> 16) & 0xFF]
+                + _T2[(frac >> 8) & 0xFF]
+                + _T3[frac & 0xFF]
+            )
             * 1e-9
             if frac
             else float(ts >> 32)

@@ -6,7 +6,7 @@
      +-- DecodeError                   the peer's bytes are not a valid OpenIGTLink message
      |    +-- HeaderError              the 58-byte header itself is unusable (stream desynchronised)
      |    |    +-- UnknownHeaderVersionError   VERSION is not 1 or 2
-     |    |    +-- BodyTooLargeError           BODY_SIZE over the configured limit (nothing allocated)
+     |    |    +-- BodyTooLargeError           BODY_SIZE > configured limit (nothing allocated)
      |    +-- TruncatedMessageError    fewer bytes than the header announces
      |    +-- CRCError                 CRC-64 of the body does not match the header
      |    +-- ExtendedHeaderError      v2 extended-header sizes do not add up

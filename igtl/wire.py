@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import logging
 import struct
-from bisect import bisect_right as _bisect_right
 import warnings
+from bisect import bisect_right as _bisect_right
 from collections.abc import Mapping
 from typing import NamedTuple
 
@@ -99,7 +99,10 @@ _T0, _T1, _T2, _T3 = (_byte_table(i) for i in range(4))
 def frac_to_nanosec(frac: int) -> int:
     """Reference conversion of a 32-bit binary fraction to nanoseconds (may exceed 1e9 by 10)."""
     return (
-        _T0[(frac >> 24) & 0xFF] + _T1[(frac >> 16) & 0xFF] + _T2[(frac >> 8) & 0xFF] + _T3[frac & 0xFF]
+        _T0[(frac >> 24) & 0xFF]
+        + _T1[(frac >> 16) & 0xFF]
+        + _T2[(frac >> 8) & 0xFF]
+        + _T3[frac & 0xFF]
     )
 
 

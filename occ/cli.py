@@ -35,7 +35,9 @@ log = logging.getLogger("occd")
 def setup_logging(level: str) -> logging.handlers.QueueListener:
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(
-        logging.Formatter("%(asctime)s.%(msecs)03d %(levelname)-7s %(name)s: %(message)s", "%H:%M:%S")
+        logging.Formatter(
+            "%(asctime)s.%(msecs)03d %(levelname)-7s %(name)s: %(message)s", "%H:%M:%S"
+        )
     )
     q: queue.SimpleQueue[logging.LogRecord] = queue.SimpleQueue()
     listener = logging.handlers.QueueListener(q, handler, respect_handler_level=False)
@@ -169,7 +171,9 @@ def status_line(robot: Any) -> str:
              f"late p99 {late['p99']:.0f}us max {late['max']:.0f}us"]
     if robot.loss_monitor is not None:
         c = robot.loss_monitor.counters()
-        parts.append(f"rx {c.get('received', 0)} lost {c.get('lost_total', 0)} run {c.get('max_run', 0)}")
+        parts.append(
+            f"rx {c.get('received', 0)} lost {c.get('lost_total', 0)} run {c.get('max_run', 0)}"
+        )
     for name, iface in robot.interfaces.interfaces.items():
         st = iface.counters
         parts.append(f"{name} in {st.received} out {st.sent}")

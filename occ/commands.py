@@ -18,8 +18,9 @@ An unknown or refused request always gets an error reply and changes nothing.
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 from xml.sax.saxutils import quoteattr
 
 import igtl
@@ -101,7 +102,7 @@ def _reply_xml(name: str, ok: bool, message: str) -> str:
 
 
 def _rts_command(msg: Message, name: str, ok: bool, message: str, timestamp: float) -> Message:
-    cls = REGISTRY["RTS_COMMAND"]
+    cls = cast("type[igtl.RTSCommandMessage]", REGISTRY["RTS_COMMAND"])
     meta = {"Status": "SUCCESS" if ok else "FAIL", "Message": message}
     if not ok:
         meta["Error"] = message
@@ -152,7 +153,8 @@ def error_reply(
         return _ack_string(msg, "", False, text, timestamp)
     if mtype.startswith("STT_") or mtype.startswith("STP_"):
         rts = "RTS_" + mtype[4:]
-        cls = REGISTRY.get(rts)
+        # a query-family class (RTSMessage): it takes the type name and a status
+        cls = cast("Callable[..., Message] | None", REGISTRY.get(rts))
         if cls is not None and getattr(cls, "NEEDS_TYPE_NAME", False):
             try:
                 return cls(type_name=rts, status=1, device_name=msg.device_name,

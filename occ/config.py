@@ -47,7 +47,7 @@ from pydantic import (
     ValidationInfo,
     model_validator,
 )
-from pydantic_core import PydanticCustomError
+from pydantic_core import ErrorDetails, PydanticCustomError
 
 from occ.errors import ConfigError
 
@@ -704,7 +704,10 @@ class DaemonConfig(_Model):
                 ref = getattr(self.teleop, key)
                 if ref is not None and ref not in names:
                     problems.append(
-                        (("teleop", key), f"unknown interface '{ref}'" + _did_you_mean(ref, list(names)))
+                        (
+                            ("teleop", key),
+                            f"unknown interface '{ref}'" + _did_you_mean(ref, list(names)),
+                        )
                     )
             if self.teleop.input == "igtl" and self.teleop.role == "master" and (
                 self.teleop.input_interface is None
@@ -916,7 +919,7 @@ _BOUNDS = {
 }
 
 
-def _message(err: dict[str, Any], loc: Loc) -> str:
+def _message(err: ErrorDetails, loc: Loc) -> str:
     kind = err["type"]
     ctx = err.get("ctx") or {}
     got = _describe(err.get("input"))

@@ -4,7 +4,7 @@
 
     OCCError                      anything the daemon core raises on purpose
      +-- ConfigError              a configuration file is invalid (names file, line, field path)
-     +-- StateError               a request is not allowed in the current state (e.g. Run while FAULT)
+     +-- StateError               a request not allowed in the current state (e.g. Run while FAULT)
      +-- DriverError              hardware I/O failed or a driver was misused
      |    +-- LimitError          a command violated a joint limit and the policy is "fault"
      +-- KinematicsError          no inverse-kinematics solution, singular pose, bad model

@@ -340,7 +340,10 @@ class Frame:
                 best = inside[0]
             else:
                 s = seed.tolist()
-                best = min(inside, key=lambda q: sum((a - b) ** 2 for a, b in zip(q.tolist(), s)))
+                best = min(
+                    inside,
+                    key=lambda q: sum((a - b) ** 2 for a, b in zip(q.tolist(), s, strict=False)),
+                )
             best = self._clip(best)
             return IKResult(best, "analytic", 0, self._residual(best, position), ())
         if not candidates:

@@ -33,7 +33,7 @@ import threading
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import igtl
 from igtl.messages.base import Message
@@ -271,19 +271,24 @@ class Interface:
         if isinstance(t, TCPServer):
             return t.send(msg, peer) > 0
         if isinstance(t, UDPEndpoint):
-            return bool(t.send(msg, tuple(peer.address)))
+            addr = cast("tuple[str, int]", tuple(peer.address))  # UDP peers: (host, port)
+            return bool(t.send(msg, addr))
         return bool(t.send(msg))
 
     def stats(self) -> dict[str, Any]:
         c = self.counters
         t = self.transport.stats()
-        streams = {k: {"received": q.received, "dropped": q.dropped} for k, q in self.streams.items()}
+        streams = {
+            k: {"received": q.received, "dropped": q.dropped} for k, q in self.streams.items()
+        }
         return {
             "transport": self.cfg.transport,
             "address": list(self.address) if self.address else None,
             "received": c.received,
             "sent": int(t.get("sent", c.sent)),
-            "dropped": int(t.get("dropped", 0)) + c.send_dropped + sum(q.dropped for q in self.streams.values()),
+            "dropped": int(t.get("dropped", 0))
+            + c.send_dropped
+            + sum(q.dropped for q in self.streams.values()),
             "malformed": int(t.get("malformed", c.malformed)),
             "refused": c.refused,
             "keepalive": c.keepalive,
@@ -371,7 +376,9 @@ class InterfaceManager:
     def reply(self, item: Inbound, msg: Message) -> bool:
         return self.interfaces[item.interface].send_to_peer(msg, item.peer)
 
-    def reply_error(self, item: Inbound, text: str, *, code: int = igtl.StatusCode.UNKNOWN_ERROR) -> None:
+    def reply_error(
+        self, item: Inbound, text: str, *, code: int = igtl.StatusCode.UNKNOWN_ERROR
+    ) -> None:
         """Answer a request with an error in the form its sender expects."""
         from .commands import error_reply  # local: commands imports this module
 

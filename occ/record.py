@@ -26,8 +26,9 @@ import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -113,7 +114,7 @@ class Recorder:
         row = [now, float(STATE_CODES.get(robot.state.value, -1)), *robot.q,
                *(robot.setpoint if robot.state.value == "RUNNING" else robot.hold_setpoint),
                tip[0, 3] * 1000.0, tip[1, 3] * 1000.0, tip[2, 3] * 1000.0]
-        msg = REGISTRY["NDARRAY"](
+        msg = cast("type[igtl.NDArrayMessage]", REGISTRY["NDARRAY"])(
             array=np.asarray(row, dtype=np.float64),
             device_name=STATE_DEVICE,
             header_version=2,
@@ -187,7 +188,9 @@ def export_csv(path: str | Path, out_dir: str | Path) -> tuple[Path, Path]:
     with open(state_path, "w", newline="") as fs, open(msg_path, "w", newline="") as fm:
         ws, wm = csv.writer(fs), csv.writer(fm)
         header_written = False
-        wm.writerow(["t", "dir", "interface", "type", "device", "message_id", "timestamp", "content"])
+        wm.writerow(
+            ["t", "dir", "interface", "type", "device", "message_id", "timestamp", "content"]
+        )
         for m in msgs:
             if m.message_type == "NDARRAY" and m.device_name == STATE_DEVICE:
                 if not header_written:
@@ -236,6 +239,8 @@ def replay(
             and (types is None or m.message_type in types)]
     if not msgs:
         return 0
+    ep: UDPEndpoint | TCPClient
+    send: Callable[[Message], bool]
     if udp:
         ep = UDPEndpoint("127.0.0.1", 0, remote=target).start()
         send = ep.send
@@ -263,7 +268,9 @@ def replay(
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="occ-record", description="Export or replay an occd recording.")
+    p = argparse.ArgumentParser(
+        prog="occ-record", description="Export or replay an occd recording."
+    )
     sub = p.add_subparsers(dest="cmd", required=True)
     e = sub.add_parser("export", help="write state.csv and messages.csv")
     e.add_argument("file", type=Path)

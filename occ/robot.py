@@ -99,7 +99,11 @@ def pose_to_message(pose: np.ndarray, out: Output, timestamp: float, **extra: An
         m = pose.copy()
         m[:3, 3] *= M_TO_MM
         return igtl.TransformMessage.from_matrix(
-            m, device_name=out.device, timestamp=timestamp, header_version=out.header_version, **extra
+            m,
+            device_name=out.device,
+            timestamp=timestamp,
+            header_version=out.header_version,
+            **extra,
         )
     if out.type == "POSITION":
         x, y, z = (pose[:3, 3] * M_TO_MM).tolist()
@@ -385,7 +389,9 @@ class Robot:
         if self.loss_monitor is not None:
             event = self.loss_monitor.check(now)
             if event is not None:
-                self._safety_stop(f"packet loss on {self.loss_input}: {event.cause}", self.loss_policy)
+                self._safety_stop(
+                    f"packet loss on {self.loss_input}: {event.cause}", self.loss_policy
+                )
         state = self.state_machine.state
         # controller and drivers
         if not self.controller.drives_joints:
@@ -414,7 +420,7 @@ class Robot:
             self.recorder.record_state(self, now)
 
     def _read(self, now: float) -> None:
-        for drv, idx in self.drivers:
+        for drv, _idx in self.drivers:
             if drv.state is DriverState.UNCONFIGURED or drv.state is DriverState.SHUTDOWN:
                 continue
             drv.read(now)
@@ -436,9 +442,15 @@ class Robot:
                 return
 
     # ================================================================== state changes
-    def _on_transition(self, old: RobotState, new: RobotState, event: str, reason: str, t: float) -> None:
-        level = logging.WARNING if new in (RobotState.FAULT, RobotState.ESTOP, RobotState.STOPPED) else logging.INFO
-        log.log(level, "state %s -> %s (%s)%s", old.value, new.value, event, f": {reason}" if reason else "")
+    def _on_transition(
+        self, old: RobotState, new: RobotState, event: str, reason: str, t: float
+    ) -> None:
+        stopped = (RobotState.FAULT, RobotState.ESTOP, RobotState.STOPPED)
+        level = logging.WARNING if new in stopped else logging.INFO
+        log.log(
+            level, "state %s -> %s (%s)%s", old.value, new.value, event,
+            f": {reason}" if reason else "",
+        )
         # drivers follow the state: powered in ENABLED/RUNNING/STOPPED, off elsewhere
         if new in POWERED and old not in POWERED:
             self.hold_setpoint = list(self.q)
@@ -545,7 +557,9 @@ class Robot:
             self.commands_refused += 1
             log.warning("%s: refused %s from %s:%s: %s", item.interface, msg.message_type,
                         *item.peer.address[:2], err)
-            reply = error_reply(msg, str(err), code=igtl.StatusCode.ILLEGAL_INSTRUCTION, timestamp=wall)
+            reply = error_reply(
+                msg, str(err), code=igtl.StatusCode.ILLEGAL_INSTRUCTION, timestamp=wall
+            )
         self.interfaces.reply(item, reply)
         if self.recorder is not None:
             self.recorder.record_message(reply, "out", item.interface, now)
@@ -621,8 +635,12 @@ class Robot:
 
     def _source_joints(self, out: Output, now: float) -> Message:
         arr = np.array(self.q, dtype=np.float64)
-        return igtl.NDArrayMessage(array=arr, device_name=out.device, header_version=out.header_version,
-                   timestamp=self.clock.wall_time())
+        return igtl.NDArrayMessage(
+            array=arr,
+            device_name=out.device,
+            header_version=out.header_version,
+            timestamp=self.clock.wall_time(),
+        )
 
     # ================================================================== reporting
     def snapshot(self) -> dict[str, Any]:
@@ -639,7 +657,9 @@ class Robot:
         return snap
 
 
-def build_robot(config: DaemonConfig, *, clock: Clock | None = None, recorder: Any | None = None) -> Robot:
+def build_robot(
+    config: DaemonConfig, *, clock: Clock | None = None, recorder: Any | None = None
+) -> Robot:
     """Build a robot with the controller its config asks for (teleop master/slave or hold)."""
     controller: Controller | None = None
     if config.teleop:

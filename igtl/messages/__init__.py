@@ -5,7 +5,13 @@ from .bind import BindChild, BindMessage, GetBindMessage, StartBindMessage
 from .capability import CapabilityMessage
 from .colortable import ColorTableMessage
 from .command import CommandMessage, RTSCommandMessage
-from .image import ImageMessage, ImageMetaElement, ImageMetaMessage, LabelMetaElement, LabelMetaMessage
+from .image import (
+    ImageMessage,
+    ImageMetaElement,
+    ImageMetaMessage,
+    LabelMetaElement,
+    LabelMetaMessage,
+)
 from .ndarray import NDArrayMessage
 from .point import PointElement, PointMessage, TrajectoryElement, TrajectoryMessage
 from .polydata import PolyDataAttribute, PolyDataMessage

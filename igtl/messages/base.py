@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from types import MappingProxyType
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any, ClassVar, TypeVar
 
 from .. import wire

@@ -20,7 +20,11 @@ MAP_UINT8 = 3
 MAP_UINT16 = 5
 MAP_RGB = 19
 _INDEX_LEN = {INDEX_UINT8: 256, INDEX_UINT16: 65536}
-_MAP_DTYPE = {MAP_UINT8: np.dtype("u1"), MAP_UINT16: np.dtype(">u2"), MAP_RGB: np.dtype("u1")}
+_MAP_DTYPE: dict[int, np.dtype] = {
+    MAP_UINT8: np.dtype("u1"),
+    MAP_UINT16: np.dtype(">u2"),
+    MAP_RGB: np.dtype("u1"),
+}
 
 
 @register("COLORT", "COLORTABLE")

@@ -13,7 +13,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal, cast
 
 import numpy as np
 
@@ -35,7 +35,7 @@ COORDINATE_RAS = 1
 COORDINATE_LPS = 2
 _ENDIANS = {"big": ENDIAN_BIG, "little": ENDIAN_LITTLE, ENDIAN_BIG: 1, ENDIAN_LITTLE: 2}
 _COORDS = {"RAS": COORDINATE_RAS, "LPS": COORDINATE_LPS, 1: 1, 2: 2}
-_BYTE_ORDER = {ENDIAN_BIG: ">", ENDIAN_LITTLE: "<"}
+_BYTE_ORDER: dict[int, Literal[">", "<"]] = {ENDIAN_BIG: ">", ENDIAN_LITTLE: "<"}
 
 #: Identity geometry in wire order (i, j, k axes with spacing 1, centre at 0).
 IMAGE_IDENTITY: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
@@ -139,8 +139,15 @@ class ImageMessage(Message):
         columns are the i, j, k axis unit vectors (default identity)."""
         if origin is not None and center is not None:
             raise ValueError("give origin (corner) or center, not both")
-        msg = cls(pixels=array, offset=tuple(offset), size=None if size is None else tuple(size),
-                  coordinate=coordinate, endian=endian, **common)
+        # __post_init__ checks the triples and maps the names ("RAS", "little") to wire codes.
+        msg = cls(
+            pixels=array,
+            offset=cast("tuple[int, int, int]", tuple(offset)),
+            size=None if size is None else cast("tuple[int, int, int]", tuple(size)),
+            coordinate=cast(int, coordinate),
+            endian=cast(int, endian),
+            **common,
+        )
         d = np.eye(3) if direction is None else np.asarray(direction, dtype=float)
         if d.shape != (3, 3):
             raise ValueError(f"direction must be 3x3, got shape {d.shape}")

@@ -171,7 +171,7 @@ class PolyDataMessage(Message):
             )
         points = np.frombuffer(content, ">f4", 3 * npoints, pos).reshape(npoints, 3)
         pos += 12 * npoints
-        cell_sets = []
+        cell_sets: list[Cells] = []
         for what, (n, s) in zip(("vertices", "lines", "polygons", "strips"),
                                 ((h[1], h[2]), (h[3], h[4]), (h[5], h[6]), (h[7], h[8])),
                                 strict=True):
@@ -206,7 +206,16 @@ class PolyDataMessage(Message):
         if pos != size:
             raise ContentError(f"POLYDATA: {size - pos} bytes left after the last attribute",
                                offset=pos)
-        return cls(points.astype(np.float32), *cell_sets, tuple(attrs), **common)
+        vertices, lines, polygons, strips = cell_sets
+        return cls(
+            points.astype(np.float32),
+            vertices=vertices,
+            lines=lines,
+            polygons=polygons,
+            strips=strips,
+            attributes=tuple(attrs),
+            **common,
+        )
 
     def __eq__(self, other: object) -> bool:
         if type(other) is not type(self):

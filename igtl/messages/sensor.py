@@ -116,4 +116,6 @@ class SensorMessage(Message):
 
 def sensor(values: Sequence[float], unit: Unit | int = 0, **common: Any) -> SensorMessage:
     """Shorthand: ``sensor([1.0, 2.0], Unit(0, ((11, 1),)), device_name="Force")``."""
-    return SensorMessage(data=tuple(values), unit=unit if isinstance(unit, Unit) else Unit.unpack(unit), **common)
+    return SensorMessage(
+        data=tuple(values), unit=unit if isinstance(unit, Unit) else Unit.unpack(unit), **common
+    )

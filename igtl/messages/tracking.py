@@ -127,7 +127,9 @@ class QuaternionTrackingDataMessage(Message):
         )
 
     @classmethod
-    def unpack_content(cls, content: bytes, common: dict[str, Any]) -> QuaternionTrackingDataMessage:
+    def unpack_content(
+        cls, content: bytes, common: dict[str, Any]
+    ) -> QuaternionTrackingDataMessage:
         n = need_multiple(content, 50, "QTDATA")
         out = []
         for i in range(n):

@@ -118,7 +118,9 @@ class MasterController(Controller):
         if mtype == "VFIXTURE":
             self._set_fixtures(msg)
             return
-        if self.input != "igtl" or (self.input_interface and item.interface != self.input_interface):
+        if self.input != "igtl" or (
+            self.input_interface and item.interface != self.input_interface
+        ):
             return
         if self.input_device and msg.device_name != self.input_device:
             return
@@ -135,7 +137,9 @@ class MasterController(Controller):
         spheres = getattr(msg, "spheres", ())
         self.hardness = float(getattr(msg, "hardness", 0.0))
         self.spheres = [(np.array(s[:3], dtype=float) * MM, float(s[3]) * MM) for s in spheres]
-        log.info("virtual fixtures: %d spheres, hardness %.3g N/mm", len(self.spheres), self.hardness)
+        log.info(
+            "virtual fixtures: %d spheres, hardness %.3g N/mm", len(self.spheres), self.hardness
+        )
 
     def on_command(self, request: Request, now: float) -> str | None:
         key = request.name.lower()
@@ -160,7 +164,9 @@ class MasterController(Controller):
         if self.input == "sim":
             t = now - self._t_run
             w = 2.0 * math.pi * self.frequency
-            return self.origin + self.offset + self.amplitude * np.array([math.sin(w * t), math.cos(w * t), 0.0])
+            return self.origin + self.offset + self.amplitude * np.array(
+                [math.sin(w * t), math.cos(w * t), 0.0]
+            )
         return self.target
 
     def update(self, now: float) -> Sequence[float] | None:
@@ -329,7 +335,8 @@ class SlaveController(Controller):
         during the clock's spin is still used at once.
         """
         robot = self.robot
-        assert robot is not None
+        lock = self.phase_lock
+        assert robot is not None and lock is not None  # called only while phase-locking
         loop = robot.loop
         t0 = loop.t0
         if t0 != t0:  # NaN: the loop is not running (simulated-time tests stepping ticks)
@@ -337,7 +344,7 @@ class SlaveController(Controller):
         period = loop.period_s
         # deviation from the target phase, wrapped to [-period/2, period/2): taking the median
         # of raw phases would be wrong when they straddle the wrap-around point
-        target = period - self.phase_lock
+        target = period - lock
         half = period / 2
         self._phases.append((t_sample - t0 - target + half) % period - half)
         if len(self._phases) < 250:

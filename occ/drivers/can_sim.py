@@ -33,6 +33,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from types import TracebackType
+from typing import Any
 
 import can
 
@@ -88,7 +89,7 @@ class SimulatedDriveNode:
         effort_gain: float = 10.0,
         feedback_period: float | None = None,
         clock: Callable[[], float] = time.monotonic,
-        **bus_kwargs: object,
+        **bus_kwargs: Any,
     ) -> None:
         if not axes:
             raise ValueError("a drive node needs at least one axis")

@@ -1,0 +1,41 @@
+"""House rules as tests: ``mypy igtl occ`` and ``ruff check igtl occ`` are clean.
+
+Both tools come with the ``test`` extra (``pip install -e .[test]``, which the README's test
+command runs); they read their settings from pyproject.toml, so they run from the repository root.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("igtl", "occ")
+
+
+def _run(tool: str, *args: str) -> None:
+    if importlib.util.find_spec(tool) is None:
+        pytest.skip(f"{tool} is not installed (pip install -e .[test] installs it)")
+    proc = subprocess.run(
+        [sys.executable, "-m", tool, *args, *PACKAGES],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    if proc.returncode != 0:
+        print(proc.stdout)
+        print(proc.stderr, file=sys.stderr)
+    assert proc.returncode == 0, f"{tool} {' '.join(args)} failed:\n{proc.stdout}{proc.stderr}"
+
+
+def test_mypy_clean() -> None:
+    _run("mypy")
+
+
+def test_ruff_check_clean() -> None:
+    _run("ruff", "check")
