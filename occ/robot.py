@@ -604,7 +604,7 @@ class Robot:
                        header_version=msg.header_version, timestamp=wall)
         if name in ("GET_TRANS", "GET_TRANSFOR"):
             want = msg.device_name or "Tip"
-            pose = self.base if want.lower() == "base" else self.tip
+            pose = self.base if want.lower() == "base" else self.world_tip()
             out = Output(None, "TRANSFORM", want, "tip", 1, msg.header_version)  # type: ignore[arg-type]
             return pose_to_message(pose, out, wall)
         raise CommandError(f"{name} is not supported by {self.name}")
@@ -620,7 +620,12 @@ class Robot:
 
     # ================================================================== output sources
     def _source_tip(self, out: Output, now: float) -> Message:
-        return pose_to_message(self.tip, out, self.clock.wall_time())
+        # in world coordinates, as Slicer shows it: the base pose (config or tracker) x the FK
+        return pose_to_message(self.world_tip(), out, self.clock.wall_time())
+
+    def world_tip(self) -> np.ndarray:
+        """The tip pose in world coordinates (base pose x forward kinematics), metres."""
+        return self.base @ self.tip
 
     def _source_base(self, out: Output, now: float) -> Message:
         return pose_to_message(self.base, out, self.clock.wall_time())

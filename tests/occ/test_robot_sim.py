@@ -198,3 +198,16 @@ def test_plus_style_string_command_and_queries(slave: SimSlave) -> None:
     slave.tick()
     st = [r for r in slave.replies if r.message_type == "STATUS"][-1]
     assert st.error_name == "ENABLED"
+
+
+def test_tip_is_sent_in_world_coordinates_with_the_base_offset() -> None:
+    s = SimSlave(base_mm=(100.0, -20.0, 5.0))
+    try:
+        s.robot.interfaces["slicer"]._on_message(
+            OPERATOR, igtl.unpack(igtl.REGISTRY["GET_TRANS"](type_name="GET_TRANS", device_name="Tip").pack()))
+        s.tick()
+        tip = [r for r in s.replies if r.message_type == "TRANSFORM" and r.device_name == "Tip"][-1]
+        fk = s.robot.tip[:3, 3] * 1000.0
+        assert tip.translation == pytest.approx((fk[0] + 100.0, fk[1] - 20.0, fk[2] + 5.0), abs=1e-3)
+    finally:
+        s.robot.shutdown()
