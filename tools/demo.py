@@ -118,6 +118,9 @@ def main(argv: list[str] | None = None) -> int:
     return 130 if interrupted else 0
 
 
+_last_rx: list[float] = []  # (time, count) of the previous status line, for the packet rate
+
+
 def live_line(standin: SlicerStandIn) -> str:
     cid = standin.send_command("GetStats")
     reply = standin.wait_reply(cid, timeout=1.0)
@@ -137,9 +140,14 @@ def live_line(standin: SlicerStandIn) -> str:
     ctrl = d.get("controller", {})
     lat = d["lateness_us"]
     master = d.get("interfaces", {}).get("master", {})
-    return (f"slave {d['state']:8s} | rx {master.get('received', 0):6d} lost {loss.get('lost_total', 0)} "
+    now, rx = time.monotonic(), float(master.get("received", 0))
+    rate = (rx - _last_rx[1]) / (now - _last_rx[0]) if _last_rx and now > _last_rx[0] else 0.0
+    _last_rx[:] = [now, rx]
+    tip_rate = standin.summary().get("Tip", {}).get("rate_hz") or 0.0
+    return (f"slave {d['state']:8s} | master {rate:5.0f} Hz lost {loss.get('lost_total', 0)} "
             f"max-run {loss.get('max_run', 0)} trips {loss.get('trips', 0)} | "
-            f"loop p99 {lat['p99']:.0f}us max {lat['max']:.0f}us | seq {ctrl.get('last_seq')} | {tip_txt}")
+            f"loop p99 {lat['p99']:.0f}us max {lat['max']:.0f}us | seq {ctrl.get('last_seq')} | "
+            f"{tip_txt} @ {tip_rate:.1f} Hz")
 
 
 if __name__ == "__main__":
