@@ -211,3 +211,27 @@ def test_tip_is_sent_in_world_coordinates_with_the_base_offset() -> None:
         assert tip.translation == pytest.approx((fk[0] + 100.0, fk[1] - 20.0, fk[2] + 5.0), abs=1e-3)
     finally:
         s.robot.shutdown()
+
+
+def test_base_pose_from_a_tracker_transform() -> None:
+    from occ.config import InputConfig
+
+    cfg = load_config(ROOT / "configs" / "slave.yaml")
+    slicer = cfg.interface("slicer").model_copy(
+        update={"inputs": (InputConfig(type="TRANSFORM", device="Base", queue="stream", depth=10),)}
+    )
+    cfg = cfg.model_copy(update={
+        "interfaces": tuple(slicer if i.name == "slicer" else i for i in cfg.interfaces),
+        "teleop": cfg.teleop.model_copy(update={"base_interface": "slicer", "base_mm": None}),
+    })
+    clock = SimClock()
+    robot = build_robot(cfg, clock=clock)
+    robot.configure()
+    try:
+        m = igtl.TransformMessage.from_position((10.0, 20.0, 30.0), device_name="Base")
+        robot.interfaces["slicer"]._on_message(OPERATOR, m)
+        robot.tick(0.0, 0)
+        assert robot.base[:3, 3] * 1000.0 == pytest.approx([10.0, 20.0, 30.0])
+        assert robot.world_tip()[:3, 3] * 1000.0 == pytest.approx(robot.tip[:3, 3] * 1000.0 + [10, 20, 30])
+    finally:
+        robot.shutdown()
