@@ -32,13 +32,14 @@ from .errors import (
     DecoderFailedError,
     TruncatedMessageError,
 )
-from .messages.base import REGISTRY, Message, RawMessage
+from .messages.base import FAST_V1, REGISTRY, Message, RawMessage
 
 _HEADER_SIZE = wire.HEADER_SIZE
 _header_fields = wire.header_fields
 _crc64 = wire.crc64
 _T0, _T1, _T2, _T3 = wire._T0, wire._T1, wire._T2, wire._T3  # frac -> ns tables
 _registry_get = REGISTRY.get
+_fast_v1_get = FAST_V1.get
 # Classes that want the wire type name in ``common`` (query families, COLORT/COLORTABLE...).
 _needs_type_name: dict[type, bool] = {}
 
@@ -63,6 +64,19 @@ def _decode(
                 device_name=device_name,
             )
     frac = ts & 0xFFFFFFFF
+    if version == 1:
+        fast = _fast_v1_get(message_type)
+        if fast is not None:
+            t = (
+                (ts >> 32)
+                + (_T0[frac >> 24] + _T1[(frac >> 16) & 0xFF] + _T2[(frac >> 8) & 0xFF]
+                   + _T3[frac & 0xFF]) * 1e-9
+                if frac
+                else float(ts >> 32)
+            )
+            msg = fast(body, device_name, t, ts)
+            if msg is not None:
+                return msg
     common: dict[str, Any] = {
         "device_name": device_name,
         "timestamp": (

@@ -161,6 +161,38 @@ def common_equal(a: Message, b: Message) -> bool:
     )
 
 
+#: Header-version-1 decoders that skip the generic path, by type name:
+#: ``fn(content, device_name, timestamp, raw_timestamp) -> Message | None``; None means "not the
+#: fast case, use unpack_content" (which then reports any error with its offset).
+FAST_V1: dict[str, Callable[[bytes, str, float, int], Message | None]] = {}
+
+
+def fast_builder_v1(cls: type[M]) -> Callable[..., M]:
+    """Like :func:`fast_builder` for a header-version-1 message, whose common fields are all
+    known: ``build(device_name, timestamp, raw_timestamp, *content_fields)``. No dict, no
+    look-ups: the hot path of a 500 Hz or 100k msg/s stream of TRANSFORM/POSITION."""
+    content = [f.name for f in dataclasses.fields(cls) if f.name not in _COMMON_FIELDS]
+    ns: dict[str, Any] = {"_new": object.__new__, "_cls": cls, "_EMPTY": EMPTY_MAPPING}
+    for name in (*_COMMON_ORDER, *content):
+        ns[f"_s_{name}"] = getattr(cls, name).__set__
+    args = "".join(f", {n}" for n in content)
+    src = [
+        f"def build(device_name, timestamp, raw_timestamp{args}):",
+        "    self = _new(_cls)",
+        "    _s_device_name(self, device_name)",
+        "    _s_timestamp(self, timestamp)",
+        "    _s_header_version(self, 1)",
+        "    _s_metadata(self, _EMPTY)",
+        "    _s_message_id(self, 0)",
+        "    _s_metadata_encoding(self, _EMPTY)",
+        "    _s_raw_timestamp(self, raw_timestamp)",
+        *(f"    _s_{n}(self, {n})" for n in content),
+        "    return self",
+    ]
+    exec("\n".join(src), ns)  # noqa: S102 - generated from dataclass field names only
+    return ns["build"]  # type: ignore[no-any-return]
+
+
 def fast_builder(cls: type[M]) -> Callable[..., M]:
     """A constructor for decoders: ``build(common, *content_fields)`` in field order.
 

@@ -11,7 +11,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from ..errors import ContentError
-from .base import Message, fast_builder, need_size, register
+from .base import FAST_V1, Message, fast_builder, fast_builder_v1, need_size, register
 
 _F12 = struct.Struct(">12f")
 _F7 = struct.Struct(">7f")
@@ -128,3 +128,24 @@ class PositionMessage(Message):
 
 
 _build_position = fast_builder(PositionMessage)
+
+
+_build_transform_v1 = fast_builder_v1(TransformMessage)
+_build_position_v1 = fast_builder_v1(PositionMessage)
+
+
+def _fast_transform(content: bytes, device: str, t: float, raw: int) -> TransformMessage | None:
+    if len(content) != 48:
+        return None
+    return _build_transform_v1(device, t, raw, _F12_unpack(content))
+
+
+def _fast_position(content: bytes, device: str, t: float, raw: int) -> PositionMessage | None:
+    if len(content) != POSITION_ALL:
+        return None
+    v = _F7.unpack(content)
+    return _build_position_v1(device, t, raw, v[:3], v[3:], POSITION_ALL)
+
+
+FAST_V1["TRANSFORM"] = _fast_transform
+FAST_V1["POSITION"] = _fast_position
