@@ -93,29 +93,26 @@ class Output:
 SourceFn = Callable[[Output, float], Message | None]
 
 
-def pose_to_message(pose: np.ndarray, out: Output, timestamp: float, **extra: Any) -> Message:
+def pose_to_message(
+    pose: np.ndarray, mtype: str, device: str, header_version: int, timestamp: float
+) -> Message:
     """A TRANSFORM or POSITION (mm) from a 4x4 pose in metres."""
-    if out.type == "TRANSFORM":
+    if mtype == "TRANSFORM":
         m = pose.copy()
         m[:3, 3] *= M_TO_MM
         return igtl.TransformMessage.from_matrix(
-            m,
-            device_name=out.device,
-            timestamp=timestamp,
-            header_version=out.header_version,
-            **extra,
+            m, device_name=device, timestamp=timestamp, header_version=header_version
         )
-    if out.type == "POSITION":
+    if mtype == "POSITION":
         x, y, z = (pose[:3, 3] * M_TO_MM).tolist()
         return igtl.PositionMessage(
             (x, y, z),
             rotation_to_quaternion(pose[:3, :3]),
-            device_name=out.device,
+            device_name=device,
             timestamp=timestamp,
-            header_version=out.header_version,
-            **extra,
+            header_version=header_version,
         )
-    raise OCCError(f"output type {out.type} cannot carry a pose")
+    raise OCCError(f"output type {mtype} cannot carry a pose")
 
 
 def rotation_to_quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
@@ -605,8 +602,7 @@ class Robot:
         if name in ("GET_TRANS", "GET_TRANSFOR"):
             want = msg.device_name or "Tip"
             pose = self.base if want.lower() == "base" else self.world_tip()
-            out = Output(None, "TRANSFORM", want, "tip", 1, msg.header_version)  # type: ignore[arg-type]
-            return pose_to_message(pose, out, wall)
+            return pose_to_message(pose, "TRANSFORM", want, msg.header_version, wall)
         raise CommandError(f"{name} is not supported by {self.name}")
 
     def describe_state(self) -> str:
@@ -621,14 +617,18 @@ class Robot:
     # ================================================================== output sources
     def _source_tip(self, out: Output, now: float) -> Message:
         # in world coordinates, as Slicer shows it: the base pose (config or tracker) x the FK
-        return pose_to_message(self.world_tip(), out, self.clock.wall_time())
+        return pose_to_message(
+            self.world_tip(), out.type, out.device, out.header_version, self.clock.wall_time()
+        )
 
     def world_tip(self) -> np.ndarray:
         """The tip pose in world coordinates (base pose x forward kinematics), metres."""
         return self.base @ self.tip
 
     def _source_base(self, out: Output, now: float) -> Message:
-        return pose_to_message(self.base, out, self.clock.wall_time())
+        return pose_to_message(
+            self.base, out.type, out.device, out.header_version, self.clock.wall_time()
+        )
 
     def _source_status(self, out: Output, now: float) -> Message:
         st = self.state_machine.state
