@@ -69,8 +69,13 @@ def _decode(
         if fast is not None:
             t = (
                 (ts >> 32)
-                + (_T0[frac >> 24] + _T1[(frac >> 16) & 0xFF] + _T2[(frac >> 8) & 0xFF]
-                   + _T3[frac & 0xFF]) * 1e-9
+                + (
+                    _T0[frac >> 24]
+                    + _T1[(frac >> 16) & 0xFF]
+                    + _T2[(frac >> 8) & 0xFF]
+                    + _T3[frac & 0xFF]
+                )
+                * 1e-9
                 if frac
                 else float(ts >> 32)
             )
@@ -200,8 +205,17 @@ class StreamDecoder:
     Offsets in errors are stream offsets (bytes since the decoder was created).
     """
 
-    __slots__ = ("_buf", "_pos", "_crc_check", "_max_body", "_failed", "_pending", "offset",
-                 "messages", "errors")
+    __slots__ = (
+        "_buf",
+        "_pos",
+        "_crc_check",
+        "_max_body",
+        "_failed",
+        "_pending",
+        "offset",
+        "messages",
+        "errors",
+    )
 
     def __init__(
         self, *, crc_check: bool = True, max_body_size: int = wire.DEFAULT_MAX_BODY_SIZE

@@ -49,7 +49,6 @@ FRAGMENT_LAST = 0xE000
 MAX_FRAGMENTS = 0x2000
 
 
-
 def rtp_timestamp(t: float | None = None) -> int:
     """The reference's 100 Hz RTP clock: ``100 * seconds + round(100 * usec / 1e6)`` (uint32)."""
     if t is None:

@@ -174,7 +174,10 @@ def seconds_to_raw(t: float) -> int:
     b2 = _bisect_right(_M2, ns) - 1
     ns -= _T2[b2]
     return (
-        ((sec & 0xFFFFFFFF) << 32) | (b0 << 24) | (b1 << 16) | (b2 << 8)
+        ((sec & 0xFFFFFFFF) << 32)
+        | (b0 << 24)
+        | (b1 << 16)
+        | (b2 << 8)
         | (_bisect_right(_M3, ns) - 1)
     )
 

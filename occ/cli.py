@@ -58,20 +58,46 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("config", type=Path, help="the daemon's YAML configuration")
     p.add_argument("--check", action="store_true", help="validate CONFIG and exit (0 valid, 2 not)")
-    p.add_argument("--duration", type=float, default=None, metavar="S",
-                   help="stop after S seconds (default: until SIGINT/SIGTERM)")
-    p.add_argument("--stats", type=Path, default=None, metavar="FILE",
-                   help="write the timing statistics as JSON to FILE at exit")
-    p.add_argument("--record", type=Path, default=None, metavar="FILE",
-                   help="record every message in and out plus the loop state to FILE "
-                        "(overrides recording.path)")
-    p.add_argument("--log-level", default="INFO",
-                   choices=["DEBUG", "INFO", "WARNING", "ERROR"], help="log level (default INFO)")
-    p.add_argument("--start", choices=["ready", "enabled", "running"], default="ready",
-                   help="state to reach at start-up without an operator (default: ready, "
-                        "servos off; operators send Enable and Run)")
-    p.add_argument("--status-line", action="store_true",
-                   help="print a live one-line status to stderr every second")
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        metavar="S",
+        help="stop after S seconds (default: until SIGINT/SIGTERM)",
+    )
+    p.add_argument(
+        "--stats",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="write the timing statistics as JSON to FILE at exit",
+    )
+    p.add_argument(
+        "--record",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="record every message in and out plus the loop state to FILE "
+        "(overrides recording.path)",
+    )
+    p.add_argument(
+        "--log-level",
+        default="INFO",
+        choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+        help="log level (default INFO)",
+    )
+    p.add_argument(
+        "--start",
+        choices=["ready", "enabled", "running"],
+        default="ready",
+        help="state to reach at start-up without an operator (default: ready, "
+        "servos off; operators send Enable and Run)",
+    )
+    p.add_argument(
+        "--status-line",
+        action="store_true",
+        help="print a live one-line status to stderr every second",
+    )
     return p
 
 
@@ -96,8 +122,15 @@ def run(config: Any, args: argparse.Namespace) -> int:
     from .safety import RobotState
 
     rec_path = args.record or config.recording.path
-    recorder = Recorder(rec_path, rate_hz=config.recording.rate_hz,
-                        include_messages=config.recording.include_messages) if rec_path else None
+    recorder = (
+        Recorder(
+            rec_path,
+            rate_hz=config.recording.rate_hz,
+            include_messages=config.recording.include_messages,
+        )
+        if rec_path
+        else None
+    )
     try:
         robot = build_robot(config, recorder=recorder)
     except (OCCError, OSError, ImportError) as err:
@@ -135,8 +168,12 @@ def run(config: Any, args: argparse.Namespace) -> int:
         if args.start == "running":
             robot.state_machine.request("run", "--start")
         threading.Thread(target=reporter, name="occd-reporter", daemon=True).start()
-        log.info("%s running at %d Hz (%s)", config.robot.name, config.robot.rate_hz,
-                 ", ".join(f"{n}={i.address}" for n, i in robot.interfaces.interfaces.items()))
+        log.info(
+            "%s running at %d Hz (%s)",
+            config.robot.name,
+            config.robot.rate_hz,
+            ", ".join(f"{n}={i.address}" for n, i in robot.interfaces.interfaces.items()),
+        )
         robot.run(duration=args.duration)
         log.info("%s", robot.loop.realtime_report or "loop ended")
     except OSError as err:
@@ -167,8 +204,11 @@ def run(config: Any, args: argparse.Namespace) -> int:
 def status_line(robot: Any) -> str:
     s = robot.stats
     late = s.lateness.summary()
-    parts = [f"{robot.name} {robot.state.value:8s}", f"ticks {s.ticks}",
-             f"late p99 {late['p99']:.0f}us max {late['max']:.0f}us"]
+    parts = [
+        f"{robot.name} {robot.state.value:8s}",
+        f"ticks {s.ticks}",
+        f"late p99 {late['p99']:.0f}us max {late['max']:.0f}us",
+    ]
     if robot.loss_monitor is not None:
         c = robot.loss_monitor.counters()
         parts.append(

@@ -98,7 +98,7 @@ def _reply_xml(name: str, ok: bool, message: str) -> str:
     status = "SUCCESS" if ok else "FAIL"
     name_attr = f" Name={quoteattr(name)}" if name else ""
     err_attr = "" if ok else f" Error={quoteattr(message)}"
-    return f"<CommandReply{name_attr} Status=\"{status}\"{err_attr} Message={quoteattr(message)} />"
+    return f'<CommandReply{name_attr} Status="{status}"{err_attr} Message={quoteattr(message)} />'
 
 
 def _rts_command(msg: Message, name: str, ok: bool, message: str, timestamp: float) -> Message:
@@ -157,8 +157,13 @@ def error_reply(
         cls = cast("Callable[..., Message] | None", REGISTRY.get(rts))
         if cls is not None and getattr(cls, "NEEDS_TYPE_NAME", False):
             try:
-                return cls(type_name=rts, status=1, device_name=msg.device_name,
-                           header_version=msg.header_version, timestamp=timestamp)
+                return cls(
+                    type_name=rts,
+                    status=1,
+                    device_name=msg.device_name,
+                    header_version=msg.header_version,
+                    timestamp=timestamp,
+                )
             except (TypeError, ValueError):
                 pass
     return igtl.StatusMessage(

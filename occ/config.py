@@ -270,9 +270,7 @@ class DriverConfig(_Model):
     on_limit: Literal["clamp", "fault"] = Field(
         "clamp", description="What a command beyond a joint limit does: clamp it, or fault."
     )
-    params: dict[str, Any] = Field(
-        {}, description="Free-form parameters passed to the plugin."
-    )
+    params: dict[str, Any] = Field({}, description="Free-form parameters passed to the plugin.")
 
 
 class RealtimeConfig(_Model):
@@ -315,9 +313,7 @@ class RobotConfig(_Model):
     drivers: Annotated[tuple[DriverConfig, ...], Field(min_length=1)] = Field(
         description="Drivers; every joint is driven by exactly one driver."
     )
-    realtime: RealtimeConfig = Field(
-        RealtimeConfig(), description="Loop scheduling."
-    )
+    realtime: RealtimeConfig = Field(RealtimeConfig(), description="Loop scheduling.")
 
     @property
     def period_s(self) -> float:
@@ -431,8 +427,7 @@ class InterfaceConfig(_Model):
     )
     allowed_peers: tuple[IPvAnyNetwork, ...] = Field(
         (ipaddress.ip_network("127.0.0.1"),),
-        description="IP addresses or CIDR networks allowed to connect or send; others are "
-        "refused.",
+        description="IP addresses or CIDR networks allowed to connect or send; others are refused.",
     )
     commands: Bool = Field(
         False,
@@ -446,8 +441,9 @@ class InterfaceConfig(_Model):
         8, description="Maximum simultaneous clients (tcp-server)."
     )
     send_queue: Annotated[Int, Field(ge=1)] = Field(
-        256, description="Bounded per-client send queue (messages); a slow client loses its "
-        "own oldest messages."
+        256,
+        description="Bounded per-client send queue (messages); a slow client loses its "
+        "own oldest messages.",
     )
     idle_timeout_s: PosFloat | None = Field(
         None, description="Drop a client silent for this long; null = never."
@@ -667,10 +663,14 @@ class DaemonConfig(_Model):
                 names[itf.name] = i
             if itf.transport != "tcp-client" and itf.port != 0:
                 for j, other in binds:
-                    if other.transport == itf.transport and other.port == itf.port and (
-                        other.host == itf.host
-                        or other.host in _WILDCARD_HOSTS
-                        or itf.host in _WILDCARD_HOSTS
+                    if (
+                        other.transport == itf.transport
+                        and other.port == itf.port
+                        and (
+                            other.host == itf.host
+                            or other.host in _WILDCARD_HOSTS
+                            or itf.host in _WILDCARD_HOSTS
+                        )
                     ):
                         problems.append(
                             (
@@ -709,8 +709,10 @@ class DaemonConfig(_Model):
                             f"unknown interface '{ref}'" + _did_you_mean(ref, list(names)),
                         )
                     )
-            if self.teleop.input == "igtl" and self.teleop.role == "master" and (
-                self.teleop.input_interface is None
+            if (
+                self.teleop.input == "igtl"
+                and self.teleop.role == "master"
+                and (self.teleop.input_interface is None)
             ):
                 problems.append((("teleop", "input_interface"), "required with input: igtl"))
         loss_input = self.safety.loss.input
@@ -757,8 +759,7 @@ def parse_config(
     root, data, problems = _compose(text, source)
     if root is None:
         msg = (
-            f"{source}:1 (top level): the file is empty; "
-            "expected a mapping with a 'robot' section"
+            f"{source}:1 (top level): the file is empty; expected a mapping with a 'robot' section"
         )
         raise ConfigError(msg, [msg])
     try:

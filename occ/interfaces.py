@@ -198,7 +198,11 @@ class Interface:
         if cfg.transport == "udp":
             remote = _split_remote(cfg.remote) if cfg.remote else None
             return UDPEndpoint(
-                cfg.host, cfg.port, remote=remote, allowed_peers=allowed, name=f"igtl-{self.name}",
+                cfg.host,
+                cfg.port,
+                remote=remote,
+                allowed_peers=allowed,
+                name=f"igtl-{self.name}",
                 **common,
             )
         raise ValueError(f"unknown transport {cfg.transport!r}")
@@ -233,15 +237,23 @@ class Interface:
                 c.refused += 1
                 log.warning(
                     "%s: refused %s %r from %s:%s: interface does not accept commands",
-                    self.name, mtype, msg.device_name, *peer.address[:2],
+                    self.name,
+                    mtype,
+                    msg.device_name,
+                    *peer.address[:2],
                 )
-                self.manager.reply_error(item, "interface does not accept commands",
-                                         code=igtl.StatusCode.ACCESS_DENIED)
+                self.manager.reply_error(
+                    item, "interface does not accept commands", code=igtl.StatusCode.ACCESS_DENIED
+                )
                 return
             if not self.manager.commands.put(item):
                 c.refused += 1
-                log.warning("%s: command queue full, refused %s from %s:%s",
-                            self.name, mtype, *peer.address[:2])
+                log.warning(
+                    "%s: command queue full, refused %s from %s:%s",
+                    self.name,
+                    mtype,
+                    *peer.address[:2],
+                )
                 self.manager.reply_error(item, "command queue full", code=igtl.StatusCode.BUSY)
             return
         if mtype == "STATUS":
@@ -250,8 +262,12 @@ class Interface:
         c.unexpected += 1
         if mtype not in c.unexpected_types:
             c.unexpected_types.add(mtype)
-            log.info("%s: ignoring unexpected %s from %s:%s (counted)",
-                     self.name, mtype, *peer.address[:2])
+            log.info(
+                "%s: ignoring unexpected %s from %s:%s (counted)",
+                self.name,
+                mtype,
+                *peer.address[:2],
+            )
 
     # ------------------------------------------------------------------ loop side
     def send(self, msg: Message, peer: Peer | int | None = None) -> int:

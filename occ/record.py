@@ -38,8 +38,16 @@ from igtl.messages.base import REGISTRY, Message
 log = logging.getLogger(__name__)
 
 STATE_DEVICE = "OCCState"
-STATE_CODES = {"INIT": 0, "READY": 1, "ENABLED": 2, "RUNNING": 3, "STOPPED": 4, "FAULT": 5,
-               "ESTOP": 6, "SHUTDOWN": 7}
+STATE_CODES = {
+    "INIT": 0,
+    "READY": 1,
+    "ENABLED": 2,
+    "RUNNING": 3,
+    "STOPPED": 4,
+    "FAULT": 5,
+    "ESTOP": 6,
+    "SHUTDOWN": 7,
+}
 
 
 class Recorder:
@@ -107,13 +115,21 @@ class Recorder:
         if self._columns is None:
             names = [j.name for j in robot.joints]
             self._columns = ",".join(
-                ["t", "state"] + [f"q.{n}" for n in names] + [f"sp.{n}" for n in names]
+                ["t", "state"]
+                + [f"q.{n}" for n in names]
+                + [f"sp.{n}" for n in names]
                 + ["tip.x_mm", "tip.y_mm", "tip.z_mm"]
             )
         tip = robot.tip
-        row = [now, float(STATE_CODES.get(robot.state.value, -1)), *robot.q,
-               *(robot.setpoint if robot.state.value == "RUNNING" else robot.hold_setpoint),
-               tip[0, 3] * 1000.0, tip[1, 3] * 1000.0, tip[2, 3] * 1000.0]
+        row = [
+            now,
+            float(STATE_CODES.get(robot.state.value, -1)),
+            *robot.q,
+            *(robot.setpoint if robot.state.value == "RUNNING" else robot.hold_setpoint),
+            tip[0, 3] * 1000.0,
+            tip[1, 3] * 1000.0,
+            tip[2, 3] * 1000.0,
+        ]
         msg = cast("type[igtl.NDArrayMessage]", REGISTRY["NDARRAY"])(
             array=np.asarray(row, dtype=np.float64),
             device_name=STATE_DEVICE,
@@ -161,12 +177,20 @@ class Recorder:
         self._flush()
         self._file.close()
         self._file = None
-        log.info("recording closed: %d records, %d bytes, %d dropped", self.records,
-                 self.bytes_written, self.dropped)
+        log.info(
+            "recording closed: %d records, %d bytes, %d dropped",
+            self.records,
+            self.bytes_written,
+            self.dropped,
+        )
 
     def stats(self) -> dict[str, int]:
-        return {"records": self.records, "bytes": self.bytes_written, "dropped": self.dropped,
-                "errors": self.errors}
+        return {
+            "records": self.records,
+            "bytes": self.bytes_written,
+            "dropped": self.dropped,
+            "errors": self.errors,
+        }
 
 
 # ---------------------------------------------------------------------- reading
@@ -199,9 +223,18 @@ def export_csv(path: str | Path, out_dir: str | Path) -> tuple[Path, Path]:
                 ws.writerow([f"{v:.9g}" for v in np.asarray(m.array).ravel().tolist()])  # type: ignore[attr-defined]
                 continue
             meta = m.metadata
-            wm.writerow([meta.get("rec.t", ""), meta.get("rec.dir", ""), meta.get("rec.if", ""),
-                         m.message_type, m.device_name, m.message_id, f"{m.timestamp:.6f}",
-                         _short(m)])
+            wm.writerow(
+                [
+                    meta.get("rec.t", ""),
+                    meta.get("rec.dir", ""),
+                    meta.get("rec.if", ""),
+                    m.message_type,
+                    m.device_name,
+                    m.message_id,
+                    f"{m.timestamp:.6f}",
+                    _short(m),
+                ]
+            )
     return state_path, msg_path
 
 
@@ -216,8 +249,11 @@ def original(m: Message) -> Message:
     """A recorded message as it was on the wire (recording metadata removed)."""
     meta = {k: v for k, v in m.metadata.items() if not k.startswith("rec.")}
     hv = int(m.metadata.get("rec.hv", m.header_version))
-    return m.replace(metadata=meta if hv == 2 else {}, header_version=hv,
-                     message_id=m.message_id if hv == 2 else 0)
+    return m.replace(
+        metadata=meta if hv == 2 else {},
+        header_version=hv,
+        message_id=m.message_id if hv == 2 else 0,
+    )
 
 
 def replay(
@@ -233,10 +269,13 @@ def replay(
     """Send the recorded messages of one direction to a peer with their original timing."""
     from igtl.transport import TCPClient, UDPEndpoint
 
-    msgs = [m for m in read_recording(path)
-            if m.metadata.get("rec.dir") == direction
-            and (interface is None or m.metadata.get("rec.if") == interface)
-            and (types is None or m.message_type in types)]
+    msgs = [
+        m
+        for m in read_recording(path)
+        if m.metadata.get("rec.dir") == direction
+        and (interface is None or m.metadata.get("rec.if") == interface)
+        and (types is None or m.message_type in types)
+    ]
     if not msgs:
         return 0
     ep: UDPEndpoint | TCPClient
@@ -292,9 +331,15 @@ def main(argv: list[str] | None = None) -> int:
         host, _, port = args.target.rpartition(":")
         if not host or not port.isdigit():
             p.error(f"target must be HOST:PORT, got {args.target!r}")
-        n = replay(args.file, (host, int(port)), udp=args.udp, speed=args.speed,
-                   direction=args.direction, interface=args.interface,
-                   types=set(args.types) if args.types else None)
+        n = replay(
+            args.file,
+            (host, int(port)),
+            udp=args.udp,
+            speed=args.speed,
+            direction=args.direction,
+            interface=args.interface,
+            types=set(args.types) if args.types else None,
+        )
         print(f"replayed {n} messages")
         return 0
     except (OSError, igtl.IGTLError) as err:

@@ -163,9 +163,7 @@ class Robot:
         self.config = config
         rc = config.robot
         self.name = rc.name
-        self.clock: Clock = (
-            clock if clock is not None else RealClock(spin_us=rc.realtime.spin_us)
-        )
+        self.clock: Clock = clock if clock is not None else RealClock(spin_us=rc.realtime.spin_us)
         self.rate_hz = rc.rate_hz
         self.period = 1.0 / rc.rate_hz
         self.state_machine = StateMachine(clock=self.clock)
@@ -178,13 +176,20 @@ class Robot:
             gains = None
             if jc.pid is not None:
                 gains = PIDGains(
-                    kp=jc.pid.kp, ki=jc.pid.ki, kd=jc.pid.kd,
+                    kp=jc.pid.kp,
+                    ki=jc.pid.ki,
+                    kd=jc.pid.kd,
                     i_limit=jc.pid.i_limit if jc.pid.i_limit is not None else math.inf,
-                    out_limit=(jc.pid.out_limit if jc.pid.out_limit is not None
-                               else (jc.limits.effort or math.inf)),
+                    out_limit=(
+                        jc.pid.out_limit
+                        if jc.pid.out_limit is not None
+                        else (jc.limits.effort or math.inf)
+                    ),
                 )
             limits = JointLimits(
-                jc.limits.min, jc.limits.max, jc.limits.velocity,
+                jc.limits.min,
+                jc.limits.max,
+                jc.limits.velocity,
                 jc.limits.effort if jc.limits.effort is not None else math.inf,
             )
             self.joints.append(Joint(jc.name, jc.type, limits, jc.home, gains))
@@ -199,7 +204,10 @@ class Robot:
         for dc in rc.drivers:
             idx = [self.joint_index[n] for n in dc.joints]
             drv = create_driver(
-                dc.plugin, dc.name, [self.joints[i] for i in idx], dict(dc.params),
+                dc.plugin,
+                dc.name,
+                [self.joints[i] for i in idx],
+                dict(dc.params),
                 on_limit=dc.on_limit,
             )
             self.drivers.append((drv, idx))
@@ -445,7 +453,11 @@ class Robot:
         stopped = (RobotState.FAULT, RobotState.ESTOP, RobotState.STOPPED)
         level = logging.WARNING if new in stopped else logging.INFO
         log.log(
-            level, "state %s -> %s (%s)%s", old.value, new.value, event,
+            level,
+            "state %s -> %s (%s)%s",
+            old.value,
+            new.value,
+            event,
             f": {reason}" if reason else "",
         )
         # drivers follow the state: powered in ENABLED/RUNNING/STOPPED, off elsewhere
@@ -493,8 +505,10 @@ class Robot:
             # not moving: still tell the operators why
             self.interfaces.broadcast_operators(
                 igtl.StatusMessage(
-                    code=int(igtl.StatusCode.TIME_OUT), error_name="ALERT",
-                    status_message=reason, device_name=self.name[:20],
+                    code=int(igtl.StatusCode.TIME_OUT),
+                    error_name="ALERT",
+                    status_message=reason,
+                    device_name=self.name[:20],
                     timestamp=self.clock.wall_time(),
                 )
             )
@@ -508,8 +522,10 @@ class Robot:
         log.warning("watchdog: %s (%d overruns so far)", reason, overruns)
         self.interfaces.broadcast_operators(
             igtl.StatusMessage(
-                code=int(igtl.StatusCode.TIME_OUT), error_name="WATCHDOG",
-                status_message=f"watchdog: {reason}", device_name=self.name[:20],
+                code=int(igtl.StatusCode.TIME_OUT),
+                error_name="WATCHDOG",
+                status_message=f"watchdog: {reason}",
+                device_name=self.name[:20],
                 timestamp=self.clock.wall_time(),
             )
         )
@@ -523,8 +539,10 @@ class Robot:
             st = self.state_machine.state
             iface.send_to_peer(
                 igtl.StatusMessage(
-                    code=int(STATE_STATUS_CODE[st]), error_name=st.value,
-                    status_message=f"{self.name} is {st.value}", device_name=self.name[:20],
+                    code=int(STATE_STATUS_CODE[st]),
+                    error_name=st.value,
+                    status_message=f"{self.name} is {st.value}",
+                    device_name=self.name[:20],
                     timestamp=self.clock.wall_time(),
                 ),
                 peer,
@@ -552,8 +570,13 @@ class Robot:
             self.commands_handled += 1
         except (CommandError, StateError) as err:
             self.commands_refused += 1
-            log.warning("%s: refused %s from %s:%s: %s", item.interface, msg.message_type,
-                        *item.peer.address[:2], err)
+            log.warning(
+                "%s: refused %s from %s:%s: %s",
+                item.interface,
+                msg.message_type,
+                *item.peer.address[:2],
+                err,
+            )
             reply = error_reply(
                 msg, str(err), code=igtl.StatusCode.ILLEGAL_INSTRUCTION, timestamp=wall
             )
@@ -590,15 +613,31 @@ class Robot:
         if name == "GET_STATUS":
             st = self.state_machine.state
             return igtl.StatusMessage(
-                code=int(STATE_STATUS_CODE[st]), error_name=st.value,
-                status_message=self.describe_state(), device_name=msg.device_name or self.name[:20],
-                header_version=msg.header_version, timestamp=wall,
+                code=int(STATE_STATUS_CODE[st]),
+                error_name=st.value,
+                status_message=self.describe_state(),
+                device_name=msg.device_name or self.name[:20],
+                header_version=msg.header_version,
+                timestamp=wall,
             )
         if name == "GET_CAPABIL":
-            types = ["TRANSFORM", "POSITION", "STATUS", "STRING", "COMMAND", "CAPABILITY",
-                     "GET_STATUS", "GET_CAPABIL", "GET_TRANS"]
-            return igtl.CapabilityMessage(types=tuple(types), device_name=msg.device_name,
-                       header_version=msg.header_version, timestamp=wall)
+            types = [
+                "TRANSFORM",
+                "POSITION",
+                "STATUS",
+                "STRING",
+                "COMMAND",
+                "CAPABILITY",
+                "GET_STATUS",
+                "GET_CAPABIL",
+                "GET_TRANS",
+            ]
+            return igtl.CapabilityMessage(
+                types=tuple(types),
+                device_name=msg.device_name,
+                header_version=msg.header_version,
+                timestamp=wall,
+            )
         if name in ("GET_TRANS", "GET_TRANSFOR"):
             want = msg.device_name or "Tip"
             pose = self.base if want.lower() == "base" else self.world_tip()
@@ -633,9 +672,12 @@ class Robot:
     def _source_status(self, out: Output, now: float) -> Message:
         st = self.state_machine.state
         return igtl.StatusMessage(
-            code=int(STATE_STATUS_CODE[st]), error_name=st.value,
-            status_message=self.describe_state(), device_name=out.device,
-            header_version=out.header_version, timestamp=self.clock.wall_time(),
+            code=int(STATE_STATUS_CODE[st]),
+            error_name=st.value,
+            status_message=self.describe_state(),
+            device_name=out.device,
+            header_version=out.header_version,
+            timestamp=self.clock.wall_time(),
         )
 
     def _source_joints(self, out: Output, now: float) -> Message:
@@ -672,5 +714,3 @@ def build_robot(
 
         controller = make_teleop_controller(config.teleop.model_dump())
     return Robot(config, clock=clock, controller=controller, recorder=recorder)
-
-

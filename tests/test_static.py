@@ -1,4 +1,4 @@
-"""House rules as tests: ``mypy igtl occ`` and ``ruff check igtl occ`` are clean.
+"""House rules as tests: ``mypy``, ``ruff check`` and ``ruff format --check`` are clean on igtl, occ.
 
 Both tools come with the ``test`` extra (``pip install -e .[test]``, which the README's test
 command runs); they read their settings from pyproject.toml, so they run from the repository root.
@@ -39,3 +39,7 @@ def test_mypy_clean() -> None:
 
 def test_ruff_check_clean() -> None:
     _run("ruff", "check")
+
+
+def test_ruff_format_clean() -> None:
+    _run("ruff", "format", "--check")

@@ -33,7 +33,6 @@ EMPTY_MAPPING: Mapping[str, Any] = MappingProxyType({})
 REGISTRY: dict[str, type[Message]] = {}
 
 
-
 def register(*names: str) -> Callable[[type[M]], type[M]]:
     """Class decorator: decode messages of these type names with this class."""
 
@@ -246,9 +245,13 @@ def _jsonable(value: Any) -> Any:
         size = getattr(value, "size", 1)
         if size > SUMMARY_LIMIT:
             flat = value.reshape(-1)
-            return {"shape": list(value.shape), "dtype": str(value.dtype),
-                    "min": flat.min().tolist(), "max": flat.max().tolist(),
-                    "head": flat[:8].tolist()}
+            return {
+                "shape": list(value.shape),
+                "dtype": str(value.dtype),
+                "min": flat.min().tolist(),
+                "max": flat.max().tolist(),
+                "head": flat[:8].tolist(),
+            }
         return value.tolist()
     if hasattr(value, "value") and hasattr(value, "name"):  # enums
         return value.value

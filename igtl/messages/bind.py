@@ -45,7 +45,10 @@ class BindChild:
     def decode(self, **common: Any) -> Message:
         """Decode the content with the registered class (RawMessage for unknown types)."""
         base: dict[str, Any] = {
-            "device_name": self.device_name, "timestamp": 0.0, "header_version": 1, **common
+            "device_name": self.device_name,
+            "timestamp": 0.0,
+            "header_version": 1,
+            **common,
         }
         cls = REGISTRY.get(self.type_name)
         if cls is None:
@@ -97,8 +100,9 @@ def _read_names(content: bytes, pos: int, n: int, what: str) -> tuple[list[str],
         names.append(wire.decode_fixed(table[p:e]))
         p = e + 1
     if table[p:] not in (b"", b"\0"):
-        raise ContentError(f"{what}: {tsize - p} unexpected bytes in the name table",
-                           offset=start + p)
+        raise ContentError(
+            f"{what}: {tsize - p} unexpected bytes in the name table", offset=start + p
+        )
     return names, end
 
 
@@ -155,8 +159,9 @@ class BindMessage(Message):
         for (ctype, csize), name in zip(heads, names, strict=True):
             end = pos + csize
             if end > size:
-                raise ContentError(f"BIND child {name!r} of {csize} bytes overruns the content",
-                                   offset=pos)
+                raise ContentError(
+                    f"BIND child {name!r} of {csize} bytes overruns the content", offset=pos
+                )
             children.append(BindChild(unfixed(ctype), name, content[pos:end]))
             pos = end + (csize % 2)
         if pos < size or pos > size + 1:  # tolerate a missing pad after an odd last child
@@ -190,8 +195,9 @@ def _unpack_request(content: bytes, base: int, what: str) -> tuple[tuple[str, st
     if pos != len(content):
         raise ContentError(f"{what}: {len(content) - pos} bytes follow the name table", offset=pos)
     if n == 0:
-        raise ContentError(f"{what} with a zero child count (send an empty body for all)",
-                           offset=base)
+        raise ContentError(
+            f"{what} with a zero child count (send an empty body for all)", offset=base
+        )
     return tuple(zip(types, names, strict=True))
 
 
@@ -248,7 +254,6 @@ class StartBindMessage(Message):
     @classmethod
     def unpack_content(cls, content: bytes, common: dict[str, Any]) -> StartBindMessage:
         if len(content) < 8:
-            raise ContentError(f"STT_BIND content must be >= 8 bytes, got {len(content)}",
-                               offset=0)
+            raise ContentError(f"STT_BIND content must be >= 8 bytes, got {len(content)}", offset=0)
         (resol,) = _U64.unpack_from(content, 0)
         return cls(resol, _unpack_request(content, 8, "STT_BIND"), **common)

@@ -67,9 +67,10 @@ class ColorTableMessage(Message):
 
     def pack_content(self) -> bytes:
         dt = _MAP_DTYPE[self.map_type]
-        return bytes((self.index_type, self.map_type)) + np.ascontiguousarray(
-            self.table, dtype=dt
-        ).tobytes()
+        return (
+            bytes((self.index_type, self.map_type))
+            + np.ascontiguousarray(self.table, dtype=dt).tobytes()
+        )
 
     @classmethod
     def unpack_content(cls, content: bytes, common: dict[str, Any]) -> ColorTableMessage:

@@ -24,8 +24,14 @@ _IMAGE_HEAD = struct.Struct(">HBBBB3H12f3H3H")  # 72 bytes
 
 #: IMAGE scalar types -> numpy dtype (byte order applied separately).
 IMAGE_DTYPES: dict[int, np.dtype] = {
-    2: np.dtype("i1"), 3: np.dtype("u1"), 4: np.dtype("i2"), 5: np.dtype("u2"),
-    6: np.dtype("i4"), 7: np.dtype("u4"), 10: np.dtype("f4"), 11: np.dtype("f8"),
+    2: np.dtype("i1"),
+    3: np.dtype("u1"),
+    4: np.dtype("i2"),
+    5: np.dtype("u2"),
+    6: np.dtype("i4"),
+    7: np.dtype("u4"),
+    10: np.dtype("f4"),
+    11: np.dtype("f8"),
 }
 _IMAGE_CODES = {(dt.kind, dt.itemsize): code for code, dt in IMAGE_DTYPES.items()}
 
@@ -221,8 +227,15 @@ class ImageMessage(Message):
         code = image_scalar_type(p.dtype)
         assert self.size is not None
         head = _IMAGE_HEAD.pack(
-            1, p.shape[3], code, self.endian, self.coordinate, *self.size, *self.elements,
-            *self.offset, *self.subvolume_size,
+            1,
+            p.shape[3],
+            code,
+            self.endian,
+            self.coordinate,
+            *self.size,
+            *self.elements,
+            *self.offset,
+            *self.subvolume_size,
         )
         dt = IMAGE_DTYPES[code].newbyteorder(_BYTE_ORDER[self.endian])
         return head + np.ascontiguousarray(p, dtype=dt).tobytes()
@@ -295,9 +308,13 @@ class ImageMetaElement:
     scalar_type: int = 3
 
     def __post_init__(self) -> None:
-        for text, n, what in ((self.name, 64, "name"), (self.image_id, 20, "image id"),
-                              (self.modality, 32, "modality"), (self.patient_name, 64,
-                              "patient name"), (self.patient_id, 64, "patient id")):
+        for text, n, what in (
+            (self.name, 64, "name"),
+            (self.image_id, 20, "image id"),
+            (self.modality, 32, "modality"),
+            (self.patient_name, 64, "patient name"),
+            (self.patient_id, 64, "patient id"),
+        ):
             fixed(text, n, what)
         check_uint(self.timestamp_raw, 64, "timestamp_raw")
         object.__setattr__(self, "size", _triple(self.size, "size"))
@@ -325,9 +342,15 @@ class ImageMetaMessage(Message):
     def pack_content(self) -> bytes:
         return b"".join(
             _IMGMETA.pack(
-                fixed(e.name, 64, "name"), fixed(e.image_id, 20, "id"),
-                fixed(e.modality, 32, "modality"), fixed(e.patient_name, 64, "patient name"),
-                fixed(e.patient_id, 64, "patient id"), e.timestamp_raw, *e.size, e.scalar_type, 0,
+                fixed(e.name, 64, "name"),
+                fixed(e.image_id, 20, "id"),
+                fixed(e.modality, 32, "modality"),
+                fixed(e.patient_name, 64, "patient name"),
+                fixed(e.patient_id, 64, "patient id"),
+                e.timestamp_raw,
+                *e.size,
+                e.scalar_type,
+                0,
             )
             for e in self.images
         )
@@ -338,10 +361,18 @@ class ImageMetaMessage(Message):
         out = []
         for i in range(n):
             v = _IMGMETA.unpack_from(content, 260 * i)
-            out.append(ImageMetaElement(
-                unfixed(v[0]), unfixed(v[1]), unfixed(v[2]), unfixed(v[3]), unfixed(v[4]),
-                v[5], v[6:9], v[9],
-            ))
+            out.append(
+                ImageMetaElement(
+                    unfixed(v[0]),
+                    unfixed(v[1]),
+                    unfixed(v[2]),
+                    unfixed(v[3]),
+                    unfixed(v[4]),
+                    v[5],
+                    v[6:9],
+                    v[9],
+                )
+            )
         return cls(tuple(out), **common)
 
 
@@ -389,8 +420,13 @@ class LabelMetaMessage(Message):
     def pack_content(self) -> bytes:
         return b"".join(
             _LBMETA.pack(
-                fixed(e.name, 64, "name"), fixed(e.image_id, 20, "id"), e.label, 0, *e.rgba,
-                *e.size, fixed(e.owner, 20, "owner"),
+                fixed(e.name, 64, "name"),
+                fixed(e.image_id, 20, "id"),
+                e.label,
+                0,
+                *e.rgba,
+                *e.size,
+                fixed(e.owner, 20, "owner"),
             )
             for e in self.labels
         )
@@ -401,7 +437,9 @@ class LabelMetaMessage(Message):
         out = []
         for i in range(n):
             v = _LBMETA.unpack_from(content, 116 * i)
-            out.append(LabelMetaElement(
-                unfixed(v[0]), unfixed(v[1]), v[2], v[4:8], v[8:11], unfixed(v[11])
-            ))
+            out.append(
+                LabelMetaElement(
+                    unfixed(v[0]), unfixed(v[1]), v[2], v[4:8], v[8:11], unfixed(v[11])
+                )
+            )
         return cls(tuple(out), **common)

@@ -13,8 +13,14 @@ from .base import Message, common_equal, register
 
 #: SCALAR_TYPE -> big-endian numpy dtype (complex: real f64 then imaginary f64, both big-endian).
 SCALAR_DTYPES: dict[int, np.dtype] = {
-    2: np.dtype("i1"), 3: np.dtype("u1"), 4: np.dtype(">i2"), 5: np.dtype(">u2"),
-    6: np.dtype(">i4"), 7: np.dtype(">u4"), 10: np.dtype(">f4"), 11: np.dtype(">f8"),
+    2: np.dtype("i1"),
+    3: np.dtype("u1"),
+    4: np.dtype(">i2"),
+    5: np.dtype(">u2"),
+    6: np.dtype(">i4"),
+    7: np.dtype(">u4"),
+    10: np.dtype(">f4"),
+    11: np.dtype(">f8"),
     13: np.dtype(">c16"),
 }
 _BY_KIND = {(dt.kind, dt.itemsize): code for code, dt in SCALAR_DTYPES.items()}

@@ -54,8 +54,12 @@ class PointElement:
 
     def pack(self) -> bytes:
         return _POINT.pack(
-            fixed(self.name, 64, "name"), fixed(self.group, 32, "group"), *self.rgba,
-            *self.position, self.radius, fixed(self.owner, 20, "owner"),
+            fixed(self.name, 64, "name"),
+            fixed(self.group, 32, "group"),
+            *self.rgba,
+            *self.position,
+            self.radius,
+            fixed(self.owner, 20, "owner"),
         )
 
 
@@ -118,8 +122,15 @@ class TrajectoryElement:
 
     def pack(self) -> bytes:
         return _TRAJ.pack(
-            fixed(self.name, 64, "name"), fixed(self.group, 32, "group"), self.type, 0,
-            *self.rgba, *self.entry, *self.target, self.radius, fixed(self.owner, 20, "owner"),
+            fixed(self.name, 64, "name"),
+            fixed(self.group, 32, "group"),
+            self.type,
+            0,
+            *self.rgba,
+            *self.entry,
+            *self.target,
+            self.radius,
+            fixed(self.owner, 20, "owner"),
         )
 
 
@@ -146,7 +157,13 @@ class TrajectoryMessage(Message):
             v = _TRAJ.unpack_from(content, 150 * i)
             items.append(
                 TrajectoryElement(
-                    unfixed(v[0]), unfixed(v[1]), v[2], v[4:8], v[8:11], v[11:14], v[14],
+                    unfixed(v[0]),
+                    unfixed(v[1]),
+                    v[2],
+                    v[4:8],
+                    v[8:11],
+                    v[11:14],
+                    v[14],
                     unfixed(v[15]),
                 )
             )

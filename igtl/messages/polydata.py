@@ -90,17 +90,21 @@ def _unpack_cells(content: bytes, start: int, count: int, size: int, what: str) 
     pos = 0
     for _ in range(count):
         if pos >= len(flat):
-            raise ContentError(f"POLYDATA {what}: {count} cells do not fit {size} bytes",
-                               offset=start + 4 * pos)
+            raise ContentError(
+                f"POLYDATA {what}: {count} cells do not fit {size} bytes", offset=start + 4 * pos
+            )
         n = flat[pos]
         if pos + 1 + n > len(flat):
-            raise ContentError(f"POLYDATA {what}: cell of {n} indices overruns its block",
-                               offset=start + 4 * pos)
+            raise ContentError(
+                f"POLYDATA {what}: cell of {n} indices overruns its block", offset=start + 4 * pos
+            )
         cells.append(tuple(flat[pos + 1 : pos + 1 + n]))
         pos += 1 + n
     if pos != len(flat):
-        raise ContentError(f"POLYDATA {what}: {count} cells leave {4 * (len(flat) - pos)} bytes",
-                           offset=start + 4 * pos)
+        raise ContentError(
+            f"POLYDATA {what}: {count} cells leave {4 * (len(flat) - pos)} bytes",
+            offset=start + 4 * pos,
+        )
     return tuple(cells)
 
 
@@ -139,21 +143,29 @@ class PolyDataMessage(Message):
         counts = (len(self.vertices), len(self.lines), len(self.polygons), len(self.strips))
         head = _HEAD.pack(
             len(self.points),
-            counts[0], len(blocks[0]), counts[1], len(blocks[1]),
-            counts[2], len(blocks[2]), counts[3], len(blocks[3]),
+            counts[0],
+            len(blocks[0]),
+            counts[1],
+            len(blocks[1]),
+            counts[2],
+            len(blocks[2]),
+            counts[3],
+            len(blocks[3]),
             len(self.attributes),
         )
         names = b"".join(a.name.encode("utf-8") + b"\0" for a in self.attributes)
         if len(names) % 2:
             names += b"\0"
-        return b"".join((
-            head,
-            self.points.astype(">f4").tobytes(),
-            *blocks,
-            *(_ATTR.pack(a.type, a.data.shape[1], a.data.shape[0]) for a in self.attributes),
-            names,
-            *(a.data.astype(">f4").tobytes() for a in self.attributes),
-        ))
+        return b"".join(
+            (
+                head,
+                self.points.astype(">f4").tobytes(),
+                *blocks,
+                *(_ATTR.pack(a.type, a.data.shape[1], a.data.shape[0]) for a in self.attributes),
+                names,
+                *(a.data.astype(">f4").tobytes() for a in self.attributes),
+            )
+        )
 
     @classmethod
     def unpack_content(cls, content: bytes, common: dict[str, Any]) -> PolyDataMessage:
@@ -172,9 +184,11 @@ class PolyDataMessage(Message):
         points = np.frombuffer(content, ">f4", 3 * npoints, pos).reshape(npoints, 3)
         pos += 12 * npoints
         cell_sets: list[Cells] = []
-        for what, (n, s) in zip(("vertices", "lines", "polygons", "strips"),
-                                ((h[1], h[2]), (h[3], h[4]), (h[5], h[6]), (h[7], h[8])),
-                                strict=True):
+        for what, (n, s) in zip(
+            ("vertices", "lines", "polygons", "strips"),
+            ((h[1], h[2]), (h[3], h[4]), (h[5], h[6]), (h[7], h[8])),
+            strict=True,
+        ):
             cell_sets.append(_unpack_cells(content, pos, n, s, what))
             pos += s
         heads = [_ATTR.unpack_from(content, pos + 6 * i) for i in range(nattr)]
@@ -183,11 +197,9 @@ class PolyDataMessage(Message):
         for _ in range(nattr):
             end = content.find(b"\0", pos)
             if end < 0:
-                raise InvalidTextError("POLYDATA attribute name without NUL terminator",
-                                       offset=pos)
+                raise InvalidTextError("POLYDATA attribute name without NUL terminator", offset=pos)
             if end - pos > 255:
-                raise InvalidTextError("POLYDATA attribute name longer than 255 bytes",
-                                       offset=pos)
+                raise InvalidTextError("POLYDATA attribute name longer than 255 bytes", offset=pos)
             names.append(wire.decode_fixed(content[pos:end]))
             pos = end + 1
         if pos % 2:  # the names block is padded to an even length (content starts even)
@@ -198,14 +210,16 @@ class PolyDataMessage(Message):
                 raise ContentError(f"POLYDATA attribute {name!r} has 0 components", offset=pos)
             nbytes = 4 * n * ncomp
             if pos + nbytes > size:
-                raise ContentError(f"POLYDATA attribute {name!r} data overruns the content",
-                                   offset=pos)
+                raise ContentError(
+                    f"POLYDATA attribute {name!r} data overruns the content", offset=pos
+                )
             data = np.frombuffer(content, ">f4", n * ncomp, pos).reshape(n, ncomp)
             attrs.append(PolyDataAttribute(atype, name, data.astype(np.float32)))
             pos += nbytes
         if pos != size:
-            raise ContentError(f"POLYDATA: {size - pos} bytes left after the last attribute",
-                               offset=pos)
+            raise ContentError(
+                f"POLYDATA: {size - pos} bytes left after the last attribute", offset=pos
+            )
         vertices, lines, polygons, strips = cell_sets
         return cls(
             points.astype(np.float32),

@@ -14,14 +14,51 @@ _SENSOR_HEAD = struct.Struct(">BBQ")
 
 #: Prefix codes (bits 63..60 of the unit).
 PREFIXES = {
-    0: "", 1: "deka", 2: "hecto", 3: "kilo", 4: "mega", 5: "giga", 6: "tera", 7: "peta",
-    9: "deci", 10: "centi", 11: "milli", 12: "micro", 13: "nano", 14: "pico", 15: "femto",
+    0: "",
+    1: "deka",
+    2: "hecto",
+    3: "kilo",
+    4: "mega",
+    5: "giga",
+    6: "tera",
+    7: "peta",
+    9: "deci",
+    10: "centi",
+    11: "milli",
+    12: "micro",
+    13: "nano",
+    14: "pico",
+    15: "femto",
 }
 #: Unit codes (6 bits each).
 UNITS = {
-    1: "m", 2: "g", 3: "s", 4: "A", 5: "K", 6: "mol", 7: "cd", 8: "rad", 9: "sr", 10: "Hz",
-    11: "N", 12: "Pa", 13: "J", 14: "W", 15: "C", 16: "V", 17: "F", 18: "ohm", 19: "S",
-    20: "Wb", 21: "T", 22: "H", 23: "lm", 24: "lx", 25: "Bq", 26: "Gy", 27: "Sv",
+    1: "m",
+    2: "g",
+    3: "s",
+    4: "A",
+    5: "K",
+    6: "mol",
+    7: "cd",
+    8: "rad",
+    9: "sr",
+    10: "Hz",
+    11: "N",
+    12: "Pa",
+    13: "J",
+    14: "W",
+    15: "C",
+    16: "V",
+    17: "F",
+    18: "ohm",
+    19: "S",
+    20: "Wb",
+    21: "T",
+    22: "H",
+    23: "lm",
+    24: "lx",
+    25: "Bq",
+    26: "Gy",
+    27: "Sv",
 }
 
 
@@ -67,9 +104,7 @@ class Unit:
         return cls(value >> 60, tuple(pairs))
 
     def __str__(self) -> str:
-        parts = [
-            UNITS.get(u, f"unit{u}") + ("" if e == 1 else f"^{e}") for u, e in self.units if u
-        ]
+        parts = [UNITS.get(u, f"unit{u}") + ("" if e == 1 else f"^{e}") for u, e in self.units if u]
         return PREFIXES.get(self.prefix, f"prefix{self.prefix}") + "*".join(parts)
 
 

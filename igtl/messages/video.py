@@ -30,8 +30,12 @@ class VideoMetaElement:
     scalar_type: int = 3
 
     def __post_init__(self) -> None:
-        for text, what in ((self.name, "name"), (self.video_id, "video id"),
-                           (self.patient_name, "patient name"), (self.patient_id, "patient id")):
+        for text, what in (
+            (self.name, "name"),
+            (self.video_id, "video id"),
+            (self.patient_name, "patient name"),
+            (self.patient_id, "patient id"),
+        ):
             fixed(text, 64, what)
         if not isinstance(self.zoom_level, int) or not -32768 <= self.zoom_level <= 32767:
             raise ValueError(f"zoom_level must fit int16, got {self.zoom_level!r}")
@@ -49,9 +53,16 @@ class VideoMetaElement:
 
     def pack(self) -> bytes:
         return _VIDEOMETA.pack(
-            fixed(self.name, 64, "name"), fixed(self.video_id, 64, "video id"),
-            fixed(self.patient_name, 64, "patient name"), fixed(self.patient_id, 64, "pid"),
-            self.zoom_level, self.focal_length, *self.size, *self.elements, self.scalar_type, 0,
+            fixed(self.name, 64, "name"),
+            fixed(self.video_id, 64, "video id"),
+            fixed(self.patient_name, 64, "patient name"),
+            fixed(self.patient_id, 64, "pid"),
+            self.zoom_level,
+            self.focal_length,
+            *self.size,
+            *self.elements,
+            self.scalar_type,
+            0,
         )
 
 
@@ -76,10 +87,19 @@ class VideoMetaMessage(Message):
         out = []
         for i in range(n):
             v = _VIDEOMETA.unpack_from(content, 322 * i)
-            out.append(VideoMetaElement(
-                unfixed(v[0]), unfixed(v[1]), unfixed(v[2]), unfixed(v[3]), v[4], v[5],
-                v[6:9], v[9:21], v[21],
-            ))
+            out.append(
+                VideoMetaElement(
+                    unfixed(v[0]),
+                    unfixed(v[1]),
+                    unfixed(v[2]),
+                    unfixed(v[3]),
+                    v[4],
+                    v[5],
+                    v[6:9],
+                    v[9:21],
+                    v[21],
+                )
+            )
         return cls(tuple(out), **common)
 
 
@@ -127,16 +147,35 @@ class VideoMessage(Message):
         object.__setattr__(self, "elements", els)
 
     def pack_content(self) -> bytes:
-        return _VIDEO_HEAD.pack(
-            1, self.endian, fixed(self.codec, 4, "codec"), self.frame_type, self.coordinate,
-            *self.size, *self.elements, *self.offset, *self.subvolume_size,
-        ) + self.bitstream
+        return (
+            _VIDEO_HEAD.pack(
+                1,
+                self.endian,
+                fixed(self.codec, 4, "codec"),
+                self.frame_type,
+                self.coordinate,
+                *self.size,
+                *self.elements,
+                *self.offset,
+                *self.subvolume_size,
+            )
+            + self.bitstream
+        )
 
     @classmethod
     def unpack_content(cls, content: bytes, common: dict[str, Any]) -> VideoMessage:
         if len(content) < 76:
             raise ContentError(f"VIDEO content must be >= 76 bytes, got {len(content)}", offset=0)
         v = _VIDEO_HEAD.unpack_from(content, 0)
-        return cls(content[76:], unfixed(v[2]), v[3], v[1], v[4], v[5:8], v[8:20], v[20:23],
-                   v[23:26], **common)
-
+        return cls(
+            content[76:],
+            unfixed(v[2]),
+            v[3],
+            v[1],
+            v[4],
+            v[5:8],
+            v[8:20],
+            v[20:23],
+            v[23:26],
+            **common,
+        )

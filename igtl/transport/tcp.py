@@ -634,9 +634,12 @@ class TCPClient(_StreamTransport):
         """True once connected; False after ``timeout``, or at once when a client without
         ``reconnect`` has given up (or was stopped)."""
         with self._cond:
-            return self._cond.wait_for(
-                lambda: self.connected or self._gave_up or self._stopped, timeout
-            ) and self.connected
+            return (
+                self._cond.wait_for(
+                    lambda: self.connected or self._gave_up or self._stopped, timeout
+                )
+                and self.connected
+            )
 
     def send(self, msg: Sendable) -> bool:
         """Queue ``msg`` (in its own header version); False, counted as dropped, when not

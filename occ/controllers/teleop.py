@@ -164,8 +164,10 @@ class MasterController(Controller):
         if self.input == "sim":
             t = now - self._t_run
             w = 2.0 * math.pi * self.frequency
-            return self.origin + self.offset + self.amplitude * np.array(
-                [math.sin(w * t), math.cos(w * t), 0.0]
+            return (
+                self.origin
+                + self.offset
+                + self.amplitude * np.array([math.sin(w * t), math.cos(w * t), 0.0])
             )
         return self.target
 

@@ -106,9 +106,7 @@ def _target_of(plugin: str) -> str | type[Driver]:
     eps = _entry_points()
     if plugin in eps:
         return eps[plugin]
-    raise DriverError(
-        f"unknown driver plugin {plugin!r}; known: {', '.join(available_drivers())}"
-    )
+    raise DriverError(f"unknown driver plugin {plugin!r}; known: {', '.join(available_drivers())}")
 
 
 def load_driver_class(plugin: str) -> type[Driver]:

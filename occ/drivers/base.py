@@ -282,9 +282,7 @@ class Driver:
         write after activation the reference is the measured position over one ``period``.
         """
         if self._state is not DriverState.ACTIVE:
-            raise StateError(
-                f"driver {self.name!r}: commands refused in state {self._state.value}"
-            )
+            raise StateError(f"driver {self.name!r}: commands refused in state {self._state.value}")
         joints = self.joints
         n = len(joints)
         if len(setpoints) != n:
