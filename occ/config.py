@@ -590,6 +590,14 @@ class TeleopConfig(_Model):
     )
     frequency_hz: PosFloat = Field(0.1, description="Master `sim`: frequency of the motion (Hz).")
     clutch: Bool = Field(False, description="Master: clutch pressed at start.")
+    fixture_radius_mm: PosFloat = Field(
+        5.0,
+        description="Master: radius of the forbidden sphere around each Markups point received "
+        "as POINT (used when the point carries no radius, as 3D Slicer sends them).",
+    )
+    fixture_hardness: Annotated[Float, Field(ge=0)] = Field(
+        1.0, description="Master: hardness (N/mm) of the spheres made from POINT messages."
+    )
     first_seq: Annotated[Int, Field(ge=0, le=0xFFFFFFFF)] = Field(
         0, description="Master: sequence number before the first POSITION (the first is +1)."
     )

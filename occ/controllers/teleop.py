@@ -21,7 +21,8 @@ Master daemon (:class:`MasterController`)
     dead one.
 
     Virtual fixtures: VFIXTURE messages (spheres, hardness N/mm) from 3D Slicer define forbidden
-    regions. While the handle target lies inside a sphere the controller computes the reaction
+    regions; so do Slicer's own Markups fiducials sent as POINT (each visible point a sphere of
+    ``fixture_radius_mm``, hardness ``fixture_hardness``), which needs no custom module. While the handle target lies inside a sphere the controller computes the reaction
     force ``hardness × penetration`` along the outward normal (reported as ``fixture_force_n``)
     and, for position-controlled (simulated) masters, projects the target back onto the sphere
     surface, which is what a perfectly stiff haptic rendering would do to the hand.
@@ -98,6 +99,8 @@ class MasterController(Controller):
         self.clutch = bool(params.get("clutch", False))
         self.seq = int(params.get("first_seq", 0)) & 0xFFFFFFFF
         self.spheres: list[tuple[np.ndarray, float]] = []
+        self.point_radius_mm = float(params.get("fixture_radius_mm", 5.0))
+        self.point_hardness = float(params.get("fixture_hardness", 1.0))
         self.hardness = 0.0
         self.fixture_force = np.zeros(3)
         self.fixture_contacts = 0
@@ -117,6 +120,9 @@ class MasterController(Controller):
         mtype = msg.message_type
         if mtype == "VFIXTURE":
             self._set_fixtures(msg)
+            return
+        if mtype == "POINT" and (self.input != "igtl" or item.interface != self.input_interface):
+            self._set_point_fixtures(msg)
             return
         if self.input != "igtl" or (
             self.input_interface and item.interface != self.input_interface
@@ -139,6 +145,28 @@ class MasterController(Controller):
         self.spheres = [(np.array(s[:3], dtype=float) * MM, float(s[3]) * MM) for s in spheres]
         log.info(
             "virtual fixtures: %d spheres, hardness %.3g N/mm", len(self.spheres), self.hardness
+        )
+
+    def _set_point_fixtures(self, msg: Message) -> None:
+        """3D Slicer's Markups fiducials (POINT) as forbidden spheres: each visible point
+        (alpha > 0, as Slicer encodes visibility) becomes a sphere around it, with the point's
+        radius when it has one (Slicer sends 0) or ``fixture_radius_mm``, and
+        ``fixture_hardness``. The whole set replaces the previous one, as a VFIXTURE does."""
+        points = getattr(msg, "points", ())
+        self.hardness = self.point_hardness
+        self.spheres = [
+            (
+                np.array(p.position, dtype=float) * MM,
+                (p.radius if p.radius > 0.0 else self.point_radius_mm) * MM,
+            )
+            for p in points
+            if p.rgba[3] > 0
+        ]
+        log.info(
+            "virtual fixtures from POINT %r: %d spheres, hardness %.3g N/mm",
+            msg.device_name,
+            len(self.spheres),
+            self.hardness,
         )
 
     def on_command(self, request: Request, now: float) -> str | None:

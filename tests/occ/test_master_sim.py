@@ -147,3 +147,25 @@ def test_stop_state_holds_and_reports(master: SimMaster) -> None:
     master.ticks(200)
     assert master.sent[-1].metadata["run"] == "0"
     assert master.sent[-1].position == pytest.approx(p0, abs=0.2)
+
+
+def test_slicer_markups_points_become_fixture_spheres(master: SimMaster) -> None:
+    from igtl.messages.point import PointElement
+
+    master.command("Enable")
+    master.command("Run")
+    master.ticks(200)
+    handle = master.sent[-1].position
+    near = PointElement(name="F-1", group="Selected", rgba=(255, 0, 0, 255),
+                        position=(handle[0] + 2.0, handle[1], handle[2]))
+    hidden = PointElement(name="F-2", group="Selected", rgba=(0, 255, 0, 0),
+                          position=(handle[0] - 2.0, handle[1], handle[2]))
+    pts = igtl.PointMessage(points=(near, hidden), device_name="F", header_version=2,
+                            metadata={"MRMLNodeName": "MarkupsFiducial"})
+    master.robot.interfaces["operator"]._on_message(PEER, igtl.unpack(pts.pack()))
+    master.ticks(1)
+    stats = master.robot.controller.stats()
+    assert stats["fixtures"] == 1  # the hidden point (alpha 0) is not a fixture
+    master.ticks(100)
+    # default radius 5 mm around the visible point: the handle is kept out of it
+    assert math.dist(master.sent[-1].position, near.position) >= 5.0 - 0.2
