@@ -22,8 +22,10 @@ Master daemon (:class:`MasterController`)
 
     Virtual fixtures: VFIXTURE messages (spheres, hardness N/mm) from 3D Slicer define forbidden
     regions; so do Slicer's own Markups fiducials sent as POINT (each visible point a sphere of
-    ``fixture_radius_mm``, hardness ``fixture_hardness``), which needs no custom module. While the handle target lies inside a sphere the controller computes the reaction
-    force ``hardness × penetration`` along the outward normal (reported as ``fixture_force_n``)
+    ``fixture_radius_mm``, hardness ``fixture_hardness``), which needs no custom module.
+    Coordinates are in the master's frame (mm). While the handle target lies inside a sphere
+    the controller computes the reaction force ``hardness × penetration`` along the outward
+    normal (reported as ``fixture_force_n``)
     and, for position-controlled (simulated) masters, projects the target back onto the sphere
     surface, which is what a perfectly stiff haptic rendering would do to the hand.
 
