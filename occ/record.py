@@ -10,9 +10,9 @@ File format: a plain concatenation of OpenIGTLink header-version-2 messages.
   ``rate_hz``: ``[t, state code, q..., setpoint..., tip x y z (mm)]``; metadata ``columns`` names
   the columns.
 
-The loop thread only packs bytes into a bounded in-memory queue; a writer thread does the file
-I/O. If the writer falls behind by more than ``max_backlog`` bytes, new records are dropped
-and counted (``dropped``), never blocking the loop.
+The loop thread only appends references to a bounded in-memory queue; a writer thread adds the
+recording metadata, packs and writes. If the writer falls behind by more than ``max_backlog``
+records, new records are dropped and counted (``dropped``), never blocking the loop.
 
 ``occ-record`` (console script) exports a recording to CSV and replays one into a peer.
 """
@@ -28,12 +28,12 @@ import time
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 
 import igtl
-from igtl.messages.base import REGISTRY, Message
+from igtl.messages.base import Message
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +51,12 @@ STATE_CODES = {
 
 
 class Recorder:
-    """Writes a recording; call :meth:`start` before the loop, :meth:`close` after."""
+    """Writes a recording; call :meth:`start` before the loop, :meth:`close` after.
+
+    The loop thread only appends references to a queue (messages are immutable, the state row
+    is a fresh list); the writer thread adds the recording metadata, packs and writes. So the
+    loop never packs, never touches the file, and the two threads share no counter.
+    """
 
     def __init__(
         self,
@@ -59,24 +64,25 @@ class Recorder:
         *,
         rate_hz: float = 100.0,
         include_messages: bool = True,
-        max_backlog: int = 64 * 1024 * 1024,
+        max_backlog: int = 200_000,
     ) -> None:
         self.path = Path(path)
         self.rate_hz = float(rate_hz)
         self.include_messages = include_messages
-        self.max_backlog = max_backlog
-        self._q: deque[bytes] = deque()
-        self._backlog = 0
+        self.max_backlog = max_backlog  # records waiting for the writer
+        self._q: deque[tuple[Any, ...]] = deque()
         self._next_state = 0.0
         self._cond = threading.Condition()
         self._closed = False
         self._thread: threading.Thread | None = None
         self._file: Any = None
-        self.records = 0
-        self.bytes_written = 0
-        self.dropped = 0
-        self.errors = 0
         self._columns: str | None = None
+        # loop thread only
+        self.records = 0
+        self.dropped = 0
+        # writer thread only
+        self.bytes_written = 0
+        self.errors = 0
 
     def start(self) -> Recorder:
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -87,26 +93,16 @@ class Recorder:
         return self
 
     # ------------------------------------------------------------------ loop thread
-    def _put(self, data: bytes) -> None:
-        if self._backlog + len(data) > self.max_backlog:
+    def _put(self, item: tuple[Any, ...]) -> None:
+        if len(self._q) >= self.max_backlog:
             self.dropped += 1
             return
-        self._q.append(data)
-        self._backlog += len(data)
+        self._q.append(item)
         self.records += 1
 
     def record_message(self, msg: Message, direction: str, interface: str, now: float) -> None:
-        if not self.include_messages or self._file is None:
-            return
-        meta = dict(msg.metadata)
-        meta["rec.dir"] = direction
-        meta["rec.if"] = interface
-        meta["rec.t"] = f"{now:.6f}"
-        meta["rec.hv"] = str(msg.header_version)
-        try:
-            self._put(msg.replace(metadata=meta, header_version=2).pack())
-        except (ValueError, TypeError, igtl.IGTLError):
-            self.errors += 1
+        if self.include_messages and self._file is not None:
+            self._put(("msg", msg, direction, interface, now))
 
     def record_state(self, robot: Any, now: float) -> None:
         if self._file is None or now < self._next_state:
@@ -130,16 +126,28 @@ class Recorder:
             tip[1, 3] * 1000.0,
             tip[2, 3] * 1000.0,
         ]
-        msg = cast("type[igtl.NDArrayMessage]", REGISTRY["NDARRAY"])(
+        self._put(("state", row, robot.clock.wall_time()))
+
+    # ------------------------------------------------------------------ writer thread
+    def _encode(self, item: tuple[Any, ...]) -> bytes:
+        if item[0] == "msg":
+            _, msg, direction, interface, now = item
+            meta = dict(msg.metadata)
+            meta["rec.dir"] = direction
+            meta["rec.if"] = interface
+            meta["rec.t"] = f"{now:.6f}"
+            meta["rec.hv"] = str(msg.header_version)
+            return bytes(msg.replace(metadata=meta, header_version=2).pack())
+        _, row, wall = item
+        state = igtl.NDArrayMessage(
             array=np.asarray(row, dtype=np.float64),
             device_name=STATE_DEVICE,
             header_version=2,
-            metadata={"columns": self._columns},
-            timestamp=robot.clock.wall_time(),
+            metadata={"columns": self._columns or ""},
+            timestamp=wall,
         )
-        self._put(msg.pack())
+        return bytes(state.pack())
 
-    # ------------------------------------------------------------------ writer thread
     def _writer(self) -> None:
         while True:
             with self._cond:
@@ -153,12 +161,15 @@ class Recorder:
         chunks = []
         while self._q:
             try:
-                chunks.append(self._q.popleft())
+                item = self._q.popleft()
             except IndexError:  # pragma: no cover
                 break
+            try:
+                chunks.append(self._encode(item))
+            except (ValueError, TypeError, igtl.IGTLError):
+                self.errors += 1
         if chunks and self._file is not None:
             data = b"".join(chunks)
-            self._backlog -= sum(len(c) for c in chunks)
             try:
                 self._file.write(data)
                 self.bytes_written += len(data)
