@@ -200,6 +200,13 @@ class Robot:
         else:
             assert fc.tip_link is not None  # the schema requires it with urdf
             self.frame = Frame.from_urdf(str(fc.urdf), fc.tip_link, fc.base_link)
+        # The configured joints are the kinematic model's, in its order: FK and IK index them.
+        if list(self.frame.joint_names) != [j.name for j in self.joints]:
+            raise OCCError(
+                f"robot.joints {[j.name for j in self.joints]} do not match the joints of the "
+                f"kinematic model {self.frame.name!r} {list(self.frame.joint_names)} (same names, "
+                "same order)"
+            )
         self.drivers: list[tuple[Driver, list[int]]] = []
         for dc in rc.drivers:
             idx = [self.joint_index[n] for n in dc.joints]

@@ -235,3 +235,13 @@ def test_base_pose_from_a_tracker_transform() -> None:
         assert robot.world_tip()[:3, 3] * 1000.0 == pytest.approx(robot.tip[:3, 3] * 1000.0 + [10, 20, 30])
     finally:
         robot.shutdown()
+
+
+def test_joints_must_match_the_kinematic_model() -> None:
+    from occ.errors import OCCError
+
+    cfg = load_config(ROOT / "configs" / "slave.yaml")
+    joints = (cfg.robot.joints[1], cfg.robot.joints[0], cfg.robot.joints[2])  # order swapped
+    bad = cfg.model_copy(update={"robot": cfg.robot.model_copy(update={"joints": joints})})
+    with pytest.raises(OCCError, match="do not match the joints of the kinematic model"):
+        build_robot(bad, clock=SimClock())
