@@ -133,7 +133,7 @@ def run(config: Any, args: argparse.Namespace) -> int:
     )
     try:
         robot = build_robot(config, recorder=recorder)
-    except (OCCError, OSError, ImportError) as err:
+    except (OCCError, OSError, ImportError, ValueError) as err:  # ValueError: plugin params
         log.error("cannot build the robot: %s", err)
         return EXIT_RUNTIME
 

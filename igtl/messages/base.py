@@ -166,30 +166,42 @@ def common_equal(a: Message, b: Message) -> bool:
 FAST_V1: dict[str, Callable[[bytes, str, float, int], Message | None]] = {}
 
 
-def fast_builder_v1(cls: type[M]) -> Callable[..., M]:
-    """Like :func:`fast_builder` for a header-version-1 message, whose common fields are all
-    known: ``build(device_name, timestamp, raw_timestamp, *content_fields)``. No dict, no
-    look-ups: the hot path of a 500 Hz or 100k msg/s stream of TRANSFORM/POSITION."""
+def _slot_builder(cls: type[M], params: str, common_lines: tuple[str, ...]) -> Callable[..., M]:
+    """Generate ``build(<params>, *content_fields)`` filling the slots of a frozen dataclass
+    directly through their descriptors; ``common_lines`` set the common fields."""
     content = [f.name for f in dataclasses.fields(cls) if f.name not in _COMMON_FIELDS]
     ns: dict[str, Any] = {"_new": object.__new__, "_cls": cls, "_EMPTY": EMPTY_MAPPING}
     for name in (*_COMMON_ORDER, *content):
         ns[f"_s_{name}"] = getattr(cls, name).__set__
     args = "".join(f", {n}" for n in content)
     src = [
-        f"def build(device_name, timestamp, raw_timestamp{args}):",
+        f"def build({params}{args}):",
         "    self = _new(_cls)",
-        "    _s_device_name(self, device_name)",
-        "    _s_timestamp(self, timestamp)",
-        "    _s_header_version(self, 1)",
-        "    _s_metadata(self, _EMPTY)",
-        "    _s_message_id(self, 0)",
-        "    _s_metadata_encoding(self, _EMPTY)",
-        "    _s_raw_timestamp(self, raw_timestamp)",
+        *common_lines,
         *(f"    _s_{n}(self, {n})" for n in content),
         "    return self",
     ]
     exec("\n".join(src), ns)  # noqa: S102 - generated from dataclass field names only
     return ns["build"]  # type: ignore[no-any-return]
+
+
+def fast_builder_v1(cls: type[M]) -> Callable[..., M]:
+    """Like :func:`fast_builder` for a header-version-1 message, whose common fields are all
+    known: ``build(device_name, timestamp, raw_timestamp, *content_fields)``. No dict, no
+    look-ups: the hot path of a 500 Hz or 100k msg/s stream of TRANSFORM/POSITION."""
+    return _slot_builder(
+        cls,
+        "device_name, timestamp, raw_timestamp",
+        (
+            "    _s_device_name(self, device_name)",
+            "    _s_timestamp(self, timestamp)",
+            "    _s_header_version(self, 1)",
+            "    _s_metadata(self, _EMPTY)",
+            "    _s_message_id(self, 0)",
+            "    _s_metadata_encoding(self, _EMPTY)",
+            "    _s_raw_timestamp(self, raw_timestamp)",
+        ),
+    )
 
 
 def fast_builder(cls: type[M]) -> Callable[..., M]:
@@ -200,29 +212,22 @@ def fast_builder(cls: type[M]) -> Callable[..., M]:
     directly through their descriptors (no ``__post_init__``; use only where none is needed).
     ``common`` is the dict the codec passes to ``unpack_content``.
     """
-    content = [f.name for f in dataclasses.fields(cls) if f.name not in _COMMON_FIELDS]
-    ns: dict[str, Any] = {"_new": object.__new__, "_cls": cls, "_EMPTY": EMPTY_MAPPING}
-    for name in (*_COMMON_ORDER, *content):
-        ns[f"_s_{name}"] = getattr(cls, name).__set__
-    args = "".join(f", {n}" for n in content)
-    src = [
-        f"def build(common{args}):",
-        "    self = _new(_cls)",
-        "    g = common.get",
-        "    _s_device_name(self, common['device_name'])",
-        "    _s_timestamp(self, common['timestamp'])",
-        "    _s_header_version(self, common['header_version'])",
-        "    m = g('metadata')",
-        "    _s_metadata(self, _EMPTY if m is None else m)",
-        "    _s_message_id(self, g('message_id', 0))",
-        "    m = g('metadata_encoding')",
-        "    _s_metadata_encoding(self, _EMPTY if m is None else m)",
-        "    _s_raw_timestamp(self, g('raw_timestamp'))",
-        *(f"    _s_{n}(self, {n})" for n in content),
-        "    return self",
-    ]
-    exec("\n".join(src), ns)  # noqa: S102 - generated from dataclass field names only
-    return ns["build"]  # type: ignore[no-any-return]
+    return _slot_builder(
+        cls,
+        "common",
+        (
+            "    g = common.get",
+            "    _s_device_name(self, common['device_name'])",
+            "    _s_timestamp(self, common['timestamp'])",
+            "    _s_header_version(self, common['header_version'])",
+            "    m = g('metadata')",
+            "    _s_metadata(self, _EMPTY if m is None else m)",
+            "    _s_message_id(self, g('message_id', 0))",
+            "    m = g('metadata_encoding')",
+            "    _s_metadata_encoding(self, _EMPTY if m is None else m)",
+            "    _s_raw_timestamp(self, g('raw_timestamp'))",
+        ),
+    )
 
 
 #: Arrays and byte strings longer than this are summarised in content_summary(), not dumped.

@@ -86,6 +86,10 @@ class Driver:
     command_interface: CommandInterface = "position"
     #: The interfaces a backend can accept; a subclass narrows this if it must.
     supported_interfaces: ClassVar[tuple[str, ...]] = ("position",)
+    #: A backend's parameters and their defaults. When set, the base refuses unknown keys
+    #: (a typo in the YAML must not be silently ignored) and ``self.params`` holds the defaults
+    #: merged with the configured values.
+    DEFAULT_PARAMS: ClassVar[Mapping[str, Any] | None] = None
 
     def __init__(
         self,
@@ -100,6 +104,14 @@ class Driver:
         if on_limit not in _POLICIES:
             raise ValueError(f"driver {name!r}: on_limit must be one of {_POLICIES}")
         params = dict(params or {})
+        if self.DEFAULT_PARAMS is not None:
+            unknown = set(params) - set(self.DEFAULT_PARAMS)
+            if unknown:
+                raise ValueError(
+                    f"driver {name!r} ({type(self).__name__}): unknown params "
+                    f"{sorted(unknown)}; known: {sorted(self.DEFAULT_PARAMS)}"
+                )
+            params = {**self.DEFAULT_PARAMS, **params}
         interface = command_interface or params.get("command_interface") or self.command_interface
         if interface not in _INTERFACES or interface not in self.supported_interfaces:
             raise ValueError(

@@ -118,6 +118,7 @@ class CANDriver(Driver):
     """Joints driven over CAN with the frame protocol of the module docstring."""
 
     supported_interfaces = ("position", "effort")
+    DEFAULT_PARAMS = _DEFAULTS
 
     def __init__(
         self,
@@ -127,12 +128,8 @@ class CANDriver(Driver):
         on_limit: LimitPolicy = "clamp",
         command_interface: CommandInterface | None = None,
     ) -> None:
-        params = dict(params or {})
-        unknown = set(params) - set(_DEFAULTS)
-        if unknown:
-            raise ValueError(f"can driver {name!r}: unknown params {sorted(unknown)}")
         super().__init__(name, joints, params, on_limit, command_interface)
-        p = {**_DEFAULTS, **params}
+        p = self.params  # defaults merged, unknown keys refused by the base
         self._bus_args: dict[str, Any] = {
             "interface": p["interface"],
             "channel": p["channel"],

@@ -114,6 +114,7 @@ class SimDriver(Driver):
     """Simulated joints (see the module docstring for the model and the parameters)."""
 
     supported_interfaces = ("position", "effort")
+    DEFAULT_PARAMS = SIM_DEFAULTS
 
     def __init__(
         self,
@@ -123,15 +124,8 @@ class SimDriver(Driver):
         on_limit: LimitPolicy = "clamp",
         command_interface: CommandInterface | None = None,
     ) -> None:
-        params = dict(params or {})
-        unknown = set(params) - set(SIM_DEFAULTS)
-        if unknown:
-            raise ValueError(
-                f"sim driver {name!r}: unknown params {sorted(unknown)}; "
-                f"known: {sorted(SIM_DEFAULTS)}"
-            )
         super().__init__(name, joints, params, on_limit, command_interface)
-        p = {**SIM_DEFAULTS, **params}
+        p = self.params  # defaults merged, unknown keys refused by the base
         js = self.joints
         self._inertia = _per_joint("inertia", p["inertia"], js)
         self._damping = _per_joint("damping", p["damping"], js)

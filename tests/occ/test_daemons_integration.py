@@ -161,3 +161,16 @@ def test_port_in_use_exits_1_with_a_clear_error(tmp_path: Path) -> None:
         )
     assert res.returncode == 1, res.stderr
     assert "Address already in use" in res.stderr or "in use" in res.stderr.lower()
+
+
+def test_unknown_driver_param_is_a_clear_error(tmp_path: Path) -> None:
+    slave, _, _ = pair_configs()
+    slave["robot"]["drivers"][0]["params"] = {"bandwith_hz": 30}  # typo
+    write_yaml(tmp_path / "slave.yaml", slave)
+    res = subprocess.run(
+        [sys.executable, "-m", "occ.cli", str(tmp_path / "slave.yaml"), "--duration", "0.1"],
+        cwd=ROOT, capture_output=True, text=True, timeout=60,
+    )
+    assert res.returncode == 1
+    assert "unknown params ['bandwith_hz']" in res.stderr and "bandwidth_hz" in res.stderr
+    assert "Traceback" not in res.stderr
