@@ -63,39 +63,24 @@ def _decode(
                 message_type=message_type,
                 device_name=device_name,
             )
+    # wire.raw_to_seconds, inlined: this runs for every message decoded
     frac = ts & 0xFFFFFFFF
+    t = (
+        (ts >> 32)
+        + (_T0[frac >> 24] + _T1[(frac >> 16) & 0xFF] + _T2[(frac >> 8) & 0xFF] + _T3[frac & 0xFF])
+        * 1e-9
+        if frac
+        else float(ts >> 32)
+    )
     if version == 1:
         fast = _fast_v1_get(message_type)
         if fast is not None:
-            t = (
-                (ts >> 32)
-                + (
-                    _T0[frac >> 24]
-                    + _T1[(frac >> 16) & 0xFF]
-                    + _T2[(frac >> 8) & 0xFF]
-                    + _T3[frac & 0xFF]
-                )
-                * 1e-9
-                if frac
-                else float(ts >> 32)
-            )
             msg = fast(body, device_name, t, ts)
             if msg is not None:
                 return msg
     common: dict[str, Any] = {
         "device_name": device_name,
-        "timestamp": (
-            (ts >> 32)
-            + (
-                _T0[frac >> 24]
-                + _T1[(frac >> 16) & 0xFF]
-                + _T2[(frac >> 8) & 0xFF]
-                + _T3[frac & 0xFF]
-            )
-            * 1e-9
-            if frac
-            else float(ts >> 32)
-        ),
+        "timestamp": t,
         "raw_timestamp": ts,
         "header_version": version,
     }
