@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import socket
 import subprocess
 import sys
@@ -34,7 +33,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))
 
-from loopback import free_port, pair_configs, wait_port, write_yaml  # noqa: E402
+from loopback import free_port, pair_configs, stop_processes, wait_port, write_yaml  # noqa: E402
 from slicer_standin import SlicerStandIn  # noqa: E402
 
 
@@ -137,14 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         for c in clients:
             c.stop()
-        for proc in procs:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-        for proc in procs:
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+        stop_processes(procs, timeout=20)
     s = json.loads((out / "slave.json").read_text())
     m = json.loads((out / "master.json").read_text()) if not args.no_load else None
     result = {

@@ -28,7 +28,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))
 
-from loopback import wait_port  # noqa: E402
+from loopback import stop_processes, wait_port  # noqa: E402
 from slicer_standin import SlicerStandIn  # noqa: E402
 
 
@@ -93,14 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         summary = standin.summary() if standin is not None else {}
         if standin is not None:
             standin.stop()
-        for proc in procs:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-        for proc in procs:
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+        stop_processes(procs)
     print("Slicer stand-in saw:", json.dumps({k: v for k, v in summary.items() if not k.startswith("_")}, indent=1))
     for s in summary.get("_statuses", []):
         print("  STATUS", s)

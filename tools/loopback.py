@@ -3,8 +3,10 @@ of the master/slave configurations moved to free ports (tests, benchmarks, soaks
 
 from __future__ import annotations
 
+import signal
 import socket
 import subprocess
+from collections.abc import Iterable
 import time
 from pathlib import Path
 from typing import Any
@@ -62,3 +64,18 @@ def pair_configs(
 def write_yaml(path: Path, data: dict[str, Any]) -> Path:
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
+
+
+def stop_processes(procs: Iterable[subprocess.Popen[bytes]], timeout: float = 10.0) -> None:
+    """Stop daemons as an operator would: SIGINT to all (they stop their drivers and write their
+    statistics), then wait for each; kill one that has not exited after ``timeout`` seconds."""
+    procs = list(procs)
+    for proc in procs:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+    for proc in procs:
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=5.0)

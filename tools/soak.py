@@ -56,7 +56,6 @@ import logging
 import math
 import os
 import re
-import signal
 import socket
 import subprocess
 import sys
@@ -72,7 +71,7 @@ sys.path.insert(0, str(ROOT / "tools"))
 if str(ROOT) not in sys.path:
     sys.path.insert(1, str(ROOT))
 
-from loopback import free_port, wait_port  # noqa: E402
+from loopback import free_port, stop_processes, wait_port  # noqa: E402
 from loss_proxy import LossPattern, LossProxy, add_pattern_arguments, pattern_from_args  # noqa: E402
 
 #: the requirement (configs/slave.yaml safety.loss): 2 tolerated, 3 stop, within 7 ms
@@ -534,13 +533,7 @@ def start_occd(config: str, stats: Path, log: Path, duration: float) -> subproce
 
 
 def stop_proc(proc: subprocess.Popen[bytes], timeout: float = 10.0) -> int | None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=5.0)
+    stop_processes([proc], timeout)
     fh = getattr(proc, "log_file", None)
     if fh is not None:
         fh.close()

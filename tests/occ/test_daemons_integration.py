@@ -20,7 +20,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tools"))
 
-from loopback import pair_configs, wait_port, write_yaml  # noqa: E402
+from loopback import pair_configs, stop_processes, wait_port, write_yaml  # noqa: E402
 from slicer_standin import SlicerStandIn  # noqa: E402
 
 pytestmark = pytest.mark.realtime
@@ -60,15 +60,7 @@ def daemons(tmp_path: Path):  # type: ignore[no-untyped-def]
     procs.append(master)
     assert wait_port(ports["master_tcp"]), "master did not listen"
     yield ports, slave, master, tmp_path
-    for p in procs:
-        if p.poll() is None:
-            p.send_signal(signal.SIGINT)
-    for p in procs:
-        try:
-            p.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
+    stop_processes(procs)
 
 
 def test_slicer_sees_tip_follow_master_and_dead_master_stops_slave(daemons) -> None:  # type: ignore[no-untyped-def]
