@@ -8,9 +8,11 @@ back, so the same code runs in real time and in simulated time, and is tested ex
   run of overruns or one long gap between ticks.
 - :class:`RobotState`, :class:`StateMachine`: the robot lifecycle (OCC + dVRK +
   ros2_control), with latched FAULT and ESTOP.
-- :class:`LossMonitor`: lost packets of a periodic stream, by sequence number, by timestamp
-  (v1 peers) and by deadline (silent peer); trips on ``max_consecutive + 1`` consecutive
-  losses.
+- :class:`Supervisor`: from outside the loop thread, notices a loop that stopped ticking.
+- :class:`LossMonitor`: loss versus lateness of a periodic stream: holds when it is overdue,
+  resumes when it comes back in time, latches on proven loss (``max_consecutive + 1``
+  consecutive sequence numbers), on silence past a grace, or on a run of samples refused for
+  their timestamp; judges every sample (:class:`Verdict`).
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ from occ.errors import StateError
 
 __all__ = [
     "EVENTS",
+    "Supervisor",
+    "Verdict",
     "TRANSITIONS",
     "LossEvent",
     "LossMonitor",
@@ -195,6 +199,67 @@ class Watchdog:
             "stops": self.stops,
             "stopped": self.stopped,
         }
+
+
+class Supervisor:
+    """Notices, from outside the loop thread, a loop that stopped ticking.
+
+    The loop calls :meth:`beat` at the start and the end of every tick (one attribute store);
+    a supervisor thread calls :meth:`check` a few times per ``timeout_s``. A loop that has
+    not beaten for more than ``timeout_s`` while armed (a hung tick, a call that blocks, a
+    tick stuck on the interpreter lock) trips it once: :meth:`check` returns the reason and
+    ``on_trip(reason)`` runs on the checking thread. Latched until :meth:`reset`. Pure logic:
+    the same code runs in simulated time, where a test calls :meth:`check` itself.
+    """
+
+    __slots__ = ("timeout_s", "on_trip", "last_beat", "armed", "tripped", "reason", "trips")
+
+    def __init__(
+        self, timeout_s: float = 0.020, on_trip: Callable[[str], None] | None = None
+    ) -> None:
+        if timeout_s <= 0:
+            raise ValueError(f"timeout_s must be > 0, got {timeout_s}")
+        self.timeout_s = float(timeout_s)
+        self.on_trip = on_trip
+        self.last_beat: float | None = None
+        self.armed = False
+        self.tripped = False
+        self.reason = ""
+        self.trips = 0
+
+    def beat(self, now: float) -> None:
+        self.last_beat = now
+
+    def arm(self, now: float) -> None:
+        """Start watching (the loop starts); the first beat is due within the timeout."""
+        self.last_beat = now
+        self.armed = True
+
+    def disarm(self) -> None:
+        """Stop watching (the loop ended on purpose)."""
+        self.armed = False
+
+    def reset(self) -> None:
+        self.tripped = False
+        self.reason = ""
+
+    def check(self, now: float) -> str | None:
+        """Trip if the loop has been silent too long; returns the reason on the trip only."""
+        last = self.last_beat
+        if not self.armed or self.tripped or last is None:
+            return None
+        silent = now - last
+        if silent <= self.timeout_s:
+            return None
+        self.tripped = True
+        self.trips += 1
+        self.reason = (
+            f"control loop did not tick for {silent * 1e3:.1f} ms "
+            f"(supervisor limit {self.timeout_s * 1e3:.1f} ms)"
+        )
+        if self.on_trip is not None:
+            self.on_trip(self.reason)
+        return self.reason
 
 
 # --------------------------------------------------------------------------------------------
@@ -398,48 +463,98 @@ _WINDOW = 64  # sequence numbers remembered behind the newest, to tell duplicate
 _WINDOW_MASK = (1 << _WINDOW) - 1
 
 
+class Verdict(enum.IntEnum):
+    """What :meth:`LossMonitor.on_packet` decided about one sample. Only ``ACCEPT`` may move
+    the robot; every other verdict is counted under its own name."""
+
+    ACCEPT = 0
+    DUPLICATE = 1  # a sequence number (or timestamp) already seen
+    LATE = 2  # an older, missing sequence number that arrived after a newer one (reordered)
+    IMPLAUSIBLE = 3  # a sequence number that cannot be right: too far ahead, or far behind
+    STALE = 4  # header timestamp older than the peer's clock offset allows
+    FUTURE = 5  # header timestamp newer than the peer's clock offset allows
+    UNSEQUENCED = 6  # no sequence number on a stream that carries them (a v1 peer)
+
+
+_VERDICT_COUNTER = {
+    Verdict.DUPLICATE: "duplicates",
+    Verdict.LATE: "reordered",
+    Verdict.IMPLAUSIBLE: "implausible_seq",
+    Verdict.STALE: "stale",
+    Verdict.FUTURE: "future",
+    Verdict.UNSEQUENCED: "unsequenced",
+}
+
+
 @dataclass(frozen=True, slots=True)
 class LossEvent:
-    """A loss-monitor trip: ``kind`` is "sequence", "timestamp" or "deadline"."""
+    """Something the robot must act on (see :class:`LossMonitor`).
 
-    cause: str
+    ``kind``: ``"hold"`` (the stream is overdue: stop moving, not latched), ``"resume"`` (it
+    came back in time: follow again), ``"latch"`` (a real failure: latched stop with an
+    alert), ``"refused"`` (samples refused as implausible: alert, keep following).
+    ``source`` says how it was noticed: ``"sequence"``, ``"timestamp"``, ``"deadline"``,
+    ``"grace"`` or ``"check"``.
+    """
+
     kind: str
+    cause: str
+    source: str
     run: int
     time: float
     since_last_good_s: float
 
+    @property
+    def latched(self) -> bool:
+        return self.kind == "latch"
+
+
+_PRIORITY = {"refused": 0, "hold": 1, "resume": 2, "latch": 3}
+
 
 class LossMonitor:
-    """Counts lost packets of a periodic stream and trips on too many in a row.
+    """Loss versus lateness of a periodic stream (the OCC rule, Arata et al. 2010, plus what a
+    real deployment needs).
 
-    Three ways to notice a loss:
+    Lateness (the deadline, not latched): expected packet ``i`` is due at
+    ``last_good + i * period_s``; when the stream is overdue by ``max_consecutive + 1``
+    periods plus ``tolerance_s`` (default 2 ms x 3 + 0.5 ms = 6.5 ms, so a 1 kHz loop notices
+    at the tick exactly 7 ms after the last good packet) the monitor *holds*: the robot keeps
+    its last safe setpoint. A stream that comes back before ``grace_s`` with no gap of
+    ``max_consecutive + 1`` sequence numbers *resumes* by itself (counted, with an event).
 
-    (a) sequence numbers (IGTL v2 message ID, uint32, wrap-around handled): a jump of ``d``
-        means ``d - 1`` packets lost. A repeated number is a *duplicate*; an older one that
-        was missing is *reordered* (late) and taken back out of ``lost_total``; neither
-        counts as a loss nor refreshes the deadline. The last 64 numbers are remembered.
-    (b) the deadline since the last good packet: expected packet ``i`` is due at
-        ``last_good + i * period_s`` and *overdue* once ``now`` passes that plus
-        ``tolerance_s`` (default ``period_s / 4``). Each overdue packet counts as lost, so a
-        silent peer is noticed without any packet arriving. Once a packet arrives, its
-        sequence number (or timestamp) corrects the count.
-    (c) v1 peers without sequence numbers: by sender timestamp gaps,
-        ``round(gap / period_s) - 1`` missing.
+    Loss (latched until :meth:`reset`):
 
-    Up to ``max_consecutive`` consecutive losses are tolerated; ``max_consecutive + 1`` trips.
-    :meth:`check` returns the :class:`LossEvent` once and the monitor stays tripped (latched)
-    until :meth:`reset`.
+    - ``max_consecutive + 1`` or more consecutive sequence numbers missing (IGTL v2 message
+      ID, uint32, wrap-around handled), proven by the first packet after the gap; for v1
+      peers without IDs, the same gap told by the sender timestamps (``round(gap/period) - 1``
+      missing);
+    - silence past ``grace_s`` (default 100 ms: a dead master);
+    - ``max_consecutive + 1`` consecutive samples refused for their timestamp;
+    - with ``strict=True`` (the paper's rule word for word) the deadline itself latches.
 
-    Timing contract (OCC, Arata et al. 2010: 500 Hz positions, 2 lost tolerated, 3 lost
-    stop within 7 ms): pass the *loop's tick time* as ``now`` both to :meth:`on_packet`
-    (when the tick drains the packet) and to :meth:`check` (after draining, every tick). The
-    default deadline is ``period_s * (max_consecutive + 1) + tolerance_s`` = 6.5 ms, so a
-    1 kHz loop trips at the tick exactly 7 ms after the tick that took the last good packet
-    -- the first tick at which the third packet (due at +6 ms) is overdue -- while a packet
-    delayed by up to one tick still arrives in time. ``check`` is O(1) and allocates nothing
-    except when it trips.
+    Samples are judged, not just counted: :meth:`on_packet` returns a :class:`Verdict` and only
+    ``ACCEPT`` may be applied. Duplicates and late (reordered) numbers are not applied and
+    do not refresh the deadline. A number further ahead than the elapsed time allows
+    (``elapsed / period + seq_slack``) or further behind than the 64-number window is
+    *implausible*: refused without a loss (an alert event, rate-limited), so a stray datagram
+    cannot stop teleoperation and cannot steer it either. Once a stream has carried sequence
+    numbers, a sample without one (a v1 peer) is refused: it cannot refresh the deadline.
 
-    Not thread-safe: call from the loop thread.
+    Timestamps (``timestamp_tolerance_s``, None = off): each sample's age
+    ``rx_time - timestamp`` is compared with the peer's clock offset, learned from the first
+    accepted sample and tracked slowly (the two clocks differ and drift; a constant offset
+    between the receiver's monotonic clock and the sender's wall clock cancels out). Older
+    than the tolerance: STALE; newer: FUTURE.
+
+    ``lost_total`` counts only proven losses: gaps between accepted sequence numbers, minus
+    late arrivals that filled them. Samples the daemon itself could not take in time (its
+    stream queue overflowed) must still be passed to :meth:`on_packet` so that the sequence
+    accounting sees every number that arrived.
+
+    Timing contract: pass the loop's tick time as ``now`` to :meth:`on_packet` (when the tick
+    drains the packet) and to :meth:`check` (after draining, every tick). :meth:`check` is
+    O(1) and allocates nothing except when it returns an event. Not thread-safe: loop thread.
     """
 
     def __init__(
@@ -449,6 +564,11 @@ class LossMonitor:
         deadline_s: float | None = None,
         *,
         tolerance_s: float | None = None,
+        grace_s: float = 0.100,
+        strict: bool = False,
+        timestamp_tolerance_s: float | None = None,
+        seq_slack: int = 10,
+        alert_interval_s: float = 1.0,
     ) -> None:
         if period_s <= 0:
             raise ValueError(f"period_s must be > 0, got {period_s}")
@@ -462,158 +582,285 @@ class LossMonitor:
             if deadline_s is None
             else float(deadline_s)
         )
-        # the first elapsed time at which anything can be overdue: skip the maths before it
-        self._quiet_s = min(self.period_s + self.tolerance_s, self.deadline_s)
+        if grace_s < self.deadline_s:
+            raise ValueError(f"grace_s ({grace_s}) must be >= the deadline ({self.deadline_s})")
+        self.grace_s = float(grace_s)
+        self.strict = bool(strict)
+        self.timestamp_tolerance_s = (
+            None if timestamp_tolerance_s is None else float(timestamp_tolerance_s)
+        )
+        self.seq_slack = int(seq_slack)
+        self.alert_interval_s = float(alert_interval_s)
         self.received = 0
+        self.accepted = 0
         self.lost_total = 0
         self.max_run = 0
         self.duplicates = 0
         self.reordered = 0
+        self.implausible_seq = 0
+        self.stale = 0
+        self.future = 0
+        self.unsequenced = 0
+        self.holds = 0
+        self.resumes = 0
         self.trips = 0
+        self.offset_s: float | None = None
         self._reset_stream(None)
 
+    # -------------------------------------------------------------- state
     def _reset_stream(self, now: float | None) -> None:
         self._last_seq: int | None = None
         self._window = 0
         self._last_ts: float | None = None
         self._last_good: float | None = now
-        self._silent = 0  # losses already counted by the deadline since the last good packet
+        self._holding = False
+        self._hold_since = 0.0
         self._tripped = False
         self._pending: LossEvent | None = None
+        self._refused_run = 0
+        self._refused_since_good = 0
+        self._next_refused_alert = -math.inf
+        self.offset_s = None
+        self.trip_event: LossEvent | None = None
 
     def reset(self, now: float | None = None) -> None:
-        """Clear the latch and forget the stream position (counters are kept).
-
-        With ``now``, the deadline is armed from ``now``; otherwise it is armed by the next
-        packet.
-        """
+        """Clear the latch and the hold and forget the stream position and the peer's clock
+        offset (counters are kept). With ``now`` the deadline is armed from ``now``;
+        otherwise by the next accepted packet."""
         self._reset_stream(now)
 
     def arm(self, now: float) -> None:
         """Start the deadline at ``now`` without a packet (e.g. on entering RUNNING)."""
         self._last_good = now
-        self._silent = 0
 
     @property
     def tripped(self) -> bool:
+        """Latched (a real loss): stays True until :meth:`reset`."""
         return self._tripped
+
+    @property
+    def holding(self) -> bool:
+        """The stream is overdue (or latched): the robot must not follow it."""
+        return self._holding or self._tripped
 
     @property
     def last_good(self) -> float | None:
         return self._last_good
 
-    def on_packet(self, seq: int | None, timestamp: float | None, now: float) -> None:
-        """Account for one received packet (seq preferred, else timestamp, else arrival)."""
+    # -------------------------------------------------------------- samples
+    def on_packet(
+        self,
+        seq: int | None,
+        timestamp: float | None,
+        now: float,
+        rx_time: float | None = None,
+    ) -> Verdict:
+        """Judge one received sample (see the class docstring); ``rx_time`` is when it was
+        received (default ``now``), for the timestamp check."""
         self.received += 1
+        verdict = self._judge(seq, timestamp, now, now if rx_time is None else rx_time)
+        if verdict is not Verdict.ACCEPT:
+            name = _VERDICT_COUNTER[verdict]
+            setattr(self, name, getattr(self, name) + 1)
+        return verdict
+
+    def _judge(self, seq: int | None, ts: float | None, now: float, rx: float) -> Verdict:
+        # 1. the timestamp, against the peer's learned clock offset
+        tol = self.timestamp_tolerance_s
+        if tol is not None and ts is not None and ts > 0.0:
+            age = rx - ts
+            offset = self.offset_s
+            if offset is not None and abs(age - offset) > tol:
+                self._refused_run += 1
+                self._refused_since_good += 1
+                if self._refused_run > self.max_consecutive and not self._tripped:
+                    ahead = offset - age
+                    self._trip(
+                        f"{self._refused_run} consecutive samples refused for their timestamp "
+                        f"(last {abs(ahead) * 1e3:.1f} ms "
+                        f"{'in the future' if ahead > 0 else 'stale'}, tolerance "
+                        f"{tol * 1e3:.0f} ms)",
+                        "timestamp",
+                        self._refused_run,
+                        now,
+                    )
+                return Verdict.FUTURE if age < offset else Verdict.STALE
+        # 2. the sequence number
+        gap = 0
+        where = ""
+        source = "sequence"
         if seq is not None:
             seq &= _MASK32
             last = self._last_seq
             if last is None:
-                gap = 0
                 self._window = 1
             else:
                 d = (seq - last) & _MASK32
                 if d == 0:
-                    self.duplicates += 1
-                    return
-                if d >= _HALF32:  # behind the newest: duplicate or late
+                    return Verdict.DUPLICATE
+                if d >= _HALF32:  # behind the newest
                     back = (last - seq) & _MASK32
-                    if back < _WINDOW:
-                        bit = 1 << back
-                        if self._window & bit:
-                            self.duplicates += 1
-                            return
-                        self._window |= bit
-                        if self.lost_total > 0:
-                            self.lost_total -= 1
-                    self.reordered += 1
-                    return
+                    if back >= _WINDOW:
+                        return self._implausible(f"seq {seq} is {back} behind {last}", now)
+                    bit = 1 << back
+                    if self._window & bit:
+                        return Verdict.DUPLICATE
+                    self._window |= bit
+                    if self.lost_total > 0:
+                        self.lost_total -= 1
+                    return Verdict.LATE
+                lg = self._last_good
+                allowed = self.seq_slack + (
+                    0 if lg is None else int((now - lg) / self.period_s) + 1
+                )
+                if d > allowed:
+                    return self._implausible(
+                        f"seq {seq} is {d} ahead of {last} (at most {allowed} possible)", now
+                    )
                 gap = d - 1
                 self._window = ((self._window << d) | 1) & _WINDOW_MASK if d < _WINDOW else 1
+                if gap > self.max_consecutive:
+                    where = f"seq {(last + 1) & _MASK32}-{(seq - 1) & _MASK32} missing"
             self._last_seq = seq
-            if gap > self.max_consecutive:
-                first = (seq - gap) & _MASK32
-                last_lost = (seq - 1) & _MASK32
-                where = f"seq {first}-{last_lost}"
-                self._good(gap, now, "sequence", where)
-            else:
-                self._good(gap, now, "sequence", "")
-            return
-        if timestamp is not None:
+        elif self._last_seq is not None:
+            return Verdict.UNSEQUENCED
+        elif ts is not None and ts > 0.0:
+            source = "timestamp"
             last_ts = self._last_ts
-            if last_ts is None:
-                gap = 0
-            else:
-                dt = timestamp - last_ts
+            if last_ts is not None:
+                dt = ts - last_ts
                 if dt == 0.0:
-                    self.duplicates += 1
-                    return
+                    return Verdict.DUPLICATE
                 if dt < 0.0:
-                    self.reordered += 1
-                    return
+                    return Verdict.LATE
                 gap = max(0, round(dt / self.period_s) - 1)
-            self._last_ts = timestamp
-            where = ""
-            if gap > self.max_consecutive and last_ts is not None:
-                where = f"timestamp gap {(timestamp - last_ts) * 1e3:.1f} ms"
-            self._good(gap, now, "timestamp", where)
-            return
-        self._good(self._silent, now, "deadline", "")
-
-    def _good(self, gap: int, now: float, kind: str, where: str) -> None:
-        # ``gap`` is authoritative; correct what the deadline already counted as lost.
-        self.lost_total = max(0, self.lost_total + gap - self._silent)
-        self.max_run = max(self.max_run, gap)
-        since = now - self._last_good if self._last_good is not None else 0.0
+                if gap > self.max_consecutive:
+                    where = f"timestamp gap {dt * 1e3:.1f} ms"
+            self._last_ts = ts
+        else:
+            source = "deadline"
+        # 3. accepted: account, learn the clock offset, resume or latch
+        if tol is not None and ts is not None and ts > 0.0:
+            age = rx - ts
+            off = self.offset_s
+            # slow tracking (drift), bounded per sample so a refused run cannot drag it
+            self.offset_s = age if off is None else off + 0.01 * (age - off)
+        self.accepted += 1
+        self._refused_run = 0
+        self.lost_total += gap
+        if gap > self.max_run:
+            self.max_run = gap
+        lg = self._last_good
+        since = now - lg if lg is not None else 0.0
         self._last_good = now
-        self._silent = 0
-        if gap > self.max_consecutive and not self._tripped:
-            where = where or f"{since * 1e3:.1f} ms without a packet"
-            self._trip(f"{gap} consecutive packets lost ({where})", kind, gap, now, since)
+        refused = self._refused_since_good
+        self._refused_since_good = 0
+        if gap > self.max_consecutive:
+            if not self._tripped:
+                self._trip(f"{gap} consecutive packets lost ({where})", source, gap, now, since)
+        elif self._holding and not self._tripped:
+            self._holding = False
+            self.resumes += 1
+            extra = f", {refused} refused meanwhile" if refused else ""
+            self._post(
+                LossEvent(
+                    "resume",
+                    f"stream back after {since * 1e3:.1f} ms (gap {gap}{extra}); following again",
+                    source,
+                    gap,
+                    now,
+                    since,
+                )
+            )
+        return Verdict.ACCEPT
 
+    def _implausible(self, what: str, now: float) -> Verdict:
+        if now >= self._next_refused_alert:
+            self._next_refused_alert = now + self.alert_interval_s
+            self._post(
+                LossEvent(
+                    "refused",
+                    f"refused an implausible sequence number: {what} "
+                    f"({self.implausible_seq + 1} so far)",
+                    "sequence",
+                    0,
+                    now,
+                    0.0,
+                )
+            )
+        self._refused_since_good += 1
+        return Verdict.IMPLAUSIBLE
+
+    # -------------------------------------------------------------- every tick
     def check(self, now: float) -> LossEvent | None:
-        """Call every tick after draining packets; returns a :class:`LossEvent` once on trip."""
+        """Call every tick after draining packets; returns at most one event (the most
+        important one since the last call)."""
+        last = self._last_good
+        if last is not None and not self._tripped:
+            elapsed = now - last
+            if elapsed > self.deadline_s:
+                if elapsed > self.grace_s or self.strict:
+                    refused = self._refused_since_good
+                    extra = f"; {refused} samples refused meanwhile" if refused else ""
+                    what = "grace" if elapsed > self.grace_s else "deadline"
+                    limit = self.grace_s if what == "grace" else self.deadline_s
+                    self._trip(
+                        f"no packet for {elapsed * 1e3:.1f} ms (limit {limit * 1e3:.1f} ms"
+                        f"{', strict' if what == 'deadline' else ''}){extra}",
+                        what,
+                        int((elapsed - self.tolerance_s) / self.period_s),
+                        now,
+                        elapsed,
+                    )
+                elif not self._holding:
+                    self._holding = True
+                    self._hold_since = now
+                    self.holds += 1
+                    self._post(
+                        LossEvent(
+                            "hold",
+                            f"no packet for {elapsed * 1e3:.1f} ms: holding",
+                            "deadline",
+                            int((elapsed - self.tolerance_s) / self.period_s),
+                            now,
+                            elapsed,
+                        )
+                    )
         pending = self._pending
         if pending is not None:
             self._pending = None
-            return pending
-        last = self._last_good
-        if last is None or self._tripped:
-            return None
-        elapsed = now - last
-        if elapsed <= self._quiet_s:
-            return None
-        overdue = math.ceil((elapsed - self.tolerance_s) / self.period_s) - 1
-        if overdue > self._silent:
-            self.lost_total += overdue - self._silent
-            self._silent = overdue
-            self.max_run = max(self.max_run, overdue)
-        if elapsed > self.deadline_s:
-            self._trip(
-                f"no packet for {elapsed * 1e3:.1f} ms ({overdue} periods)",
-                "deadline",
-                overdue,
-                now,
-                elapsed,
-            )
-            event = self._pending
-            self._pending = None
-            return event
-        return None
+        return pending
 
-    def _trip(self, cause: str, kind: str, run: int, now: float, since: float) -> None:
+    def _post(self, event: LossEvent) -> None:
+        p = self._pending
+        if p is None or _PRIORITY[event.kind] >= _PRIORITY[p.kind]:
+            self._pending = event
+
+    def _trip(self, cause: str, source: str, run: int, now: float, since: float = 0.0) -> None:
         self._tripped = True
+        self._holding = False
         self.trips += 1
-        self._pending = LossEvent(cause, kind, run, now, since)
+        event = LossEvent("latch", cause, source, run, now, since)
+        self.trip_event = event
+        self._post(event)
 
     def counters(self) -> dict[str, Any]:
-        """Counters for the stats snapshot (``LoopStats.interfaces``)."""
+        """Counters for the stats snapshot."""
         return {
             "received": self.received,
+            "accepted": self.accepted,
             "lost_total": self.lost_total,
             "max_run": self.max_run,
             "duplicates": self.duplicates,
             "reordered": self.reordered,
+            "implausible_seq": self.implausible_seq,
+            "stale": self.stale,
+            "future": self.future,
+            "unsequenced": self.unsequenced,
+            "holds": self.holds,
+            "resumes": self.resumes,
             "trips": self.trips,
+            "holding": self.holding,
             "tripped": self._tripped,
+            "clock_offset_ms": None if self.offset_s is None else round(self.offset_s * 1e3, 3),
         }

@@ -13,6 +13,8 @@ from occ.safety import (
     TRANSITIONS,
     LossEvent,
     LossMonitor,
+    Supervisor,
+    Verdict,
     RobotState,
     StateMachine,
     Watchdog,
@@ -282,67 +284,107 @@ def test_defaults_match_occ_spec() -> None:
     mon = LossMonitor()
     assert mon.period_s == 0.002 and mon.max_consecutive == 2
     assert mon.deadline_s == pytest.approx(0.0065)
+    assert mon.grace_s == pytest.approx(0.100) and not mon.strict
 
 
 @pytest.mark.parametrize("where", [1, 5, 17, 40])
-def test_two_consecutive_lost_never_trips(where: int) -> None:
+def test_two_consecutive_lost_never_holds(where: int) -> None:
     sent = [True] * 60
     sent[where] = sent[where + 1] = False
     mon = LossMonitor()
     assert run_stream(mon, sent, extra_ticks=1) == []
     assert mon.lost_total == 2
     assert mon.max_run == 2
-    assert mon.trips == 0
+    assert mon.trips == 0 and mon.holds == 0
 
 
 @pytest.mark.parametrize("last_good", [0, 3, 10, 25])
-def test_three_consecutive_lost_trips_at_exactly_7ms(last_good: int) -> None:
+def test_three_missing_hold_at_exactly_7ms_then_latch_with_the_numbers(last_good: int) -> None:
     sent = [True] * 50
     for i in range(last_good + 1, last_good + 4):
         sent[i] = False
     mon = LossMonitor()
-    events = run_stream(mon, sent)
-    assert len(events) == 1  # reported once, then latched
-    tick, event = events[0]
-    last_good_tick = 2 * last_good
-    # the third lost packet is due at +6 ms; the first 1 kHz tick past it with tolerance is +7
-    assert tick == last_good_tick + 7
-    assert event.since_last_good_s == pytest.approx(7 * MS)
-    assert event.since_last_good_s <= 7 * MS + 1e-12
-    assert event.kind == "deadline"
-    assert event.run == 3
-    assert event.cause == "no packet for 7.0 ms (3 periods)"
-    assert mon.tripped and mon.trips == 1
-    assert mon.lost_total == 3  # corrected by the sequence number of the next packet
+    events = run_stream(mon, sent, first_seq=100)
+    assert [(t, e.kind) for t, e in events] == [
+        (2 * last_good + 7, "hold"),  # the 3rd packet, due at +6 ms, is overdue at +7 ms
+        (2 * last_good + 8, "latch"),  # the next packet proves the 3 numbers missing
+    ]
+    hold, latch = events[0][1], events[1][1]
+    assert hold.since_last_good_s == pytest.approx(7 * MS)
+    assert latch.source == "sequence" and latch.run == 3
+    first = 100 + last_good + 1
+    assert latch.cause == f"3 consecutive packets lost (seq {first}-{first + 2} missing)"
+    assert mon.tripped and mon.holding and mon.trips == 1 and mon.holds == 1
+    assert mon.lost_total == 3
 
 
-def test_trip_is_latched_until_reset() -> None:
+def test_late_burst_with_contiguous_numbers_holds_and_resumes() -> None:
+    # packets 5..19 (30 ms worth) are all delayed and arrive together at 40 ms: late, not lost
+    sent = [True] * 40
+    arrivals: dict[int, list[int]] = {}
+    for i in range(40):
+        t = 2 * i if not 5 <= i < 20 else 40
+        arrivals.setdefault(t, []).append(i)
+    mon = LossMonitor()
+    events = []
+    for t in range(2 * len(sent)):
+        for i in arrivals.get(t, ()):
+            assert mon.on_packet(i, None, t * MS) is Verdict.ACCEPT
+        ev = mon.check(t * MS)
+        if ev is not None:
+            events.append((t, ev.kind))
+    assert events == [(8 + 7, "hold"), (40, "resume")]
+    assert not mon.tripped and not mon.holding
+    assert mon.lost_total == 0 and mon.holds == 1 and mon.resumes == 1
+
+
+def test_silence_past_the_grace_latches_as_a_dead_peer() -> None:
     mon = LossMonitor()
     mon.on_packet(1, None, 0.0)
+    kinds = []
+    for t in range(1, 120):
+        ev = mon.check(t * MS)
+        if ev is not None:
+            kinds.append((t, ev.kind, ev.source))
+    assert kinds == [(7, "hold", "deadline"), (101, "latch", "grace")]
+    assert mon.trip_event is not None
+    assert mon.trip_event.cause.startswith("no packet for 101.0 ms (limit 100.0 ms)")
+
+
+def test_strict_mode_latches_at_the_deadline() -> None:
+    mon = LossMonitor(strict=True)
+    mon.on_packet(1, None, 0.0)
     assert mon.check(0.006) is None
+    ev = mon.check(0.007)
+    assert ev is not None and ev.kind == "latch" and ev.source == "deadline"
+    assert "strict" in ev.cause
+
+
+def test_latch_holds_until_reset() -> None:
+    mon = LossMonitor(strict=True)
+    mon.on_packet(1, None, 0.0)
     assert mon.check(0.007) is not None
     for t in range(8, 30):
         assert mon.check(t * MS) is None
     mon.on_packet(2, None, 0.030)
-    assert mon.check(0.030) is None and mon.tripped
+    assert mon.check(0.030) is None and mon.tripped and mon.holding
     mon.reset()
-    assert not mon.tripped
+    assert not mon.tripped and not mon.holding
     assert mon.check(1.0) is None  # unarmed until a packet
-    mon.on_packet(500, None, 1.0)  # any sequence number after reset
+    assert mon.on_packet(500, None, 1.0) is Verdict.ACCEPT  # any number after a reset
     assert mon.check(1.006) is None
     assert mon.check(1.007) is not None
     assert mon.trips == 2
 
 
-def test_sequence_gap_trips_on_arrival_with_range() -> None:
+def test_sequence_gap_latches_on_arrival_with_range() -> None:
     mon = LossMonitor()
     mon.on_packet(1040, None, 0.000)
-    mon.on_packet(1044, None, 0.001)  # 1041-1043 lost, noticed before the deadline
-    event = mon.check(0.001)
-    assert event is not None
-    assert event.kind == "sequence"
-    assert event.cause == "3 consecutive packets lost (seq 1041-1043)"
-    assert mon.check(0.002) is None
+    mon.on_packet(1044, None, 0.008)  # 1041-1043 lost
+    event = mon.check(0.008)
+    assert event is not None and event.kind == "latch" and event.source == "sequence"
+    assert event.cause == "3 consecutive packets lost (seq 1041-1043 missing)"
+    assert mon.check(0.009) is None
 
 
 @pytest.mark.parametrize(
@@ -350,7 +392,7 @@ def test_sequence_gap_trips_on_arrival_with_range() -> None:
     [
         ([2**32 - 2, 2**32 - 1, 0, 1, 2], 0, None),
         ([2**32 - 2, 1], 2, None),
-        ([2**32 - 1, 3], 3, "3 consecutive packets lost (seq 0-2)"),
+        ([2**32 - 1, 3], 3, "3 consecutive packets lost (seq 0-2 missing)"),
         ([2**32 - 3, 2**32 - 2, 2**32 - 1], 0, None),
     ],
 )
@@ -358,33 +400,50 @@ def test_sequence_wraparound(seqs: list[int], lost: int, trip_cause: str | None)
     mon = LossMonitor()
     event = None
     for i, s in enumerate(seqs):
-        mon.on_packet(s, None, i * MS)
-        event = event or mon.check(i * MS)
+        mon.on_packet(s, None, 2 * i * MS)
+        event = event or mon.check(2 * i * MS)
     assert mon.lost_total == lost
     assert (event.cause if event else None) == trip_cause
 
 
-def test_duplicates_and_reordering_are_not_losses() -> None:
+def test_verdicts_duplicates_and_reordering_are_not_losses_and_not_applied() -> None:
     mon = LossMonitor()
-    for s in (1, 2, 2, 4, 3, 3, 5, 1):
-        mon.on_packet(s, None, 0.0)
+    verdicts = [mon.on_packet(s, None, 0.0) for s in (1, 2, 2, 4, 3, 3, 5, 1)]
+    A, D, L = Verdict.ACCEPT, Verdict.DUPLICATE, Verdict.LATE
+    assert verdicts == [A, A, D, A, L, D, A, D]
     assert mon.duplicates == 3  # 2, 3 and the old 1
     assert mon.reordered == 1  # 3, late
     assert mon.lost_total == 0
     assert mon.max_run == 1
-    assert mon.received == 8
-    mon.on_packet(1000, None, 0.0)
-    mon.on_packet(900, None, 0.0)  # far behind the window: late, not a duplicate we can tell
-    assert mon.reordered == 2
-    assert mon.counters() == {
-        "received": 10,
-        "lost_total": 994,
-        "max_run": 994,
-        "duplicates": 3,
-        "reordered": 2,
-        "trips": 1,
-        "tripped": True,
-    }
+    assert mon.received == 8 and mon.accepted == 4
+
+
+def test_implausible_sequence_numbers_are_refused_without_a_stop() -> None:
+    mon = LossMonitor()
+    for i in range(10):
+        assert mon.on_packet(100 + i, None, 2 * i * MS) is Verdict.ACCEPT
+        mon.check(2 * i * MS)
+    now = 20 * MS
+    # one datagram far ahead (a stray sender, a bit flip): at most ~11 numbers fit in 2 ms
+    assert mon.on_packet(100 + 10 + 5000, None, now) is Verdict.IMPLAUSIBLE
+    ev = mon.check(now)
+    assert ev is not None and ev.kind == "refused" and "5001 ahead" in ev.cause
+    # far behind the 64-number window
+    assert mon.on_packet(5, None, now) is Verdict.IMPLAUSIBLE
+    assert mon.check(now) is None  # alerts are rate-limited (1 per second)
+    # the real stream goes on, untouched: no loss, no hold, no latch
+    for i in range(10, 20):
+        assert mon.on_packet(100 + i, None, 2 * i * MS) is Verdict.ACCEPT
+        assert mon.check(2 * i * MS) is None
+    assert mon.implausible_seq == 2 and mon.lost_total == 0 and mon.trips == 0
+
+
+def test_a_slow_stream_may_skip_as_many_numbers_as_time_allows() -> None:
+    mon = LossMonitor(max_consecutive=100, grace_s=1.0)
+    mon.on_packet(0, None, 0.0)
+    # 60 ms later: 30 periods elapsed, so a jump of 30 (+ slack) is plausible
+    assert mon.on_packet(30, None, 0.060) is Verdict.ACCEPT
+    assert mon.on_packet(30 + 60, None, 0.061) is Verdict.IMPLAUSIBLE
 
 
 def test_duplicates_do_not_refresh_the_deadline() -> None:
@@ -392,78 +451,121 @@ def test_duplicates_do_not_refresh_the_deadline() -> None:
     mon.on_packet(7, None, 0.0)
     events = []
     for t in range(1, 10):
-        mon.on_packet(7, None, t * MS)  # a replaying network: same packet over and over
+        assert mon.on_packet(7, None, t * MS) is Verdict.DUPLICATE  # a replaying network
         ev = mon.check(t * MS)
         if ev:
-            events.append((t, ev))
-    assert [t for t, _ in events] == [7]
+            events.append((t, ev.kind))
+    assert events == [(7, "hold")]
     assert mon.duplicates == 9
 
 
-def test_silent_peer_counts_each_overdue_period() -> None:
+def test_unsequenced_samples_cannot_refresh_a_sequenced_stream() -> None:
     mon = LossMonitor()
-    assert mon.check(5.0) is None  # nothing received yet: not armed
-    mon.arm(10.0)
-    lost = []
-    event = None
-    for t in range(1, 8):
-        event = mon.check(10.0 + t * MS)
-        lost.append(mon.lost_total)
-    # packet i (due at 2i ms) counts once now > 2i + 0.5 ms
-    assert lost == [0, 0, 1, 1, 2, 2, 3]
-    assert event is not None and event.cause.startswith("no packet for 7.0 ms (3 periods)")
+    mon.on_packet(1, 100.0, 0.0)
+    events = []
+    for t in range(1, 10):
+        assert mon.on_packet(None, 100.0 + t * MS, t * MS) is Verdict.UNSEQUENCED  # a v1 peer
+        ev = mon.check(t * MS)
+        if ev:
+            events.append((t, ev.kind))
+    assert events == [(7, "hold")] and mon.unsequenced == 9
 
 
-def test_late_sequence_number_corrects_deadline_count() -> None:
-    mon = LossMonitor(max_consecutive=5)
-    mon.on_packet(1, None, 0.0)
-    mon.check(0.0055)  # 2 overdue
-    assert mon.lost_total == 2
-    mon.on_packet(2, None, 0.0056)  # the peer only paused: nothing was lost
-    assert mon.lost_total == 0
-    assert mon.max_run == 2  # the silence was real
+def test_timestamps_checked_against_the_learned_clock_offset() -> None:
+    # the sender's clock is an hour and 3 ms ahead of ours: a constant offset is fine
+    skew = 3600.003
+    mon = LossMonitor(timestamp_tolerance_s=0.050)
+    for i in range(5):
+        t = 2 * i * MS
+        assert mon.on_packet(i, 1000.0 + t + skew, t, t) is Verdict.ACCEPT
+    assert mon.offset_s == pytest.approx(-1000.0 - skew)
+    t = 10 * MS
+    assert mon.on_packet(5, 1000.0 + t + skew - 3600, t, t) is Verdict.STALE  # an hour old
+    assert mon.on_packet(5, 1000.0 + t + skew + 86400, t, t) is Verdict.FUTURE  # a day ahead
+    assert mon.on_packet(5, 1000.0 + t + skew + 0.049, t, t) is Verdict.ACCEPT  # within 50 ms
+    assert mon.stale == 1 and mon.future == 1 and mon.trips == 0
+    assert mon.check(t) is None
+
+
+def test_a_run_of_refused_timestamps_counts_like_loss() -> None:
+    mon = LossMonitor(timestamp_tolerance_s=0.050)
+    mon.on_packet(0, 500.0, 0.0, 0.0)
+    kinds = []
+    for i in range(1, 4):
+        t = 2 * i * MS
+        assert mon.on_packet(i, 500.0 + t - 10.0, t, t) is Verdict.STALE  # 10 s old
+        ev = mon.check(t)
+        if ev:
+            kinds.append((i, ev.kind, ev.source))
+    assert kinds == [(3, "latch", "timestamp")]
+    assert mon.trip_event is not None
+    assert mon.trip_event.cause.startswith("3 consecutive samples refused for their timestamp")
 
 
 def test_v1_timestamps() -> None:
     mon = LossMonitor()
-    for ts in (0.000, 0.002, 0.004, 0.0101, 0.0101, 0.008):
-        mon.on_packet(None, 100.0 + ts, 0.0)
+    verdicts = [mon.on_packet(None, 100.0 + ts, 0.0) for ts in (0, 0.002, 0.004, 0.0101, 0.0101)]
+    assert verdicts[-1] is Verdict.DUPLICATE
+    assert mon.on_packet(None, 100.008, 0.0) is Verdict.LATE
     assert mon.lost_total == 2  # 6.1 ms gap = 2 missing, tolerated
-    assert mon.duplicates == 1 and mon.reordered == 1
     assert mon.check(0.0) is None
     mon.on_packet(None, 100.0 + 0.0181, 0.0)  # 8 ms gap = 3 missing
     event = mon.check(0.0)
-    assert event is not None and event.kind == "timestamp"
+    assert event is not None and event.kind == "latch" and event.source == "timestamp"
     assert event.cause == "3 consecutive packets lost (timestamp gap 8.0 ms)"
 
 
-def test_v1_stream_deadline_timing_matches_v2() -> None:
+def test_v1_stream_timing_matches_v2() -> None:
     sent = [True] * 20
     sent[5] = sent[6] = sent[7] = False
     events = run_stream(LossMonitor(), sent, seq=False, timestamps=True)
-    assert [t for t, _ in events] == [2 * 4 + 7]
+    assert [(t, e.kind) for t, e in events] == [(2 * 4 + 7, "hold"), (2 * 4 + 8, "latch")]
 
 
-def test_stream_without_seq_or_timestamp_uses_deadline_only() -> None:
+def test_stream_without_seq_or_timestamp_holds_and_resumes_by_deadline_only() -> None:
     mon = LossMonitor()
     sent = [True] * 20
     sent[3] = sent[4] = False
     assert run_stream(mon, sent, seq=False, extra_ticks=1) == []
-    assert mon.lost_total == 2
     sent[10] = sent[11] = sent[12] = False
     mon2 = LossMonitor()
-    assert [t for t, _ in run_stream(mon2, sent, seq=False)] == [2 * 9 + 7]
+    events = run_stream(mon2, sent, seq=False, extra_ticks=1)
+    # without numbers a loss cannot be proven: hold, then resume on the next packet
+    assert [(t, e.kind) for t, e in events] == [(2 * 9 + 7, "hold"), (2 * 13, "resume")]
 
 
 def test_custom_deadline_and_validation() -> None:
     mon = LossMonitor(period_s=0.001, max_consecutive=0, deadline_s=0.0015)
     mon.on_packet(1, None, 0.0)
     assert mon.check(0.0015) is None
-    assert mon.check(0.0016) is not None
+    ev = mon.check(0.0016)
+    assert ev is not None and ev.kind == "hold"
     with pytest.raises(ValueError):
         LossMonitor(period_s=0)
     with pytest.raises(ValueError):
         LossMonitor(max_consecutive=-1)
+    with pytest.raises(ValueError):
+        LossMonitor(grace_s=0.005)  # shorter than the deadline
+
+
+def test_supervisor_trips_once_on_a_silent_loop_and_latches() -> None:
+    reasons: list[str] = []
+    sup = Supervisor(0.020, on_trip=reasons.append)
+    assert sup.check(100.0) is None  # not armed
+    sup.arm(0.0)
+    for k in range(1, 50):
+        sup.beat(k * MS)
+        assert sup.check(k * MS + 0.0005) is None
+    assert sup.check(0.049 + 0.0199) is None  # within the limit: not yet
+    reason = sup.check(0.049 + 0.0201)
+    assert reason is not None and reason.startswith("control loop did not tick for 20.1 ms")
+    assert reasons == [reason] and sup.tripped
+    assert sup.check(10.0) is None and sup.trips == 1  # latched, reported once
+    sup.reset()
+    sup.beat(10.0)
+    assert sup.check(10.01) is None
+    sup.disarm()
+    assert sup.check(99.0) is None
 
 
 # Streams built from gaps of 0-2 lost packets between received ones: no run of >= 3 losses.
@@ -479,7 +581,7 @@ def _stream(gaps: list[int]) -> list[bool]:
 
 @settings(max_examples=200, deadline=None)
 @given(gaps=gaps_0_2, first_seq=st.integers(0, 2**32 - 1), data=st.data())
-def test_property_no_run_of_three_never_trips(gaps: list[int], first_seq: int, data) -> None:
+def test_property_no_run_of_three_never_holds(gaps: list[int], first_seq: int, data) -> None:
     sent = _stream(gaps)
     delays = data.draw(st.lists(st.integers(0, 1), min_size=len(sent), max_size=len(sent)))
     mon = LossMonitor()
@@ -487,12 +589,12 @@ def test_property_no_run_of_three_never_trips(gaps: list[int], first_seq: int, d
     assert events == []
     assert mon.lost_total == sum(gaps)
     assert mon.max_run == max(gaps)
-    assert mon.trips == 0
+    assert mon.trips == 0 and mon.holds == 0
 
 
 @settings(max_examples=200, deadline=None)
 @given(gaps=gaps_0_2, run=st.integers(3, 10), first_seq=st.integers(0, 2**32 - 1))
-def test_property_first_run_of_three_trips_at_7ms(
+def test_property_first_run_of_three_holds_at_7ms_and_latches_on_proof(
     gaps: list[int], run: int, first_seq: int
 ) -> None:
     sent = _stream(gaps)
@@ -500,5 +602,7 @@ def test_property_first_run_of_three_trips_at_7ms(
     sent += [False] * run + [True] * 5
     mon = LossMonitor()
     events = run_stream(mon, sent, first_seq=first_seq)
-    assert [t for t, _ in events] == [2 * last_good + 7]
+    proof = 2 * (last_good + run + 1)
+    assert [(t, e.kind) for t, e in events] == [(2 * last_good + 7, "hold"), (proof, "latch")]
     assert events[0][1].since_last_good_s <= 7 * MS + 1e-12
+    assert events[1][1].run == run
