@@ -535,10 +535,63 @@ class LossConfig(_Model):
         description="Consecutive losses tolerated; `max_consecutive + 1` in a row stop the robot.",
     )
     deadline_ms: PosFloat | None = Field(
-        None, description="Stop if no good packet for this long; null = no deadline."
+        None,
+        description="Hold (stop moving, not latched) when no good packet for this long; null "
+        "= `period_ms * (max_consecutive + 1) + period_ms / 4` (6.5 ms: the OCC 7 ms rule).",
+    )
+    grace_ms: PosFloat = Field(
+        100.0,
+        description="Latched stop with an alert when the stream stays silent this long (a "
+        "dead master); a stream back within it, with no gap of `max_consecutive + 1`, "
+        "resumes by itself.",
+    )
+    strict: Bool = Field(
+        False,
+        description="The paper's rule word for word: the deadline itself latches the stop "
+        "(no hold-and-resume).",
+    )
+    timestamp_tolerance_ms: PosFloat | None = Field(
+        50.0,
+        description="Refuse samples whose header timestamp is off by more than this from the "
+        "peer's learned clock offset (stale or future); a run of refused samples counts like "
+        "loss. null = no timestamp check.",
     )
     policy: Policy = Field(
-        "hold", description="On stop: `hold` the last safe position, or latch `fault`."
+        "hold", description="On a latched loss: `hold` (STOPPED until Run) or latch `fault`."
+    )
+
+    @model_validator(mode="after")
+    def _grace_after_deadline(self) -> LossConfig:
+        deadline = (
+            self.deadline_ms
+            if self.deadline_ms is not None
+            else self.period_ms * (self.max_consecutive + 1.25)
+        )
+        if self.grace_ms < deadline:
+            _raise_problems(
+                [
+                    (
+                        ("grace_ms",),
+                        f"must be >= the deadline ({deadline:g} ms), got {self.grace_ms:g}",
+                    )
+                ]
+            )
+        return self
+
+
+class SupervisorConfig(_Model):
+    """The supervisor: a thread outside the loop that notices a loop that stopped ticking."""
+
+    enabled: Bool = Field(True, description="Run the supervisor thread.")
+    timeout_ms: PosFloat = Field(
+        20.0,
+        description="A loop that has not ticked for this long is hung: drivers to their safe "
+        "state at once, operators alerted, FAULT when the loop comes back.",
+    )
+    fifo_priority: Annotated[Int, Field(ge=1, le=99)] | None = Field(
+        None,
+        description="SCHED_FIFO priority of the supervisor thread; null = one above the loop's "
+        "`robot.realtime.fifo_priority` (when that is set and permitted).",
     )
 
 
@@ -547,6 +600,7 @@ class SafetyConfig(_Model):
 
     watchdog: WatchdogConfig = Field(WatchdogConfig(), description="Watchdog.")
     loss: LossConfig = Field(LossConfig(), description="Packet-loss monitor.")
+    supervisor: SupervisorConfig = Field(SupervisorConfig(), description="Loop supervisor.")
 
 
 class RecordingConfig(_Model):

@@ -38,6 +38,10 @@ from typing import Any, cast
 import igtl
 from igtl.messages.base import Message
 from igtl.transport import Peer, TCPClient, TCPServer, UDPEndpoint
+from igtl.transport.common import RateLimit
+
+from .commands import parse_request
+from .errors import CommandError
 
 log = logging.getLogger(__name__)
 
@@ -53,35 +57,62 @@ class Inbound:
     peer: Peer
     msg: Message
     t_rx: float  # clock time at reception (the daemon clock, monotonic seconds)
+    #: operator requests are parsed (XML included) on the interface thread, never by the loop
+    request: Any = None
 
 
 class StreamQueue:
-    """Bounded queue of pose samples, drained fully each tick; oldest dropped when full."""
+    """Bounded queue of pose samples, drained fully each tick; oldest dropped when full.
 
-    __slots__ = ("_dq", "depth", "received", "dropped")
+    A sample pushed out by a full queue was received in time by the daemon, which itself could
+    not take it (its loop stalled): it is counted as a *local overflow* (``dropped``), never
+    as network loss, and kept in a second bounded queue (:meth:`drain_overflow`) so that the
+    loss monitor's sequence accounting still sees every number that arrived. Only when that
+    one overflows too (``overflow_lost``: a loop stalled for thousands of samples) are
+    numbers forgotten.
+    """
 
-    def __init__(self, depth: int = 10) -> None:
-        self._dq: deque[Inbound] = deque(maxlen=depth)
+    __slots__ = ("_dq", "_evicted", "_lock", "depth", "received", "dropped", "overflow_lost")
+
+    def __init__(self, depth: int = 10, overflow_depth: int = 4096) -> None:
+        self._dq: deque[Inbound] = deque()
+        self._evicted: deque[Inbound] = deque(maxlen=overflow_depth)
+        self._lock = threading.Lock()
         self.depth = depth
         self.received = 0
         self.dropped = 0
+        self.overflow_lost = 0
 
     def put(self, item: Inbound) -> bool:
-        if len(self._dq) >= self.depth:
-            self.dropped += 1
-        self._dq.append(item)  # deque(maxlen) evicts the oldest atomically
-        self.received += 1
+        with self._lock:
+            dq = self._dq
+            if len(dq) >= self.depth:
+                ev = self._evicted
+                if len(ev) == ev.maxlen:
+                    self.overflow_lost += 1
+                ev.append(dq.popleft())
+                self.dropped += 1
+            dq.append(item)
+            self.received += 1
         return True
 
     def drain(self) -> list[Inbound]:
-        out: list[Inbound] = []
-        pop = self._dq.popleft
-        while self._dq:
-            try:
-                out.append(pop())
-            except IndexError:  # pragma: no cover - raced with nothing: single consumer
-                break
+        """Every queued sample, oldest first (the queue is left empty)."""
+        with self._lock:
+            out = list(self._dq)
+            self._dq.clear()
         return out
+
+    def drain_overflow(self) -> list[Inbound]:
+        """The samples pushed out since the last call (for accounting only), oldest first."""
+        with self._lock:
+            out = list(self._evicted)
+            self._evicted.clear()
+        return out
+
+    @property
+    def has_overflow(self) -> bool:
+        return bool(self._evicted)
 
     def __len__(self) -> int:
         return len(self._dq)
@@ -155,6 +186,7 @@ class Interface:
         self.manager = manager
         self._now = clock_now
         self.counters = InterfaceCounters()
+        self._log_limit = RateLimit(5)
         # type name -> queue for this interface's declared inputs
         self.streams: dict[str, StreamQueue] = {}
         self.command_inputs: set[str] = set()
@@ -246,6 +278,23 @@ class Interface:
                     item, "interface does not accept commands", code=igtl.StatusCode.ACCESS_DENIED
                 )
                 return
+            if mtype not in self.command_inputs:
+                try:
+                    item.request = parse_request(msg)
+                except CommandError as err:
+                    c.refused += 1
+                    if self._log_limit.allow():
+                        log.warning(
+                            "%s: refused %s from %s:%s: %s",
+                            self.name,
+                            mtype,
+                            *peer.address[:2],
+                            err,
+                        )
+                    self.manager.reply_error(
+                        item, str(err), code=igtl.StatusCode.ILLEGAL_INSTRUCTION
+                    )
+                    return
             if not self.manager.commands.put(item):
                 c.refused += 1
                 log.warning(

@@ -146,7 +146,12 @@ def test_stop_state_holds_and_reports(master: SimMaster) -> None:
     p0 = master.sent[-1].position
     master.ticks(200)
     assert master.sent[-1].metadata["run"] == "0"
-    assert master.sent[-1].position == pytest.approx(p0, abs=0.2)
+    # holds the last commanded setpoint: the handle settles where it was told (the simulated
+    # drive lags its command by ~0.3 mm at this speed) and then stays there
+    p1 = master.sent[-1].position
+    assert p1 == pytest.approx(p0, abs=0.5)
+    master.ticks(100)
+    assert master.sent[-1].position == pytest.approx(p1, abs=0.01)
 
 
 def test_slicer_markups_points_become_fixture_spheres(master: SimMaster) -> None:

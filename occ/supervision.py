@@ -1,0 +1,125 @@
+"""Threads that work beside the control loop, never inside it.
+
+- :class:`SupervisorThread` runs a :class:`~occ.safety.Supervisor` in real time: a loop that
+  stopped ticking (a hung tick, a blocking call) is noticed within the supervisor's timeout
+  even though the loop thread cannot notice it itself.
+- :class:`Worker` runs jobs the loop must not pay for (the statistics behind ``GetStats``):
+  the loop hands a job over in O(1) and the worker sends the reply itself.
+
+What still holds when the whole process is frozen (SIGSTOP, a VM pause, a C call that keeps
+the interpreter lock): neither the loop nor these threads run, so nothing in this process can
+act. The device-side heartbeat does (the ``Driver`` contract's ``heartbeat_ms``: the drive
+stops itself when it is not refreshed in time), and the peer notices the silence (the
+slave's loss monitor holds, then latches after the grace).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import threading
+from collections.abc import Callable
+
+from .clock import Clock
+from .safety import Supervisor
+
+__all__ = ["SupervisorThread", "Worker"]
+
+log = logging.getLogger(__name__)
+
+
+class SupervisorThread:
+    """Checks a :class:`Supervisor` every ``timeout / 4`` seconds on its own thread."""
+
+    def __init__(
+        self,
+        supervisor: Supervisor,
+        clock: Clock,
+        *,
+        fifo_priority: int | None = None,
+        name: str = "occ-supervisor",
+    ) -> None:
+        self.supervisor = supervisor
+        self.clock = clock
+        self.fifo_priority = fifo_priority
+        self.interval_s = supervisor.timeout_s / 4.0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._main, name=name, daemon=True)
+        self.report = ""
+
+    def start(self) -> SupervisorThread:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(1.0)
+
+    def _main(self) -> None:
+        if self.fifo_priority is not None:
+            # Above the loop: when the loop spins (a hung tick that keeps the CPU), the
+            # supervisor must still get a core the moment it wakes.
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.fifo_priority))
+                self.report = f"SCHED_FIFO {self.fifo_priority}"
+            except (OSError, AttributeError) as err:
+                self.report = f"SCHED_FIFO refused ({type(err).__name__})"
+        now = self.clock.now
+        check = self.supervisor.check
+        while not self._stop.wait(self.interval_s):
+            try:
+                check(now())
+            except Exception:  # noqa: BLE001 - the supervisor must outlive a failing action
+                log.exception("supervisor action failed")
+
+
+class Worker:
+    """A bounded queue of jobs run on one background thread (``submit`` never blocks)."""
+
+    def __init__(self, name: str, depth: int = 8) -> None:
+        self._jobs: queue.Queue[Callable[[], None] | None] = queue.Queue(depth)
+        self._thread = threading.Thread(target=self._main, name=name, daemon=True)
+        self._started = False
+        self.done = 0
+        self.refused = 0
+        self.failed = 0
+
+    def start(self) -> Worker:
+        if not self._started:
+            self._started = True
+            self._thread.start()
+        return self
+
+    def submit(self, job: Callable[[], None]) -> bool:
+        """Queue ``job``; False (counted) when the queue is full or the worker not started."""
+        if not self._started:
+            self.refused += 1
+            return False
+        try:
+            self._jobs.put_nowait(job)
+        except queue.Full:
+            self.refused += 1
+            return False
+        return True
+
+    def stop(self) -> None:
+        if self._started:
+            try:
+                self._jobs.put_nowait(None)
+            except queue.Full:
+                pass
+            self._thread.join(1.0)
+
+    def _main(self) -> None:
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            try:
+                job()
+                self.done += 1
+            except Exception:  # noqa: BLE001 - one failing job must not end the worker
+                self.failed += 1
+                log.exception("%s: job failed", self._thread.name)
