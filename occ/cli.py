@@ -191,6 +191,7 @@ def run(config: Any, args: argparse.Namespace) -> int:
         if recorder is not None:
             recorder.close()
         snap = robot.snapshot()
+        snap["final_state"] = final_state.value  # before the shutdown
         log.info("%s", robot.stats.format_line())
         if args.stats is not None:
             args.stats.parent.mkdir(parents=True, exist_ok=True)

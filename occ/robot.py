@@ -151,6 +151,13 @@ def quaternion_to_rotation(q: Sequence[float]) -> np.ndarray:
     )
 
 
+def judge(monitor: LossMonitor, item: Inbound, now: float, to_wall: float) -> Verdict:
+    """The loss monitor's verdict on one stream sample (sequence number from a v2 header)."""
+    msg = item.msg
+    seq = msg.message_id if msg.header_version == 2 else None
+    return monitor.on_packet(seq, msg.timestamp, now, item.t_rx + to_wall)
+
+
 class Robot:
     """A robot daemon assembled from a :class:`~occ.config.DaemonConfig`."""
 
@@ -465,13 +472,13 @@ class Robot:
         watched = self.loss_input
         recorder = self.recorder
         on_sample = self.controller.on_sample
+        # reception times on the wall clock, to compare with the peer's header timestamps
+        to_wall = self.clock.wall_time() - now if monitor is not None else 0.0
         for name, q in self._stream_queues:
             if monitor is not None and name == watched and q.has_overflow:
                 # samples the loop could not take in time: seen, never called lost
                 for item in q.drain_overflow():
-                    msg = item.msg
-                    v2 = msg.header_version == 2
-                    monitor.on_packet(msg.message_id if v2 else None, msg.timestamp, now, item.t_rx)
+                    judge(monitor, item, now, to_wall)
             if not len(q):
                 continue
             for item in q.drain():
@@ -479,11 +486,7 @@ class Robot:
                 if recorder is not None:
                     recorder.record_message(msg, "in", name, now)
                 if monitor is not None and name == watched:
-                    v2 = msg.header_version == 2
-                    verdict = monitor.on_packet(
-                        msg.message_id if v2 else None, msg.timestamp, now, item.t_rx
-                    )
-                    if verdict is not Verdict.ACCEPT:
+                    if judge(monitor, item, now, to_wall) is not Verdict.ACCEPT:
                         continue
                 on_sample(item, now)
 

@@ -102,8 +102,11 @@ def main(argv: list[str] | None = None) -> int:
         if f.exists():
             d = json.loads(f.read_text())
             lat = d["lateness_us"]
-            print(f"{name}: {d['ticks']} ticks, state {d.get('state')}, lateness p50 {lat['p50']:.0f} "
+            state = d.get("final_state", d.get("state"))
+            print(f"{name}: {d['ticks']} ticks, state {state}, lateness p50 {lat['p50']:.0f} "
                   f"p99 {lat['p99']:.0f} max {lat['max']:.0f} us, cpu {d['cpu_percent']:.0f}%")
+            if state != "RUNNING" or d.get("last_alert"):
+                print(f"  {name} ended {stopped_hint(state, d.get('last_alert', ''))}")
             if name == "slave" and "loss" in d:
                 print(f"  loss monitor: {json.dumps(d['loss'])}")
             if name == "slave" and "sample_to_write_us" in d.get("controller", {}):
@@ -137,10 +140,33 @@ def live_line(standin: SlicerStandIn) -> str:
     rate = (rx - _last_rx[1]) / (now - _last_rx[0]) if _last_rx and now > _last_rx[0] else 0.0
     _last_rx[:] = [now, rx]
     tip_rate = standin.summary().get("Tip", {}).get("rate_hz") or 0.0
-    return (f"slave {d['state']:8s} | master {rate:5.0f} Hz lost {loss.get('lost_total', 0)} "
-            f"max-run {loss.get('max_run', 0)} trips {loss.get('trips', 0)} | "
+    line = (f"slave {d['state']:8s} | master {rate:5.0f} Hz lost {loss.get('lost_total', 0)} "
+            f"holds {loss.get('holds', 0)} resumed {loss.get('resumes', 0)} "
+            f"stops {loss.get('trips', 0)} | "
             f"loop p99 {lat['p99']:.0f}us max {lat['max']:.0f}us | seq {ctrl.get('last_seq')} | "
             f"{tip_txt} @ {tip_rate:.1f} Hz")
+    if d["state"] != "RUNNING":
+        # never silently stuck: say why, and how to go on
+        line += f"\n  {stopped_hint(d['state'], d.get('last_alert', ''))}"
+    return line
+
+
+RESUME = {
+    "STOPPED": ["Run"],
+    "FAULT": ["Reset", "Enable", "Run"],
+    "ESTOP": ["Reset", "Enable", "Run"],
+    "READY": ["Enable", "Run"],
+    "ENABLED": ["Run"],
+}
+
+
+def stopped_hint(state: str, cause: str) -> str:
+    """What stopped the slave and the commands that resume it."""
+    steps = RESUME.get(state, [])
+    how = "; ".join(
+        f"igtl send 127.0.0.1:18944 --type COMMAND --command-name {c}" for c in steps
+    )
+    return f"{state}: {cause or 'no alert recorded'}" + (f" -> to resume: {how}" if how else "")
 
 
 if __name__ == "__main__":
