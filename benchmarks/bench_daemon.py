@@ -52,6 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cpu-load-only", action="store_true",
                    help="the master runs (same CPU use) but streams to an unused port, and no "
                         "TCP clients connect: separates machine load from the slave's own I/O")
+    p.add_argument("--no-record", action="store_true", help="the slave without recording")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
     out = args.out or Path(tempfile.mkdtemp(prefix="occ-bench-"))
@@ -75,7 +76,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.spin_us is not None:
         slave["robot"]["realtime"]["spin_us"] = args.spin_us
         master["robot"]["realtime"]["spin_us"] = args.spin_us
-    slave["recording"] = {"path": str(out / "slave.igtl"), "rate_hz": 100, "include_messages": True}
+    if not args.no_record:
+        slave["recording"] = {
+            "path": str(out / "slave.igtl"), "rate_hz": 100, "include_messages": True
+        }
     slave["stats"] = {"log_every_s": 3600.0}
     write_yaml(out / "slave.yaml", slave)
     write_yaml(out / "master.yaml", master)

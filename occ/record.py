@@ -11,7 +11,8 @@ File format: a plain concatenation of OpenIGTLink header-version-2 messages.
   the columns.
 
 The loop thread only appends references to a bounded in-memory queue; a writer thread adds the
-recording metadata, packs and writes. If the writer falls behind by more than ``max_backlog``
+recording metadata, packs and writes, handing the interpreter lock back after every record so
+the loop never waits for it. If the writer falls behind by more than ``max_backlog``
 records, new records are dropped and counted (``dropped``), never blocking the loop.
 
 ``occ-record`` (console script) exports a recording to CSV and replays one into a peer.
@@ -159,6 +160,7 @@ class Recorder:
 
     def _flush(self) -> None:
         chunks = []
+        sleep = time.sleep
         while self._q:
             try:
                 item = self._q.popleft()
@@ -168,6 +170,11 @@ class Recorder:
                 chunks.append(self._encode(item))
             except (ValueError, TypeError, igtl.IGTLError):
                 self.errors += 1
+            # Hand the interpreter lock back after every record: a thread that wants it (the
+            # loop, waking for its deadline) otherwise waits for the switch interval (5 ms by
+            # default) while this thread packs a batch (measured: the slave's lateness p99.9
+            # 1.8-3.0 ms with recording on vs 0.1 ms off).
+            sleep(0)
         if chunks and self._file is not None:
             data = b"".join(chunks)
             try:

@@ -75,6 +75,10 @@ COMMAND_EVENTS = {
     "hold": "hold",
 }
 
+#: Datagrams a tick reads itself from each UDP stream socket (a 500 Hz stream brings one every
+#: other tick); anything beyond waits for the interface thread, so a flood costs the tick little.
+POLL_LIMIT = 4
+
 #: States in which drivers are ACTIVE (servos on).
 POWERED = frozenset({RobotState.ENABLED, RobotState.RUNNING, RobotState.STOPPED})
 
@@ -231,10 +235,14 @@ class Robot:
         # --- Interfaces
         self.interfaces = InterfaceManager(config.interfaces, clock_now=self.clock.now)
         self.interfaces.on_connect(self._on_peer_connect)
+        # Only a loop that spins before its deadlines (holding the interpreter lock) polls its
+        # stream sockets itself; a loop that sleeps lets the interface threads take what
+        # arrives meanwhile, and a poll would only cost a system call per tick.
+        spins = getattr(self.clock, "spin_us", 0.0) > 0.0
         self._pollers = [
             iface.transport.poll
             for iface in self.interfaces.interfaces.values()
-            if iface.streams and isinstance(iface.transport, UDPEndpoint)
+            if spins and iface.streams and isinstance(iface.transport, UDPEndpoint)
         ]
 
         # --- Safety
@@ -467,7 +475,7 @@ class Robot:
         one tick later (at most ``poll_limit`` datagrams a tick: a flood waits for the
         interface thread)."""
         for poll in self._pollers:
-            poll()
+            poll(POLL_LIMIT)
         monitor = self.loss_monitor
         watched = self.loss_input
         recorder = self.recorder

@@ -1,0 +1,188 @@
+#!/usr/bin/env python3
+"""Safety that trips on real faults only, measured on this machine with the real daemons.
+
+Two measurements (each bounded in time, loopback only):
+
+``pairs``
+    Two master/slave pairs (four ``occd`` processes, SCHED_FIFO where permitted) streaming at
+    500 Hz, each slave read by two Slicer-like clients (10 Hz TRANSFORMs) and asked for its
+    statistics once a second, for ``--duration`` seconds. Reports latched stops (must be
+    zero: nothing failed), holds and resumes, each loop's lateness p99.9 and max, and the CPU
+    of each daemon.
+
+``sigstop``
+    One pair. The master process is frozen with SIGSTOP for 30 ms and resumed with SIGCONT,
+    ``--count`` times one second apart (a GC pause, a VM hiccup: the slave must hold and resume,
+    never latch); then frozen for 1.5 s (a dead master: the slave must latch STOPPED and alert
+    the operators, naming the cause).
+
+Examples::
+
+    python benchmarks/bench_safety.py pairs --duration 600
+    python benchmarks/bench_safety.py sigstop --count 20
+
+The result is printed as JSON and written to ``OUT/result.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tools"))
+
+from loopback import pair_configs, stop_processes, wait_port, write_yaml  # noqa: E402
+from slicer_standin import SlicerStandIn  # noqa: E402
+
+
+def start(out: Path, name: str, data: dict[str, Any]) -> subprocess.Popen[bytes]:
+    data["stats"] = {"log_every_s": 3600.0}
+    write_yaml(out / f"{name}.yaml", data)
+    cmd = [sys.executable, "-m", "occ.cli", str(out / f"{name}.yaml"), "--start", "running",
+           "--stats", str(out / f"{name}.json"), "--log-level", "WARNING"]
+    return subprocess.Popen(cmd, cwd=ROOT, stderr=open(out / f"{name}.log", "wb"))  # noqa: SIM115
+
+
+def loop_summary(stats: dict[str, Any]) -> dict[str, Any]:
+    late = stats["lateness_us"]
+    return {
+        "final_state": stats.get("final_state"),
+        "ticks": stats["ticks"],
+        "lateness_p99_9_us": late["p99_9"],
+        "lateness_max_us": late["max"],
+        "late_over_1ms": stats["late_over_1ms"],
+        "cpu_percent": stats["cpu_percent"],
+    }
+
+
+def start_pair(out: Path, tag: str, spin_us: float | None) -> tuple[list[subprocess.Popen[bytes]],
+                                                                    dict[str, int]]:
+    slave, master, ports = pair_configs()
+    for cfg in (slave, master):
+        if spin_us is not None:
+            cfg["robot"]["realtime"]["spin_us"] = spin_us
+    procs = [start(out, f"slave{tag}", slave)]
+    if not wait_port(ports["slave_tcp"], 30.0, procs[0]):
+        raise SystemExit(f"slave{tag} did not start; see {out}/slave{tag}.log")
+    procs.append(start(out, f"master{tag}", master))
+    if not wait_port(ports["master_tcp"], 30.0, procs[1]):
+        raise SystemExit(f"master{tag} did not start; see {out}/master{tag}.log")
+    return procs, ports
+
+
+def stops_seen(client: SlicerStandIn) -> list[str]:
+    with client._lock:
+        return [s.status_message for s in client.statuses if s.error_name == "STOPPED"]
+
+
+def run_pairs(args: argparse.Namespace, out: Path) -> dict[str, Any]:
+    procs: list[subprocess.Popen[bytes]] = []
+    clients: list[SlicerStandIn] = []
+    try:
+        for tag in ("A", "B"):
+            p, ports = start_pair(out, tag, args.spin_us)
+            procs += p
+            clients += [SlicerStandIn("127.0.0.1", ports["slave_tcp"]).start() for _ in range(2)]
+        for c in clients:
+            c.connected.wait(10.0)
+        print(f"pairs: 4 daemons, 4 clients, {args.duration:.0f} s; files in {out}", flush=True)
+        end = time.monotonic() + args.duration
+        while time.monotonic() < end:
+            time.sleep(1.0)
+            for c in clients[::2]:  # an operator console asks each slave once a second
+                c.send_command("GetStats")
+            if any(p.poll() is not None for p in procs):
+                raise SystemExit("pairs: a daemon exited early")
+        latched = {f"slave{t}": stops_seen(c) for t, c in zip("AB", clients[::2], strict=True)}
+    finally:
+        for c in clients:
+            c.stop()
+        stop_processes(procs)
+    daemons = {}
+    for name in ("slaveA", "masterA", "slaveB", "masterB"):
+        d = json.loads((out / f"{name}.json").read_text())
+        daemons[name] = loop_summary(d)
+        if "loss" in d:
+            daemons[name]["loss"] = {k: d["loss"][k] for k in
+                                     ("received", "lost_total", "holds", "resumes", "trips")}
+    return {
+        "mode": "pairs",
+        "duration_s": args.duration,
+        "latched_stops": sum(len(v) for v in latched.values()),
+        "stop_alerts": latched,
+        "daemons": daemons,
+    }
+
+
+def freeze(proc: subprocess.Popen[bytes], seconds: float) -> float:
+    t0 = time.monotonic()
+    os.kill(proc.pid, signal.SIGSTOP)
+    time.sleep(seconds)
+    os.kill(proc.pid, signal.SIGCONT)
+    return time.monotonic() - t0
+
+
+def run_sigstop(args: argparse.Namespace, out: Path) -> dict[str, Any]:
+    procs, ports = start_pair(out, "", args.spin_us)
+    client = SlicerStandIn("127.0.0.1", ports["slave_tcp"]).start()
+    try:
+        client.connected.wait(10.0)
+        time.sleep(2.0)  # the stream flows
+        frozen = []
+        for _ in range(args.count):
+            frozen.append(freeze(procs[1], 0.030))
+            time.sleep(1.0)
+        short_stops = stops_seen(client)
+        with client._lock:
+            warnings = [s.status_message for s in client.statuses if s.error_name == "STREAM"]
+        long_frozen = freeze(procs[1], 1.5)
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline and len(stops_seen(client)) == len(short_stops):
+            time.sleep(0.05)
+        long_stops = stops_seen(client)[len(short_stops):]
+    finally:
+        client.stop()
+        stop_processes(procs)
+    slave = json.loads((out / "slave.json").read_text())
+    return {
+        "mode": "sigstop",
+        "short_freezes": len(frozen),
+        "short_frozen_ms": [round(f * 1e3, 1) for f in frozen],
+        "latched_after_short_freezes": len(short_stops),
+        "resume_warnings": len(warnings),
+        "long_freeze_ms": round(long_frozen * 1e3, 1),
+        "latched_after_long_freeze": len(long_stops),
+        "long_freeze_alert": long_stops[:1],
+        "slave_loss": {k: slave["loss"][k] for k in
+                       ("received", "lost_total", "holds", "resumes", "trips")},
+        "slave_final_state": slave.get("final_state"),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("mode", choices=["pairs", "sigstop"])
+    p.add_argument("--duration", type=float, default=60.0, help="pairs: seconds (default 60)")
+    p.add_argument("--count", type=int, default=20, help="sigstop: 30 ms freezes (default 20)")
+    p.add_argument("--spin-us", type=float, default=None, help="override robot.realtime.spin_us")
+    p.add_argument("--out", type=Path, default=None)
+    args = p.parse_args(argv)
+    out = args.out or Path(tempfile.mkdtemp(prefix=f"occ-safety-{args.mode}-"))
+    out.mkdir(parents=True, exist_ok=True)
+    result = run_pairs(args, out) if args.mode == "pairs" else run_sigstop(args, out)
+    (out / "result.json").write_text(json.dumps(result, indent=2))
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
