@@ -452,6 +452,12 @@ class InterfaceConfig(_Model):
         (), description="Message types accepted into the loop, with queue semantics."
     )
     outputs: tuple[OutputConfig, ...] = Field((), description="Signals sent out periodically.")
+    stream_source: Remote | None = Field(
+        None,
+        description="`host:port` the stream inputs must come from (the master's sending "
+        "socket); null = pinned to the first sender until an operator's Reset. Samples "
+        "from any other sender are refused and counted.",
+    )
 
     @property
     def remote_address(self) -> tuple[str, int] | None:

@@ -164,6 +164,7 @@ class InterfaceCounters:
     keepalive: int = 0
     unexpected: int = 0
     refused: int = 0
+    foreign: int = 0  # stream samples from a sender that does not own the stream
     malformed: int = 0
     sent: int = 0
     send_dropped: int = 0
@@ -187,6 +188,11 @@ class Interface:
         self._now = clock_now
         self.counters = InterfaceCounters()
         self._log_limit = RateLimit(5)
+        #: (host, port) the stream inputs must come from: configured, else the first sender
+        self.configured_source: tuple[str, int] | None = (
+            _split_remote(cfg.stream_source) if getattr(cfg, "stream_source", None) else None
+        )
+        self.stream_owner = self.configured_source
         # type name -> queue for this interface's declared inputs
         self.streams: dict[str, StreamQueue] = {}
         self.command_inputs: set[str] = set()
@@ -262,6 +268,23 @@ class Interface:
         if stream is not None:
             want = self.input_devices.get(mtype)
             if want is None or want == msg.device_name:
+                owner = self.stream_owner
+                source = (peer.address[0], peer.address[1])
+                if owner is None:
+                    # an ephemeral sender: the first one owns the stream until a Reset
+                    self.stream_owner = owner = source
+                    log.info("%s: stream owned by %s:%s", self.name, *source)
+                if source != owner:
+                    c.foreign += 1
+                    if self._log_limit.allow():
+                        log.warning(
+                            "%s: refused %s from %s:%s: the stream belongs to %s:%s",
+                            self.name,
+                            mtype,
+                            *source,
+                            *owner,
+                        )
+                    return
                 stream.put(item)
                 return
         if is_operator_request(msg) or mtype in self.command_inputs:
@@ -340,6 +363,10 @@ class Interface:
             return bool(t.send(msg, addr))
         return bool(t.send(msg))
 
+    def release_stream(self) -> None:
+        """Forget an ephemeral stream owner (operator Reset): the next sender owns it."""
+        self.stream_owner = self.configured_source
+
     def stats(self) -> dict[str, Any]:
         c = self.counters
         t = self.transport.stats()
@@ -356,9 +383,11 @@ class Interface:
             + sum(q.dropped for q in self.streams.values()),
             "malformed": int(t.get("malformed", c.malformed)),
             "refused": c.refused,
+            "foreign": c.foreign,
             "keepalive": c.keepalive,
             "unexpected": c.unexpected,
             "streams": streams,
+            "stream_owner": list(self.stream_owner) if self.stream_owner else None,
             "peers": len(getattr(self.transport, "peers", []) or []),
         }
 

@@ -782,6 +782,8 @@ class Robot:
                 self._supervisor_handled = False
                 if self.loss_monitor is not None:
                     self.loss_monitor.reset(None)
+                for iface in self.interfaces.interfaces.values():
+                    iface.release_stream()  # a restarted master may send from a new port
                 if self.state_machine.state is RobotState.STOPPED:
                     self.last_alert = ""
                     return "STOPPED: alerts cleared; send Run to resume"

@@ -371,3 +371,30 @@ def test_joints_must_match_the_kinematic_model() -> None:
     bad = cfg.model_copy(update={"robot": cfg.robot.model_copy(update={"joints": joints})})
     with pytest.raises(OCCError, match="do not match the joints of the kinematic model"):
         build_robot(bad, clock=SimClock())
+
+
+def test_the_stream_belongs_to_its_first_sender_until_reset(slave: SimSlave) -> None:
+    run(slave)
+    slave.step_ms(20)
+    setpoint = driver_setpoint(slave)
+    intruder = Peer(9, ("127.0.0.1", 40999))
+    iface = slave.robot.interfaces["master"]
+    # a second local sender with plausible numbers and a far target: refused, robot unmoved
+    for _ in range(20):
+        slave.master_pos[0] += 300.0
+        slave.seq += 1  # the next number the owner will send
+        iface._on_message(intruder, slave.position())
+        slave.seq -= 1
+        slave.master_pos[0] -= 300.0
+        slave.step_ms(1)  # the owner's stream goes on (one packet every 2 ms)
+    assert iface.counters.foreign == 20
+    assert driver_setpoint(slave) == pytest.approx(setpoint, abs=1e-9)
+    assert iface.stats()["stream_owner"] == ["127.0.0.1", 40000]
+    # after a Reset a restarted master (a new port) may own the stream
+    assert slave.robot.state is RobotState.RUNNING
+    assert slave.command("Stop").metadata["Status"] == "SUCCESS"
+    assert slave.command("Reset").metadata["Status"] == "SUCCESS"
+    assert iface.stream_owner is None
+    slave.seq += 1
+    iface._on_message(intruder, slave.position())
+    assert iface.stream_owner == ("127.0.0.1", 40999)
