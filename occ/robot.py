@@ -32,6 +32,7 @@ import numpy as np
 import igtl
 from igtl.messages.base import Message
 from igtl.transport import UDPEndpoint
+from igtl.transport.common import RateLimit
 
 from .clock import Clock, RealClock
 from .commands import Request, error_reply, parse_request, success_reply
@@ -285,6 +286,7 @@ class Robot:
         #: jobs the loop must not pay for (GetStats); the worker sends the reply itself
         self.worker = Worker(f"occ-{self.name}-report")
         self._errors_logged = 0
+        self._refusal_log = RateLimit(5)
 
         # --- State shared with controllers and outputs
         n = len(self.joints)
@@ -735,13 +737,14 @@ class Robot:
             self.commands_handled += 1
         except (CommandError, StateError) as err:
             self.commands_refused += 1
-            log.warning(
-                "%s: refused %s from %s:%s: %s",
-                item.interface,
-                msg.message_type,
-                *item.peer.address[:2],
-                err,
-            )
+            if self._refusal_log.allow():  # a flood of bad commands must not flood the log
+                log.warning(
+                    "%s: refused %s from %s:%s: %s",
+                    item.interface,
+                    msg.message_type,
+                    *item.peer.address[:2],
+                    err,
+                )
             reply = error_reply(
                 msg, str(err), code=igtl.StatusCode.ILLEGAL_INSTRUCTION, timestamp=wall
             )
