@@ -283,9 +283,11 @@ class RealtimeConfig(_Model):
         None, description="CPU core to pin the loop to; null = no pinning."
     )
     spin_us: Annotated[Float, Field(ge=0, le=1000)] = Field(
-        200.0,
+        0.0,
         description="The loop sleeps until this long before each deadline, then spins: "
-        "less jitter for more CPU (200 us = 20 % of a core at 1 kHz).",
+        "less jitter for more CPU (200 us = 20 % of a core at 1 kHz). 0 = sleep only: with "
+        "SCHED_FIFO the wake-up is early enough and the master-to-slave latency the same "
+        "(docs/BENCHMARKS.md).",
     )
     switch_interval_us: Annotated[Float, Field(ge=50, le=100000)] | None = Field(
         None,
