@@ -32,6 +32,21 @@ Backends implement::
     _read(now) -> (pos, vel, eff)      sequences of floats, one per joint, SI units
     _write(values, now)                position setpoints or efforts, by command_interface
 
+Two more duties, because the loop itself can fail (see docs/ARCHITECTURE.md, "Safety"):
+
+- **Device-side heartbeat.** Every driver takes the parameter ``heartbeat_ms`` (default 50;
+  0 or null = off). From its first command on, the *device* must stop itself (hold, brakes on) when it has not been
+  commanded for that long while ACTIVE, as dVRK's FPGA watchdog and a CANopen heartbeat
+  consumer do, and report it: the next ``read`` raises :class:`~occ.errors.DriverError`
+  ("heartbeat lost"), which latches FAULT. This is what still protects the patient when the
+  whole process is frozen. ``sim`` and the CAN drive simulator implement it; a backend for
+  hardware that cannot must say so in its documentation.
+- **Safe stop from another thread.** :meth:`Driver.safe_stop` is called by the supervisor
+  while the loop thread may be hung inside a tick. It calls the ``_safe_stop`` hook (default:
+  ``_deactivate``), which must put the hardware in its safe state at once and be safe to call
+  while the loop thread is inside ``_read`` or ``_write``; the driver then latches FAULT, so a
+  ``write`` from the resumed loop is refused until :meth:`Driver.reset`.
+
 The hooks receive ``now`` (seconds on the loop's clock) because a simulated driver integrates
 its dynamics over exactly those times, which makes a simulated-clock run reproducible.
 ``values`` passed to ``_write`` is a buffer the base reuses every tick: copy it if needed.
@@ -42,6 +57,7 @@ from __future__ import annotations
 import enum
 import logging
 import math
+import threading
 from collections.abc import Mapping, Sequence
 from types import TracebackType
 from typing import Any, ClassVar, Literal
@@ -57,6 +73,9 @@ CommandInterface = Literal["position", "effort"]
 LimitPolicy = Literal["clamp", "fault"]
 _INTERFACES = ("position", "effort")
 _POLICIES = ("clamp", "fault")
+
+#: Parameters every driver takes (the base reads them), whatever its own DEFAULT_PARAMS say.
+BASE_PARAMS: dict[str, Any] = {"heartbeat_ms": 50.0}
 
 # Relative slack on the velocity check, so that a setpoint moving at exactly the limit is not
 # flagged because of float rounding in (x - prev) / dt.
@@ -105,13 +124,25 @@ class Driver:
             raise ValueError(f"driver {name!r}: on_limit must be one of {_POLICIES}")
         params = dict(params or {})
         if self.DEFAULT_PARAMS is not None:
-            unknown = set(params) - set(self.DEFAULT_PARAMS)
+            known = set(self.DEFAULT_PARAMS) | set(BASE_PARAMS)
+            unknown = set(params) - known
             if unknown:
                 raise ValueError(
                     f"driver {name!r} ({type(self).__name__}): unknown params "
-                    f"{sorted(unknown)}; known: {sorted(self.DEFAULT_PARAMS)}"
+                    f"{sorted(unknown)}; known: {sorted(known)}"
                 )
-            params = {**self.DEFAULT_PARAMS, **params}
+            params = {**BASE_PARAMS, **self.DEFAULT_PARAMS, **params}
+        else:
+            params = {**BASE_PARAMS, **params}
+        heartbeat = params["heartbeat_ms"]
+        try:
+            heartbeat_s = 0.0 if heartbeat is None else float(heartbeat) * 1e-3
+        except (TypeError, ValueError):
+            heartbeat_s = math.nan
+        if not heartbeat_s >= 0.0:
+            raise ValueError(
+                f"driver {name!r}: heartbeat_ms must be a number >= 0 (0 = off), got {heartbeat!r}"
+            )
         interface = command_interface or params.get("command_interface") or self.command_interface
         if interface not in _INTERFACES or interface not in self.supported_interfaces:
             raise ValueError(
@@ -137,6 +168,10 @@ class Driver:
         self.on_limit: LimitPolicy = on_limit
         self.command_interface = interface  # instance attribute shadows the class default
         self.period: float = period
+        #: the device stops itself when not commanded for this long while ACTIVE (0 = off)
+        self.heartbeat_s: float = heartbeat_s
+        self._safe_lock = threading.Lock()
+        self._safe_stops = 0
         self._state: DriverState = DriverState.UNCONFIGURED
         self._configured: bool = False
         self._fault_reason: str | None = None
@@ -167,12 +202,13 @@ class Driver:
         return [j.name for j in self.joints]
 
     def stats(self) -> dict[str, int]:
-        """Counters since construction: reads, writes, limit_events, errors."""
+        """Counters since construction: reads, writes, limit_events, errors, safe_stops."""
         return {
             "reads": self._reads,
             "writes": self._writes,
             "limit_events": self._limit_events,
             "errors": self._errors,
+            "safe_stops": self._safe_stops,
         }
 
     def __repr__(self) -> str:
@@ -219,6 +255,27 @@ class Driver:
         logger.info("driver %s: fault reset (was: %s)", self.name, self._fault_reason)
         self._fault_reason = None
         self._transition(DriverState.INACTIVE if self._configured else DriverState.UNCONFIGURED)
+
+    def safe_stop(self, reason: str) -> None:
+        """From any thread, at once: the hardware to its safe state, the driver latched FAULT.
+
+        For a supervisor that found the loop thread hung (possibly inside this driver's
+        ``read`` or ``write``). Idempotent; never raises (a failing hook is logged and
+        counted: the driver is latched FAULT anyway). Only an ACTIVE driver has anything to
+        stop: an INACTIVE one is already holding with its power stages off.
+        """
+        with self._safe_lock:
+            if self._state is not DriverState.ACTIVE:
+                return
+            self._safe_stops += 1
+            try:
+                self._safe_stop()
+            except Exception:  # noqa: BLE001 - the caller is a supervisor: it must go on
+                self._errors += 1
+                logger.exception("driver %s: safe stop failed", self.name)
+            self._fault_reason = f"safe stop: {reason}"
+            logger.error("driver %s: FAULT: %s", self.name, self._fault_reason)
+            self._transition(DriverState.FAULT)
 
     def shutdown(self) -> None:
         """Release the hardware from any state; safe to call twice.
@@ -364,6 +421,11 @@ class Driver:
 
     def _reset(self) -> None:
         """Clear a hardware fault if the backend can (override; default does nothing)."""
+
+    def _safe_stop(self) -> None:
+        """Put the hardware in its safe state now, from another thread (override if
+        ``_deactivate`` is not safe to call while the loop thread is inside a hook)."""
+        self._deactivate()
 
     def _shutdown(self) -> None:
         """Release the hardware (override)."""

@@ -9,13 +9,18 @@ Command, host -> drive, identifier = the joint's ``can_id``::
                               or effort in milli-units, mN*m or mN (mode 2)
     byte 4     uint8   mode: 0 = disabled (brake/hold, value ignored), 1 = position, 2 = effort
     byte 5     uint8   sequence number, +1 per command frame of this joint, wraps at 256
-    byte 6..7          reserved, 0
+    byte 6     uint8   heartbeat, ms (1-255; 0 = off): the drive's consumer heartbeat time.
+                       A drive in mode 1 or 2 that receives no command frame for that long
+                       stops itself (mode 0, brake) and flags it in its feedback until it
+                       receives a mode-0 frame (the host's acknowledgement)
+    byte 7             reserved, 0
 
 Feedback, drive -> host, identifier = the joint's ``feedback_id``::
 
     byte 0..3  int32   position, encoder counts
     byte 4..5  int16   velocity, counts per millisecond (saturating)
-    byte 6..7  int16   effort, milli-units (saturating at +-32.767 N*m or N)
+    byte 6..7  int16   effort, milli-units (saturating at +-32.767 N*m or N); the value
+                       -32768 (never a saturated effort) flags "stopped by its heartbeat"
 
 Scaling: ``position = counts / counts_per_unit`` (counts per radian or per metre),
 ``velocity = counts_per_ms * 1000 / counts_per_unit``, ``effort = milli / 1000``. Commands are
@@ -58,6 +63,7 @@ process is connected) together with :class:`occ.drivers.can_sim.SimulatedDriveNo
 
 from __future__ import annotations
 
+import logging
 import math
 import struct
 from collections.abc import Mapping, Sequence
@@ -69,6 +75,8 @@ from occ.drivers.base import CommandInterface, Driver, LimitPolicy
 from occ.errors import DriverError
 from occ.joint import Joint
 
+logger = logging.getLogger(__name__)
+
 __all__ = [
     "CANDriver",
     "COMMAND_FRAME",
@@ -77,15 +85,17 @@ __all__ = [
     "MODE_POSITION",
     "MODE_EFFORT",
     "EFFORT_SCALE",
+    "HEARTBEAT_LOST",
     "VELOCITY_SCALE",
 ]
 
-COMMAND_FRAME = struct.Struct(">iBBxx")
+COMMAND_FRAME = struct.Struct(">iBBBx")
 FEEDBACK_FRAME = struct.Struct(">ihh")
 MODE_DISABLED = 0
 MODE_POSITION = 1
 MODE_EFFORT = 2
 EFFORT_SCALE = 1000.0  # milli-units per unit
+HEARTBEAT_LOST = -32768  # the feedback effort value of a drive stopped by its heartbeat
 VELOCITY_SCALE = 1000.0  # counts/ms -> counts/s
 
 _INT32_MAX = 2**31 - 1
@@ -157,6 +167,11 @@ class CANDriver(Driver):
             for cid in self._can_ids
         ]
         self._seq = [0] * n
+        # the drive's consumer heartbeat time travels in every command frame (byte 6, ms)
+        hb_ms = round(self.heartbeat_s * 1e3)
+        if hb_ms > 255:
+            raise ValueError(f"can driver {name!r}: heartbeat_ms must be <= 255, got {hb_ms}")
+        self._heartbeat_byte = hb_ms
         self._pos = [0.0] * n
         self._vel = [0.0] * n
         self._eff = [0.0] * n
@@ -222,6 +237,22 @@ class CANDriver(Driver):
         for i in range(len(self.joints)):
             self._send(i, MODE_DISABLED, 0)
 
+    def _safe_stop(self) -> None:
+        # From the supervisor's thread: python-can buses take sends from several threads
+        # (SocketCAN: one write() per frame; virtual: a locked queue). A separate frame object
+        # per call, so the loop thread's frames are not touched.
+        bus = self._bus
+        if bus is None:
+            return
+        for i, msg in enumerate(self._messages):
+            data = bytearray(8)
+            COMMAND_FRAME.pack_into(data, 0, 0, MODE_DISABLED, self._seq[i], self._heartbeat_byte)
+            stop = can.Message(arbitration_id=msg.arbitration_id, is_extended_id=False, data=data)
+            try:
+                bus.send(stop, timeout=self._send_timeout)
+            except can.CanError:
+                logger.exception("can driver %s: safe stop frame not sent", self.name)
+
     def _shutdown(self) -> None:
         bus, self._bus = self._bus, None
         if bus is not None:
@@ -246,6 +277,11 @@ class CANDriver(Driver):
                 self._ignored_frames += 1
                 continue
             counts, vel, eff = unpack(msg.data)
+            if eff == HEARTBEAT_LOST:
+                raise DriverError(
+                    f"can driver {self.name!r}: joint {self.joints[i].name}: heartbeat lost: "
+                    f"the drive stopped itself (no command for {self.heartbeat_s * 1e3:.0f} ms)"
+                )
             cpu = self._counts_per_unit[i]
             self._pos[i] = counts / cpu
             self._vel[i] = vel * VELOCITY_SCALE / cpu
@@ -278,7 +314,7 @@ class CANDriver(Driver):
             return
         msg = self._messages[i]
         seq = self._seq[i]
-        COMMAND_FRAME.pack_into(msg.data, 0, value, mode, seq)
+        COMMAND_FRAME.pack_into(msg.data, 0, value, mode, seq, self._heartbeat_byte)
         self._seq[i] = (seq + 1) & 0xFF
         try:
             bus.send(msg, timeout=self._send_timeout)

@@ -14,6 +14,12 @@ Model, per axis, advanced to the node's ``clock()`` before every command or cycl
   motor on a viscous load), effort reported back as commanded;
 * mode 0 (disabled): the axis holds (brake), velocity and effort 0.
 
+Heartbeat consumer: every command frame carries the host's heartbeat time (byte 6, ms). An
+axis in mode 1 or 2 that receives no command for longer stops itself (mode 0, brake), counts
+it (``heartbeat_trips``) and flags every feedback frame (effort ``-32768``) until a mode-0
+frame acknowledges it; commands meanwhile are answered but not obeyed. The node checks at
+least every quarter of the heartbeat time (its own thread and clock), as drive firmware does.
+
 Use it without hardware with python-can's ``virtual`` interface: the node and the driver
 open the same channel name in one process. With real drives, use SocketCAN instead
 (``interface: socketcan``, ``channel: can0``, after ``ip link set can0 up type can bitrate
@@ -40,6 +46,7 @@ import can
 from occ.drivers.can import (
     COMMAND_FRAME,
     FEEDBACK_FRAME,
+    HEARTBEAT_LOST,
     MODE_DISABLED,
     MODE_EFFORT,
     MODE_POSITION,
@@ -71,6 +78,10 @@ class DriveAxis:
     last_seq: int = -1
     lost_commands: int = 0
     commands: int = field(default=0)
+    heartbeat_s: float = 0.0  # from the last command frame; 0 = off
+    last_command_t: float = math.nan
+    heartbeat_lost: bool = False
+    heartbeat_trips: int = 0
 
 
 class SimulatedDriveNode:
@@ -165,11 +176,15 @@ class SimulatedDriveNode:
         try:
             while not self._stop.is_set():
                 wait = _POLL
+                for axis in self.axes:
+                    if axis.heartbeat_s > 0.0:
+                        wait = min(wait, axis.heartbeat_s / 4.0)
                 if self.feedback_period is not None:
-                    wait = max(0.0, min(_POLL, next_cyclic - self._clock()))
+                    wait = max(0.0, min(wait, next_cyclic - self._clock()))
                 msg = self._bus.recv(timeout=wait)
                 if msg is not None:
                     self._on_frame(msg)
+                self._check_heartbeats()
                 if self.feedback_period is not None and self._clock() >= next_cyclic:
                     next_cyclic += self.feedback_period
                     self._advance()
@@ -184,12 +199,22 @@ class SimulatedDriveNode:
         axis = self._by_id.get(msg.arbitration_id)
         if axis is None or msg.dlc < COMMAND_FRAME.size:
             return
-        value, mode, seq = COMMAND_FRAME.unpack_from(msg.data)
+        value, mode, seq, heartbeat_ms = COMMAND_FRAME.unpack_from(msg.data)
         self._advance()
         if axis.last_seq >= 0 and seq != (axis.last_seq + 1) & 0xFF:
             axis.lost_commands += (seq - axis.last_seq - 1) & 0xFF
         axis.last_seq = seq
         axis.commands += 1
+        axis.heartbeat_s = heartbeat_ms * 1e-3
+        axis.last_command_t = self._clock()
+        if axis.heartbeat_lost:
+            if mode != MODE_DISABLED:  # stopped until the host acknowledges with mode 0
+                with self._cond:
+                    self.commands_received += 1
+                    self._cond.notify_all()
+                self._send_feedback(axis)
+                return
+            axis.heartbeat_lost = False
         axis.mode = mode
         if mode == MODE_POSITION:
             axis.target = float(value)
@@ -205,6 +230,24 @@ class SimulatedDriveNode:
             self.commands_received += 1
             self._cond.notify_all()
         self._send_feedback(axis)
+
+    def _check_heartbeats(self) -> None:
+        now = self._clock()
+        for axis in self.axes:
+            hb = axis.heartbeat_s
+            if (
+                hb > 0.0
+                and axis.mode != MODE_DISABLED
+                and not axis.heartbeat_lost
+                and now - axis.last_command_t > hb
+            ):
+                self._advance()
+                axis.mode = MODE_DISABLED
+                axis.velocity = 0.0
+                axis.effort = 0
+                axis.heartbeat_lost = True
+                axis.heartbeat_trips += 1
+                self._send_feedback(axis)
 
     def _advance(self) -> None:
         now = self._clock()
@@ -228,8 +271,9 @@ class SimulatedDriveNode:
     def _send_feedback(self, axis: DriveAxis) -> None:
         if self._muted:
             return
+        effort = HEARTBEAT_LOST if axis.heartbeat_lost else _sat16(axis.effort)
         data = FEEDBACK_FRAME.pack(
-            int(round(axis.position)), _sat16(axis.velocity / 1000.0), _sat16(axis.effort)
+            int(round(axis.position)), _sat16(axis.velocity / 1000.0), effort
         )
         self._bus.send(
             can.Message(arbitration_id=axis.feedback_id, is_extended_id=False, data=data)

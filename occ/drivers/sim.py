@@ -46,7 +46,15 @@ initial_positions     each joint's ``home``       where the joints start at ``co
 max_substep           0.0005                      s, longest integration substep
 brakes                True                        lock joints while not ACTIVE
 period                0.001                       s, nominal loop period (driver base)
+heartbeat_ms          50                          the simulated drive stops itself (brakes)
+                                                  when not commanded for this long (base)
 ====================  ==========================  ==========================================
+
+Heartbeat: the model is the drive. When the time between two commands (``write``) exceeds
+``heartbeat_ms`` while ACTIVE, the drive follows the old command only up to the heartbeat
+deadline, then brakes (velocity 0, position held) and latches "heartbeat lost", which the next
+``read`` reports as a :class:`~occ.errors.DriverError` (FAULT in the base), exactly what a
+frozen host would find when it comes back. ``reset`` clears it.
 """
 
 from __future__ import annotations
@@ -57,6 +65,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from occ.drivers.base import CommandInterface, Driver, LimitPolicy
+from occ.errors import DriverError
 from occ.joint import Joint
 
 __all__ = ["SimDriver", "SIM_DEFAULTS"]
@@ -190,6 +199,9 @@ class SimDriver(Driver):
         self._t = math.nan
         self._enabled = False
         self._measured = [0.0] * n
+        self._last_cmd_t = math.nan  # model time of the last command (heartbeat)
+        self._heartbeat_lost: str | None = None
+        self.heartbeat_trips = 0
 
     # ------------------------------------------------------------------ inspection
     @property
@@ -219,6 +231,9 @@ class SimDriver(Driver):
             self._cmd[:] = self._x
         else:
             self._cmd[:] = [0.0] * len(self._cmd)
+        # the heartbeat is watched from the first command on (as a CANopen consumer starts
+        # with the first heartbeat it receives): activation may precede the loop's start
+        self._last_cmd_t = math.nan
         self._enabled = True
 
     def _deactivate(self) -> None:
@@ -228,14 +243,27 @@ class SimDriver(Driver):
             if self._brakes:
                 self._v[i] = 0.0
 
+    def _safe_stop(self) -> None:
+        # Another thread may be inside _advance: flags only, the model brakes from its
+        # next step on.
+        self._enabled = False
+
     def _reset(self) -> None:
         self._deactivate()
+        self._heartbeat_lost = None
+
+    def stats(self) -> dict[str, int]:
+        out = super().stats()
+        out["heartbeat_trips"] = self.heartbeat_trips
+        return out
 
     def _shutdown(self) -> None:
         self._enabled = False
 
     def _read(self, now: float) -> tuple[Sequence[float], Sequence[float], Sequence[float]]:
         self._advance(now)
+        if self._heartbeat_lost is not None:
+            raise DriverError(f"sim driver {self.name!r}: {self._heartbeat_lost}")
         out = self._measured
         rng = self._rng
         for i, x in enumerate(self._x):
@@ -250,12 +278,31 @@ class SimDriver(Driver):
 
     def _write(self, values: Sequence[float], now: float) -> None:
         self._advance(now)  # the previous command acts until now (zero-order hold)
+        if self._heartbeat_lost is not None:
+            raise DriverError(f"sim driver {self.name!r}: {self._heartbeat_lost}")
         cmd = self._cmd
         for i in range(len(cmd)):
             cmd[i] = values[i]
+        self._last_cmd_t = now
 
     # ------------------------------------------------------------------ model
     def _advance(self, now: float) -> None:
+        hb = self.heartbeat_s
+        last = self._last_cmd_t
+        if self._enabled and hb > 0.0 and last == last and now - last > hb:
+            # the drive's own watchdog: the old command acts until the heartbeat deadline,
+            # then the drive brakes and reports it
+            stop_at = last + hb
+            self._integrate(stop_at)
+            self._deactivate()
+            self.heartbeat_trips += 1
+            self._heartbeat_lost = (
+                f"heartbeat lost: no command for {(now - last) * 1e3:.1f} ms (limit "
+                f"{hb * 1e3:.1f} ms); the drive stopped itself"
+            )
+        self._integrate(now)
+
+    def _integrate(self, now: float) -> None:
         t = self._t
         if t != t:  # first call: the model starts at this instant
             self._t = now

@@ -10,7 +10,7 @@ import can
 import pytest
 
 from occ.drivers import DriverState, create_driver
-from occ.drivers.can import COMMAND_FRAME, FEEDBACK_FRAME, CANDriver
+from occ.drivers.can import MODE_DISABLED, COMMAND_FRAME, FEEDBACK_FRAME, CANDriver
 from occ.drivers.can_sim import DriveAxis, SimulatedDriveNode
 from occ.errors import DriverError
 from occ.joint import Joint, JointLimits, PIDGains
@@ -123,7 +123,7 @@ def test_effort_interface_sends_milli_units(channel: str, node: SimulatedDriveNo
 
 def test_frame_layout_is_big_endian_and_foreign_frames_are_ignored(channel: str) -> None:
     assert COMMAND_FRAME.size == 8 and FEEDBACK_FRAME.size == 8
-    assert COMMAND_FRAME.pack(-2, 1, 7) == bytes([0xFF, 0xFF, 0xFF, 0xFE, 1, 7, 0, 0])
+    assert COMMAND_FRAME.pack(-2, 1, 7, 50) == bytes([0xFF, 0xFF, 0xFF, 0xFE, 1, 7, 50, 0])
     peer = can.Bus(interface="virtual", channel=channel)
     js = make_joints()
     drv = CANDriver("arm", js, params(channel))
@@ -169,4 +169,51 @@ def test_command_saturates_instead_of_wrapping(channel: str, node: SimulatedDriv
     drv.write([1e6], 0.001)
     assert node.wait_commands(1, timeout=2.0)
     assert node.axes[0].target == 2**31 - 1
+    drv.shutdown()
+
+
+def test_the_drive_stops_itself_without_heartbeat(channel: str, node: SimulatedDriveNode) -> None:
+    js = make_joints()
+    drv = CANDriver("arm", js, params(channel, heartbeat_ms=20, feedback_timeout=10.0))
+    drv.configure()
+    drv.read(0.0)
+    drv.activate()
+    drv.write([0.1, 0.05], 0.001)
+    assert node.wait_commands(2, timeout=2.0)
+    assert node.axes[0].heartbeat_s == pytest.approx(0.020)  # told in every command frame
+    sent = node.feedback_sent
+    # the host goes silent: each axis stops itself and says so in a feedback frame
+    assert node.wait_feedback(sent + 2, timeout=5.0)
+    assert [a.heartbeat_trips for a in node.axes] == [1, 1]
+    assert all(a.mode == MODE_DISABLED and a.heartbeat_lost for a in node.axes)
+    with pytest.raises(DriverError, match="joint yaw: heartbeat lost: the drive stopped itself"):
+        drv.read(0.5)
+    assert drv.state is DriverState.FAULT
+    # entering FAULT sent mode 0 (the acknowledgement): after a reset the drive obeys again
+    drv.reset()
+    drv.activate()
+    n = node.commands_received
+    drv.write([0.2, 0.05], 0.6)
+    assert node.wait_commands(n + 2, timeout=2.0)
+    assert not node.axes[0].heartbeat_lost and node.axes[0].mode == 1
+    drv.shutdown()
+
+
+def test_safe_stop_sends_mode_0_from_another_thread(channel: str, node: SimulatedDriveNode) -> None:
+    import threading
+
+    js = make_joints()
+    drv = CANDriver("arm", js, params(channel, heartbeat_ms=0))
+    drv.configure()
+    drv.read(0.0)
+    drv.activate()
+    drv.write([0.1, 0.05], 0.001)
+    assert node.wait_commands(2, timeout=2.0)
+    n = node.commands_received
+    t = threading.Thread(target=drv.safe_stop, args=("supervisor",))
+    t.start()
+    t.join(5.0)
+    assert node.wait_commands(n + 2, timeout=2.0)
+    assert all(a.mode == MODE_DISABLED for a in node.axes)
+    assert drv.state is DriverState.FAULT and drv.fault_reason == "safe stop: supervisor"
     drv.shutdown()

@@ -110,7 +110,9 @@ def test_lifecycle_and_state_errors() -> None:
     d.shutdown()  # safe twice
     assert d.state is DriverState.SHUTDOWN
     assert d.calls == ["configure", "activate", "deactivate", "shutdown"]
-    assert d.stats() == {"reads": 1, "writes": 1, "limit_events": 0, "errors": 0}
+    assert d.stats() == {
+        "reads": 1, "writes": 1, "limit_events": 0, "errors": 0, "safe_stops": 0
+    }
 
 
 def test_context_manager_shuts_down_active_driver() -> None:
@@ -274,7 +276,7 @@ def test_sim_deterministic_with_seed_and_simulated_clock() -> None:
 
 def test_sim_substeps_make_large_dt_equivalent() -> None:
     js = joints(1)
-    d = SimDriver("s", js, {"encoder_resolution": 0.0})
+    d = SimDriver("s", js, {"encoder_resolution": 0.0, "heartbeat_ms": 0})
     d.configure()
     d.read(0.0)
     d.activate()
@@ -323,3 +325,101 @@ def test_sim_per_joint_mapping_params() -> None:
     assert js[0].position == 0.0 and js[1].position == pytest.approx(0.05)
     assert d._resolution == [0.01, 1e-6]
     d.shutdown()
+
+
+# -- device-side heartbeat and safe stop ----------------------------------------------------
+
+
+def test_sim_drive_stops_itself_without_heartbeat_and_reports_it() -> None:
+    js = joints(1)
+    d = SimDriver("s", js, {"encoder_resolution": 0.0, "heartbeat_ms": 20, "bandwidth_hz": 30.0})
+    ref = SimDriver("r", joints(1), {"encoder_resolution": 0.0, "heartbeat_ms": 0,
+                                     "bandwidth_hz": 30.0})
+    for drv in (d, ref):
+        drv.configure()
+        drv.read(0.0)
+        drv.activate()
+    # both follow a ramp for 100 ms at 1 kHz, then the host freezes (no commands) for 200 ms
+    for k in range(100):
+        for drv in (d, ref):
+            drv.read(k * 0.001)
+            drv.write([0.0005 * k], k * 0.001)
+    last = 0.099
+    # where the drive is at the heartbeat deadline, had it kept the last command
+    ref.read(last + 0.020)
+    at_deadline = ref.true_positions[0]
+    with pytest.raises(DriverError, match="heartbeat lost: no command for 200.0 ms"):
+        d.read(last + 0.200)
+    assert d.state is DriverState.FAULT and "heartbeat lost" in d.fault_reason
+    # it moved only until the deadline, then braked and held
+    assert d.true_positions[0] == pytest.approx(at_deadline, abs=1e-12)
+    assert d.stats()["heartbeat_trips"] == 1
+    with pytest.raises(StateError):
+        d.write([0.0], last + 0.201)
+    d.reset()
+    d.read(last + 0.300)  # reset clears the device's latch
+    assert d.state is DriverState.INACTIVE
+
+
+def test_sim_heartbeat_refreshed_every_tick_never_trips() -> None:
+    d = SimDriver("s", joints(1), {"heartbeat_ms": 5})
+    d.configure()
+    d.activate()
+    for k in range(1000):
+        d.read(k * 0.001)
+        d.write([0.0], k * 0.001)
+    assert d.state is DriverState.ACTIVE and d.stats()["heartbeat_trips"] == 0
+
+
+def test_heartbeat_param_is_every_drivers_and_checked() -> None:
+    assert SimDriver("s", joints(1)).heartbeat_s == pytest.approx(0.050)
+    assert SimDriver("s", joints(1), {"heartbeat_ms": None}).heartbeat_s == 0.0
+    with pytest.raises(ValueError, match="heartbeat_ms must be a number >= 0"):
+        SimDriver("s", joints(1), {"heartbeat_ms": -1})
+
+
+def test_safe_stop_from_another_thread_while_the_loop_writes() -> None:
+    import threading
+
+    js = joints(2)
+    d = SimDriver("s", js, {"heartbeat_ms": 0})
+    d.configure()
+    d.activate()
+    refused = threading.Event()
+    started = threading.Event()
+
+    def loop() -> None:
+        k = 0
+        while True:
+            k += 1
+            try:
+                d.read(k * 0.001)
+                d.write([0.001 * k, 0.0], k * 0.001)
+            except (StateError, DriverError):
+                refused.set()
+                return
+            started.set()
+
+    t = threading.Thread(target=loop)
+    t.start()
+    assert started.wait(5.0)
+    d.safe_stop("loop hung")
+    d.safe_stop("again")  # idempotent
+    assert refused.wait(5.0)
+    t.join(5.0)
+    assert d.state is DriverState.FAULT
+    assert d.fault_reason == "safe stop: loop hung"
+    assert d.stats()["safe_stops"] == 1
+    # braked: the model no longer follows anything
+    x = d.true_positions
+    d.read(100.0)
+    assert d.true_positions == x
+    d.reset()
+    assert d.state is DriverState.INACTIVE
+
+
+def test_safe_stop_of_an_inactive_driver_changes_nothing() -> None:
+    d = SimDriver("s", joints(1))
+    d.configure()
+    d.safe_stop("nothing to stop")
+    assert d.state is DriverState.INACTIVE and d.stats()["safe_stops"] == 0

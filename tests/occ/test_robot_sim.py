@@ -398,3 +398,35 @@ def test_the_stream_belongs_to_its_first_sender_until_reset(slave: SimSlave) -> 
     slave.seq += 1
     iface._on_message(intruder, slave.position())
     assert iface.stream_owner == ("127.0.0.1", 40999)
+
+
+def test_a_hung_tick_trips_the_supervisor_drivers_stop_then_fault(slave: SimSlave) -> None:
+    run(slave)
+    slave.step_ms(20)
+    sup = slave.robot.supervisor
+    last = slave.k - 1
+    # the loop hangs inside a tick; the supervisor thread checks every 5 ms meanwhile
+    assert sup.check(last * 0.001 + 0.015) is None
+    reason = sup.check(last * 0.001 + 0.025)
+    assert reason is not None and "did not tick for 25.0 ms" in reason
+    drv = slave.robot.drivers[0][0]
+    assert drv.state.value == "fault" and drv.fault_reason.startswith("safe stop: ")
+    alerts = [r for r in slave.replies if r.message_type == "STATUS" and r.error_name == "SUPERVISOR"]
+    assert alerts and reason in alerts[-1].status_message
+    # the loop comes back: latched FAULT, and it stays there until Reset
+    slave.step_ms(5)
+    assert slave.robot.state is RobotState.FAULT
+    assert "supervisor" in slave.robot.describe_state()
+    assert slave.command("Reset").metadata["Status"] == "SUCCESS"
+    assert slave.robot.state is RobotState.READY and not sup.tripped
+    assert slave.command("Enable").metadata["Status"] == "SUCCESS"
+    assert drv.state.value == "active"
+
+
+def test_sim_drives_stop_themselves_when_the_loop_stops_refreshing(slave: SimSlave) -> None:
+    run(slave)
+    slave.step_ms(20)
+    slave.k += 200  # the whole process froze for 200 ms (supervisor frozen too)
+    slave.step_ms(2)
+    assert slave.robot.state is RobotState.FAULT
+    assert "heartbeat lost" in slave.robot.last_alert

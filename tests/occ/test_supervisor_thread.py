@@ -1,0 +1,75 @@
+"""The supervisor thread in real time: a tick that hangs is caught from outside the loop.
+
+No timing is asserted: the test waits (bounded) for the trip, then checks what it did.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from occ.clock import RealClock
+from occ.config import load_config
+from occ.robot import build_robot
+from occ.safety import RobotState
+
+ROOT = Path(__file__).resolve().parents[2]
+
+pytestmark = pytest.mark.realtime
+
+
+def wait_for(cond, timeout: float = 10.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.005)
+    return False
+
+
+def test_a_hung_tick_is_caught_by_the_supervisor_thread() -> None:
+    cfg = load_config(ROOT / "configs" / "slave.yaml")
+    ifaces = tuple(i.model_copy(update={"port": 0}) for i in cfg.interfaces)
+    rt = cfg.robot.realtime.model_copy(update={"fifo_priority": None})
+    cfg = cfg.model_copy(
+        update={"interfaces": ifaces, "robot": cfg.robot.model_copy(update={"realtime": rt})}
+    )
+    robot = build_robot(cfg, clock=RealClock(spin_us=0))
+    release = threading.Event()
+    hung = threading.Event()
+    update = robot.controller.update
+    ticks = 0
+
+    def hanging_update(now: float):
+        nonlocal ticks
+        ticks += 1
+        if ticks == 50:
+            hung.set()
+            release.wait(10.0)  # a blocked call inside the tick
+        return update(now)
+
+    robot.controller.update = hanging_update  # type: ignore[method-assign]
+    robot.configure()
+    robot.activate()
+    loop = threading.Thread(target=robot.run, kwargs={"duration": 30.0})
+    try:
+        robot.state_machine.request("enable")
+        robot.state_machine.request("run")
+        loop.start()
+        assert hung.wait(10.0)
+        assert wait_for(lambda: robot.supervisor.tripped)
+        # while the loop is still stuck: the drives are already in their safe state
+        drv = robot.drivers[0][0]
+        assert drv.state.value == "fault" and "did not tick" in (drv.fault_reason or "")
+        assert robot.state is RobotState.RUNNING  # the state machine belongs to the loop
+        release.set()
+        assert wait_for(lambda: robot.state is RobotState.FAULT)
+        assert "supervisor" in robot.last_alert
+    finally:
+        release.set()
+        robot.stop_loop()
+        loop.join(10.0)
+        robot.shutdown()
