@@ -35,12 +35,13 @@ Backends implement::
 Two more duties, because the loop itself can fail (see docs/ARCHITECTURE.md, "Safety"):
 
 - **Device-side heartbeat.** Every driver takes the parameter ``heartbeat_ms`` (default 50;
-  0 or null = off). From its first command on, the *device* must stop itself (hold, brakes on) when it has not been
-  commanded for that long while ACTIVE, as dVRK's FPGA watchdog and a CANopen heartbeat
-  consumer do, and report it: the next ``read`` raises :class:`~occ.errors.DriverError`
-  ("heartbeat lost"), which latches FAULT. This is what still protects the patient when the
-  whole process is frozen. ``sim`` and the CAN drive simulator implement it; a backend for
-  hardware that cannot must say so in its documentation.
+  0 or null = off). From its first command on, the *device* must stop itself (hold, brakes
+  on) when it has not been commanded for that long while ACTIVE, as dVRK's FPGA watchdog
+  and a CANopen heartbeat consumer do, and report it: the next ``read`` raises
+  :class:`~occ.errors.DriverError` ("heartbeat lost"), which latches FAULT. This is what
+  still protects the patient when the whole process is frozen. ``sim`` and the CAN drive
+  simulator implement it; a backend for hardware that cannot must say so in its
+  documentation.
 - **Safe stop from another thread.** :meth:`Driver.safe_stop` is called by the supervisor
   while the loop thread may be hung inside a tick. It calls the ``_safe_stop`` hook (default:
   ``_deactivate``), which must put the hardware in its safe state at once and be safe to call
