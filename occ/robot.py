@@ -385,6 +385,7 @@ class Robot:
         if prio:
             report = self.interfaces.set_thread_priority(max(1, prio - 1))
             log.info("interface threads: %s", report)
+        self.worker.start()
         sv = self._supervisor_cfg
         if sv.enabled and isinstance(self.clock, RealClock) and self._supervisor_thread is None:
             sup_prio = sv.fifo_priority or (min(99, prio + 1) if prio else None)

@@ -71,7 +71,7 @@ from typing import Any
 
 import can
 
-from occ.drivers.base import CommandInterface, Driver, LimitPolicy
+from occ.drivers.base import CommandInterface, Driver, DriverState, LimitPolicy
 from occ.errors import DriverError
 from occ.joint import Joint
 
@@ -278,10 +278,14 @@ class CANDriver(Driver):
                 continue
             counts, vel, eff = unpack(msg.data)
             if eff == HEARTBEAT_LOST:
-                raise DriverError(
-                    f"can driver {self.name!r}: joint {self.joints[i].name}: heartbeat lost: "
-                    f"the drive stopped itself (no command for {self.heartbeat_s * 1e3:.0f} ms)"
-                )
+                eff = 0  # a flag, not an effort
+                # once ACTIVE only: faulted, we sent mode 0, which clears the drive's flag
+                if self.state is DriverState.ACTIVE:
+                    raise DriverError(
+                        f"can driver {self.name!r}: joint {self.joints[i].name}: heartbeat "
+                        f"lost: the drive stopped itself (no command for "
+                        f"{self.heartbeat_s * 1e3:.0f} ms)"
+                    )
             cpu = self._counts_per_unit[i]
             self._pos[i] = counts / cpu
             self._vel[i] = vel * VELOCITY_SCALE / cpu

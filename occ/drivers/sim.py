@@ -201,6 +201,7 @@ class SimDriver(Driver):
         self._measured = [0.0] * n
         self._last_cmd_t = math.nan  # model time of the last command (heartbeat)
         self._heartbeat_lost: str | None = None
+        self._heartbeat_reported = False
         self.heartbeat_trips = 0
 
     # ------------------------------------------------------------------ inspection
@@ -251,6 +252,7 @@ class SimDriver(Driver):
     def _reset(self) -> None:
         self._deactivate()
         self._heartbeat_lost = None
+        self._heartbeat_reported = False
 
     def stats(self) -> dict[str, int]:
         out = super().stats()
@@ -262,7 +264,8 @@ class SimDriver(Driver):
 
     def _read(self, now: float) -> tuple[Sequence[float], Sequence[float], Sequence[float]]:
         self._advance(now)
-        if self._heartbeat_lost is not None:
+        if self._heartbeat_lost is not None and not self._heartbeat_reported:
+            self._heartbeat_reported = True  # once: then positions are readable again
             raise DriverError(f"sim driver {self.name!r}: {self._heartbeat_lost}")
         out = self._measured
         rng = self._rng

@@ -354,6 +354,8 @@ def test_sim_drive_stops_itself_without_heartbeat_and_reports_it() -> None:
     # it moved only until the deadline, then braked and held
     assert d.true_positions[0] == pytest.approx(at_deadline, abs=1e-12)
     assert d.stats()["heartbeat_trips"] == 1
+    d.read(last + 0.250)  # reported once; then where the robot is stays readable
+    assert js[0].position == pytest.approx(at_deadline, abs=1e-12)
     with pytest.raises(StateError):
         d.write([0.0], last + 0.201)
     d.reset()
