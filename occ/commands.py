@@ -55,6 +55,12 @@ def _parse_xml_command(text: str) -> tuple[str, dict[str, str]] | None:
     text = text.strip()
     if not text.startswith("<"):
         return None
+    if len(text) > MAX_XML_BYTES:
+        raise CommandError(f"XML command too long ({len(text)} characters, limit {MAX_XML_BYTES})")
+    if "<!" in text:
+        # a DTD is the door to entity expansion ("billion laughs", 477 bytes stalled a loop for
+        # 98 ms) and external entities; no command of this protocol needs one
+        raise CommandError("XML command refused: DOCTYPE, ENTITY and CDATA are not accepted")
     try:
         root = ET.fromstring(text)
     except ET.ParseError as err:
@@ -94,6 +100,21 @@ def parse_request(msg: Message) -> Request:
     raise CommandError(f"{mtype} is not an operator request")
 
 
+#: Largest XML command accepted (the commands of this protocol are a few hundred bytes).
+MAX_XML_BYTES = 8192
+
+
+def safe_name(name: str, limit: int = 20) -> str:
+    """A device name that can always be packed: at most ``limit`` bytes of UTF-8, cut at a
+    character boundary. A peer's name that was not valid UTF-8 (decoded as latin-1) or that
+    grows past 20 bytes when re-encoded is answered under this shortened name, never with an
+    exception on the loop thread."""
+    raw = name.encode("utf-8", "replace")  # a lone surrogate becomes "?"
+    if len(raw) <= limit and raw.decode("utf-8") == name:
+        return name
+    return raw[:limit].decode("utf-8", "ignore")
+
+
 def _reply_xml(name: str, ok: bool, message: str) -> str:
     status = "SUCCESS" if ok else "FAIL"
     name_attr = f" Name={quoteattr(name)}" if name else ""
@@ -108,10 +129,11 @@ def _rts_command(msg: Message, name: str, ok: bool, message: str, timestamp: flo
         meta["Error"] = message
     return cls(
         command_id=int(getattr(msg, "command_id", 0)),
-        command_name=name[:128],
+        command_name=safe_name(name, 128),
         command=_reply_xml(name, ok, message),
-        device_name=msg.device_name,
+        device_name=safe_name(msg.device_name),
         header_version=2,
+        message_id=msg.message_id,  # the reply names the request it answers
         metadata=meta,
         timestamp=timestamp,
     )
@@ -121,8 +143,9 @@ def _ack_string(msg: Message, name: str, ok: bool, message: str, timestamp: floa
     uid = msg.device_name[4:]
     return igtl.StringMessage(
         _reply_xml(name, ok, message),
-        device_name=("ACK_" + uid)[:20],
+        device_name=safe_name("ACK_" + uid),
         header_version=msg.header_version,
+        message_id=msg.message_id,
         timestamp=timestamp,
     )
 
@@ -160,7 +183,7 @@ def error_reply(
                 return cls(
                     type_name=rts,
                     status=1,
-                    device_name=msg.device_name,
+                    device_name=safe_name(msg.device_name),
                     header_version=msg.header_version,
                     timestamp=timestamp,
                 )
@@ -171,8 +194,9 @@ def error_reply(
         subcode=0,
         error_name=igtl.StatusCode(int(code)).name[:20],
         status_message=text,
-        device_name=msg.device_name,
+        device_name=safe_name(msg.device_name),
         header_version=msg.header_version,
+        message_id=msg.message_id,
         timestamp=timestamp,
     )
 

@@ -429,7 +429,8 @@ class InterfaceConfig(_Model):
     )
     allowed_peers: tuple[IPvAnyNetwork, ...] = Field(
         (ipaddress.ip_network("127.0.0.1"),),
-        description="IP addresses or CIDR networks allowed to connect or send; others are refused.",
+        description="IP addresses or CIDR networks allowed to connect or send; others are refused "
+        "and counted. Must not be empty (0.0.0.0/0 = any IPv4 peer).",
     )
     commands: Bool = Field(
         False,
@@ -482,6 +483,16 @@ class InterfaceConfig(_Model):
         problems: list[tuple[Loc, str]] = []
         if self.transport == "tcp-client" and self.remote is None:
             problems.append((("remote",), "required for transport 'tcp-client'"))
+        if not self.allowed_peers:
+            # read literally, an empty list refuses everyone; the transports once took it as
+            # "no filter". Neither is what anyone means: ask.
+            problems.append(
+                (
+                    ("allowed_peers",),
+                    "an empty list would refuse every peer; list the addresses or networks "
+                    "allowed (0.0.0.0/0 for any IPv4 peer)",
+                )
+            )
         seen: dict[tuple[str, str | None], int] = {}
         for i, inp in enumerate(self.inputs):
             key = (inp.type, inp.device)

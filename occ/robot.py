@@ -35,7 +35,7 @@ from igtl.transport import UDPEndpoint
 from igtl.transport.common import RateLimit
 
 from .clock import Clock, RealClock
-from .commands import Request, error_reply, parse_request, success_reply
+from .commands import Request, error_reply, parse_request, safe_name, success_reply
 from .config import DaemonConfig
 from .controllers import Controller
 from .drivers import create_driver
@@ -807,8 +807,9 @@ class Robot:
                 code=int(STATE_STATUS_CODE[st]),
                 error_name=st.value,
                 status_message=self.describe_state(),
-                device_name=msg.device_name or self.name[:20],
+                device_name=safe_name(msg.device_name or self.name),
                 header_version=msg.header_version,
+                message_id=msg.message_id,
                 timestamp=wall,
             )
         if name == "GET_CAPABIL":
@@ -825,12 +826,13 @@ class Robot:
             ]
             return igtl.CapabilityMessage(
                 types=tuple(types),
-                device_name=msg.device_name,
+                device_name=safe_name(msg.device_name),
                 header_version=msg.header_version,
+                message_id=msg.message_id,
                 timestamp=wall,
             )
         if name in ("GET_TRANS", "GET_TRANSFOR"):
-            want = msg.device_name or "Tip"
+            want = safe_name(msg.device_name or "Tip")
             pose = self.base if want.lower() == "base" else self.world_tip()
             return pose_to_message(pose, "TRANSFORM", want, msg.header_version, wall)
         raise CommandError(f"{name} is not supported by {self.name}")

@@ -410,3 +410,16 @@ def test_config_md_example_is_valid() -> None:
     assert example is not None
     cfg = parse_config(example.group(1), source="CONFIG.md example")
     assert cfg.robot.joint_names == ("yaw", "pitch", "insertion")
+
+
+def test_an_empty_allowed_peers_list_is_refused_with_a_clear_error(tmp_path) -> None:
+    from occ.config import load_config as _load
+
+    text = (ROOT / "configs" / "slave.yaml").read_text().replace(
+        "    port: 18944\n", "    port: 18944\n    allowed_peers: []\n", 1
+    )
+    path = tmp_path / "slave.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        _load(path)
+    assert any("allowed_peers: an empty list would refuse every peer" in e for e in info.value.errors)

@@ -430,3 +430,61 @@ def test_sim_drives_stop_themselves_when_the_loop_stops_refreshing(slave: SimSla
     slave.step_ms(2)
     assert slave.robot.state is RobotState.FAULT
     assert "heartbeat lost" in slave.robot.last_alert
+
+
+def _with_raw_name(msg: igtl.Message, name: bytes) -> igtl.Message:
+    """``msg`` as a peer might send it: a device name that is not valid UTF-8."""
+    data = bytearray(msg.pack())
+    data[14:34] = name.ljust(20, b"\0")
+    return igtl.unpack(bytes(data))
+
+
+def _packs(m: igtl.Message) -> bool:
+    return len(m.pack()) >= 58
+
+
+def test_names_that_cannot_be_re_encoded_are_answered_safely(slave: SimSlave) -> None:
+    iface = slave.robot.interfaces["slicer"]
+    cmd = _with_raw_name(igtl.StringMessage('<Command Name="GetState"/>', device_name="CMD_x",
+                                            header_version=2), b"CMD_" + b"\xff" * 16)
+    get = _with_raw_name(igtl.REGISTRY["GET_STATUS"](type_name="GET_STATUS", device_name="x"),
+                         b"\xff" * 20)
+    answers = []
+    for msg in (cmd, get):
+        slave.replies.clear()
+        iface._on_message(OPERATOR, msg)
+        slave.tick()
+        mine = [r for r in slave.replies if r.message_type in ("STRING", "STATUS")]
+        assert len(mine) == 1, f"no answer to {msg.message_type}"
+        assert _packs(mine[0])
+        answers.append(mine[0])
+    ack, status = answers
+    assert ack.device_name.startswith("ACK_") and 'Status="SUCCESS"' in ack.string
+    assert status.message_type == "STATUS" and status.error_name == "READY"
+    assert slave.robot.reply_errors == 0 and slave.robot.state is RobotState.READY
+
+
+def test_xml_with_a_dtd_is_refused_before_parsing(slave: SimSlave) -> None:
+    laughs = ('<?xml version="1.0"?><!DOCTYPE l [<!ENTITY a "aaaaaaaaaa">'
+              + "".join(f'<!ENTITY {c} "&{p};&{p};&{p};&{p};&{p};&{p};&{p};&{p};&{p};&{p};">'
+                        for p, c in zip("abcdefg", "bcdefgh"))
+              + ']><Command Name="&h;"/>')
+    iface = slave.robot.interfaces["slicer"]
+    iface._on_message(OPERATOR, igtl.StringMessage(laughs, device_name="CMD_9"))
+    # answered at once by the interface thread, never queued for the loop
+    assert len(slave.robot.interfaces.commands) == 0
+    ack = slave.replies[-1]
+    assert ack.device_name == "ACK_9" and 'Status="FAIL"' in ack.string and "DOCTYPE" in ack.string
+    big = '<Command Name="Run" X="' + "y" * 9000 + '"/>'
+    iface._on_message(OPERATOR, igtl.StringMessage(big, device_name="CMD_10"))
+    assert "too long" in slave.replies[-1].string
+
+
+def test_command_replies_echo_the_request_message_id(slave: SimSlave) -> None:
+    cls = igtl.REGISTRY["COMMAND"]
+    msg = cls(command_id=5, command_name="GetState", command="", device_name="command",
+              header_version=2, message_id=4242)
+    slave.robot.interfaces["slicer"]._on_message(OPERATOR, msg)
+    slave.tick()
+    rts = [r for r in slave.replies if r.message_type == "RTS_COMMAND"][-1]
+    assert rts.message_id == 4242 and rts.command_id == 5
