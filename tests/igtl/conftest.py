@@ -1,6 +1,6 @@
 """Shared fixtures for the igtl tests.
 
-The reference vectors in ``shared/igtl-vectors`` come from the OpenIGTLink project's own unit
+The reference vectors in ``tests/data/igtl-vectors`` come from the OpenIGTLink project's own unit
 tests (github.com/openigtlink/OpenIGTLink, ``Testing/igtlutil/igtl_test_data_*.h``, BSD-style
 licence, Copyright Insight Software Consortium).
 """
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-VECTORS_DIR = Path(__file__).parents[2].parent / "shared" / "igtl-vectors"
+VECTORS_DIR = Path(__file__).parents[1] / "data" / "igtl-vectors"
 
 
 @pytest.fixture(scope="session")

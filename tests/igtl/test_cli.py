@@ -33,8 +33,7 @@ BOUND = 20.0
 def _vector_dir() -> Path | None:
     candidates = [
         os.environ.get("IGTL_VECTORS"),
-        ROOT / "tests" / "igtl" / "vectors",
-        ROOT.parent / "shared" / "igtl-vectors",
+        ROOT / "tests" / "data" / "igtl-vectors",
     ]
     for c in candidates:
         if c and (Path(c) / "MANIFEST.json").is_file():
@@ -44,7 +43,7 @@ def _vector_dir() -> Path | None:
 
 VECTORS = _vector_dir()
 needs_vectors = pytest.mark.skipif(
-    VECTORS is None, reason="reference vectors not found (set IGTL_VECTORS to shared/igtl-vectors)"
+    VECTORS is None, reason="reference vectors not found (tests/data/igtl-vectors, or set IGTL_VECTORS)"
 )
 
 

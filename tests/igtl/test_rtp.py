@@ -2,7 +2,7 @@
 
 The reference datagrams come from the OpenIGTLink project's own test data
 (Testing/igtlutil/igtl_test_data_rtpwrapper.h, github.com/openigtlink/OpenIGTLink, BSD-style
-licence, Copyright Insight Software Consortium), shipped as shared/igtl-vectors/rtpwrapper.bin.
+licence, Copyright Insight Software Consortium), shipped as tests/data/igtl-vectors/rtpwrapper.bin.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import igtl
 from igtl import rtp, wire
 from igtl.errors import DecodeError
 
-VECTORS = Path(__file__).resolve().parents[3] / "shared" / "igtl-vectors"
+VECTORS = Path(__file__).resolve().parents[1] / "data" / "igtl-vectors"
 RTP_VECTOR = VECTORS / "rtpwrapper.bin"
 
 

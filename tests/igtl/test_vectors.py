@@ -3,7 +3,7 @@ each message is also built from its values (not by decoding) and compared with t
 
 The vectors are the OpenIGTLink project's own test data (github.com/openigtlink/OpenIGTLink,
 ``Testing/igtlutil/igtl_test_data_*.h``; BSD-style licence, Copyright Insight Software
-Consortium), shipped in shared/igtl-vectors/. rtpwrapper.bin belongs to the transport tests.
+Consortium), carried in tests/data/igtl-vectors/ with their licence. rtpwrapper.bin belongs to the transport tests.
 """
 
 from __future__ import annotations
