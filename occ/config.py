@@ -731,6 +731,18 @@ class DaemonConfig(_Model):
         names: dict[str, int] = {}
         binds: list[tuple[int, InterfaceConfig]] = []
         loop_hz = self.robot.rate_hz
+        switch_us = self.robot.realtime.switch_interval_us
+        sup = self.safety.supervisor
+        if sup.enabled and switch_us is not None and switch_us * 1e-3 >= sup.timeout_ms / 2:
+            # a thread waits up to the switch interval for the interpreter lock: the supervisor
+            # must get it well within its timeout, or a hung loop looks like a paused machine
+            problems.append(
+                (
+                    ("robot", "realtime", "switch_interval_us"),
+                    f"must be below half of safety.supervisor.timeout_ms "
+                    f"({sup.timeout_ms * 500:g} us), got {switch_us:g}",
+                )
+            )
         for i, itf in enumerate(self.interfaces):
             if itf.name in names:
                 problems.append(

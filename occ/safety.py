@@ -212,7 +212,18 @@ class Supervisor:
     the same code runs in simulated time, where a test calls :meth:`check` itself.
     """
 
-    __slots__ = ("timeout_s", "on_trip", "last_beat", "armed", "tripped", "reason", "trips")
+    __slots__ = (
+        "timeout_s",
+        "on_trip",
+        "last_beat",
+        "armed",
+        "tripped",
+        "reason",
+        "trips",
+        "_last_check",
+        "_window_from",
+        "starved",
+    )
 
     def __init__(
         self, timeout_s: float = 0.020, on_trip: Callable[[str], None] | None = None
@@ -226,6 +237,10 @@ class Supervisor:
         self.tripped = False
         self.reason = ""
         self.trips = 0
+        self._last_check: float | None = None
+        self._window_from = -math.inf
+        #: checks that found the supervisor itself frozen (the whole process or machine paused)
+        self.starved = 0
 
     def beat(self, now: float) -> None:
         self.last_beat = now
@@ -233,6 +248,7 @@ class Supervisor:
     def arm(self, now: float) -> None:
         """Start watching (the loop starts); the first beat is due within the timeout."""
         self.last_beat = now
+        self._last_check = now
         self.armed = True
 
     def disarm(self) -> None:
@@ -244,17 +260,30 @@ class Supervisor:
         self.reason = ""
 
     def check(self, now: float) -> str | None:
-        """Trip if the loop has been silent too long; returns the reason on the trip only."""
+        """Trip if the loop has been silent too long; returns the reason on the trip only.
+
+        Silence is counted only while the supervisor itself was awake: when its own previous
+        check is more than ``timeout_s`` ago, the whole process (or machine) was paused (a VM
+        hiccup, SIGSTOP) and the loop had no chance to tick either; the window then starts
+        again now (counted in ``starved``), so a paused machine is not a hung loop, while a
+        loop that stays silent after the pause is caught one timeout later.
+        """
+        last_check = self._last_check
+        self._last_check = now
         last = self.last_beat
         if not self.armed or self.tripped or last is None:
             return None
-        silent = now - last
+        if last_check is not None and now - last_check > self.timeout_s:
+            self.starved += 1
+            self._window_from = now
+            return None
+        silent = now - max(last, self._window_from)
         if silent <= self.timeout_s:
             return None
         self.tripped = True
         self.trips += 1
         self.reason = (
-            f"control loop did not tick for {silent * 1e3:.1f} ms "
+            f"control loop did not tick for {(now - last) * 1e3:.1f} ms "
             f"(supervisor limit {self.timeout_s * 1e3:.1f} ms)"
         )
         if self.on_trip is not None:

@@ -402,11 +402,14 @@ def test_the_stream_belongs_to_its_first_sender_until_reset(slave: SimSlave) -> 
 
 def test_a_hung_tick_trips_the_supervisor_drivers_stop_then_fault(slave: SimSlave) -> None:
     run(slave)
-    slave.step_ms(20)
     sup = slave.robot.supervisor
+    for _ in range(4):  # the supervisor thread checks every 5 ms
+        slave.step_ms(5)
+        assert sup.check((slave.k - 1) * 0.001) is None
     last = slave.k - 1
-    # the loop hangs inside a tick; the supervisor thread checks every 5 ms meanwhile
-    assert sup.check(last * 0.001 + 0.015) is None
+    # the loop hangs inside a tick; the supervisor goes on checking every 5 ms
+    for dt in (0.005, 0.010, 0.015, 0.020):
+        assert sup.check(last * 0.001 + dt) is None
     reason = sup.check(last * 0.001 + 0.025)
     assert reason is not None and "did not tick for 25.0 ms" in reason
     drv = slave.robot.drivers[0][0]

@@ -568,6 +568,22 @@ def test_supervisor_trips_once_on_a_silent_loop_and_latches() -> None:
     assert sup.check(99.0) is None
 
 
+def test_supervisor_does_not_take_a_paused_machine_for_a_hung_loop() -> None:
+    sup = Supervisor(0.020)
+    sup.arm(0.0)
+    for k in range(1, 11):
+        sup.beat(k * MS)
+        assert sup.check(k * MS) is None
+    # the whole VM pauses 40 ms: the supervisor's own next check comes 40 ms late
+    assert sup.check(0.050) is None and sup.starved == 1
+    sup.beat(0.0505)  # the loop runs again right after: nothing to report
+    assert sup.check(0.055) is None and not sup.tripped
+    # but a loop that stays silent after the pause is caught one timeout later
+    for t in (0.060, 0.065, 0.070):
+        assert sup.check(t) is None
+    assert sup.check(0.0706) is not None
+
+
 # Streams built from gaps of 0-2 lost packets between received ones: no run of >= 3 losses.
 gaps_0_2 = st.lists(st.integers(0, 2), min_size=1, max_size=300)
 
