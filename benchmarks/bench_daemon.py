@@ -53,6 +53,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="the master runs (same CPU use) but streams to an unused port, and no "
                         "TCP clients connect: separates machine load from the slave's own I/O")
     p.add_argument("--no-record", action="store_true", help="the slave without recording")
+    p.add_argument("--thread-streams", action="store_true",
+                   help="robot.realtime.poll_streams false: an interface thread receives the stream")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
     out = args.out or Path(tempfile.mkdtemp(prefix="occ-bench-"))
@@ -76,6 +78,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.spin_us is not None:
         slave["robot"]["realtime"]["spin_us"] = args.spin_us
         master["robot"]["realtime"]["spin_us"] = args.spin_us
+    if args.thread_streams:
+        slave["robot"]["realtime"]["poll_streams"] = False
     if not args.no_record:
         slave["recording"] = {
             "path": str(out / "slave.igtl"), "rate_hz": 100, "include_messages": True

@@ -289,6 +289,12 @@ class RealtimeConfig(_Model):
         "SCHED_FIFO the wake-up is early enough and the master-to-slave latency the same "
         "(docs/BENCHMARKS.md).",
     )
+    poll_streams: Bool = Field(
+        True,
+        description="The loop reads its UDP stream sockets itself, at most 4 datagrams a tick "
+        "(no thread wake-up per datagram; a flood costs the tick a bounded amount). false = "
+        "an interface thread receives them (docs/BENCHMARKS.md compares both).",
+    )
     switch_interval_us: Annotated[Float, Field(ge=50, le=100000)] | None = Field(
         None,
         description="Python's thread switch interval during the run (sys.setswitchinterval): "

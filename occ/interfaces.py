@@ -180,8 +180,10 @@ class Interface:
         manager: InterfaceManager,
         *,
         clock_now: Callable[[], float],
+        poll_streams: bool = False,
     ) -> None:
         self.cfg = cfg
+        self.poll_streams = poll_streams
         self.name: str = cfg.name
         self.commands: bool = bool(cfg.commands)
         self.manager = manager
@@ -240,6 +242,8 @@ class Interface:
                 cfg.port,
                 remote=remote,
                 allowed_peers=allowed,
+                # a stream the loop polls each tick needs no thread waking per datagram
+                polled=self.poll_streams and bool(self.streams),
                 name=f"igtl-{self.name}",
                 **common,
             )
@@ -405,12 +409,15 @@ class InterfaceManager:
         *,
         clock_now: Callable[[], float],
         command_depth: int = 64,
+        poll_streams: bool = False,
     ) -> None:
         self.commands = CommandQueue(command_depth)
         self.interfaces: dict[str, Interface] = {}
         self._connect_listeners: list[Callable[[Interface, Peer], None]] = []
         for cfg in interface_configs:
-            self.interfaces[cfg.name] = Interface(cfg, self, clock_now=clock_now)
+            self.interfaces[cfg.name] = Interface(
+                cfg, self, clock_now=clock_now, poll_streams=poll_streams
+            )
         self._started = False
 
     def __getitem__(self, name: str) -> Interface:

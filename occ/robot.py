@@ -76,8 +76,9 @@ COMMAND_EVENTS = {
     "hold": "hold",
 }
 
-#: Datagrams a tick reads itself from each UDP stream socket (a 500 Hz stream brings one every
-#: other tick); anything beyond waits for the interface thread, so a flood costs the tick little.
+#: Datagrams a tick reads from each UDP stream socket (a 500 Hz stream brings one every other
+#: tick); beyond that a flood waits in the socket buffer, which overflows: the tick's cost stays
+#: bounded, and a master drowned in a flood is a failed link (hold, then the latched stop).
 POLL_LIMIT = 4
 
 #: States in which drivers are ACTIVE (servos on).
@@ -234,16 +235,18 @@ class Robot:
             self.drivers.append((drv, idx))
 
         # --- Interfaces
-        self.interfaces = InterfaceManager(config.interfaces, clock_now=self.clock.now)
+        # UDP stream sockets are read by the loop itself, at most POLL_LIMIT datagrams a tick:
+        # a 500 Hz stream then costs no thread wake-up per datagram (on this VM each wake-up
+        # and interpreter-lock hand-over costs more than decoding the datagram), and a flood
+        # costs the tick a bounded amount (the socket buffer overflows instead).
+        self.interfaces = InterfaceManager(
+            config.interfaces, clock_now=self.clock.now, poll_streams=rc.realtime.poll_streams
+        )
         self.interfaces.on_connect(self._on_peer_connect)
-        # Only a loop that spins before its deadlines (holding the interpreter lock) polls its
-        # stream sockets itself; a loop that sleeps lets the interface threads take what
-        # arrives meanwhile, and a poll would only cost a system call per tick.
-        spins = getattr(self.clock, "spin_us", 0.0) > 0.0
         self._pollers = [
             iface.transport.poll
             for iface in self.interfaces.interfaces.values()
-            if spins and iface.streams and isinstance(iface.transport, UDPEndpoint)
+            if isinstance(iface.transport, UDPEndpoint) and iface.transport.polled
         ]
 
         # --- Safety
@@ -293,7 +296,8 @@ class Robot:
         self.q = [j.home for j in self.joints]
         self.hold_setpoint = list(self.q)
         self.setpoint = list(self.q)
-        self.tip = np.eye(4)
+        self._tip = np.eye(4)
+        self._tip_stale = False
         self.base = np.eye(4)
         self.sources: dict[str, SourceFn] = {
             "tip": self._source_tip,
@@ -473,10 +477,8 @@ class Robot:
 
     def _streams(self, now: float) -> None:
         """Every stream sample, in order, judged by the loss monitor; only accepted samples
-        reach the controller. UDP stream sockets are polled here first: a datagram that
-        arrived while this thread held the interpreter (the clock's spin) is used now, not
-        one tick later (at most ``poll_limit`` datagrams a tick: a flood waits for the
-        interface thread)."""
+        reach the controller. Polled UDP stream sockets are read here first, at most
+        ``POLL_LIMIT`` datagrams each."""
         for poll in self._pollers:
             poll(POLL_LIMIT)
         monitor = self.loss_monitor
@@ -568,7 +570,15 @@ class Robot:
         q = self.q
         for i, j in enumerate(self.joints):
             q[i] = j.position
-        self.tip = self.frame.fk(q)
+        self._tip_stale = True  # forward kinematics when someone asks (outputs run at 10 Hz)
+
+    @property
+    def tip(self) -> np.ndarray:
+        """The tip pose in the base frame (forward kinematics of the last joint read), metres."""
+        if self._tip_stale:
+            self._tip = self.frame.fk(self.q)
+            self._tip_stale = False
+        return self._tip
 
     def _write(self, setpoints: Sequence[float], now: float) -> None:
         for drv, idx, buf in self._slices:

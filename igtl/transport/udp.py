@@ -85,6 +85,7 @@ class UDPEndpoint(IOThreadOwner):
         rcvbuf: int | None = None,
         max_body_size: int = wire.DEFAULT_MAX_BODY_SIZE,
         crc_check: bool = True,
+        polled: bool = False,
         name: str = "igtl-udp",
     ) -> None:
         if not 1 <= max_datagram <= MAX_UDP_PAYLOAD:
@@ -107,6 +108,9 @@ class UDPEndpoint(IOThreadOwner):
         )
         self.max_peers = max_peers
         self.rcvbuf = rcvbuf
+        #: received only by the owner's :meth:`poll` (e.g. a control loop, once per tick): the
+        #: I/O thread does not wake for every datagram
+        self.polled = polled
         self.name = name
         self.address: tuple[str, int] = (host, port)
         self._access = AccessList(allowed_peers)
@@ -160,7 +164,8 @@ class UDPEndpoint(IOThreadOwner):
             self._sock = sock
             self._sendto = sock.sendto
             self.address = sock.getsockname()[:2]
-            self._sel.register(sock, selectors.EVENT_READ, "sock")
+            if not self.polled:
+                self._sel.register(sock, selectors.EVENT_READ, "sock")
             self._sel.register(self._waker.r, selectors.EVENT_READ, "wake")
             self._launch()
         log.info("%s: bound to %s", self.name, addr_text(self.address))
