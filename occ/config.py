@@ -457,6 +457,21 @@ class InterfaceConfig(_Model):
     idle_timeout_s: PosFloat | None = Field(
         None, description="Drop a client silent for this long; null = never."
     )
+    max_body_kib: Annotated[Int, Field(ge=1, le=4 * 1024 * 1024)] = Field(
+        1024,
+        description="Largest message body accepted (KiB); bigger ones are refused and counted "
+        "before any of their body is buffered (raise it for an interface that receives images).",
+    )
+    message_timeout_s: PosFloat | None = Field(
+        10.0,
+        description="tcp-server: a message begun must be complete within this time; a client "
+        "trickling bytes (slowloris) is closed and counted. null = no limit.",
+    )
+    send_stall_timeout_s: PosFloat | None = Field(
+        5.0,
+        description="tcp-server: a client that takes none of our data for this long (it does "
+        "not read) is closed and counted, freeing its slot. null = never.",
+    )
     inputs: tuple[InputConfig, ...] = Field(
         (), description="Message types accepted into the loop, with queue semantics."
     )

@@ -46,6 +46,13 @@ from .errors import CommandError
 log = logging.getLogger(__name__)
 
 COMMAND_TYPES = frozenset({"COMMAND"})
+_TRANSPORT_REFUSALS = (
+    "denied",
+    "rejected",
+    "idle_closed",
+    "slow_message_closed",
+    "evicted_not_reading",
+)
 QUERY_PREFIXES = ("GET_", "STT_", "STP_")
 
 
@@ -219,6 +226,9 @@ class Interface:
                 max_clients=cfg.max_clients,
                 send_queue=cfg.send_queue,
                 idle_timeout=cfg.idle_timeout_s,
+                message_timeout=cfg.message_timeout_s,
+                send_stall_timeout=cfg.send_stall_timeout_s,
+                max_body_size=cfg.max_body_kib * 1024,
                 name=f"igtl-{self.name}",
                 on_connect=self._on_connect,
                 on_disconnect=self._on_disconnect,
@@ -230,6 +240,7 @@ class Interface:
                 host,
                 port,
                 send_queue=cfg.send_queue,
+                max_body_size=cfg.max_body_kib * 1024,
                 name=f"igtl-{self.name}",
                 on_connect=self._on_connect,
                 on_disconnect=self._on_disconnect,
@@ -242,6 +253,7 @@ class Interface:
                 cfg.port,
                 remote=remote,
                 allowed_peers=allowed,
+                max_body_size=cfg.max_body_kib * 1024,
                 # a stream the loop polls each tick needs no thread waking per datagram
                 polled=self.poll_streams and bool(self.streams),
                 name=f"igtl-{self.name}",
@@ -392,6 +404,8 @@ class Interface:
             "unexpected": c.unexpected,
             "streams": streams,
             "stream_owner": list(self.stream_owner) if self.stream_owner else None,
+            # refusals by the transport, each under its reason
+            **{k: int(t[k]) for k in _TRANSPORT_REFUSALS if k in t},
             "peers": len(getattr(self.transport, "peers", []) or []),
         }
 

@@ -237,6 +237,7 @@ class Connection:
     """
 
     __slots__ = (
+        "blocked_since",
         "closed",
         "decoder",
         "fileno",
@@ -244,6 +245,7 @@ class Connection:
         "lock",
         "out",
         "out_count",
+        "partial_since",
         "peer",
         "queue",
         "sock",
@@ -269,6 +271,8 @@ class Connection:
         self.out: memoryview | None = None
         self.out_count = 0  # messages in ``out``; counted as sent once fully written
         self.want_write = False
+        self.blocked_since = 0.0  # monotonic time the socket stopped taking our data
+        self.partial_since = 0.0  # monotonic time an incomplete message began (0: none)
         self.closed = False
 
     def enqueue(self, data: bytes) -> None:

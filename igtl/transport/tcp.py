@@ -217,8 +217,10 @@ class _StreamTransport(IOThreadOwner):
                     self._malformed(conn, err)
             self._close(conn, "closed by peer")
             return
-        peer.last_received = time.monotonic()
+        now = peer.last_received = time.monotonic()
         decoder = conn.decoder
+        if not decoder.buffered:
+            conn.partial_since = now  # a message starts: it must complete in time
         decoder.feed(self._rxview[:n])
         on_message = self.on_message
         while True:
@@ -262,6 +264,8 @@ class _StreamTransport(IOThreadOwner):
             self._close(conn, f"send failed: {err}", _transport_error(err))
             return
         if pending != conn.want_write:
+            if pending:
+                conn.blocked_since = time.monotonic()
             conn.want_write = pending
             self._sel.modify(conn.sock, _READ | _WRITE if pending else _READ, conn)
 
@@ -332,9 +336,17 @@ class TCPServer(_StreamTransport):
         max_body_size: int = wire.DEFAULT_MAX_BODY_SIZE,
         crc_check: bool = True,
         idle_timeout: float | None = None,
+        message_timeout: float | None = 10.0,
+        send_stall_timeout: float | None = 5.0,
         negotiate: bool = True,
         name: str = "igtl-tcp-server",
     ) -> None:
+        for what, value in (
+            ("message_timeout", message_timeout),
+            ("send_stall_timeout", send_stall_timeout),
+        ):
+            if value is not None and value <= 0:
+                raise ValueError(f"{what} must be positive or None, got {value}")
         if max_clients < 1:
             raise ValueError(f"max_clients must be >= 1, got {max_clients}")
         if idle_timeout is not None and idle_timeout <= 0:
@@ -355,6 +367,11 @@ class TCPServer(_StreamTransport):
         self.port = port
         self.max_clients = max_clients
         self.idle_timeout = idle_timeout
+        #: a message begun must be complete within this time (a slowloris sender is closed)
+        self.message_timeout = message_timeout
+        #: a client whose socket takes none of our data for this long is closed (it does not
+        #: read; it would hold a slot and its queue forever)
+        self.send_stall_timeout = send_stall_timeout
         self.negotiate = negotiate
         self.address: tuple[str, int] = (host, port)
         self._listener: socket.socket | None = None
@@ -365,6 +382,9 @@ class TCPServer(_StreamTransport):
         self._rejected = 0
         self._denied = 0
         self._accept_errors = 0
+        self._idle_closed = 0
+        self._slow_closed = 0
+        self._evicted = 0
         self._denied_bytes = StatusMessage(
             code=StatusCode.ACCESS_DENIED,
             error_name="ACCESS_DENIED",
@@ -447,6 +467,9 @@ class TCPServer(_StreamTransport):
         out.update(
             rejected=self._rejected,
             denied=self._denied,
+            idle_closed=self._idle_closed,
+            slow_message_closed=self._slow_closed,
+            evicted_not_reading=self._evicted,
             connections=self._connections,
             clients=len(peers),
             accept_errors=self._accept_errors,
@@ -459,8 +482,10 @@ class TCPServer(_StreamTransport):
     # ------------------------------------------------------------------ I/O thread
     def _run(self) -> None:
         select = self._sel.select
-        idle = self.idle_timeout
-        check_every = min(idle / 4, 0.25) if idle else 1.0
+        limits = [
+            t for t in (self.idle_timeout, self.message_timeout, self.send_stall_timeout) if t
+        ]
+        check_every = min([t / 4 for t in limits] + [0.25]) if limits else 1.0
         next_check = time.monotonic() + check_every
         while self._running:
             for key, mask in select(max(0.0, next_check - time.monotonic())):
@@ -479,10 +504,24 @@ class TCPServer(_StreamTransport):
             now = time.monotonic()
             if now >= next_check:
                 next_check = now + check_every
-                if idle:
-                    for conn in list(self._conns.values()):
-                        if now - conn.peer.last_received > idle:
-                            self._close(conn, "idle timeout")
+                if limits:
+                    self._enforce_timeouts(now)
+
+    def _enforce_timeouts(self, now: float) -> None:
+        """Free the slots of clients that hold them without being clients: silent ones (idle
+        timeout), ones that trickle a message byte by byte (message timeout), ones that do
+        not read what we send (send-stall timeout). Each is counted under its own name."""
+        idle, slow, stall = self.idle_timeout, self.message_timeout, self.send_stall_timeout
+        for conn in list(self._conns.values()):
+            if idle and now - conn.peer.last_received > idle:
+                self._idle_closed += 1
+                self._close(conn, "idle timeout")
+            elif slow and conn.decoder.buffered and now - conn.partial_since > slow:
+                self._slow_closed += 1
+                self._close(conn, f"message not completed within {slow:g} s")
+            elif stall and conn.want_write and now - conn.blocked_since > stall:
+                self._evicted += 1
+                self._close(conn, f"not reading: nothing sent for {stall:g} s")
 
     def _accept(self) -> None:
         assert self._listener is not None

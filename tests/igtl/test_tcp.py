@@ -512,3 +512,39 @@ def test_server_can_disconnect_one_client(stack):
     assert srec.disconnects[0][1] == "operator request"
     assert crec.wait(lambda: len(crec.disconnects) == 1)
     assert crec.disconnects[0][1] == "closed by peer"
+
+
+def _wait(cond, timeout: float = 10.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def test_a_client_trickling_a_message_is_closed_and_its_slot_freed() -> None:
+    with TCPServer("127.0.0.1", 0, max_clients=1, message_timeout=0.3) as server:
+        slow = socket.create_connection(server.address)
+        data = igtl.StringMessage("hello", device_name="x").pack()
+        slow.sendall(data[:10])  # a header begun, never finished (slowloris)
+        assert server.wait_for_peers(1)
+        assert _wait(lambda: server.stats()["slow_message_closed"] == 1)
+        assert _wait(lambda: server.stats()["clients"] == 0)
+        # the slot is free again for a real client
+        with TCPClient(*server.address, reconnect=False) as client:
+            assert client.wait_connected(5.0)
+        slow.close()
+
+
+def test_a_client_that_never_reads_is_evicted() -> None:
+    with TCPServer("127.0.0.1", 0, send_stall_timeout=0.3, send_queue=4) as server:
+        deaf = socket.create_connection(server.address)
+        deaf.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        assert server.wait_for_peers(1)
+        big = igtl.StringMessage("x" * 60000, device_name="x")
+        # keep sending until its socket stops taking data, then it must go
+        assert _wait(lambda: server.send(big) == 0 or server.stats()["evicted_not_reading"] == 1)
+        assert _wait(lambda: server.stats()["evicted_not_reading"] == 1)
+        assert server.stats()["clients"] == 0
+        deaf.close()
