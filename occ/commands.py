@@ -63,7 +63,7 @@ def _parse_xml_command(text: str) -> tuple[str, dict[str, str]] | None:
         raise CommandError("XML command refused: DOCTYPE, ENTITY and CDATA are not accepted")
     try:
         root = ET.fromstring(text)
-    except ET.ParseError as err:
+    except (ET.ParseError, ValueError) as err:  # ValueError: bytes no charset could decode
         raise CommandError(f"malformed XML command: {err}") from err
     attrs = dict(root.attrib)
     name = attrs.pop("Name", "") or attrs.pop("name", "")
@@ -115,7 +115,13 @@ def safe_name(name: str, limit: int = 20) -> str:
     return raw[:limit].decode("utf-8", "ignore")
 
 
+def _printable(text: str) -> str:
+    """``text`` that encodes in UTF-8 (a peer's undecodable bytes become U+FFFD)."""
+    return text.encode("utf-8", "replace").decode("utf-8", "replace")
+
+
 def _reply_xml(name: str, ok: bool, message: str) -> str:
+    name, message = _printable(name), _printable(message)
     status = "SUCCESS" if ok else "FAIL"
     name_attr = f" Name={quoteattr(name)}" if name else ""
     err_attr = "" if ok else f" Error={quoteattr(message)}"
@@ -124,6 +130,7 @@ def _reply_xml(name: str, ok: bool, message: str) -> str:
 
 def _rts_command(msg: Message, name: str, ok: bool, message: str, timestamp: float) -> Message:
     cls = cast("type[igtl.RTSCommandMessage]", REGISTRY["RTS_COMMAND"])
+    message = _printable(message)
     meta = {"Status": "SUCCESS" if ok else "FAIL", "Message": message}
     if not ok:
         meta["Error"] = message

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from .. import wire
-from ..errors import ContentError
+from ..errors import ContentError, InvalidTextError
 from .base import Message, decode_text, encode_text, fixed, register, unfixed
 
 
@@ -86,16 +86,25 @@ _STRING_HEAD = struct.Struct(">HH")
 @dataclass(frozen=True, slots=True)
 class StringMessage(Message):
     """Text with an IANA encoding (MIBenum). ``encoding=None`` picks US-ASCII (3) when the text
-    allows it, else UTF-8 (106). At most 65535 encoded bytes; no terminator on the wire."""
+    allows it, else UTF-8 (106). At most 65535 encoded bytes; no terminator on the wire.
+
+    Peers often declare US-ASCII (the reference library's default) whatever their bytes are.
+    Such a STRING is decoded leniently, as the reference does, not refused: bytes that do not
+    fit the declared charset are kept as lone surrogates (Python's ``surrogateescape``) and
+    ``charset_mismatch`` is True; packing it gives the original bytes back."""
 
     TYPE: ClassVar[str] = "STRING"
 
     string: str = ""
     encoding: int | None = None
+    charset_mismatch: bool = False
 
     def pack_content(self) -> bytes:
         enc = self.encoding if self.encoding is not None else wire.default_encoding(self.string)
-        raw = encode_text(self.string, enc, "STRING")
+        if self.charset_mismatch:
+            raw = self.string.encode(wire.codec_for(enc), "surrogateescape")
+        else:
+            raw = encode_text(self.string, enc, "STRING")
         if len(raw) > 0xFFFF:
             raise ValueError(f"STRING of {len(raw)} bytes; at most 65535 fit")
         return _STRING_HEAD.pack(enc, len(raw)) + raw
@@ -110,4 +119,11 @@ class StringMessage(Message):
                 f"STRING length field says {length} bytes, content holds {len(content) - 4}",
                 offset=2,
             )
-        return cls(decode_text(bytes(content[4:]), enc, "STRING", offset=4), enc, **common)
+        raw = bytes(content[4:])
+        try:
+            return cls(decode_text(raw, enc, "STRING", offset=4), enc, **common)
+        except InvalidTextError:
+            codec = wire.IANA_ENCODINGS.get(enc)
+            if codec is None:
+                raise  # an encoding nobody can name: refused, with the reason
+            return cls(raw.decode(codec, "surrogateescape"), enc, True, **common)

@@ -124,12 +124,22 @@ def test_content_count_does_not_divide():
     assert e.value.offset == 58 + 12 + 136
 
 
-def test_invalid_text():
-    content = struct.pack(">HH", 3, 2) + b"\xff\xfe"
+def test_invalid_text_in_an_unknown_encoding_is_refused():
+    content = struct.pack(">HH", 60000, 2) + b"\xff\xfe"  # no IANA MIBenum 60000 here
     with pytest.raises(InvalidTextError) as e:
         igtl.unpack(raw_message("STRING", content))
     assert e.value.offset == 58 + 4
     assert isinstance(e.value, ContentError)
+
+
+def test_a_string_whose_declared_charset_does_not_fit_is_kept_and_flagged():
+    # US-ASCII declared (the reference library's default) with latin-1 / UTF-8 bytes in it
+    content = struct.pack(">HH", 3, 5) + "héé".encode()
+    data = raw_message("STRING", content)
+    msg = igtl.unpack(data)
+    assert msg.charset_mismatch and msg.encoding == 3
+    assert msg.pack() == data  # byte-exact: nothing was lost
+    assert not igtl.unpack(igtl.StringMessage("plain", device_name="x").pack()).charset_mismatch
 
 
 def test_v2_content_size_excludes_metadata():

@@ -491,3 +491,12 @@ def test_command_replies_echo_the_request_message_id(slave: SimSlave) -> None:
     slave.tick()
     rts = [r for r in slave.replies if r.message_type == "RTS_COMMAND"][-1]
     assert rts.message_id == 4242 and rts.command_id == 5
+
+
+def test_a_command_whose_bytes_do_not_fit_its_declared_charset_is_answered(slave: SimSlave) -> None:
+    text = '<Command Name="GetState" Note="é"/>'.encode().decode("ascii", "surrogateescape")
+    msg = igtl.StringMessage(text, 3, True, device_name="CMD_5")  # US-ASCII declared
+    slave.robot.interfaces["slicer"]._on_message(OPERATOR, igtl.unpack(msg.pack()))
+    slave.tick()
+    ack = [r for r in slave.replies if r.message_type == "STRING" and r.device_name == "ACK_5"]
+    assert ack and _packs(ack[-1])
