@@ -256,8 +256,8 @@ class Reassembler:
 
     def _feed(self, datagram: bytes | bytearray | memoryview, sender: Hashable) -> bytes | None:
         n = len(datagram)
-        if n < RTP_HEADER_SIZE + PREFIX_SIZE:
-            raise FragmentError(f"RTP datagram of {n} bytes is shorter than 82", offset=n)
+        if n < RTP_HEADER_SIZE + wire.HEADER_SIZE:
+            raise FragmentError(f"RTP datagram of {n} bytes is shorter than 70", offset=n)
         first, _pt, seq, _ts, ssrc = RTP_HEADER.unpack_from(datagram, 0)
         if first != RTP_FIRST_BYTE:
             raise FragmentError(f"RTP first byte {first:#04x}, expected 0x80", offset=0)
@@ -265,6 +265,23 @@ class Reassembler:
             header = wire.unpack_header(datagram, RTP_HEADER_SIZE, max_body_size=self.max_body_size)
         except DecodeError as err:
             raise FragmentError(f"bad OpenIGTLink header in RTP datagram: {err}") from err
+        if header.version == 1:
+            # What the reference's UDP example sends (TDATA, header version 1): one whole message
+            # per datagram. A v1 message has no extended header, so there is no fragment field:
+            # take it as it is. (The reference's unwrapper reads its fragment field and rewrites
+            # the message-ID bytes at offsets 66..69 whatever the version, i.e. inside a v1
+            # message's content: it works for TDATA, whose content bytes 8..11 are name padding,
+            # and misreads a v1 POSITION, whose bytes 8..11 are the z coordinate.)
+            if n - RTP_HEADER_SIZE != wire.HEADER_SIZE + header.body_size:
+                raise FragmentError(
+                    f"header-version-1 RTP datagram holds {n - RTP_HEADER_SIZE - wire.HEADER_SIZE}"
+                    f" body bytes, BODY_SIZE says {header.body_size}",
+                    offset=n,
+                )
+            self.completed += 1
+            return bytes(memoryview(datagram)[RTP_HEADER_SIZE:])
+        if n < RTP_HEADER_SIZE + PREFIX_SIZE:
+            raise FragmentError(f"RTP datagram of {n} bytes is shorter than 82", offset=n)
         if header.version != 2:
             raise FragmentError(
                 f"RTP fragment with header version {header.version} (the scheme needs 2)",

@@ -267,3 +267,17 @@ def test_body_size_limit_applies_before_buffering():
     with pytest.raises(rtp.FragmentError):
         reasm.feed(out[0], "a")
     assert reasm.pending == 0
+
+
+def test_a_header_version_1_message_in_an_rtp_datagram_is_taken_whole() -> None:
+    """What the reference's UDP example sends: a v1 TDATA after a 12-byte RTP header."""
+    from igtl.rtp import RTP_HEADER, Reassembler
+
+    v1 = (VECTORS / "tdata.bin").read_bytes()
+    datagram = RTP_HEADER.pack(0x80, 96, 7, 123456, 0) + v1
+    out = Reassembler().feed(datagram, ("127.0.0.1", 1))
+    assert out == v1  # untouched: a v1 message has no fragment field to rewrite
+    msg = igtl.unpack(out)
+    assert msg.message_type == "TDATA" and msg.header_version == 1
+    with pytest.raises(DecodeError):  # a truncated one is refused with the reason
+        Reassembler().feed(datagram[:-1], ("127.0.0.1", 1))
