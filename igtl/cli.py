@@ -102,6 +102,17 @@ def message_record(msg: Message, **extra: Any) -> dict[str, Any]:
         "message_id": msg.message_id,
         "content": msg.content_summary(),
     }
+    if msg.message_type == "BIND":
+        # the children decoded, each like a message of its own (an undecodable one says why)
+        children = []
+        for child in getattr(msg, "children", ()):
+            try:
+                children.append(message_record(child.decode()))
+            except IGTLError as err:
+                children.append(
+                    {"type": child.type_name, "device": child.device_name, "error": str(err)}
+                )
+        record["children"] = children
     record.update({k: v for k, v in extra.items() if v is not None})
     return record
 

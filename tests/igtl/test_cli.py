@@ -255,6 +255,11 @@ def test_dump_every_reference_vector_as_json(capsys: pytest.CaptureFixture[str])
     v2 = next(r for r in records if r["type"] == "TRANSFORM" and r["header_version"] == 2)
     assert v2["metadata"] == {"First patient age": "22", "Second patient age": "25"}
     assert v2["message_id"] == 1
+    bind = by_type["BIND"]  # its children decoded, each like a message of its own
+    assert [(c["type"], c["device"]) for c in bind["children"]] == [
+        ("TRANSFORM", "ChildTrans"), ("IMAGE", "ChildImage"), ("SENSOR", "ChildSensor")
+    ]
+    assert isinstance(bind["children"][0]["content"], dict)
 
 
 @needs_vectors
