@@ -834,7 +834,7 @@ class LossMonitor:
                     what = "grace" if elapsed > self.grace_s else "deadline"
                     limit = self.grace_s if what == "grace" else self.deadline_s
                     self._trip(
-                        f"no packet for {elapsed * 1e3:.1f} ms (limit {limit * 1e3:.1f} ms"
+                        f"no packet for {elapsed * 1e3:.2f} ms (limit {limit * 1e3:.1f} ms"
                         f"{', strict' if what == 'deadline' else ''}){extra}",
                         what,
                         int((elapsed - self.tolerance_s) / self.period_s),

@@ -192,7 +192,7 @@ def test_a_dead_master_holds_at_7ms_and_latches_after_the_grace(slave: SimSlave)
     assert slave.robot.state is RobotState.STOPPED
     assert (slave.k - 1) - last_packet_tick == 101  # silent for more than the 100 ms grace
     alerts = [r for r in slave.replies if r.message_type == "STATUS" and r.error_name == "STOPPED"]
-    assert "no packet for 101.0 ms" in alerts[-1].status_message
+    assert "no packet for 101.00 ms" in alerts[-1].status_message
 
 
 def test_a_30ms_stall_of_the_slaves_own_loop_is_not_network_loss(slave: SimSlave) -> None:

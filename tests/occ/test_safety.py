@@ -348,7 +348,7 @@ def test_silence_past_the_grace_latches_as_a_dead_peer() -> None:
             kinds.append((t, ev.kind, ev.source))
     assert kinds == [(7, "hold", "deadline"), (101, "latch", "grace")]
     assert mon.trip_event is not None
-    assert mon.trip_event.cause.startswith("no packet for 101.0 ms (limit 100.0 ms)")
+    assert mon.trip_event.cause.startswith("no packet for 101.00 ms (limit 100.0 ms)")
 
 
 def test_strict_mode_latches_at_the_deadline() -> None:
