@@ -40,7 +40,7 @@ from igtl.messages.base import Message
 from igtl.transport import Peer, TCPClient, TCPServer, UDPEndpoint
 from igtl.transport.common import RateLimit
 
-from .commands import parse_request
+from .commands import error_reply, parse_request
 from .errors import CommandError
 
 log = logging.getLogger(__name__)
@@ -305,44 +305,18 @@ class Interface:
                 return
         if is_operator_request(msg) or mtype in self.command_inputs:
             if not self.commands and mtype not in self.command_inputs:
-                c.refused += 1
-                log.warning(
-                    "%s: refused %s %r from %s:%s: interface does not accept commands",
-                    self.name,
-                    mtype,
-                    msg.device_name,
-                    *peer.address[:2],
-                )
-                self.manager.reply_error(
-                    item, "interface does not accept commands", code=igtl.StatusCode.ACCESS_DENIED
+                self._refuse(
+                    item, "interface does not accept commands", igtl.StatusCode.ACCESS_DENIED
                 )
                 return
             if mtype not in self.command_inputs:
                 try:
                     item.request = parse_request(msg)
                 except CommandError as err:
-                    c.refused += 1
-                    if self._log_limit.allow():
-                        log.warning(
-                            "%s: refused %s from %s:%s: %s",
-                            self.name,
-                            mtype,
-                            *peer.address[:2],
-                            err,
-                        )
-                    self.manager.reply_error(
-                        item, str(err), code=igtl.StatusCode.ILLEGAL_INSTRUCTION
-                    )
+                    self._refuse(item, str(err), igtl.StatusCode.ILLEGAL_INSTRUCTION)
                     return
             if not self.manager.commands.put(item):
-                c.refused += 1
-                log.warning(
-                    "%s: command queue full, refused %s from %s:%s",
-                    self.name,
-                    mtype,
-                    *peer.address[:2],
-                )
-                self.manager.reply_error(item, "command queue full", code=igtl.StatusCode.BUSY)
+                self._refuse(item, "command queue full", igtl.StatusCode.BUSY)
             return
         if mtype == "STATUS":
             c.keepalive += 1
@@ -356,6 +330,20 @@ class Interface:
                 mtype,
                 *peer.address[:2],
             )
+
+    def _refuse(self, item: Inbound, reason: str, code: int) -> None:
+        """Count, log (rate-limited: a flood must not flood the log) and answer the sender."""
+        self.counters.refused += 1
+        if self._log_limit.allow():
+            log.warning(
+                "%s: refused %s %r from %s:%s: %s",
+                self.name,
+                item.msg.message_type,
+                item.msg.device_name,
+                *item.peer.address[:2],
+                reason,
+            )
+        self.manager.reply_error(item, reason, code=code)
 
     # ------------------------------------------------------------------ loop side
     def send(self, msg: Message, peer: Peer | int | None = None) -> int:
@@ -495,8 +483,6 @@ class InterfaceManager:
         self, item: Inbound, text: str, *, code: int = igtl.StatusCode.UNKNOWN_ERROR
     ) -> None:
         """Answer a request with an error in the form its sender expects."""
-        from .commands import error_reply  # local: commands imports this module
-
         self.reply(item, error_reply(item.msg, text, code=code))
 
     def stats(self) -> dict[str, Any]:
