@@ -385,11 +385,24 @@ def default_encoding(text: str) -> int:
     return US_ASCII if text.isascii() else UTF_8
 
 
+_META_CACHE: dict[tuple[tuple[str, str], ...], tuple[bytes, bytes]] = {}
+
+
 def pack_metadata(metadata: Mapping[str, str], encodings: Mapping[str, int]) -> tuple[bytes, bytes]:
     """Return (metadata header, metadata data). Entries are written sorted by key, like the
     reference's std::map; the 2-byte INDEX_COUNT is always present."""
     if not metadata:
         return b"\x00\x00", b""
+    cache_key = None
+    if not encodings and len(metadata) <= 8:
+        # a stream's few small entries repeat every message (a master's run/clutch at 500 Hz)
+        try:
+            cache_key = tuple(metadata.items())
+            hit = _META_CACHE.get(cache_key)
+        except TypeError:  # an unhashable value: the checks below say what is wrong
+            cache_key, hit = None, None
+        if hit is not None:
+            return hit
     for key in metadata:
         if not isinstance(key, str):
             raise TypeError(f"metadata key {key!r} must be str, got {type(key).__name__}")
@@ -420,7 +433,12 @@ def pack_metadata(metadata: Mapping[str, str], encodings: Mapping[str, int]) -> 
         index.append(META_ENTRY.pack(len(kraw), enc, len(vraw)))
         data.append(kraw)
         data.append(vraw)
-    return b"".join(index), b"".join(data)
+    packed = b"".join(index), b"".join(data)
+    if cache_key is not None and len(packed[1]) <= 256:
+        if len(_META_CACHE) >= 256:
+            _META_CACHE.clear()  # bounded: a peer varying its values cannot grow it
+        _META_CACHE[cache_key] = packed
+    return packed
 
 
 def unpack_metadata(

@@ -44,16 +44,34 @@ from occ.errors import KinematicsError
 __all__ = [
     "Frame",
     "IKResult",
+    "AnalyticIK",
     "BUILTIN_MODELS",
     "register_analytic_ik",
     "robots_dir",
 ]
 
 FloatArray = npt.NDArray[np.float64]
-#: An analytic solver: (target position in the base frame, q0) -> candidate solutions.
-AnalyticSolver = Callable[[FloatArray, FloatArray], list[FloatArray]]
+#: An analytic solver: (target position (x, y, z) in the base frame, seed q0 as nq floats) ->
+#: candidate solutions, each a sequence of nq floats. Plain floats, no numpy: the
+#: teleoperation tick solves at the master's rate, where small-array numpy costs more than the
+#: arithmetic.
+AnalyticSolver = Callable[[tuple[float, float, float], list[float]], Sequence[Sequence[float]]]
+#: A closed-form tip position (base frame, metres) for q, used for the residual instead of a
+#: full forward-kinematics pass.
+ClosedFK = Callable[[Sequence[float]], Sequence[float]]
+
+
+@dataclass(frozen=True, slots=True)
+class AnalyticIK:
+    """What an analytic factory returns: the solver, and optionally its closed-form tip
+    position (checked against pinocchio when the model loads) for a cheap residual."""
+
+    solve: AnalyticSolver
+    position: ClosedFK | None = None
+
+
 #: A factory builds a solver for one Frame, or returns None if the model does not fit.
-AnalyticFactory = Callable[["Frame"], AnalyticSolver | None]
+AnalyticFactory = Callable[["Frame"], "AnalyticIK | AnalyticSolver | None"]
 
 #: Shipped models: name -> (URDF file name, tip link).
 BUILTIN_MODELS: dict[str, tuple[str, str]] = {
@@ -164,9 +182,16 @@ class Frame:
                 self._rcm = self._to_base_point(np.array(rcm_frame.placement.translation))
 
         self._analytic: AnalyticSolver | None = None
+        self._analytic_fk: ClosedFK | None = None
         factory = _ANALYTIC.get(self.name)
         if factory is not None:
-            self._analytic = factory(self)
+            made = factory(self)
+            if isinstance(made, AnalyticIK):
+                self._analytic, self._analytic_fk = made.solve, made.position
+            else:
+                self._analytic = made
+        self._lo_hi = list(zip(self._lo, self._hi, strict=True))
+        self._neutral_list: list[float] = self._neutral.tolist()
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -265,6 +290,17 @@ class Frame:
         """Tip position in the base frame (3,), metres; a little cheaper than ``fk``."""
         return np.array(self._placement(self._q(q)).translation)
 
+    def tip_position(self, q: Sequence[float] | FloatArray) -> tuple[float, float, float]:
+        """Tip position in the base frame as three floats, metres: the analytic model's closed
+        form when it has one (checked against pinocchio when the model loaded), else
+        :meth:`position`. The per-tick variant (no numpy on the way)."""
+        closed = self._analytic_fk
+        if closed is not None:
+            x, y, z = closed(q.tolist() if isinstance(q, np.ndarray) else q)
+            return (float(x), float(y), float(z))
+        x, y, z = self.position(q).tolist()
+        return (x, y, z)
+
     def jacobian(self, q: Sequence[float] | FloatArray) -> FloatArray:
         """6 x nq Jacobian of the tip: rows 0-2 linear velocity of the tip point, rows 3-5
         angular velocity, both expressed in base-frame axes."""
@@ -311,52 +347,79 @@ class Frame:
         """
         if method not in ("auto", "analytic", "dls"):
             raise ValueError(f"method must be 'auto', 'analytic' or 'dls', got {method!r}")
-        tgt = np.asarray(target, dtype=np.float64)
         pose: pin.SE3 | None = None
-        if tgt.shape == (4, 4):
-            if self.nq >= 6:
-                pose = pin.SE3(tgt)
-            position = np.array(tgt[:3, 3])
-        elif tgt.shape == (3,):
-            position = tgt
+        if isinstance(target, (tuple, list)) and len(target) == 3:
+            xyz = (float(target[0]), float(target[1]), float(target[2]))  # no numpy: cheapest
         else:
-            raise ValueError(f"target must be a 3-vector or a 4x4 pose, got shape {tgt.shape}")
-        if not all(math.isfinite(v) for v in tgt.flat):
+            tgt = np.asarray(target, dtype=np.float64)
+            if tgt.shape == (4, 4):
+                if not all(math.isfinite(v) for v in tgt.flat):
+                    raise ValueError("target must be finite")
+                if self.nq >= 6:
+                    pose = pin.SE3(tgt)
+                xyz = tuple(tgt[:3, 3].tolist())
+            elif tgt.shape == (3,):
+                xyz = tuple(tgt.tolist())
+            else:
+                raise ValueError(f"target must be a 3-vector or a 4x4 pose, got shape {tgt.shape}")
+        if not (math.isfinite(xyz[0]) and math.isfinite(xyz[1]) and math.isfinite(xyz[2])):
             raise ValueError("target must be finite")
-        seed = self.neutral if q0 is None else self._q(q0)
+        if q0 is None:
+            seed = self._neutral_list
+        else:
+            seed = q0.tolist() if isinstance(q0, np.ndarray) else [float(v) for v in q0]
+            if len(seed) != self.nq:
+                raise ValueError(f"{self.name}: q must have shape ({self.nq},), got ({len(seed)},)")
 
         if pose is None and method != "dls" and self._analytic is not None:
-            return self._solve_analytic(position, seed, clamp)
+            return self._solve_analytic(xyz, seed, clamp)
         if method == "analytic":
             raise KinematicsError(f"model {self.name!r}: no analytic IK for this target")
-        return self._solve_dls(position, pose, seed, clamp)
+        return self._solve_dls(
+            np.array(xyz, dtype=np.float64), pose, np.array(seed, dtype=np.float64), clamp
+        )
 
-    def _solve_analytic(self, position: FloatArray, seed: FloatArray, clamp: bool) -> IKResult:
+    def _solve_analytic(
+        self, position: tuple[float, float, float], seed: list[float], clamp: bool
+    ) -> IKResult:
+        # Plain floats throughout: this runs on the control loop at the master's rate, where
+        # each small-array numpy call costs more than the arithmetic it does.
         assert self._analytic is not None
         candidates = self._analytic(position, seed)
-        inside = [q for q in candidates if self.within_limits(q)]
+        tol = _LIMIT_TOL
+        lo_hi = self._lo_hi
+        inside = [
+            q
+            for q in candidates
+            if all(lo - tol <= v <= hi + tol for v, (lo, hi) in zip(q, lo_hi, strict=True))
+        ]
         if inside:
             if len(inside) == 1:
                 best = inside[0]
             else:
-                s = seed.tolist()
                 best = min(
                     inside,
-                    key=lambda q: sum((a - b) ** 2 for a, b in zip(q.tolist(), s, strict=False)),
+                    key=lambda q: sum((a - b) ** 2 for a, b in zip(q, seed, strict=False)),
                 )
-            best = self._clip(best)
-            return IKResult(best, "analytic", 0, self._residual(best, position), ())
+            q = [
+                lo if v < lo else hi if v > hi else v
+                for v, (lo, hi) in zip(best, lo_hi, strict=True)
+            ]
+            return IKResult(
+                np.array(q, dtype=np.float64), "analytic", 0, self._residual(q, position), ()
+            )
         if not candidates:
-            raise KinematicsError(f"{self.name}: no solution for target {position.tolist()}")
-        best = min(candidates, key=self._violation)
+            raise KinematicsError(f"{self.name}: no solution for target {list(position)}")
+        arrays = [np.asarray(q, dtype=np.float64) for q in candidates]
+        best_a = min(arrays, key=self._violation)
         if not clamp:
             raise KinematicsError(
-                f"{self.name}: target {np.round(position, 6).tolist()} unreachable within "
-                f"limits: {self._describe_violation(best)}"
+                f"{self.name}: target {[round(v, 6) for v in position]} unreachable within "
+                f"limits: {self._describe_violation(best_a)}"
             )
-        clamped = self._clamped_names(best)
-        q = self._clip(best)
-        return IKResult(q, "analytic", 0, self._residual(q, position), clamped)
+        clamped = self._clamped_names(best_a)
+        qa = self._clip(best_a)
+        return IKResult(qa, "analytic", 0, self._residual(qa, position), clamped)
 
     def dls_step(
         self, q: Sequence[float] | FloatArray, target: Sequence[float] | FloatArray
@@ -418,8 +481,15 @@ class Frame:
         )
 
     # ------------------------------------------------------------------ helpers
-    def _residual(self, q: FloatArray, position: FloatArray) -> float:
-        d = self._placement(q).translation - position
+    def _residual(
+        self, q: Sequence[float] | FloatArray, position: Sequence[float] | FloatArray
+    ) -> float:
+        closed = self._analytic_fk
+        if closed is not None:
+            x, y, z = closed(q.tolist() if isinstance(q, np.ndarray) else q)
+            px, py, pz = position
+            return math.sqrt((x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2)
+        d = self._placement(np.asarray(q, dtype=np.float64)).translation - np.asarray(position)
         return math.sqrt(float(d @ d))
 
     def _violation(self, q: FloatArray) -> float:
@@ -448,19 +518,19 @@ class Frame:
 
 
 # ---------------------------------------------------------------------- analytic solvers
-def _check_closed_form(frame: Frame, closed: Callable[[FloatArray], FloatArray]) -> bool:
+def _check_closed_form(frame: Frame, closed: ClosedFK) -> bool:
     """Compare a closed-form tip position with pinocchio at fixed pseudo-random configurations."""
     rng = np.random.default_rng(12345)
     lo = np.where(np.isfinite(frame.lower), frame.lower, -1.0)
     hi = np.where(np.isfinite(frame.upper), frame.upper, 1.0)
     for _ in range(8):
         q = rng.uniform(lo, hi)
-        if np.max(np.abs(frame.position(q) - closed(q))) > _CHECK_TOL:
+        if np.max(np.abs(frame.position(q) - np.asarray(closed(q.tolist())))) > _CHECK_TOL:
             return False
     return True
 
 
-def _rcm_factory(frame: Frame) -> AnalyticSolver | None:
+def _rcm_factory(frame: Frame) -> AnalyticIK | None:
     """Closed form of a yaw(z) / pitch(x) / insertion(-z) chain through an RCM point.
 
     tip = rcm + (d0 + q2) * (-sin q0 sin q1, cos q0 sin q1, -cos q1), where ``rcm`` is the
@@ -474,18 +544,21 @@ def _rcm_factory(frame: Frame) -> AnalyticSolver | None:
     tip0 = frame.position(np.zeros(3))
     d0 = float(rcm[2] - tip0[2])
 
-    def closed(q: FloatArray) -> FloatArray:
+    rx, ry, rz = rcm.tolist()
+
+    def closed(q: Sequence[float]) -> tuple[float, float, float]:
         d = d0 + q[2]
         s1 = math.sin(q[1])
-        return rcm + d * np.array((-math.sin(q[0]) * s1, math.cos(q[0]) * s1, -math.cos(q[1])))
+        return (rx - d * math.sin(q[0]) * s1, ry + d * math.cos(q[0]) * s1, rz - d * math.cos(q[1]))
 
     if not _check_closed_form(frame, closed):
         return None
     if frame._rcm is None:
         frame._rcm = rcm
 
-    def solve(target: FloatArray, q0: FloatArray) -> list[FloatArray]:
-        wx, wy, wz = (float(v) for v in target - rcm)
+    def solve(target: tuple[float, float, float], q0: list[float]) -> list[tuple[float, ...]]:
+        tx, ty, tz = target
+        wx, wy, wz = tx - rx, ty - ry, tz - rz
         dist = math.sqrt(wx * wx + wy * wy + wz * wz)
         if dist < 1e-9:
             raise KinematicsError(f"{frame.name}: target at the RCM point: direction undefined")
@@ -494,16 +567,16 @@ def _rcm_factory(frame: Frame) -> AnalyticSolver | None:
         if radial < 1e-12 * dist:
             # On the vertical axis: yaw is free, keep the seed's.
             pitch = math.atan2(0.0, -wz)
-            return [np.array((float(q0[0]), pitch, insertion))]
+            return [(float(q0[0]), pitch, insertion)]
         pitch = math.atan2(radial, -wz)
         yaw = math.atan2(-wx, wy)
         yaw_b = yaw - math.pi if yaw > 0.0 else yaw + math.pi
-        return [np.array((yaw, pitch, insertion)), np.array((yaw_b, -pitch, insertion))]
+        return [(yaw, pitch, insertion), (yaw_b, -pitch, insertion)]
 
-    return solve
+    return AnalyticIK(solve, closed)
 
 
-def _cartesian_factory(frame: Frame) -> AnalyticSolver | None:
+def _cartesian_factory(frame: Frame) -> AnalyticIK | None:
     """Closed form of a chain of prismatic joints: tip = p0 + A q, A constant and invertible."""
     if frame.nq != 3:
         return None
@@ -513,16 +586,33 @@ def _cartesian_factory(frame: Frame) -> AnalyticSolver | None:
         return None
     inverse = np.linalg.inv(axes)
 
-    def closed(q: FloatArray) -> FloatArray:
-        return p0 + axes @ q
+    p = p0.tolist()
+    a = axes.tolist()
+    inv = inverse.tolist()
+
+    def closed(q: Sequence[float]) -> tuple[float, float, float]:
+        q0, q1, q2 = q
+        return (
+            p[0] + a[0][0] * q0 + a[0][1] * q1 + a[0][2] * q2,
+            p[1] + a[1][0] * q0 + a[1][1] * q1 + a[1][2] * q2,
+            p[2] + a[2][0] * q0 + a[2][1] * q1 + a[2][2] * q2,
+        )
 
     if not _check_closed_form(frame, closed):
         return None
 
-    def solve(target: FloatArray, q0: FloatArray) -> list[FloatArray]:
-        return [inverse @ (target - p0)]
+    def solve(target: tuple[float, float, float], q0: list[float]) -> list[tuple[float, ...]]:
+        tx, ty, tz = target
+        dx, dy, dz = tx - p[0], ty - p[1], tz - p[2]
+        return [
+            (
+                inv[0][0] * dx + inv[0][1] * dy + inv[0][2] * dz,
+                inv[1][0] * dx + inv[1][1] * dy + inv[1][2] * dz,
+                inv[2][0] * dx + inv[2][1] * dy + inv[2][2] * dz,
+            )
+        ]
 
-    return solve
+    return AnalyticIK(solve, closed)
 
 
 register_analytic_ik("occ_slave", _rcm_factory)

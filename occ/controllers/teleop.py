@@ -106,6 +106,8 @@ class MasterController(Controller):
         self.point_hardness = float(params.get("fixture_hardness", 1.0))
         self.hardness = 0.0
         self.fixture_force = np.zeros(3)
+        self._centre: tuple[float, ...] | None = None  # origin + offset, once bound
+        self._amp: tuple[float, ...] = tuple(self.amplitude.tolist())
         self.fixture_contacts = 0
         self.target: np.ndarray | None = None
         self._t_run = 0.0
@@ -116,6 +118,7 @@ class MasterController(Controller):
         super().bind(robot)
         robot.sources["teleop"] = self._source_teleop
         self.origin = robot.frame.position([0.0] * len(robot.joints)).copy()
+        self._centre = tuple((self.origin + self.offset).tolist())
 
     # -------------------------------------------------------------- inputs
     def on_sample(self, item: Inbound, now: float) -> None:
@@ -191,15 +194,17 @@ class MasterController(Controller):
             self._t_run = now
 
     # -------------------------------------------------------------- loop
-    def operator_target(self, now: float) -> np.ndarray | None:
+    def operator_target(self, now: float) -> np.ndarray | tuple[float, float, float] | None:
         if self.input == "sim":
+            # plain floats: this runs every tick, where small-array numpy costs more than the
+            # arithmetic
             t = now - self._t_run
             w = 2.0 * math.pi * self.frequency
-            return (
-                self.origin
-                + self.offset
-                + self.amplitude * np.array([math.sin(w * t), math.cos(w * t), 0.0])
-            )
+            assert self._centre is not None  # set by bind()
+            ox, oy, oz = self._centre
+            ax, ay, az = self._amp
+            st, ct = math.sin(w * t), math.cos(w * t)
+            return (ox + ax * st, oy + ay * ct, oz)
         return self.target
 
     def update(self, now: float) -> Sequence[float] | None:
@@ -219,9 +224,15 @@ class MasterController(Controller):
             return None
         return q.tolist()
 
-    def _apply_fixtures(self, target: np.ndarray) -> np.ndarray:
+    def _apply_fixtures(
+        self, target: np.ndarray | tuple[float, float, float]
+    ) -> np.ndarray | tuple[float, float, float]:
+        if not self.spheres:
+            if self.fixture_force.any():
+                self.fixture_force = np.zeros(3)
+            return target
         force = np.zeros(3)
-        out = target
+        out = np.asarray(target, dtype=np.float64)
         for centre, radius in self.spheres:
             d = out - centre
             dist = float(np.linalg.norm(d))
@@ -238,14 +249,14 @@ class MasterController(Controller):
     def _source_teleop(self, out: Output, now: float) -> Message:
         robot = self.robot
         assert robot is not None
-        p = robot.tip[:3, 3] / MM
+        x, y, z = robot.frame.tip_position(robot.q)
         running = robot.state is RobotState.RUNNING
         self.seq = (self.seq + 1) & 0xFFFFFFFF
         layout = 24 if out.type == "POSITION" else 28
         if out.type != "POSITION":
             raise OCCError("teleop output must be of type POSITION")
         return igtl.PositionMessage(
-            (float(p[0]), float(p[1]), float(p[2])),
+            (x / MM, y / MM, z / MM),
             (0.0, 0.0, 0.0, 1.0),
             layout,
             device_name=out.device,
@@ -277,6 +288,9 @@ class SlaveController(Controller):
             raise ConfigError(f"teleop.scale must be in (0, 10], got {self.scale}")
         rot = params.get("rotation")
         self.rotation = np.eye(3) if rot is None else np.asarray(rot, dtype=float).reshape(3, 3)
+        # scale * R as nested floats: the per-sample mapping is plain arithmetic (small-array
+        # numpy costs more than the arithmetic on the loop thread)
+        self._sr: list[list[float]] = (self.scale * self.rotation).tolist()
         self.input_interface = params.get("input_interface")
         self.input_device = params.get("input_device")
         self.base_mm = params.get("base_mm")
@@ -288,11 +302,11 @@ class SlaveController(Controller):
         self.phase_shifts = 0
         self.phase_error_us: float | None = None
         self.phase_history: list[float] = []
-        self.master_pos: np.ndarray | None = None
+        self.master_pos: tuple[float, float, float] | None = None
         self.master_run = False
         self.master_clutch = False
-        self.master_ref: np.ndarray | None = None
-        self.slave_ref: np.ndarray | None = None
+        self.master_ref: tuple[float, float, float] | None = None
+        self.slave_ref: tuple[float, float, float] | None = None
         self._q_last: list[float] | None = None
         self._fresh = False
         self.last_seq: int | None = None
@@ -347,7 +361,7 @@ class SlaveController(Controller):
                 self._track_phase(item.t_rx)
         self.pending_ts = msg.timestamp if msg.timestamp > 0.0 else None
         self.pending_rx = item.t_rx
-        self.master_pos = np.array(pos, dtype=float) * MM
+        self.master_pos = (float(pos[0]) * MM, float(pos[1]) * MM, float(pos[2]) * MM)
         self._fresh = True
         run = msg.metadata.get("run", "1") == "1"
         clutch = msg.metadata.get("clutch", "0") == "1"
@@ -406,15 +420,24 @@ class SlaveController(Controller):
             return self._q_last if self._q_last is not None else None
         if self.master_ref is None:
             self._fresh = True
-            self.master_ref = self.master_pos.copy()
-            self.slave_ref = robot.frame.position(robot.q).copy()
+            self.master_ref = self.master_pos
+            self.slave_ref = robot.frame.tip_position(robot.q)
             self.reindexes += 1
             self._q_last = list(robot.q)
         assert self.slave_ref is not None
         if not self._fresh and self._q_last is not None:
             return self._q_last  # no new master sample since the last solve: same target
         self._fresh = False
-        target = self.slave_ref + self.scale * (self.rotation @ (self.master_pos - self.master_ref))
+        (a, b, c), (d, e, f), (g, h, i) = self._sr
+        mx, my, mz = self.master_pos
+        rx, ry, rz = self.master_ref
+        dx, dy, dz = mx - rx, my - ry, mz - rz
+        sx, sy, sz = self.slave_ref
+        target = (
+            sx + a * dx + b * dy + c * dz,
+            sy + d * dx + e * dy + f * dz,
+            sz + g * dx + h * dy + i * dz,
+        )
         try:
             res = robot.frame.solve_ik(target, robot.q, clamp=True)
         except (KinematicsError, ValueError):

@@ -180,6 +180,20 @@ def test_metadata_caller_errors():
         wire.pack_metadata({"k": "v"}, {"k": 70000})
 
 
+def test_metadata_repeat_is_cached_and_bounded():
+    """A stream's metadata repeats every message; the cache returns the same bytes, keys in
+    either order give the same wire form, and a peer varying its values cannot grow it."""
+    first = wire.pack_metadata({"run": "1", "clutch": "0"}, {})
+    assert wire.pack_metadata({"run": "1", "clutch": "0"}, {}) == first
+    assert wire.pack_metadata({"clutch": "0", "run": "1"}, {}) == first
+    assert wire.unpack_metadata(*first) == ({"clutch": "0", "run": "1"}, {})
+    for i in range(1000):
+        assert wire.unpack_metadata(*wire.pack_metadata({"n": str(i)}, {}))[0] == {"n": str(i)}
+    assert len(wire._META_CACHE) <= 256
+    with pytest.raises(TypeError):  # unhashable value: the usual error, not a cache error
+        wire.pack_metadata({"k": ["v"]}, {})  # type: ignore[dict-item]
+
+
 def test_split_v2_body():
     body = wire.EXT_HEADER.pack(12, 2, 0, 7) + b"content" + b"\x00\x00"
     assert wire.split_v2_body(body) == wire.BodyLayout(12, 19, 2, 0, 7)

@@ -160,3 +160,23 @@ def test_dls_six_dof_pose_and_non_convergence() -> None:
     strict = Frame(model, model.frames[-1].name, max_iterations=1)
     with pytest.raises(KinematicsError, match="did not converge"):
         strict.ik(pose, q0=q + 0.3)
+
+
+@pytest.mark.parametrize("name", ["occ_slave", "master3"])
+def test_per_tick_paths_match_the_numpy_ones(name: str) -> None:
+    """The float-only paths the loop uses (tuple targets, closed-form tip) give the same
+    answers as pinocchio and the array path."""
+    frame = Frame.builtin(name)
+    for q in random_q(frame, 25, seed=7):
+        np.testing.assert_allclose(frame.tip_position(q), frame.position(q), atol=1e-9)
+        np.testing.assert_allclose(frame.tip_position(q.tolist()), frame.position(q), atol=1e-9)
+        target = frame.position(q)
+        by_tuple = frame.solve_ik(tuple(target.tolist()), q.tolist())
+        by_array = frame.solve_ik(target, q)
+        np.testing.assert_allclose(by_tuple.q, by_array.q, atol=1e-12)
+        np.testing.assert_allclose(by_tuple.q, q, atol=1e-9)
+        assert by_tuple.error < 1e-9
+    with pytest.raises(ValueError, match="finite"):
+        frame.solve_ik((math.nan, 0.0, 0.0))
+    with pytest.raises(ValueError, match="shape"):
+        frame.solve_ik((0.0, 0.0, 0.1), [0.0, 0.0])
