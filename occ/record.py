@@ -138,7 +138,7 @@ class Recorder:
             meta["rec.if"] = interface
             meta["rec.t"] = f"{now:.6f}"
             meta["rec.hv"] = str(msg.header_version)
-            return bytes(msg.replace(metadata=meta, header_version=2).pack())
+            return bytes(msg.pack(2, metadata=meta))
         _, row, wall = item
         state = igtl.NDArrayMessage(
             array=np.asarray(row, dtype=np.float64),

@@ -96,24 +96,29 @@ class Message:
             return raw
         return wire.seconds_to_raw(self.timestamp)
 
-    def pack(self, header_version: int | None = None) -> bytes:
+    def pack(
+        self, header_version: int | None = None, *, metadata: Mapping[str, str] | None = None
+    ) -> bytes:
         """Encode the whole message (header + body).
 
         ``header_version`` overrides the message's own version, as a server does when it answers a
         client in the version that client speaks: packing as version 1 then drops metadata and
         message ID on purpose. Without the override, metadata on a version-1 message is an error.
+        ``metadata`` replaces the message's own metadata in the encoding (its encodings still
+        apply), without building a new message: a recorder adding its own entries.
         """
         version = self.header_version if header_version is None else header_version
+        meta = self.metadata if metadata is None else metadata
         content = self.pack_content()
         if version == 1:
-            if header_version is None and (self.metadata or self.message_id):
+            if header_version is None and (meta or self.message_id):
                 raise ValueError(
                     "metadata and message_id need header_version=2 "
                     f"({self.message_type} {self.device_name!r})"
                 )
             body = content
         elif version == 2:
-            meta_header, meta_data = wire.pack_metadata(self.metadata, self.metadata_encoding)
+            meta_header, meta_data = wire.pack_metadata(meta, self.metadata_encoding)
             if not 0 <= self.message_id <= 0xFFFFFFFF:
                 raise ValueError(f"message_id {self.message_id} does not fit uint32")
             body = b"".join(

@@ -130,8 +130,22 @@ class AccessList:
             if allowed is None
             else tuple(ipaddress.ip_network(a, strict=False) for a in allowed)
         )
+        # verdicts by address text: parsing an address costs more than a 1 kHz loop polling
+        # its stream should pay per datagram; bounded so that many senders cannot grow it
+        self._verdicts: dict[str, bool] = {}
 
     def allows(self, host: str) -> bool:
+        if self.networks is None:
+            return True
+        verdict = self._verdicts.get(host)
+        if verdict is None:
+            verdict = self._check(host)
+            if len(self._verdicts) >= 1024:
+                self._verdicts.clear()
+            self._verdicts[host] = verdict
+        return verdict
+
+    def _check(self, host: str) -> bool:
         if self.networks is None:
             return True
         try:

@@ -251,3 +251,19 @@ def test_poll_delivers_waiting_datagrams_once_in_order() -> None:
         tx.stop()
         rx.stop()
     assert rx.poll() == 0  # stopped: nothing delivered, no error
+
+
+def test_access_list_verdicts_are_cached_bounded_and_right() -> None:
+    from igtl.transport.common import AccessList
+
+    acl = AccessList(["127.0.0.2/32", "10.0.0.0/8", "::1"])
+    for _ in range(2):  # second round: from the cache
+        assert acl.allows("127.0.0.2") and acl.allows("10.1.2.3") and acl.allows("::1")
+        assert acl.allows("::ffff:10.9.9.9")  # IPv4-mapped IPv6
+        assert not acl.allows("127.0.0.1") and not acl.allows("not-an-address")
+        assert not acl.allows("fe80::1%lo")
+    for i in range(5000):  # many senders: the cache stays bounded, verdicts stay right
+        assert acl.allows(f"10.0.{i // 250}.{i % 250}")
+        assert not acl.allows(f"11.0.{i // 250}.{i % 250}")
+    assert len(acl._verdicts) <= 1024
+    assert AccessList(None).allows("anything")
