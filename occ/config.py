@@ -438,10 +438,22 @@ class InterfaceConfig(_Model):
         description="IP addresses or CIDR networks allowed to connect or send; others are refused "
         "and counted. Must not be empty (0.0.0.0/0 = any IPv4 peer).",
     )
-    commands: Bool = Field(
-        False,
-        description="Accept operator commands (COMMAND, STRING CMD_*, GET_STATUS, ...) and "
-        "send STATUS on state transitions.",
+    role: Literal["none", "viewer", "operator"] = Field(
+        "none",
+        description="What clients may ask: `none` (a data link: requests refused), `viewer` "
+        "(GET_ queries and the read-only commands GetState and GetStats, sequence numbers "
+        "withheld; state STATUS pushed; for 3D Slicer), `operator` (every command). Motion "
+        "comes only from the configured stream inputs, whatever the role.",
+    )
+    operators: tuple[IPvAnyNetwork, ...] | None = Field(
+        None,
+        description="role `operator` only: the addresses or networks that get the operator "
+        "role; other allowed peers are viewers. null = every allowed peer is an operator.",
+    )
+    operator_slots: Annotated[Int, Field(ge=0)] = Field(
+        1,
+        description="tcp-server with `operators` set: this many of `max_clients` slots are kept "
+        "for operator addresses, so viewers cannot lock operators out.",
     )
     header_version: Literal[1, 2] = Field(
         2, description="Header version of what we send (a tcp-server answers each client in kind)."
@@ -483,6 +495,17 @@ class InterfaceConfig(_Model):
         "from any other sender are refused and counted.",
     )
 
+    @model_validator(mode="before")
+    @classmethod
+    def _renamed(cls, data: Any) -> Any:
+        if isinstance(data, dict) and "commands" in data:
+            raise PydanticCustomError(
+                "renamed",
+                "`commands` was replaced by `role`: `role: operator` for `commands: true`, "
+                "`role: viewer` for a 3D Slicer connection, nothing for a data link",
+            )
+        return data
+
     @property
     def remote_address(self) -> tuple[str, int] | None:
         """``remote`` split into ``(host, port)`` (IPv6 brackets removed), or None."""
@@ -504,6 +527,19 @@ class InterfaceConfig(_Model):
         problems: list[tuple[Loc, str]] = []
         if self.transport == "tcp-client" and self.remote is None:
             problems.append((("remote",), "required for transport 'tcp-client'"))
+        if self.operators is not None and self.role != "operator":
+            problems.append((("operators",), f"needs role 'operator' (role is {self.role!r})"))
+        if (
+            self.operators is not None
+            and self.transport == "tcp-server"
+            and self.operator_slots >= self.max_clients
+        ):
+            problems.append(
+                (
+                    ("operator_slots",),
+                    f"must be below max_clients ({self.max_clients}), got {self.operator_slots}",
+                )
+            )
         if not self.allowed_peers:
             # read literally, an empty list refuses everyone; the transports once took it as
             # "no filter". Neither is what anyone means: ask.

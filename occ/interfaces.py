@@ -18,9 +18,12 @@ scheduler; a slow TCP client loses its own oldest data inside the transport.
 Routing of an incoming message on interface *I*:
 
 1. Operator requests (COMMAND, STRING whose device name starts with ``CMD_``, and every
-   GET_/STT_/STP_ query): if *I* has ``commands: true`` they enter the command queue, else they
-   are refused at once with an error reply (RTS_COMMAND / ``ACK_`` STRING / STATUS
-   ACCESS_DENIED), logged and counted.
+   GET_/STT_/STP_ query), by the sender's role (:meth:`Interface.peer_role`): an ``operator``
+   may ask anything; a ``viewer`` (3D Slicer) may query (GET_*, and the read-only commands
+   ``GetState`` and ``GetStats``, the latter without sequence numbers); on a ``none``
+   interface (a data link) nothing. A request the role does not allow is refused at once with
+   an error reply (RTS_COMMAND / ``ACK_`` STRING / STATUS ACCESS_DENIED), logged (rate-limited)
+   and counted; the others are parsed here (XML included) and enter the command queue.
 2. A type listed in *I*'s ``inputs``: into that input's queue (``stream`` or ``command``).
 3. STATUS (3D Slicer's greeting, PLUS keep-alives): counted as keep-alive, not an error.
 4. Anything else: counted as ``unexpected`` and logged once per (interface, type).
@@ -38,7 +41,7 @@ from typing import Any, cast
 import igtl
 from igtl.messages.base import Message
 from igtl.transport import Peer, TCPClient, TCPServer, UDPEndpoint
-from igtl.transport.common import RateLimit
+from igtl.transport.common import AccessList, RateLimit
 
 from .commands import error_reply, parse_request
 from .errors import CommandError
@@ -46,6 +49,9 @@ from .errors import CommandError
 log = logging.getLogger(__name__)
 
 COMMAND_TYPES = frozenset({"COMMAND"})
+#: commands a viewer may send: they read, never act (names compared in lower case)
+READ_ONLY_COMMANDS = frozenset({"getstate", "getstats"})
+ROLES = ("none", "viewer", "operator")
 _TRANSPORT_REFUSALS = (
     "denied",
     "rejected",
@@ -66,6 +72,8 @@ class Inbound:
     t_rx: float  # clock time at reception (the daemon clock, monotonic seconds)
     #: operator requests are parsed (XML included) on the interface thread, never by the loop
     request: Any = None
+    #: the sender's role when it was received (``operator`` or ``viewer``)
+    role: str = "operator"
 
 
 class StreamQueue:
@@ -192,7 +200,11 @@ class Interface:
         self.cfg = cfg
         self.poll_streams = poll_streams
         self.name: str = cfg.name
-        self.commands: bool = bool(cfg.commands)
+        self.role: str = cfg.role
+        #: operator addresses on an operator interface; None = every allowed peer
+        self._operators = (
+            AccessList([str(n) for n in cfg.operators]) if cfg.operators is not None else None
+        )
         self.manager = manager
         self._now = clock_now
         self.counters = InterfaceCounters()
@@ -229,6 +241,10 @@ class Interface:
                 message_timeout=cfg.message_timeout_s,
                 send_stall_timeout=cfg.send_stall_timeout_s,
                 max_body_size=cfg.max_body_kib * 1024,
+                reserved_slots=cfg.operator_slots if cfg.operators is not None else 0,
+                privileged_peers=(
+                    [str(n) for n in cfg.operators] if cfg.operators is not None else None
+                ),
                 name=f"igtl-{self.name}",
                 on_connect=self._on_connect,
                 on_disconnect=self._on_disconnect,
@@ -304,17 +320,34 @@ class Interface:
                 stream.put(item)
                 return
         if is_operator_request(msg) or mtype in self.command_inputs:
-            if not self.commands and mtype not in self.command_inputs:
-                self._refuse(
-                    item, "interface does not accept commands", igtl.StatusCode.ACCESS_DENIED
-                )
-                return
             if mtype not in self.command_inputs:
+                role = self.peer_role(peer)
+                if role == "none":
+                    self._refuse(
+                        item,
+                        f"interface {self.name} is a data link: it takes no requests",
+                        igtl.StatusCode.ACCESS_DENIED,
+                    )
+                    return
                 try:
-                    item.request = parse_request(msg)
+                    req = parse_request(msg)
                 except CommandError as err:
                     self._refuse(item, str(err), igtl.StatusCode.ILLEGAL_INSTRUCTION)
                     return
+                if (
+                    role == "viewer"
+                    and req.kind != "query"
+                    and req.name.strip().lower() not in READ_ONLY_COMMANDS
+                ):
+                    self._refuse(
+                        item,
+                        f"{req.name}: a viewer may query but not command the robot; send "
+                        "commands to an operator interface",
+                        igtl.StatusCode.ACCESS_DENIED,
+                    )
+                    return
+                item.request = req
+                item.role = role
             if not self.manager.commands.put(item):
                 self._refuse(item, "command queue full", igtl.StatusCode.BUSY)
             return
@@ -330,6 +363,18 @@ class Interface:
                 mtype,
                 *peer.address[:2],
             )
+
+    def peer_role(self, peer: Peer) -> str:
+        """``operator``, ``viewer`` or ``none``: what this peer may ask on this interface."""
+        role = self.role
+        if role == "operator" and self._operators is not None:
+            return "operator" if self._operators.allows(peer.address[0]) else "viewer"
+        return role
+
+    @property
+    def answers(self) -> bool:
+        """Whether clients of this interface are told the robot's state (viewers, operators)."""
+        return self.role != "none"
 
     def _refuse(self, item: Inbound, reason: str, code: int) -> None:
         """Count, log (rate-limited: a flood must not flood the log) and answer the sender."""
@@ -379,6 +424,7 @@ class Interface:
         }
         return {
             "transport": self.cfg.transport,
+            "role": self.role,
             "address": list(self.address) if self.address else None,
             "received": c.received,
             "sent": int(t.get("sent", c.sent)),
@@ -469,10 +515,12 @@ class InterfaceManager:
                 log.exception("connect listener failed")
 
     def operator_interfaces(self) -> list[Interface]:
-        return [i for i in self.interfaces.values() if i.commands]
+        """The interfaces whose clients are told the robot's state (viewers and operators)."""
+        return [i for i in self.interfaces.values() if i.answers]
 
     def broadcast_operators(self, msg: Message) -> None:
-        """Send to every client of every command-capable interface (state changes, alerts)."""
+        """Send to every client of every viewer or operator interface (state changes, alerts:
+        what the robot does is everyone's business; only operators may change it)."""
         for iface in self.operator_interfaces():
             iface.send(msg)
 

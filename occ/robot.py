@@ -157,6 +157,20 @@ def quaternion_to_rotation(q: Sequence[float]) -> np.ndarray:
     )
 
 
+#: statistics a viewer is not shown: what it would take to forge the master stream (the next
+#: sequence number, the stream's source port)
+VIEWER_HIDDEN = frozenset({"seq", "last_seq", "stream_owner"})
+
+
+def redact_for_viewer(value: Any) -> Any:
+    """``value`` (a statistics snapshot) without the keys in :data:`VIEWER_HIDDEN`."""
+    if isinstance(value, dict):
+        return {k: redact_for_viewer(v) for k, v in value.items() if k not in VIEWER_HIDDEN}
+    if isinstance(value, list):
+        return [redact_for_viewer(v) for v in value]
+    return value
+
+
 def judge(monitor: LossMonitor, item: Inbound, now: float, to_wall: float) -> Verdict:
     """The loss monitor's verdict on one stream sample (sequence number from a v2 header)."""
     msg = item.msg
@@ -704,7 +718,7 @@ class Robot:
 
     def _on_peer_connect(self, iface: Interface, peer: Any) -> None:
         # runs on the interface thread: only queue a STATUS with the current state
-        if iface.commands:
+        if iface.answers:
             st = self.state_machine.state
             iface.send_to_peer(
                 igtl.StatusMessage(
@@ -781,7 +795,10 @@ class Robot:
     def _reply_stats(self, item: Inbound, req: Request) -> None:
         """On the worker thread: the snapshot (histogram percentiles, controller statistics)
         costs milliseconds; the loop only handed the request over."""
-        text = json.dumps(self.snapshot(), separators=(",", ":"), default=str)
+        snap = self.snapshot()
+        if item.role != "operator":
+            snap = redact_for_viewer(snap)
+        text = json.dumps(snap, separators=(",", ":"), default=str)
         reply = success_reply(req, text, timestamp=self.clock.wall_time())
         self.interfaces.reply(item, reply)
 

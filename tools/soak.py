@@ -174,7 +174,7 @@ class SimSlave:
         self.loss_iface = self.robot.interfaces[cfg.safety.loss.input]
         ops = self.robot.interfaces.operator_interfaces()
         if not ops:
-            raise SystemExit(f"{config}: no operator (commands: true) interface")
+            raise SystemExit(f"{config}: no operator (role: operator) interface")
         self.op_iface = ops[0]
         self.master_peer = Peer(1, ("127.0.0.1", 40000))
         self.operator_peer = Peer(2, ("127.0.0.1", 40001))

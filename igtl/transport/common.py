@@ -48,7 +48,7 @@ class Peer:
         "sent",
     )
 
-    def __init__(self, peer_id: int, address: Address) -> None:
+    def __init__(self, peer_id: int, address: Address, log_limit: RateLimit | None = None) -> None:
         self.id = peer_id
         self.address: tuple[str, int] = (str(address[0]), int(address[1]))
         self.header_version = 1
@@ -60,7 +60,9 @@ class Peer:
         self.connected_at = time.time()
         #: Monotonic time of the last bytes received.
         self.last_received = time.monotonic()
-        self.log_limit = RateLimit()
+        #: shared by every connection from the same host (:class:`HostLogLimits`), so a peer
+        #: that reconnects in a loop cannot reset its own log budget
+        self.log_limit = log_limit if log_limit is not None else RateLimit()
 
     def note_version(self, version: int) -> None:
         if version > self.header_version:
@@ -111,6 +113,33 @@ class RateLimit:
             return True
         self.suppressed += 1
         return False
+
+
+class HostLogLimits:
+    """One :class:`RateLimit` per remote host, kept across connections (bounded, least
+    recently used forgotten first): reconnecting does not buy a peer a fresh log budget, and a
+    flood of connections from many addresses costs at most ``max_hosts`` entries."""
+
+    __slots__ = ("_limits", "max_hosts", "per_second")
+
+    def __init__(self, per_second: int = 10, max_hosts: int = 1024) -> None:
+        self.per_second = per_second
+        self.max_hosts = max_hosts
+        self._limits: dict[str, RateLimit] = {}
+
+    def get(self, host: str) -> RateLimit:
+        limits = self._limits
+        limit = limits.pop(host, None)
+        if limit is None:
+            limit = RateLimit(self.per_second)
+            if len(limits) >= self.max_hosts:
+                del limits[next(iter(limits))]
+        limits[host] = limit  # most recently used last
+        return limit
+
+    @property
+    def suppressed(self) -> int:
+        return sum(limit.suppressed for limit in self._limits.values())
 
 
 def should_log(peer: Peer | None) -> bool:

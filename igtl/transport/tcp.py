@@ -34,7 +34,9 @@ clients are never affected.
 Server admission. A connection from outside ``allowed_peers`` (IPs or CIDR networks) is sent a v1
 STATUS with code ACCESS_DENIED (5) and error name ``"ACCESS_DENIED"``, then closed, logged with
 its address and counted (``denied``). Past ``max_clients`` a connection is accepted and closed at
-once, logged and counted (``rejected``). ``idle_timeout`` (seconds) closes clients that sent
+once, logged and counted (``rejected``); so is one from outside ``privileged_peers`` when only the
+``reserved_slots`` (kept for operators) are left. Refusals are logged within a per-host budget
+that survives reconnects (``HostLogLimits``). ``idle_timeout`` (seconds) closes clients that sent
 nothing for that long (reason ``"idle timeout"``).
 
 Every socket gets TCP_NODELAY and SO_KEEPALIVE (with ~10 s dead-peer detection on Linux); the
@@ -70,6 +72,7 @@ from .common import (
     AccessList,
     CallbackGuard,
     Connection,
+    HostLogLimits,
     IdCounter,
     Inbox,
     IOThreadOwner,
@@ -136,6 +139,7 @@ class _StreamTransport(IOThreadOwner):
         self._inbox = Inbox(receive_queue)
         self._guard = CallbackGuard(name)
         self._next_id = IdCounter()
+        self._log_limits = HostLogLimits()
         self._waker = Waker()
         self._sel = selectors.DefaultSelector()
         self._sel.register(self._waker.r, _READ, _WAKE)
@@ -298,7 +302,7 @@ class _StreamTransport(IOThreadOwner):
         raise NotImplementedError
 
     def _new_connection(self, sock: socket.socket, address: Any) -> Connection:
-        peer = Peer(self._next_id(), address)
+        peer = Peer(self._next_id(), address, self._log_limits.get(str(address[0])))
         conn = Connection(
             sock,
             peer,
@@ -339,6 +343,8 @@ class TCPServer(_StreamTransport):
         message_timeout: float | None = 10.0,
         send_stall_timeout: float | None = 5.0,
         negotiate: bool = True,
+        reserved_slots: int = 0,
+        privileged_peers: list[str] | None = None,
         name: str = "igtl-tcp-server",
     ) -> None:
         for what, value in (
@@ -351,7 +357,18 @@ class TCPServer(_StreamTransport):
             raise ValueError(f"max_clients must be >= 1, got {max_clients}")
         if idle_timeout is not None and idle_timeout <= 0:
             raise ValueError(f"idle_timeout must be positive or None, got {idle_timeout}")
+        if not 0 <= reserved_slots < max_clients:
+            raise ValueError(
+                f"reserved_slots must be >= 0 and < max_clients ({max_clients}), "
+                f"got {reserved_slots}"
+            )
+        if reserved_slots and privileged_peers is None:
+            raise ValueError("reserved_slots needs privileged_peers (who may take them)")
         self._access = AccessList(allowed_peers)
+        #: the last ``reserved_slots`` client slots are kept for these hosts (operators), so
+        #: viewers or a flood of connections from elsewhere cannot lock them out
+        self.reserved_slots = reserved_slots
+        self._privileged = AccessList(privileged_peers) if privileged_peers is not None else None
         super().__init__(
             name=name,
             on_message=on_message,
@@ -537,21 +554,21 @@ class TCPServer(_StreamTransport):
                 return
             self._connections += 1
             where = addr_text(address)
+            # refusals are counted always, logged within the host's budget (a peer that
+            # reconnects in a loop must not fill the disk)
             if not self._access.allows(address[0]):
                 self._denied += 1
-                log.warning(
-                    "%s: connection from %s denied (not in allowed_peers)", self.name, where
-                )
+                if self._log_limits.get(str(address[0])).allow():
+                    log.warning(
+                        "%s: connection from %s denied (not in allowed_peers)", self.name, where
+                    )
                 self._refuse(sock, self._denied_bytes)
                 continue
-            if len(self._conns) >= self.max_clients:
+            full = self._full_for(address[0])
+            if full:
                 self._rejected += 1
-                log.warning(
-                    "%s: connection from %s rejected (max_clients=%d reached)",
-                    self.name,
-                    where,
-                    self.max_clients,
-                )
+                if self._log_limits.get(str(address[0])).allow():
+                    log.warning("%s: connection from %s rejected (%s)", self.name, where, full)
                 self._refuse(sock, b"")
                 continue
             try:
@@ -568,6 +585,20 @@ class TCPServer(_StreamTransport):
             self._guard(self.on_connect, conn.peer)
             with self._cond:
                 self._cond.notify_all()
+
+    def _full_for(self, host: str) -> str:
+        """Why a new client from ``host`` cannot have a slot now ('' if it can)."""
+        n = len(self._conns)
+        if n >= self.max_clients:
+            return f"max_clients={self.max_clients} reached"
+        if (
+            self.reserved_slots
+            and n >= self.max_clients - self.reserved_slots
+            and self._privileged is not None
+            and not self._privileged.allows(host)
+        ):
+            return f"the last {self.reserved_slots} of {self.max_clients} slots are reserved"
+        return ""
 
     @staticmethod
     def _refuse(sock: socket.socket, farewell: bytes) -> None:

@@ -42,6 +42,7 @@ from .common import (
     PEER_COUNTERS,
     AccessList,
     CallbackGuard,
+    HostLogLimits,
     IdCounter,
     Inbox,
     IOThreadOwner,
@@ -133,6 +134,7 @@ class UDPEndpoint(IOThreadOwner):
         self._init_io_thread()
         self._rx_lock = threading.Lock()  # one reader at a time: the I/O thread or poll()
         self._denied_log = RateLimit()
+        self._log_limits = HostLogLimits()
         self._error_log = RateLimit()
         self._rxbuf = bytearray(65536)
         # Endpoint-wide counters (per-peer ones live on the Peers).
@@ -289,7 +291,8 @@ class UDPEndpoint(IOThreadOwner):
                     old = self._peers.pop(next(iter(self._peers)))
                     for name in PEER_COUNTERS:
                         self._forgotten[name] += getattr(old, name)
-                peer = Peer(self._next_id(), key)
+                # the log budget is per host: a sender hopping ports gets no fresh one
+                peer = Peer(self._next_id(), key, self._log_limits.get(str(key[0])))
                 self._peers[key] = peer
         return peer
 

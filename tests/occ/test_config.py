@@ -58,7 +58,7 @@ def test_valid_slave_loads_with_every_section() -> None:
     assert (robot.realtime.fifo_priority, robot.realtime.cpu) == (80, 2)
     slicer, master = cfg.interfaces
     assert cfg.interface("master") is master
-    assert slicer.commands and [o.device for o in slicer.outputs] == ["Tip", "Base"]
+    assert slicer.role == "operator" and [o.device for o in slicer.outputs] == ["Tip", "Base"]
     assert slicer.allowed_peers == (
         ipaddress.ip_network("127.0.0.1/32"),
         ipaddress.ip_network("10.0.0.0/8"),
@@ -108,8 +108,8 @@ def test_interface_defaults() -> None:
     itf = InterfaceConfig(name="x", transport="tcp-server")
     assert (itf.host, itf.port, itf.remote) == ("127.0.0.1", 18944, None)
     assert itf.allowed_peers == (ipaddress.ip_network("127.0.0.1"),)
-    assert (itf.commands, itf.header_version, itf.max_clients, itf.send_queue) == (
-        False,
+    assert (itf.role, itf.header_version, itf.max_clients, itf.send_queue) == (
+        "none",
         2,
         8,
         256,
@@ -187,7 +187,7 @@ BROKEN = {
         "14 interfaces[0].port: must be <= 65535, got 70000",
         "15 interfaces[0].allowed_peers[1]: expected an IP address or CIDR network, "
         "got 'not-an-ip'",
-        "16 interfaces[0].commands: expected true or false, got 'maybe'",
+        "16 interfaces[0].role: must be one of none | viewer | operator, got 'maybe'",
         "18 safety.watchdog.policy: must be one of hold | fault, got 'explode'",
         "19 stats.log_every_s: expected a number, got a list",
     ],
