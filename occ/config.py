@@ -49,6 +49,7 @@ from pydantic import (
 )
 from pydantic_core import ErrorDetails, PydanticCustomError
 
+from igtl.auth import load_key
 from occ.errors import ConfigError
 
 __all__ = [
@@ -488,6 +489,14 @@ class InterfaceConfig(_Model):
         (), description="Message types accepted into the loop, with queue semantics."
     )
     outputs: tuple[OutputConfig, ...] = Field((), description="Signals sent out periodically.")
+    auth_key_file: ExistingFile | None = Field(
+        None,
+        description="A file holding a shared key (first line; `hex:` prefix for hex bytes; at "
+        "least 16 bytes): every message sent here carries an HMAC-SHA256 tag in its v2 "
+        "metadata, and every message received without a valid tag is refused and counted "
+        "(`unauthenticated`). For a master link on a network that is not trusted; both ends "
+        "use the same file. Relative paths are read from the config file's folder.",
+    )
     stream_source: Remote | None = Field(
         None,
         description="`host:port` the stream inputs must come from (the master's sending "
@@ -527,6 +536,13 @@ class InterfaceConfig(_Model):
         problems: list[tuple[Loc, str]] = []
         if self.transport == "tcp-client" and self.remote is None:
             problems.append((("remote",), "required for transport 'tcp-client'"))
+        if self.auth_key_file is not None:
+            try:
+                load_key(self.auth_key_file.read_text(encoding="utf-8"))
+            except (OSError, UnicodeDecodeError, ValueError) as err:
+                problems.append((("auth_key_file",), f"unusable key: {err}"))
+            if self.header_version != 2:
+                problems.append((("auth_key_file",), "needs header_version 2 (metadata)"))
         if self.operators is not None and self.role != "operator":
             problems.append((("operators",), f"needs role 'operator' (role is {self.role!r})"))
         if (

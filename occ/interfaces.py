@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 from typing import Any, cast
 
 import igtl
+from igtl.auth import load_key, sign, verify
 from igtl.messages.base import Message
 from igtl.transport import Peer, TCPClient, TCPServer, UDPEndpoint
 from igtl.transport.common import AccessList, RateLimit
@@ -180,6 +181,7 @@ class InterfaceCounters:
     unexpected: int = 0
     refused: int = 0
     foreign: int = 0  # stream samples from a sender that does not own the stream
+    unauthenticated: int = 0  # messages without a valid HMAC on an interface with a key
     malformed: int = 0
     sent: int = 0
     send_dropped: int = 0
@@ -224,6 +226,12 @@ class Interface:
                 self.streams[inp.type] = StreamQueue(inp.depth)
             else:
                 self.command_inputs.add(inp.type)
+        #: shared key: sent messages are signed, received ones must carry a valid tag
+        self.auth_key: bytes | None = (
+            load_key(cfg.auth_key_file.read_text(encoding="utf-8"))
+            if getattr(cfg, "auth_key_file", None)
+            else None
+        )
         self.transport = self._make_transport()
 
     def _make_transport(self) -> TCPServer | TCPClient | UDPEndpoint:
@@ -294,6 +302,20 @@ class Interface:
     def _on_message(self, peer: Peer, msg: Message) -> None:
         c = self.counters
         c.received += 1
+        if self.auth_key is not None:
+            why = verify(msg, self.auth_key)
+            if why:
+                # not answered: a peer without the key learns nothing from this interface
+                c.unauthenticated += 1
+                if self._log_limit.allow():
+                    log.warning(
+                        "%s: refused %s from %s:%s: %s",
+                        self.name,
+                        msg.message_type,
+                        *peer.address[:2],
+                        why,
+                    )
+                return
         mtype = msg.message_type
         item = Inbound(self.name, peer, msg, self._now())
         stream = self.streams.get(mtype)
@@ -392,6 +414,8 @@ class Interface:
 
     # ------------------------------------------------------------------ loop side
     def send(self, msg: Message, peer: Peer | int | None = None) -> int:
+        if self.auth_key is not None:
+            msg = sign(msg, self.auth_key)
         t = self.transport
         if isinstance(t, TCPServer):
             n = t.send(msg, peer)
@@ -404,6 +428,8 @@ class Interface:
         return n
 
     def send_to_peer(self, msg: Message, peer: Peer) -> bool:
+        if self.auth_key is not None:
+            msg = sign(msg, self.auth_key)
         t = self.transport
         if isinstance(t, TCPServer):
             return t.send(msg, peer) > 0
@@ -434,6 +460,7 @@ class Interface:
             "malformed": int(t.get("malformed", c.malformed)),
             "refused": c.refused,
             "foreign": c.foreign,
+            "unauthenticated": c.unauthenticated,
             "keepalive": c.keepalive,
             "unexpected": c.unexpected,
             "streams": streams,

@@ -1,0 +1,133 @@
+"""A master link authenticated with a shared key (interfaces[].auth_key_file), over real UDP
+on 127.0.0.1: the master signs what it sends, the slave takes only what carries a valid tag."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+import igtl
+from igtl.auth import sign, verify
+from igtl.transport import UDPEndpoint
+from occ.clock import SimClock
+from occ.config import parse_config
+from occ.errors import ConfigError
+from occ.robot import Robot, build_robot
+
+ROOT = Path(__file__).resolve().parents[2]
+KEY = "a shared key for the master link"
+
+
+def wait_for(cond: Callable[[], object], step: Callable[[], None], timeout: float = 5.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        step()
+        if cond():
+            return True
+        time.sleep(0.001)
+    return bool(cond())
+
+
+def _with_key(name: str, tmp_path: Path, edit: Callable[[str], str]) -> Robot:
+    (tmp_path / "link.key").write_text(KEY + "\n")
+    text = edit((ROOT / "configs" / name).read_text())
+    cfg = parse_config(text, base_dir=ROOT / "configs")
+    cfg = cfg.model_copy(
+        update={
+            "interfaces": tuple(
+                i.model_copy(update={"auth_key_file": tmp_path / "link.key"})
+                if i.transport == "udp"
+                else i.model_copy(update={"port": 0})
+                for i in cfg.interfaces
+            )
+        }
+    )
+    robot = build_robot(cfg, clock=SimClock())
+    robot.configure()
+    robot.activate()
+    return robot
+
+
+def test_slave_takes_only_signed_samples(tmp_path: Path) -> None:
+    slave = _with_key("slave.yaml", tmp_path, lambda t: t.replace("port: 18946", "port: 0"))
+    sender = UDPEndpoint("127.0.0.1", 0).start()
+    try:
+        port = slave.interfaces["master"].address[1]  # type: ignore[index]
+        key = KEY.encode()
+
+        def pos(seq: int) -> igtl.Message:
+            return igtl.PositionMessage(
+                (0.0, 50.0, 270.0),
+                (0.0, 0.0, 0.0, 1.0),
+                24,
+                device_name="Master",
+                header_version=2,
+                message_id=seq,
+                metadata={"run": "1", "clutch": "0"},
+            )
+
+        for seq in range(1, 16):
+            if seq % 3 == 1:
+                msg = sign(pos(seq), key)
+            elif seq % 3 == 2:
+                msg = pos(seq)  # no tag
+            else:
+                msg = sign(pos(seq), b"the wrong key, 16 bytes+")
+            assert sender.send(msg, ("127.0.0.1", port))
+        iface = slave.interfaces["master"]
+        k = [0]
+
+        def tick() -> None:
+            k[0] += 1
+            slave.tick(slave.clock.now(), k[0])
+            slave.clock.advance(0.001)  # type: ignore[attr-defined]
+
+        assert wait_for(lambda: iface.counters.received == 15, tick)
+        assert iface.counters.unauthenticated == 10
+        assert iface.stats()["streams"]["POSITION"]["received"] == 5
+        assert slave.snapshot()["interfaces"]["master"]["unauthenticated"] == 10
+    finally:
+        sender.stop()
+        slave.shutdown()
+
+
+def test_master_signs_its_stream(tmp_path: Path) -> None:
+    got: list[igtl.Message] = []
+    receiver = UDPEndpoint("127.0.0.1", 0, on_message=lambda p, m: got.append(m)).start()
+    port = receiver.address[1]
+    master = _with_key(
+        "master.yaml", tmp_path, lambda t: t.replace("127.0.0.1:18946", f"127.0.0.1:{port}")
+    )
+    try:
+        master.state_machine.request("enable", "test")
+        master.state_machine.request("run", "test")
+        k = [0]
+
+        def tick() -> None:
+            k[0] += 1
+            master.tick(master.clock.now(), k[0])
+            master.clock.advance(0.001)  # type: ignore[attr-defined]
+
+        assert wait_for(lambda: len(got) >= 10, tick)
+        key = KEY.encode()
+        assert all(verify(m, key) == "" for m in got)
+        assert all(verify(m, b"the wrong key, 16 bytes+") == "wrong HMAC" for m in got)
+    finally:
+        master.shutdown()
+        receiver.stop()
+
+
+def test_unusable_key_is_a_config_error(tmp_path: Path) -> None:
+    (tmp_path / "short.key").write_text("too short\n")
+    text = (
+        (ROOT / "configs" / "slave.yaml")
+        .read_text()
+        .replace(
+            "    port: 18946\n", f"    port: 18946\n    auth_key_file: {tmp_path / 'short.key'}\n"
+        )
+    )
+    with pytest.raises(ConfigError, match=r"auth_key_file: unusable key: the key must be at least"):
+        parse_config(text, base_dir=ROOT / "configs")
