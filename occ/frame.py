@@ -379,6 +379,37 @@ class Frame:
             np.array(xyz, dtype=np.float64), pose, np.array(seed, dtype=np.float64), clamp
         )
 
+    def ik_clamped(
+        self, position: tuple[float, float, float], seed: list[float]
+    ) -> tuple[list[float], bool]:
+        """``solve_ik(position, seed, clamp=True)`` as ``(q, clamped)`` in plain floats.
+
+        The same answer (a test compares them), without the report's residual and arrays:
+        teleoperation calls this at the master's rate on the control loop. Raises ValueError
+        for a target that is not finite, KinematicsError as :meth:`solve_ik`.
+        """
+        x, y, z = position
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+            raise ValueError("target must be finite")
+        analytic = self._analytic
+        if analytic is not None:
+            tol = _LIMIT_TOL
+            lo_hi = self._lo_hi
+            best: Sequence[float] | None = None
+            best_d = math.inf
+            for q in analytic(position, seed):
+                if all(lo - tol <= v <= hi + tol for v, (lo, hi) in zip(q, lo_hi, strict=True)):
+                    d = sum((a - b) ** 2 for a, b in zip(q, seed, strict=False))
+                    if best is None or d < best_d:
+                        best, best_d = q, d
+            if best is not None:
+                return [
+                    lo if v < lo else hi if v > hi else v
+                    for v, (lo, hi) in zip(best, lo_hi, strict=True)
+                ], False
+        res = self.solve_ik(position, seed, clamp=True)
+        return res.q.tolist(), bool(res.clamped)
+
     def _solve_analytic(
         self, position: tuple[float, float, float], seed: list[float], clamp: bool
     ) -> IKResult:

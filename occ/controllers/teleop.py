@@ -106,6 +106,7 @@ class MasterController(Controller):
         self.point_hardness = float(params.get("fixture_hardness", 1.0))
         self.hardness = 0.0
         self.fixture_force = np.zeros(3)
+        self._force_on = False
         self._centre: tuple[float, ...] | None = None  # origin + offset, once bound
         self._amp: tuple[float, ...] = tuple(self.amplitude.tolist())
         self.fixture_contacts = 0
@@ -217,19 +218,22 @@ class MasterController(Controller):
         if target is None:
             return None
         target = self._apply_fixtures(target)
+        if not isinstance(target, tuple):
+            target = (float(target[0]), float(target[1]), float(target[2]))
         try:
-            q = robot.frame.ik(target, robot.q, clamp=True)
+            q, _clamped = robot.frame.ik_clamped(target, robot.q)
         except (KinematicsError, ValueError):
             self.ik_failures += 1
             return None
-        return q.tolist()
+        return q
 
     def _apply_fixtures(
         self, target: np.ndarray | tuple[float, float, float]
     ) -> np.ndarray | tuple[float, float, float]:
         if not self.spheres:
-            if self.fixture_force.any():
+            if self._force_on:  # checked as a flag: this runs every tick
                 self.fixture_force = np.zeros(3)
+                self._force_on = False
             return target
         force = np.zeros(3)
         out = np.asarray(target, dtype=np.float64)
@@ -243,6 +247,7 @@ class MasterController(Controller):
                 out = centre + normal * radius
                 self.fixture_contacts += 1
         self.fixture_force = force
+        self._force_on = bool(force.any())
         return out
 
     # -------------------------------------------------------------- output
@@ -439,13 +444,13 @@ class SlaveController(Controller):
             sz + g * dx + h * dy + i * dz,
         )
         try:
-            res = robot.frame.solve_ik(target, robot.q, clamp=True)
+            q, clamped = robot.frame.ik_clamped(target, robot.q)
         except (KinematicsError, ValueError):
             self.ik_failures += 1
             return self._q_last
-        if res.clamped:
+        if clamped:
             self.clamped += 1
-        self._q_last = res.q.tolist()
+        self._q_last = q
         if self.pending_ts is not None:
             wall, mono = robot.clock.wall_time(), robot.clock.now()
             self.latency_us.add((wall - self.pending_ts) * 1e6)

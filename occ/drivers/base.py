@@ -179,6 +179,7 @@ class Driver:
         n = len(self.joints)
         # Preallocated per-tick buffers: write() never allocates lists.
         self._values: list[float] = [0.0] * n
+        self._limit_table: list[tuple[Joint, float, float, float]] = []
         self._prev_setpoint: list[float] = [0.0] * n
         self._prev_write_time: float = math.nan
         self._reads: int = 0
@@ -237,6 +238,11 @@ class Driver:
         for joint in self.joints:
             joint.reset_servo()
         self._prev_write_time = math.nan
+        # the limits as plain floats, read by every write (fewer look-ups on the loop)
+        self._limit_table = [
+            (j, j.limits.min, j.limits.max, j.limits.velocity * (1.0 + _VEL_SLACK))
+            for j in self.joints
+        ]
         self._call_hook(self._activate, "activate")
         self._transition(DriverState.ACTIVE)
 
@@ -366,38 +372,36 @@ class Driver:
         values = self._values
         effort = self.command_interface == "effort"
         clamp = self.on_limit == "clamp"
-        for i in range(n):
-            joint = joints[i]
-            limits = joint.limits
+        for i, (joint, lo, hi, vmax) in enumerate(self._limit_table):
             x = float(setpoints[i])
             if not math.isfinite(x):
                 self._fault(LimitError(f"driver {self.name!r}: joint {joint.name}: setpoint {x}"))
-            if x < limits.min or x > limits.max:
+            if x < lo or x > hi:
                 if not clamp:
                     self._fault(
                         LimitError(
                             f"driver {self.name!r}: joint {joint.name}: position {x:.6g} outside "
-                            f"limits [{limits.min:.6g}, {limits.max:.6g}]"
+                            f"limits [{lo:.6g}, {hi:.6g}]"
                         )
                     )
-                x = limits.min if x < limits.min else limits.max
+                x = lo if x < lo else hi
                 self._limit_events += 1
             if first:
                 ref = joint.position if joint.measured else math.nan
             else:
                 ref = prev[i]
             if ref == ref:
-                max_step = limits.velocity * dt
                 step = x - ref
-                if step > max_step * (1.0 + _VEL_SLACK) or -step > max_step * (1.0 + _VEL_SLACK):
+                if step > vmax * dt or -step > vmax * dt:
                     if not clamp:
                         speed = abs(step) / dt if dt > 0.0 else math.inf
                         self._fault(
                             LimitError(
                                 f"driver {self.name!r}: joint {joint.name}: velocity {speed:.6g} "
-                                f"exceeds limit {limits.velocity:.6g} (setpoint {x:.6g})"
+                                f"exceeds limit {joint.limits.velocity:.6g} (setpoint {x:.6g})"
                             )
                         )
+                    max_step = joint.limits.velocity * dt
                     x = ref + max_step if step > 0.0 else ref - max_step
                     self._limit_events += 1
             prev[i] = x

@@ -28,8 +28,11 @@ def master() -> Frame:
 def expected_slave_tip(yaw: float, pitch: float, insertion: float) -> np.ndarray:
     d = TIP_PAST_RCM + insertion
     return np.array(
-        (-math.sin(yaw) * math.sin(pitch) * d, math.cos(yaw) * math.sin(pitch) * d,
-         RCM_HEIGHT - math.cos(pitch) * d)
+        (
+            -math.sin(yaw) * math.sin(pitch) * d,
+            math.cos(yaw) * math.sin(pitch) * d,
+            RCM_HEIGHT - math.cos(pitch) * d,
+        )
     )
 
 
@@ -180,3 +183,24 @@ def test_per_tick_paths_match_the_numpy_ones(name: str) -> None:
         frame.solve_ik((math.nan, 0.0, 0.0))
     with pytest.raises(ValueError, match="shape"):
         frame.solve_ik((0.0, 0.0, 0.1), [0.0, 0.0])
+
+
+@pytest.mark.parametrize("name", ["occ_slave", "master3"])
+def test_ik_clamped_matches_solve_ik(name: str) -> None:
+    """The loop's plain-float IK gives solve_ik(clamp=True)'s answer, inside and outside the
+    workspace (clamped flag included)."""
+    import random
+
+    frame = Frame.builtin(name)
+    rng = random.Random(3)
+    lo, hi = frame.lower.tolist(), frame.upper.tolist()
+    for _ in range(300):
+        q = [rng.uniform(a - 0.2 * (b - a), b + 0.2 * (b - a)) for a, b in zip(lo, hi)]
+        target = tuple(frame.tip_position(q))
+        seed = [rng.uniform(a, b) for a, b in zip(lo, hi)]
+        ref = frame.solve_ik(target, seed, clamp=True)
+        got, clamped = frame.ik_clamped(target, seed)
+        assert got == pytest.approx(ref.q.tolist(), abs=1e-12)
+        assert clamped == bool(ref.clamped)
+    with pytest.raises(ValueError, match="finite"):
+        frame.ik_clamped((math.nan, 0.0, 0.0), list(frame.neutral))
