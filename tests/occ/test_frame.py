@@ -195,9 +195,9 @@ def test_ik_clamped_matches_solve_ik(name: str) -> None:
     rng = random.Random(3)
     lo, hi = frame.lower.tolist(), frame.upper.tolist()
     for _ in range(300):
-        q = [rng.uniform(a - 0.2 * (b - a), b + 0.2 * (b - a)) for a, b in zip(lo, hi)]
+        q = [rng.uniform(a - 0.2 * (b - a), b + 0.2 * (b - a)) for a, b in zip(lo, hi, strict=True)]
         target = tuple(frame.tip_position(q))
-        seed = [rng.uniform(a, b) for a, b in zip(lo, hi)]
+        seed = [rng.uniform(a, b) for a, b in zip(lo, hi, strict=True)]
         ref = frame.solve_ik(target, seed, clamp=True)
         got, clamped = frame.ik_clamped(target, seed)
         assert got == pytest.approx(ref.q.tolist(), abs=1e-12)
