@@ -33,7 +33,7 @@ import threading
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import Any
 
 import igtl
 from igtl.messages.base import Message
@@ -346,12 +346,11 @@ class Interface:
         self.manager.reply_error(item, reason, code=code)
 
     # ------------------------------------------------------------------ loop side
-    def send(self, msg: Message, peer: Peer | int | None = None) -> int:
-        t = self.transport
-        if isinstance(t, TCPServer):
-            n = t.send(msg, peer)
-        else:
-            n = 1 if t.send(msg) else 0
+    def send(self, msg: Message, peer: Peer | None = None) -> int:
+        """Queue ``msg`` for ``peer`` (None: every client of a server, a udp ``remote``, a
+        tcp-client's server); returns how many peers it was queued for (0: dropped). Every
+        transport has this ``send``, so nothing here depends on which one is configured."""
+        n = self.transport.send(msg, peer)
         if n:
             self.counters.sent += 1
         else:
@@ -359,13 +358,9 @@ class Interface:
         return n
 
     def send_to_peer(self, msg: Message, peer: Peer) -> bool:
-        t = self.transport
-        if isinstance(t, TCPServer):
-            return t.send(msg, peer) > 0
-        if isinstance(t, UDPEndpoint):
-            addr = cast("tuple[str, int]", tuple(peer.address))  # UDP peers: (host, port)
-            return bool(t.send(msg, addr))
-        return bool(t.send(msg))
+        """A reply to the sender of a request; like :meth:`send` but not counted as an output
+        (replies never were)."""
+        return self.transport.send(msg, peer) > 0
 
     def release_stream(self) -> None:
         """Forget an ephemeral stream owner (operator Reset): the next sender owns it."""
