@@ -1,8 +1,9 @@
 """InterfaceManager: all network I/O of a daemon, and the queues that feed the control loop.
 
 Each configured interface is one igtl transport (TCP server, TCP client or UDP endpoint) with its
-own I/O thread. Those threads never touch robot state: they only put what arrives into queues
-whose meaning is explicit (shared/DESIGN.md, "Queues"):
+own I/O thread, or an in-process channel (``inproc``: no thread, delivered on the sender's).
+Those threads never touch robot state: they only put what arrives into queues whose meaning is
+explicit (shared/DESIGN.md, "Queues"):
 
 - :class:`StreamQueue` for pose streams (POSITION/TRANSFORM at up to 500 Hz): bounded, drained
   fully every tick, so the loop sees every sequence number (for the loss monitor) and uses the
@@ -37,7 +38,7 @@ from typing import Any
 
 import igtl
 from igtl.messages.base import Message
-from igtl.transport import Peer, TCPClient, TCPServer, UDPEndpoint
+from igtl.transport import InprocTransport, Peer, TCPClient, TCPServer, UDPEndpoint
 from igtl.transport.common import RateLimit
 
 from .commands import error_reply, parse_request
@@ -214,7 +215,7 @@ class Interface:
                 self.command_inputs.add(inp.type)
         self.transport = self._make_transport()
 
-    def _make_transport(self) -> TCPServer | TCPClient | UDPEndpoint:
+    def _make_transport(self) -> TCPServer | TCPClient | UDPEndpoint | InprocTransport:
         cfg = self.cfg
         allowed = [str(p) for p in cfg.allowed_peers] if cfg.allowed_peers else None
         common: dict[str, Any] = {"on_message": self._on_message, "on_error": self._on_error}
@@ -257,6 +258,22 @@ class Interface:
                 # a stream the loop polls each tick needs no thread waking per datagram
                 polled=self.poll_streams and bool(self.streams),
                 name=f"igtl-{self.name}",
+                **common,
+            )
+        if cfg.transport == "inproc":
+            # a daemon's interface serves its peers as a tcp-server does: each answered in the
+            # header version it speaks (peers announce theirs on joining the channel)
+            return InprocTransport(
+                cfg.channel,
+                address=(cfg.host, cfg.port) if cfg.port else None,
+                header_version=cfg.header_version,
+                negotiate=True,
+                allowed_peers=allowed,
+                max_peers=cfg.max_clients,
+                max_body_size=cfg.max_body_kib * 1024,
+                name=f"igtl-{self.name}",
+                on_connect=self._on_connect,
+                on_disconnect=self._on_disconnect,
                 **common,
             )
         raise ValueError(f"unknown transport {cfg.transport!r}")
