@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import itertools
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -71,7 +71,9 @@ def _as_config(config: DaemonConfig | str | os.PathLike[str] | Mapping[str, Any]
 class SimPeer:
     """A client on an in-process channel: sends like a TCP/UDP client, records what it gets.
 
-    ``received`` holds every decoded message in arrival order. ``header_version`` is the version
+    ``received`` holds every decoded message in arrival order, unless ``on_message`` is given
+    (called with each message instead: a long soak keeps what it needs, not hours of outputs).
+    ``header_version`` is the version
     the peer announces (2: a modern Slicer/PLUS, answered with metadata and message IDs; 1: an
     old client, answered in version 1). ``address`` is how the robot sees it (stream ownership).
     """
@@ -82,9 +84,11 @@ class SimPeer:
         *,
         address: tuple[str, int] | None = None,
         header_version: int = 2,
+        on_message: Callable[[Message], None] | None = None,
         name: str = "sim-peer",
     ) -> None:
         self.received: list[Message] = []
+        self._callback = on_message
         self._ids = itertools.count(100)
         self.transport = InprocTransport(
             channel,
@@ -97,7 +101,10 @@ class SimPeer:
         ).start()
 
     def _on_message(self, peer: Peer, msg: Message) -> None:
-        self.received.append(msg)
+        if self._callback is not None:
+            self._callback(msg)
+        else:
+            self.received.append(msg)
 
     @property
     def address(self) -> tuple[str, int]:
@@ -219,12 +226,14 @@ class SimRobot:
         *,
         address: tuple[str, int] | None = None,
         header_version: int = 2,
+        on_message: Callable[[Message], None] | None = None,
     ) -> SimPeer:
         """A new client of the robot's interface ``interface`` (closed with the robot)."""
         p = SimPeer(
             self.channel(interface),
             address=address,
             header_version=header_version,
+            on_message=on_message,
             name=f"sim-peer-{interface}",
         )
         self._peers.append(p)
