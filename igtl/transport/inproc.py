@@ -188,8 +188,6 @@ class InprocTransport:
                 raise RuntimeError(f"{self.name}: start() may be called once")
             members = _channels.setdefault(self.channel, [])
             if any(ep.address == self.address for ep in members):
-                if not members:
-                    del _channels[self.channel]
                 raise OSError(
                     errno.EADDRINUSE,
                     f"{self.name}: {addr_text(self.address)} is already on channel "
