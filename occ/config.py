@@ -422,7 +422,14 @@ class InterfaceConfig(_Model):
     """One OpenIGTLink endpoint (its own thread)."""
 
     name: Name = Field(description="Interface name, unique in the file.")
-    transport: Literal["tcp-server", "tcp-client", "udp"] = Field(description="Transport.")
+    transport: Literal["tcp-server", "tcp-client", "udp", "inproc"] = Field(
+        description="Transport; `inproc`: an in-process channel (tests, simulations; no sockets)."
+    )
+    channel: Name | None = Field(
+        None,
+        description="inproc: the channel name peers in the same process connect to "
+        "(required for inproc).",
+    )
     host: Str = Field(
         "127.0.0.1", description="Local address to bind (tcp-server, udp); `0.0.0.0` = all."
     )
@@ -536,6 +543,8 @@ class InterfaceConfig(_Model):
         problems: list[tuple[Loc, str]] = []
         if self.transport == "tcp-client" and self.remote is None:
             problems.append((("remote",), "required for transport 'tcp-client'"))
+        if self.transport == "inproc" and self.channel is None:
+            problems.append((("channel",), "required for transport 'inproc'"))
         if self.auth_key_file is not None:
             try:
                 load_key(self.auth_key_file.read_text(encoding="utf-8"))
@@ -827,7 +836,7 @@ class DaemonConfig(_Model):
                 )
             else:
                 names[itf.name] = i
-            if itf.transport != "tcp-client" and itf.port != 0:
+            if itf.transport not in ("tcp-client", "inproc") and itf.port != 0:
                 for j, other in binds:
                     if (
                         other.transport == itf.transport

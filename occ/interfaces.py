@@ -1,8 +1,9 @@
 """InterfaceManager: all network I/O of a daemon, and the queues that feed the control loop.
 
 Each configured interface is one igtl transport (TCP server, TCP client or UDP endpoint) with its
-own I/O thread. Those threads never touch robot state: they only put what arrives into queues
-whose meaning is explicit (shared/DESIGN.md, "Queues"):
+own I/O thread, or an in-process channel (``inproc``: no thread, delivered on the sender's).
+Those threads never touch robot state: they only put what arrives into queues whose meaning is
+explicit (shared/DESIGN.md, "Queues"):
 
 - :class:`StreamQueue` for pose streams (POSITION/TRANSFORM at up to 500 Hz): bounded, drained
   fully every tick, so the loop sees every sequence number (for the loss monitor) and uses the
@@ -36,12 +37,12 @@ import threading
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import Any
 
 import igtl
 from igtl.auth import load_key, sign, verify
 from igtl.messages.base import Message
-from igtl.transport import Peer, TCPClient, TCPServer, UDPEndpoint
+from igtl.transport import InprocTransport, Peer, TCPClient, TCPServer, UDPEndpoint
 from igtl.transport.common import AccessList, RateLimit
 
 from .commands import error_reply, parse_request
@@ -234,7 +235,7 @@ class Interface:
         )
         self.transport = self._make_transport()
 
-    def _make_transport(self) -> TCPServer | TCPClient | UDPEndpoint:
+    def _make_transport(self) -> TCPServer | TCPClient | UDPEndpoint | InprocTransport:
         cfg = self.cfg
         allowed = [str(p) for p in cfg.allowed_peers] if cfg.allowed_peers else None
         common: dict[str, Any] = {"on_message": self._on_message, "on_error": self._on_error}
@@ -281,6 +282,22 @@ class Interface:
                 # a stream the loop polls each tick needs no thread waking per datagram
                 polled=self.poll_streams and bool(self.streams),
                 name=f"igtl-{self.name}",
+                **common,
+            )
+        if cfg.transport == "inproc":
+            # a daemon's interface serves its peers as a tcp-server does: each answered in the
+            # header version it speaks (peers announce theirs on joining the channel)
+            return InprocTransport(
+                cfg.channel,
+                address=(cfg.host, cfg.port) if cfg.port else None,
+                header_version=cfg.header_version,
+                negotiate=True,
+                allowed_peers=allowed,
+                max_peers=cfg.max_clients,
+                max_body_size=cfg.max_body_kib * 1024,
+                name=f"igtl-{self.name}",
+                on_connect=self._on_connect,
+                on_disconnect=self._on_disconnect,
                 **common,
             )
         raise ValueError(f"unknown transport {cfg.transport!r}")
@@ -413,14 +430,13 @@ class Interface:
         self.manager.reply_error(item, reason, code=code)
 
     # ------------------------------------------------------------------ loop side
-    def send(self, msg: Message, peer: Peer | int | None = None) -> int:
+    def send(self, msg: Message, peer: Peer | None = None) -> int:
+        """Queue ``msg`` for ``peer`` (None: every client of a server, a udp ``remote``, a
+        tcp-client's server); returns how many peers it was queued for (0: dropped). Every
+        transport has this ``send``, so nothing here depends on which one is configured."""
         if self.auth_key is not None:
             msg = sign(msg, self.auth_key)
-        t = self.transport
-        if isinstance(t, TCPServer):
-            n = t.send(msg, peer)
-        else:
-            n = 1 if t.send(msg) else 0
+        n = self.transport.send(msg, peer)
         if n:
             self.counters.sent += 1
         else:
@@ -428,15 +444,11 @@ class Interface:
         return n
 
     def send_to_peer(self, msg: Message, peer: Peer) -> bool:
+        """A reply to the sender of a request; like :meth:`send` but not counted as an output
+        (replies never were)."""
         if self.auth_key is not None:
             msg = sign(msg, self.auth_key)
-        t = self.transport
-        if isinstance(t, TCPServer):
-            return t.send(msg, peer) > 0
-        if isinstance(t, UDPEndpoint):
-            addr = cast("tuple[str, int]", tuple(peer.address))  # UDP peers: (host, port)
-            return bool(t.send(msg, addr))
-        return bool(t.send(msg))
+        return self.transport.send(msg, peer) > 0
 
     def release_stream(self) -> None:
         """Forget an ephemeral stream owner (operator Reset): the next sender owns it."""

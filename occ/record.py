@@ -27,7 +27,6 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -297,17 +296,14 @@ def replay(
     if not msgs:
         return 0
     ep: UDPEndpoint | TCPClient
-    send: Callable[[Message], bool]
     if udp:
         ep = UDPEndpoint("127.0.0.1", 0, remote=target).start()
-        send = ep.send
     else:
         cl = TCPClient(target[0], target[1], reconnect=False).start()
         if not cl.wait_connected(5.0):
             cl.stop()
             raise ConnectionError(f"cannot connect to {target[0]}:{target[1]}")
         ep = cl
-        send = cl.send
     try:
         t0 = float(msgs[0].metadata.get("rec.t", 0.0))
         start = time.perf_counter()
@@ -317,7 +313,7 @@ def replay(
             delay = start + due - time.perf_counter()
             if delay > 0:
                 time.sleep(delay)
-            if send(original(m)):
+            if ep.send(original(m)):
                 sent += 1
         return sent
     finally:

@@ -14,6 +14,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow  # subprocesses; mypy alone takes ~30 s on a cold cache
+
 PACKAGES = ("igtl", "occ")
 
 

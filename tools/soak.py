@@ -10,8 +10,10 @@ contiguous numbers only hold and resume (docs/ARCHITECTURE.md, "Safety").
 
 ``sim``
     The slave :class:`~occ.robot.Robot` (``configs/slave.yaml``) stepped tick by tick on a
-    :class:`~occ.clock.SimClock` (no sockets: datagrams enter through the UDP interface's routing
-    callback, packed and decoded like real ones; operator COMMANDs through the TCP interface's).
+    :class:`~occ.clock.SimClock` with its interfaces on in-process channels
+    (:class:`occ.testing.SimRobot`, no sockets): the master's datagrams and the operator's
+    COMMANDs come from peers on those channels, packed and decoded like real ones, and the
+    operator reads the replies and alerts the robot sends it.
     The simulated master sends one POSITION every 2 ms (even ticks); a seeded
     :class:`loss_proxy.LossPattern` drops some. An independent oracle (this file, not the loss
     monitor) follows the drops and checks EXACTLY: a run of >= 3 consecutive losses that starts
@@ -156,37 +158,31 @@ def summarize(values: list[float]) -> dict[str, float] | None:
 
 
 class SimSlave:
-    """The slave Robot stepped tick by tick (1 kHz) on a SimClock; no sockets are opened."""
+    """The slave Robot stepped tick by tick (1 kHz) on a SimClock, its interfaces on in-process
+    channels (:class:`occ.testing.SimRobot`): the master and an operator are peers on them."""
 
     def __init__(self, config: Path, *, first_seq: int = 0) -> None:
-        import igtl
-        from igtl.transport import Peer
-        from occ.clock import SimClock
-        from occ.config import load_config
-        from occ.robot import build_robot
+        from occ.testing import SimRobot
 
-        self.igtl = igtl
-        cfg = load_config(config)
-        self.cfg = cfg
-        self.clock = SimClock()
-        self.robot = build_robot(cfg, clock=self.clock)
-        self.robot.configure()
-        self.loss_iface = self.robot.interfaces[cfg.safety.loss.input]
+        self.sim = SimRobot(config)
+        self.robot = self.sim.robot
+        self.clock = self.sim.clock
+        cfg = self.sim.config
         ops = self.robot.interfaces.operator_interfaces()
         if not ops:
+            self.sim.close()
             raise SystemExit(f"{config}: no operator (role: operator) interface")
-        self.op_iface = ops[0]
-        self.master_peer = Peer(1, ("127.0.0.1", 40000))
-        self.operator_peer = Peer(2, ("127.0.0.1", 40001))
-        self.k = 0
+        self.master = self.sim.peer(cfg.safety.loss.input, address=("127.0.0.1", 40000))
+        self.operator = self.sim.peer(ops[0].name, address=("127.0.0.1", 40001),
+                                      on_message=self._capture)
         self.seq = first_seq & 0xFFFFFFFF
-        self.statuses: list[Any] = []  # STATUS messages to operators (alerts)
-        self.replies: list[Any] = []  # RTS_COMMAND replies
+        self.statuses: list[Any] = []  # (tick, STATUS) sent to the operator (alerts)
+        self.replies: list[Any] = []  # RTS_COMMAND replies to the operator
         self.other_out = 0
-        self._cmd_id = 100
-        for iface in self.robot.interfaces.interfaces.values():
-            iface.send_to_peer = self._capture_peer  # type: ignore[method-assign]
-            iface.send = self._capture_send  # type: ignore[method-assign]
+
+    @property
+    def k(self) -> int:
+        return self.sim.k
 
     def _capture(self, msg: Any) -> None:
         t = msg.message_type
@@ -197,36 +193,17 @@ class SimSlave:
         else:
             self.other_out += 1
 
-    def _capture_peer(self, msg: Any, peer: Any) -> bool:
-        self._capture(msg)
-        return True
-
-    def _capture_send(self, msg: Any, peer: Any = None) -> int:
-        self._capture(msg)
-        return 1
-
     def next_seq(self) -> int:
         self.seq = (self.seq + 1) & 0xFFFFFFFF
         return self.seq
 
     def deliver(self, seq: int, pos_mm: tuple[float, float, float], *, run: bool = True) -> None:
         """One POSITION from the master, through the wire format (pack + CRC-checked decode)."""
-        igtl = self.igtl
-        msg = igtl.PositionMessage(
-            pos_mm, (0.0, 0.0, 0.0, 1.0), 24, device_name="Master",
-            timestamp=self.clock.wall_time(), header_version=2, message_id=seq,
-            metadata={"run": "1" if run else "0", "clutch": "0"},
-        )
-        self.loss_iface._on_message(self.master_peer, igtl.unpack(msg.pack()))
+        self.master.send_position(pos_mm, seq=seq, run=run, timestamp=self.clock.wall_time())
 
     def inject_command(self, name: str) -> int:
         """Queue an operator COMMAND; it is handled by the next tick."""
-        self._cmd_id += 1
-        cls = self.igtl.REGISTRY["COMMAND"]
-        msg = cls(command_id=self._cmd_id, command_name=name, command="", device_name="command",
-                  header_version=2)
-        self.op_iface._on_message(self.operator_peer, msg)
-        return self._cmd_id
+        return self.operator.send_command(name)
 
     def reply_to(self, command_id: int) -> Any | None:
         for r in reversed(self.replies[-8:]):
@@ -235,15 +212,15 @@ class SimSlave:
         return None
 
     def tick(self) -> None:
-        now = self.k * 0.001
-        self.clock.set(now)
-        self.robot.tick(now, self.k)
-        self.k += 1
+        self.sim.tick()
 
     def command(self, name: str) -> Any:
         cid = self.inject_command(name)
         self.tick()
         return self.reply_to(cid)
+
+    def close(self) -> None:
+        self.sim.close()
 
 
 def run_sim(args: argparse.Namespace, out: Path) -> Report:
@@ -436,7 +413,7 @@ def run_sim(args: argparse.Namespace, out: Path) -> Report:
             all_lengths.append(open_run["length"])
     elapsed = time.perf_counter() - t_wall0
     counters = robot.loss_monitor.counters() if robot.loss_monitor is not None else {}
-    robot.shutdown()
+    slave.close()
 
     cats = Counter(r.category for r in rep.runs)
     evaluated = [r for r in rep.runs if r.category != "masked"]

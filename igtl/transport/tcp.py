@@ -45,7 +45,7 @@ listener gets SO_REUSEADDR so a restarted server can bind its port again at once
 The client reconnects after a failed connect or a disconnect, waiting ``backoff[0]`` seconds and
 doubling up to ``backoff[1]`` (reset after a connection that lasted a second), until ``stop()``.
 Each failed attempt is counted (``connect_failures``) and reported as
-``on_error(None, TransportError)``. While disconnected ``send`` returns False and counts the
+``on_error(None, TransportError)``. While disconnected ``send`` returns 0 and counts the
 message as dropped: stale commands are never delivered late. ``stop()`` (either side) closes at
 once; output still queued is discarded and counted as dropped.
 """
@@ -711,19 +711,25 @@ class TCPClient(_StreamTransport):
                 and self.connected
             )
 
-    def send(self, msg: Sendable) -> bool:
-        """Queue ``msg`` (in its own header version); False, counted as dropped, when not
-        connected. Never blocks."""
+    def send(self, msg: Sendable, peer: Peer | int | None = None) -> int:
+        """Queue ``msg`` (in its own header version) for the server; returns 1, or 0 (counted
+        as dropped) when not connected. ``peer`` is for the signature every transport shares:
+        None or the server's Peer (or id); another peer, e.g. that of an earlier connection,
+        gets 0 (a stale reply must not reach a new connection). Never blocks."""
         data = encode(msg)
         conn = self._conn
         if conn is None or conn.closed:
             with self._drop_lock:
                 self._dropped_offline += 1
-            return False
+            return 0
+        if peer is not None and (peer if isinstance(peer, int) else peer.id) != conn.peer.id:
+            with self._drop_lock:
+                self._dropped_offline += 1
+            return 0
         conn.enqueue(data)
         self._dirty.append(conn)
         self._waker.wake()
-        return True
+        return 1
 
     def stats(self) -> dict[str, Any]:
         peer = self._peer

@@ -1,7 +1,7 @@
 """OpenIGTLink over UDP: :class:`UDPEndpoint`, one message per datagram, RTP for large ones.
 
 Sending happens in the caller's thread on a non-blocking socket: ``send`` never waits. A full
-socket buffer drops the message (counted in ``dropped``, ``send`` returns False); any other
+socket buffer drops the message (counted in ``dropped``, ``send`` returns 0); any other
 socket error is counted in ``send_errors``. A packed message longer than ``max_datagram`` (or
 every message, with ``rtp=True``) goes out with the reference library's RTP fragmentation
 (:mod:`igtl.rtp`, ``rtp_payload`` bytes of RTP payload per datagram); since that scheme needs
@@ -188,13 +188,19 @@ class UDPEndpoint(IOThreadOwner):
         with self._peers_lock:
             return list(self._peers.values())
 
-    def send(self, msg: Sendable, addr: tuple[str, int] | None = None) -> bool:
-        """Send ``msg`` to ``addr`` (default ``remote``) without blocking. Returns False, and
-        counts, when the socket buffer is full or the socket fails; ValueError for a message
-        that cannot be sent (no destination, RTP limits)."""
-        dest = addr if addr is not None else self.remote
+    def send(self, msg: Sendable, peer: Peer | tuple[str, int] | None = None) -> int:
+        """Send ``msg`` to ``peer`` (a Peer, e.g. the sender of a request, or a (host, port)
+        address; default ``remote``) without blocking. Returns 1, or 0 (counted) when the
+        socket buffer is full or the socket fails; ValueError for a message that cannot be
+        sent (no destination, RTP limits)."""
+        if peer is None:
+            dest = self.remote
+        elif isinstance(peer, Peer):
+            dest = peer.address
+        else:
+            dest = (peer[0], peer[1])
         if dest is None:
-            raise ValueError("no destination: pass addr or construct with remote=(host, port)")
+            raise ValueError("no destination: pass peer or construct with remote=(host, port)")
         if self.rtp and isinstance(msg, Message):
             data = msg.pack(2)
         else:
@@ -208,7 +214,7 @@ class UDPEndpoint(IOThreadOwner):
         if sendto is None:  # not started, or stopped
             self._dropped += 1
             peer.dropped += 1
-            return False
+            return 0
         try:
             for datagram in datagrams:
                 sendto(datagram, dest)
@@ -217,16 +223,16 @@ class UDPEndpoint(IOThreadOwner):
             # Socket buffer full: the 1 kHz caller must not wait, so this message is lost.
             self._dropped += 1
             peer.dropped += 1
-            return False
+            return 0
         except OSError as err:
             self._send_errors += 1
             peer.dropped += 1
             if self._error_log.allow():
                 log.warning("%s: send to %s failed: %s", self.name, addr_text(dest), err)
-            return False
+            return 0
         self._sent += 1
         peer.sent += 1
-        return True
+        return 1
 
     def receive(self, timeout: float | None = None) -> tuple[Peer, Message] | None:
         """Next (peer, message), or None after ``timeout`` seconds (None: wait)."""

@@ -407,6 +407,7 @@ def listeners() -> Iterator[list[Listener]]:
             lst.proc.wait()
 
 
+@pytest.mark.slow  # a CLI subprocess
 def test_listen_and_send_round_trip_tcp(transport: Any, listeners: list[Listener]) -> None:
     lst = Listener("--json", "--count", "3", "--timeout", str(BOUND))
     listeners.append(lst)
@@ -453,6 +454,7 @@ def test_listen_and_send_round_trip_tcp(transport: Any, listeners: list[Listener
     assert all(r["peer"].startswith("127.0.0.1:") for r in records)
 
 
+@pytest.mark.slow  # a CLI subprocess
 def test_listen_and_send_round_trip_udp(transport: Any, listeners: list[Listener]) -> None:
     lst = Listener("--udp", "--json", "--count", "2", "--timeout", str(BOUND))
     listeners.append(lst)
@@ -487,6 +489,7 @@ def test_listen_and_send_round_trip_udp(transport: Any, listeners: list[Listener
     assert [r["message_id"] for r in records] == [0, 1]
 
 
+@pytest.mark.slow  # a CLI subprocess
 def test_send_many_over_tcp_delivers_every_message(
     transport: Any, listeners: list[Listener]
 ) -> None:
@@ -501,6 +504,7 @@ def test_send_many_over_tcp_delivers_every_message(
     assert [r["message_id"] for r in _json_lines(out)] == list(range(n))
 
 
+@pytest.mark.slow  # a CLI subprocess
 def test_listen_human_output_and_peer_errors_on_stderr(
     transport: Any, listeners: list[Listener]
 ) -> None:

@@ -33,8 +33,9 @@ def _run(tmp_path: Path, tests: list[str], *, examples: Path, require: bool,
         (fake / "__init__.py").write_text("raise ImportError('pyigtl hidden by the test')\n")
         env["PYTHONPATH"] = os.pathsep.join([str(fake.parent), env.get("PYTHONPATH", "")])
     return subprocess.run(
+        # -m "": the named tests run whatever the default marker selection (pyproject addopts)
         [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-p", "no:hypothesispytest",
-         "-q", "-rsfE", *tests],
+         "-q", "-rsfE", "-m", "", *tests],
         cwd=h.ROOT, env=env, capture_output=True, text=True, timeout=120,
     )
 

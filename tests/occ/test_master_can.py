@@ -13,6 +13,7 @@ from occ.config import load_config
 from occ.drivers.can_sim import DriveAxis, SimulatedDriveNode
 from occ.robot import build_robot
 from occ.safety import RobotState
+from occ.testing import SimPeer, inproc_config
 
 ROOT = Path(__file__).resolve().parents[2]
 COUNTS_PER_M = 1_000_000  # 1 count = 1 um
@@ -33,12 +34,17 @@ def test_can_master_streams_hand_motion() -> None:
     cfg = cfg.model_copy(update={"robot": robot_cfg, "teleop": cfg.teleop.model_copy(update={"input": "driver"})})
     axes = [DriveAxis(0x100, 0x180, position=0.0), DriveAxis(0x101, 0x181, position=50_000.0),
             DriveAxis(0x102, 0x182, position=20_000.0)]
-    sent: list[igtl.Message] = []
+    # the stream goes to an in-process slave: what it receives is what the wire would carry
+    cfg = inproc_config(cfg)
     with SimulatedDriveNode(axes, channel=channel, tau=0.0, feedback_period=0.001):
         robot = build_robot(cfg)
-        robot.interfaces["slave"].send = lambda m, peer=None: sent.append(m) or 1  # type: ignore[method-assign]
+        slave = SimPeer(cfg.interface("slave").channel or "")
+        sent: list[igtl.Message] = slave.received
         try:
             robot.configure()
+            # the interfaces only: this test is about the CAN input, and a supervisor thread
+            # could trip on a loaded machine
+            robot.interfaces.start()
             robot.state_machine.request("enable")
             robot.state_machine.request("run")
             robot.loop.run_in_thread(duration=3.0)
@@ -52,6 +58,7 @@ def test_can_master_streams_hand_motion() -> None:
             robot.loop.stop()
             robot.loop.join(5.0)
             robot.shutdown()
+            slave.close()
     assert robot.drivers[0][0].stats()["errors"] == 0
 
 

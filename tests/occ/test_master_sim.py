@@ -1,4 +1,9 @@
-"""The master robot in simulated time: the 500 Hz POSITION stream, inputs, clutch, fixtures."""
+"""The master robot in simulated time: the 500 Hz POSITION stream, inputs, clutch, fixtures.
+
+The robot's interfaces are in-process channels (occ.testing.SimRobot): a peer on the ``slave``
+channel receives the stream exactly as the slave would (decoded from the wire form), and the
+operator's peer sends commands and fixtures and reads the replies sent to it.
+"""
 
 from __future__ import annotations
 
@@ -8,53 +13,47 @@ from pathlib import Path
 import pytest
 
 import igtl
-from igtl.transport import Peer
-from occ.clock import SimClock
-from occ.config import load_config
-from occ.robot import build_robot
+from occ.config import InputConfig, load_config
 from occ.safety import RobotState
+from occ.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
-PEER = Peer(1, ("127.0.0.1", 41000))
 
 
 class SimMaster:
-    def __init__(self, **teleop: object) -> None:
-        cfg = load_config(ROOT / "configs" / "master.yaml")
-        if teleop:
-            cfg = cfg.model_copy(update={"teleop": cfg.teleop.model_copy(update=teleop)})
-        self.clock = SimClock()
-        self.robot = build_robot(cfg, clock=self.clock)
-        self.robot.configure()
-        self.sent: list[igtl.Message] = []
-        self.replies: list[igtl.Message] = []
-        udp = self.robot.interfaces["slave"]
-        udp.send = lambda m, peer=None: self.sent.append(igtl.unpack(m.pack())) or 1  # type: ignore[method-assign]
-        op = self.robot.interfaces["operator"]
-        op.send = lambda m, peer=None: self.replies.append(m) or 1  # type: ignore[method-assign]
-        op.send_to_peer = lambda m, p: self.replies.append(m) or True  # type: ignore[method-assign]
-        self.k = 0
+    def __init__(self, config: object = None, **teleop: object) -> None:
+        self.sim = SimRobot(config or ROOT / "configs" / "master.yaml", teleop=teleop or None)
+        self.robot = self.sim.robot
+        self.slave = self.sim.peer("slave")
+        self.operator = self.sim.peer("operator", address=("127.0.0.1", 41000))
+        #: the stream as the slave receives it
+        self.sent = self.slave.received
+        #: everything the robot sent to the operator
+        self.replies = self.operator.received
+
+    @property
+    def k(self) -> int:
+        return self.sim.k
 
     def ticks(self, n: int) -> None:
-        for _ in range(n):
-            now = self.k * 0.001
-            self.clock.set(now)
-            self.robot.tick(now, self.k)
-            self.k += 1
+        self.sim.step(n)
 
     def command(self, name: str, text: str = "") -> igtl.Message:
-        msg = igtl.CommandMessage(command_id=self.k + 1, command_name=name, command=text,
-                                  device_name="command", header_version=2)
-        self.robot.interfaces["operator"]._on_message(PEER, msg)
+        cid = self.operator.send_command(name, text)
         self.ticks(1)
-        return [r for r in self.replies if r.message_type == "RTS_COMMAND"][-1]
+        reply = self.operator.reply_to(cid)
+        assert reply is not None, f"no RTS_COMMAND for {name}"
+        return reply
+
+    def close(self) -> None:
+        self.sim.close()
 
 
 @pytest.fixture
 def master() -> SimMaster:
     m = SimMaster()
     yield m
-    m.robot.shutdown()
+    m.close()
 
 
 def test_stream_is_500hz_v2_with_sequence_and_run_flag(master: SimMaster) -> None:
@@ -88,21 +87,24 @@ def test_simulated_operator_follows_paper_trajectory(master: SimMaster) -> None:
 
 
 def test_igtl_input_drives_the_handle() -> None:
-    m = SimMaster(input="igtl", input_interface="operator")
+    # the tracker's TRANSFORMs arrive on the operator interface in this test, as a command input
+    cfg = load_config(ROOT / "configs" / "master.yaml")
+    op = cfg.interface("operator")
+    op = op.model_copy(update={"inputs": (*op.inputs, InputConfig(type="TRANSFORM", queue="command"))})
+    cfg = cfg.model_copy(update={"interfaces": tuple(op if i.name == "operator" else i
+                                                     for i in cfg.interfaces)})
+    m = SimMaster(cfg, input="igtl", input_interface="operator")
     try:
-        # the input arrives on the operator interface in this test (config lists inputs per interface)
-        m.robot.interfaces["operator"].command_inputs.add("TRANSFORM")
         m.command("Enable")
         m.command("Run")
         origin = m.robot.controller.origin * 1000.0
         target = (origin[0] + 10.0, origin[1] - 5.0, origin[2] + 3.0)
         for _ in range(300):
-            m.robot.interfaces["operator"]._on_message(
-                PEER, igtl.TransformMessage.from_position(target, device_name="Tracker"))
+            assert m.operator.send(igtl.TransformMessage.from_position(target, device_name="Tracker")) == 1
             m.ticks(2)
         assert m.sent[-1].position == pytest.approx(target, abs=0.05)
     finally:
-        m.robot.shutdown()
+        m.close()
 
 
 def test_clutch_travels_with_the_stream(master: SimMaster) -> None:
@@ -126,7 +128,7 @@ def test_virtual_fixture_keeps_handle_out_and_reports_force(master: SimMaster) -
     centre = (handle[0] + 4.0, handle[1], handle[2])
     fx = igtl.VirtualFixtureMessage(hardness=0.5, spheres=((*centre, 10.0),), device_name="Fixtures",
                                     header_version=2, metadata={"MRMLNodeName": "VF"})
-    master.robot.interfaces["operator"]._on_message(PEER, fx)
+    assert master.operator.send(fx) == 1
     master.ticks(1)
     stats = master.robot.controller.stats()
     assert stats["fixtures"] == 1 and stats["fixture_contacts"] >= 1
@@ -167,7 +169,7 @@ def test_slicer_markups_points_become_fixture_spheres(master: SimMaster) -> None
                           position=(handle[0] - 2.0, handle[1], handle[2]))
     pts = igtl.PointMessage(points=(near, hidden), device_name="F", header_version=2,
                             metadata={"MRMLNodeName": "MarkupsFiducial"})
-    master.robot.interfaces["operator"]._on_message(PEER, igtl.unpack(pts.pack()))
+    assert master.operator.send(pts) == 1
     master.ticks(1)
     stats = master.robot.controller.stats()
     assert stats["fixtures"] == 1  # the hidden point (alpha 0) is not a fixture

@@ -9,36 +9,26 @@ from pathlib import Path
 
 import igtl
 from igtl.transport import Peer, UDPEndpoint
-from occ.clock import SimClock
-from occ.config import load_config
 from occ.record import Recorder, export_csv, original, read_recording, replay
-from occ.robot import build_robot
+from occ.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def record_some(path: Path, ticks: int = 300) -> int:
-    cfg = load_config(ROOT / "configs" / "slave.yaml")
-    clock = SimClock()
     rec = Recorder(path, rate_hz=100).start()
-    robot = build_robot(cfg, clock=clock, recorder=rec)
-    robot.configure()
-    robot.interfaces["slicer"].send = lambda m, peer=None: 1  # type: ignore[method-assign]
-    robot.interfaces["slicer"].send_to_peer = lambda m, p: True  # type: ignore[method-assign]
-    robot.state_machine.request("enable")
-    robot.state_machine.request("run")
-    peer = Peer(1, ("127.0.0.1", 5000))
+    sim = SimRobot(ROOT / "configs" / "slave.yaml", recorder=rec)
+    master = sim.peer("master", address=("127.0.0.1", 5000))
+    sim.peer("slicer")  # a Slicer that receives the Tip and Base outputs
+    sim.robot.state_machine.request("enable")
+    sim.robot.state_machine.request("run")
     sent = 0
     for k in range(ticks):
-        now = k * 0.001
-        clock.set(now)
         if k % 2 == 0:
             sent += 1
-            msg = igtl.PositionMessage((0.1 * k, 50.0, 270.0), (0, 0, 0, 1), 24, device_name="Master",
-                                       header_version=2, message_id=sent, metadata={"run": "1", "clutch": "0"})
-            robot.interfaces["master"]._on_message(peer, msg)
-        robot.tick(now, k)
-    robot.shutdown()
+            assert master.send_position((0.1 * k, 50.0, 270.0), seq=sent) == 1
+        sim.tick()
+    sim.close()
     rec.close()
     return sent
 

@@ -1,7 +1,9 @@
 """The slave robot in simulated time: loss logic exact to the tick, teleop following, commands.
 
-No sockets are opened: messages enter through the interface's routing callback (what the
-transport's I/O thread calls), and the loop is stepped tick by tick on a SimClock.
+No sockets are opened: the robot's interfaces are in-process channels (occ.testing.SimRobot); the
+master's stream and the operator's requests come from peers on those channels, through the real
+codec and the interfaces' routing, and each peer reads only what the robot sent to it. The loop
+is stepped tick by tick on a SimClock.
 """
 
 from __future__ import annotations
@@ -11,61 +13,53 @@ from pathlib import Path
 import pytest
 
 import igtl
-from igtl.transport import Peer
 from occ.clock import SimClock
 from occ.config import load_config
 from occ.robot import build_robot
 from occ.safety import RobotState
+from occ.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
-MASTER_PEER = Peer(1, ("127.0.0.1", 40000))
-OPERATOR = Peer(2, ("127.0.0.1", 40001))
+MASTER_ADDRESS = ("127.0.0.1", 40000)
+OPERATOR_ADDRESS = ("127.0.0.1", 40001)
 
 
 class SimSlave:
     """Drives a slave Robot tick by tick; the master sends one POSITION every 2 ms."""
 
     def __init__(self, **teleop: object) -> None:
-        cfg = load_config(ROOT / "configs" / "slave.yaml")
-        if teleop:
-            cfg = cfg.model_copy(update={"teleop": cfg.teleop.model_copy(update=teleop)})
-        self.clock = SimClock()
-        self.robot = build_robot(cfg, clock=self.clock)
-        self.robot.configure()
-        self.k = 0
+        self.sim = SimRobot(ROOT / "configs" / "slave.yaml", teleop=teleop or None)
+        self.robot = self.sim.robot
+        self.clock = self.sim.clock
+        self.master = self.sim.peer("master", address=MASTER_ADDRESS)
+        self.operator = self.sim.peer("slicer", address=OPERATOR_ADDRESS)
         self.seq = 0
         self.master_pos = [0.0, 50.0, 270.0]
-        self.replies: list[igtl.Message] = []
-        # capture what the robot sends to operators instead of real sockets
-        self.robot.interfaces["slicer"].send_to_peer = self._capture  # type: ignore[method-assign]
-        self.robot.interfaces["slicer"].send = lambda m, peer=None: self._capture(m, None)  # type: ignore[method-assign]
+        #: everything the robot sent to the operator (replies, alerts, Tip/Base)
+        self.replies = self.operator.received
 
-    def _capture(self, msg: igtl.Message, peer: object) -> bool:
-        self.replies.append(msg)
-        return True
+    @property
+    def k(self) -> int:
+        return self.sim.k
 
     stamp = False  # put the sim clock's wall time in the header, as the master does
 
     def position(self, *, run: bool = True, skew: float = 0.0) -> igtl.Message:
         ts = self.clock.wall_time() + skew if self.stamp else 0.0
-        msg = igtl.PositionMessage(
+        return igtl.PositionMessage(
             tuple(self.master_pos), (0.0, 0.0, 0.0, 1.0), 24, device_name="Master",
             header_version=2, message_id=self.seq, timestamp=ts,
             metadata={"run": "1" if run else "0", "clutch": "0"},
         )
-        return igtl.unpack(msg.pack())
 
     def packet(self, *, run: bool = True, drop: bool = False) -> None:
         self.seq += 1
         if drop:
             return
-        self.robot.interfaces["master"]._on_message(MASTER_PEER, self.position(run=run))
+        assert self.master.send(self.position(run=run)) == 1
 
     def tick(self) -> None:
-        now = self.k * 0.001
-        self.clock.set(now)
-        self.robot.tick(now, self.k)
-        self.k += 1
+        self.sim.tick()
 
     def step_ms(self, ms: int, *, drops: set[int] | None = None, run: bool = True) -> None:
         """Advance ms ticks; a packet is sent on even ticks, dropped if its seq is in drops."""
@@ -75,21 +69,23 @@ class SimSlave:
             self.tick()
 
     def command(self, name: str) -> igtl.Message:
-        cls = igtl.REGISTRY["COMMAND"]
-        msg = cls(command_id=len(self.replies) + 100, command_name=name, command="",
-                  device_name="command", header_version=2)
-        self.robot.interfaces["slicer"]._on_message(OPERATOR, msg)
+        cid = self.operator.send_command(name)
         n = len(self.replies)
         self.tick()
         assert len(self.replies) > n, f"no reply to {name}"
-        return [r for r in self.replies if r.message_type == "RTS_COMMAND"][-1]
+        reply = self.operator.reply_to(cid)
+        assert reply is not None, f"no RTS_COMMAND for {name} (command ID {cid})"
+        return reply
+
+    def close(self) -> None:
+        self.sim.close()
 
 
 @pytest.fixture
 def slave() -> SimSlave:
     s = SimSlave()
     yield s
-    s.robot.shutdown()
+    s.close()
 
 
 def run(slave: SimSlave) -> None:
@@ -161,7 +157,7 @@ def test_a_30ms_late_burst_holds_and_resumes_without_latch_or_jump(slave: SimSla
     assert any(held) and slave.robot.state is RobotState.RUNNING
     # ... then arrive together, numbers contiguous: late, not lost
     for msg in late:
-        slave.robot.interfaces["master"]._on_message(MASTER_PEER, msg)
+        assert slave.master.send(msg) == 1
     steps = []
     for _ in range(40):
         before = driver_setpoint(slave)
@@ -201,7 +197,7 @@ def test_a_30ms_stall_of_the_slaves_own_loop_is_not_network_loss(slave: SimSlave
     # the loop stalls for 30 ms while the master's 15 packets arrive (queue depth 10)
     for _ in range(15):
         slave.packet()
-    slave.k += 30
+    slave.sim.stall(30)
     slave.tick()
     q = slave.robot.interfaces["master"].streams["POSITION"]
     assert q.dropped == 5  # a local overflow, counted as such
@@ -217,7 +213,8 @@ def test_no_loss_alert_while_not_running(slave: SimSlave) -> None:
     for _ in range(200):
         slave.tick()
     assert slave.robot.state is RobotState.READY
-    assert not [r for r in slave.replies if r.message_type == "STATUS"]
+    # the only STATUS is the greeting the operator got on connecting
+    assert [r.error_name for r in slave.replies if r.message_type == "STATUS"] == ["READY"]
     assert slave.robot.last_alert == ""
 
 
@@ -231,7 +228,7 @@ def test_stale_and_future_samples_are_refused_and_not_followed(slave: SimSlave) 
     slave.master_pos[0] += 500.0
     for skew in (-3600.0, 86400.0):
         slave.seq += 1
-        slave.robot.interfaces["master"]._on_message(MASTER_PEER, slave.position(skew=skew))
+        assert slave.master.send(slave.position(skew=skew)) == 1
         slave.tick()
     assert mon.stale == 1 and mon.future == 1
     assert driver_setpoint(slave) == pytest.approx(setpoint, abs=1e-9)
@@ -313,14 +310,13 @@ def test_estop_latches_until_reset(slave: SimSlave) -> None:
 
 
 def test_plus_style_string_command_and_queries(slave: SimSlave) -> None:
-    iface = slave.robot.interfaces["slicer"]
-    iface._on_message(OPERATOR, igtl.StringMessage('<Command Name="Enable"/>', device_name="CMD_7"))
+    slave.operator.send(igtl.StringMessage('<Command Name="Enable"/>', device_name="CMD_7"))
     slave.tick()
     ack = [r for r in slave.replies if r.message_type == "STRING" and r.device_name == "ACK_7"]
     assert ack and 'Status="SUCCESS"' in ack[-1].string
     assert slave.robot.state is RobotState.ENABLED
     get = igtl.REGISTRY["GET_STATUS"]
-    iface._on_message(OPERATOR, igtl.unpack(get(type_name="GET_STATUS").pack()))
+    slave.operator.send(get(type_name="GET_STATUS"))
     slave.tick()
     st = [r for r in slave.replies if r.message_type == "STATUS"][-1]
     assert st.error_name == "ENABLED"
@@ -329,14 +325,13 @@ def test_plus_style_string_command_and_queries(slave: SimSlave) -> None:
 def test_tip_is_sent_in_world_coordinates_with_the_base_offset() -> None:
     s = SimSlave(base_mm=(100.0, -20.0, 5.0))
     try:
-        s.robot.interfaces["slicer"]._on_message(
-            OPERATOR, igtl.unpack(igtl.REGISTRY["GET_TRANS"](type_name="GET_TRANS", device_name="Tip").pack()))
+        s.operator.send(igtl.REGISTRY["GET_TRANS"](type_name="GET_TRANS", device_name="Tip"))
         s.tick()
         tip = [r for r in s.replies if r.message_type == "TRANSFORM" and r.device_name == "Tip"][-1]
         fk = s.robot.tip[:3, 3] * 1000.0
         assert tip.translation == pytest.approx((fk[0] + 100.0, fk[1] - 20.0, fk[2] + 5.0), abs=1e-3)
     finally:
-        s.robot.shutdown()
+        s.close()
 
 
 def test_base_pose_from_a_tracker_transform() -> None:
@@ -350,17 +345,14 @@ def test_base_pose_from_a_tracker_transform() -> None:
         "interfaces": tuple(slicer if i.name == "slicer" else i for i in cfg.interfaces),
         "teleop": cfg.teleop.model_copy(update={"base_interface": "slicer", "base_mm": None}),
     })
-    clock = SimClock()
-    robot = build_robot(cfg, clock=clock)
-    robot.configure()
-    try:
+    with SimRobot(cfg) as sim:
+        robot = sim.robot
+        tracker = sim.peer("slicer")
         m = igtl.TransformMessage.from_position((10.0, 20.0, 30.0), device_name="Base")
-        robot.interfaces["slicer"]._on_message(OPERATOR, m)
-        robot.tick(0.0, 0)
+        assert tracker.send(m) == 1
+        sim.tick()
         assert robot.base[:3, 3] * 1000.0 == pytest.approx([10.0, 20.0, 30.0])
         assert robot.world_tip()[:3, 3] * 1000.0 == pytest.approx(robot.tip[:3, 3] * 1000.0 + [10, 20, 30])
-    finally:
-        robot.shutdown()
 
 
 def test_joints_must_match_the_kinematic_model() -> None:
@@ -377,13 +369,13 @@ def test_the_stream_belongs_to_its_first_sender_until_reset(slave: SimSlave) -> 
     run(slave)
     slave.step_ms(20)
     setpoint = driver_setpoint(slave)
-    intruder = Peer(9, ("127.0.0.1", 40999))
+    intruder = slave.sim.peer("master", address=("127.0.0.1", 40999))
     iface = slave.robot.interfaces["master"]
     # a second local sender with plausible numbers and a far target: refused, robot unmoved
     for _ in range(20):
         slave.master_pos[0] += 300.0
         slave.seq += 1  # the next number the owner will send
-        iface._on_message(intruder, slave.position())
+        assert intruder.send(slave.position()) == 1
         slave.seq -= 1
         slave.master_pos[0] -= 300.0
         slave.step_ms(1)  # the owner's stream goes on (one packet every 2 ms)
@@ -396,7 +388,7 @@ def test_the_stream_belongs_to_its_first_sender_until_reset(slave: SimSlave) -> 
     assert slave.command("Reset").metadata["Status"] == "SUCCESS"
     assert iface.stream_owner is None
     slave.seq += 1
-    iface._on_message(intruder, slave.position())
+    intruder.send(slave.position())
     assert iface.stream_owner == ("127.0.0.1", 40999)
 
 
@@ -429,17 +421,17 @@ def test_a_hung_tick_trips_the_supervisor_drivers_stop_then_fault(slave: SimSlav
 def test_sim_drives_stop_themselves_when_the_loop_stops_refreshing(slave: SimSlave) -> None:
     run(slave)
     slave.step_ms(20)
-    slave.k += 200  # the whole process froze for 200 ms (supervisor frozen too)
+    slave.sim.stall(200)  # the whole process froze for 200 ms (supervisor frozen too)
     slave.step_ms(2)
     assert slave.robot.state is RobotState.FAULT
     assert "heartbeat lost" in slave.robot.last_alert
 
 
-def _with_raw_name(msg: igtl.Message, name: bytes) -> igtl.Message:
+def _with_raw_name(msg: igtl.Message, name: bytes) -> bytes:
     """``msg`` as a peer might send it: a device name that is not valid UTF-8."""
     data = bytearray(msg.pack())
     data[14:34] = name.ljust(20, b"\0")
-    return igtl.unpack(bytes(data))
+    return bytes(data)
 
 
 def _packs(m: igtl.Message) -> bool:
@@ -447,18 +439,17 @@ def _packs(m: igtl.Message) -> bool:
 
 
 def test_names_that_cannot_be_re_encoded_are_answered_safely(slave: SimSlave) -> None:
-    iface = slave.robot.interfaces["slicer"]
     cmd = _with_raw_name(igtl.StringMessage('<Command Name="GetState"/>', device_name="CMD_x",
                                             header_version=2), b"CMD_" + b"\xff" * 16)
     get = _with_raw_name(igtl.REGISTRY["GET_STATUS"](type_name="GET_STATUS", device_name="x"),
                          b"\xff" * 20)
     answers = []
-    for msg in (cmd, get):
+    for data in (cmd, get):
         slave.replies.clear()
-        iface._on_message(OPERATOR, msg)
+        assert slave.operator.send(data) == 1
         slave.tick()
         mine = [r for r in slave.replies if r.message_type in ("STRING", "STATUS")]
-        assert len(mine) == 1, f"no answer to {msg.message_type}"
+        assert len(mine) == 1, f"no answer to {igtl.unpack(data).message_type}"
         assert _packs(mine[0])
         answers.append(mine[0])
     ack, status = answers
@@ -472,14 +463,13 @@ def test_xml_with_a_dtd_is_refused_before_parsing(slave: SimSlave) -> None:
               + "".join(f'<!ENTITY {c} "&{p};&{p};&{p};&{p};&{p};&{p};&{p};&{p};&{p};&{p};">'
                         for p, c in zip("abcdefg", "bcdefgh"))
               + ']><Command Name="&h;"/>')
-    iface = slave.robot.interfaces["slicer"]
-    iface._on_message(OPERATOR, igtl.StringMessage(laughs, device_name="CMD_9"))
+    slave.operator.send(igtl.StringMessage(laughs, device_name="CMD_9"))
     # answered at once by the interface thread, never queued for the loop
     assert len(slave.robot.interfaces.commands) == 0
     ack = slave.replies[-1]
     assert ack.device_name == "ACK_9" and 'Status="FAIL"' in ack.string and "DOCTYPE" in ack.string
     big = '<Command Name="Run" X="' + "y" * 9000 + '"/>'
-    iface._on_message(OPERATOR, igtl.StringMessage(big, device_name="CMD_10"))
+    slave.operator.send(igtl.StringMessage(big, device_name="CMD_10"))
     assert "too long" in slave.replies[-1].string
 
 
@@ -487,7 +477,7 @@ def test_command_replies_echo_the_request_message_id(slave: SimSlave) -> None:
     cls = igtl.REGISTRY["COMMAND"]
     msg = cls(command_id=5, command_name="GetState", command="", device_name="command",
               header_version=2, message_id=4242)
-    slave.robot.interfaces["slicer"]._on_message(OPERATOR, msg)
+    slave.operator.send(msg)
     slave.tick()
     rts = [r for r in slave.replies if r.message_type == "RTS_COMMAND"][-1]
     assert rts.message_id == 4242 and rts.command_id == 5
@@ -496,7 +486,7 @@ def test_command_replies_echo_the_request_message_id(slave: SimSlave) -> None:
 def test_a_command_whose_bytes_do_not_fit_its_declared_charset_is_answered(slave: SimSlave) -> None:
     text = '<Command Name="GetState" Note="é"/>'.encode().decode("ascii", "surrogateescape")
     msg = igtl.StringMessage(text, 3, True, device_name="CMD_5")  # US-ASCII declared
-    slave.robot.interfaces["slicer"]._on_message(OPERATOR, igtl.unpack(msg.pack()))
+    slave.operator.send(msg)
     slave.tick()
     ack = [r for r in slave.replies if r.message_type == "STRING" and r.device_name == "ACK_5"]
     assert ack and _packs(ack[-1])

@@ -1,6 +1,6 @@
 """CI versions of the packet-loss soaks (tools/soak.py) and unit tests of the loss proxy.
 
-- ``test_sim_*``: the slave in simulated time with deterministic runs of 1, 2, 3 and 5 lost
+- ``test_sim_*`` (``slow``): the slave in simulated time with deterministic runs of 1, 2, 3 and 5 lost
   packets: exact outcomes (every run >= 3 holds the robot at exactly 7 ms and latches the stop
   at the packet that proves it, runs of 1-2 never hold nor stop).
 - ``test_real_soak_*`` (``realtime``): occd slave + master on loopback through the loss proxy for
@@ -161,6 +161,7 @@ def test_proxy_refuses_non_loopback() -> None:
 # ------------------------------------------------------------------------------ sim soak
 
 
+@pytest.mark.slow
 def test_sim_soak_exact_outcomes(tmp_path: Path) -> None:
     out = tmp_path / "sim"
     code = soak.main(["sim", "--sim-seconds", "30", "--seed", "11", "--drop-runs", "1:12",
@@ -184,6 +185,7 @@ def test_sim_soak_exact_outcomes(tmp_path: Path) -> None:
         assert (out / f).stat().st_size > 0, f
 
 
+@pytest.mark.slow
 def test_sim_soak_catches_a_wrong_threshold(tmp_path: Path) -> None:
     """The oracle is independent of the loss monitor: tolerate only 1 -> runs of 2 stop: FAIL."""
     cfg = tmp_path / "slave.yaml"
@@ -197,6 +199,7 @@ def test_sim_soak_catches_a_wrong_threshold(tmp_path: Path) -> None:
     assert not checks["stop iff run >= 3"] and not checks["runs of 1-2 never stop"]
 
 
+@pytest.mark.slow
 def test_sim_soak_random_pattern_across_the_sequence_wrap(tmp_path: Path) -> None:
     out = tmp_path / "sim"
     code = soak.main(["sim", "--sim-seconds", "10", "--burst", "0.01,0.5,1.0", "--loss", "0.01",

@@ -1,0 +1,277 @@
+"""Test a robot without a network: a :class:`~occ.robot.Robot` in simulated time whose interfaces
+are in-process channels (:class:`igtl.transport.InprocTransport`), and peers that talk to it.
+
+The robot is built from its own configuration file (or a :class:`~occ.config.DaemonConfig`, or a
+mapping as the YAML file would hold it) with every interface turned into ``transport: inproc``
+on a channel of its own; everything else (routing, queues, loss monitor, replies, outputs) is
+the daemon's code, unchanged. A :class:`SimPeer` joins one interface's channel as a client
+would: what it sends goes through the real codec into the interface's routing, and it receives
+what the robot sends *to it* (replies go to the peer who asked; broadcasts and outputs to every
+peer of that interface). Delivery is synchronous, so the whole run is deterministic: the loop is
+stepped tick by tick on a :class:`~occ.clock.SimClock` (tick ``k`` runs at ``k / rate_hz``)::
+
+    from occ.testing import SimRobot
+
+    with SimRobot("configs/slave.yaml") as sim:
+        master = sim.peer("master", address=("127.0.0.1", 40000))
+        slicer = sim.peer("slicer")
+        assert slicer.command("Enable").metadata["Status"] == "SUCCESS"
+        slicer.command("Run")
+        for seq in range(1, 101):
+            master.send_position((0.0, 50.0, 270.0), seq=seq)
+            sim.step(2)  # 500 Hz against a 1 kHz loop
+        tips = slicer.messages("TRANSFORM", "Tip")
+
+Tests use it (``tests/occ``), and so does ``tools/soak.py sim``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import igtl
+from igtl.messages.base import Message
+from igtl.transport import InprocTransport, Peer
+
+from .clock import SimClock
+from .config import DaemonConfig, load_config
+from .robot import Robot, build_robot
+
+__all__ = ["SimPeer", "SimRobot", "inproc_config"]
+
+_instances = itertools.count(1)
+
+
+def inproc_config(config: DaemonConfig, prefix: str | None = None) -> DaemonConfig:
+    """``config`` with every network interface on an in-process channel named
+    ``PREFIX-INTERFACE`` (``prefix`` default: unique in the process). Interfaces already
+    ``inproc`` keep their channel; host and port stay as the robot's address on the channel."""
+    prefix = prefix or f"sim{next(_instances)}-{config.robot.name}"
+    interfaces = tuple(
+        itf
+        if itf.transport == "inproc"
+        else itf.model_copy(update={"transport": "inproc", "channel": f"{prefix}-{itf.name}"})
+        for itf in config.interfaces
+    )
+    return config.model_copy(update={"interfaces": interfaces})
+
+
+def _as_config(config: DaemonConfig | str | os.PathLike[str] | Mapping[str, Any]) -> DaemonConfig:
+    if isinstance(config, DaemonConfig):
+        return config
+    if isinstance(config, Mapping):
+        return DaemonConfig.model_validate(dict(config), context={"base_dir": Path.cwd()})
+    return load_config(config)
+
+
+class SimPeer:
+    """A client on an in-process channel: sends like a TCP/UDP client, records what it gets.
+
+    ``received`` holds every decoded message in arrival order, unless ``on_message`` is given
+    (called with each message instead: a long soak keeps what it needs, not hours of outputs).
+    ``header_version`` is the version
+    the peer announces (2: a modern Slicer/PLUS, answered with metadata and message IDs; 1: an
+    old client, answered in version 1). ``address`` is how the robot sees it (stream ownership).
+    """
+
+    def __init__(
+        self,
+        channel: str,
+        *,
+        address: tuple[str, int] | None = None,
+        header_version: int = 2,
+        on_message: Callable[[Message], None] | None = None,
+        name: str = "sim-peer",
+    ) -> None:
+        self.received: list[Message] = []
+        self._callback = on_message
+        self._ids = itertools.count(100)
+        self.transport = InprocTransport(
+            channel,
+            address=address,
+            header_version=header_version,
+            negotiate=False,  # a client sends each message in its own version
+            listen=False,  # two clients of one daemon do not hear each other
+            on_message=self._on_message,
+            name=name,
+        ).start()
+
+    def _on_message(self, peer: Peer, msg: Message) -> None:
+        if self._callback is not None:
+            self._callback(msg)
+        else:
+            self.received.append(msg)
+
+    @property
+    def address(self) -> tuple[str, int]:
+        return self.transport.address
+
+    @property
+    def connected(self) -> bool:
+        return bool(self.transport.peers)
+
+    def send(self, msg: Message | bytes) -> int:
+        """Send ``msg`` (or raw bytes) to the robot; returns 1, or 0 when it is not there."""
+        return self.transport.send(msg)
+
+    def messages(self, type: str | None = None, device: str | None = None) -> list[Message]:
+        """What this peer received, optionally only one message type (and device name)."""
+        return [
+            m
+            for m in self.received
+            if (type is None or m.message_type == type)
+            and (device is None or m.device_name == device)
+        ]
+
+    def send_command(self, name: str, text: str = "", *, message_id: int = 0) -> int:
+        """Send an OpenIGTLink v3 COMMAND (as Slicer does); returns its command ID."""
+        cid = next(self._ids)
+        self.send(
+            igtl.CommandMessage(
+                command_id=cid,
+                command_name=name,
+                command=text,
+                device_name="command",
+                header_version=2,
+                message_id=message_id,
+            )
+        )
+        return cid
+
+    def reply_to(self, command_id: int) -> Message | None:
+        """The RTS_COMMAND that answered ``command_id``, if it came."""
+        for m in reversed(self.received):
+            if m.message_type == "RTS_COMMAND" and getattr(m, "command_id", None) == command_id:
+                return m
+        return None
+
+    def send_position(
+        self,
+        position_mm: Sequence[float],
+        *,
+        seq: int,
+        run: bool = True,
+        clutch: bool = False,
+        timestamp: float = 0.0,
+        device: str = "Master",
+    ) -> int:
+        """One sample of the master's stream, as the master daemon sends it (POSITION, 24-byte
+        variant, v2, message ID = sequence number, ``run``/``clutch`` metadata)."""
+        x, y, z = position_mm
+        return self.send(
+            igtl.PositionMessage(
+                (float(x), float(y), float(z)),
+                (0.0, 0.0, 0.0, 1.0),
+                24,
+                device_name=device,
+                timestamp=timestamp,
+                header_version=2,
+                message_id=seq,
+                metadata={"run": "1" if run else "0", "clutch": "1" if clutch else "0"},
+            )
+        )
+
+    def close(self) -> None:
+        self.transport.stop()
+
+
+class SimRobot:
+    """A robot in simulated time on in-process interfaces (see the module docstring).
+
+    ``config``: a path, a :class:`DaemonConfig` or a mapping; ``teleop``: fields of the teleop
+    section to override. The robot is configured (READY) and activated (its interfaces on their
+    channels) on construction; :meth:`close` shuts it down.
+    """
+
+    def __init__(
+        self,
+        config: DaemonConfig | str | os.PathLike[str] | Mapping[str, Any],
+        *,
+        teleop: Mapping[str, Any] | None = None,
+        recorder: Any | None = None,
+        clock: SimClock | None = None,
+    ) -> None:
+        cfg = _as_config(config)
+        if teleop:
+            if cfg.teleop is None:
+                raise ValueError("teleop overrides given, but the config has no teleop section")
+            cfg = cfg.model_copy(update={"teleop": cfg.teleop.model_copy(update=dict(teleop))})
+        self.config = inproc_config(cfg)
+        self.clock = clock if clock is not None else SimClock()
+        self.robot: Robot = build_robot(self.config, clock=self.clock, recorder=recorder)
+        self.period = 1.0 / self.config.robot.rate_hz
+        #: index of the next tick (it runs at ``k * period``)
+        self.k = 0
+        self._peers: list[SimPeer] = []
+        try:
+            self.robot.configure()
+            self.robot.activate()
+        except BaseException:
+            self.robot.shutdown()
+            raise
+
+    def channel(self, interface: str) -> str:
+        """The in-process channel of the robot's interface ``interface``."""
+        channel = self.config.interface(interface).channel
+        assert channel is not None  # inproc_config gave every interface one
+        return channel
+
+    def peer(
+        self,
+        interface: str,
+        *,
+        address: tuple[str, int] | None = None,
+        header_version: int = 2,
+        on_message: Callable[[Message], None] | None = None,
+    ) -> SimPeer:
+        """A new client of the robot's interface ``interface`` (closed with the robot)."""
+        p = SimPeer(
+            self.channel(interface),
+            address=address,
+            header_version=header_version,
+            on_message=on_message,
+            name=f"sim-peer-{interface}",
+        )
+        self._peers.append(p)
+        return p
+
+    @property
+    def now(self) -> float:
+        """Simulated time of the next tick."""
+        return self.k * self.period
+
+    def tick(self) -> None:
+        """Run one tick of the loop at ``now`` and advance to the next."""
+        now = self.k * self.period
+        self.clock.set(now)
+        self.robot.tick(now, self.k)
+        self.k += 1
+
+    def step(self, n: int = 1) -> None:
+        """Run ``n`` ticks."""
+        for _ in range(n):
+            self.tick()
+
+    def run_for(self, seconds: float) -> None:
+        """Run the ticks of the next ``seconds`` of simulated time."""
+        self.step(round(seconds / self.period))
+
+    def stall(self, n: int) -> None:
+        """The loop does not tick for ``n`` periods (a stalled process): time moves on."""
+        self.k += n
+
+    def close(self) -> None:
+        """Shut the robot down (its interfaces leave their channels) and close the peers."""
+        self.robot.shutdown()
+        for p in self._peers:
+            p.close()
+
+    def __enter__(self) -> SimRobot:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

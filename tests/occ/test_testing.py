@@ -1,0 +1,67 @@
+"""occ.testing: the helper the simulated-time tests stand on routes like the real daemon."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+import igtl
+from occ.config import parse_config
+from occ.errors import ConfigError
+from occ.safety import RobotState
+from occ.testing import SimRobot
+
+ROOT = Path(__file__).resolve().parents[2]
+SLAVE = ROOT / "configs" / "slave.yaml"
+
+
+def test_each_operator_gets_its_own_replies_and_every_operator_the_broadcasts() -> None:
+    with SimRobot(SLAVE) as sim:
+        alice, bob = sim.peer("slicer"), sim.peer("slicer")
+        assert alice.connected and bob.connected
+        cid = alice.send_command("Enable")
+        sim.step()
+        reply = alice.reply_to(cid)
+        assert reply is not None and reply.metadata["Status"] == "SUCCESS"
+        assert bob.messages("RTS_COMMAND") == []  # the reply went to the one who asked
+        # the state change is broadcast to every operator, after each one's greeting
+        for peer in (alice, bob):
+            states = [m.error_name for m in peer.messages("STATUS")]
+            assert states == ["READY", "ENABLED"], states
+        assert sim.robot.state is RobotState.ENABLED
+
+
+def test_outputs_follow_simulated_time_and_old_clients_get_version_1() -> None:
+    with SimRobot(SLAVE) as sim:
+        new, old = sim.peer("slicer"), sim.peer("slicer", header_version=1)
+        sim.run_for(1.0)
+        assert sim.k == 1000 and sim.now == pytest.approx(1.0)
+        tips = new.messages("TRANSFORM", "Tip")
+        assert len(tips) == 10  # 10 Hz
+        assert all(m.header_version == 2 for m in tips)
+        assert all(m.header_version == 1 for m in old.messages("TRANSFORM", "Tip"))
+        # the robot's side of the channel: one interface, both peers, nothing on the wire
+        stats = sim.robot.interfaces.stats()["slicer"]
+        assert stats["transport"] == "inproc" and stats["peers"] == 2
+
+
+def test_a_config_mapping_and_a_peer_that_leaves() -> None:
+    data = yaml.safe_load(SLAVE.read_text())
+    data["robot"]["name"] = "other"
+    with SimRobot(data) as sim:
+        peer = sim.peer("slicer")
+        peer.close()
+        assert sim.robot.interfaces.stats()["slicer"]["peers"] == 0
+        assert peer.send(igtl.StringMessage("x", device_name="CMD_1")) == 0
+        assert sim.robot.name == "other"
+
+
+def test_inproc_interfaces_need_a_channel() -> None:
+    text = SLAVE.read_text().replace("transport: udp", "transport: inproc")
+    with pytest.raises(ConfigError, match="channel: required for transport 'inproc'"):
+        parse_config(text, source=str(SLAVE))
+    cfg = parse_config(text.replace("transport: inproc", "transport: inproc\n    channel: m"),
+                       source=str(SLAVE))
+    assert cfg.interface("master").channel == "m"
