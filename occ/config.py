@@ -482,6 +482,12 @@ class InterfaceConfig(_Model):
         description="Largest message body accepted (KiB); bigger ones are refused and counted "
         "before any of their body is buffered (raise it for an interface that receives images).",
     )
+    unread_limit_kib: Annotated[Int, Field(ge=0)] = Field(
+        16,
+        description="tcp-server: a client whose receive window shows this much of our data "
+        "unread for `send_stall_timeout_s` is closed and counted (it does not read; kernel "
+        "buffers would hide that for minutes of a 10 Hz stream). 0 = off.",
+    )
     message_timeout_s: PosFloat | None = Field(
         10.0,
         description="tcp-server: a message begun must be complete within this time; a client "
@@ -503,6 +509,13 @@ class InterfaceConfig(_Model):
         "metadata, and every message received without a valid tag is refused and counted "
         "(`unauthenticated`). For a master link on a network that is not trusted; both ends "
         "use the same file. Relative paths are read from the config file's folder.",
+    )
+    kernel_filter: Bool = Field(
+        True,
+        description="udp with stream inputs: once the stream has its owner (`stream_source`, "
+        "or the first sender), the socket is connected to it and the kernel drops every other "
+        "sender's datagrams (a flood from elsewhere can then neither cost the loop a read nor "
+        "crowd the master's datagrams out of the buffer; those are not counted as `foreign`).",
     )
     stream_source: Remote | None = Field(
         None,

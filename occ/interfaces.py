@@ -249,6 +249,7 @@ class Interface:
                 idle_timeout=cfg.idle_timeout_s,
                 message_timeout=cfg.message_timeout_s,
                 send_stall_timeout=cfg.send_stall_timeout_s,
+                unread_limit=cfg.unread_limit_kib * 1024,
                 max_body_size=cfg.max_body_kib * 1024,
                 reserved_slots=cfg.operator_slots if cfg.operators is not None else 0,
                 privileged_peers=(
@@ -345,6 +346,7 @@ class Interface:
                     # an ephemeral sender: the first one owns the stream until a Reset
                     self.stream_owner = owner = source
                     log.info("%s: stream owned by %s:%s", self.name, *source)
+                    self._pin(source)
                 if source != owner:
                     c.foreign += 1
                     if self._log_limit.allow():
@@ -452,7 +454,21 @@ class Interface:
 
     def release_stream(self) -> None:
         """Forget an ephemeral stream owner (operator Reset): the next sender owns it."""
+        if self.stream_owner != self.configured_source:
+            self._pin(self.configured_source)
         self.stream_owner = self.configured_source
+
+    def _pin(self, source: tuple[str, int] | None) -> None:
+        """A UDP stream's owner is the only sender its socket takes (the kernel drops the
+        rest: a flood from elsewhere cannot fill the buffer the master's datagrams need)."""
+        pin = getattr(self.transport, "pin_source", None)
+        if pin is not None and self.streams and getattr(self.cfg, "kernel_filter", True):
+            pin(source)
+
+    def start(self) -> None:
+        self.transport.start()
+        if self.configured_source is not None:
+            self._pin(self.configured_source)
 
     def stats(self) -> dict[str, Any]:
         c = self.counters
@@ -512,7 +528,7 @@ class InterfaceManager:
 
     def start(self) -> None:
         for iface in self.interfaces.values():
-            iface.transport.start()
+            iface.start()
             log.info("interface %s: %s on %s", iface.name, iface.cfg.transport, iface.address)
         self._started = True
 

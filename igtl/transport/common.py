@@ -7,6 +7,7 @@ import ipaddress
 import itertools
 import logging
 import socket
+import sys
 import threading
 import time
 from collections import deque
@@ -256,6 +257,13 @@ class Waker:
         self.w.close()
 
 
+# struct tcp_info (linux/tcp.h): tcpi_snd_wnd, the peer's advertised window in bytes, is the
+# 32-bit field at byte 228 (added in Linux 5.4); older kernels return a shorter struct.
+_TCP_INFO = getattr(socket, "TCP_INFO", 11)
+_SND_WND_OFFSET = 228
+_TCP_INFO_LEN = 240
+
+
 def configure_stream_socket(sock: socket.socket) -> None:
     """Non-blocking, TCP_NODELAY (no Nagle delay on small control messages) and keepalive that
     detects a vanished peer within about 10 s where the platform lets us tune it."""
@@ -282,6 +290,8 @@ class Connection:
     __slots__ = (
         "blocked_since",
         "closed",
+        "unread_since",
+        "window_max",
         "decoder",
         "fileno",
         "limit",
@@ -316,7 +326,29 @@ class Connection:
         self.want_write = False
         self.blocked_since = 0.0  # monotonic time the socket stopped taking our data
         self.partial_since = 0.0  # monotonic time an incomplete message began (0: none)
+        self.window_max = 0  # the largest receive window the peer advertised
+        self.unread_since = 0.0  # monotonic time the peer began to leave our data unread
         self.closed = False
+
+    def unread_bytes(self) -> int | None:
+        """About how many of our bytes the peer has received but its program has not read.
+
+        A client that never reads does not block our writes for a long time: the kernels
+        buffer hundreds of kilobytes on both sides, minutes of a 10 Hz pose stream. Its
+        advertised receive window shrinks as its buffer fills, though, from the first message
+        on: the largest window it advertised minus the current one (``tcpi_snd_wnd``, Linux
+        5.4 and later) tells it within seconds. None where TCP_INFO lacks the field.
+        """
+        try:
+            info = self.sock.getsockopt(socket.IPPROTO_TCP, _TCP_INFO, _TCP_INFO_LEN)
+        except (OSError, AttributeError):
+            return None
+        if len(info) < _SND_WND_OFFSET + 4:
+            return None
+        window = int.from_bytes(info[_SND_WND_OFFSET : _SND_WND_OFFSET + 4], sys.byteorder)
+        if window > self.window_max:
+            self.window_max = window
+        return self.window_max - window
 
     def enqueue(self, data: bytes) -> None:
         with self.lock:

@@ -37,7 +37,9 @@ its address and counted (``denied``). Past ``max_clients`` a connection is accep
 once, logged and counted (``rejected``); so is one from outside ``privileged_peers`` when only the
 ``reserved_slots`` (kept for operators) are left. Refusals are logged within a per-host budget
 that survives reconnects (``HostLogLimits``). ``idle_timeout`` (seconds) closes clients that sent
-nothing for that long (reason ``"idle timeout"``).
+nothing for that long (reason ``"idle timeout"``). A client that does not read what we send is
+closed after ``send_stall_timeout``: when our writes block, or, long before that, when its
+advertised receive window shows ``unread_limit`` bytes left unread (``evicted_not_reading``).
 
 Every socket gets TCP_NODELAY and SO_KEEPALIVE (with ~10 s dead-peer detection on Linux); the
 listener gets SO_REUSEADDR so a restarted server can bind its port again at once.
@@ -345,6 +347,7 @@ class TCPServer(_StreamTransport):
         negotiate: bool = True,
         reserved_slots: int = 0,
         privileged_peers: list[str] | None = None,
+        unread_limit: int = 16 * 1024,
         name: str = "igtl-tcp-server",
     ) -> None:
         for what, value in (
@@ -389,6 +392,9 @@ class TCPServer(_StreamTransport):
         #: a client whose socket takes none of our data for this long is closed (it does not
         #: read; it would hold a slot and its queue forever)
         self.send_stall_timeout = send_stall_timeout
+        #: a client that leaves this many of our bytes unread for ``send_stall_timeout`` is
+        #: closed too (its kernel buffers would hide a blocked write for minutes); 0 = off
+        self.unread_limit = unread_limit
         self.negotiate = negotiate
         self.address: tuple[str, int] = (host, port)
         self._listener: socket.socket | None = None
@@ -539,6 +545,17 @@ class TCPServer(_StreamTransport):
             elif stall and conn.want_write and now - conn.blocked_since > stall:
                 self._evicted += 1
                 self._close(conn, f"not reading: nothing sent for {stall:g} s")
+            elif stall and self.unread_limit:
+                unread = conn.unread_bytes()
+                if unread is None or unread < self.unread_limit:
+                    conn.unread_since = 0.0
+                elif not conn.unread_since:
+                    conn.unread_since = now
+                elif now - conn.unread_since > stall:
+                    self._evicted += 1
+                    self._close(
+                        conn, f"not reading: about {unread} bytes left unread for {stall:g} s"
+                    )
 
     def _accept(self) -> None:
         assert self._listener is not None

@@ -63,6 +63,19 @@ MAX_UDP_PAYLOAD = 65507  # IPv4: 65535 - 20 (IP) - 8 (UDP)
 _RECV_BATCH = 64  # datagrams read per readiness event before looking at the selector again
 
 
+def _disconnect(sock: socket.socket) -> None:
+    """Dissolve a UDP socket's association (connect to AF_UNSPEC, which Python's
+    ``connect`` cannot express): it takes datagrams from anyone again."""
+    import ctypes
+    import ctypes.util
+
+    libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+    unspec = (ctypes.c_ubyte * 16)()  # sa_family_t 0 = AF_UNSPEC, the rest ignored
+    if libc.connect(sock.fileno(), unspec, ctypes.sizeof(unspec)) != 0:
+        err = ctypes.get_errno()
+        raise OSError(err, os.strerror(err))
+
+
 class UDPEndpoint(IOThreadOwner):
     """A UDP socket speaking OpenIGTLink (see the module docstring)."""
 
@@ -98,6 +111,8 @@ class UDPEndpoint(IOThreadOwner):
         self.host = host
         self.port = port
         self.remote = remote
+        #: the only sender the kernel lets through (:meth:`pin_source`), or None: anyone
+        self.source: tuple[str, int] | None = None
         self.on_message = on_message
         self.on_error = on_error
         self.max_datagram = max_datagram
@@ -233,6 +248,34 @@ class UDPEndpoint(IOThreadOwner):
         self._sent += 1
         peer.sent += 1
         return 1
+
+    def pin_source(self, address: tuple[str, int] | None) -> bool:
+        """Take datagrams from ``address`` only, or again from anyone (None).
+
+        The socket is connected to ``address``: the kernel then drops every other sender's
+        datagrams before they reach the socket buffer, so a flood from another port or host
+        can neither cost us a read nor push the pinned sender's datagrams out of a full buffer
+        (they are not counted here: the kernel counts them as ``NoPorts`` in /proc/net/snmp).
+        Sending to other addresses still works. Returns False (logged) where it cannot be
+        done; the caller's own filtering then still applies.
+        """
+        sock = self._sock
+        if sock is None:
+            return False
+        try:
+            if address is None:
+                _disconnect(sock)
+                if sock.getsockname()[1] != self.address[1]:
+                    # an ephemeral port (bound as 0) is released by the disconnect: take it back
+                    sock.bind(self.address)
+            else:
+                sock.connect((address[0], address[1]))
+        except OSError as err:
+            log.warning("%s: cannot pin the source to %s: %s", self.name, address, err)
+            return False
+        self.source = address
+        log.info("%s: datagrams taken from %s only", self.name, address or "anyone")
+        return True
 
     def receive(self, timeout: float | None = None) -> tuple[Peer, Message] | None:
         """Next (peer, message), or None after ``timeout`` seconds (None: wait)."""

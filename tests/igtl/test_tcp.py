@@ -548,3 +548,30 @@ def test_a_client_that_never_reads_is_evicted() -> None:
         assert _wait(lambda: server.stats()["evicted_not_reading"] == 1)
         assert server.stats()["clients"] == 0
         deaf.close()
+
+
+def test_a_client_that_never_reads_a_slow_stream_is_evicted_and_a_reader_is_not() -> None:
+    """A pose stream of a few kB/s never blocks our writes (kernel buffers hold minutes of
+    it); the client's shrinking receive window shows it does not read. A client that reads
+    the same stream keeps its slot."""
+    with TCPServer(
+        "127.0.0.1", 0, send_stall_timeout=0.3, unread_limit=8 * 1024
+    ) as server:
+        deaf = socket.create_connection(server.address)
+        got: list[igtl.Message] = []
+        reader = TCPClient(*server.address, reconnect=False, on_message=lambda p, m: got.append(m))
+        reader.start()
+        assert server.wait_for_peers(2)
+        pose = igtl.StringMessage("p" * 1000, device_name="Tip")
+        sent = 0
+        deadline = time.monotonic() + 20.0
+        while server.stats()["evicted_not_reading"] == 0 and time.monotonic() < deadline:
+            server.send(pose)
+            sent += 1
+            time.sleep(0.005)
+        stats = server.stats()
+        assert stats["evicted_not_reading"] == 1, f"not evicted after {sent} messages"
+        assert stats["clients"] == 1 and reader.connected
+        assert _wait(lambda: len(got) >= sent - 5)  # the reader kept up and stays
+        reader.stop()
+        deaf.close()

@@ -267,3 +267,31 @@ def test_access_list_verdicts_are_cached_bounded_and_right() -> None:
         assert not acl.allows(f"11.0.{i // 250}.{i % 250}")
     assert len(acl._verdicts) <= 1024
     assert AccessList(None).allows("anything")
+
+
+def test_pinned_source_is_the_only_sender_the_kernel_lets_through() -> None:
+    rec = Recorder()
+    ep = UDPEndpoint("127.0.0.1", 0, on_message=rec.on_message).start()
+    master = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    master.bind(("127.0.0.1", 0))
+    other = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    msg = igtl.StringMessage("x", device_name="s").pack()
+    try:
+        assert ep.pin_source(master.getsockname())
+        for _ in range(50):
+            other.sendto(msg, ep.address)  # dropped by the kernel: never read, never counted
+        master.sendto(msg, ep.address)
+        assert rec.wait(lambda: len(rec.messages) == 1)
+        assert rec.messages[0][0].address == master.getsockname()
+        assert ep.stats()["datagrams_received"] == 1
+        # still sends anywhere
+        assert ep.send(igtl.StringMessage("y", device_name="s"), other.getsockname()) == 1
+        assert other.recv(100)
+        # released: anyone again
+        assert ep.pin_source(None) and ep.source is None
+        other.sendto(msg, ep.address)
+        assert rec.wait(lambda: len(rec.messages) == 2)
+    finally:
+        ep.stop()
+        master.close()
+        other.close()
