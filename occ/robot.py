@@ -781,7 +781,11 @@ class Robot:
     def _reply_stats(self, item: Inbound, req: Request) -> None:
         """On the worker thread: the snapshot (histogram percentiles, controller statistics)
         costs milliseconds; the loop only handed the request over."""
-        text = json.dumps(self.snapshot(), separators=(",", ":"), default=str)
+        snap = self.snapshot()
+        if req.args.get("Histogram", "").lower() == "lateness":
+            # the raw buckets: a client subtracts two of them into a window's percentiles
+            snap["lateness_buckets"] = self.stats.lateness.buckets()
+        text = json.dumps(snap, separators=(",", ":"), default=str)
         reply = success_reply(req, text, timestamp=self.clock.wall_time())
         self.interfaces.reply(item, reply)
 
