@@ -460,10 +460,16 @@ class Rig:
     def stats(self, histogram: bool = True) -> dict[str, Any]:
         assert self.op is not None
         text = '<Command Name="GetStats" Histogram="lateness"/>' if histogram else ""
-        reply = self.op.command("GetStats", text)
-        if reply.metadata.get("Status") != "SUCCESS":
-            raise AttackError(f"GetStats refused: {reply.metadata}")
-        return json.loads(reply.metadata["Message"])
+        end = time.monotonic() + 10.0
+        while True:
+            reply = self.op.command("GetStats", text)
+            if reply.metadata.get("Status") == "SUCCESS":
+                return json.loads(reply.metadata["Message"])
+            # a queue full of the attacker's requests answers "busy": ask again, as an operator
+            busy = any(w in reply.metadata.get("Message", "") for w in ("full", "busy"))
+            if not busy or time.monotonic() > end:
+                raise AttackError(f"GetStats refused: {reply.metadata}")
+            time.sleep(0.05)
 
     def master_command(self, name: str) -> str:
         """An operator command to the master (its own TCP port); the reply's text."""
