@@ -796,6 +796,9 @@ class Robot:
         """On the worker thread: the snapshot (histogram percentiles, controller statistics)
         costs milliseconds; the loop only handed the request over."""
         snap = self.snapshot()
+        if req.args.get("Histogram", "").lower() == "lateness":
+            # the raw buckets: a client subtracts two of them into a window's percentiles
+            snap["lateness_buckets"] = self.stats.lateness.buckets()
         if item.role != "operator":
             snap = redact_for_viewer(snap)
         text = json.dumps(snap, separators=(",", ":"), default=str)

@@ -144,6 +144,29 @@ class Histogram:
             out.append(min(max(mid, lo_clamp), hi_clamp))
         return out
 
+    def buckets(self) -> dict[int, int]:
+        """The non-empty buckets as ``{index: count}`` (one atomic copy). Two of them taken at
+        different times subtract into the histogram of the ticks in between: a measurement
+        window (tools/attack.py: baseline against attack in one run of the daemon)."""
+        return {i: c for i, c in enumerate(list(self._counts)) if c}
+
+    @classmethod
+    def from_buckets(cls, counts: Mapping[int, int]) -> Histogram:
+        """A histogram holding ``counts`` (e.g. the difference of two :meth:`buckets`). The
+        exact min, max and mean are not known: min and max become the edges of the outermost
+        non-empty buckets (percentiles stay accurate to a bucket), the mean their middles'."""
+        h = cls()
+        for idx, n in counts.items():
+            if n <= 0:
+                continue
+            h._counts[idx] = n
+            lo, hi = _bucket_bounds(idx)
+            h.count += n
+            h.total += n * ((lo + hi) / 2.0 if hi != math.inf else lo)
+            h.min = min(h.min, lo)
+            h.max = max(h.max, hi if hi != math.inf else lo)
+        return h
+
     def percentile(self, p: float) -> float:
         """The p-th percentile (0-100), accurate to half a bucket."""
         return self.percentiles((p,))[0]

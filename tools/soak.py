@@ -535,8 +535,9 @@ def set_master_remote(ports: dict[str, Any], proxy_port: int) -> None:
     Path(ports["master_yaml"]).write_text(yaml.safe_dump(master, sort_keys=False))
 
 
-def start_occd(config: str, stats: Path, log: Path, duration: float) -> subprocess.Popen[bytes]:
-    cmd = [sys.executable, "-m", "occ.cli", config, "--start", "running", "--stats", str(stats),
+def start_occd(config: str, stats: Path, log: Path, duration: float,
+               start: str = "running") -> subprocess.Popen[bytes]:
+    cmd = [sys.executable, "-m", "occ.cli", config, "--start", start, "--stats", str(stats),
            "--log-level", "WARNING", "--duration", f"{duration:.1f}"]
     fh = open(log, "wb")  # noqa: SIM115 - closed by the caller via proc.stderr_file
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT)

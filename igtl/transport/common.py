@@ -258,9 +258,11 @@ class Waker:
 
 
 # struct tcp_info (linux/tcp.h): tcpi_snd_wnd, the peer's advertised window in bytes, is the
-# 32-bit field at byte 228 (added in Linux 5.4); older kernels return a shorter struct.
+# 32-bit field at byte 228 (added in Linux 5.4), tcpi_notsent_bytes the one at byte 144; older
+# kernels return a shorter struct.
 _TCP_INFO = getattr(socket, "TCP_INFO", 11)
 _SND_WND_OFFSET = 228
+_NOTSENT_OFFSET = 144  # tcpi_notsent_bytes: queued, not yet sent (Linux 4.6 and later)
 _TCP_INFO_LEN = 240
 
 
@@ -330,14 +332,17 @@ class Connection:
         self.unread_since = 0.0  # monotonic time the peer began to leave our data unread
         self.closed = False
 
-    def unread_bytes(self) -> int | None:
-        """About how many of our bytes the peer has received but its program has not read.
+    def unread_bytes(self) -> tuple[int, int] | None:
+        """``(unread, waiting)``: about how many of our bytes the peer has received but its
+        program has not read, and how many wait in our kernel because its window is closed.
 
         A client that never reads does not block our writes for a long time: the kernels
         buffer hundreds of kilobytes on both sides, minutes of a 10 Hz pose stream. Its
         advertised receive window shrinks as its buffer fills, though, from the first message
         on: the largest window it advertised minus the current one (``tcpi_snd_wnd``, Linux
-        5.4 and later) tells it within seconds. None where TCP_INFO lacks the field.
+        5.4 and later) tells it within seconds; a client with a tiny buffer closes its window
+        instead, and our bytes wait unsent (``tcpi_notsent_bytes``). None where TCP_INFO
+        lacks the fields.
         """
         try:
             info = self.sock.getsockopt(socket.IPPROTO_TCP, _TCP_INFO, _TCP_INFO_LEN)
@@ -346,9 +351,10 @@ class Connection:
         if len(info) < _SND_WND_OFFSET + 4:
             return None
         window = int.from_bytes(info[_SND_WND_OFFSET : _SND_WND_OFFSET + 4], sys.byteorder)
+        waiting = int.from_bytes(info[_NOTSENT_OFFSET : _NOTSENT_OFFSET + 4], sys.byteorder)
         if window > self.window_max:
             self.window_max = window
-        return self.window_max - window
+        return self.window_max - window, waiting
 
     def enqueue(self, data: bytes) -> None:
         with self.lock:

@@ -546,15 +546,17 @@ class TCPServer(_StreamTransport):
                 self._evicted += 1
                 self._close(conn, f"not reading: nothing sent for {stall:g} s")
             elif stall and self.unread_limit:
-                unread = conn.unread_bytes()
-                if unread is None or unread < self.unread_limit:
+                backlog = conn.unread_bytes()
+                if backlog is None or (backlog[0] < self.unread_limit and not backlog[1]):
                     conn.unread_since = 0.0
                 elif not conn.unread_since:
                     conn.unread_since = now
                 elif now - conn.unread_since > stall:
                     self._evicted += 1
                     self._close(
-                        conn, f"not reading: about {unread} bytes left unread for {stall:g} s"
+                        conn,
+                        f"not reading: about {backlog[0]} bytes left unread, {backlog[1]} "
+                        f"waiting for its window, for {stall:g} s",
                     )
 
     def _accept(self) -> None:

@@ -550,14 +550,20 @@ def test_a_client_that_never_reads_is_evicted() -> None:
         deaf.close()
 
 
-def test_a_client_that_never_reads_a_slow_stream_is_evicted_and_a_reader_is_not() -> None:
+@pytest.mark.parametrize("rcvbuf", [None, 2048])
+def test_a_client_that_never_reads_a_slow_stream_is_evicted_and_a_reader_is_not(
+    rcvbuf: int | None,
+) -> None:
     """A pose stream of a few kB/s never blocks our writes (kernel buffers hold minutes of
     it); the client's shrinking receive window shows it does not read. A client that reads
     the same stream keeps its slot."""
     with TCPServer(
         "127.0.0.1", 0, send_stall_timeout=0.3, unread_limit=8 * 1024
     ) as server:
-        deaf = socket.create_connection(server.address)
+        deaf = socket.socket()
+        if rcvbuf:  # a tiny buffer: its window closes, our bytes wait unsent
+            deaf.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+        deaf.connect(server.address)
         got: list[igtl.Message] = []
         reader = TCPClient(*server.address, reconnect=False, on_message=lambda p, m: got.append(m))
         reader.start()

@@ -509,3 +509,19 @@ def test_histogram_overflow_and_negative() -> None:
     assert h.percentile(0) == -5.0  # clamped to the exact minimum
     with pytest.raises(ValueError):
         h.percentile(101)
+
+
+def test_histogram_buckets_subtract_into_a_window() -> None:
+    h = Histogram()
+    for v in range(1, 1001):
+        h.add(v * 0.05)  # 0.05-50 µs: the baseline
+    before = h.buckets()
+    for v in range(1, 101):
+        h.add(1000.0 + v * 10.0)  # 1.01-2 ms: the window
+    after = h.buckets()
+    window = Histogram.from_buckets({i: n - before.get(i, 0) for i, n in after.items()})
+    assert window.count == 100
+    assert 1000.0 <= window.percentile(0) <= 1010.0
+    assert window.percentile(50) == pytest.approx(1500.0, rel=0.03)
+    assert window.percentile(100) == pytest.approx(2000.0, rel=0.03)
+    assert Histogram.from_buckets({}).percentile(99.9) == 0.0
