@@ -505,7 +505,9 @@ def pack_metadata(metadata: Mapping[str, str], encodings: Mapping[str, int]) -> 
 
 
 def unpack_metadata(
-    meta_header: bytes | memoryview, meta_data: bytes | memoryview, base_offset: int = 0
+    meta_header: bytes | bytearray | memoryview,
+    meta_data: bytes | bytearray | memoryview,
+    base_offset: int = 0,
 ) -> tuple[dict[str, str], dict[str, int]]:
     """Decode metadata; returns (values in wire order, encodings that differ from the default).
 
@@ -574,7 +576,7 @@ class BodyLayout(NamedTuple):
     message_id: int
 
 
-def split_v2_body(body: bytes | memoryview, base_offset: int = 58) -> BodyLayout:
+def split_v2_body(body: bytes | bytearray | memoryview, base_offset: int = 58) -> BodyLayout:
     """Validate the extended header of a v2 body and locate content and metadata (doc 2.1)."""
     n = len(body)
     if n < EXT_HEADER_SIZE:
