@@ -17,6 +17,20 @@ What happens after a bad message (``DecodeError.recoverable``):
 
 No other exception leaves :func:`unpack` or :class:`StreamDecoder` for any input bytes: a
 content codec that trips over values its type cannot hold is reported as ContentError.
+
+Every decodable message re-packs byte for byte (``msg.pack() == data``), or is refused:
+
+- NUL-padded text fields (the header's TYPE and DEVICE_NAME, names in contents) must be UTF-8
+  with nothing but NULs after the first NUL. Anything else (bytes left behind a terminator,
+  latin-1 names) is refused with InvalidTextError, for the header HeaderTextError, which is
+  recoverable: the sizes are sound, so the message is skipped and the stream goes on. The
+  reference and every peer we know write such fields with strncpy (zero-filled) or UTF-8.
+- Known gaps, still re-packed canonically instead (tests/igtl/test_properties.py,
+  ``test_known_non_exact_inputs``): v2 metadata not sorted by key, duplicate keys and
+  EXT_HEADER_SIZE > 12; non-canonical reserved, version or padding bytes in some contents;
+  float32 signalling NaNs (they come back quiet).
+
+Big bodies: see :class:`StreamDecoder` (checksummed piece by piece, decoded without a copy).
 """
 
 from __future__ import annotations
@@ -30,6 +44,7 @@ from .errors import (
     CRCError,
     DecodeError,
     DecoderFailedError,
+    HeaderTextError,
     TruncatedMessageError,
 )
 from .messages.base import FAST_V1, REGISTRY, Message, RawMessage
@@ -235,6 +250,7 @@ class StreamDecoder:
         "_pending",
         "_body",
         "_body_crc",
+        "_refuse",
         "offset",
         "messages",
         "errors",
@@ -257,6 +273,8 @@ class StreamDecoder:
         #: The body of the pending message while it is collected apart (big bodies only).
         self._body: bytearray | None = None
         self._body_crc = 0
+        #: A recoverable header error, raised once the message's body has been skipped.
+        self._refuse: HeaderTextError | None = None
         #: Stream offset of the next unread byte (for error reports).
         self.offset = 0
         #: Counters: messages decoded, errors raised.
@@ -316,6 +334,11 @@ class StreamDecoder:
                 return None
             try:
                 header = _header_fields(buf, pos, self._max_body)
+            except HeaderTextError as err:
+                # The sizes are sound: frame the message as usual, refuse it once it is read.
+                err.offset = (pos if err.offset is None else err.offset) - pos
+                self._refuse = err
+                header = (1, err.message_type or "", err.device_name or "", 0, err.body_size, 0)
             except DecodeError as err:
                 err.offset = self.offset + (pos if err.offset is None else err.offset) - pos
                 self._failed = err
@@ -334,6 +357,8 @@ class StreamDecoder:
         self._pos = end
         start_offset = self.offset
         self.offset += end - pos
+        if self._refuse is not None:
+            self._raise_refusal(start_offset)
         with memoryview(buf) as view:
             body = bytes(view[pos + _HEADER_SIZE : end])
         try:
@@ -345,6 +370,15 @@ class StreamDecoder:
             raise
         self.messages += 1
         return msg
+
+    def _raise_refusal(self, start_offset: int) -> None:
+        err = self._refuse
+        assert err is not None
+        self._refuse = None
+        self.errors += 1
+        if err.offset is not None:
+            err.offset += start_offset
+        raise err
 
     def _collect_apart(self, body_size: int) -> None:
         """Move the pending big body's first bytes out of the stream buffer (all buffered bytes
@@ -367,6 +401,8 @@ class StreamDecoder:
         self._pending = None
         start_offset = self.offset
         self.offset += _HEADER_SIZE + body_size
+        if self._refuse is not None:
+            self._raise_refusal(start_offset)
         try:
             if self._crc_check and self._body_crc != crc:
                 raise _crc_error(crc, self._body_crc, mtype, device)

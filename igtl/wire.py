@@ -21,6 +21,8 @@ import crcmod
 from .errors import (
     BodyTooLargeError,
     ExtendedHeaderError,
+    HeaderTextError,
+    InvalidTextError,
     MetadataError,
     TruncatedMessageError,
     UnknownHeaderVersionError,
@@ -244,24 +246,35 @@ def seconds_to_raw(t: float) -> int:
 
 # --------------------------------------------------------------------------------------------
 # Fixed-size, NUL-padded text fields (type name, device name, and the content-level names).
-def _text(raw: bytes) -> str:
-    """Name bytes as text: UTF-8 (what 3D Slicer and pyigtl write), else latin-1 (never fails).
+def _canonical_text(raw: bytes, what: str, offset: int) -> str:
+    """A NUL-padded field's text, refusing what would not re-encode to the same bytes.
 
-    The protocol only promises ASCII; UTF-8 is what real peers send for other characters.
+    Decoding stops at the first NUL (as the reference does); ``encode_fixed`` writes UTF-8 and
+    pads with NULs. So a field re-packs byte for byte exactly when its text is UTF-8 (3D Slicer
+    and pyigtl write UTF-8; the protocol only promises ASCII) and everything after its first NUL
+    is NUL: anything else (bytes left behind a terminator, latin-1 text) is refused with
+    InvalidTextError rather than silently changed on the way through.
     """
-    try:
-        return raw.decode("utf-8")
-    except UnicodeDecodeError:
-        return raw.decode("latin-1")
-
-
-def decode_fixed(raw: bytes | memoryview) -> str:
-    """Decode a NUL-padded field: up to the first NUL, UTF-8 with a latin-1 fallback."""
-    raw = bytes(raw)
     end = raw.find(b"\x00")
-    if end >= 0:
-        raw = raw[:end]
-    return _text(raw)
+    text_raw = raw if end < 0 else raw[:end]
+    if end >= 0 and raw.count(0, end) != len(raw) - end:
+        raise InvalidTextError(
+            f"{what}: non-NUL bytes after the NUL terminator", offset=offset + end
+        )
+    try:
+        return text_raw.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise InvalidTextError(
+            f"{what}: bytes {err.start}..{err.end} are not valid UTF-8", offset=offset + err.start
+        ) from err
+
+
+def decode_fixed(
+    raw: bytes | bytearray | memoryview, what: str = "text field", offset: int = 0
+) -> str:
+    """Decode a NUL-padded field: UTF-8 up to the first NUL, all NUL after it (else
+    InvalidTextError, so that every decoded field re-encodes to the same bytes)."""
+    return _canonical_text(bytes(raw), what, offset)
 
 
 def encode_fixed(text: str, size: int, what: str) -> bytes:
@@ -287,15 +300,24 @@ _encoded_types: dict[str, bytes] = {}
 _encoded_devices: dict[str, bytes] = {}
 
 
-def _decode_name(raw: bytes) -> str:
+def _decode_name(raw: bytes, what: str, offset: int) -> str:
     name = _decoded_names.get(raw)
     if name is None:
-        end = raw.find(b"\x00")
-        name = _text(raw if end < 0 else raw[:end])
+        name = _canonical_text(raw, what, offset)  # refusals are not cached: they raise
         if len(_decoded_names) >= _NAME_CACHE_MAX:
             _decoded_names.clear()
         _decoded_names[raw] = name
     return name
+
+
+def _lenient(raw: bytes) -> str:
+    """A refused name, readable in the error report: up to the first NUL, latin-1 if need be."""
+    end = raw.find(b"\x00")
+    raw = raw if end < 0 else raw[:end]
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        return raw.decode("latin-1")
 
 
 def _encode_name(text: str, cache: dict[str, bytes], size: int, what: str) -> bytes:
@@ -332,10 +354,17 @@ def header_fields(
             f"header needs {HEADER_SIZE} bytes, got {len(data) - offset}", offset=offset
         )
     version, mtype, device, ts, body_size, crc = _unpack_header_from(data, offset)
-    message_type = _decoded_names.get(mtype) or _decode_name(mtype)
+    message_type = _decoded_names.get(mtype)
     device_name = _decoded_names.get(device)
-    if device_name is None:
-        device_name = _decode_name(device)
+    bad_name: InvalidTextError | None = None
+    if message_type is None or device_name is None:
+        try:
+            message_type = _decode_name(mtype, "message type", offset + 2)
+            device_name = _decode_name(device, "device name", offset + 14)
+        except InvalidTextError as err:
+            bad_name = err
+            message_type = _lenient(mtype)
+            device_name = _lenient(device)
     if version != 1 and version != 2:
         raise UnknownHeaderVersionError(
             f"unknown header version {version} (supported: 1, 2)",
@@ -350,6 +379,14 @@ def header_fields(
             message_type=message_type,
             device_name=device_name,
         )
+    if bad_name is not None:
+        raise HeaderTextError(
+            str(bad_name),
+            body_size=body_size,
+            offset=bad_name.offset,
+            message_type=message_type,
+            device_name=device_name,
+        ) from bad_name
     return version, message_type, device_name, ts, body_size, crc
 
 
