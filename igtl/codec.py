@@ -20,13 +20,14 @@ content codec that trips over values its type cannot hold is reported as Content
 
 Every decodable message re-packs byte for byte (``msg.pack() == data``), or is refused:
 
-- NUL-padded text fields (the header's TYPE and DEVICE_NAME, names in contents) must be UTF-8
-  with nothing but NULs after the first NUL. Anything else (bytes left behind a terminator,
-  latin-1 names) is refused with InvalidTextError, for the header HeaderTextError, which is
-  recoverable: the sizes are sound, so the message is skipped and the stream goes on. The
-  reference and every peer we know write such fields with strncpy (zero-filled) or UTF-8.
+- NUL-padded text fields (the header's TYPE and DEVICE_NAME, names in contents) must hold
+  nothing but NULs after their first NUL, else the bytes behind the terminator would be lost:
+  refused with InvalidTextError, for the header HeaderTextError, which is recoverable (the sizes
+  are sound, so the message is skipped and the stream goes on). The reference and every peer we
+  know zero-fill these fields (strncpy).
 - Known gaps, still re-packed canonically instead (tests/igtl/test_properties.py,
-  ``test_known_non_exact_inputs``): v2 metadata not sorted by key, duplicate keys and
+  ``test_known_non_exact_inputs``): names that are not UTF-8 (decoded as latin-1 so operator
+  tools get an answer, re-packed as UTF-8); v2 metadata not sorted by key, duplicate keys and
   EXT_HEADER_SIZE > 12; non-canonical reserved, version or padding bytes in some contents;
   float32 signalling NaNs (they come back quiet).
 

@@ -106,7 +106,7 @@ class InvalidTextError(ContentError):
 
 
 class HeaderTextError(InvalidTextError):
-    """The header's TYPE or DEVICE_NAME is not UTF-8 with NUL padding. Recoverable: the header's
+    """The header's TYPE or DEVICE_NAME has bytes after its NUL. Recoverable: the header's
     sizes are sound, so the decoder skips the message's ``body_size`` body bytes."""
 
     def __init__(self, message: str, *, body_size: int, **kwargs: object) -> None:

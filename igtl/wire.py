@@ -247,13 +247,12 @@ def seconds_to_raw(t: float) -> int:
 # --------------------------------------------------------------------------------------------
 # Fixed-size, NUL-padded text fields (type name, device name, and the content-level names).
 def _canonical_text(raw: bytes, what: str, offset: int) -> str:
-    """A NUL-padded field's text, refusing what would not re-encode to the same bytes.
+    """A NUL-padded field's text: up to the first NUL, UTF-8, else latin-1 (never fails on the
+    text itself: names from operator tools are answered, tests/occ).
 
-    Decoding stops at the first NUL (as the reference does); ``encode_fixed`` writes UTF-8 and
-    pads with NULs. So a field re-packs byte for byte exactly when its text is UTF-8 (3D Slicer
-    and pyigtl write UTF-8; the protocol only promises ASCII) and everything after its first NUL
-    is NUL: anything else (bytes left behind a terminator, latin-1 text) is refused with
-    InvalidTextError rather than silently changed on the way through.
+    Bytes other than NUL after the first NUL would be lost on re-packing, so they are refused
+    with InvalidTextError. Latin-1 names (invalid UTF-8) are kept readable and re-pack as UTF-8:
+    a known gap in byte-exactness (codec.py docstring).
     """
     end = raw.find(b"\x00")
     text_raw = raw if end < 0 else raw[:end]
@@ -263,17 +262,15 @@ def _canonical_text(raw: bytes, what: str, offset: int) -> str:
         )
     try:
         return text_raw.decode("utf-8")
-    except UnicodeDecodeError as err:
-        raise InvalidTextError(
-            f"{what}: bytes {err.start}..{err.end} are not valid UTF-8", offset=offset + err.start
-        ) from err
+    except UnicodeDecodeError:
+        return text_raw.decode("latin-1")
 
 
 def decode_fixed(
     raw: bytes | bytearray | memoryview, what: str = "text field", offset: int = 0
 ) -> str:
-    """Decode a NUL-padded field: UTF-8 up to the first NUL, all NUL after it (else
-    InvalidTextError, so that every decoded field re-encodes to the same bytes)."""
+    """Decode a NUL-padded field: up to the first NUL (UTF-8, else latin-1), all NUL after it
+    (else InvalidTextError: those bytes would not survive re-encoding)."""
     return _canonical_text(bytes(raw), what, offset)
 
 

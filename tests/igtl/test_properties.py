@@ -368,9 +368,8 @@ def _repacks_exactly(data: bytes) -> None:
 @settings(max_examples=400, deadline=None)
 @given(st.sampled_from(ALL_SEEDS), st.integers(2, 33), st.binary(min_size=1, max_size=4))
 def test_header_names_repack_exactly_or_are_refused(seed, pos, raw):
-    """TYPE and DEVICE_NAME: any bytes there (garbage after a NUL, latin-1, UTF-8) either
-    decode and re-pack to the same 58 + N bytes, or are refused with HeaderTextError (or, for
-    an unknown or different type name, decoded as that type)."""
+    """TYPE and DEVICE_NAME: any bytes there either decode and re-pack to the same bytes, or
+    (bytes after a NUL) are refused with HeaderTextError, recoverably."""
     data = bytearray(seed)
     data[pos : pos + len(raw)] = raw
     data = _with_crc(data[: len(seed)])
@@ -386,6 +385,11 @@ def test_header_names_repack_exactly_or_are_refused(seed, pos, raw):
         return
     except igtl.DecodeError:
         return
+    names = (data[2:14] + data[14:34]).replace(b"\0", b"")
+    try:
+        names.decode("utf-8")
+    except UnicodeDecodeError:
+        return  # latin-1 names: a known gap (test_known_non_exact_inputs)
     assert msg.pack() == data
 
 
@@ -464,17 +468,21 @@ def _known_gaps() -> list[bytes]:
     unsorted[-57:] = meta[:2] + meta[10:18] + meta[2:10] + meta[-20:] + meta[-39:-20]
     image_version = bytearray(v["image.bin"])
     image_version[59] = 4  # IMAGE header version 4 instead of 1
+    latin1 = bytearray(v["transform.bin"])
+    latin1[14:16] = b"\xe9\xe9"  # a latin-1 device name
     snan = bytearray(v["transform.bin"])
     snan[58:62] = b"\x7f\xa0\x00\x00"  # a float32 signalling NaN
-    return [_with_crc(b) for b in (unsorted, image_version, snan)]
+    return [_with_crc(b) for b in (unsorted, image_version, snan, latin1)]
 
 
-# Known to come back different (issue 8, left for later): v2 metadata not sorted by key on the
+# Known to come back different (issue 8, left for later): names that are not UTF-8 (decoded as
+# latin-1 so that operator tools get an answer, tests/occ; re-packed as UTF-8); v2 metadata
+# not sorted by key on the
 # wire is re-packed sorted (duplicate keys collapse; EXT_HEADER_SIZE > 12 loses its extra bytes
 # too); reserved, version or padding bytes that are not the canonical value (IMAGE/VIDEOMETA
 # headers, TDATA/TRAJ/IMGMETA/LBMETA/POLYDATA) come back canonical; float32 signalling NaNs come
 # back quiet (the interpreter's float conversion). Each needs the raw bytes kept or a refusal.
 @pytest.mark.xfail(strict=True, reason="not byte-exact yet (issue 8): see the comment above")
-@pytest.mark.parametrize("data", _known_gaps(), ids=["metadata-order", "image-version", "snan"])
+@pytest.mark.parametrize("data", _known_gaps(), ids=["metadata-order", "image-version", "snan", "latin1-name"])
 def test_known_non_exact_inputs(data):
     _repacks_exactly(data)
