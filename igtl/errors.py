@@ -12,7 +12,9 @@
      |    +-- ExtendedHeaderError      v2 extended-header sizes do not add up
      |    +-- MetadataError            v2 metadata index/sizes inconsistent or text undecodable
      |    +-- ContentError             the content does not fit its type (sizes, counts, values)
-     |    |    +-- InvalidTextError    text bytes not valid in their declared encoding
+     |    |    +-- InvalidTextError    text bytes not valid in their declared encoding, or a
+     |    |         |                      NUL-padded field with bytes after its NUL
+     |    |         +-- HeaderTextError    the header's TYPE or DEVICE_NAME is such a field
      |    +-- FragmentError            an RTP datagram that is not a valid fragment (UDP)
      +-- DecoderFailedError            a StreamDecoder was used after an unrecoverable error
      +-- TransportError                a socket-level problem (transports only)
@@ -101,6 +103,15 @@ class ContentError(DecodeError):
 
 class InvalidTextError(ContentError):
     """Text bytes that are not valid in their declared encoding."""
+
+
+class HeaderTextError(InvalidTextError):
+    """The header's TYPE or DEVICE_NAME has bytes after its NUL. Recoverable: the header's
+    sizes are sound, so the decoder skips the message's ``body_size`` body bytes."""
+
+    def __init__(self, message: str, *, body_size: int, **kwargs: object) -> None:
+        super().__init__(message, **kwargs)  # type: ignore[arg-type]
+        self.body_size = body_size
 
 
 class FragmentError(DecodeError):

@@ -21,6 +21,8 @@ import crcmod
 from .errors import (
     BodyTooLargeError,
     ExtendedHeaderError,
+    HeaderTextError,
+    InvalidTextError,
     MetadataError,
     TruncatedMessageError,
     UnknownHeaderVersionError,
@@ -43,23 +45,83 @@ META_ENTRY = struct.Struct(">HHI")
 
 # --------------------------------------------------------------------------------------------
 # CRC-64/ECMA-182: poly 0x42F0E1EBA9EA3693, init 0, no reflection, xorout 0 (protocol doc 1.3).
-# crcmod's C extension is ~30x faster than its pure-Python fallback; say so loudly if missing.
+#
+# Two backends, chosen by size (docs/BENCHMARKS.md, "igtl: CRC backends and big bodies"):
+# anycrc (carry-less multiply) runs ~10 GB/s but pays ~0.4 us per call whatever the size;
+# crcmod's C extension runs ~0.33 GB/s at ~0.15 us per call. They cost the same at ~100 bytes,
+# so bodies below CRC_SMALL (TRANSFORM, POSITION, STATUS: the 500 Hz and 100k msg/s streams)
+# keep crcmod's table loop, called without its Python wrapper, and everything larger goes to
+# anycrc (256 KiB: 32 us instead of 750 us). Neither releases the interpreter lock, which is
+# why StreamDecoder checksums a big body piece by piece as it arrives.
+# Both chain: crc64(b, crc64(a)) == crc64(a + b) (init 0 and xorout 0 make the register the
+# result), which is what the incremental check relies on.
+CRC_POLY = 0x42F0E1EBA9EA3693
+#: Bodies shorter than this many bytes are checksummed by crcmod, longer ones by anycrc.
+CRC_SMALL = 100
+
+_crcmod_fun = crcmod.mkCrcFun(1 << 64 | CRC_POLY, rev=False, initCrc=0, xorOut=0)
+# mkCrcFun returns a Python closure around (C function, table); calling the C function directly
+# saves a Python frame on every small message. Its defaults are (crc, table, fun).
+_crcmod_table: bytes = _crcmod_fun.__defaults__[1]  # type: ignore[index]
+_crcmod_c = _crcmod_fun.__defaults__[2]  # type: ignore[index]
+
 try:
     from crcmod import _crcfunext  # noqa: F401  (presence check only)
 
     CRC_ACCELERATED = True
 except ImportError:  # pragma: no cover - depends on the installation
     CRC_ACCELERATED = False
+
+try:
+    import anycrc
+
+    _anycrc_calc = anycrc.CRC(
+        width=64, poly=CRC_POLY, init=0, refin=False, refout=False, xorout=0
+    ).calc
+    if _anycrc_calc(b"123456789") != 0x6C40DF5F0B497347:  # pragma: no cover - a broken build
+        raise ImportError("anycrc gives the wrong CRC-64/ECMA-182 check value")
+    #: Name of the backend that checksums bodies of CRC_SMALL bytes and more.
+    CRC_BACKEND = "anycrc"
+except ImportError as err:  # pragma: no cover - depends on the installation
+    _anycrc_calc = None
+    CRC_BACKEND = "crcmod"
     _msg = (
-        "igtl: crcmod's C extension is not available; CRC-64 falls back to pure Python "
-        "(25-40x slower). Reinstall crcmod with a C compiler present: "
-        "pip install --force-reinstall --no-binary crcmod crcmod"
+        f"igtl: anycrc is not available ({err}); CRC-64 of large bodies falls back to crcmod "
+        "(~30x slower: ~750 us per 256 KiB, holding the interpreter lock). "
+        "pip install anycrc"
     )
     warnings.warn(_msg, RuntimeWarning, stacklevel=2)
     log.warning(_msg)
 
-crc64 = crcmod.mkCrcFun(0x142F0E1EBA9EA3693, rev=False, initCrc=0, xorOut=0)
-"""CRC-64/ECMA-182 of a bytes-like object (check value for b"123456789": 0x6C40DF5F0B497347)."""
+if not CRC_ACCELERATED:  # pragma: no cover - depends on the installation
+    _msg = (
+        "igtl: crcmod's C extension is not available; CRC-64 of small bodies falls back to "
+        "pure Python (25-40x slower). Reinstall crcmod with a C compiler present: "
+        "pip install --force-reinstall --no-binary crcmod crcmod"
+    )
+    if _anycrc_calc is not None:
+        CRC_SMALL = 0  # anycrc's fixed cost beats crcmod's pure Python at every size
+    warnings.warn(_msg, RuntimeWarning, stacklevel=2)
+    log.warning(_msg)
+
+
+def crc64_crcmod(data: bytes | bytearray | memoryview, crc: int = 0) -> int:
+    """CRC-64/ECMA-182 by crcmod alone (the cross-check in tests), chained from ``crc``."""
+    return _crcmod_c(data, crc, _crcmod_table)  # type: ignore[no-any-return]
+
+
+if _anycrc_calc is None:  # pragma: no cover - depends on the installation
+    _crc_big = crc64_crcmod
+else:
+    _crc_big = _anycrc_calc
+
+
+def crc64(data: bytes | bytearray | memoryview, crc: int = 0) -> int:
+    """CRC-64/ECMA-182 of a bytes-like object (check value for b"123456789":
+    0x6C40DF5F0B497347), chained from ``crc``: ``crc64(b, crc64(a)) == crc64(a + b)``."""
+    if len(data) < CRC_SMALL:
+        return _crcmod_c(data, crc, _crcmod_table)  # type: ignore[no-any-return]
+    return _crc_big(data, crc)  # type: ignore[no-any-return]
 
 
 # --------------------------------------------------------------------------------------------
@@ -184,24 +246,32 @@ def seconds_to_raw(t: float) -> int:
 
 # --------------------------------------------------------------------------------------------
 # Fixed-size, NUL-padded text fields (type name, device name, and the content-level names).
-def _text(raw: bytes) -> str:
-    """Name bytes as text: UTF-8 (what 3D Slicer and pyigtl write), else latin-1 (never fails).
+def _canonical_text(raw: bytes, what: str, offset: int) -> str:
+    """A NUL-padded field's text: up to the first NUL, UTF-8, else latin-1 (never fails on the
+    text itself: names from operator tools are answered, tests/occ).
 
-    The protocol only promises ASCII; UTF-8 is what real peers send for other characters.
+    Bytes other than NUL after the first NUL would be lost on re-packing, so they are refused
+    with InvalidTextError. Latin-1 names (invalid UTF-8) are kept readable and re-pack as UTF-8:
+    a known gap in byte-exactness (codec.py docstring).
     """
-    try:
-        return raw.decode("utf-8")
-    except UnicodeDecodeError:
-        return raw.decode("latin-1")
-
-
-def decode_fixed(raw: bytes | memoryview) -> str:
-    """Decode a NUL-padded field: up to the first NUL, UTF-8 with a latin-1 fallback."""
-    raw = bytes(raw)
     end = raw.find(b"\x00")
-    if end >= 0:
-        raw = raw[:end]
-    return _text(raw)
+    text_raw = raw if end < 0 else raw[:end]
+    if end >= 0 and raw.count(0, end) != len(raw) - end:
+        raise InvalidTextError(
+            f"{what}: non-NUL bytes after the NUL terminator", offset=offset + end
+        )
+    try:
+        return text_raw.decode("utf-8")
+    except UnicodeDecodeError:
+        return text_raw.decode("latin-1")
+
+
+def decode_fixed(
+    raw: bytes | bytearray | memoryview, what: str = "text field", offset: int = 0
+) -> str:
+    """Decode a NUL-padded field: up to the first NUL (UTF-8, else latin-1), all NUL after it
+    (else InvalidTextError: those bytes would not survive re-encoding)."""
+    return _canonical_text(bytes(raw), what, offset)
 
 
 def encode_fixed(text: str, size: int, what: str) -> bytes:
@@ -227,15 +297,24 @@ _encoded_types: dict[str, bytes] = {}
 _encoded_devices: dict[str, bytes] = {}
 
 
-def _decode_name(raw: bytes) -> str:
+def _decode_name(raw: bytes, what: str, offset: int) -> str:
     name = _decoded_names.get(raw)
     if name is None:
-        end = raw.find(b"\x00")
-        name = _text(raw if end < 0 else raw[:end])
+        name = _canonical_text(raw, what, offset)  # refusals are not cached: they raise
         if len(_decoded_names) >= _NAME_CACHE_MAX:
             _decoded_names.clear()
         _decoded_names[raw] = name
     return name
+
+
+def _lenient(raw: bytes) -> str:
+    """A refused name, readable in the error report: up to the first NUL, latin-1 if need be."""
+    end = raw.find(b"\x00")
+    raw = raw if end < 0 else raw[:end]
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        return raw.decode("latin-1")
 
 
 def _encode_name(text: str, cache: dict[str, bytes], size: int, what: str) -> bytes:
@@ -272,10 +351,17 @@ def header_fields(
             f"header needs {HEADER_SIZE} bytes, got {len(data) - offset}", offset=offset
         )
     version, mtype, device, ts, body_size, crc = _unpack_header_from(data, offset)
-    message_type = _decoded_names.get(mtype) or _decode_name(mtype)
+    message_type = _decoded_names.get(mtype)
     device_name = _decoded_names.get(device)
-    if device_name is None:
-        device_name = _decode_name(device)
+    bad_name: InvalidTextError | None = None
+    if message_type is None or device_name is None:
+        try:
+            message_type = _decode_name(mtype, "message type", offset + 2)
+            device_name = _decode_name(device, "device name", offset + 14)
+        except InvalidTextError as err:
+            bad_name = err
+            message_type = _lenient(mtype)
+            device_name = _lenient(device)
     if version != 1 and version != 2:
         raise UnknownHeaderVersionError(
             f"unknown header version {version} (supported: 1, 2)",
@@ -290,6 +376,14 @@ def header_fields(
             message_type=message_type,
             device_name=device_name,
         )
+    if bad_name is not None:
+        raise HeaderTextError(
+            str(bad_name),
+            body_size=body_size,
+            offset=bad_name.offset,
+            message_type=message_type,
+            device_name=device_name,
+        ) from bad_name
     return version, message_type, device_name, ts, body_size, crc
 
 
@@ -322,7 +416,10 @@ def pack_header(
             _encode_name(device_name, _encoded_devices, DEVICE_NAME_SIZE, "device name"),
             timestamp_raw,
             len(body),
-            crc64(body) if body else 0,
+            # crc64() inlined: this runs for every message sent
+            (_crcmod_c(body, 0, _crcmod_table) if len(body) < CRC_SMALL else _crc_big(body, 0))
+            if body
+            else 0,
         )
     except struct.error as err:
         raise ValueError(f"cannot pack header: {err}") from err
@@ -442,7 +539,9 @@ def pack_metadata(metadata: Mapping[str, str], encodings: Mapping[str, int]) -> 
 
 
 def unpack_metadata(
-    meta_header: bytes | memoryview, meta_data: bytes | memoryview, base_offset: int = 0
+    meta_header: bytes | bytearray | memoryview,
+    meta_data: bytes | bytearray | memoryview,
+    base_offset: int = 0,
 ) -> tuple[dict[str, str], dict[str, int]]:
     """Decode metadata; returns (values in wire order, encodings that differ from the default).
 
@@ -511,7 +610,7 @@ class BodyLayout(NamedTuple):
     message_id: int
 
 
-def split_v2_body(body: bytes | memoryview, base_offset: int = 58) -> BodyLayout:
+def split_v2_body(body: bytes | bytearray | memoryview, base_offset: int = 58) -> BodyLayout:
     """Validate the extended header of a v2 body and locate content and metadata (doc 2.1)."""
     n = len(body)
     if n < EXT_HEADER_SIZE:

@@ -162,7 +162,7 @@ class BindMessage(Message):
                 raise ContentError(
                     f"BIND child {name!r} of {csize} bytes overruns the content", offset=pos
                 )
-            children.append(BindChild(unfixed(ctype), name, content[pos:end]))
+            children.append(BindChild(unfixed(ctype), name, bytes(content[pos:end])))
             pos = end + (csize % 2)
         if pos < size or pos > size + 1:  # tolerate a missing pad after an odd last child
             raise ContentError(f"BIND: {size - pos} bytes follow the last child", offset=pos)

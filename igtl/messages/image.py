@@ -268,6 +268,8 @@ class ImageMessage(Message):
         pixels = np.frombuffer(
             content, dtype=dtype.newbyteorder(_BYTE_ORDER[endian]), count=count, offset=72
         ).reshape(sub[2], sub[1], sub[0], ncomp)
+        # read-only whatever the content is: a big body arrives as a bytearray (codec.py)
+        pixels.flags.writeable = False
         return cls(pixels, els, size, offset, coord, endian, **common)
 
     def __eq__(self, other: object) -> bool:

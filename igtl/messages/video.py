@@ -168,7 +168,7 @@ class VideoMessage(Message):
             raise ContentError(f"VIDEO content must be >= 76 bytes, got {len(content)}", offset=0)
         v = _VIDEO_HEAD.unpack_from(content, 0)
         return cls(
-            content[76:],
+            bytes(memoryview(content)[76:]),  # one copy, also from a bytearray (codec.py)
             unfixed(v[2]),
             v[3],
             v[1],

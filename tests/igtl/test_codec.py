@@ -218,3 +218,145 @@ def test_close_with_partial_message():
 
 def test_memoryview_and_bytearray_input():
     assert igtl.unpack(bytearray(TRANSFORM)) == igtl.unpack(memoryview(TRANSFORM))
+
+
+# ---------------------------------------------------------------------------- big bodies
+def big_image(side: int = 700, version: int = 1, seed: int = 0) -> igtl.ImageMessage:
+    import numpy as np
+
+    px = np.random.default_rng(seed).integers(0, 65535, (side, side), dtype=np.uint16)
+    msg = igtl.ImageMessage.from_array(px, device_name="Big")
+    if version == 2:
+        msg = msg.replace(header_version=2, metadata={"b": "2", "a": "1"}, message_id=7)
+    return msg
+
+
+def feed_in_pieces(dec: igtl.StreamDecoder, data: bytes, step: int) -> list[igtl.Message]:
+    out: list[igtl.Message] = []
+    view = memoryview(data)
+    for i in range(0, len(data), step):
+        dec.feed(view[i : i + step])
+        out.extend(dec)
+    return out
+
+
+@pytest.mark.parametrize("version", [1, 2])
+@pytest.mark.parametrize("step", [1000, 65536, 256 * 1024, 10**7])
+def test_big_body_in_pieces(version, step):
+    msg = big_image(version=version)  # ~1 MiB body, above BIG_BODY
+    stream = TRANSFORM + msg.pack() + TRANSFORM2
+    dec = igtl.StreamDecoder()
+    out = feed_in_pieces(dec, stream, step)
+    assert out == [igtl.unpack(TRANSFORM), msg, igtl.unpack(TRANSFORM2)]
+    assert not out[1].pixels.flags.writeable
+    assert dec.buffered == 0 and dec.offset == len(stream) and dec.messages == 3
+    dec.close()
+
+
+def test_big_body_byte_at_a_time():
+    msg = big_image(side=40, version=2)  # 3.2 kB body: the big path with big_body=1000
+    stream = msg.pack() + TRANSFORM
+    dec = igtl.StreamDecoder(big_body=1000)
+    out = feed_in_pieces(dec, stream, 1)
+    assert out == [msg, igtl.unpack(TRANSFORM)]
+    dec.close()
+
+
+def test_big_body_crc_is_computed_as_the_bytes_arrive(monkeypatch):
+    """No CRC call covers more than the piece just fed: the work per feed is bounded by what
+    the transport read, whatever the body size."""
+    from igtl import codec
+
+    sizes: list[int] = []
+    real = codec._crc64
+
+    def counting(data, crc=0):
+        sizes.append(len(data))
+        return real(data, crc)
+
+    monkeypatch.setattr(codec, "_crc64", counting)
+    data = big_image(side=1000).pack()  # ~2 MB body
+    dec = igtl.StreamDecoder()
+    step = 64 * 1024
+    out = feed_in_pieces(dec, data, step)
+    assert len(out) == 1 and out[0] == igtl.unpack(data)
+    assert sizes and max(sizes) <= step
+    assert sum(sizes) == len(data) - 58
+
+
+def test_big_body_is_not_copied_when_complete():
+    """The last piece of an 8 MB IMAGE costs no copy of the body: the pixels view
+    the buffer the body was collected in."""
+    data = big_image(side=2000).pack()
+    dec = igtl.StreamDecoder()
+    step = 256 * 1024
+    last = (len(data) - 1) // step * step
+    tracemalloc.start()  # before the body's buffer is made, so that its growth is accounted
+    try:
+        assert feed_in_pieces(dec, data[:last], step) == []
+        before, _ = tracemalloc.get_traced_memory()
+        tracemalloc.reset_peak()
+        dec.feed(data[last:])
+        out = list(dec)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert len(out) == 1 and out[0] == igtl.unpack(data)
+    # the buffer may grow by its over-allocation (1/8); a copy of the body would add 8 MB
+    assert peak - before < len(data) // 4, (before, peak)
+
+
+@pytest.mark.parametrize("version", [1, 2])
+def test_big_body_crc_mismatch_is_recoverable(version):
+    good = big_image(version=version).pack()
+    bad = bytearray(good)
+    bad[len(bad) // 2] ^= 0x10  # a pixel bit; the header's CRC left alone
+    stream = TRANSFORM + bytes(bad) + TRANSFORM2
+    dec = igtl.StreamDecoder()
+    out: list[igtl.Message] = []
+    errors: list[DecodeError] = []
+    view = memoryview(stream)
+    for i in range(0, len(stream), 65536):
+        dec.feed(view[i : i + 65536])
+        while True:
+            try:
+                msg = dec.next_message()
+            except DecodeError as err:
+                errors.append(err)
+                continue
+            if msg is None:
+                break
+            out.append(msg)
+    assert out == [igtl.unpack(TRANSFORM), igtl.unpack(TRANSFORM2)]
+    assert len(errors) == 1 and isinstance(errors[0], CRCError) and errors[0].recoverable
+    assert errors[0].offset == len(TRANSFORM) + 58 and errors[0].message_type == "IMAGE"
+    assert dec.errors == 1 and not dec.failed
+    # without the check the damaged body decodes (and differs from the original)
+    dec = igtl.StreamDecoder(crc_check=False)
+    got = feed_in_pieces(dec, bytes(bad), 65536)
+    assert len(got) == 1 and got[0] != igtl.unpack(good)
+
+
+def test_big_body_bad_content_is_recoverable():
+    msg = big_image()
+    data = bytearray(msg.pack())
+    data[58 + 3] = 99  # scalar type 99: not defined
+    data[50:58] = struct.pack(">Q", wire.crc64(bytes(data[58:])))
+    dec = igtl.StreamDecoder()
+    dec.feed(bytes(data[:100_000]))
+    assert list(dec) == []
+    dec.feed(bytes(data[100_000:]) + TRANSFORM)
+    with pytest.raises(ContentError) as e:
+        list(dec)
+    assert e.value.offset == 58 + 3 and e.value.recoverable
+    assert list(dec) == [igtl.unpack(TRANSFORM)]
+
+
+def test_big_body_truncated_at_close():
+    data = big_image().pack()
+    dec = igtl.StreamDecoder()
+    assert feed_in_pieces(dec, data[:-10], 65536) == []
+    assert dec.buffered == len(data) - 10
+    with pytest.raises(TruncatedMessageError) as e:
+        dec.close()
+    assert e.value.message_type == "IMAGE"

@@ -7,6 +7,8 @@ OpenIGTLink test data; BSD-style licence, Copyright Insight Software Consortium)
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -306,3 +308,181 @@ def test_random_content_for_every_type(mtype, content, version):
     except igtl.DecodeError:
         return
     assert m.message_type == mtype
+
+
+# ---------------------------------------------------------------------------- big bodies
+def _same_fields(a: base.Message, b: base.Message) -> None:
+    """Equal, and equal down to field types and array writability (bytes stay bytes)."""
+    assert a == b
+    for f in dataclasses.fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        assert type(x) is type(y), f.name
+        if isinstance(x, np.ndarray):
+            assert x.flags.writeable == y.flags.writeable, f.name
+        if isinstance(x, (tuple, list)):
+            for xi, yi in zip(x, y, strict=True):
+                assert type(xi) is type(yi), f.name
+                if dataclasses.is_dataclass(xi):
+                    for g in dataclasses.fields(xi):
+                        assert type(getattr(xi, g.name)) is type(getattr(yi, g.name)), g.name
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(messages(), min_size=1, max_size=4), st.data())
+def test_big_body_path_decodes_like_unpack(msgs, data):
+    """With big_body=1 every body that arrives in pieces is collected apart, checksummed piece
+    by piece and decoded from its own bytearray: the messages must be those unpack gives."""
+    stream = b"".join(m.pack() for m in msgs)
+    cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=12)))
+    dec = igtl.StreamDecoder(big_body=1)
+    out = []
+    prev = 0
+    for cut in [*cuts, len(stream)]:
+        dec.feed(stream[prev:cut])
+        out.extend(dec)
+        prev = cut
+    dec.close()
+    assert len(out) == len(msgs)
+    for got, m in zip(out, msgs, strict=True):
+        _same_fields(got, igtl.unpack(m.pack()))
+
+
+# ---------------------------------------------------------------------------- exact re-pack
+ALL_SEEDS = [p.read_bytes() for p in sorted(VECTORS_DIR.glob("*.bin")) if p.name != "rtpwrapper.bin"]
+
+
+def _with_crc(data: bytes | bytearray) -> bytes:
+    data = bytearray(data)
+    data[50:58] = wire.HEADER.pack(0, b"", b"", 0, 0, wire.crc64(bytes(data[58:])))[50:58]
+    return bytes(data)
+
+
+def _repacks_exactly(data: bytes) -> None:
+    try:
+        msg = igtl.unpack(data)
+    except igtl.DecodeError:
+        return  # refused: fine, as long as it is an IGTLError
+    assert msg.pack() == data
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.sampled_from(ALL_SEEDS), st.integers(2, 33), st.binary(min_size=1, max_size=4))
+def test_header_names_repack_exactly_or_are_refused(seed, pos, raw):
+    """TYPE and DEVICE_NAME: any bytes there either decode and re-pack to the same bytes, or
+    (bytes after a NUL) are refused with HeaderTextError, recoverably."""
+    data = bytearray(seed)
+    data[pos : pos + len(raw)] = raw
+    data = _with_crc(data[: len(seed)])
+    try:
+        msg = igtl.unpack(data)
+    except igtl.errors.HeaderTextError as err:
+        assert err.recoverable
+        dec = igtl.StreamDecoder()
+        dec.feed(data + seed)
+        with pytest.raises(igtl.errors.HeaderTextError):
+            list(dec)
+        assert list(dec) == [igtl.unpack(seed)]  # skipped, and the stream goes on
+        return
+    except igtl.DecodeError:
+        return
+    names = (data[2:14] + data[14:34]).replace(b"\0", b"")
+    try:
+        names.decode("utf-8")
+    except UnicodeDecodeError:
+        return  # latin-1 names: a known gap (test_known_non_exact_inputs)
+    assert msg.pack() == data
+
+
+@settings(max_examples=200, deadline=None)
+@given(messages())
+def test_every_random_message_repacks_exactly(msg):
+    data = msg.pack()
+    assert igtl.unpack(data).pack() == data
+    dec = igtl.StreamDecoder(big_body=1)
+    for i in range(0, len(data), 7):
+        dec.feed(data[i : i + 7])
+    assert [m.pack() for m in dec] == [data]
+
+
+# ---------------------------------------------------------------------------- damage is refused
+@settings(max_examples=300, deadline=None)
+@given(st.sampled_from(ALL_SEEDS) | messages().map(lambda m: m.pack()), st.integers(0, 10**9),
+       st.integers(0, 7))
+def test_a_flipped_body_bit_is_a_crc_error(data, pos, bit):
+    if len(data) == 58:
+        return
+    bad = bytearray(data)
+    bad[58 + pos % (len(data) - 58)] ^= 1 << bit
+    with pytest.raises(igtl.errors.CRCError) as e:
+        igtl.unpack(bytes(bad))
+    assert e.value.recoverable and e.value.offset == 58
+    dec = igtl.StreamDecoder()
+    dec.feed(bytes(bad) + data)
+    with pytest.raises(igtl.errors.CRCError):
+        dec.next_message()
+    assert [m.pack() for m in dec] == [data]  # the next message is intact
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.sampled_from(ALL_SEEDS) | messages().map(lambda m: m.pack()), st.integers(0, 10**9))
+def test_a_truncated_message_is_a_truncation_error(data, cut):
+    short = data[: cut % len(data)]
+    with pytest.raises(igtl.errors.TruncatedMessageError):
+        igtl.unpack(short)
+    dec = igtl.StreamDecoder()
+    dec.feed(short)
+    assert list(dec) == []
+    if short:
+        with pytest.raises(igtl.errors.TruncatedMessageError):
+            dec.close()
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.sampled_from(ALL_SEEDS) | messages().map(lambda m: m.pack()), st.integers(1, 10**6))
+def test_a_wrong_body_size_is_refused(data, size):
+    n = len(data) - 58
+    if size == n:
+        return
+    bad = bytearray(data)
+    bad[42:50] = size.to_bytes(8, "big")
+    bad = bytes(bad)
+    if size > n:
+        with pytest.raises(igtl.errors.TruncatedMessageError):
+            igtl.unpack(bad)
+    else:
+        with pytest.raises(igtl.DecodeError, match="follow"):
+            igtl.unpack(bad)
+        dec = igtl.StreamDecoder()
+        dec.feed(bad)
+        # the body it frames is not the one summed, unless the CRC cannot tell (init 0: a
+        # body of zero bytes sums to 0 whatever its length)
+        if wire.crc64(bad[58 : 58 + size]) != wire.unpack_header(data).crc:
+            with pytest.raises(igtl.errors.CRCError):
+                dec.next_message()
+
+
+def _known_gaps() -> list[bytes]:
+    v = {p.name: p.read_bytes() for p in VECTORS_DIR.glob("*.bin")}
+    unsorted = bytearray(v["transformFormat2.bin"])  # swap the two metadata entries
+    meta = bytes(unsorted[-57:])
+    unsorted[-57:] = meta[:2] + meta[10:18] + meta[2:10] + meta[-20:] + meta[-39:-20]
+    image_version = bytearray(v["image.bin"])
+    image_version[59] = 4  # IMAGE header version 4 instead of 1
+    latin1 = bytearray(v["transform.bin"])
+    latin1[14:16] = b"\xe9\xe9"  # a latin-1 device name
+    snan = bytearray(v["transform.bin"])
+    snan[58:62] = b"\x7f\xa0\x00\x00"  # a float32 signalling NaN
+    return [_with_crc(b) for b in (unsorted, image_version, snan, latin1)]
+
+
+# Known to come back different (issue 8, left for later): names that are not UTF-8 (decoded as
+# latin-1 so that operator tools get an answer, tests/occ; re-packed as UTF-8); v2 metadata
+# not sorted by key on the
+# wire is re-packed sorted (duplicate keys collapse; EXT_HEADER_SIZE > 12 loses its extra bytes
+# too); reserved, version or padding bytes that are not the canonical value (IMAGE/VIDEOMETA
+# headers, TDATA/TRAJ/IMGMETA/LBMETA/POLYDATA) come back canonical; float32 signalling NaNs come
+# back quiet (the interpreter's float conversion). Each needs the raw bytes kept or a refusal.
+@pytest.mark.xfail(strict=True, reason="not byte-exact yet (issue 8): see the comment above")
+@pytest.mark.parametrize("data", _known_gaps(), ids=["metadata-order", "image-version", "snan", "latin1-name"])
+def test_known_non_exact_inputs(data):
+    _repacks_exactly(data)
