@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--switch-us", type=float, default=None,
                    help="override robot.realtime.switch_interval_us (both daemons)")
     p.add_argument("--phase-lock-us", type=float, default=None,
-                   help="override the slave's teleop.phase_lock_us (negative = off)")
+                   help="override the slave controller's phase_lock_us (negative = off)")
     p.add_argument("--no-load", action="store_true",
                    help="the slave alone (no master stream, no TCP clients): the baseline")
     p.add_argument("--cpu-load-only", action="store_true",
@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.cpu is not None:
         slave["robot"]["realtime"]["cpu"] = args.cpu
     if args.phase_lock_us is not None:
-        slave["teleop"]["phase_lock_us"] = None if args.phase_lock_us < 0 else args.phase_lock_us
+        slave["controller"]["params"]["phase_lock_us"] = None if args.phase_lock_us < 0 else args.phase_lock_us
     if args.switch_us is not None:
         slave["robot"]["realtime"]["switch_interval_us"] = args.switch_us
         master["robot"]["realtime"]["switch_interval_us"] = args.switch_us

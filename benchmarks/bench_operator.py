@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 import igtl  # noqa: E402
 from igtl.transport import Peer  # noqa: E402
 from occ.clock import SimClock  # noqa: E402
-from occ.config import load_config  # noqa: E402
+from occ.loader import load_config  # noqa: E402
 from occ.robot import build_robot  # noqa: E402
 
 MASTER = Peer(1, ("127.0.0.1", 40000))

@@ -23,7 +23,7 @@ import igtl
 from igtl.transport import Peer
 from occ.clock import SimClock
 from occ.interfaces import Inbound
-from occ.config import load_config
+from occ.loader import load_config
 from occ.robot import build_robot
 
 ROOT = Path(__file__).resolve().parents[1]

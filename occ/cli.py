@@ -24,8 +24,8 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from .config import load_config
 from .errors import ConfigError, OCCError
+from .loader import load_config
 
 EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, EXIT_FAULT = 0, 1, 2, 3
 

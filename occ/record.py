@@ -28,12 +28,15 @@ import threading
 import time
 from collections import deque
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 import igtl
 from igtl.messages.base import Message
+
+if TYPE_CHECKING:
+    from .data import RobotData
 
 log = logging.getLogger(__name__)
 
@@ -104,29 +107,29 @@ class Recorder:
         if self.include_messages and self._file is not None:
             self._put(("msg", msg, direction, interface, now))
 
-    def record_state(self, robot: Any, now: float) -> None:
+    def record_state(self, data: RobotData, now: float) -> None:
         if self._file is None or now < self._next_state:
             return
         self._next_state = now + 1.0 / self.rate_hz
         if self._columns is None:
-            names = [j.name for j in robot.joints]
+            names = data.joint_names
             self._columns = ",".join(
                 ["t", "state"]
                 + [f"q.{n}" for n in names]
                 + [f"sp.{n}" for n in names]
                 + ["tip.x_mm", "tip.y_mm", "tip.z_mm"]
             )
-        tip = robot.tip
+        tip = data.tip
         row = [
             now,
-            float(STATE_CODES.get(robot.state.value, -1)),
-            *robot.q,
-            *(robot.setpoint if robot.state.value == "RUNNING" else robot.hold_setpoint),
+            float(STATE_CODES.get(data.state.value, -1)),
+            *data.q,
+            *data.commanded(),
             tip[0, 3] * 1000.0,
             tip[1, 3] * 1000.0,
             tip[2, 3] * 1000.0,
         ]
-        self._put(("state", row, robot.clock.wall_time()))
+        self._put(("state", row, data.clock.wall_time()))
 
     # ------------------------------------------------------------------ writer thread
     def _encode(self, item: tuple[Any, ...]) -> bytes:

@@ -38,7 +38,8 @@ from igtl.messages.base import Message
 from igtl.transport import InprocTransport, Peer
 
 from .clock import SimClock
-from .config import DaemonConfig, load_config
+from .config import DaemonConfig
+from .loader import load_config
 from .robot import Robot, build_robot
 
 __all__ = ["SimPeer", "SimRobot", "inproc_config"]
@@ -182,24 +183,22 @@ class SimPeer:
 class SimRobot:
     """A robot in simulated time on in-process interfaces (see the module docstring).
 
-    ``config``: a path, a :class:`DaemonConfig` or a mapping; ``teleop``: fields of the teleop
-    section to override. The robot is configured (READY) and activated (its interfaces on their
-    channels) on construction; :meth:`close` shuts it down.
+    ``config``: a path, a :class:`DaemonConfig` or a mapping; ``params``: parameters of its
+    (single) controller plugin to override. The robot is configured (READY) and activated
+    (its interfaces on their channels) on construction; :meth:`close` shuts it down.
     """
 
     def __init__(
         self,
         config: DaemonConfig | str | os.PathLike[str] | Mapping[str, Any],
         *,
-        teleop: Mapping[str, Any] | None = None,
+        params: Mapping[str, Any] | None = None,
         recorder: Any | None = None,
         clock: SimClock | None = None,
     ) -> None:
         cfg = _as_config(config)
-        if teleop:
-            if cfg.teleop is None:
-                raise ValueError("teleop overrides given, but the config has no teleop section")
-            cfg = cfg.model_copy(update={"teleop": cfg.teleop.model_copy(update=dict(teleop))})
+        if params:
+            cfg = cfg.with_params(**params)
         self.config = inproc_config(cfg)
         self.clock = clock if clock is not None else SimClock()
         self.robot: Robot = build_robot(self.config, clock=self.clock, recorder=recorder)

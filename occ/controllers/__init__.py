@@ -1,52 +1,141 @@
-"""Controllers: what the robot does while RUNNING.
+"""Controllers: what the robot does while RUNNING, as plugins (the way drivers are).
 
-A controller never touches hardware (ros2_control's rule): each tick it reads the robot's state
-(joint positions, tip pose) and the samples drained from its input streams, and returns joint
-setpoints. The robot passes those to its drivers, which check state and limits.
+A controller never touches hardware and never holds the Robot (ros2_control's rule). It is
+given, once, the robot's :class:`~occ.data.RobotData` (joint state, tip, base, robot state) and
+a narrow :class:`ControllerContext` (clock, kinematics, the loop's phase, the interface names);
+each tick it reads the samples drained from its input streams and returns joint setpoints. The
+Robot passes those to its drivers, which check state and limits.
 
-Hooks, all called on the loop thread:
+Plugins
+    Looked up by name like drivers and python-can's buses: the built-in table below, then the
+    entry points of group ``occ.controllers`` (``name = "package.module:Class"``), then
+    :func:`register_controller`. A config selects one or several::
 
-- ``bind(robot)``: once, when the robot is built (register output sources, find interfaces);
-- ``on_sample(item, now)``: every stream sample drained this tick, in arrival order;
-- ``on_command(request, now) -> str | None``: an operator command the robot does not handle
-  itself (e.g. ``Clutch``); return a reply message, or raise CommandError;
-- ``on_state(old, new, now)``: after every state transition (re-reference on RUNNING);
-- ``update(now) -> Sequence[float] | None``: joint setpoints while RUNNING; None = hold.
+        controller: {plugin: teleop-slave, params: {scale: 0.1}}
+        controller: [{plugin: a, params: {...}}, {plugin: b}]
+
+    Each class declares its parameters as a pydantic model (``Params``, unknown keys refused):
+    they are validated when the file is loaded (``FILE:LINE`` errors, ``occd --check``) and
+    listed in docs/CONFIG.md. ``check(params, config)`` adds checks against the rest of the file
+    (e.g. that a named interface exists).
+
+Interfaces (ros2_control's model)
+    ``state_interfaces()`` names what it reads (``yaw/position``), ``command_interfaces()`` what
+    it commands; each command interface has one owner, checked when the robot is built, so two
+    controllers never fight over a joint. A controller that commands nothing (a monitor, a
+    hand-moved master) returns ``()``.
+
+Hooks, all on the loop thread: ``configure(data, ctx)`` once; ``on_sample(item, now)`` for every
+stream sample and discrete input, in arrival order; ``on_command(request, now) -> str | None``
+for the operator commands it lists in ``commands()`` (a command nobody lists is offered to each
+in turn); ``on_state(old, new, now)`` after every
+transition; ``update(now) -> setpoints | None`` while RUNNING (None = hold); ``outputs()`` the
+named output sources it adds (``source: NAME`` in an interface's outputs); ``stats()``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+import importlib
+import logging
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from importlib.metadata import entry_points
+from typing import TYPE_CHECKING, Any, ClassVar
+
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from ..errors import CommandError, ConfigError
 
 if TYPE_CHECKING:
+    from igtl.messages.base import Message
+
+    from ..clock import Clock
     from ..commands import Request
+    from ..config import DaemonConfig
+    from ..data import RobotData
+    from ..frame import Frame
     from ..interfaces import Inbound
-    from ..robot import Robot
+    from ..outputs import Output
     from ..safety import RobotState
+
+log = logging.getLogger(__name__)
+
+ENTRY_POINT_GROUP = "occ.controllers"
+
+BUILTIN_CONTROLLERS: dict[str, str] = {
+    "hold": "occ.controllers:Controller",
+    "teleop-master": "occ.controllers.teleop:MasterController",
+    "teleop-slave": "occ.controllers.teleop:SlaveController",
+}
+
+SourceFn = Callable[["Output", float], "Message | None"]
+#: a problem found by :meth:`Controller.check`: (path inside the controller's params, message)
+Problem = tuple[tuple[str | int, ...], str]
+
+
+class NoParams(BaseModel):
+    """A controller without parameters."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+@dataclass(frozen=True)
+class ControllerContext:
+    """What a controller may use besides the robot's data: no Robot, no drivers."""
+
+    clock: Clock
+    frame: Frame
+    rate_hz: float
+    #: names of the daemon's interfaces (a controller filters its samples by them)
+    interfaces: tuple[str, ...]
+    #: the loop's phase: its first deadline (NaN while not running) and period, in seconds
+    loop_t0: Callable[[], float]
+    period_s: float
+    #: ask the loop to move its next deadlines by this many seconds (phase lock)
+    shift: Callable[[float], None]
 
 
 class Controller:
-    """Base controller: holds position (returns None) and handles nothing."""
+    """Base controller: holds position (returns None) and handles nothing. Plugin name
+    ``hold``."""
 
-    name = "hold"
+    name: ClassVar[str] = "hold"
+    Params: ClassVar[type[BaseModel]] = NoParams
     #: False for devices moved by hand (a passive haptic master): the robot then never writes
     #: position commands to the drivers, it only reads them.
     drives_joints = True
 
-    def __init__(self, params: dict[str, Any] | None = None) -> None:
-        self.params = dict(params or {})
-        self.robot: Robot | None = None
+    def __init__(self, params: BaseModel | Mapping[str, Any] | None = None) -> None:
+        self.params = params if isinstance(params, BaseModel) else self.Params(**dict(params or {}))
+        self.data: RobotData | None = None
+        self.ctx: ControllerContext | None = None
 
-    def bind(self, robot: Robot) -> None:
-        self.robot = robot
+    @classmethod
+    def check(cls, params: Any, config: DaemonConfig) -> list[Problem]:
+        """Problems of validated ``params`` against the rest of the configuration."""
+        return []
+
+    def configure(self, data: RobotData, ctx: ControllerContext) -> None:
+        self.data = data
+        self.ctx = ctx
+
+    def state_interfaces(self) -> tuple[str, ...]:
+        assert self.data is not None
+        return tuple(f"{j}/position" for j in self.data.joint_names)
+
+    def command_interfaces(self) -> tuple[str, ...]:
+        assert self.data is not None
+        if not self.drives_joints:
+            return ()
+        return tuple(f"{j}/position" for j in self.data.joint_names)
+
+    def outputs(self) -> dict[str, SourceFn]:
+        return {}
 
     def on_sample(self, item: Inbound, now: float) -> None:
         return None
 
     def on_command(self, request: Request, now: float) -> str | None:
-        from ..errors import CommandError
-
         raise CommandError(f"unknown command {request.name!r}")
 
     def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
@@ -61,3 +150,173 @@ class Controller:
 
     def stats(self) -> dict[str, Any]:
         return {}
+
+
+# ------------------------------------------------------------------------------ registry
+_registered: dict[str, str | type[Controller]] = {}
+_entry_point_table: dict[str, str] | None = None
+
+
+def _entry_points() -> dict[str, str]:
+    global _entry_point_table
+    if _entry_point_table is None:
+        table: dict[str, str] = {}
+        for ep in entry_points(group=ENTRY_POINT_GROUP):
+            if ep.name in BUILTIN_CONTROLLERS:
+                log.warning("entry point %s=%s ignored: %r is built in", ep.name, ep.value, ep.name)
+                continue
+            table[ep.name] = ep.value
+        _entry_point_table = table
+    return _entry_point_table
+
+
+def register_controller(name: str, target: str | type[Controller]) -> None:
+    """Register (or replace) a controller under ``name``: ``"module:Class"`` (imported when
+    first used) or a :class:`Controller` subclass. Takes precedence over everything else."""
+    if not name or not isinstance(name, str):
+        raise ValueError("controller name must be a non-empty string")
+    if isinstance(target, str):
+        if target.count(":") != 1 or not all(target.split(":")):
+            raise ValueError(f"controller target must look like 'module:Class', got {target!r}")
+    elif not (isinstance(target, type) and issubclass(target, Controller)):
+        raise ValueError(f"controller target must be 'module:Class' or a Controller: {target!r}")
+    _registered[name] = target
+
+
+def available_controllers() -> list[str]:
+    """Every controller name that can be chosen (nothing imported), sorted."""
+    return sorted(set(BUILTIN_CONTROLLERS) | set(_entry_points()) | set(_registered))
+
+
+def load_controller_class(plugin: str) -> type[Controller]:
+    """Import (if needed) and return the controller class registered as ``plugin``;
+    ConfigError when there is none or it cannot be imported."""
+    target: str | type[Controller] | None = _registered.get(plugin) or BUILTIN_CONTROLLERS.get(
+        plugin
+    )
+    if target is None:
+        target = _entry_points().get(plugin)
+    if target is None:
+        raise ConfigError(
+            f"unknown controller plugin {plugin!r}; known: {', '.join(available_controllers())}"
+        )
+    if isinstance(target, type):
+        return target
+    module_name, _, class_name = target.partition(":")
+    try:
+        cls = getattr(importlib.import_module(module_name), class_name)
+    except (ImportError, AttributeError) as err:
+        raise ConfigError(f"controller {plugin!r}: cannot load {target} ({err})") from err
+    if not (isinstance(cls, type) and issubclass(cls, Controller)):
+        raise ConfigError(f"controller {plugin!r}: {target} is not a Controller subclass")
+    return cls
+
+
+def validate_params(plugin: str, params: Mapping[str, Any] | None) -> BaseModel:
+    """The plugin's validated parameters; pydantic's ValidationError for bad ones."""
+    return load_controller_class(plugin).Params.model_validate(dict(params or {}))
+
+
+def create_controller(plugin: str, params: Mapping[str, Any] | None = None) -> Controller:
+    """Build a controller by plugin name; ConfigError for unknown names or bad parameters."""
+    cls = load_controller_class(plugin)
+    try:
+        model = cls.Params.model_validate(dict(params or {}))
+    except ValidationError as err:
+        raise ConfigError(f"controller {plugin!r}: {err}") from err
+    return cls(model)
+
+
+class ControllerSet:
+    """The controllers of one robot, run in their configured order as one.
+
+    Every controller sees every sample; a command goes to the controller that lists it;
+    ``update`` merges each controller's setpoints for the joints whose command interfaces it
+    owns (each owned by exactly one, checked in :meth:`configure`).
+    """
+
+    def __init__(self, controllers: Sequence[Controller]) -> None:
+        self.controllers = list(controllers) or [Controller()]
+        self.name = "+".join(c.name for c in self.controllers)
+        self._owned: list[tuple[Controller, list[int]]] = []
+        self.drives_joints = False
+
+    def configure(self, data: RobotData, ctx: ControllerContext) -> None:
+        owner: dict[str, str] = {}
+        states = {f"{j}/{k}" for j in data.joint_names for k in ("position", "velocity", "effort")}
+        index = {f"{j}/position": i for i, j in enumerate(data.joint_names)}
+        for c in self.controllers:
+            c.configure(data, ctx)
+            for s in c.state_interfaces():
+                if s not in states:
+                    raise ConfigError(f"controller {c.name}: no state interface {s!r}")
+            joints: list[int] = []
+            for cmd in c.command_interfaces():
+                if cmd not in index:
+                    raise ConfigError(f"controller {c.name}: no command interface {cmd!r}")
+                if cmd in owner:
+                    raise ConfigError(
+                        f"command interface {cmd!r} claimed by controllers {owner[cmd]!r} and "
+                        f"{c.name!r}: each command has one owner"
+                    )
+                owner[cmd] = c.name
+                joints.append(index[cmd])
+            if joints:
+                self._owned.append((c, joints))
+        self.drives_joints = bool(self._owned)
+
+    def outputs(self) -> dict[str, SourceFn]:
+        out: dict[str, SourceFn] = {}
+        for c in self.controllers:
+            out.update(c.outputs())
+        return out
+
+    def on_sample(self, item: Inbound, now: float) -> None:
+        for c in self.controllers:
+            c.on_sample(item, now)
+
+    def on_command(self, request: Request, now: float) -> str | None:
+        key = request.name.strip().lower()
+        for c in self.controllers:
+            if key in (n.lower() for n in c.commands()):
+                return c.on_command(request, now)
+        # not listed by anyone: each in turn may still know it (the first that does answers)
+        refusal: CommandError | None = None
+        for c in self.controllers:
+            try:
+                return c.on_command(request, now)
+            except CommandError as err:
+                refusal = err
+        raise refusal or CommandError(f"unknown command {request.name!r}")
+
+    def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
+        for c in self.controllers:
+            c.on_state(old, new, now)
+
+    def update(self, now: float, current: Sequence[float]) -> Sequence[float] | None:
+        """The merged setpoints (``current`` where an owner holds), or None when all hold."""
+        owned = self._owned
+        if len(owned) == 1 and len(owned[0][1]) == len(current):
+            c, _ = owned[0]
+            return c.update(now)  # the common case: one controller owns every joint
+        merged: list[float] | None = None
+        for c, joints in owned:
+            target = c.update(now)
+            if target is None:
+                continue
+            if merged is None:
+                merged = list(current)
+            for i in joints:
+                merged[i] = target[i]
+        for c in self.controllers:
+            if c not in (o for o, _ in owned):
+                c.update(now)  # monitors run too
+        return merged
+
+    def commands(self) -> tuple[str, ...]:
+        return tuple(n for c in self.controllers for n in c.commands())
+
+    def stats(self) -> dict[str, Any]:
+        if len(self.controllers) == 1:
+            return self.controllers[0].stats()
+        return {c.name: c.stats() for c in self.controllers}

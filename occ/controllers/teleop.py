@@ -45,69 +45,144 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 import igtl
 from igtl.messages.base import Message
 
-from ..errors import CommandError, ConfigError, KinematicsError, OCCError
+from ..config import Bool, DaemonConfig, DeviceName, Float, Int, Name, PosFloat, Vec3
+from ..errors import CommandError, KinematicsError, OCCError
 from ..safety import RobotState
 from ..stats import Histogram
-from . import Controller
+from . import Controller, ControllerContext, Problem, SourceFn
 
 if TYPE_CHECKING:
     from ..commands import Request
+    from ..data import RobotData
     from ..interfaces import Inbound
-    from ..robot import Output, Robot
+    from ..outputs import Output
 
 log = logging.getLogger(__name__)
 
 MM = 1e-3
 
 
-def make_teleop_controller(params: dict[str, Any]) -> Controller:
-    role = params.get("role")
-    if role == "master":
-        return MasterController(params)
-    if role == "slave":
-        return SlaveController(params)
-    raise ConfigError(f"teleop.role must be 'master' or 'slave', got {role!r}")
+class _Params(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-def _vec3(value: Any, what: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=float)
-    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
-        raise ConfigError(f"teleop.{what}: expected 3 finite numbers, got {value!r}")
-    return arr
+class MasterParams(_Params):
+    """Parameters of ``teleop-master``. Lengths in mm, as on the wire."""
+
+    input: Literal["sim", "igtl", "driver"] = Field(
+        "sim",
+        description="Where the operator's motion comes from: `sim` (the OCC paper's test "
+        "motion), `igtl` (a TRANSFORM/POSITION stream), `driver` (a hand-moved device read by "
+        "the master's drivers, e.g. CAN).",
+    )
+    amplitude_mm: Vec3 = Field(
+        (50.0, 50.0, 0.0), description="`sim`: amplitudes of X = A sin, Y = A cos, Z (mm)."
+    )
+    offset_mm: Vec3 = Field(
+        (0.0, 0.0, 20.0),
+        description="`sim`: constant offset (mm) from the handle at zero joint values.",
+    )
+    frequency_hz: PosFloat = Field(0.1, description="`sim`: frequency of the motion (Hz).")
+    clutch: Bool = Field(False, description="Clutch pressed at start.")
+    fixture_radius_mm: PosFloat = Field(
+        5.0,
+        description="Radius of the forbidden sphere around each Markups point received as "
+        "POINT (used when the point carries no radius, as 3D Slicer sends them).",
+    )
+    fixture_hardness: Annotated[Float, Field(ge=0)] = Field(
+        1.0, description="Hardness (N/mm) of the spheres made from POINT messages."
+    )
+    first_seq: Annotated[Int, Field(ge=0, le=0xFFFFFFFF)] = Field(
+        0, description="Sequence number before the first POSITION (the first is +1)."
+    )
+    input_interface: Name | None = Field(
+        None, description="`igtl`: interface of the input stream (required with `igtl`)."
+    )
+    input_device: DeviceName | None = Field(
+        None, description="Only samples with this device name are used (null = any)."
+    )
+
+
+class SlaveParams(_Params):
+    """Parameters of ``teleop-slave``. Lengths in mm, as on the wire."""
+
+    input_interface: Name | None = Field(
+        None, description="Interface of the master's POSITION stream (null = any)."
+    )
+    input_device: DeviceName | None = Field(
+        None, description="Only samples with this device name are used (null = any)."
+    )
+    scale: Annotated[Float, Field(gt=0, le=10)] = Field(
+        0.1, description="Motion scaling, slave motion / master motion (0.1 = 10:1)."
+    )
+    rotation: tuple[Vec3, Vec3, Vec3] | None = Field(
+        None, description="3x3 rotation from master to slave axes (rows); null = identity."
+    )
+    base_mm: Vec3 | None = Field(
+        None, description="Base position in the world (mm), sent as TRANSFORM `Base`."
+    )
+    base_interface: Name | None = Field(
+        None, description="Interface on which a tracker sends the base TRANSFORM."
+    )
+    base_device: DeviceName = Field("Base", description="Device name of that TRANSFORM.")
+    phase_lock_us: Annotated[Float, Field(ge=0)] | None = Field(
+        400.0,
+        description="Shift the loop's deadlines so the master samples this long before a tick "
+        "(by its POSITION timestamps): a sample then waits about this long, not up to a whole "
+        "period, for the tick that uses it. Must cover the transport time; null = off.",
+    )
+
+
+def _interfaces_exist(params: Any, config: DaemonConfig, keys: tuple[str, ...]) -> list[Problem]:
+    from ..config import _did_you_mean
+
+    names = [i.name for i in config.interfaces]
+    out: list[Problem] = []
+    for key in keys:
+        ref = getattr(params, key)
+        if ref is not None and ref not in names:
+            out.append(((key,), f"unknown interface '{ref}'" + _did_you_mean(ref, names)))
+    return out
 
 
 class MasterController(Controller):
-    name = "teleop-master"
+    """The master side of the OCC pair: the handle follows the operator (simulated, an IGTL
+    stream or a hand-moved device), virtual fixtures bound it, and its position streams to the
+    slave at 500 Hz (output source ``teleop``)."""
 
-    def __init__(self, params: dict[str, Any]) -> None:
+    name = "teleop-master"
+    Params = MasterParams
+
+    def __init__(self, params: BaseModel | dict[str, Any] | None = None) -> None:
         super().__init__(params)
-        self.input = params.get("input", "sim")
-        if self.input not in ("sim", "igtl", "driver"):
-            raise ConfigError(f"teleop.input must be sim, igtl or driver, got {self.input!r}")
-        self.amplitude = _vec3(params.get("amplitude_mm", [50.0, 50.0, 0.0]), "amplitude_mm") * MM
-        self.offset = _vec3(params.get("offset_mm", [0.0, 0.0, 20.0]), "offset_mm") * MM
-        self.frequency = float(params.get("frequency_hz", 0.1))
-        self.input_interface = params.get("input_interface")
-        self.input_device = params.get("input_device")
+        p = self.params
+        assert isinstance(p, MasterParams)
+        self.input = p.input
+        self.amplitude = np.array(p.amplitude_mm, dtype=float) * MM
+        self.offset = np.array(p.offset_mm, dtype=float) * MM
+        self.frequency = p.frequency_hz
+        self.input_interface = p.input_interface
+        self.input_device = p.input_device
         # a hand-moved device is read, never position-commanded (fixture forces would need an
         # effort-interface driver; they are computed and reported)
         self.drives_joints = self.input != "driver"
-        self.clutch = bool(params.get("clutch", False))
-        self.seq = int(params.get("first_seq", 0)) & 0xFFFFFFFF
+        self.clutch = p.clutch
+        self.seq = p.first_seq & 0xFFFFFFFF
         self.spheres: list[tuple[np.ndarray, float]] = []
-        self.point_radius_mm = float(params.get("fixture_radius_mm", 5.0))
-        self.point_hardness = float(params.get("fixture_hardness", 1.0))
+        self.point_radius_mm = p.fixture_radius_mm
+        self.point_hardness = p.fixture_hardness
         self.hardness = 0.0
         self.fixture_force = np.zeros(3)
         self._force_on = False
-        self._centre: tuple[float, ...] | None = None  # origin + offset, once bound
+        self._centre: tuple[float, ...] | None = None  # origin + offset, once configured
         self._amp: tuple[float, ...] = tuple(self.amplitude.tolist())
         self.fixture_contacts = 0
         self.target: np.ndarray | None = None
@@ -115,11 +190,20 @@ class MasterController(Controller):
         self.ik_failures = 0
         self.samples = 0
 
-    def bind(self, robot: Robot) -> None:
-        super().bind(robot)
-        robot.sources["teleop"] = self._source_teleop
-        self.origin = robot.frame.position([0.0] * len(robot.joints)).copy()
+    @classmethod
+    def check(cls, params: Any, config: DaemonConfig) -> list[Problem]:
+        problems = _interfaces_exist(params, config, ("input_interface",))
+        if params.input == "igtl" and params.input_interface is None:
+            problems.append((("input_interface",), "required with input: igtl"))
+        return problems
+
+    def configure(self, data: RobotData, ctx: ControllerContext) -> None:
+        super().configure(data, ctx)
+        self.origin = ctx.frame.position([0.0] * len(data.joint_names)).copy()
         self._centre = tuple((self.origin + self.offset).tolist())
+
+    def outputs(self) -> dict[str, SourceFn]:
+        return {"teleop": self._source_teleop}
 
     # -------------------------------------------------------------- inputs
     def on_sample(self, item: Inbound, now: float) -> None:
@@ -209,10 +293,10 @@ class MasterController(Controller):
         return self.target
 
     def update(self, now: float) -> Sequence[float] | None:
-        robot = self.robot
-        assert robot is not None
+        data, ctx = self.data, self.ctx
+        assert data is not None and ctx is not None
         if self.input == "driver":
-            self._apply_fixtures(robot.tip[:3, 3])
+            self._apply_fixtures(data.tip[:3, 3])
             return None
         target = self.operator_target(now)
         if target is None:
@@ -221,7 +305,7 @@ class MasterController(Controller):
         if not isinstance(target, tuple):
             target = (float(target[0]), float(target[1]), float(target[2]))
         try:
-            q, _clamped = robot.frame.ik_clamped(target, robot.q)
+            q, _clamped = ctx.frame.ik_clamped(target, data.q)
         except (KinematicsError, ValueError):
             self.ik_failures += 1
             return None
@@ -252,10 +336,10 @@ class MasterController(Controller):
 
     # -------------------------------------------------------------- output
     def _source_teleop(self, out: Output, now: float) -> Message:
-        robot = self.robot
-        assert robot is not None
-        x, y, z = robot.frame.tip_position(robot.q)
-        running = robot.state is RobotState.RUNNING
+        data, ctx = self.data, self.ctx
+        assert data is not None and ctx is not None
+        x, y, z = ctx.frame.tip_position(data.q)
+        running = data.state is RobotState.RUNNING
         self.seq = (self.seq + 1) & 0xFFFFFFFF
         layout = 24 if out.type == "POSITION" else 28
         if out.type != "POSITION":
@@ -265,7 +349,7 @@ class MasterController(Controller):
             (0.0, 0.0, 0.0, 1.0),
             layout,
             device_name=out.device,
-            timestamp=robot.clock.wall_time(),
+            timestamp=ctx.clock.wall_time(),
             header_version=2,
             message_id=self.seq,
             metadata={"run": "1" if running else "0", "clutch": "1" if self.clutch else "0"},
@@ -284,25 +368,27 @@ class MasterController(Controller):
 
 
 class SlaveController(Controller):
-    name = "teleop-slave"
+    """The slave side of the OCC pair: follows the master's POSITION stream, scaled and
+    re-indexed so it never jumps; the base pose from the config or a tracker."""
 
-    def __init__(self, params: dict[str, Any]) -> None:
+    name = "teleop-slave"
+    Params = SlaveParams
+
+    def __init__(self, params: BaseModel | dict[str, Any] | None = None) -> None:
         super().__init__(params)
-        self.scale = float(params.get("scale", 0.1))
-        if not 0.0 < self.scale <= 10.0:
-            raise ConfigError(f"teleop.scale must be in (0, 10], got {self.scale}")
-        rot = params.get("rotation")
-        self.rotation = np.eye(3) if rot is None else np.asarray(rot, dtype=float).reshape(3, 3)
+        p = self.params
+        assert isinstance(p, SlaveParams)
+        self.scale = p.scale
+        self.rotation = np.eye(3) if p.rotation is None else np.array(p.rotation, dtype=float)
         # scale * R as nested floats: the per-sample mapping is plain arithmetic (small-array
         # numpy costs more than the arithmetic on the loop thread)
         self._sr: list[list[float]] = (self.scale * self.rotation).tolist()
-        self.input_interface = params.get("input_interface")
-        self.input_device = params.get("input_device")
-        self.base_mm = params.get("base_mm")
-        self.base_interface = params.get("base_interface")
-        self.base_device = params.get("base_device", "Base")
-        lock = params.get("phase_lock_us", 400.0)
-        self.phase_lock = None if lock is None else float(lock) * 1e-6
+        self.input_interface = p.input_interface
+        self.input_device = p.input_device
+        self.base_mm = p.base_mm
+        self.base_interface = p.base_interface
+        self.base_device = p.base_device
+        self.phase_lock = None if p.phase_lock_us is None else p.phase_lock_us * 1e-6
         self._phases: list[float] = []
         self.phase_shifts = 0
         self.phase_error_us: float | None = None
@@ -329,12 +415,16 @@ class SlaveController(Controller):
         self.rx_latency_us = Histogram()
         self.pending_rx = 0.0
 
-    def bind(self, robot: Robot) -> None:
-        super().bind(robot)
+    @classmethod
+    def check(cls, params: Any, config: DaemonConfig) -> list[Problem]:
+        return _interfaces_exist(params, config, ("input_interface", "base_interface"))
+
+    def configure(self, data: RobotData, ctx: ControllerContext) -> None:
+        super().configure(data, ctx)
         if self.base_mm is not None:
             b = np.eye(4)
-            b[:3, 3] = _vec3(self.base_mm, "base_mm") * MM
-            robot.base = b
+            b[:3, 3] = np.array(self.base_mm, dtype=float) * MM
+            data.base = b
 
     def on_sample(self, item: Inbound, now: float) -> None:
         msg = item.msg
@@ -342,8 +432,8 @@ class SlaveController(Controller):
             if msg.message_type == "TRANSFORM" and msg.device_name == self.base_device:
                 m = msg.matrix  # type: ignore[attr-defined]
                 m[:3, 3] *= MM
-                assert self.robot is not None
-                self.robot.base = m
+                assert self.data is not None
+                self.data.base = m
             return
         if self.input_interface and item.interface != self.input_interface:
             return
@@ -359,7 +449,7 @@ class SlaveController(Controller):
         self.last_seq = msg.message_id
         self.last_sample_t = item.t_rx
         if self.phase_lock is not None:
-            clock = self.robot.clock  # type: ignore[union-attr]
+            clock = self.ctx.clock  # type: ignore[union-attr]
             if msg.timestamp > 0.0:  # when the master sampled, on our loop's clock
                 self._track_phase(msg.timestamp - (clock.wall_time() - clock.now()))
             else:
@@ -388,14 +478,13 @@ class SlaveController(Controller):
         (p50 ~50-200 us here); the tick polls the socket itself, so a packet that arrived
         during the clock's spin is still used at once.
         """
-        robot = self.robot
+        ctx = self.ctx
         lock = self.phase_lock
-        assert robot is not None and lock is not None  # called only while phase-locking
-        loop = robot.loop
-        t0 = loop.t0
+        assert ctx is not None and lock is not None  # called only while phase-locking
+        t0 = ctx.loop_t0()
         if t0 != t0:  # NaN: the loop is not running (simulated-time tests stepping ticks)
             return
-        period = loop.period_s
+        period = ctx.period_s
         # deviation from the target phase, wrapped to [-period/2, period/2): taking the median
         # of raw phases would be wrong when they straddle the wrap-around point
         target = period - lock
@@ -410,7 +499,7 @@ class SlaveController(Controller):
         self.phase_history.append(self.phase_error_us)
         del self.phase_history[:-20]
         if abs(error) > 100e-6:  # arrivals jitter by ~100 us here: don't chase the noise
-            loop.shift(error)
+            ctx.shift(error)
             self.phase_shifts += 1
 
     def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
@@ -418,17 +507,17 @@ class SlaveController(Controller):
             self.master_ref = None
 
     def update(self, now: float) -> Sequence[float] | None:
-        robot = self.robot
-        assert robot is not None
+        data, ctx = self.data, self.ctx
+        assert data is not None and ctx is not None
         if self.master_pos is None or not self.master_run or self.master_clutch:
             self.master_ref = None
             return self._q_last if self._q_last is not None else None
         if self.master_ref is None:
             self._fresh = True
             self.master_ref = self.master_pos
-            self.slave_ref = robot.frame.tip_position(robot.q)
+            self.slave_ref = ctx.frame.tip_position(data.q)
             self.reindexes += 1
-            self._q_last = list(robot.q)
+            self._q_last = list(data.q)
         assert self.slave_ref is not None
         if not self._fresh and self._q_last is not None:
             return self._q_last  # no new master sample since the last solve: same target
@@ -444,7 +533,7 @@ class SlaveController(Controller):
             sz + g * dx + h * dy + i * dz,
         )
         try:
-            q, clamped = robot.frame.ik_clamped(target, robot.q)
+            q, clamped = ctx.frame.ik_clamped(target, data.q)
         except (KinematicsError, ValueError):
             self.ik_failures += 1
             return self._q_last
@@ -452,7 +541,7 @@ class SlaveController(Controller):
             self.clamped += 1
         self._q_last = q
         if self.pending_ts is not None:
-            wall, mono = robot.clock.wall_time(), robot.clock.now()
+            wall, mono = ctx.clock.wall_time(), ctx.clock.now()
             self.latency_us.add((wall - self.pending_ts) * 1e6)
             # split: master timestamp -> received by our interface thread -> used here
             self.rx_latency_us.add((wall - (mono - self.pending_rx) - self.pending_ts) * 1e6)

@@ -13,7 +13,7 @@ import igtl
 from igtl.auth import sign, verify
 from igtl.transport import UDPEndpoint
 from occ.clock import SimClock
-from occ.config import parse_config
+from occ.loader import parse_config
 from occ.errors import ConfigError
 from occ.robot import Robot, build_robot
 

@@ -10,15 +10,9 @@ from pathlib import Path
 import pydantic
 import pytest
 
-from occ.config import (
-    DOC_BEGIN,
-    DOC_END,
-    DaemonConfig,
-    InterfaceConfig,
-    config_reference_markdown,
-    load_config,
-    parse_config,
-)
+from occ.config import DaemonConfig, InterfaceConfig
+from occ.configdoc import DOC_BEGIN, DOC_END, config_reference_markdown
+from occ.loader import load_config, parse_config
 from occ.errors import ConfigError, OCCError
 
 DATA = Path(__file__).parent / "data"
@@ -54,7 +48,7 @@ def test_valid_slave_loads_with_every_section() -> None:
     assert yaw.limits.effort == 10.0 and yaw.pid is not None and yaw.pid.kd == 5.0
     assert robot.joint("insertion").type == "prismatic"
     assert robot.joint("insertion").pid is None
-    assert robot.drivers[0].on_limit == "fault" and robot.drivers[0].params == {"noise": 0.0}
+    assert robot.drivers[0].on_limit == "fault" and robot.drivers[0].params == {"noise_std": 0.0}
     assert (robot.realtime.fifo_priority, robot.realtime.cpu) == (80, 2)
     slicer, master = cfg.interfaces
     assert cfg.interface("master") is master
@@ -69,7 +63,7 @@ def test_valid_slave_loads_with_every_section() -> None:
     assert master.inputs[0].queue == "stream" and master.inputs[0].device is None
     assert cfg.safety.watchdog.policy == "fault" and cfg.safety.watchdog.budget_us == 800
     assert cfg.safety.loss.input == "master" and cfg.safety.loss.deadline_ms == 20
-    assert cfg.teleop is None
+    assert cfg.controller is None
 
 
 def test_master_defaults() -> None:
@@ -101,7 +95,7 @@ def test_master_defaults() -> None:
     assert (loss.deadline_ms, loss.policy) == (None, "hold")
     rec = cfg.recording
     assert (rec.path, rec.rate_hz, rec.include_messages) == (None, 100.0, True)
-    assert cfg.stats.log_every_s == 10.0 and cfg.teleop is None
+    assert cfg.stats.log_every_s == 10.0 and cfg.controller is None
 
 
 def test_interface_defaults() -> None:
@@ -135,13 +129,32 @@ def test_dump_and_revalidate_round_trip() -> None:
     assert again == cfg
 
 
-def test_teleop_is_validated() -> None:
-    cfg = parse_config(MINIMAL_ROBOT + "teleop: {role: slave, scale: 0.2}\n")
-    assert cfg.teleop is not None and cfg.teleop.scale == 0.2 and cfg.teleop.role == "slave"
+def test_controller_params_are_validated_with_lines() -> None:
+    cfg = parse_config(MINIMAL_ROBOT + "controller: {plugin: teleop-slave, params: {scale: 0.2}}\n")
+    assert cfg.controllers[0].plugin == "teleop-slave" and cfg.controllers[0].params == {"scale": 0.2}
+    text = MINIMAL_ROBOT + (
+        "controller:\n  plugin: teleop-slave\n  params:\n    scael: 0.2\n"
+        "    input_interface: nope\n    phase_lock_us: fast\n"
+    )
     with pytest.raises(ConfigError) as exc:
-        parse_config(MINIMAL_ROBOT + "teleop: {role: slave, scael: 0.2, input_interface: nope}\n")
-    text = "\n".join(exc.value.errors)
-    assert "teleop.scael: unknown field 'scael' (did you mean 'scale'?)" in text
+        parse_config(text, source="c.yaml")
+    n = MINIMAL_ROBOT.count("\n")
+    assert exc.value.errors == [
+        f"c.yaml:{n + 4} controller.params.scael: unknown field 'scael' (did you mean 'scale'?)",
+        f"c.yaml:{n + 6} controller.params.phase_lock_us: expected a number, got 'fast'",
+    ]
+    with pytest.raises(ConfigError) as exc:
+        parse_config(text.replace("    scael: 0.2\n", "").replace("    phase_lock_us: fast\n", ""))
+    assert "controller.params.input_interface: unknown interface 'nope'" in str(exc.value)
+    with pytest.raises(ConfigError, match=r"controller.plugin: unknown controller plugin 'telep'"):
+        parse_config(MINIMAL_ROBOT + "controller: {plugin: telep}\n")
+
+
+def test_driver_params_are_checked_at_load() -> None:
+    """A driver parameter typo fails `occd --check` with its line, not the daemon at start."""
+    text = MINIMAL_ROBOT.replace("joints: [a]}", "joints: [a], params: {bandwith_hz: 30}}")
+    with pytest.raises(ConfigError, match=r"robot.drivers\[0\].params: .*unknown params \['bandwith_hz'\]"):
+        parse_config(text)
 
 
 # ---------------------------------------------------------------------------- paths
@@ -385,7 +398,7 @@ def test_config_md_reference_is_up_to_date() -> None:
     text = _config_md()
     block = text.split(DOC_BEGIN, 1)[1].split(DOC_END, 1)[0]
     assert block.strip() == config_reference_markdown().strip(), (
-        "docs/CONFIG.md is stale: run python -m occ.config --update-docs docs/CONFIG.md"
+        "docs/CONFIG.md is stale: run python -m occ.configdoc --update-docs docs/CONFIG.md"
     )
 
 
@@ -400,7 +413,9 @@ def test_reference_lists_every_field() -> None:
         "safety.loss.max_consecutive",
         "recording.include_messages",
         "stats.log_every_s",
-        "teleop",
+        "controller",
+        "controller.params.scale",  # a plugin's own parameters are listed too
+        "controller.params.amplitude_mm",
     ):
         assert f"| `{path}` |" in table
 
@@ -413,7 +428,7 @@ def test_config_md_example_is_valid() -> None:
 
 
 def test_an_empty_allowed_peers_list_is_refused_with_a_clear_error(tmp_path) -> None:
-    from occ.config import load_config as _load
+    from occ.loader import load_config as _load
 
     text = (ROOT / "configs" / "slave.yaml").read_text().replace(
         "    port: 18944\n", "    port: 18944\n    allowed_peers: []\n", 1

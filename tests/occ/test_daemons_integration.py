@@ -155,14 +155,22 @@ def test_port_in_use_exits_1_with_a_clear_error(tmp_path: Path) -> None:
     assert "Address already in use" in res.stderr or "in use" in res.stderr.lower()
 
 
-def test_unknown_driver_param_is_a_clear_error(tmp_path: Path) -> None:
+@pytest.mark.parametrize("check", [False, True])
+def test_unknown_driver_param_is_a_config_error_with_its_line(tmp_path: Path, check: bool) -> None:
+    """A driver parameter typo is found when the file is loaded (``occd --check`` too), with
+    FILE:LINE, exit code 2: not at start-up with exit code 1 as before."""
     slave, _, _ = pair_configs()
     slave["robot"]["drivers"][0]["params"] = {"bandwith_hz": 30}  # typo
-    write_yaml(tmp_path / "slave.yaml", slave)
+    path = write_yaml(tmp_path / "slave.yaml", slave)
+    args = ["--check"] if check else ["--duration", "0.1"]
     res = subprocess.run(
-        [sys.executable, "-m", "occ.cli", str(tmp_path / "slave.yaml"), "--duration", "0.1"],
+        [sys.executable, "-m", "occ.cli", *args, str(path)],
         cwd=ROOT, capture_output=True, text=True, timeout=60,
     )
-    assert res.returncode == 1
+    assert res.returncode == 2, res.stderr
+    lines = path.read_text().splitlines()
+    typo = next(i for i, t in enumerate(lines) if "bandwith_hz" in t)
+    line = max(i + 1 for i, t in enumerate(lines[: typo + 1]) if "params:" in t)
+    assert f"slave.yaml:{line} robot.drivers[0].params: " in res.stderr
     assert "unknown params ['bandwith_hz']" in res.stderr and "bandwidth_hz" in res.stderr
     assert "Traceback" not in res.stderr

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 import igtl
-from occ.config import load_config
+from occ.loader import load_config
 from occ.drivers.can_sim import DriveAxis, SimulatedDriveNode
 from occ.robot import build_robot
 from occ.safety import RobotState
@@ -31,7 +31,7 @@ def test_can_master_streams_hand_motion() -> None:
     })
     robot_cfg = cfg.robot.model_copy(update={"drivers": (driver,),
                                              "realtime": cfg.robot.realtime.model_copy(update={"fifo_priority": None})})
-    cfg = cfg.model_copy(update={"robot": robot_cfg, "teleop": cfg.teleop.model_copy(update={"input": "driver"})})
+    cfg = cfg.model_copy(update={"robot": robot_cfg}).with_params(input="driver")
     axes = [DriveAxis(0x100, 0x180, position=0.0), DriveAxis(0x101, 0x181, position=50_000.0),
             DriveAxis(0x102, 0x182, position=20_000.0)]
     # the stream goes to an in-process slave: what it receives is what the wire would carry
@@ -52,7 +52,7 @@ def test_can_master_streams_hand_motion() -> None:
             # the operator pushes the handle 12 mm along x (the drive reports it)
             axes[0].position = 12_000.0
             axes[0].target = 12_000.0
-            assert _wait(lambda: abs(sent[-1].position[0] - robot.controller.origin[0] * 1e3 - 12.0) < 0.05, 2.0), sent[-1]
+            assert _wait(lambda: abs(sent[-1].position[0] - robot.controller.controllers[0].origin[0] * 1e3 - 12.0) < 0.05, 2.0), sent[-1]
             assert robot.state is RobotState.RUNNING
         finally:
             robot.loop.stop()

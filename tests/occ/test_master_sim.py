@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 
 import igtl
-from occ.config import InputConfig, load_config
+from occ.config import InputConfig
+from occ.loader import load_config
 from occ.safety import RobotState
 from occ.testing import SimRobot
 
@@ -22,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 class SimMaster:
     def __init__(self, config: object = None, **teleop: object) -> None:
-        self.sim = SimRobot(config or ROOT / "configs" / "master.yaml", teleop=teleop or None)
+        self.sim = SimRobot(config or ROOT / "configs" / "master.yaml", params=teleop or None)
         self.robot = self.sim.robot
         self.slave = self.sim.peer("slave")
         self.operator = self.sim.peer("operator", address=("127.0.0.1", 41000))
@@ -75,7 +76,7 @@ def test_simulated_operator_follows_paper_trajectory(master: SimMaster) -> None:
     master.command("Run")
     t_run = (master.k - 1) * 0.001
     master.ticks(2500)
-    origin = master.robot.controller.origin * 1000.0
+    origin = master.robot.controller.controllers[0].origin * 1000.0
     last = master.sent[-1]
     t = (master.k - 1) * 0.001 - t_run
     expect = (origin[0] + 50.0 * math.sin(2 * math.pi * 0.1 * t),
@@ -97,7 +98,7 @@ def test_igtl_input_drives_the_handle() -> None:
     try:
         m.command("Enable")
         m.command("Run")
-        origin = m.robot.controller.origin * 1000.0
+        origin = m.robot.controller.controllers[0].origin * 1000.0
         target = (origin[0] + 10.0, origin[1] - 5.0, origin[2] + 3.0)
         for _ in range(300):
             assert m.operator.send(igtl.TransformMessage.from_position(target, device_name="Tracker")) == 1

@@ -7,6 +7,7 @@ from types import SimpleNamespace
 import pytest
 
 from occ.clock import SimClock
+from occ.controllers import ControllerContext
 from occ.controllers.teleop import SlaveController
 from occ.loop import ControlLoop
 
@@ -34,8 +35,11 @@ def test_shift_moves_every_later_deadline() -> None:
 def test_phase_lock_brings_arrivals_to_the_target_phase() -> None:
     shifts: list[float] = []
     fake_loop = SimpleNamespace(t0=0.0, period_s=0.001, shift=shifts.append)
-    ctrl = SlaveController({"role": "slave", "phase_lock_us": 200.0})
-    ctrl.robot = SimpleNamespace(loop=fake_loop)  # type: ignore[assignment]
+    ctrl = SlaveController({"phase_lock_us": 200.0})
+    ctrl.ctx = ControllerContext(
+        clock=SimClock(), frame=None, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
+        loop_t0=lambda: fake_loop.t0, period_s=0.001, shift=shifts.append,
+    )
     # packets arrive 0.35 ms after each deadline: they would wait 0.65 ms for the next tick
     for i in range(250):
         ctrl._track_phase(i * 0.002 + 0.00035 + (1e-5 if i % 7 == 0 else 0.0))
@@ -52,8 +56,11 @@ def test_phase_lock_brings_arrivals_to_the_target_phase() -> None:
 def test_phase_lock_median_survives_the_wrap_around() -> None:
     shifts: list[float] = []
     fake_loop = SimpleNamespace(t0=0.0, period_s=0.001, shift=shifts.append)
-    ctrl = SlaveController({"role": "slave", "phase_lock_us": 50.0})
-    ctrl.robot = SimpleNamespace(loop=fake_loop)  # type: ignore[assignment]
+    ctrl = SlaveController({"phase_lock_us": 50.0})
+    ctrl.ctx = ControllerContext(
+        clock=SimClock(), frame=None, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
+        loop_t0=lambda: fake_loop.t0, period_s=0.001, shift=shifts.append,
+    )
     # target phase 0.95 ms; arrivals at 0.95 +- 0.15 ms, half of them past the deadline (0.1)
     for i in range(250):
         ctrl._track_phase(i * 0.002 + 0.00095 + (0.00015, -0.00015, 0.0)[i % 3])

@@ -14,7 +14,7 @@ import pytest
 
 import igtl
 from occ.clock import SimClock
-from occ.config import load_config
+from occ.loader import load_config
 from occ.robot import build_robot
 from occ.safety import RobotState
 from occ.testing import SimRobot
@@ -28,7 +28,7 @@ class SimSlave:
     """Drives a slave Robot tick by tick; the master sends one POSITION every 2 ms."""
 
     def __init__(self, **teleop: object) -> None:
-        self.sim = SimRobot(ROOT / "configs" / "slave.yaml", teleop=teleop or None)
+        self.sim = SimRobot(ROOT / "configs" / "slave.yaml", params=teleop or None)
         self.robot = self.sim.robot
         self.clock = self.sim.clock
         self.master = self.sim.peer("master", address=MASTER_ADDRESS)
@@ -107,7 +107,7 @@ def test_two_consecutive_losses_never_stop(slave: SimSlave) -> None:
 
 
 def driver_setpoint(slave: SimSlave) -> list[float]:
-    return list(slave.robot.setpoint)
+    return list(slave.robot.data.setpoint)
 
 
 def test_three_missing_numbers_hold_at_7ms_then_latch_with_an_alert(slave: SimSlave) -> None:
@@ -242,7 +242,7 @@ def test_a_controller_exception_faults_and_the_daemon_keeps_serving(slave: SimSl
     def broken(now: float) -> None:
         raise ZeroDivisionError("bad maths")
 
-    slave.robot.controller.update = broken  # type: ignore[method-assign]
+    slave.robot.controller.controllers[0].update = broken  # type: ignore[method-assign]
     slave.step_ms(2)
     assert slave.robot.state is RobotState.FAULT
     alerts = [r for r in slave.replies if r.message_type == "STATUS" and r.error_name == "FAULT"]
@@ -257,7 +257,7 @@ def test_a_failing_command_handler_faults_and_answers(slave: SimSlave) -> None:
     def broken(request: object, now: float) -> str:
         raise KeyError("oops")
 
-    slave.robot.controller.on_command = broken  # type: ignore[method-assign]
+    slave.robot.controller.controllers[0].on_command = broken  # type: ignore[method-assign]
     reply = slave.command("Clutch")
     assert reply.metadata["Status"] == "FAIL"
     assert slave.robot.state is RobotState.FAULT
@@ -266,13 +266,13 @@ def test_a_failing_command_handler_faults_and_answers(slave: SimSlave) -> None:
 def test_slave_follows_scaled_master_motion_without_jump(slave: SimSlave) -> None:
     run(slave)
     slave.step_ms(50)
-    tip0 = slave.robot.tip[:3, 3].copy()
+    tip0 = slave.robot.data.tip[:3, 3].copy()
     # master moves 20 mm in x (scaled 10:1 -> 2 mm at the slave), in small steps
     for i in range(200):
         slave.master_pos[0] = 20.0 * (i + 1) / 200
         slave.step_ms(2)
     slave.step_ms(300)
-    moved = (slave.robot.tip[:3, 3] - tip0) * 1000.0
+    moved = (slave.robot.data.tip[:3, 3] - tip0) * 1000.0
     assert moved[0] == pytest.approx(2.0, abs=0.05)
     assert abs(moved[1]) < 0.05 and abs(moved[2]) < 0.05
 
@@ -280,11 +280,11 @@ def test_slave_follows_scaled_master_motion_without_jump(slave: SimSlave) -> Non
 def test_clutch_reindexes(slave: SimSlave) -> None:
     run(slave)
     slave.step_ms(50)
-    tip0 = slave.robot.tip[:3, 3].copy()
+    tip0 = slave.robot.data.tip[:3, 3].copy()
     slave.master_pos[0] = 100.0  # a big master jump while not running (run=0)
     slave.step_ms(100, run=False)
     slave.step_ms(300)  # run again: the slave re-indexes, it must not jump 10 mm
-    assert abs((slave.robot.tip[:3, 3] - tip0)[0] * 1000.0) < 0.05
+    assert abs((slave.robot.data.tip[:3, 3] - tip0)[0] * 1000.0) < 0.05
     assert slave.robot.controller.stats()["reindexes"] >= 2
 
 
@@ -328,7 +328,7 @@ def test_tip_is_sent_in_world_coordinates_with_the_base_offset() -> None:
         s.operator.send(igtl.REGISTRY["GET_TRANS"](type_name="GET_TRANS", device_name="Tip"))
         s.tick()
         tip = [r for r in s.replies if r.message_type == "TRANSFORM" and r.device_name == "Tip"][-1]
-        fk = s.robot.tip[:3, 3] * 1000.0
+        fk = s.robot.data.tip[:3, 3] * 1000.0
         assert tip.translation == pytest.approx((fk[0] + 100.0, fk[1] - 20.0, fk[2] + 5.0), abs=1e-3)
     finally:
         s.close()
@@ -343,16 +343,15 @@ def test_base_pose_from_a_tracker_transform() -> None:
     )
     cfg = cfg.model_copy(update={
         "interfaces": tuple(slicer if i.name == "slicer" else i for i in cfg.interfaces),
-        "teleop": cfg.teleop.model_copy(update={"base_interface": "slicer", "base_mm": None}),
-    })
+    }).with_params(base_interface="slicer", base_mm=None)
     with SimRobot(cfg) as sim:
         robot = sim.robot
         tracker = sim.peer("slicer")
         m = igtl.TransformMessage.from_position((10.0, 20.0, 30.0), device_name="Base")
         assert tracker.send(m) == 1
         sim.tick()
-        assert robot.base[:3, 3] * 1000.0 == pytest.approx([10.0, 20.0, 30.0])
-        assert robot.world_tip()[:3, 3] * 1000.0 == pytest.approx(robot.tip[:3, 3] * 1000.0 + [10, 20, 30])
+        assert robot.data.base[:3, 3] * 1000.0 == pytest.approx([10.0, 20.0, 30.0])
+        assert robot.data.world_tip()[:3, 3] * 1000.0 == pytest.approx(robot.data.tip[:3, 3] * 1000.0 + [10, 20, 30])
 
 
 def test_joints_must_match_the_kinematic_model() -> None:
@@ -455,7 +454,7 @@ def test_names_that_cannot_be_re_encoded_are_answered_safely(slave: SimSlave) ->
     ack, status = answers
     assert ack.device_name.startswith("ACK_") and 'Status="SUCCESS"' in ack.string
     assert status.message_type == "STATUS" and status.error_name == "READY"
-    assert slave.robot.reply_errors == 0 and slave.robot.state is RobotState.READY
+    assert slave.robot.operators.reply_errors == 0 and slave.robot.state is RobotState.READY
 
 
 def test_xml_with_a_dtd_is_refused_before_parsing(slave: SimSlave) -> None:

@@ -19,7 +19,7 @@ import igtl
 from igtl.transport import TCPClient, TCPServer
 from igtl.transport.common import HostLogLimits
 from occ.clock import SimClock
-from occ.config import parse_config
+from occ.loader import parse_config
 from occ.errors import ConfigError
 from occ.robot import Robot, build_robot
 from occ.safety import RobotState

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import igtl
 from occ.clock import SimClock
-from occ.config import load_config
+from occ.loader import load_config
 from occ.robot import Robot, build_robot
 
 ROOT = Path(__file__).resolve().parents[2]

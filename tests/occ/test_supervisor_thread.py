@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from occ.clock import RealClock
-from occ.config import load_config
+from occ.loader import load_config
 from occ.robot import build_robot
 from occ.safety import RobotState
 
@@ -40,7 +40,7 @@ def test_a_hung_tick_is_caught_by_the_supervisor_thread() -> None:
     robot = build_robot(cfg, clock=RealClock(spin_us=0))
     release = threading.Event()
     hung = threading.Event()
-    update = robot.controller.update
+    update = robot.controller.controllers[0].update
     ticks = 0
 
     def hanging_update(now: float):
@@ -51,7 +51,7 @@ def test_a_hung_tick_is_caught_by_the_supervisor_thread() -> None:
             release.wait(10.0)  # a blocked call inside the tick
         return update(now)
 
-    robot.controller.update = hanging_update  # type: ignore[method-assign]
+    robot.controller.controllers[0].update = hanging_update  # type: ignore[method-assign]
     robot.configure()
     robot.activate()
     loop = threading.Thread(target=robot.run, kwargs={"duration": 30.0})

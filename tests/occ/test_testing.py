@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 import igtl
-from occ.config import parse_config
+from occ.loader import parse_config
 from occ.errors import ConfigError
 from occ.safety import RobotState
 from occ.testing import SimRobot

@@ -1,0 +1,103 @@
+"""Alarms: what the robot does when something fails, and how the operators hear of it.
+
+A plugin or handler that raises, a loss-monitor event, the loop watchdog, the supervisor: each
+ends here, on the thread that saw it. A stop holds the last setpoint, latched until an
+operator's Run; a fault latches until Reset; every one is logged (rate-limited where it can
+repeat every tick) and sent to every viewer and operator as a STATUS naming its cause.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING
+
+import igtl
+
+from .safety import LossEvent, RobotState
+
+if TYPE_CHECKING:
+    from .robot import Robot
+
+log = logging.getLogger("occ.robot")
+
+
+class Alarms:
+    """The robot's reactions to failures (see the module docstring)."""
+
+    def __init__(self, robot: Robot) -> None:
+        self.robot = robot
+        #: why the robot last stopped or faulted ('' once an operator cleared it)
+        self.last_alert = ""
+        self._errors_logged = 0
+
+    def plugin_error(self, where: str, err: BaseException) -> None:
+        """An exception from a plugin or handler: FAULT with an alert naming it."""
+        r = self.robot
+        reason = f"{where} raised {type(err).__name__}: {err}"
+        if self._errors_logged < 20:  # a fault that repeats every tick must not flood the log
+            self._errors_logged += 1
+            log.error("%s", reason, exc_info=err)
+        if r.state_machine.state is not RobotState.FAULT:
+            self.fault(reason)
+
+    def loss_event(self, event: LossEvent, state: RobotState) -> None:
+        """Act on the loss monitor: only while RUNNING does the stream move the robot, so only
+        then is its loss an alert (before Run, or while stopped, it is only counted)."""
+        r = self.robot
+        where = f"stream {r.loss_input}"
+        if state is not RobotState.RUNNING:
+            log.debug("%s: %s (%s, not acted on in %s)", where, event.kind, event.cause, state)
+            return
+        if event.kind == "latch":
+            self.safety_stop(f"packet loss on {r.loss_input}: {event.cause}", r.loss_policy)
+        elif event.kind == "hold":
+            log.info("%s: %s", where, event.cause)
+        else:  # resume, refused: keep following, tell the operators
+            log.warning("%s: %s", where, event.cause)
+            self.broadcast("STREAM", f"{where}: {event.cause}", igtl.StatusCode.OK)
+
+    def broadcast(self, name: str, text: str, code: int, timestamp: float | None = None) -> None:
+        """A STATUS to every viewer and operator (and the recording)."""
+        r = self.robot
+        status = igtl.StatusMessage(
+            code=int(code),
+            error_name=name,
+            status_message=text,
+            device_name=r.name[:20],
+            timestamp=r.clock.wall_time() if timestamp is None else timestamp,
+        )
+        r.interfaces.broadcast_operators(status)
+        if r.recorder is not None:
+            r.recorder.record_message(status, "out", "*", r.clock.now())
+
+    def supervisor_trip(self, reason: str) -> None:
+        """On the supervisor thread, while the loop is stuck: drivers to their safe state at
+        once, operators alerted; the loop latches FAULT when it comes back (:meth:`tick`)."""
+        r = self.robot
+        self.last_alert = f"supervisor: {reason}"
+        log.error("SUPERVISOR: %s; drivers to their safe state", reason)
+        for drv, _ in r.drivers:
+            drv.safe_stop(reason)
+        self.broadcast("SUPERVISOR", f"supervisor: {reason}", igtl.StatusCode.HARDWARE_FAILURE)
+
+    def safety_stop(self, reason: str, policy: str) -> None:
+        r = self.robot
+        self.last_alert = reason
+        log.error("SAFETY STOP: %s", reason)
+        if policy == "fault":
+            self.fault(reason)
+        elif r.state_machine.state in (RobotState.RUNNING, RobotState.ENABLED):
+            r.state_machine.try_request("stop", reason)
+        else:
+            # not moving: still tell the operators why
+            self.broadcast("ALERT", reason, igtl.StatusCode.TIME_OUT)
+
+    def fault(self, reason: str) -> None:
+        r = self.robot
+        self.last_alert = reason
+        log.error("FAULT: %s", reason)
+        r.state_machine.try_request("fault", reason)
+
+    def watchdog_alert(self, reason: str, overruns: int) -> None:
+        log.warning("watchdog: %s (%d overruns so far)", reason, overruns)
+        self.broadcast("WATCHDOG", f"watchdog: {reason}", igtl.StatusCode.TIME_OUT)

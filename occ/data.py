@@ -1,0 +1,90 @@
+"""RobotData: the robot's state as controllers, output sources and the recorder see it.
+
+The :class:`~occ.robot.Robot` owns one and writes it on the loop thread (measured joints after
+the drivers are read, the setpoint it writes, the state after each transition); everyone else
+reads it, on the loop thread too, and never holds the Robot. A controller may write two
+things: the ``base`` pose (e.g. from a tracker) and nothing else; the setpoints it wants come
+back from its ``update``, and the Robot decides what reaches the drivers (ros2_control's
+split between state and command interfaces).
+
+Units are SI (metres, radians); poses are 4x4 homogeneous matrices in metres.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .safety import RobotState
+
+if TYPE_CHECKING:
+    from .clock import Clock
+    from .frame import Frame
+
+
+class RobotData:
+    """The state of one robot (see the module docstring)."""
+
+    __slots__ = (
+        "name",
+        "joint_names",
+        "q",
+        "setpoint",
+        "hold_setpoint",
+        "base",
+        "state",
+        "clock",
+        "frame",
+        "_tip",
+        "_tip_stale",
+    )
+
+    def __init__(
+        self,
+        name: str,
+        joint_names: Sequence[str],
+        home: Sequence[float],
+        frame: Frame,
+        clock: Clock,
+    ) -> None:
+        self.name = name
+        self.joint_names: tuple[str, ...] = tuple(joint_names)
+        #: measured joint positions (the last driver read)
+        self.q: list[float] = [float(v) for v in home]
+        #: what the drivers were last told while RUNNING
+        self.setpoint: list[float] = list(self.q)
+        #: the last safe setpoint: held while ENABLED or STOPPED, and while a stream is late
+        self.hold_setpoint: list[float] = list(self.q)
+        #: base pose in the world (config or tracker): what 3D Slicer shows the tip relative to
+        self.base: np.ndarray = np.eye(4)
+        self.state = RobotState.INIT
+        self.clock = clock
+        self.frame = frame
+        self._tip = np.eye(4)
+        self._tip_stale = True
+
+    def measured(self, positions: Sequence[float]) -> None:
+        """New joint measurements (the Robot, each tick): the tip is recomputed when asked."""
+        q = self.q
+        for i, v in enumerate(positions):
+            q[i] = v
+        self._tip_stale = True
+
+    @property
+    def tip(self) -> np.ndarray:
+        """The tip pose in the base frame (forward kinematics of ``q``), computed lazily:
+        outputs run at 10 Hz, the loop at 1 kHz."""
+        if self._tip_stale:
+            self._tip = self.frame.fk(self.q)
+            self._tip_stale = False
+        return self._tip
+
+    def world_tip(self) -> np.ndarray:
+        """The tip pose in world coordinates (base pose x forward kinematics)."""
+        return self.base @ self.tip
+
+    def commanded(self) -> list[float]:
+        """The setpoint the drivers hold now: the running setpoint, else the held one."""
+        return self.setpoint if self.state is RobotState.RUNNING else self.hold_setpoint

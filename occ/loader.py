@@ -1,0 +1,382 @@
+"""Loading a daemon configuration: YAML with line numbers, every problem at once.
+
+Strict (unknown keys are errors) and complete: a file is checked against the schema
+(:mod:`occ.config`), then every plugin's ``params`` against the plugin's own model (controllers:
+``Params``; drivers: their constructor, with no hardware touched), and each problem is reported
+as::
+
+    configs/slave.yaml:14 robot.joints[1].limits.max: expected a number, got 'abc'
+
+Line numbers come from the composed YAML node tree: each pydantic error location is walked down
+the nodes; a missing field is reported on the line of its parent mapping.
+
+Public API: :func:`load_config`, :func:`parse_config`, :func:`format_errors`.
+``python -m occ.loader FILE...`` checks configuration files (what ``occd --check`` does).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import types
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union, get_args, get_origin
+
+import yaml
+from pydantic import BaseModel, ValidationError
+from pydantic_core import ErrorDetails
+
+from .config import _CROSS, _PATTERN_TEXT, DaemonConfig, Loc, _did_you_mean, _format_loc, _num
+from .errors import ConfigError, OCCError
+
+__all__ = ["load_config", "parse_config", "format_errors"]
+
+
+def load_config(path: str | os.PathLike[str]) -> DaemonConfig:
+    """Read and validate the YAML configuration file at ``path``.
+
+    Raises :class:`~occ.errors.ConfigError` listing every problem as ``FILE:LINE path: message``.
+    """
+    source = os.fspath(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise ConfigError(f"{source}: cannot read configuration: {reason}") from None
+    return parse_config(text, source=source, base_dir=Path(source).absolute().parent)
+
+
+def parse_config(
+    text: str, source: str = "<string>", base_dir: str | os.PathLike[str] | None = None
+) -> DaemonConfig:
+    """Validate configuration YAML ``text``; ``source`` names it in error messages.
+
+    Relative paths resolve against ``base_dir``; by default the directory of ``source`` when it
+    looks like a file name, else the current directory.
+    """
+    if base_dir is None:
+        base_dir = Path(source).absolute().parent if not source.startswith("<") else Path.cwd()
+    root, data, problems = _compose(text, source)
+    if root is None:
+        msg = (
+            f"{source}:1 (top level): the file is empty; expected a mapping with a 'robot' section"
+        )
+        raise ConfigError(msg, [msg])
+    try:
+        config = DaemonConfig.model_validate(data, context={"base_dir": Path(base_dir)})
+    except ValidationError as exc:
+        problems.extend(_located_errors(exc, root))
+    else:
+        problems.extend(_plugin_problems(config, root))
+        if not problems:
+            return config
+    lines = format_errors(problems, source)
+    raise ConfigError("\n".join(lines), lines)
+
+
+def format_errors(problems: list[tuple[int, Loc, str]], source: str) -> list[str]:
+    """Sort ``(line, loc, message)`` triples by line and render ``FILE:LINE path: message``."""
+    ordered = sorted(problems, key=lambda p: p[0])
+    return [f"{source}:{line} {_format_loc(loc)}: {msg}" for line, loc, msg in ordered]
+
+
+def _compose(text: str, source: str) -> tuple[yaml.Node | None, Any, list[tuple[int, Loc, str]]]:
+    """Compose and construct the YAML; syntax errors raise ConfigError with the line."""
+    loader = yaml.SafeLoader(text)
+    try:
+        root = loader.get_single_node()
+        problems = _duplicate_keys(root) if root is not None else []
+        data = loader.construct_document(root) if root is not None else None
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        line = mark.line + 1 if mark else 1
+        what = exc.problem or exc.context or "syntax error"
+        col = f" (column {mark.column + 1})" if mark else ""
+        msg = f"{source}:{line} invalid YAML: {what}{col}"
+        raise ConfigError(msg, [msg]) from None
+    except yaml.YAMLError as exc:
+        msg = f"{source}:1 invalid YAML: {exc}"
+        raise ConfigError(msg, [msg]) from None
+    finally:
+        loader.dispose()
+    return root, data, problems
+
+
+def _duplicate_keys(node: yaml.Node, loc: Loc = ()) -> list[tuple[int, Loc, str]]:
+    """PyYAML silently keeps the last of duplicate keys; a config file must not have any."""
+    found: list[tuple[int, Loc, str]] = []
+    if isinstance(node, yaml.MappingNode):
+        first: dict[str, int] = {}
+        for key, value in node.value:
+            if key.tag == "tag:yaml.org,2002:merge" or not isinstance(key, yaml.ScalarNode):
+                continue
+            line = key.start_mark.line + 1
+            if key.value in first:
+                found.append(
+                    (line, (*loc, key.value), f"duplicate key (first at line {first[key.value]})")
+                )
+            else:
+                first[key.value] = line
+            found.extend(_duplicate_keys(value, (*loc, key.value)))
+    elif isinstance(node, yaml.SequenceNode):
+        for i, item in enumerate(node.value):
+            found.extend(_duplicate_keys(item, (*loc, i)))
+    return found
+
+
+def _line_of(root: yaml.Node | None, loc: Loc) -> int:
+    """The line of the deepest node on ``loc`` that exists (a key's own line for mappings)."""
+    if root is None:
+        return 1
+    node: yaml.Node = root
+    line = root.start_mark.line + 1
+    for part in loc:
+        if isinstance(node, yaml.MappingNode):
+            match = None
+            for key, value in node.value:  # the last duplicate wins, as in construction
+                if isinstance(key, yaml.ScalarNode) and key.value == str(part):
+                    match = (key, value)
+            if match is None:
+                break
+            line, node = match[0].start_mark.line + 1, match[1]
+        elif isinstance(node, yaml.SequenceNode) and isinstance(part, int):
+            if not 0 <= part < len(node.value):
+                break
+            node = node.value[part]
+            line = node.start_mark.line + 1
+        else:
+            break
+    return line
+
+
+def _located_errors(
+    exc: ValidationError,
+    root: yaml.Node | None,
+    prefix: Loc = (),
+    model: type[BaseModel] = DaemonConfig,
+) -> list[tuple[int, Loc, str]]:
+    """``exc``'s errors with their lines; ``prefix`` is where ``model`` sits in the file (a
+    plugin's ``params``)."""
+    out: list[tuple[int, Loc, str]] = []
+    errors = exc.errors(include_url=False)
+    failed_items = {tuple(e["loc"][:-1]) for e in errors if e["loc"]}
+    for err in errors:
+        rel: Loc = tuple(err["loc"])
+        if err["type"] == "too_short" and any(f[: len(rel)] == rel for f in failed_items):
+            continue  # pydantic counts only the valid items of a tuple; the item errors suffice
+        loc = (*prefix, *rel)
+        if err["type"] == _CROSS:
+            for sub, msg in err["ctx"]["problems"]:
+                full = (*loc, *sub)
+                out.append((_line_of(root, full), full, msg))
+        else:
+            out.append((_line_of(root, loc), loc, _message(err, rel, model)))
+    return out
+
+
+def _describe(value: Any) -> str:
+    """A short, YAML-flavoured rendering of an offending input value."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return repr(value if len(value) <= 40 else value[:37] + "...")
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, dict):
+        return "a mapping"
+    if isinstance(value, list | tuple):
+        return "a list"
+    return repr(str(value))
+
+
+_TYPE_MESSAGES = {
+    "int_type": "expected an integer",
+    "int_parsing": "expected an integer",
+    "int_from_float": "expected an integer",
+    "float_type": "expected a number",
+    "float_parsing": "expected a number",
+    "finite_number": "expected a finite number",
+    "bool_type": "expected true or false",
+    "bool_parsing": "expected true or false",
+    "string_type": "expected a string",
+    "model_type": "expected a mapping",
+    "model_attributes_type": "expected a mapping",
+    "dict_type": "expected a mapping",
+    "list_type": "expected a list",
+    "tuple_type": "expected a list",
+    "path_type": "expected a path",
+    "ip_any_network": "expected an IP address or CIDR network",
+    "ip_any_address": "expected an IP address",
+}
+
+_BOUNDS = {
+    "greater_than": (">", "gt"),
+    "greater_than_equal": (">=", "ge"),
+    "less_than": ("<", "lt"),
+    "less_than_equal": ("<=", "le"),
+}
+
+
+def _message(err: ErrorDetails, loc: Loc, model: type[BaseModel] = DaemonConfig) -> str:
+    kind = err["type"]
+    ctx = err.get("ctx") or {}
+    got = _describe(err.get("input"))
+    if kind == "missing":
+        return "missing required field"
+    if kind == "extra_forbidden":
+        found = _annotation_at(loc[:-1], model)
+        fields = list(found.model_fields) if _is_model(found) else []
+        return f"unknown field '{loc[-1]}'" + _did_you_mean(str(loc[-1]), fields)
+    if kind in _TYPE_MESSAGES:
+        return f"{_TYPE_MESSAGES[kind]}, got {got}"
+    if kind == "literal_error":
+        ann = _annotation_at(loc, model)
+        if get_origin(ann) is Literal:
+            choices = " | ".join(str(a) for a in get_args(ann))
+        else:
+            choices = str(ctx.get("expected", "?"))
+        return f"must be one of {choices}, got {got}"
+    if kind in _BOUNDS:
+        op, key = _BOUNDS[kind]
+        return f"must be {op} {_num(ctx[key])}, got {got}"
+    if kind == "too_short":
+        n = ctx.get("min_length", 1)
+        return "must not be empty" if n == 1 else f"must have at least {n} items"
+    if kind == "too_long":
+        return f"must have at most {ctx.get('max_length')} items"
+    if kind == "string_too_short":
+        return "must not be empty"
+    if kind == "string_too_long":
+        return f"must be at most {ctx.get('max_length')} characters, got {got}"
+    if kind == "string_pattern_mismatch":
+        pattern = str(ctx.get("pattern", ""))
+        return f"expected {_PATTERN_TEXT.get(pattern, 'a string matching ' + pattern)}, got {got}"
+    if kind == "path_not_file":
+        return f"file not found: {err.get('input')}"
+    if kind == "value_error":
+        return str(err["msg"]).removeprefix("Value error, ")
+    msg = str(err["msg"])
+    return msg[:1].lower() + msg[1:]
+
+
+def _strip_annotation(tp: Any) -> Any:
+    """Peel ``Annotated[...]`` and ``X | None`` off a type."""
+    while True:
+        origin = get_origin(tp)
+        if origin is Annotated:
+            tp = get_args(tp)[0]
+            continue
+        if origin in (Union, types.UnionType):
+            args = [a for a in get_args(tp) if a is not type(None)]
+            if len(args) == 1:
+                tp = args[0]
+                continue
+        return tp
+
+
+def _is_model(tp: Any) -> bool:
+    return isinstance(tp, type) and issubclass(tp, BaseModel)
+
+
+def _annotation_at(loc: Loc, model: type[BaseModel] = DaemonConfig) -> Any:
+    """The (stripped) type annotation at ``loc`` under ``model``, or None."""
+    tp: Any = model
+    for part in loc:
+        tp = _strip_annotation(tp)
+        if _is_model(tp):
+            field = tp.model_fields.get(part) if isinstance(part, str) else None
+            if field is None:
+                return None
+            tp = field.annotation
+        elif get_origin(tp) in (tuple, list) and isinstance(part, int):
+            tp = get_args(tp)[0]
+        elif get_origin(tp) is dict:
+            tp = get_args(tp)[1]
+        else:
+            return None
+    return _strip_annotation(tp)
+
+
+# --------------------------------------------------------------------------------------------
+# Plugins: each one's parameters against its own model
+# --------------------------------------------------------------------------------------------
+
+
+def _plugin_problems(config: DaemonConfig, root: yaml.Node | None) -> list[tuple[int, Loc, str]]:
+    """Controller ``params`` against the plugin's ``Params`` (and its ``check`` against the
+    rest of the file); driver ``params`` through the driver's constructor, which opens no
+    hardware (that happens in ``configure``). Unknown plugin names are problems too."""
+    from .controllers import load_controller_class
+    from .drivers import create_driver
+    from .joint import Joint, JointLimits
+
+    problems: list[tuple[int, Loc, str]] = []
+    shape = config.controller
+    for i, cc in enumerate(config.controllers):
+        at: Loc = ("controller", i) if isinstance(shape, tuple) else ("controller",)
+        try:
+            cls = load_controller_class(cc.plugin)
+        except ConfigError as err:
+            problems.append((_line_of(root, (*at, "plugin")), (*at, "plugin"), str(err)))
+            continue
+        try:
+            params = cls.Params.model_validate(dict(cc.params))
+        except ValidationError as exc:
+            problems.extend(_located_errors(exc, root, (*at, "params"), cls.Params))
+            continue
+        for sub, msg in cls.check(params, config):
+            loc = (*at, "params", *sub)
+            problems.append((_line_of(root, loc), loc, msg))
+    joints = {
+        j.name: Joint(
+            j.name,
+            j.type,
+            JointLimits(
+                j.limits.min,
+                j.limits.max,
+                j.limits.velocity,
+                j.limits.effort if j.limits.effort is not None else math.inf,
+            ),
+            j.home,
+        )
+        for j in config.robot.joints
+    }
+    for i, dc in enumerate(config.robot.drivers):
+        loc = ("robot", "drivers", i, "params")
+        try:
+            drv = create_driver(
+                dc.plugin,
+                dc.name,
+                [joints[n] for n in dc.joints if n in joints],
+                dict(dc.params),
+                on_limit=dc.on_limit,
+            )
+        except (OCCError, ValueError, TypeError, KeyError) as err:
+            where = loc if "param" in str(err) else ("robot", "drivers", i, "plugin")
+            problems.append((_line_of(root, where), where, str(err)))
+        else:
+            del drv  # never configured: nothing was opened
+    return problems
+
+
+def _main(argv: list[str]) -> int:
+    if not argv or argv[0].startswith("-"):
+        print("usage: python -m occ.loader FILE.yaml...", file=sys.stderr)
+        return 2
+    status = 0
+    for name in argv:
+        try:
+            load_config(name)
+        except ConfigError as exc:
+            print("\n".join(exc.errors), file=sys.stderr)
+            status = 1
+        else:
+            print(f"{name}: ok")
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(_main(sys.argv[1:]))

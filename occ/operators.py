@@ -1,0 +1,258 @@
+"""Operator requests: commands, queries and their replies, on the loop thread.
+
+Requests arrive parsed (XML included) from the interface threads through the command queue;
+the loop hands at most 16 a tick to :meth:`OperatorDesk.handle`. State commands (Enable, Run,
+Stop, EStop, Reset, ...) go to the state machine, ``GetState`` and GET_* queries are answered at
+once, ``GetStats`` is built by the worker thread (it costs milliseconds), and anything else goes
+to the controllers. Every request gets a reply in its sender's form, an error reply when it is
+refused; a failing handler is a FAULT with an alert, never a crash. Viewers are shown
+statistics without what it would take to forge the master stream.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from typing import TYPE_CHECKING, Any
+
+import igtl
+from igtl.messages.base import Message
+from igtl.transport.common import RateLimit
+
+from .commands import Request, error_reply, parse_request, safe_name, success_reply
+from .errors import CommandError, StateError
+from .interfaces import Inbound, is_operator_request
+from .outputs import STATE_STATUS_CODE, pose_to_message
+from .safety import RobotState
+
+if TYPE_CHECKING:
+    from .robot import Robot
+
+log = logging.getLogger("occ.robot")
+
+#: Operator command -> state-machine event.
+COMMAND_EVENTS = {
+    "enable": "enable",
+    "disable": "disable",
+    "run": "run",
+    "stop": "stop",
+    "estop": "estop",
+    "reset": "reset",
+    "hold": "hold",
+}
+
+#: statistics a viewer is not shown: what it would take to forge the master stream (the next
+#: sequence number, the stream's source port)
+VIEWER_HIDDEN = frozenset({"seq", "last_seq", "stream_owner"})
+
+
+def redact_for_viewer(value: Any) -> Any:
+    """``value`` (a statistics snapshot) without the keys in :data:`VIEWER_HIDDEN`."""
+    if isinstance(value, dict):
+        return {k: redact_for_viewer(v) for k, v in value.items() if k not in VIEWER_HIDDEN}
+    if isinstance(value, list):
+        return [redact_for_viewer(v) for v in value]
+    return value
+
+
+class OperatorDesk:
+    """Answers the operators of one robot (see the module docstring)."""
+
+    def __init__(self, robot: Robot) -> None:
+        self.robot = robot
+        self.handled = 0
+        self.refused = 0
+        self.reply_errors = 0
+        self._refusal_log = RateLimit(5)
+
+    def greet(self, iface: Any, peer: Any) -> None:
+        """A new client of a viewer or operator interface is told the state (runs on the
+        interface thread: only queues a STATUS)."""
+        r = self.robot
+        if iface.answers:
+            st = r.state_machine.state
+            iface.send_to_peer(
+                igtl.StatusMessage(
+                    code=int(STATE_STATUS_CODE[st]),
+                    error_name=st.value,
+                    status_message=f"{r.name} is {st.value}",
+                    device_name=r.name[:20],
+                    timestamp=r.clock.wall_time(),
+                ),
+                peer,
+            )
+
+    def counters(self) -> dict[str, int]:
+        return {
+            "handled": self.handled,
+            "refused": self.refused,
+            "reply_errors": self.reply_errors,
+            "worker_refused": self.robot.worker.refused,
+        }
+
+    def handle(self, item: Inbound, now: float) -> None:
+        r = self.robot
+        msg = item.msg
+        if r.recorder is not None:
+            r.recorder.record_message(msg, "in", item.interface, now)
+        req: Request | None = item.request
+        if req is None and not is_operator_request(msg):
+            # a discrete input routed to the command queue (e.g. VFIXTURE)
+            try:
+                r.controller.on_sample(item, now)
+            except Exception as err:  # noqa: BLE001
+                r.alarms.plugin_error(f"controller {r.controller.name}: on_sample", err)
+            return
+        wall = r.clock.wall_time()
+        try:
+            if req is None:  # not parsed by an interface thread (a test, a replay)
+                req = parse_request(msg)
+            if req.kind == "query":
+                reply = self._answer_query(req, wall)
+            elif req.name.strip().lower() == "getstats":
+                # statistics are built off the loop thread; the worker replies
+                if not r.worker.start().submit(lambda: self._reply_stats(item, req)):
+                    raise CommandError("busy: too many statistics requests; try again")
+                self.handled += 1
+                return
+            else:
+                text = self._execute(req, now)
+                reply = success_reply(req, text, timestamp=wall)
+            self.handled += 1
+        except (CommandError, StateError) as err:
+            self.refused += 1
+            if self._refusal_log.allow():  # a flood of bad commands must not flood the log
+                log.warning(
+                    "%s: refused %s from %s:%s: %s",
+                    item.interface,
+                    msg.message_type,
+                    *item.peer.address[:2],
+                    err,
+                )
+            reply = error_reply(
+                msg, str(err), code=igtl.StatusCode.ILLEGAL_INSTRUCTION, timestamp=wall
+            )
+        except Exception as err:  # noqa: BLE001 - a failing handler is a FAULT, not a crash
+            self.refused += 1
+            name = req.name if req is not None else msg.message_type
+            r.alarms.plugin_error(f"command {name!r}", err)
+            reply = error_reply(
+                msg, f"{name} failed: {err}", code=igtl.StatusCode.UNKNOWN_ERROR, timestamp=wall
+            )
+        self._send_reply(item, reply, now)
+
+    def _send_reply(self, item: Inbound, reply: Message, now: float) -> None:
+        r = self.robot
+        try:
+            r.interfaces.reply(item, reply)
+        except Exception as err:  # noqa: BLE001 - a reply that cannot be sent is counted
+            self.reply_errors += 1
+            log.warning("%s: reply to %s could not be sent: %s", item.interface, item.peer, err)
+            return
+        if r.recorder is not None:
+            r.recorder.record_message(reply, "out", item.interface, now)
+
+    def _reply_stats(self, item: Inbound, req: Request) -> None:
+        """On the worker thread: the snapshot (histogram percentiles, controller statistics)
+        costs milliseconds; the loop only handed the request over."""
+        r = self.robot
+        snap = r.snapshot()
+        if req.args.get("Histogram", "").lower() == "lateness":
+            # the raw buckets: a client subtracts two of them into a window's percentiles
+            snap["lateness_buckets"] = r.stats.lateness.buckets()
+        if item.role != "operator":
+            snap = redact_for_viewer(snap)
+        text = json.dumps(snap, separators=(",", ":"), default=str)
+        reply = success_reply(req, text, timestamp=r.clock.wall_time())
+        r.interfaces.reply(item, reply)
+
+    def _execute(self, req: Request, now: float) -> str:
+        r = self.robot
+        key = req.name.strip().lower()
+        event = COMMAND_EVENTS.get(key)
+        if event is not None:
+            reason = f"operator {req.name}"
+            if event == "reset":
+                r.reset_monitors()
+                if r.state_machine.state is RobotState.STOPPED:
+                    r.alarms.last_alert = ""
+                    return "STOPPED: alerts cleared; send Run to resume"
+            tr = r.state_machine.request(event, reason)
+            return f"{tr.old.value} -> {tr.new.value}"
+        if key == "getstate":
+            return self.describe_state()
+        return r.controller.on_command(req, now) or "OK"
+
+    def _answer_query(self, req: Request, wall: float) -> Message:
+        r = self.robot
+        msg = req.msg
+        assert msg is not None
+        name = req.name
+        if name == "GET_STATUS":
+            st = r.state_machine.state
+            return igtl.StatusMessage(
+                code=int(STATE_STATUS_CODE[st]),
+                error_name=st.value,
+                status_message=self.describe_state(),
+                device_name=safe_name(msg.device_name or r.name),
+                header_version=msg.header_version,
+                message_id=msg.message_id,
+                timestamp=wall,
+            )
+        if name == "GET_CAPABIL":
+            types = [
+                "TRANSFORM",
+                "POSITION",
+                "STATUS",
+                "STRING",
+                "COMMAND",
+                "CAPABILITY",
+                "GET_STATUS",
+                "GET_CAPABIL",
+                "GET_TRANS",
+            ]
+            return igtl.CapabilityMessage(
+                types=tuple(types),
+                device_name=safe_name(msg.device_name),
+                header_version=msg.header_version,
+                message_id=msg.message_id,
+                timestamp=wall,
+            )
+        if name in ("GET_TRANS", "GET_TRANSFOR"):
+            want = safe_name(msg.device_name or "Tip")
+            pose = r.data.base if want.lower() == "base" else r.data.world_tip()
+            return pose_to_message(pose, "TRANSFORM", want, msg.header_version, wall)
+        raise CommandError(f"{name} is not supported by {r.name}")
+
+    def describe_state(self) -> str:
+        r = self.robot
+        st = r.state_machine.state
+        parts = [f"state={st.value}"]
+        if r.last_alert:
+            parts.append(f"alert={r.last_alert}")
+        if r.state_machine.last_reason:
+            parts.append(f"reason={r.state_machine.last_reason}")
+        return "; ".join(parts)
+
+    def report(self) -> dict[str, Any]:
+        """Every statistic of the robot (GetStats, ``occd --stats``); off the loop thread."""
+        r = self.robot
+        snap = r.stats.snapshot()
+        snap["robot"] = r.name
+        snap["state"] = r.state_machine.state.value
+        snap["commands"] = self.counters()
+        snap["watchdog"] = r.watchdog.counters()
+        snap["supervisor"] = {
+            "timeout_ms": r.supervisor.timeout_s * 1e3,
+            "trips": r.supervisor.trips,
+            "tripped": r.supervisor.tripped,
+            "thread": r.supervisor_thread.report if r.supervisor_thread else None,
+        }
+        snap["reentries"] = r.reentries
+        snap["last_alert"] = r.last_alert
+        if r.loss_monitor is not None:
+            snap["loss"] = r.loss_monitor.counters()
+        snap["controller"] = r.controller.stats()
+        snap["drivers"] = {drv.name: drv.stats() for drv, _ in r.drivers}
+        snap["realtime"] = r.loop.realtime_report
+        return snap

@@ -1,0 +1,205 @@
+"""Output sources: what the robot sends out periodically, each at its own rate.
+
+An interface's ``outputs`` name a source (``tip``, ``base``, ``status``, ``joints``, or one a
+controller adds, e.g. ``teleop``); every tick the :class:`OutputScheduler` asks the sources that
+are due for a message and queues it on the interface (never blocking the loop; a slow client
+loses its own oldest messages inside the transport, OCC's per-subscriber ``Fq``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+import igtl
+from igtl.messages.base import Message
+
+from .errors import OCCError
+from .safety import RobotState
+
+if TYPE_CHECKING:
+    from .data import RobotData
+    from .interfaces import Interface
+
+M_TO_MM = 1000.0
+
+#: STATUS code sent with each state (operators see why, not just what).
+STATE_STATUS_CODE = {
+    RobotState.INIT: igtl.StatusCode.NOT_READY,
+    RobotState.READY: igtl.StatusCode.OK,
+    RobotState.ENABLED: igtl.StatusCode.OK,
+    RobotState.RUNNING: igtl.StatusCode.OK,
+    RobotState.STOPPED: igtl.StatusCode.DISABLED,
+    RobotState.FAULT: igtl.StatusCode.HARDWARE_FAILURE,
+    RobotState.ESTOP: igtl.StatusCode.PANICK_MODE,
+    RobotState.SHUTDOWN: igtl.StatusCode.SHUT_DOWN,
+}
+
+
+@dataclass
+class Output:
+    """One periodic output: a message type built from a named source, every ``every`` ticks."""
+
+    interface: Interface
+    type: str
+    device: str
+    source: str
+    every: int
+    header_version: int
+    seq: int = 0
+
+
+SourceFn = Callable[[Output, float], Message | None]
+
+
+def pose_to_message(
+    pose: np.ndarray, mtype: str, device: str, header_version: int, timestamp: float
+) -> Message:
+    """A TRANSFORM or POSITION (mm) from a 4x4 pose in metres."""
+    if mtype == "TRANSFORM":
+        m = pose.copy()
+        m[:3, 3] *= M_TO_MM
+        return igtl.TransformMessage.from_matrix(
+            m, device_name=device, timestamp=timestamp, header_version=header_version
+        )
+    if mtype == "POSITION":
+        x, y, z = (pose[:3, 3] * M_TO_MM).tolist()
+        return igtl.PositionMessage(
+            (x, y, z),
+            rotation_to_quaternion(pose[:3, :3]),
+            device_name=device,
+            timestamp=timestamp,
+            header_version=header_version,
+        )
+    raise OCCError(f"output type {mtype} cannot carry a pose")
+
+
+def rotation_to_quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of a rotation matrix, w >= 0 (Shepperd's method, numerically stable)."""
+    m = r.tolist()
+    t = m[0][0] + m[1][1] + m[2][2]
+    if t > 0.0:
+        s = math.sqrt(t + 1.0) * 2.0
+        q = ((m[2][1] - m[1][2]) / s, (m[0][2] - m[2][0]) / s, (m[1][0] - m[0][1]) / s, 0.25 * s)
+    elif m[0][0] > m[1][1] and m[0][0] > m[2][2]:
+        s = math.sqrt(1.0 + m[0][0] - m[1][1] - m[2][2]) * 2.0
+        q = (0.25 * s, (m[0][1] + m[1][0]) / s, (m[0][2] + m[2][0]) / s, (m[2][1] - m[1][2]) / s)
+    elif m[1][1] > m[2][2]:
+        s = math.sqrt(1.0 + m[1][1] - m[0][0] - m[2][2]) * 2.0
+        q = ((m[0][1] + m[1][0]) / s, 0.25 * s, (m[1][2] + m[2][1]) / s, (m[0][2] - m[2][0]) / s)
+    else:
+        s = math.sqrt(1.0 + m[2][2] - m[0][0] - m[1][1]) * 2.0
+        q = ((m[0][2] + m[2][0]) / s, (m[1][2] + m[2][1]) / s, 0.25 * s, (m[1][0] - m[0][1]) / s)
+    if q[3] < 0.0:
+        q = (-q[0], -q[1], -q[2], -q[3])
+    return q
+
+
+def quaternion_to_rotation(q: Sequence[float]) -> np.ndarray:
+    x, y, z, w = q
+    n = math.sqrt(x * x + y * y + z * z + w * w) or 1.0
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+class BuiltinSources:
+    """The sources every robot has: ``tip`` and ``base`` (poses in the world, as 3D Slicer
+    shows them), ``status`` (the state and why) and ``joints`` (measured positions)."""
+
+    def __init__(self, data: RobotData, describe: Callable[[], str]) -> None:
+        self.data = data
+        self.describe = describe
+
+    def table(self) -> dict[str, SourceFn]:
+        return {
+            "tip": self.tip,
+            "base": self.base,
+            "status": self.status,
+            "joints": self.joints,
+        }
+
+    def tip(self, out: Output, now: float) -> Message:
+        # in world coordinates: the base pose (config or tracker) x the forward kinematics
+        d = self.data
+        return pose_to_message(
+            d.world_tip(), out.type, out.device, out.header_version, d.clock.wall_time()
+        )
+
+    def base(self, out: Output, now: float) -> Message:
+        d = self.data
+        return pose_to_message(
+            d.base, out.type, out.device, out.header_version, d.clock.wall_time()
+        )
+
+    def status(self, out: Output, now: float) -> Message:
+        st = self.data.state
+        return igtl.StatusMessage(
+            code=int(STATE_STATUS_CODE[st]),
+            error_name=st.value,
+            status_message=self.describe(),
+            device_name=out.device,
+            header_version=out.header_version,
+            timestamp=self.data.clock.wall_time(),
+        )
+
+    def joints(self, out: Output, now: float) -> Message:
+        return igtl.NDArrayMessage(
+            array=np.array(self.data.q, dtype=np.float64),
+            device_name=out.device,
+            header_version=out.header_version,
+            timestamp=self.data.clock.wall_time(),
+        )
+
+
+class OutputScheduler:
+    """Every output of every interface, each sent every ``every`` ticks from its source."""
+
+    def __init__(self, outputs: Sequence[Output], sources: dict[str, SourceFn]) -> None:
+        for out in outputs:
+            if out.source not in sources:
+                raise OCCError(
+                    f"interface {out.interface.name}: output source {out.source!r} unknown; "
+                    f"known: {', '.join(sorted(sources))}"
+                )
+        self._due = [(out, sources[out.source]) for out in outputs]
+        self.outputs = list(outputs)
+
+    @classmethod
+    def for_interfaces(
+        cls, interfaces: Iterable[Interface], rate_hz: float, sources: dict[str, SourceFn]
+    ) -> OutputScheduler:
+        """The outputs every interface's config lists, each every ``rate_hz / its rate`` ticks."""
+        outputs = [
+            Output(
+                iface,
+                oc.type,
+                oc.device,
+                oc.source,
+                max(1, round(rate_hz / oc.rate_hz)),
+                iface.cfg.header_version,
+            )
+            for iface in interfaces
+            for oc in iface.cfg.outputs
+        ]
+        return cls(outputs, sources)
+
+    def send_due(
+        self, now: float, k: int, record: Callable[[Message, str, float], None] | None
+    ) -> None:
+        for out, source in self._due:
+            if k % out.every == 0:
+                msg = source(out, now)
+                if msg is not None:
+                    out.interface.send(msg)
+                    if record is not None:
+                        record(msg, out.interface.name, now)
