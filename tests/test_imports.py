@@ -1,0 +1,105 @@
+"""House rules on imports: ``igtl`` never imports ``occ``, and no module of ``occ`` imports
+itself back through others at import time (an import cycle: the order modules happen to load
+in would decide whether the daemon starts).
+
+Only imports that run when a module loads count: those at module level outside ``if
+TYPE_CHECKING:``. Imports inside functions are deliberate late binding (e.g. the loader
+importing the plugin registries) and cannot form a load-time cycle.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _module_name(path: Path) -> str:
+    rel = path.relative_to(ROOT).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _load_time_imports(path: Path, name: str) -> set[str]:
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found: set[str] = set()
+    for node in tree.body:  # module level only
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            continue
+        for sub in ast.walk(node) if isinstance(node, ast.If | ast.Try) else [node]:
+            if isinstance(sub, ast.Import):
+                found.update(a.name for a in sub.names)
+            elif isinstance(sub, ast.ImportFrom):
+                if sub.level:
+                    base = package.split(".")
+                    base = base[: len(base) - (sub.level - 1)]
+                    mod = ".".join(base + ([sub.module] if sub.module else []))
+                else:
+                    mod = sub.module or ""
+                if sub.module:  # `from . import a` loads the submodule a, not the package
+                    found.add(mod)
+                found.update(f"{mod}.{a.name}" for a in sub.names)  # `from pkg import module`
+    return found
+
+
+def _graph(package: str) -> dict[str, set[str]]:
+    modules = {_module_name(p): p for p in (ROOT / package).rglob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for name, path in modules.items():
+        graph[name] = {m for m in _load_time_imports(path, name) if m in modules and m != name}
+    return graph
+
+
+def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(node: str) -> list[str] | None:
+        state[node] = 1
+        stack.append(node)
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                return stack[stack.index(nxt) :] + [nxt]
+            if nxt not in state:
+                found = visit(nxt)
+                if found:
+                    return found
+        stack.pop()
+        state[node] = 2
+        return None
+
+    for node in sorted(graph):
+        if node not in state:
+            found = visit(node)
+            if found:
+                return found
+    return None
+
+
+def test_no_import_cycle_in_occ() -> None:
+    cycle = _cycle(_graph("occ"))
+    assert cycle is None, "import cycle: " + " -> ".join(cycle or [])
+
+
+def test_no_import_cycle_in_igtl() -> None:
+    cycle = _cycle(_graph("igtl"))
+    assert cycle is None, "import cycle: " + " -> ".join(cycle or [])
+
+
+def test_igtl_never_imports_occ() -> None:
+    for path in (ROOT / "igtl").rglob("*.py"):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("occ"):
+                raise AssertionError(f"{path.relative_to(ROOT)} imports {node.module}")
+            if isinstance(node, ast.Import) and any(a.name.startswith("occ") for a in node.names):
+                raise AssertionError(f"{path.relative_to(ROOT)} imports occ")
+
+
+def test_the_cycle_finder_finds_cycles() -> None:
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert _cycle({"a": {"b"}, "b": set()}) is None
