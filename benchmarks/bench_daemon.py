@@ -108,6 +108,7 @@ def main(argv: list[str] | None = None) -> int:
 
     procs = [occd("slave")]
     clients: list[SlicerStandIn] = []
+    operator: SlicerStandIn | None = None
     try:
         if not wait_port(tcp):
             print("slave did not start; see", out / "slave.log", file=sys.stderr)
@@ -122,6 +123,8 @@ def main(argv: list[str] | None = None) -> int:
             ]
             for c in clients:
                 c.connected.wait(5.0)
+            # the operator's console (Slicer's connection is a viewer: it may not send Run)
+            operator = None if args.cpu_load_only else SlicerStandIn("127.0.0.1", ports["slave_op"]).start()
         print(
             f"running {args.duration:.0f} s ({'SCHED_OTHER' if args.no_fifo else 'SCHED_FIFO where permitted'}); "
             f"files in {out}",
@@ -133,16 +136,16 @@ def main(argv: list[str] | None = None) -> int:
         reruns = 0
         while time.monotonic() < end:
             time.sleep(0.05)
-            if clients:
-                sts = clients[0].statuses
+            if operator is not None:
+                sts = operator.statuses
                 for st in sts[seen:]:
                     if st.error_name == "STOPPED":
-                        clients[0].send_command("Run")
+                        operator.send_command("Run")
                         reruns += 1
                 seen = len(sts)
         summaries = [c.summary() for c in clients]
     finally:
-        for c in clients:
+        for c in clients + ([operator] if operator is not None else []):
             c.stop()
         stop_processes(procs, timeout=20)
     s = json.loads((out / "slave.json").read_text())

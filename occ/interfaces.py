@@ -570,14 +570,15 @@ class InterfaceManager:
                 log.exception("connect listener failed")
 
     def operator_interfaces(self) -> list[Interface]:
-        """The interfaces whose clients are told the robot's state (viewers and operators)."""
-        return [i for i in self.interfaces.values() if i.answers]
+        """The interfaces whose clients may command the robot (role ``operator``)."""
+        return [i for i in self.interfaces.values() if i.role == "operator"]
 
     def broadcast_operators(self, msg: Message) -> None:
         """Send to every client of every viewer or operator interface (state changes, alerts:
         what the robot does is everyone's business; only operators may change it)."""
-        for iface in self.operator_interfaces():
-            iface.send(msg)
+        for iface in self.interfaces.values():
+            if iface.answers:
+                iface.send(msg)
 
     def reply(self, item: Inbound, msg: Message) -> bool:
         return self.interfaces[item.interface].send_to_peer(msg, item.peer)

@@ -348,11 +348,28 @@ def send_all(
 
 
 class Operator(SlicerStandIn):
-    """The harness's operator console: a Slicer stand-in that also keeps the Tip over time."""
+    """The harness's operator console (commands on the operator interface) with a Slicer of
+    its own on the viewer interface that keeps the Tip over time."""
 
-    def __init__(self, port: int) -> None:
+    def __init__(self, port: int, view_port: int | None = None) -> None:
         super().__init__("127.0.0.1", port)
         self.tips: list[tuple[float, tuple[float, ...]]] = []
+        self.viewer = Operator(view_port) if view_port is not None else None
+        if self.viewer is not None:
+            self.viewer.tips = self.tips  # one list, filled by the viewer's connection
+            self.viewer._lock = self._lock
+
+    def start(self) -> Operator:
+        super().start()
+        if self.viewer is not None:
+            self.viewer.start()
+            self.viewer.connected.wait(10.0)
+        return self
+
+    def stop(self) -> Any:
+        if self.viewer is not None:
+            self.viewer.stop()
+        return super().stop()
 
     def _on_message(self, peer: Any, msg: igtl.Message) -> None:
         super()._on_message(peer, msg)
@@ -385,16 +402,21 @@ class Rig:
         slave, master, self.ports = pair_configs()
         slave["stats"] = {"log_every_s": 3600.0}
         master["stats"] = {"log_every_s": 3600.0}
-        self.tcp_iface = next(i for i in slave["interfaces"] if i["transport"] == "tcp-server")
+        # requests (names, XML, bodies) go to the operator interface, where they are parsed;
+        # the slot cases fill the 3D Slicer (viewer) interface, whose lock-out they once caused
+        tcp = [i for i in slave["interfaces"] if i["transport"] == "tcp-server"]
+        self.tcp_iface = next(i for i in tcp if i.get("role") == "operator")
+        self.view_iface = next(i for i in tcp if i.get("role") != "operator")
         self.udp_iface = next(i for i in slave["interfaces"] if i["transport"] == "udp")
-        if settings.message_timeout_s is not None:
-            self.tcp_iface["message_timeout_s"] = settings.message_timeout_s
-        if settings.send_stall_timeout_s is not None:
-            self.tcp_iface["send_stall_timeout_s"] = settings.send_stall_timeout_s
+        for itf in tcp:
+            if settings.message_timeout_s is not None:
+                itf["message_timeout_s"] = settings.message_timeout_s
+            if settings.send_stall_timeout_s is not None:
+                itf["send_stall_timeout_s"] = settings.send_stall_timeout_s
         self.robot_name = str(slave["robot"]["name"])  # the device name of its own STATUS
-        self.max_clients = int(self.tcp_iface.get("max_clients", 8))
-        self.message_timeout = float(self.tcp_iface.get("message_timeout_s", 10.0))
-        self.send_stall_timeout = float(self.tcp_iface.get("send_stall_timeout_s", 5.0))
+        self.max_clients = int(self.view_iface.get("max_clients", 8))
+        self.message_timeout = float(self.view_iface.get("message_timeout_s", 10.0))
+        self.send_stall_timeout = float(self.view_iface.get("send_stall_timeout_s", 5.0))
         write_yaml(self.out / "slave.yaml", slave)
         write_yaml(self.out / "master.yaml", master)
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
@@ -413,9 +435,9 @@ class Rig:
             bound_s,
             start,
         )
-        if not wait_port(self.ports["slave_tcp"], 30.0, self.slave):
+        if not wait_port(self.ports["slave_op"], 30.0, self.slave):
             raise AttackError(f"the slave did not start; see {self.out / 'slave.log'}")
-        self.op = Operator(self.ports["slave_tcp"]).start()
+        self.op = Operator(self.ports["slave_op"], self.ports["slave_tcp"]).start()
         if not self.op.connected.wait(10.0):
             raise AttackError("the operator client could not connect to the slave")
         if self.with_master:
@@ -531,6 +553,9 @@ class Rig:
     def tcp(self, s: dict[str, Any]) -> dict[str, Any]:
         return s["interfaces"][self.tcp_iface["name"]]
 
+    def view(self, s: dict[str, Any]) -> dict[str, Any]:
+        return s["interfaces"][self.view_iface["name"]]
+
     def udp(self, s: dict[str, Any]) -> dict[str, Any]:
         return s["interfaces"][self.udp_iface["name"]]
 
@@ -540,6 +565,12 @@ class Rig:
 
     @property
     def tcp_port(self) -> int:
+        """The operator interface: requests are parsed there."""
+        return int(self.ports["slave_op"])
+
+    @property
+    def view_port(self) -> int:
+        """The 3D Slicer interface (a viewer)."""
         return int(self.ports["slave_tcp"])
 
 
@@ -738,7 +769,7 @@ def _fill_slots(
         if kind == "no-read":
             s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 2048)
         s.settimeout(5.0)
-        s.connect(("127.0.0.1", rig.tcp_port))
+        s.connect(("127.0.0.1", rig.view_port))
         socks.append(s)
     trickle: threading.Thread | None = None
     if kind == "slowloris":
@@ -774,11 +805,11 @@ def _fill_slots(
     t0 = time.monotonic()
     # the daemon has taken (or refused) them all once every slot is held
     end = t0 + 5.0
-    while rig.tcp(rig.stats(histogram=False))["peers"] < rig.max_clients:
+    while rig.view(rig.stats(histogram=False))["peers"] < rig.max_clients:
         if time.monotonic() > end:
             break
         time.sleep(0.05)
-    slicer, t_slicer = ask_status_until(rig.tcp_port, "FreshSlicer", slicer=True, within=within)
+    slicer, t_slicer = ask_status_until(rig.view_port, "FreshSlicer", slicer=True, within=within)
     operator, t_op = ask_status_until(
         rig.tcp_port,
         "FreshOperator",
@@ -792,7 +823,7 @@ def _fill_slots(
         s.close()
 
     def judge(after: dict[str, Any]) -> Verdict:
-        t = lambda k: delta(before, after, "interfaces", rig.tcp_iface["name"], k)  # noqa: E731
+        t = lambda k: delta(before, after, "interfaces", rig.view_iface["name"], k)  # noqa: E731
         freed = t("slow_message_closed") if kind == "slowloris" else t("evicted_not_reading")
         timeout = rig.message_timeout if kind == "slowloris" else rig.send_stall_timeout
         ok = slicer is not None and operator is not None and freed >= 1 and t("rejected") >= 1

@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     out = args.out or Path(tempfile.mkdtemp(prefix="occ-demo-"))
     out.mkdir(parents=True, exist_ok=True)
-    for port in (18944, 18945):
+    for port in (18944, 18945, 18947):
         with socket.socket() as s:
             if s.connect_ex(("127.0.0.1", port)) == 0:
                 print(f"demo: port {port} is already in use (another demo running?)", file=sys.stderr)
@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         if not standin.connected.wait(5.0):
             print("demo: the Slicer stand-in could not connect", file=sys.stderr)
             return 1
-        print(f"demo: slave (TCP 18944, UDP 18946) and master (TCP 18945) running; "
+        print(f"demo: slave (TCP 18944 Slicer, 18947 operators, UDP 18946) and master (TCP 18945) running; "
               f"statistics in {out}", flush=True)
         t0 = time.monotonic()
         killed = False
@@ -164,7 +164,7 @@ def stopped_hint(state: str, cause: str) -> str:
     """What stopped the slave and the commands that resume it."""
     steps = RESUME.get(state, [])
     how = "; ".join(
-        f"igtl send 127.0.0.1:18944 --type COMMAND --command-name {c}" for c in steps
+        f"igtl send 127.0.0.1:18947 --type COMMAND --command-name {c}" for c in steps
     )
     return f"{state}: {cause or 'no alert recorded'}" + (f" -> to resume: {how}" if how else "")
 

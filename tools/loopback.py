@@ -43,16 +43,21 @@ def pair_configs(
 ) -> tuple[dict[str, Any], dict[str, Any], dict[str, int]]:
     """The two configurations (as YAML data) with every listening port moved to a free one and
     the master's UDP output aimed at the slave's UDP input. Returns (slave, master, ports) with
-    ports ``slave_tcp``, ``slave_udp``, ``master_tcp``."""
+    ports ``slave_tcp`` (the slave's 3D Slicer interface, a viewer), ``slave_op`` (its operator
+    interface: commands), ``slave_udp``, ``master_tcp``."""
     ports = {
         "slave_tcp": free_port(),
+        "slave_op": free_port(),
         "slave_udp": free_port(socket.SOCK_DGRAM),
         "master_tcp": free_port(),
     }
     slave = yaml.safe_load(slave_cfg.read_text())
     master = yaml.safe_load(master_cfg.read_text())
     for itf in slave["interfaces"]:
-        itf["port"] = ports["slave_tcp"] if itf["transport"] == "tcp-server" else ports["slave_udp"]
+        if itf["transport"] != "tcp-server":
+            itf["port"] = ports["slave_udp"]
+        else:
+            itf["port"] = ports["slave_op"] if itf.get("role") == "operator" else ports["slave_tcp"]
     for itf in master["interfaces"]:
         if itf["transport"] == "tcp-server":
             itf["port"] = ports["master_tcp"]

@@ -500,7 +500,8 @@ def write_configs(out: Path, slave_cfg: Path, master_cfg: Path) -> dict[str, Any
             cfg["recording"]["path"] = None
     for iface in slave["interfaces"]:
         if iface["transport"] == "tcp-server":
-            iface["port"] = ports.setdefault("slave_tcp", free_port(socket.SOCK_STREAM))
+            key = "slave_op" if iface.get("role") == "operator" else "slave_tcp"
+            iface["port"] = ports.setdefault(key, free_port(socket.SOCK_STREAM))
             iface["host"] = "127.0.0.1"
         elif iface["name"] == loss_input:
             iface["port"] = ports["slave_udp"] = free_port(socket.SOCK_DGRAM)
@@ -513,7 +514,7 @@ def write_configs(out: Path, slave_cfg: Path, master_cfg: Path) -> dict[str, Any
             iface["port"] = 0
             iface["host"] = "127.0.0.1"
             ports["master_udp_iface"] = iface["name"]
-    if "slave_udp" not in ports or "master_udp_iface" not in ports or "slave_tcp" not in ports:
+    if "slave_udp" not in ports or "master_udp_iface" not in ports or "slave_op" not in ports:
         raise SystemExit("soak real: could not find the slave's loss input / the master's UDP output "
                          "/ the slave's operator interface in the configs")
     ports["slave_yaml"] = str(out / "slave.yaml")
@@ -588,9 +589,9 @@ def run_real(args: argparse.Namespace, out: Path) -> Report:
         slave = start_occd(ports["slave_yaml"], out / "slave-stats.json", out / "slave.log", bound)
         procs.append(slave)
         names.append("slave")
-        if not wait_port(ports["slave_tcp"], 30.0, slave):
+        if not wait_port(ports["slave_op"], 30.0, slave):
             raise SystemExit(f"soak real: the slave did not start (see {out / 'slave.log'})")
-        standin = SlicerStandIn("127.0.0.1", ports["slave_tcp"]).start()
+        standin = SlicerStandIn("127.0.0.1", ports["slave_op"]).start()
         if not standin.connected.wait(10.0):
             raise SystemExit("soak real: the operator client could not connect to the slave")
         proxy.start()

@@ -65,12 +65,16 @@ def daemons(tmp_path: Path):  # type: ignore[no-untyped-def]
 
 def test_slicer_sees_tip_follow_master_and_dead_master_stops_slave(daemons) -> None:  # type: ignore[no-untyped-def]
     ports, slave, master, tmp = daemons
-    with SlicerStandIn("127.0.0.1", ports["slave_tcp"]) as s:
-        assert s.connected.wait(5.0)
-        # operator: Enable + Run over COMMAND / RTS_COMMAND
+    with SlicerStandIn("127.0.0.1", ports["slave_tcp"]) as s, \
+            SlicerStandIn("127.0.0.1", ports["slave_op"]) as op:
+        assert s.connected.wait(5.0) and op.connected.wait(5.0)
+        # 3D Slicer's connection is a viewer: it may not move the robot
+        refused = s.wait_reply(s.send_command("Enable"), 5.0)
+        assert refused is not None and refused.metadata["Status"] == "FAIL", refused
+        # operator: Enable + Run over COMMAND / RTS_COMMAND on the operator interface
         for name in ("Enable", "Run"):
-            cid = s.send_command(name)
-            reply = s.wait_reply(cid, 5.0)
+            cid = op.send_command(name)
+            reply = op.wait_reply(cid, 5.0)
             assert reply is not None and reply.metadata["Status"] == "SUCCESS", reply
         assert wait_for(lambda: len(s.arrivals.get("Tip", [])) >= 20, 10.0)
         first = s.last["Tip"].translation
@@ -79,7 +83,7 @@ def test_slicer_sees_tip_follow_master_and_dead_master_stops_slave(daemons) -> N
             # On a heavily loaded machine a stalled master can legitimately trip the loss
             # monitor (no packet for 7 ms); the operator then sends Run again, as they would.
             if s.statuses and s.statuses[-1].error_name == "STOPPED":
-                s.send_command("Run")
+                op.send_command("Run")
             return max(abs(a - b) for a, b in zip(s.last["Tip"].translation, first)) > 0.3
 
         # the master's simulated hand moves 50 mm at 0.1 Hz, scaled 10:1: the tip moves

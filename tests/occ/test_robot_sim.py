@@ -32,7 +32,7 @@ class SimSlave:
         self.robot = self.sim.robot
         self.clock = self.sim.clock
         self.master = self.sim.peer("master", address=MASTER_ADDRESS)
-        self.operator = self.sim.peer("slicer", address=OPERATOR_ADDRESS)
+        self.operator = self.sim.peer("operator", address=OPERATOR_ADDRESS)
         self.seq = 0
         self.master_pos = [0.0, 50.0, 270.0]
         #: everything the robot sent to the operator (replies, alerts, Tip/Base)

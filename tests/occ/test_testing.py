@@ -19,15 +19,16 @@ SLAVE = ROOT / "configs" / "slave.yaml"
 
 def test_each_operator_gets_its_own_replies_and_every_operator_the_broadcasts() -> None:
     with SimRobot(SLAVE) as sim:
-        alice, bob = sim.peer("slicer"), sim.peer("slicer")
+        alice, bob = sim.peer("operator"), sim.peer("operator")
+        viewer = sim.peer("slicer")
         assert alice.connected and bob.connected
         cid = alice.send_command("Enable")
         sim.step()
         reply = alice.reply_to(cid)
         assert reply is not None and reply.metadata["Status"] == "SUCCESS"
         assert bob.messages("RTS_COMMAND") == []  # the reply went to the one who asked
-        # the state change is broadcast to every operator, after each one's greeting
-        for peer in (alice, bob):
+        # the state change is broadcast to every operator and viewer, after each one's greeting
+        for peer in (alice, bob, viewer):
             states = [m.error_name for m in peer.messages("STATUS")]
             assert states == ["READY", "ENABLED"], states
         assert sim.robot.state is RobotState.ENABLED
