@@ -11,7 +11,8 @@ Master daemon (:class:`MasterController`)
     - ``input: driver``: the master's own drivers read a real device moved by hand (e.g. the
       ``can`` driver); the controller commands no motion.
 
-    A master whose joint home is (0, A, Z) starts on the simulated trajectory without a jump.
+    A master whose joint home is (0, A, Z) starts on the simulated trajectory without a jump; ``t``
+    counts time spent RUNNING only, so after a Stop the motion resumes where it was held.
     The master's joints follow the target (IK on the master's Frame), and the *measured* handle
     position (FK) is streamed by the output source ``teleop``: POSITION, 24-byte variant
     (position + 3-element quaternion, as the OCC paper sends), header version 2, the message ID a
@@ -187,6 +188,7 @@ class MasterController(Controller):
         self.fixture_contacts = 0
         self.target: np.ndarray | None = None
         self._t_run = 0.0
+        self._t_held = 0.0  # trajectory time already run when RUNNING was left
         self.ik_failures = 0
         self.samples = 0
 
@@ -275,8 +277,13 @@ class MasterController(Controller):
         return ("Clutch", "ClearFixtures")
 
     def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
+        # The simulated hand's time runs only while RUNNING: re-entering RUNNING resumes the
+        # trajectory where the robot was held (restarting it at t = 0 jumped the handle back to
+        # the start point in one tick, tests/occ/test_contracts.py).
         if new is RobotState.RUNNING:
-            self._t_run = now
+            self._t_run = now - self._t_held
+        elif old is RobotState.RUNNING:
+            self._t_held = now - self._t_run
 
     # -------------------------------------------------------------- loop
     def operator_target(self, now: float) -> np.ndarray | tuple[float, float, float] | None:
