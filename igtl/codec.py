@@ -18,18 +18,31 @@ What happens after a bad message (``DecodeError.recoverable``):
 No other exception leaves :func:`unpack` or :class:`StreamDecoder` for any input bytes: a
 content codec that trips over values its type cannot hold is reported as ContentError.
 
-Every decodable message re-packs byte for byte (``msg.pack() == data``), or is refused:
+Re-packing: every decodable message re-packs byte for byte (``msg.pack() == data``), or is
+refused:
 
+- A decoded message remembers the bytes it was decoded from (``Message._wire``, set here and
+  nowhere else) and ``pack()`` without a version change or a ``metadata`` override returns
+  them, whether they are what this library would encode or not: names that are not UTF-8
+  (decoded as latin-1 so operator tools get an answer), v2 metadata not sorted by key or with a
+  key twice, EXT_HEADER_SIZE > 12, reserved, version or padding bytes that are not the
+  canonical value, float32 signalling NaNs (a Python float makes them quiet), a wrong CRC
+  accepted with ``crc_check=False``. A message built or changed (``dataclasses.replace``,
+  ``stamped``) has none and is encoded from its fields.
+- Remembering copies nothing on the common path: :func:`unpack` keeps a reference to the
+  ``bytes`` it was given (a bytearray or memoryview: the 58 header bytes and the body copy the
+  content needs anyway); the :class:`StreamDecoder` keeps the body it copied out of its buffer
+  and the parsed header fields, re-encoded when packing (the header bytes themselves are
+  copied only when a name is not ASCII); a big body collected apart is kept as the collected
+  buffer (which an IMAGE's or NDARRAY's arrays view anyway) plus the extended header and
+  metadata bytes cut off around it. The pieces are joined only when the message is packed.
 - NUL-padded text fields (the header's TYPE and DEVICE_NAME, names in contents) must hold
-  nothing but NULs after their first NUL, else the bytes behind the terminator would be lost:
-  refused with InvalidTextError, for the header HeaderTextError, which is recoverable (the sizes
-  are sound, so the message is skipped and the stream goes on). The reference and every peer we
-  know zero-fill these fields (strncpy).
-- Known gaps, still re-packed canonically instead (tests/igtl/test_properties.py,
-  ``test_known_non_exact_inputs``): names that are not UTF-8 (decoded as latin-1 so operator
-  tools get an answer, re-packed as UTF-8); v2 metadata not sorted by key, duplicate keys and
-  EXT_HEADER_SIZE > 12; non-canonical reserved, version or padding bytes in some contents;
-  float32 signalling NaNs (they come back quiet).
+  nothing but NULs after their first NUL, else the bytes behind the terminator would be lost
+  to every reader of the decoded fields: refused with InvalidTextError, for the header
+  HeaderTextError, which is recoverable (the sizes are sound, so the message is skipped and the
+  stream goes on). The reference and every peer we know zero-fill these fields (strncpy).
+- :func:`decode_body` is given the header parsed: it re-encodes the names as UTF-8 (a name that
+  arrived as latin-1 cannot be told apart once decoded) and keeps every other header value.
 
 Big bodies: see :class:`StreamDecoder` (checksummed piece by piece, decoded without a copy).
 """
@@ -275,7 +288,11 @@ class StreamDecoder:
     the body is collected in a buffer of its own and its CRC is computed piece by piece in
     ``feed`` as the bytes arrive (the CRC backends hold the interpreter lock, ~25 ms per 256 MiB
     with anycrc, ~800 ms with crcmod). When the last piece arrives the CRC is compared and the
-    content decoded from that buffer without copying it (an IMAGE's pixels view it).
+    content decoded from that buffer without copying it (an IMAGE's pixels view it). The
+    message re-packs from that same buffer (see "Re-packing" in the module docstring): free
+    for the types whose fields view it (IMAGE, NDARRAY, POLYDATA points), while types that copy
+    their content out of it (VIDEO frames, BIND children, STATUS) keep both for the message's
+    lifetime; an unknown type re-packs from its own ``content`` copy instead.
     """
 
     __slots__ = (

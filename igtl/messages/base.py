@@ -10,6 +10,12 @@ types; each type adds its content fields and implements two narrow hooks:
 
 Type names map to classes through :data:`REGISTRY`; one class may serve several names (the
 query families), in which case it stores the name in a ``message_type`` field.
+
+Re-packing: a message the codec decoded remembers its wire bytes (``_wire``: not an init field,
+not compared, not in the repr) and :meth:`Message.pack` returns them unless the version or the
+metadata is overridden, so any accepted input re-packs byte for byte, canonical or not
+(igtl/codec.py says what is kept). Every constructor, the fast builders below and
+``dataclasses.replace`` leave it None: a built or changed message is encoded from its fields.
 """
 
 from __future__ import annotations
