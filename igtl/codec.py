@@ -18,18 +18,31 @@ What happens after a bad message (``DecodeError.recoverable``):
 No other exception leaves :func:`unpack` or :class:`StreamDecoder` for any input bytes: a
 content codec that trips over values its type cannot hold is reported as ContentError.
 
-Every decodable message re-packs byte for byte (``msg.pack() == data``), or is refused:
+Re-packing: every decodable message re-packs byte for byte (``msg.pack() == data``), or is
+refused:
 
+- A decoded message remembers the bytes it was decoded from (``Message._wire``, set here and
+  nowhere else) and ``pack()`` without a version change or a ``metadata`` override returns
+  them, whether they are what this library would encode or not: names that are not UTF-8
+  (decoded as latin-1 so operator tools get an answer), v2 metadata not sorted by key or with a
+  key twice, EXT_HEADER_SIZE > 12, reserved, version or padding bytes that are not the
+  canonical value, float32 signalling NaNs (a Python float makes them quiet), a wrong CRC
+  accepted with ``crc_check=False``. A message built or changed (``dataclasses.replace``,
+  ``stamped``) has none and is encoded from its fields.
+- Remembering copies nothing on the common path: :func:`unpack` keeps a reference to the
+  ``bytes`` it was given (a bytearray or memoryview: the 58 header bytes and the body copy the
+  content needs anyway); the :class:`StreamDecoder` keeps the body it copied out of its buffer
+  and the parsed header fields, re-encoded when packing (the header bytes themselves are
+  copied only when a name is not ASCII); a big body collected apart is kept as the collected
+  buffer (which an IMAGE's or NDARRAY's arrays view anyway) plus the extended header and
+  metadata bytes cut off around it. The pieces are joined only when the message is packed.
 - NUL-padded text fields (the header's TYPE and DEVICE_NAME, names in contents) must hold
-  nothing but NULs after their first NUL, else the bytes behind the terminator would be lost:
-  refused with InvalidTextError, for the header HeaderTextError, which is recoverable (the sizes
-  are sound, so the message is skipped and the stream goes on). The reference and every peer we
-  know zero-fill these fields (strncpy).
-- Known gaps, still re-packed canonically instead (tests/igtl/test_properties.py,
-  ``test_known_non_exact_inputs``): names that are not UTF-8 (decoded as latin-1 so operator
-  tools get an answer, re-packed as UTF-8); v2 metadata not sorted by key, duplicate keys and
-  EXT_HEADER_SIZE > 12; non-canonical reserved, version or padding bytes in some contents;
-  float32 signalling NaNs (they come back quiet).
+  nothing but NULs after their first NUL, else the bytes behind the terminator would be lost
+  to every reader of the decoded fields: refused with InvalidTextError, for the header
+  HeaderTextError, which is recoverable (the sizes are sound, so the message is skipped and the
+  stream goes on). The reference and every peer we know zero-fill these fields (strncpy).
+- :func:`decode_body` is given the header parsed: it re-encodes the names as UTF-8 (a name that
+  arrived as latin-1 cannot be told apart once decoded) and keeps every other header value.
 
 Big bodies: see :class:`StreamDecoder` (checksummed piece by piece, decoded without a copy).
 """
@@ -48,7 +61,7 @@ from .errors import (
     HeaderTextError,
     TruncatedMessageError,
 )
-from .messages.base import FAST_V1, REGISTRY, Message, RawMessage
+from .messages.base import FAST_V1, REGISTRY, Message, RawMessage, WirePieces, set_wire
 
 _HEADER_SIZE = wire.HEADER_SIZE
 _header_fields = wire.header_fields
@@ -58,6 +71,7 @@ _CRC_SMALL = wire.CRC_SMALL
 _T0, _T1, _T2, _T3 = wire._T0, wire._T1, wire._T2, wire._T3  # frac -> ns tables
 _registry_get = REGISTRY.get
 _fast_v1_get = FAST_V1.get
+_set_wire = set_wire
 # Classes that want the wire type name in ``common`` (query families, COLORT/COLORTABLE...).
 _needs_type_name: dict[type, bool] = {}
 
@@ -70,12 +84,18 @@ def _decode(
     crc: int,
     body: bytes | bytearray,
     crc_check: bool,
+    wire_bytes: bytes | WirePieces,
 ) -> Message:
     """Decode a complete body whose header fields are already validated.
 
     A bytearray body is a big body the StreamDecoder collected apart: it is handed to the
     content codec as it is (a header-version-2 body is first trimmed in place to its content),
     so the message's arrays view it without a copy. Content codecs take bytes or bytearray.
+
+    ``wire_bytes`` is what the message re-packs to: the whole encoded message, or pieces of it
+    the caller already holds (``(header, body)``, see ``base.WirePieces``), so that
+    remembering them copies nothing. A bytearray body that is trimmed here gets its pieces
+    rebuilt around the trimmed content.
     """
     if crc_check and body:
         # wire.crc64, inlined: this runs for every message decoded
@@ -94,7 +114,8 @@ def _decode(
     if version == 1:
         fast = _fast_v1_get(message_type)
         if fast is not None:
-            msg = fast(body, device_name, t, ts)  # type: ignore[arg-type]  # a length check first
+            # a length check first
+            msg = fast(body, device_name, t, ts, wire_bytes)  # type: ignore[arg-type]
             if msg is not None:
                 return msg
     common: dict[str, Any] = {
@@ -113,9 +134,13 @@ def _decode(
                 # Cut the metadata off the end and the extended header off the front: no copy
                 # of the content (CPython deletes a bytearray's head by moving its start).
                 meta_raw = bytes(memoryview(body)[meta_start:])
+                front = bytes(memoryview(body)[: layout.content_start])
                 del body[meta_start:]
                 del body[: layout.content_start]
                 content = body
+                # The content is the message's (its arrays view it): re-packing joins the
+                # small pieces cut off around it instead of keeping a copy of the whole body.
+                wire_bytes = (wire_bytes[0], front, body, meta_raw)
             else:
                 meta_raw = body[meta_start:]
                 content = body[layout.content_start : meta_start]
@@ -135,14 +160,20 @@ def _decode(
         cls = _registry_get(message_type)
         if cls is None:
             common["message_type"] = message_type
-            return RawMessage.unpack_content(content, common)  # type: ignore[arg-type]
+            msg = RawMessage.unpack_content(content, common)  # type: ignore[arg-type]
+            if type(content) is bytearray and type(wire_bytes) is tuple:
+                # RawMessage copies its content: keep that copy, not the collected body too
+                raw = msg.content
+                wire_bytes = tuple(raw if p is content else p for p in wire_bytes)
+            _set_wire(msg, wire_bytes)
+            return msg
         needs = _needs_type_name.get(cls)
         if needs is None:
             needs = _needs_type_name[cls] = bool(getattr(cls, "NEEDS_TYPE_NAME", False))
         if needs:
             common["message_type"] = message_type
         try:
-            return cls.unpack_content(content, common)  # type: ignore[arg-type]
+            msg = cls.unpack_content(content, common)  # type: ignore[arg-type]
         except DecodeError as err:
             if err.offset is not None:
                 err.offset += content_offset
@@ -152,6 +183,8 @@ def _decode(
                 f"invalid {message_type} content: {type(err).__name__}: {err}",
                 offset=content_offset,
             ) from err
+        _set_wire(msg, wire_bytes)
+        return msg
     except DecodeError as err:
         if err.message_type is None:
             err.message_type = message_type
@@ -170,14 +203,26 @@ def decode_body(
             message_type=header.message_type,
             device_name=header.device_name,
         )
+    body = body if type(body) is bytes else bytes(body)
+    # The header is given parsed: its names are re-encoded as UTF-8 (a name that arrived as
+    # latin-1 cannot be told apart once decoded); every other header byte is kept.
+    head = wire.HEADER.pack(
+        header.version,
+        header.message_type.encode("utf-8"),
+        header.device_name.encode("utf-8"),
+        header.timestamp_raw,
+        header.body_size,
+        header.crc,
+    )
     return _decode(
         header.version,
         header.message_type,
         header.device_name,
         header.timestamp_raw,
         header.crc,
-        body if type(body) is bytes else bytes(body),
+        body,
         crc_check,
+        (head, body),
     )
 
 
@@ -206,9 +251,14 @@ def unpack(
             device_name=device,
         )
     # One copy of the body, whatever the input type: bytes slicing copies, and a memoryview or
-    # bytearray slice is materialised once here.
-    body = data[_HEADER_SIZE:] if type(data) is bytes else bytes(memoryview(data)[_HEADER_SIZE:])
-    return _decode(version, mtype, device, ts, crc, body, crc_check)
+    # bytearray slice is materialised once here. The message re-packs to ``data`` itself, or
+    # for mutable input to the 58 header bytes and that copy.
+    if type(data) is bytes:
+        return _decode(version, mtype, device, ts, crc, data[_HEADER_SIZE:], crc_check, data)
+    with memoryview(data) as view:
+        head = bytes(view[:_HEADER_SIZE])
+        body = bytes(view[_HEADER_SIZE:])
+    return _decode(version, mtype, device, ts, crc, body, crc_check, (head, body))
 
 
 #: Bodies of at least this many bytes that do not arrive in one piece are collected apart from
@@ -238,7 +288,11 @@ class StreamDecoder:
     the body is collected in a buffer of its own and its CRC is computed piece by piece in
     ``feed`` as the bytes arrive (the CRC backends hold the interpreter lock, ~25 ms per 256 MiB
     with anycrc, ~800 ms with crcmod). When the last piece arrives the CRC is compared and the
-    content decoded from that buffer without copying it (an IMAGE's pixels view it).
+    content decoded from that buffer without copying it (an IMAGE's pixels view it). The
+    message re-packs from that same buffer (see "Re-packing" in the module docstring): free
+    for the types whose fields view it (IMAGE, NDARRAY, POLYDATA points), while types that copy
+    their content out of it (VIDEO frames, BIND children, STATUS) keep both for the message's
+    lifetime; an unknown type re-packs from its own ``content`` copy instead.
     """
 
     __slots__ = (
@@ -251,6 +305,7 @@ class StreamDecoder:
         "_pending",
         "_body",
         "_body_crc",
+        "_head",
         "_refuse",
         "offset",
         "messages",
@@ -274,6 +329,8 @@ class StreamDecoder:
         #: The body of the pending message while it is collected apart (big bodies only).
         self._body: bytearray | None = None
         self._body_crc = 0
+        #: The header bytes of the message whose body is collected apart.
+        self._head = b""
         #: A recoverable header error, raised once the message's body has been skipped.
         self._refuse: HeaderTextError | None = None
         #: Stream offset of the next unread byte (for error reports).
@@ -362,8 +419,15 @@ class StreamDecoder:
             self._raise_refusal(start_offset)
         with memoryview(buf) as view:
             body = bytes(view[pos + _HEADER_SIZE : end])
+            # Remembered for re-packing without a copy: the parsed header re-encodes to the same
+            # 58 bytes when the names are ASCII (the other fields are kept as numbers).
+            head: bytes | tuple[int, str, str, int, int, int] = (
+                header
+                if mtype.isascii() and device.isascii()
+                else bytes(view[pos : pos + _HEADER_SIZE])
+            )
         try:
-            msg = _decode(version, mtype, device, ts, crc, body, self._crc_check)
+            msg = _decode(version, mtype, device, ts, crc, body, self._crc_check, (head, body))
         except DecodeError as err:
             self.errors += 1
             if err.offset is not None:
@@ -386,6 +450,7 @@ class StreamDecoder:
         belong to it: it is incomplete) and start its CRC; ``feed`` does the rest."""
         buf = self._buf
         with memoryview(buf) as view:
+            self._head = bytes(view[self._pos : self._pos + _HEADER_SIZE])
             part = view[self._pos + _HEADER_SIZE :]
             self._body = bytearray(part)
             self._body_crc = _crc64(part) if self._crc_check else 0
@@ -407,7 +472,7 @@ class StreamDecoder:
         try:
             if self._crc_check and self._body_crc != crc:
                 raise _crc_error(crc, self._body_crc, mtype, device)
-            msg = _decode(version, mtype, device, ts, crc, body, False)
+            msg = _decode(version, mtype, device, ts, crc, body, False, (self._head, body))
         except DecodeError as err:
             self.errors += 1
             if err.offset is not None:

@@ -10,6 +10,12 @@ types; each type adds its content fields and implements two narrow hooks:
 
 Type names map to classes through :data:`REGISTRY`; one class may serve several names (the
 query families), in which case it stores the name in a ``message_type`` field.
+
+Re-packing: a message the codec decoded remembers its wire bytes (``_wire``: not an init field,
+not compared, not in the repr) and :meth:`Message.pack` returns them unless the version or the
+metadata is overridden, so any accepted input re-packs byte for byte, canonical or not
+(igtl/codec.py says what is kept). Every constructor, the fast builders below and
+``dataclasses.replace`` leave it None: a built or changed message is encoded from its fields.
 """
 
 from __future__ import annotations
@@ -25,6 +31,12 @@ from .. import wire
 from ..errors import ContentError, InvalidTextError
 
 M = TypeVar("M", bound="Message")
+
+#: A decoded message's wire bytes kept in pieces the decoder already held, joined only when it
+#: is packed: the header (58 bytes, or the tuple of its parsed fields as
+#: ``wire.header_fields`` returns them), then the body (one piece, or for a big
+#: header-version-2 body: extended header, content, metadata).
+WirePieces = tuple[Any, ...]
 
 #: The metadata of decoded messages that carry none: shared and read-only (messages are frozen).
 EMPTY_MAPPING: Mapping[str, Any] = MappingProxyType({})
@@ -66,6 +78,11 @@ class Message:
     message_id: int = 0
     metadata_encoding: Mapping[str, int] = field(default_factory=dict, repr=False)
     raw_timestamp: int | None = field(default=None, repr=False, compare=False)
+    #: The encoded message this one was decoded from (set by the codec only): the bytes, or
+    #: pieces whose concatenation they are (see :data:`WirePieces`). Not an init field, so
+    #: every constructor and ``dataclasses.replace`` leave it None: a changed message packs
+    #: canonically.
+    _wire: bytes | WirePieces | None = field(default=None, init=False, repr=False, compare=False)
 
     # ---------------------------------------------------------------- hooks for subclasses
     def pack_content(self) -> bytes:
@@ -106,7 +123,16 @@ class Message:
         message ID on purpose. Without the override, metadata on a version-1 message is an error.
         ``metadata`` replaces the message's own metadata in the encoding (its encodings still
         apply), without building a new message: a recorder adding its own entries.
+
+        Re-packing: a decoded message packs to exactly the bytes it was decoded from when
+        neither the version changes nor ``metadata`` is given, canonical or not (latin-1 names,
+        unsorted or duplicate metadata keys, a longer extended header, reserved bytes that are
+        not zero, signalling NaNs, a CRC left unchecked); otherwise it is encoded from its fields.
         """
+        remembered = self._wire
+        if remembered is not None and metadata is None:
+            if header_version is None or header_version == self.header_version:
+                return remembered if isinstance(remembered, bytes) else join_wire(remembered)
         version = self.header_version if header_version is None else header_version
         meta = self.metadata if metadata is None else metadata
         content = self.pack_content()
@@ -153,6 +179,22 @@ _COMMON_FIELDS = frozenset(f.name for f in dataclasses.fields(Message))
 _COMMON_ORDER = tuple(f.name for f in dataclasses.fields(Message))
 
 
+#: Sets a decoded message's remembered wire bytes (for the codec; messages are frozen).
+set_wire: Callable[[Message, bytes | WirePieces], None] = vars(Message)["_wire"].__set__
+
+
+def join_wire(pieces: WirePieces) -> bytes:
+    """The encoded message remembered as pieces: the header (its 58 bytes, or its parsed fields
+    when they re-encode to the same bytes: names that are ASCII), then the body's pieces."""
+    head = pieces[0]
+    if type(head) is tuple:
+        version, mtype, device, ts, body_size, crc = head
+        head = wire.HEADER.pack(
+            version, mtype.encode("ascii"), device.encode("ascii"), ts, body_size, crc
+        )
+    return b"".join((head, *pieces[1:]))  # type: ignore[arg-type]
+
+
 def common_equal(a: Message, b: Message) -> bool:
     """True when two messages agree on every compared common field (for custom ``__eq__``)."""
     return (
@@ -166,9 +208,10 @@ def common_equal(a: Message, b: Message) -> bool:
 
 
 #: Header-version-1 decoders that skip the generic path, by type name:
-#: ``fn(content, device_name, timestamp, raw_timestamp) -> Message | None``; None means "not the
-#: fast case, use unpack_content" (which then reports any error with its offset).
-FAST_V1: dict[str, Callable[[bytes, str, float, int], Message | None]] = {}
+#: ``fn(content, device_name, timestamp, raw_timestamp, wire_bytes) -> Message | None``; None
+#: means "not the fast case, use unpack_content" (which then reports any error with its offset).
+#: ``wire_bytes`` is what the message re-packs to (the codec's, see ``Message._wire``).
+FAST_V1: dict[str, Callable[[bytes, str, float, int, Any], Message | None]] = {}
 
 
 def _slot_builder(cls: type[M], params: str, common_lines: tuple[str, ...]) -> Callable[..., M]:
@@ -192,11 +235,11 @@ def _slot_builder(cls: type[M], params: str, common_lines: tuple[str, ...]) -> C
 
 def fast_builder_v1(cls: type[M]) -> Callable[..., M]:
     """Like :func:`fast_builder` for a header-version-1 message, whose common fields are all
-    known: ``build(device_name, timestamp, raw_timestamp, *content_fields)``. No dict, no
-    look-ups: the hot path of a 500 Hz or 100k msg/s stream of TRANSFORM/POSITION."""
+    known: ``build(device_name, timestamp, raw_timestamp, wire_bytes, *content_fields)``. No
+    dict, no look-ups: the hot path of a 500 Hz or 100k msg/s stream of TRANSFORM/POSITION."""
     return _slot_builder(
         cls,
-        "device_name, timestamp, raw_timestamp",
+        "device_name, timestamp, raw_timestamp, wire_bytes",
         (
             "    _s_device_name(self, device_name)",
             "    _s_timestamp(self, timestamp)",
@@ -205,6 +248,7 @@ def fast_builder_v1(cls: type[M]) -> Callable[..., M]:
             "    _s_message_id(self, 0)",
             "    _s_metadata_encoding(self, _EMPTY)",
             "    _s_raw_timestamp(self, raw_timestamp)",
+            "    _s__wire(self, wire_bytes)",
         ),
     )
 
@@ -231,6 +275,7 @@ def fast_builder(cls: type[M]) -> Callable[..., M]:
             "    m = g('metadata_encoding')",
             "    _s_metadata_encoding(self, _EMPTY if m is None else m)",
             "    _s_raw_timestamp(self, g('raw_timestamp'))",
+            "    _s__wire(self, None)",
         ),
     )
 

@@ -134,17 +134,21 @@ _build_transform_v1 = fast_builder_v1(TransformMessage)
 _build_position_v1 = fast_builder_v1(PositionMessage)
 
 
-def _fast_transform(content: bytes, device: str, t: float, raw: int) -> TransformMessage | None:
+def _fast_transform(
+    content: bytes, device: str, t: float, raw: int, wire_bytes: Any
+) -> TransformMessage | None:
     if len(content) != 48:
         return None
-    return _build_transform_v1(device, t, raw, _F12_unpack(content))
+    return _build_transform_v1(device, t, raw, wire_bytes, _F12_unpack(content))
 
 
-def _fast_position(content: bytes, device: str, t: float, raw: int) -> PositionMessage | None:
+def _fast_position(
+    content: bytes, device: str, t: float, raw: int, wire_bytes: Any
+) -> PositionMessage | None:
     if len(content) != POSITION_ALL:
         return None
     v = _F7.unpack(content)
-    return _build_position_v1(device, t, raw, v[:3], v[3:], POSITION_ALL)
+    return _build_position_v1(device, t, raw, wire_bytes, v[:3], v[3:], POSITION_ALL)
 
 
 FAST_V1["TRANSFORM"] = _fast_transform

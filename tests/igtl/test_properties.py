@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 import igtl
-from igtl import wire
+from igtl import codec, wire
 from igtl.messages import base
 
 from .conftest import VECTORS_DIR
@@ -314,7 +314,10 @@ def test_random_content_for_every_type(mtype, content, version):
 def _same_fields(a: base.Message, b: base.Message) -> None:
     """Equal, and equal down to field types and array writability (bytes stay bytes)."""
     assert a == b
+    assert a.pack() == b.pack()
     for f in dataclasses.fields(a):
+        if f.name == "_wire":  # bytes or pieces of them, depending on the decode path
+            continue
         x, y = getattr(a, f.name), getattr(b, f.name)
         assert type(x) is type(y), f.name
         if isinstance(x, np.ndarray):
@@ -357,24 +360,48 @@ def _with_crc(data: bytes | bytearray) -> bytes:
     return bytes(data)
 
 
-def _repacks_exactly(data: bytes) -> None:
+def _repacks_exactly(data: bytes, *, crc_check: bool = True, cuts: list[int] = ()) -> bool:
+    """Whatever ``unpack`` accepts re-packs to the same bytes, and so does what the stream
+    decoder gives for the same bytes (byte at a time, at ``cuts``, big-body path or not).
+    False when the input is refused."""
     try:
-        msg = igtl.unpack(data)
+        msg = igtl.unpack(data, crc_check=crc_check)
     except igtl.DecodeError:
-        return  # refused: fine, as long as it is an IGTLError
+        return False  # refused: fine, as long as it is an IGTLError
     assert msg.pack() == data
+    assert msg.pack(header_version=msg.header_version) == data  # no change asked for
+    assert igtl.unpack(bytearray(data), crc_check=crc_check).pack() == data
+    assert igtl.unpack(memoryview(data), crc_check=crc_check).pack() == data
+    for big_body in (codec.BIG_BODY, 1):
+        for pieces in (
+            [data[i : i + 1] for i in range(len(data))],
+            [data[a:b] for a, b in zip([0, *cuts], [*cuts, len(data)], strict=True)],
+        ):
+            dec = igtl.StreamDecoder(crc_check=crc_check, big_body=big_body)
+            out = []
+            for piece in pieces:
+                dec.feed(piece)
+                out.extend(dec)
+            dec.close()
+            assert [m.pack() for m in out] == [data]
+    return True
+
+
+def _cuts(n: int) -> st.SearchStrategy[list[int]]:
+    return st.lists(st.integers(0, n), max_size=6).map(sorted)
 
 
 @settings(max_examples=400, deadline=None)
 @given(st.sampled_from(ALL_SEEDS), st.integers(2, 33), st.binary(min_size=1, max_size=4))
 def test_header_names_repack_exactly_or_are_refused(seed, pos, raw):
-    """TYPE and DEVICE_NAME: any bytes there either decode and re-pack to the same bytes, or
-    (bytes after a NUL) are refused with HeaderTextError, recoverably."""
+    """TYPE and DEVICE_NAME: any bytes there either decode and re-pack to the same bytes (names
+    that are not UTF-8 too), or (bytes after a NUL) are refused with HeaderTextError,
+    recoverably."""
     data = bytearray(seed)
     data[pos : pos + len(raw)] = raw
     data = _with_crc(data[: len(seed)])
     try:
-        msg = igtl.unpack(data)
+        igtl.unpack(data)
     except igtl.errors.HeaderTextError as err:
         assert err.recoverable
         dec = igtl.StreamDecoder()
@@ -385,23 +412,53 @@ def test_header_names_repack_exactly_or_are_refused(seed, pos, raw):
         return
     except igtl.DecodeError:
         return
-    names = (data[2:14] + data[14:34]).replace(b"\0", b"")
-    try:
-        names.decode("utf-8")
-    except UnicodeDecodeError:
-        return  # latin-1 names: a known gap (test_known_non_exact_inputs)
-    assert msg.pack() == data
+    assert _repacks_exactly(data)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.sampled_from(ALL_SEEDS), st.lists(st.tuples(st.integers(0, 10**6),
+                                                      st.binary(min_size=1, max_size=4)),
+                                            min_size=1, max_size=3),
+       st.booleans(), st.data())
+def test_every_accepted_mutation_repacks_exactly(seed, changes, fix_crc, data):
+    """Any bytes of a reference vector overwritten (header, extended header, metadata,
+    reserved and padding bytes, floats): accepted means re-packed byte for byte. With the CRC
+    left wrong, only an unchecked decode accepts them, and re-packs the wrong CRC too."""
+    mutated = bytearray(seed)
+    for pos, raw in changes:
+        pos %= len(seed)
+        mutated[pos : pos + len(raw)] = raw
+    mutated = bytes(mutated[: len(seed)])
+    if fix_crc:
+        mutated = _with_crc(mutated)
+    _repacks_exactly(mutated, crc_check=fix_crc, cuts=data.draw(_cuts(len(mutated))))
 
 
 @settings(max_examples=200, deadline=None)
-@given(messages())
-def test_every_random_message_repacks_exactly(msg):
-    data = msg.pack()
-    assert igtl.unpack(data).pack() == data
-    dec = igtl.StreamDecoder(big_body=1)
-    for i in range(0, len(data), 7):
-        dec.feed(data[i : i + 7])
-    assert [m.pack() for m in dec] == [data]
+@given(messages(), st.data())
+def test_every_random_message_repacks_exactly(msg, data):
+    packed = msg.pack()
+    assert _repacks_exactly(packed, cuts=data.draw(_cuts(len(packed))))
+
+
+@settings(max_examples=200, deadline=None)
+@given(messages(), st.sampled_from(ALL_SEEDS), name(20), st.integers(0, 0xFFFFFFFF))
+def test_a_replaced_message_packs_canonically(msg, seed, device, message_id):
+    """dataclasses.replace (and any constructor) gives a message without the remembered
+    bytes: it is encoded from its fields, and decodes to the changed values."""
+    for decoded in (igtl.unpack(msg.pack()), igtl.unpack(seed)):
+        changes = {"device_name": device}
+        if decoded.header_version == 2:
+            changes["message_id"] = message_id
+        changed = dataclasses.replace(decoded, **changes)
+        fresh = changed.pack()
+        assert fresh == dataclasses.replace(changed).pack()  # canonical: from the fields
+        again = igtl.unpack(fresh)
+        assert again.device_name == device
+        assert again.message_id == changed.message_id
+        assert again.pack() == fresh
+    changed = dataclasses.replace(igtl.unpack(msg.pack()), device_name=device)
+    assert changed.pack() == dataclasses.replace(msg, device_name=device).pack()
 
 
 # ---------------------------------------------------------------------------- damage is refused
@@ -472,17 +529,71 @@ def _known_gaps() -> list[bytes]:
     latin1[14:16] = b"\xe9\xe9"  # a latin-1 device name
     snan = bytearray(v["transform.bin"])
     snan[58:62] = b"\x7f\xa0\x00\x00"  # a float32 signalling NaN
-    return [_with_crc(b) for b in (unsorted, image_version, snan, latin1)]
+    two = igtl.TransformMessage(device_name="T", header_version=2, metadata={"a": "1", "b": "2"})
+    duplicate = bytearray(two.pack())
+    assert duplicate[-4:] == b"a1b2"
+    duplicate[-4:] = b"a1a2"  # the key "a" twice
+    longer = bytearray(two.pack())
+    longer[58:60] = (16).to_bytes(2, "big")  # EXT_HEADER_SIZE 16: four bytes nobody defines
+    longer[70:70] = b"\x01\x02\x03\x04"
+    longer[42:50] = (len(longer) - 58).to_bytes(8, "big")
+    return [_with_crc(b) for b in (unsorted, image_version, snan, latin1, duplicate, longer)]
 
 
-# Known to come back different (issue 8, left for later): names that are not UTF-8 (decoded as
-# latin-1 so that operator tools get an answer, tests/occ; re-packed as UTF-8); v2 metadata
-# not sorted by key on the
-# wire is re-packed sorted (duplicate keys collapse; EXT_HEADER_SIZE > 12 loses its extra bytes
-# too); reserved, version or padding bytes that are not the canonical value (IMAGE/VIDEOMETA
-# headers, TDATA/TRAJ/IMGMETA/LBMETA/POLYDATA) come back canonical; float32 signalling NaNs come
-# back quiet (the interpreter's float conversion). Each needs the raw bytes kept or a refusal.
-@pytest.mark.xfail(strict=True, reason="not byte-exact yet (issue 8): see the comment above")
-@pytest.mark.parametrize("data", _known_gaps(), ids=["metadata-order", "image-version", "snan", "latin1-name"])
-def test_known_non_exact_inputs(data):
-    _repacks_exactly(data)
+# Accepted input that is not what this library would encode comes back unchanged too (issue
+# 8; each was re-packed canonically before): names that are not UTF-8 (decoded as latin-1 so
+# that operator tools get an answer, tests/occ), v2 metadata not sorted by key or with a key
+# twice, EXT_HEADER_SIZE > 12, reserved/version bytes that are not the canonical value, float32
+# signalling NaNs (a Python float makes them quiet). A decoded message remembers its bytes.
+@pytest.mark.parametrize("data", _known_gaps(), ids=["metadata-order", "image-version", "snan",
+                                                     "latin1-name", "duplicate-key", "ext-header"])
+def test_non_canonical_inputs_repack_exactly(data):
+    assert _repacks_exactly(data, cuts=[len(data) // 3])
+    msg = igtl.unpack(data)
+    # changed, it is encoded from its fields: canonical, and not the input any more
+    changed = dataclasses.replace(msg, message_id=msg.message_id)
+    assert changed == msg
+    assert changed.pack() != data
+    again = igtl.unpack(changed.pack())
+    # the same values: the same canonical bytes (compared as bytes, a NaN is not equal to itself)
+    assert dataclasses.replace(again).pack() == changed.pack()
+
+
+def test_the_remembered_bytes_are_no_part_of_the_value():
+    data = _known_gaps()[0]  # metadata not sorted: packs differently from its fields
+    msg = igtl.unpack(data)
+    built = dataclasses.replace(msg)
+    assert msg == built and built == msg
+    assert repr(msg) == repr(built)
+    assert msg.pack() == data and built.pack() != data
+    assert "_wire" not in {f.name for f in dataclasses.fields(msg) if f.init}
+    with pytest.raises(ValueError):  # not an init field: only the codec sets it
+        dataclasses.replace(msg, _wire=data)
+    # the generated fast constructors leave it unset like __init__ does
+    content = data[58 + 12 : 58 + 12 + 48]
+    common = {"device_name": "d", "timestamp": 0.0, "header_version": 1}
+    assert igtl.TransformMessage.unpack_content(content, common).pack() == (
+        igtl.TransformMessage(igtl.unpack(data).elements, device_name="d").pack()
+    )
+
+
+@pytest.mark.parametrize("data", [d for d in _known_gaps() if d[1] == 2], ids=str)
+def test_rtp_reassembled_messages_repack_exactly(data):
+    from igtl import rtp
+
+    data = bytearray(data)
+    data[66:70] = b"\0\0\0\x07"  # a message ID the 16-bit RTP field carries
+    data = _with_crc(data)
+    reasm = rtp.Reassembler()
+    out = [reasm.feed(d, "peer") for d in rtp.fragment(data, payload_length=80)]
+    assert out[-1] == data and igtl.unpack(out[-1]).pack() == data
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.sampled_from(ALL_SEEDS + _known_gaps()[:3]) | messages().map(lambda m: m.pack()))
+def test_decode_body_repacks_exactly_with_ascii_names(data):
+    """decode_body is given the header parsed: exact but for names (re-encoded as UTF-8)."""
+    header = wire.unpack_header(data)
+    utf8 = (header.message_type.encode("utf-8").ljust(12, b"\0")
+            + header.device_name.encode("utf-8").ljust(20, b"\0"))
+    assert (igtl.decode_body(header, data[58:]).pack() == data) == (utf8 == data[2:34])
