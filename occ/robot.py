@@ -27,6 +27,7 @@ Each tick (:meth:`Robot.tick`, on the loop thread):
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -54,6 +55,9 @@ log = logging.getLogger(__name__)
 #: tick); beyond that a flood waits in the socket buffer, which overflows: the tick's cost stays
 #: bounded, and a master drowned in a flood is a failed link (hold, then the latched stop).
 POLL_LIMIT = 4
+
+#: How long configure() waits, on the real clock, for every joint's first measurement.
+MEASURE_WAIT_S = 1.0
 
 #: States in which drivers are ACTIVE (servos on).
 POWERED = frozenset({RobotState.ENABLED, RobotState.RUNNING, RobotState.STOPPED})
@@ -85,6 +89,7 @@ class Robot:
         self.period = 1.0 / rc.rate_hz
         self.state_machine = StateMachine(clock=self.clock)
         self.state_machine.add_listener(self._on_transition)
+        self.state_machine.add_guard(self._may_power)
         self.recorder = recorder
 
         # --- Joints, Frame, Drivers (hardware-dependent parts)
@@ -192,10 +197,19 @@ class Robot:
         return self.state_machine.state
 
     def configure(self) -> None:
-        """Configure drivers (servos off), read the initial state: INIT -> READY."""
+        """Configure drivers (servos off), read the initial state: INIT -> READY.
+
+        On the real clock it waits up to ``MEASURE_WAIT_S`` for every joint's first
+        measurement (drives report once asked); a joint still unmeasured then keeps the robot
+        from being enabled (:meth:`_may_power`), never held at a position nobody reported."""
         for drv, _ in self.drivers:
             drv.configure()
         self._read(self.clock.now())
+        if isinstance(self.clock, RealClock):
+            give_up = self.clock.now() + MEASURE_WAIT_S
+            while not all(j.measured for j in self.joints) and self.clock.now() < give_up:
+                time.sleep(0.005)
+                self._read(self.clock.now())
         self.data.hold_setpoint = list(self.data.q)
         self.state_machine.request("configure", "configured")
 
@@ -253,6 +267,16 @@ class Robot:
 
     def __exit__(self, *exc: object) -> None:
         self.shutdown()
+
+    def _may_power(self, state: RobotState, event: str) -> str:
+        """Servos go on only when every joint has been measured: the held setpoint is where
+        the joints are, never a default the hardware did not report."""
+        if event != "enable":
+            return ""
+        missing = [j.name for j in self.joints if not j.measured]
+        if missing:
+            return f"no measurement yet from joints {missing} (are the drives on and answering?)"
+        return ""
 
     def reset_monitors(self) -> None:
         """An operator's Reset: watchdog, supervisor and loss monitor cleared, and every

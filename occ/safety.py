@@ -416,11 +416,17 @@ class StateMachine:
         self._clock = clock
         self._lock = threading.Lock()
         self._listeners: list[Listener] = []
+        self._guards: list[Callable[[RobotState, str], str]] = []
         self.last_reason = ""
 
     @property
     def state(self) -> RobotState:
         return self._state
+
+    def add_guard(self, guard: Callable[[RobotState, str], str]) -> None:
+        """``guard(state, event)`` returns why the event must be refused now ('' to allow):
+        e.g. no enabling while a joint has never been measured."""
+        self._guards.append(guard)
 
     def add_listener(self, listener: Listener) -> None:
         self._listeners.append(listener)
@@ -459,6 +465,10 @@ class StateMachine:
                 raise StateError(
                     f"{name!r} refused in state {old.value}; allowed from {old.value}: {allowed}"
                 )
+            for guard in self._guards:
+                why = guard(old, name)
+                if why:
+                    raise StateError(f"{name!r} refused in state {old.value}: {why}")
             self._state = new
             if new is not old:
                 self.last_reason = reason

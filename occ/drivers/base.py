@@ -347,7 +347,9 @@ class Driver:
         except Exception as err:
             raise self._hook_failed("read", err) from err
         for i, joint in enumerate(self.joints):
-            joint.set_measured(positions[i], velocities[i], efforts[i], now)
+            x = positions[i]
+            if x == x:  # NaN: the hardware has not reported this joint yet; it stays unmeasured
+                joint.set_measured(x, velocities[i], efforts[i], now)
         self._reads += 1
 
     def write(self, setpoints: Sequence[float], now: float) -> None:

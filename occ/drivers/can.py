@@ -172,7 +172,9 @@ class CANDriver(Driver):
         if hb_ms > 255:
             raise ValueError(f"can driver {name!r}: heartbeat_ms must be <= 255, got {hb_ms}")
         self._heartbeat_byte = hb_ms
-        self._pos = [0.0] * n
+        # unknown until the drive answers: a position the robot never measured must not
+        # become a setpoint (it would send the drive there in one step when enabled)
+        self._pos = [math.nan] * n
         self._vel = [0.0] * n
         self._eff = [0.0] * n
         self._last_rx = [math.nan] * n
@@ -228,6 +230,10 @@ class CANDriver(Driver):
         )
         self._bus = bus
         self._last_rx = [math.nan] * len(self.joints)
+        # ask every drive for a first feedback frame: a command in the disabled mode moves
+        # nothing, and drives that only answer commands then report where they are
+        for i in range(len(self.joints)):
+            self._send(i, MODE_DISABLED, 0)
 
     def _activate(self) -> None:
         # Restart the feedback deadline: the drives may only start talking once commanded.

@@ -56,11 +56,12 @@ def test_round_trip_position_and_scaling(channel: str, node: SimulatedDriveNode)
     drv = create_driver("can", "arm", js, params(channel))
     assert isinstance(drv, CANDriver)
     with drv:
-        drv.configure()
+        drv.configure()  # asks each drive where it is (a mode-0 command each)
+        assert node.wait_feedback(2, timeout=2.0)
         drv.read(0.0)
         drv.activate()
         drv.write([0.0012345, 0.0001], 0.001)
-        assert node.wait_feedback(2, timeout=2.0)
+        assert node.wait_feedback(4, timeout=2.0)
         # The drive saw counts = round(value * counts_per_unit).
         assert node.axes[0].target == 12.0 and node.axes[1].target == 20.0
         assert node.axes[0].mode == 1
@@ -69,36 +70,39 @@ def test_round_trip_position_and_scaling(channel: str, node: SimulatedDriveNode)
         assert js[1].position == pytest.approx(20 / CPU[1])
         assert js[0].measured and js[1].stamp == 0.002
         stats = drv.stats()
-        assert stats["feedback_frames"] == 2 and stats["writes"] == 1
+        assert stats["feedback_frames"] == 4 and stats["writes"] == 1
     assert drv.state is DriverState.SHUTDOWN
     # deactivate (from the context manager's shutdown) sent mode-0 frames.
-    assert node.wait_commands(4, timeout=2.0)
+    assert node.wait_commands(6, timeout=2.0)
     assert node.axes[0].mode == 0
 
 
 def test_sequence_numbers_reach_the_drive(channel: str, node: SimulatedDriveNode) -> None:
     drv = CANDriver("arm", make_joints(), params(channel))
     drv.configure()
+    assert node.wait_feedback(2, timeout=2.0)
     drv.read(0.0)
     drv.activate()
     for k in range(1, 6):
         drv.write([0.0, 0.0], k * 0.001)
-    assert node.wait_commands(10, timeout=2.0)
-    assert node.axes[0].commands == 5 and node.axes[0].lost_commands == 0
+    assert node.wait_commands(12, timeout=2.0)
+    # the query at configure and five commands, numbered without a gap
+    assert node.axes[0].commands == 6 and node.axes[0].lost_commands == 0
     drv.shutdown()
 
 
 def test_feedback_timeout_faults(channel: str, node: SimulatedDriveNode) -> None:
     drv = CANDriver("arm", make_joints(), params(channel, feedback_timeout=0.01))
     drv.configure()
+    assert node.wait_feedback(2, timeout=2.0)
     drv.read(0.0)
     drv.activate()
     drv.write([0.0, 0.0], 0.001)
-    assert node.wait_feedback(2, timeout=2.0)
+    assert node.wait_feedback(4, timeout=2.0)
     drv.read(0.002)
     node.mute()
     drv.write([0.0, 0.0], 0.003)
-    assert node.wait_commands(4, timeout=2.0)
+    assert node.wait_commands(6, timeout=2.0)
     drv.read(0.010)  # 8 ms since last feedback: still fine
     with pytest.raises(DriverError, match=r"joint yaw: no feedback on id 0x181 for 13\.0 ms"):
         drv.read(0.015)
@@ -110,10 +114,11 @@ def test_effort_interface_sends_milli_units(channel: str, node: SimulatedDriveNo
     js = make_joints(gains=PIDGains(kp=100.0))
     drv = CANDriver("arm", js, params(channel), command_interface="effort")
     drv.configure()
+    assert node.wait_feedback(2, timeout=2.0)
     drv.read(0.0)
     drv.activate()
     drv.write([0.005, 0.0002], 0.001)  # kp * error = 0.5 N*m and 0.02 N
-    assert node.wait_feedback(2, timeout=2.0)
+    assert node.wait_feedback(4, timeout=2.0)
     assert node.axes[0].mode == 2
     assert node.axes[0].effort == 500 and node.axes[1].effort == 20
     drv.read(0.002)
@@ -167,7 +172,7 @@ def test_command_saturates_instead_of_wrapping(channel: str, node: SimulatedDriv
     drv.configure()
     drv.activate()
     drv.write([1e6], 0.001)
-    assert node.wait_commands(1, timeout=2.0)
+    assert node.wait_commands(2, timeout=2.0)
     assert node.axes[0].target == 2**31 - 1
     drv.shutdown()
 
@@ -176,10 +181,11 @@ def test_the_drive_stops_itself_without_heartbeat(channel: str, node: SimulatedD
     js = make_joints()
     drv = CANDriver("arm", js, params(channel, heartbeat_ms=20, feedback_timeout=10.0))
     drv.configure()
+    assert node.wait_feedback(2, timeout=2.0)
     drv.read(0.0)
     drv.activate()
     drv.write([0.1, 0.05], 0.001)
-    assert node.wait_commands(2, timeout=2.0)
+    assert node.wait_commands(4, timeout=2.0)
     assert node.axes[0].heartbeat_s == pytest.approx(0.020)  # told in every command frame
     sent = node.feedback_sent
     # the host goes silent: each axis stops itself and says so in a feedback frame
@@ -205,10 +211,11 @@ def test_safe_stop_sends_mode_0_from_another_thread(channel: str, node: Simulate
     js = make_joints()
     drv = CANDriver("arm", js, params(channel, heartbeat_ms=0))
     drv.configure()
+    assert node.wait_feedback(2, timeout=2.0)
     drv.read(0.0)
     drv.activate()
     drv.write([0.1, 0.05], 0.001)
-    assert node.wait_commands(2, timeout=2.0)
+    assert node.wait_commands(4, timeout=2.0)
     n = node.commands_received
     t = threading.Thread(target=drv.safe_stop, args=("supervisor",))
     t.start()
@@ -217,3 +224,25 @@ def test_safe_stop_sends_mode_0_from_another_thread(channel: str, node: Simulate
     assert all(a.mode == MODE_DISABLED for a in node.axes)
     assert drv.state is DriverState.FAULT and drv.fault_reason == "safe stop: supervisor"
     drv.shutdown()
+
+
+def test_a_joint_is_unmeasured_until_its_drive_answers(channel: str) -> None:
+    """No feedback yet: the joint is not measured (not a made-up 0), so a robot cannot hold
+    it at a position the drive never reported."""
+    js = make_joints()
+    drv = CANDriver("arm", js, params(channel))
+    try:
+        drv.configure()  # nobody on the bus answers the query
+        drv.read(0.0)
+        assert not js[0].measured and not js[1].measured
+        peer = can.Bus(interface="virtual", channel=channel)
+        try:
+            peer.send(can.Message(arbitration_id=0x181, is_extended_id=False,
+                                  data=FEEDBACK_FRAME.pack(3000, 0, 0)))
+            drv.read(0.001)
+        finally:
+            peer.shutdown()
+        assert js[0].measured and js[0].position == pytest.approx(0.3)
+        assert not js[1].measured
+    finally:
+        drv.shutdown()

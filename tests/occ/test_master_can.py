@@ -69,3 +69,38 @@ def _wait(pred, timeout: float) -> bool:  # type: ignore[no-untyped-def]
             return True
         time.sleep(0.01)
     return False
+
+
+def test_no_enable_before_every_joint_is_measured() -> None:
+    """Drives that never answered leave their joints unmeasured: Enable is refused with the
+    joints named (the robot would otherwise hold them at a position nobody reported), and
+    allowed once they have answered."""
+    from occ.clock import SimClock
+    from occ.errors import StateError
+
+    channel = f"occ-test-{time.monotonic_ns()}"
+    cfg = load_config(ROOT / "configs" / "master.yaml")
+    joints = {name: {"can_id": 0x100 + i, "feedback_id": 0x180 + i, "counts_per_unit": COUNTS_PER_M}
+              for i, name in enumerate(("x", "y", "z"))}
+    driver = cfg.robot.drivers[0].model_copy(update={
+        "plugin": "can",
+        "params": {"interface": "virtual", "channel": channel, "joints": joints, "feedback_timeout": 10.0},
+    })
+    cfg = inproc_config(cfg.model_copy(update={"robot": cfg.robot.model_copy(update={"drivers": (driver,)})}))
+    robot = build_robot(cfg, clock=SimClock())
+    try:
+        robot.configure()  # nothing on the bus answers
+        with pytest.raises(StateError, match=r"no measurement yet from joints \['x', 'y', 'z'\]"):
+            robot.state_machine.request("enable", "test")
+        assert robot.state is RobotState.READY
+        axes = [DriveAxis(0x100 + i, 0x180 + i, position=p) for i, p in enumerate((0.0, 50_000.0, 20_000.0))]
+        with SimulatedDriveNode(axes, channel=channel, tau=0.0, feedback_period=0.001) as node:
+            assert node.wait_feedback(3, timeout=2.0)
+            robot.tick(robot.clock.now(), 0)
+            robot.state_machine.request("enable", "test")
+            assert robot.state is RobotState.ENABLED
+            # held where the drives are, not at a default
+            assert robot.data.hold_setpoint == pytest.approx([0.0, 0.05, 0.02])
+            robot.state_machine.request("disable", "test")
+    finally:
+        robot.shutdown()
