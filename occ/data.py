@@ -22,6 +22,7 @@ from .safety import RobotState
 if TYPE_CHECKING:
     from .clock import Clock
     from .frame import Frame
+    from .joint import Joint
 
 
 class RobotData:
@@ -70,6 +71,13 @@ class RobotData:
         q = self.q
         for i, v in enumerate(positions):
             q[i] = v
+        self._tip_stale = True
+
+    def measured_from(self, joints: Sequence[Joint]) -> None:
+        """``measured`` from the joints' last measured positions (the Robot, each tick)."""
+        q = self.q
+        for i, j in enumerate(joints):
+            q[i] = j.position
         self._tip_stale = True
 
     @property

@@ -349,7 +349,12 @@ class Driver:
         for i, joint in enumerate(self.joints):
             x = positions[i]
             if x == x:  # NaN: the hardware has not reported this joint yet; it stays unmeasured
-                joint.set_measured(x, velocities[i], efforts[i], now)
+                # Joint.set_measured, inlined: this runs for every joint every tick
+                joint.position = x
+                joint.velocity = velocities[i]
+                joint.effort = efforts[i]
+                joint.measured = True
+                joint.stamp = now
         self._reads += 1
 
     def write(self, setpoints: Sequence[float], now: float) -> None:
