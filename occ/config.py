@@ -477,6 +477,12 @@ class InterfaceConfig(_Model):
         description="Largest message body accepted (KiB); bigger ones are refused and counted "
         "before any of their body is buffered (raise it for an interface that receives images).",
     )
+    max_buffered_kib: Annotated[Int, Field(ge=1)] | None = Field(
+        None,
+        description="tcp-server: bytes of incomplete messages over all its clients together "
+        "(KiB), at least `max_body_kib`; the client whose data goes over it is closed and "
+        "counted (`over_budget`). null = twice `max_body_kib`, at least 8 MiB.",
+    )
     unread_limit_kib: Annotated[Int, Field(ge=0)] = Field(
         16,
         description="tcp-server: a client whose receive window shows this much of our data "
@@ -560,6 +566,14 @@ class InterfaceConfig(_Model):
                 problems.append((("auth_key_file",), f"unusable key: {err}"))
             if self.header_version != 2:
                 problems.append((("auth_key_file",), "needs header_version 2 (metadata)"))
+        if self.max_buffered_kib is not None and self.max_buffered_kib < self.max_body_kib:
+            problems.append(
+                (
+                    ("max_buffered_kib",),
+                    f"must be at least max_body_kib ({self.max_body_kib}), "
+                    f"got {self.max_buffered_kib}",
+                )
+            )
         if self.operators is not None and self.role != "operator":
             problems.append((("operators",), f"needs role 'operator' (role is {self.role!r})"))
         if (

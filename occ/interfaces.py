@@ -55,6 +55,7 @@ COMMAND_TYPES = frozenset({"COMMAND"})
 READ_ONLY_COMMANDS = frozenset({"getstate", "getstats"})
 ROLES = ("none", "viewer", "operator")
 _TRANSPORT_REFUSALS = (
+    "over_budget",
     "denied",
     "rejected",
     "idle_closed",
@@ -250,6 +251,12 @@ class Interface:
                 message_timeout=cfg.message_timeout_s,
                 send_stall_timeout=cfg.send_stall_timeout_s,
                 unread_limit=cfg.unread_limit_kib * 1024,
+                max_buffered=1024
+                * (
+                    cfg.max_buffered_kib
+                    if cfg.max_buffered_kib is not None
+                    else max(8192, 2 * cfg.max_body_kib)
+                ),
                 max_body_size=cfg.max_body_kib * 1024,
                 reserved_slots=cfg.operator_slots if cfg.operators is not None else 0,
                 privileged_peers=(

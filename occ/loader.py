@@ -310,11 +310,14 @@ def _plugin_problems(config: DaemonConfig, root: yaml.Node | None) -> list[tuple
     rest of the file); driver ``params`` through the driver's constructor, which opens no
     hardware (that happens in ``configure``). Unknown plugin names are problems too."""
     from .controllers import load_controller_class
+    from .data import RobotData
     from .drivers import create_driver
     from .joint import Joint, JointLimits
 
     problems: list[tuple[int, Loc, str]] = []
     shape = config.controller
+    names = [j.name for j in config.robot.joints]
+    owners: dict[str, str] = {}
     for i, cc in enumerate(config.controllers):
         at: Loc = ("controller", i) if isinstance(shape, tuple) else ("controller",)
         try:
@@ -330,6 +333,33 @@ def _plugin_problems(config: DaemonConfig, root: yaml.Node | None) -> list[tuple
         for sub, msg in cls.check(params, config):
             loc = (*at, "params", *sub)
             problems.append((_line_of(root, loc), loc, msg))
+        # each command interface has one owner: two controllers on one joint are refused here
+        # (occd --check), not only when the robot is built
+        try:
+            ctrl = cls(params)
+            ctrl.data = RobotData(
+                config.robot.name,
+                names,
+                [j.home for j in config.robot.joints],
+                None,  # type: ignore[arg-type]  # claims need the joint names only
+                None,  # type: ignore[arg-type]
+            )
+            claims = ctrl.command_interfaces()
+        except Exception as err:  # noqa: BLE001 - a plugin's own problem, reported with its line
+            problems.append((_line_of(root, at), at, f"controller {cc.plugin!r}: {err}"))
+            continue
+        for claim in claims:
+            if claim in owners:
+                problems.append(
+                    (
+                        _line_of(root, at),
+                        at,
+                        f"command interface {claim!r} is claimed by {owners[claim]!r} too: "
+                        "each command has one owner",
+                    )
+                )
+                break
+            owners[claim] = cc.plugin
     joints = {
         j.name: Joint(
             j.name,

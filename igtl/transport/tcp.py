@@ -35,11 +35,14 @@ Server admission. A connection from outside ``allowed_peers`` (IPs or CIDR netwo
 STATUS with code ACCESS_DENIED (5) and error name ``"ACCESS_DENIED"``, then closed, logged with
 its address and counted (``denied``). Past ``max_clients`` a connection is accepted and closed at
 once, logged and counted (``rejected``); so is one from outside ``privileged_peers`` when only the
-``reserved_slots`` (kept for operators) are left. Refusals are logged within a per-host budget
-that survives reconnects (``HostLogLimits``). ``idle_timeout`` (seconds) closes clients that sent
-nothing for that long (reason ``"idle timeout"``). A client that does not read what we send is
-closed after ``send_stall_timeout``: when our writes block, or, long before that, when its
-advertised receive window shows ``unread_limit`` bytes left unread (``evicted_not_reading``).
+``reserved_slots`` (kept for operators) are left. ``max_buffered`` bounds the bytes of incomplete
+messages over all clients together: the client whose read goes over it is closed
+(``over_budget``), so many connections each just under the body limit cannot add up. Refusals
+are logged within a per-host budget that survives reconnects (``HostLogLimits``).
+``idle_timeout`` (seconds) closes clients that sent nothing for that long (reason ``"idle
+timeout"``). A client that does not read what we send is closed after ``send_stall_timeout``:
+when our writes block, or, long before that, when its advertised receive window shows
+``unread_limit`` bytes left unread (``evicted_not_reading``).
 
 Every socket gets TCP_NODELAY and SO_KEEPALIVE (with ~10 s dead-peer detection on Linux); the
 listener gets SO_REUSEADDR so a restarted server can bind its port again at once.
@@ -148,6 +151,9 @@ class _StreamTransport(IOThreadOwner):
         self._dirty: deque[Connection] = deque()
         self._rxbuf = bytearray(IO_CHUNK)
         self._rxview = memoryview(self._rxbuf)
+        #: bytes of incomplete messages over all connections (None: each one's body limit only)
+        self.max_buffered: int | None = None
+        self._over_budget = 0
         self._cond = threading.Condition()
         self._init_io_thread()
         self._closed_totals = dict.fromkeys(PEER_COUNTERS, 0)
@@ -239,6 +245,8 @@ class _StreamTransport(IOThreadOwner):
                     return
                 continue
             if msg is None:
+                if self.max_buffered and decoder.buffered:
+                    self._check_budget(conn)
                 return
             peer.received += 1
             if msg.header_version > peer.header_version:
@@ -249,6 +257,21 @@ class _StreamTransport(IOThreadOwner):
                 self._inbox.put((peer, msg))
             if conn.closed:  # a callback disconnected it
                 return
+
+    def _open_connections(self) -> list[Connection]:  # pragma: no cover - overridden
+        return []
+
+    def _check_budget(self, conn: Connection) -> None:
+        """Bytes of messages begun but not complete, over every client, stay within
+        ``max_buffered``: the connection whose read went over it is closed (counted)."""
+        budget = self.max_buffered
+        total = sum(c.decoder.buffered for c in self._open_connections())
+        if budget is not None and total > budget:
+            self._over_budget += 1
+            self._close(
+                conn,
+                f"{total} bytes buffered over all clients, budget {budget}",
+            )
 
     def _malformed(self, conn: Connection, err: DecodeError) -> None:
         peer = conn.peer
@@ -348,6 +371,7 @@ class TCPServer(_StreamTransport):
         reserved_slots: int = 0,
         privileged_peers: list[str] | None = None,
         unread_limit: int = 16 * 1024,
+        max_buffered: int | None = None,
         name: str = "igtl-tcp-server",
     ) -> None:
         for what, value in (
@@ -395,6 +419,9 @@ class TCPServer(_StreamTransport):
         #: a client that leaves this many of our bytes unread for ``send_stall_timeout`` is
         #: closed too (its kernel buffers would hide a blocked write for minutes); 0 = off
         self.unread_limit = unread_limit
+        if max_buffered is not None and max_buffered < 1:
+            raise ValueError(f"max_buffered must be positive or None, got {max_buffered}")
+        self.max_buffered = max_buffered
         self.negotiate = negotiate
         self.address: tuple[str, int] = (host, port)
         self._listener: socket.socket | None = None
@@ -493,6 +520,7 @@ class TCPServer(_StreamTransport):
             idle_closed=self._idle_closed,
             slow_message_closed=self._slow_closed,
             evicted_not_reading=self._evicted,
+            over_budget=self._over_budget,
             connections=self._connections,
             clients=len(peers),
             accept_errors=self._accept_errors,
@@ -604,6 +632,9 @@ class TCPServer(_StreamTransport):
             self._guard(self.on_connect, conn.peer)
             with self._cond:
                 self._cond.notify_all()
+
+    def _open_connections(self) -> list[Connection]:
+        return list(self._conns.values())
 
     def _full_for(self, host: str) -> str:
         """Why a new client from ``host`` cannot have a slot now ('' if it can)."""

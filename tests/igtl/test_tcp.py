@@ -581,3 +581,23 @@ def test_a_client_that_never_reads_a_slow_stream_is_evicted_and_a_reader_is_not(
         assert _wait(lambda: len(got) >= sent - 5)  # the reader kept up and stays
         reader.stop()
         deaf.close()
+
+
+def test_incomplete_messages_over_all_clients_stay_within_the_budget() -> None:
+    """Each client just under the body limit, together over the interface's budget: the one
+    that goes over is closed and counted; the others are untouched."""
+    with TCPServer("127.0.0.1", 0, max_body_size=1 << 20, max_buffered=3 << 19) as server:
+        body = 1 << 19  # 512 KiB each: two fit in 1.5 MiB, the third does not
+        header = igtl.wire.pack_header(1, "STRING", "x", 0, b"\0" * body)
+        socks = [socket.create_connection(server.address) for _ in range(3)]
+        try:
+            assert server.wait_for_peers(3)
+            for s in socks[:2]:
+                s.sendall(header + b"\0" * (body - 10))
+            assert _wait(lambda: sum(1 for p in server.peers) == 3)
+            socks[2].sendall(header + b"\0" * (body - 10))
+            assert _wait(lambda: server.stats()["over_budget"] == 1)
+            assert server.stats()["clients"] == 2
+        finally:
+            for s in socks:
+                s.close()

@@ -438,3 +438,9 @@ def test_an_empty_allowed_peers_list_is_refused_with_a_clear_error(tmp_path) -> 
     with pytest.raises(ConfigError) as info:
         _load(path)
     assert any("allowed_peers: an empty list would refuse every peer" in e for e in info.value.errors)
+
+
+def test_two_controllers_owning_one_joint_are_refused_at_load() -> None:
+    text = MINIMAL_ROBOT + "controller: [{plugin: hold}, {plugin: hold}]\n"
+    with pytest.raises(ConfigError, match=r"controller\[1\]: command interface 'a/position' is claimed"):
+        parse_config(text)
