@@ -61,7 +61,15 @@ from .errors import (
     HeaderTextError,
     TruncatedMessageError,
 )
-from .messages.base import FAST_V1, REGISTRY, Message, RawMessage, WirePieces, set_wire
+from .messages.base import (
+    FAST_V1,
+    FAST_V2,
+    REGISTRY,
+    Message,
+    RawMessage,
+    WirePieces,
+    set_wire,
+)
 
 _HEADER_SIZE = wire.HEADER_SIZE
 _header_fields = wire.header_fields
@@ -71,6 +79,7 @@ _CRC_SMALL = wire.CRC_SMALL
 _T0, _T1, _T2, _T3 = wire._T0, wire._T1, wire._T2, wire._T3  # frac -> ns tables
 _registry_get = REGISTRY.get
 _fast_v1_get = FAST_V1.get
+_fast_v2_get = FAST_V2.get
 _set_wire = set_wire
 # Classes that want the wire type name in ``common`` (query families, COLORT/COLORTABLE...).
 _needs_type_name: dict[type, bool] = {}
@@ -116,6 +125,12 @@ def _decode(
         if fast is not None:
             # a length check first
             msg = fast(body, device_name, t, ts, wire_bytes)  # type: ignore[arg-type]
+            if msg is not None:
+                return msg
+    elif type(body) is bytes:  # not a big body being trimmed in place
+        fast = _fast_v2_get(message_type)
+        if fast is not None:
+            msg = fast(body, device_name, t, ts, wire_bytes)
             if msg is not None:
                 return msg
     common: dict[str, Any] = {

@@ -550,6 +550,28 @@ def unpack_metadata(
     """
     if len(meta_header) == 0:
         return {}, {}
+    # A stream repeats the same few metadata blocks (the OCC master: run/clutch on each of 500
+    # packets a second): decoded once, then looked up. Bounded: a peer that varies its values
+    # only clears the cache.
+    cache_key = (bytes(meta_header), bytes(meta_data))
+    hit = _META_DECODED.get(cache_key)
+    if hit is not None:
+        return dict(hit[0]), dict(hit[1])
+    values, encodings = _unpack_metadata(meta_header, meta_data, base_offset)
+    if len(_META_DECODED) >= 256:
+        _META_DECODED.clear()
+    _META_DECODED[cache_key] = (dict(values), dict(encodings))
+    return values, encodings
+
+
+_META_DECODED: dict[tuple[bytes, bytes], tuple[dict[str, str], dict[str, int]]] = {}
+
+
+def _unpack_metadata(
+    meta_header: bytes | bytearray | memoryview,
+    meta_data: bytes | bytearray | memoryview,
+    base_offset: int,
+) -> tuple[dict[str, str], dict[str, int]]:
     if len(meta_header) < 2:
         raise MetadataError(
             f"metadata header of {len(meta_header)} bytes cannot hold the index count",

@@ -212,6 +212,10 @@ def common_equal(a: Message, b: Message) -> bool:
 #: means "not the fast case, use unpack_content" (which then reports any error with its offset).
 #: ``wire_bytes`` is what the message re-packs to (the codec's, see ``Message._wire``).
 FAST_V1: dict[str, Callable[[bytes, str, float, int, Any], Message | None]] = {}
+#: The same for header version 2 (``fn(body, ...)``: the whole body, extended header and
+#: metadata included): the standard 12-byte extended header only; anything else is None and
+#: goes the generic way, which also reports errors with their offsets.
+FAST_V2: dict[str, Callable[[bytes, str, float, int, Any], Message | None]] = {}
 
 
 def _slot_builder(cls: type[M], params: str, common_lines: tuple[str, ...]) -> Callable[..., M]:
@@ -247,6 +251,25 @@ def fast_builder_v1(cls: type[M]) -> Callable[..., M]:
             "    _s_metadata(self, _EMPTY)",
             "    _s_message_id(self, 0)",
             "    _s_metadata_encoding(self, _EMPTY)",
+            "    _s_raw_timestamp(self, raw_timestamp)",
+            "    _s__wire(self, wire_bytes)",
+        ),
+    )
+
+
+def fast_builder_v2(cls: type[M]) -> Callable[..., M]:
+    """Like :func:`fast_builder_v1` for header version 2: ``build(device_name, timestamp,
+    raw_timestamp, wire_bytes, metadata, metadata_encoding, message_id, *content_fields)``."""
+    return _slot_builder(
+        cls,
+        "device_name, timestamp, raw_timestamp, wire_bytes, metadata, encodings, message_id",
+        (
+            "    _s_device_name(self, device_name)",
+            "    _s_timestamp(self, timestamp)",
+            "    _s_header_version(self, 2)",
+            "    _s_metadata(self, metadata if metadata else _EMPTY)",
+            "    _s_message_id(self, message_id)",
+            "    _s_metadata_encoding(self, encodings if encodings else _EMPTY)",
             "    _s_raw_timestamp(self, raw_timestamp)",
             "    _s__wire(self, wire_bytes)",
         ),

@@ -10,8 +10,18 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ..errors import ContentError
-from .base import FAST_V1, Message, fast_builder, fast_builder_v1, need_size, register
+from .. import wire
+from ..errors import ContentError, DecodeError
+from .base import (
+    FAST_V1,
+    FAST_V2,
+    Message,
+    fast_builder,
+    fast_builder_v1,
+    fast_builder_v2,
+    need_size,
+    register,
+)
 
 _F12 = struct.Struct(">12f")
 _F7 = struct.Struct(">7f")
@@ -153,3 +163,67 @@ def _fast_position(
 
 FAST_V1["TRANSFORM"] = _fast_transform
 FAST_V1["POSITION"] = _fast_position
+
+_build_transform_v2 = fast_builder_v2(TransformMessage)
+_build_position_v2 = fast_builder_v2(PositionMessage)
+_EXT = wire.EXT_HEADER
+_unpack_metadata = wire.unpack_metadata
+
+
+def _v2_parts(body: bytes) -> tuple[int, int, dict[str, str], dict[str, int], int] | None:
+    """(content start, content end, metadata, encodings, message ID) of a v2 body with the
+    standard extended header, or None (the generic path then decides and reports)."""
+    n = len(body)
+    if n < 12:
+        return None
+    ext, mh, md, mid = _EXT.unpack_from(body, 0)
+    end = n - mh - md
+    if ext != 12 or end < 12:
+        return None
+    if mh:
+        try:
+            meta, enc = _unpack_metadata(body[end : end + mh], body[end + mh :])
+        except DecodeError:
+            return None
+    else:
+        meta, enc = {}, {}
+    return 12, end, meta, enc, mid
+
+
+def _fast_transform_v2(
+    body: bytes, device: str, t: float, raw: int, wire_bytes: Any
+) -> TransformMessage | None:
+    parts = _v2_parts(body)
+    if parts is None or parts[1] - parts[0] != 48:
+        return None
+    start, _, meta, enc, mid = parts
+    values = _F12.unpack_from(body, start)
+    return _build_transform_v2(device, t, raw, wire_bytes, meta, enc, mid, values)
+
+
+def _fast_position_v2(
+    body: bytes, device: str, t: float, raw: int, wire_bytes: Any
+) -> PositionMessage | None:
+    """The OCC master's stream: POSITION, 24-byte variant, v2, message ID and run/clutch."""
+    parts = _v2_parts(body)
+    if parts is None:
+        return None
+    start, end, meta, enc, mid = parts
+    n = end - start
+    if n == POSITION_QUATERNION3:
+        x, y, z, ox, oy, oz = _F6.unpack_from(body, start)
+        s = 1.0 - (ox * ox + oy * oy + oz * oz)
+        quat = (ox, oy, oz, math.sqrt(s)) if s >= 0.0 else (0.0, 0.0, 0.0, 1.0)
+        return _build_position_v2(
+            device, t, raw, wire_bytes, meta, enc, mid, (x, y, z), quat, POSITION_QUATERNION3
+        )
+    if n == POSITION_ALL:
+        v = _F7.unpack_from(body, start)
+        return _build_position_v2(
+            device, t, raw, wire_bytes, meta, enc, mid, v[:3], v[3:], POSITION_ALL
+        )
+    return None
+
+
+FAST_V2["TRANSFORM"] = _fast_transform_v2
+FAST_V2["POSITION"] = _fast_position_v2

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import os
+import select
 import selectors
 import socket
 import threading
@@ -111,6 +112,7 @@ class UDPEndpoint(IOThreadOwner):
         self.host = host
         self.port = port
         self.remote = remote
+        self._ready: Any = None  # poll(2) of the socket, for a polled endpoint (see poll())
         #: the only sender the kernel lets through (:meth:`pin_source`), or None: anyone
         self.source: tuple[str, int] | None = None
         self.on_message = on_message
@@ -180,6 +182,10 @@ class UDPEndpoint(IOThreadOwner):
                 raise
             self._sock = sock
             self._sendto = sock.sendto
+            if self.polled and hasattr(select, "poll"):
+                poller = select.poll()
+                poller.register(sock, select.POLLIN)
+                self._ready = poller.poll
             self.address = sock.getsockname()[:2]
             if not self.polled:
                 self._sel.register(sock, selectors.EVENT_READ, "sock")
@@ -378,8 +384,13 @@ class UDPEndpoint(IOThreadOwner):
         """
         if self._sock is None or not self._running:
             return 0
+        ready = self._ready
         done = 0
         for _ in range(limit):
+            # ask first: an empty receive raises, and the exception costs a 1 kHz loop more
+            # (about 14 us cold here) than the poll(2) that tells the same (about 6 us)
+            if ready is not None and not ready(0):
+                return done
             if not self._rx_lock.acquire(blocking=False):
                 return done
             try:
