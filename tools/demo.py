@@ -56,6 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     slave = occd("slave.yaml", out / "slave-stats.json", slave_extra)
     procs = [slave]
     standin = None
+    operator = None
     interrupted = False
     try:
         if not wait_port(18944, 15.0):
@@ -67,7 +68,9 @@ def main(argv: list[str] | None = None) -> int:
             print("demo: the master did not start", file=sys.stderr)
             return 1
         standin = SlicerStandIn("127.0.0.1", 18944).start()
-        if not standin.connected.wait(5.0):
+        # the status line is an operator's view (Slicer's port is a viewer: no sequence numbers)
+        operator = SlicerStandIn("127.0.0.1", 18947).start()
+        if not standin.connected.wait(5.0) or not operator.connected.wait(5.0):
             print("demo: the Slicer stand-in could not connect", file=sys.stderr)
             return 1
         print(f"demo: slave (TCP 18944 Slicer, 18947 operators, UDP 18946) and master (TCP 18945) running; "
@@ -80,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
                 master.send_signal(signal.SIGKILL)
                 killed = True
                 print("\ndemo: master killed (SIGKILL)", flush=True)
-            print("\r" + live_line(standin) + " " * 4, end="", flush=True)
+            print("\r" + live_line(standin, operator) + " " * 4, end="", flush=True)
             for proc in procs:
                 if proc.poll() is not None and not (killed and proc is master):
                     print(f"\ndemo: a daemon exited with {proc.returncode}", file=sys.stderr)
@@ -93,6 +96,8 @@ def main(argv: list[str] | None = None) -> int:
         summary = standin.summary() if standin is not None else {}
         if standin is not None:
             standin.stop()
+        if operator is not None:
+            operator.stop()
         stop_processes(procs)
     print("Slicer stand-in saw:", json.dumps({k: v for k, v in summary.items() if not k.startswith("_")}, indent=1))
     for s in summary.get("_statuses", []):
@@ -117,9 +122,9 @@ def main(argv: list[str] | None = None) -> int:
 _last_rx: list[float] = []  # (time, count) of the previous status line, for the packet rate
 
 
-def live_line(standin: SlicerStandIn) -> str:
-    cid = standin.send_command("GetStats")
-    reply = standin.wait_reply(cid, timeout=1.0)
+def live_line(standin: SlicerStandIn, operator: SlicerStandIn) -> str:
+    cid = operator.send_command("GetStats")
+    reply = operator.wait_reply(cid, timeout=1.0)
     tip = standin.last.get("Tip")
     tip_txt = "tip " + " ".join(f"{v:7.2f}" for v in tip.translation) + " mm" if tip is not None else "tip -"
     if reply is None or reply.metadata.get("Status") != "SUCCESS":
