@@ -454,7 +454,10 @@ class Robot:
             data.hold_setpoint = list(data.setpoint if old is RobotState.RUNNING else data.q)
         if new is RobotState.RUNNING:
             data.setpoint[:] = data.hold_setpoint
-            self._reentry = False
+            # from the held setpoint, the controllers' first targets are joined at half the
+            # velocity limits: a controller whose target is elsewhere (an absolute tracker
+            # input) moves there smoothly instead of at the drives' limits
+            self._reentry = True
             if self.loss_monitor is not None:
                 # Armed by the first packet after (re)starting: a slave waiting for its master
                 # holds still (no target), and a master that vanishes afterwards is caught.

@@ -100,9 +100,17 @@ def test_igtl_input_drives_the_handle() -> None:
         m.command("Run")
         origin = m.robot.controller.controllers[0].origin * 1000.0
         target = (origin[0] + 10.0, origin[1] - 5.0, origin[2] + 3.0)
+        # the tracker is 10 mm away when Run starts: the handle joins it at half the velocity
+        # limits (0.25 mm a tick here), never in one step
+        limit = [0.5 * j.limits.velocity * 1e-3 for j in m.robot.joints]
+        previous = list(m.robot.data.setpoint)
         for _ in range(300):
             assert m.operator.send(igtl.TransformMessage.from_position(target, device_name="Tracker")) == 1
-            m.ticks(2)
+            for _ in range(2):
+                m.ticks(1)
+                now = list(m.robot.data.setpoint)
+                assert all(abs(a - b) <= lim + 1e-12 for a, b, lim in zip(now, previous, limit))
+                previous = now
         assert m.sent[-1].position == pytest.approx(target, abs=0.05)
     finally:
         m.close()
