@@ -267,7 +267,7 @@ def fast_builder_v2(cls: type[M]) -> Callable[..., M]:
             "    _s_device_name(self, device_name)",
             "    _s_timestamp(self, timestamp)",
             "    _s_header_version(self, 2)",
-            "    _s_metadata(self, metadata if metadata else _EMPTY)",
+            "    _s_metadata(self, metadata)",  # a dict, as the generic decoder gives
             "    _s_message_id(self, message_id)",
             "    _s_metadata_encoding(self, encodings if encodings else _EMPTY)",
             "    _s_raw_timestamp(self, raw_timestamp)",
