@@ -87,10 +87,12 @@ Interpolation and mode
   ("same path, stop or fly through").
 
   - ``continuous``: the curve is played in time, position(t) = C(phi(t)), with phi(t_k) = t_k at
-    every keyframe. On interior segments phi(t) = t (the spline in time: velocity continuous and
-    C2 through every interior keyframe); on the first and last segment phi is a profile of the
-    kind above with D = T, from rest to c then to phi' = 1 (first), and mirrored (last), so the
-    robot starts and stops with the sigmoid acceleration. One segment only: 0 -> c -> 0.
+    every keyframe. On interior segments phi(t) = t: the spline in time, C2, so velocity and
+    acceleration are continuous (at the first and last interior keyframe, where phi's ramps end,
+    the acceleration steps by the ramp's residual described above). On the first and last
+    segment phi is a profile of the kind above with D = T, from rest to c then to phi' = 1
+    (first), and mirrored (last), so the robot starts and stops with the sigmoid acceleration.
+    One segment only: 0 -> c -> 0.
   - ``stop``: each segment of the curve is played from rest to rest with the a = b = 0 profile
     over its *arc length* (numerical: a table of 512 intervals per segment, 5-point
     Gauss-Legendre each, built once by plan(); the curve parameter for a given length is a
@@ -515,7 +517,7 @@ class Trajectory:
         return out
 
     def speed(self, t: float) -> float:
-        """The speed along the path (|velocity| except at cusps), pose units per second."""
+        """The magnitude of :meth:`velocity`, pose units per second."""
         return float(np.linalg.norm(self.velocity(t)))
 
     def sample(self, times: ArrayLike) -> tuple[FloatArray, FloatArray]:
