@@ -688,13 +688,23 @@ def cmd_send(args: argparse.Namespace) -> int:
             reconnect=False,
             connect_timeout=args.connect_timeout,
             on_error=lambda *a: errors.append(a[-1]),
+            on_message=lambda peer, msg: replies.put(msg),
         )
+    replies: queue.Queue[Message] = queue.Queue()
+    wants_reply = not args.udp and args.wait > 0 and _is_request(template)
+    answered = 0
     try:
         if not args.udp:
             _start_client(sender, host, port, args.connect_timeout, errors)
         sent = _send_loop(sender, template, args)
+        if wants_reply and sent:
+            # a request's answer (RTS_, ACK_ or the queried type, STATUS for a refusal) comes
+            # back on this connection: print it, so `igtl send ... GetState` shows the state
+            answered = _print_replies(replies, template, sent, args.wait, Printer(args.json))
     finally:
         sender.stop()
+    if wants_reply and sent and answered < sent:
+        printer.note(f"{sent - answered} of {sent} request(s) not answered within {args.wait:g} s")
     if sent < args.count:
         reason = f": {errors[-1]}" if errors else ""
         printer.note(f"sent {sent} of {args.count} messages to {host}:{port}{reason}")
@@ -702,6 +712,48 @@ def cmd_send(args: argparse.Namespace) -> int:
     if args.verbose:
         printer.note(f"sent {sent} message(s) to {host}:{port}")
     return EXIT_OK
+
+
+def _is_request(msg: Message) -> bool:
+    """COMMAND, a PLUS-style ``CMD_<id>`` STRING or a GET_/STT_/STP_ query: a peer answers."""
+    mtype = msg.message_type
+    if mtype == "COMMAND" or mtype.startswith(("GET_", "STT_", "STP_")):
+        return True
+    return mtype == "STRING" and msg.device_name.startswith("CMD_")
+
+
+def _is_reply_to(reply: Message, request: Message) -> bool:
+    rtype, qtype = reply.message_type, request.message_type
+    if qtype == "COMMAND":
+        # an RTS_COMMAND, or a STATUS refusing the connection (ACCESS_DENIED)
+        return rtype == "RTS_COMMAND" or (rtype == "STATUS" and getattr(reply, "code", 1) != 1)
+    if qtype == "STRING":
+        return rtype == "STRING" and reply.device_name == "ACK_" + request.device_name[4:]
+    if rtype == "STATUS":  # a query's answer, or the refusal of one
+        return qtype == "GET_STATUS" or getattr(reply, "code", 1) != 1
+    return rtype == qtype.split("_", 1)[1] or rtype.startswith(qtype.split("_", 1)[1][:4])
+
+
+def _print_replies(
+    replies: queue.Queue[Message], request: Message, expected: int, wait: float, out: Printer
+) -> int:
+    """Print the replies to ``expected`` requests like ``request`` arriving within ``wait``
+    seconds of the last send (other messages, e.g. a connect greeting or a pose stream, are
+    skipped); returns how many came."""
+    got = 0
+    deadline = time.monotonic() + wait
+    while got < expected:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            break
+        try:
+            msg = replies.get(timeout=left)
+        except queue.Empty:
+            break
+        if _is_reply_to(msg, request):
+            out.message(msg)
+            got += 1
+    return got
 
 
 #: TCP: most messages handed to the client and not yet written to its socket. The client's send
@@ -1054,6 +1106,16 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="S",
         help="TCP: give up (exit 1) if not connected within S seconds",
     )
+    p.add_argument(
+        "--wait",
+        type=float,
+        default=2.0,
+        metavar="S",
+        help="TCP requests (COMMAND, STRING CMD_*, GET_*): print the answers arriving within S "
+        "seconds (default 2; 0 = do not wait)",
+    )
+    p.add_argument("--no-wait", dest="wait", action="store_const", const=0.0, help="--wait 0")
+    p.add_argument("--json", action="store_true", help="print the answers as JSON")
     p.set_defaults(func=cmd_send)
 
     p = add(

@@ -592,3 +592,45 @@ def test_listen_port_in_use_exits_1(transport: Any, capsys: pytest.CaptureFixtur
         code = cli.main(["listen", "--port", str(s.getsockname()[1]), "--timeout", "0.1"])
     assert code == cli.EXIT_ERROR
     assert "cannot listen" in capsys.readouterr().err
+
+
+def test_send_prints_the_answer_to_a_request(capsys: pytest.CaptureFixture[str]) -> None:
+    """`igtl send` of a COMMAND waits for its RTS_COMMAND and prints it (a stream the server
+    sends meanwhile is not an answer); --no-wait prints nothing."""
+    from igtl.transport import TCPServer
+
+    def answer(peer: object, msg: igtl.Message) -> None:
+        server.send(igtl.TransformMessage.from_position((1, 2, 3), device_name="Tip"), peer)
+        if msg.message_type == "COMMAND":
+            reply = igtl.REGISTRY["RTS_COMMAND"](
+                command_id=msg.command_id, command_name=msg.command_name,
+                command='<CommandReply Status="SUCCESS"/>',
+            )
+            server.send(reply, peer)
+
+    server = TCPServer("127.0.0.1", 0, on_message=answer).start()
+    try:
+        target = f"127.0.0.1:{server.address[1]}"
+        assert cli.main(["send", target, "--type", "COMMAND", "--command-name", "GetState"]) == 0
+        out = capsys.readouterr().out
+        assert out.count("RTS_COMMAND") == 1 and "TRANSFORM" not in out
+        assert "SUCCESS" in out
+        assert cli.main(
+            ["send", target, "--type", "COMMAND", "--command-name", "GetState", "--no-wait"]
+        ) == 0
+        assert capsys.readouterr().out == ""
+    finally:
+        server.stop()
+
+
+def test_send_says_when_a_request_is_not_answered(capsys: pytest.CaptureFixture[str]) -> None:
+    from igtl.transport import TCPServer
+
+    server = TCPServer("127.0.0.1", 0, on_message=lambda p, m: None).start()
+    try:
+        target = f"127.0.0.1:{server.address[1]}"
+        code = cli.main(["send", target, "--type", "GET_STATUS", "--wait", "0.3"])
+        assert code == 0
+        assert "1 of 1 request(s) not answered within 0.3 s" in capsys.readouterr().err
+    finally:
+        server.stop()
