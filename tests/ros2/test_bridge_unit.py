@@ -49,7 +49,9 @@ def from_quaternion(x: float, y: float, z: float, w: float) -> np.ndarray:
 
 @pytest.mark.parametrize("angle", [0.0, 0.3, 1.5, math.pi - 1e-9, math.pi, -2.0])
 @pytest.mark.parametrize("axis", [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, -2, 0.5)])
-def test_quaternion_round_trips_every_branch(axis: tuple[float, float, float], angle: float) -> None:
+def test_quaternion_round_trips_every_branch(
+    axis: tuple[float, float, float], angle: float
+) -> None:
     r = rot(axis, angle)
     q = quaternion(r)
     assert q[3] >= 0.0
