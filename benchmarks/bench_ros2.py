@@ -54,7 +54,8 @@ def main() -> int:
             out["rate_hz"] = args.rate
     write_yaml(tmp / "slave.yaml", slave)
     py = sys.executable
-    procs = [subprocess.Popen([py, "-m", "occ.cli", str(tmp / "slave.yaml"), "--log-level", "WARNING"], cwd=ROOT)]
+    slave_cmd = [py, "-m", "occ.cli", str(tmp / "slave.yaml"), "--log-level", "WARNING"]
+    procs = [subprocess.Popen(slave_cmd, cwd=ROOT)]
     try:
         if not wait_port(ports["slave_tcp"], proc=procs[0]):
             print("the slave did not start", file=sys.stderr)
@@ -68,7 +69,8 @@ def main() -> int:
         ws.attach(ReadCondition(reader, SampleState.NotRead))
         procs.append(subprocess.Popen(
             [py, "-m", "occ_ros2.cli", "--connect", f"127.0.0.1:{ports['slave_tcp']}={ns}",
-             "--domain-id", str(domain_id), "--log-level", "WARNING", "--stats", str(tmp / "bridge.json")],
+             "--domain-id", str(domain_id), "--log-level", "WARNING",
+             "--stats", str(tmp / "bridge.json")],
             cwd=ROOT,
         ))  # fmt: skip
         e2e = Histogram()
@@ -83,9 +85,10 @@ def main() -> int:
         stop_processes(procs[1:])
         bridge = json.loads((tmp / "bridge.json").read_text())
         s = e2e.summary() if e2e.count else {}
+        summary = {k: round(s[k], 1) for k in ("p50", "p99", "max") if k in s}
         print(json.dumps({
             "rate_hz": args.rate,
-            "end_to_end_us": {"n": e2e.count, **{k: round(s[k], 1) for k in ("p50", "p99", "max") if k in s}},
+            "end_to_end_us": {"n": e2e.count, **summary},
             "bridge_us": bridge.get("igtl_to_dds_us"),
         }, indent=2))  # fmt: skip
         del domain
