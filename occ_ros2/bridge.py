@@ -202,8 +202,6 @@ class Bridge:
         config: str | None = None,
         world_frame: str = "world",
     ) -> None:
-        if not viewers and not operators:
-            raise ValueError("nothing to bridge: give at least one --connect or --operator")
         self.domain_id = domain_id
         self.world_frame = world_frame
         # Domain() applies the configuration to this domain id in this process; it must exist

@@ -8,6 +8,7 @@ its namespaces carry the pid (conftest.py). Checks behaviour, not timing.
 
 from __future__ import annotations
 
+import json
 import math
 import subprocess
 import sys
@@ -164,3 +165,59 @@ def test_commands_round_trip_and_state_is_latched(
     assert poll(lambda: state() == "STOPPED")
     assert poll(lambda: ros.take("operating_state")[-1].state == "PAUSED")
     assert bridge.poll() is None
+
+
+def test_master_mode_a_ros2_pose_stream_drives_the_slave(
+    tmp_path: Path, dds: tuple[int, Any], namespace: str
+) -> None:
+    """servo_cp published from DDS becomes the slave's 500 Hz master stream: the slave
+    (RUNNING) follows it, scaled 10:1, and is not stopped by the stream."""
+    domain_id, dp = dds
+    slave_cfg, _, ports = pair_configs()
+    write_yaml(tmp_path / "slave.yaml", slave_cfg)
+    master_ns = namespace.rsplit("/", 1)[0] + "/master"
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        slave = subprocess.Popen(
+            [sys.executable, "-m", "occ.cli", str(tmp_path / "slave.yaml"),
+             "--log-level", "WARNING", "--start", "running"],
+            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        )  # fmt: skip
+        procs.append(slave)
+        assert wait_port(ports["slave_tcp"], proc=slave), "the slave did not listen"
+        bridge = subprocess.Popen(
+            [sys.executable, "-m", "occ_ros2.cli",
+             "--connect", f"127.0.0.1:{ports['slave_tcp']}={namespace}",
+             "--master", f"{master_ns}=127.0.0.1:{ports['slave_udp']}",
+             "--domain-id", str(domain_id), "--log-level", "WARNING",
+             "--stats", str(tmp_path / "bridge.json")],
+            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        )  # fmt: skip
+        procs.append(bridge)
+        ros = RosSide(dp, namespace)
+        ros.reader("measured_cp", msgs.PoseStamped)
+        ros.reader("state", msgs.String, QOS_LATCHED)
+        assert poll(lambda: ros.take("measured_cp")), "no measured_cp"
+        start = ros.seen["measured_cp"][-1].pose.position
+        servo = RosSide(dp, master_ns).writer("servo_cp", msgs.PoseStamped)
+
+        # the operator's hand: +20 mm along x in 1 mm steps, then held there; poll's period
+        # (10 ms) paces it like a 100 Hz device, and it keeps publishing so run stays 1
+        step = [0]
+
+        def moved() -> bool:
+            x_mm = float(min(step[0], 20))
+            step[0] += 1
+            servo.write(msgs.PoseStamped(pose=msgs.Pose(msgs.Point(x_mm * 1e-3, 0.0, 0.02))))
+            p = ros.take("measured_cp")[-1].pose.position
+            return bool(p.x - start.x > 1.5e-3)  # 20 mm at 10:1 is 2 mm
+
+        assert poll(moved, timeout=15.0), (start, ros.seen["measured_cp"][-1])
+        states = [s.data for s in ros.take("state")]
+        assert states[-1] == "RUNNING", states
+        assert bridge.poll() is None and slave.poll() is None
+    finally:
+        stop_processes(procs[1:])  # the bridge first: the slave then sees its master die
+        stop_processes(procs)
+    stats = json.loads((tmp_path / "bridge.json").read_text())[f"master {master_ns}"]
+    assert stats["sent"] > 0 and stats["poses"] > 0
