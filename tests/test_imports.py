@@ -103,3 +103,28 @@ def test_igtl_never_imports_occ() -> None:
 def test_the_cycle_finder_finds_cycles() -> None:
     assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
     assert _cycle({"a": {"b"}, "b": set()}) is None
+
+
+def test_the_core_never_imports_dds() -> None:
+    """DDS is the optional ``ros2`` extra: neither ``igtl`` nor ``occ`` may import it (or the
+    bridge package that does), anywhere, so the daemons run without it installed."""
+    banned = ("cyclonedds", "occ_ros2", "rosbags")
+    for package in ("igtl", "occ"):
+        for path in (ROOT / package).rglob("*.py"):
+            tree = ast.parse(path.read_text(encoding="utf-8"))
+            for node in ast.walk(tree):
+                names = (
+                    [node.module or ""]
+                    if isinstance(node, ast.ImportFrom)
+                    else [a.name for a in node.names]
+                    if isinstance(node, ast.Import)
+                    else []
+                )
+                for name in names:
+                    where = path.relative_to(ROOT)
+                    assert name.split(".")[0] not in banned, f"{where} imports {name}"
+
+
+def test_the_ros2_bridge_has_no_import_cycle() -> None:
+    cycle = _cycle(_graph("occ_ros2"))
+    assert cycle is None, "import cycle: " + " -> ".join(cycle or [])

@@ -1,0 +1,140 @@
+"""``occ-ros2``: publish OCC daemons on ROS 2 (DDS), take commands from it.
+
+Examples::
+
+    occ-ros2 --connect 127.0.0.1:18944=/occ/slave --operator 127.0.0.1:18947=/occ/slave
+    occ-ros2 --connect 127.0.0.1:18944=/occ/slave --domain-id 7 --duration 60 --stats /tmp/b.json
+    occ-ros2 --master /occ/master=127.0.0.1:18946 --connect 127.0.0.1:18944=/occ/slave
+
+Topics and types: occ_ros2/bridge.py, README "ROS 2". DDS runs on loopback without multicast
+by default (occ_ros2/cyclonedds-lo.xml); ``--dds-config env`` takes $CYCLONEDDS_URI instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+from pathlib import Path
+from types import FrameType
+
+from .bridge import DEFAULT_CONFIG, Bridge, parse_endpoint
+from .master import MasterStream, parse_master
+
+
+def _endpoint(text: str) -> tuple[str, int, str]:
+    try:
+        return parse_endpoint(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from err
+
+
+def _master(text: str) -> tuple[str, str, int]:
+    try:
+        return parse_master(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from err
+
+
+def _domain_id(text: str) -> int:
+    value = int(text)
+    # 0..232: the ids whose RTPS ports (7400 + 250 * id + ...) fit below 65536
+    if not 0 <= value <= 232:
+        raise argparse.ArgumentTypeError(f"DDS domain id must be 0..232, got {value}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="occ-ros2", description="Bridge OCC daemons (OpenIGTLink) to ROS 2 topics over DDS."
+    )
+    p.add_argument(
+        "--connect",
+        action="append",
+        type=_endpoint,
+        default=[],
+        metavar="H:P=/NS",
+        help="a daemon's viewer port and the namespace of its topics (repeatable)",
+    )
+    p.add_argument(
+        "--operator",
+        action="append",
+        type=_endpoint,
+        default=[],
+        metavar="H:P=/NS",
+        help="a daemon's operator port: commands from ROS 2 go there (repeatable)",
+    )
+    p.add_argument(
+        "--master",
+        action="append",
+        type=_master,
+        default=[],
+        metavar="/NS=H:P",
+        help="master mode: NS/servo_cp (PoseStamped) becomes the 500 Hz POSITION stream to a "
+        "slave's UDP port (repeatable)",
+    )
+    p.add_argument(
+        "--domain-id",
+        type=_domain_id,
+        default=None,
+        help="DDS domain (default $ROS_DOMAIN_ID, else 0)",
+    )
+    p.add_argument(
+        "--dds-config",
+        default=str(DEFAULT_CONFIG),
+        help="Cyclone DDS XML file (default: loopback, no multicast); 'env': "
+        "$CYCLONEDDS_URI as Cyclone reads it",
+    )
+    p.add_argument("--world-frame", default="world", help="frame_id of the base pose")
+    p.add_argument("--duration", type=float, default=0.0, help="seconds to run (0: until Ctrl-C)")
+    p.add_argument("--stats", type=Path, default=None, help="write statistics JSON here at exit")
+    p.add_argument("--log-level", default="INFO")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s %(message)s")
+    domain = args.domain_id
+    if domain is None:
+        domain = _domain_id(os.environ.get("ROS_DOMAIN_ID", "0") or "0")
+    config = None if args.dds_config == "env" else Path(args.dds_config).read_text()
+    if not (args.connect or args.operator or args.master):
+        print(
+            "occ-ros2: nothing to bridge: give --connect, --operator or --master", file=sys.stderr
+        )
+        return 2
+    bridge = Bridge(args.connect, args.operator, domain_id=domain, config=config)
+    masters = [MasterStream(bridge.participant, ns, (host, port)) for ns, host, port in args.master]
+    done = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        done.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    bridge.start()
+    for m in masters:
+        m.start()
+    names = [*bridge.robots, *(f"{m.ns} -> {m.remote[0]}:{m.remote[1]}" for m in masters)]
+    logging.getLogger("occ_ros2").info("bridging %s on DDS domain %d", ", ".join(names), domain)
+    try:
+        done.wait(args.duration if args.duration > 0 else None)
+    finally:
+        for m in masters:
+            m.stop()
+        bridge.stop()
+        stats = bridge.stats()
+        for m in masters:
+            stats[f"master {m.ns}"] = m.stats()
+        if args.stats is not None:
+            args.stats.write_text(json.dumps(stats, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

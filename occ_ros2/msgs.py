@@ -1,0 +1,133 @@
+"""ROS 2 message types as Cyclone DDS IDL structs, under the type names ROS 2 uses on the wire.
+
+rmw_cyclonedds maps ``pkg/msg/Name`` to the DDS type ``pkg::msg::dds_::Name_`` with the fields
+of the ``.msg`` file in order, serialised as plain (XCDR1, little-endian) CDR. Declaring the
+same structs here lets a Python process without ROS 2 installed publish and subscribe to ROS 2
+topics; tests/ros2/test_msgs.py checks every type byte for byte against ``rosbags`` (the
+reference serialiser, ROS 2 Humble type store).
+
+``crtk_msgs`` is not in rosbags' type store; its two messages used here (``OperatingState``,
+``StringStamped``) are declared from their ``.msg`` files (collaborative-robotics/crtk_msgs,
+ROS 2 branch) and tested against rosbags with those definitions registered (:data:`CRTK_MSG_DEFS`).
+
+This module imports ``cyclonedds``: only ``occ_ros2`` may import it, never ``occ`` or ``igtl``.
+"""
+
+# No ``from __future__ import annotations``: cyclonedds resolves string annotations by name
+# in this module, and builtins such as ``str`` are not found there.
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from cyclonedds.idl import IdlStruct
+from cyclonedds.idl.types import float64, int32, sequence, uint32
+
+if TYPE_CHECKING:  # what the fields hold, for mypy (cyclonedds' sequence is not generic to it)
+    StrSeq = list[str]
+    F64Seq = list[float]
+else:  # what cyclonedds reads from the annotations: unbounded IDL sequences
+    StrSeq = sequence[str]
+    F64Seq = sequence[float64]
+
+# Every struct below is "final" (cyclonedds' default), which serialises as plain CDR: what
+# ROS 2's rmw_cyclonedds writes. Nested structs need ROS names too: types are matched by name.
+
+
+@dataclass
+class Time(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
+    sec: int32 = 0
+    nanosec: uint32 = 0
+
+    @classmethod
+    def from_seconds(cls, t: float) -> "Time":
+        sec = int(t // 1)
+        nanosec = min(int(round((t - sec) * 1e9)), 999_999_999)
+        return cls(sec=sec, nanosec=nanosec)
+
+    def to_seconds(self) -> float:
+        return self.sec + self.nanosec * 1e-9
+
+
+@dataclass
+class Header(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
+    stamp: Time = field(default_factory=Time)
+    frame_id: str = ""
+
+
+@dataclass
+class String(IdlStruct, typename="std_msgs::msg::dds_::String_"):
+    data: str = ""
+
+
+@dataclass
+class Point(IdlStruct, typename="geometry_msgs::msg::dds_::Point_"):
+    x: float64 = 0.0
+    y: float64 = 0.0
+    z: float64 = 0.0
+
+
+@dataclass
+class Quaternion(IdlStruct, typename="geometry_msgs::msg::dds_::Quaternion_"):
+    # ROS 2's default is the identity (w = 1)
+    x: float64 = 0.0
+    y: float64 = 0.0
+    z: float64 = 0.0
+    w: float64 = 1.0
+
+
+@dataclass
+class Pose(IdlStruct, typename="geometry_msgs::msg::dds_::Pose_"):
+    position: Point = field(default_factory=Point)
+    orientation: Quaternion = field(default_factory=Quaternion)
+
+
+@dataclass
+class PoseStamped(IdlStruct, typename="geometry_msgs::msg::dds_::PoseStamped_"):
+    header: Header = field(default_factory=Header)
+    pose: Pose = field(default_factory=Pose)
+
+
+@dataclass
+class JointState(IdlStruct, typename="sensor_msgs::msg::dds_::JointState_"):
+    header: Header = field(default_factory=Header)
+    name: StrSeq = field(default_factory=list)
+    position: F64Seq = field(default_factory=list)
+    velocity: F64Seq = field(default_factory=list)
+    effort: F64Seq = field(default_factory=list)
+
+
+@dataclass
+class OperatingState(IdlStruct, typename="crtk_msgs::msg::dds_::OperatingState_"):
+    """CRTK's robot meta-state: ``state`` is DISABLED, ENABLED, PAUSED or FAULT."""
+
+    header: Header = field(default_factory=Header)
+    state: str = ""
+    is_homed: bool = False
+    is_busy: bool = False
+
+
+@dataclass
+class StringStamped(IdlStruct, typename="crtk_msgs::msg::dds_::StringStamped_"):
+    header: Header = field(default_factory=Header)
+    string: str = ""
+
+
+#: the ``.msg`` definitions of the crtk_msgs types above, for registering them with rosbags
+CRTK_MSG_DEFS = {
+    "crtk_msgs/msg/OperatingState": "std_msgs/Header header\n"
+    "string state\nbool is_homed\nbool is_busy\n",
+    "crtk_msgs/msg/StringStamped": "std_msgs/Header header\nstring string\n",
+}
+
+#: every type, by its ROS 2 name
+ROS_TYPES: dict[str, type[IdlStruct]] = {
+    "builtin_interfaces/msg/Time": Time,
+    "std_msgs/msg/Header": Header,
+    "std_msgs/msg/String": String,
+    "geometry_msgs/msg/Point": Point,
+    "geometry_msgs/msg/Quaternion": Quaternion,
+    "geometry_msgs/msg/Pose": Pose,
+    "geometry_msgs/msg/PoseStamped": PoseStamped,
+    "sensor_msgs/msg/JointState": JointState,
+    "crtk_msgs/msg/OperatingState": OperatingState,
+    "crtk_msgs/msg/StringStamped": StringStamped,
+}

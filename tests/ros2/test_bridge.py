@@ -1,0 +1,223 @@
+"""occ-ros2 against a real slave daemon on loopback, read and driven from DDS as ROS 2 would.
+
+A slave (``occd``, ports moved to free ones by tools/loopback.py) and the bridge (``occ-ros2``)
+run as subprocesses; this process is the ROS 2 side: a DDS participant on the bridge's loopback
+configuration, with the ROS 2 topic names, types and QoS. Its domain id is drawn per run and
+its namespaces carry the pid (conftest.py). Checks behaviour, not timing.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from .conftest import poll, require_extra
+
+require_extra()
+
+from cyclonedds.pub import DataWriter  # noqa: E402
+from cyclonedds.sub import DataReader  # noqa: E402
+from cyclonedds.topic import Topic  # noqa: E402
+
+from occ_ros2 import msgs  # noqa: E402
+from occ_ros2.bridge import QOS_DEFAULT, QOS_LATCHED, topic_name  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "tools"))
+
+from loopback import pair_configs, stop_processes, wait_port, write_yaml  # noqa: E402
+from slicer_standin import SlicerStandIn  # noqa: E402
+
+pytestmark = pytest.mark.realtime
+
+
+class RosSide:
+    """What a ROS 2 node would hold: readers and writers on the bridge's topics."""
+
+    def __init__(self, participant: Any, ns: str) -> None:
+        self.dp, self.ns = participant, ns
+        self.readers: dict[str, DataReader[Any]] = {}
+        self.seen: dict[str, list[Any]] = {}
+
+    def reader(self, leaf: str, cls: type[Any], qos: Any = QOS_DEFAULT) -> None:
+        dp = self.dp
+        self.readers[leaf] = DataReader(dp, Topic(dp, topic_name(self.ns, leaf), cls), qos)
+        self.seen[leaf] = []
+
+    def take(self, leaf: str) -> list[Any]:
+        self.seen[leaf].extend(self.readers[leaf].take(N=64))
+        return self.seen[leaf]
+
+    def writer(self, leaf: str, cls: type[Any]) -> DataWriter:
+        dp = self.dp
+        w = DataWriter(dp, Topic(dp, topic_name(self.ns, leaf), cls), QOS_DEFAULT)
+        # a reliable sample written before the bridge's reader is matched would be lost
+        assert poll(lambda: w.get_publication_matched_status().current_count >= 1), (
+            f"{leaf}: the bridge's subscription was not discovered"
+        )
+        return w
+
+
+@pytest.fixture
+def slave_and_bridge(
+    tmp_path: Path, dds: tuple[int, Any], namespace: str
+) -> Iterator[tuple[dict[str, int], subprocess.Popen[bytes]]]:
+    domain_id, _ = dds
+    slave_cfg, _, ports = pair_configs()
+    write_yaml(tmp_path / "slave.yaml", slave_cfg)
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        slave = subprocess.Popen(
+            [sys.executable, "-m", "occ.cli", str(tmp_path / "slave.yaml"),
+             "--log-level", "WARNING"],
+            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        )  # fmt: skip
+        procs.append(slave)
+        assert wait_port(ports["slave_tcp"], proc=slave), "the slave did not listen"
+        assert wait_port(ports["slave_op"], proc=slave)
+        bridge = subprocess.Popen(
+            [sys.executable, "-m", "occ_ros2.cli",
+             "--connect", f"127.0.0.1:{ports['slave_tcp']}={namespace}",
+             "--operator", f"127.0.0.1:{ports['slave_op']}={namespace}",
+             "--domain-id", str(domain_id), "--log-level", "WARNING",
+             "--stats", str(tmp_path / "bridge.json")],
+            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        )  # fmt: skip
+        procs.append(bridge)
+        yield ports, bridge
+    finally:
+        stop_processes(procs)
+
+
+def test_measured_cp_is_the_slaves_tip_in_metres(
+    slave_and_bridge: Any, dds: tuple[int, Any], namespace: str
+) -> None:
+    ports, bridge = slave_and_bridge
+    ros = RosSide(dds[1], namespace)
+    ros.reader("measured_cp", msgs.PoseStamped)
+    ros.reader("base/measured_cp", msgs.PoseStamped)
+    assert poll(lambda: len(ros.take("measured_cp")) >= 3), "no measured_cp from the bridge"
+    assert poll(lambda: ros.take("base/measured_cp"))
+    tip = ros.seen["measured_cp"][-1]
+    assert tip.header.frame_id == "slave_base"
+    assert tip.header.stamp.sec > 0  # the daemon's timestamp, not zero
+    base = ros.seen["base/measured_cp"][-1]
+    assert base.header.frame_id == "world"
+    q = tip.pose.orientation
+    assert math.isclose(q.x**2 + q.y**2 + q.z**2 + q.w**2, 1.0, rel_tol=1e-9) and q.w >= 0.0
+    # the same pose as 3D Slicer gets (the slave holds still: READY), mm -> m; the shipped base
+    # is the identity, so the base frame is the world frame here
+    with SlicerStandIn(port=ports["slave_tcp"]) as viewer:
+        assert poll(lambda: viewer.last.get("Tip")), "the viewer got no Tip"
+        ref = viewer.last["Tip"]
+    expected = np.array(ref.translation) * 1e-3
+    got = np.array([tip.pose.position.x, tip.pose.position.y, tip.pose.position.z])
+    assert np.allclose(got, expected, atol=1e-6), (got, expected)  # float32 on the IGTL wire
+    assert 0.0 < float(np.linalg.norm(got)) < 1.0  # metres, not millimetres
+    assert bridge.poll() is None
+
+
+def test_commands_round_trip_and_state_is_latched(
+    slave_and_bridge: Any, dds: tuple[int, Any], namespace: str
+) -> None:
+    _, bridge = slave_and_bridge
+    ros = RosSide(dds[1], namespace)
+    ros.reader("command_reply", msgs.String)
+    ros.reader("operating_state", msgs.OperatingState, QOS_LATCHED)
+    ros.reader("state", msgs.String, QOS_LATCHED)
+
+    def state() -> str | None:
+        seen = ros.take("state")
+        return seen[-1].data if seen else None
+
+    # transient local: the state published before this reader existed arrives all the same
+    assert poll(lambda: state() == "READY"), ros.seen["state"]
+    assert ros.take("operating_state")[-1].state == "DISABLED"
+
+    # CRTK's word on CRTK's topic
+    crtk = ros.writer("state_command", msgs.StringStamped)
+    crtk.write(msgs.StringStamped(header=msgs.Header(frame_id=""), string="enable"))
+    assert poll(lambda: ros.take("command_reply")), "no reply to enable"
+    assert ros.seen["command_reply"][0].data == "Enable SUCCESS: READY -> ENABLED"
+    assert poll(lambda: state() == "ENABLED")
+    op = ros.take("operating_state")[-1]
+    assert (op.state, op.is_busy, op.is_homed) == ("ENABLED", False, True)
+
+    # the daemon's own command names on the plain String topic
+    plain = ros.writer("command", msgs.String)
+    plain.write(msgs.String(data="Run"))
+    assert poll(lambda: state() == "RUNNING")
+    assert poll(lambda: ros.take("operating_state")[-1].is_busy)
+    plain.write(msgs.String(data="NoSuchCommand"))
+    assert poll(lambda: len(ros.take("command_reply")) >= 3)
+    replies = [r.data for r in ros.seen["command_reply"]]
+    assert replies[1] == "Run SUCCESS: ENABLED -> RUNNING"
+    assert replies[2].startswith("NoSuchCommand FAIL:"), replies
+    crtk.write(msgs.StringStamped(string="pause"))
+    assert poll(lambda: state() == "STOPPED")
+    assert poll(lambda: ros.take("operating_state")[-1].state == "PAUSED")
+    assert bridge.poll() is None
+
+
+def test_master_mode_a_ros2_pose_stream_drives_the_slave(
+    tmp_path: Path, dds: tuple[int, Any], namespace: str
+) -> None:
+    """servo_cp published from DDS becomes the slave's 500 Hz master stream: the slave
+    (RUNNING) follows it, scaled 10:1, and is not stopped by the stream."""
+    domain_id, dp = dds
+    slave_cfg, _, ports = pair_configs()
+    write_yaml(tmp_path / "slave.yaml", slave_cfg)
+    master_ns = namespace.rsplit("/", 1)[0] + "/master"
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        slave = subprocess.Popen(
+            [sys.executable, "-m", "occ.cli", str(tmp_path / "slave.yaml"),
+             "--log-level", "WARNING", "--start", "running"],
+            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        )  # fmt: skip
+        procs.append(slave)
+        assert wait_port(ports["slave_tcp"], proc=slave), "the slave did not listen"
+        bridge = subprocess.Popen(
+            [sys.executable, "-m", "occ_ros2.cli",
+             "--connect", f"127.0.0.1:{ports['slave_tcp']}={namespace}",
+             "--master", f"{master_ns}=127.0.0.1:{ports['slave_udp']}",
+             "--domain-id", str(domain_id), "--log-level", "WARNING",
+             "--stats", str(tmp_path / "bridge.json")],
+            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        )  # fmt: skip
+        procs.append(bridge)
+        ros = RosSide(dp, namespace)
+        ros.reader("measured_cp", msgs.PoseStamped)
+        ros.reader("state", msgs.String, QOS_LATCHED)
+        assert poll(lambda: ros.take("measured_cp")), "no measured_cp"
+        start = ros.seen["measured_cp"][-1].pose.position
+        servo = RosSide(dp, master_ns).writer("servo_cp", msgs.PoseStamped)
+
+        # the operator's hand: +20 mm along x in 1 mm steps, then held there; poll's period
+        # (10 ms) paces it like a 100 Hz device, and it keeps publishing so run stays 1
+        step = [0]
+
+        def moved() -> bool:
+            x_mm = float(min(step[0], 20))
+            step[0] += 1
+            servo.write(msgs.PoseStamped(pose=msgs.Pose(msgs.Point(x_mm * 1e-3, 0.0, 0.02))))
+            p = ros.take("measured_cp")[-1].pose.position
+            return bool(p.x - start.x > 1.5e-3)  # 20 mm at 10:1 is 2 mm
+
+        assert poll(moved, timeout=15.0), (start, ros.seen["measured_cp"][-1])
+        states = [s.data for s in ros.take("state")]
+        assert states[-1] == "RUNNING", states
+        assert bridge.poll() is None and slave.poll() is None
+    finally:
+        stop_processes(procs[1:])  # the bridge first: the slave then sees its master die
+        stop_processes(procs)
+    stats = json.loads((tmp_path / "bridge.json").read_text())[f"master {master_ns}"]
+    assert stats["sent"] > 0 and stats["poses"] > 0

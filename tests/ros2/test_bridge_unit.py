@@ -1,0 +1,108 @@
+"""The bridge's pieces without a daemon: pose conversion, names, command refusals."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from .conftest import poll, require_extra
+
+require_extra()
+
+from cyclonedds.sub import DataReader  # noqa: E402
+from cyclonedds.topic import Topic  # noqa: E402
+
+from occ_ros2 import msgs  # noqa: E402
+from occ_ros2.bridge import (  # noqa: E402
+    QOS_DEFAULT,
+    Bridge,
+    parse_endpoint,
+    pose_stamped,
+    quaternion,
+    topic_name,
+)
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
+from loopback import free_port  # noqa: E402
+
+
+def rot(axis: tuple[float, float, float], angle: float) -> np.ndarray:
+    x, y, z = np.array(axis) / np.linalg.norm(axis)
+    k = np.array([[0, -z, y], [z, 0, -x], [-y, x, 0]])
+    return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
+
+
+def from_quaternion(x: float, y: float, z: float, w: float) -> np.ndarray:
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.3, 1.5, math.pi - 1e-9, math.pi, -2.0])
+@pytest.mark.parametrize("axis", [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, -2, 0.5)])
+def test_quaternion_round_trips_every_branch(
+    axis: tuple[float, float, float], angle: float
+) -> None:
+    r = rot(axis, angle)
+    q = quaternion(r)
+    assert q[3] >= 0.0
+    assert math.isclose(sum(v * v for v in q), 1.0, rel_tol=1e-12)
+    assert np.allclose(from_quaternion(*q), r, atol=1e-9)
+
+
+def test_pose_stamped_takes_metres_and_the_frame() -> None:
+    m = np.eye(4)
+    m[:3, :3] = rot((0, 0, 1), 0.5)
+    m[:3, 3] = (0.01, -0.02, 0.3)
+    p = pose_stamped(m, msgs.Time(5, 6), "slave_base")
+    assert (p.header.frame_id, p.header.stamp) == ("slave_base", msgs.Time(5, 6))
+    assert (p.pose.position.x, p.pose.position.y, p.pose.position.z) == (0.01, -0.02, 0.3)
+    assert math.isclose(p.pose.orientation.z, math.sin(0.25))
+
+
+def test_time_from_seconds_never_overflows_nanoseconds() -> None:
+    assert msgs.Time.from_seconds(1.5) == msgs.Time(1, 500_000_000)
+    assert msgs.Time.from_seconds(2.9999999999).nanosec <= 999_999_999
+
+
+def test_names() -> None:
+    assert parse_endpoint("127.0.0.1:18944=/occ/slave") == ("127.0.0.1", 18944, "/occ/slave")
+    assert parse_endpoint("::1:18944=occ/slave/") == ("::1", 18944, "/occ/slave")
+    for bad in ("127.0.0.1:18944", "127.0.0.1=/x", "h:p=/x", "h:1=/", "h:1=/a-b"):
+        with pytest.raises(ValueError):
+            parse_endpoint(bad)
+    assert topic_name("/occ/slave", "measured_cp") == "rt/occ/slave/measured_cp"
+    assert topic_name("/occ/slave", "base/measured_cp") == "rt/occ/slave/base/measured_cp"
+
+
+def test_commands_without_an_operator_port_are_refused_with_a_reply(
+    dds: tuple[int, Any], namespace: str
+) -> None:
+    """A viewer-only bridge cannot move the robot, and says so on command_reply."""
+    domain_id, dp = dds
+    replies: DataReader[Any] = DataReader(
+        dp, Topic(dp, topic_name(namespace, "command_reply"), msgs.String), QOS_DEFAULT
+    )
+    # nothing listens on the viewer port: the link just keeps trying to connect
+    with Bridge([("127.0.0.1", free_port(), namespace)], domain_id=domain_id) as bridge:
+        bridge.command(namespace, "enable")
+        bridge.command(namespace, "rm -rf")
+        got: list[Any] = []
+
+        def two_replies() -> bool:
+            got.extend(replies.take())
+            return len(got) >= 2
+
+        assert poll(two_replies)
+    assert got[0].data.startswith("Enable FAIL: no operator interface")
+    assert got[1].data == "rm -rf FAIL: not a command name"
+    assert bridge.stats()[namespace]["commands_refused"] == 2
