@@ -153,11 +153,15 @@ class BuiltinSources:
         )
 
     def joints(self, out: Output, now: float) -> Message:
+        """Measured joint positions (SI) as NDARRAY; in header version 2 the joint names ride
+        along as metadata ``joints`` (comma-separated), as a ROS 2 JointState needs them."""
+        d = self.data
         return igtl.NDArrayMessage(
-            array=np.array(self.data.q, dtype=np.float64),
+            array=np.array(d.q, dtype=np.float64),
             device_name=out.device,
             header_version=out.header_version,
-            timestamp=self.data.clock.wall_time(),
+            timestamp=d.clock.wall_time(),
+            metadata={"joints": ",".join(d.joint_names)} if out.header_version == 2 else {},
         )
 
 

@@ -15,6 +15,8 @@ topic                             type                         from
                                                                frame_id ``<leaf>_base``
 ``NS/base/measured_cp``           geometry_msgs/PoseStamped    TRANSFORM ``Base``; frame_id
                                                                the world frame (``world``)
+``NS/measured_js``                sensor_msgs/JointState       NDARRAY ``Joints`` (positions;
+                                                               names from its metadata)
 ``NS/operating_state``            crtk_msgs/OperatingState     STATUS of a state, GetState
 ``NS/state``                      std_msgs/String              the daemon's own state name
 ``NS/status``                     std_msgs/String              every STATUS (alerts included)
@@ -241,6 +243,7 @@ class Bridge:
 
         writer("measured_cp", msgs.PoseStamped, QOS_DEFAULT)
         writer("base/measured_cp", msgs.PoseStamped, QOS_DEFAULT)
+        writer("measured_js", msgs.JointState, QOS_DEFAULT)
         writer("operating_state", msgs.OperatingState, QOS_LATCHED)
         writer("state", msgs.String, QOS_LATCHED)
         writer("status", msgs.String, QOS_DEFAULT)
@@ -344,6 +347,21 @@ class Bridge:
             else:
                 return
             self.latency_us.add((time.perf_counter() - t_in) * 1e6)
+        elif mtype == "NDARRAY" and msg.device_name == "Joints":
+            values = [float(v) for v in np.asarray(msg.array).ravel()]  # type: ignore[attr-defined]
+            names = msg.metadata.get("joints", "")
+            joint_names = names.split(",") if names else [f"joint{i}" for i in range(len(values))]
+            if len(joint_names) != len(values):
+                joint_names = [f"joint{i}" for i in range(len(values))]
+            self._publish(
+                robot,
+                "measured_js",
+                msgs.JointState(
+                    header=msgs.Header(stamp=stamp, frame_id=""),
+                    name=joint_names,
+                    position=values,
+                ),
+            )
         elif mtype == "STATUS":
             robot.counters.statuses += 1
             name = getattr(msg, "error_name", "")

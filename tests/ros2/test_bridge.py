@@ -104,7 +104,12 @@ def test_measured_cp_is_the_slaves_tip_in_metres(
     ros = RosSide(dds[1], namespace)
     ros.reader("measured_cp", msgs.PoseStamped)
     ros.reader("base/measured_cp", msgs.PoseStamped)
+    ros.reader("measured_js", msgs.JointState)
     assert poll(lambda: len(ros.take("measured_cp")) >= 3), "no measured_cp from the bridge"
+    assert poll(lambda: ros.take("measured_js")), "no measured_js from the bridge"
+    js = ros.seen["measured_js"][-1]
+    assert list(js.name) == ["yaw", "pitch", "insertion"] and len(js.position) == 3
+    assert js.position[1] == pytest.approx(0.35, abs=0.01)  # the slave's home pitch
     assert poll(lambda: ros.take("base/measured_cp"))
     tip = ros.seen["measured_cp"][-1]
     assert tip.header.frame_id == "slave_base"
