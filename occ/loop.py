@@ -48,6 +48,7 @@ import threading
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from igtl.transport.common import name_native_thread
 from occ.clock import Clock, RealClock
 from occ.safety import Watchdog
 from occ.stats import LoopStats
@@ -254,6 +255,7 @@ class ControlLoop:
     # -- the loop -----------------------------------------------------------------------------
 
     def _setup(self) -> Callable[[], None]:
+        name_native_thread("occd-loop")  # the main thread of occd: `pgrep occd` still finds it
         parts, restore_sched = apply_realtime(self.fifo_priority, self.cpu)
         gc_was_enabled = gc.isenabled()
         if self.gc_mode == "freeze":

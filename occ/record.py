@@ -34,6 +34,7 @@ import numpy as np
 
 import igtl
 from igtl.messages.base import Message
+from igtl.transport.common import name_native_thread
 
 if TYPE_CHECKING:
     from .data import RobotData
@@ -152,6 +153,7 @@ class Recorder:
         return bytes(state.pack())
 
     def _writer(self) -> None:
+        name_native_thread("recorder")
         while True:
             with self._cond:
                 self._cond.wait(0.05)

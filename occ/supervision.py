@@ -26,6 +26,8 @@ from .safety import Supervisor
 
 __all__ = ["SupervisorThread", "Worker"]
 
+from igtl.transport.common import name_native_thread
+
 log = logging.getLogger(__name__)
 
 
@@ -58,6 +60,7 @@ class SupervisorThread:
             self._thread.join(1.0)
 
     def _main(self) -> None:
+        name_native_thread("supervisor")
         if self.fifo_priority is not None:
             # Above the loop: when the loop spins (a hung tick that keeps the CPU), the
             # supervisor must still get a core the moment it wakes.
@@ -113,6 +116,7 @@ class Worker:
             self._thread.join(1.0)
 
     def _main(self) -> None:
+        name_native_thread("worker")
         while True:
             job = self._jobs.get()
             if job is None:

@@ -601,3 +601,18 @@ def test_incomplete_messages_over_all_clients_stay_within_the_budget() -> None:
         finally:
             for s in socks:
                 s.close()
+
+
+def test_transport_threads_carry_their_names_in_the_os() -> None:
+    """`top -H` and py-spy show which thread is which (Python 3.11 names threads only for
+    itself): the I/O thread of a server named igtl-x is `x` in /proc."""
+    import os
+    from pathlib import Path
+
+    with TCPServer("127.0.0.1", 0, name="igtl-viewer") as server:
+        thread = server.thread
+        assert thread is not None and thread.native_id is not None
+        comm = Path(f"/proc/{os.getpid()}/task/{thread.native_id}/comm")
+        if not comm.exists():
+            pytest.skip("no /proc on this platform")
+        assert _wait(lambda: comm.read_text().strip() == "viewer")
