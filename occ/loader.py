@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import sys
 import types
 from pathlib import Path
@@ -31,6 +32,8 @@ from .config import _CROSS, _PATTERN_TEXT, DaemonConfig, Loc, _did_you_mean, _fo
 from .errors import ConfigError, OCCError
 
 __all__ = ["load_config", "parse_config", "format_errors"]
+
+_NUMBER_TAGS = ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")
 
 
 def load_config(path: str | os.PathLike[str]) -> DaemonConfig:
@@ -75,6 +78,32 @@ def parse_config(
     raise ConfigError("\n".join(lines), lines)
 
 
+class _Loader(yaml.SafeLoader):
+    """YAML 1.1 as PyYAML reads it, without base-60 numbers: ``scale: 10:1`` meant as a ratio
+    would silently be 601 (and ``1:30`` 90). Such a value stays a string, which the schema
+    then refuses with the line ("expected a number, got '10:1'")."""
+
+
+_Loader.yaml_implicit_resolvers = {
+    first: [(tag, rx) for tag, rx in resolvers if tag not in _NUMBER_TAGS]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+for _tag, _pattern, _first in (
+    (
+        "tag:yaml.org,2002:int",
+        r"""^(?:[-+]?0b[0-1_]+|[-+]?0[0-7_]+|[-+]?(?:0|[1-9][0-9_]*)|[-+]?0x[0-9a-fA-F_]+)$""",
+        "-+0123456789",
+    ),
+    (
+        "tag:yaml.org,2002:float",
+        r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+][0-9]+)?|\.[0-9][0-9_]*(?:[eE][-+][0-9]+)?"""
+        r"""|[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$""",
+        "-+0123456789.",
+    ),
+):
+    _Loader.add_implicit_resolver(_tag, re.compile(_pattern, re.X), list(_first))
+
+
 def format_errors(problems: list[tuple[int, Loc, str]], source: str) -> list[str]:
     """Sort ``(line, loc, message)`` triples by line and render ``FILE:LINE path: message``."""
     ordered = sorted(problems, key=lambda p: p[0])
@@ -83,7 +112,7 @@ def format_errors(problems: list[tuple[int, Loc, str]], source: str) -> list[str
 
 def _compose(text: str, source: str) -> tuple[yaml.Node | None, Any, list[tuple[int, Loc, str]]]:
     """Compose and construct the YAML; syntax errors raise ConfigError with the line."""
-    loader = yaml.SafeLoader(text)
+    loader = _Loader(text)
     try:
         root = loader.get_single_node()
         problems = _duplicate_keys(root) if root is not None else []

@@ -52,6 +52,7 @@ STATE_CODES = {
     "ESTOP": 6,
     "SHUTDOWN": 7,
 }
+STATE_NAMES = {code: name for name, code in STATE_CODES.items()}
 
 
 class Recorder:
@@ -242,7 +243,10 @@ def export_csv(path: str | Path, out_dir: str | Path) -> tuple[Path, Path]:
                 if not header_written:
                     ws.writerow(m.metadata.get("columns", "").split(","))
                     header_written = True
-                ws.writerow([f"{v:.9g}" for v in np.asarray(m.array).ravel().tolist()])  # type: ignore[attr-defined]
+                row = [f"{v:.9g}" for v in np.asarray(m.array).ravel().tolist()]  # type: ignore[attr-defined]
+                if len(row) > 1:  # the state column by its name, not its code (READY, RUNNING)
+                    row[1] = STATE_NAMES.get(int(float(row[1])), row[1])
+                ws.writerow(row)
                 continue
             meta = m.metadata
             wm.writerow(

@@ -444,3 +444,17 @@ def test_two_controllers_owning_one_joint_are_refused_at_load() -> None:
     text = MINIMAL_ROBOT + "controller: [{plugin: hold}, {plugin: hold}]\n"
     with pytest.raises(ConfigError, match=r"controller\[1\]: command interface 'a/position' is claimed"):
         parse_config(text)
+
+
+def test_base_60_numbers_are_not_read_as_numbers() -> None:
+    """YAML 1.1 reads `10:1` as 601: a ratio meant as 10:1 must be an error with its line, not
+    a scale of 601 (nor `1:30` a period of 90)."""
+    text = MINIMAL_ROBOT + "controller:\n  plugin: teleop-slave\n  params:\n    scale: 10:1\n"
+    errors = errors_of(text)
+    assert errors == [
+        f"c.yaml:{MINIMAL_ROBOT.count(chr(10)) + 4} controller.params.scale: "
+        "expected a number, got '10:1'"
+    ]
+    # and exponents are numbers, as YAML 1.2 reads them
+    cfg = parse_config(MINIMAL_ROBOT.replace("velocity: 1}", "velocity: 1e-1}"))
+    assert cfg.robot.joints[0].limits.velocity == 0.1

@@ -68,6 +68,9 @@ def test_export_csv(tmp_path: Path) -> None:
     state_csv, msg_csv = export_csv(path, tmp_path / "csv")
     rows = list(csv.reader(state_csv.open()))
     assert rows[0][0] == "t" and len(rows) > 5 and all(len(r) == len(rows[0]) for r in rows)
+    # the state by its name, as an operator reads it
+    assert {r[1] for r in rows[1:]} <= {"INIT", "READY", "ENABLED", "RUNNING", "STOPPED"}
+    assert "RUNNING" in {r[1] for r in rows[1:]}
     mrows = list(csv.DictReader(msg_csv.open()))
     assert any(r["type"] == "POSITION" and r["dir"] == "in" for r in mrows)
 
