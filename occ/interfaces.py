@@ -289,6 +289,8 @@ class Interface:
                 max_body_size=cfg.max_body_kib * 1024,
                 # a stream the loop polls each tick needs no thread waking per datagram
                 polled=self.poll_streams and bool(self.streams),
+                # a pure sender (the master's stream) hears "nobody listens" from the kernel
+                connect_remote=remote is not None and not cfg.inputs,
                 name=f"igtl-{self.name}",
                 **common,
             )
@@ -502,6 +504,11 @@ class Interface:
             "stream_owner": list(self.stream_owner) if self.stream_owner else None,
             # refusals by the transport, each under its reason
             **{k: int(t[k]) for k in _TRANSPORT_REFUSALS if k in t},
+            **(
+                {"refused_by_remote": int(t["refused_by_remote"])}
+                if "refused_by_remote" in t
+                else {}
+            ),
             "peers": len(getattr(self.transport, "peers", []) or []),
         }
 

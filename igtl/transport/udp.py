@@ -24,6 +24,7 @@ sent, as on TCP.
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import select
@@ -101,6 +102,7 @@ class UDPEndpoint(IOThreadOwner):
         max_body_size: int = wire.DEFAULT_MAX_BODY_SIZE,
         crc_check: bool = True,
         polled: bool = False,
+        connect_remote: bool = False,
         name: str = "igtl-udp",
     ) -> None:
         if not 1 <= max_datagram <= MAX_UDP_PAYLOAD:
@@ -112,6 +114,12 @@ class UDPEndpoint(IOThreadOwner):
         self.host = host
         self.port = port
         self.remote = remote
+        #: connect the socket to ``remote``: the kernel then reports a remote that nobody
+        #: listens on (ICMP port unreachable) as ECONNREFUSED on the next send, which is
+        #: counted (``refused_by_remote``) and logged; only ``remote`` is heard from
+        self.connect_remote = connect_remote
+        self._refused_by_remote = 0
+        self._refused_logged = -1e9
         self._ready: Any = None  # poll(2) of the socket, for a polled endpoint (see poll())
         #: the only sender the kernel lets through (:meth:`pin_source`), or None: anyone
         self.source: tuple[str, int] | None = None
@@ -182,6 +190,11 @@ class UDPEndpoint(IOThreadOwner):
                 raise
             self._sock = sock
             self._sendto = sock.sendto
+            if self.connect_remote and self.remote is not None:
+                try:
+                    sock.connect(self.remote)
+                except OSError as err:
+                    log.warning("%s: cannot connect to %s: %s", self.name, self.remote, err)
             if self.polled and hasattr(select, "poll"):
                 poller = select.poll()
                 poller.register(sock, select.POLLIN)
@@ -248,12 +261,27 @@ class UDPEndpoint(IOThreadOwner):
         except OSError as err:
             self._send_errors += 1
             peer.dropped += 1
-            if self._error_log.allow():
+            if err.errno == errno.ECONNREFUSED:
+                self._remote_refused()
+            elif self._error_log.allow():
                 log.warning("%s: send to %s failed: %s", self.name, addr_text(dest), err)
             return 0
         self._sent += 1
         peer.sent += 1
         return 1
+
+    def _remote_refused(self) -> None:
+        self._refused_by_remote += 1
+        now = time.monotonic()
+        if now - self._refused_logged >= 10.0:  # a 500 Hz stream: say it, not 500 times a second
+            self._refused_logged = now
+            where = addr_text(self.remote) if self.remote is not None else "the remote"
+            log.warning(
+                "%s: nobody is listening on %s (datagrams refused; %d so far)",
+                self.name,
+                where,
+                self._refused_by_remote,
+            )
 
     def pin_source(self, address: tuple[str, int] | None) -> bool:
         """Take datagrams from ``address`` only, or again from anyone (None).
@@ -303,6 +331,7 @@ class UDPEndpoint(IOThreadOwner):
             "send_errors": self._send_errors,
             "malformed": totals["malformed"],
             "denied": self._denied,
+            "refused_by_remote": self._refused_by_remote,
             "receive_errors": self._receive_errors,
             "datagrams_sent": self._datagrams_sent,
             "datagrams_received": self._datagrams_received,
@@ -420,6 +449,11 @@ class UDPEndpoint(IOThreadOwner):
         except (BlockingIOError, InterruptedError):
             return False
         except OSError as err:  # e.g. ICMP errors reported on the socket
+            if err.errno == errno.ECONNREFUSED:
+                # a connected sender's remote is not listening: the kernel reports it to
+                # whichever call comes first, this receive or the next send
+                self._remote_refused()
+                return False
             self._receive_errors += 1
             if self._error_log.allow():
                 log.warning("%s: receive failed: %s", self.name, err)

@@ -295,3 +295,22 @@ def test_pinned_source_is_the_only_sender_the_kernel_lets_through() -> None:
         ep.stop()
         master.close()
         other.close()
+
+
+def test_a_sender_hears_that_nobody_listens() -> None:
+    """connect_remote: the kernel turns the ICMP 'port unreachable' of a remote nobody listens
+    on into a refused send, counted and logged (the master learns there is no slave)."""
+    closed = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    closed.bind(("127.0.0.1", 0))
+    port = closed.getsockname()[1]
+    closed.close()  # nobody on this port now
+    ep = UDPEndpoint("127.0.0.1", 0, remote=("127.0.0.1", port), connect_remote=True).start()
+    try:
+        msg = igtl.StringMessage("x", device_name="s")
+        deadline = time.monotonic() + WAIT
+        while ep.stats()["refused_by_remote"] == 0 and time.monotonic() < deadline:
+            ep.send(msg)
+            time.sleep(0.01)  # the ICMP answer arrives after the send that caused it
+        assert ep.stats()["refused_by_remote"] >= 1
+    finally:
+        ep.stop()
