@@ -5,6 +5,8 @@ Exit codes:
   1  runtime error (a port already in use, a driver that cannot start, ...)
   2  usage error or invalid configuration (every problem is listed as FILE:LINE path: message)
   3  the robot ended latched in FAULT or ESTOP
+  4  the robot ended STOPPED by a safety stop (packet loss, a dead master, the watchdog); the
+     cause is in the log, the STATUS alerts and ``last_alert`` of the --stats file
 
 This is the only place that configures logging and installs signal handlers. Log records are
 handed to a background thread (QueueHandler), so the control loop never waits on log I/O.
@@ -27,7 +29,7 @@ from typing import Any
 from .errors import ConfigError, OCCError
 from .loader import load_config
 
-EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, EXIT_FAULT = 0, 1, 2, 3
+EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, EXIT_FAULT, EXIT_STOPPED = 0, 1, 2, 3, 4
 
 log = logging.getLogger("occd")
 
@@ -199,6 +201,8 @@ def run(config: Any, args: argparse.Namespace) -> int:
             log.info("statistics written to %s", args.stats)
     if code == EXIT_OK and final_state in (RobotState.FAULT, RobotState.ESTOP):
         code = EXIT_FAULT
+    elif code == EXIT_OK and final_state is RobotState.STOPPED and robot.last_alert:
+        code = EXIT_STOPPED
     return code
 
 

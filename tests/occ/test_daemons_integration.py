@@ -102,6 +102,9 @@ def test_slicer_sees_tip_follow_master_and_dead_master_stops_slave(daemons) -> N
         cid = s.send_command("GetState")
         reply = s.wait_reply(cid, 5.0)
         assert reply is not None and "STOPPED" in reply.metadata["Message"]
+    # a daemon that ends stopped by a safety stop says so in its exit code
+    slave.send_signal(signal.SIGINT)
+    assert slave.wait(20) == 4
 
 
 def test_occd_check_and_bad_config(tmp_path: Path) -> None:

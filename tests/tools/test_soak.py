@@ -243,7 +243,9 @@ def test_real_soak_stops_exactly_on_runs_of_three(tmp_path: Path) -> None:
                  "every run >= 3 (slave RUNNING) stopped the robot exactly once",
                  "operator Run resumed after every stop", "daemons ran and wrote statistics"):
         assert checks[name]["passed"], checks[name]
-    assert n["exit_codes"] == {"master": 0, "slave": 0}
+    # the master stops first at the end of the soak; the slave ends STOPPED by it (exit 4, see
+    # occd --help) if the grace ran out before the slave itself was stopped, else RUNNING (0)
+    assert n["exit_codes"]["master"] == 0 and n["exit_codes"]["slave"] in (0, 4)
     assert n["slave_loss_monitor"]["trips"] >= outcomes["stop"]
     for f in ("drops.csv", "slave-stats.json", "master-stats.json", "report.md", "drops_over_time.png"):
         assert (out / f).exists(), f
