@@ -425,6 +425,11 @@ def test_config_md_example_is_valid() -> None:
     assert example is not None
     cfg = parse_config(example.group(1), source="CONFIG.md example")
     assert cfg.robot.joint_names == ("yaw", "pitch", "insertion")
+    # it works with the shipped master: the port it streams to, a controller that follows
+    master = load_config(ROOT / "configs" / "master.yaml")
+    streams_to = next(i.remote_address for i in master.interfaces if i.transport == "udp")
+    assert streams_to is not None and cfg.interface("master").port == streams_to[1]
+    assert [c.plugin for c in cfg.controllers] == ["teleop-slave"]
 
 
 def test_an_empty_allowed_peers_list_is_refused_with_a_clear_error(tmp_path) -> None:
