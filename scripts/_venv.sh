@@ -9,10 +9,21 @@ if [ ! -x "$VENV/bin/python" ]; then
     "$PY" -m venv "$VENV"
 fi
 stamp="$VENV/.occ-installed${EXTRAS:+-$EXTRAS}"
+# the test install is a superset of the plain one: the demo after the tests installs nothing
+if [ -z "$EXTRAS" ] && [ -f "$VENV/.occ-installed-test" ] \
+        && ! [ "$ROOT/pyproject.toml" -nt "$VENV/.occ-installed-test" ]; then
+    stamp="$VENV/.occ-installed-test"
+fi
 if [ ! -f "$stamp" ] || [ "$ROOT/pyproject.toml" -nt "$stamp" ]; then
     echo "[setup] installing the project${EXTRAS:+ with [$EXTRAS]} into $VENV"
-    "$VENV/bin/python" -m pip install -q --upgrade pip >/dev/null
-    "$VENV/bin/python" -m pip install -q -e "$ROOT${EXTRAS:+[$EXTRAS]}"
+    # pip's and the build backend's notices go to a log, shown only when the install fails
+    log="$VENV/occ-install.log"
+    if ! { "$VENV/bin/python" -m pip install -q --upgrade pip \
+            && "$VENV/bin/python" -m pip install -q -e "$ROOT${EXTRAS:+[$EXTRAS]}"; } >"$log" 2>&1; then
+        cat "$log" >&2
+        echo "[setup] installation failed (log: $log)" >&2
+        exit 1
+    fi
     touch "$stamp"
 fi
 export PATH="$VENV/bin:$PATH"
