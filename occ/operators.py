@@ -163,7 +163,22 @@ class OperatorDesk:
         if item.role != "operator":
             snap = redact_for_viewer(snap)
         text = json.dumps(snap, separators=(",", ":"), default=str)
-        reply = success_reply(req, text, timestamp=r.clock.wall_time())
+        wall = r.clock.wall_time()
+        if req.args.get("Format", "").lower() == "json":
+            # plain JSON a script can parse as it is: a STRING (ACK_<id> for a PLUS-style
+            # request, STATS for a COMMAND) holding nothing but the statistics
+            msg = req.msg
+            assert msg is not None
+            device = "ACK_" + msg.device_name[4:] if req.kind == "string" else "STATS"
+            reply: Message = igtl.StringMessage(
+                text,
+                device_name=safe_name(device),
+                header_version=msg.header_version,
+                message_id=msg.message_id,
+                timestamp=wall,
+            )
+        else:
+            reply = success_reply(req, text, timestamp=wall)
         r.interfaces.reply(item, reply)
 
     def _execute(self, req: Request, now: float) -> str:

@@ -66,3 +66,25 @@ def test_inproc_interfaces_need_a_channel() -> None:
     cfg = parse_config(text.replace("transport: inproc", "transport: inproc\n    channel: m"),
                        source=str(SLAVE))
     assert cfg.interface("master").channel == "m"
+
+
+def test_getstats_as_plain_json() -> None:
+    """`<Command Name="GetStats" Format="json"/>`: the answer is a STRING holding only the
+    JSON (ACK_<id> for a PLUS-style request, STATS for a COMMAND), for scripts."""
+    import json
+    import time
+
+    with SimRobot(SLAVE) as sim:
+        op = sim.peer("operator")
+        assert op.send(igtl.StringMessage('<Command Name="GetStats" Format="json"/>',
+                                          device_name="CMD_42")) == 1
+        cid = op.send_command("GetStats", '<Command Name="GetStats" Format="json"/>')
+        sim.step()
+        end = time.monotonic() + 5.0  # the worker thread builds the statistics
+        while len(op.messages("STRING")) < 2 and time.monotonic() < end:
+            time.sleep(0.005)
+        by_device = {m.device_name: m for m in op.messages("STRING")}
+        assert set(by_device) == {"ACK_42", "STATS"}, cid
+        for m in by_device.values():
+            stats = json.loads(m.string)
+            assert stats["state"] == "READY" and "lateness_us" in stats
