@@ -78,6 +78,13 @@ def build_parser() -> argparse.ArgumentParser:
         "slave's UDP port (repeatable)",
     )
     p.add_argument(
+        "--auth-key-file",
+        type=Path,
+        default=None,
+        help="master mode: the slave's shared key file (its interfaces[].auth_key_file): every "
+        "POSITION carries the HMAC tag the slave requires",
+    )
+    p.add_argument(
         "--domain-id",
         type=_domain_id,
         default=None,
@@ -109,7 +116,19 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     bridge = Bridge(args.connect, args.operator, domain_id=domain, config=config)
-    masters = [MasterStream(bridge.participant, ns, (host, port)) for ns, host, port in args.master]
+    key = None
+    if args.auth_key_file is not None:
+        from igtl.auth import load_key
+
+        try:
+            key = load_key(args.auth_key_file.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as err:
+            print(f"occ-ros2: --auth-key-file: {err}", file=sys.stderr)
+            return 2
+    masters = [
+        MasterStream(bridge.participant, ns, (host, port), auth_key=key)
+        for ns, host, port in args.master
+    ]
     done = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:

@@ -32,6 +32,7 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
 import igtl
+from igtl.auth import sign
 from igtl.transport import UDPEndpoint
 
 from . import msgs
@@ -63,8 +64,11 @@ class MasterStream:
         device: str = "Master",
         stale_s: float = 0.1,
         first_seq: int = 0,
+        auth_key: bytes | None = None,
     ) -> None:
         self.ns = ns
+        #: the slave's shared key (its `auth_key_file`): every POSITION carries the HMAC tag
+        self.auth_key = auth_key
         self.remote = remote
         self.period = 1.0 / rate_hz
         self.device = device
@@ -147,7 +151,8 @@ class MasterStream:
             message_id=self.seq,
             metadata={"run": "1" if running else "0", "clutch": "1" if self.clutch else "0"},
         )
-        self.sent += self.udp.send(msg)
+        out: igtl.Message = msg if self.auth_key is None else sign(msg, self.auth_key)
+        self.sent += self.udp.send(out)
 
     def stats(self) -> dict[str, Any]:
         return {

@@ -172,13 +172,23 @@ def test_commands_round_trip_and_state_is_latched(
     assert bridge.poll() is None
 
 
+@pytest.mark.parametrize("signed", [False, True], ids=["plain", "hmac"])
 def test_master_mode_a_ros2_pose_stream_drives_the_slave(
-    tmp_path: Path, dds: tuple[int, Any], namespace: str
+    tmp_path: Path, dds: tuple[int, Any], namespace: str, signed: bool
 ) -> None:
     """servo_cp published from DDS becomes the slave's 500 Hz master stream: the slave
-    (RUNNING) follows it, scaled 10:1, and is not stopped by the stream."""
+    (RUNNING) follows it, scaled 10:1, and is not stopped by the stream; with the slave's
+    shared key (auth_key_file) the bridge signs every POSITION and the slave still follows."""
     domain_id, dp = dds
     slave_cfg, _, ports = pair_configs()
+    auth: list[str] = []
+    if signed:
+        key = tmp_path / "link.key"
+        key.write_text("a shared key for the master link\n")
+        for itf in slave_cfg["interfaces"]:
+            if itf["transport"] == "udp":
+                itf["auth_key_file"] = str(key)
+        auth = ["--auth-key-file", str(key)]
     write_yaml(tmp_path / "slave.yaml", slave_cfg)
     master_ns = namespace.rsplit("/", 1)[0] + "/master"
     procs: list[subprocess.Popen[bytes]] = []
@@ -193,7 +203,7 @@ def test_master_mode_a_ros2_pose_stream_drives_the_slave(
         bridge = subprocess.Popen(
             [sys.executable, "-m", "occ_ros2.cli",
              "--connect", f"127.0.0.1:{ports['slave_tcp']}={namespace}",
-             "--master", f"{master_ns}=127.0.0.1:{ports['slave_udp']}",
+             "--master", f"{master_ns}=127.0.0.1:{ports['slave_udp']}", *auth,
              "--domain-id", str(domain_id), "--log-level", "WARNING",
              "--stats", str(tmp_path / "bridge.json")],
             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
