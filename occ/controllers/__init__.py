@@ -35,16 +35,15 @@ named output sources it adds (``source: NAME`` in an interface's outputs); ``sta
 
 from __future__ import annotations
 
-import importlib
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from importlib.metadata import entry_points
 from typing import TYPE_CHECKING, Any, ClassVar
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from ..errors import CommandError, ConfigError
+from ..plugins import PluginRegistry
 
 if TYPE_CHECKING:
     from igtl.messages.base import Message
@@ -153,63 +152,26 @@ class Controller:
 
 
 # ------------------------------------------------------------------------------ registry
-_registered: dict[str, str | type[Controller]] = {}
-_entry_point_table: dict[str, str] | None = None
-
-
-def _entry_points() -> dict[str, str]:
-    global _entry_point_table
-    if _entry_point_table is None:
-        table: dict[str, str] = {}
-        for ep in entry_points(group=ENTRY_POINT_GROUP):
-            if ep.name in BUILTIN_CONTROLLERS:
-                log.warning("entry point %s=%s ignored: %r is built in", ep.name, ep.value, ep.name)
-                continue
-            table[ep.name] = ep.value
-        _entry_point_table = table
-    return _entry_point_table
+_REGISTRY: PluginRegistry[Controller] = PluginRegistry(
+    "controller", ENTRY_POINT_GROUP, BUILTIN_CONTROLLERS, Controller, ConfigError
+)
 
 
 def register_controller(name: str, target: str | type[Controller]) -> None:
     """Register (or replace) a controller under ``name``: ``"module:Class"`` (imported when
     first used) or a :class:`Controller` subclass. Takes precedence over everything else."""
-    if not name or not isinstance(name, str):
-        raise ValueError("controller name must be a non-empty string")
-    if isinstance(target, str):
-        if target.count(":") != 1 or not all(target.split(":")):
-            raise ValueError(f"controller target must look like 'module:Class', got {target!r}")
-    elif not (isinstance(target, type) and issubclass(target, Controller)):
-        raise ValueError(f"controller target must be 'module:Class' or a Controller: {target!r}")
-    _registered[name] = target
+    _REGISTRY.register(name, target)
 
 
 def available_controllers() -> list[str]:
     """Every controller name that can be chosen (nothing imported), sorted."""
-    return sorted(set(BUILTIN_CONTROLLERS) | set(_entry_points()) | set(_registered))
+    return _REGISTRY.available()
 
 
 def load_controller_class(plugin: str) -> type[Controller]:
     """Import (if needed) and return the controller class registered as ``plugin``;
     ConfigError when there is none or it cannot be imported."""
-    target: str | type[Controller] | None = _registered.get(plugin) or BUILTIN_CONTROLLERS.get(
-        plugin
-    )
-    if target is None:
-        target = _entry_points().get(plugin)
-    if target is None:
-        raise ConfigError(
-            f"unknown controller plugin {plugin!r}; known: {', '.join(available_controllers())}"
-        )
-    if isinstance(target, type):
-        return target
-    module_name, _, class_name = target.partition(":")
-    try:
-        cls = getattr(importlib.import_module(module_name), class_name)
-    except (ImportError, AttributeError) as err:
-        raise ConfigError(f"controller {plugin!r}: cannot load {target} ({err})") from err
-    if not (isinstance(cls, type) and issubclass(cls, Controller)):
-        raise ConfigError(f"controller {plugin!r}: {target} is not a Controller subclass")
-    return cls
+    return _REGISTRY.load(plugin)
 
 
 def validate_params(plugin: str, params: Mapping[str, Any] | None) -> BaseModel:

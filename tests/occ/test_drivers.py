@@ -83,8 +83,10 @@ def test_entry_points_are_read_lazily(monkeypatch: pytest.MonkeyPatch) -> None:
         EntryPoint("extdrv", "tests.occ.test_drivers:MirrorDriver", "occ.drivers"),
         EntryPoint("sim", "evil:Driver", "occ.drivers"),  # may not shadow a built-in
     ]
-    monkeypatch.setattr(drivers, "_entry_point_table", None)
-    monkeypatch.setattr(drivers, "entry_points", lambda group: fake)
+    from occ import plugins
+
+    monkeypatch.setattr(drivers._REGISTRY, "_entry_point_table", None)
+    monkeypatch.setattr(plugins, "entry_points", lambda group: fake)
     assert "extdrv" in available_drivers()
     assert drivers.load_driver_class("extdrv") is MirrorDriver
     assert drivers.load_driver_class("sim") is SimDriver
