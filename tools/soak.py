@@ -66,6 +66,7 @@ import sys
 import tempfile
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -959,9 +960,16 @@ def plot(rep: Report, out: Path) -> list[str]:
     return files
 
 
-def write_report(rep: Report, out: Path) -> None:
-    write_runs_csv(rep, out / "runs.csv")
-    plots = plot(rep, out)
+def write_report(rep: Report, out: Path, *, title: str | None = None,
+                 plotter: Callable[[Report, Path], list[str]] | None = None) -> None:
+    """report.json + report.md (+ plots) in ``out``. ``title`` and ``plotter`` let other tools
+    (tools/stability.py) write the same report format with their own plots; the default is
+    the soak's (runs.csv and its three plots)."""
+    if plotter is None:
+        write_runs_csv(rep, out / "runs.csv")
+        plots = plot(rep, out)
+    else:
+        plots = plotter(rep, out)
     data = {
         "mode": rep.mode,
         "passed": rep.passed,
@@ -974,7 +982,7 @@ def write_report(rep: Report, out: Path) -> None:
     }
     (out / "report.json").write_text(json.dumps(data, indent=2, default=str) + "\n")
     n = rep.numbers
-    lines = [f"# Loss soak ({rep.mode}): {'PASS' if rep.passed else 'FAIL'}", "",
+    lines = [f"# {title or f'Loss soak ({rep.mode})'}: {'PASS' if rep.passed else 'FAIL'}", "",
              f"Command: `{rep.command}`", "", "## Checks", "", "| check | result | detail |",
              "|---|---|---|"]
     for c in rep.checks:
