@@ -20,7 +20,6 @@ test needs at least one judged run of 3.
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
 import os
 import socket
@@ -32,23 +31,16 @@ from pathlib import Path
 
 import pytest
 
+from .tooling import load_tool
+
 ROOT = Path(__file__).resolve().parents[2]
 TOOLS = ROOT / "tools"
 
 
-def _load(name: str):
-    if str(TOOLS) not in sys.path:
-        sys.path.insert(0, str(TOOLS))
-    spec = importlib.util.spec_from_file_location(name, TOOLS / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
 
 
-loss_proxy = _load("loss_proxy")
-soak = _load("soak")
+loss_proxy = load_tool("loss_proxy")
+soak = load_tool("soak")
 
 
 # ------------------------------------------------------------------------------ loss pattern
