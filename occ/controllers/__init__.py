@@ -201,6 +201,9 @@ class ControllerSet:
         self.controllers = list(controllers) or [Controller()]
         self.name = "+".join(c.name for c in self.controllers)
         self._owned: list[tuple[Controller, list[int]]] = []
+        self._monitors: list[Controller] = []  # controllers that own no command interface
+        #: the one controller owning every joint (the common case), else None
+        self._sole: Controller | None = None
         self.drives_joints = False
 
     def configure(self, data: RobotData, ctx: ControllerContext) -> None:
@@ -226,6 +229,11 @@ class ControllerSet:
             if joints:
                 self._owned.append((c, joints))
         self.drives_joints = bool(self._owned)
+        owners = [c for c, _ in self._owned]
+        self._monitors = [c for c in self.controllers if c not in owners]
+        n = len(data.joint_names)
+        if len(self._owned) == 1 and len(self._owned[0][1]) == n and not self._monitors:
+            self._sole = self._owned[0][0]
 
     def outputs(self) -> dict[str, SourceFn]:
         out: dict[str, SourceFn] = {}
@@ -257,12 +265,11 @@ class ControllerSet:
 
     def update(self, now: float, current: Sequence[float]) -> Sequence[float] | None:
         """The merged setpoints (``current`` where an owner holds), or None when all hold."""
-        owned = self._owned
-        if len(owned) == 1 and len(owned[0][1]) == len(current):
-            c, _ = owned[0]
-            return c.update(now)  # the common case: one controller owns every joint
+        sole = self._sole
+        if sole is not None:
+            return sole.update(now)  # the common case: one controller owns every joint
         merged: list[float] | None = None
-        for c, joints in owned:
+        for c, joints in self._owned:
             target = c.update(now)
             if target is None:
                 continue
@@ -270,9 +277,8 @@ class ControllerSet:
                 merged = list(current)
             for i in joints:
                 merged[i] = target[i]
-        for c in self.controllers:
-            if c not in (o for o, _ in owned):
-                c.update(now)  # monitors run too
+        for c in self._monitors:
+            c.update(now)  # monitors run too
         return merged
 
     def commands(self) -> tuple[str, ...]:
