@@ -350,7 +350,7 @@ class Interface:
             want = self.input_devices.get(mtype)
             if want is None or want == msg.device_name:
                 owner = self.stream_owner
-                source = (peer.address[0], peer.address[1])
+                source = peer.address  # already (host, port): no tuple per datagram
                 if owner is None:
                     # an ephemeral sender: the first one owns the stream until a Reset
                     self.stream_owner = owner = source
