@@ -66,15 +66,9 @@ class RobotData:
         self._tip = np.eye(4)
         self._tip_stale = True
 
-    def measured(self, positions: Sequence[float]) -> None:
-        """New joint measurements (the Robot, each tick): the tip is recomputed when asked."""
-        q = self.q
-        for i, v in enumerate(positions):
-            q[i] = v
-        self._tip_stale = True
-
     def measured_from(self, joints: Sequence[Joint]) -> None:
-        """``measured`` from the joints' last measured positions (the Robot, each tick)."""
+        """New measurements: ``q`` from the joints' last positions (the Robot, each tick); the
+        tip is recomputed when asked."""
         q = self.q
         for i, j in enumerate(joints):
             q[i] = j.position

@@ -174,11 +174,6 @@ def load_controller_class(plugin: str) -> type[Controller]:
     return _REGISTRY.load(plugin)
 
 
-def validate_params(plugin: str, params: Mapping[str, Any] | None) -> BaseModel:
-    """The plugin's validated parameters; pydantic's ValidationError for bad ones."""
-    return load_controller_class(plugin).Params.model_validate(dict(params or {}))
-
-
 def create_controller(plugin: str, params: Mapping[str, Any] | None = None) -> Controller:
     """Build a controller by plugin name; ConfigError for unknown names or bad parameters."""
     cls = load_controller_class(plugin)
