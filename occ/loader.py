@@ -16,7 +16,6 @@ Public API: :func:`load_config`, :func:`parse_config`, :func:`format_errors`.
 
 from __future__ import annotations
 
-import math
 import os
 import re
 import sys
@@ -338,10 +337,10 @@ def _plugin_problems(config: DaemonConfig, root: yaml.Node | None) -> list[tuple
     """Controller ``params`` against the plugin's ``Params`` (and its ``check`` against the
     rest of the file); driver ``params`` through the driver's constructor, which opens no
     hardware (that happens in ``configure``). Unknown plugin names are problems too."""
+    from .assembly import build_joint
     from .controllers import load_controller_class
     from .data import RobotData
     from .drivers import create_driver
-    from .joint import Joint, JointLimits
 
     problems: list[tuple[int, Loc, str]] = []
     shape = config.controller
@@ -389,20 +388,7 @@ def _plugin_problems(config: DaemonConfig, root: yaml.Node | None) -> list[tuple
                 )
                 break
             owners[claim] = cc.plugin
-    joints = {
-        j.name: Joint(
-            j.name,
-            j.type,
-            JointLimits(
-                j.limits.min,
-                j.limits.max,
-                j.limits.velocity,
-                j.limits.effort if j.limits.effort is not None else math.inf,
-            ),
-            j.home,
-        )
-        for j in config.robot.joints
-    }
+    joints = {j.name: build_joint(j) for j in config.robot.joints}
     for i, dc in enumerate(config.robot.drivers):
         loc = ("robot", "drivers", i, "params")
         try:
