@@ -32,7 +32,14 @@ log = logging.getLogger(__name__)
 
 
 class SupervisorThread:
-    """Checks a :class:`Supervisor` every ``timeout / 4`` seconds on its own thread."""
+    """Checks a :class:`Supervisor` on its own thread, waking when a trip could first be due.
+
+    After each check it sleeps until the moment the loop's silence would exceed the timeout
+    (last beat + timeout), at most ``timeout / 2`` (see :meth:`sleep_after`): a healthy
+    loop costs two wake-ups per timeout (100 a second at the default 20 ms, where a fixed
+    ``timeout / 4`` cost 200), a hung loop is caught about one timeout after its last beat, and
+    the supervisor never sleeps so long that :meth:`Supervisor.check` would take its own
+    normal sleep for a paused process."""
 
     def __init__(
         self,
@@ -45,7 +52,9 @@ class SupervisorThread:
         self.supervisor = supervisor
         self.clock = clock
         self.fifo_priority = fifo_priority
-        self.interval_s = supervisor.timeout_s / 4.0
+        self.min_sleep_s = supervisor.timeout_s / 8.0
+        self.max_sleep_s = supervisor.timeout_s / 2.0
+        self.wakeups = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._main, name=name, daemon=True)
         self.report = ""
@@ -70,12 +79,32 @@ class SupervisorThread:
             except (OSError, AttributeError) as err:
                 self.report = f"SCHED_FIFO refused ({type(err).__name__})"
         now = self.clock.now
-        check = self.supervisor.check
-        while not self._stop.wait(self.interval_s):
+        sup = self.supervisor
+        check = sup.check
+        sleep_after = self.sleep_after
+        sleep = self.max_sleep_s
+        while not self._stop.wait(sleep):
+            self.wakeups += 1
+            t = now()
             try:
-                check(now())
+                check(t)
             except Exception:  # noqa: BLE001 - the supervisor must outlive a failing action
                 log.exception("supervisor action failed")
+            sleep = sleep_after(t)
+
+    def sleep_after(self, now: float) -> float:
+        """How long to sleep after a check at ``now``: until just past the instant the loop's
+        silence would exceed the timeout (``check`` trips on "more than"), at most
+        ``timeout / 2``; ``timeout / 8`` when that instant has passed without a trip (the
+        check restarted its window after a pause of the whole process)."""
+        sup = self.supervisor
+        last = sup.last_beat
+        if last is None or not sup.armed or sup.tripped:
+            return self.max_sleep_s
+        sleep = last + sup.timeout_s + 1e-4 - now
+        if sleep <= 0.0:
+            return self.min_sleep_s
+        return sleep if sleep < self.max_sleep_s else self.max_sleep_s
 
 
 class Worker:

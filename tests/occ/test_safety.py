@@ -622,3 +622,29 @@ def test_property_first_run_of_three_holds_at_7ms_and_latches_on_proof(
     assert [(t, e.kind) for t, e in events] == [(2 * last_good + 7, "hold"), (proof, "latch")]
     assert events[0][1].since_last_good_s <= 7 * MS + 1e-12
     assert events[1][1].run == run
+
+
+def test_supervisor_thread_sleeps_until_a_trip_could_be_due() -> None:
+    """The supervisor thread wakes when a hung loop's silence would first exceed the timeout,
+    at most timeout/2: two wake-ups per timeout for a healthy loop, never a sleep
+    so long that its own check would take it for a paused process."""
+    from occ.safety import Supervisor
+    from occ.supervision import SupervisorThread
+
+    sup = Supervisor(timeout_s=0.020)
+    th = SupervisorThread(sup, SimClock())  # never started: sleep_after is pure
+    assert th.sleep_after(0.0) == pytest.approx(0.010)  # not armed: the longest sleep
+    sup.arm(1.000)
+    assert th.sleep_after(1.000) == pytest.approx(0.010)  # just beat: capped at timeout/2
+    assert th.sleep_after(1.019) == pytest.approx(0.0011)  # just past last beat + 20 ms
+    assert th.sleep_after(1.021) == pytest.approx(0.0025)  # overdue, not tripped: timeout/8
+    # a loop that hangs right after its beat at 1.000: the thread's wake-ups
+    t, wakes = 1.000, []
+    while sup.check(t) is None:
+        wakes.append(t)
+        t += th.sleep_after(t)
+        assert len(wakes) < 10
+    # 1.000, 1.010 (and 1.020 when float rounding caps the second sleep at timeout/2)
+    assert len(wakes) in (2, 3)
+    assert 1.020 <= t <= 1.0201 + 1e-9  # caught at the timeout, not an interval later
+    assert th.sleep_after(t) == pytest.approx(0.010)  # tripped: nothing more to catch

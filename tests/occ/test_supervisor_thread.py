@@ -60,10 +60,12 @@ def test_a_hung_tick_is_caught_by_the_supervisor_thread() -> None:
         robot.state_machine.request("run")
         loop.start()
         assert hung.wait(10.0)
-        assert wait_for(lambda: robot.supervisor.tripped)
-        # while the loop is still stuck: the drives are already in their safe state
         drv = robot.drivers[0][0]
-        assert drv.state.value == "fault" and "did not tick" in (drv.fault_reason or "")
+        # while the loop is still stuck: the drives go to their safe state (the trip flag is
+        # set just before the supervisor thread acts, so wait for the act itself)
+        assert wait_for(lambda: drv.state.value == "fault")
+        assert robot.supervisor.tripped and not release.is_set()
+        assert "did not tick" in (drv.fault_reason or "")
         assert robot.state is RobotState.RUNNING  # the state machine belongs to the loop
         release.set()
         assert wait_for(lambda: robot.state is RobotState.FAULT)
