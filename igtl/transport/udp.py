@@ -162,6 +162,9 @@ class UDPEndpoint(IOThreadOwner):
         self._log_limits = HostLogLimits()
         self._error_log = RateLimit()
         self._rxbuf = bytearray(65536)
+        self._rxview = memoryview(self._rxbuf)
+        #: the pinned source once its socket's queue was seen empty after the connect
+        self._clean_source: tuple[str, int] | None = None
         # Endpoint-wide counters (per-peer ones live on the Peers).
         self._sent = 0
         self._dropped = 0
@@ -296,6 +299,7 @@ class UDPEndpoint(IOThreadOwner):
         sock = self._sock
         if sock is None:
             return False
+        self._clean_source = None  # until the queue is seen empty under the new pin
         try:
             if address is None:
                 _disconnect(sock)
@@ -307,7 +311,7 @@ class UDPEndpoint(IOThreadOwner):
         except OSError as err:
             log.warning("%s: cannot pin the source to %s: %s", self.name, address, err)
             return False
-        self.source = address
+        self.source = (address[0], address[1]) if address is not None else None
         log.info("%s: datagrams taken from %s only", self.name, address or "anyone")
         return True
 
@@ -419,6 +423,8 @@ class UDPEndpoint(IOThreadOwner):
             # ask first: an empty receive raises, and the exception costs a 1 kHz loop more
             # (about 14 us cold here) than the poll(2) that tells the same (about 6 us)
             if ready is not None and not ready(0):
+                if self._clean_source is None and self.source is not None:
+                    self._clean_source = self.source  # queue empty since the pin: see below
                 return done
             if not self._rx_lock.acquire(blocking=False):
                 return done
@@ -444,9 +450,19 @@ class UDPEndpoint(IOThreadOwner):
         if sock is None:
             return False
         buf = self._rxbuf
+        source = self._clean_source
         try:
-            n, address = sock.recvfrom_into(buf)
+            if source is not None:
+                # connected to one sender and its queue seen empty since: every datagram is
+                # that sender's, so skip the address the kernel would build per datagram
+                n = sock.recv_into(buf)
+                address = source
+            else:
+                n, address = sock.recvfrom_into(buf)
         except (BlockingIOError, InterruptedError):
+            if self.source is not None and self._clean_source is None:
+                # datagrams queued before the connect came from anyone; none are left now
+                self._clean_source = self.source
             return False
         except OSError as err:  # e.g. ICMP errors reported on the socket
             if err.errno == errno.ECONNREFUSED:
@@ -459,7 +475,7 @@ class UDPEndpoint(IOThreadOwner):
                 log.warning("%s: receive failed: %s", self.name, err)
             return False
         self._datagrams_received += 1
-        self._datagram(bytes(memoryview(buf)[:n]), address)
+        self._datagram(bytes(self._rxview[:n]), address)
         return True
 
     def _datagram(self, data: bytes, address: Any) -> None:

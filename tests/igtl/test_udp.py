@@ -297,6 +297,38 @@ def test_pinned_source_is_the_only_sender_the_kernel_lets_through() -> None:
         other.close()
 
 
+def test_datagrams_queued_before_the_pin_keep_their_own_sender() -> None:
+    """A pinned socket reads without asking the sender's address only once its queue was seen
+    empty after the connect: a datagram another host queued before the pin is still its own,
+    never taken for the pinned sender's."""
+    got: list[tuple[tuple[str, int], str]] = []
+    ep = UDPEndpoint(
+        "127.0.0.1", 0, polled=True, on_message=lambda p, m: got.append((p.address, m.device_name))
+    ).start()
+    master = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    master.bind(("127.0.0.1", 0))
+    other = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    other.bind(("127.0.0.1", 0))
+    try:
+        other.sendto(igtl.StringMessage("x", device_name="other").pack(), ep.address)
+        time.sleep(0.05)  # queued in the socket before the pin
+        assert ep.pin_source(master.getsockname())
+        master.sendto(igtl.StringMessage("x", device_name="master").pack(), ep.address)
+        time.sleep(0.05)
+        assert ep.poll() == 2
+        assert got == [(other.getsockname(), "other"), (master.getsockname(), "master")]
+        # the same poll then found the queue empty: later reads skip the address
+        assert ep._clean_source == master.getsockname()
+        master.sendto(igtl.StringMessage("x", device_name="master").pack(), ep.address)
+        time.sleep(0.05)
+        assert ep.poll() == 1 and got[-1] == (master.getsockname(), "master")
+        assert ep.pin_source(None) and ep._clean_source is None
+    finally:
+        ep.stop()
+        master.close()
+        other.close()
+
+
 def test_a_sender_hears_that_nobody_listens() -> None:
     """connect_remote: the kernel turns the ICMP 'port unreachable' of a remote nobody listens
     on into a refused send, counted and logged (the master learns there is no slave)."""
