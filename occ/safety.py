@@ -581,10 +581,15 @@ class LossMonitor:
     numbers, a sample without one (a v1 peer) is refused: it cannot refresh the deadline.
 
     Timestamps (``timestamp_tolerance_s``, None = off): each sample's age
-    ``rx_time - timestamp`` is compared with the peer's clock offset, learned from the first
-    accepted sample and tracked slowly (the two clocks differ and drift; a constant offset
-    between the receiver's monotonic clock and the sender's wall clock cancels out). Older
-    than the tolerance: STALE; newer: FUTURE.
+    ``rx_time - timestamp`` is compared with the peer's clock offset (the two clocks differ
+    and drift; a constant offset between the receiver's monotonic clock and the sender's wall
+    clock cancels out). Older than the offset by more than the tolerance: STALE; newer:
+    FUTURE. The offset is the *smallest* age seen (an age is the offset plus a transit or
+    queueing delay, never less): an accepted younger sample sets it at once, an older one
+    moves it up by 1 % (drift). Tracking by 1 % both ways, as before, let the samples that
+    queue up before the loop's first tick (the socket is bound before the loop starts) teach
+    an offset tens of ms too old, and the fresh samples after them were refused as "in the
+    future" until the robot stopped.
 
     ``lost_total`` counts only proven losses: gaps between accepted sequence numbers, minus
     late arrivals that filled them. Samples the daemon itself could not take in time (its
@@ -782,8 +787,11 @@ class LossMonitor:
         if tol is not None and ts is not None and ts > 0.0:
             age = rx - ts
             off = self.offset_s
-            # slow tracking (drift), bounded per sample so a refused run cannot drag it
-            self.offset_s = age if off is None else off + 0.01 * (age - off)
+            if off is None or age < off:
+                self.offset_s = age  # a younger sample: the smallest age is the offset
+            else:
+                # slow tracking upward (drift), bounded per sample
+                self.offset_s = off + 0.01 * (age - off)
         self.accepted += 1
         self._refused_run = 0
         self.lost_total += gap

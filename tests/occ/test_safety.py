@@ -487,6 +487,33 @@ def test_timestamps_checked_against_the_learned_clock_offset() -> None:
     assert mon.check(t) is None
 
 
+def test_samples_queued_before_the_first_tick_do_not_teach_a_stale_offset() -> None:
+    """The socket is bound before the loop starts: its first tick drains a backlog whose
+    oldest sample is tens of ms old, all read at once. The fresh samples after it are not
+    "from the future": the smallest age is the offset. (Tracking the offset by 1 % both ways
+    latched a stop here, "3 consecutive samples refused for their timestamp (last 54.6 ms in
+    the future)", in one of six 15 s pair runs on a busy machine.)"""
+    mon = LossMonitor(timestamp_tolerance_s=0.050)
+    now = 0.0
+    verdicts = []
+    for i in range(40):  # 80 ms of samples, all read at the first tick
+        verdicts.append(mon.on_packet(i, 1000.0 - 0.080 + 2 * i * MS, now, now))
+        assert mon.check(now) is None
+    for i in range(40, 300):  # then one fresh sample every other tick
+        now = (i - 40) * 2 * MS + MS
+        verdicts.append(mon.on_packet(i, 1000.0 + now - 0.0005, now, now))
+        assert mon.check(now) is None
+    assert set(verdicts) == {Verdict.ACCEPT} and mon.trips == 0
+    assert mon.offset_s == pytest.approx(-1000.0 + 0.0005, abs=1e-6)
+    # a jump younger than the offset by more than the tolerance is still from the future,
+    # and older samples move the offset up by 1 % only (drift)
+    assert mon.on_packet(300, 1000.0 + now + 0.060, now, now) is Verdict.FUTURE
+    for i in range(301, 311):
+        now += 2 * MS
+        assert mon.on_packet(i, 1000.0 + now - 0.0105, now, now) is Verdict.ACCEPT
+    assert -1000.0 + 0.0005 < mon.offset_s < -1000.0 + 0.0015
+
+
 def test_a_run_of_refused_timestamps_counts_like_loss() -> None:
     mon = LossMonitor(timestamp_tolerance_s=0.050)
     mon.on_packet(0, 500.0, 0.0, 0.0)
