@@ -13,12 +13,15 @@ depends on the command interface:
 * ``effort``: the effort computed by the driver base with each joint's PID is applied
   directly, held constant between writes (zero-order hold).
 
-Time is whatever ``now`` the loop passes to ``read``/``write``: the model integrates from the
-previous ``now`` to the new one with semi-implicit (symplectic) Euler, splitting the interval
-into equal substeps no longer than ``max_substep`` (and short enough for the servo poles).
-The same sequence of ``now`` values therefore gives bit-identical results under a real or a
-simulated clock. Cost is linear in elapsed simulated time, except that a joint at rest with
-no effort is skipped.
+Time is whatever ``now`` the loop passes to ``read``/``write``: the model advances from the
+previous ``now`` to the new one. A servoed joint whose effort stays inside its limit is a
+linear system, advanced in one exact step (its 2x2 transition matrix for that interval,
+cached per interval length to 1 ns: the loop's period repeats). Where the effort would saturate or
+the joint reach an end stop within the interval, and in the effort interface, the model
+integrates with semi-implicit (symplectic) Euler instead, splitting the interval into equal
+substeps no longer than ``max_substep`` (and short enough for the servo poles). The same
+sequence of ``now`` values therefore gives bit-identical results under a real or a
+simulated clock. A joint at rest with no effort is skipped.
 
 Measurement: position gets optional Gaussian noise (``noise_std``, from a seeded
 ``random.Random``, so runs are deterministic) and is then quantised to ``encoder_resolution``;
@@ -204,6 +207,14 @@ class SimDriver(Driver):
             for i in range(len(js))
         ]
         self._exact_encoder = not any(noise) and not any(resolution)
+        # exact steps of the servoed joints: e = x - r obeys e'' + c e' + k e = 0 while the
+        # effort stays inside its limit (k = kp/J, c = (kd + b)/J)
+        self._servo_poles = [
+            (self._kp[i] / self._inertia[i], (self._kd[i] + self._damping[i]) / self._inertia[i])
+            for i in range(len(js))
+        ]
+        self._step_h = math.nan
+        self._step: list[tuple[float, float, float, float]] = []
 
         n = len(js)
         self._x = list(self._initial)
@@ -322,6 +333,36 @@ class SimDriver(Driver):
             )
         self._integrate(now)
 
+    def _exact_steps(self, h: float) -> list[tuple[float, float, float, float]]:
+        """Per joint, the transition matrix over ``h`` of ``(e, v)`` (``e = x - r``) for
+        ``e'' + c e' + k e = 0``: ``exp(A h)`` with ``A = [[0, 1], [-k, -c]]``, written as
+        ``exp(s h) (C I + S (A - s I))``, ``s = -c/2``, ``d^2 = c^2/4 - k``, ``C = cosh(d h)``
+        and ``S = sinh(d h)/d`` (cos and sin/omega when ``d^2 < 0``; series near 0). Cached
+        for the last ``h``."""
+        out = []
+        for k, c in self._servo_poles:
+            half = 0.5 * c
+            d2 = half * half - k
+            z = d2 * h * h
+            if abs(z) < 1e-8:  # near critical damping: the series of cosh and sinh/d
+                big_c = 1.0 + 0.5 * z
+                big_s = h * (1.0 + z / 6.0)
+            elif d2 > 0.0:
+                d = math.sqrt(d2)
+                big_c = math.cosh(d * h)
+                big_s = math.sinh(d * h) / d
+            else:
+                w = math.sqrt(-d2)
+                big_c = math.cos(w * h)
+                big_s = math.sin(w * h) / w
+            g = math.exp(-half * h)
+            out.append(
+                (g * (big_c + half * big_s), g * big_s, -g * big_s * k, g * (big_c - half * big_s))
+            )
+        self._step_h = h
+        self._step = out
+        return out
+
     def _integrate(self, now: float) -> None:
         t = self._t
         if t != t:  # first call: the model starts at this instant
@@ -337,6 +378,8 @@ class SimDriver(Driver):
         position_mode = self.command_interface == "position"
         brakes = self._brakes
         x_all, v_all, u_all, cmd = self._x, self._v, self._u, self._cmd
+        step_h = self._step_h
+        step = self._step
         for i, (inv_j, b, lo, hi, kp, kd, ulim) in enumerate(self._model):
             x = x_all[i]
             v = v_all[i]
@@ -347,6 +390,24 @@ class SimDriver(Driver):
                     continue
             if enabled and position_mode:
                 r = cmd[i]
+                e = x - r
+                u = -kp * e - kd * v
+                if -ulim <= u <= ulim:
+                    # the linear regime: one exact step, kept when the effort stays inside
+                    # its limit at the end and no end stop is reached
+                    if not -1e-9 < dt - step_h < 1e-9:  # 1 ns: summed float time jitters
+                        step_h = dt
+                        step = self._exact_steps(dt)
+                    a11, a12, a21, a22 = step[i]
+                    e1 = a11 * e + a12 * v
+                    v1 = a21 * e + a22 * v
+                    x1 = r + e1
+                    u1 = -kp * e1 - kd * v1
+                    if -ulim <= u1 <= ulim and lo <= x1 <= hi:
+                        x_all[i] = x1
+                        v_all[i] = v1
+                        u_all[i] = u1
+                        continue
                 u = 0.0
                 for _ in range(steps):
                     u = kp * (r - x) - kd * v

@@ -288,6 +288,48 @@ def test_sim_substeps_make_large_dt_equivalent() -> None:
     assert d.substep <= 0.0005
 
 
+@pytest.mark.parametrize("zeta", [0.3, 1.0, 2.5])
+def test_sim_exact_step_matches_the_analytic_servo_response(zeta: float) -> None:
+    """Inside its effort limit a servoed joint moves in one exact step per tick: the response
+    to a small step is the closed-loop second-order system's, to float precision, at every
+    tick (what the substep integrator approximated to about 1 %)."""
+    wn = 2 * math.pi * 10.0
+    trace, d = run_step(
+        {"damping_ratio": zeta, "encoder_resolution": 0.0}, step=0.001, ticks=300
+    )
+    assert d._step_h == pytest.approx(0.001)  # the exact path ran (cached for 1 ms)
+
+    def analytic(t: float) -> float:  # unit step response of wn^2 / (s^2 + 2 zeta wn s + wn^2)
+        if zeta < 1.0:
+            wd = wn * math.sqrt(1 - zeta * zeta)
+            return 1 - math.exp(-zeta * wn * t) * (
+                math.cos(wd * t) + zeta * wn / wd * math.sin(wd * t)
+            )
+        if zeta == 1.0:
+            return 1 - (1 + wn * t) * math.exp(-wn * t)
+        r = math.sqrt(zeta * zeta - 1)
+        p1, p2 = -wn * (zeta - r), -wn * (zeta + r)
+        return 1 + (p2 * math.exp(p1 * t) - p1 * math.exp(p2 * t)) / (p1 - p2)
+
+    # trace[k] is read at k ms; the step was first commanded at 0 ms
+    for k, x in enumerate(trace):
+        assert x == pytest.approx(0.001 * analytic(k * 0.001), abs=1e-12)
+
+
+def test_sim_saturating_step_falls_back_to_substeps_and_reports_the_limit() -> None:
+    """A step too big for the effort limit is not linear: the interval is integrated in
+    substeps and the effort reported is the limit."""
+    js = [Joint("j", limits=JointLimits(-1.0, 1.0, velocity=100.0, effort=0.5))]
+    d = SimDriver("s", js, {"encoder_resolution": 0.0, "heartbeat_ms": 0})
+    d.configure()
+    d.read(0.0)
+    d.activate()
+    d.write([0.5], 0.0)
+    d.read(0.001)
+    assert js[0].effort == pytest.approx(0.5)  # saturated
+    assert 0.0 < js[0].position < 0.001
+
+
 def test_sim_effort_interface_tracks_with_pid() -> None:
     gains = PIDGains(kp=4.0, ki=2.0, kd=0.2)
     js = joints(1, gains=gains)
