@@ -381,7 +381,7 @@ class Driver:
         clamp = self.on_limit == "clamp"
         for i, (joint, lo, hi, vmax) in enumerate(self._limit_table):
             x = float(setpoints[i])
-            if not math.isfinite(x):
+            if x - x != 0.0:  # inf or NaN (math.isfinite without a call: every joint, every tick)
                 self._fault(LimitError(f"driver {self.name!r}: joint {joint.name}: setpoint {x}"))
             if x < lo or x > hi:
                 if not clamp:

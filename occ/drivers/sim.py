@@ -308,7 +308,8 @@ class SimDriver(Driver):
         return out, self._v, self._u
 
     def _write(self, values: Sequence[float], now: float) -> None:
-        self._advance(now)  # the previous command acts until now (zero-order hold)
+        if now != self._t:  # (a read at this now has advanced the model already)
+            self._advance(now)  # the previous command acts until now (zero-order hold)
         if self._heartbeat_lost is not None:
             raise DriverError(f"sim driver {self.name!r}: {self._heartbeat_lost}")
         cmd = self._cmd
