@@ -88,13 +88,16 @@ class StreamQueue:
     loss monitor's sequence accounting still sees every number that arrived. Only when that
     one overflows too (``overflow_lost``: a loop stalled for thousands of samples) are
     numbers forgotten.
+
+    ``pending`` and ``evicted`` are the two deques, public so that the loop can test them
+    without a call each tick (``if q.pending``); only this class's methods change them.
     """
 
-    __slots__ = ("_dq", "_evicted", "_lock", "depth", "received", "dropped", "overflow_lost")
+    __slots__ = ("pending", "evicted", "_lock", "depth", "received", "dropped", "overflow_lost")
 
     def __init__(self, depth: int = 10, overflow_depth: int = 4096) -> None:
-        self._dq: deque[Inbound] = deque()
-        self._evicted: deque[Inbound] = deque(maxlen=overflow_depth)
+        self.pending: deque[Inbound] = deque()
+        self.evicted: deque[Inbound] = deque(maxlen=overflow_depth)
         self._lock = threading.Lock()
         self.depth = depth
         self.received = 0
@@ -103,9 +106,9 @@ class StreamQueue:
 
     def put(self, item: Inbound) -> bool:
         with self._lock:
-            dq = self._dq
+            dq = self.pending
             if len(dq) >= self.depth:
-                ev = self._evicted
+                ev = self.evicted
                 if len(ev) == ev.maxlen:
                     self.overflow_lost += 1
                 ev.append(dq.popleft())
@@ -117,32 +120,30 @@ class StreamQueue:
     def drain(self) -> list[Inbound]:
         """Every queued sample, oldest first (the queue is left empty)."""
         with self._lock:
-            out = list(self._dq)
-            self._dq.clear()
+            out = list(self.pending)
+            self.pending.clear()
         return out
 
     def drain_overflow(self) -> list[Inbound]:
         """The samples pushed out since the last call (for accounting only), oldest first."""
         with self._lock:
-            out = list(self._evicted)
-            self._evicted.clear()
+            out = list(self.evicted)
+            self.evicted.clear()
         return out
 
-    @property
-    def has_overflow(self) -> bool:
-        return bool(self._evicted)
-
     def __len__(self) -> int:
-        return len(self._dq)
+        return len(self.pending)
 
 
 class CommandQueue:
-    """Bounded FIFO of discrete requests; ``put`` returns False when full (caller must answer)."""
+    """Bounded FIFO of discrete requests; ``put`` returns False when full (caller must answer).
 
-    __slots__ = ("_dq", "_lock", "depth", "received", "refused")
+    ``pending`` is the deque, tested by the loop without a call (``if q.pending``)."""
+
+    __slots__ = ("pending", "_lock", "depth", "received", "refused")
 
     def __init__(self, depth: int = 64) -> None:
-        self._dq: deque[Inbound] = deque()
+        self.pending: deque[Inbound] = deque()
         self._lock = threading.Lock()
         self.depth = depth
         self.received = 0
@@ -150,22 +151,22 @@ class CommandQueue:
 
     def put(self, item: Inbound) -> bool:
         with self._lock:
-            if len(self._dq) >= self.depth:
+            if len(self.pending) >= self.depth:
                 self.refused += 1
                 return False
-            self._dq.append(item)
+            self.pending.append(item)
             self.received += 1
             return True
 
     def drain(self, limit: int | None = None) -> list[Inbound]:
         out: list[Inbound] = []
         with self._lock:
-            while self._dq and (limit is None or len(out) < limit):
-                out.append(self._dq.popleft())
+            while self.pending and (limit is None or len(out) < limit):
+                out.append(self.pending.popleft())
         return out
 
     def __len__(self) -> int:
-        return len(self._dq)
+        return len(self.pending)
 
 
 def is_operator_request(msg: Message) -> bool:

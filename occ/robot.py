@@ -311,8 +311,9 @@ class Robot:
         except Exception as err:  # noqa: BLE001
             self.alarms.plugin_error(f"controller {self.controller.name}: on_sample", err)
         # commands, bounded per tick so a flood cannot stall the loop (parsed already)
-        if len(self.interfaces.commands):
-            for item in self.interfaces.commands.drain(limit=16):
+        commands = self.interfaces.commands
+        if commands.pending:
+            for item in commands.drain(limit=16):
                 self.operators.handle(item, now)
         monitor = self.loss_monitor
         state = self.state_machine.state
@@ -338,19 +339,22 @@ class Robot:
         ``POLL_LIMIT`` datagrams each."""
         for poll in self._pollers:
             poll(POLL_LIMIT)
-        monitor = self.loss_monitor
-        watched = self.loss_input
-        recorder = self.recorder
-        on_sample = self.controller.on_sample
-        # reception times on the wall clock, to compare with the peer's header timestamps
-        to_wall = self.clock.wall_time() - now if monitor is not None else 0.0
+        monitor = None
+        to_wall = 0.0
         for name, q in self._stream_queues:
-            if monitor is not None and name == watched and q.has_overflow:
+            if not q.pending and not q.evicted:
+                continue  # most ticks: nothing arrived (checked without a call)
+            if monitor is None and self.loss_monitor is not None:
+                monitor = self.loss_monitor
+                # reception times on the wall clock, to compare with header timestamps
+                to_wall = self.clock.wall_time() - now
+            watched = self.loss_input
+            if monitor is not None and name == watched and q.evicted:
                 # samples the loop could not take in time: seen, never called lost
                 for item in q.drain_overflow():
                     judge(monitor, item, now, to_wall)
-            if not len(q):
-                continue
+            recorder = self.recorder
+            on_sample = self.controller.on_sample
             for item in q.drain():
                 if recorder is not None:
                     recorder.record_message(item.msg, "in", name, now)
