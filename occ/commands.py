@@ -12,11 +12,14 @@ Three forms are accepted (shared/IGTL-PROTOCOL.md §3.18, §6.1, §6.2):
 - Queries ``GET_STATUS``, ``GET_CAPABIL``, ``GET_TRANS`` ... (and STT_/STP_). Answered with the
   requested type; refused ones with a ``STATUS`` carrying the error code.
 
-An unknown or refused request always gets an error reply and changes nothing.
+An unknown or refused request always gets an error reply and changes nothing. A command whose
+work must not run on the loop thread (planning a trajectory) may be answered later: its handler
+returns a :class:`Deferred` and completes it from any thread; the reply then goes out at once.
 """
 
 from __future__ import annotations
 
+import threading
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -49,6 +52,52 @@ class Request:
     name: str  # command name, or the query type (e.g. "GET_STATUS")
     args: dict[str, str] = field(default_factory=dict)
     msg: Message | None = None
+
+
+class Deferred:
+    """The answer to a command that comes later, from any thread (the loop only hands the work
+    over). The handler returns it; the operator desk binds the reply to it; whoever finishes
+    the work calls :meth:`resolve` (success) or :meth:`fail` (refusal) exactly once, and the
+    reply is sent then. Later calls are ignored (the first answer stands)."""
+
+    __slots__ = ("_lock", "_result", "_callback")
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._result: tuple[bool, str] | None = None
+        self._callback: Callable[[bool, str], None] | None = None
+
+    def bind(self, callback: Callable[[bool, str], None]) -> None:
+        """``callback(ok, text)`` is called once with the answer (now, if it is already in)."""
+        with self._lock:
+            self._callback = callback
+            result = self._result
+        if result is not None:
+            callback(*result)
+
+    def resolve(self, text: str) -> None:
+        self._finish(True, text)
+
+    def fail(self, text: str) -> None:
+        self._finish(False, text)
+
+    @property
+    def done(self) -> bool:
+        return self._result is not None
+
+    @property
+    def result(self) -> tuple[bool, str] | None:
+        """``(ok, text)`` once answered, else None."""
+        return self._result
+
+    def _finish(self, ok: bool, text: str) -> None:
+        with self._lock:
+            if self._result is not None:
+                return
+            self._result = (ok, text)
+            callback = self._callback
+        if callback is not None:
+            callback(ok, text)
 
 
 def _parse_xml_command(text: str) -> tuple[str, dict[str, str]] | None:

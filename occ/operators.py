@@ -19,7 +19,7 @@ import igtl
 from igtl.messages.base import Message
 from igtl.transport.common import RateLimit
 
-from .commands import Request, error_reply, parse_request, safe_name, success_reply
+from .commands import Deferred, Request, error_reply, parse_request, safe_name, success_reply
 from .errors import CommandError, StateError
 from .interfaces import Inbound, is_operator_request
 from .outputs import STATE_STATUS_CODE, pose_to_message
@@ -117,6 +117,12 @@ class OperatorDesk:
                 return
             else:
                 text = self._execute(req, now)
+                if isinstance(text, Deferred):
+                    # answered when the work is done (a controller's planner thread)
+                    self.handled += 1
+                    done = req
+                    text.bind(lambda ok, answer: self._reply_later(item, done, ok, answer))
+                    return
                 reply = success_reply(req, text, timestamp=wall)
             self.handled += 1
         except (CommandError, StateError) as err:
@@ -152,6 +158,24 @@ class OperatorDesk:
         if r.recorder is not None:
             r.recorder.record_message(reply, "out", item.interface, now)
 
+    def _reply_later(self, item: Inbound, req: Request, ok: bool, text: str) -> None:
+        """The answer to a :class:`Deferred` command, on whichever thread finished it (the
+        transports' ``send`` is thread-safe; the recorder is not, so it is not recorded)."""
+        wall = self.robot.clock.wall_time()
+        assert req.msg is not None
+        if ok:
+            reply = success_reply(req, text, timestamp=wall)
+        else:
+            self.refused += 1
+            reply = error_reply(
+                req.msg, text, code=igtl.StatusCode.ILLEGAL_INSTRUCTION, timestamp=wall
+            )
+        try:
+            self.robot.interfaces.reply(item, reply)
+        except Exception as err:  # noqa: BLE001 - a reply that cannot be sent is counted
+            self.reply_errors += 1
+            log.warning("%s: reply to %s could not be sent: %s", item.interface, item.peer, err)
+
     def _reply_stats(self, item: Inbound, req: Request) -> None:
         """On the worker thread: the snapshot (histogram percentiles, controller statistics)
         costs milliseconds; the loop only handed the request over."""
@@ -181,7 +205,7 @@ class OperatorDesk:
             reply = success_reply(req, text, timestamp=wall)
         r.interfaces.reply(item, reply)
 
-    def _execute(self, req: Request, now: float) -> str:
+    def _execute(self, req: Request, now: float) -> str | Deferred:
         r = self.robot
         key = req.name.strip().lower()
         event = COMMAND_EVENTS.get(key)

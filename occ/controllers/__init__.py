@@ -28,9 +28,10 @@ Interfaces (ros2_control's model)
 Hooks, all on the loop thread: ``configure(data, ctx)`` once; ``on_sample(item, now)`` for every
 stream sample and discrete input, in arrival order; ``on_command(request, now) -> str | None``
 for the operator commands it lists in ``commands()`` (a command nobody lists is offered to each
-in turn); ``on_state(old, new, now)`` after every
-transition; ``update(now) -> setpoints | None`` while RUNNING (None = hold); ``outputs()`` the
-named output sources it adds (``source: NAME`` in an interface's outputs); ``stats()``.
+in turn; work too long for a tick returns a :class:`~occ.commands.Deferred`, answered later);
+``on_state(old, new, now)`` after every transition; ``update(now) -> setpoints | None`` while
+RUNNING (None = hold); ``outputs()`` the named output sources it adds (``source: NAME`` in an
+interface's outputs); ``stats()``.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ if TYPE_CHECKING:
     from igtl.messages.base import Message
 
     from ..clock import Clock
-    from ..commands import Request
+    from ..commands import Deferred, Request
     from ..config import DaemonConfig
     from ..data import RobotData
     from ..frame import Frame
@@ -134,7 +135,7 @@ class Controller:
     def on_sample(self, item: Inbound, now: float) -> None:
         return None
 
-    def on_command(self, request: Request, now: float) -> str | None:
+    def on_command(self, request: Request, now: float) -> str | Deferred | None:
         raise CommandError(f"unknown command {request.name!r}")
 
     def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
@@ -240,7 +241,7 @@ class ControllerSet:
         for c in self.controllers:
             c.on_sample(item, now)
 
-    def on_command(self, request: Request, now: float) -> str | None:
+    def on_command(self, request: Request, now: float) -> str | Deferred | None:
         key = request.name.strip().lower()
         for c in self.controllers:
             if key in (n.lower() for n in c.commands()):
