@@ -173,6 +173,7 @@ class Robot:
                 loop_t0=lambda: self.loop.t0,
                 period_s=self.loop.period_s,
                 shift=self.loop.shift,
+                joint_limits=tuple(j.limits for j in self.joints),
             ),
         )
         self.operators = OperatorDesk(self)

@@ -55,6 +55,7 @@ if TYPE_CHECKING:
     from ..data import RobotData
     from ..frame import Frame
     from ..interfaces import Inbound
+    from ..joint import JointLimits
     from ..outputs import Output
     from ..safety import RobotState
 
@@ -93,6 +94,8 @@ class ControllerContext:
     period_s: float
     #: ask the loop to move its next deadlines by this many seconds (phase lock)
     shift: Callable[[float], None]
+    #: each joint's limits (the drivers enforce them), in ``RobotData.joint_names`` order
+    joint_limits: tuple[JointLimits, ...] = ()
 
 
 class Controller:
