@@ -70,9 +70,9 @@ def parse_config(
     except ValidationError as exc:
         problems.extend(_located_errors(exc, root))
     else:
-        problems.extend(_plugin_problems(config, root))
+        problems.extend(_plugin_problems(config, root, Path(base_dir)))
         if not problems:
-            return config
+            return _with_plugin_paths_resolved(config, Path(base_dir))
     lines = format_errors(problems, source)
     raise ConfigError("\n".join(lines), lines)
 
@@ -333,7 +333,35 @@ def _annotation_at(loc: Loc, model: type[BaseModel] = DaemonConfig) -> Any:
 # --------------------------------------------------------------------------------------------
 
 
-def _plugin_problems(config: DaemonConfig, root: yaml.Node | None) -> list[tuple[int, Loc, str]]:
+def _with_plugin_paths_resolved(config: DaemonConfig, base_dir: Path) -> DaemonConfig:
+    """``config`` whose controller ``params`` hold every path field as the absolute path it
+    resolved to against the file's directory: the robot validates them again later without
+    knowing that directory (a keyframe file beside the config stays found from any cwd)."""
+    from .controllers import load_controller_class
+
+    out = []
+    for cc in config.controllers:
+        raw = dict(cc.params)
+        model = load_controller_class(cc.plugin).Params.model_validate(
+            raw, context={"base_dir": base_dir}
+        )
+        resolved = {
+            key: os.fspath(value)
+            for key in raw
+            if isinstance(value := getattr(model, key, None), os.PathLike)
+        }
+        if any(raw[key] != value for key, value in resolved.items()):
+            cc = cc.model_copy(update={"params": {**raw, **resolved}})
+        out.append(cc)
+    if all(a is b for a, b in zip(out, config.controllers, strict=True)):
+        return config
+    shape = out[0] if not isinstance(config.controller, tuple) else tuple(out)
+    return config.model_copy(update={"controller": shape})
+
+
+def _plugin_problems(
+    config: DaemonConfig, root: yaml.Node | None, base_dir: Path | None = None
+) -> list[tuple[int, Loc, str]]:
     """Controller ``params`` against the plugin's ``Params`` (and its ``check`` against the
     rest of the file); driver ``params`` through the driver's constructor, which opens no
     hardware (that happens in ``configure``). Unknown plugin names are problems too."""
@@ -354,7 +382,9 @@ def _plugin_problems(config: DaemonConfig, root: yaml.Node | None) -> list[tuple
             problems.append((_line_of(root, (*at, "plugin")), (*at, "plugin"), str(err)))
             continue
         try:
-            params = cls.Params.model_validate(dict(cc.params))
+            params = cls.Params.model_validate(
+                dict(cc.params), context={"base_dir": base_dir or Path.cwd()}
+            )
         except ValidationError as exc:
             problems.extend(_located_errors(exc, root, (*at, "params"), cls.Params))
             continue
