@@ -67,6 +67,7 @@ BUILTIN_CONTROLLERS: dict[str, str] = {
     "hold": "occ.controllers:Controller",
     "teleop-master": "occ.controllers.teleop:MasterController",
     "teleop-slave": "occ.controllers.teleop:SlaveController",
+    "keyframe": "occ.controllers.keyframe:KeyframeController",
 }
 
 SourceFn = Callable[["Output", float], "Message | None"]

@@ -1,0 +1,1160 @@
+"""Keyframe trajectories on the robot (issue 11): plan, check, preview, acknowledge, run.
+
+After the German Heart Center system: an operator puts poses on a timeline (keyframes), the
+planner (:mod:`occ.trajectory`) fills in the motion, and the plan runs only once it has passed
+its checks, been shown in 3D Slicer and been acknowledged. Plugin name ``keyframe``.
+
+Keyframes
+    A *keyframe set* is one timeline: times in seconds from the start of the run, and poses
+    either in joint space (one value per joint, SI: rad, m) or Cartesian (the tip position in
+    mm, in the world frame that the ``tip`` output and 3D Slicer use). The controller keeps one
+    set; each source replaces it, ``KeyframeAdd`` inserts into it:
+
+    - the YAML (``params.keyframes``) or a keyframe file (``params.file``), read at start-up;
+    - ``KeyframeLoad File=NAME``: a file in ``params.keyframe_dir`` (nothing outside it);
+    - a Slicer point list (POINT) or a TRAJ (entry/target points, in that order) on an
+      interface that lists the type among its ``inputs`` with ``queue: command``. Cartesian.
+      Times come from the v2 metadata ``times`` (seconds, comma-separated, one per point), else
+      every ``point_interval_s`` (the first at ``point_interval_s``). Hidden points (alpha 0,
+      as Slicer marks them) are left out with their times. A message that cannot be used is
+      refused, counted (``inputs_refused``) and logged; the set is then unchanged;
+    - ``KeyframeAdd T=SECONDS Pose="a b c" [Name=..] [Space=joint|cartesian]``.
+
+    ``KeyframeList`` lists the set and the plan; ``KeyframeClear`` forgets both.
+
+    The run starts where the robot is: a set whose first keyframe is later than t = 0 gets an
+    implicit keyframe at t = 0, the robot's commanded pose (so the robot moves to the first
+    keyframe in the time given); a first keyframe at t = 0 must be within
+    ``start_tolerance`` / ``start_tolerance_mm`` of it and is then replaced by it exactly.
+
+Plan, check and preview (offline mode, the paper's safety rule)
+    ``KeyframePlan [Interpolation=linear|spline] [Mode=stop|continuous] [Steepness=n]
+    [Ramp=r]`` plans the set (defaults from the params) and checks every tick of it as it would
+    run: each joint within its position limits, each step within ``velocity_scale`` x the
+    joint's velocity limit over one period (what the drivers check), the tip inside
+    ``workspace_mm`` (base frame) and reachable within the joint limits (Cartesian plans go
+    through the Frame's IK, ``ik_clamped``, seeded with the previous tick as at run time), and
+    the tip outside every forbidden region (:class:`ForbiddenCheck`, see below). Planning and
+    checking run on a thread of their own (a spline plan takes milliseconds, a check ~15 us a
+    tick of motion), handing the interpreter back every few samples; the command is answered
+    when they finish (:class:`~occ.commands.Deferred`): the plan's number and summary, or the
+    refusal naming the keyframe (or the segment between two) and the limit. A plan that passed
+    is previewed: output source ``keyframe-path`` (POLYDATA: the tip's path as a polyline, world
+    mm) and ``keyframe-points`` (POINT: the keyframes), both with v2 metadata
+    ``MRMLNodeName`` (the output's device name) so Slicer names its nodes; sent once per new
+    plan and again every ``preview_repeat_s`` (a Slicer that connects later sees it too); an
+    empty one when the plan is dropped.
+
+Acknowledge and run
+    ``KeyframeAck Plan=N`` (the number the plan's reply and ``KeyframeList`` give) starts plan N
+    while the robot is RUNNING, if the robot is still where the plan starts (else: replan).
+    Each tick the loop samples the plan at ``now - start`` (no thread): joint plans directly,
+    Cartesian ones through ``ik_clamped``. At the end the robot rests at the last keyframe and
+    the controller holds. A new set or plan never changes a running plan.
+
+Stop
+    An operator's Stop (or anything that takes the robot out of RUNNING: fault, e-stop, Hold)
+    during a run *drops* the plan: the robot holds where it was stopped (the robot's own Stop)
+    and the run is never resumed mid-way (its timeline would restart at speed, mid-ramp). The
+    keyframes stay stored: ``KeyframePlan`` (which now starts from where the robot stopped)
+    and ``KeyframeAck`` run them again. The refused, stopped or finished state is in
+    ``KeyframeList`` and the statistics.
+
+Forbidden regions (the collision check)
+    :class:`ForbiddenCheck`: any callable taking a tip position (metres, robot base frame) and
+    returning something false when it is free, or True / a short description (named in the
+    refusal) when it is forbidden. Checks are added with :meth:`KeyframeController.
+    add_forbidden_check`, each called for every tick of a plan being checked (on the planner
+    thread: it must be thread-safe, e.g. read an immutable snapshot). When the regions change,
+    :meth:`KeyframeController.invalidate_plan` makes a checked but unacknowledged plan unusable
+    (it must be planned again), as the paper requires of a plan that would now collide.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any, Literal, Protocol
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, BeforeValidator, ConfigDict, DirectoryPath, Field, ValidationError
+
+import igtl
+from igtl.messages.base import Message
+from igtl.transport.common import RateLimit
+
+from ..commands import Deferred
+from ..config import (
+    Bool,
+    DaemonConfig,
+    ExistingFile,
+    Float,
+    Int,
+    Name,
+    NonNegFloat,
+    PosFloat,
+    Vec3,
+    _resolve_path,
+)
+from ..errors import CommandError, KinematicsError
+from ..joint import JointLimits
+from ..safety import RobotState
+from ..trajectory import Keyframe, Trajectory, plan
+from . import Controller, ControllerContext, Problem, SourceFn
+
+if TYPE_CHECKING:
+    from ..commands import Request
+    from ..data import RobotData
+    from ..frame import Frame
+    from ..interfaces import Inbound
+    from ..outputs import Output
+
+log = logging.getLogger(__name__)
+
+MM = 1e-3
+Space = Literal["joint", "cartesian"]
+ExistingDir = Annotated[DirectoryPath, BeforeValidator(_resolve_path)]
+
+#: largest keyframe file read (bytes): a timeline of keyframes is a few kilobytes
+MAX_FILE_BYTES = 1 << 20
+#: samples the planner thread checks between hand-backs of the interpreter lock (~0.2 ms)
+_CHUNK = 16
+
+
+class ForbiddenCheck(Protocol):
+    """Whether a tip position (metres, robot base frame) is forbidden: a false value when it
+    is free, True or a short description of what it hits when it is not."""
+
+    def __call__(self, point: tuple[float, float, float], /) -> str | bool | None: ...
+
+
+# ------------------------------------------------------------------------------ parameters
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class KeyframeItem(_Model):
+    """One keyframe as written in YAML: a time, a pose and an optional name."""
+
+    t: NonNegFloat = Field(description="Time (s) from the start of the run.")
+    pose: Annotated[tuple[Float, ...], Field(min_length=1)] = Field(
+        description="Joint positions (rad, m; one per joint) or the tip position (mm, world)."
+    )
+    name: Annotated[str, Field(max_length=64)] | None = Field(None, description="A label.")
+
+
+class KeyframeFile(_Model):
+    """A keyframe file (YAML or JSON): ``{space: ..., keyframes: [{t, pose, name}, ...]}``."""
+
+    space: Space | None = Field(None, description="Overrides `params.space` for this file.")
+    keyframes: Annotated[tuple[KeyframeItem, ...], Field(min_length=1)]
+
+
+class WorkspaceBox(_Model):
+    """An axis-aligned box the tip must stay in (mm, robot base frame)."""
+
+    min_mm: Vec3 = Field(description="Lower corner (mm).")
+    max_mm: Vec3 = Field(description="Upper corner (mm).")
+
+
+class KeyframeParams(_Model):
+    """Parameters of ``keyframe``."""
+
+    space: Space = Field(
+        "joint",
+        description="Space of the keyframes given in YAML, in a file or by KeyframeAdd: "
+        "`joint` (one position per joint, rad/m) or `cartesian` (tip position, mm, world "
+        "frame). POINT and TRAJ are always Cartesian.",
+    )
+    keyframes: tuple[KeyframeItem, ...] = Field(
+        (), description="Keyframes loaded at start-up: a list of `{t, pose, name}`."
+    )
+    file: ExistingFile | None = Field(
+        None,
+        description="A keyframe file loaded at start-up instead (YAML: `space`, `keyframes`); "
+        "relative to the config file's folder.",
+    )
+    keyframe_dir: ExistingDir | None = Field(
+        None,
+        description="Folder KeyframeLoad may read from (names inside it only); null = the "
+        "command is refused.",
+    )
+    interpolation: Literal["linear", "spline"] = Field(
+        "linear", description="Default interpolation of KeyframePlan."
+    )
+    mode: Literal["stop", "continuous"] = Field(
+        "stop", description="Default mode: rest at every keyframe, or move through them."
+    )
+    steepness: PosFloat = Field(6.0, description="Default steepness n of the sigmoid ramps.")
+    ramp: Annotated[Float, Field(gt=0, le=0.5)] = Field(
+        0.25, description="Default share of each segment's time spent on each ramp."
+    )
+    input_interface: Name | None = Field(
+        None, description="Interface whose POINT/TRAJ messages are keyframes (null = any)."
+    )
+    point_interval_s: PosFloat = Field(
+        2.0, description="Time between keyframes from POINT/TRAJ without `times` metadata."
+    )
+    max_keyframes: Annotated[Int, Field(ge=2, le=1000)] = Field(
+        100, description="Most keyframes a set may hold."
+    )
+    max_duration_s: PosFloat = Field(300.0, description="Longest plan accepted (s).")
+    velocity_scale: Annotated[Float, Field(gt=0, le=1)] = Field(
+        1.0, description="Share of each joint's velocity limit a plan may use."
+    )
+    start_tolerance: PosFloat = Field(
+        1e-3,
+        description="Joint space: how far (rad or m) a keyframe at t = 0 may be from the "
+        "robot's pose (it is then replaced by it).",
+    )
+    start_tolerance_mm: PosFloat = Field(
+        0.5, description="Cartesian: the same, for the tip position (mm)."
+    )
+    workspace_mm: WorkspaceBox | None = Field(
+        None, description="Box the tip must stay in (mm, base frame); null = joint limits only."
+    )
+    preview_points: Annotated[Int, Field(ge=2, le=10000)] = Field(
+        256, description="Most points of the previewed path (the polyline is decimated)."
+    )
+    preview_repeat_s: PosFloat | None = Field(
+        5.0, description="Send the preview again this often (late viewers); null = once."
+    )
+    preview_required: Bool = Field(
+        True,
+        description="Refuse a configuration in which no interface sends the preview (an "
+        "output with source `keyframe-path`): a plan must be seen before it is acknowledged.",
+    )
+
+
+# ------------------------------------------------------------------------------ keyframe sets
+@dataclass(frozen=True)
+class KeyframeSet:
+    """One timeline: keyframes in their own units (joint SI, or Cartesian mm world)."""
+
+    space: Space
+    keyframes: tuple[Keyframe, ...]
+    names: tuple[str, ...]
+    source: str
+
+    def label(self, i: int) -> str:
+        name = self.names[i]
+        return f"keyframe {i}" + (f" {name!r}" if name else "") + f" (t={self.keyframes[i].t:g} s)"
+
+
+def make_set(
+    space: Space,
+    items: Sequence[tuple[float, Sequence[float], str]],
+    source: str,
+    *,
+    joints: int,
+    max_keyframes: int,
+) -> KeyframeSet:
+    """A validated :class:`KeyframeSet` from ``(t, pose, name)`` triples; ValueError naming the
+    keyframe otherwise (dimension, time order, count)."""
+    if not items:
+        raise ValueError("no keyframes")
+    if len(items) > max_keyframes:
+        raise ValueError(f"{len(items)} keyframes, more than max_keyframes ({max_keyframes})")
+    dim = joints if space == "joint" else 3
+    frames: list[Keyframe] = []
+    names: list[str] = []
+    for i, (t, pose, name) in enumerate(items):
+        try:
+            kf = Keyframe(t, pose)
+        except ValueError as err:
+            raise ValueError(f"keyframe {i}: {err}") from err
+        if len(kf.pose) != dim:
+            what = f"{joints} joint positions" if space == "joint" else "x y z (mm)"
+            raise ValueError(f"keyframe {i}: {len(kf.pose)} values, a {space} pose needs {what}")
+        if kf.t < 0.0:
+            raise ValueError(f"keyframe {i}: time {kf.t:g} s is before the start (t = 0)")
+        if frames and not kf.t > frames[-1].t:
+            raise ValueError(
+                f"keyframe {i}: time {kf.t:g} s does not follow keyframe {i - 1} "
+                f"({frames[-1].t:g} s); times must increase"
+            )
+        frames.append(kf)
+        names.append(name)
+    return KeyframeSet(space, tuple(frames), tuple(names), source)
+
+
+def parse_times(text: str, count: int) -> list[float]:
+    """``times`` metadata: ``count`` seconds separated by commas or spaces."""
+    parts = [p for p in text.replace(",", " ").split() if p]
+    if len(parts) != count:
+        raise ValueError(f"metadata 'times' has {len(parts)} values for {count} points")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError as err:
+        raise ValueError(f"metadata 'times': {err}") from err
+    if not all(math.isfinite(v) for v in values):
+        raise ValueError("metadata 'times' must be finite")
+    return values
+
+
+def items_from_message(
+    msg: Message, interval_s: float
+) -> list[tuple[float, tuple[float, float, float], str]]:
+    """Cartesian ``(t, position mm, name)`` from a POINT (visible points) or a TRAJ (each
+    element's entry then target, as its type says); times from metadata ``times`` (one per
+    point of the message, hidden ones included) else every ``interval_s``."""
+    raw: list[tuple[tuple[float, float, float], str, bool]] = []
+    if msg.message_type == "POINT":
+        for p in getattr(msg, "points", ()):
+            raw.append((p.position, p.name, p.rgba[3] > 0))
+    elif msg.message_type == "TRAJ":
+        for tr in getattr(msg, "trajectories", ()):
+            visible = tr.rgba[3] > 0
+            if tr.type in (1, 3):
+                raw.append((tr.entry, f"{tr.name} entry" if tr.name else "entry", visible))
+            if tr.type in (2, 3):
+                raw.append((tr.target, f"{tr.name} target" if tr.name else "target", visible))
+            if tr.type not in (1, 2, 3):
+                raise ValueError(f"TRAJ element {tr.name!r}: unknown type {tr.type}")
+    else:
+        raise ValueError(f"{msg.message_type} carries no keyframes")
+    text = msg.metadata.get("times") if msg.metadata else None
+    if text is not None:
+        times = parse_times(text, len(raw))
+    else:
+        times = [interval_s * (i + 1) for i in range(len(raw))]
+    out = [(t, pos, name) for t, (pos, name, visible) in zip(times, raw, strict=True) if visible]
+    if not out:
+        raise ValueError(f"{msg.message_type} {msg.device_name!r} has no visible points")
+    return out
+
+
+def read_keyframe_file(path: Path) -> KeyframeFile:
+    """Parse and validate a keyframe file; ValueError with the reason."""
+    try:
+        size = path.stat().st_size
+        if size > MAX_FILE_BYTES:
+            raise ValueError(f"{path.name}: {size} bytes, more than {MAX_FILE_BYTES}")
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
+        raise ValueError(f"{path.name}: cannot read: {err}") from err
+    if isinstance(data, list):
+        data = {"keyframes": data}
+    try:
+        return KeyframeFile.model_validate(data)
+    except ValidationError as err:
+        first = err.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise ValueError(f"{path.name}: {where}: {first['msg']}") from err
+
+
+def _file_set(kf: KeyframeFile, default: Space, source: str, joints: int, cap: int) -> KeyframeSet:
+    return make_set(
+        kf.space or default,
+        [(k.t, k.pose, k.name or "") for k in kf.keyframes],
+        source,
+        joints=joints,
+        max_keyframes=cap,
+    )
+
+
+# ------------------------------------------------------------------------------ planning
+class PlanRefused(Exception):
+    """A plan that failed its checks (the message names the keyframe and the limit)."""
+
+
+@dataclass(frozen=True)
+class PlanRequest:
+    """Everything a plan is made from, snapshot on the loop thread when it is asked for."""
+
+    id: int
+    kset: KeyframeSet
+    q_start: tuple[float, ...]
+    base: np.ndarray  # world <- base, metres
+    interpolation: Literal["linear", "spline"]
+    mode: Literal["stop", "continuous"]
+    steepness: float
+    ramp: float
+    period: float
+    joint_names: tuple[str, ...]
+    limits: tuple[JointLimits, ...]
+    velocity_scale: float
+    start_tolerance: float
+    start_tolerance_mm: float
+    workspace: tuple[Vec3, Vec3] | None  # metres, base frame
+    forbidden: tuple[ForbiddenCheck, ...]
+    max_duration_s: float
+    preview_points: int
+
+
+@dataclass(frozen=True)
+class CheckedPlan:
+    """A plan that passed every check, with what is needed to run and preview it."""
+
+    id: int
+    space: Space
+    traj: Trajectory  # joint SI, or the tip in the base frame (metres)
+    labels: tuple[str, ...]  # of the plan's keyframes (the implicit start included)
+    point_names: tuple[str, ...]  # short names for the previewed points
+    q_start: tuple[float, ...]
+    q_end: tuple[float, ...]
+    path_mm: np.ndarray  # (n, 3) tip path, world mm (decimated)
+    keys_mm: np.ndarray  # (k, 3) keyframe tip positions, world mm
+    peak: tuple[str, float]  # the joint closest to its velocity limit, and the share used
+    summary: str
+    ticks: int
+
+
+def _where(t: float, times: Sequence[float], labels: Sequence[str], period: float) -> str:
+    """Which keyframe (or segment between two) time ``t`` falls on, for a refusal."""
+    for i, tk in enumerate(times):
+        if abs(t - tk) <= 0.5 * period:
+            return f"at {labels[i]}"
+    for i in range(len(times) - 1):
+        if times[i] < t < times[i + 1]:
+            return f"t={t:.3f} s, between {labels[i]} and {labels[i + 1]}"
+    return f"t={t:.3f} s"
+
+
+def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
+    """Plan ``req`` and check every tick of it (see the module docstring); PlanRefused with
+    the reason otherwise. Runs on the planner thread with a Frame of its own."""
+    kset = req.kset
+    cart = kset.space == "cartesian"
+    r_t = req.base[:3, :3].T
+    origin = req.base[:3, 3]
+
+    def to_base(p_mm: Sequence[float]) -> np.ndarray:
+        return np.asarray(r_t @ (np.asarray(p_mm, dtype=float) * MM - origin), dtype=float)
+
+    def to_world_mm(p: Sequence[float]) -> np.ndarray:
+        return np.asarray((req.base[:3, :3] @ np.asarray(p) + origin) / MM, dtype=float)
+
+    here: tuple[float, ...] = (
+        tuple(float(v) for v in frame.tip_position(list(req.q_start))) if cart else req.q_start
+    )
+    frames = [Keyframe(k.t, to_base(k.pose)) if cart else k for k in kset.keyframes]
+    labels = [kset.label(i) for i in range(len(frames))]
+    short = [f"{kset.names[i] or f'K{i}'} t={k.t:g}s" for i, k in enumerate(frames)]
+    notes: list[str] = []
+    first = frames[0]
+    gap = float(np.linalg.norm(np.subtract(first.pose, here)))
+    if first.t > 0.0:
+        frames.insert(0, Keyframe(0.0, here))
+        labels.insert(0, "the start (the robot's pose)")
+        short.insert(0, "start t=0s")
+    else:
+        tol = req.start_tolerance_mm * MM if cart else req.start_tolerance
+        if gap > tol:
+            unit, scale = ("mm", 1 / MM) if cart else ("rad/m", 1.0)
+            raise PlanRefused(
+                f"{labels[0]} is {gap * scale:.4g} {unit} from where the robot is (tolerance "
+                f"{tol * scale:g}): a run starts where the robot is; give keyframe 0 a later "
+                "time so the robot moves there, or move it"
+            )
+        frames[0] = Keyframe(0.0, here)
+        if gap > 0.0:
+            unit = "mm" if cart else "rad/m"
+            notes.append(
+                f"keyframe 0 replaced by the robot's pose ({gap / (MM if cart else 1):.3g} {unit} "
+                "away)"
+            )
+    if frames[-1].t > req.max_duration_s:
+        raise PlanRefused(
+            f"{labels[-1]}: the plan would last {frames[-1].t:g} s, more than max_duration_s "
+            f"({req.max_duration_s:g})"
+        )
+    try:
+        traj = plan(frames, req.interpolation, req.mode, req.steepness, req.ramp)
+    except ValueError as err:
+        raise PlanRefused(f"cannot plan: {err}") from err
+
+    times = [k.t for k in frames]
+    period = req.period
+    ticks = math.ceil(traj.end / period - 1e-9)
+    names = req.joint_names
+    lo = [lim.min for lim in req.limits]
+    hi = [lim.max for lim in req.limits]
+    vmax = [lim.velocity * req.velocity_scale for lim in req.limits]
+    box = req.workspace
+    forbidden = req.forbidden
+    q_prev = list(req.q_start)
+    peak_share, peak_joint = 0.0, 0
+    stride = max(1, math.ceil((ticks + 1) / (req.preview_points - 1)))
+    path: list[tuple[float, float, float]] = []
+    for j in range(ticks + 1):
+        if j % _CHUNK == 0:
+            time.sleep(0)  # hand the interpreter lock back: the loop must not wait for it
+        t = min(j * period, traj.end)
+        pos = traj.position(t)
+        if cart:
+            tip = (float(pos[0]), float(pos[1]), float(pos[2]))
+            try:
+                q, clamped = frame.ik_clamped(tip, q_prev)
+            except (KinematicsError, ValueError) as err:
+                raise PlanRefused(
+                    f"the tip is unreachable {_where(t, times, labels, period)}: {err}"
+                ) from err
+            if clamped:
+                at = [names[i] for i, v in enumerate(q) if v <= lo[i] + 1e-12 or v >= hi[i] - 1e-12]
+                raise PlanRefused(
+                    f"the tip leaves the workspace {_where(t, times, labels, period)}: "
+                    f"({tip[0] / MM:.2f}, {tip[1] / MM:.2f}, {tip[2] / MM:.2f}) mm needs joint "
+                    f"{', '.join(at) or '?'} beyond its limits"
+                )
+        else:
+            q = pos.tolist()
+            for i, v in enumerate(q):
+                if v < lo[i] - 1e-12 or v > hi[i] + 1e-12:
+                    raise PlanRefused(
+                        f"joint {names[i]!r} position {v:.6g} is outside its limits "
+                        f"[{lo[i]:g}, {hi[i]:g}] {_where(t, times, labels, period)}"
+                    )
+            tip = frame.tip_position(q)
+        if True:  # the first step too: from the held pose to the plan's first sample
+            for i, v in enumerate(q):
+                speed = abs(v - q_prev[i]) / period
+                share = speed / req.limits[i].velocity
+                if share > peak_share:
+                    peak_share, peak_joint = share, i
+                if speed > vmax[i] * (1.0 + 1e-9):
+                    raise PlanRefused(
+                        f"joint {names[i]!r} velocity {speed:.4g} exceeds its limit "
+                        f"{vmax[i]:.4g} {_where(t, times, labels, period)}"
+                        + (f" (x velocity_scale {req.velocity_scale:g})" * (req.velocity_scale < 1))
+                        + "; give that segment more time"
+                    )
+        if box is not None:
+            (x0, y0, z0), (x1, y1, z1) = box
+            if not (x0 <= tip[0] <= x1 and y0 <= tip[1] <= y1 and z0 <= tip[2] <= z1):
+                raise PlanRefused(
+                    f"the tip leaves workspace_mm {_where(t, times, labels, period)}: "
+                    f"({tip[0] / MM:.2f}, {tip[1] / MM:.2f}, {tip[2] / MM:.2f}) mm"
+                )
+        for check in forbidden:
+            hit = check(tip)
+            if hit:
+                what = f" ({hit})" if isinstance(hit, str) else ""
+                raise PlanRefused(
+                    f"the tip enters a forbidden region{what} "
+                    f"{_where(t, times, labels, period)}: ({tip[0] / MM:.2f}, {tip[1] / MM:.2f}, "
+                    f"{tip[2] / MM:.2f}) mm"
+                )
+        if j % stride == 0 or j == ticks:
+            path.append(tip)
+        q_prev = list(q)
+
+    keys = []
+    for k in frames:
+        keys.append(k.pose if cart else frame.tip_position(list(k.pose)))
+    path_mm = np.array([to_world_mm(p) for p in path])
+    keys_mm = np.array([to_world_mm(p) for p in keys])
+    peak = (names[peak_joint], peak_share)
+    summary = (
+        f"plan {req.id}: {len(kset.keyframes)} keyframes ({kset.space}, {traj.interpolation}, "
+        f"{traj.mode}), {traj.duration:.3f} s; peak joint speed {peak_share:.0%} of the limit "
+        f"({peak[0]})"
+        + (f"; {'; '.join(notes)}" if notes else "")
+        + f"; preview sent; acknowledge with KeyframeAck Plan={req.id}"
+    )
+    return CheckedPlan(
+        id=req.id,
+        space=kset.space,
+        traj=traj,
+        labels=tuple(labels),
+        point_names=tuple(short),
+        q_start=tuple(req.q_start),
+        q_end=tuple(q_prev),
+        path_mm=path_mm,
+        keys_mm=keys_mm,
+        peak=peak,
+        summary=summary,
+        ticks=ticks,
+    )
+
+
+# ------------------------------------------------------------------------------ controller
+@dataclass
+class _PreviewState:
+    version: int = 0
+    plan: CheckedPlan | None = None
+    sent: dict[int, tuple[int, float]] = field(default_factory=dict)  # output -> (version, t)
+
+
+class KeyframeController(Controller):
+    """Keyframe trajectories: stored keyframes planned, checked, previewed in Slicer, run
+    after the operator's acknowledgement (issue 11; see :mod:`occ.controllers.keyframe`)."""
+
+    name = "keyframe"
+    Params = KeyframeParams
+
+    COMMANDS = (
+        "KeyframeAdd",
+        "KeyframeList",
+        "KeyframeClear",
+        "KeyframeLoad",
+        "KeyframePlan",
+        "KeyframeAck",
+    )
+
+    def __init__(self, params: BaseModel | dict[str, Any] | None = None) -> None:
+        super().__init__(params)
+        p = self.params
+        assert isinstance(p, KeyframeParams)
+        self.p = p
+        self.forbidden_checks: list[ForbiddenCheck] = []
+        # shared with the planner thread: every change under the lock; the loop reads the
+        # references (atomic) without it
+        self._lock = threading.Lock()
+        self._generation = 0  # +1 whenever the set changes or a plan is invalidated
+        self.kset: KeyframeSet | None = None
+        self.plan: CheckedPlan | None = None  # checked, previewed, not yet acknowledged
+        self.status = "no keyframes"
+        self._next_id = 1
+        self._job: threading.Thread | None = None
+        # the run (loop thread only)
+        self.active: CheckedPlan | None = None
+        self._t0 = 0.0
+        self._q_last: list[float] = []
+        self._preview = _PreviewState()
+        self._frame_planner: Frame | None = None
+        self._log_limit = RateLimit(5)
+        self.counters = {
+            "sets": 0,
+            "inputs_refused": 0,
+            "plans_checked": 0,
+            "plans_refused": 0,
+            "runs": 0,
+            "runs_completed": 0,
+            "runs_stopped": 0,
+            "ik_failures": 0,
+        }
+        self.last_error = ""
+
+    # ------------------------------------------------------------------ configuration
+    @classmethod
+    def check(cls, params: Any, config: DaemonConfig) -> list[Problem]:
+        from ..config import _did_you_mean
+
+        problems: list[Problem] = []
+        names = [i.name for i in config.interfaces]
+        ref = params.input_interface
+        if ref is not None and ref not in names:
+            problems.append(
+                (("input_interface",), f"unknown interface '{ref}'" + _did_you_mean(ref, names))
+            )
+        if params.keyframes and params.file is not None:
+            problems.append((("file",), "give `keyframes` or `file`, not both"))
+        joints = len(config.robot.joints)
+        try:
+            if params.keyframes:
+                _file_set(
+                    KeyframeFile(keyframes=params.keyframes),
+                    params.space,
+                    "config",
+                    joints,
+                    params.max_keyframes,
+                )
+        except ValueError as err:
+            problems.append((("keyframes",), str(err)))
+        if params.file is not None:
+            try:
+                _file_set(
+                    read_keyframe_file(Path(params.file)),
+                    params.space,
+                    "file",
+                    joints,
+                    params.max_keyframes,
+                )
+            except ValueError as err:
+                problems.append((("file",), str(err)))
+        if params.preview_required and not any(
+            o.source == "keyframe-path" for i in config.interfaces for o in i.outputs
+        ):
+            problems.append(
+                (
+                    ("preview_required",),
+                    "no interface sends the preview: add an output with source keyframe-path "
+                    "(POLYDATA) for 3D Slicer (and keyframe-points, POINT), or set "
+                    "preview_required: false",
+                )
+            )
+        return problems
+
+    def configure(self, data: RobotData, ctx: ControllerContext) -> None:
+        super().configure(data, ctx)
+        self._frame_planner = ctx.frame.copy()  # the planner thread's own (pinocchio data)
+        self.limits = ctx.joint_limits or tuple(
+            JointLimits(lo, hi) for lo, hi in zip(ctx.frame.lower, ctx.frame.upper, strict=True)
+        )
+        p = self.p
+        n = len(data.joint_names)
+        if p.keyframes:
+            kf = KeyframeFile(keyframes=p.keyframes)
+            self._install(_file_set(kf, p.space, "config", n, p.max_keyframes))
+        elif p.file is not None:
+            path = Path(p.file)
+            kf = read_keyframe_file(path)
+            self._install(_file_set(kf, p.space, f"file {path.name}", n, p.max_keyframes))
+
+    def outputs(self) -> dict[str, SourceFn]:
+        return {"keyframe-path": self._source_path, "keyframe-points": self._source_points}
+
+    def commands(self) -> tuple[str, ...]:
+        return self.COMMANDS
+
+    def add_forbidden_check(self, check: ForbiddenCheck) -> None:
+        """Add a collision check every new plan must pass (see :class:`ForbiddenCheck`)."""
+        self.forbidden_checks.append(check)
+
+    def invalidate_plan(self, reason: str) -> None:
+        """The world changed (e.g. the forbidden regions): a checked plan not yet acknowledged
+        must be planned again. Thread-safe; a running plan is not affected."""
+        with self._lock:
+            self._generation += 1
+            if self.plan is not None:
+                self.status = f"plan {self.plan.id} invalidated: {reason}; plan again"
+                self._set_plan(None)
+
+    # ------------------------------------------------------------------ inputs
+    def on_sample(self, item: Inbound, now: float) -> None:
+        msg = item.msg
+        if msg.message_type not in ("POINT", "TRAJ"):
+            return
+        if self.p.input_interface is not None and item.interface != self.p.input_interface:
+            return
+        assert self.data is not None
+        source = f"{msg.message_type} {msg.device_name!r} from {item.interface}"
+        try:
+            items = items_from_message(msg, self.p.point_interval_s)
+            kset = make_set(
+                "cartesian",
+                items,
+                source,
+                joints=len(self.data.joint_names),
+                max_keyframes=self.p.max_keyframes,
+            )
+        except ValueError as err:
+            self.counters["inputs_refused"] += 1
+            self.last_error = f"{source} refused: {err}"
+            if self._log_limit.allow():
+                log.warning("keyframes: %s", self.last_error)
+            return
+        self._install(kset)
+        log.info("keyframes: %d from %s", len(kset.keyframes), source)
+
+    def _install(self, kset: KeyframeSet | None) -> None:
+        """A new keyframe set (or none): any checked plan is dropped (a running one runs on)."""
+        with self._lock:
+            self._generation += 1
+            self.kset = kset
+            if kset is not None:
+                self.counters["sets"] += 1
+            self._set_plan(None)
+            self.status = (
+                f"{len(kset.keyframes)} keyframes from {kset.source}; send KeyframePlan"
+                if kset is not None
+                else "no keyframes"
+            )
+
+    def _set_plan(self, plan_: CheckedPlan | None) -> None:
+        """The previewed plan (caller holds the lock)."""
+        if plan_ is self.plan and plan_ is not None:
+            return
+        self.plan = plan_
+        pv = self._preview
+        if plan_ is not None or pv.plan is not None:
+            # a new preview, or an empty one to clear the viewer's
+            self._preview = _PreviewState(pv.version + 1, plan_ if plan_ is not None else None, {})
+
+    # ------------------------------------------------------------------ commands
+    def on_command(self, request: Request, now: float) -> str | Deferred | None:
+        key = request.name.strip().lower()
+        args = {k.lower(): v for k, v in request.args.items()}
+        if key == "keyframelist":
+            return self.describe()
+        if key == "keyframeclear":
+            if self.active is not None:
+                raise CommandError(f"plan {self.active.id} is running; Stop first")
+            self._install(None)
+            return "keyframes and plan cleared"
+        if key == "keyframeadd":
+            return self._cmd_add(args)
+        if key == "keyframeload":
+            return self._cmd_load(args)
+        if key == "keyframeplan":
+            return self._cmd_plan(args)
+        if key == "keyframeack":
+            return self._cmd_ack(args, now)
+        raise CommandError(f"unknown command {request.name!r}")
+
+    def _cmd_add(self, args: dict[str, str]) -> str:
+        assert self.data is not None
+        try:
+            t = float(args["t"])
+            pose = [float(v) for v in args["pose"].replace(",", " ").split()]
+        except KeyError as err:
+            raise CommandError(f"KeyframeAdd needs T and Pose (missing {err})") from None
+        except ValueError as err:
+            raise CommandError(f"KeyframeAdd: {err}") from None
+        current = self.kset
+        space = args.get("space", current.space if current else self.p.space).strip().lower()
+        if space not in ("joint", "cartesian"):
+            raise CommandError(f"KeyframeAdd: Space must be joint or cartesian, got {space!r}")
+        if current is not None and current.space != space:
+            raise CommandError(
+                f"KeyframeAdd: the stored keyframes are {current.space}; KeyframeClear first"
+            )
+        items: list[tuple[float, Sequence[float], str]] = (
+            [(k.t, k.pose, n) for k, n in zip(current.keyframes, current.names, strict=True)]
+            if current is not None
+            else []
+        )
+        if any(abs(t - it[0]) < 1e-12 for it in items):
+            raise CommandError(f"KeyframeAdd: there is a keyframe at t={t:g} s already")
+        items.append((t, pose, args.get("name", "")))
+        items.sort(key=lambda it: it[0])
+        try:
+            kset = make_set(
+                space,  # type: ignore[arg-type]
+                items,
+                "operator commands",
+                joints=len(self.data.joint_names),
+                max_keyframes=self.p.max_keyframes,
+            )
+        except ValueError as err:
+            raise CommandError(f"KeyframeAdd: {err}") from None
+        self._install(kset)
+        return f"{len(kset.keyframes)} keyframes ({space}); send KeyframePlan"
+
+    def _cmd_load(self, args: dict[str, str]) -> Deferred:
+        folder = self.p.keyframe_dir
+        if folder is None:
+            raise CommandError("KeyframeLoad is off: no keyframe_dir in the configuration")
+        name = args.get("file", "").strip()
+        if not name:
+            raise CommandError("KeyframeLoad needs File (a name in the keyframe folder)")
+        root = Path(folder).resolve()
+        path = (root / name).resolve()
+        if root not in path.parents or Path(name).is_absolute():
+            raise CommandError(f"KeyframeLoad: {name!r} is not inside the keyframe folder")
+        assert self.data is not None
+        joints, p = len(self.data.joint_names), self.p
+        generation = self._generation
+
+        def job(answer: Deferred) -> None:
+            try:
+                kset = _file_set(
+                    read_keyframe_file(path), p.space, f"file {name}", joints, p.max_keyframes
+                )
+            except ValueError as err:
+                answer.fail(f"KeyframeLoad refused: {err}")
+                return
+            with self._lock:
+                superseded = self._generation != generation
+            if superseded:
+                answer.fail("KeyframeLoad: the keyframes changed meanwhile; load again")
+                return
+            self._install(kset)
+            answer.resolve(f"{len(kset.keyframes)} keyframes ({kset.space}) from {name}")
+
+        return self._start(job)
+
+    def _cmd_plan(self, args: dict[str, str]) -> Deferred:
+        data, ctx, p = self.data, self.ctx, self.p
+        assert data is not None and ctx is not None
+        kset = self.kset
+        if kset is None:
+            raise CommandError("no keyframes to plan: load or send some first")
+        if self.active is not None:
+            raise CommandError(f"plan {self.active.id} is running; wait or Stop")
+        interpolation = args.get("interpolation", p.interpolation).strip().lower()
+        mode = args.get("mode", p.mode).strip().lower()
+        if interpolation not in ("linear", "spline"):
+            raise CommandError(f"Interpolation must be linear or spline, got {interpolation!r}")
+        if mode not in ("stop", "continuous"):
+            raise CommandError(f"Mode must be stop or continuous, got {mode!r}")
+        try:
+            steepness = float(args.get("steepness", p.steepness))
+            ramp = float(args.get("ramp", p.ramp))
+        except ValueError as err:
+            raise CommandError(f"KeyframePlan: {err}") from None
+        if not (math.isfinite(steepness) and steepness > 0):
+            raise CommandError(f"Steepness must be > 0, got {steepness:g}")
+        if not 0 < ramp <= 0.5:
+            raise CommandError(f"Ramp must be in (0, 0.5], got {ramp:g}")
+        box = p.workspace_mm
+        with self._lock:
+            generation = self._generation
+            plan_id = self._next_id
+            self._next_id += 1
+        req = PlanRequest(
+            id=plan_id,
+            kset=kset,
+            q_start=tuple(data.commanded()),
+            base=np.array(data.base, dtype=float),
+            interpolation=interpolation,  # type: ignore[arg-type]
+            mode=mode,  # type: ignore[arg-type]
+            steepness=steepness,
+            ramp=ramp,
+            period=ctx.period_s,
+            joint_names=data.joint_names,
+            limits=tuple(self.limits),
+            velocity_scale=p.velocity_scale,
+            start_tolerance=p.start_tolerance,
+            start_tolerance_mm=p.start_tolerance_mm,
+            workspace=(
+                (
+                    tuple(v * MM for v in box.min_mm),  # type: ignore[arg-type]
+                    tuple(v * MM for v in box.max_mm),
+                )
+                if box is not None
+                else None
+            ),
+            forbidden=tuple(self.forbidden_checks),
+            max_duration_s=p.max_duration_s,
+            preview_points=p.preview_points,
+        )
+        frame = self._frame_planner
+        assert frame is not None
+
+        def job(answer: Deferred) -> None:
+            try:
+                checked = build_plan(req, frame)
+            except PlanRefused as err:
+                text = f"plan {plan_id} refused: {err}"
+                with self._lock:
+                    self.counters["plans_refused"] += 1
+                    self.last_error = text
+                    if self._generation == generation:
+                        self.status = text
+                answer.fail(text)
+                return
+            with self._lock:
+                self.counters["plans_checked"] += 1
+                if self._generation != generation:
+                    stale = True
+                else:
+                    stale = False
+                    self._set_plan(checked)
+                    self.status = f"plan {plan_id} previewed; KeyframeAck Plan={plan_id} runs it"
+            if stale:
+                answer.fail(f"plan {plan_id} dropped: the keyframes changed meanwhile; plan again")
+            else:
+                answer.resolve(checked.summary)
+
+        return self._start(job)
+
+    def _cmd_ack(self, args: dict[str, str], now: float) -> str:
+        data = self.data
+        assert data is not None
+        text = args.get("plan", "").strip()
+        if not text:
+            raise CommandError("KeyframeAck needs Plan (the number of the previewed plan)")
+        try:
+            plan_id = int(text)
+        except ValueError:
+            raise CommandError(f"KeyframeAck: Plan must be a number, got {text!r}") from None
+        if self.active is not None:
+            raise CommandError(f"plan {self.active.id} is running already")
+        pending = self.plan
+        if pending is None or pending.id != plan_id:
+            have = f"plan {pending.id} is previewed" if pending else "no plan is previewed"
+            raise CommandError(f"KeyframeAck: plan {plan_id} is not the previewed plan ({have})")
+        if self.p.preview_required and not self._preview.sent:
+            raise CommandError(
+                f"KeyframeAck: plan {plan_id} has not been previewed yet (its preview goes out "
+                "with the next keyframe-path output); look at it, then acknowledge"
+            )
+        if data.state is not RobotState.RUNNING:
+            raise CommandError(
+                f"KeyframeAck: the robot is {data.state.value}; send Run first (it holds "
+                "until a plan is acknowledged)"
+            )
+        away = max(abs(a - b) for a, b in zip(data.setpoint, pending.q_start, strict=True))
+        if away > 1e-9:
+            raise CommandError(
+                f"KeyframeAck: the robot moved since plan {plan_id} was checked "
+                f"({away:.3g} rad/m); plan again"
+            )
+        self.active = pending
+        self._t0 = now
+        self._q_last = list(pending.q_start)
+        self.counters["runs"] += 1
+        with self._lock:
+            self.status = f"plan {plan_id} running ({pending.traj.duration:.3f} s)"
+        log.info("keyframes: plan %d acknowledged, running %.3f s", plan_id, pending.traj.duration)
+        return f"plan {plan_id} running: {pending.traj.duration:.3f} s"
+
+    def _start(self, job: Callable[[Deferred], None]) -> Deferred:
+        if self._job is not None and self._job.is_alive():
+            raise CommandError("busy: the planner is still working on the last request; retry")
+        answer = Deferred()
+
+        def main() -> None:
+            try:
+                job(answer)
+            except Exception as err:  # noqa: BLE001 - the operator gets an answer whatever
+                log.exception("keyframe planner failed")
+                answer.fail(f"planner failed: {err}")
+
+        thread = threading.Thread(target=main, name="occ-keyframe-planner", daemon=True)
+        self._job = thread
+        thread.start()
+        return answer
+
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        """Wait for the planner thread (tests, tools); True when it is idle."""
+        thread = self._job
+        if thread is not None:
+            thread.join(timeout)
+            return not thread.is_alive()
+        return True
+
+    # ------------------------------------------------------------------ the loop
+    def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
+        run = self.active
+        if run is not None and old is RobotState.RUNNING and new is not RobotState.RUNNING:
+            t = now - self._t0
+            self.active = None
+            self.counters["runs_stopped"] += 1
+            with self._lock:
+                self._generation += 1
+                self._set_plan(None)
+                self.status = (
+                    f"plan {run.id} stopped at t={t:.3f} s of {run.traj.duration:.3f} s "
+                    f"({old.value} -> {new.value}); the robot holds there; plan again to run "
+                    "the keyframes"
+                )
+            log.warning("keyframes: %s", self.status)
+
+    def update(self, now: float) -> Sequence[float] | None:
+        run = self.active
+        if run is None:
+            return None
+        t = now - self._t0
+        pos = run.traj.position(t)
+        if run.space == "joint":
+            q: list[float] = pos.tolist()
+        else:
+            ctx = self.ctx
+            assert ctx is not None
+            try:
+                q, clamped = ctx.frame.ik_clamped(
+                    (float(pos[0]), float(pos[1]), float(pos[2])), self._q_last
+                )
+            except (KinematicsError, ValueError) as err:
+                clamped, q = True, self._q_last
+                self.last_error = f"plan {run.id}: IK failed at t={t:.3f} s: {err}"
+            if clamped:
+                # checked offline, so only a different sampling time can get here: hold
+                self.counters["ik_failures"] += 1
+                self.active = None
+                with self._lock:
+                    self._generation += 1
+                    self._set_plan(None)
+                    self.status = f"plan {run.id} stopped at t={t:.3f} s: tip unreachable"
+                log.warning("keyframes: %s", self.status)
+                return None
+        self._q_last = q
+        if t >= run.traj.end:
+            self.active = None
+            self.counters["runs_completed"] += 1
+            with self._lock:
+                self._generation += 1
+                self._set_plan(None)
+                self.status = f"plan {run.id} completed ({run.traj.duration:.3f} s)"
+            log.info("keyframes: %s", self.status)
+        return q
+
+    # ------------------------------------------------------------------ preview
+    def _due(self, out: Output, now: float) -> _PreviewState | None:
+        pv = self._preview
+        key = id(out)
+        last = pv.sent.get(key)
+        repeat = self.p.preview_repeat_s
+        if last is not None and (pv.plan is None or repeat is None or now - last[1] < repeat):
+            return None
+        if last is None and pv.version == 0:
+            return None  # nothing was ever previewed
+        pv.sent[key] = (pv.version, now)
+        return pv
+
+    def _meta(self, out: Output) -> dict[str, str]:
+        return {"MRMLNodeName": out.device} if out.header_version == 2 else {}
+
+    def _source_path(self, out: Output, now: float) -> Message | None:
+        pv = self._due(out, now)
+        if pv is None:
+            return None
+        pts = pv.plan.path_mm if pv.plan is not None else np.zeros((0, 3))
+        lines = (tuple(range(len(pts))),) if len(pts) >= 2 else ()
+        assert self.ctx is not None
+        return igtl.PolyDataMessage(
+            points=np.asarray(pts, dtype=np.float32),
+            lines=lines,
+            device_name=out.device,
+            header_version=out.header_version,
+            timestamp=self.ctx.clock.wall_time(),
+            metadata=self._meta(out),
+        )
+
+    def _source_points(self, out: Output, now: float) -> Message | None:
+        pv = self._due(out, now)
+        if pv is None:
+            return None
+        plan_ = pv.plan
+        points: list[igtl.PointElement] = []
+        if plan_ is not None:
+            for label, xyz in zip(plan_.point_names, plan_.keys_mm.tolist(), strict=True):
+                points.append(
+                    igtl.PointElement(
+                        name=label.encode("utf-8")[:64].decode("utf-8", "ignore"),
+                        group="Keyframe",
+                        rgba=(255, 200, 0, 255),
+                        position=(xyz[0], xyz[1], xyz[2]),
+                    )
+                )
+        assert self.ctx is not None
+        return igtl.PointMessage(
+            points=tuple(points),
+            device_name=out.device,
+            header_version=out.header_version,
+            timestamp=self.ctx.clock.wall_time(),
+            metadata=self._meta(out),
+        )
+
+    # ------------------------------------------------------------------ reporting
+    def describe(self) -> str:
+        kset = self.kset
+        lines = [f"status: {self.status}"]
+        if kset is None:
+            lines.append("keyframes: none")
+        else:
+            lines.append(f"keyframes: {len(kset.keyframes)} {kset.space} from {kset.source}")
+            unit = "mm" if kset.space == "cartesian" else "rad/m"
+            for i, k in enumerate(kset.keyframes):
+                pose = " ".join(f"{v:.6g}" for v in k.pose)
+                name = f" {kset.names[i]!r}" if kset.names[i] else ""
+                lines.append(f"  #{i}{name} t={k.t:g} s pose=[{pose}] {unit}")
+        pending = self.plan
+        if pending is not None:
+            lines.append(f"previewed: {pending.summary}")
+        if self.active is not None:
+            lines.append(f"running: plan {self.active.id}")
+        return "\n".join(lines)
+
+    def stats(self) -> dict[str, Any]:
+        kset = self.kset
+        return {
+            **self.counters,
+            "keyframes": len(kset.keyframes) if kset else 0,
+            "space": kset.space if kset else None,
+            "source": kset.source if kset else None,
+            "plan": self.plan.id if self.plan else None,
+            "running": self.active.id if self.active else None,
+            "status": self.status,
+            "last_error": self.last_error,
+            "forbidden_checks": len(self.forbidden_checks),
+        }
