@@ -18,7 +18,7 @@ Keyframes
       every ``point_interval_s`` (the first at ``point_interval_s``). Hidden points (alpha 0,
       as Slicer marks them) are left out with their times. A message that cannot be used is
       refused, counted (``inputs_refused``) and logged; the set is then unchanged;
-    - ``KeyframeAdd T=SECONDS Pose="a b c" [Name=..] [Space=joint|cartesian]``.
+    - ``KeyframeAdd T=SECONDS Pose="a b c" [Label=..] [Space=joint|cartesian]``.
 
     ``KeyframeList`` lists the set and the plan; ``KeyframeClear`` forgets both.
 
@@ -413,8 +413,8 @@ def _where(t: float, times: Sequence[float], labels: Sequence[str], period: floa
             return f"at {labels[i]}"
     for i in range(len(times) - 1):
         if times[i] < t < times[i + 1]:
-            return f"t={t:.3f} s, between {labels[i]} and {labels[i + 1]}"
-    return f"t={t:.3f} s"
+            return f"at t={t:.3f} s, between {labels[i]} and {labels[i + 1]}"
+    return f"at t={t:.3f} s"
 
 
 def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
@@ -813,7 +813,7 @@ class KeyframeController(Controller):
         )
         if any(abs(t - it[0]) < 1e-12 for it in items):
             raise CommandError(f"KeyframeAdd: there is a keyframe at t={t:g} s already")
-        items.append((t, pose, args.get("name", "")))
+        items.append((t, pose, args.get("label", "")))
         items.sort(key=lambda it: it[0])
         try:
             kset = make_set(

@@ -564,6 +564,9 @@ CONTROLLER_RIGS: dict[str, ControllerRig] = {
         CONFIGS / "slave.yaml", {"input_interface": "master"}, master_stream
     ),
     "teleop-master": ControllerRig(CONFIGS / "master.yaml", {"input": "sim"}),
+    "keyframe": ControllerRig(
+        CONFIGS / "keyframe.yaml", {"file": str(CONFIGS / "keyframes" / "demo.yaml")}
+    ),
 }
 
 
