@@ -751,8 +751,8 @@ class ControllerConfig(_Model):
     """One controller plugin (occ/controllers): what the robot does while RUNNING."""
 
     plugin: Name = Field(
-        description="Registered controller name: `teleop-master`, `teleop-slave`, `hold`, or "
-        "one added by a package (entry point group `occ.controllers`)."
+        description="Registered controller name: `teleop-master`, `teleop-slave`, `keyframe`, "
+        "`hold`, or one added by a package (entry point group `occ.controllers`)."
     )
     params: dict[str, Any] = Field(
         {},

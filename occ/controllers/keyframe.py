@@ -182,8 +182,8 @@ class KeyframeParams(_Model):
     )
     keyframe_dir: ExistingDir | None = Field(
         None,
-        description="Folder KeyframeLoad may read from (names inside it only); null = the "
-        "command is refused.",
+        description="An existing folder KeyframeLoad may read from (names inside it only), "
+        "relative to the config file's folder; null = the command is refused.",
     )
     interpolation: Literal["linear", "spline"] = Field(
         "linear", description="Default interpolation of KeyframePlan."
@@ -584,7 +584,7 @@ class _PreviewState:
 
 class KeyframeController(Controller):
     """Keyframe trajectories: stored keyframes planned, checked, previewed in Slicer, run
-    after the operator's acknowledgement (issue 11; see :mod:`occ.controllers.keyframe`)."""
+    after the operator's acknowledgement (issue 11; the module docstring has the details)."""
 
     name = "keyframe"
     Params = KeyframeParams
