@@ -640,3 +640,87 @@ def test_make_set_and_messages_refuse_bad_keyframes() -> None:
         items_from_message(point_message([(0.0, 0.0, 0.0)], times="soon"), 1.0)
     with pytest.raises(ValueError, match="no keyframes"):
         items_from_message(igtl.StringMessage("x", device_name="S"), 1.0)
+
+
+# ============================================================================ real sockets
+@pytest.mark.realtime
+def test_over_loopback_tcp_with_the_real_loop() -> None:
+    """configs/keyframe.yaml on an ephemeral port with its real 1 kHz loop: a TCP client (as
+    Slicer) sends a point list and the commands, sees the preview, acknowledges, and the run
+    ends at the last keyframe."""
+    import time
+
+    from igtl.transport import TCPClient
+    from occ.robot import build_robot
+
+    data = yaml.safe_load((CONFIGS / "keyframe.yaml").read_text())
+    data["interfaces"][0]["port"] = 0
+    data["robot"]["realtime"] = {"gc": "default"}
+    data["robot"]["drivers"][0]["plugin"] = "ideal-keyframe-test"
+    data["robot"]["drivers"][0]["params"] = {}
+    cfg = parse_config(yaml.safe_dump(data), source="kf.yaml", base_dir=CONFIGS)
+    robot = build_robot(cfg)
+    robot.configure()
+    robot.activate()
+    loop = threading.Thread(target=robot.run, name="kf-loop", daemon=True)
+    loop.start()
+    got: list[igtl.Message] = []
+    port = robot.interfaces["slicer"].address[1]  # type: ignore[index]
+    client = TCPClient("127.0.0.1", port, on_message=lambda p, m: got.append(m))
+    client.start()
+
+    def wait(match: Any, timeout: float = 20.0) -> igtl.Message:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            for m in list(got):
+                if match(m):
+                    return m
+            time.sleep(0.005)
+        raise AssertionError(f"nothing matched; got {[m.message_type for m in got]}")
+
+    ids = iter(range(1, 100))
+
+    def command(name: str, **args: Any) -> str:
+        cid = next(ids)
+        client.send(
+            igtl.CommandMessage(
+                command_id=cid, command_name=name, command=xml(name, **args), header_version=2
+            )
+        )
+        reply = wait(lambda m: m.message_type == "RTS_COMMAND" and m.command_id == cid)
+        assert reply.metadata["Status"] == "SUCCESS", reply.metadata
+        return str(reply.metadata["Message"])
+
+    try:
+        assert client.wait_connected(5.0)
+        command("Enable")
+        command("Run")
+        entry, target = (-6.0, 30.0, 226.0), (-12.0, 46.0, 201.0)
+        client.send(point_message([entry, target], times="0.5 1.0"))
+        assert "2 cartesian from POINT 'F'" in wait_text(command, "KeyframeList", "2 cartesian")
+        text = command("KeyframePlan", Interpolation="linear")
+        plan_id = int(text.split(":")[0].split()[1])
+        path = wait(lambda m: m.message_type == "POLYDATA" and len(m.points) > 0)
+        assert path.device_name == "KeyframePath" and path.metadata["MRMLNodeName"]
+        command("KeyframeAck", Plan=plan_id)
+        wait_text(command, "KeyframeList", f"plan {plan_id} completed")
+        tip = np.array(robot.frame.tip_position(robot.data.setpoint)) / 1e-3
+        assert np.max(np.abs(tip - target)) <= 1e-6
+        assert robot.state is RobotState.RUNNING
+    finally:
+        client.stop()
+        robot.stop_loop()
+        loop.join(5.0)
+        robot.shutdown()
+
+
+def wait_text(command: Any, name: str, text: str, timeout: float = 20.0) -> str:
+    import time
+
+    end = time.monotonic() + timeout
+    while True:
+        reply = str(command(name))
+        if text in reply or time.monotonic() > end:
+            assert text in reply, reply
+            return reply
+        time.sleep(0.05)
