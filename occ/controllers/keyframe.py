@@ -74,6 +74,8 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import queue
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -123,8 +125,12 @@ ExistingDir = Annotated[DirectoryPath, BeforeValidator(_resolve_path)]
 
 #: largest keyframe file read (bytes): a timeline of keyframes is a few kilobytes
 MAX_FILE_BYTES = 1 << 20
-#: samples the planner thread checks between hand-backs of the interpreter lock (~0.2 ms)
-_CHUNK = 16
+#: how the planner thread shares the interpreter with the loop (see :class:`Pacer`)
+PACE_WORK_S = 100e-6
+PACE_BEFORE_S = 200e-6
+PACE_AFTER_S = 350e-6
+PACE_HANDBACK_S = 10e-6
+PACE_MODE = "phase"
 
 
 class ForbiddenCheck(Protocol):
@@ -364,6 +370,61 @@ class PlanRefused(Exception):
     """A plan that failed its checks (the message names the keyframe and the limit)."""
 
 
+class Pacer:
+    """Keeps the planner thread off the interpreter lock when the loop needs it.
+
+    One interpreter lock serves every thread: a thread that wants it waits until the holder
+    lets go, up to the switch interval. A planner that computed flat out made the loop wait for
+    it at most ticks (measured: lateness p50 0.5 ms, p99 6 ms; docs/BENCHMARKS.md). So the
+    planner works in slices of ``PACE_WORK_S`` and, while the loop runs, only in the quiet part
+    of its period: from ``PACE_AFTER_S`` after a deadline (the tick is done by then) to
+    ``PACE_BEFORE_S`` before the next, sleeping through the rest; inside that window it still
+    sleeps ``PACE_HANDBACK_S`` between slices. With no loop running (a stepped simulation) it
+    only does the latter.
+    """
+
+    def __init__(
+        self, now: Callable[[], float], loop_t0: Callable[[], float], period: float
+    ) -> None:
+        self.now = now
+        self.loop_t0 = loop_t0
+        self.period = period
+        self._since = now()
+        self.sleeps = 0
+
+    def begin(self) -> None:
+        """Wait for the quiet part of the loop's period before the first slice (the thread
+        that starts the planner is the loop, mid-tick)."""
+        self._since = -math.inf
+        self()
+
+    def __call__(self) -> None:
+        t = self.now()
+        if t - self._since < PACE_WORK_S:
+            return
+        t0 = self.loop_t0()
+        if PACE_MODE == "phase" and t0 == t0:  # not NaN: the loop is running
+            period = self.period
+            phase = (t - t0) % period
+            if phase < PACE_AFTER_S:
+                wait = PACE_AFTER_S - phase
+            elif phase > period - PACE_BEFORE_S - PACE_WORK_S:
+                wait = period - phase + PACE_AFTER_S
+            else:
+                # a real sleep, however short: a zero one often takes the lock straight back
+                # before a waiting loop thread (mid-tick) has woken to take it
+                wait = PACE_HANDBACK_S
+            self.sleeps += 1
+            time.sleep(wait)
+        elif PACE_MODE == "rest":
+            time.sleep(PACE_WORK_S)
+        elif PACE_MODE == "yield":
+            time.sleep(0)
+        else:
+            time.sleep(PACE_HANDBACK_S)
+        self._since = self.now()
+
+
 @dataclass(frozen=True)
 class PlanRequest:
     """Everything a plan is made from, snapshot on the loop thread when it is asked for."""
@@ -386,6 +447,8 @@ class PlanRequest:
     forbidden: tuple[ForbiddenCheck, ...]
     max_duration_s: float
     preview_points: int
+    #: called between samples: gives the interpreter back to the loop (None: never)
+    pace: Pacer | None = None
 
 
 @dataclass(frozen=True)
@@ -431,6 +494,8 @@ def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
     def to_world_mm(p: Sequence[float]) -> np.ndarray:
         return np.asarray((req.base[:3, :3] @ np.asarray(p) + origin) / MM, dtype=float)
 
+    if req.pace is not None:
+        req.pace.begin()
     here: tuple[float, ...] = (
         tuple(float(v) for v in frame.tip_position(list(req.q_start))) if cart else req.q_start
     )
@@ -479,13 +544,13 @@ def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
     vmax = [lim.velocity * req.velocity_scale for lim in req.limits]
     box = req.workspace
     forbidden = req.forbidden
+    pace = req.pace if req.pace is not None else (lambda: None)
     q_prev = list(req.q_start)
     peak_share, peak_joint = 0.0, 0
     stride = max(1, math.ceil((ticks + 1) / (req.preview_points - 1)))
     path: list[tuple[float, float, float]] = []
     for j in range(ticks + 1):
-        if j % _CHUNK == 0:
-            time.sleep(0)  # hand the interpreter lock back: the loop must not wait for it
+        pace()
         t = min(j * period, traj.end)
         pos = traj.position(t)
         if cart:
@@ -575,6 +640,74 @@ def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
 
 
 # ------------------------------------------------------------------------------ controller
+def _loop_priority() -> int | None:
+    """The calling (loop) thread's SCHED_FIFO priority, None when it is not SCHED_FIFO."""
+    try:
+        if os.sched_getscheduler(0) == os.SCHED_FIFO:
+            return int(os.sched_getparam(0).sched_priority)
+    except (OSError, AttributeError):
+        pass
+    return None
+
+
+class _PlannerThread:
+    """One daemon thread that runs the planner's jobs, one at a time. The loop only puts a
+    job in its queue (microseconds); a job submitted while one is pending is refused."""
+
+    def __init__(self) -> None:
+        self._jobs: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self.idle = threading.Event()
+        self.idle.set()
+        self.fifo: int | None = None  # the thread's SCHED_FIFO priority (None: SCHED_OTHER)
+        self.fifo_refused = ""
+        self._thread = threading.Thread(target=self._main, name="occ-keyframe-planner", daemon=True)
+        self._thread.start()
+
+    def submit(self, job: Callable[[], None], answer: Deferred, fifo: int | None) -> bool:
+        """Queue ``job``; False when one is pending. ``fifo``: the loop's SCHED_FIFO priority
+        (None: it runs SCHED_OTHER); the job runs one below it, as the interface threads do."""
+        with self._lock:
+            if not self.idle.is_set():
+                return False
+            self.idle.clear()
+
+        def run() -> None:
+            self._schedule(fifo)
+            try:
+                job()
+            except Exception as err:  # noqa: BLE001 - the operator gets an answer whatever
+                log.exception("keyframe planner failed")
+                answer.fail(f"planner failed: {err}")
+
+        self._jobs.put(run)
+        return True
+
+    def _schedule(self, fifo: int | None) -> None:
+        # Below the loop but above ordinary processes, like the interface threads: a planner
+        # thread preempted while it holds the interpreter lock (a busy machine) would keep a
+        # SCHED_FIFO loop waiting for the lock for as long as the kernel keeps it off the CPU.
+        want = None if fifo is None else max(1, fifo - 1)
+        if want == self.fifo:
+            return
+        try:
+            if want is None:
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            else:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(want))
+            self.fifo = want
+        except (OSError, AttributeError) as err:
+            self.fifo_refused = f"{type(err).__name__}: {err}"
+
+    def _main(self) -> None:
+        while True:
+            job = self._jobs.get()
+            try:
+                job()
+            finally:
+                self.idle.set()
+
+
 @dataclass
 class _PreviewState:
     version: int = 0
@@ -612,7 +745,7 @@ class KeyframeController(Controller):
         self.plan: CheckedPlan | None = None  # checked, previewed, not yet acknowledged
         self.status = "no keyframes"
         self._next_id = 1
-        self._job: threading.Thread | None = None
+        self._planner: _PlannerThread | None = None
         # the run (loop thread only)
         self.active: CheckedPlan | None = None
         self._t0 = 0.0
@@ -685,6 +818,8 @@ class KeyframeController(Controller):
     def configure(self, data: RobotData, ctx: ControllerContext) -> None:
         super().configure(data, ctx)
         self._frame_planner = ctx.frame.copy()  # the planner thread's own (pinocchio data)
+        # started now, not by a command: starting a thread from the loop cost the tick ~1 ms
+        self._planner = _PlannerThread()
         self.limits = ctx.joint_limits or tuple(
             JointLimits(lo, hi) for lo, hi in zip(ctx.frame.lower, ctx.frame.upper, strict=True)
         )
@@ -915,6 +1050,7 @@ class KeyframeController(Controller):
             forbidden=tuple(self.forbidden_checks),
             max_duration_s=p.max_duration_s,
             preview_points=p.preview_points,
+            pace=Pacer(time.perf_counter, ctx.loop_t0, ctx.period_s),
         )
         frame = self._frame_planner
         assert frame is not None
@@ -988,29 +1124,18 @@ class KeyframeController(Controller):
         return f"plan {plan_id} running: {pending.traj.duration:.3f} s"
 
     def _start(self, job: Callable[[Deferred], None]) -> Deferred:
-        if self._job is not None and self._job.is_alive():
-            raise CommandError("busy: the planner is still working on the last request; retry")
+        """Hand ``job`` to the planner thread (one at a time; a second is refused)."""
+        planner = self._planner
+        if planner is None:
+            planner = self._planner = _PlannerThread()
         answer = Deferred()
-
-        def main() -> None:
-            try:
-                job(answer)
-            except Exception as err:  # noqa: BLE001 - the operator gets an answer whatever
-                log.exception("keyframe planner failed")
-                answer.fail(f"planner failed: {err}")
-
-        thread = threading.Thread(target=main, name="occ-keyframe-planner", daemon=True)
-        self._job = thread
-        thread.start()
+        if not planner.submit(lambda: job(answer), answer, _loop_priority()):
+            raise CommandError("busy: the planner is still working on the last request; retry")
         return answer
 
     def wait_idle(self, timeout: float | None = None) -> bool:
         """Wait for the planner thread (tests, tools); True when it is idle."""
-        thread = self._job
-        if thread is not None:
-            thread.join(timeout)
-            return not thread.is_alive()
-        return True
+        return self._planner is None or self._planner.idle.wait(timeout)
 
     # ------------------------------------------------------------------ the loop
     def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
@@ -1157,4 +1282,5 @@ class KeyframeController(Controller):
             "status": self.status,
             "last_error": self.last_error,
             "forbidden_checks": len(self.forbidden_checks),
+            "planner_fifo": self._planner.fifo if self._planner else None,
         }

@@ -724,3 +724,32 @@ def wait_text(command: Any, name: str, text: str, timeout: float = 20.0) -> str:
             assert text in reply, reply
             return reply
         time.sleep(0.05)
+
+
+def test_the_pacer_keeps_the_planner_out_of_the_loops_deadlines(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import occ.controllers.keyframe as module
+
+    slept: list[float] = []
+    monkeypatch.setattr(module.time, "sleep", slept.append)
+    clock = [0.0]
+    pacer = module.Pacer(lambda: clock[0], lambda: 10.0, 1e-3)  # deadlines at 10 s + k ms
+
+    def at(phase_us: float) -> float:
+        clock[0] = 10.0 + 5e-3 + phase_us * 1e-6
+        slept.clear()
+        pacer.begin()
+        return slept[0] * 1e6
+
+    assert at(100) == pytest.approx(250)  # mid-tick: wait until 350 us past the deadline
+    assert at(500) == pytest.approx(module.PACE_HANDBACK_S * 1e6)  # quiet: work, hand back
+    assert at(750) == pytest.approx(600)  # too close to the next deadline: skip past it
+    clock[0] += 50e-6  # within a work slice: no sleep at all
+    slept.clear()
+    pacer()
+    assert slept == []
+    stepped = module.Pacer(lambda: clock[0], lambda: math.nan, 1e-3)  # no loop running
+    slept.clear()
+    stepped.begin()
+    assert slept == [module.PACE_HANDBACK_S]
