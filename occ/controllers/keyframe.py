@@ -35,8 +35,9 @@ Plan, check and preview (offline mode, the paper's safety rule)
     ``workspace_mm`` (base frame) and reachable within the joint limits (Cartesian plans go
     through the Frame's IK, ``ik_clamped``, seeded with the previous tick as at run time), and
     the tip outside every forbidden region (:class:`ForbiddenCheck`, see below). Planning and
-    checking run on a thread of their own (a spline plan takes milliseconds, a check ~15 us a
-    tick of motion), handing the interpreter back every few samples; the command is answered
+    checking run on a planner thread (a spline plan takes milliseconds, a check 30-70 us a
+    tick of motion), SCHED_FIFO one below the loop when the loop has it and paced into the
+    quiet part of each period (:class:`Pacer`); the command is answered
     when they finish (:class:`~occ.commands.Deferred`): the plan's number and summary, or the
     refusal naming the keyframe (or the segment between two) and the limit. A plan that passed
     is previewed: output source ``keyframe-path`` (POLYDATA: the tip's path as a polyline, world
