@@ -79,6 +79,7 @@ import os
 import queue
 import threading
 import time
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -656,7 +657,7 @@ class _PlannerThread:
     job in its queue (microseconds); a job submitted while one is pending is refused."""
 
     def __init__(self) -> None:
-        self._jobs: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
+        self._jobs: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self.idle = threading.Event()
         self.idle.set()
@@ -700,9 +701,15 @@ class _PlannerThread:
         except (OSError, AttributeError) as err:
             self.fifo_refused = f"{type(err).__name__}: {err}"
 
+    def stop(self) -> None:
+        """Let the thread end once the queued job (if any) is done."""
+        self._jobs.put(None)
+
     def _main(self) -> None:
         while True:
             job = self._jobs.get()
+            if job is None:
+                return
             try:
                 job()
             finally:
@@ -819,8 +826,10 @@ class KeyframeController(Controller):
     def configure(self, data: RobotData, ctx: ControllerContext) -> None:
         super().configure(data, ctx)
         self._frame_planner = ctx.frame.copy()  # the planner thread's own (pinocchio data)
-        # started now, not by a command: starting a thread from the loop cost the tick ~1 ms
+        # started now, not by a command: starting a thread from the loop cost the tick ~1 ms;
+        # it ends when this controller is collected (controllers have no shutdown hook)
         self._planner = _PlannerThread()
+        weakref.finalize(self, self._planner.stop)
         self.limits = ctx.joint_limits or tuple(
             JointLimits(lo, hi) for lo, hi in zip(ctx.frame.lower, ctx.frame.upper, strict=True)
         )
