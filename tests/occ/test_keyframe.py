@@ -55,7 +55,14 @@ class IdealDriver(Driver):
         self.last = list(values)
 
 
-register_driver("ideal-keyframe-test", IdealDriver)
+IDEAL = "ideal-keyframe-test"
+
+
+def ideal_driver() -> str:
+    """Register the ideal driver (at run time, not at import: tests/occ/test_contracts.py
+    wants a rig for every driver registered when it is collected) and return its name."""
+    register_driver(IDEAL, IdealDriver)
+    return IDEAL
 
 
 def config(params: dict[str, Any] | None = None, *, preview_hz: float = 100.0) -> dict[str, Any]:
@@ -76,7 +83,7 @@ def config(params: dict[str, Any] | None = None, *, preview_hz: float = 100.0) -
             "drivers": [
                 {
                     "name": "ideal",
-                    "plugin": "ideal-keyframe-test",
+                    "plugin": ideal_driver(),
                     "joints": list(LIMITS),
                     "on_limit": "fault",  # a checked plan never reaches a limit
                 }
@@ -656,7 +663,7 @@ def test_over_loopback_tcp_with_the_real_loop() -> None:
     data = yaml.safe_load((CONFIGS / "keyframe.yaml").read_text())
     data["interfaces"][0]["port"] = 0
     data["robot"]["realtime"] = {"gc": "default"}
-    data["robot"]["drivers"][0]["plugin"] = "ideal-keyframe-test"
+    data["robot"]["drivers"][0]["plugin"] = ideal_driver()
     data["robot"]["drivers"][0]["params"] = {}
     cfg = parse_config(yaml.safe_dump(data), source="kf.yaml", base_dir=CONFIGS)
     robot = build_robot(cfg)
