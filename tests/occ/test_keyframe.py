@@ -760,3 +760,19 @@ def test_the_pacer_keeps_the_planner_out_of_the_loops_deadlines(
     slept.clear()
     stepped.begin()
     assert slept == [module.PACE_HANDBACK_S]
+
+
+def test_plus_style_string_commands_are_answered_too(session: Session) -> None:
+    s = session
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    for uid, text in (("7", '<Command Name="KeyframeList"/>'), ("8", "KeyframePlan")):
+        s.slicer.send(igtl.StringMessage(text, device_name=f"CMD_{uid}", header_version=2))
+        s.step(1)
+        assert s.kf.wait_idle(30.0)
+        (ack,) = s.slicer.messages("STRING", f"ACK_{uid}")
+        assert 'Status="SUCCESS"' in ack.string  # type: ignore[attr-defined]
+    assert "plan 1:" in s.slicer.messages("STRING", "ACK_8")[0].string  # type: ignore[attr-defined]
+    s.slicer.send(igtl.StringMessage("KeyframeAck", device_name="CMD_9", header_version=2))
+    s.step(1)
+    (ack,) = s.slicer.messages("STRING", "ACK_9")
+    assert 'Status="FAIL"' in ack.string and "needs Plan" in ack.string  # type: ignore[attr-defined]
