@@ -579,19 +579,24 @@ def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
                         f"[{lo[i]:g}, {hi[i]:g}] {_where(t, times, labels, period)}"
                     )
             tip = frame.tip_position(q)
-        if True:  # the first step too: from the held pose to the plan's first sample
-            for i, v in enumerate(q):
-                speed = abs(v - q_prev[i]) / period
-                share = speed / req.limits[i].velocity
-                if share > peak_share:
-                    peak_share, peak_joint = share, i
-                if speed > vmax[i] * (1.0 + 1e-9):
-                    raise PlanRefused(
-                        f"joint {names[i]!r} velocity {speed:.4g} exceeds its limit "
-                        f"{vmax[i]:.4g} {_where(t, times, labels, period)}"
-                        + (f" (x velocity_scale {req.velocity_scale:g})" * (req.velocity_scale < 1))
-                        + "; give that segment more time"
-                    )
+        # each step over one period, as the drivers check it (the first one too: from the
+        # held pose to the plan's first sample)
+        for i, v in enumerate(q):
+            speed = abs(v - q_prev[i]) / period
+            share = speed / req.limits[i].velocity
+            if share > peak_share:
+                peak_share, peak_joint = share, i
+            if speed > vmax[i] * (1.0 + 1e-9):
+                scaled = (
+                    f" (velocity_scale {req.velocity_scale:g} of {req.limits[i].velocity:g})"
+                    if req.velocity_scale < 1.0
+                    else ""
+                )
+                raise PlanRefused(
+                    f"joint {names[i]!r} velocity {speed:.4g} exceeds its limit "
+                    f"{vmax[i]:.4g}{scaled} {_where(t, times, labels, period)}; give that "
+                    "segment more time"
+                )
         if box is not None:
             (x0, y0, z0), (x1, y1, z1) = box
             if not (x0 <= tip[0] <= x1 and y0 <= tip[1] <= y1 and z0 <= tip[2] <= z1):
