@@ -106,7 +106,7 @@ from ..config import (
     Vec3,
     _resolve_path,
 )
-from ..errors import CommandError, KinematicsError
+from ..errors import CommandError, ConfigError, KinematicsError
 from ..joint import JointLimits
 from ..safety import RobotState
 from ..trajectory import Keyframe, Trajectory, plan
@@ -628,7 +628,7 @@ def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
         f"{traj.mode}), {traj.duration:.3f} s; peak joint speed {peak_share:.0%} of the limit "
         f"({peak[0]})"
         + (f"; {'; '.join(notes)}" if notes else "")
-        + f"; preview sent; acknowledge with KeyframeAck Plan={req.id}"
+        + f"; preview on its way to the viewers; acknowledge with KeyframeAck Plan={req.id}"
     )
     return CheckedPlan(
         id=req.id,
@@ -840,13 +840,16 @@ class KeyframeController(Controller):
         )
         p = self.p
         n = len(data.joint_names)
-        if p.keyframes:
-            kf = KeyframeFile(keyframes=p.keyframes)
-            self._install(_file_set(kf, p.space, "config", n, p.max_keyframes))
-        elif p.file is not None:
-            path = Path(p.file)
-            kf = read_keyframe_file(path)
-            self._install(_file_set(kf, p.space, f"file {path.name}", n, p.max_keyframes))
+        try:
+            if p.keyframes:
+                kf = KeyframeFile(keyframes=p.keyframes)
+                self._install(_file_set(kf, p.space, "config", n, p.max_keyframes))
+            elif p.file is not None:
+                path = Path(p.file)
+                kf = read_keyframe_file(path)
+                self._install(_file_set(kf, p.space, f"file {path.name}", n, p.max_keyframes))
+        except ValueError as err:  # occd --check reports these with their line already
+            raise ConfigError(f"controller keyframe: {err}") from err
 
     def outputs(self) -> dict[str, SourceFn]:
         return {"keyframe-path": self._source_path, "keyframe-points": self._source_points}

@@ -776,3 +776,8 @@ def test_plus_style_string_commands_are_answered_too(session: Session) -> None:
     s.step(1)
     (ack,) = s.slicer.messages("STRING", "ACK_9")
     assert 'Status="FAIL"' in ack.string and "needs Plan" in ack.string  # type: ignore[attr-defined]
+
+
+def test_a_robot_built_without_the_loader_refuses_bad_keyframes_as_a_config_error() -> None:
+    with pytest.raises(ConfigError, match="controller keyframe: keyframe 0: 2 values"):
+        SimRobot(config({"keyframes": [{"t": 1.0, "pose": [0.0, 0.0]}]})).close()
