@@ -17,6 +17,7 @@ from .safety import LossEvent, RobotState
 
 if TYPE_CHECKING:
     from .robot import Robot
+    from .safety import LossMonitor
 
 log = logging.getLogger("occ.robot")
 
@@ -55,6 +56,33 @@ class Alarms:
         else:  # resume, refused: keep following, tell the operators
             log.warning("%s: %s", where, event.cause)
             self.broadcast("STREAM", f"{where}: {event.cause}", igtl.StatusCode.OK)
+
+    def bystander_loss(
+        self, name: str, monitor: LossMonitor, event: LossEvent, state: RobotState
+    ) -> None:
+        """A loss event on the stream of a master that is not in control (collaboration): it
+        moves nothing, so it never stops the robot. A latch is an alert to every operator and
+        the monitor re-arms (its master may come back and be handed control later); the
+        others are logged and, like the owner's, told as a ``STREAM`` warning."""
+        r = self.robot
+        owner = r.loss_input
+        if state is not RobotState.RUNNING:
+            log.debug(
+                "stream %s: %s (%s, not acted on in %s)", name, event.kind, event.cause, state
+            )
+            if event.kind == "latch":
+                monitor.reset(None)
+            return
+        if event.kind == "latch":
+            monitor.reset(None)
+            text = f"stream {name} (not in control) lost: {event.cause}; following {owner}"
+            log.error("ALERT: %s", text)
+            self.broadcast("ALERT", text, igtl.StatusCode.TIME_OUT)
+        elif event.kind == "hold":
+            log.info("stream %s (not in control): %s", name, event.cause)
+        else:
+            log.warning("stream %s (not in control): %s", name, event.cause)
+            self.broadcast("STREAM", f"stream {name}: {event.cause}", igtl.StatusCode.OK)
 
     def broadcast(self, name: str, text: str, code: int, timestamp: float | None = None) -> None:
         """A STATUS to every viewer and operator (and the recording)."""

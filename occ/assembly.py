@@ -62,9 +62,11 @@ def build_hardware(rc: RobotConfig) -> tuple[list[Joint], Frame, list[tuple[Driv
     return joints, frame, drivers
 
 
-def build_loss_monitor(ls: LossConfig) -> LossMonitor | None:
-    """The packet-loss monitor of ``safety.loss`` (None when disabled or nothing watched)."""
-    if not ls.enabled or ls.input is None:
+def build_loss_monitor(ls: LossConfig, *, watched: str | None = None) -> LossMonitor | None:
+    """The packet-loss monitor of ``safety.loss`` (None when disabled or nothing watched);
+    ``watched`` builds one with these parameters for that stream whatever ``ls.input`` says
+    (a collaborative slave's masters: one monitor each)."""
+    if not ls.enabled or (ls.input is None and watched is None):
         return None
     tol = ls.timestamp_tolerance_ms
     return LossMonitor(
@@ -75,6 +77,18 @@ def build_loss_monitor(ls: LossConfig) -> LossMonitor | None:
         strict=ls.strict,
         timestamp_tolerance_s=tol * 1e-3 if tol is not None else None,
     )
+
+
+def build_loss_monitors(ls: LossConfig, masters: tuple[str, ...] | None) -> dict[str, LossMonitor]:
+    """Every watched stream's monitor, by interface name: ``safety.loss.input``'s, or with
+    ``collaboration`` one per master (all with ``safety.loss``'s parameters)."""
+    names = masters if masters is not None else ((ls.input,) if ls.input is not None else ())
+    out: dict[str, LossMonitor] = {}
+    for name in names:
+        monitor = build_loss_monitor(ls, watched=name)
+        if monitor is not None:
+            out[name] = monitor
+    return out
 
 
 def build_watchdog(

@@ -41,6 +41,8 @@ BASE_COMMANDS = (
     "Reset",
     "GetState",
     "GetStats",
+    "GetStateTable",
+    "Handover",
 )
 
 

@@ -747,6 +747,61 @@ class StatsConfig(_Model):
 Vec3 = tuple[Float, Float, Float]
 
 
+class CollabMaster(_Model):
+    """One master of a collaborative slave: its stream interface and its operators' console."""
+
+    input: Name = Field(
+        description="Interface of this master's POSITION stream (a `stream` input); it gets a "
+        "loss monitor of its own with `safety.loss`'s parameters."
+    )
+    console: Name | None = Field(
+        None,
+        description="Operator interface on which this master's operator (its surgeon) sends "
+        "commands: a `Handover` from there speaks for this master. null = none.",
+    )
+
+
+class CollaborationConfig(_Model):
+    """Collaborative control (the SAW's mentoring): several masters, one owns the motion."""
+
+    masters: tuple[CollabMaster, ...] = Field(
+        min_length=1, description="The masters that may drive this slave, each on its own stream."
+    )
+    owner: Name | None = Field(
+        None, description="The master (its `input`) in control at start; null = the first."
+    )
+    supervisor: Name | None = Field(
+        None,
+        description="The master whose console may always hand control over, to itself "
+        "(take it back) or to anyone; null = none.",
+    )
+    request: tuple[Name, ...] = Field(
+        (), description="Masters whose console may take control for itself without a grant."
+    )
+    grant: tuple[Name, ...] | None = Field(
+        None,
+        description="Masters whose console may give control away while it has it; null = all.",
+    )
+    others: Literal["supervisor", "refuse"] = Field(
+        "supervisor",
+        description="What an operator on an operator interface that is no master's console "
+        "(the bedside's port) may do: hand over like the `supervisor`, or nothing (`refuse`).",
+    )
+
+    def names(self) -> tuple[str, ...]:
+        return tuple(m.input for m in self.masters)
+
+
+class StateTableConfig(_Model):
+    """The State Data Table: the last seconds of the robot's state at the loop rate."""
+
+    seconds: PosFloat | None = Field(
+        None,
+        description="How many seconds of state the table keeps (rows = seconds x `rate_hz`, "
+        "preallocated); read with the `GetStateTable` command. null = no table.",
+    )
+
+
 class ControllerConfig(_Model):
     """One controller plugin (occ/controllers): what the robot does while RUNNING."""
 
@@ -771,6 +826,12 @@ class DaemonConfig(_Model):
     safety: SafetyConfig = Field(SafetyConfig(), description="Safety monitors.")
     recording: RecordingConfig = Field(RecordingConfig(), description="Recorder.")
     stats: StatsConfig = Field(StatsConfig(), description="Timing statistics.")
+    collaboration: CollaborationConfig | None = Field(
+        None, description="Several masters for one slave (hand-over); null = one master."
+    )
+    state_table: StateTableConfig = Field(
+        StateTableConfig(), description="State Data Table (`GetStateTable`)."
+    )
     controller: ControllerConfig | tuple[ControllerConfig, ...] | None = Field(
         None,
         description="The controller plugin, or a list of them run in order (each command "
@@ -874,5 +935,63 @@ class DaemonConfig(_Model):
                     f"unknown interface '{loss_input}'" + _did_you_mean(loss_input, list(names)),
                 )
             )
+        if self.collaboration is not None:
+            problems.extend(self._collab_problems())
         _raise_problems(problems)
         return self
+
+    def _collab_problems(self) -> list[tuple[Loc, str]]:
+        """The collaboration's names against the interfaces and each other."""
+        co = self.collaboration
+        assert co is not None
+        out: list[tuple[Loc, str]] = []
+        by_name = {itf.name: itf for itf in self.interfaces}
+        names = list(by_name)
+        masters = co.names()
+        seen: set[str] = set()
+        for i, m in enumerate(co.masters):
+            loc: Loc = ("collaboration", "masters", i)
+            itf = by_name.get(m.input)
+            if itf is None:
+                out.append(
+                    (
+                        (*loc, "input"),
+                        f"unknown interface '{m.input}'" + _did_you_mean(m.input, names),
+                    )
+                )
+            elif not any(inp.queue == "stream" for inp in itf.inputs):
+                out.append(((*loc, "input"), f"interface '{m.input}' has no stream input"))
+            if m.input in seen:
+                out.append(((*loc, "input"), f"master '{m.input}' listed twice"))
+            seen.add(m.input)
+            if m.console is not None:
+                con = by_name.get(m.console)
+                if con is None:
+                    out.append(
+                        (
+                            (*loc, "console"),
+                            f"unknown interface '{m.console}'" + _did_you_mean(m.console, names),
+                        )
+                    )
+                elif con.role != "operator":
+                    out.append(
+                        ((*loc, "console"), f"interface '{m.console}' needs role 'operator'")
+                    )
+        refs: list[tuple[Loc, str | None]] = [
+            (("collaboration", "owner"), co.owner),
+            (("collaboration", "supervisor"), co.supervisor),
+            *((("collaboration", "request", i), n) for i, n in enumerate(co.request)),
+            *((("collaboration", "grant", i), n) for i, n in enumerate(co.grant or ())),
+        ]
+        for loc, ref in refs:
+            if ref is not None and ref not in masters:
+                out.append((loc, f"'{ref}' is not one of the masters {list(masters)}"))
+        loss_input = self.safety.loss.input
+        if loss_input is not None and loss_input not in masters:
+            out.append(
+                (
+                    ("safety", "loss", "input"),
+                    f"with collaboration, must be null or one of the masters {list(masters)}",
+                )
+            )
+        return out

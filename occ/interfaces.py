@@ -52,7 +52,7 @@ log = logging.getLogger(__name__)
 
 COMMAND_TYPES = frozenset({"COMMAND"})
 #: commands a viewer may send: they read, never act (names compared in lower case)
-READ_ONLY_COMMANDS = frozenset({"getstate", "getstats"})
+READ_ONLY_COMMANDS = frozenset({"getstate", "getstats", "getstatetable"})
 ROLES = ("none", "viewer", "operator")
 _TRANSPORT_REFUSALS = (
     "over_budget",

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import igtl
@@ -115,8 +116,16 @@ class OperatorDesk:
                     raise CommandError("busy: too many statistics requests; try again")
                 self.handled += 1
                 return
+            elif req.name.strip().lower() == "getstatetable":
+                # arguments checked here (a bad one is answered at once), the table read and
+                # sent by the worker
+                job = self._state_table_job(item, req)
+                if not r.worker.start().submit(job):
+                    raise CommandError("busy: too many requests for the worker; try again")
+                self.handled += 1
+                return
             else:
-                text = self._execute(req, now)
+                text = self._execute(req, now, item.interface)
                 if isinstance(text, Deferred):
                     # answered when the work is done (a controller's planner thread)
                     self.handled += 1
@@ -205,9 +214,61 @@ class OperatorDesk:
             reply = success_reply(req, text, timestamp=wall)
         r.interfaces.reply(item, reply)
 
-    def _execute(self, req: Request, now: float) -> str | Deferred:
+    def _state_table_job(self, item: Inbound, req: Request) -> Callable[[], None]:
+        """``GetStateTable`` (``Seconds``: the last seconds, default all; ``Since``: rows after
+        this daemon time; ``Every``: every n-th row): the worker sends an ``NDARRAY``
+        ``StateTable`` (rows x columns, names in metadata ``columns``), then the reply."""
+        table = self.robot.state_table
+        if table is None:
+            raise CommandError("GetStateTable: no state table (configure state_table.seconds)")
+        args = {k.lower(): v for k, v in req.args.items()}
+        try:
+            seconds = float(args["seconds"]) if "seconds" in args else None
+            since = float(args["since"]) if "since" in args else None
+            every = int(args.get("every", "1"))
+        except ValueError as err:
+            raise CommandError(f"GetStateTable: bad argument: {err}") from err
+        if seconds is not None and not seconds > 0.0:
+            raise CommandError(f"GetStateTable: Seconds must be > 0, got {seconds}")
+        if since is not None and since != since:
+            raise CommandError("GetStateTable: Since must be a number")
+        if every < 1:
+            raise CommandError(f"GetStateTable: Every must be >= 1, got {every}")
+        return lambda: self._reply_state_table(item, req, seconds, since, every)
+
+    def _reply_state_table(
+        self, item: Inbound, req: Request, seconds: float | None, since: float | None, every: int
+    ) -> None:
+        r = self.robot
+        table = r.state_table
+        assert table is not None
+        rows = table.window(seconds, since=since, every=every)
+        msg = req.msg
+        assert msg is not None
+        wall = r.clock.wall_time()
+        meta = {"columns": ",".join(table.columns), "robot": r.name}
+        if r.collab is not None:
+            meta["owners"] = ",".join(r.collab.masters)
+        array = igtl.NDArrayMessage(
+            array=rows,
+            device_name="StateTable",
+            header_version=2,
+            message_id=msg.message_id,
+            metadata=meta,
+            timestamp=wall,
+        )
+        r.interfaces.reply(item, array)
+        span = f" from t={rows[0, 0]:.6f} to t={rows[-1, 0]:.6f}" if len(rows) else ""
+        r.interfaces.reply(
+            item, success_reply(req, f"StateTable: {len(rows)} rows{span}", timestamp=wall)
+        )
+
+    def _execute(self, req: Request, now: float, interface: str = "") -> str | Deferred:
         r = self.robot
         key = req.name.strip().lower()
+        if key == "handover":
+            to = req.args.get("To", req.args.get("to", "")).strip()
+            return r.handover(to, interface, now)
         event = COMMAND_EVENTS.get(key)
         if event is not None:
             reason = f"operator {req.name}"
@@ -291,6 +352,12 @@ class OperatorDesk:
         snap["last_alert"] = r.last_alert
         if r.loss_monitor is not None:
             snap["loss"] = r.loss_monitor.counters()
+        if r.collab is not None:
+            snap["owner"] = r.collab.owner
+            snap["collaboration"] = r.collab.stats()
+            snap["loss_by_stream"] = {n: m.counters() for n, m in r.loss_monitors.items()}
+        if r.state_table is not None:
+            snap["state_table"] = r.state_table.stats()
         snap["controller"] = r.controller.stats()
         snap["drivers"] = {drv.name: drv.stats() for drv, _ in r.drivers}
         snap["realtime"] = r.loop.realtime_report

@@ -31,21 +31,25 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
+import igtl
 from igtl.transport import UDPEndpoint
 
 from .alarms import Alarms
-from .assembly import build_hardware, build_loss_monitor, build_watchdog, realtime_settings
+from .assembly import build_hardware, build_loss_monitors, build_watchdog, realtime_settings
 from .clock import Clock, RealClock
+from .collab import Collaboration
 from .config import DaemonConfig
 from .controllers import Controller, ControllerContext, ControllerSet, create_controller
 from .data import RobotData
 from .drivers.base import DriverState
-from .errors import OCCError
+from .errors import CommandError, OCCError
 from .interfaces import Inbound, InterfaceManager
 from .loop import ControlLoop
 from .operators import OperatorDesk
 from .outputs import STATE_STATUS_CODE, BuiltinSources, OutputScheduler
+from .record import STATE_CODES
 from .safety import LossMonitor, RobotState, StateMachine, Supervisor, Verdict
+from .statetable import StateTable, capacity_for
 from .stats import LoopStats
 from .supervision import SupervisorThread, Worker
 
@@ -61,6 +65,9 @@ MEASURE_WAIT_S = 1.0
 
 #: States in which drivers are ACTIVE (servos on).
 POWERED = frozenset({RobotState.ENABLED, RobotState.RUNNING, RobotState.STOPPED})
+
+#: a state's number in the recording and the State Data Table
+STATE_NUMBER = {st: float(STATE_CODES.get(st.value, -1)) for st in RobotState}
 
 
 def judge(monitor: LossMonitor, item: Inbound, now: float, to_wall: float) -> Verdict:
@@ -112,11 +119,9 @@ class Robot:
             for iface in self.interfaces.interfaces.values()
             if isinstance(iface.transport, UDPEndpoint) and iface.transport.polled
         ]
-        self._stream_queues = [
-            (iface.name, q)
-            for iface in self.interfaces.interfaces.values()
-            for q in iface.streams.values()
-        ]
+        # --- Collaboration: several masters, one owner (occ/collab.py)
+        co = config.collaboration
+        self.collab: Collaboration | None = Collaboration(co) if co is not None else None
 
         # --- Safety
         sc = config.safety
@@ -128,9 +133,25 @@ class Robot:
             on_stop=lambda reason, policy: self.alarms.safety_stop(f"watchdog: {reason}", policy),
         )
         ls = sc.loss
-        self.loss_monitor: LossMonitor | None = build_loss_monitor(ls)
-        self.loss_input: str | None = ls.input if self.loss_monitor is not None else None
+        #: every watched stream's monitor (one per master when collaborating)
+        self.loss_monitors: dict[str, LossMonitor] = build_loss_monitors(
+            ls, self.collab.masters if self.collab is not None else None
+        )
+        self._monitor_list = list(self.loss_monitors.items())
+        #: the monitor of the stream that moves the robot (the owner's) and its interface
+        self.loss_input: str | None = self.collab.owner if self.collab is not None else ls.input
+        self.loss_monitor: LossMonitor | None = self.loss_monitors.get(self.loss_input or "")
+        if self.loss_monitor is None:
+            self.loss_input = None
         self.loss_policy = ls.policy
+        masters = self.collab.masters if self.collab is not None else ()
+        #: (interface, queue, its loss monitor or None, a master's stream) for each stream
+        #: input, looked up once here, not per sample
+        self._stream_queues = [
+            (iface.name, q, self.loss_monitors.get(iface.name), iface.name in masters)
+            for iface in self.interfaces.interfaces.values()
+            for q in iface.streams.values()
+        ]
         self.alarms = Alarms(self)
         sv = sc.supervisor
         self.supervisor = Supervisor(
@@ -147,6 +168,16 @@ class Robot:
         self._reentry = False
         self.reentries = 0
         self.ticks = 0
+        #: the State Data Table (``state_table.seconds``), written once a tick
+        st = config.state_table
+        self.state_table: StateTable | None = (
+            StateTable(
+                [j.name for j in self.joints], capacity_for(st.seconds, self.rate_hz), self.frame
+            )
+            if st.seconds is not None
+            else None
+        )
+        self._owner_code = float(self.collab.code()) if self.collab is not None else -1.0
 
         # --- Loop and statistics
         self.stats = LoopStats(self.rate_hz, budget_s=wd.budget_us * 1e-6)
@@ -285,8 +316,8 @@ class Robot:
         self.watchdog.reset()
         self.supervisor.reset()
         self._supervisor_handled = False
-        if self.loss_monitor is not None:
-            self.loss_monitor.reset(None)
+        for monitor in self.loss_monitors.values():
+            monitor.reset(None)
         for iface in self.interfaces.interfaces.values():
             iface.release_stream()
 
@@ -316,13 +347,16 @@ class Robot:
         if commands.pending:
             for item in commands.drain(limit=16):
                 self.operators.handle(item, now)
-        monitor = self.loss_monitor
         state = self.state_machine.state
-        if monitor is not None:
-            event = monitor.check(now)
+        for name, mon in self._monitor_list:
+            event = mon.check(now)
             if event is not None:
-                self.alarms.loss_event(event, state)
+                if name == self.loss_input:
+                    self.alarms.loss_event(event, state)
+                else:  # a master not in control: an alert, the robot keeps its owner
+                    self.alarms.bystander_loss(name, mon, event, state)
                 state = self.state_machine.state
+        monitor = self.loss_monitor
         try:
             self._control(state, now, monitor is not None and monitor.holding)
         except Exception as err:  # noqa: BLE001
@@ -333,6 +367,17 @@ class Robot:
             self.alarms.plugin_error("output", err)
         if self.recorder is not None:
             self.recorder.record_state(self.data, now)
+        table = self.state_table
+        if table is not None:
+            data = self.data
+            table.write(
+                now,
+                STATE_NUMBER[data.state],
+                self._owner_code,
+                data.q,
+                data.commanded(),
+                self.joints,
+            )
 
     def _streams(self, now: float) -> None:
         """Every stream sample, in order, judged by the loss monitor; only accepted samples
@@ -340,29 +385,32 @@ class Robot:
         ``POLL_LIMIT`` datagrams each."""
         for poll in self._pollers:
             poll(POLL_LIMIT)
-        monitor = None
         to_wall = 0.0
-        for name, q in self._stream_queues:
+        walled = False
+        for name, q, monitor, master in self._stream_queues:
             if not q.pending and not q.evicted:
                 continue  # most ticks: nothing arrived (checked without a call)
-            if monitor is None and self.loss_monitor is not None:
-                monitor = self.loss_monitor
-                # reception times on the wall clock, to compare with header timestamps
-                to_wall = self.clock.wall_time() - now
-            watched = self.loss_input
-            if monitor is not None and name == watched and q.evicted:
-                # samples the loop could not take in time: seen, never called lost
-                for item in q.drain_overflow():
-                    judge(monitor, item, now, to_wall)
+            if monitor is not None:
+                if not walled:
+                    walled = True
+                    # reception times on the wall clock, to compare with header timestamps
+                    to_wall = self.clock.wall_time() - now
+                if q.evicted:
+                    # samples the loop could not take in time: seen, never called lost
+                    for item in q.drain_overflow():
+                        judge(monitor, item, now, to_wall)
             recorder = self.recorder
             on_sample = self.controller.on_sample
+            # a master not in control is judged and counted, and moves nothing
+            follow = not master or name == self.loss_input
             for item in q.drain():
                 if recorder is not None:
                     recorder.record_message(item.msg, "in", name, now)
-                if monitor is not None and name == watched:
+                if monitor is not None:
                     if judge(monitor, item, now, to_wall) is not Verdict.ACCEPT:
                         continue
-                on_sample(item, now)
+                if follow:
+                    on_sample(item, now)
 
     def _control(self, state: RobotState, now: float, holding: bool) -> None:
         """Controllers and drivers: follow while RUNNING (hold the last setpoint while the
@@ -463,13 +511,56 @@ class Robot:
             # velocity limits: a controller whose target is elsewhere (an absolute tracker
             # input) moves there smoothly instead of at the drives' limits
             self._reentry = True
-            if self.loss_monitor is not None:
-                # Armed by the first packet after (re)starting: a slave waiting for its master
-                # holds still (no target), and a master that vanishes afterwards is caught.
-                self.loss_monitor.reset(None)
+            # Armed by the first packet after (re)starting: a slave waiting for its master
+            # holds still (no target), and a master that vanishes afterwards is caught.
+            for monitor in self.loss_monitors.values():
+                monitor.reset(None)
         self.controller.on_state(old, new, self.clock.now())
         text = f"{old.value} -> {new.value}" + (f": {reason}" if reason else "")
         self.alarms.broadcast(new.value, text, STATE_STATUS_CODE[new], timestamp=t)
+
+    # ================================================================== collaboration
+    def handover(self, to: str, interface: str, now: float) -> str:
+        """Give the motion to master ``to`` (an operator's ``Handover`` that arrived on
+        ``interface``): policy checked, the new owner's stream live while RUNNING, its loss
+        monitor now the one acted on, the new target re-joined without a jump; a STATUS
+        ``HANDOVER`` to every operator. CommandError when refused (nothing changes)."""
+        co = self.collab
+        if co is None:
+            raise CommandError("Handover: no collaboration configured (this slave has one master)")
+        try:
+            if not to:
+                raise CommandError('Handover needs To="MASTER INTERFACE"')
+            by = co.authorize(interface, to)
+            if to == co.owner:
+                return f"{to} already has control"
+            monitor = self.loss_monitors.get(to)
+            if self.state_machine.state is RobotState.RUNNING and monitor is not None:
+                if monitor.tripped or monitor.holding or monitor.last_good is None:
+                    why = (
+                        "latched lost"
+                        if monitor.tripped
+                        else "late"
+                        if monitor.holding
+                        else "silent since Run"
+                    )
+                    raise CommandError(
+                        f"{to}'s stream is not live ({why}): control stays with {co.owner}"
+                    )
+        except CommandError:
+            co.refused += 1
+            raise
+        old = co.switch(to, by, now)
+        self.loss_input = to
+        self.loss_monitor = monitor
+        self._owner_code = float(co.code())
+        # the new owner's first target is joined at half the velocity limits (the controller
+        # re-indexes on its first sample as well): the slave never jumps
+        self._reentry = True
+        text = f"control {old} -> {to} (by {by})"
+        log.warning("handover: %s", text)
+        self.alarms.broadcast("HANDOVER", text, igtl.StatusCode.OK)
+        return text
 
     # ================================================================== reporting
     @property
