@@ -54,6 +54,7 @@ from pydantic import BaseModel, ConfigDict, Field
 import igtl
 from igtl.messages.base import Message
 
+from ..collab import SlaveSelector
 from ..config import Bool, DaemonConfig, DeviceName, Float, Int, Name, PosFloat, Vec3
 from ..errors import CommandError, KinematicsError, OCCError
 from ..safety import RobotState
@@ -109,6 +110,21 @@ class MasterParams(_Params):
     )
     input_device: DeviceName | None = Field(
         None, description="Only samples with this device name are used (null = any)."
+    )
+    slaves: tuple[Name, ...] = Field(
+        (),
+        description="One master driving several slaves: the interfaces of its `teleop` "
+        "outputs, one per slave; only the selected one carries `run=1` (the others hold). "
+        "Empty = every `teleop` output drives.",
+    )
+    slave: Name | None = Field(
+        None, description="The slave selected at start (one of `slaves`; null = the first)."
+    )
+    toggle_tap_ms: PosFloat | None = Field(
+        300.0,
+        description="With several `slaves`: a clutch pressed and released within this time "
+        "selects the next slave (the da Vinci's tap); null = only the `Select`/`Toggle` "
+        "commands.",
     )
 
 
@@ -177,6 +193,13 @@ class MasterController(Controller):
         self.drives_joints = self.input != "driver"
         self.clutch = p.clutch
         self.seq = p.first_seq & 0xFFFFFFFF
+        self._first_seq = self.seq
+        #: each teleop output's own sequence numbers (one stream per slave), by id(output)
+        self._seqs: dict[int, int] = {}
+        #: which slave the master drives when it has several (occ/collab.py)
+        self.selector = SlaveSelector(
+            p.slaves, p.slave, p.toggle_tap_ms * 1e-3 if p.toggle_tap_ms is not None else None
+        )
         self.spheres: list[tuple[np.ndarray, float]] = []
         self.point_radius_mm = p.fixture_radius_mm
         self.point_hardness = p.fixture_hardness
@@ -197,6 +220,16 @@ class MasterController(Controller):
         problems = _interfaces_exist(params, config, ("input_interface",))
         if params.input == "igtl" and params.input_interface is None:
             problems.append((("input_interface",), "required with input: igtl"))
+        teleop = {
+            itf.name for itf in config.interfaces for o in itf.outputs if o.source == "teleop"
+        }
+        for i, name in enumerate(params.slaves):
+            if name not in teleop:
+                problems.append(
+                    (("slaves", i), f"interface '{name}' has no output with source teleop")
+                )
+        if params.slave is not None and params.slave not in params.slaves:
+            problems.append((("slave",), f"'{params.slave}' is not one of slaves"))
         return problems
 
     def configure(self, data: RobotData, ctx: ControllerContext) -> None:
@@ -267,14 +300,20 @@ class MasterController(Controller):
         if key == "clutch":
             value = request.args.get("Value", request.args.get("value", "1"))
             self.clutch = value.strip().lower() in ("1", "true", "on", "yes")
-            return f"clutch {'pressed' if self.clutch else 'released'}"
+            text = f"clutch {'pressed' if self.clutch else 'released'}"
+            tapped = self.selector.on_clutch(self.clutch, now)
+            return f"{text}; {tapped}" if tapped else text
+        if key == "select":
+            return self.selector.select(request.args.get("To", request.args.get("to", "")))
+        if key == "toggle":
+            return self.selector.toggle()
         if key == "clearfixtures":
             self.spheres = []
             return "fixtures cleared"
         raise CommandError(f"unknown command {request.name!r}")
 
     def commands(self) -> tuple[str, ...]:
-        return ("Clutch", "ClearFixtures")
+        return ("Clutch", "ClearFixtures", "Select", "Toggle")
 
     def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
         # The simulated hand's time runs only while RUNNING: re-entering RUNNING resumes the
@@ -346,8 +385,12 @@ class MasterController(Controller):
         data, ctx = self.data, self.ctx
         assert data is not None and ctx is not None
         x, y, z = ctx.frame.tip_position(data.q)
-        running = data.state is RobotState.RUNNING
-        self.seq = (self.seq + 1) & 0xFFFFFFFF
+        # a slave not selected is told run=0 (it holds, its stream stays alive) and re-indexes
+        # when it is selected again: no jump
+        running = data.state is RobotState.RUNNING and self.selector.drives(out.interface.name)
+        key = id(out)
+        self.seq = seq = (self._seqs.get(key, self._first_seq) + 1) & 0xFFFFFFFF
+        self._seqs[key] = seq
         layout = 24 if out.type == "POSITION" else 28
         if out.type != "POSITION":
             raise OCCError("teleop output must be of type POSITION")
@@ -358,7 +401,7 @@ class MasterController(Controller):
             device_name=out.device,
             timestamp=ctx.clock.wall_time(),
             header_version=2,
-            message_id=self.seq,
+            message_id=seq,
             metadata={"run": "1" if running else "0", "clutch": "1" if self.clutch else "0"},
         )
 
@@ -371,6 +414,7 @@ class MasterController(Controller):
             "fixture_contacts": self.fixture_contacts,
             "fixture_force_n": [round(float(v), 4) for v in self.fixture_force],
             "ik_failures": self.ik_failures,
+            **({"slaves": self.selector.stats()} if self.selector.slaves else {}),
         }
 
 
@@ -407,6 +451,9 @@ class SlaveController(Controller):
         self.slave_ref: tuple[float, float, float] | None = None
         self._q_last: list[float] | None = None
         self._fresh = False
+        #: the interface the followed samples come from (several with collaborative control)
+        self.source: str | None = None
+        self.source_changes = 0
         self.last_seq: int | None = None
         self.last_sample_t: float | None = None
         self.samples = 0
@@ -452,6 +499,15 @@ class SlaveController(Controller):
             pos = msg.translation  # type: ignore[attr-defined]
         else:
             return
+        if item.interface != self.source:
+            # another master has the motion (a collaborative hand-over): its first sample
+            # re-indexes, as a rising ``run`` does, so the slave keeps its pose
+            if self.source is not None:
+                self.source_changes += 1
+            self.source = item.interface
+            self.master_ref = None
+            self.master_run = False
+            self._phases.clear()
         self.samples += 1
         self.last_seq = msg.message_id
         self.last_sample_t = item.t_rx
@@ -522,9 +578,13 @@ class SlaveController(Controller):
         if self.master_ref is None:
             self._fresh = True
             self.master_ref = self.master_pos
-            self.slave_ref = ctx.frame.tip_position(data.q)
+            # from where the drives are told to be (while RUNNING the last setpoint), not
+            # where they lag behind it: a re-index while moving (a hand-over, a clutch) then
+            # keeps the commanded pose exactly instead of stepping back by the servo lag
+            here = data.commanded()
+            self.slave_ref = ctx.frame.tip_position(here)
             self.reindexes += 1
-            self._q_last = list(data.q)
+            self._q_last = list(here)
         assert self.slave_ref is not None
         if not self._fresh and self._q_last is not None:
             return self._q_last  # no new master sample since the last solve: same target
@@ -562,6 +622,8 @@ class SlaveController(Controller):
             "master_run": self.master_run,
             "master_clutch": self.master_clutch,
             "reindexes": self.reindexes,
+            "source": self.source,
+            "source_changes": self.source_changes,
             "ik_clamped": self.clamped,
             "ik_failures": self.ik_failures,
             "phase_shifts": self.phase_shifts,
