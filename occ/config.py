@@ -795,10 +795,11 @@ class CollaborationConfig(_Model):
 class StateTableConfig(_Model):
     """The State Data Table: the last seconds of the robot's state at the loop rate."""
 
-    seconds: PosFloat | None = Field(
+    seconds: Annotated[PosFloat, Field(le=600)] | None = Field(
         None,
         description="How many seconds of state the table keeps (rows = seconds x `rate_hz`, "
-        "preallocated); read with the `GetStateTable` command. null = no table.",
+        "preallocated; at most 600 s); read with the `GetStateTable` command (a reply holds "
+        "at most 65535 rows, the newest). null = no table.",
     )
 
 

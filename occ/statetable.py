@@ -23,6 +23,7 @@ between (the oldest ones may be dropped, a row is never torn).
 from __future__ import annotations
 
 import math
+import time
 from array import array
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
@@ -49,10 +50,12 @@ class StateTable:
         self.capacity = int(capacity)
         #: stored per row: t, state, owner, q[n], sp[n], eff[n]
         self.width = 3 + 3 * n
-        self._buf = array("d", bytes(8 * self.capacity * self.width))
-        self._view = np.frombuffer(self._buf, dtype=np.float64).reshape(self.capacity, self.width)
+        # one slot more than the rows promised: the one the writer may be in the middle of
+        self._slots = self.capacity + 1
+        self._buf = array("d", bytes(8 * self._slots * self.width))
+        self._view = np.frombuffer(self._buf, dtype=np.float64).reshape(self._slots, self.width)
         self._pos = 0  # where the next row starts in _buf
-        self._end = self.capacity * self.width
+        self._end = self._slots * self.width
         #: rows written since start (the ring holds the last ``capacity`` of them)
         self.count = 0
         self._frame = frame.copy()  # the reader's own model: FK off the loop thread
@@ -96,8 +99,9 @@ class StateTable:
 
     # ------------------------------------------------------------------ reader (any thread)
     def rows(self) -> np.ndarray:
-        """Every row the ring holds, oldest first, as stored (t, state, owner, q, sp, eff)."""
-        cap = self.capacity
+        """The last :attr:`capacity` rows (fewer before that many were written), oldest
+        first, as stored (t, state, owner, q, sp, eff)."""
+        cap = self._slots
         n1 = self.count
         if n1 <= cap:
             out = self._view[:n1].copy()
@@ -112,7 +116,7 @@ class StateTable:
         lost = (n2 - cap + 1) - first
         if lost > 0:
             out = out[lost:]
-        return out
+        return out[-self.capacity :]
 
     def window(
         self,
@@ -148,6 +152,8 @@ class StateTable:
         tip = 2 + 2 * n
         fk = self._frame.fk
         for r in range(len(raw)):
+            if r & 63 == 63:
+                time.sleep(0)  # hand the interpreter lock back: the loop may be waiting
             m = fk(raw[r, 3 : 3 + n].tolist())
             out[r, tip] = m[0, 3] * 1000.0
             out[r, tip + 1] = m[1, 3] * 1000.0
