@@ -66,6 +66,29 @@ def pair_configs(
     return slave, master, ports
 
 
+def collab_configs(
+    config_dir: Path = ROOT / "configs" / "collab",
+) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any], dict[str, int]]:
+    """The collaborative trio (configs/collab: slave, mentor, trainee) with every listening
+    port moved to a free one and each master's stream aimed at its slave interface. Returns
+    (slave, mentor, trainee, ports); ports are named after the slave's interfaces (``slicer``,
+    ``operator``, ``mentor_desk``, ``trainee_desk``, ``mentor``, ``trainee``: UDP) and the
+    masters' operator ports (``mentor_op``, ``trainee_op``)."""
+    slave = yaml.safe_load((config_dir / "slave.yaml").read_text())
+    masters = {n: yaml.safe_load((config_dir / f"{n}.yaml").read_text()) for n in ("mentor", "trainee")}
+    ports: dict[str, int] = {}
+    for itf in slave["interfaces"]:
+        kind = socket.SOCK_DGRAM if itf["transport"] == "udp" else socket.SOCK_STREAM
+        itf["port"] = ports[itf["name"]] = free_port(kind)
+    for name, cfg in masters.items():
+        for itf in cfg["interfaces"]:
+            if itf["transport"] == "tcp-server":
+                itf["port"] = ports[f"{name}_op"] = free_port()
+            else:
+                itf["remote"] = f"127.0.0.1:{ports[name]}"
+    return slave, masters["mentor"], masters["trainee"], ports
+
+
 def write_yaml(path: Path, data: dict[str, Any]) -> Path:
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
