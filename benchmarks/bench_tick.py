@@ -2,6 +2,11 @@
 
     python benchmarks/bench_tick.py                # 20,000 ticks each, best of 5 rounds
     python benchmarks/bench_tick.py --ticks 5000 --rounds 3 --sleep-us 900
+    python benchmarks/bench_tick.py --robots slave,slave+table,collab-no-table,collab --cpu --alternate
+
+Robots: ``slave`` and ``master`` (the shipped pair), ``slave+table`` (the slave with a 10 s State
+Data Table), ``collab`` (configs/collab/slave.yaml: two master streams, each sample judged by its
+own loss monitor, the table on) and ``collab-no-table`` (the same without the table).
 
 The robots are built from configs/slave.yaml and configs/master.yaml on a SimClock and put
 RUNNING; the slave's master stream is a POSITION every other tick (the paper's 500 Hz motion),
@@ -29,9 +34,25 @@ from occ.robot import build_robot
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def run(name: str, ticks: int, sleep_s: float) -> float:
-    """Mean µs per tick of one robot over ``ticks`` ticks."""
-    cfg = load_config(ROOT / "configs" / f"{name}.yaml")
+#: robot -> (config file, stream interfaces fed, state table seconds: None = as configured)
+ROBOTS: dict[str, tuple[str, tuple[str, ...], float | None]] = {
+    "slave": ("slave.yaml", ("master",), None),
+    "master": ("master.yaml", (), None),
+    "slave+table": ("slave.yaml", ("master",), 10.0),
+    "collab": ("collab/slave.yaml", ("mentor", "trainee"), None),
+    "collab-no-table": ("collab/slave.yaml", ("mentor", "trainee"), 0.0),
+}
+
+
+def run(name: str, ticks: int, sleep_s: float, cpu: bool = False) -> float:
+    """Mean µs per tick of one robot over ``ticks`` ticks (``cpu``: the thread's CPU time
+    instead of the elapsed time, less disturbed by other processes on a shared machine)."""
+    timer = time.thread_time if cpu else time.perf_counter
+    file, fed, table = ROBOTS[name]
+    cfg = load_config(ROOT / "configs" / file)
+    if table is not None:
+        st = cfg.state_table.model_copy(update={"seconds": table or None})
+        cfg = cfg.model_copy(update={"state_table": st})
     ifaces = tuple(
         i.model_copy(update={"port": 0, **({"remote": "127.0.0.1:9"} if i.remote else {})})
         for i in cfg.interfaces
@@ -42,10 +63,10 @@ def run(name: str, ticks: int, sleep_s: float) -> float:
     robot.configure()
     robot.state_machine.request("enable", "bench")
     robot.state_machine.request("run", "bench")
-    stream = robot.interfaces["master"].streams["POSITION"] if name == "slave" else None
+    streams = [(i, robot.interfaces[i].streams["POSITION"]) for i in fed]
     peer = Peer(1, ("127.0.0.1", 40000))
     samples = []
-    if stream is not None:
+    if streams:
         for s in range(ticks // 2 + 1):
             t = s * 0.002
             msg = igtl.PositionMessage(
@@ -63,11 +84,12 @@ def run(name: str, ticks: int, sleep_s: float) -> float:
     try:
         for k in range(ticks):
             now = clock.now()
-            if stream is not None and k % 2 == 0:
-                stream.put(Inbound("master", peer, samples[k // 2], now))
-            t0 = time.perf_counter()
+            if k % 2 == 0:
+                for iface, stream in streams:
+                    stream.put(Inbound(iface, peer, samples[k // 2], now))
+            t0 = timer()
             robot.tick(now, k)
-            total += time.perf_counter() - t0
+            total += timer() - t0
             clock.advance(0.001)
             if sleep_s:
                 time.sleep(sleep_s)
@@ -82,12 +104,26 @@ def main() -> None:
     p.add_argument("--ticks", type=int, default=20000)
     p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--sleep-us", type=float, default=0.0, help="sleep between ticks")
+    p.add_argument("--robots", default="slave,master", help=f"comma-separated, of {list(ROBOTS)}")
+    p.add_argument("--cpu", action="store_true", help="time the thread's CPU, not elapsed time")
+    p.add_argument(
+        "--alternate", action="store_true", help="round-robin the robots (drift cancels out)"
+    )
     args = p.parse_args()
-    for name in ("slave", "master"):
-        runs = [run(name, args.ticks, args.sleep_us * 1e-6) for _ in range(args.rounds)]
+    names = args.robots.split(",")
+    results: dict[str, list[float]] = {n: [] for n in names}
+    order = (
+        [n for _ in range(args.rounds) for n in names]
+        if args.alternate
+        else [n for n in names for _ in range(args.rounds)]
+    )
+    for name in order:
+        results[name].append(run(name, args.ticks, args.sleep_us * 1e-6, args.cpu))
+    for name in names:
+        runs = results[name]
         runs.sort()
         print(
-            f"{name:6s} µs/tick: best {runs[0]:.1f}  median {runs[len(runs) // 2]:.1f}  "
+            f"{name:12s} µs/tick: best {runs[0]:.1f}  median {runs[len(runs) // 2]:.1f}  "
             f"({args.rounds} rounds of {args.ticks} ticks, sleep {args.sleep_us:g} µs)"
         )
 

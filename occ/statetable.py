@@ -152,7 +152,7 @@ class StateTable:
         tip = 2 + 2 * n
         fk = self._frame.fk
         for r in range(len(raw)):
-            if r & 63 == 63:
+            if r & 15 == 15:
                 time.sleep(0)  # hand the interpreter lock back: the loop may be waiting
             m = fk(raw[r, 3 : 3 + n].tolist())
             out[r, tip] = m[0, 3] * 1000.0
