@@ -2,7 +2,8 @@
 
     python benchmarks/bench_tick.py                # 20,000 ticks each, best of 5 rounds
     python benchmarks/bench_tick.py --ticks 5000 --rounds 3 --sleep-us 900
-    python benchmarks/bench_tick.py --robots slave,slave+table,collab-no-table,collab --cpu --alternate
+    python benchmarks/bench_tick.py --cpu --alternate \
+        --robots slave,slave+table,collab-no-table,collab
 
 Robots: ``slave`` and ``master`` (the shipped pair), ``slave+table`` (the slave with a 10 s State
 Data Table), ``collab`` (configs/collab/slave.yaml: two master streams, each sample judged by its
