@@ -75,7 +75,9 @@ def collab_configs(
     ``operator``, ``mentor_desk``, ``trainee_desk``, ``mentor``, ``trainee``: UDP) and the
     masters' operator ports (``mentor_op``, ``trainee_op``)."""
     slave = yaml.safe_load((config_dir / "slave.yaml").read_text())
-    masters = {n: yaml.safe_load((config_dir / f"{n}.yaml").read_text()) for n in ("mentor", "trainee")}
+    masters = {
+        n: yaml.safe_load((config_dir / f"{n}.yaml").read_text()) for n in ("mentor", "trainee")
+    }
     ports: dict[str, int] = {}
     for itf in slave["interfaces"]:
         kind = socket.SOCK_DGRAM if itf["transport"] == "udp" else socket.SOCK_STREAM

@@ -392,3 +392,25 @@ def test_bad_collaboration_configs_are_refused(
 def test_shipped_collab_configs_load() -> None:
     for name in ("slave", "mentor", "trainee"):
         load_config(ROOT / "configs" / "collab" / f"{name}.yaml")
+
+
+def test_request_and_grant_policies() -> None:
+    """``request``: a console may take control for itself; ``grant`` restricted: an owner not
+    listed may not give control away (only the supervisor then takes it back)."""
+    text = SLAVE.read_text()
+    text = text.replace("request: []", "request: [trainee]")
+    text = text.replace("grant: [mentor, trainee]", "grant: [mentor]")
+    c = Collab(parse_config(text, base_dir=SLAVE.parent))
+    try:
+        c.running()
+        co = c.robot.collab
+        assert co is not None
+        assert ok(c.command(c.desks["trainee"], "Handover", handover("trainee")))  # request
+        assert co.owner == "trainee"
+        c.step_ms(20)
+        refused = c.command(c.desks["trainee"], "Handover", handover("mentor"))
+        assert "may not give it away" in error_of(refused) and co.owner == "trainee"
+        assert ok(c.command(c.desks["mentor"], "Handover", handover("mentor")))  # supervisor
+        assert co.owner == "mentor" and co.handovers == 2 and co.refused == 1
+    finally:
+        c.close()

@@ -29,7 +29,8 @@ pytestmark = pytest.mark.realtime
 
 def start(cfg: Path, stats: Path, *extra: str) -> subprocess.Popen[bytes]:
     return subprocess.Popen(
-        [sys.executable, "-m", "occ.cli", str(cfg), "--stats", str(stats), "--log-level", "ERROR", *extra],
+        [sys.executable, "-m", "occ.cli", str(cfg), "--stats", str(stats),
+         "--log-level", "ERROR", *extra],
         cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
     )
 
