@@ -85,15 +85,21 @@ def test_three_daemons_handover_and_loss_rules(trio) -> None:  # type: ignore[no
         for name in ("Enable", "Run"):
             assert command(bedside, name).metadata["Status"] == "SUCCESS"
 
+        last: dict = {}  # type: ignore[type-arg]
+
         def following(owner: str) -> bool:
             snap = stats_of(bedside)
+            last.update(snap)
             if snap["state"] == "STOPPED":  # a stall of this shared machine: Run again
                 command(bedside, "Run")
                 return False
             ctrl = snap["controller"]
             return snap["owner"] == owner and ctrl["source"] == owner and ctrl["samples"] > 200
 
-        assert wait_for(lambda: following("mentor"), 15.0)
+        assert wait_for(lambda: following("mentor"), 15.0), (
+            last.get("state"), last.get("owner"), last.get("controller"), last.get("last_alert"),
+            [f"{s.error_name}: {s.status_message}" for s in bedside.statuses],
+        )
         # the trainee may not take control; the mentor (supervisor) hands it over
         refused = command(trainee, "Handover", '<Command Name="Handover" To="trainee"/>')
         assert refused.metadata["Status"] == "FAIL"
@@ -101,7 +107,9 @@ def test_three_daemons_handover_and_loss_rules(trio) -> None:  # type: ignore[no
         assert reply.metadata["Status"] == "SUCCESS", reply.metadata
         for c in (viewer, bedside, mentor, trainee):
             assert wait_for(lambda c=c: any(s.error_name == "HANDOVER" for s in c.statuses), 5.0)
-        assert wait_for(lambda: following("trainee"), 15.0)
+        assert wait_for(lambda: following("trainee"), 15.0), (
+            last.get("state"), last.get("owner"), last.get("controller"), last.get("last_alert"),
+        )
         snap = stats_of(bedside)
         assert snap["collaboration"]["handovers"] == 1 and snap["collaboration"]["refused"] == 1
         # the State Data Table: the last second at the loop rate, as an NDARRAY
