@@ -259,9 +259,9 @@ class OperatorDesk:
         )
         r.interfaces.reply(item, array)
         span = f" from t={rows[0, 0]:.6f} to t={rows[-1, 0]:.6f}" if len(rows) else ""
-        r.interfaces.reply(
-            item, success_reply(req, f"StateTable: {len(rows)} rows{span}", timestamp=wall)
-        )
+        # the columns in the reply too: a header-version-1 client gets the array without metadata
+        text = f"StateTable: {len(rows)} rows{span}; columns {meta['columns']}"
+        r.interfaces.reply(item, success_reply(req, text, timestamp=wall))
 
     def _execute(self, req: Request, now: float, interface: str = "") -> str | Deferred:
         r = self.robot

@@ -198,6 +198,7 @@ def test_getstatetable_answers_an_ndarray() -> None:
         assert arr.metadata["owners"] == "mentor,trainee"
         assert np.allclose(np.diff(data[:, 0]), 0.001)  # every tick: full rate
         assert "501 rows" in reply.metadata["Message"]
+        assert reply.metadata["Message"].endswith("; columns " + ",".join(columns))
         # a viewer may read it too (it only reads)
         view = c.slicer
         cid = view.send_command(
