@@ -51,7 +51,7 @@ from occ.drivers import Driver, DriverState, available_drivers, create_driver, l
 from occ.drivers.base import BASE_PARAMS, LimitPolicy
 from occ.drivers.can_sim import DriveAxis, SimulatedDriveNode
 from occ.errors import CommandError, ConfigError, DriverError, LimitError, OCCError, StateError
-from occ.joint import Joint, JointLimits
+from occ.joint import Joint, JointLimits, PIDGains
 from occ.loader import load_config, parse_config
 from occ.safety import RobotState
 from occ.testing import SimPeer, SimRobot
@@ -211,12 +211,30 @@ class CANRig(DriverRig):
             self.spy.shutdown()
 
 
+class SimHandRig(DriverRig):
+    """``sim-hand`` takes efforts only; under the position contract its joints get PID gains
+    (the base turns setpoints into efforts) and the hand lets go (no stiffness, no motion)."""
+
+    def make(
+        self,
+        joints: list[Joint],
+        params: Mapping[str, Any] | None = None,
+        on_limit: LimitPolicy = "clamp",
+    ) -> Driver:
+        for j in joints:
+            j.gains = PIDGains(kp=2000.0, ki=0.0, kd=80.0)
+        hand = {"hand_stiffness": 0.0, "hand_damping": 0.0, "intent_amplitude": 0.0,
+                "intent_offset": 0.0, "inertia": 0.1, "damping": 1.0}
+        return super().make(joints, {**hand, **(params or {})}, on_limit)
+
+
 #: plugin name -> rig factory. A new driver plugin adds its line here: ``DriverRig`` when its
 #: device is a model advanced by ``now``, else a subclass like ``CANRig`` that starts a
 #: simulated device and says how to wait for it.
 DRIVER_RIGS: dict[str, Callable[[str], DriverRig]] = {
     "sim": DriverRig,
     "can": CANRig,
+    "sim-hand": SimHandRig,
 }
 
 
