@@ -27,7 +27,8 @@ def test_can_master_streams_hand_motion() -> None:
               for i, name in enumerate(("x", "y", "z"))}
     driver = cfg.robot.drivers[0].model_copy(update={
         "plugin": "can",
-        "params": {"interface": "virtual", "channel": channel, "joints": joints, "feedback_timeout": 0.05},
+        "params": {"interface": "virtual", "channel": channel, "joints": joints, "feedback_timeout": 0.05,
+                   "command_interface": "effort"},
     })
     robot_cfg = cfg.robot.model_copy(update={"drivers": (driver,),
                                              "realtime": cfg.robot.realtime.model_copy(update={"fifo_priority": None})})
@@ -84,7 +85,8 @@ def test_no_enable_before_every_joint_is_measured() -> None:
               for i, name in enumerate(("x", "y", "z"))}
     driver = cfg.robot.drivers[0].model_copy(update={
         "plugin": "can",
-        "params": {"interface": "virtual", "channel": channel, "joints": joints, "feedback_timeout": 10.0},
+        "params": {"interface": "virtual", "channel": channel, "joints": joints, "feedback_timeout": 10.0,
+                   "command_interface": "effort"},
     })
     cfg = inproc_config(cfg.model_copy(update={"robot": cfg.robot.model_copy(update={"drivers": (driver,)})}))
     robot = build_robot(cfg, clock=SimClock())
