@@ -206,10 +206,11 @@ def from_message(msg: Message, defaults: Defaults) -> list[Definition] | None:
         frame = _choice(meta, "frame", "patient", FRAMES)
         k = _num(meta, "stiffness", defaults.stiffness)
         b = _num(meta, "damping", defaults.damping)
-        pts = [_finite(p, f"polydata {name!r}") for p in getattr(msg, "points").tolist()]
+        poly: Any = msg
+        pts = [_finite(p, f"polydata {name!r}") for p in poly.points.tolist()]
         n = len(pts)
         out = []
-        cells = getattr(msg, "lines") if kind == "guide" else getattr(msg, "polygons")
+        cells = poly.lines if kind == "guide" else poly.polygons
         for i, cell in enumerate(cells):
             if any(j >= n for j in cell):
                 raise DefinitionError(f"polydata {name!r}: cell {i} refers to a missing point")
@@ -224,7 +225,11 @@ def from_message(msg: Message, defaults: Defaults) -> list[Definition] | None:
                 a, c, d = (pts[j] for j in cell[:3])
                 u = (c[0] - a[0], c[1] - a[1], c[2] - a[2])
                 v = (d[0] - a[0], d[1] - a[1], d[2] - a[2])
-                nrm = (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
+                nrm = (
+                    u[1] * v[2] - u[2] * v[1],
+                    u[2] * v[0] - u[0] * v[2],
+                    u[0] * v[1] - u[1] * v[0],
+                )
                 out.append(Definition("plane", (a,), 0.0, nrm, k, b, f"{name}-{i}", frame))  # type: ignore[arg-type]
         return out
     return None
@@ -276,36 +281,59 @@ def from_markups_file(
                 raise DefinitionError(f"{path}: {label}: control point {c_index} has no position")
             if cp.get("visibility", True) is False:
                 continue
-            points.append((str(cp.get("label", "") or f"{label}-{c_index}"),
-                           ras(cp["position"], f"{label} point {c_index}")))
+            points.append(
+                (
+                    str(cp.get("label", "") or f"{label}-{c_index}"),
+                    ras(cp["position"], f"{label} point {c_index}"),
+                )
+            )
         if mtype == "Fiducial":
             if kind == "guide":
                 if len(points) >= 2:
-                    out.append(Definition("guide", tuple(p for _, p in points), 0.0, None,
-                                          stiffness, damping, label, "patient"))
+                    out.append(
+                        Definition(
+                            "guide",
+                            tuple(p for _, p in points),
+                            0.0,
+                            None,
+                            stiffness,
+                            damping,
+                            label,
+                            "patient",
+                        )
+                    )
                 continue
             for n, p in points:
-                out.append(Definition(kind, (p,), radius_mm, None, stiffness, damping, n,
-                                      "patient"))
+                out.append(
+                    Definition(kind, (p,), radius_mm, None, stiffness, damping, n, "patient")
+                )
         elif mtype in ("Line", "Curve", "ClosedCurve"):
             path_pts = tuple(p for _, p in points)
             if mtype == "ClosedCurve" and path_pts:
                 path_pts = (*path_pts, path_pts[0])
             if len(path_pts) >= 2:
-                out.append(Definition("guide", path_pts, 0.0, None, stiffness, damping, label,
-                                      "patient"))
+                out.append(
+                    Definition("guide", path_pts, 0.0, None, stiffness, damping, label, "patient")
+                )
         elif mtype == "Plane":
-            centre = ras(m["center"], f"{label} center") if "center" in m else (
-                points[0][1] if points else None)
+            centre = (
+                ras(m["center"], f"{label} center")
+                if "center" in m
+                else (points[0][1] if points else None)
+            )
             if centre is None or "normal" not in m:
-                raise DefinitionError(f"{path}: plane {label!r} needs a center (or a control "
-                                      "point) and a normal")
+                raise DefinitionError(
+                    f"{path}: plane {label!r} needs a center (or a control point) and a normal"
+                )
             normal = ras(m["normal"], f"{label} normal")
-            out.append(Definition("plane", (centre,), 0.0, normal, stiffness, damping, label,
-                                  "patient"))
+            out.append(
+                Definition("plane", (centre,), 0.0, normal, stiffness, damping, label, "patient")
+            )
         else:
-            raise DefinitionError(f"{path}: markups type {mtype!r} is not a fixture "
-                                  "(Fiducial, Line, Curve, ClosedCurve, Plane are)")
+            raise DefinitionError(
+                f"{path}: markups type {mtype!r} is not a fixture "
+                "(Fiducial, Line, Curve, ClosedCurve, Plane are)"
+            )
     return out
 
 
@@ -407,8 +435,11 @@ class PatientMapping:
         if self.following:
             predicted = self._slave_at(master)
             delta = (base[0] - predicted[0], base[1] - predicted[1], base[2] - predicted[2])
-            self.slave_ref = (self.slave_ref[0] + delta[0], self.slave_ref[1] + delta[1],
-                              self.slave_ref[2] + delta[2])
+            self.slave_ref = (
+                self.slave_ref[0] + delta[0],
+                self.slave_ref[1] + delta[1],
+                self.slave_ref[2] + delta[2],
+            )
         else:
             self._slave_hold = base
             self.slave_ref = base
@@ -468,8 +499,9 @@ def to_master(d: Definition, mapping: PatientMapping | None) -> Definition:
     if d.frame == "master":
         return d
     if mapping is None:
-        raise DefinitionError(f"fixture {d.name!r} is in the patient frame but the master has "
-                              "no patient mapping")
+        raise DefinitionError(
+            f"fixture {d.name!r} is in the patient frame but the master has no patient mapping"
+        )
     return replace(
         d,
         points=tuple(mapping.point(p) for p in d.points),

@@ -302,7 +302,7 @@ class FixtureSet:
         self._guides: list[tuple[list[tuple[float, ...]], float, float]] = []
         for p in self.primitives:
             if isinstance(p, Guide):
-                segs = []
+                segs: list[tuple[float, ...]] = []
                 for a, c in zip(p.points, p.points[1:], strict=False):
                     d = (c[0] - a[0], c[1] - a[1], c[2] - a[2])
                     dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
@@ -364,15 +364,23 @@ class FixtureSet:
         mag = math.sqrt(fx * fx + fy * fy + fz * fz)
         cap = self.max_force_n
         if mag > cap:
-            s = cap / mag
-            fx, fy, fz = fx * s, fy * s, fz * s
+            sc = cap / mag
+            fx, fy, fz = fx * sc, fy * sc, fz * sc
             self.clamped += 1
         self.force_n = (fx, fy, fz)
         return self.force_n
 
     def _spring(
-        self, p: Vec3, x: float, y: float, z: float, k: float, b: float,
-        vx: float, vy: float, vz: float,
+        self,
+        p: Vec3,
+        x: float,
+        y: float,
+        z: float,
+        k: float,
+        b: float,
+        vx: float,
+        vy: float,
+        vz: float,
     ) -> Vec3:
         """k (p - x) plus damping of the velocity along it."""
         ex, ey, ez = p[0] - x, p[1] - y, p[2] - z
@@ -449,8 +457,16 @@ class FixtureSet:
         return self._spring(p, x, y, z, s[4], s[5], vx, vy, vz)
 
     def _forbidden(
-        self, i: int, s: tuple[float, ...], x: float, y: float, z: float,
-        vx: float, vy: float, vz: float, last: Vec3 | None,
+        self,
+        i: int,
+        s: tuple[float, ...],
+        x: float,
+        y: float,
+        z: float,
+        vx: float,
+        vy: float,
+        vz: float,
+        last: Vec3 | None,
     ) -> Vec3:
         cx, cy, cz, r = s[0], s[1], s[2], s[3]
         dx, dy, dz = x - cx, y - cy, z - cz
@@ -463,8 +479,11 @@ class FixtureSet:
             self.contacts_entered += 1
             if last is not None:
                 t = _exit_t(last, tool, s, first=True)
-                p = (last[0] + t * (x - last[0]), last[1] + t * (y - last[1]),
-                     last[2] + t * (z - last[2]))
+                p = (
+                    last[0] + t * (x - last[0]),
+                    last[1] + t * (y - last[1]),
+                    last[2] + t * (z - last[2]),
+                )
             else:
                 p = _project_sphere(x, y, z, s) or (cx, cy, cz + r)
             p = _project_sphere(*p, s) or p
@@ -475,8 +494,15 @@ class FixtureSet:
         return self._spring(p, x, y, z, s[4], s[5], vx, vy, vz)
 
     def _guide(
-        self, i: int, g: tuple[list[tuple[float, ...]], float, float],
-        x: float, y: float, z: float, vx: float, vy: float, vz: float,
+        self,
+        i: int,
+        g: tuple[list[tuple[float, ...]], float, float],
+        x: float,
+        y: float,
+        z: float,
+        vx: float,
+        vy: float,
+        vz: float,
     ) -> Vec3:
         segs, k, b = g
         target, _ = _nearest_on_path(x, y, z, segs)
@@ -506,24 +532,41 @@ class FixtureSet:
                 )
             )
         forb_prims = [p for p in self.primitives if isinstance(p, ForbiddenSphere)]
-        for i, p in enumerate(self._forb_proxy):
-            if p is not None:
+        for i, fp in enumerate(self._forb_proxy):
+            if fp is not None:
+                p = fp
                 k = self._forb[i][4]
-                out.append(Contact(forb_prims[i].name, "forbidden", p,
-                                   (k * (p[0] - x), k * (p[1] - y), k * (p[2] - z))))
+                out.append(
+                    Contact(
+                        forb_prims[i].name,
+                        "forbidden",
+                        p,
+                        (k * (p[0] - x), k * (p[1] - y), k * (p[2] - z)),
+                    )
+                )
         planes = [p for p in self.primitives if isinstance(p, ForbiddenPlane)]
         for prim, (px, py, pz, nx, ny, nz, k, _b) in zip(planes, self._planes, strict=True):
             depth = (x - px) * nx + (y - py) * ny + (z - pz) * nz
             if depth < 0.0:
                 proxy = (x - depth * nx, y - depth * ny, z - depth * nz)
-                out.append(Contact(prim.name, "plane", proxy,
-                                   (-k * depth * nx, -k * depth * ny, -k * depth * nz)))
+                out.append(
+                    Contact(
+                        prim.name,
+                        "plane",
+                        proxy,
+                        (-k * depth * nx, -k * depth * ny, -k * depth * nz),
+                    )
+                )
         guides = [p for p in self.primitives if isinstance(p, Guide)]
-        for i, p in enumerate(self._guide_proxy):
-            if p is not None:
+        for i, gp in enumerate(self._guide_proxy):
+            if gp is not None:
+                p = gp
                 k = self._guides[i][1]
-                out.append(Contact(guides[i].name, "guide", p,
-                                   (k * (p[0] - x), k * (p[1] - y), k * (p[2] - z))))
+                out.append(
+                    Contact(
+                        guides[i].name, "guide", p, (k * (p[0] - x), k * (p[1] - y), k * (p[2] - z))
+                    )
+                )
         return out
 
     def inside_accessible(self, point: Sequence[float]) -> bool:

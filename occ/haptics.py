@@ -50,7 +50,6 @@ from .fixtures import (
     ForbiddenPlane,
     ForbiddenSphere,
     Guide,
-    Primitive,
     Vec3,
 )
 
@@ -122,7 +121,9 @@ class MasterFixtures:
     def _refuse(self, msg: Message, err: DefinitionError) -> None:
         self.refused += 1
         self.last_error = f"{msg.message_type} {msg.device_name!r}: {err}"
-        raise DefinitionError(f"fixture refused ({self.last_error}); the previous set stays") from err
+        raise DefinitionError(
+            f"fixture refused ({self.last_error}); the previous set stays"
+        ) from err
 
     def clear(self) -> None:
         self.groups.clear()
@@ -308,16 +309,22 @@ class MasterFixtures:
         )
 
 
-def _sphere_mesh(c: Vec3, r: float, n_lat: int = 6, n_lon: int = 12) -> tuple[list[Vec3], list[tuple[int, ...]]]:
+def _sphere_mesh(
+    c: Vec3, r: float, n_lat: int = 6, n_lon: int = 12
+) -> tuple[list[Vec3], list[tuple[int, ...]]]:
     """A UV sphere: poles plus rings, triangles at the poles and quads between."""
     verts: list[Vec3] = [(c[0], c[1], c[2] + r)]
     for i in range(1, n_lat):
         th = math.pi * i / n_lat
         for j in range(n_lon):
             ph = 2.0 * math.pi * j / n_lon
-            verts.append((c[0] + r * math.sin(th) * math.cos(ph),
-                          c[1] + r * math.sin(th) * math.sin(ph),
-                          c[2] + r * math.cos(th)))
+            verts.append(
+                (
+                    c[0] + r * math.sin(th) * math.cos(ph),
+                    c[1] + r * math.sin(th) * math.sin(ph),
+                    c[2] + r * math.cos(th),
+                )
+            )
     verts.append((c[0], c[1], c[2] - r))
     south = len(verts) - 1
     faces: list[tuple[int, ...]] = []
@@ -347,6 +354,11 @@ def _square(c: Vec3, n: Vec3, half: float) -> list[Vec3]:
     vx, vy, vz = ny * uz - nz * uy, nz * ux - nx * uz, nx * uy - ny * ux
     out = []
     for su, sv in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
-        out.append((c[0] + half * (su * ux + sv * vx), c[1] + half * (su * uy + sv * vy),
-                    c[2] + half * (su * uz + sv * vz)))
+        out.append(
+            (
+                c[0] + half * (su * ux + sv * vx),
+                c[1] + half * (su * uy + sv * vy),
+                c[2] + half * (su * uz + sv * vz),
+            )
+        )
     return out

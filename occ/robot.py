@@ -426,7 +426,7 @@ class Robot:
         """Efforts go to effort drivers only, and a driver needing a PID for positions has
         its gains: a configuration mistake is a ConfigError at build, not a FAULT at run."""
         effort = self.controller.commands_effort
-        for drv, idx in self.drivers:
+        for drv, _idx in self.drivers:
             if effort and drv.command_interface != "effort":
                 raise ConfigError(
                     f"driver {drv.name!r}: the controller commands efforts, but the driver "

@@ -86,8 +86,9 @@ class FixtureFile(_Params):
 
     file: Str = Field(description="Path of the `.mrk.json` file (relative: to the config file).")
     kind: Literal["accessible", "forbidden", "guide"] = Field(
-        "accessible", description="What its point lists are (lines, curves, planes are guides "
-        "and planes whatever this says)."
+        "accessible",
+        description="What its point lists are (lines, curves, planes are guides "
+        "and planes whatever this says).",
     )
     radius_mm: PosFloat = Field(5.0, description="Radius of the sphere around each point (mm).")
     stiffness: Annotated[Float, Field(ge=0)] = Field(1.0, description="N per master mm.")
@@ -145,7 +146,8 @@ class MasterParams(_Params):
         10.0, description="Clamp of the displayed force (N); 10 N is the OCC paper's figure."
     )
     fixture_slide_mm: PosFloat = Field(
-        1.0, description="Longest move of a contact's proxy per tick (mm): bounds the force step "
+        1.0,
+        description="Longest move of a contact's proxy per tick (mm): bounds the force step "
         "when the contact changes sphere or guide segment.",
     )
     max_fixtures: Annotated[Int, Field(ge=1, le=1024)] = Field(
@@ -263,8 +265,12 @@ class MasterController(Controller):
         self.seq = p.first_seq & 0xFFFFFFFF
         base = None
         if p.slave_base_mm is not None:
-            base = [[1.0, 0.0, 0.0, p.slave_base_mm[0]], [0.0, 1.0, 0.0, p.slave_base_mm[1]],
-                    [0.0, 0.0, 1.0, p.slave_base_mm[2]], [0.0, 0.0, 0.0, 1.0]]
+            base = [
+                [1.0, 0.0, 0.0, p.slave_base_mm[0]],
+                [0.0, 1.0, 0.0, p.slave_base_mm[1]],
+                [0.0, 0.0, 1.0, p.slave_base_mm[2]],
+                [0.0, 0.0, 0.0, 1.0],
+            ]
         self.fixtures = MasterFixtures(
             Defaults(
                 vfixture_kind=p.vfixture_kind,
@@ -333,7 +339,10 @@ class MasterController(Controller):
         self.fixtures.mapping.master_ref = self.fixtures.tool_mm
         for f in self._fixture_files:
             count = self.fixtures.load_file(
-                f.file, kind=f.kind, radius_mm=f.radius_mm, stiffness=f.stiffness,
+                f.file,
+                kind=f.kind,
+                radius_mm=f.radius_mm,
+                stiffness=f.stiffness,
                 damping=f.damping,
             )
             log.info("virtual fixtures: %d from %s", count, f.file)
@@ -352,9 +361,11 @@ class MasterController(Controller):
         is_input = self.input == "igtl" and (
             self.input_interface is None or item.interface == self.input_interface
         )
-        if mtype in ("TRANSFORM", "POSITION") and msg.device_name in (
-            self.slave_base_device, self.slave_tip_device
-        ) and not (is_input and self.input_device == msg.device_name):
+        if (
+            mtype in ("TRANSFORM", "POSITION")
+            and msg.device_name in (self.slave_base_device, self.slave_tip_device)
+            and not (is_input and self.input_device == msg.device_name)
+        ):
             self._mapping_input(msg)
             return
         if mtype in ("VFIXTURE", "POINT", "TRANSFORM", "POLYDATA") and not (
@@ -384,9 +395,10 @@ class MasterController(Controller):
             if msg.device_name == self.slave_base_device and msg.message_type == "TRANSFORM":
                 self.fixtures.registration(msg.matrix.tolist())  # type: ignore[attr-defined]
             elif msg.device_name == self.slave_tip_device:
-                pos = (msg.translation if msg.message_type == "TRANSFORM"  # type: ignore[attr-defined]
-                       else msg.position)  # type: ignore[attr-defined]
-                self.fixtures.slave_tip(pos)
+                m: Any = msg
+                self.fixtures.slave_tip(
+                    m.translation if msg.message_type == "TRANSFORM" else m.position
+                )
         except DefinitionError as err:
             raise CommandError(f"{msg.message_type} {msg.device_name!r}: {err}") from err
 

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 from occ.drivers.base import CommandInterface, LimitPolicy
 from occ.drivers.sim import SIM_DEFAULTS, SimDriver, _per_joint
@@ -72,15 +72,18 @@ def _joint_values(key: str, value: Any, joints: Sequence[Joint]) -> list[float]:
         raise ValueError(f"sim-hand param {key!r}: expected {len(joints)} values, got {len(value)}")
     if isinstance(value, Mapping):
         return [float(value.get(j.name, 0.0)) for j in joints]
-    return _per_joint(key, value, joints) if not isinstance(value, (list, tuple)) else [
-        float(v) for v in value
-    ]
+    return (
+        _per_joint(key, value, joints)
+        if not isinstance(value, (list, tuple))
+        else [float(v) for v in value]
+    )
 
 
 class SimHandDriver(SimDriver):
     """A ``sim`` device in effort mode moved by a simulated hand (see the module docstring)."""
 
-    supported_interfaces = ("effort",)
+    # SimDriver names two; this one takes efforts only
+    supported_interfaces: ClassVar[tuple[str, ...]] = ("effort",)  # type: ignore[assignment]
     DEFAULT_PARAMS = HAND_DEFAULTS
 
     def __init__(
@@ -97,8 +100,9 @@ class SimHandDriver(SimDriver):
         self._k_hand = _joint_values("hand_stiffness", p["hand_stiffness"], js)
         self._b_hand = _joint_values("hand_damping", p["hand_damping"], js)
         self._amp = _joint_values("intent_amplitude", p["intent_amplitude"], js)
-        self._phase = [math.radians(v) for v in _joint_values("intent_phase_deg",
-                                                              p["intent_phase_deg"], js)]
+        self._phase = [
+            math.radians(v) for v in _joint_values("intent_phase_deg", p["intent_phase_deg"], js)
+        ]
         self._offset = _joint_values("intent_offset", p["intent_offset"], js)
         self._w = 2.0 * math.pi * float(p["intent_frequency_hz"])
         for i, j in enumerate(js):
@@ -106,7 +110,9 @@ class SimHandDriver(SimDriver):
                 raise ValueError(f"sim-hand joint {j.name!r}: hand stiffness and damping >= 0")
         # the hand's spring and damper are fast poles too: keep the substep inside them
         fastest = max(
-            max(math.sqrt(k * inv) for k, (inv, *_r) in zip(self._k_hand, self._model, strict=True)),
+            max(
+                math.sqrt(k * inv) for k, (inv, *_r) in zip(self._k_hand, self._model, strict=True)
+            ),
             max(b * inv for b, (inv, *_r) in zip(self._b_hand, self._model, strict=True)),
         )
         if fastest > 0.0:
@@ -118,8 +124,10 @@ class SimHandDriver(SimDriver):
         """The intended joint positions at intent time ``t`` (now when None)."""
         t = self.intent_t if t is None else t
         w = self._w
-        return [o + a * math.sin(w * t + ph)
-                for o, a, ph in zip(self._offset, self._amp, self._phase, strict=True)]
+        return [
+            o + a * math.sin(w * t + ph)
+            for o, a, ph in zip(self._offset, self._amp, self._phase, strict=True)
+        ]
 
     def _configure(self) -> None:
         super()._configure()

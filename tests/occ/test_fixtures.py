@@ -101,7 +101,7 @@ def test_union_switch_between_nearest_spheres_without_a_force_jump() -> None:
     # and the naive rule jumps: at the bisector the nearest-sphere force flips from pointing
     # toward A's centre to toward B's, a change of about 2 N here
     def naive(p):
-        best = min(((math.dist(p, c) - 30.0, c) for c in ((0, 0, 0), (40, 0, 0))))
+        best = min((math.dist(p, c) - 30.0, c) for c in ((0, 0, 0), (40, 0, 0)))
         d, c = best
         u = tuple((ci - pi) / math.dist(p, c) for ci, pi in zip(c, p))
         return tuple(max(0.0, d) * ui for ui in u)
