@@ -43,9 +43,11 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
+
+import numpy as np
 
 from igtl.messages.base import Message
 
@@ -78,10 +80,10 @@ class DefinitionError(ValueError):
     """A fixture definition that cannot be used (the sender is told why)."""
 
 
-@dataclass(frozen=True, slots=True)
-class Definition:
+class Definition(NamedTuple):
     """One fixture in its own frame: a sphere (``points`` = its centre, ``radius``), a plane
-    (``points`` = one point, ``normal``) or a guide (``points`` = the path)."""
+    (``points`` = one point, ``normal``) or a guide (``points`` = the path). A named tuple:
+    a definition of 64 spheres is built on the loop thread."""
 
     kind: Kind
     points: tuple[Vec3, ...]
@@ -154,15 +156,18 @@ def from_message(msg: Message, defaults: Defaults) -> list[Definition] | None:
         if not math.isfinite(hardness) or hardness < 0.0:
             raise DefinitionError(f"VFIXTURE hardness {hardness!r} must be >= 0")
         damping = _num(meta, "damping", defaults.damping)
-        out = []
-        for i, s in enumerate(getattr(msg, "spheres", ())):
-            x, y, z, r = _finite(s, f"VFIXTURE sphere {i}")
-            if not r > 0.0:
-                raise DefinitionError(f"VFIXTURE sphere {i}: radius {r} must be > 0")
-            out.append(
-                Definition(kind, ((x, y, z),), r, None, hardness, damping, f"{name}-{i}", frame)  # type: ignore[arg-type]
+        spheres = getattr(msg, "spheres", ())
+        # one vectorised check for the whole message: this runs on the loop thread
+        arr = np.asarray(spheres, dtype=float).reshape(-1, 4)
+        if arr.size and not (np.isfinite(arr).all() and (arr[:, 3] > 0.0).all()):
+            i = int(np.flatnonzero(~(np.isfinite(arr).all(axis=1) & (arr[:, 3] > 0.0)))[0])
+            raise DefinitionError(
+                f"VFIXTURE sphere {i} {tuple(spheres[i])}: needs finite numbers and a radius > 0"
             )
-        return out
+        return [
+            Definition(kind, ((x, y, z),), r, None, hardness, damping, f"{name}-{i}", frame)  # type: ignore[arg-type]
+            for i, (x, y, z, r) in enumerate(spheres)
+        ]
     if mtype == "POINT":
         kind = _choice(meta, "kind", defaults.point_kind, ("accessible", "forbidden", "guide"))
         frame = _choice(meta, "frame", defaults.point_frame, FRAMES)
@@ -502,8 +507,7 @@ def to_master(d: Definition, mapping: PatientMapping | None) -> Definition:
         raise DefinitionError(
             f"fixture {d.name!r} is in the patient frame but the master has no patient mapping"
         )
-    return replace(
-        d,
+    return d._replace(
         points=tuple(mapping.point(p) for p in d.points),
         radius=mapping.length(d.radius),
         normal=None if d.normal is None else mapping.direction(d.normal),

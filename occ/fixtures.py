@@ -46,9 +46,9 @@ docs/BENCHMARKS.md has the figures for 1, 10 and 100 primitives).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
-from typing import Literal
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import ClassVar, Literal, NamedTuple, Self
 
 __all__ = [
     "AccessibleSphere",
@@ -71,95 +71,133 @@ DEFAULT_SLIDE_MM = 1.0
 _EPS = 1e-9
 
 
-def _check_finite(values: Iterable[float], what: str) -> None:
-    for v in values:
-        if not math.isfinite(v):
-            raise ValueError(f"{what}: not a finite number ({v!r})")
+def _bad(what: str, why: str) -> ValueError:
+    return ValueError(f"{what}: {why}")
 
 
-def _check_gains(k: float, b: float, what: str) -> None:
-    _check_finite((k, b), what)
-    if k < 0.0 or b < 0.0:
-        raise ValueError(f"{what}: stiffness and damping must be >= 0 (got {k}, {b})")
+def _gains(k: float, b: float, what: str) -> tuple[float, float]:
+    k, b = float(k), float(b)
+    if not (0.0 <= k < math.inf and 0.0 <= b < math.inf):
+        raise _bad(what, f"stiffness and damping must be finite and >= 0 (got {k}, {b})")
+    return k, b
 
 
-@dataclass(frozen=True, slots=True)
-class AccessibleSphere:
-    """Part of the accessible area (the union of all such spheres). Lengths in mm."""
+def _vec(v: Sequence[float], what: str) -> Vec3:
+    if len(v) != 3:
+        raise _bad(what, f"expected (x, y, z), got {tuple(v)!r}")
+    x, y, z = float(v[0]), float(v[1]), float(v[2])
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        raise _bad(what, f"not finite: {(x, y, z)!r}")
+    return (x, y, z)
 
+
+# Primitives are named tuples (immutable, compared by value, and cheap to build: a definition
+# of 64 spheres is compiled on the loop thread), validated in __new__.
+class _SphereFields(NamedTuple):
     centre: Vec3
     radius: float
-    stiffness: float = 1.0  # N/mm
-    damping: float = 0.0  # N s/mm
-    name: str = ""
-    kind: Kind = field(default="accessible", init=False)
-
-    def __post_init__(self) -> None:
-        _check_finite((*self.centre, self.radius), f"sphere {self.name!r}")
-        if len(self.centre) != 3 or not self.radius > 0.0:
-            raise ValueError(f"sphere {self.name!r}: needs a centre (x, y, z) and a radius > 0")
-        _check_gains(self.stiffness, self.damping, f"sphere {self.name!r}")
+    stiffness: float
+    damping: float
+    name: str
 
 
-@dataclass(frozen=True, slots=True)
-class ForbiddenSphere:
-    """A sphere the tool must not enter. Lengths in mm."""
+class _Sphere(_SphereFields):
+    __slots__ = ()
+    kind: ClassVar[Kind]
 
-    centre: Vec3
-    radius: float
-    stiffness: float = 1.0
-    damping: float = 0.0
-    name: str = ""
-    kind: Kind = field(default="forbidden", init=False)
+    def __new__(
+        cls,
+        centre: Sequence[float],
+        radius: float,
+        stiffness: float = 1.0,
+        damping: float = 0.0,
+        name: str = "",
+    ) -> Self:
+        what = f"sphere {name!r}"
+        c = _vec(centre, what)
+        r = float(radius)
+        if not 0.0 < r < math.inf:
+            raise _bad(what, f"radius must be > 0, got {radius!r}")
+        k, b = _gains(stiffness, damping, what)
+        return super().__new__(cls, c, r, k, b, name)
 
-    def __post_init__(self) -> None:
-        _check_finite((*self.centre, self.radius), f"sphere {self.name!r}")
-        if len(self.centre) != 3 or not self.radius > 0.0:
-            raise ValueError(f"sphere {self.name!r}: needs a centre (x, y, z) and a radius > 0")
-        _check_gains(self.stiffness, self.damping, f"sphere {self.name!r}")
+
+class AccessibleSphere(_Sphere):
+    """Part of the accessible area (the union of all such spheres). Lengths in mm, stiffness
+    N/mm, damping N s/mm."""
+
+    __slots__ = ()
+    kind: ClassVar[Kind] = "accessible"
 
 
-@dataclass(frozen=True, slots=True)
-class ForbiddenPlane:
-    """The half-space behind ``point`` along ``-normal`` is forbidden (normal points to the
-    allowed side; it is normalised here)."""
+class ForbiddenSphere(_Sphere):
+    """A sphere the tool must not enter."""
 
+    __slots__ = ()
+    kind: ClassVar[Kind] = "forbidden"
+
+
+class _PlaneFields(NamedTuple):
     point: Vec3
     normal: Vec3
-    stiffness: float = 1.0
-    damping: float = 0.0
-    name: str = ""
-    kind: Kind = field(default="plane", init=False)
-
-    def __post_init__(self) -> None:
-        _check_finite((*self.point, *self.normal), f"plane {self.name!r}")
-        n = math.sqrt(sum(v * v for v in self.normal))
-        if len(self.point) != 3 or len(self.normal) != 3 or not n > 1e-9:
-            raise ValueError(f"plane {self.name!r}: needs a point and a non-zero normal")
-        object.__setattr__(self, "normal", tuple(v / n for v in self.normal))
-        _check_gains(self.stiffness, self.damping, f"plane {self.name!r}")
+    stiffness: float
+    damping: float
+    name: str
 
 
-@dataclass(frozen=True, slots=True)
-class Guide:
+class ForbiddenPlane(_PlaneFields):
+    """The half-space behind ``point`` along ``-normal`` is forbidden (the normal points to
+    the allowed side; it is normalised here)."""
+
+    __slots__ = ()
+    kind: ClassVar[Kind] = "plane"
+
+    def __new__(
+        cls,
+        point: Sequence[float],
+        normal: Sequence[float],
+        stiffness: float = 1.0,
+        damping: float = 0.0,
+        name: str = "",
+    ) -> Self:
+        what = f"plane {name!r}"
+        p = _vec(point, what)
+        nx, ny, nz = _vec(normal, what)
+        n = math.sqrt(nx * nx + ny * ny + nz * nz)
+        if not n > 1e-9:
+            raise _bad(what, "the normal is zero")
+        k, b = _gains(stiffness, damping, what)
+        return super().__new__(cls, p, (nx / n, ny / n, nz / n), k, b, name)
+
+
+class _GuideFields(NamedTuple):
+    points: tuple[Vec3, ...]
+    stiffness: float
+    damping: float
+    name: str
+
+
+class Guide(_GuideFields):
     """A line (two points) or polyline (more) the tool is pulled onto. Points in mm."""
 
-    points: tuple[Vec3, ...]
-    stiffness: float = 1.0
-    damping: float = 0.0
-    name: str = ""
-    kind: Kind = field(default="guide", init=False)
+    __slots__ = ()
+    kind: ClassVar[Kind] = "guide"
 
-    def __post_init__(self) -> None:
-        pts = tuple(tuple(float(v) for v in p) for p in self.points)
-        if len(pts) < 2 or any(len(p) != 3 for p in pts):
-            raise ValueError(f"guide {self.name!r}: needs at least two points (x, y, z)")
-        for p in pts:
-            _check_finite(p, f"guide {self.name!r}")
+    def __new__(
+        cls,
+        points: Sequence[Sequence[float]],
+        stiffness: float = 1.0,
+        damping: float = 0.0,
+        name: str = "",
+    ) -> Self:
+        what = f"guide {name!r}"
+        pts = tuple(_vec(p, what) for p in points)
+        if len(pts) < 2:
+            raise _bad(what, "needs at least two points (x, y, z)")
         if all(p == pts[0] for p in pts):
-            raise ValueError(f"guide {self.name!r}: its points are all the same")
-        object.__setattr__(self, "points", pts)
-        _check_gains(self.stiffness, self.damping, f"guide {self.name!r}")
+            raise _bad(what, "its points are all the same")
+        k, b = _gains(stiffness, damping, what)
+        return super().__new__(cls, pts, k, b, name)
 
 
 Primitive = AccessibleSphere | ForbiddenSphere | ForbiddenPlane | Guide
@@ -348,7 +386,12 @@ class FixtureSet:
         if self._acc:
             f = self._accessible(x, y, z, vx, vy, vz, last)
             fx, fy, fz = fx + f[0], fy + f[1], fz + f[2]
+        forb_proxy = self._forb_proxy
         for i, s in enumerate(self._forb):
+            dx, dy, dz = x - s[0], y - s[1], z - s[2]
+            if dx * dx + dy * dy + dz * dz >= s[3] * s[3]:  # outside, free: inlined, the usual case
+                forb_proxy[i] = None
+                continue
             f = self._forbidden(i, s, x, y, z, vx, vy, vz, last)
             fx, fy, fz = fx + f[0], fy + f[1], fz + f[2]
         for px, py, pz, nx, ny, nz, k, b in self._planes:
@@ -505,10 +548,32 @@ class FixtureSet:
         vz: float,
     ) -> Vec3:
         segs, k, b = g
-        target, _ = _nearest_on_path(x, y, z, segs)
+        # the nearest point of the path (_nearest_on_path inlined: a guide pulls every tick)
+        best = math.inf
+        tx = ty = tz = 0.0
+        for ax, ay, az, dx, dy, dz, dd in segs:
+            t = ((x - ax) * dx + (y - ay) * dy + (z - az) * dz) / dd
+            t = 0.0 if t < 0.0 else 1.0 if t > 1.0 else t
+            px, py, pz = ax + t * dx, ay + t * dy, az + t * dz
+            ex, ey, ez = x - px, y - py, z - pz
+            e = ex * ex + ey * ey + ez * ez
+            if e < best:
+                best, tx, ty, tz = e, px, py, pz
         p = self._guide_proxy[i]
-        p = target if p is None else _slide(p, target, self.slide_mm)
+        if p is None:
+            p = (tx, ty, tz)
+        else:
+            ex, ey, ez = tx - p[0], ty - p[1], tz - p[2]
+            d = math.sqrt(ex * ex + ey * ey + ez * ez)
+            step = self.slide_mm
+            if d <= step:
+                p = (tx, ty, tz)
+            else:
+                f = step / d
+                p = (p[0] + ex * f, p[1] + ey * f, p[2] + ez * f)
         self._guide_proxy[i] = p
+        if b == 0.0:
+            return (k * (p[0] - x), k * (p[1] - y), k * (p[2] - z))
         return self._spring(p, x, y, z, k, b, vx, vy, vz)
 
     # ------------------------------------------------------------------ inspection

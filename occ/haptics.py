@@ -4,13 +4,17 @@
 definitions by source (:mod:`occ.fixture_defs`), the patient-to-master mapping, and the active
 :class:`~occ.fixtures.FixtureSet`; all on the loop thread, all bounded:
 
-- a definition message is validated and compiled when it arrives (``max_primitives`` caps the
-  work: ~1-2 µs a primitive, docs/BENCHMARKS.md) into a *new* set that replaces the active
-  one in one assignment, so a tick sees the old set or the new one, never half of each; an
-  invalid definition raises :class:`~occ.fixture_defs.DefinitionError` (the sender gets an
-  error reply) and the active set stays;
-- a change of the mapping (registration, clutch, a re-anchoring slave tip) recompiles the
-  patient-frame definitions the same way;
+- a definition message (decoded by the interface thread) is validated and compiled when the
+  loop takes it, into a *new* set that replaces the active one in one assignment, so a tick
+  sees the old set or the new one, never half of each; an invalid definition raises
+  :class:`~occ.fixture_defs.DefinitionError` (the sender gets an error reply) and the active
+  set stays. The work is bounded: only the message's own source is compiled (the others are
+  kept compiled), at most ``max_primitives`` in all, and at most ``max_primitives``
+  definitions a tick (a burst beyond is refused "busy", to be sent again): a few µs a
+  primitive, docs/BENCHMARKS.md;
+- a change of the mapping (registration, clutch, a re-anchoring slave tip) marks the
+  patient-frame definitions stale; :meth:`MasterFixtures.step` recompiles them once, however
+  many changes came in the tick;
 - :meth:`MasterFixtures.step` (every tick) returns the force for the tool's position.
 
 Display (3D Slicer): :meth:`model_message` draws the active fixtures as one POLYDATA
@@ -50,6 +54,7 @@ from .fixtures import (
     ForbiddenPlane,
     ForbiddenSphere,
     Guide,
+    Primitive,
     Vec3,
 )
 
@@ -90,7 +95,9 @@ class MasterFixtures:
         self.refused = 0
         self.last_error = ""
         self.peak_force_n = 0.0
-        self._has_patient = False
+        self._compiled: dict[str, list[Primitive]] = {}
+        self._tick_work = 0  # definitions compiled in the tick at _work_now
+        self._work_now = math.nan
         self._last_now = math.nan
         self.tool_mm: Vec3 = (0.0, 0.0, 0.0)
         self.force_n: Vec3 = (0.0, 0.0, 0.0)
@@ -99,12 +106,21 @@ class MasterFixtures:
     def load_file(self, path: str | Path, **kw: Any) -> int:
         """A Slicer ``.mrk.json`` file as one source (at start, off the loop)."""
         defs = from_markups_file(path, **kw)
+        self._new_tick(math.nan)  # at start, off the loop: a budget of its own
+        self._tick_work = 0
         self._replace(f"file:{path}", defs)
         return len(defs)
 
-    def on_message(self, msg: Message) -> str | None:
+    def _new_tick(self, now: float) -> None:
+        """The per-tick work budget starts again on each new tick."""
+        if now != self._work_now:
+            self._work_now = now
+            self._tick_work = 0
+
+    def on_message(self, msg: Message, now: float = math.nan) -> str | None:
         """A definition message: applied (a short description) or None when ``msg`` is no
         fixture; :class:`DefinitionError` when it is refused (the active set unchanged)."""
+        self._new_tick(now)
         try:
             defs = from_message(msg, self.defaults)
         except DefinitionError as err:
@@ -127,51 +143,61 @@ class MasterFixtures:
 
     def clear(self) -> None:
         self.groups.clear()
-        self._swap(FixtureSet(max_force_n=self.max_force_n, slide_mm=self.slide_mm))
+        self._compiled.clear()
+        self._swap()
 
     def _replace(self, key: str, defs: list[Definition]) -> None:
-        groups = dict(self.groups)
-        if defs:
-            groups[key] = defs
-        else:
-            groups.pop(key, None)
-        every = [d for g in groups.values() for d in g]
-        if len(every) > self.max_primitives:
+        total = sum(len(g) for k, g in self.groups.items() if k != key) + len(defs)
+        if total > self.max_primitives:
             raise DefinitionError(
-                f"{len(every)} fixtures in all, more than max_primitives {self.max_primitives}"
+                f"{total} fixtures in all, more than max_primitives {self.max_primitives}"
             )
-        planes = sum(1 for d in every if d.kind == "plane")
+        planes = sum(1 for k, g in self.groups.items() if k != key for d in g
+                     if d.kind == "plane") + sum(1 for d in defs if d.kind == "plane")
         if planes > self.max_planes:
             raise DefinitionError(f"{planes} planes, more than max_planes {self.max_planes}")
-        prims = compile_definitions(every, self.mapping)
-        self.groups = groups
-        self._has_patient = any(d.frame == "patient" for d in every)
-        self._swap(FixtureSet(prims, max_force_n=self.max_force_n, slide_mm=self.slide_mm))
+        if self._tick_work + len(defs) > self.max_primitives:
+            # bounded work a tick: at most one full set's worth of definitions compiled
+            raise DefinitionError(
+                f"busy: {self._tick_work} fixtures compiled this tick already; send it again"
+            )
+        self._tick_work += len(defs)
+        prims = compile_definitions(defs, self.mapping)
+        if defs:
+            self.groups[key] = defs
+            self._compiled[key] = prims
+        else:
+            self.groups.pop(key, None)
+            self._compiled.pop(key, None)
+        self._swap()
         self.applied += 1
-        log.info("virtual fixtures: %s -> %d active", key, len(prims))
+        log.info("virtual fixtures: %s -> %d active", key, len(self.active))
 
-    def _swap(self, new: FixtureSet) -> None:
+    def _swap(self) -> None:
+        prims = [p for g in self._compiled.values() for p in g]
+        new = FixtureSet(prims, max_force_n=self.max_force_n, slide_mm=self.slide_mm)
         self.active = new.carry_from(self.active)
-        self._compiled_version = self.mapping.version
         self.version += 1
 
     def _recompile(self) -> None:
-        """The mapping changed: patient-frame fixtures move on the master."""
+        """The mapping changed: patient-frame fixtures move on the master. Done at once when
+        this tick's budget allows, else by :meth:`step` (once, whatever the changes)."""
+        patient = [k for k, g in self.groups.items() if any(d.frame == "patient" for d in g)]
+        work = sum(len(self.groups[k]) for k in patient)
+        if self._tick_work + work > self.max_primitives:
+            return  # stale until the next step()
         self._compiled_version = self.mapping.version
-        if not self._has_patient:
+        if not patient:
             return
-        every = [d for g in self.groups.values() for d in g]
-        self._swap(
-            FixtureSet(
-                compile_definitions(every, self.mapping),
-                max_force_n=self.max_force_n,
-                slide_mm=self.slide_mm,
-            )
-        )
+        self._tick_work += work
+        for k in patient:
+            self._compiled[k] = compile_definitions(self.groups[k], self.mapping)
+        self._swap()
 
     # ------------------------------------------------------------------ mapping inputs
-    def following(self, on: bool, tool_mm: Sequence[float]) -> None:
+    def following(self, on: bool, tool_mm: Sequence[float], now: float = math.nan) -> None:
         """The slave follows (running, clutch released) or not: its references move."""
+        self._new_tick(now)
         if on:
             self.mapping.start_following(tool_mm)
         else:
@@ -179,17 +205,22 @@ class MasterFixtures:
         if self.mapping.version != self._compiled_version:
             self._recompile()
 
-    def registration(self, matrix: Sequence[Sequence[float]]) -> None:
+    def registration(self, matrix: Sequence[Sequence[float]], now: float = math.nan) -> None:
+        self._new_tick(now)
         self.mapping.set_registration(matrix)
         self._recompile()
 
-    def slave_tip(self, tip_patient: Sequence[float]) -> None:
+    def slave_tip(self, tip_patient: Sequence[float], now: float = math.nan) -> None:
+        self._new_tick(now)
         self.mapping.slave_tip(tip_patient, self.tool_mm)
         self._recompile()
 
     # ------------------------------------------------------------------ per tick
     def step(self, tool_mm: Sequence[float], now: float) -> Vec3:
         """The force (N, master frame) for the tool at ``tool_mm`` at time ``now``."""
+        self._new_tick(now)
+        if self.mapping.version != self._compiled_version:
+            self._recompile()
         last = self._last_now
         dt = now - last if last == last else 0.0
         self._last_now = now

@@ -366,13 +366,13 @@ class MasterController(Controller):
             and msg.device_name in (self.slave_base_device, self.slave_tip_device)
             and not (is_input and self.input_device == msg.device_name)
         ):
-            self._mapping_input(msg)
+            self._mapping_input(msg, now)
             return
         if mtype in ("VFIXTURE", "POINT", "TRANSFORM", "POLYDATA") and not (
             is_input and mtype in ("TRANSFORM", "POSITION") and "kind" not in msg.metadata
         ):
             try:
-                if self.fixtures.on_message(msg) is not None:
+                if self.fixtures.on_message(msg, now) is not None:
                     return
             except DefinitionError as err:
                 raise CommandError(str(err)) from err
@@ -389,15 +389,15 @@ class MasterController(Controller):
         self.samples += 1
         self.target = np.array([x, y, z]) * MM
 
-    def _mapping_input(self, msg: Message) -> None:
+    def _mapping_input(self, msg: Message, now: float) -> None:
         """The registration (the slave's base pose) or the slave's measured tip."""
         try:
             if msg.device_name == self.slave_base_device and msg.message_type == "TRANSFORM":
-                self.fixtures.registration(msg.matrix.tolist())  # type: ignore[attr-defined]
+                self.fixtures.registration(msg.matrix.tolist(), now)  # type: ignore[attr-defined]
             elif msg.device_name == self.slave_tip_device:
                 m: Any = msg
                 self.fixtures.slave_tip(
-                    m.translation if msg.message_type == "TRANSFORM" else m.position
+                    m.translation if msg.message_type == "TRANSFORM" else m.position, now
                 )
         except DefinitionError as err:
             raise CommandError(f"{msg.message_type} {msg.device_name!r}: {err}") from err
@@ -429,7 +429,7 @@ class MasterController(Controller):
             self._t_held = now - self._t_run
             if self._following:  # the slave stops following: the mapping keeps where
                 self._following = False
-                self.fixtures.following(False, self.fixtures.tool_mm)
+                self.fixtures.following(False, self.fixtures.tool_mm, now)
 
     # -------------------------------------------------------------- loop
     def operator_target(self, now: float) -> np.ndarray | tuple[float, float, float] | None:
@@ -453,7 +453,7 @@ class MasterController(Controller):
         following = not self.clutch
         if following != self._following:
             self._following = following
-            self.fixtures.following(following, tool)
+            self.fixtures.following(following, tool, now)
         fx, fy, fz = self.fixtures.step(tool, now)
         if self.force_output:
             eff = self._efforts

@@ -406,3 +406,18 @@ def test_getstats_and_recording_have_tool_and_force(tmp_path: Path) -> None:
     row = dict(zip(cols, states[-1].array.ravel().tolist()))
     assert {"tip.x_mm", "eff.x", "eff.y", "eff.z"} <= set(cols)
     assert row["eff.x"] < -1.0
+
+
+def test_a_burst_beyond_the_tick_budget_is_refused_busy_then_taken(master: Master) -> None:
+    spheres = tuple((float(i), 0.0, 0.0, 5.0) for i in range(40))
+    msg = igtl.VirtualFixtureMessage(hardness=1.0, spheres=spheres, device_name="Big",
+                                     header_version=2)
+    master.op.send(msg)
+    master.op.send(msg)  # the same tick: 80 definitions to compile, over max_fixtures (64)
+    master.sim.step(1)
+    statuses = [m for m in master.op.received if m.message_type == "STATUS"
+                and "busy" in m.status_message]
+    assert len(statuses) == 1 and master.ctrl.stats()["fixtures"] == 40
+    master.op.send(msg)
+    master.sim.step(1)  # next tick: taken
+    assert master.ctrl.stats()["fixtures_applied"] == 2
