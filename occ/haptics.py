@@ -152,8 +152,9 @@ class MasterFixtures:
             raise DefinitionError(
                 f"{total} fixtures in all, more than max_primitives {self.max_primitives}"
             )
-        planes = sum(1 for k, g in self.groups.items() if k != key for d in g
-                     if d.kind == "plane") + sum(1 for d in defs if d.kind == "plane")
+        planes = sum(
+            1 for k, g in self.groups.items() if k != key for d in g if d.kind == "plane"
+        ) + sum(1 for d in defs if d.kind == "plane")
         if planes > self.max_planes:
             raise DefinitionError(f"{planes} planes, more than max_planes {self.max_planes}")
         if self._tick_work + len(defs) > self.max_primitives:
