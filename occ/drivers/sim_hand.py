@@ -159,12 +159,15 @@ class SimHandDriver(SimDriver):
             u = cmd[i] if enabled else 0.0
             kh, bh = self._k_hand[i], self._b_hand[i]
             a, ph, off = self._amp[i], self._phase[i], self._offset[i]
-            tau = tau0
+            # the intention at the middle of the interval, held over it: it moves at 0.1 Hz,
+            # the interval is a tick (1 ms); one sin/cos per joint and tick, not per substep
+            if a != 0.0:
+                arg = w * (tau0 + (0.5 * dt if enabled else 0.0)) + ph
+                target, target_v = off + a * math.sin(arg), a * w * math.cos(arg)
+            else:
+                target, target_v = off, 0.0
             for _ in range(steps):
-                if enabled:
-                    tau += h
-                arg = w * tau + ph
-                hand = kh * (off + a * math.sin(arg) - x) + bh * (a * w * math.cos(arg) - v)
+                hand = kh * (target - x) + bh * (target_v - v)
                 v += (u + hand - b * v) * inv_j * h
                 x += v * h
                 if x < lo or x > hi:
