@@ -523,10 +523,12 @@ def compile_definitions(
     for d in defs:
         m = to_master(d, mapping)
         try:
-            if m.kind == "accessible":
-                out.append(AccessibleSphere(m.points[0], m.radius, m.stiffness, m.damping, m.name))
-            elif m.kind == "forbidden":
-                out.append(ForbiddenSphere(m.points[0], m.radius, m.stiffness, m.damping, m.name))
+            if m.kind in ("accessible", "forbidden"):
+                # the bulk of a definition: its numbers were checked when it was read (finite,
+                # radius > 0, gains >= 0) and the mapping keeps them so; built without a second
+                # check (a definition of 64 spheres is compiled on the loop thread)
+                cls = AccessibleSphere if m.kind == "accessible" else ForbiddenSphere
+                out.append(cls._trusted(m.points[0], m.radius, m.stiffness, m.damping, m.name))
             elif m.kind == "plane":
                 assert m.normal is not None
                 out.append(ForbiddenPlane(m.points[0], m.normal, m.stiffness, m.damping, m.name))

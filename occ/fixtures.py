@@ -121,6 +121,13 @@ class _Sphere(_SphereFields):
         k, b = _gains(stiffness, damping, what)
         return super().__new__(cls, c, r, k, b, name)
 
+    @classmethod
+    def _trusted(
+        cls, centre: Vec3, radius: float, stiffness: float, damping: float, name: str
+    ) -> Self:
+        """Built from numbers already checked (occ.fixture_defs), without checking again."""
+        return tuple.__new__(cls, (centre, radius, stiffness, damping, name))
+
 
 class AccessibleSphere(_Sphere):
     """Part of the accessible area (the union of all such spheres). Lengths in mm, stiffness

@@ -118,18 +118,24 @@ def run(
             if k % every:
                 continue
             res.t.append(k * master.period)
-            hx, hy, hz = (v * 1000.0 - o for v, o in
-                          zip(master.robot.frame.tip_position(master.robot.data.q), origin,
-                              strict=True))
+            hx, hy, hz = (
+                v * 1000.0 - o
+                for v, o in zip(
+                    master.robot.frame.tip_position(master.robot.data.q), origin, strict=True
+                )
+            )
             res.handle.append((hx, hy, hz))
             res.intended.append(tuple(v * 1000.0 for v in hand.intended()))  # type: ignore[arg-type]
             if scontrol.master_ref is not None and scontrol.slave_ref is not None:
                 s = slave.robot.frame.tip_position(slave.robot.data.q)
-                res.slave.append(tuple(
-                    (mr + (sv - sr) / scale) * 1000.0 - o
-                    for sv, sr, mr, o in zip(s, scontrol.slave_ref, scontrol.master_ref, origin,
-                                             strict=True)
-                ))  # type: ignore[arg-type]
+                res.slave.append(
+                    tuple(
+                        (mr + (sv - sr) / scale) * 1000.0 - o
+                        for sv, sr, mr, o in zip(
+                            s, scontrol.slave_ref, scontrol.master_ref, origin, strict=True
+                        )
+                    )
+                )  # type: ignore[arg-type]
             f = ctrl.fixtures.force_n
             res.force.append(math.sqrt(f[0] ** 2 + f[1] ** 2 + f[2] ** 2))
         res.peak_force_n = ctrl.fixtures.peak_force_n
@@ -150,15 +156,36 @@ def plot(res: Result, free: Result | None, out: Path, title: str) -> None:
     fig, (ax, axf) = plt.subplots(1, 2, figsize=(11, 5), gridspec_kw={"width_ratios": [1, 1.2]})
     if res.sphere is not None:
         cx, cy, _cz, r = res.sphere
-        ax.add_patch(plt.Circle((cx, cy), r, fill=False, ls="--", color="grey",
-                                label="accessible sphere (z section)"))
-    ax.plot(*zip(*[(p[0], p[1]) for p in res.intended], strict=True), color="0.6", lw=1,
-            label="intended (the hand's motion)")
-    ax.plot(*zip(*[(p[0], p[1]) for p in res.handle], strict=True), color="C0", lw=1.5,
-            label="master handle (measured)")
+        ax.add_patch(
+            plt.Circle(
+                (cx, cy),
+                r,
+                fill=False,
+                ls="--",
+                color="grey",
+                label="accessible sphere (z section)",
+            )
+        )
+    ax.plot(
+        *zip(*[(p[0], p[1]) for p in res.intended], strict=True),
+        color="0.6",
+        lw=1,
+        label="intended (the hand's motion)",
+    )
+    ax.plot(
+        *zip(*[(p[0], p[1]) for p in res.handle], strict=True),
+        color="C0",
+        lw=1.5,
+        label="master handle (measured)",
+    )
     if res.slave:
-        ax.plot(*zip(*[(p[0], p[1]) for p in res.slave], strict=True), color="C3", lw=1,
-                ls=":", label="slave tip / scale")
+        ax.plot(
+            *zip(*[(p[0], p[1]) for p in res.slave], strict=True),
+            color="C3",
+            lw=1,
+            ls=":",
+            label="slave tip / scale",
+        )
     ax.set_aspect("equal")
     ax.set_xlabel("x (mm, master frame)")
     ax.set_ylabel("y (mm)")
@@ -172,10 +199,20 @@ def plot(res: Result, free: Result | None, out: Path, title: str) -> None:
     if free is not None:
         axr = axf.twinx()
         c = res.sphere[:3] if res.sphere else (0.0, 0.0, 20.0)
-        axr.plot(free.t, [math.dist(p, c) for p in free.slave], color="0.6", lw=1,
-                 label="slave radius, no fixture (mm)")
-        axr.plot(res.t[: len(res.slave)], [math.dist(p, c) for p in res.slave], color="C3",
-                 lw=1, label="slave radius, fixture (mm)")
+        axr.plot(
+            free.t,
+            [math.dist(p, c) for p in free.slave],
+            color="0.6",
+            lw=1,
+            label="slave radius, no fixture (mm)",
+        )
+        axr.plot(
+            res.t[: len(res.slave)],
+            [math.dist(p, c) for p in res.slave],
+            color="C3",
+            lw=1,
+            label="slave radius, fixture (mm)",
+        )
         axr.set_ylabel("distance from the sphere's centre (mm, master scale)")
         axr.legend(loc="upper right", fontsize=8)
     axf.legend(loc="upper left", fontsize=8)
@@ -186,7 +223,9 @@ def plot(res: Result, free: Result | None, out: Path, title: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--case", choices=sorted(CASES), default="paper")
     p.add_argument("--seconds", type=float, default=10.0, help="simulated seconds (10: one lap)")
     p.add_argument("--stiffness", type=float, default=1.0, help="N/mm (the paper: 1)")
@@ -195,20 +234,31 @@ def main(argv: list[str] | None = None) -> int:
     sphere = CASES[args.case]
     res = run(sphere, stiffness=args.stiffness, seconds=args.seconds)
     free = run(sphere, stiffness=0.0, seconds=args.seconds) if args.case == "small" else None
-    print(f"case {args.case}: sphere (rel. centre) {sphere[:3]} r {sphere[3]} mm, "
-          f"{args.stiffness} N/mm, {args.seconds} s")
+    print(
+        f"case {args.case}: sphere (rel. centre) {sphere[:3]} r {sphere[3]} mm, "
+        f"{args.stiffness} N/mm, {args.seconds} s"
+    )
     print(f"  peak force {res.peak_force_n:.2f} N")
-    for name, path in (("intended", res.intended), ("handle", res.handle),
-                       ("slave/scale", res.slave)):
-        print(f"  {name:12s} max distance from centre {res.max_radius(path):7.2f} mm "
-              f"(outside by {res.outside_mm(path):6.2f} mm)")
+    for name, path in (
+        ("intended", res.intended),
+        ("handle", res.handle),
+        ("slave/scale", res.slave),
+    ):
+        print(
+            f"  {name:12s} max distance from centre {res.max_radius(path):7.2f} mm "
+            f"(outside by {res.outside_mm(path):6.2f} mm)"
+        )
     if free is not None:
-        print(f"  without the fixture: handle {free.max_radius(free.handle):.2f} mm, "
-              f"slave/scale {free.max_radius(free.slave):.2f} mm")
+        print(
+            f"  without the fixture: handle {free.max_radius(free.handle):.2f} mm, "
+            f"slave/scale {free.max_radius(free.slave):.2f} mm"
+        )
     print(f"  states: master {res.master_state}, slave {res.slave_state}")
     if args.out is not None:
-        title = (f"OCC motion test: sphere r {sphere[3]:.0f} mm, {args.stiffness:g} N/mm, 10:1"
-                 f" (peak {res.peak_force_n:.1f} N)")
+        title = (
+            f"OCC motion test: sphere r {sphere[3]:.0f} mm, {args.stiffness:g} N/mm, 10:1"
+            f" (peak {res.peak_force_n:.1f} N)"
+        )
         plot(res, free, args.out, title)
         print(f"  plot: {args.out}")
     return 0
