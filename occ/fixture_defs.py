@@ -255,7 +255,8 @@ def from_markups_file(
     point's own radius is not stored by Slicer, so ``radius_mm``) or, with ``kind: guide``, one
     polyline; lines and curves become guides; planes become forbidden planes (their first
     control point or ``center`` and ``normal``). Coordinates in ``LPS`` (Slicer's file default)
-    are turned into RAS (x and y negated); ``RAS`` files are taken as they are."""
+    are turned into RAS (x and y negated); ``RAS`` files are taken as they are; ``um`` units
+    become mm. Hidden and undefined control points are left out."""
     try:
         doc = json.loads(Path(path).read_text(encoding="utf-8"))
     except (OSError, ValueError) as err:
@@ -271,12 +272,17 @@ def from_markups_file(
         if system not in ("LPS", "RAS"):
             raise DefinitionError(f"{path}: markups[{m_index}]: coordinate system {system!r}")
         flip = -1.0 if system == "LPS" else 1.0
+        units = m.get("coordinateUnits", "mm")
+        units = units[0] if isinstance(units, list) and units else units
+        if units not in ("mm", "um"):
+            raise DefinitionError(f"{path}: markups[{m_index}]: coordinate units {units!r}")
+        unit = 1e-3 if units == "um" else 1.0
 
-        def ras(p: Any, what: str, flip: float = flip) -> Vec3:
+        def ras(p: Any, what: str, flip: float = flip, unit: float = unit) -> Vec3:
             if not isinstance(p, (list, tuple)) or len(p) != 3:
                 raise DefinitionError(f"{path}: {what}: expected [x, y, z]")
             x, y, z = _finite(p, f"{path}: {what}")
-            return (flip * x, flip * y, z)
+            return (flip * x * unit, flip * y * unit, z * unit)
 
         mtype = str(m.get("type", ""))
         label = str(m.get("name", "") or f"markups{m_index}")
@@ -284,7 +290,7 @@ def from_markups_file(
         for c_index, cp in enumerate(m.get("controlPoints") or []):
             if not isinstance(cp, dict) or "position" not in cp:
                 raise DefinitionError(f"{path}: {label}: control point {c_index} has no position")
-            if cp.get("visibility", True) is False:
+            if cp.get("visibility", True) is False or cp.get("positionStatus") == "undefined":
                 continue
             points.append(
                 (
@@ -330,7 +336,7 @@ def from_markups_file(
                 raise DefinitionError(
                     f"{path}: plane {label!r} needs a center (or a control point) and a normal"
                 )
-            normal = ras(m["normal"], f"{label} normal")
+            normal = ras(m["normal"], f"{label} normal", unit=1.0)
             out.append(
                 Definition("plane", (centre,), 0.0, normal, stiffness, damping, label, "patient")
             )
