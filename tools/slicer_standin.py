@@ -116,6 +116,30 @@ class SlicerStandIn:
     def send_markups(self, points: list[tuple[float, float, float]], **kw: Any) -> None:
         self.client.send(markups_points(points, **kw))
 
+    # --------------------------------------------------------------- results
+    def summary(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        with self._lock:
+            for dev, times in self.arrivals.items():
+                d: dict[str, Any] = {"count": len(times)}
+                if len(times) >= 2:
+                    iv = [(b - a) * 1e3 for a, b in zip(times, times[1:], strict=False)]
+                    span = times[-1] - times[0]
+                    d["rate_hz"] = round((len(times) - 1) / span, 3) if span > 0 else None
+                    d["interval_ms"] = {
+                        "mean": round(statistics.fmean(iv), 3),
+                        "std": round(statistics.pstdev(iv), 3),
+                        "p99": round(sorted(iv)[min(len(iv) - 1, int(0.99 * len(iv)))], 3),
+                        "max": round(max(iv), 3),
+                        "min": round(min(iv), 3),
+                    }
+                m = self.last.get(dev)
+                if m is not None:
+                    d["last_mm"] = [round(v, 3) for v in m.translation]  # type: ignore[attr-defined]
+                out[dev] = d
+            out["_statuses"] = [f"{s.error_name}: {s.status_message}" for s in self.statuses][-10:]
+        return out
+
 
 def markups_points(
     points: list[tuple[float, float, float]],
@@ -143,30 +167,6 @@ def markups_points(
         for i, p in enumerate(points)
     )
     return igtl.PointMessage(points=elements, device_name=name, header_version=2, metadata=meta)
-
-    # --------------------------------------------------------------- results
-    def summary(self) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        with self._lock:
-            for dev, times in self.arrivals.items():
-                d: dict[str, Any] = {"count": len(times)}
-                if len(times) >= 2:
-                    iv = [(b - a) * 1e3 for a, b in zip(times, times[1:], strict=False)]
-                    span = times[-1] - times[0]
-                    d["rate_hz"] = round((len(times) - 1) / span, 3) if span > 0 else None
-                    d["interval_ms"] = {
-                        "mean": round(statistics.fmean(iv), 3),
-                        "std": round(statistics.pstdev(iv), 3),
-                        "p99": round(sorted(iv)[min(len(iv) - 1, int(0.99 * len(iv)))], 3),
-                        "max": round(max(iv), 3),
-                        "min": round(min(iv), 3),
-                    }
-                m = self.last.get(dev)
-                if m is not None:
-                    d["last_mm"] = [round(v, 3) for v in m.translation]  # type: ignore[attr-defined]
-                out[dev] = d
-            out["_statuses"] = [f"{s.error_name}: {s.status_message}" for s in self.statuses][-10:]
-        return out
 
 
 def main(argv: list[str] | None = None) -> int:
