@@ -35,6 +35,7 @@ from pydantic import (
     Strict,
     StringConstraints,
     ValidationInfo,
+    field_validator,
     model_validator,
 )
 from pydantic_core import PydanticCustomError
@@ -813,8 +814,23 @@ class ControllerConfig(_Model):
     params: dict[str, Any] = Field(
         {},
         description="The plugin's parameters, validated against its own model at load (see "
-        "'Controller plugins' below).",
+        "'Controller plugins' below). A relative path in a key named `file` or ending in "
+        "`_file`, at any depth, is taken relative to the configuration file.",
     )
+
+    @field_validator("params", mode="after")
+    @classmethod
+    def _resolve_files(cls, value: dict[str, Any], info: ValidationInfo) -> dict[str, Any]:
+        def walk(v: Any, key: str = "") -> Any:
+            if isinstance(v, dict):
+                return {k: walk(x, str(k)) for k, x in v.items()}
+            if isinstance(v, list | tuple):
+                return [walk(x) for x in v]
+            if isinstance(v, str) and (key == "file" or key.endswith("_file")) and v:
+                return _resolve_path(v, info)
+            return v
+
+        return walk(value)  # type: ignore[no-any-return]
 
 
 class DaemonConfig(_Model):

@@ -34,6 +34,7 @@ class RobotData:
         "q",
         "setpoint",
         "hold_setpoint",
+        "effort_command",
         "base",
         "state",
         "clock",
@@ -58,6 +59,9 @@ class RobotData:
         self.setpoint: list[float] = list(self.q)
         #: the last safe setpoint: held while ENABLED or STOPPED, and while a stream is late
         self.hold_setpoint: list[float] = list(self.q)
+        #: the efforts the drivers were last told, when the controllers command efforts (a
+        #: haptic master's displayed force); None otherwise
+        self.effort_command: list[float] | None = None
         #: base pose in the world (config or tracker): what 3D Slicer shows the tip relative to
         self.base: np.ndarray = np.eye(4)
         self.state = RobotState.INIT

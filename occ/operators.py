@@ -101,6 +101,27 @@ class OperatorDesk:
             # a discrete input routed to the command queue (e.g. VFIXTURE)
             try:
                 r.controller.on_sample(item, now)
+            except CommandError as err:
+                # the controller refused it (an invalid fixture): the sender is told, nothing
+                # changed
+                self.refused += 1
+                if self._refusal_log.allow():
+                    log.warning(
+                        "%s: refused %s from %s:%s: %s",
+                        item.interface,
+                        msg.message_type,
+                        *item.peer.address[:2],
+                        err,
+                    )
+                r.interfaces.reply(
+                    item,
+                    error_reply(
+                        msg,
+                        str(err),
+                        code=igtl.StatusCode.ILLEGAL_INSTRUCTION,
+                        timestamp=r.clock.wall_time(),
+                    ),
+                )
             except Exception as err:  # noqa: BLE001
                 r.alarms.plugin_error(f"controller {r.controller.name}: on_sample", err)
             return

@@ -7,8 +7,10 @@ File format: a plain concatenation of OpenIGTLink header-version-2 messages.
   a broadcast) and ``rec.t`` (daemon clock, seconds, 6 decimals). Its original header version is
   in ``rec.hv``.
 - The loop state is an ``NDARRAY`` (float64) with device name ``OCCState`` written at
-  ``rate_hz``: ``[t, state code, q..., setpoint..., tip x y z (mm)]``; metadata ``columns`` names
-  the columns.
+  ``rate_hz``: ``[t, state code, q..., setpoint..., tip x y z (mm)]``, then ``eff...`` (the
+  efforts commanded, N or N m) on a robot whose controller commands efforts (a haptic master:
+  the force it displays, next to the tool's position ``tip``); metadata ``columns`` names the
+  columns.
 
 The loop thread only appends references to a bounded in-memory queue; a writer thread adds the
 recording metadata, packs and writes, handing the interpreter lock back after every record so
@@ -120,6 +122,7 @@ class Recorder:
                 + [f"q.{n}" for n in names]
                 + [f"sp.{n}" for n in names]
                 + ["tip.x_mm", "tip.y_mm", "tip.z_mm"]
+                + ([f"eff.{n}" for n in names] if data.effort_command is not None else [])
             )
         tip = data.tip
         row = [
@@ -131,6 +134,8 @@ class Recorder:
             tip[1, 3] * 1000.0,
             tip[2, 3] * 1000.0,
         ]
+        if data.effort_command is not None:
+            row.extend(data.effort_command)  # a haptic master: the force it displays
         self._put(("state", row, data.clock.wall_time()))
 
     # ------------------------------------------------------------------ writer thread

@@ -42,7 +42,7 @@ from .config import DaemonConfig
 from .controllers import Controller, ControllerContext, ControllerSet, create_controller
 from .data import RobotData
 from .drivers.base import DriverState
-from .errors import CommandError, OCCError
+from .errors import CommandError, ConfigError, OCCError
 from .interfaces import Inbound, InterfaceManager
 from .loop import ControlLoop
 from .operators import OperatorDesk
@@ -207,6 +207,9 @@ class Robot:
                 joint_limits=tuple(j.limits for j in self.joints),
             ),
         )
+        self._check_command_kinds()
+        if self.controller.commands_effort:
+            self.data.effort_command = [0.0] * len(self.joints)
         self.operators = OperatorDesk(self)
         self.interfaces.on_connect(self.operators.greet)
         sources = {
@@ -417,6 +420,9 @@ class Robot:
         watched stream is overdue, then re-join the target without a jump), hold while
         ENABLED/STOPPED, nothing while the drivers are off."""
         data = self.data
+        if self.controller.commands_effort:
+            self._control_effort(state, now, holding)
+            return
         if not self.controller.drives_joints:
             if state is RobotState.RUNNING and not holding:
                 self.controller.update(now, data.setpoint)
@@ -435,6 +441,50 @@ class Robot:
             self._write(sp, now)
         elif state in POWERED:
             self._write(data.hold_setpoint, now)
+
+    def _control_effort(self, state: RobotState, now: float, holding: bool) -> None:
+        """A robot whose controllers command efforts (a haptic master): their efforts while
+        RUNNING, zero effort (the device free in the operator's hand) while ENABLED/STOPPED or
+        while a watched stream is late, nothing while the drivers are off. Written every tick
+        while powered, which also feeds the drives' heartbeat."""
+        if state not in POWERED:
+            return
+        eff = self.data.effort_command
+        assert eff is not None  # set at build when the controllers command efforts
+        target = None
+        if state is RobotState.RUNNING and not holding:
+            target = self.controller.update(now, eff)
+        if target is None:
+            for i in range(len(eff)):
+                eff[i] = 0.0
+        else:
+            eff[:] = target
+        for drv, idx, buf in self._slices:
+            if drv.state is not DriverState.ACTIVE:
+                continue
+            for n, i in enumerate(idx):
+                buf[n] = eff[i]
+            try:
+                drv.write_effort(buf, now)
+            except OCCError as err:
+                self.alarms.fault(f"driver {drv.name}: {err}")
+                return
+
+    def _check_command_kinds(self) -> None:
+        """Efforts go to effort drivers only, and a driver needing a PID for positions has
+        its gains: a configuration mistake is a ConfigError at build, not a FAULT at run."""
+        effort = self.controller.commands_effort
+        for drv, _idx in self.drivers:
+            if effort and drv.command_interface != "effort":
+                raise ConfigError(
+                    f"driver {drv.name!r}: the controller commands efforts, but the driver "
+                    f"takes {drv.command_interface} commands (set command_interface: effort)"
+                )
+            if not effort and self.controller.drives_joints and drv.missing_gains:
+                raise ConfigError(
+                    f"driver {drv.name!r}: effort interface needs PID gains on joints "
+                    f"{drv.missing_gains} (the controller commands positions)"
+                )
 
     def _rejoin(self, sp: list[float], target: Sequence[float]) -> bool:
         """Move ``sp`` toward ``target`` by at most half the velocity limit; True while away."""

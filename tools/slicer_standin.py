@@ -6,7 +6,8 @@ What it does, as Slicer does (shared/IGTL-PROTOCOL.md §6.1):
 - connects as a TCP *client* (default 127.0.0.1:18944);
 - on connect sends a header-version-2 STATUS with an empty device name and metadata
   ``dummy=dummy``, so the server starts answering in header version 2;
-- attaches ``MRMLNodeName`` metadata to what it sends (VFIXTURE fixtures, COMMANDs);
+- attaches ``MRMLNodeName`` metadata to what it sends (VFIXTURE fixtures, Markups point lists
+  as POINT, COMMANDs);
 - receives TRANSFORMs (the robot's ``Tip`` and ``Base``) and STATUS messages.
 
 It prints the tip as it arrives (``--print``), and at the end a JSON summary per device: count,
@@ -105,10 +106,15 @@ class SlicerStandIn:
             time.sleep(0.005)
         return None
 
-    def send_fixtures(self, spheres: list[tuple[float, float, float, float]], hardness: float) -> None:
+    def send_fixtures(self, spheres: list[tuple[float, float, float, float]], hardness: float,
+                      kind: str = "accessible") -> None:
         cls = igtl.REGISTRY["VFIXTURE"]
         self.client.send(cls(spheres=tuple(spheres), hardness=hardness, device_name="Fixtures",
-                             header_version=2, metadata={"MRMLNodeName": "VirtualFixture"}))
+                             header_version=2,
+                             metadata={"MRMLNodeName": "VirtualFixture", "kind": kind}))
+
+    def send_markups(self, points: list[tuple[float, float, float]], **kw: Any) -> None:
+        self.client.send(markups_points(points, **kw))
 
     # --------------------------------------------------------------- results
     def summary(self) -> dict[str, Any]:
@@ -135,6 +141,34 @@ class SlicerStandIn:
         return out
 
 
+def markups_points(
+    points: list[tuple[float, float, float]],
+    name: str = "F",
+    *,
+    kind: str | None = None,
+    radius: float | None = None,
+    stiffness: float | None = None,
+    frame: str | None = None,
+) -> igtl.Message:
+    """A Markups point list as SlicerOpenIGTLink sends it: POINT, header v2, one element per
+    control point (label ``NAME-i``, group ``Fiducial``, visible, radius 0, RAS mm) and
+    ``MRMLNodeName``; the fixture metadata (``kind``, ``radius``, ``stiffness``, ``frame``) as
+    a user adds it to the node's attributes (left out: the daemon's defaults)."""
+    from igtl.messages.point import PointElement
+
+    meta = {"MRMLNodeName": name}
+    for key, value in (("kind", kind), ("radius", radius), ("stiffness", stiffness),
+                       ("frame", frame)):
+        if value is not None:
+            meta[key] = str(value)
+    elements = tuple(
+        PointElement(name=f"{name}-{i + 1}", group="Fiducial", rgba=(255, 0, 0, 255),
+                     position=p)
+        for i, p in enumerate(points)
+    )
+    return igtl.PointMessage(points=elements, device_name=name, header_version=2, metadata=meta)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description="3D Slicer stand-in (OpenIGTLinkIF client behaviour)")
     p.add_argument("--host", default="127.0.0.1")
@@ -145,6 +179,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fixture", action="append", default=[], metavar="X,Y,Z,R",
                    help="send a VFIXTURE sphere in mm (repeatable)")
     p.add_argument("--hardness", type=float, default=1.0, help="fixture hardness N/mm")
+    p.add_argument("--kind", default="accessible", choices=("accessible", "forbidden"),
+                   help="what the --fixture spheres are (the OCC paper: accessible)")
     p.add_argument("--json", type=str, default=None, help="write the summary to this file")
     p.add_argument("--connect-timeout", type=float, default=5.0)
     args = p.parse_args(argv)
@@ -160,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
                 p.error("--fixture takes X,Y,Z,R in mm")
             if any(len(sp) != 4 for sp in spheres):
                 p.error("--fixture takes X,Y,Z,R in mm")
-            s.send_fixtures(spheres, args.hardness)  # type: ignore[arg-type]
+            s.send_fixtures(spheres, args.hardness, args.kind)  # type: ignore[arg-type]
         for name in args.command:
             cid = s.send_command(name)
             r = s.wait_reply(cid)

@@ -205,11 +205,16 @@ class ControllerSet:
         #: the one controller owning every joint (the common case), else None
         self._sole: Controller | None = None
         self.drives_joints = False
+        #: the owned command interfaces are ``JOINT/effort`` (a haptic master displaying a
+        #: force), not positions; one kind per robot
+        self.commands_effort = False
 
     def configure(self, data: RobotData, ctx: ControllerContext) -> None:
         owner: dict[str, str] = {}
         states = {f"{j}/{k}" for j in data.joint_names for k in ("position", "velocity", "effort")}
         index = {f"{j}/position": i for i, j in enumerate(data.joint_names)}
+        index.update({f"{j}/effort": i for i, j in enumerate(data.joint_names)})
+        kinds: set[str] = set()
         for c in self.controllers:
             c.configure(data, ctx)
             for s in c.state_interfaces():
@@ -226,8 +231,15 @@ class ControllerSet:
                     )
                 owner[cmd] = c.name
                 joints.append(index[cmd])
+                kinds.add(cmd.rsplit("/", 1)[1])
             if joints:
                 self._owned.append((c, joints))
+        if len(kinds) > 1:
+            raise ConfigError(
+                "controllers command both positions and efforts: one kind of command "
+                "interface per robot"
+            )
+        self.commands_effort = kinds == {"effort"}
         self.drives_joints = bool(self._owned)
         owners = [c for c, _ in self._owned]
         self._monitors = [c for c in self.controllers if c not in owners]

@@ -21,14 +21,18 @@ Master daemon (:class:`MasterController`)
     The stream never stops while the daemon runs, so the slave can tell a stopped master from a
     dead one.
 
-    Virtual fixtures: VFIXTURE messages (spheres, hardness N/mm) from 3D Slicer define forbidden
-    regions; so do Slicer's own Markups fiducials sent as POINT (each visible point a sphere of
-    ``fixture_radius_mm``, hardness ``fixture_hardness``), which needs no custom module.
-    Coordinates are in the master's frame (mm). While the handle target lies inside a sphere
-    the controller computes the reaction force ``hardness × penetration`` along the outward
-    normal (reported as ``fixture_force_n``)
-    and, for position-controlled (simulated) masters, projects the target back onto the sphere
-    surface, which is what a perfectly stiff haptic rendering would do to the hand.
+    Virtual fixtures (:mod:`occ.fixtures`, :mod:`occ.fixture_defs`, :mod:`occ.haptics`): the
+    OCC paper's accessible spheres (the default meaning of VFIXTURE), forbidden spheres and
+    planes, guides; defined by VFIXTURE, Slicer Markups (POINT, TRANSFORM and POLYDATA with
+    metadata) and ``.mrk.json`` files (``fixture_files``), in the master's frame or the
+    patient's (mapped through the slave's registration, ``scale`` and the clutch offsets). Each
+    tick the force for the measured tool position is computed (a proxy per contact, clamped to
+    ``max_force_n``); with ``force_output`` it is written to the master's effort command
+    interfaces (a haptic master: ``sim-hand``, or ``can`` with ``command_interface: effort``),
+    so the operator's hand feels it; position-commanded masters (``sim``, ``igtl``) report it
+    only. ``tool_mm`` and ``force_n`` are in the stats; the output sources ``fixtures``
+    (POLYDATA models, on change and on ``GetFixtures``) and ``contact`` (the proxy, while in
+    contact and once after) show them in 3D Slicer.
 
 Slave daemon (:class:`SlaveController`)
     Follows the master's POSITION stream: ``target = slave_ref + scale · R · (master - master_ref)``
@@ -55,8 +59,10 @@ import igtl
 from igtl.messages.base import Message
 
 from ..collab import SlaveSelector
-from ..config import Bool, DaemonConfig, DeviceName, Float, Int, Name, PosFloat, Vec3
+from ..config import Bool, DaemonConfig, DeviceName, Float, Int, Name, PosFloat, Str, Vec3
 from ..errors import CommandError, KinematicsError, OCCError
+from ..fixture_defs import Defaults, DefinitionError, PatientMapping, from_markups_file
+from ..haptics import MasterFixtures
 from ..safety import RobotState
 from ..stats import Histogram
 from . import Controller, ControllerContext, Problem, SourceFn
@@ -74,6 +80,20 @@ MM = 1e-3
 
 class _Params(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class FixtureFile(_Params):
+    """A 3D Slicer markups file loaded at start."""
+
+    file: Str = Field(description="Path of the `.mrk.json` file (relative: to the config file).")
+    kind: Literal["accessible", "forbidden", "guide"] = Field(
+        "accessible",
+        description="What its point lists are (lines, curves, planes are guides "
+        "and planes whatever this says).",
+    )
+    radius_mm: PosFloat = Field(5.0, description="Radius of the sphere around each point (mm).")
+    stiffness: Annotated[Float, Field(ge=0)] = Field(1.0, description="N per master mm.")
+    damping: Annotated[Float, Field(ge=0)] = Field(0.0, description="N s/mm.")
 
 
 class MasterParams(_Params):
@@ -96,11 +116,76 @@ class MasterParams(_Params):
     clutch: Bool = Field(False, description="Clutch pressed at start.")
     fixture_radius_mm: PosFloat = Field(
         5.0,
-        description="Radius of the forbidden sphere around each Markups point received as "
-        "POINT (used when the point carries no radius, as 3D Slicer sends them).",
+        description="Radius of the sphere around each Markups point received as POINT (used "
+        "when neither the point nor the metadata `radius` gives one, as 3D Slicer sends them).",
     )
     fixture_hardness: Annotated[Float, Field(ge=0)] = Field(
-        1.0, description="Hardness (N/mm) of the spheres made from POINT messages."
+        1.0,
+        description="Stiffness (N per mm of the master's motion) of fixtures defined without "
+        "one (POINT, TRANSFORM, POLYDATA without metadata `stiffness`; files).",
+    )
+    fixture_damping: Annotated[Float, Field(ge=0)] = Field(
+        0.0, description="Damping (N s/mm) of fixtures defined without one."
+    )
+    vfixture_kind: Literal["accessible", "forbidden"] = Field(
+        "accessible",
+        description="What a VFIXTURE sphere without metadata `kind` is: `accessible` (the OCC "
+        "paper: no force inside, a spring back outside) or `forbidden`.",
+    )
+    point_kind: Literal["accessible", "forbidden", "guide"] = Field(
+        "accessible",
+        description="What a POINT list without metadata `kind` is: spheres (`accessible`, "
+        "`forbidden`) or one polyline `guide` through its points.",
+    )
+    force_output: Bool = Field(
+        False,
+        description="Write the fixture force to the joints' effort command interfaces (a "
+        "haptic master whose drivers take efforts: `sim-hand`, `can` with "
+        "`command_interface: effort`); needs `input: driver`.",
+    )
+    max_force_n: PosFloat = Field(
+        10.0, description="Clamp of the displayed force (N); 10 N is the OCC paper's figure."
+    )
+    fixture_slide_mm: PosFloat = Field(
+        1.0,
+        description="Longest move of a contact's proxy per tick (mm): bounds the force step "
+        "when the contact changes sphere or guide segment.",
+    )
+    max_fixtures: Annotated[Int, Field(ge=1, le=1024)] = Field(
+        64, description="Most primitives in all; a definition beyond is refused."
+    )
+    max_planes: Annotated[Int, Field(ge=0, le=64)] = Field(
+        8, description="Most forbidden planes (the SAW's fixed number); beyond is refused."
+    )
+    fixture_files: tuple[FixtureFile, ...] = Field(
+        (), description="3D Slicer markups files (`.mrk.json`, LPS) loaded at start."
+    )
+    scale: Annotated[Float, Field(gt=0, le=10)] = Field(
+        0.1,
+        description="The slave's motion scaling (its `scale`): patient fixtures are mapped "
+        "onto the master through it.",
+    )
+    rotation: tuple[Vec3, Vec3, Vec3] | None = Field(
+        None, description="The slave's master-to-slave rotation (its `rotation`); null = identity."
+    )
+    slave_base_mm: Vec3 | None = Field(
+        None,
+        description="The slave's base position in the patient frame (mm), i.e. the "
+        "registration; a TRANSFORM `slave_base_device` replaces it (full pose).",
+    )
+    slave_base_device: DeviceName = Field(
+        "Base", description="Device name of the registration TRANSFORM (the slave's base pose)."
+    )
+    slave_tip_mm: Vec3 = Field(
+        (0.0, 0.0, 0.0),
+        description="The slave's tip in its base frame (mm) when following first starts; a "
+        "TRANSFORM or POSITION `slave_tip_device` (patient frame) re-anchors it.",
+    )
+    slave_tip_device: DeviceName = Field(
+        "SlaveTip", description="Device name of the slave tip's TRANSFORM/POSITION (patient)."
+    )
+    display_frame: Literal["patient", "master"] = Field(
+        "patient", description="Frame of the `fixtures` and `contact` outputs shown in Slicer."
     )
     first_seq: Annotated[Int, Field(ge=0, le=0xFFFFFFFF)] = Field(
         0, description="Sequence number before the first POSITION (the first is +1)."
@@ -172,8 +257,8 @@ def _interfaces_exist(params: Any, config: DaemonConfig, keys: tuple[str, ...]) 
 
 class MasterController(Controller):
     """The master side of the OCC pair: the handle follows the operator (simulated, an IGTL
-    stream or a hand-moved device), virtual fixtures bound it, and its position streams to the
-    slave at 500 Hz (output source ``teleop``)."""
+    stream or a hand-moved device), virtual fixtures push back on it, and its position streams
+    to the slave at 500 Hz (output source ``teleop``)."""
 
     name = "teleop-master"
     Params = MasterParams
@@ -188,9 +273,10 @@ class MasterController(Controller):
         self.frequency = p.frequency_hz
         self.input_interface = p.input_interface
         self.input_device = p.input_device
-        # a hand-moved device is read, never position-commanded (fixture forces would need an
-        # effort-interface driver; they are computed and reported)
-        self.drives_joints = self.input != "driver"
+        self.force_output = p.force_output
+        # a hand-moved device is read, never position-commanded; with force_output its
+        # efforts are commanded (the fixture force)
+        self.drives_joints = self.input != "driver" or self.force_output
         self.clutch = p.clutch
         self.seq = p.first_seq & 0xFFFFFFFF
         self._first_seq = self.seq
@@ -200,15 +286,39 @@ class MasterController(Controller):
         self.selector = SlaveSelector(
             p.slaves, p.slave, p.toggle_tap_ms * 1e-3 if p.toggle_tap_ms is not None else None
         )
-        self.spheres: list[tuple[np.ndarray, float]] = []
-        self.point_radius_mm = p.fixture_radius_mm
-        self.point_hardness = p.fixture_hardness
-        self.hardness = 0.0
-        self.fixture_force = np.zeros(3)
-        self._force_on = False
+        base = None
+        if p.slave_base_mm is not None:
+            base = [
+                [1.0, 0.0, 0.0, p.slave_base_mm[0]],
+                [0.0, 1.0, 0.0, p.slave_base_mm[1]],
+                [0.0, 0.0, 1.0, p.slave_base_mm[2]],
+                [0.0, 0.0, 0.0, 1.0],
+            ]
+        self.fixtures = MasterFixtures(
+            Defaults(
+                vfixture_kind=p.vfixture_kind,
+                point_kind=p.point_kind,
+                point_radius_mm=p.fixture_radius_mm,
+                stiffness=p.fixture_hardness,
+                damping=p.fixture_damping,
+            ),
+            PatientMapping(p.scale, p.rotation, base, slave_ref=tuple(p.slave_tip_mm)),  # type: ignore[arg-type]
+            max_force_n=p.max_force_n,
+            slide_mm=p.fixture_slide_mm,
+            max_primitives=p.max_fixtures,
+            max_planes=p.max_planes,
+            display_frame=p.display_frame,
+        )
+        self.slave_base_device = p.slave_base_device
+        self.slave_tip_device = p.slave_tip_device
+        self._fixture_files = p.fixture_files
+        self._following = False
+        self._jt: list[list[float]] | None = None  # J^T of a Cartesian master (constant)
+        self._efforts: list[float] = []
+        self._models_sent: dict[int, int] = {}  # id(output) -> fixture version sent
+        self._contact_sent: dict[int, bool] = {}
         self._centre: tuple[float, ...] | None = None  # origin + offset, once configured
         self._amp: tuple[float, ...] = tuple(self.amplitude.tolist())
-        self.fixture_contacts = 0
         self.target: np.ndarray | None = None
         self._t_run = 0.0
         self._t_held = 0.0  # trajectory time already run when RUNNING was left
@@ -230,29 +340,76 @@ class MasterController(Controller):
                 )
         if params.slave is not None and params.slave not in params.slaves:
             problems.append((("slave",), f"'{params.slave}' is not one of slaves"))
+        if params.force_output and params.input != "driver":
+            problems.append((("force_output",), "needs input: driver (a hand-moved master)"))
+        for i, f in enumerate(params.fixture_files):
+            try:
+                from_markups_file(f.file, kind=f.kind, radius_mm=f.radius_mm)
+            except DefinitionError as err:
+                problems.append((("fixture_files", i, "file"), str(err)))
         return problems
+
+    def command_interfaces(self) -> tuple[str, ...]:
+        assert self.data is not None
+        if self.force_output:
+            return tuple(f"{j}/effort" for j in self.data.joint_names)
+        return super().command_interfaces()
 
     def configure(self, data: RobotData, ctx: ControllerContext) -> None:
         super().configure(data, ctx)
         self.origin = ctx.frame.position([0.0] * len(data.joint_names)).copy()
         self._centre = tuple((self.origin + self.offset).tolist())
+        n = len(data.joint_names)
+        self._efforts = [0.0] * n
+        if self.force_output:
+            # efforts = J^T F; a Cartesian master's Jacobian is constant: worked out once
+            j0 = ctx.frame.jacobian([0.0] * n)[:3]
+            j1 = ctx.frame.jacobian(data.q)[:3]
+            if np.allclose(j0, j1, atol=1e-12) and any(abs(v) > 1e-6 for v in data.q):
+                self._jt = j0.T.tolist()
+        tool = ctx.frame.tip_position(data.q)
+        self.fixtures.tool_mm = (tool[0] / MM, tool[1] / MM, tool[2] / MM)
+        self.fixtures.mapping.master_ref = self.fixtures.tool_mm
+        for f in self._fixture_files:
+            count = self.fixtures.load_file(
+                f.file,
+                kind=f.kind,
+                radius_mm=f.radius_mm,
+                stiffness=f.stiffness,
+                damping=f.damping,
+            )
+            log.info("virtual fixtures: %d from %s", count, f.file)
 
     def outputs(self) -> dict[str, SourceFn]:
-        return {"teleop": self._source_teleop}
+        return {
+            "teleop": self._source_teleop,
+            "fixtures": self._source_fixtures,
+            "contact": self._source_contact,
+        }
 
     # -------------------------------------------------------------- inputs
     def on_sample(self, item: Inbound, now: float) -> None:
         msg = item.msg
         mtype = msg.message_type
-        if mtype == "VFIXTURE":
-            self._set_fixtures(msg)
-            return
-        if mtype == "POINT" and (self.input != "igtl" or item.interface != self.input_interface):
-            self._set_point_fixtures(msg)
-            return
-        if self.input != "igtl" or (
-            self.input_interface and item.interface != self.input_interface
+        is_input = self.input == "igtl" and (
+            self.input_interface is None or item.interface == self.input_interface
+        )
+        if (
+            mtype in ("TRANSFORM", "POSITION")
+            and msg.device_name in (self.slave_base_device, self.slave_tip_device)
+            and not (is_input and self.input_device == msg.device_name)
         ):
+            self._mapping_input(msg, now)
+            return
+        if mtype in ("VFIXTURE", "POINT", "TRANSFORM", "POLYDATA") and not (
+            is_input and mtype in ("TRANSFORM", "POSITION") and "kind" not in msg.metadata
+        ):
+            try:
+                if self.fixtures.on_message(msg, now) is not None:
+                    return
+            except DefinitionError as err:
+                raise CommandError(str(err)) from err
+        if not is_input:
             return
         if self.input_device and msg.device_name != self.input_device:
             return
@@ -265,35 +422,18 @@ class MasterController(Controller):
         self.samples += 1
         self.target = np.array([x, y, z]) * MM
 
-    def _set_fixtures(self, msg: Message) -> None:
-        spheres = getattr(msg, "spheres", ())
-        self.hardness = float(getattr(msg, "hardness", 0.0))
-        self.spheres = [(np.array(s[:3], dtype=float) * MM, float(s[3]) * MM) for s in spheres]
-        log.info(
-            "virtual fixtures: %d spheres, hardness %.3g N/mm", len(self.spheres), self.hardness
-        )
-
-    def _set_point_fixtures(self, msg: Message) -> None:
-        """3D Slicer's Markups fiducials (POINT) as forbidden spheres: each visible point
-        (alpha > 0, as Slicer encodes visibility) becomes a sphere around it, with the point's
-        radius when it has one (Slicer sends 0) or ``fixture_radius_mm``, and
-        ``fixture_hardness``. The whole set replaces the previous one, as a VFIXTURE does."""
-        points = getattr(msg, "points", ())
-        self.hardness = self.point_hardness
-        self.spheres = [
-            (
-                np.array(p.position, dtype=float) * MM,
-                (p.radius if p.radius > 0.0 else self.point_radius_mm) * MM,
-            )
-            for p in points
-            if p.rgba[3] > 0
-        ]
-        log.info(
-            "virtual fixtures from POINT %r: %d spheres, hardness %.3g N/mm",
-            msg.device_name,
-            len(self.spheres),
-            self.hardness,
-        )
+    def _mapping_input(self, msg: Message, now: float) -> None:
+        """The registration (the slave's base pose) or the slave's measured tip."""
+        try:
+            if msg.device_name == self.slave_base_device and msg.message_type == "TRANSFORM":
+                self.fixtures.registration(msg.matrix.tolist(), now)  # type: ignore[attr-defined]
+            elif msg.device_name == self.slave_tip_device:
+                m: Any = msg
+                self.fixtures.slave_tip(
+                    m.translation if msg.message_type == "TRANSFORM" else m.position, now
+                )
+        except DefinitionError as err:
+            raise CommandError(f"{msg.message_type} {msg.device_name!r}: {err}") from err
 
     def on_command(self, request: Request, now: float) -> str | None:
         key = request.name.lower()
@@ -308,12 +448,15 @@ class MasterController(Controller):
         if key == "toggle":
             return self.selector.toggle()
         if key == "clearfixtures":
-            self.spheres = []
+            self.fixtures.clear()
             return "fixtures cleared"
+        if key == "getfixtures":
+            self._models_sent.clear()  # every fixtures output sends its model again
+            return f"{len(self.fixtures.active)} fixtures; models follow"
         raise CommandError(f"unknown command {request.name!r}")
 
     def commands(self) -> tuple[str, ...]:
-        return ("Clutch", "ClearFixtures", "Select", "Toggle")
+        return ("Clutch", "ClearFixtures", "GetFixtures", "Select", "Toggle")
 
     def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
         # The simulated hand's time runs only while RUNNING: re-entering RUNNING resumes the
@@ -323,6 +466,9 @@ class MasterController(Controller):
             self._t_run = now - self._t_held
         elif old is RobotState.RUNNING:
             self._t_held = now - self._t_run
+            if self._following:  # the slave stops following: the mapping keeps where
+                self._following = False
+                self.fixtures.following(False, self.fixtures.tool_mm, now)
 
     # -------------------------------------------------------------- loop
     def operator_target(self, now: float) -> np.ndarray | tuple[float, float, float] | None:
@@ -341,13 +487,28 @@ class MasterController(Controller):
     def update(self, now: float) -> Sequence[float] | None:
         data, ctx = self.data, self.ctx
         assert data is not None and ctx is not None
+        tx, ty, tz = ctx.frame.tip_position(data.q)
+        tool = (tx / MM, ty / MM, tz / MM)
+        following = not self.clutch
+        if following != self._following:
+            self._following = following
+            self.fixtures.following(following, tool, now)
+        fx, fy, fz = self.fixtures.step(tool, now)
+        if self.force_output:
+            eff = self._efforts
+            jt = self._jt
+            if jt is not None:
+                for i, (a, b, c) in enumerate(jt):
+                    eff[i] = a * fx + b * fy + c * fz
+            else:
+                jac = ctx.frame.jacobian(data.q)[:3]
+                eff[:] = (jac.T @ np.array([fx, fy, fz])).tolist()
+            return eff
         if self.input == "driver":
-            self._apply_fixtures(data.tip[:3, 3])
             return None
         target = self.operator_target(now)
         if target is None:
             return None
-        target = self._apply_fixtures(target)
         if not isinstance(target, tuple):
             target = (float(target[0]), float(target[1]), float(target[2]))
         try:
@@ -356,29 +517,6 @@ class MasterController(Controller):
             self.ik_failures += 1
             return None
         return q
-
-    def _apply_fixtures(
-        self, target: np.ndarray | tuple[float, float, float]
-    ) -> np.ndarray | tuple[float, float, float]:
-        if not self.spheres:
-            if self._force_on:  # checked as a flag: this runs every tick
-                self.fixture_force = np.zeros(3)
-                self._force_on = False
-            return target
-        force = np.zeros(3)
-        out = np.asarray(target, dtype=np.float64)
-        for centre, radius in self.spheres:
-            d = out - centre
-            dist = float(np.linalg.norm(d))
-            if dist < radius:
-                normal = d / dist if dist > 1e-12 else np.array([0.0, 0.0, 1.0])
-                depth_mm = (radius - dist) / MM
-                force += self.hardness * depth_mm * normal
-                out = centre + normal * radius
-                self.fixture_contacts += 1
-        self.fixture_force = force
-        self._force_on = bool(force.any())
-        return out
 
     # -------------------------------------------------------------- output
     def _source_teleop(self, out: Output, now: float) -> Message:
@@ -405,14 +543,39 @@ class MasterController(Controller):
             metadata={"run": "1" if running else "0", "clutch": "1" if self.clutch else "0"},
         )
 
+    def _source_fixtures(self, out: Output, now: float) -> Message | None:
+        """The fixtures' models, when they changed since this output last sent them (or an
+        operator asked: GetFixtures)."""
+        if out.type != "POLYDATA":
+            raise OCCError("fixtures output must be of type POLYDATA")
+        version = self.fixtures.version
+        if self._models_sent.get(id(out)) == version:
+            return None
+        self._models_sent[id(out)] = version
+        assert self.ctx is not None
+        return self.fixtures.model_message(out.device, self.ctx.clock.wall_time())
+
+    def _source_contact(self, out: Output, now: float) -> Message | None:
+        """The proxy and contact state, while in contact and once when it ends."""
+        if out.type != "TRANSFORM":
+            raise OCCError("contact output must be of type TRANSFORM")
+        touching = bool(self.fixtures.active.contacts())
+        if not touching and not self._contact_sent.get(id(out), True):
+            return None
+        self._contact_sent[id(out)] = touching
+        assert self.ctx is not None
+        return self.fixtures.proxy_message(out.device, self.ctx.clock.wall_time())
+
     def stats(self) -> dict[str, Any]:
+        fx = self.fixtures
         return {
             "input": self.input,
             "seq": self.seq,
             "clutch": self.clutch,
-            "fixtures": len(self.spheres),
-            "fixture_contacts": self.fixture_contacts,
-            "fixture_force_n": [round(float(v), 4) for v in self.fixture_force],
+            "tool_mm": [round(v, 3) for v in fx.tool_mm],
+            "force_n": [round(v, 4) for v in fx.force_n],
+            "force_output": self.force_output,
+            **fx.stats(),
             "ik_failures": self.ik_failures,
             **({"slaves": self.selector.stats()} if self.selector.slaves else {}),
         }

@@ -14,6 +14,9 @@ name     target                                what
 ``can``  ``occ.drivers.can:CANDriver``         drives on a CAN bus through python-can
 =======  ====================================  =====================================
 
+and ``sim-hand`` (``occ.drivers.sim_hand:SimHandDriver``): a simulated haptic master in effort
+mode moved by a simulated hand (the OCC paper's test motion as the operator's intention).
+
 A third-party package adds a driver with, in its ``pyproject.toml``::
 
     [project.entry-points."occ.drivers"]
@@ -49,6 +52,7 @@ ENTRY_POINT_GROUP = "occ.drivers"
 BUILTIN_DRIVERS: dict[str, str] = {
     "sim": "occ.drivers.sim:SimDriver",
     "can": "occ.drivers.can:CANDriver",
+    "sim-hand": "occ.drivers.sim_hand:SimHandDriver",
 }
 
 _REGISTRY: PluginRegistry[Driver] = PluginRegistry(

@@ -156,12 +156,12 @@ class Driver:
         names = [j.name for j in joints]
         if len(set(names)) != len(names):
             raise ValueError(f"driver {name!r}: duplicate joint names {names}")
-        if interface == "effort":
-            missing = [j.name for j in joints if j.gains is None]
-            if missing:
-                raise ValueError(
-                    f"driver {name!r}: effort interface needs PID gains on joints {missing}"
-                )
+        #: joints whose effort would come from a PID without gains: position setpoints
+        #: (:meth:`write`) are refused for them; direct efforts (:meth:`write_effort`, a haptic
+        #: master's force) need none
+        self.missing_gains: list[str] = (
+            [j.name for j in joints if j.gains is None] if interface == "effort" else []
+        )
 
         self.name: str = name
         self.joints: list[Joint] = list(joints)
@@ -366,6 +366,11 @@ class Driver:
         """
         if self._state is not DriverState.ACTIVE:
             raise StateError(f"driver {self.name!r}: commands refused in state {self._state.value}")
+        if self.missing_gains:
+            raise ValueError(
+                f"driver {self.name!r}: effort interface needs PID gains on joints "
+                f"{self.missing_gains} to take position setpoints"
+            )
         joints = self.joints
         n = len(joints)
         if len(setpoints) != n:
@@ -414,6 +419,41 @@ class Driver:
             prev[i] = x
             joint.command_position = x
             values[i] = joint.servo(x, dt) if effort else x
+        self._prev_write_time = now
+        try:
+            self._write(values, now)
+        except Exception as err:
+            raise self._hook_failed("write", err) from err
+        self._writes += 1
+
+    def write_effort(self, efforts: Sequence[float], now: float) -> None:
+        """Command one effort per joint directly (N for prismatic joints, N m for revolute
+        ones; ACTIVE only, ``command_interface`` effort): the effort command interface of a
+        haptic master, whose controller computes the force to display. Each effort is clamped
+        to its joint's effort limit (counted in ``limit_events``); a non-finite one faults.
+        No PID and no position checks: the hand, not the drive, decides where the joint goes.
+        """
+        if self._state is not DriverState.ACTIVE:
+            raise StateError(f"driver {self.name!r}: commands refused in state {self._state.value}")
+        if self.command_interface != "effort":
+            raise StateError(
+                f"driver {self.name!r}: takes {self.command_interface} commands, not efforts"
+            )
+        joints = self.joints
+        n = len(joints)
+        if len(efforts) != n:
+            raise ValueError(f"driver {self.name!r}: expected {n} efforts, got {len(efforts)}")
+        values = self._values
+        for i, joint in enumerate(joints):
+            u = float(efforts[i])
+            if not math.isfinite(u):
+                self._fault(LimitError(f"driver {self.name!r}: joint {joint.name}: effort {u}"))
+            lim = joint.limits.effort
+            if u > lim or u < -lim:
+                u = lim if u > 0.0 else -lim
+                self._limit_events += 1
+            joint.command_effort = u
+            values[i] = u
         self._prev_write_time = now
         try:
             self._write(values, now)

@@ -51,7 +51,7 @@ from occ.drivers import Driver, DriverState, available_drivers, create_driver, l
 from occ.drivers.base import BASE_PARAMS, LimitPolicy
 from occ.drivers.can_sim import DriveAxis, SimulatedDriveNode
 from occ.errors import CommandError, ConfigError, DriverError, LimitError, OCCError, StateError
-from occ.joint import Joint, JointLimits
+from occ.joint import Joint, JointLimits, PIDGains
 from occ.loader import load_config, parse_config
 from occ.safety import RobotState
 from occ.testing import SimPeer, SimRobot
@@ -211,12 +211,30 @@ class CANRig(DriverRig):
             self.spy.shutdown()
 
 
+class SimHandRig(DriverRig):
+    """``sim-hand`` takes efforts only; under the position contract its joints get PID gains
+    (the base turns setpoints into efforts) and the hand lets go (no stiffness, no motion)."""
+
+    def make(
+        self,
+        joints: list[Joint],
+        params: Mapping[str, Any] | None = None,
+        on_limit: LimitPolicy = "clamp",
+    ) -> Driver:
+        for j in joints:
+            j.gains = PIDGains(kp=2000.0, ki=0.0, kd=80.0)
+        hand = {"hand_stiffness": 0.0, "hand_damping": 0.0, "intent_amplitude": 0.0,
+                "intent_offset": 0.0, "inertia": 0.1, "damping": 1.0}
+        return super().make(joints, {**hand, **(params or {})}, on_limit)
+
+
 #: plugin name -> rig factory. A new driver plugin adds its line here: ``DriverRig`` when its
 #: device is a model advanced by ``now``, else a subclass like ``CANRig`` that starts a
 #: simulated device and says how to wait for it.
 DRIVER_RIGS: dict[str, Callable[[str], DriverRig]] = {
     "sim": DriverRig,
     "can": CANRig,
+    "sim-hand": SimHandRig,
 }
 
 
@@ -539,6 +557,14 @@ class ControllerRig:
     config: Path
     params: Mapping[str, Any] = field(default_factory=dict)
     feed: Callable[[SimRobot], Callable[[], None]] | None = None
+    #: replaces the config's ``robot.drivers`` (YAML form) when the plugin needs other ones
+    drivers: tuple[Mapping[str, Any], ...] | None = None
+
+    def yaml_data(self) -> dict[str, Any]:
+        data = yaml.safe_load(self.config.read_text(encoding="utf-8"))
+        if self.drivers is not None:
+            data["robot"]["drivers"] = [dict(d) for d in self.drivers]
+        return data  # type: ignore[no-any-return]
 
 
 def master_stream(sim: SimRobot) -> Callable[[], None]:
@@ -563,7 +589,14 @@ CONTROLLER_RIGS: dict[str, ControllerRig] = {
     "teleop-slave": ControllerRig(
         CONFIGS / "slave.yaml", {"input_interface": "master"}, master_stream
     ),
-    "teleop-master": ControllerRig(CONFIGS / "master.yaml", {"input": "sim"}),
+    # the position-commanded master (the paper's motion played as setpoints on the sim
+    # driver); the shipped haptic master (sim-hand, efforts) is tests/occ/test_haptic_master.py's
+    "teleop-master": ControllerRig(
+        CONFIGS / "master.yaml",
+        {"input": "sim"},
+        drivers=({"name": "sim", "plugin": "sim", "joints": ["x", "y", "z"],
+                  "params": {"bandwidth_hz": 30.0}},),
+    ),
     "keyframe": ControllerRig(
         CONFIGS / "keyframe.yaml", {"file": str(CONFIGS / "keyframes" / "demo.yaml")}
     ),
@@ -577,7 +610,7 @@ class ControllerRun:
     def __init__(self, plugin: str, rig: ControllerRig) -> None:
         self.plugin = plugin
         self.rig = rig
-        self.sim = SimRobot(config_with(rig.config, [(plugin, rig.params)]))
+        self.sim = SimRobot(config_with(rig, [(plugin, rig.params)]))
         self.robot = self.sim.robot
         (self.ctrl,) = self.robot.controller.controllers
         self._feed = rig.feed(self.sim) if rig.feed is not None else None
@@ -617,8 +650,14 @@ class ControllerRun:
         self.sim.close()
 
 
-def config_with(path: Path, controllers: list[tuple[str, Mapping[str, Any]]]) -> DaemonConfig:
-    cfg = load_config(path)
+def config_with(
+    rig: ControllerRig, controllers: list[tuple[str, Mapping[str, Any]]]
+) -> DaemonConfig:
+    cfg = parse_config(
+        yaml.safe_dump(rig.yaml_data(), sort_keys=False),
+        source=str(rig.config),
+        base_dir=rig.config.parent,
+    )
     ccs = tuple(ControllerConfig(plugin=p, params=dict(params)) for p, params in controllers)
     return cfg.model_copy(update={"controller": ccs[0] if len(ccs) == 1 else ccs})
 
@@ -669,7 +708,7 @@ def test_controller_params_model(plugin: str) -> None:
 
 def test_controller_bad_param_at_load_names_file_and_line(plugin: str) -> None:
     rig = CONTROLLER_RIGS[plugin]
-    data = yaml.safe_load(rig.config.read_text(encoding="utf-8"))
+    data = rig.yaml_data()
     data["controller"] = {"plugin": plugin, "params": {**rig.params, BAD_KEY: 1}}
     text = yaml.safe_dump(data, sort_keys=False)
     (line,) = [n for n, s in enumerate(text.splitlines(), 1) if s.strip() == f"{BAD_KEY}: 1"]
@@ -692,8 +731,8 @@ def test_controller_interfaces_in_a_robot(run: ControllerRun) -> None:
 
 def test_two_owners_of_a_command_interface_are_refused(plugin: str) -> None:
     rig = CONTROLLER_RIGS[plugin]
-    cfg = config_with(rig.config, [(plugin, rig.params), (plugin, rig.params)])
-    with SimRobot(config_with(rig.config, [(plugin, rig.params)])) as single:
+    cfg = config_with(rig, [(plugin, rig.params), (plugin, rig.params)])
+    with SimRobot(config_with(rig, [(plugin, rig.params)])) as single:
         claimed = single.robot.controller.controllers[0].command_interfaces()
     if not claimed:  # commands nothing: two of them cannot fight
         SimRobot(cfg).close()

@@ -54,6 +54,27 @@ class MirrorDriver(Driver):
         self.last = list(values)
 
 
+def test_write_effort_direct_clamped_and_checked() -> None:
+    d = MirrorDriver("m", joints(), command_interface="effort")
+    d.configure()
+    with pytest.raises(StateError):
+        d.write_effort([1.0, 1.0], 0.0)  # not ACTIVE
+    d.activate()
+    d.write_effort([3.0, -80.0], 0.001)  # the effort limit is 50
+    assert d.last == [3.0, -50.0] and d.stats()["limit_events"] == 1
+    assert [j.command_effort for j in d.joints] == [3.0, -50.0]
+    with pytest.raises(LimitError):
+        d.write_effort([math.nan, 0.0], 0.002)
+    assert d.state is DriverState.FAULT
+    d.shutdown()
+    p = MirrorDriver("p", joints())
+    p.configure()
+    p.activate()
+    with pytest.raises(StateError, match="not efforts"):
+        p.write_effort([0.0, 0.0], 0.0)  # a position driver takes no efforts
+    p.shutdown()
+
+
 # ---------------------------------------------------------------------------- registry
 def test_registry_builtins_and_unknown_name() -> None:
     names = available_drivers()
@@ -146,8 +167,14 @@ def test_hook_error_latches_fault_until_reset() -> None:
 def test_bad_arguments() -> None:
     with pytest.raises(ValueError):
         MirrorDriver("m", joints(), on_limit="ignore")  # type: ignore[arg-type]
+    # an effort driver without PID gains takes direct efforts only (a haptic master)
+    e = MirrorDriver("m", joints(), command_interface="effort")
+    assert e.missing_gains == ["j0", "j1"]
+    e.configure()
+    e.activate()
     with pytest.raises(ValueError, match="PID gains"):
-        MirrorDriver("m", joints(), command_interface="effort")
+        e.write([0.0, 0.0], 0.0)
+    e.shutdown()
     with pytest.raises(ValueError, match="duplicate"):
         MirrorDriver("m", [Joint("a"), Joint("a")])
     d = MirrorDriver("m", joints())

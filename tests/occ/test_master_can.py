@@ -27,7 +27,8 @@ def test_can_master_streams_hand_motion() -> None:
               for i, name in enumerate(("x", "y", "z"))}
     driver = cfg.robot.drivers[0].model_copy(update={
         "plugin": "can",
-        "params": {"interface": "virtual", "channel": channel, "joints": joints, "feedback_timeout": 0.05},
+        "params": {"interface": "virtual", "channel": channel, "joints": joints, "feedback_timeout": 0.05,
+                   "command_interface": "effort"},
     })
     robot_cfg = cfg.robot.model_copy(update={"drivers": (driver,),
                                              "realtime": cfg.robot.realtime.model_copy(update={"fifo_priority": None})})
@@ -84,7 +85,8 @@ def test_no_enable_before_every_joint_is_measured() -> None:
               for i, name in enumerate(("x", "y", "z"))}
     driver = cfg.robot.drivers[0].model_copy(update={
         "plugin": "can",
-        "params": {"interface": "virtual", "channel": channel, "joints": joints, "feedback_timeout": 10.0},
+        "params": {"interface": "virtual", "channel": channel, "joints": joints, "feedback_timeout": 10.0,
+                   "command_interface": "effort"},
     })
     cfg = inproc_config(cfg.model_copy(update={"robot": cfg.robot.model_copy(update={"drivers": (driver,)})}))
     robot = build_robot(cfg, clock=SimClock())
@@ -104,3 +106,58 @@ def test_no_enable_before_every_joint_is_measured() -> None:
             robot.state_machine.request("disable", "test")
     finally:
         robot.shutdown()
+
+
+def test_can_haptic_master_gets_the_fixture_force_on_its_effort_interface() -> None:
+    """The CAN haptic master (drives in effort mode on python-can's virtual bus, a simulated
+    drive node): the fixture force computed each tick goes out as effort frames (mode 2,
+    mN), zero while only ENABLED."""
+    from occ.drivers.can import MODE_EFFORT
+    from occ.testing import SimRobot
+
+    channel = f"occ-test-{time.monotonic_ns()}"
+    cfg = load_config(ROOT / "configs" / "master.yaml")
+    joints = {name: {"can_id": 0x100 + i, "feedback_id": 0x180 + i, "counts_per_unit": COUNTS_PER_M}
+              for i, name in enumerate(("x", "y", "z"))}
+    driver = cfg.robot.drivers[0].model_copy(update={
+        "plugin": "can",
+        "params": {"interface": "virtual", "channel": channel, "joints": joints,
+                   "feedback_timeout": 10.0, "command_interface": "effort"},
+    })
+    cfg = cfg.model_copy(update={"robot": cfg.robot.model_copy(update={"drivers": (driver,)})})
+    axes = [DriveAxis(0x100 + i, 0x180 + i, position=p) for i, p in enumerate((0.0, 50_000.0, 20_000.0))]
+    box: dict[str, SimRobot] = {}
+    # the node on the simulated clock: its heartbeat is judged in the test's time
+    node = SimulatedDriveNode(axes, channel=channel, tau=0.0, effort_gain=0.0,
+                              clock=lambda: box["sim"].clock.now() if "sim" in box else 0.0)
+    with node:
+        sim = SimRobot(cfg)
+        box["sim"] = sim
+        try:
+            drv = sim.robot.drivers[0][0]
+            op = sim.peer("operator", address=("127.0.0.1", 41000))
+
+            def settle() -> None:  # every frame the driver sent so far handled by the node
+                assert node.wait_commands(3 + 3 * drv.stats()["writes"], timeout=5.0)
+
+            assert node.wait_feedback(3, timeout=5.0)
+            sim.step(1)
+            op.send_command("Enable")
+            sim.step(1)
+            assert sim.robot.state is RobotState.ENABLED
+            handle = [v * 1e3 for v in sim.robot.frame.tip_position(sim.robot.data.q)]
+            op.send(igtl.VirtualFixtureMessage(
+                hardness=0.5, spheres=((handle[0] + 4.0, handle[1], handle[2], 10.0),),
+                device_name="VF", header_version=2, metadata={"kind": "forbidden"}))
+            sim.step(5)
+            settle()
+            assert [a.mode for a in axes] == [MODE_EFFORT] * 3 and [a.effort for a in axes] == [0, 0, 0]
+            op.send_command("Run")
+            sim.step(1)
+            settle()
+            assert sim.robot.state is RobotState.RUNNING
+            # 6 mm deep at 0.5 N/mm: -3 N along x, as -3000 mN
+            assert axes[0].effort == -3000 and axes[1].effort == 0 and axes[2].effort == 0
+            assert drv.stats()["errors"] == 0
+        finally:
+            sim.close()

@@ -11,14 +11,25 @@ import math
 from pathlib import Path
 
 import pytest
+import yaml
 
 import igtl
-from occ.config import InputConfig
-from occ.loader import load_config
 from occ.safety import RobotState
 from occ.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
+
+
+def position_master(**params: object) -> dict:
+    """configs/master.yaml with a position-commanded master: the ``sim`` driver following
+    the controller's target (``input: sim``, the paper's motion played as positions, or
+    ``igtl``), instead of the shipped simulated hand."""
+    raw = yaml.safe_load((ROOT / "configs" / "master.yaml").read_text())
+    raw["robot"]["drivers"] = [{"name": "sim", "plugin": "sim", "joints": ["x", "y", "z"],
+                                "on_limit": "clamp", "params": {"bandwidth_hz": 30.0}}]
+    raw["controller"]["params"] = {"input": "sim", "amplitude_mm": [50.0, 50.0, 0.0],
+                                   "offset_mm": [0.0, 0.0, 20.0], "frequency_hz": 0.1, **params}
+    return raw
 
 
 class SimMaster:
@@ -88,13 +99,9 @@ def test_simulated_operator_follows_paper_trajectory(master: SimMaster) -> None:
 
 
 def test_igtl_input_drives_the_handle() -> None:
-    # the tracker's TRANSFORMs arrive on the operator interface in this test, as a command input
-    cfg = load_config(ROOT / "configs" / "master.yaml")
-    op = cfg.interface("operator")
-    op = op.model_copy(update={"inputs": (*op.inputs, InputConfig(type="TRANSFORM", queue="command"))})
-    cfg = cfg.model_copy(update={"interfaces": tuple(op if i.name == "operator" else i
-                                                     for i in cfg.interfaces)})
-    m = SimMaster(cfg, input="igtl", input_interface="operator")
+    # the tracker's TRANSFORMs arrive on the operator interface in this test, as a command
+    # input (the shipped master takes TRANSFORM there for planes and the registration)
+    m = SimMaster(position_master(input="igtl", input_interface="operator"))
     try:
         m.command("Enable")
         m.command("Run")
@@ -128,27 +135,38 @@ def test_clutch_travels_with_the_stream(master: SimMaster) -> None:
     assert master.sent[-1].metadata["clutch"] == "0"
 
 
-def test_virtual_fixture_keeps_handle_out_and_reports_force(master: SimMaster) -> None:
+def hand(master: SimMaster):
+    return master.robot.drivers[0][0]
+
+
+def test_forbidden_sphere_pushes_the_hand_out_and_reports_force(master: SimMaster) -> None:
     master.command("Enable")
     master.command("Run")
     master.ticks(200)
     handle = master.sent[-1].position
-    # a sphere of 10 mm radius centred 4 mm from the handle (in +x): the handle is inside
+    # a forbidden sphere of 10 mm radius centred 4 mm from the handle (in +x): the handle is
+    # inside
     centre = (handle[0] + 4.0, handle[1], handle[2])
     fx = igtl.VirtualFixtureMessage(hardness=0.5, spheres=((*centre, 10.0),), device_name="Fixtures",
-                                    header_version=2, metadata={"MRMLNodeName": "VF"})
+                                    header_version=2, metadata={"MRMLNodeName": "VF",
+                                                                "kind": "forbidden"})
     assert master.operator.send(fx) == 1
     master.ticks(1)
     stats = master.robot.controller.stats()
-    assert stats["fixtures"] == 1 and stats["fixture_contacts"] >= 1
-    assert stats["fixture_force_n"][0] < 0  # pushes back toward -x, out of the sphere
+    assert stats["fixtures"] == 1 and stats["fixture_contacts"] == 1
+    assert stats["force_n"][0] < -2.0  # pushes back toward -x, out of the sphere: 0.5 N/mm x 4 mm
+    # the force reached the hand's drive (its effort interface), this very tick
+    assert hand(master)._cmd[0] == pytest.approx(stats["force_n"][0], abs=1e-3)
     master.ticks(100)
+    # the hand yields: the handle is pushed out toward the surface, away from where the hand
+    # means to be (the arm, 300 N/m, against the fixture, 500 N/m)
     p = master.sent[-1].position
-    dist = math.dist(p, centre)
-    assert dist >= 10.0 - 0.2
+    intended = [v * 1000.0 + o for v, o in zip(hand(master).intended(), master.robot.controller.controllers[0].origin * 1000.0)]
+    assert math.dist(p, centre) > math.dist(intended, centre) + 2.0
 
 
-def test_stop_state_holds_and_reports(master: SimMaster) -> None:
+def test_stop_state_holds_and_reports() -> None:
+    master = SimMaster(position_master())
     master.command("Enable")
     master.command("Run")
     master.ticks(100)
@@ -163,6 +181,7 @@ def test_stop_state_holds_and_reports(master: SimMaster) -> None:
     assert p1 == pytest.approx(p0, abs=0.5)
     master.ticks(100)
     assert master.sent[-1].position == pytest.approx(p1, abs=0.01)
+    master.close()
 
 
 def test_slicer_markups_points_become_fixture_spheres(master: SimMaster) -> None:
@@ -177,11 +196,13 @@ def test_slicer_markups_points_become_fixture_spheres(master: SimMaster) -> None
     hidden = PointElement(name="F-2", group="Selected", rgba=(0, 255, 0, 0),
                           position=(handle[0] - 2.0, handle[1], handle[2]))
     pts = igtl.PointMessage(points=(near, hidden), device_name="F", header_version=2,
-                            metadata={"MRMLNodeName": "MarkupsFiducial"})
+                            metadata={"MRMLNodeName": "MarkupsFiducial", "kind": "forbidden",
+                                      "frame": "master"})
     assert master.operator.send(pts) == 1
     master.ticks(1)
     stats = master.robot.controller.stats()
     assert stats["fixtures"] == 1  # the hidden point (alpha 0) is not a fixture
-    master.ticks(100)
-    # default radius 5 mm around the visible point: the handle is kept out of it
-    assert math.dist(master.sent[-1].position, near.position) >= 5.0 - 0.2
+    assert stats["contact"] == ["F-1"]
+    # default radius 5 mm around the visible point, 1 N/mm: the handle 2 mm from its centre is
+    # 3 mm deep, pushed back toward -x
+    assert stats["force_n"][0] == pytest.approx(-3.0, abs=0.1)

@@ -1,0 +1,178 @@
+"""A simulated haptic master held by a simulated hand: plugin ``sim-hand``.
+
+The OCC paper tests its virtual fixture with a motion the operator makes on the master
+(X = A sin 2πft, Y = A cos 2πft, Z constant). Played as a position command, that motion
+cannot be pushed back by anything; here it is what the operator *intends*, and the hand is an
+arm that yields: a spring-damper from the intended point to the handle. The device is the
+``sim`` driver's rigid body per joint on a viscous bearing, driven by the effort the master
+controller commands (the displayed force) plus the hand's force::
+
+    m a = u + K_hand (q_intended - x) + B_hand (v_intended - v) - b v
+
+So a fixture's force visibly changes the handle's measured path (the hand gives way by
+``u / K_hand``), and the slave, which follows the measured handle, follows the corrected path.
+
+The intended motion is per joint, for a device whose joints are its Cartesian axes (the shipped
+``master3``): ``q_i(t) = intent_offset_i + intent_amplitude_i sin(2π intent_frequency_hz t +
+intent_phase_deg_i)`` (metres or radians), with ``t`` the time the drive has been ACTIVE (the
+operator waits while the master is off). The defaults are the paper's motion around the
+workspace centre: 50 mm sine on x, 50 mm cosine on y, z at 20 mm, 0.1 Hz, which starts at the
+``master3`` joint home (0, 0.05, 0.02) without a jump.
+
+Parameters: every ``sim`` parameter (``command_interface`` is ``effort``, the only one taken;
+``inertia`` and ``damping`` are the device's plus the hand's), and:
+
+=====================  ===================  ============================================
+key                    default              meaning
+=====================  ===================  ============================================
+hand_stiffness         300.0                N/m (N m/rad): the arm's stiffness, a relaxed
+                                            human arm's order of magnitude
+hand_damping           20.0                 N s/m (N m s/rad)
+intent_amplitude       [0.05, 0.05, 0.0]    per joint, m (rad)
+intent_phase_deg       [0.0, 90.0, 0.0]     per joint, degrees (90: the cosine)
+intent_offset          [0.0, 0.0, 0.02]     per joint, m (rad)
+intent_frequency_hz    0.1                  Hz
+=====================  ===================  ============================================
+
+Brakes (default on) lock the joints while the drive is not ACTIVE, as ``sim`` does; the
+heartbeat is ``sim``'s.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar
+
+from occ.drivers.base import CommandInterface, LimitPolicy
+from occ.drivers.sim import SIM_DEFAULTS, SimDriver, _per_joint
+from occ.joint import Joint
+
+__all__ = ["SimHandDriver", "HAND_DEFAULTS"]
+
+HAND_DEFAULTS: dict[str, Any] = {
+    **SIM_DEFAULTS,
+    "command_interface": "effort",
+    "inertia": 0.5,
+    "damping": 1.0,
+    "hand_stiffness": 300.0,
+    "hand_damping": 20.0,
+    "intent_amplitude": [0.05, 0.05, 0.0],
+    "intent_phase_deg": [0.0, 90.0, 0.0],
+    "intent_offset": [0.0, 0.0, 0.02],
+    "intent_frequency_hz": 0.1,
+}
+
+
+def _joint_values(key: str, value: Any, joints: Sequence[Joint]) -> list[float]:
+    """A per-joint list; the 3-element defaults fit a 3-joint device, others get zeros."""
+    if isinstance(value, (list, tuple)) and len(value) != len(joints):
+        if value == HAND_DEFAULTS[key]:
+            return [0.0] * len(joints)
+        raise ValueError(f"sim-hand param {key!r}: expected {len(joints)} values, got {len(value)}")
+    if isinstance(value, Mapping):
+        return [float(value.get(j.name, 0.0)) for j in joints]
+    return (
+        _per_joint(key, value, joints)
+        if not isinstance(value, (list, tuple))
+        else [float(v) for v in value]
+    )
+
+
+class SimHandDriver(SimDriver):
+    """A ``sim`` device in effort mode moved by a simulated hand (see the module docstring)."""
+
+    # SimDriver names two; this one takes efforts only
+    supported_interfaces: ClassVar[tuple[str, ...]] = ("effort",)  # type: ignore[assignment]
+    DEFAULT_PARAMS = HAND_DEFAULTS
+
+    def __init__(
+        self,
+        name: str,
+        joints: Sequence[Joint],
+        params: Mapping[str, Any] | None = None,
+        on_limit: LimitPolicy = "clamp",
+        command_interface: CommandInterface | None = None,
+    ) -> None:
+        super().__init__(name, joints, params, on_limit, command_interface)
+        p = self.params
+        js = self.joints
+        self._k_hand = _joint_values("hand_stiffness", p["hand_stiffness"], js)
+        self._b_hand = _joint_values("hand_damping", p["hand_damping"], js)
+        self._amp = _joint_values("intent_amplitude", p["intent_amplitude"], js)
+        self._phase = [
+            math.radians(v) for v in _joint_values("intent_phase_deg", p["intent_phase_deg"], js)
+        ]
+        self._offset = _joint_values("intent_offset", p["intent_offset"], js)
+        self._w = 2.0 * math.pi * float(p["intent_frequency_hz"])
+        for i, j in enumerate(js):
+            if self._k_hand[i] < 0.0 or self._b_hand[i] < 0.0:
+                raise ValueError(f"sim-hand joint {j.name!r}: hand stiffness and damping >= 0")
+        # the hand's spring and damper are fast poles too: keep the substep inside them
+        fastest = max(
+            max(
+                math.sqrt(k * inv) for k, (inv, *_r) in zip(self._k_hand, self._model, strict=True)
+            ),
+            max(b * inv for b, (inv, *_r) in zip(self._b_hand, self._model, strict=True)),
+        )
+        if fastest > 0.0:
+            self._substep = min(self._substep, 0.1 / fastest)
+        #: time the drive has been ACTIVE: the operator's intended motion runs on it
+        self.intent_t = 0.0
+
+    def intended(self, t: float | None = None) -> list[float]:
+        """The intended joint positions at intent time ``t`` (now when None)."""
+        t = self.intent_t if t is None else t
+        w = self._w
+        return [
+            o + a * math.sin(w * t + ph)
+            for o, a, ph in zip(self._offset, self._amp, self._phase, strict=True)
+        ]
+
+    def _configure(self) -> None:
+        super()._configure()
+        self.intent_t = 0.0
+
+    def _integrate(self, now: float) -> None:
+        t = self._t
+        if t != t:
+            self._t = now
+            return
+        dt = now - t
+        if dt <= 0.0:
+            return
+        self._t = now
+        steps = math.ceil(dt / self._substep - 1e-9)
+        h = dt / steps
+        enabled = self._enabled
+        brakes = self._brakes
+        w = self._w
+        tau0 = self.intent_t
+        x_all, v_all, u_all, cmd = self._x, self._v, self._u, self._cmd
+        for i, (inv_j, b, lo, hi, _kp, _kd, _ulim) in enumerate(self._model):
+            x, v = x_all[i], v_all[i]
+            if not enabled:
+                u_all[i] = 0.0
+                if brakes:
+                    v_all[i] = 0.0
+                    continue
+            u = cmd[i] if enabled else 0.0
+            kh, bh = self._k_hand[i], self._b_hand[i]
+            a, ph, off = self._amp[i], self._phase[i], self._offset[i]
+            # the intention at the middle of the interval, held over it: it moves at 0.1 Hz,
+            # the interval is a tick (1 ms); one sin/cos per joint and tick, not per substep
+            if a != 0.0:
+                arg = w * (tau0 + (0.5 * dt if enabled else 0.0)) + ph
+                target, target_v = off + a * math.sin(arg), a * w * math.cos(arg)
+            else:
+                target, target_v = off, 0.0
+            for _ in range(steps):
+                hand = kh * (target - x) + bh * (target_v - v)
+                v += (u + hand - b * v) * inv_j * h
+                x += v * h
+                if x < lo or x > hi:
+                    x = lo if x < lo else hi
+                    v = 0.0
+            x_all[i], v_all[i], u_all[i] = x, v, u
+        if enabled:
+            self.intent_t = tau0 + dt

@@ -1,0 +1,396 @@
+"""The master's virtual fixtures at run time: definitions in, one force a tick out, models back.
+
+:class:`MasterFixtures` is what the ``teleop-master`` controller holds. It keeps the
+definitions by source (:mod:`occ.fixture_defs`), the patient-to-master mapping, and the active
+:class:`~occ.fixtures.FixtureSet`; all on the loop thread, all bounded:
+
+- a definition message (decoded by the interface thread) is validated and compiled when the
+  loop takes it, into a *new* set that replaces the active one in one assignment, so a tick
+  sees the old set or the new one, never half of each; an invalid definition raises
+  :class:`~occ.fixture_defs.DefinitionError` (the sender gets an error reply) and the active
+  set stays. The work is bounded: only the message's own source is compiled (the others are
+  kept compiled), at most ``max_primitives`` in all, and at most ``max_primitives``
+  definitions a tick (a burst beyond is refused "busy", to be sent again): a few µs a
+  primitive, docs/BENCHMARKS.md;
+- a change of the mapping (registration, clutch, a re-anchoring slave tip) marks the
+  patient-frame definitions stale; :meth:`MasterFixtures.step` recompiles them once, however
+  many changes came in the tick;
+- :meth:`MasterFixtures.step` (every tick) returns the force for the tool's position.
+
+Display (3D Slicer): :meth:`model_message` draws the active fixtures as one POLYDATA
+(spheres as triangle meshes, planes as squares, guides as lines; a cell scalar ``kind``: 1
+accessible, 2 forbidden, 3 plane, 4 guide) and :meth:`proxy_message` the contact state as a
+TRANSFORM at the first contact's proxy (the tool when free) with metadata ``contact``
+(primitive names), ``force_n`` and ``tool_mm``; both with ``MRMLNodeName`` metadata, in the
+patient frame (through the mapping) or the master's (``display_frame``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import igtl
+from igtl.messages.base import Message
+from igtl.messages.polydata import CELL_SCALAR, PolyDataAttribute
+
+from .fixture_defs import (
+    Defaults,
+    Definition,
+    DefinitionError,
+    PatientMapping,
+    compile_definitions,
+    from_markups_file,
+    from_message,
+)
+from .fixtures import (
+    AccessibleSphere,
+    FixtureSet,
+    ForbiddenPlane,
+    ForbiddenSphere,
+    Guide,
+    Primitive,
+    Vec3,
+)
+
+log = logging.getLogger(__name__)
+
+__all__ = ["MasterFixtures"]
+
+KIND_CODE = {"accessible": 1.0, "forbidden": 2.0, "plane": 3.0, "guide": 4.0}
+
+
+class MasterFixtures:
+    """Definitions, mapping and the active set of one master (see the module docstring)."""
+
+    def __init__(
+        self,
+        defaults: Defaults,
+        mapping: PatientMapping,
+        *,
+        max_force_n: float = 10.0,
+        slide_mm: float = 1.0,
+        max_primitives: int = 64,
+        max_planes: int = 8,
+        display_frame: str = "patient",
+    ) -> None:
+        self.defaults = defaults
+        self.mapping = mapping
+        self.max_force_n = max_force_n
+        self.slide_mm = slide_mm
+        self.max_primitives = max_primitives
+        self.max_planes = max_planes
+        self.display_frame = display_frame
+        self.groups: dict[str, list[Definition]] = {}
+        self.active = FixtureSet(max_force_n=max_force_n, slide_mm=slide_mm)
+        self._compiled_version = mapping.version
+        #: bumped on every new active set (the display sends models on change)
+        self.version = 0
+        self.applied = 0
+        self.refused = 0
+        self.last_error = ""
+        self.peak_force_n = 0.0
+        self._compiled: dict[str, list[Primitive]] = {}
+        self._tick_work = 0  # definitions compiled in the tick at _work_now
+        self._work_now = math.nan
+        self._last_now = math.nan
+        self.tool_mm: Vec3 = (0.0, 0.0, 0.0)
+        self.force_n: Vec3 = (0.0, 0.0, 0.0)
+
+    # ------------------------------------------------------------------ definitions
+    def load_file(self, path: str | Path, **kw: Any) -> int:
+        """A Slicer ``.mrk.json`` file as one source (at start, off the loop)."""
+        defs = from_markups_file(path, **kw)
+        self._new_tick(math.nan)  # at start, off the loop: a budget of its own
+        self._tick_work = 0
+        self._replace(f"file:{path}", defs)
+        return len(defs)
+
+    def _new_tick(self, now: float) -> None:
+        """The per-tick work budget starts again on each new tick."""
+        if now != self._work_now:
+            self._work_now = now
+            self._tick_work = 0
+
+    def on_message(self, msg: Message, now: float = math.nan) -> str | None:
+        """A definition message: applied (a short description) or None when ``msg`` is no
+        fixture; :class:`DefinitionError` when it is refused (the active set unchanged)."""
+        self._new_tick(now)
+        try:
+            defs = from_message(msg, self.defaults)
+        except DefinitionError as err:
+            self._refuse(msg, err)
+        if defs is None:
+            return None
+        key = f"{msg.message_type}:{msg.device_name}"
+        try:
+            self._replace(key, defs)
+        except DefinitionError as err:
+            self._refuse(msg, err)
+        return f"{len(defs)} fixtures from {key}; {len(self.active)} active"
+
+    def _refuse(self, msg: Message, err: DefinitionError) -> None:
+        self.refused += 1
+        self.last_error = f"{msg.message_type} {msg.device_name!r}: {err}"
+        raise DefinitionError(
+            f"fixture refused ({self.last_error}); the previous set stays"
+        ) from err
+
+    def clear(self) -> None:
+        self.groups.clear()
+        self._compiled.clear()
+        self._swap()
+
+    def _replace(self, key: str, defs: list[Definition]) -> None:
+        total = sum(len(g) for k, g in self.groups.items() if k != key) + len(defs)
+        if total > self.max_primitives:
+            raise DefinitionError(
+                f"{total} fixtures in all, more than max_primitives {self.max_primitives}"
+            )
+        planes = sum(
+            1 for k, g in self.groups.items() if k != key for d in g if d.kind == "plane"
+        ) + sum(1 for d in defs if d.kind == "plane")
+        if planes > self.max_planes:
+            raise DefinitionError(f"{planes} planes, more than max_planes {self.max_planes}")
+        if self._tick_work + len(defs) > self.max_primitives:
+            # bounded work a tick: at most one full set's worth of definitions compiled
+            raise DefinitionError(
+                f"busy: {self._tick_work} fixtures compiled this tick already; send it again"
+            )
+        self._tick_work += len(defs)
+        prims = compile_definitions(defs, self.mapping)
+        if defs:
+            self.groups[key] = defs
+            self._compiled[key] = prims
+        else:
+            self.groups.pop(key, None)
+            self._compiled.pop(key, None)
+        self._swap()
+        self.applied += 1
+        log.info("virtual fixtures: %s -> %d active", key, len(self.active))
+
+    def _swap(self) -> None:
+        prims = [p for g in self._compiled.values() for p in g]
+        new = FixtureSet(prims, max_force_n=self.max_force_n, slide_mm=self.slide_mm)
+        self.active = new.carry_from(self.active)
+        self.version += 1
+
+    def _recompile(self) -> None:
+        """The mapping changed: patient-frame fixtures move on the master. Done at once when
+        this tick's budget allows, else by :meth:`step` (once, whatever the changes)."""
+        patient = [k for k, g in self.groups.items() if any(d.frame == "patient" for d in g)]
+        work = sum(len(self.groups[k]) for k in patient)
+        if self._tick_work + work > self.max_primitives:
+            return  # stale until the next step()
+        self._compiled_version = self.mapping.version
+        if not patient:
+            return
+        self._tick_work += work
+        for k in patient:
+            self._compiled[k] = compile_definitions(self.groups[k], self.mapping)
+        self._swap()
+
+    # ------------------------------------------------------------------ mapping inputs
+    def following(self, on: bool, tool_mm: Sequence[float], now: float = math.nan) -> None:
+        """The slave follows (running, clutch released) or not: its references move."""
+        self._new_tick(now)
+        if on:
+            self.mapping.start_following(tool_mm)
+        else:
+            self.mapping.stop_following(tool_mm)
+        if self.mapping.version != self._compiled_version:
+            self._recompile()
+
+    def registration(self, matrix: Sequence[Sequence[float]], now: float = math.nan) -> None:
+        self._new_tick(now)
+        self.mapping.set_registration(matrix)
+        self._recompile()
+
+    def slave_tip(self, tip_patient: Sequence[float], now: float = math.nan) -> None:
+        self._new_tick(now)
+        self.mapping.slave_tip(tip_patient, self.tool_mm)
+        self._recompile()
+
+    # ------------------------------------------------------------------ per tick
+    def step(self, tool_mm: Sequence[float], now: float) -> Vec3:
+        """The force (N, master frame) for the tool at ``tool_mm`` at time ``now``."""
+        self._new_tick(now)
+        if self.mapping.version != self._compiled_version:
+            self._recompile()
+        last = self._last_now
+        dt = now - last if last == last else 0.0
+        self._last_now = now
+        self.tool_mm = (float(tool_mm[0]), float(tool_mm[1]), float(tool_mm[2]))
+        if not self.active.primitives:
+            self.force_n = (0.0, 0.0, 0.0)
+            self.active.force(self.tool_mm, dt)  # keeps the tool's history for the next set
+            return self.force_n
+        f = self.active.force(self.tool_mm, dt)
+        self.force_n = f
+        mag = math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
+        if mag > self.peak_force_n:
+            self.peak_force_n = mag
+        return f
+
+    def stats(self) -> dict[str, Any]:
+        a = self.active
+        return {
+            "fixtures": len(a),
+            "fixture_kinds": {
+                k: sum(1 for p in a.primitives if p.kind == k)
+                for k in ("accessible", "forbidden", "plane", "guide")
+            },
+            "fixture_sources": sorted(self.groups),
+            "fixtures_applied": self.applied,
+            "fixtures_refused": self.refused,
+            "fixture_last_error": self.last_error,
+            "fixture_contacts": a.contacts_entered,
+            "fixture_clamped": a.clamped,
+            "contact": [c.name for c in a.contacts()],
+            "peak_force_n": round(self.peak_force_n, 4),
+        }
+
+    # ------------------------------------------------------------------ display
+    def _display_point(self, p: Sequence[float]) -> Vec3:
+        if self.display_frame == "master":
+            return (float(p[0]), float(p[1]), float(p[2]))
+        return self.mapping.master_to_patient(p)
+
+    def _display_length(self, length: float) -> float:
+        return length if self.display_frame == "master" else length * self.mapping.scale
+
+    def _display_dir(self, n: Sequence[float]) -> Vec3:
+        if self.display_frame == "master":
+            return (float(n[0]), float(n[1]), float(n[2]))
+        r, g = self.mapping.rotation, self.mapping.registration
+        b = [sum(r[i][j] * n[j] for j in range(3)) for i in range(3)]
+        return tuple(sum(g[i][j] * b[j] for j in range(3)) for i in range(3))  # type: ignore[return-value]
+
+    def model_message(self, device: str, timestamp: float = 0.0) -> Message:
+        """The active fixtures as one POLYDATA (see the module docstring)."""
+        points: list[Vec3] = []
+        lines: list[tuple[int, ...]] = []
+        polygons: list[tuple[int, ...]] = []
+        line_kind: list[float] = []
+        poly_kind: list[float] = []
+        for prim in self.active.primitives:
+            code = KIND_CODE[prim.kind]
+            if isinstance(prim, (AccessibleSphere, ForbiddenSphere)):
+                c = self._display_point(prim.centre)
+                r = self._display_length(prim.radius)
+                base = len(points)
+                verts, faces = _sphere_mesh(c, r)
+                points.extend(verts)
+                for f in faces:
+                    polygons.append(tuple(base + i for i in f))
+                    poly_kind.append(code)
+            elif isinstance(prim, ForbiddenPlane):
+                c = self._display_point(prim.point)
+                n = self._display_dir(prim.normal)
+                base = len(points)
+                points.extend(_square(c, n, 50.0))
+                polygons.append((base, base + 1, base + 2, base + 3))
+                poly_kind.append(code)
+            elif isinstance(prim, Guide):
+                base = len(points)
+                points.extend(self._display_point(p) for p in prim.points)
+                lines.append(tuple(range(base, base + len(prim.points))))
+                line_kind.append(code)
+        # VTK's cell order: vertices, lines, polygons
+        kinds = np.array(line_kind + poly_kind, dtype=np.float32)
+        return igtl.PolyDataMessage(
+            points=np.array(points, dtype=np.float32).reshape(-1, 3),
+            lines=tuple(lines),
+            polygons=tuple(polygons),
+            attributes=(PolyDataAttribute(CELL_SCALAR, "kind", kinds),) if len(kinds) else (),
+            device_name=device,
+            timestamp=timestamp,
+            header_version=2,
+            metadata={
+                "MRMLNodeName": device,
+                "fixtures": str(len(self.active)),
+                "frame": self.display_frame,
+            },
+        )
+
+    def proxy_message(self, device: str, timestamp: float = 0.0) -> Message:
+        """The contact state: a TRANSFORM at the first contact's proxy (the tool when
+        free), metadata ``contact``, ``force_n``, ``tool_mm``."""
+        contacts = self.active.contacts()
+        at = contacts[0].proxy if contacts else self.tool_mm
+        x, y, z = self._display_point(at)
+        f = self.force_n
+        t = self.tool_mm
+        return igtl.TransformMessage.from_position(
+            (x, y, z),
+            device_name=device,
+            timestamp=timestamp,
+            header_version=2,
+            metadata={
+                "MRMLNodeName": device,
+                "contact": ",".join(c.name or c.kind for c in contacts) or "none",
+                "force_n": f"{f[0]:.4f},{f[1]:.4f},{f[2]:.4f}",
+                "tool_mm": f"{t[0]:.3f},{t[1]:.3f},{t[2]:.3f}",
+                "frame": self.display_frame,
+            },
+        )
+
+
+def _sphere_mesh(
+    c: Vec3, r: float, n_lat: int = 6, n_lon: int = 12
+) -> tuple[list[Vec3], list[tuple[int, ...]]]:
+    """A UV sphere: poles plus rings, triangles at the poles and quads between."""
+    verts: list[Vec3] = [(c[0], c[1], c[2] + r)]
+    for i in range(1, n_lat):
+        th = math.pi * i / n_lat
+        for j in range(n_lon):
+            ph = 2.0 * math.pi * j / n_lon
+            verts.append(
+                (
+                    c[0] + r * math.sin(th) * math.cos(ph),
+                    c[1] + r * math.sin(th) * math.sin(ph),
+                    c[2] + r * math.cos(th),
+                )
+            )
+    verts.append((c[0], c[1], c[2] - r))
+    south = len(verts) - 1
+    faces: list[tuple[int, ...]] = []
+    for j in range(n_lon):
+        faces.append((0, 1 + j, 1 + (j + 1) % n_lon))
+    for i in range(n_lat - 2):
+        a0 = 1 + i * n_lon
+        b0 = a0 + n_lon
+        for j in range(n_lon):
+            k = (j + 1) % n_lon
+            faces.append((a0 + j, b0 + j, b0 + k, a0 + k))
+    last = 1 + (n_lat - 2) * n_lon
+    for j in range(n_lon):
+        faces.append((last + j, south, last + (j + 1) % n_lon))
+    return verts, faces
+
+
+def _square(c: Vec3, n: Vec3, half: float) -> list[Vec3]:
+    """Four corners of a square of side 2 ``half`` centred at ``c``, normal ``n``."""
+    nn = math.sqrt(sum(v * v for v in n)) or 1.0
+    nx, ny, nz = (v / nn for v in n)
+    # any vector not parallel to n
+    ax, ay, az = (1.0, 0.0, 0.0) if abs(nx) < 0.9 else (0.0, 1.0, 0.0)
+    ux, uy, uz = ny * az - nz * ay, nz * ax - nx * az, nx * ay - ny * ax
+    un = math.sqrt(ux * ux + uy * uy + uz * uz)
+    ux, uy, uz = ux / un, uy / un, uz / un
+    vx, vy, vz = ny * uz - nz * uy, nz * ux - nx * uz, nx * uy - ny * ux
+    out = []
+    for su, sv in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+        out.append(
+            (
+                c[0] + half * (su * ux + sv * vx),
+                c[1] + half * (su * uy + sv * vy),
+                c[2] + half * (su * uz + sv * vz),
+            )
+        )
+    return out

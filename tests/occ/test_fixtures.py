@@ -1,0 +1,193 @@
+"""occ.fixtures: the force laws, the proxy, the clamp (pure, no robot)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from occ.fixtures import (
+    AccessibleSphere,
+    FixtureSet,
+    ForbiddenPlane,
+    ForbiddenSphere,
+    Guide,
+)
+
+DT = 0.001
+
+
+def norm(v: tuple[float, ...]) -> float:
+    return math.sqrt(sum(c * c for c in v))
+
+
+def walk(fs: FixtureSet, start, end, n: int) -> list[tuple[float, float, float]]:
+    """The forces along a straight walk of the tool from start to end in n ticks."""
+    out = []
+    for i in range(n + 1):
+        t = i / n
+        p = tuple(a + t * (b - a) for a, b in zip(start, end))
+        out.append(fs.force(p, DT))
+    return out
+
+
+# -------------------------------------------------------------- the paper's law
+@pytest.mark.parametrize("distance", [0.0, 30.0, 99.9, 100.0])
+def test_paper_law_no_force_inside(distance: float) -> None:
+    fs = FixtureSet([AccessibleSphere((10.0, 20.0, 30.0), 100.0, stiffness=1.0)])
+    fs.force((10.0, 20.0, 30.0), DT)
+    assert fs.force((10.0 + distance, 20.0, 30.0), DT) == (0.0, 0.0, 0.0)
+
+
+@pytest.mark.parametrize("direction", [(1, 0, 0), (0, -1, 0), (0.6, 0.0, 0.8), (-0.48, 0.6, 0.64)])
+def test_paper_law_outside_is_a_spring_toward_the_centre(direction) -> None:
+    # f = k (|D| - r) along D / |D|, D = Ps - Pe, reached from inside along a radius
+    centre, r, k = (5.0, -3.0, 2.0), 100.0, 0.05
+    fs = FixtureSet([AccessibleSphere(centre, r, stiffness=k)], max_force_n=1e6)
+    for dist in (50.0, 99.0, 100.5, 104.0, 130.0):
+        pe = tuple(c + dist * u for c, u in zip(centre, direction))
+        f = fs.force(pe, DT)
+        d = tuple(c - e for c, e in zip(centre, pe))
+        expect = max(0.0, k * (norm(d) - r))
+        assert norm(f) == pytest.approx(expect, abs=1e-9)
+        if expect:
+            for fc, dc in zip(f, d):
+                assert fc == pytest.approx(expect * dc / norm(d), abs=1e-9)
+
+
+def test_clamp_to_the_configured_maximum() -> None:
+    fs = FixtureSet([AccessibleSphere((0.0, 0.0, 0.0), 10.0, stiffness=1.0)])  # default 10 N
+    fs.force((0.0, 0.0, 0.0), DT)
+    forces = walk(fs, (0.0, 0.0, 0.0), (40.0, 0.0, 0.0), 400)
+    mags = [norm(f) for f in forces]
+    assert max(mags) == pytest.approx(10.0)
+    assert mags[-1] == pytest.approx(10.0)  # 30 mm outside at 1 N/mm: 30 N, clamped
+    assert mags[150] == pytest.approx(5.0, abs=0.11)  # 5 mm outside: below the clamp
+    assert fs.clamped > 0
+    fs3 = FixtureSet([AccessibleSphere((0.0, 0.0, 0.0), 10.0, stiffness=1.0)], max_force_n=3.0)
+    fs3.force((0.0, 0.0, 0.0), DT)
+    assert max(norm(f) for f in walk(fs3, (0, 0, 0), (40, 0, 0), 400)) == pytest.approx(3.0)
+
+
+# -------------------------------------------------------------- union of spheres
+def two_spheres() -> FixtureSet:
+    # two overlapping accessible spheres along x: the union is a peanut
+    return FixtureSet(
+        [AccessibleSphere((0.0, 0.0, 0.0), 30.0, name="A"),
+         AccessibleSphere((40.0, 0.0, 0.0), 30.0, name="B")],
+        max_force_n=1e6,
+    )
+
+
+def test_union_no_force_anywhere_inside_either_sphere() -> None:
+    fs = two_spheres()
+    for p in [(0, 0, 0), (-29, 0, 0), (20, 0, 0), (20, 19, 0), (69, 0, 0), (40, 0, 29)]:
+        assert fs.force(p, DT) == (0.0, 0.0, 0.0)
+
+
+def test_union_switch_between_nearest_spheres_without_a_force_jump() -> None:
+    fs = two_spheres()
+    fs.force((0.0, 0.0, 0.0), DT)
+    fs.force((0.0, 28.0, 0.0), DT)
+    # leave sphere A upward, 4 mm out, then walk along x past the bisector (x = 20) over the
+    # waist and onto B: the nearest sphere changes from A to B on the way
+    path = [(0.0, 34.0, 0.0)]
+    path += [(x * 0.05, 34.0, 0.0) for x in range(0, 801)]  # 0.05 mm a tick
+    forces = [fs.force(p, DT) for p in path]
+    steps = [norm(tuple(a - b for a, b in zip(f1, f0))) for f0, f1 in zip(forces, forces[1:])]
+    # the tool moves 0.05 mm a tick: the force may move by k x that plus the proxy's slide
+    # limit, never by the jump of the naive nearest-sphere rule
+    assert max(steps[1:]) < 1.0 * (0.05 + fs.slide_mm) + 1e-9
+    # and the naive rule jumps: at the bisector the nearest-sphere force flips from pointing
+    # toward A's centre to toward B's, a change of about 2 N here
+    def naive(p):
+        best = min((math.dist(p, c) - 30.0, c) for c in ((0, 0, 0), (40, 0, 0)))
+        d, c = best
+        u = tuple((ci - pi) / math.dist(p, c) for ci, pi in zip(c, p))
+        return tuple(max(0.0, d) * ui for ui in u)
+    naive_steps = [norm(tuple(a - b for a, b in zip(naive(p1), naive(p0))))
+                   for p0, p1 in zip(path, path[1:])]
+    assert max(naive_steps) > 1.0
+    # at the end the tool is above B's centre, 4 mm out: the paper's law on B
+    assert forces[-1] == pytest.approx((0.0, -4.0, 0.0), abs=1e-6)
+
+
+def test_proxy_points_back_to_where_the_tool_left() -> None:
+    fs = two_spheres()
+    fs.force((0.0, 0.0, 0.0), DT)
+    fs.force((0.0, 29.0, 0.0), DT)
+    # out of A's top, then to a point past the bisector but still much nearer A's exit
+    fs.force((0.0, 31.0, 0.0), DT)
+    (contact,) = fs.contacts()
+    assert contact.name == "A" and contact.proxy == pytest.approx((0.0, 30.0, 0.0))
+
+
+# -------------------------------------------------------------- forbidden sphere, planes, guides
+def test_forbidden_sphere_pushes_out_and_does_not_pop_through() -> None:
+    fs = FixtureSet([ForbiddenSphere((0.0, 0.0, 0.0), 20.0, stiffness=0.5)], max_force_n=1e6)
+    assert fs.force((-30.0, 0.0, 0.0), DT) == (0.0, 0.0, 0.0)
+    forces = walk(fs, (-30.0, 0.0, 0.0), (5.0, 0.0, 0.0), 700)  # 0.05 mm a tick, past the centre
+    # entered at x = -20: the push is toward -x all along (the proxy slides, it does not flip)
+    inside = [f for f in forces if f != (0.0, 0.0, 0.0)]
+    assert inside and all(f[0] < 0.0 for f in inside)
+    assert forces[300] == pytest.approx((-0.5 * 5.0, 0.0, 0.0), abs=0.03)  # 5 mm deep
+    (c,) = fs.contacts()
+    assert c.kind == "forbidden" and c.proxy == pytest.approx((-20.0, 0.0, 0.0))
+
+
+def test_forbidden_planes() -> None:
+    floor = ForbiddenPlane((0.0, 0.0, -10.0), (0.0, 0.0, 2.0), stiffness=2.0, name="floor")
+    wall = ForbiddenPlane((50.0, 0.0, 0.0), (-1.0, 0.0, 0.0), stiffness=1.0, name="wall")
+    fs = FixtureSet([floor, wall], max_force_n=1e6)
+    assert fs.force((0.0, 0.0, 0.0), DT) == (0.0, 0.0, 0.0)
+    assert fs.force((0.0, 0.0, -13.0), DT) == pytest.approx((0.0, 0.0, 6.0))
+    # both at once: the forces add
+    assert fs.force((52.0, 0.0, -11.0), DT) == pytest.approx((-2.0, 0.0, 2.0))
+    assert {c.name for c in fs.contacts()} == {"floor", "wall"}
+
+
+def test_guidance_pulls_onto_the_polyline() -> None:
+    g = Guide(((0.0, 0.0, 0.0), (100.0, 0.0, 0.0), (100.0, 100.0, 0.0)), stiffness=0.5)
+    fs = FixtureSet([g], max_force_n=1e6)
+    assert fs.force((50.0, 4.0, 0.0), DT) == pytest.approx((0.0, -2.0, 0.0))
+    assert fs.force((50.0, 0.0, 0.0), DT) == pytest.approx((0.0, 0.0, 0.0))
+    assert fs.force((50.0, 0.0, 6.0), DT) == pytest.approx((0.0, 0.0, -3.0))
+    fs.force((103.0, 50.0, 0.0), DT)  # to the second segment: the proxy slides there
+    for _ in range(100):
+        f = fs.force((103.0, 50.0, 0.0), DT)
+    assert f == pytest.approx((-1.5, 0.0, 0.0))
+
+
+def test_damping_only_in_contact_and_along_the_spring() -> None:
+    fs = FixtureSet([ForbiddenPlane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), stiffness=1.0,
+                                    damping=0.01)], max_force_n=1e6)
+    fs.force((0.0, 0.0, 5.0), DT)
+    assert fs.force((0.0, 0.0, 4.0), DT) == (0.0, 0.0, 0.0)  # moving but free: nothing
+    fs.force((0.0, 0.0, -1.0), DT)
+    # 1 mm deep, moving in at 1 mm/ms = 1000 mm/s and sideways 1000 mm/s: only the normal part
+    f = fs.force((1.0, 0.0, -2.0), DT)
+    assert f == pytest.approx((0.0, 0.0, 2.0 + 0.01 * 1000.0))
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: AccessibleSphere((0, 0, 0), 0.0),
+        lambda: AccessibleSphere((0, 0, math.nan), 1.0),
+        lambda: ForbiddenSphere((0, 0, 0), -1.0),
+        lambda: ForbiddenSphere((0, 0, 0), 1.0, stiffness=-1.0),
+        lambda: ForbiddenPlane((0, 0, 0), (0, 0, 0)),
+        lambda: Guide(((1, 2, 3),)),
+        lambda: Guide(((1, 2, 3), (1, 2, 3))),
+        lambda: Guide(((1, 2, 3), (1, 2, math.inf))),
+    ],
+)
+def test_invalid_primitives_are_refused(make) -> None:
+    with pytest.raises(ValueError):
+        make()
+
+
+def test_union_with_empty_set_is_free() -> None:
+    fs = FixtureSet([])
+    assert fs.force((1e3, 1e3, 1e3), DT) == (0.0, 0.0, 0.0)
+    assert fs.inside_accessible((1e3, 0, 0))
