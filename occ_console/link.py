@@ -42,16 +42,6 @@ COMMANDS = ("Enable", "Run", "Stop", "EStop", "Reset", "Disable")
 DEVICE = "occ-console"
 
 
-#: a GetStats answer longer than this is followed by a keep-alive (an empty STATUS, which the
-#: daemon's interface thread only counts): the daemon judges whether a client reads by the
-#: receive window it last advertised, and the ACK of a long answer advertises a window short by
-#: that answer (it is read a moment later); without a newer segment from us that stale window
-#: stays until the next poll, and answers over the daemon's ``unread_limit_kib`` (16 KiB; the
-#: lateness buckets make them 15-30 KiB) looked like a client that does not read: it was closed
-#: after ``send_stall_timeout_s``
-KEEPALIVE_AFTER = 4096
-
-
 class CommandTimeout(Exception):
     """The daemon did not answer a command in time (or the link went down first)."""
 
@@ -221,8 +211,14 @@ class DaemonLink:
             with self._lock:
                 self._stats_asked = 0.0
             text = str(getattr(msg, "string", ""))
-            if len(text) > KEEPALIVE_AFTER:
-                self._send(igtl.StatusMessage(device_name=DEVICE, header_version=2))
+            # a keep-alive (an empty STATUS, which the daemon's interface thread only counts)
+            # after every answer: the daemon judges whether a client reads by the receive
+            # window it last advertised, and the ACK of an answer advertises a window short
+            # by that answer (read a moment later). Without a newer segment from us that
+            # stale window stood until the next poll, and answers over the daemon's
+            # unread_limit_kib (16 KiB; the lateness buckets make them 15-30 KiB) looked like
+            # a client that does not read: closed after send_stall_timeout_s (5 s)
+            self._send(igtl.StatusMessage(device_name=DEVICE, header_version=2))
             try:
                 stats = json.loads(text)
                 if not isinstance(stats, dict):

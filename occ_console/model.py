@@ -203,7 +203,7 @@ class DaemonView:
     def on_stats(self, t: float, mono: float, stats: dict[str, Any]) -> None:
         """One GetStats answer (``Format="json"``, with the lateness buckets)."""
         raw = stats.pop("lateness_buckets", None)
-        buckets: dict[int, int] = {}
+        buckets: dict[int, int] | None = None
         if isinstance(raw, dict):
             try:
                 buckets = {int(k): int(v) for k, v in raw.items()}
@@ -211,7 +211,7 @@ class DaemonView:
                     bucket_bounds(idx)  # a ValueError for an index out of range
             except (TypeError, ValueError):
                 self.bad_stats += 1
-                buckets = {}
+                buckets = None
         prev = self._prev
         if prev is not None and _number(stats.get("ticks")) < _number(prev[1].get("ticks")):
             # the tick counter went down: a new daemon behind the same port
@@ -219,6 +219,7 @@ class DaemonView:
             self._log(t, "link", "LINK", "the daemon restarted (its counters started again)")
             prev = None
             self._hist.clear()
+            self.rates = {}
         if isinstance(stats.get("robot"), str):
             self.name = stats["robot"]
         state = stats.get("state")
@@ -232,7 +233,7 @@ class DaemonView:
         self.stats = stats
         self.stats_at = t
         self.stats_answers += 1
-        if buckets:
+        if buckets is not None:
             self._hist.append((mono, buckets))
             # keep one answer older than the window: the window's start
             while len(self._hist) > 2 and self._hist[1][0] <= mono - self.window_s:
