@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -14,6 +15,7 @@ pytest.importorskip("httpx", reason="pip install -e .[test]")
 
 import httpx  # noqa: E402
 
+from igtl.auth import load_key  # noqa: E402
 from occ.safety import RobotState  # noqa: E402
 from occ_console.link import Console  # noqa: E402
 
@@ -176,3 +178,42 @@ def test_console_follows_each_answer_with_a_keepalive(slave: TickedRobot) -> Non
         assert itf.stats()["evicted_not_reading"] == 0
     finally:
         console.stop()
+
+
+def test_signed_operator_link(tmp_path: Path) -> None:
+    """An operator interface with a shared key: the console with the key is served; one
+    without it is refused (counted by the daemon), and one with another key counts the
+    daemon's messages as unauthenticated instead of believing them."""
+    key = tmp_path / "operator.key"
+    key.write_text("a shared secret of the ward, 32 bytes\n")
+    robot = TickedRobot(extra=f"header_version: 2, auth_key_file: {key}")
+    consoles = {
+        "right": Console(
+            [("127.0.0.1", robot.port)], poll_hz=10.0, auth_key=load_key(key.read_text())
+        ),  # fmt: skip
+        "none": Console([("127.0.0.1", robot.port)], poll_hz=10.0),
+        "wrong": Console(
+            [("127.0.0.1", robot.port)], poll_hz=10.0, auth_key=b"another key, at least 16 bytes"
+        ),  # fmt: skip
+    }
+    try:
+        for c in consoles.values():
+            c.start()
+        right = consoles["right"].links[0]
+        assert poll(lambda: right.view.stats_answers >= 2 and right.view.state == "READY")
+        assert right.command("Enable").result(5.0)["ok"]
+        assert poll(lambda: right.view.state == "ENABLED")
+        # the daemon's broadcast of that change, signed with its key, is not believed
+        wrong = consoles["wrong"].links[0].view
+        assert poll(lambda: wrong.unauthenticated >= 2)
+        assert wrong.stats_answers == 0 and wrong.state == ""
+        itf = robot.robot.interfaces["operator"]
+        assert poll(lambda: itf.stats()["unauthenticated"] >= 4)  # GetState, GetStats ...
+        assert consoles["none"].links[0].view.stats_answers == 0
+        # the daemon greets a new client before it has spoken version 2, so in version 1,
+        # which has no metadata and so no tag: the greeting is the one message not believed
+        assert right.view.unauthenticated <= 1
+    finally:
+        for c in consoles.values():
+            c.stop()
+        robot.stop()
