@@ -136,7 +136,10 @@ def main(argv: list[str] | None = None) -> int:
         # the event streams never end by themselves: Ctrl-C closes them after a second
         timeout_graceful_shutdown=1,
     )
-    uvicorn.Server(config).run(sockets=[sock])
+    try:
+        uvicorn.Server(config).run(sockets=[sock])
+    except KeyboardInterrupt:  # uvicorn hands Ctrl-C back once it has shut down
+        pass
     return 0
 
 

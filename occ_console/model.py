@@ -135,6 +135,7 @@ class DaemonView:
         self.bad_stats = 0
         # (monotonic time, raw lateness buckets) of recent answers: the live histogram's window
         self._hist: deque[tuple[float, dict[int, int]]] = deque()
+        self._hist_view: dict[str, Any] | None = None  # histogram() of the answers above
         self._prev: tuple[float, dict[str, Any]] | None = None
 
     @property
@@ -158,6 +159,7 @@ class DaemonView:
         # whatever comes back may be a new daemon: its counters start again
         self._prev = None
         self._hist.clear()
+        self._hist_view = None
         self.rates = {}
 
     def on_link_error(self, reason: str) -> None:
@@ -219,6 +221,7 @@ class DaemonView:
             self._log(t, "link", "LINK", "the daemon restarted (its counters started again)")
             prev = None
             self._hist.clear()
+            self._hist_view = None
             self.rates = {}
         if isinstance(stats.get("robot"), str):
             self.name = stats["robot"]
@@ -234,6 +237,7 @@ class DaemonView:
         self.stats_at = t
         self.stats_answers += 1
         if buckets is not None:
+            self._hist_view = None
             self._hist.append((mono, buckets))
             # keep one answer older than the window: the window's start
             while len(self._hist) > 2 and self._hist[1][0] <= mono - self.window_s:
@@ -274,6 +278,11 @@ class DaemonView:
         start until two answers are in)."""
         if not self._hist:
             return None
+        if self._hist_view is None:  # once per answer, however often the page asks
+            self._hist_view = self._histogram()
+        return self._hist_view
+
+    def _histogram(self) -> dict[str, Any]:
         t1, newest = self._hist[-1]
         t0, oldest = self._hist[0]
         if len(self._hist) > 1:

@@ -32,20 +32,20 @@ function plain(value) {
 function histogramSvg(h) {
   if (!h) return "<p class=\"muted\">waiting for the first statistics…</p>";
   const counts = h.counts;
-  const W = 40, H = 80;  // one bin's width and the bars' height, in viewBox units
+  const W = 40, H = 110;  // one bin's width and the bars' height, in viewBox units
   const top = Math.log10(1 + Math.max(1, ...counts));
-  const label = (e) => (e === null ? "∞" : e >= 1000 ? `${e / 1000}ms` : `${e}`);
+  const label = (e) => (e === null ? "∞" : e >= 1000 ? `${e / 1000}k` : `${e}`);
   let bars = "";
   counts.forEach((n, i) => {
     const hgt = n ? Math.max(1, (Math.log10(1 + n) / top) * H) : 0;
     const late = h.edges_us[i] >= 1000 ? " late" : "";
     bars += `<rect class="bar${late}" x="${i * W + 2}" y="${H - hgt}" width="${W - 4}" ` +
       `height="${hgt}"><title>${label(h.edges_us[i])} to ${label(h.edges_us[i + 1])} µs: ${n} ticks</title></rect>`;
-    bars += `<text x="${i * W}" y="${H + 12}" text-anchor="middle">${label(h.edges_us[i])}</text>`;
+    bars += `<text x="${i * W}" y="${H + 16}" text-anchor="middle">${label(h.edges_us[i])}</text>`;
   });
   const s = h.summary || {};
   const span = h.window_s === null ? "since start" : `last ${num(h.window_s)} s`;
-  return `<svg viewBox="-14 0 ${counts.length * W + 20} ${H + 16}" role="img" ` +
+  return `<svg viewBox="-14 0 ${counts.length * W + 20} ${H + 22}" role="img" ` +
     `aria-label="lateness histogram">${bars}</svg>` +
     `<div class="muted">tick lateness, µs (log counts), ${span}: ${num(h.ticks)} ticks, ` +
     `p50 ${num(s.p50)} · p99 ${num(s.p99)} · max ${num(s.max)}</div>`;

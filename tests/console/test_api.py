@@ -164,7 +164,7 @@ def test_console_follows_each_answer_with_a_keepalive(slave: TickedRobot) -> Non
     The ACK of a long GetStats answer (15-30 KiB with the lateness buckets) can advertise a
     window short by that answer, read a moment later; without a newer segment from the console
     that stale window stood until the next poll, and the real slave closed the console every
-    10-40 s (``evicted_not_reading``; docs/CONSOLE.md). So the console sends a keep-alive (an
+    10-40 s (``evicted_not_reading``; occ_console/link.py). So the console sends a keep-alive (an
     empty STATUS, only counted by the daemon's interface thread) after every answer."""
     console = Console([("127.0.0.1", slave.port)], poll_hz=10.0).start()
     try:
