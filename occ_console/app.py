@@ -28,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import threading
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -68,6 +69,15 @@ class Hub:
 
     def close(self) -> None:
         self.console.remove_listener(self.changed)
+
+
+def begin_shutdown(app: Starlette) -> None:
+    """End the event streams (any thread, a signal handler included): the server stops
+    waiting for them at once instead of cancelling them after its graceful timeout."""
+    app.state.stopping.set()
+    hub: Hub | None = getattr(app.state, "hub", None)
+    if hub is not None:
+        hub.changed()
 
 
 def create_app(console: Console, *, push_hz: float = 5.0, keepalive_s: float = 15.0) -> Starlette:
@@ -132,11 +142,13 @@ def create_app(console: Console, *, push_hz: float = 5.0, keepalive_s: float = 1
         queue: asyncio.Queue[None] = asyncio.Queue(maxsize=1)
         hub.queues.add(queue)
 
+        stopping = request.app.state.stopping
+
         async def stream() -> AsyncIterator[str]:
             loop = asyncio.get_running_loop()
             try:
                 yield "retry: 1000\n\n"
-                while True:
+                while not stopping.is_set():
                     data = json.dumps(console.snapshot(), separators=(",", ":"))
                     yield f"event: daemons\ndata: {data}\n\n"
                     sent = loop.time()
@@ -145,6 +157,8 @@ def create_app(console: Console, *, push_hz: float = 5.0, keepalive_s: float = 1
                     except TimeoutError:
                         yield ": keep-alive\n\n"
                         continue
+                    if stopping.is_set():
+                        break
                     # at most push_hz updates a second, however fast the daemons talk
                     await asyncio.sleep(max(0.0, sent + min_gap - loop.time()))
                     with contextlib.suppress(asyncio.QueueEmpty):
@@ -166,8 +180,10 @@ def create_app(console: Console, *, push_hz: float = 5.0, keepalive_s: float = 1
         Route("/api/events", events),
         Mount("/static", StaticFiles(directory=STATIC), name="static"),
     ]
-    return Starlette(
+    app = Starlette(
         routes=routes,
         lifespan=lifespan,
         middleware=[Middleware(TrustedHostMiddleware, allowed_hosts=LOOPBACK_HOSTS)],
     )
+    app.state.stopping = threading.Event()
+    return app

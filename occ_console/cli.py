@@ -19,6 +19,7 @@ import logging
 import socket
 import sys
 from pathlib import Path
+from typing import Any
 
 from .link import Console, parse_endpoint
 
@@ -111,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         import uvicorn
 
-        from .app import create_app
+        from .app import begin_shutdown, create_app
     except ImportError as err:
         print(f"occ-console: {err.name} is missing: pip install 'occ-igtl[console]'",
               file=sys.stderr)  # fmt: skip
@@ -129,15 +130,22 @@ def main(argv: list[str] | None = None) -> int:
     host = f"[{args.host}]" if family == socket.AF_INET6 else args.host
     daemons = ", ".join(f"{h}:{p}" for h, p in args.connect)
     print(f"occ-console: http://{host}:{port}/ watching {daemons}", flush=True)
+    app = create_app(console)
+
+    class Server(uvicorn.Server):
+        def handle_exit(self, sig: int, frame: Any) -> None:
+            begin_shutdown(app)  # the pages' event streams end first
+            super().handle_exit(sig, frame)
+
     config = uvicorn.Config(
-        create_app(console),
+        app,
         log_level=args.log_level.lower(),
         access_log=False,
         # the event streams never end by themselves: Ctrl-C closes them after a second
         timeout_graceful_shutdown=1,
     )
     try:
-        uvicorn.Server(config).run(sockets=[sock])
+        Server(config).run(sockets=[sock])
     except KeyboardInterrupt:  # uvicorn hands Ctrl-C back once it has shut down
         pass
     return 0

@@ -46,8 +46,16 @@ def main(argv: list[str] | None = None) -> int:
                                 ("master", master_cfg, ports["master_tcp"])):  # fmt: skip
             path = write_yaml(tmp / f"{name}.yaml", cfg)
             proc = subprocess.Popen(
-                [sys.executable, "-m", "occ.cli", str(path), "--start", "running",
-                 "--log-level", "WARNING"],  # fmt: skip
+                [
+                    sys.executable,
+                    "-m",
+                    "occ.cli",
+                    str(path),
+                    "--start",
+                    "running",
+                    "--log-level",
+                    "WARNING",
+                ],  # fmt: skip
                 cwd=ROOT,
             )
             procs.append(proc)
@@ -55,9 +63,17 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"the {name} did not start", file=sys.stderr)
                 return 1
         console = subprocess.Popen(
-            [sys.executable, "-m", "occ_console.cli", "--port", "0",
-             "--connect", f"127.0.0.1:{ports['slave_op']}",
-             "--connect", f"127.0.0.1:{ports['master_tcp']}"],  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "occ_console.cli",
+                "--port",
+                "0",
+                "--connect",
+                f"127.0.0.1:{ports['slave_op']}",
+                "--connect",
+                f"127.0.0.1:{ports['master_tcp']}",
+            ],  # fmt: skip
             cwd=ROOT,
             stdout=subprocess.PIPE,
         )

@@ -124,6 +124,7 @@ class WebServer:
         config = uvicorn.Config(
             create_app(console), log_level="warning", timeout_graceful_shutdown=1
         )
+        self.app = config.app
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(
             target=lambda: asyncio.run(self.server.serve(sockets=[self.sock])),
@@ -134,6 +135,9 @@ class WebServer:
         assert poll(lambda: self.server.started, 10.0), "uvicorn did not start"
 
     def stop(self) -> None:
+        from occ_console.app import begin_shutdown
+
+        begin_shutdown(self.app)
         self.server.should_exit = True
         self.thread.join(timeout=10.0)
         self.sock.close()

@@ -4,6 +4,7 @@ served by uvicorn: what a script or the page gets, and what the daemon is sent."
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -16,8 +17,9 @@ pytest.importorskip("httpx", reason="pip install -e .[test]")
 import httpx  # noqa: E402
 
 from igtl.auth import load_key  # noqa: E402
+from igtl.transport import TCPServer  # noqa: E402
 from occ.safety import RobotState  # noqa: E402
-from occ_console.link import Console  # noqa: E402
+from occ_console.link import CommandTimeout, Console  # noqa: E402
 
 from .conftest import TickedRobot, WebServer, free_port, poll  # noqa: E402
 
@@ -217,3 +219,27 @@ def test_signed_operator_link(tmp_path: Path) -> None:
         for c in consoles.values():
             c.stop()
         robot.stop()
+
+
+def test_a_silent_daemon_is_not_sent_a_queue_of_requests() -> None:
+    """A daemon that answers nothing (stuck worker, overloaded): one GetStats outstanding at a
+    time, however fast the console polls; a command fails after its timeout."""
+    got: list[Any] = []
+    server = TCPServer("127.0.0.1", 0, on_message=lambda peer, msg: got.append(msg)).start()
+    console = Console([("127.0.0.1", server.address[1])], poll_hz=10.0).start()
+    try:
+        link = console.links[0]
+        assert poll(lambda: link.view.connected)
+        fut = link.command("Enable", timeout=0.3)
+        with pytest.raises(CommandTimeout):
+            fut.result(5.0)
+        time.sleep(1.0)  # ten polls' worth: still the one request
+        names = [getattr(m, "command_name", "") for m in got]
+        assert names.count("GetStats") == 1, names
+        assert names.count("GetState") == 1 and names.count("Enable") == 1
+        snap = console.snapshot()[0]
+        assert snap["link"]["stats_asked"] == 1
+        assert any(e["kind"] == "link" for e in snap["log"])
+    finally:
+        console.stop()
+        server.stop()

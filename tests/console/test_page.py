@@ -48,6 +48,13 @@ def browser() -> Iterator[Any]:
 @pytest.fixture
 def console_on_slave(tmp_path: Path) -> Iterator[str]:
     slave_cfg, _, ports = pair_configs()
+    # what is tested is the page, not the daemon's timing: on a machine loaded enough to stall
+    # the loop for tens of milliseconds the slave would fault (supervisor, watchdog, the
+    # drive's heartbeat) before the browser saw READY, so those limits are wide here
+    safety = slave_cfg["safety"]
+    safety["supervisor"] = {"timeout_ms": 5000.0}
+    safety["watchdog"].update(hard_gap_ms=5000.0, stop_run=1_000_000, alert_run=1_000_000)
+    slave_cfg["robot"]["drivers"][0]["params"]["heartbeat_ms"] = 0
     write_yaml(tmp_path / "slave.yaml", slave_cfg)
     procs: list[subprocess.Popen[bytes]] = []
     try:
