@@ -13,7 +13,8 @@ route                                   what
                                         reply: 200 done, 409 refused by the daemon, 503 not
                                         connected, 504 no answer in time
 ``GET /api/events``                     server-sent events: ``daemons`` (the list above) at
-                                        every change, at most ``push_hz`` a second
+                                        every change, at most ``push_hz`` a second, and at
+                                        least every ``refresh_s``
 ======================================  =====================================================
 
 The daemons can be stopped from here, so the page is for this machine only: the server binds
@@ -80,7 +81,7 @@ def begin_shutdown(app: Starlette) -> None:
         hub.changed()
 
 
-def create_app(console: Console, *, push_hz: float = 5.0, keepalive_s: float = 15.0) -> Starlette:
+def create_app(console: Console, *, push_hz: float = 5.0, refresh_s: float = 1.0) -> Starlette:
     """The application for ``console`` (started and stopped with the application's
     lifespan)."""
     min_gap = 1.0 / push_hz
@@ -153,9 +154,10 @@ def create_app(console: Console, *, push_hz: float = 5.0, keepalive_s: float = 1
                     yield f"event: daemons\ndata: {data}\n\n"
                     sent = loop.time()
                     try:
-                        await asyncio.wait_for(queue.get(), keepalive_s)
+                        await asyncio.wait_for(queue.get(), refresh_s)
                     except TimeoutError:
-                        yield ": keep-alive\n\n"
+                        # nothing new: the snapshot again all the same (the ages in it grow:
+                        # a daemon that stopped answering shows it)
                         continue
                     if stopping.is_set():
                         break

@@ -57,8 +57,12 @@ function render(card, d) {
   el(".name").textContent = d.name;
   el(".address").textContent = d.address;
   const link = el(".link-badge");
-  link.textContent = d.connected ? "connected" : `disconnected${d.link.error ? ": " + d.link.error : ""}`;
-  link.className = "link-badge" + (d.connected ? "" : " down");
+  // statistics older than a few polls: the daemon (or its worker) is not answering
+  const stale = d.connected && (d.stats_age_s === null || d.stats_age_s > 3);
+  link.textContent = !d.connected ? `disconnected${d.link.error ? ": " + d.link.error : ""}`
+    : d.stats_age_s === null ? "connected, no statistics yet"
+      : `connected · statistics ${num(d.stats_age_s)} s old`;
+  link.className = "link-badge" + (d.connected && !stale ? "" : " down");
   const state = el(".state");
   state.textContent = d.state || "?";
   state.className = "state " + (d.state || "");

@@ -243,3 +243,21 @@ def test_a_silent_daemon_is_not_sent_a_queue_of_requests() -> None:
     finally:
         console.stop()
         server.stop()
+
+
+def test_event_stream_repeats_the_snapshot_when_nothing_changes() -> None:
+    """A daemon that went quiet changes nothing the console hears of; the page must still see
+    the age of its statistics grow, so the stream sends the snapshot at least every second."""
+    console = Console([("127.0.0.1", free_port())], poll_hz=10.0)  # nobody there
+    web = WebServer(console)
+    try:
+        events = 0
+        with httpx.stream("GET", f"{web.url}/api/events", timeout=10.0) as r:
+            for line in r.iter_lines():
+                if line.startswith("data: "):
+                    events += 1
+                    if events == 3:
+                        break
+        assert events == 3
+    finally:
+        web.stop()
