@@ -360,6 +360,7 @@ class DaemonView:
                 "since": self.link_since,
                 "restarts": self.restarts,
                 "unauthenticated": self.unauthenticated,
+                "bad_stats": self.bad_stats,
             },
             "state": self.state or None,
             "state_since": self.state_since or None,
