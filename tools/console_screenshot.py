@@ -40,63 +40,45 @@ def main(argv: list[str] | None = None) -> int:
     tmp = Path(tempfile.mkdtemp(prefix="occ-console-shot-"))
     slave_cfg, master_cfg, ports = pair_configs()
     procs: list[subprocess.Popen[bytes]] = []
-    browser = None
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = chromium
+    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--hide-scrollbars"):
+        opts.add_argument(arg)
+    opts.add_argument(f"--window-size={args.size}")
+    # the browser first: its start-up takes both cores for a moment, which on this 2-core
+    # machine made running daemons miss ticks (a supervisor FAULT in the picture)
+    browser = webdriver.Chrome(service=Service(executable_path=driver), options=opts)
     try:
-        for name, cfg, port in (("slave", slave_cfg, ports["slave_op"]),
-                                ("master", master_cfg, ports["master_tcp"])):  # fmt: skip
+        for name, cfg, port in (
+            ("slave", slave_cfg, ports["slave_op"]),
+            ("master", master_cfg, ports["master_tcp"]),
+        ):
             path = write_yaml(tmp / f"{name}.yaml", cfg)
-            proc = subprocess.Popen(
-                [
-                    sys.executable,
-                    "-m",
-                    "occ.cli",
-                    str(path),
-                    "--start",
-                    "running",
-                    "--log-level",
-                    "WARNING",
-                ],  # fmt: skip
-                cwd=ROOT,
-            )
+            cmd = [sys.executable, "-m", "occ.cli", str(path), "--start", "running"]
+            proc = subprocess.Popen([*cmd, "--log-level", "WARNING"], cwd=ROOT)
             procs.append(proc)
             if not wait_port(port, 20.0, proc):
                 print(f"the {name} did not start", file=sys.stderr)
                 return 1
+        watch = [f"127.0.0.1:{ports['slave_op']}", f"127.0.0.1:{ports['master_tcp']}"]
         console = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "occ_console.cli",
-                "--port",
-                "0",
-                "--connect",
-                f"127.0.0.1:{ports['slave_op']}",
-                "--connect",
-                f"127.0.0.1:{ports['master_tcp']}",
-            ],  # fmt: skip
+            [sys.executable, "-m", "occ_console.cli", "--port", "0",
+             "--connect", watch[0], "--connect", watch[1]],  # fmt: skip
             cwd=ROOT,
             stdout=subprocess.PIPE,
         )
         procs.append(console)
         assert console.stdout is not None
         url = console.stdout.readline().decode().split()[1]
-        opts = webdriver.ChromeOptions()
-        opts.binary_location = chromium
-        for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage",
-                    "--hide-scrollbars", f"--window-size={args.size}"):  # fmt: skip
-            opts.add_argument(arg)
-        browser = webdriver.Chrome(service=Service(executable_path=driver), options=opts)
         browser.get(url)
         time.sleep(args.settle)
         args.out.parent.mkdir(parents=True, exist_ok=True)
         browser.save_screenshot(str(args.out))
         print(f"{args.out}: {args.out.stat().st_size} bytes")
     finally:
-        if browser is not None:
-            browser.quit()
+        browser.quit()
         stop_processes(procs)
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(main())
