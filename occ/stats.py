@@ -31,7 +31,7 @@ from collections.abc import Callable, Mapping
 from itertools import accumulate
 from typing import Any
 
-__all__ = ["SUMMARY_PERCENTILES", "Histogram", "LoopStats"]
+__all__ = ["SUMMARY_PERCENTILES", "Histogram", "LoopStats", "bucket_bounds"]
 
 _FINE_END = 100.0  # µs
 _FINE_STEP = 0.1
@@ -63,6 +63,15 @@ def _bucket_bounds(idx: int) -> tuple[float, float]:
             _MID_END * 10.0 ** ((j + 1) / _LOG_PER_DECADE),
         )
     return _LOG_END, math.inf
+
+
+def bucket_bounds(idx: int) -> tuple[float, float]:
+    """The [low, high) range in µs of bucket ``idx`` (the keys of :meth:`Histogram.buckets`);
+    the overflow bucket's high is infinity. For clients that re-bin a daemon's raw buckets
+    (the staff console's live histogram)."""
+    if not 0 <= idx < N_BUCKETS:
+        raise ValueError(f"bucket index must be 0..{N_BUCKETS - 1}, got {idx}")
+    return _bucket_bounds(idx)
 
 
 class Histogram:

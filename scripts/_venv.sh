@@ -9,8 +9,9 @@ if [ ! -x "$VENV/bin/python" ]; then
     "$PY" -m venv "$VENV"
 fi
 stamp="$VENV/.occ-installed${EXTRAS:+-$EXTRAS}"
-# the test install is a superset of the plain one: the demo after the tests installs nothing
-if [ -z "$EXTRAS" ] && [ -f "$VENV/.occ-installed-test" ] \
+# the test install is a superset of the plain one and of the console's: the demo or the
+# console after the tests installs nothing
+if { [ -z "$EXTRAS" ] || [ "$EXTRAS" = console ]; } && [ -f "$VENV/.occ-installed-test" ] \
         && ! [ "$ROOT/pyproject.toml" -nt "$VENV/.occ-installed-test" ]; then
     stamp="$VENV/.occ-installed-test"
 fi

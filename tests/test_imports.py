@@ -125,6 +125,30 @@ def test_the_core_never_imports_dds() -> None:
                     assert name.split(".")[0] not in banned, f"{where} imports {name}"
 
 
+def test_the_core_never_imports_the_console() -> None:
+    """The staff console (``occ_console``, the ``console`` extra: Starlette, uvicorn) is a
+    client of the daemons like any other: nothing in ``igtl``, ``occ`` or ``occ_ros2`` imports
+    it or its web stack."""
+    banned = ("occ_console", "starlette", "uvicorn")
+    for package in ("igtl", "occ", "occ_ros2"):
+        for path in (ROOT / package).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                if isinstance(node, ast.ImportFrom):
+                    names = [node.module or ""]
+                elif isinstance(node, ast.Import):
+                    names = [a.name for a in node.names]
+                else:
+                    continue
+                for name in names:
+                    where = path.relative_to(ROOT)
+                    assert name.split(".")[0] not in banned, f"{where} imports {name}"
+
+
+def test_the_console_has_no_import_cycle() -> None:
+    cycle = _cycle(_graph("occ_console"))
+    assert cycle is None, "import cycle: " + " -> ".join(cycle or [])
+
+
 def test_the_ros2_bridge_has_no_import_cycle() -> None:
     cycle = _cycle(_graph("occ_ros2"))
     assert cycle is None, "import cycle: " + " -> ".join(cycle or [])

@@ -1,5 +1,5 @@
-"""House rules as tests: ``mypy``, ``ruff check`` and ``ruff format --check`` are clean on igtl, occ
-and occ_ros2.
+"""House rules as tests: ``mypy``, ``ruff check`` and ``ruff format --check`` are clean on igtl, occ,
+occ_ros2 and occ_console.
 
 Both tools come with the ``test`` extra (``pip install -e .[test]``, which the README's test
 command runs); they read their settings from pyproject.toml, so they run from the repository root.
@@ -17,7 +17,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow  # subprocesses; mypy alone takes ~30 s on a cold cache
 
-PACKAGES = ("igtl", "occ", "occ_ros2")
+PACKAGES = ("igtl", "occ", "occ_ros2", "occ_console")
 
 
 def _run(tool: str, *args: str) -> None:

@@ -1,0 +1,161 @@
+"""What the console derives from a daemon's messages (pure: no sockets, no threads)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import pytest
+
+from occ.stats import Histogram, bucket_bounds
+from occ_console.link import parse_endpoint
+from occ_console.model import HIST_EDGES_US, DaemonView, parse_state_text, rebin
+
+
+def stats(ticks: int, received: int, sent: int = 0, **extra: Any) -> dict[str, Any]:
+    s: dict[str, Any] = {
+        "ticks": ticks,
+        "robot": "slave",
+        "state": "RUNNING",
+        "last_alert": "",
+        "interfaces": {"master": {"received": received, "sent": sent, "dropped": 0}},
+    }
+    s.update(extra)
+    return s
+
+
+def buckets_of(values: list[float]) -> dict[str, int]:
+    h = Histogram()
+    for v in values:
+        h.add(v)
+    return {str(k): v for k, v in h.buckets().items()}  # as JSON carries them
+
+
+def test_bucket_bounds_match_the_histogram() -> None:
+    for v in (0.0, 0.05, 99.95, 100.0, 999.5, 1000.0, 12345.0, 999_999.0, 5e6):
+        (idx,) = buckets_of([v]).keys()
+        lo, hi = bucket_bounds(int(idx))
+        assert lo <= v < hi or (v >= 1e6 and hi == math.inf), (v, lo, hi)
+    with pytest.raises(ValueError):
+        bucket_bounds(-1)
+    with pytest.raises(ValueError):
+        bucket_bounds(10**6)
+
+
+def test_rebin_puts_each_value_in_its_bin() -> None:
+    values = [5.0, 15.0, 15.5, 150.0, 999.0, 1500.0, 60_000.0, 2e6]
+    counts = rebin({int(k): v for k, v in buckets_of(values).items()})
+    assert sum(counts) == len(values)
+    for v in values:
+        b = next(i for i in range(len(counts)) if v < HIST_EDGES_US[i + 1])
+        assert counts[b] >= 1, (v, b, counts)
+    assert counts[1] == 2  # 15.0 and 15.5 in [10, 20)
+    assert counts[-1] == 1  # 2 s: the overflow bin
+
+
+def test_status_messages_set_state_cause_and_alerts() -> None:
+    v = DaemonView("0", "127.0.0.1", 18947)
+    v.on_status(1.0, "slave", 1, "READY", "slave is READY")  # the greeting
+    assert (v.name, v.state, v.reason, len(v.log)) == ("slave", "READY", "", 0)
+    v.on_status(2.0, "slave", 1, "RUNNING", "ENABLED -> RUNNING: operator Run")
+    assert (v.state, v.reason, v.state_since) == ("RUNNING", "operator Run", 2.0)
+    v.on_status(3.0, "slave", 0, "", "")  # a keep-alive: nothing to say
+    v.on_status(4.0, "slave", 14, "STREAM", "stream master: stream back after 8.0 ms")
+    assert v.state == "RUNNING" and v.last_alert == ""
+    v.on_status(5.0, "slave", 10, "ALERT", "packet loss on master: 3 consecutive")
+    assert v.last_alert == "packet loss on master: 3 consecutive"
+    v.on_status(5.0, "slave", 11, "STOPPED", "RUNNING -> STOPPED: packet loss on master")
+    assert (v.state, v.reason) == ("STOPPED", "packet loss on master")
+    kinds = [(e.kind, e.name) for e in v.log]
+    assert kinds == [("state", "RUNNING"), ("alert", "STREAM"), ("alert", "ALERT"),
+                     ("state", "STOPPED")]  # fmt: skip
+
+
+def test_get_state_reply_is_parsed() -> None:
+    assert parse_state_text("state=STOPPED; alert=loss: x=3; reason=operator Stop") == {
+        "state": "STOPPED", "alert": "loss: x=3", "reason": "operator Stop"}  # fmt: skip
+    v = DaemonView("0", "h", 1)
+    v.on_state_reply(1.0, "state=FAULT; alert=driver sim: boom; reason=driver sim: boom")
+    assert (v.state, v.last_alert, v.reason) == ("FAULT", "driver sim: boom", "driver sim: boom")
+    v.on_state_reply(2.0, "state=NONSENSE")
+    assert v.state == "FAULT"
+
+
+def test_rates_loss_events_and_restart() -> None:
+    v = DaemonView("0", "h", 1)
+    loss0 = {"holds": 2, "resumes": 2, "trips": 0, "lost_total": 0}
+    v.on_stats(10.0, 100.0, stats(1000, 500, loss=loss0))
+    assert v.rates == {}  # one answer: no rate yet
+    loss1 = {"holds": 5, "resumes": 4, "trips": 0, "lost_total": 3}
+    v.on_stats(10.5, 100.5, stats(1500, 750, sent=10, loss=loss1))
+    assert v.rates["master"]["received"] == pytest.approx(500.0)
+    assert v.rates["master"]["sent"] == pytest.approx(20.0)
+    (event,) = [e for e in v.log if e.kind == "loss"]
+    assert event.text.startswith("holds +3, resumes +2, lost_total +3 in 0.5 s")
+    snap = v.snapshot(11.0)
+    assert snap["streams"][0]["rx_per_s"] == 500.0 and snap["stats_age_s"] == 0.5
+    # the tick counter went down: a new daemon; no rate from the old one's counters
+    v.on_stats(11.0, 101.0, stats(200, 100, loss=loss0))
+    assert v.restarts == 1 and v.rates == {}
+    assert any("restarted" in e.text for e in v.log)
+    v.on_stats(11.5, 101.5, stats(700, 300, loss=loss0))
+    assert v.rates["master"]["received"] == pytest.approx(400.0)
+
+
+def test_live_histogram_is_the_window_not_the_total() -> None:
+    v = DaemonView("0", "h", 1, window_s=10.0)
+    early = [20.0] * 1000
+    v.on_stats(0.0, 0.0, stats(1000, 0, lateness_buckets=buckets_of(early)))
+    h = v.histogram()
+    assert h is not None and h["window_s"] is None and h["ticks"] == 1000  # since start
+    for k in range(1, 31):  # 30 s, two answers a second: 500 ticks each, late by 3 ms later on
+        late = 3000.0 if k > 20 else 20.0
+        total = early + [20.0] * 500 * min(k, 20) + [late] * 500 * max(0, k - 20)
+        v.on_stats(k, k, stats(1000 + 500 * k, 0, lateness_buckets=buckets_of(total)))
+    h = v.histogram()
+    assert h is not None
+    assert h["window_s"] == pytest.approx(10.0, abs=1.0)
+    assert h["ticks"] == pytest.approx(5000, abs=500)  # the window's ticks only
+    late_bin = next(i for i in range(len(h["counts"])) if 3000.0 < HIST_EDGES_US[i + 1])
+    assert h["counts"][late_bin] == h["ticks"]  # the window holds only the late ticks
+    assert h["summary"]["p50"] == pytest.approx(3000.0, rel=0.05)
+
+
+def test_bad_buckets_are_counted_not_fatal() -> None:
+    v = DaemonView("0", "h", 1)
+    v.on_stats(0.0, 0.0, stats(1, 0, lateness_buckets={"x": 1}))
+    v.on_stats(0.5, 0.5, stats(2, 0, lateness_buckets={"999999": 1}))
+    assert v.bad_stats == 2 and v.histogram() is None
+    assert v.snapshot()["name"] == "slave"
+
+
+def test_highlights_found_wherever_the_daemon_puts_them() -> None:
+    v = DaemonView("0", "h", 1)
+    v.on_stats(0.0, 0.0, stats(1, 0, owner="console@ward", controller={
+        "fixtures": 2, "fixture_force_n": [0.0, 1.5, 0.0], "tool_mm": [1, 2, 3],
+        "seq": 9}))  # fmt: skip
+    assert v.highlights() == {"owner": "console@ward", "fixtures": 2,
+                              "fixture_force_n": [0.0, 1.5, 0.0], "tool_mm": [1, 2, 3]}  # fmt: skip
+
+
+def test_disconnect_forgets_counters() -> None:
+    v = DaemonView("0", "h", 1)
+    v.on_connect(1.0)
+    v.on_stats(1.0, 1.0, stats(100, 10))
+    v.on_stats(1.5, 1.5, stats(600, 260))
+    assert v.rates
+    v.on_disconnect(2.0, "closed by peer")
+    assert not v.connected and v.rates == {} and v.link_error == "closed by peer"
+    v.on_connect(3.0)
+    v.on_stats(3.0, 3.0, stats(50, 5))  # the new daemon: lower counters, not a "restart"
+    assert v.restarts == 0 and v.connects == 2
+    assert [e.text for e in v.log if e.kind == "link"] == [
+        "connected to h:1", "connection lost: closed by peer", "connected to h:1"]  # fmt: skip
+
+
+def test_parse_endpoint() -> None:
+    assert parse_endpoint("127.0.0.1:18947") == ("127.0.0.1", 18947)
+    assert parse_endpoint("[::1]:18947") == ("::1", 18947)
+    for bad in ("18947", "host:", "host:x", ":1", "h:0", "h:70000"):
+        with pytest.raises(ValueError):
+            parse_endpoint(bad)
