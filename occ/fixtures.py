@@ -649,3 +649,22 @@ class FixtureSet:
         return any(
             (x - s[0]) ** 2 + (y - s[1]) ** 2 + (z - s[2]) ** 2 <= s[3] * s[3] for s in self._acc
         )
+
+
+def forbidden_hit(
+    primitives: Sequence[ForbiddenSphere | ForbiddenPlane], point_mm: Sequence[float]
+) -> str | None:
+    """The first forbidden sphere or plane containing ``point_mm`` (same frame and units as
+    the primitives), described for an error message, or None when the point is free. For
+    planners (a keyframe plan's collision check), not the per-tick force."""
+    x, y, z = point_mm[0], point_mm[1], point_mm[2]
+    for f in primitives:
+        if isinstance(f, ForbiddenSphere):
+            (cx, cy, cz), r = f.centre, f.radius
+            if (x - cx) ** 2 + (y - cy) ** 2 + (z - cz) ** 2 < r * r:
+                return f"forbidden sphere {f.name!r}" if f.name else "a forbidden sphere"
+        else:
+            (px, py, pz), (nx, ny, nz) = f.point, f.normal
+            if (x - px) * nx + (y - py) * ny + (z - pz) * nz < 0.0:
+                return f"forbidden plane {f.name!r}" if f.name else "a forbidden plane"
+    return None

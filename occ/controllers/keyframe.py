@@ -107,6 +107,7 @@ from ..config import (
     _resolve_path,
 )
 from ..errors import CommandError, ConfigError, KinematicsError
+from ..fixtures import ForbiddenPlane, ForbiddenSphere, forbidden_hit
 from ..joint import JointLimits
 from ..safety import RobotState
 from ..trajectory import Keyframe, Trajectory, plan
@@ -171,6 +172,23 @@ class WorkspaceBox(_Model):
     max_mm: Vec3 = Field(description="Upper corner (mm).")
 
 
+class ForbiddenSphereItem(_Model):
+    """A sphere the tip must not enter (mm, robot base frame)."""
+
+    centre_mm: Vec3 = Field(description="Centre (mm).")
+    radius_mm: PosFloat = Field(description="Radius (mm).")
+    name: str = Field("", description="Named in a refusal.")
+
+
+class ForbiddenPlaneItem(_Model):
+    """A half-space the tip must not enter: behind ``point_mm`` against ``normal`` (which
+    points to the allowed side; mm, robot base frame)."""
+
+    point_mm: Vec3 = Field(description="A point on the plane (mm).")
+    normal: Vec3 = Field(description="Normal toward the allowed side (any length > 0).")
+    name: str = Field("", description="Named in a refusal.")
+
+
 class KeyframeParams(_Model):
     """Parameters of ``keyframe``."""
 
@@ -226,6 +244,12 @@ class KeyframeParams(_Model):
     )
     workspace_mm: WorkspaceBox | None = Field(
         None, description="Box the tip must stay in (mm, base frame); null = joint limits only."
+    )
+    forbidden: list[ForbiddenSphereItem | ForbiddenPlaneItem] = Field(
+        default_factory=list,
+        description="Forbidden regions every plan is checked against, as the virtual "
+        "fixtures' forbidden spheres and planes (occ/fixtures.py; mm, base frame): "
+        "`{centre_mm, radius_mm, name}` or `{point_mm, normal, name}`.",
     )
     preview_points: Annotated[Int, Field(ge=2, le=10000)] = Field(
         256, description="Most points of the previewed path (the polyline is decimated)."
@@ -850,6 +874,21 @@ class KeyframeController(Controller):
                 self._install(_file_set(kf, p.space, f"file {path.name}", n, p.max_keyframes))
         except ValueError as err:  # occd --check reports these with their line already
             raise ConfigError(f"controller keyframe: {err}") from err
+        if p.forbidden:
+            try:
+                regions = [
+                    ForbiddenSphere(f.centre_mm, f.radius_mm, name=f.name)
+                    if isinstance(f, ForbiddenSphereItem)
+                    else ForbiddenPlane(f.point_mm, f.normal, name=f.name)
+                    for f in p.forbidden
+                ]
+            except ValueError as err:
+                raise ConfigError(f"controller keyframe: forbidden: {err}") from err
+
+            def configured_regions(point: tuple[float, float, float]) -> str | None:
+                return forbidden_hit(regions, (point[0] * 1e3, point[1] * 1e3, point[2] * 1e3))
+
+            self.add_forbidden_check(configured_regions)
 
     def outputs(self) -> dict[str, SourceFn]:
         return {"keyframe-path": self._source_path, "keyframe-points": self._source_points}

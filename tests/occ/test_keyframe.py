@@ -411,6 +411,33 @@ def test_refused_when_the_path_crosses_a_forbidden_region(session: Session) -> N
     assert "invalidated: fixtures changed" in s.kf.stats()["status"]
 
 
+def test_forbidden_fixtures_from_the_config_refuse_a_plan() -> None:
+    """The YAML's forbidden spheres and planes (the virtual fixtures' primitives, base frame,
+    mm) are the collision check of every plan."""
+    from occ.errors import ConfigError
+
+    s = Session(
+        {
+            "forbidden": [
+                {"centre_mm": [-6.0, 35.0, 218.0], "radius_mm": 5.0, "name": "vessel"},
+                {"point_mm": [0.0, 0.0, 150.0], "normal": [0.0, 0.0, 2.0], "name": "table"},
+            ]
+        }
+    )
+    try:
+        s.ok("KeyframeAdd", T=2.0, Pose="-6 30 226", Space="cartesian", Label="entry")
+        s.ok("KeyframeAdd", T=4.0, Pose="-12 46 201", Space="cartesian", Label="target")
+        error = s.refused("KeyframePlan")
+        assert "forbidden sphere 'vessel'" in error and "keyframe 0 'entry'" in error
+        s.ok("KeyframeClear")
+        s.ok("KeyframeAdd", T=2.0, Pose="-12 46 140", Space="cartesian", Label="low")
+        assert "forbidden plane 'table'" in s.refused("KeyframePlan")
+    finally:
+        s.close()
+    with pytest.raises((ConfigError, ValueError), match="normal is zero"):
+        Session({"forbidden": [{"point_mm": [0, 0, 0], "normal": [0, 0, 0]}]}).close()
+
+
 def test_a_first_keyframe_at_t0_must_be_where_the_robot_is(session: Session) -> None:
     s = session
     s.ok("KeyframeAdd", T=0.0, Pose="0.1 0.35 0.05")
