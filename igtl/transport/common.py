@@ -311,6 +311,7 @@ class Connection:
         "blocked_since",
         "closed",
         "unread_since",
+        "unread_sent",
         "window_max",
         "decoder",
         "fileno",
@@ -348,6 +349,7 @@ class Connection:
         self.partial_since = 0.0  # monotonic time an incomplete message began (0: none)
         self.window_max = 0  # the largest receive window the peer advertised
         self.unread_since = 0.0  # monotonic time the peer began to leave our data unread
+        self.unread_sent = 0  # peer.sent then: only a peer we kept sending to is judged
         self.closed = False
 
     def unread_bytes(self) -> tuple[int, int] | None:

@@ -579,7 +579,12 @@ class TCPServer(_StreamTransport):
                     conn.unread_since = 0.0
                 elif not conn.unread_since:
                     conn.unread_since = now
-                elif now - conn.unread_since > stall:
+                    conn.unread_sent = conn.peer.sent
+                elif now - conn.unread_since > stall and conn.peer.sent > conn.unread_sent + 1:
+                    # ... and we went on sending to it: a client that read a big answer and
+                    # then only listens advertises its reopened window with its next ACK, so
+                    # its shrunken window alone is stale, not proof (the staff console was
+                    # closed every 10-40 s after an 18 KB GetStats answer)
                     self._evicted += 1
                     self._close(
                         conn,

@@ -583,6 +583,35 @@ def test_a_client_that_never_reads_a_slow_stream_is_evicted_and_a_reader_is_not(
         deaf.close()
 
 
+def test_a_reader_that_got_one_big_answer_and_is_sent_nothing_more_keeps_its_slot(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """After a big answer read at once, a client that sends nothing may leave us a stale,
+    shrunken window (its next ACK would reopen it; measured here after three 40 kB answers:
+    7 kB "unread" though all was read): without further sends that is no proof it does not
+    read (the staff console was closed every 10-40 s after a GetStats answer). The kernel's
+    window is replaced by that stale reading, so the test does not depend on ACK timing."""
+    with TCPServer("127.0.0.1", 0, send_stall_timeout=0.2, unread_limit=4 * 1024) as server:
+        got: list[igtl.Message] = []
+        reader = TCPClient(*server.address, reconnect=False, on_message=lambda p, m: got.append(m))
+        reader.start()
+        assert server.wait_for_peers(1)
+        server.send(igtl.StringMessage("s" * 40000, device_name="Stats"))
+        assert _wait(lambda: len(got) == 1)
+        from igtl.transport.common import Connection
+
+        monkeypatch.setattr(Connection, "unread_bytes", lambda self: (7168, 0))
+        time.sleep(1.0)  # five stall periods with nothing more sent
+        assert server.stats()["evicted_not_reading"] == 0 and reader.connected
+        # the same reading while we go on sending: now it is evidence
+        deadline = time.monotonic() + 5.0
+        while server.stats()["evicted_not_reading"] == 0 and time.monotonic() < deadline:
+            server.send(igtl.StringMessage("p", device_name="Tip"))
+            time.sleep(0.02)
+        assert server.stats()["evicted_not_reading"] == 1
+        reader.stop()
+
+
 def test_incomplete_messages_over_all_clients_stay_within_the_budget() -> None:
     """Each client just under the body limit, together over the interface's budget: the one
     that goes over is closed and counted; the others are untouched."""
