@@ -69,11 +69,29 @@ def _as_config(config: DaemonConfig | str | os.PathLike[str] | Mapping[str, Any]
     return load_config(config)
 
 
+class _BytesEndpoint(InprocTransport):
+    """An in-process client that hands over what it receives as wire bytes, undecoded (what a
+    packet capture or a forwarding proxy sees): :class:`SimPeer` with ``on_bytes``."""
+
+    def __init__(self, channel: str, *, on_bytes: Callable[[bytes], None], **kw: Any) -> None:
+        super().__init__(channel, **kw)
+        self._on_bytes = on_bytes
+
+    def _receive(self, sender: InprocTransport, data: bytes) -> None:
+        link = self._by_remote.get(id(sender))
+        if link is None:  # we left between its send and this delivery
+            return
+        link.peer.received += 1
+        self._on_bytes(data if type(data) is bytes else bytes(data))
+
+
 class SimPeer:
     """A client on an in-process channel: sends like a TCP/UDP client, records what it gets.
 
     ``received`` holds every decoded message in arrival order, unless ``on_message`` is given
-    (called with each message instead: a long soak keeps what it needs, not hours of outputs).
+    (called with each message instead: a long soak keeps what it needs, not hours of outputs),
+    or ``on_bytes`` (called with each message's wire bytes, not decoded: a forwarding proxy's
+    view, as tools/stability.py uses it; ``received`` then stays empty).
     ``header_version`` is the version
     the peer announces (2: a modern Slicer/PLUS, answered with metadata and message IDs; 1: an
     old client, answered in version 1). ``address`` is how the robot sees it (stream ownership).
@@ -86,12 +104,19 @@ class SimPeer:
         address: tuple[str, int] | None = None,
         header_version: int = 2,
         on_message: Callable[[Message], None] | None = None,
+        on_bytes: Callable[[bytes], None] | None = None,
         name: str = "sim-peer",
     ) -> None:
+        if on_message is not None and on_bytes is not None:
+            raise ValueError("SimPeer: on_message or on_bytes, not both")
         self.received: list[Message] = []
         self._callback = on_message
         self._ids = itertools.count(100)
-        self.transport = InprocTransport(
+        kind: Any = InprocTransport
+        extra: dict[str, Any] = {}
+        if on_bytes is not None:
+            kind, extra = _BytesEndpoint, {"on_bytes": on_bytes}
+        self.transport = kind(
             channel,
             address=address,
             header_version=header_version,
@@ -99,6 +124,7 @@ class SimPeer:
             listen=False,  # two clients of one daemon do not hear each other
             on_message=self._on_message,
             name=name,
+            **extra,
         ).start()
 
     def _on_message(self, peer: Peer, msg: Message) -> None:
@@ -226,6 +252,7 @@ class SimRobot:
         address: tuple[str, int] | None = None,
         header_version: int = 2,
         on_message: Callable[[Message], None] | None = None,
+        on_bytes: Callable[[bytes], None] | None = None,
     ) -> SimPeer:
         """A new client of the robot's interface ``interface`` (closed with the robot)."""
         p = SimPeer(
@@ -233,6 +260,7 @@ class SimRobot:
             address=address,
             header_version=header_version,
             on_message=on_message,
+            on_bytes=on_bytes,
             name=f"sim-peer-{interface}",
         )
         self._peers.append(p)

@@ -22,10 +22,6 @@ import pytest
 
 from .tooling import load_tool
 
-
-
-
-
 stability = load_tool("stability")
 
 
@@ -65,14 +61,41 @@ def test_one_simulated_minute_is_stable(tmp_path: Path) -> None:
     assert "Stability test" in (out / "report.md").read_text()
 
 
+def _simulated_numbers(out: Path) -> dict:
+    n = json.loads((out / "report.json").read_text())["numbers"]
+    for k in ("wall_seconds", "cpu_seconds", "speed_x_realtime", "wall_hours_for_12h", "jobs"):
+        n.pop(k)
+    return n
+
+
 def test_same_seed_same_numbers(tmp_path: Path) -> None:
-    """Simulated time: two short runs with one seed agree on every simulated number."""
+    """Simulated time: two short runs with one seed agree on every simulated number, whether
+    the master runs in this process (--jobs 1) or in a child process (--jobs 2)."""
     nums = []
-    for i in range(2):
+    for i, jobs in enumerate(("1", "2")):
         out = tmp_path / f"r{i}"
-        assert stability.main(["--minutes", "0.1", "--seed", "3", "--out", str(out)]) == 0
-        n = json.loads((out / "report.json").read_text())["numbers"]
-        for k in ("wall_seconds", "speed_x_realtime", "wall_hours_for_12h"):
-            n.pop(k)
-        nums.append(n)
+        argv = ["--minutes", "0.1", "--seed", "3", "--jobs", jobs, "--out", str(out)]
+        assert stability.main(argv) == 0
+        nums.append(_simulated_numbers(out))
     assert nums[0] == nums[1]
+    # and the run did something: packets crossed, double losses were seen, errors measured
+    n = nums[0]
+    assert n["packets_delivered"] > 2000 and n["interarrival_histogram_ms"]["6"] > 0
+    e = n["tracking_error_mm"]["x"]
+    assert e["n"] > 4000 and 0.0 < e["mean"] <= e["p99"] <= e["max"]
+
+
+def test_tracking_error_percentile() -> None:
+    """The p99 comes from 0.1 um bins: exact to a bin, never above the max."""
+    ax = stability._Axis()
+    values = [i * 1e-3 for i in range(1, 1001)]  # 0.001 .. 1.0 mm
+    for v in values[:500]:
+        ax.add(-v)
+    import numpy as np
+
+    ax.add_many(np.array(values[500:]))
+    s = ax.summary()
+    assert s["n"] == 1000 and s["max"] == 1.0
+    assert abs(s["p99"] - 0.99) <= 1e-4
+    assert abs(s["mean"] - sum(values) / 1000) < 1e-5
+    assert stability._Axis().percentile(99) == 0.0
