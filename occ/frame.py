@@ -397,16 +397,27 @@ class Frame:
             lo_hi = self._lo_hi
             best: Sequence[float] | None = None
             best_d = math.inf
+            # plain loops, no generators: this runs every tick (a generator per candidate cost
+            # more than the arithmetic, tools/stability.py's profile)
             for q in analytic(position, seed):
-                if all(lo - tol <= v <= hi + tol for v, (lo, hi) in zip(q, lo_hi, strict=True)):
-                    d = sum((a - b) ** 2 for a, b in zip(q, seed, strict=False))
-                    if best is None or d < best_d:
-                        best, best_d = q, d
+                inside = True
+                d = 0.0
+                for i, (lo, hi) in enumerate(lo_hi):
+                    v = q[i]
+                    if not lo - tol <= v <= hi + tol:  # NaN too
+                        inside = False
+                        break
+                    if i < len(seed):
+                        e = v - seed[i]
+                        d += e * e
+                if inside and (best is None or d < best_d):
+                    best, best_d = q, d
             if best is not None:
-                return [
-                    lo if v < lo else hi if v > hi else v
-                    for v, (lo, hi) in zip(best, lo_hi, strict=True)
-                ], False
+                out = []
+                for i, (lo, hi) in enumerate(lo_hi):
+                    v = best[i]
+                    out.append(lo if v < lo else hi if v > hi else v)
+                return out, False
         res = self.solve_ik(position, seed, clamp=True)
         return res.q.tolist(), bool(res.clamped)
 
