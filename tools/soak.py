@@ -1029,11 +1029,21 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--tolerate-other-stops", action="store_true",
                    help="a stop not caused by packet loss (watchdog: an overloaded machine) is a "
                         "warning, not a failure")
+    import stability  # lazily: it imports this module for the report format
+
+    pp = sub.add_parser("paper", help="the OCC paper's stability protocol (simulated time, or "
+                        "--real: the daemons through the loss proxy)")
+    stability.add_arguments(pp)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    command = " ".join(["tools/soak.py", *(argv if argv is not None else sys.argv[1:])])
+    if args.mode == "paper":
+        import stability
+
+        return stability.execute(args, command, label="soak paper")
     out = args.out or Path(tempfile.mkdtemp(prefix=f"occ-soak-{args.mode}-"))
     out.mkdir(parents=True, exist_ok=True)
     if args.mode == "sim":

@@ -96,6 +96,8 @@ class Traces:
     ideal_mm: list[tuple[float, float, float]] = field(default_factory=list)
     #: (arrival time s, inter-arrival ms) of every packet handed to the slave in the window
     arrivals: list[tuple[float, int]] = field(default_factory=list)
+    #: the same over the warm-up at the start (the stream without loss)
+    arrivals_clean: list[tuple[float, int]] = field(default_factory=list)
     #: the slave's master_ref/slave_ref in mm (for the plot's axes labels)
     scale: float = 0.1
 
@@ -230,6 +232,7 @@ class _MasterEnd:
     gaps: Counter[int]
     closed_runs: Counter[int]
     arrivals: list[tuple[float, int]]
+    arrivals_clean: list[tuple[float, int]]
     state: str
     reason: str
 
@@ -268,6 +271,8 @@ class _MasterSide:
         self.pending = 0  # drops since the last delivered packet
         self.delivered = self.dropped = 0
         self.arrivals: list[tuple[float, int]] = []
+        self.arrivals_clean: list[tuple[float, int]] = []
+        self.warmup_ticks = warmup * PERIOD_MS
         self.out: list[tuple[int, bytes]] = []
         out_if = next(
             i.name for i in sim.config.interfaces if any(o.source == "teleop" for o in i.outputs)
@@ -297,6 +302,8 @@ class _MasterSide:
             self.gaps[gap] += 1
             if k - self.t0 >= self.win_arr_start:
                 self.arrivals.append(((k - self.t0) / 1000.0, gap))
+            elif k - self.t0 < self.warmup_ticks:
+                self.arrivals_clean.append(((k - self.t0) / 1000.0, gap))
         self.last_arrival = k
 
     def _take(self, k0: int, running: bytes, handle: Any) -> _Batch:
@@ -348,6 +355,7 @@ class _MasterSide:
             self.gaps,
             self.closed_runs,
             self.arrivals,
+            self.arrivals_clean,
             self.sim.robot.data.state.value,
             sm.last_reason or "",
         )
@@ -651,6 +659,7 @@ def run(args: argparse.Namespace) -> tuple[Report, Traces]:
         t = os.times()
         cpu_children = t.children_user + t.children_system
     traces.arrivals = m.arrivals
+    traces.arrivals_clean = m.arrivals_clean
     gaps, closed_runs, dropped, delivered = m.gaps, m.closed_runs, m.dropped, m.delivered
 
     double_gaps = gaps.get(DOUBLE_LOSS_GAP_MS, 0)
@@ -747,22 +756,31 @@ def plot(rep: Report, out: Path, traces: Traces) -> list[str]:
         print("stability: matplotlib missing, no plots (pip install matplotlib)", file=sys.stderr)
         return []
     files: list[str] = []
-    # Fig. 11: inter-arrival over a window, and the whole run's histogram
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4), gridspec_kw={"width_ratios": [3, 1]})
-    if traces.arrivals:
-        ts, gs = zip(*traces.arrivals, strict=True)
-        ax1.step(ts, gs, where="post", color="tab:blue", linewidth=0.8)
-        ax1.plot(ts, gs, ".", markersize=3, color="tab:blue")
-    ax1.set_xlabel("simulated time (s)")
-    ax1.set_ylabel("inter-arrival at the slave (ms)")
-    ax1.set_title("POSITION inter-arrival (2 ms; 6 ms at each double loss)")
+    # Fig. 11: inter-arrival over time without loss (the warm-up) and with it (the last
+    # seconds), and the whole run's histogram
+    fig, (ax0, ax1, ax2) = plt.subplots(
+        1, 3, figsize=(13, 3.6), gridspec_kw={"width_ratios": [2, 3, 1.3]}, sharey=False
+    )
+    for ax, data, title, color in (
+        (ax0, traces.arrivals_clean, "without loss (warm-up)", "tab:green"),
+        (ax1, traces.arrivals, "with 2 % double losses (end of the run)", "tab:blue"),
+    ):
+        if data:
+            ts, gs = zip(*data, strict=True)
+            ax.step(ts, gs, where="post", color=color, linewidth=0.8)
+            ax.plot(ts, gs, ".", markersize=3, color=color)
+        ax.set_ylim(0, 8)
+        ax.set_xlabel("simulated time (s)")
+        ax.set_title(title, fontsize=10)
+    ax0.set_ylabel("POSITION inter-arrival at the slave (ms)")
     hist = rep.numbers.get("interarrival_histogram_ms", {})
     ax2.bar([int(g) for g in hist], list(hist.values()), color="tab:blue")
     ax2.set_yscale("log")
     ax2.set_xlabel("inter-arrival (ms)")
     ax2.set_ylabel("packets (whole run)")
+    ax2.set_title("histogram", fontsize=10)
     fig.tight_layout()
-    fig.savefig(out / "interarrival.png", dpi=110)
+    fig.savefig(out / "interarrival.png", dpi=90)
     plt.close(fig)
     files.append("interarrival.png")
     if traces.t_s:
@@ -790,7 +808,7 @@ def plot(rep: Report, out: Path, traces: Traces) -> list[str]:
         )
         axes[-1].set_xlabel("simulated time (s)")
         fig.tight_layout()
-        fig.savefig(out / "trajectories.png", dpi=110)
+        fig.savefig(out / "trajectories.png", dpi=90)
         plt.close(fig)
         files.append("trajectories.png")
         fig, ax = plt.subplots(figsize=(11, 4))
@@ -807,7 +825,7 @@ def plot(rep: Report, out: Path, traces: Traces) -> list[str]:
         ax.set_title("tracking error over the window")
         ax.legend(fontsize=8)
         fig.tight_layout()
-        fig.savefig(out / "tracking_error.png", dpi=110)
+        fig.savefig(out / "tracking_error.png", dpi=90)
         plt.close(fig)
         files.append("tracking_error.png")
     return files
@@ -815,6 +833,12 @@ def plot(rep: Report, out: Path, traces: Traces) -> list[str]:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="stability", description=__doc__.split("\n\n")[0])
+    add_arguments(p)
+    return p
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The protocol's options (here and in ``tools/soak.py paper``)."""
     d = p.add_mutually_exclusive_group()
     d.add_argument("--hours", type=float, default=12.0, help="simulated hours (default 12)")
     d.add_argument("--minutes", type=float, default=None, help="simulated minutes instead")
@@ -871,11 +895,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="processes: 2 runs the master in a child process (about twice as fast on two free "
         "cores; the same numbers), 1 keeps both robots in this one (default 2)",
     )
-    return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    command = " ".join(["tools/stability.py", *(argv if argv is not None else sys.argv[1:])])
+    return execute(args, command)
+
+
+def execute(args: argparse.Namespace, command: str, label: str = "stability") -> int:
+    """Run the protocol with parsed ``args``, write the report folder, print the checks; the
+    exit code (0 pass, 1 fail, 2 set-up error). ``tools/soak.py paper`` calls this too."""
     out = args.out or Path(tempfile.mkdtemp(prefix="occ-stability-"))
     out.mkdir(parents=True, exist_ok=True)
     # the simulated robots log every state change: to a file, not the terminal
@@ -891,7 +921,7 @@ def main(argv: list[str] | None = None) -> int:
             print(err.code, file=sys.stderr)
             return 2
         raise
-    rep.command = " ".join(["tools/stability.py", *(argv if argv is not None else sys.argv[1:])])
+    rep.command = command
     write_report(
         rep,
         out,
@@ -903,8 +933,9 @@ def main(argv: list[str] | None = None) -> int:
     n = rep.numbers
     e = n["tracking_error_mm"]
     print(
-        f"stability: {n['simulated_seconds']:.0f} simulated s at {n['speed_x_realtime']}x real "
-        f"time; mean |e| X {e['x']['mean_abs_mm']} mm, Y {e['y']['mean_abs_mm']} mm; "
+        f"{label}: {n['simulated_seconds']:.0f} simulated s at {n['speed_x_realtime']}x real "
+        f"time ({n['wall_seconds']} s wall, {n['cpu_seconds']} s CPU); mean |e| X "
+        f"{e['x']['mean']} mm, Y {e['y']['mean']} mm (paper: 0.094, 0.097); "
         f"{'PASS' if rep.passed else 'FAIL'}; report in {out}"
     )
     return 0 if rep.passed else 1
