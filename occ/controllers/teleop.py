@@ -581,6 +581,10 @@ class MasterController(Controller):
         }
 
 
+def _mm(p: Sequence[float] | None) -> list[float] | None:
+    return None if p is None else [round(float(v) / MM, 6) for v in p]
+
+
 class SlaveController(Controller):
     """The slave side of the OCC pair: follows the master's POSITION stream, scaled and
     re-indexed so it never jumps; the base pose from the config or a tracker."""
@@ -792,6 +796,10 @@ class SlaveController(Controller):
             "phase_shifts": self.phase_shifts,
             "phase_error_us": self.phase_error_us,
             "phase_history_us": list(self.phase_history),
+            # the references of the last re-index (mm): the tracking error of a recording is
+            # measured against slave_ref + scale * (master - master_ref) (tools/soak.py paper)
+            "master_ref_mm": _mm(self.master_ref),
+            "slave_ref_mm": _mm(self.slave_ref),
         }
         if self.latency_us.count:
             lat = self.latency_us.summary()
