@@ -17,7 +17,9 @@ recording metadata, packs and writes, handing the interpreter lock back after ev
 the loop never waits for it. If the writer falls behind by more than ``max_backlog``
 records, new records are dropped and counted (``dropped``), never blocking the loop.
 
-``occ-record`` (console script) exports a recording to CSV and replays one into a peer.
+``occ-record`` (console script) exports a recording to CSV, replays one into a peer, and plots
+one (``occ-record plot``: trajectories, tracking error, states with causes, loop timing as a
+PNG; occ/recplot.py, matplotlib optional).
 """
 
 from __future__ import annotations
@@ -336,7 +338,7 @@ def replay(
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog="occ-record", description="Export or replay an occd recording."
+        prog="occ-record", description="Export, replay or plot an occd recording."
     )
     sub = p.add_subparsers(dest="cmd", required=True)
     e = sub.add_parser("export", help="write state.csv and messages.csv")
@@ -350,8 +352,37 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--direction", choices=["in", "out"], default="in")
     r.add_argument("--interface", default=None)
     r.add_argument("--type", action="append", dest="types", default=None)
+    g = sub.add_parser(
+        "plot",
+        help="a PNG: trajectories, tracking error, state timeline with causes, loop timing",
+    )
+    g.add_argument("file", type=Path)
+    g.add_argument("-o", "--out", type=Path, default=None, help="PNG path (default FILE.png)")
+    g.add_argument(
+        "--scale",
+        type=float,
+        default=0.1,
+        help="motion scale master -> slave for the tracking error (default 0.1, the shipped "
+        "slave's)",
+    )
+    g.add_argument(
+        "--master",
+        type=Path,
+        default=None,
+        help="the master's recording: its own POSITION stream as the reference (every packet)",
+    )
     args = p.parse_args(argv)
     try:
+        if args.cmd == "plot":
+            from .recplot import PlotError, plot_recording
+
+            try:
+                png = plot_recording(args.file, args.out, scale=args.scale, master=args.master)
+            except PlotError as err:
+                print(f"occ-record: {err}", file=sys.stderr)
+                return err.code
+            print(f"wrote {png}")
+            return 0
         if args.cmd == "export":
             s, m = export_csv(args.file, args.out_dir)
             print(f"wrote {s} and {m}")
