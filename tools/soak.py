@@ -1067,7 +1067,8 @@ def run_paper_real(args: argparse.Namespace, out: Path) -> tuple[Report, Any]:
         while proxy.counters.received == 0 and time.monotonic() - t0 < 10.0:
             time.sleep(0.01)
         t_start = time.monotonic()
-        progress = stability.Progress(duration, label="soak paper --real") if args.progress else None
+        progress = (stability.Progress(duration, label="soak paper --real", unit="s")
+                    if args.progress else None)
         end = t_start + duration
         while time.monotonic() < end:
             time.sleep(0.05)

@@ -59,6 +59,7 @@ import argparse
 import logging
 import math
 import os
+import signal
 import sys
 import tempfile
 import time
@@ -368,6 +369,8 @@ class _MasterSide:
 def _master_process(conn: Any, stop: Any, args: argparse.Namespace, total_ticks: int) -> None:
     """--jobs 2: the master side in a child process, its batches sent through ``conn``."""
     side = None
+    # Ctrl-C reaches the whole process group: the parent decides (it sets ``stop``)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         side = _MasterSide(args, total_ticks)
         conn.send(("batch", side.setup()))
@@ -463,13 +466,34 @@ class _MasterFeed:
             self.conn.close()
 
 
+def _on_sigterm_interrupt() -> Any:
+    """SIGTERM raises KeyboardInterrupt (like Ctrl-C) until the returned function is called."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+
+    def handler(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGTERM, handler)
+    return lambda: signal.signal(signal.SIGTERM, old)
+
+
 class Progress:
     """A progress bar on stderr: redrawn in place on a terminal (every 0.5 s), one line every
     ``every`` seconds otherwise (a log file, CI)."""
 
-    def __init__(self, total_s: float, label: str = "stability", every: float = 30.0) -> None:
+    def __init__(
+        self,
+        total_s: float,
+        label: str = "stability",
+        every: float = 30.0,
+        unit: str = "simulated s",
+    ) -> None:
         self.total = max(total_s, 1e-9)
         self.label = label
+        self.unit = unit
         self.tty = sys.stderr.isatty()
         self.every = 0.5 if self.tty else every
         self.t0 = time.perf_counter()
@@ -489,7 +513,7 @@ class Progress:
         bar = "#" * int(frac * width) + "-" * (width - int(frac * width))
         text = (
             f"{self.label}: [{bar}] {100 * frac:5.1f}% "
-            f"{done_s:,.0f}/{self.total:,.0f} simulated s, "
+            f"{done_s:,.0f}/{self.total:,.0f} {self.unit}, "
             f"{speed:.1f}x real time, {el / 60:.1f} min"
             + ("" if final else f", ~{eta / 60:.1f} min left")
         )
@@ -594,54 +618,62 @@ def run(args: argparse.Namespace) -> tuple[Report, Traces]:
             seg_idx.clear()
             del seg_tip[:]
 
-        for batch in feed.batches():
-            flags, k0 = batch.running, batch.k0
-            seg_batch = batch
-            qs = array("d", q_prev)  # the slave's measured joints, tick by tick, from the last
-            pi = 0
-            for j in range(batch.n):
-                km = k0 + j  # the master's tick and the slave's (lockstep)
-                pi = deliver(batch, km, pi)
-                slave.tick()
-                if not flags[j] or s_data.state is not running:
-                    k = km - t0
-                    why = slave.robot.state_machine.last_reason
-                    m_state = "RUNNING" if flags[j] else "not RUNNING"
-                    if not flags[j]:
-                        m_end = feed.end(early=False)
-                        m_state = m_end.state
-                        why = why or m_end.reason
-                    left_running.append(
-                        f"t={k / 1000.0:.3f} s: master {m_state}, "
-                        f"slave {s_data.state.value} ({why})"
-                    )
-                    stopped_early = True
+        # SIGINT (Ctrl-C) or SIGTERM end the run early with a report of what was simulated
+        interrupted = False
+        restore = _on_sigterm_interrupt()
+        try:
+            for batch in feed.batches():
+                flags, k0 = batch.running, batch.k0
+                seg_batch = batch
+                qs = array("d", q_prev)  # the slave's measured joints, tick by tick, from the last
+                pi = 0
+                for j in range(batch.n):
+                    km = k0 + j  # the master's tick and the slave's (lockstep)
+                    pi = deliver(batch, km, pi)
+                    slave.tick()
+                    if not flags[j] or s_data.state is not running:
+                        k = km - t0
+                        why = slave.robot.state_machine.last_reason
+                        m_state = "RUNNING" if flags[j] else "not RUNNING"
+                        if not flags[j]:
+                            m_end = feed.end(early=False)
+                            m_state = m_end.state
+                            why = why or m_end.reason
+                        left_running.append(
+                            f"t={k / 1000.0:.3f} s: master {m_state}, "
+                            f"slave {s_data.state.value} ({why})"
+                        )
+                        stopped_early = True
+                        break
+                    q = s_data.q
+                    qs.extend(q)
+                    mref = slave_ctl.master_ref
+                    if mref is None:
+                        continue  # not following yet (no packet of a RUNNING master so far)
+                    if reindex_tick is None:
+                        reindex_tick = km - t0
+                    if km - t0 - reindex_tick < settle_ticks:
+                        continue
+                    if seg_refs is None or mref is not seg_refs[0]:
+                        flush()  # a new re-index (a failed check): the refs change from here
+                        seg_refs = (mref, slave_ctl.slave_ref)
+                    seg_idx.append(j)
+                    seg_tip.extend(tip_s(q))
+                flush()
+                # joint velocities: measured positions, finite difference per 1 ms tick
+                qa = np.frombuffer(qs, dtype=np.float64).reshape(-1, len(vmax)).copy()
+                if len(qa) > 1:
+                    qd = np.abs(np.diff(qa, axis=0)).max(axis=0) * 1000.0
+                    qd_max = [max(a, float(b)) for a, b in zip(qd_max, qd, strict=True)]
+                q_prev = qa[-1].tolist()
+                if stopped_early:
                     break
-                q = s_data.q
-                qs.extend(q)
-                mref = slave_ctl.master_ref
-                if mref is None:
-                    continue  # not following yet (no packet of a RUNNING master so far)
-                if reindex_tick is None:
-                    reindex_tick = km - t0
-                if km - t0 - reindex_tick < settle_ticks:
-                    continue
-                if seg_refs is None or mref is not seg_refs[0]:
-                    flush()  # a new re-index (a failed check): the refs change from here
-                    seg_refs = (mref, slave_ctl.slave_ref)
-                seg_idx.append(j)
-                seg_tip.extend(tip_s(q))
-            flush()
-            # joint velocities: measured positions, finite difference per 1 ms tick
-            qa = np.frombuffer(qs, dtype=np.float64).reshape(-1, len(vmax)).copy()
-            if len(qa) > 1:
-                qd = np.abs(np.diff(qa, axis=0)).max(axis=0) * 1000.0
-                qd_max = [max(a, float(b)) for a, b in zip(qd_max, qd, strict=True)]
-            q_prev = qa[-1].tolist()
-            if stopped_early:
-                break
-            if progress is not None and progress.due():
-                progress.show((slave.k - t0) / 1000.0)
+                if progress is not None and progress.due():
+                    progress.show((slave.k - t0) / 1000.0)
+        except KeyboardInterrupt:
+            interrupted = stopped_early = True
+        finally:
+            restore()
         elapsed = time.perf_counter() - t_wall0
         cpu_s = time.process_time() - cpu0
         sim_s = (slave.k - t0) / 1000.0
@@ -699,9 +731,17 @@ def run(args: argparse.Namespace) -> tuple[Report, Traces]:
         "wall_seconds": round(elapsed, 1),
         "cpu_seconds": round(cpu_s + cpu_children, 2),
         "jobs": jobs,
+        "interrupted": interrupted,
         "speed_x_realtime": round(speed, 2) if speed else None,
         "wall_hours_for_12h": round(12.0 / speed, 2) if speed else None,
     }
+    if interrupted:
+        rep.check(
+            "ran the whole duration",
+            False,
+            f"interrupted after {sim_s:.0f} of {seconds:.0f} simulated s (SIGINT/SIGTERM); the "
+            "numbers are those of the part that ran",
+        )
     rep.check(
         "no stop, no fault",
         not left_running,
