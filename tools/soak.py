@@ -60,7 +60,6 @@ import logging
 import math
 import os
 import re
-import signal
 import socket
 import subprocess
 import sys
@@ -1087,14 +1086,11 @@ def run_paper_real(args: argparse.Namespace, out: Path) -> tuple[Report, Any]:
         for name, proc in procs.items():
             cpu[name] = _proc_cpu_s(proc.pid)
     finally:
-        # both at once: a slave left running without its master would latch a stop (and exit
-        # with the safety-stop code) before its own SIGINT
-        for proc in procs.values():
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-        for name in ("master", "slave"):
-            if name in procs:
-                codes[name] = stop_proc(procs[name])
+        # both at once (one SIGINT each: a second one ends a daemon without its statistics): a
+        # slave left running without its master would latch a stop before its own SIGINT
+        stop_processes(list(procs.values()))
+        for name, proc in procs.items():
+            codes[name] = stop_proc(proc)
         proxy.stop()
         if standin is not None:
             standin.stop()
