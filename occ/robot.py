@@ -27,6 +27,7 @@ Each tick (:meth:`Robot.tick`, on the loop thread):
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -70,11 +71,20 @@ POWERED = frozenset({RobotState.ENABLED, RobotState.RUNNING, RobotState.STOPPED}
 STATE_NUMBER = {st: float(STATE_CODES.get(st.value, -1)) for st in RobotState}
 
 
-def judge(monitor: LossMonitor, item: Inbound, now: float, to_wall: float) -> Verdict:
-    """The loss monitor's verdict on one stream sample (sequence number from a v2 header)."""
+def judge(
+    monitor: LossMonitor, item: Inbound, now: float, to_wall: float, since: float = -math.inf
+) -> Verdict:
+    """The loss monitor's verdict on one stream sample (sequence number from a v2 header).
+
+    ``since`` is the previous tick's start: a sample taken in this tick arrived after it, or
+    was stamped when read (a polled socket), so its earliest arrival for the timestamp
+    check is ``min(t_rx, since)``: a stall of our own loop never makes samples stale."""
     msg = item.msg
     seq = msg.message_id if msg.header_version == 2 else None
-    return monitor.on_packet(seq, msg.timestamp, now, item.t_rx + to_wall)
+    rx = item.t_rx
+    return monitor.on_packet(
+        seq, msg.timestamp, now, rx + to_wall, (rx if rx < since else since) + to_wall
+    )
 
 
 class Robot:
@@ -166,6 +176,7 @@ class Robot:
         # velocity limits (no jump, whatever the master did meanwhile)
         self._reentry_step = [0.5 * j.limits.velocity * self.period for j in self.joints]
         self._reentry = False
+        self._prev_tick = -math.inf  # the previous tick's start (earliest arrival of samples)
         self.reentries = 0
         self.ticks = 0
         #: the State Data Table (``state_table.seconds``), written once a tick
@@ -388,6 +399,8 @@ class Robot:
         ``POLL_LIMIT`` datagrams each."""
         for poll in self._pollers:
             poll(POLL_LIMIT)
+        since = self._prev_tick
+        self._prev_tick = now
         to_wall = 0.0
         walled = False
         for name, q, monitor, master in self._stream_queues:
@@ -401,7 +414,7 @@ class Robot:
                 if q.evicted:
                     # samples the loop could not take in time: seen, never called lost
                     for item in q.drain_overflow():
-                        judge(monitor, item, now, to_wall)
+                        judge(monitor, item, now, to_wall, since)
             recorder = self.recorder
             on_sample = self.controller.on_sample
             # a master not in control is judged and counted, and moves nothing
@@ -410,7 +423,7 @@ class Robot:
                 if recorder is not None:
                     recorder.record_message(item.msg, "in", name, now)
                 if monitor is not None:
-                    if judge(monitor, item, now, to_wall) is not Verdict.ACCEPT:
+                    if judge(monitor, item, now, to_wall, since) is not Verdict.ACCEPT:
                         continue
                 if follow:
                     on_sample(item, now)

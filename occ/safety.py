@@ -698,23 +698,34 @@ class LossMonitor:
         timestamp: float | None,
         now: float,
         rx_time: float | None = None,
+        rx_earliest: float | None = None,
     ) -> Verdict:
         """Judge one received sample (see the class docstring); ``rx_time`` is when it was
-        received (default ``now``), for the timestamp check."""
+        received (default ``now``), for the timestamp check. ``rx_earliest`` (default
+        ``rx_time``) is the earliest it can have arrived: a receiver that reads its socket once
+        a tick knows only that a datagram came after its previous read. A sample is refused as
+        stale only when it is too old even for that earliest arrival, so the receiver's own
+        stall (a 70 ms VM pause of the slave) is never taken for old samples; it is refused as
+        from the future only when it is too young even for ``rx_time``."""
         self.received += 1
-        verdict = self._judge(seq, timestamp, now, now if rx_time is None else rx_time)
+        rx = now if rx_time is None else rx_time
+        verdict = self._judge(seq, timestamp, now, rx, rx if rx_earliest is None else rx_earliest)
         if verdict is not Verdict.ACCEPT:
             name = _VERDICT_COUNTER[verdict]
             setattr(self, name, getattr(self, name) + 1)
         return verdict
 
-    def _judge(self, seq: int | None, ts: float | None, now: float, rx: float) -> Verdict:
+    def _judge(
+        self, seq: int | None, ts: float | None, now: float, rx: float, rx_lo: float
+    ) -> Verdict:
         # 1. the timestamp, against the peer's learned clock offset
         tol = self.timestamp_tolerance_s
         if tol is not None and ts is not None and ts > 0.0:
             age = rx - ts
             offset = self.offset_s
-            if offset is not None and abs(age - offset) > tol:
+            if offset is not None and (rx_lo - ts - offset > tol or offset - age > tol):
+                if age > offset:
+                    age = rx_lo - ts  # the age it had at the earliest: what is reported
                 self._refused_run += 1
                 self._refused_since_good += 1
                 if self._refused_run > self.max_consecutive and not self._tripped:

@@ -675,3 +675,29 @@ def test_supervisor_thread_sleeps_until_a_trip_could_be_due() -> None:
     assert len(wakes) in (2, 3)
     assert 1.020 <= t <= 1.0201 + 1e-9  # caught at the timeout, not an interval later
     assert th.sleep_after(t) == pytest.approx(0.010)  # tripped: nothing more to catch
+
+
+def test_a_stall_of_the_receivers_own_loop_never_makes_samples_stale() -> None:
+    """A slave that reads its socket once a tick and stalls 70 ms (a VM pause) reads the
+    samples sent meanwhile all at once: stamped when read they look 70 ms old, but each can
+    have arrived any time after the previous read. Judged with that earliest arrival they
+    are fresh; a sample that is old even for it is still stale. (Two 10-minute real runs of
+    the paper protocol on a loaded machine stopped on "stale" samples this way.)"""
+    mon = LossMonitor(timestamp_tolerance_s=0.050)
+    t = 0.0
+    for i in range(10):  # normal: a sample every other tick, read at once
+        t = 2 * i * MS
+        assert mon.on_packet(i, 1000.0 + t, t, t + 0.0002, t - MS) is Verdict.ACCEPT
+    prev = t
+    now = prev + 0.070  # the loop stalled: 35 samples wait in the socket
+    verdicts = [
+        mon.on_packet(10 + j, 1000.0 + prev + 2 * (j + 1) * MS, now, now, prev) for j in range(35)
+    ]
+    assert set(verdicts) == {Verdict.ACCEPT} and mon.trips == 0
+    # the same samples judged by their read time alone: the 25 oldest look stale
+    mon2 = LossMonitor(timestamp_tolerance_s=0.050)
+    mon2.on_packet(0, 1000.0 + prev, prev, prev)
+    late = [mon2.on_packet(1 + j, 1000.0 + prev + 2 * (j + 1) * MS, now, now) for j in range(35)]
+    assert late.count(Verdict.STALE) >= 3 and mon2.trips == 1
+    # old even for its earliest possible arrival: stale
+    assert mon.on_packet(46, 1000.0 + prev - 0.060, now, now, prev) is Verdict.STALE
