@@ -42,6 +42,23 @@ def with_body_size(data: bytes, size: int) -> bytes:
     return data[:42] + struct.pack(">Q", size) + data[50:]
 
 
+@pytest.mark.req("SR-CRC-1")
+@pytest.mark.parametrize("bit", range(64))
+def test_every_bit_of_the_crc_is_compared(bit):
+    # a CRC field wrong in any one of its 64 bits is refused (a check on the low 32 bits only
+    # passed every other test); the stream decoder refuses it too and stays framed
+    crc = struct.unpack_from(">Q", TRANSFORM, 50)[0] ^ (1 << bit)
+    bad = TRANSFORM[:50] + struct.pack(">Q", crc) + TRANSFORM[58:]
+    with pytest.raises(CRCError):
+        igtl.unpack(bad)
+    dec = igtl.StreamDecoder()
+    dec.feed(bad + TRANSFORM)
+    with pytest.raises(CRCError):
+        dec.next_message()
+    assert [m.pack() for m in dec] == [TRANSFORM]
+
+
+@pytest.mark.req("SR-CRC-1")
 def test_crc_error():
     bad = TRANSFORM[:-1] + bytes((TRANSFORM[-1] ^ 1,))
     with pytest.raises(CRCError) as e:
@@ -51,6 +68,7 @@ def test_crc_error():
     assert igtl.unpack(bad, crc_check=False).message_type == "TRANSFORM"
 
 
+@pytest.mark.req("SR-SIZE-1")
 def test_truncated_and_trailing():
     with pytest.raises(TruncatedMessageError) as e:
         igtl.unpack(TRANSFORM[:-3])
@@ -67,6 +85,7 @@ def test_unknown_header_version():
     assert not e.value.recoverable and e.value.offset == 0
 
 
+@pytest.mark.req("SR-SIZE-1")
 def test_body_size_2_63_costs_nothing():
     huge = with_body_size(TRANSFORM[:58], 2**63)
     tracemalloc.start()
@@ -89,6 +108,7 @@ def test_body_size_2_63_costs_nothing():
         dec.next_message()
 
 
+@pytest.mark.req("SR-SIZE-1")
 def test_configurable_limit():
     with pytest.raises(BodyTooLargeError):
         igtl.unpack(TRANSFORM, max_body_size=47)
@@ -308,6 +328,7 @@ def test_big_body_is_not_copied_when_complete():
 
 
 @pytest.mark.parametrize("version", [1, 2])
+@pytest.mark.req("SR-CRC-1")
 def test_big_body_crc_mismatch_is_recoverable(version):
     good = big_image(version=version).pack()
     bad = bytearray(good)
@@ -353,6 +374,7 @@ def test_big_body_bad_content_is_recoverable():
     assert list(dec) == [igtl.unpack(TRANSFORM)]
 
 
+@pytest.mark.req("SR-SIZE-1")
 def test_big_body_truncated_at_close():
     data = big_image().pack()
     dec = igtl.StreamDecoder()

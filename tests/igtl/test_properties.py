@@ -270,6 +270,7 @@ def decode_all(data: bytes, *, crc_check: bool) -> None:
 @settings(max_examples=300, deadline=None)
 @given(st.sampled_from(SEEDS), st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 7)),
                                         min_size=1, max_size=4), st.booleans())
+@pytest.mark.req("SR-CRC-1")
 def test_bit_flips(seed, flips, crc_check):
     data = bytearray(seed)
     for pos, bit in flips:
@@ -279,6 +280,7 @@ def test_bit_flips(seed, flips, crc_check):
 
 @settings(max_examples=150, deadline=None)
 @given(st.sampled_from(SEEDS), st.integers(0, 10**6), st.binary(max_size=80))
+@pytest.mark.req("SR-SIZE-1")
 def test_truncation_and_garbage(seed, cut, garbage):
     decode_all(seed[: cut % (len(seed) + 1)], crc_check=True)
     decode_all(garbage, crc_check=False)
@@ -465,6 +467,7 @@ def test_a_replaced_message_packs_canonically(msg, seed, device, message_id):
 @settings(max_examples=300, deadline=None)
 @given(st.sampled_from(ALL_SEEDS) | messages().map(lambda m: m.pack()), st.integers(0, 10**9),
        st.integers(0, 7))
+@pytest.mark.req("SR-CRC-1")
 def test_a_flipped_body_bit_is_a_crc_error(data, pos, bit):
     if len(data) == 58:
         return
@@ -482,6 +485,7 @@ def test_a_flipped_body_bit_is_a_crc_error(data, pos, bit):
 
 @settings(max_examples=300, deadline=None)
 @given(st.sampled_from(ALL_SEEDS) | messages().map(lambda m: m.pack()), st.integers(0, 10**9))
+@pytest.mark.req("SR-SIZE-1")
 def test_a_truncated_message_is_a_truncation_error(data, cut):
     short = data[: cut % len(data)]
     with pytest.raises(igtl.errors.TruncatedMessageError):
@@ -496,6 +500,7 @@ def test_a_truncated_message_is_a_truncation_error(data, cut):
 
 @settings(max_examples=300, deadline=None)
 @given(st.sampled_from(ALL_SEEDS) | messages().map(lambda m: m.pack()), st.integers(1, 10**6))
+@pytest.mark.req("SR-SIZE-1")
 def test_a_wrong_body_size_is_refused(data, size):
     n = len(data) - 58
     if size == n:

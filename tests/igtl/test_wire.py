@@ -29,6 +29,7 @@ BARRAY = bytes.fromhex(
 )
 
 
+@pytest.mark.req("SR-CRC-1")
 def test_crc_check_value():
     assert wire.crc64(b"123456789") == 0x6C40DF5F0B497347
     assert wire.crc64(b"") == 0
@@ -52,6 +53,7 @@ def _crc_bitwise(data: bytes, crc: int = 0) -> int:
 
 
 @pytest.mark.parametrize("path", sorted(VECTORS_DIR.glob("*.bin")), ids=lambda p: p.name)
+@pytest.mark.req("SR-CRC-1")
 def test_crc_backends_agree_on_reference_vectors(path):
     data = path.read_bytes()
     assert wire.crc64(data) == wire.crc64_crcmod(data) == _crc_bitwise(data)
@@ -155,6 +157,7 @@ def test_barray_header():
                             1343143) == BARRAY
 
 
+@pytest.mark.req("SR-SIZE-1")
 def test_barray_rejected_by_default_limit():
     with pytest.raises(BodyTooLargeError) as e:
         wire.unpack_header(BARRAY)

@@ -51,6 +51,7 @@ def _with_key(name: str, tmp_path: Path, edit: Callable[[str], str]) -> Robot:
     return robot
 
 
+@pytest.mark.req("SR-AUTH-1")
 def test_slave_takes_only_signed_samples(tmp_path: Path) -> None:
     slave = _with_key("slave.yaml", tmp_path, lambda t: t.replace("port: 18946", "port: 0"))
     sender = UDPEndpoint("127.0.0.1", 0).start()
@@ -94,6 +95,7 @@ def test_slave_takes_only_signed_samples(tmp_path: Path) -> None:
         slave.shutdown()
 
 
+@pytest.mark.req("SR-AUTH-1")
 def test_master_signs_its_stream(tmp_path: Path) -> None:
     got: list[igtl.Message] = []
     receiver = UDPEndpoint("127.0.0.1", 0, on_message=lambda p, m: got.append(m)).start()

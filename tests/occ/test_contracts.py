@@ -411,6 +411,7 @@ def _fault_latched(rig: DriverRig, drv: Driver, now: float) -> None:
     assert drv.state is DriverState.ACTIVE
 
 
+@pytest.mark.req("SR-LIM-1")
 def test_position_limit_clamps(rig: DriverRig) -> None:
     drv = active(rig)
     for k in range(1, 101):  # 0.5 s at 200 Hz: the device has settled where it was sent
@@ -422,6 +423,7 @@ def test_position_limit_clamps(rig: DriverRig) -> None:
     assert pos[1] == pytest.approx(0.0, abs=TOL)
 
 
+@pytest.mark.req("SR-LIM-1")
 def test_position_limit_faults(rig: DriverRig) -> None:
     drv = active(rig, on_limit="fault")
     write(rig, drv, [0.5, 0.01], 0.001)
@@ -430,6 +432,7 @@ def test_position_limit_faults(rig: DriverRig) -> None:
     _fault_latched(rig, drv, 0.003)
 
 
+@pytest.mark.req("SR-LIM-2")
 def test_velocity_limit_clamps(rig: DriverRig) -> None:
     drv = active(rig, velocity=1.0)  # 1 mm or 1 mrad per 1 ms tick
     for k in range(1, 11):
@@ -440,6 +443,7 @@ def test_velocity_limit_clamps(rig: DriverRig) -> None:
     assert all(p <= 0.010 + TOL for p in pos), pos  # the unclamped step never reached the device
 
 
+@pytest.mark.req("SR-LIM-2")
 def test_velocity_limit_faults(rig: DriverRig) -> None:
     drv = active(rig, velocity=1.0, on_limit="fault")
     write(rig, drv, [0.001, 0.001], 0.001)
@@ -450,6 +454,7 @@ def test_velocity_limit_faults(rig: DriverRig) -> None:
 
 @pytest.mark.parametrize("policy", ["clamp", "fault"])
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+@pytest.mark.req("SR-LIM-3")
 def test_non_finite_setpoint_faults(rig: DriverRig, policy: LimitPolicy, bad: float) -> None:
     drv = active(rig, on_limit=policy)
     write(rig, drv, [0.01, 0.01], 0.001)
@@ -462,6 +467,7 @@ def test_non_finite_setpoint_faults(rig: DriverRig, policy: LimitPolicy, bad: fl
 
 
 # -------------------------------------------------------------------------- driver safe state
+@pytest.mark.req("SR-SAFE-1")
 def test_safe_stop_from_another_thread(rig: DriverRig) -> None:
     drv = active(rig, params={"heartbeat_ms": 0})  # only the safe stop may stop it here
     for k in range(1, 51):  # moving when stopped: a ramp toward 0.5 / 0.1
@@ -482,6 +488,7 @@ def test_safe_stop_from_another_thread(rig: DriverRig) -> None:
     assert read(rig, drv, 2.000) == stopped
 
 
+@pytest.mark.req("SR-HB-1")
 def test_heartbeat_stops_the_drive_and_is_reported_once(rig: DriverRig) -> None:
     hb = 0.020
     drv = active(rig, params={"heartbeat_ms": hb * 1e3})
@@ -729,6 +736,7 @@ def test_controller_interfaces_in_a_robot(run: ControllerRun) -> None:
     assert set(states) <= {f"{j}/{k}" for j in joints for k in ("position", "velocity", "effort")}
 
 
+@pytest.mark.req("SR-OWN-2")
 def test_two_owners_of_a_command_interface_are_refused(plugin: str) -> None:
     rig = CONTROLLER_RIGS[plugin]
     cfg = config_with(rig, [(plugin, rig.params), (plugin, rig.params)])
@@ -743,6 +751,7 @@ def test_two_owners_of_a_command_interface_are_refused(plugin: str) -> None:
 
 
 # -------------------------------------------------------------------------- controller in the loop
+@pytest.mark.req("SR-HOLD-1")
 def test_setpoints_reach_the_drivers_only_while_running(run: ControllerRun) -> None:
     data = run.robot.data
     run.tick(200)  # READY: drivers off, nothing written
@@ -765,6 +774,7 @@ def test_setpoints_reach_the_drivers_only_while_running(run: ControllerRun) -> N
     run.tick(100, after=holds)
 
 
+@pytest.mark.req("SR-HOLD-1")
 def test_entering_running_never_jumps(run: ControllerRun) -> None:
     data = run.robot.data
     max_step = [j.limits.velocity * run.sim.period * (1 + 1e-9) for j in run.robot.joints]

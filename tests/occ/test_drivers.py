@@ -145,6 +145,7 @@ def test_context_manager_shuts_down_active_driver() -> None:
     assert d.state is DriverState.SHUTDOWN and d.calls[-2:] == ["deactivate", "shutdown"]
 
 
+@pytest.mark.req("SR-SAFE-1")
 def test_hook_error_latches_fault_until_reset() -> None:
     d = MirrorDriver("m", joints())
     d.configure()
@@ -194,6 +195,7 @@ def active(on_limit: str, velocity: float = 100.0) -> MirrorDriver:
     return d
 
 
+@pytest.mark.req("SR-LIM-1")
 def test_clamp_position_counts_events() -> None:
     d = active("clamp")
     d.write([1.5, -0.5], 0.001)
@@ -204,6 +206,7 @@ def test_clamp_position_counts_events() -> None:
     assert d.joints[0].command_position == 1.0
 
 
+@pytest.mark.req("SR-LIM-2")
 def test_clamp_velocity_against_previous_setpoint() -> None:
     d = active("clamp", velocity=1.0)  # 1 rad/s -> 1 mrad per 1 ms tick
     d.write([0.0, 0.0], 0.001)
@@ -214,6 +217,7 @@ def test_clamp_velocity_against_previous_setpoint() -> None:
     assert d.stats()["limit_events"] == 2
 
 
+@pytest.mark.req("SR-LIM-1")
 def test_fault_policy_raises_limit_error_and_latches() -> None:
     d = active("fault")
     with pytest.raises(LimitError, match=r"joint j1: position 1\.2 outside limits \[-1, 1\]"):
@@ -228,12 +232,42 @@ def test_fault_policy_raises_limit_error_and_latches() -> None:
         d.write([0.5, 0.0], 0.004)
 
 
+@pytest.mark.req("SR-LIM-1")
 def test_first_write_after_activation_is_checked_against_measurement() -> None:
     d = active("fault")
     with pytest.raises(LimitError, match="velocity"):
         d.write([0.9, 0.0], 0.0)  # 0.9 rad in one 1 ms period from the measured 0
 
 
+@pytest.mark.req("SR-LIM-1")
+def test_one_mrad_past_either_position_limit_is_over() -> None:
+    d = active("fault", velocity=1e6)
+    d.write([1.0, -1.0], 0.001)  # on the limits: allowed
+    assert d.last == [1.0, -1.0] and d.stats()["limit_events"] == 0
+    for bad in ([1.001, 0.0], [0.0, -1.001]):
+        d = active("fault", velocity=1e6)
+        with pytest.raises(LimitError, match="outside limits"):
+            d.write(bad, 0.001)
+        assert d.state is DriverState.FAULT
+    d = active("clamp", velocity=1e6)
+    d.write([1.001, -1.001], 0.001)
+    assert d.last == [1.0, -1.0] and d.stats()["limit_events"] == 2
+
+
+@pytest.mark.req("SR-LIM-2")
+def test_one_percent_past_the_velocity_limit_is_over() -> None:
+    d = active("fault", velocity=1.0)  # 1 mrad per 1 ms tick
+    d.write([0.00099, -0.00099], 0.001)  # just inside
+    assert d.stats()["limit_events"] == 0
+    with pytest.raises(LimitError, match="velocity"):
+        d.write([0.00099 + 0.00101, 0.0], 0.002)
+    d = active("clamp", velocity=1.0)
+    d.write([0.00101, -0.00101], 0.001)
+    assert d.last == [pytest.approx(0.001), pytest.approx(-0.001)]
+    assert d.stats()["limit_events"] == 2
+
+
+@pytest.mark.req("SR-LIM-3")
 def test_non_finite_setpoint_always_faults() -> None:
     d = active("clamp")
     with pytest.raises(LimitError):
@@ -401,6 +435,7 @@ def test_sim_per_joint_mapping_params() -> None:
 # -- device-side heartbeat and safe stop ----------------------------------------------------
 
 
+@pytest.mark.req("SR-HB-1")
 def test_sim_drive_stops_itself_without_heartbeat_and_reports_it() -> None:
     js = joints(1)
     d = SimDriver("s", js, {"encoder_resolution": 0.0, "heartbeat_ms": 20, "bandwidth_hz": 30.0})
@@ -434,6 +469,7 @@ def test_sim_drive_stops_itself_without_heartbeat_and_reports_it() -> None:
     assert d.state is DriverState.INACTIVE
 
 
+@pytest.mark.req("SR-HB-1")
 def test_sim_heartbeat_refreshed_every_tick_never_trips() -> None:
     d = SimDriver("s", joints(1), {"heartbeat_ms": 5})
     d.configure()
@@ -444,6 +480,7 @@ def test_sim_heartbeat_refreshed_every_tick_never_trips() -> None:
     assert d.state is DriverState.ACTIVE and d.stats()["heartbeat_trips"] == 0
 
 
+@pytest.mark.req("SR-HB-1")
 def test_heartbeat_param_is_every_drivers_and_checked() -> None:
     assert SimDriver("s", joints(1)).heartbeat_s == pytest.approx(0.050)
     assert SimDriver("s", joints(1), {"heartbeat_ms": None}).heartbeat_s == 0.0
@@ -451,6 +488,7 @@ def test_heartbeat_param_is_every_drivers_and_checked() -> None:
         SimDriver("s", joints(1), {"heartbeat_ms": -1})
 
 
+@pytest.mark.req("SR-SAFE-1")
 def test_safe_stop_from_another_thread_while_the_loop_writes() -> None:
     import threading
 
@@ -491,6 +529,7 @@ def test_safe_stop_from_another_thread_while_the_loop_writes() -> None:
     assert d.state is DriverState.INACTIVE
 
 
+@pytest.mark.req("SR-SAFE-1")
 def test_safe_stop_of_an_inactive_driver_changes_nothing() -> None:
     d = SimDriver("s", joints(1))
     d.configure()

@@ -16,6 +16,7 @@ def make_joint(**gains: float) -> Joint:
     )
 
 
+@pytest.mark.req("SR-LIM-1")
 def test_limits_validate_and_clamp() -> None:
     lim = JointLimits(-0.5, 0.5, 1.0, 2.0)
     assert lim.clamp(0.7) == 0.5 and lim.clamp(-0.7) == -0.5 and lim.clamp(0.1) == 0.1

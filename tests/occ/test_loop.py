@@ -327,6 +327,7 @@ def test_realtime_applied_and_restored(monkeypatch: pytest.MonkeyPatch) -> None:
 # -- watchdog integration ----------------------------------------------------------------------
 
 
+@pytest.mark.req("SR-WD-1")
 def test_watchdog_stops_loop_after_consecutive_overruns() -> None:
     clock = SimClock()
     alerts: list[str] = []
@@ -362,6 +363,7 @@ def test_watchdog_stops_loop_after_consecutive_overruns() -> None:
     assert wd.overruns == 3
 
 
+@pytest.mark.req("SR-WD-1")
 def test_watchdog_hard_gap_from_injected_stall() -> None:
     clock = SimClock()
     stops: list[str] = []
@@ -378,6 +380,7 @@ def test_watchdog_hard_gap_from_injected_stall() -> None:
     assert loop.missed_ticks == 12
 
 
+@pytest.mark.req("SR-WD-1")
 def test_watchdog_quiet_on_a_healthy_loop() -> None:
     clock = SimClock()
     events: list[object] = []

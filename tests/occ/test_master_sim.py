@@ -123,6 +123,7 @@ def test_igtl_input_drives_the_handle() -> None:
         m.close()
 
 
+@pytest.mark.req("SR-CLUTCH-1")
 def test_clutch_travels_with_the_stream(master: SimMaster) -> None:
     master.command("Enable")
     master.command("Run")
@@ -165,6 +166,7 @@ def test_forbidden_sphere_pushes_the_hand_out_and_reports_force(master: SimMaste
     assert math.dist(p, centre) > math.dist(intended, centre) + 2.0
 
 
+@pytest.mark.req("SR-HOLD-1")
 def test_stop_state_holds_and_reports() -> None:
     master = SimMaster(position_master())
     master.command("Enable")

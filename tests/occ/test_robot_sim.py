@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import yaml
 
 import igtl
 from occ.clock import SimClock
@@ -27,8 +28,9 @@ OPERATOR_ADDRESS = ("127.0.0.1", 40001)
 class SimSlave:
     """Drives a slave Robot tick by tick; the master sends one POSITION every 2 ms."""
 
-    def __init__(self, **teleop: object) -> None:
-        self.sim = SimRobot(ROOT / "configs" / "slave.yaml", params=teleop or None)
+    def __init__(self, config: object = None, **teleop: object) -> None:
+        config = ROOT / "configs" / "slave.yaml" if config is None else config
+        self.sim = SimRobot(config, params=teleop or None)  # type: ignore[arg-type]
         self.robot = self.sim.robot
         self.clock = self.sim.clock
         self.master = self.sim.peer("master", address=MASTER_ADDRESS)
@@ -43,13 +45,14 @@ class SimSlave:
         return self.sim.k
 
     stamp = False  # put the sim clock's wall time in the header, as the master does
+    clutch = False  # the master's clutch flag in the samples sent
 
     def position(self, *, run: bool = True, skew: float = 0.0) -> igtl.Message:
         ts = self.clock.wall_time() + skew if self.stamp else 0.0
         return igtl.PositionMessage(
             tuple(self.master_pos), (0.0, 0.0, 0.0, 1.0), 24, device_name="Master",
             header_version=2, message_id=self.seq, timestamp=ts,
-            metadata={"run": "1" if run else "0", "clutch": "0"},
+            metadata={"run": "1" if run else "0", "clutch": "1" if self.clutch else "0"},
         )
 
     def packet(self, *, run: bool = True, drop: bool = False) -> None:
@@ -95,6 +98,7 @@ def run(slave: SimSlave) -> None:
     assert slave.robot.state is RobotState.RUNNING
 
 
+@pytest.mark.req("SR-LOSS-1")
 def test_two_consecutive_losses_never_stop(slave: SimSlave) -> None:
     run(slave)
     slave.step_ms(20)
@@ -110,6 +114,7 @@ def driver_setpoint(slave: SimSlave) -> list[float]:
     return list(slave.robot.data.setpoint)
 
 
+@pytest.mark.req("SR-LOSS-1")
 def test_three_missing_numbers_hold_at_7ms_then_latch_with_an_alert(slave: SimSlave) -> None:
     run(slave)
     slave.step_ms(30)
@@ -141,6 +146,7 @@ def test_three_missing_numbers_hold_at_7ms_then_latch_with_an_alert(slave: SimSl
     assert slave.robot.state is RobotState.RUNNING
 
 
+@pytest.mark.req("SR-LOSS-2")
 def test_a_30ms_late_burst_holds_and_resumes_without_latch_or_jump(slave: SimSlave) -> None:
     run(slave)
     slave.step_ms(40)
@@ -173,6 +179,7 @@ def test_a_30ms_late_burst_holds_and_resumes_without_latch_or_jump(slave: SimSla
     assert warnings and "following again" in warnings[-1].status_message
 
 
+@pytest.mark.req("SR-LOSS-3")
 def test_a_dead_master_holds_at_7ms_and_latches_after_the_grace(slave: SimSlave) -> None:
     run(slave)
     slave.step_ms(30)
@@ -191,6 +198,7 @@ def test_a_dead_master_holds_at_7ms_and_latches_after_the_grace(slave: SimSlave)
     assert "no packet for 101.00 ms" in alerts[-1].status_message
 
 
+@pytest.mark.req("SR-LOSS-4")
 def test_a_30ms_stall_of_the_slaves_own_loop_is_not_network_loss(slave: SimSlave) -> None:
     run(slave)
     slave.step_ms(20)
@@ -208,6 +216,7 @@ def test_a_30ms_stall_of_the_slaves_own_loop_is_not_network_loss(slave: SimSlave
     assert slave.robot.interfaces.stats()["master"]["streams"]["POSITION"]["dropped"] == 5
 
 
+@pytest.mark.req("SR-LOSS-4")
 def test_no_loss_alert_while_not_running(slave: SimSlave) -> None:
     slave.step_ms(10)  # READY: packets, then the master dies
     for _ in range(200):
@@ -218,6 +227,7 @@ def test_no_loss_alert_while_not_running(slave: SimSlave) -> None:
     assert slave.robot.last_alert == ""
 
 
+@pytest.mark.req("SR-TIME-1")
 def test_stale_and_future_samples_are_refused_and_not_followed(slave: SimSlave) -> None:
     run(slave)
     slave.stamp = True
@@ -235,6 +245,7 @@ def test_stale_and_future_samples_are_refused_and_not_followed(slave: SimSlave) 
     assert slave.robot.state is RobotState.RUNNING
 
 
+@pytest.mark.req("SR-EXC-1")
 def test_a_controller_exception_faults_and_the_daemon_keeps_serving(slave: SimSlave) -> None:
     run(slave)
     slave.step_ms(10)
@@ -253,6 +264,7 @@ def test_a_controller_exception_faults_and_the_daemon_keeps_serving(slave: SimSl
     assert slave.robot.state is RobotState.READY
 
 
+@pytest.mark.req("SR-EXC-1")
 def test_a_failing_command_handler_faults_and_answers(slave: SimSlave) -> None:
     def broken(request: object, now: float) -> str:
         raise KeyError("oops")
@@ -263,6 +275,104 @@ def test_a_failing_command_handler_faults_and_answers(slave: SimSlave) -> None:
     assert slave.robot.state is RobotState.FAULT
 
 
+def _tip_mm(slave: SimSlave) -> list[float]:
+    return [float(v) * 1000.0 for v in slave.robot.data.tip[:3, 3]]
+
+
+@pytest.mark.req("SR-CLUTCH-1")
+def test_the_slave_stands_still_while_clutched_and_reindexes_on_release(slave: SimSlave) -> None:
+    run(slave)
+    slave.step_ms(50)
+    reindexes = slave.robot.controller.stats()["reindexes"]
+    tip0 = _tip_mm(slave)
+    slave.clutch = True  # the operator presses the clutch and moves the master 20 mm
+    for i in range(100):
+        slave.master_pos[0] = 20.0 * (i + 1) / 100
+        slave.step_ms(2)
+    slave.step_ms(100)
+    assert _tip_mm(slave) == pytest.approx(tip0, abs=1e-3)  # the slave did not follow
+    slave.clutch = False  # released where it is: re-index, no jump of 2 mm
+    slave.step_ms(100)
+    assert _tip_mm(slave) == pytest.approx(tip0, abs=1e-3)
+    assert slave.robot.controller.stats()["reindexes"] == reindexes + 1
+    for i in range(100):  # and from there it follows again, scaled 10:1
+        slave.master_pos[0] = 20.0 + 10.0 * (i + 1) / 100
+        slave.step_ms(2)
+    slave.step_ms(300)
+    moved = [a - b for a, b in zip(_tip_mm(slave), tip0, strict=True)]
+    assert moved[0] == pytest.approx(1.0, abs=0.05)
+    assert abs(moved[1]) < 0.05 and abs(moved[2]) < 0.05
+
+
+@pytest.mark.req("SR-TELE-1")
+def test_the_rotation_is_applied_as_given_not_transposed() -> None:
+    # rows are slave axes: slave y = master x, slave x = -master y (90 degrees about z)
+    slave = SimSlave(rotation=[[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    try:
+        run(slave)
+        slave.step_ms(50)
+        tip0 = _tip_mm(slave)
+        for i in range(200):
+            slave.master_pos[0] = 20.0 * (i + 1) / 200  # master +20 mm in x
+            slave.step_ms(2)
+        slave.step_ms(300)
+        moved = [a - b for a, b in zip(_tip_mm(slave), tip0, strict=True)]
+        assert moved[1] == pytest.approx(2.0, abs=0.05)  # transposed, it would be -2
+        assert abs(moved[0]) < 0.05 and abs(moved[2]) < 0.05
+    finally:
+        slave.close()
+
+
+def _slave_config(policy: str) -> dict:
+    data = yaml.safe_load((ROOT / "configs" / "slave.yaml").read_text())
+    data["safety"]["watchdog"]["policy"] = policy
+    return data
+
+
+@pytest.mark.req("SR-WD-2")
+@pytest.mark.parametrize(("policy", "state"), [("hold", RobotState.STOPPED),
+                                                ("fault", RobotState.FAULT)])
+def test_a_watchdog_stop_stops_the_robot(policy: str, state: RobotState) -> None:
+    slave = SimSlave(_slave_config(policy))
+    try:
+        run(slave)
+        slave.step_ms(20)
+        n = len(slave.replies)
+        slave.robot.watchdog.feed(0.060, 0.0)  # a 60 ms gap between ticks (hard limit 50 ms)
+        assert slave.robot.state is state
+        alerts = [m for m in slave.replies[n:] if m.message_type == "STATUS"]
+        assert any("watchdog: gap of 60.000 ms" in m.status_message for m in alerts), alerts
+        q = list(slave.robot.data.q)
+        slave.master_pos[0] = 20.0  # the master moves on: the robot does not
+        slave.step_ms(100)
+        assert list(slave.robot.data.q) == pytest.approx(q, abs=1e-6)
+        assert slave.robot.state is state  # latched
+    finally:
+        slave.close()
+
+
+@pytest.mark.req("SR-ROUTE-1")
+def test_errors_and_refusals_go_only_to_the_asker(slave: SimSlave) -> None:
+    bob = slave.sim.peer("operator")
+    viewer = slave.sim.peer("slicer")
+    for name in ("Fly", "Run"):  # unknown; not allowed in READY
+        cid = slave.operator.send_command(name)
+        slave.tick()
+        assert slave.operator.reply_to(cid).metadata["Status"] == "FAIL"
+    cid = viewer.send_command("Enable")  # a viewer may not command: refused, to it alone
+    slave.tick()
+    assert viewer.reply_to(cid).metadata["Status"] == "FAIL"
+    assert slave.robot.state is RobotState.READY
+    slave.operator.send(igtl.StringMessage("GetState", device_name="CMD_7", header_version=2))
+    slave.tick()
+    assert any(m.device_name == "ACK_7" for m in slave.operator.messages("STRING"))
+    for other in (bob, viewer):
+        assert [m for m in other.messages("STRING") if m.device_name.startswith("ACK_")] == []
+    assert bob.messages("RTS_COMMAND") == []
+    assert [m.metadata.get("Status") for m in viewer.messages("RTS_COMMAND")] == ["FAIL"]
+
+
+@pytest.mark.req("SR-TELE-1")
 def test_slave_follows_scaled_master_motion_without_jump(slave: SimSlave) -> None:
     run(slave)
     slave.step_ms(50)
@@ -277,6 +387,7 @@ def test_slave_follows_scaled_master_motion_without_jump(slave: SimSlave) -> Non
     assert abs(moved[1]) < 0.05 and abs(moved[2]) < 0.05
 
 
+@pytest.mark.req("SR-CLUTCH-1")
 def test_clutch_reindexes(slave: SimSlave) -> None:
     run(slave)
     slave.step_ms(50)
@@ -288,6 +399,7 @@ def test_clutch_reindexes(slave: SimSlave) -> None:
     assert slave.robot.controller.stats()["reindexes"] >= 2
 
 
+@pytest.mark.req("SR-HOLD-1")
 def test_unknown_and_refused_commands_change_nothing(slave: SimSlave) -> None:
     r = slave.command("Fly")
     assert r.metadata["Status"] == "FAIL" and "Fly" in r.metadata["Error"]
@@ -298,6 +410,7 @@ def test_unknown_and_refused_commands_change_nothing(slave: SimSlave) -> None:
     assert r.metadata["Status"] == "SUCCESS" and "READY" in r.metadata["Message"]
 
 
+@pytest.mark.req("SR-STATE-1")
 def test_estop_latches_until_reset(slave: SimSlave) -> None:
     run(slave)
     slave.step_ms(10)
@@ -364,6 +477,7 @@ def test_joints_must_match_the_kinematic_model() -> None:
         build_robot(bad, clock=SimClock())
 
 
+@pytest.mark.req("SR-OWN-1")
 def test_the_stream_belongs_to_its_first_sender_until_reset(slave: SimSlave) -> None:
     run(slave)
     slave.step_ms(20)
@@ -391,6 +505,7 @@ def test_the_stream_belongs_to_its_first_sender_until_reset(slave: SimSlave) -> 
     assert iface.stream_owner == ("127.0.0.1", 40999)
 
 
+@pytest.mark.req("SR-SUP-1")
 def test_a_hung_tick_trips_the_supervisor_drivers_stop_then_fault(slave: SimSlave) -> None:
     run(slave)
     sup = slave.robot.supervisor
@@ -417,6 +532,7 @@ def test_a_hung_tick_trips_the_supervisor_drivers_stop_then_fault(slave: SimSlav
     assert drv.state.value == "active"
 
 
+@pytest.mark.req("SR-HB-1")
 def test_sim_drives_stop_themselves_when_the_loop_stops_refreshing(slave: SimSlave) -> None:
     run(slave)
     slave.step_ms(20)
@@ -472,6 +588,7 @@ def test_xml_with_a_dtd_is_refused_before_parsing(slave: SimSlave) -> None:
     assert "too long" in slave.replies[-1].string
 
 
+@pytest.mark.req("SR-ROUTE-1")
 def test_command_replies_echo_the_request_message_id(slave: SimSlave) -> None:
     cls = igtl.REGISTRY["COMMAND"]
     msg = cls(command_id=5, command_name="GetState", command="", device_name="command",

@@ -123,6 +123,7 @@ def _status(reply: igtl.Message) -> str:
     return str(reply.metadata.get("Status", ""))
 
 
+@pytest.mark.req("SR-ROLE-1")
 def test_viewer_queries_but_cannot_command(robot: Robot) -> None:
     viewer = Client(robot, "viewer")
     try:
@@ -138,6 +139,7 @@ def test_viewer_queries_but_cannot_command(robot: Robot) -> None:
         viewer.close()
 
 
+@pytest.mark.req("SR-ROLE-1")
 def test_operator_commands(robot: Robot) -> None:
     op = Client(robot, "operator")
     try:
@@ -153,6 +155,7 @@ def _stats_of(client: Client) -> dict[str, object]:
     return json.loads(reply.metadata["Message"])
 
 
+@pytest.mark.req("SR-ROLE-1")
 def test_stats_hide_sequence_numbers_from_viewers(robot: Robot) -> None:
     viewer, op = Client(robot, "viewer"), Client(robot, "operator")
     try:
@@ -165,6 +168,7 @@ def test_stats_hide_sequence_numbers_from_viewers(robot: Robot) -> None:
         op.close()
 
 
+@pytest.mark.req("SR-ROLE-1")
 def test_operators_list_makes_other_hosts_viewers(robot: Robot) -> None:
     # 127.0.0.1 is allowed on "mixed" but is not in its operators list (10.9.9.9)
     c = Client(robot, "mixed")
@@ -176,6 +180,7 @@ def test_operators_list_makes_other_hosts_viewers(robot: Robot) -> None:
         c.close()
 
 
+@pytest.mark.req("SR-ROLE-1")
 def test_data_link_takes_no_requests(robot: Robot) -> None:
     c = Client(robot, "link")
     try:
@@ -186,6 +191,7 @@ def test_data_link_takes_no_requests(robot: Robot) -> None:
         c.close()
 
 
+@pytest.mark.req("SR-ROLE-1")
 def test_reserved_slot_refuses_non_operators() -> None:
     """max_clients 3 with 1 reserved: the third non-operator is turned away; an operator
     address would still get in (here the operator list names 127.0.0.2, also on loopback)."""

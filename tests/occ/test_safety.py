@@ -53,6 +53,7 @@ def _parse(table: str) -> dict[tuple[RobotState, str], RobotState | None]:
 EXPECTED = _parse(SPEC)
 
 
+@pytest.mark.req("SR-STATE-1")
 def test_spec_covers_every_pair_and_matches_docstring() -> None:
     assert set(EXPECTED) == {(s, e) for s in S for e in EVENTS}
     doc = StateMachine.__doc__ or ""
@@ -62,6 +63,7 @@ def test_spec_covers_every_pair_and_matches_docstring() -> None:
 
 
 @pytest.mark.parametrize(("state", "event"), sorted(EXPECTED, key=lambda p: (p[0].value, p[1])))
+@pytest.mark.req("SR-STATE-1")
 def test_every_state_event_pair(state: RobotState, event: str) -> None:
     clock = SimClock(start=5.0, wall_epoch=1000.0)
     sm = StateMachine(state, clock=clock)
@@ -97,6 +99,7 @@ def test_every_state_event_pair(state: RobotState, event: str) -> None:
     assert TRANSITIONS.get((state, event)) is expected
 
 
+@pytest.mark.req("SR-STATE-1")
 def test_typical_lifecycle_and_latching() -> None:
     sm = StateMachine()
     for event, state in [
@@ -127,6 +130,7 @@ def test_typical_lifecycle_and_latching() -> None:
         sm.request("reset")
 
 
+@pytest.mark.req("SR-STATE-1")
 def test_unknown_event_is_a_value_error() -> None:
     sm = StateMachine()
     with pytest.raises(ValueError, match="unknown event"):
@@ -134,6 +138,7 @@ def test_unknown_event_is_a_value_error() -> None:
     assert sm.state is S.INIT
 
 
+@pytest.mark.req("SR-STATE-1")
 def test_failing_listener_does_not_block_transition() -> None:
     sm = StateMachine(S.RUNNING)
     seen: list[RobotState] = []
@@ -166,6 +171,7 @@ def _wd(**kw: object) -> tuple[Watchdog, list[tuple[str, int]], list[tuple[str, 
     return wd, alerts, stops
 
 
+@pytest.mark.req("SR-WD-1")
 def test_watchdog_alerts_are_rate_limited_with_counts() -> None:
     wd, alerts, stops = _wd(stop_run=1000, alert_interval_s=0.1)
     for _ in range(50):  # 50 ms of overruns
@@ -179,6 +185,7 @@ def test_watchdog_alerts_are_rate_limited_with_counts() -> None:
     assert stops == []
 
 
+@pytest.mark.req("SR-WD-1")
 def test_watchdog_alert_run() -> None:
     wd, alerts, _ = _wd(alert_run=3, stop_run=10)
     wd.feed(B, 2 * B)
@@ -188,6 +195,7 @@ def test_watchdog_alert_run() -> None:
     assert len(alerts) == 1 and "3 consecutive" in alerts[0][0]
 
 
+@pytest.mark.req("SR-WD-1")
 def test_watchdog_stop_run_latches_until_reset() -> None:
     wd, _, stops = _wd(stop_run=5, policy="hold")
     for _ in range(4):
@@ -210,6 +218,7 @@ def test_watchdog_stop_run_latches_until_reset() -> None:
     assert wd.counters()["stops"] == 2
 
 
+@pytest.mark.req("SR-WD-1")
 def test_watchdog_period_overrun_and_hard_gap() -> None:
     wd, alerts, stops = _wd(stop_run=100)
     assert not wd.feed(None, 0.1 * B)  # first tick has no period
@@ -221,15 +230,26 @@ def test_watchdog_period_overrun_and_hard_gap() -> None:
     assert len(stops) == 1 and "gap of 11.000 ms" in stops[0][0]
 
 
-def test_watchdog_supervisor_check() -> None:
-    wd, _, stops = _wd()
-    assert not wd.check(100.0)  # never fed: nothing to judge
-    wd.feed(B, 0.1 * B, now=1.000)
-    assert not wd.check(1.009)
-    assert wd.check(1.0101)
-    assert len(stops) == 1 and stops[0][0].startswith("no tick for 10.100 ms")
+@pytest.mark.req("SR-WD-1")
+def test_watchdog_boundaries_are_exact() -> None:
+    # compute equal to the budget is on time, a hair over is an overrun (no 5 % slack)
+    wd, alerts, stops = _wd(stop_run=3, alert_run=1)
+    assert not wd.feed(None, B)
+    assert wd.feed(None, B * (1 + 1e-9))
+    assert "compute 1.000 ms > budget 1.000 ms" in alerts[0][0]
+    assert not wd.feed(2 * B, 0.0) and wd.consecutive == 0  # the period limit itself: on time
+    assert wd.feed(2 * B * (1 + 1e-9), 0.0)
+    assert wd.feed(None, 2 * B) and stops == []  # two in a row, stop_run 3: not yet
+    assert wd.feed(None, 2 * B) and len(stops) == 1  # the third stops, with the policy
+    assert stops[0] == ("3 consecutive overruns (budget 1.000 ms, last compute 2.000 ms)", "hold")
+    wd, _, stops = _wd(stop_run=100, hard_gap_s=0.010, period_limit_s=1.0)
+    wd.feed(0.010, 0.0)  # exactly the hard gap: no stop
+    assert stops == [] and not wd.stopped
+    wd.feed(0.010 * (1 + 1e-9), 0.0)
+    assert len(stops) == 1 and wd.stopped
 
 
+@pytest.mark.req("SR-WD-1")
 def test_watchdog_validation() -> None:
     with pytest.raises(ValueError):
         Watchdog(0.0)
@@ -280,6 +300,7 @@ def run_stream(
     return events
 
 
+@pytest.mark.req("SR-LOSS-2")
 def test_defaults_match_occ_spec() -> None:
     mon = LossMonitor()
     assert mon.period_s == 0.002 and mon.max_consecutive == 2
@@ -288,6 +309,7 @@ def test_defaults_match_occ_spec() -> None:
 
 
 @pytest.mark.parametrize("where", [1, 5, 17, 40])
+@pytest.mark.req("SR-LOSS-1")
 def test_two_consecutive_lost_never_holds(where: int) -> None:
     sent = [True] * 60
     sent[where] = sent[where + 1] = False
@@ -299,6 +321,7 @@ def test_two_consecutive_lost_never_holds(where: int) -> None:
 
 
 @pytest.mark.parametrize("last_good", [0, 3, 10, 25])
+@pytest.mark.req("SR-LOSS-1", "SR-LOSS-2")
 def test_three_missing_hold_at_exactly_7ms_then_latch_with_the_numbers(last_good: int) -> None:
     sent = [True] * 50
     for i in range(last_good + 1, last_good + 4):
@@ -318,6 +341,7 @@ def test_three_missing_hold_at_exactly_7ms_then_latch_with_the_numbers(last_good
     assert mon.lost_total == 3
 
 
+@pytest.mark.req("SR-LOSS-2")
 def test_late_burst_with_contiguous_numbers_holds_and_resumes() -> None:
     # packets 5..19 (30 ms worth) are all delayed and arrive together at 40 ms: late, not lost
     sent = [True] * 40
@@ -338,6 +362,7 @@ def test_late_burst_with_contiguous_numbers_holds_and_resumes() -> None:
     assert mon.lost_total == 0 and mon.holds == 1 and mon.resumes == 1
 
 
+@pytest.mark.req("SR-LOSS-3")
 def test_silence_past_the_grace_latches_as_a_dead_peer() -> None:
     mon = LossMonitor()
     mon.on_packet(1, None, 0.0)
@@ -351,6 +376,7 @@ def test_silence_past_the_grace_latches_as_a_dead_peer() -> None:
     assert mon.trip_event.cause.startswith("no packet for 101.00 ms (limit 100.0 ms)")
 
 
+@pytest.mark.req("SR-LOSS-3")
 def test_strict_mode_latches_at_the_deadline() -> None:
     mon = LossMonitor(strict=True)
     mon.on_packet(1, None, 0.0)
@@ -360,6 +386,7 @@ def test_strict_mode_latches_at_the_deadline() -> None:
     assert "strict" in ev.cause
 
 
+@pytest.mark.req("SR-LOSS-3")
 def test_latch_holds_until_reset() -> None:
     mon = LossMonitor(strict=True)
     mon.on_packet(1, None, 0.0)
@@ -377,6 +404,7 @@ def test_latch_holds_until_reset() -> None:
     assert mon.trips == 2
 
 
+@pytest.mark.req("SR-LOSS-1")
 def test_sequence_gap_latches_on_arrival_with_range() -> None:
     mon = LossMonitor()
     mon.on_packet(1040, None, 0.000)
@@ -396,6 +424,7 @@ def test_sequence_gap_latches_on_arrival_with_range() -> None:
         ([2**32 - 3, 2**32 - 2, 2**32 - 1], 0, None),
     ],
 )
+@pytest.mark.req("SR-LOSS-1")
 def test_sequence_wraparound(seqs: list[int], lost: int, trip_cause: str | None) -> None:
     mon = LossMonitor()
     event = None
@@ -406,6 +435,7 @@ def test_sequence_wraparound(seqs: list[int], lost: int, trip_cause: str | None)
     assert (event.cause if event else None) == trip_cause
 
 
+@pytest.mark.req("SR-SEQ-1")
 def test_verdicts_duplicates_and_reordering_are_not_losses_and_not_applied() -> None:
     mon = LossMonitor()
     verdicts = [mon.on_packet(s, None, 0.0) for s in (1, 2, 2, 4, 3, 3, 5, 1)]
@@ -418,6 +448,7 @@ def test_verdicts_duplicates_and_reordering_are_not_losses_and_not_applied() -> 
     assert mon.received == 8 and mon.accepted == 4
 
 
+@pytest.mark.req("SR-SEQ-1")
 def test_implausible_sequence_numbers_are_refused_without_a_stop() -> None:
     mon = LossMonitor()
     for i in range(10):
@@ -438,6 +469,7 @@ def test_implausible_sequence_numbers_are_refused_without_a_stop() -> None:
     assert mon.implausible_seq == 2 and mon.lost_total == 0 and mon.trips == 0
 
 
+@pytest.mark.req("SR-SEQ-1")
 def test_a_slow_stream_may_skip_as_many_numbers_as_time_allows() -> None:
     mon = LossMonitor(max_consecutive=100, grace_s=1.0)
     mon.on_packet(0, None, 0.0)
@@ -446,6 +478,7 @@ def test_a_slow_stream_may_skip_as_many_numbers_as_time_allows() -> None:
     assert mon.on_packet(30 + 60, None, 0.061) is Verdict.IMPLAUSIBLE
 
 
+@pytest.mark.req("SR-SEQ-1")
 def test_duplicates_do_not_refresh_the_deadline() -> None:
     mon = LossMonitor()
     mon.on_packet(7, None, 0.0)
@@ -459,6 +492,7 @@ def test_duplicates_do_not_refresh_the_deadline() -> None:
     assert mon.duplicates == 9
 
 
+@pytest.mark.req("SR-SEQ-1")
 def test_unsequenced_samples_cannot_refresh_a_sequenced_stream() -> None:
     mon = LossMonitor()
     mon.on_packet(1, 100.0, 0.0)
@@ -471,6 +505,7 @@ def test_unsequenced_samples_cannot_refresh_a_sequenced_stream() -> None:
     assert events == [(7, "hold")] and mon.unsequenced == 9
 
 
+@pytest.mark.req("SR-TIME-1")
 def test_timestamps_checked_against_the_learned_clock_offset() -> None:
     # the sender's clock is an hour and 3 ms ahead of ours: a constant offset is fine
     skew = 3600.003
@@ -487,6 +522,7 @@ def test_timestamps_checked_against_the_learned_clock_offset() -> None:
     assert mon.check(t) is None
 
 
+@pytest.mark.req("SR-TIME-1")
 def test_samples_queued_before_the_first_tick_do_not_teach_a_stale_offset() -> None:
     """The socket is bound before the loop starts: its first tick drains a backlog whose
     oldest sample is tens of ms old, all read at once. The fresh samples after it are not
@@ -514,6 +550,7 @@ def test_samples_queued_before_the_first_tick_do_not_teach_a_stale_offset() -> N
     assert -1000.0 + 0.0005 < mon.offset_s < -1000.0 + 0.0015
 
 
+@pytest.mark.req("SR-TIME-1")
 def test_a_run_of_refused_timestamps_counts_like_loss() -> None:
     mon = LossMonitor(timestamp_tolerance_s=0.050)
     mon.on_packet(0, 500.0, 0.0, 0.0)
@@ -529,6 +566,7 @@ def test_a_run_of_refused_timestamps_counts_like_loss() -> None:
     assert mon.trip_event.cause.startswith("3 consecutive samples refused for their timestamp")
 
 
+@pytest.mark.req("SR-TIME-1")
 def test_v1_timestamps() -> None:
     mon = LossMonitor()
     verdicts = [mon.on_packet(None, 100.0 + ts, 0.0) for ts in (0, 0.002, 0.004, 0.0101, 0.0101)]
@@ -542,6 +580,7 @@ def test_v1_timestamps() -> None:
     assert event.cause == "3 consecutive packets lost (timestamp gap 8.0 ms)"
 
 
+@pytest.mark.req("SR-TIME-1")
 def test_v1_stream_timing_matches_v2() -> None:
     sent = [True] * 20
     sent[5] = sent[6] = sent[7] = False
@@ -549,6 +588,7 @@ def test_v1_stream_timing_matches_v2() -> None:
     assert [(t, e.kind) for t, e in events] == [(2 * 4 + 7, "hold"), (2 * 4 + 8, "latch")]
 
 
+@pytest.mark.req("SR-LOSS-2")
 def test_stream_without_seq_or_timestamp_holds_and_resumes_by_deadline_only() -> None:
     mon = LossMonitor()
     sent = [True] * 20
@@ -561,6 +601,7 @@ def test_stream_without_seq_or_timestamp_holds_and_resumes_by_deadline_only() ->
     assert [(t, e.kind) for t, e in events] == [(2 * 9 + 7, "hold"), (2 * 13, "resume")]
 
 
+@pytest.mark.req("SR-LOSS-2")
 def test_custom_deadline_and_validation() -> None:
     mon = LossMonitor(period_s=0.001, max_consecutive=0, deadline_s=0.0015)
     mon.on_packet(1, None, 0.0)
@@ -575,6 +616,7 @@ def test_custom_deadline_and_validation() -> None:
         LossMonitor(grace_s=0.005)  # shorter than the deadline
 
 
+@pytest.mark.req("SR-SUP-1")
 def test_supervisor_trips_once_on_a_silent_loop_and_latches() -> None:
     reasons: list[str] = []
     sup = Supervisor(0.020, on_trip=reasons.append)
@@ -595,6 +637,7 @@ def test_supervisor_trips_once_on_a_silent_loop_and_latches() -> None:
     assert sup.check(99.0) is None
 
 
+@pytest.mark.req("SR-SUP-1")
 def test_supervisor_does_not_take_a_paused_machine_for_a_hung_loop() -> None:
     sup = Supervisor(0.020)
     sup.arm(0.0)
@@ -624,6 +667,7 @@ def _stream(gaps: list[int]) -> list[bool]:
 
 @settings(max_examples=200, deadline=None)
 @given(gaps=gaps_0_2, first_seq=st.integers(0, 2**32 - 1), data=st.data())
+@pytest.mark.req("SR-LOSS-1")
 def test_property_no_run_of_three_never_holds(gaps: list[int], first_seq: int, data) -> None:
     sent = _stream(gaps)
     delays = data.draw(st.lists(st.integers(0, 1), min_size=len(sent), max_size=len(sent)))
@@ -637,6 +681,7 @@ def test_property_no_run_of_three_never_holds(gaps: list[int], first_seq: int, d
 
 @settings(max_examples=200, deadline=None)
 @given(gaps=gaps_0_2, run=st.integers(3, 10), first_seq=st.integers(0, 2**32 - 1))
+@pytest.mark.req("SR-LOSS-1")
 def test_property_first_run_of_three_holds_at_7ms_and_latches_on_proof(
     gaps: list[int], run: int, first_seq: int
 ) -> None:
@@ -651,6 +696,7 @@ def test_property_first_run_of_three_holds_at_7ms_and_latches_on_proof(
     assert events[1][1].run == run
 
 
+@pytest.mark.req("SR-SUP-1")
 def test_supervisor_thread_sleeps_until_a_trip_could_be_due() -> None:
     """The supervisor thread wakes when a hung loop's silence would first exceed the timeout,
     at most timeout/2: two wake-ups per timeout for a healthy loop, never a sleep

@@ -9,6 +9,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import pytest
+
 import igtl
 from occ.clock import SimClock
 from occ.loader import load_config
@@ -48,6 +50,7 @@ def _until(robot: Robot, cond: Callable[[], bool], timeout: float = 5.0) -> bool
     return cond()
 
 
+@pytest.mark.req("SR-OWN-1")
 def test_first_sender_owns_the_socket_until_reset() -> None:
     slave = _slave()
     master = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

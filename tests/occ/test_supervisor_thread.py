@@ -30,6 +30,7 @@ def wait_for(cond, timeout: float = 10.0) -> bool:
     return False
 
 
+@pytest.mark.req("SR-SUP-1")
 def test_a_hung_tick_is_caught_by_the_supervisor_thread() -> None:
     cfg = load_config(ROOT / "configs" / "slave.yaml")
     ifaces = tuple(i.model_copy(update={"port": 0}) for i in cfg.interfaces)

@@ -17,6 +17,7 @@ ROOT = Path(__file__).resolve().parents[2]
 SLAVE = ROOT / "configs" / "slave.yaml"
 
 
+@pytest.mark.req("SR-ROUTE-1")
 def test_each_operator_gets_its_own_replies_and_every_operator_the_broadcasts() -> None:
     with SimRobot(SLAVE) as sim:
         alice, bob = sim.peer("operator"), sim.peer("operator")
