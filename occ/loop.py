@@ -355,7 +355,7 @@ class ControlLoop:
             end = now()
             record(deadline, start, end)
             if feed is not None:
-                feed(None if prev_start is None else start - prev_start, end - start, start)
+                feed(None if prev_start is None else start - prev_start, end - start)
             prev_start = start
             k += 1
             n += 1

@@ -71,8 +71,8 @@ class Watchdog:
       or ``"fault"``) tells the robot whether to stop-and-hold or to fault.
 
     Loop time for the rate limit is the sum of the periods fed, so no clock is needed.
-    :meth:`check` lets a supervisor thread detect a loop that stopped ticking altogether; it
-    needs ``now`` passed to :meth:`feed`. Callbacks run on the thread that fed or checked.
+    A loop that stops ticking altogether feeds nothing: that is the :class:`Supervisor`'s
+    to see, from its own thread. Callbacks run on the thread that fed.
     """
 
     def __init__(
@@ -118,12 +118,9 @@ class Watchdog:
         self._elapsed = 0.0
         self._next_alert_at = -math.inf
         self._suppressed = 0
-        self._last_feed_now: float | None = None
 
-    def feed(self, period_s: float | None, compute_s: float, now: float | None = None) -> bool:
+    def feed(self, period_s: float | None, compute_s: float) -> bool:
         """Account for one tick; return True when it was an overrun."""
-        if now is not None:
-            self._last_feed_now = now
         over = compute_s > self.budget_s
         if period_s is not None:
             self._elapsed += period_s
@@ -148,19 +145,6 @@ class Watchdog:
                 f"(budget {self.budget_s * 1e3:.3f} ms, last compute {compute_s * 1e3:.3f} ms)"
             )
         return True
-
-    def check(self, now: float) -> bool:
-        """From a supervisor: stop if no tick was fed for more than ``hard_gap_s``.
-
-        Returns True when the watchdog is (now) stopped.
-        """
-        last = self._last_feed_now
-        if last is not None and not self.stopped and now - last > self.hard_gap_s:
-            self._trigger_stop(
-                f"no tick for {(now - last) * 1e3:.3f} ms "
-                f"(hard limit {self.hard_gap_s * 1e3:.3f} ms)"
-            )
-        return self.stopped
 
     def _alert(self, period_s: float | None, compute_s: float) -> None:
         if self._elapsed < self._next_alert_at:
