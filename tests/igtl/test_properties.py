@@ -1,5 +1,5 @@
 """Property tests (hypothesis): round trips for every registered type in both header versions,
-stream splitting, and corruption that must only ever raise IGTLError.
+stream splitting, and corruption that must only ever raise DecodeError, and be refused.
 
 Seed messages include the OpenIGTLink project's reference vectors (github.com/openigtlink/
 OpenIGTLink test data; BSD-style licence, Copyright Insight Software Consortium).
@@ -246,25 +246,35 @@ SEEDS = [p.read_bytes() for p in sorted(VECTORS_DIR.glob("*.bin")) if p.name != 
          and p.stat().st_size < 1500]
 
 
-def decode_all(data: bytes, *, crc_check: bool) -> None:
-    """Decode ``data`` both ways; only IGTLError may escape."""
+def decode_all(data: bytes, *, crc_check: bool) -> list[bytes]:
+    """Decode ``data`` both ways; only DecodeError may escape (anything else fails the test).
+    Returns the wire bytes of every message the stream decoder accepted."""
     try:
         igtl.unpack(data, crc_check=crc_check)
-    except igtl.IGTLError:
+    except igtl.DecodeError:
         pass
     dec = igtl.StreamDecoder(crc_check=crc_check, max_body_size=1 << 20)
     dec.feed(data)
+    accepted = []
     while True:
         try:
-            if dec.next_message() is None:
-                break
+            msg = dec.next_message()
         except igtl.DecodeError as err:
             if not err.recoverable:
                 break
+            continue
+        if msg is None:
+            break
+        accepted.append(msg.pack())
     try:
         dec.close()
-    except igtl.IGTLError:
+    except igtl.DecodeError:
         pass
+    return accepted
+
+
+def _body_and_crc(data: bytes) -> tuple[bytes, bytes]:
+    return data[50:58], data[58:]
 
 
 @settings(max_examples=300, deadline=None)
@@ -275,16 +285,31 @@ def test_bit_flips(seed, flips, crc_check):
     data = bytearray(seed)
     for pos, bit in flips:
         data[pos % len(data)] ^= 1 << bit
-    decode_all(bytes(data), crc_check=crc_check)
+    data = bytes(data)
+    accepted = decode_all(data, crc_check=crc_check)
+    if not crc_check:
+        return
+    if _body_and_crc(data) != _body_and_crc(seed):
+        # a changed body or CRC field (the flips did not cancel) is refused, never decoded
+        with pytest.raises(igtl.DecodeError):
+            igtl.unpack(data)
+        assert all(_body_and_crc(m) == _body_and_crc(seed) for m in accepted)
 
 
 @settings(max_examples=150, deadline=None)
 @given(st.sampled_from(SEEDS), st.integers(0, 10**6), st.binary(max_size=80))
 @pytest.mark.req("SR-SIZE-1")
 def test_truncation_and_garbage(seed, cut, garbage):
-    decode_all(seed[: cut % (len(seed) + 1)], crc_check=True)
+    short = seed[: cut % len(seed)]  # always shorter than the message
+    with pytest.raises(igtl.errors.TruncatedMessageError):
+        igtl.unpack(short)
+    assert decode_all(short, crc_check=True) == []
     decode_all(garbage, crc_check=False)
-    decode_all(seed + garbage, crc_check=True)
+    if garbage:  # bytes after a complete message are refused by unpack ...
+        with pytest.raises(igtl.DecodeError):
+            igtl.unpack(seed + garbage)
+    # ... and the stream decoder gives the message first, whatever follows
+    assert decode_all(seed + garbage, crc_check=True)[:1] == [seed]
     decode_all(garbage + seed, crc_check=True)
 
 
