@@ -267,6 +267,42 @@ def test_one_percent_past_the_velocity_limit_is_over() -> None:
     assert d.stats()["limit_events"] == 2
 
 
+@pytest.mark.req("SR-LIM-2")
+def test_a_step_of_exactly_the_velocity_limit_is_allowed() -> None:
+    # binary-exact numbers: 0.5 rad in 0.5 s at 1 rad/s is on the limit, either way
+    d = active("fault", velocity=1.0)
+    d.write([0.0, 0.0], 0.5)
+    d.write([0.5, -0.5], 1.0)
+    assert d.last == [0.5, -0.5] and d.stats()["limit_events"] == 0
+
+
+@pytest.mark.req("SR-LIM-2")
+def test_no_time_means_no_motion() -> None:
+    # a second write at the same instant, or one whose clock went back, may not move
+    d = active("fault", velocity=1.0)
+    d.write([0.0, 0.0], 0.002)
+    with pytest.raises(LimitError, match="velocity inf exceeds limit 1"):
+        d.write([0.001, 0.0], 0.002)
+    d = active("clamp", velocity=1.0)
+    d.write([0.0, 0.0], 0.002)
+    d.write([0.5, -0.5], 0.001)  # the clock went back 1 ms
+    d.write([0.5, -0.5], 0.001)
+    assert d.last == [0.0, 0.0] and d.stats()["limit_events"] == 4
+
+
+@pytest.mark.req("SR-SAFE-1")
+def test_a_write_hook_that_raises_faults_with_its_error() -> None:
+    d = active("fault")
+
+    def broken(values: Sequence[float], now: float) -> None:
+        raise OSError("bus off")
+
+    d._write = broken  # type: ignore[method-assign]
+    with pytest.raises(DriverError, match=r"driver 'm': write failed: OSError\('bus off'\)"):
+        d.write([0.0, 0.0], 0.001)
+    assert d.state is DriverState.FAULT and d.stats()["errors"] == 1
+
+
 @pytest.mark.req("SR-LIM-3")
 def test_non_finite_setpoint_always_faults() -> None:
     d = active("clamp")
