@@ -55,6 +55,7 @@ def test_paper_law_outside_is_a_spring_toward_the_centre(direction) -> None:
                 assert fc == pytest.approx(expect * dc / norm(d), abs=1e-9)
 
 
+@pytest.mark.req("SR-FIX-1")
 def test_clamp_to_the_configured_maximum() -> None:
     fs = FixtureSet([AccessibleSphere((0.0, 0.0, 0.0), 10.0, stiffness=1.0)])  # default 10 N
     fs.force((0.0, 0.0, 0.0), DT)
