@@ -249,6 +249,42 @@ def test_watchdog_boundaries_are_exact() -> None:
     assert len(stops) == 1 and wd.stopped
 
 
+@pytest.mark.req("SR-SUP-1")
+def test_supervisor_boundaries_latch_and_counts_are_exact() -> None:
+    trips: list[str] = []
+    sup = Supervisor(0.020, on_trip=trips.append)
+    sup.beat(0.0)
+    assert sup.check(1.0) is None and trips == []  # not armed: never trips
+    sup.arm(0.0)
+    assert sup.check(0.020) is None  # silent exactly the timeout: not yet; not starved either
+    assert sup.starved == 0
+    assert sup.check(0.020 + 1e-9) is not None and len(trips) == 1
+    assert sup.check(0.030) is None and sup.check(0.035) is None  # latched: trips once
+    assert sup.trips == 1 and sup.tripped
+    sup.reset()
+    sup.arm(1.0)
+    assert sup.check(1.010) is None
+    assert sup.check(1.021) is not None and sup.trips == 2  # counted, not set
+    sup.reset()
+    sup.arm(2.0)
+    sup.check(2.050)  # the supervisor itself was frozen: twice
+    sup.check(2.100)
+    assert sup.starved == 2 and sup.trips == 2
+
+
+@pytest.mark.req("SR-WD-1")
+def test_watchdog_counters_and_stop_reason() -> None:
+    wd, _, stops = _wd(stop_run=3)
+    for _ in range(4):
+        wd.feed(None, 2 * B)
+    wd.feed(None, 0.0)
+    wd.feed(None, 2 * B)
+    assert wd.max_consecutive == 4 and wd.consecutive == 1 and wd.overruns == 5
+    assert wd.stop_reason == stops[0][0] and wd.stop_reason.startswith("3 consecutive overruns")
+    assert wd.counters() == {"overruns": 5, "max_consecutive": 4, "alerts": 1, "stops": 1,
+                             "stopped": True}
+
+
 @pytest.mark.req("SR-WD-1")
 def test_watchdog_validation() -> None:
     with pytest.raises(ValueError):
