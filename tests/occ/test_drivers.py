@@ -277,6 +277,17 @@ def test_a_step_of_exactly_the_velocity_limit_is_allowed() -> None:
 
 
 @pytest.mark.req("SR-LIM-2")
+def test_the_first_write_is_checked_only_against_a_measured_position() -> None:
+    # nothing read yet: no reference to take a velocity from (the position limits still hold)
+    d = MirrorDriver("m", joints(velocity=1.0), on_limit="fault")
+    d.configure()
+    d.activate()
+    d.write([0.9, -0.9], 0.001)
+    assert d.last == [0.9, -0.9] and d.stats()["limit_events"] == 0
+    d.shutdown()
+
+
+@pytest.mark.req("SR-LIM-2")
 def test_no_time_means_no_motion() -> None:
     # a second write at the same instant, or one whose clock went back, may not move
     d = active("fault", velocity=1.0)
