@@ -759,6 +759,7 @@ def test_supervisor_thread_sleeps_until_a_trip_could_be_due() -> None:
     assert th.sleep_after(t) == pytest.approx(0.010)  # tripped: nothing more to catch
 
 
+@pytest.mark.req("SR-TIME-1", "SR-LOSS-4")
 def test_a_stall_of_the_receivers_own_loop_never_makes_samples_stale() -> None:
     """A slave that reads its socket once a tick and stalls 70 ms (a VM pause) reads the
     samples sent meanwhile all at once: stamped when read they look 70 ms old, but each can
