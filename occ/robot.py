@@ -472,16 +472,7 @@ class Robot:
                 eff[i] = 0.0
         else:
             eff[:] = target
-        for drv, idx, buf in self._slices:
-            if drv.state is not DriverState.ACTIVE:
-                continue
-            for n, i in enumerate(idx):
-                buf[n] = eff[i]
-            try:
-                drv.write_effort(buf, now)
-            except OCCError as err:
-                self.alarms.fault(f"driver {drv.name}: {err}")
-                return
+        self._write(eff, now, effort=True)
 
     def _check_command_kinds(self) -> None:
         """Efforts go to effort drivers only, and a driver needing a PID for positions has
@@ -523,14 +514,15 @@ class Robot:
             drv.read(now)
         self.data.measured_from(self.joints)
 
-    def _write(self, setpoints: Sequence[float], now: float) -> None:
+    def _write(self, values: Sequence[float], now: float, effort: bool = False) -> None:
+        """Each active driver its slice of ``values``: position setpoints, or efforts."""
         for drv, idx, buf in self._slices:
             if drv.state is not DriverState.ACTIVE:
                 continue
             for n, i in enumerate(idx):
-                buf[n] = setpoints[i]
+                buf[n] = values[i]
             try:
-                drv.write(buf, now)
+                (drv.write_effort if effort else drv.write)(buf, now)
             except OCCError as err:
                 self.alarms.fault(f"driver {drv.name}: {err}")
                 return
