@@ -19,6 +19,7 @@ import logging
 import os
 import queue
 import threading
+import time
 from collections.abc import Callable
 
 from .clock import Clock
@@ -64,6 +65,7 @@ class SupervisorThread:
         return self
 
     def stop(self) -> None:
+        """Ends the thread at its next wake-up (within ``timeout / 2``)."""
         self._stop.set()
         if self._thread.is_alive() and self._thread is not threading.current_thread():
             self._thread.join(1.0)
@@ -83,7 +85,12 @@ class SupervisorThread:
         check = sup.check
         sleep_after = self.sleep_after
         sleep = self.max_sleep_s
-        while not self._stop.wait(sleep):
+        pause = time.sleep  # one system call; Event.wait(timeout) is several Python frames
+        stopping = self._stop.is_set
+        while True:
+            pause(sleep)
+            if stopping():
+                break
             self.wakeups += 1
             t = now()
             try:

@@ -730,6 +730,10 @@ def run(args: argparse.Namespace) -> tuple[Report, Traces]:
         },
         "wall_seconds": round(elapsed, 1),
         "cpu_seconds": round(cpu_s + cpu_children, 2),
+        # per process with --jobs 2 (the slower side sets the wall time): the slave's process
+        # (slave ticks, its decoding, the tracking error) and the master's child process
+        "cpu_seconds_slave_process": round(cpu_s, 2),
+        "cpu_seconds_master_process": round(cpu_children, 2) if jobs > 1 else None,
         "jobs": jobs,
         "interrupted": interrupted,
         "speed_x_realtime": round(speed, 2) if speed else None,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import struct
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -227,3 +227,23 @@ def _fast_position_v2(
 
 FAST_V2["TRANSFORM"] = _fast_transform_v2
 FAST_V2["POSITION"] = _fast_position_v2
+
+
+def position_v2(
+    device_name: str,
+    timestamp: float,
+    message_id: int,
+    metadata: Mapping[str, str],
+    position: tuple[float, float, float],
+    quaternion: tuple[float, float, float, float],
+    layout: int = POSITION_ALL,
+) -> PositionMessage:
+    """A header-version-2 POSITION for a stream's sender (a master's 500 Hz output): the same
+    message as ``PositionMessage(position, quaternion, layout, device_name=..., timestamp=...,
+    header_version=2, message_id=..., metadata=...)`` without the frozen dataclass ``__init__``
+    (a keyword parse and a ``object.__setattr__`` per field: most of the cost of a small
+    message). The caller gives plain floats, a ``uint32`` ID and str metadata; the metadata dict
+    is kept, not copied (messages are immutable: do not change it afterwards)."""
+    return _build_position_v2(
+        device_name, timestamp, None, None, metadata, None, message_id, position, quaternion, layout
+    )

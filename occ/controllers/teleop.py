@@ -50,13 +50,14 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-import igtl
 from igtl.messages.base import Message
+from igtl.messages.transform import POSITION_QUATERNION3, position_v2
 
 from ..collab import SlaveSelector
 from ..config import Bool, DaemonConfig, DeviceName, Float, Int, Name, PosFloat, Str, Vec3
@@ -76,6 +77,14 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 MM = 1e-3
+#: the master stream's metadata, one read-only mapping per (run, clutch): shared by every
+#: message sent (500 Hz), so none is built per packet
+_RUN_CLUTCH = {
+    (run, clutch): MappingProxyType({"run": "1" if run else "0", "clutch": "1" if clutch else "0"})
+    for run in (False, True)
+    for clutch in (False, True)
+}
+_NO_ROTATION = (0.0, 0.0, 0.0, 1.0)
 
 
 class _Params(BaseModel):
@@ -529,18 +538,16 @@ class MasterController(Controller):
         key = id(out)
         self.seq = seq = (self._seqs.get(key, self._first_seq) + 1) & 0xFFFFFFFF
         self._seqs[key] = seq
-        layout = 24 if out.type == "POSITION" else 28
         if out.type != "POSITION":
             raise OCCError("teleop output must be of type POSITION")
-        return igtl.PositionMessage(
+        return position_v2(
+            out.device,
+            ctx.clock.wall_time(),
+            seq,
+            _RUN_CLUTCH[bool(running), bool(self.clutch)],
             (x / MM, y / MM, z / MM),
-            (0.0, 0.0, 0.0, 1.0),
-            layout,
-            device_name=out.device,
-            timestamp=ctx.clock.wall_time(),
-            header_version=2,
-            message_id=seq,
-            metadata={"run": "1" if running else "0", "clutch": "1" if self.clutch else "0"},
+            _NO_ROTATION,
+            POSITION_QUATERNION3,
         )
 
     def _source_fixtures(self, out: Output, now: float) -> Message | None:
