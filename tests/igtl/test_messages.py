@@ -143,3 +143,30 @@ def test_caller_errors_are_value_errors():
         igtl.NDArrayMessage(array=np.zeros(3, np.float16))
     with pytest.raises(ValueError):
         igtl.TransformMessage(elements=(1.0,)).pack()
+
+
+def test_position_v2_builds_the_same_message_as_the_constructor():
+    """The stream sender's fast constructor: equal to the dataclass one, same bytes, and the
+    bytes decode back to it (both POSITION layouts)."""
+    from types import MappingProxyType
+
+    from igtl.codec import unpack
+    from igtl.messages.transform import PositionMessage, position_v2
+
+    meta = MappingProxyType({"run": "1", "clutch": "0"})
+    for layout, quat in ((24, (0.0, 0.0, 0.0, 1.0)), (28, (0.5, 0.5, 0.5, 0.5))):
+        fast = position_v2("Master", 1.7e9 + 0.25, 77, meta, (1.5, -2.0, 3.25), quat, layout)
+        slow = PositionMessage(
+            (1.5, -2.0, 3.25),
+            quat,
+            layout,
+            device_name="Master",
+            timestamp=1.7e9 + 0.25,
+            header_version=2,
+            message_id=77,
+            metadata={"run": "1", "clutch": "0"},
+        )
+        assert fast == slow
+        assert fast.pack() == slow.pack()
+        back = unpack(fast.pack())
+        assert back == slow and back.message_id == 77 and back.metadata["run"] == "1"
