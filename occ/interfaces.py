@@ -241,10 +241,15 @@ class Interface:
         cfg = self.cfg
         allowed = [str(p) for p in cfg.allowed_peers] if cfg.allowed_peers else None
         common: dict[str, Any] = {"on_message": self._on_message, "on_error": self._on_error}
+        # A server answers each client in the header version it has spoken (version 1 until it
+        # sends a v2 message). A keyed interface signs in v2 metadata, which version 1 would
+        # drop: it sends everything in v2 (a client that cannot read v2 cannot check tags).
+        negotiate = self.auth_key is None
         if cfg.transport == "tcp-server":
             return TCPServer(
                 cfg.host,
                 cfg.port,
+                negotiate=negotiate,
                 allowed_peers=allowed,
                 max_clients=cfg.max_clients,
                 send_queue=cfg.send_queue,
@@ -302,7 +307,7 @@ class Interface:
                 cfg.channel,
                 address=(cfg.host, cfg.port) if cfg.port else None,
                 header_version=cfg.header_version,
-                negotiate=True,
+                negotiate=negotiate,
                 allowed_peers=allowed,
                 max_peers=cfg.max_clients,
                 max_body_size=cfg.max_body_kib * 1024,

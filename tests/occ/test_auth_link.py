@@ -133,3 +133,38 @@ def test_unusable_key_is_a_config_error(tmp_path: Path) -> None:
     )
     with pytest.raises(ConfigError, match=r"auth_key_file: unusable key: the key must be at least"):
         parse_config(text, base_dir=ROOT / "configs")
+
+
+@pytest.mark.req("SR-AUTH-1")
+def test_a_new_client_of_a_keyed_interface_gets_a_signed_greeting(tmp_path: Path) -> None:
+    """The STATUS a daemon greets a client with carries its tag, even before the client has
+    spoken: a keyed interface answers in version 2 (its tag lives in v2 metadata) instead of
+    the version a silent client is assumed to speak (1, which would drop the tag)."""
+    from igtl.transport import TCPClient
+
+    (tmp_path / "link.key").write_text(KEY + "\n")
+    cfg = parse_config((ROOT / "configs" / "slave.yaml").read_text(), base_dir=ROOT / "configs")
+    cfg = cfg.model_copy(
+        update={
+            "interfaces": tuple(
+                i.model_copy(update={"auth_key_file": tmp_path / "link.key", "port": 0})
+                if i.name == "operator"
+                else i.model_copy(update={"port": 0})
+                for i in cfg.interfaces
+            )
+        }
+    )
+    robot = build_robot(cfg, clock=SimClock())
+    robot.configure()
+    robot.activate()
+    got: list[igtl.Message] = []
+    port = robot.interfaces["operator"].address[1]  # type: ignore[index]
+    client = TCPClient("127.0.0.1", port, on_message=lambda p, m: got.append(m)).start()
+    try:
+        assert wait_for(lambda: got, lambda: None)
+        greeting = got[0]
+        assert greeting.message_type == "STATUS" and greeting.header_version == 2
+        assert verify(greeting, KEY.encode()) == ""
+    finally:
+        client.stop()
+        robot.shutdown()
