@@ -298,6 +298,7 @@ class Robot:
         if self.supervisor_thread is not None:
             self.supervisor_thread.stop()
         self.state_machine.try_request("shutdown", "daemon shutting down")
+        self.controller.shutdown()
         for drv, _ in self.drivers:
             try:
                 drv.shutdown()

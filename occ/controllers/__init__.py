@@ -155,6 +155,11 @@ class Controller:
     def stats(self) -> dict[str, Any]:
         return {}
 
+    def shutdown(self) -> None:
+        """The daemon is ending (after the loop's last tick, before the drivers are shut
+        down): end threads, close files. Called once; the default has nothing to release."""
+        return None
+
 
 # ------------------------------------------------------------------------------ registry
 _REGISTRY: PluginRegistry[Controller] = PluginRegistry(
@@ -295,6 +300,15 @@ class ControllerSet:
 
     def commands(self) -> tuple[str, ...]:
         return tuple(n for c in self.controllers for n in c.commands())
+
+    def shutdown(self) -> None:
+        """Every controller's :meth:`Controller.shutdown`, each one whatever the others
+        raised (logged: the drivers' safe shutdown comes next and must not be skipped)."""
+        for c in self.controllers:
+            try:
+                c.shutdown()
+            except Exception:  # noqa: BLE001 - one plugin's error must not skip the rest
+                log.exception("controller %s: shutdown failed", c.name)
 
     def stats(self) -> dict[str, Any]:
         if len(self.controllers) == 1:

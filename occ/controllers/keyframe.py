@@ -1327,6 +1327,13 @@ class KeyframeController(Controller):
             lines.append(f"running: plan {self.active.id}")
         return "\n".join(lines)
 
+    def shutdown(self) -> None:
+        """The planner thread ends once a job it is running (if any) is done; a plan being
+        checked then is dropped (the robot is shutting down)."""
+        if self._planner is not None:
+            self._planner.stop()
+            self._planner = None
+
     def stats(self) -> dict[str, Any]:
         kset = self.kset
         return {

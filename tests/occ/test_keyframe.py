@@ -808,3 +808,34 @@ def test_plus_style_string_commands_are_answered_too(session: Session) -> None:
 def test_a_robot_built_without_the_loader_refuses_bad_keyframes_as_a_config_error() -> None:
     with pytest.raises(ConfigError, match="controller keyframe: keyframe 0: 2 values"):
         SimRobot(config({"keyframes": [{"t": 1.0, "pose": [0.0, 0.0]}]})).close()
+
+
+def test_shutting_the_robot_down_ends_the_planner_thread() -> None:
+    """Controllers get a shutdown hook: the keyframe planner's thread ends with the daemon
+    (before the drivers' safe shutdown), not only when the process exits."""
+    s = Session()
+    try:
+        s.cmd("KeyframeAdd", T=1.0, Pose="0.1 0.35 0.05")
+        s.cmd("KeyframePlan")
+        planner = s.kf._planner
+        assert planner is not None and planner._thread.is_alive()
+    finally:
+        s.close()
+    planner._thread.join(5.0)
+    assert not planner._thread.is_alive()
+    assert s.kf._planner is None
+
+
+def test_a_controller_shutdown_error_does_not_skip_the_drivers(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    s = Session()
+    drivers = [d for d, _ in s.robot.drivers]
+
+    def broken() -> None:
+        raise RuntimeError("plugin bug at shutdown")
+
+    s.kf.shutdown = broken  # type: ignore[method-assign]
+    s.close()
+    assert "controller keyframe: shutdown failed" in caplog.text
+    assert all(d.state.value == "shutdown" for d in drivers)
