@@ -190,8 +190,10 @@ class OperatorDesk:
 
     def _reply_later(self, item: Inbound, req: Request, ok: bool, text: str) -> None:
         """The answer to a :class:`Deferred` command, on whichever thread finished it (the
-        transports' ``send`` is thread-safe; the recorder is not, so it is not recorded)."""
-        wall = self.robot.clock.wall_time()
+        transports' ``send`` is thread-safe; the recording takes it through its any-thread
+        entry)."""
+        r = self.robot
+        wall = r.clock.wall_time()
         assert req.msg is not None
         if ok:
             reply = success_reply(req, text, timestamp=wall)
@@ -201,10 +203,13 @@ class OperatorDesk:
                 req.msg, text, code=igtl.StatusCode.ILLEGAL_INSTRUCTION, timestamp=wall
             )
         try:
-            self.robot.interfaces.reply(item, reply)
+            r.interfaces.reply(item, reply)
         except Exception as err:  # noqa: BLE001 - a reply that cannot be sent is counted
             self.reply_errors += 1
             log.warning("%s: reply to %s could not be sent: %s", item.interface, item.peer, err)
+            return
+        if r.recorder is not None:
+            r.recorder.record_message_late(reply, "out", item.interface, r.clock.now())
 
     def _reply_stats(self, item: Inbound, req: Request) -> None:
         """On the worker thread: the snapshot (histogram percentiles, controller statistics)

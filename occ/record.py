@@ -89,6 +89,11 @@ class Recorder:
         # loop thread only
         self.records = 0
         self.dropped = 0
+        # other threads (answers that come later): their own counters, under a lock the loop
+        # never takes
+        self._late_lock = threading.Lock()
+        self.late_records = 0
+        self.late_dropped = 0
         # writer thread only
         self.bytes_written = 0
         self.errors = 0
@@ -112,6 +117,20 @@ class Recorder:
     def record_message(self, msg: Message, direction: str, interface: str, now: float) -> None:
         if self.include_messages and self._file is not None:
             self._put(("msg", msg, direction, interface, now))
+
+    def record_message_late(self, msg: Message, direction: str, interface: str, now: float) -> None:
+        """:meth:`record_message` for a thread other than the loop's (the answer to a
+        command that finished later, on a planner thread): the queue's append is atomic, and
+        its counters are its own, so nothing the loop holds is taken."""
+        if not (self.include_messages and self._file is not None):
+            return
+        if len(self._q) >= self.max_backlog:
+            with self._late_lock:
+                self.late_dropped += 1
+            return
+        self._q.append(("msg", msg, direction, interface, now))
+        with self._late_lock:
+            self.late_records += 1
 
     def record_state(self, data: RobotData, now: float) -> None:
         if self._file is None or now < self._next_state:
@@ -209,16 +228,16 @@ class Recorder:
         self._file = None
         log.info(
             "recording closed: %d records, %d bytes, %d dropped",
-            self.records,
+            self.records + self.late_records,
             self.bytes_written,
-            self.dropped,
+            self.dropped + self.late_dropped,
         )
 
     def stats(self) -> dict[str, int]:
         return {
-            "records": self.records,
+            "records": self.records + self.late_records,
             "bytes": self.bytes_written,
-            "dropped": self.dropped,
+            "dropped": self.dropped + self.late_dropped,
             "errors": self.errors,
         }
 

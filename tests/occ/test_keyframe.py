@@ -128,8 +128,10 @@ def xml(name: str, **args: Any) -> str:
 class Session:
     """A keyframe robot, an operator (Slicer) peer, and the setpoints of every tick."""
 
-    def __init__(self, params: dict[str, Any] | None = None, **kw: Any) -> None:
-        self.sim = SimRobot(config(params, **kw))
+    def __init__(
+        self, params: dict[str, Any] | None = None, recorder: Any = None, **kw: Any
+    ) -> None:
+        self.sim = SimRobot(config(params, **kw), recorder=recorder)
         self.robot = self.sim.robot
         (ctrl,) = self.robot.controller.controllers
         assert isinstance(ctrl, KeyframeController)
@@ -839,3 +841,25 @@ def test_a_controller_shutdown_error_does_not_skip_the_drivers(
     s.close()
     assert "controller keyframe: shutdown failed" in caplog.text
     assert all(d.state.value == "shutdown" for d in drivers)
+
+
+def test_a_deferred_answer_is_recorded(tmp_path: Path) -> None:
+    """The planner's answer goes out later, from its own thread; a recording holds it like
+    every other reply (through the recorder's any-thread entry)."""
+    from occ.record import Recorder, read_recording
+
+    path = tmp_path / "kf.igtl"
+    rec = Recorder(path, rate_hz=10).start()
+    s = Session(recorder=rec)
+    try:
+        s.cmd("KeyframeAdd", T=1.0, Pose="0.1 0.35 0.05")
+        answer = s.cmd("KeyframePlan")
+        assert "plan" in str(answer).lower()
+    finally:
+        s.close()
+        rec.close()
+    outs = [m for m in read_recording(path) if m.metadata.get("rec.dir") == "out"]
+    replies = [m for m in outs if m.message_type == "RTS_COMMAND"]
+    # KeyframeAdd answered at once, KeyframePlan later by the planner thread: both recorded
+    assert len(replies) == 2, [m.device_name for m in outs]
+    assert rec.stats()["records"] >= rec.late_records == 1
