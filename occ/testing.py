@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -302,3 +303,15 @@ class SimRobot:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def wait_until(pred: Callable[[], Any], timeout: float = 10.0, every: float = 0.005) -> Any:
+    """For tests with threads or processes (real sockets, a daemon, a worker's reply): call
+    ``pred`` until it returns something true, and return that; after ``timeout`` seconds,
+    return its last (false) value. Simulated-time tests need none of this: they tick."""
+    end = time.monotonic() + timeout
+    while True:
+        value = pred()
+        if value or time.monotonic() >= end:
+            return value
+        time.sleep(every)

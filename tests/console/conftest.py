@@ -17,7 +17,7 @@ import shutil
 import socket
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +26,7 @@ import pytest
 from occ.clock import SimClock
 from occ.loader import parse_config
 from occ.robot import Robot, build_robot
+from occ.testing import wait_until as poll
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -48,18 +49,6 @@ def slave_config_text(port: int = 0, extra: str = "") -> str:
     _, _, tail = rest.partition("\nsafety:")
     body = INTERFACES.format(port=port, extra=f", {extra}" if extra else "")
     return head + body.lstrip("\n") + "safety:" + tail
-
-
-def poll(pred: Callable[[], Any], timeout: float = 10.0, every: float = 0.01) -> Any:
-    """Call ``pred`` until it returns something true (returned), or None after ``timeout``."""
-    end = time.monotonic() + timeout
-    while True:
-        value = pred()
-        if value:
-            return value
-        if time.monotonic() > end:
-            return None
-        time.sleep(every)
 
 
 class TickedRobot:

@@ -20,6 +20,7 @@ import igtl
 from igtl import wire
 from igtl.errors import CRCError, DecodeError, TransportError
 from igtl.transport import Peer, TCPClient, TCPServer
+from occ.testing import wait_until as _wait
 
 WAIT = 5.0
 
@@ -515,15 +516,6 @@ def test_server_can_disconnect_one_client(stack):
     assert srec.disconnects[0][1] == "operator request"
     assert crec.wait(lambda: len(crec.disconnects) == 1)
     assert crec.disconnects[0][1] == "closed by peer"
-
-
-def _wait(cond, timeout: float = 10.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return False
 
 
 def test_a_client_trickling_a_message_is_closed_and_its_slot_freed() -> None:

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import json
 import math
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +20,7 @@ from occ.errors import ConfigError
 from occ.loader import load_config, parse_config
 from occ.safety import RobotState
 from occ.testing import SimPeer, SimRobot
+from occ.testing import wait_until as wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 SLAVE = ROOT / "configs" / "collab" / "slave.yaml"
@@ -41,16 +40,6 @@ def trainee_mm(t: float) -> tuple[float, float, float]:
     mentor's: a slave that followed it without re-indexing would jump by millimetres."""
     w = 2 * math.pi * 0.25 * t
     return (20.0 * math.sin(w) + 30.0, 60.0 * math.cos(w) - 40.0, 40.0)
-
-
-def wait_for(cond: Callable[[], object], timeout: float = 5.0) -> bool:
-    """For replies the worker thread sends (GetStats, GetStateTable)."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.002)
-    return bool(cond())
 
 
 class Collab:

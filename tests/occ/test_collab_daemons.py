@@ -13,7 +13,6 @@ import json
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -23,6 +22,7 @@ sys.path.insert(0, str(ROOT / "tools"))
 
 from loopback import collab_configs, stop_processes, wait_port, write_yaml  # noqa: E402
 from slicer_standin import SlicerStandIn  # noqa: E402
+from occ.testing import wait_until as wait_for
 
 pytestmark = pytest.mark.realtime
 
@@ -33,15 +33,6 @@ def start(cfg: Path, stats: Path, *extra: str) -> subprocess.Popen[bytes]:
          "--log-level", "ERROR", *extra],
         cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
     )
-
-
-def wait_for(pred, timeout: float) -> bool:  # type: ignore[no-untyped-def]
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.02)
-    return False
 
 
 def command(client: SlicerStandIn, name: str, text: str = "", timeout: float = 5.0):  # type: ignore[no-untyped-def]

@@ -11,7 +11,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -22,6 +21,7 @@ sys.path.insert(0, str(ROOT / "tools"))
 
 from loopback import pair_configs, stop_processes, wait_port, write_yaml  # noqa: E402
 from slicer_standin import SlicerStandIn  # noqa: E402
+from occ.testing import wait_until as wait_for
 
 pytestmark = pytest.mark.realtime
 
@@ -38,15 +38,6 @@ def start(cfg: Path, stats: Path, *extra: str) -> subprocess.Popen[bytes]:
         [sys.executable, "-m", "occ.cli", str(cfg), "--stats", str(stats), "--log-level", "WARNING", *extra],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
     )
-
-
-def wait_for(pred, timeout: float) -> bool:  # type: ignore[no-untyped-def]
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.02)
-    return False
 
 
 @pytest.fixture

@@ -14,6 +14,7 @@ from occ.drivers.can_sim import DriveAxis, SimulatedDriveNode
 from occ.robot import build_robot
 from occ.safety import RobotState
 from occ.testing import SimPeer, inproc_config
+from occ.testing import wait_until as _wait
 
 ROOT = Path(__file__).resolve().parents[2]
 COUNTS_PER_M = 1_000_000  # 1 count = 1 um
@@ -61,15 +62,6 @@ def test_can_master_streams_hand_motion() -> None:
             robot.shutdown()
             slave.close()
     assert robot.drivers[0][0].stats()["errors"] == 0
-
-
-def _wait(pred, timeout: float) -> bool:  # type: ignore[no-untyped-def]
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return False
 
 
 def test_no_enable_before_every_joint_is_measured() -> None:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import socket
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -23,6 +22,7 @@ from occ.loader import parse_config
 from occ.errors import ConfigError
 from occ.robot import Robot, build_robot
 from occ.safety import RobotState
+from occ.testing import wait_until as wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -46,15 +46,6 @@ def _config_text() -> str:
     head, _, rest = text.partition("interfaces:")
     _, _, tail = rest.partition("\nsafety:")
     return head + INTERFACES.lstrip("\n") + "safety:" + tail
-
-
-def wait_for(cond: Callable[[], object], timeout: float = 5.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.002)
-    return bool(cond())
 
 
 @pytest.fixture

@@ -6,7 +6,6 @@ No timing is asserted: the test waits (bounded) for the trip, then checks what i
 from __future__ import annotations
 
 import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -15,19 +14,11 @@ from occ.clock import RealClock
 from occ.loader import load_config
 from occ.robot import build_robot
 from occ.safety import RobotState
+from occ.testing import wait_until as wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 
 pytestmark = pytest.mark.realtime
-
-
-def wait_for(cond, timeout: float = 10.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.005)
-    return False
 
 
 @pytest.mark.req("SR-SUP-1")

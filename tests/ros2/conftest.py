@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import os
 import random
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import pytest
+from occ.testing import wait_until as poll  # noqa: F401 - the ros2 tests import it from here
 
 
 def require_extra() -> None:
@@ -53,14 +53,3 @@ def namespace(request: pytest.FixtureRequest) -> str:
     name = "".join(c if c.isalnum() else "_" for c in request.node.name)[:24]
     return f"/occtest{os.getpid()}_{name}/slave"
 
-
-def poll(pred: Callable[[], Any], timeout: float = 10.0, every: float = 0.01) -> Any:
-    """Call ``pred`` until it returns something true (returned), or None after ``timeout``."""
-    end = time.monotonic() + timeout
-    while True:
-        value = pred()
-        if value:
-            return value
-        if time.monotonic() > end:
-            return None
-        time.sleep(every)
