@@ -55,5 +55,7 @@ stop_processes([ps, pm])
 s = json.loads((d / "s.json").read_text())
 m = json.loads((d / "m.json").read_text())
 print(
-    f"{root.name:8s} slave {s['cpu_percent']:.1f} %  master {m['cpu_percent']:.1f} %  slave compute p50 {s['compute_us']['p50']}  state {s.get('final_state', s.get('state'))}"
+    f"{root.name:8s} slave {s['cpu_percent']:.1f} %  master {m['cpu_percent']:.1f} %  "
+    f"slave compute p50 {s['compute_us']['p50']}  "
+    f"state {s.get('final_state', s.get('state'))}"
 )

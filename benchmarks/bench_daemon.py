@@ -29,7 +29,6 @@ import tempfile
 import time
 from pathlib import Path
 
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))
 
@@ -43,18 +42,35 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-fifo", action="store_true", help="run both loops SCHED_OTHER")
     p.add_argument("--cpu", type=int, default=None, help="pin the slave loop to this CPU")
     p.add_argument("--spin-us", type=float, default=None, help="override robot.realtime.spin_us")
-    p.add_argument("--switch-us", type=float, default=None,
-                   help="override robot.realtime.switch_interval_us (both daemons)")
-    p.add_argument("--phase-lock-us", type=float, default=None,
-                   help="override the slave controller's phase_lock_us (negative = off)")
-    p.add_argument("--no-load", action="store_true",
-                   help="the slave alone (no master stream, no TCP clients): the baseline")
-    p.add_argument("--cpu-load-only", action="store_true",
-                   help="the master runs (same CPU use) but streams to an unused port, and no "
-                        "TCP clients connect: separates machine load from the slave's own I/O")
+    p.add_argument(
+        "--switch-us",
+        type=float,
+        default=None,
+        help="override robot.realtime.switch_interval_us (both daemons)",
+    )
+    p.add_argument(
+        "--phase-lock-us",
+        type=float,
+        default=None,
+        help="override the slave controller's phase_lock_us (negative = off)",
+    )
+    p.add_argument(
+        "--no-load",
+        action="store_true",
+        help="the slave alone (no master stream, no TCP clients): the baseline",
+    )
+    p.add_argument(
+        "--cpu-load-only",
+        action="store_true",
+        help="the master runs (same CPU use) but streams to an unused port, and no "
+        "TCP clients connect: separates machine load from the slave's own I/O",
+    )
     p.add_argument("--no-record", action="store_true", help="the slave without recording")
-    p.add_argument("--thread-streams", action="store_true",
-                   help="robot.realtime.poll_streams false: an interface thread receives the stream")
+    p.add_argument(
+        "--thread-streams",
+        action="store_true",
+        help="robot.realtime.poll_streams false: an interface thread receives the stream",
+    )
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
     out = args.out or Path(tempfile.mkdtemp(prefix="occ-bench-"))
@@ -71,7 +87,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.cpu is not None:
         slave["robot"]["realtime"]["cpu"] = args.cpu
     if args.phase_lock_us is not None:
-        slave["controller"]["params"]["phase_lock_us"] = None if args.phase_lock_us < 0 else args.phase_lock_us
+        slave["controller"]["params"]["phase_lock_us"] = (
+            None if args.phase_lock_us < 0 else args.phase_lock_us
+        )
     if args.switch_us is not None:
         slave["robot"]["realtime"]["switch_interval_us"] = args.switch_us
         master["robot"]["realtime"]["switch_interval_us"] = args.switch_us
@@ -82,7 +100,9 @@ def main(argv: list[str] | None = None) -> int:
         slave["robot"]["realtime"]["poll_streams"] = False
     if not args.no_record:
         slave["recording"] = {
-            "path": str(out / "slave.igtl"), "rate_hz": 100, "include_messages": True
+            "path": str(out / "slave.igtl"),
+            "rate_hz": 100,
+            "include_messages": True,
         }
     slave["stats"] = {"log_every_s": 3600.0}
     write_yaml(out / "slave.yaml", slave)
@@ -118,15 +138,22 @@ def main(argv: list[str] | None = None) -> int:
             if not wait_port(mtcp):
                 print("master did not start", file=sys.stderr)
                 return 1
-            clients = [] if args.cpu_load_only else [
-                SlicerStandIn("127.0.0.1", tcp).start() for _ in range(2)
-            ]
+            clients = (
+                []
+                if args.cpu_load_only
+                else [SlicerStandIn("127.0.0.1", tcp).start() for _ in range(2)]
+            )
             for c in clients:
                 c.connected.wait(5.0)
             # the operator's console (Slicer's connection is a viewer: it may not send Run)
-            operator = None if args.cpu_load_only else SlicerStandIn("127.0.0.1", ports["slave_op"]).start()
+            operator = (
+                None
+                if args.cpu_load_only
+                else SlicerStandIn("127.0.0.1", ports["slave_op"]).start()
+            )
         print(
-            f"running {args.duration:.0f} s ({'SCHED_OTHER' if args.no_fifo else 'SCHED_FIFO where permitted'}); "
+            f"running {args.duration:.0f} s "
+            f"({'SCHED_OTHER' if args.no_fifo else 'SCHED_FIFO where permitted'}); "
             f"files in {out}",
             flush=True,
         )
@@ -170,7 +197,9 @@ def main(argv: list[str] | None = None) -> int:
         "no_load": args.no_load,
         "cpu_load_only": args.cpu_load_only,
         "master_loop": (
-            {k: m[k] for k in ("ticks", "lateness_us", "late_over_1ms", "cpu_percent")} if m else None
+            {k: m[k] for k in ("ticks", "lateness_us", "late_over_1ms", "cpu_percent")}
+            if m
+            else None
         ),
         "sample_to_write_us": s.get("controller", {}).get("sample_to_write_us"),
         "loss": s.get("loss"),

@@ -47,8 +47,18 @@ from slicer_standin import SlicerStandIn  # noqa: E402
 def start(out: Path, name: str, data: dict[str, Any]) -> subprocess.Popen[bytes]:
     data["stats"] = {"log_every_s": 3600.0}
     write_yaml(out / f"{name}.yaml", data)
-    cmd = [sys.executable, "-m", "occ.cli", str(out / f"{name}.yaml"), "--start", "running",
-           "--stats", str(out / f"{name}.json"), "--log-level", "WARNING"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "occ.cli",
+        str(out / f"{name}.yaml"),
+        "--start",
+        "running",
+        "--stats",
+        str(out / f"{name}.json"),
+        "--log-level",
+        "WARNING",
+    ]
     return subprocess.Popen(cmd, cwd=ROOT, stderr=open(out / f"{name}.log", "wb"))  # noqa: SIM115
 
 
@@ -64,8 +74,9 @@ def loop_summary(stats: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def start_pair(out: Path, tag: str, spin_us: float | None) -> tuple[list[subprocess.Popen[bytes]],
-                                                                    dict[str, int]]:
+def start_pair(
+    out: Path, tag: str, spin_us: float | None
+) -> tuple[list[subprocess.Popen[bytes]], dict[str, int]]:
     slave, master, ports = pair_configs()
     for cfg in (slave, master):
         if spin_us is not None:
@@ -112,8 +123,9 @@ def run_pairs(args: argparse.Namespace, out: Path) -> dict[str, Any]:
         d = json.loads((out / f"{name}.json").read_text())
         daemons[name] = loop_summary(d)
         if "loss" in d:
-            daemons[name]["loss"] = {k: d["loss"][k] for k in
-                                     ("received", "lost_total", "holds", "resumes", "trips")}
+            daemons[name]["loss"] = {
+                k: d["loss"][k] for k in ("received", "lost_total", "holds", "resumes", "trips")
+            }
     return {
         "mode": "pairs",
         "duration_s": args.duration,
@@ -148,7 +160,7 @@ def run_sigstop(args: argparse.Namespace, out: Path) -> dict[str, Any]:
         deadline = time.monotonic() + 3.0
         while time.monotonic() < deadline and len(stops_seen(client)) == len(short_stops):
             time.sleep(0.05)
-        long_stops = stops_seen(client)[len(short_stops):]
+        long_stops = stops_seen(client)[len(short_stops) :]
     finally:
         client.stop()
         stop_processes(procs)
@@ -162,8 +174,9 @@ def run_sigstop(args: argparse.Namespace, out: Path) -> dict[str, Any]:
         "long_freeze_ms": round(long_frozen * 1e3, 1),
         "latched_after_long_freeze": len(long_stops),
         "long_freeze_alert": long_stops[:1],
-        "slave_loss": {k: slave["loss"][k] for k in
-                       ("received", "lost_total", "holds", "resumes", "trips")},
+        "slave_loss": {
+            k: slave["loss"][k] for k in ("received", "lost_total", "holds", "resumes", "trips")
+        },
         "slave_final_state": slave.get("final_state"),
     }
 

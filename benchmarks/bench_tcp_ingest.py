@@ -164,7 +164,8 @@ def main(argv: list[str] | None = None) -> int:
         rates = [runners[mode](args.n, args.header_version) for _ in range(args.repeat)]
         rows.append((mode, max(rates), statistics.median(rates), size))
     print(
-        f"{'receiver':<10} {'best msgs/s':>12} {'median msgs/s':>14} {'MB/s (best)':>12} {'goal':>6}"
+        f"{'receiver':<10} {'best msgs/s':>12} {'median msgs/s':>14} "
+        f"{'MB/s (best)':>12} {'goal':>6}"
     )
     for mode, best, median, sz in rows:
         ok = "met" if best >= GOAL else "NOT"

@@ -1,5 +1,5 @@
 """House rules as tests: ``mypy``, ``ruff check`` and ``ruff format --check`` are clean on igtl, occ,
-occ_ros2 and occ_console.
+occ_ros2 and occ_console (and the two ruff checks on tools and benchmarks).
 
 Both tools come with the ``test`` extra (``pip install -e .[test]``, which the README's test
 command runs); they read their settings from pyproject.toml, so they run from the repository root.
@@ -18,13 +18,15 @@ ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow  # subprocesses; mypy alone takes ~30 s on a cold cache
 
 PACKAGES = ("igtl", "occ", "occ_ros2", "occ_console")
+#: held to ruff too (not to mypy: scripts and measurements)
+SCRIPTS = ("tools", "benchmarks")
 
 
-def _run(tool: str, *args: str) -> None:
+def _run(tool: str, *args: str, paths: tuple[str, ...] = PACKAGES) -> None:
     if importlib.util.find_spec(tool) is None:
         pytest.skip(f"{tool} is not installed (pip install -e .[test] installs it)")
     proc = subprocess.run(
-        [sys.executable, "-m", tool, *args, *PACKAGES],
+        [sys.executable, "-m", tool, *args, *paths],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -41,8 +43,8 @@ def test_mypy_clean() -> None:
 
 
 def test_ruff_check_clean() -> None:
-    _run("ruff", "check")
+    _run("ruff", "check", paths=PACKAGES + SCRIPTS)
 
 
 def test_ruff_format_clean() -> None:
-    _run("ruff", "format", "--check")
+    _run("ruff", "format", "--check", paths=PACKAGES + SCRIPTS)

@@ -62,8 +62,17 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
         watch = [f"127.0.0.1:{ports['slave_op']}", f"127.0.0.1:{ports['master_tcp']}"]
         console = subprocess.Popen(
-            [sys.executable, "-m", "occ_console.cli", "--port", "0",
-             "--connect", watch[0], "--connect", watch[1]],  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "occ_console.cli",
+                "--port",
+                "0",
+                "--connect",
+                watch[0],
+                "--connect",
+                watch[1],
+            ],  # fmt: skip
             cwd=ROOT,
             stdout=subprocess.PIPE,
         )
@@ -79,6 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         browser.quit()
         stop_processes(procs)
     return 0
+
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -33,14 +33,27 @@ from slicer_standin import SlicerStandIn  # noqa: E402
 
 
 def occd(config: str, stats: Path, extra: list[str]) -> subprocess.Popen[bytes]:
-    cmd = [sys.executable, "-m", "occ.cli", str(ROOT / "configs" / config), "--start", "running",
-           "--stats", str(stats), "--log-level", "WARNING", *extra]
+    cmd = [
+        sys.executable,
+        "-m",
+        "occ.cli",
+        str(ROOT / "configs" / config),
+        "--start",
+        "running",
+        "--stats",
+        str(stats),
+        "--log-level",
+        "WARNING",
+        *extra,
+    ]
     return subprocess.Popen(cmd, cwd=ROOT)
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--duration", type=float, default=20.0, help="seconds (default 20; 0 = until Ctrl-C)")
+    p.add_argument(
+        "--duration", type=float, default=20.0, help="seconds (default 20; 0 = until Ctrl-C)"
+    )
     p.add_argument("--kill-master-after", type=float, default=None, metavar="S")
     p.add_argument("--record", type=Path, default=None, help="record the slave to this file")
     p.add_argument("--out", type=Path, default=None, help="folder for statistics JSON")
@@ -50,7 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     for port in (18944, 18945, 18947):
         with socket.socket() as s:
             if s.connect_ex(("127.0.0.1", port)) == 0:
-                print(f"demo: port {port} is already in use (another demo running?)", file=sys.stderr)
+                print(
+                    f"demo: port {port} is already in use (another demo running?)", file=sys.stderr
+                )
                 return 1
     slave_extra = ["--record", str(args.record)] if args.record else []
     slave = occd("slave.yaml", out / "slave-stats.json", slave_extra)
@@ -73,13 +88,21 @@ def main(argv: list[str] | None = None) -> int:
         if not standin.connected.wait(5.0) or not operator.connected.wait(5.0):
             print("demo: the Slicer stand-in could not connect", file=sys.stderr)
             return 1
-        print(f"demo: slave (TCP 18944 Slicer, 18947 operators, UDP 18946) and master (TCP 18945) running; "
-              f"statistics in {out}", flush=True)
+        print(
+            f"demo: slave (TCP 18944 Slicer, 18947 operators, UDP 18946) and master (TCP 18945) "
+            f"running; "
+            f"statistics in {out}",
+            flush=True,
+        )
         t0 = time.monotonic()
         killed = False
         while args.duration <= 0 or time.monotonic() - t0 < args.duration:
             time.sleep(1.0)
-            if args.kill_master_after is not None and not killed and time.monotonic() - t0 >= args.kill_master_after:
+            if (
+                args.kill_master_after is not None
+                and not killed
+                and time.monotonic() - t0 >= args.kill_master_after
+            ):
                 master.send_signal(signal.SIGKILL)
                 killed = True
                 print("\ndemo: master killed (SIGKILL)", flush=True)
@@ -99,7 +122,10 @@ def main(argv: list[str] | None = None) -> int:
         if operator is not None:
             operator.stop()
         stop_processes(procs)
-    print("Slicer stand-in saw:", json.dumps({k: v for k, v in summary.items() if not k.startswith("_")}, indent=1))
+    print(
+        "Slicer stand-in saw:",
+        json.dumps({k: v for k, v in summary.items() if not k.startswith("_")}, indent=1),
+    )
     for s in summary.get("_statuses", []):
         print("  STATUS", s)
     for name in ("slave", "master"):
@@ -108,8 +134,10 @@ def main(argv: list[str] | None = None) -> int:
             d = json.loads(f.read_text())
             lat = d["lateness_us"]
             state = d.get("final_state", d.get("state"))
-            print(f"{name}: {d['ticks']} ticks, state {state}, lateness p50 {lat['p50']:.0f} "
-                  f"p99 {lat['p99']:.0f} max {lat['max']:.0f} us, cpu {d['cpu_percent']:.0f}%")
+            print(
+                f"{name}: {d['ticks']} ticks, state {state}, lateness p50 {lat['p50']:.0f} "
+                f"p99 {lat['p99']:.0f} max {lat['max']:.0f} us, cpu {d['cpu_percent']:.0f}%"
+            )
             if state != "RUNNING" or d.get("last_alert"):
                 print(f"  {name} ended {stopped_hint(state, d.get('last_alert', ''))}")
             if name == "slave" and "loss" in d:
@@ -126,7 +154,11 @@ def live_line(standin: SlicerStandIn, operator: SlicerStandIn) -> str:
     cid = operator.send_command("GetStats")
     reply = operator.wait_reply(cid, timeout=1.0)
     tip = standin.last.get("Tip")
-    tip_txt = "tip " + " ".join(f"{v:7.2f}" for v in tip.translation) + " mm" if tip is not None else "tip -"
+    tip_txt = (
+        "tip " + " ".join(f"{v:7.2f}" for v in tip.translation) + " mm"
+        if tip is not None
+        else "tip -"
+    )
     if reply is None or reply.metadata.get("Status") != "SUCCESS":
         return f"slave: no answer | {tip_txt}"
     try:
@@ -145,11 +177,13 @@ def live_line(standin: SlicerStandIn, operator: SlicerStandIn) -> str:
     rate = (rx - _last_rx[1]) / (now - _last_rx[0]) if _last_rx and now > _last_rx[0] else 0.0
     _last_rx[:] = [now, rx]
     tip_rate = standin.summary().get("Tip", {}).get("rate_hz") or 0.0
-    line = (f"slave {d['state']:8s} | master {rate:5.0f} Hz lost {loss.get('lost_total', 0)} "
-            f"holds {loss.get('holds', 0)} resumed {loss.get('resumes', 0)} "
-            f"stops {loss.get('trips', 0)} | "
-            f"loop p99 {lat['p99']:.0f}us max {lat['max']:.0f}us | seq {ctrl.get('last_seq')} | "
-            f"{tip_txt} @ {tip_rate:.1f} Hz")
+    line = (
+        f"slave {d['state']:8s} | master {rate:5.0f} Hz lost {loss.get('lost_total', 0)} "
+        f"holds {loss.get('holds', 0)} resumed {loss.get('resumes', 0)} "
+        f"stops {loss.get('trips', 0)} | "
+        f"loop p99 {lat['p99']:.0f}us max {lat['max']:.0f}us | seq {ctrl.get('last_seq')} | "
+        f"{tip_txt} @ {tip_rate:.1f} Hz"
+    )
     if d["state"] != "RUNNING":
         # never silently stuck: say why, and how to go on
         line += f"\n  {stopped_hint(d['state'], d.get('last_alert', ''))}"
@@ -168,9 +202,7 @@ RESUME = {
 def stopped_hint(state: str, cause: str) -> str:
     """What stopped the slave and the commands that resume it."""
     steps = RESUME.get(state, [])
-    how = "; ".join(
-        f"igtl send 127.0.0.1:18947 --type COMMAND --command-name {c}" for c in steps
-    )
+    how = "; ".join(f"igtl send 127.0.0.1:18947 --type COMMAND --command-name {c}" for c in steps)
     return f"{state}: {cause or 'no alert recorded'}" + (f" -> to resume: {how}" if how else "")
 
 

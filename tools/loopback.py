@@ -6,8 +6,8 @@ from __future__ import annotations
 import signal
 import socket
 import subprocess
-from collections.abc import Iterable
 import time
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +23,9 @@ def free_port(kind: int = socket.SOCK_STREAM) -> int:
         return int(s.getsockname()[1])
 
 
-def wait_port(port: int, timeout: float = 20.0, proc: subprocess.Popen[bytes] | None = None) -> bool:
+def wait_port(
+    port: int, timeout: float = 20.0, proc: subprocess.Popen[bytes] | None = None
+) -> bool:
     """True once a TCP listener accepts on 127.0.0.1:port; False on timeout or if ``proc`` exits."""
     end = time.monotonic() + timeout
     while time.monotonic() < end:

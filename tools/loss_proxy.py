@@ -59,7 +59,15 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["DropRecord", "LossPattern", "LossProxy", "RunRecord", "igtl_seq", "parse_drop_runs", "main"]
+__all__ = [
+    "DropRecord",
+    "LossPattern",
+    "LossProxy",
+    "RunRecord",
+    "igtl_seq",
+    "parse_drop_runs",
+    "main",
+]
 
 #: IGTL v2: 58-byte header, then ext header size (2), metadata header size (2), metadata size
 #: (4), message ID (4): bytes 66..69 of the datagram.
@@ -85,7 +93,9 @@ def parse_drop_runs(specs: Sequence[str]) -> list[tuple[int, int]]:
             length_s, count_s = spec.split(":")
             length, count = int(length_s), int(count_s)
         except ValueError:
-            raise ValueError(f"--drop-runs takes L:N (run length : number of runs), got {spec!r}") from None
+            raise ValueError(
+                f"--drop-runs takes L:N (run length : number of runs), got {spec!r}"
+            ) from None
         if length < 1 or count < 0:
             raise ValueError(f"--drop-runs {spec!r}: need L >= 1 and N >= 0")
         out.append((length, count))
@@ -100,7 +110,9 @@ def parse_burst(spec: str) -> tuple[float, float, float]:
     if len(parts) == 2:
         parts.append(1.0)
     if len(parts) != 3 or not all(0.0 <= p <= 1.0 for p in parts):
-        raise ValueError(f"--burst takes three probabilities PGB,PBG,LOSS_BAD in [0, 1], got {spec!r}")
+        raise ValueError(
+            f"--burst takes three probabilities PGB,PBG,LOSS_BAD in [0, 1], got {spec!r}"
+        )
     return parts[0], parts[1], parts[2]
 
 
@@ -144,8 +156,15 @@ class LossPattern:
         self._starts = {start: length for start, length in self.schedule}
         self._run_left = 0
 
-    def _plan(self, drop_runs: Sequence[tuple[int, int]], *, expected: int, warmup: int, tail: int,
-              min_gap: int) -> list[tuple[int, int]]:
+    def _plan(
+        self,
+        drop_runs: Sequence[tuple[int, int]],
+        *,
+        expected: int,
+        warmup: int,
+        tail: int,
+        min_gap: int,
+    ) -> list[tuple[int, int]]:
         lengths = [length for length, count in drop_runs for _ in range(count)]
         if not lengths:
             return []
@@ -155,7 +174,8 @@ class LossPattern:
         slack = (hi - lo) - sum(lengths) - (len(lengths) - 1) * min_gap
         if slack < 0:
             raise ValueError(
-                f"{len(lengths)} drop runs ({sum(lengths)} datagrams, >= {min_gap} apart) do not fit "
+                f"{len(lengths)} drop runs ({sum(lengths)} datagrams, >= {min_gap} apart) "
+                f"do not fit "
                 f"in datagrams {lo}..{hi}: lengthen the duration or lower --min-gap"
             )
         offsets = sorted(rng.randint(0, slack) for _ in lengths)
@@ -415,8 +435,18 @@ class LossProxy:
                 self.drops.append(DropRecord(index, seq, cause, wall, t, self._last_good_mono))
             run = self._open_run
             if run is None:
-                run = RunRecord(index, 0, seq, seq, cause, wall, t, t, self._last_good_mono,
-                                t_wall_prev_good=self._last_good_wall)
+                run = RunRecord(
+                    index,
+                    0,
+                    seq,
+                    seq,
+                    cause,
+                    wall,
+                    t,
+                    t,
+                    self._last_good_mono,
+                    t_wall_prev_good=self._last_good_wall,
+                )
                 self.runs.append(run)
                 self._open_run = run
             run.length += 1
@@ -450,8 +480,11 @@ class LossProxy:
                 "non_igtl_v2": c.non_igtl_v2,
                 "max_delay_queue": c.max_queue,
                 "runs": len(self.runs),
-                "arrival_gaps_over_ms": {"threshold_ms": self.gap_log_s * 1e3, "count": len(self.gaps),
-                                         "max_ms": round(max((g for _, g in self.gaps), default=0.0) * 1e3, 3)},
+                "arrival_gaps_over_ms": {
+                    "threshold_ms": self.gap_log_s * 1e3,
+                    "count": len(self.gaps),
+                    "max_ms": round(max((g for _, g in self.gaps), default=0.0) * 1e3, 3),
+                },
                 "run_length_histogram": {str(k): hist[k] for k in sorted(hist)},
                 "pattern": self.pattern.describe(),
                 "delay_ms": self.delay_s * 1e3,
@@ -466,8 +499,16 @@ class LossProxy:
             w = csv.writer(fh)
             w.writerow(["index", "seq", "cause", "t_wall", "t_mono", "t_prev_good_mono"])
             for d in rows:
-                w.writerow([d.index, "" if d.seq is None else d.seq, d.cause, f"{d.t_wall:.6f}",
-                            f"{d.t_mono:.6f}", "" if d.t_prev_good is None else f"{d.t_prev_good:.6f}"])
+                w.writerow(
+                    [
+                        d.index,
+                        "" if d.seq is None else d.seq,
+                        d.cause,
+                        f"{d.t_wall:.6f}",
+                        f"{d.t_mono:.6f}",
+                        "" if d.t_prev_good is None else f"{d.t_prev_good:.6f}",
+                    ]
+                )
 
     def write_runs_csv(self, path: str | Path) -> None:
         """One row per run of consecutive drops."""
@@ -486,14 +527,18 @@ def read_drop_csv(path: str | Path) -> list[dict[str, Any]]:
     out = []
     with open(path, newline="") as fh:
         for row in csv.DictReader(fh):
-            out.append({
-                "index": int(row["index"]),
-                "seq": int(row["seq"]) if row["seq"] else None,
-                "cause": row["cause"],
-                "t_wall": float(row["t_wall"]),
-                "t_mono": float(row["t_mono"]),
-                "t_prev_good_mono": float(row["t_prev_good_mono"]) if row["t_prev_good_mono"] else None,
-            })
+            out.append(
+                {
+                    "index": int(row["index"]),
+                    "seq": int(row["seq"]) if row["seq"] else None,
+                    "cause": row["cause"],
+                    "t_wall": float(row["t_wall"]),
+                    "t_mono": float(row["t_mono"]),
+                    "t_prev_good_mono": float(row["t_prev_good_mono"])
+                    if row["t_prev_good_mono"]
+                    else None,
+                }
+            )
     return out
 
 
@@ -511,21 +556,57 @@ def add_pattern_arguments(p: argparse.ArgumentParser) -> None:
     """The drop-pattern options, shared with tools/soak.py."""
     g = p.add_argument_group("drop pattern (combinable)")
     g.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
-    g.add_argument("--loss", type=float, default=0.0, metavar="P", help="independent loss probability")
-    g.add_argument("--burst", type=parse_burst, default=None, metavar="PGB,PBG,LOSS_BAD",
-                   help="Gilbert-Elliott: good->bad, bad->good probabilities, loss in bad state")
-    g.add_argument("--loss-good", type=float, default=0.0, metavar="P",
-                   help="Gilbert-Elliott loss probability in the good state (default 0)")
-    g.add_argument("--drop-runs", action="append", default=[], metavar="L:N",
-                   help="N runs of exactly L consecutive datagrams at random places (repeatable)")
-    g.add_argument("--min-gap", type=int, default=None, metavar="N",
-                   help="datagrams between scheduled runs, at least (default: 1 s of stream)")
-    g.add_argument("--warmup", type=float, default=1.0, metavar="S",
-                   help="no scheduled run in the first S seconds of the stream (default 1)")
-    g.add_argument("--tail", type=float, default=1.0, metavar="S",
-                   help="no scheduled run in the last S seconds (default 1)")
-    g.add_argument("--rate-hz", type=float, default=500.0,
-                   help="the stream's datagram rate, to place runs in time (default 500)")
+    g.add_argument(
+        "--loss", type=float, default=0.0, metavar="P", help="independent loss probability"
+    )
+    g.add_argument(
+        "--burst",
+        type=parse_burst,
+        default=None,
+        metavar="PGB,PBG,LOSS_BAD",
+        help="Gilbert-Elliott: good->bad, bad->good probabilities, loss in bad state",
+    )
+    g.add_argument(
+        "--loss-good",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="Gilbert-Elliott loss probability in the good state (default 0)",
+    )
+    g.add_argument(
+        "--drop-runs",
+        action="append",
+        default=[],
+        metavar="L:N",
+        help="N runs of exactly L consecutive datagrams at random places (repeatable)",
+    )
+    g.add_argument(
+        "--min-gap",
+        type=int,
+        default=None,
+        metavar="N",
+        help="datagrams between scheduled runs, at least (default: 1 s of stream)",
+    )
+    g.add_argument(
+        "--warmup",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="no scheduled run in the first S seconds of the stream (default 1)",
+    )
+    g.add_argument(
+        "--tail",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="no scheduled run in the last S seconds (default 1)",
+    )
+    g.add_argument(
+        "--rate-hz",
+        type=float,
+        default=500.0,
+        help="the stream's datagram rate, to place runs in time (default 500)",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -533,33 +614,61 @@ def main(argv: list[str] | None = None) -> int:
         prog="loss_proxy",
         description="Lossy UDP forwarding proxy for OpenIGTLink datagrams (seeded drop patterns).",
         epilog="Example: loss_proxy.py --listen 18956 --target 18946 --duration 30 "
-               "--drop-runs 3:5 --drop-runs 1:50 --log drops.csv",
+        "--drop-runs 3:5 --drop-runs 1:50 --log drops.csv",
     )
-    p.add_argument("--listen", type=_hostport, required=True, metavar="[HOST:]PORT",
-                   help="where the sender sends (default host 127.0.0.1; port 0 = any free)")
-    p.add_argument("--target", type=_hostport, required=True, metavar="[HOST:]PORT",
-                   help="where datagrams are forwarded to")
+    p.add_argument(
+        "--listen",
+        type=_hostport,
+        required=True,
+        metavar="[HOST:]PORT",
+        help="where the sender sends (default host 127.0.0.1; port 0 = any free)",
+    )
+    p.add_argument(
+        "--target",
+        type=_hostport,
+        required=True,
+        metavar="[HOST:]PORT",
+        help="where datagrams are forwarded to",
+    )
     p.add_argument("--duration", type=float, required=True, metavar="S", help="run for S seconds")
     p.add_argument("--delay-ms", type=float, default=0.0, help="delay per forwarded datagram (ms)")
-    p.add_argument("--jitter-ms", type=float, default=0.0, help="uniform +- jitter on the delay (ms)")
+    p.add_argument(
+        "--jitter-ms", type=float, default=0.0, help="uniform +- jitter on the delay (ms)"
+    )
     p.add_argument("--log", type=Path, default=None, help="drop log CSV")
     p.add_argument("--runs-log", type=Path, default=None, help="runs-of-drops CSV")
     p.add_argument("--summary", type=Path, default=None, help="write the JSON summary here too")
-    p.add_argument("--expected", type=int, default=None, metavar="N",
-                   help="datagrams expected in total, to place --drop-runs (default duration*rate)")
+    p.add_argument(
+        "--expected",
+        type=int,
+        default=None,
+        metavar="N",
+        help="datagrams expected in total, to place --drop-runs (default duration*rate)",
+    )
     p.add_argument("--allow-any", action="store_true", help="allow non-loopback addresses")
     add_pattern_arguments(p)
     args = p.parse_args(argv)
     try:
         pattern = pattern_from_args(args, args.duration, expected=args.expected)
-        proxy = LossProxy(args.listen, args.target, pattern, delay_ms=args.delay_ms,
-                          jitter_ms=args.jitter_ms, duration=args.duration, seed=args.seed,
-                          allow_any=args.allow_any)
+        proxy = LossProxy(
+            args.listen,
+            args.target,
+            pattern,
+            delay_ms=args.delay_ms,
+            jitter_ms=args.jitter_ms,
+            duration=args.duration,
+            seed=args.seed,
+            allow_any=args.allow_any,
+        )
     except (ValueError, OSError) as err:
         print(f"loss_proxy: {err}", file=sys.stderr)
         return 2
-    print(f"loss_proxy: {proxy.address[0]}:{proxy.address[1]} -> {args.target[0]}:{args.target[1]} "
-          f"for {args.duration} s, {len(pattern.schedule)} scheduled runs", file=sys.stderr, flush=True)
+    print(
+        f"loss_proxy: {proxy.address[0]}:{proxy.address[1]} -> {args.target[0]}:{args.target[1]} "
+        f"for {args.duration} s, {len(pattern.schedule)} scheduled runs",
+        file=sys.stderr,
+        flush=True,
+    )
     try:
         proxy.serve()
     except KeyboardInterrupt:
@@ -577,16 +686,30 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def pattern_from_args(args: argparse.Namespace, duration: float, *, expected: int | None = None,
-                      min_gap_default: int | None = None) -> LossPattern:
+def pattern_from_args(
+    args: argparse.Namespace,
+    duration: float,
+    *,
+    expected: int | None = None,
+    min_gap_default: int | None = None,
+) -> LossPattern:
     runs = parse_drop_runs(args.drop_runs)
     rate = args.rate_hz
     total = expected if expected is not None else int(duration * rate)
-    min_gap = args.min_gap if args.min_gap is not None else (
-        min_gap_default if min_gap_default is not None else int(rate))
+    min_gap = (
+        args.min_gap
+        if args.min_gap is not None
+        else (min_gap_default if min_gap_default is not None else int(rate))
+    )
     return LossPattern(
-        seed=args.seed, loss=args.loss, burst=args.burst, loss_good=args.loss_good,
-        drop_runs=runs, expected=total, warmup=int(args.warmup * rate), tail=int(args.tail * rate),
+        seed=args.seed,
+        loss=args.loss,
+        burst=args.burst,
+        loss_good=args.loss_good,
+        drop_runs=runs,
+        expected=total,
+        warmup=int(args.warmup * rate),
+        tail=int(args.tail * rate),
         min_gap=min_gap,
     )
 

@@ -47,8 +47,13 @@ class SlicerStandIn:
         self.replies: list[igtl.Message] = []
         self.connected = threading.Event()
         self._cmd_id = 0
-        self.client = TCPClient(host, port, on_message=self._on_message, on_connect=self._on_connect,
-                                name="slicer-standin")
+        self.client = TCPClient(
+            host,
+            port,
+            on_message=self._on_message,
+            on_connect=self._on_connect,
+            name="slicer-standin",
+        )
 
     def start(self) -> SlicerStandIn:
         self.client.start()
@@ -84,16 +89,25 @@ class SlicerStandIn:
             else:
                 self.replies.append(msg)
                 if self.echo:
-                    print(f"{msg.message_type} {msg.device_name}: {msg.content_summary()}", flush=True)
+                    print(
+                        f"{msg.message_type} {msg.device_name}: {msg.content_summary()}", flush=True
+                    )
 
     # --------------------------------------------------------------- sending, as Slicer does
     def send_command(self, name: str, text: str = "") -> int:
         """COMMAND as igtlioConnector::SendCommand: device "command", incrementing id."""
         self._cmd_id += 1
         cls = igtl.REGISTRY["COMMAND"]
-        self.client.send(cls(command_id=self._cmd_id, command_name=name, command=text,
-                             device_name="command", header_version=2,
-                             metadata={"MRMLNodeName": "CommandNode"}))
+        self.client.send(
+            cls(
+                command_id=self._cmd_id,
+                command_name=name,
+                command=text,
+                device_name="command",
+                header_version=2,
+                metadata={"MRMLNodeName": "CommandNode"},
+            )
+        )
         return self._cmd_id
 
     def wait_reply(self, command_id: int, timeout: float = 5.0) -> igtl.Message | None:
@@ -101,17 +115,30 @@ class SlicerStandIn:
         while time.monotonic() < end:
             with self._lock:
                 for r in self.replies:
-                    if r.message_type == "RTS_COMMAND" and getattr(r, "command_id", None) == command_id:
+                    if (
+                        r.message_type == "RTS_COMMAND"
+                        and getattr(r, "command_id", None) == command_id
+                    ):
                         return r
             time.sleep(0.005)
         return None
 
-    def send_fixtures(self, spheres: list[tuple[float, float, float, float]], hardness: float,
-                      kind: str = "accessible") -> None:
+    def send_fixtures(
+        self,
+        spheres: list[tuple[float, float, float, float]],
+        hardness: float,
+        kind: str = "accessible",
+    ) -> None:
         cls = igtl.REGISTRY["VFIXTURE"]
-        self.client.send(cls(spheres=tuple(spheres), hardness=hardness, device_name="Fixtures",
-                             header_version=2,
-                             metadata={"MRMLNodeName": "VirtualFixture", "kind": kind}))
+        self.client.send(
+            cls(
+                spheres=tuple(spheres),
+                hardness=hardness,
+                device_name="Fixtures",
+                header_version=2,
+                metadata={"MRMLNodeName": "VirtualFixture", "kind": kind},
+            )
+        )
 
     def send_markups(self, points: list[tuple[float, float, float]], **kw: Any) -> None:
         self.client.send(markups_points(points, **kw))
@@ -157,13 +184,16 @@ def markups_points(
     from igtl.messages.point import PointElement
 
     meta = {"MRMLNodeName": name}
-    for key, value in (("kind", kind), ("radius", radius), ("stiffness", stiffness),
-                       ("frame", frame)):
+    for key, value in (
+        ("kind", kind),
+        ("radius", radius),
+        ("stiffness", stiffness),
+        ("frame", frame),
+    ):
         if value is not None:
             meta[key] = str(value)
     elements = tuple(
-        PointElement(name=f"{name}-{i + 1}", group="Fiducial", rgba=(255, 0, 0, 255),
-                     position=p)
+        PointElement(name=f"{name}-{i + 1}", group="Fiducial", rgba=(255, 0, 0, 255), position=p)
         for i, p in enumerate(points)
     )
     return igtl.PointMessage(points=elements, device_name=name, header_version=2, metadata=meta)
@@ -176,11 +206,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, default=5.0, help="seconds to listen (default 5)")
     p.add_argument("--print", action="store_true", dest="echo", help="print every Tip and STATUS")
     p.add_argument("--command", action="append", default=[], help="send COMMAND NAME (repeatable)")
-    p.add_argument("--fixture", action="append", default=[], metavar="X,Y,Z,R",
-                   help="send a VFIXTURE sphere in mm (repeatable)")
+    p.add_argument(
+        "--fixture",
+        action="append",
+        default=[],
+        metavar="X,Y,Z,R",
+        help="send a VFIXTURE sphere in mm (repeatable)",
+    )
     p.add_argument("--hardness", type=float, default=1.0, help="fixture hardness N/mm")
-    p.add_argument("--kind", default="accessible", choices=("accessible", "forbidden"),
-                   help="what the --fixture spheres are (the OCC paper: accessible)")
+    p.add_argument(
+        "--kind",
+        default="accessible",
+        choices=("accessible", "forbidden"),
+        help="what the --fixture spheres are (the OCC paper: accessible)",
+    )
     p.add_argument("--json", type=str, default=None, help="write the summary to this file")
     p.add_argument("--connect-timeout", type=float, default=5.0)
     args = p.parse_args(argv)

@@ -34,8 +34,9 @@ contiguous numbers only hold and resume (docs/ARCHITECTURE.md, "Safety").
     their statistics JSON. Stops are matched to the proxy's runs of drops by wall time (same
     machine, same clock): a loss stop must follow a run of >= 3 drops (or be a *silence* stop:
     the master itself fell silent for longer than the grace); a run of <= 2 drops must not stop
-    the robot unless the stream was silent longer than the grace at the proxy anyway; every run of >= 3 drops that starts while the slave
-    is RUNNING and armed must stop it exactly once. Latencies are estimated (stop STATUS time -
+    the robot unless the stream was silent longer than the grace at the proxy anyway; every run
+    of >= 3 drops that starts while the slave is RUNNING and armed must stop it exactly once.
+    Latencies are estimated (stop STATUS time -
     arrival of the last good datagram at the proxy) and reported, never judged: wall-clock
     numbers depend on the machine's load.
 
@@ -111,7 +112,9 @@ class RunOutcome:
     t_s: float  # time of the first drop, seconds since the start of the stream
     length: int
     first_seq: int | None
-    category: str  # "stop", "no-stop", "masked", "bad-stop" (a <=2 run followed by a stop), "missed"
+    category: (
+        str  # "stop", "no-stop", "masked", "bad-stop" (a <=2 run followed by a stop), "missed"
+    )
     latency_ms: float | None = None  # last good packet -> latched stop
     note: str = ""
     hold_ms: float | None = None  # last good packet -> motion held (sim: exact)
@@ -149,8 +152,14 @@ def summarize(values: list[float]) -> dict[str, float] | None:
     def pct(p: float) -> float:
         return round(v[min(n - 1, max(0, int(math.ceil(p / 100.0 * n)) - 1))], 3)
 
-    return {"n": n, "min": round(v[0], 3), "p50": pct(50), "p99": pct(99), "max": round(v[-1], 3),
-            "mean": round(sum(v) / n, 3)}
+    return {
+        "n": n,
+        "min": round(v[0], 3),
+        "p50": pct(50),
+        "p99": pct(99),
+        "max": round(v[-1], 3),
+        "mean": round(sum(v) / n, 3),
+    }
 
 
 # =============================================================================================
@@ -174,8 +183,9 @@ class SimSlave:
             self.sim.close()
             raise SystemExit(f"{config}: no operator (role: operator) interface")
         self.master = self.sim.peer(cfg.safety.loss.input, address=("127.0.0.1", 40000))
-        self.operator = self.sim.peer(ops[0].name, address=("127.0.0.1", 40001),
-                                      on_message=self._capture)
+        self.operator = self.sim.peer(
+            ops[0].name, address=("127.0.0.1", 40001), on_message=self._capture
+        )
         self.seq = first_seq & 0xFFFFFFFF
         self.statuses: list[Any] = []  # (tick, STATUS) sent to the operator (alerts)
         self.replies: list[Any] = []  # RTS_COMMAND replies to the operator
@@ -290,16 +300,28 @@ def run_sim(args: argparse.Namespace, out: Path) -> Report:
             cat = "stop" if length > MAX_TOLERATED else "bad-stop"
         else:
             cat = "no-stop" if length <= MAX_TOLERATED else "missed"
-        rep.runs.append(RunOutcome(round((run["tick"] - t_origin) / 1000.0, 3), length, run["seq"], cat,
-                                   run.get("latency"), hold_ms=run.get("hold")))
+        rep.runs.append(
+            RunOutcome(
+                round((run["tick"] - t_origin) / 1000.0, 3),
+                length,
+                run["seq"],
+                cat,
+                run.get("latency"),
+                hold_ms=run.get("hold"),
+            )
+        )
 
     while slave.k < end_tick:
         k = slave.k
         if time.perf_counter() > next_progress and args.progress:
             next_progress += 30.0
-            print(f"soak sim: {(k - t_origin) / 1000.0:.0f}/{sim_s:.0f} simulated s, "
-                  f"{stops_ok} stops, {len(failures)} failures, "
-                  f"{time.perf_counter() - t_wall0:.0f} s", file=sys.stderr, flush=True)
+            print(
+                f"soak sim: {(k - t_origin) / 1000.0:.0f}/{sim_s:.0f} simulated s, "
+                f"{stops_ok} stops, {len(failures)} failures, "
+                f"{time.perf_counter() - t_wall0:.0f} s",
+                file=sys.stderr,
+                flush=True,
+            )
         pre = robot.state
         is_packet = k % 2 == 0
         drop = False
@@ -318,44 +340,67 @@ def run_sim(args: argparse.Namespace, out: Path) -> Report:
         slave.tick()
         post = robot.state
 
-            # ---- oracle: what should have happened at this tick
+        # ---- oracle: what should have happened at this tick
         closing = False
         if is_packet:
             if drop:
                 if open_run is None:
-                    open_run = {"tick": k, "seq": seq, "length": 0, "evaluated": armed and pre is RUNNING,
-                                "last_good": last_good, "stopped": False, "hold": None}
+                    open_run = {
+                        "tick": k,
+                        "seq": seq,
+                        "length": 0,
+                        "evaluated": armed and pre is RUNNING,
+                        "last_good": last_good,
+                        "stopped": False,
+                        "hold": None,
+                    }
                 open_run["length"] += 1
             else:
                 if open_run is not None:
                     closing = True
-                    if (open_run["evaluated"] and not open_run["stopped"]
-                            and open_run["length"] > MAX_TOLERATED):
+                    if (
+                        open_run["evaluated"]
+                        and not open_run["stopped"]
+                        and open_run["length"] > MAX_TOLERATED
+                    ):
                         expected_stop = k  # this packet proves the numbers missing
                 if pre is RUNNING and not is_resume:
                     armed = True  # the first good packet after a (re)start arms the monitor
                     last_good = k
-        if (open_run is not None and open_run["evaluated"] and not open_run["stopped"]
-                and open_run["last_good"] is not None and k == open_run["last_good"] + grace_ticks):
+        if (
+            open_run is not None
+            and open_run["evaluated"]
+            and not open_run["stopped"]
+            and open_run["last_good"] is not None
+            and k == open_run["last_good"] + grace_ticks
+        ):
             expected_stop = k  # silent past the grace: a dead master
         # holds: exactly at +7 ms for a run of >= 3, never otherwise
         holding = monitor.holding and post is RUNNING
         if holding and not was_holding:
-            if (open_run is not None and open_run["evaluated"] and open_run["hold"] is None
-                    and open_run["last_good"] is not None):
+            if (
+                open_run is not None
+                and open_run["evaluated"]
+                and open_run["hold"] is None
+                and open_run["last_good"] is not None
+            ):
                 open_run["hold"] = k - open_run["last_good"]
                 hold_latencies.append(float(open_run["hold"]))
             else:
                 unexpected_holds += 1
-                failures.append(f"tick {k}: UNEXPECTED hold; open run "
-                                f"{open_run['length'] if open_run else 0}, armed {armed}")
+                failures.append(
+                    f"tick {k}: UNEXPECTED hold; open run "
+                    f"{open_run['length'] if open_run else 0}, armed {armed}"
+                )
         was_holding = holding
         if is_resume:
             resumes += 1
             r = slave.reply_to(resume_cid) if resume_cid is not None else None
             if r is None or r.metadata.get("Status") != "SUCCESS" or post is not RUNNING:
                 resume_failed += 1
-                failures.append(f"tick {k}: operator Run failed: {r and r.metadata}, state {post.value}")
+                failures.append(
+                    f"tick {k}: operator Run failed: {r and r.metadata}, state {post.value}"
+                )
             armed = False  # reset by entering RUNNING: armed again by the next packet
             resume_at = None
         if pre is RUNNING and post is STOPPED:
@@ -366,9 +411,15 @@ def run_sim(args: argparse.Namespace, out: Path) -> Report:
                 open_run["stopped"] = True
                 open_run["latency"] = lat
                 stop_latencies.append(lat)
-                rep.stops.append({"t_s": round((k - t_origin) / 1000.0, 3), "latency_ms": lat,
-                                  "hold_ms": open_run["hold"], "first_lost_seq": open_run["seq"],
-                                  "reason": reason})
+                rep.stops.append(
+                    {
+                        "t_s": round((k - t_origin) / 1000.0, 3),
+                        "latency_ms": lat,
+                        "hold_ms": open_run["hold"],
+                        "first_lost_seq": open_run["seq"],
+                        "reason": reason,
+                    }
+                )
             else:
                 unexpected += 1
                 if open_run is not None:
@@ -377,22 +428,32 @@ def run_sim(args: argparse.Namespace, out: Path) -> Report:
                     f"tick {k}: UNEXPECTED stop ({reason}); open run "
                     f"{open_run['length'] if open_run else 0}, armed {armed}, last good {last_good}"
                 )
-                rep.stops.append({"t_s": round((k - t_origin) / 1000.0, 3), "latency_ms": None,
-                                  "reason": reason, "unexpected": True})
+                rep.stops.append(
+                    {
+                        "t_s": round((k - t_origin) / 1000.0, 3),
+                        "latency_ms": None,
+                        "reason": reason,
+                        "unexpected": True,
+                    }
+                )
             expected_stop = None
             armed = False
             was_holding = False
             resume_at = k + pause
         elif expected_stop == k:
             missed += 1
-            failures.append(f"tick {k}: MISSED stop: run of {open_run and open_run['length']} losses "
-                            f"from seq {open_run and open_run['seq']}, robot {post.value}")
+            failures.append(
+                f"tick {k}: MISSED stop: run of {open_run and open_run['length']} losses "
+                f"from seq {open_run and open_run['seq']}, robot {post.value}"
+            )
             expected_stop = None
         if closing:
             close_run(k)
         if post is not RUNNING and post is not STOPPED:
-            failures.append(f"tick {k}: robot left RUNNING/STOPPED: {post.value} "
-                            f"({robot.state_machine.last_reason}); soak aborted")
+            failures.append(
+                f"tick {k}: robot left RUNNING/STOPPED: {post.value} "
+                f"({robot.state_machine.last_reason}); soak aborted"
+            )
             break
         # every STATUS to the operators: a STOPPED one must name the packet loss
         while status_seen < len(slave.statuses):
@@ -452,30 +513,50 @@ def run_sim(args: argparse.Namespace, out: Path) -> Report:
         "wall_seconds": round(elapsed, 1),
         "speed_x_realtime": round((slave.k - t_origin) / 1000.0 / elapsed, 2) if elapsed else None,
     }
-    rep.check("stop iff run >= 3",
-              unexpected == 0 and missed == 0 and cats.get("missed", 0) == 0 and stops_ok == len(ev_long),
-              f"{len(ev_long)} evaluated runs >= 3 -> {stops_ok} latched stops at the expected tick "
-              f"(the packet that proves the gap, or the grace); {unexpected} unexpected, {missed} missed")
-    rep.check("runs of 1-2 never stop",
-              cats.get("bad-stop", 0) == 0 and all(r.category == "no-stop" for r in ev_short),
-              f"{len(ev_short)} evaluated runs of 1-2 losses, {cats.get('bad-stop', 0)} followed by a stop")
+    rep.check(
+        "stop iff run >= 3",
+        unexpected == 0 and missed == 0 and cats.get("missed", 0) == 0 and stops_ok == len(ev_long),
+        f"{len(ev_long)} evaluated runs >= 3 -> {stops_ok} latched stops at the expected tick "
+        f"(the packet that proves the gap, or the grace); {unexpected} unexpected, {missed} missed",
+    )
+    rep.check(
+        "runs of 1-2 never stop",
+        cats.get("bad-stop", 0) == 0 and all(r.category == "no-stop" for r in ev_short),
+        f"{len(ev_short)} evaluated runs of 1-2 losses, "
+        f"{cats.get('bad-stop', 0)} followed by a stop",
+    )
     held = [r for r in ev_long if r.hold_ms is not None]
-    rep.check("every run >= 3 holds motion at exactly +7 ms",
-              unexpected_holds == 0 and len(held) == len(ev_long)
-              and all(v == STOP_WITHIN_MS for v in hold_latencies),
-              f"{len(hold_latencies)} holds, at {summarize(hold_latencies)} ms after the last good "
-              f"packet (tick = 1 ms); {unexpected_holds} unexpected holds; latched stops at "
-              f"{summarize(stop_latencies)} ms")
-    rep.check("every stop alerts the operators",
-              alert_ok == n_stops and not alert_bad,
-              f"{alert_ok} STATUS STOPPED 'packet loss' alerts for {n_stops} stops"
-              + (f"; other: {alert_bad[:3]}" if alert_bad else ""))
-    rep.check("loss monitor trips == stops", counters.get("trips") == n_stops,
-              f"loss monitor trips {counters.get('trips')}, observed stops {n_stops}")
-    rep.check("operator Run resumes after every stop", resume_failed == 0 and resumes >= n_stops - 1,
-              f"{resumes} Runs after {n_stops} stops, {resume_failed} failed")
-    rep.check("enough evidence", len(ev_long) > 0 and len(ev_short) > 0,
-              f"{len(ev_long)} runs >= 3 and {len(ev_short)} runs of 1-2 were judged", severity="warn")
+    rep.check(
+        "every run >= 3 holds motion at exactly +7 ms",
+        unexpected_holds == 0
+        and len(held) == len(ev_long)
+        and all(v == STOP_WITHIN_MS for v in hold_latencies),
+        f"{len(hold_latencies)} holds, at {summarize(hold_latencies)} ms after the last good "
+        f"packet (tick = 1 ms); {unexpected_holds} unexpected holds; latched stops at "
+        f"{summarize(stop_latencies)} ms",
+    )
+    rep.check(
+        "every stop alerts the operators",
+        alert_ok == n_stops and not alert_bad,
+        f"{alert_ok} STATUS STOPPED 'packet loss' alerts for {n_stops} stops"
+        + (f"; other: {alert_bad[:3]}" if alert_bad else ""),
+    )
+    rep.check(
+        "loss monitor trips == stops",
+        counters.get("trips") == n_stops,
+        f"loss monitor trips {counters.get('trips')}, observed stops {n_stops}",
+    )
+    rep.check(
+        "operator Run resumes after every stop",
+        resume_failed == 0 and resumes >= n_stops - 1,
+        f"{resumes} Runs after {n_stops} stops, {resume_failed} failed",
+    )
+    rep.check(
+        "enough evidence",
+        len(ev_long) > 0 and len(ev_short) > 0,
+        f"{len(ev_long)} runs >= 3 and {len(ev_short)} runs of 1-2 were judged",
+        severity="warn",
+    )
     return rep
 
 
@@ -516,8 +597,10 @@ def write_configs(out: Path, slave_cfg: Path, master_cfg: Path) -> dict[str, Any
             iface["host"] = "127.0.0.1"
             ports["master_udp_iface"] = iface["name"]
     if "slave_udp" not in ports or "master_udp_iface" not in ports or "slave_op" not in ports:
-        raise SystemExit("soak real: could not find the slave's loss input / the master's UDP output "
-                         "/ the slave's operator interface in the configs")
+        raise SystemExit(
+            "soak real: could not find the slave's loss input / the master's UDP output "
+            "/ the slave's operator interface in the configs"
+        )
     ports["slave_yaml"] = str(out / "slave.yaml")
     ports["master_yaml"] = str(out / "master.yaml")
     ports["_slave"] = slave
@@ -537,10 +620,29 @@ def set_master_remote(ports: dict[str, Any], proxy_port: int) -> None:
     Path(ports["master_yaml"]).write_text(yaml.safe_dump(master, sort_keys=False))
 
 
-def start_occd(config: str, stats: Path, log: Path, duration: float,
-               start: str = "running", extra: list[str] | None = None) -> subprocess.Popen[bytes]:
-    cmd = [sys.executable, "-m", "occ.cli", config, "--start", start, "--stats", str(stats),
-           "--log-level", "WARNING", "--duration", f"{duration:.1f}", *(extra or [])]
+def start_occd(
+    config: str,
+    stats: Path,
+    log: Path,
+    duration: float,
+    start: str = "running",
+    extra: list[str] | None = None,
+) -> subprocess.Popen[bytes]:
+    cmd = [
+        sys.executable,
+        "-m",
+        "occ.cli",
+        config,
+        "--start",
+        start,
+        "--stats",
+        str(stats),
+        "--log-level",
+        "WARNING",
+        "--duration",
+        f"{duration:.1f}",
+        *(extra or []),
+    ]
     fh = open(log, "wb")  # noqa: SIM115 - closed by the caller via proc.stderr_file
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT)
     proc.log_file = fh  # type: ignore[attr-defined]
@@ -575,8 +677,15 @@ def run_real(args: argparse.Namespace, out: Path) -> Report:
     loss_cfg = (ports["_slave"].get("safety") or {}).get("loss") or {}
     deadline_ms = float(loss_cfg.get("grace_ms", 100.0))
     bound = duration + 30.0  # hard bound of every process, whatever happens here
-    proxy = LossProxy(("127.0.0.1", 0), ("127.0.0.1", ports["slave_udp"]), pattern,
-                      delay_ms=args.delay_ms, jitter_ms=args.jitter_ms, duration=bound, seed=args.seed)
+    proxy = LossProxy(
+        ("127.0.0.1", 0),
+        ("127.0.0.1", ports["slave_udp"]),
+        pattern,
+        delay_ms=args.delay_ms,
+        jitter_ms=args.jitter_ms,
+        duration=bound,
+        seed=args.seed,
+    )
     set_master_remote(ports, proxy.address[1])
     rep.numbers["ports"] = {k: v for k, v in ports.items() if not k.startswith("_")}
     rep.numbers["proxy_listen"] = list(proxy.address)
@@ -596,7 +705,9 @@ def run_real(args: argparse.Namespace, out: Path) -> Report:
         if not standin.connected.wait(10.0):
             raise SystemExit("soak real: the operator client could not connect to the slave")
         proxy.start()
-        master = start_occd(ports["master_yaml"], out / "master-stats.json", out / "master.log", bound)
+        master = start_occd(
+            ports["master_yaml"], out / "master-stats.json", out / "master.log", bound
+        )
         procs.append(master)
         names.append("master")
         if not wait_port(ports["master_tcp"], 30.0, master):
@@ -625,8 +736,13 @@ def run_real(args: argparse.Namespace, out: Path) -> Report:
                 t_send = time.time()
                 cid = standin.send_command("Run")
                 r = standin.wait_reply(cid, timeout=2.0)
-                runs_sent.append({"t_wall": t_send, "status": r.metadata.get("Status") if r else "no reply",
-                                  "text": getattr(r, "command", "") if r else ""})
+                runs_sent.append(
+                    {
+                        "t_wall": t_send,
+                        "status": r.metadata.get("Status") if r else "no reply",
+                        "text": getattr(r, "command", "") if r else "",
+                    }
+                )
         t_end_wall = time.time()
     finally:
         # the master first: the slave will then trip its deadline, after the window (ignored)
@@ -645,8 +761,9 @@ def run_real(args: argparse.Namespace, out: Path) -> Report:
             stats[name] = json.loads(f.read_text())
         except (OSError, ValueError):
             stats[name] = None
-    analyse_real(rep, proxy, statuses, runs_sent, stats, codes, t_start_wall, t_end_wall,
-                 deadline_ms, args)
+    analyse_real(
+        rep, proxy, statuses, runs_sent, stats, codes, t_start_wall, t_end_wall, deadline_ms, args
+    )
     return rep
 
 
@@ -658,17 +775,30 @@ def parse_stop_reason(msg: str) -> dict[str, Any]:
     """What the slave says about a loss stop: its sequence evidence or its silence."""
     m = _SEQ_RE.search(msg)
     if m:
-        return {"kind": "sequence", "lost": int(m.group(1)), "first": int(m.group(2)),
-                "last": int(m.group(3))}
+        return {
+            "kind": "sequence",
+            "lost": int(m.group(1)),
+            "first": int(m.group(2)),
+            "last": int(m.group(3)),
+        }
     m = _DEADLINE_RE.search(msg)
     if m:
         return {"kind": "deadline", "silence_ms": float(m.group(1))}
     return {"kind": "other"}
 
 
-def analyse_real(rep: Report, proxy: LossProxy, statuses: list[Any], runs_sent: list[dict[str, Any]],
-                 stats: dict[str, Any], codes: dict[str, int | None], t_start: float, t_end: float,
-                 deadline_ms: float, args: argparse.Namespace) -> None:
+def analyse_real(
+    rep: Report,
+    proxy: LossProxy,
+    statuses: list[Any],
+    runs_sent: list[dict[str, Any]],
+    stats: dict[str, Any],
+    codes: dict[str, int | None],
+    t_start: float,
+    t_end: float,
+    deadline_ms: float,
+    args: argparse.Namespace,
+) -> None:
     """Match the slave's stops (STATUS, wall time) to the proxy's runs of drops.
 
     The slave says why it stopped: "N consecutive packets lost (seq a-b)" (a late packet showed
@@ -680,12 +810,15 @@ def analyse_real(rep: Report, proxy: LossProxy, statuses: list[Any], runs_sent: 
     wall = proxy.mono_to_wall
     tol = args.match_tolerance_ms * 1e-3
     timeline = sorted((float(st.timestamp), st.error_name, st.status_message) for st in statuses)
-    stops = [(t, msg) for t, state, msg in timeline
-             if state == "STOPPED" and "->" in msg and t_start <= t <= t_end]
+    stops = [
+        (t, msg)
+        for t, state, msg in timeline
+        if state == "STOPPED" and "->" in msg and t_start <= t <= t_end
+    ]
 
     def state_at(t: float) -> tuple[str, float]:
         state, since = "UNKNOWN", -math.inf
-        for tt, s, msg in timeline:
+        for tt, s, _msg in timeline:
             if tt > t:
                 break
             if s in ("RUNNING", "STOPPED", "ENABLED", "READY", "FAULT", "ESTOP") and s != state:
@@ -702,7 +835,9 @@ def analyse_real(rep: Report, proxy: LossProxy, statuses: list[Any], runs_sent: 
     attributed: dict[int, list[float]] = {}
     stop_rows: list[dict[str, Any]] = []
     fails: list[str] = []  # stops that contradict the requirement
-    late_short: list[str] = []  # a run of 1-2 plus late delivery: the slave's deadline, legitimately
+    late_short: list[
+        str
+    ] = []  # a run of 1-2 plus late delivery: the slave's deadline, legitimately
     deadline_only: list[str] = []
     other_stops: list[str] = []
     latencies: list[float] = []
@@ -722,26 +857,38 @@ def analyse_real(rep: Report, proxy: LossProxy, statuses: list[Any], runs_sent: 
             by_proxy = sum(1 for s in seqs if s in dropped_seqs)
             if why["lost"] <= MAX_TOLERATED or by_proxy < why["lost"]:
                 row["kind"] = "sequence stop not explained by the proxy (FAIL)"
-                fails.append(f"{rel:.3f} s: slave lost {why['lost']} (seq {why['first']}-{why['last']}), "
-                             f"proxy dropped {by_proxy} of them: {msg}")
+                fails.append(
+                    f"{rel:.3f} s: slave lost {why['lost']} (seq {why['first']}-{why['last']}), "
+                    f"proxy dropped {by_proxy} of them: {msg}"
+                )
                 continue
             idx = run_of_seq.get(seqs[0])
         else:
             silence = why.get("silence_ms")
             if silence is None or silence < deadline_ms:
                 row["kind"] = f"silence stop shorter than the {deadline_ms:g} ms grace (FAIL)"
-                fails.append(f"{rel:.3f} s: stopped after only {silence} ms without a packet: {msg}")
+                fails.append(
+                    f"{rel:.3f} s: stopped after only {silence} ms without a packet: {msg}"
+                )
                 continue
             lo = t_stop - silence * 1e-3 - tol
-            over = [i for i, r in enumerate(runs)
-                    if wall(r.t_mono_first) <= t_stop and wall(r.t_mono_last) >= lo]  # type: ignore[operator]
+            over = [
+                i
+                for i, r in enumerate(runs)
+                if wall(r.t_mono_first) <= t_stop and wall(r.t_mono_last) >= lo
+            ]  # type: ignore[operator]
             idx = max(over, key=lambda i: runs[i].length) if over else None
         if idx is None:
             lo = t_stop - (why.get("silence_ms") or 0.0) * 1e-3 - tol
-            stall = max((g for t0, g in proxy.gaps if wall(t0) <= t_stop and wall(t0) + g >= lo),  # type: ignore[operator]
-                        default=None)
-            where = (f"the stream arrived {stall * 1e3:.1f} ms late at the proxy (master stalled)"
-                     if stall is not None else "no gap at the proxy: late inside the slave")
+            stall = max(
+                (g for t0, g in proxy.gaps if wall(t0) <= t_stop and wall(t0) + g >= lo),  # type: ignore[operator]
+                default=None,
+            )
+            where = (
+                f"the stream arrived {stall * 1e3:.1f} ms late at the proxy (master stalled)"
+                if stall is not None
+                else "no gap at the proxy: late inside the slave"
+            )
             row["kind"] = "deadline (no drop)"
             row["diagnosis"] = where
             deadline_only.append(f"{rel:.3f} s: {msg}; {where}")
@@ -749,10 +896,16 @@ def analyse_real(rep: Report, proxy: LossProxy, statuses: list[Any], runs_sent: 
         run = runs[idx]
         attributed.setdefault(idx, []).append(t_stop)
         prev_good = wall(run.t_prev_good)
-        s_proxy = ((run.t_next_good - run.t_prev_good) * 1e3
-                   if run.t_next_good is not None and run.t_prev_good is not None else None)
-        row.update(run_length=run.length, run_first_seq=run.first_seq,
-                   silence_at_proxy_ms=None if s_proxy is None else round(s_proxy, 3))
+        s_proxy = (
+            (run.t_next_good - run.t_prev_good) * 1e3
+            if run.t_next_good is not None and run.t_prev_good is not None
+            else None
+        )
+        row.update(
+            run_length=run.length,
+            run_first_seq=run.first_seq,
+            silence_at_proxy_ms=None if s_proxy is None else round(s_proxy, 3),
+        )
         if prev_good is not None:
             row["latency_est_ms"] = round((t_stop - prev_good) * 1e3, 3)
         if run.length > MAX_TOLERATED:
@@ -761,9 +914,11 @@ def analyse_real(rep: Report, proxy: LossProxy, statuses: list[Any], runs_sent: 
                 latencies.append((t_stop - prev_good) * 1e3)
         else:
             row["kind"] = "run<=2 + late delivery"
-            late_short.append(f"{rel:.3f} s: run of {run.length} (seq {run.first_seq}), proxy silence "
-                              f"{s_proxy if s_proxy is None else round(s_proxy, 2)} ms, slave silence "
-                              f"{why.get('silence_ms')} ms")
+            late_short.append(
+                f"{rel:.3f} s: run of {run.length} (seq {run.first_seq}), proxy silence "
+                f"{s_proxy if s_proxy is None else round(s_proxy, 2)} ms, slave silence "
+                f"{why.get('silence_ms')} ms"
+            )
     rep.stops = stop_rows
 
     missed: list[str] = []
@@ -781,7 +936,9 @@ def analyse_real(rep: Report, proxy: LossProxy, statuses: list[Any], runs_sent: 
                 cat = "stop"
             elif evaluable:
                 cat = "missed"
-                missed.append(f"run of {r.length} from seq {r.first_seq} at {r.t_wall_first - t_start:.3f} s")
+                missed.append(
+                    f"run of {r.length} from seq {r.first_seq} at {r.t_wall_first - t_start:.3f} s"
+                )
             else:
                 cat = "masked"
         elif hits:
@@ -789,7 +946,9 @@ def analyse_real(rep: Report, proxy: LossProxy, statuses: list[Any], runs_sent: 
         else:
             cat = "no-stop" if evaluable else "masked"
         lat = round((hits[0] - prev_good) * 1e3, 3) if hits and prev_good is not None else None
-        rep.runs.append(RunOutcome(round(r.t_wall_first - t_start, 4), r.length, r.first_seq, cat, lat))
+        rep.runs.append(
+            RunOutcome(round(r.t_wall_first - t_start, 4), r.length, r.first_seq, cat, lat)
+        )
 
     cats = Counter(r.category for r in rep.runs)
     loss_stops = [s for s in stop_rows if s.get("kind") != "other"]
@@ -798,71 +957,111 @@ def analyse_real(rep: Report, proxy: LossProxy, statuses: list[Any], runs_sent: 
     slave_stats = stats.get("slave") or {}
     master_stats = stats.get("master") or {}
     run_ok = [r for r in runs_sent if r["status"] == "SUCCESS"]
-    rep.numbers.update({
-        "duration_s": round(t_end - t_start, 3),
-        "proxy": proxy.summary(),
-        "runs_in_window": len(runs),
-        "runs_by_outcome": dict(sorted(cats.items())),
-        "run_length_histogram": histogram([r.length for r in runs]),
-        "stops": len(stops),
-        "stops_by_kind": dict(Counter(s["kind"] for s in stop_rows)),
-        "runs_ge3_judged": judged_long,
-        "stop_latency_est_ms": summarize(latencies),
-        "stop_latency_est_within_8ms": sum(1 for v in latencies if v <= STOP_WITHIN_MS + 1.0),
-        "operator_runs": len(runs_sent),
-        "operator_runs_ok": len(run_ok),
-        "status_messages": len(statuses),
-        "slave_loss_monitor": slave_stats.get("loss"),
-        "slave_state_at_exit": slave_stats.get("state"),
-        "slave_lateness_us": slave_stats.get("lateness_us"),
-        "slave_watchdog": slave_stats.get("watchdog"),
-        "slave_sample_to_write_us": (slave_stats.get("controller") or {}).get("sample_to_write_us"),
-        "slave_master_iface": (slave_stats.get("interfaces") or {}).get("master"),
-        "master_ticks": master_stats.get("ticks"),
-        "master_lateness_us": master_stats.get("lateness_us"),
-        "master_seq": (master_stats.get("controller") or {}).get("seq"),
-        "exit_codes": codes,
-        "grace_ms": deadline_ms,
-        "match_tolerance_ms": args.match_tolerance_ms,
-    })
-    rep.check("every loss stop follows a run >= 3 (or a deadline)", not fails,
-              f"{len(loss_stops)} loss stops: {sum(1 for s in stop_rows if s.get('kind') == 'run>=3')} "
-              f"after runs >= 3, {len(late_short)} after a run of 1-2 plus > {deadline_ms} ms of silence "
-              f"at the slave, {len(deadline_only)} deadline stops without drops, {len(fails)} contradicting "
-              f"the requirement" + (f": {fails[:3]}" if fails else ""))
-    rep.check("runs of 1-2 drops caused no stop by themselves", not fails,
-              f"{len(short)} runs of 1-2: {cats.get('no-stop', 0)} no stop, {cats.get('deadline-stop', 0)} "
-              f"stopped by the deadline because the next packet reached the slave late (slave silence "
-              f"> {deadline_ms} ms)")
-    rep.check("every run >= 3 (slave RUNNING) stopped the robot exactly once", not missed and not double,
-              f"{judged_long} runs >= 3 judged, {cats.get('stop', 0)} stopped, {len(missed)} missed; "
-              f"{sum(1 for r in rep.runs if r.length > MAX_TOLERATED and r.category == 'masked')} masked "
-              f"(slave already stopped)" + (f": {missed[:3]}" if missed else "")
-              + (f"; {double[:3]}" if double else ""))
-    rep.check("operator Run resumed after every stop",
-              len(run_ok) == len(runs_sent) and len(runs_sent) >= len(stops) - 1,
-              f"{len(run_ok)}/{len(runs_sent)} Runs succeeded for {len(stops)} stops")
-    rep.check("no stop other than packet loss", not other_stops,
-              f"{len(other_stops)} other stops" + (f": {other_stops[:3]}" if other_stops else ""),
-              severity="warn" if args.tolerate_other_stops else "fail")
-    rep.check("daemons ran and wrote statistics",
-              # the slave ends STOPPED (exit 4) when the master goes first at the end of a soak
-              bool(slave_stats) and bool(master_stats) and codes.get("master") == 0
-              and codes.get("slave") in (0, 4),
-              f"exit codes {codes}, stats: slave {'ok' if slave_stats else 'missing'}, "
-              f"master {'ok' if master_stats else 'missing'}")
-    rep.check("no deadline stop without drops", not deadline_only,
-              f"{len(deadline_only)} (timing, not loss: the stream paused > {deadline_ms} ms)"
-              + (f": {deadline_only[:3]}" if deadline_only else ""), severity="warn")
-    rep.check("no run of 1-2 stopped the robot (even with late delivery)", not late_short,
-              f"{len(late_short)}" + (f": {late_short[:3]}" if late_short else ""), severity="warn")
+    rep.numbers.update(
+        {
+            "duration_s": round(t_end - t_start, 3),
+            "proxy": proxy.summary(),
+            "runs_in_window": len(runs),
+            "runs_by_outcome": dict(sorted(cats.items())),
+            "run_length_histogram": histogram([r.length for r in runs]),
+            "stops": len(stops),
+            "stops_by_kind": dict(Counter(s["kind"] for s in stop_rows)),
+            "runs_ge3_judged": judged_long,
+            "stop_latency_est_ms": summarize(latencies),
+            "stop_latency_est_within_8ms": sum(1 for v in latencies if v <= STOP_WITHIN_MS + 1.0),
+            "operator_runs": len(runs_sent),
+            "operator_runs_ok": len(run_ok),
+            "status_messages": len(statuses),
+            "slave_loss_monitor": slave_stats.get("loss"),
+            "slave_state_at_exit": slave_stats.get("state"),
+            "slave_lateness_us": slave_stats.get("lateness_us"),
+            "slave_watchdog": slave_stats.get("watchdog"),
+            "slave_sample_to_write_us": (slave_stats.get("controller") or {}).get(
+                "sample_to_write_us"
+            ),
+            "slave_master_iface": (slave_stats.get("interfaces") or {}).get("master"),
+            "master_ticks": master_stats.get("ticks"),
+            "master_lateness_us": master_stats.get("lateness_us"),
+            "master_seq": (master_stats.get("controller") or {}).get("seq"),
+            "exit_codes": codes,
+            "grace_ms": deadline_ms,
+            "match_tolerance_ms": args.match_tolerance_ms,
+        }
+    )
+    rep.check(
+        "every loss stop follows a run >= 3 (or a deadline)",
+        not fails,
+        f"{len(loss_stops)} loss stops: {sum(1 for s in stop_rows if s.get('kind') == 'run>=3')} "
+        f"after runs >= 3, {len(late_short)} after a run of 1-2 plus > {deadline_ms} ms of silence "
+        f"at the slave, {len(deadline_only)} deadline stops without drops, "
+        f"{len(fails)} contradicting "
+        f"the requirement" + (f": {fails[:3]}" if fails else ""),
+    )
+    rep.check(
+        "runs of 1-2 drops caused no stop by themselves",
+        not fails,
+        f"{len(short)} runs of 1-2: {cats.get('no-stop', 0)} no stop, "
+        f"{cats.get('deadline-stop', 0)} "
+        f"stopped by the deadline because the next packet reached the slave late (slave silence "
+        f"> {deadline_ms} ms)",
+    )
+    rep.check(
+        "every run >= 3 (slave RUNNING) stopped the robot exactly once",
+        not missed and not double,
+        f"{judged_long} runs >= 3 judged, {cats.get('stop', 0)} stopped, {len(missed)} missed; "
+        f"{sum(1 for r in rep.runs if r.length > MAX_TOLERATED and r.category == 'masked')} masked "
+        f"(slave already stopped)"
+        + (f": {missed[:3]}" if missed else "")
+        + (f"; {double[:3]}" if double else ""),
+    )
+    rep.check(
+        "operator Run resumed after every stop",
+        len(run_ok) == len(runs_sent) and len(runs_sent) >= len(stops) - 1,
+        f"{len(run_ok)}/{len(runs_sent)} Runs succeeded for {len(stops)} stops",
+    )
+    rep.check(
+        "no stop other than packet loss",
+        not other_stops,
+        f"{len(other_stops)} other stops" + (f": {other_stops[:3]}" if other_stops else ""),
+        severity="warn" if args.tolerate_other_stops else "fail",
+    )
+    rep.check(
+        "daemons ran and wrote statistics",
+        # the slave ends STOPPED (exit 4) when the master goes first at the end of a soak
+        bool(slave_stats)
+        and bool(master_stats)
+        and codes.get("master") == 0
+        and codes.get("slave") in (0, 4),
+        f"exit codes {codes}, stats: slave {'ok' if slave_stats else 'missing'}, "
+        f"master {'ok' if master_stats else 'missing'}",
+    )
+    rep.check(
+        "no deadline stop without drops",
+        not deadline_only,
+        f"{len(deadline_only)} (timing, not loss: the stream paused > {deadline_ms} ms)"
+        + (f": {deadline_only[:3]}" if deadline_only else ""),
+        severity="warn",
+    )
+    rep.check(
+        "no run of 1-2 stopped the robot (even with late delivery)",
+        not late_short,
+        f"{len(late_short)}" + (f": {late_short[:3]}" if late_short else ""),
+        severity="warn",
+    )
     trips = (slave_stats.get("loss") or {}).get("trips")
-    rep.check("slave loss-monitor trips match the loss stops",
-              trips is not None and len(loss_stops) <= trips <= len(loss_stops) + 1,
-              f"trips {trips} (one more is the end-of-soak master shutdown), loss stops {len(loss_stops)}",
-              severity="warn")
-    rep.check("enough evidence", judged_long > 0 and cats.get("no-stop", 0) > 0,
-              f"{judged_long} runs >= 3 and {cats.get('no-stop', 0)} runs of 1-2 judged", severity="warn")
+    rep.check(
+        "slave loss-monitor trips match the loss stops",
+        trips is not None and len(loss_stops) <= trips <= len(loss_stops) + 1,
+        f"trips {trips} (one more is the end-of-soak master shutdown), "
+        f"loss stops {len(loss_stops)}",
+        severity="warn",
+    )
+    rep.check(
+        "enough evidence",
+        judged_long > 0 and cats.get("no-stop", 0) > 0,
+        f"{judged_long} runs >= 3 and {cats.get('no-stop', 0)} runs of 1-2 judged",
+        severity="warn",
+    )
 
 
 # =============================================================================================
@@ -875,12 +1074,25 @@ def write_runs_csv(rep: Report, path: Path) -> None:
         w = csv.writer(fh)
         w.writerow(["t_s", "length", "first_seq", "category", "latency_ms"])
         for r in rep.runs:
-            w.writerow([r.t_s, r.length, "" if r.first_seq is None else r.first_seq, r.category,
-                        "" if r.latency_ms is None else r.latency_ms])
+            w.writerow(
+                [
+                    r.t_s,
+                    r.length,
+                    "" if r.first_seq is None else r.first_seq,
+                    r.category,
+                    "" if r.latency_ms is None else r.latency_ms,
+                ]
+            )
 
 
-COLORS = {"stop": "tab:red", "no-stop": "tab:green", "masked": "tab:gray", "bad-stop": "black",
-          "missed": "tab:purple", "deadline-stop": "tab:orange"}
+COLORS = {
+    "stop": "tab:red",
+    "no-stop": "tab:green",
+    "masked": "tab:gray",
+    "bad-stop": "black",
+    "missed": "tab:purple",
+    "deadline-stop": "tab:orange",
+}
 
 
 def plot(rep: Report, out: Path) -> list[str]:
@@ -897,14 +1109,30 @@ def plot(rep: Report, out: Path) -> list[str]:
     fig, ax = plt.subplots(figsize=(11, 4))
     for cat in sorted({r.category for r in rep.runs}):
         pts = [r for r in rep.runs if r.category == cat]
-        ax.scatter([r.t_s for r in pts], [r.length for r in pts], s=8, color=COLORS.get(cat, "tab:blue"),
-                   label=f"{cat} ({len(pts)})", zorder=3)
+        ax.scatter(
+            [r.t_s for r in pts],
+            [r.length for r in pts],
+            s=8,
+            color=COLORS.get(cat, "tab:blue"),
+            label=f"{cat} ({len(pts)})",
+            zorder=3,
+        )
     stop_t = [s["t_s"] for s in rep.stops]
     if stop_t:
         ymax = max([r.length for r in rep.runs] + [3])
-        ax.vlines(stop_t, 0, ymax + 0.5, colors="tab:red", alpha=0.25 if len(stop_t) > 50 else 0.6,
-                  linewidth=0.8, label=f"robot stopped ({len(stop_t)})", zorder=1)
-    ax.axhline(MAX_TOLERATED + 0.5, color="k", linestyle="--", linewidth=0.8, label="stop threshold (3)")
+        ax.vlines(
+            stop_t,
+            0,
+            ymax + 0.5,
+            colors="tab:red",
+            alpha=0.25 if len(stop_t) > 50 else 0.6,
+            linewidth=0.8,
+            label=f"robot stopped ({len(stop_t)})",
+            zorder=1,
+        )
+    ax.axhline(
+        MAX_TOLERATED + 0.5, color="k", linestyle="--", linewidth=0.8, label="stop threshold (3)"
+    )
     ax.set_xlabel("time since the stream started (s)")
     ax.set_ylabel("consecutive packets dropped")
     ax.set_title(f"{rep.mode}: runs of dropped POSITION packets and robot stops")
@@ -948,8 +1176,10 @@ def plot(rep: Report, out: Path) -> list[str]:
         else:
             ax.hist(lat, bins=30, color="tab:red")
     ax.axvline(STOP_WITHIN_MS, color="k", linestyle="--", label="7 ms requirement")
-    ax.set_xlabel("last good packet -> robot stopped (ms)"
-                  + (" [estimated: proxy arrival -> STATUS time]" if rep.mode == "real" else ""))
+    ax.set_xlabel(
+        "last good packet -> robot stopped (ms)"
+        + (" [estimated: proxy arrival -> STATUS time]" if rep.mode == "real" else "")
+    )
     ax.set_ylabel("stops")
     ax.set_title(f"{rep.mode}: stop latency ({len(lat)} stops)")
     ax.legend(fontsize=8)
@@ -960,8 +1190,13 @@ def plot(rep: Report, out: Path) -> list[str]:
     return files
 
 
-def write_report(rep: Report, out: Path, *, title: str | None = None,
-                 plotter: Callable[[Report, Path], list[str]] | None = None) -> None:
+def write_report(
+    rep: Report,
+    out: Path,
+    *,
+    title: str | None = None,
+    plotter: Callable[[Report, Path], list[str]] | None = None,
+) -> None:
     """report.json + report.md (+ plots) in ``out``. ``title`` and ``plotter`` let other tools
     (tools/stability.py) write the same report format with their own plots; the default is
     the soak's (runs.csv and its three plots)."""
@@ -982,9 +1217,16 @@ def write_report(rep: Report, out: Path, *, title: str | None = None,
     }
     (out / "report.json").write_text(json.dumps(data, indent=2, default=str) + "\n")
     n = rep.numbers
-    lines = [f"# {title or f'Loss soak ({rep.mode})'}: {'PASS' if rep.passed else 'FAIL'}", "",
-             f"Command: `{rep.command}`", "", "## Checks", "", "| check | result | detail |",
-             "|---|---|---|"]
+    lines = [
+        f"# {title or f'Loss soak ({rep.mode})'}: {'PASS' if rep.passed else 'FAIL'}",
+        "",
+        f"Command: `{rep.command}`",
+        "",
+        "## Checks",
+        "",
+        "| check | result | detail |",
+        "|---|---|---|",
+    ]
     for c in rep.checks:
         lines.append(f"| {c.name} | {c.label} | {c.detail.replace('|', '/')} |")
     lines += ["", "## Numbers", ""]
@@ -1029,17 +1271,27 @@ def run_paper_real(args: argparse.Namespace, out: Path) -> tuple[Report, Any]:
     n_runs = int(round(args.loss * packets / 2.0))
     warmup = int(args.warmup * rate)
     try:
-        pattern = LossPattern(seed=args.seed, drop_runs=[(2, n_runs)] if n_runs else [],
-                              expected=packets, warmup=warmup, tail=int(rate), min_gap=1)
+        pattern = LossPattern(
+            seed=args.seed,
+            drop_runs=[(2, n_runs)] if n_runs else [],
+            expected=packets,
+            warmup=warmup,
+            tail=int(rate),
+            min_gap=1,
+        )
     except ValueError as err:
         raise SystemExit(f"soak paper --real: {err}") from None
     ports = write_configs(out, Path(args.slave_config), Path(args.master_config))
     slave_cfg = ports["_slave"]
-    slave_cfg["recording"] = {**(slave_cfg.get("recording") or {}), "path": None,
-                              "rate_hz": float(args.record_rate_hz)}
+    slave_cfg["recording"] = {
+        **(slave_cfg.get("recording") or {}),
+        "path": None,
+        "rate_hz": float(args.record_rate_hz),
+    }
     bound = duration + 30.0
-    proxy = LossProxy(("127.0.0.1", 0), ("127.0.0.1", ports["slave_udp"]), pattern,
-                      duration=bound, seed=args.seed)
+    proxy = LossProxy(
+        ("127.0.0.1", 0), ("127.0.0.1", ports["slave_udp"]), pattern, duration=bound, seed=args.seed
+    )
     set_master_remote(ports, proxy.address[1])
     rec = {"slave": out / "slave.rec", "master": out / "master.rec"}
     procs: dict[str, subprocess.Popen[bytes]] = {}
@@ -1049,32 +1301,50 @@ def run_paper_real(args: argparse.Namespace, out: Path) -> tuple[Report, Any]:
     codes: dict[str, int | None] = {}
     t_start = t_end = time.monotonic()
     try:
-        procs["slave"] = start_occd(ports["slave_yaml"], out / "slave-stats.json",
-                                    out / "slave.log", bound, extra=["--record", str(rec["slave"])])
+        procs["slave"] = start_occd(
+            ports["slave_yaml"],
+            out / "slave-stats.json",
+            out / "slave.log",
+            bound,
+            extra=["--record", str(rec["slave"])],
+        )
         if not wait_port(ports["slave_op"], 30.0, procs["slave"]):
-            raise SystemExit(f"soak paper --real: the slave did not start (see {out / 'slave.log'})")
+            raise SystemExit(
+                f"soak paper --real: the slave did not start (see {out / 'slave.log'})"
+            )
         standin = SlicerStandIn("127.0.0.1", ports["slave_op"]).start()
         if not standin.connected.wait(10.0):
             raise SystemExit("soak paper --real: the operator client could not connect")
         proxy.start()
-        procs["master"] = start_occd(ports["master_yaml"], out / "master-stats.json",
-                                     out / "master.log", bound,
-                                     extra=["--record", str(rec["master"])])
+        procs["master"] = start_occd(
+            ports["master_yaml"],
+            out / "master-stats.json",
+            out / "master.log",
+            bound,
+            extra=["--record", str(rec["master"])],
+        )
         if not wait_port(ports["master_tcp"], 30.0, procs["master"]):
-            raise SystemExit(f"soak paper --real: the master did not start (see {out / 'master.log'})")
+            raise SystemExit(
+                f"soak paper --real: the master did not start (see {out / 'master.log'})"
+            )
         t0 = time.monotonic()
         while proxy.counters.received == 0 and time.monotonic() - t0 < 10.0:
             time.sleep(0.01)
         t_start = time.monotonic()
-        progress = (stability.Progress(duration, label="soak paper --real", unit="s")
-                    if args.progress else None)
+        progress = (
+            stability.Progress(duration, label="soak paper --real", unit="s")
+            if args.progress
+            else None
+        )
         end = t_start + duration
         while time.monotonic() < end:
             time.sleep(0.05)
             for name, proc in procs.items():
                 if proc.poll() is not None:
-                    raise SystemExit(f"soak paper --real: the {name} exited early with "
-                                     f"{proc.returncode} (see {out / (name + '.log')})")
+                    raise SystemExit(
+                        f"soak paper --real: the {name} exited early with "
+                        f"{proc.returncode} (see {out / (name + '.log')})"
+                    )
             if progress is not None and progress.due():
                 progress.show(time.monotonic() - t_start)
         t_end = time.monotonic()
@@ -1102,8 +1372,18 @@ def run_paper_real(args: argparse.Namespace, out: Path) -> tuple[Report, Any]:
         except (OSError, ValueError):
             stats[name] = None
     params = (slave_cfg.get("controller") or {}).get("params") or {}
-    traces = analyse_paper_real(rep, args, proxy, stats, statuses, rec, codes, cpu,
-                                t_end - t_start, float(params.get("scale", 0.1)))
+    traces = analyse_paper_real(
+        rep,
+        args,
+        proxy,
+        stats,
+        statuses,
+        rec,
+        codes,
+        cpu,
+        t_end - t_start,
+        float(params.get("scale", 0.1)),
+    )
     return rep, traces
 
 
@@ -1141,21 +1421,33 @@ def _read_paper_recordings(rec: dict[str, Path]) -> dict[str, Any]:
             columns = meta.get("columns", columns)
     cols = columns.split(",") if columns else []
     table = np.vstack(rows) if rows else np.zeros((0, max(len(cols), 1)))
-    pick = [cols.index(c) for c in ("t", "state", "tip.x_mm", "tip.y_mm", "tip.z_mm")] if rows else []
+    pick = (
+        [cols.index(c) for c in ("t", "state", "tip.x_mm", "tip.y_mm", "tip.z_mm")] if rows else []
+    )
     return {
-        "m_t": np.asarray(m_t), "m_pos": np.asarray(m_pos, dtype=np.float64).reshape(-1, 3),
-        "s_in_t": np.asarray(s_in_t), "s_in_run": np.asarray(s_in_run, dtype=bool),
+        "m_t": np.asarray(m_t),
+        "m_pos": np.asarray(m_pos, dtype=np.float64).reshape(-1, 3),
+        "s_in_t": np.asarray(s_in_t),
+        "s_in_run": np.asarray(s_in_run, dtype=bool),
         "rows": table[:, pick] if rows else np.zeros((0, 5)),
     }
 
 
-def analyse_paper_real(rep: Report, args: argparse.Namespace, proxy: LossProxy,
-                       stats: dict[str, Any], statuses: list[Any], rec: dict[str, Path],
-                       codes: dict[str, int | None], cpu: dict[str, float | None],
-                       window_s: float, scale: float) -> Any:
+def analyse_paper_real(
+    rep: Report,
+    args: argparse.Namespace,
+    proxy: LossProxy,
+    stats: dict[str, Any],
+    statuses: list[Any],
+    rec: dict[str, Path],
+    codes: dict[str, int | None],
+    cpu: dict[str, float | None],
+    window_s: float,
+    scale: float,
+) -> Any:
     import numpy as np
-
     import stability
+
     from occ.record import STATE_CODES
 
     traces = stability.Traces(time_label="time since the stream started (s)")
@@ -1167,8 +1459,11 @@ def analyse_paper_real(rep: Report, args: argparse.Namespace, proxy: LossProxy,
     ctl = slave_stats.get("controller") or {}
     loss = slave_stats.get("loss") or {}
     # stops during the window, as the operator saw them (STATUS alerts)
-    stops = [f"{s.error_name}: {s.status_message}" for s in statuses
-             if s.error_name in ("STOPPED", "FAULT", "ESTOP")]
+    stops = [
+        f"{s.error_name}: {s.status_message}"
+        for s in statuses
+        if s.error_name in ("STOPPED", "FAULT", "ESTOP")
+    ]
     data = _read_paper_recordings(rec)
     m_t, m_pos, s_in_t, rows = data["m_t"], data["m_pos"], data["s_in_t"], data["rows"]
     # the window: from the first POSITION the slave took to the master's last one
@@ -1180,7 +1475,7 @@ def analyse_paper_real(rep: Report, args: argparse.Namespace, proxy: LossProxy,
     values, counts = np.unique(binned, return_counts=True)
     hist = {f"{v:g}": int(c) for v, c in zip(values.tolist(), counts.tolist(), strict=True)}
     long_gaps = int(np.count_nonzero(gaps_ms >= 5.0))
-    arr_t = s_in_t[1:len(gaps_ms) + 1] - t_lo
+    arr_t = s_in_t[1 : len(gaps_ms) + 1] - t_lo
     sel = arr_t >= (arr_t[-1] - args.arrival_window if len(arr_t) else 0.0)
     traces.arrivals = list(zip(arr_t[sel].tolist(), gaps_ms[sel].tolist(), strict=True))
     sel0 = arr_t < args.warmup
@@ -1195,19 +1490,25 @@ def analyse_paper_real(rep: Report, args: argparse.Namespace, proxy: LossProxy,
     if mref is not None and sref is not None and len(rows) and len(m_t) > 1 and len(run_in):
         t_reindex = float(run_in[0])
         t = rows[:, 0]
-        ok = ((rows[:, 1] == STATE_CODES["RUNNING"]) & (t >= t_reindex + args.settle)
-              & (t >= m_t[0]) & (t <= t_hi))
+        ok = (
+            (rows[:, 1] == STATE_CODES["RUNNING"])
+            & (t >= t_reindex + args.settle)
+            & (t >= m_t[0])
+            & (t <= t_hi)
+        )
         tr = rows[ok]
         hand = np.column_stack([np.interp(tr[:, 0], m_t, m_pos[:, c]) for c in range(3)])
         ideal = np.asarray(sref) + scale * (hand - np.asarray(mref))
         err = ideal - tr[:, 2:5]
         for c, a in enumerate(stability.AXES):
             errs[a].add_many(np.ascontiguousarray(err[:, c]))
-        compared = ("ideal slave tip slave_ref + scale*(master handle - master_ref) minus the "
-                    "slave's measured tip, at every state row of the slave's recording "
-                    f"({args.record_rate_hz:g} Hz), the master's handle (its recorded POSITION "
-                    f"stream, 500 Hz) interpolated at the row's time, from the re-index + "
-                    f"{args.settle} s")
+        compared = (
+            "ideal slave tip slave_ref + scale*(master handle - master_ref) minus the "
+            "slave's measured tip, at every state row of the slave's recording "
+            f"({args.record_rate_hz:g} Hz), the master's handle (its recorded POSITION "
+            f"stream, 500 Hz) interpolated at the row's time, from the re-index + "
+            f"{args.settle} s"
+        )
         win = tr[:, 0] >= tr[-1, 0] - args.window if len(tr) else np.zeros(0, dtype=bool)
         traces.t_s = (tr[win, 0] - t_lo).tolist()
         traces.master_mm = [tuple(v) for v in hand[win].tolist()]
@@ -1234,45 +1535,69 @@ def analyse_paper_real(rep: Report, args: argparse.Namespace, proxy: LossProxy,
         "scale": scale,
         "references_mm": {"master_ref": mref, "slave_ref": sref},
         "loss_monitor": loss,
-        "slave_controller": {k: ctl.get(k) for k in ("samples", "reindexes", "ik_clamped",
-                                                     "ik_failures", "sample_to_write_us")},
+        "slave_controller": {
+            k: ctl.get(k)
+            for k in ("samples", "reindexes", "ik_clamped", "ik_failures", "sample_to_write_us")
+        },
         "cpu_seconds": {k: (round(v, 1) if v is not None else None) for k, v in cpu.items()},
-        "cpu_percent": {k: (round(100.0 * v / window_s, 1) if v is not None and window_s else None)
-                        for k, v in cpu.items()},
+        "cpu_percent": {
+            k: (round(100.0 * v / window_s, 1) if v is not None and window_s else None)
+            for k, v in cpu.items()
+        },
         "exit_codes": codes,
         "loop_lateness_us": {k: (s or {}).get("lateness_us") for k, s in stats.items()},
         "recordings": {k: str(v) for k, v in rec.items()},
     }
-    rep.check("no stop, no fault", not stops,
-              f"{len(stops)} STOPPED/FAULT alerts to the operator during {window_s:.0f} s"
-              + (f": {stops[:3]}" if stops else ""))
-    rep.check("the proxy lost packets in runs of exactly 2",
-              set(run_lengths) <= {"2"} and run_lengths.get("2", 0) > 0,
-              f"runs by length {run_lengths}, {psum['dropped']} of {psum['received']} packets "
-              f"dropped ({100 * psum['drop_fraction']:.2f} %)")
-    rep.check("slave follows without re-indexing", ctl.get("reindexes") == 1
-              and not ctl.get("ik_failures"),
-              f"{ctl.get('reindexes')} re-index (the initial one), {ctl.get('ik_failures')} IK "
-              f"failures")
+    rep.check(
+        "no stop, no fault",
+        not stops,
+        f"{len(stops)} STOPPED/FAULT alerts to the operator during {window_s:.0f} s"
+        + (f": {stops[:3]}" if stops else ""),
+    )
+    rep.check(
+        "the proxy lost packets in runs of exactly 2",
+        set(run_lengths) <= {"2"} and run_lengths.get("2", 0) > 0,
+        f"runs by length {run_lengths}, {psum['dropped']} of {psum['received']} packets "
+        f"dropped ({100 * psum['drop_fraction']:.2f} %)",
+    )
+    rep.check(
+        "slave follows without re-indexing",
+        ctl.get("reindexes") == 1 and not ctl.get("ik_failures"),
+        f"{ctl.get('reindexes')} re-index (the initial one), {ctl.get('ik_failures')} IK failures",
+    )
     bound = args.max_mean_error_mm
     ex, ey = err_summary["x"], err_summary["y"]
-    rep.check(f"mean tracking error X, Y <= {bound} mm",
-              ex["n"] > 0 and ey["n"] > 0 and ex["mean"] <= bound and ey["mean"] <= bound,
-              f"mean |e| X {ex['mean']} mm, Y {ey['mean']} mm (paper: 0.094, 0.097); p99 X "
-              f"{ex['p99']}, Y {ey['p99']}; max X {ex['max']}, Y {ey['max']} mm ({ex['n']} rows)")
+    rep.check(
+        f"mean tracking error X, Y <= {bound} mm",
+        ex["n"] > 0 and ey["n"] > 0 and ex["mean"] <= bound and ey["mean"] <= bound,
+        f"mean |e| X {ex['mean']} mm, Y {ey['mean']} mm (paper: 0.094, 0.097); p99 X "
+        f"{ex['p99']}, Y {ey['p99']}; max X {ex['max']}, Y {ey['max']} mm ({ex['n']} rows)",
+    )
     holds = loss.get("holds")
-    rep.check("no hold", holds is not None and holds <= 1,
-              f"{holds} holds, {loss.get('resumes')} resumes (one hold is the master's shutdown at "
-              "the end; others: a 6 ms gap plus > 1 ms of scheduling delay on this machine)",
-              severity="warn")
-    rep.check("every double loss seen as one long gap", long_gaps >= closed,
-              f"{long_gaps} gaps >= 5 ms at the slave's loop for {closed} double losses closed by "
-              f"a packet; histogram (0.5 ms bins) {hist}", severity="warn")
+    rep.check(
+        "no hold",
+        holds is not None and holds <= 1,
+        f"{holds} holds, {loss.get('resumes')} resumes (one hold is the master's shutdown at "
+        "the end; others: a 6 ms gap plus > 1 ms of scheduling delay on this machine)",
+        severity="warn",
+    )
+    rep.check(
+        "every double loss seen as one long gap",
+        long_gaps >= closed,
+        f"{long_gaps} gaps >= 5 ms at the slave's loop for {closed} double losses closed by "
+        f"a packet; histogram (0.5 ms bins) {hist}",
+        severity="warn",
+    )
     # the slave may end STOPPED (exit 4, occd --help) if it saw the master go before its SIGINT
-    rep.check("daemons ran and wrote statistics",
-              codes.get("master") == 0 and codes.get("slave") in (0, 4) and bool(slave_stats)
-              and bool(master_stats),
-              f"exit codes {codes}, statistics {'present' if slave_stats and master_stats else 'missing'}")
+    rep.check(
+        "daemons ran and wrote statistics",
+        codes.get("master") == 0
+        and codes.get("slave") in (0, 4)
+        and bool(slave_stats)
+        and bool(master_stats),
+        f"exit codes {codes}, "
+        f"statistics {'present' if slave_stats and master_stats else 'missing'}",
+    )
     return traces
 
 
@@ -1285,41 +1610,70 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="soak", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="mode", required=True)
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--out", type=Path, default=None, help="report folder (default: a new temp dir)")
-    common.add_argument("--config", default=str(ROOT / "configs" / "slave.yaml"), help="slave config")
-    common.add_argument("--pause-ms", type=float, default=100.0,
-                        help="operator's pause between a stop and its Run (default 100)")
+    common.add_argument(
+        "--out", type=Path, default=None, help="report folder (default: a new temp dir)"
+    )
+    common.add_argument(
+        "--config", default=str(ROOT / "configs" / "slave.yaml"), help="slave config"
+    )
+    common.add_argument(
+        "--pause-ms",
+        type=float,
+        default=100.0,
+        help="operator's pause between a stop and its Run (default 100)",
+    )
     add_pattern_arguments(common)
     s = sub.add_parser("sim", parents=[common], help="the slave in simulated time (exact checks)")
     s.add_argument("--sim-seconds", type=float, default=60.0, help="simulated seconds (default 60)")
-    s.add_argument("--first-seq", type=int, default=0,
-                   help="sequence number before the first packet (e.g. 4294960000 tests the wrap)")
+    s.add_argument(
+        "--first-seq",
+        type=int,
+        default=0,
+        help="sequence number before the first packet (e.g. 4294960000 tests the wrap)",
+    )
     s.add_argument("--progress", action="store_true", help="progress on stderr every 30 s")
     r = sub.add_parser("real", parents=[common], help="occd slave + master through the loss proxy")
     r.add_argument("--duration", type=float, default=30.0, help="soak seconds (default 30)")
     r.add_argument("--master-config", default=str(ROOT / "configs" / "master.yaml"))
     r.add_argument("--delay-ms", type=float, default=0.0, help="proxy delay (ms)")
     r.add_argument("--jitter-ms", type=float, default=0.0, help="proxy jitter (ms)")
-    r.add_argument("--match-tolerance-ms", type=float, default=5.0,
-                   help="slack between the proxy's clock and the slave's silent interval when "
-                        "matching a stop to a run of drops (default 5 ms)")
-    r.add_argument("--tolerate-other-stops", action="store_true",
-                   help="a stop not caused by packet loss (watchdog: an overloaded machine) is a "
-                        "warning, not a failure")
+    r.add_argument(
+        "--match-tolerance-ms",
+        type=float,
+        default=5.0,
+        help="slack between the proxy's clock and the slave's silent interval when "
+        "matching a stop to a run of drops (default 5 ms)",
+    )
+    r.add_argument(
+        "--tolerate-other-stops",
+        action="store_true",
+        help="a stop not caused by packet loss (watchdog: an overloaded machine) is a "
+        "warning, not a failure",
+    )
     import stability  # lazily: it imports this module for the report format
 
-    pp = sub.add_parser("paper", help="the OCC paper's stability protocol (simulated time, or "
-                        "--real: the daemons through the loss proxy)")
+    pp = sub.add_parser(
+        "paper",
+        help="the OCC paper's stability protocol (simulated time, or "
+        "--real: the daemons through the loss proxy)",
+    )
     stability.add_arguments(pp)
     pr = pp.add_argument_group("against the daemons (--real)")
-    pr.add_argument("--real", action="store_true",
-                    help="occd slave + master (the two configs) through the loss proxy, both "
-                         "recording; the tracking error from the recordings")
-    pr.add_argument("--duration", type=float, default=60.0,
-                    help="--real: seconds of the stream (default 60)")
-    pr.add_argument("--record-rate-hz", type=float, default=500.0,
-                    help="--real: the slave's state rows per second in its recording (default "
-                         "500)")
+    pr.add_argument(
+        "--real",
+        action="store_true",
+        help="occd slave + master (the two configs) through the loss proxy, both "
+        "recording; the tracking error from the recordings",
+    )
+    pr.add_argument(
+        "--duration", type=float, default=60.0, help="--real: seconds of the stream (default 60)"
+    )
+    pr.add_argument(
+        "--record-rate-hz",
+        type=float,
+        default=500.0,
+        help="--real: the slave's state rows per second in its recording (default 500)",
+    )
     return p
 
 
@@ -1336,14 +1690,20 @@ def run_paper_real_main(args: argparse.Namespace, command: str) -> int:
             return 2
         raise
     rep.command = command
-    write_report(rep, out, title="Stability test (OCC paper) against the daemons",
-                 plotter=lambda r, o: stability.plot(r, o, traces))
+    write_report(
+        rep,
+        out,
+        title="Stability test (OCC paper) against the daemons",
+        plotter=lambda r, o: stability.plot(r, o, traces),
+    )
     for c in rep.checks:
         print(f"[{c.label}] {c.name}: {c.detail}")
     e = rep.numbers["tracking_error_mm"]
-    print(f"soak paper --real: {rep.numbers['wall_seconds']:.0f} s; mean |e| X {e['x']['mean']} mm, "
-          f"Y {e['y']['mean']} mm (paper: 0.094, 0.097); {'PASS' if rep.passed else 'FAIL'}; "
-          f"report in {out}")
+    print(
+        f"soak paper --real: {rep.numbers['wall_seconds']:.0f} s; mean |e| X {e['x']['mean']} mm, "
+        f"Y {e['y']['mean']} mm (paper: 0.094, 0.097); {'PASS' if rep.passed else 'FAIL'}; "
+        f"report in {out}"
+    )
     return 0 if rep.passed else 1
 
 
@@ -1360,8 +1720,11 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     if args.mode == "sim":
         # the simulated slave logs every safety stop: to a file, not the terminal
-        logging.basicConfig(filename=str(out / "slave-sim.log"), level=logging.WARNING,
-                            format="%(levelname)s %(name)s: %(message)s")
+        logging.basicConfig(
+            filename=str(out / "slave-sim.log"),
+            level=logging.WARNING,
+            format="%(levelname)s %(name)s: %(message)s",
+        )
     try:
         rep = run_sim(args, out) if args.mode == "sim" else run_real(args, out)
     except SystemExit as err:
