@@ -263,24 +263,6 @@ def _slide(p: Vec3, target: Vec3, step: float) -> Vec3:
     return (p[0] + dx * f, p[1] + dy * f, p[2] + dz * f)
 
 
-def _nearest_on_path(
-    x: float, y: float, z: float, segs: Sequence[tuple[float, ...]]
-) -> tuple[Vec3, int]:
-    """Nearest point of a polyline (segments as (ax, ay, az, dx, dy, dz, |d|^2)) and its
-    segment index."""
-    best = math.inf
-    out: Vec3 = (0.0, 0.0, 0.0)
-    index = 0
-    for i, (ax, ay, az, dx, dy, dz, dd) in enumerate(segs):
-        t = ((x - ax) * dx + (y - ay) * dy + (z - az) * dz) / dd
-        t = 0.0 if t < 0.0 else 1.0 if t > 1.0 else t
-        px, py, pz = ax + t * dx, ay + t * dy, az + t * dz
-        e = (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2
-        if e < best:
-            best, out, index = e, (px, py, pz), i
-    return out, index
-
-
 # ------------------------------------------------------------------------------ the set
 class FixtureSet:
     """An immutable set of primitives plus the proxies of its contacts.
@@ -555,7 +537,7 @@ class FixtureSet:
         vz: float,
     ) -> Vec3:
         segs, k, b = g
-        # the nearest point of the path (_nearest_on_path inlined: a guide pulls every tick)
+        # the nearest point of the path, inlined: a guide pulls every tick
         best = math.inf
         tx = ty = tz = 0.0
         for ax, ay, az, dx, dy, dz, dd in segs:

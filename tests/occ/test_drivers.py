@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Sequence
 
 import pytest
@@ -582,3 +583,277 @@ def test_safe_stop_of_an_inactive_driver_changes_nothing() -> None:
     d.configure()
     d.safe_stop("nothing to stop")
     assert d.state is DriverState.INACTIVE and d.stats()["safe_stops"] == 0
+
+
+# -- what mutation testing found unchecked (docs/VERIFICATION.md, occ/drivers/base.py) -----
+class FlakyDriver(MirrorDriver):
+    """A mirror whose hooks raise on demand (``fail`` holds the names of the failing hooks);
+    records the ``now`` each write hook was given."""
+
+    def __init__(self, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+        super().__init__(*args, **kwargs)
+        self.fail: set[str] = set()
+        self.nows: list[float] = []
+
+    def _maybe(self, hook: str) -> None:
+        self.calls.append(hook)
+        if hook in self.fail:
+            raise OSError(f"{hook} broke")
+
+    def _configure(self) -> None:
+        self._maybe("configure")
+
+    def _activate(self) -> None:
+        self._maybe("activate")
+
+    def _deactivate(self) -> None:
+        self._maybe("deactivate")
+
+    def _reset(self) -> None:
+        self._maybe("reset")
+
+    def _safe_stop(self) -> None:
+        self._maybe("safe_stop")
+
+    def _shutdown(self) -> None:
+        self._maybe("shutdown")
+
+    def _write(self, values: Sequence[float], now: float) -> None:
+        self._maybe("write")
+        self.nows.append(now)
+        self.last = list(values)
+
+
+def flaky(**kwargs) -> FlakyDriver:  # type: ignore[no-untyped-def]
+    return FlakyDriver("m", joints(), **kwargs)
+
+
+def test_bad_arguments_are_refused_with_what_is_wrong() -> None:
+    with pytest.raises(ValueError, match="driver 'm': needs at least one joint"):
+        MirrorDriver("m", [])
+    with pytest.raises(ValueError, match=r"driver 'm': on_limit must be one of \('clamp', 'fault'\)"):
+        MirrorDriver("m", joints(), on_limit="ignore")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"driver 'm': duplicate joint names \['a', 'a'\]"):
+        MirrorDriver("m", [Joint("a"), Joint("a")])
+    for bad in (-1, "soon", [50]):
+        with pytest.raises(ValueError, match=rf"driver 'm': heartbeat_ms .* got {re.escape(repr(bad))}"):
+            MirrorDriver("m", joints(), {"heartbeat_ms": bad})
+    for period in (0.0, -0.001):
+        with pytest.raises(ValueError, match=rf"driver 'm': period must be > 0, got {period}"):
+            MirrorDriver("m", joints(), {"period": period})
+    with pytest.raises(ValueError, match=r"driver 's' \(SimDriver\): unknown params \['bandwidth'\]; "
+                       r"known: \[.*'bandwidth_hz'.*'heartbeat_ms'"):
+        SimDriver("s", joints(1), {"bandwidth": 3})
+    for iface in ("velocity", "effort"):
+        # sim takes both; a position-only backend refuses efforts, nobody takes velocity
+        with pytest.raises(ValueError, match=rf"driver 'p' \(PositionOnly\): command_interface "
+                           rf"'{iface}' not supported; choose one of \('position',\)"):
+            PositionOnly("p", joints(), command_interface=iface)  # type: ignore[arg-type]
+
+
+class PositionOnly(MirrorDriver):
+    supported_interfaces = ("position",)
+
+
+def test_params_defaults_and_the_interface_from_params() -> None:
+    # the base's own parameters are read when the backend declares none
+    d = MirrorDriver("m", joints(), {"period": 0.002, "command_interface": "effort"})
+    assert d.period == 0.002 and d.command_interface == "effort"
+    assert d.params == {"heartbeat_ms": 50.0, "period": 0.002, "command_interface": "effort"}
+    assert MirrorDriver("m", joints()).period == 0.001
+    # the argument wins over the params
+    assert MirrorDriver("m", joints(), {"command_interface": "effort"},
+                        command_interface="position").command_interface == "position"
+    s = SimDriver("s", joints(1), {"heartbeat_ms": 20})
+    assert s.heartbeat_s == pytest.approx(0.020) and s.params["heartbeat_ms"] == 20
+
+
+def test_refused_transitions_name_the_action_the_state_and_the_fault() -> None:
+    d = flaky()
+    for call, action in ((d.activate, "activate"), (d.deactivate, "deactivate"),
+                         (d.reset, "reset")):
+        with pytest.raises(StateError, match=rf"^driver 'm': cannot {action} in state "
+                           r"unconfigured$"):
+            call()
+    with pytest.raises(StateError, match=r"^driver 'm': cannot read in state unconfigured$"):
+        d.read(0.0)
+    d.configure()
+    with pytest.raises(StateError, match=r"^driver 'm': cannot configure in state inactive$"):
+        d.configure()
+    with pytest.raises(StateError, match=r"^driver 'm': commands refused in state inactive$"):
+        d.write([0.0, 0.0], 0.0)
+    d.activate()
+    d.safe_stop("loop hung")
+    with pytest.raises(StateError, match=r"^driver 'm': cannot activate in state fault "
+                       r"\(safe stop: loop hung\); reset\(\) first$"):
+        d.activate()
+    d.shutdown()
+    with pytest.raises(StateError, match=r"^driver 'm': cannot read in state shutdown$"):
+        d.read(0.0)
+
+
+@pytest.mark.req("SR-SAFE-1")
+@pytest.mark.parametrize("hook", ["configure", "activate", "deactivate", "reset"])
+def test_a_failing_lifecycle_hook_faults_naming_the_action(hook: str) -> None:
+    d = flaky()
+    if hook == "reset":
+        d.configure()
+        d.activate()
+        d.safe_stop("first")
+    else:
+        if hook != "configure":
+            d.configure()
+        if hook == "deactivate":
+            d.activate()
+    d.fail.add(hook)
+    with pytest.raises(DriverError, match=rf"^driver 'm': {hook} failed: OSError\('{hook} broke'\)$") as info:
+        getattr(d, hook)()
+    assert isinstance(info.value.__cause__, OSError)
+    assert d.state is DriverState.FAULT
+    assert d.fault_reason == f"driver 'm': {hook} failed: OSError('{hook} broke')" or (
+        hook == "reset" and d.fault_reason == "safe stop: first"  # a fault keeps its first reason
+    )
+    # a failing deactivation is tried once more on entering FAULT (the hardware must stop)
+    assert d.stats()["errors"] == (2 if hook == "deactivate" else 1)
+
+
+def test_a_driver_that_never_configured_resets_to_unconfigured() -> None:
+    d = flaky()
+    d.fail.add("configure")
+    with pytest.raises(DriverError, match="configure failed"):
+        d.configure()
+    d.fail.clear()
+    d.reset()
+    assert d.state is DriverState.UNCONFIGURED and d.fault_reason is None
+    d.configure()  # and may try again
+    assert d.state is DriverState.INACTIVE
+
+
+@pytest.mark.req("SR-SAFE-1")
+def test_every_error_and_safe_stop_is_counted() -> None:
+    d = flaky()
+    d.configure()
+    d.activate()
+    d.fail.add("safe_stop")  # a safe stop whose hook fails still latches FAULT, counted
+    d.safe_stop("one")
+    assert d.state is DriverState.FAULT and d.fault_reason == "safe stop: one"
+    assert d.stats()["safe_stops"] == 1 and d.stats()["errors"] == 1
+    d.reset()
+    d.activate()
+    d.safe_stop("two")
+    assert d.stats()["safe_stops"] == 2 and d.stats()["errors"] == 2
+    d.reset()
+    d.fail = {"read"}
+    d.fail_read = True
+    with pytest.raises(DriverError, match="read failed"):
+        d.read(0.0)
+    assert d.stats()["errors"] == 3
+    d.fail_read = False
+    d.reset()
+    # a limit fault whose deactivation fails: the limit is the reason, the failure counted
+    d2 = FlakyDriver("m", joints(), on_limit="fault")
+    d2.configure()
+    d2.fail_read = True
+    with pytest.raises(DriverError):
+        d2.read(0.0)  # one error before
+    d2.fail_read = False
+    d2.reset()
+    d2.activate()
+    d2.fail.add("deactivate")
+    with pytest.raises(LimitError, match="outside limits"):
+        d2.write([0.0, 1.5], 0.001)
+    assert d2.fault_reason == "driver 'm': joint j1: position 1.5 outside limits [-1, 1]"
+    assert d2.stats()["errors"] == 2
+
+
+def test_shutdown_releases_everything_and_reports_the_first_error() -> None:
+    d = flaky()
+    d.configure()
+    d.fail_read = True
+    with pytest.raises(DriverError):
+        d.read(0.0)  # one error before shutdown
+    d.fail_read = False
+    d.reset()
+    d.activate()
+    d.fail = {"deactivate", "shutdown"}
+    with pytest.raises(DriverError, match=r"^driver 'm': shutdown failed: deactivate broke$") as info:
+        d.shutdown()
+    assert str(info.value.__cause__) == "deactivate broke"
+    assert d.state is DriverState.SHUTDOWN
+    assert d.calls[-2:] == ["deactivate", "shutdown"]  # the hardware was released anyway
+    assert d.stats()["errors"] == 3
+    d.shutdown()  # once shut down, nothing more
+    # only the release fails
+    e = flaky()
+    e.configure()
+    e.fail = {"shutdown"}
+    with pytest.raises(DriverError, match=r"^driver 'm': shutdown failed: shutdown broke$"):
+        e.shutdown()
+    assert e.state is DriverState.SHUTDOWN and e.stats()["errors"] == 1
+
+
+def test_read_stamps_and_counts_every_read() -> None:
+    d = MirrorDriver("m", joints())
+    d.configure()
+    d.last = [0.25, math.nan]  # the second joint has not reported yet
+    d.read(0.5)
+    d.read(0.75)
+    assert d.joints[0].position == 0.25 and d.joints[0].stamp == 0.75
+    assert d.joints[0].measured and not d.joints[1].measured
+    assert math.isnan(d.joints[1].stamp)
+    assert d.stats()["reads"] == 2
+
+
+# -- write_effort: a haptic master's force, clamped to the effort limit ---------------------
+def effort_driver(effort: float = 0.5, **kwargs) -> FlakyDriver:  # type: ignore[no-untyped-def]
+    js = [Joint(f"j{i}", "prismatic", JointLimits(-1.0, 1.0, 100.0, effort), **kwargs)
+          for i in range(2)]
+    d = FlakyDriver("m", js, command_interface="effort")
+    d.configure()
+    d.activate()
+    return d
+
+
+@pytest.mark.req("SR-FIX-1")
+def test_write_effort_clamps_to_either_effort_limit_exactly() -> None:
+    d = effort_driver(0.5)
+    d.write_effort([0.5, -0.5], 0.001)  # exactly on the limits: not clamped
+    assert d.last == [0.5, -0.5] and d.stats()["limit_events"] == 0
+    d.write_effort([0.8, -0.8], 0.002)  # just over, either sign
+    assert d.last == [0.5, -0.5] and d.stats()["limit_events"] == 2
+    d.write_effort([0.5000001, -0.4], 0.003)
+    assert d.last == [0.5, -0.4] and d.stats()["limit_events"] == 3
+    assert [j.command_effort for j in d.joints] == [0.5, -0.4]
+    assert d.nows == [0.001, 0.002, 0.003] and d.stats()["writes"] == 3
+    assert d.state is DriverState.ACTIVE
+    big = effort_driver(50.0)
+    big.write_effort([80.0, 0.0], 0.001)  # a positive force over a limit above 1 N
+    assert big.last == [50.0, 0.0]
+
+
+@pytest.mark.req("SR-SAFE-1")
+def test_write_effort_refusals_and_a_failing_hook() -> None:
+    d = effort_driver()
+    with pytest.raises(ValueError, match=r"^driver 'm': expected 2 efforts, got 1$"):
+        d.write_effort([0.0], 0.001)
+    with pytest.raises(LimitError, match=r"^driver 'm': joint j1: effort inf$"):
+        d.write_effort([0.0, math.inf], 0.001)
+    assert d.fault_reason == "driver 'm': joint j1: effort inf"
+    with pytest.raises(StateError, match=r"^driver 'm': commands refused in state fault$"):
+        d.write_effort([0.0, 0.0], 0.002)
+    d.reset()
+    d.activate()
+    d.fail.add("write")
+    with pytest.raises(DriverError, match=r"^driver 'm': write failed: OSError\('write broke'\)$"):
+        d.write_effort([0.0, 0.0], 0.003)
+    assert d.state is DriverState.FAULT and d.stats()["errors"] == 1
+    assert d.stats()["writes"] == 0
+
+
+def test_an_effort_driver_with_gains_takes_both_kinds_of_command() -> None:
+    d = effort_driver(50.0, gains=PIDGains(kp=10.0))
+    d.read(0.0)
+    d.write([0.01, 0.0], 0.001)  # a position setpoint through the PID
+    d.write_effort([2.0, -2.0], 0.002)  # then a direct force
+    d.write([0.01, 0.0], 0.003)  # and a setpoint again
+    assert d.last == [pytest.approx(0.1), 0.0] and d.stats()["writes"] == 3
