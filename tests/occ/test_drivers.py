@@ -848,12 +848,3 @@ def test_write_effort_refusals_and_a_failing_hook() -> None:
         d.write_effort([0.0, 0.0], 0.003)
     assert d.state is DriverState.FAULT and d.stats()["errors"] == 1
     assert d.stats()["writes"] == 0
-
-
-def test_an_effort_driver_with_gains_takes_both_kinds_of_command() -> None:
-    d = effort_driver(50.0, gains=PIDGains(kp=10.0))
-    d.read(0.0)
-    d.write([0.01, 0.0], 0.001)  # a position setpoint through the PID
-    d.write_effort([2.0, -2.0], 0.002)  # then a direct force
-    d.write([0.01, 0.0], 0.003)  # and a setpoint again
-    assert d.last == [pytest.approx(0.1), 0.0] and d.stats()["writes"] == 3
