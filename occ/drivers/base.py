@@ -454,7 +454,9 @@ class Driver:
                 self._limit_events += 1
             joint.command_effort = u
             values[i] = u
-        self._prev_write_time = now
+        # the hand moved the joints: the next position setpoint is checked against where they
+        # are measured (as after activation), not against the setpoint before these efforts
+        self._prev_write_time = math.nan
         try:
             self._write(values, now)
         except Exception as err:

@@ -848,3 +848,22 @@ def test_write_effort_refusals_and_a_failing_hook() -> None:
         d.write_effort([0.0, 0.0], 0.003)
     assert d.state is DriverState.FAULT and d.stats()["errors"] == 1
     assert d.stats()["writes"] == 0
+
+
+@pytest.mark.req("SR-LIM-2")
+def test_a_setpoint_after_direct_efforts_is_checked_against_the_measured_position() -> None:
+    # an effort driver with gains takes both; while efforts were written the hand moved the
+    # joint (to 0.5): the next setpoint there is no motion, not a step from the old setpoint 0
+    js = [Joint("j", "revolute", JointLimits(-1.0, 1.0, 1.0, 50.0), gains=PIDGains(kp=10.0))]
+    d = FlakyDriver("m", js, command_interface="effort")
+    d.configure()
+    d.read(0.0)
+    d.activate()
+    d.write([0.0], 0.001)
+    d.write_effort([2.0], 0.002)
+    d.last = [0.5]
+    d.read(0.003)
+    d.write([0.5], 0.003)
+    assert js[0].command_position == 0.5 and d.last == [0.0]  # on target: no effort
+    assert d.stats()["limit_events"] == 0 and d.stats()["writes"] == 3
+    d.shutdown()
