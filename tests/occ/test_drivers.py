@@ -814,7 +814,6 @@ def effort_driver(effort: float = 0.5, **kwargs) -> FlakyDriver:  # type: ignore
     return d
 
 
-@pytest.mark.req("SR-FIX-1")
 def test_write_effort_clamps_to_either_effort_limit_exactly() -> None:
     d = effort_driver(0.5)
     d.write_effort([0.5, -0.5], 0.001)  # exactly on the limits: not clamped
