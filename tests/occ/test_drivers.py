@@ -631,17 +631,20 @@ def flaky(**kwargs) -> FlakyDriver:  # type: ignore[no-untyped-def]
 def test_bad_arguments_are_refused_with_what_is_wrong() -> None:
     with pytest.raises(ValueError, match="driver 'm': needs at least one joint"):
         MirrorDriver("m", [])
-    with pytest.raises(ValueError, match=r"driver 'm': on_limit must be one of \('clamp', 'fault'\)"):
+    with pytest.raises(ValueError,
+                       match=r"driver 'm': on_limit must be one of \('clamp', 'fault'\)"):
         MirrorDriver("m", joints(), on_limit="ignore")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match=r"driver 'm': duplicate joint names \['a', 'a'\]"):
         MirrorDriver("m", [Joint("a"), Joint("a")])
     for bad in (-1, "soon", [50]):
-        with pytest.raises(ValueError, match=rf"driver 'm': heartbeat_ms .* got {re.escape(repr(bad))}"):
+        with pytest.raises(ValueError,
+                           match=rf"driver 'm': heartbeat_ms .* got {re.escape(repr(bad))}"):
             MirrorDriver("m", joints(), {"heartbeat_ms": bad})
     for period in (0.0, -0.001):
         with pytest.raises(ValueError, match=rf"driver 'm': period must be > 0, got {period}"):
             MirrorDriver("m", joints(), {"period": period})
-    with pytest.raises(ValueError, match=r"driver 's' \(SimDriver\): unknown params \['bandwidth'\]; "
+    with pytest.raises(ValueError,
+                       match=r"driver 's' \(SimDriver\): unknown params \['bandwidth'\]; "
                        r"known: \[.*'bandwidth_hz'.*'heartbeat_ms'"):
         SimDriver("s", joints(1), {"bandwidth": 3})
     for iface in ("velocity", "effort"):
@@ -706,7 +709,8 @@ def test_a_failing_lifecycle_hook_faults_naming_the_action(hook: str) -> None:
         if hook == "deactivate":
             d.activate()
     d.fail.add(hook)
-    with pytest.raises(DriverError, match=rf"^driver 'm': {hook} failed: OSError\('{hook} broke'\)$") as info:
+    error = rf"^driver 'm': {hook} failed: OSError\('{hook} broke'\)$"
+    with pytest.raises(DriverError, match=error) as info:
         getattr(d, hook)()
     assert isinstance(info.value.__cause__, OSError)
     assert d.state is DriverState.FAULT
@@ -776,7 +780,8 @@ def test_shutdown_releases_everything_and_reports_the_first_error() -> None:
     d.reset()
     d.activate()
     d.fail = {"deactivate", "shutdown"}
-    with pytest.raises(DriverError, match=r"^driver 'm': shutdown failed: deactivate broke$") as info:
+    error = r"^driver 'm': shutdown failed: deactivate broke$"
+    with pytest.raises(DriverError, match=error) as info:
         d.shutdown()
     assert str(info.value.__cause__) == "deactivate broke"
     assert d.state is DriverState.SHUTDOWN

@@ -192,3 +192,70 @@ def test_union_with_empty_set_is_free() -> None:
     fs = FixtureSet([])
     assert fs.force((1e3, 1e3, 1e3), DT) == (0.0, 0.0, 0.0)
     assert fs.inside_accessible((1e3, 0, 0))
+
+
+# -------------------------------------------------------------- boundaries (mutation testing)
+@pytest.mark.req("SR-FIX-1")
+def test_a_force_of_exactly_the_maximum_is_not_clamped_and_just_over_is() -> None:
+    wall = ForbiddenPlane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), stiffness=1.0)
+    fs = FixtureSet([wall], max_force_n=10.0)
+    assert fs.force((0.0, 0.0, -10.0), DT) == (0.0, 0.0, 10.0)  # exactly 10 N
+    assert fs.clamped == 0
+    assert fs.force((0.0, 0.0, -10.5), DT) == (0.0, 0.0, 10.0)  # 10.5 N: clamped, counted
+    assert fs.clamped == 1
+    # the clamp scales the vector: its direction stays (6, 8) / 10
+    corner = FixtureSet([ForbiddenPlane((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), stiffness=1.0),
+                         ForbiddenPlane((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), stiffness=1.0)],
+                        max_force_n=5.0)
+    assert corner.force((-6.0, -8.0, 0.0), DT) == pytest.approx((3.0, 4.0, 0.0), abs=1e-12)
+    assert corner.clamped == 1 and corner.force_n == pytest.approx((3.0, 4.0, 0.0), abs=1e-12)
+    for bad in (0.0, -1.0, math.inf, math.nan):
+        with pytest.raises(ValueError, match="max_force_n must be > 0"):
+            FixtureSet([], max_force_n=bad)
+    for bad in (0.0, -1.0):
+        with pytest.raises(ValueError, match="slide_mm must be > 0"):
+            FixtureSet([], slide_mm=bad)
+
+
+def test_on_a_plane_or_a_forbidden_surface_is_free_even_moving_in() -> None:
+    damped = dict(stiffness=1.0, damping=0.5)
+    fs = FixtureSet([ForbiddenPlane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), **damped)], max_force_n=1e6)
+    fs.force((0.0, 0.0, 1.0), DT)
+    assert fs.force((0.0, 0.0, 0.0), DT) == (0.0, 0.0, 0.0)  # on the plane, moving in at 1 m/s
+    assert fs.contacts() == []
+    sphere = FixtureSet([ForbiddenSphere((0.0, 0.0, 0.0), 10.0, **damped)], max_force_n=1e6)
+    sphere.force((0.0, 0.0, 11.0), DT)
+    assert sphere.force((0.0, 0.0, 10.0), DT) == (0.0, 0.0, 0.0)  # on its surface
+    assert sphere.contacts() == [] and sphere.contacts_entered == 0
+    assert sphere.force((0.0, 0.0, 9.0), DT) == pytest.approx((0.0, 0.0, 1.0 + 0.5 * 1000.0))
+    assert sphere.contacts_entered == 1
+
+
+def test_damping_in_contact_with_a_sphere_acts_along_the_spring() -> None:
+    # accessible sphere: the tool 2 mm out, moving further out at 1000 mm/s and sideways
+    fs = FixtureSet([AccessibleSphere((0.0, 0.0, 0.0), 10.0, stiffness=1.0, damping=0.01)],
+                    max_force_n=1e6)
+    fs.force((0.0, 0.0, 9.0), DT)
+    fs.force((0.0, 0.0, 11.0), DT)  # left at the top: proxy (0, 0, 10)
+    f = fs.force((1e-9, 0.0, 12.0), DT)
+    assert f == pytest.approx((0.0, 0.0, -2.0 - 0.01 * 1000.0), abs=1e-6)
+    # no time passed: no velocity, only the spring
+    assert fs.force((1e-9, 0.0, 12.0), 0.0) == pytest.approx((0.0, 0.0, -2.0), abs=1e-6)
+    # a negative dt is no velocity either
+    assert fs.force((1e-9, 0.0, 12.0), -DT) == pytest.approx((0.0, 0.0, -2.0), abs=1e-6)
+
+
+def test_a_guide_with_damping_and_its_proxy_slide() -> None:
+    g = Guide(((0.0, 0.0, 0.0), (100.0, 0.0, 0.0)), stiffness=0.5, damping=0.01)
+    fs = FixtureSet([g], max_force_n=1e6, slide_mm=2.0)
+    assert fs.force((50.0, 4.0, 0.0), DT) == pytest.approx((0.0, -2.0, 0.0))
+    # moving away from the line at 1000 mm/s: the spring plus damping along it
+    assert fs.force((50.0, 5.0, 0.0), DT) == pytest.approx((0.0, -2.5 - 10.0, 0.0))
+    # a jump along the line: the proxy slides 2 mm a tick toward the new nearest point
+    f = fs.force((60.0, 5.0, 0.0), 0.0)
+    assert f == pytest.approx((0.5 * (52.0 - 60.0), -2.5, 0.0))
+    (c,) = fs.contacts()
+    assert c.kind == "guide" and c.proxy == pytest.approx((52.0, 0.0, 0.0))
+    for _ in range(5):
+        f = fs.force((60.0, 5.0, 0.0), 0.0)
+    assert f == pytest.approx((0.0, -2.5, 0.0)) and fs.contacts()[0].proxy == (60.0, 0.0, 0.0)

@@ -110,7 +110,8 @@ def test_every_entry_of_scale_times_rotation_is_applied() -> None:
         rig.pos = [m0[0] + 1.0, m0[1] - 2.0, m0[2] + 4.0]  # a general displacement
         rig.step(2)
         d = np.array([1.0, -2.0, 4.0])
-        assert (rig.tip_mm() - start).tolist() == pytest.approx((0.2 * np.array(R) @ d).tolist(), abs=1e-6)
+        expect = (0.2 * np.array(R) @ d).tolist()
+        assert (rig.tip_mm() - start).tolist() == pytest.approx(expect, abs=1e-6)
         assert rig.ctl.stats()["reindexes"] == 1
     finally:
         rig.close()
@@ -214,3 +215,219 @@ def test_a_sample_on_another_interface_is_not_followed() -> None:
         assert rig.tip_mm().tolist() == pytest.approx(before.tolist(), abs=1e-9)
     finally:
         rig.close()
+
+
+# -- the master's side: its stream, the clutch command, the fixture commands ---------------
+class Master:
+    """The shipped master (configs/master.yaml) with a peer reading its stream as the slave."""
+
+    def __init__(self, config: Any = None, link: str = "slave") -> None:
+        self.sim = SimRobot(config if config is not None else ROOT / "configs" / "master.yaml")
+        self.robot = self.sim.robot
+        self.ctl: Any = self.robot.controller.controllers[0]
+        self.stream = self.sim.peer(link).received
+        self.op = self.sim.peer("operator", address=("127.0.0.1", 41000))
+
+    def command(self, name: str, text: str = "") -> igtl.Message:
+        cid = self.op.send_command(name, text)
+        self.sim.tick()
+        reply = self.op.reply_to(cid)
+        assert reply is not None, name
+        return reply
+
+    def close(self) -> None:
+        self.sim.close()
+
+
+@pytest.fixture
+def master() -> Any:
+    m = Master()
+    yield m
+    m.close()
+
+
+def _status(reply: igtl.Message) -> tuple[str, str]:
+    md = reply.metadata
+    return md["Status"], md.get("Message", "") + md.get("Error", "")
+
+
+@pytest.mark.req("SR-CLUTCH-1")
+def test_clutch_command_values(master: Master) -> None:
+    cases = [
+        ('<Command Name="Clutch" Value="1"/>', True),
+        ('<Command Name="Clutch" Value="0"/>', False),
+        ('<Command Name="Clutch" Value=" TRUE "/>', True),
+        ('<Command Name="Clutch" Value="off"/>', False),
+        ('<Command Name="Clutch" value="On"/>', True),  # the attribute in lower case too
+        ('<Command Name="Clutch" value="no"/>', False),
+        ('<Command Name="Clutch" Value="Yes"/>', True),
+        ('<Command Name="Clutch" Value="false"/>', False),
+        ('<Command Name="Clutch"/>', True),  # no value: pressed
+    ]
+    for text, pressed in cases:
+        status, message = _status(master.command("Clutch", text))
+        assert status == "SUCCESS", text
+        assert message == ("clutch pressed" if pressed else "clutch released"), text
+        assert master.ctl.clutch is pressed, text
+        master.sim.step(2)
+        assert master.stream[-1].metadata["clutch"] == ("1" if pressed else "0"), text
+
+
+def test_the_stream_carries_the_handle_the_time_and_the_run_flag(master: Master) -> None:
+    master.sim.step(4)
+    m = master.stream[-1]
+    assert m.metadata["run"] == "0" and m.device_name == "Master"
+    for name in ("Enable", "Run"):
+        assert _status(master.command(name))[0] == "SUCCESS"
+    n = len(master.stream)
+    while len(master.stream) == n:  # the next tick that sends (500 Hz: every other tick)
+        master.sim.tick()
+    m = master.stream[-1]
+    assert m.timestamp == pytest.approx(master.sim.clock.wall_time(), abs=1e-6)
+    assert m.metadata["run"] == "1" and m.device_name == "Master" and m.layout == 24
+    assert tuple(m.quaternion[:3]) == (0.0, 0.0, 0.0)
+    tip = master.robot.frame.tip_position(master.robot.data.q)
+    assert m.position == pytest.approx([v * 1e3 for v in tip], abs=1e-3)
+
+
+def test_fixture_commands_and_unknown_ones(master: Master) -> None:
+    status, message = _status(master.command("GetFixtures"))
+    assert (status, message) == ("SUCCESS", "0 fixtures; models follow")
+    status, message = _status(master.command("ClearFixtures"))
+    assert (status, message) == ("SUCCESS", "fixtures cleared")
+    status, message = _status(master.command("Fly"))
+    assert status == "FAIL" and "unknown command 'Fly'" in message
+    status, message = _status(master.command("Select", '<Command Name="Select" to="left"/>'))
+    assert status == "FAIL" and "nothing to select" in message
+
+
+def test_select_names_the_slave_in_either_case() -> None:
+    from occ.loader import load_config
+
+    cfg = load_config(ROOT / "configs" / "master.yaml")
+    link = cfg.interface("slave")
+    links = [link.model_copy(update={"name": side}) for side in ("left", "right")]
+    cfg = cfg.model_copy(
+        update={"interfaces": (*[i for i in cfg.interfaces if i.name != "slave"], *links)}
+    ).with_params(slaves=["left", "right"])
+    m = Master(cfg, link="left")
+    try:
+        assert _status(m.command("Select", '<Command Name="Select" to="right"/>')) == (
+            "SUCCESS", "slave left -> right")
+        assert _status(m.command("Select", '<Command Name="Select" To="left"/>')) == (
+            "SUCCESS", "slave right -> left")
+        status, message = _status(m.command("Select"))
+        assert status == "FAIL" and "slave interface '' is not one of ['left', 'right']" in message
+    finally:
+        m.close()
+
+
+def test_a_target_outside_the_workspace_is_clamped_once_per_sample(rig: Rig) -> None:
+    rig.running()
+    rig.pos[2] += 5000.0  # 500 mm deeper at the slave: past the insertion limit
+    rig.step(10)  # five samples, ten ticks: each sample solved once
+    assert rig.ctl.stats()["ik_clamped"] == 5
+    setpoint = list(rig.robot.data.setpoint)
+    rig.sim.tick()  # no new sample: the same target, not solved again
+    assert rig.ctl.stats()["ik_clamped"] == 5 and list(rig.robot.data.setpoint) == setpoint
+
+
+def test_a_sample_that_cannot_be_solved_is_counted_and_the_slave_holds(rig: Rig) -> None:
+    rig.running()
+    setpoint = list(rig.robot.data.setpoint)
+    good = list(rig.pos)
+    rig.pos = [math.nan, good[1], good[2]]
+    rig.step(4)  # two samples the inverse kinematics refuses
+    assert rig.ctl.stats()["ik_failures"] == 2
+    assert list(rig.robot.data.setpoint) == setpoint
+    rig.pos = [good[0] + 1.0, good[1], good[2]]
+    rig.step(2)  # and a good one is followed again, from the same references
+    assert rig.ctl.stats()["ik_failures"] == 2 and rig.ctl.stats()["reindexes"] == 1
+    assert rig.robot.data.setpoint != setpoint
+
+
+def test_sample_latency_is_measured_from_the_masters_timestamp(rig: Rig) -> None:
+    rig.running()
+    for _ in range(10):  # stamped when sent, one tick (1 ms) before the tick that uses it
+        rig.seq += 1
+        rig.master.send_position(rig.pos, seq=rig.seq, timestamp=rig.sim.clock.wall_time())
+        rig.sim.tick()
+        rig.sim.tick()
+    stats = rig.ctl.stats()
+    lat = stats["sample_to_write_us"]
+    assert lat["n"] == 10 and lat["p50"] == pytest.approx(1000.0, abs=1.0)
+    assert lat["max"] == pytest.approx(1000.0, abs=1.0)
+    # received by the interface at once, on the loop's clock: the whole wait is in the queue
+    assert stats["sample_to_rx_us"]["p50"] == pytest.approx(0.0, abs=1.0)
+    assert stats["sample_to_rx_us"]["p99"] == pytest.approx(0.0, abs=1.0)
+
+
+def test_the_base_pose_from_a_tracker_does_not_stop_the_following() -> None:
+    from occ.config import InputConfig
+    from occ.loader import load_config
+
+    cfg = load_config(ROOT / "configs" / "slave.yaml")
+    slicer = cfg.interface("slicer").model_copy(
+        update={"inputs": (InputConfig(type="TRANSFORM", queue="stream", depth=10),
+                           InputConfig(type="POSITION", queue="stream", depth=10))}
+    )
+    cfg = cfg.model_copy(update={
+        "interfaces": tuple(slicer if i.name == "slicer" else i for i in cfg.interfaces),
+    }).with_params(base_interface="slicer", base_mm=None)
+    rig = Rig.__new__(Rig)
+    rig.sim = SimRobot(cfg)
+    rig.robot, rig.ctl = rig.sim.robot, rig.sim.robot.controller
+    rig.master = rig.sim.peer("master", address=MASTER)
+    rig.operator = rig.sim.peer("operator", address=("127.0.0.1", 40001))
+    rig.seq, rig.pos, rig.run, rig.clutch = 0, [0.0, 50.0, 270.0], True, False
+    try:
+        tracker = rig.sim.peer("slicer")
+        tracker.send(igtl.TransformMessage.from_position((10.0, 20.0, 30.0), device_name="Base"))
+        rig.sim.tick()
+        expect = np.eye(4)
+        expect[:3, 3] = [0.010, 0.020, 0.030]
+        assert rig.robot.data.base.ravel().tolist() == pytest.approx(expect.ravel().tolist(),
+                                                                     abs=1e-12)
+        # other devices and types on the tracker's interface leave the base alone
+        tracker.send(igtl.TransformMessage.from_position((1.0, 2.0, 3.0), device_name="Probe"))
+        tracker.send(igtl.PositionMessage((4.0, 5.0, 6.0), (0.0, 0.0, 0.0, 1.0), 24,
+                                          device_name="Base"))
+        rig.sim.tick()
+        assert rig.robot.data.base.ravel().tolist() == pytest.approx(expect.ravel().tolist(),
+                                                                     abs=1e-12)
+        rig.running()  # and the master's stream is still followed
+        before = rig.tip_mm()
+        rig.pos[0] += 10.0
+        rig.step(2)
+        assert (rig.tip_mm() - before).tolist() == pytest.approx([1.0, 0.0, 0.0], abs=1e-6)
+    finally:
+        rig.close()
+
+
+def test_the_simulated_hand_resumes_where_it_was_held() -> None:
+    from tests.occ.test_master_sim import position_master
+
+    m = Master(position_master())
+    try:
+        ctl = m.ctl
+        assert _status(m.command("Enable"))[0] == "SUCCESS"
+        assert _status(m.command("Run"))[0] == "SUCCESS"
+        t_run1 = m.sim.now - m.sim.period  # the tick that entered RUNNING
+        m.sim.step(700)
+        assert _status(m.command("Stop"))[0] == "SUCCESS"
+        t_stop = m.sim.now - m.sim.period  # the tick that left RUNNING
+        held = ctl.operator_target(t_stop)
+        m.sim.step(500)  # time passes while stopped: the hand's trajectory does not
+        assert _status(m.command("Run"))[0] == "SUCCESS"
+        t_run2 = m.sim.now - m.sim.period
+        assert ctl.operator_target(t_run2) == pytest.approx(held, abs=1e-12)
+        m.sim.step(300)
+        t = m.sim.now
+        run_time = (t_stop - t_run1) + (t - t_run2)  # the time spent RUNNING, only
+        w = 2 * math.pi * 0.1
+        ox, oy, oz = (ctl.origin + np.array([0.0, 0.0, 0.020])).tolist()
+        x, y, z = ctl.operator_target(t)
+        assert (x - ox, y - oy, z - oz) == pytest.approx(
+            (0.050 * math.sin(w * run_time), 0.050 * math.cos(w * run_time), 0.0), abs=1e-12)
+    finally:
+        m.close()
