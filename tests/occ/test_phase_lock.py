@@ -65,3 +65,55 @@ def test_phase_lock_median_survives_the_wrap_around() -> None:
     for i in range(250):
         ctrl._track_phase(i * 0.002 + 0.00095 + (0.00015, -0.00015, 0.0)[i % 3])
     assert shifts == [] and abs(ctrl.phase_error_us or 0.0) < 1.0
+
+
+def _locked_slave(shifts: list[float]) -> SlaveController:
+    ctrl = SlaveController({"phase_lock_us": 200.0})
+    ctrl.ctx = ControllerContext(
+        clock=SimClock(), frame=None, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
+        loop_t0=lambda: 0.0, period_s=0.001, shift=shifts.append,
+    )
+    return ctrl
+
+
+@pytest.mark.parametrize("stamped", [True, False])
+def test_the_phase_is_the_masters_sample_time_else_the_reception_time(stamped: bool) -> None:
+    """Samples go through on_sample: with a header timestamp the phase is when the master
+    sampled (its wall-clock stamp moved onto the loop's clock), not when the datagram was
+    read; without one (0), the reception time. Either way 0.35 ms after the deadlines here."""
+    import igtl
+    from occ.interfaces import Inbound
+
+    shifts: list[float] = []
+    ctrl = _locked_slave(shifts)
+    clock = ctrl.ctx.clock  # type: ignore[union-attr]
+    offset = clock.wall_time() - clock.now()  # wall = loop clock + offset
+    for i in range(250):
+        sampled = i * 0.002 + 0.00035
+        # read 0.3 ms after it was sampled: the reception time would be another phase
+        t_rx = sampled + (0.0003 if stamped else 0.0)
+        msg = igtl.PositionMessage(
+            (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), 24, device_name="Master",
+            timestamp=sampled + offset if stamped else 0.0, header_version=2, message_id=i + 1,
+        )
+        ctrl.on_sample(Inbound("master", None, msg, t_rx), t_rx)  # type: ignore[arg-type]
+    assert shifts == [pytest.approx(-0.00045, abs=2e-6)]
+    assert ctrl.samples == 250 and ctrl.last_seq == 250 and ctrl.last_sample_t == t_rx
+    assert (ctrl.pending_ts is not None) is stamped
+
+
+def test_a_small_positive_timestamp_is_a_timestamp() -> None:
+    import igtl
+    from occ.interfaces import Inbound
+
+    shifts: list[float] = []
+    ctrl = _locked_slave(shifts)
+    for i in range(250):  # stamped 0.5 s + phase 0.35 ms on a clock whose offset is 0
+        ctrl.ctx.clock.wall_epoch = 0.0  # type: ignore[union-attr]
+        msg = igtl.PositionMessage(
+            (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), 24, device_name="Master",
+            timestamp=0.5 + i * 0.002 + 0.00035, header_version=2, message_id=i + 1,
+        )
+        ctrl.on_sample(Inbound("master", None, msg, 0.0), 0.0)  # type: ignore[arg-type]
+    assert shifts == [pytest.approx(-0.00045, abs=2e-6)]
+    assert ctrl.pending_ts == pytest.approx(0.5 + 249 * 0.002 + 0.00035)
