@@ -259,3 +259,36 @@ def test_a_guide_with_damping_and_its_proxy_slide() -> None:
     for _ in range(5):
         f = fs.force((60.0, 5.0, 0.0), 0.0)
     assert f == pytest.approx((0.0, -2.5, 0.0)) and fs.contacts()[0].proxy == (60.0, 0.0, 0.0)
+
+
+def _nearest_on_segment(p, a, b):
+    d = [bi - ai for ai, bi in zip(a, b, strict=True)]
+    t = sum((pi - ai) * di for pi, ai, di in zip(p, a, d, strict=True)) / sum(di * di for di in d)
+    t = min(1.0, max(0.0, t))
+    return [ai + t * di for ai, di in zip(a, d, strict=True)]
+
+
+@pytest.mark.parametrize(
+    "tool",
+    [(5.0, 7.0, 1.0), (-4.0, 0.0, 9.0), (30.0, 40.0, 20.0), (-20.0, -30.0, -10.0), (2.0, 3.5, 4.0)],
+    ids=["middle", "beside", "past the end", "before the start", "near the start"],
+)
+def test_a_guide_pulls_to_the_nearest_point_of_a_segment_anywhere_in_space(tool) -> None:
+    a, b = (1.0, 2.0, 3.0), (7.0, 11.0, 5.0)
+    fs = FixtureSet([Guide((a, b), stiffness=2.0)], max_force_n=1e6, slide_mm=1e6)
+    near = _nearest_on_segment(tool, a, b)
+    expect = tuple(2.0 * (n - t) for n, t in zip(near, tool, strict=True))
+    assert fs.force(tool, DT) == pytest.approx(expect, abs=1e-9)
+
+
+def test_inside_accessible_in_every_coordinate() -> None:
+    fs = FixtureSet([AccessibleSphere((10.0, -20.0, 30.0), 5.0)])
+    assert fs.inside_accessible((10.0, -20.0, 30.0))
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            on = [10.0, -20.0, 30.0]
+            on[axis] += sign * 5.0
+            assert fs.inside_accessible(on)  # on the surface: inside
+            out = list(on)
+            out[axis] += sign * 0.01
+            assert not fs.inside_accessible(out)
