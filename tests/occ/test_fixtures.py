@@ -292,3 +292,42 @@ def test_inside_accessible_in_every_coordinate() -> None:
             out = list(on)
             out[axis] += sign * 0.01
             assert not fs.inside_accessible(out)
+
+
+C = (10.0, -20.0, 30.0)
+U = (0.48, -0.6, 0.64)  # a unit vector with three different components
+
+
+def at(scale: float) -> tuple[float, float, float]:
+    return tuple(c + scale * u for c, u in zip(C, U, strict=True))  # type: ignore[return-value]
+
+
+def test_a_forbidden_sphere_anywhere_pushes_out_along_the_radius() -> None:
+    fs = FixtureSet([ForbiddenSphere(C, 5.0, stiffness=2.0, name="bone")], max_force_n=1e6)
+    assert fs.force(at(7.0), DT) == (0.0, 0.0, 0.0)
+    f = fs.force(at(4.0), DT)  # 1 mm deep, entered along the radius
+    assert f == pytest.approx(tuple(2.0 * u for u in U), abs=1e-9)
+    (c,) = fs.contacts()
+    assert (c.name, c.kind) == ("bone", "forbidden")
+    assert c.proxy == pytest.approx(at(5.0), abs=1e-9) and c.force == pytest.approx(f, abs=1e-9)
+    assert fs.contacts_entered == 1
+    fs.force(at(6.0), DT)  # out, and in again: two contacts
+    assert fs.contacts() == [] and fs.force_n == (0.0, 0.0, 0.0)
+    fs.force(at(4.5), DT)
+    assert fs.contacts_entered == 2
+
+
+def test_a_forbidden_sphere_crossed_in_one_tick_pushes_back_to_the_entry_side() -> None:
+    fs = FixtureSet([ForbiddenSphere(C, 5.0, stiffness=2.0)], max_force_n=1e6)
+    fs.force(at(7.0), DT)
+    # 9 mm in one tick, past the centre: the proxy enters at +5 and slides 1 mm toward the
+    # tool's nearest surface point (-5), back onto the sphere: still +5 on this radius
+    f = fs.force(at(-2.0), DT)
+    assert f == pytest.approx(tuple(2.0 * 7.0 * u for u in U), abs=1e-9)
+
+
+def test_inside_a_forbidden_sphere_with_no_history() -> None:
+    fs = FixtureSet([ForbiddenSphere(C, 5.0, stiffness=2.0)], max_force_n=1e6)
+    assert fs.force(at(2.0), DT) == pytest.approx(tuple(2.0 * 3.0 * u for u in U), abs=1e-9)
+    centre = FixtureSet([ForbiddenSphere(C, 5.0, stiffness=2.0)], max_force_n=1e6)
+    assert centre.force(C, DT) == pytest.approx((0.0, 0.0, 10.0), abs=1e-9)  # out along +z
