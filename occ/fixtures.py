@@ -500,11 +500,8 @@ class FixtureSet:
         vz: float,
         last: Vec3 | None,
     ) -> Vec3:
+        # called only with the tool inside (force() tests that, inlined)
         cx, cy, cz, r = s[0], s[1], s[2], s[3]
-        dx, dy, dz = x - cx, y - cy, z - cz
-        if dx * dx + dy * dy + dz * dz >= r * r:
-            self._forb_proxy[i] = None
-            return (0.0, 0.0, 0.0)
         tool = (x, y, z)
         p = self._forb_proxy[i]
         if p is None:
