@@ -331,3 +331,32 @@ def test_inside_a_forbidden_sphere_with_no_history() -> None:
     assert fs.force(at(2.0), DT) == pytest.approx(tuple(2.0 * 3.0 * u for u in U), abs=1e-9)
     centre = FixtureSet([ForbiddenSphere(C, 5.0, stiffness=2.0)], max_force_n=1e6)
     assert centre.force(C, DT) == pytest.approx((0.0, 0.0, 10.0), abs=1e-9)  # out along +z
+
+
+@pytest.mark.parametrize(
+    ("prim", "path"),
+    [
+        (AccessibleSphere(C, 5.0, stiffness=3.0, name="acc"), [at(0.0), at(4.0), at(6.5)]),
+        (ForbiddenSphere(C, 5.0, stiffness=3.0, name="forb"), [at(7.0), at(4.0)]),
+        (ForbiddenPlane(C, U, stiffness=3.0, name="plane"), [at(1.0), at(-2.0)]),
+        (Guide((C, at(-40.0)), stiffness=3.0, name="guide"), [(C[0] + 3.0, C[1] + 1.0, C[2])]),
+    ],
+    ids=["accessible", "forbidden", "plane", "guide"],
+)
+def test_contacts_report_each_primitive_with_its_proxy_and_force(prim, path) -> None:
+    fs = FixtureSet([prim], max_force_n=1e6)
+    for p in path:
+        f = fs.force(p, DT)
+    (c,) = fs.contacts()
+    assert (c.name, c.kind) == (prim.name, prim.kind)
+    assert c.force == pytest.approx(f, abs=1e-9) and f != (0.0, 0.0, 0.0)
+    tool = path[-1]
+    assert c.force == pytest.approx(
+        tuple(3.0 * (q - t) for q, t in zip(c.proxy, tool, strict=True)), abs=1e-9)
+
+
+def test_no_contact_while_free_inside_the_accessible_area() -> None:
+    fs = FixtureSet([AccessibleSphere(C, 5.0)], max_force_n=1e6)
+    assert fs.contacts() == []  # nothing yet
+    fs.force(at(4.0), DT)
+    assert fs.contacts() == [] and fs.contacts_entered == 0
