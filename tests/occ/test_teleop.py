@@ -348,18 +348,35 @@ def test_a_sample_that_cannot_be_solved_is_counted_and_the_slave_holds(rig: Rig)
 
 def test_sample_latency_is_measured_from_the_masters_timestamp(rig: Rig) -> None:
     rig.running()
-    for _ in range(10):  # stamped when sent, one tick (1 ms) before the tick that uses it
+    for _ in range(10):
+        # sampled 0.5 ms before it is sent, sent one tick (1 ms) before the tick that uses it
         rig.seq += 1
-        rig.master.send_position(rig.pos, seq=rig.seq, timestamp=rig.sim.clock.wall_time())
+        stamp = rig.sim.clock.wall_time() - 0.0005
+        rig.master.send_position(rig.pos, seq=rig.seq, timestamp=stamp)
         rig.sim.tick()
         rig.sim.tick()
     stats = rig.ctl.stats()
     lat = stats["sample_to_write_us"]
-    assert lat["n"] == 10 and lat["p50"] == pytest.approx(1000.0, abs=1.0)
-    assert lat["max"] == pytest.approx(1000.0, abs=1.0)
-    # received by the interface at once, on the loop's clock: the whole wait is in the queue
-    assert stats["sample_to_rx_us"]["p50"] == pytest.approx(0.0, abs=1.0)
-    assert stats["sample_to_rx_us"]["p99"] == pytest.approx(0.0, abs=1.0)
+    assert lat["n"] == 10 and lat["p50"] == pytest.approx(1500.0, abs=1.0)
+    assert lat["max"] == pytest.approx(1500.0, abs=1.0)
+    # received by the interface as it was sent: 0.5 ms from the sample to the reception
+    assert stats["sample_to_rx_us"]["p50"] == pytest.approx(500.0, abs=1.0)
+    assert stats["sample_to_rx_us"]["p99"] == pytest.approx(500.0, abs=1.0)
+
+
+def test_stop_and_run_between_two_stamped_samples_keeps_following(rig: Rig) -> None:
+    rig.running()
+    rig.seq += 1
+    rig.master.send_position(rig.pos, seq=rig.seq, timestamp=rig.sim.clock.wall_time())
+    rig.sim.tick()  # the stamped sample is followed (its latency measured)
+    rig.command("Stop")
+    rig.command("Run")  # no new sample: the slave re-indexes and solves again
+    assert rig.robot.state is RobotState.RUNNING
+    before = rig.tip_mm()
+    rig.pos[1] += 10.0
+    rig.step(2)
+    assert rig.robot.state is RobotState.RUNNING
+    assert (rig.tip_mm() - before)[1] != 0.0 and rig.ctl.stats()["reindexes"] == 2
 
 
 def test_the_base_pose_from_a_tracker_does_not_stop_the_following() -> None:
@@ -431,3 +448,32 @@ def test_the_simulated_hand_resumes_where_it_was_held() -> None:
             (0.050 * math.sin(w * run_time), 0.050 * math.cos(w * run_time), 0.0), abs=1e-12)
     finally:
         m.close()
+
+
+def test_on_sample_takes_position_and_transform_and_counts_source_changes() -> None:
+    """The controller alone (no robot): which samples it takes and from whom."""
+    from occ.clock import SimClock
+    from occ.controllers import ControllerContext
+    from occ.controllers.teleop import SlaveController
+    from occ.interfaces import Inbound
+
+    ctrl = SlaveController({"phase_lock_us": None})
+    ctrl.ctx = ControllerContext(
+        clock=SimClock(), frame=None, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
+        loop_t0=lambda: math.nan, period_s=0.001, shift=lambda s: None,
+    )
+
+    def take(itf: str, msg: igtl.Message, t: float) -> None:
+        ctrl.on_sample(Inbound(itf, None, msg, t), t)  # type: ignore[arg-type]
+
+    take("a", igtl.PositionMessage((1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0), 24,
+                                   device_name="Master"), 0.001)
+    assert ctrl.master_pos == pytest.approx((0.001, 0.002, 0.003))
+    take("a", igtl.StringMessage("hello", device_name="Master"), 0.002)  # not a pose: ignored
+    assert ctrl.samples == 1 and ctrl.master_pos == pytest.approx((0.001, 0.002, 0.003))
+    take("b", igtl.TransformMessage.from_position((4.0, 5.0, 6.0), device_name="Master"), 0.003)
+    assert ctrl.master_pos == pytest.approx((0.004, 0.005, 0.006))
+    take("a", igtl.TransformMessage.from_position((7.0, 8.0, 9.0), device_name="Master"), 0.004)
+    stats = ctrl.stats()
+    assert stats["samples"] == 3 and stats["source"] == "a" and stats["source_changes"] == 2
+    assert ctrl.last_sample_t == 0.004 and ctrl.master_run is True
