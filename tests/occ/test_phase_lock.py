@@ -98,6 +98,7 @@ def test_the_phase_is_the_masters_sample_time_else_the_reception_time(stamped: b
         )
         ctrl.on_sample(Inbound("master", None, msg, t_rx), t_rx)  # type: ignore[arg-type]
     assert shifts == [pytest.approx(-0.00045, abs=2e-6)]
+    assert ctrl.phase_shifts == 1 and ctrl.stats()["phase_error_us"] == pytest.approx(-450.0, abs=2)
     assert ctrl.samples == 250 and ctrl.last_seq == 250 and ctrl.last_sample_t == t_rx
     assert (ctrl.pending_ts is not None) is stamped
 

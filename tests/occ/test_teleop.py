@@ -466,6 +466,13 @@ def test_on_sample_takes_position_and_transform_and_counts_source_changes() -> N
     def take(itf: str, msg: igtl.Message, t: float) -> None:
         ctrl.on_sample(Inbound(itf, None, msg, t), t)  # type: ignore[arg-type]
 
+    assert ctrl.stats() == {  # before any sample
+        "samples": 0, "last_seq": None, "master_run": False, "master_clutch": False,
+        "reindexes": 0, "source": None, "source_changes": 0, "ik_clamped": 0,
+        "ik_failures": 0, "phase_shifts": 0, "phase_error_us": None, "phase_history_us": [],
+        "master_ref_mm": None, "slave_ref_mm": None,
+    }
+
     take("a", igtl.PositionMessage((1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0), 24,
                                    device_name="Master"), 0.001)
     assert ctrl.master_pos == pytest.approx((0.001, 0.002, 0.003))
@@ -477,3 +484,24 @@ def test_on_sample_takes_position_and_transform_and_counts_source_changes() -> N
     stats = ctrl.stats()
     assert stats["samples"] == 3 and stats["source"] == "a" and stats["source_changes"] == 2
     assert ctrl.last_sample_t == 0.004 and ctrl.master_run is True
+
+
+def test_only_the_configured_interface_and_device_are_followed() -> None:
+    from occ.clock import SimClock
+    from occ.controllers import ControllerContext
+    from occ.controllers.teleop import SlaveController
+    from occ.interfaces import Inbound
+
+    ctrl = SlaveController({"input_interface": "master", "input_device": "Master",
+                            "phase_lock_us": None})
+    ctrl.ctx = ControllerContext(
+        clock=SimClock(), frame=None, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
+        loop_t0=lambda: math.nan, period_s=0.001, shift=lambda s: None,
+    )
+    for itf, dev in (("other", "Master"), ("master", "Other")):
+        msg = igtl.PositionMessage((1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0), 24, device_name=dev)
+        ctrl.on_sample(Inbound(itf, None, msg, 0.0), 0.0)  # type: ignore[arg-type]
+    assert ctrl.samples == 0 and ctrl.master_pos is None
+    msg = igtl.PositionMessage((1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0), 24, device_name="Master")
+    ctrl.on_sample(Inbound("master", None, msg, 0.0), 0.0)  # type: ignore[arg-type]
+    assert ctrl.samples == 1
