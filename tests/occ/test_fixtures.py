@@ -360,3 +360,90 @@ def test_no_contact_while_free_inside_the_accessible_area() -> None:
     assert fs.contacts() == []  # nothing yet
     fs.force(at(4.0), DT)
     assert fs.contacts() == [] and fs.contacts_entered == 0
+
+
+# a rigid motion with no zero and no repeated entry: the same scene moved anywhere must give
+# the same forces, rotated (every coordinate of the law is used)
+_RA = [[0.36, 0.48, -0.8], [-0.8, 0.6, 0.0], [0.48, 0.64, 0.6]]
+_T = (7.0, -11.0, 13.0)
+
+
+def _move(p):
+    return tuple(sum(_RA[r][c] * p[c] for c in range(3)) + _T[r] for r in range(3))
+
+
+def _turn(f):
+    return tuple(sum(_RA[r][c] * f[c] for c in range(3)) for r in range(3))
+
+
+def test_the_union_of_spheres_moved_anywhere_gives_the_same_forces_rotated() -> None:
+    def scene(move, k2: float):
+        fs = FixtureSet([AccessibleSphere(move((0.0, 0.0, 0.0)), 30.0, name="A"),
+                         AccessibleSphere(move((40.0, 0.0, 0.0)), 30.0, stiffness=k2, name="B")],
+                        max_force_n=1e6)
+        path = [(0.0, 0.0, 0.0), (0.0, 28.0, 0.0), (0.0, 34.0, 0.0)]
+        path += [(x * 0.25, 34.0, 3.0) for x in range(0, 161)]  # over the waist onto B
+        return [fs.force(move(p), DT) for p in path], fs
+
+    for k2 in (1.0, 2.0):
+        flat, _ = scene(lambda p: p, k2)
+        moved, fs = scene(_move, k2)
+        for f0, f1 in zip(flat, moved, strict=True):
+            assert f1 == pytest.approx(_turn(f0), abs=1e-9)
+        assert fs.contacts()[0].name == "B" and fs.contacts_entered == 1
+
+
+def test_leaving_tangentially_from_the_surface_starts_the_proxy_where_it_left() -> None:
+    # binary-exact: the tool free exactly on the surface of a sphere, then 2 mm sideways
+    fs = FixtureSet([AccessibleSphere((1.0, 2.0, 3.0), 4.0, stiffness=1.5)], max_force_n=1e6)
+    fs.force((1.0, 2.0, 7.0), DT)
+    assert fs.contacts() == [] and fs.contacts_entered == 0  # on the surface is inside
+    fs.force((3.0, 2.0, 7.0), DT)
+    (c,) = fs.contacts()
+    # the proxy starts at (1, 2, 7) and slides 1 mm toward the tool's nearest surface point
+    near = (1.0 + 8.0 / math.sqrt(20.0), 2.0, 3.0 + 16.0 / math.sqrt(20.0))
+    d = [n - s for n, s in zip(near, (1.0, 2.0, 7.0), strict=True)]
+    step = [v / norm(tuple(d)) for v in d]
+    slid = [1.0 + step[0], 2.0 + step[1], 7.0 + step[2]]
+    assert c.proxy == pytest.approx(slid, abs=1e-12)
+    assert fs.contacts_entered == 1
+
+
+def test_a_set_swapped_in_starts_from_the_previous_tool_position() -> None:
+    old = FixtureSet([AccessibleSphere((1.0, 2.0, 3.0), 4.0)], max_force_n=1e6)
+    old.force((1.0, 2.0, 7.0), DT)  # on the surface of the new set's sphere too
+    new = FixtureSet([AccessibleSphere((1.0, 2.0, 3.0), 4.0, stiffness=1.5)],
+                     max_force_n=1e6).carry_from(old)
+    new.force((3.0, 2.0, 7.0), DT)
+    (c,) = new.contacts()
+    assert c.proxy != pytest.approx((1.0 + 8.0 / math.sqrt(20.0), 2.0, 3.0 + 16.0 / math.sqrt(20.0)))
+    assert norm(tuple(a - b for a, b in zip(c.proxy, (1.0, 2.0, 7.0), strict=True))) == (
+        pytest.approx(1.0))
+    # carried from a position outside every sphere: the nearest surface, no entry point
+    far = FixtureSet([AccessibleSphere((0.0, 0.0, 0.0), 1.0)])
+    far.force((50.0, 0.0, 0.0), DT)
+    two = FixtureSet([AccessibleSphere(C, 5.0, stiffness=2.0, name="near"),
+                      AccessibleSphere((100.0, 100.0, 100.0), 5.0, name="far")],
+                     max_force_n=1e6).carry_from(far)
+    f = two.force(at(6.0), DT)
+    assert f == pytest.approx(tuple(-2.0 * u for u in U), abs=1e-9)
+    assert two.contacts()[0].name == "near"
+
+
+def test_with_no_history_the_nearest_surface_of_several_spheres() -> None:
+    fs = FixtureSet([AccessibleSphere((100.0, 100.0, 100.0), 5.0, name="far"),
+                     AccessibleSphere(C, 5.0, stiffness=2.0, name="near"),
+                     AccessibleSphere((-60.0, 50.0, 0.0), 5.0, name="other")], max_force_n=1e6)
+    f = fs.force(at(6.5), DT)  # the first call, already 1.5 mm out
+    assert f == pytest.approx(tuple(-2.0 * 1.5 * u for u in U), abs=1e-9)
+    assert fs.contacts()[0].name == "near" and fs.contacts_entered == 1
+
+
+def test_leaving_a_sphere_anywhere_from_its_centre() -> None:
+    fs = FixtureSet([AccessibleSphere(C, 5.0, stiffness=2.0)], max_force_n=1e6)
+    fs.force(C, DT)
+    assert fs.force(at(6.0), DT) == pytest.approx(tuple(-2.0 * u for u in U), abs=1e-9)
+    fs.force(at(3.0), DT)  # back in: free; out again: a second contact
+    assert fs.force_n == (0.0, 0.0, 0.0) and fs.contacts() == []
+    fs.force(at(5.5), DT)
+    assert fs.contacts_entered == 2
