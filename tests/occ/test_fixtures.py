@@ -416,7 +416,8 @@ def test_a_set_swapped_in_starts_from_the_previous_tool_position() -> None:
                      max_force_n=1e6).carry_from(old)
     new.force((3.0, 2.0, 7.0), DT)
     (c,) = new.contacts()
-    assert c.proxy != pytest.approx((1.0 + 8.0 / math.sqrt(20.0), 2.0, 3.0 + 16.0 / math.sqrt(20.0)))
+    nearest = (1.0 + 8.0 / math.sqrt(20.0), 2.0, 3.0 + 16.0 / math.sqrt(20.0))
+    assert c.proxy != pytest.approx(nearest)
     assert norm(tuple(a - b for a, b in zip(c.proxy, (1.0, 2.0, 7.0), strict=True))) == (
         pytest.approx(1.0))
     # carried from a position outside every sphere: the nearest surface, no entry point
