@@ -287,7 +287,6 @@ class FixtureSet:
         "_forb_proxy",
         "_guide_proxy",
         "_last",
-        "_velocity",
         "force_n",
         "contacts_entered",
         "clamped",
@@ -341,7 +340,6 @@ class FixtureSet:
         self._forb_proxy: list[Vec3 | None] = [None] * len(self._forb)
         self._guide_proxy: list[Vec3 | None] = [None] * len(self._guides)
         self._last: Vec3 | None = None
-        self._velocity: Vec3 = (0.0, 0.0, 0.0)
         #: the last force returned (N)
         self.force_n: Vec3 = (0.0, 0.0, 0.0)
         #: how many times a contact began (counted per primitive kind together)
@@ -370,7 +368,6 @@ class FixtureSet:
             vx, vy, vz = (x - last[0]) / dt, (y - last[1]) / dt, (z - last[2]) / dt
         else:
             vx = vy = vz = 0.0
-        self._velocity = (vx, vy, vz)
         fx = fy = fz = 0.0
         if self._acc:
             f = self._accessible(x, y, z, vx, vy, vz, last)
