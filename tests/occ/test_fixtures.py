@@ -448,3 +448,97 @@ def test_leaving_a_sphere_anywhere_from_its_centre() -> None:
     assert fs.force_n == (0.0, 0.0, 0.0) and fs.contacts() == []
     fs.force(at(5.5), DT)
     assert fs.contacts_entered == 2
+
+
+def _entry(p, q, centre, r):
+    """The first point where the segment p -> q meets the sphere (reference formula)."""
+    d = [b - a for a, b in zip(p, q, strict=True)]
+    f = [a - c for a, c in zip(p, centre, strict=True)]
+    a = sum(v * v for v in d)
+    b = 2.0 * sum(x * y for x, y in zip(f, d, strict=True))
+    c = sum(v * v for v in f) - r * r
+    t = (-b - math.sqrt(b * b - 4.0 * a * c)) / (2.0 * a)
+    return [pi + t * di for pi, di in zip(p, d, strict=True)]
+
+
+@pytest.mark.parametrize("step", [0.02, 3.0])
+def test_a_forbidden_sphere_entered_obliquely_keeps_the_entry_point(step: float) -> None:
+    # a tiny slide keeps the proxy where the tool entered: the force is k (entry - tool)
+    v = (0.8, 0.6, 0.0)  # sideways
+    fs = FixtureSet([ForbiddenSphere(C, 5.0, stiffness=2.0)], max_force_n=1e6, slide_mm=1e-12)
+    last = tuple(a + (5.0 + step / 2) * u for a, u in zip(C, U, strict=True))
+    tool = tuple(a + (5.0 - step / 2) * u + step * w for a, u, w in zip(C, U, v, strict=True))
+    fs.force(last, DT)
+    f = fs.force(tool, DT)
+    entry = _entry(last, tool, C, 5.0)
+    assert fs.contacts()[0].proxy == pytest.approx(entry, abs=1e-9)
+    assert f == pytest.approx(tuple(2.0 * (e - t) for e, t in zip(entry, tool, strict=True)),
+                              abs=1e-9)
+
+
+def test_two_forbidden_spheres_and_damping_in_every_direction() -> None:
+    fs = FixtureSet([ForbiddenSphere((100.0, 0.0, 0.0), 5.0, name="first"),
+                     ForbiddenSphere(C, 5.0, stiffness=2.0, damping=0.01, name="second")],
+                    max_force_n=1e6, slide_mm=1e-12)
+    fs.force(at(7.0), DT)
+    f = fs.force(at(4.0), DT)  # radially in at 3 mm/ms = 3000 mm/s, into the second only
+    assert f == pytest.approx(tuple((2.0 * 1.0 + 0.01 * 3000.0) * u for u in U), abs=1e-6)
+    assert [c.name for c in fs.contacts()] == ["second"]
+
+
+def test_a_plane_anywhere_with_damping() -> None:
+    fs = FixtureSet([ForbiddenPlane(C, U, stiffness=2.0, damping=0.01)], max_force_n=1e6)
+    v = (0.6, 0.48, 0.0)  # along the plane (perpendicular to U)
+    fs.force(at(1.0), DT)
+    # 2 mm behind it, having moved 3 mm in and 1 mm along it in 1 ms: only the normal part damps
+    tool = tuple(c + -2.0 * u + 1.0 * w for c, u, w in zip(C, U, v, strict=True))
+    f = fs.force(tool, DT)
+    assert f == pytest.approx(tuple((2.0 * 2.0 + 0.01 * 3000.0) * u for u in U), abs=1e-6)
+
+
+def test_damping_of_an_accessible_sphere_along_the_spring_anywhere() -> None:
+    fs = FixtureSet([AccessibleSphere(C, 5.0, stiffness=2.0, damping=0.01)], max_force_n=1e6)
+    fs.force(at(4.0), DT)
+    fs.force(at(5.5), DT)
+    f = fs.force(at(6.5), DT)  # 1.5 mm out, moving out at 1000 mm/s
+    assert f == pytest.approx(tuple(-(2.0 * 1.5 + 0.01 * 1000.0) * u for u in U), abs=1e-6)
+
+
+def test_every_clamped_tick_is_counted_and_small_maximums_work() -> None:
+    fs = FixtureSet([ForbiddenPlane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0))], max_force_n=0.5,
+                    label="floor")
+    assert fs.force_n == (0.0, 0.0, 0.0) and fs.label == "floor"  # before any tick
+    for k in range(1, 4):
+        assert fs.force((0.0, 0.0, -1.0), DT) == (0.0, 0.0, 0.5)
+        assert fs.clamped == k
+
+
+def test_a_polyline_with_a_repeated_point_and_a_short_segment() -> None:
+    g = Guide(((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.5, 0.0, 0.0), (0.5, 0.0, 40.0)),
+              stiffness=1.0)
+    fs = FixtureSet([g], max_force_n=1e6, slide_mm=1e6)
+    assert fs.force((0.25, 3.0, 0.0), DT) == pytest.approx((0.0, -3.0, 0.0))  # the 0.5 mm one
+    assert fs.force((0.5, 2.0, 20.0), DT) == pytest.approx((0.0, -2.0, 0.0))
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (lambda: AccessibleSphere((0, 0), 1.0, name="a"),
+         r"sphere 'a': expected \(x, y, z\), got \(0, 0\)"),
+        (lambda: ForbiddenSphere((0, math.nan, 0), 1.0, name="b"),
+         r"sphere 'b': not finite: \(0.0, nan, 0.0\)"),
+        (lambda: ForbiddenSphere((0, 0, 0), 1.0, stiffness=math.inf, name="c"),
+         r"sphere 'c': stiffness and damping must be finite and >= 0 \(got inf, 0.0\)"),
+        (lambda: ForbiddenPlane((0, 0, 0), (0, 0, 1), damping=math.inf, name="d"),
+         r"plane 'd': stiffness and damping must be finite and >= 0 \(got 1.0, inf\)"),
+    ],
+)
+def test_refusals_name_the_primitive_and_the_value(make, message) -> None:
+    with pytest.raises(ValueError, match=message):
+        make()
+
+
+def test_zero_stiffness_is_allowed() -> None:
+    s = AccessibleSphere((0, 0, 0), 1.0, stiffness=0.0)
+    assert FixtureSet([s]).force((5.0, 0.0, 0.0), DT) == (0.0, 0.0, 0.0)
