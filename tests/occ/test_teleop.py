@@ -483,7 +483,9 @@ def test_on_sample_takes_position_and_transform_and_counts_source_changes() -> N
     take("a", igtl.TransformMessage.from_position((7.0, 8.0, 9.0), device_name="Master"), 0.004)
     stats = ctrl.stats()
     assert stats["samples"] == 3 and stats["source"] == "a" and stats["source_changes"] == 2
+    # no run/clutch metadata (a plain tracker, a v1 peer): following, not clutched
     assert ctrl.last_sample_t == 0.004 and ctrl.master_run is True
+    assert ctrl.master_clutch is False
 
 
 def test_only_the_configured_interface_and_device_are_followed() -> None:
@@ -505,3 +507,24 @@ def test_only_the_configured_interface_and_device_are_followed() -> None:
     msg = igtl.PositionMessage((1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0), 24, device_name="Master")
     ctrl.on_sample(Inbound("master", None, msg, 0.0), 0.0)  # type: ignore[arg-type]
     assert ctrl.samples == 1
+
+
+@pytest.mark.req("SR-CLUTCH-1")
+@pytest.mark.parametrize("flag", ["clutch", "run"])
+def test_a_clutch_or_run_cycle_inside_one_tick_still_reindexes(rig: Rig, flag: str) -> None:
+    """Samples queued between two ticks are all seen by on_sample, the mapping only once:
+    a press and release (or run 0 then 1) among them must still re-index, or the slave
+    would jump by the master's motion while it was not followed."""
+    rig.running()
+    before = rig.tip_mm()
+    n = rig.ctl.stats()["reindexes"]
+    for moved, following in ((10.0, False), (20.0, False), (20.0, True)):
+        rig.seq += 1
+        rig.master.send_position(
+            (moved, 50.0, 270.0), seq=rig.seq,
+            clutch=(flag == "clutch" and not following), run=(flag != "run" or following),
+        )
+    rig.pos = [20.0, 50.0, 270.0]
+    rig.sim.tick()
+    assert rig.ctl.stats()["reindexes"] == n + 1
+    assert rig.tip_mm().tolist() == pytest.approx(before.tolist(), abs=1e-6)
