@@ -528,3 +528,22 @@ def test_a_clutch_or_run_cycle_inside_one_tick_still_reindexes(rig: Rig, flag: s
     rig.sim.tick()
     assert rig.ctl.stats()["reindexes"] == n + 1
     assert rig.tip_mm().tolist() == pytest.approx(before.tolist(), abs=1e-6)
+
+
+def test_the_masters_fixture_mapping_stops_and_restarts_following_with_the_robot(
+    master: Master,
+) -> None:
+    mapping = master.ctl.fixtures.mapping
+    for name in ("Enable", "Run"):
+        assert _status(master.command(name))[0] == "SUCCESS"
+    master.sim.step(50)
+    assert mapping.following is True
+    assert _status(master.command("Stop"))[0] == "SUCCESS"
+    assert master.robot.state is RobotState.STOPPED and mapping.following is False
+    master.sim.step(300)  # the hand moves on while the slave holds
+    assert mapping.following is False
+    assert _status(master.command("Run"))[0] == "SUCCESS"
+    master.sim.tick()
+    assert master.robot.state is RobotState.RUNNING and mapping.following is True
+    tool = master.ctl.fixtures.tool_mm
+    assert mapping.master_ref == pytest.approx(tool, abs=0.5)  # re-indexed where the hand is
