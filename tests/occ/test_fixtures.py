@@ -542,3 +542,28 @@ def test_refusals_name_the_primitive_and_the_value(make, message) -> None:
 def test_zero_stiffness_is_allowed() -> None:
     s = AccessibleSphere((0, 0, 0), 1.0, stiffness=0.0)
     assert FixtureSet([s]).force((5.0, 0.0, 0.0), DT) == (0.0, 0.0, 0.0)
+
+
+def _exit(p, q, centre, r):
+    """The last point where the segment p -> q (p inside) leaves the sphere (reference)."""
+    d = [b - a for a, b in zip(p, q, strict=True)]
+    f = [a - c for a, c in zip(p, centre, strict=True)]
+    a = sum(v * v for v in d)
+    b = 2.0 * sum(x * y for x, y in zip(f, d, strict=True))
+    c = sum(v * v for v in f) - r * r
+    t = (-b + math.sqrt(b * b - 4.0 * a * c)) / (2.0 * a)
+    return [pi + t * di for pi, di in zip(p, d, strict=True)]
+
+
+@pytest.mark.parametrize("step", [0.02, 3.0])
+def test_leaving_an_accessible_sphere_obliquely_keeps_the_exit_point(step: float) -> None:
+    v = (0.8, 0.6, 0.0)  # sideways
+    fs = FixtureSet([AccessibleSphere(C, 5.0, stiffness=2.0)], max_force_n=1e6, slide_mm=1e-12)
+    last = tuple(a + (5.0 - step / 2) * u for a, u in zip(C, U, strict=True))
+    tool = tuple(a + (5.0 + step / 2) * u + step * w for a, u, w in zip(C, U, v, strict=True))
+    fs.force(last, DT)
+    f = fs.force(tool, DT)
+    out = _exit(last, tool, C, 5.0)
+    assert fs.contacts()[0].proxy == pytest.approx(out, abs=1e-9)
+    assert f == pytest.approx(tuple(2.0 * (e - t) for e, t in zip(out, tool, strict=True)),
+                              abs=1e-9)
