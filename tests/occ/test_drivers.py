@@ -871,3 +871,9 @@ def test_a_setpoint_after_direct_efforts_is_checked_against_the_measured_positio
     assert js[0].command_position == 0.5 and d.last == [0.0]  # on target: no effort
     assert d.stats()["limit_events"] == 0 and d.stats()["writes"] == 3
     d.shutdown()
+
+
+def test_repr_names_the_driver_its_joints_state_and_interface() -> None:
+    d = MirrorDriver("m", joints(), command_interface="effort")
+    assert repr(d) == ("MirrorDriver('m', joints=['j0', 'j1'], state=unconfigured, "
+                       "interface=effort)")
