@@ -567,3 +567,29 @@ def test_leaving_an_accessible_sphere_obliquely_keeps_the_exit_point(step: float
     assert fs.contacts()[0].proxy == pytest.approx(out, abs=1e-9)
     assert f == pytest.approx(tuple(2.0 * (e - t) for e, t in zip(out, tool, strict=True)),
                               abs=1e-9)
+
+
+W = (0.36, 0.48, -0.8)  # another unit vector, not along U
+
+
+@pytest.mark.parametrize("nearer", ["A", "B"])
+@pytest.mark.parametrize("along", [U, W, (-0.6, 0.0, 0.8)])
+def test_with_no_history_the_nearer_of_two_close_surfaces(nearer: str, along) -> None:
+    # two spheres 12 mm apart along `along`; the tool 0.1 mm nearer one surface than the other
+    cb = tuple(c + 12.0 * a for c, a in zip(C, along, strict=True))
+    ax, ay, az = along
+    cx_, cy_, cz_ = ay * 1.0 - az * 0.0, az * 0.0 - ax * 1.0, ax * 0.0 - ay * 0.0  # along x z
+    m = math.sqrt(cx_ * cx_ + cy_ * cy_ + cz_ * cz_)
+    side = (cx_ / m, cy_ / m, cz_ / m)  # perpendicular to along: equal distances at shift 6
+    shift = 6.0 + (-0.05 if nearer == "A" else 0.05)
+    tool = tuple(c + shift * a + 7.0 * s for c, a, s in zip(C, along, side, strict=True))
+    fs = FixtureSet([AccessibleSphere(C, 5.0, name="A"), AccessibleSphere(cb, 5.0, name="B")],
+                    max_force_n=1e6)
+    fs.force(tool, DT)
+    (c,) = fs.contacts()
+    centre = C if nearer == "A" else cb
+    d = [t - k for t, k in zip(tool, centre, strict=True)]
+    n = norm(tuple(d))
+    assert c.name == nearer
+    assert c.proxy == pytest.approx([k + 5.0 * v / n for k, v in zip(centre, d, strict=True)],
+                                    abs=1e-9)
