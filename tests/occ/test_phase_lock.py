@@ -69,8 +69,12 @@ def test_phase_lock_median_survives_the_wrap_around() -> None:
 
 def _locked_slave(shifts: list[float]) -> SlaveController:
     ctrl = SlaveController({"phase_lock_us": 200.0})
+    # neither the wall clock's epoch nor the loop clock's time a whole number of periods: an
+    # offset taken the wrong way round then shows as another phase
+    clock = SimClock(wall_epoch=1_700_000_000.0003)
+    clock.set(0.5003)
     ctrl.ctx = ControllerContext(
-        clock=SimClock(), frame=None, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
+        clock=clock, frame=None, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
         loop_t0=lambda: 0.0, period_s=0.001, shift=shifts.append,
     )
     return ctrl

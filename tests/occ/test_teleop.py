@@ -547,3 +547,20 @@ def test_the_masters_fixture_mapping_stops_and_restarts_following_with_the_robot
     assert master.robot.state is RobotState.RUNNING and mapping.following is True
     tool = master.ctl.fixtures.tool_mm
     assert mapping.master_ref == pytest.approx(tool, abs=0.5)  # re-indexed where the hand is
+
+
+def test_a_teleop_output_that_is_not_position_faults_and_says_so() -> None:
+    import yaml
+
+    raw = yaml.safe_load((ROOT / "configs" / "master.yaml").read_text())
+    for itf in raw["interfaces"]:
+        if itf["name"] == "slave":
+            itf["outputs"][0]["type"] = "TRANSFORM"
+    m = Master(raw)
+    try:
+        m.sim.step(3)
+        assert m.robot.state is RobotState.FAULT
+        texts = [getattr(s, "status_message", "") for s in m.op.messages("STATUS")]
+        assert any("teleop output must be of type POSITION" in t for t in texts), texts
+    finally:
+        m.close()
