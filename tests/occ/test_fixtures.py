@@ -593,3 +593,16 @@ def test_with_no_history_the_nearer_of_two_close_surfaces(nearer: str, along) ->
     assert c.name == nearer
     assert c.proxy == pytest.approx([k + 5.0 * v / n for k, v in zip(centre, d, strict=True)],
                                     abs=1e-9)
+
+
+def test_a_guide_proxy_slides_in_a_straight_line_anywhere() -> None:
+    a, b, c = C, at(30.0), tuple(x + 30.0 * w for x, w in zip(at(30.0), W, strict=True))
+    fs = FixtureSet([Guide((a, b, c), stiffness=1.0)], max_force_n=1e6, slide_mm=0.5)
+    fs.force(at(10.0), DT)  # on the first segment: the proxy there
+    tool = tuple(x + 12.0 * w for x, w in zip(b, W, strict=True))  # beside the second segment
+    fs.force(tool, DT)
+    near = _nearest_on_segment(tool, b, c)
+    start = at(10.0)
+    d = [n - s for n, s in zip(near, start, strict=True)]
+    step = [s + 0.5 * v / norm(tuple(d)) for s, v in zip(start, d, strict=True)]
+    assert fs.contacts()[0].proxy == pytest.approx(step, abs=1e-9)
