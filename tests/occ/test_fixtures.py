@@ -390,6 +390,12 @@ def test_the_union_of_spheres_moved_anywhere_gives_the_same_forces_rotated() -> 
         moved, fs = scene(_move, k2)
         for f0, f1 in zip(flat, moved, strict=True):
             assert f1 == pytest.approx(_turn(f0), abs=1e-9)
+        # and the law itself: out of A's top at (0, 34, 0), 4 mm beyond the exit (0, 30, 0)
+        assert flat[2] == pytest.approx((0.0, -4.0, 0.0), abs=1e-9)
+        # at the end, above B's centre: the paper's law on B
+        d = (0.0, -34.0, -3.0)
+        n = norm(d)
+        assert flat[-1] == pytest.approx(tuple(k2 * (n - 30.0) * v / n for v in d), abs=1e-6)
         assert fs.contacts()[0].name == "B" and fs.contacts_entered == 1
 
 
@@ -606,3 +612,10 @@ def test_a_guide_proxy_slides_in_a_straight_line_anywhere() -> None:
     d = [n - s for n, s in zip(near, start, strict=True)]
     step = [s + 0.5 * v / norm(tuple(d)) for s, v in zip(start, d, strict=True)]
     assert fs.contacts()[0].proxy == pytest.approx(step, abs=1e-9)
+
+
+def test_a_guide_damped_by_exactly_one() -> None:
+    g = Guide(((0.0, 0.0, 0.0), (100.0, 0.0, 0.0)), stiffness=0.5, damping=1.0)
+    fs = FixtureSet([g], max_force_n=1e6)
+    fs.force((50.0, 4.0, 0.0), DT)
+    assert fs.force((50.0, 5.0, 0.0), DT) == pytest.approx((0.0, -2.5 - 1000.0, 0.0))
