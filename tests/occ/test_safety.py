@@ -1197,3 +1197,78 @@ def test_supervisor_state_reason_and_disarm() -> None:
     for k in range(1, 10):
         assert sup.check(1.0 + k * 0.015) is None
     assert not sup.tripped and sup.trips == 1 and sup.starved == 1
+
+
+@pytest.mark.req("SR-STATE-1")
+def test_the_table_builder_makes_the_specified_table() -> None:
+    # TRANSITIONS is built once at import; the builder itself is checked against the spec too
+    # (a mutation tool that changes the builder after import is seen only here)
+    from occ.safety import _build_table
+
+    assert _build_table() == {k: v for k, v in EXPECTED.items() if v is not None}
+
+
+@pytest.mark.req("SR-STATE-1")
+def test_request_details_reasons_spellings_and_allowed_events() -> None:
+    sm = StateMachine()
+    assert sm.last_reason == ""
+    t = sm.request("configure")  # no reason given: an empty one
+    assert t.reason == "" and sm.last_reason == ""
+    t = sm.try_request("enable", "operator")
+    assert t is not None and t.reason == "operator" and sm.last_reason == "operator"
+    t = sm.try_request("run")
+    assert t is not None and t.reason == "" and sm.state is S.RUNNING
+    assert sm.request(" E_Stop ", "button").new is S.ESTOP  # case, blanks, '-' and '_' ignored
+    assert sm.request("e-stop").new is S.ESTOP
+    # allowed events of the current state, or of any state asked about
+    assert sm.allowed_events() == ["fault", "estop", "reset", "shutdown"]
+    assert sm.allowed_events(S.READY) == ["enable", "fault", "estop", "shutdown"]
+    assert sm.allowed_events(S.SHUTDOWN) == ["shutdown"]
+    assert repr(sm) == "StateMachine(state=ESTOP)"
+
+
+@pytest.mark.req("SR-SEQ-1")
+def test_sequence_window_boundaries_and_a_reordered_start() -> None:
+    mon = LossMonitor(grace_s=10.0)
+    # the first two datagrams swapped: the second is late, and nothing was lost
+    assert mon.on_packet(10, None, 0.0) is Verdict.ACCEPT
+    assert mon.on_packet(9, None, 0.0) is Verdict.LATE
+    assert mon.lost_total == 0 and mon.reordered == 1
+    # 64 numbers are remembered behind the newest: 63 behind may still be late, 64 is not
+    mon = LossMonitor(max_consecutive=100, seq_slack=100, grace_s=10.0, alert_interval_s=0.0)
+    mon.on_packet(0, None, 0.0)
+    assert mon.on_packet(100, None, 0.002) is Verdict.ACCEPT  # 1-99 missing
+    assert mon.on_packet(37, None, 0.002) is Verdict.LATE  # 63 behind
+    assert mon.on_packet(36, None, 0.002) is Verdict.IMPLAUSIBLE  # 64 behind
+    assert _ev(mon.check(0.002)) == (
+        "refused", "refused an implausible sequence number: seq 36 is 64 behind 100 (1 so far)",
+        "sequence", 0, 0.002, 0.0,
+    )
+    assert mon.lost_total == 98
+    # half the number space away is behind, not ahead
+    mon = LossMonitor(alert_interval_s=0.0)
+    mon.on_packet(0, None, 0.0)
+    assert mon.on_packet(2**31, None, 0.002) is Verdict.IMPLAUSIBLE
+    assert _ev(mon.check(0.002))[1] == (  # type: ignore[index]
+        "refused an implausible sequence number: seq 2147483648 is 2147483648 behind 0 "
+        "(1 so far)")
+    assert mon.on_packet(2**31 - 1, None, 0.002) is Verdict.IMPLAUSIBLE
+    assert "is 2147483647 ahead of 0 (at most 12 possible)" in mon.check(0.002).cause  # type: ignore[union-attr]
+
+
+@pytest.mark.req("SR-LOSS-2", "SR-LOSS-3")
+def test_reset_with_a_time_arms_the_deadline_and_forgets_the_stream() -> None:
+    mon = LossMonitor(timestamp_tolerance_s=0.050)
+    mon.on_packet(5, 100.0, 0.0, 0.0)
+    mon.check(0.2)
+    assert mon.tripped
+    mon.reset(1.0)
+    assert not mon.tripped and not mon.holding and mon.offset_s is None and mon.trip_event is None
+    assert mon.last_good == 1.0
+    assert mon.check(1.006) is None
+    assert _ev(mon.check(1.007))[0] == "hold"  # type: ignore[index]
+    # the old stream position and clock offset are forgotten: any number, any clock
+    assert mon.on_packet(9000, 5000.0, 1.008, 1.008) is Verdict.ACCEPT
+    assert mon.counters()["received"] == 2 and mon.trips == 1  # counters are kept
+    mon.reset()
+    assert mon.last_good is None and mon.check(50.0) is None
