@@ -1141,8 +1141,9 @@ def test_watchdog_defaults_and_an_explicit_period_limit() -> None:
 
 @pytest.mark.req("SR-WD-1")
 def test_watchdog_alert_text_rate_limit_boundary_and_reset() -> None:
-    # periods of 1/4 s (binary-exact sums) and a 1 s interval: alerts at 0.25 s and 1.25 s
-    wd, alerts, stops = _wd(stop_run=1000, hard_gap_s=1.0, alert_interval_s=1.0)
+    # periods of 1/4 s (binary-exact sums) and the default 1 s interval: alerts at 0.25 s and
+    # exactly 1.25 s
+    wd, alerts, stops = _wd(stop_run=1000, hard_gap_s=1.0)
     for _ in range(5):
         wd.feed(0.25, 2 * B)
     assert [a for a, _ in alerts] == [
@@ -1272,3 +1273,85 @@ def test_reset_with_a_time_arms_the_deadline_and_forgets_the_stream() -> None:
     assert mon.counters()["received"] == 2 and mon.trips == 1  # counters are kept
     mon.reset()
     assert mon.last_good is None and mon.check(50.0) is None
+
+
+@pytest.mark.req("SR-SEQ-1")
+def test_implausible_alerts_default_to_one_per_second() -> None:
+    mon = LossMonitor(deadline_s=5.0, grace_s=10.0)
+    mon.on_packet(1, None, 0.0)
+    mon.on_packet(9000, None, 0.5)
+    assert mon.check(0.5) is not None
+    mon.on_packet(9000, None, 1.4999)
+    assert mon.check(1.4999) is None
+    mon.on_packet(9000, None, 1.5)
+    assert mon.check(1.5) is not None
+
+
+@pytest.mark.req("SR-SEQ-1")
+def test_how_far_ahead_a_number_may_be_is_exact() -> None:
+    def after(d: int, dt: float) -> Verdict:
+        mon = LossMonitor(max_consecutive=1000, grace_s=10.0)
+        mon.on_packet(0, None, 0.0)
+        return mon.on_packet(d, None, dt)
+
+    # 10 numbers of slack plus one per period elapsed plus the one due now
+    assert after(12, 0.002) is Verdict.ACCEPT
+    assert after(13, 0.002) is Verdict.IMPLAUSIBLE
+    assert after(13, 0.004) is Verdict.ACCEPT
+    assert after(14, 0.004) is Verdict.IMPLAUSIBLE
+    assert after(11, 0.0) is Verdict.ACCEPT  # the same tick
+    assert after(12, 0.0) is Verdict.IMPLAUSIBLE
+
+
+@pytest.mark.req("SR-SEQ-1", "SR-LOSS-1")
+def test_a_jump_past_the_window_forgets_what_was_behind() -> None:
+    mon = LossMonitor(max_consecutive=1000, seq_slack=1000, grace_s=10.0)
+    mon.on_packet(0, None, 0.0)
+    assert mon.on_packet(70, None, 0.002) is Verdict.ACCEPT  # 1-69 missing
+    assert mon.on_packet(69, None, 0.002) is Verdict.LATE  # just behind: not seen, late
+    assert mon.on_packet(69, None, 0.002) is Verdict.DUPLICATE
+    assert mon.lost_total == 68
+
+
+@pytest.mark.req("SR-TIME-1", "SR-LOSS-2")
+def test_v1_streams_zero_small_and_large_timestamp_gaps() -> None:
+    # a timestamp of 0 is "not set": judged by the deadline only, never a duplicate
+    mon = LossMonitor()
+    assert mon.on_packet(None, 0.0, 0.0) is Verdict.ACCEPT
+    assert mon.on_packet(None, 0.0, 0.002) is Verdict.ACCEPT
+    # a sender clock near zero is a clock all the same
+    mon = LossMonitor()
+    assert mon.on_packet(None, 0.5, 0.0) is Verdict.ACCEPT
+    assert mon.on_packet(None, 0.5, 0.002) is Verdict.DUPLICATE
+    assert mon.on_packet(None, 0.498, 0.002) is Verdict.LATE
+    # the latch names the gap in ms
+    mon = LossMonitor(grace_s=1.0)
+    mon.on_packet(None, 50.0, 0.0)
+    mon.on_packet(None, 50.1, 0.100)
+    assert _ev(mon.check(0.100)) == (
+        "latch", "49 consecutive packets lost (timestamp gap 100.0 ms)", "timestamp", 49, 0.1,
+        0.1)
+    # without a tolerance the timestamps teach no clock offset
+    assert mon.offset_s is None and mon.counters()["clock_offset_ms"] is None
+
+
+@pytest.mark.req("SR-LOSS-1", "SR-LOSS-2")
+def test_every_field_of_sequence_latch_and_deadline_only_resume_events() -> None:
+    mon = LossMonitor()
+    mon.on_packet(1040, None, 0.000)
+    mon.on_packet(1044, None, 0.008)
+    assert _ev(mon.check(0.008)) == (
+        "latch", "3 consecutive packets lost (seq 1041-1043 missing)", "sequence", 3, 0.008,
+        0.008)
+    # a stream without numbers or timestamps resumes by the deadline, and says so; twice
+    mon = LossMonitor()
+    mon.on_packet(None, None, 0.0)
+    assert _ev(mon.check(0.007))[0] == "hold"  # type: ignore[index]
+    mon.on_packet(None, None, 0.008)
+    assert _ev(mon.check(0.008)) == (
+        "resume", "stream back after 8.0 ms (gap 0); following again", "deadline", 0, 0.008,
+        0.008)
+    assert _ev(mon.check(0.015))[0] == "hold"  # type: ignore[index]
+    mon.on_packet(None, None, 0.016)
+    assert _ev(mon.check(0.016))[0] == "resume"  # type: ignore[index]
+    assert mon.resumes == 2 and mon.holds == 2
