@@ -1355,3 +1355,13 @@ def test_every_field_of_sequence_latch_and_deadline_only_resume_events() -> None
     mon.on_packet(None, None, 0.016)
     assert _ev(mon.check(0.016))[0] == "resume"  # type: ignore[index]
     assert mon.resumes == 2 and mon.holds == 2
+
+
+@pytest.mark.req("SR-LOSS-2")
+def test_an_explicit_tolerance_moves_the_deadline() -> None:
+    mon = LossMonitor(tolerance_s=0.0015)  # 3 periods of 2 ms + 1.5 ms
+    assert mon.tolerance_s == 0.0015 and mon.deadline_s == pytest.approx(0.0075)
+    mon.on_packet(1, None, 0.0)
+    assert mon.check(0.0074) is None
+    ev = mon.check(0.0076)
+    assert ev is not None and ev.kind == "hold" and ev.run == 3
