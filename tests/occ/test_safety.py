@@ -1365,3 +1365,24 @@ def test_an_explicit_tolerance_moves_the_deadline() -> None:
     assert mon.check(0.0074) is None
     ev = mon.check(0.0076)
     assert ev is not None and ev.kind == "hold" and ev.run == 3
+
+
+@pytest.mark.req("SR-LOSS-2", "SR-LOSS-3", "SR-SUP-1")
+def test_long_silences_are_reported_in_whole_ms() -> None:
+    mon = LossMonitor()
+    mon.on_packet(1, None, 0.0)
+    assert _ev(mon.check(0.060)) == ("hold", "no packet for 60.0 ms: holding", "deadline", 29,
+                                     0.06, 0.06)
+    mon.on_packet(2, None, 0.080)
+    assert mon.check(0.080).cause == (  # type: ignore[union-attr]
+        "stream back after 80.0 ms (gap 0); following again")
+    # armed without a packet, then silence past the grace: nothing was refused meanwhile
+    mon.reset(1.0)
+    assert mon.check(1.25).cause == "no packet for 250.00 ms (limit 100.0 ms)"  # type: ignore[union-attr]
+    mon = LossMonitor()
+    mon.arm(0.0)
+    assert mon.check(0.25).cause == "no packet for 250.00 ms (limit 100.0 ms)"  # type: ignore[union-attr]
+    sup = Supervisor(0.100)
+    sup.arm(0.0)
+    assert sup.check(0.075) is None
+    assert sup.check(0.160) == "control loop did not tick for 160.0 ms (supervisor limit 100.0 ms)"
