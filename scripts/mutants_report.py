@@ -10,8 +10,8 @@ sources), diffs every survivor against the original function and sorts it into
   and the tests that matter match the message's substance, not its every character;
 - ``gc``: inside ``__del__`` (the leak warning at garbage collection);
 - ``behaviour``: everything else, a changed default argument included (it shows in the
-  signature, ``def (...)``, which is compared along with the body): a test should kill it, or docs/VERIFICATION.md says why it is
-  equivalent.
+  signature, ``def (...)``, which is compared along with the body): a test should kill it,
+  or docs/VERIFICATION.md says why it is equivalent.
 
 Prints counts per module and class, and each behaviour survivor as ``name: - old / + new``.
 """
@@ -36,7 +36,8 @@ def functions(path: Path) -> dict[str, str]:
     for node in ast.walk(tree):
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and "__mutmut_" in node.name:
             # the signature first: a mutated default argument changes only that line
-            out[node.name] = f"{SIGNATURE}({ast.unparse(node.args)})\n" + ast.unparse(node.body)  # type: ignore[arg-type]
+            body = ast.unparse(node.body)  # type: ignore[arg-type]
+            out[node.name] = f"{SIGNATURE}({ast.unparse(node.args)})\n{body}"
     return out
 
 

@@ -837,8 +837,8 @@ def test_loss_monitor_counters_report_every_count_by_name() -> None:
         "clock_offset_ms": None,
     }
     t0 = 1.0123456  # the sender's clock: offset -1012.3456 ms
-    A, D, L, I, U = (Verdict.ACCEPT, Verdict.DUPLICATE, Verdict.LATE, Verdict.IMPLAUSIBLE,
-                     Verdict.UNSEQUENCED)
+    A, D, L, IM, U = (Verdict.ACCEPT, Verdict.DUPLICATE, Verdict.LATE, Verdict.IMPLAUSIBLE,
+                      Verdict.UNSEQUENCED)
     got = [
         mon.on_packet(10, t0, 0.0),
         mon.on_packet(10, t0, 0.0),  # duplicate
@@ -851,7 +851,7 @@ def test_loss_monitor_counters_report_every_count_by_name() -> None:
         mon.on_packet(14, t0 + 0.006 + 1.0, 0.006),  # a second ahead
         mon.on_packet(14, t0 + 0.006 + 2.0, 0.006),  # two seconds ahead
     ]
-    assert got == [A, D, A, L, D, I, U, Verdict.STALE, Verdict.FUTURE, Verdict.FUTURE]
+    assert got == [A, D, A, L, D, IM, U, Verdict.STALE, Verdict.FUTURE, Verdict.FUTURE]
     assert mon.check(0.013) is not None  # 9 ms after the last accepted sample: hold
     assert mon.on_packet(14, t0 + 0.014, 0.014) is A  # back in time: resume
     assert mon.check(0.014) is not None
