@@ -642,7 +642,6 @@ class LossMonitor:
         self._last_ts: float | None = None
         self._last_good: float | None = now
         self._holding = False
-        self._hold_since = 0.0
         self._tripped = False
         self._pending: LossEvent | None = None
         self._refused_run = 0
@@ -856,7 +855,6 @@ class LossMonitor:
                     )
                 elif not self._holding:
                     self._holding = True
-                    self._hold_since = now
                     self.holds += 1
                     self._post(
                         LossEvent(

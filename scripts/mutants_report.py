@@ -9,8 +9,9 @@ sources), diffs every survivor against the original function and sorts it into
   alert or hook-action name); behaviour is the same,
   and the tests that matter match the message's substance, not its every character;
 - ``gc``: inside ``__del__`` (the leak warning at garbage collection);
-- ``behaviour``: everything else: a test should kill it, or docs/VERIFICATION.md says why it is
-  equivalent.
+- ``behaviour``: everything else, a changed default argument included (it shows in the
+  signature, ``def (...)``, which is compared along with the body): a test should kill it,
+  or docs/VERIFICATION.md says why it is equivalent.
 
 Prints counts per module and class, and each behaviour survivor as ``name: - old / + new``.
 """
@@ -25,6 +26,7 @@ import sys
 from collections import Counter
 from pathlib import Path
 
+SIGNATURE = "def "
 STRING = re.compile(r"""(?:[rbfu]{0,2})("([^"\\]|\\.)*"|'([^'\\]|\\.)*')""", re.I)
 
 
@@ -33,13 +35,17 @@ def functions(path: Path) -> dict[str, str]:
     out = {}
     for node in ast.walk(tree):
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and "__mutmut_" in node.name:
-            out[node.name] = ast.unparse(node.body)  # type: ignore[arg-type]
+            # the signature first: a mutated default argument changes only that line
+            body = ast.unparse(node.body)  # type: ignore[arg-type]
+            out[node.name] = f"{SIGNATURE}({ast.unparse(node.args)})\n{body}"
     return out
 
 
 def classify(name: str, old: list[str], new: list[str]) -> str:
     if "__del__" in name:
         return "gc"
+    if any(line.startswith(SIGNATURE) for line in old + new):
+        return "behaviour"  # a default argument changed: what a call without it does
     changed = [line for line in old + new]
     if changed and all(re.search(r"\b(log|logger)\.\w+\(", line) for line in changed):
         return "log"

@@ -784,3 +784,605 @@ def test_a_stall_of_the_receivers_own_loop_never_makes_samples_stale() -> None:
     assert late.count(Verdict.STALE) >= 3 and mon2.trips == 1
     # old even for its earliest possible arrival: stale
     assert mon.on_packet(46, 1000.0 + prev - 0.060, now, now, prev) is Verdict.STALE
+
+
+# -- mutation-testing additions (docs/VERIFICATION.md, issue 15) -------------------------------
+
+
+@pytest.mark.req("SR-STATE-1")
+def test_a_guard_refuses_with_its_reason_and_changes_nothing() -> None:
+    sm = StateMachine(S.READY)
+    calls: list[tuple[RobotState, RobotState]] = []
+    asked: list[tuple[RobotState, str]] = []
+    sm.add_listener(lambda old, new, *_: calls.append((old, new)))
+    sm.add_guard(lambda state, event: "joint 2 never measured" if event == "enable" else "")
+    sm.add_guard(lambda state, event: asked.append((state, event)) or "")
+    with pytest.raises(StateError) as info:
+        sm.request("enable", "operator")
+    assert str(info.value) == "'enable' refused in state READY: joint 2 never measured"
+    assert sm.state is S.READY and calls == [] and sm.last_reason == ""
+    assert asked == []  # the first guard that refuses decides; the next one is not asked
+    # the table refuses first: a guard is asked only about a transition the table allows
+    with pytest.raises(StateError, match="allowed from READY"):
+        sm.request("run")
+    assert asked == []
+    # a guard that allows ('') lets the transition through, and is asked with the state
+    assert sm.request("estop", "button").new is S.ESTOP
+    assert asked == [(S.READY, "estop")] and calls == [(S.READY, S.ESTOP)]
+    assert sm.last_reason == "button"
+    # an idempotent request keeps the reason of the last change
+    sm.request("estop", "again")
+    assert sm.last_reason == "button"
+
+
+@pytest.mark.req("SR-LOSS-2")
+def test_arm_starts_the_deadline_without_a_packet() -> None:
+    mon = LossMonitor()
+    assert mon.last_good is None
+    assert mon.check(5.0) is None  # never armed, no packet: nothing is overdue
+    mon.arm(10.0)
+    assert mon.last_good == 10.0
+    assert mon.check(10.006) is None
+    ev = mon.check(10.007)
+    assert ev is not None and ev.kind == "hold" and ev.since_last_good_s == pytest.approx(0.007)
+
+
+@pytest.mark.req("SR-LOSS-1", "SR-SEQ-1", "SR-TIME-1")
+def test_loss_monitor_counters_report_every_count_by_name() -> None:
+    mon = LossMonitor(max_consecutive=3, timestamp_tolerance_s=0.050)  # deadline 8.5 ms
+    assert mon.counters() == {
+        "received": 0, "accepted": 0, "lost_total": 0, "max_run": 0, "duplicates": 0,
+        "reordered": 0, "implausible_seq": 0, "stale": 0, "future": 0, "unsequenced": 0,
+        "holds": 0, "resumes": 0, "trips": 0, "holding": False, "tripped": False,
+        "clock_offset_ms": None,
+    }
+    t0 = 1.0123456  # the sender's clock: offset -1012.3456 ms
+    A, D, L, IM, U = (Verdict.ACCEPT, Verdict.DUPLICATE, Verdict.LATE, Verdict.IMPLAUSIBLE,
+                      Verdict.UNSEQUENCED)
+    got = [
+        mon.on_packet(10, t0, 0.0),
+        mon.on_packet(10, t0, 0.0),  # duplicate
+        mon.on_packet(13, t0 + 0.004, 0.004),  # 11 and 12 missing
+        mon.on_packet(11, t0 + 0.001, 0.004),  # late: fills one
+        mon.on_packet(11, t0 + 0.001, 0.004),  # duplicate
+        mon.on_packet(5013, t0 + 0.004, 0.004),  # implausible
+        mon.on_packet(None, t0 + 0.004, 0.004),  # unsequenced
+        mon.on_packet(14, t0 + 0.006 - 1.0, 0.006),  # a second old
+        mon.on_packet(14, t0 + 0.006 + 1.0, 0.006),  # a second ahead
+        mon.on_packet(14, t0 + 0.006 + 2.0, 0.006),  # two seconds ahead
+    ]
+    assert got == [A, D, A, L, D, IM, U, Verdict.STALE, Verdict.FUTURE, Verdict.FUTURE]
+    assert mon.check(0.013) is not None  # 9 ms after the last accepted sample: hold
+    assert mon.on_packet(14, t0 + 0.014, 0.014) is A  # back in time: resume
+    assert mon.check(0.014) is not None
+    assert mon.check(0.115) is not None  # then silence past the grace: latch
+    assert mon.counters() == {
+        "received": 11, "accepted": 3, "lost_total": 1, "max_run": 2, "duplicates": 2,
+        "reordered": 1, "implausible_seq": 1, "stale": 1, "future": 2, "unsequenced": 1,
+        "holds": 1, "resumes": 1, "trips": 1, "holding": True, "tripped": True,
+        "clock_offset_ms": -1012.346,
+    }
+
+
+@pytest.mark.req("SR-WD-1", "SR-SUP-1", "SR-LOSS-2")
+def test_bad_settings_are_refused_with_the_name_and_the_value() -> None:
+    with pytest.raises(ValueError, match=r"^budget_s must be > 0, got 0.0$"):
+        Watchdog(0.0)
+    with pytest.raises(ValueError, match=r"^budget_s must be > 0, got -1$"):
+        Watchdog(-1)
+    Watchdog(1e-9)  # just over zero is a budget
+    with pytest.raises(ValueError, match=r"^alert_run and stop_run must be >= 1$"):
+        Watchdog(B, alert_run=0)
+    with pytest.raises(ValueError, match=r"^alert_run and stop_run must be >= 1$"):
+        Watchdog(B, stop_run=0)
+    Watchdog(B, alert_run=1, stop_run=1)  # exactly 1 is allowed
+    with pytest.raises(ValueError, match=r"^policy must be 'hold' or 'fault', got 'panic'$"):
+        Watchdog(B, policy="panic")  # type: ignore[arg-type]
+    assert Watchdog(B, policy="fault").policy == "fault"
+    with pytest.raises(ValueError, match=r"^timeout_s must be > 0, got 0$"):
+        Supervisor(0)
+    Supervisor(1e-9)
+    with pytest.raises(ValueError, match=r"^period_s must be > 0, got 0$"):
+        LossMonitor(period_s=0)
+    with pytest.raises(ValueError, match=r"^max_consecutive must be >= 0, got -1$"):
+        LossMonitor(max_consecutive=-1)
+    assert LossMonitor(max_consecutive=0).deadline_s == pytest.approx(0.0025)
+    with pytest.raises(ValueError, match=r"^grace_s \(0.005\) must be >= the deadline \(0.0065"):
+        LossMonitor(grace_s=0.005)
+    deadline = LossMonitor().deadline_s
+    assert LossMonitor(grace_s=deadline).grace_s == deadline  # exactly the deadline is allowed
+    with pytest.raises(ValueError, match=r"^unknown event 'jump'; events are: configure, enable, "
+                       r"run, hold, stop, disable, fault, estop, reset, shutdown$"):
+        StateMachine().request("jump")
+
+
+def _ev(event: LossEvent | None) -> tuple[object, ...] | None:
+    """Every field of an event, times rounded to the nanosecond (exact comparisons)."""
+    if event is None:
+        return None
+    return (event.kind, event.cause, event.source, event.run, round(event.time, 9),
+            round(event.since_last_good_s, 9))
+
+
+@pytest.mark.req("SR-LOSS-2", "SR-LOSS-3", "SR-SEQ-1")
+def test_every_field_of_hold_refused_resume_and_grace_events() -> None:
+    mon = LossMonitor()  # 2 ms period, deadline 6.5 ms, grace 100 ms
+    assert mon.on_packet(1, None, 0.0) is Verdict.ACCEPT
+    assert all(mon.check(t * MS) is None for t in range(7))
+    # first noticed 8 ms after the last good sample: 3 periods overdue past the tolerance
+    assert _ev(mon.check(0.008)) == ("hold", "no packet for 8.0 ms: holding", "deadline", 3,
+                                     0.008, 0.008)
+    assert mon.holding and mon.check(0.009) is None and mon.holds == 1  # once per hold
+    # two implausible numbers meanwhile: one alert (rate-limited), both counted for the resume
+    assert mon.on_packet(5001, None, 0.009) is Verdict.IMPLAUSIBLE
+    assert mon.on_packet(1 - 100 + 2**32, None, 0.009) is Verdict.IMPLAUSIBLE  # 100 behind
+    assert _ev(mon.check(0.009)) == (
+        "refused",
+        "refused an implausible sequence number: seq 5001 is 5000 ahead of 1 "
+        "(at most 15 possible) (1 so far)",
+        "sequence", 0, 0.009, 0.0,
+    )
+    assert mon.on_packet(2, None, 0.010) is Verdict.ACCEPT
+    assert _ev(mon.check(0.010)) == (
+        "resume", "stream back after 10.0 ms (gap 0, 2 refused meanwhile); following again",
+        "sequence", 0, 0.010, 0.010,
+    )
+    assert not mon.holding and mon.resumes == 1
+    # then silence, with three more implausible numbers (no alert: rate-limited)
+    for seq in (9000, 9001, 9002):
+        assert mon.on_packet(seq, None, 0.050) is Verdict.IMPLAUSIBLE
+    assert _ev(mon.check(0.050))[0] == "hold"  # type: ignore[index]
+    assert mon.check(0.110) is None  # exactly the grace: holding, not latched
+    latch = mon.check(0.112)
+    assert _ev(latch) == (
+        "latch", "no packet for 102.00 ms (limit 100.0 ms); 3 samples refused meanwhile",
+        "grace", 50, 0.112, 0.102,
+    )
+    assert mon.trip_event is latch and mon.check(0.113) is None
+    assert mon.tripped and mon.holding and mon.trips == 1
+    # a resume after a hold with nothing refused says nothing about refusals
+    mon.reset(1.0)
+    mon.on_packet(7, None, 1.0)
+    assert _ev(mon.check(1.008))[0] == "hold"  # type: ignore[index]
+    mon.on_packet(8, None, 1.009)
+    assert _ev(mon.check(1.009)) == (
+        "resume", "stream back after 9.0 ms (gap 0); following again", "sequence", 0, 1.009,
+        0.009,
+    )
+    # a hold noticed at 7 ms and a grace latch with nothing refused
+    mon = LossMonitor()
+    mon.on_packet(1, None, 0.0)
+    assert _ev(mon.check(0.007)) == ("hold", "no packet for 7.0 ms: holding", "deadline", 3,
+                                     0.007, 0.007)
+    assert _ev(mon.check(0.250)) == (
+        "latch", "no packet for 250.00 ms (limit 100.0 ms)", "grace", 124, 0.25, 0.25,
+    )
+
+
+@pytest.mark.req("SR-LOSS-3")
+def test_the_grace_boundary_is_exact_and_strict_mode_names_the_deadline() -> None:
+    mon = LossMonitor()
+    mon.on_packet(1, None, 0.0)
+    assert _ev(mon.check(0.100))[0] == "hold"  # type: ignore[index]  # exactly the grace
+    assert not mon.tripped
+    assert _ev(mon.check(0.100 + 1e-9))[:3] == (  # type: ignore[index]
+        "latch", "no packet for 100.00 ms (limit 100.0 ms)", "grace")
+    # strict: the deadline latches, and names itself even when first checked at the grace
+    mon = LossMonitor(strict=True)
+    mon.on_packet(1, None, 0.0)
+    assert _ev(mon.check(0.100)) == (
+        "latch", "no packet for 100.00 ms (limit 6.5 ms, strict)", "deadline", 49, 0.1, 0.1)
+    mon = LossMonitor(strict=True)
+    mon.on_packet(1, None, 0.0)
+    assert _ev(mon.check(0.008)) == (
+        "latch", "no packet for 8.00 ms (limit 6.5 ms, strict)", "deadline", 3, 0.008, 0.008)
+    assert mon.holds == 0 and mon.trips == 1
+
+
+@pytest.mark.req("SR-LOSS-1", "SR-SEQ-1")
+def test_one_event_per_tick_the_most_important_and_the_latest_of_a_kind() -> None:
+    # a latch outranks a refusal that came after it in the same tick
+    mon = LossMonitor()
+    mon.on_packet(1, None, 0.0)
+    mon.on_packet(5, None, 0.008)  # 2-4 missing: latch
+    mon.on_packet(9000, None, 0.008)  # implausible: an alert of lower rank
+    ev = mon.check(0.008)
+    assert ev is not None and ev.kind == "latch" and ev.cause.endswith("(seq 2-4 missing)")
+    assert mon.check(0.008) is None  # reported once
+    # without a rate limit every refusal is an alert; of two in a tick the latest is reported
+    mon = LossMonitor(alert_interval_s=0.0)
+    mon.on_packet(1, None, 0.0)
+    mon.on_packet(9000, None, 0.002)
+    mon.on_packet(9500, None, 0.002)
+    assert _ev(mon.check(0.002)) == (
+        "refused",
+        "refused an implausible sequence number: seq 9500 is 9499 ahead of 1 "
+        "(at most 12 possible) (2 so far)",
+        "sequence", 0, 0.002, 0.0,
+    )
+
+
+@pytest.mark.req("SR-SEQ-1")
+def test_implausible_alerts_are_rate_limited_to_one_per_interval_exactly() -> None:
+    mon = LossMonitor(alert_interval_s=1.0, deadline_s=5.0, grace_s=10.0)
+    mon.on_packet(1, None, 0.0)
+    mon.on_packet(9000, None, 0.5)
+    assert _ev(mon.check(0.5))[0] == "refused"  # type: ignore[index]
+    mon.on_packet(9000, None, 1.25)
+    assert mon.check(1.25) is None  # within the interval: counted, not alerted
+    mon.on_packet(90000, None, 1.5)  # exactly one interval after the alert
+    ev = mon.check(1.5)
+    assert ev is not None and ev.kind == "refused" and "(3 so far)" in ev.cause
+    assert mon.implausible_seq == 3
+
+
+@pytest.mark.req("SR-TIME-1")
+def test_timestamp_tolerance_boundaries_are_exact_both_ways() -> None:
+    # binary-exact times: offset -1.0 s (sender one second ahead), tolerance 1/16 s
+    tol = 0.0625
+
+    def fresh() -> LossMonitor:
+        mon = LossMonitor(timestamp_tolerance_s=tol, grace_s=10.0)
+        assert mon.on_packet(0, 1.0, 0.0, 0.0) is Verdict.ACCEPT
+        assert mon.offset_s == -1.0
+        return mon
+
+    # older than the offset by exactly the tolerance: accepted; a hair more: stale
+    assert fresh().on_packet(1, 1.0, 0.125, 0.125, 0.0625) is Verdict.ACCEPT
+    assert fresh().on_packet(1, 1.0 - 2**-30, 0.125, 0.125, 0.0625) is Verdict.STALE
+    # younger by exactly the tolerance: accepted; a hair more: from the future
+    assert fresh().on_packet(1, 1.1875, 0.125, 0.125) is Verdict.ACCEPT
+    assert fresh().on_packet(1, 1.1875 + 2**-30, 0.125, 0.125) is Verdict.FUTURE
+
+
+@pytest.mark.req("SR-TIME-1")
+def test_timestamps_zero_or_missing_are_not_judged_and_small_ones_are() -> None:
+    mon = LossMonitor(timestamp_tolerance_s=0.050)
+    assert mon.on_packet(0, 1000.0, 0.0) is Verdict.ACCEPT  # rx_time defaults to now
+    assert mon.offset_s == -1000.0
+    assert mon.on_packet(1, None, 0.002) is Verdict.ACCEPT  # no timestamp: nothing to judge
+    assert mon.on_packet(2, 0.0, 0.004) is Verdict.ACCEPT  # 0 = not set (OpenIGTLink)
+    assert mon.offset_s == -1000.0  # neither taught the offset
+    assert mon.on_packet(3, 1000.0 + 0.006 - 1.0, 0.006) is Verdict.STALE  # rx = now
+    # a sender whose clock starts near zero (a monotonic clock) is judged all the same
+    mon = LossMonitor(timestamp_tolerance_s=0.050)
+    assert mon.on_packet(0, 0.25, 0.0) is Verdict.ACCEPT
+    assert mon.on_packet(1, 0.9, 0.002) is Verdict.FUTURE  # 648 ms ahead of its offset
+    assert mon.on_packet(1, 0.252, 0.002) is Verdict.ACCEPT
+
+
+@pytest.mark.req("SR-TIME-1")
+def test_the_age_is_taken_at_reception_not_at_the_tick() -> None:
+    mon = LossMonitor(timestamp_tolerance_s=0.050)
+    assert mon.on_packet(0, 100.0, 0.0, 0.0) is Verdict.ACCEPT
+    # received 2 ms after the first, drained by a tick half a second late: still fresh
+    assert mon.on_packet(1, 100.002, 0.5, 0.002) is Verdict.ACCEPT
+    assert mon.offset_s == pytest.approx(-100.0)
+
+
+@pytest.mark.req("SR-TIME-1")
+def test_a_run_of_refused_timestamps_latches_with_the_age_at_the_earliest_arrival() -> None:
+    mon = LossMonitor(timestamp_tolerance_s=0.050)
+    mon.on_packet(0, 500.0, 0.0, 0.0)
+    verdicts = [
+        # 10 s old even if it arrived 1 ms after the previous read (rx_earliest)
+        mon.on_packet(i, 500.0 + 2 * i * MS - 10.0, 2 * i * MS, 2 * i * MS + MS, 2 * i * MS)
+        for i in range(1, 4)
+    ]
+    assert verdicts == [Verdict.STALE] * 3
+    assert _ev(mon.check(0.006)) == (
+        "latch",
+        "3 consecutive samples refused for their timestamp (last 10000.0 ms stale, tolerance "
+        "50 ms)",
+        "timestamp", 3, 0.006, 0.0,
+    )
+    mon = LossMonitor(max_consecutive=1, timestamp_tolerance_s=0.0125)
+    mon.on_packet(0, 500.0, 0.0, 0.0)
+    assert mon.on_packet(1, 500.0 + 2.5, 0.002) is Verdict.FUTURE
+    assert mon.check(0.002) is None and not mon.tripped  # one refused: not yet
+    assert mon.on_packet(2, 500.0 + 0.25, 0.004) is Verdict.FUTURE
+    assert _ev(mon.check(0.004)) == (
+        "latch",
+        "2 consecutive samples refused for their timestamp (last 246.0 ms in the future, "
+        "tolerance 12 ms)",
+        "timestamp", 2, 0.004, 0.0,
+    )
+    # refused samples count toward the run only while nothing is accepted in between
+    mon = LossMonitor(timestamp_tolerance_s=0.050)
+    mon.on_packet(0, 500.0, 0.0, 0.0)
+    for i in range(1, 20):
+        t = 2 * i * MS
+        stamp = 500.0 + t + (10.0 if i % 3 == 0 else 0.0)  # every third a sample from the future
+        assert mon.on_packet(i, stamp, t, t) is (Verdict.FUTURE if i % 3 == 0 else Verdict.ACCEPT)
+        assert mon.check(t) is None
+    assert mon.future == 6 and mon.trips == 0
+
+
+@pytest.mark.req("SR-TIME-1", "SR-LOSS-2")
+def test_timestamp_refusals_are_counted_in_the_resume_event() -> None:
+    mon = LossMonitor(timestamp_tolerance_s=0.050)
+    mon.on_packet(0, 500.0, 0.0, 0.0)
+    assert _ev(mon.check(0.007))[0] == "hold"  # type: ignore[index]
+    assert mon.on_packet(1, 400.0, 0.008) is Verdict.STALE
+    assert mon.on_packet(1, 600.0, 0.009) is Verdict.FUTURE
+    assert mon.on_packet(1, 500.010, 0.010) is Verdict.ACCEPT
+    assert _ev(mon.check(0.010)) == (
+        "resume", "stream back after 10.0 ms (gap 0, 2 refused meanwhile); following again",
+        "sequence", 0, 0.010, 0.010,
+    )
+
+
+@pytest.mark.req("SR-WD-1")
+def test_watchdog_defaults_and_an_explicit_period_limit() -> None:
+    wd, alerts, stops = _wd()
+    assert wd.counters() == {"overruns": 0, "max_consecutive": 0, "alerts": 0, "stops": 0,
+                             "stopped": False}
+    assert wd.stop_reason is None and wd.stopped is False
+    # by default: every overrun alerts (rate-limited), five in a row stop with "hold"
+    for _ in range(4):
+        assert wd.feed(None, 2 * B)
+    assert stops == [] and len(alerts) == 1
+    wd.feed(None, 2 * B)
+    assert stops == [("5 consecutive overruns (budget 1.000 ms, last compute 2.000 ms)", "hold")]
+    # the default period limit is twice the budget; an explicit one replaces it
+    wd = Watchdog(B, period_limit_s=0.005)
+    assert not wd.feed(0.005, 0.0) and wd.feed(0.005 * (1 + 1e-9), 0.0)
+    # the default hard gap is 10 ms
+    wd, _, stops = _wd(period_limit_s=1.0)
+    wd.feed(0.010, 0.0)
+    assert stops == []
+    wd.feed(0.011, 0.0)
+    assert stops == [("gap of 11.000 ms between ticks (hard limit 10.000 ms)", "hold")]
+    # the policy is passed to the stop callback as configured
+    wd, _, stops = _wd(policy="fault", stop_run=1)
+    wd.feed(None, 2 * B)
+    assert stops == [("1 consecutive overruns (budget 1.000 ms, last compute 2.000 ms)", "fault")]
+
+
+@pytest.mark.req("SR-WD-1")
+def test_watchdog_alert_text_rate_limit_boundary_and_reset() -> None:
+    # periods of 1/4 s (binary-exact sums) and the default 1 s interval: alerts at 0.25 s and
+    # exactly 1.25 s
+    wd, alerts, stops = _wd(stop_run=1000, hard_gap_s=1.0)
+    for _ in range(5):
+        wd.feed(0.25, 2 * B)
+    assert [a for a, _ in alerts] == [
+        "overrun: compute 2.000 ms > budget 1.000 ms (1 consecutive, 1 total)",
+        "overrun: compute 2.000 ms > budget 1.000 ms (5 consecutive, 5 total, "
+        "3 alerts suppressed)",
+    ]
+    assert [n for _, n in alerts] == [1, 5] and wd.alerts == 2 and stops == []
+    # a compute time of exactly the budget is not the cause: the period is
+    wd, alerts, _ = _wd(stop_run=1000)
+    wd.feed(2.5 * B, B)
+    assert alerts == [("overrun: period 2.500 ms > limit 2.000 ms (1 consecutive, 1 total)", 1)]
+    # reset clears the run, the latch, the reason and the rate limit; counters are kept
+    wd, alerts, stops = _wd(stop_run=2, alert_interval_s=10.0)
+    for _ in range(3):
+        wd.feed(B, 2 * B)
+    assert wd.stopped and wd.stop_reason is not None and len(alerts) == 1
+    wd.reset()
+    assert wd.stopped is False and wd.stop_reason is None and wd.consecutive == 0
+    wd.feed(B, 2 * B)
+    assert alerts[-1][0] == "overrun: compute 2.000 ms > budget 1.000 ms (1 consecutive, 4 total)"
+    wd.feed(B, 2 * B)
+    wd.feed(B, 2 * B)
+    wd.reset()
+    wd.feed(B, 2 * B)  # no alert was suppressed since the reset
+    assert alerts[-1][0] == "overrun: compute 2.000 ms > budget 1.000 ms (1 consecutive, 7 total)"
+    assert wd.counters() == {"overruns": 7, "max_consecutive": 3, "alerts": 3, "stops": 2,
+                             "stopped": False}
+
+
+@pytest.mark.req("SR-SUP-1")
+def test_supervisor_state_reason_and_disarm() -> None:
+    trips: list[str] = []
+    sup = Supervisor(on_trip=trips.append)  # the default timeout: 20 ms
+    assert sup.timeout_s == 0.020
+    assert sup.armed is False and sup.tripped is False and sup.reason == ""
+    assert sup.last_beat is None and sup.trips == 0 and sup.starved == 0
+    sup.arm(0.0)
+    assert sup.armed is True and sup.last_beat == 0.0
+    sup.beat(0.010)
+    assert sup.check(0.015) is None and sup.check(0.030) is None  # 20 ms after the beat
+    reason = sup.check(0.0301)
+    assert reason == "control loop did not tick for 20.1 ms (supervisor limit 20.0 ms)"
+    assert sup.reason == reason and trips == [reason] and sup.tripped is True
+    sup.reset()
+    assert sup.tripped is False and sup.reason == ""
+    # disarmed: a silent loop is never a trip, however often the supervisor checks
+    sup.beat(1.0)
+    sup.check(1.0)  # a second after its previous check: counted as starved, once
+    sup.disarm()
+    assert sup.armed is False
+    for k in range(1, 10):
+        assert sup.check(1.0 + k * 0.015) is None
+    assert not sup.tripped and sup.trips == 1 and sup.starved == 1
+
+
+@pytest.mark.req("SR-STATE-1")
+def test_the_table_builder_makes_the_specified_table() -> None:
+    # TRANSITIONS is built once at import; the builder itself is checked against the spec too
+    # (a mutation tool that changes the builder after import is seen only here)
+    from occ.safety import _build_table
+
+    assert _build_table() == {k: v for k, v in EXPECTED.items() if v is not None}
+
+
+@pytest.mark.req("SR-STATE-1")
+def test_request_details_reasons_spellings_and_allowed_events() -> None:
+    sm = StateMachine()
+    assert sm.last_reason == ""
+    t = sm.request("configure")  # no reason given: an empty one
+    assert t.reason == "" and sm.last_reason == ""
+    t = sm.try_request("enable", "operator")
+    assert t is not None and t.reason == "operator" and sm.last_reason == "operator"
+    t = sm.try_request("run")
+    assert t is not None and t.reason == "" and sm.state is S.RUNNING
+    assert sm.request(" E_Stop ", "button").new is S.ESTOP  # case, blanks, '-' and '_' ignored
+    assert sm.request("e-stop").new is S.ESTOP
+    # allowed events of the current state, or of any state asked about
+    assert sm.allowed_events() == ["fault", "estop", "reset", "shutdown"]
+    assert sm.allowed_events(S.READY) == ["enable", "fault", "estop", "shutdown"]
+    assert sm.allowed_events(S.SHUTDOWN) == ["shutdown"]
+    assert repr(sm) == "StateMachine(state=ESTOP)"
+
+
+@pytest.mark.req("SR-SEQ-1")
+def test_sequence_window_boundaries_and_a_reordered_start() -> None:
+    mon = LossMonitor(grace_s=10.0)
+    # the first two datagrams swapped: the second is late, and nothing was lost
+    assert mon.on_packet(10, None, 0.0) is Verdict.ACCEPT
+    assert mon.on_packet(9, None, 0.0) is Verdict.LATE
+    assert mon.lost_total == 0 and mon.reordered == 1
+    # 64 numbers are remembered behind the newest: 63 behind may still be late, 64 is not
+    mon = LossMonitor(max_consecutive=100, seq_slack=100, grace_s=10.0, alert_interval_s=0.0)
+    mon.on_packet(0, None, 0.0)
+    assert mon.on_packet(100, None, 0.002) is Verdict.ACCEPT  # 1-99 missing
+    assert mon.on_packet(37, None, 0.002) is Verdict.LATE  # 63 behind
+    assert mon.on_packet(36, None, 0.002) is Verdict.IMPLAUSIBLE  # 64 behind
+    assert _ev(mon.check(0.002)) == (
+        "refused", "refused an implausible sequence number: seq 36 is 64 behind 100 (1 so far)",
+        "sequence", 0, 0.002, 0.0,
+    )
+    assert mon.lost_total == 98
+    # half the number space away is behind, not ahead
+    mon = LossMonitor(alert_interval_s=0.0)
+    mon.on_packet(0, None, 0.0)
+    assert mon.on_packet(2**31, None, 0.002) is Verdict.IMPLAUSIBLE
+    assert _ev(mon.check(0.002))[1] == (  # type: ignore[index]
+        "refused an implausible sequence number: seq 2147483648 is 2147483648 behind 0 "
+        "(1 so far)")
+    assert mon.on_packet(2**31 - 1, None, 0.002) is Verdict.IMPLAUSIBLE
+    assert "is 2147483647 ahead of 0 (at most 12 possible)" in mon.check(0.002).cause  # type: ignore[union-attr]
+
+
+@pytest.mark.req("SR-LOSS-2", "SR-LOSS-3")
+def test_reset_with_a_time_arms_the_deadline_and_forgets_the_stream() -> None:
+    mon = LossMonitor(timestamp_tolerance_s=0.050)
+    mon.on_packet(5, 100.0, 0.0, 0.0)
+    mon.check(0.2)
+    assert mon.tripped
+    mon.reset(1.0)
+    assert not mon.tripped and not mon.holding and mon.offset_s is None and mon.trip_event is None
+    assert mon.last_good == 1.0
+    assert mon.check(1.006) is None
+    assert _ev(mon.check(1.007))[0] == "hold"  # type: ignore[index]
+    # the old stream position and clock offset are forgotten: any number, any clock
+    assert mon.on_packet(9000, 5000.0, 1.008, 1.008) is Verdict.ACCEPT
+    assert mon.counters()["received"] == 2 and mon.trips == 1  # counters are kept
+    mon.reset()
+    assert mon.last_good is None and mon.check(50.0) is None
+
+
+@pytest.mark.req("SR-SEQ-1")
+def test_implausible_alerts_default_to_one_per_second() -> None:
+    mon = LossMonitor(deadline_s=5.0, grace_s=10.0)
+    mon.on_packet(1, None, 0.0)
+    mon.on_packet(9000, None, 0.5)
+    assert mon.check(0.5) is not None
+    mon.on_packet(9000, None, 1.4999)
+    assert mon.check(1.4999) is None
+    mon.on_packet(9000, None, 1.5)
+    assert mon.check(1.5) is not None
+
+
+@pytest.mark.req("SR-SEQ-1")
+def test_how_far_ahead_a_number_may_be_is_exact() -> None:
+    def after(d: int, dt: float) -> Verdict:
+        mon = LossMonitor(max_consecutive=1000, grace_s=10.0)
+        mon.on_packet(0, None, 0.0)
+        return mon.on_packet(d, None, dt)
+
+    # 10 numbers of slack plus one per period elapsed plus the one due now
+    assert after(12, 0.002) is Verdict.ACCEPT
+    assert after(13, 0.002) is Verdict.IMPLAUSIBLE
+    assert after(13, 0.004) is Verdict.ACCEPT
+    assert after(14, 0.004) is Verdict.IMPLAUSIBLE
+    assert after(11, 0.0) is Verdict.ACCEPT  # the same tick
+    assert after(12, 0.0) is Verdict.IMPLAUSIBLE
+
+
+@pytest.mark.req("SR-SEQ-1", "SR-LOSS-1")
+def test_a_jump_past_the_window_forgets_what_was_behind() -> None:
+    mon = LossMonitor(max_consecutive=1000, seq_slack=1000, grace_s=10.0)
+    mon.on_packet(0, None, 0.0)
+    assert mon.on_packet(70, None, 0.002) is Verdict.ACCEPT  # 1-69 missing
+    assert mon.on_packet(69, None, 0.002) is Verdict.LATE  # just behind: not seen, late
+    assert mon.on_packet(69, None, 0.002) is Verdict.DUPLICATE
+    assert mon.lost_total == 68
+
+
+@pytest.mark.req("SR-TIME-1", "SR-LOSS-2")
+def test_v1_streams_zero_small_and_large_timestamp_gaps() -> None:
+    # a timestamp of 0 is "not set": judged by the deadline only, never a duplicate
+    mon = LossMonitor()
+    assert mon.on_packet(None, 0.0, 0.0) is Verdict.ACCEPT
+    assert mon.on_packet(None, 0.0, 0.002) is Verdict.ACCEPT
+    # a sender clock near zero is a clock all the same
+    mon = LossMonitor()
+    assert mon.on_packet(None, 0.5, 0.0) is Verdict.ACCEPT
+    assert mon.on_packet(None, 0.5, 0.002) is Verdict.DUPLICATE
+    assert mon.on_packet(None, 0.498, 0.002) is Verdict.LATE
+    # the latch names the gap in ms
+    mon = LossMonitor(grace_s=1.0)
+    mon.on_packet(None, 50.0, 0.0)
+    mon.on_packet(None, 50.1, 0.100)
+    assert _ev(mon.check(0.100)) == (
+        "latch", "49 consecutive packets lost (timestamp gap 100.0 ms)", "timestamp", 49, 0.1,
+        0.1)
+    # without a tolerance the timestamps teach no clock offset
+    assert mon.offset_s is None and mon.counters()["clock_offset_ms"] is None
+
+
+@pytest.mark.req("SR-LOSS-1", "SR-LOSS-2")
+def test_every_field_of_sequence_latch_and_deadline_only_resume_events() -> None:
+    mon = LossMonitor()
+    mon.on_packet(1040, None, 0.000)
+    mon.on_packet(1044, None, 0.008)
+    assert _ev(mon.check(0.008)) == (
+        "latch", "3 consecutive packets lost (seq 1041-1043 missing)", "sequence", 3, 0.008,
+        0.008)
+    # a stream without numbers or timestamps resumes by the deadline, and says so; twice
+    mon = LossMonitor()
+    mon.on_packet(None, None, 0.0)
+    assert _ev(mon.check(0.007))[0] == "hold"  # type: ignore[index]
+    mon.on_packet(None, None, 0.008)
+    assert _ev(mon.check(0.008)) == (
+        "resume", "stream back after 8.0 ms (gap 0); following again", "deadline", 0, 0.008,
+        0.008)
+    assert _ev(mon.check(0.015))[0] == "hold"  # type: ignore[index]
+    mon.on_packet(None, None, 0.016)
+    assert _ev(mon.check(0.016))[0] == "resume"  # type: ignore[index]
+    assert mon.resumes == 2 and mon.holds == 2
+
+
+@pytest.mark.req("SR-LOSS-2")
+def test_an_explicit_tolerance_moves_the_deadline() -> None:
+    mon = LossMonitor(tolerance_s=0.0015)  # 3 periods of 2 ms + 1.5 ms
+    assert mon.tolerance_s == 0.0015 and mon.deadline_s == pytest.approx(0.0075)
+    mon.on_packet(1, None, 0.0)
+    assert mon.check(0.0074) is None
+    ev = mon.check(0.0076)
+    assert ev is not None and ev.kind == "hold" and ev.run == 3
+
+
+@pytest.mark.req("SR-LOSS-2", "SR-LOSS-3", "SR-SUP-1")
+def test_long_silences_are_reported_in_whole_ms() -> None:
+    mon = LossMonitor()
+    mon.on_packet(1, None, 0.0)
+    assert _ev(mon.check(0.060)) == ("hold", "no packet for 60.0 ms: holding", "deadline", 29,
+                                     0.06, 0.06)
+    mon.on_packet(2, None, 0.080)
+    assert mon.check(0.080).cause == (  # type: ignore[union-attr]
+        "stream back after 80.0 ms (gap 0); following again")
+    # armed without a packet, then silence past the grace: nothing was refused meanwhile
+    mon.reset(1.0)
+    assert mon.check(1.25).cause == "no packet for 250.00 ms (limit 100.0 ms)"  # type: ignore[union-attr]
+    mon = LossMonitor()
+    mon.arm(0.0)
+    assert mon.check(0.25).cause == "no packet for 250.00 ms (limit 100.0 ms)"  # type: ignore[union-attr]
+    sup = Supervisor(0.100)
+    sup.arm(0.0)
+    assert sup.check(0.075) is None
+    assert sup.check(0.160) == "control loop did not tick for 160.0 ms (supervisor limit 100.0 ms)"
