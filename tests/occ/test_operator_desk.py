@@ -300,3 +300,118 @@ def test_getstats_as_json_keeps_the_requests_form(sim, monkeypatch):
         assert (reply.header_version, reply.message_id) == (msg.header_version, msg.message_id)
         assert reply.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
         assert json.loads(reply.string)["robot"] == "slave"
+
+
+def desk_replies(sim: SimRobot, monkeypatch, msg: igtl.Message, n: int) -> list[igtl.Message]:
+    """The first ``n`` replies the desk sends for ``msg`` (some come from the worker thread)."""
+    from igtl.transport.common import Peer
+    from occ.interfaces import Inbound
+
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    item = Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now)
+    sim.robot.operators.handle(item, sim.now)
+    assert wait_for(lambda: len(out) >= n), out
+    return out
+
+
+def table_request(text: str, mid: int = 44) -> igtl.Message:
+    return igtl.CommandMessage(command_id=2, command_name="GetStateTable",
+                               command=f'<Command Name="GetStateTable" {text}/>',
+                               device_name="x", header_version=2, message_id=mid)
+
+
+@pytest.mark.parametrize(
+    ("args", "error"),
+    [
+        ('Seconds="-1"', "GetStateTable: Seconds must be > 0, got -1.0"),
+        ('Seconds="0"', "GetStateTable: Seconds must be > 0, got 0.0"),
+        ('seconds="nan"', "GetStateTable: Seconds must be > 0, got nan"),
+        ('Every="0"', "GetStateTable: Every must be >= 1, got 0"),
+        ('Since="nan"', "GetStateTable: Since must be a number"),
+        ('Seconds="soon"', "GetStateTable: bad argument: could not convert string to float: 'soon'"),
+        ('Since="later"', "GetStateTable: bad argument: could not convert string to float: 'later'"),
+        ('Every="2.5"', "GetStateTable: bad argument: invalid literal for int() with base 10: '2.5'"),
+    ],
+)
+def test_getstatetable_arguments_are_checked_at_once(monkeypatch, args, error):
+    with SimRobot(ROOT / "configs" / "collab" / "slave.yaml") as sim:
+        sim.step(5)
+        (reply,) = desk_replies(sim, monkeypatch, table_request(args), 1)
+        assert reply.metadata["Status"] == "FAIL" and reply.metadata["Error"] == error
+        assert sim.robot.operators.counters()["refused"] == 1
+
+
+def test_getstatetable_sends_the_rows_then_the_reply(monkeypatch):
+    with SimRobot(ROOT / "configs" / "collab" / "slave.yaml") as sim:
+        sim.step(50)
+        table = sim.robot.state_table
+        assert table is not None
+        columns = ",".join(table.columns)
+        array, reply = desk_replies(
+            sim, monkeypatch, table_request('seconds="0.01" Every="1"'), 2)
+        assert array.message_type == "NDARRAY" and array.device_name == "StateTable"
+        assert (array.header_version, array.message_id) == (2, 44)
+        assert array.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
+        assert array.metadata == {"columns": columns, "robot": "slave",
+                                  "owners": ",".join(sim.robot.collab.masters)}
+        rows = array.array
+        assert rows.shape[1] == len(table.columns) and 1 <= len(rows) <= 11
+        assert np.array_equal(rows, table.window(0.01, since=None, every=1))
+        assert reply.metadata["Status"] == "SUCCESS"
+        assert reply.metadata["Message"] == (
+            f"StateTable: {len(rows)} rows from t={rows[0, 0]:.6f} to t={rows[-1, 0]:.6f}; "
+            f"columns {columns}")
+        assert sim.robot.operators.counters()["handled"] == 1
+        # every 2nd row since a time; none after the last one
+        _, reply = desk_replies(sim, monkeypatch, table_request('Since="0.02" Every="2"'), 2)
+        every = table.window(None, since=0.02, every=2)
+        assert reply.metadata["Message"].startswith(f"StateTable: {len(every)} rows from ")
+        empty, reply = desk_replies(sim, monkeypatch, table_request('Since="1000"'), 2)
+        assert len(empty.array) == 0
+        assert reply.metadata["Message"] == f"StateTable: 0 rows; columns {columns}"
+
+
+def test_a_deferred_command_is_answered_when_its_work_is_done(sim, monkeypatch):
+    from occ.commands import Deferred
+
+    pending: list[Deferred] = []
+
+    def on_command(req, now):
+        d = Deferred()
+        pending.append(d)
+        return d
+
+    monkeypatch.setattr(sim.robot.controller, "on_command", on_command)
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    op = sim.peer("operator")
+    desk = sim.robot.operators
+    for mid, name in ((70, "Plan"), (71, "Plan2")):
+        from igtl.transport.common import Peer
+        from occ.interfaces import Inbound
+
+        msg = igtl.CommandMessage(command_id=mid, command_name=name, device_name="x",
+                                  header_version=2, message_id=mid)
+        desk.handle(Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now), sim.now)
+    assert out == [] and desk.counters()["handled"] == 2
+    sim.step(10)
+    pending[0].resolve("planned 3 segments")
+    pending[1].fail("unreachable pose")
+    ok_reply, bad_reply = out
+    assert (ok_reply.command_id, ok_reply.message_id) == (70, 70)
+    assert ok_reply.metadata == {"Status": "SUCCESS", "Message": "planned 3 segments"}
+    assert ok_reply.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
+    assert (bad_reply.command_id, bad_reply.message_id) == (71, 71)
+    assert bad_reply.metadata["Status"] == "FAIL"
+    assert bad_reply.metadata["Error"] == "unreachable pose"
+    assert bad_reply.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
+    assert desk.counters()["refused"] == 1 and desk.counters()["reply_errors"] == 0
+    # a reply that cannot be sent is counted, not raised on the finishing thread
+    monkeypatch.setattr(sim.robot.interfaces, "reply",
+                        lambda item, reply: (_ for _ in ()).throw(OSError("gone")))
+    msg = igtl.CommandMessage(command_id=72, command_name="Plan", device_name="x")
+    desk.handle(Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now), sim.now)
+    pending[2].resolve("done")
+    assert desk.counters()["reply_errors"] == 1
+    del op
