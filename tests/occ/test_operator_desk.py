@@ -415,3 +415,127 @@ def test_a_deferred_command_is_answered_when_its_work_is_done(sim, monkeypatch):
     pending[2].resolve("done")
     assert desk.counters()["reply_errors"] == 1
     del op
+
+
+def handle(sim: SimRobot, msg: igtl.Message, request=None) -> None:
+    from igtl.transport.common import Peer
+    from occ.interfaces import Inbound
+
+    item = Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now, request=request)
+    sim.robot.operators.handle(item, sim.now)
+
+
+class Recorder:
+    def __init__(self) -> None:
+        self.seen: list[tuple] = []
+
+    def record_message(self, msg, direction, interface, t) -> None:
+        self.seen.append((msg.message_type, direction, interface, t))
+
+    def __getattr__(self, name):  # every other recorder hook: accepted, ignored
+        return lambda *a, **k: None
+
+
+def test_requests_and_replies_are_recorded_with_interface_and_time():
+    rec = Recorder()
+    with SimRobot(SLAVE, recorder=rec) as sim:
+        sim.step(7)
+        rec.seen.clear()
+        now = sim.now
+        handle(sim, igtl.CommandMessage(command_id=1, command_name="GetState", device_name="x"))
+        assert rec.seen == [("COMMAND", "in", "operator", now),
+                            ("RTS_COMMAND", "out", "operator", now)]
+
+
+def test_a_discrete_input_refused_by_the_controller_is_answered_and_counted(sim, monkeypatch):
+    from occ.errors import CommandError
+
+    seen: list = []
+
+    def refuse(item, now):
+        seen.append((item.msg.message_type, now))
+        raise CommandError("fixture 'wall' has no normal")
+
+    monkeypatch.setattr(sim.robot.controller, "on_sample", refuse)
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    sim.step(3)
+    msg = igtl.StringMessage("wall", device_name="VF", header_version=2, message_id=6)
+    handle(sim, msg)
+    assert seen == [("STRING", sim.now)]
+    (reply,) = out
+    assert reply.message_type == "STATUS"
+    assert reply.code == int(igtl.StatusCode.ILLEGAL_INSTRUCTION)
+    assert reply.status_message == "fixture 'wall' has no normal"
+    assert reply.message_id == 6 and reply.timestamp == pytest.approx(sim.clock.wall_time())
+    handle(sim, msg)
+    assert sim.robot.operators.counters()["refused"] == 2
+    assert sim.robot.state is RobotState.READY  # a refusal changes nothing
+
+
+def test_a_discrete_input_that_breaks_the_controller_faults_naming_it(sim, monkeypatch):
+    def broken(item, now):
+        raise RuntimeError("division by zero in the fixture")
+
+    monkeypatch.setattr(sim.robot.controller, "on_sample", broken)
+    handle(sim, igtl.StringMessage("wall", device_name="VF"))
+    assert sim.robot.state is RobotState.FAULT
+    name = sim.robot.controller.name
+    assert sim.robot.state_machine.last_reason == (
+        f"controller {name}: on_sample raised RuntimeError: division by zero in the fixture")
+
+
+def test_a_failing_command_handler_faults_and_the_asker_is_told(sim, monkeypatch):
+    def broken(req, now):
+        raise KeyError("gain")
+
+    monkeypatch.setattr(sim.robot.controller, "on_command", broken)
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    handle(sim, igtl.CommandMessage(command_id=1, command_name="Tune", device_name="x"))
+    (reply,) = out
+    assert reply.metadata["Error"] == "Tune failed: 'gain'"
+    assert reply.timestamp == pytest.approx(sim.clock.wall_time())
+    assert sim.robot.state is RobotState.FAULT
+    assert sim.robot.state_machine.last_reason == "command 'Tune' raised KeyError: 'gain'"
+    assert sim.robot.operators.counters()["refused"] == 1
+    # a query that fails: named by its type; its STATUS carries UNKNOWN_ERROR
+    monkeypatch.setattr(sim.robot.operators, "describe_state",
+                        lambda: (_ for _ in ()).throw(ValueError("bad")))
+    get = igtl.REGISTRY["GET_STATUS"](type_name="GET_STATUS", device_name="Q")
+    handle(sim, get)
+    assert out[-1].code == int(igtl.StatusCode.UNKNOWN_ERROR)
+    assert out[-1].status_message == "GET_STATUS failed: bad"
+
+
+def test_a_busy_worker_refuses_at_once(sim, monkeypatch):
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    worker = sim.robot.worker.start()
+    monkeypatch.setattr(worker, "submit", lambda job: False)
+    handle(sim, igtl.CommandMessage(command_id=1, command_name="GetStats", device_name="x"))
+    handle(sim, igtl.CommandMessage(command_id=2, command_name="GetStateTable", device_name="x"))
+    with SimRobot(ROOT / "configs" / "collab" / "slave.yaml") as table_sim:
+        t_out: list[igtl.Message] = []
+        monkeypatch.setattr(table_sim.robot.interfaces, "reply",
+                            lambda item, reply: t_out.append(reply))
+        monkeypatch.setattr(table_sim.robot.worker.start(), "submit", lambda job: False)
+        handle(table_sim, igtl.CommandMessage(command_id=3, command_name="GetStateTable",
+                                              device_name="x"))
+        assert t_out[0].metadata["Error"] == "busy: too many requests for the worker; try again"
+        assert table_sim.robot.operators.counters() == {
+            "handled": 0, "refused": 1, "reply_errors": 0, "worker_refused": 0}
+    assert out[0].metadata["Error"] == "busy: too many statistics requests; try again"
+    assert out[0].metadata["Status"] == "FAIL"
+    assert sim.robot.operators.counters()["handled"] == 0
+    assert sim.robot.operators.counters()["refused"] == 2
+
+
+def test_success_replies_carry_the_wall_time(sim, monkeypatch):
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    sim.step(3)
+    handle(sim, igtl.CommandMessage(command_id=1, command_name="Enable", device_name="x"))
+    handle(sim, igtl.StringMessage("GetState", device_name="CMD_3"))
+    assert [m.timestamp for m in out] == [pytest.approx(sim.clock.wall_time())] * 2
+    assert sim.robot.state_machine.last_reason == "operator Enable"
