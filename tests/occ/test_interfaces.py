@@ -237,3 +237,60 @@ def test_a_keyed_link_takes_only_signed_samples_and_counts_the_rest(tmp_path):
         assert [m.msg.message_id for m in iface.streams["POSITION"].drain()] == [3]
         st = iface.stats()
         assert st["unauthenticated"] == 2 and st["received"] == 3 and st["foreign"] == 0
+
+
+def test_refusals_reach_the_asker_with_code_and_reason(sim):
+    viewer = sim.peer("slicer")
+    viewer.send_command("Run")
+    (reply,) = [m for m in viewer.messages("RTS_COMMAND")]
+    assert reply.metadata["Error"] == (
+        "Run: a viewer may query but not command the robot; send commands to an operator "
+        "interface")
+    viewer.send(igtl.StringMessage("<Command Name=", device_name="CMD_4"))
+    (ack,) = viewer.messages("STRING", "ACK_4")
+    assert 'Status="FAIL"' in ack.string and "malformed XML command" in ack.string
+    link = sim.peer("master", address=("127.0.0.1", 4000))
+    link.send(igtl.REGISTRY["GET_STATUS"](type_name="GET_STATUS", device_name="Q"))
+    (denied,) = link.messages("STATUS", "Q")
+    assert denied.code == int(igtl.StatusCode.ACCESS_DENIED)
+    assert denied.status_message == "interface master is a data link: it takes no requests"
+    q = sim.robot.interfaces.commands
+    for _ in range(q.depth):
+        viewer.send_command("GetState")
+    viewer.send(igtl.REGISTRY["GET_STATUS"](type_name="GET_STATUS", device_name="Full"))
+    (busy,) = viewer.messages("STATUS", "Full")
+    assert busy.code == int(igtl.StatusCode.BUSY) and busy.status_message == "command queue full"
+    assert sim.robot.interfaces["slicer"].stats()["refused"] == 3
+    # what is queued carries its parsed request and the sender's role
+    item = q.drain(limit=1)[0]
+    assert item.request is not None and item.request.name == "GetState"
+    assert item.role == "viewer"
+
+
+def test_replies_say_whether_they_went_out(sim):
+    op = sim.peer("operator")
+    op.send_command("GetState")
+    item = sim.robot.interfaces.commands.drain()[0]
+    assert sim.robot.interfaces.reply(item, igtl.StatusMessage(device_name="r")) is True
+    op.close()
+    assert sim.robot.interfaces.reply(item, igtl.StatusMessage(device_name="r")) is False
+
+
+def test_replies_on_a_keyed_link_are_signed(tmp_path):
+    import yaml
+
+    from igtl.auth import sign, verify
+
+    key = b"a shared key for the master link"
+    (tmp_path / "link.key").write_text(key.decode() + "\n")
+    data = yaml.safe_load(SLAVE.read_text())
+    for i in data["interfaces"]:
+        if i["name"] == "master":
+            i["auth_key_file"] = str(tmp_path / "link.key")
+    with SimRobot(data) as sim:
+        peer = sim.peer("master", address=("127.0.0.1", 4000))
+        get = igtl.REGISTRY["GET_STATUS"](type_name="GET_STATUS", device_name="Q",
+                                          header_version=2)
+        peer.send(sign(get, key))
+        (denied,) = peer.messages("STATUS", "Q")
+        assert verify(denied, key) == ""
