@@ -582,6 +582,7 @@ def test_a_content_codec_that_raises_is_a_content_error_with_offset(monkeypatch,
     assert e.value.message_type == "TSTFAIL" and e.value.device_name == "D"
 
 
+@pytest.mark.req("SR-SIZE-1")
 def test_truncated_and_trailing_errors_say_what_and_where():
     with pytest.raises(TruncatedMessageError) as e:
         igtl.unpack(TRANSFORM[:-3])
@@ -670,6 +671,7 @@ def test_a_stream_ending_inside_a_refused_message_names_it():
     assert (e.value.message_type, e.value.device_name) == ("TRANSFORM", "Dev")
 
 
+@pytest.mark.req("SR-SIZE-1")
 def test_a_fatal_header_error_is_counted_at_its_stream_offset():
     too_big = with_body_size(TRANSFORM, 10**9)
     dec = igtl.StreamDecoder(max_body_size=1000)
@@ -769,6 +771,7 @@ def test_big_body_crc_errors_are_each_counted():
     assert errors == 3 and dec.errors == 3 and dec.messages == 0
 
 
+@pytest.mark.req("SR-SIZE-1")
 def test_decode_body_checks_the_size_and_the_crc():
     header = wire.unpack_header(TRANSFORM)
     body = TRANSFORM[58:]

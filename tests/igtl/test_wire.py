@@ -327,6 +327,7 @@ def test_names_decode_right_past_the_memo_bound():
         assert len(wire._encoded_devices) <= wire._NAME_CACHE_MAX
 
 
+@pytest.mark.req("SR-SIZE-1")
 def test_header_errors_say_what_and_where():
     with pytest.raises(TruncatedMessageError) as e:
         wire.unpack_header(b"\0" * 10 + BARRAY[:57], 10)  # 57 bytes from offset 10
@@ -475,6 +476,7 @@ def test_metadata_with_no_entries_and_no_data():
     assert wire.unpack_metadata(b"\x00\x00", b"") == ({}, {})  # and again, remembered
 
 
+@pytest.mark.req("SR-SIZE-1")
 def test_split_v2_body_limits_exactly():
     bare = wire.EXT_HEADER.pack(12, 0, 0, 5)  # exactly the extended header, nothing else
     assert wire.split_v2_body(bare) == wire.BodyLayout(12, 12, 0, 0, 5)

@@ -112,6 +112,7 @@ def test_the_first_sender_owns_the_stream_and_others_are_counted(sim):
     assert [m.msg.message_id for m in q.drain()] == [6]
 
 
+@pytest.mark.req("SR-OWN-1")
 def test_a_configured_source_owns_the_stream_from_the_start_and_after_reset():
     import yaml
 
@@ -239,6 +240,7 @@ def test_a_keyed_link_takes_only_signed_samples_and_counts_the_rest(tmp_path):
         assert st["unauthenticated"] == 2 and st["received"] == 3 and st["foreign"] == 0
 
 
+@pytest.mark.req("SR-ROUTE-1")
 def test_refusals_reach_the_asker_with_code_and_reason(sim):
     viewer = sim.peer("slicer")
     viewer.send_command("Run")
