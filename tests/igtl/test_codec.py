@@ -552,6 +552,8 @@ def _registered(monkeypatch, name: str, *, needs_type_name: bool, fail: bool = F
             seen = common.pop("message_type", None)
             if needs_type_name and seen != name:
                 raise AssertionError(f"type name not given: {seen!r}")
+            if not needs_type_name and seen is not None:
+                raise AssertionError("type name given to a class that did not ask")
             return cls(payload=bytes(content), **common)
 
     if needs_type_name:
@@ -658,6 +660,10 @@ def test_a_bad_name_in_a_stream_is_refused_at_its_offset_and_the_stream_goes_on(
         assert (e.value.message_type, e.value.device_name) == ("TRANSFORM", "Dev")
         assert dec.next_message().pack() == TRANSFORM
         assert dec.messages == 2 and dec.errors == 1 and dec.offset == 3 * len(TRANSFORM)
+        dec.feed(bad)
+        with pytest.raises(HeaderTextError):
+            dec.next_message()
+        assert dec.errors == 2
         dec.close()
 
 
@@ -681,6 +687,13 @@ def test_a_fatal_header_error_is_counted_at_its_stream_offset():
         dec.next_message()
     assert e.value.offset == len(TRANSFORM) + 42  # the BODY_SIZE field
     assert dec.errors == 1 and dec.messages == 1 and dec.failed
+    dec = igtl.StreamDecoder(max_body_size=1000)  # after a recoverable error: both counted
+    dec.feed(bad_crc_of(TRANSFORM) + too_big)
+    with pytest.raises(CRCError):
+        dec.next_message()
+    with pytest.raises(BodyTooLargeError):
+        dec.next_message()
+    assert dec.errors == 2
 
 
 @pytest.mark.parametrize("field", [b"Dev\xe9", b"Ger\xc3\xa4t"])  # latin-1, UTF-8
@@ -782,6 +795,11 @@ def test_decode_body_checks_the_size_and_the_crc():
             "DeviceName", 1, header.timestamp_raw)
     v2 = wire.unpack_header(TRANSFORM2)
     assert igtl.decode_body(v2, TRANSFORM2[58:]).pack() == TRANSFORM2
+    caller = bytearray(TRANSFORM2[58:])  # the caller's buffer is neither changed nor kept
+    msg = igtl.decode_body(v2, caller)
+    assert caller == TRANSFORM2[58:]
+    caller[:] = bytes(len(caller))
+    assert msg.pack() == TRANSFORM2 and msg == igtl.unpack(TRANSFORM2)
     for wrong in (body[:-1], body + b"\0"):
         with pytest.raises(TruncatedMessageError) as e:
             igtl.decode_body(header, wrong)
