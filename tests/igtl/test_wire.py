@@ -496,3 +496,21 @@ def test_split_v2_body_limits_exactly():
     assert e.value.offset == 70
     assert "extended header (12) + metadata header (10) + metadata (0) = 22 bytes exceed " \
         "BODY_SIZE 15" in str(e.value)
+
+
+def test_a_refused_header_names_what_it_can():
+    from igtl.errors import HeaderTextError
+
+    # the refused field is read up to its NUL; the other as it is (a full 20-byte name too)
+    raw = wire.HEADER.pack(1, b"\0BAD", b"D" * 20, 0, 0, 0)
+    with pytest.raises(HeaderTextError) as e:
+        wire.unpack_header(raw)
+    assert (e.value.message_type, e.value.device_name) == ("", "D" * 20)
+    raw = wire.HEADER.pack(1, b"T" * 12, b"Dev\0\xe9", 0, 0, 0)
+    with pytest.raises(HeaderTextError) as e:
+        wire.unpack_header(raw)
+    assert (e.value.message_type, e.value.device_name) == ("T" * 12, "Dev")
+    raw = wire.HEADER.pack(1, b"T\xe9\0X", b"D", 0, 0, 0)  # not UTF-8: readable as latin-1
+    with pytest.raises(HeaderTextError) as e:
+        wire.unpack_header(raw)
+    assert e.value.message_type == "T\xe9"
