@@ -514,3 +514,17 @@ def test_a_refused_header_names_what_it_can():
     with pytest.raises(HeaderTextError) as e:
         wire.unpack_header(raw)
     assert e.value.message_type == "T\xe9"
+
+
+def test_defaults_of_the_checking_helpers():
+    with pytest.raises(InvalidTextError) as e:
+        wire.decode_fixed(b"a\0b")
+    assert str(e.value).startswith("text field: non-NUL bytes") and e.value.offset == 1
+    with pytest.raises(MetadataError) as e:
+        wire.unpack_metadata(b"\x00", b"")
+    assert e.value.offset == 0
+    with pytest.raises(ExtendedHeaderError) as e:
+        wire.split_v2_body(wire.EXT_HEADER.pack(12, 2, 100, 0) + b"\0\0")
+    assert e.value.offset == 58
+    assert "(12) + metadata header (2) + metadata (100) = 114 bytes exceed BODY_SIZE 14" in (
+        str(e.value))
