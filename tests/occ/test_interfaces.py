@@ -296,3 +296,20 @@ def test_replies_on_a_keyed_link_are_signed(tmp_path):
         peer.send(sign(get, key))
         (denied,) = peer.messages("STATUS", "Q")
         assert verify(denied, key) == ""
+
+
+def test_an_ipv6_stream_source_and_the_operators_list():
+    import yaml
+
+    data = yaml.safe_load(SLAVE.read_text())
+    for i in data["interfaces"]:
+        if i["name"] == "master":
+            i["stream_source"] = "[::1]:7000"
+        if i["name"] == "operator":
+            i["operators"] = ["10.0.0.5"]
+    with SimRobot(data) as sim:
+        assert sim.robot.interfaces["master"].configured_source == ("::1", 7000)
+        op = sim.robot.interfaces["operator"]
+        assert op.peer_role(Peer(1, ("10.0.0.5", 4000))) == "operator"
+        assert op.peer_role(Peer(2, ("10.0.0.6", 4000))) == "viewer"
+        assert sim.robot.interfaces["slicer"].peer_role(Peer(3, ("10.0.0.5", 1))) == "viewer"
