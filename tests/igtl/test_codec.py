@@ -209,8 +209,12 @@ def test_decoder_failed_state():
         dec.next_message()
     assert e.value.offset == len(TRANSFORM)
     assert dec.failed
-    with pytest.raises(DecoderFailedError):
+    with pytest.raises(DecoderFailedError) as failed:
         list(dec)
+    assert str(failed.value).startswith("decoder failed earlier: unknown header version 7")
+    with pytest.raises(DecoderFailedError) as failed:
+        dec.feed(TRANSFORM)
+    assert str(failed.value).startswith("decoder failed earlier: unknown header version 7")
 
 
 def test_v1_v2_interleaved_and_split():
