@@ -41,9 +41,23 @@ def main(argv: list[str]) -> int:
     for name in names:
         env = dict(os.environ, MUTANT_UNDER_TEST=name)
         proc = subprocess.run(
-            [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider",
-             "-m", "not realtime and not interop", *tests],
-            cwd=root / "mutants", env=env, capture_output=True, text=True, check=False,
+            [
+                sys.executable,
+                "-m",
+                "pytest",
+                "-x",
+                "-q",
+                "-p",
+                "no:cacheprovider",
+                "-m",
+                "not realtime and not interop",
+                *tests,
+            ],
+            cwd=root / "mutants",
+            env=env,
+            capture_output=True,
+            text=True,
+            check=False,
         )
         verdict = "killed" if proc.returncode != 0 else "survived"
         killed += proc.returncode != 0

@@ -25,9 +25,13 @@ from occ.errors import CommandError
 
 def command(name: str = "", xml: str = "", **kw) -> igtl.Message:
     return igtl.CommandMessage(
-        command_id=kw.pop("command_id", 41), command_name=name, command=xml,
-        device_name=kw.pop("device_name", "Slicer"), header_version=2,
-        message_id=kw.pop("message_id", 9), **kw,
+        command_id=kw.pop("command_id", 41),
+        command_name=name,
+        command=xml,
+        device_name=kw.pop("device_name", "Slicer"),
+        header_version=2,
+        message_id=kw.pop("message_id", 9),
+        **kw,
     )
 
 
@@ -102,10 +106,12 @@ def test_a_command_is_answered_by_rts_command_naming_it():
     assert (bad.command_id, bad.message_id, bad.timestamp) == (41, 9, 3.0)
     assert bad.metadata == {"Status": "FAIL", "Message": "not now", "Error": "not now"}
     assert bad.command == (
-        '<CommandReply Name="Run" Status="FAIL" Error="not now" Message="not now" />')
+        '<CommandReply Name="Run" Status="FAIL" Error="not now" Message="not now" />'
+    )
     nameless = error_reply(command(""), "COMMAND without a command name")
     assert nameless.command_name == "" and nameless.command.startswith(
-        '<CommandReply Status="FAIL"')
+        '<CommandReply Status="FAIL"'
+    )
 
 
 def test_a_plus_string_is_answered_by_its_ack():
@@ -118,7 +124,8 @@ def test_a_plus_string_is_answered_by_its_ack():
     assert bad.message_type == "STRING" and bad.device_name == "ACK_17"
     assert bad.header_version == 1 and bad.message_id == 5
     assert bad.string == (
-        '<CommandReply Status="FAIL" Error="refused &lt;why&gt;" Message="refused &lt;why&gt;" />')
+        '<CommandReply Status="FAIL" Error="refused &lt;why&gt;" Message="refused &lt;why&gt;" />'
+    )
     with pytest.raises(ValueError, match="queries are answered with the requested message type"):
         success_reply(Request("query", "GET_STATUS", {}, igtl.StatusMessage()))
 
@@ -129,20 +136,35 @@ def test_a_refused_stream_request_gets_its_rts_with_an_error_status():
         reply = error_reply(msg, "no", timestamp=4.0)
         assert reply.message_type == "RTS_TDATA"
         assert (reply.status, reply.device_name, reply.header_version, reply.timestamp) == (
-            1, "Trk", 2, 4.0)
+            1,
+            "Trk",
+            2,
+            4.0,
+        )
 
 
 def test_anything_else_is_answered_by_a_status_with_the_code_and_reason():
-    msg = igtl.unpack(igtl.RawMessage(type_name="GET_STATUS", device_name="Q", header_version=2,
-                                      message_id=77).pack())
-    reply = error_reply(msg, "GET_STATUS is not supported by arm",
-                        code=igtl.StatusCode.ACCESS_DENIED, timestamp=2.0)
+    msg = igtl.unpack(
+        igtl.RawMessage(
+            type_name="GET_STATUS", device_name="Q", header_version=2, message_id=77
+        ).pack()
+    )
+    reply = error_reply(
+        msg, "GET_STATUS is not supported by arm", code=igtl.StatusCode.ACCESS_DENIED, timestamp=2.0
+    )
     assert reply.message_type == "STATUS"
     assert (reply.code, reply.subcode, reply.error_name) == (
-        int(igtl.StatusCode.ACCESS_DENIED), 0, "ACCESS_DENIED")
+        int(igtl.StatusCode.ACCESS_DENIED),
+        0,
+        "ACCESS_DENIED",
+    )
     assert reply.status_message == "GET_STATUS is not supported by arm"
     assert (reply.device_name, reply.header_version, reply.message_id, reply.timestamp) == (
-        "Q", 2, 77, 2.0)
+        "Q",
+        2,
+        77,
+        2.0,
+    )
     assert error_reply(msg, "x").code == int(igtl.StatusCode.UNKNOWN_ERROR)
     # a STRING that is not CMD_ is not answered as a PLUS command
     plain = error_reply(string("Run", device="Note"), "not a command")

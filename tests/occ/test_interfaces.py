@@ -77,9 +77,15 @@ def sim():
 
 
 def position(seq: int, device: str = "Master") -> igtl.Message:
-    return igtl.PositionMessage((0.0, 50.0, 270.0), (0.0, 0.0, 0.0, 1.0), 24,
-                                device_name=device, header_version=2, message_id=seq,
-                                metadata={"run": "1", "clutch": "0"})
+    return igtl.PositionMessage(
+        (0.0, 50.0, 270.0),
+        (0.0, 0.0, 0.0, 1.0),
+        24,
+        device_name=device,
+        header_version=2,
+        message_id=seq,
+        metadata={"run": "1", "clutch": "0"},
+    )
 
 
 @pytest.mark.req("SR-OWN-1")
@@ -135,8 +141,9 @@ def test_a_configured_source_owns_the_stream_from_the_start_and_after_reset():
 def test_pinning_follows_the_owner_unless_the_kernel_filter_is_off(sim, monkeypatch):
     iface = sim.robot.interfaces["master"]
     pins: list = []
-    monkeypatch.setattr(type(iface.transport), "pin_source", lambda self, src: pins.append(src),
-                        raising=False)
+    monkeypatch.setattr(
+        type(iface.transport), "pin_source", lambda self, src: pins.append(src), raising=False
+    )
     sim.peer("master", address=("127.0.0.1", 4000)).send(position(1))
     assert pins == [("127.0.0.1", 4000)]
     iface.release_stream()
@@ -188,7 +195,8 @@ def test_what_an_interface_counts(sim):
     assert st["address"] == list(op_iface.address)
     assert st["malformed"] == 0
     assert st["dropped"] == int(op_iface.transport.stats().get("dropped", 0)) + (
-        op_iface.counters.send_dropped)
+        op_iface.counters.send_dropped
+    )
     sim.step()  # the greeting STATUS went out: sent counts outputs, replies are not outputs
     assert op_iface.stats()["sent"] >= 1
 
@@ -246,8 +254,8 @@ def test_refusals_reach_the_asker_with_code_and_reason(sim):
     viewer.send_command("Run")
     (reply,) = [m for m in viewer.messages("RTS_COMMAND")]
     assert reply.metadata["Error"] == (
-        "Run: a viewer may query but not command the robot; send commands to an operator "
-        "interface")
+        "Run: a viewer may query but not command the robot; send commands to an operator interface"
+    )
     viewer.send(igtl.StringMessage("<Command Name=", device_name="CMD_4"))
     (ack,) = viewer.messages("STRING", "ACK_4")
     assert 'Status="FAIL"' in ack.string and "malformed XML command" in ack.string
@@ -291,8 +299,7 @@ def test_replies_on_a_keyed_link_are_signed(tmp_path):
             i["auth_key_file"] = str(tmp_path / "link.key")
     with SimRobot(data) as sim:
         peer = sim.peer("master", address=("127.0.0.1", 4000))
-        get = igtl.REGISTRY["GET_STATUS"](type_name="GET_STATUS", device_name="Q",
-                                          header_version=2)
+        get = igtl.REGISTRY["GET_STATUS"](type_name="GET_STATUS", device_name="Q", header_version=2)
         peer.send(sign(get, key))
         (denied,) = peer.messages("STATUS", "Q")
         assert verify(denied, key) == ""

@@ -31,8 +31,14 @@ def sim():
 
 
 def query(peer: SimPeer, mtype: str, device: str = "", version: int = 2, mid: int = 31) -> None:
-    peer.send(igtl.REGISTRY[mtype](type_name=mtype, device_name=device, header_version=version,
-                                   message_id=mid if version == 2 else 0))
+    peer.send(
+        igtl.REGISTRY[mtype](
+            type_name=mtype,
+            device_name=device,
+            header_version=version,
+            message_id=mid if version == 2 else 0,
+        )
+    )
 
 
 def answers(sim: SimRobot, msg: igtl.Message, role: str = "operator") -> list[igtl.Message]:
@@ -77,8 +83,9 @@ def test_get_status_describes_the_state_to_the_asker_only(sim):
     get = igtl.REGISTRY["GET_STATUS"]
     (unnamed,) = answers(sim, get(type_name="GET_STATUS", device_name="", header_version=1))
     assert unnamed.device_name == "slave" and unnamed.header_version == 1
-    (named,) = answers(sim, get(type_name="GET_STATUS", device_name="P", header_version=2,
-                                message_id=3))
+    (named,) = answers(
+        sim, get(type_name="GET_STATUS", device_name="P", header_version=2, message_id=3)
+    )
     assert (named.device_name, named.header_version, named.message_id) == ("P", 2, 3)
 
 
@@ -95,7 +102,8 @@ def test_the_state_description_names_the_alert_and_the_reason(sim):
     assert op.reply_to(cid).metadata["Message"] == desc
     sim.robot.alarms.last_alert = "master lost"
     assert sim.robot.operators.describe_state() == (
-        "state=ESTOP; alert=master lost; reason=operator EStop")
+        "state=ESTOP; alert=master lost; reason=operator EStop"
+    )
 
 
 def test_reset_in_stopped_clears_the_alert_and_says_how_to_resume(sim):
@@ -119,8 +127,17 @@ def test_get_capabil_lists_what_the_robot_answers(sim):
     query(viewer, "GET_CAPABIL", "Cap", version=1)
     sim.step()
     (cap,) = viewer.messages("CAPABILITY")
-    assert cap.types == ("TRANSFORM", "POSITION", "STATUS", "STRING", "COMMAND", "CAPABILITY",
-                         "GET_STATUS", "GET_CAPABIL", "GET_TRANS")
+    assert cap.types == (
+        "TRANSFORM",
+        "POSITION",
+        "STATUS",
+        "STRING",
+        "COMMAND",
+        "CAPABILITY",
+        "GET_STATUS",
+        "GET_CAPABIL",
+        "GET_TRANS",
+    )
     assert cap.device_name == "Cap"
     assert cap.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01) and cap.timestamp > 0
     op = sim.peer("operator")
@@ -130,8 +147,7 @@ def test_get_capabil_lists_what_the_robot_answers(sim):
     assert cap.message_id == 8
     get = igtl.REGISTRY["GET_CAPABIL"]
     for version in (1, 2):
-        (cap,) = answers(sim, get(type_name="GET_CAPABIL", device_name="C",
-                                  header_version=version))
+        (cap,) = answers(sim, get(type_name="GET_CAPABIL", device_name="C", header_version=version))
         assert cap.header_version == version
 
 
@@ -142,8 +158,12 @@ def test_get_trans_answers_the_tip_or_the_base(sim, mtype):
     base = sim.robot.data.base
     tip = sim.robot.data.world_tip()
     assert not np.allclose(np.asarray(base), np.asarray(tip))
-    for device, want, pose in (("", "Tip", tip), ("Base", "Base", base), ("base", "base", base),
-                               ("Tip", "Tip", tip)):
+    for device, want, pose in (
+        ("", "Tip", tip),
+        ("Base", "Base", base),
+        ("base", "base", base),
+        ("Tip", "Tip", tip),
+    ):
         viewer.received.clear()
         query(viewer, mtype, device, version=1)
         sim.step()
@@ -250,16 +270,25 @@ def test_getstats_is_compact_json_with_the_lateness_buckets_on_request(sim):
 
 def test_getstats_as_json_names_the_request_it_answers(sim):
     op = sim.peer("operator", header_version=2)
-    op.send(igtl.StringMessage('<Command Name="GetStats" Format="JSON"/>', device_name="CMD_9",
-                               header_version=2, message_id=66))
+    op.send(
+        igtl.StringMessage(
+            '<Command Name="GetStats" Format="JSON"/>',
+            device_name="CMD_9",
+            header_version=2,
+            message_id=66,
+        )
+    )
     sim.step()
     assert wait_for(lambda: op.messages("STRING", "ACK_9"))
     (ack,) = op.messages("STRING", "ACK_9")
     assert (ack.header_version, ack.message_id) == (2, 66) and ack.timestamp > 1e9
     assert json.loads(ack.string)["robot"] == "slave"
     viewer = sim.peer("slicer")
-    viewer.send(igtl.StringMessage('<Command Name="GetStats" Format="json"/>',
-                                   device_name="CMD_1", header_version=1))
+    viewer.send(
+        igtl.StringMessage(
+            '<Command Name="GetStats" Format="json"/>', device_name="CMD_1", header_version=1
+        )
+    )
     sim.step()
     assert wait_for(lambda: viewer.messages("STRING", "ACK_1"))
     (ack,) = viewer.messages("STRING", "ACK_1")
@@ -287,8 +316,14 @@ def test_getstats_as_json_keeps_the_requests_form(sim, monkeypatch):
     xml = '<Command Name="GetStats" Format="json"/>'
     for msg in (
         igtl.StringMessage(xml, device_name="CMD_5", header_version=1),
-        igtl.CommandMessage(command_id=3, command_name="GetStats", command=xml,
-                            device_name="x", header_version=2, message_id=12),
+        igtl.CommandMessage(
+            command_id=3,
+            command_name="GetStats",
+            command=xml,
+            device_name="x",
+            header_version=2,
+            message_id=12,
+        ),
     ):
         out.clear()
         item = Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now)
@@ -316,9 +351,14 @@ def desk_replies(sim: SimRobot, monkeypatch, msg: igtl.Message, n: int) -> list[
 
 
 def table_request(text: str, mid: int = 44) -> igtl.Message:
-    return igtl.CommandMessage(command_id=2, command_name="GetStateTable",
-                               command=f'<Command Name="GetStateTable" {text}/>',
-                               device_name="x", header_version=2, message_id=mid)
+    return igtl.CommandMessage(
+        command_id=2,
+        command_name="GetStateTable",
+        command=f'<Command Name="GetStateTable" {text}/>',
+        device_name="x",
+        header_version=2,
+        message_id=mid,
+    )
 
 
 @pytest.mark.parametrize(
@@ -329,9 +369,18 @@ def table_request(text: str, mid: int = 44) -> igtl.Message:
         ('seconds="nan"', "GetStateTable: Seconds must be > 0, got nan"),
         ('Every="0"', "GetStateTable: Every must be >= 1, got 0"),
         ('Since="nan"', "GetStateTable: Since must be a number"),
-        ('Seconds="soon"', "GetStateTable: bad argument: could not convert string to float: 'soon'"),
-        ('Since="later"', "GetStateTable: bad argument: could not convert string to float: 'later'"),
-        ('Every="2.5"', "GetStateTable: bad argument: invalid literal for int() with base 10: '2.5'"),
+        (
+            'Seconds="soon"',
+            "GetStateTable: bad argument: could not convert string to float: 'soon'",
+        ),
+        (
+            'Since="later"',
+            "GetStateTable: bad argument: could not convert string to float: 'later'",
+        ),
+        (
+            'Every="2.5"',
+            "GetStateTable: bad argument: invalid literal for int() with base 10: '2.5'",
+        ),
     ],
 )
 def test_getstatetable_arguments_are_checked_at_once(monkeypatch, args, error):
@@ -348,20 +397,23 @@ def test_getstatetable_sends_the_rows_then_the_reply(monkeypatch):
         table = sim.robot.state_table
         assert table is not None
         columns = ",".join(table.columns)
-        array, reply = desk_replies(
-            sim, monkeypatch, table_request('seconds="0.01" Every="1"'), 2)
+        array, reply = desk_replies(sim, monkeypatch, table_request('seconds="0.01" Every="1"'), 2)
         assert array.message_type == "NDARRAY" and array.device_name == "StateTable"
         assert (array.header_version, array.message_id) == (2, 44)
         assert array.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
-        assert array.metadata == {"columns": columns, "robot": "slave",
-                                  "owners": ",".join(sim.robot.collab.masters)}
+        assert array.metadata == {
+            "columns": columns,
+            "robot": "slave",
+            "owners": ",".join(sim.robot.collab.masters),
+        }
         rows = array.array
         assert rows.shape[1] == len(table.columns) and 1 <= len(rows) <= 11
         assert np.array_equal(rows, table.window(0.01, since=None, every=1))
         assert reply.metadata["Status"] == "SUCCESS"
         assert reply.metadata["Message"] == (
             f"StateTable: {len(rows)} rows from t={rows[0, 0]:.6f} to t={rows[-1, 0]:.6f}; "
-            f"columns {columns}")
+            f"columns {columns}"
+        )
         assert sim.robot.operators.counters()["handled"] == 1
         # every 2nd row since a time; none after the last one
         _, reply = desk_replies(sim, monkeypatch, table_request('Since="0.02" Every="2"'), 2)
@@ -391,8 +443,9 @@ def test_a_deferred_command_is_answered_when_its_work_is_done(sim, monkeypatch):
         from igtl.transport.common import Peer
         from occ.interfaces import Inbound
 
-        msg = igtl.CommandMessage(command_id=mid, command_name=name, device_name="x",
-                                  header_version=2, message_id=mid)
+        msg = igtl.CommandMessage(
+            command_id=mid, command_name=name, device_name="x", header_version=2, message_id=mid
+        )
         desk.handle(Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now), sim.now)
     assert out == [] and desk.counters()["handled"] == 2
     sim.step(10)
@@ -408,8 +461,9 @@ def test_a_deferred_command_is_answered_when_its_work_is_done(sim, monkeypatch):
     assert bad_reply.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
     assert desk.counters()["refused"] == 1 and desk.counters()["reply_errors"] == 0
     # a reply that cannot be sent is counted, not raised on the finishing thread
-    monkeypatch.setattr(sim.robot.interfaces, "reply",
-                        lambda item, reply: (_ for _ in ()).throw(OSError("gone")))
+    monkeypatch.setattr(
+        sim.robot.interfaces, "reply", lambda item, reply: (_ for _ in ()).throw(OSError("gone"))
+    )
     msg = igtl.CommandMessage(command_id=72, command_name="Plan", device_name="x")
     desk.handle(Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now), sim.now)
     pending[2].resolve("done")
@@ -443,8 +497,10 @@ def test_requests_and_replies_are_recorded_with_interface_and_time():
         rec.seen.clear()
         now = sim.now
         handle(sim, igtl.CommandMessage(command_id=1, command_name="GetState", device_name="x"))
-        assert rec.seen == [("COMMAND", "in", "operator", now),
-                            ("RTS_COMMAND", "out", "operator", now)]
+        assert rec.seen == [
+            ("COMMAND", "in", "operator", now),
+            ("RTS_COMMAND", "out", "operator", now),
+        ]
 
 
 def test_a_discrete_input_refused_by_the_controller_is_answered_and_counted(sim, monkeypatch):
@@ -482,7 +538,8 @@ def test_a_discrete_input_that_breaks_the_controller_faults_naming_it(sim, monke
     assert sim.robot.state is RobotState.FAULT
     name = sim.robot.controller.name
     assert sim.robot.state_machine.last_reason == (
-        f"controller {name}: on_sample raised RuntimeError: division by zero in the fixture")
+        f"controller {name}: on_sample raised RuntimeError: division by zero in the fixture"
+    )
 
 
 def test_a_failing_command_handler_faults_and_the_asker_is_told(sim, monkeypatch):
@@ -500,8 +557,9 @@ def test_a_failing_command_handler_faults_and_the_asker_is_told(sim, monkeypatch
     assert sim.robot.state_machine.last_reason == "command 'Tune' raised KeyError: 'gain'"
     assert sim.robot.operators.counters()["refused"] == 1
     # a query that fails: named by its type; its STATUS carries UNKNOWN_ERROR
-    monkeypatch.setattr(sim.robot.operators, "describe_state",
-                        lambda: (_ for _ in ()).throw(ValueError("bad")))
+    monkeypatch.setattr(
+        sim.robot.operators, "describe_state", lambda: (_ for _ in ()).throw(ValueError("bad"))
+    )
     get = igtl.REGISTRY["GET_STATUS"](type_name="GET_STATUS", device_name="Q")
     handle(sim, get)
     assert out[-1].code == int(igtl.StatusCode.UNKNOWN_ERROR)
@@ -517,14 +575,21 @@ def test_a_busy_worker_refuses_at_once(sim, monkeypatch):
     handle(sim, igtl.CommandMessage(command_id=2, command_name="GetStateTable", device_name="x"))
     with SimRobot(ROOT / "configs" / "collab" / "slave.yaml") as table_sim:
         t_out: list[igtl.Message] = []
-        monkeypatch.setattr(table_sim.robot.interfaces, "reply",
-                            lambda item, reply: t_out.append(reply))
+        monkeypatch.setattr(
+            table_sim.robot.interfaces, "reply", lambda item, reply: t_out.append(reply)
+        )
         monkeypatch.setattr(table_sim.robot.worker.start(), "submit", lambda job: False)
-        handle(table_sim, igtl.CommandMessage(command_id=3, command_name="GetStateTable",
-                                              device_name="x"))
+        handle(
+            table_sim,
+            igtl.CommandMessage(command_id=3, command_name="GetStateTable", device_name="x"),
+        )
         assert t_out[0].metadata["Error"] == "busy: too many requests for the worker; try again"
         assert table_sim.robot.operators.counters() == {
-            "handled": 0, "refused": 1, "reply_errors": 0, "worker_refused": 0}
+            "handled": 0,
+            "refused": 1,
+            "reply_errors": 0,
+            "worker_refused": 0,
+        }
     assert out[0].metadata["Error"] == "busy: too many statistics requests; try again"
     assert out[0].metadata["Status"] == "FAIL"
     assert sim.robot.operators.counters()["handled"] == 0
