@@ -26,6 +26,9 @@ from pathlib import Path
 
 
 def main(argv: list[str]) -> int:
+    if not argv or argv[0] in ("-h", "--help"):
+        print(__doc__)
+        return 0 if argv else 2
     root = Path(argv[0]).resolve()
     rest = argv[1:]
     given = rest[rest.index("--") + 1 :] if "--" in rest else []
