@@ -209,8 +209,12 @@ def test_decoder_failed_state():
         dec.next_message()
     assert e.value.offset == len(TRANSFORM)
     assert dec.failed
-    with pytest.raises(DecoderFailedError):
+    with pytest.raises(DecoderFailedError) as failed:
         list(dec)
+    assert str(failed.value).startswith("decoder failed earlier: unknown header version 7")
+    with pytest.raises(DecoderFailedError) as failed:
+        dec.feed(TRANSFORM)
+    assert str(failed.value).startswith("decoder failed earlier: unknown header version 7")
 
 
 def test_v1_v2_interleaved_and_split():
@@ -426,3 +430,389 @@ def test_the_v2_fast_path_decodes_like_the_generic_one(
     assert type(fast) is type(slow)
     assert _fields(fast) == _fields(slow)
     assert fast.pack() == data == slow.pack()
+
+
+# ------------------------------------------------------- what the decoders report and keep
+# (each of these was written to catch a fault that the tests above let through: mutation
+# testing, docs/VERIFICATION.md)
+def with_crc(data: bytes, crc: int) -> bytes:
+    return data[:50] + struct.pack(">Q", crc) + data[58:]
+
+
+def bad_crc_of(data: bytes) -> bytes:
+    return with_crc(data, struct.unpack_from(">Q", data, 50)[0] ^ 0x8000_0000_0000_0001)
+
+
+def decode_stream(data: bytes, **kw) -> list[igtl.Message]:
+    dec = igtl.StreamDecoder(**kw)
+    dec.feed(data)
+    out = list(dec)
+    dec.close()
+    return out
+
+
+NON_CANONICAL = {
+    # messages that decode but are not what this library would encode: they re-pack to their
+    # own bytes, through every decoder path (fast v1, fast v2, generic, unknown type)
+    "fast v1": TRANSFORM,
+    "fast v2": TRANSFORM2,
+    "generic v1": raw_message("STATUS", igtl.StatusMessage(status_message="x").pack()[58:]),
+    "generic v2": igtl.StatusMessage(status_message="x", header_version=2,
+                                     metadata={"k": "v"}).pack(),
+    "unknown v1": raw_message("FOOBAR", b"\x01\x02\x03"),
+    "unknown v2": raw_message("FOOBAR", b"\x01\x02\x03", version=2),
+}
+
+
+@pytest.mark.req("SR-CRC-1")
+@pytest.mark.parametrize("path", sorted(NON_CANONICAL))
+def test_a_wrong_crc_accepted_unchecked_repacks_as_received(path):
+    bad = bad_crc_of(NON_CANONICAL[path])
+    with pytest.raises(CRCError):
+        igtl.unpack(bad)
+    with pytest.raises(CRCError):
+        igtl.unpack(bytearray(bad))  # the copy made of mutable input is checked too
+    with pytest.raises(CRCError):
+        decode_stream(bad)
+    for msg in (igtl.unpack(bad, crc_check=False), igtl.unpack(bytearray(bad), crc_check=False),
+                *decode_stream(bad, crc_check=False)):
+        assert msg.pack() == bad
+        assert msg.pack(header_version=msg.header_version) == bad
+
+
+def test_mutable_input_is_decoded_field_for_field_and_not_kept():
+    for data in (TRANSFORM, TRANSFORM2, NON_CANONICAL["unknown v2"]):
+        expected = igtl.unpack(data)
+        for buf in (bytearray(data), memoryview(bytearray(data))):
+            msg = igtl.unpack(buf)
+            assert (msg.message_type, msg.device_name, msg.header_version) == (
+                expected.message_type, expected.device_name, expected.header_version)
+            assert msg == expected
+            buf[:] = bytes(len(data))  # the caller reuses its buffer
+            assert msg.pack() == data and msg == expected
+
+
+def test_header_timestamps_decode_to_seconds_on_every_path():
+    for t in (1_700_000_000.0, 1_700_000_000.25, 3.5, 0.0):
+        raw = wire.seconds_to_raw(t)
+        for msg in (
+            igtl.TransformMessage.from_matrix(np.eye(4), timestamp=t),  # fast v1
+            igtl.PositionMessage((1.0, 2.0, 3.0), timestamp=t, header_version=2),  # fast v2
+            igtl.StatusMessage(status_message="s", timestamp=t),  # generic
+        ):
+            data = msg.pack()
+            assert struct.unpack_from(">Q", data, 34)[0] == raw
+            for got in (igtl.unpack(data), *decode_stream(data)):
+                assert got.timestamp == pytest.approx(t, abs=1e-9) and got.raw_timestamp == raw
+                assert got.timestamp == wire.raw_to_seconds(raw)
+
+
+def test_a_fast_path_type_of_the_wrong_size_is_a_content_error():
+    for version in (1, 2):
+        data = raw_message("TRANSFORM", bytes(47), version=version)
+        with pytest.raises(ContentError) as e:
+            igtl.unpack(data)
+        assert e.value.message_type == "TRANSFORM" and e.value.recoverable
+
+
+def test_metadata_encodings_other_than_the_default_are_decoded():
+    msg = igtl.StatusMessage(status_message="s", header_version=2,
+                             metadata={"a": "x", "b": "é"}, metadata_encoding={"a": 4, "b": 4})
+    got = igtl.unpack(msg.pack())
+    assert got.metadata == {"a": "x", "b": "é"}
+    assert got.metadata_encoding == {"a": 4, "b": 4}
+    assert decode_stream(msg.pack())[0].metadata_encoding == {"a": 4, "b": 4}
+
+
+def test_errors_inside_the_body_name_the_message():
+    bad = bytearray(TRANSFORM2)
+    bad[58 + 12 + 48 + 18] = 0xFF  # a metadata key that is not UTF-8
+    bad[50:58] = struct.pack(">Q", wire.crc64(bytes(bad[58:])))
+    for decode in (igtl.unpack, decode_stream):
+        with pytest.raises(MetadataError) as e:
+            decode(bytes(bad))
+        assert e.value.message_type == "TRANSFORM" and e.value.device_name == "DeviceName"
+
+
+def _registered(monkeypatch, name: str, *, needs_type_name: bool, fail: bool = False):
+    """A message type registered for this test only (a fresh class each time)."""
+    import dataclasses
+    from typing import ClassVar
+
+    from igtl.messages.base import REGISTRY, Message
+
+    @dataclasses.dataclass(frozen=True, slots=True, kw_only=True)
+    class Custom(Message):
+        TYPE: ClassVar[str] = name
+        payload: bytes = b""
+
+        def pack_content(self) -> bytes:
+            return self.payload
+
+        @classmethod
+        def unpack_content(cls, content, common):
+            if fail:
+                raise ValueError("payload refused by the custom codec")
+            seen = common.pop("message_type", None)
+            if needs_type_name and seen != name:
+                raise AssertionError(f"type name not given: {seen!r}")
+            if not needs_type_name and seen is not None:
+                raise AssertionError("type name given to a class that did not ask")
+            return cls(payload=bytes(content), **common)
+
+    if needs_type_name:
+        Custom.NEEDS_TYPE_NAME = True  # type: ignore[attr-defined]
+    monkeypatch.setitem(REGISTRY, name, Custom)
+    return Custom
+
+
+@pytest.mark.parametrize("needs_type_name", [True, False])
+def test_a_registered_type_gets_its_type_name_only_if_it_asks(monkeypatch, needs_type_name):
+    cls = _registered(monkeypatch, "TSTNAME", needs_type_name=needs_type_name)
+    data = cls(payload=b"abc", device_name="D").pack()
+    for _ in range(2):  # the first decode and the remembered answer
+        msg = igtl.unpack(data)
+        assert type(msg) is cls and msg.payload == b"abc" and msg.pack() == data
+
+
+@pytest.mark.parametrize("version", [1, 2])
+def test_a_content_codec_that_raises_is_a_content_error_with_offset(monkeypatch, version):
+    cls = _registered(monkeypatch, "TSTFAIL", needs_type_name=False, fail=True)
+    data = cls(payload=b"abc", device_name="D", header_version=version).pack()
+    with pytest.raises(ContentError) as e:
+        igtl.unpack(data)
+    assert e.value.offset == 58 + (12 if version == 2 else 0) and e.value.recoverable
+    text = str(e.value)
+    assert "invalid TSTFAIL content" in text and "ValueError" in text
+    assert "payload refused by the custom codec" in text
+    assert e.value.message_type == "TSTFAIL" and e.value.device_name == "D"
+
+
+@pytest.mark.req("SR-SIZE-1")
+def test_truncated_and_trailing_errors_say_what_and_where():
+    with pytest.raises(TruncatedMessageError) as e:
+        igtl.unpack(TRANSFORM[:-3])
+    assert "announces 48 body bytes, only 45 present" in str(e.value)
+    assert (e.value.message_type, e.value.device_name) == ("TRANSFORM", "DeviceName")
+    with pytest.raises(DecodeError) as e:
+        igtl.unpack(TRANSFORM + b"\0\0")
+    assert "2 bytes follow the message" in str(e.value)
+    assert e.value.offset == len(TRANSFORM)
+    assert (e.value.message_type, e.value.device_name) == ("TRANSFORM", "DeviceName")
+    # exactly complete decodes; one byte short or over does not
+    assert igtl.unpack(TRANSFORM).message_type == "TRANSFORM"
+    with pytest.raises(TruncatedMessageError):
+        igtl.unpack(TRANSFORM[:-1])
+    with pytest.raises(DecodeError, match="1 bytes follow"):
+        igtl.unpack(TRANSFORM + b"\0")
+
+
+def test_crc_error_text_gives_both_values():
+    bad = with_crc(TRANSFORM, 0x0123456789ABCDEF)
+    with pytest.raises(CRCError) as e:
+        igtl.unpack(bad)
+    actual = wire.crc64(TRANSFORM[58:])
+    assert f"header says {0x0123456789ABCDEF:#018x}" in str(e.value)
+    assert f"body gives {actual:#018x}" in str(e.value)
+
+
+def test_a_new_decoder_holds_nothing():
+    dec = igtl.StreamDecoder()
+    assert dec.buffered == 0 and dec.offset == 0 and dec.next_message() is None
+    dec.close()  # nothing buffered: no error
+    dec.feed(TRANSFORM)
+    assert [m.pack() for m in dec] == [TRANSFORM]
+
+
+def test_close_inside_a_header_or_a_body_says_where():
+    dec = igtl.StreamDecoder()
+    dec.feed(TRANSFORM + TRANSFORM[:10])
+    assert len(list(dec)) == 1
+    with pytest.raises(TruncatedMessageError) as e:
+        dec.close()
+    assert "stream ended inside a message (10 bytes buffered)" in str(e.value)
+    assert e.value.offset == len(TRANSFORM)
+    assert e.value.message_type is None and e.value.device_name is None
+    dec = igtl.StreamDecoder()
+    dec.feed(TRANSFORM + TRANSFORM[:70])
+    assert len(list(dec)) == 1
+    with pytest.raises(TruncatedMessageError) as e:
+        dec.close()
+    assert "(70 bytes buffered)" in str(e.value) and e.value.offset == len(TRANSFORM)
+    assert (e.value.message_type, e.value.device_name) == ("TRANSFORM", "DeviceName")
+
+
+def with_device_field(data: bytes, field: bytes) -> bytes:
+    return data[:14] + field.ljust(20, b"\0") + data[34:]
+
+
+def test_a_bad_name_in_a_stream_is_refused_at_its_offset_and_the_stream_goes_on():
+    from igtl.errors import HeaderTextError
+
+    bad = with_device_field(TRANSFORM, b"Dev\0x")  # a byte after the terminator
+    for big_body in (igtl.codec.BIG_BODY, 1):  # in the buffer, and collected apart
+        dec = igtl.StreamDecoder(big_body=big_body)
+        dec.feed(TRANSFORM + bad[:60])
+        assert dec.next_message().pack() == TRANSFORM
+        assert dec.next_message() is None
+        dec.feed(bad[60:] + TRANSFORM)
+        with pytest.raises(HeaderTextError) as e:
+            dec.next_message()
+        assert e.value.recoverable
+        assert e.value.offset == len(TRANSFORM) + 14 + 3  # the terminator, as unpack says
+        assert "device name: non-NUL bytes after the NUL terminator" in str(e.value)
+        assert (e.value.message_type, e.value.device_name) == ("TRANSFORM", "Dev")
+        assert dec.next_message().pack() == TRANSFORM
+        assert dec.messages == 2 and dec.errors == 1 and dec.offset == 3 * len(TRANSFORM)
+        dec.feed(bad)
+        with pytest.raises(HeaderTextError):
+            dec.next_message()
+        assert dec.errors == 2
+        dec.close()
+
+
+def test_a_stream_ending_inside_a_refused_message_names_it():
+    bad = with_device_field(TRANSFORM, b"Dev\0x")
+    dec = igtl.StreamDecoder()
+    dec.feed(bad[:70])
+    assert dec.next_message() is None
+    with pytest.raises(TruncatedMessageError) as e:
+        dec.close()
+    assert (e.value.message_type, e.value.device_name) == ("TRANSFORM", "Dev")
+
+
+@pytest.mark.req("SR-SIZE-1")
+def test_a_fatal_header_error_is_counted_at_its_stream_offset():
+    too_big = with_body_size(TRANSFORM, 10**9)
+    dec = igtl.StreamDecoder(max_body_size=1000)
+    dec.feed(TRANSFORM + too_big)
+    assert dec.next_message().pack() == TRANSFORM
+    with pytest.raises(BodyTooLargeError) as e:
+        dec.next_message()
+    assert e.value.offset == len(TRANSFORM) + 42  # the BODY_SIZE field
+    assert dec.errors == 1 and dec.messages == 1 and dec.failed
+    dec = igtl.StreamDecoder(max_body_size=1000)  # after a recoverable error: both counted
+    dec.feed(bad_crc_of(TRANSFORM) + too_big)
+    with pytest.raises(CRCError):
+        dec.next_message()
+    with pytest.raises(BodyTooLargeError):
+        dec.next_message()
+    assert dec.errors == 2
+
+
+@pytest.mark.parametrize("field", [b"Dev\xe9", b"Ger\xc3\xa4t"])  # latin-1, UTF-8
+def test_non_ascii_names_repack_as_received(field):
+    data = with_device_field(TRANSFORM, field)
+    for got in (igtl.unpack(data), *decode_stream(data)):
+        expected = "Gerät" if field.startswith(b"Ger") else "Devé"
+        assert got.device_name == expected
+        assert got.pack() == data
+
+
+def test_the_big_body_threshold_is_inclusive():
+    # a body of exactly big_body bytes is collected apart: its CRC is taken piece by piece
+    # and the last piece is not copied again (the same as test_big_body_is_not_copied...)
+    data = big_image(side=500).pack()
+    body = len(data) - 58
+    for big_body in (body, body + 1):
+        dec = igtl.StreamDecoder(big_body=big_body)
+        dec.feed(data[: len(data) // 2])
+        assert dec.next_message() is None
+        assert dec.buffered == len(data) // 2
+        tracemalloc.start()
+        try:
+            before, _ = tracemalloc.get_traced_memory()
+            dec.feed(data[len(data) // 2 :])
+            (msg,) = list(dec)
+            _, peak = tracemalloc.get_traced_memory()
+        finally:
+            tracemalloc.stop()
+        assert msg.pack() == data
+        # collected apart: the body's buffer grows once (1.5x the body at its peak); in the
+        # stream buffer: that growth, then the body copied out of it (2x)
+        copied = peak - before > 1.75 * len(data)
+        assert copied == (big_body > body), (big_body, peak)
+
+
+@pytest.mark.parametrize("version", [1, 2])
+@pytest.mark.parametrize("mtype", ["IMAGE", "BIGRAW"])
+def test_a_big_body_collected_apart_repacks_as_received(version, mtype):
+    msg = big_image(side=300, version=version)
+    data = msg.pack() if mtype == "IMAGE" else raw_message(
+        mtype, bytes(range(256)) * 400, version=version)
+    data = bad_crc_of(data)  # a CRC left unchecked: only the remembered bytes give it back
+    for step in (1000, 70_000):
+        dec = igtl.StreamDecoder(crc_check=False, big_body=1000)
+        (got,) = feed_in_pieces(dec, data, step)
+        assert got.pack() == data
+        if mtype == "BIGRAW":
+            assert got.content == (bytes(range(256)) * 400)
+    dec = igtl.StreamDecoder(big_body=1000)
+    with pytest.raises(CRCError) as e:
+        feed_in_pieces(dec, data, 1000)
+    assert (e.value.message_type, e.value.device_name) == (mtype, "Big" if mtype == "IMAGE"
+                                                            else "Dev")
+
+
+def test_an_unknown_big_body_is_kept_once():
+    # RawMessage copies its content out of the collected buffer: the message must then not
+    # keep the buffer too (twice the memory for every big unknown message held)
+    import gc
+
+    content = bytes(range(256)) * 8192  # 2 MiB
+    data = raw_message("BIGRAW", content)
+    dec = igtl.StreamDecoder()
+    gc.collect()
+    tracemalloc.start()
+    try:
+        (msg,) = feed_in_pieces(dec, data, 256 * 1024)
+        del dec
+        gc.collect()
+        held, _ = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert msg.content == content and msg.pack() == data
+    assert held < 1.5 * len(content), held
+
+
+def test_big_body_crc_errors_are_each_counted():
+    bad = bad_crc_of(big_image(side=300).pack())
+    dec = igtl.StreamDecoder(big_body=1000)
+    errors = 0
+    for _ in range(3):
+        try:
+            feed_in_pieces(dec, bad, 5000)
+        except CRCError as err:
+            errors += 1
+            assert err.device_name == "Big"
+    assert errors == 3 and dec.errors == 3 and dec.messages == 0
+
+
+@pytest.mark.req("SR-SIZE-1")
+def test_decode_body_checks_the_size_and_the_crc():
+    header = wire.unpack_header(TRANSFORM)
+    body = TRANSFORM[58:]
+    for given in (body, bytearray(body), memoryview(body)):
+        msg = igtl.decode_body(header, given)
+        assert msg == igtl.unpack(TRANSFORM) and msg.pack() == TRANSFORM
+        assert (msg.device_name, msg.header_version, msg.raw_timestamp) == (
+            "DeviceName", 1, header.timestamp_raw)
+    v2 = wire.unpack_header(TRANSFORM2)
+    assert igtl.decode_body(v2, TRANSFORM2[58:]).pack() == TRANSFORM2
+    caller = bytearray(TRANSFORM2[58:])  # the caller's buffer is neither changed nor kept
+    msg = igtl.decode_body(v2, caller)
+    assert caller == TRANSFORM2[58:]
+    caller[:] = bytes(len(caller))
+    assert msg.pack() == TRANSFORM2 and msg == igtl.unpack(TRANSFORM2)
+    for wrong in (body[:-1], body + b"\0"):
+        with pytest.raises(TruncatedMessageError) as e:
+            igtl.decode_body(header, wrong)
+        assert f"body of {len(wrong)} bytes, header announces 48" in str(e.value)
+        assert e.value.offset == 58 + min(len(wrong), 48)
+        assert (e.value.message_type, e.value.device_name) == ("TRANSFORM", "DeviceName")
+    bad = bad_crc_of(TRANSFORM)
+    bad_header = wire.unpack_header(bad)
+    with pytest.raises(CRCError):
+        igtl.decode_body(bad_header, body)
+    unchecked = igtl.decode_body(bad_header, body, crc_check=False)
+    assert unchecked == igtl.unpack(TRANSFORM) and unchecked.pack() == bad

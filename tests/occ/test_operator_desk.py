@@ -1,0 +1,606 @@
+"""The operator desk (occ/operators.py) over in-process interfaces in simulated time: what each
+query and command is answered with, to whom, and what the statistics say.
+
+Written to catch faults the robot-level tests let through (mutation testing,
+docs/VERIFICATION.md): replies carry the asker's message ID, version and a timestamp; the state
+description names the alert and the reason; the statistics hold what they claim.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import igtl
+from occ.operators import VIEWER_HIDDEN, redact_for_viewer
+from occ.safety import RobotState
+from occ.testing import SimPeer, SimRobot
+
+ROOT = Path(__file__).resolve().parents[2]
+SLAVE = ROOT / "configs" / "slave.yaml"
+
+
+@pytest.fixture
+def sim():
+    with SimRobot(SLAVE) as s:
+        yield s
+
+
+def query(peer: SimPeer, mtype: str, device: str = "", version: int = 2, mid: int = 31) -> None:
+    peer.send(
+        igtl.REGISTRY[mtype](
+            type_name=mtype,
+            device_name=device,
+            header_version=version,
+            message_id=mid if version == 2 else 0,
+        )
+    )
+
+
+def answers(sim: SimRobot, msg: igtl.Message, role: str = "operator") -> list[igtl.Message]:
+    """What the desk sends back for ``msg`` (its version, ID and timestamp as built: the
+    in-process transport re-packs replies in the version its peer speaks)."""
+    from igtl.transport.common import Peer
+    from occ.interfaces import Inbound
+
+    out: list[igtl.Message] = []
+    real = sim.robot.interfaces.reply
+    sim.robot.interfaces.reply = lambda item, reply: out.append(reply) or True  # type: ignore
+    try:
+        item = Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now, role=role)
+        sim.robot.operators.handle(item, sim.now)
+    finally:
+        sim.robot.interfaces.reply = real  # type: ignore[method-assign]
+    return out
+
+
+def wait_for(cond, timeout: float = 5.0) -> bool:
+    end = time.monotonic() + timeout  # the worker thread answers GetStats
+    while not cond():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.002)
+    return True
+
+
+@pytest.mark.req("SR-ROUTE-1")
+def test_get_status_describes_the_state_to_the_asker_only(sim):
+    op, other = sim.peer("operator"), sim.peer("operator")
+    sim.step()
+    query(op, "GET_STATUS", "Probe")
+    sim.step()
+    (reply,) = [m for m in op.messages("STATUS") if m.device_name == "Probe"]
+    assert (reply.code, reply.error_name) == (int(igtl.StatusCode.OK), "READY")
+    assert reply.status_message.startswith("state=READY")
+    assert (reply.header_version, reply.message_id) == (2, 31)
+    assert reply.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
+    assert reply.timestamp > 1e9  # a wall-clock time, not 0
+    assert [m.device_name for m in other.messages("STATUS")] == ["slave"]  # its greeting only
+    get = igtl.REGISTRY["GET_STATUS"]
+    (unnamed,) = answers(sim, get(type_name="GET_STATUS", device_name="", header_version=1))
+    assert unnamed.device_name == "slave" and unnamed.header_version == 1
+    (named,) = answers(
+        sim, get(type_name="GET_STATUS", device_name="P", header_version=2, message_id=3)
+    )
+    assert (named.device_name, named.header_version, named.message_id) == ("P", 2, 3)
+
+
+def test_the_state_description_names_the_alert_and_the_reason(sim):
+    op = sim.peer("operator")
+    cid = op.send_command("EStop")
+    sim.step()
+    assert op.reply_to(cid).metadata["Message"] == "READY -> ESTOP"
+    assert sim.robot.state_machine.last_reason == "operator EStop"
+    desc = sim.robot.operators.describe_state()
+    assert desc == "state=ESTOP; reason=operator EStop"
+    cid = op.send_command("GetState")
+    sim.step()
+    assert op.reply_to(cid).metadata["Message"] == desc
+    sim.robot.alarms.last_alert = "master lost"
+    assert sim.robot.operators.describe_state() == (
+        "state=ESTOP; alert=master lost; reason=operator EStop"
+    )
+
+
+def test_reset_in_stopped_clears_the_alert_and_says_how_to_resume(sim):
+    op = sim.peer("operator")
+    for name in ("Enable", "Run", "Stop"):
+        op.send_command(name)
+        sim.step()
+    assert sim.robot.state is RobotState.STOPPED
+    sim.robot.alarms.last_alert = "something happened"
+    cid = op.send_command("Reset")
+    sim.step()
+    assert op.reply_to(cid).metadata["Message"] == "STOPPED: alerts cleared; send Run to resume"
+    assert sim.robot.last_alert == "" and sim.robot.state is RobotState.STOPPED
+    cid = op.send_command("Run")
+    sim.step()
+    assert op.reply_to(cid).metadata["Message"] == "STOPPED -> RUNNING"
+
+
+def test_get_capabil_lists_what_the_robot_answers(sim):
+    viewer = sim.peer("slicer", header_version=1)
+    query(viewer, "GET_CAPABIL", "Cap", version=1)
+    sim.step()
+    (cap,) = viewer.messages("CAPABILITY")
+    assert cap.types == (
+        "TRANSFORM",
+        "POSITION",
+        "STATUS",
+        "STRING",
+        "COMMAND",
+        "CAPABILITY",
+        "GET_STATUS",
+        "GET_CAPABIL",
+        "GET_TRANS",
+    )
+    assert cap.device_name == "Cap"
+    assert cap.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01) and cap.timestamp > 0
+    op = sim.peer("operator")
+    query(op, "GET_CAPABIL", "Cap", mid=8)
+    sim.step()
+    (cap,) = op.messages("CAPABILITY")
+    assert cap.message_id == 8
+    get = igtl.REGISTRY["GET_CAPABIL"]
+    for version in (1, 2):
+        (cap,) = answers(sim, get(type_name="GET_CAPABIL", device_name="C", header_version=version))
+        assert cap.header_version == version
+
+
+@pytest.mark.parametrize("mtype", ["GET_TRANS", "GET_TRANSFOR"])
+def test_get_trans_answers_the_tip_or_the_base(sim, mtype):
+    viewer = sim.peer("slicer", header_version=1)
+    sim.step()
+    base = sim.robot.data.base
+    tip = sim.robot.data.world_tip()
+    assert not np.allclose(np.asarray(base), np.asarray(tip))
+    for device, want, pose in (
+        ("", "Tip", tip),
+        ("Base", "Base", base),
+        ("base", "base", base),
+        ("Tip", "Tip", tip),
+    ):
+        viewer.received.clear()
+        query(viewer, mtype, device, version=1)
+        sim.step()
+        (reply,) = viewer.messages("TRANSFORM", want)
+        pose = np.asarray(pose)
+        assert np.allclose(reply.matrix[:3, :3], pose[:3, :3]), device
+        assert np.allclose(reply.matrix[:3, 3], 1000.0 * pose[:3, 3], atol=1e-3), device
+    get = igtl.REGISTRY[mtype]
+    for version in (1, 2):
+        (reply,) = answers(sim, get(type_name=mtype, device_name="Base", header_version=version))
+        assert reply.header_version == version
+
+
+def test_an_unsupported_query_is_refused_by_name(sim):
+    op = sim.peer("operator")
+    query(op, "GET_IMAGE", "Vol", mid=4)
+    sim.step()
+    (reply,) = [m for m in op.messages("STATUS") if m.device_name == "Vol"]
+    assert reply.code == int(igtl.StatusCode.ILLEGAL_INSTRUCTION)
+    assert reply.status_message == "GET_IMAGE is not supported by slave"
+    assert reply.message_id == 4
+    assert sim.robot.operators.counters()["refused"] == 1
+
+
+def test_counters_count_each_request_once(sim):
+    op = sim.peer("operator")
+    desk = sim.robot.operators
+    op.send_command("Enable")
+    op.send_command("GetState")
+    op.send_command("Run")
+    op.send_command("Enable")  # RUNNING -> Enable: refused by the state machine
+    op.send_command("NoSuchThing")
+    sim.step()
+    c = desk.counters()
+    assert c["handled"] == 3 and c["refused"] == 2 and c["reply_errors"] == 0
+    assert c["worker_refused"] == sim.robot.worker.refused == 0
+    assert sim.robot.snapshot()["commands"] == desk.counters()
+
+
+def test_a_reply_that_cannot_be_sent_is_counted(sim, monkeypatch):
+    op = sim.peer("operator")
+
+    def broken(item, msg):
+        raise OSError("gone")
+
+    monkeypatch.setattr(sim.robot.interfaces, "reply", broken)
+    op.send_command("GetState")
+    op.send_command("GetState")
+    sim.step()
+    assert sim.robot.operators.counters()["reply_errors"] == 2
+    assert sim.robot.operators.counters()["handled"] == 2
+
+
+def test_the_statistics_hold_what_they_name(sim):
+    op = sim.peer("operator")
+    op.send_command("Enable")
+    sim.step(3)
+    r = sim.robot
+    snap = r.snapshot()
+    assert snap["robot"] == "slave" and snap["state"] == "ENABLED"
+    assert snap["commands"] == r.operators.counters()
+    assert snap["watchdog"] == r.watchdog.counters()
+    assert snap["supervisor"] == {
+        "timeout_ms": r.supervisor.timeout_s * 1e3,
+        "trips": r.supervisor.trips,
+        "tripped": r.supervisor.tripped,
+        "thread": r.supervisor_thread.report if r.supervisor_thread else None,
+    }
+    assert snap["supervisor"]["timeout_ms"] > 1.0  # milliseconds, not seconds
+    assert snap["reentries"] == r.reentries and snap["last_alert"] == r.last_alert
+    assert r.loss_monitor is not None and snap["loss"] == r.loss_monitor.counters()
+    assert "owner" not in snap and "collaboration" not in snap  # not a collaboration robot
+    assert snap["controller"] == r.controller.stats()
+    assert snap["drivers"] == {drv.name: drv.stats() for drv, _ in r.drivers} and snap["drivers"]
+    assert snap["realtime"] == r.loop.realtime_report
+    if r.state_table is not None:
+        assert snap["state_table"] == r.state_table.stats()
+    r.alarms.last_alert = "x"
+    assert r.snapshot()["last_alert"] == "x"
+
+
+def test_viewers_see_statistics_without_what_would_forge_the_stream():
+    snap = {"seq": 1, "a": [{"last_seq": 2, "b": 3}, 4], "c": {"stream_owner": "x", "d": [5]}}
+    assert redact_for_viewer(snap) == {"a": [{"b": 3}, 4], "c": {"d": [5]}}
+    assert VIEWER_HIDDEN == {"seq", "last_seq", "stream_owner"}
+
+
+def test_getstats_is_compact_json_with_the_lateness_buckets_on_request(sim):
+    op = sim.peer("operator")
+    sim.step(2)
+    plain = op.send_command("GetStats")
+    hist = op.send_command("GetStats", '<Command Name="GetStats" Histogram="Lateness"/>')
+    sim.step()
+    assert wait_for(lambda: op.reply_to(plain) and op.reply_to(hist))
+    text = op.reply_to(plain).metadata["Message"]
+    assert ", " not in text and '": ' not in text  # compact separators
+    snap = json.loads(text)
+    assert "lateness_buckets" not in snap and snap["robot"] == "slave"
+    reply = op.reply_to(hist)
+    assert reply.timestamp > 1e9 and reply.metadata["Status"] == "SUCCESS"
+    buckets = json.loads(reply.metadata["Message"])["lateness_buckets"]
+    assert buckets == json.loads(json.dumps(sim.robot.stats.lateness.buckets()))
+
+
+def test_getstats_as_json_names_the_request_it_answers(sim):
+    op = sim.peer("operator", header_version=2)
+    op.send(
+        igtl.StringMessage(
+            '<Command Name="GetStats" Format="JSON"/>',
+            device_name="CMD_9",
+            header_version=2,
+            message_id=66,
+        )
+    )
+    sim.step()
+    assert wait_for(lambda: op.messages("STRING", "ACK_9"))
+    (ack,) = op.messages("STRING", "ACK_9")
+    assert (ack.header_version, ack.message_id) == (2, 66) and ack.timestamp > 1e9
+    assert json.loads(ack.string)["robot"] == "slave"
+    viewer = sim.peer("slicer")
+    viewer.send(
+        igtl.StringMessage(
+            '<Command Name="GetStats" Format="json"/>', device_name="CMD_1", header_version=1
+        )
+    )
+    sim.step()
+    assert wait_for(lambda: viewer.messages("STRING", "ACK_1"))
+    (ack,) = viewer.messages("STRING", "ACK_1")
+    text = ack.string
+    assert '"seq"' not in text and '"stream_owner"' not in text
+
+
+def test_a_statistic_json_cannot_encode_is_given_as_text(sim, monkeypatch):
+    op = sim.peer("operator")
+    snapshot = sim.robot.snapshot
+
+    monkeypatch.setattr(sim.robot, "snapshot", lambda: {**snapshot(), "odd": {1, 2}.__class__})
+    cid = op.send_command("GetStats")
+    sim.step()
+    assert wait_for(lambda: op.reply_to(cid))
+    assert json.loads(op.reply_to(cid).metadata["Message"])["odd"] == "<class 'set'>"
+
+
+def test_getstats_as_json_keeps_the_requests_form(sim, monkeypatch):
+    from igtl.transport.common import Peer
+    from occ.interfaces import Inbound
+
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    xml = '<Command Name="GetStats" Format="json"/>'
+    for msg in (
+        igtl.StringMessage(xml, device_name="CMD_5", header_version=1),
+        igtl.CommandMessage(
+            command_id=3,
+            command_name="GetStats",
+            command=xml,
+            device_name="x",
+            header_version=2,
+            message_id=12,
+        ),
+    ):
+        out.clear()
+        item = Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now)
+        sim.robot.operators.handle(item, sim.now)
+        assert wait_for(lambda: out)
+        (reply,) = out
+        assert reply.message_type == "STRING"
+        assert reply.device_name == ("ACK_5" if msg.message_type == "STRING" else "STATS")
+        assert (reply.header_version, reply.message_id) == (msg.header_version, msg.message_id)
+        assert reply.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
+        assert json.loads(reply.string)["robot"] == "slave"
+
+
+def desk_replies(sim: SimRobot, monkeypatch, msg: igtl.Message, n: int) -> list[igtl.Message]:
+    """The first ``n`` replies the desk sends for ``msg`` (some come from the worker thread)."""
+    from igtl.transport.common import Peer
+    from occ.interfaces import Inbound
+
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    item = Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now)
+    sim.robot.operators.handle(item, sim.now)
+    assert wait_for(lambda: len(out) >= n), out
+    return out
+
+
+def table_request(text: str, mid: int = 44) -> igtl.Message:
+    return igtl.CommandMessage(
+        command_id=2,
+        command_name="GetStateTable",
+        command=f'<Command Name="GetStateTable" {text}/>',
+        device_name="x",
+        header_version=2,
+        message_id=mid,
+    )
+
+
+@pytest.mark.parametrize(
+    ("args", "error"),
+    [
+        ('Seconds="-1"', "GetStateTable: Seconds must be > 0, got -1.0"),
+        ('Seconds="0"', "GetStateTable: Seconds must be > 0, got 0.0"),
+        ('seconds="nan"', "GetStateTable: Seconds must be > 0, got nan"),
+        ('Every="0"', "GetStateTable: Every must be >= 1, got 0"),
+        ('Since="nan"', "GetStateTable: Since must be a number"),
+        (
+            'Seconds="soon"',
+            "GetStateTable: bad argument: could not convert string to float: 'soon'",
+        ),
+        (
+            'Since="later"',
+            "GetStateTable: bad argument: could not convert string to float: 'later'",
+        ),
+        (
+            'Every="2.5"',
+            "GetStateTable: bad argument: invalid literal for int() with base 10: '2.5'",
+        ),
+    ],
+)
+def test_getstatetable_arguments_are_checked_at_once(monkeypatch, args, error):
+    with SimRobot(ROOT / "configs" / "collab" / "slave.yaml") as sim:
+        sim.step(5)
+        (reply,) = desk_replies(sim, monkeypatch, table_request(args), 1)
+        assert reply.metadata["Status"] == "FAIL" and reply.metadata["Error"] == error
+        assert sim.robot.operators.counters()["refused"] == 1
+
+
+def test_getstatetable_sends_the_rows_then_the_reply(monkeypatch):
+    with SimRobot(ROOT / "configs" / "collab" / "slave.yaml") as sim:
+        sim.step(50)
+        table = sim.robot.state_table
+        assert table is not None
+        columns = ",".join(table.columns)
+        array, reply = desk_replies(sim, monkeypatch, table_request('seconds="0.01" Every="1"'), 2)
+        assert array.message_type == "NDARRAY" and array.device_name == "StateTable"
+        assert (array.header_version, array.message_id) == (2, 44)
+        assert array.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
+        assert array.metadata == {
+            "columns": columns,
+            "robot": "slave",
+            "owners": ",".join(sim.robot.collab.masters),
+        }
+        rows = array.array
+        assert rows.shape[1] == len(table.columns) and 1 <= len(rows) <= 11
+        assert np.array_equal(rows, table.window(0.01, since=None, every=1))
+        assert reply.metadata["Status"] == "SUCCESS"
+        assert reply.metadata["Message"] == (
+            f"StateTable: {len(rows)} rows from t={rows[0, 0]:.6f} to t={rows[-1, 0]:.6f}; "
+            f"columns {columns}"
+        )
+        assert sim.robot.operators.counters()["handled"] == 1
+        # every 2nd row since a time; none after the last one
+        _, reply = desk_replies(sim, monkeypatch, table_request('Since="0.02" Every="2"'), 2)
+        every = table.window(None, since=0.02, every=2)
+        assert reply.metadata["Message"].startswith(f"StateTable: {len(every)} rows from ")
+        empty, reply = desk_replies(sim, monkeypatch, table_request('Since="1000"'), 2)
+        assert len(empty.array) == 0
+        assert reply.metadata["Message"] == f"StateTable: 0 rows; columns {columns}"
+
+
+def test_a_deferred_command_is_answered_when_its_work_is_done(sim, monkeypatch):
+    from occ.commands import Deferred
+
+    pending: list[Deferred] = []
+
+    def on_command(req, now):
+        d = Deferred()
+        pending.append(d)
+        return d
+
+    monkeypatch.setattr(sim.robot.controller, "on_command", on_command)
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    op = sim.peer("operator")
+    desk = sim.robot.operators
+    for mid, name in ((70, "Plan"), (71, "Plan2")):
+        from igtl.transport.common import Peer
+        from occ.interfaces import Inbound
+
+        msg = igtl.CommandMessage(
+            command_id=mid, command_name=name, device_name="x", header_version=2, message_id=mid
+        )
+        desk.handle(Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now), sim.now)
+    assert out == [] and desk.counters()["handled"] == 2
+    sim.step(10)
+    pending[0].resolve("planned 3 segments")
+    pending[1].fail("unreachable pose")
+    ok_reply, bad_reply = out
+    assert (ok_reply.command_id, ok_reply.message_id) == (70, 70)
+    assert ok_reply.metadata == {"Status": "SUCCESS", "Message": "planned 3 segments"}
+    assert ok_reply.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
+    assert (bad_reply.command_id, bad_reply.message_id) == (71, 71)
+    assert bad_reply.metadata["Status"] == "FAIL"
+    assert bad_reply.metadata["Error"] == "unreachable pose"
+    assert bad_reply.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
+    assert desk.counters()["refused"] == 1 and desk.counters()["reply_errors"] == 0
+    # a reply that cannot be sent is counted, not raised on the finishing thread
+    monkeypatch.setattr(
+        sim.robot.interfaces, "reply", lambda item, reply: (_ for _ in ()).throw(OSError("gone"))
+    )
+    msg = igtl.CommandMessage(command_id=72, command_name="Plan", device_name="x")
+    desk.handle(Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now), sim.now)
+    pending[2].resolve("done")
+    assert desk.counters()["reply_errors"] == 1
+    del op
+
+
+def handle(sim: SimRobot, msg: igtl.Message, request=None) -> None:
+    from igtl.transport.common import Peer
+    from occ.interfaces import Inbound
+
+    item = Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now, request=request)
+    sim.robot.operators.handle(item, sim.now)
+
+
+class Recorder:
+    def __init__(self) -> None:
+        self.seen: list[tuple] = []
+
+    def record_message(self, msg, direction, interface, t) -> None:
+        self.seen.append((msg.message_type, direction, interface, t))
+
+    def __getattr__(self, name):  # every other recorder hook: accepted, ignored
+        return lambda *a, **k: None
+
+
+def test_requests_and_replies_are_recorded_with_interface_and_time():
+    rec = Recorder()
+    with SimRobot(SLAVE, recorder=rec) as sim:
+        sim.step(7)
+        rec.seen.clear()
+        now = sim.now
+        handle(sim, igtl.CommandMessage(command_id=1, command_name="GetState", device_name="x"))
+        assert rec.seen == [
+            ("COMMAND", "in", "operator", now),
+            ("RTS_COMMAND", "out", "operator", now),
+        ]
+
+
+def test_a_discrete_input_refused_by_the_controller_is_answered_and_counted(sim, monkeypatch):
+    from occ.errors import CommandError
+
+    seen: list = []
+
+    def refuse(item, now):
+        seen.append((item.msg.message_type, now))
+        raise CommandError("fixture 'wall' has no normal")
+
+    monkeypatch.setattr(sim.robot.controller, "on_sample", refuse)
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    sim.step(3)
+    msg = igtl.StringMessage("wall", device_name="VF", header_version=2, message_id=6)
+    handle(sim, msg)
+    assert seen == [("STRING", sim.now)]
+    (reply,) = out
+    assert reply.message_type == "STATUS"
+    assert reply.code == int(igtl.StatusCode.ILLEGAL_INSTRUCTION)
+    assert reply.status_message == "fixture 'wall' has no normal"
+    assert reply.message_id == 6 and reply.timestamp == pytest.approx(sim.clock.wall_time())
+    handle(sim, msg)
+    assert sim.robot.operators.counters()["refused"] == 2
+    assert sim.robot.state is RobotState.READY  # a refusal changes nothing
+
+
+def test_a_discrete_input_that_breaks_the_controller_faults_naming_it(sim, monkeypatch):
+    def broken(item, now):
+        raise RuntimeError("division by zero in the fixture")
+
+    monkeypatch.setattr(sim.robot.controller, "on_sample", broken)
+    handle(sim, igtl.StringMessage("wall", device_name="VF"))
+    assert sim.robot.state is RobotState.FAULT
+    name = sim.robot.controller.name
+    assert sim.robot.state_machine.last_reason == (
+        f"controller {name}: on_sample raised RuntimeError: division by zero in the fixture"
+    )
+
+
+def test_a_failing_command_handler_faults_and_the_asker_is_told(sim, monkeypatch):
+    def broken(req, now):
+        raise KeyError("gain")
+
+    monkeypatch.setattr(sim.robot.controller, "on_command", broken)
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    handle(sim, igtl.CommandMessage(command_id=1, command_name="Tune", device_name="x"))
+    (reply,) = out
+    assert reply.metadata["Error"] == "Tune failed: 'gain'"
+    assert reply.timestamp == pytest.approx(sim.clock.wall_time())
+    assert sim.robot.state is RobotState.FAULT
+    assert sim.robot.state_machine.last_reason == "command 'Tune' raised KeyError: 'gain'"
+    assert sim.robot.operators.counters()["refused"] == 1
+    # a query that fails: named by its type; its STATUS carries UNKNOWN_ERROR
+    monkeypatch.setattr(
+        sim.robot.operators, "describe_state", lambda: (_ for _ in ()).throw(ValueError("bad"))
+    )
+    get = igtl.REGISTRY["GET_STATUS"](type_name="GET_STATUS", device_name="Q")
+    handle(sim, get)
+    assert out[-1].code == int(igtl.StatusCode.UNKNOWN_ERROR)
+    assert out[-1].status_message == "GET_STATUS failed: bad"
+
+
+def test_a_busy_worker_refuses_at_once(sim, monkeypatch):
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    worker = sim.robot.worker.start()
+    monkeypatch.setattr(worker, "submit", lambda job: False)
+    handle(sim, igtl.CommandMessage(command_id=1, command_name="GetStats", device_name="x"))
+    handle(sim, igtl.CommandMessage(command_id=2, command_name="GetStateTable", device_name="x"))
+    with SimRobot(ROOT / "configs" / "collab" / "slave.yaml") as table_sim:
+        t_out: list[igtl.Message] = []
+        monkeypatch.setattr(
+            table_sim.robot.interfaces, "reply", lambda item, reply: t_out.append(reply)
+        )
+        monkeypatch.setattr(table_sim.robot.worker.start(), "submit", lambda job: False)
+        handle(
+            table_sim,
+            igtl.CommandMessage(command_id=3, command_name="GetStateTable", device_name="x"),
+        )
+        assert t_out[0].metadata["Error"] == "busy: too many requests for the worker; try again"
+        assert table_sim.robot.operators.counters() == {
+            "handled": 0,
+            "refused": 1,
+            "reply_errors": 0,
+            "worker_refused": 0,
+        }
+    assert out[0].metadata["Error"] == "busy: too many statistics requests; try again"
+    assert out[0].metadata["Status"] == "FAIL"
+    assert sim.robot.operators.counters()["handled"] == 0
+    assert sim.robot.operators.counters()["refused"] == 2
+
+
+def test_success_replies_carry_the_wall_time(sim, monkeypatch):
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    sim.step(3)
+    handle(sim, igtl.CommandMessage(command_id=1, command_name="Enable", device_name="x"))
+    handle(sim, igtl.StringMessage("GetState", device_name="CMD_3"))
+    assert [m.timestamp for m in out] == [pytest.approx(sim.clock.wall_time())] * 2
+    assert sim.robot.state_machine.last_reason == "operator Enable"
