@@ -134,9 +134,7 @@ def test_lifecycle_and_state_errors() -> None:
     d.shutdown()  # safe twice
     assert d.state is DriverState.SHUTDOWN
     assert d.calls == ["configure", "activate", "deactivate", "shutdown"]
-    assert d.stats() == {
-        "reads": 1, "writes": 1, "limit_events": 0, "errors": 0, "safe_stops": 0
-    }
+    assert d.stats() == {"reads": 1, "writes": 1, "limit_events": 0, "errors": 0, "safe_stops": 0}
 
 
 def test_context_manager_shuts_down_active_driver() -> None:
@@ -403,9 +401,7 @@ def test_sim_exact_step_matches_the_analytic_servo_response(zeta: float) -> None
     to a small step is the closed-loop second-order system's, to float precision, at every
     tick (what the substep integrator approximated to about 1 %)."""
     wn = 2 * math.pi * 10.0
-    trace, d = run_step(
-        {"damping_ratio": zeta, "encoder_resolution": 0.0}, step=0.001, ticks=300
-    )
+    trace, d = run_step({"damping_ratio": zeta, "encoder_resolution": 0.0}, step=0.001, ticks=300)
     assert d._step_h == pytest.approx(0.001)  # the exact path ran (cached for 1 ms)
 
     def analytic(t: float) -> float:  # unit step response of wn^2 / (s^2 + 2 zeta wn s + wn^2)
@@ -487,8 +483,9 @@ def test_sim_per_joint_mapping_params() -> None:
 def test_sim_drive_stops_itself_without_heartbeat_and_reports_it() -> None:
     js = joints(1)
     d = SimDriver("s", js, {"encoder_resolution": 0.0, "heartbeat_ms": 20, "bandwidth_hz": 30.0})
-    ref = SimDriver("r", joints(1), {"encoder_resolution": 0.0, "heartbeat_ms": 0,
-                                     "bandwidth_hz": 30.0})
+    ref = SimDriver(
+        "r", joints(1), {"encoder_resolution": 0.0, "heartbeat_ms": 0, "bandwidth_hz": 30.0}
+    )
     for drv in (d, ref):
         drv.configure()
         drv.read(0.0)
@@ -631,26 +628,33 @@ def flaky(**kwargs) -> FlakyDriver:  # type: ignore[no-untyped-def]
 def test_bad_arguments_are_refused_with_what_is_wrong() -> None:
     with pytest.raises(ValueError, match="driver 'm': needs at least one joint"):
         MirrorDriver("m", [])
-    with pytest.raises(ValueError,
-                       match=r"driver 'm': on_limit must be one of \('clamp', 'fault'\)"):
+    with pytest.raises(
+        ValueError, match=r"driver 'm': on_limit must be one of \('clamp', 'fault'\)"
+    ):
         MirrorDriver("m", joints(), on_limit="ignore")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match=r"driver 'm': duplicate joint names \['a', 'a'\]"):
         MirrorDriver("m", [Joint("a"), Joint("a")])
     for bad in (-1, "soon", [50]):
-        with pytest.raises(ValueError,
-                           match=rf"driver 'm': heartbeat_ms .* got {re.escape(repr(bad))}"):
+        with pytest.raises(
+            ValueError, match=rf"driver 'm': heartbeat_ms .* got {re.escape(repr(bad))}"
+        ):
             MirrorDriver("m", joints(), {"heartbeat_ms": bad})
     for period in (0.0, -0.001):
         with pytest.raises(ValueError, match=rf"driver 'm': period must be > 0, got {period}"):
             MirrorDriver("m", joints(), {"period": period})
-    with pytest.raises(ValueError,
-                       match=r"driver 's' \(SimDriver\): unknown params \['bandwidth'\]; "
-                       r"known: \[.*'bandwidth_hz'.*'heartbeat_ms'"):
+    with pytest.raises(
+        ValueError,
+        match=r"driver 's' \(SimDriver\): unknown params \['bandwidth'\]; "
+        r"known: \[.*'bandwidth_hz'.*'heartbeat_ms'",
+    ):
         SimDriver("s", joints(1), {"bandwidth": 3})
     for iface in ("velocity", "effort"):
         # sim takes both; a position-only backend refuses efforts, nobody takes velocity
-        with pytest.raises(ValueError, match=rf"driver 'p' \(PositionOnly\): command_interface "
-                           rf"'{iface}' not supported; choose one of \('position',\)"):
+        with pytest.raises(
+            ValueError,
+            match=rf"driver 'p' \(PositionOnly\): command_interface "
+            rf"'{iface}' not supported; choose one of \('position',\)",
+        ):
             PositionOnly("p", joints(), command_interface=iface)  # type: ignore[arg-type]
 
 
@@ -665,18 +669,28 @@ def test_params_defaults_and_the_interface_from_params() -> None:
     assert d.params == {"heartbeat_ms": 50.0, "period": 0.002, "command_interface": "effort"}
     assert MirrorDriver("m", joints()).period == 0.001
     # the argument wins over the params
-    assert MirrorDriver("m", joints(), {"command_interface": "effort"},
-                        command_interface="position").command_interface == "position"
+    assert (
+        MirrorDriver(
+            "m", joints(), {"command_interface": "effort"}, command_interface="position"
+        ).command_interface
+        == "position"
+    )
     s = SimDriver("s", joints(1), {"heartbeat_ms": 20})
     assert s.heartbeat_s == pytest.approx(0.020) and s.params["heartbeat_ms"] == 20
 
 
 def test_refused_transitions_name_the_action_the_state_and_the_fault() -> None:
     d = flaky()
-    for call, action in ((d.activate, "activate"), (d.deactivate, "deactivate"),
-                         (d.reset, "reset")):
-        with pytest.raises(StateError, match=rf"^driver 'm': cannot {action} in state "
-                           r"unconfigured$"):
+    for call, action in (
+        (d.activate, "activate"),
+        (d.deactivate, "deactivate"),
+        (d.reset, "reset"),
+    ):
+        with pytest.raises(
+            StateError,
+            match=rf"^driver 'm': cannot {action} in state "
+            r"unconfigured$",
+        ):
             call()
     with pytest.raises(StateError, match=r"^driver 'm': cannot read in state unconfigured$"):
         d.read(0.0)
@@ -687,8 +701,11 @@ def test_refused_transitions_name_the_action_the_state_and_the_fault() -> None:
         d.write([0.0, 0.0], 0.0)
     d.activate()
     d.safe_stop("loop hung")
-    with pytest.raises(StateError, match=r"^driver 'm': cannot activate in state fault "
-                       r"\(safe stop: loop hung\); reset\(\) first$"):
+    with pytest.raises(
+        StateError,
+        match=r"^driver 'm': cannot activate in state fault "
+        r"\(safe stop: loop hung\); reset\(\) first$",
+    ):
         d.activate()
     d.shutdown()
     with pytest.raises(StateError, match=r"^driver 'm': cannot read in state shutdown$"):
@@ -811,8 +828,10 @@ def test_read_stamps_and_counts_every_read() -> None:
 
 # -- write_effort: a haptic master's force, clamped to the effort limit ---------------------
 def effort_driver(effort: float = 0.5, **kwargs) -> FlakyDriver:  # type: ignore[no-untyped-def]
-    js = [Joint(f"j{i}", "prismatic", JointLimits(-1.0, 1.0, 100.0, effort), **kwargs)
-          for i in range(2)]
+    js = [
+        Joint(f"j{i}", "prismatic", JointLimits(-1.0, 1.0, 100.0, effort), **kwargs)
+        for i in range(2)
+    ]
     d = FlakyDriver("m", js, command_interface="effort")
     d.configure()
     d.activate()
@@ -875,5 +894,103 @@ def test_a_setpoint_after_direct_efforts_is_checked_against_the_measured_positio
 
 def test_repr_names_the_driver_its_joints_state_and_interface() -> None:
     d = MirrorDriver("m", joints(), command_interface="effort")
-    assert repr(d) == ("MirrorDriver('m', joints=['j0', 'j1'], state=unconfigured, "
-                       "interface=effort)")
+    assert repr(d) == (
+        "MirrorDriver('m', joints=['j0', 'j1'], state=unconfigured, interface=effort)"
+    )
+
+
+# ---------------------------------------------------------------------------- the driver's log
+# What an operator reads in the daemon's log is part of the behaviour: each line names the
+# driver, the state change or the fault with its reason, at its level.
+
+
+def _records(caplog: pytest.LogCaptureFixture) -> list[tuple[str, str]]:
+    return [(r.levelname, r.getMessage()) for r in caplog.records if r.name == "occ.drivers.base"]
+
+
+def test_the_log_names_every_transition_and_fault_with_its_reason(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    caplog.set_level("INFO", logger="occ.drivers.base")
+    d = MirrorDriver("arm", joints(1))
+    d.configure()
+    d.activate()
+    d.fail_read = True
+    with pytest.raises(DriverError):
+        d.read(0.0)
+    d.fail_read = False
+    d.reset()
+    d.shutdown()
+    fault = "driver 'arm': read failed: OSError('bus gone')"
+    assert _records(caplog) == [
+        ("INFO", "driver arm: unconfigured -> inactive"),
+        ("INFO", "driver arm: inactive -> active"),
+        ("ERROR", f"driver arm: FAULT: {fault}"),
+        ("INFO", "driver arm: active -> fault"),
+        ("INFO", f"driver arm: fault reset (was: {fault})"),
+        ("INFO", "driver arm: fault -> inactive"),
+        ("INFO", "driver arm: inactive -> shutdown"),
+    ]
+
+
+def test_safe_stop_and_a_failing_deactivate_are_logged_with_the_driver(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    class Stubborn(MirrorDriver):
+        def _safe_stop(self) -> None:
+            raise OSError("amplifier does not answer")
+
+        def _deactivate(self) -> None:
+            raise OSError("still powered")
+
+    caplog.set_level("INFO", logger="occ.drivers.base")
+    d = Stubborn("arm", joints(1))
+    d.configure()
+    d.activate()
+    caplog.clear()
+    d.safe_stop("loop hung")
+    assert _records(caplog) == [
+        ("ERROR", "driver arm: safe stop failed"),
+        ("ERROR", "driver arm: FAULT: safe stop: loop hung"),
+        ("INFO", "driver arm: active -> fault"),
+    ]
+    assert caplog.records[0].exc_info is not None  # the hook's traceback is in the log
+    e = Stubborn("leg", joints(1))
+    e.configure()
+    e.activate()
+    caplog.clear()
+    with pytest.raises(LimitError):  # a non-finite setpoint faults; an ACTIVE drive deactivates
+        Stubborn.write(e, [math.nan], 0.001)
+    assert ("ERROR", "driver leg: deactivate after fault failed") in _records(caplog)
+    d.shutdown()
+    e.shutdown()
+
+
+def test_a_driver_left_configured_warns_once_it_is_collected(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """python-can's leaked-bus warning: a configured driver nobody shut down may still hold
+    hardware. One shut down, or never configured, or half built, says nothing."""
+    caplog.set_level("WARNING", logger="occ.drivers.base")
+    leaked = MirrorDriver("leaky", joints(1))
+    leaked.configure()
+    leaked.__del__()
+    assert _records(caplog) == [("WARNING", "driver leaky was not shut down properly")]
+    leaked.shutdown()
+    caplog.clear()
+    for d in (MirrorDriver("idle", joints(1)), leaked):
+        d.__del__()  # never configured / shut down
+    half = MirrorDriver.__new__(MirrorDriver)  # __init__ failed before any attribute
+    half.__del__()
+    assert _records(caplog) == []
+    half_named = MirrorDriver.__new__(MirrorDriver)
+    half_named._configured = True  # configured, state never set: nothing to warn about
+    half_named.__del__()
+    assert _records(caplog) == []
+    nameless = MirrorDriver("x", joints(1))
+    nameless.configure()
+    del nameless.name
+    nameless.__del__()
+    assert _records(caplog) == [("WARNING", "driver ? was not shut down properly")]
+    nameless.name = "x"
+    nameless.shutdown()
