@@ -320,3 +320,408 @@ def test_an_ipv6_stream_source_and_the_operators_list():
         assert op.peer_role(Peer(1, ("10.0.0.5", 4000))) == "operator"
         assert op.peer_role(Peer(2, ("10.0.0.6", 4000))) == "viewer"
         assert sim.robot.interfaces["slicer"].peer_role(Peer(3, ("10.0.0.5", 1))) == "viewer"
+
+
+# ------------------------------------------------------------ transports built from the config
+# The transport classes are replaced by a recorder: what matters here is the contract between
+# the config and the transport (every setting handed over, in its unit), not any traffic.
+class _Recorder:
+    kind = "?"
+
+    def __init__(self, *args, **kwargs):
+        self.args, self.kwargs = args, kwargs
+        self.sent: list = []
+        self.send_result = 1
+        self.transport_stats: dict = {}
+        self.address = ("127.0.0.1", 5555)
+        self.peers: list = []
+        self.thread = None
+        self.events: list = []
+
+    def start(self):
+        self.events.append("start")
+
+    def stop(self):
+        self.events.append("stop")
+
+    def send(self, msg, peer=None):
+        self.sent.append((msg, peer))
+        return self.send_result
+
+    def stats(self):
+        return dict(self.transport_stats)
+
+
+class _Server(_Recorder):
+    kind = "tcp-server"
+
+
+class _Client(_Recorder):
+    kind = "tcp-client"
+
+
+class _Udp(_Recorder):
+    kind = "udp"
+
+    def pin_source(self, source):
+        self.events.append(("pin", source))
+
+
+@pytest.fixture
+def fake_transports(monkeypatch):
+    import occ.interfaces as mod
+
+    monkeypatch.setattr(mod, "TCPServer", _Server)
+    monkeypatch.setattr(mod, "TCPClient", _Client)
+    monkeypatch.setattr(mod, "UDPEndpoint", _Udp)
+
+
+def manager(*cfgs: dict, **kw):
+    from occ.config import InterfaceConfig
+    from occ.interfaces import InterfaceManager
+
+    return InterfaceManager([InterfaceConfig(**c) for c in cfgs], clock_now=lambda: 1.5, **kw)
+
+
+def _callbacks_are_the_interfaces(t, iface, *, peers: bool = True) -> None:
+    assert t.kwargs.pop("on_message") == iface._on_message
+    assert t.kwargs.pop("on_error") == iface._on_error
+    if peers:
+        assert t.kwargs.pop("on_connect") == iface._on_connect
+        assert t.kwargs.pop("on_disconnect") == iface._on_disconnect
+
+
+def test_a_tcp_server_gets_every_setting_of_its_config(fake_transports):
+    m = manager(
+        dict(
+            name="ops",
+            transport="tcp-server",
+            host="127.0.0.2",
+            port=5000,
+            allowed_peers=["127.0.0.1", "10.0.0.0/8"],
+            role="operator",
+            operators=["10.0.0.5"],
+            operator_slots=2,
+            max_clients=5,
+            send_queue=33,
+            idle_timeout_s=7.5,
+            message_timeout_s=3.0,
+            send_stall_timeout_s=2.5,
+            unread_limit_kib=20,
+            max_body_kib=100,
+        )
+    )
+    iface = m["ops"]
+    t = iface.transport
+    assert isinstance(t, _Server)
+    _callbacks_are_the_interfaces(t, iface)
+    assert t.args == ("127.0.0.2", 5000)
+    assert t.kwargs == dict(
+        negotiate=True,
+        allowed_peers=["127.0.0.1/32", "10.0.0.0/8"],
+        max_clients=5,
+        send_queue=33,
+        idle_timeout=7.5,
+        message_timeout=3.0,
+        send_stall_timeout=2.5,
+        unread_limit=20 * 1024,
+        max_buffered=8192 * 1024,  # at least 8 MiB
+        max_body_size=100 * 1024,
+        reserved_slots=2,
+        privileged_peers=["10.0.0.5/32"],
+        name="igtl-ops",
+    )
+
+
+@pytest.mark.parametrize(
+    ("body_kib", "buffered_kib", "want_kib"),
+    [
+        (4096, None, 8192),  # twice the body is exactly 8 MiB
+        (4097, None, 8194),  # just over: twice the body
+        (100, 300, 300),  # configured
+    ],
+)
+def test_a_tcp_servers_buffer_budget(fake_transports, body_kib, buffered_kib, want_kib):
+    m = manager(
+        dict(
+            name="s",
+            transport="tcp-server",
+            port=0,
+            max_body_kib=body_kib,
+            max_buffered_kib=buffered_kib,
+        )
+    )
+    kw = m["s"].transport.kwargs
+    assert kw["max_buffered"] == want_kib * 1024 and kw["max_body_size"] == body_kib * 1024
+    # no operators list: no reserved slots, no privileged peers, default settings passed on
+    assert kw["reserved_slots"] == 0 and kw["privileged_peers"] is None
+    assert kw["idle_timeout"] is None and kw["allowed_peers"] == ["127.0.0.1/32"]
+
+
+def test_a_keyed_tcp_server_does_not_negotiate_the_header_version(fake_transports, tmp_path):
+    (tmp_path / "k").write_text("a shared key for the master link\n")
+    m = manager(dict(name="s", transport="tcp-server", port=0, auth_key_file=tmp_path / "k"))
+    assert m["s"].transport.kwargs["negotiate"] is False
+    assert m["s"].auth_key == b"a shared key for the master link"
+
+
+def test_a_tcp_client_gets_its_remote_and_limits(fake_transports):
+    m = manager(
+        dict(
+            name="up",
+            transport="tcp-client",
+            remote="[::1]:7001",
+            send_queue=12,
+            max_body_kib=64,
+        )
+    )
+    iface = m["up"]
+    t = iface.transport
+    assert isinstance(t, _Client)
+    _callbacks_are_the_interfaces(t, iface)
+    assert t.args == ("::1", 7001)
+    assert t.kwargs == dict(send_queue=12, max_body_size=64 * 1024, name="igtl-up")
+
+
+def test_udp_endpoints_from_the_config(fake_transports):
+    stream = [{"type": "POSITION", "queue": "stream", "depth": 3}]
+    m = manager(
+        # a receiver polled by the loop
+        dict(name="rx", transport="udp", host="127.0.0.3", port=6000, inputs=stream),
+        # a pure sender: connected to its remote
+        dict(name="tx", transport="udp", port=0, remote="127.0.0.4:6001", max_body_kib=8),
+        # inputs and a remote: not connected
+        dict(name="both", transport="udp", port=0, remote="127.0.0.4:6002", inputs=stream),
+        # command inputs only: nothing to poll
+        dict(
+            name="cmd",
+            transport="udp",
+            port=0,
+            allowed_peers=["10.1.0.0/16"],
+            inputs=[{"type": "STRING", "queue": "command"}],
+        ),
+        poll_streams=True,
+    )
+    rx = m["rx"].transport
+    assert isinstance(rx, _Udp)
+    _callbacks_are_the_interfaces(rx, m["rx"], peers=False)
+    assert rx.args == ("127.0.0.3", 6000)
+    assert rx.kwargs == dict(
+        remote=None,
+        allowed_peers=["127.0.0.1/32"],
+        max_body_size=1024 * 1024,
+        polled=True,
+        connect_remote=False,
+        name="igtl-rx",
+    )
+    tx = m["tx"].transport.kwargs
+    assert tx["remote"] == ("127.0.0.4", 6001) and tx["connect_remote"] is True
+    assert tx["polled"] is False and tx["max_body_size"] == 8 * 1024
+    both = m["both"].transport.kwargs
+    assert both["remote"] == ("127.0.0.4", 6002) and both["connect_remote"] is False
+    assert both["polled"] is True
+    cmd = m["cmd"]
+    assert cmd.transport.kwargs["polled"] is False
+    assert cmd.transport.kwargs["allowed_peers"] == ["10.1.0.0/16"]
+    assert cmd.command_inputs == {"STRING"} and cmd.streams == {}
+
+
+def test_streams_are_not_polled_unless_asked(fake_transports):
+    stream = [{"type": "POSITION", "queue": "stream", "depth": 3}]
+    m = manager(dict(name="rx", transport="udp", port=0, inputs=stream))
+    assert m["rx"].transport.kwargs["polled"] is False and m["rx"].poll_streams is False
+    assert m["rx"].streams["POSITION"].depth == 3
+
+
+def test_an_unknown_transport_is_named_in_the_error(fake_transports):
+    from types import SimpleNamespace
+
+    from occ.interfaces import Interface
+
+    cfg = manager(dict(name="x", transport="udp", port=0))["x"].cfg
+    bad = SimpleNamespace(**{**dict(cfg), "transport": "carrier-pigeon"})
+    with pytest.raises(ValueError, match="unknown transport 'carrier-pigeon'"):
+        Interface(bad, manager(), clock_now=lambda: 0.0)
+
+
+def test_a_default_queue_depth():
+    assert StreamQueue().depth == 10 and CommandQueue().depth == 64
+    assert StreamQueue().evicted.maxlen == 4096
+    assert manager().commands.depth == 64
+
+
+def test_send_counts_outputs_and_drops_and_passes_the_peer_on(fake_transports):
+    m = manager(dict(name="s", transport="tcp-server", port=0))
+    iface = m["s"]
+    t = iface.transport
+    msg, peer = igtl.StatusMessage(device_name="a"), Peer(7, ("127.0.0.1", 9))
+    assert iface.send(msg) == 1 and iface.send(msg, peer) == 1
+    assert t.sent == [(msg, None), (msg, peer)]  # unkeyed: sent as it is
+    t.send_result = 3
+    assert iface.send(msg) == 3
+    t.send_result = 0
+    assert iface.send(msg) == 0 and iface.send(msg) == 0
+    assert (iface.counters.sent, iface.counters.send_dropped) == (3, 2)
+    st = iface.stats()
+    assert st["sent"] == 3 and st["dropped"] == 2  # the transport reports neither
+    # a reply is not an output: not counted, True only when queued
+    assert iface.send_to_peer(msg, peer) is False
+    t.send_result = 1
+    assert iface.send_to_peer(msg, peer) is True and t.sent[-1] == (msg, peer)
+    assert (iface.counters.sent, iface.counters.send_dropped) == (3, 2)
+
+
+def test_a_keyed_interface_signs_what_it_sends(fake_transports, tmp_path):
+    from igtl.auth import verify
+
+    key = b"a shared key for the master link"
+    (tmp_path / "k").write_text(key.decode() + "\n")
+    m = manager(dict(name="s", transport="udp", port=0, auth_key_file=tmp_path / "k"))
+    iface, peer = m["s"], Peer(7, ("127.0.0.1", 9))
+    iface.send(igtl.StatusMessage(device_name="a", header_version=2), peer)
+    iface.send_to_peer(igtl.StatusMessage(device_name="b", header_version=2), peer)
+    (a, pa), (b, pb) = iface.transport.sent
+    assert verify(a, key) == "" and verify(b, key) == "" and pa is pb is peer
+    assert a.device_name == "a" and b.device_name == "b"
+
+
+def test_stats_take_the_transports_counts_when_it_has_them(fake_transports):
+    stream = [{"type": "POSITION", "queue": "stream", "depth": 1}]
+    m = manager(dict(name="rx", transport="udp", port=0, inputs=stream))
+    iface = m["rx"]
+    t = iface.transport
+    st = iface.stats()
+    assert (st["sent"], st["dropped"], st["malformed"]) == (0, 0, 0)
+    assert not any(k in st for k in ("denied", "over_budget", "refused_by_remote"))
+    iface.counters.sent, iface.counters.send_dropped, iface.counters.malformed = 4, 1, 2
+    assert (iface.stats()["sent"], iface.stats()["malformed"]) == (4, 2)
+    q = iface.streams["POSITION"]
+    for i in range(3):
+        q.put(inbound(i))  # two pushed out
+    t.peers = [object(), object()]
+    t.transport_stats = {
+        "sent": 10,
+        "dropped": 5,
+        "malformed": 6,
+        "over_budget": 1,
+        "denied": 2,
+        "rejected": 3,
+        "idle_closed": 4,
+        "slow_message_closed": 5,
+        "evicted_not_reading": 6,
+        "refused_by_remote": 7,
+        "other": 99,
+    }
+    st = iface.stats()
+    assert st["sent"] == 10 and st["malformed"] == 6
+    assert st["dropped"] == 5 + 1 + 2  # transport + send queue + stream overflow
+    assert st["streams"] == {"POSITION": {"received": 3, "dropped": 2}}
+    assert {k: st[k] for k in ("over_budget", "denied", "rejected", "idle_closed")} == {
+        "over_budget": 1,
+        "denied": 2,
+        "rejected": 3,
+        "idle_closed": 4,
+    }
+    assert (st["slow_message_closed"], st["evicted_not_reading"]) == (5, 6)
+    assert st["refused_by_remote"] == 7 and "other" not in st
+    assert st["peers"] == 2 and st["address"] == [
+        "127.0.0.1",
+        5555,
+    ]
+    t.address = None
+    t.peers = None
+    st = iface.stats()
+    assert st["address"] is None and st["peers"] == 0
+    assert st["transport"] == "udp" and st["role"] == "none"
+
+
+def _log(caplog) -> list[tuple[str, str]]:
+    return [(r.levelname, r.getMessage()) for r in caplog.records if r.name == "occ.interfaces"]
+
+
+def test_the_log_tells_an_operator_what_each_interface_did(fake_transports, caplog, tmp_path):
+    caplog.set_level("DEBUG", logger="occ.interfaces")
+    stream = [{"type": "POSITION", "queue": "stream", "depth": 5}]
+    m = manager(
+        dict(name="ops", transport="tcp-server", port=0, role="viewer"),
+        dict(name="link", transport="udp", port=0, inputs=stream),
+    )
+    seen = []
+    m.on_connect(lambda iface, peer: seen.append((iface.name, peer.address)))
+
+    def broken(iface, peer):
+        raise RuntimeError("listener bug")
+
+    m.on_connect(broken)
+    m.start()
+    assert m["ops"].transport.events == ["start"]
+    ops, link = m["ops"].transport.kwargs, m["link"].transport.kwargs
+    a, b = Peer(1, ("10.0.0.5", 4000)), Peer(2, ("10.0.0.6", 4001))
+    ops["on_connect"](a)
+    assert seen == [("ops", ("10.0.0.5", 4000))]
+    ops["on_disconnect"](a, "idle")
+    ops["on_error"](a, ValueError("bad CRC"))
+    ops["on_error"](None, ValueError("short header"))
+    assert m["ops"].counters.malformed == 2 and m["ops"].stats()["malformed"] == 2
+    ops["on_message"](a, igtl.RawMessage(type_name="FOO", device_name="x"))
+    ops["on_message"](b, igtl.RawMessage(type_name="FOO", device_name="y"))  # logged once
+    ops["on_message"](a, igtl.CommandMessage(command_name="Run", device_name="C"))
+    link["on_message"](a, position(1))
+    link["on_message"](b, position(2))
+    link["on_message"](a, position(3))
+    assert [i.msg.message_id for i in m["link"].streams["POSITION"].drain()] == [1, 3]
+    m["link"].transport.stop = lambda: (_ for _ in ()).throw(OSError("socket gone"))
+    m.stop()
+    assert m["ops"].transport.events == ["start", "stop"]  # stopped despite the other's error
+    assert _log(caplog) == [
+        ("INFO", "interface ops: tcp-server on ('127.0.0.1', 5555)"),
+        ("INFO", "interface link: udp on ('127.0.0.1', 5555)"),
+        ("INFO", "ops: 10.0.0.5:4000 connected"),
+        ("ERROR", "connect listener failed"),
+        ("INFO", "ops: 10.0.0.5:4000 disconnected (idle)"),
+        ("DEBUG", "ops: malformed message from 10.0.0.5:4000: bad CRC"),
+        ("DEBUG", "ops: malformed message from ?: short header"),
+        ("INFO", "ops: ignoring unexpected FOO from 10.0.0.5:4000 (counted)"),
+        (
+            "WARNING",
+            "ops: refused COMMAND 'C' from 10.0.0.5:4000: Run: a viewer may query but not "
+            "command the robot; send commands to an operator interface",
+        ),
+        ("INFO", "link: stream owned by 10.0.0.5:4000"),
+        (
+            "WARNING",
+            "link: refused POSITION from 10.0.0.6:4001: the stream belongs to 10.0.0.5:4000",
+        ),
+        ("ERROR", "interface link: error while stopping"),
+    ]
+    # the refusal went back to the asker, with its code
+    (reply, peer), *_ = [s for s in m["ops"].transport.sent]
+    assert peer is a and reply.message_type == "RTS_COMMAND"
+    assert "viewer may query" in reply.metadata["Error"]
+
+
+def test_refusals_are_logged_at_most_five_a_second(fake_transports, caplog, tmp_path):
+    caplog.set_level("DEBUG", logger="occ.interfaces")
+    key = b"a shared key for the master link"
+    (tmp_path / "k").write_text(key.decode() + "\n")
+    stream = [{"type": "POSITION", "queue": "stream", "depth": 5}]
+    m = manager(dict(name="link", transport="udp", port=0, inputs=stream, auth_key_file=tmp_path / "k"))
+    on_message = m["link"].transport.kwargs["on_message"]
+    a = Peer(1, ("10.0.0.5", 4000))
+    for i in range(7):
+        on_message(a, position(i))
+    assert m["link"].counters.unauthenticated == 7
+    assert _log(caplog) == [("WARNING", "link: refused POSITION from 10.0.0.5:4000: no HMAC")] * 5
+
+
+def test_a_viewer_with_a_malformed_request_is_told_illegal_instruction(fake_transports):
+    m = manager(dict(name="ops", transport="tcp-server", port=0, role="viewer"))
+    on_message = m["ops"].transport.kwargs["on_message"]
+    a = Peer(1, ("10.0.0.5", 4000))
+    on_message(a, igtl.StringMessage("<Command Name=", device_name="CMD_4"))
+    on_message(a, igtl.REGISTRY["GET_STATUS"](type_name="GET_STATUS", device_name="Q"))
+    ack = m["ops"].transport.sent[0][0]
+    assert ack.device_name == "ACK_4" and 'Status="FAIL"' in ack.string
+    # a query is queued, whatever the role
+    (item,) = m.commands.drain()
+    assert item.role == "viewer" and item.request.kind == "query"
