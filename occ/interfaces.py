@@ -541,7 +541,6 @@ class InterfaceManager:
             self.interfaces[cfg.name] = Interface(
                 cfg, self, clock_now=clock_now, poll_streams=poll_streams
             )
-        self._started = False
 
     def __getitem__(self, name: str) -> Interface:
         return self.interfaces[name]
@@ -550,7 +549,6 @@ class InterfaceManager:
         for iface in self.interfaces.values():
             iface.start()
             log.info("interface %s: %s on %s", iface.name, iface.cfg.transport, iface.address)
-        self._started = True
 
     def stop(self) -> None:
         for iface in self.interfaces.values():
@@ -558,7 +556,6 @@ class InterfaceManager:
                 iface.transport.stop()
             except Exception:  # noqa: BLE001 - stopping must reach every interface
                 log.exception("interface %s: error while stopping", iface.name)
-        self._started = False
 
     def set_thread_priority(self, priority: int) -> str:
         """SCHED_FIFO ``priority`` for every interface's I/O thread; returns what applied."""
