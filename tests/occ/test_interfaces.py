@@ -653,12 +653,13 @@ def test_the_log_tells_an_operator_what_each_interface_did(fake_transports, capl
         raise RuntimeError("listener bug")
 
     m.on_connect(broken)
+    m.on_connect(lambda iface, peer: seen.append("next listener"))
     m.start()
     assert m["ops"].transport.events == ["start"]
     ops, link = m["ops"].transport.kwargs, m["link"].transport.kwargs
     a, b = Peer(1, ("10.0.0.5", 4000)), Peer(2, ("10.0.0.6", 4001))
     ops["on_connect"](a)
-    assert seen == [("ops", ("10.0.0.5", 4000))]
+    assert seen == [("ops", ("10.0.0.5", 4000)), "next listener"]
     ops["on_disconnect"](a, "idle")
     ops["on_error"](a, ValueError("bad CRC"))
     ops["on_error"](None, ValueError("short header"))
@@ -705,7 +706,9 @@ def test_refusals_are_logged_at_most_five_a_second(fake_transports, caplog, tmp_
     key = b"a shared key for the master link"
     (tmp_path / "k").write_text(key.decode() + "\n")
     stream = [{"type": "POSITION", "queue": "stream", "depth": 5}]
-    m = manager(dict(name="link", transport="udp", port=0, inputs=stream, auth_key_file=tmp_path / "k"))
+    m = manager(
+        dict(name="link", transport="udp", port=0, inputs=stream, auth_key_file=tmp_path / "k")
+    )
     on_message = m["link"].transport.kwargs["on_message"]
     a = Peer(1, ("10.0.0.5", 4000))
     for i in range(7):
@@ -725,3 +728,57 @@ def test_a_viewer_with_a_malformed_request_is_told_illegal_instruction(fake_tran
     # a query is queued, whatever the role
     (item,) = m.commands.drain()
     assert item.role == "viewer" and item.request.kind == "query"
+
+
+def test_an_interface_pins_its_configured_source_when_it_starts(fake_transports):
+    stream = [{"type": "POSITION", "queue": "stream", "depth": 5}]
+    m = manager(
+        dict(name="pinned", transport="udp", port=0, inputs=stream, stream_source="127.0.0.1:7000"),
+        dict(name="free", transport="udp", port=0, inputs=stream),
+    )
+    m.start()
+    assert m["pinned"].transport.events == ["start", ("pin", ("127.0.0.1", 7000))]
+    assert m["free"].transport.events == ["start"]  # the first sender will own it
+
+
+def test_an_interface_made_alone_does_not_poll(fake_transports):
+    from occ.interfaces import Interface
+
+    stream = [{"type": "POSITION", "queue": "stream", "depth": 5}]
+    m = manager(dict(name="rx", transport="udp", port=0, inputs=stream))
+    iface = Interface(m["rx"].cfg, m, clock_now=lambda: 0.0)
+    assert iface.poll_streams is False and iface.transport.kwargs["polled"] is False
+
+
+def test_thread_priority_says_where_it_applied_and_why_not(fake_transports, monkeypatch):
+    import os
+    from types import SimpleNamespace
+
+    calls = []
+
+    def setscheduler(tid, policy, param):
+        if tid == 13:
+            raise PermissionError("not allowed")
+        calls.append((tid, policy, param.sched_priority))
+
+    monkeypatch.setattr(os, "sched_setscheduler", setscheduler, raising=False)
+    m = manager(
+        dict(name="a", transport="udp", port=0),
+        dict(name="b", transport="udp", port=0),
+        dict(name="c", transport="udp", port=0),
+        dict(name="d", transport="udp", port=0),
+    )
+    m["a"].transport.thread = SimpleNamespace(native_id=11)
+    m["b"].transport.thread = None  # not started: no thread
+    m["c"].transport.thread = SimpleNamespace(native_id=13)
+    m["d"].transport.thread = SimpleNamespace(native_id=14)
+    assert m.set_thread_priority(40) == (
+        "SCHED_FIFO 40 on a, d; refused for b (no thread), c (PermissionError)"
+    )
+    assert calls == [(11, os.SCHED_FIFO, 40), (14, os.SCHED_FIFO, 40)]
+    assert manager(dict(name="a", transport="udp", port=0)).set_thread_priority(3) == (
+        "SCHED_FIFO 3 on none; refused for a (no thread)"
+    )
+    one = manager(dict(name="a", transport="udp", port=0))
+    one["a"].transport.thread = SimpleNamespace(native_id=11)
+    assert one.set_thread_priority(5) == "SCHED_FIFO 5 on a"
