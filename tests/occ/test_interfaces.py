@@ -782,3 +782,73 @@ def test_thread_priority_says_where_it_applied_and_why_not(fake_transports, monk
     one = manager(dict(name="a", transport="udp", port=0))
     one["a"].transport.thread = SimpleNamespace(native_id=11)
     assert one.set_thread_priority(5) == "SCHED_FIFO 5 on a"
+
+
+def test_an_inproc_interface_gets_its_channel_and_limits(monkeypatch):
+    import occ.interfaces as mod
+
+    class _Inproc(_Recorder):
+        kind = "inproc"
+
+    monkeypatch.setattr(mod, "InprocTransport", _Inproc)
+    m = manager(
+        dict(
+            name="sim",
+            transport="inproc",
+            channel="bench",
+            host="127.0.0.9",
+            port=1234,
+            header_version=1,
+            allowed_peers=["10.2.0.0/16"],
+            max_clients=3,
+            max_body_kib=7,
+        ),
+        dict(name="anon", transport="inproc", channel="c2", port=0),
+    )
+    iface = m["sim"]
+    t = iface.transport
+    _callbacks_are_the_interfaces(t, iface)
+    assert t.args == ("bench",)
+    assert t.kwargs == dict(
+        address=("127.0.0.9", 1234),
+        header_version=1,
+        negotiate=True,
+        allowed_peers=["10.2.0.0/16"],
+        max_peers=3,
+        max_body_size=7 * 1024,
+        name="igtl-sim",
+    )
+    assert m["anon"].transport.kwargs["address"] is None  # port 0: no address of its own
+
+
+def test_ipv6_peers_are_logged_by_host_and_port(fake_transports, caplog, tmp_path):
+    """An IPv6 address is a 4-tuple (host, port, flowinfo, scope): the log shows host:port."""
+    caplog.set_level("INFO", logger="occ.interfaces")
+    (tmp_path / "k").write_text("a shared key for the master link\n")
+    m = manager(
+        dict(name="ops", transport="tcp-server", port=0, role="none"),
+        dict(name="keyed", transport="udp", port=0, auth_key_file=tmp_path / "k"),
+    )
+    ops = m["ops"].transport.kwargs
+    v6 = Peer(1, ("::1", 4000, 0, 0))
+    ops["on_connect"](v6)
+    ops["on_message"](v6, igtl.RawMessage(type_name="FOO", device_name="x"))
+    ops["on_message"](v6, igtl.CommandMessage(command_name="Run", device_name="C"))
+    ops["on_disconnect"](v6, "eof")
+    m["keyed"].transport.kwargs["on_message"](v6, position(1))
+    assert _log(caplog) == [
+        ("INFO", "ops: ::1:4000 connected"),
+        ("INFO", "ops: ignoring unexpected FOO from ::1:4000 (counted)"),
+        (
+            "WARNING",
+            "ops: refused COMMAND 'C' from ::1:4000: interface ops is a data link: it takes "
+            "no requests",
+        ),
+        ("INFO", "ops: ::1:4000 disconnected (eof)"),
+        ("WARNING", "keyed: refused POSITION from ::1:4000: no HMAC"),
+    ]
+
+
+def test_a_remote_by_host_name_keeps_its_name(fake_transports):
+    m = manager(dict(name="up", transport="tcp-client", remote="XrayX.local:7001"))
+    assert m["up"].transport.args == ("XrayX.local", 7001)
