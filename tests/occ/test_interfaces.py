@@ -822,7 +822,8 @@ def test_an_inproc_interface_gets_its_channel_and_limits(monkeypatch):
 
 
 def test_ipv6_peers_are_logged_by_host_and_port(fake_transports, caplog, tmp_path):
-    """An IPv6 address is a 4-tuple (host, port, flowinfo, scope): the log shows host:port."""
+    """An IPv6 address arrives as a 4-tuple (host, port, flowinfo, scope): the log shows
+    host:port (the Peer keeps those two)."""
     caplog.set_level("INFO", logger="occ.interfaces")
     (tmp_path / "k").write_text("a shared key for the master link\n")
     m = manager(
@@ -852,3 +853,29 @@ def test_ipv6_peers_are_logged_by_host_and_port(fake_transports, caplog, tmp_pat
 def test_a_remote_by_host_name_keeps_its_name(fake_transports):
     m = manager(dict(name="up", transport="tcp-client", remote="XrayX.local:7001"))
     assert m["up"].transport.args == ("XrayX.local", 7001)
+
+
+def test_a_key_file_is_read_as_utf8_whatever_the_locale(tmp_path):
+    """A daemon started with an ASCII locale (LC_ALL=C, UTF-8 mode off) reads a key with
+    non-ASCII characters as the other end does: in UTF-8."""
+    import os
+    import subprocess
+    import sys
+
+    (tmp_path / "k").write_text("clé partagée du lien maître\n", encoding="utf-8")
+    code = (
+        "import locale, sys\n"
+        "from occ.config import InterfaceConfig\n"
+        "from occ.interfaces import InterfaceManager\n"
+        "assert locale.getpreferredencoding(False).lower() not in ('utf-8', 'utf8')\n"
+        f"cfg = InterfaceConfig(name='k', transport='inproc', channel='c', port=0,"
+        f" auth_key_file={str(tmp_path / 'k')!r})\n"
+        "m = InterfaceManager([cfg], clock_now=lambda: 0.0)\n"
+        "sys.stdout.write(m['k'].auth_key.hex())\n"
+    )
+    env = {**os.environ, "LC_ALL": "C", "PYTHONUTF8": "0", "PYTHONCOERCECLOCALE": "0"}
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, cwd=ROOT
+    )
+    assert out.returncode == 0, out.stderr
+    assert bytes.fromhex(out.stdout) == "clé partagée du lien maître".encode()
