@@ -604,3 +604,106 @@ def test_success_replies_carry_the_wall_time(sim, monkeypatch):
     handle(sim, igtl.StringMessage("GetState", device_name="CMD_3"))
     assert [m.timestamp for m in out] == [pytest.approx(sim.clock.wall_time())] * 2
     assert sim.robot.state_machine.last_reason == "operator Enable"
+
+
+@pytest.mark.req("SR-ROUTE-1")
+def test_a_deferred_answer_goes_to_the_asker_only_with_its_code(sim, monkeypatch):
+    """Through the real interface: two operators, one asks; the answer that comes later (a
+    planner thread's) reaches the asker and not the other, a refusal with its status code,
+    each counted once."""
+    from occ.commands import Deferred
+
+    pending: list[Deferred] = []
+
+    def on_command(req, now):
+        pending.append(Deferred())
+        return pending[-1]
+
+    monkeypatch.setattr(sim.robot.controller, "on_command", on_command)
+    asker, other = sim.peer("operator"), sim.peer("operator")
+    sim.step()
+    first = asker.send_command("Plan")
+    second = asker.send_command("Plan")
+    sim.step()
+    assert asker.reply_to(first) is None and len(pending) == 2
+    pending[0].resolve("planned")
+    pending[1].fail("unreachable pose")
+    ok, bad = asker.reply_to(first), asker.reply_to(second)
+    assert ok is not None and ok.metadata["Status"] == "SUCCESS"
+    assert bad is not None and bad.metadata["Status"] == "FAIL"
+    assert bad.metadata["Error"] == "unreachable pose"
+    assert other.messages("RTS_COMMAND") == []
+    desk = sim.robot.operators.counters()
+    assert (desk["handled"], desk["refused"]) == (2, 1)
+
+
+def test_a_new_client_is_greeted_with_the_state_its_code_and_the_time(sim):
+    op = sim.peer("operator")
+    sim.step()
+    (hello,) = op.messages("STATUS")
+    assert hello.code == int(igtl.StatusCode.OK) and hello.error_name == "READY"
+    assert hello.status_message == f"{sim.robot.name} is READY"
+    assert hello.device_name == sim.robot.name[:20]
+    assert hello.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
+
+
+def test_a_long_robot_name_is_cut_to_20_characters_in_the_greeting():
+    from occ.loader import parse_config
+
+    text = SLAVE.read_text().replace("name: slave", "name: a-slave-with-a-very-long-name", 1)
+    cfg = parse_config(text, base_dir=ROOT / "configs")
+    assert cfg.robot.name == "a-slave-with-a-very-long-name"
+    with SimRobot(cfg) as s:
+        op = s.peer("operator")
+        s.step()
+        (hello,) = op.messages("STATUS")
+        assert hello.device_name == "a-slave-with-a-very-"
+        assert hello.status_message == "a-slave-with-a-very-long-name is READY"
+
+
+def test_a_client_joining_a_stopped_robot_is_greeted_with_the_stop_code(sim):
+    sim.robot.state_machine.request("enable", "test")
+    sim.robot.state_machine.request("stop", "test")
+    op = sim.peer("operator")
+    sim.step()
+    (hello,) = op.messages("STATUS")
+    assert (hello.code, hello.error_name) == (int(igtl.StatusCode.DISABLED), "STOPPED")
+
+
+def test_late_answers_are_counted_each_and_recorded_as_sent(monkeypatch):
+    """Every refusal and every reply that could not be sent is counted (not just the first),
+    and the recording gets each late answer as sent, on its interface, at the daemon's time."""
+    from occ.commands import Deferred
+
+    late: list[tuple] = []
+
+    class LateRecorder(Recorder):
+        def record_message_late(self, msg, direction, interface, t) -> None:
+            late.append((msg, direction, interface, t))
+
+    with SimRobot(SLAVE, recorder=LateRecorder()) as sim:
+        pending: list[Deferred] = []
+
+        def on_command(req, now):
+            pending.append(Deferred())
+            return pending[-1]
+
+        monkeypatch.setattr(sim.robot.controller, "on_command", on_command)
+        asker = sim.peer("operator")
+        sim.step()
+        ids = [asker.send_command("Plan") for _ in range(4)]
+        sim.step(5)
+        pending[0].fail("no")
+        pending[1].fail("still no")
+        desk = sim.robot.operators
+        assert desk.counters()["refused"] == 2
+        assert [m.command_id for m, *_ in late] == ids[:2]
+        assert all(d == "out" and i == "operator" for _, d, i, _t in late)
+        assert late[0][3] == pytest.approx(sim.clock.now())
+        monkeypatch.setattr(
+            sim.robot.interfaces, "reply", lambda item, reply: (_ for _ in ()).throw(OSError("x"))
+        )
+        pending[2].resolve("done")
+        pending[3].resolve("done")
+        assert desk.counters()["reply_errors"] == 2
+        assert len(late) == 2  # what was not sent is not recorded as sent
