@@ -564,3 +564,29 @@ def test_a_teleop_output_that_is_not_position_faults_and_says_so() -> None:
         assert any("teleop output must be of type POSITION" in t for t in texts), texts
     finally:
         m.close()
+
+
+@pytest.mark.req("SR-LOSS-2")
+@pytest.mark.parametrize("flag", ["run", "clutch", None])
+def test_a_re_entry_ramp_after_a_late_stream_finishes_when_the_master_lets_go(
+    rig: Rig, flag: str | None
+) -> None:
+    """The stream goes silent (the slave holds), the master moves 20 mm meanwhile, and the
+    slave re-joins the mapped target at half the velocity limits. If the operator then lets go
+    (run flag 0 or clutch) in the middle of that ramp, the ramp still ends on the last target
+    the slave was given, not where it happened to be."""
+    rig.running()
+    before = rig.tip_mm()
+    reentries = rig.robot.reentries
+    for _ in range(12):  # 12 ms without a sample: the loss monitor holds
+        rig.sim.tick()
+    assert rig.robot.loss_monitor.holding and rig.robot.state is RobotState.RUNNING
+    rig.pos[0] += 20.0  # 2 mm of the slave's tip at the configured scale
+    rig.step(4)
+    mid = rig.tip_mm() - before
+    assert 0.01 < mid[0] < 1.0  # on the way, far from the target
+    if flag is not None:
+        setattr(rig, flag, True if flag == "clutch" else False)
+    rig.step(300)
+    assert (rig.tip_mm() - before).tolist() == pytest.approx([2.0, 0.0, 0.0], abs=1e-6)
+    assert rig.robot.reentries == reentries + 1
