@@ -590,3 +590,31 @@ def test_a_re_entry_ramp_after_a_late_stream_finishes_when_the_master_lets_go(
     rig.step(300)
     assert (rig.tip_mm() - before).tolist() == pytest.approx([2.0, 0.0, 0.0], abs=1e-6)
     assert rig.robot.reentries == reentries + 1
+
+
+def test_the_tick_that_stops_the_master_keeps_its_fixture_work_budget(master: Master) -> None:
+    """Leaving RUNNING stops the fixtures' mapping in the middle of a tick: the tick's budget
+    of compiled definitions (max_fixtures, 64) goes on counting, so 40 definitions before
+    the Stop and 40 after it in the same tick are not 80 compiled in one tick."""
+    for name in ("Enable", "Run"):
+        assert _status(master.command(name))[0] == "SUCCESS"
+    master.sim.step(50)
+    assert master.ctl.fixtures.mapping.following is True
+    spheres = tuple((float(i), 0.0, 0.0, 5.0) for i in range(40))
+    burst = igtl.VirtualFixtureMessage(hardness=1.0, spheres=spheres, device_name="Burst",
+                                       header_version=2)
+    master.op.send(burst)
+    cid = master.op.send_command("Stop")
+    master.op.send(burst)
+    master.sim.tick()  # all three in one tick, in that order
+    assert master.robot.state is RobotState.STOPPED
+    assert _status(master.op.reply_to(cid))[0] == "SUCCESS"
+    refused = [m.status_message for m in master.op.received if m.message_type == "STATUS"
+               and "busy" in m.status_message]
+    assert refused == ["fixture refused (VFIXTURE 'Burst': busy: 40 fixtures compiled this tick "
+                       "already; send it again); the previous set stays"]
+    stats = master.ctl.stats()
+    assert (stats["fixtures"], stats["fixtures_applied"], stats["fixtures_refused"]) == (40, 1, 1)
+    master.op.send(burst)
+    master.sim.tick()  # the next tick has a budget of its own
+    assert master.ctl.stats()["fixtures_applied"] == 2
