@@ -618,3 +618,26 @@ def test_the_tick_that_stops_the_master_keeps_its_fixture_work_budget(master: Ma
     master.op.send(burst)
     master.sim.tick()  # the next tick has a budget of its own
     assert master.ctl.stats()["fixtures_applied"] == 2
+
+
+def test_a_sample_that_is_no_point_is_never_taken_as_the_reference(rig: Rig) -> None:
+    """The first samples after Run (the re-index) carry NaN: they are counted as failures and
+    the slave holds; the first good sample becomes the reference and the slave follows from
+    there (before the fix, the NaN reference made every later target NaN until a clutch)."""
+    rig.command("Enable")
+    rig.command("Run")
+    held = list(rig.robot.data.setpoint)
+    good = list(rig.pos)
+    rig.pos = [math.nan, good[1], good[2]]
+    rig.step(4)  # two samples, four ticks
+    stats = rig.ctl.stats()
+    assert stats["ik_failures"] == 2 and stats["master_ref_mm"] is None
+    assert list(rig.robot.data.setpoint) == held
+    rig.pos = [good[0] + 10.0, good[1], good[2]]
+    rig.step(2)
+    before = rig.tip_mm()
+    assert rig.ctl.stats()["master_ref_mm"] == pytest.approx(rig.pos)
+    rig.pos[0] += 5.0
+    rig.step(2)
+    assert (rig.tip_mm() - before).tolist() == pytest.approx([0.5, 0.0, 0.0], abs=1e-6)
+    assert rig.ctl.stats()["ik_failures"] == 2 and rig.ctl.stats()["reindexes"] == 1
