@@ -750,6 +750,13 @@ class SlaveController(Controller):
             self.master_ref = None
             return self._q_last if self._q_last is not None else None
         if self.master_ref is None:
+            if not all(math.isfinite(v) for v in self.master_pos):
+                # never a reference from a sample that is no point (NaN, inf): every later
+                # target would be NaN until the next re-index. Counted once, held meanwhile.
+                if self._fresh:
+                    self._fresh = False
+                    self.ik_failures += 1
+                return None
             self._fresh = True
             self.master_ref = self.master_pos
             # from where the drives are told to be (while RUNNING the last setpoint), not

@@ -122,3 +122,32 @@ def test_a_small_positive_timestamp_is_a_timestamp() -> None:
         ctrl.on_sample(Inbound("master", None, msg, 0.0), 0.0)  # type: ignore[arg-type]
     assert shifts == [pytest.approx(-0.00045, abs=2e-6)]
     assert ctrl.pending_ts == pytest.approx(0.5 + 249 * 0.002 + 0.00035)
+
+
+@pytest.mark.parametrize(("period", "lock_us", "shift"), [
+    # a 1.5 ms loop (666.7 Hz): target phase 1.5 - 0.2 = 1.3 ms; arrivals at 0.35 ms are
+    # 0.55 ms past it, wrapped into [-0.75, 0.75) ms
+    (0.0015, 200.0, 0.00055),
+    # 1 kHz with a lock given to the half nanosecond: target 0.8999995 ms
+    (0.001, 100.0005, 0.00035 - 0.0008999995 + 0.001),
+])
+def test_the_phase_lock_at_other_rates_and_fractional_locks(period, lock_us, shift) -> None:
+    """The lock is in microseconds whatever the loop's period: the shift is the wrapped
+    distance from the arrivals' phase to ``period - phase_lock_us``."""
+    import igtl
+    from occ.interfaces import Inbound
+
+    shifts: list[float] = []
+    ctrl = SlaveController({"phase_lock_us": lock_us})
+    ctrl.ctx = ControllerContext(
+        clock=SimClock(), frame=None, rate_hz=1.0 / period,  # type: ignore[arg-type]
+        interfaces=(), loop_t0=lambda: 0.0, period_s=period, shift=shifts.append,
+    )
+    for i in range(250):
+        t_rx = i * 2 * period + 0.00035  # unstamped: the phase is the reception time's
+        msg = igtl.PositionMessage(
+            (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), 24, device_name="Master",
+            timestamp=0.0, header_version=2, message_id=i + 1,
+        )
+        ctrl.on_sample(Inbound("master", None, msg, t_rx), t_rx)  # type: ignore[arg-type]
+    assert shifts == [pytest.approx(shift, abs=2e-6)]

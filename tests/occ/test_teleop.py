@@ -564,3 +564,80 @@ def test_a_teleop_output_that_is_not_position_faults_and_says_so() -> None:
         assert any("teleop output must be of type POSITION" in t for t in texts), texts
     finally:
         m.close()
+
+
+@pytest.mark.req("SR-LOSS-2")
+@pytest.mark.parametrize("flag", ["run", "clutch", None])
+def test_a_re_entry_ramp_after_a_late_stream_finishes_when_the_master_lets_go(
+    rig: Rig, flag: str | None
+) -> None:
+    """The stream goes silent (the slave holds), the master moves 20 mm meanwhile, and the
+    slave re-joins the mapped target at half the velocity limits. If the operator then lets go
+    (run flag 0 or clutch) in the middle of that ramp, the ramp still ends on the last target
+    the slave was given, not where it happened to be."""
+    rig.running()
+    before = rig.tip_mm()
+    reentries = rig.robot.reentries
+    for _ in range(12):  # 12 ms without a sample: the loss monitor holds
+        rig.sim.tick()
+    assert rig.robot.loss_monitor.holding and rig.robot.state is RobotState.RUNNING
+    rig.pos[0] += 20.0  # 2 mm of the slave's tip at the configured scale
+    rig.step(4)
+    mid = rig.tip_mm() - before
+    assert 0.01 < mid[0] < 1.0  # on the way, far from the target
+    if flag is not None:
+        setattr(rig, flag, True if flag == "clutch" else False)
+    rig.step(300)
+    assert (rig.tip_mm() - before).tolist() == pytest.approx([2.0, 0.0, 0.0], abs=1e-6)
+    assert rig.robot.reentries == reentries + 1
+
+
+def test_the_tick_that_stops_the_master_keeps_its_fixture_work_budget(master: Master) -> None:
+    """Leaving RUNNING stops the fixtures' mapping in the middle of a tick: the tick's budget
+    of compiled definitions (max_fixtures, 64) goes on counting, so 40 definitions before
+    the Stop and 40 after it in the same tick are not 80 compiled in one tick."""
+    for name in ("Enable", "Run"):
+        assert _status(master.command(name))[0] == "SUCCESS"
+    master.sim.step(50)
+    assert master.ctl.fixtures.mapping.following is True
+    spheres = tuple((float(i), 0.0, 0.0, 5.0) for i in range(40))
+    burst = igtl.VirtualFixtureMessage(hardness=1.0, spheres=spheres, device_name="Burst",
+                                       header_version=2)
+    master.op.send(burst)
+    cid = master.op.send_command("Stop")
+    master.op.send(burst)
+    master.sim.tick()  # all three in one tick, in that order
+    assert master.robot.state is RobotState.STOPPED
+    assert _status(master.op.reply_to(cid))[0] == "SUCCESS"
+    refused = [m.status_message for m in master.op.received if m.message_type == "STATUS"
+               and "busy" in m.status_message]
+    assert refused == ["fixture refused (VFIXTURE 'Burst': busy: 40 fixtures compiled this tick "
+                       "already; send it again); the previous set stays"]
+    stats = master.ctl.stats()
+    assert (stats["fixtures"], stats["fixtures_applied"], stats["fixtures_refused"]) == (40, 1, 1)
+    master.op.send(burst)
+    master.sim.tick()  # the next tick has a budget of its own
+    assert master.ctl.stats()["fixtures_applied"] == 2
+
+
+def test_a_sample_that_is_no_point_is_never_taken_as_the_reference(rig: Rig) -> None:
+    """The first samples after Run (the re-index) carry NaN: they are counted as failures and
+    the slave holds; the first good sample becomes the reference and the slave follows from
+    there (before the fix, the NaN reference made every later target NaN until a clutch)."""
+    rig.command("Enable")
+    rig.command("Run")
+    held = list(rig.robot.data.setpoint)
+    good = list(rig.pos)
+    rig.pos = [math.nan, good[1], good[2]]
+    rig.step(4)  # two samples, four ticks
+    stats = rig.ctl.stats()
+    assert stats["ik_failures"] == 2 and stats["master_ref_mm"] is None
+    assert list(rig.robot.data.setpoint) == held
+    rig.pos = [good[0] + 10.0, good[1], good[2]]
+    rig.step(2)
+    before = rig.tip_mm()
+    assert rig.ctl.stats()["master_ref_mm"] == pytest.approx(rig.pos)
+    rig.pos[0] += 5.0
+    rig.step(2)
+    assert (rig.tip_mm() - before).tolist() == pytest.approx([0.5, 0.0, 0.0], abs=1e-6)
+    assert rig.ctl.stats()["ik_failures"] == 2 and rig.ctl.stats()["reindexes"] == 1
