@@ -707,3 +707,31 @@ def test_late_answers_are_counted_each_and_recorded_as_sent(monkeypatch):
         pending[3].resolve("done")
         assert desk.counters()["reply_errors"] == 2
         assert len(late) == 2  # what was not sent is not recorded as sent
+
+
+@pytest.mark.req("SR-ROUTE-1")
+def test_refusals_and_handled_requests_are_counted_each_and_answered_to_the_asker():
+    """Counted per request, not just the first: two statistics requests handled, two refused
+    commands; a refused discrete input (a fixture the controller rejects) is answered to the
+    operator who sent it, not to the other one."""
+    with SimRobot(ROOT / "configs" / "master.yaml") as sim:
+        asker, other = sim.peer("operator"), sim.peer("operator")
+        sim.step()
+        desk = sim.robot.operators
+        asker.send_command("GetStats")
+        asker.send_command("GetStats")
+        sim.step()
+        assert desk.counters()["handled"] == 2
+        asker.send_command("NoSuchCommand")
+        asker.send_command("NoSuchCommand")
+        sim.step()
+        assert desk.counters()["refused"] == 2
+        bad = igtl.VirtualFixtureMessage(
+            hardness=-1.0, spheres=((0.0, 0.0, 0.0, 10.0),), device_name="VF", header_version=2
+        )
+        asker.send(bad)
+        sim.step()
+        assert desk.counters()["refused"] == 3
+        mine = [m for m in asker.received if m.device_name == "VF"]
+        assert mine and all(m.message_type in ("RTS_VFIXTURE", "STATUS") for m in mine)
+        assert [m for m in other.received if m.device_name == "VF"] == []
