@@ -210,3 +210,28 @@ def test_a_deferred_answer_is_delivered_once_bound_or_not():
     got = []
     d.bind(lambda ok, text: got.append((ok, text)))
     assert got == [(True, "planned")]
+
+
+def test_a_name_cut_through_a_character_loses_the_broken_character_only():
+    from occ.commands import safe_name
+
+    name = "a" + "é" * 10  # 21 bytes: the 20-byte cut falls inside the last é
+    assert safe_name(name) == "a" + "é" * 9
+    assert safe_name("é" * 10) == "é" * 10  # exactly 20 bytes: kept whole
+
+
+def test_reply_builders_default_to_an_empty_message_and_no_timestamp():
+    """Called without them, the builders stamp nothing (0: the reference's "unused") and say
+    nothing beyond the status: callers that want a time or a text pass it."""
+    from occ.commands import error_reply, parse_request, success_reply
+
+    cmd = igtl.CommandMessage(command_id=3, command_name="Ping", device_name="CMD", command="")
+    req = parse_request(cmd)
+    ok = success_reply(req)
+    assert ok.timestamp == 0.0
+    assert ok.metadata == {"Status": "SUCCESS", "Message": ""}
+    bad = error_reply(cmd, "no")
+    assert bad.timestamp == 0.0 and bad.metadata["Error"] == "no"
+    status = error_reply(igtl.StringMessage("x", device_name="TXT"), "refused")
+    assert status.timestamp == 0.0
+    assert status.code == int(igtl.StatusCode.UNKNOWN_ERROR)
