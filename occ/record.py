@@ -31,6 +31,7 @@ import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -243,13 +244,20 @@ class Recorder:
 
 
 # ---------------------------------------------------------------------- reading
+def iter_recording(path: str | Path) -> Iterator[Message]:
+    """The messages of a recording one by one, read 1 MiB at a time (a 12-hour recording need
+    not fit in memory); raises igtl.DecodeError on a damaged file."""
+    dec = igtl.StreamDecoder()
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 20):
+            dec.feed(chunk)
+            yield from dec
+    dec.close()
+
+
 def read_recording(path: str | Path) -> list[Message]:
     """All messages of a recording (raises igtl.DecodeError on a damaged file)."""
-    dec = igtl.StreamDecoder()
-    dec.feed(Path(path).read_bytes())
-    out = list(dec)
-    dec.close()
-    return out
+    return list(iter_recording(path))
 
 
 def export_csv(path: str | Path, out_dir: str | Path) -> tuple[Path, Path]:

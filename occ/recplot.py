@@ -36,13 +36,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-import igtl
-
-from .record import STATE_CODES, STATE_DEVICE, STATE_NAMES
+from .record import STATE_CODES, STATE_DEVICE, STATE_NAMES, iter_recording
 
 __all__ = ["PlotError", "RecordingSummary", "plot_recording", "summarize_recording"]
 
@@ -105,20 +102,11 @@ class RecordingSummary:
         return out
 
 
-def _decode(path: Path) -> Any:
-    dec = igtl.StreamDecoder()
-    with open(path, "rb") as f:
-        while chunk := f.read(1 << 20):
-            dec.feed(chunk)
-            yield from dec
-    dec.close()
-
-
 def _stream(path: Path, direction: str) -> tuple[list[float], list[tuple[float, ...]], list[bool]]:
     ts: list[float] = []
     pos: list[tuple[float, ...]] = []
     run: list[bool] = []
-    for m in _decode(path):
+    for m in iter_recording(path):
         meta = m.metadata
         if m.message_type == "POSITION" and meta.get("rec.dir") == direction and "rec.t" in meta:
             ts.append(float(meta["rec.t"]))
@@ -138,7 +126,7 @@ def summarize_recording(
     in_t: list[float] = []
     in_pos: list[tuple[float, ...]] = []
     in_run: list[bool] = []
-    for m in _decode(path):
+    for m in iter_recording(path):
         meta = m.metadata
         if m.message_type == "NDARRAY" and m.device_name == STATE_DEVICE:
             rows.append(np.asarray(m.array, dtype=np.float64).ravel())  # type: ignore[attr-defined]

@@ -1393,25 +1393,16 @@ def _read_paper_recordings(rec: dict[str, Path]) -> dict[str, Any]:
     and the slave's state rows (t, state code, tip mm)."""
     import numpy as np
 
-    import igtl
-    from occ.record import STATE_DEVICE
-
-    def decode(path: Path) -> Any:
-        dec = igtl.StreamDecoder()
-        with open(path, "rb") as f:
-            while chunk := f.read(1 << 20):
-                dec.feed(chunk)
-                yield from dec
-        dec.close()
+    from occ.record import STATE_DEVICE, iter_recording
 
     m_t, m_pos = [], []
-    for msg in decode(rec["master"]):
+    for msg in iter_recording(rec["master"]):
         meta = msg.metadata
         if msg.message_type == "POSITION" and meta.get("rec.dir") == "out":
             m_t.append(float(meta["rec.t"]))
             m_pos.append(tuple(msg.position))  # type: ignore[attr-defined]
     s_in_t, s_in_run, rows, columns = [], [], [], ""
-    for msg in decode(rec["slave"]):
+    for msg in iter_recording(rec["slave"]):
         meta = msg.metadata
         if msg.message_type == "POSITION" and meta.get("rec.dir") == "in":
             s_in_t.append(float(meta["rec.t"]))
