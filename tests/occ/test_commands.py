@@ -50,9 +50,9 @@ def test_command_name_from_the_field_or_the_xml():
     assert (req.name, req.args) == ("Reset", {})
     req = parse_request(command("Hold", '<Command Name="" name="Run" To="x" />'))
     assert (req.name, req.args) == ("Run", {"To": "x"})
-    with pytest.raises(CommandError, match="COMMAND without a command name"):
+    with pytest.raises(CommandError, match="^COMMAND without a command name$"):
         parse_request(command("", '<Command Speed="2" />'))
-    with pytest.raises(CommandError, match="COMMAND without a command name"):
+    with pytest.raises(CommandError, match="^COMMAND without a command name$"):
         parse_request(command("  "))
 
 
@@ -61,9 +61,9 @@ def test_plus_style_strings():
     assert (req.kind, req.name, req.args) == ("string", "Enable", {})
     req = parse_request(string('<Command Name="GetStats" Format="json"/>'))
     assert (req.kind, req.name, req.args) == ("string", "GetStats", {"Format": "json"})
-    with pytest.raises(CommandError, match="empty command in STRING 'CMD_17'"):
+    with pytest.raises(CommandError, match="^empty command in STRING 'CMD_17'$"):
         parse_request(string("   "))
-    with pytest.raises(CommandError, match="empty command in STRING 'CMD_17'"):
+    with pytest.raises(CommandError, match="^empty command in STRING 'CMD_17'$"):
         parse_request(string('<Command Speed="1"/>'))
 
 
@@ -126,7 +126,7 @@ def test_a_plus_string_is_answered_by_its_ack():
     assert bad.string == (
         '<CommandReply Status="FAIL" Error="refused &lt;why&gt;" Message="refused &lt;why&gt;" />'
     )
-    with pytest.raises(ValueError, match="queries are answered with the requested message type"):
+    with pytest.raises(ValueError, match="^queries are answered with the requested message type$"):
         success_reply(Request("query", "GET_STATUS", {}, igtl.StatusMessage()))
 
 
