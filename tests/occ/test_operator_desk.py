@@ -735,3 +735,166 @@ def test_refusals_and_handled_requests_are_counted_each_and_answered_to_the_aske
         mine = [m for m in asker.received if m.device_name == "VF"]
         assert mine and all(m.message_type in ("RTS_VFIXTURE", "STATUS") for m in mine)
         assert [m for m in other.received if m.device_name == "VF"] == []
+
+
+def test_refusals_carry_the_wall_time_and_each_is_counted(sim, monkeypatch):
+    """A refused request's reply is stamped with the wall time like any other; two failing
+    handlers are two refusals; a request whose parsing fails in an unexpected way is a FAULT
+    named by its message type, and the asker is told."""
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    sim.step(3)
+    handle(sim, igtl.CommandMessage(command_id=1, command_name="NoSuchThing", device_name="x"))
+    (refused,) = out
+    assert refused.metadata["Status"] == "FAIL"
+    assert refused.timestamp == pytest.approx(sim.clock.wall_time()) and refused.timestamp > 1e9
+
+    def broken(req, now):
+        raise KeyError("gain")
+
+    monkeypatch.setattr(sim.robot.controller, "on_command", broken)
+    handle(sim, igtl.CommandMessage(command_id=2, command_name="Tune", device_name="x"))
+    handle(sim, igtl.CommandMessage(command_id=3, command_name="Tune", device_name="x"))
+    assert sim.robot.operators.counters()["refused"] == 3
+
+    def parse_fails(msg):
+        raise RuntimeError("parser broke")
+
+    monkeypatch.setattr("occ.operators.parse_request", parse_fails)
+    out.clear()
+    handle(sim, igtl.CommandMessage(command_id=4, command_name="Run", device_name="x"))
+    (reply,) = out
+    assert reply.metadata["Error"] == "COMMAND failed: parser broke"
+    assert sim.robot.operators.counters()["refused"] == 4
+
+
+def test_getstatetable_without_a_state_table_says_how_to_configure_one(sim, monkeypatch):
+    assert sim.robot.state_table is None
+    (reply,) = desk_replies(sim, monkeypatch, table_request('Seconds="1"'), 1)
+    assert reply.metadata["Error"] == (
+        "GetStateTable: no state table (configure state_table.seconds)"
+    )
+
+
+def test_two_state_tables_are_two_handled_requests_each_reply_stamped(monkeypatch):
+    with SimRobot(ROOT / "configs" / "collab" / "slave.yaml") as sim:
+        sim.step(20)
+        for n in (1, 2):
+            array, reply = desk_replies(sim, monkeypatch, table_request('Seconds="0.01"'), 2)
+            assert reply.metadata["Status"] == "SUCCESS"
+            assert reply.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
+            assert reply.timestamp > 1e9 and array.timestamp > 1e9
+            assert sim.robot.operators.counters()["handled"] == n
+
+
+def test_a_controller_command_gets_the_time_and_an_ok_when_it_says_nothing(sim, monkeypatch):
+    seen: list = []
+
+    def on_command(req, now):
+        seen.append((req.name, now))
+        return None
+
+    monkeypatch.setattr(sim.robot.controller, "on_command", on_command)
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    sim.step(3)
+    handle(sim, igtl.CommandMessage(command_id=1, command_name="Home", device_name="x"))
+    assert seen == [("Home", sim.now)]
+    (reply,) = out
+    assert reply.metadata == {"Status": "SUCCESS", "Message": "OK"}
+
+
+def test_get_status_carries_the_code_of_the_state(sim):
+    get = igtl.REGISTRY["GET_STATUS"]
+    for event, state, code in (
+        ("estop", "ESTOP", igtl.StatusCode.PANICK_MODE),
+        ("reset", "READY", igtl.StatusCode.OK),
+    ):
+        sim.robot.state_machine.request(event, "test")
+        (reply,) = answers(sim, get(type_name="GET_STATUS", device_name="S", header_version=2))
+        assert (reply.code, reply.error_name) == (int(code), state)
+
+
+def test_the_statistics_of_a_collaboration_robot_name_its_owner_streams_and_table():
+    from types import SimpleNamespace
+
+    with SimRobot(ROOT / "configs" / "collab" / "slave.yaml") as sim:
+        sim.step(5)
+        r = sim.robot
+        assert r.collab is not None and r.state_table is not None
+        snap = r.snapshot()
+        assert snap["owner"] == "mentor"
+        assert snap["collaboration"] == r.collab.stats()
+        assert snap["loss_by_stream"] == {n: m.counters() for n, m in r.loss_monitors.items()}
+        assert set(snap["loss_by_stream"]) == {"mentor", "trainee"}
+        assert snap["state_table"] == r.state_table.stats() and snap["state_table"]
+        # a supervisor thread (a real-time daemon) reports itself there
+        r.supervisor_thread = SimpleNamespace(report={"checks": 7})  # type: ignore[assignment]
+        try:
+            assert r.snapshot()["supervisor"]["thread"] == {"checks": 7}
+        finally:
+            r.supervisor_thread = None
+
+
+def test_handover_takes_its_target_in_either_spelling():
+    with SimRobot(ROOT / "configs" / "collab" / "slave.yaml") as sim:
+        op = sim.peer("operator")
+        sim.step()
+        cid = op.send_command("Handover", '<Command Name="Handover" to="trainee"/>')
+        sim.step()
+        reply = op.reply_to(cid)
+        assert reply is not None and reply.metadata["Status"] == "SUCCESS"
+        assert reply.metadata["Message"].startswith("control mentor -> trainee (by ")
+        assert sim.robot.collab.owner == "trainee"
+        cid = op.send_command("Handover", '<Command Name="Handover" To="mentor"/>')
+        sim.step()
+        assert op.reply_to(cid).metadata["Message"].startswith("control trainee -> mentor (by ")
+
+
+def test_the_log_names_each_refusal_and_lost_reply_at_most_five_a_second(sim, monkeypatch, caplog):
+    """An operator reads the log: a refused request is logged with its interface, type, peer
+    and reason, at most five a second (a flood of bad commands must not flood the log); a
+    reply that could not be sent, now or later, with its interface, peer and error."""
+    import logging
+
+    from igtl.transport.common import Peer
+    from occ.commands import Deferred
+    from occ.errors import CommandError
+    from occ.interfaces import Inbound
+
+    def refuse(item, now):
+        raise CommandError("fixture 'wall' has no normal")
+
+    monkeypatch.setattr(sim.robot.controller, "on_sample", refuse)
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    caplog.set_level(logging.WARNING, logger="occ.robot")
+    handle(sim, igtl.StringMessage("wall", device_name="VF"))
+    for n in range(6):
+        handle(sim, igtl.CommandMessage(command_id=n, command_name="NoSuchThing", device_name="x"))
+    why = out[-1].metadata["Error"]
+    assert [r.getMessage() for r in caplog.records] == [
+        "operator: refused STRING from 127.0.0.1:5: fixture 'wall' has no normal"
+    ] + [f"operator: refused COMMAND from 127.0.0.1:5: {why}"] * 4
+    assert sim.robot.operators.counters()["refused"] == 7
+
+    caplog.clear()
+    pending: list[Deferred] = []
+
+    def on_command(req, now):
+        pending.append(Deferred())
+        return pending[-1]
+
+    monkeypatch.setattr(sim.robot.controller, "on_command", on_command)
+    monkeypatch.setattr(
+        sim.robot.interfaces, "reply", lambda item, reply: (_ for _ in ()).throw(OSError("gone"))
+    )
+    peer = Peer(1, ("127.0.0.1", 5))
+    msg = igtl.CommandMessage(command_id=9, command_name="GetState", device_name="x")
+    sim.robot.operators.handle(Inbound("operator", peer, msg, sim.now), sim.now)
+    msg = igtl.CommandMessage(command_id=10, command_name="Plan", device_name="x")
+    sim.robot.operators.handle(Inbound("operator", peer, msg, sim.now), sim.now)
+    pending[0].resolve("planned")
+    assert [r.getMessage() for r in caplog.records] == [
+        f"operator: reply to {peer} could not be sent: gone"
+    ] * 2
