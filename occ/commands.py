@@ -23,7 +23,7 @@ import threading
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import cast
 from xml.sax.saxutils import quoteattr
 
 import igtl
@@ -257,7 +257,3 @@ def error_reply(
         message_id=msg.message_id,
         timestamp=timestamp,
     )
-
-
-def describe(args: dict[str, Any]) -> str:
-    return ", ".join(f"{k}={v}" for k, v in args.items())
