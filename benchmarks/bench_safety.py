@@ -8,7 +8,11 @@ Two measurements (each bounded in time, loopback only):
     500 Hz, each slave read by two Slicer-like clients (10 Hz TRANSFORMs) and asked for its
     statistics once a second, for ``--duration`` seconds. Reports latched stops (must be
     zero: nothing failed), holds and resumes, each loop's lateness p99.9 and max, and the CPU
-    of each daemon.
+    of each daemon, and every daemon that left RUNNING with the cause from its log. Beside it
+    runs ``benchmarks/stall_probe.c`` (compiled with gcc into ``~/.cache/occ-bench``; skipped
+    where there is no gcc): one SCHED_FIFO 99 thread per CPU that records every wake-up more
+    than 5 ms late. A daemon stop at the moment every CPU was late is the machine's stall, not
+    the daemon's.
 
 ``sigstop``
     One pair. The master process is frozen with SIGSTOP for 30 ms and resumed with SIGCONT,
@@ -29,6 +33,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -60,6 +66,75 @@ def start(out: Path, name: str, data: dict[str, Any]) -> subprocess.Popen[bytes]
         "WARNING",
     ]
     return subprocess.Popen(cmd, cwd=ROOT, stderr=open(out / f"{name}.log", "wb"))  # noqa: SIM115
+
+
+PROBE_SRC = ROOT / "benchmarks" / "stall_probe.c"
+LATE_LINE = re.compile(r"^late cpu(\d+) (\d\d:\d\d:\d\d\.\d\d\d) ([\d.]+) ms$")
+STATE_LINE = re.compile(r"^(\d\d:\d\d:\d\d\.\d+) \w+ +occ\.robot: state (\w+) -> (\w+) (.*)$")
+
+
+def start_probe(seconds: float, out: Path) -> subprocess.Popen[bytes] | None:
+    """The stall probe beside the run, or None where it cannot be built (no gcc)."""
+    gcc = shutil.which("gcc")
+    if gcc is None:
+        return None
+    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "occ-bench"
+    exe = cache / "stall_probe"
+    if not exe.exists() or exe.stat().st_mtime < PROBE_SRC.stat().st_mtime:
+        cache.mkdir(parents=True, exist_ok=True)
+        built = subprocess.run(
+            [gcc, "-O2", "-pthread", "-o", str(exe), str(PROBE_SRC)], capture_output=True
+        )
+        if built.returncode != 0:
+            print(f"stall probe not built: {built.stderr.decode(errors='replace')}", flush=True)
+            return None
+    log = open(out / "stall_probe.log", "wb")  # noqa: SIM115
+    return subprocess.Popen([str(exe), f"{seconds:.0f}", "5000"], stdout=log)
+
+
+def probe_summary(proc: subprocess.Popen[bytes] | None, out: Path) -> dict[str, Any] | None:
+    """The probe's late wake-ups, grouped into stalls: CPUs late within 50 ms of each other."""
+    if proc is None:
+        return None
+    proc.terminate()
+    proc.wait(5.0)
+    events = []
+    for line in (out / "stall_probe.log").read_text().splitlines():
+        m = LATE_LINE.match(line)
+        if m:
+            events.append((m.group(2), int(m.group(1)), float(m.group(3))))
+    events.sort()
+    stalls: list[dict[str, Any]] = []
+    for at, cpu, ms in events:
+        if stalls and _ms_of_day(at) - _ms_of_day(stalls[-1]["at"]) <= 50.0:
+            stalls[-1]["cpus"][str(cpu)] = max(ms, stalls[-1]["cpus"].get(str(cpu), 0.0))
+        else:
+            stalls.append({"at": at, "cpus": {str(cpu): ms}})
+    ncpu = os.cpu_count() or 1
+    for st in stalls:
+        st["machine_wide"] = len(st["cpus"]) == ncpu
+    return {
+        "threshold_ms": 5.0,
+        "stalls": stalls,
+        "machine_wide_over_20ms": sum(
+            1 for st in stalls if st["machine_wide"] and min(st["cpus"].values()) > 20.0
+        ),
+    }
+
+
+def _ms_of_day(hms: str) -> float:
+    h, m, s = hms.split(":")
+    return (int(h) * 3600 + int(m) * 60 + float(s)) * 1e3
+
+
+def state_changes(log: Path) -> list[str]:
+    """Each ``state A -> B (why)`` line of a daemon's log: what left RUNNING, and why."""
+    found = []
+    for line in log.read_text(errors="replace").splitlines():
+        m = STATE_LINE.match(line)
+        if m:
+            found.append(f"{m.group(1)} {m.group(2)} -> {m.group(3)} {m.group(4)}")
+    return found
 
 
 def loop_summary(stats: dict[str, Any]) -> dict[str, Any]:
@@ -98,6 +173,7 @@ def stops_seen(client: SlicerStandIn) -> list[str]:
 def run_pairs(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     procs: list[subprocess.Popen[bytes]] = []
     clients: list[SlicerStandIn] = []
+    probe = start_probe(args.duration + 120.0, out)
     try:
         for tag in ("A", "B"):
             p, ports = start_pair(out, tag, args.spin_us)
@@ -118,10 +194,12 @@ def run_pairs(args: argparse.Namespace, out: Path) -> dict[str, Any]:
         for c in clients:
             c.stop()
         stop_processes(procs)
+        machine = probe_summary(probe, out)
     daemons = {}
     for name in ("slaveA", "masterA", "slaveB", "masterB"):
         d = json.loads((out / f"{name}.json").read_text())
         daemons[name] = loop_summary(d)
+        daemons[name]["state_changes"] = state_changes(out / f"{name}.log")
         if "loss" in d:
             daemons[name]["loss"] = {
                 k: d["loss"][k] for k in ("received", "lost_total", "holds", "resumes", "trips")
@@ -131,6 +209,8 @@ def run_pairs(args: argparse.Namespace, out: Path) -> dict[str, Any]:
         "duration_s": args.duration,
         "latched_stops": sum(len(v) for v in latched.values()),
         "stop_alerts": latched,
+        "left_running": sorted(n for n, d in daemons.items() if d["final_state"] != "RUNNING"),
+        "machine_stalls": machine,
         "daemons": daemons,
     }
 
