@@ -93,33 +93,55 @@ def start_probe(seconds: float, out: Path) -> subprocess.Popen[bytes] | None:
 
 
 def probe_summary(proc: subprocess.Popen[bytes] | None, out: Path) -> dict[str, Any] | None:
-    """The probe's late wake-ups, grouped into stalls: CPUs late within 50 ms of each other."""
+    """The probe's late wake-ups merged into stalls.
+
+    A wake-up ``late`` ms after its deadline means the probe could not run from the deadline to
+    the wake-up; wake-ups (of any CPU) whose such intervals overlap or lie within 2 ms of each
+    other are one stall, reported by its start, its span and the CPUs it held up. Stalls of
+    10 ms or more are listed; ``machine_wide`` means every CPU was held up in it.
+    """
     if proc is None:
         return None
     proc.terminate()
     proc.wait(5.0)
-    events = []
+    spans = []
     for line in (out / "stall_probe.log").read_text().splitlines():
         m = LATE_LINE.match(line)
         if m:
-            events.append((m.group(2), int(m.group(1)), float(m.group(3))))
-    events.sort()
+            end = _ms_of_day(m.group(2))
+            spans.append((end - float(m.group(3)), end, m.group(1)))
+    spans.sort()
     stalls: list[dict[str, Any]] = []
-    for at, cpu, ms in events:
-        if stalls and _ms_of_day(at) - _ms_of_day(stalls[-1]["at"]) <= 50.0:
-            stalls[-1]["cpus"][str(cpu)] = max(ms, stalls[-1]["cpus"].get(str(cpu), 0.0))
+    for start, end, cpu in spans:
+        if stalls and start <= stalls[-1]["_end"] + 2.0:
+            st = stalls[-1]
+            st["_end"] = max(st["_end"], end)
+            st["_cpus"].add(cpu)
         else:
-            stalls.append({"at": at, "cpus": {str(cpu): ms}})
+            stalls.append({"_start": start, "_end": end, "_cpus": {cpu}})
     ncpu = os.cpu_count() or 1
-    for st in stalls:
-        st["machine_wide"] = len(st["cpus"]) == ncpu
+    listed = [
+        {
+            "at": _hms(st["_start"]),
+            "span_ms": round(st["_end"] - st["_start"], 1),
+            "cpus": sorted(st["_cpus"]),
+            "machine_wide": len(st["_cpus"]) == ncpu,
+        }
+        for st in stalls
+        if st["_end"] - st["_start"] >= 10.0
+    ]
     return {
         "threshold_ms": 5.0,
-        "stalls": stalls,
-        "machine_wide_over_20ms": sum(
-            1 for st in stalls if st["machine_wide"] and min(st["cpus"].values()) > 20.0
-        ),
+        "late_wakeups": len(spans),
+        "stalls_over_10ms": len(listed),
+        "stalls_over_20ms": sum(1 for st in listed if st["span_ms"] >= 20.0),
+        "stalls": listed,
     }
+
+
+def _hms(ms_of_day: float) -> str:
+    s = ms_of_day / 1e3
+    return f"{int(s // 3600):02d}:{int(s % 3600 // 60):02d}:{s % 60:06.3f}"
 
 
 def _ms_of_day(hms: str) -> float:

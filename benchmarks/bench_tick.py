@@ -14,7 +14,10 @@ RUNNING; the slave's master stream is a POSITION every other tick (the paper's 5
 put straight into its stream queue, so nothing but the tick is timed (the master's outputs go
 to a UDP socket nobody reads). ``--sleep-us`` sleeps between ticks, as the real loop does: the
 tick then runs from colder caches, which is what a daemon pays (the real loop's compute time
-is 2-4x this benchmark's warm figure on this VM). Garbage collection is off while timing.
+is 2-4x this benchmark's warm figure on this VM). ``--jitter-us`` starts each tick up to that
+many µs after its deadline (uniform, seeded), as the real loop's wake-ups do: code that caches
+per period (the sim drive's exact step) then sees a new interval each tick. Garbage collection
+is off while timing.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from __future__ import annotations
 import argparse
 import gc
 import math
+import random
 import time
 from pathlib import Path
 
@@ -45,7 +49,7 @@ ROBOTS: dict[str, tuple[str, tuple[str, ...], float | None]] = {
 }
 
 
-def run(name: str, ticks: int, sleep_s: float, cpu: bool = False) -> float:
+def run(name: str, ticks: int, sleep_s: float, cpu: bool = False, jitter_s: float = 0.0) -> float:
     """Mean µs per tick of one robot over ``ticks`` ticks (``cpu``: the thread's CPU time
     instead of the elapsed time, less disturbed by other processes on a shared machine)."""
     timer = time.thread_time if cpu else time.perf_counter
@@ -80,18 +84,19 @@ def run(name: str, ticks: int, sleep_s: float, cpu: bool = False) -> float:
                 metadata={"run": "1", "clutch": "0"},
             )
             samples.append(igtl.unpack(msg.pack()))
+    rng = random.Random(1)
     gc.disable()
     total = 0.0
     try:
         for k in range(ticks):
-            now = clock.now()
+            now = k * 0.001 + rng.uniform(0.0, jitter_s)
+            clock.set(now)
             if k % 2 == 0:
                 for iface, stream in streams:
                     stream.put(Inbound(iface, peer, samples[k // 2], now))
             t0 = timer()
             robot.tick(now, k)
             total += timer() - t0
-            clock.advance(0.001)
             if sleep_s:
                 time.sleep(sleep_s)
     finally:
@@ -106,6 +111,7 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--sleep-us", type=float, default=0.0, help="sleep between ticks")
     p.add_argument("--robots", default="slave,master", help=f"comma-separated, of {list(ROBOTS)}")
+    p.add_argument("--jitter-us", type=float, default=0.0, help="late start of each tick, max")
     p.add_argument("--cpu", action="store_true", help="time the thread's CPU, not elapsed time")
     p.add_argument(
         "--alternate", action="store_true", help="round-robin the robots (drift cancels out)"
@@ -119,7 +125,9 @@ def main() -> None:
         else [n for n in names for _ in range(args.rounds)]
     )
     for name in order:
-        results[name].append(run(name, args.ticks, args.sleep_us * 1e-6, args.cpu))
+        results[name].append(
+            run(name, args.ticks, args.sleep_us * 1e-6, args.cpu, args.jitter_us * 1e-6)
+        )
     for name in names:
         runs = results[name]
         runs.sort()
