@@ -171,13 +171,26 @@ def loop_summary(stats: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def tolerate(cfg: dict[str, Any], ms: float) -> None:
+    """Let the daemon ride out a stall of the whole machine shorter than ``ms``: the
+    supervisor's timeout, the watchdog's hard gap and every drive's heartbeat set to ``ms``
+    (defaults 20, 50, 50). For a VM whose CPUs are taken away for tens of milliseconds."""
+    safety = cfg.setdefault("safety", {})
+    safety.setdefault("supervisor", {})["timeout_ms"] = ms
+    safety.setdefault("watchdog", {})["hard_gap_ms"] = ms
+    for drv in cfg["robot"]["drivers"]:
+        drv.setdefault("params", {})["heartbeat_ms"] = ms
+
+
 def start_pair(
-    out: Path, tag: str, spin_us: float | None
+    out: Path, tag: str, spin_us: float | None, tolerance_ms: float | None = None
 ) -> tuple[list[subprocess.Popen[bytes]], dict[str, int]]:
     slave, master, ports = pair_configs()
     for cfg in (slave, master):
         if spin_us is not None:
             cfg["robot"]["realtime"]["spin_us"] = spin_us
+        if tolerance_ms is not None:
+            tolerate(cfg, tolerance_ms)
     procs = [start(out, f"slave{tag}", slave)]
     if not wait_port(ports["slave_tcp"], 30.0, procs[0]):
         raise SystemExit(f"slave{tag} did not start; see {out}/slave{tag}.log")
@@ -198,7 +211,7 @@ def run_pairs(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     probe = start_probe(args.duration + 120.0, out)
     try:
         for tag in ("A", "B"):
-            p, ports = start_pair(out, tag, args.spin_us)
+            p, ports = start_pair(out, tag, args.spin_us, args.tolerate_ms)
             procs += p
             clients += [SlicerStandIn("127.0.0.1", ports["slave_tcp"]).start() for _ in range(2)]
         for c in clients:
@@ -229,6 +242,7 @@ def run_pairs(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     return {
         "mode": "pairs",
         "duration_s": args.duration,
+        "tolerate_ms": args.tolerate_ms,
         "latched_stops": sum(len(v) for v in latched.values()),
         "stop_alerts": latched,
         "left_running": sorted(n for n, d in daemons.items() if d["final_state"] != "RUNNING"),
@@ -246,7 +260,7 @@ def freeze(proc: subprocess.Popen[bytes], seconds: float) -> float:
 
 
 def run_sigstop(args: argparse.Namespace, out: Path) -> dict[str, Any]:
-    procs, ports = start_pair(out, "", args.spin_us)
+    procs, ports = start_pair(out, "", args.spin_us, args.tolerate_ms)
     client = SlicerStandIn("127.0.0.1", ports["slave_tcp"]).start()
     try:
         client.connected.wait(10.0)
@@ -289,6 +303,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, default=60.0, help="pairs: seconds (default 60)")
     p.add_argument("--count", type=int, default=20, help="sigstop: 30 ms freezes (default 20)")
     p.add_argument("--spin-us", type=float, default=None, help="override robot.realtime.spin_us")
+    p.add_argument(
+        "--tolerate-ms",
+        type=float,
+        default=None,
+        help="supervisor timeout, watchdog hard gap and drive heartbeats (default: as shipped)",
+    )
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
     out = args.out or Path(tempfile.mkdtemp(prefix=f"occ-safety-{args.mode}-"))
