@@ -1673,22 +1673,15 @@ def run_paper_real_main(args: argparse.Namespace, command: str) -> int:
 
     out = args.out or Path(tempfile.mkdtemp(prefix="occ-soak-paper-real-"))
     out.mkdir(parents=True, exist_ok=True)
-    try:
-        rep, traces = run_paper_real(args, out)
-    except SystemExit as err:
-        if isinstance(err.code, str):
-            print(err.code, file=sys.stderr)
-            return 2
-        raise
-    rep.command = command
-    write_report(
-        rep,
+    done = stability.run_protocol(
+        lambda: run_paper_real(args, out),
         out,
-        title="Stability test (OCC paper) against the daemons",
-        plotter=lambda r, o: stability.plot(r, o, traces),
+        command,
+        "Stability test (OCC paper) against the daemons",
     )
-    for c in rep.checks:
-        print(f"[{c.label}] {c.name}: {c.detail}")
+    if isinstance(done, int):
+        return done
+    rep = done
     e = rep.numbers["tracking_error_mm"]
     print(
         f"soak paper --real: {rep.numbers['wall_seconds']:.0f} s; mean |e| X {e['x']['mean']} mm, "

@@ -66,7 +66,7 @@ import time
 import traceback
 from array import array
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -945,6 +945,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def run_protocol(
+    produce: Callable[[], tuple[Report, Traces]], out: Path, command: str, title: str
+) -> Report | int:
+    """Run one form of the protocol (``produce``), write its report folder with the paper's
+    figures and print its checks; the report, or exit code 2 for a set-up error (a
+    ``SystemExit`` with a message, printed to stderr). Shared by the simulated and the real
+    form (``tools/soak.py paper --real``)."""
+    try:
+        rep, traces = produce()
+    except SystemExit as err:
+        if isinstance(err.code, str):
+            print(err.code, file=sys.stderr)
+            return 2
+        raise
+    rep.command = command
+    write_report(rep, out, title=title, plotter=lambda r, o: plot(r, o, traces))
+    for c in rep.checks:
+        print(f"[{c.label}] {c.name}: {c.detail}")
+    return rep
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     command = " ".join(["tools/stability.py", *(argv if argv is not None else sys.argv[1:])])
@@ -962,22 +983,12 @@ def execute(args: argparse.Namespace, command: str, label: str = "stability") ->
         level=logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
     )
-    try:
-        rep, traces = run(args)
-    except SystemExit as err:
-        if isinstance(err.code, str):
-            print(err.code, file=sys.stderr)
-            return 2
-        raise
-    rep.command = command
-    write_report(
-        rep,
-        out,
-        title="Stability test (OCC paper, simulated time)",
-        plotter=lambda r, o: plot(r, o, traces),
+    done = run_protocol(
+        lambda: run(args), out, command, "Stability test (OCC paper, simulated time)"
     )
-    for c in rep.checks:
-        print(f"[{c.label}] {c.name}: {c.detail}")
+    if isinstance(done, int):
+        return done
+    rep = done
     n = rep.numbers
     e = n["tracking_error_mm"]
     print(
