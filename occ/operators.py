@@ -91,6 +91,31 @@ class OperatorDesk:
             "worker_refused": self.robot.worker.refused,
         }
 
+    def refuse_input(self, item: Inbound, err: CommandError) -> None:
+        """A controller refused an input (an invalid fixture, from the command queue or a
+        stream): nothing changed; counted, logged (at most five lines a second) and the sender
+        told with an error reply."""
+        r = self.robot
+        msg = item.msg
+        self.refused += 1
+        if self._refusal_log.allow():
+            log.warning(
+                "%s: refused %s from %s:%s: %s",
+                item.interface,
+                msg.message_type,
+                *item.peer.address[:2],
+                err,
+            )
+        r.interfaces.reply(
+            item,
+            error_reply(
+                msg,
+                str(err),
+                code=igtl.StatusCode.ILLEGAL_INSTRUCTION,
+                timestamp=r.clock.wall_time(),
+            ),
+        )
+
     def handle(self, item: Inbound, now: float) -> None:
         r = self.robot
         msg = item.msg
@@ -102,26 +127,7 @@ class OperatorDesk:
             try:
                 r.controller.on_sample(item, now)
             except CommandError as err:
-                # the controller refused it (an invalid fixture): the sender is told, nothing
-                # changed
-                self.refused += 1
-                if self._refusal_log.allow():
-                    log.warning(
-                        "%s: refused %s from %s:%s: %s",
-                        item.interface,
-                        msg.message_type,
-                        *item.peer.address[:2],
-                        err,
-                    )
-                r.interfaces.reply(
-                    item,
-                    error_reply(
-                        msg,
-                        str(err),
-                        code=igtl.StatusCode.ILLEGAL_INSTRUCTION,
-                        timestamp=r.clock.wall_time(),
-                    ),
-                )
+                self.refuse_input(item, err)
             except Exception as err:  # noqa: BLE001
                 r.alarms.plugin_error(f"controller {r.controller.name}: on_sample", err)
             return

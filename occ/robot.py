@@ -427,7 +427,12 @@ class Robot:
                     if judge(monitor, item, now, to_wall, since) is not Verdict.ACCEPT:
                         continue
                 if follow:
-                    on_sample(item, now)
+                    try:
+                        on_sample(item, now)
+                    except CommandError as err:
+                        # a discrete input on a stream queue (a VFIXTURE) that the controller
+                        # refused: an answer to its sender, not a FAULT
+                        self.operators.refuse_input(item, err)
 
     def _control(self, state: RobotState, now: float, holding: bool) -> None:
         """Controllers and drivers: follow while RUNNING (hold the last setpoint while the

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 
 import igtl
 from occ.safety import RobotState
@@ -618,6 +619,48 @@ def test_the_tick_that_stops_the_master_keeps_its_fixture_work_budget(master: Ma
     master.op.send(burst)
     master.sim.tick()  # the next tick has a budget of its own
     assert master.ctl.stats()["fixtures_applied"] == 2
+
+
+@pytest.mark.req("SR-EXC-1")
+def test_a_refused_fixture_on_a_stream_queue_is_answered_and_faults_nothing() -> None:
+    """A VFIXTURE routed to a *stream* queue (a config that treats fixtures as a stream) and
+    refused by the fixtures is answered to its sender and counted, as on the command queue,
+    and the robot keeps RUNNING (before, the refusal escaped the tick and latched FAULT)."""
+    cfg = yaml.safe_load((ROOT / "configs" / "master.yaml").read_text())
+    routed = 0
+    for itf in cfg["interfaces"]:
+        for inp in itf.get("inputs", []):
+            if inp["type"] == "VFIXTURE":
+                inp["queue"] = "stream"
+                routed += 1
+    assert routed == 1
+    m = Master(cfg)
+    try:
+        for name in ("Enable", "Run"):
+            assert _status(m.command(name))[0] == "SUCCESS"
+        m.sim.step(50)
+        spheres = tuple((float(i), 0.0, 0.0, 5.0) for i in range(40))
+        burst = igtl.VirtualFixtureMessage(
+            hardness=1.0, spheres=spheres, device_name="Burst", header_version=2
+        )
+        m.op.send(burst)
+        m.op.send(burst)
+        m.sim.tick()  # both in one tick: the second is over the tick's budget of 64
+        assert m.robot.state is RobotState.RUNNING
+        refused = [
+            x.status_message
+            for x in m.op.received
+            if x.message_type == "STATUS" and "busy" in x.status_message
+        ]
+        assert refused == [
+            "fixture refused (VFIXTURE 'Burst': busy: 40 fixtures compiled this tick "
+            "already; send it again); the previous set stays"
+        ]
+        assert m.robot.operators.refused == 1
+        stats = m.ctl.stats()
+        assert (stats["fixtures_applied"], stats["fixtures_refused"]) == (1, 1)
+    finally:
+        m.close()
 
 
 def test_a_sample_that_is_no_point_is_never_taken_as_the_reference(rig: Rig) -> None:
