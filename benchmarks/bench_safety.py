@@ -88,8 +88,8 @@ def start_probe(seconds: float, out: Path) -> subprocess.Popen[bytes] | None:
         if built.returncode != 0:
             print(f"stall probe not built: {built.stderr.decode(errors='replace')}", flush=True)
             return None
-    log = open(out / "stall_probe.log", "wb")  # noqa: SIM115
-    return subprocess.Popen([str(exe), f"{seconds:.0f}", "5000"], stdout=log)
+    with open(out / "stall_probe.log", "wb") as log:  # the child keeps its own copy
+        return subprocess.Popen([str(exe), f"{seconds:.0f}", "5000"], stdout=log)
 
 
 def probe_summary(proc: subprocess.Popen[bytes] | None, out: Path) -> dict[str, Any] | None:
