@@ -26,6 +26,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from . import _native
 from .errors import ConfigError, OCCError
 from .loader import load_config
 
@@ -171,10 +172,11 @@ def run(config: Any, args: argparse.Namespace) -> int:
             robot.state_machine.request("run", "--start")
         threading.Thread(target=reporter, name="occd-reporter", daemon=True).start()
         log.info(
-            "%s running at %d Hz (%s)",
+            "%s running at %d Hz (%s); hot path %s",
             config.robot.name,
             config.robot.rate_hz,
             ", ".join(f"{n}={i.address}" for n, i in robot.interfaces.interfaces.items()),
+            _native.describe(),
         )
         robot.run(duration=args.duration)
         log.info("%s", robot.loop.realtime_report or "loop ended")

@@ -18,6 +18,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
+from ._native import class_doc
 from .config import MESSAGE_TYPE_PATTERN, NAME_PATTERN, REMOTE_PATTERN, DaemonConfig, _num
 
 __all__ = ["config_reference_markdown", "update_reference_doc"]
@@ -36,7 +37,7 @@ def config_reference_markdown() -> str:
         cls = load_controller_class(name)
         if not cls.Params.model_fields:
             continue
-        summary = " ".join((cls.__doc__ or "").strip().split("\n\n")[0].split())
+        summary = " ".join(class_doc(cls).strip().split("\n\n")[0].split())
         parts.append(
             f"\n### Controller plugin `{name}`\n\n{summary}\n\n"
             + _table(cls.Params, "controller.params.")

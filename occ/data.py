@@ -48,7 +48,7 @@ class RobotData:
         name: str,
         joint_names: Sequence[str],
         home: Sequence[float],
-        frame: Frame,
+        frame: Frame | None,  # None: occ/loader.py's claim check (mypyc checks the type)
         clock: Clock,
     ) -> None:
         self.name = name
@@ -83,6 +83,7 @@ class RobotData:
         """The tip pose in the base frame (forward kinematics of ``q``), computed lazily:
         outputs run at 10 Hz, the loop at 1 kHz."""
         if self._tip_stale:
+            assert self.frame is not None
             self._tip = self.frame.fk(self.q)
             self._tip_stale = False
         return self._tip

@@ -15,6 +15,20 @@
 
 from __future__ import annotations
 
+from typing import TypeVar
+
+_E = TypeVar("_E", bound=BaseException)
+
+
+def caused(exc: _E, cause: BaseException) -> _E:
+    """``exc`` with ``cause`` as its ``__cause__``: write ``raise caused(X(...), err) from err``.
+
+    mypyc (2.4) ignores ``from`` in compiled code (occ/_native.py), so a compiled module sets the
+    cause on the object; the ``from`` keeps the pure build (and ruff's B904) as before."""
+    if exc is not cause:
+        exc.__cause__ = cause
+    return exc
+
 
 class OCCError(Exception):
     """Base class of every error raised on purpose by :mod:`occ`."""

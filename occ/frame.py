@@ -39,7 +39,7 @@ import numpy as np
 import numpy.typing as npt
 import pinocchio as pin
 
-from occ.errors import KinematicsError
+from occ.errors import KinematicsError, caused
 
 __all__ = [
     "Frame",
@@ -205,7 +205,7 @@ class Frame:
         try:
             model = pin.buildModelFromUrdf(str(path))
         except (RuntimeError, ValueError) as err:
-            raise KinematicsError(f"cannot load URDF {path}: {err}") from err
+            raise caused(KinematicsError(f"cannot load URDF {path}: {err}"), err) from err
         return cls(model, tip_link, base_link, **kw)
 
     @classmethod
@@ -215,10 +215,16 @@ class Frame:
         try:
             file_name, tip = BUILTIN_MODELS[name]
         except KeyError as err:
-            raise KinematicsError(
-                f"unknown built-in model {name!r}; known: {', '.join(sorted(BUILTIN_MODELS))}"
+            raise caused(
+                KinematicsError(
+                    f"unknown built-in model {name!r}; known: {', '.join(sorted(BUILTIN_MODELS))}"
+                ),
+                err,
             ) from err
-        return cls.from_urdf(robots_dir() / file_name, tip, **kw)
+        # base_link passed positionally: mypyc (2.4.1) passes an empty **kw as the optional
+        # positional base_link through ``cls.from_urdf(...)`` ("str or None expected; got dict")
+        base_link = kw.pop("base_link", None)
+        return cls.from_urdf(robots_dir() / file_name, tip, base_link, **kw)
 
     def copy(self) -> Frame:
         """An independent Frame on the same model (its own ``pin.Data``), for another thread."""

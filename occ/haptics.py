@@ -39,6 +39,7 @@ import igtl
 from igtl.messages.base import Message
 from igtl.messages.polydata import CELL_SCALAR, PolyDataAttribute
 
+from .errors import caused
 from .fixture_defs import (
     Defaults,
     Definition,
@@ -137,8 +138,8 @@ class MasterFixtures:
     def _refuse(self, msg: Message, err: DefinitionError) -> None:
         self.refused += 1
         self.last_error = f"{msg.message_type} {msg.device_name!r}: {err}"
-        raise DefinitionError(
-            f"fixture refused ({self.last_error}); the previous set stays"
+        raise caused(
+            DefinitionError(f"fixture refused ({self.last_error}); the previous set stays"), err
         ) from err
 
     def clear(self) -> None:

@@ -39,6 +39,8 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
+from mypy_extensions import mypyc_attr
+
 import igtl
 from igtl.auth import load_key, sign, verify
 from igtl.messages.base import Message
@@ -523,6 +525,9 @@ class Interface:
         return getattr(self.transport, "address", None)
 
 
+# a plain Python class in the compiled build too (its methods still compiled): tests and tools
+# replace its methods (reply) on an instance; the per-datagram path is Interface's, native
+@mypyc_attr(native_class=False)
 class InterfaceManager:
     """Owns every interface of a daemon (OCC's InterfaceManager: reusable on any robot)."""
 

@@ -20,6 +20,7 @@ import igtl
 from igtl.messages.base import Message
 from igtl.transport.common import RateLimit
 
+from . import _native
 from .commands import Deferred, Request, error_reply, parse_request, safe_name, success_reply
 from .errors import CommandError, StateError
 from .interfaces import Inbound, is_operator_request
@@ -371,6 +372,7 @@ class OperatorDesk:
         r = self.robot
         snap = r.stats.snapshot()
         snap["robot"] = r.name
+        snap["build"] = _native.BUILD  # compiled or pure hot path (occ/_native.py)
         snap["state"] = r.state_machine.state.value
         snap["commands"] = self.counters()
         snap["watchdog"] = r.watchdog.counters()

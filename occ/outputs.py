@@ -19,11 +19,11 @@ import igtl
 from igtl.messages.base import Message
 
 from .errors import OCCError
+from .interfaces import Interface  # mypyc: Output's field types are looked up at import
 from .safety import RobotState
 
 if TYPE_CHECKING:
     from .data import RobotData
-    from .interfaces import Interface
 
 M_TO_MM = 1000.0
 

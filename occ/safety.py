@@ -89,7 +89,7 @@ class Watchdog:
         alert_interval_s: float = 1.0,
     ) -> None:
         if budget_s <= 0:
-            raise ValueError(f"budget_s must be > 0, got {budget_s}")
+            raise ValueError(f"budget_s must be > 0, got {float(budget_s)}")
         if alert_run < 1 or stop_run < 1:
             raise ValueError("alert_run and stop_run must be >= 1")
         if policy not in ("hold", "fault"):
@@ -213,7 +213,7 @@ class Supervisor:
         self, timeout_s: float = 0.020, on_trip: Callable[[str], None] | None = None
     ) -> None:
         if timeout_s <= 0:
-            raise ValueError(f"timeout_s must be > 0, got {timeout_s}")
+            raise ValueError(f"timeout_s must be > 0, got {float(timeout_s)}")
         self.timeout_s = float(timeout_s)
         self.on_trip = on_trip
         self.last_beat: float | None = None
@@ -599,7 +599,7 @@ class LossMonitor:
         alert_interval_s: float = 1.0,
     ) -> None:
         if period_s <= 0:
-            raise ValueError(f"period_s must be > 0, got {period_s}")
+            raise ValueError(f"period_s must be > 0, got {float(period_s)}")
         if max_consecutive < 0:
             raise ValueError(f"max_consecutive must be >= 0, got {max_consecutive}")
         self.period_s = float(period_s)

@@ -9,9 +9,10 @@ if [ ! -x "$VENV/bin/python" ]; then
     "$PY" -m venv "$VENV"
 fi
 stamp="$VENV/.occ-installed${EXTRAS:+-$EXTRAS}"
-# the test install is a superset of the plain one and of the console's: the demo or the
-# console after the tests installs nothing
-if { [ -z "$EXTRAS" ] || [ "$EXTRAS" = console ]; } && [ -f "$VENV/.occ-installed-test" ] \
+# the test install is a superset of the plain one, the native one and the console's: the demo or
+# the console after the tests installs nothing
+if { [ -z "$EXTRAS" ] || [ "$EXTRAS" = console ] || [ "$EXTRAS" = native ]; } \
+        && [ -f "$VENV/.occ-installed-test" ] \
         && ! [ "$ROOT/pyproject.toml" -nt "$VENV/.occ-installed-test" ]; then
     stamp="$VENV/.occ-installed-test"
 fi
@@ -26,5 +27,17 @@ if [ ! -f "$stamp" ] || [ "$ROOT/pyproject.toml" -nt "$stamp" ]; then
         exit 1
     fi
     touch "$stamp"
+fi
+# The compiled hot path (occ/_native.py): built when missing or stale, where mypyc is installed
+# (the native and test extras). Where it cannot be built the pure sources run, and we say so;
+# OCC_REQUIRE_NATIVE=1 (CI) makes that an error, OCC_NATIVE=0 skips the build.
+if [ "${OCC_NATIVE:-1}" != 0 ] && "$VENV/bin/python" -c "import mypyc" 2>/dev/null; then
+    if ! "$VENV/bin/python" "$ROOT/scripts/build_native.py" --quiet; then
+        if [ "${OCC_REQUIRE_NATIVE:-0}" = 1 ]; then
+            echo "[setup] the compiled build is required (OCC_REQUIRE_NATIVE=1)" >&2
+            exit 1
+        fi
+        echo "[setup] running the pure Python hot path (slower: docs/BENCHMARKS.md)" >&2
+    fi
 fi
 export PATH="$VENV/bin:$PATH"

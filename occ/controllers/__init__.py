@@ -41,21 +41,23 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar
 
+import pydantic.main  # noqa: F401 - mypyc: declares the module its BaseModel subclasses reference
+from mypy_extensions import mypyc_attr
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from ..errors import CommandError, ConfigError
+from ..clock import Clock  # mypyc: a native dataclass's field types are looked up at import
+from ..errors import CommandError, ConfigError, caused
+from ..frame import Frame
+from ..joint import JointLimits
 from ..plugins import PluginRegistry
 
 if TYPE_CHECKING:
     from igtl.messages.base import Message
 
-    from ..clock import Clock
     from ..commands import Deferred, Request
     from ..config import DaemonConfig
     from ..data import RobotData
-    from ..frame import Frame
     from ..interfaces import Inbound
-    from ..joint import JointLimits
     from ..outputs import Output
     from ..safety import RobotState
 
@@ -99,6 +101,7 @@ class ControllerContext:
     joint_limits: tuple[JointLimits, ...] = ()
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins and tests subclass it
 class Controller:
     """Base controller: holds position (returns None) and handles nothing. Plugin name
     ``hold``."""
@@ -190,10 +193,13 @@ def create_controller(plugin: str, params: Mapping[str, Any] | None = None) -> C
     try:
         model = cls.Params.model_validate(dict(params or {}))
     except ValidationError as err:
-        raise ConfigError(f"controller {plugin!r}: {err}") from err
+        raise caused(ConfigError(f"controller {plugin!r}: {err}"), err) from err
     return cls(model)
 
 
+# a plain Python class in the compiled build too (its methods still compiled): tests and tools
+# replace its methods on an instance, and it adds little to the tick
+@mypyc_attr(native_class=False)
 class ControllerSet:
     """The controllers of one robot, run in their configured order as one.
 

@@ -51,17 +51,18 @@ import logging
 import math
 from collections.abc import Sequence
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+import pydantic.main  # noqa: F401 - mypyc: declares the module its BaseModel subclasses reference
+from pydantic import BaseModel
 
 from igtl.messages.base import Message
 from igtl.messages.transform import POSITION_QUATERNION3, position_v2
 
 from ..collab import SlaveSelector
-from ..config import Bool, DaemonConfig, DeviceName, Float, Int, Name, PosFloat, Str, Vec3
-from ..errors import CommandError, KinematicsError, OCCError
+from ..config import DaemonConfig
+from ..errors import CommandError, KinematicsError, OCCError, caused
 from ..fixture_defs import Defaults, DefinitionError, PatientMapping, from_markups_file
 from ..haptics import MasterFixtures
 from ..safety import RobotState
@@ -87,169 +88,7 @@ _RUN_CLUTCH = {
 _NO_ROTATION = (0.0, 0.0, 0.0, 1.0)
 
 
-class _Params(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class FixtureFile(_Params):
-    """A 3D Slicer markups file loaded at start."""
-
-    file: Str = Field(description="Path of the `.mrk.json` file (relative: to the config file).")
-    kind: Literal["accessible", "forbidden", "guide"] = Field(
-        "accessible",
-        description="What its point lists are (lines, curves, planes are guides "
-        "and planes whatever this says).",
-    )
-    radius_mm: PosFloat = Field(5.0, description="Radius of the sphere around each point (mm).")
-    stiffness: Annotated[Float, Field(ge=0)] = Field(1.0, description="N per master mm.")
-    damping: Annotated[Float, Field(ge=0)] = Field(0.0, description="N s/mm.")
-
-
-class MasterParams(_Params):
-    """Parameters of ``teleop-master``. Lengths in mm, as on the wire."""
-
-    input: Literal["sim", "igtl", "driver"] = Field(
-        "sim",
-        description="Where the operator's motion comes from: `sim` (the OCC paper's test "
-        "motion), `igtl` (a TRANSFORM/POSITION stream), `driver` (a hand-moved device read by "
-        "the master's drivers, e.g. CAN).",
-    )
-    amplitude_mm: Vec3 = Field(
-        (50.0, 50.0, 0.0), description="`sim`: amplitudes of X = A sin, Y = A cos, Z (mm)."
-    )
-    offset_mm: Vec3 = Field(
-        (0.0, 0.0, 20.0),
-        description="`sim`: constant offset (mm) from the handle at zero joint values.",
-    )
-    frequency_hz: PosFloat = Field(0.1, description="`sim`: frequency of the motion (Hz).")
-    clutch: Bool = Field(False, description="Clutch pressed at start.")
-    fixture_radius_mm: PosFloat = Field(
-        5.0,
-        description="Radius of the sphere around each Markups point received as POINT (used "
-        "when neither the point nor the metadata `radius` gives one, as 3D Slicer sends them).",
-    )
-    fixture_hardness: Annotated[Float, Field(ge=0)] = Field(
-        1.0,
-        description="Stiffness (N per mm of the master's motion) of fixtures defined without "
-        "one (POINT, TRANSFORM, POLYDATA without metadata `stiffness`; files).",
-    )
-    fixture_damping: Annotated[Float, Field(ge=0)] = Field(
-        0.0, description="Damping (N s/mm) of fixtures defined without one."
-    )
-    vfixture_kind: Literal["accessible", "forbidden"] = Field(
-        "accessible",
-        description="What a VFIXTURE sphere without metadata `kind` is: `accessible` (the OCC "
-        "paper: no force inside, a spring back outside) or `forbidden`.",
-    )
-    point_kind: Literal["accessible", "forbidden", "guide"] = Field(
-        "accessible",
-        description="What a POINT list without metadata `kind` is: spheres (`accessible`, "
-        "`forbidden`) or one polyline `guide` through its points.",
-    )
-    force_output: Bool = Field(
-        False,
-        description="Write the fixture force to the joints' effort command interfaces (a "
-        "haptic master whose drivers take efforts: `sim-hand`, `can` with "
-        "`command_interface: effort`); needs `input: driver`.",
-    )
-    max_force_n: PosFloat = Field(
-        10.0, description="Clamp of the displayed force (N); 10 N is the OCC paper's figure."
-    )
-    fixture_slide_mm: PosFloat = Field(
-        1.0,
-        description="Longest move of a contact's proxy per tick (mm): bounds the force step "
-        "when the contact changes sphere or guide segment.",
-    )
-    max_fixtures: Annotated[Int, Field(ge=1, le=1024)] = Field(
-        64, description="Most primitives in all; a definition beyond is refused."
-    )
-    max_planes: Annotated[Int, Field(ge=0, le=64)] = Field(
-        8, description="Most forbidden planes (the SAW's fixed number); beyond is refused."
-    )
-    fixture_files: tuple[FixtureFile, ...] = Field(
-        (), description="3D Slicer markups files (`.mrk.json`, LPS) loaded at start."
-    )
-    scale: Annotated[Float, Field(gt=0, le=10)] = Field(
-        0.1,
-        description="The slave's motion scaling (its `scale`): patient fixtures are mapped "
-        "onto the master through it.",
-    )
-    rotation: tuple[Vec3, Vec3, Vec3] | None = Field(
-        None, description="The slave's master-to-slave rotation (its `rotation`); null = identity."
-    )
-    slave_base_mm: Vec3 | None = Field(
-        None,
-        description="The slave's base position in the patient frame (mm), i.e. the "
-        "registration; a TRANSFORM `slave_base_device` replaces it (full pose).",
-    )
-    slave_base_device: DeviceName = Field(
-        "Base", description="Device name of the registration TRANSFORM (the slave's base pose)."
-    )
-    slave_tip_mm: Vec3 = Field(
-        (0.0, 0.0, 0.0),
-        description="The slave's tip in its base frame (mm) when following first starts; a "
-        "TRANSFORM or POSITION `slave_tip_device` (patient frame) re-anchors it.",
-    )
-    slave_tip_device: DeviceName = Field(
-        "SlaveTip", description="Device name of the slave tip's TRANSFORM/POSITION (patient)."
-    )
-    display_frame: Literal["patient", "master"] = Field(
-        "patient", description="Frame of the `fixtures` and `contact` outputs shown in Slicer."
-    )
-    first_seq: Annotated[Int, Field(ge=0, le=0xFFFFFFFF)] = Field(
-        0, description="Sequence number before the first POSITION (the first is +1)."
-    )
-    input_interface: Name | None = Field(
-        None, description="`igtl`: interface of the input stream (required with `igtl`)."
-    )
-    input_device: DeviceName | None = Field(
-        None, description="Only samples with this device name are used (null = any)."
-    )
-    slaves: tuple[Name, ...] = Field(
-        (),
-        description="One master driving several slaves: the interfaces of its `teleop` "
-        "outputs, one per slave; only the selected one carries `run=1` (the others hold). "
-        "Empty = every `teleop` output drives.",
-    )
-    slave: Name | None = Field(
-        None, description="The slave selected at start (one of `slaves`; null = the first)."
-    )
-    toggle_tap_ms: PosFloat | None = Field(
-        300.0,
-        description="With several `slaves`: a clutch pressed and released within this time "
-        "selects the next slave (the da Vinci's tap); null = only the `Select`/`Toggle` "
-        "commands.",
-    )
-
-
-class SlaveParams(_Params):
-    """Parameters of ``teleop-slave``. Lengths in mm, as on the wire."""
-
-    input_interface: Name | None = Field(
-        None, description="Interface of the master's POSITION stream (null = any)."
-    )
-    input_device: DeviceName | None = Field(
-        None, description="Only samples with this device name are used (null = any)."
-    )
-    scale: Annotated[Float, Field(gt=0, le=10)] = Field(
-        0.1, description="Motion scaling, slave motion / master motion (0.1 = 10:1)."
-    )
-    rotation: tuple[Vec3, Vec3, Vec3] | None = Field(
-        None, description="3x3 rotation from master to slave axes (rows); null = identity."
-    )
-    base_mm: Vec3 | None = Field(
-        None, description="Base position in the world (mm), sent as TRANSFORM `Base`."
-    )
-    base_interface: Name | None = Field(
-        None, description="Interface on which a tracker sends the base TRANSFORM."
-    )
-    base_device: DeviceName = Field("Base", description="Device name of that TRANSFORM.")
-    phase_lock_us: Annotated[Float, Field(ge=0)] | None = Field(
-        400.0,
-        description="Shift the loop's deadlines so the master samples this long before a tick "
-        "(by its POSITION timestamps): a sample then waits about this long, not up to a whole "
-        "period, for the tick that uses it. Must cover the transport time; null = off.",
-    )
+from .teleop_params import FixtureFile, MasterParams, SlaveParams, _Params  # noqa: E402,F401 - mypyc
 
 
 def _interfaces_exist(params: Any, config: DaemonConfig, keys: tuple[str, ...]) -> list[Problem]:
@@ -417,7 +256,7 @@ class MasterController(Controller):
                 if self.fixtures.on_message(msg, now) is not None:
                     return
             except DefinitionError as err:
-                raise CommandError(str(err)) from err
+                raise caused(CommandError(str(err)), err) from err
         if not is_input:
             return
         if self.input_device and msg.device_name != self.input_device:
@@ -442,7 +281,9 @@ class MasterController(Controller):
                     m.translation if msg.message_type == "TRANSFORM" else m.position, now
                 )
         except DefinitionError as err:
-            raise CommandError(f"{msg.message_type} {msg.device_name!r}: {err}") from err
+            raise caused(
+                CommandError(f"{msg.message_type} {msg.device_name!r}: {err}"), err
+            ) from err
 
     def on_command(self, request: Request, now: float) -> str | None:
         key = request.name.lower()

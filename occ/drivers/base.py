@@ -63,7 +63,9 @@ from collections.abc import Mapping, Sequence
 from types import TracebackType
 from typing import Any, ClassVar, Literal
 
-from occ.errors import DriverError, LimitError, OCCError, StateError
+from mypy_extensions import mypyc_attr
+
+from occ.errors import DriverError, LimitError, OCCError, StateError, caused
 from occ.joint import Joint
 
 __all__ = ["Driver", "DriverState", "CommandInterface", "LimitPolicy"]
@@ -93,6 +95,7 @@ class DriverState(enum.Enum):
     SHUTDOWN = "shutdown"
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins and tests subclass it
 class Driver:
     """Base class of all joint drivers (see the module docstring for the contract).
 
@@ -307,9 +310,8 @@ class Driver:
                 first_error = first_error or err
         self._transition(DriverState.SHUTDOWN)
         if first_error is not None:
-            raise DriverError(f"driver {self.name!r}: shutdown failed: {first_error}") from (
-                first_error
-            )
+            failed = DriverError(f"driver {self.name!r}: shutdown failed: {first_error}")
+            raise caused(failed, first_error) from first_error
 
     def __enter__(self) -> Driver:
         return self
@@ -518,7 +520,7 @@ class Driver:
         if isinstance(err, OCCError):
             wrapped = err
         else:
-            wrapped = DriverError(f"driver {self.name!r}: {action} failed: {err!r}")
+            wrapped = caused(DriverError(f"driver {self.name!r}: {action} failed: {err!r}"), err)
         self._enter_fault(str(wrapped))
         return wrapped
 

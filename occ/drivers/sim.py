@@ -68,7 +68,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from occ.drivers.base import CommandInterface, Driver, LimitPolicy
-from occ.errors import DriverError
+from occ.errors import DriverError, caused
 from occ.joint import Joint
 
 __all__ = ["SimDriver", "SIM_DEFAULTS"]
@@ -119,7 +119,7 @@ def _per_joint(
     try:
         return [float(v) for v in out]
     except (TypeError, ValueError) as err:
-        raise ValueError(f"sim param {key!r}: not a number: {value!r}") from err
+        raise caused(ValueError(f"sim param {key!r}: not a number: {value!r}"), err) from err
 
 
 class SimDriver(Driver):

@@ -298,9 +298,11 @@ def test_getstats_as_json_names_the_request_it_answers(sim):
 
 def test_a_statistic_json_cannot_encode_is_given_as_text(sim, monkeypatch):
     op = sim.peer("operator")
-    snapshot = sim.robot.snapshot
+    report = sim.robot.operators.report
 
-    monkeypatch.setattr(sim.robot, "snapshot", lambda: {**snapshot(), "odd": {1, 2}.__class__})
+    monkeypatch.setattr(
+        sim.robot.operators, "report", lambda *a, **k: {**report(*a, **k), "odd": {1, 2}.__class__}
+    )
     cid = op.send_command("GetStats")
     sim.step()
     assert wait_for(lambda: op.reply_to(cid))

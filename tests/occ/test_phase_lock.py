@@ -9,8 +9,13 @@ import pytest
 from occ.clock import SimClock
 from occ.controllers import ControllerContext
 from occ.controllers.teleop import SlaveController
+from occ.frame import Frame
 from occ.loop import ControlLoop
 
+
+# controllers that never use their frame still get a real one (a compiled ControllerContext checks
+# the type of each field)
+SLAVE_FRAME = Frame.builtin("occ_slave")
 
 def test_shift_moves_every_later_deadline() -> None:
     clock = SimClock()
@@ -37,7 +42,7 @@ def test_phase_lock_brings_arrivals_to_the_target_phase() -> None:
     fake_loop = SimpleNamespace(t0=0.0, period_s=0.001, shift=shifts.append)
     ctrl = SlaveController({"phase_lock_us": 200.0})
     ctrl.ctx = ControllerContext(
-        clock=SimClock(), frame=None, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
+        clock=SimClock(), frame=SLAVE_FRAME, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
         loop_t0=lambda: fake_loop.t0, period_s=0.001, shift=shifts.append,
     )
     # packets arrive 0.35 ms after each deadline: they would wait 0.65 ms for the next tick
@@ -58,7 +63,7 @@ def test_phase_lock_median_survives_the_wrap_around() -> None:
     fake_loop = SimpleNamespace(t0=0.0, period_s=0.001, shift=shifts.append)
     ctrl = SlaveController({"phase_lock_us": 50.0})
     ctrl.ctx = ControllerContext(
-        clock=SimClock(), frame=None, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
+        clock=SimClock(), frame=SLAVE_FRAME, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
         loop_t0=lambda: fake_loop.t0, period_s=0.001, shift=shifts.append,
     )
     # target phase 0.95 ms; arrivals at 0.95 +- 0.15 ms, half of them past the deadline (0.1)
@@ -74,7 +79,7 @@ def _locked_slave(shifts: list[float]) -> SlaveController:
     clock = SimClock(wall_epoch=1_700_000_000.0003)
     clock.set(0.5003)
     ctrl.ctx = ControllerContext(
-        clock=clock, frame=None, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
+        clock=clock, frame=SLAVE_FRAME, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
         loop_t0=lambda: 0.0, period_s=0.001, shift=shifts.append,
     )
     return ctrl
@@ -140,7 +145,7 @@ def test_the_phase_lock_at_other_rates_and_fractional_locks(period, lock_us, shi
     shifts: list[float] = []
     ctrl = SlaveController({"phase_lock_us": lock_us})
     ctrl.ctx = ControllerContext(
-        clock=SimClock(), frame=None, rate_hz=1.0 / period,  # type: ignore[arg-type]
+        clock=SimClock(), frame=SLAVE_FRAME, rate_hz=1.0 / period,  # type: ignore[arg-type]
         interfaces=(), loop_t0=lambda: 0.0, period_s=period, shift=shifts.append,
     )
     for i in range(250):

@@ -250,10 +250,13 @@ def test_a_controller_exception_faults_and_the_daemon_keeps_serving(slave: SimSl
     run(slave)
     slave.step_ms(10)
 
-    def broken(now: float) -> None:
+    def broken(now: float, current: object) -> None:
         raise ZeroDivisionError("bad maths")
 
-    slave.robot.controller.controllers[0].update = broken  # type: ignore[method-assign]
+    # the set of one controller, named after it (a compiled controller's own methods cannot be
+    # replaced on the instance)
+    assert slave.robot.controller.name == "teleop-slave"
+    slave.robot.controller.update = broken  # type: ignore[method-assign]
     slave.step_ms(2)
     assert slave.robot.state is RobotState.FAULT
     alerts = [r for r in slave.replies if r.message_type == "STATUS" and r.error_name == "FAULT"]
@@ -269,7 +272,7 @@ def test_a_failing_command_handler_faults_and_answers(slave: SimSlave) -> None:
     def broken(request: object, now: float) -> str:
         raise KeyError("oops")
 
-    slave.robot.controller.controllers[0].on_command = broken  # type: ignore[method-assign]
+    slave.robot.controller.on_command = broken  # type: ignore[method-assign]
     reply = slave.command("Clutch")
     assert reply.metadata["Status"] == "FAIL"
     assert slave.robot.state is RobotState.FAULT

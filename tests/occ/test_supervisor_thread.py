@@ -32,18 +32,18 @@ def test_a_hung_tick_is_caught_by_the_supervisor_thread() -> None:
     robot = build_robot(cfg, clock=RealClock(spin_us=0))
     release = threading.Event()
     hung = threading.Event()
-    update = robot.controller.controllers[0].update
+    update = robot.controller.update  # the set of the one controller (a plain Python class)
     ticks = 0
 
-    def hanging_update(now: float):
+    def hanging_update(now: float, current):
         nonlocal ticks
         ticks += 1
         if ticks == 50:
             hung.set()
             release.wait(10.0)  # a blocked call inside the tick
-        return update(now)
+        return update(now, current)
 
-    robot.controller.controllers[0].update = hanging_update  # type: ignore[method-assign]
+    robot.controller.update = hanging_update  # type: ignore[method-assign]
     robot.configure()
     robot.activate()
     loop = threading.Thread(target=robot.run, kwargs={"duration": 30.0})

@@ -19,11 +19,16 @@ import pytest
 import yaml
 
 import igtl
+from occ.frame import Frame
 from occ.safety import RobotState
 from occ.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
 MASTER = ("127.0.0.1", 40000)
+
+# controllers that never use their frame still get a real one (a compiled ControllerContext checks
+# the type of each field)
+SLAVE_FRAME = Frame.builtin("occ_slave")
 
 
 def rotation(yaw: float, pitch: float, roll: float) -> list[list[float]]:
@@ -460,7 +465,7 @@ def test_on_sample_takes_position_and_transform_and_counts_source_changes() -> N
 
     ctrl = SlaveController({"phase_lock_us": None})
     ctrl.ctx = ControllerContext(
-        clock=SimClock(), frame=None, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
+        clock=SimClock(), frame=SLAVE_FRAME, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
         loop_t0=lambda: math.nan, period_s=0.001, shift=lambda s: None,
     )
 
@@ -498,7 +503,7 @@ def test_only_the_configured_interface_and_device_are_followed() -> None:
     ctrl = SlaveController({"input_interface": "master", "input_device": "Master",
                             "phase_lock_us": None})
     ctrl.ctx = ControllerContext(
-        clock=SimClock(), frame=None, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
+        clock=SimClock(), frame=SLAVE_FRAME, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
         loop_t0=lambda: math.nan, period_s=0.001, shift=lambda s: None,
     )
     for itf, dev in (("other", "Master"), ("master", "Other")):

@@ -1,0 +1,169 @@
+"""Which build of the control loop's hot path runs: mypyc-compiled or the pure Python sources.
+
+The modules in :data:`MODULES` (the tick: robot, drivers, joints, data, safety, interfaces,
+outputs, kinematics, the teleop controllers) can be compiled with mypyc into C extension
+modules next to their sources (``python scripts/build_native.py``, which ``scripts/test`` and
+``scripts/demo`` run when needed). Compiled, a slave tick costs about half as much CPU
+(docs/BENCHMARKS.md, "Compiled hot path"); the behaviour is the same, and the whole test suite
+runs against both builds in CI.
+
+Python itself prefers an extension module to a source file of the same name, so stale ``.so``
+files would silently run old code. This module, imported by ``occ/__init__.py`` before any of
+them, decides once per process:
+
+- ``OCC_PURE=1`` in the environment: pure (mutation testing, debugging, coverage);
+- no build, or one for another interpreter: pure;
+- a build whose recorded source hashes no longer match the sources: pure, with a warning
+  naming the first changed file (a build is all or nothing: compiled modules assume each
+  other's native layout, so a half-compiled set is never loaded);
+- otherwise compiled.
+
+When the answer is pure and extension files exist, a finder placed first on ``sys.meta_path``
+loads these modules from their ``.py`` files. :data:`BUILD` says which build runs and why; the
+daemon logs it at start and puts it in its statistics.
+
+The module itself is never compiled and imports nothing from ``occ``.
+"""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+import importlib.abc
+import importlib.machinery
+import importlib.util
+import json
+import os
+import sys
+import warnings
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+#: the compiled modules, in build order (mypyc compiles them as one group)
+MODULES: tuple[str, ...] = (
+    "occ.joint",
+    "occ.data",
+    "occ.safety",
+    "occ.drivers.base",
+    "occ.drivers.sim",
+    "occ.drivers.sim_hand",
+    "occ.interfaces",
+    "occ.outputs",
+    "occ.frame",
+    "occ.haptics",
+    "occ.controllers",
+    "occ.controllers.teleop",
+    "occ.robot",
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+#: written by scripts/build_native.py: the sources' hashes, the interpreter, mypyc's version
+MANIFEST = Path(__file__).resolve().with_name("_native.json")
+
+
+def source_path(module: str, root: Path = ROOT) -> Path:
+    """The ``.py`` file of one of :data:`MODULES` (a package's ``__init__.py``)."""
+    rel = Path(*module.split("."))
+    pkg = root / rel / "__init__.py"
+    return pkg if pkg.is_file() else (root / rel).with_suffix(".py")
+
+
+def extension_path(module: str, root: Path = ROOT) -> Path:
+    """Where the compiled extension of ``module`` lives for this interpreter."""
+    src = source_path(module, root)
+    suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
+    return src.with_name(src.stem + suffix)
+
+
+def source_hashes(root: Path = ROOT) -> dict[str, str]:
+    return {m: hashlib.sha256(source_path(m, root).read_bytes()).hexdigest() for m in MODULES}
+
+
+def _decide() -> tuple[str, str, bool]:
+    """(build, reason, extensions present)."""
+    present = any(extension_path(m).exists() for m in MODULES)
+    if os.environ.get("OCC_PURE", "") not in ("", "0"):
+        return "pure", "OCC_PURE is set", present
+    if not MANIFEST.is_file():
+        return "pure", "not built (python scripts/build_native.py)", present
+    try:
+        manifest = json.loads(MANIFEST.read_text())
+        recorded: dict[str, str] = manifest["modules"]
+        soabi = manifest["soabi"]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        return "pure", f"unreadable build manifest {MANIFEST.name}: {err}", present
+    if soabi != importlib.machinery.EXTENSION_SUFFIXES[0]:
+        return "pure", f"built for another interpreter ({soabi})", present
+    missing = [m for m in MODULES if not extension_path(m).exists()]
+    if missing or set(recorded) != set(MODULES):
+        return "pure", "incomplete build (python scripts/build_native.py)", present
+    for module, digest in source_hashes().items():
+        if recorded[module] != digest:
+            rel = source_path(module).relative_to(ROOT)
+            return (
+                "pure",
+                f"stale build: {rel} changed since (python scripts/build_native.py)",
+                True,
+            )
+    return "compiled", f"mypyc, {len(MODULES)} modules", True
+
+
+class _PureFinder(importlib.abc.MetaPathFinder):
+    """Loads :data:`MODULES` from their sources even where an extension module sits beside
+    them (the default finder would take the extension)."""
+
+    def find_spec(
+        self, fullname: str, path: Any = None, target: ModuleType | None = None
+    ) -> importlib.machinery.ModuleSpec | None:
+        if fullname not in MODULES:
+            return None
+        leaf = fullname.rpartition(".")[2]
+        for entry in path or ():
+            pkg = Path(entry) / leaf / "__init__.py"
+            if pkg.is_file():
+                return importlib.util.spec_from_file_location(
+                    fullname, pkg, submodule_search_locations=[str(pkg.parent)]
+                )
+            mod = Path(entry) / f"{leaf}.py"
+            if mod.is_file():
+                return importlib.util.spec_from_file_location(fullname, mod)
+        return None
+
+
+def _select() -> tuple[str, str]:
+    build, reason, present = _decide()
+    if build == "pure" and present:
+        if not any(isinstance(f, _PureFinder) for f in sys.meta_path):
+            sys.meta_path.insert(0, _PureFinder())
+        if reason.startswith("stale") or reason.startswith("incomplete"):
+            warnings.warn(f"occ: running the pure Python hot path: {reason}", stacklevel=3)
+    return build, reason
+
+
+BUILD, REASON = _select()
+
+
+def describe() -> str:
+    """One line for logs: which build runs, and why."""
+    return f"{BUILD} ({REASON})"
+
+
+def is_compiled(module: ModuleType) -> bool:
+    """Whether an imported module is a compiled extension (not a ``.py`` file)."""
+    return not str(getattr(module, "__file__", "") or "").endswith(".py")
+
+
+def class_doc(cls: type) -> str:
+    """A class's docstring, also for a compiled class (mypyc leaves ``__doc__`` empty): then
+    read from the class's source file."""
+    if cls.__doc__:
+        return cls.__doc__
+    module = cls.__module__
+    if module not in MODULES:
+        return ""
+    tree = ast.parse(source_path(module).read_text(encoding="utf-8"))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ClassDef) and node.name == cls.__name__:
+            return ast.get_docstring(node, clean=False) or ""
+    return ""
