@@ -10,7 +10,8 @@ Each run starts the tree's own configs/slave.yaml and configs/master.yaml on fre
 ports (``--start running``, the tree's code on PYTHONPATH, this venv's Python) for the given
 seconds and prints each daemon's CPU share and the slave's tick compute time p50 from their
 ``--stats`` files. Interleave the two versions: this VM's speed drifts by tens of percent
-between minutes, so only runs next to each other compare.
+between minutes, so only runs next to each other compare. ``OCC_PURE=1`` in the environment
+runs the tree's pure build (occ/_native.py); the line names the build the slave reported.
 """
 
 import json
@@ -55,7 +56,8 @@ stop_processes([ps, pm])
 s = json.loads((d / "s.json").read_text())
 m = json.loads((d / "m.json").read_text())
 print(
-    f"{root.name:8s} slave {s['cpu_percent']:.1f} %  master {m['cpu_percent']:.1f} %  "
+    f"{root.name:8s} {s.get('build', '?'):8s} "
+    f"slave {s['cpu_percent']:.1f} %  master {m['cpu_percent']:.1f} %  "
     f"slave compute p50 {s['compute_us']['p50']}  "
     f"state {s.get('final_state', s.get('state'))}"
 )
