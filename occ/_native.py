@@ -91,12 +91,13 @@ def _decide() -> tuple[str, str, bool]:
         manifest = json.loads(MANIFEST.read_text())
         recorded: dict[str, str] = manifest["modules"]
         soabi = manifest["soabi"]
+        group = ROOT / manifest["group"]
     except (OSError, ValueError, KeyError, TypeError) as err:
         return "pure", f"unreadable build manifest {MANIFEST.name}: {err}", present
     if soabi != importlib.machinery.EXTENSION_SUFFIXES[0]:
         return "pure", f"built for another interpreter ({soabi})", present
     missing = [m for m in MODULES if not extension_path(m).exists()]
-    if missing or set(recorded) != set(MODULES):
+    if missing or set(recorded) != set(MODULES) or not group.is_file():
         return "pure", "incomplete build (python scripts/build_native.py)", present
     for module, digest in source_hashes().items():
         if recorded[module] != digest:
@@ -131,8 +132,30 @@ class _PureFinder(importlib.abc.MetaPathFinder):
         return None
 
 
+def _load_group() -> None:
+    """Load the build's shared library (mypyc puts it at the project root, named
+    ``<hash>__mypyc``) by its path, so that the compiled modules find it in ``sys.modules``
+    whatever ``sys.path`` holds: console scripts (``occd``) and programs run from another
+    directory do not have the project root on it."""
+    lib = ROOT / json.loads(MANIFEST.read_text())["group"]
+    name = lib.name.split(".", 1)[0]
+    if name in sys.modules:
+        return
+    spec = importlib.util.spec_from_file_location(name, lib)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+
+
 def _select() -> tuple[str, str]:
     build, reason, present = _decide()
+    if build == "compiled":
+        try:
+            _load_group()
+        except (ImportError, OSError, ValueError, KeyError) as err:
+            build, reason = "pure", f"the build's shared library does not load: {err}"
+            warnings.warn(f"occ: running the pure Python hot path: {reason}", stacklevel=3)
     if build == "pure" and present:
         if not any(isinstance(f, _PureFinder) for f in sys.meta_path):
             sys.meta_path.insert(0, _PureFinder())

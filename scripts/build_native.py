@@ -81,6 +81,15 @@ def main() -> int:
             f"[native] no {include}: install this Python's headers (python3-dev)", file=sys.stderr
         )
         return 1
+    import setuptools
+
+    if int(setuptools.__version__.split(".")[0]) < 77:
+        print(
+            f"[native] setuptools {setuptools.__version__} cannot read pyproject.toml's SPDX "
+            "licence: pip install 'setuptools>=77' (the native extra)",
+            file=sys.stderr,
+        )
+        return 1
     if not (shutil.which("cc") or shutil.which("gcc")):
         print("[native] no C compiler (cc, gcc) on PATH", file=sys.stderr)
         return 1
@@ -106,11 +115,17 @@ def main() -> int:
         return 1
     import mypy.version
 
+    libs = group_libraries()
+    if len(libs) != 1:
+        clean()
+        print(f"[native] expected one group library, found {libs}", file=sys.stderr)
+        return 1
     _native.MANIFEST.write_text(
         json.dumps(
             {
                 "soabi": importlib.machinery.EXTENSION_SUFFIXES[0],
                 "mypyc": mypy.version.__version__,
+                "group": libs[0].name,
                 "modules": hashes,
             },
             indent=1,

@@ -42,13 +42,16 @@ def needs_build() -> None:
     pytest.skip("not built: python scripts/build_native.py")
 
 
-def probe(path: Path = ROOT, pure: bool = False) -> tuple[dict, str]:
+def probe(path: Path = ROOT, pure: bool = False, cwd: Path | None = None) -> tuple[dict, str]:
+    """The build a fresh interpreter picks with ``path`` first on ``sys.path`` (None: nothing
+    added, the installed package, as for a console script run from ``cwd``)."""
     env = {k: v for k, v in os.environ.items() if k not in ("OCC_PURE", "PYTHONPATH")}
     if pure:
         env["OCC_PURE"] = "1"
-    env["PYTHONPATH"] = os.pathsep.join([str(path), str(ROOT)])  # igtl from ROOT
+    if cwd is None:
+        env["PYTHONPATH"] = os.pathsep.join([str(path), str(ROOT)])  # igtl from ROOT
     out = subprocess.run(
-        [sys.executable, "-c", PROBE], cwd=path, env=env, capture_output=True, text=True
+        [sys.executable, "-c", PROBE], cwd=cwd or path, env=env, capture_output=True, text=True
     )
     assert out.returncode == 0, out.stderr
     return json.loads(out.stdout), out.stderr
@@ -85,6 +88,18 @@ def test_a_current_build_runs_compiled() -> None:
     assert "Warning" not in err
 
 
+def test_the_installed_package_runs_compiled_from_any_directory(tmp_path: Path) -> None:
+    """``occd`` and programs in tools/ or benchmarks/ do not have the project root on sys.path,
+    where mypyc leaves the build's shared library: it is loaded by its path."""
+    needs_build()
+    info, err = probe(cwd=tmp_path)
+    if not all(Path(f).is_relative_to(ROOT) for f in info["files"].values()):
+        pytest.skip("occ is not installed from this tree (pip install -e .)")
+    assert info["build"] == "compiled", info["reason"]
+    assert all_extensions(info["files"], ROOT / "occ")
+    assert "Warning" not in err
+
+
 def test_a_changed_source_runs_every_module_pure_and_says_which(tmp_path: Path) -> None:
     needs_build()
     root = copy_build(tmp_path)
@@ -107,6 +122,7 @@ def test_a_changed_source_runs_every_module_pure_and_says_which(tmp_path: Path) 
         ("soabi", "built for another interpreter (.cpython-39-x86_64-linux-gnu.so)"),
         ("manifest", "not built (python scripts/build_native.py)"),
         ("extension", "incomplete build (python scripts/build_native.py)"),
+        ("group", "incomplete build (python scripts/build_native.py)"),
         ("garbage", "unreadable build manifest _native.json: "),
     ],
 )
@@ -122,6 +138,8 @@ def test_a_build_that_does_not_fit_runs_pure(tmp_path: Path, damage: str, reason
         manifest.unlink()
     elif damage == "extension":
         _native.extension_path("occ.frame", root).unlink()
+    elif damage == "group":
+        (root / json.loads(manifest.read_text())["group"]).unlink()
     else:
         manifest.write_text("{not json")
     info, _ = probe(root)
