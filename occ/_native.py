@@ -80,34 +80,31 @@ def source_hashes(root: Path = ROOT) -> dict[str, str]:
     return {m: hashlib.sha256(source_path(m, root).read_bytes()).hexdigest() for m in MODULES}
 
 
-def _decide() -> tuple[str, str, bool]:
-    """(build, reason, extensions present)."""
+def _decide() -> tuple[str, str, bool, Path | None]:
+    """(build, reason, extensions present, the build's shared library when compiled)."""
     present = any(extension_path(m).exists() for m in MODULES)
     if os.environ.get("OCC_PURE", "") not in ("", "0"):
-        return "pure", "OCC_PURE is set", present
+        return "pure", "OCC_PURE is set", present, None
     if not MANIFEST.is_file():
-        return "pure", "not built (python scripts/build_native.py)", present
+        return "pure", "not built (python scripts/build_native.py)", present, None
     try:
         manifest = json.loads(MANIFEST.read_text())
         recorded: dict[str, str] = manifest["modules"]
         soabi = manifest["soabi"]
         group = ROOT / manifest["group"]
     except (OSError, ValueError, KeyError, TypeError) as err:
-        return "pure", f"unreadable build manifest {MANIFEST.name}: {err}", present
+        return "pure", f"unreadable build manifest {MANIFEST.name}: {err}", present, None
     if soabi != importlib.machinery.EXTENSION_SUFFIXES[0]:
-        return "pure", f"built for another interpreter ({soabi})", present
+        return "pure", f"built for another interpreter ({soabi})", present, None
     missing = [m for m in MODULES if not extension_path(m).exists()]
     if missing or set(recorded) != set(MODULES) or not group.is_file():
-        return "pure", "incomplete build (python scripts/build_native.py)", present
+        return "pure", "incomplete build (python scripts/build_native.py)", present, None
     for module, digest in source_hashes().items():
         if recorded[module] != digest:
             rel = source_path(module).relative_to(ROOT)
-            return (
-                "pure",
-                f"stale build: {rel} changed since (python scripts/build_native.py)",
-                True,
-            )
-    return "compiled", f"mypyc, {len(MODULES)} modules", True
+            why = f"stale build: {rel} changed since (python scripts/build_native.py)"
+            return "pure", why, True, None
+    return "compiled", f"mypyc, {len(MODULES)} modules", True, group
 
 
 class _PureFinder(importlib.abc.MetaPathFinder):
@@ -132,12 +129,11 @@ class _PureFinder(importlib.abc.MetaPathFinder):
         return None
 
 
-def _load_group() -> None:
+def _load_group(lib: Path) -> None:
     """Load the build's shared library (mypyc puts it at the project root, named
     ``<hash>__mypyc``) by its path, so that the compiled modules find it in ``sys.modules``
     whatever ``sys.path`` holds: console scripts (``occd``) and programs run from another
     directory do not have the project root on it."""
-    lib = ROOT / json.loads(MANIFEST.read_text())["group"]
     name = lib.name.split(".", 1)[0]
     if name in sys.modules:
         return
@@ -149,18 +145,21 @@ def _load_group() -> None:
 
 
 def _select() -> tuple[str, str]:
-    build, reason, present = _decide()
-    if build == "compiled":
+    build, reason, present, group = _decide()
+    # a build that exists but cannot be used is worth a warning; pure by choice or for lack of
+    # a build is not
+    broken = reason.startswith(("stale", "incomplete"))
+    if group is not None:
         try:
-            _load_group()
-        except (ImportError, OSError, ValueError, KeyError) as err:
+            _load_group(group)
+        except (ImportError, OSError) as err:
             build, reason = "pure", f"the build's shared library does not load: {err}"
-            warnings.warn(f"occ: running the pure Python hot path: {reason}", stacklevel=3)
+            broken = True
     if build == "pure" and present:
         if not any(isinstance(f, _PureFinder) for f in sys.meta_path):
             sys.meta_path.insert(0, _PureFinder())
-        if reason.startswith("stale") or reason.startswith("incomplete"):
-            warnings.warn(f"occ: running the pure Python hot path: {reason}", stacklevel=3)
+    if broken:
+        warnings.warn(f"occ: running the pure Python hot path: {reason}", stacklevel=3)
     return build, reason
 
 

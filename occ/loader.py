@@ -399,7 +399,7 @@ def _plugin_problems(
                 config.robot.name,
                 names,
                 [j.home for j in config.robot.joints],
-                None,  # type: ignore[arg-type]  # claims need the joint names only
+                None,  # claims need the joint names only
                 None,  # type: ignore[arg-type]
             )
             claims = ctrl.command_interfaces()

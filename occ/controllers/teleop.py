@@ -54,7 +54,7 @@ from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pydantic.main  # noqa: F401 - mypyc: declares the module its BaseModel subclasses reference
+import pydantic.main  # noqa: F401 - mypyc: the module its run-time BaseModel checks look up
 from pydantic import BaseModel
 
 from igtl.messages.base import Message
@@ -68,6 +68,7 @@ from ..haptics import MasterFixtures
 from ..safety import RobotState
 from ..stats import Histogram
 from . import Controller, ControllerContext, Problem, SourceFn
+from .teleop_params import MasterParams, SlaveParams
 
 if TYPE_CHECKING:
     from ..commands import Request
@@ -86,9 +87,6 @@ _RUN_CLUTCH = {
     for clutch in (False, True)
 }
 _NO_ROTATION = (0.0, 0.0, 0.0, 1.0)
-
-
-from .teleop_params import FixtureFile, MasterParams, SlaveParams, _Params  # noqa: E402,F401 - mypyc
 
 
 def _interfaces_exist(params: Any, config: DaemonConfig, keys: tuple[str, ...]) -> list[Problem]:
