@@ -553,7 +553,6 @@ class LossMonitor:
       peers without IDs, the same gap told by the sender timestamps (``round(gap/period) - 1``
       missing);
     - silence past ``grace_s`` (default 100 ms: a dead master);
-    - ``max_consecutive + 1`` consecutive samples refused for their timestamp;
     - with ``strict=True`` (the paper's rule word for word) the deadline itself latches.
 
     Samples are judged, not just counted: :meth:`on_packet` returns a :class:`Verdict` and only
@@ -573,7 +572,12 @@ class LossMonitor:
     moves it up by 1 % (drift). Tracking by 1 % both ways, as before, let the samples that
     queue up before the loop's first tick (the socket is bound before the loop starts) teach
     an offset tens of ms too old, and the fresh samples after them were refused as "in the
-    future" until the robot stopped.
+    future" until the robot stopped. A refused sample still arrived: its sequence number is
+    accounted for (never a loss), but it is not applied and does not refresh the deadline, so
+    a stream of late samples holds at the deadline, resumes by itself when fresh samples come
+    back, and latches only at the grace, like a silent one. (Three refused in a row used to
+    latch as a loss: on a busy 2-core machine a starved master stamps its samples and sends
+    them 60-80 ms later, and the slave stopped with no packet missing.)
 
     ``lost_total`` counts only proven losses: gaps between accepted sequence numbers, minus
     late arrivals that filled them. Samples the daemon itself could not take in time (its
@@ -644,7 +648,6 @@ class LossMonitor:
         self._holding = False
         self._tripped = False
         self._pending: LossEvent | None = None
-        self._refused_run = 0
         self._refused_since_good = 0
         self._next_refused_alert = -math.inf
         self.offset_s = None
@@ -701,29 +704,8 @@ class LossMonitor:
     def _judge(
         self, seq: int | None, ts: float | None, now: float, rx: float, rx_lo: float
     ) -> Verdict:
-        # 1. the timestamp, against the peer's learned clock offset
-        tol = self.timestamp_tolerance_s
-        if tol is not None and ts is not None and ts > 0.0:
-            age = rx - ts
-            offset = self.offset_s
-            if offset is not None and (rx_lo - ts - offset > tol or offset - age > tol):
-                if age > offset:
-                    age = rx_lo - ts  # the age it had at the earliest: what is reported
-                self._refused_run += 1
-                self._refused_since_good += 1
-                if self._refused_run > self.max_consecutive and not self._tripped:
-                    ahead = offset - age
-                    self._trip(
-                        f"{self._refused_run} consecutive samples refused for their timestamp "
-                        f"(last {abs(ahead) * 1e3:.1f} ms "
-                        f"{'in the future' if ahead > 0 else 'stale'}, tolerance "
-                        f"{tol * 1e3:.0f} ms)",
-                        "timestamp",
-                        self._refused_run,
-                        now,
-                    )
-                return Verdict.FUTURE if age < offset else Verdict.STALE
-        # 2. the sequence number
+        # 1. the sequence number: every plausible new number is accounted for, whatever its
+        # timestamp (a late sample arrived: it is not lost), so only gaps prove a loss
         gap = 0
         where = ""
         source = "sequence"
@@ -777,29 +759,37 @@ class LossMonitor:
             self._last_ts = ts
         else:
             source = "deadline"
-        # 3. accepted: account, learn the clock offset, resume or latch
-        if tol is not None and ts is not None and ts > 0.0:
-            age = rx - ts
-            off = self.offset_s
-            if off is None or age < off:
-                self.offset_s = age  # a younger sample: the smallest age is the offset
-            else:
-                # slow tracking upward (drift), bounded per sample
-                self.offset_s = off + 0.01 * (age - off)
-        self.accepted += 1
-        self._refused_run = 0
         self.lost_total += gap
         if gap > self.max_run:
             self.max_run = gap
+        if gap > self.max_consecutive and not self._tripped:
+            lg = self._last_good
+            since = now - lg if lg is not None else 0.0
+            self._trip(f"{gap} consecutive packets lost ({where})", source, gap, now, since)
+        # 2. the timestamp, against the peer's learned clock offset: a sample too old (or from
+        # the future) is not applied and does not refresh the deadline, so a late stream
+        # holds and a silent one latches at the grace, as any late stream does; it is never
+        # called lost by itself (a busy sender stamps, then sends late)
+        tol = self.timestamp_tolerance_s
+        if tol is not None and ts is not None and ts > 0.0:
+            age = rx - ts
+            offset = self.offset_s
+            if offset is not None and (rx_lo - ts - offset > tol or offset - age > tol):
+                self._refused_since_good += 1
+                return Verdict.FUTURE if age < offset else Verdict.STALE
+            if offset is None or age < offset:
+                self.offset_s = age  # a younger sample: the smallest age is the offset
+            else:
+                # slow tracking upward (drift), bounded per sample
+                self.offset_s = offset + 0.01 * (age - offset)
+        # 3. accepted: resume after a hold
+        self.accepted += 1
         lg = self._last_good
         since = now - lg if lg is not None else 0.0
         self._last_good = now
         refused = self._refused_since_good
         self._refused_since_good = 0
-        if gap > self.max_consecutive:
-            if not self._tripped:
-                self._trip(f"{gap} consecutive packets lost ({where})", source, gap, now, since)
-        elif self._holding and not self._tripped:
+        if self._holding and not self._tripped:
             self._holding = False
             self.resumes += 1
             extra = f", {refused} refused meanwhile" if refused else ""
