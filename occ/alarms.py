@@ -9,10 +9,12 @@ repeat every tick) and sent to every viewer and operator as a STATUS naming its 
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import igtl
 
+from .hardware import HardwareFailure, describe
 from .safety import LossEvent, RobotState
 
 if TYPE_CHECKING:
@@ -40,6 +42,24 @@ class Alarms:
             log.error("%s", reason, exc_info=err)
         if r.state_machine.state is not RobotState.FAULT:
             self.fault(reason)
+
+    def hardware_fault(self, failures: Sequence[HardwareFailure]) -> None:
+        """A drive failed (read, write, or not ACTIVE when it must be): FAULT naming each
+        drive and its cause; the FAULT transition powers every drive off in this tick."""
+        r = self.robot
+        reason = describe(failures)
+        if r.state_machine.state is RobotState.FAULT:
+            if self._errors_logged < 20:  # a drive failing every tick must not flood the log
+                self._errors_logged += 1
+                log.error("while FAULT: %s", reason)
+            return
+        self.fault(reason)
+
+    def hardware_alert(self, failures: Sequence[HardwareFailure]) -> None:
+        """Drives that failed to stop (latched FAULT by their base): an alert naming them."""
+        text = f"drives failed to stop: {describe(failures)}"
+        log.error("ALERT: %s", text)
+        self.broadcast("ALERT", text, igtl.StatusCode.HARDWARE_FAILURE)
 
     def loss_event(self, event: LossEvent, state: RobotState) -> None:
         """Act on the loss monitor: only while RUNNING does the stream move the robot, so only
@@ -104,8 +124,7 @@ class Alarms:
         r = self.robot
         self.last_alert = f"supervisor: {reason}"
         log.error("SUPERVISOR: %s; drivers to their safe state", reason)
-        for drv, _ in r.drivers:
-            drv.safe_stop(reason)
+        r.hardware.safe_stop(reason)
         self.broadcast("SUPERVISOR", f"supervisor: {reason}", igtl.StatusCode.HARDWARE_FAILURE)
 
     def safety_stop(self, reason: str, policy: str) -> None:

@@ -27,6 +27,9 @@ from .interfaces import Inbound, is_operator_request
 from .outputs import STATE_STATUS_CODE, pose_to_message
 from .safety import RobotState
 
+#: states a robot stays in until an operator clears them: greeted with why
+LATCHED_STATES = (RobotState.FAULT, RobotState.ESTOP, RobotState.STOPPED)
+
 if TYPE_CHECKING:
     from .robot import Robot
 
@@ -77,7 +80,8 @@ class OperatorDesk:
                 igtl.StatusMessage(
                     code=int(STATE_STATUS_CODE[st]),
                     error_name=st.value,
-                    status_message=f"{r.name} is {st.value}",
+                    status_message=f"{r.name} is {st.value}"
+                    + (f": {r.last_alert}" if st in LATCHED_STATES and r.last_alert else ""),
                     device_name=r.name[:20],
                     timestamp=r.clock.wall_time(),
                 ),
@@ -393,6 +397,7 @@ class OperatorDesk:
         if r.state_table is not None:
             snap["state_table"] = r.state_table.stats()
         snap["controller"] = r.controller.stats()
-        snap["drivers"] = {drv.name: drv.stats() for drv, _ in r.drivers}
+        snap["drivers"] = {drv.name: drv.stats() for drv in r.hardware.drivers}
+        snap["hardware"] = r.hardware.stats()
         snap["realtime"] = r.loop.realtime_report
         return snap

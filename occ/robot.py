@@ -42,8 +42,8 @@ from .collab import Collaboration
 from .config import DaemonConfig
 from .controllers import Controller, ControllerContext, ControllerSet, create_controller
 from .data import RobotData
-from .drivers.base import DriverState
-from .errors import CommandError, ConfigError, OCCError
+from .hardware import HardwareFailure, HardwareSet, describe
+from .errors import CommandError, ConfigError
 from .interfaces import Inbound, InterfaceManager
 from .loop import ControlLoop
 from .operators import OperatorDesk
@@ -107,13 +107,15 @@ class Robot:
         self.state_machine = StateMachine(clock=self.clock)
         self.state_machine.add_listener(self._on_transition)
         self.state_machine.add_guard(self._may_power)
+        self.state_machine.set_effector(self._effect)
         self.recorder = recorder
 
         # --- Joints, Frame, Drivers (hardware-dependent parts)
-        self.joints, self.frame, self.drivers = build_hardware(rc)
+        self.joints, self.frame, pairs = build_hardware(rc)
+        #: the drives as one unit whose transitions succeed or fail whole (occ/hardware.py)
+        self.hardware = HardwareSet(pairs)
         self.joint_index = {j.name: i for i, j in enumerate(self.joints)}
         names = [j.name for j in self.joints]
-        self._slices = [(drv, idx, [0.0] * len(idx)) for drv, idx in self.drivers]
         self.data = RobotData(
             self.name, names, [j.home for j in self.joints], self.frame, self.clock
         )
@@ -242,14 +244,22 @@ class Robot:
     def state(self) -> RobotState:
         return self.state_machine.state
 
+    @property
+    def drivers(self) -> list[tuple[Any, list[int]]]:
+        """(driver, its joints' indices) for every drive (the HardwareSet's pairs)."""
+        return self.hardware.pairs
+
     def configure(self) -> None:
-        """Configure drivers (servos off), read the initial state: INIT -> READY.
+        """Configure drivers (servos off), read the initial state: INIT -> READY, or INIT
+        -> FAULT with an alert naming each drive that failed (``Reset`` configures again).
 
         On the real clock it waits up to ``MEASURE_WAIT_S`` for every joint's first
         measurement (drives report once asked); a joint still unmeasured then keeps the robot
         from being enabled (:meth:`_may_power`), never held at a position nobody reported."""
-        for drv, _ in self.drivers:
-            drv.configure()
+        failures = self.hardware.configure()
+        if failures:
+            self.alarms.fault(f"configure failed: {describe(failures)}")
+            return
         self._read(self.clock.now())
         if isinstance(self.clock, RealClock):
             give_up = self.clock.now() + MEASURE_WAIT_S
@@ -299,11 +309,7 @@ class Robot:
             self.supervisor_thread.stop()
         self.state_machine.try_request("shutdown", "daemon shutting down")
         self.controller.shutdown()
-        for drv, _ in self.drivers:
-            try:
-                drv.shutdown()
-            except Exception:  # noqa: BLE001 - every driver must get its shutdown
-                log.exception("driver %s: shutdown failed", drv.name)
+        self.hardware.shutdown()
         self.interfaces.stop()
         self.worker.stop()
 
@@ -320,9 +326,18 @@ class Robot:
         the joints are, never a default the hardware did not report."""
         if event != "enable":
             return ""
-        missing = [j.name for j in self.joints if not j.measured]
+        missing = []
+        for drv, idx in self.hardware.pairs:
+            names = [self.joints[i].name for i in idx if not self.joints[i].measured]
+            if names:
+                missing.append(f"driver {drv.name} joints {names}")
         if missing:
-            return f"no measurement yet from joints {missing} (are the drives on and answering?)"
+            why = (
+                f"no measurement yet from {'; '.join(missing)} (are the drives on and "
+                f"answering?)"
+            )
+            self.alarms.broadcast("ALERT", f"enable refused: {why}", igtl.StatusCode.NOT_READY)
+            return why
         return ""
 
     def reset_monitors(self) -> None:
@@ -349,10 +364,7 @@ class Robot:
         elif sup.tripped and not self._supervisor_handled:
             self._supervisor_handled = True
             self.alarms.fault(f"supervisor: {sup.reason}")
-        try:
-            self._read(now)
-        except Exception as err:  # noqa: BLE001 - a driver error is a FAULT, not a crash
-            self.alarms.plugin_error("driver read", err)
+        self._read(now)
         try:
             self._streams(now)
         except Exception as err:  # noqa: BLE001
@@ -514,26 +526,39 @@ class Robot:
         return away
 
     def _read(self, now: float) -> None:
-        for drv, _idx in self.drivers:
-            if drv.state is DriverState.UNCONFIGURED or drv.state is DriverState.SHUTDOWN:
-                continue
-            drv.read(now)
+        """Every drive read (a failed one latches FAULT naming it; the others still read)."""
+        failures = self.hardware.read(now)
         self.data.measured_from(self.joints)
+        if failures is not None:
+            self.alarms.hardware_fault(failures)
 
     def _write(self, values: Sequence[float], now: float, effort: bool = False) -> None:
-        """Each active driver its slice of ``values``: position setpoints, or efforts."""
-        for drv, idx, buf in self._slices:
-            if drv.state is not DriverState.ACTIVE:
-                continue
-            for n, i in enumerate(idx):
-                buf[n] = values[i]
-            try:
-                (drv.write_effort if effort else drv.write)(buf, now)
-            except OCCError as err:
-                self.alarms.fault(f"driver {drv.name}: {err}")
-                return
+        """Every drive its slice of ``values`` (position setpoints, or efforts), or none:
+        a drive that is not ACTIVE or whose write fails latches FAULT, which powers every
+        drive off in this tick."""
+        failure = self.hardware.write(values, now, effort)
+        if failure is not None:
+            self.alarms.hardware_fault([failure])
 
     # ================================================================== state changes
+    def _effect(self, old: RobotState, new: RobotState, event: str) -> str:
+        """The hardware side of a transition, before it is committed (the state machine's
+        effector): power every drive on entering ENABLED/RUNNING/STOPPED, all or nothing
+        (a failure vetoes it and latches FAULT); off on leaving them (never refused: a drive
+        that fails to stop is latched FAULT and named in an alert); out of FAULT/ESTOP every
+        drive reset and configured, or the reset is vetoed. Returns why it failed ('' done)."""
+        hw = self.hardware
+        failures: list[HardwareFailure] = []
+        if new in POWERED and old not in POWERED:
+            failures = hw.activate()
+        elif new not in POWERED and old in POWERED:
+            stopped = hw.deactivate()
+            if stopped:
+                self.alarms.hardware_alert(stopped)
+        if new is RobotState.READY and old in (RobotState.FAULT, RobotState.ESTOP):
+            failures = hw.reset()
+        return describe(failures)
+
     def _on_transition(
         self, old: RobotState, new: RobotState, event: str, reason: str, t: float
     ) -> None:
@@ -549,20 +574,9 @@ class Robot:
             event,
             f": {reason}" if reason else "",
         )
-        # drivers follow the state: powered in ENABLED/RUNNING/STOPPED, off elsewhere
+        # the drives were powered (or not) by the effector (_effect) before the change
         if new in POWERED and old not in POWERED:
             data.hold_setpoint = list(data.q)
-            for drv, _ in self.drivers:
-                if drv.state is DriverState.INACTIVE:
-                    drv.activate()
-        elif new not in POWERED and old in POWERED:
-            for drv, _ in self.drivers:
-                if drv.state is DriverState.ACTIVE:
-                    drv.deactivate()
-        if new is RobotState.READY and old in (RobotState.FAULT, RobotState.ESTOP):
-            for drv, _ in self.drivers:
-                if drv.state is DriverState.FAULT:
-                    drv.reset()
         if new is RobotState.STOPPED or (new is RobotState.ENABLED and old is RobotState.RUNNING):
             # the last safe setpoint: what the drivers were last told (not where they lag)
             data.hold_setpoint = list(data.setpoint if old is RobotState.RUNNING else data.q)

@@ -38,6 +38,7 @@ __all__ = [
     "RobotState",
     "StateMachine",
     "Transition",
+    "TransitionFailed",
     "Watchdog",
 ]
 
@@ -359,6 +360,15 @@ class Transition:
 Listener = Callable[[RobotState, RobotState, str, str, float], None]
 
 
+#: states a failure cannot make worse (a fault there stays where it is)
+_LATCHED = frozenset({RobotState.FAULT, RobotState.ESTOP, RobotState.SHUTDOWN})
+
+
+class TransitionFailed(StateError):
+    """A transition whose effector (the hardware) or a listener failed: the robot latched
+    FAULT (or stayed where it was), and the message says why."""
+
+
 class StateMachine:
     """Robot lifecycle with latched FAULT and ESTOP.
 
@@ -382,12 +392,21 @@ class StateMachine:
     only ``reset`` leaves them (to READY, servos off). Safety code that must not raise can use
     :meth:`try_request`.
 
+    The *effector* (:meth:`set_effector`, the robot's hardware) carries a transition out
+    before it is committed: ``effector(old, new, event)`` returns '' when done, or why it could
+    not be done. A failed power-up (``enable``, or ``run`` from STOPPED) or a failed ``reset``
+    is vetoed: the state does not become the new one; instead the robot latches FAULT (or
+    stays FAULT) with that reason, and :class:`TransitionFailed` tells the requester. A
+    power-down cannot be refused: its effector does what it can and reports the rest itself.
+
     Threading: transitions are meant to happen on the loop thread (commands from interface
     threads are queued to it). A lock makes the check-and-set atomic anyway, so a stray call
     from another thread cannot corrupt the state; :attr:`state` may be read from any thread.
     Listeners ``(old, new, event, reason, time)`` run after the change, outside the lock, on
-    the requesting thread; a listener that raises is logged and does not stop the others or
-    undo the transition. ``time`` is ``clock.wall_time()`` (Unix seconds, for IGTL STATUS).
+    the requesting thread. A listener that raises does not stop the others, and is not
+    swallowed: the robot latches FAULT naming it (unless already FAULT, ESTOP or SHUTDOWN) and
+    the requester gets :class:`TransitionFailed`. ``time`` is ``clock.wall_time()`` (Unix
+    seconds, for IGTL STATUS).
     """
 
     def __init__(
@@ -401,6 +420,7 @@ class StateMachine:
         self._lock = threading.Lock()
         self._listeners: list[Listener] = []
         self._guards: list[Callable[[RobotState, str], str]] = []
+        self._effector: Callable[[RobotState, RobotState, str], str] | None = None
         self.last_reason = ""
 
     @property
@@ -411,6 +431,11 @@ class StateMachine:
         """``guard(state, event)`` returns why the event must be refused now ('' to allow):
         e.g. no enabling while a joint has never been measured."""
         self._guards.append(guard)
+
+    def set_effector(self, effector: Callable[[RobotState, RobotState, str], str]) -> None:
+        """``effector(old, new, event)`` carries out a transition before it is committed and
+        returns why it could not ('' when done); see the class docstring."""
+        self._effector = effector
 
     def add_listener(self, listener: Listener) -> None:
         self._listeners.append(listener)
@@ -439,7 +464,9 @@ class StateMachine:
         return time.time()
 
     def request(self, event: str, reason: str = "") -> Transition:
-        """Apply ``event``; raise :class:`StateError` (state unchanged) if refused."""
+        """Apply ``event``; raise :class:`StateError` (state unchanged) if refused, or
+        :class:`TransitionFailed` when the effector or a listener failed (see the class
+        docstring)."""
         name = self._normalise(event)
         with self._lock:
             old = self._state
@@ -453,22 +480,47 @@ class StateMachine:
                 why = guard(old, name)
                 if why:
                     raise StateError(f"{name!r} refused in state {old.value}: {why}")
-            self._state = new
-            if new is not old:
-                self.last_reason = reason
+            failed = ""
+            if new is not old and self._effector is not None:
+                failed = self._effector(old, new, name)
+            if not failed:
+                self._state = new
+                if new is not old:
+                    self.last_reason = reason
+        if failed:
+            # vetoed: latch FAULT with the reason (its effector powers everything off)
+            if TRANSITIONS.get((old, "fault"), old) is not old:
+                self.request("fault", f"{name} failed: {failed}")
+            raise TransitionFailed(
+                f"{name!r} failed in state {old.value}: {failed}; the robot is "
+                f"{self._state.value}"
+            )
         transition = Transition(old, new, name, reason, self._now())
         if transition.changed:
+            errors = []
             for listener in list(self._listeners):
                 try:
                     listener(old, new, name, reason, transition.time)
-                except Exception:
+                except Exception as err:  # noqa: BLE001 - every listener runs; see below
                     logger.exception("state listener %r failed on %s -> %s", listener, old, new)
+                    errors.append(f"state listener raised {type(err).__name__}: {err}")
+            if errors:
+                text = "; ".join(errors)
+                if new not in _LATCHED:
+                    self.request("fault", text)
+                raise TransitionFailed(
+                    f"{name!r}: {text}; the robot is {self._state.value}"
+                )
         return transition
 
     def try_request(self, event: str, reason: str = "") -> Transition | None:
-        """Like :meth:`request` but return None instead of raising when refused."""
+        """Like :meth:`request` but return None instead of raising when refused (for safety
+        code that must go on). A failed transition has latched FAULT already; it is logged."""
         try:
             return self.request(event, reason)
+        except TransitionFailed as err:
+            logger.error("%s", err)
+            return None
         except StateError:
             return None
 

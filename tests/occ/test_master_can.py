@@ -84,7 +84,7 @@ def test_no_enable_before_every_joint_is_measured() -> None:
     robot = build_robot(cfg, clock=SimClock())
     try:
         robot.configure()  # nothing on the bus answers
-        with pytest.raises(StateError, match=r"no measurement yet from joints \['x', 'y', 'z'\]"):
+        with pytest.raises(StateError, match=r"no measurement yet from driver hand joints \['x', 'y', 'z'\]"):
             robot.state_machine.request("enable", "test")
         assert robot.state is RobotState.READY
         axes = [DriveAxis(0x100 + i, 0x180 + i, position=p) for i, p in enumerate((0.0, 50_000.0, 20_000.0))]

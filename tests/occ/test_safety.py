@@ -17,6 +17,7 @@ from occ.safety import (
     RobotState,
     StateMachine,
     Supervisor,
+    TransitionFailed,
     Verdict,
     Watchdog,
 )
@@ -140,19 +141,66 @@ def test_unknown_event_is_a_value_error() -> None:
 
 
 @pytest.mark.req("SR-STATE-1")
-def test_failing_listener_does_not_block_transition() -> None:
+def test_a_failing_listener_runs_the_others_and_is_not_swallowed() -> None:
     sm = StateMachine(S.RUNNING)
-    seen: list[RobotState] = []
+    seen: list[tuple[RobotState, RobotState]] = []
 
-    def bad(*_args: object) -> None:
-        raise RuntimeError("listener bug")
+    def bad(old: RobotState, new: RobotState, *_args: object) -> None:
+        if new is S.STOPPED:
+            raise RuntimeError("listener bug")
 
     sm.add_listener(bad)
-    sm.add_listener(lambda old, new, *_: seen.append(new))
-    sm.request("estop", "button")
+    sm.add_listener(lambda old, new, *_: seen.append((old, new)))
+    # a stop whose listener raises: the others still run, then the robot latches FAULT
+    with pytest.raises(TransitionFailed, match=r"^'stop': state listener raised RuntimeError: "
+                       r"listener bug; the robot is FAULT$"):
+        sm.request("stop", "operator")
+    assert sm.state is S.FAULT and seen == [(S.RUNNING, S.STOPPED), (S.STOPPED, S.FAULT)]
+    assert sm.last_reason == "state listener raised RuntimeError: listener bug"
+    # already latched (ESTOP outranks): reported, the state stays
+    sm = StateMachine(S.RUNNING)
+    sm.add_listener(lambda *_: (_ for _ in ()).throw(RuntimeError("again")))
+    with pytest.raises(TransitionFailed, match="the robot is ESTOP"):
+        sm.request("estop", "button")
     assert sm.state is S.ESTOP
-    assert seen == [S.ESTOP]
-    sm.remove_listener(bad)
+    # a listener failing on the way out of ESTOP latches FAULT; try_request logs it
+    assert sm.try_request("reset") is None and sm.state is S.FAULT
+
+
+@pytest.mark.req("SR-HW-1")
+def test_an_effector_that_fails_to_power_up_vetoes_and_latches_fault() -> None:
+    sm = StateMachine(S.READY)
+    calls: list[tuple[RobotState, RobotState, str]] = []
+    fail = {"enable": "driver arm: activate failed: no power", "reset": ""}
+
+    def effector(old: RobotState, new: RobotState, event: str) -> str:
+        calls.append((old, new, event))
+        return fail.get(event, "")
+
+    sm.set_effector(effector)
+    seen: list[tuple[RobotState, RobotState, str]] = []
+    sm.add_listener(lambda old, new, event, reason, t: seen.append((old, new, reason)))
+    with pytest.raises(TransitionFailed, match=r"^'enable' failed in state READY: driver arm: "
+                       r"activate failed: no power; the robot is FAULT$"):
+        sm.request("enable")
+    assert sm.state is S.FAULT
+    # the ENABLED state was never entered: listeners saw READY -> FAULT only
+    assert seen == [(S.READY, S.FAULT, "enable failed: driver arm: activate failed: no power")]
+    assert calls == [(S.READY, S.ENABLED, "enable"), (S.READY, S.FAULT, "fault")]
+    # a reset the hardware cannot do is vetoed: the robot stays FAULT
+    fail["reset"] = "driver arm: reset failed: still no power"
+    with pytest.raises(TransitionFailed, match="'reset' failed in state FAULT: driver arm: reset"):
+        sm.request("reset")
+    assert sm.state is S.FAULT
+    fail["reset"] = ""
+    sm.request("reset")
+    assert sm.state is S.READY
+    # an accepted event that changes nothing calls no effector
+    n = len(calls)
+    sm = StateMachine(S.STOPPED)
+    sm.set_effector(effector)
+    sm.request("stop")
+    assert sm.state is S.STOPPED and len(calls) == n
 
 
 # -- watchdog ----------------------------------------------------------------------------------
