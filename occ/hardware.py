@@ -131,6 +131,7 @@ class HardwareSet:
             except Exception as err:  # noqa: BLE001
                 failures.append(HardwareFailure(d.name, "activate", _cause(err)))
         if failures:
+            self._detected()
             self.deactivate()  # the ones that came up go off again: all or nothing
         return self._count(failures)
 

@@ -167,7 +167,7 @@ def test_a_failing_listener_runs_the_others_and_is_not_swallowed() -> None:
     assert sm.try_request("reset") is None and sm.state is S.FAULT
 
 
-@pytest.mark.req("SR-HW-1")
+@pytest.mark.req("SR-HW-2")
 def test_an_effector_that_fails_to_power_up_vetoes_and_latches_fault() -> None:
     sm = StateMachine(S.READY)
     calls: list[tuple[RobotState, RobotState, str]] = []
