@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import igtl
+
 from .clock import SimClock
 from .config import DaemonConfig
 from .drivers.base import DriverState
@@ -185,10 +187,15 @@ class _Run:
             d.state is not DriverState.ACTIVE for d in r.hardware.drivers
         ):
             self.partial_ticks += 1
-        if node is not None and self.sync and r.state in (
-            RobotState.ENABLED,
-            RobotState.RUNNING,
-            RobotState.STOPPED,
+        if (
+            node is not None
+            and self.sync
+            and r.state
+            in (
+                RobotState.ENABLED,
+                RobotState.RUNNING,
+                RobotState.STOPPED,
+            )
         ):
             node.wait_feedback(before + 1, timeout=1.0)
 
@@ -205,7 +212,9 @@ class _Run:
         texts = [
             m.status_message
             for m in peer.messages("STATUS")[after:]
-            if m.error_name.upper() in ("FAULT", "ALERT") and "tool" in m.status_message
+            if isinstance(m, igtl.StatusMessage)
+            and m.error_name.upper() in ("FAULT", "ALERT")
+            and "tool" in m.status_message
         ]
         return texts[0] if texts else ""
 
@@ -312,9 +321,7 @@ def _play(run: _Run, out: Outcome) -> None:
         run.tick(stream=True)
     out.recovered = ok and ok2 and robot.state is RobotState.RUNNING
     if not out.recovered:
-        out.notes.append(
-            f"after repair: {text}; {text2}; {robot.state.value} ({robot.last_alert})"
-        )
+        out.notes.append(f"after repair: {text}; {text2}; {robot.state.value} ({robot.last_alert})")
 
 
 def table(outcomes: list[Outcome]) -> str:

@@ -42,8 +42,8 @@ from .collab import Collaboration
 from .config import DaemonConfig
 from .controllers import Controller, ControllerContext, ControllerSet, create_controller
 from .data import RobotData
-from .hardware import HardwareFailure, HardwareSet, describe
 from .errors import CommandError, ConfigError
+from .hardware import HardwareFailure, HardwareSet, describe
 from .interfaces import Inbound, InterfaceManager
 from .loop import ControlLoop
 from .operators import OperatorDesk
@@ -332,10 +332,7 @@ class Robot:
             if names:
                 missing.append(f"driver {drv.name} joints {names}")
         if missing:
-            why = (
-                f"no measurement yet from {'; '.join(missing)} (are the drives on and "
-                f"answering?)"
-            )
+            why = f"no measurement yet from {'; '.join(missing)} (are the drives on and answering?)"
             self.alarms.broadcast("ALERT", f"enable refused: {why}", igtl.StatusCode.NOT_READY)
             return why
         return ""

@@ -492,8 +492,7 @@ class StateMachine:
             if TRANSITIONS.get((old, "fault"), old) is not old:
                 self.request("fault", f"{name} failed: {failed}")
             raise TransitionFailed(
-                f"{name!r} failed in state {old.value}: {failed}; the robot is "
-                f"{self._state.value}"
+                f"{name!r} failed in state {old.value}: {failed}; the robot is {self._state.value}"
             )
         transition = Transition(old, new, name, reason, self._now())
         if transition.changed:
@@ -508,9 +507,7 @@ class StateMachine:
                 text = "; ".join(errors)
                 if new not in _LATCHED:
                     self.request("fault", text)
-                raise TransitionFailed(
-                    f"{name!r}: {text}; the robot is {self._state.value}"
-                )
+                raise TransitionFailed(f"{name!r}: {text}; the robot is {self._state.value}")
         return transition
 
     def try_request(self, event: str, reason: str = "") -> Transition | None:

@@ -55,6 +55,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pydantic.main  # noqa: F401 - mypyc: the module its run-time BaseModel checks look up
+from mypy_extensions import mypyc_attr
 from pydantic import BaseModel
 
 from igtl.messages.base import Message
@@ -101,6 +102,7 @@ def _interfaces_exist(params: Any, config: DaemonConfig, keys: tuple[str, ...]) 
     return out
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins extend built-ins
 class MasterController(Controller):
     """The master side of the OCC pair: the handle follows the operator (simulated, an IGTL
     stream or a hand-moved device), virtual fixtures push back on it, and its position streams
@@ -431,6 +433,7 @@ def _mm(p: Sequence[float] | None) -> list[float] | None:
     return None if p is None else [round(float(v) / MM, 6) for v in p]
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins extend built-ins
 class SlaveController(Controller):
     """The slave side of the OCC pair: follows the master's POSITION stream, scaled and
     re-indexed so it never jumps; the base pose from the config or a tracker."""

@@ -127,6 +127,9 @@ _DEFAULTS: dict[str, Any] = {
 #: the error class bits of a SocketCAN error frame's identifier (linux/can/error.h)
 CAN_ERR_BUSOFF = 0x40
 CAN_ERR_MASK = 0x1FFFFFFF
+#: the socket option that lets error frames through (linux/can/raw.h; the socket module
+#: has it, typeshed does not)
+CAN_RAW_ERR_FILTER = 2
 #: the window over which ``error_frames`` are counted, s
 ERROR_WINDOW = 0.1
 
@@ -257,7 +260,7 @@ class CANDriver(Driver):
             )
             try:
                 sock.setsockopt(
-                    _socket.SOL_CAN_RAW, _socket.CAN_RAW_ERR_FILTER, struct.pack("=I", CAN_ERR_MASK)
+                    _socket.SOL_CAN_RAW, CAN_RAW_ERR_FILTER, struct.pack("=I", CAN_ERR_MASK)
                 )
             except (OSError, AttributeError) as err:
                 logger.warning("can driver %s: error frames not enabled: %s", self.name, err)

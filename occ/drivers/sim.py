@@ -88,6 +88,8 @@ import random
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from mypy_extensions import mypyc_attr
+
 from occ.drivers.base import CommandInterface, Driver, LimitPolicy
 from occ.errors import DriverError, caused
 from occ.joint import Joint
@@ -147,6 +149,7 @@ def _per_joint(
         raise caused(ValueError(f"sim param {key!r}: not a number: {value!r}"), err) from err
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins extend built-ins
 class SimDriver(Driver):
     """Simulated joints (see the module docstring for the model and the parameters)."""
 
