@@ -51,9 +51,11 @@ def test_can_master_streams_hand_motion() -> None:
             robot.state_machine.request("run")
             robot.loop.run_in_thread(duration=3.0)
             assert _wait(lambda: len(sent) > 20, 2.0)
-            # the operator pushes the handle 12 mm along x (the drive reports it)
-            axes[0].position = 12_000.0
-            axes[0].target = 12_000.0
+            # the operator pushes the handle 12 mm along x (the drive reports it), at a hand's
+            # speed: a 12 mm teleport in one period is a feedback jump (the driver faults)
+            for step in range(1, 61):
+                axes[0].position = axes[0].target = 200.0 * step
+                time.sleep(0.001)
             assert _wait(lambda: abs(sent[-1].position[0] - robot.controller.controllers[0].origin[0] * 1e3 - 12.0) < 0.05, 2.0), sent[-1]
             assert robot.state is RobotState.RUNNING
         finally:
