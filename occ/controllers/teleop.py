@@ -24,15 +24,20 @@ Master daemon (:class:`MasterController`)
     Virtual fixtures (:mod:`occ.fixtures`, :mod:`occ.fixture_defs`, :mod:`occ.haptics`): the
     OCC paper's accessible spheres (the default meaning of VFIXTURE), forbidden spheres and
     planes, guides; defined by VFIXTURE, Slicer Markups (POINT, TRANSFORM and POLYDATA with
-    metadata) and ``.mrk.json`` files (``fixture_files``), in the master's frame or the
-    patient's (mapped through the slave's registration, ``scale`` and the clutch offsets). Each
-    tick the force for the measured tool position is computed (a proxy per contact, clamped to
-    ``max_force_n``); with ``force_output`` it is written to the master's effort command
-    interfaces (a haptic master: ``sim-hand``, or ``can`` with ``command_interface: effort``),
-    so the operator's hand feels it; position-commanded masters (``sim``, ``igtl``) report it
-    only. ``tool_mm`` and ``force_n`` are in the stats; the output sources ``fixtures``
-    (POLYDATA models, on change and on ``GetFixtures``) and ``contact`` (the proxy, while in
-    contact and once after) show them in 3D Slicer.
+    metadata) and ``.mrk.json`` files (``fixture_files``), all in the patient frame (3D
+    Slicer's RAS, the frame of the slave's ``Tip``). The tool is where the slave measures it:
+    its tip, sent back on the stream link at the stream rate (``SlaveTip``,
+    :mod:`occ.returnlink`), judged by a loss monitor (late: the force fades out; lost: zero
+    and an alert). Fixtures and tool are mapped into the master's force frame by the slave's
+    own ``map`` (its base rotation x scale x rotation), so the clutch, re-indexing and a
+    hand-over change nothing; a new tip gives a new force (a proxy per contact, clamped to
+    ``max_force_n``), displayed while the slave follows this master. With ``force_output`` it
+    is written to the master's effort command interfaces (a haptic master: ``sim-hand``, or
+    ``can`` with ``command_interface: effort``), so the operator's hand feels it;
+    position-commanded masters (``sim``, ``igtl``) report it only. ``tool_mm`` (patient) and
+    ``force_n`` are in the stats with the return link's state (``slave_tip``); the output
+    sources ``fixtures`` (POLYDATA models, on change and on ``GetFixtures``) and ``contact``
+    (the proxy, while in contact and once after) show them in 3D Slicer.
 
 Slave daemon (:class:`SlaveController`)
     Follows the master's POSITION stream: ``target = slave_ref + scale · R · (master - master_ref)``
@@ -105,8 +110,10 @@ def _interfaces_exist(params: Any, config: DaemonConfig, keys: tuple[str, ...]) 
 
 class MasterController(Controller):
     """The master side of the OCC pair: the handle follows the operator (simulated, an IGTL
-    stream or a hand-moved device), virtual fixtures push back on it, and its position streams
-    to the slave at 500 Hz (output source ``teleop``)."""
+    stream or a hand-moved device), and its position streams to the slave at 500 Hz (output
+    source ``teleop``). Virtual fixtures (patient frame) push back on it, with the force where
+    the slave's tool is: the slave's measured tip, sent back on the same link (``SlaveTip``,
+    the return channel)."""
 
     name = "teleop-master"
     Params = MasterParams
@@ -564,7 +571,9 @@ def _mm(p: Sequence[float] | None) -> list[float] | None:
 
 class SlaveController(Controller):
     """The slave side of the OCC pair: follows the master's POSITION stream, scaled and
-    re-indexed so it never jumps; the base pose from the config or a tracker."""
+    re-indexed so it never jumps; the base pose from the config or a tracker. Output source
+    ``teleop-return``: its tip (patient frame, as 3D Slicer's ``Tip``) back to the master at the
+    stream rate, the tool of the master's virtual fixtures (occ/returnlink.py)."""
 
     name = "teleop-slave"
     Params = SlaveParams

@@ -48,8 +48,9 @@ class MasterParams(_Params):
     clutch: Bool = Field(False, description="Clutch pressed at start.")
     fixture_radius_mm: PosFloat = Field(
         5.0,
-        description="Radius of the sphere around each Markups point received as POINT (used "
-        "when neither the point nor the metadata `radius` gives one, as 3D Slicer sends them).",
+        description="Radius (patient mm) of the sphere around each Markups point received as "
+        "POINT (used when neither the point nor the metadata `radius` gives one, as 3D Slicer "
+        "sends them).",
     )
     fixture_hardness: Annotated[Float, Field(ge=0)] = Field(
         1.0,
@@ -94,11 +95,14 @@ class MasterParams(_Params):
     )
     scale: Annotated[Float, Field(gt=0, le=10)] = Field(
         0.1,
-        description="The slave's motion scaling (its `scale`): patient fixtures are mapped "
-        "onto the master through it.",
+        description="The slave's motion scaling (its `scale`): maps patient fixtures onto the "
+        "master only for a slave that does not send its `map` on the return channel (the "
+        "shipped slave does).",
     )
     rotation: tuple[Vec3, Vec3, Vec3] | None = Field(
-        None, description="The slave's master-to-slave rotation (its `rotation`); null = identity."
+        None,
+        description="The slave's master-to-slave rotation (its `rotation`; null = identity): "
+        "used as `scale` is.",
     )
     slave_base_device: DeviceName = Field(
         "Base",
