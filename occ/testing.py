@@ -276,8 +276,9 @@ class SlaveTipFeed:
         return self.patient(self.handle_mm())
 
     def send(self) -> None:
-        self.seq += 1
+        """One sample (none while ``paused``: a sender that stopped sends no numbers)."""
         if not self.paused:
+            self.seq += 1
             self.peer.send_tip(
                 self.tip(), seq=self.seq, following=self.following, linear=self.linear
             )
