@@ -258,9 +258,7 @@ class SlaveTipFeed:
         self.seq = 0
         self.following = True
         self.paused = False
-        self.linear = ",".join(
-            f"{scale if i == j else 0.0:g}" for i in range(3) for j in range(3)
-        )
+        self.linear = ",".join(f"{scale if i == j else 0.0:g}" for i in range(3) for j in range(3))
 
     def handle_mm(self) -> tuple[float, float, float]:
         r = self.sim.robot

@@ -73,7 +73,10 @@ class Client:
         self._lock = threading.Lock()
         self._id = 0
         self.client = TCPClient(
-            "127.0.0.1", port, on_message=self._on_message, on_connect=self._on_connect,
+            "127.0.0.1",
+            port,
+            on_message=self._on_message,
+            on_connect=self._on_connect,
             name=f"e2e-{port}",
         )
 
@@ -103,10 +106,16 @@ class Client:
         self._id += 1
         while not self.replies.empty():
             self.replies.get_nowait()
-        self.client.send(igtl.CommandMessage(
-            command_id=self._id, command_name="GetStats",
-            command='<Command Name="GetStats" Format="json"/>', device_name="command",
-            header_version=2, metadata={"MRMLNodeName": "CommandNode"}))
+        self.client.send(
+            igtl.CommandMessage(
+                command_id=self._id,
+                command_name="GetStats",
+                command='<Command Name="GetStats" Format="json"/>',
+                device_name="command",
+                header_version=2,
+                metadata={"MRMLNodeName": "CommandNode"},
+            )
+        )
         end = time.monotonic() + timeout
         while time.monotonic() < end:
             try:
@@ -121,15 +130,17 @@ class Client:
         self.client.send(msg)
 
 
-def point_list(centre: tuple[float, float, float], radius: float,
-               stiffness: float | None = None) -> igtl.Message:
+def point_list(
+    centre: tuple[float, float, float], radius: float, stiffness: float | None = None
+) -> igtl.Message:
     """One Markups control point as SlicerOpenIGTLink sends a point list (POINT, v2,
     MRMLNodeName), its radius on the element; ``stiffness`` as a node attribute."""
     meta = {"MRMLNodeName": "Target"}
     if stiffness is not None:
         meta["stiffness"] = str(stiffness)
-    el = PointElement(name="Target-1", group="Fiducial", rgba=(255, 0, 0, 255),
-                      position=centre, radius=radius)
+    el = PointElement(
+        name="Target-1", group="Fiducial", rgba=(255, 0, 0, 255), position=centre, radius=radius
+    )
     return igtl.PointMessage(points=(el,), device_name="Target", header_version=2, metadata=meta)
 
 
@@ -143,8 +154,9 @@ def controller_stats(snap: dict[str, Any]) -> dict[str, Any]:
     return ctrl  # type: ignore[no-any-return]
 
 
-def run(slave_cfg: Path, master_cfg: Path, seconds: float, stiffness: float,
-        out_dir: Path) -> dict[str, Any]:
+def run(
+    slave_cfg: Path, master_cfg: Path, seconds: float, stiffness: float, out_dir: Path
+) -> dict[str, Any]:
     sp, mp = ports(slave_cfg), ports(master_cfg)
     slicer_port, master_port = sp["slicer"], mp["operator"]
     report: dict[str, Any] = {"ports": {"slicer": slicer_port, "master": master_port}}
@@ -153,8 +165,20 @@ def run(slave_cfg: Path, master_cfg: Path, seconds: float, stiffness: float,
     def start(cfg: Path, name: str) -> subprocess.Popen[bytes]:
         log = (out_dir / f"{name}.log").open("wb")
         return subprocess.Popen(
-            [sys.executable, "-m", "occ.cli", str(cfg), "--start", "running",
-             "--log-level", "WARNING"], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+            [
+                sys.executable,
+                "-m",
+                "occ.cli",
+                str(cfg),
+                "--start",
+                "running",
+                "--log-level",
+                "WARNING",
+            ],
+            cwd=ROOT,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
 
     slicer = Client(slicer_port)
     master = Client(master_port)
@@ -193,14 +217,16 @@ def run(slave_cfg: Path, master_cfg: Path, seconds: float, stiffness: float,
         while time.monotonic() - t0 < seconds:
             st = controller_stats(master.stats())
             now_tip = slicer.tip()
-            samples.append({
-                "t": round(time.monotonic() - t0, 3),
-                "force_n": st["force_n"],
-                "tool_mm": st["tool_mm"],
-                "slicer_tip_mm": None if now_tip is None else now_tip[1],
-                "tip_status": (st.get("slave_tip") or {}).get("status"),
-                "fixtures": st["fixtures"],
-            })
+            samples.append(
+                {
+                    "t": round(time.monotonic() - t0, 3),
+                    "force_n": st["force_n"],
+                    "tool_mm": st["tool_mm"],
+                    "slicer_tip_mm": None if now_tip is None else now_tip[1],
+                    "tip_status": (st.get("slave_tip") or {}).get("status"),
+                    "fixtures": st["fixtures"],
+                }
+            )
             time.sleep(0.1)
         st = controller_stats(master.stats())
         report["inside"] = {
@@ -219,12 +245,18 @@ def run(slave_cfg: Path, master_cfg: Path, seconds: float, stiffness: float,
             rows = []
             for _ in range(15):
                 st = controller_stats(master.stats())
-                rows.append({"tool_mm": st["tool_mm"], "force_n": st["force_n"],
-                             "gain": st["fixture_gain"]})
+                rows.append(
+                    {"tool_mm": st["tool_mm"], "force_n": st["force_n"], "gain": st["fixture_gain"]}
+                )
                 time.sleep(0.1)
-            report[label] = {"centre_mm": centre, "radius_mm": 20.0, "stiffness": k,
-                             "scale": st["fixture_map"]["scale"], "rows": rows,
-                             "max_force_n": st["max_force_n"] if "max_force_n" in st else 10.0}
+            report[label] = {
+                "centre_mm": centre,
+                "radius_mm": 20.0,
+                "stiffness": k,
+                "scale": st["fixture_map"]["scale"],
+                "rows": rows,
+                "max_force_n": st["max_force_n"] if "max_force_n" in st else 10.0,
+            }
         report["slave_tip"] = controller_stats(master.stats())["slave_tip"]
         report["master_statuses"] = master.statuses[-10:]
     finally:
@@ -236,13 +268,18 @@ def run(slave_cfg: Path, master_cfg: Path, seconds: float, stiffness: float,
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--slave", type=Path, default=ROOT / "configs" / "slave.yaml")
     p.add_argument("--master", type=Path, default=ROOT / "configs" / "master.yaml")
     p.add_argument("--seconds", type=float, default=10.0, help="the motion watched (10: a lap)")
-    p.add_argument("--stiffness", type=float, default=0.02,
-                   help="N per mm of master motion for the sphere 20 mm away")
+    p.add_argument(
+        "--stiffness",
+        type=float,
+        default=0.02,
+        help="N per mm of master motion for the sphere 20 mm away",
+    )
     p.add_argument("--lo-up", action="store_true", help="bring the loopback interface up first")
     p.add_argument("--out-dir", type=Path, default=Path("."), help="the daemons' logs")
     p.add_argument("--json", type=Path, default=None, help="write the report here")

@@ -116,7 +116,11 @@ def run(
             centre = tuple(
                 (b + sr + scontrol.scale * ((o + c) * 1e-3 - mr)) * 1000.0
                 for b, sr, mr, o, c in zip(
-                    base, scontrol.slave_ref, scontrol.master_ref, origin, sphere[:3],
+                    base,
+                    scontrol.slave_ref,
+                    scontrol.master_ref,
+                    origin,
+                    sphere[:3],
                     strict=True,
                 )
             )
