@@ -435,7 +435,8 @@ class InterfaceConfig(_Model):
     remote: Remote | None = Field(
         None,
         description="`host:port` to connect to (required for tcp-client) or, for udp, "
-        "the send target.",
+        "the send target; a udp interface without one sends its outputs to its stream's "
+        "owner (a slave's return channel to its master).",
     )
     allowed_peers: tuple[IPvAnyNetwork, ...] = Field(
         (ipaddress.ip_network("127.0.0.1"),),

@@ -218,6 +218,7 @@ class Robot:
                 period_s=self.loop.period_s,
                 shift=self.loop.shift,
                 joint_limits=tuple(j.limits for j in self.joints),
+                alert=self.alarms.broadcast,
             ),
         )
         self._check_command_kinds()

@@ -107,7 +107,7 @@ def test_can_haptic_master_gets_the_fixture_force_on_its_effort_interface() -> N
     drive node): the fixture force computed each tick goes out as effort frames (mode 2,
     mN), zero while only ENABLED."""
     from occ.drivers.can import MODE_EFFORT
-    from occ.testing import SimRobot
+    from occ.testing import SimRobot, SlaveTipFeed
 
     channel = f"occ-test-{time.monotonic_ns()}"
     cfg = load_config(ROOT / "configs" / "master.yaml")
@@ -136,18 +136,21 @@ def test_can_haptic_master_gets_the_fixture_force_on_its_effort_interface() -> N
 
             assert node.wait_feedback(3, timeout=5.0)
             sim.step(1)
+            feed = SlaveTipFeed(sim)  # the slave's tip: 0.1 x the handle (patient frame)
             op.send_command("Enable")
-            sim.step(1)
+            feed.step(1)
             assert sim.robot.state is RobotState.ENABLED
             handle = [v * 1e3 for v in sim.robot.frame.tip_position(sim.robot.data.q)]
+            # 4 mm of the handle to the tool's +x, 10 mm of the handle in radius
+            centre = feed.patient((handle[0] + 4.0, handle[1], handle[2]))
             op.send(igtl.VirtualFixtureMessage(
-                hardness=0.5, spheres=((handle[0] + 4.0, handle[1], handle[2], 10.0),),
+                hardness=0.5, spheres=((*centre, 1.0),),
                 device_name="VF", header_version=2, metadata={"kind": "forbidden"}))
-            sim.step(5)
+            feed.step(5)
             settle()
             assert [a.mode for a in axes] == [MODE_EFFORT] * 3 and [a.effort for a in axes] == [0, 0, 0]
             op.send_command("Run")
-            sim.step(1)
+            feed.step(21)  # the force fades in within tip_fade_ms (20 ms)
             settle()
             assert sim.robot.state is RobotState.RUNNING
             # 6 mm deep at 0.5 N/mm: -3 N along x, as -3000 mN
