@@ -65,12 +65,12 @@ class Alarms:
         """Act on the loss monitor: only while RUNNING does the stream move the robot, so only
         then is its loss an alert (before Run, or while stopped, it is only counted)."""
         r = self.robot
-        where = f"stream {r.loss_input}"
+        where = f"stream {r.streams.input}"
         if state is not RobotState.RUNNING:
             log.debug("%s: %s (%s, not acted on in %s)", where, event.kind, event.cause, state)
             return
         if event.kind == "latch":
-            self.safety_stop(f"packet loss on {r.loss_input}: {event.cause}", r.loss_policy)
+            self.safety_stop(f"packet loss on {r.streams.input}: {event.cause}", r.streams.policy)
         elif event.kind == "hold":
             log.info("%s: %s", where, event.cause)
         else:  # resume, refused: keep following, tell the operators
@@ -85,7 +85,7 @@ class Alarms:
         the monitor re-arms (its master may come back and be handed control later); the
         others are logged and, like the owner's, told as a ``STREAM`` warning."""
         r = self.robot
-        owner = r.loss_input
+        owner = r.streams.input
         if state is not RobotState.RUNNING:
             log.debug(
                 "stream %s: %s (%s, not acted on in %s)", name, event.kind, event.cause, state

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from .drivers.base import Driver, DriverState
+from .joint import Joint
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +89,17 @@ class HardwareSet:
             for d in self.drivers
             if d.state is DriverState.FAULT
         ]
+
+    def unmeasured(self, joints: Sequence[Joint]) -> str:
+        """The drives whose joints have never been measured, named with those joints ('' when
+        every joint has been): the robot may not power them (it would hold a position nobody
+        reported)."""
+        missing = []
+        for d, idx in self.pairs:
+            names = [joints[i].name for i in idx if not joints[i].measured]
+            if names:
+                missing.append(f"driver {d.name} joints {names}")
+        return "; ".join(missing)
 
     def all_safe(self) -> bool:
         return all(d.state in SAFE for d in self.drivers)

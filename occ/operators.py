@@ -386,14 +386,14 @@ class OperatorDesk:
             "tripped": r.supervisor.tripped,
             "thread": r.supervisor_thread.report if r.supervisor_thread else None,
         }
-        snap["reentries"] = r.reentries
+        snap["reentries"] = r.motion.reentries
         snap["last_alert"] = r.last_alert
-        if r.loss_monitor is not None:
-            snap["loss"] = r.loss_monitor.counters()
+        if r.streams.monitor is not None:
+            snap["loss"] = r.streams.monitor.counters()
         if r.collab is not None:
             snap["owner"] = r.collab.owner
             snap["collaboration"] = r.collab.stats()
-            snap["loss_by_stream"] = {n: m.counters() for n, m in r.loss_monitors.items()}
+            snap["loss_by_stream"] = {n: m.counters() for n, m in r.streams.monitors.items()}
         if r.state_table is not None:
             snap["state_table"] = r.state_table.stats()
         snap["controller"] = r.controller.stats()

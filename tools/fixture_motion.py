@@ -96,7 +96,7 @@ def run(
         ctrl = master.robot.controller.controllers[0]
         scontrol = slave.robot.controller.controllers[0]
         origin = [v * 1000.0 for v in ctrl.origin]
-        hand = master.robot.drivers[0][0]
+        hand = master.robot.hardware.drivers[0]
 
         def both(n: int) -> None:
             for _ in range(n):

@@ -656,10 +656,10 @@ class ControllerRun:
         return [j.command_position for j in self.robot.joints]
 
     def driver_writes(self) -> int:
-        return sum(d.stats()["writes"] for d, _ in self.robot.drivers)
+        return sum(d.stats()["writes"] for d in self.robot.hardware.drivers)
 
     def limit_events(self) -> int:
-        return sum(d.stats()["limit_events"] for d, _ in self.robot.drivers)
+        return sum(d.stats()["limit_events"] for d in self.robot.hardware.drivers)
 
     def close(self) -> None:
         self.sim.close()

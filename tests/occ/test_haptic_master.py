@@ -34,7 +34,7 @@ class Master:
                             recorder=recorder)
         self.robot = self.sim.robot
         self.ctrl = self.robot.controller.controllers[0]
-        self.hand = self.robot.drivers[0][0]
+        self.hand = self.robot.hardware.drivers[0]
         self.op = self.sim.peer("operator", address=("127.0.0.1", 41000))
         self.sim.step(1)  # the master's first output: its slave link is known
         self.feed = SlaveTipFeed(self.sim)

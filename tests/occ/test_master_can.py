@@ -63,7 +63,7 @@ def test_can_master_streams_hand_motion() -> None:
             robot.loop.join(5.0)
             robot.shutdown()
             slave.close()
-    assert robot.drivers[0][0].stats()["errors"] == 0
+    assert robot.hardware.drivers[0].stats()["errors"] == 0
 
 
 def test_no_enable_before_every_joint_is_measured() -> None:
@@ -128,7 +128,7 @@ def test_can_haptic_master_gets_the_fixture_force_on_its_effort_interface() -> N
         sim = SimRobot(cfg)
         box["sim"] = sim
         try:
-            drv = sim.robot.drivers[0][0]
+            drv = sim.robot.hardware.drivers[0]
             op = sim.peer("operator", address=("127.0.0.1", 41000))
 
             def settle() -> None:  # every frame the driver sent so far handled by the node

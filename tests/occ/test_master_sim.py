@@ -137,7 +137,7 @@ def test_clutch_travels_with_the_stream(master: SimMaster) -> None:
 
 
 def hand(master: SimMaster):
-    return master.robot.drivers[0][0]
+    return master.robot.hardware.drivers[0]
 
 
 def test_forbidden_sphere_pushes_the_hand_out_and_reports_force(master: SimMaster) -> None:

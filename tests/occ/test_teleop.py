@@ -590,10 +590,10 @@ def test_a_re_entry_ramp_after_a_late_stream_finishes_when_the_master_lets_go(
     the slave was given, not where it happened to be."""
     rig.running()
     before = rig.tip_mm()
-    reentries = rig.robot.reentries
+    reentries = rig.robot.motion.reentries
     for _ in range(12):  # 12 ms without a sample: the loss monitor holds
         rig.sim.tick()
-    assert rig.robot.loss_monitor.holding and rig.robot.state is RobotState.RUNNING
+    assert rig.robot.streams.monitor.holding and rig.robot.state is RobotState.RUNNING
     rig.pos[0] += 20.0  # 2 mm of the slave's tip at the configured scale
     rig.step(4)
     mid = rig.tip_mm() - before
@@ -602,7 +602,7 @@ def test_a_re_entry_ramp_after_a_late_stream_finishes_when_the_master_lets_go(
         setattr(rig, flag, True if flag == "clutch" else False)
     rig.step(300)
     assert (rig.tip_mm() - before).tolist() == pytest.approx([2.0, 0.0, 0.0], abs=1e-6)
-    assert rig.robot.reentries == reentries + 1
+    assert rig.robot.motion.reentries == reentries + 1
 
 
 def test_the_tick_that_stops_the_master_keeps_its_fixture_work_budget(master: Master) -> None:
