@@ -96,7 +96,8 @@ class Robot:
         )
 
         # --- Safety
-        self.alarms = Alarms(self)
+        ports = (self.interfaces.broadcast_operators, self.hardware, self.streams, recorder)
+        self.alarms = Alarms(self.name, self.state_machine, self.clock, *ports)
         wd = config.safety.watchdog
         self.watchdog = build_watchdog(
             wd,
@@ -116,7 +117,6 @@ class Robot:
             config.state_table.seconds, self.joints, self.rate_hz, self.frame
         )
         self._owner_code = float(self.collab.code()) if self.collab is not None else -1.0
-
         # --- Loop and statistics
         self.stats = LoopStats(self.rate_hz, budget_s=wd.budget_us * 1e-6)
         for name, iface in self.interfaces.interfaces.items():
@@ -222,6 +222,11 @@ class Robot:
     def stop_loop(self) -> None:
         self.loop.stop()
 
+    def __enter__(self) -> Robot:
+        self.configure()
+        self.activate()
+        return self
+
     def shutdown(self) -> None:
         """Stop drivers safely, close interfaces. Safe to call twice."""
         if self._shutdown_done:
@@ -235,11 +240,6 @@ class Robot:
         self.hardware.shutdown()
         self.interfaces.stop()
         self.worker.stop()
-
-    def __enter__(self) -> Robot:
-        self.configure()
-        self.activate()
-        return self
 
     def __exit__(self, *exc: object) -> None:
         self.shutdown()
