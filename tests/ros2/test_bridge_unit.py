@@ -103,6 +103,6 @@ def test_commands_without_an_operator_port_are_refused_with_a_reply(
             return len(got) >= 2
 
         assert poll(two_replies)
-    assert got[0].data.startswith("Enable FAIL: no operator interface")
+    assert got[0].data.startswith("enable FAIL: no operator interface")
     assert got[1].data == "rm -rf FAIL: not a command name"
     assert bridge.stats()[namespace]["commands_refused"] == 2
