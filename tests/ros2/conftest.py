@@ -56,3 +56,15 @@ def namespace(request: pytest.FixtureRequest) -> str:
     """A namespace no other test or run uses."""
     name = "".join(c if c.isalnum() else "_" for c in request.node.name)[:24]
     return f"/occtest{os.getpid()}_{name}/slave"
+
+
+@pytest.fixture
+def netns() -> Iterator[Any]:
+    """A private network namespace (netns.py) for a test that runs real ROS 2 nodes; skipped
+    without rclpy or root, failed instead in CI (rig.require)."""
+    from .netns import Netns
+    from .rig import require
+
+    require()
+    with Netns() as ns:
+        yield ns

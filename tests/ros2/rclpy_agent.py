@@ -11,7 +11,8 @@ stdin and answers each with one JSON line on stdout:
 - ``{"op": "snapshot"}``: what arrived so far (receive times on this process's monotonic
   clock, seconds since the agent started; header stamps; frames; replies);
 - ``{"op": "publish", "data": "enable"}``: one std_msgs/String on ``NAMESPACE/command``;
-- ``{"op": "matched"}``: how many subscriptions the command publisher has matched;
+- ``{"op": "matched"}``: how many subscriptions the command publisher has matched, and how
+  many publishers of ``command_reply`` this node's graph knows;
 - ``{"op": "graph"}``: the publishers of ``NAMESPACE/measured_cp`` as this node's graph sees
   them (type name and the type hash from their USER_DATA), and this node's own hash of the type;
 - ``{"op": "exit"}``.
@@ -117,7 +118,8 @@ def main() -> int:
             command.publish(String(data=str(req["data"])))
             answer({"t": now(), "published": req["data"]})
         elif op == "matched":
-            answer({"t": now(), "matched": command.get_subscription_count()})
+            answer({"t": now(), "matched": command.get_subscription_count(),
+                    "reply_publishers": node.count_publishers(f"{ns}/command_reply")})  # fmt: skip
         elif op == "graph":
 
             def infos(topic: str) -> list[dict[str, str]]:

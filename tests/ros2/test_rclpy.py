@@ -20,138 +20,19 @@ In CI (OCC_REQUIRE_INTEROP=1) a missing rclpy or a machine without namespaces fa
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from .netns import Netns, available, wait_until
+from .netns import Netns, wait_until
+from .rig import NS, Rig
+from .rig import clean_env as _env
 
-ROOT = Path(__file__).resolve().parents[2]
-HERE = Path(__file__).resolve().parent
-NS = "/occ/slave"
 TIP_RATE_HZ = 10.0  # configs/slave.yaml: the viewer's Tip output
 
 pytestmark = [pytest.mark.interop, pytest.mark.realtime]
-
-
-def _require() -> None:
-    import importlib.util
-
-    missing = [
-        name
-        for name in ("rclpy", "geometry_msgs", "sensor_msgs", "std_msgs", "cyclonedds")
-        if importlib.util.find_spec(name) is None
-    ]
-    why = available()
-    problem = f"missing {', '.join(missing)} (pip install -e .[test])" if missing else why
-    if problem is None:
-        return
-    if os.environ.get("OCC_REQUIRE_INTEROP") == "1":
-        pytest.fail(f"a real ROS 2 node is required here (OCC_REQUIRE_INTEROP=1): {problem}")
-    pytest.skip(problem)
-
-
-@pytest.fixture
-def netns() -> Iterator[Netns]:
-    _require()
-    with Netns() as ns:
-        yield ns
-
-
-def _env(**extra: str) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("ROS_", "RMW_", "CYCLONE"))}
-    env["ROS_DOMAIN_ID"] = "0"
-    env.update(extra)
-    return env
-
-
-class Rig:
-    """The daemon, the bridge and the node in one namespace, each restartable."""
-
-    def __init__(self, ns: Netns, tmp: Path, node_env: dict[str, str]) -> None:
-        self.ns, self.tmp, self.node_env = ns, tmp, node_env
-        self.daemon: subprocess.Popen[Any] | None = None
-        self.bridge: subprocess.Popen[Any] | None = None
-        self.node: subprocess.Popen[Any] | None = None
-        self.bridge_runs = 0
-
-    # -------------------------------------------------------------- daemon
-    def start_daemon(self, config: Path = ROOT / "configs" / "slave.yaml") -> None:
-        self.daemon = self.ns.popen(
-            [sys.executable, "-m", "occ.cli", str(config), "--log-level", "WARNING"],
-            cwd=ROOT, env=_env(),
-        )  # fmt: skip
-        wait = (
-            "import socket,time,sys\n"
-            "end=time.monotonic()+30\n"
-            "while time.monotonic()<end:\n"
-            "    s=socket.socket(); s.settimeout(0.2)\n"
-            "    ok=s.connect_ex(('127.0.0.1',int(sys.argv[1])))==0; s.close()\n"
-            "    if ok: sys.exit(0)\n"
-            "    time.sleep(0.05)\n"
-            "sys.exit(1)\n"
-        )
-        for port in ("18944", "18947"):
-            self.ns.run([sys.executable, "-c", wait, port], timeout=35.0)
-
-    # -------------------------------------------------------------- bridge
-    def start_bridge(self, *extra: str) -> None:
-        self.bridge_runs += 1
-        self.bridge = self.ns.popen(
-            [sys.executable, "-m", "occ_ros2.cli",
-             "--connect", f"127.0.0.1:18944={NS}", "--operator", f"127.0.0.1:18947={NS}",
-             "--log-level", "WARNING",
-             "--stats", str(self.tmp / f"bridge{self.bridge_runs}.json"), *extra],
-            cwd=ROOT, env=_env(),
-        )  # fmt: skip
-
-    def stop_bridge(self) -> dict[str, Any]:
-        assert self.bridge is not None
-        assert self.bridge.poll() is None, self._stderr(self.bridge)
-        Netns.stop(self.bridge)
-        self.bridge = None
-        path = self.tmp / f"bridge{self.bridge_runs}.json"
-        return dict(json.loads(path.read_text()))
-
-    # -------------------------------------------------------------- node
-    def start_node(self) -> None:
-        self.node = self.ns.popen(
-            [sys.executable, str(HERE / "rclpy_agent.py"), NS],
-            env=self.node_env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-        )  # fmt: skip
-        hello = self.node.stdout.readline()
-        assert hello and json.loads(hello).get("ready"), self._stderr(self.node)
-        self.node_started = time.monotonic()
-
-    def ask(self, op: str, **kw: Any) -> dict[str, Any]:
-        assert self.node is not None and self.node.stdin is not None
-        self.node.stdin.write(json.dumps({"op": op, **kw}) + "\n")
-        self.node.stdin.flush()
-        line = self.node.stdout.readline()
-        assert line, f"the rclpy node died: {self._stderr(self.node)}"
-        return dict(json.loads(line))
-
-    def stop_node(self) -> None:
-        assert self.node is not None
-        try:
-            self.ask("exit")
-            self.node.wait(10.0)
-        finally:
-            Netns.stop(self.node)
-            self.node = None
-
-    @staticmethod
-    def _stderr(proc: subprocess.Popen[Any]) -> str:
-        if proc.poll() is None or proc.stderr is None:
-            return f"(running, pid {proc.pid})"
-        return str(proc.stderr.read())[-3000:]
 
 
 def check_node_gets_everything(rig: Rig, since: float, *, command: str = "GetState") -> None:
@@ -241,9 +122,7 @@ def test_bridge_restarted_under_a_running_node(netns: Netns, tmp_path: Path) -> 
 
 
 @pytest.mark.parametrize("settings", list(SETTINGS), ids=list(SETTINGS))
-def test_node_restarted_under_a_running_bridge(
-    netns: Netns, tmp_path: Path, settings: str
-) -> None:
+def test_node_restarted_under_a_running_bridge(netns: Netns, tmp_path: Path, settings: str) -> None:
     rig = Rig(netns, tmp_path, _env(**SETTINGS[settings]))
     rig.start_daemon()
     rig.start_bridge()
