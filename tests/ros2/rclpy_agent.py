@@ -49,8 +49,12 @@ def main() -> int:
     rclpy.init()
     node = rclpy.create_node("occ_test_probe")
     lock = threading.Lock()
-    poses: dict[str, list[list[Any]]] = {"measured_cp": [], "local/measured_cp": []}
-    joints: list[list[Any]] = []
+    poses: dict[str, list[list[Any]]] = {
+        "measured_cp": [],
+        "local/measured_cp": [],
+        "setpoint_cp": [],
+    }
+    joints: dict[str, list[list[Any]]] = {"measured_js": [], "setpoint_js": []}
     states: list[list[Any]] = []
     replies: list[list[Any]] = []
 
@@ -65,10 +69,14 @@ def main() -> int:
 
         return cb
 
-    def on_joints(m: JointState) -> None:
-        with lock:
-            joints.append([now(), m.header.frame_id, list(m.name), list(m.position)])
-            del joints[:-KEEP]
+    def on_joints(leaf: str) -> Any:
+        def cb(m: JointState) -> None:
+            row = [now(), m.header.frame_id, list(m.name), list(m.position)]
+            with lock:
+                joints[leaf].append(row)
+                del joints[leaf][:-KEEP]
+
+        return cb
 
     def on_state(m: String) -> None:
         with lock:
@@ -86,7 +94,8 @@ def main() -> int:
     )
     for leaf in poses:
         node.create_subscription(PoseStamped, f"{ns}/{leaf}", on_pose(leaf), 10)
-    node.create_subscription(JointState, f"{ns}/measured_js", on_joints, 10)
+    for leaf in joints:
+        node.create_subscription(JointState, f"{ns}/{leaf}", on_joints(leaf), 10)
     node.create_subscription(String, f"{ns}/state", on_state, latched)
     node.create_subscription(String, f"{ns}/command_reply", on_reply, 10)
     command = node.create_publisher(String, f"{ns}/command", 10)
@@ -112,7 +121,8 @@ def main() -> int:
         op = req.get("op")
         if op == "snapshot":
             with lock:
-                answer({"t": now(), "poses": poses, "joints": joints[-5:], "states": states,
+                last_joints = {k: v[-5:] for k, v in joints.items()}
+                answer({"t": now(), "poses": poses, "joints": last_joints, "states": states,
                         "replies": replies})  # fmt: skip
         elif op == "publish":
             command.publish(String(data=str(req["data"])))

@@ -20,6 +20,7 @@ In CI (OCC_REQUIRE_INTEROP=1) a missing rclpy or a machine without namespaces fa
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,7 @@ from typing import Any
 import pytest
 
 from .netns import Netns, wait_until
-from .rig import NS, Rig
+from .rig import NS, ROOT, Rig
 from .rig import clean_env as _env
 
 TIP_RATE_HZ = 10.0  # configs/slave.yaml: the viewer's Tip output
@@ -151,3 +152,98 @@ def test_type_hashes_are_the_ones_rclpy_computes(netns: Netns, tmp_path: Path) -
     assert own["hash"].startswith("RIHS01_") and set(own["hash"][7:]) != {"0"}, own
     assert bridge["hash"] == own["hash"], graph
     rig.stop_node()
+
+
+def _rate(rows: list[list[Any]]) -> float:
+    stamps = [r[1] for r in rows]
+    return (len(stamps) - 1) / (stamps[-1] - stamps[0])
+
+
+def test_rate_option_and_setpoints(netns: Netns, tmp_path: Path) -> None:
+    """A daemon whose viewer output sends at 100 Hz, with the setpoint sources: the node gets
+    measured_cp at 100 Hz (the bridge's --rate at its maximum), then at 50 Hz with --rate 50;
+    setpoint_js and setpoint_cp carry the held setpoints (the slave is READY, at home)."""
+    import yaml
+
+    cfg = yaml.safe_load((ROOT / "configs" / "slave.yaml").read_text())
+    (viewer,) = [i for i in cfg["interfaces"] if i.get("role") == "viewer"]
+    viewer["outputs"] = [
+        {"type": "TRANSFORM", "device": "Tip", "source": "tip", "rate_hz": 100},
+        {"type": "TRANSFORM", "device": "Base", "source": "base", "rate_hz": 100},
+        {"type": "NDARRAY", "device": "Joints", "source": "joints", "rate_hz": 100},
+        {"type": "NDARRAY", "device": "Setpoints", "source": "setpoint", "rate_hz": 100},
+        {"type": "TRANSFORM", "device": "SetpointTip", "source": "setpoint_tip", "rate_hz": 100},
+    ]
+    config = tmp_path / "slave100.yaml"
+    config.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    rig = Rig(netns, tmp_path, _env(**LOCALHOST))
+    rig.start_daemon(config)
+    rig.start_node()
+    for rate, expected in (("100", 100.0), ("50", 50.0)):
+        _check_rate_and_setpoints(rig, rate, expected)
+    rig.stop_node()
+
+
+def _check_rate_and_setpoints(rig: Rig, rate: str, expected: float) -> None:
+    since = rig.ask("snapshot")["t"]
+    rig.start_bridge("--rate", rate)
+    snap: dict[str, Any] = {}
+
+    def rows(t: float, leaf: str = "measured_cp") -> list[list[Any]]:
+        return [r for r in snap["poses"][leaf] if r[0] >= t]
+
+    def span(t: float) -> float:
+        nonlocal snap
+        snap = rig.ask("snapshot")
+        got = rows(t)
+        return got[-1][0] - t if got else -1.0
+
+    assert wait_until(lambda: span(since) >= 0.0, timeout=5.0), "no measured_cp within 5 s"
+    t1 = rows(since)[0][0] + 0.5  # past the start: 2 s of stream from there
+    assert wait_until(lambda: span(t1) > 2.0, timeout=6.0)
+    got = _rate(rows(t1))
+    assert 0.8 * expected <= got <= 1.2 * expected, (rate, got)
+    sp = rows(since, "setpoint_cp")
+    assert sp and sp[-1][2] == "world"
+    assert sp[-1][3:] == pytest.approx(rows(since)[-1][3:], abs=1e-4)  # holding: on target
+    js = snap["joints"]["setpoint_js"][-1]
+    assert js[1] == "slave" and js[2] == ["yaw", "pitch", "insertion"]
+    assert js[3] == pytest.approx([0.0, 0.35, 0.05], abs=1e-4)  # the home pose, held
+    stats = rig.stop_bridge()[NS]
+    assert stats["publish_errors"] == 0
+    if expected < 100.0:
+        assert stats["rate_skipped"] > 0
+
+
+#: a machine with a network interface besides lo: a veth pair standing in for eth0 (address in
+#: a documentation range, existing only in the namespace), IPv6 off so the kernel itself sends
+#: nothing on it (router solicitations); its transmit counter is then the DDS processes' alone
+ETH0 = (
+    "sysctl -qw net.ipv6.conf.all.disable_ipv6=1 && sysctl -qw net.ipv6.conf.default.disable_ipv6=1"
+    " && ip link add v0 type veth peer name v1 && ip addr add 198.51.100.1/24 dev v0"
+    " && ip link set v0 up && ip link set v1 up && ip route add default dev v0"
+)
+
+
+def test_nothing_leaves_on_the_machines_interface(tmp_path: Path) -> None:
+    """On a machine with an eth0 (veth v0 here), the bridge and a node with the README's
+    settings exchange everything on lo: v0 sends not one packet."""
+    from .rig import require
+
+    require()
+    with Netns(ETH0) as ns:
+
+        def sent() -> int:
+            links = json.loads(ns.run(["ip", "-s", "-j", "link", "show", "v0"]))
+            return int(links[0]["stats64"]["tx"]["packets"])
+
+        assert sent() == 0
+        rig = Rig(ns, tmp_path, _env(**LOCALHOST))
+        rig.start_daemon()
+        rig.start_bridge()
+        time.sleep(3.0)
+        assert sent() == 0, "the bridge sent on the machine's interface"
+        rig.start_node()
+        check_node_gets_everything(rig, 0.0)
+        assert sent() == 0, "DDS traffic left on the machine's interface"
+        rig.stop_node()
