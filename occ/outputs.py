@@ -169,7 +169,6 @@ class BuiltinSources:
             metadata={"joints": ",".join(d.joint_names)} if out.header_version == 2 else {},
         )
 
-
     def setpoint(self, out: Output, now: float) -> Message:
         """The joint setpoints the drivers hold now (the running setpoint, else the held one)
         as NDARRAY, SI, joint names in v2 metadata as for ``joints``."""

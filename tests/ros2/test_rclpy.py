@@ -80,7 +80,9 @@ def check_node_gets_everything(rig: Rig, since: float, *, command: str = "GetSta
 
 
 LOCALHOST = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
-SETTINGS = {"readme": LOCALHOST, "ros_defaults": {}}
+#: the README's (Jazzy and later), ROS 2's defaults (discovery range SUBNET: the node announces
+#: itself by multicast), and Humble's way of saying localhost (deprecated in Jazzy, still honored)
+SETTINGS = {"readme": LOCALHOST, "ros_defaults": {}, "localhost_only": {"ROS_LOCALHOST_ONLY": "1"}}
 
 
 @pytest.mark.parametrize("settings", list(SETTINGS), ids=list(SETTINGS))
