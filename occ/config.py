@@ -409,7 +409,8 @@ class OutputConfig(_Model):
     type: MessageType = Field(description="OpenIGTLink message type, e.g. `TRANSFORM`.")
     device: DeviceName = Field(description="Device name put in the message header.")
     source: Name = Field(
-        description="Named robot signal to send (`tip`, `base`, `joints`, `status`, ...)."
+        description="Named robot signal to send (`tip`, `base`, `joints`, `status`, `setpoint`, "
+        "`setpoint_tip`, ...)."
     )
     rate_hz: PosFloat = Field(description="Send rate in Hz; > 0 and <= `robot.rate_hz`.")
 
