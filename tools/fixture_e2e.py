@@ -65,7 +65,7 @@ class Client:
     """A 3D Slicer-like OpenIGTLink client: greets in v2, keeps the last TRANSFORM of each
     device, and matches STRING/RTS_COMMAND replies."""
 
-    def __init__(self, port: int) -> None:
+    def __init__(self, port: int, host: str = "127.0.0.1") -> None:
         self.last: dict[str, Any] = {}
         self.replies: queue.Queue[igtl.Message] = queue.Queue()
         self.statuses: list[str] = []
@@ -73,7 +73,7 @@ class Client:
         self._lock = threading.Lock()
         self._id = 0
         self.client = TCPClient(
-            "127.0.0.1",
+            host,
             port,
             on_message=self._on_message,
             on_connect=self._on_connect,

@@ -14,8 +14,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from occ.testing import wait_until as poll  # noqa: F401 - the ros2 tests import it from here
 
+from occ.testing import wait_until as poll  # noqa: F401 - the ros2 tests import it from here
 
 #: the DDS configuration of the tests that run DDS in the test process, on the host: loopback,
 #: unicast only (its comment says why; test_rclpy.py runs the shipped one in a namespace)
@@ -62,7 +62,8 @@ def namespace(request: pytest.FixtureRequest) -> str:
 def netns() -> Iterator[Any]:
     """A private network namespace (netns.py) for a test that runs real ROS 2 nodes; skipped
     without rclpy or root, failed instead in CI (rig.require)."""
-    from .netns import Netns
+    from occ.netns import Netns
+
     from .rig import require
 
     require()

@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from .netns import Netns, available
+from occ.netns import Netns, available
 
 ROOT = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent

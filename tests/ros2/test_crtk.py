@@ -26,7 +26,9 @@ from typing import Any
 
 import pytest
 
-from .netns import Netns, wait_until
+from occ.netns import Netns
+from occ.testing import wait_until
+
 from .rig import Agent, Rig, clean_env
 
 pytestmark = [pytest.mark.interop, pytest.mark.realtime]

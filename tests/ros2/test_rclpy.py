@@ -27,7 +27,9 @@ from typing import Any
 
 import pytest
 
-from .netns import Netns, wait_until
+from occ.netns import Netns
+from occ.testing import wait_until
+
 from .rig import NS, ROOT, Rig
 from .rig import clean_env as _env
 

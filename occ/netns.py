@@ -1,4 +1,8 @@
-"""A private network namespace for DDS tests: nothing a test starts in it can reach eth0.
+"""Private network namespaces for tests and tools: nothing started in one can reach eth0.
+
+A namespace stands for a host of its own: the ROS 2 tests run the daemon, the bridge and a
+ROS 2 node in one (tests/ros2), and ``tools/two_machines.py`` joins two with a veth pair
+(:meth:`Netns.link`), a console PC and a robot PC with addresses that exist only there.
 
 :class:`Netns` starts a holder process in a new network namespace (``unshare -n``, loopback
 up) and runs commands in that namespace (``nsenter -n -t HOLDER``), each a subprocess the
@@ -13,7 +17,6 @@ import os
 import shutil
 import signal
 import subprocess
-import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, TextIO
@@ -108,17 +111,28 @@ class Netns:
             if pipe is not None:
                 pipe.close()
 
+    @property
+    def pid(self) -> int:
+        """The holder's pid: ``ip link set DEV netns PID`` moves an interface here."""
+        return self.holder.pid
+
+    def link(self, other: Netns, mine: str, theirs: str, name: str = "occ") -> tuple[str, str]:
+        """Join this namespace and ``other`` with a veth pair (a cable between two hosts):
+        ``mine`` and ``theirs`` are ``ADDRESS/PREFIX``. Returns the two interface names
+        (``NAMEa`` here, ``NAMEb`` there); they vanish with the namespaces."""
+        here, there = f"{name}a", f"{name}b"
+        subprocess.run(
+            ["ip", "link", "add", here, "netns", str(self.pid), "type", "veth",
+             "peer", "name", there, "netns", str(other.pid)],
+            check=True, capture_output=True, text=True,
+        )  # fmt: skip
+        for ns, dev, addr in ((self, here, mine), (other, there, theirs)):
+            ns.run(["ip", "addr", "add", addr, "dev", dev])
+            ns.run(["ip", "link", "set", dev, "up"])
+        return here, there
+
     def __enter__(self) -> Netns:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def wait_until(pred: Any, timeout: float, period: float = 0.05) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(period)
-    return bool(pred())
