@@ -95,8 +95,9 @@ class Alarms:
             timestamp=r.clock.wall_time() if timestamp is None else timestamp,
         )
         r.interfaces.broadcast_operators(status)
-        if r.recorder is not None:
-            r.recorder.record_message(status, "out", "*", r.clock.now())
+        recorder = r.recorder  # read once: this may run off the loop thread (supervisor)
+        if recorder is not None:
+            recorder.record_message(status, "out", "*", r.clock.now())
 
     def supervisor_trip(self, reason: str) -> None:
         """On the supervisor thread, while the loop is stuck: drivers to their safe state at

@@ -87,6 +87,7 @@ class Recorder:
         self._q: deque[tuple[Any, ...]] = deque()
         self._next_state = 0.0
         self._cond = threading.Condition()
+        self._close_lock = threading.Lock()
         self._closed = False
         self._thread: threading.Thread | None = None
         self._file: Any = None
@@ -225,6 +226,12 @@ class Recorder:
                 log.exception("recorder: write failed")
 
     def close(self) -> None:
+        """Stop the writer, write what is queued, close the file. Safe to call twice and from
+        two threads (a recording stopped at run time while the daemon shuts down)."""
+        with self._close_lock:
+            self._close()
+
+    def _close(self) -> None:
         if self._file is None:
             return
         with self._cond:
