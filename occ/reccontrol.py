@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING, Any
 
 from .commands import Deferred, Request
 from .errors import CommandError
-from .record import Recorder
+from .record import Recorder, writer_priority
 
 if TYPE_CHECKING:
     from .robot import Robot
@@ -183,7 +183,12 @@ class RecordingControl:
     # ------------------------------------------------------------------ worker thread
     def _open_file(self, path: Path, done: Deferred) -> None:
         cfg = self.robot.config.recording
-        rec = Recorder(path, rate_hz=cfg.rate_hz, include_messages=cfg.include_messages)
+        rec = Recorder(
+            path,
+            rate_hz=cfg.rate_hz,
+            include_messages=cfg.include_messages,
+            fifo_priority=writer_priority(self.robot.config),
+        )
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             rec.start(exclusive=True)

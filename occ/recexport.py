@@ -108,10 +108,11 @@ def message_pose(msg: Any) -> np.ndarray | None:
 
 
 def read_content(path: str | Path) -> RecordingContent:
-    """The pose streams, the loop state rows and the robot's name of a recording. The same
-    message recorded twice (an output sent on two interfaces in one tick) counts once."""
+    """The pose streams, the loop state rows and the robot's name of a recording. An output
+    recorded twice in one tick (sent on two interfaces) counts once; every received sample
+    counts (two may arrive in one tick)."""
     c = RecordingContent()
-    seen: set[tuple[str, str, float]] = set()
+    seen: set[tuple[str, float]] = set()
     for m in iter_recording(path):
         meta = m.metadata
         mtype = m.message_type
@@ -136,9 +137,10 @@ def read_content(path: str | Path) -> RecordingContent:
         except ValueError:
             continue  # not an occd recording's message
         key = (direction, m.device_name)
-        if (direction, m.device_name, t) in seen:
-            continue
-        seen.add((direction, m.device_name, t))
+        if direction == "out":  # an output goes once a tick per interface: the same pose
+            if (m.device_name, t) in seen:
+                continue
+            seen.add((m.device_name, t))
         pose = message_pose(m)
         if pose is None:
             continue

@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import csv
 import logging
+import os
 import sys
 import threading
 import time
@@ -79,8 +80,14 @@ class Recorder:
         rate_hz: float = 100.0,
         include_messages: bool = True,
         max_backlog: int = 200_000,
+        fifo_priority: int | None = None,
     ) -> None:
         self.path = Path(path)
+        #: SCHED_FIFO priority of the writer thread (below the loop's and the interface
+        #: threads'), where permitted: a writer holding the interpreter lock must not be
+        #: preempted by other processes while the loop waits for the lock
+        self.fifo_priority = fifo_priority
+        self.thread_policy = "SCHED_OTHER"
         self.rate_hz = float(rate_hz)
         self.include_messages = include_messages
         self.max_backlog = max_backlog  # records waiting for the writer
@@ -191,6 +198,12 @@ class Recorder:
 
     def _writer(self) -> None:
         name_native_thread("recorder")
+        if self.fifo_priority is not None:
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.fifo_priority))
+                self.thread_policy = f"SCHED_FIFO {self.fifo_priority}"
+            except (OSError, AttributeError) as err:  # EPERM, or no SCHED_FIFO here
+                self.thread_policy = f"SCHED_OTHER (SCHED_FIFO refused: {err})"
         while True:
             with self._cond:
                 self._cond.wait(0.05)
@@ -249,13 +262,21 @@ class Recorder:
             self.dropped + self.late_dropped,
         )
 
-    def stats(self) -> dict[str, int]:
+    def stats(self) -> dict[str, int | str]:
         return {
             "records": self.records + self.late_records,
             "bytes": self.bytes_written,
             "dropped": self.dropped + self.late_dropped,
             "errors": self.errors,
+            "writer": self.thread_policy,
         }
+
+
+def writer_priority(config: Any) -> int | None:
+    """The recorder's writer thread priority for a daemon's config: SCHED_FIFO two below the
+    loop (the interface threads are one below) when the loop runs SCHED_FIFO, else None."""
+    prio = config.robot.realtime.fifo_priority
+    return max(1, prio - 2) if prio else None
 
 
 # ---------------------------------------------------------------------- reading

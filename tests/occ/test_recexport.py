@@ -427,3 +427,24 @@ def test_occ_record_command_line(recording: Path, tmp_path: Path) -> None:
     )
     assert res.returncode == 0, res.stderr
     assert "TipToWorld" in res.stdout and out.is_file()
+
+
+def test_outputs_count_once_received_samples_all(tmp_path: Path) -> None:
+    """An output sent on two interfaces in one tick is one sample; two datagrams drained in
+    one tick are two (they share the tick's time)."""
+    import igtl
+    from occ.recexport import read_content
+
+    path = tmp_path / "r.igtl"
+    rec = Recorder(path).start()
+    tip = igtl.TransformMessage.from_matrix(np.eye(4), device_name="Tip", header_version=2)
+    for now in (0.001, 0.002):
+        rec.record_message(tip, "out", "slicer", now)
+        rec.record_message(tip, "out", "viewer2", now)
+        for seq in (1, 2):
+            pos = igtl.PositionMessage((seq, 0.0, 0.0), device_name="Master", message_id=seq)
+            rec.record_message(pos, "in", "master", now)
+    rec.close()
+    c = read_content(path)
+    assert len(c.streams[("out", "Tip")].t) == 2
+    assert [p[0, 3] for p in c.streams[("in", "Master")].pose] == [1.0, 2.0, 1.0, 2.0]
