@@ -15,7 +15,13 @@ File format: a plain concatenation of OpenIGTLink header-version-2 messages.
 The loop thread only appends references to a bounded in-memory queue; a writer thread adds the
 recording metadata, packs and writes, handing the interpreter lock back after every record so
 the loop never waits for it. If the writer falls behind by more than ``max_backlog``
-records, new records are dropped and counted (``dropped``), never blocking the loop.
+records, new records are dropped and counted (``dropped``), never blocking the loop. Where the
+loop runs SCHED_FIFO the writer does too, two priorities below it (the interface threads are one
+below): a writer at normal priority could be preempted by another process while it holds the
+interpreter lock, and the loop would wait for the lock that long (measured: the loop's lateness
+p99.9 with a recording 1.36x of without, 1.12x with the FIFO writer; docs/BENCHMARKS.md). Its
+work is bounded (a flush every 50 ms of what was queued) and it yields the lock after every
+record.
 
 ``occ-record`` (console script) exports a recording to CSV, to 3D Slicer's and PLUS's sequence
 metafile (``--format seq``) or to a ROS 2 bag (``--format mcap``; occ/recexport.py), replays one
