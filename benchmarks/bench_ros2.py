@@ -33,9 +33,11 @@ from cyclonedds.util import duration
 
 from occ.stats import Histogram
 from occ_ros2 import msgs
-from occ_ros2.bridge import DEFAULT_CONFIG, QOS_DEFAULT, topic_name
+from occ_ros2.bridge import QOS_DEFAULT, topic_name
 
 ROOT = Path(__file__).resolve().parents[1]
+#: loopback, unicast only: nothing but unicast to 127.0.0.1 from a benchmark on the host
+UNICAST = ROOT / "tests" / "ros2" / "cyclonedds-unicast.xml"
 sys.path.insert(0, str(ROOT / "tools"))
 from loopback import pair_configs, stop_processes, wait_port, write_yaml  # noqa: E402
 
@@ -60,7 +62,7 @@ def main() -> int:
         if not wait_port(ports["slave_tcp"], proc=procs[0]):
             print("the slave did not start", file=sys.stderr)
             return 1
-        domain = Domain(domain_id, DEFAULT_CONFIG.read_text())
+        domain = Domain(domain_id, UNICAST.read_text())
         dp = DomainParticipant(domain_id)
         reader: DataReader[msgs.PoseStamped] = DataReader(
             dp, Topic(dp, topic_name(ns, "measured_cp"), msgs.PoseStamped), QOS_DEFAULT
@@ -69,8 +71,8 @@ def main() -> int:
         ws.attach(ReadCondition(reader, SampleState.NotRead))
         procs.append(subprocess.Popen(
             [py, "-m", "occ_ros2.cli", "--connect", f"127.0.0.1:{ports['slave_tcp']}={ns}",
-             "--domain-id", str(domain_id), "--log-level", "WARNING",
-             "--stats", str(tmp / "bridge.json")],
+             "--domain-id", str(domain_id), "--dds-config", str(UNICAST),
+             "--log-level", "WARNING", "--stats", str(tmp / "bridge.json")],
             cwd=ROOT,
         ))  # fmt: skip
         e2e = Histogram()

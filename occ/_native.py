@@ -1,11 +1,11 @@
 """Which build of the control loop's hot path runs: mypyc-compiled or the pure Python sources.
 
-The modules in :data:`MODULES` (the tick: robot, drivers, joints, data, safety, interfaces,
-outputs, kinematics, the teleop controllers) can be compiled with mypyc into C extension
-modules next to their sources (``python scripts/build_native.py``, which ``scripts/test`` and
-``scripts/demo`` run when needed). Compiled, a slave tick costs about half as much CPU
-(docs/BENCHMARKS.md, "Compiled hot path"); the behaviour is the same, and the whole test suite
-runs against both builds in CI.
+The modules in :data:`MODULES` (the tick: robot, hardware, streams, motion, drivers, joints,
+data, safety, interfaces, outputs, kinematics, the teleop controllers) can be compiled with
+mypyc into C extension modules next to their sources (``python scripts/build_native.py``,
+which ``scripts/test`` and ``scripts/demo`` run when needed). Compiled, a slave tick costs
+about half as much CPU (docs/BENCHMARKS.md, "Compiled hot path"); the behaviour is the same,
+and the whole test suite runs against both builds in CI.
 
 Python itself prefers an extension module to a source file of the same name, so stale ``.so``
 files would silently run old code. This module, imported by ``occ/__init__.py`` before any of
@@ -54,6 +54,9 @@ MODULES: tuple[str, ...] = (
     "occ.haptics",
     "occ.controllers",
     "occ.controllers.teleop",
+    "occ.hardware",
+    "occ.streams",
+    "occ.motion",
     "occ.robot",
 )
 

@@ -9,15 +9,21 @@ repeat every tick) and sent to every viewer and operator as a STATUS naming its 
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any
 
 import igtl
 
+from .hardware import HardwareFailure, describe
 from .safety import LossEvent, RobotState
 
 if TYPE_CHECKING:
-    from .robot import Robot
-    from .safety import LossMonitor
+    from igtl.messages.base import Message
+
+    from .clock import Clock
+    from .hardware import HardwareSet
+    from .safety import LossMonitor, StateMachine
+    from .streams import StreamInputs
 
 log = logging.getLogger("occ.robot")
 
@@ -25,32 +31,67 @@ log = logging.getLogger("occ.robot")
 class Alarms:
     """The robot's reactions to failures (see the module docstring)."""
 
-    def __init__(self, robot: Robot) -> None:
-        self.robot = robot
+    def __init__(
+        self,
+        name: str,
+        states: StateMachine,
+        clock: Clock,
+        send: Callable[[Message], object],
+        hardware: HardwareSet,
+        streams: StreamInputs,
+        recorder: Any | None = None,
+    ) -> None:
+        """Narrow ports, not the Robot: the robot's name (STATUS device), its state machine,
+        clock, ``send`` (a STATUS to every viewer and operator), its drives (safe stop), its
+        streams (which one moves the robot, the loss policy), its recorder."""
+        self.name = name
+        self.states = states
+        self.clock = clock
+        self._send = send
+        self.hardware = hardware
+        self.streams = streams
+        self.recorder = recorder
         #: why the robot last stopped or faulted ('' once an operator cleared it)
         self.last_alert = ""
         self._errors_logged = 0
 
     def plugin_error(self, where: str, err: BaseException) -> None:
         """An exception from a plugin or handler: FAULT with an alert naming it."""
-        r = self.robot
         reason = f"{where} raised {type(err).__name__}: {err}"
         if self._errors_logged < 20:  # a fault that repeats every tick must not flood the log
             self._errors_logged += 1
             log.error("%s", reason, exc_info=err)
-        if r.state_machine.state is not RobotState.FAULT:
+        if self.states.state is not RobotState.FAULT:
             self.fault(reason)
+
+    def hardware_fault(self, failures: Sequence[HardwareFailure]) -> None:
+        """A drive failed (read, write, or not ACTIVE when it must be): FAULT naming each
+        drive and its cause; the FAULT transition powers every drive off in this tick."""
+        reason = describe(failures)
+        if self.states.state is RobotState.FAULT:
+            if self._errors_logged < 20:  # a drive failing every tick must not flood the log
+                self._errors_logged += 1
+                log.error("while FAULT: %s", reason)
+            return
+        self.fault(reason)
+
+    def hardware_alert(self, failures: Sequence[HardwareFailure]) -> None:
+        """Drives that failed to stop (latched FAULT by their base): an alert naming them."""
+        text = f"drives failed to stop: {describe(failures)}"
+        log.error("ALERT: %s", text)
+        self.broadcast("ALERT", text, igtl.StatusCode.HARDWARE_FAILURE)
 
     def loss_event(self, event: LossEvent, state: RobotState) -> None:
         """Act on the loss monitor: only while RUNNING does the stream move the robot, so only
         then is its loss an alert (before Run, or while stopped, it is only counted)."""
-        r = self.robot
-        where = f"stream {r.loss_input}"
+        where = f"stream {self.streams.input}"
         if state is not RobotState.RUNNING:
             log.debug("%s: %s (%s, not acted on in %s)", where, event.kind, event.cause, state)
             return
         if event.kind == "latch":
-            self.safety_stop(f"packet loss on {r.loss_input}: {event.cause}", r.loss_policy)
+            self.safety_stop(
+                f"packet loss on {self.streams.input}: {event.cause}", self.streams.policy
+            )
         elif event.kind == "hold":
             log.info("%s: %s", where, event.cause)
         else:  # resume, refused: keep following, tell the operators
@@ -64,8 +105,7 @@ class Alarms:
         moves nothing, so it never stops the robot. A latch is an alert to every operator and
         the monitor re-arms (its master may come back and be handed control later); the
         others are logged and, like the owner's, told as a ``STREAM`` warning."""
-        r = self.robot
-        owner = r.loss_input
+        owner = self.streams.input
         if state is not RobotState.RUNNING:
             log.debug(
                 "stream %s: %s (%s, not acted on in %s)", name, event.kind, event.cause, state
@@ -86,46 +126,41 @@ class Alarms:
 
     def broadcast(self, name: str, text: str, code: int, timestamp: float | None = None) -> None:
         """A STATUS to every viewer and operator (and the recording)."""
-        r = self.robot
         status = igtl.StatusMessage(
             code=int(code),
             error_name=name,
             status_message=text,
-            device_name=r.name[:20],
-            timestamp=r.clock.wall_time() if timestamp is None else timestamp,
+            device_name=self.name[:20],
+            timestamp=self.clock.wall_time() if timestamp is None else timestamp,
         )
-        r.interfaces.broadcast_operators(status)
-        recorder = r.recorder  # read once: this may run off the loop thread (supervisor)
+        self._send(status)
+        recorder = self.recorder  # read once: this may run off the loop thread (supervisor)
         if recorder is not None:
-            recorder.record_message(status, "out", "*", r.clock.now())
+            recorder.record_message(status, "out", "*", self.clock.now())
 
     def supervisor_trip(self, reason: str) -> None:
         """On the supervisor thread, while the loop is stuck: drivers to their safe state at
         once, operators alerted; the loop latches FAULT when it comes back (:meth:`tick`)."""
-        r = self.robot
         self.last_alert = f"supervisor: {reason}"
         log.error("SUPERVISOR: %s; drivers to their safe state", reason)
-        for drv, _ in r.drivers:
-            drv.safe_stop(reason)
+        self.hardware.safe_stop(reason)
         self.broadcast("SUPERVISOR", f"supervisor: {reason}", igtl.StatusCode.HARDWARE_FAILURE)
 
     def safety_stop(self, reason: str, policy: str) -> None:
-        r = self.robot
         self.last_alert = reason
         log.error("SAFETY STOP: %s", reason)
         if policy == "fault":
             self.fault(reason)
-        elif r.state_machine.state in (RobotState.RUNNING, RobotState.ENABLED):
-            r.state_machine.try_request("stop", reason)
+        elif self.states.state in (RobotState.RUNNING, RobotState.ENABLED):
+            self.states.try_request("stop", reason)
         else:
             # not moving: still tell the operators why
             self.broadcast("ALERT", reason, igtl.StatusCode.TIME_OUT)
 
     def fault(self, reason: str) -> None:
-        r = self.robot
         self.last_alert = reason
         log.error("FAULT: %s", reason)
-        r.state_machine.try_request("fault", reason)
+        self.states.try_request("fault", reason)
 
     def watchdog_alert(self, reason: str, overruns: int) -> None:
         log.warning("watchdog: %s (%d overruns so far)", reason, overruns)

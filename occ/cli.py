@@ -217,8 +217,8 @@ def status_line(robot: Any) -> str:
         f"ticks {s.ticks}",
         f"late p99 {late['p99']:.0f}us max {late['max']:.0f}us",
     ]
-    if robot.loss_monitor is not None:
-        c = robot.loss_monitor.counters()
+    if robot.streams.monitor is not None:
+        c = robot.streams.monitor.counters()
         parts.append(
             f"rx {c.get('received', 0)} lost {c.get('lost_total', 0)} run {c.get('max_run', 0)}"
         )

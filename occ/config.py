@@ -409,7 +409,8 @@ class OutputConfig(_Model):
     type: MessageType = Field(description="OpenIGTLink message type, e.g. `TRANSFORM`.")
     device: DeviceName = Field(description="Device name put in the message header.")
     source: Name = Field(
-        description="Named robot signal to send (`tip`, `base`, `joints`, `status`, ...)."
+        description="Named robot signal to send (`tip`, `base`, `joints`, `status`, `setpoint`, "
+        "`setpoint_tip`, ...)."
     )
     rate_hz: PosFloat = Field(description="Send rate in Hz; > 0 and <= `robot.rate_hz`.")
 
@@ -435,7 +436,8 @@ class InterfaceConfig(_Model):
     remote: Remote | None = Field(
         None,
         description="`host:port` to connect to (required for tcp-client) or, for udp, "
-        "the send target.",
+        "the send target; a udp interface without one sends its outputs to its stream's "
+        "owner (a slave's return channel to its master).",
     )
     allowed_peers: tuple[IPvAnyNetwork, ...] = Field(
         (ipaddress.ip_network("127.0.0.1"),),

@@ -1,35 +1,39 @@
-"""Virtual-fixture definitions: what 3D Slicer and scripts send, in their own frames, and how
-they become the master's primitives (:mod:`occ.fixtures`).
+"""Virtual-fixture definitions: what 3D Slicer and scripts send, and how they become the
+master's primitives (:mod:`occ.fixtures`).
 
-A definition says its kind, geometry, gains and *frame*:
-
-- ``master``: the master's own workspace, mm (the OCC paper's motion test draws its sphere
-  there); the default for VFIXTURE;
-- ``patient``: 3D Slicer's RAS, mm; the default for Slicer Markups (POINT, TRANSFORM,
-  POLYDATA, ``.mrk.json`` files). The master maps these into its frame through
-  :class:`PatientMapping` (the slave's registration, the motion scale, the clutch offsets).
+**One frame: the patient frame.** Every definition is in 3D Slicer's RAS, mm: the frame of the
+``Tip`` TRANSFORM the slave sends to Slicer (its base pose times its forward kinematics). VFIXTURE,
+POINT, TRANSFORM, POLYDATA and ``.mrk.json`` files alike; a Markups point placed at the ``Tip``
+Slicer shows is at the tool. The master computes the force where the slave's tool *is*: its
+measured tip, sent back on the return channel (``SlaveTip``), mapped with the fixtures into the
+master's force frame by :class:`PatientMapping`. Metadata ``frame`` may say ``patient``; any
+other value is refused (the master's own workspace is no frame for fixtures any more: a sphere
+drawn there would not follow the clutch).
 
 Encodings (every metadata key optional; a v1 sender, without metadata, gets the defaults of
 the controller's parameters):
 
 ===========  ======================================================================
-message      fixture
+message      fixture (patient frame, mm)
 ===========  ======================================================================
-VFIXTURE     spheres (x, y, z, r mm) with ``hardness`` as stiffness (N/mm); both the
-             paper's 8 + 16 n and the 7 + 16 n layouts. Metadata ``kind``:
-             ``accessible`` (the paper's meaning, the default) or ``forbidden``;
-             ``frame`` (default ``master``), ``damping``.
+VFIXTURE     spheres (x, y, z, r mm) with ``hardness`` as stiffness (N per mm of master
+             motion); both the paper's 8 + 16 n and the 7 + 16 n layouts. Metadata
+             ``kind``: ``accessible`` (the paper's meaning, the default) or
+             ``forbidden``; ``damping``.
 POINT        Slicer Markups point list: each visible point (alpha > 0) a sphere of the
              point's radius, else metadata ``radius``, else ``fixture_radius_mm``;
              metadata ``kind`` ``accessible``/``forbidden`` or ``guide`` (the points, in
              order, are a polyline: a Markups line or curve), ``stiffness``,
-             ``damping``, ``frame`` (default ``patient``).
+             ``damping``.
 TRANSFORM    a Markups plane with metadata ``kind=plane``: the translation is a point of
              the plane, the third column of the rotation (the plane node's z axis, its
              normal in Slicer) the outward normal; the half-space behind it is forbidden.
 POLYDATA     metadata ``kind=guide``: every line cell a polyline guide; ``kind=plane``:
              every polygon a plane (its first point, the normal of its first three).
 ===========  ======================================================================
+
+Radii are patient mm; stiffness is N per mm of *master* motion (what the hand feels: a 1 mm
+deep contact in the patient at 10:1 is 10 mm of master motion).
 
 One definition message replaces the fixtures of its *source* (message type + device name):
 Slicer sends each Markups node under its own name, so a point list, a plane and a VFIXTURE
@@ -68,12 +72,14 @@ __all__ = [
     "compile_definitions",
     "from_markups_file",
     "from_message",
+    "parse_linear",
 ]
 
 Kind = Literal["accessible", "forbidden", "plane", "guide"]
-FrameName = Literal["master", "patient"]
+FrameName = Literal["patient"]
 KINDS = ("accessible", "forbidden", "plane", "guide")
-FRAMES = ("master", "patient")
+#: the one frame of fixture definitions (see the module docstring)
+FRAMES = ("patient",)
 
 
 class DefinitionError(ValueError):
@@ -92,7 +98,7 @@ class Definition(NamedTuple):
     stiffness: float = 1.0
     damping: float = 0.0
     name: str = ""
-    frame: FrameName = "master"
+    frame: FrameName = "patient"
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,9 +106,7 @@ class Defaults:
     """What a definition without metadata gets (from the controller's parameters)."""
 
     vfixture_kind: Kind = "accessible"
-    vfixture_frame: FrameName = "master"
     point_kind: Kind = "accessible"
-    point_frame: FrameName = "patient"
     point_radius_mm: float = 5.0
     stiffness: float = 1.0
     damping: float = 0.0
@@ -131,6 +135,17 @@ def _choice(meta: Mapping[str, str], key: str, default: str, allowed: Sequence[s
     return v
 
 
+def _frame(meta: Mapping[str, str]) -> FrameName:
+    """Metadata ``frame``: absent or ``patient`` (the one frame); anything else refused."""
+    raw = meta.get("frame")
+    if raw is None or raw.strip().lower() == "patient":
+        return "patient"
+    raise DefinitionError(
+        f"metadata frame={raw!r}: fixtures are in the patient frame (3D Slicer's RAS, the "
+        "frame of the slave's Tip); send them there, without frame or with frame=patient"
+    )
+
+
 def _finite(values: Iterable[float], what: str) -> tuple[float, ...]:
     out = tuple(float(v) for v in values)
     for v in out:
@@ -148,7 +163,7 @@ def from_message(msg: Message, defaults: Defaults) -> list[Definition] | None:
     name = msg.device_name
     if mtype == "VFIXTURE":
         kind = _choice(meta, "kind", defaults.vfixture_kind, ("accessible", "forbidden"))
-        frame = _choice(meta, "frame", defaults.vfixture_frame, FRAMES)
+        frame = _frame(meta)
         version = getattr(msg, "version", 1)
         if version != 1:
             raise DefinitionError(f"VFIXTURE version {version} is not known (1 is)")
@@ -170,7 +185,7 @@ def from_message(msg: Message, defaults: Defaults) -> list[Definition] | None:
         ]
     if mtype == "POINT":
         kind = _choice(meta, "kind", defaults.point_kind, ("accessible", "forbidden", "guide"))
-        frame = _choice(meta, "frame", defaults.point_frame, FRAMES)
+        frame = _frame(meta)
         k = _num(meta, "stiffness", defaults.stiffness)
         b = _num(meta, "damping", defaults.damping)
         radius = _num(meta, "radius", defaults.point_radius_mm)
@@ -195,7 +210,7 @@ def from_message(msg: Message, defaults: Defaults) -> list[Definition] | None:
     if mtype == "TRANSFORM":
         if meta.get("kind", "").strip().lower() != "plane":
             return None
-        frame = _choice(meta, "frame", "patient", FRAMES)
+        frame = _frame(meta)
         e = _finite(getattr(msg, "elements", ()), f"plane {name!r}")
         # wire order: the 3x3 column by column, then the translation: the z axis is e[6:9]
         point, normal = (e[9], e[10], e[11]), (e[6], e[7], e[8])
@@ -208,7 +223,7 @@ def from_message(msg: Message, defaults: Defaults) -> list[Definition] | None:
         kind = meta.get("kind", "").strip().lower()
         if kind not in ("guide", "plane"):
             return None
-        frame = _choice(meta, "frame", "patient", FRAMES)
+        frame = _frame(meta)
         k = _num(meta, "stiffness", defaults.stiffness)
         b = _num(meta, "damping", defaults.damping)
         poly: Any = msg
@@ -349,18 +364,67 @@ def from_markups_file(
 
 
 # ------------------------------------------------------------------------------ frames
-class PatientMapping:
-    """Patient (Slicer RAS, mm) to master (mm), mirroring what the slave does.
+def parse_linear(text: str) -> tuple[tuple[float, float, float], ...]:
+    """The ``map`` metadata of the slave's tip stream: 9 numbers, row by row, the 3x3 matrix
+    that turns a handle displacement (master mm) into the tip's displacement in the patient
+    frame (mm). :class:`DefinitionError` when it is no scaled rotation."""
+    parts = text.replace(",", " ").split()
+    if len(parts) != 9:
+        raise DefinitionError(f"map {text!r}: expected 9 numbers, got {len(parts)}")
+    try:
+        v = [float(x) for x in parts]
+    except ValueError as err:
+        raise DefinitionError(f"map {text!r}: not numbers") from err
+    rows = ((v[0], v[1], v[2]), (v[3], v[4], v[5]), (v[6], v[7], v[8]))
+    _check_linear(rows)
+    return rows
 
-    The slave follows ``s = S_ref + scale R (m - M_ref)`` in its base frame, re-taking
-    (M_ref, S_ref) whenever following (re)starts (run, clutch released), and its base sits at
-    ``registration`` in the patient frame (its base pose, 4x4, mm). So a patient point P is at
-    ``m = M_ref + R^T (registration^-1 P - S_ref) / scale`` on the master, and a length ``l``
-    at ``l / scale``. The master keeps the same references from its own handle: when
-    following stops it notes where the slave stopped (``S_ref + scale R (m - M_ref)``), when it
-    resumes that becomes ``S_ref`` and the handle ``M_ref``. ``slave_tip`` (a measured tip, e.g.
-    the slave's ``Tip``) re-anchors ``S_ref`` when the slave could not follow exactly (a clamp).
-    ``version`` increments on every change, so the controller recompiles patient fixtures.
+
+def _det3(m: Sequence[Sequence[float]]) -> float:
+    return (
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+        + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    )
+
+
+def _check_linear(m: Sequence[Sequence[float]]) -> float:
+    """The scale ``s`` of ``m`` when it is ``s`` times a rotation (what a slave's motion
+    scaling, master-to-slave rotation and base rotation make), else DefinitionError."""
+    for row in m:
+        _finite(row, "map")
+    det = _det3(m)
+    if not det > 0.0:
+        raise DefinitionError("map: not a scaled rotation (determinant <= 0)")
+    s = det ** (1.0 / 3.0)
+    for i in range(3):
+        for j in range(3):
+            dot = sum(m[k][i] * m[k][j] for k in range(3))
+            want = s * s if i == j else 0.0
+            if abs(dot - want) > 1e-3 * s * s:
+                raise DefinitionError("map: not a scaled rotation (columns not orthogonal)")
+    return s
+
+
+class PatientMapping:
+    """The patient frame (3D Slicer RAS, mm: the frame of the slave's ``Tip``) seen from the
+    master's hand: a linear map, no offsets.
+
+    When the handle moves by ``dm`` (mm) the slave's tip moves by ``L dm`` in the patient frame,
+    with ``L = G * scale * R``: the rotation ``G`` of the slave's base in the patient frame (its
+    registration), its motion scaling and its master-to-slave rotation ``R``. Fixtures (patient
+    mm) and the tool (the slave's measured tip, patient mm, sent back on the return channel)
+    are both mapped by ``L^-1`` (:meth:`point`); in that frame lengths are mm of master motion
+    and directions the master's axes, so the force computed there is the force to display and a
+    stiffness is N per mm of master motion, whatever the scale. Where the handle is does not
+    enter (the tool is where the slave measures it), so the clutch, re-indexing and a
+    hand-over move nothing here.
+
+    ``L`` comes from the slave itself (the ``map`` metadata of its tip stream:
+    :meth:`set_linear`) or, for a slave that does not send it, from the master's parameters
+    (``scale``, ``rotation``) and a registration TRANSFORM (``set_registration``; only its
+    rotation matters). ``version`` increments on every change, so patient fixtures are
+    recompiled.
     """
 
     def __init__(
@@ -368,18 +432,16 @@ class PatientMapping:
         scale: float,
         rotation: Sequence[Sequence[float]] | None = None,
         registration: Sequence[Sequence[float]] | None = None,
-        slave_ref: Vec3 = (0.0, 0.0, 0.0),
-        master_ref: Vec3 = (0.0, 0.0, 0.0),
     ) -> None:
         self.scale = 1.0
         self.rotation = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
         self.registration = [[1.0 if i == j else 0.0 for j in range(4)] for i in range(4)]
-        self._inverse = [row[:] for row in self.registration]
-        self.slave_ref = slave_ref
-        self.master_ref = master_ref
-        self.following = False
-        self._slave_hold: Vec3 | None = None
+        #: where L came from: ``params`` (scale, rotation, registration) or ``slave`` (its map)
+        self.source = "params"
+        self.linear: list[list[float]] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+        self._inverse = [row[:] for row in self.linear]
         self.version = 0
+        self._from_slave: tuple[tuple[float, ...], ...] | None = None
         self.set_scale(scale)
         if rotation is not None:
             self.set_rotation(rotation)
@@ -391,140 +453,119 @@ class PatientMapping:
         if not (math.isfinite(scale) and scale > 0.0):
             raise DefinitionError(f"scale must be > 0, got {scale!r}")
         self.scale = float(scale)
-        self.version += 1
+        self._from_params()
 
     def set_rotation(self, rotation: Sequence[Sequence[float]]) -> None:
         self.rotation = [[float(v) for v in row] for row in rotation]
-        self.version += 1
+        self._from_params()
 
     def set_registration(self, matrix: Sequence[Sequence[float]]) -> None:
-        """The slave's base pose in the patient frame (4x4, translation in mm)."""
+        """The slave's base pose in the patient frame (4x4, translation in mm; only its
+        rotation enters the map)."""
         m = [[float(v) for v in row] for row in matrix]
         if len(m) < 3 or any(len(row) != 4 for row in m[:3]):
             raise DefinitionError("registration must be a 4x4 matrix")
         for row in m[:3]:
             _finite(row, "registration")
-        r = [row[:3] for row in m[:3]]
-        t = [m[0][3], m[1][3], m[2][3]]
-        rt = [[r[j][i] for j in range(3)] for i in range(3)]  # rigid: inverse = transpose
-        ti = [-sum(rt[i][j] * t[j] for j in range(3)) for i in range(3)]
         self.registration = [*m[:3], [0.0, 0.0, 0.0, 1.0]]
-        self._inverse = [[*rt[i], ti[i]] for i in range(3)] + [[0.0, 0.0, 0.0, 1.0]]
-        self.version += 1
+        self._from_params()
 
-    def _slave_at(self, m: Sequence[float]) -> Vec3:
-        s = self.scale
-        d = (m[0] - self.master_ref[0], m[1] - self.master_ref[1], m[2] - self.master_ref[2])
-        r = self.rotation
-        return (
-            self.slave_ref[0] + s * (r[0][0] * d[0] + r[0][1] * d[1] + r[0][2] * d[2]),
-            self.slave_ref[1] + s * (r[1][0] * d[0] + r[1][1] * d[1] + r[1][2] * d[2]),
-            self.slave_ref[2] + s * (r[2][0] * d[0] + r[2][1] * d[1] + r[2][2] * d[2]),
-        )
-
-    def start_following(self, master: Sequence[float]) -> None:
-        """Following (re)starts with the handle at ``master`` (mm): the slave re-indexes."""
-        if self.following:
+    def _from_params(self) -> None:
+        if self._from_slave is not None:
+            self.version += 1  # noted; the slave's own map stays in force
             return
-        if self._slave_hold is not None:
-            self.slave_ref = self._slave_hold
-        self.master_ref = (float(master[0]), float(master[1]), float(master[2]))
-        self.following = True
-        self.version += 1
+        g = [row[:3] for row in self.registration[:3]]
+        r, s = self.rotation, self.scale
+        lin = [[s * sum(g[i][k] * r[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+        self._set(lin)
+        self.source = "params"
 
-    def stop_following(self, master: Sequence[float]) -> None:
-        """Following stops (clutch pressed, master stopped) with the handle at ``master``."""
-        if not self.following:
-            return
-        self._slave_hold = self._slave_at(master)
-        self.following = False
+    def set_linear(self, linear: Sequence[Sequence[float]]) -> bool:
+        """``L`` as the slave reports it (its ``map``): True when it changed the mapping."""
+        key = tuple(tuple(float(v) for v in row) for row in linear)
+        if key == self._from_slave:
+            return False
+        self._from_slave = key
+        self._set([list(row) for row in key])
+        self.source = "slave"
+        return True
 
-    def slave_tip(self, tip_patient: Sequence[float], master: Sequence[float]) -> None:
-        """The slave's tip measured at ``tip_patient`` (patient mm) with the handle at
-        ``master``: re-anchor so that the mapping goes through both."""
-        base = self._to_base(tip_patient)
-        if self.following:
-            predicted = self._slave_at(master)
-            delta = (base[0] - predicted[0], base[1] - predicted[1], base[2] - predicted[2])
-            self.slave_ref = (
-                self.slave_ref[0] + delta[0],
-                self.slave_ref[1] + delta[1],
-                self.slave_ref[2] + delta[2],
-            )
-        else:
-            self._slave_hold = base
-            self.slave_ref = base
-            self.master_ref = (float(master[0]), float(master[1]), float(master[2]))
+    def _set(self, lin: list[list[float]]) -> None:
+        s = _check_linear(lin)
+        # L = s Q with Q a rotation: L^-1 = Q^T / s = L^T / s^2
+        self.linear = lin
+        self._inverse = [[lin[j][i] / (s * s) for j in range(3)] for i in range(3)]
+        self._scale_now = s
         self.version += 1
 
     # ------------------------------------------------------------------ mapping
-    def _to_base(self, p: Sequence[float]) -> Vec3:
-        m = self._inverse
-        return (
-            m[0][0] * p[0] + m[0][1] * p[1] + m[0][2] * p[2] + m[0][3],
-            m[1][0] * p[0] + m[1][1] * p[1] + m[1][2] * p[2] + m[1][3],
-            m[2][0] * p[0] + m[2][1] * p[1] + m[2][2] * p[2] + m[2][3],
-        )
+    @property
+    def factor(self) -> float:
+        """Patient mm per mm of master motion (the slave's motion scaling)."""
+        return self._scale_now
 
     def point(self, p: Sequence[float]) -> Vec3:
-        """A patient point (mm) in the master's frame (mm)."""
-        s = self._to_base(p)
-        d = (s[0] - self.slave_ref[0], s[1] - self.slave_ref[1], s[2] - self.slave_ref[2])
-        r, k = self.rotation, 1.0 / self.scale
+        """A patient point (mm) in the master's force frame (mm of master motion)."""
+        m = self._inverse
         return (
-            self.master_ref[0] + k * (r[0][0] * d[0] + r[1][0] * d[1] + r[2][0] * d[2]),
-            self.master_ref[1] + k * (r[0][1] * d[0] + r[1][1] * d[1] + r[2][1] * d[2]),
-            self.master_ref[2] + k * (r[0][2] * d[0] + r[1][2] * d[1] + r[2][2] * d[2]),
+            m[0][0] * p[0] + m[0][1] * p[1] + m[0][2] * p[2],
+            m[1][0] * p[0] + m[1][1] * p[1] + m[1][2] * p[2],
+            m[2][0] * p[0] + m[2][1] * p[1] + m[2][2] * p[2],
         )
 
     def direction(self, n: Sequence[float]) -> Vec3:
-        """A patient direction in the master's frame (rotated only)."""
-        m, r = self._inverse, self.rotation
-        b = (
-            m[0][0] * n[0] + m[0][1] * n[1] + m[0][2] * n[2],
-            m[1][0] * n[0] + m[1][1] * n[1] + m[1][2] * n[2],
-            m[2][0] * n[0] + m[2][1] * n[1] + m[2][2] * n[2],
+        """A plane's normal (patient) in the force frame: ``L^T n``, unit length."""
+        m = self.linear
+        v = (
+            m[0][0] * n[0] + m[1][0] * n[1] + m[2][0] * n[2],
+            m[0][1] * n[0] + m[1][1] * n[1] + m[2][1] * n[2],
+            m[0][2] * n[0] + m[1][2] * n[1] + m[2][2] * n[2],
         )
-        return (
-            r[0][0] * b[0] + r[1][0] * b[1] + r[2][0] * b[2],
-            r[0][1] * b[0] + r[1][1] * b[1] + r[2][1] * b[2],
-            r[0][2] * b[0] + r[1][2] * b[1] + r[2][2] * b[2],
-        )
+        k = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) or 1.0
+        return (v[0] / k, v[1] / k, v[2] / k)
 
     def length(self, length: float) -> float:
-        return length / self.scale
+        """A patient length (mm) in mm of master motion."""
+        return length / self._scale_now
 
     def master_to_patient(self, m: Sequence[float]) -> Vec3:
-        """Where the slave's tip is (patient mm) for the handle at ``m``, by this mapping."""
-        s = self._slave_at(m)
-        g = self.registration
+        """A point of the force frame back in the patient frame (the display)."""
+        g = self.linear
         return (
-            g[0][0] * s[0] + g[0][1] * s[1] + g[0][2] * s[2] + g[0][3],
-            g[1][0] * s[0] + g[1][1] * s[1] + g[1][2] * s[2] + g[1][3],
-            g[2][0] * s[0] + g[2][1] * s[1] + g[2][2] * s[2] + g[2][3],
+            g[0][0] * m[0] + g[0][1] * m[1] + g[0][2] * m[2],
+            g[1][0] * m[0] + g[1][1] * m[1] + g[1][2] * m[2],
+            g[2][0] * m[0] + g[2][1] * m[1] + g[2][2] * m[2],
         )
+
+    def patient_direction(self, n: Sequence[float]) -> Vec3:
+        """A normal of the force frame back in the patient frame (the display), unit."""
+        m = self._inverse
+        v = (
+            m[0][0] * n[0] + m[1][0] * n[1] + m[2][0] * n[2],
+            m[0][1] * n[0] + m[1][1] * n[1] + m[2][1] * n[2],
+            m[0][2] * n[0] + m[1][2] * n[1] + m[2][2] * n[2],
+        )
+        k = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) or 1.0
+        return (v[0] / k, v[1] / k, v[2] / k)
 
 
 def to_master(d: Definition, mapping: PatientMapping | None) -> Definition:
-    """``d`` in the master's frame (unchanged when it is there already)."""
-    if d.frame == "master":
-        return d
+    """``d`` (patient frame) in the master's force frame (see :class:`PatientMapping`);
+    unchanged without a mapping (unit tests of the primitives)."""
     if mapping is None:
-        raise DefinitionError(
-            f"fixture {d.name!r} is in the patient frame but the master has no patient mapping"
-        )
+        return d
     return d._replace(
         points=tuple(mapping.point(p) for p in d.points),
         radius=mapping.length(d.radius),
         normal=None if d.normal is None else mapping.direction(d.normal),
-        frame="master",
     )
 
 
 def compile_definitions(
     defs: Iterable[Definition], mapping: PatientMapping | None
 ) -> list[Primitive]:
-    """Primitives in the master's frame; :class:`DefinitionError` when one is not valid."""
+    """Primitives in the master's force frame; :class:`DefinitionError` when one is not
+    valid."""
     out: list[Primitive] = []
     for d in defs:
         m = to_master(d, mapping)

@@ -12,17 +12,23 @@ definitions by source (:mod:`occ.fixture_defs`), the patient-to-master mapping, 
   kept compiled), at most ``max_primitives`` in all, and at most ``max_primitives``
   definitions a tick (a burst beyond is refused "busy", to be sent again): a few µs a
   primitive, docs/BENCHMARKS.md;
-- a change of the mapping (registration, clutch, a re-anchoring slave tip) marks the
-  patient-frame definitions stale; :meth:`MasterFixtures.step` recompiles them once, however
-  many changes came in the tick;
-- :meth:`MasterFixtures.step` (every tick) returns the force for the tool's position.
+- a change of the mapping (the slave's ``map``, a registration) marks the compiled fixtures
+  stale; :meth:`MasterFixtures.step` recompiles them once, however many changes came in the
+  tick;
+- :meth:`MasterFixtures.step` (for every new tool position: the slave's measured tip, patient
+  frame) returns the force, in the master's axes (N).
+
+Everything is in the patient frame (3D Slicer's RAS, the frame of the slave's ``Tip``) on the
+way in and out; the primitives themselves live in the master's force frame
+(:class:`~occ.fixture_defs.PatientMapping`: mm of master motion, the master's axes), where
+the tool is mapped too.
 
 Display (3D Slicer): :meth:`model_message` draws the active fixtures as one POLYDATA
 (spheres as triangle meshes, planes as squares, guides as lines; a cell scalar ``kind``: 1
 accessible, 2 forbidden, 3 plane, 4 guide) and :meth:`proxy_message` the contact state as a
 TRANSFORM at the first contact's proxy (the tool when free) with metadata ``contact``
 (primitive names), ``force_n`` and ``tool_mm``; both with ``MRMLNodeName`` metadata, in the
-patient frame (through the mapping) or the master's (``display_frame``).
+patient frame.
 """
 
 from __future__ import annotations
@@ -78,7 +84,6 @@ class MasterFixtures:
         slide_mm: float = 1.0,
         max_primitives: int = 64,
         max_planes: int = 8,
-        display_frame: str = "patient",
     ) -> None:
         self.defaults = defaults
         self.mapping = mapping
@@ -86,7 +91,6 @@ class MasterFixtures:
         self.slide_mm = slide_mm
         self.max_primitives = max_primitives
         self.max_planes = max_planes
-        self.display_frame = display_frame
         self.groups: dict[str, list[Definition]] = {}
         self.active = FixtureSet(max_force_n=max_force_n, slide_mm=slide_mm)
         self._compiled_version = mapping.version
@@ -100,8 +104,13 @@ class MasterFixtures:
         self._tick_work = 0  # definitions compiled in the tick at _work_now
         self._work_now = math.nan
         self._last_now = math.nan
+        #: the tool (the slave's measured tip) in the patient frame, mm
         self.tool_mm: Vec3 = (0.0, 0.0, 0.0)
+        #: the force displayed (N, the master's axes): set by the controller, which may scale
+        #: what :meth:`step` returns (a stale or lost tip, the clutch)
         self.force_n: Vec3 = (0.0, 0.0, 0.0)
+        #: what :meth:`step` computed last (N), before the controller's gain
+        self.raw_force_n: Vec3 = (0.0, 0.0, 0.0)
 
     # ------------------------------------------------------------------ definitions
     def load_file(self, path: str | Path, **kw: Any) -> int:
@@ -182,44 +191,38 @@ class MasterFixtures:
         self.version += 1
 
     def _recompile(self) -> None:
-        """The mapping changed: patient-frame fixtures move on the master. Done at once when
-        this tick's budget allows, else by :meth:`step` (once, whatever the changes)."""
-        patient = [k for k, g in self.groups.items() if any(d.frame == "patient" for d in g)]
-        work = sum(len(self.groups[k]) for k in patient)
+        """The mapping changed: the fixtures move in the master's force frame. Done at once
+        when this tick's budget allows, else by :meth:`step` (once, whatever the changes)."""
+        work = sum(len(g) for g in self.groups.values())
         if self._tick_work + work > self.max_primitives:
             return  # stale until the next step()
         self._compiled_version = self.mapping.version
-        if not patient:
+        if not self.groups:
             return
         self._tick_work += work
-        for k in patient:
-            self._compiled[k] = compile_definitions(self.groups[k], self.mapping)
+        for k, g in self.groups.items():
+            self._compiled[k] = compile_definitions(g, self.mapping)
         self._swap()
 
     # ------------------------------------------------------------------ mapping inputs
-    def following(self, on: bool, tool_mm: Sequence[float], now: float = math.nan) -> None:
-        """The slave follows (running, clutch released) or not: its references move."""
-        self._new_tick(now)
-        if on:
-            self.mapping.start_following(tool_mm)
-        else:
-            self.mapping.stop_following(tool_mm)
-        if self.mapping.version != self._compiled_version:
-            self._recompile()
-
     def registration(self, matrix: Sequence[Sequence[float]], now: float = math.nan) -> None:
+        """The slave's base pose in the patient frame (a TRANSFORM ``Base``): used for the
+        map only when the slave does not report its own (``map``)."""
         self._new_tick(now)
         self.mapping.set_registration(matrix)
         self._recompile()
 
-    def slave_tip(self, tip_patient: Sequence[float], now: float = math.nan) -> None:
+    def set_linear(self, linear: Sequence[Sequence[float]], now: float = math.nan) -> None:
+        """The slave's map (handle mm -> patient mm), from its tip stream's metadata."""
         self._new_tick(now)
-        self.mapping.slave_tip(tip_patient, self.tool_mm)
-        self._recompile()
+        if self.mapping.set_linear(linear):
+            self._recompile()
 
     # ------------------------------------------------------------------ per tick
     def step(self, tool_mm: Sequence[float], now: float) -> Vec3:
-        """The force (N, master frame) for the tool at ``tool_mm`` at time ``now``."""
+        """The force (N, the master's axes) for the tool at ``tool_mm`` (patient frame, mm:
+        the slave's measured tip) at time ``now``: :attr:`raw_force_n`. What is displayed
+        (:attr:`force_n`, the peak) is the caller's to say, with :meth:`displayed`."""
         self._new_tick(now)
         if self.mapping.version != self._compiled_version:
             self._recompile()
@@ -227,16 +230,22 @@ class MasterFixtures:
         dt = now - last if last == last else 0.0
         self._last_now = now
         self.tool_mm = (float(tool_mm[0]), float(tool_mm[1]), float(tool_mm[2]))
+        tool = self.mapping.point(self.tool_mm)
         if not self.active.primitives:
-            self.force_n = (0.0, 0.0, 0.0)
-            self.active.force(self.tool_mm, dt)  # keeps the tool's history for the next set
-            return self.force_n
-        f = self.active.force(self.tool_mm, dt)
+            self.active.force(tool, dt)  # keeps the tool's history for the next set
+            f: Vec3 = (0.0, 0.0, 0.0)
+        else:
+            f = self.active.force(tool, dt)
+        self.raw_force_n = f
+        return f
+
+    def displayed(self, f: Vec3) -> None:
+        """The force the master displays now (N): what the stats, the contact output and the
+        peak report."""
         self.force_n = f
         mag = math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
         if mag > self.peak_force_n:
             self.peak_force_n = mag
-        return f
 
     def stats(self) -> dict[str, Any]:
         a = self.active
@@ -258,19 +267,13 @@ class MasterFixtures:
 
     # ------------------------------------------------------------------ display
     def _display_point(self, p: Sequence[float]) -> Vec3:
-        if self.display_frame == "master":
-            return (float(p[0]), float(p[1]), float(p[2]))
         return self.mapping.master_to_patient(p)
 
     def _display_length(self, length: float) -> float:
-        return length if self.display_frame == "master" else length * self.mapping.scale
+        return length * self.mapping.factor
 
     def _display_dir(self, n: Sequence[float]) -> Vec3:
-        if self.display_frame == "master":
-            return (float(n[0]), float(n[1]), float(n[2]))
-        r, g = self.mapping.rotation, self.mapping.registration
-        b = [sum(r[i][j] * n[j] for j in range(3)) for i in range(3)]
-        return tuple(sum(g[i][j] * b[j] for j in range(3)) for i in range(3))  # type: ignore[return-value]
+        return self.mapping.patient_direction(n)
 
     def model_message(self, device: str, timestamp: float = 0.0) -> Message:
         """The active fixtures as one POLYDATA (see the module docstring)."""
@@ -315,7 +318,7 @@ class MasterFixtures:
             metadata={
                 "MRMLNodeName": device,
                 "fixtures": str(len(self.active)),
-                "frame": self.display_frame,
+                "frame": "patient",
             },
         )
 
@@ -323,8 +326,7 @@ class MasterFixtures:
         """The contact state: a TRANSFORM at the first contact's proxy (the tool when
         free), metadata ``contact``, ``force_n``, ``tool_mm``."""
         contacts = self.active.contacts()
-        at = contacts[0].proxy if contacts else self.tool_mm
-        x, y, z = self._display_point(at)
+        x, y, z = self._display_point(contacts[0].proxy) if contacts else self.tool_mm
         f = self.force_n
         t = self.tool_mm
         return igtl.TransformMessage.from_position(
@@ -337,7 +339,7 @@ class MasterFixtures:
                 "contact": ",".join(c.name or c.kind for c in contacts) or "none",
                 "force_n": f"{f[0]:.4f},{f[1]:.4f},{f[2]:.4f}",
                 "tool_mm": f"{t[0]:.3f},{t[1]:.3f},{t[2]:.3f}",
-                "frame": self.display_frame,
+                "frame": "patient",
             },
         )
 

@@ -13,7 +13,10 @@ explicit (shared/DESIGN.md, "Queues"):
   answers the sender at once with an error reply; nothing is lost without the sender knowing.
 
 Outgoing messages go through :meth:`InterfaceManager.send`, which only queues them on the
-transport (never blocks the loop). Rate decimation of outputs is done by the robot's output
+transport (never blocks the loop). A UDP interface without a ``remote`` (a slave's master
+link) sends its outputs to its stream's owner, the master that streams to it: the return
+channel (occ/returnlink.py); until a master is known they have nowhere to go and are not
+built (``sends_to_owner``). Rate decimation of outputs is done by the robot's output
 scheduler; a slow TCP client loses its own oldest data inside the transport.
 
 Routing of an incoming message on interface *I*:
@@ -190,6 +193,7 @@ class InterfaceCounters:
     malformed: int = 0
     sent: int = 0
     send_dropped: int = 0
+    no_destination: int = 0  # outputs of a return channel before any master streamed to it
     unexpected_types: set[str] = field(default_factory=set)
 
 
@@ -221,6 +225,8 @@ class Interface:
             _split_remote(cfg.stream_source) if getattr(cfg, "stream_source", None) else None
         )
         self.stream_owner = self.configured_source
+        #: a UDP link without ``remote``: its outputs go back to its stream's owner
+        self.sends_to_owner: bool = cfg.transport == "udp" and not getattr(cfg, "remote", None)
         # type name -> queue for this interface's declared inputs
         self.streams: dict[str, StreamQueue] = {}
         self.command_inputs: set[str] = set()
@@ -453,9 +459,18 @@ class Interface:
         """Queue ``msg`` for ``peer`` (None: every client of a server, a udp ``remote``, a
         tcp-client's server); returns how many peers it was queued for (0: dropped). Every
         transport has this ``send``, so nothing here depends on which one is configured."""
-        if self.auth_key is not None:
-            msg = sign(msg, self.auth_key)
-        n = self.transport.send(msg, peer)
+        if peer is None and self.sends_to_owner:
+            owner = self.stream_owner
+            if owner is None:
+                self.counters.no_destination += 1
+                return 0
+            if self.auth_key is not None:
+                msg = sign(msg, self.auth_key)
+            n = self.transport.send(msg, owner)  # type: ignore[arg-type]
+        else:
+            if self.auth_key is not None:
+                msg = sign(msg, self.auth_key)
+            n = self.transport.send(msg, peer)
         if n:
             self.counters.sent += 1
         else:
@@ -508,6 +523,7 @@ class Interface:
             "unauthenticated": c.unauthenticated,
             "keepalive": c.keepalive,
             "unexpected": c.unexpected,
+            **({"no_destination": c.no_destination} if self.sends_to_owner else {}),
             "streams": streams,
             "stream_owner": list(self.stream_owner) if self.stream_owner else None,
             # refusals by the transport, each under its reason

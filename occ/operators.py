@@ -28,6 +28,9 @@ from .outputs import STATE_STATUS_CODE, pose_to_message
 from .reccontrol import RECORDING_COMMANDS, RecordingControl
 from .safety import RobotState
 
+#: states a robot stays in until an operator clears them: greeted with why
+LATCHED_STATES = (RobotState.FAULT, RobotState.ESTOP, RobotState.STOPPED)
+
 if TYPE_CHECKING:
     from .robot import Robot
 
@@ -80,7 +83,8 @@ class OperatorDesk:
                 igtl.StatusMessage(
                     code=int(STATE_STATUS_CODE[st]),
                     error_name=st.value,
-                    status_message=f"{r.name} is {st.value}",
+                    status_message=f"{r.name} is {st.value}"
+                    + (f": {r.last_alert}" if st in LATCHED_STATES and r.last_alert else ""),
                     device_name=r.name[:20],
                     timestamp=r.clock.wall_time(),
                 ),
@@ -388,18 +392,19 @@ class OperatorDesk:
             "tripped": r.supervisor.tripped,
             "thread": r.supervisor_thread.report if r.supervisor_thread else None,
         }
-        snap["reentries"] = r.reentries
+        snap["reentries"] = r.motion.reentries
         snap["last_alert"] = r.last_alert
-        if r.loss_monitor is not None:
-            snap["loss"] = r.loss_monitor.counters()
+        if r.streams.monitor is not None:
+            snap["loss"] = r.streams.monitor.counters()
         if r.collab is not None:
             snap["owner"] = r.collab.owner
             snap["collaboration"] = r.collab.stats()
-            snap["loss_by_stream"] = {n: m.counters() for n, m in r.loss_monitors.items()}
+            snap["loss_by_stream"] = {n: m.counters() for n, m in r.streams.monitors.items()}
         if r.state_table is not None:
             snap["state_table"] = r.state_table.stats()
         snap["recording"] = self.recording.stats()
         snap["controller"] = r.controller.stats()
-        snap["drivers"] = {drv.name: drv.stats() for drv, _ in r.drivers}
+        snap["drivers"] = {drv.name: drv.stats() for drv in r.hardware.drivers}
+        snap["hardware"] = r.hardware.stats()
         snap["realtime"] = r.loop.realtime_report
         return snap

@@ -114,7 +114,10 @@ def quaternion_to_rotation(q: Sequence[float]) -> np.ndarray:
 
 class BuiltinSources:
     """The sources every robot has: ``tip`` and ``base`` (poses in the world, as 3D Slicer
-    shows them), ``status`` (the state and why) and ``joints`` (measured positions)."""
+    shows them), ``status`` (the state and why), ``joints`` (measured positions), and the
+    commanded side of the same: ``setpoint`` (the joint setpoints the drivers hold) and
+    ``setpoint_tip`` (the tip where those setpoints put it, in the world): what ROS 2's
+    ``setpoint_js`` and ``setpoint_cp`` carry (occ_ros2)."""
 
     def __init__(self, data: RobotData, describe: Callable[[], str]) -> None:
         self.data = data
@@ -126,6 +129,8 @@ class BuiltinSources:
             "base": self.base,
             "status": self.status,
             "joints": self.joints,
+            "setpoint": self.setpoint,
+            "setpoint_tip": self.setpoint_tip,
         }
 
     def tip(self, out: Output, now: float) -> Message:
@@ -162,6 +167,31 @@ class BuiltinSources:
             header_version=out.header_version,
             timestamp=d.clock.wall_time(),
             metadata={"joints": ",".join(d.joint_names)} if out.header_version == 2 else {},
+        )
+
+    def setpoint(self, out: Output, now: float) -> Message:
+        """The joint setpoints the drivers hold now (the running setpoint, else the held one)
+        as NDARRAY, SI, joint names in v2 metadata as for ``joints``."""
+        d = self.data
+        return igtl.NDArrayMessage(
+            array=np.array(d.commanded(), dtype=np.float64),
+            device_name=out.device,
+            header_version=out.header_version,
+            timestamp=d.clock.wall_time(),
+            metadata={"joints": ",".join(d.joint_names)} if out.header_version == 2 else {},
+        )
+
+    def setpoint_tip(self, out: Output, now: float) -> Message:
+        """The tip pose the setpoints command, in the world (base x forward kinematics of the
+        setpoints): one forward kinematics per message, at the output's rate."""
+        d = self.data
+        assert d.frame is not None
+        return pose_to_message(
+            d.base @ d.frame.fk(d.commanded()),
+            out.type,
+            out.device,
+            out.header_version,
+            d.clock.wall_time(),
         )
 
 

@@ -38,6 +38,7 @@ __all__ = [
     "RobotState",
     "StateMachine",
     "Transition",
+    "TransitionFailed",
     "Watchdog",
 ]
 
@@ -359,6 +360,15 @@ class Transition:
 Listener = Callable[[RobotState, RobotState, str, str, float], None]
 
 
+#: states a failure cannot make worse (a fault there stays where it is)
+_LATCHED = frozenset({RobotState.FAULT, RobotState.ESTOP, RobotState.SHUTDOWN})
+
+
+class TransitionFailed(StateError):
+    """A transition whose effector (the hardware) or a listener failed: the robot latched
+    FAULT (or stayed where it was), and the message says why."""
+
+
 class StateMachine:
     """Robot lifecycle with latched FAULT and ESTOP.
 
@@ -382,12 +392,21 @@ class StateMachine:
     only ``reset`` leaves them (to READY, servos off). Safety code that must not raise can use
     :meth:`try_request`.
 
+    The *effector* (:meth:`set_effector`, the robot's hardware) carries a transition out
+    before it is committed: ``effector(old, new, event)`` returns '' when done, or why it could
+    not be done. A failed power-up (``enable``, or ``run`` from STOPPED) or a failed ``reset``
+    is vetoed: the state does not become the new one; instead the robot latches FAULT (or
+    stays FAULT) with that reason, and :class:`TransitionFailed` tells the requester. A
+    power-down cannot be refused: its effector does what it can and reports the rest itself.
+
     Threading: transitions are meant to happen on the loop thread (commands from interface
     threads are queued to it). A lock makes the check-and-set atomic anyway, so a stray call
     from another thread cannot corrupt the state; :attr:`state` may be read from any thread.
     Listeners ``(old, new, event, reason, time)`` run after the change, outside the lock, on
-    the requesting thread; a listener that raises is logged and does not stop the others or
-    undo the transition. ``time`` is ``clock.wall_time()`` (Unix seconds, for IGTL STATUS).
+    the requesting thread. A listener that raises does not stop the others, and is not
+    swallowed: the robot latches FAULT naming it (unless already FAULT, ESTOP or SHUTDOWN) and
+    the requester gets :class:`TransitionFailed`. ``time`` is ``clock.wall_time()`` (Unix
+    seconds, for IGTL STATUS).
     """
 
     def __init__(
@@ -401,6 +420,7 @@ class StateMachine:
         self._lock = threading.Lock()
         self._listeners: list[Listener] = []
         self._guards: list[Callable[[RobotState, str], str]] = []
+        self._effector: Callable[[RobotState, RobotState, str], str] | None = None
         self.last_reason = ""
 
     @property
@@ -411,6 +431,11 @@ class StateMachine:
         """``guard(state, event)`` returns why the event must be refused now ('' to allow):
         e.g. no enabling while a joint has never been measured."""
         self._guards.append(guard)
+
+    def set_effector(self, effector: Callable[[RobotState, RobotState, str], str]) -> None:
+        """``effector(old, new, event)`` carries out a transition before it is committed and
+        returns why it could not ('' when done); see the class docstring."""
+        self._effector = effector
 
     def add_listener(self, listener: Listener) -> None:
         self._listeners.append(listener)
@@ -439,7 +464,9 @@ class StateMachine:
         return time.time()
 
     def request(self, event: str, reason: str = "") -> Transition:
-        """Apply ``event``; raise :class:`StateError` (state unchanged) if refused."""
+        """Apply ``event``; raise :class:`StateError` (state unchanged) if refused, or
+        :class:`TransitionFailed` when the effector or a listener failed (see the class
+        docstring)."""
         name = self._normalise(event)
         with self._lock:
             old = self._state
@@ -453,22 +480,44 @@ class StateMachine:
                 why = guard(old, name)
                 if why:
                     raise StateError(f"{name!r} refused in state {old.value}: {why}")
-            self._state = new
-            if new is not old:
-                self.last_reason = reason
+            failed = ""
+            if new is not old and self._effector is not None:
+                failed = self._effector(old, new, name)
+            if not failed:
+                self._state = new
+                if new is not old:
+                    self.last_reason = reason
+        if failed:
+            # vetoed: latch FAULT with the reason (its effector powers everything off)
+            if TRANSITIONS.get((old, "fault"), old) is not old:
+                self.request("fault", f"{name} failed: {failed}")
+            raise TransitionFailed(
+                f"{name!r} failed in state {old.value}: {failed}; the robot is {self._state.value}"
+            )
         transition = Transition(old, new, name, reason, self._now())
         if transition.changed:
+            errors = []
             for listener in list(self._listeners):
                 try:
                     listener(old, new, name, reason, transition.time)
-                except Exception:
+                except Exception as err:  # noqa: BLE001 - every listener runs; see below
                     logger.exception("state listener %r failed on %s -> %s", listener, old, new)
+                    errors.append(f"state listener raised {type(err).__name__}: {err}")
+            if errors:
+                text = "; ".join(errors)
+                if new not in _LATCHED:
+                    self.request("fault", text)
+                raise TransitionFailed(f"{name!r}: {text}; the robot is {self._state.value}")
         return transition
 
     def try_request(self, event: str, reason: str = "") -> Transition | None:
-        """Like :meth:`request` but return None instead of raising when refused."""
+        """Like :meth:`request` but return None instead of raising when refused (for safety
+        code that must go on). A failed transition has latched FAULT already; it is logged."""
         try:
             return self.request(event, reason)
+        except TransitionFailed as err:
+            logger.error("%s", err)
+            return None
         except StateError:
             return None
 
@@ -553,7 +602,6 @@ class LossMonitor:
       peers without IDs, the same gap told by the sender timestamps (``round(gap/period) - 1``
       missing);
     - silence past ``grace_s`` (default 100 ms: a dead master);
-    - ``max_consecutive + 1`` consecutive samples refused for their timestamp;
     - with ``strict=True`` (the paper's rule word for word) the deadline itself latches.
 
     Samples are judged, not just counted: :meth:`on_packet` returns a :class:`Verdict` and only
@@ -573,7 +621,12 @@ class LossMonitor:
     moves it up by 1 % (drift). Tracking by 1 % both ways, as before, let the samples that
     queue up before the loop's first tick (the socket is bound before the loop starts) teach
     an offset tens of ms too old, and the fresh samples after them were refused as "in the
-    future" until the robot stopped.
+    future" until the robot stopped. A refused sample still arrived: its sequence number is
+    accounted for (never a loss), but it is not applied and does not refresh the deadline, so
+    a stream of late samples holds at the deadline, resumes by itself when fresh samples come
+    back, and latches only at the grace, like a silent one. (Three refused in a row used to
+    latch as a loss: on a busy 2-core machine a starved master stamps its samples and sends
+    them 60-80 ms later, and the slave stopped with no packet missing.)
 
     ``lost_total`` counts only proven losses: gaps between accepted sequence numbers, minus
     late arrivals that filled them. Samples the daemon itself could not take in time (its
@@ -644,7 +697,6 @@ class LossMonitor:
         self._holding = False
         self._tripped = False
         self._pending: LossEvent | None = None
-        self._refused_run = 0
         self._refused_since_good = 0
         self._next_refused_alert = -math.inf
         self.offset_s = None
@@ -701,29 +753,8 @@ class LossMonitor:
     def _judge(
         self, seq: int | None, ts: float | None, now: float, rx: float, rx_lo: float
     ) -> Verdict:
-        # 1. the timestamp, against the peer's learned clock offset
-        tol = self.timestamp_tolerance_s
-        if tol is not None and ts is not None and ts > 0.0:
-            age = rx - ts
-            offset = self.offset_s
-            if offset is not None and (rx_lo - ts - offset > tol or offset - age > tol):
-                if age > offset:
-                    age = rx_lo - ts  # the age it had at the earliest: what is reported
-                self._refused_run += 1
-                self._refused_since_good += 1
-                if self._refused_run > self.max_consecutive and not self._tripped:
-                    ahead = offset - age
-                    self._trip(
-                        f"{self._refused_run} consecutive samples refused for their timestamp "
-                        f"(last {abs(ahead) * 1e3:.1f} ms "
-                        f"{'in the future' if ahead > 0 else 'stale'}, tolerance "
-                        f"{tol * 1e3:.0f} ms)",
-                        "timestamp",
-                        self._refused_run,
-                        now,
-                    )
-                return Verdict.FUTURE if age < offset else Verdict.STALE
-        # 2. the sequence number
+        # 1. the sequence number: every plausible new number is accounted for, whatever its
+        # timestamp (a late sample arrived: it is not lost), so only gaps prove a loss
         gap = 0
         where = ""
         source = "sequence"
@@ -777,29 +808,37 @@ class LossMonitor:
             self._last_ts = ts
         else:
             source = "deadline"
-        # 3. accepted: account, learn the clock offset, resume or latch
-        if tol is not None and ts is not None and ts > 0.0:
-            age = rx - ts
-            off = self.offset_s
-            if off is None or age < off:
-                self.offset_s = age  # a younger sample: the smallest age is the offset
-            else:
-                # slow tracking upward (drift), bounded per sample
-                self.offset_s = off + 0.01 * (age - off)
-        self.accepted += 1
-        self._refused_run = 0
         self.lost_total += gap
         if gap > self.max_run:
             self.max_run = gap
+        if gap > self.max_consecutive and not self._tripped:
+            lg = self._last_good
+            since = now - lg if lg is not None else 0.0
+            self._trip(f"{gap} consecutive packets lost ({where})", source, gap, now, since)
+        # 2. the timestamp, against the peer's learned clock offset: a sample too old (or from
+        # the future) is not applied and does not refresh the deadline, so a late stream
+        # holds and a silent one latches at the grace, as any late stream does; it is never
+        # called lost by itself (a busy sender stamps, then sends late)
+        tol = self.timestamp_tolerance_s
+        if tol is not None and ts is not None and ts > 0.0:
+            age = rx - ts
+            offset = self.offset_s
+            if offset is not None and (rx_lo - ts - offset > tol or offset - age > tol):
+                self._refused_since_good += 1
+                return Verdict.FUTURE if age < offset else Verdict.STALE
+            if offset is None or age < offset:
+                self.offset_s = age  # a younger sample: the smallest age is the offset
+            else:
+                # slow tracking upward (drift), bounded per sample
+                self.offset_s = offset + 0.01 * (age - offset)
+        # 3. accepted: resume after a hold
+        self.accepted += 1
         lg = self._last_good
         since = now - lg if lg is not None else 0.0
         self._last_good = now
         refused = self._refused_since_good
         self._refused_since_good = 0
-        if gap > self.max_consecutive:
-            if not self._tripped:
-                self._trip(f"{gap} consecutive packets lost ({where})", source, gap, now, since)
-        elif self._holding and not self._tripped:
+        if self._holding and not self._tripped:
             self._holding = False
             self.resumes += 1
             extra = f", {refused} refused meanwhile" if refused else ""

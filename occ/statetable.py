@@ -30,9 +30,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .record import STATE_CODES
+from .safety import RobotState
+
 if TYPE_CHECKING:
+    from .data import RobotData
     from .frame import Frame
     from .joint import Joint
+
+#: a state's number in the recording and the State Data Table
+STATE_NUMBER = {st: float(STATE_CODES.get(st.value, -1)) for st in RobotState}
 
 #: rows one NDARRAY dimension can hold (IGTL: uint16 per dimension)
 MAX_ROWS = 0xFFFF
@@ -69,6 +76,12 @@ class StateTable:
         )
 
     # ------------------------------------------------------------------ loop thread
+    def write_data(
+        self, now: float, owner: float, data: RobotData, joints: Sequence[Joint]
+    ) -> None:
+        """The robot's row for this tick (the loop, once a tick)."""
+        self.write(now, STATE_NUMBER[data.state], owner, data.q, data.commanded(), joints)
+
     def write(
         self,
         now: float,
@@ -165,6 +178,15 @@ class StateTable:
     def stats(self) -> dict[str, float | int]:
         held = min(self.count, self.capacity)
         return {"rows": held, "capacity": self.capacity, "written": self.count}
+
+
+def table_for(
+    seconds: float | None, joints: Sequence[Joint], rate_hz: float, frame: Frame
+) -> StateTable | None:
+    """The robot's table for ``state_table.seconds`` (None: no table)."""
+    if seconds is None:
+        return None
+    return StateTable([j.name for j in joints], capacity_for(seconds, rate_hz), frame)
 
 
 def capacity_for(seconds: float, rate_hz: float) -> int:

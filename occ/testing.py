@@ -43,7 +43,7 @@ from .config import DaemonConfig
 from .loader import load_config
 from .robot import Robot, build_robot
 
-__all__ = ["SimPeer", "SimRobot", "inproc_config"]
+__all__ = ["SimPeer", "SimRobot", "SlaveTipFeed", "inproc_config"]
 
 _instances = itertools.count(1)
 
@@ -203,8 +203,93 @@ class SimPeer:
             )
         )
 
+    def send_tip(
+        self,
+        tip_mm: Sequence[float],
+        *,
+        seq: int,
+        following: bool = True,
+        linear: str = "0.1,0,0,0,0.1,0,0,0,0.1",
+        state: str = "RUNNING",
+        timestamp: float = 0.0,
+        device: str = "SlaveTip",
+    ) -> int:
+        """One sample of a slave's return channel, as the slave daemon sends it (POSITION,
+        v2, message ID = sequence number, metadata ``following``, ``map``, ``state``;
+        occ/returnlink.py): the tip in the patient frame (mm)."""
+        x, y, z = tip_mm
+        return self.send(
+            igtl.PositionMessage(
+                (float(x), float(y), float(z)),
+                (0.0, 0.0, 0.0, 1.0),
+                device_name=device,
+                timestamp=timestamp,
+                header_version=2,
+                message_id=seq,
+                metadata={"following": "1" if following else "0", "map": linear, "state": state},
+            )
+        )
+
     def close(self) -> None:
         self.transport.stop()
+
+
+class SlaveTipFeed:
+    """A master's slave, as far as its fixtures can tell: a peer on the master's slave link
+    that sends, before every tick, the tip of a slave that follows the handle exactly and at
+    once: ``tip = base_mm + scale * handle`` (patient mm; the map ``scale * I``). So a patient
+    point ``P`` is the handle position ``(P - base_mm) / scale``, and tests can reason in
+    either frame. ``following``, ``pause`` (no samples: a late or dead slave) and ``skip``
+    (sequence numbers lost) play the return channel's failures."""
+
+    def __init__(
+        self,
+        sim: SimRobot,
+        interface: str = "slave",
+        *,
+        scale: float = 0.1,
+        base_mm: Sequence[float] = (0.0, 0.0, 0.0),
+        address: tuple[str, int] = ("127.0.0.1", 40000),
+    ) -> None:
+        self.sim = sim
+        self.peer = sim.peer(interface, address=address)
+        self.scale = scale
+        self.base = tuple(float(v) for v in base_mm)
+        self.seq = 0
+        self.following = True
+        self.paused = False
+        self.linear = ",".join(f"{scale if i == j else 0.0:g}" for i in range(3) for j in range(3))
+
+    def handle_mm(self) -> tuple[float, float, float]:
+        r = self.sim.robot
+        x, y, z = r.frame.tip_position(r.data.q)
+        return (x * 1e3, y * 1e3, z * 1e3)
+
+    def patient(self, handle_mm: Sequence[float]) -> tuple[float, float, float]:
+        """Where this slave's tip is (patient mm) for the handle at ``handle_mm``."""
+        s, b = self.scale, self.base
+        return (b[0] + s * handle_mm[0], b[1] + s * handle_mm[1], b[2] + s * handle_mm[2])
+
+    def tip(self) -> tuple[float, float, float]:
+        return self.patient(self.handle_mm())
+
+    def send(self) -> None:
+        """One sample (none while ``paused``: a sender that stopped sends no numbers)."""
+        if not self.paused:
+            self.seq += 1
+            self.peer.send_tip(
+                self.tip(), seq=self.seq, following=self.following, linear=self.linear
+            )
+
+    def step(self, n: int = 1) -> None:
+        """``n`` ticks of the master, each after a tip sample (1 kHz)."""
+        for _ in range(n):
+            self.send()
+            self.sim.tick()
+
+    def skip(self, n: int) -> None:
+        """``n`` sequence numbers lost on the way."""
+        self.seq += n
 
 
 class SimRobot:

@@ -4,42 +4,63 @@ The bridge is an ordinary OpenIGTLink client of each daemon: of a *viewer* port 
 18944 on the slave) for the poses and the state, and optionally of an *operator* port (18947)
 for commands. The daemons know nothing of ROS 2; a viewer-only bridge cannot move the robot.
 
-Per namespace ``NS`` (e.g. ``/occ/slave``) it publishes, CRTK names where CRTK has one (topic
-``X`` is ``rt/X`` on the wire, as rmw_cyclonedds names it):
+Per namespace ``NS`` (e.g. ``/occ/slave``, leaf ``slave``) it publishes, CRTK names where CRTK
+has one and the dVRK's frame conventions (topic ``X`` is ``rt/X`` on the wire, as every ROS 2
+RMW names it):
 
-================================  ===========================  ==============================
-topic                             type                         from
-================================  ===========================  ==============================
-``NS/measured_cp``                geometry_msgs/PoseStamped    TRANSFORM ``Tip`` in the base
-                                                               frame (Base⁻¹·Tip), metres;
-                                                               frame_id ``<leaf>_base``
-``NS/base/measured_cp``           geometry_msgs/PoseStamped    TRANSFORM ``Base``; frame_id
-                                                               the world frame (``world``)
-``NS/measured_js``                sensor_msgs/JointState       NDARRAY ``Joints`` (positions;
-                                                               names from its metadata)
-``NS/operating_state``            crtk_msgs/OperatingState     STATUS of a state, GetState
-``NS/state``                      std_msgs/String              the daemon's own state name
-``NS/status``                     std_msgs/String              every STATUS (alerts included)
-``NS/command_reply``              std_msgs/String              RTS_COMMAND to a command
-================================  ===========================  ==============================
+=============================  ===========================  =================================
+topic                          type                         from
+=============================  ===========================  =================================
+``NS/measured_cp``             geometry_msgs/PoseStamped    TRANSFORM ``Tip`` (world), metres;
+                                                            frame_id the world frame
+``NS/local/measured_cp``       geometry_msgs/PoseStamped    the tip in the base frame
+                                                            (Base⁻¹·Tip); frame_id
+                                                            ``<leaf>_base``
+``NS/base/measured_cp``        geometry_msgs/PoseStamped    TRANSFORM ``Base``; frame_id the
+                                                            world frame (``world``)
+``NS/measured_js``             sensor_msgs/JointState       NDARRAY ``Joints`` (positions;
+                                                            names from its metadata);
+                                                            frame_id ``<leaf>``
+``NS/setpoint_js``             sensor_msgs/JointState       NDARRAY ``Setpoints`` (when the
+                                                            daemon's viewer output sends it)
+``NS/setpoint_cp``,            geometry_msgs/PoseStamped    TRANSFORM ``SetpointTip`` (when
+``NS/local/setpoint_cp``                                    sent), as measured_cp
+``NS/operating_state``         crtk_msgs/OperatingState     STATUS of a state, GetState
+``NS/state``                   std_msgs/String              the daemon's own state name
+``NS/status``                  std_msgs/String              every STATUS (alerts included)
+``NS/command_reply``           std_msgs/String              the answer to a command
+``/tf``                        tf2_msgs/TFMessage           ``<leaf>_base`` -> ``<leaf>_tip``
+                                                            at the pose rate
+``/tf_static``                 tf2_msgs/TFMessage           world -> ``<leaf>_base`` of every
+                                                            robot (latched; again on change)
+=============================  ===========================  =================================
 
-and takes commands on ``NS/state_command`` (crtk_msgs/StringStamped, CRTK's topic) and
-``NS/command`` (std_msgs/String, publishable without crtk_msgs installed): CRTK's words
-``enable``, ``disable``, ``pause``, ``resume`` become ``Enable``, ``Disable``, ``Stop``, ``Run``;
-any other word (``Run``, ``EStop``, ``Reset``, ``GetState``, ``GetStats``, ``Clutch`` ...) goes
-to the daemon as it is, as an IGTL COMMAND on the operator port. The reply is published on
-``NS/command_reply`` as ``"<Name> <SUCCESS|FAIL>: <message>"``.
+Commands come on ``NS/state_command`` (crtk_msgs/StringStamped, CRTK's topic) and ``NS/command``
+(std_msgs/String, publishable without crtk_msgs). CRTK's words (lower case: ``enable``,
+``disable``, ``pause``, ``resume``, ``home``, ``unhome``) follow CRTK's state table
+(:data:`CRTK_TABLE`): the bridge answers the no-ops itself (``enable`` when ENABLED), forwards
+the others as the daemon's commands, and refuses what CRTK refuses. Where CRTK would retry out
+of FAULT (``enable``, ``disable``), the daemon's latch wins: the fault stays until an operator's
+``Reset``, and the reply says so. Any other word (``Run``, ``EStop``, ``Reset``, ``GetState``,
+``GetStats``, ``Clutch`` ...) goes to the daemon as it is, as an IGTL COMMAND on the operator
+port. The reply is published on ``NS/command_reply`` as ``"<Name> <SUCCESS|FAIL>: <message>"``,
+and ``operating_state`` again after every CRTK word (a fresh stamp: CRTK clients wait for one).
 
 QoS, as ROS 2 would: poses and replies reliable, volatile, keep last 10 (ROS 2's default, which
 every subscriber matches; sensor-data QoS would be refused by a default reliable subscriber);
 the two state topics reliable, *transient local*, keep last 1, so a subscriber that comes later
-gets the current state at once (ROS 2's "latched" topics); the command subscriptions ROS 2's
-default.
+gets the current state at once (ROS 2's "latched" topics); tf2's own QoS for ``/tf`` and
+``/tf_static``; the command subscriptions ROS 2's default. Every endpoint carries its type's
+ROS 2 Jazzy type hash in USER_DATA (:func:`typed_qos`), as the rmw implementations do.
 
 ``operating_state`` maps the daemon's states onto CRTK's meta-states: INIT, READY, SHUTDOWN ->
-DISABLED; ENABLED -> ENABLED; RUNNING -> ENABLED and ``is_busy`` (following its master);
-STOPPED -> PAUSED; FAULT, ESTOP -> FAULT. ``is_homed`` is true past INIT (the daemons' joints
-are absolute: there is no homing). The exact state is on ``NS/state``.
+DISABLED; ENABLED, RUNNING -> ENABLED; STOPPED -> PAUSED; FAULT, ESTOP -> FAULT. ``is_busy``
+is CRTK's: true only while a move or a homing runs; the bridge starts neither (the daemons'
+joints are absolute: ``is_homed`` is true past INIT and ``home`` has nothing to do), so it is
+false: following a master while RUNNING is not a move. The exact state is on ``NS/state``.
+
+``rate_hz`` (``--rate``, at most :data:`MAX_RATE_HZ`) caps what the bridge publishes per pose
+topic; it cannot exceed what the daemon's viewer output sends (its ``rate_hz``).
 """
 
 from __future__ import annotations
@@ -89,8 +110,38 @@ CRTK_STATE = {
     "ESTOP": "FAULT",
 }
 
-#: CRTK's state commands, as the daemon's operator commands
-CRTK_COMMANDS = {"enable": "Enable", "disable": "Disable", "pause": "Stop", "resume": "Run"}
+#: CRTK's state table: (CRTK word, CRTK meta-state) -> what the bridge does. ``("send", X)``:
+#: the daemon's operator command X; ``("ok", why)``: nothing to do, SUCCESS; ``("fail", why)``:
+#: refused. A word in a state not listed is refused as CRTK refuses it ("not valid in STATE").
+#: ``resume`` returns to the state ``pause`` left (RUNNING -> Run, else Enable: hold), see
+#: :meth:`Bridge._crtk`.
+LATCHED = (
+    "the daemon's {state} is latched until an operator's Reset (command Reset, after the "
+    "cause is found); a CRTK retry does not clear it"
+)
+CRTK_TABLE: dict[tuple[str, str], tuple[str, str]] = {
+    ("enable", "DISABLED"): ("send", "Enable"),
+    ("enable", "ENABLED"): ("ok", "already ENABLED"),
+    ("enable", "PAUSED"): ("send", "Enable"),
+    ("enable", "FAULT"): ("fail", LATCHED),
+    ("disable", "DISABLED"): ("ok", "already DISABLED"),
+    ("disable", "ENABLED"): ("send", "Disable"),
+    ("disable", "PAUSED"): ("send", "Disable"),
+    ("disable", "FAULT"): ("fail", LATCHED),
+    ("pause", "ENABLED"): ("send", "Stop"),
+    ("pause", "PAUSED"): ("ok", "already PAUSED"),
+    ("resume", "PAUSED"): ("send", "resume"),
+    ("resume", "ENABLED"): ("ok", "already ENABLED"),
+    ("home", "DISABLED"): ("ok", "homed: the joint sensors are absolute"),
+    ("home", "ENABLED"): ("ok", "homed: the joint sensors are absolute"),
+    ("home", "PAUSED"): ("ok", "homed: the joint sensors are absolute"),
+    ("home", "FAULT"): ("ok", "homed: the joint sensors are absolute"),
+    ("unhome", "DISABLED"): ("fail", "the joint sensors are absolute: always homed"),
+    ("unhome", "ENABLED"): ("fail", "the joint sensors are absolute: always homed"),
+    ("unhome", "PAUSED"): ("fail", "the joint sensors are absolute: always homed"),
+    ("unhome", "FAULT"): ("fail", "the joint sensors are absolute: always homed"),
+}
+CRTK_WORDS = ("enable", "disable", "pause", "resume", "home", "unhome")
 
 #: plain CDR (XCDR1), what rmw_cyclonedds writes and reads; a Cyclone writer may otherwise
 #: choose XCDR2, which a ROS 2 Humble reader does not accept
@@ -109,6 +160,28 @@ QOS_LATCHED = Qos(
 )
 #: ROS 2's sensor-data profile (best effort, keep last 5): for subscribers of pose streams
 QOS_SENSOR = Qos(Policy.Reliability.BestEffort, Policy.History.KeepLast(5), _REPR)
+
+
+#: tf2's QoS: /tf reliable, volatile, keep last 100 (tf2_ros' broadcaster); /tf_static
+#: reliable, transient local, keep last 1 (its static broadcaster: the one message holds every
+#: fixed frame of the publisher, and a listener that comes later gets it at once)
+QOS_TF = Qos(
+    Policy.Reliability.Reliable(duration(milliseconds=100)),
+    Policy.Durability.Volatile,
+    Policy.History.KeepLast(100),
+    _REPR,
+)
+QOS_TF_STATIC = QOS_LATCHED
+
+#: the highest ROS-side publishing rate (--rate): the poses of a daemon's viewer output at up to
+#: 100 Hz; above it the bridge's Python thread, not the daemon, would set the pace
+MAX_RATE_HZ = 100.0
+
+
+def typed_qos(qos: Qos, cls: type[Any]) -> Qos:
+    """``qos`` plus the USER_DATA a ROS 2 Jazzy endpoint of type ``cls`` carries (its type
+    hash, :func:`occ_ros2.msgs.user_data`): Jazzy and later nodes compare it on discovery."""
+    return Qos(*qos, Policy.Userdata(data=msgs.user_data(cls)))
 
 
 def topic_name(ns: str, leaf: str) -> str:
@@ -150,6 +223,19 @@ def pose_stamped(matrix_m: np.ndarray, stamp: msgs.Time, frame_id: str) -> msgs.
     )
 
 
+def transform_stamped(
+    matrix_m: np.ndarray, stamp: msgs.Time, parent: str, child: str
+) -> msgs.TransformStamped:
+    """tf2's TransformStamped of a 4x4 transform (metres): ``child`` in ``parent``."""
+    x, y, z = (float(v) for v in matrix_m[:3, 3])
+    qx, qy, qz, qw = quaternion(matrix_m[:3, :3])
+    return msgs.TransformStamped(
+        header=msgs.Header(stamp=stamp, frame_id=parent),
+        child_frame_id=child,
+        transform=msgs.Transform(msgs.Vector3(x, y, z), msgs.Quaternion(qx, qy, qz, qw)),
+    )
+
+
 def parse_endpoint(text: str) -> tuple[str, int, str]:
     """``HOST:PORT=NAMESPACE`` -> (host, port, namespace); the namespace starts with ``/``."""
     where, sep, ns = text.partition("=")
@@ -171,6 +257,8 @@ class _Counters:
     replies: int = 0
     commands_refused: int = 0
     publish_errors: int = 0
+    #: poses and joint states not published because of the ROS-side rate (--rate)
+    rate_skipped: int = 0
 
 
 @dataclass
@@ -183,9 +271,23 @@ class Robot:
     operator: TCPClient | None = None
     base_m: np.ndarray | None = None
     state: str | None = None
+    #: the daemon's state when CRTK's ``pause`` came (``resume`` returns to it)
+    paused_from: str | None = None
+    #: CRTK's is_busy: a move or a homing runs (none does yet: module docstring)
+    busy: bool = False
     writers: dict[str, DataWriter] = field(default_factory=dict)
     readers: list[tuple[DataReader[Any], Callable[[Any], str]]] = field(default_factory=list)
     counters: _Counters = field(default_factory=_Counters)
+    #: per published leaf: the monotonic time of its last sample (the --rate cap)
+    last_pub: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def base_frame(self) -> str:
+        return f"{self.leaf}_base"
+
+    @property
+    def tip_frame(self) -> str:
+        return f"{self.leaf}_tip"
 
 
 class Bridge:
@@ -203,9 +305,15 @@ class Bridge:
         domain_id: int = 0,
         config: str | None = None,
         world_frame: str = "world",
+        rate_hz: float = 0.0,
+        tf: bool = True,
     ) -> None:
+        if not 0.0 <= rate_hz <= MAX_RATE_HZ:
+            raise ValueError(f"rate must be 0 (as the daemon sends) .. {MAX_RATE_HZ:g} Hz")
         self.domain_id = domain_id
         self.world_frame = world_frame
+        #: the minimum interval between two samples of one pose topic (0: every one)
+        self.min_interval = 0.0 if rate_hz == 0.0 else 1.0 / rate_hz
         # Domain() applies the configuration to this domain id in this process; it must exist
         # before the participant and live as long as it
         self._domain = Domain(domain_id, config) if config is not None else None
@@ -221,6 +329,20 @@ class Bridge:
         self._waitset = WaitSet(self.participant)
         self._waitset.attach(self._stop)
         self._thread: threading.Thread | None = None
+        dp = self.participant
+        self._tf: DataWriter | None = None
+        self._tf_static: DataWriter | None = None
+        if tf:
+            self._tf = DataWriter(
+                dp, Topic(dp, "rt/tf", msgs.TFMessage), typed_qos(QOS_TF, msgs.TFMessage)
+            )
+            self._tf_static = DataWriter(
+                dp,
+                Topic(dp, "rt/tf_static", msgs.TFMessage),
+                typed_qos(QOS_TF_STATIC, msgs.TFMessage),
+            )
+        #: the fixed frames on /tf_static: (parent, child) -> transform; all in one message
+        self._static: dict[tuple[str, str], msgs.TransformStamped] = {}
         for host, port, ns in viewers:
             robot = self._robot(ns)
             robot.viewer = self._client(robot, host, port, "viewer")
@@ -229,31 +351,37 @@ class Bridge:
             robot.operator = self._client(robot, host, port, "operator")
 
     # ------------------------------------------------------------------ setup
+    def _writer(self, robot: Robot, leaf: str, cls: type[Any], qos: Qos) -> DataWriter:
+        dp = self.participant
+        w = DataWriter(dp, Topic(dp, topic_name(robot.ns, leaf), cls), typed_qos(qos, cls))
+        robot.writers[leaf] = w
+        return w
+
     def _robot(self, ns: str) -> Robot:
         if ns in self.robots:
             return self.robots[ns]
         leaf = ns.strip("/").rsplit("/", 1)[-1]
         robot = Robot(ns=ns, leaf=leaf)
         dp = self.participant
-
-        def writer(leaf_name: str, cls: type[Any], qos: Qos) -> None:
-            robot.writers[leaf_name] = DataWriter(
-                dp, Topic(dp, topic_name(ns, leaf_name), cls), qos
-            )
-
-        writer("measured_cp", msgs.PoseStamped, QOS_DEFAULT)
-        writer("base/measured_cp", msgs.PoseStamped, QOS_DEFAULT)
-        writer("measured_js", msgs.JointState, QOS_DEFAULT)
-        writer("operating_state", msgs.OperatingState, QOS_LATCHED)
-        writer("state", msgs.String, QOS_LATCHED)
-        writer("status", msgs.String, QOS_DEFAULT)
-        writer("command_reply", msgs.String, QOS_DEFAULT)
-        for leaf_name, cls, text in (
+        outputs: tuple[tuple[str, type[Any], Qos], ...] = (
+            ("measured_cp", msgs.PoseStamped, QOS_DEFAULT),
+            ("local/measured_cp", msgs.PoseStamped, QOS_DEFAULT),
+            ("base/measured_cp", msgs.PoseStamped, QOS_DEFAULT),
+            ("measured_js", msgs.JointState, QOS_DEFAULT),
+            ("operating_state", msgs.OperatingState, QOS_LATCHED),
+            ("state", msgs.String, QOS_LATCHED),
+            ("status", msgs.String, QOS_DEFAULT),
+            ("command_reply", msgs.String, QOS_DEFAULT),
+        )
+        for leaf_name, cls, qos in outputs:
+            self._writer(robot, leaf_name, cls, qos)
+        inputs: tuple[tuple[str, type[Any], Callable[[Any], str]], ...] = (
             ("state_command", msgs.StringStamped, lambda s: s.string),
             ("command", msgs.String, lambda s: s.data),
-        ):
+        )
+        for leaf_name, rcls, text in inputs:
             reader: DataReader[Any] = DataReader(
-                dp, Topic(dp, topic_name(ns, leaf_name), cls), QOS_DEFAULT
+                dp, Topic(dp, topic_name(ns, leaf_name), rcls), typed_qos(QOS_DEFAULT, rcls)
             )
             self._waitset.attach(ReadCondition(reader, SampleState.NotRead))
             robot.readers.append((reader, text))
@@ -322,6 +450,24 @@ class Bridge:
             robot.counters.publish_errors += 1
             log.warning("%s: publishing %s failed: %s", robot.ns, leaf, err)
 
+    def _due(self, robot: Robot, leaf: str) -> bool:
+        """The ROS-side rate cap: True when ``leaf`` may be published now (and noted so)."""
+        if self.min_interval == 0.0:
+            return True
+        now = time.monotonic()
+        # 5 % early is on time: the daemon's own period jitters by a few per cent
+        if now - robot.last_pub.get(leaf, -math.inf) < 0.95 * self.min_interval:
+            robot.counters.rate_skipped += 1
+            return False
+        robot.last_pub[leaf] = now
+        return True
+
+    def _lazy_writer(self, robot: Robot, leaf: str, cls: type[Any]) -> None:
+        """Topics the daemon may or may not send (setpoints): created when the first sample
+        comes, so a daemon that sends none shows no silent topic."""
+        if leaf not in robot.writers:
+            self._writer(robot, leaf, cls, QOS_DEFAULT)
+
     def _on_igtl(self, robot: Robot, msg: Message) -> None:
         t_in = time.perf_counter()
         mtype = msg.message_type
@@ -329,25 +475,55 @@ class Bridge:
         if mtype == "TRANSFORM":
             m = msg.matrix  # type: ignore[attr-defined]
             m[:3, 3] *= MM
-            if msg.device_name == "Base":
-                robot.base_m = m
+            name = msg.device_name
+            if name == "Base":
                 robot.counters.bases += 1
-                self._publish(robot, "base/measured_cp", pose_stamped(m, stamp, self.world_frame))
-            elif msg.device_name == "Tip":
+                changed = robot.base_m is None or not np.allclose(robot.base_m, m, atol=1e-9)
+                robot.base_m = m
+                if changed:
+                    self._publish_static(robot, m, stamp)
+                if self._due(robot, "base/measured_cp"):
+                    self._publish(
+                        robot, "base/measured_cp", pose_stamped(m, stamp, self.world_frame)
+                    )
+            elif name in ("Tip", "SetpointTip"):
                 if robot.base_m is None:
                     # the daemon sends Tip before Base each period: the very first Tip has no
                     # base to be expressed in yet
                     robot.counters.tips_without_base += 1
                     return
+                kind = "measured" if name == "Tip" else "setpoint"
+                if not self._due(robot, f"{kind}_cp"):
+                    return
+                if kind == "setpoint":
+                    self._lazy_writer(robot, "setpoint_cp", msgs.PoseStamped)
+                    self._lazy_writer(robot, "local/setpoint_cp", msgs.PoseStamped)
                 local = np.linalg.solve(robot.base_m, m)  # Base^-1 . Tip
-                robot.counters.tips += 1
+                if kind == "measured":
+                    robot.counters.tips += 1
+                self._publish(robot, f"{kind}_cp", pose_stamped(m, stamp, self.world_frame))
                 self._publish(
-                    robot, "measured_cp", pose_stamped(local, stamp, f"{robot.leaf}_base")
+                    robot, f"local/{kind}_cp", pose_stamped(local, stamp, robot.base_frame)
                 )
+                if kind == "measured" and self._tf is not None:
+                    tf = msgs.TFMessage(
+                        transforms=[transform_stamped(local, stamp, robot.base_frame,
+                                                      robot.tip_frame)]
+                    )  # fmt: skip
+                    try:
+                        self._tf.write(tf)
+                    except Exception as err:  # noqa: BLE001 - as _publish
+                        robot.counters.publish_errors += 1
+                        log.warning("%s: publishing /tf failed: %s", robot.ns, err)
             else:
                 return
             self.latency_us.add((time.perf_counter() - t_in) * 1e6)
-        elif mtype == "NDARRAY" and msg.device_name == "Joints":
+        elif mtype == "NDARRAY" and msg.device_name in ("Joints", "Setpoints"):
+            leaf = "measured_js" if msg.device_name == "Joints" else "setpoint_js"
+            if not self._due(robot, leaf):
+                return
+            if leaf == "setpoint_js":
+                self._lazy_writer(robot, leaf, msgs.JointState)
             values = [float(v) for v in np.asarray(msg.array).ravel()]  # type: ignore[attr-defined]
             names = msg.metadata.get("joints", "")
             joint_names = names.split(",") if names else [f"joint{i}" for i in range(len(values))]
@@ -355,9 +531,9 @@ class Bridge:
                 joint_names = [f"joint{i}" for i in range(len(values))]
             self._publish(
                 robot,
-                "measured_js",
+                leaf,
                 msgs.JointState(
-                    header=msgs.Header(stamp=stamp, frame_id=""),
+                    header=msgs.Header(stamp=stamp, frame_id=robot.leaf),
                     name=joint_names,
                     position=values,
                 ),
@@ -374,21 +550,46 @@ class Bridge:
         elif mtype == "RTS_COMMAND":
             self._on_reply(robot, msg, stamp)
 
-    def _set_state(self, robot: Robot, state: str, stamp: msgs.Time) -> None:
-        if state == robot.state:
+    def _publish_static(self, robot: Robot, base_m: np.ndarray, stamp: msgs.Time) -> None:
+        """world -> <leaf>_base on /tf_static: one message with every robot's fixed frame
+        (a latched topic keeps one message per publisher)."""
+        if self._tf_static is None:
             return
-        robot.state = state
-        self._publish(robot, "state", msgs.String(data=state))
+        with self._lock:
+            self._static[(self.world_frame, robot.base_frame)] = transform_stamped(
+                base_m, stamp, self.world_frame, robot.base_frame
+            )
+            sample = msgs.TFMessage(transforms=list(self._static.values()))
+        try:
+            self._tf_static.write(sample)
+        except Exception as err:  # noqa: BLE001 - as _publish
+            robot.counters.publish_errors += 1
+            log.warning("%s: publishing /tf_static failed: %s", robot.ns, err)
+
+    def _operating_state(self, robot: Robot, stamp: msgs.Time | None = None) -> None:
+        """CRTK's operating_state of the robot's current state (a fresh stamp when none)."""
+        state = robot.state
+        if state is None:
+            return
+        if stamp is None:
+            stamp = msgs.Time.from_seconds(time.time())
         self._publish(
             robot,
             "operating_state",
             msgs.OperatingState(
                 header=msgs.Header(stamp=stamp, frame_id=""),
                 state=CRTK_STATE[state],
-                is_homed=state != "INIT",
-                is_busy=state == "RUNNING",
+                is_homed=state not in ("INIT", "SHUTDOWN"),
+                is_busy=robot.busy,
             ),
         )
+
+    def _set_state(self, robot: Robot, state: str, stamp: msgs.Time) -> None:
+        if state == robot.state:
+            return
+        robot.state = state
+        self._publish(robot, "state", msgs.String(data=state))
+        self._operating_state(robot, stamp)
 
     def _on_reply(self, robot: Robot, msg: Message, stamp: msgs.Time) -> None:
         cid = int(getattr(msg, "command_id", 0))
@@ -407,6 +608,9 @@ class Bridge:
             return  # our own GetState on connect
         robot.counters.replies += 1
         self._publish(robot, "command_reply", msgs.String(data=f"{name} {status}: {text}"))
+        if name in ("Enable", "Disable", "Stop", "Run"):
+            # a CRTK client waits for an operating_state after its command, changed or not
+            self._operating_state(robot)
 
     # ------------------------------------------------------------------ DDS -> IGTL
     def _command_loop(self) -> None:
@@ -418,17 +622,51 @@ class Bridge:
                         self.command(robot.ns, str(text(sample)))
 
     def command(self, ns: str, word: str) -> None:
-        """Forward one command word to the daemon of ``ns`` (what the DDS subscriptions do)."""
+        """Forward one command to the daemon of ``ns`` (what the DDS subscriptions do): a CRTK
+        word through :data:`CRTK_TABLE`, any other word as the daemon's own command."""
         robot = self.robots[ns]
         word = word.strip()
-        name = CRTK_COMMANDS.get(word.lower(), word)
         robot.counters.commands += 1
+        if word in CRTK_WORDS and robot.operator is not None:
+            self._crtk(robot, word)
+            return
+        self._forward(robot, word)  # without an operator port: refused, saying so
+
+    def _forward(self, robot: Robot, name: str) -> None:
         if not name or not name.replace("_", "").isalnum():
             self._refuse(robot, name or "(empty)", "not a command name")
         elif robot.operator is None:
-            self._refuse(robot, name, f"no operator interface for {ns} (occ-ros2 --operator)")
+            self._refuse(robot, name, f"no operator interface for {robot.ns} (occ-ros2 --operator)")
         elif not self._send_command(robot, robot.operator, name):
             self._refuse(robot, name, "operator interface not connected")
+
+    def _crtk(self, robot: Robot, word: str) -> None:
+        """CRTK's state table (module docstring, :data:`CRTK_TABLE`)."""
+        state = robot.state
+        if state is None:
+            self._refuse(robot, word, "the daemon's state is not known yet (not connected)")
+            return
+        meta = CRTK_STATE[state]
+        if state in ("INIT", "SHUTDOWN"):
+            action, why = "fail", f"the daemon is in {state}"
+        else:
+            action, why = CRTK_TABLE.get((word, meta), ("fail", f"not valid in {meta}"))
+        if action == "send":
+            if word == "pause":
+                robot.paused_from = state
+            if why == "resume":
+                # back where pause left it: RUNNING follows its master again; otherwise (or
+                # paused by someone else) hold, the conservative choice
+                why = "Run" if robot.paused_from == "RUNNING" else "Enable"
+            self._forward(robot, why)
+            return
+        robot.counters.replies += 1
+        if action == "fail":
+            robot.counters.commands_refused += 1
+        status = "SUCCESS" if action == "ok" else "FAIL"
+        text = why.format(state=state)
+        self._publish(robot, "command_reply", msgs.String(data=f"{word} {status}: {text}"))
+        self._operating_state(robot)
 
     def _refuse(self, robot: Robot, name: str, why: str) -> None:
         robot.counters.commands_refused += 1

@@ -6,7 +6,7 @@ Examples::
     occ-ros2 --connect 127.0.0.1:18944=/occ/slave --domain-id 7 --duration 60 --stats /tmp/b.json
     occ-ros2 --master /occ/master=127.0.0.1:18946 --connect 127.0.0.1:18944=/occ/slave
 
-Topics and types: occ_ros2/bridge.py, README "ROS 2". DDS runs on loopback without multicast
+Topics and types: occ_ros2/bridge.py, README "ROS 2". DDS runs on loopback only
 by default (occ_ros2/cyclonedds-lo.xml); ``--dds-config env`` takes $CYCLONEDDS_URI instead.
 """
 
@@ -22,7 +22,7 @@ import threading
 from pathlib import Path
 from types import FrameType
 
-from .bridge import DEFAULT_CONFIG, Bridge, parse_endpoint
+from .bridge import DEFAULT_CONFIG, MAX_RATE_HZ, Bridge, parse_endpoint
 from .master import MasterStream, parse_master
 
 
@@ -45,6 +45,16 @@ def _domain_id(text: str) -> int:
     # 0..232: the ids whose RTPS ports (7400 + 250 * id + ...) fit below 65536
     if not 0 <= value <= 232:
         raise argparse.ArgumentTypeError(f"DDS domain id must be 0..232, got {value}")
+    return value
+
+
+def _rate(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"not a rate: {text!r}") from err
+    if not 0.0 <= value <= MAX_RATE_HZ:
+        raise argparse.ArgumentTypeError(f"rate must be 0 .. {MAX_RATE_HZ:g} Hz, got {text}")
     return value
 
 
@@ -93,10 +103,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--dds-config",
         default=str(DEFAULT_CONFIG),
-        help="Cyclone DDS XML file (default: loopback, no multicast); 'env': "
+        help="Cyclone DDS XML file (default: loopback only, discovery by multicast on lo and "
+        "unicast to 127.0.0.1); 'env': "
         "$CYCLONEDDS_URI as Cyclone reads it",
     )
-    p.add_argument("--world-frame", default="world", help="frame_id of the base pose")
+    p.add_argument("--world-frame", default="world", help="the world frame's name (frame_id)")
+    p.add_argument(
+        "--rate",
+        type=_rate,
+        default=0.0,
+        metavar="HZ",
+        help=f"publish each pose and joint topic at most this often (up to {MAX_RATE_HZ:g}; "
+        "default 0: as the daemon's viewer output sends, its rate_hz)",
+    )
+    p.add_argument("--no-tf", action="store_true", help="do not publish /tf and /tf_static")
     p.add_argument("--duration", type=float, default=0.0, help="seconds to run (0: until Ctrl-C)")
     p.add_argument("--stats", type=Path, default=None, help="write statistics JSON here at exit")
     p.add_argument("--log-level", default="INFO")
@@ -115,7 +135,15 @@ def main(argv: list[str] | None = None) -> int:
             "occ-ros2: nothing to bridge: give --connect, --operator or --master", file=sys.stderr
         )
         return 2
-    bridge = Bridge(args.connect, args.operator, domain_id=domain, config=config)
+    bridge = Bridge(
+        args.connect,
+        args.operator,
+        domain_id=domain,
+        config=config,
+        world_frame=args.world_frame,
+        rate_hz=args.rate,
+        tf=not args.no_tf,
+    )
     key = None
     if args.auth_key_file is not None:
         from igtl.auth import load_key

@@ -36,7 +36,7 @@ from igtl.auth import sign
 from igtl.transport import UDPEndpoint
 
 from . import msgs
-from .bridge import QOS_DEFAULT, QOS_SENSOR, topic_name
+from .bridge import QOS_DEFAULT, QOS_SENSOR, topic_name, typed_qos
 
 log = logging.getLogger("occ_ros2.master")
 
@@ -77,10 +77,14 @@ class MasterStream:
         dp = participant
         # best effort reads from reliable and best-effort publishers alike
         self._poses: DataReader[Any] = DataReader(
-            dp, Topic(dp, topic_name(ns, "servo_cp"), msgs.PoseStamped), QOS_SENSOR
+            dp,
+            Topic(dp, topic_name(ns, "servo_cp"), msgs.PoseStamped),
+            typed_qos(QOS_SENSOR, msgs.PoseStamped),
         )
         self._clutch: DataReader[Any] = DataReader(
-            dp, Topic(dp, topic_name(ns, "clutch"), msgs.String), QOS_DEFAULT
+            dp,
+            Topic(dp, topic_name(ns, "clutch"), msgs.String),
+            typed_qos(QOS_DEFAULT, msgs.String),
         )
         self.udp = UDPEndpoint("127.0.0.1" if remote[0] == "127.0.0.1" else "0.0.0.0", 0,
                                remote=remote, name=f"occ-ros2-master-{ns}")  # fmt: skip

@@ -87,6 +87,39 @@ class PoseStamped(IdlStruct, typename="geometry_msgs::msg::dds_::PoseStamped_"):
 
 
 @dataclass
+class Vector3(IdlStruct, typename="geometry_msgs::msg::dds_::Vector3_"):
+    x: float64 = 0.0
+    y: float64 = 0.0
+    z: float64 = 0.0
+
+
+@dataclass
+class Transform(IdlStruct, typename="geometry_msgs::msg::dds_::Transform_"):
+    translation: Vector3 = field(default_factory=Vector3)
+    rotation: Quaternion = field(default_factory=Quaternion)
+
+
+@dataclass
+class TransformStamped(IdlStruct, typename="geometry_msgs::msg::dds_::TransformStamped_"):
+    header: Header = field(default_factory=Header)
+    child_frame_id: str = ""
+    transform: Transform = field(default_factory=Transform)
+
+
+if TYPE_CHECKING:
+    TransformSeq = list[TransformStamped]
+else:
+    TransformSeq = sequence[TransformStamped]
+
+
+@dataclass
+class TFMessage(IdlStruct, typename="tf2_msgs::msg::dds_::TFMessage_"):
+    """tf2's message: ``/tf`` (moving frames) and ``/tf_static`` (fixed ones, latched)."""
+
+    transforms: TransformSeq = field(default_factory=list)
+
+
+@dataclass
 class JointState(IdlStruct, typename="sensor_msgs::msg::dds_::JointState_"):
     header: Header = field(default_factory=Header)
     name: StrSeq = field(default_factory=list)
@@ -127,7 +160,39 @@ ROS_TYPES: dict[str, type[IdlStruct]] = {
     "geometry_msgs/msg/Quaternion": Quaternion,
     "geometry_msgs/msg/Pose": Pose,
     "geometry_msgs/msg/PoseStamped": PoseStamped,
+    "geometry_msgs/msg/Vector3": Vector3,
+    "geometry_msgs/msg/Transform": Transform,
+    "geometry_msgs/msg/TransformStamped": TransformStamped,
+    "tf2_msgs/msg/TFMessage": TFMessage,
     "sensor_msgs/msg/JointState": JointState,
     "crtk_msgs/msg/OperatingState": OperatingState,
     "crtk_msgs/msg/StringStamped": StringStamped,
 }
+
+#: ROS 2's type hash (REP 2016, ``RIHS01_`` + SHA-256 of the type description) of every type
+#: the bridge puts on a topic, as ROS 2 Jazzy computes it; rmw implementations since Jazzy put
+#: ``typehash=<hash>;`` in every endpoint's USER_DATA and compare it on discovery. Computed with
+#: rosbags (``Typestore.hash_rihs01``, ROS 2 Jazzy store, crtk_msgs from :data:`CRTK_MSG_DEFS`);
+#: tests/ros2/test_msgs.py checks each against rosbags, and test_rclpy.py against rclpy's own.
+TYPE_HASHES: dict[str, str] = {
+    "std_msgs/msg/String":
+        "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18",
+    "geometry_msgs/msg/PoseStamped":
+        "RIHS01_10f3786d7d40fd2b54367835614bff85d4ad3b5dab62bf8bca0cc232d73b4cd8",
+    "sensor_msgs/msg/JointState":
+        "RIHS01_a13ee3a330e346c9d87b5aa18d24e11690752bd33a0350f11c5882bc9179260e",
+    "crtk_msgs/msg/OperatingState":
+        "RIHS01_5cc57eea589b217fe5194bf2735b91d4a7f2dd5ac1245ae657f7ea7590c2c80e",
+    "crtk_msgs/msg/StringStamped":
+        "RIHS01_83efb802e6596e03f69ac322e3231037329946f2bd13ed48874d97f5b8f5db1d",
+    "tf2_msgs/msg/TFMessage":
+        "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087",
+}  # fmt: skip
+
+#: the ROS 2 name of each type (the inverse of :data:`ROS_TYPES`)
+ROS_NAMES: dict[type[IdlStruct], str] = {cls: name for name, cls in ROS_TYPES.items()}
+
+
+def user_data(cls: type[IdlStruct]) -> bytes:
+    """The USER_DATA a ROS 2 Jazzy endpoint of type ``cls`` carries: ``typehash=RIHS01_...;``."""
+    return f"typehash={TYPE_HASHES[ROS_NAMES[cls]]};".encode("ascii")

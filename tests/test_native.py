@@ -167,3 +167,72 @@ def test_caused_sets_the_cause_and_never_a_cycle() -> None:
     assert wrapped.__cause__ is err and wrapped.__suppress_context__
     same = DriverError("x")
     assert caused(same, same) is same and same.__cause__ is None
+
+
+PLUGINS = '''
+import json
+import occ._native as n
+from occ.controllers import register_controller
+from occ.controllers.teleop import SlaveController
+from occ.drivers import register_driver
+from occ.drivers.sim import SimDriver
+from occ.testing import SimRobot
+
+
+class CountingSim(SimDriver):
+    """A user's driver: the built-in simulation, counting its reads."""
+
+    reads_seen = 0
+
+    def _read(self, now):
+        CountingSim.reads_seen += 1
+        return super()._read(now)
+
+
+class LoggingSlave(SlaveController):
+    """A user's controller: the built-in teleoperated slave, counting its samples."""
+
+    samples = 0
+
+    def on_sample(self, item, now):
+        LoggingSlave.samples += 1
+        return super().on_sample(item, now)
+
+
+register_driver("counting-sim", CountingSim)
+register_controller("logging-slave", LoggingSlave)
+from occ.loader import load_config
+base = load_config("configs/slave.yaml")
+drv = base.robot.drivers[0].model_copy(update={"plugin": "counting-sim"})
+ctl = base.controllers[0].model_copy(update={"plugin": "logging-slave"})
+config = base.model_copy(update={"robot": base.robot.model_copy(update={"drivers": (drv,)}),
+                                 "controller": ctl})
+with SimRobot(config) as sim:
+    master = sim.peer("master", address=("127.0.0.1", 40000))
+    op = sim.peer("operator")
+    op.send_command("Enable"); sim.step(1)
+    op.send_command("Run"); sim.step(1)
+    for seq in range(1, 51):
+        master.send_position((0.0, 0.1 * seq, 0.0), seq=seq)
+        sim.step(2)
+    state = sim.robot.state.value
+print(json.dumps({"build": n.BUILD,
+                  "sim_file": __import__("occ.drivers.sim").drivers.sim.__file__,
+                  "reads": CountingSim.reads_seen, "samples": LoggingSlave.samples,
+                  "state": state}))
+'''
+
+
+def test_a_plugin_subclasses_a_built_in_driver_and_controller_in_the_default_build() -> None:
+    """Issue 26: a user's driver may extend ``sim`` (and a controller the teleop slave) in
+    the build that ships; compiled classes used to refuse interpreted subclasses."""
+    needs_build()
+    env = {k: v for k, v in os.environ.items() if k not in ("OCC_PURE", "PYTHONPATH")}
+    env["PYTHONPATH"] = str(ROOT)
+    out = subprocess.run(
+        [sys.executable, "-c", PLUGINS], cwd=ROOT, env=env, capture_output=True, text=True
+    )
+    assert out.returncode == 0, out.stderr
+    got = json.loads(out.stdout.splitlines()[-1])
+    assert got["build"] == "compiled" and not got["sim_file"].endswith(".py"), got
+    assert got["state"] == "RUNNING" and got["reads"] > 100 and got["samples"] == 50, got

@@ -6,9 +6,12 @@ diameter with stiffness 1 N/mm, and 10:1 motion scaling: the trajectory stayed i
 most 10 N was displayed. Here the shipped pair runs on one :class:`~occ.clock.SimClock` with
 in-process interfaces (:class:`occ.testing.SimRobot`): the master (``configs/master.yaml``: a
 simulated hand that intends the paper's motion and yields to the displayed force) streams its
-measured handle to the slave (``configs/slave.yaml``), which follows at 10:1. The fixture goes
-to the master as a VFIXTURE (master frame, the paper's meaning: accessible), as 3D Slicer
-would send it.
+measured handle to the slave (``configs/slave.yaml``), which follows at 10:1 and sends its
+measured tip back (the return channel, ``SlaveTip``): the force is computed where the slave's
+tool is. The fixture goes to the master as a VFIXTURE in the patient frame (the frame of the
+``Tip`` 3D Slicer shows; the paper's meaning: accessible): the sphere the paper draws on the
+master's workspace, placed where the slave's tip is for that handle position (its centre and
+radius at 10:1), as a 3D Slicer user places it on the ``Tip``.
 
 Two cases (``--case``): ``paper`` (the paper's sphere, centred on the motion: it stays
 inside, no force) and ``small`` (a sphere of 50 mm radius 10 mm off the motion's centre, which
@@ -26,6 +29,7 @@ import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import igtl
 from occ.clock import SimClock
@@ -82,35 +86,53 @@ def run(
     master = SimRobot(ROOT / "configs" / "master.yaml", clock=clock)
     slave = SimRobot(ROOT / "configs" / "slave.yaml", clock=clock)
     try:
-        link = slave.peer("master", address=("127.0.0.1", 40000))
-        master.peer("slave", on_message=link.send)
+        box: dict[str, Any] = {}
+        # the stream master -> slave and the return channel slave -> master, both ways
+        m_link = master.peer("slave", on_message=lambda m: box["link"].send(m))
+        link = slave.peer("master", address=("127.0.0.1", 40000), on_message=m_link.send)
+        box["link"] = link
         m_op = master.peer("operator", address=("127.0.0.1", 41000))
         s_op = slave.peer("operator", address=("127.0.0.1", 41001))
         ctrl = master.robot.controller.controllers[0]
         scontrol = slave.robot.controller.controllers[0]
         origin = [v * 1000.0 for v in ctrl.origin]
-        hand = master.robot.drivers[0][0]
+        hand = master.robot.hardware.drivers[0]
 
         def both(n: int) -> None:
             for _ in range(n):
                 master.tick()
                 slave.tick()
 
+        for op in (s_op, m_op):
+            for name in ("Enable", "Run"):
+                op.send_command(name)
+                both(1)
+        both(1)  # the slave re-indexes on the master's first run=1 sample
         if sphere is not None:
-            centre = tuple(o + c for o, c in zip(origin, sphere[:3], strict=True))
+            # where the slave's tip is (patient mm) for the handle at the sphere's centre: the
+            # slave's own mapping, base + slave_ref + scale (master - master_ref)
+            assert scontrol.master_ref is not None and scontrol.slave_ref is not None
+            base = slave.robot.data.base[:3, 3]
+            centre = tuple(
+                (b + sr + scontrol.scale * ((o + c) * 1e-3 - mr)) * 1000.0
+                for b, sr, mr, o, c in zip(
+                    base,
+                    scontrol.slave_ref,
+                    scontrol.master_ref,
+                    origin,
+                    sphere[:3],
+                    strict=True,
+                )
+            )
             m_op.send(
                 igtl.VirtualFixtureMessage(
                     hardness=stiffness,
-                    spheres=((*centre, sphere[3]),),
+                    spheres=((*centre, sphere[3] * scontrol.scale),),
                     device_name="Fixture",
                     header_version=2,
                     metadata={"MRMLNodeName": "AccessibleArea", "kind": "accessible"},
                 )
             )
-        for op in (s_op, m_op):
-            for name in ("Enable", "Run"):
-                op.send_command(name)
-                both(1)
         res = Result(sphere, stiffness)
         scale = scontrol.scale
         for k in range(round(seconds / master.period)):

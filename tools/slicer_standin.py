@@ -211,9 +211,12 @@ def main(argv: list[str] | None = None) -> int:
         action="append",
         default=[],
         metavar="X,Y,Z,R",
-        help="send a VFIXTURE sphere in mm (repeatable)",
+        help="send a VFIXTURE sphere, patient frame (the frame of the slave's Tip), mm "
+        "(repeatable)",
     )
-    p.add_argument("--hardness", type=float, default=1.0, help="fixture hardness N/mm")
+    p.add_argument(
+        "--hardness", type=float, default=1.0, help="fixture stiffness, N per mm of master motion"
+    )
     p.add_argument(
         "--kind",
         default="accessible",

@@ -280,7 +280,7 @@ def run_sim(args: argparse.Namespace, out: Path) -> Report:
     status_seen = 0
     alert_ok = 0
     alert_bad: list[str] = []
-    monitor = robot.loss_monitor
+    monitor = robot.streams.monitor
     assert monitor is not None
     grace_ticks = int(math.floor(monitor.grace_s * 1000.0 + 1e-9)) + 1  # elapsed > grace
     hold_latencies: list[float] = []
@@ -474,7 +474,7 @@ def run_sim(args: argparse.Namespace, out: Path) -> Report:
         else:
             all_lengths.append(open_run["length"])
     elapsed = time.perf_counter() - t_wall0
-    counters = robot.loss_monitor.counters() if robot.loss_monitor is not None else {}
+    counters = robot.streams.monitor.counters() if robot.streams.monitor is not None else {}
     slave.close()
 
     cats = Counter(r.category for r in rep.runs)

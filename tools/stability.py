@@ -680,7 +680,7 @@ def run(args: argparse.Namespace) -> tuple[Report, Traces]:
         if progress is not None:
             progress.show(sim_s, final=True)
         m = feed.end(early=stopped_early)
-        counters = slave.robot.loss_monitor.counters() if slave.robot.loss_monitor else {}
+        counters = slave.robot.streams.monitor.counters() if slave.robot.streams.monitor else {}
         ctl_stats = slave_ctl.stats()
     finally:
         slave.close()

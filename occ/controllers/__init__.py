@@ -99,6 +99,9 @@ class ControllerContext:
     shift: Callable[[float], None]
     #: each joint's limits (the drivers enforce them), in ``RobotData.joint_names`` order
     joint_limits: tuple[JointLimits, ...] = ()
+    #: a STATUS to every viewer and operator (name, text, code), as the robot's own alerts
+    #: go (None: logged only, e.g. in a unit test)
+    alert: Callable[[str, str, int], None] | None = None
 
 
 @mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins and tests subclass it

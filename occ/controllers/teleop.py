@@ -24,15 +24,20 @@ Master daemon (:class:`MasterController`)
     Virtual fixtures (:mod:`occ.fixtures`, :mod:`occ.fixture_defs`, :mod:`occ.haptics`): the
     OCC paper's accessible spheres (the default meaning of VFIXTURE), forbidden spheres and
     planes, guides; defined by VFIXTURE, Slicer Markups (POINT, TRANSFORM and POLYDATA with
-    metadata) and ``.mrk.json`` files (``fixture_files``), in the master's frame or the
-    patient's (mapped through the slave's registration, ``scale`` and the clutch offsets). Each
-    tick the force for the measured tool position is computed (a proxy per contact, clamped to
-    ``max_force_n``); with ``force_output`` it is written to the master's effort command
-    interfaces (a haptic master: ``sim-hand``, or ``can`` with ``command_interface: effort``),
-    so the operator's hand feels it; position-commanded masters (``sim``, ``igtl``) report it
-    only. ``tool_mm`` and ``force_n`` are in the stats; the output sources ``fixtures``
-    (POLYDATA models, on change and on ``GetFixtures``) and ``contact`` (the proxy, while in
-    contact and once after) show them in 3D Slicer.
+    metadata) and ``.mrk.json`` files (``fixture_files``), all in the patient frame (3D
+    Slicer's RAS, the frame of the slave's ``Tip``). The tool is where the slave measures it:
+    its tip, sent back on the stream link at the stream rate (``SlaveTip``,
+    :mod:`occ.returnlink`), judged by a loss monitor (late: the force fades out; lost: zero
+    and an alert). Fixtures and tool are mapped into the master's force frame by the slave's
+    own ``map`` (its base rotation x scale x rotation), so the clutch, re-indexing and a
+    hand-over change nothing; a new tip gives a new force (a proxy per contact, clamped to
+    ``max_force_n``), displayed while the slave follows this master. With ``force_output`` it
+    is written to the master's effort command interfaces (a haptic master: ``sim-hand``, or
+    ``can`` with ``command_interface: effort``), so the operator's hand feels it;
+    position-commanded masters (``sim``, ``igtl``) report it only. ``tool_mm`` (patient) and
+    ``force_n`` are in the stats with the return link's state (``slave_tip``); the output
+    sources ``fixtures`` (POLYDATA models, on change and on ``GetFixtures``) and ``contact``
+    (the proxy, while in contact and once after) show them in 3D Slicer.
 
 Slave daemon (:class:`SlaveController`)
     Follows the master's POSITION stream: ``target = slave_ref + scale · R · (master - master_ref)``
@@ -55,16 +60,19 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pydantic.main  # noqa: F401 - mypyc: the module its run-time BaseModel checks look up
+from mypy_extensions import mypyc_attr
 from pydantic import BaseModel
 
 from igtl.messages.base import Message
-from igtl.messages.transform import POSITION_QUATERNION3, position_v2
+from igtl.messages.transform import POSITION_ALL, POSITION_QUATERNION3, position_v2
 
 from ..collab import SlaveSelector
 from ..config import DaemonConfig
 from ..errors import CommandError, KinematicsError, OCCError, caused
 from ..fixture_defs import Defaults, DefinitionError, PatientMapping, from_markups_file
 from ..haptics import MasterFixtures
+from ..outputs import rotation_to_quaternion
+from ..returnlink import ReturnLink
 from ..safety import RobotState
 from ..stats import Histogram
 from . import Controller, ControllerContext, Problem, SourceFn
@@ -101,10 +109,13 @@ def _interfaces_exist(params: Any, config: DaemonConfig, keys: tuple[str, ...]) 
     return out
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins extend built-ins
 class MasterController(Controller):
     """The master side of the OCC pair: the handle follows the operator (simulated, an IGTL
-    stream or a hand-moved device), virtual fixtures push back on it, and its position streams
-    to the slave at 500 Hz (output source ``teleop``)."""
+    stream or a hand-moved device), and its position streams to the slave at 500 Hz (output
+    source ``teleop``). Virtual fixtures (patient frame) push back on it, with the force where
+    the slave's tool is: the slave's measured tip, sent back on the same link (``SlaveTip``,
+    the return channel)."""
 
     name = "teleop-master"
     Params = MasterParams
@@ -132,14 +143,6 @@ class MasterController(Controller):
         self.selector = SlaveSelector(
             p.slaves, p.slave, p.toggle_tap_ms * 1e-3 if p.toggle_tap_ms is not None else None
         )
-        base = None
-        if p.slave_base_mm is not None:
-            base = [
-                [1.0, 0.0, 0.0, p.slave_base_mm[0]],
-                [0.0, 1.0, 0.0, p.slave_base_mm[1]],
-                [0.0, 0.0, 1.0, p.slave_base_mm[2]],
-                [0.0, 0.0, 0.0, 1.0],
-            ]
         self.fixtures = MasterFixtures(
             Defaults(
                 vfixture_kind=p.vfixture_kind,
@@ -148,17 +151,27 @@ class MasterController(Controller):
                 stiffness=p.fixture_hardness,
                 damping=p.fixture_damping,
             ),
-            PatientMapping(p.scale, p.rotation, base, slave_ref=tuple(p.slave_tip_mm)),  # type: ignore[arg-type]
+            PatientMapping(p.scale, p.rotation),
             max_force_n=p.max_force_n,
             slide_mm=p.fixture_slide_mm,
             max_primitives=p.max_fixtures,
             max_planes=p.max_planes,
-            display_frame=p.display_frame,
         )
         self.slave_base_device = p.slave_base_device
         self.slave_tip_device = p.slave_tip_device
         self._fixture_files = p.fixture_files
-        self._following = False
+        #: the return channel: each slave link's tip stream (occ/returnlink.py), by interface
+        self._links: dict[str, ReturnLink] = {}
+        #: the interfaces this master streams to (its ``teleop`` outputs), learned as they send
+        self._teleop_ifaces: list[str] = []
+        self._tip_period_s = p.tip_period_ms * 1e-3
+        self._tip_grace_s = p.tip_grace_ms * 1e-3
+        self._fade_s = p.tip_fade_ms * 1e-3
+        #: the share of the computed fixture force displayed (0..1: fades on a stale tip, the
+        #: clutch, a slave not following this master; 0 at once when the tip is lost)
+        self.gain = 0.0
+        self._t_gain = math.nan
+        self._linear_seen: object = None
         self._jt: list[list[float]] | None = None  # J^T of a Cartesian master (constant)
         self._efforts: list[float] = []
         self._models_sent: dict[int, int] = {}  # id(output) -> fixture version sent
@@ -186,6 +199,10 @@ class MasterController(Controller):
                 )
         if params.slave is not None and params.slave not in params.slaves:
             problems.append((("slave",), f"'{params.slave}' is not one of slaves"))
+        if params.tip_grace_ms < 3.25 * params.tip_period_ms:
+            problems.append(
+                (("tip_grace_ms",), "must be at least the deadline (3.25 x tip_period_ms)")
+            )
         if params.force_output and params.input != "driver":
             problems.append((("force_output",), "needs input: driver (a hand-moved master)"))
         for i, f in enumerate(params.fixture_files):
@@ -213,9 +230,6 @@ class MasterController(Controller):
             j1 = ctx.frame.jacobian(data.q)[:3]
             if np.allclose(j0, j1, atol=1e-12) and any(abs(v) > 1e-6 for v in data.q):
                 self._jt = j0.T.tolist()
-        tool = ctx.frame.tip_position(data.q)
-        self.fixtures.tool_mm = (tool[0] / MM, tool[1] / MM, tool[2] / MM)
-        self.fixtures.mapping.master_ref = self.fixtures.tool_mm
         for f in self._fixture_files:
             count = self.fixtures.load_file(
                 f.file,
@@ -245,7 +259,10 @@ class MasterController(Controller):
             and msg.device_name in (self.slave_base_device, self.slave_tip_device)
             and not (is_input and self.input_device == msg.device_name)
         ):
-            self._mapping_input(msg, now)
+            if msg.device_name == self.slave_tip_device:
+                self._tip_input(item, now)
+            else:
+                self._mapping_input(msg, now)
             return
         if mtype in ("VFIXTURE", "POINT", "TRANSFORM", "POLYDATA") and not (
             is_input and mtype in ("TRANSFORM", "POSITION") and "kind" not in msg.metadata
@@ -268,16 +285,65 @@ class MasterController(Controller):
         self.samples += 1
         self.target = np.array([x, y, z]) * MM
 
-    def _mapping_input(self, msg: Message, now: float) -> None:
-        """The registration (the slave's base pose) or the slave's measured tip."""
-        try:
-            if msg.device_name == self.slave_base_device and msg.message_type == "TRANSFORM":
-                self.fixtures.registration(msg.matrix.tolist(), now)  # type: ignore[attr-defined]
-            elif msg.device_name == self.slave_tip_device:
-                m: Any = msg
-                self.fixtures.slave_tip(
-                    m.translation if msg.message_type == "TRANSFORM" else m.position, now
+    def _tip_input(self, item: Inbound, now: float) -> None:
+        """A sample of a slave's tip stream (the return channel, occ/returnlink.py)."""
+        name = item.interface
+        msg = item.msg
+        if name not in self._teleop_ifaces:
+            raise CommandError(
+                f"{msg.message_type} {msg.device_name!r} is a slave's return stream: taken only "
+                f"on the interfaces this master streams to "
+                f"({', '.join(self._teleop_ifaces) or 'none yet'})"
+            )
+        link = self._link(name)
+        clock = self.ctx.clock  # type: ignore[union-attr]
+        recovered = link.recoveries
+        if not link.on_sample(msg, now, item.t_rx + (clock.wall_time() - clock.now())):
+            return
+        if name != self._driving():
+            return
+        self.fixtures.tool_mm = link.tip  # type: ignore[assignment]
+        lin = link.linear
+        if lin is not None and lin is not self._linear_seen:
+            self._linear_seen = lin
+            try:
+                self.fixtures.set_linear(lin, now)
+            except DefinitionError as err:  # checked when parsed: cannot happen
+                link.last_error = str(err)
+        if link.recoveries != recovered and self.data is not None:
+            if self.data.state is RobotState.RUNNING:
+                self._alert(
+                    "STREAM",
+                    f"slave tip on {name} back; virtual-fixture force on again",
+                    0,
                 )
+
+    def _link(self, name: str) -> ReturnLink:
+        link = self._links.get(name)
+        if link is None:
+            link = ReturnLink(name, period_s=self._tip_period_s, grace_s=self._tip_grace_s)
+            self._links[name] = link
+        return link
+
+    def _driving(self) -> str | None:
+        """The slave link whose tip is the tool: the selected slave's, else the first (the
+        only) interface this master streams to."""
+        if self.selector.slaves:
+            return self.selector.selected
+        return self._teleop_ifaces[0] if self._teleop_ifaces else None
+
+    def _alert(self, name: str, text: str, code: int) -> None:
+        ctx = self.ctx
+        alert = ctx.alert if ctx is not None else None
+        if alert is not None:
+            alert(name, text, code)
+
+    def _mapping_input(self, msg: Message, now: float) -> None:
+        """The registration (the slave's base pose, a TRANSFORM): used for the map when the
+        slave does not send its own."""
+        try:
+            if msg.message_type == "TRANSFORM":
+                self.fixtures.registration(msg.matrix.tolist(), now)  # type: ignore[attr-defined]
         except DefinitionError as err:
             raise caused(
                 CommandError(f"{msg.message_type} {msg.device_name!r}: {err}"), err
@@ -312,11 +378,15 @@ class MasterController(Controller):
         # the start point in one tick, tests/occ/test_contracts.py).
         if new is RobotState.RUNNING:
             self._t_run = now - self._t_held
+            # the tip stream's deadline starts now: a slave that never answers is caught by
+            # the grace (an alert), as a dead one is
+            for link in self._links.values():
+                link.arm(now)
         elif old is RobotState.RUNNING:
             self._t_held = now - self._t_run
-            if self._following:  # the slave stops following: the mapping keeps where
-                self._following = False
-                self.fixtures.following(False, self.fixtures.tool_mm, now)
+        self.gain = 0.0
+        self._t_gain = math.nan
+        self.fixtures.displayed((0.0, 0.0, 0.0))
 
     # -------------------------------------------------------------- loop
     def operator_target(self, now: float) -> np.ndarray | tuple[float, float, float] | None:
@@ -335,13 +405,7 @@ class MasterController(Controller):
     def update(self, now: float) -> Sequence[float] | None:
         data, ctx = self.data, self.ctx
         assert data is not None and ctx is not None
-        tx, ty, tz = ctx.frame.tip_position(data.q)
-        tool = (tx / MM, ty / MM, tz / MM)
-        following = not self.clutch
-        if following != self._following:
-            self._following = following
-            self.fixtures.following(following, tool, now)
-        fx, fy, fz = self.fixtures.step(tool, now)
+        fx, fy, fz = self._fixture_force(now)
         if self.force_output:
             eff = self._efforts
             jt = self._jt
@@ -366,6 +430,64 @@ class MasterController(Controller):
             return None
         return q
 
+    def _fixture_force(self, now: float) -> tuple[float, float, float]:
+        """The virtual-fixture force to display this tick (N, the master's axes).
+
+        Computed where the slave's tool is: the tip of the driving slave's return stream
+        (patient frame), each time a new one arrives. Displayed x ``gain``: the gain rises to
+        1 within ``tip_fade_ms`` while the tip is fresh and the slave follows this master (the
+        clutch released), and falls to 0 within ``tip_fade_ms`` otherwise, holding the last
+        force computed from a fresh tip (never one from a stale pose); a lost or missing tip
+        makes it 0 at once."""
+        fixtures = self.fixtures
+        name = self._driving()
+        link = self._links.get(name) if name is not None else None
+        if link is None and name is not None:
+            link = self._link(name)
+            link.arm(now)  # a link the master has not heard from: watched from now on
+        for other in self._links.values():
+            event = other.check(now)
+            if event is not None:
+                self._tip_event(other, event.kind, event.cause, other is link)
+        last = self._t_gain
+        dt = now - last if last == last else 0.0
+        self._t_gain = now
+        if link is None:
+            self.gain = 0.0
+            fixtures.displayed((0.0, 0.0, 0.0))
+            return fixtures.force_n
+        status = link.status
+        if link.new and link.tip is not None:
+            link.new = False
+            fixtures.step(link.tip, link.t_tip)
+        if status == "lost" or status == "none":
+            self.gain = 0.0
+        else:
+            fade = self._fade_s
+            step = 1.0 if fade <= 0.0 else dt / fade
+            if status == "fresh" and link.following and not self.clutch:
+                self.gain = min(1.0, self.gain + step)
+            else:
+                self.gain = max(0.0, self.gain - step)
+        g = self.gain
+        rx, ry, rz = fixtures.raw_force_n
+        fixtures.displayed((g * rx, g * ry, g * rz))
+        return fixtures.force_n
+
+    def _tip_event(self, link: ReturnLink, kind: str, cause: str, driving: bool) -> None:
+        where = f"slave tip on {link.interface}"
+        if kind == "latch":
+            text = f"{where} lost: {cause}; virtual-fixture force off"
+            if driving:
+                log.error("ALERT: %s", text)
+                self._alert("ALERT", text, 15)  # igtl StatusCode.TIME_OUT
+            else:
+                log.warning("%s (not the driving slave)", text)
+        elif kind == "refused":
+            log.warning("%s: %s", where, cause)
+        else:  # hold (stale: the force fades), resume
+            log.info("%s: %s", where, cause)
+
     # -------------------------------------------------------------- output
     def _source_teleop(self, out: Output, now: float) -> Message:
         data, ctx = self.data, self.ctx
@@ -373,7 +495,10 @@ class MasterController(Controller):
         x, y, z = ctx.frame.tip_position(data.q)
         # a slave not selected is told run=0 (it holds, its stream stays alive) and re-indexes
         # when it is selected again: no jump
-        running = data.state is RobotState.RUNNING and self.selector.drives(out.interface.name)
+        name = out.interface.name
+        running = data.state is RobotState.RUNNING and self.selector.drives(name)
+        if name not in self._teleop_ifaces:
+            self._teleop_ifaces.append(name)
         key = id(out)
         self.seq = seq = (self._seqs.get(key, self._first_seq) + 1) & 0xFFFFFFFF
         self._seqs[key] = seq
@@ -414,13 +539,28 @@ class MasterController(Controller):
 
     def stats(self) -> dict[str, Any]:
         fx = self.fixtures
+        name = self._driving()
+        link = self._links.get(name) if name is not None else None
+        now = self.ctx.clock.now() if self.ctx is not None else math.nan
+        tips = {k: v.stats(now) for k, v in self._links.items()}
         return {
             "input": self.input,
             "seq": self.seq,
             "clutch": self.clutch,
-            "tool_mm": [round(v, 3) for v in fx.tool_mm],
+            # the tool: the driving slave's measured tip, patient frame (3D Slicer's Tip)
+            "tool_mm": (
+                None if link is None or link.tip is None else [round(v, 3) for v in fx.tool_mm]
+            ),
+            "tool_frame": "patient",
             "force_n": [round(v, 4) for v in fx.force_n],
+            "fixture_gain": round(self.gain, 4),
             "force_output": self.force_output,
+            "slave_tip": tips.get(name) if name is not None else None,
+            **({"slave_tips": tips} if len(tips) > 1 else {}),
+            "fixture_map": {
+                "source": fx.mapping.source,
+                "scale": round(fx.mapping.factor, 6),
+            },
             **fx.stats(),
             "ik_failures": self.ik_failures,
             **({"slaves": self.selector.stats()} if self.selector.slaves else {}),
@@ -431,9 +571,12 @@ def _mm(p: Sequence[float] | None) -> list[float] | None:
     return None if p is None else [round(float(v) / MM, 6) for v in p]
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins extend built-ins
 class SlaveController(Controller):
     """The slave side of the OCC pair: follows the master's POSITION stream, scaled and
-    re-indexed so it never jumps; the base pose from the config or a tracker."""
+    re-indexed so it never jumps; the base pose from the config or a tracker. Output source
+    ``teleop-return``: its tip (patient frame, as 3D Slicer's ``Tip``) back to the master at the
+    stream rate, the tool of the master's virtual fixtures (occ/returnlink.py)."""
 
     name = "teleop-slave"
     Params = SlaveParams
@@ -481,10 +624,77 @@ class SlaveController(Controller):
         self.latency_us = Histogram()
         self.rx_latency_us = Histogram()
         self.pending_rx = 0.0
+        #: the return channel (output source ``teleop-return``): each output's sequence
+        #: numbers, and its metadata by (following, state, map), built once each
+        self._return_seqs: dict[int, int] = {}
+        self._return_meta: dict[tuple[bool, str, str], MappingProxyType[str, str]] = {}
+        self._map_base: np.ndarray | None = None
+        self._map_text = ""
+        self.returned = 0
 
     @classmethod
     def check(cls, params: Any, config: DaemonConfig) -> list[Problem]:
         return _interfaces_exist(params, config, ("input_interface", "base_interface"))
+
+    def outputs(self) -> dict[str, SourceFn]:
+        return {"teleop-return": self._source_return}
+
+    def _map(self) -> str:
+        """The ``map`` metadata: how a handle displacement (master mm) moves the tip in the
+        patient frame (mm): base rotation x scale x master-to-slave rotation, row by row.
+        Rebuilt only when the base pose object changes (a tracker's TRANSFORM)."""
+        data = self.data
+        assert data is not None
+        base = data.base
+        if base is not self._map_base:
+            self._map_base = base
+            lin = (np.asarray(base, dtype=float)[:3, :3] @ (self.scale * self.rotation)).ravel()
+            self._map_text = ",".join(f"{v:.9g}" for v in lin.tolist())
+        return self._map_text
+
+    def _source_return(self, out: Output, now: float) -> Message | None:
+        """The return channel: the tip as 3D Slicer sees it (patient frame), to the master
+        that streams to this interface (occ/returnlink.py has the format)."""
+        if out.type != "POSITION":
+            raise OCCError("teleop-return output must be of type POSITION")
+        iface = out.interface
+        if iface.stream_owner is None and iface.sends_to_owner:
+            return None  # no master has streamed to this interface yet: nobody to tell
+        data = self.data
+        assert data is not None
+        state = data.state
+        following = (
+            state is RobotState.RUNNING
+            and self.source == iface.name
+            and self.master_run
+            and not self.master_clutch
+            and self.master_ref is not None
+        )
+        key = (following, state.value, self._map())
+        meta = self._return_meta.get(key)
+        if meta is None:
+            if len(self._return_meta) > 64:  # a tracker moving the base: keep it bounded
+                self._return_meta.clear()
+            meta = MappingProxyType(
+                {"following": "1" if following else "0", "state": key[1], "map": key[2]}
+            )
+            self._return_meta[key] = meta
+        pose = data.world_tip()
+        x, y, z = (pose[:3, 3] * 1e3).tolist()
+        k = id(out)
+        seq = (self._return_seqs.get(k, 0) + 1) & 0xFFFFFFFF
+        self._return_seqs[k] = seq
+        self.returned += 1
+        assert self.ctx is not None
+        return position_v2(
+            out.device,
+            self.ctx.clock.wall_time(),
+            seq,
+            meta,
+            (x, y, z),
+            rotation_to_quaternion(pose[:3, :3]),
+            POSITION_ALL,
+        )
 
     def configure(self, data: RobotData, ctx: ControllerContext) -> None:
         super().configure(data, ctx)

@@ -48,8 +48,9 @@ class MasterParams(_Params):
     clutch: Bool = Field(False, description="Clutch pressed at start.")
     fixture_radius_mm: PosFloat = Field(
         5.0,
-        description="Radius of the sphere around each Markups point received as POINT (used "
-        "when neither the point nor the metadata `radius` gives one, as 3D Slicer sends them).",
+        description="Radius (patient mm) of the sphere around each Markups point received as "
+        "POINT (used when neither the point nor the metadata `radius` gives one, as 3D Slicer "
+        "sends them).",
     )
     fixture_hardness: Annotated[Float, Field(ge=0)] = Field(
         1.0,
@@ -94,30 +95,42 @@ class MasterParams(_Params):
     )
     scale: Annotated[Float, Field(gt=0, le=10)] = Field(
         0.1,
-        description="The slave's motion scaling (its `scale`): patient fixtures are mapped "
-        "onto the master through it.",
+        description="The slave's motion scaling (its `scale`): maps patient fixtures onto the "
+        "master only for a slave that does not send its `map` on the return channel (the "
+        "shipped slave does).",
     )
     rotation: tuple[Vec3, Vec3, Vec3] | None = Field(
-        None, description="The slave's master-to-slave rotation (its `rotation`); null = identity."
-    )
-    slave_base_mm: Vec3 | None = Field(
         None,
-        description="The slave's base position in the patient frame (mm), i.e. the "
-        "registration; a TRANSFORM `slave_base_device` replaces it (full pose).",
+        description="The slave's master-to-slave rotation (its `rotation`; null = identity): "
+        "used as `scale` is.",
     )
     slave_base_device: DeviceName = Field(
-        "Base", description="Device name of the registration TRANSFORM (the slave's base pose)."
-    )
-    slave_tip_mm: Vec3 = Field(
-        (0.0, 0.0, 0.0),
-        description="The slave's tip in its base frame (mm) when following first starts; a "
-        "TRANSFORM or POSITION `slave_tip_device` (patient frame) re-anchors it.",
+        "Base",
+        description="Device name of a registration TRANSFORM (the slave's base pose in the "
+        "patient frame): its rotation maps fixtures onto the master when the slave does not "
+        "send its own `map` on the return channel.",
     )
     slave_tip_device: DeviceName = Field(
-        "SlaveTip", description="Device name of the slave tip's TRANSFORM/POSITION (patient)."
+        "SlaveTip",
+        description="Device name of the slave's return stream (POSITION/TRANSFORM, patient "
+        "frame, sequence-numbered: the slave's `teleop-return` output), taken on the "
+        "interfaces this master streams to. Its tip is the tool of the virtual fixtures.",
     )
-    display_frame: Literal["patient", "master"] = Field(
-        "patient", description="Frame of the `fixtures` and `contact` outputs shown in Slicer."
+    tip_period_ms: PosFloat = Field(
+        2.0,
+        description="Period of the slave's return stream (its `teleop-return` rate: 500 Hz "
+        "= 2 ms); late after 3 periods + a quarter.",
+    )
+    tip_grace_ms: PosFloat = Field(
+        100.0,
+        description="A return stream silent this long is lost (a dead slave): fixture force "
+        "zero and an ALERT; so are 3 or more consecutive sequence numbers missing.",
+    )
+    tip_fade_ms: Annotated[Float, Field(ge=0)] = Field(
+        20.0,
+        description="The fixture force fades out within this time when the slave's tip is "
+        "late or the slave stops following this master (the clutch, a hand-over), and back "
+        "in when it follows again; 0 = at once.",
     )
     first_seq: Annotated[Int, Field(ge=0, le=0xFFFFFFFF)] = Field(
         0, description="Sequence number before the first POSITION (the first is +1)."

@@ -48,6 +48,20 @@ Two more duties, because the loop itself can fail (see docs/ARCHITECTURE.md, "Sa
   while the loop thread is inside ``_read`` or ``_write``; the driver then latches FAULT, so a
   ``write`` from the resumed loop is refused until :meth:`Driver.reset`.
 
+Feedback checks (every ``read``, in the base, so every backend has them): a joint's position
+is its feedback, and feedback can fail while the drive still answers.
+
+- **Lost**: a non-finite position (NaN, inf) from a joint that has been measured latches
+  FAULT ("feedback lost"). Before the first measurement NaN means "not reported yet": the
+  joint stays unmeasured, and Enable is refused until it is measured.
+- **Jump**: a step larger than ``feedback_jump`` (default 3) times the joint's velocity limit
+  over the time since its last reading (at least one ``period``) latches FAULT: no healthy
+  joint moves that fast; a slipped encoder or a corrupted frame does. 0 = off.
+- **Frozen**: while ACTIVE on position commands, a joint whose reported position has not
+  changed at all for ``frozen_feedback_ms`` (default 50) while its command is further than
+  ``FROZEN_AWAY`` from it (5 mrad, 0.5 mm) latches FAULT: the drive answers, the heartbeat
+  lives, but the encoder is stuck. 0 = off.
+
 The hooks receive ``now`` (seconds on the loop's clock) because a simulated driver integrates
 its dynamics over exactly those times, which makes a simulated-clock run reproducible.
 ``values`` passed to ``_write`` is a buffer the base reuses every tick: copy it if needed.
@@ -77,8 +91,18 @@ LimitPolicy = Literal["clamp", "fault"]
 _INTERFACES = ("position", "effort")
 _POLICIES = ("clamp", "fault")
 
-#: Parameters every driver takes (the base reads them), whatever its own DEFAULT_PARAMS say.
-BASE_PARAMS: dict[str, Any] = {"heartbeat_ms": 50.0}
+#: Parameters every driver takes (the base reads them), whatever its own DEFAULT_PARAMS say:
+#: the device heartbeat, and the feedback checks (see "Feedback checks" in the docstring).
+BASE_PARAMS: dict[str, Any] = {
+    "heartbeat_ms": 50.0,
+    "feedback_jump": 3.0,
+    "frozen_feedback_ms": 50.0,
+}
+
+#: How far (rad, m) the command must be from a joint that has not moved at all for
+#: ``frozen_feedback_ms`` before its feedback is called frozen: far beyond the tracking lag of
+#: a healthy servo at the velocity limits, so a joint holding still never trips it.
+FROZEN_AWAY = {"revolute": 0.005, "prismatic": 0.0005}
 
 # Relative slack on the velocity check, so that a setpoint moving at exactly the limit is not
 # flagged because of float rounding in (x - prev) / dt.
@@ -147,6 +171,18 @@ class Driver:
             raise ValueError(
                 f"driver {name!r}: heartbeat_ms must be a number >= 0 (0 = off), got {heartbeat!r}"
             )
+        checks: list[float] = []
+        for key in ("feedback_jump", "frozen_feedback_ms"):
+            raw = params[key]
+            try:
+                value = 0.0 if raw is None else float(raw)
+            except (TypeError, ValueError):
+                value = math.nan
+            if not value >= 0.0:
+                raise ValueError(
+                    f"driver {name!r}: {key} must be a number >= 0 (0 = off), got {raw!r}"
+                )
+            checks.append(value)
         interface = command_interface or params.get("command_interface") or self.command_interface
         if interface not in _INTERFACES or interface not in self.supported_interfaces:
             raise ValueError(
@@ -174,6 +210,11 @@ class Driver:
         self.period: float = period
         #: the device stops itself when not commanded for this long while ACTIVE (0 = off)
         self.heartbeat_s: float = heartbeat_s
+        # feedback checks: per joint (max speed for a plausible step, distance for "frozen")
+        self._jump_speed = [checks[0] * j.limits.velocity for j in joints]
+        self._frozen_s = checks[1] * 1e-3
+        self._frozen_away = [FROZEN_AWAY.get(j.type, 0.005) for j in joints]
+        self._changed_at = [math.nan] * len(joints)
         self._safe_lock = threading.Lock()
         self._safe_stops = 0
         self._state: DriverState = DriverState.UNCONFIGURED
@@ -241,6 +282,7 @@ class Driver:
         for joint in self.joints:
             joint.reset_servo()
         self._prev_write_time = math.nan
+        self._changed_at = [math.nan] * len(self.joints)  # frozen: watched from the next read
         # the limits as plain floats, read by every write (fewer look-ups on the loop)
         self._limit_table = [
             (j, j.limits.min, j.limits.max, j.limits.velocity * (1.0 + _VEL_SLACK))
@@ -348,15 +390,48 @@ class Driver:
             positions, velocities, efforts = self._read(now)
         except Exception as err:
             raise self._hook_failed("read", err) from err
+        jump = self._jump_speed
+        changed = self._changed_at
+        frozen_s = self._frozen_s if state is DriverState.ACTIVE else 0.0
+        if self.command_interface == "effort":
+            frozen_s = 0.0  # the hand, not a servo, moves an effort-driven joint
         for i, joint in enumerate(self.joints):
             x = positions[i]
-            if x == x:  # NaN: the hardware has not reported this joint yet; it stays unmeasured
-                # Joint.set_measured, inlined: this runs for every joint every tick
-                joint.position = x
-                joint.velocity = velocities[i]
-                joint.effort = efforts[i]
-                joint.measured = True
-                joint.stamp = now
+            if x - x != 0.0:  # NaN or inf (math.isfinite without a call)
+                if joint.measured:
+                    self._feedback_fault(f"joint {joint.name}: feedback lost (position {x})")
+                continue  # not reported yet: the joint stays unmeasured
+            if joint.measured:
+                prev = joint.position
+                if x != prev:
+                    changed[i] = now
+                    step = x - prev if x > prev else prev - x
+                    dt = now - joint.stamp
+                    if dt < self.period:
+                        dt = self.period
+                    if jump[i] > 0.0 and step > jump[i] * dt:
+                        self._feedback_fault(
+                            f"joint {joint.name}: feedback jump of {step:.6g} in "
+                            f"{dt * 1e3:.3g} ms (at most {jump[i] * dt:.6g}: "
+                            f"{self.params['feedback_jump']} x the velocity limit)"
+                        )
+                elif frozen_s > 0.0:
+                    since = changed[i]
+                    if since != since:
+                        changed[i] = now
+                    elif now - since > frozen_s:
+                        away = joint.command_position - x
+                        if away > self._frozen_away[i] or -away > self._frozen_away[i]:
+                            self._feedback_fault(
+                                f"joint {joint.name}: feedback frozen at {x:.6g} for "
+                                f"{(now - since) * 1e3:.0f} ms while commanded {away:+.6g} away"
+                            )
+            # Joint.set_measured, inlined: this runs for every joint every tick
+            joint.position = x
+            joint.velocity = velocities[i]
+            joint.effort = efforts[i]
+            joint.measured = True
+            joint.stamp = now
         self._reads += 1
 
     def write(self, setpoints: Sequence[float], now: float) -> None:
@@ -523,6 +598,13 @@ class Driver:
             wrapped = caused(DriverError(f"driver {self.name!r}: {action} failed: {err!r}"), err)
         self._enter_fault(str(wrapped))
         return wrapped
+
+    def _feedback_fault(self, what: str) -> None:
+        """Latch FAULT for feedback that cannot be trusted and raise it."""
+        self._errors += 1
+        err = DriverError(f"driver {self.name!r}: {what}")
+        self._enter_fault(str(err))
+        raise err
 
     def _fault(self, err: LimitError) -> None:
         """Latch FAULT for a limit violation and raise it."""

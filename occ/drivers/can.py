@@ -46,6 +46,7 @@ bus_kwargs           {}               extra keyword arguments for ``can.Bus``
 joints               required         ``{joint_name: {can_id, feedback_id, counts_per_unit}}``
                                       or a list of such dicts in joint order
 feedback_timeout     0.01             s without feedback before the driver faults
+error_frames         10               error frames tolerated per 100 ms (0 = none)
 send_timeout         0.0005           s a send may block on a full transmit queue
 command_interface    ``"position"``   or ``"effort"`` (the base's PID makes the efforts)
 period               0.001            nominal loop period (driver base)
@@ -56,6 +57,14 @@ Real hardware (Linux SocketCAN)::
     sudo ip link set can0 up type can bitrate 1000000
     # params: {interface: socketcan, channel: can0, bitrate: 1000000, joints: {...}}
 
+Bus errors: error frames (python-can's ``is_error_frame``; on SocketCAN the driver enables
+them with ``CAN_RAW_ERR_FILTER``, which python-can leaves off) are counted in
+``error_frames``. One that reports *bus-off* (the error class ``CAN_ERR_BUSOFF``, 0x40, in its
+identifier) faults the driver at once: the controller has left the bus and no command reaches
+the drives. More than ``error_frames`` in 100 ms fault it too: a bus that noisy loses frames.
+A drive that stops answering, or answers later than ``feedback_timeout``, faults it through
+the feedback deadline.
+
 SocketCAN takes its bitrate from ``ip link``, not from python-can. Without hardware use
 ``interface: virtual`` (every ``can.Bus`` opened on the same virtual channel name in one
 process is connected) together with :class:`occ.drivers.can_sim.SimulatedDriveNode`.
@@ -65,6 +74,7 @@ from __future__ import annotations
 
 import logging
 import math
+import socket as _socket
 import struct
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -107,10 +117,21 @@ _DEFAULTS: dict[str, Any] = {
     "bus_kwargs": {},
     "joints": None,
     "feedback_timeout": 0.01,
+    "error_frames": 10,
     "send_timeout": 0.0005,
     "command_interface": "position",
     "period": 0.001,
 }
+
+
+#: the error class bits of a SocketCAN error frame's identifier (linux/can/error.h)
+CAN_ERR_BUSOFF = 0x40
+CAN_ERR_MASK = 0x1FFFFFFF
+#: the socket option that lets error frames through (linux/can/raw.h; the socket module
+#: has it, typeshed does not)
+CAN_RAW_ERR_FILTER = 2
+#: the window over which ``error_frames`` are counted, s
+ERROR_WINDOW = 0.1
 
 
 def _to_int32(value: float) -> int:
@@ -180,6 +201,11 @@ class CANDriver(Driver):
         self._last_rx = [math.nan] * n
         self._feedback_frames = 0
         self._ignored_frames = 0
+        self._error_frames = 0
+        self._error_limit = int(p["error_frames"])
+        if self._error_limit < 0:
+            raise ValueError("can driver: error_frames must be >= 0")
+        self._error_window: list[float] = []  # times of the error frames in the window
 
     def _parse_axes(self, spec: Any) -> list[tuple[int, int, float]]:
         if spec is None:
@@ -215,6 +241,7 @@ class CANDriver(Driver):
         out = super().stats()
         out["feedback_frames"] = self._feedback_frames
         out["ignored_frames"] = self._ignored_frames
+        out["error_frames"] = self._error_frames
         return out
 
     # ------------------------------------------------------------------ hooks
@@ -225,10 +252,22 @@ class CANDriver(Driver):
             raise DriverError(
                 f"can driver {self.name!r}: cannot open bus {self._bus_args}: {err}"
             ) from err
-        bus.set_filters(
-            [{"can_id": fid, "can_mask": 0x7FF, "extended": False} for fid in self._feedback_ids]
-        )
+        sock = getattr(bus, "socket", None)
+        if self._bus_args["interface"] == "socketcan" and sock is not None:
+            # kernel filters for the feedback identifiers, and error frames, all classes
+            bus.set_filters(
+                [{"can_id": f, "can_mask": 0x7FF, "extended": False} for f in self._feedback_ids]
+            )
+            try:
+                sock.setsockopt(
+                    _socket.SOL_CAN_RAW, CAN_RAW_ERR_FILTER, struct.pack("=I", CAN_ERR_MASK)
+                )
+            except (OSError, AttributeError) as err:
+                logger.warning("can driver %s: error frames not enabled: %s", self.name, err)
+        # elsewhere python-can filters in software anyway, and its filters would drop error
+        # frames: this driver sorts the frames itself (foreign ones are counted as ignored)
         self._bus = bus
+        self._error_window = []
         self._last_rx = [math.nan] * len(self.joints)
         # ask every drive for a first feedback frame: a command in the disabled mode moves
         # nothing, and drives that only answer commands then report where they are
@@ -242,6 +281,13 @@ class CANDriver(Driver):
     def _deactivate(self) -> None:
         for i in range(len(self.joints)):
             self._send(i, MODE_DISABLED, 0)
+
+    def _reset(self) -> None:
+        # a fresh feedback deadline, and a mode-0 frame to each drive: it acknowledges a
+        # heartbeat stop and answers where it is
+        self._last_rx = [math.nan] * len(self.joints)
+        self._error_window = []
+        self._deactivate()
 
     def _safe_stop(self) -> None:
         # From the supervisor's thread: python-can buses take sends from several threads
@@ -278,8 +324,11 @@ class CANDriver(Driver):
                 raise DriverError(f"can driver {self.name!r}: receive failed: {err}") from err
             if msg is None:
                 break
+            if msg.is_error_frame:
+                self._on_error_frame(msg, now)
+                continue
             i = index_of.get(msg.arbitration_id)
-            if i is None or msg.is_error_frame or msg.is_remote_frame or msg.dlc < 8:
+            if i is None or msg.is_remote_frame or msg.dlc < 8:
                 self._ignored_frames += 1
                 continue
             counts, vel, eff = unpack(msg.data)
@@ -309,6 +358,24 @@ class CANDriver(Driver):
                     f"(timeout {timeout * 1e3:.1f} ms)"
                 )
         return self._pos, self._vel, self._eff
+
+    def _on_error_frame(self, msg: can.Message, now: float) -> None:
+        self._error_frames += 1
+        if msg.arbitration_id & CAN_ERR_BUSOFF:
+            raise DriverError(
+                f"can driver {self.name!r}: bus-off on {self._bus_args['channel']}: the "
+                f"controller left the bus (error frame {msg.arbitration_id:#x})"
+            )
+        window = self._error_window
+        window.append(now)
+        while window and now - window[0] > ERROR_WINDOW:
+            window.pop(0)
+        if len(window) > self._error_limit:
+            raise DriverError(
+                f"can driver {self.name!r}: {len(window)} error frames in "
+                f"{ERROR_WINDOW * 1e3:.0f} ms on {self._bus_args['channel']} (limit "
+                f"{self._error_limit}; last {msg.arbitration_id:#x})"
+            )
 
     def _write(self, values: Sequence[float], now: float) -> None:
         if self.command_interface == "position":

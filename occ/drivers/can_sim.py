@@ -121,6 +121,9 @@ class SimulatedDriveNode:
         self._cond = threading.Condition()
         self._stop = threading.Event()
         self._muted = False
+        #: seconds each feedback frame is held back (a drive that answers late); 0 = at once
+        self.delay = 0.0
+        self._late: list[tuple[float, can.Message]] = []
         self._thread: threading.Thread | None = None
         self._t_model = clock()
         self.commands_received = 0
@@ -146,6 +149,21 @@ class SimulatedDriveNode:
     def mute(self, muted: bool = True) -> None:
         """Stop (or resume) sending feedback, as a drive that lost power would."""
         self._muted = muted
+
+    def send_error_frame(self, error_class: int = 0x04) -> None:
+        """Put an error frame on the bus, as a CAN controller reports one (SocketCAN's error
+        classes: 0x04 controller problem, 0x40 bus-off, ...)."""
+        self._bus.send(can.Message(arbitration_id=error_class, is_error_frame=True, dlc=8))
+
+    def discard_late(self) -> None:
+        """Forget the feedback frames still held back by ``delay``."""
+        self._late.clear()
+
+    def _flush_late(self) -> None:
+        late = self._late
+        now = self._clock()
+        while late and late[0][0] <= now:
+            self._bus.send(late.pop(0)[1])
 
     def __enter__(self) -> SimulatedDriveNode:
         return self.start()
@@ -181,7 +199,10 @@ class SimulatedDriveNode:
                         wait = min(wait, axis.heartbeat_s / 4.0)
                 if self.feedback_period is not None:
                     wait = max(0.0, min(wait, next_cyclic - self._clock()))
+                if self._late:
+                    wait = max(0.0, min(wait, self._late[0][0] - self._clock()))
                 msg = self._bus.recv(timeout=wait)
+                self._flush_late()
                 if msg is not None:
                     self._on_frame(msg)
                 self._check_heartbeats()
@@ -275,9 +296,11 @@ class SimulatedDriveNode:
         data = FEEDBACK_FRAME.pack(
             int(round(axis.position)), _sat16(axis.velocity / 1000.0), effort
         )
-        self._bus.send(
-            can.Message(arbitration_id=axis.feedback_id, is_extended_id=False, data=data)
-        )
+        frame = can.Message(arbitration_id=axis.feedback_id, is_extended_id=False, data=data)
+        if self.delay > 0.0:
+            self._late.append((self._clock() + self.delay, frame))
+        else:
+            self._bus.send(frame)
         with self._cond:
             self.feedback_sent += 1
             self._cond.notify_all()

@@ -48,6 +48,9 @@ seed                  0                           noise seed (one stream per dri
 initial_positions     each joint's ``home``       where the joints start at ``configure``
 max_substep           0.0005                      s, longest integration substep
 brakes                True                        lock joints while not ACTIVE
+faults                []                          hardware faults from the start: kinds of
+                                                  :meth:`SimDriver.inject`, ``kind`` or
+                                                  ``kind:joint`` (e.g. ``[activate]``, ``[nan:2]``)
 period                0.001                       s, nominal loop period (driver base)
 heartbeat_ms          50                          the simulated drive stops itself (brakes)
                                                   when not commanded for this long (base)
@@ -58,6 +61,24 @@ Heartbeat: the model is the drive. When the time between two commands (``write``
 deadline, then brakes (velocity 0, position held) and latches "heartbeat lost", which the next
 ``read`` reports as a :class:`~occ.errors.DriverError` (FAULT in the base), exactly what a
 frozen host would find when it comes back. ``reset`` clears it.
+
+Hardware faults, injected (:meth:`SimDriver.inject`, for fault tests and operator training):
+the simulated drive misbehaves as real drives do, and the base and the robot must catch it.
+
+==============  ===============================================================================
+kind            what the drive does
+==============  ===============================================================================
+configure       the next ``configure`` fails (the drive does not answer)
+activate        every ``activate`` fails (the power stage does not come up)
+hook            ``read`` raises an exception of no driver type (a bug in a hook)
+write           every ``write`` fails (the command does not reach the drive)
+heartbeat       commands stop reaching the drive: it stops itself at its heartbeat deadline
+nan             joint ``joint`` reports NaN (from the start: a joint never measured)
+frozen          every position stays where it was at injection (the model moves on)
+jump            joint ``joint`` reports 20 % of its range further than it is
+==============  ===============================================================================
+
+:meth:`SimDriver.clear_faults` repairs the drive (a ``reset`` then succeeds).
 """
 
 from __future__ import annotations
@@ -67,11 +88,16 @@ import random
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from mypy_extensions import mypyc_attr
+
 from occ.drivers.base import CommandInterface, Driver, LimitPolicy
 from occ.errors import DriverError, caused
 from occ.joint import Joint
 
-__all__ = ["SimDriver", "SIM_DEFAULTS"]
+__all__ = ["SimDriver", "SIM_DEFAULTS", "SIM_FAULTS"]
+
+#: the hardware faults :meth:`SimDriver.inject` can play (see the module docstring)
+SIM_FAULTS = ("configure", "activate", "hook", "write", "heartbeat", "nan", "frozen", "jump")
 
 _REVOLUTE_RESOLUTION = 2.0 * math.pi / 2**17  # a common 17-bit absolute rotary encoder
 _PRISMATIC_RESOLUTION = 1e-6  # a 1 um linear scale
@@ -89,6 +115,7 @@ SIM_DEFAULTS: dict[str, Any] = {
     "max_substep": 0.0005,
     "brakes": True,
     "period": 0.001,
+    "faults": (),
 }
 
 # A substep must stay well inside the stability region of semi-implicit Euler for the
@@ -122,6 +149,7 @@ def _per_joint(
         raise caused(ValueError(f"sim param {key!r}: not a number: {value!r}"), err) from err
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins extend built-ins
 class SimDriver(Driver):
     """Simulated joints (see the module docstring for the model and the parameters)."""
 
@@ -228,6 +256,19 @@ class SimDriver(Driver):
         self._heartbeat_lost: str | None = None
         self._heartbeat_reported = False
         self.heartbeat_trips = 0
+        #: injected faults: kind -> joint index (see :meth:`inject`); empty when healthy
+        self._faults: dict[str, int] = {}
+        self._frozen_at: list[float] = []
+        self._faulty_out = [0.0] * n
+        faults = p["faults"]
+        if isinstance(faults, str) or not isinstance(faults, (list, tuple)):
+            raise ValueError(f"sim param 'faults' must be a list of fault kinds, got {faults!r}")
+        for spec in faults:
+            kind, _, joint = str(spec).partition(":")
+            try:
+                self.inject(kind, int(joint) if joint else 0)
+            except ValueError as err:
+                raise ValueError(f"sim param 'faults': {err}") from None
 
     # ------------------------------------------------------------------ inspection
     @property
@@ -240,8 +281,39 @@ class SimDriver(Driver):
         """The integration substep actually used (s)."""
         return self._substep
 
+    # ------------------------------------------------------------------ injected faults
+    def inject(self, kind: str, joint: int = 0) -> None:
+        """Make the simulated drive fail as ``kind`` (``SIM_FAULTS``, the module docstring)
+        from now on; ``joint`` (an index in this driver's joints) for nan and jump."""
+        if kind not in SIM_FAULTS:
+            raise ValueError(f"unknown fault {kind!r}; faults are: {', '.join(SIM_FAULTS)}")
+        if not 0 <= joint < len(self.joints):
+            raise ValueError(f"joint index {joint} out of range for driver {self.name!r}")
+        if kind == "frozen":
+            self._frozen_at = list(self._measured)
+        self._faults[kind] = joint
+
+    def clear_faults(self) -> None:
+        """Repair the drive: no injected fault from now on."""
+        self._faults.clear()
+
+    def _injected(self, out: Sequence[float]) -> Sequence[float]:
+        faults = self._faults
+        if "hook" in faults:
+            raise RuntimeError("simulated fault: exception in the drive's read hook")
+        res = self._faulty_out
+        res[:] = self._frozen_at if "frozen" in faults else out
+        if "jump" in faults:
+            j = self.joints[faults["jump"]]
+            res[faults["jump"]] += 0.2 * (j.limits.max - j.limits.min)
+        if "nan" in faults:
+            res[faults["nan"]] = math.nan
+        return res
+
     # ------------------------------------------------------------------ hooks
     def _configure(self) -> None:
+        if "configure" in self._faults:
+            raise DriverError(f"sim driver {self.name!r}: simulated fault: no answer at configure")
         n = len(self.joints)
         self._x = list(self._initial)
         self._v = [0.0] * n
@@ -252,6 +324,10 @@ class SimDriver(Driver):
         self._rng = random.Random(self._seed)
 
     def _activate(self) -> None:
+        if "activate" in self._faults:
+            raise DriverError(
+                f"sim driver {self.name!r}: simulated fault: the power stage did not come up"
+            )
         # Hold where we are: position target = current position, zero effort.
         if self.command_interface == "position":
             self._cmd[:] = self._x
@@ -295,6 +371,8 @@ class SimDriver(Driver):
         out = self._measured
         if self._exact_encoder:
             out[:] = self._x
+            if self._faults:
+                return self._injected(out), self._v, self._u
             return out, self._v, self._u
         rng = self._rng
         for i, x in enumerate(self._x):
@@ -305,6 +383,8 @@ class SimDriver(Driver):
             if res > 0.0:
                 x = math.floor(x / res + 0.5) * res
             out[i] = x
+        if self._faults:
+            return self._injected(out), self._v, self._u
         return out, self._v, self._u
 
     def _write(self, values: Sequence[float], now: float) -> None:
@@ -312,6 +392,11 @@ class SimDriver(Driver):
             self._advance(now)  # the previous command acts until now (zero-order hold)
         if self._heartbeat_lost is not None:
             raise DriverError(f"sim driver {self.name!r}: {self._heartbeat_lost}")
+        if self._faults:
+            if "write" in self._faults:
+                raise DriverError(f"sim driver {self.name!r}: simulated fault: write failed")
+            if "heartbeat" in self._faults:
+                return  # lost on the way: the drive's heartbeat deadline runs on
         cmd = self._cmd
         for i in range(len(cmd)):
             cmd[i] = values[i]
@@ -373,7 +458,9 @@ class SimDriver(Driver):
         if dt <= 0.0:
             return  # a repeated (or backwards) time does not move the model
         self._t = now
-        steps = math.ceil(dt / self._substep - 1e-9)
+        # at least one: an interval shorter than 1e-9 substeps (the heartbeat deadline a
+        # rounding error after the last step) once divided by zero here
+        steps = max(1, math.ceil(dt / self._substep - 1e-9))
         h = dt / steps
         enabled = self._enabled
         position_mode = self.command_interface == "position"

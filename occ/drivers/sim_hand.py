@@ -44,6 +44,8 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
+from mypy_extensions import mypyc_attr
+
 from occ.drivers.base import CommandInterface, LimitPolicy
 from occ.drivers.sim import SIM_DEFAULTS, SimDriver, _per_joint
 from occ.joint import Joint
@@ -79,6 +81,7 @@ def _joint_values(key: str, value: Any, joints: Sequence[Joint]) -> list[float]:
     )
 
 
+@mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins extend built-ins
 class SimHandDriver(SimDriver):
     """A ``sim`` device in effort mode moved by a simulated hand (see the module docstring)."""
 

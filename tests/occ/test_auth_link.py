@@ -168,3 +168,70 @@ def test_a_new_client_of_a_keyed_interface_gets_a_signed_greeting(tmp_path: Path
     finally:
         client.stop()
         robot.shutdown()
+
+
+def _keyed_pair(tmp_path: Path, slave_keyed: bool = True) -> tuple[Robot, Robot]:
+    """configs/slave.yaml and configs/master.yaml on 127.0.0.1 (free ports), each on its own
+    SimClock, the master link keyed on the master and (``slave_keyed``) on the slave."""
+    if slave_keyed:
+        slave = _with_key("slave.yaml", tmp_path, lambda t: t.replace("port: 18946", "port: 0"))
+    else:
+        cfg = parse_config(
+            (ROOT / "configs" / "slave.yaml").read_text(), base_dir=ROOT / "configs"
+        )
+        cfg = cfg.model_copy(update={"interfaces": tuple(
+            i.model_copy(update={"port": 0}) for i in cfg.interfaces)})
+        slave = build_robot(cfg, clock=SimClock())
+        slave.configure()
+        slave.activate()
+    port = slave.interfaces["master"].address[1]  # type: ignore[index]
+    master = _with_key(
+        "master.yaml", tmp_path, lambda t: t.replace("127.0.0.1:18946", f"127.0.0.1:{port}")
+    )
+    for r in (slave, master):
+        r.state_machine.request("enable", "test")
+        r.state_machine.request("run", "test")
+    return slave, master
+
+
+def _tick_both(slave: Robot, master: Robot) -> Callable[[], None]:
+    k = [0]
+
+    def tick() -> None:
+        k[0] += 1
+        for r in (master, slave):
+            r.tick(r.clock.now(), k[0])
+            r.clock.advance(0.001)  # type: ignore[attr-defined]
+
+    return tick
+
+
+@pytest.mark.req("SR-AUTH-1")
+def test_the_return_channel_is_signed_when_the_link_is(tmp_path: Path) -> None:
+    slave, master = _keyed_pair(tmp_path)
+    try:
+        ctrl = master.controller.controllers[0]
+        tick = _tick_both(slave, master)
+        assert wait_for(lambda: (ctrl.stats()["slave_tip"] or {}).get("samples", 0) >= 20, tick)
+        assert master.interfaces["slave"].counters.unauthenticated == 0
+        assert slave.interfaces["master"].counters.unauthenticated == 0
+        assert ctrl.stats()["slave_tip"]["following"] is True
+    finally:
+        master.shutdown()
+        slave.shutdown()
+
+
+@pytest.mark.req("SR-AUTH-1")
+def test_an_unsigned_return_channel_on_a_keyed_link_is_refused(tmp_path: Path) -> None:
+    slave, master = _keyed_pair(tmp_path, slave_keyed=False)
+    try:
+        ctrl = master.controller.controllers[0]
+        tick = _tick_both(slave, master)
+        iface = master.interfaces["slave"]
+        assert wait_for(lambda: iface.counters.unauthenticated >= 20, tick)
+        st = ctrl.stats()["slave_tip"]
+        assert st is None or st["samples"] == 0
+        assert ctrl.stats()["tool_mm"] is None
+    finally:
+        master.shutdown()
+        slave.shutdown()

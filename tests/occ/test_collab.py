@@ -150,7 +150,7 @@ def test_the_owner_moves_the_slave_and_the_other_master_does_not(collab: Collab)
     moved = tuple(a - b for a, b in zip(collab.tip_mm(), start, strict=True))
     expect = tuple(SCALE * (a - b) for a, b in zip(collab.sent["mentor"], m0, strict=True))
     assert dist(moved, expect) < 1e-3  # the mentor's motion, scaled 10:1 (exact IK)
-    assert collab.robot.loss_monitors["trainee"].accepted > 200  # judged, counted, not followed
+    assert collab.robot.streams.monitors["trainee"].accepted > 200  # judged, counted, not followed
     assert ctrl.source_changes == 0
 
 
@@ -161,7 +161,7 @@ def test_handover_re_indexes_without_a_jump(collab: Collab) -> None:
     reply = collab.command(collab.desks["mentor"], "Handover", handover("trainee"))
     assert ok(reply), reply.metadata
     assert robot.collab is not None and robot.collab.owner == "trainee"
-    assert robot.loss_input == "trainee" and robot.loss_monitor is robot.loss_monitors["trainee"]
+    assert robot.streams.input == "trainee" and robot.streams.monitor is robot.streams.monitors["trainee"]
     # every operator and viewer hears of it (STATUS HANDOVER)
     for peer in (collab.bedside, collab.slicer, *collab.desks.values()):
         (st,) = statuses(peer, "HANDOVER")
@@ -286,7 +286,7 @@ def test_a_non_owners_loss_only_alerts(collab: Collab) -> None:
     collab.silent.add("trainee")
     before = collab.tip_mm()
     collab.step_ms(400)
-    assert robot.state is RobotState.RUNNING and not robot.loss_monitor.holding  # type: ignore[union-attr]
+    assert robot.state is RobotState.RUNNING and not robot.streams.monitor.holding  # type: ignore[union-attr]
     assert len(statuses(collab.bedside, "ALERT")) == 2
     assert dist(collab.tip_mm(), before) > 0.1  # still following the mentor
     counts = robot.snapshot()["loss_by_stream"]
@@ -304,7 +304,7 @@ def test_the_owners_loss_holds_then_stops(collab: Collab) -> None:
     held_at = None
     for _ in range(150):
         collab.tick()
-        if held_at is None and robot.loss_monitor is not None and robot.loss_monitor.holding:
+        if held_at is None and robot.streams.monitor is not None and robot.streams.monitor.holding:
             held_at = collab.k
     assert held_at is not None
     assert robot.state is RobotState.STOPPED

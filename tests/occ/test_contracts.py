@@ -566,11 +566,18 @@ class ControllerRig:
     feed: Callable[[SimRobot], Callable[[], None]] | None = None
     #: replaces the config's ``robot.drivers`` (YAML form) when the plugin needs other ones
     drivers: tuple[Mapping[str, Any], ...] | None = None
+    #: output sources of another controller that the config names (left out)
+    without_sources: tuple[str, ...] = ()
 
     def yaml_data(self) -> dict[str, Any]:
         data = yaml.safe_load(self.config.read_text(encoding="utf-8"))
         if self.drivers is not None:
             data["robot"]["drivers"] = [dict(d) for d in self.drivers]
+        for itf in data["interfaces"]:
+            if "outputs" in itf:
+                itf["outputs"] = [
+                    o for o in itf["outputs"] if o["source"] not in self.without_sources
+                ]
         return data  # type: ignore[no-any-return]
 
 
@@ -592,7 +599,8 @@ def master_stream(sim: SimRobot) -> Callable[[], None]:
 
 #: plugin name -> the robot it runs in. A new controller plugin adds its line here.
 CONTROLLER_RIGS: dict[str, ControllerRig] = {
-    "hold": ControllerRig(CONFIGS / "slave.yaml"),
+    # the slave's return channel (source teleop-return) is teleop-slave's
+    "hold": ControllerRig(CONFIGS / "slave.yaml", without_sources=("teleop-return",)),
     "teleop-slave": ControllerRig(
         CONFIGS / "slave.yaml", {"input_interface": "master"}, master_stream
     ),
@@ -648,10 +656,10 @@ class ControllerRun:
         return [j.command_position for j in self.robot.joints]
 
     def driver_writes(self) -> int:
-        return sum(d.stats()["writes"] for d, _ in self.robot.drivers)
+        return sum(d.stats()["writes"] for d in self.robot.hardware.drivers)
 
     def limit_events(self) -> int:
-        return sum(d.stats()["limit_events"] for d, _ in self.robot.drivers)
+        return sum(d.stats()["limit_events"] for d in self.robot.hardware.drivers)
 
     def close(self) -> None:
         self.sim.close()

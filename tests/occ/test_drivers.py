@@ -692,7 +692,10 @@ def test_params_defaults_and_the_interface_from_params() -> None:
     # the base's own parameters are read when the backend declares none
     d = MirrorDriver("m", joints(), {"period": 0.002, "command_interface": "effort"})
     assert d.period == 0.002 and d.command_interface == "effort"
-    assert d.params == {"heartbeat_ms": 50.0, "period": 0.002, "command_interface": "effort"}
+    assert d.params == {
+        "heartbeat_ms": 50.0, "feedback_jump": 3.0, "frozen_feedback_ms": 50.0, "period": 0.002,
+        "command_interface": "effort",
+    }
     assert MirrorDriver("m", joints()).period == 0.001
     # the argument wins over the params
     assert (
@@ -903,8 +906,9 @@ def test_write_effort_refusals_and_a_failing_hook() -> None:
 def test_a_setpoint_after_direct_efforts_is_checked_against_the_measured_position() -> None:
     # an effort driver with gains takes both; while efforts were written the hand moved the
     # joint (to 0.5): the next setpoint there is no motion, not a step from the old setpoint 0
+    # (a hand that fast would be a feedback jump: that check is off here)
     js = [Joint("j", "revolute", JointLimits(-1.0, 1.0, 1.0, 50.0), gains=PIDGains(kp=10.0))]
-    d = FlakyDriver("m", js, command_interface="effort")
+    d = FlakyDriver("m", js, {"feedback_jump": 0}, command_interface="effort")
     d.configure()
     d.read(0.0)
     d.activate()

@@ -1,6 +1,8 @@
 """The shipped haptic master in simulated time: fixture definitions in (VFIXTURE, Slicer
-Markups, files), the force on the effort interface, refusals, frames, display, stats and
-recording. The paper's motion test itself is tests/tools/test_fixture_motion.py."""
+Markups, files; all in the patient frame), the force on the effort interface, refusals, the
+mapping, display, stats and recording. The slave is played by a :class:`SlaveTipFeed` (a tip
+that follows the handle exactly, tip = 0.1 x handle), so forces are exact; the real pair is
+tests/occ/test_return_channel.py, the paper's motion test tests/tools/test_fixture_motion.py."""
 
 from __future__ import annotations
 
@@ -18,7 +20,7 @@ from igtl.messages.point import PointElement
 from occ.fixture_defs import DefinitionError, PatientMapping, from_markups_file
 from occ.record import Recorder, read_recording
 from occ.safety import RobotState
-from occ.testing import SimRobot
+from occ.testing import SimRobot, SlaveTipFeed
 
 from ..tools.tooling import load_tool
 
@@ -32,12 +34,21 @@ class Master:
                             recorder=recorder)
         self.robot = self.sim.robot
         self.ctrl = self.robot.controller.controllers[0]
-        self.hand = self.robot.drivers[0][0]
+        self.hand = self.robot.hardware.drivers[0]
         self.op = self.sim.peer("operator", address=("127.0.0.1", 41000))
+        self.sim.step(1)  # the master's first output: its slave link is known
+        self.feed = SlaveTipFeed(self.sim)
+
+    def step(self, n: int = 1) -> None:
+        self.feed.step(n)
+
+    def p(self, handle_mm) -> tuple[float, float, float]:
+        """The patient point under the handle position ``handle_mm`` (the feed's slave)."""
+        return self.feed.patient(handle_mm)
 
     def command(self, name: str, text: str = "") -> igtl.Message:
         cid = self.op.send_command(name, text)
-        self.sim.step(1)
+        self.step(1)
         reply = self.op.reply_to(cid)
         assert reply is not None
         return reply
@@ -45,6 +56,7 @@ class Master:
     def run(self) -> None:
         for c in ("Enable", "Run"):
             assert self.command(c).metadata["Status"] == "SUCCESS"
+        self.step(25)  # the force fades in within tip_fade_ms (20 ms) of Run
 
     @property
     def tool(self) -> tuple[float, float, float]:
@@ -62,7 +74,8 @@ def master():
     m.close()
 
 
-def forbidden_at(centre, radius=10.0, k=1.0, name="VF") -> igtl.Message:
+def forbidden_at(centre, radius=1.0, k=1.0, name="VF") -> igtl.Message:
+    """A forbidden VFIXTURE sphere, patient frame (mm): 1 mm there is 10 mm of the handle."""
     return igtl.VirtualFixtureMessage(hardness=k, spheres=((*centre, radius),), device_name=name,
                                       header_version=2, metadata={"kind": "forbidden"})
 
@@ -71,11 +84,13 @@ def forbidden_at(centre, radius=10.0, k=1.0, name="VF") -> igtl.Message:
 def test_force_is_commanded_only_while_running(master: Master) -> None:
     master.command("Enable")
     t = master.tool
-    master.op.send(forbidden_at((t[0] + 4.0, t[1], t[2]), k=0.5))  # the tool 6 mm deep
-    master.sim.step(100)
+    # 4 mm of the handle to the tool's +x, radius 10 mm of the handle: the tool 6 mm deep
+    master.op.send(forbidden_at(master.p((t[0] + 4.0, t[1], t[2])), k=0.5))
+    master.step(100)
     assert master.robot.data.effort_command == [0.0, 0.0, 0.0]  # ENABLED: the device is free
     assert master.hand._cmd == [0.0, 0.0, 0.0]
     master.command("Run")
+    master.step(25)  # faded in (tip_fade_ms)
     eff = master.robot.data.effort_command
     # out of the sphere (centred 4 mm to the tool's +x when sent; the hand has moved since)
     away = [a - c for a, c in zip(master.tool, (t[0] + 4.0, t[1], t[2]))]
@@ -83,21 +98,21 @@ def test_force_is_commanded_only_while_running(master: Master) -> None:
     assert master.hand._cmd == pytest.approx(eff)  # what the drive got, this tick
     master.command("Stop")
     assert master.robot.state is RobotState.STOPPED
-    master.sim.step(1)
+    master.step(1)
     assert master.robot.data.effort_command == [0.0, 0.0, 0.0]
 
 
 def test_slicer_point_list_changes_the_force_within_one_tick(master: Master) -> None:
     master.run()
-    master.sim.step(300)
+    master.step(300)
     assert master.robot.data.effort_command == [0.0, 0.0, 0.0]
-    # Slicer's RAS: where the slave's tip is for this handle (scale 10:1, no registration)
-    tip = master.ctrl.fixtures.mapping.master_to_patient(master.tool)
+    # Slicer's RAS: where the slave's tip is (the Tip Slicer shows; 10:1)
+    tip = master.feed.tip()
     # a forbidden point 0.2 mm (patient) = 2 mm (master) from the tool, radius 0.5 mm = 5 mm
     msg = standin.markups_points([(tip[0] + 0.2, tip[1], tip[2])], "Keepout",
                                  kind="forbidden", radius=0.5)
     assert master.op.send(msg) == 1
-    master.sim.step(1)  # the tick after arrival
+    master.step(1)  # the tick after arrival
     eff = master.robot.data.effort_command
     assert eff[0] == pytest.approx(-3.0, abs=0.1) and abs(eff[1]) < 0.05 and abs(eff[2]) < 0.05
     assert master.hand._cmd == pytest.approx(eff)
@@ -107,13 +122,14 @@ def test_slicer_point_list_changes_the_force_within_one_tick(master: Master) -> 
 
 def test_point_list_as_a_guide(master: Master) -> None:
     master.run()
-    master.sim.step(10)
+    master.step(10)
     t = master.tool
-    # a straight guide 3 mm above the handle, in the master frame
-    msg = standin.markups_points([(t[0] - 50, t[1], t[2] + 3.0), (t[0] + 50, t[1], t[2] + 3.0)],
-                                 "Path", kind="guide", frame="master", stiffness=0.5)
+    # a straight guide 3 mm of the handle (0.3 mm in the patient) above the tool
+    msg = standin.markups_points([master.p((t[0] - 50, t[1], t[2] + 3.0)),
+                                  master.p((t[0] + 50, t[1], t[2] + 3.0))],
+                                 "Path", kind="guide", stiffness=0.5)
     master.op.send(msg)
-    master.sim.step(1)
+    master.step(1)
     assert master.robot.data.effort_command[2] == pytest.approx(1.5, abs=0.05)
 
 
@@ -142,21 +158,26 @@ def bad_messages():
                                               header_version=2, metadata={"kind": "plane"})),
         ("bad frame", igtl.PointMessage(points=(ok_pt,), device_name="P", header_version=2,
                                         metadata={"frame": "world"})),
+        # one frame for every fixture: the patient's (the master's workspace is none)
+        ("master frame", igtl.VirtualFixtureMessage(hardness=1.0, spheres=((0, 0, 0, 1.0),),
+                                                    device_name="VF", header_version=2,
+                                                    metadata={"frame": "master"})),
     ]
 
 
 @pytest.mark.parametrize("why,msg", bad_messages(), ids=[b[0] for b in bad_messages()])
 def test_invalid_definitions_are_refused_and_the_previous_set_stays(master: Master, why, msg) -> None:
     master.run()
+    master.step(100)
     t = master.tool
-    master.op.send(forbidden_at((t[0] + 4.0, t[1], t[2]), name="Good"))
-    master.sim.step(1)
+    master.op.send(forbidden_at(master.p((t[0] + 4.0, t[1], t[2])), name="Good"))
+    master.step(1)
     before = master.robot.data.effort_command[:]
     assert before[0] < -5.0
     active = master.ctrl.fixtures.active
     n = len(master.op.received)
     master.op.send(msg)
-    master.sim.step(1)
+    master.step(1)
     replies = [m for m in master.op.received[n:] if m.message_type == "STATUS"]
     assert replies and "refused" in replies[-1].status_message, why
     assert replies[-1].code == igtl.StatusCode.ILLEGAL_INSTRUCTION
@@ -174,7 +195,7 @@ def test_too_many_planes_refused(master: Master) -> None:
     for i in range(8):
         master.op.send(plane(i))
     master.op.send(plane(8))
-    master.sim.step(1)
+    master.step(1)
     stats = master.ctrl.stats()
     assert stats["fixture_kinds"]["plane"] == 8 and stats["fixtures_refused"] == 1
     assert "max_planes" in stats["fixture_last_error"]
@@ -183,10 +204,10 @@ def test_too_many_planes_refused(master: Master) -> None:
 def test_empty_definition_removes_its_source_only(master: Master) -> None:
     master.op.send(forbidden_at((0.0, 0.0, 0.0), name="A"))
     master.op.send(forbidden_at((0.0, 0.0, 50.0), name="B"))
-    master.sim.step(1)
+    master.step(1)
     assert master.ctrl.stats()["fixtures"] == 2
     master.op.send(igtl.VirtualFixtureMessage(hardness=1.0, spheres=(), device_name="A"))
-    master.sim.step(1)
+    master.step(1)
     assert master.ctrl.stats()["fixture_sources"] == ["VFIXTURE:B"]
     assert master.command("ClearFixtures").metadata["Status"] == "SUCCESS"
     assert master.ctrl.stats()["fixtures"] == 0
@@ -200,9 +221,11 @@ def test_vfixture_paper_layout_and_default_kind_accessible(master: Master) -> No
     content = struct.pack(">BxHf", 1, 1, 1.0) + struct.pack(">4f", 0.0, 0.0, 250.0, 100.0)
     raw = igtl.RawMessage(type_name="VFIXTURE", device_name="VF", content=content).pack()
     assert master.op.send(raw) == 1
-    master.sim.step(1)
+    master.step(1)
     (prim,) = master.ctrl.fixtures.active.primitives
-    assert prim.kind == "accessible" and prim.radius == 100.0
+    # 100 patient mm at 10:1: 1000 mm of the master's motion
+    assert prim.kind == "accessible" and prim.radius == pytest.approx(1000.0)
+    assert master.ctrl.fixtures.groups["VFIXTURE:VF"][0].radius == 100.0
 
 
 def test_markups_plane_as_transform(master: Master) -> None:
@@ -212,29 +235,30 @@ def test_markups_plane_as_transform(master: Master) -> None:
     m = np.eye(4)
     m[:3, 2] = (0.0, 0.0, -1.0)
     m[:3, 0] = (-1.0, 0.0, 0.0)
-    m[:3, 3] = (t[0], t[1], t[2] + 2.0)
+    m[:3, 3] = master.p((t[0], t[1], t[2] + 2.0))
     master.op.send(igtl.TransformMessage.from_matrix(
         m, device_name="Floor", header_version=2,
-        metadata={"kind": "plane", "frame": "master", "stiffness": "2.0", "MRMLNodeName": "Floor"}))
-    master.sim.step(1)
+        metadata={"kind": "plane", "stiffness": "2.0", "MRMLNodeName": "Floor"}))
+    master.step(1)
     assert master.robot.data.effort_command[2] == pytest.approx(0.0, abs=1e-9)
     # moved 2 mm below the tool (the same source: it replaces the first): 2 mm deep
-    m[:3, 3] = (t[0], t[1], t[2] - 2.0)
+    m[:3, 3] = master.p((t[0], t[1], t[2] - 2.0))
     master.op.send(igtl.TransformMessage.from_matrix(
         m, device_name="Floor", header_version=2,
-        metadata={"kind": "plane", "frame": "master", "stiffness": "2.0"}))
-    master.sim.step(1)
+        metadata={"kind": "plane", "frame": "patient", "stiffness": "2.0"}))
+    master.step(1)
     assert master.robot.data.effort_command[2] == pytest.approx(-4.0, abs=0.1)
 
 
 def test_polydata_lines_as_guides(master: Master) -> None:
     master.run()
     t = master.tool
-    pts = np.array([(t[0] - 40, t[1] + 2.0, t[2]), (t[0] + 40, t[1] + 2.0, t[2])])
+    pts = np.array([master.p((t[0] - 40, t[1] + 2.0, t[2])),
+                    master.p((t[0] + 40, t[1] + 2.0, t[2]))])
     msg = igtl.PolyDataMessage(points=pts, lines=((0, 1),), device_name="Guide",
-                               header_version=2, metadata={"kind": "guide", "frame": "master"})
+                               header_version=2, metadata={"kind": "guide"})
     master.op.send(msg)
-    master.sim.step(1)
+    master.step(1)
     assert master.robot.data.effort_command[1] == pytest.approx(2.0, abs=0.05)
 
 
@@ -282,82 +306,88 @@ def test_markups_file_from_yaml_lps_to_ras(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------ frames
-def test_patient_to_master_mapping_scale_registration_and_clutch() -> None:
+def test_patient_to_master_map_scale_registration_and_the_slaves_own_map() -> None:
     rz = [[0.0, -1.0, 0.0, 100.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, -20.0],
           [0.0, 0.0, 0.0, 1.0]]  # the slave's base: 90 deg about z, at (100, 0, -20)
-    m = PatientMapping(0.1, registration=rz, slave_ref=(0.0, 0.0, 50.0))
-    m.start_following((0.0, 0.0, 0.0))
-    # the slave's tip is at the patient point for the handle at 0: maps back to 0
-    p0 = m.master_to_patient((0.0, 0.0, 0.0))
-    assert p0 == pytest.approx((100.0, 0.0, 30.0))
-    assert m.point(p0) == pytest.approx((0.0, 0.0, 0.0))
-    # 1 mm in the patient along the base's x (patient +y) is 10 mm on the master's x
-    assert m.point((100.0, 1.0, 30.0)) == pytest.approx((10.0, 0.0, 0.0))
+    m = PatientMapping(0.1, registration=rz)
+    assert m.source == "params" and m.factor == pytest.approx(0.1)
+    # 1 mm in the patient along the base's x (patient +y) is 10 mm on the master's x;
+    # only differences matter (the translation never enters)
+    a, b = m.point((100.0, 0.0, 30.0)), m.point((100.0, 1.0, 30.0))
+    assert [q - p for p, q in zip(a, b)] == pytest.approx([10.0, 0.0, 0.0])
+    assert m.master_to_patient(b) == pytest.approx((100.0, 1.0, 30.0))
     assert m.length(2.0) == pytest.approx(20.0)
     assert m.direction((0.0, 1.0, 0.0)) == pytest.approx((1.0, 0.0, 0.0))
-    # clutch: the handle moves 10 mm, clutch pressed, moves back 30 mm, released
-    m.stop_following((10.0, 0.0, 0.0))
+    assert m.patient_direction((1.0, 0.0, 0.0)) == pytest.approx((0.0, 1.0, 0.0))
+    # the slave's own map (its base rotation x scale x rotation) wins over the parameters
     v = m.version
-    m.start_following((-20.0, 0.0, 0.0))
-    assert m.version > v
-    # the slave stopped at the patient point of handle (10, 0, 0); that is now under the
-    # handle at (-20, 0, 0): the fixtures moved by -30 mm on the master
-    assert m.point((100.0, 1.0, 30.0)) == pytest.approx((-20.0, 0.0, 0.0))
-    # 1 mm further in the patient: 10 mm on the master at 10:1, 5 mm at 5:1
-    assert m.point((100.0, 2.0, 30.0)) == pytest.approx((-10.0, 0.0, 0.0))
-    m.set_scale(0.2)
-    assert m.point((100.0, 2.0, 30.0)) == pytest.approx((-15.0, 0.0, 0.0))
-    # a measured slave tip re-anchors
-    m.slave_tip((100.0, 0.0, 30.0), (-20.0, 0.0, 0.0))
-    assert m.point((100.0, 0.0, 30.0)) == pytest.approx((-20.0, 0.0, 0.0))
+    assert m.set_linear(((0.2, 0.0, 0.0), (0.0, 0.2, 0.0), (0.0, 0.0, 0.2)))
+    assert not m.set_linear(((0.2, 0.0, 0.0), (0.0, 0.2, 0.0), (0.0, 0.0, 0.2)))
+    assert m.source == "slave" and m.version == v + 1
+    m.set_registration(np.eye(4).tolist())
+    assert m.point((1.0, 0.0, 0.0)) == pytest.approx((5.0, 0.0, 0.0))
+    with pytest.raises(DefinitionError, match="scaled rotation"):
+        m.set_linear(((0.1, 0.0, 0.0), (0.0, 0.2, 0.0), (0.0, 0.0, 0.1)))
 
 
-def test_clutch_moves_patient_fixtures_on_the_master(master: Master) -> None:
+def test_clutch_leaves_the_fixtures_where_they_are_and_fades_the_force(master: Master) -> None:
     master.run()
-    master.sim.step(100)
-    tip = master.ctrl.fixtures.mapping.master_to_patient(master.tool)
-    master.op.send(standin.markups_points([tip], "Target", kind="accessible", radius=3.0))
-    master.sim.step(1)
+    master.step(100)
+    t = master.tool
+    master.op.send(forbidden_at(master.p((t[0] + 4.0, t[1], t[2])), k=0.5, name="Keepout"))
+    master.step(1)
     (before,) = master.ctrl.fixtures.active.primitives
-    assert before.radius == pytest.approx(30.0)  # 3 mm in the patient at 10:1
-    assert math.dist(before.centre, master.tool) < 0.5
+    f0 = math.hypot(*master.robot.data.effort_command)
+    assert f0 > 2.5
     master.command("Clutch", '<Command Name="Clutch" Value="1"/>')
-    h0 = master.tool
-    master.sim.step(1500)  # the hand moves on while the clutch is pressed
+    master.feed.following = False  # the slave stops following (it tells the master so)
+    master.step(20)  # tip_fade_ms: 20 ms
+    assert master.robot.data.effort_command == pytest.approx([0.0, 0.0, 0.0], abs=1e-9)
+    master.step(1500)  # the hand moves on while the clutch is pressed
     master.command("Clutch", '<Command Name="Clutch" Value="0"/>')
-    master.sim.step(1)
-    h1 = master.tool
+    master.feed.following = True
+    master.step(1)
     (after,) = master.ctrl.fixtures.active.primitives
-    moved = [a - b for a, b in zip(after.centre, before.centre)]
-    assert moved == pytest.approx([b - a for a, b in zip(h0, h1)], abs=0.3)
-    assert math.dist(h0, h1) > 5.0
+    # patient fixtures stay put on the master: the tool is where the slave measures it
+    assert after.centre == pytest.approx(before.centre)
+    assert master.ctrl.stats()["fixture_map"] == {"source": "slave", "scale": 0.1}
 
 
-def test_registration_transform_updates_the_mapping(master: Master) -> None:
-    master.op.send(standin.markups_points([(0.0, 0.0, 0.0)], "T", kind="forbidden", radius=1.0))
-    master.sim.step(1)
-    (a,) = master.ctrl.fixtures.active.primitives
-    reg = np.eye(4)
-    reg[:3, 3] = (-5.0, 0.0, 0.0)  # the slave's base 5 mm to the left in the patient frame
-    master.op.send(igtl.TransformMessage.from_matrix(reg, device_name="Base", header_version=2))
-    master.sim.step(1)
-    (b,) = master.ctrl.fixtures.active.primitives
-    # the same patient point is 5 mm to the right of the base: 50 mm on the master
-    assert b.centre[0] - a.centre[0] == pytest.approx(50.0)
+def test_registration_transform_sets_the_map_when_the_slave_sends_none(master: Master) -> None:
+    master.close()
+    m = Master()
+    try:
+        m.feed.paused = True  # a slave that sends no map (and no tip)
+        m.op.send(standin.markups_points([(1.0, 0.0, 0.0)], "T", kind="forbidden", radius=1.0))
+        m.step(1)
+        (a,) = m.ctrl.fixtures.active.primitives
+        assert a.centre == pytest.approx((10.0, 0.0, 0.0))
+        reg = np.eye(4)
+        reg[:3, 3] = (-5.0, 0.0, 0.0)  # a translation moves nothing on the master
+        m.op.send(igtl.TransformMessage.from_matrix(reg, device_name="Base", header_version=2))
+        m.step(1)
+        assert m.ctrl.fixtures.active.primitives[0].centre == pytest.approx((10.0, 0.0, 0.0))
+        reg[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]  # 90 deg about z
+        m.op.send(igtl.TransformMessage.from_matrix(reg, device_name="Base", header_version=2))
+        m.step(1)
+        assert m.ctrl.fixtures.active.primitives[0].centre == pytest.approx((0.0, -10.0, 0.0))
+    finally:
+        m.close()
 
 
 # ------------------------------------------------------------------ display, stats, recording
 def test_models_and_proxy_shown_in_slicer(master: Master) -> None:
     slicer = master.sim.peer("operator")
     master.run()
+    master.step(100)
     t = master.tool
-    master.op.send(forbidden_at((t[0] + 4.0, t[1], t[2]), name="Keepout"))
+    master.op.send(forbidden_at(master.p((t[0] + 4.0, t[1], t[2])), name="Keepout"))
     plane = igtl.TransformMessage.from_position((0.0, 0.0, 0.0), device_name="Floor",
                                                 header_version=2, metadata={"kind": "plane"})
     master.op.send(plane)
-    master.sim.step(200)
+    master.step(200)
     models = slicer.messages("POLYDATA", "VirtualFixtures")
-    master.sim.step(300)
+    master.step(300)
     assert slicer.messages("POLYDATA", "VirtualFixtures") == models  # on change only
     model = models[-1]
     assert model.metadata["MRMLNodeName"] == "VirtualFixtures"
@@ -373,7 +403,7 @@ def test_models_and_proxy_shown_in_slicer(master: Master) -> None:
     assert [p.metadata["contact"] for p in proxies].count("none") <= 2
     # GetFixtures sends the model again
     assert master.command("GetFixtures").metadata["Status"] == "SUCCESS"
-    master.sim.step(100)
+    master.step(100)
     assert len(slicer.messages("POLYDATA", "VirtualFixtures")) == len(models) + 1
 
 
@@ -383,11 +413,12 @@ def test_getstats_and_recording_have_tool_and_force(tmp_path: Path) -> None:
     m = Master(recorder=rec)
     try:
         m.run()
+        m.step(100)
         t = m.tool
-        m.op.send(forbidden_at((t[0] + 4.0, t[1], t[2])))
-        m.sim.step(300)
+        m.op.send(forbidden_at(m.p((t[0] + 4.0, t[1], t[2]))))
+        m.step(300)
         cid = m.op.send_command("GetStats")
-        m.sim.step(1)
+        m.step(1)
         end = time.monotonic() + 5.0
         while m.op.reply_to(cid) is None and time.monotonic() < end:
             time.sleep(0.005)  # the worker thread builds the statistics
@@ -395,7 +426,9 @@ def test_getstats_and_recording_have_tool_and_force(tmp_path: Path) -> None:
         assert reply is not None and reply.metadata["Status"] == "SUCCESS"
         ctrl = json.loads(reply.command)["controller"] if reply.command.startswith("{") else None
         stats = ctrl if ctrl is not None else m.robot.snapshot()["controller"]
-        assert stats["tool_mm"] == pytest.approx(m.tool, abs=0.5)
+        # the tool is the slave's tip, in the patient frame (0.1 x the handle here)
+        assert stats["tool_mm"] == pytest.approx(m.feed.tip(), abs=0.05)
+        assert stats["tool_frame"] == "patient" and stats["slave_tip"]["status"] == "fresh"
         assert stats["force_n"][0] < -1.0
     finally:
         m.close()
@@ -414,10 +447,10 @@ def test_a_burst_beyond_the_tick_budget_is_refused_busy_then_taken(master: Maste
                                      header_version=2)
     master.op.send(msg)
     master.op.send(msg)  # the same tick: 80 definitions to compile, over max_fixtures (64)
-    master.sim.step(1)
+    master.step(1)
     statuses = [m for m in master.op.received if m.message_type == "STATUS"
                 and "busy" in m.status_message]
     assert len(statuses) == 1 and master.ctrl.stats()["fixtures"] == 40
     master.op.send(msg)
-    master.sim.step(1)  # next tick: taken
+    master.step(1)  # next tick: taken
     assert master.ctrl.stats()["fixtures_applied"] == 2

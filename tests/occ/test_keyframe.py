@@ -175,7 +175,7 @@ class Session:
         return plan_id
 
     def limit_events(self) -> int:
-        return sum(d.stats()["limit_events"] for d, _ in self.robot.drivers)
+        return sum(d.stats()["limit_events"] for d in self.robot.hardware.drivers)
 
     def close(self) -> None:
         self.sim.close()
@@ -832,7 +832,7 @@ def test_a_controller_shutdown_error_does_not_skip_the_drivers(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     s = Session()
-    drivers = [d for d, _ in s.robot.drivers]
+    drivers = [d for d in s.robot.hardware.drivers]
 
     def broken() -> None:
         raise RuntimeError("plugin bug at shutdown")

@@ -51,9 +51,11 @@ def test_can_master_streams_hand_motion() -> None:
             robot.state_machine.request("run")
             robot.loop.run_in_thread(duration=3.0)
             assert _wait(lambda: len(sent) > 20, 2.0)
-            # the operator pushes the handle 12 mm along x (the drive reports it)
-            axes[0].position = 12_000.0
-            axes[0].target = 12_000.0
+            # the operator pushes the handle 12 mm along x (the drive reports it), at a hand's
+            # speed: a 12 mm teleport in one period is a feedback jump (the driver faults)
+            for step in range(1, 61):
+                axes[0].position = axes[0].target = 200.0 * step
+                time.sleep(0.001)
             assert _wait(lambda: abs(sent[-1].position[0] - robot.controller.controllers[0].origin[0] * 1e3 - 12.0) < 0.05, 2.0), sent[-1]
             assert robot.state is RobotState.RUNNING
         finally:
@@ -61,7 +63,7 @@ def test_can_master_streams_hand_motion() -> None:
             robot.loop.join(5.0)
             robot.shutdown()
             slave.close()
-    assert robot.drivers[0][0].stats()["errors"] == 0
+    assert robot.hardware.drivers[0].stats()["errors"] == 0
 
 
 def test_no_enable_before_every_joint_is_measured() -> None:
@@ -84,7 +86,7 @@ def test_no_enable_before_every_joint_is_measured() -> None:
     robot = build_robot(cfg, clock=SimClock())
     try:
         robot.configure()  # nothing on the bus answers
-        with pytest.raises(StateError, match=r"no measurement yet from joints \['x', 'y', 'z'\]"):
+        with pytest.raises(StateError, match=r"no measurement yet from driver hand joints \['x', 'y', 'z'\]"):
             robot.state_machine.request("enable", "test")
         assert robot.state is RobotState.READY
         axes = [DriveAxis(0x100 + i, 0x180 + i, position=p) for i, p in enumerate((0.0, 50_000.0, 20_000.0))]
@@ -105,7 +107,7 @@ def test_can_haptic_master_gets_the_fixture_force_on_its_effort_interface() -> N
     drive node): the fixture force computed each tick goes out as effort frames (mode 2,
     mN), zero while only ENABLED."""
     from occ.drivers.can import MODE_EFFORT
-    from occ.testing import SimRobot
+    from occ.testing import SimRobot, SlaveTipFeed
 
     channel = f"occ-test-{time.monotonic_ns()}"
     cfg = load_config(ROOT / "configs" / "master.yaml")
@@ -126,7 +128,7 @@ def test_can_haptic_master_gets_the_fixture_force_on_its_effort_interface() -> N
         sim = SimRobot(cfg)
         box["sim"] = sim
         try:
-            drv = sim.robot.drivers[0][0]
+            drv = sim.robot.hardware.drivers[0]
             op = sim.peer("operator", address=("127.0.0.1", 41000))
 
             def settle() -> None:  # every frame the driver sent so far handled by the node
@@ -134,18 +136,21 @@ def test_can_haptic_master_gets_the_fixture_force_on_its_effort_interface() -> N
 
             assert node.wait_feedback(3, timeout=5.0)
             sim.step(1)
+            feed = SlaveTipFeed(sim)  # the slave's tip: 0.1 x the handle (patient frame)
             op.send_command("Enable")
-            sim.step(1)
+            feed.step(1)
             assert sim.robot.state is RobotState.ENABLED
             handle = [v * 1e3 for v in sim.robot.frame.tip_position(sim.robot.data.q)]
+            # 4 mm of the handle to the tool's +x, 10 mm of the handle in radius
+            centre = feed.patient((handle[0] + 4.0, handle[1], handle[2]))
             op.send(igtl.VirtualFixtureMessage(
-                hardness=0.5, spheres=((handle[0] + 4.0, handle[1], handle[2], 10.0),),
+                hardness=0.5, spheres=((*centre, 1.0),),
                 device_name="VF", header_version=2, metadata={"kind": "forbidden"}))
-            sim.step(5)
+            feed.step(5)
             settle()
             assert [a.mode for a in axes] == [MODE_EFFORT] * 3 and [a.effort for a in axes] == [0, 0, 0]
             op.send_command("Run")
-            sim.step(1)
+            feed.step(21)  # the force fades in within tip_fade_ms (20 ms)
             settle()
             assert sim.robot.state is RobotState.RUNNING
             # 6 mm deep at 0.5 N/mm: -3 N along x, as -3000 mN

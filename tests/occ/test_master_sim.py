@@ -15,7 +15,7 @@ import yaml
 
 import igtl
 from occ.safety import RobotState
-from occ.testing import SimRobot
+from occ.testing import SimRobot, SlaveTipFeed
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -137,28 +137,29 @@ def test_clutch_travels_with_the_stream(master: SimMaster) -> None:
 
 
 def hand(master: SimMaster):
-    return master.robot.drivers[0][0]
+    return master.robot.hardware.drivers[0]
 
 
 def test_forbidden_sphere_pushes_the_hand_out_and_reports_force(master: SimMaster) -> None:
     master.command("Enable")
     master.command("Run")
-    master.ticks(200)
+    feed = SlaveTipFeed(master.sim)  # the slave's tip (patient) = 0.1 x the handle
+    feed.step(200)
     handle = master.sent[-1].position
-    # a forbidden sphere of 10 mm radius centred 4 mm from the handle (in +x): the handle is
-    # inside
+    # a forbidden sphere of 10 mm radius (of the handle's motion) centred 4 mm from the handle
+    # (in +x): the tool is inside. Sent in the patient frame: 1 mm there is 10 on the master
     centre = (handle[0] + 4.0, handle[1], handle[2])
-    fx = igtl.VirtualFixtureMessage(hardness=0.5, spheres=((*centre, 10.0),), device_name="Fixtures",
-                                    header_version=2, metadata={"MRMLNodeName": "VF",
-                                                                "kind": "forbidden"})
+    fx = igtl.VirtualFixtureMessage(hardness=0.5, spheres=((*feed.patient(centre), 1.0),),
+                                    device_name="Fixtures", header_version=2,
+                                    metadata={"MRMLNodeName": "VF", "kind": "forbidden"})
     assert master.operator.send(fx) == 1
-    master.ticks(1)
+    feed.step(1)
     stats = master.robot.controller.stats()
     assert stats["fixtures"] == 1 and stats["fixture_contacts"] == 1
     assert stats["force_n"][0] < -2.0  # pushes back toward -x, out of the sphere: 0.5 N/mm x 4 mm
     # the force reached the hand's drive (its effort interface), this very tick
     assert hand(master)._cmd[0] == pytest.approx(stats["force_n"][0], abs=1e-3)
-    master.ticks(100)
+    feed.step(100)
     # the hand yields: the handle is pushed out toward the surface, away from where the hand
     # means to be (the arm, 300 N/m, against the fixture, 500 N/m)
     p = master.sent[-1].position
@@ -191,20 +192,21 @@ def test_slicer_markups_points_become_fixture_spheres(master: SimMaster) -> None
 
     master.command("Enable")
     master.command("Run")
-    master.ticks(200)
+    feed = SlaveTipFeed(master.sim)  # the slave's tip (patient) = 0.1 x the handle
+    feed.step(200)
     handle = master.sent[-1].position
     near = PointElement(name="F-1", group="Selected", rgba=(255, 0, 0, 255),
-                        position=(handle[0] + 2.0, handle[1], handle[2]))
+                        position=feed.patient((handle[0] + 2.0, handle[1], handle[2])))
     hidden = PointElement(name="F-2", group="Selected", rgba=(0, 255, 0, 0),
-                          position=(handle[0] - 2.0, handle[1], handle[2]))
+                          position=feed.patient((handle[0] - 2.0, handle[1], handle[2])))
     pts = igtl.PointMessage(points=(near, hidden), device_name="F", header_version=2,
                             metadata={"MRMLNodeName": "MarkupsFiducial", "kind": "forbidden",
-                                      "frame": "master"})
+                                      "radius": "0.5"})
     assert master.operator.send(pts) == 1
-    master.ticks(1)
+    feed.step(1)
     stats = master.robot.controller.stats()
     assert stats["fixtures"] == 1  # the hidden point (alpha 0) is not a fixture
     assert stats["contact"] == ["F-1"]
-    # default radius 5 mm around the visible point, 1 N/mm: the handle 2 mm from its centre is
-    # 3 mm deep, pushed back toward -x
+    # radius 0.5 mm (patient: 5 mm of the handle) around the visible point, 1 N/mm: the tool
+    # 2 mm of the handle from its centre is 3 mm deep, pushed back toward -x
     assert stats["force_n"][0] == pytest.approx(-3.0, abs=0.1)

@@ -109,7 +109,7 @@ def test_only_the_selected_slave_follows_and_numbers_stay_consecutive(rig: Rig) 
         assert ids == list(range(1, len(ids) + 1)), side  # each stream its own numbers
         slave = rig.slaves[side].robot
         assert slave.state is RobotState.RUNNING
-        assert slave.loss_monitor is not None and slave.loss_monitor.lost_total == 0
+        assert slave.streams.monitor is not None and slave.streams.monitor.lost_total == 0
 
 
 def test_toggle_select_and_a_clutch_tap_switch_without_a_jump(rig: Rig) -> None:

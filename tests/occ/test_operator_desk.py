@@ -233,11 +233,11 @@ def test_the_statistics_hold_what_they_name(sim):
         "thread": r.supervisor_thread.report if r.supervisor_thread else None,
     }
     assert snap["supervisor"]["timeout_ms"] > 1.0  # milliseconds, not seconds
-    assert snap["reentries"] == r.reentries and snap["last_alert"] == r.last_alert
-    assert r.loss_monitor is not None and snap["loss"] == r.loss_monitor.counters()
+    assert snap["reentries"] == r.motion.reentries and snap["last_alert"] == r.last_alert
+    assert r.streams.monitor is not None and snap["loss"] == r.streams.monitor.counters()
     assert "owner" not in snap and "collaboration" not in snap  # not a collaboration robot
     assert snap["controller"] == r.controller.stats()
-    assert snap["drivers"] == {drv.name: drv.stats() for drv, _ in r.drivers} and snap["drivers"]
+    assert snap["drivers"] == {drv.name: drv.stats() for drv in r.hardware.drivers} and snap["drivers"]
     assert snap["realtime"] == r.loop.realtime_report
     if r.state_table is not None:
         assert snap["state_table"] == r.state_table.stats()
@@ -827,7 +827,7 @@ def test_the_statistics_of_a_collaboration_robot_name_its_owner_streams_and_tabl
         snap = r.snapshot()
         assert snap["owner"] == "mentor"
         assert snap["collaboration"] == r.collab.stats()
-        assert snap["loss_by_stream"] == {n: m.counters() for n, m in r.loss_monitors.items()}
+        assert snap["loss_by_stream"] == {n: m.counters() for n, m in r.streams.monitors.items()}
         assert set(snap["loss_by_stream"]) == {"mentor", "trainee"}
         assert snap["state_table"] == r.state_table.stats() and snap["state_table"]
         # a supervisor thread (a real-time daemon) reports itself there

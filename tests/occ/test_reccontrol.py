@@ -105,6 +105,9 @@ def test_start_run_stop_reads_back(rig) -> None:  # type: ignore[no-untyped-def]
     positions = [m for m in msgs if m.message_type == "POSITION" and m.metadata["rec.dir"] == "in"]
     assert [m.message_id for m in positions] == list(range(1, 251))
     assert any(m.message_type == "TRANSFORM" and m.device_name == "Tip" for m in msgs)
+    # the state change in between, broadcast by the alarms (which hold the recorder too)
+    changes = [m for m in msgs if m.message_type == "STATUS" and m.metadata["rec.if"] == "*"]
+    assert [m.error_name for m in changes] == ["ENABLED"]  # type: ignore[attr-defined]
     # the commands in between are in it, with their replies
     names = [getattr(m, "command_name", "") for m in msgs if m.message_type == "COMMAND"]
     assert names == ["Enable", "GetRecordingStatus", "StopRecording"]

@@ -195,11 +195,13 @@ def test_seq_follows_slicers_reading_rules(recording: Path, tmp_path: Path) -> N
     assert out.read_text().rstrip("\n").splitlines()[-1] == "ElementDataFile = LOCAL"
     assert last + 1 == len(frames)
     # one sequence per stream, named <From>To<To> as PLUS splits it
-    assert set(sequences) == {"TipToWorld", "BaseToWorld", "MasterToReference"}
-    assert {plus_split(n) for n in sequences} == {
-        ("Tip", "World"),
-        ("Base", "World"),
-        ("Master", "Reference"),
+    # (and any other pose stream the slave sends, e.g. its tip back to the master: SlaveTip)
+    assert set(sequences) == {
+        f"{dev}To{'World' if d == 'out' else 'Reference'}" for d, dev in poses
+    }
+    assert {"TipToWorld", "BaseToWorld", "MasterToReference"} <= set(sequences)
+    assert {("Tip", "World"), ("Base", "World"), ("Master", "Reference")} <= {
+        plus_split(n) for n in sequences
     }
     assert len(poses[("out", "Tip")]) >= 10 and len(poses[("in", "Master")]) == 600
     names = {("out", "Tip"): "TipToWorld", ("out", "Base"): "BaseToWorld"}
@@ -232,7 +234,9 @@ def test_seq_status_and_timestamps(recording: Path, tmp_path: Path) -> None:
             status = fields[f"Seq_Frame{n:04d}_{source}TransformStatus"]
             assert status == ("OK" if ms in per[key] else "INVALID")
     # OK exactly once per recorded sample
-    oks = sum(1 for k, v in fields.items() if k.endswith("TipToWorldTransformStatus") and v == "OK")
+    oks = sum(
+        1 for k, v in fields.items() if k.endswith("_TipToWorldTransformStatus") and v == "OK"
+    )
     assert oks == len(poses[("out", "Tip")])
 
 

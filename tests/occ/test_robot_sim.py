@@ -105,7 +105,7 @@ def test_two_consecutive_losses_never_stop(slave: SimSlave) -> None:
     drops = {s for base in range(20, 400, 7) for s in (base, base + 1)}  # pairs of losses
     slave.step_ms(800, drops=drops)
     assert slave.robot.state is RobotState.RUNNING
-    c = slave.robot.loss_monitor.counters()
+    c = slave.robot.streams.monitor.counters()
     assert c["lost_total"] == sum(1 for d in drops if d <= slave.seq)
     assert c["max_run"] == 2 and c["trips"] == 0
 
@@ -125,7 +125,7 @@ def test_three_missing_numbers_hold_at_7ms_then_latch_with_an_alert(slave: SimSl
         before = driver_setpoint(slave)
         slave.master_pos[0] += 1.0  # the master keeps moving: a held slave must not follow
         slave.step_ms(1, drops={seq0, seq0 + 1, seq0 + 2})
-        if held_at is None and slave.robot.loss_monitor.holding:
+        if held_at is None and slave.robot.streams.monitor.holding:
             held_at = slave.k - 1
         if held_at is not None and stopped_at is None:
             assert driver_setpoint(slave) == before  # motion stopped: the last safe setpoint
@@ -159,7 +159,7 @@ def test_a_30ms_late_burst_holds_and_resumes_without_latch_or_jump(slave: SimSla
             slave.master_pos[0] += 1.0
             late.append(slave.position())
         slave.tick()
-        held.append(slave.robot.loss_monitor.holding)
+        held.append(slave.robot.streams.monitor.holding)
     assert any(held) and slave.robot.state is RobotState.RUNNING
     # ... then arrive together, numbers contiguous: late, not lost
     for msg in late:
@@ -170,7 +170,7 @@ def test_a_30ms_late_burst_holds_and_resumes_without_latch_or_jump(slave: SimSla
         slave.step_ms(1)
         steps.append(max(abs(a - b) for a, b in zip(driver_setpoint(slave), before)))
     assert slave.robot.state is RobotState.RUNNING
-    c = slave.robot.loss_monitor.counters()
+    c = slave.robot.streams.monitor.counters()
     assert c["holds"] == 1 and c["resumes"] == 1 and c["trips"] == 0 and c["lost_total"] == 0
     # re-entry rate-limited to half the joint velocity limits: no jump
     limit = max(0.5 * j.limits.velocity * 0.001 for j in slave.robot.joints)
@@ -187,7 +187,7 @@ def test_a_dead_master_holds_at_7ms_and_latches_after_the_grace(slave: SimSlave)
     held_at = None
     for _ in range(200):
         slave.tick()  # no packets at all: the master process is gone
-        if held_at is None and slave.robot.loss_monitor.holding:
+        if held_at is None and slave.robot.streams.monitor.holding:
             held_at = slave.k - 1
         if slave.robot.state is RobotState.STOPPED:
             break
@@ -210,7 +210,7 @@ def test_a_30ms_stall_of_the_slaves_own_loop_is_not_network_loss(slave: SimSlave
     q = slave.robot.interfaces["master"].streams["POSITION"]
     assert q.dropped == 5  # a local overflow, counted as such
     slave.step_ms(20)
-    c = slave.robot.loss_monitor.counters()
+    c = slave.robot.streams.monitor.counters()
     assert c["lost_total"] == 0 and c["trips"] == 0 and c["accepted"] == c["received"]
     assert slave.robot.state is RobotState.RUNNING
     assert slave.robot.interfaces.stats()["master"]["streams"]["POSITION"]["dropped"] == 5
@@ -233,7 +233,7 @@ def test_stale_and_future_samples_are_refused_and_not_followed(slave: SimSlave) 
     slave.stamp = True
     slave.step_ms(40)
     setpoint = driver_setpoint(slave)
-    mon = slave.robot.loss_monitor
+    mon = slave.robot.streams.monitor
     # one sample an hour old and one a day ahead, with plausible numbers and a far target
     slave.master_pos[0] += 500.0
     for skew in (-3600.0, 86400.0):
@@ -521,7 +521,7 @@ def test_a_hung_tick_trips_the_supervisor_drivers_stop_then_fault(slave: SimSlav
         assert sup.check(last * 0.001 + dt) is None
     reason = sup.check(last * 0.001 + 0.025)
     assert reason is not None and "did not tick for 25.0 ms" in reason
-    drv = slave.robot.drivers[0][0]
+    drv = slave.robot.hardware.drivers[0]
     assert drv.state.value == "fault" and drv.fault_reason.startswith("safe stop: ")
     alerts = [r for r in slave.replies if r.message_type == "STATUS" and r.error_name == "SUPERVISOR"]
     assert alerts and reason in alerts[-1].status_message

@@ -52,7 +52,7 @@ def test_a_hung_tick_is_caught_by_the_supervisor_thread() -> None:
         robot.state_machine.request("run")
         loop.start()
         assert hung.wait(10.0)
-        drv = robot.drivers[0][0]
+        drv = robot.hardware.drivers[0]
         # while the loop is still stuck: the drives go to their safe state (the trip flag is
         # set just before the supervisor thread acts, so wait for the act itself)
         assert wait_for(lambda: drv.state.value == "fault")

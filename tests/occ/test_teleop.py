@@ -21,7 +21,7 @@ import yaml
 import igtl
 from occ.frame import Frame
 from occ.safety import RobotState
-from occ.testing import SimRobot
+from occ.testing import SimRobot, SlaveTipFeed
 
 ROOT = Path(__file__).resolve().parents[2]
 MASTER = ("127.0.0.1", 40000)
@@ -536,23 +536,30 @@ def test_a_clutch_or_run_cycle_inside_one_tick_still_reindexes(rig: Rig, flag: s
     assert rig.tip_mm().tolist() == pytest.approx(before.tolist(), abs=1e-6)
 
 
-def test_the_masters_fixture_mapping_stops_and_restarts_following_with_the_robot(
+def test_the_masters_fixture_force_is_off_while_the_robot_is_not_running(
     master: Master,
 ) -> None:
-    mapping = master.ctl.fixtures.mapping
+    """Fixtures do not follow the master's handle any more (the tool is the slave's tip): what
+    leaving and re-entering RUNNING does is zero the displayed force and fade it back in."""
+    feed = SlaveTipFeed(master.sim)
     for name in ("Enable", "Run"):
         assert _status(master.command(name))[0] == "SUCCESS"
-    master.sim.step(50)
-    assert mapping.following is True
+    feed.step(50)
+    t = feed.handle_mm()
+    master.op.send(igtl.VirtualFixtureMessage(
+        hardness=1.0, spheres=((*feed.patient((t[0] + 4.0, t[1], t[2])), 1.0),),
+        device_name="VF", header_version=2, metadata={"kind": "forbidden"}))
+    feed.step(30)
+    assert master.ctl.gain == 1.0 and math.hypot(*master.ctl.fixtures.force_n) > 2.0
     assert _status(master.command("Stop"))[0] == "SUCCESS"
-    assert master.robot.state is RobotState.STOPPED and mapping.following is False
-    master.sim.step(300)  # the hand moves on while the slave holds
-    assert mapping.following is False
+    assert master.robot.state is RobotState.STOPPED and master.ctl.gain == 0.0
+    assert master.ctl.fixtures.force_n == (0.0, 0.0, 0.0)
+    feed.step(300)
     assert _status(master.command("Run"))[0] == "SUCCESS"
-    master.sim.tick()
-    assert master.robot.state is RobotState.RUNNING and mapping.following is True
-    tool = master.ctl.fixtures.tool_mm
-    assert mapping.master_ref == pytest.approx(tool, abs=0.5)  # re-indexed where the hand is
+    feed.step(10)
+    assert 0.3 < master.ctl.gain < 0.7  # half way through tip_fade_ms
+    feed.step(20)
+    assert master.ctl.gain == 1.0
 
 
 def test_a_teleop_output_that_is_not_position_faults_and_says_so() -> None:
@@ -583,10 +590,10 @@ def test_a_re_entry_ramp_after_a_late_stream_finishes_when_the_master_lets_go(
     the slave was given, not where it happened to be."""
     rig.running()
     before = rig.tip_mm()
-    reentries = rig.robot.reentries
+    reentries = rig.robot.motion.reentries
     for _ in range(12):  # 12 ms without a sample: the loss monitor holds
         rig.sim.tick()
-    assert rig.robot.loss_monitor.holding and rig.robot.state is RobotState.RUNNING
+    assert rig.robot.streams.monitor.holding and rig.robot.state is RobotState.RUNNING
     rig.pos[0] += 20.0  # 2 mm of the slave's tip at the configured scale
     rig.step(4)
     mid = rig.tip_mm() - before
@@ -595,17 +602,16 @@ def test_a_re_entry_ramp_after_a_late_stream_finishes_when_the_master_lets_go(
         setattr(rig, flag, True if flag == "clutch" else False)
     rig.step(300)
     assert (rig.tip_mm() - before).tolist() == pytest.approx([2.0, 0.0, 0.0], abs=1e-6)
-    assert rig.robot.reentries == reentries + 1
+    assert rig.robot.motion.reentries == reentries + 1
 
 
 def test_the_tick_that_stops_the_master_keeps_its_fixture_work_budget(master: Master) -> None:
-    """Leaving RUNNING stops the fixtures' mapping in the middle of a tick: the tick's budget
+    """Leaving RUNNING in the middle of a tick: the tick's budget
     of compiled definitions (max_fixtures, 64) goes on counting, so 40 definitions before
     the Stop and 40 after it in the same tick are not 80 compiled in one tick."""
     for name in ("Enable", "Run"):
         assert _status(master.command(name))[0] == "SUCCESS"
     master.sim.step(50)
-    assert master.ctl.fixtures.mapping.following is True
     spheres = tuple((float(i), 0.0, 0.0, 5.0) for i in range(40))
     burst = igtl.VirtualFixtureMessage(hardness=1.0, spheres=spheres, device_name="Burst",
                                        header_version=2)

@@ -10,10 +10,16 @@ from __future__ import annotations
 import os
 import random
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
 from occ.testing import wait_until as poll  # noqa: F401 - the ros2 tests import it from here
+
+
+#: the DDS configuration of the tests that run DDS in the test process, on the host: loopback,
+#: unicast only (its comment says why; test_rclpy.py runs the shipped one in a namespace)
+UNICAST_CONFIG = Path(__file__).with_name("cyclonedds-unicast.xml")
 
 
 def require_extra() -> None:
@@ -33,15 +39,13 @@ def _unique_domain() -> int:
 
 @pytest.fixture(scope="session")
 def dds() -> Iterator[tuple[int, Any]]:
-    """(domain id, participant) on loopback without multicast (the bridge's own config)."""
+    """(domain id, participant) on loopback without multicast (:data:`UNICAST_CONFIG`)."""
     require_extra()
     from cyclonedds.domain import Domain, DomainParticipant
 
-    from occ_ros2.bridge import DEFAULT_CONFIG
-
     domain_id = _unique_domain()
     # the Domain carries the configuration; it must exist before (and outlive) the participant
-    domain = Domain(domain_id, DEFAULT_CONFIG.read_text())
+    domain = Domain(domain_id, UNICAST_CONFIG.read_text())
     participant = DomainParticipant(domain_id)
     yield domain_id, participant
     del participant, domain
@@ -53,3 +57,14 @@ def namespace(request: pytest.FixtureRequest) -> str:
     name = "".join(c if c.isalnum() else "_" for c in request.node.name)[:24]
     return f"/occtest{os.getpid()}_{name}/slave"
 
+
+@pytest.fixture
+def netns() -> Iterator[Any]:
+    """A private network namespace (netns.py) for a test that runs real ROS 2 nodes; skipped
+    without rclpy or root, failed instead in CI (rig.require)."""
+    from .netns import Netns
+    from .rig import require
+
+    require()
+    with Netns() as ns:
+        yield ns

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from .conftest import poll, require_extra
+from .conftest import UNICAST_CONFIG, poll, require_extra
 
 require_extra()
 
@@ -87,7 +87,8 @@ def slave_and_bridge(
             [sys.executable, "-m", "occ_ros2.cli",
              "--connect", f"127.0.0.1:{ports['slave_tcp']}={namespace}",
              "--operator", f"127.0.0.1:{ports['slave_op']}={namespace}",
-             "--domain-id", str(domain_id), "--log-level", "WARNING",
+             "--domain-id", str(domain_id), "--dds-config", str(UNICAST_CONFIG),
+             "--log-level", "WARNING",
              "--stats", str(tmp_path / "bridge.json")],
             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
         )  # fmt: skip
@@ -103,16 +104,21 @@ def test_measured_cp_is_the_slaves_tip_in_metres(
     ports, bridge = slave_and_bridge
     ros = RosSide(dds[1], namespace)
     ros.reader("measured_cp", msgs.PoseStamped)
+    ros.reader("local/measured_cp", msgs.PoseStamped)
     ros.reader("base/measured_cp", msgs.PoseStamped)
     ros.reader("measured_js", msgs.JointState)
     assert poll(lambda: len(ros.take("measured_cp")) >= 3), "no measured_cp from the bridge"
+    assert poll(lambda: ros.take("local/measured_cp")), "no local/measured_cp"
     assert poll(lambda: ros.take("measured_js")), "no measured_js from the bridge"
     js = ros.seen["measured_js"][-1]
     assert list(js.name) == ["yaw", "pitch", "insertion"] and len(js.position) == 3
+    assert js.header.frame_id == "slave"
     assert js.position[1] == pytest.approx(0.35, abs=0.01)  # the slave's home pitch
     assert poll(lambda: ros.take("base/measured_cp"))
-    tip = ros.seen["measured_cp"][-1]
+    tip = ros.seen["local/measured_cp"][-1]
     assert tip.header.frame_id == "slave_base"
+    world = ros.seen["measured_cp"][-1]
+    assert world.header.frame_id == "world"  # the dVRK's measured_cp: with the base
     assert tip.header.stamp.sec > 0  # the daemon's timestamp, not zero
     base = ros.seen["base/measured_cp"][-1]
     assert base.header.frame_id == "world"
@@ -124,8 +130,9 @@ def test_measured_cp_is_the_slaves_tip_in_metres(
         assert poll(lambda: viewer.last.get("Tip")), "the viewer got no Tip"
         ref = viewer.last["Tip"]
     expected = np.array(ref.translation) * 1e-3
-    got = np.array([tip.pose.position.x, tip.pose.position.y, tip.pose.position.z])
-    assert np.allclose(got, expected, atol=1e-6), (got, expected)  # float32 on the IGTL wire
+    for pose in (tip, world):
+        got = np.array([pose.pose.position.x, pose.pose.position.y, pose.pose.position.z])
+        assert np.allclose(got, expected, atol=1e-6), (got, expected)  # float32 on the wire
     assert 0.0 < float(np.linalg.norm(got)) < 1.0  # metres, not millimetres
     assert bridge.poll() is None
 
@@ -160,15 +167,23 @@ def test_commands_round_trip_and_state_is_latched(
     plain = ros.writer("command", msgs.String)
     plain.write(msgs.String(data="Run"))
     assert poll(lambda: state() == "RUNNING")
-    assert poll(lambda: ros.take("operating_state")[-1].is_busy)
     plain.write(msgs.String(data="NoSuchCommand"))
     assert poll(lambda: len(ros.take("command_reply")) >= 3)
     replies = [r.data for r in ros.seen["command_reply"]]
     assert replies[1] == "Run SUCCESS: ENABLED -> RUNNING"
     assert replies[2].startswith("NoSuchCommand FAIL:"), replies
+    # CRTK: following the master is not a move: RUNNING is ENABLED and not busy
+    op = ros.take("operating_state")[-1]
+    assert (op.state, op.is_busy) == ("ENABLED", False)
+    # CRTK: enable when ENABLED is a no-op that succeeds (the daemon would refuse Enable)
+    crtk.write(msgs.StringStamped(string="enable"))
+    assert poll(lambda: len(ros.take("command_reply")) >= 4)
+    assert ros.seen["command_reply"][3].data == "enable SUCCESS: already ENABLED"
     crtk.write(msgs.StringStamped(string="pause"))
     assert poll(lambda: state() == "STOPPED")
     assert poll(lambda: ros.take("operating_state")[-1].state == "PAUSED")
+    crtk.write(msgs.StringStamped(string="resume"))  # back to where pause left: RUNNING
+    assert poll(lambda: state() == "RUNNING")
     assert bridge.poll() is None
 
 
@@ -204,7 +219,8 @@ def test_master_mode_a_ros2_pose_stream_drives_the_slave(
             [sys.executable, "-m", "occ_ros2.cli",
              "--connect", f"127.0.0.1:{ports['slave_tcp']}={namespace}",
              "--master", f"{master_ns}=127.0.0.1:{ports['slave_udp']}", *auth,
-             "--domain-id", str(domain_id), "--log-level", "WARNING",
+             "--domain-id", str(domain_id), "--dds-config", str(UNICAST_CONFIG),
+             "--log-level", "WARNING",
              "--stats", str(tmp_path / "bridge.json")],
             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
         )  # fmt: skip

@@ -20,6 +20,7 @@ from cyclonedds.topic import Topic  # noqa: E402
 from occ_ros2 import msgs  # noqa: E402
 from occ_ros2.bridge import (  # noqa: E402
     QOS_DEFAULT,
+    QOS_LATCHED,
     Bridge,
     parse_endpoint,
     pose_stamped,
@@ -103,6 +104,78 @@ def test_commands_without_an_operator_port_are_refused_with_a_reply(
             return len(got) >= 2
 
         assert poll(two_replies)
-    assert got[0].data.startswith("Enable FAIL: no operator interface")
+    assert got[0].data.startswith("enable FAIL: no operator interface")
     assert got[1].data == "rm -rf FAIL: not a command name"
     assert bridge.stats()[namespace]["commands_refused"] == 2
+
+
+#: every (word, daemon state) of CRTK's table and the answer the bridge gives itself, or
+#: ``None`` where it forwards the daemon's command (then refused here: nothing listens on the
+#: operator port, so the forward is visible as "<DaemonCommand> FAIL: ... not connected")
+CRTK_CASES = {
+    ("enable", "READY"): "Enable",
+    ("enable", "ENABLED"): "enable SUCCESS: already ENABLED",
+    ("enable", "RUNNING"): "enable SUCCESS: already ENABLED",
+    ("enable", "STOPPED"): "Enable",
+    ("enable", "FAULT"): "enable FAIL: the daemon's FAULT is latched",
+    ("enable", "ESTOP"): "enable FAIL: the daemon's ESTOP is latched",
+    ("disable", "READY"): "disable SUCCESS: already DISABLED",
+    ("disable", "RUNNING"): "Disable",
+    ("disable", "STOPPED"): "Disable",
+    ("disable", "FAULT"): "disable FAIL: the daemon's FAULT is latched",
+    ("pause", "READY"): "pause FAIL: not valid in DISABLED",
+    ("pause", "RUNNING"): "Stop",
+    ("pause", "STOPPED"): "pause SUCCESS: already PAUSED",
+    ("pause", "ESTOP"): "pause FAIL: not valid in FAULT",
+    ("resume", "READY"): "resume FAIL: not valid in DISABLED",
+    ("resume", "ENABLED"): "resume SUCCESS: already ENABLED",
+    ("resume", "STOPPED"): "Enable",  # paused by someone else: hold
+    ("resume", "FAULT"): "resume FAIL: not valid in FAULT",
+    ("home", "READY"): "home SUCCESS: homed",
+    ("home", "FAULT"): "home SUCCESS: homed",
+    ("unhome", "ENABLED"): "unhome FAIL: the joint sensors are absolute",
+    ("enable", "INIT"): "enable FAIL: the daemon is in INIT",
+    ("home", "SHUTDOWN"): "home FAIL: the daemon is in SHUTDOWN",
+}
+
+
+def _first(reader: DataReader[Any], what: object) -> Any:
+    got: list[Any] = []
+
+    def some() -> bool:
+        got.extend(reader.take())
+        return bool(got)
+
+    assert poll(some), what
+    return got[0]
+
+
+def test_crtk_state_table_every_cell_answered(dds: tuple[int, Any], namespace: str) -> None:
+    """CRTK's words in each daemon state: the bridge's own answers (no-ops, refusals, the
+    latch) word for word, and the forwards by the daemon command they become. The daemon side
+    of the table is tests/ros2/test_crtk.py."""
+    domain_id, dp = dds
+    replies: DataReader[Any] = DataReader(
+        dp, Topic(dp, topic_name(namespace, "command_reply"), msgs.String), QOS_DEFAULT
+    )
+    ops: DataReader[Any] = DataReader(
+        dp, Topic(dp, topic_name(namespace, "operating_state"), msgs.OperatingState), QOS_LATCHED
+    )
+    endpoint = [("127.0.0.1", free_port(), namespace)]
+    with Bridge(endpoint, endpoint, domain_id=domain_id) as bridge:
+        robot = bridge.robots[namespace]
+        for (word, state), expected in CRTK_CASES.items():
+            robot.state, robot.paused_from = state, None
+            ops.take()
+            bridge.command(namespace, word)
+            text = _first(replies, (word, state)).data
+            if " " not in expected:  # forwarded as this daemon command
+                assert text == f"{expected} FAIL: operator interface not connected", text
+                continue
+            assert text.startswith(expected), (word, state, text)
+            if "latched" in expected:
+                assert "until an operator's Reset" in text and "CRTK retry" in text
+            # and operating_state again, with a fresh stamp, for the CRTK client's wait
+            if state not in ("INIT", "SHUTDOWN"):
+                fresh = _first(ops, (word, state))
+                assert fresh.is_busy is False and fresh.is_homed is True

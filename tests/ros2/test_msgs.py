@@ -34,6 +34,8 @@ def typestore() -> Any:
 
 def to_rosbags(obj: Any, store: Any) -> Any:
     """The rosbags message with the same field values as a cyclonedds struct."""
+    if isinstance(obj, list):
+        return [to_rosbags(v, store) for v in obj]
     if type(obj) not in ROS_NAME:
         return obj
     cls = store.types[ROS_NAME[type(obj)]]
@@ -74,6 +76,20 @@ SAMPLES: list[Any] = [
     m.OperatingState(header=stamp("slave"), state="ENABLED", is_homed=True, is_busy=False),
     m.OperatingState(header=stamp(""), state="FAULT", is_homed=False, is_busy=True),
     m.StringStamped(header=stamp("slave"), string="enable"),
+    m.Vector3(x=1.5, y=-0.25, z=3e-7),
+    m.Transform(m.Vector3(0.01, 0.0, -0.2), m.Quaternion(0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5))),
+    m.TransformStamped(header=stamp("slave_base"), child_frame_id="slave_tip"),
+    m.TFMessage(transforms=[]),
+    m.TFMessage(
+        transforms=[
+            m.TransformStamped(
+                header=stamp("world"),
+                child_frame_id="slave_base",
+                transform=m.Transform(m.Vector3(0.1, 0.2, 0.3), m.Quaternion(0.5, 0.5, 0.5, 0.5)),
+            ),
+            m.TransformStamped(header=stamp("slave_base"), child_frame_id="slave_tip_odd"),
+        ]
+    ),
 ]
 
 
@@ -91,6 +107,23 @@ def test_posestamped_is_84_bytes_with_a_short_frame_id(typestore: Any) -> None:
     """The size the issue quotes (4 encapsulation + 80 body bytes with frame_id "base")."""
     msg = SAMPLES[7]
     assert len(msg.serialize()) == 84
+
+
+def test_type_hashes_are_rosbags_jazzy_ones() -> None:
+    """The RIHS01 hashes the bridge puts in USER_DATA (msgs.TYPE_HASHES) are the ones rosbags
+    computes from the type definitions in its ROS 2 Jazzy store (crtk_msgs registered); one
+    per type the bridge puts on a topic, and no other (test_rclpy.py checks one against rclpy)."""
+    store = get_typestore(Stores.ROS2_JAZZY)
+    for name, text in m.CRTK_MSG_DEFS.items():
+        store.register(get_types_from_msg(text, name))
+    for name, value in m.TYPE_HASHES.items():
+        assert value == store.hash_rihs01(name), name
+    topic_types = {"std_msgs/msg/String", "geometry_msgs/msg/PoseStamped",
+                   "sensor_msgs/msg/JointState", "crtk_msgs/msg/OperatingState",
+                   "crtk_msgs/msg/StringStamped", "tf2_msgs/msg/TFMessage"}  # fmt: skip
+    assert set(m.TYPE_HASHES) == topic_types
+    assert m.user_data(m.PoseStamped) == (b"typehash=" + m.TYPE_HASHES[
+        "geometry_msgs/msg/PoseStamped"].encode() + b";")  # fmt: skip
 
 
 def test_every_type_is_sampled() -> None:

@@ -1,0 +1,343 @@
+"""The hardware fault matrix: every fault a drive can have, injected into the shipped slave,
+and what the robot did (docs/SAFETY.md, SR-HW-1; ``tools/fault_matrix.py`` prints the table,
+``tests/occ/test_fault_matrix.py`` checks every row).
+
+The robot is ``configs/slave.yaml`` with its joints split over two drives: ``arm`` (yaw,
+pitch; simulated) and ``tool`` (insertion; simulated, or the CAN driver on python-can's
+``virtual`` bus talking to :class:`~occ.drivers.can_sim.SimulatedDriveNode`). The fault is
+always in ``tool``; ``arm`` stays healthy, so a robot that went on moving ``arm`` alone would
+show. Each run is in simulated time on in-process interfaces (:class:`~occ.testing.SimRobot`),
+with an operator, a viewer (Slicer) and the master streaming a ramp; for the CAN rows each tick
+waits for the drive node's answer, so the bus is real and the run still deterministic.
+
+For every row the run records: when the robot noticed (simulated ms after the injection), how
+many ticks passed from then until every drive was in its safe state (0: the same tick), the
+measured time from detection to the last drive safe (``time.perf_counter``), the final state,
+the STATUS alert the operator and the viewer received, whether Enable was refused before a
+Reset, and whether the robot worked again once the drive was repaired and reset.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import igtl
+
+from .clock import SimClock
+from .config import DaemonConfig
+from .drivers.base import DriverState
+from .drivers.can_sim import DriveAxis, SimulatedDriveNode
+from .hardware import SAFE
+from .loader import load_config
+from .safety import RobotState
+from .testing import SimPeer, SimRobot
+
+__all__ = ["ROWS", "Outcome", "Row", "run_row", "slave_config"]
+
+ROOT = Path(__file__).resolve().parent.parent
+COUNTS_PER_M = 1_000_000.0
+_channels = itertools.count(1)
+
+
+@dataclass(frozen=True)
+class Row:
+    """One fault: its name, the drive backend it needs, and when it strikes: at
+    ``configure``, at ``enable``, or ``running`` (while following the master)."""
+
+    name: str
+    backend: str  # "sim" or "can"
+    when: str  # "configure", "enable" or "running"
+    what: str  # the fault in words (the table's first column)
+    sim_faults: tuple[str, ...] = ()  # SimDriver faults (params at start, or injected)
+
+
+ROWS: tuple[Row, ...] = (
+    Row("configure", "sim", "configure", "configure fails", ("configure",)),
+    Row("activate", "sim", "enable", "power-on (activate) fails", ("activate",)),
+    Row("unmeasured", "sim", "enable", "a joint never measured", ("nan",)),
+    Row("hook", "sim", "running", "a hook raises mid-run", ("hook",)),
+    Row("write", "sim", "running", "a write that raises", ("write",)),
+    Row("heartbeat", "sim", "running", "heartbeat lost", ("heartbeat",)),
+    Row("nan", "sim", "running", "feedback NaN", ("nan",)),
+    Row("frozen", "sim", "running", "feedback frozen, heartbeat alive", ("frozen",)),
+    Row("jump", "sim", "running", "position jump beyond the velocity limit", ("jump",)),
+    Row("can-silent", "can", "running", "CAN node stops answering"),
+    Row("can-late", "can", "running", "CAN node answers late"),
+    Row("can-busoff", "can", "running", "CAN bus-off"),
+    Row("can-errors", "can", "running", "CAN error frames"),
+)
+
+
+@dataclass
+class Outcome:
+    """What the robot did with one row's fault (see the module docstring)."""
+
+    row: Row
+    detected_ms: float | None = None
+    ticks_to_safe: int | None = None
+    fault_to_safe_us: float | None = None
+    state: str = ""
+    alert_operator: str = ""
+    alert_viewer: str = ""
+    enable_refused: bool = False
+    enable_reply: str = ""
+    recovered: bool = False
+    partial_ticks: int = 0  # ticks RUNNING with a drive not ACTIVE (must be 0)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        refused_state = (
+            self.state == RobotState.READY.value if self.row.name == "unmeasured" else True
+        )
+        return (
+            self.partial_ticks == 0
+            and self.ticks_to_safe == 0
+            and "tool" in self.alert_operator
+            and "tool" in self.alert_viewer
+            and self.enable_refused
+            and self.recovered
+            and refused_state
+        )
+
+
+def slave_config(backend: str, sim_faults: tuple[str, ...] = (), channel: str = "") -> DaemonConfig:
+    """The shipped slave with its joints on two drives, ``arm`` and ``tool`` (module doc)."""
+    cfg = load_config(ROOT / "configs" / "slave.yaml")
+    shipped = cfg.robot.drivers[0]
+    arm = shipped.model_copy(update={"name": "arm", "joints": ("yaw", "pitch")})
+    if backend == "sim":
+        params = {**dict(shipped.params), "faults": list(sim_faults)}
+        tool = shipped.model_copy(
+            update={"name": "tool", "joints": ("insertion",), "params": params}
+        )
+    else:
+        tool = shipped.model_copy(
+            update={
+                "name": "tool",
+                "plugin": "can",
+                "joints": ("insertion",),
+                "params": {
+                    "interface": "virtual",
+                    "channel": channel,
+                    "joints": {
+                        "insertion": {
+                            "can_id": 0x101,
+                            "feedback_id": 0x181,
+                            "counts_per_unit": COUNTS_PER_M,
+                        }
+                    },
+                    "feedback_timeout": 0.010,
+                },
+            }
+        )
+    robot = cfg.robot.model_copy(update={"drivers": (arm, tool)})
+    return cfg.model_copy(update={"robot": robot})
+
+
+class _Run:
+    """One row's run: the robot, its peers, and the bus node for the CAN rows."""
+
+    def __init__(self, row: Row) -> None:
+        self.row = row
+        self.node: SimulatedDriveNode | None = None
+        channel = f"occ-faults-{next(_channels)}-{id(self)}"
+        at_start = row.sim_faults if row.when != "running" else ()
+        clock = SimClock()
+        if row.backend == "can":
+            # the drive's model runs on the robot's simulated clock: its motion between two
+            # ticks is one period's, however long the machine took between them
+            axis = DriveAxis(can_id=0x101, feedback_id=0x181, position=0.05 * COUNTS_PER_M)
+            self.node = SimulatedDriveNode([axis], channel, tau=0.002, clock=clock.now).start()
+        self.sim = SimRobot(slave_config(row.backend, at_start, channel), clock=clock)
+        if self.node is not None:  # the drive's first answer (to configure's mode-0 frame)
+            self.node.wait_feedback(1, timeout=1.0)
+        self.robot = self.sim.robot
+        self.op: SimPeer = self.sim.peer("operator")
+        self.viewer: SimPeer = self.sim.peer("slicer")
+        self.master: SimPeer = self.sim.peer("master", address=("127.0.0.1", 40000))
+        self.seq = 0
+        self.sync = True  # CAN rows: each tick waits for the drive's answer
+        self.partial_ticks = 0
+
+    @property
+    def tool(self) -> Any:
+        return self.robot.hardware.drivers[1]
+
+    def close(self) -> None:
+        self.sim.close()
+        if self.node is not None:
+            self.node.stop()
+
+    def tick(self, stream: bool = False) -> None:
+        node = self.node
+        before = node.feedback_sent if node is not None else 0
+        if stream and self.sim.k % 2 == 0:
+            self.seq += 1
+            # a ramp: 200 mm/s at the master, 20 mm/s at the tool (scale 0.1)
+            x = 0.4 * self.seq
+            self.master.send_position((0.3 * x, 0.3 * x, -x), seq=self.seq)
+        self.sim.tick()
+        r = self.robot
+        if r.state is RobotState.RUNNING and any(
+            d.state is not DriverState.ACTIVE for d in r.hardware.drivers
+        ):
+            self.partial_ticks += 1
+        if (
+            node is not None
+            and self.sync
+            and r.state
+            in (
+                RobotState.ENABLED,
+                RobotState.RUNNING,
+                RobotState.STOPPED,
+            )
+        ):
+            node.wait_feedback(before + 1, timeout=1.0)
+
+    def command(self, name: str) -> tuple[bool, str]:
+        cid = self.op.send_command(name)
+        self.tick()
+        reply = self.op.reply_to(cid)
+        if reply is None:
+            return False, "no reply"
+        meta = reply.metadata
+        return meta.get("Status") == "SUCCESS", meta.get("Message", "") or str(reply)
+
+    def alert(self, peer: SimPeer, after: int) -> str:
+        texts = [
+            m.status_message
+            for m in peer.messages("STATUS")[after:]
+            if isinstance(m, igtl.StatusMessage)
+            and m.error_name.upper() in ("FAULT", "ALERT")
+            and "tool" in m.status_message
+        ]
+        return texts[0] if texts else ""
+
+    def inject(self) -> None:
+        row = self.row
+        if row.backend == "sim":
+            for kind in row.sim_faults:
+                self.tool.inject(kind)
+            return
+        node = self.node
+        assert node is not None
+        if row.name == "can-silent":
+            node.mute()
+            self.sync = False
+        elif row.name == "can-late":
+            node.delay = 0.5  # half a second: far past the 10 ms deadline
+            self.sync = False
+        elif row.name == "can-busoff":
+            node.send_error_frame(0x40)
+        elif row.name == "can-errors":
+            for _ in range(11):
+                node.send_error_frame(0x04)
+
+    def repair(self) -> None:
+        if self.row.backend == "sim":
+            self.tool.clear_faults()
+            return
+        node = self.node
+        assert node is not None
+        node.mute(False)
+        node.delay = 0.0
+        node.discard_late()
+        self.sync = True
+
+
+def run_row(row: Row, on_step: Callable[[str], None] | None = None) -> Outcome:
+    """Run one row of the matrix and return what the robot did."""
+    out = Outcome(row)
+    try:
+        run = _Run(row)
+    except Exception as err:  # noqa: BLE001 - a robot that cannot even be built is an outcome
+        out.notes.append(f"build failed: {type(err).__name__}: {err}")
+        return out
+    try:
+        _play(run, out)
+    finally:
+        out.partial_ticks = run.partial_ticks
+        run.close()
+    return out
+
+
+def _play(run: _Run, out: Outcome) -> None:
+    row = run.row
+    robot = run.robot
+    hw = robot.hardware
+    n_op = n_view = 0  # a fault at configure is told in the greeting
+    for _ in range(3):
+        run.tick()
+    injected_at = run.sim.k
+    if row.when == "running":
+        ok, text = run.command("Enable")
+        ok2, text2 = run.command("Run")
+        if not (ok and ok2):
+            out.notes.append(f"could not start: {text}; {text2}")
+            return
+        for _ in range(100):
+            run.tick(stream=True)
+        n_op = len(run.op.messages("STATUS"))
+        n_view = len(run.viewer.messages("STATUS"))
+        run.inject()
+        injected_at = run.sim.k
+        for _ in range(500):
+            run.tick(stream=True)
+            if robot.state is RobotState.FAULT:
+                break
+    elif row.when == "enable":
+        ok, text = run.command("Enable")
+        out.enable_reply = text
+        if ok:
+            out.notes.append("Enable was accepted")
+    if robot.state is RobotState.FAULT or row.when == "enable":
+        out.detected_ms = (run.sim.k - injected_at) * 1e3 / robot.rate_hz
+        out.ticks_to_safe = 0 if all(d.state in SAFE for d in hw.drivers) else 1
+        lat = hw.last_fault_to_safe_s
+        out.fault_to_safe_us = None if lat is None else lat * 1e6
+    out.state = robot.state.value
+    out.alert_operator = run.alert(run.op, n_op)
+    out.alert_viewer = run.alert(run.viewer, n_view)
+    ok, text = run.command("Enable")
+    out.enable_refused = not ok
+    if not out.enable_reply:
+        out.enable_reply = text
+    # repaired and reset, the robot works again on all of its hardware
+    run.repair()
+    for _ in range(3):
+        run.tick()
+    if robot.state is not RobotState.READY:
+        run.command("Reset")
+    for _ in range(3):
+        run.tick()
+    ok, text = run.command("Enable")
+    ok2, text2 = run.command("Run")
+    for _ in range(20):
+        run.tick(stream=True)
+    out.recovered = ok and ok2 and robot.state is RobotState.RUNNING
+    if not out.recovered:
+        out.notes.append(f"after repair: {text}; {text2}; {robot.state.value} ({robot.last_alert})")
+
+
+def table(outcomes: list[Outcome]) -> str:
+    """The matrix as a Markdown table (``tools/fault_matrix.py``)."""
+    lines = [
+        "| fault | drive | noticed after (sim ms) | ticks to all safe | fault -> last drive "
+        "safe (us) | state | Enable before Reset | alert to operators | pass |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for o in outcomes:
+        det = "-" if o.detected_ms is None else f"{o.detected_ms:.0f}"
+        lat = "-" if o.fault_to_safe_us is None else f"{o.fault_to_safe_us:.0f}"
+        alert = o.alert_operator.replace("|", "/")
+        lines.append(
+            f"| {o.row.what} | {o.row.backend} | {det} | {o.ticks_to_safe} | {lat} | "
+            f"{o.state} | {'refused' if o.enable_refused else 'ACCEPTED'} | {alert} | "
+            f"{'PASS' if o.ok else 'FAIL'} |"
+        )
+    return "\n".join(lines)

@@ -1,0 +1,190 @@
+"""The return channel, slave -> master: where the slave's tool is, as the master sees it.
+
+The slave (``teleop-slave``, output source ``teleop-return``) sends its measured tip back to
+the master that streams to it, on the same UDP link and at the stream rate (500 Hz in the
+shipped configs): one POSITION ``SlaveTip`` per sample, header version 2, the message ID a
+sequence number (+1 per packet), the header timestamp when it was measured, HMAC-signed when
+the link has a key (:mod:`igtl.auth`, like the forward stream). The pose is the one the slave
+shows 3D Slicer as ``Tip`` (the patient frame: base pose x forward kinematics), position mm and
+the full quaternion. Everything else rides in the v2 metadata of the same message:
+
+``following``
+    ``1`` while the slave follows *this* master (RUNNING, this master's stream the one it
+    follows, ``run=1``, clutch released), else ``0``;
+``map``
+    9 numbers, row by row: how a handle displacement (master mm) moves the tip in the patient
+    frame (mm), i.e. the slave's base rotation x motion scaling x master-to-slave rotation.
+    The master maps fixtures and tool with it (:class:`~occ.fixture_defs.PatientMapping`), so
+    nothing is calibrated by hand;
+``state``
+    the slave's state (``RUNNING``, ``STOPPED``, ...).
+
+**One message, not a pair (decided for issue 27, force feedback).** The slave's contact force
+will ride in the same message (metadata ``force_n`` = ``fx,fy,fz``, N in the patient frame,
+and ``torque_nm``), not in a SENSOR beside a POSITION: one datagram is one sample with one
+sequence number, one timestamp and one HMAC tag, so pose and force can never be paired wrongly,
+half-lost or half-authenticated, and the loss rules below cover both. Metadata is text, a few
+microseconds to format and parse at 500 Hz.
+
+:class:`ReturnLink` is the master's view of one such stream, judged by the slave's own
+:class:`~occ.safety.LossMonitor` (its existing API: sequence numbers, lateness, loss, a dead
+peer). Its :attr:`ReturnLink.status`:
+
+``none``   no tip yet (the slave not started, or no return channel configured);
+``fresh``  a tip within the deadline (3 periods + a quarter: 6.5 ms at 500 Hz);
+``stale``  late (overdue past the deadline, not yet lost): the last tip is kept and shown,
+           marked stale; the controller fades the force it last computed to zero within
+           ``tip_fade_ms`` and computes none from the stale pose;
+``lost``   three or more consecutive sequence numbers missing, or silence past the grace
+           (100 ms: a dead slave): the fixture force is zero at once and the operators get an
+           ALERT; the next good sample re-arms it (a STATUS ``STREAM`` says so).
+
+Loop thread only; O(1) per sample and per tick.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from igtl.messages.base import Message
+
+from .fixture_defs import DefinitionError, Vec3, parse_linear
+from .safety import LossEvent, LossMonitor, Verdict
+
+__all__ = ["ReturnLink"]
+
+
+class ReturnLink:
+    """One slave's tip stream as the master sees it (see the module docstring)."""
+
+    def __init__(
+        self,
+        interface: str,
+        *,
+        period_s: float = 0.002,
+        max_consecutive: int = 2,
+        grace_s: float = 0.1,
+    ) -> None:
+        self.interface = interface
+        self.monitor = LossMonitor(period_s, max_consecutive, grace_s=grace_s)
+        #: the last accepted tip, patient frame (mm), and its orientation (x, y, z, w)
+        self.tip: Vec3 | None = None
+        self.quaternion: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+        #: loop time when the last tip was accepted
+        self.t_tip = math.nan
+        #: a tip arrived that the fixtures have not used yet
+        self.new = False
+        self.following = False
+        self.slave_state = ""
+        self.seq: int | None = None
+        #: the slave's map (handle mm -> patient mm), parsed; None until it sends one
+        self.linear: tuple[tuple[float, float, float], ...] | None = None
+        self._map_text = ""
+        self.lost = False
+        self.lost_cause = ""
+        self.samples = 0
+        self.refused = 0
+        self.bad_metadata = 0
+        self.losses = 0
+        self.recoveries = 0
+        self.last_error = ""
+
+    # ------------------------------------------------------------------ samples
+    def on_sample(self, msg: Message, now: float, rx_wall: float) -> bool:
+        """Judge one ``SlaveTip`` sample; True when it was accepted (its tip is the tool)."""
+        mon = self.monitor
+        if mon.tripped:
+            # lost before: the stream is back. Re-armed from this sample on (the sequence
+            # numbers start over: the gap was the loss already told)
+            mon.reset(now)
+        seq = msg.message_id if msg.header_version == 2 else None
+        ts = msg.timestamp if msg.timestamp > 0.0 else None
+        verdict = mon.on_packet(seq, ts, now, rx_wall)
+        if verdict is not Verdict.ACCEPT:
+            self.refused += 1
+            return False
+        m: Any = msg
+        if msg.message_type == "POSITION":
+            p = m.position
+            self.quaternion = tuple(float(v) for v in m.quaternion)  # type: ignore[assignment]
+        else:  # TRANSFORM
+            p = m.translation
+        tip = (float(p[0]), float(p[1]), float(p[2]))
+        if not all(math.isfinite(v) for v in tip):
+            self.bad_metadata += 1
+            self.last_error = f"seq {seq}: tip {tip} is not a point"
+            return False
+        meta = msg.metadata
+        text = meta.get("map", "")
+        if text and text != self._map_text:
+            try:
+                self.linear = parse_linear(text)
+            except DefinitionError as err:
+                self.bad_metadata += 1
+                self.last_error = f"seq {seq}: {err}"
+                return False
+            self._map_text = text
+        self.following = meta.get("following", "1") == "1"
+        self.slave_state = meta.get("state", "")
+        self.tip = tip
+        self.t_tip = now
+        self.seq = seq
+        self.new = True
+        self.samples += 1
+        if self.lost and not mon.tripped:
+            self.lost = False
+            self.recoveries += 1
+        return True
+
+    # ------------------------------------------------------------------ every tick
+    def check(self, now: float) -> LossEvent | None:
+        """The monitor's event this tick (hold, resume, latch, refused), if any; a latch
+        marks the link lost."""
+        event = self.monitor.check(now)
+        if event is not None and event.kind == "latch":
+            self.lost = True
+            self.losses += 1
+            self.lost_cause = event.cause
+        return event
+
+    def arm(self, now: float) -> None:
+        """Start the deadline at ``now`` (the master enters RUNNING): a slave that never
+        sends is then caught by the grace, as a dead one is."""
+        self.monitor.reset(now)
+        self.lost = False
+
+    @property
+    def status(self) -> str:
+        """``none``, ``fresh``, ``stale`` or ``lost`` (see the module docstring)."""
+        if self.lost or self.monitor.tripped:
+            return "lost"
+        if self.tip is None:
+            return "none"
+        return "stale" if self.monitor.holding else "fresh"
+
+    def stats(self, now: float) -> dict[str, Any]:
+        age = now - self.t_tip if self.tip is not None else None
+        status = self.status
+        if status == "fresh" and age is not None and age > self.monitor.deadline_s:
+            status = "stale"  # the monitor is checked only while RUNNING
+        c = self.monitor.counters()
+        return {
+            "interface": self.interface,
+            "status": status,
+            "age_ms": None if age is None else round(age * 1e3, 1),
+            "tip_mm": None if self.tip is None else [round(v, 3) for v in self.tip],
+            "following": self.following,
+            "slave_state": self.slave_state,
+            "seq": self.seq,
+            "map": None if self.linear is None else [list(r) for r in self.linear],
+            "samples": self.samples,
+            "refused": self.refused,
+            "bad": self.bad_metadata,
+            "last_error": self.last_error,
+            "late": c["holds"],
+            "lost_total": c["lost_total"],
+            "losses": self.losses,
+            "recoveries": self.recoveries,
+            "lost_cause": self.lost_cause,
+        }

@@ -1,0 +1,109 @@
+"""The hardware fault matrix (occ/faultmatrix.py; docs/SAFETY.md SR-HW-1..13), one test a row.
+
+Each fault is injected into the drive ``tool`` of the shipped slave, whose other drive
+``arm`` stays healthy. Every row must end with: every drive safe in the tick the robot
+noticed, the robot FAULT (or the transition refused, its state unchanged), a STATUS naming
+the drive and the cause to the operator and to the viewer, Enable refused until Reset, never
+a tick RUNNING on part of the hardware, and the robot working again once the drive is repaired
+and reset. The time from detection to the last drive safe is measured (``tools/fault_matrix.py``
+prints it); here it is only required to exist, since it is a wall-clock figure.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from occ.faultmatrix import ROWS, Outcome, run_row
+
+BY_NAME = {row.name: row for row in ROWS}
+
+
+def check(name: str, cause: str, state: str = "FAULT", when_ms: float = 1.0) -> Outcome:
+    out = run_row(BY_NAME[name])
+    assert not out.notes, out.notes
+    assert out.partial_ticks == 0  # never RUNNING with a drive that is not ACTIVE
+    assert out.ticks_to_safe == 0  # every drive safe in the tick the fault was noticed
+    assert out.state == state
+    for alert in (out.alert_operator, out.alert_viewer):
+        assert "tool" in alert and cause in alert, alert
+    assert out.detected_ms is not None and out.detected_ms <= when_ms
+    assert out.enable_refused, out.enable_reply
+    assert out.recovered
+    assert out.ok
+    return out
+
+
+def check_running(name: str, cause: str, when_ms: float = 1.0) -> None:
+    out = check(name, cause, when_ms=when_ms)
+    assert out.fault_to_safe_us is not None and out.fault_to_safe_us > 0.0
+    assert out.enable_reply.startswith("'enable' refused in state FAULT")
+
+
+@pytest.mark.req("SR-HW-1")
+def test_configure_fails_the_robot_starts_in_fault_naming_the_drive() -> None:
+    out = check("configure", "configure failed: driver tool: configure failed", when_ms=0.0)
+    assert out.alert_operator.startswith("slave is FAULT: ")  # the greeting says why
+
+
+@pytest.mark.req("SR-HW-2")
+def test_power_on_fails_enable_is_vetoed_and_the_robot_faults() -> None:
+    out = check("activate", "enable failed: driver tool: activate failed")
+    assert out.enable_reply.startswith("'enable' failed in state READY: driver tool: activate ")
+    assert out.alert_operator.startswith("READY -> FAULT: ")  # never ENABLED, never RUNNING
+
+
+@pytest.mark.req("SR-HW-3")
+def test_a_joint_never_measured_refuses_enable_and_keeps_the_state() -> None:
+    out = check("unmeasured", "no measurement yet from driver tool joints ['insertion']",
+                state="READY")
+    assert out.enable_reply.startswith("'enable' refused in state READY: no measurement")
+
+
+@pytest.mark.req("SR-HW-4")
+def test_a_hook_exception_mid_run_stops_every_drive_in_the_tick() -> None:
+    check_running("hook", "exception in the drive's read hook")
+
+
+@pytest.mark.req("SR-HW-5")
+def test_a_write_that_raises_stops_every_drive_in_the_tick() -> None:
+    check_running("write", "driver tool: write failed")
+
+
+@pytest.mark.req("SR-HW-6")
+def test_heartbeat_lost_stops_every_drive_when_the_drive_reports_it() -> None:
+    check_running("heartbeat", "heartbeat lost", when_ms=52.0)
+
+
+@pytest.mark.req("SR-HW-7")
+def test_feedback_nan_after_measured_is_feedback_lost() -> None:
+    check_running("nan", "joint insertion: feedback lost (position nan)")
+
+
+@pytest.mark.req("SR-HW-8")
+def test_feedback_frozen_while_the_heartbeat_lives_is_caught() -> None:
+    check_running("frozen", "joint insertion: feedback frozen at", when_ms=60.0)
+
+
+@pytest.mark.req("SR-HW-9")
+def test_a_position_jump_beyond_the_velocity_limit_is_caught() -> None:
+    check_running("jump", "joint insertion: feedback jump of")
+
+
+@pytest.mark.req("SR-HW-10")
+def test_a_can_node_that_stops_answering_is_caught_by_the_feedback_deadline() -> None:
+    check_running("can-silent", "no feedback on id 0x181", when_ms=12.0)
+
+
+@pytest.mark.req("SR-HW-11")
+def test_a_can_node_that_answers_late_is_caught_by_the_feedback_deadline() -> None:
+    check_running("can-late", "no feedback on id 0x181", when_ms=12.0)
+
+
+@pytest.mark.req("SR-HW-12")
+def test_can_bus_off_stops_every_drive_in_the_tick() -> None:
+    check_running("can-busoff", "bus-off on")
+
+
+@pytest.mark.req("SR-HW-13")
+def test_can_error_frames_past_the_limit_stop_every_drive() -> None:
+    check_running("can-errors", "11 error frames in 100 ms")

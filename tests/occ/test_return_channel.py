@@ -1,0 +1,342 @@
+"""The return channel slave -> master (occ/returnlink.py) in simulated time: what the slave
+sends, how the master judges it (late: stale and the force fades; lost or dead: zero at once
+and an alert; back: re-armed), and the real pair (configs/slave.yaml + configs/master.yaml on
+one SimClock) keeping the tool on the slave's tip through the clutch; the collaborative trio
+through a hand-over. Over real sockets: tests/occ/test_fixture_pair_e2e.py."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import igtl
+from occ.clock import SimClock
+from occ.safety import RobotState
+from occ.testing import SimRobot, SlaveTipFeed
+
+from ..tools.tooling import load_tool
+
+ROOT = Path(__file__).resolve().parents[2]
+standin = load_tool("slicer_standin")
+
+
+class Master:
+    def __init__(self) -> None:
+        self.sim = SimRobot(ROOT / "configs" / "master.yaml")
+        self.ctrl: Any = self.sim.robot.controller.controllers[0]
+        self.op = self.sim.peer("operator", address=("127.0.0.1", 41000))
+        self.sim.step(1)
+        self.feed = SlaveTipFeed(self.sim)
+
+    def run(self) -> None:
+        for c in ("Enable", "Run"):
+            self.op.send_command(c)
+            self.feed.step(1)
+        assert self.sim.robot.state is RobotState.RUNNING
+        self.feed.step(30)
+
+    def keepout(self, depth_mm: float = 6.0) -> None:
+        """A forbidden sphere (radius 1 mm patient = 10 mm of the handle) with the tool
+        ``depth_mm`` (of the handle) deep, on the tool's -x side of the centre."""
+        t = self.feed.handle_mm()
+        c = self.feed.patient((t[0] + 10.0 - depth_mm, t[1], t[2]))
+        self.op.send(igtl.VirtualFixtureMessage(hardness=0.5, spheres=((*c, 1.0),),
+                                                device_name="VF", header_version=2,
+                                                metadata={"kind": "forbidden"}))
+        self.feed.step(1)
+
+    @property
+    def force(self) -> float:
+        return math.hypot(*self.ctrl.fixtures.force_n)
+
+    def alerts(self, name: str = "ALERT") -> list[str]:
+        return [m.status_message for m in self.op.messages("STATUS") if m.error_name == name]
+
+    def close(self) -> None:
+        self.sim.close()
+
+
+@pytest.fixture
+def master() -> Any:
+    m = Master()
+    yield m
+    m.close()
+
+
+# ------------------------------------------------------------------ the master's loss rules
+@pytest.mark.req("SR-FIX-2")
+def test_a_late_tip_is_kept_marked_stale_and_its_force_fades_never_recomputed(master) -> None:
+    master.run()
+    master.keepout()
+    master.feed.step(5)
+    f0 = master.ctrl.fixtures.force_n
+    assert math.hypot(*f0) == pytest.approx(3.0, abs=0.3)
+    tip = master.ctrl.stats()["tool_mm"]
+    master.feed.paused = True  # the slave's samples stop coming (not lost yet)
+    forces = []
+    for _ in range(40):
+        master.feed.step(1)
+        forces.append(master.ctrl.fixtures.force_n)
+    st = master.ctrl.stats()
+    assert st["slave_tip"]["status"] == "stale" and st["slave_tip"]["late"] == 1
+    assert st["tool_mm"] == tip  # the last tip is kept, shown
+    # late from 7 ms: from there the force is the last one computed, scaled down (same
+    # direction, never a new force from the stale pose), and zero within tip_fade_ms (20 ms)
+    late = forces[6:]
+    for f in late:
+        assert f[1] == pytest.approx(f0[1] * f[0] / f0[0], abs=1e-9)
+    mags = [math.hypot(*f) for f in late]
+    assert all(b <= a for a, b in zip(mags, mags[1:]))
+    assert mags[21] == 0.0 and not master.alerts()
+    # back in time: fresh again, the force fades back in; no alert (late is not lost)
+    master.feed.paused = False
+    master.feed.step(25)
+    assert master.ctrl.stats()["slave_tip"]["status"] == "fresh"
+    assert master.force == pytest.approx(3.0, abs=0.4) and not master.alerts()
+
+
+@pytest.mark.req("SR-FIX-2")
+def test_a_lost_tip_zeroes_the_force_at_once_and_alerts_the_operators(master) -> None:
+    master.run()
+    master.keepout()
+    master.feed.step(5)
+    assert master.force > 2.5
+    master.feed.skip(3)  # three sequence numbers lost on the way: proven loss
+    master.feed.step(1)
+    assert master.force == 0.0
+    (alert,) = master.alerts()
+    assert "slave tip on slave lost" in alert and "3 consecutive packets lost" in alert
+    assert master.ctrl.stats()["slave_tip"]["losses"] == 1
+    # the next good sample re-arms it (a STREAM status says so) and the force fades back in
+    master.feed.step(1)
+    assert master.ctrl.stats()["slave_tip"]["status"] == "fresh"
+    assert any("back" in t for t in master.alerts("STREAM"))
+    master.feed.step(25)
+    assert master.force > 2.5 and master.sim.robot.state is RobotState.RUNNING
+
+
+@pytest.mark.req("SR-FIX-2")
+def test_a_dead_slave_zeroes_the_force_and_alerts_once(master) -> None:
+    master.run()
+    master.keepout()
+    master.feed.step(5)
+    master.feed.paused = True
+    master.feed.step(99)
+    assert master.force == 0.0 and not master.alerts()  # faded out, late: no alert yet
+    master.feed.step(5)  # past the grace (100 ms)
+    (alert,) = master.alerts()
+    assert "no packet for" in alert and "virtual-fixture force off" in alert
+    master.feed.step(300)
+    assert len(master.alerts()) == 1  # latched: said once
+    assert master.ctrl.stats()["slave_tip"]["status"] == "lost"
+    assert master.sim.robot.state is RobotState.RUNNING  # the master itself goes on
+
+
+def test_a_master_whose_slave_never_answers_is_told(master) -> None:
+    master.feed.paused = True
+    for c in ("Enable", "Run"):
+        master.op.send_command(c)
+        master.feed.step(1)
+    master.feed.step(120)
+    (alert,) = master.alerts()
+    assert "slave tip on slave lost" in alert
+    st = master.ctrl.stats()
+    assert st["tool_mm"] is None and st["slave_tip"]["status"] == "lost"
+
+
+def test_a_slave_that_does_not_follow_this_master_gives_no_force(master) -> None:
+    master.run()
+    master.keepout()
+    master.feed.step(5)
+    assert master.force > 2.5
+    master.feed.following = False  # another master has control, or the slave holds
+    master.feed.step(20)
+    assert master.force == 0.0 and master.ctrl.stats()["slave_tip"]["following"] is False
+    master.feed.following = True
+    master.feed.step(20)
+    assert master.force > 2.5
+
+
+def test_a_tip_from_anywhere_but_the_slave_link_is_refused_and_answered(master) -> None:
+    n = len(master.op.received)
+    master.op.send(igtl.TransformMessage.from_position((0.0, 0.0, 0.0), device_name="SlaveTip",
+                                                       header_version=2, message_id=1))
+    master.feed.step(1)
+    (reply,) = [m for m in master.op.received[n:] if m.message_type == "STATUS"]
+    assert "is a slave's return stream" in reply.status_message
+    assert master.ctrl.stats()["slave_tip"]["samples"] == 1  # the feed's, not this one
+
+
+def test_a_bad_map_is_counted_and_its_sample_not_used(master) -> None:
+    master.run()
+    master.feed.linear = "1,2,3"
+    master.feed.step(1)
+    st = master.ctrl.stats()["slave_tip"]
+    assert st["bad"] == 1 and "expected 9 numbers" in st["last_error"]
+
+
+# ------------------------------------------------------------------ the slave's side
+def test_the_slave_sends_its_tip_back_as_slicer_sees_it() -> None:
+    with SimRobot(ROOT / "configs" / "slave.yaml") as sim:
+        link = sim.peer("master", address=("127.0.0.1", 40000))
+        slicer = sim.peer("slicer")
+        op = sim.peer("operator")
+        for c in ("Enable", "Run"):
+            op.send_command(c)
+            sim.step(1)
+        for seq in range(1, 301):
+            link.send_position((0.0, 50.0, 20.0 + 0.01 * seq), seq=seq)
+            sim.step(2)
+        tips = link.messages("POSITION", "SlaveTip")
+        assert len(tips) == 301  # 500 Hz
+        assert [m.message_id for m in tips] == list(range(1, 302))
+        assert all(m.header_version == 2 and m.layout == 28 for m in tips)
+        last = tips[-1]
+        assert last.metadata["following"] == "1" and last.metadata["state"] == "RUNNING"
+        assert [float(v) for v in last.metadata["map"].split(",")] == pytest.approx(
+            [0.1, 0, 0, 0, 0.1, 0, 0, 0, 0.1])
+        # the same pose as the Tip 3D Slicer gets (patient frame), at the same tick
+        sim.step(100 - sim.k % 100)  # the next 10 Hz Tip
+        sim.step(1)
+        tip = slicer.messages("TRANSFORM", "Tip")[-1]
+        back = link.messages("POSITION", "SlaveTip")[-1]
+        assert back.position == pytest.approx(tip.translation, abs=1e-3)
+        # the master stops streaming run=1: following 0
+        link.send_position((0.0, 50.0, 23.0), seq=301, run=False)
+        sim.step(2)
+        assert link.messages("POSITION", "SlaveTip")[-1].metadata["following"] == "0"
+
+
+# ------------------------------------------------------------------ the real pair
+class Pair:
+    """configs/master.yaml + configs/slave.yaml on one SimClock, the stream and the return
+    channel wired both ways (what tools/fixture_motion.py runs)."""
+
+    def __init__(self) -> None:
+        clock = SimClock()
+        self.master = SimRobot(ROOT / "configs" / "master.yaml", clock=clock)
+        self.slave = SimRobot(ROOT / "configs" / "slave.yaml", clock=clock)
+        box: dict[str, Any] = {}
+        m_link = self.master.peer("slave", on_message=lambda m: box["s"].send(m))
+        box["s"] = self.slave.peer("master", address=("127.0.0.1", 40000),
+                                   on_message=m_link.send)
+        self.m_op = self.master.peer("operator", address=("127.0.0.1", 41000))
+        self.s_op = self.slave.peer("operator", address=("127.0.0.1", 41001))
+        self.slicer = self.slave.peer("slicer")
+        self.ctrl: Any = self.master.robot.controller.controllers[0]
+
+    def step(self, n: int = 1) -> None:
+        for _ in range(n):
+            self.master.tick()
+            self.slave.tick()
+
+    def start(self) -> None:
+        for op in (self.s_op, self.m_op):
+            for name in ("Enable", "Run"):
+                op.send_command(name)
+                self.step(1)
+
+    def slicer_tip(self) -> tuple[float, float, float]:
+        return tuple(self.slicer.messages("TRANSFORM", "Tip")[-1].translation)
+
+    def close(self) -> None:
+        self.master.close()
+        self.slave.close()
+
+
+def test_the_pair_keeps_the_tool_on_the_slaves_tip_through_the_clutch() -> None:
+    pair = Pair()
+    try:
+        pair.start()
+        pair.step(1000)
+        tip = pair.slicer_tip()
+        pair.m_op.send(standin.markups_points([tip], "Target", radius=20.0))
+        worst, peak = 0.0, 0.0
+        for k in range(6000):
+            pair.step(1)
+            if k == 1500:
+                pair.m_op.send_command("Clutch", '<Command Name="Clutch" Value="1"/>')
+            if k == 3000:
+                pair.m_op.send_command("Clutch", '<Command Name="Clutch" Value="0"/>')
+            if k % 100 == 99:  # every Tip 3D Slicer gets: the master's tool is there
+                worst = max(worst, math.dist(pair.ctrl.stats()["tool_mm"], pair.slicer_tip()))
+            peak = max(peak, math.hypot(*pair.ctrl.fixtures.force_n))
+        assert pair.ctrl.stats()["slave_tip"]["status"] == "fresh"
+        # the Tip and the tool are the same sample at most 2 ms apart (500 Hz)
+        assert worst < 0.2
+        assert peak == 0.0  # the tool never left the sphere around it: no force, ever
+        assert pair.master.robot.state is pair.slave.robot.state is RobotState.RUNNING
+    finally:
+        pair.close()
+
+
+def test_the_pair_pulls_the_hand_toward_a_sphere_20_mm_away() -> None:
+    pair = Pair()
+    try:
+        pair.start()
+        pair.step(1000)
+        t = pair.ctrl.stats()["tool_mm"]
+        centre = (t[0] + 40.0, t[1], t[2])  # surface 20 mm from the tool
+        k = 0.02  # N per mm of master motion: 20 mm deep in the patient = 200 mm = 4 N
+        pair.m_op.send(standin.markups_points([centre], "Target", radius=20.0, stiffness=k))
+        for _ in range(10):
+            pair.step(200)
+            st = pair.ctrl.stats()
+            tool, f = st["tool_mm"], st["force_n"]
+            depth = math.dist(tool, centre) - 20.0
+            toward = [(c - x) / (depth + 20.0) for c, x in zip(centre, tool)]
+            mag = math.hypot(*f)
+            assert 0.0 < mag <= 10.0
+            assert mag == pytest.approx(k * depth / 0.1, rel=0.05)
+            assert sum(a * b for a, b in zip(f, toward)) / mag > 0.99
+    finally:
+        pair.close()
+
+
+def test_a_hand_over_moves_the_force_to_the_master_in_control() -> None:
+    clock = SimClock()
+    slave = SimRobot(ROOT / "configs" / "collab" / "slave.yaml", clock=clock)
+    mentor = SimRobot(ROOT / "configs" / "collab" / "mentor.yaml", clock=clock)
+    trainee = SimRobot(ROOT / "configs" / "collab" / "trainee.yaml", clock=clock)
+    robots = (mentor, trainee, slave)
+    try:
+        for name, m, port in (("mentor", mentor, 40000), ("trainee", trainee, 40001)):
+            box: dict[str, Any] = {}
+            link = m.peer("slave", on_message=lambda msg, box=box: box["s"].send(msg))
+            box["s"] = slave.peer(name, address=("127.0.0.1", port), on_message=link.send)
+        ops = [r.peer("operator") for r in robots]
+        bedside = ops[2]
+
+        def step(n: int) -> None:
+            for _ in range(n):
+                for r in robots:
+                    r.tick()
+
+        for op in (ops[2], ops[0], ops[1]):
+            for c in ("Enable", "Run"):
+                op.send_command(c)
+                step(1)
+        step(500)
+        cm, ct = (r.robot.controller.controllers[0] for r in (mentor, trainee))
+        # both know where the tool is (the same tip); only the owner's is followed
+        assert cm.stats()["tool_mm"] == pytest.approx(ct.stats()["tool_mm"], abs=1e-6)
+        assert cm.stats()["slave_tip"]["following"] and not ct.stats()["slave_tip"]["following"]
+        t = cm.stats()["tool_mm"]
+        # an accessible sphere whose surface is 20 mm from the tool: a pull toward it
+        target = standin.markups_points([(t[0] + 40.0, t[1], t[2])], "Target", radius=20.0,
+                                        stiffness=0.02)
+        for op in ops[:2]:
+            op.send(target)
+        step(50)
+        assert math.hypot(*cm.fixtures.force_n) > 1.0 and ct.fixtures.force_n == (0.0, 0.0, 0.0)
+        bedside.send_command("Handover", '<Command Name="Handover" To="trainee"/>')
+        step(50)
+        assert ct.stats()["slave_tip"]["following"] and not cm.stats()["slave_tip"]["following"]
+        assert math.hypot(*ct.fixtures.force_n) > 1.0 and cm.fixtures.force_n == (0.0, 0.0, 0.0)
+        assert ct.stats()["tool_mm"] == pytest.approx(cm.stats()["tool_mm"], abs=1e-6)
+    finally:
+        for r in robots:
+            r.close()

@@ -1,0 +1,156 @@
+"""The namespace rig of the ROS 2 tests: daemon, bridge and DDS agents as restartable processes.
+
+Everything runs in one private network namespace (netns.py): the slave daemon (``occd
+configs/slave.yaml`` with its shipped ports: the namespace has them to itself), the bridge
+(``occ-ros2`` with its shipped DDS configuration), a real ROS 2 node (rclpy_agent.py) and a
+Cyclone participant for the crtk_msgs/tf2_msgs topics (cyclone_agent.py), each driven over
+JSON lines.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from .netns import Netns, available
+
+ROOT = Path(__file__).resolve().parents[2]
+HERE = Path(__file__).resolve().parent
+NS = "/occ/slave"
+
+
+class Agent:
+    """A JSON-lines subprocess (rclpy_agent.py, cyclone_agent.py): one answer per request."""
+
+    def __init__(self, proc: subprocess.Popen[Any]) -> None:
+        self.proc = proc
+        assert proc.stdout is not None
+        hello = proc.stdout.readline()
+        assert hello and json.loads(hello).get("ready"), _stderr(proc)
+
+    def ask(self, op: str, **kw: Any) -> dict[str, Any]:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write(json.dumps({"op": op, **kw}) + "\n")
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline()
+        assert line, f"the agent died: {_stderr(self.proc)}"
+        return dict(json.loads(line))
+
+    def stop(self) -> None:
+        try:
+            self.ask("exit")
+            self.proc.wait(10.0)
+        finally:
+            Netns.stop(self.proc)
+
+
+def _stderr(proc: subprocess.Popen[Any]) -> str:
+    if proc.poll() is None or proc.stderr is None:
+        return f"(running, pid {proc.pid})"
+    return str(proc.stderr.read())[-3000:]
+
+
+def require() -> None:
+    """Skip without rclpy or namespaces; in CI (OCC_REQUIRE_INTEROP=1) fail instead."""
+    import importlib.util
+
+    missing = [
+        name
+        for name in ("rclpy", "geometry_msgs", "sensor_msgs", "std_msgs", "cyclonedds")
+        if importlib.util.find_spec(name) is None
+    ]
+    why = available()
+    problem = f"missing {', '.join(missing)} (pip install -e .[test])" if missing else why
+    if problem is None:
+        return
+    if os.environ.get("OCC_REQUIRE_INTEROP") == "1":
+        pytest.fail(f"a real ROS 2 node is required here (OCC_REQUIRE_INTEROP=1): {problem}")
+    pytest.skip(problem)
+
+
+def clean_env(**extra: str) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("ROS_", "RMW_", "CYCLONE"))}
+    env["ROS_DOMAIN_ID"] = "0"
+    env.update(extra)
+    return env
+
+
+class Rig:
+    """The daemon, the bridge and the node in one namespace, each restartable."""
+
+    def __init__(self, ns: Netns, tmp: Path, node_env: dict[str, str]) -> None:
+        self.ns, self.tmp, self.node_env = ns, tmp, node_env
+        self.daemon: subprocess.Popen[Any] | None = None
+        self.bridge: subprocess.Popen[Any] | None = None
+        self.node: Agent | None = None
+        self.bridge_runs = 0
+
+    # -------------------------------------------------------------- daemon
+    def start_daemon(self, config: Path = ROOT / "configs" / "slave.yaml") -> None:
+        self.daemon = self.ns.popen(
+            [sys.executable, "-m", "occ.cli", str(config), "--log-level", "WARNING"],
+            cwd=ROOT, env=clean_env(),
+        )  # fmt: skip
+        wait = (
+            "import socket,time,sys\n"
+            "end=time.monotonic()+30\n"
+            "while time.monotonic()<end:\n"
+            "    s=socket.socket(); s.settimeout(0.2)\n"
+            "    ok=s.connect_ex(('127.0.0.1',int(sys.argv[1])))==0; s.close()\n"
+            "    if ok: sys.exit(0)\n"
+            "    time.sleep(0.05)\n"
+            "sys.exit(1)\n"
+        )
+        for port in ("18944", "18947"):
+            self.ns.run([sys.executable, "-c", wait, port], timeout=35.0)
+
+    # -------------------------------------------------------------- bridge
+    def start_bridge(self, *extra: str) -> None:
+        self.bridge_runs += 1
+        self.bridge = self.ns.popen(
+            [sys.executable, "-m", "occ_ros2.cli",
+             "--connect", f"127.0.0.1:18944={NS}", "--operator", f"127.0.0.1:18947={NS}",
+             "--log-level", "WARNING",
+             "--stats", str(self.tmp / f"bridge{self.bridge_runs}.json"), *extra],
+            cwd=ROOT, env=clean_env(),
+        )  # fmt: skip
+
+    def stop_bridge(self) -> dict[str, Any]:
+        assert self.bridge is not None
+        assert self.bridge.poll() is None, _stderr(self.bridge)
+        Netns.stop(self.bridge)
+        self.bridge = None
+        path = self.tmp / f"bridge{self.bridge_runs}.json"
+        return dict(json.loads(path.read_text()))
+
+    # -------------------------------------------------------------- agents
+    def start_node(self) -> Agent:
+        """The real ROS 2 node (rclpy_agent.py)."""
+        self.node = Agent(self.ns.popen(
+            [sys.executable, str(HERE / "rclpy_agent.py"), NS],
+            env=self.node_env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+        ))  # fmt: skip
+        return self.node
+
+    def start_cyclone(self) -> Agent:
+        """A Cyclone participant for the crtk_msgs and tf2_msgs topics (cyclone_agent.py)."""
+        return Agent(self.ns.popen(
+            [sys.executable, str(HERE / "cyclone_agent.py"), NS],
+            cwd=ROOT, env=clean_env(), stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+        ))  # fmt: skip
+
+    def ask(self, op: str, **kw: Any) -> dict[str, Any]:
+        """A request to the node."""
+        assert self.node is not None
+        return self.node.ask(op, **kw)
+
+    def stop_node(self) -> None:
+        assert self.node is not None
+        self.node.stop()
+        self.node = None
