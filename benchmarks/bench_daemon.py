@@ -16,6 +16,7 @@ Examples::
 
     python benchmarks/bench_daemon.py --duration 60
     python benchmarks/bench_daemon.py --duration 60 --no-fifo      # SCHED_OTHER for comparison
+    python benchmarks/bench_daemon.py --duration 60 --record-at-run-time  # StartRecording live
 """
 
 from __future__ import annotations
@@ -67,6 +68,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--no-record", action="store_true", help="the slave without recording")
     p.add_argument(
+        "--record-at-run-time",
+        action="store_true",
+        help="the slave starts without recording; the operator sends StartRecording once the "
+        "load runs and StopRecording at the end (PLUS-style, occ/reccontrol.py)",
+    )
+    p.add_argument(
         "--thread-streams",
         action="store_true",
         help="robot.realtime.poll_streams false: an interface thread receives the stream",
@@ -98,7 +105,14 @@ def main(argv: list[str] | None = None) -> int:
         master["robot"]["realtime"]["spin_us"] = args.spin_us
     if args.thread_streams:
         slave["robot"]["realtime"]["poll_streams"] = False
-    if not args.no_record:
+    if args.record_at_run_time:
+        slave["recording"] = {
+            "path": None,
+            "rate_hz": 100,
+            "include_messages": True,
+            "directory": str(out),
+        }
+    elif not args.no_record:
         slave["recording"] = {
             "path": str(out / "slave.igtl"),
             "rate_hz": 100,
@@ -129,6 +143,21 @@ def main(argv: list[str] | None = None) -> int:
     procs = [occd("slave")]
     clients: list[SlicerStandIn] = []
     operator: SlicerStandIn | None = None
+    run_time_recording: dict[str, str] = {}
+    extra: list[SlicerStandIn] = []  # an operator only for the run-time recording
+
+    def ask(name: str, xml: str = "") -> str:
+        """An operator command and its reply (Status: Message), for the run-time recording."""
+        op = operator
+        if op is None:
+            op = SlicerStandIn("127.0.0.1", ports["slave_op"]).start()
+            extra.append(op)
+        op.connected.wait(5.0)
+        reply = op.wait_reply(op.send_command(name, xml), 20.0)
+        if reply is None:
+            return "no reply"
+        return f"{reply.metadata.get('Status')}: {reply.metadata.get('Message')}"
+
     try:
         if not wait_port(tcp):
             print("slave did not start; see", out / "slave.log", file=sys.stderr)
@@ -157,6 +186,11 @@ def main(argv: list[str] | None = None) -> int:
             f"files in {out}",
             flush=True,
         )
+        if args.record_at_run_time:
+            run_time_recording["start"] = ask(
+                "StartRecording", '<Command Name="StartRecording" OutputFilename="slave.igtl"/>'
+            )
+            print("StartRecording:", run_time_recording["start"], flush=True)
         # an operator: a loss stop (e.g. a master stall on this busy VM) is followed by Run
         end = time.monotonic() + args.duration
         seen = 0
@@ -170,9 +204,12 @@ def main(argv: list[str] | None = None) -> int:
                         operator.send_command("Run")
                         reruns += 1
                 seen = len(sts)
+        if args.record_at_run_time:
+            run_time_recording["stop"] = ask("StopRecording")
+            print("StopRecording:", run_time_recording["stop"], flush=True)
         summaries = [c.summary() for c in clients]
     finally:
-        for c in clients + ([operator] if operator is not None else []):
+        for c in clients + extra + ([operator] if operator is not None else []):
             c.stop()
         stop_processes(procs, timeout=20)
     s = json.loads((out / "slave.json").read_text())
@@ -207,6 +244,7 @@ def main(argv: list[str] | None = None) -> int:
         "slave_state_at_end": s.get("state"),
         "udp_in": s["interfaces"]["master"],
         "tip_stream": [x.get("Tip") for x in summaries],
+        "run_time_recording": run_time_recording or None,
         "recording_bytes": (out / "slave.igtl").stat().st_size
         if (out / "slave.igtl").exists()
         else 0,

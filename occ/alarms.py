@@ -134,8 +134,9 @@ class Alarms:
             timestamp=self.clock.wall_time() if timestamp is None else timestamp,
         )
         self._send(status)
-        if self.recorder is not None:
-            self.recorder.record_message(status, "out", "*", self.clock.now())
+        recorder = self.recorder  # read once: this may run off the loop thread (supervisor)
+        if recorder is not None:
+            recorder.record_message(status, "out", "*", self.clock.now())
 
     def supervisor_trip(self, reason: str) -> None:
         """On the supervisor thread, while the loop is stuck: drivers to their safe state at

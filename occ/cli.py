@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run(config: Any, args: argparse.Namespace) -> int:
-    from .record import Recorder
+    from .record import Recorder, writer_priority
     from .robot import build_robot
     from .safety import RobotState
 
@@ -130,6 +130,7 @@ def run(config: Any, args: argparse.Namespace) -> int:
             rec_path,
             rate_hz=config.recording.rate_hz,
             include_messages=config.recording.include_messages,
+            fifo_priority=writer_priority(config),
         )
         if rec_path
         else None

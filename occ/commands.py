@@ -43,6 +43,9 @@ BASE_COMMANDS = (
     "GetStats",
     "GetStateTable",
     "Handover",
+    "StartRecording",
+    "StopRecording",
+    "GetRecordingStatus",
 )
 
 

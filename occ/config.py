@@ -739,6 +739,12 @@ class RecordingConfig(_Model):
         100.0, description="Sampling rate of robot state in Hz; <= `robot.rate_hz`."
     )
     include_messages: Bool = Field(True, description="Also record IGTL messages in and out.")
+    directory: OutputPath = Field(
+        "recordings",
+        validate_default=True,
+        description="Where recordings started at run time go (`StartRecording`'s "
+        "`OutputFilename`, a bare file name), relative to the config file's directory.",
+    )
 
 
 class StatsConfig(_Model):

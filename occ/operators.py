@@ -25,6 +25,7 @@ from .commands import Deferred, Request, error_reply, parse_request, safe_name, 
 from .errors import CommandError, StateError
 from .interfaces import Inbound, is_operator_request
 from .outputs import STATE_STATUS_CODE, pose_to_message
+from .reccontrol import RECORDING_COMMANDS, RecordingControl
 from .safety import RobotState
 
 #: states a robot stays in until an operator clears them: greeted with why
@@ -69,6 +70,8 @@ class OperatorDesk:
         self.refused = 0
         self.reply_errors = 0
         self._refusal_log = RateLimit(5)
+        #: StartRecording, StopRecording, GetRecordingStatus (occ/reccontrol.py)
+        self.recording = RecordingControl(robot)
 
     def greet(self, iface: Any, peer: Any) -> None:
         """A new client of a viewer or operator interface is told the state (runs on the
@@ -219,8 +222,9 @@ class OperatorDesk:
             self.reply_errors += 1
             log.warning("%s: reply to %s could not be sent: %s", item.interface, item.peer, err)
             return
-        if r.recorder is not None:
-            r.recorder.record_message_late(reply, "out", item.interface, r.clock.now())
+        recorder = r.recorder  # read once: StopRecording detaches it on the loop thread
+        if recorder is not None:
+            recorder.record_message_late(reply, "out", item.interface, r.clock.now())
 
     def _reply_stats(self, item: Inbound, req: Request) -> None:
         """On the worker thread: the snapshot (histogram percentiles, controller statistics)
@@ -318,6 +322,8 @@ class OperatorDesk:
             return f"{tr.old.value} -> {tr.new.value}"
         if key == "getstate":
             return self.describe_state()
+        if key in RECORDING_COMMANDS:
+            return self.recording.execute(key, req)
         return r.controller.on_command(req, now) or "OK"
 
     def _answer_query(self, req: Request, wall: float) -> Message:
@@ -396,6 +402,7 @@ class OperatorDesk:
             snap["loss_by_stream"] = {n: m.counters() for n, m in r.streams.monitors.items()}
         if r.state_table is not None:
             snap["state_table"] = r.state_table.stats()
+        snap["recording"] = self.recording.stats()
         snap["controller"] = r.controller.stats()
         snap["drivers"] = {drv.name: drv.stats() for drv in r.hardware.drivers}
         snap["hardware"] = r.hardware.stats()

@@ -10,16 +10,26 @@ File format: a plain concatenation of OpenIGTLink header-version-2 messages.
   ``rate_hz``: ``[t, state code, q..., setpoint..., tip x y z (mm)]``, then ``eff...`` (the
   efforts commanded, N or N m) on a robot whose controller commands efforts (a haptic master:
   the force it displays, next to the tool's position ``tip``); metadata ``columns`` names the
-  columns.
+  columns and ``robot`` the robot.
 
 The loop thread only appends references to a bounded in-memory queue; a writer thread adds the
 recording metadata, packs and writes, handing the interpreter lock back after every record so
 the loop never waits for it. If the writer falls behind by more than ``max_backlog``
-records, new records are dropped and counted (``dropped``), never blocking the loop.
+records, new records are dropped and counted (``dropped``), never blocking the loop. Where the
+loop runs SCHED_FIFO the writer does too, two priorities below it (the interface threads are one
+below): a writer at normal priority could be preempted by another process while it holds the
+interpreter lock, and the loop would wait for the lock that long (measured: the loop's lateness
+p99.9 with a recording 1.36x of without, 1.12x with the FIFO writer; docs/BENCHMARKS.md). Its
+work is bounded (a flush every 50 ms of what was queued) and it yields the lock after every
+record.
 
-``occ-record`` (console script) exports a recording to CSV, replays one into a peer, and plots
-one (``occ-record plot``: trajectories, tracking error, states with causes, loop timing as a
-PNG; occ/recplot.py, matplotlib optional).
+``occ-record`` (console script) exports a recording to CSV, to 3D Slicer's and PLUS's sequence
+metafile (``--format seq``) or to a ROS 2 bag (``--format mcap``; occ/recexport.py), replays one
+into a peer, and plots one (``occ-record plot``: trajectories, tracking error, states with
+causes, loop timing as a PNG; occ/recplot.py, matplotlib optional).
+
+A recorder may also be started and stopped while the daemon runs (PLUS's ``StartRecording`` and
+``StopRecording``: occ/reccontrol.py); it is the same class, attached to the running robot.
 """
 
 from __future__ import annotations
@@ -27,6 +37,7 @@ from __future__ import annotations
 import argparse
 import csv
 import logging
+import os
 import sys
 import threading
 import time
@@ -75,18 +86,26 @@ class Recorder:
         rate_hz: float = 100.0,
         include_messages: bool = True,
         max_backlog: int = 200_000,
+        fifo_priority: int | None = None,
     ) -> None:
         self.path = Path(path)
+        #: SCHED_FIFO priority of the writer thread (below the loop's and the interface
+        #: threads'), where permitted: a writer holding the interpreter lock must not be
+        #: preempted by other processes while the loop waits for the lock
+        self.fifo_priority = fifo_priority
+        self.thread_policy = "SCHED_OTHER"
         self.rate_hz = float(rate_hz)
         self.include_messages = include_messages
         self.max_backlog = max_backlog  # records waiting for the writer
         self._q: deque[tuple[Any, ...]] = deque()
         self._next_state = 0.0
         self._cond = threading.Condition()
+        self._close_lock = threading.Lock()
         self._closed = False
         self._thread: threading.Thread | None = None
         self._file: Any = None
         self._columns: str | None = None
+        self._robot = ""
         # loop thread only
         self.records = 0
         self.dropped = 0
@@ -99,9 +118,11 @@ class Recorder:
         self.bytes_written = 0
         self.errors = 0
 
-    def start(self) -> Recorder:
+    def start(self, *, exclusive: bool = False) -> Recorder:
+        """Open the file and start the writer thread; ``exclusive``: refuse (FileExistsError)
+        a file that exists, instead of replacing it (a recording started at run time)."""
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        self._file = open(self.path, "xb" if exclusive else "wb")  # noqa: SIM115 - close()
         self._thread = threading.Thread(target=self._writer, name="occ-recorder", daemon=True)
         self._thread.start()
         log.info("recording to %s (state at %g Hz)", self.path, self.rate_hz)
@@ -138,6 +159,7 @@ class Recorder:
             return
         self._next_state = now + 1.0 / self.rate_hz
         if self._columns is None:
+            self._robot = data.name
             names = data.joint_names
             self._columns = ",".join(
                 ["t", "state"]
@@ -175,13 +197,19 @@ class Recorder:
             array=np.asarray(row, dtype=np.float64),
             device_name=STATE_DEVICE,
             header_version=2,
-            metadata={"columns": self._columns or ""},
+            metadata={"columns": self._columns or "", "robot": self._robot},
             timestamp=wall,
         )
         return bytes(state.pack())
 
     def _writer(self) -> None:
         name_native_thread("recorder")
+        if self.fifo_priority is not None:
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.fifo_priority))
+                self.thread_policy = f"SCHED_FIFO {self.fifo_priority}"
+            except (OSError, AttributeError) as err:  # EPERM, or no SCHED_FIFO here
+                self.thread_policy = f"SCHED_OTHER (SCHED_FIFO refused: {err})"
         while True:
             with self._cond:
                 self._cond.wait(0.05)
@@ -217,6 +245,12 @@ class Recorder:
                 log.exception("recorder: write failed")
 
     def close(self) -> None:
+        """Stop the writer, write what is queued, close the file. Safe to call twice and from
+        two threads (a recording stopped at run time while the daemon shuts down)."""
+        with self._close_lock:
+            self._close()
+
+    def _close(self) -> None:
         if self._file is None:
             return
         with self._cond:
@@ -234,13 +268,21 @@ class Recorder:
             self.dropped + self.late_dropped,
         )
 
-    def stats(self) -> dict[str, int]:
+    def stats(self) -> dict[str, int | str]:
         return {
             "records": self.records + self.late_records,
             "bytes": self.bytes_written,
             "dropped": self.dropped + self.late_dropped,
             "errors": self.errors,
+            "writer": self.thread_policy,
         }
+
+
+def writer_priority(config: Any) -> int | None:
+    """The recorder's writer thread priority for a daemon's config: SCHED_FIFO two below the
+    loop (the interface threads are one below) when the loop runs SCHED_FIFO, else None."""
+    prio = config.robot.realtime.fifo_priority
+    return max(1, prio - 2) if prio else None
 
 
 # ---------------------------------------------------------------------- reading
@@ -368,9 +410,32 @@ def main(argv: list[str] | None = None) -> int:
         prog="occ-record", description="Export, replay or plot an occd recording."
     )
     sub = p.add_subparsers(dest="cmd", required=True)
-    e = sub.add_parser("export", help="write state.csv and messages.csv")
+    e = sub.add_parser(
+        "export",
+        help="write CSV (state.csv, messages.csv), a sequence metafile for 3D Slicer and PLUS "
+        "(--format seq) or a ROS 2 bag (--format mcap)",
+    )
     e.add_argument("file", type=Path)
-    e.add_argument("out_dir", type=Path)
+    e.add_argument(
+        "out",
+        type=Path,
+        help="CSV: a directory; seq: OUT.seq.mha; mcap: OUT.mcap (one file) or OUT (a rosbag2 "
+        "directory)",
+    )
+    e.add_argument(
+        "--format",
+        choices=["csv", "seq", "mcap"],
+        default=None,
+        help="default: from OUT (.mha/.mhd -> seq, .mcap -> mcap, else csv)",
+    )
+    e.add_argument(
+        "--device",
+        action="append",
+        default=None,
+        help="seq/mcap: only this TRANSFORM/POSITION stream (repeatable; default all)",
+    )
+    e.add_argument("--name", default=None, help="mcap: the robot's ROS name (default its own)")
+    e.add_argument("--force", action="store_true", help="seq/mcap: replace an existing OUT")
     r = sub.add_parser("replay", help="send recorded messages to HOST:PORT with original timing")
     r.add_argument("file", type=Path)
     r.add_argument("target", help="HOST:PORT")
@@ -411,8 +476,26 @@ def main(argv: list[str] | None = None) -> int:
             print(f"wrote {png}")
             return 0
         if args.cmd == "export":
-            s, m = export_csv(args.file, args.out_dir)
-            print(f"wrote {s} and {m}")
+            from .recexport import ExportError, export, guess_format
+
+            fmt = args.format or guess_format(args.out)
+            if fmt == "csv":
+                s, m = export_csv(args.file, args.out)
+                print(f"wrote {s} and {m}")
+                return 0
+            try:
+                summary = export(
+                    args.file,
+                    args.out,
+                    fmt,
+                    devices=set(args.device) if args.device else None,
+                    name=args.name,
+                    force=args.force,
+                )
+            except ExportError as err:
+                print(f"occ-record: {err}", file=sys.stderr)
+                return err.code
+            print(f"wrote {args.out}: {summary}")
             return 0
         host, _, port = args.target.rpartition(":")
         if not host or not port.isdigit():

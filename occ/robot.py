@@ -166,6 +166,19 @@ class Robot:
         )
         self._shutdown_done = False
 
+    def set_recorder(self, recorder: Any | None) -> None:
+        """Attach a recorder (from any thread: the loop sees it from its next read) or detach
+        it (None; on the loop thread only, so the loop never loses it between a check and a
+        call). Run-time recording, occ/reccontrol.py."""
+        if recorder is None:
+            self._record_out = None
+            self.alarms.recorder = None
+            self.recorder = None
+            return
+        self.recorder = recorder
+        self.alarms.recorder = recorder
+        self._record_out = lambda msg, iface, now: recorder.record_message(msg, "out", iface, now)
+
     # ================================================================== lifecycle
     @property
     def state(self) -> RobotState:
@@ -240,6 +253,7 @@ class Robot:
         self.hardware.shutdown()
         self.interfaces.stop()
         self.worker.stop()
+        self.operators.recording.close_all()  # recordings started at run time
 
     def __exit__(self, *exc: object) -> None:
         self.shutdown()

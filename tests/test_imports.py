@@ -105,14 +105,38 @@ def test_the_cycle_finder_finds_cycles() -> None:
     assert _cycle({"a": {"b"}, "b": set()}) is None
 
 
+#: the one place in the core that may import rosbags: ``occ-record export --format mcap``
+#: (occ/recexport.py, the optional ``record`` extra), inside its functions only, and no daemon
+#: module imports that file at module level (test below)
+ROSBAGS_EXPORTER = Path("occ") / "recexport.py"
+
+
+def _function_local(tree: ast.AST) -> set[int]:
+    """ids of the import nodes inside a function body."""
+    inside: set[int] = set()
+    for fn in ast.walk(tree):
+        if isinstance(fn, ast.FunctionDef | ast.AsyncFunctionDef):
+            inside.update(id(n) for n in ast.walk(fn) if isinstance(n, ast.Import | ast.ImportFrom))
+    return inside
+
+
 def test_the_core_never_imports_dds() -> None:
     """DDS is the optional ``ros2`` extra: neither ``igtl`` nor ``occ`` may import it (or the
-    bridge package that does), anywhere, so the daemons run without it installed."""
+    bridge package that does), anywhere, so the daemons run without it installed. rosbags
+    only in the MCAP exporter's functions (:data:`ROSBAGS_EXPORTER`)."""
     banned = ("cyclonedds", "occ_ros2", "rosbags")
     for package in ("igtl", "occ"):
         for path in (ROOT / package).rglob("*.py"):
             tree = ast.parse(path.read_text(encoding="utf-8"))
+            exempt = _function_local(tree) if path.relative_to(ROOT) == ROSBAGS_EXPORTER else set()
             for node in ast.walk(tree):
+                if id(node) in exempt and (
+                    isinstance(node, ast.ImportFrom)
+                    and (node.module or "").startswith("rosbags")
+                    or isinstance(node, ast.Import)
+                    and all(a.name.split(".")[0] == "rosbags" for a in node.names)
+                ):
+                    continue
                 names = (
                     [node.module or ""]
                     if isinstance(node, ast.ImportFrom)
@@ -123,6 +147,19 @@ def test_the_core_never_imports_dds() -> None:
                 for name in names:
                     where = path.relative_to(ROOT)
                     assert name.split(".")[0] not in banned, f"{where} imports {name}"
+
+
+def test_no_daemon_module_imports_the_exporter_at_import_time() -> None:
+    """occ/recexport.py (rosbags, for ``occ-record export``) is imported only inside
+    functions: the daemons never load it."""
+    for path in (ROOT / "occ").rglob("*.py"):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        local = _function_local(tree)
+        for node in ast.walk(tree):
+            if id(node) in local:
+                continue
+            if isinstance(node, ast.ImportFrom) and (node.module or "").endswith("recexport"):
+                raise AssertionError(f"{path.relative_to(ROOT)} imports the exporter at import")
 
 
 def test_the_core_never_imports_the_console() -> None:

@@ -1,0 +1,454 @@
+"""Recordings the ecosystem opens: the sequence metafile 3D Slicer and PLUS read, a ROS 2 bag.
+
+Each export is checked by someone else's reader: the rules of Slicer's
+``vtkMRMLLinearTransformSequenceStorageNode`` (re-implemented below from its reading code, with
+PLUS's transform-name rule), SimpleITK's MetaImage reader, and mcap-ros2-support's decoder. The
+expected poses are taken from the recording itself, message by message, not from the exporter.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from occ.record import STATE_DEVICE, Recorder, main, read_recording
+from occ.testing import SimRobot
+
+ROOT = Path(__file__).resolve().parents[2]
+TOL_MM = 1e-4
+
+
+def require(module: str, why: str) -> Any:
+    """Import a real peer; skip without it, fail under OCC_REQUIRE_INTEROP=1 (CI)."""
+    try:
+        return __import__(module, fromlist=["_"])
+    except ImportError:
+        if os.environ.get("OCC_REQUIRE_INTEROP") == "1":
+            pytest.fail(f"{module} missing: {why}")
+        pytest.skip(f"{module} missing: {why}")
+
+
+def rot(axis: str, deg: float) -> np.ndarray:
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    m = np.eye(4)
+    i, j = {"x": (1, 2), "y": (2, 0), "z": (0, 1)}[axis]
+    m[i, i], m[i, j], m[j, i], m[j, j] = c, -s, s, c
+    return m
+
+
+#: a base turned and moved, so Base^-1 . Tip is not the tip itself
+BASE = rot("z", 30.0) @ rot("x", -20.0)
+BASE[:3, 3] = (0.0125, -0.040, 0.007)  # metres
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("rec") / "slave.igtl"
+    rec = Recorder(path, rate_hz=100).start()
+    sim = SimRobot(ROOT / "configs" / "slave.yaml", recorder=rec)
+    sim.robot.data.base = BASE.copy()
+    master = sim.peer("master", address=("127.0.0.1", 5000))
+    sim.peer("slicer")  # Tip, Base and Joints outputs at 10 Hz
+    sim.robot.state_machine.request("enable")
+    sim.robot.state_machine.request("run")
+    for k in range(1200):
+        if k % 2 == 0:  # the master's POSITION stream at 500 Hz, moving in x and y
+            pos = (20.0 * math.sin(k / 150.0), 50.0 + 10.0 * math.cos(k / 200.0), 270.0)
+            assert master.send_position(pos, seq=k // 2 + 1) == 1
+        sim.tick()
+    sim.close()
+    rec.close()
+    return path
+
+
+def recorded_poses(path: Path) -> dict[tuple[str, str], list[tuple[float, np.ndarray, float]]]:
+    """(direction, device) -> [(rec.t, 4x4 mm, header timestamp)] straight from the messages."""
+    out: dict[tuple[str, str], list[tuple[float, np.ndarray, float]]] = {}
+    for m in read_recording(path):
+        if m.message_type not in ("TRANSFORM", "POSITION"):
+            continue
+        if m.message_type == "TRANSFORM":
+            mat = np.asarray(m.matrix, dtype=float)  # type: ignore[attr-defined]
+        else:
+            x, y, z, w = m.quaternion  # type: ignore[attr-defined]
+            mat = np.eye(4)
+            mat[:3, :3] = [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+            ]
+            mat[:3, 3] = m.position  # type: ignore[attr-defined]
+        key = (m.metadata["rec.dir"], m.device_name)
+        out.setdefault(key, []).append((float(m.metadata["rec.t"]), mat, m.timestamp))
+    return out
+
+
+# ---------------------------------------------------------------------- Slicer's reading rules
+def fgets_lines(data: bytes, size: int = 1000) -> list[str]:
+    """What ``fgets(line, MAX_LINE_LENGTH, stream)`` with MAX_LINE_LENGTH 1000 hands Slicer's
+    reader: at most 999 bytes at a time, up to and including a newline."""
+    out, i = [], 0
+    while i < len(data):
+        end = data.find(b"\n", i, i + size - 1)
+        j = end + 1 if end >= 0 else min(len(data), i + size - 1)
+        out.append(data[i:j].decode("latin-1"))
+        i = j
+    return out
+
+
+def slicer_parse(path: Path) -> tuple[dict[str, str], dict[str, dict[str, np.ndarray]], int]:
+    """The reading rules of vtkMRMLLinearTransformSequenceStorageNode::ReadSequenceFileTransforms
+    for a .seq.mha: header fields (name = value, split at the first '=', trimmed) up to
+    ElementDataFile; a frame field is Seq_Frame<number>_<name>, split at the first '_'; a name
+    holding 'Transform' and not 'Status' is a matrix (1, 4, 9 or 16 numbers between space, ',',
+    ':', ';', tab, newline or brackets, all of them numbers); Timestamp gives the frame's index
+    value, rounded to 3 decimals; a transform's sequence is named by its field name without the
+    trailing 'Transform' (Sequences.Source). Returns (header, source -> index value -> matrix,
+    last frame number)."""
+    header: dict[str, str] = {}
+    transforms: dict[int, list[tuple[str, np.ndarray]]] = {}
+    index: dict[int, str] = {}
+    last = -1
+    for line in fgets_lines(path.read_bytes()):
+        assert line.endswith("\n"), f"a line Slicer would read in two pieces: {line[:60]}"
+        sep = line.find("=")
+        assert sep >= 0, f"no '=' in {line!r}"
+        name, value = line[:sep].strip(" \t\r\n"), line[sep + 1 :].strip(" \t\r\n")
+        if name == "ElementDataFile":
+            header[name] = value
+            break
+        if not name.startswith("Seq_Frame"):
+            header[name] = value
+            continue
+        rest = name[len("Seq_Frame") :]
+        us = rest.find("_")
+        assert us > 0, name
+        number, field = rest[:us], rest[us + 1 :]
+        assert number.isdigit(), name  # strtol must take all of it
+        frame = int(number)
+        last = max(last, frame)
+        if "Transform" in field and "Status" not in field:
+            tokens = [t for t in re.split(r"[ ,:;\t\n\[\]]", value) if t]
+            numbers = [float(t) for t in tokens]  # strtod must take each token whole
+            assert len(numbers) in (1, 4, 9, 16)
+            assert len(numbers) == 16, "a 4x4 matrix, row by row"
+            transforms.setdefault(frame, []).append((field, np.array(numbers).reshape(4, 4)))
+        if field == "Timestamp":
+            index[frame] = f"{float(value):.3f}"
+    sequences: dict[str, dict[str, np.ndarray]] = {}
+    for frame in range(last + 1):
+        for field, matrix in transforms.get(frame, []):
+            source = field[: -len("Transform")] if field.endswith("Transform") else field
+            seq = sequences.setdefault(source, {})
+            # Slicer's SetDataNodeAtValue: a second frame at the same index value would replace
+            # the first one
+            assert index[frame] not in seq, f"two frames at index value {index[frame]}"
+            seq[index[frame]] = matrix
+    return header, sequences, last
+
+
+def plus_split(name: str) -> tuple[str, str]:
+    """PLUS's igsioTransformName: exactly one 'To' followed by a capital (or any non-lowercase
+    character) splits From and To."""
+    cuts = [m.start() for m in re.finditer("To", name) if m.end() < len(name)]
+    cuts = [i for i in cuts if name[i + 2].upper() == name[i + 2]]
+    assert len(cuts) == 1, f"{name}: {len(cuts)} 'To' separators"
+    i = cuts[0]
+    assert 0 < i < len(name) - 2
+    return name[:i], name[i + 2 :]
+
+
+def expected_frames(
+    poses: dict[tuple[str, str], list[tuple[float, np.ndarray, float]]],
+) -> tuple[list[int], dict[tuple[str, str], dict[int, np.ndarray]]]:
+    """Frames by the millisecond of the recording time; per stream the pose it holds in each
+    frame (its last sample at or before it; None before the first)."""
+    t0 = min(v[0][0] for v in poses.values())
+    per: dict[tuple[str, str], dict[int, np.ndarray]] = {}
+    for key, samples in poses.items():
+        per[key] = {round((t - t0) * 1000.0): m for t, m, _ in samples}
+    return sorted({ms for d in per.values() for ms in d}), per
+
+
+def test_seq_follows_slicers_reading_rules(recording: Path, tmp_path: Path) -> None:
+    out = tmp_path / "slave.seq.mha"
+    assert main(["export", str(recording), str(out)]) == 0  # the format from the name
+    header, sequences, last = slicer_parse(out)
+    poses = recorded_poses(recording)
+    frames, per = expected_frames(poses)
+    # the header Slicer's own writer and PLUS write; no pixels: DimSize 0 0 <frames>
+    first = out.read_text().splitlines()[0]
+    assert first == "ObjectType = Image"
+    assert header["NDims"] == "3"
+    assert header["DimSize"] == f"0 0 {len(frames)}"
+    assert header["ElementType"] == "MET_UCHAR"
+    assert header["Kinds"] == "domain domain list"
+    assert header["ElementDataFile"] == "LOCAL"
+    assert out.read_text().rstrip("\n").splitlines()[-1] == "ElementDataFile = LOCAL"
+    assert last + 1 == len(frames)
+    # one sequence per stream, named <From>To<To> as PLUS splits it
+    # (and any other pose stream the slave sends, e.g. its tip back to the master: SlaveTip)
+    assert set(sequences) == {
+        f"{dev}To{'World' if d == 'out' else 'Reference'}" for d, dev in poses
+    }
+    assert {"TipToWorld", "BaseToWorld", "MasterToReference"} <= set(sequences)
+    assert {("Tip", "World"), ("Base", "World"), ("Master", "Reference")} <= {
+        plus_split(n) for n in sequences
+    }
+    assert len(poses[("out", "Tip")]) >= 10 and len(poses[("in", "Master")]) == 600
+    names = {("out", "Tip"): "TipToWorld", ("out", "Base"): "BaseToWorld"}
+    names[("in", "Master")] = "MasterToReference"
+    t0 = frames[0]
+    for key, source in names.items():
+        seq = sequences[source]
+        assert len(seq) == len(frames)  # every frame has every transform
+        held = np.eye(4)
+        for ms in frames:
+            held = per[key].get(ms, held)
+            got = seq[f"{(ms - t0) / 1000.0:.3f}"]
+            assert np.abs(got - held).max() < TOL_MM, (source, ms)
+
+
+def test_seq_status_and_timestamps(recording: Path, tmp_path: Path) -> None:
+    out = tmp_path / "r.seq.mha"
+    assert main(["export", str(recording), str(out), "--format", "seq"]) == 0
+    fields = dict(
+        line.split(" = ", 1) for line in out.read_text().splitlines() if line.startswith("Seq_")
+    )
+    poses = recorded_poses(recording)
+    frames, per = expected_frames(poses)
+    for n, ms in enumerate(frames):
+        assert fields[f"Seq_Frame{n:04d}_Timestamp"] == f"{(ms - frames[0]) / 1000.0:.3f}"
+        for key, source in (
+            (("out", "Tip"), "TipToWorld"),
+            (("in", "Master"), "MasterToReference"),
+        ):
+            status = fields[f"Seq_Frame{n:04d}_{source}TransformStatus"]
+            assert status == ("OK" if ms in per[key] else "INVALID")
+    # OK exactly once per recorded sample
+    oks = sum(
+        1 for k, v in fields.items() if k.endswith("_TipToWorldTransformStatus") and v == "OK"
+    )
+    assert oks == len(poses[("out", "Tip")])
+
+
+def test_seq_opens_with_simpleitk(recording: Path, tmp_path: Path) -> None:
+    sitk = require("SimpleITK", "pip install -e .[test] (SimpleITK reads MetaImage files)")
+    out = tmp_path / "slave.seq.mha"
+    assert main(["export", str(recording), str(out)]) == 0
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(out))
+    reader.ReadImageInformation()
+    poses = recorded_poses(recording)
+    frames, per = expected_frames(poses)
+    assert reader.GetSize() == (0, 0, len(frames))
+    assert reader.GetDimension() == 3
+    keys = set(reader.GetMetaDataKeys())
+    assert reader.GetMetaData("Kinds") == "domain domain list"
+    names = {("out", "Tip"): "TipToWorld", ("out", "Base"): "BaseToWorld"}
+    names[("in", "Master")] = "MasterToReference"
+    for key, source in names.items():
+        held = np.eye(4)
+        for n, ms in enumerate(frames):
+            field = f"Seq_Frame{n:04d}_{source}Transform"
+            assert field in keys and f"{field}Status" in keys
+            got = np.array([float(v) for v in reader.GetMetaData(field).split()]).reshape(4, 4)
+            held = per[key].get(ms, held)
+            assert np.abs(got - held).max() < TOL_MM, (source, n)
+            status = reader.GetMetaData(f"{field}Status")
+            assert status == ("OK" if ms in per[key] else "INVALID")
+            stamp = float(reader.GetMetaData(f"Seq_Frame{n:04d}_Timestamp"))
+            assert stamp == pytest.approx((ms - frames[0]) / 1000.0, abs=1e-9)
+    # the whole image reads too (no pixels)
+    assert reader.Execute().GetSize() == (0, 0, len(frames))
+
+
+def test_seq_device_filter_and_errors(recording: Path, tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    out = tmp_path / "tip.seq.mha"
+    assert main(["export", str(recording), str(out), "--device", "Tip"]) == 0
+    _, sequences, _ = slicer_parse(out)
+    assert set(sequences) == {"TipToWorld"}
+    # an existing output is kept unless --force
+    assert main(["export", str(recording), str(out)]) == 1
+    assert "exists" in capsys.readouterr().err
+    assert main(["export", str(recording), str(out), "--device", "Base", "--force"]) == 0
+    assert set(slicer_parse(out)[1]) == {"BaseToWorld"}
+    # nothing to export: a clear error, exit 1
+    assert main(["export", str(recording), str(tmp_path / "x.seq.mha"), "--device", "Nope"]) == 1
+    assert "no TRANSFORM or POSITION stream" in capsys.readouterr().err
+
+
+def test_transform_names_fit_plus_and_slicer() -> None:
+    from occ.recexport import transform_names
+
+    devices = ["Tip", "ToolTip", "StylusToTracker", "Transform1", "Status", "3d", "a_b", "AToBToC"]
+    names = transform_names([("out", d) for d in devices] + [("in", "Tip"), ("in", "Master")])
+    assert names[("out", "Tip")] == "TipToWorld"
+    assert names[("in", "Tip")] == "TipToReference"
+    assert names[("out", "StylusToTracker")] == "StylusToTracker"  # a PLUS name stays
+    assert len(set(names.values())) == len(names)
+    for name in names.values():
+        # Slicer: a 'Transform' field that is not a 'Status' one; PLUS: one From/To split
+        assert "Status" not in name and "Transform" not in name
+        frm, to = plus_split(name)
+        assert frm[0].isupper() and to in ("World", "Reference", "Tracker")
+
+
+# ---------------------------------------------------------------------- ROS 2 bag
+def quat_matrix(q: Any) -> np.ndarray:
+    x, y, z, w = q.x, q.y, q.z, q.w
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def pose_mm(position: Any, orientation: Any) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, :3] = quat_matrix(orientation)
+    m[:3, 3] = np.array([position.x, position.y, position.z]) * 1000.0
+    return m
+
+
+def decode_mcap(path: Path) -> dict[str, list[tuple[Any, int]]]:
+    """Every message of an MCAP file as mcap-ros2-support decodes it (from the schemas the
+    file carries): topic -> [(message, log time ns)]."""
+    decoder = require("mcap_ros2.decoder", "pip install -e .[test] (mcap-ros2-support)")
+    from mcap.reader import make_reader
+
+    out: dict[str, list[tuple[Any, int]]] = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[decoder.DecoderFactory()])
+        for _schema, channel, message, ros_msg in reader.iter_decoded_messages():
+            out.setdefault(channel.topic, []).append((ros_msg, message.log_time))
+    return out
+
+
+def test_mcap_decodes_to_the_recorded_poses(recording: Path, tmp_path: Path) -> None:
+    require("rosbags", "pip install -e .[record]")
+    out = tmp_path / "slave.mcap"
+    assert main(["export", str(recording), str(out)]) == 0
+    assert out.is_file()
+    topics = decode_mcap(out)
+    poses = recorded_poses(recording)
+    tips, bases = poses[("out", "Tip")], poses[("out", "Base")]
+    assert len(tips) == len(bases)
+    # measured_cp: Base^-1 . Tip in metres, frame <robot>_base, stamped as the Tip was
+    cps = topics["/occ/slave/measured_cp"]
+    assert len(cps) == len(tips)
+    for (msg, _), (_, tip, stamp), (_, base, _) in zip(cps, tips, bases, strict=True):
+        assert msg.header.frame_id == "slave_base"
+        assert msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9 == pytest.approx(
+            stamp, abs=2e-9
+        )
+        local = np.linalg.solve(base, tip)
+        got = pose_mm(msg.pose.position, msg.pose.orientation)
+        assert np.abs(got[:3, 3] - local[:3, 3]).max() < TOL_MM
+        assert np.abs(got[:3, :3] - local[:3, :3]).max() < 1e-6
+    # base/measured_cp in world
+    for (msg, _), (_, base, _) in zip(topics["/occ/slave/base/measured_cp"], bases, strict=True):
+        assert msg.header.frame_id == "world"
+        assert np.abs(pose_mm(msg.pose.position, msg.pose.orientation) - base).max() < TOL_MM
+    # /tf: world -> slave_base -> slave_tip composes to the Tip the daemon sent
+    tfs = topics["/tf"]
+    assert len(tfs) == len(tips)
+    for (msg, _), (_, tip, _) in zip(tfs, tips, strict=True):
+        a, b = msg.transforms
+        assert (a.header.frame_id, a.child_frame_id) == ("world", "slave_base")
+        assert (b.header.frame_id, b.child_frame_id) == ("slave_base", "slave_tip")
+        chain = pose_mm(a.transform.translation, a.transform.rotation) @ pose_mm(
+            b.transform.translation, b.transform.rotation
+        )
+        assert np.abs(chain[:3, 3] - tip[:3, 3]).max() < TOL_MM
+        assert np.abs(chain[:3, :3] - tip[:3, :3]).max() < 1e-6
+    # the master's stream the slave received
+    masters = topics["/occ/slave/master/measured_cp"]
+    assert len(masters) == len(poses[("in", "Master")]) == 600
+    for (msg, _), (_, m, _) in zip(masters, poses[("in", "Master")], strict=True):
+        assert (
+            np.abs(pose_mm(msg.pose.position, msg.pose.orientation)[:3, 3] - m[:3, 3]).max()
+            < TOL_MM
+        )
+
+
+def test_mcap_joints_and_state(recording: Path, tmp_path: Path) -> None:
+    require("rosbags", "pip install -e .[record]")
+    out = tmp_path / "bag"  # no .mcap suffix: a rosbag2 directory
+    assert main(["export", str(recording), str(out), "--format", "mcap"]) == 0
+    assert (out / "metadata.yaml").is_file() and (out / "bag.mcap").is_file()
+    topics = decode_mcap(out / "bag.mcap")
+    rows = [m for m in read_recording(recording) if m.device_name == STATE_DEVICE]
+    cols = rows[0].metadata["columns"].split(",")
+    q_cols = [c for c in cols if c.startswith("q.")]
+    js = topics["/occ/slave/measured_js"]
+    sp = topics["/occ/slave/setpoint_js"]
+    assert len(js) == len(sp) == len(rows) > 110  # 100 Hz over 1.2 s
+    for (msg, _), (spm, _), row in zip(js, sp, rows, strict=True):
+        values = np.asarray(row.array).ravel()  # type: ignore[attr-defined]
+        assert list(msg.name) == [c[2:] for c in q_cols] == ["yaw", "pitch", "insertion"]
+        assert list(msg.position) == pytest.approx(
+            [values[cols.index(c)] for c in q_cols], abs=1e-12
+        )
+        assert list(spm.position) == pytest.approx(
+            [values[cols.index("sp." + c[2:])] for c in q_cols], abs=1e-12
+        )
+    states = [m.data for m, _ in topics["/occ/slave/state"]]
+    assert states == ["RUNNING"]
+    # log times in order (a player replays them in this order)
+    for msgs in topics.values():
+        times = [t for _, t in msgs]
+        assert times == sorted(times)
+
+
+def test_mcap_without_rosbags_says_so(recording: Path, tmp_path: Path, monkeypatch, capsys) -> None:  # type: ignore[no-untyped-def]
+    monkeypatch.setitem(sys.modules, "rosbags", None)  # import rosbags -> ImportError
+    assert main(["export", str(recording), str(tmp_path / "x.mcap")]) == 2
+    err = capsys.readouterr().err
+    assert "rosbags" in err and "occ-igtl[record]" in err
+    assert not (tmp_path / "x.mcap").exists()
+
+
+@pytest.mark.slow
+def test_occ_record_command_line(recording: Path, tmp_path: Path) -> None:
+    out = tmp_path / "cli.seq.mha"
+    res = subprocess.run(
+        [sys.executable, "-m", "occ.record", "export", str(recording), str(out)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
+    assert res.returncode == 0, res.stderr
+    assert "TipToWorld" in res.stdout and out.is_file()
+
+
+def test_outputs_count_once_received_samples_all(tmp_path: Path) -> None:
+    """An output sent on two interfaces in one tick is one sample; two datagrams drained in
+    one tick are two (they share the tick's time)."""
+    import igtl
+    from occ.recexport import read_content
+
+    path = tmp_path / "r.igtl"
+    rec = Recorder(path).start()
+    tip = igtl.TransformMessage.from_matrix(np.eye(4), device_name="Tip", header_version=2)
+    for now in (0.001, 0.002):
+        rec.record_message(tip, "out", "slicer", now)
+        rec.record_message(tip, "out", "viewer2", now)
+        for seq in (1, 2):
+            pos = igtl.PositionMessage((seq, 0.0, 0.0), device_name="Master", message_id=seq)
+            rec.record_message(pos, "in", "master", now)
+    rec.close()
+    c = read_content(path)
+    assert len(c.streams[("out", "Tip")].t) == 2
+    assert [p[0, 3] for p in c.streams[("in", "Master")].pose] == [1.0, 2.0, 1.0, 2.0]
