@@ -32,7 +32,7 @@ from .safety import RobotState
 LATCHED_STATES = (RobotState.FAULT, RobotState.ESTOP, RobotState.STOPPED)
 
 if TYPE_CHECKING:
-    from .robot import Robot
+    from .ports import RobotPort
 
 log = logging.getLogger("occ.robot")
 
@@ -64,7 +64,7 @@ def redact_for_viewer(value: Any) -> Any:
 class OperatorDesk:
     """Answers the operators of one robot (see the module docstring)."""
 
-    def __init__(self, robot: Robot) -> None:
+    def __init__(self, robot: RobotPort) -> None:
         self.robot = robot
         self.handled = 0
         self.refused = 0
@@ -230,7 +230,7 @@ class OperatorDesk:
         """On the worker thread: the snapshot (histogram percentiles, controller statistics)
         costs milliseconds; the loop only handed the request over."""
         r = self.robot
-        snap = r.snapshot()
+        snap = self.report()
         if req.args.get("Histogram", "").lower() == "lateness":
             # the raw buckets: a client subtracts two of them into a window's percentiles
             snap["lateness_buckets"] = r.stats.lateness.buckets()

@@ -44,7 +44,7 @@ from .errors import CommandError
 from .record import Recorder, writer_priority
 
 if TYPE_CHECKING:
-    from .robot import Robot
+    from .ports import RobotPort
 
 log = logging.getLogger("occ.robot")
 
@@ -69,7 +69,7 @@ def _arg(req: Request, name: str) -> str:
 class RecordingControl:
     """StartRecording, StopRecording and GetRecordingStatus of one robot (module docstring)."""
 
-    def __init__(self, robot: Robot) -> None:
+    def __init__(self, robot: RobotPort) -> None:
         self.robot = robot
         #: the file a start is opening on the worker (None when none is)
         self._pending: Path | None = None

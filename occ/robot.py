@@ -159,25 +159,17 @@ class Robot:
         self.outputs = OutputScheduler.for_interfaces(
             self.interfaces.interfaces.values(), self.rate_hz, sources
         )
-        self._record_out = (
-            (lambda msg, iface, now: recorder.record_message(msg, "out", iface, now))
-            if recorder is not None
-            else None
-        )
+        self.set_recorder(recorder)
         self._shutdown_done = False
 
     def set_recorder(self, recorder: Any | None) -> None:
         """Attach a recorder (from any thread: the loop sees it from its next read) or detach
         it (None; on the loop thread only, so the loop never loses it between a check and a
         call). Run-time recording, occ/reccontrol.py."""
-        if recorder is None:
-            self._record_out = None
-            self.alarms.recorder = None
-            self.recorder = None
-            return
-        self.recorder = recorder
-        self.alarms.recorder = recorder
-        self._record_out = lambda msg, iface, now: recorder.record_message(msg, "out", iface, now)
+        self._record_out: Any = None
+        self.recorder = self.alarms.recorder = recorder
+        if recorder is not None:
+            self._record_out = lambda msg, iface, at: recorder.record_message(msg, "out", iface, at)
 
     # ================================================================== lifecycle
     @property
@@ -185,12 +177,10 @@ class Robot:
         return self.state_machine.state
 
     def configure(self) -> None:
-        """Configure drivers (servos off), read the initial state: INIT -> READY, or INIT
-        -> FAULT with an alert naming each drive that failed (``Reset`` configures again).
-
-        On the real clock it waits up to ``MEASURE_WAIT_S`` for every joint's first
-        measurement (drives report once asked); a joint still unmeasured then keeps the robot
-        from being enabled (:meth:`_may_power`), never held at a position nobody reported."""
+        """Configure drivers (servos off): INIT -> READY, or FAULT with an alert naming each
+        drive that failed (``Reset`` configures again). On the real clock it waits up to
+        ``MEASURE_WAIT_S`` for every joint's first measurement; a joint still unmeasured keeps
+        the robot from being enabled (:meth:`_may_power`)."""
         failures = self.hardware.configure()
         if failures:
             self.alarms.fault(f"configure failed: {describe(failures)}")
@@ -340,21 +330,16 @@ class Robot:
 
     # ================================================================== state changes
     def _effect(self, old: RobotState, new: RobotState, event: str) -> str:
-        """The hardware side of a transition, before it is committed (the state machine's
-        effector): power every drive on entering ENABLED/RUNNING/STOPPED, all or nothing
-        (a failure vetoes it and latches FAULT); off on leaving them (never refused: a drive
-        that fails to stop is latched FAULT and named in an alert); out of FAULT/ESTOP every
-        drive reset and configured, or the reset is vetoed. Returns why it failed ('' done)."""
-        hw = self.hardware
+        """The state machine's effector: every drive powered on entering POWERED, all or
+        nothing (a failure vetoes); off on leaving it (never refused, a drive that fails to stop
+        is named in an alert); reset and configured out of FAULT/ESTOP, or vetoed."""
         failures: list[HardwareFailure] = []
         if new in POWERED and old not in POWERED:
-            failures = hw.activate()
-        elif new not in POWERED and old in POWERED:
-            stopped = hw.deactivate()
-            if stopped:
-                self.alarms.hardware_alert(stopped)
+            failures = self.hardware.activate()
+        elif new not in POWERED and old in POWERED and (stopped := self.hardware.deactivate()):
+            self.alarms.hardware_alert(stopped)
         if new is RobotState.READY and old in (RobotState.FAULT, RobotState.ESTOP):
-            failures = hw.reset()
+            failures = self.hardware.reset()
         return describe(failures)
 
     def _on_transition(

@@ -12,6 +12,8 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -189,3 +191,47 @@ def test_the_console_has_no_import_cycle() -> None:
 def test_the_ros2_bridge_has_no_import_cycle() -> None:
     cycle = _cycle(_graph("occ_ros2"))
     assert cycle is None, "import cycle: " + " -> ".join(cycle or [])
+
+
+def _all_imports(path: Path, name: str, package: str) -> set[str]:
+    """Every module ``path`` imports anywhere: module level, ``TYPE_CHECKING``, functions."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    pkg = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found: set[str] = set()
+    for sub in ast.walk(tree):
+        if isinstance(sub, ast.Import):
+            found.update(a.name for a in sub.names)
+        elif isinstance(sub, ast.ImportFrom):
+            if sub.level:
+                base = pkg.split(".")
+                base = base[: len(base) - (sub.level - 1)]
+                mod = ".".join(base + ([sub.module] if sub.module else []))
+            else:
+                mod = sub.module or ""
+            if sub.module:
+                found.add(mod)
+            found.update(f"{mod}.{a.name}" for a in sub.names)
+    return found
+
+
+def _design_graph(folder: str) -> dict[str, set[str]]:
+    """Who knows whom, at any time: every import counts (type-only and late ones too). The
+    tools are top-level modules (tools/ on sys.path): named by their file."""
+    root = ROOT / folder
+    if folder == "tools":
+        modules = {p.stem: p for p in root.glob("*.py")}
+    else:
+        modules = {_module_name(p): p for p in root.rglob("*.py")}
+    return {
+        name: {m for m in _all_imports(path, name, folder) if m in modules and m != name}
+        for name, path in modules.items()
+    }
+
+
+@pytest.mark.parametrize("folder", ["occ"])
+def test_no_module_knows_one_that_knows_it(folder: str) -> None:
+    """Issue 26: collaborators get narrow ports; nothing imports a module that imports it back,
+    not even for type hints or inside a function (robot <-> operators <-> alarms,
+    record <-> recplot and soak <-> stability once did)."""
+    cycle = _cycle(_design_graph(folder))
+    assert cycle is None, "circle: " + " -> ".join(cycle or [])

@@ -19,7 +19,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from occ.record import STATE_DEVICE, Recorder, main, read_recording
+from occ.record import STATE_DEVICE, Recorder, read_recording
+from occ.recordcli import main
 from occ.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]

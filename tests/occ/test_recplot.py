@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from occ.record import Recorder
-from occ.record import main as record_main
+from occ.recordcli import main as record_main
 from occ.recplot import PlotError, plot_recording, summarize_recording
 from occ.testing import SimRobot
 
