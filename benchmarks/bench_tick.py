@@ -32,9 +32,9 @@ from pathlib import Path
 import igtl
 from igtl.transport import Peer
 from occ.clock import SimClock
-from occ.interfaces import Inbound
 from occ.loader import load_config
 from occ.robot import build_robot
+from occ.samples import pose_sample
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -93,7 +93,7 @@ def run(name: str, ticks: int, sleep_s: float, cpu: bool = False, jitter_s: floa
             clock.set(now)
             if k % 2 == 0:
                 for iface, stream in streams:
-                    stream.put(Inbound(iface, peer, samples[k // 2], now))
+                    stream.put(pose_sample(iface, peer, samples[k // 2], now))  # type: ignore[arg-type]
             t0 = timer()
             robot.tick(now, k)
             total += timer() - t0

@@ -52,6 +52,7 @@ from igtl.transport.common import AccessList, RateLimit
 
 from .commands import error_reply, parse_request
 from .errors import CommandError
+from .samples import PoseSample, pose_sample
 
 log = logging.getLogger(__name__)
 
@@ -84,8 +85,13 @@ class Inbound:
     role: str = "operator"
 
 
+#: what a stream queue holds: a pose, typed (occ/samples.py), or a discrete input as it came
+StreamItem = PoseSample | Inbound
+
+
 class StreamQueue:
-    """Bounded queue of pose samples, drained fully each tick; oldest dropped when full.
+    """Bounded queue of stream inputs (typed pose samples, or the discrete inputs that share
+    a stream: fixture definitions, keyframes), drained fully each tick; oldest dropped when full.
 
     A sample pushed out by a full queue was received in time by the daemon, which itself could
     not take it (its loop stalled): it is counted as a *local overflow* (``dropped``), never
@@ -101,15 +107,15 @@ class StreamQueue:
     __slots__ = ("pending", "evicted", "_lock", "depth", "received", "dropped", "overflow_lost")
 
     def __init__(self, depth: int = 10, overflow_depth: int = 4096) -> None:
-        self.pending: deque[Inbound] = deque()
-        self.evicted: deque[Inbound] = deque(maxlen=overflow_depth)
+        self.pending: deque[StreamItem] = deque()
+        self.evicted: deque[StreamItem] = deque(maxlen=overflow_depth)
         self._lock = threading.Lock()
         self.depth = depth
         self.received = 0
         self.dropped = 0
         self.overflow_lost = 0
 
-    def put(self, item: Inbound) -> bool:
+    def put(self, item: StreamItem) -> bool:
         with self._lock:
             dq = self.pending
             if len(dq) >= self.depth:
@@ -122,14 +128,14 @@ class StreamQueue:
             self.received += 1
         return True
 
-    def drain(self) -> list[Inbound]:
+    def drain(self) -> list[StreamItem]:
         """Every queued sample, oldest first (the queue is left empty)."""
         with self._lock:
             out = list(self.pending)
             self.pending.clear()
         return out
 
-    def drain_overflow(self) -> list[Inbound]:
+    def drain_overflow(self) -> list[StreamItem]:
         """The samples pushed out since the last call (for accounting only), oldest first."""
         with self._lock:
             out = list(self.evicted)
@@ -358,7 +364,7 @@ class Interface:
                     )
                 return
         mtype = msg.message_type
-        item = Inbound(self.name, peer, msg, self._now())
+        t_rx = self._now()
         stream = self.streams.get(mtype)
         if stream is not None:
             want = self.input_devices.get(mtype)
@@ -381,8 +387,12 @@ class Interface:
                             *owner,
                         )
                     return
-                stream.put(item)
+                # a pose becomes a typed sample here, once; other stream inputs (fixture
+                # definitions, keyframes) go as they came
+                sample = pose_sample(self.name, peer, msg, t_rx)
+                stream.put(sample if sample is not None else Inbound(self.name, peer, msg, t_rx))
                 return
+        item = Inbound(self.name, peer, msg, t_rx)
         if is_operator_request(msg) or mtype in self.command_inputs:
             if mtype not in self.command_inputs:
                 role = self.peer_role(peer)

@@ -27,6 +27,7 @@ from .interfaces import Inbound, is_operator_request
 from .outputs import STATE_STATUS_CODE, pose_to_message
 from .reccontrol import RECORDING_COMMANDS, RecordingControl
 from .safety import RobotState
+from .samples import pose_sample
 
 #: states a robot stays in until an operator clears them: greeted with why
 LATCHED_STATES = (RobotState.FAULT, RobotState.ESTOP, RobotState.STOPPED)
@@ -131,13 +132,18 @@ class OperatorDesk:
             r.recorder.record_message(msg, "in", item.interface, now)
         req: Request | None = item.request
         if req is None and not is_operator_request(msg):
-            # a discrete input routed to the command queue (e.g. VFIXTURE)
+            # a discrete input routed to the command queue (e.g. VFIXTURE); a pose (a Base
+            # TRANSFORM, a fixture's) as a typed sample, as on a stream
             try:
-                r.controller.on_sample(item, now)
+                sample = pose_sample(item.interface, item.peer, msg, item.t_rx)
+                if sample is not None:
+                    r.controller.on_sample(sample, now)
+                else:
+                    r.controller.on_input(item, now)
             except CommandError as err:
                 self.refuse_input(item, err)
             except Exception as err:  # noqa: BLE001
-                r.alarms.plugin_error(f"controller {r.controller.name}: on_sample", err)
+                r.alarms.plugin_error(f"controller {r.controller.name}: on_input", err)
             return
         wall = r.clock.wall_time()
         try:

@@ -8,7 +8,6 @@ loses its own oldest messages inside the transport, OCC's per-subscriber ``Fq``)
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -21,6 +20,7 @@ from igtl.messages.base import Message
 from .errors import OCCError
 from .interfaces import Interface  # mypyc: Output's field types are looked up at import
 from .safety import RobotState
+from .samples import rotation_to_quaternion
 
 if TYPE_CHECKING:
     from .data import RobotData
@@ -76,40 +76,6 @@ def pose_to_message(
             header_version=header_version,
         )
     raise OCCError(f"output type {mtype} cannot carry a pose")
-
-
-def rotation_to_quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
-    """(x, y, z, w) of a rotation matrix, w >= 0 (Shepperd's method, numerically stable)."""
-    m = r.tolist()
-    t = m[0][0] + m[1][1] + m[2][2]
-    if t > 0.0:
-        s = math.sqrt(t + 1.0) * 2.0
-        q = ((m[2][1] - m[1][2]) / s, (m[0][2] - m[2][0]) / s, (m[1][0] - m[0][1]) / s, 0.25 * s)
-    elif m[0][0] > m[1][1] and m[0][0] > m[2][2]:
-        s = math.sqrt(1.0 + m[0][0] - m[1][1] - m[2][2]) * 2.0
-        q = (0.25 * s, (m[0][1] + m[1][0]) / s, (m[0][2] + m[2][0]) / s, (m[2][1] - m[1][2]) / s)
-    elif m[1][1] > m[2][2]:
-        s = math.sqrt(1.0 + m[1][1] - m[0][0] - m[2][2]) * 2.0
-        q = ((m[0][1] + m[1][0]) / s, 0.25 * s, (m[1][2] + m[2][1]) / s, (m[0][2] - m[2][0]) / s)
-    else:
-        s = math.sqrt(1.0 + m[2][2] - m[0][0] - m[1][1]) * 2.0
-        q = ((m[0][2] + m[2][0]) / s, (m[1][2] + m[2][1]) / s, 0.25 * s, (m[1][0] - m[0][1]) / s)
-    if q[3] < 0.0:
-        q = (-q[0], -q[1], -q[2], -q[3])
-    return q
-
-
-def quaternion_to_rotation(q: Sequence[float]) -> np.ndarray:
-    x, y, z, w = q
-    n = math.sqrt(x * x + y * y + z * z + w * w) or 1.0
-    x, y, z, w = x / n, y / n, z / n, w / n
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 class BuiltinSources:

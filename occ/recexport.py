@@ -50,8 +50,8 @@ from typing import Any
 
 import numpy as np
 
-from .outputs import quaternion_to_rotation
 from .record import STATE_DEVICE, STATE_NAMES, iter_recording
+from .samples import quaternion_to_rotation
 
 #: the frame of the daemon's own pose outputs (3D Slicer's RAS, the ROS frame ``world``)
 WORLD = "World"

@@ -47,10 +47,9 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from igtl.messages.base import Message
-
 from .fixture_defs import DefinitionError, Vec3, parse_linear
 from .safety import LossEvent, LossMonitor, Verdict
+from .samples import PoseSample
 
 __all__ = ["ReturnLink"]
 
@@ -91,31 +90,27 @@ class ReturnLink:
         self.last_error = ""
 
     # ------------------------------------------------------------------ samples
-    def on_sample(self, msg: Message, now: float, rx_wall: float) -> bool:
+    def on_sample(self, sample: PoseSample, now: float, rx_wall: float) -> bool:
         """Judge one ``SlaveTip`` sample; True when it was accepted (its tip is the tool)."""
         mon = self.monitor
         if mon.tripped:
             # lost before: the stream is back. Re-armed from this sample on (the sequence
             # numbers start over: the gap was the loss already told)
             mon.reset(now)
-        seq = msg.message_id if msg.header_version == 2 else None
-        ts = msg.timestamp if msg.timestamp > 0.0 else None
+        seq = sample.seq
+        ts = sample.t_sample if sample.t_sample > 0.0 else None
         verdict = mon.on_packet(seq, ts, now, rx_wall)
         if verdict is not Verdict.ACCEPT:
             self.refused += 1
             return False
-        m: Any = msg
-        if msg.message_type == "POSITION":
-            p = m.position
-            self.quaternion = tuple(float(v) for v in m.quaternion)  # type: ignore[assignment]
-        else:  # TRANSFORM
-            p = m.translation
-        tip = (float(p[0]), float(p[1]), float(p[2]))
+        if sample.kind == "POSITION":
+            self.quaternion = sample.quaternion
+        tip = sample.position_mm
         if not all(math.isfinite(v) for v in tip):
             self.bad_metadata += 1
             self.last_error = f"seq {seq}: tip {tip} is not a point"
             return False
-        meta = msg.metadata
+        meta = sample.meta
         text = meta.get("map", "")
         if text and text != self._map_text:
             try:

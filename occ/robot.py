@@ -283,8 +283,9 @@ class Robot:
             self.alarms.fault(f"supervisor: {sup.reason}")
         self._read(now)
         try:
+            c = self.controller
             self.streams.drain(
-                now, self.controller.on_sample, self.operators.refuse_input, self.recorder
+                now, c.on_sample, c.on_input, self.operators.refuse_input, self.recorder
             )
         except Exception as err:  # noqa: BLE001
             self.alarms.plugin_error(f"controller {self.controller.name}: on_sample", err)

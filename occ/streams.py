@@ -21,6 +21,7 @@ from .config import LossConfig
 from .errors import CommandError
 from .interfaces import Inbound, InterfaceManager
 from .safety import LossEvent, LossMonitor, Verdict
+from .samples import PoseSample
 
 #: Datagrams a tick reads from each UDP stream socket (a 500 Hz stream brings one every other
 #: tick); beyond that a flood waits in the socket buffer, which overflows: the tick's cost stays
@@ -29,18 +30,16 @@ POLL_LIMIT = 4
 
 
 def judge(
-    monitor: LossMonitor, item: Inbound, now: float, to_wall: float, since: float = -math.inf
+    monitor: LossMonitor, sample: PoseSample, now: float, to_wall: float, since: float = -math.inf
 ) -> Verdict:
-    """The loss monitor's verdict on one stream sample (sequence number from a v2 header).
+    """The loss monitor's verdict on one stream sample.
 
     ``since`` is the previous tick's start: a sample taken in this tick arrived after it, or
     was stamped when read (a polled socket), so its earliest arrival for the timestamp
     check is ``min(t_rx, since)``: a stall of our own loop never makes samples stale."""
-    msg = item.msg
-    seq = msg.message_id if msg.header_version == 2 else None
-    rx = item.t_rx
+    rx = sample.t_rx
     return monitor.on_packet(
-        seq, msg.timestamp, now, rx + to_wall, (rx if rx < since else since) + to_wall
+        sample.seq, sample.t_sample, now, rx + to_wall, (rx if rx < since else since) + to_wall
     )
 
 
@@ -94,13 +93,16 @@ class StreamInputs:
     def drain(
         self,
         now: float,
-        on_sample: Callable[[Inbound, float], Any],
+        on_sample: Callable[[PoseSample, float], Any],
+        on_input: Callable[[Inbound, float], Any],
         refuse: Callable[[Inbound, CommandError], None],
         recorder: Any | None,
     ) -> None:
-        """Every stream sample, in order, judged by its loss monitor; accepted samples of the
-        stream in control (and of streams no master sends) to ``on_sample``. Polled UDP
-        sockets are read first, at most ``POLL_LIMIT`` datagrams each."""
+        """Every stream item, in order: each pose sample judged by its loss monitor, the
+        accepted ones of the stream in control (and of streams no master sends) to
+        ``on_sample``; the discrete inputs that share a stream (fixture definitions,
+        keyframes) to ``on_input``. Polled UDP sockets are read first, at most ``POLL_LIMIT``
+        datagrams each."""
         for poll in self._pollers:
             poll(POLL_LIMIT)
         since = self._prev_tick
@@ -117,19 +119,26 @@ class StreamInputs:
                     to_wall = self._wall_offset(now)
                 if q.evicted:
                     # samples the loop could not take in time: seen, never called lost
-                    for item in q.drain_overflow():
-                        judge(monitor, item, now, to_wall, since)
+                    for old in q.drain_overflow():
+                        if isinstance(old, PoseSample):
+                            judge(monitor, old, now, to_wall, since)
             # a master not in control is judged and counted, and moves nothing
             follow = not master or name == self.input
             for item in q.drain():
                 if recorder is not None:
                     recorder.record_message(item.msg, "in", name, now)
-                if monitor is not None:
-                    if judge(monitor, item, now, to_wall, since) is not Verdict.ACCEPT:
-                        continue
-                if follow:
+                if isinstance(item, PoseSample):
+                    if monitor is not None:
+                        if judge(monitor, item, now, to_wall, since) is not Verdict.ACCEPT:
+                            continue
+                    if follow:
+                        try:
+                            on_sample(item, now)
+                        except CommandError as err:  # a TRANSFORM fixture refused
+                            refuse(Inbound(item.interface, item.peer, item.msg, item.t_rx), err)
+                elif follow:
                     try:
-                        on_sample(item, now)
+                        on_input(item, now)
                     except CommandError as err:
                         # a discrete input on a stream queue (a VFIXTURE) that the controller
                         # refused: an answer to its sender, not a FAULT

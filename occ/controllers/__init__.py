@@ -25,12 +25,16 @@ Interfaces (ros2_control's model)
     controllers never fight over a joint. A controller that commands nothing (a monitor, a
     hand-moved master) returns ``()``.
 
-Hooks, all on the loop thread: ``configure(data, ctx)`` once; ``on_sample(item, now)`` for every
-stream sample and discrete input, in arrival order; ``on_command(request, now) -> str | None``
-for the operator commands it lists in ``commands()`` (a command nobody lists is offered to each
-in turn; work too long for a tick returns a :class:`~occ.commands.Deferred`, answered later);
-``on_state(old, new, now)`` after every transition; ``update(now) -> setpoints | None`` while
-RUNNING (None = hold); ``outputs()`` the named output sources it adds (``source: NAME`` in an
+Hooks, all on the loop thread: ``configure(data, ctx)`` once; ``on_sample(sample, now)`` for
+every stream pose the loss monitor accepted, a typed :class:`~occ.samples.PoseSample` (who, the
+sequence number, sample and arrival times, the pose in mm, ``run``, ``clutch``, the rest of
+the metadata: no wire message to parse), and ``on_input(item, now)`` for the discrete inputs
+that share a stream (fixture definitions, keyframes), both in arrival order;
+``on_command(request, now) -> str | None`` for the operator commands it lists in
+``commands()`` (a command nobody lists is offered to each in turn; work too long for a tick
+returns a :class:`~occ.commands.Deferred`, answered later); ``on_state(old, new, now)`` after
+every transition; ``update(now) -> setpoints | None`` while RUNNING (None = hold); ``outputs()``
+the named output sources it adds (``source: NAME`` in an
 interface's outputs); ``stats()``.
 """
 
@@ -60,6 +64,7 @@ if TYPE_CHECKING:
     from ..interfaces import Inbound
     from ..outputs import Output
     from ..safety import RobotState
+    from ..samples import PoseSample
 
 log = logging.getLogger(__name__)
 
@@ -142,7 +147,10 @@ class Controller:
     def outputs(self) -> dict[str, SourceFn]:
         return {}
 
-    def on_sample(self, item: Inbound, now: float) -> None:
+    def on_sample(self, sample: PoseSample, now: float) -> None:
+        return None
+
+    def on_input(self, item: Inbound, now: float) -> None:
         return None
 
     def on_command(self, request: Request, now: float) -> str | Deferred | None:
@@ -267,9 +275,13 @@ class ControllerSet:
             out.update(c.outputs())
         return out
 
-    def on_sample(self, item: Inbound, now: float) -> None:
+    def on_sample(self, sample: PoseSample, now: float) -> None:
         for c in self.controllers:
-            c.on_sample(item, now)
+            c.on_sample(sample, now)
+
+    def on_input(self, item: Inbound, now: float) -> None:
+        for c in self.controllers:
+            c.on_input(item, now)
 
     def on_command(self, request: Request, now: float) -> str | Deferred | None:
         key = request.name.strip().lower()

@@ -910,7 +910,8 @@ class KeyframeController(Controller):
                 self._set_plan(None)
 
     # ------------------------------------------------------------------ inputs
-    def on_sample(self, item: Inbound, now: float) -> None:
+    def on_input(self, item: Inbound, now: float) -> None:
+        """Keyframes from 3D Slicer: a Markups POINT list or a TRAJ (a discrete input)."""
         msg = item.msg
         if msg.message_type not in ("POINT", "TRAJ"):
             return

@@ -83,6 +83,7 @@ if TYPE_CHECKING:
     from ..data import RobotData
     from ..interfaces import Inbound
     from ..outputs import Output
+    from ..samples import PoseSample
 
 log = logging.getLogger(__name__)
 
@@ -248,57 +249,54 @@ class MasterController(Controller):
         }
 
     # -------------------------------------------------------------- inputs
-    def on_sample(self, item: Inbound, now: float) -> None:
-        msg = item.msg
-        mtype = msg.message_type
+    def on_sample(self, sample: PoseSample, now: float) -> None:
+        device = sample.device
         is_input = self.input == "igtl" and (
-            self.input_interface is None or item.interface == self.input_interface
+            self.input_interface is None or sample.interface == self.input_interface
         )
-        if (
-            mtype in ("TRANSFORM", "POSITION")
-            and msg.device_name in (self.slave_base_device, self.slave_tip_device)
-            and not (is_input and self.input_device == msg.device_name)
+        if device in (self.slave_base_device, self.slave_tip_device) and not (
+            is_input and self.input_device == device
         ):
-            if msg.device_name == self.slave_tip_device:
-                self._tip_input(item, now)
+            if device == self.slave_tip_device:
+                self._tip_input(sample, now)
             else:
-                self._mapping_input(msg, now)
+                self._mapping_input(sample, now)
             return
-        if mtype in ("VFIXTURE", "POINT", "TRANSFORM", "POLYDATA") and not (
-            is_input and mtype in ("TRANSFORM", "POSITION") and "kind" not in msg.metadata
-        ):
-            try:
-                if self.fixtures.on_message(msg, now) is not None:
-                    return
-            except DefinitionError as err:
-                raise caused(CommandError(str(err)), err) from err
+        if sample.kind == "TRANSFORM" and not (is_input and "kind" not in sample.meta):
+            # a TRANSFORM that defines a fixture (Slicer's transform of a box, a plane)
+            if self._fixture_input(sample.msg, now) is not None:
+                return
         if not is_input:
             return
-        if self.input_device and msg.device_name != self.input_device:
+        if self.input_device and device != self.input_device:
             return
-        if mtype == "TRANSFORM":
-            x, y, z = msg.translation  # type: ignore[attr-defined]
-        elif mtype == "POSITION":
-            x, y, z = msg.position  # type: ignore[attr-defined]
-        else:
-            return
+        x, y, z = sample.position_mm
         self.samples += 1
-        self.target = np.array([x, y, z]) * MM
+        self.target = np.array([x * MM, y * MM, z * MM])
 
-    def _tip_input(self, item: Inbound, now: float) -> None:
+    def on_input(self, item: Inbound, now: float) -> None:
+        """Fixture definitions (VFIXTURE, Markups POINT, POLYDATA) that share a stream."""
+        self._fixture_input(item.msg, now)
+
+    def _fixture_input(self, msg: Any, now: float) -> str | None:
+        try:
+            return self.fixtures.on_message(msg, now)
+        except DefinitionError as err:
+            raise caused(CommandError(str(err)), err) from err
+
+    def _tip_input(self, sample: PoseSample, now: float) -> None:
         """A sample of a slave's tip stream (the return channel, occ/returnlink.py)."""
-        name = item.interface
-        msg = item.msg
+        name = sample.interface
         if name not in self._teleop_ifaces:
             raise CommandError(
-                f"{msg.message_type} {msg.device_name!r} is a slave's return stream: taken only "
+                f"{sample.kind} {sample.device!r} is a slave's return stream: taken only "
                 f"on the interfaces this master streams to "
                 f"({', '.join(self._teleop_ifaces) or 'none yet'})"
             )
         link = self._link(name)
         clock = self.ctx.clock  # type: ignore[union-attr]
         recovered = link.recoveries
-        if not link.on_sample(msg, now, item.t_rx + (clock.wall_time() - clock.now())):
+        if not link.on_sample(sample, now, sample.t_rx + (clock.wall_time() - clock.now())):
             return
         if name != self._driving():
             return
@@ -338,16 +336,14 @@ class MasterController(Controller):
         if alert is not None:
             alert(name, text, code)
 
-    def _mapping_input(self, msg: Message, now: float) -> None:
+    def _mapping_input(self, sample: PoseSample, now: float) -> None:
         """The registration (the slave's base pose, a TRANSFORM): used for the map when the
         slave does not send its own."""
         try:
-            if msg.message_type == "TRANSFORM":
-                self.fixtures.registration(msg.matrix.tolist(), now)  # type: ignore[attr-defined]
+            if sample.kind == "TRANSFORM":
+                self.fixtures.registration(sample.matrix_mm().tolist(), now)
         except DefinitionError as err:
-            raise caused(
-                CommandError(f"{msg.message_type} {msg.device_name!r}: {err}"), err
-            ) from err
+            raise caused(CommandError(f"{sample.kind} {sample.device!r}: {err}"), err) from err
 
     def on_command(self, request: Request, now: float) -> str | None:
         key = request.name.lower()
@@ -703,49 +699,44 @@ class SlaveController(Controller):
             b[:3, 3] = np.array(self.base_mm, dtype=float) * MM
             data.base = b
 
-    def on_sample(self, item: Inbound, now: float) -> None:
-        msg = item.msg
-        if self.base_interface and item.interface == self.base_interface:
-            if msg.message_type == "TRANSFORM" and msg.device_name == self.base_device:
-                m = msg.matrix  # type: ignore[attr-defined]
+    def on_sample(self, sample: PoseSample, now: float) -> None:
+        if self.base_interface and sample.interface == self.base_interface:
+            if sample.kind == "TRANSFORM" and sample.device == self.base_device:
+                m = sample.matrix_mm()
                 m[:3, 3] *= MM
                 assert self.data is not None
                 self.data.base = m
             return
-        if self.input_interface and item.interface != self.input_interface:
+        if self.input_interface and sample.interface != self.input_interface:
             return
-        if self.input_device and msg.device_name != self.input_device:
+        if self.input_device and sample.device != self.input_device:
             return
-        if msg.message_type == "POSITION":
-            pos = msg.position  # type: ignore[attr-defined]
-        elif msg.message_type == "TRANSFORM":
-            pos = msg.translation  # type: ignore[attr-defined]
-        else:
-            return
-        if item.interface != self.source:
+        pos = sample.position_mm
+        if sample.interface != self.source:
             # another master has the motion (a collaborative hand-over): its first sample
             # re-indexes, as a rising ``run`` does, so the slave keeps its pose
             if self.source is not None:
                 self.source_changes += 1
-            self.source = item.interface
+            self.source = sample.interface
             self.master_ref = None
             self.master_run = False
             self._phases.clear()
         self.samples += 1
-        self.last_seq = msg.message_id
-        self.last_sample_t = item.t_rx
+        self.last_seq = sample.seq
+        self.last_sample_t = sample.t_rx
+        ts = sample.t_sample
         if self.phase_lock is not None:
             clock = self.ctx.clock  # type: ignore[union-attr]
-            if msg.timestamp > 0.0:  # when the master sampled, on our loop's clock
-                self._track_phase(msg.timestamp - (clock.wall_time() - clock.now()))
+            if ts > 0.0:  # when the master sampled, on our loop's clock
+                self._track_phase(ts - (clock.wall_time() - clock.now()))
             else:
-                self._track_phase(item.t_rx)
-        self.pending_ts = msg.timestamp if msg.timestamp > 0.0 else None
-        self.pending_rx = item.t_rx
-        self.master_pos = (float(pos[0]) * MM, float(pos[1]) * MM, float(pos[2]) * MM)
+                self._track_phase(sample.t_rx)
+        self.pending_ts = ts if ts > 0.0 else None
+        self.pending_rx = sample.t_rx
+        self.master_pos = (pos[0] * MM, pos[1] * MM, pos[2] * MM)
         self._fresh = True
-        run = msg.metadata.get("run", "1") == "1"
-        clutch = msg.metadata.get("clutch", "0") == "1"
+        run = sample.run
+        clutch = sample.clutch
         if (run and not self.master_run) or (self.master_clutch and not clutch):
             self.master_ref = None  # re-index on the next update
         self.master_run, self.master_clutch = run, clutch

@@ -54,9 +54,11 @@ is its feedback, and feedback can fail while the drive still answers.
 - **Lost**: a non-finite position (NaN, inf) from a joint that has been measured latches
   FAULT ("feedback lost"). Before the first measurement NaN means "not reported yet": the
   joint stays unmeasured, and Enable is refused until it is measured.
-- **Jump**: a step larger than ``feedback_jump`` (default 3) times the joint's velocity limit
+- **Jump**: a step larger than ``feedback_jump`` (default 10) times the joint's velocity limit
   over the time since its last reading (at least one ``period``) latches FAULT: no healthy
-  joint moves that fast; a slipped encoder or a corrupted frame does. 0 = off.
+  joint moves that fast; a slipped encoder or a corrupted frame does. (The velocity limit
+  bounds the commands, not the motion: a servo catching up after a stall of the loop moves
+  faster for a moment; 3 x tripped on a busy machine after a 50 ms stall.) 0 = off.
 - **Frozen**: while ACTIVE on position commands, a joint whose reported position has not
   changed at all for ``frozen_feedback_ms`` (default 50) while its command is further than
   ``FROZEN_AWAY`` from it (5 mrad, 0.5 mm) latches FAULT: the drive answers, the heartbeat
@@ -95,7 +97,7 @@ _POLICIES = ("clamp", "fault")
 #: the device heartbeat, and the feedback checks (see "Feedback checks" in the docstring).
 BASE_PARAMS: dict[str, Any] = {
     "heartbeat_ms": 50.0,
-    "feedback_jump": 3.0,
+    "feedback_jump": 10.0,
     "frozen_feedback_ms": 50.0,
 }
 

@@ -693,7 +693,7 @@ def test_params_defaults_and_the_interface_from_params() -> None:
     d = MirrorDriver("m", joints(), {"period": 0.002, "command_interface": "effort"})
     assert d.period == 0.002 and d.command_interface == "effort"
     assert d.params == {
-        "heartbeat_ms": 50.0, "feedback_jump": 3.0, "frozen_feedback_ms": 50.0, "period": 0.002,
+        "heartbeat_ms": 50.0, "feedback_jump": 10.0, "frozen_feedback_ms": 50.0, "period": 0.002,
         "command_interface": "effort",
     }
     assert MirrorDriver("m", joints()).period == 0.001

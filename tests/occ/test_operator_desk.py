@@ -514,7 +514,7 @@ def test_a_discrete_input_refused_by_the_controller_is_answered_and_counted(sim,
         seen.append((item.msg.message_type, now))
         raise CommandError("fixture 'wall' has no normal")
 
-    monkeypatch.setattr(sim.robot.controller, "on_sample", refuse)
+    monkeypatch.setattr(sim.robot.controller, "on_input", refuse)
     out: list[igtl.Message] = []
     monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
     sim.step(3)
@@ -535,12 +535,12 @@ def test_a_discrete_input_that_breaks_the_controller_faults_naming_it(sim, monke
     def broken(item, now):
         raise RuntimeError("division by zero in the fixture")
 
-    monkeypatch.setattr(sim.robot.controller, "on_sample", broken)
+    monkeypatch.setattr(sim.robot.controller, "on_input", broken)
     handle(sim, igtl.StringMessage("wall", device_name="VF"))
     assert sim.robot.state is RobotState.FAULT
     name = sim.robot.controller.name
     assert sim.robot.state_machine.last_reason == (
-        f"controller {name}: on_sample raised RuntimeError: division by zero in the fixture"
+        f"controller {name}: on_input raised RuntimeError: division by zero in the fixture"
     )
 
 
@@ -867,7 +867,7 @@ def test_the_log_names_each_refusal_and_lost_reply_at_most_five_a_second(sim, mo
     def refuse(item, now):
         raise CommandError("fixture 'wall' has no normal")
 
-    monkeypatch.setattr(sim.robot.controller, "on_sample", refuse)
+    monkeypatch.setattr(sim.robot.controller, "on_input", refuse)
     out: list[igtl.Message] = []
     monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
     caplog.set_level(logging.WARNING, logger="occ.robot")

@@ -91,7 +91,7 @@ def test_the_phase_is_the_masters_sample_time_else_the_reception_time(stamped: b
     sampled (its wall-clock stamp moved onto the loop's clock), not when the datagram was
     read; without one (0), the reception time. Either way 0.35 ms after the deadlines here."""
     import igtl
-    from occ.interfaces import Inbound
+    from occ.samples import pose_sample
 
     shifts: list[float] = []
     ctrl = _locked_slave(shifts)
@@ -105,7 +105,7 @@ def test_the_phase_is_the_masters_sample_time_else_the_reception_time(stamped: b
             (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), 24, device_name="Master",
             timestamp=sampled + offset if stamped else 0.0, header_version=2, message_id=i + 1,
         )
-        ctrl.on_sample(Inbound("master", None, msg, t_rx), t_rx)  # type: ignore[arg-type]
+        ctrl.on_sample(pose_sample("master", None, msg, t_rx), t_rx)  # type: ignore[arg-type]
     assert shifts == [pytest.approx(-0.00045, abs=2e-6)]
     assert ctrl.phase_shifts == 1 and ctrl.stats()["phase_error_us"] == pytest.approx(-450.0, abs=2)
     assert ctrl.samples == 250 and ctrl.last_seq == 250 and ctrl.last_sample_t == t_rx
@@ -114,7 +114,7 @@ def test_the_phase_is_the_masters_sample_time_else_the_reception_time(stamped: b
 
 def test_a_small_positive_timestamp_is_a_timestamp() -> None:
     import igtl
-    from occ.interfaces import Inbound
+    from occ.samples import pose_sample
 
     shifts: list[float] = []
     ctrl = _locked_slave(shifts)
@@ -124,7 +124,7 @@ def test_a_small_positive_timestamp_is_a_timestamp() -> None:
             (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), 24, device_name="Master",
             timestamp=0.5 + i * 0.002 + 0.00035, header_version=2, message_id=i + 1,
         )
-        ctrl.on_sample(Inbound("master", None, msg, 0.0), 0.0)  # type: ignore[arg-type]
+        ctrl.on_sample(pose_sample("master", None, msg, 0.0), 0.0)  # type: ignore[arg-type]
     assert shifts == [pytest.approx(-0.00045, abs=2e-6)]
     assert ctrl.pending_ts == pytest.approx(0.5 + 249 * 0.002 + 0.00035)
 
@@ -140,7 +140,7 @@ def test_the_phase_lock_at_other_rates_and_fractional_locks(period, lock_us, shi
     """The lock is in microseconds whatever the loop's period: the shift is the wrapped
     distance from the arrivals' phase to ``period - phase_lock_us``."""
     import igtl
-    from occ.interfaces import Inbound
+    from occ.samples import pose_sample
 
     shifts: list[float] = []
     ctrl = SlaveController({"phase_lock_us": lock_us})
@@ -154,5 +154,5 @@ def test_the_phase_lock_at_other_rates_and_fractional_locks(period, lock_us, shi
             (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), 24, device_name="Master",
             timestamp=0.0, header_version=2, message_id=i + 1,
         )
-        ctrl.on_sample(Inbound("master", None, msg, t_rx), t_rx)  # type: ignore[arg-type]
+        ctrl.on_sample(pose_sample("master", None, msg, t_rx), t_rx)  # type: ignore[arg-type]
     assert shifts == [pytest.approx(shift, abs=2e-6)]

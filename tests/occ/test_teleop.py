@@ -461,7 +461,7 @@ def test_on_sample_takes_position_and_transform_and_counts_source_changes() -> N
     from occ.clock import SimClock
     from occ.controllers import ControllerContext
     from occ.controllers.teleop import SlaveController
-    from occ.interfaces import Inbound
+    from occ.samples import pose_sample
 
     ctrl = SlaveController({"phase_lock_us": None})
     ctrl.ctx = ControllerContext(
@@ -470,7 +470,9 @@ def test_on_sample_takes_position_and_transform_and_counts_source_changes() -> N
     )
 
     def take(itf: str, msg: igtl.Message, t: float) -> None:
-        ctrl.on_sample(Inbound(itf, None, msg, t), t)  # type: ignore[arg-type]
+        sample = pose_sample(itf, None, msg, t)  # what the interface makes of it
+        if sample is not None:  # not a pose: no sample (the interface passes it on as an input)
+            ctrl.on_sample(sample, t)
 
     assert ctrl.stats() == {  # before any sample
         "samples": 0, "last_seq": None, "master_run": False, "master_clutch": False,
@@ -498,7 +500,7 @@ def test_only_the_configured_interface_and_device_are_followed() -> None:
     from occ.clock import SimClock
     from occ.controllers import ControllerContext
     from occ.controllers.teleop import SlaveController
-    from occ.interfaces import Inbound
+    from occ.samples import pose_sample
 
     ctrl = SlaveController({"input_interface": "master", "input_device": "Master",
                             "phase_lock_us": None})
@@ -508,10 +510,10 @@ def test_only_the_configured_interface_and_device_are_followed() -> None:
     )
     for itf, dev in (("other", "Master"), ("master", "Other")):
         msg = igtl.PositionMessage((1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0), 24, device_name=dev)
-        ctrl.on_sample(Inbound(itf, None, msg, 0.0), 0.0)  # type: ignore[arg-type]
+        ctrl.on_sample(pose_sample(itf, None, msg, 0.0), 0.0)  # type: ignore[arg-type]
     assert ctrl.samples == 0 and ctrl.master_pos is None
     msg = igtl.PositionMessage((1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0), 24, device_name="Master")
-    ctrl.on_sample(Inbound("master", None, msg, 0.0), 0.0)  # type: ignore[arg-type]
+    ctrl.on_sample(pose_sample("master", None, msg, 0.0), 0.0)  # type: ignore[arg-type]
     assert ctrl.samples == 1
 
 
