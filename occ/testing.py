@@ -14,15 +14,17 @@ stepped tick by tick on a :class:`~occ.clock.SimClock` (tick ``k`` runs at ``k /
 
     with SimRobot("configs/slave.yaml") as sim:
         master = sim.peer("master", address=("127.0.0.1", 40000))
+        operator = sim.peer("operator")
         slicer = sim.peer("slicer")
-        assert slicer.command("Enable").metadata["Status"] == "SUCCESS"
-        slicer.command("Run")
+        assert sim.command(operator, "Enable").metadata["Status"] == "SUCCESS"
+        sim.command(operator, "Run")
         for seq in range(1, 101):
             master.send_position((0.0, 50.0, 270.0), seq=seq)
             sim.step(2)  # 500 Hz against a 1 kHz loop
         tips = slicer.messages("TRANSFORM", "Tip")
 
-Tests use it (``tests/occ``), and so does ``tools/soak.py sim``.
+Tests use it (``tests/occ``; tests/occ/test_testing.py runs this example), and so does
+``tools/soak.py sim``.
 """
 
 from __future__ import annotations
@@ -368,6 +370,16 @@ class SimRobot:
         """Run ``n`` ticks."""
         for _ in range(n):
             self.tick()
+
+    def command(self, peer: SimPeer, name: str, text: str = "", ticks: int = 1) -> Message:
+        """``peer`` sends the COMMAND ``name`` (``text``: its XML), the loop runs ``ticks``
+        ticks, and the RTS_COMMAND that answered it is returned (AssertionError when none
+        came: a command the tick did not answer is a test failure, not a None to check)."""
+        cid = peer.send_command(name, text)
+        self.step(ticks)
+        reply = peer.reply_to(cid)
+        assert reply is not None, f"no RTS_COMMAND for {name} (command ID {cid})"
+        return reply
 
     def run_for(self, seconds: float) -> None:
         """Run the ticks of the next ``seconds`` of simulated time."""

@@ -48,7 +48,7 @@ class Master:
 
     def command(self, name: str, text: str = "") -> igtl.Message:
         cid = self.op.send_command(name, text)
-        self.step(1)
+        self.step(1)  # the feed's step: the slave's tip comes with the tick
         reply = self.op.reply_to(cid)
         assert reply is not None
         return reply

@@ -51,11 +51,7 @@ class SimMaster:
         self.sim.step(n)
 
     def command(self, name: str, text: str = "") -> igtl.Message:
-        cid = self.operator.send_command(name, text)
-        self.ticks(1)
-        reply = self.operator.reply_to(cid)
-        assert reply is not None, f"no RTS_COMMAND for {name}"
-        return reply
+        return self.sim.command(self.operator, name, text)
 
     def close(self) -> None:
         self.sim.close()

@@ -424,7 +424,7 @@ def test_mcap_without_rosbags_says_so(recording: Path, tmp_path: Path, monkeypat
 def test_occ_record_command_line(recording: Path, tmp_path: Path) -> None:
     out = tmp_path / "cli.seq.mha"
     res = subprocess.run(
-        [sys.executable, "-m", "occ.record", "export", str(recording), str(out)],
+        [sys.executable, "-m", "occ.recordcli", "export", str(recording), str(out)],
         capture_output=True,
         text=True,
         timeout=120,

@@ -70,10 +70,8 @@ class Rig:
             self.sim.tick()
 
     def command(self, name: str) -> None:
-        cid = self.operator.send_command(name)
-        self.sim.tick()
-        reply = self.operator.reply_to(cid)
-        assert reply is not None and reply.metadata["Status"] == "SUCCESS", name
+        reply = self.sim.command(self.operator, name)
+        assert reply.metadata["Status"] == "SUCCESS", name
 
     def running(self) -> None:
         self.command("Enable")
@@ -235,11 +233,7 @@ class Master:
         self.op = self.sim.peer("operator", address=("127.0.0.1", 41000))
 
     def command(self, name: str, text: str = "") -> igtl.Message:
-        cid = self.op.send_command(name, text)
-        self.sim.tick()
-        reply = self.op.reply_to(cid)
-        assert reply is not None, name
-        return reply
+        return self.sim.command(self.op, name, text)
 
     def close(self) -> None:
         self.sim.close()

@@ -89,3 +89,26 @@ def test_getstats_as_plain_json() -> None:
         for m in by_device.values():
             stats = json.loads(m.string)
             assert stats["state"] == "READY" and "lateness_us" in stats
+
+
+def test_the_module_docstring_example_runs() -> None:
+    """occ.testing's own example (its module docstring) runs as written, from the root."""
+    import os
+    import textwrap
+
+    import occ.testing
+
+
+    doc = occ.testing.__doc__ or ""
+    block = doc.split("::\n\n", 1)[1].split("\nTests use it", 1)[0]
+    code = textwrap.dedent(block)
+    assert "SimRobot(" in code
+    here = os.getcwd()
+    os.chdir(ROOT)  # the example names configs/slave.yaml
+    try:
+        scope: dict[str, object] = {}
+        exec(compile(code, "occ.testing example", "exec"), scope)  # noqa: S102
+    finally:
+        os.chdir(here)
+    tips = scope["tips"]
+    assert isinstance(tips, list) and len(tips) >= 2  # 10 Hz for 200 ms of running
