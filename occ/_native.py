@@ -54,6 +54,7 @@ MODULES: tuple[str, ...] = (
     "occ.haptics",
     "occ.controllers",
     "occ.controllers.teleop",
+    "occ.samples",
     "occ.hardware",
     "occ.streams",
     "occ.motion",

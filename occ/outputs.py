@@ -8,7 +8,7 @@ loses its own oldest messages inside the transport, OCC's per-subscriber ``Fq``)
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -16,11 +16,12 @@ import numpy as np
 
 import igtl
 from igtl.messages.base import Message
+from igtl.messages.transform import POSITION_ALL, POSITION_QUATERNION3, position_v2
 
 from .errors import OCCError
 from .interfaces import Interface  # mypyc: Output's field types are looked up at import
 from .safety import RobotState
-from .samples import rotation_to_quaternion
+from .samples import PoseSample, rotation_to_quaternion
 
 if TYPE_CHECKING:
     from .data import RobotData
@@ -53,7 +54,97 @@ class Output:
     seq: int = 0
 
 
-SourceFn = Callable[[Output, float], Message | None]
+@dataclass
+class PointsOut:
+    """A named point list for 3D Slicer (a Markups point list): what a controller's source
+    returns instead of packing a POINT message itself."""
+
+    names: Sequence[str]
+    positions_mm: Sequence[Sequence[float]]
+    timestamp: float
+    group: str = "Point"
+    rgba: tuple[int, int, int, int] = (255, 200, 0, 255)
+    meta: Mapping[str, str] | None = None
+
+
+@dataclass
+class PolylineOut:
+    """A polyline (N x 3, mm) for 3D Slicer, sent as POLYDATA with one line through the points."""
+
+    points_mm: np.ndarray
+    timestamp: float
+    meta: Mapping[str, str] | None = None
+
+
+_NO_ROTATION = (0.0, 0.0, 0.0, 1.0)
+
+#: what a source returns: a typed value the scheduler packs as the output's type (a pose, a
+#: point list, a polyline), or a message already built (the fixtures' models)
+Outgoing = PoseSample | PointsOut | PolylineOut | Message
+SourceFn = Callable[[Output, float], Outgoing | None]
+
+
+def pack_output(value: PoseSample | PointsOut | PolylineOut, out: Output) -> Message:
+    """The message of a typed source value, as ``out`` is configured (type, device, version).
+    A pose goes as a POSITION (header v2: its sequence number and metadata) or a TRANSFORM."""
+    if isinstance(value, PoseSample):
+        q = value.quaternion
+        if q[3] < 0.0:
+            q = (-q[0], -q[1], -q[2], -q[3])
+        # the 24-byte variant (3-element quaternion) when there is no rotation to carry (a
+        # master's handle position), else all four elements (a slave's tip)
+        layout = POSITION_QUATERNION3 if q == _NO_ROTATION else POSITION_ALL
+        if out.type == "POSITION" and out.header_version == 2:
+            seq = value.seq if value.seq is not None else 0
+            return position_v2(
+                out.device, value.t_sample, seq, value.meta, value.position_mm, q, layout
+            )
+        if out.type == "POSITION":
+            return igtl.PositionMessage(
+                value.position_mm, q, layout, device_name=out.device, timestamp=value.t_sample
+            )
+        if out.type == "TRANSFORM":
+            v2 = out.header_version == 2
+            return igtl.TransformMessage.from_matrix(
+                value.matrix_mm(),
+                device_name=out.device,
+                timestamp=value.t_sample,
+                header_version=out.header_version,
+                metadata=dict(value.meta) if v2 else {},
+                message_id=(value.seq or 0) if v2 else 0,
+            )
+        raise OCCError(f"output type {out.type} cannot carry a pose")
+    meta = dict(value.meta or {}) if out.header_version == 2 else {}
+    if isinstance(value, PointsOut):
+        if out.type != "POINT":
+            raise OCCError(f"a point list goes as POINT, not {out.type}")
+        points = [
+            igtl.PointElement(
+                name=name.encode("utf-8")[:64].decode("utf-8", "ignore"),
+                group=value.group,
+                rgba=value.rgba,
+                position=(float(p[0]), float(p[1]), float(p[2])),
+            )
+            for name, p in zip(value.names, value.positions_mm, strict=True)
+        ]
+        return igtl.PointMessage(
+            points=tuple(points),
+            device_name=out.device,
+            header_version=out.header_version,
+            timestamp=value.timestamp,
+            metadata=meta,
+        )
+    if out.type != "POLYDATA":
+        raise OCCError(f"a polyline goes as POLYDATA, not {out.type}")
+    pts = value.points_mm
+    return igtl.PolyDataMessage(
+        points=np.asarray(pts, dtype=np.float32),
+        lines=(tuple(range(len(pts))),) if len(pts) >= 2 else (),
+        device_name=out.device,
+        header_version=out.header_version,
+        timestamp=value.timestamp,
+        metadata=meta,
+    )
 
 
 def pose_to_message(
@@ -198,8 +289,9 @@ class OutputScheduler:
     ) -> None:
         for out, source in self._due:
             if k % out.every == 0:
-                msg = source(out, now)
-                if msg is not None:
+                value = source(out, now)
+                if value is not None:
+                    msg = value if isinstance(value, Message) else pack_output(value, out)
                     out.interface.send(msg)
                     if record is not None:
                         record(msg, out.interface.name, now)

@@ -235,3 +235,22 @@ def test_no_module_knows_one_that_knows_it(folder: str) -> None:
     record <-> recplot and soak <-> stability once did)."""
     cycle = _cycle(_design_graph(folder))
     assert cycle is None, "circle: " + " -> ".join(cycle or [])
+
+
+def test_no_controller_imports_igtl_messages() -> None:
+    """Issue 26: controllers take typed samples (occ/samples.py) and return typed outputs
+    (occ/outputs.py packs them); none imports OpenIGTLink's message classes, not even for
+    type hints."""
+    for path in (ROOT / "occ" / "controllers").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom):
+                names = [node.module or ""]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            for name in names:
+                where = path.relative_to(ROOT)
+                assert name != "igtl" and not name.startswith("igtl.messages"), (
+                    f"{where} imports {name}"
+                )

@@ -56,13 +56,11 @@ from ..joint import JointLimits
 from ..plugins import PluginRegistry
 
 if TYPE_CHECKING:
-    from igtl.messages.base import Message
-
     from ..commands import Deferred, Request
     from ..config import DaemonConfig
     from ..data import RobotData
     from ..interfaces import Inbound
-    from ..outputs import Output
+    from ..outputs import Outgoing, Output
     from ..safety import RobotState
     from ..samples import PoseSample
 
@@ -77,7 +75,7 @@ BUILTIN_CONTROLLERS: dict[str, str] = {
     "keyframe": "occ.controllers.keyframe:KeyframeController",
 }
 
-SourceFn = Callable[["Output", float], "Message | None"]
+SourceFn = Callable[["Output", float], "Outgoing | None"]
 #: a problem found by :meth:`Controller.check`: (path inside the controller's params, message)
 Problem = tuple[tuple[str | int, ...], str]
 

@@ -89,8 +89,6 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, BeforeValidator, ConfigDict, DirectoryPath, Field, ValidationError
 
-import igtl
-from igtl.messages.base import Message
 from igtl.transport.common import RateLimit
 
 from ..commands import Deferred
@@ -109,6 +107,8 @@ from ..config import (
 from ..errors import CommandError, ConfigError, KinematicsError
 from ..fixtures import ForbiddenPlane, ForbiddenSphere, forbidden_hit
 from ..joint import JointLimits
+from ..keyframe_inputs import items_from_message
+from ..outputs import PointsOut, PolylineOut
 from ..safety import RobotState
 from ..trajectory import Keyframe, Trajectory, plan
 from . import Controller, ControllerContext, Problem, SourceFn
@@ -314,52 +314,6 @@ def make_set(
         frames.append(kf)
         names.append(name)
     return KeyframeSet(space, tuple(frames), tuple(names), source)
-
-
-def parse_times(text: str, count: int) -> list[float]:
-    """``times`` metadata: ``count`` seconds separated by commas or spaces."""
-    parts = [p for p in text.replace(",", " ").split() if p]
-    if len(parts) != count:
-        raise ValueError(f"metadata 'times' has {len(parts)} values for {count} points")
-    try:
-        values = [float(p) for p in parts]
-    except ValueError as err:
-        raise ValueError(f"metadata 'times': {err}") from err
-    if not all(math.isfinite(v) for v in values):
-        raise ValueError("metadata 'times' must be finite")
-    return values
-
-
-def items_from_message(
-    msg: Message, interval_s: float
-) -> list[tuple[float, tuple[float, float, float], str]]:
-    """Cartesian ``(t, position mm, name)`` from a POINT (visible points) or a TRAJ (each
-    element's entry then target, as its type says); times from metadata ``times`` (one per
-    point of the message, hidden ones included) else every ``interval_s``."""
-    raw: list[tuple[tuple[float, float, float], str, bool]] = []
-    if msg.message_type == "POINT":
-        for p in getattr(msg, "points", ()):
-            raw.append((p.position, p.name, p.rgba[3] > 0))
-    elif msg.message_type == "TRAJ":
-        for tr in getattr(msg, "trajectories", ()):
-            visible = tr.rgba[3] > 0
-            if tr.type in (1, 3):
-                raw.append((tr.entry, f"{tr.name} entry" if tr.name else "entry", visible))
-            if tr.type in (2, 3):
-                raw.append((tr.target, f"{tr.name} target" if tr.name else "target", visible))
-            if tr.type not in (1, 2, 3):
-                raise ValueError(f"TRAJ element {tr.name!r}: unknown type {tr.type}")
-    else:
-        raise ValueError(f"{msg.message_type} carries no keyframes")
-    text = msg.metadata.get("times") if msg.metadata else None
-    if text is not None:
-        times = parse_times(text, len(raw))
-    else:
-        times = [interval_s * (i + 1) for i in range(len(raw))]
-    out = [(t, pos, name) for t, (pos, name, visible) in zip(times, raw, strict=True) if visible]
-    if not out:
-        raise ValueError(f"{msg.message_type} {msg.device_name!r} has no visible points")
-    return out
 
 
 def read_keyframe_file(path: Path) -> KeyframeFile:
@@ -1267,46 +1221,26 @@ class KeyframeController(Controller):
     def _meta(self, out: Output) -> dict[str, str]:
         return {"MRMLNodeName": out.device} if out.header_version == 2 else {}
 
-    def _source_path(self, out: Output, now: float) -> Message | None:
+    def _source_path(self, out: Output, now: float) -> PolylineOut | None:
         pv = self._due(out, now)
         if pv is None:
             return None
         pts = pv.plan.path_mm if pv.plan is not None else np.zeros((0, 3))
-        lines = (tuple(range(len(pts))),) if len(pts) >= 2 else ()
         assert self.ctx is not None
-        return igtl.PolyDataMessage(
-            points=np.asarray(pts, dtype=np.float32),
-            lines=lines,
-            device_name=out.device,
-            header_version=out.header_version,
-            timestamp=self.ctx.clock.wall_time(),
-            metadata=self._meta(out),
-        )
+        return PolylineOut(pts, self.ctx.clock.wall_time(), self._meta(out))
 
-    def _source_points(self, out: Output, now: float) -> Message | None:
+    def _source_points(self, out: Output, now: float) -> PointsOut | None:
         pv = self._due(out, now)
         if pv is None:
             return None
         plan_ = pv.plan
-        points: list[igtl.PointElement] = []
+        names: list[str] = []
+        keys: list[list[float]] = []
         if plan_ is not None:
-            for label, xyz in zip(plan_.point_names, plan_.keys_mm.tolist(), strict=True):
-                points.append(
-                    igtl.PointElement(
-                        name=label.encode("utf-8")[:64].decode("utf-8", "ignore"),
-                        group="Keyframe",
-                        rgba=(255, 200, 0, 255),
-                        position=(xyz[0], xyz[1], xyz[2]),
-                    )
-                )
+            names = list(plan_.point_names)
+            keys = plan_.keys_mm.tolist()
         assert self.ctx is not None
-        return igtl.PointMessage(
-            points=tuple(points),
-            device_name=out.device,
-            header_version=out.header_version,
-            timestamp=self.ctx.clock.wall_time(),
-            metadata=self._meta(out),
-        )
+        return PointsOut(names, keys, self.ctx.clock.wall_time(), "Keyframe", meta=self._meta(out))
 
     # ------------------------------------------------------------------ reporting
     def describe(self) -> str:

@@ -63,17 +63,14 @@ import pydantic.main  # noqa: F401 - mypyc: the module its run-time BaseModel ch
 from mypy_extensions import mypyc_attr
 from pydantic import BaseModel
 
-from igtl.messages.base import Message
-from igtl.messages.transform import POSITION_ALL, POSITION_QUATERNION3, position_v2
-
 from ..collab import SlaveSelector
 from ..config import DaemonConfig
 from ..errors import CommandError, KinematicsError, OCCError, caused
 from ..fixture_defs import Defaults, DefinitionError, PatientMapping, from_markups_file
 from ..haptics import MasterFixtures
-from ..outputs import rotation_to_quaternion
 from ..returnlink import ReturnLink
 from ..safety import RobotState
+from ..samples import PoseSample, rotation_to_quaternion
 from ..stats import Histogram
 from . import Controller, ControllerContext, Problem, SourceFn
 from .teleop_params import MasterParams, SlaveParams
@@ -82,8 +79,7 @@ if TYPE_CHECKING:
     from ..commands import Request
     from ..data import RobotData
     from ..interfaces import Inbound
-    from ..outputs import Output
-    from ..samples import PoseSample
+    from ..outputs import Outgoing, Output
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +91,6 @@ _RUN_CLUTCH = {
     for run in (False, True)
     for clutch in (False, True)
 }
-_NO_ROTATION = (0.0, 0.0, 0.0, 1.0)
 
 
 def _interfaces_exist(params: Any, config: DaemonConfig, keys: tuple[str, ...]) -> list[Problem]:
@@ -485,7 +480,7 @@ class MasterController(Controller):
             log.info("%s: %s", where, cause)
 
     # -------------------------------------------------------------- output
-    def _source_teleop(self, out: Output, now: float) -> Message:
+    def _source_teleop(self, out: Output, now: float) -> PoseSample:
         data, ctx = self.data, self.ctx
         assert data is not None and ctx is not None
         x, y, z = ctx.frame.tip_position(data.q)
@@ -500,17 +495,17 @@ class MasterController(Controller):
         self._seqs[key] = seq
         if out.type != "POSITION":
             raise OCCError("teleop output must be of type POSITION")
-        return position_v2(
+        return PoseSample(
+            name,
+            None,
             out.device,
-            ctx.clock.wall_time(),
-            seq,
-            _RUN_CLUTCH[bool(running), bool(self.clutch)],
             (x / MM, y / MM, z / MM),
-            _NO_ROTATION,
-            POSITION_QUATERNION3,
+            seq=seq,
+            t_sample=ctx.clock.wall_time(),
+            meta=_RUN_CLUTCH[bool(running), bool(self.clutch)],
         )
 
-    def _source_fixtures(self, out: Output, now: float) -> Message | None:
+    def _source_fixtures(self, out: Output, now: float) -> Outgoing | None:
         """The fixtures' models, when they changed since this output last sent them (or an
         operator asked: GetFixtures)."""
         if out.type != "POLYDATA":
@@ -522,7 +517,7 @@ class MasterController(Controller):
         assert self.ctx is not None
         return self.fixtures.model_message(out.device, self.ctx.clock.wall_time())
 
-    def _source_contact(self, out: Output, now: float) -> Message | None:
+    def _source_contact(self, out: Output, now: float) -> Outgoing | None:
         """The proxy and contact state, while in contact and once when it ends."""
         if out.type != "TRANSFORM":
             raise OCCError("contact output must be of type TRANSFORM")
@@ -648,7 +643,7 @@ class SlaveController(Controller):
             self._map_text = ",".join(f"{v:.9g}" for v in lin.tolist())
         return self._map_text
 
-    def _source_return(self, out: Output, now: float) -> Message | None:
+    def _source_return(self, out: Output, now: float) -> PoseSample | None:
         """The return channel: the tip as 3D Slicer sees it (patient frame), to the master
         that streams to this interface (occ/returnlink.py has the format)."""
         if out.type != "POSITION":
@@ -682,14 +677,15 @@ class SlaveController(Controller):
         self._return_seqs[k] = seq
         self.returned += 1
         assert self.ctx is not None
-        return position_v2(
+        return PoseSample(
+            iface.name,
+            None,
             out.device,
-            self.ctx.clock.wall_time(),
-            seq,
-            meta,
             (x, y, z),
             rotation_to_quaternion(pose[:3, :3]),
-            POSITION_ALL,
+            seq=seq,
+            t_sample=self.ctx.clock.wall_time(),
+            meta=meta,
         )
 
     def configure(self, data: RobotData, ctx: ControllerContext) -> None:
