@@ -59,6 +59,47 @@ class Request:
     msg: Message | None = None
 
 
+@dataclass(frozen=True)
+class CommandSpec:
+    """One of the robot's own commands (not a controller's): who may send it and which thread
+    answers it."""
+
+    name: str
+    #: ``viewer``: read-only, any client of a viewer or operator interface may ask;
+    #: ``operator``: changes something, operator interfaces only
+    role: str
+    #: ``loop``: answered in the tick that takes it; ``worker``: built and sent by the worker
+    #: thread (the loop only hands it over); ``deferred``: answered when its work is done
+    thread: str
+    summary: str
+
+
+#: The robot's commands, by lower-case name (occ/operators.py has a handler for each; a name
+#: not here goes to the controllers). docs/ARCHITECTURE.md, "Add an operator command".
+ROBOT_COMMANDS: dict[str, CommandSpec] = {
+    c.name.lower(): c
+    for c in (
+        CommandSpec("Enable", "operator", "loop", "servos on, holding: READY -> ENABLED"),
+        CommandSpec("Run", "operator", "loop", "follow the controllers: -> RUNNING"),
+        CommandSpec("Stop", "operator", "loop", "hold the last setpoint: -> STOPPED"),
+        CommandSpec("Hold", "operator", "loop", "RUNNING -> ENABLED"),
+        CommandSpec("Disable", "operator", "loop", "servos off: -> READY"),
+        CommandSpec("EStop", "operator", "loop", "emergency stop, latched: -> ESTOP"),
+        CommandSpec("Reset", "operator", "loop", "clear a latch: FAULT/ESTOP -> READY"),
+        CommandSpec("GetState", "viewer", "loop", "the state and why"),
+        CommandSpec("GetStats", "viewer", "worker", "every statistic (JSON)"),
+        CommandSpec("GetStateTable", "viewer", "worker", "the State Data Table (NDARRAY)"),
+        CommandSpec("Handover", "operator", "loop", "give the motion to another master"),
+        CommandSpec("StartRecording", "operator", "deferred", "record to OutputFilename"),
+        CommandSpec("StopRecording", "operator", "deferred", "close the recording"),
+        CommandSpec("GetRecordingStatus", "viewer", "loop", "whether and where it records"),
+    )
+}
+
+#: what a viewer may ask (the rest of its requests are refused by its interface)
+READ_ONLY_COMMANDS = frozenset(k for k, c in ROBOT_COMMANDS.items() if c.role == "viewer")
+
+
 class Deferred:
     """The answer to a command that comes later, from any thread (the loop only hands the work
     over). The handler returns it; the operator desk binds the reply to it; whoever finishes

@@ -50,7 +50,7 @@ from igtl.messages.base import Message
 from igtl.transport import InprocTransport, Peer, TCPClient, TCPServer, UDPEndpoint
 from igtl.transport.common import AccessList, RateLimit
 
-from .commands import error_reply, parse_request
+from .commands import READ_ONLY_COMMANDS, error_reply, parse_request
 from .errors import CommandError
 from .samples import PoseSample, pose_sample
 
@@ -58,7 +58,6 @@ log = logging.getLogger(__name__)
 
 COMMAND_TYPES = frozenset({"COMMAND"})
 #: commands a viewer may send: they read, never act (names compared in lower case)
-READ_ONLY_COMMANDS = frozenset({"getstate", "getstats", "getstatetable"})
 ROLES = ("none", "viewer", "operator")
 _TRANSPORT_REFUSALS = (
     "over_budget",

@@ -21,7 +21,15 @@ from igtl.messages.base import Message
 from igtl.transport.common import RateLimit
 
 from . import _native
-from .commands import Deferred, Request, error_reply, parse_request, safe_name, success_reply
+from .commands import (
+    ROBOT_COMMANDS,
+    Deferred,
+    Request,
+    error_reply,
+    parse_request,
+    safe_name,
+    success_reply,
+)
 from .errors import CommandError, StateError
 from .interfaces import Inbound, is_operator_request
 from .outputs import STATE_STATUS_CODE, pose_to_message
@@ -37,16 +45,12 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("occ.robot")
 
-#: Operator command -> state-machine event.
-COMMAND_EVENTS = {
-    "enable": "enable",
-    "disable": "disable",
-    "run": "run",
-    "stop": "stop",
-    "estop": "estop",
-    "reset": "reset",
-    "hold": "hold",
-}
+#: The robot commands that are state-machine events (the event has the command's name).
+COMMAND_EVENTS = frozenset({"enable", "disable", "run", "stop", "estop", "reset", "hold"})
+
+#: a robot command's handler: its reply text, a Deferred (answered later), or None (the
+#: worker thread sends the reply)
+Handler = Callable[["Request", Inbound, float], "str | Deferred | None"]
 
 #: statistics a viewer is not shown: what it would take to forge the master stream (the next
 #: sequence number, the stream's source port)
@@ -73,6 +77,18 @@ class OperatorDesk:
         self._refusal_log = RateLimit(5)
         #: StartRecording, StopRecording, GetRecordingStatus (occ/reccontrol.py)
         self.recording = RecordingControl(robot)
+        transitions = dict.fromkeys(COMMAND_EVENTS, self._transition)
+        self._handlers: dict[str, Handler] = {
+            **transitions,
+            "getstate": self._get_state,
+            "getstats": self._get_stats,
+            "getstatetable": self._get_state_table,
+            "handover": self._handover,
+            **dict.fromkeys(RECORDING_COMMANDS, self._recording),
+        }
+        missing = set(ROBOT_COMMANDS) ^ set(self._handlers)
+        if missing:  # the table and the handlers are one list: a new command needs both
+            raise AssertionError(f"robot commands without a handler (or vice versa): {missing}")
 
     def greet(self, iface: Any, peer: Any) -> None:
         """A new client of a viewer or operator interface is told the state (runs on the
@@ -151,22 +167,11 @@ class OperatorDesk:
                 req = parse_request(msg)
             if req.kind == "query":
                 reply = self._answer_query(req, wall)
-            elif req.name.strip().lower() == "getstats":
-                # statistics are built off the loop thread; the worker replies
-                if not r.worker.start().submit(lambda: self._reply_stats(item, req)):
-                    raise CommandError("busy: too many statistics requests; try again")
-                self.handled += 1
-                return
-            elif req.name.strip().lower() == "getstatetable":
-                # arguments checked here (a bad one is answered at once), the table read and
-                # sent by the worker
-                job = self._state_table_job(item, req)
-                if not r.worker.start().submit(job):
-                    raise CommandError("busy: too many requests for the worker; try again")
-                self.handled += 1
-                return
             else:
-                text = self._execute(req, now, item.interface)
+                text = self._execute(req, item, now)
+                if text is None:  # the worker replies (statistics, the state table)
+                    self.handled += 1
+                    return
                 if isinstance(text, Deferred):
                     # answered when the work is done (a controller's planner thread)
                     self.handled += 1
@@ -310,27 +315,47 @@ class OperatorDesk:
         text = f"StateTable: {len(rows)} rows{span}; columns {meta['columns']}"
         r.interfaces.reply(item, success_reply(req, text, timestamp=wall))
 
-    def _execute(self, req: Request, now: float, interface: str = "") -> str | Deferred:
-        r = self.robot
+    def _execute(self, req: Request, item: Inbound, now: float) -> str | Deferred | None:
+        """A robot command through its handler (occ/commands.py, ROBOT_COMMANDS), any other to
+        the controllers. None: the worker thread sends the reply."""
         key = req.name.strip().lower()
-        if key == "handover":
-            to = req.args.get("To", req.args.get("to", "")).strip()
-            return r.handover(to, interface, now)
-        event = COMMAND_EVENTS.get(key)
-        if event is not None:
-            reason = f"operator {req.name}"
-            if event == "reset":
-                r.reset_monitors()
-                if r.state_machine.state is RobotState.STOPPED:
-                    r.alarms.last_alert = ""
-                    return "STOPPED: alerts cleared; send Run to resume"
-            tr = r.state_machine.request(event, reason)
-            return f"{tr.old.value} -> {tr.new.value}"
-        if key == "getstate":
-            return self.describe_state()
-        if key in RECORDING_COMMANDS:
-            return self.recording.execute(key, req)
-        return r.controller.on_command(req, now) or "OK"
+        if key not in ROBOT_COMMANDS:
+            return self.robot.controller.on_command(req, now) or "OK"
+        return self._handlers[key](req, item, now)
+
+    # -- the handlers of ROBOT_COMMANDS, by name (``_handlers``, checked complete at build)
+    def _transition(self, req: Request, item: Inbound, now: float) -> str:
+        r = self.robot
+        event = req.name.strip().lower()
+        if event == "reset":
+            r.reset_monitors()
+            if r.state_machine.state is RobotState.STOPPED:
+                r.alarms.last_alert = ""
+                return "STOPPED: alerts cleared; send Run to resume"
+        tr = r.state_machine.request(event, f"operator {req.name}")
+        return f"{tr.old.value} -> {tr.new.value}"
+
+    def _get_state(self, req: Request, item: Inbound, now: float) -> str:
+        return self.describe_state()
+
+    def _get_stats(self, req: Request, item: Inbound, now: float) -> None:
+        # statistics are built off the loop thread; the worker replies
+        if not self.robot.worker.start().submit(lambda: self._reply_stats(item, req)):
+            raise CommandError("busy: too many statistics requests; try again")
+
+    def _get_state_table(self, req: Request, item: Inbound, now: float) -> None:
+        # arguments checked here (a bad one is answered at once), the table read and sent by
+        # the worker
+        job = self._state_table_job(item, req)
+        if not self.robot.worker.start().submit(job):
+            raise CommandError("busy: too many requests for the worker; try again")
+
+    def _handover(self, req: Request, item: Inbound, now: float) -> str:
+        to = req.args.get("To", req.args.get("to", "")).strip()
+        return self.robot.handover(to, item.interface, now)
+
+    def _recording(self, req: Request, item: Inbound, now: float) -> str | Deferred:
+        return self.recording.execute(req.name.strip().lower(), req)
 
     def _answer_query(self, req: Request, wall: float) -> Message:
         r = self.robot

@@ -900,3 +900,28 @@ def test_the_log_names_each_refusal_and_lost_reply_at_most_five_a_second(sim, mo
     assert [r.getMessage() for r in caplog.records] == [
         f"operator: reply to {peer} could not be sent: gone"
     ] * 2
+
+
+def test_every_robot_command_in_the_table_is_answered_by_its_role_and_thread() -> None:
+    """ROBOT_COMMANDS (occ/commands.py) is the one list: a viewer may ask the ``viewer``
+    commands and is refused the others by its interface; every command gets an answer (the
+    worker's ones from the worker thread)."""
+    from occ.commands import ROBOT_COMMANDS
+    from occ.testing import wait_until
+
+    with SimRobot(SLAVE) as sim:
+        viewer = sim.peer("slicer")
+        sim.step(3)
+        for key, spec in ROBOT_COMMANDS.items():
+            cid = viewer.send_command(spec.name)
+            sim.step(1)
+            reply = wait_until(lambda c=cid: viewer.reply_to(c), timeout=5.0)
+            assert reply is not None, spec.name
+            refused = reply.metadata.get("Status") != "SUCCESS"
+            if spec.role == "operator":
+                assert refused and "a viewer may query but not command" in str(
+                    reply.metadata.get("Error", "")
+                ), (key, reply.metadata)
+            elif spec.name != "GetStateTable":  # the slave has no table: a clear refusal
+                assert not refused, (key, reply.metadata)
+        assert sim.robot.state is RobotState.READY  # nothing a viewer sent changed anything
