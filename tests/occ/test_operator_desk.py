@@ -9,7 +9,6 @@ description names the alert and the reason; the statistics hold what they claim.
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +17,7 @@ import pytest
 import igtl
 from occ.operators import VIEWER_HIDDEN, redact_for_viewer
 from occ.safety import RobotState
-from occ.testing import SimPeer, SimRobot
+from occ.testing import SimPeer, SimRobot, wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 SLAVE = ROOT / "configs" / "slave.yaml"
@@ -59,12 +58,8 @@ def answers(sim: SimRobot, msg: igtl.Message, role: str = "operator") -> list[ig
 
 
 def wait_for(cond, timeout: float = 5.0) -> bool:
-    end = time.monotonic() + timeout  # the worker thread answers GetStats
-    while not cond():
-        if time.monotonic() > end:
-            return False
-        time.sleep(0.002)
-    return True
+    """The worker thread answers GetStats: wait for it (occ.testing.wait_until)."""
+    return bool(wait_until(cond, timeout, every=0.002))
 
 
 @pytest.mark.req("SR-ROUTE-1")
