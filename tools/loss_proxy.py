@@ -632,6 +632,19 @@ class LossProxy:
                     ]
                 )
 
+    def write_gaps_csv(self, path: str | Path) -> None:
+        """One row per arrival gap longer than ``gap_log_ms``, with who was late for it."""
+        with self._lock:
+            rows = [
+                {"t_wall": self.mono_to_wall(t0), **d}
+                for (t0, _g), d in zip(self.gaps, self.gap_detail, strict=False)
+            ]
+        with open(path, "w", newline="") as fh:
+            w = csv.DictWriter(fh, ["t_wall", "gap_ms", "kernel_gap_ms", "age_ms", "cause"])
+            w.writeheader()
+            for r in rows:
+                w.writerow({k: ("" if v is None else v) for k, v in r.items()})
+
     def write_runs_csv(self, path: str | Path) -> None:
         """One row per run of consecutive drops."""
         with self._lock:

@@ -764,6 +764,7 @@ def run_real(args: argparse.Namespace, out: Path) -> Report:
             standin.stop()
     proxy.write_csv(out / "drops.csv")
     proxy.write_runs_csv(out / "proxy_runs.csv")
+    proxy.write_gaps_csv(out / "proxy_gaps.csv")
     statuses = list(standin.statuses) if standin is not None else []
     stats: dict[str, Any] = {}
     for name in ("slave", "master"):
@@ -949,6 +950,8 @@ def analyse_real(
                 latencies.append((t_stop - prev_good) * 1e3)
         else:
             row["kind"] = "run<=2 + late delivery"
+            lo = t_stop - (why.get("silence_ms") or 0.0) * 1e-3 - tol
+            row["diagnosis"] = gap_at_proxy(proxy, lo, t_stop) or "no gap at the proxy"
             late_short.append(
                 f"{rel:.3f} s: run of {run.length} (seq {run.first_seq}), proxy silence "
                 f"{s_proxy if s_proxy is None else round(s_proxy, 2)} ms, slave silence "
