@@ -18,6 +18,10 @@ Drop patterns (combinable: a datagram is dropped if any of them says so):
     N runs of exactly L consecutive datagrams, at random (seeded) places, spaced at least
     ``--min-gap`` datagrams apart so runs never merge, after ``--warmup`` datagrams and before
     ``--expected`` datagrams (default ``duration * rate_hz``) minus ``--tail``.
+``--drop-cycle L1,L2,...``
+    runs of these lengths in this order, repeated, every ``--min-gap`` datagrams (from the end
+    of one run to the start of the next) between ``--warmup`` and ``--expected`` minus
+    ``--tail``: ``2,2,3`` is the relay of the OCC test (drops of 2, 2, then 3 packets).
 ``--delay-ms D --jitter-ms J``
     every forwarded datagram waits D + uniform(-J, +J) ms (never below 0; with jitter,
     datagrams may be reordered, as on a real network).
@@ -47,6 +51,7 @@ import argparse
 import csv
 import heapq
 import json
+import os
 import random
 import select
 import socket
@@ -54,6 +59,7 @@ import struct
 import sys
 import threading
 import time
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -65,9 +71,18 @@ __all__ = [
     "LossProxy",
     "RunRecord",
     "igtl_seq",
+    "igtl_timestamp",
+    "parse_drop_cycle",
     "parse_drop_runs",
     "main",
 ]
+
+#: Linux's SO_TIMESTAMPNS (= SCM_TIMESTAMPNS; not exported by Python's socket module): the
+#: kernel's arrival time of each datagram, a struct timespec in the ancillary data
+_SO_TIMESTAMPNS = 35
+_TIMESPEC = struct.Struct("@qq")
+#: the header's timestamp: uint64 at offset 34 (32-bit seconds, 32-bit binary fraction)
+_STAMP = struct.Struct(">II")
 
 #: IGTL v2: 58-byte header, then ext header size (2), metadata header size (2), metadata size
 #: (4), message ID (4): bytes 66..69 of the datagram.
@@ -102,6 +117,29 @@ def parse_drop_runs(specs: Sequence[str]) -> list[tuple[int, int]]:
     return out
 
 
+def igtl_timestamp(datagram: bytes | bytearray | memoryview) -> float | None:
+    """The header timestamp of an IGTL datagram (Unix seconds), None if short or zero."""
+    if len(datagram) < 42:
+        return None
+    sec, frac = _STAMP.unpack_from(datagram, 34)
+    return sec + frac / 4294967296.0 if sec else None
+
+
+def parse_drop_cycle(spec: str | None) -> list[int]:
+    """``"2,2,3"`` -> ``[2, 2, 3]`` (run lengths, in order); None or empty -> ``[]``."""
+    if not spec:
+        return []
+    try:
+        lengths = [int(v) for v in spec.split(",")]
+    except ValueError:
+        raise ValueError(
+            f"--drop-cycle takes run lengths L1,L2,... (e.g. 2,2,3), got {spec!r}"
+        ) from None
+    if any(length < 1 for length in lengths):
+        raise ValueError(f"--drop-cycle {spec!r}: every run length must be >= 1")
+    return lengths
+
+
 def parse_burst(spec: str) -> tuple[float, float, float]:
     try:
         parts = [float(v) for v in spec.split(",")]
@@ -132,6 +170,7 @@ class LossPattern:
         burst: tuple[float, float, float] | None = None,
         loss_good: float = 0.0,
         drop_runs: Sequence[tuple[int, int]] = (),
+        drop_cycle: Sequence[int] = (),
         expected: int = 0,
         warmup: int = 0,
         tail: int = 0,
@@ -144,6 +183,7 @@ class LossPattern:
         self.burst = burst
         self.loss_good = float(loss_good)
         self.drop_runs_spec = list(drop_runs)
+        self.drop_cycle = list(drop_cycle)
         # separate generators, so adding one pattern does not change the others' draws
         self._rng_loss = random.Random(f"{seed}/loss")
         self._rng_burst = random.Random(f"{seed}/burst")
@@ -153,6 +193,12 @@ class LossPattern:
         self.schedule: list[tuple[int, int]] = self._plan(
             drop_runs, expected=expected, warmup=warmup, tail=tail, min_gap=min_gap
         )
+        if self.drop_cycle:
+            if self.schedule:
+                raise ValueError("--drop-cycle and --drop-runs cannot be combined")
+            self.schedule = self._plan_cycle(
+                self.drop_cycle, lo=warmup, hi=expected - tail, min_gap=min_gap
+            )
         self._starts = {start: length for start, length in self.schedule}
         self._run_left = 0
 
@@ -189,6 +235,25 @@ class LossPattern:
             pos += length + min_gap
         return schedule
 
+    @staticmethod
+    def _plan_cycle(
+        cycle: Sequence[int], *, lo: int, hi: int, min_gap: int
+    ) -> list[tuple[int, int]]:
+        """The cycle's runs in order, repeated, ``min_gap`` datagrams apart, in ``lo..hi``."""
+        schedule: list[tuple[int, int]] = []
+        pos = lo
+        while True:
+            length = cycle[len(schedule) % len(cycle)]
+            if pos + length > hi:
+                break
+            schedule.append((pos, length))
+            pos += length + max(1, min_gap)
+        if not schedule:
+            raise ValueError(
+                f"--drop-cycle {','.join(map(str, cycle))}: no run fits in datagrams {lo}..{hi}"
+            )
+        return schedule
+
     def decide(self) -> str | None:
         i = self.index
         self.index += 1
@@ -223,6 +288,7 @@ class LossPattern:
             "burst": list(self.burst) if self.burst else None,
             "loss_good": self.loss_good,
             "drop_runs": [f"{length}:{count}" for length, count in self.drop_runs_spec],
+            "drop_cycle": ",".join(map(str, self.drop_cycle)) or None,
             "scheduled_runs": len(self.schedule),
         }
 
@@ -279,6 +345,7 @@ class LossProxy:
         allow_any: bool = False,
         max_log: int = 1_000_000,
         gap_log_ms: float = 5.0,
+        fifo_priority: int | None = None,
     ) -> None:
         if not allow_any:
             for host in (listen[0], target[0]):
@@ -304,6 +371,23 @@ class LossProxy:
         #: (arrival of the datagram before the gap (monotonic), gap in s) for every inter-arrival
         #: gap longer than ``gap_log_ms``: stalls of the sender (or of the proxy) before any drop
         self.gaps: list[tuple[float, float]] = []
+        #: why each of ``gaps`` happened (same order): the kernel's arrival gap (when the sender
+        #: sent: loopback delivers inside ``sendto``), the age of the datagram after the gap
+        #: (its header timestamp) and the verdict, "relay read late" (sent on time, this
+        #: process read it late), "master sent late" (stamped on time, sent late) or "master
+        #: silent" (nothing stamped: its loop did not run)
+        self.gap_detail: list[dict[str, Any]] = []
+        self._kernel_ts = False
+        if sys.platform.startswith("linux"):
+            try:
+                self.sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+                self._kernel_ts = True
+            except OSError:
+                pass
+        self._last_kernel: float | None = None
+        #: SCHED_FIFO priority of the forwarding thread (where permitted); None: normal
+        self.fifo_priority = fifo_priority
+        self.scheduling = "normal"
         self.gap_log_s = gap_log_ms * 1e-3
         self._last_rx: float | None = None
         self.drops: list[DropRecord] = []
@@ -353,6 +437,12 @@ class LossProxy:
     def serve(self) -> None:
         """Forward until ``duration`` elapses or :meth:`stop`; every wait is bounded."""
         mono = time.monotonic
+        if self.fifo_priority is not None:
+            try:  # Linux: pid 0 is the calling thread only
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.fifo_priority))
+                self.scheduling = f"SCHED_FIFO {self.fifo_priority}"
+            except (OSError, AttributeError) as err:
+                self.scheduling = f"normal (SCHED_FIFO refused: {err})"
         self.t_start_mono = mono()
         self.t_start_wall = time.time()
         end = self.t_start_mono + self.duration if self.duration is not None else float("inf")
@@ -372,14 +462,22 @@ class LossProxy:
                 break
             if ready:
                 for _ in range(256):  # bounded batch per wake-up
+                    kt: float | None = None
                     try:
-                        data = sock.recv(65535)
+                        if self._kernel_ts:
+                            data, anc, _flags, _addr = sock.recvmsg(65535, 64)
+                            for level, kind, raw in anc:
+                                if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS:
+                                    sec, nsec = _TIMESPEC.unpack_from(raw)
+                                    kt = sec + nsec * 1e-9
+                        else:
+                            data = sock.recv(65535)
                     except BlockingIOError:
                         break
                     except OSError:
                         break
                     t = mono()
-                    if self._on_datagram(data, t):
+                    if self._on_datagram(data, t, kt):
                         due = t + self._delay()
                         if due <= t:
                             self._send(data)
@@ -406,14 +504,17 @@ class LossProxy:
         except OSError:
             self.counters.send_errors += 1
 
-    def _on_datagram(self, data: bytes, t: float) -> bool:
-        """Decide one datagram; log it if dropped. Returns True to forward it."""
+    def _on_datagram(self, data: bytes, t: float, kernel_t: float | None = None) -> bool:
+        """Decide one datagram; log it if dropped. Returns True to forward it. ``kernel_t``:
+        the kernel's arrival time (Unix s) when known."""
         c = self.counters
         c.received += 1
         last_rx = self._last_rx
         self._last_rx = t
         if last_rx is not None and t - last_rx > self.gap_log_s and len(self.gaps) < self.max_log:
             self.gaps.append((last_rx, t - last_rx))
+            self.gap_detail.append(self._explain_gap(t - last_rx, kernel_t, data))
+        self._last_kernel = kernel_t
         seq = igtl_seq(data)
         if seq is None:
             c.non_igtl_v2 += 1
@@ -456,6 +557,25 @@ class LossProxy:
                 run.causes += "+" + cause
         return False
 
+    def _explain_gap(self, gap: float, kernel_t: float | None, data: bytes) -> dict[str, Any]:
+        """Who was late for a gap in the arrivals this proxy read: itself, or the sender."""
+        last_k = self._last_kernel
+        k_gap = kernel_t - last_k if kernel_t is not None and last_k is not None else None
+        stamp = igtl_timestamp(data)
+        age = (kernel_t if kernel_t is not None else time.time()) - stamp if stamp else None
+        if k_gap is not None and k_gap < 0.5 * gap:
+            cause = "relay read late"
+        elif age is not None and age > 0.5 * (k_gap if k_gap is not None else gap):
+            cause = "master sent late"
+        else:
+            cause = "master silent"
+        return {
+            "gap_ms": round(gap * 1e3, 3),
+            "kernel_gap_ms": None if k_gap is None else round(k_gap * 1e3, 3),
+            "age_ms": None if age is None else round(age * 1e3, 3),
+            "cause": cause,
+        }
+
     # ------------------------------------------------------------------ results
     def mono_to_wall(self, t: float | None) -> float | None:
         if t is None or self.t_start_mono is None or self.t_start_wall is None:
@@ -484,9 +604,11 @@ class LossProxy:
                     "threshold_ms": self.gap_log_s * 1e3,
                     "count": len(self.gaps),
                     "max_ms": round(max((g for _, g in self.gaps), default=0.0) * 1e3, 3),
+                    "by_cause": dict(Counter(d["cause"] for d in self.gap_detail)),
                 },
                 "run_length_histogram": {str(k): hist[k] for k in sorted(hist)},
                 "pattern": self.pattern.describe(),
+                "scheduling": self.scheduling,
                 "delay_ms": self.delay_s * 1e3,
                 "jitter_ms": self.jitter_s * 1e3,
             }
@@ -509,6 +631,19 @@ class LossProxy:
                         "" if d.t_prev_good is None else f"{d.t_prev_good:.6f}",
                     ]
                 )
+
+    def write_gaps_csv(self, path: str | Path) -> None:
+        """One row per arrival gap longer than ``gap_log_ms``, with who was late for it."""
+        with self._lock:
+            rows = [
+                {"t_wall": self.mono_to_wall(t0), **d}
+                for (t0, _g), d in zip(self.gaps, self.gap_detail, strict=False)
+            ]
+        with open(path, "w", newline="") as fh:
+            w = csv.DictWriter(fh, ["t_wall", "gap_ms", "kernel_gap_ms", "age_ms", "cause"])
+            w.writeheader()
+            for r in rows:
+                w.writerow({k: ("" if v is None else v) for k, v in r.items()})
 
     def write_runs_csv(self, path: str | Path) -> None:
         """One row per run of consecutive drops."""
@@ -579,6 +714,13 @@ def add_pattern_arguments(p: argparse.ArgumentParser) -> None:
         default=[],
         metavar="L:N",
         help="N runs of exactly L consecutive datagrams at random places (repeatable)",
+    )
+    g.add_argument(
+        "--drop-cycle",
+        default=None,
+        metavar="L1,L2,...",
+        help="runs of these lengths in order, repeated, --min-gap datagrams apart "
+        "(2,2,3: the relay of the OCC test)",
     )
     g.add_argument(
         "--min-gap",
@@ -707,6 +849,7 @@ def pattern_from_args(
         burst=args.burst,
         loss_good=args.loss_good,
         drop_runs=runs,
+        drop_cycle=parse_drop_cycle(args.drop_cycle),
         expected=total,
         warmup=int(args.warmup * rate),
         tail=int(args.tail * rate),

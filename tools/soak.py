@@ -40,6 +40,15 @@ contiguous numbers only hold and resume (docs/ARCHITECTURE.md, "Safety").
     arrival of the last good datagram at the proxy) and reported, never judged: wall-clock
     numbers depend on the machine's load.
 
+    ``--runs N`` repeats the soak N times (``run-01/`` ... in the report folder, each a full
+    report) and adds a summary judged against a bar (issue 26, "late is not lost, on a busy
+    machine too"): no false latched stop (a stop not caused by a run of >= 3 drops, listed with
+    the slave's own words) and every run of >= 3 drops stopped the slave with an alert within
+    ``--stop-within-ms`` (default 20) of the last good packet. ``--hogs H`` runs H ordinary CPU
+    hogs (busy pure-Python processes at normal priority, each ending by itself after the run's
+    bound) beside each run: started before the daemons, killed after them; the load average
+    before and after each run is in the summary.
+
 Both modes write a report folder: ``report.json``, ``report.md``, ``runs.csv`` (every run of
 drops and its outcome), plots (``drops_over_time.png``, ``run_lengths.png``,
 ``stop_latency.png``), and for ``real`` also the drop log, both stats JSON files and daemon logs.
@@ -50,6 +59,7 @@ Examples::
     python tools/soak.py sim --sim-seconds 3600 --out /tmp/soak-sim
     python tools/soak.py sim --sim-seconds 30 --drop-runs 1:20 --drop-runs 2:20 --drop-runs 3:10
     python tools/soak.py real --duration 60 --out /tmp/soak-real
+    python tools/soak.py real --drop-cycle 2,2,3 --hogs 2 --runs 20 --duration 30
 """
 
 from __future__ import annotations
@@ -249,7 +259,7 @@ def run_sim(args: argparse.Namespace, out: Path) -> Report:
         pattern = pattern_from_args(args, sim_s, expected=packets, min_gap_default=min_gap_default)
     except ValueError as err:
         raise SystemExit(f"soak sim: {err}") from None
-    if not (args.loss or args.burst or args.drop_runs):
+    if not (args.loss or args.burst or args.drop_runs or args.drop_cycle):
         # default: Gilbert-Elliott bursts (mean length 2) plus 0.5 % independent loss
         pattern = LossPattern(seed=args.seed, loss=0.005, burst=(0.002, 0.5, 1.0))
     slave = SimSlave(Path(args.config), first_seq=args.first_seq)
@@ -663,7 +673,7 @@ def run_real(args: argparse.Namespace, out: Path) -> Report:
     rep = Report("real")
     duration = float(args.duration)
     rate = float(args.rate_hz)
-    if not (args.loss or args.burst or args.drop_runs):
+    if not (args.loss or args.burst or args.drop_runs or args.drop_cycle):
         n = max(1, int(duration // 6))
         args.drop_runs = [f"1:{4 * n}", f"2:{2 * n}", f"3:{n}", f"5:{max(1, n // 2)}"]
     # runs at least 0.6 s apart (stop + pause + Run round trip fits in between)
@@ -685,6 +695,7 @@ def run_real(args: argparse.Namespace, out: Path) -> Report:
         jitter_ms=args.jitter_ms,
         duration=bound,
         seed=args.seed,
+        fifo_priority=args.relay_fifo,
     )
     set_master_remote(ports, proxy.address[1])
     rep.numbers["ports"] = {k: v for k, v in ports.items() if not k.startswith("_")}
@@ -753,6 +764,7 @@ def run_real(args: argparse.Namespace, out: Path) -> Report:
             standin.stop()
     proxy.write_csv(out / "drops.csv")
     proxy.write_runs_csv(out / "proxy_runs.csv")
+    proxy.write_gaps_csv(out / "proxy_gaps.csv")
     statuses = list(standin.statuses) if standin is not None else []
     stats: dict[str, Any] = {}
     for name in ("slave", "master"):
@@ -785,6 +797,35 @@ def parse_stop_reason(msg: str) -> dict[str, Any]:
     if m:
         return {"kind": "deadline", "silence_ms": float(m.group(1))}
     return {"kind": "other"}
+
+
+GAP_CAUSES = {
+    "relay read late": "the master sent on time and this soak's relay read it late",
+    "master sent late": "the master stamped its samples on time and sent them late",
+    "master silent": "the master stamped and sent nothing",
+}
+
+
+def gap_at_proxy(proxy: LossProxy, lo: float, hi: float) -> str | None:
+    """The longest gap in the arrivals at the proxy that overlaps [lo, hi] (wall time), and who
+    was late for it (:meth:`LossProxy._explain_gap`); None if there was none."""
+    wall = proxy.mono_to_wall
+    over = [
+        (g, i)
+        for i, (t0, g) in enumerate(proxy.gaps)
+        if wall(t0) <= hi and wall(t0) + g >= lo  # type: ignore[operator]
+    ]
+    if not over:
+        return None
+    g, i = max(over)
+    d = proxy.gap_detail[i] if i < len(proxy.gap_detail) else {}
+    text = f"the stream arrived {g * 1e3:.1f} ms late at the proxy"
+    if d:
+        text += (
+            f": {GAP_CAUSES[d['cause']]} (kernel arrival gap {d['kernel_gap_ms']} ms, the "
+            f"next sample {d['age_ms']} ms old)"
+        )
+    return text
 
 
 def analyse_real(
@@ -880,15 +921,7 @@ def analyse_real(
             idx = max(over, key=lambda i: runs[i].length) if over else None
         if idx is None:
             lo = t_stop - (why.get("silence_ms") or 0.0) * 1e-3 - tol
-            stall = max(
-                (g for t0, g in proxy.gaps if wall(t0) <= t_stop and wall(t0) + g >= lo),  # type: ignore[operator]
-                default=None,
-            )
-            where = (
-                f"the stream arrived {stall * 1e3:.1f} ms late at the proxy (master stalled)"
-                if stall is not None
-                else "no gap at the proxy: late inside the slave"
-            )
+            where = gap_at_proxy(proxy, lo, t_stop) or "no gap at the proxy: late inside the slave"
             row["kind"] = "deadline (no drop)"
             row["diagnosis"] = where
             deadline_only.append(f"{rel:.3f} s: {msg}; {where}")
@@ -910,10 +943,15 @@ def analyse_real(
             row["latency_est_ms"] = round((t_stop - prev_good) * 1e3, 3)
         if run.length > MAX_TOLERATED:
             row["kind"] = "run>=3"
+            slow = gap_at_proxy(proxy, prev_good, t_stop) if prev_good is not None else None
+            if slow is not None:
+                row["diagnosis"] = slow
             if prev_good is not None:
                 latencies.append((t_stop - prev_good) * 1e3)
         else:
             row["kind"] = "run<=2 + late delivery"
+            lo = t_stop - (why.get("silence_ms") or 0.0) * 1e-3 - tol
+            row["diagnosis"] = gap_at_proxy(proxy, lo, t_stop) or "no gap at the proxy"
             late_short.append(
                 f"{rel:.3f} s: run of {run.length} (seq {run.first_seq}), proxy silence "
                 f"{s_proxy if s_proxy is None else round(s_proxy, 2)} ms, slave silence "
@@ -1062,6 +1100,221 @@ def analyse_real(
         f"{judged_long} runs >= 3 and {cats.get('no-stop', 0)} runs of 1-2 judged",
         severity="warn",
     )
+
+
+# =============================================================================================
+# real --runs N --hogs H: repeated soaks beside CPU hogs, judged against a bar
+# =============================================================================================
+
+#: a busy loop at normal priority that ends by itself after argv[1] seconds
+_HOG = (
+    "import sys, time\n"
+    "end = time.monotonic() + float(sys.argv[1])\n"
+    "while time.monotonic() < end:\n"
+    "    pass\n"
+)
+
+
+def start_hogs(n: int, bound_s: float) -> list[subprocess.Popen[bytes]]:
+    """``n`` ordinary CPU hogs (pure Python busy loops, normal priority), bounded by ``bound_s``."""
+    return [
+        subprocess.Popen(
+            [sys.executable, "-c", _HOG, f"{bound_s:.1f}"],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        for _ in range(n)
+    ]
+
+
+def stop_hogs(hogs: list[subprocess.Popen[bytes]], t_started: float) -> list[float | None]:
+    """Kill the hogs; the share of a core each used while it ran (%), None if unknown."""
+    wall = time.monotonic() - t_started
+    shares = []
+    for proc in hogs:
+        cpu = _proc_cpu_s(proc.pid) if proc.poll() is None else None
+        shares.append(round(100.0 * cpu / wall, 1) if cpu is not None and wall > 0 else None)
+        proc.kill()
+        proc.wait(timeout=5.0)
+    return shares
+
+
+def _loadavg() -> str:
+    try:
+        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+    except OSError:
+        return "unknown"
+
+
+def summarize_real_run(index: int, rep: Report, bar_ms: float) -> dict[str, Any]:
+    """What one soak says about the bar: its false stops (with the slave's words) and, for every
+    run of >= 3 drops, whether the slave stopped with an alert and how soon (the stops slower
+    than ``bar_ms`` with who was late)."""
+    triples = [r for r in rep.runs if r.length > MAX_TOLERATED]
+    false = [
+        {k: s.get(k) for k in ("t_s", "kind", "reason", "diagnosis", "run_length") if k in s}
+        for s in rep.stops
+        if s.get("kind") != "run>=3"
+    ]
+    return {
+        "run": index,
+        "passed_soak_checks": rep.passed,
+        "failed_checks": [c.name for c in rep.checks if c.label == "FAIL"],
+        "drop_runs": rep.numbers.get("run_length_histogram"),
+        "relay_scheduling": (rep.numbers.get("proxy") or {}).get("scheduling"),
+        "relay_gaps": (rep.numbers.get("proxy") or {}).get("arrival_gaps_over_ms"),
+        "runs_ge3": len(triples),
+        "runs_ge3_stopped": sum(1 for r in triples if r.category == "stop"),
+        "runs_ge3_missed": sum(1 for r in triples if r.category == "missed"),
+        "runs_ge3_masked": sum(1 for r in triples if r.category == "masked"),
+        "stop_latency_ms": [r.latency_ms for r in triples if r.category == "stop"],
+        "false_stops": false,
+        "slow_stops": [
+            {k: s.get(k) for k in ("t_s", "latency_est_ms", "reason", "diagnosis")}
+            for s in rep.stops
+            if s.get("kind") == "run>=3" and (s.get("latency_est_ms") or 0.0) > bar_ms
+        ],
+        "holds": (rep.numbers.get("slave_loss_monitor") or {}).get("holds"),
+        "resumes": (rep.numbers.get("slave_loss_monitor") or {}).get("resumes"),
+        "refused_timestamps": {
+            k: v
+            for k, v in (rep.numbers.get("slave_loss_monitor") or {}).items()
+            if k in ("stale", "future")
+        },
+        "slave_lateness_us": rep.numbers.get("slave_lateness_us"),
+        "master_lateness_us": rep.numbers.get("master_lateness_us"),
+    }
+
+
+def run_real_series(args: argparse.Namespace, out: Path, command: str) -> Report:
+    rep = Report("real-series")
+    rows: list[dict[str, Any]] = []
+    bound = float(args.duration) + 90.0  # a hog outlives no run by more than this
+    for i in range(1, args.runs + 1):
+        sub = out / f"run-{i:02d}"
+        sub.mkdir(parents=True, exist_ok=True)
+        load_before = _loadavg()
+        t_hogs = time.monotonic()
+        hogs = start_hogs(args.hogs, bound)
+        try:
+            one = run_real(argparse.Namespace(**vars(args)), sub)
+        finally:
+            shares = stop_hogs(hogs, t_hogs)
+        one.command = f"{command} (run {i} of {args.runs})"
+        write_report(one, sub)
+        row = summarize_real_run(i, one, float(args.stop_within_ms))
+        row.update(
+            load_before=load_before,
+            load_after=_loadavg(),
+            hog_cpu_percent=shares,
+            hog_pids=[h.pid for h in hogs],
+        )
+        rows.append(row)
+        lat = [v for v in row["stop_latency_ms"] if v is not None]
+        print(
+            f"soak real run {i}/{args.runs}: {row['runs_ge3_stopped']}/{row['runs_ge3']} runs "
+            f">= 3 stopped (max {max(lat, default=float('nan')):.1f} ms), "
+            f"{len(row['false_stops'])} false stops, load {row['load_before']} -> "
+            f"{row['load_after']}, hogs {shares} % CPU",
+            flush=True,
+        )
+    bar = float(args.stop_within_ms)
+    lat = [v for r in rows for v in r["stop_latency_ms"] if v is not None]
+    false = [dict(f, run=r["run"]) for r in rows for f in r["false_stops"]]
+    triples = sum(r["runs_ge3"] for r in rows)
+    stopped = sum(r["runs_ge3_stopped"] for r in rows)
+    missed = sum(r["runs_ge3_missed"] for r in rows)
+    masked = sum(r["runs_ge3_masked"] for r in rows)
+    slow = [v for v in lat if v > bar]
+    rep.stops = false
+    rep.numbers = {
+        "runs": args.runs,
+        "duration_s": args.duration,
+        "hogs": args.hogs,
+        "relay_scheduling": rows[0]["relay_scheduling"] if rows else None,
+        "pattern": rows[0]["drop_runs"] if rows else None,
+        "runs_ge3": triples,
+        "runs_ge3_stopped": stopped,
+        "runs_ge3_missed": missed,
+        "runs_ge3_masked": masked,
+        "stop_latency_ms": summarize(lat),
+        "stops_slower_than_bar": len(slow),
+        "false_stops": len(false),
+        "false_stop_causes": [
+            f"run {f['run']} at {f['t_s']} s: {f['reason']}; {f.get('diagnosis')}" for f in false
+        ],
+        "slow_stops": [
+            f"run {r['run']} at {f['t_s']} s: {f['latency_est_ms']} ms; {f.get('diagnosis')}"
+            for r in rows
+            for f in r["slow_stops"]
+        ],
+        "per_run": rows,
+    }
+    rep.check(
+        "no false latched stop",
+        not false,
+        f"{len(false)} stops not caused by a run of >= 3 drops in {args.runs} runs of "
+        f"{args.duration:g} s" + (f": {rep.numbers['false_stop_causes'][:5]}" if false else ""),
+    )
+    rep.check(
+        f"every run >= 3 stopped the slave with an alert within {bar:g} ms",
+        triples > 0 and missed == 0 and not slow and stopped == len(lat),
+        f"{triples} runs >= 3: {stopped} stopped, {missed} missed, {masked} masked (the slave "
+        f"was already stopped); last good packet -> STOPPED alert {summarize(lat)} ms, "
+        f"{len(slow)} over {bar:g} ms" + (f": {rep.numbers['slow_stops'][:5]}" if slow else ""),
+    )
+    rep.check(
+        "no run >= 3 masked",
+        masked == 0,
+        f"{masked} runs >= 3 started while the slave was stopped (not judged)",
+        severity="warn",
+    )
+    return rep
+
+
+def write_series_report(rep: Report, out: Path) -> None:
+    """report.json + report.md of ``--runs``: the bar, then one row per run."""
+    data = {
+        "mode": rep.mode,
+        "passed": rep.passed,
+        "command": rep.command,
+        "checks": [asdict(c) | {"label": c.label} for c in rep.checks],
+        "numbers": rep.numbers,
+    }
+    (out / "report.json").write_text(json.dumps(data, indent=2, default=str) + "\n")
+    n = rep.numbers
+    lines = [
+        f"# Loss soak, {n['runs']} runs beside {n['hogs']} CPU hogs: "
+        f"{'PASS' if rep.passed else 'FAIL'}",
+        "",
+        f"Command: `{rep.command}`; the relay's thread: {n['relay_scheduling']}",
+        "",
+        "| check | result | detail |",
+        "|---|---|---|",
+        *(f"| {c.name} | {c.label} | {c.detail.replace('|', '/')} |" for c in rep.checks),
+        "",
+        "| run | load before -> after | hogs % CPU | runs >= 3 stopped / missed / masked "
+        "| stop latency max (ms) | holds / resumes | arrival gaps > 5 ms at the relay "
+        "| false stops |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in n["per_run"]:
+        lat = [v for v in r["stop_latency_ms"] if v is not None]
+        causes = (
+            "; ".join(
+                f"{f['t_s']} s: {f['reason']} ({f.get('diagnosis')})" for f in r["false_stops"]
+            )
+            or "0"
+        )
+        lines.append(
+            f"| {r['run']} | {r['load_before']} -> {r['load_after']} | {r['hog_cpu_percent']} "
+            f"| {r['runs_ge3_stopped']}/{r['runs_ge3']} / {r['runs_ge3_missed']} / "
+            f"{r['runs_ge3_masked']} | {max(lat, default=float('nan')):.2f} "
+            f"| {r['holds']} / {r['resumes']} | {(r['relay_gaps'] or {}).get('by_cause')} "
+            f"| {causes.replace('|', '/')} |"
+        )
+    (out / "report.md").write_text("\n".join(lines) + "\n")
 
 
 # =============================================================================================
@@ -1641,6 +1894,35 @@ def build_parser() -> argparse.ArgumentParser:
         help="a stop not caused by packet loss (watchdog: an overloaded machine) is a "
         "warning, not a failure",
     )
+    r.add_argument(
+        "--relay-fifo",
+        type=int,
+        default=None,
+        metavar="PRIO",
+        help="run the loss proxy's thread SCHED_FIFO at PRIO where permitted (below the "
+        "daemons' 59-61), so CPU hogs starve the daemons, not the relay (default: normal)",
+    )
+    r.add_argument(
+        "--runs",
+        type=int,
+        default=None,
+        metavar="N",
+        help="repeat the soak N times (run-01/ ...) and judge the bar: no false latched stop, "
+        "every run >= 3 stopped within --stop-within-ms",
+    )
+    r.add_argument(
+        "--hogs",
+        type=int,
+        default=0,
+        metavar="H",
+        help="with --runs: H busy processes at normal priority beside each run (default 0)",
+    )
+    r.add_argument(
+        "--stop-within-ms",
+        type=float,
+        default=20.0,
+        help="with --runs: the bar, last good packet -> STOPPED alert (default 20 ms)",
+    )
     import stability  # lazily: it imports this module for the report format
 
     pp = sub.add_parser(
@@ -1709,6 +1991,23 @@ def main(argv: list[str] | None = None) -> int:
             level=logging.WARNING,
             format="%(levelname)s %(name)s: %(message)s",
         )
+    if args.mode == "real" and (args.runs is not None or args.hogs):
+        if args.runs is None or args.runs < 1 or args.hogs < 0:
+            print("soak real: --hogs needs --runs N (N >= 1), H >= 0", file=sys.stderr)
+            return 2
+        try:
+            rep = run_real_series(args, out, command)
+        except SystemExit as err:
+            if isinstance(err.code, str):
+                print(err.code, file=sys.stderr)
+                return 2
+            raise
+        rep.command = command
+        write_series_report(rep, out)
+        for c in rep.checks:
+            print(f"[{c.label}] {c.name}: {c.detail}")
+        print(f"soak real --runs {args.runs}: {'PASS' if rep.passed else 'FAIL'}; report in {out}")
+        return 0 if rep.passed else 1
     try:
         rep = run_sim(args, out) if args.mode == "sim" else run_real(args, out)
     except SystemExit as err:
