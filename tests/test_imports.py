@@ -228,7 +228,7 @@ def _design_graph(folder: str) -> dict[str, set[str]]:
     }
 
 
-@pytest.mark.parametrize("folder", ["occ"])
+@pytest.mark.parametrize("folder", ["occ", "tools"])
 def test_no_module_knows_one_that_knows_it(folder: str) -> None:
     """Issue 26: collaborators get narrow ports; nothing imports a module that imports it back,
     not even for type hints or inside a function (robot <-> operators <-> alarms,

@@ -77,7 +77,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(1, str(ROOT))
 
 from loss_proxy import LossPattern  # noqa: E402
-from soak import Report, histogram, write_report  # noqa: E402
+from soakreport import Report, histogram, write_report  # noqa: E402
 
 #: the slave's loss tolerance (configs/slave.yaml safety.loss.max_consecutive) and the stream
 PERIOD_MS = 2
