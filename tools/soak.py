@@ -89,7 +89,7 @@ if str(ROOT) not in sys.path:
 import soakreport  # noqa: E402
 from loopback import free_port, stop_processes, wait_port  # noqa: E402
 from loss_proxy import LossPattern, LossProxy, add_pattern_arguments, pattern_from_args  # noqa: E402
-from soakreport import Check, Report, RunOutcome, histogram, summarize  # noqa: E402
+from soakreport import Report, RunOutcome, histogram, summarize  # noqa: E402
 
 #: the requirement (configs/slave.yaml safety.loss): 2 tolerated, 3 stop, within 7 ms
 MAX_TOLERATED = 2
