@@ -25,6 +25,24 @@ def _module_name(path: Path) -> str:
     return ".".join(parts)
 
 
+def _imported(sub: ast.AST, package: str) -> set[str]:
+    """The modules one import statement names (relative ones resolved against ``package``)."""
+    if isinstance(sub, ast.Import):
+        return {a.name for a in sub.names}
+    if not isinstance(sub, ast.ImportFrom):
+        return set()
+    if sub.level:
+        base = package.split(".")
+        base = base[: len(base) - (sub.level - 1)]
+        mod = ".".join(base + ([sub.module] if sub.module else []))
+    else:
+        mod = sub.module or ""
+    found = {f"{mod}.{a.name}" for a in sub.names}  # `from pkg import module`
+    if sub.module:  # `from . import a` loads the submodule a, not the package
+        found.add(mod)
+    return found
+
+
 def _load_time_imports(path: Path, name: str) -> set[str]:
     tree = ast.parse(path.read_text(encoding="utf-8"))
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
@@ -33,20 +51,8 @@ def _load_time_imports(path: Path, name: str) -> set[str]:
         if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
             continue
         for sub in ast.walk(node) if isinstance(node, ast.If | ast.Try) else [node]:
-            if isinstance(sub, ast.Import):
-                found.update(a.name for a in sub.names)
-            elif isinstance(sub, ast.ImportFrom):
-                if sub.level:
-                    base = package.split(".")
-                    base = base[: len(base) - (sub.level - 1)]
-                    mod = ".".join(base + ([sub.module] if sub.module else []))
-                else:
-                    mod = sub.module or ""
-                if sub.module:  # `from . import a` loads the submodule a, not the package
-                    found.add(mod)
-                found.update(f"{mod}.{a.name}" for a in sub.names)  # `from pkg import module`
+            found |= _imported(sub, package)
     return found
-
 
 def _graph(package: str) -> dict[str, set[str]]:
     modules = {_module_name(p): p for p in (ROOT / package).rglob("*.py")}
@@ -199,20 +205,8 @@ def _all_imports(path: Path, name: str, package: str) -> set[str]:
     pkg = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found: set[str] = set()
     for sub in ast.walk(tree):
-        if isinstance(sub, ast.Import):
-            found.update(a.name for a in sub.names)
-        elif isinstance(sub, ast.ImportFrom):
-            if sub.level:
-                base = pkg.split(".")
-                base = base[: len(base) - (sub.level - 1)]
-                mod = ".".join(base + ([sub.module] if sub.module else []))
-            else:
-                mod = sub.module or ""
-            if sub.module:
-                found.add(mod)
-            found.update(f"{mod}.{a.name}" for a in sub.names)
+        found |= _imported(sub, pkg)
     return found
-
 
 def _design_graph(folder: str) -> dict[str, set[str]]:
     """Who knows whom, at any time: every import counts (type-only and late ones too). The
