@@ -16,6 +16,7 @@ import numpy as np
 
 import igtl
 from igtl.messages.base import Message
+from igtl.messages.sensor import UNITS, SensorMessage, Unit
 from igtl.messages.transform import POSITION_ALL, POSITION_QUATERNION3, position_v2
 
 from .errors import OCCError
@@ -76,15 +77,58 @@ class PolylineOut:
     meta: Mapping[str, str] | None = None
 
 
+@dataclass
+class VectorOut:
+    """A few readings in one SI unit (a force: ``unit="N"``), sent as SENSOR (OpenIGTLink's
+    sensor message, its unit field set) or NDARRAY (float64; in header v2 the unit rides as
+    metadata ``unit``)."""
+
+    values: Sequence[float]
+    timestamp: float
+    unit: str = ""
+    meta: Mapping[str, str] | None = None
+
+
+#: SENSOR's unit code of each SI unit name (``"N"`` -> 11), for :class:`VectorOut`
+_UNIT_CODES = {name: code for code, name in UNITS.items()}
+
 _NO_ROTATION = (0.0, 0.0, 0.0, 1.0)
 
 #: what a source returns: a typed value the scheduler packs as the output's type (a pose, a
-#: point list, a polyline), or a message already built (the fixtures' models)
-Outgoing = PoseSample | PointsOut | PolylineOut | Message
+#: point list, a polyline, readings), or a message already built (the fixtures' models)
+Outgoing = PoseSample | PointsOut | PolylineOut | VectorOut | Message
 SourceFn = Callable[[Output, float], Outgoing | None]
 
 
-def pack_output(value: PoseSample | PointsOut | PolylineOut, out: Output) -> Message:
+def _pack_vector(value: VectorOut, out: Output) -> Message:
+    """A :class:`VectorOut` as SENSOR or NDARRAY (its docstring)."""
+    meta = dict(value.meta or {}) if out.header_version == 2 else {}
+    if out.type == "SENSOR":
+        code = _UNIT_CODES.get(value.unit) if value.unit else None
+        if value.unit and code is None:
+            raise OCCError(f"SENSOR: no unit code for {value.unit!r}")
+        return SensorMessage(
+            data=tuple(float(v) for v in value.values),
+            unit=Unit(0, ((code, 1),)) if code is not None else Unit(),
+            device_name=out.device,
+            header_version=out.header_version,
+            timestamp=value.timestamp,
+            metadata=meta,
+        )
+    if out.type == "NDARRAY":
+        if value.unit and out.header_version == 2:
+            meta["unit"] = value.unit
+        return igtl.NDArrayMessage(
+            array=np.array(value.values, dtype=np.float64),
+            device_name=out.device,
+            header_version=out.header_version,
+            timestamp=value.timestamp,
+            metadata=meta,
+        )
+    raise OCCError(f"readings go as SENSOR or NDARRAY, not {out.type}")
+
+
+def pack_output(value: PoseSample | PointsOut | PolylineOut | VectorOut, out: Output) -> Message:
     """The message of a typed source value, as ``out`` is configured (type, device, version).
     A pose goes as a POSITION (header v2: its sequence number and metadata) or a TRANSFORM."""
     if isinstance(value, PoseSample):
@@ -114,6 +158,8 @@ def pack_output(value: PoseSample | PointsOut | PolylineOut, out: Output) -> Mes
                 message_id=(value.seq or 0) if v2 else 0,
             )
         raise OCCError(f"output type {out.type} cannot carry a pose")
+    if isinstance(value, VectorOut):
+        return _pack_vector(value, out)
     meta = dict(value.meta or {}) if out.header_version == 2 else {}
     if isinstance(value, PointsOut):
         if out.type != "POINT":

@@ -25,7 +25,12 @@ topic                          type                         from
                                                             daemon's viewer output sends it)
 ``NS/setpoint_cp``,            geometry_msgs/PoseStamped    TRANSFORM ``SetpointTip`` (when
 ``NS/local/setpoint_cp``                                    sent), as measured_cp
-``NS/operating_state``         crtk_msgs/OperatingState     STATUS of a state, GetState
+``NS/measured_cf``             geometry_msgs/WrenchStamped  SENSOR or NDARRAY ``Force`` (a
+                                                            master's displayed force, N);
+                                                            frame_id ``<leaf>_base``
+``NS/operating_state``         crtk_msgs/OperatingState     STATUS of a state, GetState;
+                                                            ``is_busy`` from the keyframe
+                                                            controller's run STATUS
 ``NS/state``                   std_msgs/String              the daemon's own state name
 ``NS/status``                  std_msgs/String              every STATUS (alerts included)
 ``NS/command_reply``           std_msgs/String              the answer to a command
@@ -46,6 +51,22 @@ of FAULT (``enable``, ``disable``), the daemon's latch wins: the fault stays unt
 port. The reply is published on ``NS/command_reply`` as ``"<Name> <SUCCESS|FAIL>: <message>"``,
 and ``operating_state`` again after every CRTK word (a fresh stamp: CRTK clients wait for one).
 
+Moves: ``NS/move_jp`` (sensor_msgs/JointState: positions, by name or all in the daemon's order)
+and ``NS/move_cp`` (geometry_msgs/PoseStamped: the tip position, metres, frame_id the world
+frame or ``<leaf>_base``; the orientation is not used: the arms are positioned by their tip)
+become the daemon's keyframe commands on the operator port, for a daemon whose controller is
+``keyframe``: ``KeyframeClear``, ``KeyframeAdd`` (one keyframe at the goal, at time
+:func:`move_time`: the largest joint change over ``move_joint_speed``, or the tip's distance
+over ``move_tip_speed``, at least :data:`MOVE_MIN_S`; Cartesian goals in the daemon's world mm,
+the frame of its ``Tip``) and ``KeyframePlan`` (linear, stop: the daemon checks every tick and
+previews the plan in 3D Slicer as any plan). The daemon's acknowledgement step stays: only a
+bridge started with ``ack_moves`` (``--ack-moves``: whoever starts it with operator rights
+decides) sends ``KeyframeAck`` itself; otherwise the plan waits for an operator's, and the reply
+``move_jp WAITING: plan N waits for an operator's KeyframeAck Plan=N ...`` says so (also on
+``NS/status``). One reply per move on ``command_reply``: ``SUCCESS`` (running), ``WAITING`` or
+``FAIL`` with the daemon's reason (no keyframe controller, a plan refused by its checks, the
+robot not RUNNING, a plan running already).
+
 QoS, as ROS 2 would: poses and replies reliable, volatile, keep last 10 (ROS 2's default, which
 every subscriber matches; sensor-data QoS would be refused by a default reliable subscriber);
 the two state topics reliable, *transient local*, keep last 1, so a subscriber that comes later
@@ -55,9 +76,11 @@ ROS 2 Jazzy type hash in USER_DATA (:func:`typed_qos`), as the rmw implementatio
 
 ``operating_state`` maps the daemon's states onto CRTK's meta-states: INIT, READY, SHUTDOWN ->
 DISABLED; ENABLED, RUNNING -> ENABLED; STOPPED -> PAUSED; FAULT, ESTOP -> FAULT. ``is_busy``
-is CRTK's: true only while a move or a homing runs; the bridge starts neither (the daemons'
-joints are absolute: ``is_homed`` is true past INIT and ``home`` has nothing to do), so it is
-false: following a master while RUNNING is not a move. The exact state is on ``NS/state``.
+is CRTK's: true only while a move or a homing runs. Homing has nothing to do (the daemons'
+joints are absolute: ``is_homed`` is true past INIT), following a master is not a move; a move
+is a keyframe plan running: from the keyframe controller's STATUS ``KEYFRAME_RUNNING`` to its
+``KEYFRAME_ENDED`` (whoever acknowledged the plan), and from the controller's statistics
+(``GetStats``) when the bridge connects mid-run. The exact state is on ``NS/state``.
 
 ``rate_hz`` (``--rate``, at most :data:`MAX_RATE_HZ`) caps what the bridge publishes per pose
 topic; it cannot exceed what the daemon's viewer output sends (its ``rate_hz``).
@@ -65,8 +88,10 @@ topic; it cannot exceed what the daemon's viewer output sends (its ``rate_hz``).
 
 from __future__ import annotations
 
+import json
 import logging
 import math
+import re
 import threading
 import time
 from collections import OrderedDict
@@ -74,6 +99,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from xml.sax.saxutils import quoteattr
 
 import numpy as np
 from cyclonedds.core import GuardCondition, ReadCondition, SampleState, WaitSet
@@ -177,6 +203,49 @@ QOS_TF_STATIC = QOS_LATCHED
 #: 100 Hz; above it the bridge's Python thread, not the daemon, would set the pace
 MAX_RATE_HZ = 100.0
 
+#: the time a move is given (:func:`move_time`): distance over a conservative speed, at least
+#: this long. Defaults: 0.05 rad/s or m/s for the joint that changes most (a plan's peak speed is
+#: 4/3 of its mean, so 0.067: within every shipped joint's limit, insertion's 0.1 m/s
+#: included), 10 mm/s for the tip. The daemon's checks have the last word: a time too short for
+#: a joint is refused with the joint named.
+MOVE_MIN_S = 1.0
+MOVE_JOINT_SPEED = 0.05
+MOVE_TIP_SPEED = 0.01
+#: a move whose daemon commands got no answer for this long is given up (a long plan's check
+#: takes seconds: 30-70 us per tick of motion)
+MOVE_TIMEOUT_S = 60.0
+#: KeyframeAck sent before the plan's preview went out is refused; asked again this often,
+#: this many times (the preview goes with the daemon's next keyframe-path output)
+ACK_RETRY_S = 0.1
+ACK_RETRIES = 50
+#: how long operating_state waits for the answer to the bridge's GetStats on connecting
+PROBE_WAIT_S = 1.0
+#: the keyframe controller's STATUS names of a run's start and end
+#: (occ/controllers/keyframe.py STATUS_RUNNING, STATUS_ENDED; a test checks they agree)
+KEYFRAME_RUNNING = "KEYFRAME_RUNNING"
+KEYFRAME_ENDED = "KEYFRAME_ENDED"
+
+
+def plan_running(stats_json: str) -> bool:
+    """Whether a daemon's statistics (GetStats) say that a keyframe plan runs: the keyframe
+    controller's ``running`` (the plan's number, else null), alone or among several."""
+    try:
+        snap = json.loads(stats_json)
+    except ValueError:
+        return False
+    ctrl = snap.get("controller") if isinstance(snap, dict) else None
+    if not isinstance(ctrl, dict):
+        return False
+    if isinstance(ctrl.get("keyframe"), dict):
+        ctrl = ctrl["keyframe"]
+    return isinstance(ctrl.get("running"), int) and "runs_completed" in ctrl
+
+
+def move_time(distance: float, speed: float) -> float:
+    """A move's duration (s): ``distance / speed``, rounded up to the millisecond, at least
+    :data:`MOVE_MIN_S`."""
+    return max(MOVE_MIN_S, math.ceil(distance / speed * 1e3 - 1e-9) / 1e3)
+
 
 def typed_qos(qos: Qos, cls: type[Any]) -> Qos:
     """``qos`` plus the USER_DATA a ROS 2 Jazzy endpoint of type ``cls`` carries (its type
@@ -259,6 +328,35 @@ class _Counters:
     publish_errors: int = 0
     #: poses and joint states not published because of the ROS-side rate (--rate)
     rate_skipped: int = 0
+    #: move_jp/move_cp received, started running (the bridge's KeyframeAck), left waiting for
+    #: an operator's KeyframeAck; refusals are in commands_refused
+    moves: int = 0
+    moves_running: int = 0
+    moves_waiting: int = 0
+    forces: int = 0
+    forces_refused: int = 0
+
+
+@dataclass
+class _Move:
+    """A move_jp/move_cp in progress: the daemon commands still to send, one after the other."""
+
+    kind: str
+    steps: list[tuple[str, dict[str, str]]]
+    started: float
+    plan: int | None = None
+    ack_tries: int = 0
+
+
+@dataclass
+class _Pending:
+    """A command sent to a daemon, waiting for its answer: the user's (published on
+    command_reply), a move's step, or the bridge's own look at a running plan (``probe``)."""
+
+    robot: Robot
+    name: str
+    move: _Move | None = None
+    probe: bool = False
 
 
 @dataclass
@@ -273,10 +371,18 @@ class Robot:
     state: str | None = None
     #: the daemon's state when CRTK's ``pause`` came (``resume`` returns to it)
     paused_from: str | None = None
-    #: CRTK's is_busy: a move or a homing runs (none does yet: module docstring)
+    #: CRTK's is_busy: a keyframe plan runs (module docstring)
     busy: bool = False
+    #: the last Tip (world, metres) and measured joints (names, positions): a move's start
+    tip_m: np.ndarray | None = None
+    joints: tuple[list[str], list[float]] | None = None
+    move: _Move | None = None
+    #: until this (monotonic) time operating_state waits for the answer to the bridge's
+    #: GetStats on connecting (is a plan running?), so that a bridge started mid-run does
+    #: not say "not busy" first
+    probing_until: float = 0.0
     writers: dict[str, DataWriter] = field(default_factory=dict)
-    readers: list[tuple[DataReader[Any], Callable[[Any], str]]] = field(default_factory=list)
+    readers: list[tuple[DataReader[Any], Callable[[Any], None]]] = field(default_factory=list)
     counters: _Counters = field(default_factory=_Counters)
     #: per published leaf: the monotonic time of its last sample (the --rate cap)
     last_pub: dict[str, float] = field(default_factory=dict)
@@ -307,9 +413,18 @@ class Bridge:
         world_frame: str = "world",
         rate_hz: float = 0.0,
         tf: bool = True,
+        ack_moves: bool = False,
+        move_joint_speed: float = MOVE_JOINT_SPEED,
+        move_tip_speed: float = MOVE_TIP_SPEED,
     ) -> None:
         if not 0.0 <= rate_hz <= MAX_RATE_HZ:
             raise ValueError(f"rate must be 0 (as the daemon sends) .. {MAX_RATE_HZ:g} Hz")
+        if not (move_joint_speed > 0.0 and move_tip_speed > 0.0):
+            raise ValueError("move speeds must be > 0")
+        #: send KeyframeAck for the plans of move_jp/move_cp (--ack-moves; module docstring)
+        self.ack_moves = ack_moves
+        self.move_joint_speed = move_joint_speed
+        self.move_tip_speed = move_tip_speed
         self.domain_id = domain_id
         self.world_frame = world_frame
         #: the minimum interval between two samples of one pose topic (0: every one)
@@ -322,8 +437,8 @@ class Bridge:
         self.latency_us = Histogram()
         self._lock = threading.Lock()
         self._cmd_id = 0
-        # command id -> (robot, name); bounded: a daemon that never answers must not grow it
-        self._pending: OrderedDict[int, tuple[Robot, str]] = OrderedDict()
+        # command id -> what was sent; bounded: a daemon that never answers must not grow it
+        self._pending: OrderedDict[int, _Pending] = OrderedDict()
         self._stopping = threading.Event()
         self._stop = GuardCondition(self.participant)
         self._waitset = WaitSet(self.participant)
@@ -375,16 +490,18 @@ class Bridge:
         )
         for leaf_name, cls, qos in outputs:
             self._writer(robot, leaf_name, cls, qos)
-        inputs: tuple[tuple[str, type[Any], Callable[[Any], str]], ...] = (
-            ("state_command", msgs.StringStamped, lambda s: s.string),
-            ("command", msgs.String, lambda s: s.data),
+        inputs: tuple[tuple[str, type[Any], Callable[[Any], None]], ...] = (
+            ("state_command", msgs.StringStamped, lambda s: self.command(ns, str(s.string))),
+            ("command", msgs.String, lambda s: self.command(ns, str(s.data))),
+            ("move_jp", msgs.JointState, lambda s: self.move(ns, "move_jp", s)),
+            ("move_cp", msgs.PoseStamped, lambda s: self.move(ns, "move_cp", s)),
         )
-        for leaf_name, rcls, text in inputs:
+        for leaf_name, rcls, handle in inputs:
             reader: DataReader[Any] = DataReader(
                 dp, Topic(dp, topic_name(ns, leaf_name), rcls), typed_qos(QOS_DEFAULT, rcls)
             )
             self._waitset.attach(ReadCondition(reader, SampleState.NotRead))
-            robot.readers.append((reader, text))
+            robot.readers.append((reader, handle))
         self.robots[ns] = robot
         return robot
 
@@ -395,6 +512,12 @@ class Bridge:
             # as 3D Slicer does: a v2 STATUS first, so the daemon answers in header version 2;
             # then ask the state (a late joiner must not wait for the next change)
             client.send(igtl.StatusMessage(header_version=2, metadata={"dummy": "dummy"}))
+            if role == "operator":
+                # a keyframe plan may be running already (is_busy): the controller's
+                # statistics say so (every daemon answers GetStats); operating_state waits
+                # for the answer (a second at most)
+                robot.probing_until = time.monotonic() + PROBE_WAIT_S
+                self._send_command(robot, client, "GetStats", probe=True)
             self._send_command(robot, client, "GetState", quiet=True)
 
         client = TCPClient(
@@ -487,6 +610,8 @@ class Bridge:
                         robot, "base/measured_cp", pose_stamped(m, stamp, self.world_frame)
                     )
             elif name in ("Tip", "SetpointTip"):
+                if name == "Tip":
+                    robot.tip_m = m  # a move_cp's start
                 if robot.base_m is None:
                     # the daemon sends Tip before Base each period: the very first Tip has no
                     # base to be expressed in yet
@@ -518,17 +643,21 @@ class Bridge:
             else:
                 return
             self.latency_us.add((time.perf_counter() - t_in) * 1e6)
+        elif mtype in ("SENSOR", "NDARRAY") and msg.device_name == "Force":
+            self._on_force(robot, msg, stamp)
         elif mtype == "NDARRAY" and msg.device_name in ("Joints", "Setpoints"):
             leaf = "measured_js" if msg.device_name == "Joints" else "setpoint_js"
-            if not self._due(robot, leaf):
-                return
-            if leaf == "setpoint_js":
-                self._lazy_writer(robot, leaf, msgs.JointState)
             values = [float(v) for v in np.asarray(msg.array).ravel()]  # type: ignore[attr-defined]
             names = msg.metadata.get("joints", "")
             joint_names = names.split(",") if names else [f"joint{i}" for i in range(len(values))]
             if len(joint_names) != len(values):
                 joint_names = [f"joint{i}" for i in range(len(values))]
+            if leaf == "measured_js":
+                robot.joints = (joint_names, values)  # a move_jp's start
+            if not self._due(robot, leaf):
+                return
+            if leaf == "setpoint_js":
+                self._lazy_writer(robot, leaf, msgs.JointState)
             self._publish(
                 robot,
                 leaf,
@@ -547,8 +676,45 @@ class Bridge:
             self._publish(robot, "status", msgs.String(data=f"{name}: {text}"))
             if name in CRTK_STATE:
                 self._set_state(robot, name, stamp)
+            elif name in (KEYFRAME_RUNNING, KEYFRAME_ENDED):
+                self._set_busy(robot, name == KEYFRAME_RUNNING, stamp)
         elif mtype == "RTS_COMMAND":
             self._on_reply(robot, msg, stamp)
+
+    def _on_force(self, robot: Robot, msg: Message, stamp: msgs.Time) -> None:
+        """SENSOR or NDARRAY ``Force`` (N: a master's displayed force; 3 values, or 6 with a
+        torque in N m) -> ``measured_cf``, in the robot's base frame."""
+        if msg.message_type == "SENSOR":
+            values = [float(v) for v in msg.data]  # type: ignore[attr-defined]
+            unit = str(msg.unit)  # type: ignore[attr-defined]
+        else:
+            values = [float(v) for v in np.asarray(msg.array).ravel()]  # type: ignore[attr-defined]
+            unit = msg.metadata.get("unit", "N")
+        if (
+            len(values) not in (3, 6)
+            or unit not in ("N", "")
+            or not all(map(math.isfinite, values))
+        ):
+            robot.counters.forces_refused += 1
+            if robot.counters.forces_refused == 1:
+                log.warning(
+                    "%s: %s Force not published: %d values in %r (3 or 6, N)",
+                    robot.ns, msg.message_type, len(values), unit,
+                )  # fmt: skip
+            return
+        if not self._due(robot, "measured_cf"):
+            return
+        self._lazy_writer(robot, "measured_cf", msgs.WrenchStamped)
+        torque = values[3:] or [0.0, 0.0, 0.0]
+        robot.counters.forces += 1
+        self._publish(
+            robot,
+            "measured_cf",
+            msgs.WrenchStamped(
+                header=msgs.Header(stamp=stamp, frame_id=robot.base_frame),
+                wrench=msgs.Wrench(msgs.Vector3(*values[:3]), msgs.Vector3(*torque)),
+            ),
+        )
 
     def _publish_static(self, robot: Robot, base_m: np.ndarray, stamp: msgs.Time) -> None:
         """world -> <leaf>_base on /tf_static: one message with every robot's fixed frame
@@ -569,7 +735,7 @@ class Bridge:
     def _operating_state(self, robot: Robot, stamp: msgs.Time | None = None) -> None:
         """CRTK's operating_state of the robot's current state (a fresh stamp when none)."""
         state = robot.state
-        if state is None:
+        if state is None or time.monotonic() < robot.probing_until:
             return
         if stamp is None:
             stamp = msgs.Time.from_seconds(time.time())
@@ -588,8 +754,15 @@ class Bridge:
         if state == robot.state:
             return
         robot.state = state
+        if state != "RUNNING":
+            robot.busy = False  # a plan runs only while RUNNING (the daemon drops it otherwise)
         self._publish(robot, "state", msgs.String(data=state))
         self._operating_state(robot, stamp)
+
+    def _set_busy(self, robot: Robot, busy: bool, stamp: msgs.Time | None = None) -> None:
+        if busy != robot.busy:
+            robot.busy = busy
+            self._operating_state(robot, stamp)
 
     def _on_reply(self, robot: Robot, msg: Message, stamp: msgs.Time) -> None:
         cid = int(getattr(msg, "command_id", 0))
@@ -597,7 +770,7 @@ class Bridge:
             pending = self._pending.pop(cid, None)
         status = msg.metadata.get("Status", "?")
         text = msg.metadata.get("Message", "")
-        name = pending[1] if pending is not None else getattr(msg, "command_name", "")
+        name = pending.name if pending is not None else getattr(msg, "command_name", "")
         if name == "GetState" and status == "SUCCESS":
             # "state=RUNNING; alert=...": the state, whoever asked
             for part in text.split(";"):
@@ -606,6 +779,14 @@ class Bridge:
                     self._set_state(robot, value, stamp)
         if pending is None:
             return  # our own GetState on connect
+        if pending.probe:
+            robot.probing_until = 0.0
+            robot.busy = status == "SUCCESS" and plan_running(text)
+            self._operating_state(robot)
+            return
+        if pending.move is not None:
+            self._move_reply(robot, pending.move, name, status == "SUCCESS", text)
+            return
         robot.counters.replies += 1
         self._publish(robot, "command_reply", msgs.String(data=f"{name} {status}: {text}"))
         if name in ("Enable", "Disable", "Stop", "Run"):
@@ -617,9 +798,9 @@ class Bridge:
         while not self._stopping.is_set():
             self._waitset.wait(duration(milliseconds=500))
             for robot in self.robots.values():
-                for reader, text in robot.readers:
+                for reader, handle in robot.readers:
                     for sample in reader.take(N=16):
-                        self.command(robot.ns, str(text(sample)))
+                        handle(sample)
 
     def command(self, ns: str, word: str) -> None:
         """Forward one command to the daemon of ``ns`` (what the DDS subscriptions do): a CRTK
@@ -668,24 +849,183 @@ class Bridge:
         self._publish(robot, "command_reply", msgs.String(data=f"{word} {status}: {text}"))
         self._operating_state(robot)
 
+    # ------------------------------------------------------------------ moves
+    def move(self, ns: str, kind: str, goal: Any) -> None:
+        """A ``move_jp`` (JointState) or ``move_cp`` (PoseStamped) goal: the daemon's keyframe
+        commands, one after the other as each is answered (module docstring)."""
+        robot = self.robots[ns]
+        robot.counters.moves += 1
+        try:
+            if robot.operator is None:
+                raise ValueError(f"no operator interface for {robot.ns} (occ-ros2 --operator)")
+            current = robot.move
+            if current is not None and time.monotonic() - current.started < MOVE_TIMEOUT_S:
+                raise ValueError(
+                    f"the last {current.kind} is still being planned; wait for its reply"
+                )
+            if kind == "move_jp":
+                space, pose, t = self._joint_goal(robot, goal)
+            else:
+                space, pose, t = self._tip_goal(robot, goal)
+        except ValueError as err:
+            self._refuse(robot, kind, str(err))
+            return
+        move = _Move(
+            kind,
+            [
+                ("KeyframeClear", {}),
+                ("KeyframeAdd", {"T": f"{t:.3f}", "Pose": pose, "Space": space, "Label": kind}),
+                ("KeyframePlan", {"Interpolation": "linear", "Mode": "stop"}),
+            ],
+            time.monotonic(),
+        )
+        robot.move = move
+        self._move_next(robot, move)
+
+    def _joint_goal(self, robot: Robot, goal: Any) -> tuple[str, str, float]:
+        if robot.joints is None:
+            raise ValueError("the daemon's joint positions are not known yet (its NDARRAY Joints)")
+        names, here = robot.joints
+        positions = [float(v) for v in goal.position]
+        if goal.name:
+            if len(goal.name) != len(positions):
+                raise ValueError(f"{len(goal.name)} names but {len(positions)} positions")
+            target = list(here)
+            for joint, value in zip(goal.name, positions, strict=True):
+                if joint not in names:
+                    raise ValueError(f"no joint {joint!r} (the daemon's: {', '.join(names)})")
+                target[names.index(joint)] = value
+        elif len(positions) != len(names):
+            raise ValueError(
+                f"{len(positions)} positions for {len(names)} joints ({', '.join(names)}); "
+                "give all, or name them"
+            )
+        else:
+            target = positions
+        if not all(math.isfinite(v) for v in target):
+            raise ValueError("a position is not a finite number")
+        distance = max((abs(a - b) for a, b in zip(target, here, strict=True)), default=0.0)
+        pose = " ".join(f"{v:.9g}" for v in target)
+        return "joint", pose, move_time(distance, self.move_joint_speed)
+
+    def _tip_goal(self, robot: Robot, goal: Any) -> tuple[str, str, float]:
+        p = goal.pose.position
+        point = np.array([p.x, p.y, p.z], dtype=float)
+        frame = goal.header.frame_id or self.world_frame
+        if frame == robot.base_frame:
+            if robot.base_m is None:
+                raise ValueError(f"the base is not known yet (frame {frame!r})")
+            point = robot.base_m[:3, :3] @ point + robot.base_m[:3, 3]
+        elif frame != self.world_frame:
+            raise ValueError(
+                f"frame_id {frame!r}: a goal is in {self.world_frame!r} (as measured_cp) or "
+                f"{robot.base_frame!r} (as local/measured_cp)"
+            )
+        if not np.all(np.isfinite(point)):
+            raise ValueError("the position is not finite")
+        if robot.tip_m is None:
+            raise ValueError("the tip is not known yet (the daemon's TRANSFORM Tip)")
+        distance = float(np.linalg.norm(point - robot.tip_m[:3, 3]))
+        pose = " ".join(f"{v / MM:.6f}" for v in point)  # the daemon's world frame, mm
+        return "cartesian", pose, move_time(distance, self.move_tip_speed)
+
+    def _move_next(self, robot: Robot, move: _Move) -> None:
+        name, args = move.steps.pop(0)
+        self._move_send(robot, move, name, args)
+
+    def _move_send(self, robot: Robot, move: _Move, name: str, args: dict[str, str]) -> None:
+        client = robot.operator
+        if robot.move is not move:
+            return  # given up (timed out) meanwhile
+        if client is None or not self._send_command(robot, client, name, args=args, move=move):
+            robot.move = None
+            self._refuse(robot, move.kind, "operator interface not connected")
+
+    def _ack(self, robot: Robot, move: _Move) -> None:
+        self._move_send(robot, move, "KeyframeAck", {"Plan": str(move.plan)})
+
+    def _move_reply(self, robot: Robot, move: _Move, name: str, ok: bool, text: str) -> None:
+        """The daemon's answer to one of a move's commands (IGTL client thread)."""
+        if robot.move is not move:
+            return
+        kind = move.kind
+        if not ok:
+            if (
+                name == "KeyframeAck"
+                and "not been previewed" in text
+                and move.ack_tries < ACK_RETRIES
+            ):
+                # the preview goes out with the daemon's next keyframe-path output: ask again
+                move.ack_tries += 1
+                timer = threading.Timer(ACK_RETRY_S, self._ack, (robot, move))
+                timer.daemon = True
+                timer.start()
+                return
+            robot.move = None
+            self._refuse(robot, kind, text if text.startswith(name) else f"{name}: {text}")
+            return
+        if name == "KeyframePlan":
+            found = re.match(r"plan (\d+):", text)
+            if found is None:
+                robot.move = None
+                self._refuse(robot, kind, f"KeyframePlan answered {text!r}: no plan number")
+                return
+            move.plan = int(found.group(1))
+            if self.ack_moves:
+                self._ack(robot, move)
+                return
+            robot.move = None
+            robot.counters.moves_waiting += 1
+            robot.counters.replies += 1
+            waits = (
+                f"plan {move.plan} waits for an operator's KeyframeAck Plan={move.plan} "
+                "(occ-ros2 runs without --ack-moves)"
+            )
+            self._publish(robot, "status", msgs.String(data=f"KEYFRAME_WAITING: {waits}"))
+            self._publish(
+                robot, "command_reply", msgs.String(data=f"{kind} WAITING: {waits}: {text}")
+            )
+            return
+        if name == "KeyframeAck":
+            robot.move = None
+            robot.counters.moves_running += 1
+            robot.counters.replies += 1
+            self._publish(robot, "command_reply", msgs.String(data=f"{kind} SUCCESS: {text}"))
+            return
+        self._move_next(robot, move)  # KeyframeClear, KeyframeAdd done: the next
+
     def _refuse(self, robot: Robot, name: str, why: str) -> None:
         robot.counters.commands_refused += 1
         self._publish(robot, "command_reply", msgs.String(data=f"{name} FAIL: {why}"))
 
     def _send_command(
-        self, robot: Robot, client: TCPClient, name: str, quiet: bool = False
+        self,
+        robot: Robot,
+        client: TCPClient,
+        name: str,
+        quiet: bool = False,
+        *,
+        args: dict[str, str] | None = None,
+        move: _Move | None = None,
+        probe: bool = False,
     ) -> bool:
+        """Send the daemon's command ``name`` (``args``: its XML attributes, as 3D Slicer
+        sends them); ``quiet``: its answer is not waited for."""
         with self._lock:
             self._cmd_id = (self._cmd_id + 1) & 0xFFFFFFFF
             cid = self._cmd_id
             if not quiet:
-                self._pending[cid] = (robot, name)
+                self._pending[cid] = _Pending(robot, name, move, probe)
                 while len(self._pending) > 256:
                     self._pending.popitem(last=False)
+        text = ""
+        if args:
+            attrs = "".join(f" {k}={quoteattr(v)}" for k, v in args.items())
+            text = f"<Command Name={quoteattr(name)}{attrs}/>"
         cmd = igtl.CommandMessage(
             command_id=cid,
             command_name=name,
-            command="",
+            command=text,
             device_name="occ-ros2",
             header_version=2,
         )

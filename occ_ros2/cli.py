@@ -5,6 +5,7 @@ Examples::
     occ-ros2 --connect 127.0.0.1:18944=/occ/slave --operator 127.0.0.1:18947=/occ/slave
     occ-ros2 --connect 127.0.0.1:18944=/occ/slave --domain-id 7 --duration 60 --stats /tmp/b.json
     occ-ros2 --master /occ/master=127.0.0.1:18946 --connect 127.0.0.1:18944=/occ/slave
+    occ-ros2 --operator 127.0.0.1:18944=/occ/keyframe --ack-moves   # move_jp/move_cp run
 
 Topics and types: occ_ros2/bridge.py, README "ROS 2". DDS runs on loopback only
 by default (occ_ros2/cyclonedds-lo.xml); ``--dds-config env`` takes $CYCLONEDDS_URI instead.
@@ -22,7 +23,15 @@ import threading
 from pathlib import Path
 from types import FrameType
 
-from .bridge import DEFAULT_CONFIG, MAX_RATE_HZ, Bridge, parse_endpoint
+from .bridge import (
+    DEFAULT_CONFIG,
+    MAX_RATE_HZ,
+    MOVE_JOINT_SPEED,
+    MOVE_MIN_S,
+    MOVE_TIP_SPEED,
+    Bridge,
+    parse_endpoint,
+)
 from .master import MasterStream, parse_master
 
 
@@ -55,6 +64,16 @@ def _rate(text: str) -> float:
         raise argparse.ArgumentTypeError(f"not a rate: {text!r}") from err
     if not 0.0 <= value <= MAX_RATE_HZ:
         raise argparse.ArgumentTypeError(f"rate must be 0 .. {MAX_RATE_HZ:g} Hz, got {text}")
+    return value
+
+
+def _speed(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"not a speed: {text!r}") from err
+    if not 0.0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"a speed must be > 0, got {text}")
     return value
 
 
@@ -117,6 +136,30 @@ def build_parser() -> argparse.ArgumentParser:
         "default 0: as the daemon's viewer output sends, its rate_hz)",
     )
     p.add_argument("--no-tf", action="store_true", help="do not publish /tf and /tf_static")
+    p.add_argument(
+        "--ack-moves",
+        action="store_true",
+        help="acknowledge (KeyframeAck) the plans of move_jp/move_cp on the ROS 2 client's "
+        "behalf: they run once the daemon has checked and previewed them. A safety decision "
+        "for whoever starts the bridge with operator rights; without it a plan waits for an "
+        "operator's KeyframeAck (README, ROS 2)",
+    )
+    p.add_argument(
+        "--move-joint-speed",
+        type=_speed,
+        default=MOVE_JOINT_SPEED,
+        metavar="PER_S",
+        help=f"move_jp's time: the largest joint change over this (rad/s or m/s; default "
+        f"{MOVE_JOINT_SPEED:g}), at least {MOVE_MIN_S:g} s",
+    )
+    p.add_argument(
+        "--move-tip-speed",
+        type=_speed,
+        default=MOVE_TIP_SPEED,
+        metavar="M_PER_S",
+        help=f"move_cp's time: the tip's distance over this (m/s; default {MOVE_TIP_SPEED:g}), "
+        f"at least {MOVE_MIN_S:g} s",
+    )
     p.add_argument("--duration", type=float, default=0.0, help="seconds to run (0: until Ctrl-C)")
     p.add_argument("--stats", type=Path, default=None, help="write statistics JSON here at exit")
     p.add_argument("--log-level", default="INFO")
@@ -143,6 +186,9 @@ def main(argv: list[str] | None = None) -> int:
         world_frame=args.world_frame,
         rate_hz=args.rate,
         tf=not args.no_tf,
+        ack_moves=args.ack_moves,
+        move_joint_speed=args.move_joint_speed,
+        move_tip_speed=args.move_tip_speed,
     )
     key = None
     if args.auth_key_file is not None:

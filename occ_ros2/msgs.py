@@ -106,6 +106,20 @@ class TransformStamped(IdlStruct, typename="geometry_msgs::msg::dds_::TransformS
     transform: Transform = field(default_factory=Transform)
 
 
+@dataclass
+class Wrench(IdlStruct, typename="geometry_msgs::msg::dds_::Wrench_"):
+    force: Vector3 = field(default_factory=Vector3)
+    torque: Vector3 = field(default_factory=Vector3)
+
+
+@dataclass
+class WrenchStamped(IdlStruct, typename="geometry_msgs::msg::dds_::WrenchStamped_"):
+    """CRTK's ``measured_cf`` (a Cartesian force, N, and torque, N m)."""
+
+    header: Header = field(default_factory=Header)
+    wrench: Wrench = field(default_factory=Wrench)
+
+
 if TYPE_CHECKING:
     TransformSeq = list[TransformStamped]
 else:
@@ -163,6 +177,8 @@ ROS_TYPES: dict[str, type[IdlStruct]] = {
     "geometry_msgs/msg/Vector3": Vector3,
     "geometry_msgs/msg/Transform": Transform,
     "geometry_msgs/msg/TransformStamped": TransformStamped,
+    "geometry_msgs/msg/Wrench": Wrench,
+    "geometry_msgs/msg/WrenchStamped": WrenchStamped,
     "tf2_msgs/msg/TFMessage": TFMessage,
     "sensor_msgs/msg/JointState": JointState,
     "crtk_msgs/msg/OperatingState": OperatingState,
@@ -187,6 +203,8 @@ TYPE_HASHES: dict[str, str] = {
         "RIHS01_83efb802e6596e03f69ac322e3231037329946f2bd13ed48874d97f5b8f5db1d",
     "tf2_msgs/msg/TFMessage":
         "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087",
+    "geometry_msgs/msg/WrenchStamped":
+        "RIHS01_8dc3deaf06b2ab281f9f9a742a8961c328ca7cec16e3fd6586d3a5c83fa78f77",
 }  # fmt: skip
 
 #: the ROS 2 name of each type (the inverse of :data:`ROS_TYPES`)

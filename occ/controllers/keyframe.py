@@ -53,6 +53,12 @@ Acknowledge and run
     Cartesian ones through ``ik_clamped``. At the end the robot rests at the last keyframe and
     the controller holds. A new set or plan never changes a running plan.
 
+    A run is announced to every viewer and operator (the controller context's ``alert``): a
+    STATUS named :data:`STATUS_RUNNING` (``KEYFRAME_RUNNING``, code OK) when it starts and
+    :data:`STATUS_ENDED` (``KEYFRAME_ENDED``; code OK when it completed, DISABLED when it was
+    dropped, below) when it ends, the text saying which plan and how. ROS 2's CRTK
+    ``is_busy`` (occ_ros2) is true between the two.
+
 Stop
     An operator's Stop (or anything that takes the robot out of RUNNING: fault, e-stop, Hold)
     during a run *drops* the plan: the robot holds where it was stopped (the robot's own Stop)
@@ -123,6 +129,12 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 MM = 1e-3
+#: the STATUS names of a run's start and end (module docstring, "Acknowledge and run")
+STATUS_RUNNING = "KEYFRAME_RUNNING"
+STATUS_ENDED = "KEYFRAME_ENDED"
+#: their STATUS codes (igtl StatusCode values; controllers do not import igtl): OK, DISABLED
+_CODE_OK = 1
+_CODE_DROPPED = 15
 Space = Literal["joint", "cartesian"]
 ExistingDir = Annotated[DirectoryPath, BeforeValidator(_resolve_path)]
 
@@ -1132,6 +1144,7 @@ class KeyframeController(Controller):
         self.counters["runs"] += 1
         with self._lock:
             self.status = f"plan {plan_id} running ({pending.traj.duration:.3f} s)"
+        self._announce(STATUS_RUNNING, self.status, _CODE_OK)
         log.info("keyframes: plan %d acknowledged, running %.3f s", plan_id, pending.traj.duration)
         return f"plan {plan_id} running: {pending.traj.duration:.3f} s"
 
@@ -1164,6 +1177,7 @@ class KeyframeController(Controller):
                     f"({old.value} -> {new.value}); the robot holds there; plan again to run "
                     "the keyframes"
                 )
+            self._announce(STATUS_ENDED, self.status, _CODE_DROPPED)
             log.warning("keyframes: %s", self.status)
 
     def update(self, now: float) -> Sequence[float] | None:
@@ -1192,6 +1206,7 @@ class KeyframeController(Controller):
                     self._generation += 1
                     self._set_plan(None)
                     self.status = f"plan {run.id} stopped at t={t:.3f} s: tip unreachable"
+                self._announce(STATUS_ENDED, self.status, _CODE_DROPPED)
                 log.warning("keyframes: %s", self.status)
                 return None
         self._q_last = q
@@ -1202,8 +1217,16 @@ class KeyframeController(Controller):
                 self._generation += 1
                 self._set_plan(None)
                 self.status = f"plan {run.id} completed ({run.traj.duration:.3f} s)"
+            self._announce(STATUS_ENDED, self.status, _CODE_OK)
             log.info("keyframes: %s", self.status)
         return q
+
+    def _announce(self, name: str, text: str, code: int) -> None:
+        """A run's start or end as a STATUS to every viewer and operator (module docstring);
+        on the loop thread, once per run and end."""
+        ctx = self.ctx
+        if ctx is not None and ctx.alert is not None:
+            ctx.alert(name, text, code)
 
     # ------------------------------------------------------------------ preview
     def _due(self, out: Output, now: float) -> _PreviewState | None:

@@ -37,7 +37,9 @@ Master daemon (:class:`MasterController`)
     position-commanded masters (``sim``, ``igtl``) report it only. ``tool_mm`` (patient) and
     ``force_n`` are in the stats with the return link's state (``slave_tip``); the output
     sources ``fixtures`` (POLYDATA models, on change and on ``GetFixtures``) and ``contact``
-    (the proxy, while in contact and once after) show them in 3D Slicer.
+    (the proxy, while in contact and once after) show them in 3D Slicer; ``force`` sends the
+    displayed force itself (N, the master's axes; SENSOR with the unit N, or NDARRAY) at its
+    rate: ROS 2's ``measured_cf`` (occ_ros2).
 
 Slave daemon (:class:`SlaveController`)
     Follows the master's POSITION stream: ``target = slave_ref + scale · R · (master - master_ref)``
@@ -68,6 +70,7 @@ from ..config import DaemonConfig
 from ..errors import CommandError, KinematicsError, OCCError, caused
 from ..fixture_defs import Defaults, DefinitionError, PatientMapping, from_markups_file
 from ..haptics import MasterFixtures
+from ..outputs import VectorOut
 from ..returnlink import ReturnLink
 from ..safety import RobotState
 from ..samples import PoseSample, rotation_to_quaternion
@@ -241,6 +244,7 @@ class MasterController(Controller):
             "teleop": self._source_teleop,
             "fixtures": self._source_fixtures,
             "contact": self._source_contact,
+            "force": self._source_force,
         }
 
     # -------------------------------------------------------------- inputs
@@ -527,6 +531,11 @@ class MasterController(Controller):
         self._contact_sent[id(out)] = touching
         assert self.ctx is not None
         return self.fixtures.proxy_message(out.device, self.ctx.clock.wall_time())
+
+    def _source_force(self, out: Output, now: float) -> VectorOut:
+        """The displayed virtual-fixture force (N, the master's axes), every time."""
+        assert self.ctx is not None
+        return VectorOut(self.fixtures.force_n, self.ctx.clock.wall_time(), "N")
 
     def stats(self) -> dict[str, Any]:
         fx = self.fixtures

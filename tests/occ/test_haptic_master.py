@@ -407,6 +407,46 @@ def test_models_and_proxy_shown_in_slicer(master: Master) -> None:
     assert len(slicer.messages("POLYDATA", "VirtualFixtures")) == len(models) + 1
 
 
+def test_the_displayed_force_as_sensor_and_ndarray_outputs() -> None:
+    """Output source ``force``: the displayed force (N, the master's axes) as SENSOR with the
+    unit N, or as NDARRAY (unit in the v2 metadata): what ROS 2's measured_cf carries."""
+    cfg = yaml.safe_load((ROOT / "configs" / "master.yaml").read_text())
+    cfg["interfaces"][0]["outputs"] += [
+        {"type": "SENSOR", "device": "Force", "source": "force", "rate_hz": 100},
+        {"type": "NDARRAY", "device": "ForceArray", "source": "force", "rate_hz": 100},
+    ]
+    m = Master(cfg)
+    try:
+        viewer = m.sim.peer("operator")
+        m.run()
+        m.step(100)
+        before = viewer.messages("SENSOR", "Force")
+        assert before and all(x.data == (0.0, 0.0, 0.0) for x in before)
+        t = m.tool
+        m.op.send(forbidden_at(m.p((t[0] + 4.0, t[1], t[2]))))
+        m.step(30)
+        # each message carries the force displayed in the tick that sent it
+        checked = 0
+        for _ in range(30):
+            n = len(viewer.messages("SENSOR", "Force"))
+            m.step(1)
+            sent = viewer.messages("SENSOR", "Force")[n:]
+            if not sent:
+                continue
+            force = tuple(m.ctrl.fixtures.force_n)
+            assert force[0] < -1.0  # pushed out of the sphere, toward -x
+            (sensor,) = sent
+            assert str(sensor.unit) == "N" and sensor.unit.units == ((11, 1),)
+            assert sensor.data == pytest.approx(force, abs=1e-12)
+            array = viewer.messages("NDARRAY", "ForceArray")[-1]
+            assert array.metadata["unit"] == "N"
+            assert array.array.ravel().tolist() == pytest.approx(force, abs=1e-12)
+            checked += 1
+        assert checked == 3  # 100 Hz of a 1 kHz loop
+    finally:
+        m.close()
+
+
 def test_getstats_and_recording_have_tool_and_force(tmp_path: Path) -> None:
     path = tmp_path / "master.igtl"
     rec = Recorder(path, rate_hz=100).start()

@@ -330,6 +330,43 @@ def test_operator_stop_drops_the_run_and_the_robot_holds_where_it_stopped(
     assert s.kf.stats()["runs_stopped"] == 1 and s.kf.stats()["runs_completed"] == 1
 
 
+def test_a_run_is_announced_when_it_starts_and_when_it_ends(session: Session) -> None:
+    """STATUS KEYFRAME_RUNNING when a plan starts, KEYFRAME_ENDED when it completes or is
+    dropped, to every viewer and operator: what ROS 2's is_busy follows (occ_ros2)."""
+    s = session
+
+    def runs() -> list[tuple[str, int, str]]:
+        return [
+            (m.error_name, m.code, m.status_message)  # type: ignore[attr-defined]
+            for m in s.slicer.messages("STATUS")
+            if m.error_name.startswith("KEYFRAME_")  # type: ignore[attr-defined]
+        ]
+
+    s.ok("KeyframeAdd", T=0.5, Pose="0.1 0.35 0.05")
+    s.start()
+    s.ok("KeyframePlan")
+    s.step(20)
+    assert runs() == []  # planned and previewed: nothing runs yet
+    s.ok("KeyframeAck", Plan=1)
+    s.step(5)
+    assert runs() == [("KEYFRAME_RUNNING", 1, "plan 1 running (0.500 s)")]
+    s.step(400)
+    assert len(runs()) == 1  # still running
+    s.step(200)
+    assert runs()[1:] == [("KEYFRAME_ENDED", 1, "plan 1 completed (0.500 s)")]
+    # dropped by a Stop: ended, code DISABLED (what a STOPPED robot's STATUS carries)
+    s.ok("KeyframeAdd", T=1.0, Pose="0.0 0.35 0.05")
+    plan_id = s.plan_and_ack()
+    s.step(300)
+    s.ok("Stop")
+    s.step(2)
+    name, code, text = runs()[-1]
+    assert runs()[-2][:2] == ("KEYFRAME_RUNNING", 1)
+    assert (name, code) == ("KEYFRAME_ENDED", 15)
+    assert text.startswith(f"plan {plan_id} stopped at t=0.30") and "RUNNING -> STOPPED" in text
+    assert len(runs()) == 4
+
+
 # ============================================================================ refusals
 def test_refused_on_a_joint_velocity_limit_naming_the_segment(session: Session) -> None:
     s = session

@@ -11,8 +11,12 @@ stdin and answers each with one JSON line on stdout:
 - ``{"op": "snapshot"}``: what arrived so far (receive times on this process's monotonic
   clock, seconds since the agent started; header stamps; frames; replies);
 - ``{"op": "publish", "data": "enable"}``: one std_msgs/String on ``NAMESPACE/command``;
-- ``{"op": "matched"}``: how many subscriptions the command publisher has matched, and how
-  many publishers of ``command_reply`` this node's graph knows;
+- ``{"op": "move_jp", "name": [...], "position": [...]}``: one sensor_msgs/JointState on
+  ``NAMESPACE/move_jp``; ``{"op": "move_cp", "frame": "world", "position": [x, y, z]}``: one
+  geometry_msgs/PoseStamped (metres) on ``NAMESPACE/move_cp``; both answer the wall time of
+  sending (``wall``: a CRTK client's ``start_time``);
+- ``{"op": "matched"}``: how many subscriptions the command publisher has matched (and the
+  move publishers), and how many publishers of ``command_reply`` this node's graph knows;
 - ``{"op": "graph"}``: the publishers of ``NAMESPACE/measured_cp`` as this node's graph sees
   them (type name and the type hash from their USER_DATA), and this node's own hash of the type;
 - ``{"op": "exit"}``.
@@ -30,7 +34,7 @@ import time
 from typing import Any
 
 import rclpy
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -57,6 +61,8 @@ def main() -> int:
     joints: dict[str, list[list[Any]]] = {"measured_js": [], "setpoint_js": []}
     states: list[list[Any]] = []
     replies: list[list[Any]] = []
+    statuses: list[list[Any]] = []
+    wrenches: list[list[Any]] = []
 
     def on_pose(leaf: str) -> Any:
         def cb(m: PoseStamped) -> None:
@@ -86,6 +92,19 @@ def main() -> int:
         with lock:
             replies.append([now(), m.data])
 
+    def on_status(m: String) -> None:
+        with lock:
+            statuses.append([now(), m.data])
+            del statuses[:-KEEP]
+
+    def on_wrench(m: WrenchStamped) -> None:
+        f = m.wrench.force
+        row = [now(), m.header.stamp.sec + m.header.stamp.nanosec * 1e-9, m.header.frame_id,
+               f.x, f.y, f.z]  # fmt: skip
+        with lock:
+            wrenches.append(row)
+            del wrenches[:-KEEP]
+
     latched = QoSProfile(
         history=HistoryPolicy.KEEP_LAST,
         depth=1,
@@ -98,7 +117,11 @@ def main() -> int:
         node.create_subscription(JointState, f"{ns}/{leaf}", on_joints(leaf), 10)
     node.create_subscription(String, f"{ns}/state", on_state, latched)
     node.create_subscription(String, f"{ns}/command_reply", on_reply, 10)
+    node.create_subscription(String, f"{ns}/status", on_status, 10)
+    node.create_subscription(WrenchStamped, f"{ns}/measured_cf", on_wrench, 10)
     command = node.create_publisher(String, f"{ns}/command", 10)
+    move_jp = node.create_publisher(JointState, f"{ns}/move_jp", 10)
+    move_cp = node.create_publisher(PoseStamped, f"{ns}/move_cp", 10)
     # a publisher of the same type in this node: its graph entry carries rclpy's own type hash
     own = node.create_publisher(PoseStamped, f"{ns}/probe_own_hash", 10)
 
@@ -123,12 +146,31 @@ def main() -> int:
             with lock:
                 last_joints = {k: v[-5:] for k, v in joints.items()}
                 answer({"t": now(), "poses": poses, "joints": last_joints, "states": states,
-                        "replies": replies})  # fmt: skip
+                        "replies": replies, "statuses": statuses[-50:],
+                        "wrenches": wrenches[-50:]})  # fmt: skip
         elif op == "publish":
             command.publish(String(data=str(req["data"])))
             answer({"t": now(), "published": req["data"]})
+        elif op == "move_jp":
+            goal = JointState(name=list(req.get("name", [])),
+                              position=[float(v) for v in req["position"]])  # fmt: skip
+            goal.header.stamp = node.get_clock().now().to_msg()
+            wall = time.time()
+            move_jp.publish(goal)
+            answer({"t": now(), "wall": wall})
+        elif op == "move_cp":
+            pose = PoseStamped()
+            pose.header.stamp = node.get_clock().now().to_msg()
+            pose.header.frame_id = str(req.get("frame", "world"))
+            x, y, z = (float(v) for v in req["position"])
+            pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = x, y, z
+            wall = time.time()
+            move_cp.publish(pose)
+            answer({"t": now(), "wall": wall})
         elif op == "matched":
             answer({"t": now(), "matched": command.get_subscription_count(),
+                    "move_jp": move_jp.get_subscription_count(),
+                    "move_cp": move_cp.get_subscription_count(),
                     "reply_publishers": node.count_publishers(f"{ns}/command_reply")})  # fmt: skip
         elif op == "graph":
 

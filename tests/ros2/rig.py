@@ -1,10 +1,11 @@
 """The namespace rig of the ROS 2 tests: daemon, bridge and DDS agents as restartable processes.
 
 Everything runs in one private network namespace (netns.py): the slave daemon (``occd
-configs/slave.yaml`` with its shipped ports: the namespace has them to itself), the bridge
-(``occ-ros2`` with its shipped DDS configuration), a real ROS 2 node (rclpy_agent.py) and a
-Cyclone participant for the crtk_msgs/tf2_msgs topics (cyclone_agent.py), each driven over
-JSON lines.
+configs/slave.yaml`` with its shipped ports: the namespace has them to itself; or another
+config, e.g. a keyframe robot, or the master and the slave together), the bridge (``occ-ros2``
+with its shipped DDS configuration), a real ROS 2 node (rclpy_agent.py), a Cyclone participant
+for the crtk_msgs/tf2_msgs topics (cyclone_agent.py) and an OpenIGTLink operator
+(igtl_agent.py), each driven over JSON lines.
 """
 
 from __future__ import annotations
@@ -84,19 +85,28 @@ def clean_env(**extra: str) -> dict[str, str]:
 class Rig:
     """The daemon, the bridge and the node in one namespace, each restartable."""
 
-    def __init__(self, ns: Netns, tmp: Path, node_env: dict[str, str]) -> None:
+    def __init__(self, ns: Netns, tmp: Path, node_env: dict[str, str], topics: str = NS) -> None:
         self.ns, self.tmp, self.node_env = ns, tmp, node_env
+        #: the ROS 2 namespace the node and the Cyclone participant use
+        self.topics = topics
         self.daemon: subprocess.Popen[Any] | None = None
         self.bridge: subprocess.Popen[Any] | None = None
         self.node: Agent | None = None
         self.bridge_runs = 0
 
     # -------------------------------------------------------------- daemon
-    def start_daemon(self, config: Path = ROOT / "configs" / "slave.yaml") -> None:
-        self.daemon = self.ns.popen(
-            [sys.executable, "-m", "occ.cli", str(config), "--log-level", "WARNING"],
+    def start_daemon(
+        self,
+        config: Path = ROOT / "configs" / "slave.yaml",
+        *args: str,
+        ports: tuple[int, ...] = (18944, 18947),
+    ) -> subprocess.Popen[Any]:
+        """``occd config args...``, waited for until it listens on ``ports``."""
+        proc = self.ns.popen(
+            [sys.executable, "-m", "occ.cli", str(config), "--log-level", "WARNING", *args],
             cwd=ROOT, env=clean_env(),
         )  # fmt: skip
+        self.daemon = self.daemon or proc
         wait = (
             "import socket,time,sys\n"
             "end=time.monotonic()+30\n"
@@ -107,15 +117,19 @@ class Rig:
             "    time.sleep(0.05)\n"
             "sys.exit(1)\n"
         )
-        for port in ("18944", "18947"):
-            self.ns.run([sys.executable, "-c", wait, port], timeout=35.0)
+        for port in ports:
+            self.ns.run([sys.executable, "-c", wait, str(port)], timeout=35.0)
+        return proc
 
     # -------------------------------------------------------------- bridge
-    def start_bridge(self, *extra: str) -> None:
+    def start_bridge(self, *extra: str, ports: tuple[str, ...] | None = None) -> None:
+        """occ-ros2 with ``ports`` (default: the slave's viewer and operator ports) and
+        ``extra``."""
+        if ports is None:
+            ports = ("--connect", f"127.0.0.1:18944={NS}", "--operator", f"127.0.0.1:18947={NS}")
         self.bridge_runs += 1
         self.bridge = self.ns.popen(
-            [sys.executable, "-m", "occ_ros2.cli",
-             "--connect", f"127.0.0.1:18944={NS}", "--operator", f"127.0.0.1:18947={NS}",
+            [sys.executable, "-m", "occ_ros2.cli", *ports,
              "--log-level", "WARNING",
              "--stats", str(self.tmp / f"bridge{self.bridge_runs}.json"), *extra],
             cwd=ROOT, env=clean_env(),
@@ -133,7 +147,7 @@ class Rig:
     def start_node(self) -> Agent:
         """The real ROS 2 node (rclpy_agent.py)."""
         self.node = Agent(self.ns.popen(
-            [sys.executable, str(HERE / "rclpy_agent.py"), NS],
+            [sys.executable, str(HERE / "rclpy_agent.py"), self.topics],
             env=self.node_env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
         ))  # fmt: skip
         return self.node
@@ -141,7 +155,14 @@ class Rig:
     def start_cyclone(self) -> Agent:
         """A Cyclone participant for the crtk_msgs and tf2_msgs topics (cyclone_agent.py)."""
         return Agent(self.ns.popen(
-            [sys.executable, str(HERE / "cyclone_agent.py"), NS],
+            [sys.executable, str(HERE / "cyclone_agent.py"), self.topics],
+            cwd=ROOT, env=clean_env(), stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+        ))  # fmt: skip
+
+    def start_operator(self, port: int) -> Agent:
+        """An OpenIGTLink operator of the daemon on ``port`` (igtl_agent.py)."""
+        return Agent(self.ns.popen(
+            [sys.executable, str(HERE / "igtl_agent.py"), str(port)],
             cwd=ROOT, env=clean_env(), stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
         ))  # fmt: skip
 

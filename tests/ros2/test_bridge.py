@@ -152,7 +152,10 @@ def test_commands_round_trip_and_state_is_latched(
 
     # transient local: the state published before this reader existed arrives all the same
     assert poll(lambda: state() == "READY"), ros.seen["state"]
-    assert ros.take("operating_state")[-1].state == "DISABLED"
+    # operating_state follows once the bridge knows whether a plan runs (its GetStats on
+    # connecting, docs/ROS2.md): a moment after the state
+    assert poll(lambda: ros.take("operating_state")), "no operating_state"
+    assert ros.seen["operating_state"][-1].state == "DISABLED"
 
     # CRTK's word on CRTK's topic
     crtk = ros.writer("state_command", msgs.StringStamped)

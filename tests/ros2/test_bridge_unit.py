@@ -179,3 +179,136 @@ def test_crtk_state_table_every_cell_answered(dds: tuple[int, Any], namespace: s
             if state not in ("INIT", "SHUTDOWN"):
                 fresh = _first(ops, (word, state))
                 assert fresh.is_busy is False and fresh.is_homed is True
+
+
+def test_move_time_rule() -> None:
+    """Distance over the speed, up to the millisecond, at least MOVE_MIN_S (1 s)."""
+    from occ_ros2.bridge import MOVE_MIN_S, move_time
+
+    assert MOVE_MIN_S == 1.0
+    assert move_time(0.0, 0.05) == 1.0
+    assert move_time(0.04, 0.05) == 1.0
+    assert move_time(0.1, 0.05) == 2.0
+    assert move_time(0.10001, 0.05) == 2.001  # rounded up: never faster than the speed
+    assert move_time(0.005, 0.01) == 1.0
+
+
+def test_plan_running_reads_the_keyframe_controllers_statistics() -> None:
+    """The probe of a bridge that connects mid-run: the daemon's GetStats (the operator
+    desk's report, as GetStats sends it) says a plan runs only while it does; the STATUS names
+    the bridge follows are the controller's."""
+    import json
+
+    import yaml
+
+    from occ.controllers import keyframe
+    from occ.testing import SimRobot
+    from occ_ros2 import bridge as b
+
+    assert (b.KEYFRAME_RUNNING, b.KEYFRAME_ENDED) == (
+        keyframe.STATUS_RUNNING,
+        keyframe.STATUS_ENDED,
+    )
+    root = Path(__file__).resolve().parents[2]
+    cfg = yaml.safe_load((root / "configs" / "keyframe.yaml").read_text())
+    cfg["controller"]["params"]["file"] = str(root / "configs" / "keyframes" / "demo.yaml")
+    cfg["controller"]["params"]["keyframe_dir"] = str(root / "configs" / "keyframes")
+    with SimRobot(cfg) as sim:
+        peer = sim.peer("slicer")
+
+        def stats() -> str:
+            return json.dumps(sim.robot.operators.report(), default=str)
+
+        assert not b.plan_running(stats())
+        for name in ("Enable", "Run"):
+            assert sim.command(peer, name).metadata["Status"] == "SUCCESS"
+        cid = peer.send_command("KeyframePlan")
+        sim.step(1)
+        (ctrl,) = sim.robot.controller.controllers
+        assert ctrl.wait_idle(30.0)  # type: ignore[attr-defined]
+        sim.step(200)  # the plan's answer, and its preview
+        reply = peer.reply_to(cid)
+        assert reply is not None and reply.metadata["Status"] == "SUCCESS"
+        plan = ctrl.plan.id  # type: ignore[attr-defined]
+        reply = sim.command(peer, "KeyframeAck", f'<Command Name="KeyframeAck" Plan="{plan}"/>')
+        assert reply.metadata["Status"] == "SUCCESS", reply.metadata
+        sim.step(10)
+        assert b.plan_running(stats())
+        sim.run_for(ctrl.active.traj.duration + 0.1)  # type: ignore[attr-defined]
+        assert not b.plan_running(stats())
+    # several controllers: the keyframe one's; and anything else is not a running plan
+    assert b.plan_running('{"controller": {"keyframe": {"running": 3, "runs_completed": 0}}}')
+    assert not b.plan_running('{"controller": {"running": 3}}')  # not a keyframe controller
+    assert not b.plan_running("not json") and not b.plan_running("[1]")
+
+
+def test_moves_refused_by_the_bridge_say_why(dds: tuple[int, Any], namespace: str) -> None:
+    """What the bridge refuses itself, before the daemon is asked: no operator port; the joint
+    positions or the tip not known yet; a joint or a frame it does not know; and what it sends
+    when it does ask (here nothing listens: 'not connected')."""
+    domain_id, dp = dds
+    replies: DataReader[Any] = DataReader(
+        dp, Topic(dp, topic_name(namespace, "command_reply"), msgs.String), QOS_DEFAULT
+    )
+    jp = msgs.JointState(name=["yaw"], position=[0.1])
+    cp = msgs.PoseStamped(header=msgs.Header(frame_id="world"))
+    with Bridge([("127.0.0.1", free_port(), namespace)], domain_id=domain_id) as bridge:
+        bridge.move(namespace, "move_jp", jp)
+        assert _first(replies, "no operator").data == (
+            f"move_jp FAIL: no operator interface for {namespace} (occ-ros2 --operator)"
+        )
+    endpoint = [("127.0.0.1", free_port(), namespace)]
+    with Bridge(endpoint, endpoint, domain_id=domain_id) as bridge:
+        robot = bridge.robots[namespace]
+
+        def answer(kind: str, goal: Any) -> str:
+            bridge.move(namespace, kind, goal)
+            return str(_first(replies, kind).data)
+
+        assert answer("move_jp", jp) == (
+            "move_jp FAIL: the daemon's joint positions are not known yet (its NDARRAY Joints)"
+        )
+        assert answer("move_cp", cp) == (
+            "move_cp FAIL: the tip is not known yet (the daemon's TRANSFORM Tip)"
+        )
+        robot.joints = (["yaw", "pitch", "insertion"], [0.0, 0.35, 0.05])
+        robot.tip_m = np.eye(4)
+        assert answer("move_jp", msgs.JointState(position=[0.1])) == (
+            "move_jp FAIL: 1 positions for 3 joints (yaw, pitch, insertion); give all, or name them"
+        )
+        nan = msgs.JointState(name=["yaw"], position=[float("nan")])
+        assert answer("move_jp", nan) == "move_jp FAIL: a position is not a finite number"
+        base = msgs.PoseStamped(header=msgs.Header(frame_id=robot.base_frame))
+        assert answer("move_cp", base).startswith("move_cp FAIL: the base is not known yet")
+        # accepted: the daemon's commands go out (nothing listens here)
+        assert answer("move_jp", jp) == "move_jp FAIL: operator interface not connected"
+        assert robot.move is None
+        assert bridge.stats()[namespace]["commands_refused"] == 6
+
+
+def test_a_move_becomes_the_daemons_keyframe_commands() -> None:
+    """The goals as the daemon's KeyframeAdd gets them: joints in its order (named ones
+    replaced), Cartesian goals in its world frame in mm (a goal in the base frame through the
+    base pose), and the time from the distance."""
+    from occ_ros2.bridge import Robot
+
+    bridge = Bridge.__new__(Bridge)  # the conversions only: no DDS, no links
+    bridge.world_frame, bridge.move_joint_speed, bridge.move_tip_speed = "world", 0.05, 0.01
+    robot = Robot(ns="/occ/kf", leaf="kf")
+    robot.joints = (["yaw", "pitch", "insertion"], [0.0, 0.35, 0.05])
+    goal = msgs.JointState(name=["insertion", "yaw"], position=[0.08, -0.1])
+    assert bridge._joint_goal(robot, goal) == ("joint", "-0.1 0.35 0.08", 2.0)
+    base = np.eye(4)
+    base[:3, :3] = rot((0, 0, 1), math.pi / 2)
+    base[:3, 3] = (0.1, 0.0, 0.0)
+    robot.base_m = base
+    robot.tip_m = np.eye(4)
+    robot.tip_m[:3, 3] = (0.1, 0.02, 0.0)
+    local = msgs.PoseStamped(header=msgs.Header(frame_id="kf_base"))
+    local.pose.position = msgs.Point(0.03, 0.0, 0.0)  # base x is world y
+    space, pose, t = bridge._tip_goal(robot, local)
+    assert (space, pose) == ("cartesian", "100.000000 30.000000 0.000000")
+    assert t == 1.0  # 10 mm at 10 mm/s
+    world = msgs.PoseStamped(header=msgs.Header(frame_id=""))  # empty: the world frame
+    world.pose.position = msgs.Point(0.1, 0.07, 0.0)
+    assert bridge._tip_goal(robot, world) == ("cartesian", "100.000000 70.000000 0.000000", 5.0)

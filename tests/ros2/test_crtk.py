@@ -103,11 +103,13 @@ class CrtkClient:
     def wait_for_busy(
         self, is_busy: bool = False, start_time: float = 0.0, timeout: float = 30.0
     ) -> bool:
-        last = self.last()
+        # one look at the samples for both (two would miss an event that comes between them)
+        seen = self.samples()
+        assert seen, "no operating_state yet"
+        last = seen[-1]
         if start_time > 0.0 and last[1] > start_time and last[4] == is_busy:
             return True
-        mark = len(self.samples())
-        return self._wait_event(mark, lambda s: s[4] == is_busy, timeout)
+        return self._wait_event(len(seen), lambda s: s[4] == is_busy, timeout)
 
     # the replies (command_reply, as the rclpy node received them): one per command, in order
     def reply(self) -> str:

@@ -80,6 +80,11 @@ SAMPLES: list[Any] = [
     m.Transform(m.Vector3(0.01, 0.0, -0.2), m.Quaternion(0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5))),
     m.TransformStamped(header=stamp("slave_base"), child_frame_id="slave_tip"),
     m.TFMessage(transforms=[]),
+    m.Wrench(force=m.Vector3(1.5, -0.25, 9.75)),
+    m.WrenchStamped(
+        header=stamp("master_base"),
+        wrench=m.Wrench(m.Vector3(-10.0, 0.0, 1e-3), m.Vector3(0.0, 0.5, 0.0)),
+    ),
     m.TFMessage(
         transforms=[
             m.TransformStamped(
@@ -120,7 +125,8 @@ def test_type_hashes_are_rosbags_jazzy_ones() -> None:
         assert value == store.hash_rihs01(name), name
     topic_types = {"std_msgs/msg/String", "geometry_msgs/msg/PoseStamped",
                    "sensor_msgs/msg/JointState", "crtk_msgs/msg/OperatingState",
-                   "crtk_msgs/msg/StringStamped", "tf2_msgs/msg/TFMessage"}  # fmt: skip
+                   "crtk_msgs/msg/StringStamped", "tf2_msgs/msg/TFMessage",
+                   "geometry_msgs/msg/WrenchStamped"}  # fmt: skip
     assert set(m.TYPE_HASHES) == topic_types
     assert m.user_data(m.PoseStamped) == (b"typehash=" + m.TYPE_HASHES[
         "geometry_msgs/msg/PoseStamped"].encode() + b";")  # fmt: skip
