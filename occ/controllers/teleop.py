@@ -87,6 +87,9 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 MM = 1e-3
+#: OpenIGTLink STATUS codes the controller's alerts carry (igtl.StatusCode: OK 1, TIME_OUT 7)
+STATUS_OK = 1
+STATUS_TIME_OUT = 7
 #: the master stream's metadata, one read-only mapping per (run, clutch): shared by every
 #: message sent (500 Hz), so none is built per packet
 _RUN_CLUTCH = {
@@ -312,7 +315,7 @@ class MasterController(Controller):
                 self._alert(
                     "STREAM",
                     f"slave tip on {name} back; virtual-fixture force on again",
-                    0,
+                    STATUS_OK,
                 )
 
     def _link(self, name: str) -> ReturnLink:
@@ -475,7 +478,7 @@ class MasterController(Controller):
             text = f"{where} lost: {cause}; virtual-fixture force off"
             if driving:
                 log.error("ALERT: %s", text)
-                self._alert("ALERT", text, 15)  # igtl StatusCode.TIME_OUT
+                self._alert("ALERT", text, STATUS_TIME_OUT)
             else:
                 log.warning("%s (not the driving slave)", text)
         elif kind == "refused":

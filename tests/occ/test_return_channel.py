@@ -114,6 +114,9 @@ def test_a_lost_tip_zeroes_the_force_at_once_and_alerts_the_operators(master) ->
     master.feed.step(1)
     assert master.ctrl.stats()["slave_tip"]["status"] == "fresh"
     assert any("back" in t for t in master.alerts("STREAM"))
+    assert {m.code for m in master.op.messages("STATUS") if m.error_name == "STREAM"} == {
+        int(igtl.StatusCode.OK)
+    }
     master.feed.step(25)
     assert master.force > 2.5 and master.sim.robot.state is RobotState.RUNNING
 
@@ -129,6 +132,8 @@ def test_a_dead_slave_zeroes_the_force_and_alerts_once(master) -> None:
     master.feed.step(5)  # past the grace (100 ms)
     (alert,) = master.alerts()
     assert "no packet for" in alert and "virtual-fixture force off" in alert
+    codes = [m.code for m in master.op.messages("STATUS") if m.error_name == "ALERT"]
+    assert codes == [int(igtl.StatusCode.TIME_OUT)]  # a lost link, as the slave's own alerts say
     master.feed.step(300)
     assert len(master.alerts()) == 1  # latched: said once
     assert master.ctrl.stats()["slave_tip"]["status"] == "lost"
