@@ -411,7 +411,9 @@ def test_the_displayed_force_as_sensor_and_ndarray_outputs() -> None:
     """Output source ``force``: the displayed force (N, the master's axes) as SENSOR with the
     unit N, or as NDARRAY (unit in the v2 metadata): what ROS 2's measured_cf carries."""
     cfg = yaml.safe_load((ROOT / "configs" / "master.yaml").read_text())
-    cfg["interfaces"][0]["outputs"] += [
+    outputs = cfg["interfaces"][0]["outputs"]  # the shipped Force (50 Hz) replaced by 100 Hz
+    outputs[:] = [o for o in outputs if o["source"] != "force"]
+    outputs += [
         {"type": "SENSOR", "device": "Force", "source": "force", "rate_hz": 100},
         {"type": "NDARRAY", "device": "ForceArray", "source": "force", "rate_hz": 100},
     ]
