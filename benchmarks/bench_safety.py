@@ -7,8 +7,13 @@ Two measurements (each bounded in time, loopback only):
     Two master/slave pairs (four ``occd`` processes, SCHED_FIFO where permitted) streaming at
     500 Hz, each slave read by two Slicer-like clients (10 Hz TRANSFORMs) and asked for its
     statistics once a second, for ``--duration`` seconds. Reports latched stops (must be
-    zero: nothing failed), holds and resumes, each loop's lateness p99.9 and max, and the CPU
-    of each daemon, and every daemon that left RUNNING with the cause from its log. Beside it
+    zero: nothing failed), holds and resumes, each loop's lateness p99.9 and max, the CPU
+    of each daemon, each slave's master sample -> drive write latency p50/p99/max, the build
+    each daemon ran (compiled or pure), and every daemon that left RUNNING with the cause from
+    its log. ``--hogs N`` adds N ordinary CPU hogs (busy pure-Python processes at normal
+    priority, as ``tools/soak.py real --hogs``: a workstation compiling beside Slicer).
+    ``--pure B`` runs pair B with ``OCC_PURE=1`` (the pure Python hot path) and pair A as
+    installed: the compiled and pure builds side by side in one run, same load. Beside it
     runs ``benchmarks/stall_probe.c`` (compiled with gcc into ``~/.cache/occ-bench``; skipped
     where there is no gcc): one SCHED_FIFO 99 thread per CPU that records every wake-up more
     than 5 ms late. A daemon stop at the moment every CPU was late is the machine's stall, not
@@ -23,6 +28,7 @@ Two measurements (each bounded in time, loopback only):
 Examples::
 
     python benchmarks/bench_safety.py pairs --duration 600
+    python benchmarks/bench_safety.py pairs --duration 360 --hogs 1 --pure B
     python benchmarks/bench_safety.py sigstop --count 20
 
 The result is printed as JSON and written to ``OUT/result.json``.
@@ -48,9 +54,12 @@ sys.path.insert(0, str(ROOT / "tools"))
 
 from loopback import pair_configs, stop_processes, wait_port, write_yaml  # noqa: E402
 from slicer_standin import SlicerStandIn  # noqa: E402
+from soak import start_hogs, stop_hogs  # noqa: E402
 
 
-def start(out: Path, name: str, data: dict[str, Any]) -> subprocess.Popen[bytes]:
+def start(
+    out: Path, name: str, data: dict[str, Any], pure: bool = False
+) -> subprocess.Popen[bytes]:
     data["stats"] = {"log_every_s": 3600.0}
     write_yaml(out / f"{name}.yaml", data)
     cmd = [
@@ -65,7 +74,10 @@ def start(out: Path, name: str, data: dict[str, Any]) -> subprocess.Popen[bytes]
         "--log-level",
         "WARNING",
     ]
-    return subprocess.Popen(cmd, cwd=ROOT, stderr=open(out / f"{name}.log", "wb"))  # noqa: SIM115
+    env = dict(os.environ)
+    if pure:
+        env["OCC_PURE"] = "1"
+    return subprocess.Popen(cmd, cwd=ROOT, env=env, stderr=open(out / f"{name}.log", "wb"))  # noqa: SIM115
 
 
 PROBE_SRC = ROOT / "benchmarks" / "stall_probe.c"
@@ -162,6 +174,7 @@ def state_changes(log: Path) -> list[str]:
 def loop_summary(stats: dict[str, Any]) -> dict[str, Any]:
     late = stats["lateness_us"]
     return {
+        "build": stats.get("build"),
         "final_state": stats.get("final_state"),
         "ticks": stats["ticks"],
         "lateness_p99_9_us": late["p99_9"],
@@ -183,7 +196,12 @@ def tolerate(cfg: dict[str, Any], ms: float) -> None:
 
 
 def start_pair(
-    out: Path, tag: str, spin_us: float | None, tolerance_ms: float | None = None
+    out: Path,
+    tag: str,
+    spin_us: float | None,
+    tolerance_ms: float | None = None,
+    phase_lock_us: float | None = None,
+    pure: bool = False,
 ) -> tuple[list[subprocess.Popen[bytes]], dict[str, int]]:
     slave, master, ports = pair_configs()
     for cfg in (slave, master):
@@ -191,10 +209,13 @@ def start_pair(
             cfg["robot"]["realtime"]["spin_us"] = spin_us
         if tolerance_ms is not None:
             tolerate(cfg, tolerance_ms)
-    procs = [start(out, f"slave{tag}", slave)]
+    if phase_lock_us is not None:  # negative: off
+        lock = None if phase_lock_us < 0 else phase_lock_us
+        slave["controller"]["params"]["phase_lock_us"] = lock
+    procs = [start(out, f"slave{tag}", slave, pure)]
     if not wait_port(ports["slave_tcp"], 30.0, procs[0]):
         raise SystemExit(f"slave{tag} did not start; see {out}/slave{tag}.log")
-    procs.append(start(out, f"master{tag}", master))
+    procs.append(start(out, f"master{tag}", master, pure))
     if not wait_port(ports["master_tcp"], 30.0, procs[1]):
         raise SystemExit(f"master{tag} did not start; see {out}/master{tag}.log")
     return procs, ports
@@ -209,14 +230,24 @@ def run_pairs(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     procs: list[subprocess.Popen[bytes]] = []
     clients: list[SlicerStandIn] = []
     probe = start_probe(args.duration + 120.0, out)
+    hogs: list[subprocess.Popen[bytes]] = []
+    hog_shares: list[float | None] = []
     try:
         for tag in ("A", "B"):
-            p, ports = start_pair(out, tag, args.spin_us, args.tolerate_ms)
+            p, ports = start_pair(
+                out, tag, args.spin_us, args.tolerate_ms, args.phase_lock_us, tag in args.pure
+            )
             procs += p
             clients += [SlicerStandIn("127.0.0.1", ports["slave_tcp"]).start() for _ in range(2)]
         for c in clients:
             c.connected.wait(10.0)
-        print(f"pairs: 4 daemons, 4 clients, {args.duration:.0f} s; files in {out}", flush=True)
+        t_hogs = time.monotonic()
+        hogs = start_hogs(args.hogs, args.duration + 90.0)
+        print(
+            f"pairs: 4 daemons, 4 clients, {args.hogs} CPU hog(s), {args.duration:.0f} s; "
+            f"files in {out}",
+            flush=True,
+        )
         end = time.monotonic() + args.duration
         while time.monotonic() < end:
             time.sleep(1.0)
@@ -226,6 +257,8 @@ def run_pairs(args: argparse.Namespace, out: Path) -> dict[str, Any]:
                 raise SystemExit("pairs: a daemon exited early")
         latched = {f"slave{t}": stops_seen(c) for t, c in zip("AB", clients[::2], strict=True)}
     finally:
+        if hogs:
+            hog_shares = stop_hogs(hogs, t_hogs)
         for c in clients:
             c.stop()
         stop_processes(procs)
@@ -235,6 +268,12 @@ def run_pairs(args: argparse.Namespace, out: Path) -> dict[str, Any]:
         d = json.loads((out / f"{name}.json").read_text())
         daemons[name] = loop_summary(d)
         daemons[name]["state_changes"] = state_changes(out / f"{name}.log")
+        lat = d.get("controller", {}).get("sample_to_write_us")
+        if lat is not None:
+            daemons[name]["sample_to_write_us"] = lat
+            daemons[name]["sample_to_rx_us"] = d["controller"].get("sample_to_rx_us")
+            daemons[name]["phase_shifts"] = d["controller"].get("phase_shifts")
+            daemons[name]["phase_error_us"] = d["controller"].get("phase_error_us")
         if "loss" in d:
             daemons[name]["loss"] = {
                 k: d["loss"][k] for k in ("received", "lost_total", "holds", "resumes", "trips")
@@ -243,6 +282,10 @@ def run_pairs(args: argparse.Namespace, out: Path) -> dict[str, Any]:
         "mode": "pairs",
         "duration_s": args.duration,
         "tolerate_ms": args.tolerate_ms,
+        "hogs": args.hogs,
+        "hog_cpu_percent": hog_shares,
+        "pure_pairs": sorted(args.pure),
+        "load_after": " ".join(Path("/proc/loadavg").read_text().split()[:3]),
         "latched_stops": sum(len(v) for v in latched.values()),
         "stop_alerts": latched,
         "left_running": sorted(n for n, d in daemons.items() if d["final_state"] != "RUNNING"),
@@ -260,7 +303,7 @@ def freeze(proc: subprocess.Popen[bytes], seconds: float) -> float:
 
 
 def run_sigstop(args: argparse.Namespace, out: Path) -> dict[str, Any]:
-    procs, ports = start_pair(out, "", args.spin_us, args.tolerate_ms)
+    procs, ports = start_pair(out, "", args.spin_us, args.tolerate_ms, args.phase_lock_us)
     client = SlicerStandIn("127.0.0.1", ports["slave_tcp"]).start()
     try:
         client.connected.wait(10.0)
@@ -309,8 +352,22 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="supervisor timeout, watchdog hard gap and drive heartbeats (default: as shipped)",
     )
+    p.add_argument(
+        "--phase-lock-us",
+        type=float,
+        default=None,
+        help="override the slaves' teleop phase_lock_us (negative = off; default: as shipped)",
+    )
+    p.add_argument("--hogs", type=int, default=0, help="pairs: ordinary CPU hogs (default 0)")
+    p.add_argument(
+        "--pure",
+        default="",
+        help="pairs: the pairs (A, B or AB) run with OCC_PURE=1, the pure Python build",
+    )
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
+    if args.hogs < 0 or set(args.pure) - {"A", "B"}:
+        p.error("--hogs must be >= 0; --pure takes A, B or AB")
     out = args.out or Path(tempfile.mkdtemp(prefix=f"occ-safety-{args.mode}-"))
     out.mkdir(parents=True, exist_ok=True)
     result = run_pairs(args, out) if args.mode == "pairs" else run_sigstop(args, out)
