@@ -2,10 +2,10 @@
 
 The modules in :data:`MODULES` (the tick: robot, hardware, streams, motion, drivers, joints,
 data, safety, interfaces, outputs, kinematics, the teleop controllers) can be compiled with
-mypyc into C extension modules next to their sources (``python scripts/build_native.py``,
-which ``scripts/test`` and ``scripts/demo`` run when needed). Compiled, a slave tick costs
-about half as much CPU (docs/BENCHMARKS.md, "Compiled hot path"); the behaviour is the same,
-and the whole test suite runs against both builds in CI.
+mypyc into C extension modules next to their sources (``python scripts/build_native.py``; an
+option, ``OCC_NATIVE=1 scripts/test``: what ships is the pure build, since compiling saved only
+10-18 % of a daemon's CPU, docs/BENCHMARKS.md "The compiled hot path"); the behaviour is the
+same.
 
 Python itself prefers an extension module to a source file of the same name, so stale ``.so``
 files would silently run old code. This module, imported by ``occ/__init__.py`` before any of

@@ -277,8 +277,9 @@ class Recorder:
 
 
 def writer_priority(config: Any) -> int | None:
-    """The recorder's writer thread priority for a daemon's config: SCHED_FIFO two below the
-    loop (the interface threads are one below) when the loop runs SCHED_FIFO, else None."""
+    """The priority of a daemon's threads that hold the interpreter lock for a while (the
+    recorder's writer, the worker): SCHED_FIFO two below the loop (the interface threads are
+    one below) when the loop runs SCHED_FIFO, else None."""
     prio = config.robot.realtime.fifo_priority
     return max(1, prio - 2) if prio else None
 

@@ -40,6 +40,7 @@ from .loop import ControlLoop
 from .motion import POWERED, Motion
 from .operators import OperatorDesk
 from .outputs import STATE_STATUS_CODE, BuiltinSources, OutputScheduler
+from .record import writer_priority
 from .safety import RobotState, StateMachine, Supervisor
 from .statetable import StateTable, table_for
 from .stats import LoopStats
@@ -74,7 +75,6 @@ class Robot:
         self.state_machine.add_guard(self._may_power)
         self.state_machine.set_effector(self._effect)
         self.recorder = recorder
-
         # --- Joints, Frame, Drivers (hardware-dependent parts)
         self.joints, self.frame, pairs = build_hardware(rc)
         #: the drives as one unit whose transitions succeed or fail whole (occ/hardware.py)
@@ -110,7 +110,7 @@ class Robot:
         self.supervisor_thread: SupervisorThread | None = None
         self._supervisor_handled = False
         #: jobs the loop must not pay for (GetStats); the worker sends the reply itself
-        self.worker = Worker(f"occ-{self.name}-report")
+        self.worker = Worker(f"occ-{self.name}-report", fifo_priority=writer_priority(config))
         self.ticks = 0
         #: the State Data Table (``state_table.seconds``), written once a tick
         self.state_table: StateTable | None = table_for(
