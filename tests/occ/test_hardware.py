@@ -163,3 +163,134 @@ def test_stats_per_drive_and_states() -> None:
     assert st["last_fault_to_safe_us"] is None
     hw.shutdown()
     assert hw.stats()["states"] == {"a": "shutdown", "b": "shutdown"}
+
+
+class Brittle(SimDriver):
+    """A simulated drive whose deactivate, reset or shutdown hook raises on demand (an
+    exception without a message, the hardest to name), and which records its activations."""
+
+    def __init__(self, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+        super().__init__(*args, **kwargs)
+        self.breaks: set[str] = set()
+        self.activations = 0
+
+    def _activate(self) -> None:
+        self.activations += 1
+        super()._activate()
+
+    def _deactivate(self) -> None:
+        if "deactivate" in self.breaks:
+            raise RuntimeError()
+        super()._deactivate()
+
+    def _reset(self) -> None:
+        if "reset" in self.breaks:
+            raise OSError("the drive does not clear its fault")
+        super()._reset()
+
+    def _shutdown(self) -> None:
+        if "shutdown" in self.breaks:
+            raise OSError("bus gone")
+        super()._shutdown()
+
+
+def _brittle() -> tuple[HardwareSet, Brittle, Brittle]:
+    a = Brittle("a", _joints("xy"), {"heartbeat_ms": 0})
+    b = Brittle("b", _joints("z"), {"heartbeat_ms": 0})
+    return HardwareSet([(a, [0, 1]), (b, [2])]), a, b
+
+
+def test_a_drive_that_fails_to_stop_is_named_and_the_others_still_stop() -> None:
+    hw, a, b = _brittle()
+    hw.configure()
+    hw.read(0.0)
+    hw.activate()
+    a.breaks.add("deactivate")
+    (fail,) = hw.deactivate()
+    assert fail == HardwareFailure(
+        "a", "deactivate", "driver 'a': deactivate failed: RuntimeError()"
+    )
+    assert a.state is DriverState.FAULT and b.state is DriverState.INACTIVE
+    assert hw.all_safe() and hw.failures == 1
+    (latched,) = hw.faulted()
+    assert latched == HardwareFailure("a", "drive", a.fault_reason or "")
+    a.breaks.clear()
+    hw.shutdown()
+
+
+def test_only_the_drives_that_need_it_are_touched_the_rest_still_are() -> None:
+    hw, a, b = _brittle()
+    hw.configure()
+    hw.read(0.0)
+    a.activate()  # already on: activation goes on to b
+    assert hw.activate() == [] and b.state is DriverState.ACTIVE and a.activations == 1
+    a.deactivate()  # already off: deactivation goes on to b
+    assert hw.deactivate() == [] and b.state is DriverState.INACTIVE
+    # a latched drive does not stop the others from being tried (then all go off again)
+    a.activate()
+    a.safe_stop("test")
+    (fail,) = hw.activate()
+    assert fail.driver == "a" and b.activations == 2 and b.state is DriverState.INACTIVE
+    # an unconfigured drive first: the next is still read
+    hw2, c, d = _brittle()
+    d.configure()
+    assert hw2.read(0.0) is None and d.stats()["reads"] == 1
+    hw.shutdown()
+    hw2.shutdown()
+
+
+def test_a_reset_that_fails_is_named_and_an_unconfigured_drive_still_configured() -> None:
+    hw, a, b = _brittle()
+    b.configure()
+    b.activate()
+    b.safe_stop("x")  # latched FAULT
+    b.breaks.add("reset")
+    failures = hw.reset()  # a (never configured) is configured; b's reset fails
+    assert failures == [
+        HardwareFailure(
+            "b", "reset", "driver 'b': reset failed: OSError('the drive does not clear its fault')"
+        )
+    ]
+    assert a.state is DriverState.INACTIVE and b.state is DriverState.FAULT
+    assert hw.failures == 1
+    b.breaks.clear()
+    hw.shutdown()
+
+
+def test_shutdown_reaches_every_drive_and_names_the_failures() -> None:
+    hw, a, b = _brittle()
+    hw.configure()
+    a.breaks.add("shutdown")
+    failures = hw.shutdown()
+    assert len(failures) == 1 and failures[0].driver == "a" and failures[0].action == "shutdown"
+    assert "bus gone" in failures[0].cause
+    assert a.state is DriverState.SHUTDOWN and b.state is DriverState.SHUTDOWN
+    assert hw.shutdown() == []  # twice: nothing left to do
+
+
+def test_failures_are_counted_across_operations_and_the_time_to_safe_is_sane() -> None:
+    hw, a, b = _set()
+    hw.configure()
+    a.inject("hook")
+    hw.read(0.0)
+    hw.read(0.001)
+    assert hw.failures == 2
+    a.clear_faults()
+    hw.reset()
+    hw.read(0.002)
+    hw.activate()
+    b.inject("write")
+    hw.write([0.0, 0.0, 0.0], 0.003)
+    hw.write([0.0, 0.0, 0.0], 0.004)  # b is latched: refused before writing
+    assert hw.failures == 4
+    hw.deactivate()
+    lat = hw.last_fault_to_safe_s
+    assert lat is not None and 0.0 <= lat < 1.0  # from the detection, on one clock
+    hw.shutdown()
+
+
+def test_a_cause_without_words_is_named_by_its_type() -> None:
+    from occ.hardware import _cause
+
+    assert _cause(RuntimeError()) == "RuntimeError"
+    assert _cause(OSError("bus gone")) == "bus gone"
