@@ -54,7 +54,9 @@ def test_activation_is_all_or_nothing() -> None:
     assert hw.configure() == []
     b.inject("activate")
     (fail,) = hw.activate()
-    assert (fail.driver, fail.action) == ("b", "activate")
+    assert fail == HardwareFailure(
+        "b", "activate", "sim driver 'b': simulated fault: the power stage did not come up"
+    )
     # a came up and went off again; b is latched FAULT by its base
     assert a.state is DriverState.INACTIVE and b.state is DriverState.FAULT
     assert hw.all_safe()
@@ -90,7 +92,7 @@ def test_every_drive_is_read_and_each_failure_named() -> None:
     assert hw.read(0.0) is None
     a.inject("hook")
     failures = hw.read(0.001)
-    assert failures is not None and [f.driver for f in failures] == ["a"]
+    assert failures is not None and [(f.driver, f.action) for f in failures] == [("a", "read")]
     assert "exception in the drive's read hook" in failures[0].cause
     assert b.joints[0].measured and b.stats()["reads"] == 2  # b still read
     # unconfigured drives are not read
