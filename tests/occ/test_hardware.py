@@ -296,3 +296,14 @@ def test_a_cause_without_words_is_named_by_its_type() -> None:
 
     assert _cause(RuntimeError()) == "RuntimeError"
     assert _cause(OSError("bus gone")) == "bus gone"
+
+
+def test_a_safe_stop_from_the_supervisor_reaches_every_drive() -> None:
+    hw, a, b = _set()
+    hw.configure()
+    hw.read(0.0)
+    hw.activate()
+    hw.safe_stop("loop hung")
+    assert [d.state for d in (a, b)] == [DriverState.FAULT, DriverState.FAULT]
+    assert [f.cause for f in hw.faulted()] == ["safe stop: loop hung"] * 2
+    hw.shutdown()
