@@ -109,7 +109,9 @@ def test_three_daemons_handover_and_loss_rules(trio) -> None:  # type: ignore[no
         (table,) = [m for m in viewer.replies if m.device_name == "StateTable"]
         columns = table.metadata["columns"].split(",")
         rows = table.array
-        assert rows.shape[1] == len(columns) and 900 <= rows.shape[0] <= 1001
+        # about a row a tick; a loaded machine's loop may miss some (a behaviour check, not a
+        # timing one: the rate is measured in benchmarks)
+        assert rows.shape[1] == len(columns) and 500 <= rows.shape[0] <= 1001
         assert rows[-1, columns.index("owner")] == 1.0  # the trainee
         # the mentor's console dies: it is not in control, so only an alert
         procs["mentor"].send_signal(signal.SIGKILL)
