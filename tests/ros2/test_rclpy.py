@@ -72,12 +72,19 @@ def check_node_gets_everything(rig: Rig, since: float, *, command: str = "GetSta
     # must have matched the bridge's subscription first (a volatile sample sent before
     # the match is lost, in any ROS 2)
     assert wait_until(lambda: rig.ask("matched")["matched"] >= 1, timeout=5.0)
-    t_cmd = rig.ask("publish", data=command)["t"]
+    # the reply goes back on a volatile topic: right after discovery the bridge's reply writer
+    # may not have matched the node's reader yet, and the one reply is lost (any ROS 2): ask
+    # again, once a second, for up to 5 s; one answer is the proof
+    first = rig.ask("publish", data=command)["t"]
 
     def reply() -> list[str]:
-        return [r[1] for r in rig.ask("snapshot")["replies"] if r[0] >= t_cmd]
+        return [r[1] for r in rig.ask("snapshot")["replies"] if r[0] >= first]
 
-    assert wait_until(lambda: reply(), timeout=5.0), "no command_reply"
+    for _ in range(5):
+        if wait_until(lambda: reply(), timeout=1.0):
+            break
+        rig.ask("publish", data=command)
+    assert reply(), "no command_reply"
     assert reply()[0] == "GetState SUCCESS: state=READY; reason=configured", reply()
 
 
@@ -97,7 +104,8 @@ def test_node_started_after_the_bridge(netns: Netns, tmp_path: Path, settings: s
     rig.start_node()
     check_node_gets_everything(rig, 0.0)
     stats = rig.stop_bridge()[NS]
-    assert stats["commands"] == 1 and stats["replies"] == 1 and stats["publish_errors"] == 0
+    assert stats["commands"] >= 1 and stats["replies"] == stats["commands"]
+    assert stats["publish_errors"] == 0
 
 
 @pytest.mark.parametrize("settings", list(SETTINGS), ids=list(SETTINGS))
@@ -138,7 +146,7 @@ def test_node_restarted_under_a_running_bridge(netns: Netns, tmp_path: Path, set
     rig.start_node()
     check_node_gets_everything(rig, 0.0)
     stats = rig.stop_bridge()[NS]
-    assert stats["commands"] == 2 and stats["replies"] == 2
+    assert stats["commands"] >= 2 and stats["replies"] == stats["commands"]
 
 
 def test_type_hashes_are_the_ones_rclpy_computes(netns: Netns, tmp_path: Path) -> None:
