@@ -98,6 +98,17 @@ def test_no_import_cycle_in_igtl() -> None:
     assert cycle is None, "import cycle: " + " -> ".join(cycle or [])
 
 
+def _named_imports(path: Path) -> list[str]:
+    """The module names every import statement of ``path`` names, anywhere in it."""
+    names: list[str] = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.ImportFrom):
+            names.append(node.module or "")
+        elif isinstance(node, ast.Import):
+            names.extend(a.name for a in node.names)
+    return names
+
+
 def test_igtl_never_imports_occ() -> None:
     for path in (ROOT / "igtl").rglob("*.py"):
         tree = ast.parse(path.read_text(encoding="utf-8"))
@@ -177,16 +188,9 @@ def test_the_core_never_imports_the_console() -> None:
     banned = ("occ_console", "starlette", "uvicorn")
     for package in ("igtl", "occ", "occ_ros2"):
         for path in (ROOT / package).rglob("*.py"):
-            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-                if isinstance(node, ast.ImportFrom):
-                    names = [node.module or ""]
-                elif isinstance(node, ast.Import):
-                    names = [a.name for a in node.names]
-                else:
-                    continue
-                for name in names:
-                    where = path.relative_to(ROOT)
-                    assert name.split(".")[0] not in banned, f"{where} imports {name}"
+            for name in _named_imports(path):
+                where = path.relative_to(ROOT)
+                assert name.split(".")[0] not in banned, f"{where} imports {name}"
 
 
 def test_the_console_has_no_import_cycle() -> None:
@@ -236,15 +240,8 @@ def test_no_controller_imports_igtl_messages() -> None:
     (occ/outputs.py packs them); none imports OpenIGTLink's message classes, not even for
     type hints."""
     for path in (ROOT / "occ" / "controllers").rglob("*.py"):
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-            if isinstance(node, ast.ImportFrom):
-                names = [node.module or ""]
-            elif isinstance(node, ast.Import):
-                names = [a.name for a in node.names]
-            else:
-                continue
-            for name in names:
-                where = path.relative_to(ROOT)
-                assert name != "igtl" and not name.startswith("igtl.messages"), (
-                    f"{where} imports {name}"
-                )
+        for name in _named_imports(path):
+            where = path.relative_to(ROOT)
+            assert name != "igtl" and not name.startswith("igtl.messages"), (
+                f"{where} imports {name}"
+            )
