@@ -6,6 +6,7 @@ Examples::
     occ-ros2 --connect 127.0.0.1:18944=/occ/slave --domain-id 7 --duration 60 --stats /tmp/b.json
     occ-ros2 --master /occ/master=127.0.0.1:18946 --connect 127.0.0.1:18944=/occ/slave
     occ-ros2 --operator 127.0.0.1:18944=/occ/keyframe --ack-moves   # move_jp/move_cp run
+    occ-ros2 --connect 127.0.0.1:18944=/occ/slave --servo /occ/slave=127.0.0.1:18948
 
 Topics and types: occ_ros2/bridge.py, README "ROS 2". DDS runs on loopback only
 by default (occ_ros2/cyclonedds-lo.xml); ``--dds-config env`` takes $CYCLONEDDS_URI instead.
@@ -107,11 +108,21 @@ def build_parser() -> argparse.ArgumentParser:
         "slave's UDP port (repeatable)",
     )
     p.add_argument(
+        "--servo",
+        action="append",
+        type=_master,
+        default=[],
+        metavar="/NS=H:P",
+        help="servo mode: the robot's own NS/servo_cp (PoseStamped in the world frame of its "
+        "measured_cp) becomes the 500 Hz POSITION stream to its UDP port, taken as absolute "
+        "targets (a slave config with `mapping: absolute`, configs/servo.yaml; repeatable)",
+    )
+    p.add_argument(
         "--auth-key-file",
         type=Path,
         default=None,
-        help="master mode: the slave's shared key file (its interfaces[].auth_key_file): every "
-        "POSITION carries the HMAC tag the slave requires",
+        help="master and servo modes: the slave's shared key file (its "
+        "interfaces[].auth_key_file): every POSITION carries the HMAC tag the slave requires",
     )
     p.add_argument(
         "--domain-id",
@@ -173,10 +184,16 @@ def main(argv: list[str] | None = None) -> int:
     if domain is None:
         domain = _domain_id(os.environ.get("ROS_DOMAIN_ID", "0") or "0")
     config = None if args.dds_config == "env" else Path(args.dds_config).read_text()
-    if not (args.connect or args.operator or args.master):
+    if not (args.connect or args.operator or args.master or args.servo):
         print(
-            "occ-ros2: nothing to bridge: give --connect, --operator or --master", file=sys.stderr
+            "occ-ros2: nothing to bridge: give --connect, --operator, --master or --servo",
+            file=sys.stderr,
         )
+        return 2
+    both = {ns for ns, _, _ in args.master} & {ns for ns, _, _ in args.servo}
+    if both:
+        twice = ", ".join(sorted(both))
+        print(f"occ-ros2: {twice}: --master or --servo, not both", file=sys.stderr)
         return 2
     bridge = Bridge(
         args.connect,
@@ -203,6 +220,18 @@ def main(argv: list[str] | None = None) -> int:
         MasterStream(bridge.participant, ns, (host, port), auth_key=key)
         for ns, host, port in args.master
     ]
+    masters += [
+        MasterStream(
+            bridge.participant,
+            ns,
+            (host, port),
+            auth_key=key,
+            device="ServoCP",
+            frames=("", args.world_frame),
+        )  # fmt: skip
+        for ns, host, port in args.servo
+    ]
+    servo = {ns for ns, _, _ in args.servo}
     done = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
@@ -223,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
         bridge.stop()
         stats = bridge.stats()
         for m in masters:
-            stats[f"master {m.ns}"] = m.stats()
+            stats[f"{'servo' if m.ns in servo else 'master'} {m.ns}"] = m.stats()
         if args.stats is not None:
             args.stats.write_text(json.dumps(stats, indent=2) + "\n")
     return 0

@@ -7,6 +7,11 @@
 message ID a sequence number (+1 per packet), metadata ``run`` and ``clutch``, at 500 Hz over
 UDP, the latest pose each period.
 
+Servo mode (``occ-ros2 --servo /occ/slave=127.0.0.1:18948``) is the same stream from a robot's
+own namespace, device ``ServoCP``: CRTK ``servo_cp`` in the frame of ``measured_cp`` (the world
+frame; a pose stamped in another frame is refused), to a slave whose controller takes it as an
+absolute target (``teleop-slave`` with ``mapping: absolute``, configs/servo.yaml).
+
 ``run`` is ``1`` while poses keep coming (the latest younger than ``stale_s``, 0.1 s) and ``0``
 otherwise, so a ROS 2 node that stops publishing makes the slave hold (a stopped master), not
 jump when it comes back: the slave re-indexes when ``run`` returns to 1. ``clutch`` follows
@@ -65,8 +70,13 @@ class MasterStream:
         stale_s: float = 0.1,
         first_seq: int = 0,
         auth_key: bytes | None = None,
+        frames: tuple[str, ...] | None = None,
     ) -> None:
         self.ns = ns
+        #: the ``header.frame_id`` values taken (None: any); a pose in another frame is
+        #: refused, counted and logged (servo mode: the world frame of ``measured_cp``)
+        self.frames = frames
+        self.refused_frames = 0
         #: the slave's shared key (its `auth_key_file`): every POSITION carries the HMAC tag
         self.auth_key = auth_key
         self.remote = remote
@@ -112,6 +122,15 @@ class MasterStream:
 
     def _read_topics(self, now: float) -> None:
         for s in self._poses.take(N=64):
+            frames = self.frames
+            if frames is not None and s.header.frame_id not in frames:
+                if not self.refused_frames:
+                    log.warning(
+                        "%s/servo_cp: a pose in frame %r refused (takes %s)",
+                        self.ns, s.header.frame_id, " or ".join(repr(f) for f in frames),
+                    )  # fmt: skip
+                self.refused_frames += 1
+                continue
             p, q = s.pose.position, s.pose.orientation
             sign = -1.0 if q.w < 0.0 else 1.0  # the 24-byte variant drops w: send w >= 0
             self.pose = (
@@ -166,4 +185,5 @@ class MasterStream:
             "seq": self.seq,
             "late_periods": self.late,
             "clutch": self.clutch,
+            "refused_frames": self.refused_frames,
         }

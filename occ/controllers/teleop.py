@@ -634,6 +634,15 @@ class SlaveController(Controller):
         self._map_base: np.ndarray | None = None
         self._map_text = ""
         self.returned = 0
+        #: ``absolute`` mapping (an external command source, CRTK ``servo_cp``)
+        self.absolute = p.mapping == "absolute"
+        self.max_jump = p.max_jump_mm * MM
+        #: where the joints are going (absolute mapping): the last accepted target's solution
+        self._q_goal: list[float] | None = None
+        self._step: list[float] = []
+        self._refusing = False
+        self.refused = 0
+        self.rate_limited = 0
 
     @classmethod
     def check(cls, params: Any, config: DaemonConfig) -> list[Problem]:
@@ -702,6 +711,9 @@ class SlaveController(Controller):
 
     def configure(self, data: RobotData, ctx: ControllerContext) -> None:
         super().configure(data, ctx)
+        # absolute mapping: a step per tick within the velocity limits (the drivers' check
+        # allows the limit itself; 0.9 keeps clear of it)
+        self._step = [0.9 * lim.velocity * ctx.period_s for lim in ctx.joint_limits]
         if self.base_mm is not None:
             b = np.eye(4)
             b[:3, 3] = np.array(self.base_mm, dtype=float) * MM
@@ -790,10 +802,16 @@ class SlaveController(Controller):
     def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
         if new is RobotState.RUNNING:
             self.master_ref = None
+            if self.absolute:  # from where the drives hold; the last target checked afresh
+                self._q_goal = None
+                self._q_last = None
+                self._fresh = self.master_pos is not None
 
     def update(self, now: float) -> Sequence[float] | None:
         data, ctx = self.data, self.ctx
         assert data is not None and ctx is not None
+        if self.absolute:
+            return self._update_absolute(data, ctx)
         if self.master_pos is None or not self.master_run or self.master_clutch:
             self.master_ref = None
             return self._q_last if self._q_last is not None else None
@@ -844,8 +862,85 @@ class SlaveController(Controller):
             self.pending_ts = None
         return self._q_last
 
+    def _update_absolute(self, data: RobotData, ctx: ControllerContext) -> Sequence[float] | None:
+        """The ``absolute`` mapping: each sample is the tip's target in the patient frame.
+
+        A new target is checked against where the tip is told to be (``max_jump_mm``) and
+        solved once; every tick the joints step toward the solution by at most 0.9 times their
+        velocity limit. A stopped stream (``run=0``), the clutch, a refused or unsolvable
+        target: hold where the joints were told to be (never a jump when it comes back)."""
+        here = self._q_last if self._q_last is not None else data.commanded()
+        if self.master_pos is None or not self.master_run or self.master_clutch:
+            self._q_goal = None
+            self.master_ref = None
+            return self._q_last
+        if self._fresh:
+            self._fresh = False
+            self._q_goal = None
+            self.master_ref = None
+            p = self.master_pos
+            b = data.base
+            # world -> base frame: R^T (p - t)
+            dx, dy, dz = p[0] - b[0, 3], p[1] - b[1, 3], p[2] - b[2, 3]
+            target = (
+                float(b[0, 0] * dx + b[1, 0] * dy + b[2, 0] * dz),
+                float(b[0, 1] * dx + b[1, 1] * dy + b[2, 1] * dz),
+                float(b[0, 2] * dx + b[1, 2] * dy + b[2, 2] * dz),
+            )
+            if not all(math.isfinite(v) for v in target):
+                self.ik_failures += 1
+                return self._q_last
+            tx, ty, tz = ctx.frame.tip_position(here)
+            jump = math.sqrt((target[0] - tx) ** 2 + (target[1] - ty) ** 2 + (target[2] - tz) ** 2)
+            if jump > self.max_jump:
+                self.refused += 1
+                if not self._refusing:
+                    self._refusing = True
+                    text = (
+                        f"servo target {jump * 1e3:.1f} mm from the tip refused (max_jump_mm "
+                        f"{self.max_jump * 1e3:g}): holding"
+                    )
+                    log.warning("%s", text)
+                    alert = ctx.alert
+                    if alert is not None:
+                        alert("ServoTarget", text, 2)
+                return self._q_last
+            try:
+                q, clamped = ctx.frame.ik_clamped(target, list(here))
+            except (KinematicsError, ValueError):
+                self.ik_failures += 1
+                return self._q_last
+            if clamped:
+                self.clamped += 1
+            self._refusing = False
+            self._q_goal = q
+            self.master_ref = self.master_pos
+            self.reindexes += self._q_last is None
+        goal = self._q_goal
+        if goal is None:
+            return self._q_last
+        out = list(here)
+        limited = False
+        for i, step in enumerate(self._step):
+            d = goal[i] - out[i]
+            if d > step:
+                out[i] += step
+                limited = True
+            elif d < -step:
+                out[i] -= step
+                limited = True
+            else:
+                out[i] = goal[i]
+        self.rate_limited += limited
+        self._q_last = out
+        if self.pending_ts is not None:
+            self.latency_us.add((ctx.clock.wall_time() - self.pending_ts) * 1e6)
+            self.pending_ts = None
+        return out
+
     def stats(self) -> dict[str, Any]:
         out: dict[str, Any] = {
+            "mapping": "absolute" if self.absolute else "relative",
             "samples": self.samples,
             "last_seq": self.last_seq,
             "master_run": self.master_run,
@@ -863,6 +958,9 @@ class SlaveController(Controller):
             "master_ref_mm": _mm(self.master_ref),
             "slave_ref_mm": _mm(self.slave_ref),
         }
+        if self.absolute:
+            out["servo_refused"] = self.refused
+            out["servo_rate_limited"] = self.rate_limited
         if self.latency_us.count:
             lat = self.latency_us.summary()
             out["sample_to_write_us"] = {

@@ -180,6 +180,23 @@ class SlaveParams(_Params):
         None, description="Interface on which a tracker sends the base TRANSFORM."
     )
     base_device: DeviceName = Field("Base", description="Device name of that TRANSFORM.")
+    mapping: Literal["relative", "absolute"] = Field(
+        "relative",
+        description="How a sample moves the tip. `relative` (a master): the displacement "
+        "since the last re-index, times `scale` and `rotation`; the clutch and `run` "
+        "re-index. `absolute` (an external command source, e.g. CRTK `servo_cp` through "
+        "`occ-ros2 --servo`): each sample is the tip's target position in the patient frame "
+        "(mm; what 3D Slicer's `Tip` and ROS 2's `measured_cp` show), `scale` and `rotation` "
+        "unused; the joints move toward it at no more than their velocity limits; a target "
+        "farther than `max_jump_mm` from the tip is refused (hold and an ALERT); `run=0` or "
+        "the clutch pressed holds.",
+    )
+    max_jump_mm: PosFloat = Field(
+        10.0,
+        description="`absolute`: the farthest a target may be from where the tip is told to "
+        "be (mm); a farther one is refused, the robot holds (a servo command is a small step; "
+        "a far goal is a `move_cp`, planned and acknowledged).",
+    )
     phase_lock_us: Annotated[Float, Field(ge=0)] | None = Field(
         400.0,
         description="Shift the loop's deadlines so the master samples this long before a tick "

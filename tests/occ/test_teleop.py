@@ -469,7 +469,8 @@ def test_on_sample_takes_position_and_transform_and_counts_source_changes() -> N
             ctrl.on_sample(sample, t)
 
     assert ctrl.stats() == {  # before any sample
-        "samples": 0, "last_seq": None, "master_run": False, "master_clutch": False,
+        "mapping": "relative", "samples": 0, "last_seq": None, "master_run": False,
+        "master_clutch": False,
         "reindexes": 0, "source": None, "source_changes": 0, "ik_clamped": 0,
         "ik_failures": 0, "phase_shifts": 0, "phase_error_us": None, "phase_history_us": [],
         "master_ref_mm": None, "slave_ref_mm": None,

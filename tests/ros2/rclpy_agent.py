@@ -15,6 +15,10 @@ stdin and answers each with one JSON line on stdout:
   ``NAMESPACE/move_jp``; ``{"op": "move_cp", "frame": "world", "position": [x, y, z]}``: one
   geometry_msgs/PoseStamped (metres) on ``NAMESPACE/move_cp``; both answer the wall time of
   sending (``wall``: a CRTK client's ``start_time``);
+- ``{"op": "servo", "frame": "world", "position": [x, y, z], "rate_hz": 100, "seconds": 5}``:
+  geometry_msgs/PoseStamped on ``NAMESPACE/servo_cp`` at ``rate_hz`` for ``seconds`` (a CRTK
+  servo client's stream; a new ``servo`` replaces the running one, ``{"op": "servo_stop"}``
+  ends it);
 - ``{"op": "matched"}``: how many subscriptions the command publisher has matched (and the
   move publishers), and how many publishers of ``command_reply`` this node's graph knows;
 - ``{"op": "graph"}``: the publishers of ``NAMESPACE/measured_cp`` as this node's graph sees
@@ -122,6 +126,21 @@ def main() -> int:
     command = node.create_publisher(String, f"{ns}/command", 10)
     move_jp = node.create_publisher(JointState, f"{ns}/move_jp", 10)
     move_cp = node.create_publisher(PoseStamped, f"{ns}/move_cp", 10)
+    servo_cp = node.create_publisher(PoseStamped, f"{ns}/servo_cp", 10)
+    servo_stop = threading.Event()
+    servo_thread: threading.Thread | None = None
+
+    def servo(frame: str, position: list[float], rate_hz: float, seconds: float) -> None:
+        end = time.monotonic() + min(seconds, 60.0)  # bounded
+        while not servo_stop.is_set() and time.monotonic() < end:
+            pose = PoseStamped()
+            pose.header.stamp = node.get_clock().now().to_msg()
+            pose.header.frame_id = frame
+            pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = position
+            pose.pose.orientation.w = 1.0
+            servo_cp.publish(pose)
+            servo_stop.wait(1.0 / rate_hz)
+
     # a publisher of the same type in this node: its graph entry carries rclpy's own type hash
     own = node.create_publisher(PoseStamped, f"{ns}/probe_own_hash", 10)
 
@@ -167,10 +186,24 @@ def main() -> int:
             wall = time.time()
             move_cp.publish(pose)
             answer({"t": now(), "wall": wall})
+        elif op in ("servo", "servo_stop"):
+            servo_stop.set()
+            if servo_thread is not None:
+                servo_thread.join()
+            servo_stop.clear()
+            if op == "servo":
+                position = [float(v) for v in req["position"]]
+                rate = float(req.get("rate_hz", 100.0))
+                frame = str(req.get("frame", "world"))
+                args = (frame, position, rate, float(req.get("seconds", 5)))
+                servo_thread = threading.Thread(target=servo, args=args, daemon=True)
+                servo_thread.start()
+            answer({"t": now(), "servo": op == "servo"})
         elif op == "matched":
             answer({"t": now(), "matched": command.get_subscription_count(),
                     "move_jp": move_jp.get_subscription_count(),
                     "move_cp": move_cp.get_subscription_count(),
+                    "servo_cp": servo_cp.get_subscription_count(),
                     "reply_publishers": node.count_publishers(f"{ns}/command_reply")})  # fmt: skip
         elif op == "graph":
 
@@ -187,6 +220,7 @@ def main() -> int:
             break
         else:
             answer({"error": f"unknown op {op!r}"})
+    servo_stop.set()
     executor.shutdown(timeout_sec=1.0)
     node.destroy_node()
     rclpy.try_shutdown()

@@ -1,0 +1,199 @@
+"""The ``absolute`` mapping of ``teleop-slave``: an external command source (CRTK ``servo_cp``).
+
+configs/servo.yaml on in-process channels, stepped tick by tick in simulated time: each sample
+is the tip's target in the patient frame (mm). The tip reaches it exactly (the slave's inverse
+kinematics is analytic), the joints never step faster than 0.9 times their velocity limits, a
+target farther than ``max_jump_mm`` from the tip is refused with an ALERT and the robot holds,
+``run=0`` and the clutch hold, and the stream keeps the master stream's loss rules.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from occ.safety import RobotState
+from occ.testing import SimRobot
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIG = ROOT / "configs" / "servo.yaml"
+
+
+class Rig:
+    """The servo slave, its command source (a sample every 2 ms) and an operator."""
+
+    def __init__(self, **params: Any) -> None:
+        self.sim = SimRobot(CONFIG, params=params or None)
+        self.robot = self.sim.robot
+        self.ctl: Any = self.robot.controller
+        self.source = self.sim.peer("servo", address=("127.0.0.1", 40000))
+        self.operator = self.sim.peer("operator", address=("127.0.0.1", 40001))
+        self.seq = 0
+        self.target = self.world_tip_mm().tolist()
+        self.run = True
+        self.clutch = False
+        self.sending = True
+
+    def world_tip_mm(self) -> np.ndarray:
+        """The world (patient) position of the setpoint the slave writes, mm."""
+        q = self.robot.data.setpoint
+        tip = np.append(np.array(self.robot.frame.tip_position(q)), 1.0)
+        return (self.robot.data.base @ tip)[:3] * 1e3
+
+    def step(self, ms: int) -> list[list[float]]:
+        """``ms`` ticks; the setpoints written, one per tick."""
+        out = []
+        for _ in range(ms):
+            if self.sending and self.sim.k % 2 == 0:
+                self.seq += 1
+                self.source.send_position(
+                    self.target, seq=self.seq, run=self.run, clutch=self.clutch, device="ServoCP"
+                )
+            self.sim.tick()
+            out.append(list(self.robot.data.setpoint))
+        return out
+
+    def command(self, name: str) -> None:
+        reply = self.sim.command(self.operator, name)
+        assert reply.metadata["Status"] == "SUCCESS", name
+
+    def running(self) -> None:
+        self.command("Enable")
+        self.command("Run")
+        self.step(20)
+        assert self.robot.state is RobotState.RUNNING
+
+    def alerts(self) -> list[str]:
+        return [m.status_message for m in self.operator.messages("STATUS")]
+
+    def close(self) -> None:
+        self.sim.close()
+
+
+@pytest.fixture
+def rig() -> Any:
+    r = Rig()
+    yield r
+    r.close()
+
+
+def max_speed(setpoints: list[list[float]], period: float) -> list[float]:
+    q = np.array(setpoints)
+    return (np.abs(np.diff(q, axis=0)).max(axis=0) / period).tolist()
+
+
+@pytest.mark.req("SR-SERVO-1")
+def test_the_tip_goes_to_the_target_within_the_velocity_limits(rig: Rig) -> None:
+    rig.running()
+    start = rig.world_tip_mm()
+    rig.target = (start + [4.0, -3.0, 6.0]).tolist()
+    written = rig.step(400)
+    assert rig.world_tip_mm().tolist() == pytest.approx(rig.target, abs=1e-6)
+    limits = [j.limits.velocity for j in rig.robot.joints]
+    speeds = max_speed(written, rig.sim.period)
+    assert all(s <= 0.9 * v * (1 + 1e-9) for s, v in zip(speeds, limits, strict=True)), speeds
+    # the insertion joint (0.1 m/s) was the slow one: limited on the way, not a jump
+    assert rig.ctl.stats()["servo_rate_limited"] > 0
+    assert rig.robot.state is RobotState.RUNNING
+    assert rig.ctl.stats()["mapping"] == "absolute"
+
+
+@pytest.mark.req("SR-SERVO-1")
+def test_the_target_is_in_the_patient_frame(rig: Rig) -> None:
+    """The base turned 30 degrees about z and moved 10, 20, 30 mm (a tracker's TRANSFORM): a
+    world displacement d moves the tip by R^T d in the base frame, and the world tip reaches
+    the world target."""
+    c, s = np.cos(0.5236), np.sin(0.5236)
+    base = np.eye(4)
+    base[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    base[:3, 3] = [0.010, 0.020, 0.030]
+    rig.robot.data.base = base
+    rig.target = rig.world_tip_mm().tolist()
+    rig.running()
+    local0 = np.array(rig.robot.frame.tip_position(rig.robot.data.setpoint)) * 1e3
+    d = np.array([2.0, 1.0, -3.0])
+    rig.target = (rig.world_tip_mm() + d).tolist()
+    rig.step(300)
+    assert rig.world_tip_mm().tolist() == pytest.approx(rig.target, abs=1e-6)
+    local = np.array(rig.robot.frame.tip_position(rig.robot.data.setpoint)) * 1e3
+    assert (local - local0).tolist() == pytest.approx((base[:3, :3].T @ d).tolist(), abs=1e-6)
+
+
+@pytest.mark.req("SR-SERVO-2")
+def test_a_far_target_is_refused_with_an_alert_and_the_robot_holds(rig: Rig) -> None:
+    rig.running()
+    here = rig.world_tip_mm()
+    rig.target = (here + [0.0, 0.0, 10.5]).tolist()  # just beyond max_jump_mm (10)
+    written = rig.step(100)
+    assert np.abs(np.diff(np.array(written), axis=0)).max() == 0.0
+    assert rig.world_tip_mm().tolist() == pytest.approx(here.tolist(), abs=1e-9)
+    stats = rig.ctl.stats()
+    assert stats["servo_refused"] == 50  # every sample of the far target
+    alerts = [a for a in rig.alerts() if "servo target" in a]
+    assert len(alerts) == 1 and "10.5 mm from the tip refused" in alerts[0], rig.alerts()
+    assert rig.robot.state is RobotState.RUNNING  # a refused command holds, it does not stop
+    # a target within reach is taken again
+    rig.target = (here + [0.0, 0.0, 9.5]).tolist()
+    rig.step(400)
+    assert rig.world_tip_mm().tolist() == pytest.approx(rig.target, abs=1e-6)
+    # and a new far one is a new episode: alerted again
+    rig.target = (here + [0.0, 0.0, 30.0]).tolist()
+    rig.step(10)
+    assert len([a for a in rig.alerts() if "servo target" in a]) == 2
+
+
+@pytest.mark.req("SR-SERVO-2")
+@pytest.mark.parametrize("how", ["run", "clutch"])
+def test_a_stopped_source_or_the_clutch_holds(rig: Rig, how: str) -> None:
+    rig.running()
+    here = rig.world_tip_mm()
+    if how == "run":
+        rig.run = False
+    else:
+        rig.clutch = True
+    rig.target = (here + [3.0, 0.0, 0.0]).tolist()
+    rig.step(100)
+    assert rig.world_tip_mm().tolist() == pytest.approx(here.tolist(), abs=1e-9)
+    rig.run, rig.clutch = True, False  # released: the target is taken (absolute: no re-index)
+    rig.step(300)
+    assert rig.world_tip_mm().tolist() == pytest.approx(rig.target, abs=1e-6)
+
+
+@pytest.mark.req("SR-SERVO-3")
+def test_a_dead_source_stops_the_robot_by_the_loss_rules(rig: Rig) -> None:
+    rig.running()
+    rig.sending = False
+    rig.step(150)  # past the 100 ms grace
+    assert rig.robot.state is RobotState.STOPPED
+    assert any("servo" in a for a in rig.alerts()), rig.alerts()
+
+
+@pytest.mark.req("SR-SERVO-2")
+def test_not_a_number_is_no_target(rig: Rig) -> None:
+    rig.running()
+    here = rig.world_tip_mm()
+    rig.target = [float("nan"), here[1], here[2]]
+    rig.step(40)
+    assert rig.world_tip_mm().tolist() == pytest.approx(here.tolist(), abs=1e-9)
+    assert rig.ctl.stats()["ik_failures"] >= 1
+    assert rig.robot.state is RobotState.RUNNING
+
+
+@pytest.mark.req("SR-SERVO-1")
+def test_run_again_after_a_stop_starts_from_where_the_drives_hold(rig: Rig) -> None:
+    rig.running()
+    here = rig.world_tip_mm()
+    rig.target = (here + [2.0, 2.0, 2.0]).tolist()
+    rig.step(300)
+    rig.command("Stop")
+    held = rig.world_tip_mm()
+    rig.step(20)
+    rig.target = (held + [-2.0, 0.0, 1.0]).tolist()
+    rig.command("Run")
+    written = rig.step(300)
+    assert rig.world_tip_mm().tolist() == pytest.approx(rig.target, abs=1e-6)
+    first = np.array(rig.robot.frame.tip_position(written[0])) * 1e3
+    assert np.linalg.norm(first - held) < 1.0  # no jump at the restart
