@@ -4,16 +4,41 @@ and the loss monitor of its watched stream (what :class:`~occ.robot.Robot` is bu
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
-from .config import LossConfig, RealtimeConfig, RobotConfig, WatchdogConfig
+from .config import EnvironmentConfig, LossConfig, RealtimeConfig, RobotConfig, WatchdogConfig
+from .contact import Contact, Environment
 from .drivers import create_driver
 from .drivers.base import Driver
-from .errors import OCCError
+from .errors import ConfigError, OCCError
 from .frame import Frame
 from .joint import Joint, JointLimits, PIDGains
 from .safety import LossMonitor, Watchdog
+
+
+def attach_environment(
+    env: EnvironmentConfig | None,
+    pairs: Sequence[tuple[Driver, list[int]]],
+    frame: Frame,
+    base: Callable[[], Any],
+) -> Environment | None:
+    """The simulated world (occ/contact.py) attached to the one ``sim`` driver that has every
+    joint (it computes the load from the whole arm's pose); None without contacts. ConfigError
+    when no driver can carry it."""
+    if env is None or not env.contacts:
+        return None
+    n = frame.nq
+    carriers = [d for d, idx in pairs if hasattr(d, "environment") and len(idx) == n]
+    if len(pairs) != 1 or not carriers:
+        raise ConfigError(
+            "environment: the simulated tissue needs one `sim` driver with every joint "
+            f"(the robot has {len(pairs)} driver(s): "
+            f"{', '.join(f'{d.name} ({type(d).__name__})' for d, _ in pairs)})"
+        )
+    world = Environment([Contact.from_config(c) for c in env.contacts], frame, base)
+    carriers[0].environment = world
+    return world
 
 
 def build_joint(jc: Any) -> Joint:

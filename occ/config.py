@@ -58,6 +58,8 @@ __all__ = [
     "WatchdogConfig",
     "LossConfig",
     "RecordingConfig",
+    "ContactConfig",
+    "EnvironmentConfig",
     "StatsConfig",
     "ControllerConfig",
     "BUILTIN_MODELS",
@@ -812,6 +814,47 @@ class StateTableConfig(_Model):
     )
 
 
+class ContactConfig(_Model):
+    """One simulated tissue the tool presses on (patient frame, mm; occ/contact.py)."""
+
+    name: Name = Field("tissue", description="Its name (statistics, alerts, Slicer).")
+    kind: Literal["wall", "sphere"] = Field(
+        description="`wall`: tissue behind a plane (a half-space); `sphere`: tissue inside a ball."
+    )
+    point_mm: Vec3 = Field(
+        description="`wall`: a point on its surface; `sphere`: its centre (patient frame, mm)."
+    )
+    normal: Vec3 = Field(
+        (0.0, 0.0, 1.0),
+        description="`wall`: the surface normal pointing out of the tissue, toward the tool "
+        "(made unit length).",
+    )
+    radius_mm: PosFloat = Field(10.0, description="`sphere`: its radius (mm).")
+    stiffness: Annotated[Float, Field(ge=0)] = Field(
+        0.5, description="N per mm of penetration (soft tissue: 0.05-1)."
+    )
+    damping: Annotated[Float, Field(ge=0)] = Field(
+        0.0,
+        description="N s/mm, while penetrating; the force never pulls the tool in "
+        "(it is clamped at zero).",
+    )
+
+    @field_validator("normal")
+    @classmethod
+    def _nonzero(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if not any(abs(c) > 0.0 for c in v):
+            raise ValueError("the normal must not be zero")
+        return v
+
+
+class EnvironmentConfig(_Model):
+    """What the simulated drives touch: tissue that pushes back on the tool (issue 27). The
+    contact force acts on the simulated joints (``J^T F``, the robot's kinematic model), so a
+    position servo feels it as a load and reports the effort that holds it."""
+
+    contacts: tuple[ContactConfig, ...] = Field((), description="Tissue, in the patient frame.")
+
+
 class ControllerConfig(_Model):
     """One controller plugin (occ/controllers): what the robot does while RUNNING."""
 
@@ -856,6 +899,11 @@ class DaemonConfig(_Model):
     )
     state_table: StateTableConfig = Field(
         StateTableConfig(), description="State Data Table (`GetStateTable`)."
+    )
+    environment: EnvironmentConfig | None = Field(
+        None,
+        description="A simulated world for `sim` drives (tissue the tool presses on); null = "
+        "free space. Needs one `sim` driver with every joint.",
     )
     controller: ControllerConfig | tuple[ControllerConfig, ...] | None = Field(
         None,

@@ -32,6 +32,8 @@ class RobotData:
         "name",
         "joint_names",
         "q",
+        "effort",
+        "qdot",
         "setpoint",
         "hold_setpoint",
         "effort_command",
@@ -55,6 +57,10 @@ class RobotData:
         self.joint_names: tuple[str, ...] = tuple(joint_names)
         #: measured joint positions (the last driver read)
         self.q: list[float] = [float(v) for v in home]
+        #: measured joint efforts (the last driver read: what the drives report they exert)
+        self.effort: list[float] = [0.0] * len(self.q)
+        #: measured joint velocities
+        self.qdot: list[float] = [0.0] * len(self.q)
         #: what the drivers were last told while RUNNING
         self.setpoint: list[float] = list(self.q)
         #: the last safe setpoint: held while ENABLED or STOPPED, and while a stream is late
@@ -71,11 +77,14 @@ class RobotData:
         self._tip_stale = True
 
     def measured_from(self, joints: Sequence[Joint]) -> None:
-        """New measurements: ``q`` from the joints' last positions (the Robot, each tick); the
-        tip is recomputed when asked."""
+        """New measurements: ``q``, ``qdot`` and ``effort`` from the joints' last reads (the
+        Robot, each tick); the tip is recomputed when asked."""
         q = self.q
+        eff, qd = self.effort, self.qdot
         for i, j in enumerate(joints):
             q[i] = j.position
+            qd[i] = j.velocity
+            eff[i] = j.effort
         self._tip_stale = True
 
     @property

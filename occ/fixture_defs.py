@@ -524,6 +524,17 @@ class PatientMapping:
         k = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) or 1.0
         return (v[0] / k, v[1] / k, v[2] / k)
 
+    def force(self, f: Sequence[float]) -> Vec3:
+        """A force on the slave's instrument (N, patient frame) in the master's axes, unscaled:
+        ``Q^T f`` with ``Q = L / s`` the rotation of the map (the motion scaling is not a force
+        scaling; the master applies its own)."""
+        m, k = self.linear, 1.0 / self._scale_now
+        return (
+            k * (m[0][0] * f[0] + m[1][0] * f[1] + m[2][0] * f[2]),
+            k * (m[0][1] * f[0] + m[1][1] * f[1] + m[2][1] * f[2]),
+            k * (m[0][2] * f[0] + m[1][2] * f[1] + m[2][2] * f[2]),
+        )
+
     def length(self, length: float) -> float:
         """A patient length (mm) in mm of master motion."""
         return length / self._scale_now

@@ -80,6 +80,8 @@ class HardwareSet:
         #: fault detected (read or write) -> last drive safe, seconds (None before any)
         self.last_fault_to_safe_s: float | None = None
         self.failures = 0
+        #: the simulated world the drives touch (occ/contact.py), None on real hardware
+        self.environment: Any = None
 
     # ------------------------------------------------------------------ inspection
     def faulted(self) -> list[HardwareFailure]:
@@ -111,6 +113,7 @@ class HardwareSet:
             "states": {d.name: d.state.value for d in self.drivers},
             "failures": self.failures,
             "last_fault_to_safe_us": None if lat is None else round(lat * 1e6, 1),
+            **({"environment": self.environment.stats()} if self.environment else {}),
         }
 
     # ------------------------------------------------------------------ lifecycle

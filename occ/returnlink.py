@@ -17,11 +17,13 @@ the full quaternion. Everything else rides in the v2 metadata of the same messag
     The master maps fixtures and tool with it (:class:`~occ.fixture_defs.PatientMapping`), so
     nothing is calibrated by hand;
 ``state``
-    the slave's state (``RUNNING``, ``STOPPED``, ...).
+    the slave's state (``RUNNING``, ``STOPPED``, ...);
+``force_n``
+    (a slave with a force source) the force on its instrument, ``fx,fy,fz`` in N, patient
+    frame: what the master displays (bilateral teleoperation, issue 27).
 
-**One message, not a pair (decided for issue 27, force feedback).** The slave's contact force
-will ride in the same message (metadata ``force_n`` = ``fx,fy,fz``, N in the patient frame,
-and ``torque_nm``), not in a SENSOR beside a POSITION: one datagram is one sample with one
+**One message, not a pair.** The slave's contact force rides in the same message (metadata
+``force_n``), not in a SENSOR beside a POSITION: one datagram is one sample with one
 sequence number, one timestamp and one HMAC tag, so pose and force can never be paired wrongly,
 half-lost or half-authenticated, and the loss rules below cover both. Metadata is text, a few
 microseconds to format and parse at 500 Hz.
@@ -77,6 +79,9 @@ class ReturnLink:
         self.following = False
         self.slave_state = ""
         self.seq: int | None = None
+        #: the force on the slave's instrument (N, patient frame) with the last tip; None
+        #: while it sends none
+        self.force: Vec3 | None = None
         #: the slave's map (handle mm -> patient mm), parsed; None until it sends one
         self.linear: tuple[tuple[float, float, float], ...] | None = None
         self._map_text = ""
@@ -120,6 +125,20 @@ class ReturnLink:
                 self.last_error = f"seq {seq}: {err}"
                 return False
             self._map_text = text
+        force_text = meta.get("force_n")
+        force: Vec3 | None = None
+        if force_text is not None:
+            parts = force_text.split(",")
+            try:
+                fx, fy, fz = (float(v) for v in parts)
+            except ValueError:
+                fx = fy = fz = math.nan
+            if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
+                self.bad_metadata += 1
+                self.last_error = f"seq {seq}: force_n {force_text[:40]!r} is not 3 numbers"
+                return False
+            force = (fx, fy, fz)
+        self.force = force
         self.following = meta.get("following", "1") == "1"
         self.slave_state = meta.get("state", "")
         self.tip = tip
@@ -169,6 +188,7 @@ class ReturnLink:
             "status": status,
             "age_ms": None if age is None else round(age * 1e3, 1),
             "tip_mm": None if self.tip is None else [round(v, 3) for v in self.tip],
+            "force_n": None if self.force is None else [round(v, 4) for v in self.force],
             "following": self.following,
             "slave_state": self.slave_state,
             "seq": self.seq,

@@ -3,10 +3,9 @@
 This is the Open Core Control structure (Arata et al., IJCARS 2010): network I/O in the
 InterfaceManager (reusable on any robot), kinematics in the Frame, hardware behind Drivers; here
 assembled from a validated YAML configuration instead of C++ ``main()``. The Robot keeps
-assembly, lifecycle, the tick and what the robot's state means for its drivers; the state that
-others see is its :class:`~occ.data.RobotData`, operator requests are the
-:class:`~occ.operators.OperatorDesk`'s, periodic outputs the
-:class:`~occ.outputs.OutputScheduler`'s, and what it does while RUNNING its controller plugins'.
+assembly, lifecycle, the tick and what its state means for its drivers; others see its
+:class:`~occ.data.RobotData`; requests, outputs and motion are the :mod:`~occ.operators`
+desk's, the :mod:`~occ.outputs` scheduler's and the controller plugins'.
 
 Lifecycle (ros2_control): ``configure()`` configures the drivers (state READY, servos off),
 ``activate()`` starts the interfaces and the supervisor, ``run()`` runs the loop until stopped,
@@ -28,7 +27,7 @@ from typing import Any
 import igtl
 
 from .alarms import Alarms
-from .assembly import build_hardware, build_watchdog, realtime_settings
+from .assembly import attach_environment, build_hardware, build_watchdog, realtime_settings
 from .clock import Clock, RealClock
 from .collab import Collaboration
 from .config import DaemonConfig
@@ -81,7 +80,8 @@ class Robot:
         self.hardware = HardwareSet(pairs)
         names, homes = [j.name for j in self.joints], [j.home for j in self.joints]
         self.data = RobotData(self.name, names, homes, self.frame, self.clock)
-
+        env = attach_environment(config.environment, pairs, self.frame, lambda: self.data.base)
+        self.hardware.environment = env  # simulated tissue (occ/contact.py), or None
         # --- Interfaces, and the streams among them (polled, judged, one in control)
         self.interfaces = InterfaceManager(
             config.interfaces, clock_now=self.clock.now, poll_streams=rc.realtime.poll_streams
@@ -129,7 +129,6 @@ class Robot:
             watchdog=self.watchdog,
             realtime=realtime_settings(rc.realtime),
         )
-
         # --- Controllers, operators, outputs
         self.controller = ControllerSet(controllers)
         self.controller.configure(
@@ -144,6 +143,7 @@ class Robot:
                 shift=self.loop.shift,
                 joint_limits=tuple(j.limits for j in self.joints),
                 alert=self.alarms.broadcast,
+                environment=env,
             ),
         )
         Motion.check_command_kinds(self.controller, self.hardware)

@@ -45,7 +45,7 @@ from .config import DaemonConfig
 from .loader import load_config
 from .robot import Robot, build_robot
 
-__all__ = ["SimPeer", "SimRobot", "SlaveTipFeed", "inproc_config"]
+__all__ = ["SimPair", "SimPeer", "SimRobot", "SlaveTipFeed", "inproc_config", "wait_until"]
 
 _instances = itertools.count(1)
 
@@ -215,11 +215,18 @@ class SimPeer:
         state: str = "RUNNING",
         timestamp: float = 0.0,
         device: str = "SlaveTip",
+        force_n: Sequence[float] | str | None = None,
     ) -> int:
         """One sample of a slave's return channel, as the slave daemon sends it (POSITION,
-        v2, message ID = sequence number, metadata ``following``, ``map``, ``state``;
-        occ/returnlink.py): the tip in the patient frame (mm)."""
+        v2, message ID = sequence number, metadata ``following``, ``map``, ``state``, and
+        ``force_n`` when given (three numbers, or the text as is); occ/returnlink.py): the tip
+        in the patient frame (mm)."""
         x, y, z = tip_mm
+        meta = {"following": "1" if following else "0", "map": linear, "state": state}
+        if force_n is not None:
+            meta["force_n"] = (
+                force_n if isinstance(force_n, str) else ",".join(f"{v:.6g}" for v in force_n)
+            )
         return self.send(
             igtl.PositionMessage(
                 (float(x), float(y), float(z)),
@@ -228,7 +235,7 @@ class SimPeer:
                 timestamp=timestamp,
                 header_version=2,
                 message_id=seq,
-                metadata={"following": "1" if following else "0", "map": linear, "state": state},
+                metadata=meta,
             )
         )
 
@@ -260,6 +267,8 @@ class SlaveTipFeed:
         self.seq = 0
         self.following = True
         self.paused = False
+        #: the force on the slave's instrument sent with each tip (N, patient), None: none
+        self.force: Sequence[float] | str | None = None
         self.linear = ",".join(f"{scale if i == j else 0.0:g}" for i in range(3) for j in range(3))
 
     def handle_mm(self) -> tuple[float, float, float]:
@@ -280,7 +289,11 @@ class SlaveTipFeed:
         if not self.paused:
             self.seq += 1
             self.peer.send_tip(
-                self.tip(), seq=self.seq, following=self.following, linear=self.linear
+                self.tip(),
+                seq=self.seq,
+                following=self.following,
+                linear=self.linear,
+                force_n=self.force,
             )
 
     def step(self, n: int = 1) -> None:
@@ -396,6 +409,124 @@ class SimRobot:
             p.close()
 
     def __enter__(self) -> SimRobot:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+#: the shipped configurations (a source checkout: the repository's configs/)
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+#: a drop rule: (direction ``"forward"`` or ``"return"``, the message, its 0-based index in that
+#: direction) -> True to lose it
+DropRule = Callable[[str, Message, int], bool]
+
+
+class SimPair:
+    """A master and a slave daemon on one :class:`SimClock`, the master's stream and the
+    slave's return channel wired both ways, each way through a line that can delay (whole
+    ticks) and lose messages: the OCC paper's protocol and a network's delay, in simulated time.
+
+    Each tick: the return messages due are handed to the master, the master ticks, the forward
+    messages due are handed to the slave, the slave ticks (a message sent in tick ``k`` with no
+    delay arrives before the other side's tick ``k``, or ``k + 1`` for the return way).
+    ``master_link``/``slave_link`` name the interfaces of the stream on each side (the shipped
+    configs: ``slave`` on the master, ``master`` on the slave). The operators are peers on each
+    side's ``operator`` interface; :meth:`start` enables and runs both.
+    """
+
+    def __init__(
+        self,
+        master: DaemonConfig | str | os.PathLike[str] | Mapping[str, Any] = CONFIGS / "master.yaml",
+        slave: DaemonConfig | str | os.PathLike[str] | Mapping[str, Any] = CONFIGS / "slave.yaml",
+        *,
+        master_params: Mapping[str, Any] | None = None,
+        slave_params: Mapping[str, Any] | None = None,
+        delay_ms: float = 0.0,
+        return_delay_ms: float | None = None,
+        drop: DropRule | None = None,
+        master_link: str = "slave",
+        slave_link: str = "master",
+    ) -> None:
+        self.clock = SimClock()
+        self.master = SimRobot(master, params=master_params, clock=self.clock)
+        try:
+            self.slave = SimRobot(slave, params=slave_params, clock=self.clock)
+        except BaseException:
+            self.master.close()
+            raise
+        period = self.master.period
+        self._delay = round(delay_ms * 1e-3 / period)
+        back = delay_ms if return_delay_ms is None else return_delay_ms
+        self._return_delay = round(back * 1e-3 / period)
+        self._drop = drop
+        self.k = 0
+        self._forward: list[tuple[int, Message]] = []
+        self._return: list[tuple[int, Message]] = []
+        self.counts = {"forward": 0, "return": 0, "forward_lost": 0, "return_lost": 0}
+        self.m_link = self.master.peer(master_link, on_message=self._from_master)
+        self.s_link = self.slave.peer(
+            slave_link, address=("127.0.0.1", 40000), on_message=self._from_slave
+        )
+        self.m_op = self.master.peer("operator", address=("127.0.0.1", 41000))
+        self.s_op = self.slave.peer("operator", address=("127.0.0.1", 41001))
+
+    def _from_master(self, msg: Message) -> None:
+        i = self.counts["forward"]
+        self.counts["forward"] = i + 1
+        if self._drop is not None and self._drop("forward", msg, i):
+            self.counts["forward_lost"] += 1
+            return
+        self._forward.append((self.k + self._delay, msg))
+
+    def _from_slave(self, msg: Message) -> None:
+        i = self.counts["return"]
+        self.counts["return"] = i + 1
+        if self._drop is not None and self._drop("return", msg, i):
+            self.counts["return_lost"] += 1
+            return
+        self._return.append((self.k + 1 + self._return_delay, msg))
+
+    @staticmethod
+    def _due(line: list[tuple[int, Message]], k: int) -> list[Message]:
+        n = 0
+        while n < len(line) and line[n][0] <= k:
+            n += 1
+        out = [m for _, m in line[:n]]
+        del line[:n]
+        return out
+
+    def step(self, n: int = 1) -> None:
+        """``n`` ticks of both (see the class docstring)."""
+        for _ in range(n):
+            for msg in self._due(self._return, self.k):
+                self.m_link.send(msg)
+            self.master.tick()
+            for msg in self._due(self._forward, self.k):
+                self.s_link.send(msg)
+            self.slave.tick()
+            self.k += 1
+
+    def run_for(self, seconds: float) -> None:
+        self.step(round(seconds / self.master.period))
+
+    def start(self) -> None:
+        """Enable and Run the slave, then the master (each answered with SUCCESS)."""
+        for op, sim in ((self.s_op, self.slave), (self.m_op, self.master)):
+            for name in ("Enable", "Run"):
+                cid = op.send_command(name)
+                self.step(1)
+                reply = op.reply_to(cid)
+                assert reply is not None and reply.metadata.get("Status") == "SUCCESS", (
+                    sim.robot.name, name, reply and reply.metadata,
+                )  # fmt: skip
+
+    def close(self) -> None:
+        self.master.close()
+        self.slave.close()
+
+    def __enter__(self) -> SimPair:
         return self
 
     def __exit__(self, *exc: object) -> None:

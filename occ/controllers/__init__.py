@@ -105,6 +105,9 @@ class ControllerContext:
     #: a STATUS to every viewer and operator (name, text, code), as the robot's own alerts
     #: go (None: logged only, e.g. in a unit test)
     alert: Callable[[str, str, int], None] | None = None
+    #: the simulated world the robot's ``sim`` drive touches (occ/contact.py), None on real
+    #: hardware: a simulated slave's force sensor reads its contact force
+    environment: Any = None
 
 
 @mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins and tests subclass it

@@ -69,8 +69,10 @@ from ..collab import SlaveSelector
 from ..config import DaemonConfig
 from ..errors import CommandError, KinematicsError, OCCError, caused
 from ..fixture_defs import Defaults, DefinitionError, PatientMapping, from_markups_file
+from ..forces import SlaveForce
 from ..haptics import MasterFixtures
 from ..outputs import VectorOut
+from ..passivity import PassivityController
 from ..returnlink import ReturnLink
 from ..safety import RobotState
 from ..samples import PoseSample, rotation_to_quaternion
@@ -180,6 +182,19 @@ class MasterController(Controller):
         self._contact_sent: dict[int, bool] = {}
         self._centre: tuple[float, ...] | None = None  # origin + offset, once configured
         self._amp: tuple[float, ...] = tuple(self.amplitude.tolist())
+        #: bilateral teleoperation: the slave's force displayed (occ/passivity.py keeps the
+        #: loop passive); the displayed force is fixtures + feedback, clamped, passivated
+        self.force_feedback = p.force_feedback
+        self.force_scale = p.force_scale
+        self.max_force = p.max_force_n
+        self.passivity_on = p.passivity
+        self.passivity = PassivityController(p.passivity_max_damping)
+        self._feedback_raw: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self.feedback_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self.displayed_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self.clamped_ticks = 0
+        self._handle: tuple[float, float, float] | None = None
+        self._t_handle = math.nan
         self.target: np.ndarray | None = None
         self._t_run = 0.0
         self._t_held = 0.0  # trajectory time already run when RUNNING was left
@@ -385,6 +400,9 @@ class MasterController(Controller):
         self.gain = 0.0
         self._t_gain = math.nan
         self.fixtures.displayed((0.0, 0.0, 0.0))
+        self.feedback_n = self.displayed_n = (0.0, 0.0, 0.0)
+        self._handle = None
+        self.passivity.reset()
 
     # -------------------------------------------------------------- loop
     def operator_target(self, now: float) -> np.ndarray | tuple[float, float, float] | None:
@@ -403,7 +421,7 @@ class MasterController(Controller):
     def update(self, now: float) -> Sequence[float] | None:
         data, ctx = self.data, self.ctx
         assert data is not None and ctx is not None
-        fx, fy, fz = self._fixture_force(now)
+        fx, fy, fz = self._display(now, self._fixture_force(now))
         if self.force_output:
             eff = self._efforts
             jt = self._jt
@@ -458,6 +476,13 @@ class MasterController(Controller):
         if link.new and link.tip is not None:
             link.new = False
             fixtures.step(link.tip, link.t_tip)
+            f = link.force
+            if f is None or not self.force_feedback:
+                self._feedback_raw = (0.0, 0.0, 0.0)
+            else:
+                k = self.force_scale
+                mx, my, mz = fixtures.mapping.force(f)
+                self._feedback_raw = (k * mx, k * my, k * mz)
         if status == "lost" or status == "none":
             self.gain = 0.0
         else:
@@ -470,7 +495,44 @@ class MasterController(Controller):
         g = self.gain
         rx, ry, rz = fixtures.raw_force_n
         fixtures.displayed((g * rx, g * ry, g * rz))
+        bx, by, bz = self._feedback_raw
+        self.feedback_n = (g * bx, g * by, g * bz)
         return fixtures.force_n
+
+    def _display(
+        self, now: float, fixture: tuple[float, float, float]
+    ) -> tuple[float, float, float]:
+        """The force to display this tick: the slave's (feedback) through the passivity
+        controller (occ/passivity.py) with the handle's velocity, plus the fixtures', clamped
+        to ``max_force_n``.
+
+        Only the feedback is passivated: a virtual fixture defined with the tool outside its
+        region starts stretched and pulls the hand in, giving energy it never received (by
+        design); the observer would take that for the network's and damp the guidance away.
+        The fixtures' own stability under delay is their proxy's (``fixture_slide_mm``)."""
+        data, ctx = self.data, self.ctx
+        assert data is not None and ctx is not None
+        bx, by, bz = self.feedback_n
+        hx, hy, hz = ctx.frame.tip_position(data.q)
+        last, t_last = self._handle, self._t_handle
+        self._handle, self._t_handle = (hx, hy, hz), now
+        if last is not None and now > t_last:
+            dt = now - t_last
+            v = ((hx - last[0]) / dt, (hy - last[1]) / dt, (hz - last[2]) / dt)
+            if self.passivity_on:
+                bx, by, bz = self.passivity.step((bx, by, bz), v, dt)
+            else:
+                self.passivity.observe((bx, by, bz), v, dt)
+        self.displayed_n = self._clamp(fixture[0] + bx, fixture[1] + by, fixture[2] + bz)
+        return self.displayed_n
+
+    def _clamp(self, fx: float, fy: float, fz: float) -> tuple[float, float, float]:
+        mag = math.sqrt(fx * fx + fy * fy + fz * fz)
+        if mag > self.max_force:
+            self.clamped_ticks += 1
+            k = self.max_force / mag
+            return (fx * k, fy * k, fz * k)
+        return (fx, fy, fz)
 
     def _tip_event(self, link: ReturnLink, kind: str, cause: str, driving: bool) -> None:
         where = f"slave tip on {link.interface}"
@@ -536,9 +598,10 @@ class MasterController(Controller):
         return self.fixtures.proxy_message(out.device, self.ctx.clock.wall_time())
 
     def _source_force(self, out: Output, now: float) -> VectorOut:
-        """The displayed virtual-fixture force (N, the master's axes), every time."""
+        """The displayed force (N, the master's axes: fixtures and the slave's feedback, as
+        the hand feels it), every time."""
         assert self.ctx is not None
-        return VectorOut(self.fixtures.force_n, self.ctx.clock.wall_time(), "N")
+        return VectorOut(self.displayed_n, self.ctx.clock.wall_time(), "N")
 
     def stats(self) -> dict[str, Any]:
         fx = self.fixtures
@@ -555,7 +618,14 @@ class MasterController(Controller):
                 None if link is None or link.tip is None else [round(v, 3) for v in fx.tool_mm]
             ),
             "tool_frame": "patient",
-            "force_n": [round(v, 4) for v in fx.force_n],
+            # displayed on the hand: fixtures + feedback, clamped, passivated
+            "force_n": [round(v, 4) for v in self.displayed_n],
+            "fixture_force_n": [round(v, 4) for v in fx.force_n],
+            "feedback_n": [round(v, 4) for v in self.feedback_n],
+            "force_feedback": self.force_feedback,
+            "force_scale": self.force_scale,
+            "force_clamped_ticks": self.clamped_ticks,
+            "passivity": {"on": self.passivity_on, **self.passivity.stats()},
             "fixture_gain": round(self.gain, 4),
             "force_output": self.force_output,
             "slave_tip": tips.get(name) if name is not None else None,
@@ -634,6 +704,9 @@ class SlaveController(Controller):
         self._map_base: np.ndarray | None = None
         self._map_text = ""
         self.returned = 0
+        #: the tip force sent on the return channel (occ/forces.py), built at configure
+        self.force_params = p.force
+        self.force: SlaveForce | None = None
         #: ``absolute`` mapping (an external command source, CRTK ``servo_cp``)
         self.absolute = p.mapping == "absolute"
         self.max_jump = p.max_jump_mm * MM
@@ -646,10 +719,56 @@ class SlaveController(Controller):
 
     @classmethod
     def check(cls, params: Any, config: DaemonConfig) -> list[Problem]:
-        return _interfaces_exist(params, config, ("input_interface", "base_interface"))
+        problems = _interfaces_exist(params, config, ("input_interface", "base_interface"))
+        f = params.force
+        if (
+            f is not None
+            and "tissue" in f.sources
+            and (config.environment is None or not config.environment.contacts)
+        ):
+            problems.append((("force", "sources"), "tissue needs an environment with contacts"))
+        n = len(config.robot.joints)
+        for key in ("effort_damping", "effort_inertia"):
+            values = getattr(f, key, None)
+            if values is not None and len(values) != n:
+                problems.append((("force", key), f"needs {n} values, one per joint"))
+        if f is not None and "sensor" in f.sources:
+            names = {i.name for i in config.interfaces}
+            if f.sensor_interface is None:
+                problems.append((("force", "sensor_interface"), "required with source sensor"))
+            elif f.sensor_interface not in names:
+                problems.append(
+                    (("force", "sensor_interface"), f"no interface '{f.sensor_interface}'")
+                )
+        return problems
 
     def outputs(self) -> dict[str, SourceFn]:
         return {"teleop-return": self._source_return}
+
+    def commands(self) -> tuple[str, ...]:
+        return ("ForceTare",) if self.force_params is not None else ()
+
+    def on_command(self, request: Request, now: float) -> str | None:
+        if request.name.strip().lower() != "forcetare" or self.force is None:
+            raise CommandError(f"unknown command {request.name!r}")
+        assert self.data is not None
+        self.force.tare(self.data.effort)
+        bias = ", ".join(f"{v:.4g}" for v in self.data.effort)
+        return f"force bias taken: efforts [{bias}]"
+
+    def on_input(self, item: Inbound, now: float) -> None:
+        if self.force is not None:
+            self.force.on_input(item.msg, item.interface, now)
+
+    def _force_meta(self, now: float) -> str:
+        """The tip force now (``force_n``: N, patient frame, 4 decimals) for the return
+        channel."""
+        force, data, ctx = self.force, self.data, self.ctx
+        assert force is not None and data is not None and ctx is not None
+        f = force.estimate(
+            now, ctx.frame, data.q, data.qdot, data.effort, data.base, lambda: data.tip[:3, :3]
+        )
+        return f"{f[0]:.4f},{f[1]:.4f},{f[2]:.4f}"
 
     def _map(self) -> str:
         """The ``map`` metadata: how a handle displacement (master mm) moves the tip in the
@@ -691,6 +810,8 @@ class SlaveController(Controller):
                 {"following": "1" if following else "0", "state": key[1], "map": key[2]}
             )
             self._return_meta[key] = meta
+        if self.force is not None:
+            meta = MappingProxyType({**meta, "force_n": self._force_meta(now)})
         pose = data.world_tip()
         x, y, z = (pose[:3, 3] * 1e3).tolist()
         k = id(out)
@@ -714,6 +835,20 @@ class SlaveController(Controller):
         # absolute mapping: a step per tick within the velocity limits (the drivers' check
         # allows the limit itself; 0.9 keeps clear of it)
         self._step = [0.9 * lim.velocity * ctx.period_s for lim in ctx.joint_limits]
+        fp = self.force_params
+        if fp is not None:
+            self.force = SlaveForce(
+                fp.sources,
+                sensor_interface=fp.sensor_interface,
+                sensor_device=fp.sensor_device,
+                sensor_frame=fp.sensor_frame,
+                sensor_timeout_s=fp.sensor_timeout_ms * 1e-3,
+                damping=fp.damping,
+                effort_damping=fp.effort_damping,
+                effort_inertia=fp.effort_inertia,
+                environment=ctx.environment,
+                alert=ctx.alert,
+            )
         if self.base_mm is not None:
             b = np.eye(4)
             b[:3, 3] = np.array(self.base_mm, dtype=float) * MM
@@ -958,6 +1093,9 @@ class SlaveController(Controller):
             "master_ref_mm": _mm(self.master_ref),
             "slave_ref_mm": _mm(self.slave_ref),
         }
+        if self.force is not None:
+            now = self.ctx.clock.now() if self.ctx is not None else math.nan
+            out["force"] = self.force.stats(now)
         if self.absolute:
             out["servo_refused"] = self.refused
             out["servo_rate_limited"] = self.rate_limited

@@ -77,7 +77,29 @@ class MasterParams(_Params):
         "`command_interface: effort`); needs `input: driver`.",
     )
     max_force_n: PosFloat = Field(
-        10.0, description="Clamp of the displayed force (N); 10 N is the OCC paper's figure."
+        10.0,
+        description="Clamp of the displayed force, fixtures and feedback summed (N); 10 N is "
+        "the OCC paper's figure.",
+    )
+    force_feedback: Bool = Field(
+        True,
+        description="Display the slave's contact force (its return channel's `force_n`, a "
+        "slave with `force`) with the fixture force: bilateral teleoperation. Faded with the "
+        "fixture force by `tip_fade_ms` (late), zero at once when the return link is lost.",
+    )
+    force_scale: Annotated[Float, Field(ge=0, le=100)] = Field(
+        1.0,
+        description="N displayed per N at the slave's instrument (its own scale, not the "
+        "motion scaling).",
+    )
+    passivity: Bool = Field(
+        True,
+        description="Time-domain passivity observer and controller at the handle (Hannaford "
+        "and Ryu 2002; occ/passivity.py): the network never gives the hand more energy than it "
+        "took, whatever the delay and loss. Off: observed only (statistics).",
+    )
+    passivity_max_damping: PosFloat = Field(
+        200.0, description="The passivity controller's largest damping (N s/m)."
     )
     fixture_slide_mm: PosFloat = Field(
         1.0,
@@ -158,6 +180,48 @@ class MasterParams(_Params):
     )
 
 
+class SlaveForceParams(_Params):
+    """The slave's tip force, sent to the master on the return channel (occ/forces.py)."""
+
+    sources: tuple[Literal["effort", "sensor", "tissue"], ...] = Field(
+        ("effort",),
+        min_length=1,
+        description="Where the force comes from, in order of preference (the first healthy "
+        "one is sent; all are in the statistics): `effort` (the drives' efforts through the "
+        "Jacobian transpose; the simulated tissue loads the `sim` drives), `sensor` (a SENSOR "
+        "stream from a force sensor), `tissue` (simulation: the `environment`'s contact force, "
+        "a simulated force sensor at the instrument).",
+    )
+    effort_damping: tuple[Annotated[Float, Field(ge=0)], ...] | None = Field(
+        None,
+        description="`effort`: each joint's viscous friction (N s/m, N m s/rad), taken out of "
+        "its effort before the force is estimated; null = none.",
+    )
+    effort_inertia: tuple[Annotated[Float, Field(ge=0)], ...] | None = Field(
+        None,
+        description="`effort`: each joint's inertia (kg, kg m^2): its momentum change between "
+        "estimates is taken out too (a momentum observer; the drives' efforts must be means "
+        "over the stream period); null = none.",
+    )
+    sensor_interface: Name | None = Field(
+        None, description="`sensor`: the interface its SENSOR stream comes in on."
+    )
+    sensor_device: DeviceName = Field("ForceSensor", description="`sensor`: its device name.")
+    sensor_frame: Literal["patient", "base", "tip"] = Field(
+        "patient",
+        description="`sensor`: the frame of its readings (`tip`: rotated by the measured tip "
+        "orientation).",
+    )
+    sensor_timeout_ms: PosFloat = Field(
+        20.0, description="`sensor`: an older reading is not used (ALERT once)."
+    )
+    damping: PosFloat = Field(
+        1e-3,
+        description="`effort`: damped least squares factor (m) of the Jacobian inverse near a "
+        "singular pose.",
+    )
+
+
 class SlaveParams(_Params):
     """Parameters of ``teleop-slave``. Lengths in mm, as on the wire."""
 
@@ -196,6 +260,11 @@ class SlaveParams(_Params):
         description="`absolute`: the farthest a target may be from where the tip is told to "
         "be (mm); a farther one is refused, the robot holds (a servo command is a small step; "
         "a far goal is a `move_cp`, planned and acknowledged).",
+    )
+    force: SlaveForceParams | None = Field(
+        None,
+        description="The tip force, sent to the master on the return channel (`force_n`: "
+        "bilateral teleoperation, the master displays it); null = no force sent.",
     )
     phase_lock_us: Annotated[Float, Field(ge=0)] | None = Field(
         400.0,

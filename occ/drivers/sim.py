@@ -48,6 +48,10 @@ seed                  0                           noise seed (one stream per dri
 initial_positions     each joint's ``home``       where the joints start at ``configure``
 max_substep           0.0005                      s, longest integration substep
 brakes                True                        lock joints while not ACTIVE
+effort_average_ms     0                           the reported effort is the mean over the
+                                                  last intervals spanning this long (a drive's
+                                                  filtered current); 0 = the effort at the end
+                                                  of the last interval
 faults                []                          hardware faults from the start: kinds of
                                                   :meth:`SimDriver.inject`, ``kind`` or
                                                   ``kind:joint`` (e.g. ``[activate]``, ``[nan:2]``)
@@ -116,6 +120,7 @@ SIM_DEFAULTS: dict[str, Any] = {
     "brakes": True,
     "period": 0.001,
     "faults": (),
+    "effort_average_ms": 0.0,
 }
 
 # A substep must stay well inside the stability region of semi-implicit Euler for the
@@ -251,6 +256,18 @@ class SimDriver(Driver):
         self._cmd = [0.0] * n  # position target or effort command
         self._t = math.nan
         self._enabled = False
+        #: the simulated world (occ/contact.py ``Environment``): ``efforts(q, qd)``, the
+        #: joint efforts the tissue applies (None: none); set by the robot's assembly
+        self.environment: Any = None
+        #: the efforts it applied over the last interval
+        self.external_effort = [0.0] * n
+        avg = float(p["effort_average_ms"])
+        if not (avg >= 0.0 and math.isfinite(avg)):
+            raise ValueError("sim param 'effort_average_ms' must be >= 0")
+        self._avg_window = avg * 1e-3
+        #: the last intervals: (length, per joint the integral of the effort over it)
+        self._effort_hist: list[tuple[float, list[float]]] = []
+        self._effort_avg = [0.0] * n
         self._measured = [0.0] * n
         self._last_cmd_t = math.nan  # model time of the last command (heartbeat)
         self._heartbeat_lost: str | None = None
@@ -369,11 +386,12 @@ class SimDriver(Driver):
             self._heartbeat_reported = True  # once: then positions are readable again
             raise DriverError(f"sim driver {self.name!r}: {self._heartbeat_lost}")
         out = self._measured
+        effort = self._effort_avg if self._avg_window > 0.0 else self._u
         if self._exact_encoder:
             out[:] = self._x
             if self._faults:
-                return self._injected(out), self._v, self._u
-            return out, self._v, self._u
+                return self._injected(out), self._v, effort
+            return out, self._v, effort
         rng = self._rng
         for i, x in enumerate(self._x):
             sigma = self._noise[i]
@@ -384,8 +402,8 @@ class SimDriver(Driver):
                 x = math.floor(x / res + 0.5) * res
             out[i] = x
         if self._faults:
-            return self._injected(out), self._v, self._u
-        return out, self._v, self._u
+            return self._injected(out), self._v, effort
+        return out, self._v, effort
 
     def _write(self, values: Sequence[float], now: float) -> None:
         if now != self._t:  # (a read at this now has advanced the model already)
@@ -468,18 +486,37 @@ class SimDriver(Driver):
         x_all, v_all, u_all, cmd = self._x, self._v, self._u, self._cmd
         step_h = self._step_h
         step = self._step
+        # the world's load, held over the interval (zero-order hold, as the commands)
+        env = self.environment
+        ext = self.external_effort
+        tau = env.efforts(x_all, v_all) if env is not None else None
+        if tau is not None:
+            ext[:] = tau
+        elif env is not None:
+            for i in range(len(ext)):
+                ext[i] = 0.0
+        averaging = self._avg_window > 0.0
+        integral = [0.0] * len(x_all) if averaging else x_all  # (unused when not averaging)
         for i, (inv_j, b, lo, hi, kp, kd, ulim) in enumerate(self._model):
             x = x_all[i]
             v = v_all[i]
+            te = tau[i] if tau is not None else 0.0
+            if averaging:
+                # the effort's integral over the interval from the momentum balance
+                # (J dv = (u + te - b v) dt): exact whichever branch integrates it
+                x0, v0 = x, v
             if not enabled:
                 u_all[i] = 0.0
-                if brakes or v == 0.0:
+                if brakes or (v == 0.0 and te == 0.0):
                     v_all[i] = 0.0
                     continue
             if enabled and position_mode:
                 r = cmd[i]
-                e = x - r
-                u = -kp * e - kd * v
+                # a constant load moves the servo's equilibrium by te / kp: the exact step is
+                # taken about it, the motor's effort still about the command
+                r_eq = r + te / kp
+                e = x - r_eq
+                u = -kp * (x - r) - kd * v
                 if -ulim <= u <= ulim:
                     # the linear regime: one exact step, kept when the effort stays inside
                     # its limit at the end and no end stop is reached
@@ -489,12 +526,14 @@ class SimDriver(Driver):
                     a11, a12, a21, a22 = step[i]
                     e1 = a11 * e + a12 * v
                     v1 = a21 * e + a22 * v
-                    x1 = r + e1
-                    u1 = -kp * e1 - kd * v1
+                    x1 = r_eq + e1
+                    u1 = -kp * (x1 - r) - kd * v1
                     if -ulim <= u1 <= ulim and lo <= x1 <= hi:
                         x_all[i] = x1
                         v_all[i] = v1
                         u_all[i] = u1
+                        if averaging:
+                            integral[i] = (v1 - v0) / inv_j + b * (x1 - x0) - te * dt
                         continue
                 u = 0.0
                 for _ in range(steps):
@@ -503,7 +542,7 @@ class SimDriver(Driver):
                         u = ulim
                     elif u < -ulim:
                         u = -ulim
-                    v += (u - b * v) * inv_j * h
+                    v += (u + te - b * v) * inv_j * h
                     x += v * h
                     if x < lo or x > hi:  # end stop
                         x = lo if x < lo else hi
@@ -511,11 +550,37 @@ class SimDriver(Driver):
             else:
                 u = cmd[i] if enabled else 0.0
                 for _ in range(steps):
-                    v += (u - b * v) * inv_j * h
+                    v += (u + te - b * v) * inv_j * h
                     x += v * h
                     if x < lo or x > hi:
                         x = lo if x < lo else hi
                         v = 0.0
+            if averaging:
+                # an end stop zeroes v: the stop's impulse is not the motor's, so the balance
+                # is taken only without one; the stop's interval reports its last effort
+                stopped = x <= lo or x >= hi
+                if enabled and not stopped:
+                    integral[i] = (v - v0) / inv_j + b * (x - x0) - te * dt
+                else:
+                    integral[i] = u * dt if enabled else 0.0
             x_all[i] = x
             v_all[i] = v
             u_all[i] = u
+        if averaging:
+            self._average_effort(dt, integral)
+
+    def _average_effort(self, dt: float, integral: list[float]) -> None:
+        """The reported effort: the mean over the last intervals spanning the window."""
+        hist = self._effort_hist
+        hist.append((dt, integral))
+        span = 0.0
+        for h, _ in hist:
+            span += h
+        while len(hist) > 1 and span - hist[0][0] >= self._avg_window - 1e-9:
+            span -= hist.pop(0)[0]
+        avg = self._effort_avg
+        for i in range(len(avg)):
+            total = 0.0
+            for _, part in hist:
+                total += part[i]
+            avg[i] = total / span

@@ -24,8 +24,8 @@ standin = load_tool("slicer_standin")
 
 
 class Master:
-    def __init__(self) -> None:
-        self.sim = SimRobot(ROOT / "configs" / "master.yaml")
+    def __init__(self, **params: Any) -> None:
+        self.sim = SimRobot(ROOT / "configs" / "master.yaml", params=params or None)
         self.ctrl: Any = self.sim.robot.controller.controllers[0]
         self.op = self.sim.peer("operator", address=("127.0.0.1", 41000))
         self.sim.step(1)
@@ -345,3 +345,143 @@ def test_a_hand_over_moves_the_force_to_the_master_in_control() -> None:
     finally:
         for r in robots:
             r.close()
+
+
+# ------------------------------------------------------------------ the slave's force (issue 27)
+def feedback(master: Master) -> tuple[float, float, float]:
+    return tuple(master.ctrl.feedback_n)
+
+
+@pytest.fixture
+def unpassivated() -> Any:
+    """The master with the passivity controller off: a constant force on the moving hand is
+    work the network never received, which the controller would damp (its own test below)."""
+    m = Master(passivity=False)
+    yield m
+    m.close()
+
+
+@pytest.mark.req("SR-FORCE-2")
+def test_the_slaves_force_is_displayed_scaled_and_summed_with_the_fixtures(unpassivated) -> None:
+    master = unpassivated
+    master.run()
+    master.feed.force = (-2.0, 0.5, 1.0)  # N, patient frame; the map is 0.1 I: same axes
+    master.feed.step(30)
+    assert feedback(master) == pytest.approx((-2.0, 0.5, 1.0), abs=1e-9)
+    st = master.ctrl.stats()
+    assert st["slave_tip"]["force_n"] == [-2.0, 0.5, 1.0]
+    assert st["force_n"] == pytest.approx([-2.0, 0.5, 1.0], abs=1e-3)  # the hand feels it
+    # a fixture pushing too: the hand feels the sum
+    master.keepout()
+    master.feed.step(10)
+    fix = master.ctrl.fixtures.force_n
+    shown = master.ctrl.displayed_n
+    for i in range(3):
+        assert shown[i] == pytest.approx(fix[i] + feedback(master)[i], abs=0.05)
+
+
+@pytest.mark.req("SR-FORCE-2")
+def test_force_scale_and_the_10_n_clamp() -> None:
+    params = {"force_scale": 2.5, "passivity": False}
+    sim = SimRobot(ROOT / "configs" / "master.yaml", params=params)
+    try:
+        op = sim.peer("operator", address=("127.0.0.1", 41000))
+        sim.step(1)
+        feed = SlaveTipFeed(sim)
+        for c in ("Enable", "Run"):
+            op.send_command(c)
+            feed.step(1)
+        feed.force = (0.0, 2.0, 0.0)
+        feed.step(30)
+        ctrl: Any = sim.robot.controller.controllers[0]
+        assert tuple(ctrl.feedback_n) == pytest.approx((0.0, 5.0, 0.0), abs=1e-9)
+        feed.force = (3.0, 0.0, -4.0)  # 5 N x 2.5 = 12.5 N: clamped to 10 N, same direction
+        feed.step(30)
+        assert math.hypot(*ctrl.displayed_n) == pytest.approx(10.0, abs=1e-9)
+        assert ctrl.displayed_n[0] / ctrl.displayed_n[2] == pytest.approx(-0.75)
+        assert ctrl.stats()["force_clamped_ticks"] > 0
+    finally:
+        sim.close()
+
+
+@pytest.mark.req("SR-FORCE-2")
+def test_a_late_force_fades_to_zero_and_a_lost_one_is_zero_at_once_with_an_alert(master) -> None:
+    master.run()
+    master.feed.force = (0.0, 0.0, 3.0)
+    master.feed.step(30)
+    assert feedback(master)[2] == pytest.approx(3.0)
+    master.feed.paused = True  # late: held, decaying to zero within tip_fade_ms (20 ms)
+    shown = []
+    for _ in range(40):
+        master.feed.step(1)
+        shown.append(feedback(master)[2])
+    assert all(b <= a for a, b in zip(shown, shown[1:], strict=False))
+    assert 0.0 < shown[8] < 3.0 and shown[30] == 0.0 and not master.alerts()
+    master.feed.paused = False
+    master.feed.step(30)
+    assert feedback(master)[2] == pytest.approx(3.0)
+    master.feed.skip(3)  # proven loss: zero at once, an alert
+    master.feed.step(1)
+    assert feedback(master) == (0.0, 0.0, 0.0) and master.ctrl.displayed_n == (0.0, 0.0, 0.0)
+    assert any("lost" in a for a in master.alerts())
+
+
+@pytest.mark.req("SR-FORCE-2")
+def test_a_dead_slave_leaves_no_force_on_the_hand(master) -> None:
+    master.run()
+    master.feed.force = (1.0, 1.0, 1.0)
+    master.feed.step(30)
+    master.feed.paused = True
+    master.feed.step(150)  # past the 100 ms grace
+    assert master.ctrl.displayed_n == (0.0, 0.0, 0.0)
+    assert len([a for a in master.alerts() if "lost" in a]) == 1
+
+
+@pytest.mark.req("SR-FORCE-2")
+@pytest.mark.parametrize("bad", ["1,2", "1,2,x", "nan,0,0", "1,2,3,4", ""])
+def test_a_malformed_force_is_refused_and_counted_not_displayed(master, bad: str) -> None:
+    master.run()
+    master.feed.force = (0.0, 2.0, 0.0)
+    master.feed.step(30)
+    before = master.ctrl.stats()["slave_tip"]
+    master.feed.force = bad
+    master.feed.step(1)
+    st = master.ctrl.stats()["slave_tip"]
+    assert st["bad"] == before["bad"] + 1 and "force_n" in st["last_error"]
+    assert st["samples"] == before["samples"]  # the whole sample refused: its tip too
+    assert st["force_n"] == [0.0, 2.0, 0.0]  # the last good force, fading as any late one
+
+
+@pytest.mark.req("SR-FORCE-2")
+def test_force_feedback_off_displays_only_the_fixtures() -> None:
+    sim = SimRobot(ROOT / "configs" / "master.yaml", params={"force_feedback": False})
+    try:
+        op = sim.peer("operator", address=("127.0.0.1", 41000))
+        sim.step(1)
+        feed = SlaveTipFeed(sim)
+        for c in ("Enable", "Run"):
+            op.send_command(c)
+            feed.step(1)
+        feed.force = (0.0, 2.0, 0.0)
+        feed.step(30)
+        ctrl: Any = sim.robot.controller.controllers[0]
+        assert ctrl.feedback_n == (0.0, 0.0, 0.0) and ctrl.displayed_n == (0.0, 0.0, 0.0)
+        assert ctrl.stats()["slave_tip"]["force_n"] == [0.0, 2.0, 0.0]  # received, not shown
+    finally:
+        sim.close()
+
+
+@pytest.mark.req("SR-FORCE-1")
+def test_the_passivity_controller_damps_a_force_the_network_gave_no_energy_for(master) -> None:
+    """A constant 3 N on the moving hand from nothing the hand pushed (no spring, no wall):
+    the observer sees the network giving energy and the controller damps it; the observed
+    energy never goes below zero."""
+    master.run()
+    master.feed.force = (3.0, 3.0, 0.0)
+    energies = []
+    for _ in range(2000):
+        master.feed.step(1)
+        energies.append(master.ctrl.passivity.energy)
+    st = master.ctrl.stats()["passivity"]
+    assert st["on"] and st["active_ticks"] > 0 and st["dissipated_mj"] > 0.0
+    assert min(energies) >= -1e-12
