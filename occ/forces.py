@@ -67,7 +67,7 @@ class SlaveForce:
         sensor_device: str = "ForceSensor",
         sensor_frame: str = "patient",
         sensor_timeout_s: float = 0.02,
-        damping: float = 1e-3,
+        damping: float = 1e-4,
         effort_damping: tuple[float, ...] | None = None,
         effort_inertia: tuple[float, ...] | None = None,
         environment: Any = None,

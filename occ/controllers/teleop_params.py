@@ -216,7 +216,7 @@ class SlaveForceParams(_Params):
         20.0, description="`sensor`: an older reading is not used (ALERT once)."
     )
     damping: PosFloat = Field(
-        1e-3,
+        1e-4,
         description="`effort`: damped least squares factor (m) of the Jacobian inverse near a "
         "singular pose.",
     )

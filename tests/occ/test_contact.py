@@ -1,0 +1,259 @@
+"""Simulated tissue (occ/contact.py) and the slave's force sources (occ/forces.py).
+
+- The force law: a wall and a sphere push the tool out along their normal, k d + b d', never
+  pull; shapes add up.
+- The load reaches the joints as J^T F: virtual work (tau . dq = F . dx) checked with finite
+  differences on the slave's kinematics; the ``sim`` drive yields by tau / kp under it and,
+  averaged over 2 ms, reports the effort that holds it.
+- The ``effort`` source gives back the contact force from those efforts (static: to 1 mN of 1.5 N;
+  moving, with the momentum observer: a few per cent); ``ForceTare`` removes a bias.
+- The ``sensor`` source: a SENSOR in N, in the patient, base or tip frame; refused and counted
+  when it is no force; silent past its timeout: not used, the next source instead, one ALERT.
+- Configuration mistakes are errors at load.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+import igtl
+from igtl.messages.sensor import Unit
+from occ.config import ContactConfig
+from occ.contact import Contact, Environment
+from occ.errors import ConfigError
+from occ.forces import SlaveForce
+from occ.frame import Frame
+from occ.loader import parse_config
+from occ.safety import RobotState
+from occ.testing import CONFIGS, SimRobot
+
+pytestmark = pytest.mark.req("SR-FORCE-3")
+
+ROOT = Path(__file__).resolve().parents[2]
+SLAVE = Frame.builtin("occ_slave")
+
+
+def wall(**kw: Any) -> Contact:
+    args = {"kind": "wall", "point_mm": (2.0, 0.0, 0.0), "normal": (-2.0, 0.0, 0.0)}
+    return Contact.from_config(ContactConfig(**{**args, **kw}))
+
+
+# ------------------------------------------------------------------ the force law
+def test_a_wall_pushes_out_along_its_normal_and_never_pulls() -> None:
+    c = wall(stiffness=0.5, damping=0.01)
+    assert c.normal == (-1.0, 0.0, 0.0)  # made unit
+    f, d = c.force((1.0, 5.0, 7.0), (0.0, 0.0, 0.0))
+    assert f == (0.0, 0.0, 0.0) and d == pytest.approx(-1.0)  # outside: nothing
+    f, d = c.force((5.0, 5.0, 7.0), (0.0, 0.0, 0.0))
+    assert d == pytest.approx(3.0) and f == pytest.approx((-1.5, 0.0, 0.0))
+    f, _ = c.force((5.0, 5.0, 7.0), (20.0, 0.0, 0.0))  # going deeper at 20 mm/s: + b d'
+    assert f == pytest.approx((-1.7, 0.0, 0.0))
+    f, _ = c.force((2.1, 0.0, 0.0), (-200.0, 0.0, 0.0))  # leaving fast: would pull; zero
+    assert f == (0.0, 0.0, 0.0)
+
+
+def test_a_sphere_pushes_out_radially() -> None:
+    c = Contact.from_config(
+        ContactConfig(kind="sphere", point_mm=(0.0, 0.0, 0.0), radius_mm=10.0, stiffness=2.0)
+    )
+    f, d = c.force((0.0, 6.0, 8.0), (0.0, 0.0, 0.0))  # 10 mm from the centre: the surface
+    assert d == pytest.approx(0.0) and f == (0.0, 0.0, 0.0)
+    f, d = c.force((0.0, 3.0, 4.0), (0.0, 0.0, 0.0))  # 5 mm in
+    assert d == pytest.approx(5.0) and f == pytest.approx((0.0, 6.0, 8.0))
+
+
+def test_the_load_reaches_the_joints_as_the_jacobian_transpose() -> None:
+    """Virtual work: tau . dq = F . dx for a small joint motion (F in the patient frame, the
+    base rotated and moved)."""
+    base = np.eye(4)
+    c, s = math.cos(0.4), math.sin(0.4)
+    base[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    base[:3, 3] = [0.01, -0.02, 0.0]
+    q = [0.1, 0.35, 0.05]
+    env0 = Environment([wall(point_mm=(1e3, 0.0, 0.0), normal=(0.0, 0.0, 1.0))], SLAVE, lambda: base)
+    p, _ = env0.tip(q)
+    env = Environment(
+        [wall(point_mm=(p[0], p[1], p[2] + 2.0), normal=(0.3, -0.2, 1.0), stiffness=0.7)],
+        SLAVE,
+        lambda: base,
+    )
+    tau = env.efforts(q, [0.0, 0.0, 0.0])
+    assert tau is not None and env.in_contact
+    force = np.array(env.force_n)
+    dq = np.array([1e-6, -2e-6, 1.5e-6])
+    p1, _ = env.tip(list(np.array(q) + dq))
+    dx = (np.array(p1) - np.array(p)) * 1e-3  # m
+    assert float(np.dot(tau, dq)) == pytest.approx(float(force @ dx), rel=1e-4)
+
+
+# ------------------------------------------------------------------ the sim drive under load
+def pressed_slave(depth_mm: float, **params: Any) -> tuple[SimRobot, Any]:
+    """configs/wall.yaml in simulated time, RUNNING, its tool held ``depth_mm`` into the wall:
+    the controller takes absolute targets (``mapping: absolute``) and a peer on the master's
+    link sends one behind the wall (x = 2 mm, normal -x) for 1.5 s."""
+    cfg = yaml.safe_load((CONFIGS / "wall.yaml").read_text())
+    cfg["controller"]["params"]["force"].update(params)
+    cfg["controller"]["params"].update(mapping="absolute", max_jump_mm=20.0, phase_lock_us=None)
+    sim = SimRobot(cfg)
+    op = sim.peer("operator", address=("127.0.0.1", 41001))
+    source = sim.peer("master", address=("127.0.0.1", 40000))
+    for c in ("Enable", "Run"):
+        assert sim.command(op, c).metadata["Status"] == "SUCCESS"
+    tip = sim.robot.data.world_tip()[:3, 3] * 1e3
+    target = (2.0 + depth_mm, float(tip[1]), float(tip[2]))
+    for seq in range(1, 751):
+        source.send_position(target, seq=seq)
+        sim.step(2)
+    return sim, op
+
+
+def test_the_drive_yields_under_the_load_and_its_averaged_effort_holds_it() -> None:
+    sim, _ = pressed_slave(3.0)
+    try:
+        drv: Any = sim.robot.hardware.drivers[0]
+        env = sim.robot.hardware.environment
+        assert env.in_contact and env.depth_mm["wall"] == pytest.approx(3.0, abs=0.3)
+        # at rest: the drive's mean effort is the load's opposite
+        assert np.array(sim.robot.data.effort) == pytest.approx(
+            -np.array(drv.external_effort), abs=1e-9
+        )
+        # the tool yielded: less deep than commanded (kp finite), by tau / kp per joint
+        assert env.depth_mm["wall"] < 3.0
+    finally:
+        sim.close()
+
+
+def test_the_effort_source_gives_the_contact_force_back() -> None:
+    sim, op = pressed_slave(3.0)
+    try:
+        ctl: Any = sim.robot.controller.controllers[0]
+        env = sim.robot.hardware.environment
+        f = ctl.force.estimate(
+            sim.now, sim.robot.frame, sim.robot.data.q, sim.robot.data.qdot,
+            sim.robot.data.effort, sim.robot.data.base, lambda: sim.robot.data.tip[:3, :3],
+        )  # fmt: skip
+        # to 1 mN of 1.5 N: the damped inverse's bias (damping 1e-4 m against a Jacobian whose
+        # smallest singular value is the yaw's 14 mm lever)
+        assert f == pytest.approx(env.force_n, abs=1e-3)
+        assert math.hypot(*f) > 1.0
+        # a bias taken now is subtracted from then on: the force reads zero at this load
+        reply = sim.command(op, "ForceTare")
+        assert reply.metadata["Status"] == "SUCCESS", reply.metadata
+        assert "force bias taken" in reply.command
+        f = ctl.force.estimate(
+            sim.now, sim.robot.frame, sim.robot.data.q, sim.robot.data.qdot,
+            sim.robot.data.effort, sim.robot.data.base, lambda: sim.robot.data.tip[:3, :3],
+        )  # fmt: skip
+        assert math.hypot(*f) < 1e-3
+    finally:
+        sim.close()
+
+
+# ------------------------------------------------------------------ the sensor source
+def sensor(values: tuple[float, ...], unit: Unit | int = 0, device: str = "ForceSensor") -> Any:
+    return igtl.SensorMessage(values, unit, device_name=device)
+
+
+def newtons() -> Unit:
+    return Unit(0, ((11, 1),))
+
+
+def test_the_sensor_source_takes_newtons_in_its_frame() -> None:
+    rot = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90 deg about z
+    base = np.eye(4)
+    base[:3, :3] = rot
+    tip = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # 90 deg about x
+    for frame, expect in (
+        ("patient", (1.0, 2.0, 3.0)),
+        ("base", tuple(rot @ [1.0, 2.0, 3.0])),
+        ("tip", tuple(rot @ tip @ [1.0, 2.0, 3.0])),
+    ):
+        src = SlaveForce(("sensor",), sensor_interface="sensor", sensor_frame=frame)
+        assert src.on_input(sensor((1.0, 2.0, 3.0), newtons()), "sensor", 0.0)
+        f = src.estimate(0.005, SLAVE, [0.0] * 3, [0.0] * 3, [0.0] * 3, base, lambda: tip)
+        assert f == pytest.approx(expect), frame
+        assert src.used == "sensor"
+    # a milli-newton sensor is scaled; six values (force and torque) are taken
+    src = SlaveForce(("sensor",), sensor_interface="sensor")
+    assert src.on_input(sensor((1000.0, 0.0, 0.0, 1.0, 1.0, 1.0), Unit(11, ((11, 1),))), "sensor", 0.0)
+    assert src.estimate(0.0, SLAVE, [0.0] * 3, [0.0] * 3, [0.0] * 3, np.eye(4), lambda: tip) == (
+        pytest.approx((1.0, 0.0, 0.0))
+    )
+
+
+@pytest.mark.parametrize(
+    ("msg", "error"),
+    [
+        (sensor((1.0, 2.0, 3.0), Unit(0, ((1, 1),))), "unit 'm' is not a force"),
+        (sensor((1.0, 2.0)), "2 values"),
+        (sensor((1.0, math.nan, 3.0)), "not a force"),
+    ],
+)
+def test_a_reading_that_is_no_force_is_refused_and_counted(msg: Any, error: str) -> None:
+    src = SlaveForce(("sensor",), sensor_interface="sensor")
+    assert not src.on_input(msg, "sensor", 0.0)
+    st = src.stats(0.0)["sensor"]
+    assert st["refused"] == 1 and st["samples"] == 0 and error in st["last_error"]
+
+
+def test_other_devices_and_interfaces_are_not_the_sensor() -> None:
+    src = SlaveForce(("sensor",), sensor_interface="sensor")
+    assert not src.on_input(sensor((1.0, 2.0, 3.0), device="Other"), "sensor", 0.0)
+    assert not src.on_input(sensor((1.0, 2.0, 3.0)), "slicer", 0.0)
+    assert not src.on_input(igtl.StringMessage("x", device_name="ForceSensor"), "sensor", 0.0)
+    assert src.stats(0.0)["sensor"]["refused"] == 0
+
+
+def test_a_silent_sensor_is_not_used_the_next_source_is_and_one_alert_says_so() -> None:
+    alerts: list[tuple[str, str, int]] = []
+    src = SlaveForce(
+        ("sensor", "effort"), sensor_interface="sensor", sensor_timeout_s=0.02,
+        alert=lambda *a: alerts.append(a),
+    )  # fmt: skip
+    q = [0.0, 0.35, 0.05]
+    src.on_input(sensor((0.0, 0.0, 2.0)), "sensor", 0.0)
+    base = np.eye(4)
+    assert src.estimate(0.01, SLAVE, q, [0.0] * 3, [0.0] * 3, base, np.eye) == (0.0, 0.0, 2.0)
+    for t in (0.05, 0.06, 0.07):
+        assert src.estimate(t, SLAVE, q, [0.0] * 3, [0.0] * 3, base, np.eye) == (0.0, 0.0, 0.0)
+        assert src.used == "effort"
+    assert len(alerts) == 1 and alerts[0][0] == "ALERT" and "silent" in alerts[0][1]
+    src.on_input(sensor((0.0, 0.0, 1.0)), "sensor", 0.08)  # back: used again, told
+    assert src.estimate(0.081, SLAVE, q, [0.0] * 3, [0.0] * 3, base, np.eye) == (0.0, 0.0, 1.0)
+    assert alerts[-1][0] == "STREAM" and "back" in alerts[-1][1]
+
+
+# ------------------------------------------------------------------ configuration
+def test_configuration_mistakes_are_errors_at_load() -> None:
+    cfg = yaml.safe_load((CONFIGS / "wall.yaml").read_text())
+    cfg["controller"]["params"]["force"] = {"sources": ["sensor"]}
+    with pytest.raises(ConfigError, match="sensor_interface: required"):
+        parse_config(yaml.safe_dump(cfg))
+    cfg["controller"]["params"]["force"] = {"sources": ["effort"], "effort_inertia": [0.1]}
+    with pytest.raises(ConfigError, match="effort_inertia: needs 3 values"):
+        parse_config(yaml.safe_dump(cfg))
+    cfg["controller"]["params"]["force"] = {"sources": ["tissue"]}
+    del cfg["environment"]
+    with pytest.raises(ConfigError, match="tissue needs an environment"):
+        parse_config(yaml.safe_dump(cfg))
+    cfg = yaml.safe_load((CONFIGS / "wall.yaml").read_text())
+    cfg["environment"]["contacts"][0]["normal"] = [0.0, 0.0, 0.0]
+    with pytest.raises(ConfigError, match="normal must not be zero"):
+        parse_config(yaml.safe_dump(cfg))
+
+
+def test_the_environment_needs_one_sim_driver_with_every_joint() -> None:
+    cfg = yaml.safe_load((CONFIGS / "wall.yaml").read_text())
+    drv = cfg["robot"]["drivers"][0]
+    cfg["robot"]["drivers"] = [
+        {**drv, "name": "a", "joints": ["yaw", "pitch"], "params": {}},
+        {**drv, "name": "b", "joints": ["insertion"], "params": {}},
+    ]
+    with pytest.raises(ConfigError, match="needs one `sim` driver with every joint"):
+        SimRobot(cfg)
