@@ -4,7 +4,8 @@ The shipped master (configs/master.yaml: the simulated hand on a haptic device) 
 slave (configs/wall.yaml: configs/slave.yaml whose simulated drives press on a tissue wall and
 whose force is estimated from their efforts) as a :class:`occ.testing.SimPair`: the stream and
 the return channel through lines that delay and lose messages, everything else the daemons'
-code. The hand makes the OCC paper's motion (50 mm circle at 0.1 Hz); the slave's tool presses
+code. The wall slave's force comes from its simulated instrument sensor (``tissue``), or from
+the drives' efforts alone in one test. The hand makes the OCC paper's motion (50 mm circle at 0.1 Hz); the slave's tool presses
 up to 3 mm into the wall on each turn.
 
 Transparency is the force the hand feels (the master's displayed force) against the force at
@@ -32,10 +33,12 @@ pytestmark = pytest.mark.req("SR-FORCE-1")
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def wall_config(stiffness: float | None = None) -> dict[str, Any]:
+def wall_config(stiffness: float | None = None, sources: list[str] | None = None) -> dict[str, Any]:
     cfg = yaml.safe_load((CONFIGS / "wall.yaml").read_text())
     if stiffness is not None:
         cfg["environment"]["contacts"][0]["stiffness"] = stiffness
+    if sources is not None:
+        cfg["controller"]["params"]["force"]["sources"] = sources
     return dict(cfg)
 
 
@@ -67,7 +70,8 @@ class Run:
 
     def __init__(self, *, seconds: float = 10.0, settle: float = 2.0, **pair: Any) -> None:
         stiffness = pair.pop("stiffness", None)
-        self.pair = SimPair(CONFIGS / "master.yaml", wall_config(stiffness), **pair)
+        sources = pair.pop("sources", None)
+        self.pair = SimPair(CONFIGS / "master.yaml", wall_config(stiffness, sources), **pair)
         p = self.pair
         try:
             p.start()
@@ -117,6 +121,15 @@ def test_the_hand_feels_the_wall(clean: Run) -> None:
     # the force pushes the hand out of the wall: -x in the master's axes (the wall's normal)
     i = int(np.argmax(np.linalg.norm(clean.tip, axis=1)))
     assert clean.hand[i][0] < -0.9 * clean.peak
+
+
+def test_the_hand_feels_the_wall_through_the_drives_efforts(clean: Run) -> None:
+    """The same with the force estimated from the drives' efforts alone (``effort``: J^T and
+    the momentum observer, no sensor): still within 10 %."""
+    run = Run(sources=["effort"])
+    assert run.states == (RobotState.RUNNING, RobotState.RUNNING)
+    assert run.rms_error <= 0.10 * run.peak, (run.rms_error, run.peak)
+    assert run.peak == pytest.approx(clean.peak, rel=0.05)
 
 
 def test_stable_with_double_loss_and_delay(clean: Run) -> None:

@@ -76,7 +76,9 @@ def test_the_load_reaches_the_joints_as_the_jacobian_transpose() -> None:
     base[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
     base[:3, 3] = [0.01, -0.02, 0.0]
     q = [0.1, 0.35, 0.05]
-    env0 = Environment([wall(point_mm=(1e3, 0.0, 0.0), normal=(0.0, 0.0, 1.0))], SLAVE, lambda: base)
+    env0 = Environment(
+        [wall(point_mm=(1e3, 0.0, 0.0), normal=(0.0, 0.0, 1.0))], SLAVE, lambda: base
+    )
     p, _ = env0.tip(q)
     env = Environment(
         [wall(point_mm=(p[0], p[1], p[2] + 2.0), normal=(0.3, -0.2, 1.0), stiffness=0.7)],
@@ -98,7 +100,7 @@ def pressed_slave(depth_mm: float, **params: Any) -> tuple[SimRobot, Any]:
     the controller takes absolute targets (``mapping: absolute``) and a peer on the master's
     link sends one behind the wall (x = 2 mm, normal -x) for 1.5 s."""
     cfg = yaml.safe_load((CONFIGS / "wall.yaml").read_text())
-    cfg["controller"]["params"]["force"].update(params)
+    cfg["controller"]["params"]["force"].update({"sources": ["effort"], **params})
     cfg["controller"]["params"].update(mapping="absolute", max_jump_mm=20.0, phase_lock_us=None)
     sim = SimRobot(cfg)
     op = sim.peer("operator", address=("127.0.0.1", 41001))
@@ -181,7 +183,9 @@ def test_the_sensor_source_takes_newtons_in_its_frame() -> None:
         assert src.used == "sensor"
     # a milli-newton sensor is scaled; six values (force and torque) are taken
     src = SlaveForce(("sensor",), sensor_interface="sensor")
-    assert src.on_input(sensor((1000.0, 0.0, 0.0, 1.0, 1.0, 1.0), Unit(11, ((11, 1),))), "sensor", 0.0)
+    assert src.on_input(
+        sensor((1000.0, 0.0, 0.0, 1.0, 1.0, 1.0), Unit(11, ((11, 1),))), "sensor", 0.0
+    )
     assert src.estimate(0.0, SLAVE, [0.0] * 3, [0.0] * 3, [0.0] * 3, np.eye(4), lambda: tip) == (
         pytest.approx((1.0, 0.0, 0.0))
     )
