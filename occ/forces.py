@@ -188,7 +188,9 @@ class SlaveForce:
             assert prev is not None
             tau = tau - np.asarray(self.effort_inertia) * (qda - prev[2]) / dt
             if self.effort_damping is not None:
-                tau = tau - np.asarray(self.effort_damping) * (qa - prev[1]) / dt
+                # the drives' velocities, not position differences: an encoder's quantum over
+                # 2 ms is a velocity that, at a 14 mm lever, reads as 0.2 N
+                tau = tau - np.asarray(self.effort_damping) * 0.5 * (qda + prev[2])
         elif self.effort_damping is not None:
             tau = tau - np.asarray(self.effort_damping) * qda
         if not np.all(np.isfinite(tau)):
