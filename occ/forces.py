@@ -56,6 +56,23 @@ ZERO: Vec3 = (0.0, 0.0, 0.0)
 FORCE_UNITS = {"": 1.0, "N": 1.0, "milliN": 1e-3, "kiloN": 1e3}
 
 
+def sensor_force(msg: Message) -> tuple[Vec3 | None, str]:
+    """The force a SENSOR message carries (N): ``(force, "")``, or ``(None, why not)`` for a
+    message that is no SENSOR, not in newtons, of neither 3 nor 6 values, or not finite."""
+    if not isinstance(msg, SensorMessage):
+        return None, f"{msg.message_type} is not a SENSOR"
+    unit = str(msg.unit)
+    factor = FORCE_UNITS.get(unit)
+    values = msg.data
+    if factor is None:
+        return None, f"unit {unit!r} is not a force (N)"
+    if len(values) not in (3, 6):
+        return None, f"{len(values)} values (3: force, 6: force and torque)"
+    if not all(math.isfinite(v) for v in values[:3]):
+        return None, f"not a force: {values[:3]}"
+    return (values[0] * factor, values[1] * factor, values[2] * factor), ""
+
+
 class SlaveForce:
     """The slave's tip force from its configured sources (see the module docstring)."""
 
@@ -110,22 +127,12 @@ class SlaveForce:
             or msg.device_name != self.sensor_device
         ):
             return False
-        unit = str(msg.unit)
-        factor = FORCE_UNITS.get(unit)
-        values = msg.data
-        error = ""
-        if factor is None:
-            error = f"unit {unit!r} is not a force (N)"
-        elif len(values) not in (3, 6):
-            error = f"{len(values)} values (3: force, 6: force and torque)"
-        elif not all(math.isfinite(v) for v in values[:3]):
-            error = f"not a force: {values[:3]}"
-        if error:
+        force, error = sensor_force(msg)
+        if force is None:
             self.sensor_refused += 1
             self.sensor_last_error = f"SENSOR {msg.device_name!r}: {error}"
             return False
-        assert factor is not None
-        self._sensor = (values[0] * factor, values[1] * factor, values[2] * factor)
+        self._sensor = force
         self._sensor_t = now
         self.sensor_samples += 1
         if self._sensor_alerted:

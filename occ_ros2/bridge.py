@@ -51,6 +51,11 @@ of FAULT (``enable``, ``disable``), the daemon's latch wins: the fault stays unt
 port. The reply is published on ``NS/command_reply`` as ``"<Name> <SUCCESS|FAIL>: <message>"``,
 and ``operating_state`` again after every CRTK word (a fresh stamp: CRTK clients wait for one).
 
+Forces: ``NS/servo_cf`` (geometry_msgs/WrenchStamped, N, frame ``<leaf>_base``: the frame of
+``measured_cf``) becomes a SENSOR ``ServoCF`` on the operator port, which a master displays
+with its slave's force (teleop-master ``external_force_device``), for as long as it keeps
+coming (``external_force_timeout_ms``).
+
 Moves: ``NS/move_jp`` (sensor_msgs/JointState: positions, by name or all in the daemon's order)
 and ``NS/move_cp`` (geometry_msgs/PoseStamped: the tip position, metres, frame_id the world
 frame or ``<leaf>_base``; the orientation is not used: the arms are positioned by their tip)
@@ -112,6 +117,7 @@ from cyclonedds.util import duration
 
 import igtl
 from igtl.messages.base import Message
+from igtl.messages.sensor import Unit
 from igtl.transport import TCPClient
 from occ.stats import Histogram
 
@@ -226,6 +232,10 @@ KEYFRAME_RUNNING = "KEYFRAME_RUNNING"
 KEYFRAME_ENDED = "KEYFRAME_ENDED"
 
 
+#: the SENSOR unit of a force: newton (unit code 11), no prefix
+NEWTON = Unit(0, ((11, 1),))
+
+
 def plan_running(stats_json: str) -> bool:
     """Whether a daemon's statistics (GetStats) say that a keyframe plan runs: the keyframe
     controller's ``running`` (the plan's number, else null), alone or among several."""
@@ -335,6 +345,10 @@ class _Counters:
     moves_waiting: int = 0
     forces: int = 0
     forces_refused: int = 0
+    #: servo_cf wrenches forwarded to the daemon (SENSOR ServoCF), refused (frame, not
+    #: finite, no operator link)
+    servo_cf: int = 0
+    servo_cf_refused: int = 0
 
 
 @dataclass
@@ -495,6 +509,7 @@ class Bridge:
             ("command", msgs.String, lambda s: self.command(ns, str(s.data))),
             ("move_jp", msgs.JointState, lambda s: self.move(ns, "move_jp", s)),
             ("move_cp", msgs.PoseStamped, lambda s: self.move(ns, "move_cp", s)),
+            ("servo_cf", msgs.WrenchStamped, lambda s: self.servo_cf(ns, s)),
         )
         for leaf_name, rcls, handle in inputs:
             reader: DataReader[Any] = DataReader(
@@ -715,6 +730,36 @@ class Bridge:
                 wrench=msgs.Wrench(msgs.Vector3(*values[:3]), msgs.Vector3(*torque)),
             ),
         )
+
+    def servo_cf(self, ns: str, goal: Any) -> None:
+        """CRTK ``servo_cf`` (geometry_msgs/WrenchStamped, N, frame_id ``<leaf>_base`` or empty:
+        the frame of ``measured_cf``, the master's axes): a force for the daemon to display,
+        sent as SENSOR ``ServoCF`` (unit N, the force's three values) on the operator link.
+        The daemon shows it for its ``external_force_timeout_ms`` (a client streams it);
+        torque is not displayed by the 3-DOF masters and not sent."""
+        robot = self.robots[ns]
+        f = goal.wrench.force
+        values = (float(f.x), float(f.y), float(f.z))
+        why = ""
+        if goal.header.frame_id not in ("", robot.base_frame):
+            why = f"frame {goal.header.frame_id!r} (takes {robot.base_frame!r})"
+        elif not all(map(math.isfinite, values)):
+            why = f"not a force: {values}"
+        elif robot.operator is None:
+            why = f"no operator interface for {ns} (occ-ros2 --operator)"
+        if not why:
+            msg = igtl.SensorMessage(
+                values, NEWTON, device_name="ServoCF", header_version=2, timestamp=time.time()
+            )
+            if robot.operator is not None and robot.operator.send(msg) == 1:
+                robot.counters.servo_cf += 1
+                return
+            why = "operator interface not connected"
+        robot.counters.servo_cf_refused += 1
+        if robot.counters.servo_cf_refused == 1 or robot.counters.servo_cf_refused % 1000 == 0:
+            log.warning(
+                "%s/servo_cf refused (%d so far): %s", ns, robot.counters.servo_cf_refused, why
+            )
 
     def _publish_static(self, robot: Robot, base_m: np.ndarray, stamp: msgs.Time) -> None:
         """world -> <leaf>_base on /tf_static: one message with every robot's fixed frame

@@ -69,7 +69,7 @@ from ..collab import SlaveSelector
 from ..config import DaemonConfig
 from ..errors import CommandError, KinematicsError, OCCError, caused
 from ..fixture_defs import Defaults, DefinitionError, PatientMapping, from_markups_file
-from ..forces import SlaveForce
+from ..forces import SlaveForce, sensor_force
 from ..haptics import MasterFixtures
 from ..outputs import VectorOut
 from ..passivity import PassivityController
@@ -189,6 +189,12 @@ class MasterController(Controller):
         self.max_force = p.max_force_n
         self.passivity_on = p.passivity
         self.passivity = PassivityController(p.passivity_max_damping)
+        self.external_device = p.external_force_device
+        self._external_timeout = p.external_force_timeout_ms * 1e-3
+        #: the external force (CRTK servo_cf: N, the master's axes) and when it came
+        self.external_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._t_external = -math.inf
+        self.external_samples = 0
         self._feedback_raw: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.feedback_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.displayed_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -292,8 +298,18 @@ class MasterController(Controller):
         self.target = np.array([x * MM, y * MM, z * MM])
 
     def on_input(self, item: Inbound, now: float) -> None:
-        """Fixture definitions (VFIXTURE, Markups POINT, POLYDATA) that share a stream."""
-        self._fixture_input(item.msg, now)
+        """Fixture definitions (VFIXTURE, Markups POINT, POLYDATA) that share a stream, and
+        the external force (a SENSOR ``external_force_device``: CRTK ``servo_cf``)."""
+        msg = item.msg
+        if self.external_device is not None and msg.device_name == self.external_device:
+            force, error = sensor_force(msg)
+            if force is None:
+                raise CommandError(f"{msg.message_type} {msg.device_name!r}: {error}")
+            self.external_n = force
+            self._t_external = now
+            self.external_samples += 1
+            return
+        self._fixture_input(msg, now)
 
     def _fixture_input(self, msg: Any, now: float) -> str | None:
         try:
@@ -509,10 +525,15 @@ class MasterController(Controller):
         Only the feedback is passivated: a virtual fixture defined with the tool outside its
         region starts stretched and pulls the hand in, giving energy it never received (by
         design); the observer would take that for the network's and damp the guidance away.
-        The fixtures' own stability under delay is their proxy's (``fixture_slide_mm``)."""
+        The fixtures' own stability under delay is their proxy's (``fixture_slide_mm``). An
+        external force (``servo_cf``) is displayed with the feedback, passivated too, for
+        ``external_force_timeout_ms`` after it came."""
         data, ctx = self.data, self.ctx
         assert data is not None and ctx is not None
         bx, by, bz = self.feedback_n
+        if now - self._t_external <= self._external_timeout:
+            ex, ey, ez = self.external_n
+            bx, by, bz = bx + ex, by + ey, bz + ez
         hx, hy, hz = ctx.frame.tip_position(data.q)
         last, t_last = self._handle, self._t_handle
         self._handle, self._t_handle = (hx, hy, hz), now
@@ -624,6 +645,9 @@ class MasterController(Controller):
             "feedback_n": [round(v, 4) for v in self.feedback_n],
             "force_feedback": self.force_feedback,
             "force_scale": self.force_scale,
+            "external_n": [round(v, 4) for v in self.external_n],
+            "external_samples": self.external_samples,
+            "external_fresh": now - self._t_external <= self._external_timeout,
             "force_clamped_ticks": self.clamped_ticks,
             "passivity": {"on": self.passivity_on, **self.passivity.stats()},
             "fixture_gain": round(self.gain, 4),

@@ -92,6 +92,15 @@ class MasterParams(_Params):
         description="N displayed per N at the slave's instrument (its own scale, not the "
         "motion scaling).",
     )
+    external_force_device: DeviceName | None = Field(
+        "ServoCF",
+        description="A SENSOR of this device name from an operator (N, the master's axes, "
+        "3 or 6 values: CRTK `servo_cf` through `occ-ros2`) is displayed with the slave's "
+        "force, passivated, while RUNNING; null = none taken.",
+    )
+    external_force_timeout_ms: PosFloat = Field(
+        100.0, description="An external force older than this is no longer displayed."
+    )
     passivity: Bool = Field(
         True,
         description="Time-domain passivity observer and controller at the handle (Hannaford "

@@ -485,3 +485,37 @@ def test_the_passivity_controller_damps_a_force_the_network_gave_no_energy_for(m
     st = master.ctrl.stats()["passivity"]
     assert st["on"] and st["active_ticks"] > 0 and st["dissipated_mj"] > 0.0
     assert min(energies) >= -1e-12
+
+
+# ------------------------------------------------------------------ an external force (servo_cf)
+@pytest.mark.req("SR-FORCE-2")
+def test_an_external_force_is_displayed_while_it_keeps_coming(unpassivated) -> None:
+    """SENSOR ``ServoCF`` from an operator (CRTK servo_cf through occ-ros2): N in the master's
+    axes, displayed with the slave's force while it is fresh (100 ms), then no more; a reading
+    that is no force is refused with an error reply to its sender, nothing displayed. (With
+    passivity on, the hand yielding to it would be work the network never received: damped.)"""
+    from igtl.messages.sensor import Unit
+
+    master = unpassivated
+    master.run()
+
+    def servo_cf(values: tuple[float, ...], unit: Unit = Unit(0, ((11, 1),))) -> None:
+        master.op.send(igtl.SensorMessage(values, unit, device_name="ServoCF", header_version=2))
+
+    servo_cf((0.0, 0.0, 1.5))
+    master.feed.step(2)
+    assert master.ctrl.displayed_n[2] == pytest.approx(1.5, abs=0.05)
+    st = master.ctrl.stats()
+    assert st["external_n"] == [0.0, 0.0, 1.5] and st["external_fresh"]
+    master.feed.step(99)  # 100 ms after it came: still shown
+    assert master.ctrl.displayed_n[2] == pytest.approx(1.5, abs=0.05)
+    master.feed.step(2)  # past the timeout: gone
+    assert master.ctrl.displayed_n == (0.0, 0.0, 0.0)
+    assert not master.ctrl.stats()["external_fresh"]
+    before = len(master.op.messages())
+    servo_cf((0.0, 0.0, 1.5), Unit(0, ((1, 1),)))  # metres: no force
+    master.feed.step(2)
+    assert master.ctrl.displayed_n == (0.0, 0.0, 0.0)
+    replies = master.op.messages()[before:]
+    assert any("is not a force" in str(getattr(m, "status_message", "")) + str(
+        getattr(m, "command", "")) for m in replies), replies

@@ -18,7 +18,8 @@ stdin and answers each with one JSON line on stdout:
 - ``{"op": "servo", "frame": "world", "position": [x, y, z], "rate_hz": 100, "seconds": 5}``:
   geometry_msgs/PoseStamped on ``NAMESPACE/servo_cp`` at ``rate_hz`` for ``seconds`` (a CRTK
   servo client's stream; a new ``servo`` replaces the running one, ``{"op": "servo_stop"}``
-  ends it);
+  ends it); ``{"op": "servo_cf", "frame": "master_base", "force": [fx, fy, fz], ...}`` the same
+  with geometry_msgs/WrenchStamped on ``NAMESPACE/servo_cf``;
 - ``{"op": "matched"}``: how many subscriptions the command publisher has matched (and the
   move publishers), and how many publishers of ``command_reply`` this node's graph knows;
 - ``{"op": "graph"}``: the publishers of ``NAMESPACE/measured_cp`` as this node's graph sees
@@ -127,18 +128,27 @@ def main() -> int:
     move_jp = node.create_publisher(JointState, f"{ns}/move_jp", 10)
     move_cp = node.create_publisher(PoseStamped, f"{ns}/move_cp", 10)
     servo_cp = node.create_publisher(PoseStamped, f"{ns}/servo_cp", 10)
+    servo_cf = node.create_publisher(WrenchStamped, f"{ns}/servo_cf", 10)
     servo_stop = threading.Event()
     servo_thread: threading.Thread | None = None
 
-    def servo(frame: str, position: list[float], rate_hz: float, seconds: float) -> None:
+    def servo(frame: str, values: list[float], rate_hz: float, seconds: float, kind: str) -> None:
         end = time.monotonic() + min(seconds, 60.0)  # bounded
         while not servo_stop.is_set() and time.monotonic() < end:
-            pose = PoseStamped()
-            pose.header.stamp = node.get_clock().now().to_msg()
-            pose.header.frame_id = frame
-            pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = position
-            pose.pose.orientation.w = 1.0
-            servo_cp.publish(pose)
+            if kind == "servo":
+                pose = PoseStamped()
+                pose.header.stamp = node.get_clock().now().to_msg()
+                pose.header.frame_id = frame
+                pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = values
+                pose.pose.orientation.w = 1.0
+                servo_cp.publish(pose)
+            else:
+                wrench = WrenchStamped()
+                wrench.header.stamp = node.get_clock().now().to_msg()
+                wrench.header.frame_id = frame
+                f = wrench.wrench.force
+                f.x, f.y, f.z = values
+                servo_cf.publish(wrench)
             servo_stop.wait(1.0 / rate_hz)
 
     # a publisher of the same type in this node: its graph entry carries rclpy's own type hash
@@ -186,24 +196,25 @@ def main() -> int:
             wall = time.time()
             move_cp.publish(pose)
             answer({"t": now(), "wall": wall})
-        elif op in ("servo", "servo_stop"):
+        elif op in ("servo", "servo_cf", "servo_stop"):
             servo_stop.set()
             if servo_thread is not None:
                 servo_thread.join()
             servo_stop.clear()
-            if op == "servo":
-                position = [float(v) for v in req["position"]]
+            if op != "servo_stop":
+                values = [float(v) for v in req["position" if op == "servo" else "force"]]
                 rate = float(req.get("rate_hz", 100.0))
                 frame = str(req.get("frame", "world"))
-                args = (frame, position, rate, float(req.get("seconds", 5)))
+                args = (frame, values, rate, float(req.get("seconds", 5)), op)
                 servo_thread = threading.Thread(target=servo, args=args, daemon=True)
                 servo_thread.start()
-            answer({"t": now(), "servo": op == "servo"})
+            answer({"t": now(), "servo": op})
         elif op == "matched":
             answer({"t": now(), "matched": command.get_subscription_count(),
                     "move_jp": move_jp.get_subscription_count(),
                     "move_cp": move_cp.get_subscription_count(),
                     "servo_cp": servo_cp.get_subscription_count(),
+                    "servo_cf": servo_cf.get_subscription_count(),
                     "reply_publishers": node.count_publishers(f"{ns}/command_reply")})  # fmt: skip
         elif op == "graph":
 

@@ -297,6 +297,7 @@ def test_measured_cf_is_the_masters_displayed_force(netns: Netns, tmp_path: Path
     centre = [tool[0] + 40.0, tool[1], tool[2]]  # the surface 20 mm from the tool
     console.ask("point", centre=centre, radius=20.0)
     t_sent = rig.ask("snapshot")["t"]
+
     # the pull reaches the clamp (a busy machine may let the slave's tip go stale for a
     # moment, and the force then fades out and back: that is the return link's rule)
     def clamped() -> bool:
@@ -321,3 +322,55 @@ def test_measured_cf_is_the_masters_displayed_force(netns: Netns, tmp_path: Path
     stats = rig.stop_bridge()["/occ/master"]
     assert stats["forces"] >= received >= 20
     assert stats["forces_refused"] == 0 and stats["publish_errors"] == 0
+
+
+def test_servo_cf_from_rclpy_is_displayed_on_the_master(netns: Netns, tmp_path: Path) -> None:
+    """CRTK ``servo_cf``: a real rclpy node streams a WrenchStamped (2 N along z, frame
+    ``master_base``) to ``/occ/master/servo_cf``; occ-ros2 (``--operator`` on the master's port)
+    sends it as SENSOR ServoCF; the shipped master displays it (``measured_cf`` and its
+    statistics say 2 N along z) and, when the node stops, no more after its timeout (100 ms).
+    A wrench in another frame is refused by the bridge."""
+    rig = Rig(netns, tmp_path, clean_env(**LOCALHOST), topics="/occ/master")
+    rig.start_daemon(ROOT / "configs" / "slave.yaml", "--start", "running")
+    rig.start_daemon(ROOT / "configs" / "master.yaml", "--start", "running", ports=(18945,))
+    ports = (
+        "--connect",
+        "127.0.0.1:18945=/occ/master",
+        "--operator",
+        "127.0.0.1:18945=/occ/master",
+    )
+    rig.start_bridge(ports=ports)
+    rig.start_node()
+    console = rig.start_operator(18945)
+    try:
+        assert wait_until(lambda: rig.ask("matched")["servo_cf"] >= 1, timeout=10.0)
+        t0 = rig.ask("servo_cf", frame="master_base", force=[0.0, 0.0, 2.0], seconds=20)["t"]
+
+        def shown() -> dict[str, Any] | None:
+            st = console.ask("stats")
+            return st if abs(st["external_n"][2] - 2.0) < 1e-6 and st["external_fresh"] else None
+
+        st = wait_until(shown, timeout=10.0)
+        assert st, console.ask("stats")
+        # displayed on the hand: z holds still in the paper's motion (passivity has little to do)
+        assert wait_until(lambda: abs(console.ask("stats")["force_n"][2] - 2.0) < 0.1, timeout=5.0)
+        got = [w for w in rig.ask("snapshot")["wrenches"] if w[0] >= t0]
+        assert wait_until(
+            lambda: any(
+                abs(w[5] - 2.0) < 0.1 for w in rig.ask("snapshot")["wrenches"] if w[0] >= t0
+            ),
+            timeout=5.0,
+        ), got[-5:]
+        # stopped: gone from the hand after the timeout
+        rig.ask("servo_stop")
+        assert wait_until(lambda: not console.ask("stats")["external_fresh"], timeout=5.0)
+        assert wait_until(lambda: abs(console.ask("stats")["force_n"][2]) < 1e-9, timeout=5.0)
+        # another frame: refused by the bridge, nothing displayed
+        rig.ask("servo_cf", frame="world", force=[0.0, 0.0, 3.0], seconds=2)
+        time.sleep(1.0)
+        assert not console.ask("stats")["external_fresh"]
+        rig.ask("servo_stop")
+    finally:
+        console.stop()
+        stats = rig.stop_bridge()["/occ/master"]
+    assert stats["servo_cf"] > 10 and stats["servo_cf_refused"] > 0, stats
