@@ -20,6 +20,11 @@ to ``--out``. Everything is simulated and seeded: the same arguments give the sa
 
     python tools/feel.py --out /tmp/feel
     python tools/feel.py --delay-ms 0 5 20 --loss 0 0.02 --sources tissue effort --out /tmp/feel
+    python tools/feel.py --real --seconds 30 --loss 0 0.02 --out /tmp/feel   # real daemons
+
+With ``--real`` the same pair runs as two ``occd`` processes over real UDP, both links through
+tools/loss_proxy.py (the return channel relayed back through its own drops), and the forces
+are read from both daemons' ``GetStats`` (``feel-real.json``).
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import random
+import subprocess
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -184,6 +190,126 @@ def plot(results: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
+def run_real(
+    *, loss: float, seconds: float, seed: int, out: Path, poll_hz: float = 20.0
+) -> dict[str, Any]:
+    """The same over real sockets: ``occd`` on copies of configs/master.yaml and
+    configs/wall.yaml moved to free ports on 127.0.0.1, the master's stream and the slave's
+    return channel through tools/loss_proxy.py (runs of exactly 2 lost, ``loss`` of the
+    packets, each way), both daemons' ``GetStats`` polled at ``poll_hz``: the master's
+    displayed force against the slave's tissue force (interpolated to the master's poll time;
+    the force changes by at most ~0.5 N/s, so the polls' skew costs under 1 %)."""
+    import socket
+    import time
+
+    sys.path.insert(0, str(ROOT / "tools"))
+    from fixture_e2e import Client
+    from loopback import free_port, pair_configs, stop_processes, wait_port, write_yaml
+    from loss_proxy import LossPattern, LossProxy
+
+    out.mkdir(parents=True, exist_ok=True)
+    slave, master, ports = pair_configs(slave_cfg=CONFIGS / "wall.yaml")
+    proxy_port = free_port(socket.SOCK_DGRAM)
+    for iface in master["interfaces"]:
+        if iface.get("transport") == "udp":
+            iface["remote"] = f"127.0.0.1:{proxy_port}"
+    packets = round((seconds + 30.0) * 500)
+    runs = round(loss * packets / 2)
+
+    def pattern(way: str) -> LossPattern | None:
+        if runs <= 0:
+            return None
+        return LossPattern(
+            seed=hash((seed, way)) & 0xFFFF, drop_runs=[(2, runs)], expected=packets,
+            warmup=2500, min_gap=10,
+        )  # fmt: skip
+
+    proxy = LossProxy(
+        ("127.0.0.1", proxy_port), ("127.0.0.1", ports["slave_udp"]), pattern("forward"),
+        duration=seconds + 60.0, return_pattern=pattern("return"),
+        fifo_priority=50,  # the relay is the network, not a process competing with the pair
+    )  # fmt: skip
+    procs: list[subprocess.Popen[bytes]] = []
+    rows: list[tuple[float, list[float], list[float] | None, dict[str, Any]]] = []
+    truth: list[tuple[float, list[float]]] = []
+    clients: list[Any] = []
+
+    def start(cfg: dict[str, Any], name: str) -> subprocess.Popen[bytes]:
+        path = write_yaml(out / f"{name}.yaml", cfg)
+        log = (out / f"{name}.log").open("wb")
+        cmd = [sys.executable, "-m", "occ.cli", str(path), "--start", "running",
+               "--log-level", "WARNING"]  # fmt: skip
+        return subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+
+    try:
+        proxy.start()
+        procs.append(start(slave, "slave"))
+        assert wait_port(ports["slave_op"], 30.0, procs[0]), "the slave did not listen"
+        procs.append(start(master, "master"))
+        assert wait_port(ports["master_tcp"], 30.0, procs[1]), "the master did not listen"
+        s_cli, m_cli = Client(ports["slave_op"]), Client(ports["master_tcp"])
+        clients = [s_cli, m_cli]
+        for c in clients:
+            c.client.start()
+            assert c.connected.wait(10.0)
+        end = time.monotonic() + 20.0
+        while time.monotonic() < end:  # the pair following, the tool's force fully shown
+            m = m_cli.stats()["controller"]
+            if m.get("fixture_gain") == 1 and (m.get("slave_tip") or {}).get("status") == "fresh":
+                break
+            time.sleep(0.1)
+        t0 = time.monotonic()
+        period = 1.0 / poll_hz
+        while time.monotonic() - t0 < seconds:
+            ts = time.monotonic()
+            env = s_cli.stats()["hardware"].get("environment") or {}
+            truth.append((ts - t0, list(env.get("force_n", [0.0, 0.0, 0.0]))))
+            tm = time.monotonic()
+            mc = m_cli.stats()["controller"]
+            tip = mc.get("slave_tip") or {}
+            rows.append((tm - t0, mc["force_n"], tip.get("force_n"), mc.get("passivity", {})))
+            time.sleep(max(0.0, period - (time.monotonic() - ts)))
+        states = [m_cli.stats()["state"], s_cli.stats()["state"]]
+        last_alerts = [m_cli.stats().get("last_alert"), s_cli.stats().get("last_alert")]
+        slave_loss = s_cli.stats().get("loss", {})
+        master_tip = m_cli.stats()["controller"].get("slave_tip") or {}
+    finally:
+        for c in clients:
+            c.client.stop()
+        stop_processes(procs)
+        proxy.stop()
+    tt = np.array([t for t, _ in truth])
+    tf = np.array([f for _, f in truth])
+    hand = np.array([r[1] for r in rows])
+    tm = np.array([r[0] for r in rows])
+    tip = np.column_stack([np.interp(tm, tt, tf[:, i]) for i in range(3)])
+    err = hand - tip
+    peak = float(np.linalg.norm(tip, axis=1).max()) if len(tip) else 0.0
+    rms = float(np.sqrt((err**2).sum(axis=1).mean())) if len(err) else float("nan")
+    c = proxy.counters
+    return {
+        "mode": "real",
+        "loss": loss,
+        "seconds": seconds,
+        "polls": len(rows),
+        "peak_n": round(peak, 4),
+        "rms_error_n": round(rms, 4),
+        "rms_error_pct": round(100.0 * rms / peak, 2) if peak > 0 else None,
+        "max_error_n": round(float(np.linalg.norm(err, axis=1).max()), 4) if len(err) else None,
+        "states": states,
+        "last_alerts": last_alerts,
+        "proxy": {
+            "forwarded": c.forwarded,
+            "dropped": c.dropped,
+            "returned": c.returned,
+            "return_dropped": c.return_dropped,
+        },  # fmt: skip
+        "slave_loss_monitor": {k: slave_loss.get(k) for k in ("holds", "lost_total", "trips")},
+        "master_return_link": {k: master_tip.get(k) for k in ("late", "lost_total", "losses")},
+        "trace": {"t": tm.tolist(), "tip_x": tip[:, 0].tolist(), "hand_x": hand[:, 0].tolist()},
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seconds", type=float, default=10.0, help="measured (after a 2 s settle)")
@@ -193,9 +319,30 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-passivity", action="store_true", help="also run with passivity off")
     p.add_argument("--seed", type=int, default=7)
     p.add_argument("--out", type=Path, default=Path("feel"))
+    p.add_argument(
+        "--real",
+        action="store_true",
+        help="real daemons over the loss proxy (each --loss; --seconds each), not simulated",
+    )
     args = p.parse_args(argv)
     if not 0.0 < args.seconds <= 600.0:
         raise SystemExit("--seconds must be in (0, 600]")
+    if args.real:
+        real = []
+        for loss in args.loss:
+            r = run_real(
+                loss=loss, seconds=args.seconds, seed=args.seed, out=args.out / f"real-{loss:g}"
+            )
+            real.append(r)
+            print(
+                f"real    loss {100 * loss:3g} %: peak {r['peak_n']:.3f} N, RMS error "
+                f"{r['rms_error_n']:.4f} N ({r['rms_error_pct']} %), max {r['max_error_n']} N, "
+                f"polls {r['polls']}, proxy {r['proxy']}, states {r['states']} {r['last_alerts']}"
+            )
+        args.out.mkdir(parents=True, exist_ok=True)
+        slim = [{k: v for k, v in r.items() if k != "trace"} for r in real]
+        (args.out / "feel-real.json").write_text(json.dumps(slim, indent=2) + "\n")
+        return 0
     results = []
     for source in args.sources:
         for delay in args.delay_ms:

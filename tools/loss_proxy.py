@@ -327,6 +327,9 @@ class ProxyCounters:
     non_igtl_v2: int = 0
     max_queue: int = 0
     by_cause: dict[str, int] = field(default_factory=dict)
+    #: the way back (the target's replies relayed to the sender: a slave's return channel)
+    returned: int = 0
+    return_dropped: int = 0
 
 
 class LossProxy:
@@ -346,6 +349,7 @@ class LossProxy:
         max_log: int = 1_000_000,
         gap_log_ms: float = 5.0,
         fifo_priority: int | None = None,
+        return_pattern: LossPattern | None = None,
     ) -> None:
         if not allow_any:
             for host in (listen[0], target[0]):
@@ -355,6 +359,11 @@ class LossProxy:
             raise ValueError("delay_ms and jitter_ms must be >= 0")
         self.target = target
         self.pattern = pattern if pattern is not None else LossPattern(seed=seed)
+        #: the way back: datagrams the target sends to the proxy's sending socket go to the
+        #: last sender, from the listening address (so the sender sees its peer's address),
+        #: through this pattern's drops (None: all of them)
+        self.return_pattern = return_pattern
+        self._client: tuple[str, int] | None = None
         self.delay_s = delay_ms * 1e-3
         self.jitter_s = jitter_ms * 1e-3
         self.duration = duration
@@ -457,21 +466,24 @@ class LossProxy:
             if pending:
                 timeout = max(0.0, min(timeout, pending[0][0] - now))
             try:
-                ready, _, _ = select.select([sock], [], [], timeout)
+                ready, _, _ = select.select([sock, self.out], [], [], timeout)
             except (OSError, ValueError):
                 break
-            if ready:
+            if self.out in ready:
+                self._relay_back()
+            if sock in ready:
                 for _ in range(256):  # bounded batch per wake-up
                     kt: float | None = None
                     try:
                         if self._kernel_ts:
-                            data, anc, _flags, _addr = sock.recvmsg(65535, 64)
+                            data, anc, _flags, addr = sock.recvmsg(65535, 64)
                             for level, kind, raw in anc:
                                 if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS:
                                     sec, nsec = _TIMESPEC.unpack_from(raw)
                                     kt = sec + nsec * 1e-9
                         else:
-                            data = sock.recv(65535)
+                            data, addr = sock.recvfrom(65535)
+                        self._client = addr
                     except BlockingIOError:
                         break
                     except OSError:
@@ -491,6 +503,27 @@ class LossProxy:
                 self._send(heapq.heappop(pending)[2])
         for _, _, data in sorted(pending):  # flush what was in flight
             self._send(data)
+
+    def _relay_back(self) -> None:
+        """The target's replies (a slave's return channel) back to the sender, through the
+        return pattern's drops; bounded batch per wake-up."""
+        c = self.counters
+        for _ in range(256):
+            try:
+                data = self.out.recv(65535)
+            except (BlockingIOError, OSError):
+                return
+            client = self._client
+            if client is None:
+                continue  # nobody has sent yet: nobody to answer
+            if self.return_pattern is not None and self.return_pattern.decide() is not None:
+                c.return_dropped += 1
+                continue
+            try:
+                self.sock.sendto(data, client)
+                c.returned += 1
+            except OSError:
+                c.send_errors += 1
 
     def _delay(self) -> float:
         if self.jitter_s:
