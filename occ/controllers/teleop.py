@@ -70,6 +70,7 @@ from ..config import DaemonConfig
 from ..errors import CommandError, KinematicsError, OCCError, caused
 from ..fixture_defs import Defaults, DefinitionError, PatientMapping, from_markups_file
 from ..forces import SlaveForce, sensor_force
+from ..forceviz import ForceView, check_outputs
 from ..haptics import MasterFixtures
 from ..outputs import VectorOut
 from ..passivity import PassivityController
@@ -731,6 +732,7 @@ class SlaveController(Controller):
         #: the tip force sent on the return channel (occ/forces.py), built at configure
         self.force_params = p.force
         self.force: SlaveForce | None = None
+        self.force_view: ForceView | None = None
         #: ``absolute`` mapping (an external command source, CRTK ``servo_cp``)
         self.absolute = p.mapping == "absolute"
         self.max_jump = p.max_jump_mm * MM
@@ -764,10 +766,16 @@ class SlaveController(Controller):
                 problems.append(
                     (("force", "sensor_interface"), f"no interface '{f.sensor_interface}'")
                 )
-        return problems
+        return problems + check_outputs(config, f is not None)
 
     def outputs(self) -> dict[str, SourceFn]:
-        return {"teleop-return": self._source_return}
+        out: dict[str, SourceFn] = {"teleop-return": self._source_return}
+        if self.force_params is not None:
+            out["force"] = self._source_force  # the force to 3D Slicer (occ/forceviz.py)
+        return out
+
+    def _source_force(self, out: Output, now: float) -> Outgoing | None:
+        return None if self.force_view is None else self.force_view(out, now)
 
     def commands(self) -> tuple[str, ...]:
         return ("ForceTare",) if self.force_params is not None else ()
@@ -873,6 +881,7 @@ class SlaveController(Controller):
                 environment=ctx.environment,
                 alert=ctx.alert,
             )
+            self.force_view = ForceView(self.force, data, ctx, fp.display_mm_per_n)
         if self.base_mm is not None:
             b = np.eye(4)
             b[:3, 3] = np.array(self.base_mm, dtype=float) * MM
@@ -1120,6 +1129,8 @@ class SlaveController(Controller):
         if self.force is not None:
             now = self.ctx.clock.now() if self.ctx is not None else math.nan
             out["force"] = self.force.stats(now)
+            if self.force_view is not None:
+                out["force"]["display"] = self.force_view.stats()
         if self.absolute:
             out["servo_refused"] = self.refused
             out["servo_rate_limited"] = self.rate_limited

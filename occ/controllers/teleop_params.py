@@ -229,6 +229,11 @@ class SlaveForceParams(_Params):
         description="`effort`: damped least squares factor (m) of the Jacobian inverse near a "
         "singular pose.",
     )
+    display_mm_per_n: PosFloat = Field(
+        10.0,
+        description="The output source `force` (3D Slicer): length of the force arrow, mm per N "
+        "(the POLYDATA arrow's length, the TRANSFORM's z axis; occ/forceviz.py).",
+    )
 
 
 class SlaveParams(_Params):
