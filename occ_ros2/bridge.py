@@ -28,6 +28,10 @@ topic                          type                         from
 ``NS/measured_cf``             geometry_msgs/WrenchStamped  SENSOR or NDARRAY ``Force`` (a
                                                             master's displayed force, N);
                                                             frame_id ``<leaf>_base``
+                                                            or TRANSFORM ``TipForce`` (a
+                                                            slave's contact force, metadata
+                                                            ``force_n``); frame_id the world
+                                                            frame
 ``NS/operating_state``         crtk_msgs/OperatingState     STATUS of a state, GetState;
                                                             ``is_busy`` from the keyframe
                                                             controller's run STATUS
@@ -119,6 +123,7 @@ import igtl
 from igtl.messages.base import Message
 from igtl.messages.sensor import Unit
 from igtl.transport import TCPClient
+from occ.forceviz import parse_force
 from occ.stats import Histogram
 
 from . import msgs
@@ -655,6 +660,9 @@ class Bridge:
                     except Exception as err:  # noqa: BLE001 - as _publish
                         robot.counters.publish_errors += 1
                         log.warning("%s: publishing /tf failed: %s", robot.ns, err)
+            elif name == "TipForce":
+                self._on_tip_force(robot, msg, stamp)
+                return
             else:
                 return
             self.latency_us.add((time.perf_counter() - t_in) * 1e6)
@@ -760,6 +768,34 @@ class Bridge:
             log.warning(
                 "%s/servo_cf refused (%d so far): %s", ns, robot.counters.servo_cf_refused, why
             )
+
+    def _on_tip_force(self, robot: Robot, msg: Message, stamp: msgs.Time) -> None:
+        """TRANSFORM ``TipForce`` (a slave's contact force, its output source ``force``:
+        occ/forceviz.py) -> ``measured_cf``: metadata ``force_n`` (N, the patient frame, which
+        is the world of ``measured_cp``), frame_id the world frame. Without a readable
+        ``force_n`` (a v1 connection has no metadata) nothing is published and it is counted."""
+        f = parse_force(msg.metadata.get("force_n"))
+        if f is None or msg.metadata.get("frame", "patient") != "patient":
+            robot.counters.forces_refused += 1
+            if robot.counters.forces_refused == 1:
+                log.warning(
+                    "%s: TipForce not published: metadata force_n %r, frame %r (a v2 "
+                    "connection and force_n in the patient frame are needed)",
+                    robot.ns, msg.metadata.get("force_n"), msg.metadata.get("frame"),
+                )  # fmt: skip
+            return
+        if not self._due(robot, "measured_cf"):
+            return
+        self._lazy_writer(robot, "measured_cf", msgs.WrenchStamped)
+        robot.counters.forces += 1
+        self._publish(
+            robot,
+            "measured_cf",
+            msgs.WrenchStamped(
+                header=msgs.Header(stamp=stamp, frame_id=self.world_frame),
+                wrench=msgs.Wrench(msgs.Vector3(*f), msgs.Vector3(0.0, 0.0, 0.0)),
+            ),
+        )
 
     def _publish_static(self, robot: Robot, base_m: np.ndarray, stamp: msgs.Time) -> None:
         """world -> <leaf>_base on /tf_static: one message with every robot's fixed frame

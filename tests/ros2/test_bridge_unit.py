@@ -312,3 +312,39 @@ def test_a_move_becomes_the_daemons_keyframe_commands() -> None:
     world = msgs.PoseStamped(header=msgs.Header(frame_id=""))  # empty: the world frame
     world.pose.position = msgs.Point(0.1, 0.07, 0.0)
     assert bridge._tip_goal(robot, world) == ("cartesian", "100.000000 70.000000 0.000000", 5.0)
+
+
+def test_a_slaves_tip_force_becomes_measured_cf_in_the_world(
+    dds: tuple[int, Any], namespace: str
+) -> None:
+    """TRANSFORM ``TipForce`` (occ/forceviz.py) -> WrenchStamped from its metadata ``force_n``,
+    frame_id the world frame; one without a readable ``force_n`` (a v1 connection) or in another
+    frame is counted, not published."""
+    import igtl
+    from occ.forceviz import force_matrix
+
+    domain_id, dp = dds
+    wrenches: DataReader[Any] = DataReader(
+        dp, Topic(dp, topic_name(namespace, "measured_cf"), msgs.WrenchStamped), QOS_DEFAULT
+    )
+    with Bridge([("127.0.0.1", free_port(), namespace)], domain_id=domain_id) as bridge:
+        robot = bridge.robots[namespace]
+        f = (-1.25, 0.5, 0.0625)
+
+        def tip_force(meta: dict[str, str]) -> igtl.TransformMessage:
+            return igtl.TransformMessage.from_matrix(
+                force_matrix((1.0, 2.0, 3.0), f, 10.0), device_name="TipForce",
+                timestamp=1_700_000_000.5, header_version=2, metadata=meta,
+            )  # fmt: skip
+
+        bridge._on_igtl(robot, tip_force({}))  # v1: no metadata
+        bridge._on_igtl(robot, tip_force({"force_n": "1,2", "frame": "patient"}))
+        bridge._on_igtl(robot, tip_force({"force_n": "1,2,3", "frame": "tip"}))
+        bridge._on_igtl(robot, tip_force({"force_n": ",".join(map(str, f)), "frame": "patient"}))
+        w = _first(wrenches, "measured_cf")
+    assert w.header.frame_id == "world"
+    assert (w.header.stamp.sec, w.header.stamp.nanosec) == (1_700_000_000, 500_000_000)
+    force, torque = w.wrench.force, w.wrench.torque
+    assert (force.x, force.y, force.z) == f and (torque.x, torque.y, torque.z) == (0, 0, 0)
+    st = bridge.stats()[namespace]
+    assert st["forces"] == 1 and st["forces_refused"] == 3
