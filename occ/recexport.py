@@ -32,6 +32,16 @@ Its topics are those the ROS 2 bridge publishes (occ_ros2/bridge.py), in metres,
 - ``/occ/NAME/measured_js`` and ``/occ/NAME/setpoint_js`` (sensor_msgs/JointState): the loop
   state rows (measured and commanded joints; the commanded efforts of a haptic master);
 - ``/occ/NAME/state`` (std_msgs/String): the daemon's state when it changes;
+- ``/occ/NAME/measured_cf`` (geometry_msgs/WrenchStamped): the robot's own force, N (torque
+  zero): a slave's contact force (the ``force_n`` of its return channel's ``SlaveTip``, or of
+  its ``TipForce`` output to 3D Slicer, whichever has more samples; frame_id ``world``, the
+  patient frame) or a master's displayed force (its SENSOR/NDARRAY ``Force`` output, frame_id
+  ``NAME_base``, as the bridge publishes them); other force streams as
+  ``/occ/NAME/<device>/measured_cf`` (a master's recording: the slave's force as it arrived on
+  ``SlaveTip``, frame_id ``slavetip_reference`` like that stream's pose). The ``TipForce``
+  transform (origin at the tip, z axis the force; occ/forceviz.py) is a force, not a pose: it
+  is not exported as a ``measured_cp``. In the sequence metafile it is a transform like any
+  other (``TipForceToWorld``), which 3D Slicer plays back as it showed it live.
 - ``/tf`` (tf2_msgs/TFMessage): ``world`` -> ``NAME_base`` -> ``NAME_tip`` at each tip sample.
 
 Header stamps are the messages' own timestamps (the daemon's wall clock); the bag's receive times
@@ -50,6 +60,7 @@ from typing import Any
 
 import numpy as np
 
+from .forceviz import parse_force
 from .record import STATE_DEVICE, STATE_NAMES, iter_recording
 from .samples import quaternion_to_rotation
 
@@ -83,11 +94,49 @@ class PoseStream:
 
 
 @dataclass
+class ForceStream:
+    """One force stream of a recording (N): a slave's contact force (``force_n`` metadata of
+    its ``SlaveTip`` or ``TipForce``, the patient frame) or a master's displayed force (SENSOR
+    or NDARRAY ``Force``, its base frame unless its metadata says ``frame=patient``)."""
+
+    device: str
+    direction: str
+    frame: str  # "patient" or "base"
+    t: list[float] = field(default_factory=list)
+    stamp: list[float] = field(default_factory=list)
+    force: list[tuple[float, float, float]] = field(default_factory=list)
+
+
+def message_force(msg: Any) -> tuple[str, tuple[float, float, float]] | None:
+    """(frame, force in N) of a message that carries one (:class:`ForceStream`), else None."""
+    meta = msg.metadata
+    mtype = msg.message_type
+    if mtype in ("POSITION", "TRANSFORM"):
+        # a slave's return channel (its map rides along) or its force output to Slicer; the
+        # master's FixtureProxy has a force_n too, the fixtures' (in the master's axes)
+        if "force_n" not in meta or not ("map" in meta or "mm_per_n" in meta):
+            return None
+        f = parse_force(meta["force_n"])
+        return None if f is None else ("patient", f)
+    if mtype in ("SENSOR", "NDARRAY") and msg.device_name == "Force":
+        values = msg.data if mtype == "SENSOR" else np.asarray(msg.array).ravel()
+        if len(values) not in (3, 6) or not all(math.isfinite(float(v)) for v in values[:3]):
+            return None
+        frame = "patient" if meta.get("frame") == "patient" else "base"
+        return frame, (float(values[0]), float(values[1]), float(values[2]))
+    return None
+
+
+@dataclass
 class RecordingContent:
     """What the exports need of a recording, read in one pass."""
 
     robot: str = ""
     streams: dict[tuple[str, str], PoseStream] = field(default_factory=dict)
+    #: force streams by (direction, device)
+    forces: dict[tuple[str, str], ForceStream] = field(default_factory=dict)
+    #: pose streams that are forces drawn as transforms (``TipForce``): not poses
+    force_transforms: set[tuple[str, str]] = field(default_factory=set)
     columns: list[str] = field(default_factory=list)
     state_t: list[float] = field(default_factory=list)  # rec.t of the state rows
     state_wall: list[float] = field(default_factory=list)  # their wall-clock stamps
@@ -112,7 +161,7 @@ def read_content(path: str | Path) -> RecordingContent:
     recorded twice in one tick (sent on two interfaces) counts once; every received sample
     counts (two may arrive in one tick)."""
     c = RecordingContent()
-    seen: set[tuple[str, float]] = set()
+    seen: set[tuple[str, str, float]] = set()
     for m in iter_recording(path):
         meta = m.metadata
         mtype = m.message_type
@@ -129,7 +178,7 @@ def read_content(path: str | Path) -> RecordingContent:
             if c.wall_offset is None and m.timestamp > 0.0:
                 c.wall_offset = float(m.timestamp) - float(row[0])
             continue
-        if mtype not in ("TRANSFORM", "POSITION"):
+        if mtype not in ("TRANSFORM", "POSITION", "SENSOR", "NDARRAY"):
             continue
         direction = meta.get("rec.dir", "")
         try:
@@ -138,9 +187,21 @@ def read_content(path: str | Path) -> RecordingContent:
             continue  # not an occd recording's message
         key = (direction, m.device_name)
         if direction == "out":  # an output goes once a tick per interface: the same pose
-            if (m.device_name, t) in seen:
+            if (mtype, m.device_name, t) in seen:
                 continue
-            seen.add((m.device_name, t))
+            seen.add((mtype, m.device_name, t))
+        force = message_force(m)
+        if force is not None:
+            fs = c.forces.get(key)
+            if fs is None:
+                fs = c.forces[key] = ForceStream(m.device_name, direction, force[0])
+            fs.t.append(t)
+            fs.stamp.append(float(m.timestamp))
+            fs.force.append(force[1])
+            if "mm_per_n" in meta:
+                c.force_transforms.add(key)
+        if mtype not in ("TRANSFORM", "POSITION"):
+            continue
         pose = message_pose(m)
         if pose is None:
             continue
@@ -315,6 +376,8 @@ class _Bag:
         self.TransformStamped = t["geometry_msgs/msg/TransformStamped"]
         self.TFMessage = t["tf2_msgs/msg/TFMessage"]
         self.JointState = t["sensor_msgs/msg/JointState"]
+        self.Wrench = t["geometry_msgs/msg/Wrench"]
+        self.WrenchStamped = t["geometry_msgs/msg/WrenchStamped"]
         self.String = t["std_msgs/msg/String"]
         self.writer = Writer(out, version=9, storage_plugin=StoragePlugin.MCAP)
         self.conns: dict[str, Any] = {}
@@ -467,7 +530,7 @@ def write_mcap(
         events.extend((t, 1, on_tip(i)) for i, t in enumerate(tip.t))
     taken = {f"{ns}/measured_cp", f"{ns}/base/measured_cp"}
     for _key, s in sorted(content.streams.items()):
-        if s is tip or s is base:
+        if s is tip or s is base or _key in content.force_transforms:
             continue
         leaf = _ros_name(s.device)
         topic = f"{ns}/{leaf}/measured_cp"
@@ -476,6 +539,7 @@ def write_mcap(
         taken.add(topic)
         frame = world if s.direction == "out" else f"{leaf}_reference"
         events.extend((t, 2, on_other(s, topic, frame, i)) for i, t in enumerate(s.t))
+    events.extend(_force_events(bag, content, ns, base_frame, offset, taken))
     events.extend(_state_events(bag, content, ns, base_frame, offset))
     events.sort(key=lambda e: (e[0], e[1]))
     bag.writer.set_custom_data("occ.robot", content.robot or robot)
@@ -493,6 +557,50 @@ def write_mcap(
         (bag_dir / "metadata.yaml").unlink(missing_ok=True)
         bag_dir.rmdir()
     return dict(sorted(bag.counts.items()))
+
+
+def _force_events(
+    bag: _Bag, content: RecordingContent, ns: str, base_frame: str, offset: float,
+    taken: set[str],
+) -> list[tuple[float, int, Callable[[], None]]]:  # fmt: skip
+    """measured_cf (module docstring): the robot's own force stream with the most samples,
+    the others on topics of their own."""
+    own = [k for k in content.forces if k[0] == "out"]
+    main = max(own, key=lambda k: len(content.forces[k].t), default=None)
+    events: list[tuple[float, int, Callable[[], None]]] = []
+
+    def on_force(s: ForceStream, topic: str, frame: str, i: int) -> Callable[[], None]:
+        def emit() -> None:
+            fx, fy, fz = s.force[i]
+            bag.write(
+                topic,
+                bag.WrenchStamped(
+                    header=bag.header(s.stamp[i], frame),
+                    wrench=bag.Wrench(
+                        force=bag.Vector3(x=fx, y=fy, z=fz),
+                        torque=bag.Vector3(x=0.0, y=0.0, z=0.0),
+                    ),
+                ),
+                s.t[i] + offset,
+            )
+
+        return emit
+
+    for key, s in sorted(content.forces.items()):
+        leaf = _ros_name(s.device)
+        if key == main:
+            topic = f"{ns}/measured_cf"
+        else:
+            topic = f"{ns}/{leaf}/measured_cf"
+            if topic in taken:
+                topic = f"{ns}/input/{leaf}/measured_cf"
+        taken.add(topic)
+        if s.direction == "in":
+            frame = f"{leaf}_reference"
+        else:
+            frame = "world" if s.frame == "patient" else base_frame
+        events.extend((t, 2, on_force(s, topic, frame, i)) for i, t in enumerate(s.t))
+    return events
 
 
 def _state_events(

@@ -27,6 +27,14 @@ What a recording holds (occ/record.py) is enough for four panels:
    intervals) and the inter-arrival of the input stream at the loop (the tick that took each
    packet), as histograms.
 
+5. **Forces** (a recording that has them: bilateral teleoperation, issue 27): the force on the
+   instrument (the slave's contact force, the ``force_n`` its return channel ``SlaveTip``
+   carries: sent in a slave's recording, received in a master's; N, the patient frame) and the
+   force on the hand (the master's displayed force, its ``Force`` output; N, the master's
+   axes; from ``--master MASTER_RECORDING`` when the recording is a slave's), as magnitudes and
+   the x components, with the RMS of their difference where both exist (the hand's resampled at
+   the instrument's times; with a force scale other than 1 the hand's is scaled).
+
 matplotlib is an optional dependency (``pip install 'occ-igtl[plot]'``); without it
 ``occ-record plot`` says so and exits with 2.
 """
@@ -36,15 +44,19 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from .recexport import message_force
 from .record import STATE_CODES, STATE_DEVICE, STATE_NAMES, iter_recording
 
 __all__ = ["PlotError", "RecordingSummary", "plot_recording", "summarize_recording"]
 
 #: at most this many causes are written on the state timeline
 MAX_CAUSES = 12
+#: the messages a force comes in (occ.recexport.message_force)
+_FORCE_TYPES = ("POSITION", "TRANSFORM", "SENSOR", "NDARRAY")
 
 
 class PlotError(Exception):
@@ -76,6 +88,12 @@ class RecordingSummary:
     error_kind: str = ""
     error_labels: list[str] = field(default_factory=list)
     reindexes: int = 0
+    #: the force on the instrument (the slave's contact force, N, patient frame): t, N x 3
+    cf_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    cf: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    #: the force on the hand (the master's displayed force, N, its axes): t, N x 3
+    hand_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    hand: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     def col(self, name: str) -> np.ndarray:
         return self.rows[:, self.columns.index(name)]
@@ -87,6 +105,24 @@ class RecordingSummary:
     @property
     def state_names(self) -> list[str]:
         return [STATE_NAMES.get(int(c), "?") for c in self.rows[:, 1].tolist()]
+
+    def force_stats(self) -> dict[str, float]:
+        """Peaks of both forces (N) and, where both exist, the RMS of the hand's minus the
+        instrument's (the hand's interpolated at the instrument's times, inside its span)."""
+        out: dict[str, float] = {}
+        if len(self.cf_t):
+            out["instrument_peak_n"] = float(np.linalg.norm(self.cf, axis=1).max())
+        if len(self.hand_t):
+            out["hand_peak_n"] = float(np.linalg.norm(self.hand, axis=1).max())
+        if len(self.cf_t) and len(self.hand_t) > 1:
+            sel = (self.cf_t >= self.hand_t[0]) & (self.cf_t <= self.hand_t[-1])
+            if sel.any():
+                hand = np.column_stack(
+                    [np.interp(self.cf_t[sel], self.hand_t, self.hand[:, c]) for c in range(3)]
+                )
+                diff = hand - self.cf[sel]
+                out["rms_difference_n"] = float(np.sqrt((diff**2).sum(axis=1).mean()))
+        return out
 
     def error_stats(self) -> dict[str, dict[str, float]]:
         """mean |e|, p99 |e| and max |e| per error column."""
@@ -126,6 +162,9 @@ def summarize_recording(
     in_t: list[float] = []
     in_pos: list[tuple[float, ...]] = []
     in_run: list[bool] = []
+    # (kind, device) -> times, forces; each kind's stream with the most samples is plotted (a
+    # slave sends its force at 500 Hz on SlaveTip and at 10 Hz to Slicer)
+    forces: dict[tuple[str, str], tuple[list[float], list[tuple[float, float, float]]]] = {}
     for m in iter_recording(path):
         meta = m.metadata
         if m.message_type == "NDARRAY" and m.device_name == STATE_DEVICE:
@@ -137,10 +176,22 @@ def summarize_recording(
             name = m.error_name  # type: ignore[attr-defined]
             text = m.status_message  # type: ignore[attr-defined]
             statuses.append((float(meta["rec.t"]), name, text))
-        elif m.message_type == "POSITION" and meta.get("rec.dir") == "in" and "rec.t" in meta:
+        elif (
+            m.message_type == "POSITION"
+            and meta.get("rec.dir") == "in"
+            and "rec.t" in meta
+            and "map" not in meta  # a slave's return channel is not a master's stream
+        ):
             in_t.append(float(meta["rec.t"]))
             in_pos.append(tuple(float(v) for v in m.position))  # type: ignore[attr-defined]
             in_run.append(meta.get("run", "1") == "1")
+        if "rec.t" in meta and m.message_type in _FORCE_TYPES:
+            force = message_force(m)
+            if force is not None:
+                kind = "instrument" if force[0] == "patient" else "hand"
+                ft, fv = forces.setdefault((kind, m.device_name), ([], []))
+                ft.append(float(meta["rec.t"]))
+                fv.append(force[1])
     if not rows:
         raise PlotError(f"{path}: no state rows ({STATE_DEVICE}): not an occd recording?")
     cols = columns.split(",")
@@ -150,6 +201,26 @@ def summarize_recording(
     s.in_t = np.asarray(in_t)
     s.in_pos = np.asarray(in_pos, dtype=np.float64).reshape(-1, 3)
     s.in_run = np.asarray(in_run, dtype=bool)
+    if master is not None and not any(k[0] == "hand" for k in forces):
+        for m in iter_recording(Path(master)):
+            meta = m.metadata
+            if meta.get("rec.dir") == "out" and "rec.t" in meta and m.device_name == "Force":
+                force = message_force(m)
+                if force is not None and force[0] == "base":
+                    ft, fv = forces.setdefault(("hand", "Force"), ([], []))
+                    ft.append(float(meta["rec.t"]))
+                    fv.append(force[1])
+    for kind in ("instrument", "hand"):
+        best = max((v for k, v in forces.items() if k[0] == kind), key=lambda v: len(v[0]),
+                   default=None)  # fmt: skip
+        if best is None:
+            continue
+        t_arr = np.asarray(best[0])
+        v_arr = np.asarray(best[1], dtype=np.float64).reshape(-1, 3)
+        if kind == "instrument":
+            s.cf_t, s.cf = t_arr, v_arr
+        else:
+            s.hand_t, s.hand = t_arr, v_arr
     tips = ("tip.x_mm", "tip.y_mm", "tip.z_mm")
     if len(s.in_t) and all(c in s.columns for c in tips):
         _master_vs_slave(s, scale, master)
@@ -240,10 +311,14 @@ def plot_recording(
     s = summarize_recording(path, scale=scale, master=master)
     out = Path(out) if out is not None else Path(str(path) + ".png")
     t0 = float(s.t[0])
+    has_forces = bool(len(s.cf_t) or len(s.hand_t))
+    ratios = [3, 2.2, 1.6, 2] + ([2.2] if has_forces else [])
     fig, axes = plt.subplots(
-        4, 1, figsize=(11, 12), gridspec_kw={"height_ratios": [3, 2.2, 1.6, 2]}
+        len(ratios), 1, figsize=(11, 12 + 2.6 * has_forces), gridspec_kw={"height_ratios": ratios}
     )
-    ax_tr, ax_err, ax_st, ax_tm = axes
+    ax_tr, ax_err, ax_st, ax_tm = axes[:4]
+    if has_forces:
+        _plot_forces(axes[4], s, t0)
     # 1. trajectories (X and Y: Z, mostly far from both, would flatten them; its range is in
     # the legend)
     colors = ("tab:blue", "tab:orange", "tab:green")
@@ -357,3 +432,29 @@ def plot_recording(
     fig.savefig(out, dpi=dpi)
     plt.close(fig)
     return out
+
+
+def _plot_forces(ax: object, s: RecordingSummary, t0: float) -> None:
+    """Panel 5: the force on the instrument and on the hand (module docstring)."""
+    a: Any = ax
+    st = s.force_stats()
+    if len(s.cf_t):
+        peak = st["instrument_peak_n"]
+        a.plot(s.cf_t - t0, np.linalg.norm(s.cf, axis=1), color="tab:red", linewidth=1.0,
+               label=f"|instrument| (slave's contact force), peak {peak:.2f} N")  # fmt: skip
+        a.plot(s.cf_t - t0, s.cf[:, 0], color="tab:red", linewidth=0.6, linestyle=":",
+               label="instrument x (patient frame)")  # fmt: skip
+    if len(s.hand_t):
+        peak = st["hand_peak_n"]
+        a.plot(s.hand_t - t0, np.linalg.norm(s.hand, axis=1), color="tab:blue", linewidth=1.0,
+               label=f"|hand| (master's displayed force), peak {peak:.2f} N")  # fmt: skip
+        a.plot(s.hand_t - t0, s.hand[:, 0], color="tab:blue", linewidth=0.6, linestyle=":",
+               label="hand x (master's axes)")  # fmt: skip
+    a.axhline(0.0, color="k", linewidth=0.5)
+    a.set_ylabel("force (N)")
+    a.set_xlabel("time since the first state row (s)", fontsize=8)
+    title = "forces: hand vs instrument"
+    if "rms_difference_n" in st:
+        title += f" (hand - instrument, RMS {st['rms_difference_n']:.3f} N)"
+    a.set_title(title, fontsize=9)
+    a.legend(fontsize=7, loc="upper right", ncol=2)

@@ -706,7 +706,8 @@ class Bridge:
 
     def _on_force(self, robot: Robot, msg: Message, stamp: msgs.Time) -> None:
         """SENSOR or NDARRAY ``Force`` (N: a master's displayed force; 3 values, or 6 with a
-        torque in N m) -> ``measured_cf``, in the robot's base frame."""
+        torque in N m) -> ``measured_cf``, in the robot's base frame (the world frame when its
+        metadata says ``frame=patient``: a slave's ``force`` output sent as SENSOR)."""
         if msg.message_type == "SENSOR":
             values = [float(v) for v in msg.data]  # type: ignore[attr-defined]
             unit = str(msg.unit)  # type: ignore[attr-defined]
@@ -730,11 +731,15 @@ class Bridge:
         self._lazy_writer(robot, "measured_cf", msgs.WrenchStamped)
         torque = values[3:] or [0.0, 0.0, 0.0]
         robot.counters.forces += 1
+        # a slave's force output sent as SENSOR says it is in the patient frame (the world)
+        patient = msg.metadata.get("frame") == "patient"
         self._publish(
             robot,
             "measured_cf",
             msgs.WrenchStamped(
-                header=msgs.Header(stamp=stamp, frame_id=robot.base_frame),
+                header=msgs.Header(
+                    stamp=stamp, frame_id=self.world_frame if patient else robot.base_frame
+                ),
                 wrench=msgs.Wrench(msgs.Vector3(*values[:3]), msgs.Vector3(*torque)),
             ),
         )
