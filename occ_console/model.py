@@ -18,6 +18,10 @@ start):
   percentiles (:class:`occ.stats.Histogram`);
 - fixtures, tool and owner: whichever of :data:`HIGHLIGHT_KEYS` the statistics carry, at the
   top level or in the controller's, shown as they are.
+- forces (bilateral teleoperation, issue 27): :func:`forces_of` picks what a slave reports of
+  its contact force (the controller's ``force``: the force on the instrument, its magnitude and
+  source) and what a master reports of the force on the hand (displayed, the slave's feedback,
+  the fixtures', the clamp, the passivity controller's state: on, engaged this poll, energy).
 
 A daemon that restarted (its tick counter went down) starts the rates and the histogram again.
 """
@@ -56,6 +60,74 @@ HIGHLIGHT_KEYS = (
     "master_run",
     "master_clutch",
 )
+
+
+def _vec(value: Any) -> list[float] | None:
+    """A 3-vector of numbers from the statistics, else None."""
+    if (
+        isinstance(value, list)
+        and len(value) == 3
+        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+    ):
+        return [float(v) for v in value]
+    return None
+
+
+def _mag(v: list[float] | None) -> float | None:
+    return None if v is None else round(math.sqrt(sum(c * c for c in v)), 4)
+
+
+def forces_of(stats: dict[str, Any], previous: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The forces panel from one ``GetStats`` answer (the module docstring): ``contact`` for a
+    slave with a force source, ``hand`` for a master that displays one; empty when neither.
+    ``previous`` is the last answer's panel: the passivity controller counts as engaged when
+    its active ticks grew since then."""
+    ctrl = stats.get("controller")
+    if not isinstance(ctrl, dict):
+        return {}
+    out: dict[str, Any] = {}
+    force = ctrl.get("force")
+    if isinstance(force, dict):  # teleop-slave: the force on its instrument
+        f = _vec(force.get("force_n"))
+        out["contact"] = {
+            "force_n": f,
+            "magnitude_n": _mag(f),
+            "source": force.get("used") or "none",
+            "sources": force.get("sources"),
+            "tared": force.get("tared"),
+        }
+    displayed = _vec(ctrl.get("force_n"))
+    if displayed is not None and "feedback_n" in ctrl:  # teleop-master: the force on the hand
+        feedback = _vec(ctrl.get("feedback_n"))
+        raw = ctrl.get("passivity")
+        pas: dict[str, Any] = raw if isinstance(raw, dict) else {}
+        active = pas.get("active_ticks")
+        before = ((previous or {}).get("hand") or {}).get("passivity") or {}
+        engaged = (
+            isinstance(active, int)
+            and isinstance(before.get("active_ticks"), int)
+            and active > before["active_ticks"]
+        )
+        out["hand"] = {
+            "displayed_n": displayed,
+            "displayed_magnitude_n": _mag(displayed),
+            "feedback_n": feedback,
+            "feedback_magnitude_n": _mag(feedback),
+            "fixture_n": _vec(ctrl.get("fixture_force_n")),
+            "force_feedback": ctrl.get("force_feedback"),
+            "force_scale": ctrl.get("force_scale"),
+            "clamped_ticks": ctrl.get("force_clamped_ticks"),
+            "passivity": {
+                "on": pas.get("on"),
+                "engaged": engaged,
+                "active_ticks": active,
+                "energy_mj": pas.get("energy_mj"),
+                "dissipated_mj": pas.get("dissipated_mj"),
+                "damping": pas.get("damping"),
+            },
+        }
+    return out
+
 
 #: the loss monitor's counters whose growth between two answers is logged as an event
 LOSS_EVENTS = ("holds", "resumes", "trips", "lost_total")
@@ -125,6 +197,8 @@ class DaemonView:
         self.reason = ""
         self.last_alert = ""
         self.stats: dict[str, Any] = {}
+        #: the forces panel (:func:`forces_of`) of the last answer
+        self.forces: dict[str, Any] = {}
         self.stats_at = 0.0  # wall time of the last answer
         self.stats_answers = 0
         self.restarts = 0
@@ -234,6 +308,7 @@ class DaemonView:
             self._derive(t, mono - prev[0], prev[1], stats)
         self._prev = (mono, stats)
         self.stats = stats
+        self.forces = forces_of(stats, self.forces if prev is not None else None)
         self.stats_at = t
         self.stats_answers += 1
         if buckets is not None:
@@ -375,6 +450,7 @@ class DaemonView:
             "supervisor": s.get("supervisor"),
             "commands": s.get("commands"),
             "highlights": self.highlights(),
+            "forces": self.forces or None,
             "controller": s.get("controller"),
             "log": [e.as_dict() for e in self.log],
             "last_reply": self.last_reply,

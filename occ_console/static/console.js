@@ -51,6 +51,34 @@ function histogramSvg(h) {
     `p50 ${num(s.p50)} · p99 ${num(s.p99)} · max ${num(s.max)}</div>`;
 }
 
+function vec(v) {
+  return Array.isArray(v) ? `(${v.map((c) => num(c, 3)).join(", ")})` : "–";
+}
+
+// the forces panel: a slave's contact force, a master's displayed force and its passivity
+function forcesHtml(f) {
+  if (!f) return "<p class=\"muted\">no force reported</p>";
+  const rows = [];
+  if (f.contact) {
+    const c = f.contact;
+    rows.push(["contact force (instrument)", `<b>${num(c.magnitude_n, 2)} N</b> ${vec(c.force_n)}`]);
+    rows.push(["source", `${esc(c.source)}${c.tared ? " · tared" : ""}`]);
+  }
+  if (f.hand) {
+    const h = f.hand, p = h.passivity || {};
+    rows.push(["displayed (hand)", `<b>${num(h.displayed_magnitude_n, 2)} N</b> ${vec(h.displayed_n)}`]);
+    rows.push(["feedback (slave)", h.force_feedback
+      ? `${num(h.feedback_magnitude_n, 2)} N ${vec(h.feedback_n)} · scale ${num(h.force_scale, 2)}`
+      : "off"]);
+    rows.push(["fixtures", vec(h.fixture_n)]);
+    rows.push(["clamped ticks", num(h.clamped_ticks)]);
+    const state = !p.on ? "off (observer only)" : p.engaged ? "<b>damping</b>" : "on, idle";
+    rows.push(["passivity", `${state} · energy ${num(p.energy_mj, 2)} mJ · ` +
+      `dissipated ${num(p.dissipated_mj, 2)} mJ · damping ${num(p.damping, 2)}`]);
+  }
+  return kvTable(rows);
+}
+
 function render(card, d) {
   const el = (sel) => card.querySelector(sel);
   card.classList.toggle("stale", !d.connected);
@@ -100,6 +128,8 @@ function render(card, d) {
       ["accepted / received", `${num(loss.accepted)} / ${num(loss.received)}`],
     ])
     : "<p class=\"muted\">no loss monitor on this daemon</p>";
+
+  el(".forces").innerHTML = forcesHtml(d.forces);
 
   const hl = Object.entries(d.highlights || {});
   el(".highlights").innerHTML = hl.length

@@ -159,3 +159,88 @@ def test_parse_endpoint() -> None:
     for bad in ("18947", "host:", "host:x", ":1", "h:0", "h:70000"):
         with pytest.raises(ValueError):
             parse_endpoint(bad)
+
+
+# ------------------------------------------------------------------------------ forces
+def _get_stats(pair: Any, op: Any) -> dict[str, Any]:
+    """A daemon's GetStats answer as the console asks it (JSON), through its operator port."""
+    import json
+
+    from occ.testing import wait_until
+
+    before = len(op.messages("STRING", "STATS"))
+    op.send_command("GetStats", '<Command Name="GetStats" Format="json" Histogram="lateness"/>')
+    pair.step(1)  # the worker answers from its own thread
+    assert wait_until(lambda: len(op.messages("STRING", "STATS")) > before, timeout=10.0)
+    return dict(json.loads(op.messages("STRING", "STATS")[-1].string))
+
+
+def test_forces_of_the_wall_pair() -> None:
+    """The wall pair (occ.testing.SimPair: configs/master.yaml + configs/wall.yaml) pressing
+    into the tissue: the slave's panel has its contact force, the master's the force on the
+    hand, the slave's feedback and the passivity controller, from the daemons' own answers."""
+    import yaml
+
+    from occ.testing import CONFIGS, SimPair
+
+    cfg = yaml.safe_load((CONFIGS / "wall.yaml").read_text())
+    with SimPair(CONFIGS / "master.yaml", cfg, delay_ms=40.0) as p:
+        p.start()
+        views = {"slave": DaemonView("0", "127.0.0.1", 18947),
+                 "master": DaemonView("1", "127.0.0.1", 18945)}  # fmt: skip
+        ops = {"slave": p.s_op, "master": p.m_op}
+        pressed = snap = None
+        for k in range(40):  # 4 s, a poll every 0.1 s: the motion reaches the wall
+            p.run_for(0.1)
+            for name, view in views.items():
+                view.on_stats(1000.0 + k * 0.1, k * 0.1, _get_stats(p, ops[name]))
+            snap = {n: v.snapshot(now=1000.0 + k * 0.1) for n, v in views.items()}
+            contact = snap["slave"]["forces"]["contact"]
+            if contact["magnitude_n"] > 0.5 and pressed is None:
+                pressed = snap
+        master_ctl: Any = p.master.robot.controller.controllers[0]
+        passivity = master_ctl.passivity.stats()
+    assert pressed is not None
+    contact = pressed["slave"]["forces"]["contact"]
+    assert contact["source"] == "effort" and contact["sources"] == ["effort"]
+    assert contact["force_n"][0] < -0.4  # the wall pushes back: -x
+    assert contact["magnitude_n"] == pytest.approx(math.hypot(*contact["force_n"]), abs=1e-3)
+    assert "hand" not in pressed["slave"]["forces"]
+    hand = pressed["master"]["forces"]["hand"]
+    assert "contact" not in pressed["master"]["forces"]
+    assert hand["force_feedback"] is True and hand["force_scale"] == 1.0
+    assert hand["feedback_magnitude_n"] > 0.3 and hand["displayed_magnitude_n"] > 0.3
+    assert hand["fixture_n"] == [0.0, 0.0, 0.0]  # no fixture: the hand feels the slave only
+    assert hand["passivity"]["on"] is True
+    # 40 ms each way: the passivity controller works; the panel says when it did since the
+    # last poll, and its counters are the controller's own
+    assert snap is not None
+    last = snap["master"]["forces"]["hand"]["passivity"]
+    assert last["active_ticks"] == passivity["active_ticks"] > 0
+    assert last["dissipated_mj"] == passivity["dissipated_mj"]
+
+
+def test_forces_engaged_only_when_the_passivity_controller_acted_since_the_last_poll() -> None:
+    def master(active: int, on: bool = True) -> dict[str, Any]:
+        ctl = {"force_n": [0.0, 0.0, 1.0], "feedback_n": [0.0, 0.0, 1.0],
+               "fixture_force_n": [0.0, 0.0, 0.0], "force_feedback": True,
+               "passivity": {"on": on, "active_ticks": active, "energy_mj": 0.0,
+                             "dissipated_mj": 0.5, "damping": 0.0}}  # fmt: skip
+        return stats(100 + active, 0, controller=ctl)
+
+    v = DaemonView("0", "h", 1)
+    v.on_stats(1.0, 1.0, master(5))
+    assert v.snapshot(1.0)["forces"]["hand"]["passivity"]["engaged"] is False  # first answer
+    v.on_stats(2.0, 2.0, master(9))
+    assert v.snapshot(2.0)["forces"]["hand"]["passivity"]["engaged"] is True
+    v.on_stats(3.0, 3.0, master(9))
+    assert v.snapshot(3.0)["forces"]["hand"]["passivity"]["engaged"] is False
+    # a daemon without forces, or with statistics that are not numbers: no panel, no crash
+    v = DaemonView("0", "h", 1)
+    v.on_stats(1.0, 1.0, stats(1, 0, controller={"force": {"force_n": ["x", 1, 2]}}))
+    assert v.snapshot(1.0)["forces"] == {
+        "contact": {"force_n": None, "magnitude_n": None, "source": "none", "sources": None,
+                    "tared": None},
+    }  # fmt: skip
+    v.on_stats(2.0, 2.0, stats(2, 0, controller={"seq": 1}))
+    assert v.snapshot(2.0)["forces"] is None

@@ -48,6 +48,35 @@ def browser() -> Iterator[Any]:
 @pytest.fixture
 def console_on_slave(tmp_path: Path) -> Iterator[str]:
     slave_cfg, _, ports = pair_configs()
+    yield from _console_on(tmp_path, slave_cfg, ports)
+
+
+@pytest.fixture
+def console_on_tissue_slave(tmp_path: Path) -> Iterator[str]:
+    """The slave of configs/wall.yaml in miniature, alone: its tissue wall 1 mm behind the tip
+    at home (0.5 N/mm: 0.5 N on the tool at rest), the force from the simulated sensor
+    (``tissue``) and sent to Slicer's port as ``TipForce``, which estimates it at 10 Hz without
+    a master."""
+    import yaml
+
+    from occ.testing import CONFIGS, SimRobot
+
+    slave_cfg, _, ports = pair_configs()
+    wall = yaml.safe_load((CONFIGS / "wall.yaml").read_text())
+    with SimRobot(wall) as probe:
+        tip_x = float(probe.robot.data.world_tip()[0, 3]) * 1e3
+    env = wall["environment"]
+    env["contacts"][0]["point_mm"] = [tip_x - 1.0, 0.0, 0.0]
+    slave_cfg["environment"] = env
+    slave_cfg["controller"]["params"]["force"] = {"sources": ["tissue"]}
+    slicer = next(i for i in slave_cfg["interfaces"] if i["name"] == "slicer")
+    slicer["outputs"].append(
+        {"type": "TRANSFORM", "device": "TipForce", "source": "force", "rate_hz": 10}
+    )
+    yield from _console_on(tmp_path, slave_cfg, ports)
+
+
+def _console_on(tmp_path: Path, slave_cfg: dict[str, Any], ports: dict[str, int]) -> Iterator[str]:
     # what is tested is the page, not the daemon's timing: on a machine loaded enough to stall
     # the loop for tens of milliseconds the slave would fault (supervisor, watchdog, the
     # drive's heartbeat) before the browser saw READY, so those limits are wide here
@@ -132,3 +161,22 @@ def test_page_shows_the_daemon_and_its_buttons_act(browser: Any, console_on_slav
     assert poll(lambda: text(".state") == "READY", 10.0), text(".reply")
     b.save_screenshot(str(tmp_path / "console.png"))
     assert (tmp_path / "console.png").stat().st_size > 10_000
+
+
+def test_page_shows_the_contact_force(browser: Any, console_on_tissue_slave: str) -> None:
+    """A slave whose tool rests 1 mm into the tissue: the Forces panel shows its contact force
+    (0.5 N along -x) and its source."""
+    from selenium.webdriver.common.by import By
+
+    b = browser
+    b.get(console_on_tissue_slave)
+    card = '[data-daemon="0"]'
+
+    def forces() -> str:
+        found = b.find_elements(By.CSS_SELECTOR, f"{card} .forces")
+        return str(found[0].text) if found else ""
+
+    assert poll(lambda: "contact force (instrument)" in forces(), 20.0), b.page_source[:2000]
+    assert poll(lambda: "0.50 N (-0.500, 0, 0)" in forces(), 10.0), forces()
+    assert "tissue" in forces()
+    assert "displayed (hand)" not in forces()  # a slave: no hand
