@@ -61,6 +61,7 @@ __all__ = [
     "arrow_mesh",
     "check_outputs",
     "force_matrix",
+    "message_force",
     "parse_force",
 ]
 
@@ -176,6 +177,26 @@ def check_outputs(config: Any, has_force: bool) -> list[tuple[tuple[str | int, .
                      f"not {oc.type}")
                 )  # fmt: skip
     return problems
+
+
+def message_force(msg: Any) -> tuple[str, tuple[float, float, float]] | None:
+    """(frame, force in N) of a message that carries one (:class:`ForceStream`), else None."""
+    meta = msg.metadata
+    mtype = msg.message_type
+    if mtype in ("POSITION", "TRANSFORM"):
+        # a slave's return channel (its map rides along) or its force output to Slicer; the
+        # master's FixtureProxy has a force_n too, the fixtures' (in the master's axes)
+        if "force_n" not in meta or not ("map" in meta or "mm_per_n" in meta):
+            return None
+        f = parse_force(meta["force_n"])
+        return None if f is None else ("patient", f)
+    if mtype in ("SENSOR", "NDARRAY") and msg.device_name == "Force":
+        values = msg.data if mtype == "SENSOR" else np.asarray(msg.array).ravel()
+        if len(values) not in (3, 6) or not all(math.isfinite(float(v)) for v in values[:3]):
+            return None
+        frame = "patient" if meta.get("frame") == "patient" else "base"
+        return frame, (float(values[0]), float(values[1]), float(values[2]))
+    return None
 
 
 class ForceView:

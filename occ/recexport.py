@@ -60,7 +60,7 @@ from typing import Any
 
 import numpy as np
 
-from .forceviz import parse_force
+from .forceviz import message_force
 from .record import STATE_DEVICE, STATE_NAMES, iter_recording
 from .samples import quaternion_to_rotation
 
@@ -105,26 +105,6 @@ class ForceStream:
     t: list[float] = field(default_factory=list)
     stamp: list[float] = field(default_factory=list)
     force: list[tuple[float, float, float]] = field(default_factory=list)
-
-
-def message_force(msg: Any) -> tuple[str, tuple[float, float, float]] | None:
-    """(frame, force in N) of a message that carries one (:class:`ForceStream`), else None."""
-    meta = msg.metadata
-    mtype = msg.message_type
-    if mtype in ("POSITION", "TRANSFORM"):
-        # a slave's return channel (its map rides along) or its force output to Slicer; the
-        # master's FixtureProxy has a force_n too, the fixtures' (in the master's axes)
-        if "force_n" not in meta or not ("map" in meta or "mm_per_n" in meta):
-            return None
-        f = parse_force(meta["force_n"])
-        return None if f is None else ("patient", f)
-    if mtype in ("SENSOR", "NDARRAY") and msg.device_name == "Force":
-        values = msg.data if mtype == "SENSOR" else np.asarray(msg.array).ravel()
-        if len(values) not in (3, 6) or not all(math.isfinite(float(v)) for v in values[:3]):
-            return None
-        frame = "patient" if meta.get("frame") == "patient" else "base"
-        return frame, (float(values[0]), float(values[1]), float(values[2]))
-    return None
 
 
 @dataclass
