@@ -202,7 +202,7 @@ def test_forces_of_the_wall_pair() -> None:
         passivity = master_ctl.passivity.stats()
     assert pressed is not None
     contact = pressed["slave"]["forces"]["contact"]
-    assert contact["source"] == "effort" and contact["sources"] == ["effort"]
+    assert contact["source"] == "tissue" and contact["sources"] == ["tissue", "effort"]
     assert contact["force_n"][0] < -0.4  # the wall pushes back: -x
     assert contact["magnitude_n"] == pytest.approx(math.hypot(*contact["force_n"]), abs=1e-3)
     assert "hand" not in pressed["slave"]["forces"]

@@ -64,7 +64,7 @@ def test_pyigtl_reads_the_force_transform(
     assert got.header_version == 2
     f = parse_force(got.metadata["force_n"])
     assert f is not None and f == parse_force(sent.metadata["force_n"])
-    assert got.metadata["frame"] == "patient" and got.metadata["source"] == "effort"
+    assert got.metadata["frame"] == "patient" and got.metadata["source"] == "tissue"
     assert got.metadata["MRMLNodeName"] == "LinearTransform"
     m = np.asarray(got.matrix, dtype=float)
     assert np.allclose(m, sent.matrix.astype(np.float32), rtol=0, atol=1e-5)

@@ -171,7 +171,7 @@ def test_slicer_gets_the_arrow_and_the_transform_at_10_hz(pair_run: dict[str, An
     assert mags.max() > 1.0  # the paper's motion presses into the wall
     for m, arrow, tip, f in zip(tf, arrows, tips, forces, strict=True):
         assert m.header_version == 2 and m.metadata["frame"] == "patient"
-        assert m.metadata["source"] == "effort" and m.metadata["MRMLNodeName"] == "LinearTransform"
+        assert m.metadata["source"] == "tissue" and m.metadata["MRMLNodeName"] == "LinearTransform"
         assert float(m.metadata["force_mag_n"]) == pytest.approx(np.linalg.norm(f), abs=2e-4)
         assert arrow.metadata["force_n"] == m.metadata["force_n"]
         assert arrow.metadata["MRMLNodeName"] == "Model"
