@@ -1566,6 +1566,23 @@ def _read_paper_recordings(rec: dict[str, Path]) -> dict[str, Any]:
     }
 
 
+def _paper_forces(traces: Any, rec: dict[str, Path]) -> dict[str, float]:
+    """A slave that sends its contact force (configs/wall.yaml): the force panel's traces
+    (occ/recplot.py reads both recordings: the slave's SlaveTip ``force_n``, the master's
+    ``Force`` output) and their peaks and RMS difference in the report."""
+    from occ.recplot import summarize_recording
+
+    s = summarize_recording(rec["slave"], master=rec["master"])
+    if not len(s.cf_t):
+        return {}
+    t0 = float(s.cf_t[0])
+    traces.force_t = (s.cf_t - t0).tolist()
+    traces.instrument_n = [tuple(v) for v in s.cf.tolist()]
+    traces.hand_t = (s.hand_t - t0).tolist()
+    traces.hand_n = [tuple(v) for v in s.hand.tolist()]
+    return {k: round(v, 4) for k, v in s.force_stats().items()}
+
+
 def analyse_paper_real(
     rep: Report,
     args: argparse.Namespace,
@@ -1598,6 +1615,7 @@ def analyse_paper_real(
         if s.error_name in ("STOPPED", "FAULT", "ESTOP")
     ]
     data = _read_paper_recordings(rec)
+    forces = _paper_forces(traces, rec)
     m_t, m_pos, s_in_t, rows = data["m_t"], data["m_pos"], data["s_in_t"], data["rows"]
     # the window: from the first POSITION the slave took to the master's last one
     t_lo = float(s_in_t[0]) if len(s_in_t) else 0.0
@@ -1681,6 +1699,8 @@ def analyse_paper_real(
         "loop_lateness_us": {k: (s or {}).get("lateness_us") for k, s in stats.items()},
         "recordings": {k: str(v) for k, v in rec.items()},
     }
+    if forces:
+        rep.numbers["forces"] = forces
     rep.check(
         "no stop, no fault",
         not stops,

@@ -102,6 +102,12 @@ class Traces:
     #: the motion scale (for the plot's title)
     scale: float = 0.1
     time_label: str = "simulated time (s)"
+    #: bilateral teleoperation (a slave with a force source, e.g. configs/wall.yaml): the force
+    #: on the instrument and on the hand (t s, N x 3 each; empty without forces)
+    force_t: list[float] = field(default_factory=list)
+    instrument_n: list[tuple[float, float, float]] = field(default_factory=list)
+    hand_t: list[float] = field(default_factory=list)
+    hand_n: list[tuple[float, float, float]] = field(default_factory=list)
 
 
 class _Axis:
@@ -876,7 +882,34 @@ def plot(rep: Report, out: Path, traces: Traces) -> list[str]:
         fig.savefig(out / "tracking_error.png", dpi=90)
         plt.close(fig)
         files.append("tracking_error.png")
+    if traces.force_t:
+        files.append(plot_forces(traces, out, plt))
     return files
+
+
+def plot_forces(traces: Traces, out: Path, plt: Any) -> str:
+    """The force panel: the force on the instrument (the slave's) and on the hand (the
+    master's displayed force), magnitude and x, over the run."""
+    fig, axes = plt.subplots(2, 1, figsize=(11, 5), sharex=True)
+    for ax, what in zip(axes, ("magnitude", "x"), strict=True):
+        for t, f, label, style in (
+            (traces.force_t, traces.instrument_n, "at the instrument", {"color": "0.6", "lw": 2}),
+            (traces.hand_t, traces.hand_n, "on the hand", {"color": "tab:red", "lw": 0.8}),
+        ):
+            if not t:
+                continue
+            ys = [math.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2) if what == "magnitude" else v[0]
+                  for v in f]  # fmt: skip
+            ax.plot(t, ys, label=label, **style)
+        ax.set_ylabel(f"force {what} (N)")
+        ax.grid(True, alpha=0.3)
+    axes[0].set_title("bilateral teleoperation: the slave's contact force and the hand's")
+    axes[0].legend(fontsize=8)
+    axes[-1].set_xlabel(traces.time_label)
+    fig.tight_layout()
+    fig.savefig(out / "forces.png", dpi=90)
+    plt.close(fig)
+    return "forces.png"
 
 
 def build_parser() -> argparse.ArgumentParser:

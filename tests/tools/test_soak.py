@@ -293,3 +293,23 @@ def test_paper_real_against_the_daemons(tmp_path: Path) -> None:
     assert n["cpu_seconds"]["slave"] is not None and n["wall_seconds"] >= 7.5
     for f in ("slave.rec", "master.rec", "report.md", "interarrival.png", "trajectories.png"):
         assert (out / f).exists(), f
+
+
+@pytest.mark.slow
+@pytest.mark.req("SR-FORCE-1")
+def test_paper_real_with_the_wall_has_a_force_panel(tmp_path: Path) -> None:
+    """The same protocol with the wall slave (configs/wall.yaml): the return channel comes back
+    through the proxy, and the report has the forces (the instrument's from the slave's
+    recording, the hand's from the master's) and their panel (forces.png)."""
+    out = tmp_path / "paper-wall"
+    cmd = [sys.executable, str(TOOLS / "soak.py"), "paper", "--real", "--duration", "8",
+           "--seed", "2", "--window", "5", "--slave-config", str(ROOT / "configs" / "wall.yaml"),
+           "--out", str(out)]  # fmt: skip
+    env = {**os.environ, "MPLBACKEND": "Agg"}
+    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    assert (out / "report.json").exists(), proc.stdout + proc.stderr
+    n = json.loads((out / "report.json").read_text())["numbers"]
+    f = n["forces"]
+    assert f["instrument_peak_n"] > 0.5 and f["hand_peak_n"] > 0.5, f
+    assert f["rms_difference_n"] <= 0.1 * f["instrument_peak_n"], f
+    assert (out / "forces.png").stat().st_size > 10_000
