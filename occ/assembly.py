@@ -25,8 +25,9 @@ def attach_environment(
 ) -> Environment | None:
     """The simulated world (occ/contact.py) attached to the one ``sim`` driver that has every
     joint (it computes the load from the whole arm's pose); None without contacts. ConfigError
-    when no driver can carry it."""
-    if env is None or not env.contacts:
+    when no driver can carry it. ``environment: {contacts: []}`` is a world without tissue yet
+    (3D Slicer may define some at run time)."""
+    if env is None:
         return None
     n = frame.nq
     carriers = [d for d, idx in pairs if hasattr(d, "environment") and len(idx) == n]

@@ -2,7 +2,9 @@
 
 A simulated slave in free space never touches anything, so no force exists to feed back
 (issue 27). The config's ``environment`` puts tissue in the patient frame (the frame of 3D
-Slicer's ``Tip``, mm):
+Slicer's ``Tip``, mm), and 3D Slicer can add or move it at run time (:func:`tissue_from_message`:
+a Markups point list or plane with the attribute ``kind=tissue``, sent to the slave's operator
+port):
 
 ``wall``
     tissue behind a plane: a point on its surface and the normal pointing out of it;
@@ -93,6 +95,54 @@ class Contact:
         return (mag * n[0], mag * n[1], mag * n[2]), d
 
 
+def tissue_from_message(msg: Any) -> tuple[str, list[Contact]] | None:
+    """Tissue defined in 3D Slicer: a message with metadata ``kind=tissue``, or None for any
+    other. A Markups point list (POINT) is spheres (each visible point's radius, else
+    ``radius`` metadata, else 10 mm); a Markups plane sent as a TRANSFORM is a wall through its
+    origin whose normal (out of the tissue) is the transform's z axis, as a forbidden plane's
+    is for the fixtures. ``stiffness`` (N/mm, default 0.5) and ``damping`` (N s/mm) from the
+    metadata. Returns (the definition's name: its device name, the contacts; none when every
+    point was removed). ValueError for a definition that is no tissue."""
+    meta = getattr(msg, "metadata", {}) or {}
+    if meta.get("kind") != "tissue":
+        return None
+    name = msg.device_name or "tissue"
+
+    def number(key: str, default: float, low: float) -> float:
+        try:
+            v = float(meta.get(key, default))
+        except ValueError:
+            raise ValueError(f"tissue {name!r}: {key} {meta.get(key)!r} is not a number") from None
+        if not (math.isfinite(v) and v >= low):
+            raise ValueError(f"tissue {name!r}: {key} {v} must be >= {low}")
+        return v
+
+    k = number("stiffness", 0.5, 0.0)
+    b = number("damping", 0.0, 0.0)
+    if msg.message_type == "POINT":
+        radius = number("radius", 10.0, 1e-9)
+        out = []
+        for i, p in enumerate(x for x in msg.points if x.rgba[3] > 0):
+            r = float(p.radius) if p.radius > 0.0 else radius
+            c = tuple(float(v) for v in p.position)
+            if not all(math.isfinite(v) for v in (*c, r)):
+                raise ValueError(f"tissue {name!r}: point {i} is not a point")
+            out.append(Contact(f"{name}:{i}", "sphere", c, (0.0, 0.0, 1.0), r, k, b))  # type: ignore[arg-type]
+        return name, out
+    if msg.message_type == "TRANSFORM":
+        m = np.asarray(msg.matrix, dtype=float)
+        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            raise ValueError(f"tissue {name!r}: not a transform")
+        n = m[:3, 2]
+        norm = float(np.linalg.norm(n))
+        if norm == 0.0:
+            raise ValueError(f"tissue {name!r}: the plane's z axis is zero")
+        point = tuple(float(v) for v in m[:3, 3])
+        normal = tuple(float(v) / norm for v in n)
+        return name, [Contact(name, "wall", point, normal, 0.0, k, b)]  # type: ignore[arg-type]
+    raise ValueError(f"tissue {name!r}: a {msg.message_type} defines no tissue (POINT, TRANSFORM)")
+
+
 class Environment:
     """The simulated world of one robot: its tissue and what it does to the joints.
 
@@ -114,6 +164,7 @@ class Environment:
         self.depth_mm: dict[str, float] = {c.name: -math.inf for c in self.contacts}
         self.in_contact = False
         self.evaluations = 0
+        self.definitions = 0
         self.peak_force_n = 0.0
 
     def tip(self, q: Sequence[float]) -> tuple[Vec3, np.ndarray]:
@@ -154,9 +205,18 @@ class Environment:
         fb = b[:3, :3].T @ np.array([fx, fy, fz])  # into the base frame
         return [float(t) for t in jac.T @ fb]
 
+    def define(self, name: str, contacts: Sequence[Contact]) -> None:
+        """Replace the tissue named ``name`` (a Slicer definition: its contacts ``name`` and
+        ``name:i``) with ``contacts`` (none: removed)."""
+        keep = [c for c in self.contacts if c.name != name and not c.name.startswith(name + ":")]
+        self.contacts = keep + list(contacts)
+        self.depth_mm = {c.name: -math.inf for c in self.contacts}
+        self.definitions += 1
+
     def stats(self) -> dict[str, Any]:
         return {
             "contacts": [c.name for c in self.contacts],
+            "definitions": self.definitions,
             "force_n": [round(v, 4) for v in self.force_n],
             "in_contact": self.in_contact,
             "depth_mm": {k: round(v, 4) for k, v in self.depth_mm.items() if math.isfinite(v)},

@@ -67,6 +67,7 @@ from pydantic import BaseModel
 
 from ..collab import SlaveSelector
 from ..config import DaemonConfig
+from ..contact import tissue_from_message
 from ..errors import CommandError, KinematicsError, OCCError, caused
 from ..fixture_defs import Defaults, DefinitionError, PatientMapping, from_markups_file
 from ..forces import SlaveForce, sensor_force
@@ -789,8 +790,30 @@ class SlaveController(Controller):
         return f"force bias taken: efforts [{bias}]"
 
     def on_input(self, item: Inbound, now: float) -> None:
+        if self._tissue(item.msg):
+            return
         if self.force is not None:
             self.force.on_input(item.msg, item.interface, now)
+
+    def _tissue(self, msg: Any) -> bool:
+        """A tissue definition from 3D Slicer (``kind=tissue``: occ/contact.py) for the
+        simulated world: True when it was one (CommandError when it is wrong, or when this
+        robot has no simulated world to put it in)."""
+        try:
+            found = tissue_from_message(msg)
+        except ValueError as err:
+            raise caused(CommandError(str(err)), err) from err
+        if found is None:
+            return False
+        ctx = self.ctx
+        env = ctx.environment if ctx is not None else None
+        if env is None:
+            raise CommandError(
+                f"tissue {found[0]!r}: this robot has no simulated world (config `environment`)"
+            )
+        env.define(*found)
+        log.info("tissue %r: %d shape(s) from 3D Slicer", found[0], len(found[1]))
+        return True
 
     def _force_meta(self, now: float) -> str:
         """The tip force now (``force_n``: N, patient frame, 4 decimals) for the return
@@ -888,6 +911,9 @@ class SlaveController(Controller):
             data.base = b
 
     def on_sample(self, sample: PoseSample, now: float) -> None:
+        if sample.kind == "TRANSFORM" and sample.meta.get("kind") == "tissue":
+            self._tissue(sample.msg)
+            return
         if self.base_interface and sample.interface == self.base_interface:
             if sample.kind == "TRANSFORM" and sample.device == self.base_device:
                 m = sample.matrix_mm()

@@ -261,3 +261,78 @@ def test_the_environment_needs_one_sim_driver_with_every_joint() -> None:
     ]
     with pytest.raises(ConfigError, match="needs one `sim` driver with every joint"):
         SimRobot(cfg)
+
+
+# ------------------------------------------------------------------ tissue from 3D Slicer
+def slicer_points(*points: tuple[tuple[float, float, float], float], **meta: str) -> Any:
+    from igtl.messages.point import PointElement
+
+    els = tuple(
+        PointElement(name=f"T-{i}", group="Fiducial", rgba=(255, 0, 0, 255), position=c, radius=r)
+        for i, (c, r) in enumerate(points)
+    )
+    return igtl.PointMessage(points=els, device_name="Tumour", header_version=2,
+                             metadata={"MRMLNodeName": "Tumour", **meta})  # fmt: skip
+
+
+def test_tissue_from_slicer_replaces_by_name_and_presses_on_the_drives() -> None:
+    """A Markups point list with kind=tissue is spheres in the simulated world; sent again it
+    replaces them; a Markups plane (TRANSFORM, kind=tissue) is a wall along its z axis; the
+    tool inside a sphere feels it."""
+    sim = SimRobot(CONFIGS / "wall.yaml")
+    try:
+        op = sim.peer("operator", address=("127.0.0.1", 41001))
+        env = sim.robot.hardware.environment
+        tip = sim.robot.data.world_tip()[:3, 3] * 1e3
+        # a sphere whose surface is 2 mm past the tool: 2 mm deep at 0.8 N/mm
+        centre = (float(tip[0]), float(tip[1]), float(tip[2]) - 8.0)
+        op.send(slicer_points((centre, 10.0), ((50.0, 50.0, 50.0), 0.0), kind="tissue",
+                              stiffness="0.8", radius="4"))  # fmt: skip
+        sim.step(5)
+        assert [c.name for c in env.contacts] == ["wall", "Tumour:0", "Tumour:1"]
+        assert env.contacts[2].radius == 4.0  # no radius on the point: the attribute's
+        assert env.depth_mm["Tumour:0"] == pytest.approx(2.0, abs=0.05)
+        assert math.hypot(*env.force_n) == pytest.approx(1.6, abs=0.1)
+        op.send(slicer_points(((0.0, 0.0, 0.0), 1.0), kind="tissue"))  # moved: replaced
+        sim.step(1)
+        assert [c.name for c in env.contacts] == ["wall", "Tumour:0"]
+        m = np.array([[1.0, 0.0, 0.0, 5.0], [0.0, 0.0, -1.0, 6.0], [0.0, 1.0, 0.0, 7.0],
+                      [0.0, 0.0, 0.0, 1.0]])  # fmt: skip
+        plane = igtl.TransformMessage.from_matrix(
+            m, device_name="Floor", header_version=2, metadata={"kind": "tissue"}
+        )
+        op.send(plane)
+        sim.step(1)
+        floor = [c for c in env.contacts if c.name == "Floor"][0]
+        assert floor.kind == "wall" and floor.point == (5.0, 6.0, 7.0)
+        assert floor.normal == pytest.approx((0.0, -1.0, 0.0))
+        assert sim.robot.hardware.stats()["environment"]["definitions"] == 3
+    finally:
+        sim.close()
+
+
+def test_bad_tissue_and_tissue_without_a_simulated_world_are_refused_with_a_reply() -> None:
+    for config, msg, why in (
+        ("wall.yaml", slicer_points(((0.0, 0.0, 0.0), 5.0), kind="tissue", stiffness="-1"),
+         "stiffness -1.0 must be >= 0"),
+        ("wall.yaml", slicer_points(((0.0, 0.0, 0.0), 5.0), kind="tissue", stiffness="soft"),
+         "is not a number"),
+        ("slave.yaml", slicer_points(((0.0, 0.0, 0.0), 5.0), kind="tissue"),
+         "no simulated world"),
+    ):  # fmt: skip
+        cfg = yaml.safe_load((CONFIGS / config).read_text())
+        for itf in cfg["interfaces"]:
+            if itf["name"] == "operator":
+                itf["inputs"] = [{"type": "POINT", "queue": "command", "depth": 4}]
+        sim = SimRobot(cfg)
+        try:
+            op = sim.peer("operator", address=("127.0.0.1", 41001))
+            before = [c.name for c in env.contacts] if (env := sim.robot.hardware.environment) else []
+            op.send(msg)
+            sim.step(2)
+            text = " ".join(str(getattr(m, "status_message", "")) for m in op.messages())
+            assert why in text, (config, text)
+            after = [c.name for c in env.contacts] if env is not None else []
+            assert after == before
+        finally:
+            sim.close()
