@@ -70,7 +70,9 @@ def build_hardware(rc: RobotConfig) -> tuple[list[Joint], Frame, list[tuple[Driv
         frame = Frame.builtin(fc.model)
     else:
         assert fc.tip_link is not None  # the schema requires it with urdf
-        frame = Frame.from_urdf(str(fc.urdf), fc.tip_link, fc.base_link)
+        path = fc.urdf_path()
+        assert path is not None
+        frame = Frame.from_urdf(path, fc.tip_link, fc.base_link)
     # The configured joints are the kinematic model's, in its order: FK and IK index them.
     names = [j.name for j in joints]
     if list(frame.joint_names) != names:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import difflib
 import ipaddress
 import os
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -172,16 +173,115 @@ class _Model(BaseModel):
 # --------------------------------------------------------------------------------------------
 
 
+#: packages of robot descriptions a config may name (``robot.frame.package``): where each keeps
+#: its files, relative to its installed distribution
+URDF_PACKAGES = {"example-robot-data": "cmeel.prefix/share/example-robot-data"}
+
+
+def package_dir(package: str) -> Path:
+    """The directory of an installed robot-description package (:data:`URDF_PACKAGES`);
+    ValueError when it is not installed."""
+    from importlib import metadata
+
+    try:
+        dist = metadata.distribution(package)
+    except metadata.PackageNotFoundError:
+        raise ValueError(f"package {package!r} is not installed (pip install {package})") from None
+    return Path(str(dist.locate_file(URDF_PACKAGES[package])))
+
+
+class _Failed(Exception):
+    def __init__(self, err: BaseException, said: str) -> None:
+        super().__init__(str(err))
+        self.err, self.said = err, said
+
+
+def _quietly(call: Any) -> tuple[Any, str]:
+    """``call()`` with the process's C-level stderr captured (a C++ parser's messages), as
+    (its result, what it said); _Failed(err, said) when it raised."""
+    import tempfile
+
+    sys_stderr = sys.stderr
+    sys_stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile(mode="w+b") as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            result = call()
+            failure = None
+        except (RuntimeError, ValueError) as err:
+            result, failure = None, err
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        tmp.seek(0)
+        said = tmp.read().decode("utf-8", "replace")
+    if failure is not None:
+        raise _Failed(failure, said)
+    return result, said
+
+
+def _urdf_problems(cfg: FrameConfig) -> tuple[list[tuple[Loc, str]], tuple[str, ...]]:
+    """Load the configured URDF as the daemon will (pinocchio), for ``occd --check``: the
+    problems (at the ``urdf`` or link key) and the model's joint names."""
+    import pinocchio as pin
+
+    key: Loc = ("urdf",) if cfg.urdf is not None else ("package_urdf",)
+    path = Path(str(cfg.urdf)) if cfg.urdf is not None else None
+    if cfg.package_urdf is not None:
+        if cfg.package is None:
+            return [(("package",), "required with 'package_urdf'")], ()
+        try:
+            path = package_dir(cfg.package) / cfg.package_urdf
+        except ValueError as err:
+            return [(("package",), str(err))], ()
+        if not path.is_file():
+            return [(key, f"no file {cfg.package_urdf!r} in package {cfg.package!r}")], ()
+    assert path is not None
+    try:
+        model, said = _quietly(lambda: pin.buildModelFromUrdf(str(path)))
+    except _Failed as failed:
+        # urdfdom says why on the C stderr ("Error: Joint [j] ... does not specify limits /
+        # at line 607 in .../joint.cpp"): its first lines, without the parser's own source lines
+        why = [ln.strip().removeprefix("Error:").strip() for ln in failed.said.splitlines()]
+        why = [w for w in why if w and not w.startswith("at line ")][:3]
+        text = "; ".join(why) or " ".join(str(failed.err).split())
+        return [(key, f"the URDF does not load: {text[:300]}")], ()
+    problems: list[tuple[Loc, str]] = []
+    for link_key in ("tip_link", "base_link"):
+        link = getattr(cfg, link_key)
+        if link is not None and not model.existFrame(link):
+            links = sorted({f.name for f in model.frames if f.type == pin.FrameType.BODY})
+            problems.append(
+                ((link_key,), f"no link {link!r} in the URDF (links: {', '.join(links)})")
+            )
+    if model.nq != model.nv:
+        problems.append((key, "only revolute and prismatic joints are supported"))
+    return problems, tuple(model.names[1:])
+
+
 class FrameConfig(_Model):
-    """Kinematic model: exactly one of a built-in model or a URDF file."""
+    """Kinematic model: exactly one of a built-in model, a URDF file, or a URDF of an installed
+    robot-description package."""
 
     model: BuiltinModel | None = Field(
         None, description="Built-in kinematic model name. Exclusive with `urdf`."
     )
     urdf: ExistingFile | None = Field(
         None,
-        description="URDF file, relative to the config file's directory; must exist. "
-        "Exclusive with `model`.",
+        description="URDF file, relative to the config file's directory; must exist and load "
+        "(checked at load, with its line). Exclusive with `model`.",
+    )
+    package: Literal["example-robot-data"] | None = Field(
+        None,
+        description="An installed package of robot descriptions (`pip install "
+        "example-robot-data`) whose URDF `package_urdf` names.",
+    )
+    package_urdf: Str | None = Field(
+        None,
+        description="The URDF inside `package`, e.g. "
+        "`robots/ur_description/urdf/ur5_joint_limited_robot.urdf` (kinematics only: no "
+        "meshes are read).",
     )
     tip_link: Str | None = Field(
         None, description="URDF link whose pose is the tool tip. Required with `urdf`."
@@ -193,13 +293,28 @@ class FrameConfig(_Model):
     @model_validator(mode="after")
     def _exactly_one_source(self) -> FrameConfig:
         problems: list[tuple[Loc, str]] = []
-        if (self.model is None) == (self.urdf is None):
-            which = "both are set" if self.model is not None else "neither is set"
-            problems.append(((), f"exactly one of 'model' or 'urdf' is required ({which})"))
-        if self.urdf is not None and self.tip_link is None:
-            problems.append((("tip_link",), "required when 'urdf' is set"))
+        sources = [k for k in ("model", "urdf", "package_urdf") if getattr(self, k) is not None]
+        if len(sources) != 1:
+            which = f"{' and '.join(sources)} are set" if sources else "none is set"
+            problems.append(
+                ((), f"exactly one of 'model', 'urdf' or 'package_urdf' is required ({which})")
+            )
+        elif sources[0] != "model":
+            if self.tip_link is None:
+                problems.append((("tip_link",), f"required when '{sources[0]}' is set"))
+            else:
+                found, _ = _urdf_problems(self)
+                problems += found
         _raise_problems(problems)
         return self
+
+    def urdf_path(self) -> Path | None:
+        """The URDF file to load (None for a built-in model)."""
+        if self.urdf is not None:
+            return Path(str(self.urdf))
+        if self.package is not None and self.package_urdf is not None:
+            return package_dir(self.package) / self.package_urdf
+        return None
 
 
 class JointLimits(_Model):
@@ -380,6 +495,18 @@ class RobotConfig(_Model):
             if jname not in driven_by:
                 problems.append(
                     (("joints", i, "name"), f"joint '{jname}' is not driven by any driver")
+                )
+        fc = self.frame
+        if fc.model is None and fc.tip_link is not None:
+            found, model_joints = _urdf_problems(fc)
+            names = tuple(j.name for j in self.joints)
+            if not found and model_joints != names:
+                problems.append(
+                    (
+                        ("joints",),
+                        f"the joints {list(names)} are not the URDF's {list(model_joints)} "
+                        "(same names, same order)",
+                    )
                 )
         _raise_problems(problems)
         return self

@@ -61,6 +61,7 @@ from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import pinocchio as pin
 import pydantic.main  # noqa: F401 - mypyc: the module its run-time BaseModel checks look up
 from mypy_extensions import mypyc_attr
 from pydantic import BaseModel
@@ -77,7 +78,7 @@ from ..outputs import VectorOut
 from ..passivity import PassivityController
 from ..returnlink import ReturnLink
 from ..safety import RobotState
-from ..samples import PoseSample, rotation_to_quaternion
+from ..samples import PoseSample, quaternion_to_rotation, rotation_to_quaternion
 from ..stats import Histogram
 from . import Controller, ControllerContext, Problem, SourceFn
 from .teleop_params import MasterParams, SlaveParams
@@ -134,6 +135,9 @@ class MasterController(Controller):
         self.amplitude = np.array(p.amplitude_mm, dtype=float) * MM
         self.offset = np.array(p.offset_mm, dtype=float) * MM
         self.frequency = p.frequency_hz
+        self._rot_amp = tuple(math.radians(v) for v in p.orientation_amplitude_deg)
+        #: the handle's orientation sent with each sample (x, y, z, w)
+        self.handle_quat: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
         self.input_interface = p.input_interface
         self.input_device = p.input_device
         self.force_output = p.force_output
@@ -298,6 +302,7 @@ class MasterController(Controller):
         x, y, z = sample.position_mm
         self.samples += 1
         self.target = np.array([x * MM, y * MM, z * MM])
+        self.handle_quat = sample.quaternion
 
     def on_input(self, item: Inbound, now: float) -> None:
         """Fixture definitions (VFIXTURE, Markups POINT, POLYDATA) that share a stream, and
@@ -592,10 +597,29 @@ class MasterController(Controller):
             None,
             out.device,
             (x / MM, y / MM, z / MM),
+            self._handle_orientation(now),
             seq=seq,
             t_sample=ctx.clock.wall_time(),
             meta=_RUN_CLUTCH[bool(running), bool(self.clutch)],
         )
+
+    def _handle_orientation(self, now: float) -> tuple[float, float, float, float]:
+        """The handle's orientation: the simulated gimbal's (``orientation_amplitude_deg``),
+        the input stream's, or the device's own (identity for a 3-DOF handle)."""
+        if self.input == "sim":
+            ax, ay, az = self._rot_amp
+            if ax == 0.0 and ay == 0.0 and az == 0.0:
+                return (0.0, 0.0, 0.0, 1.0)
+            k = math.sin(2.0 * math.pi * self.frequency * (now - self._t_run))
+            r = pin.utils.rpyToMatrix(ax * k, ay * k, az * k)
+            return rotation_to_quaternion(r)
+        if self.input == "igtl":
+            return self.handle_quat
+        data, ctx = self.data, self.ctx
+        assert data is not None and ctx is not None
+        if ctx.frame.nq < 6:
+            return (0.0, 0.0, 0.0, 1.0)
+        return rotation_to_quaternion(np.asarray(ctx.frame.fk(data.q))[:3, :3])
 
     def _source_fixtures(self, out: Output, now: float) -> Outgoing | None:
         """The fixtures' models, when they changed since this output last sent them (or an
@@ -734,6 +758,13 @@ class SlaveController(Controller):
         self.force_params = p.force
         self.force: SlaveForce | None = None
         self.force_view: ForceView | None = None
+        #: orientation following (a 6-DOF arm): the master's quaternion, and at the
+        #: re-index its rotation and the tool's (base frame)
+        self.follow_orientation = p.orientation == "follow"
+        self.rotation_scale = p.rotation_scale
+        self.master_quat: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+        self._rm_ref: np.ndarray | None = None
+        self._rs_ref: np.ndarray | None = None
         #: ``absolute`` mapping (an external command source, CRTK ``servo_cp``)
         self.absolute = p.mapping == "absolute"
         self.max_jump = p.max_jump_mm * MM
@@ -948,6 +979,7 @@ class SlaveController(Controller):
         self.pending_ts = ts if ts > 0.0 else None
         self.pending_rx = sample.t_rx
         self.master_pos = (pos[0] * MM, pos[1] * MM, pos[2] * MM)
+        self.master_quat = sample.quaternion
         self._fresh = True
         run = sample.run
         clutch = sample.clutch
@@ -1024,6 +1056,9 @@ class SlaveController(Controller):
             # keeps the commanded pose exactly instead of stepping back by the servo lag
             here = data.commanded()
             self.slave_ref = ctx.frame.tip_position(here)
+            if self.follow_orientation:
+                self._rm_ref = quaternion_to_rotation(self.master_quat)
+                self._rs_ref = np.asarray(ctx.frame.fk(here))[:3, :3].copy()
             self.reindexes += 1
             self._q_last = list(here)
         assert self.slave_ref is not None
@@ -1041,7 +1076,10 @@ class SlaveController(Controller):
             sz + g * dx + h * dy + i * dz,
         )
         try:
-            q, clamped = ctx.frame.ik_clamped(target, data.q)
+            if self.follow_orientation:
+                q, clamped = self._solve_pose(target)
+            else:
+                q, clamped = ctx.frame.ik_clamped(target, data.q)
         except (KinematicsError, ValueError):
             self.ik_failures += 1
             return self._q_last
@@ -1055,6 +1093,30 @@ class SlaveController(Controller):
             self.rx_latency_us.add((wall - (mono - self.pending_rx) - self.pending_ts) * 1e6)
             self.pending_ts = None
         return self._q_last
+
+    def target_rotation(self) -> np.ndarray:
+        """The tool's orientation target (base frame): the handle's rotation since the
+        re-index, ``dR = R_m R_m0^T`` (scaled in angle by ``rotation_scale``), seen in the
+        slave's axes through ``rotation`` (``A dR A^T``), applied to the tool's orientation at
+        the re-index."""
+        assert self._rm_ref is not None and self._rs_ref is not None
+        d = quaternion_to_rotation(self.master_quat) @ self._rm_ref.T
+        if self.rotation_scale != 1.0:
+            d = pin.exp3(self.rotation_scale * pin.log3(d))
+        a = self.rotation
+        return np.asarray(a @ d @ a.T @ self._rs_ref)
+
+    def _solve_pose(self, target: tuple[float, float, float]) -> tuple[list[float], bool]:
+        """The full pose (position ``target`` and :meth:`target_rotation`) by damped least
+        squares from the last solution (the joint limits held)."""
+        ctx, data = self.ctx, self.data
+        assert ctx is not None and data is not None
+        pose = np.eye(4)
+        pose[:3, :3] = self.target_rotation()
+        pose[:3, 3] = target
+        seed = self._q_last if self._q_last is not None else data.q
+        res = ctx.frame.solve_ik(pose, seed, clamp=True, method="dls")
+        return res.q.tolist(), bool(res.clamped)
 
     def _update_absolute(self, data: RobotData, ctx: ControllerContext) -> Sequence[float] | None:
         """The ``absolute`` mapping: each sample is the tip's target in the patient frame.

@@ -45,6 +45,11 @@ class MasterParams(_Params):
         description="`sim`: constant offset (mm) from the handle at zero joint values.",
     )
     frequency_hz: PosFloat = Field(0.1, description="`sim`: frequency of the motion (Hz).")
+    orientation_amplitude_deg: Vec3 = Field(
+        (0.0, 0.0, 0.0),
+        description="`sim`: the handle also turns, about x, y, z by these amplitudes (degrees) "
+        "times sin(2 pi f t) (a 6-DOF master's gimbal; sent as the stream's quaternion).",
+    )
     clutch: Bool = Field(False, description="Clutch pressed at start.")
     fixture_radius_mm: PosFloat = Field(
         5.0,
@@ -258,6 +263,18 @@ class SlaveParams(_Params):
         None, description="Interface on which a tracker sends the base TRANSFORM."
     )
     base_device: DeviceName = Field("Base", description="Device name of that TRANSFORM.")
+    orientation: Literal["off", "follow"] = Field(
+        "off",
+        description="`follow` (a 6-DOF arm): the tool turns as the master's handle turns, the "
+        "handle's rotation since the last re-index (the stream's quaternion) mapped through "
+        "`rotation` and applied to the tool's orientation at the re-index; the full pose is "
+        "solved (damped least squares). `off`: position only (3-DOF arms).",
+    )
+    rotation_scale: Annotated[Float, Field(gt=0, le=1)] = Field(
+        1.0,
+        description="`follow`: the share of the handle's rotation angle the tool makes (1: "
+        "off, one degree is one degree).",
+    )
     mapping: Literal["relative", "absolute"] = Field(
         "relative",
         description="How a sample moves the tip. `relative` (a master): the displacement "

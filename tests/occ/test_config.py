@@ -178,7 +178,11 @@ def test_relative_config_path_is_made_absolute(monkeypatch: pytest.MonkeyPatch) 
 
 
 def test_parse_config_base_dir_and_missing_urdf(tmp_path: Path) -> None:
-    (tmp_path / "arm.urdf").write_text("<robot name='arm'/>")
+    (tmp_path / "arm.urdf").write_text(
+        "<robot name='arm'><link name='base'/><link name='tip'/>"
+        "<joint name='a' type='revolute'><parent link='base'/><child link='tip'/>"
+        "<axis xyz='0 0 1'/><limit lower='-1' upper='1' effort='1' velocity='1'/></joint></robot>"
+    )
     text = MINIMAL_ROBOT.replace("{model: occ_slave}", "{urdf: arm.urdf, tip_link: tip}")
     cfg = parse_config(text, base_dir=tmp_path)
     assert cfg.robot.frame.urdf == tmp_path / "arm.urdf"
@@ -308,7 +312,7 @@ def test_empty_lists_and_nulls() -> None:
     assert errors_of(text) == ["c.yaml:7 robot.drivers[0].joints: must not be empty"]
     text = MINIMAL_ROBOT.replace("frame: {model: occ_slave}", "frame: {}")
     assert errors_of(text) == [
-        "c.yaml:3 robot.frame: exactly one of 'model' or 'urdf' is required (neither is set)"
+        "c.yaml:3 robot.frame: exactly one of 'model', 'urdf' or 'package_urdf' is required (none is set)"
     ]
 
 
@@ -317,7 +321,7 @@ def test_frame_model_and_urdf_are_exclusive() -> None:
         "{model: occ_slave}", "{model: occ_slave, urdf: robots/tiny.urdf, tip_link: tool_tip}"
     )
     assert errors_of(text, base_dir=DATA) == [
-        "c.yaml:3 robot.frame: exactly one of 'model' or 'urdf' is required (both are set)"
+        "c.yaml:3 robot.frame: exactly one of 'model', 'urdf' or 'package_urdf' is required (model and urdf are set)"
     ]
     assert errors_of(MINIMAL_ROBOT.replace("occ_slave", "puma")) == [
         "c.yaml:3 robot.frame.model: must be one of occ_slave | master3, got 'puma'"

@@ -1,0 +1,182 @@
+"""Six degrees of freedom (issue 28, items 1-2): an arm from its URDF, teleoperated in position
+and orientation.
+
+- configs/ur5.yaml (a UR5 from example-robot-data) follows configs/master6.yaml (the paper's
+  motion with a gimbal turning the handle) as a :class:`occ.testing.SimPair` in simulated
+  time: the tool's orientation is the handle's rotation since the re-index applied to the
+  tool's, to 1e-6 rad; its position the scaled displacement, to 1e-6 mm; the clutch re-indexes
+  both without a jump; ``rotation_scale`` scales the angle; 3D Slicer's Tip carries the pose.
+- A URDF that does not load, a tip link it does not have, joints that are not its own: errors
+  at load, with the line.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+import pytest
+import yaml
+
+from occ.errors import ConfigError
+from occ.loader import load_config, parse_config
+from occ.safety import RobotState
+from occ.samples import quaternion_to_rotation
+from occ.testing import CONFIGS, SimPair
+
+pytestmark = pytest.mark.req("SR-SIX-1")
+
+
+def angle(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.linalg.norm(pin.log3(a.T @ b)))
+
+
+class Arm:
+    def __init__(self, **slave_params: Any) -> None:
+        self.pair = SimPair(CONFIGS / "master6.yaml", CONFIGS / "ur5.yaml", slave_params=slave_params or None)
+        self.pair.start()
+        self.slave = self.pair.slave.robot
+        self.ctl: Any = self.slave.controller.controllers[0]
+        self.master_ctl: Any = self.pair.master.robot.controller.controllers[0]
+
+    def setpoint_pose(self) -> np.ndarray:
+        return np.asarray(self.slave.frame.fk(self.slave.data.setpoint))
+
+    def close(self) -> None:
+        self.pair.close()
+
+
+@pytest.fixture
+def arm() -> Any:
+    a = Arm()
+    yield a
+    a.close()
+
+
+def test_the_tool_follows_the_handle_in_position_and_orientation(arm: Arm) -> None:
+    ctl = arm.ctl
+    worst_r = worst_p = 0.0
+    turned = 0.0
+    for k in range(6000):
+        arm.pair.step(1)
+        if k < 100 or k % 50:
+            continue
+        pose = arm.setpoint_pose()
+        # orientation: the handle's rotation since the re-index, applied to the tool's
+        dm = quaternion_to_rotation(ctl.master_quat) @ ctl._rm_ref.T
+        expect_r = dm @ ctl._rs_ref  # rotation (master to slave) is the identity here
+        worst_r = max(worst_r, angle(expect_r, pose[:3, :3]))
+        turned = max(turned, angle(ctl._rs_ref, pose[:3, :3]))
+        # position: slave_ref + scale * (master - master_ref)
+        m, m0, s0 = (np.array(v) for v in (ctl.master_pos, ctl.master_ref, ctl.slave_ref))
+        worst_p = max(worst_p, float(np.linalg.norm(s0 + 0.5 * (m - m0) - pose[:3, 3])))
+    assert arm.slave.state is RobotState.RUNNING
+    assert ctl.ik_failures == 0 and ctl.reindexes == 1
+    assert math.degrees(turned) > 15.0  # the gimbal's +-20 deg about z (and 10 about x, y)
+    assert worst_r < 1e-6, worst_r
+    assert worst_p < 1e-8, worst_p  # metres: 1e-5 mm (the DLS tolerance, 1e-8)
+
+
+def test_the_clutch_reindexes_orientation_without_a_jump(arm: Arm) -> None:
+    arm.pair.step(1500)
+    op = arm.pair.m_op
+    before = arm.setpoint_pose()
+    op.send_command("Clutch", '<Command Name="Clutch" Value="1"/>')
+    arm.pair.step(2000)  # the handle turns and moves on while clutched: the tool holds
+    held = arm.setpoint_pose()
+    assert angle(before[:3, :3], held[:3, :3]) < 0.02 and np.linalg.norm(before[:3, 3] - held[:3, 3]) < 1e-3
+    op.send_command("Clutch", '<Command Name="Clutch" Value="0"/>')
+    arm.pair.step(3)
+    after = arm.setpoint_pose()
+    assert angle(held[:3, :3], after[:3, :3]) < 0.005  # no jump on release: re-indexed
+    assert arm.ctl.reindexes == 2
+
+
+def test_rotation_scale_halves_the_angle() -> None:
+    a = Arm(rotation_scale=0.5)
+    try:
+        a.pair.step(2600)  # a quarter turn of the gimbal: its largest angle
+        ctl = a.ctl
+        handle = angle(ctl._rm_ref, quaternion_to_rotation(ctl.master_quat))
+        tool = angle(ctl._rs_ref, a.setpoint_pose()[:3, :3])
+        assert handle > 0.3
+        assert tool == pytest.approx(0.5 * handle, rel=1e-5)
+    finally:
+        a.close()
+
+
+def test_slicer_sees_the_tools_full_pose(arm: Arm) -> None:
+    slicer = arm.pair.slave.peer("slicer")
+    arm.pair.step(2500)
+    n = len(slicer.messages("TRANSFORM", "Tip"))
+    while len(slicer.messages("TRANSFORM", "Tip")) == n:  # the tick that sends the next one
+        arm.pair.step(1)
+    tip = slicer.messages("TRANSFORM", "Tip")[-1]
+    pose = np.asarray(arm.slave.data.world_tip())  # measured in that tick
+    m = np.asarray(tip.matrix)
+    assert m[:3, :3] == pytest.approx(pose[:3, :3], abs=1e-6)  # float32 on the wire
+    assert m[:3, 3] == pytest.approx(pose[:3, 3] * 1e3, abs=1e-3)
+    assert angle(np.eye(3), pose[:3, :3]) > 0.1  # not the identity: a real orientation
+
+
+# ------------------------------------------------------------------ URDF errors, with lines
+def ur5(tmp: Path, **frame: Any) -> Path:
+    cfg = yaml.safe_load((CONFIGS / "ur5.yaml").read_text())
+    cfg["robot"]["frame"].update(frame)
+    path = tmp / "arm.yaml"
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return path
+
+
+def test_the_ur5_config_loads_from_the_package() -> None:
+    cfg = load_config(CONFIGS / "ur5.yaml")
+    path = cfg.robot.frame.urdf_path()
+    assert path is not None and path.name == "ur5_joint_limited_robot.urdf" and path.is_file()
+
+
+@pytest.mark.parametrize(
+    ("frame", "message"),
+    [
+        ({"tip_link": "gripper"}, "robot.frame.tip_link: no link 'gripper' in the URDF"),
+        ({"package_urdf": "robots/nope.urdf"}, "no file 'robots/nope.urdf' in package"),
+        ({"base_link": "nowhere"}, "robot.frame.base_link: no link 'nowhere'"),
+    ],
+)
+def test_a_frame_the_urdf_does_not_have_is_an_error_with_its_line(
+    tmp_path: Path, frame: dict[str, Any], message: str
+) -> None:
+    path = ur5(tmp_path, **frame)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    text = str(info.value)
+    assert message in text, text
+    assert f"{path}:" in text  # FILE:LINE
+
+
+def test_a_urdf_that_does_not_load_says_why_with_its_line(tmp_path: Path) -> None:
+    (tmp_path / "bad.urdf").write_text(
+        '<robot name="x"><link name="a"/><joint name="j" type="revolute">'
+        '<parent link="a"/><child link="b"/></joint><link name="b"/></robot>'
+    )
+    text = (
+        "robot:\n  name: x\n  frame:\n    urdf: bad.urdf\n    tip_link: b\n"
+        "  joints:\n    - {name: j, type: revolute, limits: {min: -1, max: 1, velocity: 1}}\n"
+        "  drivers:\n    - {name: sim, plugin: sim, joints: [j]}\n"
+    )
+    (tmp_path / "x.yaml").write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(tmp_path / "x.yaml")
+    msg = str(info.value)
+    assert ":4 robot.frame.urdf: the URDF does not load" in msg, msg
+    assert "does not specify limits" in msg  # urdfdom's own reason
+
+
+def test_joints_that_are_not_the_urdfs_are_an_error(tmp_path: Path) -> None:
+    cfg = yaml.safe_load((CONFIGS / "ur5.yaml").read_text())
+    joints = cfg["robot"]["joints"]
+    joints[0], joints[1] = joints[1], joints[0]  # the wrong order
+    with pytest.raises(ConfigError, match="are not the URDF's"):
+        parse_config(yaml.safe_dump(cfg, sort_keys=False))
