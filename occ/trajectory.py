@@ -21,8 +21,15 @@ API::
 **Poses** are plain vectors of any (but one common) dimension: joint positions or a Cartesian
 tip position, the caller's choice. The planner is agnostic: it interpolates each coordinate
 (linear) or the point in R^dim (spline) and measures path length with the Euclidean norm of the
-vector, so mixing units in one pose (metres with radians) weights them as they come. Orientation
-is not interpolated (a quaternion is not a vector); plan joint space or the tip position.
+vector, so mixing units in one pose (metres with radians) weights them as they come.
+
+**Orientation** (a 6-DOF tool, issue 28): keyframes may carry a unit quaternion each (all or
+none). It is not a vector and is not mixed into the path length: :meth:`Trajectory.orientation`
+turns with the segment's *progress* (the position profile's distance over the segment's length,
+so with the same keyframe times and sigmoid ramps; a segment where only the orientation changes
+gets a resting profile of its own), by slerp (``linear``) or Shoemake's squad (``spline``:
+continuous angular velocity through the keyframes). Each keyframe's orientation is met exactly
+at its time.
 
 **Time**: keyframe times are in seconds and strictly increasing; the first keyframe is where the
 motion starts (its time may be 0 or later). Before it the plan holds the first pose, after the
@@ -146,8 +153,10 @@ class Keyframe:
 
     t: float
     pose: tuple[float, ...]
+    #: the tool's orientation, a unit quaternion (x, y, z, w), or None (position only)
+    rotation: tuple[float, float, float, float] | None
 
-    def __init__(self, t: float, pose: ArrayLike) -> None:
+    def __init__(self, t: float, pose: ArrayLike, rotation: ArrayLike | None = None) -> None:
         try:
             values = tuple(float(v) for v in np.asarray(pose, dtype=float).reshape(-1))
             time = float(t)
@@ -163,6 +172,16 @@ class Keyframe:
             raise ValueError(f"keyframe pose must be finite, got {values}")
         object.__setattr__(self, "t", time)
         object.__setattr__(self, "pose", values)
+        quat: tuple[float, float, float, float] | None = None
+        if rotation is not None:
+            q = [float(v) for v in np.asarray(rotation, dtype=float).reshape(-1)]
+            norm = math.sqrt(sum(v * v for v in q)) if len(q) == 4 else 0.0
+            if len(q) != 4 or not all(math.isfinite(v) for v in q) or abs(norm - 1.0) > 1e-3:
+                raise ValueError(
+                    f"keyframe rotation must be a unit quaternion (x, y, z, w), got {q}"
+                )
+            quat = (q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm)
+        object.__setattr__(self, "rotation", quat)
 
 
 # --------------------------------------------------------------------------- the ramp
@@ -463,6 +482,22 @@ class Trajectory:
             _Profile.make(float(durations[i]), lengths[i], ends[i], ends[i + 1], ramp)
             for i in range(segs)
         ]
+        # orientation: a quaternion per keyframe, each the same sign as the one before (the
+        # short way round); played with the segment's own progress (distance / length), so it
+        # turns with the same timing and ramps as the position, or on a resting profile of its
+        # own where the position does not move
+        self.has_rotation = self.keyframes[0].rotation is not None
+        self._quats: list[FloatArray] = []
+        self._unit = [_Profile.make(float(durations[i]), 1.0, 0.0, 0.0, ramp) for i in range(segs)]
+        self._squad: list[FloatArray] = []
+        if self.has_rotation:
+            for k in self.keyframes:
+                q = np.array(k.rotation, dtype=float)
+                if self._quats and float(q @ self._quats[-1]) < 0.0:
+                    q = -q
+                self._quats.append(q)
+            if interpolation == "spline":
+                self._squad = _squad_controls(self._quats)
 
     # ----------------------------------------------------------------- scalar evaluation
 
@@ -487,6 +522,34 @@ class Trajectory:
         if self._tables:
             return _cubic(self._coef[i], self._tables[i].param(d)[0])
         return _cubic(self._coef[i], d)
+
+    def progress(self, t: float) -> tuple[int, float]:
+        """The segment at ``t`` and how far along it the motion is, in [0, 1]: the profile's
+        distance over the segment's length (exactly 1 at its end keyframe), or, where the
+        position does not move, a resting profile of the segment's own."""
+        i, tau = self._locate(t)
+        length = self.lengths[i]
+        if length > 0.0:
+            return i, min(1.0, self._profiles[i].distance(tau, self._r) / length)
+        return i, min(1.0, self._unit[i].distance(tau, self._r))
+
+    def orientation(self, t: float) -> FloatArray:
+        """The tool's orientation at ``t``: a unit quaternion (x, y, z, w); slerp between
+        keyframes (``linear``) or squad through them (``spline``: continuous angular velocity at
+        the keyframes), with the position's timing. Each keyframe's quaternion exactly at its
+        time (up to its sign). ValueError for a plan without orientation."""
+        if not self.has_rotation:
+            raise ValueError("this plan has no orientation (its keyframes have no rotation)")
+        if t <= self.start:
+            return self._quats[0].copy()
+        if t >= self.end:
+            return self._quats[-1].copy()
+        i, u = self.progress(t)
+        q0, q1 = self._quats[i], self._quats[i + 1]
+        if not self._squad:
+            return _slerp(q0, q1, u)
+        s0, s1 = self._squad[i], self._squad[i + 1]
+        return _slerp(_slerp(q0, q1, u), _slerp(s0, s1, u), 2.0 * u * (1.0 - u))
 
     def velocity(self, t: float) -> FloatArray:
         """The velocity at time ``t`` (pose units per second); zero outside the motion.
@@ -540,6 +603,74 @@ class Trajectory:
         )
 
 
+# ----------------------------------------------------------------------- quaternions (x, y, z, w)
+
+
+def _qmul(a: FloatArray, b: FloatArray) -> FloatArray:
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return np.array(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ]
+    )
+
+
+def _qconj(q: FloatArray) -> FloatArray:
+    return np.array([-q[0], -q[1], -q[2], q[3]])
+
+
+def _qlog(q: FloatArray) -> FloatArray:
+    """The pure quaternion log of a unit quaternion: (axis * half angle, 0)."""
+    v = q[:3]
+    n = float(np.linalg.norm(v))
+    if n < 1e-15:
+        return np.zeros(4)
+    angle = math.atan2(n, float(q[3]))
+    return np.append(v / n * angle, 0.0)
+
+
+def _qexp(p: FloatArray) -> FloatArray:
+    v = p[:3]
+    a = float(np.linalg.norm(v))
+    if a < 1e-15:
+        return np.array([0.0, 0.0, 0.0, 1.0])
+    return np.append(v / a * math.sin(a), math.cos(a))
+
+
+def _slerp(q0: FloatArray, q1: FloatArray, u: float) -> FloatArray:
+    """Spherical linear interpolation, exactly ``q0`` at 0 and ``q1`` at 1."""
+    if u <= 0.0:
+        return q0.copy()
+    if u >= 1.0:
+        return q1.copy()
+    d = float(q0 @ q1)
+    if d < 0.0:
+        q1, d = -q1, -d
+    if d > 1.0 - 1e-12:  # nearly the same: the chord
+        q = q0 + u * (q1 - q0)
+        return np.asarray(q / np.linalg.norm(q))
+    theta = math.acos(d)
+    s = math.sin(theta)
+    return np.asarray((math.sin((1.0 - u) * theta) / s) * q0 + (math.sin(u * theta) / s) * q1)
+
+
+def _squad_controls(qs: list[FloatArray]) -> list[FloatArray]:
+    """Shoemake's squad control points: ``s_k = q_k exp(-(log(q_k^-1 q_k+1) + log(q_k^-1
+    q_k-1)) / 4)`` (the ends their own keyframes)."""
+    out = [qs[0].copy()]
+    for k in range(1, len(qs) - 1):
+        inv = _qconj(qs[k])
+        a = _qlog(_qmul(inv, qs[k + 1]))
+        b = _qlog(_qmul(inv, qs[k - 1]))
+        out.append(_qmul(qs[k], _qexp(-(a + b) / 4.0)))
+    out.append(qs[-1].copy())
+    return out
+
+
 def _check_steepness(steepness: float) -> None:
     if not (isinstance(steepness, int | float) and math.isfinite(steepness) and steepness > 0):
         raise ValueError(f"steepness must be a finite number > 0, got {steepness!r}")
@@ -579,6 +710,12 @@ def plan(
             raise ValueError(
                 f"keyframe {i} has a pose of dimension {len(k.pose)}, keyframe 0 has {dim}"
             )
+    with_rotation = [k.rotation is not None for k in frames]
+    if any(with_rotation) and not all(with_rotation):
+        missing = with_rotation.index(False)
+        raise ValueError(
+            f"keyframe {missing} has no rotation: in a plan with orientation every keyframe has one"
+        )
     for i in range(1, len(frames)):
         if not frames[i].t > frames[i - 1].t:
             raise ValueError(

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -336,3 +337,73 @@ def test_property_keyframes_met_and_speeds_finite(
     pos, vel = traj.sample(ts)
     assert np.isfinite(pos).all() and np.isfinite(vel).all()
     assert traj.speed(traj.start) == 0.0 and traj.speed(traj.end) == 0.0
+
+
+# ------------------------------------------------------------------ orientation (issue 28)
+def _quat(axis: tuple[float, float, float], angle: float) -> tuple[float, float, float, float]:
+    n = math.sqrt(sum(a * a for a in axis))
+    s = math.sin(angle / 2.0)
+    return (axis[0] / n * s, axis[1] / n * s, axis[2] / n * s, math.cos(angle / 2.0))
+
+
+def _angle(a: Any, b: Any) -> float:
+    d = abs(float(np.dot(a, b)))
+    return 2.0 * math.acos(min(1.0, d))
+
+
+ORIENTED = [
+    Keyframe(0.0, [0.0, 0.0, 0.0], _quat((0, 0, 1), 0.0)),
+    Keyframe(2.0, [0.1, 0.0, 0.0], _quat((0, 0, 1), 1.2)),
+    Keyframe(3.0, [0.1, 0.0, 0.0], _quat((1, 0, 0), 0.8)),  # a turn in place
+    Keyframe(5.0, [0.1, 0.05, 0.02], _quat((0, 1, 1), -0.5)),
+]
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "spline"])
+@pytest.mark.parametrize("mode", ["stop", "continuous"])
+def test_orientation_is_met_exactly_at_every_keyframe(interpolation: str, mode: str) -> None:
+    traj = plan(ORIENTED, interpolation=interpolation, mode=mode)  # type: ignore[arg-type]
+    for k in ORIENTED:
+        q = traj.orientation(k.t)
+        assert _angle(q, k.rotation) < 1e-9, (k.t, q, k.rotation)
+        assert abs(float(np.linalg.norm(q)) - 1.0) < 1e-12
+    # and just before each: the approach is continuous (no jump into the keyframe)
+    for k in ORIENTED[1:]:
+        assert _angle(traj.orientation(k.t - 1e-6), k.rotation) < 1e-4
+
+
+def test_orientation_turns_with_the_positions_sigmoid_timing() -> None:
+    """On a stop segment the turned share of the angle is the travelled share of the path: the
+    same sigmoid ramps, at rest at both keyframes."""
+    traj = plan(ORIENTED[:2], interpolation="linear", mode="stop")
+    for t in (0.1, 0.5, 1.0, 1.5, 1.9):
+        share_path = float(traj.position(t)[0]) / 0.1
+        share_angle = _angle(traj.orientation(t), ORIENTED[0].rotation) / 1.2
+        assert share_angle == pytest.approx(share_path, abs=1e-9)
+    # a turn in place (no path): its own resting profile, symmetric, half way at mid time
+    traj_turn = plan(ORIENTED[1:3])
+    mid = _angle(traj_turn.orientation(2.5), ORIENTED[1].rotation)
+    assert mid == pytest.approx(_angle(ORIENTED[1].rotation, ORIENTED[2].rotation) / 2, rel=1e-9)
+    assert traj_turn.orientation(2.0) == pytest.approx(np.array(ORIENTED[1].rotation))
+
+
+def test_squad_has_no_angular_velocity_step_at_an_interior_keyframe() -> None:
+    """Spline + continuous: the angular velocity just before and just after an interior
+    keyframe agree (slerp's would step: it is piecewise geodesic)."""
+    frames = [ORIENTED[0], ORIENTED[1], Keyframe(4.0, [0.2, 0.0, 0.0], _quat((0, 0, 1), 2.0))]
+    h = 1e-5
+
+    def omega(traj: Any, t: float) -> float:
+        return _angle(traj.orientation(t + h), traj.orientation(t - h)) / (2 * h)
+
+    sq = plan(frames, interpolation="spline", mode="continuous")
+    assert omega(sq, 2.0 - 1e-3) == pytest.approx(omega(sq, 2.0 + 1e-3), rel=0.02)
+
+
+def test_orientation_all_or_none_and_unit() -> None:
+    with pytest.raises(ValueError, match="keyframe 1 has no rotation"):
+        plan([ORIENTED[0], Keyframe(1.0, [0.0, 0.0, 0.0])])
+    with pytest.raises(ValueError, match="unit quaternion"):
+        Keyframe(0.0, [0.0], (0.0, 0.0, 0.0, 2.0))
+    with pytest.raises(ValueError, match="no orientation"):
+        plan([Keyframe(0.0, [0.0]), Keyframe(1.0, [1.0])]).orientation(0.5)
