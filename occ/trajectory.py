@@ -491,10 +491,10 @@ class Trajectory:
         self._unit = [_Profile.make(float(durations[i]), 1.0, 0.0, 0.0, ramp) for i in range(segs)]
         self._squad: list[FloatArray] = []
         if self.has_rotation:
-            for k in self.keyframes:
-                q = np.array(k.rotation, dtype=float)
+            for frame in self.keyframes:
+                q: FloatArray = np.array(frame.rotation, dtype=np.float64)
                 if self._quats and float(q @ self._quats[-1]) < 0.0:
-                    q = -q
+                    q = np.negative(q)
                 self._quats.append(q)
             if interpolation == "spline":
                 self._squad = _squad_controls(self._quats)
