@@ -9,6 +9,7 @@
      |    +-- LimitError          a command violated a joint limit and the policy is "fault"
      +-- KinematicsError          no inverse-kinematics solution, singular pose, bad model
      +-- CommandError             an operator command is unknown or malformed
+ +-- LibraryError             the trajectory library refused or failed (occ/trajlib.py)
 
 ``ValueError``/``TypeError`` remain for programming mistakes (bad arguments).
 """
@@ -64,3 +65,8 @@ class KinematicsError(OCCError):
 
 class CommandError(OCCError):
     """An operator command was unknown, malformed or refused."""
+
+
+class LibraryError(OCCError):
+    """The trajectory library (occ/trajlib.py) refused a request (a bad or unknown name, a set
+    of another robot) or its file is unusable (not a library, a newer schema, locked)."""
