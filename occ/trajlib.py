@@ -36,17 +36,17 @@ Safety of the file
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import json
 import math
 import re
 import sqlite3
 from collections.abc import Iterator, Sequence
-import dataclasses
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from .errors import LibraryError, caused
 
@@ -64,7 +64,7 @@ HASH_RECIPE = "occ-robot-config-v1"
 
 _SCHEMA = (
     """CREATE TABLE keyframe_sets (
-        id INTEGER PRIMARY KEY,
+        id INTEGER PRIMARY KEY AUTOINCREMENT,
         robot TEXT NOT NULL,
         name TEXT NOT NULL,
         config_hash TEXT NOT NULL,
@@ -108,9 +108,9 @@ def config_hash(frame: Frame, joint_names: Sequence[str]) -> str:
     order and the kinematic chain pinocchio built (joint types, axes, parents, placements to
     1e-9, the tip and base links and their placements). Limits and drivers are left out."""
 
-    def mat(m: object) -> list[float]:
+    def mat(m: Any) -> list[float]:
         # -0.0 and 0.0 hash alike; 1e-9 m or rad hides float noise of a re-parsed URDF
-        return [round(float(v), 9) + 0.0 for v in getattr(m, "homogeneous").reshape(-1)]
+        return [round(float(v), 9) + 0.0 for v in m.homogeneous.reshape(-1)]
 
     model = frame.model
     chain = []
@@ -223,6 +223,17 @@ class Library:
             raise
         db.execute("COMMIT")
 
+    @staticmethod
+    @contextlib.contextmanager
+    def _read(db: sqlite3.Connection) -> Iterator[None]:
+        """One read transaction: its statements see one snapshot (a set and its keyframes
+        from the same save, even while another process replaces it)."""
+        db.execute("BEGIN")
+        try:
+            yield
+        finally:
+            db.execute("COMMIT")
+
     def _prepare(self, db: sqlite3.Connection) -> None:
         app, version, tables = self._identity(db)
         if app == 0 and version == 0 and not tables:
@@ -330,7 +341,7 @@ class Library:
         for another robot (the name is only another robot's), or with another kinematic
         configuration (``config_hash`` differs), or when it is damaged."""
         name = check_name(name)
-        with self._connect() as db:
+        with self._connect() as db, self._read(db):
             head = db.execute(
                 "SELECT id, robot, name, config_hash, space, interpolation, mode, steepness, "
                 "ramp, duration_s, keyframe_count, joint_names, source, saved_at "
@@ -347,7 +358,7 @@ class Library:
                 if others:
                     raise LibraryError(
                         f"{name!r} was saved for robot {', '.join(map(repr, others))}, not for "
-                        f"this robot ({robot!r}); a plan from another robot never loads"
+                        f"this robot {robot!r}; a plan from another robot never loads"
                     )
                 raise LibraryError(f"no set named {name!r} for robot {robot!r}")
             rows = db.execute(
@@ -395,7 +406,7 @@ class Library:
 
     def entries(self, limit: int = 1000) -> tuple[list[Entry], int]:
         """Up to ``limit`` sets, by robot then name, and how many there are in all."""
-        with self._connect() as db:
+        with self._connect() as db, self._read(db):
             total = db.execute("SELECT count(*) FROM keyframe_sets").fetchone()[0]
             rows = db.execute(
                 "SELECT name, robot, config_hash, space, interpolation, mode, keyframe_count, "

@@ -67,6 +67,19 @@ Stop
     and ``KeyframeAck`` run them again. The refused, stopped or finished state is in
     ``KeyframeList`` and the statistics.
 
+The trajectory library (issue 28; :mod:`occ.trajlib`, ``params.library``)
+    ``KeyframeSave Name=N [Replace=1]`` keeps the stored set in an SQLite file under a name,
+    with the settings of the plan that ran it, the robot's name and the hash of its kinematic
+    configuration; only a set whose plan was acknowledged (and not changed since) is saved; a
+    name taken needs ``Replace=1``. ``KeyframeLibrary`` lists the file's sets (robot, count,
+    duration, time saved), ``KeyframeDelete Name=N`` deletes one of this robot's.
+    ``KeyframeLoad Name=N`` makes a saved set the stored one, as ``KeyframeLoad File=...``
+    does, its plan settings the defaults of the next ``KeyframePlan``; it never runs on load:
+    it is planned, checked, previewed and acknowledged again. A set saved by another robot, or
+    with another kinematic configuration, is refused with the reason. The file work runs on
+    the planner thread, answered by a :class:`~occ.commands.Deferred` like a plan (a request
+    while it is busy is refused "busy").
+
 Forbidden regions (the collision check)
     :class:`ForbiddenCheck`: any callable taking a tip position (metres, robot base frame) and
     returning something false when it is free, or True / a short description (named in the
@@ -79,6 +92,7 @@ Forbidden regions (the collision check)
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -106,17 +120,19 @@ from ..config import (
     Int,
     Name,
     NonNegFloat,
+    OutputPath,
     PosFloat,
     Vec3,
     _resolve_path,
 )
-from ..errors import CommandError, ConfigError, KinematicsError
+from ..errors import CommandError, ConfigError, KinematicsError, LibraryError
 from ..fixtures import ForbiddenPlane, ForbiddenSphere, forbidden_hit
 from ..joint import JointLimits
 from ..keyframe_inputs import items_from_message
 from ..outputs import PointsOut, PolylineOut
 from ..safety import RobotState
 from ..trajectory import Keyframe, Trajectory, plan
+from ..trajlib import Library, SavedSet, check_name, config_hash
 from . import Controller, ControllerContext, Problem, SourceFn
 
 if TYPE_CHECKING:
@@ -146,6 +162,9 @@ PACE_BEFORE_S = 200e-6
 PACE_AFTER_S = 350e-6
 PACE_HANDBACK_S = 10e-6
 PACE_MODE = "phase"
+#: most sets KeyframeLibrary lists (a reply is one command message)
+MAX_LIBRARY_LINES = 200
+_FLAGS = {"1": True, "true": True, "yes": True, "0": False, "false": False, "no": False}
 
 
 class ForbiddenCheck(Protocol):
@@ -223,6 +242,13 @@ class KeyframeParams(_Model):
         description="An existing folder KeyframeLoad may read from (names inside it only), "
         "relative to the config file's folder; null = the command is refused.",
     )
+    library: OutputPath | None = Field(
+        None,
+        description="The trajectory library: an SQLite file (created if missing, in an "
+        "existing folder; relative to the config file's folder) where KeyframeSave keeps "
+        "acknowledged keyframe sets by name for KeyframeLoad Name=...; null = no library, the "
+        "library commands are refused.",
+    )
     interpolation: Literal["linear", "spline"] = Field(
         "linear", description="Default interpolation of KeyframePlan."
     )
@@ -278,6 +304,17 @@ class KeyframeParams(_Model):
 
 # ------------------------------------------------------------------------------ keyframe sets
 @dataclass(frozen=True)
+class PlanSettings:
+    """How a set is planned (KeyframePlan's arguments): kept with an acknowledged plan, saved
+    with it in the library and the defaults of the next KeyframePlan of the set loaded back."""
+
+    interpolation: Literal["linear", "spline"]
+    mode: Literal["stop", "continuous"]
+    steepness: float
+    ramp: float
+
+
+@dataclass(frozen=True)
 class KeyframeSet:
     """One timeline: keyframes in their own units (joint SI, or Cartesian mm world)."""
 
@@ -285,6 +322,8 @@ class KeyframeSet:
     keyframes: tuple[Keyframe, ...]
     names: tuple[str, ...]
     source: str
+    #: the plan settings it was saved with (a set from the library), else None: the params'
+    settings: PlanSettings | None = None
 
     def label(self, i: int) -> str:
         name = self.names[i]
@@ -459,6 +498,9 @@ class CheckedPlan:
     peak: tuple[str, float]  # the joint closest to its velocity limit, and the share used
     summary: str
     ticks: int
+    #: the set it was planned from, and how (what KeyframeSave stores once it is acknowledged)
+    kset: KeyframeSet | None = None
+    settings: PlanSettings | None = None
 
 
 def _where(t: float, times: Sequence[float], labels: Sequence[str], period: float) -> str:
@@ -633,6 +675,8 @@ def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
         peak=peak,
         summary=summary,
         ticks=ticks,
+        kset=kset,
+        settings=PlanSettings(req.interpolation, req.mode, req.steepness, req.ramp),
     )
 
 
@@ -732,6 +776,9 @@ class KeyframeController(Controller):
         "KeyframeLoad",
         "KeyframePlan",
         "KeyframeAck",
+        "KeyframeSave",
+        "KeyframeLibrary",
+        "KeyframeDelete",
     )
 
     def __init__(self, params: BaseModel | dict[str, Any] | None = None) -> None:
@@ -756,6 +803,13 @@ class KeyframeController(Controller):
         self._preview = _PreviewState()
         self._frame_planner: Frame | None = None
         self._log_limit = RateLimit(5)
+        # the trajectory library (occ/trajlib.py; used on the planner thread only)
+        self.library: Library | None = None
+        self.robot_name = ""
+        self.config_hash = ""
+        #: the last plan acknowledged (loop thread): KeyframeSave stores its set while the
+        #: stored keyframes are still that set
+        self._acked: CheckedPlan | None = None
         self.counters = {
             "sets": 0,
             "inputs_refused": 0,
@@ -765,6 +819,10 @@ class KeyframeController(Controller):
             "runs_completed": 0,
             "runs_stopped": 0,
             "ik_failures": 0,
+            "library_saved": 0,
+            "library_loaded": 0,
+            "library_deleted": 0,
+            "library_refused": 0,
         }
         self.last_error = ""
 
@@ -805,6 +863,10 @@ class KeyframeController(Controller):
                 )
             except ValueError as err:
                 problems.append((("file",), str(err)))
+        if params.library is not None and not Path(params.library).parent.is_dir():
+            problems.append(
+                (("library",), f"the folder {Path(params.library).parent} does not exist")
+            )
         if params.preview_required and not any(
             o.source == "keyframe-path" for i in config.interfaces for o in i.outputs
         ):
@@ -830,6 +892,13 @@ class KeyframeController(Controller):
         )
         p = self.p
         n = len(data.joint_names)
+        self.robot_name = data.name
+        self.config_hash = config_hash(ctx.frame, data.joint_names)
+        if p.library is not None:
+            try:
+                self.library = Library(p.library)
+            except LibraryError as err:
+                raise ConfigError(f"controller keyframe: library: {err}") from err
         try:
             if p.keyframes:
                 kf = KeyframeFile(keyframes=p.keyframes)
@@ -946,6 +1015,12 @@ class KeyframeController(Controller):
             return self._cmd_plan(args)
         if key == "keyframeack":
             return self._cmd_ack(args, now)
+        if key == "keyframesave":
+            return self._cmd_save(args)
+        if key == "keyframelibrary":
+            return self._cmd_library()
+        if key == "keyframedelete":
+            return self._cmd_delete(args)
         raise CommandError(f"unknown command {request.name!r}")
 
     def _cmd_add(self, args: dict[str, str]) -> str:
@@ -988,12 +1063,21 @@ class KeyframeController(Controller):
         return f"{len(kset.keyframes)} keyframes ({space}); send KeyframePlan"
 
     def _cmd_load(self, args: dict[str, str]) -> Deferred:
+        if "name" in args:
+            if "file" in args:
+                raise CommandError(
+                    "KeyframeLoad takes File (a file) or Name (the library), not both"
+                )
+            return self._cmd_load_saved(args)
         folder = self.p.keyframe_dir
         if folder is None:
             raise CommandError("KeyframeLoad is off: no keyframe_dir in the configuration")
         name = args.get("file", "").strip()
         if not name:
-            raise CommandError("KeyframeLoad needs File (a name in the keyframe folder)")
+            raise CommandError(
+                "KeyframeLoad needs File (a name in the keyframe folder) or Name (a set in the "
+                "library)"
+            )
         root = Path(folder).resolve()
         path = (root / name).resolve()
         if root not in path.parents or Path(name).is_absolute():
@@ -1020,6 +1104,179 @@ class KeyframeController(Controller):
 
         return self._start(job)
 
+    # ------------------------------------------------------------------ the library
+    def _need_library(self, command: str) -> Library:
+        if self.library is None:
+            raise CommandError(
+                f"{command}: there is no trajectory library in the configuration (the keyframe "
+                "controller's `library` parameter)"
+            )
+        return self.library
+
+    @staticmethod
+    def _name_arg(command: str, args: dict[str, str]) -> str:
+        if not args.get("name", "").strip():
+            raise CommandError(f"{command} needs Name (the set's name in the library)")
+        try:
+            return check_name(args["name"])
+        except LibraryError as err:
+            raise CommandError(f"{command}: {err}") from None
+
+    def _library_refused(self, answer: Deferred, text: str) -> None:
+        with self._lock:
+            self.counters["library_refused"] += 1
+            self.last_error = text
+        answer.fail(text)
+
+    def _cmd_save(self, args: dict[str, str]) -> Deferred:
+        library = self._need_library("KeyframeSave")
+        name = self._name_arg("KeyframeSave", args)
+        flag = args.get("replace", "0").strip().lower()
+        if flag not in _FLAGS:
+            raise CommandError(f"KeyframeSave: Replace must be 1 or 0, got {flag!r}")
+        replace = _FLAGS[flag]
+        acked, kset = self._acked, self.kset
+        if acked is None or acked.kset is None or acked.settings is None:
+            raise CommandError(
+                "KeyframeSave: only a planned and acknowledged set is saved: KeyframePlan, "
+                "KeyframeAck, then KeyframeSave"
+            )
+        if acked.kset is not kset:
+            raise CommandError(
+                f"KeyframeSave: the keyframes changed since plan {acked.id} was acknowledged; "
+                "plan and acknowledge them before saving"
+            )
+        assert self.data is not None
+        st = acked.settings
+        saved = SavedSet(
+            name=name,
+            robot=self.robot_name,
+            config_hash=self.config_hash,
+            space=kset.space,
+            interpolation=st.interpolation,
+            mode=st.mode,
+            steepness=st.steepness,
+            ramp=st.ramp,
+            duration_s=acked.traj.duration,
+            keyframes=tuple(
+                (k.t, k.pose, label) for k, label in zip(kset.keyframes, kset.names, strict=True)
+            ),
+            joint_names=self.data.joint_names,
+            source=kset.source,
+        )
+
+        def job(answer: Deferred) -> None:
+            try:
+                stored, replaced = library.save(saved, replace=replace)
+            except LibraryError as err:
+                self._library_refused(answer, f"KeyframeSave refused: {err}")
+                return
+            with self._lock:
+                self.counters["library_saved"] += 1
+            answer.resolve(
+                f"{'replaced' if replaced else 'saved'} {name!r}: {len(saved.keyframes)} "
+                f"keyframes ({saved.space}, {st.interpolation}, {st.mode}), "
+                f"{saved.duration_s:.3f} s, plan {acked.id}, robot {saved.robot!r} (config "
+                f"{saved.config_hash[:12]}), at {stored.saved_at}"
+            )
+
+        return self._start(job)
+
+    def _cmd_load_saved(self, args: dict[str, str]) -> Deferred:
+        library = self._need_library("KeyframeLoad Name=...")
+        name = self._name_arg("KeyframeLoad", args)
+        assert self.data is not None
+        joints, cap = len(self.data.joint_names), self.p.max_keyframes
+        robot, digest = self.robot_name, self.config_hash
+        generation = self._generation
+
+        def job(answer: Deferred) -> None:
+            try:
+                saved = library.load(robot, name, digest)
+                kset = make_set(
+                    saved.space,  # type: ignore[arg-type]
+                    list(saved.keyframes),
+                    f"library {name}",
+                    joints=joints,
+                    max_keyframes=cap,
+                )
+                if saved.interpolation not in ("linear", "spline") or saved.mode not in (
+                    "stop",
+                    "continuous",
+                ):
+                    raise ValueError(f"unknown plan settings {saved.interpolation}/{saved.mode}")
+            except (LibraryError, ValueError) as err:
+                self._library_refused(answer, f"KeyframeLoad refused: {err}")
+                return
+            settings = PlanSettings(
+                saved.interpolation,  # type: ignore[arg-type]
+                saved.mode,  # type: ignore[arg-type]
+                saved.steepness,
+                saved.ramp,
+            )
+            with self._lock:
+                superseded = self._generation != generation
+            if superseded:
+                answer.fail("KeyframeLoad: the keyframes changed meanwhile; load again")
+                return
+            self._install(dataclasses.replace(kset, settings=settings))
+            with self._lock:
+                self.counters["library_loaded"] += 1
+            answer.resolve(
+                f"{len(kset.keyframes)} keyframes ({kset.space}) from the library: {name!r}, "
+                f"saved {saved.saved_at} ({saved.interpolation}, {saved.mode}, "
+                f"{saved.duration_s:.3f} s); it does not run by itself: send KeyframePlan, "
+                "look at the preview, then KeyframeAck"
+            )
+
+        return self._start(job)
+
+    def _cmd_delete(self, args: dict[str, str]) -> Deferred:
+        library = self._need_library("KeyframeDelete")
+        name = self._name_arg("KeyframeDelete", args)
+        robot = self.robot_name
+
+        def job(answer: Deferred) -> None:
+            try:
+                library.delete(robot, name)
+            except LibraryError as err:
+                self._library_refused(answer, f"KeyframeDelete refused: {err}")
+                return
+            with self._lock:
+                self.counters["library_deleted"] += 1
+            answer.resolve(f"deleted {name!r} (robot {robot!r}) from the library")
+
+        return self._start(job)
+
+    def _cmd_library(self) -> Deferred:
+        library = self._need_library("KeyframeLibrary")
+        robot, digest = self.robot_name, self.config_hash
+
+        def job(answer: Deferred) -> None:
+            try:
+                entries, total = library.entries(MAX_LIBRARY_LINES)
+            except LibraryError as err:
+                self._library_refused(answer, f"KeyframeLibrary: {err}")
+                return
+            lines = [f"{total} saved sets in {library.path.name}; this robot: {robot!r}"]
+            for e in entries:
+                if e.robot != robot:
+                    mark = " [another robot: not loadable here]"
+                elif e.config_hash != digest:
+                    mark = " [another kinematic configuration: refused]"
+                else:
+                    mark = ""
+                lines.append(
+                    f"  {e.name}: robot {e.robot!r}, {e.keyframe_count} keyframes ({e.space}, "
+                    f"{e.interpolation}, {e.mode}), {e.duration_s:.3f} s, saved {e.saved_at}"
+                    f"{mark}"
+                )
+            if total > len(entries):
+                lines.append(f"  ... and {total - len(entries)} more")
+            answer.resolve("\n".join(lines))
+
+        return self._start(job)
+
     def _cmd_plan(self, args: dict[str, str]) -> Deferred:
         data, ctx, p = self.data, self.ctx, self.p
         assert data is not None and ctx is not None
@@ -1028,15 +1285,17 @@ class KeyframeController(Controller):
             raise CommandError("no keyframes to plan: load or send some first")
         if self.active is not None:
             raise CommandError(f"plan {self.active.id} is running; wait or Stop")
-        interpolation = args.get("interpolation", p.interpolation).strip().lower()
-        mode = args.get("mode", p.mode).strip().lower()
+        # a set from the library is planned as it was saved, unless told otherwise
+        given = kset.settings or PlanSettings(p.interpolation, p.mode, p.steepness, p.ramp)
+        interpolation = args.get("interpolation", given.interpolation).strip().lower()
+        mode = args.get("mode", given.mode).strip().lower()
         if interpolation not in ("linear", "spline"):
             raise CommandError(f"Interpolation must be linear or spline, got {interpolation!r}")
         if mode not in ("stop", "continuous"):
             raise CommandError(f"Mode must be stop or continuous, got {mode!r}")
         try:
-            steepness = float(args.get("steepness", p.steepness))
-            ramp = float(args.get("ramp", p.ramp))
+            steepness = float(args.get("steepness", given.steepness))
+            ramp = float(args.get("ramp", given.ramp))
         except ValueError as err:
             raise CommandError(f"KeyframePlan: {err}") from None
         if not (math.isfinite(steepness) and steepness > 0):
@@ -1139,6 +1398,7 @@ class KeyframeController(Controller):
                 f"({away:.3g} rad/m); plan again"
             )
         self.active = pending
+        self._acked = pending
         self._t0 = now
         self._q_last = list(pending.q_start)
         self.counters["runs"] += 1
@@ -1278,11 +1538,16 @@ class KeyframeController(Controller):
                 pose = " ".join(f"{v:.6g}" for v in k.pose)
                 name = f" {kset.names[i]!r}" if kset.names[i] else ""
                 lines.append(f"  #{i}{name} t={k.t:g} s pose=[{pose}] {unit}")
+        acked = self._acked
+        if acked is not None and kset is not None and acked.kset is kset:
+            lines.append(f"acknowledged: plan {acked.id} (KeyframeSave Name=... keeps the set)")
         pending = self.plan
         if pending is not None:
             lines.append(f"previewed: {pending.summary}")
         if self.active is not None:
             lines.append(f"running: plan {self.active.id}")
+        if self.library is not None:
+            lines.append(f"library: {self.library.path} (KeyframeLibrary lists it)")
         return "\n".join(lines)
 
     def shutdown(self) -> None:
