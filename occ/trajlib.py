@@ -1,7 +1,7 @@
 """The trajectory library: keyframe sets saved by name in an embedded SQLite database (issue 28).
 
 The German Heart Center system kept its trajectories in a database; here a planned and
-acknowledged keyframe set is saved under a name (``KeyframeSave Name=...`` on the ``keyframe``
+acknowledged keyframe set is saved under a name (``KeyframeSave Set=...`` on the ``keyframe``
 controller, occ/controllers/keyframe.py), listed, loaded again after a restart and deleted.
 This module is the database and nothing else: no robot, no loop, no commands. It takes and
 gives :class:`SavedSet` values; the controller turns them into keyframe sets.

@@ -68,17 +68,18 @@ Stop
     ``KeyframeList`` and the statistics.
 
 The trajectory library (issue 28; :mod:`occ.trajlib`, ``params.library``)
-    ``KeyframeSave Name=N [Replace=1]`` keeps the stored set in an SQLite file under a name,
+    ``KeyframeSave Set=N [Replace=1]`` keeps the stored set in an SQLite file under a name,
     with the settings of the plan that ran it, the robot's name and the hash of its kinematic
     configuration; only a set whose plan was acknowledged (and not changed since) is saved; a
     name taken needs ``Replace=1``. ``KeyframeLibrary`` lists the file's sets (robot, count,
-    duration, time saved), ``KeyframeDelete Name=N`` deletes one of this robot's.
-    ``KeyframeLoad Name=N`` makes a saved set the stored one, as ``KeyframeLoad File=...``
+    duration, time saved), ``KeyframeDelete Set=N`` deletes one of this robot's.
+    ``KeyframeLoad Set=N`` makes a saved set the stored one, as ``KeyframeLoad File=...``
     does, its plan settings the defaults of the next ``KeyframePlan``; it never runs on load:
     it is planned, checked, previewed and acknowledged again. A set saved by another robot, or
     with another kinematic configuration, is refused with the reason. The file work runs on
     the planner thread, answered by a :class:`~occ.commands.Deferred` like a plan (a request
-    while it is busy is refused "busy").
+    while it is busy is refused "busy"). The argument is ``Set``, not ``Name``: in the XML form
+    ``Name`` is the command's own name (PlusServer's convention, :mod:`occ.commands`).
 
 Forbidden regions (the collision check)
     :class:`ForbiddenCheck`: any callable taking a tip position (metres, robot base frame) and
@@ -246,7 +247,7 @@ class KeyframeParams(_Model):
         None,
         description="The trajectory library: an SQLite file (created if missing, in an "
         "existing folder; relative to the config file's folder) where KeyframeSave keeps "
-        "acknowledged keyframe sets by name for KeyframeLoad Name=...; null = no library, the "
+        "acknowledged keyframe sets by name for KeyframeLoad Set=...; null = no library, the "
         "library commands are refused.",
     )
     interpolation: Literal["linear", "spline"] = Field(
@@ -1063,10 +1064,10 @@ class KeyframeController(Controller):
         return f"{len(kset.keyframes)} keyframes ({space}); send KeyframePlan"
 
     def _cmd_load(self, args: dict[str, str]) -> Deferred:
-        if "name" in args:
+        if "set" in args:
             if "file" in args:
                 raise CommandError(
-                    "KeyframeLoad takes File (a file) or Name (the library), not both"
+                    "KeyframeLoad takes File (a file) or Set (the library), not both"
                 )
             return self._cmd_load_saved(args)
         folder = self.p.keyframe_dir
@@ -1075,7 +1076,7 @@ class KeyframeController(Controller):
         name = args.get("file", "").strip()
         if not name:
             raise CommandError(
-                "KeyframeLoad needs File (a name in the keyframe folder) or Name (a set in the "
+                "KeyframeLoad needs File (a name in the keyframe folder) or Set (a set in the "
                 "library)"
             )
         root = Path(folder).resolve()
@@ -1115,10 +1116,10 @@ class KeyframeController(Controller):
 
     @staticmethod
     def _name_arg(command: str, args: dict[str, str]) -> str:
-        if not args.get("name", "").strip():
-            raise CommandError(f"{command} needs Name (the set's name in the library)")
+        if not args.get("set", "").strip():
+            raise CommandError(f"{command} needs Set (the set's name in the library)")
         try:
-            return check_name(args["name"])
+            return check_name(args["set"])
         except LibraryError as err:
             raise CommandError(f"{command}: {err}") from None
 
@@ -1183,7 +1184,7 @@ class KeyframeController(Controller):
         return self._start(job)
 
     def _cmd_load_saved(self, args: dict[str, str]) -> Deferred:
-        library = self._need_library("KeyframeLoad Name=...")
+        library = self._need_library("KeyframeLoad Set=...")
         name = self._name_arg("KeyframeLoad", args)
         assert self.data is not None
         joints, cap = len(self.data.joint_names), self.p.max_keyframes
@@ -1258,7 +1259,8 @@ class KeyframeController(Controller):
             except LibraryError as err:
                 self._library_refused(answer, f"KeyframeLibrary: {err}")
                 return
-            lines = [f"{total} saved sets in {library.path.name}; this robot: {robot!r}"]
+            sets = "1 saved set" if total == 1 else f"{total} saved sets"
+            lines = [f"{sets} in {library.path.name}; this robot: {robot!r}"]
             for e in entries:
                 if e.robot != robot:
                     mark = " [another robot: not loadable here]"
@@ -1540,7 +1542,7 @@ class KeyframeController(Controller):
                 lines.append(f"  #{i}{name} t={k.t:g} s pose=[{pose}] {unit}")
         acked = self._acked
         if acked is not None and kset is not None and acked.kset is kset:
-            lines.append(f"acknowledged: plan {acked.id} (KeyframeSave Name=... keeps the set)")
+            lines.append(f"acknowledged: plan {acked.id} (KeyframeSave Set=... keeps the set)")
         pending = self.plan
         if pending is not None:
             lines.append(f"previewed: {pending.summary}")
