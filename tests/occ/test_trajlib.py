@@ -271,6 +271,7 @@ WRITER = textwrap.dedent(
 )
 
 
+@pytest.mark.req("SR-LIB-1")
 def test_a_writer_killed_mid_transaction_leaves_the_library_intact(tmp_path: Path) -> None:
     path = tmp_path / "lib.db"
     lib = Library(path)
