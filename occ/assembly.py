@@ -80,6 +80,11 @@ def build_hardware(rc: RobotConfig) -> tuple[list[Joint], Frame, list[tuple[Driv
             f"robot.joints {names} do not match the joints of the kinematic model "
             f"{frame.name!r} {list(frame.joint_names)} (same names, same order)"
         )
+    # the IK keeps to what the drivers accept: the configured limits, within the URDF's
+    try:
+        frame.set_limits([j.limits.min for j in joints], [j.limits.max for j in joints])
+    except ValueError as err:
+        raise OCCError(str(err)) from err
     index = {n: i for i, n in enumerate(names)}
     drivers: list[tuple[Driver, list[int]]] = []
     for dc in rc.drivers:

@@ -193,6 +193,23 @@ class Frame:
         self._lo_hi = list(zip(self._lo, self._hi, strict=True))
         self._neutral_list: list[float] = self._neutral.tolist()
 
+    def set_limits(self, lower: Sequence[float], upper: Sequence[float]) -> None:
+        """Narrow the model's joint limits to the robot's configured ones (the intersection
+        with the URDF's): every IK (analytic, DLS, clamping) and limit check then keeps to what
+        the drivers accept. ValueError when they do not overlap."""
+        lo = np.maximum(self.lower, np.asarray(lower, dtype=np.float64))
+        hi = np.minimum(self.upper, np.asarray(upper, dtype=np.float64))
+        bad = [self.joint_names[i] for i in range(self.nq) if lo[i] > hi[i]]
+        if bad:
+            raise ValueError(f"{self.name}: configured limits outside the URDF's for {bad}")
+        self.model.lowerPositionLimit = lo
+        self.model.upperPositionLimit = hi
+        self.lower, self.upper = lo, hi
+        self._lo, self._hi = lo.tolist(), hi.tolist()
+        self._lo_hi = list(zip(self._lo, self._hi, strict=True))
+        self._neutral = self._clip(np.zeros(self.nq))
+        self._neutral_list = self._neutral.tolist()
+
     # ------------------------------------------------------------------ construction
     @classmethod
     def from_urdf(

@@ -132,6 +132,7 @@ from ..joint import JointLimits
 from ..keyframe_inputs import items_from_message
 from ..outputs import PointsOut, PolylineOut
 from ..safety import RobotState
+from ..samples import quaternion_to_rotation, rotation_to_quaternion
 from ..trajectory import Keyframe, Trajectory, plan
 from ..trajlib import Library, SavedSet, check_name, config_hash
 from . import Controller, ControllerContext, Problem, SourceFn
@@ -188,6 +189,11 @@ class KeyframeItem(_Model):
         description="Joint positions (rad, m; one per joint) or the tip position (mm, world)."
     )
     name: Annotated[str, Field(max_length=64)] | None = Field(None, description="A label.")
+    rotation: tuple[Float, Float, Float, Float] | None = Field(
+        None,
+        description="Cartesian, a 6-DOF arm: the tool's orientation, a unit quaternion (x, y, "
+        "z, w) in the world frame (all keyframes of a set, or none).",
+    )
 
 
 class KeyframeFile(_Model):
@@ -281,6 +287,9 @@ class KeyframeParams(_Model):
     start_tolerance_mm: PosFloat = Field(
         0.5, description="Cartesian: the same, for the tip position (mm)."
     )
+    start_tolerance_deg: PosFloat = Field(
+        0.5, description="Cartesian with orientation: the same, for the tool's turn (degrees)."
+    )
     workspace_mm: WorkspaceBox | None = Field(
         None, description="Box the tip must stay in (mm, base frame); null = joint limits only."
     )
@@ -333,7 +342,7 @@ class KeyframeSet:
 
 def make_set(
     space: Space,
-    items: Sequence[tuple[float, Sequence[float], str]],
+    items: Sequence[tuple[float, Sequence[float], str] | tuple[float, Sequence[float], str, Any]],
     source: str,
     *,
     joints: int,
@@ -348,11 +357,17 @@ def make_set(
     dim = joints if space == "joint" else 3
     frames: list[Keyframe] = []
     names: list[str] = []
-    for i, (t, pose, name) in enumerate(items):
+    for i, item in enumerate(items):
+        t, pose, name = item[0], item[1], item[2]
+        rotation = item[3] if len(item) > 3 else None
+        if rotation is not None and space != "cartesian":
+            raise ValueError(f"keyframe {i}: a rotation needs Cartesian keyframes")
         try:
-            kf = Keyframe(t, pose)
+            kf = Keyframe(t, pose, rotation)
         except ValueError as err:
             raise ValueError(f"keyframe {i}: {err}") from err
+        if frames and (kf.rotation is None) != (frames[-1].rotation is None):
+            raise ValueError(f"keyframe {i}: every keyframe of a set has a rotation, or none has")
         if len(kf.pose) != dim:
             what = f"{joints} joint positions" if space == "joint" else "x y z (mm)"
             raise ValueError(f"keyframe {i}: {len(kf.pose)} values, a {space} pose needs {what}")
@@ -390,7 +405,7 @@ def read_keyframe_file(path: Path) -> KeyframeFile:
 def _file_set(kf: KeyframeFile, default: Space, source: str, joints: int, cap: int) -> KeyframeSet:
     return make_set(
         kf.space or default,
-        [(k.t, k.pose, k.name or "") for k in kf.keyframes],
+        [(k.t, k.pose, k.name or "", k.rotation) for k in kf.keyframes],
         source,
         joints=joints,
         max_keyframes=cap,
@@ -479,6 +494,8 @@ class PlanRequest:
     forbidden: tuple[ForbiddenCheck, ...]
     max_duration_s: float
     preview_points: int
+    #: Cartesian with orientation: how far keyframe 0 may be turned from the tool (rad)
+    start_tolerance_rad: float = 0.0087
     #: called between samples: gives the interpreter back to the loop (None: never)
     pace: Pacer | None = None
 
@@ -502,6 +519,26 @@ class CheckedPlan:
     #: the set it was planned from, and how (what KeyframeSave stores once it is acknowledged)
     kset: KeyframeSet | None = None
     settings: PlanSettings | None = None
+
+
+def rotation_to_quaternion_np(r: np.ndarray) -> np.ndarray:
+    return np.array(rotation_to_quaternion(np.asarray(r)), dtype=float)
+
+
+def pose_ik(
+    frame: Frame, traj: Trajectory, t: float, seed: Sequence[float]
+) -> tuple[list[float], bool]:
+    """The joints for the plan's full pose at ``t`` (position and orientation, base frame):
+    damped least squares from ``seed`` (the previous tick), the limits held; ``clamped`` when
+    a joint had to stop at a limit. KinematicsError when the pose is not reached (residual over
+    1e-6: a position in metres and an angle in radians)."""
+    pose = np.eye(4)
+    pose[:3, :3] = quaternion_to_rotation(traj.orientation(t).tolist())
+    pose[:3, 3] = traj.position(t)
+    res = frame.solve_ik(pose, list(seed), clamp=True, method="dls")
+    if res.error > 1e-6 and not res.clamped:
+        raise KinematicsError(f"the pose is not reached (residual {res.error:.3g})")
+    return res.q.tolist(), bool(res.clamped)
 
 
 def _where(t: float, times: Sequence[float], labels: Sequence[str], period: float) -> str:
@@ -534,14 +571,43 @@ def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
     here: tuple[float, ...] = (
         tuple(float(v) for v in frame.tip_position(list(req.q_start))) if cart else req.q_start
     )
-    frames = [Keyframe(k.t, to_base(k.pose)) if cart else k for k in kset.keyframes]
+    oriented = cart and kset.keyframes[0].rotation is not None
+    if oriented and frame.nq < 6:
+        raise PlanRefused(
+            f"the keyframes have orientations, but {frame.name!r} has {frame.nq} joints: "
+            "orientation needs a 6-DOF arm"
+        )
+
+    def to_base_rotation(q: Sequence[float] | None) -> np.ndarray | None:
+        if q is None:
+            return None
+        return rotation_to_quaternion_np(r_t @ quaternion_to_rotation(q))
+
+    frames = [
+        Keyframe(k.t, to_base(k.pose), to_base_rotation(k.rotation)) if cart else k
+        for k in kset.keyframes
+    ]
+    here_rot = (
+        rotation_to_quaternion_np(np.asarray(frame.fk(list(req.q_start)))[:3, :3])
+        if oriented
+        else None
+    )
     labels = [kset.label(i) for i in range(len(frames))]
     short = [f"{kset.names[i] or f'K{i}'} t={k.t:g}s" for i, k in enumerate(frames)]
     notes: list[str] = []
     first = frames[0]
     gap = float(np.linalg.norm(np.subtract(first.pose, here)))
+    if oriented and first.t == 0.0:
+        assert first.rotation is not None and here_rot is not None
+        turn = 2.0 * math.acos(min(1.0, abs(float(np.dot(first.rotation, here_rot)))))
+        if turn > req.start_tolerance_rad:
+            raise PlanRefused(
+                f"{labels[0]} is turned {math.degrees(turn):.3g} deg from the tool (tolerance "
+                f"{math.degrees(req.start_tolerance_rad):g} deg): give keyframe 0 a later time "
+                "so the robot turns there, or turn it"
+            )
     if first.t > 0.0:
-        frames.insert(0, Keyframe(0.0, here))
+        frames.insert(0, Keyframe(0.0, here, here_rot))
         labels.insert(0, "the start (the robot's pose)")
         short.insert(0, "start t=0s")
     else:
@@ -553,7 +619,7 @@ def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
                 f"{tol * scale:g}): a run starts where the robot is; give keyframe 0 a later "
                 "time so the robot moves there, or move it"
             )
-        frames[0] = Keyframe(0.0, here)
+        frames[0] = Keyframe(0.0, here, here_rot)
         if gap > 0.0:
             unit = "mm" if cart else "rad/m"
             notes.append(
@@ -591,7 +657,10 @@ def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
         if cart:
             tip = (float(pos[0]), float(pos[1]), float(pos[2]))
             try:
-                q, clamped = frame.ik_clamped(tip, q_prev)
+                if oriented:
+                    q, clamped = pose_ik(frame, traj, t, q_prev)
+                else:
+                    q, clamped = frame.ik_clamped(tip, q_prev)
             except (KinematicsError, ValueError) as err:
                 raise PlanRefused(
                     f"the tip is unreachable {_where(t, times, labels, period)}: {err}"
@@ -1041,14 +1110,23 @@ class KeyframeController(Controller):
             raise CommandError(
                 f"KeyframeAdd: the stored keyframes are {current.space}; KeyframeClear first"
             )
-        items: list[tuple[float, Sequence[float], str]] = (
-            [(k.t, k.pose, n) for k, n in zip(current.keyframes, current.names, strict=True)]
+        rotation: list[float] | None = None
+        if "rotation" in args:
+            try:
+                rotation = [float(v) for v in args["rotation"].replace(",", " ").split()]
+            except ValueError as err:
+                raise CommandError(f"KeyframeAdd: Rotation: {err}") from None
+        items: list[tuple[float, Sequence[float], str, Any]] = (
+            [
+                (k.t, k.pose, n, k.rotation)
+                for k, n in zip(current.keyframes, current.names, strict=True)
+            ]
             if current is not None
             else []
         )
         if any(abs(t - it[0]) < 1e-12 for it in items):
             raise CommandError(f"KeyframeAdd: there is a keyframe at t={t:g} s already")
-        items.append((t, pose, args.get("label", "")))
+        items.append((t, pose, args.get("label", ""), rotation))
         items.sort(key=lambda it: it[0])
         try:
             kset = make_set(
@@ -1324,6 +1402,7 @@ class KeyframeController(Controller):
             velocity_scale=p.velocity_scale,
             start_tolerance=p.start_tolerance,
             start_tolerance_mm=p.start_tolerance_mm,
+            start_tolerance_rad=math.radians(p.start_tolerance_deg),
             workspace=(
                 (
                     tuple(v * MM for v in box.min_mm),  # type: ignore[arg-type]
@@ -1454,9 +1533,12 @@ class KeyframeController(Controller):
             ctx = self.ctx
             assert ctx is not None
             try:
-                q, clamped = ctx.frame.ik_clamped(
-                    (float(pos[0]), float(pos[1]), float(pos[2])), self._q_last
-                )
+                if run.traj.has_rotation:
+                    q, clamped = pose_ik(ctx.frame, run.traj, t, self._q_last)
+                else:
+                    q, clamped = ctx.frame.ik_clamped(
+                        (float(pos[0]), float(pos[1]), float(pos[2])), self._q_last
+                    )
             except (KinematicsError, ValueError) as err:
                 clamped, q = True, self._q_last
                 self.last_error = f"plan {run.id}: IK failed at t={t:.3f} s: {err}"

@@ -180,3 +180,117 @@ def test_joints_that_are_not_the_urdfs_are_an_error(tmp_path: Path) -> None:
     joints[0], joints[1] = joints[1], joints[0]  # the wrong order
     with pytest.raises(ConfigError, match="are not the URDF's"):
         parse_config(yaml.safe_dump(cfg, sort_keys=False))
+
+
+# ------------------------------------------------------------------ keyframes with orientation
+class Plan6:
+    """configs/ur5-keyframe.yaml in simulated time, its operator (3D Slicer's port)."""
+
+    def __init__(self, **params: Any) -> None:
+        from occ.testing import SimRobot
+
+        self.sim = SimRobot(CONFIGS / "ur5-keyframe.yaml", params=params or None)
+        self.robot = self.sim.robot
+        self.kf: Any = self.robot.controller.controllers[0]
+        self.op = self.sim.peer("slicer")
+
+    def cmd(self, name: str, text: str = "") -> Any:
+        cid = self.op.send_command(name, text)
+        self.sim.step(1)
+        assert self.kf.wait_idle(60.0)
+        reply = self.op.reply_to(cid)
+        assert reply is not None, name
+        return reply
+
+    def ok(self, name: str, text: str = "") -> str:
+        reply = self.cmd(name, text)
+        assert reply.metadata["Status"] == "SUCCESS", (name, reply.metadata)
+        return str(reply.metadata["Message"])
+
+    def close(self) -> None:
+        self.sim.close()
+
+
+@pytest.mark.req("SR-SIX-2")
+@pytest.mark.parametrize("interpolation", ["linear", "spline"])
+def test_a_keyframe_plan_with_orientation_meets_every_keyframe(interpolation: str) -> None:
+    """The shipped UR5 plan (configs/keyframes/ur5-demo.yaml): planned, checked every tick,
+    acknowledged, run; at each keyframe's tick the tool's pose (FK of the setpoint) is the
+    keyframe's to 1e-6 (metres, radians), the joints never past their velocity limits."""
+    plan6 = Plan6(interpolation=interpolation)
+    try:
+        plan6.ok("Enable")
+        plan6.ok("Run")
+        text = plan6.ok("KeyframePlan")
+        plan_id = int(text.split(":")[0].split()[1])
+        plan6.sim.step(150)  # the preview goes out with the next 10 Hz output tick
+        plan6.ok("KeyframeAck", f'<Command Name="KeyframeAck" Plan="{plan_id}"/>')
+        keyframes = yaml.safe_load((CONFIGS / "keyframes" / "ur5-demo.yaml").read_text())
+        setpoints = [list(plan6.robot.data.commanded())]
+        for _ in range(7200):
+            plan6.sim.step(1)
+            setpoints.append(list(plan6.robot.data.commanded()))
+        frame = plan6.robot.frame
+        for k in keyframes["keyframes"][1:]:  # keyframe 0 is replaced by where the tool is
+            j = round(k["t"] / 1e-3)
+            pose = np.asarray(frame.fk(setpoints[j]))
+            assert np.linalg.norm(pose[:3, 3] * 1e3 - np.array(k["pose"])) < 1e-3, k  # 1e-6 m
+            assert angle(quaternion_to_rotation(k["rotation"]), pose[:3, :3]) < 1e-6, k
+        v = np.abs(np.diff(np.array(setpoints), axis=0)) / 1e-3
+        assert float(v.max()) <= 1.0 * (1 + 1e-9)  # the joints' 1 rad/s
+        assert plan6.kf.stats()["runs_completed"] == 1
+        assert plan6.robot.state is RobotState.RUNNING
+    finally:
+        plan6.close()
+
+
+@pytest.mark.req("SR-SIX-2")
+def test_an_unreachable_orientation_is_refused_before_acknowledgement(tmp_path: Path) -> None:
+    """The wrist's joints limited to 0.3 rad around home: a keyframe turning the tool 1.2 rad
+    about its own axis is refused when planned, naming the keyframe and a joint at its limit;
+    the robot does not move."""
+    from occ.testing import SimRobot
+
+    cfg = yaml.safe_load((CONFIGS / "ur5-keyframe.yaml").read_text())
+    for j in cfg["robot"]["joints"][3:]:
+        j["limits"].update(min=j["home"] - 0.3, max=j["home"] + 0.3)
+    home_q = [j["home"] for j in cfg["robot"]["joints"]]
+    frame_cfg = load_config(CONFIGS / "ur5.yaml")
+    from occ.assembly import build_hardware
+    from occ.samples import rotation_to_quaternion
+
+    _, frame, _ = build_hardware(frame_cfg.robot)
+    home = np.asarray(frame.fk(home_q))
+    turned = home[:3, :3] @ pin.utils.rpyToMatrix(0.0, 0.0, 1.2)
+    start = {"t": 0.0, "pose": (home[:3, 3] * 1e3).tolist(),
+             "rotation": list(rotation_to_quaternion(home[:3, :3]))}  # fmt: skip
+    end = {"t": 3.0, "pose": (home[:3, 3] * 1e3).tolist(),
+           "rotation": list(rotation_to_quaternion(turned)), "name": "twist"}  # fmt: skip
+    (tmp_path / "twist.yaml").write_text(
+        yaml.safe_dump({"space": "cartesian", "keyframes": [start, end]})
+    )
+    cfg["controller"]["params"].update(file=None, keyframe_dir=str(tmp_path))
+    sim = SimRobot(cfg)
+    try:
+        op = sim.peer("slicer")
+        kf: Any = sim.robot.controller.controllers[0]
+        for c in ("Enable", "Run"):
+            assert sim.command(op, c).metadata["Status"] == "SUCCESS"
+
+        def cmd(name: str, text: str) -> Any:
+            cid = op.send_command(name, text)
+            sim.step(1)
+            assert kf.wait_idle(60.0)
+            sim.step(1)
+            return op.reply_to(cid)
+
+        r = cmd("KeyframeLoad", '<Command Name="KeyframeLoad" File="twist.yaml"/>')
+        assert r.metadata["Status"] == "SUCCESS", r.metadata
+        before = list(sim.robot.data.commanded())
+        r = cmd("KeyframePlan", "")
+        assert r.metadata["Status"] == "FAIL", r.metadata
+        assert "twist" in r.metadata["Error"] and "wrist_" in r.metadata["Error"], r.metadata
+        sim.step(100)
+        assert list(sim.robot.data.commanded()) == before
+    finally:
+        sim.close()
