@@ -4,7 +4,7 @@ controller: Python function calls, crossings between source files, and time.
     python benchmarks/bench_position_path.py                 # 2,000 POSITIONs, calls and µs
     python benchmarks/bench_position_path.py --trace         # also print the call path
 
-The shipped slave (configs/slave.yaml on free ports, a SimClock, RUNNING) with its master
+The shipped slave (configs/slave.yaml on free ports, the daemon's clock, RUNNING) with its master
 interface's real UDP socket, polled by the tick as in the daemon. A socket in this process
 sends a POSITION (v2, sequence number, ``run``/``clutch`` metadata, as the master does) before
 every other tick; each tick is timed. The per-POSITION figures are the difference between a
@@ -29,18 +29,18 @@ from pathlib import Path
 from typing import Any
 
 import igtl
-from occ.clock import SimClock
+from occ.clock import RealClock
 from occ.loader import load_config
 from occ.robot import build_robot
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def build() -> tuple[Any, SimClock, tuple[str, int]]:
+def build() -> tuple[Any, RealClock, tuple[str, int]]:
     cfg = load_config(ROOT / "configs" / "slave.yaml")
     ifaces = tuple(i.model_copy(update={"port": 0}) for i in cfg.interfaces)
     cfg = cfg.model_copy(update={"interfaces": ifaces})
-    clock = SimClock()
+    clock = RealClock(spin_us=0.0)
     robot = build_robot(cfg, clock=clock)
     robot.configure()
     robot.activate()
@@ -49,7 +49,7 @@ def build() -> tuple[Any, SimClock, tuple[str, int]]:
     return robot, clock, robot.interfaces["master"].address
 
 
-def position(clock: SimClock, seq: int) -> bytes:
+def position(clock: RealClock, seq: int) -> bytes:
     t = seq * 0.002
     return igtl.PositionMessage(
         (50 * math.sin(0.2 * math.pi * t), 50 * math.cos(0.2 * math.pi * t), 20.0),
@@ -117,9 +117,8 @@ def _short(path: str) -> str:
         return p.name
 
 
-def one_tick(robot: Any, clock: SimClock, k: int, profiles: list[Calls]) -> float:
-    now = k * 0.001
-    clock.set(now)
+def one_tick(robot: Any, clock: RealClock, k: int, profiles: list[Calls]) -> float:
+    now = clock.now()
     if profiles:
         sys.setprofile(lambda frame, event, arg: [c(frame, event, arg) for c in profiles])
     t0 = time.perf_counter()

@@ -92,7 +92,7 @@ class Robot:
             self.interfaces,
             config.safety.loss,
             self.collab,
-            lambda now: self.clock.wall_time() - now,
+            self.clock.wall_time,
         )
 
         # --- Safety
