@@ -224,6 +224,10 @@ class LoopStats:
         self.lateness = Histogram()
         self.period = Histogram()
         self.compute = Histogram()
+        # bound once: three look-ups a tick fewer
+        self._add_late = self.lateness.add
+        self._add_compute = self.compute.add
+        self._add_period = self.period.add
         self.interfaces: dict[str, InterfaceStats] = {}
         self._reset_counters()
 
@@ -272,11 +276,11 @@ class LoopStats:
         """Record one tick: scheduled ``deadline``, actual ``start``, ``end`` of its work."""
         lateness = start - deadline
         compute = end - start
-        self.lateness.add(lateness * 1e6)
-        self.compute.add(compute * 1e6)
+        self._add_late(lateness * 1e6)
+        self._add_compute(compute * 1e6)
         prev = self._prev_start
         if prev is not None:
-            self.period.add((start - prev) * 1e6)
+            self._add_period((start - prev) * 1e6)
         elif self._t0 is None:
             self._t0 = deadline
         self._prev_start = start

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from igtl.messages.base import Message
@@ -21,7 +21,7 @@ from .assembly import build_loss_monitors
 from .collab import Collaboration
 from .config import LossConfig
 from .errors import CommandError
-from .interfaces import Inbound, Interface, InterfaceManager, StreamItem
+from .interfaces import Inbound, Interface, InterfaceManager, StreamItem, StreamQueue
 from .safety import LossEvent, LossMonitor, Verdict
 from .samples import PoseSample
 
@@ -106,9 +106,9 @@ class StreamInputs:
         self._now = 0.0
         self._since = -math.inf
         self._to_wall: float | None = None
-        self._on_sample: OnSample = _nothing
-        self._on_input: OnInput = _nothing
-        self._refuse: Refuse = _nothing
+        self._on_sample: OnSample = _unbound
+        self._on_input: OnInput = _unbound
+        self._refuse: Refuse = _unbound
         self._recorder: Any | None = None
 
     @property
@@ -117,43 +117,45 @@ class StreamInputs:
         monitor = self.monitor
         return monitor is not None and monitor.holding
 
-    def drain(
-        self,
-        now: float,
-        on_sample: OnSample,
-        on_input: OnInput,
-        refuse: Refuse,
-        recorder: Any | None,
-    ) -> None:
-        """Every stream item, in order: each pose sample judged by its loss monitor, the
-        accepted ones of the stream in control (and of streams no master sends) to
-        ``on_sample``; the discrete inputs that share a stream (fixture definitions,
-        keyframes) to ``on_input``. Polled UDP sockets are read first, at most ``POLL_LIMIT``
-        datagrams each, each item handled as it is read; then the queues the interface
-        threads filled."""
-        self._since = self._prev_tick
-        self._prev_tick = self._now = now
-        self._to_wall = None
+    def bind(self, on_sample: OnSample, on_input: OnInput, refuse: Refuse) -> None:
+        """Where the stream items go (the controllers), and who answers a refused input (the
+        operator desk): set once, before the first :meth:`drain`."""
         self._on_sample = on_sample
         self._on_input = on_input
         self._refuse = refuse
+
+    def drain(self, now: float, recorder: Any | None) -> None:
+        """Every stream item, in order: each pose sample judged by its loss monitor, the
+        accepted ones of the stream in control (and of streams no master sends) to
+        ``on_sample``; the discrete inputs that share a stream (fixture definitions,
+        keyframes) to ``on_input`` (:meth:`bind`). Polled UDP sockets are read first, at most
+        ``POLL_LIMIT`` datagrams each, each item handled as it is read; then the queues the
+        interface threads filled."""
+        self._since = self._prev_tick
+        self._prev_tick = self._now = now
+        self._to_wall = None
         self._recorder = recorder
         for poll, direct in self._pollers:
             poll(POLL_LIMIT, direct)
-        handle = self._handle
         for name, q, monitor, master in self._queues:
-            if not q.pending and not q.evicted:
-                continue  # most ticks: nothing arrived (checked without a call)
-            if q.evicted and monitor is not None:
-                # samples the loop could not take in time: seen, never called lost
-                since = self._since
-                for old in q.drain_overflow():
-                    if isinstance(old, PoseSample):
-                        judge(monitor, old, now, self._wall(), since)
-            elif q.evicted:
-                q.drain_overflow()
-            for item in q.drain():
-                handle(name, monitor, master, item)
+            if q.pending or q.evicted:  # most ticks nothing arrived (checked without a call)
+                self._drain_queue(name, q, monitor, master)
+
+    def _drain_queue(
+        self, name: str, q: StreamQueue, monitor: LossMonitor | None, master: bool
+    ) -> None:
+        """What an interface thread queued for this tick, in order."""
+        if q.evicted and monitor is not None:
+            # samples the loop could not take in time: seen, never called lost
+            now, since, to_wall = self._now, self._since, self._wall()
+            for old in q.drain_overflow():
+                if isinstance(old, PoseSample):
+                    judge(monitor, old, now, to_wall, since)
+        elif q.evicted:
+            q.drain_overflow()
+        handle = self._handle
+        for item in q.drain():
+            handle(name, monitor, master, item)
 
     def _wall(self) -> float:
         """Wall time minus loop time this tick (reception times on the wall clock, to compare
@@ -204,8 +206,8 @@ class StreamInputs:
                 rx = item.t_rx
                 since = self._since
                 to_wall = self._to_wall
-                if to_wall is None:
-                    to_wall = self._wall()
+                if to_wall is None:  # once a tick, and only when a sample needs it
+                    to_wall = self._to_wall = self._wall_time() - now
                 verdict = monitor.on_packet(
                     item.seq,
                     item.t_sample,
@@ -228,12 +230,17 @@ class StreamInputs:
                 # refused: an answer to its sender, not a FAULT
                 self._refuse(item, err)
 
-    def events(self, now: float) -> Iterator[tuple[str, LossMonitor, LossEvent]]:
-        """This tick's loss events: (interface, its monitor, the event), for every monitor."""
+    def events(self, now: float) -> Sequence[tuple[str, LossMonitor, LossEvent]]:
+        """This tick's loss events: (interface, its monitor, the event), for every monitor
+        (most ticks none: an empty tuple, nothing built)."""
+        found: list[tuple[str, LossMonitor, LossEvent]] | None = None
         for name, mon in self._monitor_list:
             event = mon.check(now)
             if event is not None:
-                yield name, mon, event
+                if found is None:
+                    found = []
+                found.append((name, mon, event))
+        return () if found is None else found
 
     def reset(self) -> None:
         """Every monitor cleared, armed by its next packet (entering RUNNING, Reset)."""
@@ -277,5 +284,6 @@ class StreamInputs:
         return old, by
 
 
-def _nothing(*args: Any) -> None:
-    """Before the first drain: nothing to hand items to."""
+def _unbound(*args: Any) -> None:
+    """Before :meth:`StreamInputs.bind`: a stream item has nowhere to go."""
+    raise RuntimeError("StreamInputs.bind was not called: stream items have nowhere to go")
