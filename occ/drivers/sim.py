@@ -235,6 +235,7 @@ class SimDriver(Driver):
             for i in range(len(js))
         ]
         self._exact_encoder = not any(noise) and not any(resolution)
+        self._noisy = any(n > 0.0 for n in noise)
         # exact steps of the servoed joints: e = x - r obeys e'' + c e' + k e = 0 while the
         # effort stays inside its limit (k = kp/J, c = (kd + b)/J)
         self._servo_poles = [
@@ -383,10 +384,12 @@ class SimDriver(Driver):
                 return self._injected(out), self._v, self._u
             return out, self._v, self._u
         rng = self._rng
+        noisy = self._noisy
         for i, x in enumerate(self._x):
-            sigma = self._noise[i]
-            if sigma > 0.0:
-                x += rng.gauss(0.0, sigma)
+            if noisy:
+                sigma = self._noise[i]
+                if sigma > 0.0:
+                    x += rng.gauss(0.0, sigma)
             res = self._resolution[i]
             if res > 0.0:
                 x = math.floor(x / res + 0.5) * res
