@@ -16,8 +16,13 @@ Two measurements (each bounded in time, loopback only):
     installed: the compiled and pure builds side by side in one run, same load. Beside it
     runs ``benchmarks/stall_probe.c`` (compiled with gcc into ``~/.cache/occ-bench``; skipped
     where there is no gcc): one SCHED_FIFO 99 thread per CPU that records every wake-up more
-    than 5 ms late. A daemon stop at the moment every CPU was late is the machine's stall, not
-    the daemon's.
+    than 1 ms late. A daemon stop at the moment every CPU was late is the machine's stall, not
+    the daemon's. Each daemon's worst late ticks (its statistics keep the 20 worst over 1 ms,
+    with the wall-clock time each started) are listed beside what the probe saw at the same
+    moment (``late_ticks``: ``probe_late_ms``, the probe's worst late wake-up overlapping the
+    tick's wait, and on how many CPUs), and ``lateness_max_outside_probe_us`` is the worst of
+    them with no probe wake-up late at the same time (None: all of them were): the maxima that
+    are the machine's, and the ones that are the daemon's own.
 
 ``sigstop``
     One pair. The master process is frozen with SIGSTOP for 30 ms and resumed with SIGCONT,
@@ -101,7 +106,23 @@ def start_probe(seconds: float, out: Path) -> subprocess.Popen[bytes] | None:
             print(f"stall probe not built: {built.stderr.decode(errors='replace')}", flush=True)
             return None
     with open(out / "stall_probe.log", "wb") as log:  # the child keeps its own copy
-        return subprocess.Popen([str(exe), f"{seconds:.0f}", "5000"], stdout=log)
+        return subprocess.Popen([str(exe), f"{seconds:.0f}", str(PROBE_THRESHOLD_US)], stdout=log)
+
+
+PROBE_THRESHOLD_US = 1000
+
+
+def probe_spans(out: Path) -> list[tuple[float, float, str]]:
+    """The probe's late wake-ups as (start, end, cpu): ms of the (local) day, the interval the
+    probe could not run (from its deadline to its wake-up)."""
+    spans = []
+    for line in (out / "stall_probe.log").read_text().splitlines():
+        m = LATE_LINE.match(line)
+        if m:
+            end = _ms_of_day(m.group(2))
+            spans.append((end - float(m.group(3)), end, m.group(1)))
+    spans.sort()
+    return spans
 
 
 def probe_summary(proc: subprocess.Popen[bytes] | None, out: Path) -> dict[str, Any] | None:
@@ -116,13 +137,7 @@ def probe_summary(proc: subprocess.Popen[bytes] | None, out: Path) -> dict[str, 
         return None
     proc.terminate()
     proc.wait(5.0)
-    spans = []
-    for line in (out / "stall_probe.log").read_text().splitlines():
-        m = LATE_LINE.match(line)
-        if m:
-            end = _ms_of_day(m.group(2))
-            spans.append((end - float(m.group(3)), end, m.group(1)))
-    spans.sort()
+    spans = probe_spans(out)
     stalls: list[dict[str, Any]] = []
     for start, end, cpu in spans:
         if stalls and start <= stalls[-1]["_end"] + 2.0:
@@ -143,7 +158,7 @@ def probe_summary(proc: subprocess.Popen[bytes] | None, out: Path) -> dict[str, 
         if st["_end"] - st["_start"] >= 10.0
     ]
     return {
-        "threshold_ms": 5.0,
+        "threshold_ms": PROBE_THRESHOLD_US / 1e3,
         "late_wakeups": len(spans),
         "stalls_over_10ms": len(listed),
         "stalls_over_20ms": sum(1 for st in listed if st["span_ms"] >= 20.0),
@@ -159,6 +174,35 @@ def _hms(ms_of_day: float) -> str:
 def _ms_of_day(hms: str) -> float:
     h, m, s = hms.split(":")
     return (int(h) * 3600 + int(m) * 60 + float(s)) * 1e3
+
+
+def _local_ms_of_day(unix_s: float) -> float:
+    """Unix time to ms of the local day, as the probe's log gives its times."""
+    t = time.localtime(unix_s)
+    return ((t.tm_hour * 60 + t.tm_min) * 60 + t.tm_sec + unix_s % 1.0) * 1e3
+
+
+def beside_probe(
+    late_ticks: list[dict[str, float]], spans: list[tuple[float, float, str]] | None
+) -> tuple[list[dict[str, Any]], float | None]:
+    """Each of a daemon's worst late ticks (``at``: Unix time the tick started, ``late_us``)
+    with the probe's late wake-ups at the same moment: those whose interval overlaps the tick's
+    wait (from its deadline to its start, 0.5 ms of slack for the two clocks' readings). Returns
+    the listed ticks and the worst one no probe wake-up overlaps (None: every one had one)."""
+    listed: list[dict[str, Any]] = []
+    outside: float | None = None
+    for tick in late_ticks:
+        end = _local_ms_of_day(tick["at"])
+        start = end - tick["late_us"] / 1e3
+        row: dict[str, Any] = {"at": _hms(end), "late_ms": round(tick["late_us"] / 1e3, 2)}
+        if spans is not None:
+            hits = [sp for sp in spans if sp[0] <= end + 0.5 and sp[1] >= start - 0.5]
+            row["probe_late_ms"] = round(max(sp[1] - sp[0] for sp in hits), 1) if hits else None
+            row["probe_cpus"] = len({sp[2] for sp in hits})
+            if not hits and (outside is None or tick["late_us"] > outside):
+                outside = tick["late_us"]
+        listed.append(row)
+    return listed, outside
 
 
 def state_changes(log: Path) -> list[str]:
@@ -263,10 +307,14 @@ def run_pairs(args: argparse.Namespace, out: Path) -> dict[str, Any]:
             c.stop()
         stop_processes(procs)
         machine = probe_summary(probe, out)
+    spans = probe_spans(out) if machine is not None else None
     daemons = {}
     for name in ("slaveA", "masterA", "slaveB", "masterB"):
         d = json.loads((out / f"{name}.json").read_text())
         daemons[name] = loop_summary(d)
+        listed, outside = beside_probe(d.get("late_ticks", []), spans)
+        daemons[name]["late_ticks"] = listed
+        daemons[name]["lateness_max_outside_probe_us"] = outside
         daemons[name]["state_changes"] = state_changes(out / f"{name}.log")
         lat = d.get("controller", {}).get("sample_to_write_us")
         if lat is not None:

@@ -17,7 +17,9 @@ tick then runs from colder caches, which is what a daemon pays (the real loop's 
 is 2-4x this benchmark's warm figure on this VM). ``--jitter-us`` starts each tick up to that
 many µs after its deadline (uniform, seeded), as the real loop's wake-ups do: code that caches
 per period (the sim drive's exact step) then sees a new interval each tick. Garbage collection
-is off while timing.
+is off while timing. ``--opcodes N`` counts instead the interpreter's bytecodes per tick by
+function (``sys.settrace`` opcode events) and prints the N largest: where a pure-Python tick
+spends its work, without a profiler's timing noise.
 """
 
 from __future__ import annotations
@@ -26,8 +28,11 @@ import argparse
 import gc
 import math
 import random
+import sys
 import time
+from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import igtl
 from igtl.transport import Peer
@@ -49,9 +54,18 @@ ROBOTS: dict[str, tuple[str, tuple[str, ...], float | None]] = {
 }
 
 
-def run(name: str, ticks: int, sleep_s: float, cpu: bool = False, jitter_s: float = 0.0) -> float:
+def run(
+    name: str,
+    ticks: int,
+    sleep_s: float,
+    cpu: bool = False,
+    jitter_s: float = 0.0,
+    opcodes: Counter[str] | None = None,
+) -> float:
     """Mean µs per tick of one robot over ``ticks`` ticks (``cpu``: the thread's CPU time
-    instead of the elapsed time, less disturbed by other processes on a shared machine)."""
+    instead of the elapsed time, less disturbed by other processes on a shared machine).
+    ``opcodes``: count the bytecodes each function executes in the ticks into it (the times
+    are then meaningless: every bytecode goes through a trace function)."""
     timer = time.thread_time if cpu else time.perf_counter
     file, fed, table = ROBOTS[name]
     cfg = load_config(ROOT / "configs" / file)
@@ -95,7 +109,11 @@ def run(name: str, ticks: int, sleep_s: float, cpu: bool = False, jitter_s: floa
                 for iface, stream in streams:
                     stream.put(pose_sample(iface, peer, samples[k // 2], now))  # type: ignore[arg-type]
             t0 = timer()
+            if opcodes is not None:
+                sys.settrace(_opcode_counter(opcodes))
             robot.tick(now, k)
+            if opcodes is not None:
+                sys.settrace(None)
             total += timer() - t0
             if sleep_s:
                 time.sleep(sleep_s)
@@ -103,6 +121,21 @@ def run(name: str, ticks: int, sleep_s: float, cpu: bool = False, jitter_s: floa
         gc.enable()
         robot.shutdown()
     return total / ticks * 1e6
+
+
+def _opcode_counter(counts: Counter[str]) -> Any:
+    """A trace function counting every bytecode by ``file:function``."""
+
+    def trace(frame: Any, event: str, arg: Any) -> Any:
+        if event == "call":
+            frame.f_trace_opcodes = True
+            frame.f_trace_lines = False
+        elif event == "opcode":
+            code = frame.f_code
+            counts[f"{Path(code.co_filename).name}:{code.co_name}"] += 1
+        return trace
+
+    return trace
 
 
 def main() -> None:
@@ -116,8 +149,24 @@ def main() -> None:
     p.add_argument(
         "--alternate", action="store_true", help="round-robin the robots (drift cancels out)"
     )
+    p.add_argument(
+        "--opcodes",
+        type=int,
+        default=0,
+        metavar="N",
+        help="count the bytecodes per tick instead, by function (the N largest; one round)",
+    )
     args = p.parse_args()
     names = args.robots.split(",")
+    if args.opcodes:
+        for name in names:
+            counts: Counter[str] = Counter()
+            run(name, args.ticks, 0.0, jitter_s=args.jitter_us * 1e-6, opcodes=counts)
+            total = sum(counts.values())
+            print(f"{name}: {total / args.ticks:.0f} bytecodes per tick ({args.ticks} ticks)")
+            for fn, n in counts.most_common(args.opcodes):
+                print(f"  {n / args.ticks:8.1f}  {n / total:6.1%}  {fn}")
+        return
     results: dict[str, list[float]] = {n: [] for n in names}
     order = (
         [n for _ in range(args.rounds) for n in names]

@@ -57,20 +57,24 @@ class RealClock:
     the slave instead phase-locks its ticks so the master's packets arrive before the spin.
     """
 
-    __slots__ = ("_spin_s", "_yield")
+    __slots__ = ("_spin_s", "_yield", "now", "wall_time")
 
     def __init__(self, spin_us: float = 200.0, *, yield_gil: bool = False) -> None:
         if spin_us < 0:
             raise ValueError(f"spin_us must be >= 0, got {spin_us}")
         self._spin_s = spin_us * 1e-6
         self._yield = yield_gil
+        # the time functions themselves, not methods calling them: the loop, the interfaces
+        # and the controllers ask several times a tick, and a Python call costs more than
+        # the clock read
+        #: monotonic seconds (``time.perf_counter``)
+        self.now: Callable[[], float] = time.perf_counter
+        #: Unix time in seconds (``time.time``)
+        self.wall_time: Callable[[], float] = time.time
 
     @property
     def spin_us(self) -> float:
         return self._spin_s * 1e6
-
-    def now(self) -> float:
-        return time.perf_counter()
 
     def sleep_until(self, deadline: float) -> None:
         perf_counter = time.perf_counter
@@ -87,9 +91,6 @@ class RealClock:
         else:
             while perf_counter() < deadline:
                 pass
-
-    def wall_time(self) -> float:
-        return time.time()
 
     def __repr__(self) -> str:
         return f"RealClock(spin_us={self.spin_us:g})"

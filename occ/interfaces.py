@@ -346,6 +346,18 @@ class Interface:
         log.debug("%s: malformed message from %s: %s", self.name, addr, exc)
 
     def _on_message(self, peer: Peer, msg: Message) -> None:
+        """From the transport (its I/O thread): routed (:meth:`route`), a stream item into
+        its queue for the loop."""
+        item = self.route(peer, msg)
+        if item is not None:
+            self.streams[msg.message_type].put(item)
+
+    def route(self, peer: Peer, msg: Message) -> StreamItem | None:
+        """Every check and routing rule of the module docstring for one received message:
+        refused, counted, queued as a request or answered here (None), or returned: a stream
+        item (an accepted pose as a typed sample, or a discrete input of a stream queue) for
+        the queue of its type, ``streams[msg.message_type]``. The loop that reads a socket
+        itself hands the item straight to its tick; the I/O thread queues it."""
         c = self.counters
         c.received += 1
         if self.auth_key is not None:
@@ -361,7 +373,7 @@ class Interface:
                         *peer.address[:2],
                         why,
                     )
-                return
+                return None
         mtype = msg.message_type
         t_rx = self._now()
         stream = self.streams.get(mtype)
@@ -385,12 +397,11 @@ class Interface:
                             *source,
                             *owner,
                         )
-                    return
+                    return None
                 # a pose becomes a typed sample here, once; other stream inputs (fixture
                 # definitions, keyframes) go as they came
                 sample = pose_sample(self.name, peer, msg, t_rx)
-                stream.put(sample if sample is not None else Inbound(self.name, peer, msg, t_rx))
-                return
+                return sample if sample is not None else Inbound(self.name, peer, msg, t_rx)
         item = Inbound(self.name, peer, msg, t_rx)
         if is_operator_request(msg) or mtype in self.command_inputs:
             if mtype not in self.command_inputs:
@@ -401,12 +412,12 @@ class Interface:
                         f"interface {self.name} is a data link: it takes no requests",
                         igtl.StatusCode.ACCESS_DENIED,
                     )
-                    return
+                    return None
                 try:
                     req = parse_request(msg)
                 except CommandError as err:
                     self._refuse(item, str(err), igtl.StatusCode.ILLEGAL_INSTRUCTION)
-                    return
+                    return None
                 if (
                     role == "viewer"
                     and req.kind != "query"
@@ -418,15 +429,15 @@ class Interface:
                         "commands to an operator interface",
                         igtl.StatusCode.ACCESS_DENIED,
                     )
-                    return
+                    return None
                 item.request = req
                 item.role = role
             if not self.manager.commands.put(item):
                 self._refuse(item, "command queue full", igtl.StatusCode.BUSY)
-            return
+            return None
         if mtype == "STATUS":
             c.keepalive += 1
-            return
+            return None
         c.unexpected += 1
         if mtype not in c.unexpected_types:
             c.unexpected_types.add(mtype)
@@ -436,6 +447,7 @@ class Interface:
                 mtype,
                 *peer.address[:2],
             )
+        return None
 
     def peer_role(self, peer: Peer) -> str:
         """``operator``, ``viewer`` or ``none``: what this peer may ask on this interface."""

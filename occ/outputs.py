@@ -8,6 +8,7 @@ loses its own oldest messages inside the transport, OCC's per-subscriber ``Fq``)
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -298,6 +299,10 @@ class BuiltinSources:
         )
 
 
+#: the longest common period of a robot's outputs (in ticks) kept as a schedule
+SCHEDULE_MAX = 10_000
+
+
 class OutputScheduler:
     """Every output of every interface, each sent every ``every`` ticks from its source."""
 
@@ -310,6 +315,15 @@ class OutputScheduler:
                 )
         self._due = [(out, sources[out.source]) for out in outputs]
         self.outputs = list(outputs)
+        # the outputs due at each tick of one common period (in the configured order), so a
+        # tick finds its few (most ticks: none) without testing every output; a period
+        # longer than SCHEDULE_MAX falls back to testing each
+        period = math.lcm(*(out.every for out in outputs)) if outputs else 1
+        self._period = period if period <= SCHEDULE_MAX else 0
+        self._schedule = [
+            tuple((out, src) for out, src in self._due if k % out.every == 0)
+            for k in range(self._period)
+        ]
 
     @classmethod
     def for_interfaces(
@@ -333,8 +347,9 @@ class OutputScheduler:
     def send_due(
         self, now: float, k: int, record: Callable[[Message, str, float], None] | None
     ) -> None:
-        for out, source in self._due:
-            if k % out.every == 0:
+        period = self._period
+        for out, source in self._schedule[k % period] if period else self._due:
+            if period or k % out.every == 0:
                 value = source(out, now)
                 if value is not None:
                     msg = value if isinstance(value, Message) else pack_output(value, out)

@@ -92,7 +92,7 @@ class Robot:
             self.interfaces,
             config.safety.loss,
             self.collab,
-            lambda now: self.clock.wall_time() - now,
+            self.clock.wall_time,
         )
 
         # --- Safety
@@ -151,6 +151,9 @@ class Robot:
         if self.controller.commands_effort:
             self.data.effort_command = [0.0] * len(self.joints)
         self.operators = OperatorDesk(self)
+        self.streams.bind(
+            self.controller.on_sample, self.controller.on_input, self.operators.refuse_input
+        )
         self.interfaces.on_connect(self.operators.greet)
         sources = {
             **BuiltinSources(self.data, self.operators.describe_state).table(),
@@ -283,10 +286,7 @@ class Robot:
             self.alarms.fault(f"supervisor: {sup.reason}")
         self._read(now)
         try:
-            c = self.controller
-            self.streams.drain(
-                now, c.on_sample, c.on_input, self.operators.refuse_input, self.recorder
-            )
+            self.streams.drain(now, self.recorder)
         except Exception as err:  # noqa: BLE001
             self.alarms.plugin_error(f"controller {self.controller.name}: on_sample", err)
         # commands, bounded per tick so a flood cannot stall the loop (parsed already)

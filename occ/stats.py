@@ -18,12 +18,16 @@ range (µs)         bucket width                     buckets
 
 :class:`LoopStats` feeds three histograms per tick -- lateness (start - deadline), period
 (start - previous start) and compute time (end - start) -- and counts overruns (compute over
-budget), ticks more than 1 ms late and ticks skipped by the loop. :meth:`LoopStats.snapshot`
-returns the JSON-ready dict that the daemon logs, records and reports.
+budget), ticks more than 1 ms late and ticks skipped by the loop. It keeps the worst late
+ticks with the wall-clock time they started (``late_ticks``), so a report can put a daemon's
+maximum beside what else happened on the machine at that moment (benchmarks/bench_safety.py
+beside its stall probe). :meth:`LoopStats.snapshot` returns the JSON-ready dict that the
+daemon logs, records and reports.
 """
 
 from __future__ import annotations
 
+import heapq
 import math
 import time
 from bisect import bisect_left
@@ -208,6 +212,8 @@ class LoopStats:
     """
 
     LATE_LIMIT_S = 1e-3
+    #: how many of the latest ticks over ``LATE_LIMIT_S`` are kept, the worst ones
+    LATE_KEPT = 20
 
     def __init__(self, rate_hz: float, budget_s: float | None = None) -> None:
         if rate_hz <= 0:
@@ -218,6 +224,10 @@ class LoopStats:
         self.lateness = Histogram()
         self.period = Histogram()
         self.compute = Histogram()
+        # bound once: three look-ups a tick fewer
+        self._add_late = self.lateness.add
+        self._add_compute = self.compute.add
+        self._add_period = self.period.add
         self.interfaces: dict[str, InterfaceStats] = {}
         self._reset_counters()
 
@@ -233,6 +243,9 @@ class LoopStats:
         self._cpu0 = time.process_time()
         self._wall1: float | None = None
         self._cpu1: float | None = None
+        #: the worst ticks over LATE_LIMIT_S: a min-heap of (lateness s, wall time of the
+        #: tick's start); the loop thread writes it on a late tick only
+        self._late: list[tuple[float, float]] = []
 
     def reset(self) -> None:
         """Start a new measurement window (loop thread only)."""
@@ -263,11 +276,11 @@ class LoopStats:
         """Record one tick: scheduled ``deadline``, actual ``start``, ``end`` of its work."""
         lateness = start - deadline
         compute = end - start
-        self.lateness.add(lateness * 1e6)
-        self.compute.add(compute * 1e6)
+        self._add_late(lateness * 1e6)
+        self._add_compute(compute * 1e6)
         prev = self._prev_start
         if prev is not None:
-            self.period.add((start - prev) * 1e6)
+            self._add_period((start - prev) * 1e6)
         elif self._t0 is None:
             self._t0 = deadline
         self._prev_start = start
@@ -277,6 +290,25 @@ class LoopStats:
             self.overruns += 1
         if lateness > self.LATE_LIMIT_S:
             self.late_over_1ms += 1
+            self._note_late(lateness, compute)
+
+    def _note_late(self, lateness: float, compute: float) -> None:
+        """Keep a late tick among the worst (the rare path: a tick over LATE_LIMIT_S), with
+        the wall-clock time it started (now, less its compute time)."""
+        item = (lateness, time.time() - compute)
+        late = self._late
+        if len(late) < self.LATE_KEPT:
+            heapq.heappush(late, item)
+        elif item > late[0]:
+            heapq.heapreplace(late, item)
+
+    def late_ticks(self) -> list[dict[str, float]]:
+        """The worst late ticks kept, worst first: ``at`` the wall-clock (Unix) time the tick
+        started, ``late_us`` how late; the tick waited from ``at - late_us`` to ``at``."""
+        return [
+            {"at": round(at, 6), "late_us": round(late * 1e6, 1)}
+            for late, at in sorted(list(self._late), reverse=True)
+        ]
 
     def record_missed(self, n: int) -> None:
         """Count ``n`` deadlines skipped by the loop (never run)."""
@@ -314,6 +346,7 @@ class LoopStats:
             ),
             "overruns": self.overruns,
             "missed_ticks": self.missed_ticks,
+            "late_ticks": self.late_ticks(),
             "cpu_percent": round(self.cpu_percent, 2),
             "interfaces": interfaces,
         }

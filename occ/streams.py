@@ -9,19 +9,23 @@ control (occ/collab.py decides who may ask).
 
 from __future__ import annotations
 
+import logging
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Sequence
 from typing import Any
 
-from igtl.transport import UDPEndpoint
+from igtl.messages.base import Message
+from igtl.transport import Peer, UDPEndpoint
 
 from .assembly import build_loss_monitors
 from .collab import Collaboration
 from .config import LossConfig
 from .errors import CommandError
-from .interfaces import Inbound, InterfaceManager
+from .interfaces import Inbound, Interface, InterfaceManager, StreamItem, StreamQueue
 from .safety import LossEvent, LossMonitor, Verdict
 from .samples import PoseSample
+
+log = logging.getLogger(__name__)
 
 #: Datagrams a tick reads from each UDP stream socket (a 500 Hz stream brings one every other
 #: tick); beyond that a flood waits in the socket buffer, which overflows: the tick's cost stays
@@ -43,6 +47,11 @@ def judge(
     )
 
 
+OnSample = Callable[[PoseSample, float], Any]
+OnInput = Callable[[Inbound, float], Any]
+Refuse = Callable[[Inbound, CommandError], None]
+
+
 class StreamInputs:
     """The stream side of one robot (see the module docstring)."""
 
@@ -51,19 +60,11 @@ class StreamInputs:
         interfaces: InterfaceManager,
         loss: LossConfig,
         collab: Collaboration | None,
-        wall_offset: Callable[[float], float],
+        wall_time: Callable[[], float],
     ) -> None:
-        #: ``wall_offset(now)``: wall time minus loop time, for the timestamp check
-        self._wall_offset = wall_offset
+        #: the wall clock of the loop's clock, for the timestamp check
+        self._wall_time = wall_time
         self.collab = collab
-        # UDP stream sockets are read by the loop itself, at most POLL_LIMIT datagrams a tick:
-        # a 500 Hz stream then costs no thread wake-up per datagram, and a flood costs the
-        # tick a bounded amount (the socket buffer overflows instead)
-        self._pollers = [
-            iface.transport.poll
-            for iface in interfaces.interfaces.values()
-            if isinstance(iface.transport, UDPEndpoint) and iface.transport.polled
-        ]
         masters = collab.masters if collab is not None else ()
         #: every watched stream's monitor (one per master when collaborating)
         self.monitors: dict[str, LossMonitor] = build_loss_monitors(
@@ -82,7 +83,33 @@ class StreamInputs:
             for iface in interfaces.interfaces.values()
             for q in iface.streams.values()
         ]
+        # UDP stream sockets are read by the loop itself, at most POLL_LIMIT datagrams a tick:
+        # a 500 Hz stream then costs no thread wake-up per datagram, and a flood costs the
+        # tick a bounded amount (the socket buffer overflows instead). What the loop reads
+        # there goes straight to this tick (routed by its interface, judged, followed): no
+        # queue, no lock, no other thread in between.
+        self._pollers = [
+            (
+                iface.transport.poll,
+                self._direct(
+                    iface.name, iface, self.monitors.get(iface.name), iface.name in masters
+                ),
+            )
+            for iface in interfaces.interfaces.values()
+            if isinstance(iface.transport, UDPEndpoint) and iface.transport.polled
+        ]
+        #: stream items that failed to route (a bug, logged): counted as the I/O thread's
+        #: callback errors are, the tick goes on
+        self.route_errors = 0
         self._prev_tick = -math.inf  # the previous tick's start (earliest arrival of samples)
+        # this tick's context, set by drain() for the items handled in it
+        self._now = 0.0
+        self._since = -math.inf
+        self._to_wall: float | None = None
+        self._on_sample: OnSample = _unbound
+        self._on_input: OnInput = _unbound
+        self._refuse: Refuse = _unbound
+        self._recorder: Any | None = None
 
     @property
     def holding(self) -> bool:
@@ -90,66 +117,130 @@ class StreamInputs:
         monitor = self.monitor
         return monitor is not None and monitor.holding
 
-    def drain(
-        self,
-        now: float,
-        on_sample: Callable[[PoseSample, float], Any],
-        on_input: Callable[[Inbound, float], Any],
-        refuse: Callable[[Inbound, CommandError], None],
-        recorder: Any | None,
-    ) -> None:
+    def bind(self, on_sample: OnSample, on_input: OnInput, refuse: Refuse) -> None:
+        """Where the stream items go (the controllers), and who answers a refused input (the
+        operator desk): set once, before the first :meth:`drain`."""
+        self._on_sample = on_sample
+        self._on_input = on_input
+        self._refuse = refuse
+
+    def drain(self, now: float, recorder: Any | None) -> None:
         """Every stream item, in order: each pose sample judged by its loss monitor, the
         accepted ones of the stream in control (and of streams no master sends) to
         ``on_sample``; the discrete inputs that share a stream (fixture definitions,
-        keyframes) to ``on_input``. Polled UDP sockets are read first, at most ``POLL_LIMIT``
-        datagrams each."""
-        for poll in self._pollers:
-            poll(POLL_LIMIT)
-        since = self._prev_tick
-        self._prev_tick = now
-        to_wall = 0.0
-        walled = False
+        keyframes) to ``on_input`` (:meth:`bind`). Polled UDP sockets are read first, at most
+        ``POLL_LIMIT`` datagrams each, each item handled as it is read; then the queues the
+        interface threads filled."""
+        self._since = self._prev_tick
+        self._prev_tick = self._now = now
+        self._to_wall = None
+        self._recorder = recorder
+        for poll, direct in self._pollers:
+            poll(POLL_LIMIT, direct)
         for name, q, monitor, master in self._queues:
-            if not q.pending and not q.evicted:
-                continue  # most ticks: nothing arrived (checked without a call)
-            if monitor is not None:
-                if not walled:
-                    walled = True
-                    # reception times on the wall clock, to compare with header timestamps
-                    to_wall = self._wall_offset(now)
-                if q.evicted:
-                    # samples the loop could not take in time: seen, never called lost
-                    for old in q.drain_overflow():
-                        if isinstance(old, PoseSample):
-                            judge(monitor, old, now, to_wall, since)
-            # a master not in control is judged and counted, and moves nothing
-            follow = not master or name == self.input
-            for item in q.drain():
-                if recorder is not None:
-                    recorder.record_message(item.msg, "in", name, now)
-                if isinstance(item, PoseSample):
-                    if monitor is not None:
-                        if judge(monitor, item, now, to_wall, since) is not Verdict.ACCEPT:
-                            continue
-                    if follow:
-                        try:
-                            on_sample(item, now)
-                        except CommandError as err:  # a TRANSFORM fixture refused
-                            refuse(Inbound(item.interface, item.peer, item.msg, item.t_rx), err)
-                elif follow:
-                    try:
-                        on_input(item, now)
-                    except CommandError as err:
-                        # a discrete input on a stream queue (a VFIXTURE) that the controller
-                        # refused: an answer to its sender, not a FAULT
-                        refuse(item, err)
+            if q.pending or q.evicted:  # most ticks nothing arrived (checked without a call)
+                self._drain_queue(name, q, monitor, master)
 
-    def events(self, now: float) -> Iterator[tuple[str, LossMonitor, LossEvent]]:
-        """This tick's loss events: (interface, its monitor, the event), for every monitor."""
+    def _drain_queue(
+        self, name: str, q: StreamQueue, monitor: LossMonitor | None, master: bool
+    ) -> None:
+        """What an interface thread queued for this tick, in order."""
+        if q.evicted and monitor is not None:
+            # samples the loop could not take in time: seen, never called lost
+            now, since, to_wall = self._now, self._since, self._wall()
+            for old in q.drain_overflow():
+                if isinstance(old, PoseSample):
+                    judge(monitor, old, now, to_wall, since)
+        elif q.evicted:
+            q.drain_overflow()
+        handle = self._handle
+        for item in q.drain():
+            handle(name, monitor, master, item)
+
+    def _wall(self) -> float:
+        """Wall time minus loop time this tick (reception times on the wall clock, to compare
+        with header timestamps), asked once a tick and only when a sample needs it."""
+        to_wall = self._to_wall
+        if to_wall is None:
+            to_wall = self._to_wall = self._wall_time() - self._now
+        return to_wall
+
+    def _direct(
+        self, name: str, iface: Interface, monitor: LossMonitor | None, master: bool
+    ) -> Callable[[Peer, Message], None]:
+        """The handler of what the loop reads from ``iface``'s socket: routed by the interface
+        (every check of the I/O thread's path), then handled at once. A routing error is
+        counted and logged as the transport's guard does it (the datagram is dropped, the
+        tick goes on); the handling's own errors reach the tick, as a queued item's do."""
+        route = iface.route
+        handle = self._handle
+        streams = iface.streams
+        only = next(iter(streams.values())) if len(streams) == 1 else None  # e.g. POSITION
+
+        def direct(peer: Peer, msg: Message) -> None:
+            try:
+                item = route(peer, msg)
+            except Exception:  # noqa: BLE001 - as the I/O thread's CallbackGuard
+                self.route_errors += 1
+                log.exception("%s: routing a polled %s raised", name, msg.message_type)
+                return
+            if item is not None:
+                (only if only is not None else streams[msg.message_type]).received += 1
+                handle(name, monitor, master, item)
+
+        return direct
+
+    def _handle(
+        self, name: str, monitor: LossMonitor | None, master: bool, item: StreamItem
+    ) -> None:
+        """One stream item of interface ``name`` in this tick: a pose judged by the stream's
+        monitor, followed if accepted and of the stream in control (a master not in control
+        is judged and counted, and moves nothing); a discrete input to the controllers."""
+        now = self._now
+        recorder = self._recorder
+        if recorder is not None:
+            recorder.record_message(item.msg, "in", name, now)
+        follow = not master or name == self.input
+        if isinstance(item, PoseSample):
+            if monitor is not None:
+                rx = item.t_rx
+                since = self._since
+                to_wall = self._to_wall
+                if to_wall is None:  # once a tick, and only when a sample needs it
+                    to_wall = self._to_wall = self._wall_time() - now
+                verdict = monitor.on_packet(
+                    item.seq,
+                    item.t_sample,
+                    now,
+                    rx + to_wall,
+                    (rx if rx < since else since) + to_wall,
+                )
+                if verdict is not Verdict.ACCEPT:
+                    return
+            if follow:
+                try:
+                    self._on_sample(item, now)
+                except CommandError as err:  # a TRANSFORM fixture refused
+                    self._refuse(Inbound(item.interface, item.peer, item.msg, item.t_rx), err)
+        elif follow:
+            try:
+                self._on_input(item, now)
+            except CommandError as err:
+                # a discrete input on a stream queue (a VFIXTURE) that the controller
+                # refused: an answer to its sender, not a FAULT
+                self._refuse(item, err)
+
+    def events(self, now: float) -> Sequence[tuple[str, LossMonitor, LossEvent]]:
+        """This tick's loss events: (interface, its monitor, the event), for every monitor
+        (most ticks none: an empty tuple, nothing built)."""
+        found: list[tuple[str, LossMonitor, LossEvent]] | None = None
         for name, mon in self._monitor_list:
             event = mon.check(now)
             if event is not None:
-                yield name, mon, event
+                if found is None:
+                    found = []
+                found.append((name, mon, event))
+        return () if found is None else found
 
     def reset(self) -> None:
         """Every monitor cleared, armed by its next packet (entering RUNNING, Reset)."""
@@ -191,3 +282,8 @@ class StreamInputs:
         self.input = to
         self.monitor = monitor
         return old, by
+
+
+def _unbound(*args: Any) -> None:
+    """Before :meth:`StreamInputs.bind`: a stream item has nowhere to go."""
+    raise RuntimeError("StreamInputs.bind was not called: stream items have nowhere to go")

@@ -302,7 +302,7 @@ class InprocTransport:
             raise RuntimeError("on_message is set, so messages never reach receive()")
         return self._inbox.get(timeout)
 
-    def poll(self, limit: int = 64) -> int:
+    def poll(self, limit: int = 64, on_message: OnMessage | None = None) -> int:
         """Nothing is ever waiting: delivery is synchronous. Returns 0 (for loops that poll)."""
         return 0
 

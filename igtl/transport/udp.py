@@ -406,7 +406,7 @@ class UDPEndpoint(IOThreadOwner):
                 with self._rx_lock:  # poll() may be feeding the reassembler
                     reasm.expire()
 
-    def poll(self, limit: int = 64) -> int:
+    def poll(self, limit: int = 64, on_message: OnMessage | None = None) -> int:
         """Receive and deliver the datagrams already waiting, on the calling thread; never blocks.
 
         For a periodic loop that wants a sample the moment it ticks: the I/O thread delivers
@@ -414,6 +414,11 @@ class UDPEndpoint(IOThreadOwner):
         the interpreter (a loop spinning before its deadline does). The two readers take turns
         datagram by datagram (a lock keeps delivery in arrival order); if the I/O thread is
         busy delivering, poll returns 0 and leaves the rest to it. Returns the number delivered.
+
+        ``on_message``: the messages this call reads go to it instead of the endpoint's own
+        callback, and unguarded: its exceptions reach the caller of ``poll`` (a loop that handles
+        what it polled at once, and its own errors). Bad datagrams are counted and reported as
+        always (``on_error``).
         """
         if self._sock is None or not self._running:
             return 0
@@ -429,7 +434,7 @@ class UDPEndpoint(IOThreadOwner):
             if not self._rx_lock.acquire(blocking=False):
                 return done
             try:
-                if not self._receive_one():
+                if not self._receive_one(on_message):
                     return done
             finally:
                 self._rx_lock.release()
@@ -444,8 +449,9 @@ class UDPEndpoint(IOThreadOwner):
                 if not self._receive_one():
                     return
 
-    def _receive_one(self) -> bool:
-        """Read one datagram and deliver it; False when none is waiting (or on an error)."""
+    def _receive_one(self, deliver: OnMessage | None = None) -> bool:
+        """Read one datagram and deliver it (to ``deliver``, unguarded, when given); False when
+        none is waiting (or on an error)."""
         sock = self._sock
         if sock is None:
             return False
@@ -475,10 +481,10 @@ class UDPEndpoint(IOThreadOwner):
                 log.warning("%s: receive failed: %s", self.name, err)
             return False
         self._datagrams_received += 1
-        self._datagram(bytes(self._rxview[:n]), address)
+        self._datagram(bytes(self._rxview[:n]), address, deliver)
         return True
 
-    def _datagram(self, data: bytes, address: Any) -> None:
+    def _datagram(self, data: bytes, address: Any, deliver: OnMessage | None = None) -> None:
         if not self._access.allows(address[0]):
             self._denied += 1
             if self._denied_log.allow():
@@ -508,7 +514,9 @@ class UDPEndpoint(IOThreadOwner):
         peer.received += 1
         if msg.header_version > peer.header_version:
             peer.note_version(msg.header_version)
-        if self.on_message is not None:
+        if deliver is not None:
+            deliver(peer, msg)
+        elif self.on_message is not None:
             self._guard(self.on_message, peer, msg)
         else:
             self._inbox.put((peer, msg))

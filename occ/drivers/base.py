@@ -394,6 +394,7 @@ class Driver:
             raise self._hook_failed("read", err) from err
         jump = self._jump_speed
         changed = self._changed_at
+        period = self.period
         frozen_s = self._frozen_s if state is DriverState.ACTIVE else 0.0
         if self.command_interface == "effort":
             frozen_s = 0.0  # the hand, not a servo, moves an effort-driven joint
@@ -409,8 +410,8 @@ class Driver:
                     changed[i] = now
                     step = x - prev if x > prev else prev - x
                     dt = now - joint.stamp
-                    if dt < self.period:
-                        dt = self.period
+                    if dt < period:
+                        dt = period
                     if jump[i] > 0.0 and step > jump[i] * dt:
                         self._feedback_fault(
                             f"joint {joint.name}: feedback jump of {step:.6g} in "
@@ -483,7 +484,8 @@ class Driver:
                 ref = prev[i]
             if ref == ref:
                 step = x - ref
-                if step > vmax * dt or -step > vmax * dt:
+                reach = vmax * dt
+                if step > reach or -step > reach:
                     if not clamp:
                         speed = abs(step) / dt if dt > 0.0 else math.inf
                         self._fault(

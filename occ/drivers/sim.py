@@ -240,12 +240,21 @@ class SimDriver(Driver):
             for i in range(len(js))
         ]
         self._exact_encoder = not any(noise) and not any(resolution)
+        self._noisy = any(n > 0.0 for n in noise)
         # exact steps of the servoed joints: e = x - r obeys e'' + c e' + k e = 0 while the
         # effort stays inside its limit (k = kp/J, c = (kd + b)/J)
         self._servo_poles = [
             (self._kp[i] / self._inertia[i], (self._kd[i] + self._damping[i]) / self._inertia[i])
             for i in range(len(js))
         ]
+        # what of the exact step does not depend on its length, per joint: (k, c/2, d^2,
+        # sqrt(|d^2|)) (see _exact_steps; computed once: the loop's jitter makes every step
+        # a new length)
+        self._servo_consts = []
+        for k, c in self._servo_poles:
+            half = 0.5 * c
+            d2 = half * half - k
+            self._servo_consts.append((k, half, d2, math.sqrt(d2 if d2 > 0.0 else -d2)))
         self._step_h = math.nan
         self._step: list[tuple[float, float, float, float]] = []
 
@@ -393,10 +402,12 @@ class SimDriver(Driver):
                 return self._injected(out), self._v, effort
             return out, self._v, effort
         rng = self._rng
+        noisy = self._noisy
         for i, x in enumerate(self._x):
-            sigma = self._noise[i]
-            if sigma > 0.0:
-                x += rng.gauss(0.0, sigma)
+            if noisy:
+                sigma = self._noise[i]
+                if sigma > 0.0:
+                    x += rng.gauss(0.0, sigma)
             res = self._resolution[i]
             if res > 0.0:
                 x = math.floor(x / res + 0.5) * res
@@ -444,21 +455,17 @@ class SimDriver(Driver):
         and ``S = sinh(d h)/d`` (cos and sin/omega when ``d^2 < 0``; series near 0). Cached
         for the last ``h``."""
         out = []
-        for k, c in self._servo_poles:
-            half = 0.5 * c
-            d2 = half * half - k
+        for k, half, d2, root in self._servo_consts:  # root: d, or w when d^2 < 0
             z = d2 * h * h
             if abs(z) < 1e-8:  # near critical damping: the series of cosh and sinh/d
                 big_c = 1.0 + 0.5 * z
                 big_s = h * (1.0 + z / 6.0)
             elif d2 > 0.0:
-                d = math.sqrt(d2)
-                big_c = math.cosh(d * h)
-                big_s = math.sinh(d * h) / d
+                big_c = math.cosh(root * h)
+                big_s = math.sinh(root * h) / root
             else:
-                w = math.sqrt(-d2)
-                big_c = math.cos(w * h)
-                big_s = math.sin(w * h) / w
+                big_c = math.cos(root * h)
+                big_s = math.sin(root * h) / root
             g = math.exp(-half * h)
             out.append(
                 (g * (big_c + half * big_s), g * big_s, -g * big_s * k, g * (big_c - half * big_s))

@@ -8,6 +8,7 @@ import math
 import os
 import random
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -406,6 +407,7 @@ SNAPSHOT_KEYS = {
     "late_over_1ms_percent",
     "overruns",
     "missed_ticks",
+    "late_ticks",
     "cpu_percent",
     "interfaces",
 }
@@ -472,6 +474,10 @@ def test_stats_counts_overruns_and_late_ticks() -> None:
     assert snap["lateness_us"]["max"] == pytest.approx(1200.0)
     assert snap["period_us"]["max"] == pytest.approx(2200.0)
     assert snap["duration_s"] == pytest.approx(0.0041)
+    # the one tick over 1 ms late, with the wall-clock time it started
+    (late,) = snap["late_ticks"]
+    assert late["late_us"] == pytest.approx(1200.0)
+    assert abs(late["at"] - time.time()) < 60.0
     stats.reset()
     assert stats.snapshot()["ticks"] == 0
 
@@ -553,3 +559,19 @@ def test_histogram_buckets_subtract_into_a_window() -> None:
     assert window.percentile(50) == pytest.approx(1500.0, rel=0.03)
     assert window.percentile(100) == pytest.approx(2000.0, rel=0.03)
     assert Histogram.from_buckets({}).percentile(99.9) == 0.0
+
+
+def test_stats_keep_the_worst_late_ticks_with_their_wall_time() -> None:
+    stats = LoopStats(RATE)
+    stats.begin(0.0)
+    for i in range(60):  # late by 1.1, 1.2, ... 7.0 ms, in a scrambled order
+        late = 1.1e-3 + 0.1e-3 * ((i * 37) % 60)
+        stats.record(i * 0.01, i * 0.01 + late, i * 0.01 + late + 1e-4)
+    stats.record(1.0, 1.0005, 1.0006)  # 0.5 ms late: not kept
+    kept = stats.snapshot()["late_ticks"]
+    assert len(kept) == LoopStats.LATE_KEPT
+    assert [k["late_us"] for k in kept] == [
+        pytest.approx(7000.0 - 100.0 * j) for j in range(LoopStats.LATE_KEPT)
+    ]
+    stats.reset()
+    assert stats.snapshot()["late_ticks"] == []
