@@ -85,7 +85,9 @@ def check_node_gets_everything(rig: Rig, since: float, *, command: str = "GetSta
             break
         rig.ask("publish", data=command)
     assert reply(), "no command_reply"
-    assert reply()[0] == "GetState SUCCESS: state=READY; reason=configured", reply()
+    # the state and its reason; a busy machine may add the daemon's last alert (a watchdog gap)
+    assert reply()[0].startswith("GetState SUCCESS: state=READY;"), reply()
+    assert "reason=configured" in reply()[0], reply()
 
 
 LOCALHOST = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
