@@ -760,7 +760,9 @@ class SlaveController(Controller):
         self.force_view: ForceView | None = None
         #: orientation following (a 6-DOF arm): the master's quaternion, and at the
         #: re-index its rotation and the tool's (base frame)
-        self.follow_orientation = p.orientation == "follow"
+        self.follow_orientation = p.orientation in ("follow", "rcm")
+        self.rcm_mm = p.rcm_mm if p.orientation == "rcm" else None
+        self.rcm_error_max = 0.0
         self.rotation_scale = p.rotation_scale
         self.master_quat: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
         self._rm_ref: np.ndarray | None = None
@@ -778,6 +780,8 @@ class SlaveController(Controller):
     @classmethod
     def check(cls, params: Any, config: DaemonConfig) -> list[Problem]:
         problems = _interfaces_exist(params, config, ("input_interface", "base_interface"))
+        if params.orientation == "rcm" and params.rcm_mm is None:
+            problems.append((("rcm_mm",), "required with orientation: rcm"))
         f = params.force
         if (
             f is not None
@@ -1094,6 +1098,27 @@ class SlaveController(Controller):
             self.pending_ts = None
         return self._q_last
 
+    def rcm_rotation(self, target: tuple[float, float, float]) -> np.ndarray:
+        """The tool's orientation for a tip at ``target`` (base frame) through the port: its z
+        axis from the port to the tip, its x axis the current one's projection (the roll
+        kept)."""
+        data, ctx = self.data, self.ctx
+        assert data is not None and ctx is not None and self.rcm_mm is not None
+        b = data.base
+        port = b[:3, :3].T @ (np.asarray(self.rcm_mm, dtype=float) * MM - b[:3, 3])
+        z = np.asarray(target) - port
+        n = float(np.linalg.norm(z))
+        if n < 1e-6:
+            raise KinematicsError("the tip is at the port: the tool's axis is not defined")
+        z /= n
+        here = self._q_last if self._q_last is not None else data.commanded()
+        x = np.asarray(ctx.frame.fk(here))[:3, 0]
+        x = x - float(x @ z) * z
+        if float(np.linalg.norm(x)) < 1e-9:  # x along the new axis: any perpendicular
+            x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
+        x /= float(np.linalg.norm(x))
+        return np.column_stack((x, np.cross(z, x), z))
+
     def target_rotation(self) -> np.ndarray:
         """The tool's orientation target (base frame): the handle's rotation since the
         re-index, ``dR = R_m R_m0^T`` (scaled in angle by ``rotation_scale``), seen in the
@@ -1112,7 +1137,9 @@ class SlaveController(Controller):
         ctx, data = self.ctx, self.data
         assert ctx is not None and data is not None
         pose = np.eye(4)
-        pose[:3, :3] = self.target_rotation()
+        pose[:3, :3] = (
+            self.rcm_rotation(target) if self.rcm_mm is not None else self.target_rotation()
+        )
         pose[:3, 3] = target
         seed = self._q_last if self._q_last is not None else data.q
         res = ctx.frame.solve_ik(pose, seed, clamp=True, method="dls")

@@ -263,12 +263,19 @@ class SlaveParams(_Params):
         None, description="Interface on which a tracker sends the base TRANSFORM."
     )
     base_device: DeviceName = Field("Base", description="Device name of that TRANSFORM.")
-    orientation: Literal["off", "follow"] = Field(
+    orientation: Literal["off", "follow", "rcm"] = Field(
         "off",
         description="`follow` (a 6-DOF arm): the tool turns as the master's handle turns, the "
         "handle's rotation since the last re-index (the stream's quaternion) mapped through "
         "`rotation` and applied to the tool's orientation at the re-index; the full pose is "
-        "solved (damped least squares). `off`: position only (3-DOF arms).",
+        "solved (damped least squares). `rcm` (a laparoscopic tool on a 6-DOF arm): the "
+        "tool's axis (its z) always passes through the port `rcm_mm`, pointing from it to the "
+        "tip, the roll about it kept. `off`: position only (3-DOF arms).",
+    )
+    rcm_mm: Vec3 | None = Field(
+        None,
+        description="`rcm`: the port, the remote centre of motion the tool's axis passes "
+        "through (patient frame, mm).",
     )
     rotation_scale: Annotated[Float, Field(gt=0, le=1)] = Field(
         1.0,
