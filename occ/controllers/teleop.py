@@ -205,7 +205,6 @@ class MasterController(Controller):
         self.feedback_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.displayed_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.clamped_ticks = 0
-        self._handle: tuple[float, float, float] | None = None
         self._t_handle = math.nan
         self.target: np.ndarray | None = None
         self._t_run = 0.0
@@ -424,7 +423,7 @@ class MasterController(Controller):
         self._t_gain = math.nan
         self.fixtures.displayed((0.0, 0.0, 0.0))
         self.feedback_n = self.displayed_n = (0.0, 0.0, 0.0)
-        self._handle = None
+        self._t_handle = math.nan
         self.passivity.reset()
 
     # -------------------------------------------------------------- loop
@@ -541,18 +540,35 @@ class MasterController(Controller):
         if now - self._t_external <= self._external_timeout:
             ex, ey, ez = self.external_n
             bx, by, bz = bx + ex, by + ey, bz + ez
-        hx, hy, hz = ctx.frame.tip_position(data.q)
-        last, t_last = self._handle, self._t_handle
-        self._handle, self._t_handle = (hx, hy, hz), now
-        if last is not None and now > t_last:
+        t_last = self._t_handle
+        self._t_handle = now
+        if (bx != 0.0 or by != 0.0 or bz != 0.0) and now > t_last:
+            # (no feedback: no power through the port, nothing to observe: the common case
+            # costs nothing here)
             dt = now - t_last
-            v = ((hx - last[0]) / dt, (hy - last[1]) / dt, (hz - last[2]) / dt)
+            v = self._handle_velocity()
             if self.passivity_on:
                 bx, by, bz = self.passivity.step((bx, by, bz), v, dt)
             else:
                 self.passivity.observe((bx, by, bz), v, dt)
         self.displayed_n = self._clamp(fixture[0] + bx, fixture[1] + by, fixture[2] + bz)
         return self.displayed_n
+
+    def _handle_velocity(self) -> tuple[float, float, float]:
+        """The handle's velocity (m/s, the master's axes) from the drives' joint velocities:
+        ``J qdot`` (a Cartesian master's constant Jacobian, else the model's at ``q``)."""
+        data, ctx = self.data, self.ctx
+        assert data is not None and ctx is not None
+        qd = data.qdot
+        jt = self._jt
+        if jt is not None:
+            vx = vy = vz = 0.0
+            for i, (a, b, c) in enumerate(jt):
+                w = qd[i]
+                vx, vy, vz = vx + a * w, vy + b * w, vz + c * w
+            return (vx, vy, vz)
+        v = ctx.frame.jacobian(data.q)[:3] @ np.asarray(qd, dtype=float)
+        return (float(v[0]), float(v[1]), float(v[2]))
 
     def _clamp(self, fx: float, fy: float, fz: float) -> tuple[float, float, float]:
         mag = math.sqrt(fx * fx + fy * fy + fz * fz)
