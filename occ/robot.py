@@ -30,9 +30,11 @@ from .alarms import Alarms
 from .assembly import attach_environment, build_hardware, build_watchdog, realtime_settings
 from .clock import Clock, RealClock
 from .collab import Collaboration
+from .collision import CollisionGuard, CollisionModel
 from .config import DaemonConfig
 from .controllers import Controller, ControllerContext, ControllerSet, create_controller
 from .data import RobotData
+from .errors import ConfigError
 from .hardware import HardwareFailure, HardwareSet, describe
 from .interfaces import InterfaceManager
 from .loop import ControlLoop
@@ -82,6 +84,10 @@ class Robot:
         self.data = RobotData(self.name, names, homes, self.frame, self.clock)
         env = attach_environment(config.environment, pairs, self.frame, lambda: self.data.base)
         self.hardware.environment = env  # simulated tissue (occ/contact.py), or None
+        #: whole-arm collision checking (occ/collision.py): plans and, at run time, a worker
+        self.collision: CollisionGuard | None = None
+        if config.safety.collision is not None:
+            self.collision = self._collision_guard(config, clock)
         # --- Interfaces, and the streams among them (polled, judged, one in control)
         self.interfaces = InterfaceManager(
             config.interfaces, clock_now=self.clock.now, poll_streams=rc.realtime.poll_streams
@@ -144,10 +150,14 @@ class Robot:
                 joint_limits=tuple(j.limits for j in self.joints),
                 alert=self.alarms.broadcast,
                 environment=env,
+                collision=self.collision.cm if self.collision is not None else None,
             ),
         )
         Motion.check_command_kinds(self.controller, self.hardware)
         self.motion = Motion(self.data, self.controller, self.joints, self.period, self._write)
+        guard = self.collision
+        if guard is not None and guard.runtime:
+            self.motion.admit = lambda sp: guard.admit(sp, self.data.base)
         if self.controller.commands_effort:
             self.data.effort_command = [0.0] * len(self.joints)
         self.operators = OperatorDesk(self)
@@ -161,6 +171,28 @@ class Robot:
         )
         self.set_recorder(recorder)
         self._shutdown_done = False
+
+    def _collision_guard(self, config: DaemonConfig, clock: Clock | None) -> CollisionGuard:
+        """The collision model from the URDF and ``safety.collision``, and its run-time guard
+        (inline in simulated time, a worker thread of its own on the real clock)."""
+        cc = config.safety.collision
+        assert cc is not None
+        cm = CollisionModel.build(cc, config.robot.frame, self.frame)
+        step = cm.step_bound([j.limits.velocity for j in self.joints], self.period)
+        if step >= 2.0 * cm.margin:
+            # a plan is checked at the loop's samples: between two, a link moves at most
+            # `step`, so a margin over half of it keeps every link out of every region
+            raise ConfigError(
+                f"safety.collision.margin_mm: must exceed half of what a link can move in one "
+                f"tick at the velocity limits ({step * 500:.3g} mm), got {cm.margin * 1e3:g}"
+            )
+        return CollisionGuard(
+            cm,
+            inline=not isinstance(self.clock, RealClock),
+            runtime=cc.runtime,
+            fifo_priority=writer_priority(config),
+            name=f"occ-{self.name}-collision",
+        )
 
     def set_recorder(self, recorder: Any | None) -> None:
         """Attach a recorder (from any thread: the loop sees it from its next read) or detach
@@ -209,6 +241,8 @@ class Robot:
             report = self.interfaces.set_thread_priority(max(1, prio - 1))
             log.info("interface threads: %s", report)
         self.worker.start()
+        if self.collision is not None:
+            self.collision.start()
         sv = self._supervisor_cfg
         if sv.enabled and isinstance(self.clock, RealClock) and self.supervisor_thread is None:
             sup_prio = sv.fifo_priority or (min(99, prio + 1) if prio else None)
@@ -243,6 +277,8 @@ class Robot:
         self.hardware.shutdown()
         self.interfaces.stop()
         self.worker.stop()
+        if self.collision is not None:
+            self.collision.stop()
         self.operators.recording.close_all()  # recordings started at run time
 
     def __exit__(self, *exc: object) -> None:
@@ -294,6 +330,9 @@ class Robot:
         if commands.pending:
             for item in commands.drain(limit=16):
                 self.operators.handle(item, now)
+        guard = self.collision
+        if guard is not None and (why := guard.poll()) is not None:
+            self._collision_stop(why)
         state = self.state_machine.state
         for name, mon, event in self.streams.events(now):
             if name == self.streams.input:
@@ -305,6 +344,8 @@ class Robot:
             self.motion.control(state, now, self.streams.holding)
         except Exception as err:  # noqa: BLE001
             self.alarms.plugin_error(f"controller {self.controller.name}: update", err)
+        if guard is not None and guard.runtime and state in POWERED:
+            guard.publish(self.data.commanded(), self.data.base)  # checked on its worker
         try:
             self.outputs.send_due(now, k, self._record_out)
         except Exception as err:  # noqa: BLE001
@@ -313,6 +354,14 @@ class Robot:
             self.recorder.record_state(self.data, now)
         if self.state_table is not None:
             self.state_table.write_data(now, self._owner_code, self.data, self.joints)
+
+    def _collision_stop(self, why: str) -> None:
+        """A link inside its margin (the guard's verdict): an ALERT naming link and region,
+        and the safety stop (held until Run, or FAULT with ``policy: fault``)."""
+        cc = self.config.safety.collision
+        assert cc is not None
+        self.alarms.broadcast("COLLISION", why, igtl.StatusCode.ILLEGAL_INSTRUCTION)
+        self.alarms.safety_stop(why, cc.policy)
 
     def _read(self, now: float) -> None:
         """Every drive read (a failed one latches FAULT naming it; the others still read)."""
@@ -352,6 +401,8 @@ class Robot:
         log.log(logging.WARNING if stopped else logging.INFO, "state %s -> %s (%s)%s",
                 old.value, new.value, event, why)  # fmt: skip
         self.motion.on_state(old, new)  # held and first setpoints (the drives: _effect)
+        if self.collision is not None:
+            self.collision.on_running(new is RobotState.RUNNING)
         if new is RobotState.RUNNING:
             # Armed by the first packet after (re)starting: a slave waiting for its master
             # holds still (no target), and a master that vanishes afterwards is caught.

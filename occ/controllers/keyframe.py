@@ -155,6 +155,20 @@ class ForbiddenCheck(Protocol):
     def __call__(self, point: tuple[float, float, float], /) -> str | bool | None: ...
 
 
+class PathCheck(Protocol):
+    """A whole-arm check of a plan's joint path (occ/collision.py ``PathCheck``): given the
+    plan's samples (one per loop period, joint values), the base pose (world <- base) and the
+    pacer, None when clear, else (the first sample that fails, what it hits)."""
+
+    def check_path(
+        self,
+        qs: Sequence[Sequence[float]],
+        base: np.ndarray,
+        pace: Callable[[], None] | None,
+        /,
+    ) -> tuple[int, str] | None: ...
+
+
 # ------------------------------------------------------------------------------ parameters
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -441,6 +455,8 @@ class PlanRequest:
     preview_points: int
     #: called between samples: gives the interpreter back to the loop (None: never)
     pace: Pacer | None = None
+    #: whole-arm checks of the sampled joint path (after the per-tick checks)
+    path_checks: tuple[PathCheck, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -541,6 +557,7 @@ def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
     peak_share, peak_joint = 0.0, 0
     stride = max(1, math.ceil((ticks + 1) / (req.preview_points - 1)))
     path: list[tuple[float, float, float]] = []
+    qs: list[list[float]] = []
     for j in range(ticks + 1):
         pace()
         t = min(j * period, traj.end)
@@ -606,6 +623,12 @@ def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
         if j % stride == 0 or j == ticks:
             path.append(tip)
         q_prev = list(q)
+        qs.append(q_prev)
+    for path_check in req.path_checks:
+        hit = path_check.check_path(qs, req.base, req.pace)
+        if hit is not None:
+            t = min(hit[0] * period, traj.end)
+            raise PlanRefused(f"{hit[1]} {_where(t, times, labels, period)}")
 
     keys = []
     for k in frames:
@@ -740,6 +763,7 @@ class KeyframeController(Controller):
         assert isinstance(p, KeyframeParams)
         self.p = p
         self.forbidden_checks: list[ForbiddenCheck] = []
+        self.path_checks: list[PathCheck] = []
         # shared with the planner thread: every change under the lock; the loop reads the
         # references (atomic) without it
         self._lock = threading.Lock()
@@ -855,6 +879,8 @@ class KeyframeController(Controller):
                 return forbidden_hit(regions, (point[0] * 1e3, point[1] * 1e3, point[2] * 1e3))
 
             self.add_forbidden_check(configured_regions)
+        if ctx.collision is not None:  # safety.collision: the whole arm along the path
+            self.add_forbidden_check(ctx.collision.path_check())
 
     def outputs(self) -> dict[str, SourceFn]:
         return {"keyframe-path": self._source_path, "keyframe-points": self._source_points}
@@ -862,9 +888,13 @@ class KeyframeController(Controller):
     def commands(self) -> tuple[str, ...]:
         return self.COMMANDS
 
-    def add_forbidden_check(self, check: ForbiddenCheck) -> None:
-        """Add a collision check every new plan must pass (see :class:`ForbiddenCheck`)."""
-        self.forbidden_checks.append(check)
+    def add_forbidden_check(self, check: ForbiddenCheck | PathCheck) -> None:
+        """Add a collision check every new plan must pass: a :class:`ForbiddenCheck` of the
+        tip, or a :class:`PathCheck` of the whole arm (it has ``check_path``)."""
+        if hasattr(check, "check_path"):
+            self.path_checks.append(check)  # type: ignore[arg-type]
+        else:
+            self.forbidden_checks.append(check)  # type: ignore[arg-type]
 
     def invalidate_plan(self, reason: str) -> None:
         """The world changed (e.g. the forbidden regions): a checked plan not yet acknowledged
@@ -1072,6 +1102,7 @@ class KeyframeController(Controller):
                 else None
             ),
             forbidden=tuple(self.forbidden_checks),
+            path_checks=tuple(self.path_checks),
             max_duration_s=p.max_duration_s,
             preview_points=p.preview_points,
             pace=Pacer(time.perf_counter, ctx.loop_t0, ctx.period_s),
