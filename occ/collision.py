@@ -120,8 +120,8 @@ class Contact:
             else f"forbidden region {self.region!r}"
         )
         if self.distance < 0.0:
-            return f"link {self.link!r} penetrates {what} by {-self.distance / MM:.1f} mm"
-        return f"link {self.link!r} is {self.distance / MM:.1f} mm from {what}"
+            return f"link {self.link!r} penetrates {what} by {-self.distance / MM:.2f} mm"
+        return f"link {self.link!r} is {self.distance / MM:.2f} mm from {what}"
 
 
 @dataclass(frozen=True)
@@ -249,7 +249,7 @@ def regions_from_message(msg: Any) -> tuple[str, list[Region]] | None:
             if len(cell) < 3:
                 raise RegionError(f"region {name!r}: polygon {i} has fewer than 3 points")
             tris.extend((cell[0], cell[k], cell[k + 1]) for k in range(1, len(cell) - 1))
-        for i, strip in enumerate(getattr(msg, "triangle_strips", ()) or ()):
+        for i, strip in enumerate(getattr(msg, "strips", ()) or ()):
             for k in range(len(strip) - 2):
                 a, b, c = strip[k], strip[k + 1], strip[k + 2]
                 tris.append((a, b, c) if k % 2 == 0 else (b, a, c))
