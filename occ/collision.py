@@ -137,9 +137,13 @@ class Region:
 
 
 def sphere_region(
-    name: str, centre_mm: Sequence[float], radius_mm: float, *, exclude: Sequence[str] = (),
+    name: str,
+    centre_mm: Sequence[float],
+    radius_mm: float,
+    *,
+    exclude: Sequence[str] = (),
     source: str = "config",
-) -> Region:  # fmt: skip
+) -> Region:
     c = _finite(centre_mm, name, "centre")
     if not (math.isfinite(radius_mm) and radius_mm > 0.0):
         raise RegionError(f"region {name!r}: radius {radius_mm} must be > 0")
@@ -148,9 +152,13 @@ def sphere_region(
 
 
 def plane_region(
-    name: str, point_mm: Sequence[float], normal: Sequence[float], *,
-    exclude: Sequence[str] = (), source: str = "config",
-) -> Region:  # fmt: skip
+    name: str,
+    point_mm: Sequence[float],
+    normal: Sequence[float],
+    *,
+    exclude: Sequence[str] = (),
+    source: str = "config",
+) -> Region:
     """The half-space behind a plane: the side opposite ``normal`` is forbidden."""
     p = np.asarray(_finite(point_mm, name, "point")) * MM
     n = np.asarray(_finite(normal, name, "normal"))
@@ -164,9 +172,13 @@ def plane_region(
 
 
 def mesh_region(
-    name: str, vertices_mm: Any, triangles: Any, *, exclude: Sequence[str] = (),
+    name: str,
+    vertices_mm: Any,
+    triangles: Any,
+    *,
+    exclude: Sequence[str] = (),
     source: str = "config",
-) -> Region:  # fmt: skip
+) -> Region:
     """A triangle mesh (vertices in patient mm, triangles as vertex index triples)."""
     v = np.asarray(vertices_mm, dtype=float).reshape(-1, 3)
     t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
@@ -231,7 +243,9 @@ def regions_from_message(msg: Any) -> tuple[str, list[Region]] | None:
         try:
             radius = float(meta.get("radius", 10.0))
         except ValueError:
-            raise RegionError(f"region {name!r}: radius {meta.get('radius')!r} is no number") from None
+            raise RegionError(
+                f"region {name!r}: radius {meta.get('radius')!r} is no number"
+            ) from None
         out = []
         for i, p in enumerate(x for x in msg.points if x.rgba[3] > 0):
             r = float(p.radius) if p.radius > 0.0 else radius
@@ -241,7 +255,8 @@ def regions_from_message(msg: Any) -> tuple[str, list[Region]] | None:
         m = np.asarray(msg.matrix, dtype=float)
         if m.shape != (4, 4) or not np.isfinite(m).all():
             raise RegionError(f"region {name!r}: not a transform")
-        return name, [plane_region(name, m[:3, 3], m[:3, 2], source=name)]
+        point, normal = m[:3, 3].tolist(), m[:3, 2].tolist()
+        return name, [plane_region(name, point, normal, source=name)]
     if mtype == "POLYDATA":
         pts = np.asarray(msg.points, dtype=float).reshape(-1, 3)
         tris: list[tuple[int, int, int]] = []
@@ -249,16 +264,14 @@ def regions_from_message(msg: Any) -> tuple[str, list[Region]] | None:
             if len(cell) < 3:
                 raise RegionError(f"region {name!r}: polygon {i} has fewer than 3 points")
             tris.extend((cell[0], cell[k], cell[k + 1]) for k in range(1, len(cell) - 1))
-        for i, strip in enumerate(getattr(msg, "strips", ()) or ()):
+        for strip in getattr(msg, "strips", ()) or ():
             for k in range(len(strip) - 2):
                 a, b, c = strip[k], strip[k + 1], strip[k + 2]
                 tris.append((a, b, c) if k % 2 == 0 else (b, a, c))
         if not tris:
             return name, []
         return name, [mesh_region(name, pts, tris, source=name)]
-    raise RegionError(
-        f"region {name!r}: a {mtype} defines no region (POINT, TRANSFORM, POLYDATA)"
-    )
+    raise RegionError(f"region {name!r}: a {mtype} defines no region (POINT, TRANSFORM, POLYDATA)")
 
 
 # ------------------------------------------------------------------------------ the model
@@ -436,9 +449,12 @@ def _add_capsules(model: Any, geom: Any, tip_link: str, radius: float) -> None:
         placement = pin.SE3(rot, t / 2.0)
         fid = body_of.get(parent, 0)
         obj = pin.GeometryObject(
-            f"{model.frames[fid].name}_capsule{k}", parent, fid, placement,
+            f"{model.frames[fid].name}_capsule{k}",
+            parent,
+            fid,
+            placement,
             coal.Capsule(radius, length),
-        )  # fmt: skip
+        )
         geom.addGeometryObject(obj)
 
 
@@ -474,8 +490,7 @@ def _srdf_disabled(path: Path) -> set[frozenset[str]]:
     except (OSError, ET.ParseError) as err:
         raise ConfigError(f"safety.collision.srdf: cannot read {path}: {err}") from err
     return {
-        frozenset((e.get("link1", ""), e.get("link2", "")))
-        for e in root.iter("disable_collisions")
+        frozenset((e.get("link1", ""), e.get("link2", ""))) for e in root.iter("disable_collisions")
     }
 
 
@@ -503,7 +518,9 @@ def _reach(model: Any, geom: Any) -> tuple[float, ...]:
     radius = []
     for g in geom.geometryObjects:
         g.geometry.computeLocalAABB()
-        radius.append(float(g.geometry.aabb_radius) + float(np.linalg.norm(g.placement.translation)))
+        radius.append(
+            float(g.geometry.aabb_radius) + float(np.linalg.norm(g.placement.translation))
+        )
     out = []
     for j in range(1, model.njoints):
         kind = str(model.joints[j].shortname())
@@ -770,6 +787,8 @@ class CollisionGuard:
             "stops": self.stops,
             "last_contact": self.last_contact,
             "clearance_mm": None if v is None or not math.isfinite(v.gap) else round(v.gap / MM, 3),
-            "min_slack_mm": None if not math.isfinite(self.min_slack) else round(self.min_slack / MM, 3),
+            "min_slack_mm": None
+            if not math.isfinite(self.min_slack)
+            else round(self.min_slack / MM, 3),
             "worker_failed": self.worker_failed,
         }

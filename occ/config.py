@@ -881,8 +881,7 @@ class RegionConfig(_Model):
     )
     exclude_links: tuple[Name, ...] = Field(
         (),
-        description="Links not checked against this region (the base standing on a table "
-        "plane).",
+        description="Links not checked against this region (the base standing on a table plane).",
     )
 
     @model_validator(mode="after")
@@ -958,10 +957,8 @@ class CollisionConfig(_Model):
         problems: list[tuple[Loc, str]] = []
         for i, r in enumerate(self.regions):
             if r.name in seen:
-                problems.append(
-                    (("regions", i, "name"), f"duplicate region '{r.name}' (first at "
-                     f"regions[{seen[r.name]}])")  # fmt: skip
-                )
+                first = f"(first at regions[{seen[r.name]}])"
+                problems.append((("regions", i, "name"), f"duplicate region '{r.name}' {first}"))
             seen.setdefault(r.name, i)
         _raise_problems(problems)
         return self

@@ -21,6 +21,7 @@ from igtl.messages.base import Message
 from igtl.transport.common import RateLimit
 
 from . import _native
+from .collision import RegionError, regions_from_message
 from .commands import (
     ROBOT_COMMANDS,
     Deferred,
@@ -30,7 +31,6 @@ from .commands import (
     safe_name,
     success_reply,
 )
-from .collision import RegionError, regions_from_message
 from .errors import CommandError, StateError, caused
 from .interfaces import Inbound, is_operator_request
 from .outputs import STATE_STATUS_CODE, pose_to_message

@@ -625,10 +625,10 @@ def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
         q_prev = list(q)
         qs.append(q_prev)
     for path_check in req.path_checks:
-        hit = path_check.check_path(qs, req.base, req.pace)
-        if hit is not None:
-            t = min(hit[0] * period, traj.end)
-            raise PlanRefused(f"{hit[1]} {_where(t, times, labels, period)}")
+        crossing = path_check.check_path(qs, req.base, req.pace)
+        if crossing is not None:
+            t = min(crossing[0] * period, traj.end)
+            raise PlanRefused(f"{crossing[1]} {_where(t, times, labels, period)}")
 
     keys = []
     for k in frames:

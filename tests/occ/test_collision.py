@@ -19,10 +19,10 @@ import pytest
 import yaml
 
 import igtl
-from occ.collision import CollisionGuard, CollisionModel, regions_from_message
+from occ.collision import CollisionModel, regions_from_message
 from occ.config import CollisionConfig
 from occ.errors import ConfigError
-from occ.loader import load_config, parse_config
+from occ.loader import load_config
 from occ.safety import RobotState
 from occ.supervision import Worker
 from occ.testing import CONFIGS, SimRobot
@@ -33,7 +33,9 @@ RAISED = [0.0, -1.5, 2.0, -2.0, -1.57, 0.0]
 CEILING = {"name": "ceiling", "kind": "plane", "point_mm": [0, 0, 560], "normal": [0, 0, -1]}
 
 
-def ur5(collision: dict[str, Any] | None, controller: dict[str, Any] | None = None) -> dict[str, Any]:
+def ur5(
+    collision: dict[str, Any] | None, controller: dict[str, Any] | None = None
+) -> dict[str, Any]:
     cfg: dict[str, Any] = yaml.safe_load((CONFIGS / "ur5.yaml").read_text())
     if collision is not None:
         cfg["safety"]["collision"] = collision
@@ -307,12 +309,17 @@ def test_a_slicer_polydata_mesh_becomes_a_region_and_a_bad_one_is_refused() -> N
         assert guard is not None and guard.cm.regions == ()
         # a box (mm, patient frame) around the wrist at home, six quads
         lo, hi = np.array([560.0, 40.0, 300.0]), np.array([700.0, 200.0, 450.0])
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        corners = np.array(
+            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        )
         quads = ((0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3))
         box = igtl.PolyDataMessage(
-            points=corners.astype(np.float32), polygons=quads, device_name="Tumour",
-            header_version=2, metadata={"kind": "forbidden-region"},
-        )  # fmt: skip
+            points=corners.astype(np.float32),
+            polygons=quads,
+            device_name="Tumour",
+            header_version=2,
+            metadata={"kind": "forbidden-region"},
+        )
         op = sim.peer("operator")
         op.send(box)
         sim.step(2)
@@ -322,27 +329,46 @@ def test_a_slicer_polydata_mesh_becomes_a_region_and_a_bad_one_is_refused() -> N
         assert {h.region for h in hits} == {"Tumour"}, hits
         assert {"wrist_3_link", "ee_link"} <= {h.link for h in hits}, hits
         # the same node again, empty: removed
-        op.send(igtl.PolyDataMessage(points=np.zeros((0, 3), np.float32), device_name="Tumour",
-                                     header_version=2, metadata={"kind": "forbidden-region"}))  # fmt: skip
+        op.send(
+            igtl.PolyDataMessage(
+                points=np.zeros((0, 3), np.float32),
+                device_name="Tumour",
+                header_version=2,
+                metadata={"kind": "forbidden-region"},
+            )
+        )
         sim.step(2)
         assert guard.cm.regions == ()
         # a polygon that points past the mesh's points: refused with the reason, nothing changes
         bad = igtl.PolyDataMessage(
-            points=corners.astype(np.float32), polygons=((0, 1, 9),), device_name="Bad",
-            header_version=2, metadata={"kind": "forbidden-region"},
-        )  # fmt: skip
+            points=corners.astype(np.float32),
+            polygons=((0, 1, 9),),
+            device_name="Bad",
+            header_version=2,
+            metadata={"kind": "forbidden-region"},
+        )
         op.send(bad)
         sim.step(2)
-        errors = [m for m in op.messages() if "missing point" in str(getattr(m, "metadata", {}))
-                  or "missing point" in getattr(m, "status_message", "")]  # fmt: skip
+        errors = [
+            m
+            for m in op.messages()
+            if "missing point" in str(getattr(m, "metadata", {}))
+            or "missing point" in getattr(m, "status_message", "")
+        ]
         assert errors and guard.cm.regions == ()
         # a Markups plane (TRANSFORM) and a point list: a half-space and spheres
         plane = np.eye(4)
         plane[:3, 3] = (0.0, 0.0, 560.0)
         plane[:3, 2] = (0.0, 0.0, -1.0)
         plane[:3, 1] = (0.0, -1.0, 0.0)
-        op.send(igtl.TransformMessage.from_matrix(plane, device_name="Ceiling", header_version=2,
-                                                  metadata={"kind": "forbidden-region"}))  # fmt: skip
+        op.send(
+            igtl.TransformMessage.from_matrix(
+                plane,
+                device_name="Ceiling",
+                header_version=2,
+                metadata={"kind": "forbidden-region"},
+            )
+        )
         sim.step(2)
         assert [r.kind for r in guard.cm.regions] == ["plane"]
     finally:
@@ -350,7 +376,9 @@ def test_a_slicer_polydata_mesh_becomes_a_region_and_a_bad_one_is_refused() -> N
 
 
 def test_regions_from_other_messages_are_not_regions() -> None:
-    msg = igtl.TransformMessage.from_matrix(np.eye(4), device_name="Base", header_version=2, metadata={"kind": "plane"})
+    msg = igtl.TransformMessage.from_matrix(
+        np.eye(4), device_name="Base", header_version=2, metadata={"kind": "plane"}
+    )
     assert regions_from_message(msg) is None
 
 
@@ -359,16 +387,24 @@ def test_regions_from_other_messages_are_not_regions() -> None:
     ("collision", "message"),
     [
         ({"margin_mm": -1}, "safety.collision.margin_mm"),
-        ({"regions": [{"name": "p", "kind": "plane", "normal": [0, 0, 0]}]},
-         "safety.collision.regions[0].normal: must not be zero"),
-        ({"regions": [{"name": "m", "kind": "mesh"}]},
-         "safety.collision.regions[0].file: required for a mesh region"),
+        (
+            {"regions": [{"name": "p", "kind": "plane", "normal": [0, 0, 0]}]},
+            "safety.collision.regions[0].normal: must not be zero",
+        ),
+        (
+            {"regions": [{"name": "m", "kind": "mesh"}]},
+            "safety.collision.regions[0].file: required for a mesh region",
+        ),
         ({"regions": [CEILING, CEILING]}, "safety.collision.regions[1].name: duplicate region"),
-        ({"regions": [{"name": "s", "kind": "sphere", "radus_mm": 3}]},
-         "safety.collision.regions[0].radus_mm"),
+        (
+            {"regions": [{"name": "s", "kind": "sphere", "radus_mm": 3}]},
+            "safety.collision.regions[0].radus_mm",
+        ),
     ],
-)  # fmt: skip
-def test_config_errors_have_their_lines(tmp_path: Path, collision: dict[str, Any], message: str) -> None:
+)
+def test_config_errors_have_their_lines(
+    tmp_path: Path, collision: dict[str, Any], message: str
+) -> None:
     path = tmp_path / "arm.yaml"
     path.write_text(yaml.safe_dump(ur5(collision), sort_keys=False))
     with pytest.raises(ConfigError) as err:
@@ -389,9 +425,12 @@ def test_a_urdf_without_collision_geometry_gets_capsules() -> None:
     daemon = load_config(CONFIGS / "slave.yaml")
     _j, frame, _p = build_hardware(daemon.robot)
     cm = CollisionModel.build(
-        CollisionConfig(link_radius_mm=5.0, regions=[{"name": "b", "kind": "sphere", "radius_mm": 5.0}]),
-        daemon.robot.frame, frame,
-    )  # fmt: skip
+        CollisionConfig(
+            link_radius_mm=5.0, regions=[{"name": "b", "kind": "sphere", "radius_mm": 5.0}]
+        ),
+        daemon.robot.frame,
+        frame,
+    )
     assert cm.geom.ngeoms >= 2 and cm.self_pairs == ()
     assert all(type(g.geometry).__name__ == "Capsule" for g in cm.geom.geometryObjects)
     assert math.isfinite(cm.checker().clearance([0.0, 0.0, 0.0])[1])
