@@ -22,6 +22,18 @@ What a check says
     slack (distance minus the pair's margin) in one pass, which is what the plan check and the
     run-time guard use.
 
+Cost
+    A pair costs a coal distance call (~2 us between two hulls or a hull and a sphere or a
+    plane; tens to hundreds of us against a Slicer mesh of a thousand triangles) only when
+    the two could be within ``margin + BROAD_PAD_M`` (50 mm): a ball around each link and each
+    region (a plane's signed distance) settles the others, their distance then a lower bound
+    (all a clearance needs). A link near a mesh region is asked whether it is within
+    ``margin`` plus 50, 25, 12.5 or 0 mm of it (collision queries with a security margin,
+    ~10 us each where the mesh's exact distance costs 200-600 us), its distance then the
+    largest of those it exceeds; only inside the margin is the exact distance computed (for
+    the report). A coal call holds the interpreter lock while it runs, so its cost is what the
+    loop may wait for (docs/BENCHMARKS.md, "Collision checking").
+
 How far a link can move: :meth:`CollisionModel.bound`
     ``sum_i |dq_i| R_i``, with ``R_i`` the reach of joint ``i`` (the farthest any point of the
     geometry after it can be from its axis, over every configuration: chain lengths plus the
@@ -97,6 +109,13 @@ MM = 1e-3
 REGION_KIND = "forbidden-region"
 #: the largest Slicer mesh taken as a region (triangles)
 MAX_TRIANGLES = 200_000
+#: a pair whose bounding balls are farther apart than its margin plus this is not computed
+#: exactly: the balls' distance stands for it (a lower bound)
+BROAD_PAD_M = 0.05
+#: a mesh region's near pairs: is the distance under margin + each of these x BROAD_PAD_M?
+#: (a collision query with that security margin costs ~10 us where the distance costs
+#: 200-600 us against a thousand triangles); the exact distance only inside the margin
+MESH_LEVELS = (1.0, 0.5, 0.25, 0.125, 0.0)
 #: after a Run inside the margin, how much closer than its best the arm may come (m)
 ESCAPE_TOLERANCE_M = 0.5e-3
 
@@ -134,6 +153,21 @@ class Region:
     placement: Any  # coal.Transform3s
     exclude: frozenset[str] = frozenset()
     source: str = "config"  # the Slicer node it came from, or "config"
+    #: the broad phase's bound (module docstring, "Cost"): a ball around it (centre x, y, z,
+    #: 0, radius), or a plane's (nx, ny, nz, d, NaN)
+    bound: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, math.inf)
+
+    def __post_init__(self) -> None:
+        g = self.geometry
+        if isinstance(g, coal.Halfspace):
+            n = g.n
+            b = (float(n[0]), float(n[1]), float(n[2]), float(g.d), math.nan)
+            object.__setattr__(self, "bound", b)
+            return
+        g.computeLocalAABB()
+        c = self.placement.transform(np.asarray(g.aabb_center, dtype=float))
+        r = float(g.aabb_radius)
+        object.__setattr__(self, "bound", (float(c[0]), float(c[1]), float(c[2]), 0.0, r))
 
 
 def sphere_region(
@@ -550,7 +584,21 @@ class Checker:
         self.gdata = pin.GeometryData(cm.geom)
         self._req = coal.DistanceRequest()
         self._res = coal.DistanceResult()
+        self._creq = coal.CollisionRequest()
+        self._cres = coal.CollisionResult()
         self._world = [coal.Transform3s() for _ in cm.links]
+        self._centres: list[tuple[float, float, float]] = [(0.0, 0.0, 0.0)] * len(cm.links)
+        objs = cm.geom.geometryObjects
+        self._local = []
+        self._radius = []
+        for lk in cm.links:
+            geo = objs[lk.index].geometry
+            geo.computeLocalAABB()
+            self._local.append(np.asarray(geo.aabb_center, dtype=float))
+            self._radius.append(float(geo.aabb_radius))
+        #: pairs whose distance coal computed, and pairs the broad phase settled (last check)
+        self.exact = 0
+        self.bounded = 0
         self.checks = 0
 
     def _place(self, q: Sequence[float], base: np.ndarray | None) -> list[Any]:
@@ -561,8 +609,13 @@ class Checker:
         if cm.base_inv is not None:
             world = cm.base_inv if world is None else world * cm.base_inv
         out = self._world
+        centres = self._centres
+        local = self._local
         for i, m in enumerate(self.gdata.oMg):
-            out[i] = coal.Transform3s(world * m if world is not None else m)
+            w = world * m if world is not None else m
+            out[i] = coal.Transform3s(w)
+            x, y, z = w.act(local[i]).tolist()
+            centres[i] = (x, y, z)
         return out
 
     def pairs(
@@ -575,21 +628,65 @@ class Checker:
         req, res = self._req, self._res
         dist = coal.distance
         objs = cm.geom.geometryObjects
+        centres, radius = self._centres, self._radius
         out = []
+        exact = bounded = 0
         regions = cm.regions  # one read: a definition swapped meanwhile is for the next check
+        near = cm.margin + BROAD_PAD_M
         for lk in cm.links:
-            g = objs[lk.index].geometry
+            i = lk.index
+            g = objs[i].geometry
+            cx, cy, cz = centres[i]
+            rl = radius[i]
             for r in regions:
                 if lk.name in r.exclude:
                     continue
-                res.clear()
-                d = dist(g, tf[lk.index], r.geometry, r.placement, req, res)
+                bx, by, bz, bd, br = r.bound
+                if br != br:  # a plane: the ball's signed distance to it
+                    low = cx * bx + cy * by + cz * bz - bd - rl
+                else:
+                    low = math.sqrt((cx - bx) ** 2 + (cy - by) ** 2 + (cz - bz) ** 2) - rl - br
+                if low > near:
+                    d = low  # a lower bound: far enough not to need the exact distance
+                    bounded += 1
+                elif r.kind == "mesh":
+                    d = self._mesh(g, tf[i], r)
+                    exact += 1
+                else:
+                    res.clear()
+                    d = dist(g, tf[i], r.geometry, r.placement, req, res)
+                    exact += 1
                 out.append((d - cm.margin, d, lk.name, r.name))
+        near = cm.self_margin + BROAD_PAD_M
         for a, b in cm.self_pairs:
-            res.clear()
-            d = dist(objs[a].geometry, tf[a], objs[b].geometry, tf[b], req, res)
+            (ax, ay, az), (bx, by, bz) = centres[a], centres[b]
+            low = math.sqrt((ax - bx) ** 2 + (ay - by) ** 2 + (az - bz) ** 2)
+            low -= radius[a] + radius[b]
+            if low > near:
+                d = low
+                bounded += 1
+            else:
+                res.clear()
+                d = dist(objs[a].geometry, tf[a], objs[b].geometry, tf[b], req, res)
+                exact += 1
             out.append((d - cm.self_margin, d, cm.links[a].name, f"self:{cm.links[b].name}"))
+        self.exact, self.bounded = exact, bounded
         return out
+
+    def _mesh(self, g: Any, tf: Any, r: Region) -> float:
+        """A link near a mesh region: the largest of ``margin + level x BROAD_PAD_M`` the
+        distance is known to exceed (collision queries with that security margin), or the
+        exact distance when it is inside the margin."""
+        creq, cres = self._creq, self._cres
+        margin = self.cm.margin
+        for level in MESH_LEVELS:
+            creq.security_margin = margin + level * BROAD_PAD_M
+            cres.clear()
+            if not coal.collide(g, tf, r.geometry, r.placement, creq, cres):
+                return creq.security_margin  # type: ignore[no-any-return]
+        res = self._res
+        res.clear()
+        return coal.distance(g, tf, r.geometry, r.placement, self._req, res)  # type: ignore[no-any-return]
 
     def check(self, q: Sequence[float], base: np.ndarray | None = None) -> list[Contact]:
         """Every pair closer than its margin at ``q`` (``base``: world <- base, metres; None:

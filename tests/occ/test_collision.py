@@ -56,13 +56,10 @@ def keyframe_robot(collision: dict[str, Any] | None, **params: Any) -> SimRobot:
     return SimRobot(ur5(collision, {"plugin": "keyframe", "params": {"space": "joint", **params}}))
 
 
-_OPERATORS: dict[int, Any] = {}
-
-
 def command(sim: SimRobot, name: str, **args: Any) -> Any:
-    op = _OPERATORS.get(id(sim))
+    op = getattr(sim, "test_operator", None)
     if op is None:  # one operator per robot (the interface takes four)
-        op = _OPERATORS[id(sim)] = sim.peer("operator")
+        op = sim.test_operator = sim.peer("operator")  # type: ignore[attr-defined]
     attrs = "".join(f' {k}="{v}"' for k, v in args.items())
     cid = op.send_command(name, f'<Command Name="{name}"{attrs}/>')
     sim.step(1)
@@ -142,7 +139,7 @@ class Teleop:
         self.sim = SimRobot(ur5(collision))
         self.robot = self.sim.robot
         self.master = self.sim.peer("master")
-        self.op = _OPERATORS[id(self.sim)] = self.sim.peer("operator")
+        self.op = self.sim.test_operator = self.sim.peer("operator")  # type: ignore[attr-defined]
         self.seq = 0
         self.z = 0.0
         command(self.sim, "Enable")
