@@ -75,6 +75,9 @@ Forbidden regions (the collision check)
     thread: it must be thread-safe, e.g. read an immutable snapshot). When the regions change,
     :meth:`KeyframeController.invalidate_plan` makes a checked but unacknowledged plan unusable
     (it must be planned again), as the paper requires of a plan that would now collide.
+    A :class:`PathCheck` (anything with ``check_path``, e.g. the whole-arm check of
+    ``safety.collision``, occ/collision.py, added at configure) gets the plan's joint samples
+    after the per-tick checks and names the first that fails.
 """
 
 from __future__ import annotations
