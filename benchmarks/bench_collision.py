@@ -200,7 +200,7 @@ def run_loop(args: argparse.Namespace, out: Path) -> dict[str, Any]:
             procs.append(start(out, f"master-{label}", master))
             if not wait_port(ports["master_tcp"], 60.0, procs[1]):
                 raise SystemExit(f"master-{label} did not start; see {out}")
-            print(f"loop: {label} collision checking, {args.duration:.0f} s", flush=True)
+            print(f"loop: {label} collision checking, {args.duration:.0f} s", file=sys.stderr)
             end = time.monotonic() + args.duration
             while time.monotonic() < end:
                 time.sleep(0.5)

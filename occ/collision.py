@@ -826,7 +826,11 @@ class CollisionGuard:
         """May the loop write ``sp``? Only within half the last verdict's clearance of its
         configuration (and with the base pose it used)."""
         v = self.verdict
-        if v is None or v.base is not base or v.version != self.cm.version:
+        if (
+            v is None
+            or v.version != self.cm.version
+            or (v.base is not base and not np.array_equal(v.base, base))
+        ):  # no verdict for these regions and this base pose (a tracker moved it): hold
             self.holds += 1
             return False
         if self.cm.bound(sp, v.q) < 0.5 * v.gap:
