@@ -1254,8 +1254,40 @@ class DaemonConfig(_Model):
             )
         if self.collaboration is not None:
             problems.extend(self._collab_problems())
+        if self.safety.collision is not None:
+            problems.extend(self._collision_problems())
         _raise_problems(problems)
         return self
+
+    def _collision_problems(self) -> list[tuple[Loc, str]]:
+        """The links a collision region excludes, against the robot's URDF."""
+        import pinocchio as pin
+
+        cc = self.safety.collision
+        assert cc is not None
+        fc = self.robot.frame
+        try:
+            path = fc.urdf_path()
+            if path is None:
+                from .frame import BUILTIN_MODELS, robots_dir
+
+                assert fc.model is not None
+                path = robots_dir() / BUILTIN_MODELS[fc.model][0]
+            model, _said = _quietly(lambda: pin.buildModelFromUrdf(str(path)))
+        except (_Failed, ValueError):
+            return []  # the frame's own check says why
+        links = {f.name for f in model.frames if f.type == pin.FrameType.BODY} | {"tool"}
+        out: list[tuple[Loc, str]] = []
+        for i, rc in enumerate(cc.regions):
+            for k, name in enumerate(rc.exclude_links):
+                if name not in links:
+                    out.append(
+                        (
+                            ("safety", "collision", "regions", i, "exclude_links", k),
+                            f"no link {name!r} in the URDF" + _did_you_mean(name, sorted(links)),
+                        )
+                    )
+        return out
 
     def _collab_problems(self) -> list[tuple[Loc, str]]:
         """The collaboration's names against the interfaces and each other."""

@@ -394,6 +394,10 @@ def test_regions_from_other_messages_are_not_regions() -> None:
         ),
         ({"regions": [CEILING, CEILING]}, "safety.collision.regions[1].name: duplicate region"),
         (
+            {"regions": [{**CEILING, "exclude_links": ["base_lnk"]}]},
+            "safety.collision.regions[0].exclude_links[0]: no link 'base_lnk' in the URDF",
+        ),
+        (
             {"regions": [{"name": "s", "kind": "sphere", "radus_mm": 3}]},
             "safety.collision.regions[0].radus_mm",
         ),
