@@ -435,3 +435,37 @@ def test_a_urdf_without_collision_geometry_gets_capsules() -> None:
     assert cm.geom.ngeoms >= 2 and cm.self_pairs == ()
     assert all(type(g.geometry).__name__ == "Capsule" for g in cm.geom.geometryObjects)
     assert math.isfinite(cm.checker().clearance([0.0, 0.0, 0.0])[1])
+
+
+@pytest.mark.req("SR-COLL-2")
+def test_the_guard_on_its_worker_thread_gives_verdicts_the_loop_admits_by() -> None:
+    from occ.collision import CollisionGuard
+    from occ.testing import wait_until
+
+    cm = model(regions=[CEILING])
+    guard = CollisionGuard(cm, inline=False, name="test-collision")
+    guard.start()
+    try:
+        base = np.eye(4)
+        assert not guard.admit(HOME, base)  # no verdict yet: hold
+        guard.publish(HOME, base)
+        assert wait_until(lambda: guard.verdict is not None, 10.0)
+        v = guard.verdict
+        assert v is not None and v.q == tuple(HOME) and 0.010 < v.gap < 0.020
+        assert guard.admit(HOME, base)
+        # within half the clearance: admitted; beyond it: held until a verdict covers it
+        step = 0.4 * v.gap / cm.reach[1]
+        near = list(HOME)
+        near[1] -= step
+        far = list(HOME)
+        far[1] -= 2.0 * step
+        assert guard.admit(near, base) and not guard.admit(far, base)
+        assert not guard.admit(HOME, np.diag([1.0, 1.0, 1.0, 1.0]) + 0.001)  # another base
+        guard.on_running(True)
+        guard.publish(RAISED, base)  # the forearm through the ceiling
+        assert wait_until(lambda: guard.verdict is not None and guard.verdict.q == tuple(RAISED))
+        why = guard.poll()
+        assert why is not None and "forearm_link" in why and "ceiling" in why
+        assert guard.poll() is None  # once per verdict
+    finally:
+        guard.stop()
