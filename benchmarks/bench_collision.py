@@ -22,6 +22,7 @@ Examples::
 
     python benchmarks/bench_collision.py check
     python benchmarks/bench_collision.py loop --duration 60
+    python benchmarks/bench_collision.py loop --duration 60 --runtime-hz 250
 
 The result is printed as JSON.
 """
@@ -192,7 +193,11 @@ def run_loop(args: argparse.Namespace, out: Path) -> dict[str, Any]:
             ROOT / "configs" / "ur5.yaml", ROOT / "configs" / "master6.yaml"
         )
         if collision:
-            slave.setdefault("safety", {})["collision"] = {"margin_mm": 10.0, "regions": FAR}
+            slave.setdefault("safety", {})["collision"] = {
+                "margin_mm": 10.0,
+                "regions": FAR,
+                "runtime_hz": args.runtime_hz,
+            }
         procs = [start(out, f"slave-{label}", slave)]
         try:
             if not wait_port(ports["slave_tcp"], 60.0, procs[0]):
@@ -221,6 +226,7 @@ def run_loop(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     return {
         "mode": "loop",
         "duration_s": args.duration,
+        "runtime_hz": args.runtime_hz,
         "load_after": " ".join(Path("/proc/loadavg").read_text().split()[:3]),
         "runs": runs,
     }
@@ -234,6 +240,12 @@ def main() -> None:
     c.add_argument("--regions", type=int, nargs="+", default=[0, 1, 4, 16])
     lp = sub.add_parser("loop")
     lp.add_argument("--duration", type=float, default=60.0)
+    lp.add_argument(
+        "--runtime-hz",
+        type=float,
+        default=None,
+        help="safety.collision.runtime_hz (null: every tick)",
+    )
     args = ap.parse_args()
     if args.mode == "check":
         result = run_check(args)

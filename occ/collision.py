@@ -775,6 +775,7 @@ class CollisionGuard:
         *,
         inline: bool = False,
         runtime: bool = True,
+        runtime_hz: float | None = None,
         fifo_priority: int | None = None,
         name: str = "occ-collision",
     ) -> None:
@@ -782,6 +783,8 @@ class CollisionGuard:
         self.inline = inline
         #: check setpoints at run time (``safety.collision.runtime``); plans are checked anyway
         self.runtime = runtime
+        self._every = 1.0 / runtime_hz if runtime_hz else 0.0
+        self._next = -math.inf
         self._checker = cm.checker()
         self._worker: Worker | None = (
             None if inline or not runtime else Worker(name, depth=2, fifo_priority=fifo_priority)
@@ -809,10 +812,15 @@ class CollisionGuard:
             self._worker.stop()
 
     # ---------------------------------------------------------------- loop thread
-    def publish(self, q: Sequence[float], base: Any) -> None:
-        """The setpoint the drives now hold: checked next (if the worker is idle)."""
+    def publish(self, q: Sequence[float], base: Any, now: float | None = None) -> None:
+        """The setpoint the drives now hold: checked next (if the worker is idle and, with
+        ``runtime_hz``, a verdict is due at ``now``)."""
         if self._busy:
             return
+        if now is not None and self._every:
+            if now < self._next:
+                return
+            self._next = now + self._every
         snap = tuple(q)
         if self.inline:
             self._job(snap, base)

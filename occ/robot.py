@@ -190,6 +190,7 @@ class Robot:
             cm,
             inline=not isinstance(self.clock, RealClock),
             runtime=cc.runtime,
+            runtime_hz=cc.runtime_hz,
             fifo_priority=writer_priority(config),
             name=f"occ-{self.name}-collision",
         )
@@ -345,7 +346,7 @@ class Robot:
         except Exception as err:  # noqa: BLE001
             self.alarms.plugin_error(f"controller {self.controller.name}: update", err)
         if guard is not None and guard.runtime and state in POWERED:
-            guard.publish(self.data.commanded(), self.data.base)  # checked on its worker
+            guard.publish(self.data.commanded(), self.data.base, now)  # checked on its worker
         try:
             self.outputs.send_due(now, k, self._record_out)
         except Exception as err:  # noqa: BLE001

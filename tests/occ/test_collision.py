@@ -169,8 +169,11 @@ class Teleop:
 
 
 @pytest.mark.req("SR-COLL-2")
-def test_teleoperation_toward_the_plane_stops_before_contact_naming_link_and_region() -> None:
-    t = Teleop({"margin_mm": 10.0, "regions": [CEILING]})
+@pytest.mark.parametrize("runtime_hz", [None, 100.0])
+def test_teleoperation_toward_the_plane_stops_before_contact_naming_link_and_region(
+    runtime_hz: float | None,
+) -> None:
+    t = Teleop({"margin_mm": 10.0, "regions": [CEILING], "runtime_hz": runtime_hz})
     try:
         start_gap = t.gap(t.robot.data.setpoint)
         assert start_gap > 0.015  # the run starts clear of the margin
