@@ -472,3 +472,23 @@ def test_the_guard_on_its_worker_thread_gives_verdicts_the_loop_admits_by() -> N
         assert guard.poll() is None  # once per verdict
     finally:
         guard.stop()
+
+
+def test_a_mesh_region_from_a_file(tmp_path: Path) -> None:
+    # two triangles (mm) making a lid at z = 450 mm over the arm: an STL file
+    square = [((-200, -300, 450), (700, -300, 450), (-200, 300, 450)),
+              ((700, -300, 450), (700, 300, 450), (-200, 300, 450))]  # fmt: skip
+    facets = "".join(
+        "facet normal 0 0 1\n outer loop\n"
+        + "".join(f"  vertex {x} {y} {zz}\n" for x, y, zz in tri)
+        + " endloop\nendfacet\n"
+        for tri in square
+    )
+    stl = tmp_path / "lid.stl"
+    stl.write_text(f"solid lid\n{facets}endsolid lid\n")
+    cm = model(regions=[{"name": "lid", "kind": "mesh", "file": str(stl)}])
+    (region,) = cm.regions
+    assert region.kind == "mesh"
+    hits = cm.checker().check(RAISED)
+    assert hits and {h.region for h in hits} == {"lid"}
+    assert cm.checker().check([0.0, -0.6, 1.0, -1.9, -1.57, 0.0]) == []
