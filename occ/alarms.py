@@ -162,6 +162,13 @@ class Alarms:
         log.error("FAULT: %s", reason)
         self.states.try_request("fault", reason)
 
+    def collision_stop(self, why: str, policy: str) -> None:
+        """A link inside its margin (occ/collision.py's verdict): a ``COLLISION`` ALERT naming
+        link and region to every operator and viewer, and the safety stop (held until Run, or
+        FAULT with ``policy: fault``)."""
+        self.broadcast("COLLISION", why, igtl.StatusCode.ILLEGAL_INSTRUCTION)
+        self.safety_stop(why, policy)
+
     def watchdog_alert(self, reason: str, overruns: int) -> None:
         log.warning("watchdog: %s (%d overruns so far)", reason, overruns)
         self.broadcast("WATCHDOG", f"watchdog: {reason}", igtl.StatusCode.TIME_OUT)

@@ -56,6 +56,9 @@ __all__ = [
     "InputConfig",
     "OutputConfig",
     "SafetyConfig",
+    "CollisionConfig",
+    "RegionConfig",
+    "ToolConfig",
     "WatchdogConfig",
     "LossConfig",
     "RecordingConfig",
@@ -850,12 +853,132 @@ class SupervisorConfig(_Model):
     )
 
 
+_XYZ = tuple[Float, Float, Float]
+
+
+class RegionConfig(_Model):
+    """A forbidden region of the whole-arm collision check (occ/collision.py): patient frame
+    (3D Slicer's RAS), mm."""
+
+    name: Name = Field(description="Its name (the refusal and the alert name it).")
+    kind: Literal["sphere", "plane", "mesh"] = Field(
+        description="`sphere`: a ball; `plane`: the half-space behind a plane (opposite its "
+        "normal); `mesh`: a triangle mesh from `file` (STL, OBJ, PLY)."
+    )
+    point_mm: _XYZ = Field(
+        (0.0, 0.0, 0.0),
+        description="`sphere`: its centre; `plane`: a point of the plane; `mesh`: where the "
+        "file's origin goes (patient frame, mm).",
+    )
+    normal: _XYZ = Field(
+        (0.0, 0.0, 1.0),
+        description="`plane`: the normal pointing out of the forbidden side, toward the robot "
+        "(made unit length).",
+    )
+    radius_mm: PosFloat = Field(10.0, description="`sphere`: its radius (mm).")
+    file: ExistingFile | None = Field(
+        None, description="`mesh`: the mesh file (relative to the config file), in mm."
+    )
+    exclude_links: tuple[Name, ...] = Field(
+        (),
+        description="Links not checked against this region (the base standing on a table plane).",
+    )
+
+    @model_validator(mode="after")
+    def _kind_fields(self) -> RegionConfig:
+        problems: list[tuple[Loc, str]] = []
+        if self.kind == "plane" and not any(abs(c) > 0.0 for c in self.normal):
+            problems.append((("normal",), "must not be zero"))
+        if self.kind == "mesh" and self.file is None:
+            problems.append((("file",), "required for a mesh region"))
+        if self.kind != "mesh" and self.file is not None:
+            problems.append((("file",), f"only a mesh region has a file (this is a {self.kind})"))
+        _raise_problems(problems)
+        return self
+
+
+class ToolConfig(_Model):
+    """The tool on the tip link, for the collision check: a capsule along the tip's z axis."""
+
+    length_mm: PosFloat = Field(description="From the tip link's origin along its z axis (mm).")
+    radius_mm: PosFloat = Field(5.0, description="Its radius (mm).")
+
+
+class CollisionConfig(_Model):
+    """Whole-arm collision checking (occ/collision.py, coal): the arm's links and the tool
+    against forbidden regions and each other, in every keyframe plan before it is
+    acknowledged, and at run time on a worker thread, which stops the robot when a link comes
+    within the margin."""
+
+    margin_mm: PosFloat = Field(
+        10.0,
+        description="A link or the tool closer than this to a forbidden region is a contact: "
+        "a plan is refused, a running robot stops (with an ALERT naming link and region).",
+    )
+    self_collision: Bool = Field(
+        True,
+        description="Check the arm against itself too (links not adjacent, minus the "
+        "package's SRDF's disabled pairs when it has one).",
+    )
+    self_margin_mm: NonNegFloat = Field(
+        2.0, description="The margin between two links of the arm (mm)."
+    )
+    link_radius_mm: PosFloat = Field(
+        30.0,
+        description="Where the URDF has no collision geometry: each link is a capsule of this "
+        "radius between its joint's origin and the next one's (and the tip).",
+    )
+    convex: Bool = Field(
+        True,
+        description="Check each link mesh as its convex hull (contains the mesh: never misses a "
+        "contact; ~2 us a pair instead of ~20-40 us).",
+    )
+    tool: ToolConfig | None = Field(None, description="The tool on the tip link; null = none.")
+    srdf: ExistingFile | None = Field(
+        None,
+        description="An SRDF whose `disable_collisions` pairs are not self-checked; null = the "
+        "package's `srdf/<urdf name>.srdf` when there is one.",
+    )
+    runtime: Bool = Field(
+        True,
+        description="Check every new setpoint while the robot runs (a worker thread; the loop "
+        "holds a setpoint the last verdict does not cover).",
+    )
+    runtime_hz: PosFloat | None = Field(
+        None,
+        description="At most this many run-time verdicts a second (each costs the worker "
+        "30-70 us for the UR5: ~10 % of a core at one a tick); null = a verdict whenever the "
+        "worker is idle. Fewer verdicts mean more holds when moving fast, never less safety.",
+    )
+    policy: Policy = Field(
+        "hold", description="On a contact at run time: `hold` (STOPPED until Run) or `fault`."
+    )
+    regions: tuple[RegionConfig, ...] = Field(
+        (), description="Forbidden regions (3D Slicer adds more at run time: README)."
+    )
+
+    @model_validator(mode="after")
+    def _unique_names(self) -> CollisionConfig:
+        seen: dict[str, int] = {}
+        problems: list[tuple[Loc, str]] = []
+        for i, r in enumerate(self.regions):
+            if r.name in seen:
+                first = f"(first at regions[{seen[r.name]}])"
+                problems.append((("regions", i, "name"), f"duplicate region '{r.name}' {first}"))
+            seen.setdefault(r.name, i)
+        _raise_problems(problems)
+        return self
+
+
 class SafetyConfig(_Model):
     """Safety monitors."""
 
     watchdog: WatchdogConfig = Field(WatchdogConfig(), description="Watchdog.")
     loss: LossConfig = Field(LossConfig(), description="Packet-loss monitor.")
     supervisor: SupervisorConfig = Field(SupervisorConfig(), description="Loop supervisor.")
+    collision: CollisionConfig | None = Field(
+        None, description="Whole-arm collision checking; null = none."
+    )
 
 
 class RecordingConfig(_Model):
@@ -1137,8 +1260,40 @@ class DaemonConfig(_Model):
             )
         if self.collaboration is not None:
             problems.extend(self._collab_problems())
+        if self.safety.collision is not None:
+            problems.extend(self._collision_problems())
         _raise_problems(problems)
         return self
+
+    def _collision_problems(self) -> list[tuple[Loc, str]]:
+        """The links a collision region excludes, against the robot's URDF."""
+        import pinocchio as pin
+
+        cc = self.safety.collision
+        assert cc is not None
+        fc = self.robot.frame
+        try:
+            path = fc.urdf_path()
+            if path is None:
+                from .frame import BUILTIN_MODELS, robots_dir
+
+                assert fc.model is not None
+                path = robots_dir() / BUILTIN_MODELS[fc.model][0]
+            model, _said = _quietly(lambda: pin.buildModelFromUrdf(str(path)))
+        except (_Failed, ValueError):
+            return []  # the frame's own check says why
+        links = {f.name for f in model.frames if f.type == pin.FrameType.BODY} | {"tool"}
+        out: list[tuple[Loc, str]] = []
+        for i, rc in enumerate(cc.regions):
+            for k, name in enumerate(rc.exclude_links):
+                if name not in links:
+                    out.append(
+                        (
+                            ("safety", "collision", "regions", i, "exclude_links", k),
+                            f"no link {name!r} in the URDF" + _did_you_mean(name, sorted(links)),
+                        )
+                    )
+        return out
 
     def _collab_problems(self) -> list[tuple[Loc, str]]:
         """The collaboration's names against the interfaces and each other."""

@@ -117,6 +117,20 @@ class HardwareSet:
         }
 
     # ------------------------------------------------------------------ lifecycle
+    def await_measured(
+        self, joints: Sequence[Joint], read: Any, now: Any, wait_s: float, real: bool
+    ) -> None:
+        """After :meth:`configure`: ``read(now())`` once, and on the real clock (``real``)
+        again every 5 ms until every joint is measured or ``wait_s`` has passed (a joint still
+        unmeasured keeps the robot from being enabled)."""
+        read(now())
+        give_up = now() + wait_s
+        while real and now() < give_up:
+            if all(j.measured for j in joints):
+                break
+            time.sleep(0.005)
+            read(now())
+
     def configure(self) -> list[HardwareFailure]:
         """Configure every unconfigured drive; the failed ones are latched FAULT."""
         failures = []

@@ -42,6 +42,11 @@ class Motion:
         #: re-joining: the next targets are approached at half the velocity limits
         self.reentry = False
         self.reentries = 0
+        #: may this setpoint be written? (the collision guard's ``admit``: a setpoint no
+        #: verdict covers is not written, the previous one is held and re-joined after)
+        self.admit: Callable[[Sequence[float]], bool] | None = None
+        self._prev = [0.0] * len(joints)
+        self.refused = 0
 
     @staticmethod
     def check_command_kinds(controller: ControllerSet, hardware: HardwareSet) -> None:
@@ -94,10 +99,17 @@ class Motion:
             else:
                 target = controller.update(now, sp)
                 if target is not None:
+                    admit = self.admit
+                    if admit is not None:
+                        self._prev[:] = sp
                     if self.reentry:
                         self.reentry = self._rejoin(sp, target)
                     else:
                         sp[:] = target
+                    if admit is not None and not admit(sp):
+                        sp[:] = self._prev
+                        self.reentry = True
+                        self.refused += 1
             self._write(sp, now, False)
         elif state in POWERED:
             self._write(data.hold_setpoint, now, False)

@@ -21,6 +21,7 @@ from igtl.messages.base import Message
 from igtl.transport.common import RateLimit
 
 from . import _native
+from .collision import RegionError, regions_from_message
 from .commands import (
     ROBOT_COMMANDS,
     Deferred,
@@ -30,7 +31,7 @@ from .commands import (
     safe_name,
     success_reply,
 )
-from .errors import CommandError, StateError
+from .errors import CommandError, StateError, caused
 from .interfaces import Inbound, is_operator_request
 from .outputs import STATE_STATUS_CODE, pose_to_message
 from .reccontrol import RECORDING_COMMANDS, RecordingControl
@@ -141,6 +142,31 @@ class OperatorDesk:
             ),
         )
 
+    def _collision_region(self, msg: Message) -> bool:
+        """A forbidden region from 3D Slicer for the whole-arm collision check (metadata
+        ``kind=forbidden-region``: occ/collision.py): defined (replacing the node's previous
+        one), a checked plan not yet acknowledged invalidated; True when it was one.
+        CommandError when it cannot be used or the robot checks no collisions."""
+        try:
+            found = regions_from_message(msg)
+        except RegionError as err:
+            raise caused(CommandError(str(err)), err) from err
+        if found is None:
+            return False
+        r = self.robot
+        name, regions = found
+        if r.collision is None:
+            raise CommandError(
+                f"region {name!r}: this robot checks no collisions (config safety.collision)"
+            )
+        r.collision.cm.define(name, regions)
+        for c in r.controller.controllers:
+            invalidate = getattr(c, "invalidate_plan", None)
+            if invalidate is not None:
+                invalidate(f"the forbidden region {name!r} changed")
+        log.info("forbidden region %r: %d shape(s) from 3D Slicer", name, len(regions))
+        return True
+
     def handle(self, item: Inbound, now: float) -> None:
         r = self.robot
         msg = item.msg
@@ -151,6 +177,8 @@ class OperatorDesk:
             # a discrete input routed to the command queue (e.g. VFIXTURE); a pose (a Base
             # TRANSFORM, a fixture's) as a typed sample, as on a stream
             try:
+                if self._collision_region(msg):
+                    return
                 sample = pose_sample(item.interface, item.peer, msg, item.t_rx)
                 if sample is not None:
                     r.controller.on_sample(sample, now)
@@ -435,6 +463,8 @@ class OperatorDesk:
             snap["state_table"] = r.state_table.stats()
         snap["recording"] = self.recording.stats()
         snap["controller"] = r.controller.stats()
+        if r.collision is not None:
+            snap["collision"] = r.collision.stats()
         snap["drivers"] = {drv.name: drv.stats() for drv in r.hardware.drivers}
         snap["hardware"] = r.hardware.stats()
         snap["realtime"] = r.loop.realtime_report

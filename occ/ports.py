@@ -14,6 +14,7 @@ if TYPE_CHECKING:
     from .alarms import Alarms
     from .clock import Clock
     from .collab import Collaboration
+    from .collision import CollisionGuard
     from .config import DaemonConfig
     from .controllers import ControllerSet
     from .data import RobotData
@@ -42,6 +43,7 @@ class RobotPort(Protocol):
     motion: Motion
     controller: ControllerSet
     collab: Collaboration | None
+    collision: CollisionGuard | None
     alarms: Alarms
     worker: Worker
     loop: ControlLoop

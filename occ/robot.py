@@ -20,7 +20,6 @@ monitors' events; the controllers and the drive writes (:mod:`occ.motion`); the 
 from __future__ import annotations
 
 import logging
-import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -30,6 +29,7 @@ from .alarms import Alarms
 from .assembly import attach_environment, build_hardware, build_watchdog, realtime_settings
 from .clock import Clock, RealClock
 from .collab import Collaboration
+from .collision import CollisionGuard
 from .config import DaemonConfig
 from .controllers import Controller, ControllerContext, ControllerSet, create_controller
 from .data import RobotData
@@ -82,6 +82,8 @@ class Robot:
         self.data = RobotData(self.name, names, homes, self.frame, self.clock)
         env = attach_environment(config.environment, pairs, self.frame, lambda: self.data.base)
         self.hardware.environment = env  # simulated tissue (occ/contact.py), or None
+        #: whole-arm collision checking (occ/collision.py): plans and, at run time, a worker
+        self.collision = CollisionGuard.for_robot(self)
         # --- Interfaces, and the streams among them (polled, judged, one in control)
         self.interfaces = InterfaceManager(
             config.interfaces, clock_now=self.clock.now, poll_streams=rc.realtime.poll_streams
@@ -111,6 +113,7 @@ class Robot:
         self._supervisor_handled = False
         #: jobs the loop must not pay for (GetStats); the worker sends the reply itself
         self.worker = Worker(f"occ-{self.name}-report", fifo_priority=writer_priority(config))
+        self._side_threads: list[Any] = [t for t in (self.worker, self.collision) if t]
         self.ticks = 0
         #: the State Data Table (``state_table.seconds``), written once a tick
         self.state_table: StateTable | None = table_for(
@@ -144,10 +147,12 @@ class Robot:
                 joint_limits=tuple(j.limits for j in self.joints),
                 alert=self.alarms.broadcast,
                 environment=env,
+                collision=self.collision.cm if self.collision is not None else None,
             ),
         )
         Motion.check_command_kinds(self.controller, self.hardware)
         self.motion = Motion(self.data, self.controller, self.joints, self.period, self._write)
+        self.motion.admit = self.collision.admitter(self.data) if self.collision else None
         if self.controller.commands_effort:
             self.data.effort_command = [0.0] * len(self.joints)
         self.operators = OperatorDesk(self)
@@ -188,13 +193,8 @@ class Robot:
         if failures:
             self.alarms.fault(f"configure failed: {describe(failures)}")
             return
-        self._read(self.clock.now())
-        give_up = self.clock.now() + MEASURE_WAIT_S
-        while isinstance(self.clock, RealClock) and self.clock.now() < give_up:
-            if all(j.measured for j in self.joints):
-                break
-            time.sleep(0.005)
-            self._read(self.clock.now())
+        real = isinstance(self.clock, RealClock)
+        self.hardware.await_measured(self.joints, self._read, self.clock.now, MEASURE_WAIT_S, real)
         self.data.hold_setpoint = list(self.data.q)
         self.state_machine.request("configure", "configured")
 
@@ -211,13 +211,9 @@ class Robot:
         if prio:
             report = self.interfaces.set_thread_priority(max(1, prio - 1))
             log.info("interface threads: %s", report)
-        self.worker.start()
-        sv = self._supervisor_cfg
-        if sv.enabled and isinstance(self.clock, RealClock) and self.supervisor_thread is None:
-            sup_prio = sv.fifo_priority or (min(99, prio + 1) if prio else None)
-            self.supervisor_thread = SupervisorThread(
-                self.supervisor, self.clock, fifo_priority=sup_prio
-            ).start()
+        for side in self._side_threads:
+            side.start()
+        self.supervisor_thread = self.supervisor_thread or SupervisorThread.for_robot(self, prio)
 
     def run(self, duration: float | None = None, ticks: int | None = None) -> LoopStats:
         try:
@@ -245,7 +241,8 @@ class Robot:
         self.controller.shutdown()
         self.hardware.shutdown()
         self.interfaces.stop()
-        self.worker.stop()
+        for side in self._side_threads:
+            side.stop()
         self.operators.recording.close_all()  # recordings started at run time
 
     def __exit__(self, *exc: object) -> None:
@@ -305,6 +302,9 @@ class Robot:
             self.motion.control(state, now, self.streams.holding)
         except Exception as err:  # noqa: BLE001
             self.alarms.plugin_error(f"controller {self.controller.name}: update", err)
+        guard = self.collision  # a link inside its margin: an ALERT and the safety stop
+        if guard is not None and (why := guard.after_control(state, self.data, now)):
+            self.alarms.collision_stop(why, guard.policy)
         try:
             self.outputs.send_due(now, k, self._record_out)
         except Exception as err:  # noqa: BLE001

@@ -21,6 +21,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 from .clock import Clock
 from .safety import Supervisor
@@ -59,6 +60,19 @@ class SupervisorThread:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._main, name=name, daemon=True)
         self.report = ""
+
+    @classmethod
+    def for_robot(cls, robot: Any, loop_priority: int | None) -> SupervisorThread | None:
+        """The thread for the robot's ``safety.supervisor`` (started), one SCHED_FIFO priority
+        above the loop's unless it names its own; None when it is off or the clock is
+        simulated."""
+        from .clock import RealClock
+
+        sv, supervisor, clock = robot.config.safety.supervisor, robot.supervisor, robot.clock
+        if not sv.enabled or not isinstance(clock, RealClock):
+            return None
+        prio = sv.fifo_priority or (min(99, loop_priority + 1) if loop_priority else None)
+        return cls(supervisor, clock, fifo_priority=prio).start()
 
     def start(self) -> SupervisorThread:
         self._thread.start()

@@ -108,6 +108,9 @@ class ControllerContext:
     #: the simulated world the robot's ``sim`` drive touches (occ/contact.py), None on real
     #: hardware: a simulated slave's force sensor reads its contact force
     environment: Any = None
+    #: the whole-arm collision model (occ/collision.py ``CollisionModel``, from
+    #: ``safety.collision``), None without one: a planner checks its plans against it
+    collision: Any = None
 
 
 @mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins and tests subclass it

@@ -89,6 +89,9 @@ Forbidden regions (the collision check)
     thread: it must be thread-safe, e.g. read an immutable snapshot). When the regions change,
     :meth:`KeyframeController.invalidate_plan` makes a checked but unacknowledged plan unusable
     (it must be planned again), as the paper requires of a plan that would now collide.
+    A :class:`PathCheck` (anything with ``check_path``, e.g. the whole-arm check of
+    ``safety.collision``, occ/collision.py, added at configure) gets the plan's joint samples
+    after the per-tick checks and names the first that fails.
 """
 
 from __future__ import annotations
@@ -174,6 +177,20 @@ class ForbiddenCheck(Protocol):
     is free, True or a short description of what it hits when it is not."""
 
     def __call__(self, point: tuple[float, float, float], /) -> str | bool | None: ...
+
+
+class PathCheck(Protocol):
+    """A whole-arm check of a plan's joint path (occ/collision.py ``PathCheck``): given the
+    plan's samples (one per loop period, joint values), the base pose (world <- base) and the
+    pacer, None when clear, else (the first sample that fails, what it hits)."""
+
+    def check_path(
+        self,
+        qs: Sequence[Sequence[float]],
+        base: np.ndarray,
+        pace: Callable[[], None] | None,
+        /,
+    ) -> tuple[int, str] | None: ...
 
 
 # ------------------------------------------------------------------------------ parameters
@@ -498,6 +515,8 @@ class PlanRequest:
     start_tolerance_rad: float = 0.0087
     #: called between samples: gives the interpreter back to the loop (None: never)
     pace: Pacer | None = None
+    #: whole-arm checks of the sampled joint path (after the per-tick checks)
+    path_checks: tuple[PathCheck, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -650,6 +669,7 @@ def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
     peak_share, peak_joint = 0.0, 0
     stride = max(1, math.ceil((ticks + 1) / (req.preview_points - 1)))
     path: list[tuple[float, float, float]] = []
+    qs: list[list[float]] = []
     for j in range(ticks + 1):
         pace()
         t = min(j * period, traj.end)
@@ -718,6 +738,12 @@ def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
         if j % stride == 0 or j == ticks:
             path.append(tip)
         q_prev = list(q)
+        qs.append(q_prev)
+    for path_check in req.path_checks:
+        crossing = path_check.check_path(qs, req.base, req.pace)
+        if crossing is not None:
+            t = min(crossing[0] * period, traj.end)
+            raise PlanRefused(f"{crossing[1]} {_where(t, times, labels, period)}")
 
     keys = []
     for k in frames:
@@ -857,6 +883,7 @@ class KeyframeController(Controller):
         assert isinstance(p, KeyframeParams)
         self.p = p
         self.forbidden_checks: list[ForbiddenCheck] = []
+        self.path_checks: list[PathCheck] = []
         # shared with the planner thread: every change under the lock; the loop reads the
         # references (atomic) without it
         self._lock = threading.Lock()
@@ -994,6 +1021,8 @@ class KeyframeController(Controller):
                 return forbidden_hit(regions, (point[0] * 1e3, point[1] * 1e3, point[2] * 1e3))
 
             self.add_forbidden_check(configured_regions)
+        if ctx.collision is not None:  # safety.collision: the whole arm along the path
+            self.add_forbidden_check(ctx.collision.path_check())
 
     def outputs(self) -> dict[str, SourceFn]:
         return {"keyframe-path": self._source_path, "keyframe-points": self._source_points}
@@ -1001,9 +1030,13 @@ class KeyframeController(Controller):
     def commands(self) -> tuple[str, ...]:
         return self.COMMANDS
 
-    def add_forbidden_check(self, check: ForbiddenCheck) -> None:
-        """Add a collision check every new plan must pass (see :class:`ForbiddenCheck`)."""
-        self.forbidden_checks.append(check)
+    def add_forbidden_check(self, check: ForbiddenCheck | PathCheck) -> None:
+        """Add a collision check every new plan must pass: a :class:`ForbiddenCheck` of the
+        tip, or a :class:`PathCheck` of the whole arm (it has ``check_path``)."""
+        if hasattr(check, "check_path"):
+            self.path_checks.append(check)  # type: ignore[arg-type]
+        else:
+            self.forbidden_checks.append(check)  # type: ignore[arg-type]
 
     def invalidate_plan(self, reason: str) -> None:
         """The world changed (e.g. the forbidden regions): a checked plan not yet acknowledged
@@ -1412,6 +1445,7 @@ class KeyframeController(Controller):
                 else None
             ),
             forbidden=tuple(self.forbidden_checks),
+            path_checks=tuple(self.path_checks),
             max_duration_s=p.max_duration_s,
             preview_points=p.preview_points,
             pace=Pacer(time.perf_counter, ctx.loop_t0, ctx.period_s),
