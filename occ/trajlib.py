@@ -145,8 +145,9 @@ def config_hash(frame: Frame, joint_names: Sequence[str]) -> str:
 
 @dataclass(frozen=True)
 class SavedSet:
-    """One keyframe set as the library keeps it (keyframes: ``(t, pose, label)``; poses in
-    the set's own units: joint SI, or the tip in mm, world frame)."""
+    """One keyframe set as the library keeps it (keyframes: ``(t, pose, label)`` or ``(t,
+    pose, label, rotation)``, rotation a unit quaternion or None; poses in the set's own units:
+    joint SI, or the tip in mm, world frame)."""
 
     name: str
     robot: str
@@ -157,7 +158,7 @@ class SavedSet:
     steepness: float
     ramp: float
     duration_s: float
-    keyframes: tuple[tuple[float, tuple[float, ...], str], ...]
+    keyframes: tuple[tuple[Any, ...], ...]
     joint_names: tuple[str, ...]
     source: str = ""
     saved_at: str = ""  # UTC, ISO 8601; filled in by Library.save
@@ -289,8 +290,11 @@ class Library:
         name = check_name(saved.name)
         if not saved.keyframes:
             raise LibraryError("no keyframes to save")
-        for t, pose, _label in saved.keyframes:
-            if not (math.isfinite(t) and pose and all(math.isfinite(v) for v in pose)):
+        for k in saved.keyframes:
+            t, pose = k[0], k[1]
+            rot = k[3] if len(k) > 3 else None
+            values = (*pose, *(rot or ()))
+            if not (math.isfinite(t) and pose and all(math.isfinite(v) for v in values)):
                 raise LibraryError(f"keyframe at t={t!r}: not finite numbers")
         stamp = datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
         row = (
@@ -330,8 +334,8 @@ class Library:
             db.executemany(
                 "INSERT INTO keyframes (set_id, idx, t, pose, label) VALUES (?, ?, ?, ?, ?)",
                 [
-                    (set_id, i, float(t), json.dumps([float(v) for v in pose]), label or "")
-                    for i, (t, pose, label) in enumerate(saved.keyframes)
+                    (set_id, i, float(k[0]), _pose_text(k), k[2] or "")
+                    for i, k in enumerate(saved.keyframes)
                 ],
             )
         return dataclasses.replace(saved, name=name, saved_at=stamp), old is not None
@@ -374,7 +378,11 @@ class Library:
         try:
             if len(rows) != head[10] or [r[0] for r in rows] != list(range(len(rows))):
                 raise ValueError(f"{len(rows)} keyframes stored, {head[10]} expected")
-            keyframes = tuple((float(r[1]), _pose(r[2]), str(r[3])) for r in rows)
+            parsed = [(float(r[1]), _pose(r[2]), str(r[3])) for r in rows]
+            keyframes = tuple(
+                (t, pr[0], label) if pr[1] is None else (t, pr[0], label, pr[1])
+                for t, pr, label in parsed
+            )
             joints = tuple(str(j) for j in json.loads(head[11]))
         except (ValueError, TypeError) as err:
             raise caused(LibraryError(f"{name!r} is damaged: {err}"), err) from err
@@ -416,14 +424,36 @@ class Library:
         return [Entry(*r) for r in rows], int(total)
 
 
-def _pose(text: str) -> tuple[float, ...]:
-    values = json.loads(text)
+def _pose_text(k: tuple[Any, ...]) -> str:
+    """A keyframe's pose as stored: a JSON list, or ``{"pose": [...], "rotation": [x, y, z,
+    w]}`` for a Cartesian keyframe with the tool's orientation (an older reader refuses such a
+    set as damaged, never drops its orientation)."""
+    pose = [float(v) for v in k[1]]
+    rot = k[3] if len(k) > 3 else None
+    if rot is None:
+        return json.dumps(pose)
+    return json.dumps({"pose": pose, "rotation": [float(v) for v in rot]})
+
+
+def _pose(text: str) -> tuple[tuple[float, ...], tuple[float, ...] | None]:
+    """(pose, rotation or None) from the stored text (:func:`_pose_text`)."""
+    data = json.loads(text)
+    rotation: tuple[float, ...] | None = None
+    values = data
+    if isinstance(data, dict):
+        values = data.get("pose")
+        rot = data.get("rotation")
+        if not isinstance(rot, list) or len(rot) != 4:
+            raise ValueError(f"a rotation is not 4 numbers: {text[:40]!r}")
+        rotation = tuple(float(v) for v in rot)
+        if not all(math.isfinite(v) for v in rotation):
+            raise ValueError(f"a rotation is not finite: {text[:40]!r}")
     if not isinstance(values, list) or not values:
         raise ValueError(f"a pose is not a list of numbers: {text[:40]!r}")
     pose = tuple(float(v) for v in values)
     if not all(math.isfinite(v) for v in pose):
         raise ValueError(f"a pose is not finite: {text[:40]!r}")
-    return pose
+    return pose, rotation
 
 
 def _sqlite_reason(err: sqlite3.Error) -> str:

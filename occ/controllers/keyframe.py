@@ -1271,7 +1271,8 @@ class KeyframeController(Controller):
             ramp=st.ramp,
             duration_s=acked.traj.duration,
             keyframes=tuple(
-                (k.t, k.pose, label) for k, label in zip(kset.keyframes, kset.names, strict=True)
+                (k.t, k.pose, label, k.rotation)
+                for k, label in zip(kset.keyframes, kset.names, strict=True)
             ),
             joint_names=self.data.joint_names,
             source=kset.source,

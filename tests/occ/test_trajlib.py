@@ -356,3 +356,24 @@ def test_a_writer_killed_at_any_moment_of_its_saves_leaves_whole_sets(tmp_path: 
         back = lib.load("kf", "loop", "h" * 64)  # whole: its count matches its rows
         assert len(back.keyframes) == entry.keyframe_count == back.duration_s
         assert len({k[1][0] for k in back.keyframes}) == 1  # all from the same save
+
+
+@pytest.mark.req("SR-LIB-1")
+def test_orientations_are_kept_exactly(tmp_path: Path) -> None:
+    """A Cartesian set with the tool's orientation (a 6-DOF arm's keyframes) comes back with
+    every quaternion bit-exact; a set without keeps its plain rows."""
+    import dataclasses
+
+    rot = (0.1 / 3, -0.7071067811865476, 1 / 7, 0.6)
+    s = dataclasses.replace(
+        saved(name="oriented"),
+        space="cartesian",
+        keyframes=((1.0, (600.0, 100.0, 290.0), "a", rot), (2.0, (610.0, 1 / 3, 290.0), "b", rot)),
+    )
+    lib = Library(tmp_path / "lib.db")
+    lib.save(s)
+    lib.save(saved())
+    back = Library(tmp_path / "lib.db").load("kf", "oriented", s.config_hash)
+    assert [k[3] for k in back.keyframes] == [rot, rot]
+    assert back.keyframes[1][1] == (610.0, 1 / 3, 290.0)
+    assert all(len(k) == 3 for k in lib.load("kf", "demo", s.config_hash).keyframes)
