@@ -126,6 +126,9 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as err:
         print(f"occ-console: cannot serve on {args.host}:{args.port}: {err}", file=sys.stderr)
         return 1
+    # listening before the address is printed: a browser (or a script) that connects at once
+    # waits in the backlog until the server accepts, instead of being refused (seen in CI)
+    sock.listen(128)
     port = sock.getsockname()[1]
     host = f"[{args.host}]" if family == socket.AF_INET6 else args.host
     daemons = ", ".join(f"{h}:{p}" for h, p in args.connect)
