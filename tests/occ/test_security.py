@@ -1,0 +1,639 @@
+"""Who may command the robot, seen from the network: every kind of message a viewer, a data
+link's peer or a peer that is not allowed can send, over TCP and UDP, on unsigned and on signed
+(``auth_key_file``) interfaces (docs/SAFETY.md, SR-SEC-1..5; issue 29).
+
+The slave of configs/slave.yaml runs on a SimClock, ticked by the test; its interfaces are real
+sockets on 127.0.0.1 (ephemeral ports). The peers are plain sockets bound to 127.0.0.1 or
+127.0.0.2 (both loopback: an operator address and another host, without leaving the machine),
+reading what the daemon sends back with igtl's own decoder. Each check is what the peer gets
+back (a reply, its form and text, or nothing), what the daemon counted, and the robot's state.
+
+"Nothing came back" is proved without waiting on a clock: after the message under test the
+peer sends a request that is always answered (a *marker*) on the same socket; replies to one
+peer leave in order, so a reply to the message under test would come before the marker's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import socket
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import pytest
+
+import igtl
+from igtl.auth import HMAC_KEY, sign, verify
+from occ.clock import SimClock
+from occ.commands import ROBOT_COMMANDS
+from occ.loader import parse_config
+from occ.robot import Robot, build_robot
+from occ.safety import RobotState
+from occ.testing import wait_until
+
+ROOT = Path(__file__).resolve().parents[2]
+KEY = b"the operators' shared key, 32 b."
+WRONG_KEY = b"another key of at least 16 bytes"
+OPERATOR_HOST = "127.0.0.2"  # in the operators list of the shared interfaces
+OTHER_HOST = "127.0.0.1"  # allowed, not an operator there
+UNKNOWN_HOST = "127.0.0.3"  # in no interface's allowed_peers
+#: how long to wait for a reply on loopback (scripts/mutate shortens it: a killed mutant is
+#: often one whose reply never comes, and each would cost the whole wait)
+WAIT_S = float(os.environ.get("OCC_SECURITY_WAIT_S", "10"))
+
+INTERFACES = """
+interfaces:
+  - {name: tview, transport: tcp-server, host: 127.0.0.1, port: 0, role: viewer}
+  - {name: top, transport: tcp-server, host: 127.0.0.1, port: 0, role: operator,
+     operators: [127.0.0.2], allowed_peers: [127.0.0.1, 127.0.0.2]}
+  - {name: tlink, transport: tcp-server, host: 127.0.0.1, port: 0}
+  - {name: tkey, transport: tcp-server, host: 127.0.0.1, port: 0, role: operator,
+     auth_key_file: KEYFILE}
+  - {name: uview, transport: udp, host: 127.0.0.1, port: 0, role: viewer}
+  - {name: uop, transport: udp, host: 127.0.0.1, port: 0, role: operator,
+     operators: [127.0.0.2], allowed_peers: [127.0.0.1, 127.0.0.2]}
+  - {name: ulink, transport: udp, host: 127.0.0.1, port: 0}
+  - {name: ukey, transport: udp, host: 127.0.0.1, port: 0, role: operator,
+     auth_key_file: KEYFILE}
+  - name: master
+    transport: udp
+    host: 127.0.0.1
+    port: 0
+    auth_key_file: KEYFILE
+    inputs: [{type: POSITION, queue: stream, depth: 10}]
+"""
+
+
+def _config_text(keyfile: Path) -> str:
+    text = (ROOT / "configs" / "slave.yaml").read_text()
+    head, _, rest = text.partition("interfaces:")
+    _, _, tail = rest.partition("\nsafety:")
+    return head + INTERFACES.lstrip("\n").replace("KEYFILE", str(keyfile)) + "safety:" + tail
+
+
+@pytest.fixture
+def robot(tmp_path: Path) -> Iterator[Robot]:
+    keyfile = tmp_path / "link.key"
+    keyfile.write_text(KEY.decode() + "\n")
+    cfg = parse_config(_config_text(keyfile), base_dir=ROOT / "configs")
+    r = build_robot(cfg, clock=SimClock())
+    r.configure()
+    r.activate()
+    try:
+        yield r
+    finally:
+        r.shutdown()
+
+
+_TICKS = [0]
+
+
+def tick(robot: Robot, n: int = 1) -> None:
+    for _ in range(n):
+        _TICKS[0] += 1
+        robot.tick(robot.clock.now(), _TICKS[0])
+        robot.clock.advance(0.001)  # type: ignore[attr-defined]
+
+
+class Peer:
+    """A client of one interface from ``host``: a TCP connection or a UDP socket; ``key`` signs
+    what it sends. ``got`` collects what the daemon sends to it, decoded."""
+
+    def __init__(self, robot: Robot, iface: str, host: str, key: bytes | None = None) -> None:
+        self.robot = robot
+        self.iface = robot.interfaces[iface]
+        self.key = key
+        self.udp = self.iface.cfg.transport == "udp"
+        addr = self.iface.address
+        assert addr is not None
+        self.dest = ("127.0.0.1", addr[1])
+        if self.udp:
+            self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self.sock.bind((host, 0))
+        else:
+            self.sock = socket.create_connection(self.dest, timeout=5.0, source_address=(host, 0))
+        self.sock.setblocking(False)
+        self.decoder = igtl.StreamDecoder()
+        self.got: list[igtl.Message] = []
+        self.closed = False
+        self._id = 0
+
+    def send(self, msg: igtl.Message, *, raw: bool = False) -> None:
+        if self.key is not None and not raw:
+            msg = sign(msg, self.key)
+        data = msg.pack()
+        if self.udp:
+            self.sock.sendto(data, self.dest)
+        else:
+            self.sock.sendall(data)
+
+    def read(self) -> None:
+        while True:
+            try:
+                data = self.sock.recv(65536)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                self.closed = True
+                return
+            if not data:
+                if not self.udp:
+                    self.closed = True
+                return
+            if self.udp:
+                self.got.append(igtl.unpack(data))
+            else:
+                self.decoder.feed(data)
+                self.got.extend(self.decoder)
+
+    def next_id(self) -> int:
+        self._id += 1
+        return 7000 + self._id
+
+    def await_reply(self, mid: int) -> igtl.Message:
+        """Tick the robot until the reply that echoes message ID ``mid`` comes back."""
+        found: list[igtl.Message] = []
+
+        def step() -> bool:
+            tick(self.robot)
+            self.read()
+            found[:] = [m for m in self.got if m.message_id == mid]
+            return bool(found)
+
+        assert wait_until(step, timeout=WAIT_S), (
+            f"no reply to {mid}; got {[(m.message_type, m.message_id) for m in self.got]}"
+        )
+        return found[0]
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def until(robot: Robot, cond: Callable[[], object]) -> bool:
+    """Tick the robot (it polls its UDP streams in its tick) until ``cond`` holds."""
+
+    def step() -> object:
+        tick(robot)
+        return cond()
+
+    return bool(wait_until(step, timeout=WAIT_S))
+
+
+def command(name: str, mid: int, text: str = "") -> igtl.Message:
+    return igtl.CommandMessage(
+        command_id=mid, command_name=name, command=text, header_version=2, message_id=mid
+    )
+
+
+def string_command(name: str, mid: int) -> igtl.Message:
+    """A PLUS-style request: STRING ``CMD_<id>`` holding ``<Command Name="..."/>``."""
+    return igtl.StringMessage(
+        f'<Command Name="{name}" />', device_name=f"CMD_{mid}", header_version=2, message_id=mid
+    )
+
+
+def query(mtype: str, mid: int) -> igtl.Message:
+    return igtl.REGISTRY[mtype](type_name=mtype, header_version=2, message_id=mid)
+
+
+def ask(peer: Peer, msg: igtl.Message) -> list[igtl.Message]:
+    """Send ``msg``, then a marker (GET_STATUS, always answered: by the state, or by a refusal);
+    return everything that came back before the marker's answer, which is ``peer.got[-1]``."""
+    peer.got.clear()
+    peer.send(msg)
+    marker = peer.next_id()
+    peer.send(query("GET_STATUS", marker))
+    peer.await_reply(marker)
+    before = []
+    for m in peer.got:
+        if m.message_id == marker and m.message_type == "STATUS":
+            break
+        before.append(m)
+    # the greeting and the state STATUS pushed to every viewer and operator (message ID 0) are
+    # no answer
+    return [m for m in before if m.message_type != "STATUS" or m.message_id != 0]
+
+
+def answer_to(peer: Peer, msg: igtl.Message) -> igtl.Message:
+    """The one reply to ``msg`` (asserted: exactly one, echoing its message ID)."""
+    got = [m for m in ask(peer, msg) if m.message_id == msg.message_id]
+    assert len(got) == 1, [(m.message_type, m.message_id) for m in got]
+    return got[0]
+
+
+def reply_to(peer: Peer, msg: igtl.Message) -> igtl.Message:
+    """The reply to ``msg``, however late (GetStats is answered by the worker thread)."""
+    peer.got.clear()
+    peer.send(msg)
+    return peer.await_reply(msg.message_id)
+
+
+def _status(reply: igtl.Message) -> str:
+    return str(reply.metadata.get("Status", ""))
+
+
+# the commands that change the robot or its controller, and those that only read
+ACTING = sorted(c.name for c in ROBOT_COMMANDS.values() if c.role == "operator") + [
+    "Clutch",
+    "ClearFixtures",
+    "Select",
+    "Toggle",
+    "NoSuchCommand",
+]
+READING = ["GetState", "GetStats", "GetRecordingStatus"]
+#: the queries (GET_, STT_, STP_) and the type of their answer
+QUERIES = {
+    "GET_STATUS": "STATUS",
+    "GET_CAPABIL": "CAPABILITY",
+    "GET_TRANS": "TRANSFORM",
+    "STT_TDATA": "RTS_TDATA",
+    "STP_TDATA": "RTS_TDATA",
+}
+
+
+# a viewer: a viewer interface, or a host not in the operators list of an operator interface
+VIEWERS = [("tview", OTHER_HOST), ("uview", OTHER_HOST), ("top", OTHER_HOST), ("uop", OTHER_HOST)]
+
+
+@pytest.mark.req("SR-SEC-1")
+@pytest.mark.parametrize(("iface", "host"), VIEWERS)
+def test_a_viewer_may_read_and_is_refused_every_command_that_acts(
+    robot: Robot, iface: str, host: str
+) -> None:
+    peer = Peer(robot, iface, host)
+    counters = robot.interfaces[iface].counters
+    try:
+        refused = 0
+        for name in ACTING + ["enable", " Run ", "ESTOP", "getstate now"]:
+            mid = peer.next_id()
+            reply = answer_to(peer, command(name, mid))
+            assert reply.message_type == "RTS_COMMAND" and _status(reply) == "FAIL", name
+            assert reply.metadata["Error"] == (
+                f"{name.strip()}: a viewer may query but not command the robot; "
+                "send commands to an operator interface"
+            )
+            mid = peer.next_id()
+            ack = answer_to(peer, string_command(name.strip(), mid))
+            assert ack.message_type == "STRING" and ack.device_name == f"ACK_{mid}"
+            assert "a viewer may query but not command the robot" in ack.string
+            refused += 2
+            assert robot.state is RobotState.READY
+        assert counters.refused == refused
+        for name in READING + ["getstate", " GETSTATS "]:
+            mid = peer.next_id()
+            reply = reply_to(peer, command(name, mid))
+            assert _status(reply) == "SUCCESS", (name, reply.metadata)
+            mid = peer.next_id()
+            ack = reply_to(peer, string_command(name.strip(), mid))
+            assert 'Status="SUCCESS"' in ack.string, ack.string
+        # every query is a viewer's to ask (a type the robot does not serve is answered so)
+        for mtype, answer in QUERIES.items():
+            mid = peer.next_id()
+            got = ask(peer, query(mtype, mid))
+            assert [m.message_type for m in got] == [answer], (mtype, got)
+            reply = got[0]
+            if mtype == "GET_STATUS":
+                assert "state=READY" in reply.status_message
+        assert counters.refused == refused  # reading refused nothing
+        assert robot.state is RobotState.READY
+    finally:
+        peer.close()
+
+
+@pytest.mark.req("SR-SEC-1")
+@pytest.mark.parametrize("iface", ["top", "uop"])
+def test_an_operator_address_commands_where_other_hosts_only_read(robot: Robot, iface: str) -> None:
+    op, other = Peer(robot, iface, OPERATOR_HOST), Peer(robot, iface, OTHER_HOST)
+    try:
+        assert _status(answer_to(other, command("Enable", other.next_id()))) == "FAIL"
+        assert robot.state is RobotState.READY
+        mid = op.next_id()
+        reply = reply_to(op, command("Enable", mid))
+        assert _status(reply) == "SUCCESS" and robot.state is RobotState.ENABLED
+        ack = reply_to(op, string_command("Run", op.next_id()))
+        assert 'Status="SUCCESS"' in ack.string and robot.state is RobotState.RUNNING
+        # a name the robot does not know goes on to its controller (the slave's has none)
+        unknown = reply_to(op, command("Clutch", op.next_id()))
+        assert unknown.metadata["Error"] == "unknown command 'Clutch'"
+        assert _status(answer_to(other, command("Stop", other.next_id()))) == "FAIL"
+        assert robot.state is RobotState.RUNNING
+        assert robot.interfaces[iface].counters.refused == 2
+    finally:
+        op.close()
+        other.close()
+
+
+@pytest.mark.req("SR-SEC-2")
+@pytest.mark.parametrize("iface", ["tlink", "ulink"])
+def test_a_data_link_refuses_every_request_with_access_denied(robot: Robot, iface: str) -> None:
+    peer = Peer(robot, iface, OTHER_HOST)
+    why = f"interface {iface} is a data link: it takes no requests"
+    counters = robot.interfaces[iface].counters
+    try:
+        n = 0
+        for name in ["Enable", "GetState", "GetStats"]:
+            reply = answer_to(peer, command(name, peer.next_id()))
+            assert reply.message_type == "RTS_COMMAND" and reply.metadata["Error"] == why
+            mid = peer.next_id()
+            ack = answer_to(peer, string_command(name, mid))
+            assert ack.device_name == f"ACK_{mid}" and why in ack.string
+            n += 4  # each with its marker
+        for mtype in QUERIES:
+            got = ask(peer, query(mtype, peer.next_id()))
+            assert len(got) == 1, got
+            reply = got[0]
+            if mtype.startswith("GET_"):
+                assert reply.message_type == "STATUS"
+                assert reply.code == igtl.StatusCode.ACCESS_DENIED
+                assert reply.error_name == "ACCESS_DENIED" and reply.status_message == why
+            else:  # (an RTS_ reply does not echo the message ID: only one is here)
+                assert reply.message_type == "RTS_TDATA"
+            n += 2
+        assert counters.refused == counters.received == n
+        assert robot.state is RobotState.READY
+    finally:
+        peer.close()
+
+
+#: messages that are no request: never answered, never acted on where no input takes them
+NOT_REQUESTS = [
+    igtl.TransformMessage.from_matrix(
+        [[1, 0, 0, 1], [0, 1, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]],
+        device_name="Tip",
+        header_version=2,
+    ),
+    igtl.PositionMessage(
+        (1.0, 2.0, 3.0),
+        (0.0, 0.0, 0.0, 1.0),
+        24,
+        device_name="Master",
+        header_version=2,
+        message_id=5,
+        metadata={"run": "1", "clutch": "0"},
+    ),
+    igtl.StringMessage('<Command Name="Enable" />', device_name="Enable", header_version=2),
+    igtl.StringMessage("Enable", device_name="cmd_1", header_version=2),
+]
+
+
+@pytest.mark.req("SR-SEC-2")
+@pytest.mark.parametrize("iface", ["tview", "uview", "top", "uop", "tlink", "ulink"])
+def test_what_is_no_request_is_counted_and_never_acted_on(robot: Robot, iface: str) -> None:
+    peer = Peer(robot, iface, OPERATOR_HOST if iface in ("top", "uop") else OTHER_HOST)
+    counters = robot.interfaces[iface].counters
+    try:
+        for msg in NOT_REQUESTS:
+            assert ask(peer, msg) == []
+        keepalive = igtl.StatusMessage(code=igtl.StatusCode.OK, header_version=2, message_id=9)
+        assert ask(peer, keepalive) == []
+        assert counters.unexpected == len(NOT_REQUESTS)
+        assert counters.unexpected_types == {"TRANSFORM", "POSITION", "STRING"}
+        assert counters.keepalive == 1 and counters.unauthenticated == 0
+        assert robot.state is RobotState.READY
+        assert robot.interfaces["master"].counters.received == 0
+    finally:
+        peer.close()
+
+
+def _retag(msg: igtl.Message, tag: str) -> igtl.Message:
+    return dataclasses.replace(msg, metadata={**msg.metadata, HMAC_KEY: tag})
+
+
+def _forgeries(msg: igtl.Message) -> dict[str, igtl.Message]:
+    """``msg`` as a peer without the key could send it."""
+    signed = sign(msg, KEY)
+    tag = signed.metadata[HMAC_KEY]
+    other = sign(dataclasses.replace(msg, message_id=msg.message_id + 1), KEY)
+    if isinstance(msg, igtl.CommandMessage):
+        # a signed harmless request with the command changed after signing
+        harmless = sign(dataclasses.replace(msg, command_name="GetState"), KEY)
+        altered = dataclasses.replace(harmless, command_name=msg.command_name)
+    elif isinstance(msg, igtl.StringMessage):
+        harmless = sign(dataclasses.replace(msg, string='<Command Name="GetState" />'), KEY)
+        altered = dataclasses.replace(harmless, string=msg.string)
+    else:
+        altered = dataclasses.replace(signed, device_name="Forged")
+    v1 = dataclasses.replace(msg, header_version=1, message_id=0, metadata={})
+    return {
+        "unsigned": msg,
+        "wrong key": sign(msg, WRONG_KEY),
+        "altered after signing": altered,
+        "truncated tag": _retag(signed, tag[:31]),
+        "half a tag": _retag(signed, tag[:16]),
+        "empty tag": _retag(signed, ""),
+        "upper-case tag": _retag(signed, tag.upper()),
+        "another message's tag": _retag(signed, other.metadata[HMAC_KEY]),
+        "non-ASCII tag": _retag(signed, "é" * 32),
+        "header version 1": v1,
+    }
+
+
+@pytest.mark.req("SR-SEC-3")
+@pytest.mark.parametrize("iface", ["tkey", "ukey"])
+def test_a_signed_link_answers_nothing_without_a_valid_tag_and_signs_its_answers(
+    robot: Robot, iface: str
+) -> None:
+    peer = Peer(robot, iface, OTHER_HOST, key=KEY)
+    counters = robot.interfaces[iface].counters
+    try:
+        n = 0
+        for make in (
+            lambda mid: command("Enable", mid),
+            lambda mid: string_command("Enable", mid),
+            lambda mid: query("GET_STATUS", mid),
+        ):
+            for what, forged in _forgeries(make(peer.next_id())).items():
+                peer.got.clear()
+                peer.send(forged, raw=True)
+                marker = peer.next_id()
+                peer.send(query("GET_STATUS", marker))
+                peer.await_reply(marker)
+                answers = [m for m in peer.got if m.message_id != marker and m.message_id != 0]
+                assert answers == [], what
+                n += 1
+                assert counters.unauthenticated == n, what
+                assert robot.state is RobotState.READY, what
+        assert counters.refused == 0
+        # and with the key: obeyed, and every answer carries a valid tag
+        reply = reply_to(peer, command("Enable", peer.next_id()))
+        assert _status(reply) == "SUCCESS" and robot.state is RobotState.ENABLED
+        assert verify(reply, KEY) == "" and verify(reply, WRONG_KEY) == "wrong HMAC"
+        assert all(verify(m, KEY) == "" for m in peer.got)
+        assert counters.unauthenticated == n
+    finally:
+        peer.close()
+
+
+@pytest.mark.req("SR-SEC-3")
+def test_a_signed_stream_takes_only_samples_with_a_valid_tag(robot: Robot) -> None:
+    iface = robot.interfaces["master"]
+    sample = igtl.PositionMessage(
+        (0.0, 50.0, 270.0),
+        (0.0, 0.0, 0.0, 1.0),
+        24,
+        device_name="Master",
+        header_version=2,
+        message_id=1,
+        metadata={"run": "1", "clutch": "0"},
+    )
+    peer = Peer(robot, "master", OTHER_HOST)
+    try:
+        forged = _forgeries(sample)
+        for msg in forged.values():
+            peer.send(msg)
+        assert until(robot, lambda: iface.counters.received == len(forged))
+        assert iface.counters.unauthenticated == len(forged)
+        assert iface.stats()["streams"]["POSITION"]["received"] == 0
+        assert iface.stream_owner is None  # a forger does not become the stream's owner
+        peer.send(sign(sample, KEY))
+        assert until(robot, lambda: iface.stats()["streams"]["POSITION"]["received"] == 1)
+        assert iface.stream_owner == peer.sock.getsockname()
+        assert iface.counters.unauthenticated == len(forged)
+    finally:
+        peer.close()
+
+
+@pytest.mark.req("SR-SEC-4")
+@pytest.mark.parametrize("iface", ["tview", "top", "tlink", "tkey"])
+def test_an_unknown_host_is_told_access_denied_and_closed_over_tcp(
+    robot: Robot, iface: str
+) -> None:
+    transport = robot.interfaces[iface].transport
+    sock = socket.create_connection(
+        ("127.0.0.1", robot.interfaces[iface].address[1]),  # type: ignore[index]
+        timeout=WAIT_S,
+        source_address=(UNKNOWN_HOST, 0),
+    )
+    try:
+        try:
+            sock.sendall(command("Enable", 1).pack() + sign(command("Run", 2), KEY).pack())
+        except OSError:
+            pass  # closed already
+        data = b""
+        while True:
+            try:
+                chunk = sock.recv(65536)
+            except OSError:
+                break
+            if not chunk:
+                break
+            data += chunk
+        got = igtl.unpack(data)  # exactly one message, then the end of the stream
+        assert got.message_type == "STATUS" and got.code == igtl.StatusCode.ACCESS_DENIED
+        assert got.status_message == "connection not allowed"
+        assert wait_until(lambda: transport.stats()["denied"] == 1, timeout=WAIT_S)
+        tick(robot, 20)
+        assert robot.interfaces[iface].counters.received == 0
+        assert robot.interfaces[iface].stats()["denied"] == 1
+        assert robot.state is RobotState.READY
+    finally:
+        sock.close()
+
+
+@pytest.mark.req("SR-SEC-4")
+@pytest.mark.parametrize("iface", ["uview", "uop", "ulink", "ukey", "master"])
+def test_an_unknown_host_gets_nothing_over_udp(robot: Robot, iface: str) -> None:
+    stranger = Peer(robot, iface, UNKNOWN_HOST)
+    messages = [
+        command("Enable", 1),
+        sign(command("Run", 2), KEY),
+        query("GET_STATUS", 3),
+        sign(NOT_REQUESTS[1], KEY),
+    ]
+    try:
+        for msg in messages:
+            stranger.send(msg)
+        assert until(robot, lambda: robot.interfaces[iface].stats()["denied"] == len(messages))
+        tick(robot, 20)
+        stranger.read()
+        assert stranger.got == []
+        assert robot.interfaces[iface].counters.received == 0
+        assert robot.interfaces[iface].stream_owner is None
+        assert robot.state is RobotState.READY
+    finally:
+        stranger.close()
+
+
+@pytest.mark.req("SR-SEC-1")
+def test_state_changes_reach_viewers_and_operators_not_data_links(robot: Robot) -> None:
+    """What the robot does is every viewer's and operator's business (signed where the
+    interface is keyed); a data link's peers are told nothing."""
+    viewer = Peer(robot, "tview", OTHER_HOST)
+    link = Peer(robot, "tlink", OTHER_HOST)
+    keyed = Peer(robot, "tkey", OTHER_HOST, key=KEY)
+    op = Peer(robot, "top", OPERATOR_HOST)
+    try:
+        for p in (viewer, link, keyed, op):
+            assert until(
+                robot,
+                lambda p=p: (p.read(), robot.interfaces[p.iface.name].stats()["peers"])[1] == 1,
+            )
+        assert _status(reply_to(op, command("Enable", op.next_id()))) == "SUCCESS"
+
+        def pushed(p: Peer) -> list[igtl.Message]:
+            p.read()
+            return [m for m in p.got if m.message_type == "STATUS" and m.error_name == "ENABLED"]
+
+        for p in (viewer, keyed, op):
+            assert until(robot, lambda p=p: pushed(p)), p.iface.name
+        assert all(verify(m, KEY) == "" for m in pushed(keyed))
+        # the link: a request sent now is refused on the same connection after any push
+        # of the Enable would have been sent (one connection, in order): none came
+        mid = link.next_id()
+        link.send(query("GET_CAPABIL", mid))
+        assert link.await_reply(mid).code == igtl.StatusCode.ACCESS_DENIED
+        assert pushed(link) == [] and [m for m in link.got if m.message_id == 0] == []
+    finally:
+        for p in (viewer, link, keyed, op):
+            p.close()
+
+
+@pytest.mark.req("SR-SEC-2")
+@pytest.mark.parametrize(
+    ("role", "extra"),
+    [
+        ("viewer", ""),
+        ("none", ""),
+        ("operator", ", operators: [127.0.0.2], allowed_peers: [127.0.0.1, 127.0.0.2]"),
+    ],
+)
+@pytest.mark.parametrize("listed", ["COMMAND", "STRING"])
+def test_listing_a_request_type_as_an_input_does_not_lift_the_role_check(
+    tmp_path: Path, role: str, extra: str, listed: str
+) -> None:
+    """A config that lists COMMAND or STRING among an interface's inputs (a controller that
+    wants them) must not turn its viewers, or a data link's peers, into operators."""
+    keyfile = tmp_path / "link.key"
+    keyfile.write_text(KEY.decode() + "\n")
+    text = _config_text(keyfile).replace(
+        "  - {name: tview, transport: tcp-server, host: 127.0.0.1, port: 0, role: viewer}",
+        "  - {name: tview, transport: tcp-server, host: 127.0.0.1, port: 0, "
+        f"role: {role}{extra},\n     inputs: [{{type: {listed}, queue: command, depth: 4}}]}}",
+    )
+    r = build_robot(parse_config(text, base_dir=ROOT / "configs"), clock=SimClock())
+    r.configure()
+    r.activate()
+    peer = Peer(r, "tview", OTHER_HOST)
+    try:
+        msg = command("Enable", 5) if listed == "COMMAND" else string_command("Enable", 5)
+        got = ask(peer, msg)
+        assert len(got) == 1, got
+        why = (
+            "interface tview is a data link: it takes no requests"
+            if role == "none"
+            else "Enable: a viewer may query but not command the robot; send commands to an "
+            "operator interface"
+        )
+        if listed == "COMMAND":
+            assert got[0].metadata["Error"] == why
+        else:
+            assert f"Error={quoteattr(why)}" in got[0].string
+        assert r.state is RobotState.READY
+        # on a data link the marker is refused too; elsewhere the desk answered it, only it
+        assert r.interfaces["tview"].counters.refused == (2 if role == "none" else 1)
+        assert r.operators.handled == (0 if role == "none" else 1)
+    finally:
+        peer.close()
+        r.shutdown()
