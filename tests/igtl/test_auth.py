@@ -33,6 +33,7 @@ def test_signed_message_verifies_after_the_wire() -> None:
     assert verify(igtl.unpack(signed.pack()), KEY) == ""
 
 
+@pytest.mark.req("SR-SEC-3")
 def test_version_1_message_is_promoted() -> None:
     m = igtl.TransformMessage.from_matrix([[1, 0, 0, 1], [0, 1, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]])
     assert m.header_version == 1
@@ -41,11 +42,13 @@ def test_version_1_message_is_promoted() -> None:
     assert verify(m, KEY) == "header version 1 carries no HMAC"
 
 
+@pytest.mark.req("SR-SEC-3")
 def test_refusals_say_why() -> None:
     assert verify(position(), KEY) == "no HMAC"
     assert verify(igtl.unpack(sign(position(), KEY).pack()), b"another key, 16+") == "wrong HMAC"
 
 
+@pytest.mark.req("SR-SEC-3")
 @settings(max_examples=200, deadline=None)
 @given(
     field=st.sampled_from(["message_id", "timestamp", "device_name", "position", "run", "extra"]),
@@ -84,6 +87,7 @@ def _with_tag(msg: igtl.Message, tag: str) -> igtl.Message:
     return dataclasses.replace(msg, metadata={**msg.metadata, HMAC_KEY: tag})
 
 
+@pytest.mark.req("SR-SEC-3")
 def test_a_tag_that_is_not_ascii_is_wrong_not_an_error() -> None:
     """Metadata is UTF-8 text from the peer: a tag with characters outside ASCII is a wrong
     tag (refused and counted by the interface), never an exception in its I/O thread."""
@@ -97,6 +101,7 @@ def test_a_tag_that_is_not_ascii_is_wrong_not_an_error() -> None:
             assert verify(igtl.unpack(forged.pack()), KEY) == "wrong HMAC"
 
 
+@pytest.mark.req("SR-SEC-3")
 def test_a_truncated_padded_or_recased_tag_is_wrong() -> None:
     signed = sign(position(), KEY)
     good = signed.metadata[HMAC_KEY]
@@ -115,6 +120,7 @@ def test_a_truncated_padded_or_recased_tag_is_wrong() -> None:
     assert verify(igtl.unpack(_with_tag(signed, good).pack()), KEY) == ""
 
 
+@pytest.mark.req("SR-SEC-3")
 def test_a_tag_taken_from_another_message_is_wrong() -> None:
     first, second = sign(position(seq=1), KEY), sign(position(seq=2), KEY)
     moved = _with_tag(second, first.metadata[HMAC_KEY])

@@ -288,6 +288,11 @@ def test_a_viewer_may_read_and_is_refused_every_command_that_acts(
             mid = peer.next_id()
             ack = reply_to(peer, string_command(name.strip(), mid))
             assert 'Status="SUCCESS"' in ack.string, ack.string
+        # the state table is a viewer's to read (this robot keeps none: the desk says so)
+        table = reply_to(peer, command("GetStateTable", peer.next_id()))
+        assert table.metadata["Error"] == (
+            "GetStateTable: no state table (configure state_table.seconds)"
+        )
         # every query is a viewer's to ask (a type the robot does not serve is answered so)
         for mtype, answer in QUERIES.items():
             mid = peer.next_id()
@@ -637,3 +642,35 @@ def test_listing_a_request_type_as_an_input_does_not_lift_the_role_check(
     finally:
         peer.close()
         r.shutdown()
+
+
+@pytest.mark.req("SR-SEC-5")
+def test_a_replayed_signed_sample_is_a_duplicate_never_applied(robot: Robot) -> None:
+    """The tag proves who made a sample, not when: the same signed bytes sent again pass the
+    tag check and are refused by the sequence check (SR-SEQ-1) as a duplicate."""
+    monitor = robot.streams.monitor
+    assert monitor is not None
+    iface = robot.interfaces["master"]
+    peer = Peer(robot, "master", OTHER_HOST, key=KEY)
+
+    def sample(seq: int) -> igtl.Message:
+        return igtl.PositionMessage(
+            (0.0, 50.0, 270.0),
+            (0.0, 0.0, 0.0, 1.0),
+            24,
+            device_name="Master",
+            header_version=2,
+            message_id=seq,
+            metadata={"run": "1", "clutch": "0"},
+        )
+
+    try:
+        first, second = sign(sample(1), KEY), sign(sample(2), KEY)
+        for msg in (first, second, second, first):
+            peer.send(msg, raw=True)
+        assert until(robot, lambda: monitor.counters()["received"] == 4)
+        counts = monitor.counters()
+        assert (counts["accepted"], counts["duplicates"], counts["lost_total"]) == (2, 2, 0)
+        assert iface.counters.unauthenticated == 0
+    finally:
+        peer.close()
