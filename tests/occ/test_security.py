@@ -16,6 +16,7 @@ peer leave in order, so a reply to the message under test would come before the 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import socket
 from collections.abc import Callable, Iterator
@@ -63,6 +64,8 @@ interfaces:
     port: 0
     auth_key_file: KEYFILE
     inputs: [{type: POSITION, queue: stream, depth: 10}]
+  - {name: feed, transport: udp, host: 127.0.0.1, port: 0, kernel_filter: false,
+     inputs: [{type: POSITION, device: Master, queue: stream, depth: 10}]}
 """
 
 
@@ -114,6 +117,7 @@ class Peer:
             self.sock.bind((host, 0))
         else:
             self.sock = socket.create_connection(self.dest, timeout=5.0, source_address=(host, 0))
+            self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self.sock.setblocking(False)
         self.decoder = igtl.StreamDecoder()
         self.got: list[igtl.Message] = []
@@ -260,10 +264,11 @@ VIEWERS = [("tview", OTHER_HOST), ("uview", OTHER_HOST), ("top", OTHER_HOST), ("
 @pytest.mark.req("SR-SEC-1")
 @pytest.mark.parametrize(("iface", "host"), VIEWERS)
 def test_a_viewer_may_read_and_is_refused_every_command_that_acts(
-    robot: Robot, iface: str, host: str
+    robot: Robot, iface: str, host: str, caplog: pytest.LogCaptureFixture
 ) -> None:
     peer = Peer(robot, iface, host)
     counters = robot.interfaces[iface].counters
+    caplog.set_level(logging.WARNING, logger="occ.interfaces")
     try:
         refused = 0
         for name in ACTING + ["enable", " Run ", "ESTOP", "getstate now"]:
@@ -278,6 +283,13 @@ def test_a_viewer_may_read_and_is_refused_every_command_that_acts(
             ack = answer_to(peer, string_command(name.strip(), mid))
             assert ack.message_type == "STRING" and ack.device_name == f"ACK_{mid}"
             assert "a viewer may query but not command the robot" in ack.string
+            if not refused:  # the log names the interface, the message, the peer, the why
+                port = peer.sock.getsockname()[1]
+                assert [r.getMessage() for r in caplog.records] == [
+                    f"{iface}: refused COMMAND '' from {host}:{port}: {reply.metadata['Error']}",
+                    f"{iface}: refused STRING 'CMD_{mid}' from {host}:{port}: "
+                    + reply.metadata["Error"],
+                ]
             refused += 2
             assert robot.state is RobotState.READY
         assert counters.refused == refused
@@ -319,6 +331,11 @@ def test_an_operator_address_commands_where_other_hosts_only_read(robot: Robot, 
         assert _status(reply) == "SUCCESS" and robot.state is RobotState.ENABLED
         ack = reply_to(op, string_command("Run", op.next_id()))
         assert 'Status="SUCCESS"' in ack.string and robot.state is RobotState.RUNNING
+        # the operator sees every statistic; the other host, a viewer, not the stream's
+        # source or its next sequence number (SR-ROLE-1)
+        full = reply_to(op, command("GetStats", op.next_id())).metadata["Message"]
+        seen = reply_to(other, command("GetStats", other.next_id())).metadata["Message"]
+        assert '"stream_owner"' in full and '"stream_owner"' not in seen
         # a name the robot does not know goes on to its controller (the slave's has none)
         unknown = reply_to(op, command("Clutch", op.next_id()))
         assert unknown.metadata["Error"] == "unknown command 'Clutch'"
@@ -674,3 +691,54 @@ def test_a_replayed_signed_sample_is_a_duplicate_never_applied(robot: Robot) -> 
         assert iface.counters.unauthenticated == 0
     finally:
         peer.close()
+
+
+def _pose(seq: int, device: str = "Master") -> igtl.Message:
+    return igtl.PositionMessage(
+        (0.0, 50.0, 270.0),
+        (0.0, 0.0, 0.0, 1.0),
+        24,
+        device_name=device,
+        header_version=2,
+        message_id=seq,
+        metadata={"run": "1", "clutch": "0"},
+    )
+
+
+@pytest.mark.req("SR-SEC-4", "SR-OWN-1")
+def test_a_second_sender_cannot_feed_a_stream_it_does_not_own(robot: Robot) -> None:
+    """The first sender owns a stream; another allowed host's samples are refused: dropped by
+    the kernel where the socket is pinned to the owner (``kernel_filter``, the default), counted
+    ``foreign`` where it is not. A device other than the input's is no sample."""
+    pinned, open_ = robot.interfaces["master"], robot.interfaces["feed"]
+    owner = Peer(robot, "master", OTHER_HOST, key=KEY)
+    # another sender on the same (allowed) host: another port
+    intruder = Peer(robot, "master", OTHER_HOST, key=KEY)
+    owner2 = Peer(robot, "feed", OTHER_HOST)
+    intruder2 = Peer(robot, "feed", OTHER_HOST)
+    try:
+        owner.send(_pose(1))
+        owner2.send(_pose(1))
+        assert until(robot, lambda: pinned.stream_owner and open_.stream_owner)
+        assert pinned.stream_owner == owner.sock.getsockname()
+        assert open_.stream_owner == owner2.sock.getsockname()
+        for seq in (2, 3, 4):
+            intruder.send(_pose(seq))
+            intruder2.send(_pose(seq))
+        owner.send(_pose(2))
+        owner2.send(_pose(2))
+        owner2.send(_pose(3, device="Other"))
+        assert until(robot, lambda: open_.counters.received == 6 and pinned.counters.received == 2)
+        # the pinned socket never delivered the intruder's datagrams; the open one refused them
+        assert (pinned.counters.received, pinned.counters.foreign) == (2, 0)
+        assert (open_.counters.foreign, open_.counters.unexpected) == (3, 1)
+        assert open_.counters.unexpected_types == {"POSITION"}
+        assert pinned.stats()["streams"]["POSITION"]["received"] == 2
+        assert open_.stats()["streams"]["POSITION"]["received"] == 2
+        monitor = robot.streams.monitor
+        assert monitor is not None
+        assert until(robot, lambda: monitor.counters()["accepted"] == 2)
+        assert monitor.counters()["received"] == 2
+    finally:
+        for p in (owner, intruder, owner2, intruder2):
+            p.close()
