@@ -48,7 +48,8 @@ INTERFACES = """
 interfaces:
   - {name: tview, transport: tcp-server, host: 127.0.0.1, port: 0, role: viewer}
   - {name: top, transport: tcp-server, host: 127.0.0.1, port: 0, role: operator,
-     operators: [127.0.0.2], allowed_peers: [127.0.0.1, 127.0.0.2]}
+     operators: [127.0.0.2], allowed_peers: [127.0.0.1, 127.0.0.2],
+     inputs: [{type: POINT, queue: command, depth: 4}]}
   - {name: tlink, transport: tcp-server, host: 127.0.0.1, port: 0}
   - {name: tkey, transport: tcp-server, host: 127.0.0.1, port: 0, role: operator,
      auth_key_file: KEYFILE}
@@ -64,6 +65,7 @@ interfaces:
     port: 0
     auth_key_file: KEYFILE
     inputs: [{type: POSITION, queue: stream, depth: 10}]
+    outputs: [{type: POSITION, device: SlaveTip, source: teleop-return, rate_hz: 500}]
   - {name: feed, transport: udp, host: 127.0.0.1, port: 0, kernel_filter: false,
      inputs: [{type: POSITION, device: Master, queue: stream, depth: 10}]}
 """
@@ -742,3 +744,134 @@ def test_a_second_sender_cannot_feed_a_stream_it_does_not_own(robot: Robot) -> N
     finally:
         for p in (owner, intruder, owner2, intruder2):
             p.close()
+
+
+@pytest.mark.req("SR-SEC-1")
+@pytest.mark.parametrize("iface", ["top", "uop"])
+def test_a_malformed_request_is_refused_with_its_reason_and_a_full_queue_says_busy(
+    robot: Robot, iface: str
+) -> None:
+    op = Peer(robot, iface, OPERATOR_HOST)
+    counters = robot.interfaces[iface].counters
+    try:
+        mid = op.next_id()
+        bad = igtl.StringMessage(
+            '<Command Name="Enable"', device_name=f"CMD_{mid}", header_version=2, message_id=mid
+        )
+        ack = answer_to(op, bad)
+        assert ack.device_name == f"ACK_{mid}"
+        assert 'Error="malformed XML command: unclosed token' in ack.string, ack.string
+        nameless = answer_to(op, command("", op.next_id()))
+        assert nameless.metadata["Error"] == "COMMAND without a command name"
+        assert counters.refused == 2 and robot.state is RobotState.READY
+        # the command queue holds 64; the loop does not tick while 70 arrive: 6 are refused
+        # at once with BUSY, none is lost without its sender knowing
+        queue = robot.interfaces.commands
+        before, received = queue.received, counters.received
+        ids = [op.next_id() for _ in range(70)]
+        for i in ids:
+            op.send(command("GetState", i))
+        assert wait_until(lambda: counters.received == received + 70, timeout=WAIT_S)
+        assert queue.received - before == 64 and queue.refused == 6
+        op.read()
+        assert wait_until(lambda: (op.read(), len(op.got) >= 6)[1], timeout=WAIT_S)
+        busy = [m for m in op.got if m.metadata.get("Error") == "command queue full"]
+        assert [m.message_id for m in busy] == ids[64:]
+        assert counters.refused == 2 + 6
+        answered = {m.message_id for m in busy}
+        assert until(
+            robot,
+            lambda: (
+                (
+                    op.read(),
+                    answered.update(m.message_id for m in op.got if _status(m) == "SUCCESS"),
+                )[0]
+                or len(answered) == 70
+            ),
+        )
+    finally:
+        op.close()
+
+
+@pytest.mark.req("SR-SEC-2")
+def test_keepalives_are_counted_and_a_listed_input_is_taken_not_unexpected(robot: Robot) -> None:
+    op = Peer(robot, "top", OPERATOR_HOST)
+    viewer = Peer(robot, "top", OTHER_HOST)
+    counters = robot.interfaces["top"].counters
+    queue = robot.interfaces.commands
+    try:
+        for _ in range(3):
+            assert ask(op, igtl.StatusMessage(code=1, header_version=2, message_id=3)) == []
+        assert counters.keepalive == 3
+        before = queue.received
+        point = igtl.PointMessage(header_version=2, message_id=11)
+        assert ask(viewer, point) == []  # a declared input: taken whatever the role
+        assert queue.received - before == 2  # the point and the marker
+        assert counters.unexpected == 0 and counters.refused == 0
+    finally:
+        op.close()
+        viewer.close()
+
+
+@pytest.mark.req("SR-SEC-3")
+def test_the_return_channel_goes_signed_to_the_streams_owner_only(robot: Robot) -> None:
+    """A master link's outputs (the slave's tip) go to the stream's owner, signed; before any
+    master streamed there they have nowhere to go and are counted."""
+    iface = robot.interfaces["master"]
+    robot.state_machine.request("enable", "test")
+    robot.state_machine.request("run", "test")
+    tick(robot, 5)
+    assert iface.counters.sent == 0  # one tip per sample: nobody streamed yet
+    owner = Peer(robot, "master", OTHER_HOST, key=KEY)
+    other = Peer(robot, "master", OTHER_HOST, key=KEY)
+    try:
+        for seq in range(1, 4):
+            owner.send(_pose(seq))
+        assert until(robot, lambda: (owner.read(), len(owner.got) >= 10)[1])
+        assert {m.device_name for m in owner.got} == {"SlaveTip"}
+        assert all(verify(m, KEY) == "" for m in owner.got)
+        assert iface.counters.no_destination == 0 and iface.counters.sent >= 10
+        assert iface.counters.send_dropped == 0
+        assert iface.stats()["no_destination"] == iface.counters.no_destination
+        other.send(_pose(9))  # dropped by the kernel: the socket is pinned to the owner
+        tick(robot, 20)
+        other.read()
+        assert other.got == [] and iface.counters.received == 3
+    finally:
+        owner.close()
+        other.close()
+
+
+@pytest.mark.req("SR-SEC-4", "SR-OWN-1")
+@pytest.mark.parametrize("kernel_filter", [True, False])
+def test_a_configured_stream_source_is_the_only_sender_from_the_start(
+    tmp_path: Path, kernel_filter: bool
+) -> None:
+    source = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    source.bind((OTHER_HOST, 0))
+    port = source.getsockname()[1]
+    keyfile = tmp_path / "link.key"
+    keyfile.write_text(KEY.decode() + "\n")
+    text = _config_text(keyfile).replace(
+        "kernel_filter: false,",
+        f"kernel_filter: {str(kernel_filter).lower()}, stream_source: '127.0.0.1:{port}',",
+    )
+    r = build_robot(parse_config(text, base_dir=ROOT / "configs"), clock=SimClock())
+    r.configure()
+    r.activate()
+    iface = r.interfaces["feed"]
+    first = Peer(r, "feed", OTHER_HOST)  # another port of the same host, sending first
+    try:
+        assert iface.stream_owner == (OTHER_HOST, port)
+        first.send(_pose(1))
+        source.sendto(_pose(2).pack(), ("127.0.0.1", iface.address[1]))  # type: ignore[index]
+        assert until(r, lambda: iface.stats()["streams"]["POSITION"]["received"] == 1)
+        tick(r, 20)
+        # the first sender is no owner: refused (counted where the kernel does not filter)
+        assert iface.stream_owner == (OTHER_HOST, port)
+        assert iface.counters.foreign == (0 if kernel_filter else 1)
+        assert iface.stats()["streams"]["POSITION"]["received"] == 1
+    finally:
+        first.close()
+        source.close()
+        r.shutdown()
