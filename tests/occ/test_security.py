@@ -764,31 +764,33 @@ def test_a_malformed_request_is_refused_with_its_reason_and_a_full_queue_says_bu
         nameless = answer_to(op, command("", op.next_id()))
         assert nameless.metadata["Error"] == "COMMAND without a command name"
         assert counters.refused == 2 and robot.state is RobotState.READY
-        # the command queue holds 64; the loop does not tick while 70 arrive: 6 are refused
-        # at once with BUSY, none is lost without its sender knowing
+        # the command queue holds 64; the loop does not tick while 70 arrive: the 6 past it
+        # are refused at once (a query's STATUS says BUSY), none is lost without its sender
+        # knowing
         queue = robot.interfaces.commands
         before, received = queue.received, counters.received
         ids = [op.next_id() for _ in range(70)]
-        for i in ids:
-            op.send(command("GetState", i))
+        for n, i in enumerate(ids):
+            op.send(command("GetState", i) if n < 67 else query("GET_STATUS", i))
         assert wait_until(lambda: counters.received == received + 70, timeout=WAIT_S)
         assert queue.received - before == 64 and queue.refused == 6
-        op.read()
         assert wait_until(lambda: (op.read(), len(op.got) >= 6)[1], timeout=WAIT_S)
-        busy = [m for m in op.got if m.metadata.get("Error") == "command queue full"]
-        assert [m.message_id for m in busy] == ids[64:]
+        full = [m for m in op.got if m.message_id in ids[64:]]
+        assert [m.message_id for m in full] == ids[64:]
+        assert [m.metadata["Error"] for m in full[:3]] == ["command queue full"] * 3
+        assert [(m.code, m.error_name, m.status_message) for m in full[3:]] == [
+            (igtl.StatusCode.BUSY, "BUSY", "command queue full")
+        ] * 3
         assert counters.refused == 2 + 6
-        answered = {m.message_id for m in busy}
-        assert until(
-            robot,
-            lambda: (
-                (
-                    op.read(),
-                    answered.update(m.message_id for m in op.got if _status(m) == "SUCCESS"),
-                )[0]
-                or len(answered) == 70
-            ),
-        )
+        # and the 64 queued are answered once the loop runs
+        answered: set[int] = set()
+
+        def replies() -> bool:
+            op.read()
+            answered.update(m.message_id for m in op.got if m.message_id in ids[:64])
+            return len(answered) == 64
+
+        assert until(robot, replies)
     finally:
         op.close()
 
@@ -825,8 +827,17 @@ def test_the_return_channel_goes_signed_to_the_streams_owner_only(robot: Robot) 
     owner = Peer(robot, "master", OTHER_HOST, key=KEY)
     other = Peer(robot, "master", OTHER_HOST, key=KEY)
     try:
-        for seq in range(1, 4):
-            owner.send(_pose(seq))
+        seq = [0]
+
+        def following() -> bool:
+            # a sample a tick (at most 500: bounded), until the tip says the slave follows
+            if seq[0] < 500:
+                seq[0] += 1
+                owner.send(_pose(seq[0]))
+            owner.read()
+            return any(m.metadata.get("following") == "1" for m in owner.got)
+
+        assert until(robot, following)
         assert until(robot, lambda: (owner.read(), len(owner.got) >= 10)[1])
         assert {m.device_name for m in owner.got} == {"SlaveTip"}
         assert all(verify(m, KEY) == "" for m in owner.got)
@@ -836,7 +847,7 @@ def test_the_return_channel_goes_signed_to_the_streams_owner_only(robot: Robot) 
         other.send(_pose(9))  # dropped by the kernel: the socket is pinned to the owner
         tick(robot, 20)
         other.read()
-        assert other.got == [] and iface.counters.received == 3
+        assert other.got == [] and iface.counters.received == seq[0]
     finally:
         owner.close()
         other.close()
@@ -874,4 +885,36 @@ def test_a_configured_stream_source_is_the_only_sender_from_the_start(
     finally:
         first.close()
         source.close()
+        r.shutdown()
+
+
+@pytest.mark.req("SR-SEC-3")
+def test_a_keyed_udp_link_with_a_remote_sends_to_it_signed(tmp_path: Path) -> None:
+    """A UDP interface with a ``remote`` (a sender, as the master's stream is) sends its
+    outputs there, each with a valid tag."""
+    receiver = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    receiver.bind((OTHER_HOST, 0))
+    receiver.settimeout(WAIT_S)
+    keyfile = tmp_path / "link.key"
+    keyfile.write_text(KEY.decode() + "\n")
+    text = _config_text(keyfile).replace(
+        "interfaces:\n",
+        "interfaces:\n"
+        "  - {name: uout, transport: udp, host: 127.0.0.1, port: 0, auth_key_file: "
+        f"{keyfile}, remote: '127.0.0.1:{receiver.getsockname()[1]}',\n"
+        "     outputs: [{type: TRANSFORM, device: Tip, source: tip, rate_hz: 1000}]}\n",
+        1,
+    )
+    r = build_robot(parse_config(text, base_dir=ROOT / "configs"), clock=SimClock())
+    r.configure()
+    r.activate()
+    try:
+        tick(r, 3)
+        got = [igtl.unpack(receiver.recv(65536)) for _ in range(3)]
+        assert [m.device_name for m in got] == ["Tip"] * 3
+        assert all(verify(m, KEY) == "" for m in got)
+        iface = r.interfaces["uout"]
+        assert (iface.counters.sent, iface.counters.no_destination) == (3, 0)
+    finally:
+        receiver.close()
         r.shutdown()
