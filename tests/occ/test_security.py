@@ -67,7 +67,8 @@ interfaces:
     inputs: [{type: POSITION, queue: stream, depth: 10}]
     outputs: [{type: POSITION, device: SlaveTip, source: teleop-return, rate_hz: 500}]
   - {name: feed, transport: udp, host: 127.0.0.1, port: 0, kernel_filter: false,
-     inputs: [{type: POSITION, device: Master, queue: stream, depth: 10}]}
+     inputs: [{type: POSITION, device: Master, queue: stream, depth: 10}],
+     outputs: [{type: TRANSFORM, device: Tip, source: tip, rate_hz: 1000}]}
 """
 
 
@@ -918,3 +919,27 @@ def test_a_keyed_udp_link_with_a_remote_sends_to_it_signed(tmp_path: Path) -> No
     finally:
         receiver.close()
         r.shutdown()
+
+
+@pytest.mark.req("SR-SEC-3")
+def test_a_links_outputs_wait_for_its_owner_and_go_to_it_alone(robot: Robot) -> None:
+    """A UDP link without ``remote`` sends to its stream's owner only; until a sender owns the
+    stream its outputs have nowhere to go: counted (``no_destination``), sent to nobody."""
+    iface = robot.interfaces["feed"]
+    listener = Peer(robot, "feed", OTHER_HOST)  # a socket that never sent: owns nothing
+    try:
+        tick(robot, 7)
+        assert iface.counters.no_destination == 7 and iface.counters.sent == 0
+        assert iface.stats()["no_destination"] == 7
+        owner = Peer(robot, "feed", OTHER_HOST)
+        try:
+            owner.send(_pose(1))
+            assert until(robot, lambda: (owner.read(), len(owner.got) >= 3)[1])
+            assert {(m.message_type, m.device_name) for m in owner.got} == {("TRANSFORM", "Tip")}
+            assert iface.counters.sent >= 3
+            listener.read()
+            assert listener.got == []
+        finally:
+            owner.close()
+    finally:
+        listener.close()
