@@ -72,11 +72,11 @@ interfaces:
 """
 
 
-def _config_text(keyfile: Path) -> str:
+def _config_text(keyfile: Path, interfaces: str = INTERFACES) -> str:
     text = (ROOT / "configs" / "slave.yaml").read_text()
     head, _, rest = text.partition("interfaces:")
     _, _, tail = rest.partition("\nsafety:")
-    return head + INTERFACES.lstrip("\n").replace("KEYFILE", str(keyfile)) + "safety:" + tail
+    return head + interfaces.lstrip("\n").replace("KEYFILE", str(keyfile)) + "safety:" + tail
 
 
 @pytest.fixture
@@ -943,3 +943,73 @@ def test_a_links_outputs_wait_for_its_owner_and_go_to_it_alone(robot: Robot) -> 
             owner.close()
     finally:
         listener.close()
+
+
+def test_a_pose_listed_on_a_command_queue_reaches_the_controller_with_its_reception_time(
+    tmp_path: Path,
+) -> None:
+    """A master's POSITION listed on a command queue (no loss monitor on it) still reaches the
+    controller as a typed sample stamped when it arrived: the slave follows, nothing faults."""
+    keyfile = tmp_path / "link.key"
+    keyfile.write_text(KEY.decode() + "\n")
+    listed = INTERFACES.replace(
+        "    auth_key_file: KEYFILE\n    inputs: [{type: POSITION, queue: stream, depth: 10}]",
+        "    inputs: [{type: POSITION, queue: command, depth: 10}]",
+    )
+    assert listed != INTERFACES
+    text = _config_text(keyfile, listed).replace("loss: {enabled: true", "loss: {enabled: false")
+    r = build_robot(parse_config(text, base_dir=ROOT / "configs"), clock=SimClock())
+    r.configure()
+    r.activate()
+    r.state_machine.request("enable", "test")
+    r.state_machine.request("run", "test")
+    master = Peer(r, "master", OTHER_HOST)
+    ctrl = r.controller.controllers[0]
+    try:
+        for seq in range(1, 6):
+            master.send(_pose(seq))
+        assert until(r, lambda: ctrl.samples == 5)
+        tick(r, 10)
+        assert r.state is RobotState.RUNNING
+        assert isinstance(ctrl.last_sample_t, float)
+    finally:
+        master.close()
+        r.shutdown()
+
+
+@pytest.mark.req("SR-SEC-1")
+def test_a_pose_refused_on_a_stream_queue_is_answered_to_its_sender_alone() -> None:
+    """The master of configs/master.yaml with its operators' TRANSFORM input on a stream queue:
+    a TRANSFORM its controller refuses (a ``SlaveTip`` from an operator's connection) is
+    answered to the client that sent it, never to the other clients."""
+    text = (ROOT / "configs" / "master.yaml").read_text()
+    text = text.replace(
+        "{type: TRANSFORM, queue: command, depth: 16}",
+        "{type: TRANSFORM, queue: stream, depth: 16}",
+    ).replace("port: 18945", "port: 0")
+    assert "{type: TRANSFORM, queue: stream" in text
+    r = build_robot(parse_config(text, base_dir=ROOT / "configs"), clock=SimClock())
+    r.configure()
+    r.activate()
+    sender, other = Peer(r, "operator", OTHER_HOST), Peer(r, "operator", OTHER_HOST)
+    try:
+        tip = igtl.TransformMessage.from_position(
+            (0.0, 0.0, 0.0), device_name="SlaveTip", header_version=2, message_id=77
+        )
+        sender.send(tip)
+
+        def refused() -> bool:
+            sender.read()
+            return any(
+                m.message_type == "STATUS" and "is a slave's return stream" in m.status_message
+                for m in sender.got
+            )
+
+        assert until(r, refused)
+        tick(r, 20)
+        other.read()
+        assert [m for m in other.got if "return stream" in getattr(m, "status_message", "")] == []
+    finally:
+        sender.close()
+        other.close()
+        r.shutdown()
