@@ -9,6 +9,7 @@ and the loop is the daemon's own code, stepped tick by tick.
 from __future__ import annotations
 
 import json
+import logging
 import math
 from pathlib import Path
 from typing import Any
@@ -450,12 +451,45 @@ def test_a_handover_names_why_the_new_owners_stream_is_not_live() -> None:
 
 
 @pytest.mark.req("SR-SEC-6")
-def test_a_handover_rejoins_the_new_target_through_the_re_entry(collab: Collab) -> None:
+def test_a_handover_rejoins_the_new_target_through_the_re_entry(
+    collab: Collab, caplog: pytest.LogCaptureFixture
+) -> None:
     """The new owner's target is re-joined through the re-entry (at half the velocity limits,
-    counted in ``reentries``), never taken in one step."""
+    counted in ``reentries``), never taken in one step; the hand-over is logged."""
     collab.running()
     before = collab.robot.motion.reentries
-    assert ok(collab.command(collab.desks["mentor"], "Handover", handover("trainee")))
+    caplog.set_level(logging.WARNING, logger="occ.robot")
+    # the PLUS spelling of the argument, lower case, is taken as well
+    reply = collab.command(
+        collab.desks["mentor"], "Handover", '<Command Name="Handover" to="trainee"/>'
+    )
+    assert ok(reply) and reply.metadata["Message"] == (
+        "control mentor -> trainee (by mentor (supervisor))"
+    )
+    assert [r.getMessage() for r in caplog.records if r.name == "occ.robot"] == [
+        "handover: control mentor -> trainee (by mentor (supervisor))"
+    ]
     collab.step_ms(50)
     assert collab.robot.motion.reentries == before + 1
     assert collab.robot.snapshot()["reentries"] == before + 1
+
+
+@pytest.mark.req("SR-SEC-6")
+def test_a_handover_without_a_target_or_without_collaboration_says_so_exactly() -> None:
+    c = Collab()
+    try:
+        reply = c.command(c.desks["mentor"], "Handover", '<Command Name="Handover"/>')
+        assert reply.metadata["Error"] == 'Handover needs To="MASTER INTERFACE"'
+    finally:
+        c.close()
+    sim = SimRobot(ROOT / "configs" / "slave.yaml")
+    try:
+        op = sim.peer("operator")
+        cid = op.send_command("Handover", handover("master"))
+        sim.tick()
+        reply = op.reply_to(cid)
+        assert reply is not None and reply.metadata["Error"] == (
+            "Handover: no collaboration configured (this slave has one master)"
+        )
+    finally:
+        sim.close()
