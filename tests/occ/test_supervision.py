@@ -5,7 +5,9 @@ limit: each step waits for an event or a count (``wait_until``, bounded), never 
 from __future__ import annotations
 
 import logging
+import os
 import threading
+from pathlib import Path
 
 import pytest
 
@@ -20,6 +22,18 @@ def _fifo_report(report: str, priority: int) -> bool:
     return report == f"SCHED_FIFO {priority}" or (
         report.startswith("SCHED_FIFO refused (") and report.endswith(")")
     )
+
+
+def _policy_of(thread: threading.Thread) -> tuple[int, int]:
+    """The scheduling policy and priority the kernel holds for ``thread``."""
+    tid = thread.native_id
+    assert tid is not None
+    return os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority
+
+
+def _comm(thread: threading.Thread) -> str:
+    """The thread's name as the operating system shows it (``top -H``, ``ps -L``)."""
+    return Path(f"/proc/self/task/{thread.native_id}/comm").read_text().strip()
 
 
 @pytest.mark.req("SR-SUP-1")
@@ -64,6 +78,11 @@ def test_the_supervisor_thread_reports_its_priority() -> None:
     try:
         assert wait_until(lambda: th.report, timeout=10.0)
         assert _fifo_report(th.report, 3), th.report
+        # what it says is what the kernel holds for this thread (and no other)
+        granted = th.report == "SCHED_FIFO 3"
+        assert _policy_of(th._thread) == ((os.SCHED_FIFO, 3) if granted else (os.SCHED_OTHER, 0))
+        assert _comm(th._thread) == "supervisor"
+        assert th._thread.name == "occ-supervisor"  # the default name, in Python
     finally:
         th.stop()
     assert not th._thread.is_alive()
@@ -119,14 +138,15 @@ def test_the_worker_runs_jobs_in_order_counts_and_survives_a_failing_one(
         assert w.submit(lambda: ran.append(1))
         assert w.submit(fail)
         assert w.submit(lambda: ran.append(2))
-        assert wait_until(lambda: w.done == 2 and w.failed == 1, timeout=10.0)
+        assert w.submit(fail)
+        assert wait_until(lambda: w.done == 2 and w.failed == 2, timeout=10.0)
         assert ran == [1, 2]
-        assert [r.getMessage() for r in caplog.records] == ["test-worker: job failed"]
+        assert [r.getMessage() for r in caplog.records] == ["test-worker: job failed"] * 2
         assert w._thread.name == "test-worker" and w._thread.daemon
     finally:
         w.stop()
     assert not w._thread.is_alive()
-    assert (w.done, w.failed, w.refused) == (2, 1, 1)
+    assert (w.done, w.failed, w.refused) == (2, 2, 1)
 
 
 def test_a_full_worker_refuses_and_counts_and_a_stop_never_hangs() -> None:
@@ -143,9 +163,11 @@ def test_a_full_worker_refuses_and_counts_and_a_stop_never_hangs() -> None:
         assert w.submit(lambda: None) and w.submit(lambda: None)  # the queue holds 2
         assert w.submit(lambda: None) is False and w.refused == 1
         assert w.submit(lambda: None) is False and w.refused == 2
+        assert w.submit(lambda: None) is False and w.refused == 3
     finally:
         hold.set()
     assert wait_until(lambda: w.done == 3, timeout=10.0)
+    assert w._thread.is_alive()  # a worker started lazily once stays started
     w.stop()
     assert not w._thread.is_alive()
     # stopping with a full queue: the sentinel does not fit, the join is bounded
@@ -176,5 +198,35 @@ def test_the_worker_reports_its_priority() -> None:
         assert w.policy == "SCHED_FIFO 2" or (
             w.policy.startswith("normal (SCHED_FIFO refused: ") and w.policy.endswith(")")
         ), w.policy
+        granted = w.policy == "SCHED_FIFO 2"
+        assert _policy_of(w._thread) == ((os.SCHED_FIFO, 2) if granted else (os.SCHED_OTHER, 0))
+        assert _comm(w._thread) == "worker"
     finally:
         w.stop()
+
+
+def test_the_worker_queue_holds_eight_by_default() -> None:
+    w = Worker("test-default").start()
+    hold, started = threading.Event(), threading.Event()
+    try:
+        assert w.submit(lambda: (started.set(), hold.wait(10.0)))
+        assert started.wait(10.0)
+        assert all(w.submit(lambda: None) for _ in range(8))
+        assert w.submit(lambda: None) is False and w.refused == 1
+    finally:
+        hold.set()
+        w.stop()
+
+
+def test_every_wake_up_of_the_supervisor_thread_is_one_check() -> None:
+    checks = [0]
+
+    class Counting(Supervisor):
+        def check(self, now: float) -> str | None:
+            checks[0] += 1
+            return super().check(now)
+
+    th = SupervisorThread(Counting(timeout_s=0.020), SimClock()).start()
+    assert wait_until(lambda: th.wakeups >= 3, timeout=10.0)
+    th.stop()
+    assert th.wakeups == checks[0]
