@@ -230,3 +230,49 @@ def test_every_wake_up_of_the_supervisor_thread_is_one_check() -> None:
     assert wait_until(lambda: th.wakeups >= 3, timeout=10.0)
     th.stop()
     assert th.wakeups == checks[0]
+
+
+def test_a_priority_the_kernel_refuses_is_reported_with_the_error() -> None:
+    """An impossible SCHED_FIFO priority (1000) is refused on every machine: the thread says
+    so, with the error's class, and runs at normal priority."""
+    th = SupervisorThread(Supervisor(timeout_s=0.020), SimClock(), fifo_priority=1000).start()
+    w = Worker("test-refused", fifo_priority=1000).start()
+    try:
+        assert wait_until(lambda: th.report, timeout=10.0)
+        assert th.report == "SCHED_FIFO refused (OSError)"
+        done = threading.Event()
+        assert w.submit(done.set) and done.wait(10.0)
+        assert w.policy == "normal (SCHED_FIFO refused: OSError)"
+        assert _policy_of(w._thread) == (os.SCHED_OTHER, 0)
+    finally:
+        th.stop()
+        w.stop()
+
+
+def test_a_worker_not_started_refuses_every_job_and_counts_each() -> None:
+    w = Worker("test-idle")
+    assert [w.submit(lambda: None) for _ in range(3)] == [False] * 3 and w.refused == 3
+
+
+def test_stopping_a_supervisor_thread_stuck_in_its_action_returns() -> None:
+    """stop() waits a bounded time: a supervisor thread stuck in its trip action (a stop that
+    blocks) cannot hang the daemon's shutdown."""
+    release, stuck = threading.Event(), threading.Event()
+
+    def act(reason: str) -> None:
+        stuck.set()
+        release.wait(30.0)
+
+    sup = Supervisor(timeout_s=0.020, on_trip=act)
+    th = SupervisorThread(sup, RealClock()).start()
+    try:
+        sup.arm(RealClock().now())
+        assert stuck.wait(10.0)
+        stopper = threading.Thread(target=th.stop)
+        stopper.start()
+        stopper.join(10.0)
+        assert not stopper.is_alive() and th._thread.is_alive()  # returned; still stuck
+    finally:
+        release.set()
+    th._thread.join(10.0)
+    assert not th._thread.is_alive()
