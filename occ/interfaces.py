@@ -403,8 +403,11 @@ class Interface:
                 sample = pose_sample(self.name, peer, msg, t_rx)
                 return sample if sample is not None else Inbound(self.name, peer, msg, t_rx)
         item = Inbound(self.name, peer, msg, t_rx)
-        if is_operator_request(msg) or mtype in self.command_inputs:
-            if mtype not in self.command_inputs:
+        request = is_operator_request(msg)
+        if request or mtype in self.command_inputs:
+            # an operator request is judged by the sender's role even where its type is also
+            # listed as an input (a viewer must not become an operator by the config's inputs)
+            if request:
                 role = self.peer_role(peer)
                 if role == "none":
                     self._refuse(

@@ -90,7 +90,11 @@ class SupervisorThread:
             # Above the loop: when the loop spins (a hung tick that keeps the CPU), the
             # supervisor must still get a core the moment it wakes.
             try:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.fifo_priority))
+                # this thread by its own id, not pid 0: a slip in the id (mutation testing's
+                # 0 -> 1) must not reach another process (pid 1, as root)
+                os.sched_setscheduler(
+                    threading.get_native_id(), os.SCHED_FIFO, os.sched_param(self.fifo_priority)
+                )
                 self.report = f"SCHED_FIFO {self.fifo_priority}"
             except (OSError, AttributeError) as err:
                 self.report = f"SCHED_FIFO refused ({type(err).__name__})"
@@ -179,7 +183,9 @@ class Worker:
         name_native_thread("worker")
         if self.fifo_priority is not None:
             try:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.fifo_priority))
+                os.sched_setscheduler(
+                    threading.get_native_id(), os.SCHED_FIFO, os.sched_param(self.fifo_priority)
+                )
                 self.policy = f"SCHED_FIFO {self.fifo_priority}"
             except (OSError, AttributeError) as err:  # not permitted here: normal priority
                 self.policy = f"normal (SCHED_FIFO refused: {err.__class__.__name__})"

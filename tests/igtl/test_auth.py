@@ -33,6 +33,7 @@ def test_signed_message_verifies_after_the_wire() -> None:
     assert verify(igtl.unpack(signed.pack()), KEY) == ""
 
 
+@pytest.mark.req("SR-SEC-3")
 def test_version_1_message_is_promoted() -> None:
     m = igtl.TransformMessage.from_matrix([[1, 0, 0, 1], [0, 1, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]])
     assert m.header_version == 1
@@ -41,11 +42,13 @@ def test_version_1_message_is_promoted() -> None:
     assert verify(m, KEY) == "header version 1 carries no HMAC"
 
 
+@pytest.mark.req("SR-SEC-3")
 def test_refusals_say_why() -> None:
     assert verify(position(), KEY) == "no HMAC"
     assert verify(igtl.unpack(sign(position(), KEY).pack()), b"another key, 16+") == "wrong HMAC"
 
 
+@pytest.mark.req("SR-SEC-3")
 @settings(max_examples=200, deadline=None)
 @given(
     field=st.sampled_from(["message_id", "timestamp", "device_name", "position", "run", "extra"]),
@@ -78,3 +81,79 @@ def test_load_key() -> None:
         load_key("short")
     with pytest.raises(ValueError, match="at least 16 bytes"):
         load_key("")
+
+
+def _with_tag(msg: igtl.Message, tag: str) -> igtl.Message:
+    return dataclasses.replace(msg, metadata={**msg.metadata, HMAC_KEY: tag})
+
+
+@pytest.mark.req("SR-SEC-3")
+def test_a_tag_that_is_not_ascii_is_wrong_not_an_error() -> None:
+    """Metadata is UTF-8 text from the peer: a tag with characters outside ASCII is a wrong
+    tag (refused and counted by the interface), never an exception in its I/O thread."""
+    signed = sign(position(), KEY)
+    good = signed.metadata[HMAC_KEY]
+    for tag in ("é" * 32, good[:-1] + "é", "\udcff" * 32, "ß" + good[1:]):
+        forged = _with_tag(signed, tag)
+        assert verify(forged, KEY) == "wrong HMAC"
+        # and as it arrives: decoded from the wire
+        if "\udcff" not in tag:
+            assert verify(igtl.unpack(forged.pack()), KEY) == "wrong HMAC"
+
+
+@pytest.mark.req("SR-SEC-3")
+def test_a_truncated_padded_or_recased_tag_is_wrong() -> None:
+    signed = sign(position(), KEY)
+    good = signed.metadata[HMAC_KEY]
+    assert good == good.lower() and len(good) == 32
+    for tag in (
+        good[:31],
+        good[:16],
+        good[:1],
+        "",
+        good + "0",
+        good.upper(),
+        " " + good,
+        good[1:] + good[0],
+    ):
+        assert verify(igtl.unpack(_with_tag(signed, tag).pack()), KEY) == "wrong HMAC", tag
+    assert verify(igtl.unpack(_with_tag(signed, good).pack()), KEY) == ""
+
+
+@pytest.mark.req("SR-SEC-3")
+def test_a_tag_taken_from_another_message_is_wrong() -> None:
+    first, second = sign(position(seq=1), KEY), sign(position(seq=2), KEY)
+    moved = _with_tag(second, first.metadata[HMAC_KEY])
+    assert verify(igtl.unpack(moved.pack()), KEY) == "wrong HMAC"
+
+
+def test_signing_twice_keeps_one_tag_and_replaces_it() -> None:
+    once = sign(position(), KEY)
+    twice = sign(once, KEY)
+    other = sign(once, b"another key, 16+")
+    assert list(twice.metadata).count(HMAC_KEY) == 1 and twice.metadata == once.metadata
+    assert verify(other, b"another key, 16+") == "" and verify(other, KEY) == "wrong HMAC"
+    assert {k: v for k, v in other.metadata.items() if k != HMAC_KEY} == {"run": "1", "clutch": "0"}
+
+
+def test_a_replayed_message_verifies_again_the_receiver_judges_replays() -> None:
+    """The tag proves who made a message, not when: the same bytes verify every time. A replay
+    of a stream sample is the loss monitor's (a duplicate number); see SR-SEC-3."""
+    wire_bytes = sign(position(seq=9), KEY).pack()
+    assert verify(igtl.unpack(wire_bytes), KEY) == verify(igtl.unpack(wire_bytes), KEY) == ""
+
+
+def test_load_key_says_how_long_a_refused_key_is() -> None:
+    with pytest.raises(ValueError, match=r"^the key must be at least 16 bytes, got 0$"):
+        load_key("")
+    with pytest.raises(ValueError, match=r"^the key must be at least 16 bytes, got 0$"):
+        load_key("  \n\t\n")
+    with pytest.raises(ValueError, match=r"^the key must be at least 16 bytes, got 15$"):
+        load_key("hex:" + "ab" * 15)
+    with pytest.raises(ValueError, match=r"^the key must be at least 16 bytes, got 15$"):
+        load_key("fifteen bytes!!")
+    # the first line that is not blank, stripped; the rest ignored
+    assert load_key("\n\n  a key of 19 bytes \t\nsecond line") == b"a key of 19 bytes"
+    assert load_key("sixteen bytes!!!") == b"sixteen bytes!!!"
+    # UTF-8: a 16-byte key of 8 characters
+    assert load_key("éééééééé") == "éééééééé".encode()

@@ -9,6 +9,7 @@ and the loop is the daemon's own code, stepped tick by tick.
 from __future__ import annotations
 
 import json
+import logging
 import math
 from pathlib import Path
 from typing import Any
@@ -161,7 +162,10 @@ def test_handover_re_indexes_without_a_jump(collab: Collab) -> None:
     reply = collab.command(collab.desks["mentor"], "Handover", handover("trainee"))
     assert ok(reply), reply.metadata
     assert robot.collab is not None and robot.collab.owner == "trainee"
-    assert robot.streams.input == "trainee" and robot.streams.monitor is robot.streams.monitors["trainee"]
+    assert (
+        robot.streams.input == "trainee"
+        and robot.streams.monitor is robot.streams.monitors["trainee"]
+    )
     # every operator and viewer hears of it (STATUS HANDOVER)
     for peer in (collab.bedside, collab.slicer, *collab.desks.values()):
         (st,) = statuses(peer, "HANDOVER")
@@ -403,3 +407,89 @@ def test_request_and_grant_policies() -> None:
         assert co.owner == "mentor" and co.handovers == 2 and co.refused == 1
     finally:
         c.close()
+
+
+# ------------------------------------------------------------------ issue 29: the liveness check
+def _refused_handover(collab: Collab, to: str) -> str:
+    reply = collab.command(collab.desks["mentor"], "Handover", handover(to))
+    assert reply.metadata.get("Status") == "FAIL", reply.metadata
+    return str(reply.metadata["Error"])
+
+
+@pytest.mark.req("SR-SEC-6")
+def test_a_handover_names_why_the_new_owners_stream_is_not_live() -> None:
+    """While RUNNING, control goes only to a live stream; the refusal says which check failed:
+    silent since Run (or since its loss, after which a bystander's monitor re-arms) or late
+    (holding); before Run a silent master may be given control (it is judged when the robot
+    runs)."""
+    c = Collab()
+    try:
+        c.silent.add("trainee")
+        co = c.robot.collab
+        assert co is not None
+        # not running: a silent master may be handed control (and back)
+        assert ok(c.command(c.desks["mentor"], "Handover", handover("trainee")))
+        assert ok(c.command(c.desks["mentor"], "Handover", handover("mentor")))
+        c.running()
+        assert _refused_handover(c, "trainee") == (
+            "trainee's stream is not live (silent since Run): control stays with mentor"
+        )
+        c.silent.discard("trainee")
+        c.step_ms(50)
+        c.silent.add("trainee")
+        c.step_ms(20)  # past the 7 ms deadline, within the 100 ms grace: holding
+        assert _refused_handover(c, "trainee") == (
+            "trainee's stream is not live (late): control stays with mentor"
+        )
+        c.step_ms(200)  # past the grace: its loss alerted, its monitor re-armed, unheard since
+        assert _refused_handover(c, "trainee") == (
+            "trainee's stream is not live (silent since Run): control stays with mentor"
+        )
+        assert co.owner == "mentor" and co.refused == 3 and co.handovers == 2
+    finally:
+        c.close()
+
+
+@pytest.mark.req("SR-SEC-6")
+def test_a_handover_rejoins_the_new_target_through_the_re_entry(
+    collab: Collab, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The new owner's target is re-joined through the re-entry (at half the velocity limits,
+    counted in ``reentries``), never taken in one step; the hand-over is logged."""
+    collab.running()
+    before = collab.robot.motion.reentries
+    caplog.set_level(logging.WARNING, logger="occ.robot")
+    # the PLUS spelling of the argument, lower case, is taken as well
+    reply = collab.command(
+        collab.desks["mentor"], "Handover", '<Command Name="Handover" to="trainee"/>'
+    )
+    assert ok(reply) and reply.metadata["Message"] == (
+        "control mentor -> trainee (by mentor (supervisor))"
+    )
+    assert [r.getMessage() for r in caplog.records if r.name == "occ.robot"] == [
+        "handover: control mentor -> trainee (by mentor (supervisor))"
+    ]
+    collab.step_ms(50)
+    assert collab.robot.motion.reentries == before + 1
+    assert collab.robot.snapshot()["reentries"] == before + 1
+
+
+@pytest.mark.req("SR-SEC-6")
+def test_a_handover_without_a_target_or_without_collaboration_says_so_exactly() -> None:
+    c = Collab()
+    try:
+        reply = c.command(c.desks["mentor"], "Handover", '<Command Name="Handover"/>')
+        assert reply.metadata["Error"] == 'Handover needs To="MASTER INTERFACE"'
+    finally:
+        c.close()
+    sim = SimRobot(ROOT / "configs" / "slave.yaml")
+    try:
+        op = sim.peer("operator")
+        cid = op.send_command("Handover", handover("master"))
+        sim.tick()
+        reply = op.reply_to(cid)
+        assert reply is not None and reply.metadata["Error"] == (
+            "Handover: no collaboration configured (this slave has one master)"
+        )
+    finally:
+        sim.close()
