@@ -90,14 +90,16 @@ def apply_realtime(
     undo: list[Callable[[], None]] = []
     if fifo_priority is not None:
         try:
-            old_policy = os.sched_getscheduler(0)
-            old_param = os.sched_getparam(0)
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo_priority))
+            old_policy = os.sched_getscheduler(threading.get_native_id())
+            old_param = os.sched_getparam(threading.get_native_id())
+            os.sched_setscheduler(
+                threading.get_native_id(), os.SCHED_FIFO, os.sched_param(fifo_priority)
+            )
         except AttributeError:
             parts.append("SCHED_FIFO unavailable on this platform")
         except OSError as err:  # PermissionError (EPERM) included
             try:
-                current = _policy_name(os.sched_getscheduler(0))
+                current = _policy_name(os.sched_getscheduler(threading.get_native_id()))
             except (AttributeError, OSError):
                 current = "the default policy"
             parts.append(f"SCHED_FIFO refused ({_errname(err)}), running {current}")
@@ -105,13 +107,13 @@ def apply_realtime(
             parts.append(f"SCHED_FIFO {fifo_priority} on")
 
             def _restore_policy() -> None:
-                os.sched_setscheduler(0, old_policy, old_param)
+                os.sched_setscheduler(threading.get_native_id(), old_policy, old_param)
 
             undo.append(_restore_policy)
     if cpu is not None:
         try:
-            old_cpus = os.sched_getaffinity(0)
-            os.sched_setaffinity(0, {cpu})
+            old_cpus = os.sched_getaffinity(threading.get_native_id())
+            os.sched_setaffinity(threading.get_native_id(), {cpu})
         except AttributeError:
             parts.append("cpu pinning unavailable on this platform")
         except OSError as err:
@@ -120,7 +122,7 @@ def apply_realtime(
             parts.append(f"cpu {cpu} pinned")
 
             def _restore_affinity() -> None:
-                os.sched_setaffinity(0, old_cpus)
+                os.sched_setaffinity(threading.get_native_id(), old_cpus)
 
             undo.append(_restore_affinity)
 

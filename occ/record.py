@@ -204,7 +204,9 @@ class Recorder:
         name_native_thread("recorder")
         if self.fifo_priority is not None:
             try:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.fifo_priority))
+                os.sched_setscheduler(
+                    threading.get_native_id(), os.SCHED_FIFO, os.sched_param(self.fifo_priority)
+                )
                 self.thread_policy = f"SCHED_FIFO {self.fifo_priority}"
             except (OSError, AttributeError) as err:  # EPERM, or no SCHED_FIFO here
                 self.thread_policy = f"SCHED_OTHER (SCHED_FIFO refused: {err})"

@@ -448,7 +448,9 @@ class LossProxy:
         mono = time.monotonic
         if self.fifo_priority is not None:
             try:  # Linux: pid 0 is the calling thread only
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.fifo_priority))
+                os.sched_setscheduler(
+                    threading.get_native_id(), os.SCHED_FIFO, os.sched_param(self.fifo_priority)
+                )
                 self.scheduling = f"SCHED_FIFO {self.fifo_priority}"
             except (OSError, AttributeError) as err:
                 self.scheduling = f"normal (SCHED_FIFO refused: {err})"

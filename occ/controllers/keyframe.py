@@ -780,8 +780,8 @@ def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
 def _loop_priority() -> int | None:
     """The calling (loop) thread's SCHED_FIFO priority, None when it is not SCHED_FIFO."""
     try:
-        if os.sched_getscheduler(0) == os.SCHED_FIFO:
-            return int(os.sched_getparam(0).sched_priority)
+        if os.sched_getscheduler(threading.get_native_id()) == os.SCHED_FIFO:
+            return int(os.sched_getparam(threading.get_native_id()).sched_priority)
     except (OSError, AttributeError):
         pass
     return None
@@ -829,9 +829,11 @@ class _PlannerThread:
             return
         try:
             if want is None:
-                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+                os.sched_setscheduler(threading.get_native_id(), os.SCHED_OTHER, os.sched_param(0))
             else:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(want))
+                os.sched_setscheduler(
+                    threading.get_native_id(), os.SCHED_FIFO, os.sched_param(want)
+                )
             self.fifo = want
         except (OSError, AttributeError) as err:
             self.fifo_refused = f"{type(err).__name__}: {err}"

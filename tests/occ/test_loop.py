@@ -317,11 +317,12 @@ def test_realtime_applied_and_restored(monkeypatch: pytest.MonkeyPatch) -> None:
     loop.run(ticks=3)
     assert loop.realtime_report == "realtime: SCHED_FIFO 80 on; cpu 1 pinned; gc freeze"
     assert in_tick == [2, 2, 2]
+    me = threading.get_native_id()  # this thread, never a pid (0 and 1 are others' to mutate)
     assert calls == [
-        ("policy", (0, os.SCHED_FIFO, 80)),
+        ("policy", (me, os.SCHED_FIFO, 80)),
         ("cpus", {1}),
         ("cpus", {0, 1}),  # restored in reverse order
-        ("policy", (0, os.SCHED_OTHER, 0)),
+        ("policy", (me, os.SCHED_OTHER, 0)),
     ]
 
 
