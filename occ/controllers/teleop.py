@@ -1159,7 +1159,19 @@ class SlaveController(Controller):
         pose[:3, 3] = target
         seed = self._q_last if self._q_last is not None else data.q
         res = ctx.frame.solve_ik(pose, seed, clamp=True, method="dls")
-        return res.q.tolist(), bool(res.clamped)
+        q = res.q.tolist()
+        # the velocity limits, all joints scaled alike (the tool keeps its direction; a drive
+        # clamping each joint on its own would bend the path): the step is written in one tick
+        prev = self._q_last if self._q_last is not None else data.commanded()
+        ratio = 0.0
+        for i, lim in enumerate(ctx.joint_limits):
+            r = abs(q[i] - prev[i]) / (0.9 * lim.velocity * ctx.period_s)
+            if r > ratio:
+                ratio = r
+        if ratio > 1.0:
+            q = [p + (v - p) / ratio for p, v in zip(prev, q, strict=True)]
+            self.rate_limited += 1
+        return q, bool(res.clamped)
 
     def _update_absolute(self, data: RobotData, ctx: ControllerContext) -> Sequence[float] | None:
         """The ``absolute`` mapping: each sample is the tip's target in the patient frame.
@@ -1265,6 +1277,8 @@ class SlaveController(Controller):
         if self.absolute:
             out["servo_refused"] = self.refused
             out["servo_rate_limited"] = self.rate_limited
+        if self.follow_orientation:
+            out["rate_limited"] = self.rate_limited
         if self.latency_us.count:
             lat = self.latency_us.summary()
             out["sample_to_write_us"] = {
