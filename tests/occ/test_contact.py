@@ -336,3 +336,148 @@ def test_bad_tissue_and_tissue_without_a_simulated_world_are_refused_with_a_repl
             assert after == before
         finally:
             sim.close()
+
+
+# ------------------------------------------------------------------ the law, in every component
+def test_an_oblique_wall_with_damping_in_three_dimensions() -> None:
+    n = np.array([0.3, -0.4, 0.866])
+    n = n / np.linalg.norm(n)
+    c = wall(point_mm=(1.0, 2.0, 3.0), normal=tuple(n), stiffness=0.7, damping=0.02)
+    p = np.array([1.0, 2.0, 3.0]) - 2.5 * n  # 2.5 mm into the tissue
+    v = np.array([10.0, -20.0, 5.0])  # mm/s
+    f, d = c.force(tuple(p), tuple(v))
+    rate = -float(v @ n)
+    assert d == pytest.approx(2.5)
+    assert f == pytest.approx(tuple((0.7 * 2.5 + 0.02 * rate) * n))
+    # on the surface, going in: no depth, no force (the damper alone never pushes)
+    f, d = c.force((1.0, 2.0, 3.0), tuple(-50.0 * n))
+    assert d == pytest.approx(0.0, abs=1e-12) and f == (0.0, 0.0, 0.0)
+
+
+def test_a_sphere_seen_from_an_oblique_point_and_from_its_centre() -> None:
+    c = Contact.from_config(
+        ContactConfig(kind="sphere", point_mm=(1.0, -2.0, 3.0), radius_mm=10.0, stiffness=1.0)
+    )
+    r = np.array([2.0, -3.0, 6.0])  # |r| = 7
+    d, n = c.depth(tuple(np.array([1.0, -2.0, 3.0]) + r))
+    assert d == pytest.approx(3.0) and n == pytest.approx(tuple(r / 7.0))
+    d, n = c.depth((1.0, -2.0, 3.0))
+    assert d == 10.0 and n == (0.0, 0.0, 1.0)
+
+
+def test_the_joints_feel_the_damper_through_the_tips_velocity() -> None:
+    """Two walls (their forces add, every component), the tip moving with the joints: the
+    damping uses the tip's velocity (J qdot, base rotated, mm/s), and the efforts are J^T of
+    the sum; the statistics say so."""
+    base = np.eye(4)
+    c, s = math.cos(0.3), math.sin(0.3)
+    base[:3, :3] = [[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]]
+    base[:3, 3] = [0.02, -0.01, 0.03]  # and moved: the tip is base x FK
+    q, qd = [0.1, 0.35, 0.05], [0.2, -0.1, 0.03]
+    probe = Environment([], SLAVE, lambda: base)
+    p, _ = probe.tip(q)
+    fk = np.asarray(SLAVE.fk(q))
+    assert p == pytest.approx(tuple((base @ fk)[:3, 3] * 1e3))
+    n1 = np.array([0.2, 0.3, 0.93])
+    n1 = n1 / np.linalg.norm(n1)
+    n2 = np.array([-0.5, 0.1, 0.2])
+    n2 = n2 / np.linalg.norm(n2)
+    walls = [
+        wall(name="w1", point_mm=tuple(np.array(p) + 1.5 * n1), normal=tuple(n1), stiffness=0.8,
+             damping=0.01),
+        wall(name="w2", point_mm=tuple(np.array(p) + 0.5 * n2), normal=tuple(n2), stiffness=0.3,
+             damping=0.005),
+    ]  # fmt: skip
+    env = Environment(walls, SLAVE, lambda: base)
+    tau = env.efforts(q, qd)
+    assert tau is not None and env.in_contact and env.evaluations == 1
+    # the tip's velocity by finite differences (mm/s, patient frame)
+    eps = 1e-7
+    p2, _ = env.tip(list(np.array(q) + eps * np.array(qd)))
+    v = (np.array(p2) - np.array(p)) / eps
+    expect = np.zeros(3)
+    for n, depth, k, b in ((n1, 1.5, 0.8, 0.01), (n2, 0.5, 0.3, 0.005)):
+        expect += (k * depth + b * -float(v @ n)) * n
+    assert env.force_n == pytest.approx(tuple(expect), rel=1e-5)
+    jac = SLAVE.jacobian(q)[:3]
+    assert tau == pytest.approx((jac.T @ (base[:3, :3].T @ expect)).tolist(), rel=1e-5)
+    st = env.stats()
+    assert st["contacts"] == ["w1", "w2"] and st["in_contact"] and st["definitions"] == 0
+    assert st["depth_mm"] == {"w1": pytest.approx(1.5), "w2": pytest.approx(0.5)}
+    assert st["peak_force_n"] == pytest.approx(round(float(np.linalg.norm(expect)), 4))
+    assert st["force_n"] == [round(v, 4) for v in env.force_n]
+    # away from both: no efforts, out of contact; the peak stays
+    far = list(q)
+    far[2] = 0.0
+    env2 = Environment(walls[:1], SLAVE, lambda: base)
+    env2.peak_force_n = 7.0
+    assert env2.efforts(far, qd) is None or env2.in_contact
+    assert env2.peak_force_n >= 7.0
+
+
+def test_tissue_from_slicer_defaults_visibility_and_refusals() -> None:
+    from igtl.messages.point import PointElement
+
+    from occ.contact import tissue_from_message
+
+    def points(*els: Any, **meta: str) -> Any:
+        return igtl.PointMessage(points=els, device_name="T", header_version=2,
+                                 metadata={"kind": "tissue", **meta})  # fmt: skip
+
+    def el(pos: tuple[float, float, float], r: float, alpha: int = 255) -> Any:
+        return PointElement(name="p", group="G", rgba=(1, 2, 3, alpha), position=pos, radius=r)
+
+    name, shapes = tissue_from_message(
+        points(el((1.0, 2.0, 3.0), 0.0), el((9.0, 9.0, 9.0), 4.0, alpha=0), el((4.0, 5.0, 6.0), 0.5))
+    )  # the hidden point is skipped; a radius of 0 takes the default (10 mm); 0.5 mm is kept
+    assert name == "T" and [s.name for s in shapes] == ["T:0", "T:1"]
+    assert [s.radius for s in shapes] == [10.0, 0.5]
+    assert [(s.stiffness, s.damping) for s in shapes] == [(0.5, 0.0), (0.5, 0.0)]
+    assert shapes[1].point == (4.0, 5.0, 6.0) and shapes[0].kind == "sphere"
+    _, (wall_,) = tissue_from_message(
+        igtl.TransformMessage.from_matrix(
+            np.array([[1, 0, 0, 1], [0, 1, 0, 2], [0, 0, 3, 4], [0, 0, 0, 1]], dtype=float),
+            device_name="W", header_version=2,
+            metadata={"kind": "tissue", "stiffness": "2", "damping": "0.1"},
+        )
+    )  # fmt: skip
+    assert wall_.normal == (0.0, 0.0, 1.0) and wall_.point == (1.0, 2.0, 4.0)
+    assert (wall_.stiffness, wall_.damping, wall_.radius) == (2.0, 0.1, 0.0)
+    assert tissue_from_message(igtl.StringMessage("x", device_name="S")) is None
+    for bad, why in (
+        (points(el((0.0, 0.0, 0.0), 1.0), damping="-1"), "damping -1.0 must be >= 0"),
+        (points(el((0.0, 0.0, 0.0), 0.0), radius="0"), "radius 0.0 must be >= 1e-09"),
+        (points(el((0.0, 0.0, 0.0), 1.0), stiffness="nan"), "stiffness nan"),
+        (igtl.StringMessage("x", device_name="S", header_version=2, metadata={"kind": "tissue"}),
+         "a STRING defines no tissue"),
+        (igtl.TransformMessage.from_matrix(
+            np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 0], [0, 0, 0, 1]], dtype=float),
+            device_name="Z", header_version=2, metadata={"kind": "tissue"}),
+         "z axis is zero"),
+    ):  # fmt: skip
+        with pytest.raises(ValueError, match=why):
+            tissue_from_message(bad)
+
+
+def test_the_worlds_counters_before_and_away_from_any_contact() -> None:
+    env = Environment([wall(name="w", point_mm=(1e4, 0.0, 0.0))], SLAVE, lambda: np.eye(4))
+    assert env.stats() == {"contacts": ["w"], "definitions": 0, "force_n": [0.0, 0.0, 0.0],
+                           "in_contact": False, "depth_mm": {}, "peak_force_n": 0.0}  # fmt: skip
+    q = [0.0, 0.35, 0.05]
+    assert env.efforts(q, [0.1, 0.1, 0.1]) is None and env.efforts(q, [0.0] * 3) is None
+    assert env.evaluations == 2 and not env.in_contact and env.force_n == (0.0, 0.0, 0.0)
+    env.peak_force_n = 3.0
+    env.define("w", [])
+    assert env.contacts == [] and env.stats()["definitions"] == 1 and env.peak_force_n == 3.0
+
+
+def test_a_normal_is_made_unit_in_every_component_and_a_nan_plane_is_refused() -> None:
+    from occ.contact import tissue_from_message
+
+    assert wall(normal=(0.0, 3.0, 4.0)).normal == pytest.approx((0.0, 0.6, 0.8))
+    assert wall(normal=(2.0, 0.0, -2.0)).normal == pytest.approx((0.7071068, 0.0, -0.7071068))
+    m = np.eye(4)
+    m[0, 3] = float("nan")
+    with pytest.raises(ValueError, match="not a transform"):
+        tissue_from_message(igtl.TransformMessage.from_matrix(
+            m, device_name="N", header_version=2, metadata={"kind": "tissue"}))  # fmt: skip

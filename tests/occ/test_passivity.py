@@ -80,3 +80,15 @@ def test_observe_only_and_reset_and_stats() -> None:
     pc.last_damping = 3.0
     pc.reset()
     assert pc.energy == 0.0 and pc.last_damping == 0.0
+
+
+def test_the_controllers_counts_add_up_over_ticks() -> None:
+    pc = PassivityController(max_damping=1e6)
+    for _ in range(3):  # every tick the force would give energy back: damped each time
+        pc.step((1.0, 0.0, 0.0), (0.1, 0.0, 0.0), 0.001)
+    assert pc.active_ticks == 3
+    assert pc.dissipated == pytest.approx(3 * 1.0 * 0.1 * 0.001)
+    pc.energy, pc.dissipated, pc.last_damping = 1.23456789e-3, 9.87654321e-3, 12.34567
+    assert pc.stats() == {"energy_mj": 1.2346, "dissipated_mj": 9.8765, "active_ticks": 3,
+                          "damping": 12.346}  # fmt: skip
+    assert PassivityController().max_damping == 200.0
