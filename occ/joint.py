@@ -22,6 +22,7 @@ in slots.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -233,3 +234,20 @@ class Joint:
             out = -limit
         self.command_effort = out
         return out
+
+
+def step_toward(values: list[float], target: Sequence[float], steps: Sequence[float]) -> bool:
+    """Move each of ``values`` (in place) toward ``target`` by at most its ``steps``; True
+    while any is still away (a rate limit: a re-join after a hold, an absolute servo target)."""
+    away = False
+    for i, step in enumerate(steps):
+        d = target[i] - values[i]
+        if d > step:
+            values[i] += step
+            away = True
+        elif d < -step:
+            values[i] -= step
+            away = True
+        else:
+            values[i] = target[i]
+    return away

@@ -12,7 +12,7 @@ from .controllers import ControllerSet
 from .data import RobotData
 from .errors import ConfigError
 from .hardware import HardwareSet
-from .joint import Joint
+from .joint import Joint, step_toward
 from .safety import RobotState
 
 #: States in which drivers are ACTIVE (servos on).
@@ -134,17 +134,7 @@ class Motion:
 
     def _rejoin(self, sp: list[float], target: Sequence[float]) -> bool:
         """Move ``sp`` toward ``target`` by at most half the velocity limit; True while away."""
-        away = False
-        for i, step in enumerate(self._reentry_step):
-            d = target[i] - sp[i]
-            if d > step:
-                sp[i] += step
-                away = True
-            elif d < -step:
-                sp[i] -= step
-                away = True
-            else:
-                sp[i] = target[i]
+        away = step_toward(sp, target, self._reentry_step)
         if not away:
             self.reentries += 1
         return away

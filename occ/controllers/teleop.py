@@ -74,6 +74,7 @@ from ..fixture_defs import Defaults, DefinitionError, PatientMapping, from_marku
 from ..forces import SlaveForce, sensor_force
 from ..forceviz import ForceView, check_outputs
 from ..haptics import MasterFixtures
+from ..joint import step_toward
 from ..outputs import VectorOut
 from ..passivity import PassivityController
 from ..returnlink import ReturnLink
@@ -1231,18 +1232,7 @@ class SlaveController(Controller):
         if goal is None:
             return self._q_last
         out = list(here)
-        limited = False
-        for i, step in enumerate(self._step):
-            d = goal[i] - out[i]
-            if d > step:
-                out[i] += step
-                limited = True
-            elif d < -step:
-                out[i] -= step
-                limited = True
-            else:
-                out[i] = goal[i]
-        self.rate_limited += limited
+        self.rate_limited += step_toward(out, goal, self._step)
         self._q_last = out
         if self.pending_ts is not None:
             self.latency_us.add((ctx.clock.wall_time() - self.pending_ts) * 1e6)
