@@ -16,8 +16,6 @@ sees), both in the master's axes.
 from __future__ import annotations
 
 import math
-import random
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +25,8 @@ import yaml
 
 from occ.safety import RobotState
 from occ.testing import CONFIGS, SimPair
+
+from ..tools.tooling import load_tool
 
 pytestmark = pytest.mark.req("SR-FORCE-1")
 
@@ -42,26 +42,8 @@ def wall_config(stiffness: float | None = None, sources: list[str] | None = None
     return dict(cfg)
 
 
-def double_loss(rate: float, seed: int) -> Callable[[str, Any, int], bool]:
-    """The OCC paper's loss: runs of exactly two lost packets, ``rate`` of the packets lost
-    (a run starts with probability rate / 2), each direction on its own seeded stream, runs at
-    least one delivered packet apart."""
-    rngs = {d: random.Random(f"{seed}-{d}") for d in ("forward", "return")}
-    left = {"forward": 0, "return": 0}
-    gap = {"forward": 1, "return": 1}
-
-    def drop(direction: str, msg: Any, index: int) -> bool:
-        if left[direction] > 0:
-            left[direction] -= 1
-            gap[direction] = 0
-            return True
-        gap[direction] += 1
-        if gap[direction] > 1 and rngs[direction].random() < rate / 2:
-            left[direction] = 1
-            return True
-        return False
-
-    return drop
+#: the OCC paper's double losses on both links, seeded (tools/feel.py measures with the same)
+double_loss = load_tool("feel").double_loss
 
 
 class Run:

@@ -15,7 +15,6 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
-from xml.sax.saxutils import quoteattr
 
 import numpy as np
 import pytest
@@ -26,6 +25,8 @@ from occ.errors import ConfigError
 from occ.loader import load_config, parse_config
 from occ.safety import RobotState
 from occ.testing import SimPeer, SimRobot
+
+from .test_keyframe import Session, xml
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"
@@ -41,11 +42,6 @@ DEMO = [(2.0, [0.30, 0.35, 0.05]), (4.0, [0.30, 0.50, 0.08]), (6.5, [-0.20, 0.45
 DEMO_END = 8.5
 
 
-def xml(name: str, **args: Any) -> str:
-    attrs = "".join(f" {k}={quoteattr(str(v))}" for k, v in args.items())
-    return f"<Command Name={quoteattr(name)}{attrs}/>"
-
-
 def keyframe_config(library: Path | None, **robot: Any) -> dict[str, Any]:
     """configs/keyframe.yaml as data, its files absolute, the library at ``library``."""
     data = yaml.safe_load((CONFIGS / "keyframe.yaml").read_text())
@@ -58,42 +54,21 @@ def keyframe_config(library: Path | None, **robot: Any) -> dict[str, Any]:
     return data
 
 
-class Daemon:
-    """A keyframe robot in simulated time and its Slicer console (an operator)."""
+class Daemon(Session):
+    """A keyframe robot in simulated time and its Slicer console (an operator): test_keyframe's
+    session on a robot built from this module's config."""
 
     def __init__(self, library: Path | None, **robot: Any) -> None:
         cfg = parse_config(
             yaml.safe_dump(keyframe_config(library, **robot)), source="kf.yaml", base_dir=CONFIGS
         )
         self.sim = SimRobot(cfg)
-        (kf,) = self.sim.robot.controller.controllers
+        self.robot = self.sim.robot
+        (kf,) = self.robot.controller.controllers
         assert isinstance(kf, KeyframeController)
         self.kf = kf
         self.slicer: SimPeer = self.sim.peer("slicer")
         self.setpoints: list[list[float]] = []
-
-    def cmd(self, name: str, **args: Any) -> Any:
-        cid = self.slicer.send_command(name, xml(name, **args) if args else "")
-        self.step(1)
-        assert self.kf.wait_idle(30.0)
-        reply = self.slicer.reply_to(cid)
-        assert reply is not None, f"no reply to {name}"
-        return reply
-
-    def ok(self, name: str, **args: Any) -> str:
-        reply = self.cmd(name, **args)
-        assert reply.metadata["Status"] == "SUCCESS", reply.metadata
-        return str(reply.metadata["Message"])
-
-    def refused(self, name: str, **args: Any) -> str:
-        reply = self.cmd(name, **args)
-        assert reply.metadata["Status"] == "FAIL", reply.metadata
-        return str(reply.metadata["Error"])
-
-    def step(self, n: int) -> None:
-        for _ in range(n):
-            self.sim.tick()
-            self.setpoints.append(list(self.sim.robot.data.commanded()))
 
     def plan_and_ack(self, **args: Any) -> str:
         text = self.ok("KeyframePlan", **args)
@@ -102,9 +77,6 @@ class Daemon:
         self.setpoints.clear()
         self.ok("KeyframeAck", Plan=plan_id)  # this tick is t = 0 of the run
         return text
-
-    def close(self) -> None:
-        self.sim.close()
 
 
 @pytest.fixture

@@ -382,26 +382,20 @@ def test_the_slaves_force_is_displayed_scaled_and_summed_with_the_fixtures(unpas
 
 @pytest.mark.req("SR-FORCE-2")
 def test_force_scale_and_the_10_n_clamp() -> None:
-    params = {"force_scale": 2.5, "passivity": False}
-    sim = SimRobot(ROOT / "configs" / "master.yaml", params=params)
+    m = Master(force_scale=2.5, passivity=False)
     try:
-        op = sim.peer("operator", address=("127.0.0.1", 41000))
-        sim.step(1)
-        feed = SlaveTipFeed(sim)
-        for c in ("Enable", "Run"):
-            op.send_command(c)
-            feed.step(1)
-        feed.force = (0.0, 2.0, 0.0)
-        feed.step(30)
-        ctrl: Any = sim.robot.controller.controllers[0]
-        assert tuple(ctrl.feedback_n) == pytest.approx((0.0, 5.0, 0.0), abs=1e-9)
-        feed.force = (3.0, 0.0, -4.0)  # 5 N x 2.5 = 12.5 N: clamped to 10 N, same direction
-        feed.step(30)
-        assert math.hypot(*ctrl.displayed_n) == pytest.approx(10.0, abs=1e-9)
-        assert ctrl.displayed_n[0] / ctrl.displayed_n[2] == pytest.approx(-0.75)
-        assert ctrl.stats()["force_clamped_ticks"] > 0
+        m.run()
+        m.feed.force = (0.0, 2.0, 0.0)
+        m.feed.step(30)
+        assert feedback(m) == pytest.approx((0.0, 5.0, 0.0), abs=1e-9)
+        m.feed.force = (3.0, 0.0, -4.0)  # 5 N x 2.5 = 12.5 N: clamped to 10 N, same direction
+        m.feed.step(30)
+        shown = m.ctrl.displayed_n
+        assert math.hypot(*shown) == pytest.approx(10.0, abs=1e-9)
+        assert shown[0] / shown[2] == pytest.approx(-0.75)
+        assert m.ctrl.stats()["force_clamped_ticks"] > 0
     finally:
-        sim.close()
+        m.close()
 
 
 @pytest.mark.req("SR-FORCE-2")
@@ -454,21 +448,15 @@ def test_a_malformed_force_is_refused_and_counted_not_displayed(master, bad: str
 
 @pytest.mark.req("SR-FORCE-2")
 def test_force_feedback_off_displays_only_the_fixtures() -> None:
-    sim = SimRobot(ROOT / "configs" / "master.yaml", params={"force_feedback": False})
+    m = Master(force_feedback=False)
     try:
-        op = sim.peer("operator", address=("127.0.0.1", 41000))
-        sim.step(1)
-        feed = SlaveTipFeed(sim)
-        for c in ("Enable", "Run"):
-            op.send_command(c)
-            feed.step(1)
-        feed.force = (0.0, 2.0, 0.0)
-        feed.step(30)
-        ctrl: Any = sim.robot.controller.controllers[0]
-        assert ctrl.feedback_n == (0.0, 0.0, 0.0) and ctrl.displayed_n == (0.0, 0.0, 0.0)
-        assert ctrl.stats()["slave_tip"]["force_n"] == [0.0, 2.0, 0.0]  # received, not shown
+        m.run()
+        m.feed.force = (0.0, 2.0, 0.0)
+        m.feed.step(30)
+        assert m.ctrl.feedback_n == (0.0, 0.0, 0.0) and m.ctrl.displayed_n == (0.0, 0.0, 0.0)
+        assert m.ctrl.stats()["slave_tip"]["force_n"] == [0.0, 2.0, 0.0]  # received, not shown
     finally:
-        sim.close()
+        m.close()
 
 
 @pytest.mark.req("SR-FORCE-1")
