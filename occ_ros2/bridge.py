@@ -121,7 +121,7 @@ from cyclonedds.util import duration
 
 import igtl
 from igtl.messages.base import Message
-from igtl.messages.sensor import Unit
+from igtl.messages.sensor import NEWTON
 from igtl.transport import TCPClient
 from occ.forceviz import parse_force
 from occ.stats import Histogram
@@ -235,10 +235,6 @@ PROBE_WAIT_S = 1.0
 #: (occ/controllers/keyframe.py STATUS_RUNNING, STATUS_ENDED; a test checks they agree)
 KEYFRAME_RUNNING = "KEYFRAME_RUNNING"
 KEYFRAME_ENDED = "KEYFRAME_ENDED"
-
-
-#: the SENSOR unit of a force: newton (unit code 11), no prefix
-NEWTON = Unit(0, ((11, 1),))
 
 
 def plan_running(stats_json: str) -> bool:

@@ -35,9 +35,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 import igtl  # noqa: E402
-from igtl.messages.sensor import Unit  # noqa: E402
-
-NEWTON = Unit(0, ((11, 1),))
+from igtl.messages.sensor import NEWTON  # noqa: E402
 
 
 def reading(profile: str, force: tuple[float, ...], period: float, t: float) -> list[float]:

@@ -149,6 +149,10 @@ class SensorMessage(Message):
         return cls(struct.unpack_from(f">{n}d", content, 10), Unit.unpack(unit), status, **common)
 
 
+#: the newton (unit code 11, no prefix): a force sensor's unit
+NEWTON = Unit(0, ((11, 1),))
+
+
 def sensor(values: Sequence[float], unit: Unit | int = 0, **common: Any) -> SensorMessage:
     """Shorthand: ``sensor([1.0, 2.0], Unit(0, ((11, 1),)), device_name="Force")``."""
     return SensorMessage(
