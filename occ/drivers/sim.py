@@ -155,26 +155,6 @@ def _per_joint(
 
 
 @mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins extend built-ins
-def _step_consts(
-    poles: Sequence[tuple[float, float]],
-) -> list[tuple[float, float, float, float]]:
-    """Per joint, what of the exact step of ``e'' + c e' + k e = 0`` does not depend on its
-    length: ``(k, c/2, d^2, sqrt(|d^2|))`` with ``d^2 = c^2/4 - k``. Joints with the same
-    ``(k, c)`` get the same tuple object, so :meth:`SimDriver._exact_steps` computes their
-    step once."""
-    shared: dict[tuple[float, float], tuple[float, float, float, float]] = {}
-    out = []
-    for k, c in poles:
-        consts = shared.get((k, c))
-        if consts is None:
-            half = 0.5 * c
-            d2 = half * half - k
-            consts = (k, half, d2, math.sqrt(d2 if d2 > 0.0 else -d2))
-            shared[(k, c)] = consts
-        out.append(consts)
-    return out
-
-
 class SimDriver(Driver):
     """Simulated joints (see the module docstring for the model and the parameters)."""
 
@@ -276,7 +256,7 @@ class SimDriver(Driver):
         # what of the exact step does not depend on its length, per joint: (k, c/2, d^2,
         # sqrt(|d^2|)) (see _exact_steps; computed once: the loop's jitter makes every step
         # a new length)
-        self._servo_consts = _step_consts(self._servo_poles)
+        self._set_poles(self._servo_poles)
         self._step_h = math.nan
         self._step: list[tuple[float, float, float, float]] = []
 
@@ -423,6 +403,12 @@ class SimDriver(Driver):
             if self._faults:
                 return self._injected(out), self._v, effort
             return out, self._v, effort
+        if not self._noisy:  # the encoders' counts only (the shipped drives)
+            for i, (x, res) in enumerate(zip(self._x, self._resolution, strict=True)):
+                out[i] = math.floor(x / res + 0.5) * res if res > 0.0 else x
+            if self._faults:
+                return self._injected(out), self._v, effort
+            return out, self._v, effort
         rng = self._rng
         noisy = self._noisy
         for i, x in enumerate(self._x):
@@ -477,33 +463,43 @@ class SimDriver(Driver):
         and ``S = sinh(d h)/d`` (cos and sin/omega when ``d^2 < 0``; series near 0). Cached
         for the last ``h``."""
         out = []
-        last: tuple[float, float, float, float] | None = None
-        step = (1.0, 0.0, 0.0, 1.0)
-        for consts in self._servo_consts:
-            if consts is not last:  # joints with the same poles share one tuple: one step
-                last = consts
-                k, half, d2, root = consts  # root: d, or w when d^2 < 0
-                z = d2 * h * h
-                if abs(z) < 1e-8:  # near critical damping: the series of cosh and sinh/d
-                    big_c = 1.0 + 0.5 * z
-                    big_s = h * (1.0 + z / 6.0)
-                elif d2 > 0.0:
-                    big_c = math.cosh(root * h)
-                    big_s = math.sinh(root * h) / root
-                else:
-                    big_c = math.cos(root * h)
-                    big_s = math.sin(root * h) / root
-                g = math.exp(-half * h)
-                step = (
-                    g * (big_c + half * big_s),
-                    g * big_s,
-                    -g * big_s * k,
-                    g * (big_c - half * big_s),
-                )
-            out.append(step)
+        for k, half, d2, root in self._servo_distinct:  # root: d, or w when d^2 < 0
+            z = d2 * h * h
+            if abs(z) < 1e-8:  # near critical damping: the series of cosh and sinh/d
+                big_c = 1.0 + 0.5 * z
+                big_s = h * (1.0 + z / 6.0)
+            elif d2 > 0.0:
+                big_c = math.cosh(root * h)
+                big_s = math.sinh(root * h) / root
+            else:
+                big_c = math.cos(root * h)
+                big_s = math.sin(root * h) / root
+            g = math.exp(-half * h)
+            out.append(
+                (g * (big_c + half * big_s), g * big_s, -g * big_s * k, g * (big_c - half * big_s))
+            )
+        # joints with the same poles share one step (one computed for all: the shipped arms)
+        out = out * self._n if self._one_pole else [out[j] for j in self._servo_which]
         self._step_h = h
         self._step = out
         return out
+
+    def _set_poles(self, poles: Sequence[tuple[float, float]]) -> None:
+        """The poles ``(k, c)`` of each joint's exact step (``e'' + c e' + k e = 0``): what of
+        the step does not depend on its length, computed once per distinct pair
+        (:meth:`_exact_steps` then computes one step per distinct pair)."""
+        distinct: list[tuple[float, float]] = []
+        for pole in poles:
+            if pole not in distinct:
+                distinct.append(pole)
+        self._servo_which = [distinct.index(pole) for pole in poles]
+        self._one_pole = len(distinct) == 1
+        self._n = len(poles)
+        self._servo_distinct = []
+        for k, c in distinct:
+            half = 0.5 * c
+            d2 = half * half - k
+            self._servo_distinct.append((k, half, d2, math.sqrt(d2 if d2 > 0.0 else -d2)))
 
     def _integrate(self, now: float) -> None:
         t = self._t

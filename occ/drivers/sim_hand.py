@@ -47,7 +47,7 @@ from typing import Any, ClassVar
 from mypy_extensions import mypyc_attr
 
 from occ.drivers.base import CommandInterface, LimitPolicy
-from occ.drivers.sim import SIM_DEFAULTS, SimDriver, _per_joint, _step_consts
+from occ.drivers.sim import SIM_DEFAULTS, SimDriver, _per_joint
 from occ.joint import Joint
 
 __all__ = ["SimHandDriver", "HAND_DEFAULTS"]
@@ -125,7 +125,7 @@ class SimHandDriver(SimDriver):
         # e = x - F / K_hand obeys e'' + c e' + k e = 0 with k = K_hand / m, c = (B_hand + b) / m:
         # the sim drive's exact step (this drive has no servo; these are its poles). A joint
         # with no hand spring, or a step that reaches an end stop, integrates in substeps.
-        self._servo_consts = _step_consts(
+        self._set_poles(
             [
                 (kh * inv, (bh + b) * inv)
                 for kh, bh, (inv, b, *_r) in zip(
