@@ -11,6 +11,9 @@ controller commands (the displayed force) plus the hand's force::
 
 So a fixture's force visibly changes the handle's measured path (the hand gives way by
 ``u / K_hand``), and the slave, which follows the measured handle, follows the corrected path.
+Each interval between reads is one exact step of that linear system (the effort and the
+intention held over it, the intention taken at the interval's middle), as the ``sim`` drive's
+servo; a joint with no hand spring, or a step that reaches an end stop, integrates in substeps.
 
 The intended motion is per joint, for a device whose joints are its Cartesian axes (the shipped
 ``master3``): ``q_i(t) = intent_offset_i + intent_amplitude_i sin(2π intent_frequency_hz t +
