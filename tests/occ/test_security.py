@@ -1013,3 +1013,46 @@ def test_a_pose_refused_on_a_stream_queue_is_answered_to_its_sender_alone() -> N
         sender.close()
         other.close()
         r.shutdown()
+
+
+@pytest.mark.req("SR-SEC-7")
+@pytest.mark.parametrize("iface", ["tkey", "ukey"])
+def test_a_signed_request_is_obeyed_once_and_only_while_fresh(robot: Robot, iface: str) -> None:
+    """A recorded signed Enable, sent again after the operator's Disable, must not power the
+    robot: a repeat of a tag is a replay, and so is a request signed longer ago than the
+    window (or ahead of the daemon's clock). Each is answered with why and counted."""
+    import time
+
+    peer = Peer(robot, iface, OTHER_HOST, key=KEY)
+    counters = robot.interfaces[iface].counters
+    try:
+        enable = sign(command("Enable", peer.next_id()), KEY)  # stamped now, tagged
+        assert _status(reply_to(peer, enable)) == "SUCCESS"
+        assert robot.state is RobotState.ENABLED
+        assert _status(reply_to(peer, command("Disable", peer.next_id()))) == "SUCCESS"
+        assert robot.state is RobotState.READY
+        replayed = answer_to(peer, enable)  # the same bytes again
+        assert _status(replayed) == "FAIL"
+        assert replayed.metadata["Error"] == (
+            "COMMAND refused: a replay: this signed request was taken already"
+        )
+        assert robot.state is RobotState.READY and counters.replayed == 1
+        now = time.time()
+        for shift, tail in [
+            (-60.0, " s ago (at most 30 s): a replay, or the clocks disagree"),
+            (60.0, " s ahead of this clock (at most 30 s): the clocks disagree"),
+        ]:
+            msg = command("Enable", peer.next_id())
+            stale = sign(dataclasses.replace(msg, timestamp=now + shift), KEY)
+            reply = answer_to(peer, stale)
+            err = reply.metadata["Error"]
+            assert _status(reply) == "FAIL" and err.startswith("COMMAND refused: signed 60.")
+            assert err.endswith(tail), err
+            assert robot.state is RobotState.READY
+        assert counters.replayed == 3 and counters.unauthenticated == 0
+        assert robot.interfaces[iface].stats()["replayed"] == 3
+        # a fresh one is obeyed
+        assert _status(reply_to(peer, command("Enable", peer.next_id()))) == "SUCCESS"
+        assert robot.state is RobotState.ENABLED
+    finally:
+        peer.close()
