@@ -83,7 +83,7 @@ class ReplayGuard:
             raise ValueError("max_age_s must be > 0 and capacity >= 1")
         self.max_age_s = float(max_age_s)
         self.capacity = int(capacity)
-        self._seen: dict[str, float] = {}
+        self._seen: set[str] = set()
         self._order: deque[tuple[float, str]] = deque()
         #: nothing signed at or before this time is taken (tags forgotten for room)
         self._floor = 0.0
@@ -119,10 +119,10 @@ class ReplayGuard:
         seen, order = self._seen, self._order
         while order and (order[0][0] < now - limit or len(order) >= self.capacity):
             old_ts, old_tag = order.popleft()
-            del seen[old_tag]
+            seen.discard(old_tag)
             if old_ts >= now - limit:  # forgotten for room while still in the window
                 self._floor = max(self._floor, old_ts)
-        seen[tag] = ts
+        seen.add(tag)
         order.append((ts, tag))
         return ""
 

@@ -167,6 +167,7 @@ def test_sign_stamps_a_message_without_a_time_and_keeps_one_it_has() -> None:
     assert before <= stamped.timestamp <= time.time() + 1e-3
     assert verify(stamped, KEY) == ""  # the stamp is under the tag
     assert sign(position(), KEY).timestamp == pytest.approx(1_700_000_000.25, abs=1e-9)
+    assert sign(position(ts=0.5), KEY).timestamp == 0.5  # any time given is kept
 
 
 def _request(mid: int, ts: float) -> igtl.Message:
@@ -203,10 +204,35 @@ def test_the_replay_guard_takes_a_request_once_within_its_window() -> None:
     assert g.check(first, now + 40.0).startswith("signed 41.0 s ago")
     assert g.check(_request(7, now + 40.0), now + 40.0) == ""
     assert first.metadata[HMAC_KEY] not in g._seen and len(g._seen) == 2  # 6's, 7's
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"^max_age_s must be > 0 and capacity >= 1$"):
         ReplayGuard(max_age_s=0.0)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"^max_age_s must be > 0 and capacity >= 1$"):
         ReplayGuard(capacity=0)
+    tiny = ReplayGuard(max_age_s=0.5, capacity=1)  # any window, any room
+    assert (tiny.max_age_s, tiny.capacity) == (0.5, 1)
+    assert (ReplayGuard().max_age_s, ReplayGuard().capacity) == (30.0, 4096)
+    # the guard knows no epoch: a clock that starts at 0 works as well as the Unix one
+    early = ReplayGuard(max_age_s=30.0)
+    assert early.check(_request(1, 0.5), 10.0) == ""
+    assert early.check(_request(2, 0.75), 10.0) == ""
+
+
+def test_the_window_edge_is_in_the_window_for_memory_as_for_age() -> None:
+    """A request signed exactly ``max_age_s`` ago is taken (its age is not more than the
+    window), so its tag must still be remembered at that instant, after a clean-up too."""
+    from igtl.auth import ReplayGuard
+
+    now = 1_800_000_000.0
+    g = ReplayGuard(max_age_s=30.0)
+    edge = _request(1, now - 30.0)
+    assert g.check(edge, now - 1.0) == ""
+    assert g.check(_request(2, now - 1.0), now) == ""  # a clean-up at the instant the edge is
+    assert g.check(edge, now) == "a replay: this signed request was taken already"
+    # forgotten for room at the same instant: nothing signed at or before it is taken either
+    small = ReplayGuard(max_age_s=30.0, capacity=1)
+    assert small.check(edge, now) == ""
+    assert small.check(_request(3, now - 1.0), now) == ""  # edge forgotten for room
+    assert small.check(edge, now) == "signed before requests already forgotten: a replay"
 
 
 @pytest.mark.req("SR-SEC-7")
