@@ -7,6 +7,7 @@ occ/fixture_defs.py; the master that uses them is tests/occ/test_haptic_master.p
 from __future__ import annotations
 
 import json
+import locale
 import math
 from pathlib import Path
 from typing import Any
@@ -252,7 +253,7 @@ def poly(kind: str | None, pts: Any, lines: Any = (), polygons: Any = (), **meta
                                 header_version=2, metadata=m)
 
 
-PTS = [(0.0, 0.0, 0.0), (2.0, 0.0, 0.0), (0.0, 3.0, 0.0), (1.0, 1.0, 4.0)]
+PTS = [(0.5, -1.0, 2.0), (2.5, 1.5, -0.25), (-1.5, 3.0, 0.75), (1.0, 1.25, 4.0)]
 
 
 def test_polydata_lines_are_guides_and_polygons_planes() -> None:
@@ -263,12 +264,16 @@ def test_polydata_lines_are_guides_and_polygons_planes() -> None:
     ]
     # a polygon's plane: its first point, the normal (p1 - p0) x (p2 - p0) of its first three
     got = from_message(poly("plane", PTS, polygons=((1, 2, 3), (0, 1, 2, 3)), damping="0.5"), D)
-    u, v = np.subtract(PTS[2], PTS[1]), np.subtract(PTS[3], PTS[1])
+    def normal(a: int, b: int, c: int) -> tuple[float, float, float]:
+        x, y, z = np.cross(np.subtract(PTS[b], PTS[a]), np.subtract(PTS[c], PTS[a])).tolist()
+        return (x, y, z)
+
     assert got == [
-        Definition("plane", (PTS[1],), 0.0, tuple(np.cross(u, v).tolist()), 1.0, 0.5, "Model-0",
-                   "patient"),
-        Definition("plane", (PTS[0],), 0.0, (0.0, 0.0, 6.0), 1.0, 0.5, "Model-1", "patient"),
+        Definition("plane", (PTS[1],), 0.0, normal(1, 2, 3), 1.0, 0.5, "Model-0", "patient"),
+        Definition("plane", (PTS[0],), 0.0, normal(0, 1, 2), 1.0, 0.5, "Model-1", "patient"),
     ]
+    # every coordinate different and non-zero: each term of the cross product counts
+    assert all(abs(c) > 0.1 for c in normal(1, 2, 3) + normal(0, 1, 2))
     # the lines of a plane model and the polygons of a guide model are not read
     assert from_message(poly("plane", PTS, lines=((0, 1),)), D) == []
     assert from_message(poly("guide", PTS, polygons=((0, 1, 2),)), D) == []
@@ -412,6 +417,8 @@ def test_a_markups_plane_takes_its_center_else_its_first_point(tmp_path: Path) -
          "plane 'W' needs a center (or a control point) and a normal"),
         ([{"type": "Plane", "name": "W", "center": [0, 0], "normal": [0, 0, 1]}],
          "W center: expected [x, y, z]"),
+        ([{"type": "Plane", "name": "W", "center": [0, 0, 0], "normal": [0, 1]}],
+         "W normal: expected [x, y, z]"),
         ([{"type": "Angle", "name": "A"}],
          "markups type 'Angle' is not a fixture (Fiducial, Line, Curve, ClosedCurve, Plane are)"),
         ([{"name": "A"}],
@@ -419,7 +426,7 @@ def test_a_markups_plane_takes_its_center_else_its_first_point(tmp_path: Path) -
     ],
     ids=["json", "list", "dict", "entry", "system", "units", "units-list", "no-position",
          "not-object", "two-numbers", "text", "nan", "plane-no-normal", "plane-no-point",
-         "plane-center", "angle", "no-type"],
+         "plane-center", "plane-normal", "angle", "no-type"],
 )
 def test_a_malformed_markups_file_is_refused_with_its_path_and_what_is_wrong(
     tmp_path: Path, markups: Any, text: str
@@ -429,6 +436,22 @@ def test_a_malformed_markups_file_is_refused_with_its_path_and_what_is_wrong(
         from_markups_file(path)
     msg = str(err.value)
     assert msg.startswith(f"{path}: ") and msg.endswith(text), msg
+
+
+def test_a_markups_file_is_read_as_utf_8_whatever_the_locale(tmp_path: Path) -> None:
+    """Slicer writes its files in UTF-8; a daemon started under another locale (``C`` here,
+    ASCII) still reads a non-ASCII label."""
+    path = tmp_path / "plan.mrk.json"
+    doc = {"markups": [{"type": "Fiducial", "coordinateSystem": "RAS",
+                        "controlPoints": [{"label": "Läsion", "position": [1, 2, 3]}]}]}
+    path.write_bytes(json.dumps(doc, ensure_ascii=False).encode("utf-8"))
+    old = locale.setlocale(locale.LC_CTYPE)
+    try:
+        locale.setlocale(locale.LC_CTYPE, "C")
+        (d,) = from_markups_file(path)
+    finally:
+        locale.setlocale(locale.LC_CTYPE, old)
+    assert d.name == "Läsion" and d.points == ((1.0, 2.0, 3.0),)
 
 
 def test_a_missing_markups_file_is_refused(tmp_path: Path) -> None:
@@ -484,6 +507,8 @@ def test_the_map_tolerates_a_float32_rotation_but_not_a_shear() -> None:
     m = (0.1 * R1).astype(np.float32).astype(float)
     parse_linear(" ".join(repr(v) for v in m.ravel().tolist()))
     # 1e-3 of s^2 is the tolerance on the columns' dot products, relative to the scale
+    # at the tolerance exactly (s = 1): still a rotation
+    parse_linear("1 0.001 0  0 1 0  0 0 1")
     for s in (0.1, 10.0):
         ok = np.array([[1.0, 0.0009, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]) * s
         parse_linear(" ".join(repr(v) for v in ok.ravel().tolist()))
@@ -570,10 +595,13 @@ def test_a_bad_registration_is_refused(matrix: Any, text: str) -> None:
     assert str(err.value) == text
 
 
-def test_a_registration_of_three_rows_is_taken() -> None:
+def test_a_registration_of_three_rows_is_taken_and_a_fourth_is_not_read() -> None:
     m = PatientMapping(1.0)
     m.set_registration([[*r, 0.0] for r in R2.tolist()])
     assert np.allclose(m.linear, R2)
+    for last in ([math.nan] * 4, [0.0, 0.0, 1.0]):
+        m.set_registration([[*r, 5.0] for r in R1.tolist()] + [last])
+        assert np.allclose(m.linear, R1) and m.registration[3] == [0.0, 0.0, 0.0, 1.0]
 
 
 # ------------------------------------------------------------------ into the master's frame

@@ -19,7 +19,7 @@ import igtl
 from igtl.messages.polydata import CELL_SCALAR
 from occ.fixture_defs import Defaults, DefinitionError, PatientMapping
 from occ.fixtures import AccessibleSphere, ForbiddenSphere
-from occ.haptics import KIND_CODE, MasterFixtures
+from occ.haptics import KIND_CODE, MasterFixtures, _square
 
 from .test_fixture_defs import R1, points, pt, vf
 
@@ -45,6 +45,42 @@ def plane(name: str, point: Any, normal: Any = (0.0, 0.0, 1.0), **meta: str) -> 
 
 
 # ------------------------------------------------------------------ applied or refused, whole
+def test_a_new_master_has_nothing_and_shows_nothing() -> None:
+    fx = MasterFixtures(Defaults(), PatientMapping(1.0))
+    assert (fx.max_force_n, fx.slide_mm, fx.max_primitives, fx.max_planes) == (10.0, 1.0, 64, 8)
+    assert (fx.active.max_force_n, fx.active.slide_mm) == (10.0, 1.0)
+    assert fx.tool_mm == fx.force_n == fx.raw_force_n == (0.0, 0.0, 0.0)
+    assert fx.stats() == {
+        "fixtures": 0,
+        "fixture_kinds": {"accessible": 0, "forbidden": 0, "plane": 0, "guide": 0},
+        "fixture_sources": [],
+        "fixtures_applied": 0,
+        "fixtures_refused": 0,
+        "fixture_last_error": "",
+        "fixture_contacts": 0,
+        "fixture_clamped": 0,
+        "contact": [],
+        "peak_force_n": 0.0,
+    }
+    proxy: Any = fx.proxy_message("P")
+    assert proxy.timestamp == 0.0 and fx.model_message("M").timestamp == 0.0
+    assert proxy.metadata["tool_mm"] == "0.000,0.000,0.000"
+    assert proxy.metadata["force_n"] == "0.0000,0.0000,0.0000"
+    # its own limits reach the sets it builds
+    small = fixtures(max_force_n=2.5, slide_mm=0.25)
+    assert (small.active.max_force_n, small.active.slide_mm) == (2.5, 0.25)
+    small.on_message(vf(((0.0, 0.0, 0.0, 1.0),)), 1.0)
+    assert (small.active.max_force_n, small.active.slide_mm) == (2.5, 0.25)
+
+
+def test_an_empty_definition_from_a_new_source_is_applied() -> None:
+    """Slicer sends a Markups node as soon as it is created, before it has points."""
+    fx = fixtures()
+    assert fx.on_message(points([], name="New"), 1.0) == "0 fixtures from POINT:New; 0 active"
+    assert fx.applied == 1 and fx.groups == {}
+
+
+
 def test_a_definition_is_applied_and_described() -> None:
     fx = fixtures()
     assert fx.version == 0 and fx.applied == 0 and len(fx.active) == 0
@@ -167,6 +203,9 @@ def test_a_mapping_change_over_the_budget_is_compiled_by_the_next_step() -> None
     fx.step((0.0, 0.0, 0.0), 1.001)
     assert centres(fx) == [pytest.approx((5.0, 0.0, 0.0))] * 4
     assert fx._compiled_version == fx.mapping.version
+    # that recompilation spent the new tick's budget
+    with pytest.raises(DefinitionError, match="busy: 4 fixtures compiled this tick"):
+        fx.on_message(vf(((1.0, 0.0, 0.0, 1.0),), name="A"), 1.001)
     # the same map again changes nothing; a new one within the budget applies at once
     v = fx.version
     fx.set_linear([[0.2, 0.0, 0.0], [0.0, 0.2, 0.0], [0.0, 0.0, 0.2]], 2.0)
@@ -174,6 +213,37 @@ def test_a_mapping_change_over_the_budget_is_compiled_by_the_next_step() -> None
     fx.set_linear([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 0.5]], 3.0)
     assert fx.version == v + 1
     assert centres(fx)[0] == pytest.approx((2.0, 0.0, 0.0))
+
+
+def test_a_registration_over_the_budget_waits_for_the_next_step() -> None:
+    fx = fixtures(scale=0.1, max_primitives=4)
+    fx.on_message(vf(((1.0, 0.0, 0.0, 1.0),) * 3, name="A"), 1.0)
+    reg = np.eye(4)
+    reg[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    fx.registration(reg.tolist(), 1.0)  # 3 more to compile in a tick that compiled 3 of 4
+    assert centres(fx)[0] == pytest.approx((10.0, 0.0, 0.0))  # stale
+    fx.step((0.0, 0.0, 0.0), 1.001)
+    assert centres(fx) == [pytest.approx((0.0, -10.0, 0.0))] * 3
+
+
+def test_a_mapping_change_within_the_budget_spends_it() -> None:
+    fx = fixtures(scale=0.1, max_primitives=4)
+    fx.on_message(vf(((1.0, 0.0, 0.0, 1.0),), name="A"), 1.0)
+    fx.on_message(vf(((1.0, 0.0, 0.0, 1.0),), name="B"), 1.0)
+    fx.set_linear([[0.2, 0.0, 0.0], [0.0, 0.2, 0.0], [0.0, 0.0, 0.2]], 1.0)  # 2 + 2: at once
+    assert centres(fx) == [pytest.approx((5.0, 0.0, 0.0))] * 2
+    with pytest.raises(DefinitionError, match="busy: 4 fixtures compiled this tick"):
+        fx.on_message(vf(((1.0, 0.0, 0.0, 1.0),), name="A"), 1.0)
+
+
+def test_a_step_without_a_mapping_change_compiles_nothing() -> None:
+    fx = fixtures(scale=0.1, max_primitives=4)
+    fx.on_message(vf(((1.0, 0.0, 0.0, 1.0),) * 3, name="A"), 1.0)
+    active = fx.active
+    fx.step((0.0, 0.0, 0.0), 2.0)
+    assert fx.active is active
+    fx.on_message(vf(((1.0, 0.0, 0.0, 1.0),), name="B"), 2.0)  # the tick's whole budget left
+    assert len(fx.active) == 4
 
 
 def test_a_mapping_change_without_fixtures_is_noted_and_builds_no_set() -> None:
@@ -290,12 +360,17 @@ def test_a_sphere_is_shown_as_a_closed_outward_mesh_on_its_surface() -> None:
                                     "frame": "patient"}
 
 
+@pytest.mark.parametrize("rotated", [False, True], ids=["aligned", "rotated"])
 @pytest.mark.parametrize(
-    "normal", [(0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (-3.0, 0.5, 0.0), (0.3, -0.4, 2.0)],
-    ids=["z", "x", "near-x", "oblique"],
+    "normal",
+    [(0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, -1.0, 0.0), (1.0, 1.0, 0.0), (1.0, 0.0, 1.0),
+     (-3.0, 0.5, 0.0), (-3.0, 0.5, 1.0), (0.3, -0.4, 2.0)],
+    ids=["z", "x", "y", "xy", "xz", "near-x", "near-x-tilted", "oblique"],
 )
-def test_a_plane_is_shown_as_a_100_mm_square_facing_its_normal(normal: Any) -> None:
-    fx = fixtures(scale=0.1, rotation=R1.tolist())
+def test_a_plane_is_shown_as_a_100_mm_square_facing_its_normal(normal: Any, rotated: bool) -> None:
+    """Whatever the normal (along an axis, near x, where the square's first side is built
+    from y instead of x, or oblique), in the patient frame as Slicer shows it."""
+    fx = fixtures(scale=0.1, rotation=R1.tolist() if rotated else None)
     c = (5.0, 6.0, -7.0)
     fx.on_message(plane("Wall", c, normal), 1.0)
     model: Any = fx.model_message("M")
@@ -312,6 +387,14 @@ def test_a_plane_is_shown_as_a_100_mm_square_facing_its_normal(normal: Any) -> N
     turn = np.cross(pts[1] - pts[0], pts[2] - pts[0])
     assert np.allclose(turn / np.linalg.norm(turn), n, atol=1e-5)  # facing the allowed side
     assert model.attributes[0].data.ravel().tolist() == [KIND_CODE["plane"]]
+
+
+def test_the_square_of_a_normal_of_any_length() -> None:
+    corners = np.array(_square((1.0, 2.0, 3.0), (0.0, 0.0, 5.0), 10.0))
+    assert np.allclose(corners[:, 2], 3.0) and np.allclose(corners.mean(axis=0), (1.0, 2.0, 3.0))
+    assert np.allclose(np.linalg.norm(corners[1] - corners[0]), 20.0)
+    turn = np.cross(corners[1] - corners[0], corners[2] - corners[0])
+    assert np.allclose(turn / np.linalg.norm(turn), (0.0, 0.0, 1.0))
 
 
 def test_guides_are_shown_as_lines_before_the_polygons() -> None:
@@ -336,15 +419,16 @@ def test_the_proxy_is_the_tool_when_free_and_the_contact_point_in_contact() -> N
     fx = fixtures(scale=0.1, rotation=R1.tolist())
     fx.on_message(points([pt("K", (0.0, 0.0, 0.0), radius=1.0), pt("", (30.0, 0.0, 0.0),
                           radius=1.0)], name="Keep", kind="forbidden"), 1.0)
-    fx.step((2.0, 0.0, 0.0), 2.0)
+    fx.step((2.0, -3.0, 4.0), 2.0)
     fx.displayed((0.5, -0.25, 0.125))
     free: Any = fx.proxy_message("FixtureProxy", timestamp=3.5)
-    assert np.allclose(free.matrix[:3, 3], (2.0, 0.0, 0.0), atol=1e-5)
+    assert np.allclose(free.matrix[:3, 3], (2.0, -3.0, 4.0), atol=1e-5)
     assert free.device_name == "FixtureProxy" and free.timestamp == 3.5
     assert free.header_version == 2
     assert dict(free.metadata) == {"MRMLNodeName": "FixtureProxy", "contact": "none",
                                    "force_n": "0.5000,-0.2500,0.1250",
-                                   "tool_mm": "2.000,0.000,0.000", "frame": "patient"}
+                                   "tool_mm": "2.000,-3.000,4.000", "frame": "patient"}
+    fx.step((2.0, 0.0, 0.0), 2.0005)
     fx.step((0.5, 0.0, 0.0), 2.001)  # half-way into K, from +x
     fx.step((30.5, 0.0, 0.0), 2.002)  # and into the unnamed one (a jump)
     inside: Any = fx.proxy_message("FixtureProxy")
