@@ -392,7 +392,8 @@ def test_a_plane_is_shown_as_a_100_mm_square_facing_its_normal(normal: Any, rota
 def test_the_square_of_a_normal_of_any_length() -> None:
     corners = np.array(_square((1.0, 2.0, 3.0), (0.0, 0.0, 5.0), 10.0))
     assert np.allclose(corners[:, 2], 3.0) and np.allclose(corners.mean(axis=0), (1.0, 2.0, 3.0))
-    assert np.allclose(np.linalg.norm(corners[1] - corners[0]), 20.0)
+    sides = [np.linalg.norm(corners[(i + 1) % 4] - corners[i]) for i in range(4)]
+    assert np.allclose(sides, 20.0)
     turn = np.cross(corners[1] - corners[0], corners[2] - corners[0])
     assert np.allclose(turn / np.linalg.norm(turn), (0.0, 0.0, 1.0))
 
