@@ -315,7 +315,7 @@ def test_a_long_read_hands_the_interpreter_lock_back_every_16_rows(
     yields: list[float] = []
     monkeypatch.setattr(statetable.time, "sleep", yields.append)
     table.window()
-    assert yields == [0, 0, 0, 0]  # after rows 16, 32, 48 and 64
+    assert yields == [0, 0, 0, 0]  # once every 16 rows
 
 
 class _Interrupted(Exception):
