@@ -251,11 +251,7 @@ class Interface:
             else None
         )
         #: a signed request is taken once, within its window (the senders' clocks: real time)
-        self._replay = (
-            ReplayGuard(float(getattr(cfg, "auth_max_age_s", 30.0)))
-            if self.auth_key is not None
-            else None
-        )
+        self._replay = ReplayGuard(cfg.auth_max_age_s) if self.auth_key is not None else None
         self._wall: Callable[[], float] = time.time
         self.transport = self._make_transport()
 
