@@ -340,3 +340,163 @@ def test_the_snapshot_shows_the_tip_its_age_and_the_counters() -> None:
     assert link.stats(1.0066)["age_ms"] == 6.6
     link.check(1.2)
     assert link.stats(1.2)["status"] == "lost"
+
+
+# ------------------------------------------------------------------ samples that come refused
+def test_samples_that_keep_coming_refused_are_a_late_then_a_lost_tip() -> None:
+    """The monitor hears every one (its numbers accounted, never a loss), but no usable tip
+    comes: stale past the deadline from the last usable tip, lost past the grace, once."""
+    link = ReturnLink("slave")
+    t = feed(link, 1, 3, 0.0, force_n="2,0,0")
+    seq = 4
+    events = []
+    for k in range(1, 60):  # a malformed force every 2 ms
+        now = t + k * P
+        assert not link.on_sample(tip(seq, force_n="x"), now, now)
+        seq += 1
+        ev = link.check(now)
+        if ev is not None:
+            events.append(ev)
+        if k * P <= 0.0065:
+            assert link.status == "fresh" and not link.unusable
+        elif k * P <= 0.1:
+            assert link.status == "stale" and link.unusable and not link.lost
+    assert link.monitor.accepted == 62 and link.monitor.lost_total == 0
+    assert not link.monitor.holding and not link.monitor.tripped
+    # 59 x 2 ms: lost at the first check past 100 ms (k = 51: 102 ms)
+    (ev,) = events
+    assert ev.kind == "latch" and ev.source == "content" and ev.time == t + 51 * P
+    assert ev.since_last_good_s == pytest.approx(0.102)
+    assert ev.run == int((0.102 - 0.0005) / P) == 50
+    assert ev.cause == (
+        "no usable tip for 102.00 ms (limit 100.0 ms): 51 samples refused, the last: "
+        "seq 54: force_n 'x' is not 3 numbers"
+    )
+    assert link.lost and link.losses == 1 and link.lost_cause == ev.cause
+    assert link.status == "lost" and not link.unusable
+    assert link.force == (2.0, 0.0, 0.0) and link.tip == (3.0, 0.0, 0.0)  # nothing taken
+    # a usable tip: back (re-armed), the count of refused ones starts again
+    now = t + 60 * P
+    assert link.on_sample(tip(seq, force_n="1,0,0"), now, now)
+    assert not link.lost and link.recoveries == 1 and link.status == "fresh"
+    assert link.check(now) is None and link.status == "fresh"
+    for k in range(1, 52):
+        seq += 1
+        assert not link.on_sample(tip(seq, map="1"), now + k * P, now + k * P)
+        link.check(now + k * P)
+    assert link.lost and link.losses == 2 and link.recoveries == 1
+    assert "102.00 ms" in link.lost_cause and "51 samples refused" in link.lost_cause
+    assert f"the last: seq {seq}: map" in link.lost_cause
+
+
+def test_a_refused_sample_now_and_then_leaves_the_tip_fresh() -> None:
+    link = ReturnLink("slave")
+    t = 0.0
+    for seq in range(1, 200):
+        t = seq * P
+        good = seq % 3 != 0
+        assert link.on_sample(tip(seq, force_n="1,0,0" if good else "?"), t, t) is good
+        assert link.check(t) is None and link.status == "fresh"
+    assert link.bad_metadata == 66 and link.losses == 0
+
+
+def test_before_any_usable_tip_or_arm_refused_samples_start_no_deadline() -> None:
+    """A master not yet RUNNING has not armed the link: nothing to be late for."""
+    link = ReturnLink("slave")
+    for seq in range(1, 100):
+        assert not link.on_sample(tip(seq, map="bad"), seq * P, seq * P)
+        assert link.check(seq * P) is None
+    assert link.status == "none" and not link.lost and not link.unusable
+
+
+def test_after_arm_a_slave_sending_only_refused_samples_is_lost_at_the_grace() -> None:
+    link = ReturnLink("slave")
+    link.unusable = True
+    link.arm(1.0)
+    assert not link.unusable
+    events = []
+    for k in range(1, 52):
+        now = 1.0005 + k * P  # half a period off the grace
+        link.on_sample(tip(k, (math.nan, 0.0, 0.0)), now, now)
+        ev = link.check(now)
+        if ev is not None:
+            events.append(ev.kind)
+        assert link.lost == (k >= 50)  # 100.5 ms after arm()
+    assert events == ["latch"]
+    assert link.lost and link.status == "lost" and "tip (nan, 0.0, 0.0)" in link.lost_cause
+    # then silence too: the monitor latches, but the link is lost already (told once)
+    assert link.check(2.0) is None and link.losses == 1 and link.monitor.tripped
+    assert "tip (nan, 0.0, 0.0)" in link.lost_cause
+    link.arm(3.0)
+    assert not link.lost and link.status == "none"
+
+
+def test_a_silent_link_is_the_monitors_to_tell_not_told_twice() -> None:
+    link = ReturnLink("slave")
+    t = feed(link, 1, 3, 0.0)
+    kinds = [e.kind for k in range(1, 80) if (e := link.check(t + k * 0.002)) is not None]
+    assert kinds == ["hold", "latch"] and link.losses == 1
+    assert "no packet for" in link.lost_cause
+
+
+# ------------------------------------------------------------------ parameters and counters
+def test_the_loss_rule_and_the_grace_are_the_links_own() -> None:
+    link = ReturnLink("slave", period_s=0.001, max_consecutive=0, grace_s=0.05)
+    mon = link.monitor
+    assert (mon.period_s, mon.max_consecutive, mon.grace_s) == (0.001, 0, 0.05)
+    assert link.on_sample(tip(1), 0.0, 0.0)
+    assert link.on_sample(tip(3), 0.002, 0.002)  # one number missing: a loss here
+    assert link.status == "lost"
+    link.arm(1.0)
+    assert link.check(1.0495) is not None and not link.lost  # held at the deadline
+    ev = link.check(1.0505)
+    assert ev is not None and ev.kind == "latch" and link.lost  # lost past its 50 ms grace
+
+
+def test_every_refusal_loss_and_recovery_is_counted() -> None:
+    link = ReturnLink("slave")
+    assert link.on_sample(tip(1), 0.0, 0.0)
+    for _ in range(2):
+        assert not link.on_sample(tip(1), P, P)
+    assert link.refused == 2
+    for seq in (2, 3):
+        assert not link.on_sample(tip(seq, (math.inf, 0.0, 0.0)), P, P)
+    for seq in (4, 5):
+        assert not link.on_sample(tip(seq, force_n="1,2"), P, P)
+    for seq in (6, 7):
+        assert not link.on_sample(tip(seq, map="1,2"), P, P)
+    assert link.bad_metadata == 6 and link.samples == 1
+    t = P
+    seq = 8
+    for n in (1, 2):
+        t += 0.2
+        link.check(t)  # silent past the grace: lost
+        assert link.losses == n and link.lost
+        assert link.on_sample(tip(seq), t, t)  # back
+        seq += 1
+        assert link.recoveries == n and not link.lost
+    st = link.stats(t)
+    assert (st["refused"], st["bad"], st["losses"], st["recoveries"]) == (2, 6, 2, 2)
+
+
+def test_the_snapshot_before_any_tip_says_not_following() -> None:
+    st = ReturnLink("slave").stats(0.0)
+    assert st["following"] is False and st["slave_state"] == "" and st["samples"] == 0
+    assert st["lost_cause"] == "" and st["last_error"] == "" and st["late"] == 0
+
+
+def test_a_tip_exactly_at_the_deadline_is_still_fresh_in_the_snapshot() -> None:
+    link = ReturnLink("slave")
+    link.on_sample(tip(1), 0.0, 0.0)
+    d = link.monitor.deadline_s
+    assert link.stats(d)["status"] == "fresh"
+    assert link.stats(math.nextafter(d, 1.0))["status"] == "stale"
+
+
+def test_small_timestamps_of_an_unnumbered_tip_are_timestamps_too() -> None:
+    """A v1 sender whose clock started at 0 (a simulator): any timestamp above 0 counts."""
+    link = ReturnLink("slave")
+    for i in range(3):
+        assert link.on_sample(tip(None, t_sample=0.1 + i * P), i * P, i * P)
+    assert link.on_sample(tip(None, t_sample=0.1 + 6 * P), 3 * P, 3 * P)
+    assert link.monitor.tripped and link.monitor.lost_total == 3
