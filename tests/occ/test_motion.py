@@ -31,10 +31,13 @@ class Scripted(Controller):
     """Returns the targets it is given (None: hold), counting its calls; commands positions
     or, with ``effort``, efforts; ``drives=False``: a hand-moved device (commands nothing)."""
 
-    def __init__(self, effort: bool = False, drives: bool = True) -> None:
+    def __init__(
+        self, effort: bool = False, drives: bool = True, joints: Sequence[int] | None = None
+    ) -> None:
         super().__init__()
         self.effort = effort
         self.drives_joints = drives
+        self.joints = joints  # the joints it commands (None: all)
         self.target: Sequence[float] | None = None
         self.calls: list[float] = []
 
@@ -43,7 +46,9 @@ class Scripted(Controller):
         if not self.drives_joints:
             return ()
         kind = "effort" if self.effort else "position"
-        return tuple(f"{j}/{kind}" for j in self.data.joint_names)
+        names = self.data.joint_names
+        idx = range(len(names)) if self.joints is None else self.joints
+        return tuple(f"{names[i]}/{kind}" for i in idx)
 
     def update(self, now: float) -> Sequence[float] | None:
         self.calls.append(now)
@@ -51,15 +56,17 @@ class Scripted(Controller):
 
 
 class Rig:
-    def __init__(self, effort: bool = False, drives: bool = True) -> None:
+    def __init__(self, effort: bool = False, drives: bool = True, split: bool = False) -> None:
         self.joints = [
             Joint(f"j{i}", limits=JointLimits(-3.0, 3.0, velocity=v)) for i, v in enumerate(VMAX)
         ]
         clock = SimClock()
         frame = Frame.builtin("occ_slave")
         self.data = RobotData("r", [j.name for j in self.joints], (0.1, 0.2, 0.3), frame, clock)
-        self.ctl = Scripted(effort, drives)
-        self.set = ControllerSet([self.ctl])
+        self.ctl = Scripted(effort, drives, [0] if split else None)
+        #: with ``split``, a second controller commands the other two joints
+        self.other = Scripted(effort, drives, [1, 2])
+        self.set = ControllerSet([self.ctl, self.other] if split else [self.ctl])
         ctx = ControllerContext(
             clock=clock, frame=frame, rate_hz=1.0 / PERIOD, interfaces=(),
             loop_t0=lambda: 0.0, period_s=PERIOD, shift=lambda s: None,
@@ -273,6 +280,21 @@ def test_a_hand_moved_device_is_never_written_its_controllers_run_while_followin
     assert rig.ctl.calls == [0.001] and rig.writes == []
 
 
+def test_joints_a_controller_holds_keep_their_setpoint_while_the_others_follow() -> None:
+    """Two controllers, each commanding its own joints: one that holds (None) leaves its
+    joints where the robot last told them."""
+    rig = Rig(split=True)
+    rig.enter(S.READY, S.ENABLED, S.RUNNING)
+    rig.ctl.target = (0.1, 9.0, 9.0)  # only its joint 0 is taken
+    rig.other.target = None
+    assert rig.tick(S.RUNNING, 0.001) == [0.1, 0.2, 0.3]
+    rig.ctl.target = (0.1 + STEP[0], 9.0, 9.0)
+    rig.tick(S.RUNNING, 0.002)
+    rig.other.target = (9.0, 0.2, 0.3)
+    rig.ctl.target = None
+    assert rig.tick(S.RUNNING, 0.003) == pytest.approx([0.1 + STEP[0], 0.2, 0.3], abs=1e-15)
+
+
 # ------------------------------------------------------------------ efforts
 def test_a_haptic_master_gets_its_efforts_while_running_and_zero_otherwise() -> None:
     rig = Rig(effort=True)
@@ -300,6 +322,19 @@ def test_a_haptic_master_gets_its_efforts_while_running_and_zero_otherwise() -> 
     rig.enter(S.STOPPED)
     assert rig.tick(S.STOPPED, 0.006) == [0.0, 0.0, 0.0]
     assert all(w[2] for w in rig.writes)  # every write an effort
+
+
+def test_a_haptic_master_whose_controllers_share_the_joints_gets_each_ones_efforts() -> None:
+    rig = Rig(effort=True, split=True)
+    rig.enter(S.READY, S.ENABLED, S.RUNNING)
+    eff = rig.data.effort_command
+    assert eff is not None
+    eff[:] = [0.7, 0.8, 0.9]  # the efforts last told
+    rig.ctl.target = (1.0, 5.0, 5.0)
+    rig.other.target = None
+    assert rig.tick(S.RUNNING, 0.001) == [1.0, 0.8, 0.9]  # the other holds what it told
+    rig.other.target = (5.0, 2.0, 3.0)
+    assert rig.tick(S.RUNNING, 0.002) == [1.0, 2.0, 3.0]
 
 
 # ------------------------------------------------------------------ the build check

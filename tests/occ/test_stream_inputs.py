@@ -194,6 +194,51 @@ def test_a_stall_of_the_loop_never_makes_the_samples_it_kept_waiting_stale(
     assert slave.seen.seqs() == [1, 2] and slave.streams.monitor.stale == 1  # type: ignore[union-attr]
 
 
+def test_samples_queued_before_the_first_tick_are_never_stale(slave: Slave) -> None:
+    """The socket is bound before the loop starts: what waited for the first tick may be old
+    by its stamp, and is not refused for it."""
+    master = slave.sim.peer("master", address=MASTER)
+    slave.clock.set(0.5)
+    master.send(slave.position(1))
+    master.send(slave.position(2, age_s=0.2))
+    slave.drain(0.5)
+    assert slave.seen.seqs() == [1, 2] and slave.streams.monitor.stale == 0  # type: ignore[union-attr]
+
+
+def test_a_sample_queued_late_by_its_reader_is_judged_by_its_own_arrival(slave: Slave) -> None:
+    """The interface thread stamped it (t_rx) before the previous tick began and queued it
+    after that tick drained: its earliest arrival is its own stamp, not the previous tick."""
+    master = slave.sim.peer("master", address=MASTER)
+    slave.clock.set(0.5)
+    master.send(slave.position(1))
+    slave.drain(0.5)
+    slave.clock.set(0.55)
+    late = pose_sample("master", None, slave.position(2, age_s=0.04), slave.clock.now())
+    assert late is not None and late.t_rx == 0.55
+    slave.drain(0.6)
+    slave.robot.interfaces["master"].streams["POSITION"].put(late)
+    slave.drain(0.61)  # 40 ms old at its arrival (followed), 90 ms at the previous tick
+    assert slave.seen.seqs() == [1, 2] and slave.streams.monitor.stale == 0  # type: ignore[union-attr]
+
+
+def test_samples_pushed_out_of_the_queue_are_judged_by_the_same_rule(slave: Slave) -> None:
+    """Overflowed samples are judged as the queued ones are (earliest arrival: the previous
+    tick): stale ones are counted stale; none moves the robot, none is lost."""
+    master = slave.sim.peer("master", address=MASTER)
+    slave.clock.set(0.5)
+    master.send(slave.position(1))
+    slave.drain(0.5)
+    slave.drain(0.59)
+    slave.clock.set(0.6)
+    for s in range(2, 14):  # the 2 oldest pushed out, all stamped 70 ms before 0.6
+        master.send(slave.position(s, age_s=0.07))
+    slave.drain(0.6)
+    mon = slave.streams.monitor
+    assert mon is not None
+    assert mon.stale == 12 and mon.received == 13 and mon.lost_total == 0
+    assert slave.seen.seqs() == [1]
+
+
 def test_the_wall_clock_is_asked_once_a_tick_and_only_when_a_sample_needs_it(
     slave: Slave,
 ) -> None:
@@ -215,6 +260,32 @@ def test_the_wall_clock_is_asked_once_a_tick_and_only_when_a_sample_needs_it(
     master.send(slave.position(4))
     slave.drain(0.03)
     assert len(calls) == 2
+    # samples pushed out of a queue and queued ones: still once
+    for s in range(5, 20):
+        master.send(slave.position(s))
+    slave.drain(0.04)
+    assert len(calls) == 3 and slave.seen.seqs()[-1] == 19
+
+
+def test_two_overflowing_queues_ask_the_wall_clock_once() -> None:
+    t = Trio()
+    try:
+        calls: list[float] = []
+        wall = t.s.streams._wall_time
+
+        def counting() -> float:
+            calls.append(1.0)
+            return wall()
+
+        t.s.streams._wall_time = counting
+        for seq in range(1, 15):
+            t.send(t.mentor, seq)
+            t.send(t.trainee, seq)
+        t.s.drain(0.01)
+        assert len(calls) == 1 and t.s.seen.seqs() == list(range(5, 15))
+        assert t.s.streams.monitors["trainee"].received == 14
+    finally:
+        t.s.close()
 
 
 def test_samples_the_loop_could_not_take_in_time_are_seen_never_lost_never_followed(
@@ -234,7 +305,7 @@ def test_samples_the_loop_could_not_take_in_time_are_seen_never_lost_never_follo
     assert mon is not None
     assert slave.seen.seqs() == [1, *range(7, 17)]  # the queued ones followed
     assert mon.received == 16 and mon.lost_total == 0 and not mon.tripped
-    assert mon.reordered == 0 and mon.duplicates == 0
+    assert mon.reordered == 0 and mon.duplicates == 0 and mon.stale == 0 and mon.future == 0
     assert not q.evicted and not q.pending
     # each is recorded once: the pushed-out ones are not
     assert len(slave.seen.recorded) == 11
@@ -403,6 +474,23 @@ def test_stream_items_before_bind_have_nowhere_to_go(slave: Slave) -> None:
         fresh.drain(0.01, None)
 
 
+def test_a_discrete_input_before_bind_has_nowhere_to_go() -> None:
+    s = Slave(_with_tracker())
+    try:
+        robot = s.robot
+        fresh = StreamInputs(robot.interfaces, robot.config.safety.loss, None, s.clock.wall_time)
+        tracker = s.sim.peer("tracker", address=("127.0.0.1", 44000))
+        tracker.send(
+            igtl.VirtualFixtureMessage(
+                hardness=0.5, spheres=((0.0, 0.0, 0.0, 1.0),), device_name="VF", header_version=2
+            )
+        )
+        with pytest.raises(RuntimeError, match="StreamInputs.bind was not called"):
+            fresh.drain(0.01, None)
+    finally:
+        s.close()
+
+
 def test_judge_takes_the_earlier_of_the_arrival_and_the_previous_tick() -> None:
     from occ.safety import LossMonitor, Verdict
 
@@ -415,16 +503,20 @@ def test_judge_takes_the_earlier_of_the_arrival_and_the_previous_tick() -> None:
     assert judge(mon, s2, 0.09, 1000.0, 0.02) is Verdict.ACCEPT
     s3 = PoseSample("m", None, "Master", (0.0, 0.0, 0.0), seq=3, t_sample=1000.03, t_rx=0.09)
     assert judge(mon, s3, 0.09, 1000.0, 0.09) is Verdict.STALE
-    # arrived before the previous tick: its own arrival is the earliest
-    s4 = PoseSample("m", None, "Master", (0.0, 0.0, 0.0), seq=4, t_sample=1000.03, t_rx=0.09)
-    assert judge(mon, s4, 0.2, 1000.0, 0.15) is Verdict.STALE
-    s5 = PoseSample("m", None, "Master", (0.0, 0.0, 0.0), seq=5, t_sample=1000.2, t_rx=0.2)
-    assert judge(mon, s5, 0.2, 1000.0) is Verdict.ACCEPT  # no previous tick: since -inf
+    # arrived before the previous tick: its own arrival is the earliest (40 ms old then,
+    # 100 ms at the previous tick)
+    s4 = PoseSample("m", None, "Master", (0.0, 0.0, 0.0), seq=4, t_sample=1000.05, t_rx=0.09)
+    assert judge(mon, s4, 0.2, 1000.0, 0.15) is Verdict.ACCEPT
+    s4b = PoseSample("m", None, "Master", (0.0, 0.0, 0.0), seq=5, t_sample=1000.03, t_rx=0.09)
+    assert judge(mon, s4b, 0.2, 1000.0, 0.15) is Verdict.STALE
+    # no previous tick (since -inf): it may have come any time, never stale
+    s5 = PoseSample("m", None, "Master", (0.0, 0.0, 0.0), seq=6, t_sample=1000.1, t_rx=0.2)
+    assert judge(mon, s5, 0.2, 1000.0) is Verdict.ACCEPT
 
 
 # ------------------------------------------------------------------ the polled path
-def _polled_slave() -> Robot:
-    cfg = load_config(SLAVE)
+def _polled_slave(cfg: Any = None) -> Robot:
+    cfg = load_config(SLAVE) if cfg is None else cfg
     cfg = cfg.model_copy(
         update={"interfaces": tuple(i.model_copy(update={"port": 0}) for i in cfg.interfaces)}
     )
@@ -477,10 +569,106 @@ def test_a_polled_socket_gives_a_tick_at_most_poll_limit_datagrams() -> None:
         robot.shutdown()
 
 
+def test_a_polled_master_not_in_control_is_judged_and_moves_nothing() -> None:
+    cfg = load_config(COLLAB)
+    cfg = cfg.model_copy(
+        update={"interfaces": tuple(i.model_copy(update={"port": 0}) for i in cfg.interfaces)}
+    )
+    from occ.clock import SimClock
+
+    robot = build_robot(cfg, clock=SimClock())
+    robot.configure()
+    robot.activate()
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        seen = Seen(robot.streams)
+        assert robot.streams.input == "mentor" and len(robot.streams._pollers) == 2
+        for name, seq in (("trainee", 1), ("trainee", 2), ("mentor", 1)):
+            iface = robot.interfaces[name]
+            assert iface.transport.polled  # type: ignore[union-attr]
+            address = iface.address
+            assert address is not None
+            msg = igtl.PositionMessage(
+                (float(seq), 0.0, 0.0), device_name="Master", header_version=2,
+                message_id=seq, timestamp=robot.clock.wall_time(),
+            )  # fmt: skip
+            tx.sendto(msg.pack(), address)
+            ready = iface.transport._ready  # type: ignore[union-attr]
+            end = time.monotonic() + 2.0
+            while not ready(0) and time.monotonic() < end:
+                time.sleep(0.0005)
+            robot.streams.drain(0.001 * (seq + (name == "mentor") * 10), seen)
+        assert [(s.interface, s.seq) for s, _ in seen.samples] == [("mentor", 1)]
+        assert robot.streams.monitors["trainee"].accepted == 2
+        assert robot.interfaces["trainee"].streams["POSITION"].received == 2
+    finally:
+        tx.close()
+        robot.shutdown()
+
+
+def test_every_polled_datagram_that_fails_to_route_is_counted(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import occ.interfaces as interfaces_mod
+
+    robot = _polled_slave()
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        seen = Seen(robot.streams)
+        iface = robot.interfaces["master"]
+        address = iface.address
+        assert address is not None
+
+        def broken(*args: Any) -> None:
+            raise RuntimeError("routing bug")
+
+        monkeypatch.setattr(interfaces_mod, "pose_sample", broken)
+        for seq in (1, 2, 3):
+            msg = igtl.PositionMessage((0.0, 0.0, 0.0), device_name="Master", header_version=2,
+                                       message_id=seq)  # fmt: skip
+            tx.sendto(msg.pack(), address)
+        ready = iface.transport._ready  # type: ignore[union-attr]
+        end = time.monotonic() + 2.0
+        while not ready(0) and time.monotonic() < end:
+            time.sleep(0.0005)
+        time.sleep(0.05)
+        robot.streams.drain(0.001, seen)
+        assert robot.streams.route_errors == 3 and seen.samples == []
+    finally:
+        tx.close()
+        robot.shutdown()
+
+
+def test_a_polled_datagram_is_counted_on_the_queue_of_its_type() -> None:
+    robot = _polled_slave(_with_tracker())
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        iface = robot.interfaces["tracker"]
+        assert iface.transport.polled and len(iface.streams) == 2  # type: ignore[union-attr]
+        seen = Seen(robot.streams)
+        address = iface.address
+        assert address is not None
+        vf = igtl.VirtualFixtureMessage(
+            hardness=0.5, spheres=((0.0, 0.0, 0.0, 1.0),), device_name="VF", header_version=2
+        )
+        tx.sendto(vf.pack(), address)
+        ready = iface.transport._ready  # type: ignore[union-attr]
+        end = time.monotonic() + 2.0
+        while not ready(0) and time.monotonic() < end:
+            time.sleep(0.0005)
+        robot.streams.drain(0.001, seen)
+        assert [i.msg.message_type for i, _ in seen.inputs] == ["VFIXTURE"]
+        assert iface.streams["VFIXTURE"].received == 1
+        assert iface.streams["TRANSFORM"].received == 0
+    finally:
+        tx.close()
+        robot.shutdown()
+
+
 # ------------------------------------------------------------------ the typed sample
 def test_a_position_becomes_a_sample_with_everything_the_controllers_use() -> None:
     msg = igtl.PositionMessage(
-        (1.5, -2.0, 3.25), (0.0, 0.0, 0.6, 0.8), device_name="Master", header_version=2,
+        (1.5, -2.0, 3.25), (0.1, -0.5, 0.3, 0.8), device_name="Master", header_version=2,
         message_id=77, timestamp=1234.5, metadata={"run": "0", "clutch": "1", "x": "y"},
     )  # fmt: skip
     s = pose_sample("master", "peer", msg, 0.25)
@@ -488,7 +676,7 @@ def test_a_position_becomes_a_sample_with_everything_the_controllers_use() -> No
     assert (s.interface, s.peer, s.device, s.kind) == ("master", "peer", "Master", "POSITION")
     assert s.seq == 77 and s.t_sample == 1234.5 and s.t_rx == 0.25
     assert s.position_mm == (1.5, -2.0, 3.25)
-    assert s.quaternion == pytest.approx((0.0, 0.0, 0.6, 0.8))
+    assert s.quaternion == pytest.approx((0.1, -0.5, 0.3, 0.8))
     assert all(type(v) is float for v in (*s.position_mm, *s.quaternion))
     assert s.run is False and s.clutch is True and s.meta["x"] == "y" and s.msg is msg
     # run defaults to 1, clutch to 0; only "1" means on
@@ -548,6 +736,11 @@ def test_a_sample_made_by_hand_has_the_defaults_of_a_master_that_follows() -> No
         (0.3, 0.9, 0.1, -0.2),
         (-0.2, 0.1, 0.9, 0.3),
         (0.7, 0.1, 0.1, -0.7),
+        (0.9, 0.3, -0.2, 0.2),
+        (0.2, 0.9, -0.3, 0.1),
+        (-0.3, 0.2, 0.9, 0.15),
+        (0.5, 0.0, 0.5, 1e-6),  # x = z, no y: the y branch would divide by zero
+        (0.5, 0.0, 0.5, -1e-6),
     ],
 )
 def test_a_rotation_matrix_gives_back_its_quaternion_with_w_not_negative(
@@ -562,6 +755,38 @@ def test_a_rotation_matrix_gives_back_its_quaternion_with_w_not_negative(
     assert rotation_to_quaternion(r.tolist()) == pytest.approx(want, abs=1e-12)
     assert quaternion_to_rotation(got) == pytest.approx(r, abs=1e-12)
     assert r @ r.T == pytest.approx(np.eye(3), abs=1e-12)
+
+
+def _near_half_turns() -> list[tuple[float, float, float, float]]:
+    """Rotations with one or two large components and a small one (1e-5, 1e-6; 0 for the
+    rest): a branch that divides by a small component loses digits (1e-16 / 4e-6), the one
+    by the largest keeps them."""
+    out = []
+    for big in range(4):
+        for small in range(4):
+            if small == big:
+                continue
+            for eps in (1e-5, -1e-6):
+                for second in range(4):
+                    q = [0.0] * 4
+                    q[big] = 1.0
+                    if second not in (big, small):
+                        q[second] = 0.5
+                    q[small] = eps
+                    out.append((q[0], q[1], q[2], q[3]))
+    return out
+
+
+@pytest.mark.parametrize("q", _near_half_turns())
+def test_rotations_near_a_half_turn_keep_every_digit(q: tuple[float, float, float, float]) -> None:
+    r = quaternion_to_rotation(q)
+    got = rotation_to_quaternion(r)
+    n = math.sqrt(sum(v * v for v in q))
+    want = tuple(v / n for v in q)
+    if sum(a * b for a, b in zip(got, want, strict=True)) < 0.0:  # q and -q: one rotation
+        want = tuple(-v for v in want)
+    assert got[3] >= 0.0
+    assert got == pytest.approx(want, abs=1e-13)
 
 
 def test_a_zero_quaternion_is_no_rotation() -> None:
