@@ -385,7 +385,7 @@ def test_samples_that_keep_coming_refused_are_a_late_then_a_lost_tip() -> None:
         assert not link.on_sample(tip(seq, map="1"), now + k * P, now + k * P)
         link.check(now + k * P)
     assert link.lost and link.losses == 2 and link.recoveries == 1
-    assert "102.00 ms" in link.lost_cause and "51 samples refused" in link.lost_cause
+    assert "102.00 ms" in link.lost_cause and "ms): 51 samples refused" in link.lost_cause
     assert f"the last: seq {seq}: map" in link.lost_cause
 
 
@@ -424,6 +424,7 @@ def test_after_arm_a_slave_sending_only_refused_samples_is_lost_at_the_grace() -
         assert link.lost == (k >= 50)  # 100.5 ms after arm()
     assert events == ["latch"]
     assert link.lost and link.status == "lost" and "tip (nan, 0.0, 0.0)" in link.lost_cause
+    assert "(limit 100.0 ms): 50 samples refused, the last: seq 50: tip" in link.lost_cause
     # then silence too: the monitor latches, but the link is lost already (told once)
     assert link.check(2.0) is None and link.losses == 1 and link.monitor.tripped
     assert "tip (nan, 0.0, 0.0)" in link.lost_cause
@@ -500,3 +501,20 @@ def test_small_timestamps_of_an_unnumbered_tip_are_timestamps_too() -> None:
         assert link.on_sample(tip(None, t_sample=0.1 + i * P), i * P, i * P)
     assert link.on_sample(tip(None, t_sample=0.1 + 6 * P), 3 * P, 3 * P)
     assert link.monitor.tripped and link.monitor.lost_total == 3
+
+
+def test_a_link_refusing_samples_is_stale_only_past_the_deadline() -> None:
+    link = ReturnLink("slave")
+    link.on_sample(tip(1), 0.0, 0.0)
+    d = link.monitor.deadline_s
+    assert not link.on_sample(tip(2, force_n="?"), P, P)
+    link.check(d)  # exactly the deadline after the last usable tip: still fresh
+    assert link.status == "fresh" and not link.unusable
+    link.check(math.nextafter(d, 1.0))
+    assert link.status == "stale" and link.unusable
+
+
+def test_any_first_map_is_parsed_whatever_its_text() -> None:
+    link = ReturnLink("slave")
+    assert not link.on_sample(tip(1, map="XXXX"), 0.0, 0.0)
+    assert link.bad_metadata == 1 and link.linear is None
