@@ -217,6 +217,7 @@ def test_the_replay_guard_takes_a_request_once_within_its_window() -> None:
     assert early.check(_request(2, 0.75), 10.0) == ""
 
 
+@pytest.mark.req("SR-SEC-7")
 def test_the_window_edge_is_in_the_window_for_memory_as_for_age() -> None:
     """A request signed exactly ``max_age_s`` ago is taken (its age is not more than the
     window), so its tag must still be remembered at that instant, after a clean-up too."""

@@ -446,6 +446,7 @@ def test_a_malformed_force_is_refused_and_counted_not_displayed(master, bad: str
     assert st["force_n"] == [0.0, 2.0, 0.0]  # the last good force, fading as any late one
 
 
+@pytest.mark.req("SR-FORCE-2")
 def test_a_slave_whose_samples_all_come_refused_is_late_then_lost_never_a_held_force(
     master,
 ) -> None:
