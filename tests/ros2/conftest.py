@@ -9,13 +9,24 @@ from __future__ import annotations
 
 import os
 import random
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from occ.testing import wait_until as poll  # noqa: F401 - the ros2 tests import it from here
+from occ.testing import wait_until
+
+#: how long ``poll`` waits by default: 10 s; scripts/mutate sets 2 (OCC_BRIDGE_WAIT_S) since a
+#: killed mutant is often a reply or a sample that never comes (a loopback answer takes
+#: milliseconds here)
+WAIT_S = float(os.environ.get("OCC_BRIDGE_WAIT_S", "10"))
+
+
+def poll(pred: Callable[[], Any], timeout: float | None = None, every: float = 0.005) -> Any:
+    """:func:`occ.testing.wait_until`, by default for :data:`WAIT_S` (the ros2 tests import it
+    from here)."""
+    return wait_until(pred, WAIT_S if timeout is None else timeout, every)
 
 #: the DDS configuration of the tests that run DDS in the test process, on the host: loopback,
 #: unicast only (its comment says why; test_rclpy.py runs the shipped one in a namespace)
