@@ -28,6 +28,7 @@ def poll(pred: Callable[[], Any], timeout: float | None = None, every: float = 0
     from here)."""
     return wait_until(pred, WAIT_S if timeout is None else timeout, every)
 
+
 #: the DDS configuration of the tests that run DDS in the test process, on the host: loopback,
 #: unicast only (its comment says why; test_rclpy.py runs the shipped one in a namespace)
 UNICAST_CONFIG = Path(__file__).with_name("cyclonedds-unicast.xml")

@@ -626,14 +626,20 @@ def test_move_jp_waits_for_an_operators_ack_by_default(rig: Callable[..., Any]) 
     assert plan.command == '<Command Name="KeyframePlan" Interpolation="linear" Mode="stop"/>'
     robot = bridge.robots[ns]
     assert robot.move is None
+    bridge.move(ns, "move_jp", msgs.JointState(position=[0.0, 0.35, 0.1]))  # and another
+    assert ros.replies(2)[1].startswith("move_jp WAITING: plan 7 waits")
+    assert daemon.commands("KeyframeAdd")[1].command == (
+        '<Command Name="KeyframeAdd" T="1.000" Pose="0 0.35 0.1" Space="joint" Label="move_jp"/>'
+    )  # 0.05 m at 0.05 m/s: 1 s
     c = robot.counters
     assert (c.moves, c.moves_waiting, c.moves_running, c.replies, c.commands_refused) == (
-        1,
-        1,
+        2,
+        2,
         0,
-        1,
+        2,
         0,
     )
+    assert not daemon.commands("KeyframeAck")
 
 
 def test_move_cp_with_ack_moves_acknowledges_once_the_plan_is_previewed(
@@ -662,9 +668,11 @@ def test_move_cp_with_ack_moves_acknowledges_once_the_plan_is_previewed(
         '<Command Name="KeyframeAdd" T="5.000" Pose="30.000000 -40.000000 0.000000" '
         'Space="cartesian" Label="move_cp"/>'
     )
-    c = robot.counters
-    assert (c.moves, c.moves_running, c.moves_waiting, c.replies) == (1, 1, 0, 1)
     assert robot.move is None
+    bridge.move(ns, "move_cp", goal)  # again: acknowledged at once this time
+    assert ros.replies(2)[1] == "move_cp SUCCESS: plan 7 running: 2.000 s"
+    c = robot.counters
+    assert (c.moves, c.moves_running, c.moves_waiting, c.replies) == (2, 2, 0, 2)
     assert not [s for s in ros.take("status") if s.data.startswith("KEYFRAME_WAITING")]
 
 
@@ -820,6 +828,7 @@ def test_move_goals_the_bridge_refuses_itself(rig: Callable[..., Any]) -> None:
 def test_parse_master() -> None:
     assert parse_master("/occ/master=127.0.0.1:18946") == ("/occ/master", "127.0.0.1", 18946)
     assert parse_master("occ/master/=::1:5") == ("/occ/master", "::1", 5)
+    assert parse_master("/Xarm/X=h:1") == ("/Xarm/X", "h", 1)  # only slashes are stripped
     for bad in ("/occ/master", "/occ/master=127.0.0.1", "/occ/master=:1", "/occ/ma-ster=h:1",
                 "/occ/master=h:x1", "=h:1"):  # fmt: skip
         with pytest.raises(ValueError, match="expected /NAMESPACE=HOST:PORT"):
@@ -923,6 +932,7 @@ def test_master_stream_sends_the_latest_pose_in_mm_with_run_and_clutch(
     assert first.position == pytest.approx((10.0, -20.0, 300.0), abs=1e-4)
     assert first.quaternion == pytest.approx((0.0, 0.0, -s, s), abs=1e-6)
     assert first.timestamp > 1_000_000_000
+    assert first.layout == 24  # position + 3-element quaternion, as the master daemon's
     assert verify(first, b"any key") == "no HMAC"  # no key: not signed
     assert [m.metadata["run"] for m in got] == ["1", "1", "0"]
     assert [m.metadata["clutch"] for m in got] == ["0", "0", "0"]
@@ -954,6 +964,12 @@ def test_master_stream_keeps_a_positive_w_and_the_sequence_wraps(
     stream._send(1.0)
     (c,) = slave.take(1)
     assert c.message_id == 0
+    # the latest pose is the one sent; every pose counted
+    poses.write(pose(0.0, 0.0, 0.004, (0.0, 0.0, 0.0, 1.0)))
+    deliver(stream, 2.0, lambda: stream.poses == 2)
+    stream._send(2.0)
+    (d,) = slave.take(1)
+    assert d.position == pytest.approx((0.0, 0.0, 4.0), abs=1e-4) and d.message_id == 1
 
 
 def test_servo_mode_refuses_a_pose_in_another_frame(master: Callable[..., Any]) -> None:
@@ -1001,3 +1017,67 @@ def test_master_stream_binds_to_loopback_for_a_slave_on_loopback(dds: tuple[int,
         None,
     )
     assert (local.pose, local.clutch, local.sent, local.seq) == (None, False, 0, 0)
+
+
+def test_two_streams_each_have_their_own_port(dds: tuple[int, Any]) -> None:
+    """A bridge with --master and --servo runs two streams: each binds a port of its own (the
+    kernel's choice), so both start."""
+    _, dp = dds
+    streams = [MasterStream(dp, f"/occtest_ports/{n}", ("127.0.0.1", 9)) for n in "ab"]
+    try:
+        for stream in streams:
+            stream.udp.start()
+        ports = {stream.udp.address[1] for stream in streams}
+        assert len(ports) == 2 and min(ports) >= 1024, ports
+    finally:
+        for stream in streams:
+            stream.stop()
+
+
+def test_master_streams_subscriptions_as_ros2_nodes_discover_them(
+    dds: tuple[int, Any], namespace: str
+) -> None:
+    """What a ROS 2 node learns of the stream's subscriptions on discovery (DDS's built-in
+    subscription topic): servo_cp best effort (it matches reliable and best-effort publishers
+    alike), clutch reliable (a press is not lost), each with its type's ROS 2 Jazzy type hash
+    in USER_DATA, which Jazzy nodes compare."""
+    from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsSubscription
+
+    _, dp = dds
+    seen = BuiltinDataReader(dp, BuiltinTopicDcpsSubscription)
+    stream = MasterStream(dp, namespace, ("127.0.0.1", 9))
+    found: dict[str, Any] = {}
+
+    def both() -> bool:
+        for s in seen.take(N=256):
+            found[s.topic_name] = s.qos
+        return all(topic_name(namespace, leaf) in found for leaf in ("servo_cp", "clutch"))
+
+    try:
+        assert poll(both), sorted(found)
+        for leaf, cls, reliability in (
+            ("servo_cp", msgs.PoseStamped, "Policy.Reliability.BestEffort"),
+            ("clutch", msgs.String, "Policy.Reliability.Reliable("),
+        ):
+            qos = found[topic_name(namespace, leaf)]
+            assert str(qos[Policy.Reliability]).startswith(reliability), (leaf, qos)
+            assert qos[Policy.Userdata].data == msgs.user_data(cls), leaf
+    finally:
+        stream.stop()
+
+
+def test_servo_cf_refusals_are_logged_first_and_every_thousandth(
+    dds: tuple[int, Any], namespace: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A client streaming wrenches in a wrong frame (hundreds a second) is reported in the log
+    at its first refusal and every 1000th, with the count and the reason, not once per wrench."""
+    domain_id, _ = dds
+    endpoint = [("127.0.0.1", free_port(), namespace)]
+    with Bridge((), endpoint, domain_id=domain_id, tf=False) as bridge:
+        with caplog.at_level("WARNING", logger="occ_ros2"):
+            for _ in range(2001):
+                bridge.servo_cf(namespace, wrench("world", 1.0, 0.0, 0.0))
+    lines = [r.getMessage() for r in caplog.records if "servo_cf refused" in r.getMessage()]
+    why = "frame 'world' (takes 'slave_base')"
+    assert lines == [f"{namespace}/servo_cf refused ({n} so far): {why}" for n in (1, 1000, 2000)]
+    assert bridge.stats()[namespace]["servo_cf_refused"] == 2001
