@@ -69,6 +69,10 @@ def ok(name: str, text: str) -> tuple[str, str] | None:
     return "SUCCESS", f"{name} done"
 
 
+#: the time stamp of the daemon's replies here
+REPLY_STAMP = 1_700_000_500.75
+
+
 class DaemonPort:
     """A daemon's operator port as the bridge sees it (module docstring). ``answer(name,
     text)`` gives (Status, Message) for a COMMAND, or None to leave it unanswered (then
@@ -91,6 +95,7 @@ class DaemonPort:
                 self.reply(msg, *got)
 
     def reply(self, cmd: igtl.Message, status: str, text: str) -> None:
+        """The daemon's answer (occ/commands.py), stamped :data:`REPLY_STAMP`."""
         self.server.send(
             igtl.RTSCommandMessage(
                 command_id=cmd.command_id,  # type: ignore[attr-defined]
@@ -98,6 +103,7 @@ class DaemonPort:
                 device_name="occd",
                 header_version=2,
                 metadata={"Status": status, "Message": text},
+                timestamp=REPLY_STAMP,
             )
         )
 
@@ -278,6 +284,8 @@ def test_get_state_answers_set_the_state_whoever_asked(rig: Callable[..., Any]) 
     assert ros.seen["state"][0].data == "STOPPED"
     assert poll(lambda: bool(ros.ops()))
     assert ros.ops()[0] == ("PAUSED", True, False)
+    stamp = ros.take("operating_state")[0].header.stamp  # the daemon's, of its answer
+    assert (stamp.sec, stamp.nanosec) == (1_700_000_500, 750_000_000)
     for _ in range(3):
         bridge.command(ros_ns(bridge), "GetState")
     assert ros.replies(3) == [
@@ -287,6 +295,23 @@ def test_get_state_answers_set_the_state_whoever_asked(rig: Callable[..., Any]) 
     ]
     assert [s.data for s in ros.take("state")] == ["STOPPED", "ESTOP"]
     assert bridge.robots[ros_ns(bridge)].state == "ESTOP"
+
+
+def test_a_bridge_started_during_a_plan_says_busy_at_once(rig: Callable[..., Any]) -> None:
+    """The daemon answers in order: GetStats (a plan runs), then GetState (RUNNING): the first
+    operating_state says ENABLED and busy."""
+
+    def daemon_answer(name: str, text: str) -> tuple[str, str] | None:
+        if name == "GetStats":
+            return "SUCCESS", '{"controller": {"running": 4, "runs_completed": 0}}'
+        if name == "GetState":
+            return "SUCCESS", "state=RUNNING"
+        return ok(name, text)
+
+    bridge, daemon, ros = rig(daemon_answer)
+    assert poll(lambda: bool(ros.ops()))
+    assert ros.ops()[0] == ("ENABLED", True, True)
+    assert [s.data for s in ros.take("state")] == ["RUNNING"]
 
 
 def test_a_bridge_started_during_a_plan_never_says_not_busy(rig: Callable[..., Any]) -> None:
@@ -346,7 +371,9 @@ def test_crtk_words_become_the_daemons_commands_and_its_answers_come_back(
     assert ros.replies(1) == ["Enable SUCCESS: Enable done"]
     assert poll(lambda: len(ros.ops()) == n + 1)  # unchanged, published again
     fresh = ros.take("operating_state")[-1]
-    assert fresh.state == "DISABLED" and fresh.header.stamp.sec > 1_000_000_000
+    assert (
+        fresh.state == "DISABLED" and fresh.header.stamp.sec > REPLY_STAMP
+    )  # now, not the reply's
     daemon.status("ENABLED")
     assert poll(lambda: len(ros.ops()) == n + 2)
     bridge.command(ns, "pause")
@@ -355,10 +382,19 @@ def test_crtk_words_become_the_daemons_commands_and_its_answers_come_back(
     daemon.wait_command("Disable")
     assert ros.replies(3)[1:] == ["Stop SUCCESS: Stop done", "Disable SUCCESS: Disable done"]
     assert poll(lambda: len(ros.ops()) == n + 4)
+    # the daemon's words that change its state are followed by operating_state too, the others
+    # not (Sync's reply comes after the last of them)
+    for word in ("Run", "Reset", "Stop", "Sync"):
+        bridge.command(ns, word)
+    assert ros.replies(7)[3:] == [
+        f"{w} SUCCESS: {w} done" for w in ("Run", "Reset", "Stop", "Sync")
+    ]
+    assert poll(lambda: len(ros.ops()) >= n + 6)
+    assert len(ros.ops()) == n + 6
     ids = [m.command_id for m in daemon.commands()]
     assert len(set(ids)) == len(ids) and ids == sorted(ids), ids
     st = bridge.stats()[ns]
-    assert (st["commands"], st["replies"], st["commands_refused"]) == (3, 3, 0)
+    assert (st["commands"], st["replies"], st["commands_refused"]) == (7, 7, 0)
 
 
 def test_resume_returns_to_where_pause_left(rig: Callable[..., Any]) -> None:
@@ -434,29 +470,32 @@ def test_crtk_refusals_in_fault_keep_the_latch(rig: Callable[..., Any]) -> None:
     bridge.command(ns, "enable")
     bridge.command(ns, "disable")
     bridge.command(ns, "unhome")
-    assert [r.split(":")[0] for r in ros.replies(3)] == [
+    bridge.command(ns, "pause")  # not in CRTK's table for FAULT: refused all the same
+    assert [r.split(":")[0] for r in ros.replies(4)] == [
         "enable FAIL",
         "disable FAIL",
         "unhome FAIL",
+        "pause FAIL",
     ]
+    assert ros.replies(4)[3] == "pause FAIL: not valid in FAULT"
     assert ros.replies(1)[0] == (
         "enable FAIL: the daemon's ESTOP is latched until an operator's Reset (command Reset, "
         "after the cause is found); a CRTK retry does not clear it"
     )
-    assert poll(lambda: len(ros.ops()) == n + 3)
+    assert poll(lambda: len(ros.ops()) == n + 4)
     assert ros.ops()[-1] == ("FAULT", True, False)
+    assert ros.take("operating_state")[-1].header.frame_id == ""
     assert daemon.names() == ["GetStats", "GetState"]
     st = bridge.stats()[ns]
-    assert (st["commands"], st["replies"], st["commands_refused"]) == (3, 3, 3)
-    # INIT and SHUTDOWN: nothing is valid; no operating_state either way (INIT has one, not
-    # homed, published by the state change)
+    assert (st["commands"], st["replies"], st["commands_refused"]) == (4, 4, 4)
+    # INIT and SHUTDOWN: no word is valid (not homed either)
     daemon.status("SHUTDOWN")
     assert poll(lambda: bridge.robots[ns].state == "SHUTDOWN")
     m = len(ros.ops())
     bridge.command(ns, "disable")
-    assert ros.replies(4)[3] == "disable FAIL: the daemon is in SHUTDOWN"
+    assert ros.replies(5)[4] == "disable FAIL: the daemon is in SHUTDOWN"
     assert daemon.names() == ["GetStats", "GetState"]
-    assert bridge.robots[ns].counters.commands_refused == 4
+    assert bridge.robots[ns].counters.commands_refused == 5
     assert poll(lambda: len(ros.ops()) == m + 1)  # published again, as after every CRTK word
     assert ros.ops()[-1] == ("DISABLED", False, False)
 
@@ -567,16 +606,27 @@ def test_servo_cf_is_sent_in_newtons_in_the_base_frame_only(rig: Callable[..., A
     assert len(sensors()) == 2
 
 
-def test_servo_cf_without_an_operator_link_is_refused(dds: tuple[int, Any], namespace: str) -> None:
+def test_servo_cf_without_an_operator_link_is_refused(
+    dds: tuple[int, Any], namespace: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Without an operator link (a viewer-only bridge) or with one not connected, a wrench is
+    refused, counted, and the log says which."""
     domain_id, _ = dds
     viewer = [("127.0.0.1", free_port(), namespace)]
-    with Bridge(viewer, (), domain_id=domain_id, tf=False) as bridge:
-        bridge.servo_cf(namespace, wrench("", 1.0, 0.0, 0.0))
-        assert bridge.stats()[namespace]["servo_cf_refused"] == 1
-    with Bridge((), viewer, domain_id=domain_id, tf=False) as bridge:  # not connected
-        bridge.servo_cf(namespace, wrench("", 1.0, 0.0, 0.0))
-        st = bridge.stats()[namespace]
-        assert (st["servo_cf"], st["servo_cf_refused"]) == (0, 1)
+    with caplog.at_level("WARNING", logger="occ_ros2"):
+        with Bridge(viewer, (), domain_id=domain_id, tf=False) as bridge:
+            bridge.servo_cf(namespace, wrench("", 1.0, 0.0, 0.0))
+            assert bridge.stats()[namespace]["servo_cf_refused"] == 1
+        with Bridge((), viewer, domain_id=domain_id, tf=False) as bridge:  # not connected
+            bridge.servo_cf(namespace, wrench("", 1.0, 0.0, 0.0))
+            st = bridge.stats()[namespace]
+            assert (st["servo_cf"], st["servo_cf_refused"]) == (0, 1)
+    lines = [r.getMessage() for r in caplog.records if "servo_cf refused" in r.getMessage()]
+    assert lines == [
+        f"{namespace}/servo_cf refused (1 so far): no operator interface for {namespace} "
+        "(occ-ros2 --operator)",
+        f"{namespace}/servo_cf refused (1 so far): operator interface not connected",
+    ]
 
 
 # ---------------------------------------------------------------------------- moves
@@ -1081,3 +1131,16 @@ def test_servo_cf_refusals_are_logged_first_and_every_thousandth(
     why = "frame 'world' (takes 'slave_base')"
     assert lines == [f"{namespace}/servo_cf refused ({n} so far): {why}" for n in (1, 1000, 2000)]
     assert bridge.stats()[namespace]["servo_cf_refused"] == 2001
+
+
+def test_a_reply_as_the_reference_peer_sends_it(rig: Callable[..., Any]) -> None:
+    """A reply without the v2 metadata, an error string in its command name (the reference
+    OpenIGTLink's way): published under the command's own name, its status unknown ("?")."""
+    bridge, daemon, ros = rig(lambda name, text: ok(name, text) if name.startswith("Get") else None)
+    connected(bridge, daemon, ros, "READY")
+    bridge.command(ros_ns(bridge), "Foo")
+    cmd = daemon.wait_command("Foo")
+    daemon.server.send(
+        igtl.RTSCommandMessage(command_id=cmd.command_id, command_name="Error: unknown command")
+    )
+    assert ros.replies(1) == ["Foo ?: "]
