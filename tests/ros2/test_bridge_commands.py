@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from functools import partial
 from pathlib import Path
@@ -352,6 +353,26 @@ def test_a_bridge_started_during_a_plan_never_says_not_busy(rig: Callable[..., A
     assert robot.probing_until == 0.0
 
 
+def test_a_daemon_that_never_answers_get_stats_does_not_silence_operating_state(
+    rig: Callable[..., Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The wait for GetStats's answer on connecting is bounded (PROBE_WAIT_S): past it, the
+    next state change is published on operating_state, not busy."""
+    monkeypatch.setattr(bridge_module, "PROBE_WAIT_S", 0.2)
+
+    def daemon_answer(name: str, text: str) -> tuple[str, str] | None:
+        return None if name == "GetStats" else ok(name, text)
+
+    bridge, daemon, ros = rig(daemon_answer)
+    robot = bridge.robots[ros_ns(bridge)]
+    assert poll(lambda: bool(ros.take("state")))  # READY, not on operating_state yet
+    assert not ros.ops()
+    assert poll(lambda: time.monotonic() > robot.probing_until)
+    daemon.status("ENABLED")
+    assert poll(lambda: bool(ros.ops()))
+    assert ros.ops() == [("ENABLED", True, False)]
+
+
 # ---------------------------------------------------------------------------- command forwarding
 
 
@@ -515,6 +536,9 @@ def test_crtk_word_before_the_state_is_known(dds: tuple[int, Any], namespace: st
         ]
         st = bridge.stats()[namespace]
         assert (st["commands"], st["replies"], st["commands_refused"]) == (2, 0, 2)
+        # a command that could not be sent waits for no answer (it would crowd real ones out
+        # of the bounded list of commands waiting for theirs)
+        assert not bridge._pending
 
 
 def test_replies_are_matched_by_command_id_and_the_wait_list_is_bounded(
