@@ -45,6 +45,7 @@ from occ_ros2.bridge import (  # noqa: E402
     QOS_DEFAULT,
     Bridge,
     topic_name,
+    typed_qos,
 )
 from occ_ros2.master import MasterStream, parse_master  # noqa: E402
 
@@ -1168,3 +1169,102 @@ def test_a_reply_as_the_reference_peer_sends_it(rig: Callable[..., Any]) -> None
         igtl.RTSCommandMessage(command_id=cmd.command_id, command_name="Error: unknown command")
     )
     assert ros.replies(1) == ["Foo ?: "]
+
+
+# ---------------------------------------------------------------------------- the DDS side
+
+
+def test_commands_come_from_the_ros2_topics_and_the_state_is_latched(
+    rig: Callable[..., Any], dds: tuple[int, Any]
+) -> None:
+    """What a ROS 2 node publishes reaches the daemon: CRTK's state_command
+    (crtk_msgs/StringStamped), command (std_msgs/String), move_jp, move_cp and servo_cf, each
+    with the ROS 2 type hash its node checks; a node that subscribes later gets the current
+    state and operating_state at once (transient local), and only the current one."""
+    _, dp = dds
+    bridge, daemon, ros = rig(keyframe_daemon())
+    ns = ros_ns(bridge)
+    connected(bridge, daemon, ros, "STOPPED")
+    daemon.status("RUNNING")
+    assert poll(lambda: bridge.robots[ns].state == "RUNNING")
+    joints(bridge)
+    import numpy as np
+
+    bridge.robots[ns].tip_m = np.eye(4)
+
+    def writer(leaf: str, cls: type[Any]) -> DataWriter:
+        w = DataWriter(dp, Topic(dp, topic_name(ns, leaf), cls), typed_qos(QOS_DEFAULT, cls))
+        assert poll(partial(matched, w)), leaf
+        return w
+
+    writer("state_command", msgs.StringStamped).write(msgs.StringStamped(string="pause"))
+    daemon.wait_command("Stop")
+    writer("command", msgs.String).write(msgs.String(data="Reset"))
+    daemon.wait_command("Reset")
+    writer("move_jp", msgs.JointState).write(msgs.JointState(name=["yaw"], position=[0.1]))
+    daemon.wait_command("KeyframePlan")
+    assert poll(
+        lambda: any(r.data.startswith("move_jp WAITING") for r in ros.take("command_reply"))
+    )
+    goal = msgs.PoseStamped(header=msgs.Header(frame_id="world"))
+    goal.pose.position = msgs.Point(0.0, 0.0, 0.01)
+    writer("move_cp", msgs.PoseStamped).write(goal)
+    daemon.wait_command("KeyframePlan", 2)
+    assert daemon.commands("KeyframeAdd")[1].command == (
+        '<Command Name="KeyframeAdd" T="1.000" Pose="0.000000 0.000000 10.000000" '
+        'Space="cartesian" Label="move_cp"/>'
+    )
+    writer("servo_cf", msgs.WrenchStamped).write(wrench("", 0.5, 0.0, 0.0))
+    assert poll(lambda: bridge.robots[ns].counters.servo_cf == 1)
+    late = RosSide(dp, ns)
+    assert poll(lambda: bool(late.take("state")) and bool(late.take("operating_state")))
+    assert [s.data for s in late.take("state")] == ["RUNNING"]
+    assert late.ops() == [("ENABLED", True, False)]
+
+
+def test_a_ros2_node_that_goes_away_does_not_end_the_forwarding(
+    rig: Callable[..., Any], dds: tuple[int, Any]
+) -> None:
+    """When a ROS 2 node's publisher goes away (the node exits: its writer is deleted), DDS
+    tells the bridge's reader so with a sample that carries no data; the bridge goes on taking
+    commands from the next node."""
+    import gc
+
+    _, dp = dds
+    bridge, daemon, ros = rig()
+    ns = ros_ns(bridge)
+    connected(bridge, daemon, ros, "READY")
+    for n, (leaf, cls, sample, name) in enumerate(
+        (
+            ("command", msgs.String, msgs.String(data="Reset"), "Reset"),
+            ("state_command", msgs.StringStamped, msgs.StringStamped(string="Sync"), "Sync"),
+            ("command", msgs.String, msgs.String(data="Reset"), "Reset"),
+        )
+    ):
+        w = DataWriter(dp, Topic(dp, topic_name(ns, leaf), cls), typed_qos(QOS_DEFAULT, cls))
+        assert poll(partial(matched, w)), leaf
+        w.write(sample)
+        daemon.wait_command(name, 1 + n // 2)
+        del w  # the node exits
+        gc.collect()
+    assert daemon.names()[2:] == ["Reset", "Sync", "Reset"]
+    assert bridge._thread is not None and bridge._thread.is_alive()
+
+
+def test_master_stream_outlives_a_node_that_goes_away(master: Callable[..., Any]) -> None:
+    """servo_cp's and clutch's publishers going away (the node exits) leave the stream
+    running on the last pose; the next node's poses are followed."""
+    import gc
+
+    stream, slave, poses, clutch = master()
+    poses.write(pose(0.001, 0.0, 0.0, (0.0, 0.0, 0.0, 1.0)))
+    clutch.write(msgs.String(data="pressed"))
+    deliver(stream, 1.0, lambda: stream.poses == 1 and stream.clutch)
+    del poses, clutch  # the node exits
+    gc.collect()
+    for t in (1.01, 1.02, 1.03):
+        stream._read_topics(t)  # no error: the "gone" notifications carry no pose
+    assert stream.poses == 1 and stream.clutch is True
+    stream._send(1.05)
+    (m,) = slave.take(1)
+    assert m.position == pytest.approx((1.0, 0.0, 0.0), abs=1e-4)
