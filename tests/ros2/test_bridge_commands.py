@@ -1234,14 +1234,15 @@ def test_a_ros2_node_that_goes_away_does_not_end_the_forwarding(
     bridge, daemon, ros = rig()
     ns = ros_ns(bridge)
     connected(bridge, daemon, ros, "READY")
-    for n, (leaf, cls, sample, name) in enumerate(
-        (
-            ("command", msgs.String, msgs.String(data="Reset"), "Reset"),
-            ("state_command", msgs.StringStamped, msgs.StringStamped(string="Sync"), "Sync"),
-            ("command", msgs.String, msgs.String(data="Reset"), "Reset"),
+    sends: tuple[tuple[str, type[Any], Any, str], ...] = (
+        ("command", msgs.String, msgs.String(data="Reset"), "Reset"),
+        ("state_command", msgs.StringStamped, msgs.StringStamped(string="Sync"), "Sync"),
+        ("command", msgs.String, msgs.String(data="Reset"), "Reset"),
+    )
+    for n, (leaf, cls, sample, name) in enumerate(sends):
+        w: DataWriter = DataWriter(
+            dp, Topic(dp, topic_name(ns, leaf), cls), typed_qos(QOS_DEFAULT, cls)
         )
-    ):
-        w = DataWriter(dp, Topic(dp, topic_name(ns, leaf), cls), typed_qos(QOS_DEFAULT, cls))
         assert poll(partial(matched, w)), leaf
         w.write(sample)
         daemon.wait_command(name, 1 + n // 2)
