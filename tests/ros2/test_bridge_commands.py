@@ -193,7 +193,10 @@ def connected(bridge: Bridge, daemon: DaemonPort, ros: RosSide, state: str) -> N
     """Wait for the bridge's look on connecting (GetStats, GetState), then put the daemon in
     ``state`` by its STATUS and wait until the bridge has published it."""
     daemon.wait_command("GetState")
+    robot = bridge.robots[ros_ns(bridge)]
+    seen = robot.counters.statuses
     daemon.status(state)
+    assert poll(lambda: robot.counters.statuses > seen)  # the STATUS has been handled
     assert poll(lambda: bool(ros.take("state")) and ros.seen["state"][-1].data == state)
     assert poll(lambda: bool(ros.ops()) and ros.ops()[-1][0] == CRTK_STATE[state])
 
@@ -1269,3 +1272,27 @@ def test_master_stream_outlives_a_node_that_goes_away(master: Callable[..., Any]
     stream._send(1.05)
     (m,) = slave.take(1)
     assert m.position == pytest.approx((1.0, 0.0, 0.0), abs=1e-4)
+
+
+def test_every_status_is_on_the_status_topic_but_keep_alives(rig: Callable[..., Any]) -> None:
+    """Each STATUS the daemon sends is published on ``status`` as ``NAME: message`` (alerts
+    included); an empty one (a keep-alive, a greeting) is counted only. A STATUS without a
+    time stamp is stamped when it came."""
+    bridge, daemon, ros = rig()
+    connected(bridge, daemon, ros, "READY")
+    ns = ros_ns(bridge)
+    before = bridge.stats()[ns]["statuses"]
+    n = len(ros.ops())
+    daemon.server.send(igtl.StatusMessage(header_version=2))  # a keep-alive
+    daemon.status("ALERT_LOSS", "master silent for 120 ms")
+    daemon.status("ESTOP", "estop pressed")  # no time stamp
+    assert poll(lambda: len(ros.take("status")) >= 3)
+    assert [s.data for s in ros.take("status")][-2:] == [
+        "ALERT_LOSS: master silent for 120 ms",
+        "ESTOP: estop pressed",
+    ]
+    assert bridge.stats()[ns]["statuses"] == before + 3
+    assert poll(lambda: len(ros.ops()) == n + 1)
+    estop = ros.take("operating_state")[-1]
+    assert estop.state == "FAULT" and estop.header.stamp.sec > REPLY_STAMP
+    assert bridge.robots[ns].state == "ESTOP"
