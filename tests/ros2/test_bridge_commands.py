@@ -1277,24 +1277,40 @@ def test_master_stream_outlives_a_node_that_goes_away(master: Callable[..., Any]
 
 def test_every_status_is_on_the_status_topic_but_keep_alives(rig: Callable[..., Any]) -> None:
     """Each STATUS the daemon sends is published on ``status`` as ``NAME: message`` (alerts
-    included); an empty one (a keep-alive, a greeting) is counted only. A STATUS without a
-    time stamp is stamped when it came."""
+    included, a name or a message alone too); an empty one (a keep-alive, a greeting) is
+    counted only. A state's STATUS sets the state with or without a message, stamped with its
+    time stamp when it has one (any positive time), else when it came."""
     bridge, daemon, ros = rig()
     connected(bridge, daemon, ros, "READY")
     ns = ros_ns(bridge)
     before = bridge.stats()[ns]["statuses"]
     n = len(ros.ops())
-    daemon.server.send(igtl.StatusMessage(header_version=2))  # a keep-alive
-    daemon.status("ALERT_LOSS", "master silent for 120 ms")
-    daemon.status("ESTOP", "estop pressed")  # no time stamp
-    assert poll(lambda: len(ros.take("status")) >= 3)
-    assert [s.data for s in ros.take("status")][-2:] == [
+
+    def send(name: str, text: str, timestamp: float = 0.0) -> None:
+        daemon.server.send(
+            igtl.StatusMessage(
+                error_name=name, status_message=text, header_version=2, timestamp=timestamp
+            )
+        )
+
+    send("", "")  # a keep-alive
+    send("ALERT_LOSS", "master silent for 120 ms")
+    send("ENABLED", "", timestamp=0.5)  # a state without a message; a stamp near the epoch
+    send("", "a note")
+    send("ESTOP", "estop pressed")  # no time stamp
+    assert poll(lambda: len(ros.take("status")) >= 5)
+    assert [s.data for s in ros.take("status")] == [
+        "READY: READY",  # connected()'s
         "ALERT_LOSS: master silent for 120 ms",
+        "ENABLED: ",
+        ": a note",
         "ESTOP: estop pressed",
     ]
-    assert bridge.stats()[ns]["statuses"] == before + 3
-    assert poll(lambda: len(ros.ops()) == n + 1)
-    estop = ros.take("operating_state")[-1]
+    assert bridge.stats()[ns]["statuses"] == before + 5
+    assert poll(lambda: len(ros.ops()) == n + 2)
+    enabled, estop = ros.take("operating_state")[-2:]
+    assert enabled.state == "ENABLED"
+    assert (enabled.header.stamp.sec, enabled.header.stamp.nanosec) == (0, 500_000_000)
     assert estop.state == "FAULT" and estop.header.stamp.sec > REPLY_STAMP
     assert bridge.robots[ns].state == "ESTOP"
 
