@@ -1,0 +1,377 @@
+"""The keyframe controller's plan checks and acknowledgement: what mutation testing found
+unchecked (issue 29; docs/VERIFICATION.md, "occ/controllers/keyframe.py").
+
+Through the daemon's own command path in simulated time (test_keyframe's Session: a keyframe
+robot with an ideal driver, an operator peer), except the refusal's wording of a time
+(``_where``), checked at its half-period boundaries directly.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from occ.controllers.keyframe import _where
+from occ.errors import KinematicsError
+from occ.safety import RobotState
+
+from .test_keyframe import HOME, Session, xml
+
+# --------------------------------------------------------------------------- acknowledgement
+
+
+def _logged(caplog: pytest.LogCaptureFixture, level: int) -> list[str]:
+    return [
+        r.getMessage()
+        for r in caplog.records
+        if r.name == "occ.controllers.keyframe" and r.levelno == level
+    ]
+
+
+def test_every_refused_acknowledgement_says_why(
+    session: Session, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="occ.controllers.keyframe")
+    s = session
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    s.ok("KeyframePlan")
+    assert s.refused("KeyframeAck") == "KeyframeAck needs Plan (the number of the previewed plan)"
+    assert s.refused("KeyframeAck", Plan="one") == "KeyframeAck: Plan must be a number, got 'one'"
+    assert s.refused("KeyframeAck", Plan=1) == (
+        "KeyframeAck: plan 1 has not been previewed yet (its preview goes out with the next "
+        "keyframe-path output); look at it, then acknowledge"
+    )
+    s.step(20)
+    assert s.refused("KeyframeAck", Plan=2) == (
+        "KeyframeAck: plan 2 is not the previewed plan (plan 1 is previewed)"
+    )
+    assert s.refused("KeyframeAck", Plan=1) == (
+        "KeyframeAck: the robot is READY; send Run first (it holds until a plan is acknowledged)"
+    )
+    s.start()
+    assert s.kf.stats()["runs"] == 0
+    assert s.ok("KeyframeAck", Plan=1) == "plan 1 running: 1.000 s"
+    assert s.kf.stats()["runs"] == 1
+    assert "keyframes: plan 1 acknowledged, running 1.000 s" in _logged(caplog, logging.INFO)
+    assert s.refused("KeyframeAck", Plan=1) == "plan 1 is running already"
+    s.step(1100)
+    assert "keyframes: plan 1 completed (1.000 s)" in _logged(caplog, logging.INFO)
+    assert s.refused("KeyframeAck", Plan=1) == (
+        "KeyframeAck: plan 1 is not the previewed plan (no plan is previewed)"
+    )
+    s.ok("KeyframeAdd", T=2.0, Pose="0.0 0.35 0.05")
+    s.plan_and_ack()
+    assert s.kf.stats()["runs"] == 2
+    s.step(2100)
+    assert s.kf.stats()["runs_completed"] == 2
+
+
+@pytest.fixture
+def session() -> Iterator[Session]:
+    s = Session()
+    try:
+        yield s
+    finally:
+        s.close()
+
+
+def _move_by_hand(s: Session, yaw: float) -> None:
+    """The arm pushed by `yaw` rad while the servos are off, in 20 ticks (a hand, not a jump
+    the driver would take for a sensor fault)."""
+    (driver,) = s.robot.hardware.drivers
+    for k in range(1, 21):
+        driver.last = [HOME[0] + yaw * k / 20, HOME[1], HOME[2]]  # type: ignore[attr-defined]
+        s.step(1)
+
+
+@pytest.mark.parametrize("moved", [0.05, 2e-9])
+def test_a_plan_is_not_run_once_the_robot_has_moved_since_it_was_checked(moved: float) -> None:
+    """Planned while enabled; the servos off, the arm is moved by hand (the ideal driver
+    reports where it was put); enabled and running again, the robot holds there, not where
+    the plan starts: the acknowledgement is refused with the distance."""
+    s = Session({"keyframes": [{"t": 1.0, "pose": [0.2, 0.35, 0.05]}]})
+    try:
+        s.ok("Enable")
+        s.ok("KeyframePlan")
+        s.step(20)
+        s.ok("Disable")
+        _move_by_hand(s, moved)
+        s.ok("Enable")
+        s.ok("Run")
+        assert s.robot.data.setpoint[0] == HOME[0] + moved
+        error = s.refused("KeyframeAck", Plan=1)
+        assert error == (
+            f"KeyframeAck: the robot moved since plan 1 was checked ({moved:.3g} rad/m); plan again"
+        )
+        s.step(100)
+        assert all(sp == [HOME[0] + moved, HOME[1], HOME[2]] for sp in s.setpoints[-100:])
+        # planned again from where it is, it runs
+        s.plan_and_ack()
+        s.step(1100)
+        assert s.setpoints[-1] == [0.2, 0.35, 0.05]
+    finally:
+        s.close()
+
+
+def test_a_plan_is_run_when_the_robot_is_where_it_was_checked() -> None:
+    """The same servo cycle without moving the arm: the plan still starts where the robot is
+    and is acknowledged."""
+    s = Session({"keyframes": [{"t": 1.0, "pose": [0.2, 0.35, 0.05]}]})
+    try:
+        s.ok("Enable")
+        s.ok("KeyframePlan")
+        s.step(20)
+        s.ok("Disable")
+        s.step(2)
+        s.start()
+        assert s.ok("KeyframeAck", Plan=1) == "plan 1 running: 1.000 s"
+    finally:
+        s.close()
+
+
+# --------------------------------------------------------------------------- the world changes
+
+
+def _hold_planner(s: Session) -> tuple[threading.Event, threading.Event]:
+    """A forbidden-region check that blocks the planner thread until released."""
+    gate, entered = threading.Event(), threading.Event()
+
+    def held(p: tuple[float, float, float]) -> None:
+        entered.set()
+        gate.wait(30.0)
+
+    s.kf.add_forbidden_check(held)
+    return gate, entered
+
+
+def _reply_after(s: Session, cid: int, gate: threading.Event) -> Any:
+    gate.set()
+    assert s.kf.wait_idle(30.0)
+    s.step(1)
+    reply = s.slicer.reply_to(cid)
+    assert reply is not None
+    return reply
+
+
+def test_a_plan_checked_while_the_regions_changed_is_dropped(session: Session) -> None:
+    """invalidate_plan while the planner is checking: the plan it finishes is stale (checked
+    against the old regions) and is dropped, not previewed."""
+    s = session
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    gate, entered = _hold_planner(s)
+    cid = s.slicer.send_command("KeyframePlan")
+    s.step(1)
+    assert entered.wait(30.0)
+    s.kf.invalidate_plan("regions changed")
+    reply = _reply_after(s, cid, gate)
+    assert reply.metadata["Status"] == "FAIL"
+    assert reply.metadata["Error"] == (
+        "plan 1 dropped: the keyframes changed meanwhile; plan again"
+    )
+    assert s.kf.plan is None and s.kf.stats()["plan"] is None
+    s.start()
+    assert "no plan is previewed" in s.refused("KeyframeAck", Plan=1)
+
+
+def test_a_plan_checked_while_keyframes_and_regions_changed_is_dropped(session: Session) -> None:
+    """A keyframe added while the planner works, then the regions changed: still stale."""
+    s = session
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    gate, entered = _hold_planner(s)
+    cid = s.slicer.send_command("KeyframePlan")
+    s.step(1)
+    assert entered.wait(30.0)
+    added = s.slicer.send_command("KeyframeAdd", xml("KeyframeAdd", T=2.0, Pose="0 0.35 0.05"))
+    s.step(1)
+    assert s.slicer.reply_to(added).metadata["Status"] == "SUCCESS"  # type: ignore[union-attr]
+    s.kf.invalidate_plan("regions changed")
+    reply = _reply_after(s, cid, gate)
+    assert reply.metadata["Status"] == "FAIL", reply.metadata
+    assert "dropped" in reply.metadata["Error"]
+    assert s.kf.plan is None
+
+
+# --------------------------------------------------------------------------- the run
+
+
+def test_an_ik_failure_during_a_run_stops_it_where_it_is(
+    session: Session, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A Cartesian run whose IK fails at run time (checked offline, so only a fault can do
+    it): the run is dropped, counted, announced, logged, and the robot holds its last
+    setpoint."""
+    caplog.set_level(logging.INFO, logger="occ.controllers.keyframe")
+    s = session
+    s.ok("KeyframeAdd", T=1.0, Pose="-6 30 226", Space="cartesian")
+    s.start()
+    frame = s.kf.ctx.frame  # type: ignore[union-attr]
+
+    def fails(*args: Any, **kwargs: Any) -> Any:
+        raise KinematicsError("injected")
+
+    def ended() -> list[tuple[str, int, str]]:
+        return [
+            (m.error_name, m.code, m.status_message)  # type: ignore[attr-defined]
+            for m in s.slicer.messages("STATUS")
+            if m.error_name == "KEYFRAME_ENDED"  # type: ignore[attr-defined]
+        ]
+
+    for run in (1, 2):
+        plan_id = s.plan_and_ack()
+        s.step(300)
+        held = list(s.setpoints[-1])
+        assert held != HOME
+        with monkeypatch.context() as patch:
+            patch.setattr(type(frame), "ik_clamped", fails)
+            s.step(50)
+        assert all(sp == held for sp in s.setpoints[-50:])
+        stats = s.kf.stats()
+        assert stats["running"] is None and stats["ik_failures"] == run
+        text = f"plan {plan_id} stopped at t=0.301 s: tip unreachable"
+        assert stats["status"] == text
+        assert stats["last_error"] == f"plan {plan_id}: IK failed at t=0.301 s: injected"
+        assert ended()[-1] == ("KEYFRAME_ENDED", 15, text)
+        assert _logged(caplog, logging.WARNING)[-1] == f"keyframes: {text}"
+        assert len(ended()) == run
+        assert s.robot.state is RobotState.RUNNING
+        s.ok("KeyframeClear")
+        s.ok("KeyframeAdd", T=1.0, Pose="-6 30 226", Space="cartesian")
+    assert s.kf.stats()["runs_completed"] == 0
+
+
+# --------------------------------------------------------------------------- where, in words
+
+
+def test_a_refusal_names_the_keyframe_within_half_a_period_else_the_segment() -> None:
+    times, labels = [0.0, 2.0, 3.0], ["A", "B", "C"]
+    assert _where(2.0, times, labels, 0.5) == "at B"
+    assert _where(0.0, times, labels, 0.5) == "at A"
+    assert _where(2.25, times, labels, 0.5) == "at B"  # exactly half a period away
+    assert _where(1.75, times, labels, 0.5) == "at B"
+    assert _where(2.5, times, labels, 0.5) == "at t=2.500 s, between B and C"
+    assert _where(1.5, times, labels, 0.5) == "at t=1.500 s, between A and B"
+    assert _where(0.5, times, labels, 0.5) == "at t=0.500 s, between A and B"
+    assert _where(2.8, times, labels, 0.5) == "at C"
+
+
+def test_a_run_ends_in_the_tick_that_commands_its_last_keyframe(session: Session) -> None:
+    """The run is over (counted, announced, the controller holds) in the very tick whose
+    setpoint is the last keyframe, not a tick later."""
+    s = session
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    s.start()
+    s.step(37)
+    s.plan_and_ack()  # this tick is t = 0 of the run
+    s.step(999)
+    assert s.kf.stats()["running"] == 1 and s.setpoints[-1] != [0.2, 0.35, 0.05]
+    s.step(1)  # t = 1 s
+    assert s.setpoints[-1] == [0.2, 0.35, 0.05]
+    stats = s.kf.stats()
+    assert stats["running"] is None and stats["runs_completed"] == 1
+    assert stats["status"] == "plan 1 completed (1.000 s)"
+
+
+@pytest.mark.parametrize("end", ["completed", "ik failure"])
+def test_a_plan_checked_across_a_run_is_dropped(
+    session: Session, monkeypatch: pytest.MonkeyPatch, end: str
+) -> None:
+    """Plan 2 is asked for (and checked from the pose before the run) while plan 1 is
+    previewed; plan 1 is acknowledged and runs; a keyframe is added meanwhile; the run ends.
+    Plan 2, checked from a pose the robot has left and from keyframes that changed, is
+    dropped, not previewed."""
+    s = session
+    s.ok("KeyframeAdd", T=1.0, Pose="-6 30 226", Space="cartesian")
+    s.start()
+    s.ok("KeyframePlan")
+    s.step(20)
+    gate, entered = _hold_planner(s)
+    cid = s.slicer.send_command("KeyframePlan", xml("KeyframePlan", Mode="continuous"))
+    s.step(1)
+    assert entered.wait(30.0)
+    # the planner is busy: commands answered on the loop, without waiting for it
+    ack = s.slicer.send_command("KeyframeAck", xml("KeyframeAck", Plan=1))
+    s.step(1)
+    assert s.slicer.reply_to(ack).metadata["Message"] == "plan 1 running: 1.000 s"  # type: ignore[union-attr]
+    added = s.slicer.send_command(
+        "KeyframeAdd", xml("KeyframeAdd", T=2.0, Pose="-6 32 224", Space="cartesian")
+    )
+    s.step(300)
+    assert s.slicer.reply_to(added).metadata["Status"] == "SUCCESS"  # type: ignore[union-attr]
+    if end == "ik failure":
+        frame = s.kf.ctx.frame  # type: ignore[union-attr]
+
+        def fails(*args: Any, **kwargs: Any) -> Any:
+            raise KinematicsError("injected")
+
+        with monkeypatch.context() as patch:
+            patch.setattr(type(frame), "ik_clamped", fails)
+            s.step(2)
+    else:
+        s.step(800)
+    assert s.kf.stats()["running"] is None
+    assert s.kf.stats()["status"].startswith("plan 1 ")
+    reply = _reply_after(s, cid, gate)
+    assert reply.metadata["Status"] == "FAIL", reply.metadata
+    assert reply.metadata["Error"] == "plan 2 dropped: the keyframes changed meanwhile; plan again"
+    assert s.kf.plan is None
+
+
+# --------------------------------------------------------------------------- frames
+
+
+def test_cartesian_keyframes_are_world_positions_on_a_moved_and_turned_base(
+    session: Session,
+) -> None:
+    """The robot's base turned 90 degrees about z and moved (a tracker's pose, world <- base):
+    Cartesian keyframes are world millimetres (what 3D Slicer shows), the tip meets them in
+    the world, and the preview is drawn in the world too."""
+    s = session
+    base = np.array(
+        [[0.0, -1.0, 0.0, 0.010], [1.0, 0.0, 0.0, -0.020], [0.0, 0.0, 1.0, 0.005], [0, 0, 0, 1]]
+    )
+    s.robot.data.base = base
+    frame = s.robot.frame
+
+    def world_mm(q: list[float]) -> np.ndarray:
+        tip = np.asarray(frame.tip_position(q))
+        return np.asarray((base[:3, :3] @ tip + base[:3, 3]) / 1e-3)
+
+    target_base_mm = np.array([-12.0, 46.0, 201.0])
+    target = (base[:3, :3] @ (target_base_mm * 1e-3) + base[:3, 3]) / 1e-3
+    s.ok("KeyframeAdd", T=1.0, Pose=" ".join(f"{v:.9f}" for v in target), Space="cartesian")
+    s.start()
+    s.ok("KeyframePlan")
+    s.step(20)
+    (keys,) = s.slicer.messages("POINT", "Keyframes")
+    (path,) = s.slicer.messages("POLYDATA", "KeyframePath")
+    assert np.allclose(keys.points[0].position, world_mm(HOME), atol=1e-3)
+    assert np.allclose(keys.points[1].position, target, atol=1e-3)
+    assert np.allclose(path.points[0], world_mm(HOME), atol=1e-3)
+    assert np.allclose(path.points[-1], target, atol=1e-3)
+    s.setpoints.clear()
+    s.ok("KeyframeAck", Plan=1)
+    s.step(1100)
+    assert np.max(np.abs(world_mm(s.setpoints[1000]) - target)) < 1e-6
+    assert s.limit_events() == 0
+
+
+def test_orientations_on_a_three_joint_arm_are_refused_by_name() -> None:
+    s = Session(
+        {
+            "space": "cartesian",
+            "keyframes": [{"t": 1.0, "pose": [-6.0, 30.0, 226.0], "rotation": [0, 0, 0, 1]}],
+        }
+    )
+    try:
+        name = s.robot.frame.name
+        assert s.refused("KeyframePlan") == (
+            f"plan 1 refused: the keyframes have orientations, but {name!r} has 3 joints: "
+            "orientation needs a 6-DOF arm"
+        )
+    finally:
+        s.close()
