@@ -375,3 +375,119 @@ def test_orientations_on_a_three_joint_arm_are_refused_by_name() -> None:
         )
     finally:
         s.close()
+
+
+# --------------------------------------------------------------------------- a 6-DOF arm
+
+
+def _ur5_plan(keyframes: list[dict[str, Any]]) -> dict[str, str]:
+    """KeyframePlan on configs/ur5-keyframe.yaml with these keyframes: the reply's metadata."""
+    import yaml
+
+    from occ.testing import CONFIGS, SimRobot
+
+    cfg = yaml.safe_load((CONFIGS / "ur5-keyframe.yaml").read_text())
+    params = cfg["controller"]["params"]
+    params.update(file=None, keyframe_dir=None, space="cartesian", keyframes=keyframes)
+    sim = SimRobot(cfg)
+    try:
+        op = sim.peer("slicer")
+        kf: Any = sim.robot.controller.controllers[0]
+        cid = op.send_command("KeyframePlan", "")
+        sim.step(1)
+        assert kf.wait_idle(60.0)
+        sim.step(1)
+        reply = op.reply_to(cid)
+        assert reply is not None
+        return dict(reply.metadata)
+    finally:
+        sim.close()
+
+
+def _ur5_home_turned(angle_deg: float) -> tuple[list[float], list[float]]:
+    """The UR5's home tip (world mm) and its orientation turned about the tool's z axis."""
+    import math
+
+    import pinocchio as pin
+    import yaml
+
+    from occ.assembly import build_hardware
+    from occ.loader import load_config
+    from occ.samples import rotation_to_quaternion
+    from occ.testing import CONFIGS
+
+    cfg = yaml.safe_load((CONFIGS / "ur5-keyframe.yaml").read_text())
+    home_q = [j["home"] for j in cfg["robot"]["joints"]]
+    _, frame, _ = build_hardware(load_config(CONFIGS / "ur5.yaml").robot)
+    home = np.asarray(frame.fk(home_q))
+    turned = home[:3, :3] @ pin.utils.rpyToMatrix(0.0, 0.0, math.radians(angle_deg))
+    return (home[:3, 3] * 1e3).tolist(), list(rotation_to_quaternion(turned))
+
+
+@pytest.mark.parametrize(
+    ("t0", "angle", "refused"), [(0.0, 0.0, False), (0.0, 0.4, False), (0.0, 0.8, True)]
+)
+def test_an_oriented_keyframe_at_t0_must_be_turned_as_the_tool_is(
+    t0: float, angle: float, refused: bool
+) -> None:
+    """start_tolerance_deg (0.5 deg): keyframe 0 at t = 0 turned 0.4 deg from the tool is
+    the tool's pose; turned 0.8 deg it is refused with the angle."""
+    pos, quat = _ur5_home_turned(angle)
+    reply = _ur5_plan(
+        [
+            {"t": t0, "pose": pos, "rotation": quat, "name": "first"},
+            {"t": 2.0, "pose": pos, "rotation": quat},
+        ]
+    )
+    if refused:
+        assert reply["Status"] == "FAIL"
+        assert reply["Error"] == (
+            "plan 1 refused: keyframe 0 'first' (t=0 s) is turned 0.8 deg from the tool "
+            "(tolerance 0.5 deg): give keyframe 0 a later time so the robot turns there, or "
+            "turn it"
+        )
+    else:
+        assert reply["Status"] == "SUCCESS", reply
+
+
+def test_an_oriented_first_keyframe_later_than_t0_may_be_turned() -> None:
+    """Keyframe 0 at t = 1.5 s turned 20 deg: the robot turns there from where it is."""
+    pos, quat = _ur5_home_turned(20.0)
+    reply = _ur5_plan([{"t": 1.5, "pose": pos, "rotation": quat}])
+    assert reply["Status"] == "SUCCESS", reply
+
+
+# --------------------------------------------------------------------------- the start
+
+
+def test_a_keyframe_at_t0_is_within_its_own_spaces_tolerance(session: Session) -> None:
+    """start_tolerance_mm (0.5 mm) for Cartesian keyframes, start_tolerance (1e-3 rad or m)
+    for joint ones, each with its unit; within it keyframe 0 is replaced by the robot's pose."""
+    s = session
+    tip_mm = np.asarray(s.robot.frame.tip_position(HOME)) / 1e-3
+
+    def cartesian_at(dx_mm: float) -> str:
+        p = tip_mm + np.array([dx_mm, 0.0, 0.0])
+        s.ok("KeyframeClear")
+        s.ok("KeyframeAdd", T=0.0, Pose=" ".join(f"{v:.9f}" for v in p), Space="cartesian")
+        s.ok("KeyframeAdd", T=1.0, Pose="-6 30 226", Space="cartesian")
+        meta = s.cmd("KeyframePlan").metadata
+        return str(meta.get("Error") or meta["Message"])
+
+    assert "keyframe 0 replaced by the robot's pose (0.3 mm away)" in cartesian_at(0.3)
+    assert cartesian_at(0.8).endswith(
+        "keyframe 0 (t=0 s) is 0.8 mm from where the robot is (tolerance 0.5): a run starts "
+        "where the robot is; give keyframe 0 a later time so the robot moves there, or move it"
+    )
+    s.ok("KeyframeClear")
+    s.ok("KeyframeAdd", T=0.0, Pose="0.0008 0.35 0.05")
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    assert "keyframe 0 replaced by the robot's pose (0.0008 rad/m away)" in s.ok("KeyframePlan")
+    s.ok("KeyframeClear")
+    s.ok("KeyframeAdd", T=0.0, Pose="0.0012 0.35 0.05")
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    assert s.refused("KeyframePlan").endswith(
+        "keyframe 0 (t=0 s) is 0.0012 rad/m from where the robot is (tolerance 0.001): a run "
+        "starts where the robot is; give keyframe 0 a later time so the robot moves there, or "
+        "move it"
+    )
