@@ -484,6 +484,10 @@ def test_a_keyframe_at_t0_is_within_its_own_spaces_tolerance(session: Session) -
     s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
     assert "keyframe 0 replaced by the robot's pose (0.0008 rad/m away)" in s.ok("KeyframePlan")
     s.ok("KeyframeClear")
+    s.ok("KeyframeAdd", T=0.0, Pose=" ".join(map(str, HOME)))  # exactly there: nothing to say
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    assert "replaced" not in s.ok("KeyframePlan")
+    s.ok("KeyframeClear")
     s.ok("KeyframeAdd", T=0.0, Pose="0.0012 0.35 0.05")
     s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
     assert s.refused("KeyframePlan").endswith(
@@ -491,3 +495,26 @@ def test_a_keyframe_at_t0_is_within_its_own_spaces_tolerance(session: Session) -
         "starts where the robot is; give keyframe 0 a later time so the robot moves there, or "
         "move it"
     )
+
+
+@pytest.mark.parametrize(("last", "refused"), [(10.0, False), (12.0, True)])
+def test_a_plan_longer_than_max_duration_is_refused(last: float, refused: bool) -> None:
+    s = Session(
+        {
+            "max_duration_s": 10.0,
+            "keyframes": [
+                {"t": 3.0, "pose": [0.2, 0.35, 0.05], "name": "there"},
+                {"t": last, "pose": [0.0, 0.35, 0.05], "name": "back"},
+            ],
+        }
+    )
+    try:
+        if refused:
+            assert s.refused("KeyframePlan") == (
+                "plan 1 refused: keyframe 1 'back' (t=12 s): the plan would last 12 s, more "
+                "than max_duration_s (10)"
+            )
+        else:  # exactly the longest accepted
+            assert "10.000 s" in s.ok("KeyframePlan")
+    finally:
+        s.close()
