@@ -518,3 +518,36 @@ def test_a_plan_longer_than_max_duration_is_refused(last: float, refused: bool) 
             assert "10.000 s" in s.ok("KeyframePlan")
     finally:
         s.close()
+
+
+def test_the_plan_uses_the_ramp_asked_for_and_reports_its_peak_speed(session: Session) -> None:
+    """KeyframePlan Ramp=0.4: the area rule with t_a = 0.4 T on the setpoints; the summary
+    names the joint closest to its velocity limit and the share it uses; the preview path
+    ends once, on the last keyframe."""
+    s = session
+    s.ok("KeyframeAdd", T=2.0, Pose="0.4 0.35 0.05")
+    s.start()
+    summary = s.ok("KeyframePlan", Ramp=0.4)
+    # cruise v0 = D / (T - t_a) = 0.4 / 1.2 rad/s: 22 % of the 1.5 rad/s of yaw
+    assert "peak joint speed 22% of the limit (yaw)" in summary, summary
+    s.step(20)
+    (path,) = s.slicer.messages("POLYDATA", "KeyframePath")
+    pts = np.asarray(path.points)
+    assert not np.any(np.all(pts[1:] == pts[:-1], axis=1))  # no point twice in a row
+    s.setpoints.clear()
+    s.ok("KeyframeAck", Plan=1)
+    s.step(2100)
+    yaw = np.array(s.setpoints)[:, 0]
+    ta, v0 = 0.8, 0.4 / 1.2
+    assert yaw[800] == pytest.approx(ta * v0 / 2, rel=1e-12)  # the area rule at t_a
+
+
+def test_the_last_keyframe_itself_is_checked(session: Session) -> None:
+    """A forbidden region that holds the last keyframe's tip and nothing before it: the
+    check reaches the end of the plan, not one period short of it."""
+    s = session
+    final = (0.3, 0.4, 0.07)
+    end_tip = tuple(float(v) for v in s.robot.frame.tip_position(list(final)))
+    s.kf.add_forbidden_check(lambda p: "the target" if tuple(p) == end_tip else None)
+    s.ok("KeyframeAdd", T=1.0, Pose=" ".join(map(str, final)), Label="last")
+    assert "forbidden region (the target) at keyframe 0 'last' (t=1 s)" in s.refused("KeyframePlan")
