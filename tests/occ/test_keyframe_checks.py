@@ -551,3 +551,21 @@ def test_the_last_keyframe_itself_is_checked(session: Session) -> None:
     s.kf.add_forbidden_check(lambda p: "the target" if tuple(p) == end_tip else None)
     s.ok("KeyframeAdd", T=1.0, Pose=" ".join(map(str, final)), Label="last")
     assert "forbidden region (the target) at keyframe 0 'last' (t=1 s)" in s.refused("KeyframePlan")
+
+
+@pytest.mark.parametrize(("duration", "points"), [(0.2, 201), (1.021, None), (2.041, None)])
+def test_the_preview_has_every_tick_when_it_fits_and_never_more_than_preview_points(
+    session: Session, duration: float, points: int | None
+) -> None:
+    """preview_points (256): a plan of 201 ticks is drawn tick by tick; longer ones are
+    decimated to at most 256 points (1021 and 2041 ticks: where a stride one smaller would
+    give 257), the last keyframe always the last point."""
+    s = session
+    s.ok("KeyframeAdd", T=duration, Pose="0.02 0.36 0.05")
+    s.ok("KeyframePlan")
+    s.step(20)
+    (path,) = s.slicer.messages("POLYDATA", "KeyframePath")
+    n = len(path.points)
+    assert n == points if points is not None else 200 <= n <= 256, n
+    end = np.asarray(s.robot.frame.tip_position([0.02, 0.36, 0.05])) / 1e-3
+    assert np.allclose(path.points[-1], end, atol=1e-6)
