@@ -569,3 +569,28 @@ def test_the_preview_has_every_tick_when_it_fits_and_never_more_than_preview_poi
     assert n == points if points is not None else 200 <= n <= 256, n
     end = np.asarray(s.robot.frame.tip_position([0.02, 0.36, 0.05])) / 1e-3
     assert np.allclose(path.points[-1], end, atol=1e-6)
+
+
+def test_an_ik_that_fails_while_checking_refuses_the_plan_naming_where(
+    session: Session, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The IK raising (a DLS that does not converge, say) at some tick of a Cartesian plan:
+    refused, naming the segment and the IK's reason; nothing is previewed."""
+    s = session
+    frame_type = type(s.robot.frame)
+    solve = frame_type.ik_clamped
+    calls = {"n": 0}
+
+    def fails_later(self: Any, *args: Any, **kwargs: Any) -> Any:
+        calls["n"] += 1
+        if calls["n"] > 500:
+            raise KinematicsError("did not converge")
+        return solve(self, *args, **kwargs)
+
+    s.ok("KeyframeAdd", T=1.0, Pose="-6 30 226", Space="cartesian", Label="entry")
+    monkeypatch.setattr(frame_type, "ik_clamped", fails_later)
+    assert s.refused("KeyframePlan") == (
+        "plan 1 refused: the tip is unreachable at t=0.500 s, between the start (the robot's "
+        "pose) and keyframe 0 'entry' (t=1 s): did not converge"
+    )
+    assert s.kf.plan is None
