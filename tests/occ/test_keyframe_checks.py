@@ -594,3 +594,22 @@ def test_an_ik_that_fails_while_checking_refuses_the_plan_naming_where(
         "pose) and keyframe 0 'entry' (t=1 s): did not converge"
     )
     assert s.kf.plan is None
+
+
+def test_a_cartesian_refusal_names_where_the_tip_leaves_and_the_joint_at_its_limit(
+    session: Session,
+) -> None:
+    s = session
+    s.ok("KeyframeAdd", T=20.0, Pose="0 24 400", Space="cartesian", Label="far")
+    assert s.refused("KeyframePlan") == (
+        "plan 1 refused: the tip leaves the workspace at t=7.056 s, between the start (the "
+        "robot's pose) and keyframe 0 'far' (t=20 s): (0.00, 24.00, 284.59) mm needs joint "
+        "pitch beyond its limits"
+    )
+    s.ok("KeyframeClear")
+    s.ok("KeyframeAdd", T=20.0, Pose="0 -24 400", Space="cartesian", Label="far")
+    assert s.refused("KeyframePlan") == (
+        "plan 2 refused: the tip leaves the workspace at t=6.883 s, between the start (the "
+        "robot's pose) and keyframe 0 'far' (t=20 s): (0.00, 9.98, 282.68) mm needs joint "
+        "insertion beyond its limits"
+    )
