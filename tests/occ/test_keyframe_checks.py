@@ -613,3 +613,15 @@ def test_a_cartesian_refusal_names_where_the_tip_leaves_and_the_joint_at_its_lim
         "robot's pose) and keyframe 0 'far' (t=20 s): (0.00, 9.98, 282.68) mm needs joint "
         "insertion beyond its limits"
     )
+
+
+def test_a_joint_plan_may_reach_its_limits_but_not_pass_them(session: Session) -> None:
+    s = session
+    s.ok("KeyframeAdd", T=3.0, Pose="1.0 0.35 0.0", Label="at both")  # yaw max, insertion min
+    assert "plan 1:" in s.ok("KeyframePlan")
+    s.ok("KeyframeClear")
+    s.ok("KeyframeAdd", T=3.0, Pose="-1.05 0.35 0.05", Label="below")
+    error = s.refused("KeyframePlan")
+    assert error.startswith("plan 2 refused: joint 'yaw' position -1") and (
+        "is outside its limits [-1, 1] at t=" in error
+    ), error
