@@ -625,3 +625,31 @@ def test_a_joint_plan_may_reach_its_limits_but_not_pass_them(session: Session) -
     assert error.startswith("plan 2 refused: joint 'yaw' position -1") and (
         "is outside its limits [-1, 1] at t=" in error
     ), error
+
+
+def test_a_plan_may_use_exactly_the_velocity_limit_and_is_refused_past_it(
+    session: Session,
+) -> None:
+    s = session
+    # pitch 0.45 rad in 0.4 s: cruise D / (T - t_a) = 0.45 / 0.3 = 1.5 rad/s, its limit
+    s.ok("KeyframeAdd", T=0.4, Pose="0.0 0.8 0.05", Label="fast")
+    assert "peak joint speed 100% of the limit (pitch)" in s.ok("KeyframePlan")
+    s.ok("KeyframeClear")
+    s.ok("KeyframeAdd", T=1.0, Pose="0.0 0.35 0.05", Label="a")
+    s.ok("KeyframeAdd", T=1.5, Pose="0.0 0.35 0.12", Label="deep")
+    assert s.refused("KeyframePlan") == (
+        "plan 2 refused: joint 'insertion' velocity 0.1023 exceeds its limit 0.1 at t=1.065 s, "
+        "between keyframe 0 'a' (t=1 s) and keyframe 1 'deep' (t=1.5 s); give that segment "
+        "more time"
+    )
+
+
+def test_the_workspace_box_checks_each_axis_against_its_own_bounds() -> None:
+    """A box narrow in x and wide in y: a tip at y = 30 mm is inside it (y's bounds), though
+    30 is outside x's."""
+    s = Session({"workspace_mm": {"min_mm": [-20.0, 0.0, 150.0], "max_mm": [20.0, 60.0, 300.0]}})
+    try:
+        s.ok("KeyframeAdd", T=2.0, Pose="-6 30 226", Space="cartesian")
+        assert "plan 1:" in s.ok("KeyframePlan")
+    finally:
+        s.close()
