@@ -653,3 +653,39 @@ def test_the_workspace_box_checks_each_axis_against_its_own_bounds() -> None:
         assert "plan 1:" in s.ok("KeyframePlan")
     finally:
         s.close()
+
+
+def test_workspace_and_forbidden_refusals_say_where_and_what() -> None:
+    s = Session(
+        {
+            "workspace_mm": {"min_mm": [-50.0, -50.0, 150.0], "max_mm": [50.0, 50.0, 300.0]},
+            "forbidden": [
+                {"centre_mm": [-6.0, 35.0, 218.0], "radius_mm": 5.0, "name": "vessel"},
+                {"point_mm": [0.0, 0.0, 150.0], "normal": [0.0, 0.0, 2.0], "name": "table"},
+            ],
+        }
+    )
+    try:
+        s.ok("KeyframeAdd", T=2.0, Pose="-12 46 140", Space="cartesian", Label="low")
+        assert s.refused("KeyframePlan") == (
+            "plan 1 refused: the tip leaves workspace_mm at t=1.592 s, between the start (the "
+            "robot's pose) and keyframe 0 'low' (t=2 s): (-10.73, 43.67, 149.96) mm"
+        )
+        s.ok("KeyframeClear")
+        s.ok("KeyframeAdd", T=2.0, Pose="-6 30 226", Space="cartesian", Label="entry")
+        s.ok("KeyframeAdd", T=4.0, Pose="-12 46 201", Space="cartesian", Label="target")
+        assert s.refused("KeyframePlan") == (
+            "plan 2 refused: the tip enters a forbidden region (forbidden sphere 'vessel') at "
+            "t=2.479 s, between keyframe 0 'entry' (t=2 s) and keyframe 1 'target' (t=4 s): "
+            "(-6.92, 32.44, 222.18) mm"
+        )
+        # a check that answers True (no description): the refusal says no more than that
+        s.kf.add_forbidden_check(lambda p: True if p[2] < 0.2 else None)
+        s.ok("KeyframeClear")
+        s.ok("KeyframeAdd", T=2.0, Pose="-6 30 190", Space="cartesian", Label="deep")
+        assert s.refused("KeyframePlan") == (
+            "plan 3 refused: the tip enters a forbidden region at t=1.411 s, between the start "
+            "(the robot's pose) and keyframe 0 'deep' (t=2 s): (-4.64, 28.64, 200.00) mm"
+        )
+    finally:
+        s.close()
