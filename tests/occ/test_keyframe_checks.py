@@ -529,7 +529,10 @@ def test_the_plan_uses_the_ramp_asked_for_and_reports_its_peak_speed(session: Se
     s.start()
     summary = s.ok("KeyframePlan", Ramp=0.4)
     # cruise v0 = D / (T - t_a) = 0.4 / 1.2 rad/s: 22 % of the 1.5 rad/s of yaw
-    assert "peak joint speed 22% of the limit (yaw)" in summary, summary
+    assert summary == (
+        "plan 1: 1 keyframes (joint, linear, stop), 2.000 s; peak joint speed 22% of the limit "
+        "(yaw); preview on its way to the viewers; acknowledge with KeyframeAck Plan=1"
+    )
     s.step(20)
     (path,) = s.slicer.messages("POLYDATA", "KeyframePath")
     pts = np.asarray(path.points)
