@@ -692,3 +692,24 @@ def test_workspace_and_forbidden_refusals_say_where_and_what() -> None:
         )
     finally:
         s.close()
+
+
+def test_a_new_set_is_counted_and_drops_a_plan_being_checked(session: Session) -> None:
+    s = session
+    assert s.kf.stats()["status"] == "no keyframes" and s.kf.stats()["sets"] == 0
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    stats = s.kf.stats()
+    assert stats["sets"] == 1
+    assert stats["status"] == "1 keyframes from operator commands; send KeyframePlan"
+    gate, entered = _hold_planner(s)
+    cid = s.slicer.send_command("KeyframePlan")
+    s.step(1)
+    assert entered.wait(30.0)
+    added = s.slicer.send_command("KeyframeAdd", xml("KeyframeAdd", T=2.0, Pose="0 0.35 0.05"))
+    s.step(1)
+    assert s.slicer.reply_to(added).metadata["Status"] == "SUCCESS"  # type: ignore[union-attr]
+    reply = _reply_after(s, cid, gate)
+    assert reply.metadata["Error"] == "plan 1 dropped: the keyframes changed meanwhile; plan again"
+    assert s.kf.plan is None and s.kf.stats()["sets"] == 2
+    s.ok("KeyframeClear")
+    assert s.kf.stats()["status"] == "no keyframes" and s.kf.stats()["sets"] == 2
