@@ -276,7 +276,7 @@ def test_a_run_ends_in_the_tick_that_commands_its_last_keyframe(session: Session
     assert stats["status"] == "plan 1 completed (1.000 s)"
 
 
-@pytest.mark.parametrize("end", ["completed", "ik failure"])
+@pytest.mark.parametrize("end", ["completed", "ik failure", "stopped"])
 def test_a_plan_checked_across_a_run_is_dropped(
     session: Session, monkeypatch: pytest.MonkeyPatch, end: str
 ) -> None:
@@ -311,6 +311,10 @@ def test_a_plan_checked_across_a_run_is_dropped(
         with monkeypatch.context() as patch:
             patch.setattr(type(frame), "ik_clamped", fails)
             s.step(2)
+    elif end == "stopped":
+        stop = s.slicer.send_command("Stop")
+        s.step(2)
+        assert s.slicer.reply_to(stop).metadata["Status"] == "SUCCESS"  # type: ignore[union-attr]
     else:
         s.step(800)
     assert s.kf.stats()["running"] is None
@@ -713,3 +717,24 @@ def test_a_new_set_is_counted_and_drops_a_plan_being_checked(session: Session) -
     assert s.kf.plan is None and s.kf.stats()["sets"] == 2
     s.ok("KeyframeClear")
     assert s.kf.stats()["status"] == "no keyframes" and s.kf.stats()["sets"] == 2
+
+
+def test_every_stop_of_a_run_is_counted_said_and_logged(
+    session: Session, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="occ.controllers.keyframe")
+    s = session
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    s.start()
+    for run in (1, 2):
+        plan_id = s.plan_and_ack()
+        s.step(250)
+        s.ok("Stop")
+        text = (
+            f"plan {plan_id} stopped at t=0.251 s of 1.000 s (RUNNING -> STOPPED); the robot "
+            "holds there; plan again to run the keyframes"
+        )
+        assert s.kf.stats()["status"] == text
+        assert s.kf.stats()["runs_stopped"] == run
+        assert _logged(caplog, logging.WARNING)[-1] == f"keyframes: {text}"
+        s.ok("Run")
