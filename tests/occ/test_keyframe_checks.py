@@ -738,3 +738,31 @@ def test_every_stop_of_a_run_is_counted_said_and_logged(
         assert s.kf.stats()["runs_stopped"] == run
         assert _logged(caplog, logging.WARNING)[-1] == f"keyframes: {text}"
         s.ok("Run")
+
+
+def test_a_keyframe_set_is_refused_with_the_reason() -> None:
+    from occ.controllers.keyframe import make_set
+
+    def error(space: Any, items: Any, cap: int = 4) -> str:
+        with pytest.raises(ValueError) as info:
+            make_set(space, items, "test", joints=3, max_keyframes=cap)
+        return str(info.value)
+
+    q = (0.0, 0.0, 0.0, 1.0)
+    assert error("joint", []) == "no keyframes"
+    # exactly max_keyframes is a set; one more is not
+    full = [(float(i + 1), [0.0, 0.0, 0.0], "") for i in range(4)]
+    assert len(make_set("joint", full, "test", joints=3, max_keyframes=4).keyframes) == 4
+    assert error("joint", full, cap=3) == "4 keyframes, more than max_keyframes (3)"
+    assert error("joint", [(1.0, [0, 0, 0], "", q)]) == (
+        "keyframe 0: a rotation needs Cartesian keyframes"
+    )
+    assert error("cartesian", [(1.0, [0, 0, 0], "", q), (2.0, [0, 0, 1], "")]) == (
+        "keyframe 1: every keyframe of a set has a rotation, or none has"
+    )
+    assert error("cartesian", [(1.0, [0, 0], "")]) == (
+        "keyframe 0: 2 values, a cartesian pose needs x y z (mm)"
+    )
+    assert error("joint", [(1.0, [0, 0], "")]) == (
+        "keyframe 0: 2 values, a joint pose needs 3 joint positions"
+    )
