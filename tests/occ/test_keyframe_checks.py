@@ -766,3 +766,6 @@ def test_a_keyframe_set_is_refused_with_the_reason() -> None:
     assert error("joint", [(1.0, [0, 0], "")]) == (
         "keyframe 0: 2 values, a joint pose needs 3 joint positions"
     )
+    assert error("joint", [(-1.0, [0, 0, 0], "")]) == (
+        "keyframe 0: time -1 s is before the start (t = 0)"
+    )
