@@ -11,15 +11,18 @@ own loss monitor, the table on) and ``collab-no-table`` (the same without the ta
 
 The robots are built from configs/slave.yaml and configs/master.yaml on a SimClock and put
 RUNNING; the slave's master stream is a POSITION every other tick (the paper's 500 Hz motion),
-put straight into its stream queue, so nothing but the tick is timed (the master's outputs go
-to a UDP socket nobody reads). ``--sleep-us`` sleeps between ticks, as the real loop does: the
-tick then runs from colder caches, which is what a daemon pays (the real loop's compute time
-is 2-4x this benchmark's warm figure on this VM). ``--jitter-us`` starts each tick up to that
-many µs after its deadline (uniform, seeded), as the real loop's wake-ups do: code that caches
-per period (the sim drive's exact step) then sees a new interval each tick. Garbage collection
-is off while timing. ``--opcodes N`` counts instead the interpreter's bytecodes per tick by
-function (``sys.settrace`` opcode events) and prints the N largest: where a pure-Python tick
-spends its work, without a profiler's timing noise.
+sent as a real datagram to the slave's stream socket before the tick, so the tick polls, decodes
+and routes it as the daemon does, and answers on its return link (the SlaveTip at 500 Hz) to the
+sending socket. The master streams to a socket that answers as the slave does: a SlaveTip every
+other tick, which the master decodes and judges (its fixtures' tool). Packing, sending and
+reading the robot's datagrams happen outside the timed region. ``--sleep-us`` sleeps between
+ticks, as the real loop does: the tick then runs from colder caches, which is what a daemon pays
+(the real loop's compute time is 2-4x this benchmark's warm figure on this VM). ``--jitter-us``
+starts each tick up to that many µs after its deadline (uniform, seeded), as the real loop's
+wake-ups do: code that caches per period (the sim drive's exact step) then sees a new interval
+each tick. Garbage collection is off while timing. ``--opcodes N`` counts instead the
+interpreter's bytecodes per tick by function (``sys.settrace`` opcode events) and prints the N
+largest: where a pure-Python tick spends its work, without a profiler's timing noise.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ import argparse
 import gc
 import math
 import random
+import socket
 import sys
 import time
 from collections import Counter
@@ -35,23 +39,25 @@ from pathlib import Path
 from typing import Any
 
 import igtl
-from igtl.transport import Peer
 from occ.clock import SimClock
 from occ.loader import load_config
 from occ.robot import build_robot
-from occ.samples import pose_sample
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-#: robot -> (config file, stream interfaces fed, state table seconds: None = as configured)
+#: robot -> (config file, stream interfaces fed, state table seconds: None = as configured);
+#: the master's interface ``slave`` gets the slave's return stream instead (see ``run``)
 ROBOTS: dict[str, tuple[str, tuple[str, ...], float | None]] = {
     "slave": ("slave.yaml", ("master",), None),
-    "master": ("master.yaml", (), None),
+    "master": ("master.yaml", ("slave",), None),
     "slave+table": ("slave.yaml", ("master",), 10.0),
     "collab": ("collab/slave.yaml", ("mentor", "trainee"), None),
     "collab-no-table": ("collab/slave.yaml", ("mentor", "trainee"), 0.0),
 }
+
+#: the slave's return-channel metadata (occ/returnlink.py): following, RUNNING, its 10:1 map
+RETURN_META = {"following": "1", "state": "RUNNING", "map": "0.1,0,0,0,0.1,0,0,0,0.1"}
 
 
 def run(
@@ -72,8 +78,28 @@ def run(
     if table is not None:
         st = cfg.state_table.model_copy(update={"seconds": table or None})
         cfg = cfg.model_copy(update={"state_table": st})
+    # the peers: one socket per fed interface. An interface with a ``remote`` (the master's
+    # link to its slave) sends to that socket, which answers as the slave does (SlaveTip, the
+    # return channel); one without (the slave's stream) is sent the master's POSITIONs.
+    socks = {}
+    for i in fed:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind(("127.0.0.1", 0))
+        sock.setblocking(False)
+        socks[i] = sock
     ifaces = tuple(
-        i.model_copy(update={"port": 0, **({"remote": "127.0.0.1:9"} if i.remote else {})})
+        i.model_copy(
+            update={
+                "port": 0,
+                **(
+                    {"remote": f"127.0.0.1:{socks[i.name].getsockname()[1]}"}
+                    if i.name in socks
+                    else {"remote": "127.0.0.1:9"}
+                    if i.remote
+                    else {}
+                ),
+            }
+        )
         for i in cfg.interfaces
     )
     cfg = cfg.model_copy(update={"interfaces": ifaces})
@@ -82,22 +108,11 @@ def run(
     robot.configure()
     robot.state_machine.request("enable", "bench")
     robot.state_machine.request("run", "bench")
-    streams = [(i, robot.interfaces[i].streams["POSITION"]) for i in fed]
-    peer = Peer(1, ("127.0.0.1", 40000))
-    samples = []
-    if streams:
-        for s in range(ticks // 2 + 1):
-            t = s * 0.002
-            msg = igtl.PositionMessage(
-                (50 * math.sin(0.2 * math.pi * t), 50 * math.cos(0.2 * math.pi * t), 20.0),
-                (0.0, 0.0, 0.0, 1.0),
-                24,
-                device_name="Master",
-                header_version=2,
-                message_id=s + 1,
-                metadata={"run": "1", "clutch": "0"},
-            )
-            samples.append(igtl.unpack(msg.pack()))
+    robot.interfaces.start()  # the sockets, as the daemon's activate (no supervisor)
+    senders = []
+    for i, sock in socks.items():
+        returning = robot.config.interfaces[[c.name for c in robot.config.interfaces].index(i)]
+        senders.append((sock, robot.interfaces[i].transport.address, bool(returning.remote)))
     rng = random.Random(1)
     gc.disable()
     total = 0.0
@@ -105,9 +120,33 @@ def run(
         for k in range(ticks):
             now = k * 0.001 + rng.uniform(0.0, jitter_s)
             clock.set(now)
-            if k % 2 == 0:
-                for iface, stream in streams:
-                    stream.put(pose_sample(iface, peer, samples[k // 2], now))  # type: ignore[arg-type]
+            if k % 2 == 0 and senders:
+                t = k * 0.001
+                forward = igtl.PositionMessage(
+                    (50 * math.sin(0.2 * math.pi * t), 50 * math.cos(0.2 * math.pi * t), 20.0),
+                    (0.0, 0.0, 0.0, 1.0),
+                    24,
+                    device_name="Master",
+                    header_version=2,
+                    message_id=k // 2 + 1,
+                    timestamp=clock.wall_time(),
+                    metadata={"run": "1", "clutch": "0"},
+                ).pack()
+                back = igtl.PositionMessage(
+                    (5 * math.sin(0.2 * math.pi * t), 5 * math.cos(0.2 * math.pi * t), -40.0),
+                    (0.0, 0.0, 0.0, 1.0),
+                    28,
+                    device_name="SlaveTip",
+                    header_version=2,
+                    message_id=k // 2 + 1,
+                    timestamp=clock.wall_time(),
+                    metadata=RETURN_META,
+                ).pack()
+                for sock, addr, returning in senders:
+                    if returning and k == 0:
+                        continue  # the master has not streamed yet: a slave would not answer
+                    sock.sendto(back if returning else forward, addr)
+                    _drain(sock)  # what the robot sent this peer: read, as the peer does
             t0 = timer()
             if opcodes is not None:
                 sys.settrace(_opcode_counter(opcodes))
@@ -120,7 +159,17 @@ def run(
     finally:
         gc.enable()
         robot.shutdown()
+        for sock in socks.values():
+            sock.close()
     return total / ticks * 1e6
+
+
+def _drain(sock: socket.socket) -> None:
+    while True:
+        try:
+            sock.recv(65536)
+        except BlockingIOError:
+            return
 
 
 def _opcode_counter(counts: Counter[str]) -> Any:

@@ -287,6 +287,7 @@ def error_reply(
                     status=1,
                     device_name=safe_name(msg.device_name),
                     header_version=msg.header_version,
+                    message_id=msg.message_id,
                     timestamp=timestamp,
                 )
             except (TypeError, ValueError):

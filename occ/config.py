@@ -646,6 +646,13 @@ class InterfaceConfig(_Model):
         "(`unauthenticated`). For a master link on a network that is not trusted; both ends "
         "use the same file. Relative paths are read from the config file's folder.",
     )
+    auth_max_age_s: Annotated[Float, Field(gt=0, le=3600)] = Field(
+        30.0,
+        description="With `auth_key_file`: a signed request (a command, a query, a command "
+        "input) is taken once, and only when its header timestamp is within this many seconds "
+        "of the daemon's clock; a repeat or an older one is refused as a replay, answered and "
+        "counted (`replayed`). Both ends' clocks must agree within it.",
+    )
     kernel_filter: Bool = Field(
         True,
         description="udp with stream inputs: once the stream has its owner (`stream_source`, "

@@ -21,7 +21,7 @@ from .safety import RobotState
 
 if TYPE_CHECKING:
     from .clock import Clock
-    from .frame import Frame
+    from .frame import Frame, Rows
     from .joint import Joint
 
 
@@ -43,6 +43,8 @@ class RobotData:
         "frame",
         "_tip",
         "_tip_stale",
+        "_base_key",
+        "_base_rt",
     )
 
     def __init__(
@@ -75,6 +77,10 @@ class RobotData:
         self.frame = frame
         self._tip = np.eye(4)
         self._tip_stale = True
+        #: the base pose as plain floats (rotation rows or None for none, translation), and
+        #: the bytes it was made from: rebuilt when the base changes
+        self._base_key = b""
+        self._base_rt: tuple[Rows | None, tuple[float, float, float]] = (None, (0.0, 0.0, 0.0))
 
     def measured_from(self, joints: Sequence[Joint]) -> None:
         """New measurements: ``q``, ``qdot`` and ``effort`` from the joints' last reads (the
@@ -100,6 +106,52 @@ class RobotData:
     def world_tip(self) -> np.ndarray:
         """The tip pose in world coordinates (base pose x forward kinematics)."""
         return self.base @ self.tip
+
+    def world_tip_pose(self) -> tuple[Rows, tuple[float, float, float]]:
+        """:meth:`world_tip` as plain floats, (rotation rows, position in metres): the
+        frame's closed form where it has one and no numpy (the 500 Hz return channel)."""
+        assert self.frame is not None
+        rows, (x, y, z) = self.frame.tip_pose(self.q)
+        key = self.base.tobytes()
+        if key != self._base_key:
+            self._base_key = key
+            b = self.base.tolist()
+            rot = (
+                (b[0][0], b[0][1], b[0][2]),
+                (b[1][0], b[1][1], b[1][2]),
+                (b[2][0], b[2][1], b[2][2]),
+            )
+            identity = rot == ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+            self._base_rt = (None if identity else rot, (b[0][3], b[1][3], b[2][3]))
+        rot_b, (tx, ty, tz) = self._base_rt
+        if rot_b is None:
+            return rows, (x + tx, y + ty, z + tz)
+        (b00, b01, b02), (b10, b11, b12), (b20, b21, b22) = rot_b
+        c0, c1, c2 = zip(*rows, strict=True)
+        return (
+            (
+                (
+                    b00 * c0[0] + b01 * c0[1] + b02 * c0[2],
+                    b00 * c1[0] + b01 * c1[1] + b02 * c1[2],
+                    b00 * c2[0] + b01 * c2[1] + b02 * c2[2],
+                ),
+                (
+                    b10 * c0[0] + b11 * c0[1] + b12 * c0[2],
+                    b10 * c1[0] + b11 * c1[1] + b12 * c1[2],
+                    b10 * c2[0] + b11 * c2[1] + b12 * c2[2],
+                ),
+                (
+                    b20 * c0[0] + b21 * c0[1] + b22 * c0[2],
+                    b20 * c1[0] + b21 * c1[1] + b22 * c1[2],
+                    b20 * c2[0] + b21 * c2[1] + b22 * c2[2],
+                ),
+            ),
+            (
+                b00 * x + b01 * y + b02 * z + tx,
+                b10 * x + b11 * y + b12 * z + ty,
+                b20 * x + b21 * y + b22 * z + tz,
+            ),
+        )
 
     def commanded(self) -> list[float]:
         """The setpoint the drivers hold now: the running setpoint, else the held one."""

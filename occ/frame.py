@@ -59,6 +59,10 @@ AnalyticSolver = Callable[[tuple[float, float, float], list[float]], Sequence[Se
 #: A closed-form tip position (base frame, metres) for q, used for the residual instead of a
 #: full forward-kinematics pass.
 ClosedFK = Callable[[Sequence[float]], Sequence[float]]
+#: A rotation as three rows of three floats.
+Rows = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
+#: A closed-form tip pose (base frame, metres) for q: (rotation rows, position).
+ClosedPose = Callable[[Sequence[float]], tuple[Rows, tuple[float, float, float]]]
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,6 +72,8 @@ class AnalyticIK:
 
     solve: AnalyticSolver
     position: ClosedFK | None = None
+    #: the closed-form tip pose, when the factory has one (checked at load like ``position``)
+    pose: ClosedPose | None = None
 
 
 #: A factory builds a solver for one Frame, or returns None if the model does not fit.
@@ -183,11 +189,14 @@ class Frame:
 
         self._analytic: AnalyticSolver | None = None
         self._analytic_fk: ClosedFK | None = None
+        self._analytic_pose: ClosedPose | None = None
         factory = _ANALYTIC.get(self.name)
         if factory is not None:
             made = factory(self)
             if isinstance(made, AnalyticIK):
                 self._analytic, self._analytic_fk = made.solve, made.position
+                if made.pose is not None and _check_closed_pose(self, made.pose):
+                    self._analytic_pose = made.pose
             else:
                 self._analytic = made
         self._lo_hi = list(zip(self._lo, self._hi, strict=True))
@@ -323,6 +332,21 @@ class Frame:
             return (float(x), float(y), float(z))
         x, y, z = self.position(q).tolist()
         return (x, y, z)
+
+    def tip_pose(self, q: Sequence[float]) -> tuple[Rows, tuple[float, float, float]]:
+        """Tip pose in the base frame as plain floats: (rotation rows, position in metres).
+        The analytic model's closed form when it has one (checked against pinocchio when the
+        model loaded), else :meth:`fk`. The per-sample variant (a slave's return channel at
+        500 Hz): no numpy on the way."""
+        closed = self._analytic_pose
+        if closed is not None:
+            return closed(q)
+        m = self.fk(q).tolist()
+        r0, r1, r2 = m[0], m[1], m[2]
+        return (
+            ((r0[0], r0[1], r0[2]), (r1[0], r1[1], r1[2]), (r2[0], r2[1], r2[2])),
+            (r0[3], r1[3], r2[3]),
+        )
 
     def jacobian(self, q: Sequence[float] | FloatArray) -> FloatArray:
         """6 x nq Jacobian of the tip: rows 0-2 linear velocity of the tip point, rows 3-5
@@ -595,6 +619,30 @@ def _check_closed_form(frame: Frame, closed: ClosedFK) -> bool:
     return True
 
 
+def _check_closed_pose(frame: Frame, closed: ClosedPose) -> bool:
+    """Compare a closed-form tip pose with pinocchio at fixed pseudo-random configurations."""
+    rng = np.random.default_rng(54321)
+    lo = np.where(np.isfinite(frame.lower), frame.lower, -1.0)
+    hi = np.where(np.isfinite(frame.upper), frame.upper, 1.0)
+    for _ in range(8):
+        q = rng.uniform(lo, hi)
+        rows, pos = closed(q.tolist())
+        want = frame.fk(q)
+        got = np.array([[*rows[i], pos[i]] for i in range(3)])
+        if np.max(np.abs(got - want[:3])) > _CHECK_TOL:
+            return False
+    return True
+
+
+def _rows(m: FloatArray) -> Rows:
+    r = m.tolist()
+    return (
+        (float(r[0][0]), float(r[0][1]), float(r[0][2])),
+        (float(r[1][0]), float(r[1][1]), float(r[1][2])),
+        (float(r[2][0]), float(r[2][1]), float(r[2][2])),
+    )
+
+
 def _rcm_factory(frame: Frame) -> AnalyticIK | None:
     """Closed form of a yaw(z) / pitch(x) / insertion(-z) chain through an RCM point.
 
@@ -638,7 +686,36 @@ def _rcm_factory(frame: Frame) -> AnalyticIK | None:
         yaw_b = yaw - math.pi if yaw > 0.0 else yaw + math.pi
         return [(yaw, pitch, insertion), (yaw_b, -pitch, insertion)]
 
-    return AnalyticIK(solve, closed)
+    # the tip's rotation: yaw about z, then pitch about x, then the tool's rotation at zero
+    # (what the position's closed form says too: the tool axis is Rz(q0) Rx(q1) (0, 0, -1))
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = _rows(frame.fk(np.zeros(3))[:3, :3])
+
+    def pose(q: Sequence[float]) -> tuple[Rows, tuple[float, float, float]]:
+        c0, s0 = math.cos(q[0]), math.sin(q[0])
+        c1, s1 = math.cos(q[1]), math.sin(q[1])
+        d = d0 + q[2]
+        # Rz(q0) Rx(q1) = [[c0, -s0 c1, s0 s1], [s0, c0 c1, -c0 s1], [0, s1, c1]]
+        b00, b01, b02 = c0, -s0 * c1, s0 * s1
+        b10, b11, b12 = s0, c0 * c1, -c0 * s1
+        b21, b22 = s1, c1
+        return (
+            (
+                (
+                    b00 * a00 + b01 * a10 + b02 * a20,
+                    b00 * a01 + b01 * a11 + b02 * a21,
+                    b00 * a02 + b01 * a12 + b02 * a22,
+                ),
+                (
+                    b10 * a00 + b11 * a10 + b12 * a20,
+                    b10 * a01 + b11 * a11 + b12 * a21,
+                    b10 * a02 + b11 * a12 + b12 * a22,
+                ),
+                (b21 * a10 + b22 * a20, b21 * a11 + b22 * a21, b21 * a12 + b22 * a22),
+            ),
+            (rx - d * s0 * s1, ry + d * c0 * s1, rz - d * c1),
+        )
+
+    return AnalyticIK(solve, closed, pose)
 
 
 def _cartesian_factory(frame: Frame) -> AnalyticIK | None:
@@ -677,7 +754,12 @@ def _cartesian_factory(frame: Frame) -> AnalyticIK | None:
             )
         ]
 
-    return AnalyticIK(solve, closed)
+    rotation = _rows(frame.fk(np.zeros(3))[:3, :3])  # prismatic joints: it never changes
+
+    def pose(q: Sequence[float]) -> tuple[Rows, tuple[float, float, float]]:
+        return rotation, closed(q)
+
+    return AnalyticIK(solve, closed, pose)
 
 
 register_analytic_ik("occ_slave", _rcm_factory)

@@ -76,6 +76,14 @@ class HardwareSet:
         self.drivers: list[Driver] = [d for d, _ in self.pairs]
         # per driver: its slice of the robot's values, copied into a buffer it keeps
         self._slices = [(d, idx, [0.0] * len(idx)) for d, idx in self.pairs]
+        n_joints = sum(len(idx) for _d, idx in self.pairs)
+        #: one drive with every joint in order (the shipped robots): it takes the values as
+        #: they come, no slice copied
+        self._whole = (
+            self.pairs[0][0]
+            if len(self.pairs) == 1 and list(self.pairs[0][1]) == list(range(n_joints))
+            else None
+        )
         self._fault_t: float | None = None
         #: fault detected (read or write) -> last drive safe, seconds (None before any)
         self.last_fault_to_safe_s: float | None = None
@@ -234,19 +242,24 @@ class HardwareSet:
         """Each drive its slice of ``values`` (position setpoints, or efforts). Every drive
         must be ACTIVE, checked before anything is written; the first failure ends the write
         (the caller latches FAULT, which powers every drive off)."""
-        for d, _idx, _buf in self._slices:
-            if d.state is not DriverState.ACTIVE:
-                self._detected()
-                why = d.fault_reason or f"drive is {d.state.value}"
-                return self._one(HardwareFailure(d.name, "write", f"not active ({why})"))
+        whole = self._whole
+        if whole is None or whole.state is not DriverState.ACTIVE:
+            for d, _idx, _buf in self._slices:
+                if d.state is not DriverState.ACTIVE:
+                    self._detected()
+                    why = d.fault_reason or f"drive is {d.state.value}"
+                    return self._one(HardwareFailure(d.name, "write", f"not active ({why})"))
         for d, idx, buf in self._slices:
-            for n, i in enumerate(idx):
-                buf[n] = values[i]
+            out: Sequence[float] = values  # one drive, every joint: read (never kept) as given
+            if whole is None:
+                for n, i in enumerate(idx):
+                    buf[n] = values[i]
+                out = buf
             try:
                 if effort:
-                    d.write_effort(buf, now)
+                    d.write_effort(out, now)
                 else:
-                    d.write(buf, now)
+                    d.write(out, now)
             except Exception as err:  # noqa: BLE001
                 self._detected()
                 return self._one(HardwareFailure(d.name, "write", _cause(err)))

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -45,7 +46,7 @@ from typing import Any
 from mypy_extensions import mypyc_attr
 
 import igtl
-from igtl.auth import load_key, sign, verify
+from igtl.auth import ReplayGuard, load_key, sign, verify
 from igtl.messages.base import Message
 from igtl.transport import InprocTransport, Peer, TCPClient, TCPServer, UDPEndpoint
 from igtl.transport.common import AccessList, RateLimit
@@ -195,6 +196,7 @@ class InterfaceCounters:
     refused: int = 0
     foreign: int = 0  # stream samples from a sender that does not own the stream
     unauthenticated: int = 0  # messages without a valid HMAC on an interface with a key
+    replayed: int = 0  # signed requests refused as replays (seen before, or too old)
     malformed: int = 0
     sent: int = 0
     send_dropped: int = 0
@@ -248,6 +250,9 @@ class Interface:
             if getattr(cfg, "auth_key_file", None)
             else None
         )
+        #: a signed request is taken once, within its window (the senders' clocks: real time)
+        self._replay = ReplayGuard(cfg.auth_max_age_s) if self.auth_key is not None else None
+        self._wall: Callable[[], float] = time.time
         self.transport = self._make_transport()
 
     def _make_transport(self) -> TCPServer | TCPClient | UDPEndpoint | InprocTransport:
@@ -405,6 +410,11 @@ class Interface:
         item = Inbound(self.name, peer, msg, t_rx)
         request = is_operator_request(msg)
         if request or mtype in self.command_inputs:
+            replay = self._replay
+            if replay is not None and (why := replay.check(msg, self._wall())):
+                c.replayed += 1  # answered: a sender with the key learns why (its clock?)
+                self._refuse(item, f"{mtype} refused: {why}", igtl.StatusCode.ACCESS_DENIED)
+                return None
             # an operator request is judged by the sender's role even where its type is also
             # listed as an input (a viewer must not become an operator by the config's inputs)
             if request:
@@ -545,6 +555,7 @@ class Interface:
             "refused": c.refused,
             "foreign": c.foreign,
             "unauthenticated": c.unauthenticated,
+            "replayed": c.replayed,
             "keepalive": c.keepalive,
             "unexpected": c.unexpected,
             **({"no_destination": c.no_destination} if self.sends_to_owner else {}),

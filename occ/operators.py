@@ -423,7 +423,9 @@ class OperatorDesk:
         if name in ("GET_TRANS", "GET_TRANSFOR"):
             want = safe_name(msg.device_name or "Tip")
             pose = r.data.base if want.lower() == "base" else r.data.world_tip()
-            return pose_to_message(pose, "TRANSFORM", want, msg.header_version, wall)
+            return pose_to_message(
+                pose, "TRANSFORM", want, msg.header_version, wall, msg.message_id
+            )
         raise CommandError(f"{name} is not supported by {r.name}")
 
     def describe_state(self) -> str:

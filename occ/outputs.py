@@ -195,14 +195,24 @@ def pack_output(value: PoseSample | PointsOut | PolylineOut | VectorOut, out: Ou
 
 
 def pose_to_message(
-    pose: np.ndarray, mtype: str, device: str, header_version: int, timestamp: float
+    pose: np.ndarray,
+    mtype: str,
+    device: str,
+    header_version: int,
+    timestamp: float,
+    message_id: int = 0,
 ) -> Message:
-    """A TRANSFORM or POSITION (mm) from a 4x4 pose in metres."""
+    """A TRANSFORM or POSITION (mm) from a 4x4 pose in metres (``message_id``: a reply's,
+    the request's own)."""
     if mtype == "TRANSFORM":
         m = pose.copy()
         m[:3, 3] *= M_TO_MM
         return igtl.TransformMessage.from_matrix(
-            m, device_name=device, timestamp=timestamp, header_version=header_version
+            m,
+            device_name=device,
+            timestamp=timestamp,
+            header_version=header_version,
+            message_id=message_id,
         )
     if mtype == "POSITION":
         x, y, z = (pose[:3, 3] * M_TO_MM).tolist()
@@ -212,6 +222,7 @@ def pose_to_message(
             device_name=device,
             timestamp=timestamp,
             header_version=header_version,
+            message_id=message_id,
         )
     raise OCCError(f"output type {mtype} cannot carry a pose")
 

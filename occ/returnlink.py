@@ -41,6 +41,13 @@ peer). Its :attr:`ReturnLink.status`:
            (100 ms: a dead slave): the fixture force is zero at once and the operators get an
            ALERT; the next good sample re-arms it (a STATUS ``STREAM`` says so).
 
+A sample whose content is refused (a tip that is not a point, a malformed ``map`` or
+``force_n``: counted in ``bad``) still arrived, so the monitor accounts for its sequence number
+(never a loss), but its tip is not used: it is not a fresh tip either. A slave that keeps
+sending only such samples is late, then lost, by the same deadline and grace as a silent one
+(``stale`` after 6.5 ms without a usable tip: the force fades; ``lost`` past the grace: zero
+and an ALERT, once), never a fresh link holding the last good force on the hand.
+
 Loop thread only; O(1) per sample and per tick.
 """
 
@@ -74,6 +81,12 @@ class ReturnLink:
         self.quaternion: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
         #: loop time when the last tip was accepted
         self.t_tip = math.nan
+        #: loop time of the last usable tip, or of arm(): the deadline and the grace of a
+        #: stream whose samples arrive but are refused for their content run from it
+        self._t_usable = math.nan
+        #: samples arrive (the monitor is content) but none usable past the deadline
+        self.unusable = False
+        self._bad_run = 0  # samples refused for their content since the last usable tip
         #: a tip arrived that the fixtures have not used yet
         self.new = False
         self.following = False
@@ -113,6 +126,7 @@ class ReturnLink:
         tip = sample.position_mm
         if not all(math.isfinite(v) for v in tip):
             self.bad_metadata += 1
+            self._bad_run += 1
             self.last_error = f"seq {seq}: tip {tip} is not a point"
             return False
         meta = sample.meta
@@ -122,6 +136,7 @@ class ReturnLink:
                 self.linear = parse_linear(text)
             except DefinitionError as err:
                 self.bad_metadata += 1
+                self._bad_run += 1
                 self.last_error = f"seq {seq}: {err}"
                 return False
             self._map_text = text
@@ -135,6 +150,7 @@ class ReturnLink:
                 fx = fy = fz = math.nan
             if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
                 self.bad_metadata += 1
+                self._bad_run += 1
                 self.last_error = f"seq {seq}: force_n {force_text[:40]!r} is not 3 numbers"
                 return False
             force = (fx, fy, fz)
@@ -142,7 +158,9 @@ class ReturnLink:
         self.following = meta.get("following", "1") == "1"
         self.slave_state = meta.get("state", "")
         self.tip = tip
-        self.t_tip = now
+        self.t_tip = self._t_usable = now
+        self.unusable = False
+        self._bad_run = 0
         self.seq = seq
         self.new = True
         self.samples += 1
@@ -153,13 +171,35 @@ class ReturnLink:
 
     # ------------------------------------------------------------------ every tick
     def check(self, now: float) -> LossEvent | None:
-        """The monitor's event this tick (hold, resume, latch, refused), if any; a latch
-        marks the link lost."""
-        event = self.monitor.check(now)
+        """The monitor's event this tick (hold, resume, latch, refused), if any, or the
+        link's own latch when samples come but none usable past the grace; a latch marks the
+        link lost (told once: lost already, a latch is not told again)."""
+        mon = self.monitor
+        event = mon.check(now)
         if event is not None and event.kind == "latch":
+            if self.lost:
+                return None  # lost already, told once: the same outage until a usable tip
             self.lost = True
             self.losses += 1
             self.lost_cause = event.cause
+        elif not (self.lost or mon.holding):
+            # samples may come while none is usable: late and lost by the same rules
+            idle = now - self._t_usable  # NaN before any usable tip or arm(): never
+            if idle > mon.deadline_s:
+                if idle > mon.grace_s:
+                    cause = (
+                        f"no usable tip for {idle * 1e3:.2f} ms (limit "
+                        f"{mon.grace_s * 1e3:.1f} ms): {self._bad_run} samples refused, the last: "
+                        f"{self.last_error}"
+                    )
+                    self.lost = True
+                    self.unusable = False
+                    self.losses += 1
+                    self.lost_cause = cause
+                    run = int((idle - mon.tolerance_s) / mon.period_s)
+                    event = LossEvent("latch", cause, "content", run, now, idle)
+                else:
+                    self.unusable = True
         return event
 
     def arm(self, now: float) -> None:
@@ -167,6 +207,8 @@ class ReturnLink:
         sends is then caught by the grace, as a dead one is."""
         self.monitor.reset(now)
         self.lost = False
+        self.unusable = False
+        self._t_usable = now
 
     @property
     def status(self) -> str:
@@ -175,7 +217,7 @@ class ReturnLink:
             return "lost"
         if self.tip is None:
             return "none"
-        return "stale" if self.monitor.holding else "fresh"
+        return "stale" if self.monitor.holding or self.unusable else "fresh"
 
     def stats(self, now: float) -> dict[str, Any]:
         age = now - self.t_tip if self.tip is not None else None

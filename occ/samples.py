@@ -123,9 +123,12 @@ def pose_sample(interface: str, peer: Any, msg: Any, t_rx: float) -> PoseSample 
     )
 
 
-def rotation_to_quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
-    """(x, y, z, w) of a rotation matrix, w >= 0 (Shepperd's method, numerically stable)."""
-    m = r.tolist()
+def rotation_to_quaternion(
+    r: np.ndarray | Sequence[Sequence[float]],
+) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of a rotation matrix (3x3 array or rows of floats), w >= 0 (Shepperd's
+    method, numerically stable)."""
+    m = r.tolist() if isinstance(r, np.ndarray) else r
     t = m[0][0] + m[1][1] + m[2][2]
     if t > 0.0:
         s = math.sqrt(t + 1.0) * 2.0

@@ -115,7 +115,7 @@ from cyclonedds.core import GuardCondition, ReadCondition, SampleState, WaitSet
 from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.pub import DataWriter
 from cyclonedds.qos import Policy, Qos
-from cyclonedds.sub import DataReader
+from cyclonedds.sub import DataReader, InvalidSample
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
@@ -889,7 +889,10 @@ class Bridge:
             for robot in self.robots.values():
                 for reader, handle in robot.readers:
                     for sample in reader.take(N=16):
-                        handle(sample)
+                        # a publisher gone (a ROS 2 node that exits deletes its writers) comes
+                        # as a sample without data: nothing to forward
+                        if not isinstance(sample, InvalidSample):
+                            handle(sample)
 
     def command(self, ns: str, word: str) -> None:
         """Forward one command to the daemon of ``ns`` (what the DDS subscriptions do): a CRTK

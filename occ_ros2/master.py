@@ -33,7 +33,7 @@ import time
 from typing import Any
 
 from cyclonedds.domain import DomainParticipant
-from cyclonedds.sub import DataReader
+from cyclonedds.sub import DataReader, InvalidSample
 from cyclonedds.topic import Topic
 
 import igtl
@@ -122,6 +122,8 @@ class MasterStream:
 
     def _read_topics(self, now: float) -> None:
         for s in self._poses.take(N=64):
+            if isinstance(s, InvalidSample):
+                continue  # a publisher gone (its node exited): no pose
             frames = self.frames
             if frames is not None and s.header.frame_id not in frames:
                 if not self.refused_frames:
@@ -140,6 +142,8 @@ class MasterStream:
             self.pose_t = now
             self.poses += 1
         for c in self._clutch.take(N=16):
+            if isinstance(c, InvalidSample):
+                continue  # as above: the clutch stays as it was last set
             self.clutch = c.data.strip().lower() in ("1", "true", "on", "pressed")
 
     def _run(self) -> None:

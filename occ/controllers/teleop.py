@@ -919,8 +919,7 @@ class SlaveController(Controller):
             self._return_meta[key] = meta
         if self.force is not None:
             meta = MappingProxyType({**meta, "force_n": self._force_meta(now)})
-        pose = data.world_tip()
-        x, y, z = (pose[:3, 3] * 1e3).tolist()
+        rows, (x, y, z) = data.world_tip_pose()
         k = id(out)
         seq = (self._return_seqs.get(k, 0) + 1) & 0xFFFFFFFF
         self._return_seqs[k] = seq
@@ -930,8 +929,8 @@ class SlaveController(Controller):
             iface.name,
             None,
             out.device,
-            (x, y, z),
-            rotation_to_quaternion(pose[:3, :3]),
+            (x * 1e3, y * 1e3, z * 1e3),
+            rotation_to_quaternion(rows),
             seq=seq,
             t_sample=self.ctx.clock.wall_time(),
             meta=meta,

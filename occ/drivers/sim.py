@@ -239,6 +239,12 @@ class SimDriver(Driver):
             )
             for i in range(len(js))
         ]
+        # the servoed joints' exact step, per joint (see _servo_steps)
+        self._servoed = self.command_interface == "position"
+        self._servo_model = [
+            (self._kp[i], self._kd[i], self._effort_limit[i], self._lo[i], self._hi[i])
+            for i in range(len(js))
+        ]
         self._exact_encoder = not any(noise) and not any(resolution)
         self._noisy = any(n > 0.0 for n in noise)
         # exact steps of the servoed joints: e = x - r obeys e'' + c e' + k e = 0 while the
@@ -250,11 +256,7 @@ class SimDriver(Driver):
         # what of the exact step does not depend on its length, per joint: (k, c/2, d^2,
         # sqrt(|d^2|)) (see _exact_steps; computed once: the loop's jitter makes every step
         # a new length)
-        self._servo_consts = []
-        for k, c in self._servo_poles:
-            half = 0.5 * c
-            d2 = half * half - k
-            self._servo_consts.append((k, half, d2, math.sqrt(d2 if d2 > 0.0 else -d2)))
+        self._set_poles(self._servo_poles)
         self._step_h = math.nan
         self._step: list[tuple[float, float, float, float]] = []
 
@@ -401,6 +403,12 @@ class SimDriver(Driver):
             if self._faults:
                 return self._injected(out), self._v, effort
             return out, self._v, effort
+        if not self._noisy:  # the encoders' counts only (the shipped drives)
+            for i, (x, res) in enumerate(zip(self._x, self._resolution, strict=True)):
+                out[i] = math.floor(x / res + 0.5) * res if res > 0.0 else x
+            if self._faults:
+                return self._injected(out), self._v, effort
+            return out, self._v, effort
         rng = self._rng
         noisy = self._noisy
         for i, x in enumerate(self._x):
@@ -455,7 +463,7 @@ class SimDriver(Driver):
         and ``S = sinh(d h)/d`` (cos and sin/omega when ``d^2 < 0``; series near 0). Cached
         for the last ``h``."""
         out = []
-        for k, half, d2, root in self._servo_consts:  # root: d, or w when d^2 < 0
+        for k, half, d2, root in self._servo_distinct:  # root: d, or w when d^2 < 0
             z = d2 * h * h
             if abs(z) < 1e-8:  # near critical damping: the series of cosh and sinh/d
                 big_c = 1.0 + 0.5 * z
@@ -470,9 +478,28 @@ class SimDriver(Driver):
             out.append(
                 (g * (big_c + half * big_s), g * big_s, -g * big_s * k, g * (big_c - half * big_s))
             )
+        # joints with the same poles share one step (one computed for all: the shipped arms)
+        out = out * self._n if self._one_pole else [out[j] for j in self._servo_which]
         self._step_h = h
         self._step = out
         return out
+
+    def _set_poles(self, poles: Sequence[tuple[float, float]]) -> None:
+        """The poles ``(k, c)`` of each joint's exact step (``e'' + c e' + k e = 0``): what of
+        the step does not depend on its length, computed once per distinct pair
+        (:meth:`_exact_steps` then computes one step per distinct pair)."""
+        distinct: list[tuple[float, float]] = []
+        for pole in poles:
+            if pole not in distinct:
+                distinct.append(pole)
+        self._servo_which = [distinct.index(pole) for pole in poles]
+        self._one_pole = len(distinct) == 1
+        self._n = len(poles)
+        self._servo_distinct = []
+        for k, c in distinct:
+            half = 0.5 * c
+            d2 = half * half - k
+            self._servo_distinct.append((k, half, d2, math.sqrt(d2 if d2 > 0.0 else -d2)))
 
     def _integrate(self, now: float) -> None:
         t = self._t
@@ -483,6 +510,43 @@ class SimDriver(Driver):
         if dt <= 0.0:
             return  # a repeated (or backwards) time does not move the model
         self._t = now
+        if (
+            self._enabled
+            and self._servoed
+            and self.environment is None
+            and not self._avg_window > 0.0
+        ):
+            self._servo_steps(dt)
+        else:
+            self._integrate_joints(dt, range(len(self._x)))
+
+    def _servo_steps(self, dt: float) -> None:
+        """The common interval: a servoed drive, no load, no averaging. Each joint takes one
+        exact step when its effort stays inside the limit and no end stop is reached, else
+        :meth:`_integrate_joints` integrates that joint (the joints are independent)."""
+        step = self._step if -1e-9 < dt - self._step_h < 1e-9 else self._exact_steps(dt)
+        x_all, v_all, u_all, cmd = self._x, self._v, self._u, self._cmd
+        for i, (kp, kd, ulim, lo, hi) in enumerate(self._servo_model):
+            r = cmd[i]
+            e = x_all[i] - r
+            v = v_all[i]
+            u = -kp * e - kd * v
+            if -ulim <= u <= ulim:
+                a11, a12, a21, a22 = step[i]
+                e1 = a11 * e + a12 * v
+                v1 = a21 * e + a22 * v
+                u1 = -kp * e1 - kd * v1
+                x1 = r + e1
+                if -ulim <= u1 <= ulim and lo <= x1 <= hi:
+                    x_all[i] = x1
+                    v_all[i] = v1
+                    u_all[i] = u1
+                    continue
+            self._integrate_joints(dt, (i,))
+
+    def _integrate_joints(self, dt: float, joints: Sequence[int]) -> None:
+        """Every case, for ``joints``: a load, averaging, saturation, end stops, the effort
+        interface, a drive off (the exact step where it holds, substeps otherwise)."""
         # at least one: an interval shorter than 1e-9 substeps (the heartbeat deadline a
         # rounding error after the last step) once divided by zero here
         steps = max(1, math.ceil(dt / self._substep - 1e-9))
@@ -504,7 +568,9 @@ class SimDriver(Driver):
                 ext[i] = 0.0
         averaging = self._avg_window > 0.0
         integral = [0.0] * len(x_all) if averaging else x_all  # (unused when not averaging)
-        for i, (inv_j, b, lo, hi, kp, kd, ulim) in enumerate(self._model):
+        model = self._model
+        for i in joints:
+            inv_j, b, lo, hi, kp, kd, ulim = model[i]
             x = x_all[i]
             v = v_all[i]
             te = tau[i] if tau is not None else 0.0

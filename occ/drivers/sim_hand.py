@@ -11,6 +11,9 @@ controller commands (the displayed force) plus the hand's force::
 
 So a fixture's force visibly changes the handle's measured path (the hand gives way by
 ``u / K_hand``), and the slave, which follows the measured handle, follows the corrected path.
+Each interval between reads is one exact step of that linear system (the effort and the
+intention held over it, the intention taken at the interval's middle), as the ``sim`` drive's
+servo; a joint with no hand spring, or a step that reaches an end stop, integrates in substeps.
 
 The intended motion is per joint, for a device whose joints are its Cartesian axes (the shipped
 ``master3``): ``q_i(t) = intent_offset_i + intent_amplitude_i sin(2π intent_frequency_hz t +
@@ -120,6 +123,32 @@ class SimHandDriver(SimDriver):
         )
         if fastest > 0.0:
             self._substep = min(self._substep, 0.1 / fastest)
+        # The exact step: with the intention and the effort held over an interval, the handle
+        # obeys m x'' = F - K_hand x - (B_hand + b) x' (F = u + K_hand q_i + B_hand v_i), so
+        # e = x - F / K_hand obeys e'' + c e' + k e = 0 with k = K_hand / m, c = (B_hand + b) / m:
+        # the sim drive's exact step (this drive has no servo; these are its poles). A joint
+        # with no hand spring, or a step that reaches an end stop, integrates in substeps.
+        self._set_poles(
+            [
+                (kh * inv, (bh + b) * inv)
+                for kh, bh, (inv, b, *_r) in zip(
+                    self._k_hand, self._b_hand, self._model, strict=True
+                )
+            ]
+        )
+        #: per joint, what the integrator reads every tick
+        self._hand = [
+            (kh, bh, a, ph, off, lo, hi)
+            for kh, bh, a, ph, off, (_inv, _b, lo, hi, *_r) in zip(
+                self._k_hand,
+                self._b_hand,
+                self._amp,
+                self._phase,
+                self._offset,
+                self._model,
+                strict=True,
+            )
+        ]
         #: time the drive has been ACTIVE: the operator's intended motion runs on it
         self.intent_t = 0.0
 
@@ -145,37 +174,58 @@ class SimHandDriver(SimDriver):
         if dt <= 0.0:
             return
         self._t = now
-        steps = math.ceil(dt / self._substep - 1e-9)
-        h = dt / steps
         enabled = self._enabled
-        brakes = self._brakes
+        if not enabled and self._brakes:
+            u_all, v_all = self._u, self._v
+            for i in range(len(u_all)):
+                u_all[i] = 0.0
+                v_all[i] = 0.0
+            return
         w = self._w
         tau0 = self.intent_t
+        # the intention at the middle of the interval, held over it: it moves at 0.1 Hz,
+        # the interval is a tick (1 ms); one sin/cos per moving joint and tick
+        mid = w * (tau0 + 0.5 * dt) if enabled else w * tau0
         x_all, v_all, u_all, cmd = self._x, self._v, self._u, self._cmd
-        for i, (inv_j, b, lo, hi, _kp, _kd, _ulim) in enumerate(self._model):
-            x, v = x_all[i], v_all[i]
-            if not enabled:
-                u_all[i] = 0.0
-                if brakes:
-                    v_all[i] = 0.0
-                    continue
+        step = self._step if -1e-9 < dt - self._step_h < 1e-9 else self._exact_steps(dt)
+        for i, (kh, bh, a, ph, off, lo, hi) in enumerate(self._hand):
+            x = x_all[i]
+            v = v_all[i]
             u = cmd[i] if enabled else 0.0
-            kh, bh = self._k_hand[i], self._b_hand[i]
-            a, ph, off = self._amp[i], self._phase[i], self._offset[i]
-            # the intention at the middle of the interval, held over it: it moves at 0.1 Hz,
-            # the interval is a tick (1 ms); one sin/cos per joint and tick, not per substep
             if a != 0.0:
-                arg = w * (tau0 + (0.5 * dt if enabled else 0.0)) + ph
-                target, target_v = off + a * math.sin(arg), a * w * math.cos(arg)
+                target = off + a * math.sin(mid + ph)
+                target_v = a * w * math.cos(mid + ph)
             else:
                 target, target_v = off, 0.0
-            for _ in range(steps):
-                hand = kh * (target - x) + bh * (target_v - v)
-                v += (u + hand - b * v) * inv_j * h
-                x += v * h
-                if x < lo or x > hi:
-                    x = lo if x < lo else hi
-                    v = 0.0
-            x_all[i], v_all[i], u_all[i] = x, v, u
+            if kh > 0.0:
+                x_eq = (u + kh * target + bh * target_v) / kh
+                a11, a12, a21, a22 = step[i]
+                e = x - x_eq
+                x1 = x_eq + a11 * e + a12 * v
+                if lo <= x1 <= hi:
+                    x_all[i] = x1
+                    v_all[i] = a21 * e + a22 * v
+                    u_all[i] = u
+                    continue
+            x_all[i], v_all[i] = self._substeps(i, dt, u, target, target_v)
+            u_all[i] = u
         if enabled:
             self.intent_t = tau0 + dt
+
+    def _substeps(
+        self, i: int, dt: float, u: float, target: float, target_v: float
+    ) -> tuple[float, float]:
+        """Joint ``i`` over ``dt`` in explicit substeps: no hand spring, or an end stop."""
+        inv_j, b, lo, hi, *_r = self._model[i]
+        kh, bh = self._k_hand[i], self._b_hand[i]
+        x, v = self._x[i], self._v[i]
+        steps = math.ceil(dt / self._substep - 1e-9)
+        h = dt / steps
+        for _ in range(steps):
+            hand = kh * (target - x) + bh * (target_v - v)
+            v += (u + hand - b * v) * inv_j * h
+            x += v * h
+            if x < lo or x > hi:
+                x = lo if x < lo else hi
+                v = 0.0
+        return x, v

@@ -157,3 +157,100 @@ def test_load_key_says_how_long_a_refused_key_is() -> None:
     assert load_key("sixteen bytes!!!") == b"sixteen bytes!!!"
     # UTF-8: a 16-byte key of 8 characters
     assert load_key("éééééééé") == "éééééééé".encode()
+
+
+def test_sign_stamps_a_message_without_a_time_and_keeps_one_it_has() -> None:
+    import time
+
+    before = time.time()
+    stamped = sign(dataclasses.replace(position(), timestamp=0.0), KEY)
+    assert before <= stamped.timestamp <= time.time() + 1e-3
+    assert verify(stamped, KEY) == ""  # the stamp is under the tag
+    assert sign(position(), KEY).timestamp == pytest.approx(1_700_000_000.25, abs=1e-9)
+    assert sign(position(ts=0.5), KEY).timestamp == 0.5  # any time given is kept
+
+
+def _request(mid: int, ts: float) -> igtl.Message:
+    msg = igtl.CommandMessage(
+        command_id=mid, command_name="Run", command="", header_version=2, message_id=mid,
+        timestamp=ts,
+    )
+    return sign(msg, KEY)
+
+
+@pytest.mark.req("SR-SEC-7")
+def test_the_replay_guard_takes_a_request_once_within_its_window() -> None:
+    from igtl.auth import ReplayGuard
+
+    now = 1_800_000_000.0
+    g = ReplayGuard(max_age_s=30.0)
+    first = _request(1, now - 1.0)
+    assert g.check(first, now) == ""
+    assert g.check(first, now + 5.0) == "a replay: this signed request was taken already"
+    assert g.check(_request(2, now - 1.0), now) == ""  # another request, same second
+    assert g.check(_request(3, now - 30.0), now) == ""  # the window's edge is in it
+    assert g.check(_request(4, now - 30.5), now) == (
+        "signed 30.5 s ago (at most 30 s): a replay, or the clocks disagree"
+    )
+    assert g.check(_request(5, now + 31.0), now) == (
+        "signed 31.0 s ahead of this clock (at most 30 s): the clocks disagree"
+    )
+    assert g.check(_request(6, now + 30.0), now) == ""
+    assert g.check(dataclasses.replace(first, timestamp=0.0), now) == (
+        "a signed request must carry the time it was sent (header timestamp 0)"
+    )
+    assert g.refused == 4
+    # past the window its age refuses it; the next request taken forgets what aged out
+    assert g.check(first, now + 40.0).startswith("signed 41.0 s ago")
+    assert g.check(_request(7, now + 40.0), now + 40.0) == ""
+    assert first.metadata[HMAC_KEY] not in g._seen and len(g._seen) == 2  # 6's, 7's
+    with pytest.raises(ValueError, match=r"^max_age_s must be > 0 and capacity >= 1$"):
+        ReplayGuard(max_age_s=0.0)
+    with pytest.raises(ValueError, match=r"^max_age_s must be > 0 and capacity >= 1$"):
+        ReplayGuard(capacity=0)
+    tiny = ReplayGuard(max_age_s=0.5, capacity=1)  # any window, any room
+    assert (tiny.max_age_s, tiny.capacity) == (0.5, 1)
+    assert (ReplayGuard().max_age_s, ReplayGuard().capacity) == (30.0, 4096)
+    # the guard knows no epoch: a clock that starts at 0 works as well as the Unix one
+    early = ReplayGuard(max_age_s=30.0)
+    assert early.check(_request(1, 0.5), 10.0) == ""
+    assert early.check(_request(2, 0.75), 10.0) == ""
+
+
+@pytest.mark.req("SR-SEC-7")
+def test_the_window_edge_is_in_the_window_for_memory_as_for_age() -> None:
+    """A request signed exactly ``max_age_s`` ago is taken (its age is not more than the
+    window), so its tag must still be remembered at that instant, after a clean-up too."""
+    from igtl.auth import ReplayGuard
+
+    now = 1_800_000_000.0
+    g = ReplayGuard(max_age_s=30.0)
+    edge = _request(1, now - 30.0)
+    assert g.check(edge, now - 1.0) == ""
+    assert g.check(_request(2, now - 1.0), now) == ""  # a clean-up at the instant the edge is
+    assert g.check(edge, now) == "a replay: this signed request was taken already"
+    # forgotten for room at the same instant: nothing signed at or before it is taken either
+    small = ReplayGuard(max_age_s=30.0, capacity=1)
+    assert small.check(edge, now) == ""
+    assert small.check(_request(3, now - 1.0), now) == ""  # edge forgotten for room
+    assert small.check(edge, now) == "signed before requests already forgotten: a replay"
+
+
+@pytest.mark.req("SR-SEC-7")
+def test_the_replay_guard_forgets_for_room_but_then_takes_nothing_older() -> None:
+    from igtl.auth import ReplayGuard
+
+    now = 1_800_000_000.0
+    g = ReplayGuard(max_age_s=30.0, capacity=3)
+    reqs = [_request(i, now - 10.0 + i) for i in range(5)]
+    for r in reqs[:3]:
+        assert g.check(r, now) == ""
+    assert g.check(reqs[3], now) == ""  # room made: reqs[0] forgotten
+    assert len(g._seen) == 3
+    # reqs[0] is still in the window, but anything signed at or before it is refused now
+    assert g.check(reqs[0], now) == "signed before requests already forgotten: a replay"
+    assert g.check(_request(9, now - 10.0), now) == (
+        "signed before requests already forgotten: a replay"
+    )
+    assert g.check(reqs[4], now) == ""
+    assert g.check(reqs[1], now) == "signed before requests already forgotten: a replay"

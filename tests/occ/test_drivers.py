@@ -447,6 +447,77 @@ def test_sim_exact_step_with_jittered_ticks_matches_the_analytic_servo_response(
         d.write([0.001], now)
 
 
+def _underdamped(e0: float, zeta: float, wn: float, t: float) -> float:
+    """e(t) of e'' + 2 zeta wn e' + wn^2 e = 0 from rest at e0 (zeta < 1)."""
+    wd = wn * math.sqrt(1 - zeta * zeta)
+    return e0 * math.exp(-zeta * wn * t) * (math.cos(wd * t) + zeta * wn / wd * math.sin(wd * t))
+
+
+def test_sim_joints_with_different_poles_each_get_their_own_exact_step() -> None:
+    """Joints share one exact step only when their poles are the same: two bandwidths, two
+    analytic responses, jittered ticks."""
+    import random
+
+    zeta = 0.7
+    js = joints(3)
+    d = create_driver(
+        "sim",
+        "sim",
+        js,
+        {"damping_ratio": zeta, "encoder_resolution": 0.0, "bandwidth_hz": [10.0, 25.0, 10.0]},
+    )
+    d.configure()
+    d.read(0.0)
+    d.activate()
+    rng = random.Random(5)
+    for k in range(200):
+        now = 0.0 if k == 0 else k * 0.001 + rng.uniform(0.0, 100e-6)
+        d.read(now)
+        for j, f in zip(js, (10.0, 25.0, 10.0), strict=True):
+            want = 0.001 + _underdamped(-0.001, zeta, 2 * math.pi * f, now)
+            assert j.position == pytest.approx(want, abs=1e-11)
+        d.write([0.001, 0.001, 0.001], now)
+
+
+def test_sim_hand_exact_step_matches_the_analytic_handle_response() -> None:
+    """The simulated hand (no intended motion, a constant displayed effort): the handle is a
+    mass on the hand's spring-damper, m x'' = u + K (x0 - x) - (B + b) x'. Read at jittered
+    tick times it follows the analytic response, effort on and off."""
+    import random
+
+    m, b, kh, bh, u = 0.5, 1.0, 300.0, 20.0, 2.0
+    js = [Joint("x", type="prismatic", limits=JointLimits(-1.0, 1.0, velocity=10.0, effort=20.0))]
+    d = create_driver(
+        "sim-hand",
+        "hand",
+        js,
+        {
+            "inertia": m,
+            "damping": b,
+            "hand_stiffness": kh,
+            "hand_damping": bh,
+            "intent_amplitude": [0.0],
+            "intent_phase_deg": [0.0],
+            "intent_offset": [0.0],
+            "encoder_resolution": 0.0,
+            "heartbeat_ms": 0,
+        },
+    )
+    d.configure()
+    d.read(0.0)
+    d.activate()
+    wn = math.sqrt(kh / m)
+    zeta = (bh + b) / m / (2 * wn)
+    rng = random.Random(7)
+    d.write_effort([u], 0.0)
+    for k in range(1, 400):
+        now = k * 0.001 + rng.uniform(0.0, 100e-6)
+        d.read(now)
+        want = u / kh + _underdamped(-u / kh, zeta, wn, now)
+        assert js[0].position == pytest.approx(want, abs=1e-11)
+        d.write_effort([u], now)
+
+
 def test_sim_saturating_step_falls_back_to_substeps_and_reports_the_limit() -> None:
     """A step too big for the effort limit is not linear: the interval is integrated in
     substeps and the effort reported is the limit."""
@@ -693,7 +764,10 @@ def test_params_defaults_and_the_interface_from_params() -> None:
     d = MirrorDriver("m", joints(), {"period": 0.002, "command_interface": "effort"})
     assert d.period == 0.002 and d.command_interface == "effort"
     assert d.params == {
-        "heartbeat_ms": 50.0, "feedback_jump": 10.0, "frozen_feedback_ms": 50.0, "period": 0.002,
+        "heartbeat_ms": 50.0,
+        "feedback_jump": 10.0,
+        "frozen_feedback_ms": 50.0,
+        "period": 0.002,
         "command_interface": "effort",
     }
     assert MirrorDriver("m", joints()).period == 0.001

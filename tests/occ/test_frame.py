@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
@@ -13,6 +14,7 @@ from occ.frame import Frame, robots_dir
 
 RCM_HEIGHT = 0.30
 TIP_PAST_RCM = 0.02
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -204,3 +206,41 @@ def test_ik_clamped_matches_solve_ik(name: str) -> None:
         assert clamped == bool(ref.clamped)
     with pytest.raises(ValueError, match="finite"):
         frame.ik_clamped((math.nan, 0.0, 0.0), list(frame.neutral))
+
+
+@pytest.mark.parametrize("name", ["occ_slave", "master3", "ur5"])
+def test_closed_form_world_pose_matches_pinocchio_under_any_base(name: str) -> None:
+    """The return channel's float-only pose (``RobotData.world_tip_pose``: the closed form
+    where the model has one, else pinocchio) is ``base @ fk(q)``: with no base, a translated
+    base and a rotated one."""
+    from occ.clock import SimClock
+    from occ.data import RobotData
+    from occ.samples import rotation_to_quaternion
+
+    if name == "ur5":
+        from occ.loader import load_config
+
+        fc = load_config(ROOT / "configs" / "ur5.yaml").robot.frame
+        path = fc.urdf_path()
+        assert path is not None and fc.tip_link is not None
+        frame = Frame.from_urdf(path, fc.tip_link, fc.base_link)
+        assert frame._analytic_pose is None  # the fallback path
+    else:
+        frame = Frame.builtin(name)
+        assert frame._analytic_pose is not None
+    data = RobotData("r", frame.joint_names, [0.0] * frame.nq, frame, SimClock())
+    rot = pin.rpy.rpyToMatrix(0.3, -0.2, 1.1)
+    bases = [np.eye(4), pin.SE3(np.eye(3), np.array([0.1, -0.2, 0.3])).homogeneous]
+    bases.append(pin.SE3(rot, np.array([0.05, 0.0, -0.4])).homogeneous)
+    for base in bases:
+        data.base = base
+        for q in random_q(frame, 10, seed=11):
+            data.q[:] = q.tolist()
+            data._tip_stale = True
+            want = data.world_tip()
+            rows, pos = data.world_tip_pose()
+            np.testing.assert_allclose(np.array(rows), want[:3, :3], atol=1e-12)
+            np.testing.assert_allclose(pos, want[:3, 3], atol=1e-12)
+            np.testing.assert_allclose(
+                rotation_to_quaternion(rows), rotation_to_quaternion(want[:3, :3]), atol=1e-12
+            )

@@ -307,3 +307,108 @@ def test_a_safe_stop_from_the_supervisor_reaches_every_drive() -> None:
     assert [d.state for d in (a, b)] == [DriverState.FAULT, DriverState.FAULT]
     assert [f.cause for f in hw.faulted()] == ["safe stop: loop hung"] * 2
     hw.shutdown()
+
+
+def test_one_drive_in_another_joint_order_gets_each_setpoint_on_its_own_joint() -> None:
+    """A single drive whose joints are listed in another order than the robot's: each value
+    still reaches its joint (only one drive with every joint *in order* takes the values as
+    they come)."""
+    d = SimDriver("d", _joints("zxy"), {"heartbeat_ms": 0})
+    hw = HardwareSet([(d, [2, 0, 1])])  # robot order x, y, z; the drive's z, x, y
+    hw.configure()
+    hw.read(0.0)
+    assert hw.activate() == []
+    assert hw.write([0.0005, 0.0, -0.0005], 0.001) is None  # x, y, z
+    z, x, y = d.joints
+    assert (x.command_position, y.command_position, z.command_position) == pytest.approx(
+        (0.0005, 0.0, -0.0005)
+    )
+    in_order = SimDriver("o", _joints("xyz"), {"heartbeat_ms": 0})
+    whole = HardwareSet([(in_order, [0, 1, 2])])
+    whole.configure()
+    whole.read(0.0)
+    whole.activate()
+    assert whole.write([0.0005, 0.0, -0.0005], 0.001) is None
+    assert [j.command_position for j in in_order.joints] == pytest.approx([0.0005, 0.0, -0.0005])
+    hw.shutdown()
+    whole.shutdown()
+
+
+def test_a_single_drive_not_active_is_refused_before_its_write_and_says_why() -> None:
+    d = SimDriver("arm", _joints("xyz"), {"heartbeat_ms": 0})
+    hw = HardwareSet([(d, [0, 1, 2])])
+    hw.configure()
+    hw.read(0.0)
+    hw.activate()
+    d.safe_stop("test")
+    fail = hw.write([0.0, 0.0, 0.0], 0.001)
+    assert fail == HardwareFailure("arm", "write", "not active (safe stop: test)")
+    assert d.stats()["writes"] == 0
+    hw.shutdown()
+
+
+def test_a_drive_faulted_without_words_is_still_named_with_a_cause() -> None:
+    hw, a, b = _set()
+    hw.configure()
+    a._enter_fault("")  # a plugin's fault with an empty message
+    assert hw.faulted() == [HardwareFailure("a", "drive", "fault")]
+    hw.shutdown()
+
+
+def test_stats_give_the_time_to_safe_in_us_and_the_world_when_there_is_one() -> None:
+    hw, a, b = _set()
+    hw.last_fault_to_safe_s = 1.23456789
+    assert hw.stats()["last_fault_to_safe_us"] == 1234567.9
+    assert "environment" not in hw.stats()
+
+    class World:
+        def stats(self) -> dict[str, int]:
+            return {"contacts": 2}
+
+    hw.environment = World()
+    assert hw.stats()["environment"] == {"contacts": 2}
+    hw.shutdown()
+
+
+def test_a_failed_shutdown_is_logged_naming_the_drive(caplog: pytest.LogCaptureFixture) -> None:
+    hw, a, b = _brittle()
+    hw.configure()
+    a.breaks.add("shutdown")
+    with caplog.at_level("ERROR", logger="occ.hardware"):
+        hw.shutdown()
+    assert [r.getMessage() for r in caplog.records] == ["driver a: shutdown failed"]
+
+
+def test_await_measured_reads_once_on_simulated_time_and_polls_on_the_real_clock(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """After configure: one read; on the real clock, reads every 5 ms until every joint is
+    measured or the wait is over."""
+    slept: list[float] = []
+    monkeypatch.setattr("occ.hardware.time.sleep", slept.append)
+    joints = _joints("xy")
+    hw = HardwareSet([])
+    reads: list[float] = []
+    clock = [0.0]
+    measured_at = [3]  # the read that measures both joints (0: never)
+
+    def now() -> float:
+        clock[0] += 0.001
+        return clock[0]
+
+    def read(t: float) -> None:
+        reads.append(t)
+        if len(reads) == measured_at[0]:
+            joints[0].measured = joints[1].measured = True
+
+    hw.await_measured(joints, read, now, 1.0, real=False)
+    assert len(reads) == 1  # simulated time: once
+    hw.await_measured(joints, read, now, 1.0, real=True)
+    assert len(reads) == 3  # until both were measured (the third read), not the whole second
+    assert slept == [0.005]  # one poll: the second read of this call measured them
+    joints[0].measured = False
+    reads.clear()
+    measured_at[0] = 0
+    hw.await_measured(joints, read, now, 0.004, real=True)
+    # gives up once the wait is over: reads at +1 ms, then every poll (each now() +1 ms)
+    assert 2 <= len(reads) <= 3 and not joints[0].measured

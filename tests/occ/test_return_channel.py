@@ -447,6 +447,42 @@ def test_a_malformed_force_is_refused_and_counted_not_displayed(master, bad: str
 
 
 @pytest.mark.req("SR-FORCE-2")
+def test_a_slave_whose_samples_all_come_refused_is_late_then_lost_never_a_held_force(
+    master,
+) -> None:
+    """Samples keep coming, none usable (a malformed force in each): not a fresh link holding
+    the last good force on the hand, but a late one (the force fades within tip_fade_ms), then
+    a lost one past the grace (zero, one ALERT naming the cause); good samples re-arm it."""
+    master.run()
+    master.feed.force = (0.0, 0.0, 3.0)
+    master.feed.step(30)
+    assert feedback(master)[2] == pytest.approx(3.0)
+    master.feed.force = "nan,0,0"
+    shown = []
+    for _ in range(40):
+        master.feed.step(1)
+        shown.append(feedback(master)[2])
+    assert all(b <= a for a, b in zip(shown, shown[1:], strict=False))
+    assert 0.0 < shown[8] < 3.0 and shown[30] == 0.0 and not master.alerts()
+    st = master.ctrl.stats()["slave_tip"]
+    assert st["status"] == "stale" and st["bad"] == 40 and st["lost_total"] == 0
+    master.feed.step(62)  # 101 ms without a usable tip: past the grace
+    (alert,) = master.alerts()
+    assert "slave tip on slave lost: no usable tip for 101.00 ms (limit 100.0 ms)" in alert
+    assert "101 samples refused" in alert and "force_n 'nan,0,0'" in alert
+    assert master.ctrl.stats()["slave_tip"]["status"] == "lost"
+    master.feed.step(200)
+    assert len(master.alerts()) == 1 and feedback(master) == (0.0, 0.0, 0.0)
+    assert master.ctrl.stats()["slave_tip"]["losses"] == 1
+    master.feed.force = (0.0, 0.0, 3.0)
+    master.feed.step(30)
+    st = master.ctrl.stats()["slave_tip"]
+    assert st["status"] == "fresh" and st["recoveries"] == 1
+    assert any("back" in t for t in master.alerts("STREAM"))
+    assert feedback(master)[2] == pytest.approx(3.0) and len(master.alerts()) == 1
+
+
+@pytest.mark.req("SR-FORCE-2")
 def test_force_feedback_off_displays_only_the_fixtures() -> None:
     m = Master(force_feedback=False)
     try:

@@ -602,6 +602,27 @@ def test_command_replies_echo_the_request_message_id(slave: SimSlave) -> None:
     assert rts.message_id == 4242 and rts.command_id == 5
 
 
+@pytest.mark.req("SR-ROUTE-1")
+def test_query_replies_echo_the_request_message_id(slave: SimSlave) -> None:
+    """GET_TRANS, GET_STATUS, GET_CAPABIL and an STT_ query nobody streams: each answer
+    carries the asker's v2 message ID (SR-ROUTE-1)."""
+    asks = [
+        igtl.REGISTRY[t](type_name=t, device_name=d, header_version=2, message_id=i)
+        for t, d, i in [
+            ("GET_TRANS", "Tip", 71),
+            ("GET_STATUS", "slave", 72),
+            ("GET_CAPABIL", "slave", 73),
+            ("STT_TDATA", "Tip", 74),
+        ]
+    ]
+    for ask in asks:
+        slave.operator.send(ask)
+    slave.tick()
+    got = {r.message_type: r.message_id for r in slave.replies}
+    assert got["TRANSFORM"] == 71 and got["STATUS"] == 72 and got["CAPABILITY"] == 73
+    assert got["RTS_TDATA"] == 74
+
+
 def test_a_command_whose_bytes_do_not_fit_its_declared_charset_is_answered(slave: SimSlave) -> None:
     text = '<Command Name="GetState" Note="é"/>'.encode().decode("ascii", "surrogateescape")
     msg = igtl.StringMessage(text, 3, True, device_name="CMD_5")  # US-ASCII declared

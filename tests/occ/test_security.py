@@ -1013,3 +1013,100 @@ def test_a_pose_refused_on_a_stream_queue_is_answered_to_its_sender_alone() -> N
         sender.close()
         other.close()
         r.shutdown()
+
+
+@pytest.mark.req("SR-SEC-7")
+@pytest.mark.parametrize("iface", ["tkey", "ukey"])
+def test_a_signed_request_is_obeyed_once_and_only_while_fresh(robot: Robot, iface: str) -> None:
+    """A recorded signed Enable, sent again after the operator's Disable, must not power the
+    robot: a repeat of a tag is a replay, and so is a request signed longer ago than the
+    window (or ahead of the daemon's clock). Each is answered with why and counted."""
+    import time
+
+    peer = Peer(robot, iface, OTHER_HOST, key=KEY)
+    counters = robot.interfaces[iface].counters
+    try:
+        enable = sign(command("Enable", peer.next_id()), KEY)  # stamped now, tagged
+        assert _status(reply_to(peer, enable)) == "SUCCESS"
+        assert robot.state is RobotState.ENABLED
+        assert _status(reply_to(peer, command("Disable", peer.next_id()))) == "SUCCESS"
+        assert robot.state is RobotState.READY
+        replayed = answer_to(peer, enable)  # the same bytes again
+        assert _status(replayed) == "FAIL"
+        assert replayed.metadata["Error"] == (
+            "COMMAND refused: a replay: this signed request was taken already"
+        )
+        assert robot.state is RobotState.READY and counters.replayed == 1
+        now = time.time()
+        for shift, tail in [
+            (-60.0, " s ago (at most 30 s): a replay, or the clocks disagree"),
+            (60.0, " s ahead of this clock (at most 30 s): the clocks disagree"),
+        ]:
+            msg = command("Enable", peer.next_id())
+            stale = sign(dataclasses.replace(msg, timestamp=now + shift), KEY)
+            reply = answer_to(peer, stale)
+            err = reply.metadata["Error"]
+            assert _status(reply) == "FAIL" and err.startswith("COMMAND refused: signed 60.")
+            assert err.endswith(tail), err
+            assert robot.state is RobotState.READY
+        # a replayed query is answered in its own form: a STATUS that says access denied
+        status = sign(query("GET_STATUS", peer.next_id()), KEY)
+        assert answer_to(peer, status).code == igtl.StatusCode.OK
+        again = answer_to(peer, status)
+        assert again.code == igtl.StatusCode.ACCESS_DENIED
+        assert again.status_message == (
+            "GET_STATUS refused: a replay: this signed request was taken already"
+        )
+        assert counters.replayed == 4 and counters.unauthenticated == 0
+        assert robot.interfaces[iface].stats()["replayed"] == 4
+        # a fresh one is obeyed
+        assert _status(reply_to(peer, command("Enable", peer.next_id()))) == "SUCCESS"
+        assert robot.state is RobotState.ENABLED
+    finally:
+        peer.close()
+
+
+@pytest.mark.req("SR-SEC-7")
+def test_the_replay_window_is_the_interfaces_own(tmp_path: Path) -> None:
+    """``auth_max_age_s`` sets the window: 5 s refuses a request signed 10 s ago, which the
+    default 30 s takes."""
+    import time
+
+    keyfile = tmp_path / "link.key"
+    keyfile.write_text(KEY.decode() + "\n")
+    text = _config_text(
+        keyfile,
+        """
+interfaces:
+  - {name: short, transport: udp, host: 127.0.0.1, port: 0, role: operator,
+     auth_key_file: KEYFILE, auth_max_age_s: 5}
+  - {name: usual, transport: udp, host: 127.0.0.1, port: 0, role: operator,
+     auth_key_file: KEYFILE}
+  - {name: master, transport: udp, host: 127.0.0.1, port: 0,
+     inputs: [{type: POSITION, queue: stream, depth: 10}]}
+""",
+    )
+    r = build_robot(parse_config(text, base_dir=ROOT / "configs"), clock=SimClock())
+    r.configure()
+    r.activate()
+    try:
+        for name, code in [
+            ("short", igtl.StatusCode.ACCESS_DENIED),
+            ("usual", igtl.StatusCode.OK),
+        ]:
+            peer = Peer(r, name, OTHER_HOST, key=KEY)
+            try:
+                msg = query("GET_STATUS", peer.next_id())
+                old = sign(dataclasses.replace(msg, timestamp=time.time() - 10.0), KEY)
+                reply = answer_to(peer, old)
+                assert reply.code == code, (name, reply.status_message)
+                if name == "short":
+                    assert reply.status_message.startswith("GET_STATUS refused: signed 10.")
+                    assert reply.status_message.endswith(
+                        " s ago (at most 5 s): a replay, or the clocks disagree"
+                    )
+            finally:
+                peer.close()
+    finally:
+        r.shutdown()
+

@@ -231,3 +231,153 @@ def test_no_table_no_cost_and_a_clear_refusal() -> None:
         assert isinstance(reply, igtl.Message)
     finally:
         sim.close()
+
+
+# ---------------------------------------------------------------------------- the ring's edges
+# (issue 29: the mutation run of occ/statetable.py, docs/VERIFICATION.md)
+
+
+def test_a_table_of_one_row_keeps_the_newest_and_none_is_refused() -> None:
+    joints = _joints()
+    one = _table(1)
+    assert one.window().shape == (0, len(one.columns))
+    _fill(one, 3, joints)
+    assert one.rows()[:, 0].tolist() == [0.002]  # the newest of the three
+    assert one.stats() == {"rows": 1, "capacity": 1, "written": 3}
+    with pytest.raises(ValueError, match=r"^capacity must be >= 1, got 0$"):
+        _table(0)
+    # seconds x rate, rounded up, and never less than one row
+    assert capacity_for(0.0001, 1000.0) == 1
+    assert capacity_for(0.0011, 1000.0) == 2
+    assert capacity_for(2.0, 250.0) == 500
+
+
+def test_stats_report_the_rows_held_the_capacity_and_the_rows_written() -> None:
+    joints = _joints()
+    table = _table(10)
+    assert table.stats() == {"rows": 0, "capacity": 10, "written": 0}
+    _fill(table, 4, joints)
+    assert table.stats() == {"rows": 4, "capacity": 10, "written": 4}
+    _fill(table, 30, joints, t0=4)
+    assert table.stats() == {"rows": 10, "capacity": 10, "written": 34}
+
+
+def test_every_second_row_keeps_the_newest() -> None:
+    joints = _joints()
+    table = _table(100)
+    _fill(table, 10, joints)
+    assert np.allclose(table.window(every=2)[:, 0], [0.001, 0.003, 0.005, 0.007, 0.009])
+    assert np.allclose(table.window(every=1)[:, 0], np.arange(10) * 0.001)
+
+
+def test_a_reply_holds_at_most_max_rows_the_newest() -> None:
+    """An NDARRAY dimension is a uint16: a longer window is cut to its newest 65535 rows."""
+    joints = _joints()
+    table = _table(MAX_ROWS + 10)
+    q = [0.0, 0.35, 0.05]
+    for k in range(MAX_ROWS + 10):
+        table.write(float(k), 3.0, 0.0, q, q, joints)
+    out = table.window()
+    assert out.shape == (MAX_ROWS, len(table.columns))
+    assert out[0, 0] == 10.0 and out[-1, 0] == MAX_ROWS + 9.0
+
+
+def test_the_columns_of_a_two_joint_robot() -> None:
+    """Not only the shipped three-joint arms: the column groups follow the joint count."""
+    frame = Frame.from_urdf(Path(__file__).parent / "data" / "robots" / "tiny.urdf", "tool_tip")
+    joints = [
+        Joint("yaw", "revolute", JointLimits(-1.0, 1.0, 2.0, 10.0), 0.0),
+        Joint("insertion", "prismatic", JointLimits(0.0, 0.1, 0.05, 20.0), 0.0),
+    ]
+    table = StateTable(["yaw", "insertion"], 4, frame)
+    joints[0].effort, joints[1].effort = 1.5, -2.5
+    table.write(0.25, 4.0, 1.0, [0.3, 0.02], [0.31, 0.021], joints)
+    (row,) = table.window()
+    assert table.columns == [
+        "t", "state", "q.yaw", "q.insertion", "sp.yaw", "sp.insertion",
+        "tip.x_mm", "tip.y_mm", "tip.z_mm", "eff.yaw", "eff.insertion", "owner",
+    ]  # fmt: skip
+    tip = frame.fk([0.3, 0.02])[:3, 3] * 1000.0
+    assert row.tolist() == [0.25, 4.0, 0.3, 0.02, 0.31, 0.021, *tip.tolist(), 1.5, -2.5, 1.0]
+
+
+def test_a_long_read_hands_the_interpreter_lock_back_every_16_rows(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The reader computes forward kinematics row by row on a worker thread: every 16 rows it
+    lets the loop thread run (``time.sleep(0)``), so a 10 s table never holds the loop off
+    for the whole read."""
+    import occ.statetable as statetable
+
+    joints = _joints()
+    table = _table(100)
+    _fill(table, 64, joints)
+    yields: list[float] = []
+    monkeypatch.setattr(statetable.time, "sleep", yields.append)
+    table.window()
+    assert yields == [0, 0, 0, 0]  # once every 16 rows
+
+
+class _Interrupted(Exception):
+    pass
+
+
+class _Stalled:
+    """A joint whose effort cannot be read: the writer stops in the middle of its row (the
+    row's time, state, q and setpoints written, its efforts not), as the loop thread does
+    when the reader's thread runs in between."""
+
+    @property
+    def effort(self) -> float:
+        raise _Interrupted
+
+
+class _RacedTable(StateTable):
+    """A table whose reader is interrupted by the writer right after it read the row count:
+    ``rows()`` then copies slots the writer has meanwhile overwritten (``race`` rows whole
+    and one half-written)."""
+
+    def __init__(self, capacity: int, race: int) -> None:
+        self._race = 0
+        super().__init__(NAMES, capacity, Frame.builtin("occ_slave"))
+        self._race = race
+        self.joints = _joints()
+
+    @property  # type: ignore[override]
+    def count(self) -> int:
+        n = self._count
+        if self._race:
+            race, self._race = self._race, 0
+            _fill(self, race, self.joints, t0=n)
+            with pytest.raises(_Interrupted):
+                self.write((n + race) * 0.001, 3.0, 0.0, [0.001 * (n + race), 0.35, 0.05],
+                           [0.0, 0.0, 0.0], [*self.joints[:2], _Stalled()])  # type: ignore[list-item]
+        return n
+
+    @count.setter
+    def count(self, value: int) -> None:
+        self._count = value
+
+
+@pytest.mark.parametrize(
+    ("written", "race"),
+    [(5, 1), (5, 3), (20, 3), (20, 1), (3, 4)],
+    ids=["full-one-row", "full-three-rows", "wrapped-three-rows", "wrapped-one-row", "young"],
+)
+def test_a_read_overtaken_by_the_writer_drops_the_overwritten_rows(written: int, race: int) -> None:
+    """The writer runs between the reader's first count and its copy (deterministically):
+    whatever it overwrote, whole or halfway, is not returned; what is returned is whole,
+    consecutive and ends with the newest row the reader counted."""
+    table = _RacedTable(5, 0)
+    _fill(table, written, table.joints)
+    table._race = race
+    raw = table.rows()
+    k = np.rint(raw[:, 0] * 1000.0)
+    assert len(raw) >= 1 and k[-1] == written - 1
+    assert np.array_equal(np.diff(k), np.ones(len(k) - 1))  # consecutive, oldest first
+    assert np.array_equal(raw[:, 3], raw[:, 0])  # q.yaw: the row's own
+    # eff.yaw: written last in a row, so a half-written row keeps the old one
+    assert np.array_equal(raw[:, 3 + 2 * len(NAMES)], k)
+    # and no row lost that the writer cannot have reached: only those it wrote over
+    newest = written + race  # the half-written row's number
+    assert k[0] == max(0, written - 5, newest - 5)

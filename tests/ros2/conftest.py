@@ -9,13 +9,26 @@ from __future__ import annotations
 
 import os
 import random
-from collections.abc import Iterator
+import zlib
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from occ.testing import wait_until as poll  # noqa: F401 - the ros2 tests import it from here
+from occ.testing import wait_until
+
+#: how long ``poll`` waits by default: 10 s; scripts/mutate sets 2 (OCC_BRIDGE_WAIT_S) since a
+#: killed mutant is often a reply or a sample that never comes (a loopback answer takes
+#: milliseconds here)
+WAIT_S = float(os.environ.get("OCC_BRIDGE_WAIT_S", "10"))
+
+
+def poll(pred: Callable[[], Any], timeout: float | None = None, every: float = 0.005) -> Any:
+    """:func:`occ.testing.wait_until`, by default for :data:`WAIT_S` (the ros2 tests import it
+    from here)."""
+    return wait_until(pred, WAIT_S if timeout is None else timeout, every)
+
 
 #: the DDS configuration of the tests that run DDS in the test process, on the host: loopback,
 #: unicast only (its comment says why; test_rclpy.py runs the shipped one in a namespace)
@@ -53,9 +66,12 @@ def dds() -> Iterator[tuple[int, Any]]:
 
 @pytest.fixture
 def namespace(request: pytest.FixtureRequest) -> str:
-    """A namespace no other test or run uses."""
+    """A namespace no other test or run uses: the test's name, cut to 24 characters, and a
+    checksum of the whole (two tests whose names start alike must not share one: a bridge
+    of the first not yet collected would still publish its latched state there)."""
     name = "".join(c if c.isalnum() else "_" for c in request.node.name)[:24]
-    return f"/occtest{os.getpid()}_{name}/slave"
+    crc = zlib.crc32(request.node.nodeid.encode())
+    return f"/occtest{os.getpid()}_{name}_{crc:08x}/slave"
 
 
 @pytest.fixture

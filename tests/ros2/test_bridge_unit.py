@@ -309,6 +309,8 @@ def test_a_move_becomes_the_daemons_keyframe_commands() -> None:
     space, pose, t = bridge._tip_goal(robot, local)
     assert (space, pose) == ("cartesian", "100.000000 30.000000 0.000000")
     assert t == 1.0  # 10 mm at 10 mm/s
+    robot.joints = ([], [])  # a daemon without joints: nothing to move, in the shortest time
+    assert bridge._joint_goal(robot, msgs.JointState()) == ("joint", "", 1.0)
     world = msgs.PoseStamped(header=msgs.Header(frame_id=""))  # empty: the world frame
     world.pose.position = msgs.Point(0.1, 0.07, 0.0)
     assert bridge._tip_goal(robot, world) == ("cartesian", "100.000000 70.000000 0.000000", 5.0)
