@@ -290,6 +290,9 @@ def test_an_unreachable_orientation_is_refused_before_acknowledgement(tmp_path: 
         r = cmd("KeyframePlan", "")
         assert r.metadata["Status"] == "FAIL", r.metadata
         assert "twist" in r.metadata["Error"] and "wrist_" in r.metadata["Error"], r.metadata
+        # held at the joint limits by the IK (clamped), not an IK that gave up
+        assert "the tip leaves the workspace at t=" in r.metadata["Error"], r.metadata
+        assert "beyond its limits" in r.metadata["Error"], r.metadata
         sim.step(100)
         assert list(sim.robot.data.commanded()) == before
     finally:

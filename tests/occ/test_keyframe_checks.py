@@ -1,0 +1,771 @@
+"""The keyframe controller's plan checks and acknowledgement: what mutation testing found
+unchecked (issue 29; docs/VERIFICATION.md, "occ/controllers/keyframe.py").
+
+Through the daemon's own command path in simulated time (test_keyframe's Session: a keyframe
+robot with an ideal driver, an operator peer), except the refusal's wording of a time
+(``_where``), checked at its half-period boundaries directly.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from occ.controllers.keyframe import _where
+from occ.errors import KinematicsError
+from occ.safety import RobotState
+
+from .test_keyframe import HOME, Session, xml
+
+# --------------------------------------------------------------------------- acknowledgement
+
+
+def _logged(caplog: pytest.LogCaptureFixture, level: int) -> list[str]:
+    return [
+        r.getMessage()
+        for r in caplog.records
+        if r.name == "occ.controllers.keyframe" and r.levelno == level
+    ]
+
+
+def test_every_refused_acknowledgement_says_why(
+    session: Session, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="occ.controllers.keyframe")
+    s = session
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    s.ok("KeyframePlan")
+    assert s.refused("KeyframeAck") == "KeyframeAck needs Plan (the number of the previewed plan)"
+    assert s.refused("KeyframeAck", Plan="one") == "KeyframeAck: Plan must be a number, got 'one'"
+    assert s.refused("KeyframeAck", Plan=1) == (
+        "KeyframeAck: plan 1 has not been previewed yet (its preview goes out with the next "
+        "keyframe-path output); look at it, then acknowledge"
+    )
+    s.step(20)
+    assert s.refused("KeyframeAck", Plan=2) == (
+        "KeyframeAck: plan 2 is not the previewed plan (plan 1 is previewed)"
+    )
+    assert s.refused("KeyframeAck", Plan=1) == (
+        "KeyframeAck: the robot is READY; send Run first (it holds until a plan is acknowledged)"
+    )
+    s.start()
+    assert s.kf.stats()["runs"] == 0
+    assert s.ok("KeyframeAck", Plan=1) == "plan 1 running: 1.000 s"
+    assert s.kf.stats()["runs"] == 1
+    assert "keyframes: plan 1 acknowledged, running 1.000 s" in _logged(caplog, logging.INFO)
+    assert s.refused("KeyframeAck", Plan=1) == "plan 1 is running already"
+    s.step(1100)
+    assert "keyframes: plan 1 completed (1.000 s)" in _logged(caplog, logging.INFO)
+    assert s.refused("KeyframeAck", Plan=1) == (
+        "KeyframeAck: plan 1 is not the previewed plan (no plan is previewed)"
+    )
+    s.ok("KeyframeAdd", T=2.0, Pose="0.0 0.35 0.05")
+    s.plan_and_ack()
+    assert s.kf.stats()["runs"] == 2
+    s.step(2100)
+    assert s.kf.stats()["runs_completed"] == 2
+
+
+@pytest.fixture
+def session() -> Iterator[Session]:
+    s = Session()
+    try:
+        yield s
+    finally:
+        s.close()
+
+
+def _move_by_hand(s: Session, yaw: float) -> None:
+    """The arm pushed by `yaw` rad while the servos are off, in 20 ticks (a hand, not a jump
+    the driver would take for a sensor fault)."""
+    (driver,) = s.robot.hardware.drivers
+    for k in range(1, 21):
+        driver.last = [HOME[0] + yaw * k / 20, HOME[1], HOME[2]]  # type: ignore[attr-defined]
+        s.step(1)
+
+
+@pytest.mark.parametrize("moved", [0.05, 2e-9])
+def test_a_plan_is_not_run_once_the_robot_has_moved_since_it_was_checked(moved: float) -> None:
+    """Planned while enabled; the servos off, the arm is moved by hand (the ideal driver
+    reports where it was put); enabled and running again, the robot holds there, not where
+    the plan starts: the acknowledgement is refused with the distance."""
+    s = Session({"keyframes": [{"t": 1.0, "pose": [0.2, 0.35, 0.05]}]})
+    try:
+        s.ok("Enable")
+        s.ok("KeyframePlan")
+        s.step(20)
+        s.ok("Disable")
+        _move_by_hand(s, moved)
+        s.ok("Enable")
+        s.ok("Run")
+        assert s.robot.data.setpoint[0] == HOME[0] + moved
+        error = s.refused("KeyframeAck", Plan=1)
+        assert error == (
+            f"KeyframeAck: the robot moved since plan 1 was checked ({moved:.3g} rad/m); plan again"
+        )
+        s.step(100)
+        assert all(sp == [HOME[0] + moved, HOME[1], HOME[2]] for sp in s.setpoints[-100:])
+        # planned again from where it is, it runs
+        s.plan_and_ack()
+        s.step(1100)
+        assert s.setpoints[-1] == [0.2, 0.35, 0.05]
+    finally:
+        s.close()
+
+
+def test_a_plan_is_run_when_the_robot_is_where_it_was_checked() -> None:
+    """The same servo cycle without moving the arm: the plan still starts where the robot is
+    and is acknowledged."""
+    s = Session({"keyframes": [{"t": 1.0, "pose": [0.2, 0.35, 0.05]}]})
+    try:
+        s.ok("Enable")
+        s.ok("KeyframePlan")
+        s.step(20)
+        s.ok("Disable")
+        s.step(2)
+        s.start()
+        assert s.ok("KeyframeAck", Plan=1) == "plan 1 running: 1.000 s"
+    finally:
+        s.close()
+
+
+# --------------------------------------------------------------------------- the world changes
+
+
+def _hold_planner(s: Session) -> tuple[threading.Event, threading.Event]:
+    """A forbidden-region check that blocks the planner thread until released."""
+    gate, entered = threading.Event(), threading.Event()
+
+    def held(p: tuple[float, float, float]) -> None:
+        entered.set()
+        gate.wait(30.0)
+
+    s.kf.add_forbidden_check(held)
+    return gate, entered
+
+
+def _reply_after(s: Session, cid: int, gate: threading.Event) -> Any:
+    gate.set()
+    assert s.kf.wait_idle(30.0)
+    s.step(1)
+    reply = s.slicer.reply_to(cid)
+    assert reply is not None
+    return reply
+
+
+def test_a_plan_checked_while_the_regions_changed_is_dropped(session: Session) -> None:
+    """invalidate_plan while the planner is checking: the plan it finishes is stale (checked
+    against the old regions) and is dropped, not previewed."""
+    s = session
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    gate, entered = _hold_planner(s)
+    cid = s.slicer.send_command("KeyframePlan")
+    s.step(1)
+    assert entered.wait(30.0)
+    s.kf.invalidate_plan("regions changed")
+    reply = _reply_after(s, cid, gate)
+    assert reply.metadata["Status"] == "FAIL"
+    assert reply.metadata["Error"] == (
+        "plan 1 dropped: the keyframes changed meanwhile; plan again"
+    )
+    assert s.kf.plan is None and s.kf.stats()["plan"] is None
+    s.start()
+    assert "no plan is previewed" in s.refused("KeyframeAck", Plan=1)
+
+
+def test_a_plan_checked_while_keyframes_and_regions_changed_is_dropped(session: Session) -> None:
+    """A keyframe added while the planner works, then the regions changed: still stale."""
+    s = session
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    gate, entered = _hold_planner(s)
+    cid = s.slicer.send_command("KeyframePlan")
+    s.step(1)
+    assert entered.wait(30.0)
+    added = s.slicer.send_command("KeyframeAdd", xml("KeyframeAdd", T=2.0, Pose="0 0.35 0.05"))
+    s.step(1)
+    assert s.slicer.reply_to(added).metadata["Status"] == "SUCCESS"  # type: ignore[union-attr]
+    s.kf.invalidate_plan("regions changed")
+    reply = _reply_after(s, cid, gate)
+    assert reply.metadata["Status"] == "FAIL", reply.metadata
+    assert "dropped" in reply.metadata["Error"]
+    assert s.kf.plan is None
+
+
+# --------------------------------------------------------------------------- the run
+
+
+def test_an_ik_failure_during_a_run_stops_it_where_it_is(
+    session: Session, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A Cartesian run whose IK fails at run time (checked offline, so only a fault can do
+    it): the run is dropped, counted, announced, logged, and the robot holds its last
+    setpoint."""
+    caplog.set_level(logging.INFO, logger="occ.controllers.keyframe")
+    s = session
+    s.ok("KeyframeAdd", T=1.0, Pose="-6 30 226", Space="cartesian")
+    s.start()
+    frame = s.kf.ctx.frame  # type: ignore[union-attr]
+
+    def fails(*args: Any, **kwargs: Any) -> Any:
+        raise KinematicsError("injected")
+
+    def ended() -> list[tuple[str, int, str]]:
+        return [
+            (m.error_name, m.code, m.status_message)  # type: ignore[attr-defined]
+            for m in s.slicer.messages("STATUS")
+            if m.error_name == "KEYFRAME_ENDED"  # type: ignore[attr-defined]
+        ]
+
+    for run in (1, 2):
+        plan_id = s.plan_and_ack()
+        s.step(300)
+        held = list(s.setpoints[-1])
+        assert held != HOME
+        with monkeypatch.context() as patch:
+            patch.setattr(type(frame), "ik_clamped", fails)
+            s.step(50)
+        assert all(sp == held for sp in s.setpoints[-50:])
+        stats = s.kf.stats()
+        assert stats["running"] is None and stats["ik_failures"] == run
+        text = f"plan {plan_id} stopped at t=0.301 s: tip unreachable"
+        assert stats["status"] == text
+        assert stats["last_error"] == f"plan {plan_id}: IK failed at t=0.301 s: injected"
+        assert ended()[-1] == ("KEYFRAME_ENDED", 15, text)
+        assert _logged(caplog, logging.WARNING)[-1] == f"keyframes: {text}"
+        assert len(ended()) == run
+        assert s.robot.state is RobotState.RUNNING
+        s.ok("KeyframeClear")
+        s.ok("KeyframeAdd", T=1.0, Pose="-6 30 226", Space="cartesian")
+    assert s.kf.stats()["runs_completed"] == 0
+
+
+# --------------------------------------------------------------------------- where, in words
+
+
+def test_a_refusal_names_the_keyframe_within_half_a_period_else_the_segment() -> None:
+    times, labels = [0.0, 2.0, 3.0], ["A", "B", "C"]
+    assert _where(2.0, times, labels, 0.5) == "at B"
+    assert _where(0.0, times, labels, 0.5) == "at A"
+    assert _where(2.25, times, labels, 0.5) == "at B"  # exactly half a period away
+    assert _where(1.75, times, labels, 0.5) == "at B"
+    assert _where(2.5, times, labels, 0.5) == "at t=2.500 s, between B and C"
+    assert _where(1.5, times, labels, 0.5) == "at t=1.500 s, between A and B"
+    assert _where(0.5, times, labels, 0.5) == "at t=0.500 s, between A and B"
+    assert _where(2.8, times, labels, 0.5) == "at C"
+
+
+def test_a_run_ends_in_the_tick_that_commands_its_last_keyframe(session: Session) -> None:
+    """The run is over (counted, announced, the controller holds) in the very tick whose
+    setpoint is the last keyframe, not a tick later."""
+    s = session
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    s.start()
+    s.step(37)
+    s.plan_and_ack()  # this tick is t = 0 of the run
+    s.step(999)
+    assert s.kf.stats()["running"] == 1 and s.setpoints[-1] != [0.2, 0.35, 0.05]
+    s.step(1)  # t = 1 s
+    assert s.setpoints[-1] == [0.2, 0.35, 0.05]
+    stats = s.kf.stats()
+    assert stats["running"] is None and stats["runs_completed"] == 1
+    assert stats["status"] == "plan 1 completed (1.000 s)"
+
+
+@pytest.mark.parametrize("end", ["completed", "ik failure", "stopped"])
+def test_a_plan_checked_across_a_run_is_dropped(
+    session: Session, monkeypatch: pytest.MonkeyPatch, end: str
+) -> None:
+    """Plan 2 is asked for (and checked from the pose before the run) while plan 1 is
+    previewed; plan 1 is acknowledged and runs; a keyframe is added meanwhile; the run ends.
+    Plan 2, checked from a pose the robot has left and from keyframes that changed, is
+    dropped, not previewed."""
+    s = session
+    s.ok("KeyframeAdd", T=1.0, Pose="-6 30 226", Space="cartesian")
+    s.start()
+    s.ok("KeyframePlan")
+    s.step(20)
+    gate, entered = _hold_planner(s)
+    cid = s.slicer.send_command("KeyframePlan", xml("KeyframePlan", Mode="continuous"))
+    s.step(1)
+    assert entered.wait(30.0)
+    # the planner is busy: commands answered on the loop, without waiting for it
+    ack = s.slicer.send_command("KeyframeAck", xml("KeyframeAck", Plan=1))
+    s.step(1)
+    assert s.slicer.reply_to(ack).metadata["Message"] == "plan 1 running: 1.000 s"  # type: ignore[union-attr]
+    added = s.slicer.send_command(
+        "KeyframeAdd", xml("KeyframeAdd", T=2.0, Pose="-6 32 224", Space="cartesian")
+    )
+    s.step(300)
+    assert s.slicer.reply_to(added).metadata["Status"] == "SUCCESS"  # type: ignore[union-attr]
+    if end == "ik failure":
+        frame = s.kf.ctx.frame  # type: ignore[union-attr]
+
+        def fails(*args: Any, **kwargs: Any) -> Any:
+            raise KinematicsError("injected")
+
+        with monkeypatch.context() as patch:
+            patch.setattr(type(frame), "ik_clamped", fails)
+            s.step(2)
+    elif end == "stopped":
+        stop = s.slicer.send_command("Stop")
+        s.step(2)
+        assert s.slicer.reply_to(stop).metadata["Status"] == "SUCCESS"  # type: ignore[union-attr]
+    else:
+        s.step(800)
+    assert s.kf.stats()["running"] is None
+    assert s.kf.stats()["status"].startswith("plan 1 ")
+    reply = _reply_after(s, cid, gate)
+    assert reply.metadata["Status"] == "FAIL", reply.metadata
+    assert reply.metadata["Error"] == "plan 2 dropped: the keyframes changed meanwhile; plan again"
+    assert s.kf.plan is None
+
+
+# --------------------------------------------------------------------------- frames
+
+
+def test_cartesian_keyframes_are_world_positions_on_a_moved_and_turned_base(
+    session: Session,
+) -> None:
+    """The robot's base turned 90 degrees about z and moved (a tracker's pose, world <- base):
+    Cartesian keyframes are world millimetres (what 3D Slicer shows), the tip meets them in
+    the world, and the preview is drawn in the world too."""
+    s = session
+    base = np.array(
+        [[0.0, -1.0, 0.0, 0.010], [1.0, 0.0, 0.0, -0.020], [0.0, 0.0, 1.0, 0.005], [0, 0, 0, 1]]
+    )
+    s.robot.data.base = base
+    frame = s.robot.frame
+
+    def world_mm(q: list[float]) -> np.ndarray:
+        tip = np.asarray(frame.tip_position(q))
+        return np.asarray((base[:3, :3] @ tip + base[:3, 3]) / 1e-3)
+
+    target_base_mm = np.array([-12.0, 46.0, 201.0])
+    target = (base[:3, :3] @ (target_base_mm * 1e-3) + base[:3, 3]) / 1e-3
+    s.ok("KeyframeAdd", T=1.0, Pose=" ".join(f"{v:.9f}" for v in target), Space="cartesian")
+    s.start()
+    s.ok("KeyframePlan")
+    s.step(20)
+    (keys,) = s.slicer.messages("POINT", "Keyframes")
+    (path,) = s.slicer.messages("POLYDATA", "KeyframePath")
+    assert np.allclose(keys.points[0].position, world_mm(HOME), atol=1e-3)
+    assert np.allclose(keys.points[1].position, target, atol=1e-3)
+    assert np.allclose(path.points[0], world_mm(HOME), atol=1e-3)
+    assert np.allclose(path.points[-1], target, atol=1e-3)
+    s.setpoints.clear()
+    s.ok("KeyframeAck", Plan=1)
+    s.step(1100)
+    assert np.max(np.abs(world_mm(s.setpoints[1000]) - target)) < 1e-6
+    assert s.limit_events() == 0
+
+
+def test_orientations_on_a_three_joint_arm_are_refused_by_name() -> None:
+    s = Session(
+        {
+            "space": "cartesian",
+            "keyframes": [{"t": 1.0, "pose": [-6.0, 30.0, 226.0], "rotation": [0, 0, 0, 1]}],
+        }
+    )
+    try:
+        name = s.robot.frame.name
+        assert s.refused("KeyframePlan") == (
+            f"plan 1 refused: the keyframes have orientations, but {name!r} has 3 joints: "
+            "orientation needs a 6-DOF arm"
+        )
+    finally:
+        s.close()
+
+
+# --------------------------------------------------------------------------- a 6-DOF arm
+
+
+def _ur5_plan(keyframes: list[dict[str, Any]]) -> dict[str, str]:
+    """KeyframePlan on configs/ur5-keyframe.yaml with these keyframes: the reply's metadata."""
+    import yaml
+
+    from occ.testing import CONFIGS, SimRobot
+
+    cfg = yaml.safe_load((CONFIGS / "ur5-keyframe.yaml").read_text())
+    params = cfg["controller"]["params"]
+    params.update(file=None, keyframe_dir=None, space="cartesian", keyframes=keyframes)
+    sim = SimRobot(cfg)
+    try:
+        op = sim.peer("slicer")
+        kf: Any = sim.robot.controller.controllers[0]
+        cid = op.send_command("KeyframePlan", "")
+        sim.step(1)
+        assert kf.wait_idle(60.0)
+        sim.step(1)
+        reply = op.reply_to(cid)
+        assert reply is not None
+        return dict(reply.metadata)
+    finally:
+        sim.close()
+
+
+def _ur5_home_turned(angle_deg: float) -> tuple[list[float], list[float]]:
+    """The UR5's home tip (world mm) and its orientation turned about the tool's z axis."""
+    import math
+
+    import pinocchio as pin
+    import yaml
+
+    from occ.assembly import build_hardware
+    from occ.loader import load_config
+    from occ.samples import rotation_to_quaternion
+    from occ.testing import CONFIGS
+
+    cfg = yaml.safe_load((CONFIGS / "ur5-keyframe.yaml").read_text())
+    home_q = [j["home"] for j in cfg["robot"]["joints"]]
+    _, frame, _ = build_hardware(load_config(CONFIGS / "ur5.yaml").robot)
+    home = np.asarray(frame.fk(home_q))
+    turned = home[:3, :3] @ pin.utils.rpyToMatrix(0.0, 0.0, math.radians(angle_deg))
+    return (home[:3, 3] * 1e3).tolist(), list(rotation_to_quaternion(turned))
+
+
+@pytest.mark.parametrize(
+    ("t0", "angle", "refused"), [(0.0, 0.0, False), (0.0, 0.4, False), (0.0, 0.8, True)]
+)
+def test_an_oriented_keyframe_at_t0_must_be_turned_as_the_tool_is(
+    t0: float, angle: float, refused: bool
+) -> None:
+    """start_tolerance_deg (0.5 deg): keyframe 0 at t = 0 turned 0.4 deg from the tool is
+    the tool's pose; turned 0.8 deg it is refused with the angle."""
+    pos, quat = _ur5_home_turned(angle)
+    reply = _ur5_plan(
+        [
+            {"t": t0, "pose": pos, "rotation": quat, "name": "first"},
+            {"t": 2.0, "pose": pos, "rotation": quat},
+        ]
+    )
+    if refused:
+        assert reply["Status"] == "FAIL"
+        assert reply["Error"] == (
+            "plan 1 refused: keyframe 0 'first' (t=0 s) is turned 0.8 deg from the tool "
+            "(tolerance 0.5 deg): give keyframe 0 a later time so the robot turns there, or "
+            "turn it"
+        )
+    else:
+        assert reply["Status"] == "SUCCESS", reply
+
+
+def test_an_oriented_first_keyframe_later_than_t0_may_be_turned() -> None:
+    """Keyframe 0 at t = 1.5 s turned 20 deg: the robot turns there from where it is."""
+    pos, quat = _ur5_home_turned(20.0)
+    reply = _ur5_plan([{"t": 1.5, "pose": pos, "rotation": quat}])
+    assert reply["Status"] == "SUCCESS", reply
+
+
+# --------------------------------------------------------------------------- the start
+
+
+def test_a_keyframe_at_t0_is_within_its_own_spaces_tolerance(session: Session) -> None:
+    """start_tolerance_mm (0.5 mm) for Cartesian keyframes, start_tolerance (1e-3 rad or m)
+    for joint ones, each with its unit; within it keyframe 0 is replaced by the robot's pose."""
+    s = session
+    tip_mm = np.asarray(s.robot.frame.tip_position(HOME)) / 1e-3
+
+    def cartesian_at(dx_mm: float) -> str:
+        p = tip_mm + np.array([dx_mm, 0.0, 0.0])
+        s.ok("KeyframeClear")
+        s.ok("KeyframeAdd", T=0.0, Pose=" ".join(f"{v:.9f}" for v in p), Space="cartesian")
+        s.ok("KeyframeAdd", T=1.0, Pose="-6 30 226", Space="cartesian")
+        meta = s.cmd("KeyframePlan").metadata
+        return str(meta.get("Error") or meta["Message"])
+
+    assert "keyframe 0 replaced by the robot's pose (0.3 mm away)" in cartesian_at(0.3)
+    assert cartesian_at(0.8).endswith(
+        "keyframe 0 (t=0 s) is 0.8 mm from where the robot is (tolerance 0.5): a run starts "
+        "where the robot is; give keyframe 0 a later time so the robot moves there, or move it"
+    )
+    s.ok("KeyframeClear")
+    s.ok("KeyframeAdd", T=0.0, Pose="0.0008 0.35 0.05")
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    assert "keyframe 0 replaced by the robot's pose (0.0008 rad/m away)" in s.ok("KeyframePlan")
+    s.ok("KeyframeClear")
+    s.ok("KeyframeAdd", T=0.0, Pose=" ".join(map(str, HOME)))  # exactly there: nothing to say
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    assert "replaced" not in s.ok("KeyframePlan")
+    s.ok("KeyframeClear")
+    s.ok("KeyframeAdd", T=0.0, Pose="0.0012 0.35 0.05")
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    assert s.refused("KeyframePlan").endswith(
+        "keyframe 0 (t=0 s) is 0.0012 rad/m from where the robot is (tolerance 0.001): a run "
+        "starts where the robot is; give keyframe 0 a later time so the robot moves there, or "
+        "move it"
+    )
+
+
+@pytest.mark.parametrize(("last", "refused"), [(10.0, False), (12.0, True)])
+def test_a_plan_longer_than_max_duration_is_refused(last: float, refused: bool) -> None:
+    s = Session(
+        {
+            "max_duration_s": 10.0,
+            "keyframes": [
+                {"t": 3.0, "pose": [0.2, 0.35, 0.05], "name": "there"},
+                {"t": last, "pose": [0.0, 0.35, 0.05], "name": "back"},
+            ],
+        }
+    )
+    try:
+        if refused:
+            assert s.refused("KeyframePlan") == (
+                "plan 1 refused: keyframe 1 'back' (t=12 s): the plan would last 12 s, more "
+                "than max_duration_s (10)"
+            )
+        else:  # exactly the longest accepted
+            assert "10.000 s" in s.ok("KeyframePlan")
+    finally:
+        s.close()
+
+
+def test_the_plan_uses_the_ramp_asked_for_and_reports_its_peak_speed(session: Session) -> None:
+    """KeyframePlan Ramp=0.4: the area rule with t_a = 0.4 T on the setpoints; the summary
+    names the joint closest to its velocity limit and the share it uses; the preview path
+    ends once, on the last keyframe."""
+    s = session
+    s.ok("KeyframeAdd", T=2.0, Pose="0.4 0.35 0.05")
+    s.start()
+    summary = s.ok("KeyframePlan", Ramp=0.4)
+    # cruise v0 = D / (T - t_a) = 0.4 / 1.2 rad/s: 22 % of the 1.5 rad/s of yaw
+    assert summary == (
+        "plan 1: 1 keyframes (joint, linear, stop), 2.000 s; peak joint speed 22% of the limit "
+        "(yaw); preview on its way to the viewers; acknowledge with KeyframeAck Plan=1"
+    )
+    s.step(20)
+    (path,) = s.slicer.messages("POLYDATA", "KeyframePath")
+    pts = np.asarray(path.points)
+    assert not np.any(np.all(pts[1:] == pts[:-1], axis=1))  # no point twice in a row
+    s.setpoints.clear()
+    s.ok("KeyframeAck", Plan=1)
+    s.step(2100)
+    yaw = np.array(s.setpoints)[:, 0]
+    ta, v0 = 0.8, 0.4 / 1.2
+    assert yaw[800] == pytest.approx(ta * v0 / 2, rel=1e-12)  # the area rule at t_a
+
+
+def test_the_last_keyframe_itself_is_checked(session: Session) -> None:
+    """A forbidden region that holds the last keyframe's tip and nothing before it: the
+    check reaches the end of the plan, not one period short of it."""
+    s = session
+    final = (0.3, 0.4, 0.07)
+    end_tip = tuple(float(v) for v in s.robot.frame.tip_position(list(final)))
+    s.kf.add_forbidden_check(lambda p: "the target" if tuple(p) == end_tip else None)
+    s.ok("KeyframeAdd", T=1.0, Pose=" ".join(map(str, final)), Label="last")
+    assert "forbidden region (the target) at keyframe 0 'last' (t=1 s)" in s.refused("KeyframePlan")
+
+
+@pytest.mark.parametrize(("duration", "points"), [(0.2, 201), (1.021, None), (2.041, None)])
+def test_the_preview_has_every_tick_when_it_fits_and_never_more_than_preview_points(
+    session: Session, duration: float, points: int | None
+) -> None:
+    """preview_points (256): a plan of 201 ticks is drawn tick by tick; longer ones are
+    decimated to at most 256 points (1021 and 2041 ticks: where a stride one smaller would
+    give 257), the last keyframe always the last point."""
+    s = session
+    s.ok("KeyframeAdd", T=duration, Pose="0.02 0.36 0.05")
+    s.ok("KeyframePlan")
+    s.step(20)
+    (path,) = s.slicer.messages("POLYDATA", "KeyframePath")
+    n = len(path.points)
+    assert n == points if points is not None else 200 <= n <= 256, n
+    end = np.asarray(s.robot.frame.tip_position([0.02, 0.36, 0.05])) / 1e-3
+    assert np.allclose(path.points[-1], end, atol=1e-6)
+
+
+def test_an_ik_that_fails_while_checking_refuses_the_plan_naming_where(
+    session: Session, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The IK raising (a DLS that does not converge, say) at some tick of a Cartesian plan:
+    refused, naming the segment and the IK's reason; nothing is previewed."""
+    s = session
+    frame_type = type(s.robot.frame)
+    solve = frame_type.ik_clamped
+    calls = {"n": 0}
+
+    def fails_later(self: Any, *args: Any, **kwargs: Any) -> Any:
+        calls["n"] += 1
+        if calls["n"] > 500:
+            raise KinematicsError("did not converge")
+        return solve(self, *args, **kwargs)
+
+    s.ok("KeyframeAdd", T=1.0, Pose="-6 30 226", Space="cartesian", Label="entry")
+    monkeypatch.setattr(frame_type, "ik_clamped", fails_later)
+    assert s.refused("KeyframePlan") == (
+        "plan 1 refused: the tip is unreachable at t=0.500 s, between the start (the robot's "
+        "pose) and keyframe 0 'entry' (t=1 s): did not converge"
+    )
+    assert s.kf.plan is None
+
+
+def test_a_cartesian_refusal_names_where_the_tip_leaves_and_the_joint_at_its_limit(
+    session: Session,
+) -> None:
+    s = session
+    s.ok("KeyframeAdd", T=20.0, Pose="0 24 400", Space="cartesian", Label="far")
+    assert s.refused("KeyframePlan") == (
+        "plan 1 refused: the tip leaves the workspace at t=7.056 s, between the start (the "
+        "robot's pose) and keyframe 0 'far' (t=20 s): (0.00, 24.00, 284.59) mm needs joint "
+        "pitch beyond its limits"
+    )
+    s.ok("KeyframeClear")
+    s.ok("KeyframeAdd", T=20.0, Pose="0 -24 400", Space="cartesian", Label="far")
+    assert s.refused("KeyframePlan") == (
+        "plan 2 refused: the tip leaves the workspace at t=6.883 s, between the start (the "
+        "robot's pose) and keyframe 0 'far' (t=20 s): (0.00, 9.98, 282.68) mm needs joint "
+        "insertion beyond its limits"
+    )
+
+
+def test_a_joint_plan_may_reach_its_limits_but_not_pass_them(session: Session) -> None:
+    s = session
+    s.ok("KeyframeAdd", T=3.0, Pose="1.0 0.35 0.0", Label="at both")  # yaw max, insertion min
+    assert "plan 1:" in s.ok("KeyframePlan")
+    s.ok("KeyframeClear")
+    s.ok("KeyframeAdd", T=3.0, Pose="-1.05 0.35 0.05", Label="below")
+    error = s.refused("KeyframePlan")
+    assert error.startswith("plan 2 refused: joint 'yaw' position -1") and (
+        "is outside its limits [-1, 1] at t=" in error
+    ), error
+
+
+def test_a_plan_may_use_exactly_the_velocity_limit_and_is_refused_past_it(
+    session: Session,
+) -> None:
+    s = session
+    # pitch 0.45 rad in 0.4 s: cruise D / (T - t_a) = 0.45 / 0.3 = 1.5 rad/s, its limit
+    s.ok("KeyframeAdd", T=0.4, Pose="0.0 0.8 0.05", Label="fast")
+    assert "peak joint speed 100% of the limit (pitch)" in s.ok("KeyframePlan")
+    s.ok("KeyframeClear")
+    s.ok("KeyframeAdd", T=1.0, Pose="0.0 0.35 0.05", Label="a")
+    s.ok("KeyframeAdd", T=1.5, Pose="0.0 0.35 0.12", Label="deep")
+    assert s.refused("KeyframePlan") == (
+        "plan 2 refused: joint 'insertion' velocity 0.1023 exceeds its limit 0.1 at t=1.065 s, "
+        "between keyframe 0 'a' (t=1 s) and keyframe 1 'deep' (t=1.5 s); give that segment "
+        "more time"
+    )
+
+
+def test_the_workspace_box_checks_each_axis_against_its_own_bounds() -> None:
+    """A box narrow in x and wide in y: a tip at y = 30 mm is inside it (y's bounds), though
+    30 is outside x's."""
+    s = Session({"workspace_mm": {"min_mm": [-20.0, 0.0, 150.0], "max_mm": [20.0, 60.0, 300.0]}})
+    try:
+        s.ok("KeyframeAdd", T=2.0, Pose="-6 30 226", Space="cartesian")
+        assert "plan 1:" in s.ok("KeyframePlan")
+    finally:
+        s.close()
+
+
+def test_workspace_and_forbidden_refusals_say_where_and_what() -> None:
+    s = Session(
+        {
+            "workspace_mm": {"min_mm": [-50.0, -50.0, 150.0], "max_mm": [50.0, 50.0, 300.0]},
+            "forbidden": [
+                {"centre_mm": [-6.0, 35.0, 218.0], "radius_mm": 5.0, "name": "vessel"},
+                {"point_mm": [0.0, 0.0, 150.0], "normal": [0.0, 0.0, 2.0], "name": "table"},
+            ],
+        }
+    )
+    try:
+        s.ok("KeyframeAdd", T=2.0, Pose="-12 46 140", Space="cartesian", Label="low")
+        assert s.refused("KeyframePlan") == (
+            "plan 1 refused: the tip leaves workspace_mm at t=1.592 s, between the start (the "
+            "robot's pose) and keyframe 0 'low' (t=2 s): (-10.73, 43.67, 149.96) mm"
+        )
+        s.ok("KeyframeClear")
+        s.ok("KeyframeAdd", T=2.0, Pose="-6 30 226", Space="cartesian", Label="entry")
+        s.ok("KeyframeAdd", T=4.0, Pose="-12 46 201", Space="cartesian", Label="target")
+        assert s.refused("KeyframePlan") == (
+            "plan 2 refused: the tip enters a forbidden region (forbidden sphere 'vessel') at "
+            "t=2.479 s, between keyframe 0 'entry' (t=2 s) and keyframe 1 'target' (t=4 s): "
+            "(-6.92, 32.44, 222.18) mm"
+        )
+        # a check that answers True (no description): the refusal says no more than that
+        s.kf.add_forbidden_check(lambda p: True if p[2] < 0.2 else None)
+        s.ok("KeyframeClear")
+        s.ok("KeyframeAdd", T=2.0, Pose="-6 30 190", Space="cartesian", Label="deep")
+        assert s.refused("KeyframePlan") == (
+            "plan 3 refused: the tip enters a forbidden region at t=1.411 s, between the start "
+            "(the robot's pose) and keyframe 0 'deep' (t=2 s): (-4.64, 28.64, 200.00) mm"
+        )
+    finally:
+        s.close()
+
+
+def test_a_new_set_is_counted_and_drops_a_plan_being_checked(session: Session) -> None:
+    s = session
+    assert s.kf.stats()["status"] == "no keyframes" and s.kf.stats()["sets"] == 0
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    stats = s.kf.stats()
+    assert stats["sets"] == 1
+    assert stats["status"] == "1 keyframes from operator commands; send KeyframePlan"
+    gate, entered = _hold_planner(s)
+    cid = s.slicer.send_command("KeyframePlan")
+    s.step(1)
+    assert entered.wait(30.0)
+    added = s.slicer.send_command("KeyframeAdd", xml("KeyframeAdd", T=2.0, Pose="0 0.35 0.05"))
+    s.step(1)
+    assert s.slicer.reply_to(added).metadata["Status"] == "SUCCESS"  # type: ignore[union-attr]
+    reply = _reply_after(s, cid, gate)
+    assert reply.metadata["Error"] == "plan 1 dropped: the keyframes changed meanwhile; plan again"
+    assert s.kf.plan is None and s.kf.stats()["sets"] == 2
+    s.ok("KeyframeClear")
+    assert s.kf.stats()["status"] == "no keyframes" and s.kf.stats()["sets"] == 2
+
+
+def test_every_stop_of_a_run_is_counted_said_and_logged(
+    session: Session, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="occ.controllers.keyframe")
+    s = session
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    s.start()
+    for run in (1, 2):
+        plan_id = s.plan_and_ack()
+        s.step(250)
+        s.ok("Stop")
+        text = (
+            f"plan {plan_id} stopped at t=0.251 s of 1.000 s (RUNNING -> STOPPED); the robot "
+            "holds there; plan again to run the keyframes"
+        )
+        assert s.kf.stats()["status"] == text
+        assert s.kf.stats()["runs_stopped"] == run
+        assert _logged(caplog, logging.WARNING)[-1] == f"keyframes: {text}"
+        s.ok("Run")
+
+
+def test_a_keyframe_set_is_refused_with_the_reason() -> None:
+    from occ.controllers.keyframe import make_set
+
+    def error(space: Any, items: Any, cap: int = 4) -> str:
+        with pytest.raises(ValueError) as info:
+            make_set(space, items, "test", joints=3, max_keyframes=cap)
+        return str(info.value)
+
+    q = (0.0, 0.0, 0.0, 1.0)
+    assert error("joint", []) == "no keyframes"
+    # exactly max_keyframes is a set; one more is not
+    full = [(float(i + 1), [0.0, 0.0, 0.0], "") for i in range(4)]
+    assert len(make_set("joint", full, "test", joints=3, max_keyframes=4).keyframes) == 4
+    assert error("joint", full, cap=3) == "4 keyframes, more than max_keyframes (3)"
+    assert error("joint", [(1.0, [0, 0, 0], "", q)]) == (
+        "keyframe 0: a rotation needs Cartesian keyframes"
+    )
+    assert error("cartesian", [(1.0, [0, 0, 0], "", q), (2.0, [0, 0, 1], "")]) == (
+        "keyframe 1: every keyframe of a set has a rotation, or none has"
+    )
+    assert error("cartesian", [(1.0, [0, 0], "")]) == (
+        "keyframe 0: 2 values, a cartesian pose needs x y z (mm)"
+    )
+    assert error("joint", [(1.0, [0, 0], "")]) == (
+        "keyframe 0: 2 values, a joint pose needs 3 joint positions"
+    )
+    assert error("joint", [(-1.0, [0, 0, 0], "")]) == (
+        "keyframe 0: time -1 s is before the start (t = 0)"
+    )
