@@ -492,3 +492,23 @@ def test_a_mesh_region_from_a_file(tmp_path: Path) -> None:
     hits = cm.checker().check(RAISED)
     assert hits and {h.region for h in hits} == {"lid"}
     assert cm.checker().check([0.0, -0.6, 1.0, -1.9, -1.57, 0.0]) == []
+
+
+@pytest.mark.req("SR-COLL-1")
+def test_the_path_check_places_the_arm_where_its_base_is() -> None:
+    """The whole-arm check of a plan takes the robot's base pose: the raise whose forearm
+    crosses the ceiling with the base at the origin clears it with the base 300 mm lower (the
+    regions stay where they are in the world), and is refused again back at the origin."""
+    sim = keyframe_robot({"margin_mm": 10.0, "regions": [CEILING]}, keyframes=raise_keyframes())
+    try:
+        command(sim, "Enable")
+        lowered = np.eye(4)
+        lowered[2, 3] = -0.3
+        sim.robot.data.base = lowered
+        reply = command(sim, "KeyframePlan")
+        assert reply["Status"] == "SUCCESS", reply
+        sim.robot.data.base = np.eye(4)
+        reply = command(sim, "KeyframePlan")
+        assert reply["Status"] == "FAIL" and "forbidden region 'ceiling'" in reply["Error"]
+    finally:
+        sim.close()
