@@ -607,25 +607,26 @@ class Frame:
 
 
 # ---------------------------------------------------------------------- analytic solvers
-def _check_closed_form(frame: Frame, closed: ClosedFK) -> bool:
-    """Compare a closed-form tip position with pinocchio at fixed pseudo-random configurations."""
-    rng = np.random.default_rng(12345)
+def _check_configs(frame: Frame, seed: int) -> list[FloatArray]:
+    """Eight fixed pseudo-random configurations in the frame's limits (±1 where unlimited),
+    where a closed form is compared with pinocchio."""
+    rng = np.random.default_rng(seed)
     lo = np.where(np.isfinite(frame.lower), frame.lower, -1.0)
     hi = np.where(np.isfinite(frame.upper), frame.upper, 1.0)
-    for _ in range(8):
-        q = rng.uniform(lo, hi)
-        if np.max(np.abs(frame.position(q) - np.asarray(closed(q.tolist())))) > _CHECK_TOL:
-            return False
-    return True
+    return [rng.uniform(lo, hi) for _ in range(8)]
+
+
+def _check_closed_form(frame: Frame, closed: ClosedFK) -> bool:
+    """Compare a closed-form tip position with pinocchio at fixed pseudo-random configurations."""
+    return all(
+        np.max(np.abs(frame.position(q) - np.asarray(closed(q.tolist())))) <= _CHECK_TOL
+        for q in _check_configs(frame, 12345)
+    )
 
 
 def _check_closed_pose(frame: Frame, closed: ClosedPose) -> bool:
     """Compare a closed-form tip pose with pinocchio at fixed pseudo-random configurations."""
-    rng = np.random.default_rng(54321)
-    lo = np.where(np.isfinite(frame.lower), frame.lower, -1.0)
-    hi = np.where(np.isfinite(frame.upper), frame.upper, 1.0)
-    for _ in range(8):
-        q = rng.uniform(lo, hi)
+    for q in _check_configs(frame, 54321):
         rows, pos = closed(q.tolist())
         want = frame.fk(q)
         got = np.array([[*rows[i], pos[i]] for i in range(3)])

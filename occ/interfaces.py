@@ -250,9 +250,9 @@ class Interface:
             if getattr(cfg, "auth_key_file", None)
             else None
         )
-        #: a signed request is taken once, within its window (the senders' clocks: real time)
+        #: a signed request is taken once, within its window (judged on real time: the
+        #: senders' clocks)
         self._replay = ReplayGuard(cfg.auth_max_age_s) if self.auth_key is not None else None
-        self._wall: Callable[[], float] = time.time
         self.transport = self._make_transport()
 
     def _make_transport(self) -> TCPServer | TCPClient | UDPEndpoint | InprocTransport:
@@ -411,7 +411,7 @@ class Interface:
         request = is_operator_request(msg)
         if request or mtype in self.command_inputs:
             replay = self._replay
-            if replay is not None and (why := replay.check(msg, self._wall())):
+            if replay is not None and (why := replay.check(msg, time.time())):
                 c.replayed += 1  # answered: a sender with the key learns why (its clock?)
                 self._refuse(item, f"{mtype} refused: {why}", igtl.StatusCode.ACCESS_DENIED)
                 return None

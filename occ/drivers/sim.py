@@ -400,26 +400,19 @@ class SimDriver(Driver):
         effort = self._effort_avg if self._avg_window > 0.0 else self._u
         if self._exact_encoder:
             out[:] = self._x
-            if self._faults:
-                return self._injected(out), self._v, effort
-            return out, self._v, effort
-        if not self._noisy:  # the encoders' counts only (the shipped drives)
+        elif not self._noisy:  # the encoders' counts only (the shipped drives)
             for i, (x, res) in enumerate(zip(self._x, self._resolution, strict=True)):
                 out[i] = math.floor(x / res + 0.5) * res if res > 0.0 else x
-            if self._faults:
-                return self._injected(out), self._v, effort
-            return out, self._v, effort
-        rng = self._rng
-        noisy = self._noisy
-        for i, x in enumerate(self._x):
-            if noisy:
+        else:
+            rng = self._rng
+            for i, x in enumerate(self._x):
                 sigma = self._noise[i]
                 if sigma > 0.0:
                     x += rng.gauss(0.0, sigma)
-            res = self._resolution[i]
-            if res > 0.0:
-                x = math.floor(x / res + 0.5) * res
-            out[i] = x
+                res = self._resolution[i]
+                if res > 0.0:
+                    x = math.floor(x / res + 0.5) * res
+                out[i] = x
         if self._faults:
             return self._injected(out), self._v, effort
         return out, self._v, effort
