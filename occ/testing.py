@@ -45,7 +45,15 @@ from .config import DaemonConfig
 from .loader import load_config
 from .robot import Robot, build_robot
 
-__all__ = ["SimPair", "SimPeer", "SimRobot", "SlaveTipFeed", "inproc_config", "wait_until"]
+__all__ = [
+    "SimPair",
+    "SimPeer",
+    "SimRobot",
+    "SlaveTipFeed",
+    "inproc_config",
+    "loopback_robot",
+    "wait_until",
+]
 
 _instances = itertools.count(1)
 
@@ -543,3 +551,23 @@ def wait_until(pred: Callable[[], Any], timeout: float = 10.0, every: float = 0.
         if value or time.monotonic() >= end:
             return value
         time.sleep(every)
+
+
+def loopback_robot(
+    config: DaemonConfig | str | os.PathLike[str] | Mapping[str, Any], *, run: bool = False
+) -> Robot:
+    """The robot of ``config`` on a :class:`~occ.clock.SimClock`, with its interfaces on real
+    sockets at ephemeral ports (``port: 0``), configured and its interfaces started, for tests
+    of the socket paths (a polled UDP stream, the kernel filter) in simulated time; ``run``:
+    Enable and Run too. The caller shuts it down."""
+    cfg = _as_config(config)
+    cfg = cfg.model_copy(
+        update={"interfaces": tuple(i.model_copy(update={"port": 0}) for i in cfg.interfaces)}
+    )
+    robot = build_robot(cfg, clock=SimClock())
+    robot.configure()
+    robot.activate()
+    if run:
+        robot.state_machine.request("enable", "test")
+        robot.state_machine.request("run", "test")
+    return robot

@@ -22,11 +22,11 @@ import igtl
 from occ.errors import CommandError
 from occ.interfaces import Inbound
 from occ.loader import load_config, parse_config
-from occ.robot import Robot, build_robot
+from occ.robot import Robot
 from occ.safety import RobotState
 from occ.samples import PoseSample, pose_sample, quaternion_to_rotation, rotation_to_quaternion
 from occ.streams import POLL_LIMIT, StreamInputs, judge
-from occ.testing import SimRobot
+from occ.testing import SimRobot, loopback_robot
 
 ROOT = Path(__file__).resolve().parents[2]
 SLAVE = ROOT / "configs" / "slave.yaml"
@@ -516,18 +516,7 @@ def test_judge_takes_the_earlier_of_the_arrival_and_the_previous_tick() -> None:
 
 # ------------------------------------------------------------------ the polled path
 def _polled_slave(cfg: Any = None) -> Robot:
-    cfg = load_config(SLAVE) if cfg is None else cfg
-    cfg = cfg.model_copy(
-        update={"interfaces": tuple(i.model_copy(update={"port": 0}) for i in cfg.interfaces)}
-    )
-    from occ.clock import SimClock
-
-    robot = build_robot(cfg, clock=SimClock())
-    robot.configure()
-    robot.activate()
-    robot.state_machine.request("enable", "test")
-    robot.state_machine.request("run", "test")
-    return robot
+    return loopback_robot(SLAVE if cfg is None else cfg, run=True)
 
 
 def test_a_polled_socket_gives_a_tick_at_most_poll_limit_datagrams() -> None:
@@ -570,15 +559,7 @@ def test_a_polled_socket_gives_a_tick_at_most_poll_limit_datagrams() -> None:
 
 
 def test_a_polled_master_not_in_control_is_judged_and_moves_nothing() -> None:
-    cfg = load_config(COLLAB)
-    cfg = cfg.model_copy(
-        update={"interfaces": tuple(i.model_copy(update={"port": 0}) for i in cfg.interfaces)}
-    )
-    from occ.clock import SimClock
-
-    robot = build_robot(cfg, clock=SimClock())
-    robot.configure()
-    robot.activate()
+    robot = loopback_robot(COLLAB)
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
         seen = Seen(robot.streams)

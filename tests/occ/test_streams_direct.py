@@ -14,24 +14,15 @@ import pytest
 
 import igtl
 from occ.clock import SimClock
-from occ.loader import load_config
-from occ.robot import Robot, build_robot
+from occ.robot import Robot
 from occ.safety import RobotState
+from occ.testing import loopback_robot
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def _slave() -> Robot:
-    cfg = load_config(ROOT / "configs" / "slave.yaml")
-    cfg = cfg.model_copy(
-        update={"interfaces": tuple(i.model_copy(update={"port": 0}) for i in cfg.interfaces)}
-    )
-    robot = build_robot(cfg, clock=SimClock())
-    robot.configure()
-    robot.activate()
-    robot.state_machine.request("enable", "test")
-    robot.state_machine.request("run", "test")
-    return robot
+    return loopback_robot(ROOT / "configs" / "slave.yaml", run=True)
 
 
 def _position(seq: int, clock: SimClock) -> bytes:
