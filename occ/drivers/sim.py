@@ -219,6 +219,7 @@ class SimDriver(Driver):
             fastest = max(fastest, rate)
         self._substep = min(max_substep, _STEP_PER_RATE / fastest) if fastest > 0 else max_substep
         self._resolution = resolution
+        self._encoders = list(enumerate(resolution))
         self._noise = noise
         self._brakes = bool(p["brakes"])
         self._seed = p["seed"]
@@ -241,12 +242,15 @@ class SimDriver(Driver):
         ]
         # the servoed joints' exact step, per joint (see _servo_steps)
         self._servoed = self.command_interface == "position"
+        # ... with each joint's encoder quantum (0: exact), read in the same pass
         self._servo_model = [
-            (self._kp[i], self._kd[i], self._effort_limit[i], self._lo[i], self._hi[i])
-            for i in range(len(js))
+            (self._kp[i], self._kd[i], self._effort_limit[i], self._lo[i], self._hi[i], res)
+            for i, res in enumerate(resolution)
         ]
         self._exact_encoder = not any(noise) and not any(resolution)
         self._noisy = any(n > 0.0 for n in noise)
+        # the common read: a servoed drive, no averaging, a noiseless encoder (see _read)
+        self._plain = self.command_interface == "position" and not self._noisy
         # exact steps of the servoed joints: e = x - r obeys e'' + c e' + k e = 0 while the
         # effort stays inside its limit (k = kp/J, c = (kd + b)/J)
         self._servo_poles = [
@@ -392,6 +396,24 @@ class SimDriver(Driver):
         self._enabled = False
 
     def _read(self, now: float) -> tuple[Sequence[float], Sequence[float], Sequence[float]]:
+        dt = now - self._t  # NaN before the first step
+        if (
+            self._plain
+            and dt > 0.0
+            and self._enabled
+            and self.environment is None
+            and not self._avg_window > 0.0
+            and not now - self._last_cmd_t > self.heartbeat_s > 0.0
+            and self._heartbeat_lost is None
+        ):
+            # the common interval (a servoed drive commanded within its heartbeat, no load, no
+            # averaging, a noiseless encoder): what _advance and _integrate would choose, and
+            # _servo_steps fills the encoders' reading as it steps
+            self._t = now
+            self._servo_steps(dt)
+            if self._faults:
+                return self._injected(self._measured), self._v, self._u
+            return self._measured, self._v, self._u
         self._advance(now)
         if self._heartbeat_lost is not None and not self._heartbeat_reported:
             self._heartbeat_reported = True  # once: then positions are readable again
@@ -401,7 +423,9 @@ class SimDriver(Driver):
         if self._exact_encoder:
             out[:] = self._x
         elif not self._noisy:  # the encoders' counts only (the shipped drives)
-            for i, (x, res) in enumerate(zip(self._x, self._resolution, strict=True)):
+            x_all = self._x
+            for i, res in self._encoders:
+                x = x_all[i]
                 out[i] = math.floor(x / res + 0.5) * res if res > 0.0 else x
         else:
             rng = self._rng
@@ -516,10 +540,12 @@ class SimDriver(Driver):
     def _servo_steps(self, dt: float) -> None:
         """The common interval: a servoed drive, no load, no averaging. Each joint takes one
         exact step when its effort stays inside the limit and no end stop is reached, else
-        :meth:`_integrate_joints` integrates that joint (the joints are independent)."""
+        :meth:`_integrate_joints` integrates that joint (the joints are independent). The
+        noiseless encoders' reading of the new positions goes to ``_measured`` on the way
+        (what :meth:`_read` reports; a noisy encoder's is drawn there instead)."""
         step = self._step if -1e-9 < dt - self._step_h < 1e-9 else self._exact_steps(dt)
-        x_all, v_all, u_all, cmd = self._x, self._v, self._u, self._cmd
-        for i, (kp, kd, ulim, lo, hi) in enumerate(self._servo_model):
+        x_all, v_all, u_all, cmd, out = self._x, self._v, self._u, self._cmd, self._measured
+        for i, (kp, kd, ulim, lo, hi, res) in enumerate(self._servo_model):
             r = cmd[i]
             e = x_all[i] - r
             v = v_all[i]
@@ -534,8 +560,11 @@ class SimDriver(Driver):
                     x_all[i] = x1
                     v_all[i] = v1
                     u_all[i] = u1
+                    out[i] = math.floor(x1 / res + 0.5) * res if res > 0.0 else x1
                     continue
             self._integrate_joints(dt, (i,))
+            x1 = x_all[i]
+            out[i] = math.floor(x1 / res + 0.5) * res if res > 0.0 else x1
 
     def _integrate_joints(self, dt: float, joints: Sequence[int]) -> None:
         """Every case, for ``joints``: a load, averaging, saturation, end stops, the effort

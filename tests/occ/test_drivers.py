@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gc
 import math
+import random
 import re
 from collections.abc import Sequence
 
@@ -530,6 +531,47 @@ def test_sim_saturating_step_falls_back_to_substeps_and_reports_the_limit() -> N
     d.read(0.001)
     assert js[0].effort == pytest.approx(0.5)  # saturated
     assert 0.0 < js[0].position < 0.001
+
+
+def test_sim_common_read_reports_what_the_general_path_does() -> None:
+    """The servoed drive's common interval is read in one pass (model step and encoder
+    together); a drive forced through the general path (a world that applies no load) must
+    read the same, saturated joints, end stops and the encoder's quantum included."""
+
+    class NoLoad:
+        def efforts(self, q: list[float], qd: list[float]) -> None:
+            return None
+
+    def trace(world: object) -> list[tuple[float, ...]]:
+        js = [
+            Joint("a", limits=JointLimits(-1.0, 1.0, velocity=100.0, effort=0.5)),
+            Joint("b", limits=JointLimits(-0.02, 0.02, velocity=100.0, effort=50.0)),
+            Joint("c", type="prismatic", limits=JointLimits(0.0, 0.1, velocity=1.0, effort=50.0)),
+        ]
+        d = SimDriver("s", js, {"encoder_resolution": [1e-4, 2e-5, 0.0], "heartbeat_ms": 0})
+        d.environment = world
+        d.configure()
+        d.read(0.0)
+        d.activate()
+        rng = random.Random(3)
+        out = []
+        for k in range(1, 400):
+            now = k * 0.001 + rng.uniform(0.0, 3e-5)
+            d.read(now)
+            out.append(tuple(j.position for j in js) + tuple(j.effort for j in js))
+            target = 0.3 if k < 200 else -0.3  # saturates a; b runs into its end stop
+            d.write([target, 0.05 if k < 200 else 0.0, 0.05], now)
+        d.shutdown()
+        return out
+
+    fast, general = trace(None), trace(NoLoad())
+    # the same to the last bit but for rounding: the general path forms the effort from the
+    # position, the common one from the error (x - r)
+    assert [row[:3] for row in fast] == [row[:3] for row in general]
+    assert [row[3:] for row in fast] == [pytest.approx(row[3:], rel=1e-12, abs=1e-15) for row in general]
+    assert any(abs(row[3]) == pytest.approx(0.5) for row in fast)  # a saturated
+    assert max(row[1] for row in fast) == pytest.approx(0.02)  # b at its end stop
+    assert all(abs(row[0] / 1e-4 - round(row[0] / 1e-4)) < 1e-6 for row in fast)
 
 
 def test_sim_effort_interface_tracks_with_pid() -> None:
