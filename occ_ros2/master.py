@@ -46,12 +46,24 @@ from .bridge import QOS_DEFAULT, QOS_SENSOR, topic_name, typed_qos
 log = logging.getLogger("occ_ros2.master")
 
 
+#: what a host name or an IPv4/IPv6 address is made of (parse_master)
+_HOST_CHARS = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789.-_:"
+
+
 def parse_master(text: str) -> tuple[str, str, int]:
-    """``/NAMESPACE=HOST:PORT`` -> (namespace, host, port)."""
+    """``/NAMESPACE=HOST:PORT`` -> (namespace, host, port). The host is a name or an IPv4 or
+    IPv6 address: letters, digits and ``.-_:`` (anything else is refused here, not later by
+    the resolver)."""
     ns, sep, where = text.partition("=")
     host, _, port = where.rpartition(":")
     parts = ns.strip("/").split("/")
-    if not sep or not host or not port.isdigit() or not all(p.isidentifier() for p in parts):
+    if (
+        not sep
+        or not host
+        or host.strip(_HOST_CHARS)
+        or not port.isdigit()
+        or not all(p.isidentifier() for p in parts)
+    ):
         raise ValueError(f"expected /NAMESPACE=HOST:PORT, got {text!r}")
     return "/" + ns.strip("/"), host, int(port)
 

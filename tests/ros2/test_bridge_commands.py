@@ -908,8 +908,10 @@ def test_parse_master() -> None:
     assert parse_master("occ/master/=::1:5") == ("/occ/master", "::1", 5)
     assert parse_master("/Xarm/X=h:1") == ("/Xarm/X", "h", 1)  # only slashes are stripped
     assert parse_master("/X1/occ=h:1") == ("/X1/occ", "h", 1)  # and checked: X1 is a name
+    assert parse_master("/a=my-host_2.lab:7") == ("/a", "my-host_2.lab", 7)
+    # a host holding "=" (or a space, a slash) is refused here, not by the resolver later
     for bad in ("/occ/master", "/occ/master=127.0.0.1", "/occ/master=:1", "/occ/ma-ster=h:1",
-                "/occ/master=h:x1", "=h:1"):  # fmt: skip
+                "/occ/master=h:x1", "=h:1", "/ns=a=b:1", "/ns=a b:1", "/ns=a/b:1"):  # fmt: skip
         with pytest.raises(ValueError, match="expected /NAMESPACE=HOST:PORT"):
             parse_master(bad)
 
