@@ -937,7 +937,11 @@ def test_a_new_file_taken_by_another_process_meanwhile_is_judged_again(
         assert lib.load("kf", "demo", "h" * 64).name == "demo"
     else:
         assert refusal(path) == (f"{path} is an SQLite database but {outcome}; give another file")
+        # the other program's file as it left it: no tables added, its journal not made WAL
         assert "keyframe_sets" not in tables_of(path)
+        db = sqlite3.connect(path)
+        assert db.execute("PRAGMA journal_mode").fetchone()[0] == "delete"
+        db.close()
     assert len(looks) == 2 and looks[0] == (0, 0, set())  # looked again inside the transaction
 
 
