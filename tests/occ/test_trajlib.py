@@ -847,6 +847,34 @@ def test_another_programs_files_are_refused_with_the_reason_and_not_written(
     assert tables_of(marked) == [] and tables_of(other) == ["patients"]
 
 
+@pytest.mark.parametrize(
+    ("statement", "shown"),
+    [
+        ("CREATE TABLE patients (id INTEGER)", "application_id 0x0, tables ['patients']"),
+        ("PRAGMA application_id = 1234", "application_id 0x4d2, tables []"),
+    ],
+)
+def test_another_programs_file_is_refused_at_once_while_that_program_writes(
+    tmp_path: Path, statement: str, shown: str
+) -> None:
+    """Only an empty file is taken for a new library and locked for writing; another program's
+    file is judged by reading, so its own writer (holding the write lock) makes no difference:
+    refused as not a library, not "locked, retry"."""
+    path = sqlite_file(tmp_path / "theirs.db", statement)
+    theirs = sqlite3.connect(path, isolation_level=None)
+    theirs.execute("BEGIN IMMEDIATE")
+    try:
+        with pytest.raises(LibraryError) as err:
+            Library(path, timeout=0.01)
+        assert str(err.value) == (
+            f"{path} is an SQLite database but not a trajectory library ({shown}); give "
+            "another file"
+        )
+    finally:
+        theirs.execute("ROLLBACK")
+        theirs.close()
+
+
 def test_a_library_file_of_another_version_or_not_whole_is_refused_with_the_reason(
     tmp_path: Path,
 ) -> None:
