@@ -238,10 +238,8 @@ class Library:
     def _prepare(self, db: sqlite3.Connection) -> None:
         app, version, tables = self._identity(db)
         if app == 0 and version == 0 and not tables:
-            # a new file (or one a second daemon is creating at this moment: decided again
-            # inside the transaction)
-            if db.execute("PRAGMA journal_mode = WAL").fetchone()[0].lower() != "wal":
-                raise LibraryError(f"{self.path}: the file system refuses a WAL journal")
+            # a new file (or one a second daemon, or another program, is writing at this
+            # moment: decided again inside the transaction)
             with self._write(db):
                 app, version, tables = self._identity(db)
                 if app == 0 and version == 0 and not tables:
@@ -249,7 +247,7 @@ class Library:
                         db.execute(statement)
                     db.execute(f"PRAGMA application_id = {APPLICATION_ID}")
                     db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
-                    return
+                    app, version, tables = self._identity(db)
         if app != APPLICATION_ID:
             raise LibraryError(
                 f"{self.path} is an SQLite database but not a trajectory library "
@@ -262,8 +260,10 @@ class Library:
             )
         if version < 1 or not {"keyframe_sets", "keyframes"} <= tables:
             raise LibraryError(f"{self.path}: an incomplete library (schema {version})")
-        if db.execute("PRAGMA journal_mode").fetchone()[0].lower() != "wal":
-            db.execute("PRAGMA journal_mode = WAL")
+        # WAL only once the file is known to be a library (switching the journal writes the
+        # file's header), outside a transaction (SQLite's rule); a no-op when it already is
+        if db.execute("PRAGMA journal_mode = WAL").fetchone()[0].lower() != "wal":
+            raise LibraryError(f"{self.path}: the file system refuses a WAL journal")
 
     @staticmethod
     def _identity(db: sqlite3.Connection) -> tuple[int, int, set[str]]:
