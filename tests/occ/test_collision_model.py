@@ -60,8 +60,6 @@ from occ.safety import RobotState
 from occ.supervision import Worker
 from occ.testing import CONFIGS, SimRobot
 
-pytestmark = pytest.mark.req("SR-COLL-1")
-
 HOME = [0.0, -1.2, 1.5, -1.9, -1.57, 0.0]
 RAISED = [0.0, -1.5, 2.0, -2.0, -1.57, 0.0]  # the forearm through z = 560 mm
 FOLDED = [2.33, -0.32, 2.97, -1.03, -0.2, 3.06]  # the wrist on the upper arm
@@ -142,6 +140,7 @@ def normals(v: np.ndarray, tris: list[tuple[int, int, int]]) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------ regions
+@pytest.mark.req("SR-COLL-1")
 def test_a_sphere_region_is_placed_in_metres_and_bounded_by_its_ball() -> None:
     r = sphere_region("s", [10.0, -20.0, 30.0], 5.0, exclude=["base_link"], source="Markups")
     assert (r.name, r.kind, r.source, r.exclude) == ("s", "sphere", "Markups", {"base_link"})
@@ -153,6 +152,7 @@ def test_a_sphere_region_is_placed_in_metres_and_bounded_by_its_ball() -> None:
     assert sphere_region("t", (0, 0, 0), 1.0).exclude == frozenset()
 
 
+@pytest.mark.req("SR-COLL-1")
 def test_a_plane_region_forbids_the_side_behind_its_unit_normal() -> None:
     r = plane_region("p", [0.0, 0.0, 560.0], [0.0, 0.0, -2.0], source="Ceiling")
     assert (r.kind, r.source) == ("plane", "Ceiling")
@@ -174,6 +174,7 @@ def test_a_plane_region_forbids_the_side_behind_its_unit_normal() -> None:
     assert plane_region("q", [0, 0, 0], [0, 0, 1]).source == "config"
 
 
+@pytest.mark.req("SR-COLL-1")
 def test_a_mesh_region_keeps_its_triangles_in_metres() -> None:
     corners, tris = box([0.0, 0.0, 0.0], [100.0, 200.0, 300.0])
     r = mesh_region("m", corners.ravel().tolist(), np.array(tris).ravel(), exclude=["tool"])
@@ -187,6 +188,7 @@ def test_a_mesh_region_keeps_its_triangles_in_metres() -> None:
     assert v2 == pytest.approx(np.array([[0, 0, 0], [1e-3, 0, 0], [0, 1e-3, 0]]))
 
 
+@pytest.mark.req("SR-COLL-1")
 @pytest.mark.parametrize(
     ("make", "error"),
     [
@@ -226,11 +228,13 @@ def test_a_region_that_cannot_be_used_is_refused_with_the_reason(make: Any, erro
     assert error in str(err.value)
 
 
+@pytest.mark.req("SR-COLL-1")
 def test_the_largest_mesh_is_taken() -> None:
     r = mesh_region("m", [[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]] * MAX_TRIANGLES)
     assert r.geometry.num_tris == MAX_TRIANGLES
 
 
+@pytest.mark.req("SR-COLL-1")
 def test_regions_from_the_config_of_each_kind(tmp_path: Path) -> None:
     s = region_from_config(
         RegionConfig(name="s", kind="sphere", point_mm=(1, 2, 3), radius_mm=4, exclude_links=("a",))
@@ -271,6 +275,7 @@ def forbidden(**meta: str) -> dict[str, str]:
     return {"kind": "forbidden-region", **meta}
 
 
+@pytest.mark.req("SR-COLL-3")
 def test_slicer_points_are_spheres_of_their_radius_and_only_the_visible_ones() -> None:
     pts = (
         igtl.PointElement(position=(1.0, 2.0, 3.0), radius=4.0),
@@ -306,6 +311,7 @@ def test_slicer_points_are_spheres_of_their_radius_and_only_the_visible_ones() -
     assert regions_from_message(hidden) == ("H", [])
 
 
+@pytest.mark.req("SR-COLL-3")
 def test_a_slicer_plane_is_the_half_space_behind_its_z_axis() -> None:
     m = np.eye(4)
     m[:3, :3] = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]  # z axis: -y
@@ -329,6 +335,7 @@ def test_a_slicer_plane_is_the_half_space_behind_its_z_axis() -> None:
     assert regions_from_message(anon)[0] == "region"  # type: ignore[index]
 
 
+@pytest.mark.req("SR-COLL-3")
 def test_slicer_polygons_and_strips_are_triangulated_with_one_winding() -> None:
     # a pentagon (a fan of 3 triangles) and a strip of 5 points (3 triangles) in z = 0
     pts = np.array(
@@ -363,6 +370,7 @@ def test_slicer_polygons_and_strips_are_triangulated_with_one_winding() -> None:
     assert triangles(s)[1] == [(5, 6, 7)]
 
 
+@pytest.mark.req("SR-COLL-3")
 def test_messages_that_define_no_region() -> None:
     plain = igtl.TransformMessage.from_matrix(np.eye(4), device_name="Base")
     assert regions_from_message(plain) is None  # no metadata
@@ -375,6 +383,7 @@ def test_messages_that_define_no_region() -> None:
 
 
 # ------------------------------------------------------------------------------ the model
+@pytest.mark.req("SR-COLL-1")
 def test_the_ur5_model_has_its_links_self_pairs_and_margins() -> None:
     cm = ur5(margin_mm=12.5, self_margin_mm=3.0, tool={"length_mm": 100.0})
     assert [lk.name for lk in cm.links] == [*UR5_LINKS, "tool"]
@@ -406,6 +415,7 @@ def test_the_ur5_model_has_its_links_self_pairs_and_margins() -> None:
     assert type(ur5(convex=False).geom.geometryObjects[1].geometry).__name__.startswith("BVH")
 
 
+@pytest.mark.req("SR-COLL-1")
 def test_the_srdf_is_read_and_a_bad_one_is_a_config_error(tmp_path: Path) -> None:
     srdf = tmp_path / "arm.srdf"
     srdf.write_text(
@@ -429,6 +439,7 @@ def _pair_links(cm: CollisionModel) -> list[Any]:
     return [(cm.links[a], cm.links[b]) for a, b in cm.self_pairs]
 
 
+@pytest.mark.req("SR-COLL-1")
 def test_the_tool_is_a_capsule_from_the_tip_along_its_z() -> None:
     cm = ur5(tool={"length_mm": 120.0, "radius_mm": 7.0})
     tool = cm.geom.geometryObjects[cm.links[-1].index]
@@ -463,6 +474,7 @@ MOUNTED = """<robot name="mounted">
 """
 
 
+@pytest.mark.req("SR-COLL-1")
 def test_the_arm_stands_on_its_configured_base_link(tmp_path: Path) -> None:
     """A base link away from the URDF's root (a plate 0.3 m up, turned): every link is placed
     relative to it, the tool starting at the frame's tip as the robot's tip is shown; capsules
@@ -500,6 +512,7 @@ def test_the_arm_stands_on_its_configured_base_link(tmp_path: Path) -> None:
     assert checker._world[-1].getTranslation() == pytest.approx(tip[:3, 3] + 0.025 * tip[:3, 2])
 
 
+@pytest.mark.req("SR-COLL-1")
 def test_a_urdf_without_collision_geometry_gets_capsules_joining_the_joint_origins() -> None:
     daemon = load_config(CONFIGS / "slave.yaml")
     frame = build_hardware(daemon.robot)[1]
@@ -542,6 +555,7 @@ def test_a_urdf_without_collision_geometry_gets_capsules_joining_the_joint_origi
     assert cm.reach[2] == 1.0
 
 
+@pytest.mark.req("SR-COLL-1")
 @pytest.mark.parametrize(
     "z",
     [(0, 0, 1), (1, 0, 0), (0, 1, 0), (-1, 0, 0), (0.95, 0.1, 0.0), (0.9, 0.3, 0.3166),
@@ -555,6 +569,7 @@ def test_a_rotation_to_any_axis(z: Any) -> None:
     assert r[:, 2] == pytest.approx(zu)
 
 
+@pytest.mark.req("SR-COLL-1")
 def test_the_reach_covers_every_geometry_point_and_the_bounds_add_it_up() -> None:
     cm = ur5(tool={"length_mm": 100.0})
     assert len(cm.reach) == 6
@@ -592,6 +607,7 @@ def test_the_reach_covers_every_geometry_point_and_the_bounds_add_it_up() -> Non
         cm.step_bound(v[:5], 0.002)
 
 
+@pytest.mark.req("SR-COLL-3")
 def test_define_replaces_a_sources_regions_and_bumps_the_version() -> None:
     cm = ur5(regions=[CEILING])
     assert cm.version == 0 and [r.name for r in cm.regions] == ["ceiling"]
@@ -637,6 +653,7 @@ def sample_poses(n: int, seed: int) -> list[np.ndarray]:
     return out
 
 
+@pytest.mark.req("SR-COLL-1")
 @pytest.mark.parametrize("base", [None, "turned"])
 def test_every_pair_is_a_lower_bound_of_its_exact_distance_and_exact_near_the_margin(
     base: str | None,
@@ -669,6 +686,7 @@ def test_every_pair_is_a_lower_bound_of_its_exact_distance_and_exact_near_the_ma
     assert min(seen.values()) > 0, seen
 
 
+@pytest.mark.req("SR-COLL-1")
 def test_a_mesh_pair_is_the_largest_level_its_distance_exceeds() -> None:
     cm = ur5()
     checker = cm.checker()
@@ -689,6 +707,7 @@ def test_a_mesh_pair_is_the_largest_level_its_distance_exceeds() -> None:
         assert d == pytest.approx(expect, abs=1e-5), gap_mm
 
 
+@pytest.mark.req("SR-COLL-1")
 def test_check_and_clearance_are_the_pairs_verdict() -> None:
     cm = scene()
     checker = cm.checker()
@@ -711,6 +730,7 @@ def test_check_and_clearance_are_the_pairs_verdict() -> None:
     assert checker.checks > 0
 
 
+@pytest.mark.req("SR-COLL-1")
 def test_nothing_to_check_is_infinitely_clear() -> None:
     cm = ur5(self_collision=False)
     checker = cm.checker()
@@ -718,6 +738,7 @@ def test_nothing_to_check_is_infinitely_clear() -> None:
     assert checker.clearance(HOME) == (math.inf, math.inf, None)
 
 
+@pytest.mark.req("SR-COLL-1")
 def test_an_excluded_link_is_not_checked_against_its_region() -> None:
     floor = {"name": "table", "kind": "plane", "point_mm": [0, 0, 10], "normal": [0, 0, 1]}
     cm = ur5(self_collision=False, regions=[{**floor, "exclude_links": ["base_link"]}])
@@ -728,6 +749,7 @@ def test_an_excluded_link_is_not_checked_against_its_region() -> None:
     assert [h.link for h in cm2.checker().check(HOME)] == ["base_link"]
 
 
+@pytest.mark.req("SR-COLL-1")
 def test_a_contact_describes_link_region_and_distance() -> None:
     assert Contact("forearm_link", "ceiling", -0.00123).describe() == (
         "link 'forearm_link' penetrates forbidden region 'ceiling' by 1.23 mm"
@@ -749,6 +771,7 @@ def raise_path(n: int = 400) -> list[list[float]]:
     return [list(np.array(HOME) + (np.array(RAISED) - HOME) * k / (n - 1)) for k in range(n)]
 
 
+@pytest.mark.req("SR-COLL-1")
 def test_the_plan_check_finds_the_first_sample_inside_a_margin() -> None:
     cm = ur5(regions=[CEILING])
     pc = cm.path_check()
@@ -772,6 +795,7 @@ def test_the_plan_check_finds_the_first_sample_inside_a_margin() -> None:
     assert pc.checked == 1
 
 
+@pytest.mark.req("SR-COLL-1")
 def test_the_plan_check_skips_only_what_the_bound_clears() -> None:
     cm = ur5(regions=[CEILING])
     pc = cm.path_check()
@@ -790,6 +814,7 @@ def test_the_plan_check_skips_only_what_the_bound_clears() -> None:
 
 
 # ------------------------------------------------------------------------------ the guard
+@pytest.mark.req("SR-COLL-2")
 def test_the_guard_admits_within_half_the_last_clearance_for_its_regions_and_base() -> None:
     cm = ur5(regions=[CEILING])
     guard = CollisionGuard(cm, inline=True)
@@ -816,6 +841,7 @@ def test_the_guard_admits_within_half_the_last_clearance_for_its_regions_and_bas
     assert guard.holds == 4 and guard.verdicts == 2
 
 
+@pytest.mark.req("SR-COLL-2")
 def test_the_guard_checks_with_the_base_pose_it_is_given() -> None:
     cm = ur5(regions=[CEILING])
     guard = CollisionGuard(cm, inline=True)
@@ -830,6 +856,7 @@ def test_the_guard_checks_with_the_base_pose_it_is_given() -> None:
     assert guard.min_slack < guard.verdict.slack  # type: ignore[union-attr]  # the least seen
 
 
+@pytest.mark.req("SR-COLL-2")
 def test_the_guard_stops_once_per_verdict_inside_the_margin_while_running() -> None:
     cm = ur5(regions=[CEILING])
     guard = CollisionGuard(cm, inline=True)
@@ -856,6 +883,7 @@ def verdict(guard: CollisionGuard, slack: float, worst: Contact | None = None) -
     guard.verdict = Verdict(tuple(HOME), None, slack, slack + 0.01, w, guard.cm.version)
 
 
+@pytest.mark.req("SR-COLL-2")
 def test_a_run_started_inside_the_margin_may_move_away_but_not_closer() -> None:
     guard = CollisionGuard(ur5(regions=[CEILING]), inline=True)
     on = ESCAPE_TOLERANCE_M
@@ -887,6 +915,7 @@ def test_a_run_started_inside_the_margin_may_move_away_but_not_closer() -> None:
     assert g2.poll() is not None
 
 
+@pytest.mark.req("SR-COLL-2")
 def test_verdicts_are_paced_by_runtime_hz() -> None:
     cm = ur5(regions=[CEILING])
     guard = CollisionGuard(cm, inline=True, runtime_hz=100.0)
@@ -907,6 +936,7 @@ def test_verdicts_are_paced_by_runtime_hz() -> None:
     assert every.verdicts == 3
 
 
+@pytest.mark.req("SR-COLL-2")
 def test_the_worker_gets_one_job_at_a_time_and_a_failed_one_is_told() -> None:
     cm = ur5(regions=[CEILING])
     guard = CollisionGuard(cm, name="test-collision")
@@ -962,6 +992,7 @@ def robot_data() -> RobotData:
     return RobotData("ur5", [f"j{i}" for i in range(6)], HOME, UR5_FRAME, SimClock())
 
 
+@pytest.mark.req("SR-COLL-2")
 def test_after_control_tells_running_stops_and_checks_the_powered_setpoint() -> None:
     cm = ur5(regions=[CEILING])
     guard = CollisionGuard(cm, inline=True, runtime_hz=100.0)
@@ -994,6 +1025,7 @@ def test_after_control_tells_running_stops_and_checks_the_powered_setpoint() -> 
     assert off.running
 
 
+@pytest.mark.req("SR-COLL-2")
 def test_the_admitter_asks_with_the_robots_base_pose_now() -> None:
     cm = ur5(regions=[CEILING])
     guard = CollisionGuard(cm, inline=True)
@@ -1016,6 +1048,7 @@ def ur5_collision(**collision: Any) -> dict[str, Any]:
     return cfg
 
 
+@pytest.mark.req("SR-COLL-2")
 def test_the_robots_guard_from_its_config() -> None:
     sim = SimRobot(ur5_collision(margin_mm=4.0, policy="fault", runtime_hz=50.0, regions=[CEILING]))
     try:
@@ -1041,6 +1074,7 @@ def test_the_robots_guard_from_its_config() -> None:
         sim.close()
 
 
+@pytest.mark.req("SR-COLL-2")
 def test_a_margin_a_link_can_cross_in_one_tick_is_a_config_error() -> None:
     # the UR5's joints at their velocity limits for one tick: a link point moves up to the
     # period times the velocities weighted by the reaches
