@@ -295,6 +295,10 @@ def test_slicer_points_are_spheres_of_their_radius_and_only_the_visible_ones() -
     )
     _, regions = regions_from_message(msg)  # type: ignore[misc]
     assert [r.bound[4] for r in regions] == pytest.approx([4e-3, 2.5e-3])
+    # a point radius under 1 mm is still the point's
+    small = (igtl.PointElement(radius=0.5),)
+    msg = igtl.PointMessage(small, device_name="P", header_version=2, metadata=forbidden())
+    assert regions_from_message(msg)[1][0].bound[4] == pytest.approx(0.5e-3)  # type: ignore[index]
     # a point with a zero radius and one negative: the metadata's
     zero = (igtl.PointElement(radius=0.0), igtl.PointElement(radius=-1.0))
     msg = igtl.PointMessage(zero, device_name="Z", header_version=2, metadata=forbidden(radius="3"))
@@ -489,6 +493,8 @@ def test_the_arm_stands_on_its_configured_base_link(tmp_path: Path) -> None:
         CollisionConfig(link_radius_mm=10.0, tool={"length_mm": 50.0}), fc, frame
     )
     assert [type(g.geometry).__name__ for g in cm.geom.geometryObjects] == ["Capsule"] * 4
+    # each capsule hangs on its joint's first body: the root's is the URDF's world link
+    assert [lk.name for lk in cm.links] == ["world", "l1", "l2", "tool"]
     assert np.asarray(cm.base_inv.homogeneous) == pytest.approx(
         np.linalg.inv(cm.model.frames[cm.model.getFrameId("plate")].placement.homogeneous)
     )
@@ -609,7 +615,7 @@ def test_the_reach_covers_every_geometry_point_and_the_bounds_add_it_up() -> Non
 
 @pytest.mark.req("SR-COLL-3")
 def test_define_replaces_a_sources_regions_and_bumps_the_version() -> None:
-    cm = ur5(regions=[CEILING])
+    cm = ur5(regions=[CEILING], margin_mm=12.3456, self_margin_mm=2.3456)
     assert cm.version == 0 and [r.name for r in cm.regions] == ["ceiling"]
     a = sphere_region("A:0", (0, 0, 0), 1.0, source="A")
     b = sphere_region("B:0", (0, 0, 0), 1.0, source="B")
@@ -623,10 +629,12 @@ def test_define_replaces_a_sources_regions_and_bumps_the_version() -> None:
         "links": [*UR5_LINKS],
         "self_pairs": 15,
         "regions": ["ceiling", "A:1"],
-        "margin_mm": 10.0,
-        "self_margin_mm": 2.0,
+        "margin_mm": 12.346,
+        "self_margin_mm": 2.346,
         "reach_m": [round(r, 4) for r in cm.reach],
     }
+    assert all(len(str(r).split(".")[1]) <= 4 for r in cm.describe()["reach_m"])
+    assert cm.describe()["reach_m"] != list(cm.reach)
     assert cm.path_check().cm is cm and cm.checker().cm is cm
 
 
@@ -834,11 +842,17 @@ def test_the_guard_admits_within_half_the_last_clearance_for_its_regions_and_bas
     moved = base.copy()
     moved[0, 3] = 0.001
     assert not guard.admit(HOME, moved) and guard.holds == 3  # another base pose: hold
+    # exactly half the clearance away: held (the bound must stay under it)
+    r5 = cm.reach[5]
+    guard.verdict = Verdict(tuple(HOME), base, 0.0, r5, None, cm.version)
+    assert guard.admit([*HOME[:5], 0.4999], base) and guard.holds == 3
+    assert not guard.admit([*HOME[:5], 0.5], base) and guard.holds == 4
+    guard.verdict = v
     cm.define("x", [])
-    assert not guard.admit(HOME, base) and guard.holds == 4  # other regions: hold
+    assert not guard.admit(HOME, base) and guard.holds == 5  # other regions: hold
     guard.publish(HOME, base)
     assert guard.verdict.version == 1 and guard.admit(HOME, base)  # type: ignore[union-attr]
-    assert guard.holds == 4 and guard.verdicts == 2
+    assert guard.holds == 5 and guard.verdicts == 2
 
 
 @pytest.mark.req("SR-COLL-2")
@@ -902,6 +916,14 @@ def test_a_run_started_inside_the_margin_may_move_away_but_not_closer() -> None:
     verdict(guard, 0.002)
     guard.on_running(True)
     verdict(guard, -0.1 * on)
+    assert guard.poll() is not None
+    # exactly at the threshold: on (a link exactly at its margin is no contact)
+    guard.on_running(False)
+    verdict(guard, 0.001)
+    guard.on_running(True)
+    verdict(guard, 0.0)
+    assert guard.poll() is None
+    verdict(guard, -1e-12)
     assert guard.poll() is not None
     # a verdict with nothing checked never stops
     guard.on_running(False)
@@ -1072,6 +1094,27 @@ def test_the_robots_guard_from_its_config() -> None:
         assert sim.robot.collision is None
     finally:
         sim.close()
+
+
+@pytest.mark.req("SR-COLL-2")
+def test_a_robot_on_the_real_clock_checks_on_a_worker_thread_of_its_own() -> None:
+    import yaml
+
+    from occ.clock import RealClock
+    from occ.loader import parse_config
+    from occ.record import writer_priority
+    from occ.robot import build_robot
+    from occ.testing import inproc_config
+
+    cfg = parse_config(yaml.safe_dump(ur5_collision(margin_mm=5.0)), base_dir=CONFIGS)
+    robot = build_robot(inproc_config(cfg), clock=RealClock())
+    try:
+        guard = robot.collision
+        assert guard is not None and not guard.inline and guard._worker is not None
+        assert guard._worker._thread.name == "occ-ur5-collision"
+        assert guard._worker.fifo_priority == writer_priority(cfg)
+    finally:
+        robot.shutdown()
 
 
 @pytest.mark.req("SR-COLL-2")
