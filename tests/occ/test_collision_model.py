@@ -735,7 +735,13 @@ def test_check_and_clearance_are_the_pairs_verdict() -> None:
     assert any(h.region == "ceiling" for h in checker.check(RAISED))
     assert not any(h.region == "ceiling" for h in checker.check(RAISED, lowered))
     assert checker.clearance(RAISED, lowered)[0] > checker.clearance(RAISED)[0]
-    assert checker.checks > 0
+    # one check a call, whichever asks
+    fresh = cm.checker()
+    assert fresh.checks == 0
+    fresh.pairs(HOME)
+    fresh.check(HOME)
+    fresh.clearance(HOME)
+    assert fresh.checks == 3
 
 
 @pytest.mark.req("SR-COLL-1")
@@ -997,6 +1003,13 @@ def test_the_worker_gets_one_job_at_a_time_and_a_failed_one_is_told() -> None:
         assert real.verdict is not None and real.verdict.slack < 0.0
     finally:
         real.stop()
+    # the worker thread: its name, its priority, one job and the stop's mark in its queue
+    named = CollisionGuard(cm, name="occ-arm-collision", fifo_priority=41)._worker
+    assert named is not None and named._thread.name == "occ-arm-collision"
+    assert named.fifo_priority == 41 and named._jobs.maxsize == 2
+    default = CollisionGuard(cm)._worker
+    assert default is not None and default._thread.name == "occ-collision"
+    assert default.fifo_priority is None
     no_thread = CollisionGuard(cm, inline=True)
     assert no_thread._worker is None
     no_thread.start()
