@@ -202,7 +202,10 @@ def test_a_mesh_region_keeps_its_triangles_in_metres() -> None:
         (lambda: plane_region("p", [0, 0, 0], [0, 0, 0]), "region 'p': the normal is zero"),
         (lambda: plane_region("p", [0, 0, 0], [1e-13, 0, 0]), "the normal is zero"),
         (lambda: plane_region("p", [0, 0], [0, 0, 1]), "region 'p': the point needs three"),
-        (lambda: plane_region("p", [0, 0, 0], [0, math.inf, 1]), "the normal is not finite"),
+        (
+            lambda: plane_region("p", [0, 0, 0], [0, math.inf, 1]),
+            "region 'p': the normal is not finite",
+        ),
         (lambda: mesh_region("m", [[0, 0, 0]] * 3, []), "region 'm': the mesh has no triangles"),
         (
             lambda: mesh_region("m", [[0, 0, 0]] * 3, [[0, 1, 2]] * (MAX_TRIANGLES + 1)),
@@ -733,11 +736,14 @@ def test_define_replaces_a_sources_regions_and_bumps_the_version() -> None:
 
 # ------------------------------------------------------------------------------ the checks
 def scene(**cfg: Any) -> CollisionModel:
-    """The UR5 with a tool, a ceiling, a sphere and a box around where the wrist passes."""
+    """The UR5 with a tool, a ceiling, a slanted wall, a sphere and a box around where the
+    wrist passes."""
+    wall = {"name": "wall", "kind": "plane", "point_mm": [600, 300, 0], "normal": [-1, -0.8, 0.3]}
     cm = ur5(
         tool={"length_mm": 100.0},
         regions=[
             CEILING,
+            wall,
             {"name": "ball", "kind": "sphere", "point_mm": [300, 250, 300], "radius_mm": 60},
         ],
         **cfg,
@@ -780,8 +786,12 @@ def test_every_pair_is_a_lower_bound_of_its_exact_distance_and_exact_near_the_ma
         pairs = checker.pairs(q, b) if b is not None else checker.pairs(q)
         assert checker.exact + checker.bounded == len(pairs) == len(truth)
         assert checker.exact >= sum(d <= cm.margin + BROAD_PAD_M for d in truth.values())
-        # the cost: what the balls settle is never computed
+        # the cost: what the balls settle is never computed (its distance is the balls', short
+        # of the exact one)
         assert checker.bounded >= sum(far(lk, rg, e) for (lk, rg), e in truth.items())
+        for _, d, lk, rg in pairs:
+            if far(lk, rg, truth[(lk, rg)]):
+                assert d < truth[(lk, rg)] - 1e-9, (lk, rg)
         assert [(lk, rg) for _, _, lk, rg in pairs] == list(truth)
         for slack, d, lk, rg in pairs:
             margin = cm.self_margin if rg.startswith("self:") else cm.margin
