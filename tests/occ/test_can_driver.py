@@ -678,3 +678,31 @@ def test_other_interfaces_keep_their_error_frames(
     with pytest.raises(DriverError, match="bus-off"):
         drv.read(0.002)
     drv.shutdown()
+
+
+# ---------------------------------------------------------------- a drive mounted reversed
+def test_a_reversed_drive_is_pushed_toward_the_setpoint_in_effort_mode(channel: str) -> None:
+    """A negative counts_per_unit (accepted: only 0 is refused) is a drive whose counts run
+    against the joint. Its position and velocity are read reversed; so must its effort be,
+    both ways: else the joint's PID pushes the joint away from its setpoint (positive
+    feedback, a runaway)."""
+    js = make_joints(gains=PIDGains(kp=100.0))
+    p = params(channel, feedback_timeout=10.0)
+    p["joints"]["yaw"]["counts_per_unit"] = -CPU[0]
+    axes = [DriveAxis(0x101, 0x181), DriveAxis(0x102, 0x182)]
+    with SimulatedDriveNode(axes, channel=channel, tau=0.0) as node:
+        drv = CANDriver("arm", js, p, command_interface="effort")
+        try:
+            drv.configure()
+            assert node.wait_feedback(2, timeout=2.0)
+            drv.read(0.0)
+            drv.activate()
+            drv.write([0.005, 0.0], 0.001)  # +0.5 N*m on the joint: toward +0.005 rad
+            assert node.wait_feedback(4, timeout=2.0)
+            # the drive pushes its counts down, which is the joint up
+            assert node.axes[0].mode == 2 and node.axes[0].effort == -500
+            drv.read(0.002)
+            assert js[0].effort == pytest.approx(0.5)  # what it reports, in the joint's sense
+        finally:
+            drv.shutdown()
+    assert node.error is None
