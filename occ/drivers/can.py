@@ -333,7 +333,8 @@ class CANDriver(Driver):
                 self._on_error_frame(msg, now)
                 continue
             i = index_of.get(msg.arbitration_id)
-            if i is None or msg.is_remote_frame or msg.dlc < 8:
+            # an 11-bit identifier only: a 29-bit frame with the same number is another one
+            if i is None or msg.is_extended_id or msg.is_remote_frame or msg.dlc < 8:
                 self._ignored_frames += 1
                 continue
             counts, vel, eff = unpack(msg.data)

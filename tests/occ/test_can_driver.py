@@ -706,3 +706,26 @@ def test_a_reversed_drive_is_pushed_toward_the_setpoint_in_effort_mode(channel: 
         finally:
             drv.shutdown()
     assert node.error is None
+
+
+def test_a_29_bit_frame_with_a_feedback_number_is_not_feedback(channel: str) -> None:
+    """The feedback identifiers are 11-bit. A 29-bit frame whose identifier has the same
+    number (another device, e.g. J1939, on a bus python-can filters in software) is a
+    different frame: it must not become the joint's position."""
+    js = make_joints()
+    peer = can.Bus(interface="virtual", channel=channel)
+    drv = CANDriver("arm", js, params(channel, feedback_timeout=10.0))
+    try:
+        drv.configure()
+        for fid in (0x181, 0x182):
+            peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
+                                  data=FEEDBACK_FRAME.pack(100, 0, 0)))
+        drv.read(0.0)
+        peer.send(can.Message(arbitration_id=0x181, is_extended_id=True,
+                              data=FEEDBACK_FRAME.pack(-90000, 0, 0)))
+        drv.read(0.001)
+        assert js[0].position == 100 / CPU[0]
+        assert drv.stats()["ignored_frames"] == 1 and drv.stats()["feedback_frames"] == 2
+    finally:
+        drv.shutdown()
+        peer.shutdown()
