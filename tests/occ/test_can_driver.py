@@ -689,20 +689,24 @@ def test_a_reversed_drive_is_pushed_toward_the_setpoint_in_effort_mode(channel: 
     js = make_joints(gains=PIDGains(kp=100.0))
     p = params(channel, feedback_timeout=10.0)
     p["joints"]["yaw"]["counts_per_unit"] = -CPU[0]
+    del p["joints"]["insertion"]["counts_per_unit"]  # 1 count per metre, the default
     axes = [DriveAxis(0x101, 0x181), DriveAxis(0x102, 0x182)]
-    with SimulatedDriveNode(axes, channel=channel, tau=0.0) as node:
+    # effort_gain 0: the drives hold still, the efforts alone are compared
+    with SimulatedDriveNode(axes, channel=channel, tau=0.0, effort_gain=0.0) as node:
         drv = CANDriver("arm", js, p, command_interface="effort")
         try:
             drv.configure()
             assert node.wait_feedback(2, timeout=2.0)
             drv.read(0.0)
             drv.activate()
-            drv.write([0.005, 0.0], 0.001)  # +0.5 N*m on the joint: toward +0.005 rad
+            drv.write([0.005, 0.0002], 0.001)  # +0.5 N*m toward +0.005 rad, +0.02 N
             assert node.wait_feedback(4, timeout=2.0)
-            # the drive pushes its counts down, which is the joint up
+            # the reversed drive pushes its counts down, which is the joint up
             assert node.axes[0].mode == 2 and node.axes[0].effort == -500
+            assert node.axes[1].mode == 2 and node.axes[1].effort == 20  # not reversed
             drv.read(0.002)
-            assert js[0].effort == pytest.approx(0.5)  # what it reports, in the joint's sense
+            # what they report, in the joints' sense
+            assert js[0].effort == pytest.approx(0.5) and js[1].effort == pytest.approx(0.02)
         finally:
             drv.shutdown()
     assert node.error is None
@@ -729,3 +733,17 @@ def test_a_29_bit_frame_with_a_feedback_number_is_not_feedback(channel: str) -> 
     finally:
         drv.shutdown()
         peer.shutdown()
+
+
+@pytest.mark.parametrize(("heartbeat_ms", "told"), [(0, 0), (1, 1), (254.4, 254), (255.4, 255)])
+def test_the_heartbeat_byte_is_the_nearest_whole_ms(
+    channel: str, heartbeat_ms: float, told: int
+) -> None:
+    spy = can.Bus(interface="virtual", channel=channel)
+    drv = CANDriver("arm", make_joints(), params(channel, heartbeat_ms=heartbeat_ms))
+    try:
+        drv.configure()
+        assert [COMMAND_FRAME.unpack(m.data)[3] for m in drain(spy)] == [told, told]
+    finally:
+        drv.shutdown()
+        spy.shutdown()
