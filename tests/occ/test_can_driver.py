@@ -157,8 +157,12 @@ def test_bad_bus_and_params() -> None:
     with pytest.raises(DriverError, match="cannot open bus"):
         drv.configure()
     assert drv.state is DriverState.FAULT
+    drv.reset()  # nothing was opened, nothing to tell: ready to try again
+    assert drv.state is DriverState.UNCONFIGURED
+    with pytest.raises(DriverError, match="cannot open bus"):
+        drv.configure()
     drv.shutdown()
-    with pytest.raises(ValueError, match="required"):
+    with pytest.raises(ValueError, match=r"^can driver: params\['joints'\] is required"):
         CANDriver("arm", make_joints(), {"interface": "virtual"})
     bad = params("x")
     bad["joints"]["yaw"]["can_id"] = 0x800
@@ -194,7 +198,8 @@ def test_the_drive_stops_itself_without_heartbeat(channel: str, node: SimulatedD
     assert node.wait_feedback(sent + 2, timeout=5.0)
     assert [a.heartbeat_trips for a in node.axes] == [1, 1]
     assert all(a.mode == MODE_DISABLED and a.heartbeat_lost for a in node.axes)
-    with pytest.raises(DriverError, match="joint yaw: heartbeat lost: the drive stopped itself"):
+    with pytest.raises(DriverError, match=r"joint yaw: heartbeat lost: the drive stopped itself "
+                                          r"\(no command for 20 ms\)"):
         drv.read(0.5)
     assert drv.state is DriverState.FAULT
     # entering FAULT sent mode 0 (the acknowledgement): after a reset the drive obeys again
@@ -378,8 +383,9 @@ def test_reset_forgets_the_error_frames_before_the_fault(
 def test_a_bad_joint_table_is_refused_with_the_reason(change, message: str) -> None:
     p = params("unused")
     change(p)
-    with pytest.raises(ValueError, match=message):
+    with pytest.raises(ValueError, match=message) as refused:
         CANDriver("arm", make_joints(), p)
+    assert str(refused.value).startswith("can driver")  # whose configuration it is
 
 
 def test_the_joint_table_as_a_list_in_joint_order(channel: str) -> None:
@@ -451,7 +457,9 @@ def test_stop_frames_are_mode_0_with_value_0_to_each_drive(channel: str) -> None
         spy.shutdown()
 
 
-def test_a_jammed_bus_faults_the_write_instead_of_blocking_the_loop(channel: str) -> None:
+def test_a_jammed_bus_faults_the_write_instead_of_blocking_the_loop(
+    channel: str, caplog: pytest.LogCaptureFixture
+) -> None:
     """A receiver whose queue is full (a bus on which nothing gets through): a command send
     gives up after send_timeout and the driver faults; the supervisor's safe stop gives up
     too and still latches FAULT. Neither blocks its thread."""
@@ -495,9 +503,14 @@ def test_a_jammed_bus_faults_the_write_instead_of_blocking_the_loop(channel: str
         drv.reset()
         ready(0.002)
         jam = can.Bus(interface="virtual", channel=channel, rx_queue_size=1)
-        returned = in_thread(lambda: drv.safe_stop("supervisor"))
+        with caplog.at_level("ERROR", logger="occ.drivers.can"):
+            returned = in_thread(lambda: drv.safe_stop("supervisor"))
         drain(jam)
         assert returned
+        # the frame that could not go out is in the log, with the reason
+        lost = [r for r in caplog.records if r.name == "occ.drivers.can"]
+        assert [r.getMessage() for r in lost] == ["can driver arm: safe stop frame not sent"]
+        assert lost[0].exc_info is not None
         assert drv.state is DriverState.FAULT and drv.fault_reason == "safe stop: supervisor"
         jam.shutdown()
     finally:
@@ -649,7 +662,8 @@ def test_socketcan_gets_the_feedback_ids_and_every_error_class(
         ]
         if refuse:
             assert sock.options == []
-            assert "can driver arm: error frames not enabled: [Errno 92]" in caplog.text
+            assert [r.getMessage() for r in caplog.records] == [
+                "can driver arm: error frames not enabled: [Errno 92] Protocol not available"]
         else:
             assert sock.options == [(101, 2, (0x1FFFFFFF).to_bytes(4, sys.byteorder))]
             assert caplog.text == ""
@@ -747,3 +761,17 @@ def test_the_heartbeat_byte_is_the_nearest_whole_ms(
     finally:
         drv.shutdown()
         spy.shutdown()
+
+
+def test_a_bus_that_fails_to_receive_faults_with_the_reason(channel: str) -> None:
+    """The interface goes away under the driver (its python-can bus closed): the next read
+    faults and says so, it does not report the last positions as current."""
+    drv = CANDriver("arm", make_joints(), params(channel))
+    drv.configure()
+    bus = drv._bus
+    assert bus is not None
+    bus.shutdown()
+    with pytest.raises(DriverError, match=r"^can driver 'arm': receive failed: "):
+        drv.read(0.0)
+    assert drv.state is DriverState.FAULT
+    drv.shutdown()
