@@ -24,7 +24,10 @@ Feedback, drive -> host, identifier = the joint's ``feedback_id``::
 
 Scaling: ``position = counts / counts_per_unit`` (counts per radian or per metre),
 ``velocity = counts_per_ms * 1000 / counts_per_unit``, ``effort = milli / 1000``. Commands are
-rounded to the nearest count and saturated to int32.
+rounded to the nearest count and saturated to int32. A negative ``counts_per_unit`` is a drive
+whose counts run against the joint (mounted reversed): its efforts are reversed too, both the
+commanded and the reported ones (``effort = -milli / 1000``), so that a positive joint effort
+still pushes the joint toward positive positions.
 
 A drive answers every command frame with one feedback frame and may also send feedback
 cyclically. Each :meth:`CANDriver.read` drains the receive queue without blocking and keeps
@@ -175,6 +178,8 @@ class CANDriver(Driver):
         self._can_ids = [a[0] for a in axes]
         self._feedback_ids = [a[1] for a in axes]
         self._counts_per_unit = [a[2] for a in axes]
+        # milli-units per unit, in the drive's sense: reversed with its counts
+        self._effort_scale = [EFFORT_SCALE if a[2] > 0.0 else -EFFORT_SCALE for a in axes]
         self._index_of_feedback = {fid: i for i, fid in enumerate(self._feedback_ids)}
         if len(self._index_of_feedback) != len(axes):
             raise ValueError("can driver: feedback_id values must be distinct")
@@ -328,7 +333,8 @@ class CANDriver(Driver):
                 self._on_error_frame(msg, now)
                 continue
             i = index_of.get(msg.arbitration_id)
-            if i is None or msg.is_remote_frame or msg.dlc < 8:
+            # an 11-bit identifier only: a 29-bit frame with the same number is another one
+            if i is None or msg.is_extended_id or msg.is_remote_frame or msg.dlc < 8:
                 self._ignored_frames += 1
                 continue
             counts, vel, eff = unpack(msg.data)
@@ -344,7 +350,7 @@ class CANDriver(Driver):
             cpu = self._counts_per_unit[i]
             self._pos[i] = counts / cpu
             self._vel[i] = vel * VELOCITY_SCALE / cpu
-            self._eff[i] = eff / EFFORT_SCALE
+            self._eff[i] = eff / self._effort_scale[i]
             last_rx[i] = now
             self._feedback_frames += 1
         timeout = self._timeout
@@ -382,8 +388,9 @@ class CANDriver(Driver):
             for i, x in enumerate(values):
                 self._send(i, MODE_POSITION, _to_int32(x * self._counts_per_unit[i]))
         else:
+            scale = self._effort_scale
             for i, u in enumerate(values):
-                self._send(i, MODE_EFFORT, _to_int32(u * EFFORT_SCALE))
+                self._send(i, MODE_EFFORT, _to_int32(u * scale[i]))
 
     def _send(self, i: int, mode: int, value: int) -> None:
         bus = self._bus

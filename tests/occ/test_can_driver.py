@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import itertools
 import math
+import sys
 from collections.abc import Iterator
 
 import can
 import pytest
+from can.interfaces.virtual import VirtualBus
 
 from occ.drivers import DriverState, create_driver
-from occ.drivers.can import MODE_DISABLED, COMMAND_FRAME, FEEDBACK_FRAME, CANDriver
+from occ.drivers.can import COMMAND_FRAME, FEEDBACK_FRAME, HEARTBEAT_LOST, MODE_DISABLED, CANDriver
 from occ.drivers.can_sim import DriveAxis, SimulatedDriveNode
 from occ.errors import DriverError
 from occ.joint import Joint, JointLimits, PIDGains
@@ -155,8 +157,12 @@ def test_bad_bus_and_params() -> None:
     with pytest.raises(DriverError, match="cannot open bus"):
         drv.configure()
     assert drv.state is DriverState.FAULT
+    drv.reset()  # nothing was opened, nothing to tell: ready to try again
+    assert drv.state is DriverState.UNCONFIGURED
+    with pytest.raises(DriverError, match="cannot open bus"):
+        drv.configure()
     drv.shutdown()
-    with pytest.raises(ValueError, match="required"):
+    with pytest.raises(ValueError, match=r"^can driver: params\['joints'\] is required"):
         CANDriver("arm", make_joints(), {"interface": "virtual"})
     bad = params("x")
     bad["joints"]["yaw"]["can_id"] = 0x800
@@ -192,7 +198,8 @@ def test_the_drive_stops_itself_without_heartbeat(channel: str, node: SimulatedD
     assert node.wait_feedback(sent + 2, timeout=5.0)
     assert [a.heartbeat_trips for a in node.axes] == [1, 1]
     assert all(a.mode == MODE_DISABLED and a.heartbeat_lost for a in node.axes)
-    with pytest.raises(DriverError, match="joint yaw: heartbeat lost: the drive stopped itself"):
+    with pytest.raises(DriverError, match=r"joint yaw: heartbeat lost: the drive stopped itself "
+                                          r"\(no command for 20 ms\)"):
         drv.read(0.5)
     assert drv.state is DriverState.FAULT
     # entering FAULT sent mode 0 (the acknowledgement): after a reset the drive obeys again
@@ -246,3 +253,525 @@ def test_a_joint_is_unmeasured_until_its_drive_answers(channel: str) -> None:
         assert not js[1].measured
     finally:
         drv.shutdown()
+
+
+# ---------------------------------------------------------------- bus errors (SR-HW-12, -13)
+def error_frame(error_class: int) -> can.Message:
+    return can.Message(arbitration_id=error_class, is_error_frame=True, dlc=8)
+
+
+def active_driver(channel: str, node: SimulatedDriveNode, **extra: object) -> CANDriver:
+    """Configured, measured and ACTIVE, with one command answered."""
+    drv = CANDriver("arm", make_joints(), params(channel, **extra))
+    drv.configure()
+    assert node.wait_feedback(2, timeout=2.0)
+    drv.read(0.0)
+    drv.activate()
+    drv.write([0.0, 0.0], 0.001)
+    assert node.wait_feedback(4, timeout=2.0)
+    return drv
+
+
+def test_error_frames_up_to_the_limit_are_counted_one_more_faults(
+    channel: str, node: SimulatedDriveNode
+) -> None:
+    drv = active_driver(channel, node, error_frames=3, feedback_timeout=10.0)
+    peer = can.Bus(interface="virtual", channel=channel)
+    try:
+        for k in range(3):
+            peer.send(error_frame(0x04))  # controller problem: noise, not bus-off
+            drv.read(0.010 + k * 0.010)
+        assert drv.state is DriverState.ACTIVE and drv.stats()["error_frames"] == 3
+        peer.send(error_frame(0x04))
+        with pytest.raises(DriverError, match=r"4 error frames in 100 ms on occ-test-\d+ "
+                                               r"\(limit 3; last 0x4\)"):
+            drv.read(0.040)
+        assert drv.state is DriverState.FAULT and drv.stats()["error_frames"] == 4
+        # entering FAULT from ACTIVE told every drive to brake
+        assert node.wait_commands(6, timeout=2.0)
+        assert [a.mode for a in node.axes] == [MODE_DISABLED, MODE_DISABLED]
+    finally:
+        peer.shutdown()
+        drv.shutdown()
+
+
+def test_error_frames_older_than_100_ms_leave_the_window(
+    channel: str, node: SimulatedDriveNode
+) -> None:
+    """A slow trickle of error frames (one every 110 ms) never faults a limit of 1; two
+    within 100 ms do."""
+    drv = active_driver(channel, node, error_frames=1, feedback_timeout=10.0)
+    peer = can.Bus(interface="virtual", channel=channel)
+    try:
+        for k in range(1, 8):
+            peer.send(error_frame(0x04))
+            drv.read(k * 0.110)
+        assert drv.state is DriverState.ACTIVE and drv.stats()["error_frames"] == 7
+        peer.send(error_frame(0x04))
+        with pytest.raises(DriverError, match=r"2 error frames in 100 ms"):
+            drv.read(7 * 0.110 + 0.090)
+    finally:
+        peer.shutdown()
+        drv.shutdown()
+
+
+def test_zero_error_frames_tolerated_faults_on_the_first(
+    channel: str, node: SimulatedDriveNode
+) -> None:
+    drv = active_driver(channel, node, error_frames=0, feedback_timeout=10.0)
+    node.send_error_frame(0x04)
+    with pytest.raises(DriverError, match=r"1 error frames in 100 ms .*limit 0"):
+        drv.read(0.002)
+    assert drv.state is DriverState.FAULT
+    drv.shutdown()
+
+
+def test_bus_off_faults_on_the_first_frame_whatever_the_limit(
+    channel: str, node: SimulatedDriveNode
+) -> None:
+    drv = active_driver(channel, node, error_frames=1000, feedback_timeout=10.0)
+    node.send_error_frame(0x40 | 0x04)  # bus-off among other classes
+    with pytest.raises(DriverError, match=r"bus-off on occ-test-\d+: the controller left the "
+                                          r"bus \(error frame 0x44\)"):
+        drv.read(0.002)
+    assert drv.state is DriverState.FAULT and drv.stats()["error_frames"] == 1
+    assert node.wait_commands(6, timeout=2.0)
+    assert [a.mode for a in node.axes] == [MODE_DISABLED, MODE_DISABLED]
+    drv.shutdown()
+
+
+def test_reset_forgets_the_error_frames_before_the_fault(
+    channel: str, node: SimulatedDriveNode
+) -> None:
+    drv = active_driver(channel, node, error_frames=1, feedback_timeout=10.0)
+    node.send_error_frame(0x04)
+    node.send_error_frame(0x04)
+    with pytest.raises(DriverError, match="2 error frames"):
+        drv.read(0.002)
+    drv.reset()
+    drv.read(0.003)
+    drv.activate()
+    node.send_error_frame(0x04)  # one, within 100 ms of the two before the reset
+    drv.read(0.004)
+    assert drv.state is DriverState.ACTIVE and drv.stats()["error_frames"] == 3
+    drv.shutdown()
+
+
+# ---------------------------------------------------------------- configuration refused
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda p: p["joints"]["yaw"].update(feedback_id=0x182), "feedback_id values must be"),
+        (lambda p: p["joints"]["yaw"].update(can_id=0x102), "can_id values must be distinct"),
+        (lambda p: p["joints"]["yaw"].update(feedback_id=-1), r"joint 'yaw': id -0x1 not 11-bit"),
+        (lambda p: p["joints"]["insertion"].update(can_id=0x800), r"'insertion': id 0x800 not 11"),
+        (lambda p: p["joints"]["yaw"].pop("can_id"), r"joint 'yaw': bad entry"),
+        (lambda p: p["joints"]["yaw"].update(feedback_id="x"), r"joint 'yaw': bad entry"),
+        (lambda p: p["joints"]["yaw"].update(counts_per_unit=None), r"joint 'yaw': bad entry"),
+        (lambda p: p["joints"]["yaw"].update(counts_per_unit=0.0), "counts_per_unit must be != 0"),
+        (lambda p: p["joints"]["yaw"].update(counts_per_unit=math.inf), "counts_per_unit must"),
+        (lambda p: p["joints"]["yaw"].update(counts_per_unit=math.nan), "counts_per_unit must"),
+        (lambda p: p["joints"].pop("yaw"), r"joints params missing \['yaw'\], unknown set\(\)"),
+        (lambda p: p["joints"].update(roll={}), r"missing \[\], unknown \{'roll'\}"),
+        (lambda p: p.update(joints=[p["joints"]["yaw"]]), "one joints entry per joint"),
+        (lambda p: p.update(feedback_timeout=0.0), "feedback_timeout must be > 0"),
+        (lambda p: p.update(feedback_timeout=math.nan), "feedback_timeout must be > 0"),
+        (lambda p: p.update(error_frames=-1), "error_frames must be >= 0"),
+        (lambda p: p.update(heartbeat_ms=256), "heartbeat_ms must be <= 255, got 256"),
+    ],
+)
+def test_a_bad_joint_table_is_refused_with_the_reason(change, message: str) -> None:
+    p = params("unused")
+    change(p)
+    with pytest.raises(ValueError, match=message) as refused:
+        CANDriver("arm", make_joints(), p)
+    assert str(refused.value).startswith("can driver")  # whose configuration it is
+
+
+def test_the_joint_table_as_a_list_in_joint_order(channel: str) -> None:
+    """The list form: entry k is joint k; ids 0 and 0x7FF are 11-bit; counts_per_unit
+    defaults to 1 (one count per radian or metre); heartbeat 255 ms fits in its byte."""
+    p = params(channel, heartbeat_ms=255)
+    p["joints"] = [{"can_id": 0x7FF, "feedback_id": 0x000}, {"can_id": 0x000, "feedback_id": 0x7FF}]
+    js = make_joints()
+    peer = can.Bus(interface="virtual", channel=channel)
+    drv = CANDriver("arm", js, p)
+    try:
+        drv.configure()
+        sent = [peer.recv(timeout=1.0) for _ in range(2)]
+        assert [m.arbitration_id for m in sent] == [0x7FF, 0x000]
+        assert [m.is_extended_id for m in sent] == [False, False]
+        assert [COMMAND_FRAME.unpack(m.data) for m in sent] == [(0, MODE_DISABLED, 0, 255)] * 2
+        peer.send(can.Message(arbitration_id=0x7FF, is_extended_id=False,
+                              data=FEEDBACK_FRAME.pack(1, 0, 0)))
+        peer.send(can.Message(arbitration_id=0x000, is_extended_id=False,
+                              data=FEEDBACK_FRAME.pack(-3, 0, 0)))
+        drv.read(0.0)
+        assert js[0].position == -3.0 and js[1].position == 1.0
+    finally:
+        drv.shutdown()
+        peer.shutdown()
+
+
+# ---------------------------------------------------------------- what the drives are told
+def drain(bus: can.BusABC) -> list[can.Message]:
+    out = []
+    while (msg := bus.recv(timeout=0.0)) is not None:
+        out.append(msg)
+    return out
+
+
+def test_stop_frames_are_mode_0_with_value_0_to_each_drive(channel: str) -> None:
+    """Deactivate, a fault and the supervisor's safe stop all send each drive one classic
+    8-byte frame on its own command id: value 0, mode 0, its next sequence number, the
+    heartbeat byte."""
+    spy = can.Bus(interface="virtual", channel=channel)
+    drv = CANDriver("arm", make_joints(), params(channel, heartbeat_ms=40, feedback_timeout=10.0))
+    try:
+        drv.configure()
+        spy.send(can.Message(arbitration_id=0x181, is_extended_id=False,
+                             data=FEEDBACK_FRAME.pack(0, 0, 0)))
+        spy.send(can.Message(arbitration_id=0x182, is_extended_id=False,
+                             data=FEEDBACK_FRAME.pack(0, 0, 0)))
+        drv.read(0.0)
+        drv.activate()
+        drv.write([0.001, 0.001], 0.001)
+        drv.deactivate()
+        frames = drain(spy)
+        assert [(m.arbitration_id, m.dlc, m.is_extended_id) for m in frames] == [
+            (0x101, 8, False), (0x102, 8, False)] * 3
+        told = [COMMAND_FRAME.unpack(m.data) for m in frames]
+        assert told == [(0, MODE_DISABLED, 0, 40), (0, MODE_DISABLED, 0, 40),
+                        (10, 1, 1, 40), (200, 1, 1, 40),
+                        (0, MODE_DISABLED, 2, 40), (0, MODE_DISABLED, 2, 40)]
+        drv.activate()
+        drv.write([0.001, 0.002], 0.002)
+        drain(spy)
+        drv.safe_stop("test")
+        frames = drain(spy)
+        assert [(m.arbitration_id, m.dlc) for m in frames] == [(0x101, 8), (0x102, 8)]
+        assert [COMMAND_FRAME.unpack(m.data)[:2] for m in frames] == [(0, MODE_DISABLED)] * 2
+        assert [COMMAND_FRAME.unpack(m.data)[3] for m in frames] == [40, 40]
+    finally:
+        drv.shutdown()
+        spy.shutdown()
+
+
+def test_a_jammed_bus_faults_the_write_instead_of_blocking_the_loop(
+    channel: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A receiver whose queue is full (a bus on which nothing gets through): a command send
+    gives up after send_timeout and the driver faults; the supervisor's safe stop gives up
+    too and still latches FAULT. Neither blocks its thread."""
+    import threading
+
+    feeder = can.Bus(interface="virtual", channel=channel)
+    drv = CANDriver("arm", make_joints(), params(channel, send_timeout=0.001,
+                                                 feedback_timeout=10.0))
+
+    def ready(now: float) -> None:
+        for fid in (0x181, 0x182):
+            feeder.send(can.Message(arbitration_id=fid, is_extended_id=False,
+                                    data=FEEDBACK_FRAME.pack(0, 0, 0)))
+        drv.read(now)
+        drv.activate()
+
+    def in_thread(call) -> bool:  # True when the call returned within 5 s
+        t = threading.Thread(target=call, daemon=True)
+        t.start()
+        t.join(5.0)
+        return not t.is_alive()
+
+    failures: list[str] = []
+
+    def write() -> None:
+        try:
+            drv.write([0.0, 0.0], 0.001)  # the first frame fits the jammed queue, not the second
+        except DriverError as err:
+            failures.append(str(err))
+
+    try:
+        drv.configure()
+        ready(0.0)
+        jam = can.Bus(interface="virtual", channel=channel, rx_queue_size=1)
+        returned = in_thread(write)
+        drain(jam)  # unblocks a send that would wait for ever
+        assert returned
+        assert failures and "send to id 0x102 failed" in failures[0]
+        assert drv.state is DriverState.FAULT
+        jam.shutdown()
+        drv.reset()
+        ready(0.002)
+        jam = can.Bus(interface="virtual", channel=channel, rx_queue_size=1)
+        with caplog.at_level("ERROR", logger="occ.drivers.can"):
+            returned = in_thread(lambda: drv.safe_stop("supervisor"))
+        drain(jam)
+        assert returned
+        # the frame that could not go out is in the log, with the reason
+        lost = [r for r in caplog.records if r.name == "occ.drivers.can"]
+        assert [r.getMessage() for r in lost] == ["can driver arm: safe stop frame not sent"]
+        assert lost[0].exc_info is not None
+        assert drv.state is DriverState.FAULT and drv.fault_reason == "safe stop: supervisor"
+        jam.shutdown()
+    finally:
+        drv.shutdown()
+        feeder.shutdown()
+
+
+# ---------------------------------------------------------------- frames that are not feedback
+def test_foreign_remote_and_short_frames_are_counted_and_change_nothing(channel: str) -> None:
+    js = make_joints()
+    drv = CANDriver("arm", js, params(channel, feedback_timeout=10.0))
+    peer = can.Bus(interface="virtual", channel=channel)
+    try:
+        drv.configure()
+        for fid, pos in ((0x181, 100), (0x182, 200)):
+            peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
+                                  data=FEEDBACK_FRAME.pack(pos, 0, 0)))
+        drv.read(0.0)
+        # another node's full 8-byte frame, a remote request on a feedback id, a short frame
+        peer.send(can.Message(arbitration_id=0x183, is_extended_id=False,
+                              data=FEEDBACK_FRAME.pack(999, 9, 9)))
+        peer.send(can.Message(arbitration_id=0x181, is_extended_id=False,
+                              is_remote_frame=True, dlc=8))
+        peer.send(can.Message(arbitration_id=0x182, is_extended_id=False, data=b"\x00" * 7))
+        drv.read(0.001)
+        assert drv.state is DriverState.INACTIVE
+        assert drv.stats()["ignored_frames"] == 3 and drv.stats()["feedback_frames"] == 2
+        assert [j.position for j in js] == [100 / CPU[0], 200 / CPU[1]]
+    finally:
+        drv.shutdown()
+        peer.shutdown()
+
+
+def test_feedback_exactly_feedback_timeout_old_is_still_on_time(channel: str) -> None:
+    """The deadline is 'older than feedback_timeout' (times exact in binary)."""
+    peer = can.Bus(interface="virtual", channel=channel)
+    drv = CANDriver("arm", make_joints(), params(channel, feedback_timeout=0.25))
+    try:
+        drv.configure()
+        for fid in (0x181, 0x182):
+            peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
+                                  data=FEEDBACK_FRAME.pack(0, 0, 0)))
+        drv.read(0.5)
+        drv.read(0.75)
+        assert drv.state is DriverState.INACTIVE
+        with pytest.raises(DriverError, match=r"joint yaw: no feedback on id 0x181 for 250\.1 ms "
+                                              r"\(timeout 250\.0 ms\)"):
+            drv.read(0.7501)
+    finally:
+        drv.shutdown()
+        peer.shutdown()
+
+
+def test_error_frames_exactly_100_ms_apart_share_the_window(
+    channel: str, node: SimulatedDriveNode
+) -> None:
+    drv = active_driver(channel, node, error_frames=1, feedback_timeout=10.0)
+    node.send_error_frame(0x04)
+    drv.read(0.1)
+    node.send_error_frame(0x04)
+    with pytest.raises(DriverError, match="2 error frames in 100 ms"):
+        drv.read(0.2)  # 0.2 - 0.1 == 0.1 exactly
+    drv.shutdown()
+
+
+def test_a_heartbeat_flag_while_not_active_reads_as_no_effort(channel: str) -> None:
+    """A drive still flagging its heartbeat stop answers the mode-0 frames of a driver that is
+    not ACTIVE (it was just told to brake): no fault, its position read, its effort 0."""
+    js = make_joints()
+    peer = can.Bus(interface="virtual", channel=channel)
+    drv = CANDriver("arm", js, params(channel, feedback_timeout=10.0))
+    try:
+        drv.configure()
+        peer.send(can.Message(arbitration_id=0x181, is_extended_id=False,
+                              data=FEEDBACK_FRAME.pack(500, 0, HEARTBEAT_LOST)))
+        peer.send(can.Message(arbitration_id=0x182, is_extended_id=False,
+                              data=FEEDBACK_FRAME.pack(0, 0, 0)))
+        drv.read(0.0)
+        assert drv.state is DriverState.INACTIVE
+        assert js[0].position == 500 / CPU[0] and js[0].effort == 0.0
+    finally:
+        drv.shutdown()
+        peer.shutdown()
+
+
+def test_shutdown_closes_the_bus(channel: str) -> None:
+    drv = CANDriver("arm", make_joints(), params(channel))
+    drv.configure()
+    bus = drv._bus
+    assert bus is not None
+    drv.shutdown()
+    with pytest.raises(can.CanOperationError):  # a closed python-can bus refuses to send
+        bus.send(can.Message(arbitration_id=0x101, is_extended_id=False, data=bytes(8)))
+
+
+# ---------------------------------------------------------------- SocketCAN's kernel settings
+class KernelSocket:
+    """Records the options set on a SocketCAN raw socket (the machines that run the tests
+    have no AF_CAN: python-can's socketcan bus cannot be opened there)."""
+
+    def __init__(self, refuse: bool = False) -> None:
+        self.options: list[tuple[int, int, bytes]] = []
+        self.refuse = refuse
+
+    def setsockopt(self, level: int, optname: int, value: bytes, /) -> None:
+        if self.refuse:
+            raise OSError(92, "Protocol not available")
+        self.options.append((level, optname, bytes(value)))
+
+
+class SocketBus(VirtualBus):
+    """A virtual bus with a raw socket beside it, standing in for python-can's socketcan bus;
+    set_filters records what the kernel would be told instead of filtering in software."""
+
+    def __init__(self, sock: KernelSocket, channel: str) -> None:
+        super().__init__(channel=channel)
+        self.socket = sock
+        self.kernel_filters: list | None = None
+
+    def set_filters(self, filters=None) -> None:  # noqa: ANN001 - python-can's signature
+        self.kernel_filters = filters
+        super().set_filters(None)  # the kernel filters, python-can passes everything on
+
+
+@pytest.mark.parametrize("refuse", [False, True])
+def test_socketcan_gets_the_feedback_ids_and_every_error_class(
+    channel: str, node: SimulatedDriveNode, monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture, refuse: bool,
+) -> None:
+    """On SocketCAN the kernel filters the feedback identifiers (11-bit, exact) and lets
+    error frames of every class through (CAN_RAW_ERR_FILTER): without it no bus-off ever
+    reaches the driver. A kernel that refuses the option leaves a warning, not a failure."""
+    sock = KernelSocket(refuse)
+    opened: list[SocketBus] = []
+
+    def bus(**args: object) -> SocketBus:
+        assert args["interface"] == "socketcan" and args["bitrate"] == 1_000_000
+        opened.append(SocketBus(sock, channel=channel))
+        return opened[0]
+
+    monkeypatch.setattr(can, "Bus", bus)
+    drv = CANDriver("arm", make_joints(), params(channel, interface="socketcan"))
+    with caplog.at_level("WARNING", logger="occ.drivers.can"):
+        drv.configure()
+    try:
+        assert opened[0].kernel_filters == [
+            {"can_id": 0x181, "can_mask": 0x7FF, "extended": False},
+            {"can_id": 0x182, "can_mask": 0x7FF, "extended": False},
+        ]
+        if refuse:
+            assert sock.options == []
+            assert [r.getMessage() for r in caplog.records] == [
+                "can driver arm: error frames not enabled: [Errno 92] Protocol not available"]
+        else:
+            assert sock.options == [(101, 2, (0x1FFFFFFF).to_bytes(4, sys.byteorder))]
+            assert caplog.text == ""
+        assert node.wait_feedback(2, timeout=2.0)
+        drv.read(0.0)
+        assert drv.stats()["feedback_frames"] == 2
+    finally:
+        drv.shutdown()
+
+
+def test_other_interfaces_keep_their_error_frames(
+    channel: str, node: SimulatedDriveNode, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Only SocketCAN filters in the kernel: on any other interface (even one whose bus has
+    a socket) the driver sets no python-can filters, which would drop error frames."""
+    opened: list[SocketBus] = []
+
+    def bus(**args: object) -> SocketBus:
+        opened.append(SocketBus(KernelSocket(), channel=channel))
+        return opened[0]
+
+    monkeypatch.setattr(can, "Bus", bus)
+    drv = active_driver(channel, node, feedback_timeout=10.0)
+    assert opened[0].kernel_filters is None and opened[0].socket.options == []
+    node.send_error_frame(0x40)
+    with pytest.raises(DriverError, match="bus-off"):
+        drv.read(0.002)
+    drv.shutdown()
+
+
+# ---------------------------------------------------------------- a drive mounted reversed
+def test_a_reversed_drive_is_pushed_toward_the_setpoint_in_effort_mode(channel: str) -> None:
+    """A negative counts_per_unit (accepted: only 0 is refused) is a drive whose counts run
+    against the joint. Its position and velocity are read reversed; so must its effort be,
+    both ways: else the joint's PID pushes the joint away from its setpoint (positive
+    feedback, a runaway)."""
+    js = make_joints(gains=PIDGains(kp=100.0))
+    p = params(channel, feedback_timeout=10.0)
+    p["joints"]["yaw"]["counts_per_unit"] = -CPU[0]
+    del p["joints"]["insertion"]["counts_per_unit"]  # 1 count per metre, the default
+    axes = [DriveAxis(0x101, 0x181), DriveAxis(0x102, 0x182)]
+    # effort_gain 0: the drives hold still, the efforts alone are compared
+    with SimulatedDriveNode(axes, channel=channel, tau=0.0, effort_gain=0.0) as node:
+        drv = CANDriver("arm", js, p, command_interface="effort")
+        try:
+            drv.configure()
+            assert node.wait_feedback(2, timeout=2.0)
+            drv.read(0.0)
+            drv.activate()
+            drv.write([0.005, 0.0002], 0.001)  # +0.5 N*m toward +0.005 rad, +0.02 N
+            assert node.wait_feedback(4, timeout=2.0)
+            # the reversed drive pushes its counts down, which is the joint up
+            assert node.axes[0].mode == 2 and node.axes[0].effort == -500
+            assert node.axes[1].mode == 2 and node.axes[1].effort == 20  # not reversed
+            drv.read(0.002)
+            # what they report, in the joints' sense
+            assert js[0].effort == pytest.approx(0.5) and js[1].effort == pytest.approx(0.02)
+        finally:
+            drv.shutdown()
+    assert node.error is None
+
+
+def test_a_29_bit_frame_with_a_feedback_number_is_not_feedback(channel: str) -> None:
+    """The feedback identifiers are 11-bit. A 29-bit frame whose identifier has the same
+    number (another device, e.g. J1939, on a bus python-can filters in software) is a
+    different frame: it must not become the joint's position."""
+    js = make_joints()
+    peer = can.Bus(interface="virtual", channel=channel)
+    drv = CANDriver("arm", js, params(channel, feedback_timeout=10.0))
+    try:
+        drv.configure()
+        for fid in (0x181, 0x182):
+            peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
+                                  data=FEEDBACK_FRAME.pack(100, 0, 0)))
+        drv.read(0.0)
+        peer.send(can.Message(arbitration_id=0x181, is_extended_id=True,
+                              data=FEEDBACK_FRAME.pack(-90000, 0, 0)))
+        drv.read(0.001)
+        assert js[0].position == 100 / CPU[0]
+        assert drv.stats()["ignored_frames"] == 1 and drv.stats()["feedback_frames"] == 2
+    finally:
+        drv.shutdown()
+        peer.shutdown()
+
+
+@pytest.mark.parametrize(("heartbeat_ms", "told"), [(0, 0), (1, 1), (254.4, 254), (255.4, 255)])
+def test_the_heartbeat_byte_is_the_nearest_whole_ms(
+    channel: str, heartbeat_ms: float, told: int
+) -> None:
+    spy = can.Bus(interface="virtual", channel=channel)
+    drv = CANDriver("arm", make_joints(), params(channel, heartbeat_ms=heartbeat_ms))
+    try:
+        drv.configure()
+        assert [COMMAND_FRAME.unpack(m.data)[3] for m in drain(spy)] == [told, told]
+    finally:
+        drv.shutdown()
+        spy.shutdown()
+
+
+def test_a_bus_that_fails_to_receive_faults_with_the_reason(channel: str) -> None:
+    """The interface goes away under the driver (its python-can bus closed): the next read
+    faults and says so, it does not report the last positions as current."""
+    drv = CANDriver("arm", make_joints(), params(channel))
+    drv.configure()
+    bus = drv._bus
+    assert bus is not None
+    bus.shutdown()
+    with pytest.raises(DriverError, match=r"^can driver 'arm': receive failed: "):
+        drv.read(0.0)
+    assert drv.state is DriverState.FAULT
+    drv.shutdown()
