@@ -8,6 +8,8 @@ robot with an ideal driver, an operator peer), except the refusal's wording of a
 
 from __future__ import annotations
 
+import dataclasses
+import gc
 import logging
 import threading
 from collections.abc import Iterator
@@ -16,7 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from occ.controllers.keyframe import _where
+from occ.controllers.keyframe import KeyframeController, _where
 from occ.errors import KinematicsError
 from occ.safety import RobotState
 
@@ -769,3 +771,94 @@ def test_a_keyframe_set_is_refused_with_the_reason() -> None:
     assert error("joint", [(-1.0, [0, 0, 0], "")]) == (
         "keyframe 0: time -1 s is before the start (t = 0)"
     )
+
+
+# ------------------------------------------------------------- KeyframePlan's arguments
+def test_the_plans_steepness_and_ramp_are_checked_at_their_edges(session: Session) -> None:
+    s = session
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    assert s.refused("KeyframePlan", Steepness="inf") == "Steepness must be > 0, got inf"
+    assert s.refused("KeyframePlan", Steepness=0) == "Steepness must be > 0, got 0"
+    assert s.refused("KeyframePlan", Steepness="steep") == (
+        "KeyframePlan: could not convert string to float: 'steep'"
+    )
+    assert s.refused("KeyframePlan", Ramp=0) == "Ramp must be in (0, 0.5], got 0"
+    assert s.refused("KeyframePlan", Ramp=0.51) == "Ramp must be in (0, 0.5], got 0.51"
+    assert "plan 1:" in s.ok("KeyframePlan", Steepness=0.5)  # a gentle sigmoid is a sigmoid
+    assert "plan 2:" in s.ok("KeyframePlan", Ramp=0.5, Mode="continuous")
+    assert s.kf.stats()["plans_checked"] == 2
+
+
+def test_every_refused_plan_is_counted_and_said_in_the_stats(session: Session) -> None:
+    s = session
+    s.ok("KeyframeAdd", T=0.01, Pose="0.9 0.35 0.05")  # far too fast for yaw
+    first = s.refused("KeyframePlan")
+    assert first.startswith("plan 1 refused: ")
+    second = s.refused("KeyframePlan")
+    assert second.startswith("plan 2 refused: ")
+    stats = s.kf.stats()
+    assert stats["plans_refused"] == 2 and stats["plans_checked"] == 0
+    assert stats["last_error"] == second and stats["status"] == second
+
+
+def test_the_workspace_box_upper_bounds_are_millimetres() -> None:
+    s = Session({"workspace_mm": {"min_mm": [-50.0, -50.0, 150.0], "max_mm": [5.0, 50.0, 300.0]}})
+    try:
+        s.ok("KeyframeAdd", T=2.0, Pose="10 30 226", Space="cartesian", Label="east")
+        assert "leaves workspace_mm" in s.refused("KeyframePlan")
+    finally:
+        s.close()
+
+
+def test_a_configured_forbidden_sphere_is_where_the_config_puts_it() -> None:
+    s = Session({"forbidden": [{"centre_mm": [100.0, 0.0, 0.0], "radius_mm": 0.05}]})
+    try:
+        (check, *_) = s.kf.forbidden_checks
+        assert check((0.1, 0.0, 0.0)) is not None  # its centre, in metres
+        assert check((0.10006, 0.0, 0.0)) is None  # 0.06 mm off: outside its 0.05 mm
+    finally:
+        s.close()
+
+
+def test_keyframes_from_a_cartesian_file_are_read_as_cartesian(tmp_path: Any) -> None:
+    f = tmp_path / "kf.yaml"
+    f.write_text("keyframes:\n  - {t: 2.0, pose: [-6, 30, 226]}\n")
+    s = Session({"file": str(f), "space": "cartesian"})
+    try:
+        assert s.kf.stats()["space"] == "cartesian"
+        assert "plan 1:" in s.ok("KeyframePlan")
+    finally:
+        s.close()
+
+
+def test_a_controller_dropped_without_shutdown_ends_its_planner_thread() -> None:
+
+    s = Session()
+    try:
+        ctrl = KeyframeController({})
+        ctrl.configure(s.robot.data, s.kf.ctx)
+        assert ctrl._planner is not None
+        thread = ctrl._planner._thread
+        del ctrl
+        gc.collect()
+        thread.join(timeout=10.0)  # a bound, not a timing: it ends at once when told
+        assert not thread.is_alive()
+    finally:
+        s.close()
+
+
+def test_without_joint_limits_in_the_context_the_models_own_bound_the_plan() -> None:
+    s = Session()
+    try:
+        ctx = s.kf.ctx
+        assert ctx is not None
+        bare = dataclasses.replace(ctx, joint_limits=())  # a controller used on its own
+        ctrl = KeyframeController({})
+        ctrl.configure(s.robot.data, bare)
+        frame = ctx.frame
+        assert [(lim.min, lim.max) for lim in ctrl.limits] == list(
+            zip(frame.lower.tolist(), frame.upper.tolist(), strict=True)
+        )
+        ctrl.shutdown()
+    finally:
+        s.close()
