@@ -90,10 +90,13 @@ LATE_LINE = re.compile(r"^late cpu(\d+) (\d\d:\d\d:\d\d\.\d\d\d) ([\d.]+) ms$")
 STATE_LINE = re.compile(r"^(\d\d:\d\d:\d\d\.\d+) \w+ +occ\.robot: state (\w+) -> (\w+) (.*)$")
 
 
-def start_probe(seconds: float, out: Path) -> subprocess.Popen[bytes] | None:
-    """The stall probe beside the run, or None where it cannot be built (no gcc)."""
+def start_probe(
+    seconds: float, out: Path, period_us: float = 1000.0
+) -> subprocess.Popen[bytes] | None:
+    """The stall probe beside the run (waking every ``period_us`` on each CPU), or None where it
+    cannot be built (no gcc) or ``period_us`` is 0 (no probe)."""
     gcc = shutil.which("gcc")
-    if gcc is None:
+    if gcc is None or not period_us:
         return None
     cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "occ-bench"
     exe = cache / "stall_probe"
@@ -106,7 +109,9 @@ def start_probe(seconds: float, out: Path) -> subprocess.Popen[bytes] | None:
             print(f"stall probe not built: {built.stderr.decode(errors='replace')}", flush=True)
             return None
     with open(out / "stall_probe.log", "wb") as log:  # the child keeps its own copy
-        return subprocess.Popen([str(exe), f"{seconds:.0f}", str(PROBE_THRESHOLD_US)], stdout=log)
+        return subprocess.Popen(
+            [str(exe), f"{seconds:.0f}", str(PROBE_THRESHOLD_US), f"{period_us:.0f}"], stdout=log
+        )
 
 
 PROBE_THRESHOLD_US = 1000
@@ -273,7 +278,7 @@ def stops_seen(client: SlicerStandIn) -> list[str]:
 def run_pairs(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     procs: list[subprocess.Popen[bytes]] = []
     clients: list[SlicerStandIn] = []
-    probe = start_probe(args.duration + 120.0, out)
+    probe = start_probe(args.duration + 120.0, out, args.probe_period_us)
     hogs: list[subprocess.Popen[bytes]] = []
     hog_shares: list[float | None] = []
     try:
@@ -411,6 +416,13 @@ def main(argv: list[str] | None = None) -> int:
         "--pure",
         default="",
         help="pairs: the pairs (A, B or AB) run with OCC_PURE=1, the pure Python build",
+    )
+    p.add_argument(
+        "--probe-period-us",
+        type=float,
+        default=1000.0,
+        help="pairs: the stall probe's period (default 1000; 0 = no probe): it preempts the "
+        "daemons on every CPU at each wake-up",
     )
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)

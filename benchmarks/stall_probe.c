@@ -2,13 +2,16 @@
  * stall_probe: does this machine stop running programs now and then?
  *
  * One thread per online CPU, pinned to it, SCHED_FIFO 99 where permitted (above the daemons'
- * 59-61), wakes every 1 ms (clock_nanosleep, absolute deadlines) and records each wake-up that
+ * 59-61), wakes every 1 ms (PERIOD_US; clock_nanosleep, absolute deadlines) and records each wake-up that
  * comes more than THRESHOLD_US after its deadline. Nothing in user space can delay such a thread:
  * a late wake-up is the kernel or the hypervisor (the VM not scheduled). When every CPU is late
  * at the same moment the whole machine stopped: a program frozen that long cannot tell it was.
  *
  *   gcc -O2 -pthread -o /tmp/stall_probe benchmarks/stall_probe.c
- *   /tmp/stall_probe SECONDS [THRESHOLD_US]      # default threshold 5000 us
+ *   /tmp/stall_probe SECONDS [THRESHOLD_US [PERIOD_US]]   # default threshold 5000 us, period 1000 us
+ *
+ * A longer period disturbs the programs it watches less (it preempts them at FIFO 99 on every CPU)
+ * and still sees every stall longer than the period.
  *
  * Prints one line per late wake-up as it happens ("late CPU WALL_TIME LATE_MS") and, at the end,
  * one JSON line: per CPU the wake-ups, how many were late, the worst, and the machine's steal time
@@ -25,7 +28,7 @@
 #include <time.h>
 #include <unistd.h>
 
-#define PERIOD_NS 1000000L
+static long period_ns = 1000000L; /* the third argument, in us (default 1000) */
 
 struct probe {
     int cpu;
@@ -68,7 +71,7 @@ static void *run(void *arg)
     deadline = start;
     long total_ns = (long)(p->seconds * 1e9);
     for (;;) {
-        add_ns(&deadline, PERIOD_NS);
+        add_ns(&deadline, period_ns);
         clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &deadline, NULL);
         clock_gettime(CLOCK_MONOTONIC, &now);
         p->wakeups++;
@@ -109,15 +112,17 @@ static long long steal_ticks(void)
 int main(int argc, char **argv)
 {
     if (argc < 2) {
-        fprintf(stderr, "usage: %s SECONDS [THRESHOLD_US]\n", argv[0]);
+        fprintf(stderr, "usage: %s SECONDS [THRESHOLD_US [PERIOD_US]]\n", argv[0]);
         return 2;
     }
     double seconds = atof(argv[1]);
     long threshold_us = argc > 2 ? atol(argv[2]) : 5000;
-    if (seconds <= 0 || threshold_us <= 0) {
-        fprintf(stderr, "stall_probe: SECONDS and THRESHOLD_US must be positive\n");
+    long period_us = argc > 3 ? atol(argv[3]) : 1000;
+    if (seconds <= 0 || threshold_us <= 0 || period_us <= 0) {
+        fprintf(stderr, "stall_probe: SECONDS, THRESHOLD_US and PERIOD_US must be positive\n");
         return 2;
     }
+    period_ns = period_us * 1000L;
     int ncpu = (int)sysconf(_SC_NPROCESSORS_ONLN);
     if (ncpu < 1)
         ncpu = 1;
