@@ -255,3 +255,15 @@ def test_a_setpoint_step_of_exactly_the_velocity_reach_is_taken_on_a_faulting_dr
     reach = 2.0 * (1.0 + 1e-9) * 0.001
     d.write([sign * reach], 0.001)
     assert d.state is DriverState.ACTIVE and j.command_position == sign * reach
+
+
+def test_a_powered_off_joint_moved_by_hand_is_read_where_it_is() -> None:
+    # configured, not active: operators still see the arm, and nothing is judged frozen
+    j = revolute(velocity=2.0)
+    d = ScriptedFeedback([j], heartbeat_ms=0)
+    d.configure()
+    d.read(0.0)
+    for k in range(1, 4):
+        d.feedback = [0.01 * k]  # pushed by hand, 10 mrad a tick: within the jump reach
+        d.read(0.001 * k)
+    assert d.state is DriverState.INACTIVE and j.position == pytest.approx(0.03)

@@ -862,3 +862,28 @@ def test_without_joint_limits_in_the_context_the_models_own_bound_the_plan() -> 
         ctrl.shutdown()
     finally:
         s.close()
+
+
+def test_what_keyframeplan_says_when_it_cannot_plan(session: Session) -> None:
+    s = session
+    assert s.refused("KeyframePlan") == "no keyframes to plan: load or send some first"
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    assert s.refused("KeyframePlan", Interpolation="cubic") == (
+        "Interpolation must be linear or spline, got 'cubic'"
+    )
+    assert s.refused("KeyframePlan", Mode="loop") == "Mode must be stop or continuous, got 'loop'"
+    s.ok("KeyframePlan")
+    assert s.kf.stats()["status"] == "plan 1 previewed; KeyframeAck Plan=1 runs it"
+    s.step(20)
+    s.start()
+    s.ok("KeyframeAck", Plan=1)
+    assert s.refused("KeyframePlan") == "plan 1 is running; wait or Stop"
+
+
+def test_keyframes_in_the_config_are_said_to_come_from_the_config() -> None:
+    s = Session({"keyframes": [{"t": 1.0, "pose": [0.2, 0.35, 0.05]}]})
+    try:
+        assert s.kf.stats()["source"] == "config"
+        assert "keyframes: 1 joint from config" in s.kf.describe()
+    finally:
+        s.close()
