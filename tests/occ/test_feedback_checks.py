@@ -217,7 +217,8 @@ def test_frozen_is_not_judged_while_inactive_or_on_an_effort_drive() -> None:
     h.feedback = [0.0]
     h.read(0.0)
     h.read(0.0)
-    h.write_effort([5.0], 0.0)
+    h.write([0.05], 0.0)  # a position through its PID: still the hand's to move
+    assert e.command_position == 0.05
     h.read(1.0)
     assert h.state is DriverState.ACTIVE
 
@@ -267,3 +268,22 @@ def test_a_powered_off_joint_moved_by_hand_is_read_where_it_is() -> None:
         d.feedback = [0.01 * k]  # pushed by hand, 10 mrad a tick: within the jump reach
         d.read(0.001 * k)
     assert d.state is DriverState.INACTIVE and j.position == pytest.approx(0.03)
+
+
+def test_the_faults_say_how_far_in_how_long_and_the_limit() -> None:
+    j = revolute(velocity=2.0)
+    d = active(j)
+    d.read(0.0)
+    d.feedback = [0.5]
+    with pytest.raises(DriverError) as jumped:
+        d.read(0.005)  # 0.5 rad in 5 ms: at most 10 x 2 rad/s x 5 ms = 0.1 rad
+    assert str(jumped.value) == (
+        "driver 'drive': joint r: feedback jump of 0.5 in 5 ms (at most 0.1: 10.0 x the "
+        "velocity limit)"
+    )
+    d = frozen_drive(revolute(velocity=100.0), 0.05)
+    with pytest.raises(DriverError) as frozen:
+        d.read(0.9)
+    assert str(frozen.value) == (
+        "driver 'drive': joint r: feedback frozen at 0 for 900 ms while commanded +0.05 away"
+    )
