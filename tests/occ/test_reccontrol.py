@@ -492,3 +492,20 @@ def test_the_configured_directory_rate_and_messages(tmp_path: Path) -> None:
         assert command(sim, op, "GetRecordingStatus").metadata["Message"] == "recording=false"
     finally:
         sim.close()
+
+
+def test_a_directory_that_is_a_file_is_no_existing_recording(tmp_path: Path) -> None:
+    """recording.directory naming a file: the start says it cannot write there, not that the
+    recording's file exists (it does not)."""
+    (tmp_path / "recs").write_text("a file where the directory should be")
+    sim = SimRobot(slave_config(tmp_path / "recs"))
+    try:
+        op = sim.peer("operator")
+        bad = command(sim, op, "StartRecording", start_xml("r"))
+        assert bad.metadata["Status"] == "FAIL"
+        path = tmp_path / "recs" / "r.igtl"
+        assert bad.metadata["Message"] == (
+            f"StartRecording: cannot write {path}: {path.parent} is not a directory"
+        )
+    finally:
+        sim.close()
