@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+import igtl
 from occ.record import STATE_DEVICE, Recorder, read_recording
 from occ.recordcli import main
 from occ.testing import SimRobot
@@ -453,3 +454,234 @@ def test_outputs_count_once_received_samples_all(tmp_path: Path) -> None:
     c = read_content(path)
     assert len(c.streams[("out", "Tip")].t) == 2
     assert [p[0, 3] for p in c.streams[("in", "Master")].pose] == [1.0, 2.0, 1.0, 2.0]
+
+
+# ---------------------------------------------------------------------- a recording made by hand
+#: the daemon's clock at the first record (a daemon's recording does not start at 0)
+T0 = 1000.25
+#: its wall clock minus its own
+WALL = 1.7e9
+COLUMNS = "t,state,q.a,q.b,sp.a,sp.b,tip.x_mm,tip.y_mm,tip.z_mm,eff.a,eff.b"
+#: the state per row: READY, READY, ENABLED, ENABLED, RUNNING ... (STATE_CODES)
+STATES = [1, 1, 2, 2, 3, 3, 3, 4, 4, 3]
+
+
+def turned(k: int) -> np.ndarray:
+    """The base of tick ``k``: turned a further 7 degrees about z and 3 about x each tick."""
+    m = rot("z", 7.0 * k) @ rot("x", -3.0 * k)
+    m[:3, 3] = (10.0 * k, -4.0, 2.5 * k)
+    return m
+
+
+def tip_pose(k: int) -> np.ndarray:
+    m = rot("y", 11.0 * k) @ rot("z", 5.0)
+    m[:3, 3] = (30.0 + k, 12.0 - 2.0 * k, 250.0 + 0.5 * k)
+    return m
+
+
+@pytest.fixture(scope="module")
+def handmade(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Ten ticks of a robot ``Rig 7`` (a haptic master's state columns, with efforts) through
+    the daemon's Recorder: its Tip and a moving Base sent on two interfaces each tick, a
+    master's POSITION twice a tick, its return channel (SlaveTip with force_n) every tick and
+    a TipForce to Slicer every other one, a force and a pose received on names the exports
+    take themselves (Force, Base), a STRING; then what must not be read as a sample: a row of
+    the wrong length, a pose that is not finite, and a message no daemon recorded."""
+    path = tmp_path_factory.mktemp("hand") / "rig.igtl"
+    rec = Recorder(path).start()
+
+    def tf(m: np.ndarray, device: str, meta: dict[str, str] | None = None) -> Any:
+        return igtl.TransformMessage.from_matrix(
+            m, device_name=device, header_version=2, timestamp=WALL + t, metadata=meta or {}
+        )
+
+    for k in range(10):
+        t = T0 + 0.01 * k
+        row = [t, STATES[k], 0.1 * k, -0.2 * k, 0.1 * k + 0.01, -0.2 * k - 0.01]
+        row += [1.0, 2.0, 3.0, 0.5 * k, -0.25 * k]
+        state = igtl.NDArrayMessage(
+            array=np.asarray(row if k != 6 else row[:-1], dtype=np.float64),
+            device_name=STATE_DEVICE,
+            header_version=2,
+            metadata={"columns": COLUMNS, "robot": "Rig 7"} if k == 0 else {},
+            timestamp=0.0 if k == 0 else WALL + t - 0.0001,
+        )
+        rec.record_message(state, "out", "*", t)
+        for itf in ("slicer", "viewer"):
+            rec.record_message(tf(turned(k), "Base"), "out", itf, t + 0.0004)
+            rec.record_message(tf(tip_pose(k), "Tip"), "out", itf, t + 0.0004)
+        for j in (1, 2):  # two datagrams drained in one tick: both count, the last stands
+            q = (0.0, math.sin(0.05 * (2 * k + j)), 0.0, math.cos(0.05 * (2 * k + j)))
+            pos = igtl.PositionMessage(
+                (1.0 * k, 2.0 * j, 3.0), q, device_name="Master", header_version=2,
+                timestamp=WALL + t, message_id=2 * k + j,
+            )  # fmt: skip
+            rec.record_message(pos, "in", "master", t + 0.0002)
+        f = (0.5 * k, -0.1 * k, 1.5)
+        force_n = f"{f[0]:.4f},{f[1]:.4f},{f[2]:.4f}"
+        slavetip = igtl.PositionMessage(
+            (5.0, 6.0, 7.0 + k), device_name="SlaveTip", header_version=2, timestamp=WALL + t,
+            metadata={"force_n": force_n, "map": "m1"},
+        )  # fmt: skip
+        rec.record_message(slavetip, "out", "master", t + 0.0004)
+        if k % 2 == 0:
+            arrow = np.eye(4)
+            arrow[:3, 3] = (30.0 + k, 12.0, 250.0)
+            meta = {"force_n": force_n, "mm_per_n": "10", "frame": "patient"}
+            rec.record_message(tf(arrow, "TipForce", meta), "out", "slicer", t + 0.0004)
+        hand = igtl.SensorMessage(
+            device_name="Force", data=(0.1 * k, 0.2, -0.3), header_version=2, timestamp=WALL + t
+        )
+        rec.record_message(hand, "in", "slave", t + 0.0003)
+        other = igtl.PositionMessage(
+            (9.0, 8.0, 7.0 * k), device_name="Base", header_version=2, timestamp=WALL + t
+        )
+        rec.record_message(other, "in", "tracker", t + 0.0003)
+        rec.record_message(igtl.StringMessage("x", device_name="Tip"), "out", "slicer", t)
+        bad = np.eye(4)
+        bad[0, 3] = math.nan
+        rec.record_message(tf(bad, "Tip"), "out", "slicer", t + 0.0005)
+    rec.close()
+    # a message no daemon recorded (no rec.t): not a sample of any stream
+    with open(path, "ab") as f:
+        f.write(bytes(tf(np.eye(4), "Tip").pack(2)))
+    return path
+
+
+def handmade_messages(path: Path, mtype: str, device: str, direction: str) -> list[Any]:
+    """The recorded messages of one stream, an output once per tick (as the daemon sent it)."""
+    out: list[Any] = []
+    seen: set[str] = set()
+    for m in read_recording(path):
+        meta = m.metadata
+        if m.message_type != mtype or m.device_name != device or "rec.t" not in meta:
+            continue
+        if meta["rec.dir"] != direction:
+            continue
+        if direction == "out" and meta["rec.t"] in seen:
+            continue
+        seen.add(meta["rec.t"])
+        out.append(m)
+    return out
+
+
+def test_read_content_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
+    from occ.recexport import read_content
+
+    # the wall clock's offset from the first state row when it comes first (the pose after it
+    # has another offset)
+    small = tmp_path / "small.igtl"
+    rec = Recorder(small).start()
+    row = igtl.NDArrayMessage(
+        array=np.array([5.0, 1.0]), device_name=STATE_DEVICE, header_version=2,
+        metadata={"columns": "t,state", "robot": "r"}, timestamp=WALL + 5.0,
+    )  # fmt: skip
+    rec.record_message(row, "out", "*", 5.0)
+    tip = igtl.TransformMessage.from_matrix(
+        np.eye(4), device_name="Tip", header_version=2, timestamp=WALL + 9.0
+    )
+    rec.record_message(tip, "out", "slicer", 5.0)
+    rec.close()
+    assert read_content(small).wall_offset == WALL
+
+    c = read_content(handmade)
+    assert c.robot == "Rig 7" and c.columns == COLUMNS.split(",")
+    # the short row is left out; the first row's wall stamp (0) gives no offset: the first
+    # output's does (Base, 0.4 ms after the row)
+    assert c.state_t == pytest.approx([T0 + 0.01 * k for k in range(10) if k != 6], abs=1e-9)
+    assert c.state_wall[0] == 0.0
+    assert c.wall_offset == pytest.approx(WALL - 0.0004, abs=2e-6)
+    assert [int(r[1]) for r in c.state_rows] == [s for k, s in enumerate(STATES) if k != 6]
+    assert set(c.streams) == {
+        ("out", "Tip"), ("out", "Base"), ("out", "SlaveTip"), ("out", "TipForce"),
+        ("in", "Master"), ("in", "Base"),
+    }  # fmt: skip
+    tip = c.streams[("out", "Tip")]
+    assert tip.device == "Tip" and tip.direction == "out"
+    assert tip.t == pytest.approx([T0 + 0.01 * k + 0.0004 for k in range(10)], abs=1e-9)
+    for k, m in enumerate(tip.pose):
+        assert np.abs(m - tip_pose(k)).max() < TOL_MM
+    assert tip.stamp == pytest.approx([WALL + T0 + 0.01 * k for k in range(10)], abs=1e-5)
+    master = c.streams[("in", "Master")]
+    assert len(master.t) == 20
+    for m, msg in zip(master.pose, handmade_messages(handmade, "POSITION", "Master", "in"),
+                      strict=True):  # fmt: skip
+        x, y, z, w = msg.quaternion
+        assert np.abs(m[:3, 3] - msg.position).max() < 1e-9
+        # a turn about y: its cosine on the diagonal, its sine in (0, 2)
+        assert m[0, 0] == pytest.approx(1 - 2 * y * y, abs=1e-6)
+        assert m[0, 2] == pytest.approx(2 * y * w, abs=1e-6)
+    base_in = c.streams[("in", "Base")]
+    assert [m[:3, :3].tolist() for m in base_in.pose] == [np.eye(3).tolist()] * 10
+    # forces: the return channel and the Slicer arrow in the patient frame, the received
+    # SENSOR Force in its sender's base frame
+    assert set(c.forces) == {("out", "SlaveTip"), ("out", "TipForce"), ("in", "Force")}
+    st = c.forces[("out", "SlaveTip")]
+    assert (st.device, st.direction, st.frame) == ("SlaveTip", "out", "patient")
+    assert st.force == [(round(0.5 * k, 4), round(-0.1 * k, 4), 1.5) for k in range(10)]
+    assert st.t == pytest.approx(tip.t, abs=1e-9) and st.stamp == pytest.approx(
+        [WALL + T0 + 0.01 * k for k in range(10)], abs=1e-5
+    )
+    assert len(c.forces[("out", "TipForce")].t) == 5
+    hand = c.forces[("in", "Force")]
+    assert hand.frame == "base"
+    assert np.abs(np.array(hand.force) - [(0.1 * k, 0.2, -0.3) for k in range(10)]).max() < 1e-6
+    assert c.force_transforms == {("out", "TipForce")}
+
+
+def test_seq_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
+    from occ.recexport import read_content, write_seq
+
+    out = tmp_path / "deeper" / "rig.seq.mha"  # a directory that is not there yet
+    summary = write_seq(read_content(handmade), out, source="rig.igtl")
+    text = out.read_text()
+    lines = text.splitlines()
+    # the header PLUS writes for a tracked sequence (no pixels), then the daemon's own fields
+    assert lines[:14] == [
+        "ObjectType = Image",
+        "NDims = 3",
+        "AnatomicalOrientation = RAI",
+        "BinaryData = True",
+        "BinaryDataByteOrderMSB = False",
+        "CompressedData = False",
+        "DimSize = 0 0 10",
+        "ElementSpacing = 1 1 1",
+        "Offset = 0 0 0",
+        "TransformMatrix = 1 0 0 0 1 0 0 0 1",
+        "ElementType = MET_UCHAR",
+        "Kinds = domain domain list",
+        "OCCRobot = Rig 7",
+        "OCCSource = rig.igtl",
+    ]
+    assert lines[-1] == "ElementDataFile = LOCAL" and text.endswith("\n")
+    header, sequences, last = slicer_parse(out)
+    assert last == 9  # a frame a tick: its samples 0.2 to 0.4 ms after its start, one ms
+    assert set(sequences) == {
+        "TipToWorld", "BaseToWorld", "SlaveTipToWorld", "TipForceToWorld",
+        "MasterToReference", "BaseToReference",
+    }  # fmt: skip
+    # timestamps from the first frame (the daemon's clock started long before)
+    stamps = sorted(float(v) for v in sequences["TipToWorld"])
+    assert stamps == [0.01 * k for k in range(10)]
+    # the master's two samples of a tick share its millisecond: the second one stands
+    masters = handmade_messages(handmade, "POSITION", "Master", "in")
+    seq = sequences["MasterToReference"]
+    for k in range(10):
+        got = seq[f"{0.01 * k:.3f}"]
+        assert got[:3, 3].tolist() == pytest.approx(masters[2 * k + 1].position, abs=1e-6)
+    assert summary == {
+        "frames": 10,
+        "transforms": {
+            "BaseToReference": 10, "BaseToWorld": 10, "MasterToReference": 10,
+            "SlaveTipToWorld": 10, "TipForceToWorld": 5, "TipToWorld": 10,
+        },
+        "duration_s": 0.09,
+    }  # fmt: skip
+    # every frame lists the transforms in the same order (by name)
+    first = [ln.split(" = ")[0] for ln in lines if ln.startswith("Seq_Frame0000_")]
+    assert first == [
+        f"Seq_Frame0000_{n}{f}"
+        for n in ("BaseToReference", "BaseToWorld", "MasterToReference", "SlaveTipToWorld",
+                  "TipForceToWorld", "TipToWorld")
+        for f in ("Transform", "TransformStatus")
+    ] + ["Seq_Frame0000_Timestamp"]  # fmt: skip
