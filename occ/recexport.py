@@ -13,11 +13,12 @@ custom fields hold, per frame ``NNNN``,
 The rules it follows are those of Slicer's reader (``vtkMRMLLinearTransformSequenceStorageNode``:
 a frame field is ``Seq_Frame`` + number + ``_`` + name; a field whose name holds ``Transform``
 and not ``Status`` is a matrix; a frame's index value is its timestamp rounded to milliseconds,
-so two frames never share a millisecond here; header lines are read 1000 bytes at a time, so no
-line is longer) and of PLUS's transform names (exactly one ``To`` followed by a capital: the
-device names are made to fit). Every TRANSFORM and POSITION stream of the recording is one
-transform: the daemon's outputs (``Tip``, ``Base``: poses in the world, as 3D Slicer shows them)
-as ``<Device>ToWorld``, streams it received (a master's POSITION) as ``<Device>ToReference``.
+so two frames never share a millisecond here; header lines are read with ``fgets`` into 1000
+bytes, so no line is longer than 998 characters and its newline) and of PLUS's transform names
+(exactly one ``To`` followed by a capital: the device names are made to fit). Every TRANSFORM
+and POSITION stream of the recording is one transform: the daemon's outputs (``Tip``, ``Base``:
+poses in the world, as 3D Slicer shows them) as ``<Device>ToWorld``, streams it received (a
+master's POSITION) as ``<Device>ToReference``.
 
 ``occ-record export REC --format mcap OUT.mcap`` writes a ROS 2 bag with rosbags' writer (the
 optional extra ``record``): a single MCAP file for ``OUT.mcap``, a rosbag2 directory (the MCAP file
@@ -68,8 +69,9 @@ from .samples import quaternion_to_rotation
 WORLD = "World"
 #: the frame of pose streams the daemon received (the sender's reference)
 REFERENCE = "Reference"
-#: Slicer's reader takes header lines 1000 bytes at a time: a longer one would be cut in two
-MAX_LINE = 999
+#: Slicer's reader takes header lines with fgets into 1000 bytes: 999 characters and the
+#: string's end, so a line of 999 characters is read without its newline, in two pieces
+MAX_LINE = 998
 
 
 class ExportError(Exception):

@@ -685,3 +685,36 @@ def test_seq_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
                   "TipForceToWorld", "TipToWorld")
         for f in ("Transform", "TransformStatus")
     ] + ["Seq_Frame0000_Timestamp"]  # fmt: skip
+
+
+def test_seq_refuses_what_slicer_would_misread(tmp_path: Path) -> None:
+    from occ.recexport import ExportError, PoseStream, RecordingContent, write_seq
+
+    c = RecordingContent(robot="Zürich")  # written as ASCII, the rest replaced
+    c.streams[("out", "Tip")] = PoseStream("Tip", "out", [0.0], [0.0], [np.eye(4)])
+    out = tmp_path / "a.seq.mha"
+    write_seq(c, out)
+    assert "OCCRobot = Z?rich\n" in out.read_text(encoding="ascii")
+    assert "OCCSource" not in out.read_text()
+    # a line Slicer would read in two pieces (fgets with 1000 bytes: 999 with the newline):
+    # refused, nothing written; the longest line is a frame's Transform (65 + the device name)
+    long = "T" + "x" * 934  # 999 characters and the newline
+    c.streams = {("out", long): PoseStream(long, "out", [0.0], [0.0], [np.eye(4)])}
+    with pytest.raises(ExportError, match="header line too long"):
+        write_seq(c, tmp_path / "b.seq.mha")
+    assert not (tmp_path / "b.seq.mha").exists()
+    just = "T" + "x" * 933  # 998 and the newline: read whole
+    c.streams = {("out", just): PoseStream(just, "out", [0.0], [0.0], [np.eye(4)])}
+    write_seq(c, tmp_path / "c.seq.mha")
+    assert max(len(b) for b in (tmp_path / "c.seq.mha").read_bytes().splitlines(True)) == 999
+    slicer_parse(tmp_path / "c.seq.mha")
+    # nothing to export: the error names what there is
+    with pytest.raises(ExportError) as err:
+        write_seq(c, tmp_path / "d.seq.mha", devices={"Nope"})
+    assert (
+        str(err.value) == f"no TRANSFORM or POSITION stream to export (the recording has: {just})"
+    )
+    assert err.value.code == 1
+    with pytest.raises(ExportError) as err:
+        write_seq(RecordingContent(), tmp_path / "d.seq.mha")
+    assert str(err.value) == "no TRANSFORM or POSITION stream to export"
