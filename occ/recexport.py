@@ -29,7 +29,8 @@ Its topics are those the ROS 2 bridge publishes (occ_ros2/bridge.py), in metres,
 - ``/occ/NAME/measured_cp`` (geometry_msgs/PoseStamped): the tip in the base frame
   (Base⁻¹·Tip), frame_id ``NAME_base``;
 - ``/occ/NAME/base/measured_cp``: the base in ``world``; other pose streams as
-  ``/occ/NAME/<device>/measured_cp``;
+  ``/occ/NAME/<device>/measured_cp`` (an input on a name an output has, or ``base``, as
+  ``/occ/NAME/input/<device>/measured_cp``; the same for forces);
 - ``/occ/NAME/measured_js`` and ``/occ/NAME/setpoint_js`` (sensor_msgs/JointState): the loop
   state rows (measured and commanded joints; the commanded efforts of a haptic master);
 - ``/occ/NAME/state`` (std_msgs/String): the daemon's state when it changes;
@@ -511,7 +512,9 @@ def write_mcap(
     if tip is not None:
         events.extend((t, 1, on_tip(i)) for i, t in enumerate(tip.t))
     taken = {f"{ns}/measured_cp", f"{ns}/base/measured_cp"}
-    for _key, s in sorted(content.streams.items()):
+    # outputs first: a name both an output and an input have is the output's; the input's
+    # goes under input/
+    for _key, s in sorted(content.streams.items(), key=_outputs_first):
         if s is tip or s is base or _key in content.force_transforms:
             continue
         leaf = _ros_name(s.device)
@@ -541,6 +544,12 @@ def write_mcap(
     return dict(sorted(bag.counts.items()))
 
 
+def _outputs_first(item: tuple[tuple[str, str], Any]) -> tuple[bool, str]:
+    """The order streams take their topics in: outputs, then inputs, each by device."""
+    (direction, device), _ = item
+    return direction != "out", device
+
+
 def _force_events(
     bag: _Bag, content: RecordingContent, ns: str, base_frame: str, offset: float,
     taken: set[str],
@@ -568,7 +577,7 @@ def _force_events(
 
         return emit
 
-    for key, s in sorted(content.forces.items()):
+    for key, s in sorted(content.forces.items(), key=_outputs_first):
         leaf = _ros_name(s.device)
         if key == main:
             topic = f"{ns}/measured_cf"

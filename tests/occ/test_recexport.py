@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 
 import igtl
 from occ.record import STATE_DEVICE, Recorder, read_recording
@@ -537,6 +538,13 @@ def handmade(tmp_path_factory: pytest.TempPathFactory) -> Path:
             (9.0, 8.0, 7.0 * k), device_name="Base", header_version=2, timestamp=WALL + t
         )
         rec.record_message(other, "in", "tracker", t + 0.0003)
+        # a slave's return channel and force arrow as received: both on names outputs have
+        if k % 5 == 0:
+            rec.record_message(slavetip, "in", "slave", t + 0.0003)
+            arrow_in = tf(
+                np.eye(4), "TipForce", {"force_n": "0.0000,0.0000,2.0000", "mm_per_n": "5"}
+            )
+            rec.record_message(arrow_in, "in", "slave", t + 0.0003)
         rec.record_message(igtl.StringMessage("x", device_name="Tip"), "out", "slicer", t)
         bad = np.eye(4)
         bad[0, 3] = math.nan
@@ -594,7 +602,7 @@ def test_read_content_of_a_handmade_recording(handmade: Path, tmp_path: Path) ->
     assert [int(r[1]) for r in c.state_rows] == [s for k, s in enumerate(STATES) if k != 6]
     assert set(c.streams) == {
         ("out", "Tip"), ("out", "Base"), ("out", "SlaveTip"), ("out", "TipForce"),
-        ("in", "Master"), ("in", "Base"),
+        ("in", "Master"), ("in", "Base"), ("in", "SlaveTip"), ("in", "TipForce"),
     }  # fmt: skip
     tip = c.streams[("out", "Tip")]
     assert tip.device == "Tip" and tip.direction == "out"
@@ -615,7 +623,10 @@ def test_read_content_of_a_handmade_recording(handmade: Path, tmp_path: Path) ->
     assert [m[:3, :3].tolist() for m in base_in.pose] == [np.eye(3).tolist()] * 10
     # forces: the return channel and the Slicer arrow in the patient frame, the received
     # SENSOR Force in its sender's base frame
-    assert set(c.forces) == {("out", "SlaveTip"), ("out", "TipForce"), ("in", "Force")}
+    assert set(c.forces) == {
+        ("out", "SlaveTip"), ("out", "TipForce"), ("in", "Force"), ("in", "SlaveTip"),
+        ("in", "TipForce"),
+    }  # fmt: skip
     st = c.forces[("out", "SlaveTip")]
     assert (st.device, st.direction, st.frame) == ("SlaveTip", "out", "patient")
     assert st.force == [(round(0.5 * k, 4), round(-0.1 * k, 4), 1.5) for k in range(10)]
@@ -626,7 +637,8 @@ def test_read_content_of_a_handmade_recording(handmade: Path, tmp_path: Path) ->
     hand = c.forces[("in", "Force")]
     assert hand.frame == "base"
     assert np.abs(np.array(hand.force) - [(0.1 * k, 0.2, -0.3) for k in range(10)]).max() < 1e-6
-    assert c.force_transforms == {("out", "TipForce")}
+    assert c.forces[("in", "TipForce")].force == [(0.0, 0.0, 2.0)] * 2
+    assert c.force_transforms == {("out", "TipForce"), ("in", "TipForce")}
 
 
 def test_seq_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
@@ -658,7 +670,7 @@ def test_seq_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
     assert last == 9  # a frame a tick: its samples 0.2 to 0.4 ms after its start, one ms
     assert set(sequences) == {
         "TipToWorld", "BaseToWorld", "SlaveTipToWorld", "TipForceToWorld",
-        "MasterToReference", "BaseToReference",
+        "MasterToReference", "BaseToReference", "SlaveTipToReference", "TipForceToReference",
     }  # fmt: skip
     # timestamps from the first frame (the daemon's clock started long before)
     stamps = sorted(float(v) for v in sequences["TipToWorld"])
@@ -673,7 +685,8 @@ def test_seq_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
         "frames": 10,
         "transforms": {
             "BaseToReference": 10, "BaseToWorld": 10, "MasterToReference": 10,
-            "SlaveTipToWorld": 10, "TipForceToWorld": 5, "TipToWorld": 10,
+            "SlaveTipToReference": 2, "SlaveTipToWorld": 10, "TipForceToReference": 2,
+            "TipForceToWorld": 5, "TipToWorld": 10,
         },
         "duration_s": 0.09,
     }  # fmt: skip
@@ -681,8 +694,8 @@ def test_seq_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
     first = [ln.split(" = ")[0] for ln in lines if ln.startswith("Seq_Frame0000_")]
     assert first == [
         f"Seq_Frame0000_{n}{f}"
-        for n in ("BaseToReference", "BaseToWorld", "MasterToReference", "SlaveTipToWorld",
-                  "TipForceToWorld", "TipToWorld")
+        for n in ("BaseToReference", "BaseToWorld", "MasterToReference", "SlaveTipToReference",
+                  "SlaveTipToWorld", "TipForceToReference", "TipForceToWorld", "TipToWorld")
         for f in ("Transform", "TransformStatus")
     ] + ["Seq_Frame0000_Timestamp"]  # fmt: skip
 
@@ -718,3 +731,219 @@ def test_seq_refuses_what_slicer_would_misread(tmp_path: Path) -> None:
     with pytest.raises(ExportError) as err:
         write_seq(RecordingContent(), tmp_path / "d.seq.mha")
     assert str(err.value) == "no TRANSFORM or POSITION stream to export"
+
+
+def log_ns(t: float, offset: float) -> int:
+    return round((t + offset) * 1e9)
+
+
+def stamp_ns(header: Any) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def test_mcap_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
+    require("rosbags", "pip install -e .[record]")
+    from occ.recexport import export, read_content
+
+    out = tmp_path / "rig"  # a rosbag2 directory
+    counts = export(handmade, out, "mcap")
+    topics = decode_mcap(out / "rig.mcap")
+    assert counts == {t: len(v) for t, v in sorted(topics.items())}
+    assert set(topics) == {
+        "/occ/rig_7/measured_cp", "/occ/rig_7/base/measured_cp", "/tf",
+        "/occ/rig_7/master/measured_cp", "/occ/rig_7/slavetip/measured_cp",
+        "/occ/rig_7/input/base/measured_cp", "/occ/rig_7/input/slavetip/measured_cp",
+        "/occ/rig_7/measured_cf", "/occ/rig_7/tipforce/measured_cf",
+        "/occ/rig_7/slavetip/measured_cf", "/occ/rig_7/input/tipforce/measured_cf",
+        "/occ/rig_7/force/measured_cf",
+        "/occ/rig_7/measured_js", "/occ/rig_7/setpoint_js", "/occ/rig_7/state",
+    }  # fmt: skip
+    meta = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["custom_data"] == {"occ.robot": "Rig 7"}
+    c = read_content(handmade)
+    offset = c.wall_offset
+    assert offset is not None
+    # the tip in its own tick's base (the base moves every tick), stamped as the Tip was
+    tips = c.streams[("out", "Tip")]
+    for k, ((msg, t), (tf, tft)) in enumerate(zip(topics["/occ/rig_7/measured_cp"],
+                                                   topics["/tf"], strict=True)):  # fmt: skip
+        local = np.linalg.solve(turned(k), tip_pose(k))
+        assert msg.header.frame_id == "rig_7_base"
+        assert stamp_ns(msg.header) == round(tips.stamp[k] * 1e9)
+        assert t == tft == log_ns(tips.t[k], offset)
+        got = pose_mm(msg.pose.position, msg.pose.orientation)
+        assert np.abs(got - local).max() < 1e-3
+        a, b = tf.transforms
+        assert (a.header.frame_id, a.child_frame_id) == ("world", "rig_7_base")
+        assert (b.header.frame_id, b.child_frame_id) == ("rig_7_base", "rig_7_tip")
+        assert stamp_ns(a.header) == stamp_ns(b.header) == stamp_ns(msg.header)
+        assert (
+            np.abs(pose_mm(a.transform.translation, a.transform.rotation) - turned(k)).max() < 1e-3
+        )
+        assert np.abs(pose_mm(b.transform.translation, b.transform.rotation) - local).max() < 1e-3
+    for k, (msg, t) in enumerate(topics["/occ/rig_7/base/measured_cp"]):
+        assert msg.header.frame_id == "world" and t == log_ns(
+            c.streams[("out", "Base")].t[k], offset
+        )
+        assert np.abs(pose_mm(msg.pose.position, msg.pose.orientation) - turned(k)).max() < 1e-3
+    # the other pose streams: outputs in world, inputs in their sender's reference; an input
+    # on a name taken (Base, an output's SlaveTip) under input/
+    for topic, key, frame in (
+        ("/occ/rig_7/master/measured_cp", ("in", "Master"), "master_reference"),
+        ("/occ/rig_7/slavetip/measured_cp", ("out", "SlaveTip"), "world"),
+        ("/occ/rig_7/input/base/measured_cp", ("in", "Base"), "base_reference"),
+        ("/occ/rig_7/input/slavetip/measured_cp", ("in", "SlaveTip"), "slavetip_reference"),
+    ):
+        s = c.streams[key]
+        assert len(topics[topic]) == len(s.t), topic
+        for (msg, t), pose, stamp, rt in zip(topics[topic], s.pose, s.stamp, s.t, strict=True):
+            assert msg.header.frame_id == frame and t == log_ns(rt, offset)
+            assert stamp_ns(msg.header) == round(stamp * 1e9)
+            assert np.abs(pose_mm(msg.pose.position, msg.pose.orientation) - pose).max() < 1e-3
+    # forces: the own stream with the most samples (the return channel) on measured_cf; the
+    # others on their own topics, a received one on a name an output took under input/
+    for topic, key, frame in (
+        ("/occ/rig_7/measured_cf", ("out", "SlaveTip"), "world"),
+        ("/occ/rig_7/tipforce/measured_cf", ("out", "TipForce"), "world"),
+        ("/occ/rig_7/slavetip/measured_cf", ("in", "SlaveTip"), "slavetip_reference"),
+        ("/occ/rig_7/input/tipforce/measured_cf", ("in", "TipForce"), "tipforce_reference"),
+        ("/occ/rig_7/force/measured_cf", ("in", "Force"), "force_reference"),
+    ):
+        fs = c.forces[key]
+        assert len(topics[topic]) == len(fs.t), topic
+        for (msg, t), f, stamp, rt in zip(topics[topic], fs.force, fs.stamp, fs.t, strict=True):
+            assert msg.header.frame_id == frame and t == log_ns(rt, offset)
+            assert stamp_ns(msg.header) == round(stamp * 1e9)
+            w = msg.wrench
+            assert (w.force.x, w.force.y, w.force.z) == f
+            assert (w.torque.x, w.torque.y, w.torque.z) == (0.0, 0.0, 0.0)
+    # the state rows: joints measured and commanded, the efforts a master displays, the
+    # state when it changes
+    js, sp = topics["/occ/rig_7/measured_js"], topics["/occ/rig_7/setpoint_js"]
+    assert len(js) == len(sp) == len(c.state_rows) == 9
+    for (m, t), (s, ts), row, wall, rt in zip(js, sp, c.state_rows, c.state_wall, c.state_t,
+                                              strict=True):  # fmt: skip
+        assert t == ts == log_ns(rt, offset)
+        assert m.header.frame_id == s.header.frame_id == "rig_7_base"
+        assert stamp_ns(m.header) == stamp_ns(s.header) == round(wall * 1e9)
+        assert list(m.name) == list(s.name) == ["a", "b"]
+        assert list(m.position) == list(row[2:4]) and list(s.position) == list(row[4:6])
+        assert list(s.effort) == list(row[9:11])
+        assert len(m.velocity) == len(m.effort) == len(s.velocity) == 0
+    states = topics["/occ/rig_7/state"]
+    assert [m.data for m, _ in states] == ["READY", "ENABLED", "RUNNING", "STOPPED", "RUNNING"]
+    assert [t for _, t in states] == [log_ns(c.state_t[i], offset) for i in (0, 2, 4, 6, 8)]
+
+
+def test_mcap_single_file_name_and_devices(handmade: Path, tmp_path: Path) -> None:
+    require("rosbags", "pip install -e .[record]")
+    from occ.recexport import export
+
+    out = tmp_path / "one.mcap"
+    counts = export(handmade, out, "mcap", name="Other Arm", devices={"Tip"})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["one.mcap"]  # no bag directory left
+    topics = decode_mcap(out)
+    # --name: the namespace and frames; --device: the pose streams exported (the tip, in the
+    # world now: no base), forces and state rows all the same
+    assert set(topics) == {
+        "/occ/other_arm/measured_cp", "/tf", "/occ/other_arm/measured_cf",
+        "/occ/other_arm/tipforce/measured_cf", "/occ/other_arm/slavetip/measured_cf",
+        "/occ/other_arm/input/tipforce/measured_cf", "/occ/other_arm/force/measured_cf",
+        "/occ/other_arm/measured_js", "/occ/other_arm/setpoint_js", "/occ/other_arm/state",
+    }  # fmt: skip
+    assert counts["/occ/other_arm/measured_cp"] == 10
+    for k, (msg, _) in enumerate(topics["/occ/other_arm/measured_cp"]):
+        assert msg.header.frame_id == "other_arm_base"
+        assert np.abs(pose_mm(msg.pose.position, msg.pose.orientation) - tip_pose(k)).max() < 1e-3
+    a, b = topics["/tf"][0][0].transforms
+    assert (a.child_frame_id, b.child_frame_id) == ("other_arm_base", "other_arm_tip")
+    assert np.abs(pose_mm(a.transform.translation, a.transform.rotation) - np.eye(4)).max() < 1e-9
+
+
+def test_mcap_state_rows_without_setpoints_or_joints(tmp_path: Path) -> None:
+    require("rosbags", "pip install -e .[record]")
+    from occ.recexport import RecordingContent, write_mcap
+
+    c = RecordingContent(columns=["t", "state", "q.a", "q.b", "sp.a", "eff.a", "eff.b"])
+    c.state_t, c.state_wall = [1.0, 2.0], [11.0, 12.0]
+    c.state_rows = [
+        np.array([1.0, 3.0, 0.5, 0.6, 0.7, 0.8, 0.9]),
+        np.array([2.0, 9, 0, 0, 0, 0, 0]),
+    ]
+    counts = write_mcap(c, tmp_path / "a.mcap")
+    # one commanded joint of two: no setpoint_js; an unknown state code: no state message
+    assert counts == {"/occ/robot/measured_js": 2, "/occ/robot/state": 1}
+    topics = decode_mcap(tmp_path / "a.mcap")
+    assert [list(m.position) for m, _ in topics["/occ/robot/measured_js"]] == [[0.5, 0.6], [0, 0]]
+    assert [t for _, t in topics["/occ/robot/measured_js"]] == [1_000_000_000, 2_000_000_000]
+    c.columns = ["t", "state", "sp.a", "eff.a"]
+    c.state_rows = [np.array([1.0, 3.0, 0.5, 0.6]), np.array([2.0, 4.0, 0.5, 0.6])]
+    c.robot = "Rig 7"
+    counts = write_mcap(c, tmp_path / "b.mcap")
+    assert counts == {"/occ/rig_7/state": 2}
+    # commanded joints with no efforts: setpoint_js without efforts
+    c.columns = ["t", "state", "q.a", "sp.a", "eff.b"]
+    c.state_rows = [np.array([1.0, 3.0, 0.5, 0.6, 0.7]), np.array([2.0, 3.0, 0.5, 0.6, 0.7])]
+    write_mcap(c, tmp_path / "c.mcap")
+    sp = decode_mcap(tmp_path / "c.mcap")["/occ/rig_7/setpoint_js"]
+    assert [(list(m.position), len(m.effort)) for m, _ in sp] == [([0.6], 0), ([0.6], 0)]
+
+
+def test_mcap_refusals(handmade: Path, tmp_path: Path) -> None:
+    require("rosbags", "pip install -e .[record]")
+    from occ.recexport import ExportError, RecordingContent, export, read_content, write_mcap
+
+    c = read_content(handmade)
+    with pytest.raises(ExportError, match="nothing to export: no pose stream and no state rows"):
+        write_mcap(RecordingContent(), tmp_path / "none.mcap")
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "x.mcap").write_bytes(b"keep")
+    with pytest.raises(ExportError, match="exists; not overwriting"):
+        write_mcap(c, tmp_path / "x.mcap")
+    (tmp_path / "y.mcap.bagdir").mkdir()
+    with pytest.raises(ExportError, match="a leftover of an export"):
+        write_mcap(c, tmp_path / "y.mcap")
+    (tmp_path / "dir").mkdir()
+    with pytest.raises(ExportError, match="exists"):
+        write_mcap(c, tmp_path / "dir")
+    # export: --force replaces a file, never a directory; an unknown format is a usage error
+    assert export(handmade, tmp_path / "x.mcap", "mcap", force=True)["/tf"] == 10
+    assert (tmp_path / "x.mcap").read_bytes()[:8] == b"\x89MCAP0\r\n"
+    with pytest.raises(ExportError, match="is a directory; remove it yourself") as err:
+        export(handmade, tmp_path / "dir", "mcap", force=True)
+    assert err.value.code == 1 and (tmp_path / "dir").is_dir()
+    with pytest.raises(ExportError, match="unknown format 'tiff'") as err:
+        export(handmade, tmp_path / "z.tiff", "tiff")
+    assert err.value.code == 2 and not (tmp_path / "z.tiff").exists()
+
+
+def test_quaternions_of_every_kind_of_rotation() -> None:
+    """quaternion_xyzw against the rotation it came from: the four branches of Shepperd's
+    method (a turn of 180 degrees about each axis, and near them), w >= 0, a float32 matrix."""
+    from occ.recexport import quaternion_xyzw
+
+    rng = np.random.default_rng(7)
+    cases = [np.eye(4), rot("x", 180), rot("y", 180), rot("z", 180), rot("x", 179) @ rot("y", 2)]
+    cases += [
+        rot("y", 178) @ rot("z", 3),
+        rot("z", 177) @ rot("x", -2),
+        rot("x", 90) @ rot("z", 180),
+    ]
+    cases += [
+        rot("x", a) @ rot("y", b) @ rot("z", c) for a, b, c in rng.uniform(-180, 180, (40, 3))
+    ]
+    for m in cases:
+        r = m[:3, :3]
+        for mat in (r, r.astype(np.float32)):
+            q = quaternion_xyzw(mat)
+            assert math.isclose(math.fsum(v * v for v in q), 1.0, abs_tol=1e-9)
+            assert q[3] >= 0.0
+            qq = type("Q", (), dict(zip("xyzw", q, strict=True)))
+            assert np.abs(quat_matrix(qq) - r).max() < 1e-6, (r, q)
+    # a turn about z by +90 and -90: the sign of the axis is the turn's direction
+    assert quaternion_xyzw(rot("z", 90)[:3, :3]) == pytest.approx(
+        (0, 0, math.sqrt(0.5), math.sqrt(0.5))
+    )
+    assert quaternion_xyzw(rot("z", -90)[:3, :3]) == pytest.approx(
+        (0, 0, -math.sqrt(0.5), math.sqrt(0.5))
+    )
