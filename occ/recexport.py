@@ -206,10 +206,12 @@ def _frame_name(text: str) -> str:
     ``Status`` (which would make Slicer skip or misread the field)."""
     name = re.sub(r"[^A-Za-z0-9]", "", text) or "Stream"
     name = name.replace("Transform", "Xform").replace("Status", "State")
-    name = re.sub(r"To(?![a-z])", "to", name)
     if not name[0].isalpha():
         name = "S" + name
-    return name[0].upper() + name[1:]
+    # the capital first, then the separators out (``ToTool`` or ``toTarget`` would begin with
+    # one); a name that now begins with ``to`` gets the ``S`` too
+    name = re.sub(r"To(?![a-z])", "to", name[0].upper() + name[1:])
+    return name if name[0].isupper() else "S" + name
 
 
 def _plus_split(name: str) -> tuple[str, str] | None:

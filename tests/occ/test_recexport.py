@@ -917,6 +917,45 @@ def test_mcap_refusals(handmade: Path, tmp_path: Path) -> None:
     assert err.value.code == 2 and not (tmp_path / "z.tiff").exists()
 
 
+def test_names_for_slicer_plus_and_ros() -> None:
+    from occ.recexport import _ros_name, guess_format, transform_names
+
+    devices = ["a_b", "a-b", "a.b", "3d", "Transform1", "Status", "AToBToC", "stylusToTracker"]
+    devices += ["StylusToTracker", "", "ToTool", "toTarget", "TipTo"]
+    ins = ["a_b", "a+b", "a-b", "x", "X"]
+    names = transform_names([("out", d) for d in devices] + [("in", d) for d in ins])
+    # by device, outputs first; a name taken: In for the first input, then a number
+    assert names == {
+        ("out", "a-b"): "AbToWorld",
+        ("out", "a.b"): "Ab2ToWorld",
+        ("out", "a_b"): "Ab3ToWorld",
+        ("out", "3d"): "S3dToWorld",
+        ("out", "Transform1"): "Xform1ToWorld",
+        ("out", "Status"): "StateToWorld",
+        ("out", "AToBToC"): "AtoBtoCToWorld",
+        ("out", "stylusToTracker"): "StylustoTrackerToWorld",
+        ("out", "StylusToTracker"): "StylusToTracker",
+        ("out", ""): "StreamToWorld",
+        ("out", "ToTool"): "StoToolToWorld",
+        ("out", "toTarget"): "StoTargetToWorld",
+        ("out", "TipTo"): "TiptoToWorld",
+        ("in", "X"): "XToReference",
+        ("in", "a+b"): "AbToReference",
+        ("in", "a-b"): "AbInToReference",
+        ("in", "a_b"): "Ab3ToReference",
+        ("in", "x"): "XInToReference",
+    }
+    for name in names.values():  # one From/To split for PLUS, a capital first
+        frm, to = plus_split(name)
+        assert frm[0].isupper() and to in ("World", "Reference", "Tracker")
+    assert (_ros_name("Rig 7"), _ros_name("3D Probe"), _ros_name("--"), _ros_name("A__b")) == (
+        "rig_7", "s3d_probe", "stream", "a_b",
+    )  # fmt: skip
+    assert [guess_format(n) for n in ("a.seq.mha", "A.MHD", "b.MCAP", "c", "d.mha.csv")] == [
+        "seq", "seq", "mcap", "csv", "csv",
+    ]  # fmt: skip
+
+
 def test_quaternions_of_every_kind_of_rotation() -> None:
     """quaternion_xyzw against the rotation it came from: the four branches of Shepperd's
     method (a turn of 180 degrees about each axis, and near them), w >= 0, a float32 matrix."""
