@@ -322,6 +322,8 @@ def start_xml(name: str) -> str:
 def test_a_start_being_opened_and_a_busy_worker(rig) -> None:  # type: ignore[no-untyped-def]
     sim, op, _, recs = rig
     path = recs / "held.igtl"
+    idle = command(sim, op, "StopRecording")
+    assert idle.metadata["Message"] == "StopRecording: not recording"
     with held_worker(sim):
         cid = op.send_command("StartRecording", start_xml("held"))
         # answered on the loop, after the start (one peer's commands are taken in order)
@@ -342,7 +344,10 @@ def test_a_start_being_opened_and_a_busy_worker(rig) -> None:  # type: ignore[no
     with held_worker(sim, fill=True):
         before = sim.robot.recorder.stats()["records"]
         stop = command(sim, op, "StopRecording")
-        assert stop.metadata["Status"] == "FAIL" and "busy" in stop.metadata["Message"]
+        assert stop.metadata["Status"] == "FAIL"
+        assert stop.metadata["Message"] == (
+            "StopRecording: busy (the worker's queue is full); try again"
+        )
         sim.step(20)
         assert sim.robot.recorder is not None and sim.robot.recorder.stats()["records"] > before
         status = command(sim, op, "GetRecordingStatus").metadata["Message"]
@@ -351,7 +356,10 @@ def test_a_start_being_opened_and_a_busy_worker(rig) -> None:  # type: ignore[no
     # a start the worker cannot take: refused, nothing pending, no file
     with held_worker(sim, fill=True):
         busy = command(sim, op, "StartRecording", start_xml("late"))
-        assert busy.metadata["Status"] == "FAIL" and "busy" in busy.metadata["Message"]
+        assert busy.metadata["Status"] == "FAIL"
+        assert busy.metadata["Message"] == (
+            "StartRecording: busy (the worker's queue is full); try again"
+        )
         status = command(sim, op, "GetRecordingStatus").metadata["Message"]
         assert status == f"recording=false; last={path}"
     assert command(sim, op, "StartRecording", start_xml("late")).metadata["Status"] == "SUCCESS"
@@ -409,12 +417,17 @@ def test_getstats_counts_starts_stops_and_failures(rig) -> None:  # type: ignore
     assert "SCHED_FIFO" in running["recorder"]["writer"], running["recorder"]
     assert (running["started"], running["stopped"], running["failed"]) == (1, 0, 0)
     assert running["last"] is None
-    # a start over an existing file fails and is counted
+    # a start over an existing file fails and is counted, each time
     assert command(sim, op, "StopRecording").metadata["Status"] == "SUCCESS"
-    assert command(sim, op, "StartRecording", start_xml("one")).metadata["Status"] == "FAIL"
+    for _ in range(2):
+        again = command(sim, op, "StartRecording", start_xml("one"))
+        assert (
+            again.metadata["Message"]
+            == f"StartRecording: {recs / 'one.igtl'} exists; not overwriting"
+        )
     done = stats(sim, op)
     assert (done["active"], done["file"], done["recorder"]) == (False, None, None)
-    assert (done["started"], done["stopped"], done["failed"]) == (1, 1, 1)
+    assert (done["started"], done["stopped"], done["failed"]) == (1, 1, 2)
     assert done["last"] == str(recs / "one.igtl")
     # a rename that cannot be made: stopped, counted as failed, the file kept as it was
     assert command(sim, op, "StartRecording", start_xml("two")).metadata["Status"] == "SUCCESS"
@@ -422,10 +435,19 @@ def test_getstats_counts_starts_stops_and_failures(rig) -> None:  # type: ignore
     assert stop.metadata["Status"] == "FAIL"
     assert f"in {recs / 'two.igtl'}; cannot name it one.igtl" in stop.metadata["Message"]
     after = stats(sim, op)
-    assert (after["started"], after["stopped"], after["failed"]) == (2, 2, 2)
+    assert (after["started"], after["stopped"], after["failed"]) == (2, 2, 3)
     assert after["last"] == str(recs / "two.igtl")
     status = command(sim, op, "GetRecordingStatus").metadata["Message"]
     assert status == f"recording=false; last={recs / 'two.igtl'}"
+    # a rename that is made: the reply and the status name the new file
+    assert command(sim, op, "StartRecording", start_xml("three")).metadata["Status"] == "SUCCESS"
+    stop = command(sim, op, "StopRecording", start_xml("four").replace("Start", "Stop"))
+    assert stop.metadata["Status"] == "SUCCESS"
+    assert stop.metadata["Message"].endswith(f" successful to file {recs / 'four.igtl'}")
+    assert not (recs / "three.igtl").exists() and (recs / "four.igtl").is_file()
+    status = command(sim, op, "GetRecordingStatus").metadata["Message"]
+    assert status == f"recording=false; last={recs / 'four.igtl'}"
+    assert stats(sim, op)["last"] == str(recs / "four.igtl")
 
 
 def test_names_the_daemon_takes_and_refuses(rig) -> None:  # type: ignore[no-untyped-def]

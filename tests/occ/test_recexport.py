@@ -889,11 +889,18 @@ def test_mcap_state_rows_without_setpoints_or_joints(tmp_path: Path) -> None:
     assert [(list(m.position), len(m.effort)) for m, _ in sp] == [([0.6], 0), ([0.6], 0)]
 
 
-def test_mcap_refusals(handmade: Path, tmp_path: Path) -> None:
+def test_mcap_refusals(handmade: Path, tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
     require("rosbags", "pip install -e .[record]")
     from occ.recexport import ExportError, RecordingContent, export, read_content, write_mcap
 
     c = read_content(handmade)
+    with monkeypatch.context() as m:  # rosbags without its writer: the same advice
+        m.setitem(sys.modules, "rosbags.rosbag2", None)
+        with pytest.raises(
+            ExportError, match=r"needs rosbags: pip install 'occ-igtl\[record\]'"
+        ) as err:
+            write_mcap(c, tmp_path / "w.mcap")
+        assert err.value.code == 2 and list(tmp_path.iterdir()) == []
     with pytest.raises(ExportError, match="nothing to export: no pose stream and no state rows"):
         write_mcap(RecordingContent(), tmp_path / "none.mcap")
     assert list(tmp_path.iterdir()) == []
