@@ -433,7 +433,9 @@ def test_getstats_counts_starts_stops_and_failures(rig) -> None:  # type: ignore
     assert command(sim, op, "StartRecording", start_xml("two")).metadata["Status"] == "SUCCESS"
     stop = command(sim, op, "StopRecording", start_xml("one").replace("Start", "Stop"))
     assert stop.metadata["Status"] == "FAIL"
-    assert f"in {recs / 'two.igtl'}; cannot name it one.igtl" in stop.metadata["Message"]
+    assert stop.metadata["Message"].endswith(
+        f"in {recs / 'two.igtl'}; cannot name it one.igtl: File exists"
+    )
     after = stats(sim, op)
     assert (after["started"], after["stopped"], after["failed"]) == (2, 2, 3)
     assert after["last"] == str(recs / "two.igtl")
