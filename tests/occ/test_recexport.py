@@ -484,10 +484,11 @@ def tip_pose(k: int) -> np.ndarray:
 def handmade(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Ten ticks of a robot ``Rig 7`` (a haptic master's state columns, with efforts) through
     the daemon's Recorder: its Tip and a moving Base sent on two interfaces each tick, a
-    master's POSITION twice a tick, its return channel (SlaveTip with force_n) every tick and
-    a TipForce to Slicer every other one, a force and a pose received on names the exports
-    take themselves (Force, Base), a STRING; then what must not be read as a sample: a row of
-    the wrong length, a pose that is not finite, and a message no daemon recorded."""
+    master's POSITION twice a tick, its return channel (SlaveTip with force_n) every tick,
+    a TipForce to Slicer every other one and a displayed Force every fourth, a force and poses
+    received on names it sends or the exports take themselves (Force, SlaveTip, TipForce,
+    Base), a STRING; then what must not be read as a sample: a row of the wrong length, a pose
+    that is not finite, and a message no daemon recorded."""
     path = tmp_path_factory.mktemp("hand") / "rig.igtl"
     rec = Recorder(path).start()
 
@@ -508,6 +509,20 @@ def handmade(tmp_path_factory: pytest.TempPathFactory) -> Path:
             timestamp=0.0 if k == 0 else WALL + t - 0.0001,
         )
         rec.record_message(state, "out", "*", t)
+        f = (0.5 * k, -0.1 * k, 1.5)
+        force_n = f"{f[0]:.4f},{f[1]:.4f},{f[2]:.4f}"
+        slavetip = igtl.PositionMessage(
+            (5.0, 6.0, 7.0 + k), device_name="SlaveTip", header_version=2, timestamp=WALL + t,
+            metadata={"force_n": force_n, "map": "m1"},
+        )  # fmt: skip
+        # a slave's return channel and force arrow as received (before this tick's outputs,
+        # as a daemon reads before it sends): both on names outputs have
+        if k % 5 == 0:
+            rec.record_message(slavetip, "in", "slave", t + 0.0001)
+            arrow_in = tf(
+                np.eye(4), "TipForce", {"force_n": "0.0000,0.0000,2.0000", "mm_per_n": "5"}
+            )
+            rec.record_message(arrow_in, "in", "slave", t + 0.0001)
         for itf in ("slicer", "viewer"):
             rec.record_message(tf(turned(k), "Base"), "out", itf, t + 0.0004)
             rec.record_message(tf(tip_pose(k), "Tip"), "out", itf, t + 0.0004)
@@ -518,12 +533,6 @@ def handmade(tmp_path_factory: pytest.TempPathFactory) -> Path:
                 timestamp=WALL + t, message_id=2 * k + j,
             )  # fmt: skip
             rec.record_message(pos, "in", "master", t + 0.0002)
-        f = (0.5 * k, -0.1 * k, 1.5)
-        force_n = f"{f[0]:.4f},{f[1]:.4f},{f[2]:.4f}"
-        slavetip = igtl.PositionMessage(
-            (5.0, 6.0, 7.0 + k), device_name="SlaveTip", header_version=2, timestamp=WALL + t,
-            metadata={"force_n": force_n, "map": "m1"},
-        )  # fmt: skip
         rec.record_message(slavetip, "out", "master", t + 0.0004)
         if k % 2 == 0:
             arrow = np.eye(4)
@@ -538,13 +547,12 @@ def handmade(tmp_path_factory: pytest.TempPathFactory) -> Path:
             (9.0, 8.0, 7.0 * k), device_name="Base", header_version=2, timestamp=WALL + t
         )
         rec.record_message(other, "in", "tracker", t + 0.0003)
-        # a slave's return channel and force arrow as received: both on names outputs have
-        if k % 5 == 0:
-            rec.record_message(slavetip, "in", "slave", t + 0.0003)
-            arrow_in = tf(
-                np.eye(4), "TipForce", {"force_n": "0.0000,0.0000,2.0000", "mm_per_n": "5"}
-            )
-            rec.record_message(arrow_in, "in", "slave", t + 0.0003)
+        if k % 4 == 0:  # a force it displays itself (a master's, in its base frame)
+            shown = igtl.SensorMessage(
+                device_name="Force", data=(0.0, -1.0 * k, 0.5), header_version=2,
+                timestamp=WALL + t,
+            )  # fmt: skip
+            rec.record_message(shown, "out", "operator", t + 0.0004)
         rec.record_message(igtl.StringMessage("x", device_name="Tip"), "out", "slicer", t)
         bad = np.eye(4)
         bad[0, 3] = math.nan
@@ -624,9 +632,11 @@ def test_read_content_of_a_handmade_recording(handmade: Path, tmp_path: Path) ->
     # forces: the return channel and the Slicer arrow in the patient frame, the received
     # SENSOR Force in its sender's base frame
     assert set(c.forces) == {
-        ("out", "SlaveTip"), ("out", "TipForce"), ("in", "Force"), ("in", "SlaveTip"),
-        ("in", "TipForce"),
+        ("out", "SlaveTip"), ("out", "TipForce"), ("out", "Force"), ("in", "Force"),
+        ("in", "SlaveTip"), ("in", "TipForce"),
     }  # fmt: skip
+    shown = c.forces[("out", "Force")]
+    assert shown.frame == "base" and shown.force == [(0.0, -4.0 * k, 0.5) for k in (0, 1, 2)]
     st = c.forces[("out", "SlaveTip")]
     assert (st.device, st.direction, st.frame) == ("SlaveTip", "out", "patient")
     assert st.force == [(round(0.5 * k, 4), round(-0.1 * k, 4), 1.5) for k in range(10)]
@@ -644,7 +654,7 @@ def test_read_content_of_a_handmade_recording(handmade: Path, tmp_path: Path) ->
 def test_seq_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
     from occ.recexport import read_content, write_seq
 
-    out = tmp_path / "deeper" / "rig.seq.mha"  # a directory that is not there yet
+    out = tmp_path / "deeper" / "still" / "rig.seq.mha"  # directories not there yet
     summary = write_seq(read_content(handmade), out, source="rig.igtl")
     text = out.read_text()
     lines = text.splitlines()
@@ -713,8 +723,11 @@ def test_seq_refuses_what_slicer_would_misread(tmp_path: Path) -> None:
     # refused, nothing written; the longest line is a frame's Transform (65 + the device name)
     long = "T" + "x" * 934  # 999 characters and the newline
     c.streams = {("out", long): PoseStream(long, "out", [0.0], [0.0], [np.eye(4)])}
-    with pytest.raises(ExportError, match="header line too long"):
+    with pytest.raises(ExportError) as err:
         write_seq(c, tmp_path / "b.seq.mha")
+    assert str(err.value) == (
+        f"header line too long for Slicer's reader: Seq_Frame0000_{long[:46]}..."
+    )
     assert not (tmp_path / "b.seq.mha").exists()
     just = "T" + "x" * 933  # 998 and the newline: read whole
     c.streams = {("out", just): PoseStream(just, "out", [0.0], [0.0], [np.eye(4)])}
@@ -722,10 +735,11 @@ def test_seq_refuses_what_slicer_would_misread(tmp_path: Path) -> None:
     assert max(len(b) for b in (tmp_path / "c.seq.mha").read_bytes().splitlines(True)) == 999
     slicer_parse(tmp_path / "c.seq.mha")
     # nothing to export: the error names what there is
+    c.streams[("in", "Master")] = PoseStream("Master", "in", [0.0], [0.0], [np.eye(4)])
     with pytest.raises(ExportError) as err:
         write_seq(c, tmp_path / "d.seq.mha", devices={"Nope"})
-    assert (
-        str(err.value) == f"no TRANSFORM or POSITION stream to export (the recording has: {just})"
+    assert str(err.value) == (
+        f"no TRANSFORM or POSITION stream to export (the recording has: Master, {just})"
     )
     assert err.value.code == 1
     with pytest.raises(ExportError) as err:
@@ -755,7 +769,7 @@ def test_mcap_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
         "/occ/rig_7/input/base/measured_cp", "/occ/rig_7/input/slavetip/measured_cp",
         "/occ/rig_7/measured_cf", "/occ/rig_7/tipforce/measured_cf",
         "/occ/rig_7/slavetip/measured_cf", "/occ/rig_7/input/tipforce/measured_cf",
-        "/occ/rig_7/force/measured_cf",
+        "/occ/rig_7/force/measured_cf", "/occ/rig_7/input/force/measured_cf",
         "/occ/rig_7/measured_js", "/occ/rig_7/setpoint_js", "/occ/rig_7/state",
     }  # fmt: skip
     meta = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
@@ -807,7 +821,8 @@ def test_mcap_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
         ("/occ/rig_7/tipforce/measured_cf", ("out", "TipForce"), "world"),
         ("/occ/rig_7/slavetip/measured_cf", ("in", "SlaveTip"), "slavetip_reference"),
         ("/occ/rig_7/input/tipforce/measured_cf", ("in", "TipForce"), "tipforce_reference"),
-        ("/occ/rig_7/force/measured_cf", ("in", "Force"), "force_reference"),
+        ("/occ/rig_7/force/measured_cf", ("out", "Force"), "rig_7_base"),
+        ("/occ/rig_7/input/force/measured_cf", ("in", "Force"), "force_reference"),
     ):
         fs = c.forces[key]
         assert len(topics[topic]) == len(fs.t), topic
@@ -849,6 +864,7 @@ def test_mcap_single_file_name_and_devices(handmade: Path, tmp_path: Path) -> No
         "/occ/other_arm/measured_cp", "/tf", "/occ/other_arm/measured_cf",
         "/occ/other_arm/tipforce/measured_cf", "/occ/other_arm/slavetip/measured_cf",
         "/occ/other_arm/input/tipforce/measured_cf", "/occ/other_arm/force/measured_cf",
+        "/occ/other_arm/input/force/measured_cf",
         "/occ/other_arm/measured_js", "/occ/other_arm/setpoint_js", "/occ/other_arm/state",
     }  # fmt: skip
     assert counts["/occ/other_arm/measured_cp"] == 10
@@ -865,7 +881,7 @@ def test_mcap_state_rows_without_setpoints_or_joints(tmp_path: Path) -> None:
     from occ.recexport import RecordingContent, write_mcap
 
     c = RecordingContent(columns=["t", "state", "q.a", "q.b", "sp.a", "eff.a", "eff.b"])
-    c.state_t, c.state_wall = [1.0, 2.0], [11.0, 12.0]
+    c.state_t, c.state_wall = [0.0, 2.0], [11.0, 12.0]
     c.state_rows = [
         np.array([1.0, 3.0, 0.5, 0.6, 0.7, 0.8, 0.9]),
         np.array([2.0, 9, 0, 0, 0, 0, 0]),
@@ -875,18 +891,19 @@ def test_mcap_state_rows_without_setpoints_or_joints(tmp_path: Path) -> None:
     assert counts == {"/occ/robot/measured_js": 2, "/occ/robot/state": 1}
     topics = decode_mcap(tmp_path / "a.mcap")
     assert [list(m.position) for m, _ in topics["/occ/robot/measured_js"]] == [[0.5, 0.6], [0, 0]]
-    assert [t for _, t in topics["/occ/robot/measured_js"]] == [1_000_000_000, 2_000_000_000]
+    # no wall clock known: the log times are the recording's times
+    assert [t for _, t in topics["/occ/robot/measured_js"]] == [0, 2_000_000_000]
     c.columns = ["t", "state", "sp.a", "eff.a"]
     c.state_rows = [np.array([1.0, 3.0, 0.5, 0.6]), np.array([2.0, 4.0, 0.5, 0.6])]
     c.robot = "Rig 7"
     counts = write_mcap(c, tmp_path / "b.mcap")
     assert counts == {"/occ/rig_7/state": 2}
-    # commanded joints with no efforts: setpoint_js without efforts
-    c.columns = ["t", "state", "q.a", "sp.a", "eff.b"]
-    c.state_rows = [np.array([1.0, 3.0, 0.5, 0.6, 0.7]), np.array([2.0, 3.0, 0.5, 0.6, 0.7])]
+    # commanded joints with the efforts of some: setpoint_js without efforts
+    c.columns = ["t", "state", "q.a", "q.b", "sp.a", "sp.b", "eff.a"]
+    c.state_rows = [np.array([1.0, 3.0, 0.5, 0.6, 0.7, 0.8, 0.9])] * 2
     write_mcap(c, tmp_path / "c.mcap")
     sp = decode_mcap(tmp_path / "c.mcap")["/occ/rig_7/setpoint_js"]
-    assert [(list(m.position), len(m.effort)) for m, _ in sp] == [([0.6], 0), ([0.6], 0)]
+    assert [(list(m.position), len(m.effort)) for m, _ in sp] == [([0.7, 0.8], 0)] * 2
 
 
 def test_mcap_refusals(handmade: Path, tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
@@ -901,8 +918,9 @@ def test_mcap_refusals(handmade: Path, tmp_path: Path, monkeypatch) -> None:  # 
         ) as err:
             write_mcap(c, tmp_path / "w.mcap")
         assert err.value.code == 2 and list(tmp_path.iterdir()) == []
-    with pytest.raises(ExportError, match="nothing to export: no pose stream and no state rows"):
+    with pytest.raises(ExportError) as err:
         write_mcap(RecordingContent(), tmp_path / "none.mcap")
+    assert str(err.value) == "nothing to export: no pose stream and no state rows"
     assert list(tmp_path.iterdir()) == []
     (tmp_path / "x.mcap").write_bytes(b"keep")
     with pytest.raises(ExportError, match="exists; not overwriting"):
