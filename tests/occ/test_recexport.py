@@ -973,6 +973,19 @@ def test_names_for_slicer_plus_and_ros() -> None:
     for name in names.values():  # one From/To split for PLUS, a capital first
         frm, to = plus_split(name)
         assert frm[0].isupper() and to in ("World", "Reference", "Tracker")
+    # PLUS names (once the name's other characters are dropped) kept; a PLUS name an output
+    # and an input share is the output's, whichever comes first; the words Slicer reads
+    # replaced inside a name
+    keys = [("in", "StylusToTracker"), ("out", "StylusToTracker"), ("out", "AToB")]
+    keys += [("out", "Probe_ToRef"), ("out", "MyTransform"), ("out", "LastStatus")]
+    assert transform_names(keys) == {
+        ("out", "AToB"): "AToB",
+        ("out", "LastStatus"): "LastStateToWorld",
+        ("out", "MyTransform"): "MyXformToWorld",
+        ("out", "Probe_ToRef"): "ProbeToRef",
+        ("out", "StylusToTracker"): "StylusToTracker",
+        ("in", "StylusToTracker"): "StylusInToTracker",
+    }
     assert (_ros_name("Rig 7"), _ros_name("3D Probe"), _ros_name("--"), _ros_name("A__b")) == (
         "rig_7", "s3d_probe", "stream", "a_b",
     )  # fmt: skip
