@@ -195,6 +195,7 @@ def test_seq_follows_slicers_reading_rules(recording: Path, tmp_path: Path) -> N
     assert header["ElementType"] == "MET_UCHAR"
     assert header["Kinds"] == "domain domain list"
     assert header["ElementDataFile"] == "LOCAL"
+    assert (header["OCCRobot"], header["OCCSource"]) == ("slave", "slave.igtl")
     assert out.read_text().rstrip("\n").splitlines()[-1] == "ElementDataFile = LOCAL"
     assert last + 1 == len(frames)
     # one sequence per stream, named <From>To<To> as PLUS splits it
@@ -418,7 +419,10 @@ def test_mcap_without_rosbags_says_so(recording: Path, tmp_path: Path, monkeypat
     monkeypatch.setitem(sys.modules, "rosbags", None)  # import rosbags -> ImportError
     assert main(["export", str(recording), str(tmp_path / "x.mcap")]) == 2
     err = capsys.readouterr().err
-    assert "rosbags" in err and "occ-igtl[record]" in err
+    assert err == (
+        "occ-record: --format mcap needs rosbags: pip install 'occ-igtl[record]'"
+        " (or pip install rosbags)\n"
+    )
     assert not (tmp_path / "x.mcap").exists()
 
 
@@ -558,9 +562,10 @@ def handmade(tmp_path_factory: pytest.TempPathFactory) -> Path:
         bad[0, 3] = math.nan
         rec.record_message(tf(bad, "Tip"), "out", "slicer", t + 0.0005)
     rec.close()
-    # a message no daemon recorded (no rec.t): not a sample of any stream
-    with open(path, "ab") as f:
-        f.write(bytes(tf(np.eye(4), "Tip").pack(2)))
+    # a message no daemon recorded (no rec.t), first in the file: not a sample of any stream,
+    # and the rest is read
+    data = path.read_bytes()
+    path.write_bytes(bytes(tf(np.eye(4), "Tip").pack(2)) + data)
     return path
 
 
@@ -599,6 +604,24 @@ def test_read_content_of_a_handmade_recording(handmade: Path, tmp_path: Path) ->
     rec.record_message(tip, "out", "slicer", 5.0)
     rec.close()
     assert read_content(small).wall_offset == WALL
+    # a state row with no columns or robot (not the daemon's): no rows, no name, no crash; an
+    # output stamped 0 gives no offset, the next one does; a force as an NDARRAY
+    other = tmp_path / "other.igtl"
+    rec = Recorder(other).start()
+    row = igtl.NDArrayMessage(array=np.array([5.0, 1.0]), device_name=STATE_DEVICE)
+    rec.record_message(row, "out", "*", 5.0)
+    for stamp, t in ((0.0, 5.0), (WALL + 7.0, 6.0)):
+        tip = igtl.TransformMessage.from_matrix(np.eye(4), device_name="Tip", timestamp=stamp)
+        rec.record_message(tip, "out", "slicer", t)
+    shown = igtl.NDArrayMessage(array=np.array([1.0, 2.0, 3.0]), device_name="Force")
+    rec.record_message(shown, "out", "operator", 6.0)
+    rec.close()
+    c = read_content(other)
+    assert (c.robot, c.columns, c.state_rows) == ("", [""], [])
+    assert len(c.streams[("out", "Tip")].t) == 2
+    assert c.wall_offset == WALL + 1.0
+    assert c.forces[("out", "Force")].force == [(1.0, 2.0, 3.0)]
+    assert c.forces[("out", "Force")].frame == "base"
 
     c = read_content(handmade)
     assert c.robot == "Rig 7" and c.columns == COLUMNS.split(",")
@@ -931,7 +954,11 @@ def test_mcap_refusals(handmade: Path, tmp_path: Path, monkeypatch) -> None:  # 
     (tmp_path / "dir").mkdir()
     with pytest.raises(ExportError, match="exists"):
         write_mcap(c, tmp_path / "dir")
-    # export: --force replaces a file, never a directory; an unknown format is a usage error
+    # export: an existing file is kept unless force, which replaces a file, never a
+    # directory; an unknown format is a usage error
+    with pytest.raises(ExportError, match="x.mcap exists; not overwriting"):
+        export(handmade, tmp_path / "x.mcap", "mcap")
+    assert (tmp_path / "x.mcap").read_bytes() == b"keep"
     assert export(handmade, tmp_path / "x.mcap", "mcap", force=True)["/tf"] == 10
     assert (tmp_path / "x.mcap").read_bytes()[:8] == b"\x89MCAP0\r\n"
     with pytest.raises(ExportError, match="is a directory; remove it yourself") as err:
