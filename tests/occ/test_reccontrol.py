@@ -8,6 +8,8 @@ does the same over real TCP sockets against a running ``occd``.
 from __future__ import annotations
 
 import json
+import logging
+import re
 import subprocess
 import sys
 import threading
@@ -383,7 +385,7 @@ def test_shutdown_while_a_start_is_being_opened(rig) -> None:  # type: ignore[no
         control.close_all()
     reply = wait_until(lambda: (sim.tick(), op.reply_to(cid))[1], 10.0, every=0.001)
     assert reply is not None and reply.metadata["Status"] == "FAIL"
-    assert "shutting down" in reply.metadata["Message"]
+    assert reply.metadata["Message"] == "StartRecording: the daemon is shutting down"
     assert sim.robot.recorder is None
     assert control.stats()["failed"] == 1 and control.stats()["started"] == 0
     # the file it had opened is closed: every record (none) on disk, the writer gone
@@ -391,13 +393,14 @@ def test_shutdown_while_a_start_is_being_opened(rig) -> None:  # type: ignore[no
     assert sum(t.name == "occ-recorder" for t in threading.enumerate()) == writers
     refused = command(sim, op, "StartRecording", start_xml("later"))
     assert refused.metadata["Status"] == "FAIL"
-    assert "shutting down" in refused.metadata["Message"]
+    assert refused.metadata["Message"] == "StartRecording: the daemon is shutting down"
     assert command(sim, op, "GetRecordingStatus").metadata["Message"] == "recording=false"
     assert not (recs / "later.igtl").exists()
 
 
-def test_getstats_counts_starts_stops_and_failures(rig) -> None:  # type: ignore[no-untyped-def]
+def test_getstats_counts_starts_stops_and_failures(rig, caplog) -> None:  # type: ignore[no-untyped-def]
     sim, op, _, recs = rig
+    caplog.set_level(logging.INFO, logger="occ.robot")
     assert stats(sim, op) == {
         "active": False,
         "file": None,
@@ -418,7 +421,10 @@ def test_getstats_counts_starts_stops_and_failures(rig) -> None:  # type: ignore
     assert (running["started"], running["stopped"], running["failed"]) == (1, 0, 0)
     assert running["last"] is None
     # a start over an existing file fails and is counted, each time
-    assert command(sim, op, "StopRecording").metadata["Status"] == "SUCCESS"
+    first_stop = command(sim, op, "StopRecording").metadata
+    assert first_stop["Status"] == "SUCCESS"
+    summary = first_stop["Message"].removeprefix("Recording ").split(" successful to file ")[0]
+    assert re.fullmatch(r"\d+ records \(\d+ bytes, 0 dropped\)", summary), summary
     for _ in range(2):
         again = command(sim, op, "StartRecording", start_xml("one"))
         assert (
@@ -426,6 +432,13 @@ def test_getstats_counts_starts_stops_and_failures(rig) -> None:  # type: ignore
             == f"StartRecording: {recs / 'one.igtl'} exists; not overwriting"
         )
     done = stats(sim, op)
+    # the operator's log says what became of each: the stop with its summary, each refusal
+    logged = [(r.levelno, r.getMessage()) for r in caplog.records if r.name == "occ.robot"]
+    one = recs / "one.igtl"
+    stopped = [m for lvl, m in logged if lvl == logging.INFO and m.startswith("recording stopped")]
+    assert stopped == [f"recording stopped: {summary} in {one}"]
+    refusal = f"StartRecording: {one} exists; not overwriting"
+    assert [m for lvl, m in logged if lvl == logging.WARNING and m == refusal] == [refusal] * 2
     assert (done["active"], done["file"], done["recorder"]) == (False, None, None)
     assert (done["started"], done["stopped"], done["failed"]) == (1, 1, 2)
     assert done["last"] == str(recs / "one.igtl")
@@ -469,21 +482,26 @@ def test_names_the_daemon_takes_and_refuses(rig) -> None:  # type: ignore[no-unt
         assert (recs / name).is_file()
     # too long; each export format (the advice to export instead); nothing created
     too_long = command(sim, op, "StartRecording", start_xml("x" * 201))
-    assert (
-        too_long.metadata["Status"] == "FAIL" and "bare file name" in too_long.metadata["Message"]
+    assert too_long.metadata["Status"] == "FAIL"
+    assert too_long.metadata["Message"] == (
+        "StartRecording: OutputFilename must be a bare file name (letters, digits, '.', '_', "
+        f"'-'; at most 200; no directory, not starting with '.'), got '{'x' * 201}'"
     )
     for suffix in (".mha", ".MHD", ".nrrd", ".nhdr", ".mcap", ".csv", ".db3", ".bag"):
         bad = command(sim, op, "StartRecording", start_xml("out" + suffix))
         assert bad.metadata["Status"] == "FAIL", suffix
-        assert "own format (.igtl)" in bad.metadata["Message"], bad.metadata
-        assert "occ-record export" in bad.metadata["Message"]
+        assert bad.metadata["Message"] == (
+            f"StartRecording: 'out{suffix}': the daemon records in its own format (.igtl); "
+            "record to NAME.igtl, then occ-record export NAME.igtl OUT.seq.mha (or OUT.mcap)"
+        )
     assert len(list(recs.iterdir())) == 4
     # a stop's new name is checked the same way before anything stops: the recording goes on
     assert command(sim, op, "StartRecording", start_xml("go")).metadata["Status"] == "SUCCESS"
     bad = command(
         sim, op, "StopRecording", '<Command Name="StopRecording" OutputFilename="g.mcap"/>'
     )
-    assert bad.metadata["Status"] == "FAIL" and "StopRecording:" in bad.metadata["Message"]
+    assert bad.metadata["Status"] == "FAIL"
+    assert bad.metadata["Message"].startswith("StopRecording: 'g.mcap': the daemon records in")
     assert sim.robot.recorder is not None and sim.robot.recorder.path == recs / "go.igtl"
     assert command(sim, op, "StopRecording").metadata["Status"] == "SUCCESS"
 
