@@ -435,6 +435,8 @@ def test_getstats_counts_starts_stops_and_failures(rig, caplog) -> None:  # type
     # the operator's log says what became of each: the stop with its summary, each refusal
     logged = [(r.levelno, r.getMessage()) for r in caplog.records if r.name == "occ.robot"]
     one = recs / "one.igtl"
+    started = [m for lvl, m in logged if lvl == logging.INFO and m.startswith("recording started")]
+    assert started == [f"recording started at run time: {one}"]
     stopped = [m for lvl, m in logged if lvl == logging.INFO and m.startswith("recording stopped")]
     assert stopped == [f"recording stopped: {summary} in {one}"]
     refusal = f"StartRecording: {one} exists; not overwriting"
@@ -529,9 +531,24 @@ def test_the_configured_directory_rate_and_messages(tmp_path: Path) -> None:
         op = sim.peer("operator")
         bad = command(sim, op, "StartRecording", start_xml("r"))
         assert bad.metadata["Status"] == "FAIL"
-        assert f"cannot write {tmp_path / 'file' / 'recs' / 'r.igtl'}" in bad.metadata["Message"]
+        assert bad.metadata["Message"] == (
+            f"StartRecording: cannot write {tmp_path / 'file' / 'recs' / 'r.igtl'}: Not a directory"
+        )
         assert sim.robot.recorder is None
         assert command(sim, op, "GetRecordingStatus").metadata["Message"] == "recording=false"
+    finally:
+        sim.close()
+    # a directory that is there but takes no new file (/proc: no one creates files in it)
+    sim = SimRobot(slave_config(Path("/proc")))
+    try:
+        op = sim.peer("operator")
+        bad = command(sim, op, "StartRecording", start_xml("r"))
+        assert bad.metadata["Status"] == "FAIL"
+        assert bad.metadata["Message"] == (
+            "StartRecording: cannot write /proc/r.igtl: No such file or directory"
+        )
+        assert command(sim, op, "GetRecordingStatus").metadata["Message"] == "recording=false"
+        assert sim.robot.operators.recording.stats()["failed"] == 1
     finally:
         sim.close()
 
