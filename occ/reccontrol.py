@@ -190,7 +190,18 @@ class RecordingControl:
             fifo_priority=writer_priority(self.robot.config),
         )
         try:
+            # its own step: a FileExistsError here is the directory's name taken by a file,
+            # not the recording's file existing
             path.parent.mkdir(parents=True, exist_ok=True)
+        except FileExistsError:
+            self._fail(
+                done, f"StartRecording: cannot write {path}: {path.parent} is not a directory"
+            )
+            return
+        except OSError as err:
+            self._fail(done, f"StartRecording: cannot write {path}: {err.strerror or err}")
+            return
+        try:
             rec.start(exclusive=True)
         except FileExistsError:
             self._fail(done, f"StartRecording: {path} exists; not overwriting")

@@ -13,11 +13,12 @@ custom fields hold, per frame ``NNNN``,
 The rules it follows are those of Slicer's reader (``vtkMRMLLinearTransformSequenceStorageNode``:
 a frame field is ``Seq_Frame`` + number + ``_`` + name; a field whose name holds ``Transform``
 and not ``Status`` is a matrix; a frame's index value is its timestamp rounded to milliseconds,
-so two frames never share a millisecond here; header lines are read 1000 bytes at a time, so no
-line is longer) and of PLUS's transform names (exactly one ``To`` followed by a capital: the
-device names are made to fit). Every TRANSFORM and POSITION stream of the recording is one
-transform: the daemon's outputs (``Tip``, ``Base``: poses in the world, as 3D Slicer shows them)
-as ``<Device>ToWorld``, streams it received (a master's POSITION) as ``<Device>ToReference``.
+so two frames never share a millisecond here; header lines are read with ``fgets`` into 1000
+bytes, so no line is longer than 998 characters and its newline) and of PLUS's transform names
+(exactly one ``To`` followed by a capital: the device names are made to fit). Every TRANSFORM
+and POSITION stream of the recording is one transform: the daemon's outputs (``Tip``, ``Base``:
+poses in the world, as 3D Slicer shows them) as ``<Device>ToWorld``, streams it received (a
+master's POSITION) as ``<Device>ToReference``.
 
 ``occ-record export REC --format mcap OUT.mcap`` writes a ROS 2 bag with rosbags' writer (the
 optional extra ``record``): a single MCAP file for ``OUT.mcap``, a rosbag2 directory (the MCAP file
@@ -28,7 +29,8 @@ Its topics are those the ROS 2 bridge publishes (occ_ros2/bridge.py), in metres,
 - ``/occ/NAME/measured_cp`` (geometry_msgs/PoseStamped): the tip in the base frame
   (Base⁻¹·Tip), frame_id ``NAME_base``;
 - ``/occ/NAME/base/measured_cp``: the base in ``world``; other pose streams as
-  ``/occ/NAME/<device>/measured_cp``;
+  ``/occ/NAME/<device>/measured_cp`` (an input on a name an output has, or ``base``, as
+  ``/occ/NAME/input/<device>/measured_cp``; the same for forces);
 - ``/occ/NAME/measured_js`` and ``/occ/NAME/setpoint_js`` (sensor_msgs/JointState): the loop
   state rows (measured and commanded joints; the commanded efforts of a haptic master);
 - ``/occ/NAME/state`` (std_msgs/String): the daemon's state when it changes;
@@ -68,8 +70,9 @@ from .samples import quaternion_to_rotation
 WORLD = "World"
 #: the frame of pose streams the daemon received (the sender's reference)
 REFERENCE = "Reference"
-#: Slicer's reader takes header lines 1000 bytes at a time: a longer one would be cut in two
-MAX_LINE = 999
+#: Slicer's reader takes header lines with fgets into 1000 bytes: 999 characters and the
+#: string's end, so a line of 999 characters is read without its newline, in two pieces
+MAX_LINE = 998
 
 
 class ExportError(Exception):
@@ -203,10 +206,12 @@ def _frame_name(text: str) -> str:
     ``Status`` (which would make Slicer skip or misread the field)."""
     name = re.sub(r"[^A-Za-z0-9]", "", text) or "Stream"
     name = name.replace("Transform", "Xform").replace("Status", "State")
-    name = re.sub(r"To(?![a-z])", "to", name)
     if not name[0].isalpha():
         name = "S" + name
-    return name[0].upper() + name[1:]
+    # the capital first, then the separators out (``ToTool`` or ``toTarget`` would begin with
+    # one); a name that now begins with ``to`` gets the ``S`` too
+    name = re.sub(r"To(?![a-z])", "to", name[0].upper() + name[1:])
+    return name if name[0].isupper() else "S" + name
 
 
 def _plus_split(name: str) -> tuple[str, str] | None:
@@ -509,7 +514,9 @@ def write_mcap(
     if tip is not None:
         events.extend((t, 1, on_tip(i)) for i, t in enumerate(tip.t))
     taken = {f"{ns}/measured_cp", f"{ns}/base/measured_cp"}
-    for _key, s in sorted(content.streams.items()):
+    # outputs first: a name both an output and an input have is the output's; the input's
+    # goes under input/
+    for _key, s in sorted(content.streams.items(), key=_outputs_first):
         if s is tip or s is base or _key in content.force_transforms:
             continue
         leaf = _ros_name(s.device)
@@ -539,6 +546,12 @@ def write_mcap(
     return dict(sorted(bag.counts.items()))
 
 
+def _outputs_first(item: tuple[tuple[str, str], Any]) -> tuple[bool, str]:
+    """The order streams take their topics in: outputs, then inputs, each by device."""
+    (direction, device), _ = item
+    return direction != "out", device
+
+
 def _force_events(
     bag: _Bag, content: RecordingContent, ns: str, base_frame: str, offset: float,
     taken: set[str],
@@ -566,7 +579,7 @@ def _force_events(
 
         return emit
 
-    for key, s in sorted(content.forces.items()):
+    for key, s in sorted(content.forces.items(), key=_outputs_first):
         leaf = _ros_name(s.device)
         if key == main:
             topic = f"{ns}/measured_cf"

@@ -7,9 +7,15 @@ does the same over real TCP sockets against a running ``occd``.
 
 from __future__ import annotations
 
+import json
+import logging
+import re
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from itertools import pairwise
 from pathlib import Path
 from typing import Any
@@ -276,3 +282,289 @@ def test_start_stop_on_a_running_daemon(tmp_path: Path) -> None:
     finally:
         stop_processes([proc])
     assert proc.returncode == 0, proc.stderr.read().decode() if proc.stderr else ""
+
+
+# ---------------------------------------------------------------------- the worker's side
+@contextmanager
+def held_worker(sim: SimRobot, *, fill: bool = False) -> Iterator[None]:
+    """The robot's worker busy with a job that waits for the end of the block (a GetStats
+    snapshot or a slow disk would do the same); ``fill``: its queue full too (8 jobs)."""
+    worker = sim.robot.worker.start()
+    taken, gate = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        taken.set()
+        gate.wait(10.0)
+
+    assert worker.submit(hold) and taken.wait(5.0)
+    try:
+        if fill:
+            while worker.submit(lambda: None):
+                pass
+        yield
+    finally:
+        gate.set()
+    # and the queue drained before the test goes on
+    drained = threading.Event()
+    assert wait_until(lambda: worker.submit(drained.set), 5.0, every=0.001)
+    assert drained.wait(5.0)
+
+
+def stats(sim: SimRobot, op: SimPeer) -> dict[str, Any]:
+    """GetStats' ``recording`` part."""
+    reply = command(sim, op, "GetStats")
+    assert reply.metadata["Status"] == "SUCCESS", reply.metadata
+    return json.loads(reply.metadata["Message"])["recording"]  # type: ignore[no-any-return]
+
+
+def start_xml(name: str) -> str:
+    return f'<Command Name="StartRecording" OutputFilename="{name}"/>'
+
+
+def test_a_start_being_opened_and_a_busy_worker(rig) -> None:  # type: ignore[no-untyped-def]
+    sim, op, _, recs = rig
+    path = recs / "held.igtl"
+    idle = command(sim, op, "StopRecording")
+    assert idle.metadata["Message"] == "StopRecording: not recording"
+    with held_worker(sim):
+        cid = op.send_command("StartRecording", start_xml("held"))
+        # answered on the loop, after the start (one peer's commands are taken in order)
+        status = command(sim, op, "GetRecordingStatus").metadata["Message"]
+        assert status == f"recording=starting; file={path}"
+        again = command(sim, op, "StartRecording", start_xml("other"))
+        assert again.metadata["Status"] == "FAIL"
+        assert f"already starting a recording ({path})" in again.metadata["Message"]
+        stop = command(sim, op, "StopRecording")
+        assert stop.metadata["Status"] == "FAIL"
+        assert f"the recording {path} is still being opened" in stop.metadata["Message"]
+        assert op.reply_to(cid) is None and sim.robot.recorder is None
+    started = wait_until(lambda: (sim.tick(), op.reply_to(cid))[1], 10.0, every=0.001)
+    assert started is not None and started.metadata["Status"] == "SUCCESS", started
+    assert sim.robot.recorder is not None and sim.robot.recorder.path == path
+    assert not (recs / "other.igtl").exists()
+    # a stop the worker cannot take: refused, and the recording goes on
+    with held_worker(sim, fill=True):
+        before = sim.robot.recorder.stats()["records"]
+        stop = command(sim, op, "StopRecording")
+        assert stop.metadata["Status"] == "FAIL"
+        assert stop.metadata["Message"] == (
+            "StopRecording: busy (the worker's queue is full); try again"
+        )
+        sim.step(20)
+        assert sim.robot.recorder is not None and sim.robot.recorder.stats()["records"] > before
+        status = command(sim, op, "GetRecordingStatus").metadata["Message"]
+        assert status.startswith(f"recording=true; file={path}; records="), status
+    assert command(sim, op, "StopRecording").metadata["Status"] == "SUCCESS"
+    # a start the worker cannot take: refused, nothing pending, no file
+    with held_worker(sim, fill=True):
+        busy = command(sim, op, "StartRecording", start_xml("late"))
+        assert busy.metadata["Status"] == "FAIL"
+        assert busy.metadata["Message"] == (
+            "StartRecording: busy (the worker's queue is full); try again"
+        )
+        status = command(sim, op, "GetRecordingStatus").metadata["Message"]
+        assert status == f"recording=false; last={path}"
+    assert command(sim, op, "StartRecording", start_xml("late")).metadata["Status"] == "SUCCESS"
+    assert sim.robot.recorder is not None and sim.robot.recorder.path == recs / "late.igtl"
+
+
+def test_shutdown_while_a_start_is_being_opened(rig) -> None:  # type: ignore[no-untyped-def]
+    """The daemon's shutdown (Robot.shutdown) gives the worker 1 s to finish; a start it has
+    not opened by then finds the shutdown done: its file is closed, the start fails, and no
+    start is taken after it."""
+    sim, op, _, recs = rig
+    control = sim.robot.operators.recording
+    writers = sum(t.name == "occ-recorder" for t in threading.enumerate())
+    with held_worker(sim):
+        cid = op.send_command("StartRecording", start_xml("late"))
+        assert (
+            command(sim, op, "GetRecordingStatus")
+            .metadata["Message"]
+            .startswith("recording=starting")
+        )
+        control.close_all()
+    reply = wait_until(lambda: (sim.tick(), op.reply_to(cid))[1], 10.0, every=0.001)
+    assert reply is not None and reply.metadata["Status"] == "FAIL"
+    assert reply.metadata["Message"] == "StartRecording: the daemon is shutting down"
+    assert sim.robot.recorder is None
+    assert control.stats()["failed"] == 1 and control.stats()["started"] == 0
+    # the file it had opened is closed: every record (none) on disk, the writer gone
+    assert (recs / "late.igtl").stat().st_size == 0
+    assert sum(t.name == "occ-recorder" for t in threading.enumerate()) == writers
+    refused = command(sim, op, "StartRecording", start_xml("later"))
+    assert refused.metadata["Status"] == "FAIL"
+    assert refused.metadata["Message"] == "StartRecording: the daemon is shutting down"
+    assert command(sim, op, "GetRecordingStatus").metadata["Message"] == "recording=false"
+    assert not (recs / "later.igtl").exists()
+
+
+def test_getstats_counts_starts_stops_and_failures(rig, caplog) -> None:  # type: ignore[no-untyped-def]
+    sim, op, _, recs = rig
+    caplog.set_level(logging.INFO, logger="occ.robot")
+    assert stats(sim, op) == {
+        "active": False,
+        "file": None,
+        "recorder": None,
+        "started": 0,
+        "stopped": 0,
+        "failed": 0,
+        "last": None,
+    }
+    assert command(sim, op, "StartRecording", start_xml("one")).metadata["Status"] == "SUCCESS"
+    sim.step(30)
+    # the writer asks for SCHED_FIFO below the loop's (slave.yaml: the loop at 60) as it starts
+    wait_until(lambda: "SCHED_FIFO" in stats(sim, op)["recorder"]["writer"], 5.0, every=0.01)
+    running = stats(sim, op)
+    assert running["active"] is True and running["file"] == str(recs / "one.igtl")
+    assert running["recorder"]["records"] > 0 and running["recorder"]["dropped"] == 0
+    assert "SCHED_FIFO" in running["recorder"]["writer"], running["recorder"]
+    assert (running["started"], running["stopped"], running["failed"]) == (1, 0, 0)
+    assert running["last"] is None
+    # a start over an existing file fails and is counted, each time
+    first_stop = command(sim, op, "StopRecording").metadata
+    assert first_stop["Status"] == "SUCCESS"
+    summary = first_stop["Message"].removeprefix("Recording ").split(" successful to file ")[0]
+    assert re.fullmatch(r"\d+ records \(\d+ bytes, 0 dropped\)", summary), summary
+    for _ in range(2):
+        again = command(sim, op, "StartRecording", start_xml("one"))
+        assert (
+            again.metadata["Message"]
+            == f"StartRecording: {recs / 'one.igtl'} exists; not overwriting"
+        )
+    done = stats(sim, op)
+    # the operator's log says what became of each: the stop with its summary, each refusal
+    logged = [(r.levelno, r.getMessage()) for r in caplog.records if r.name == "occ.robot"]
+    one = recs / "one.igtl"
+    started = [m for lvl, m in logged if lvl == logging.INFO and m.startswith("recording started")]
+    assert started == [f"recording started at run time: {one}"]
+    stopped = [m for lvl, m in logged if lvl == logging.INFO and m.startswith("recording stopped")]
+    assert stopped == [f"recording stopped: {summary} in {one}"]
+    refusal = f"StartRecording: {one} exists; not overwriting"
+    assert [m for lvl, m in logged if lvl == logging.WARNING and m == refusal] == [refusal] * 2
+    assert (done["active"], done["file"], done["recorder"]) == (False, None, None)
+    assert (done["started"], done["stopped"], done["failed"]) == (1, 1, 2)
+    assert done["last"] == str(recs / "one.igtl")
+    # a rename that cannot be made: stopped, counted as failed, the file kept as it was
+    assert command(sim, op, "StartRecording", start_xml("two")).metadata["Status"] == "SUCCESS"
+    stop = command(sim, op, "StopRecording", start_xml("one").replace("Start", "Stop"))
+    assert stop.metadata["Status"] == "FAIL"
+    assert stop.metadata["Message"].endswith(
+        f"in {recs / 'two.igtl'}; cannot name it one.igtl: File exists"
+    )
+    after = stats(sim, op)
+    assert (after["started"], after["stopped"], after["failed"]) == (2, 2, 3)
+    assert after["last"] == str(recs / "two.igtl")
+    status = command(sim, op, "GetRecordingStatus").metadata["Message"]
+    assert status == f"recording=false; last={recs / 'two.igtl'}"
+    # a rename that is made: the reply and the status name the new file
+    assert command(sim, op, "StartRecording", start_xml("three")).metadata["Status"] == "SUCCESS"
+    stop = command(sim, op, "StopRecording", start_xml("four").replace("Start", "Stop"))
+    assert stop.metadata["Status"] == "SUCCESS"
+    assert stop.metadata["Message"].endswith(f" successful to file {recs / 'four.igtl'}")
+    assert not (recs / "three.igtl").exists() and (recs / "four.igtl").is_file()
+    status = command(sim, op, "GetRecordingStatus").metadata["Message"]
+    assert status == f"recording=false; last={recs / 'four.igtl'}"
+    assert stats(sim, op)["last"] == str(recs / "four.igtl")
+
+
+def test_names_the_daemon_takes_and_refuses(rig) -> None:  # type: ignore[no-untyped-def]
+    sim, op, _, recs = rig
+    # PLUS's attribute in any case, spaces around the name dropped; a suffix of any case kept
+    for attr, value, name in (
+        ("outputfilename", " padded ", "padded.igtl"),
+        ("OUTPUTFILENAME", "Upper.IGTL", "Upper.IGTL"),
+        ("OutputFilename", "x" * 200, "x" * 200 + ".igtl"),
+        ("OutputFilename", "a-b_c.1", "a-b_c.1.igtl"),
+    ):
+        xml = f'<Command Name="StartRecording" {attr}="{value}"/>'
+        start = command(sim, op, "StartRecording", xml)
+        assert start.metadata["Status"] == "SUCCESS", (value, start.metadata)
+        assert start.metadata["Message"] == f"recording to {recs / name}"
+        assert command(sim, op, "StopRecording").metadata["Status"] == "SUCCESS"
+        assert (recs / name).is_file()
+    # too long; each export format (the advice to export instead); nothing created
+    too_long = command(sim, op, "StartRecording", start_xml("x" * 201))
+    assert too_long.metadata["Status"] == "FAIL"
+    assert too_long.metadata["Message"] == (
+        "StartRecording: OutputFilename must be a bare file name (letters, digits, '.', '_', "
+        f"'-'; at most 200; no directory, not starting with '.'), got '{'x' * 201}'"
+    )
+    for suffix in (".mha", ".MHD", ".nrrd", ".nhdr", ".mcap", ".csv", ".db3", ".bag"):
+        bad = command(sim, op, "StartRecording", start_xml("out" + suffix))
+        assert bad.metadata["Status"] == "FAIL", suffix
+        assert bad.metadata["Message"] == (
+            f"StartRecording: 'out{suffix}': the daemon records in its own format (.igtl); "
+            "record to NAME.igtl, then occ-record export NAME.igtl OUT.seq.mha (or OUT.mcap)"
+        )
+    assert len(list(recs.iterdir())) == 4
+    # a stop's new name is checked the same way before anything stops: the recording goes on
+    assert command(sim, op, "StartRecording", start_xml("go")).metadata["Status"] == "SUCCESS"
+    bad = command(
+        sim, op, "StopRecording", '<Command Name="StopRecording" OutputFilename="g.mcap"/>'
+    )
+    assert bad.metadata["Status"] == "FAIL"
+    assert bad.metadata["Message"].startswith("StopRecording: 'g.mcap': the daemon records in")
+    assert sim.robot.recorder is not None and sim.robot.recorder.path == recs / "go.igtl"
+    assert command(sim, op, "StopRecording").metadata["Status"] == "SUCCESS"
+
+
+def test_the_configured_directory_rate_and_messages(tmp_path: Path) -> None:
+    """recording.directory (made, parents too), rate_hz and include_messages are the
+    recording's; a directory that cannot be made is a clear refusal, not a crash."""
+    cfg = slave_config(tmp_path / "deep" / "er" / "recs")
+    cfg["recording"].update(rate_hz=50, include_messages=False)
+    sim = SimRobot(cfg)
+    try:
+        op = sim.peer("operator")
+        assert command(sim, op, "StartRecording", start_xml("r")).metadata["Status"] == "SUCCESS"
+        sim.step(400)
+        assert command(sim, op, "StopRecording").metadata["Status"] == "SUCCESS"
+        msgs = read_recording(tmp_path / "deep" / "er" / "recs" / "r.igtl")
+        assert {m.device_name for m in msgs} == {STATE_DEVICE}  # no messages
+        times = [float(m.array[0]) for m in msgs]  # type: ignore[attr-defined]
+        assert all(0.019 < b - a < 0.021 for a, b in pairwise(times))
+    finally:
+        sim.close()
+    (tmp_path / "file").write_text("not a directory")
+    sim = SimRobot(slave_config(tmp_path / "file" / "recs"))
+    try:
+        op = sim.peer("operator")
+        bad = command(sim, op, "StartRecording", start_xml("r"))
+        assert bad.metadata["Status"] == "FAIL"
+        assert bad.metadata["Message"] == (
+            f"StartRecording: cannot write {tmp_path / 'file' / 'recs' / 'r.igtl'}: Not a directory"
+        )
+        assert sim.robot.recorder is None
+        assert command(sim, op, "GetRecordingStatus").metadata["Message"] == "recording=false"
+    finally:
+        sim.close()
+    # a directory that is there but takes no new file (/proc: no one creates files in it)
+    sim = SimRobot(slave_config(Path("/proc")))
+    try:
+        op = sim.peer("operator")
+        bad = command(sim, op, "StartRecording", start_xml("r"))
+        assert bad.metadata["Status"] == "FAIL"
+        assert bad.metadata["Message"] == (
+            "StartRecording: cannot write /proc/r.igtl: No such file or directory"
+        )
+        assert command(sim, op, "GetRecordingStatus").metadata["Message"] == "recording=false"
+        assert sim.robot.operators.recording.stats()["failed"] == 1
+    finally:
+        sim.close()
+
+
+def test_a_directory_that_is_a_file_is_no_existing_recording(tmp_path: Path) -> None:
+    """recording.directory naming a file: the start says it cannot write there, not that the
+    recording's file exists (it does not)."""
+    (tmp_path / "recs").write_text("a file where the directory should be")
+    sim = SimRobot(slave_config(tmp_path / "recs"))
+    try:
+        op = sim.peer("operator")
+        bad = command(sim, op, "StartRecording", start_xml("r"))
+        assert bad.metadata["Status"] == "FAIL"
+        path = tmp_path / "recs" / "r.igtl"
+        assert bad.metadata["Message"] == (
+            f"StartRecording: cannot write {path}: {path.parent} is not a directory"
+        )
+    finally:
+        sim.close()

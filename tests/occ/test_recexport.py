@@ -18,7 +18,9 @@ from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 
+import igtl
 from occ.record import STATE_DEVICE, Recorder, read_recording
 from occ.recordcli import main
 from occ.testing import SimRobot
@@ -193,6 +195,7 @@ def test_seq_follows_slicers_reading_rules(recording: Path, tmp_path: Path) -> N
     assert header["ElementType"] == "MET_UCHAR"
     assert header["Kinds"] == "domain domain list"
     assert header["ElementDataFile"] == "LOCAL"
+    assert (header["OCCRobot"], header["OCCSource"]) == ("slave", "slave.igtl")
     assert out.read_text().rstrip("\n").splitlines()[-1] == "ElementDataFile = LOCAL"
     assert last + 1 == len(frames)
     # one sequence per stream, named <From>To<To> as PLUS splits it
@@ -416,7 +419,10 @@ def test_mcap_without_rosbags_says_so(recording: Path, tmp_path: Path, monkeypat
     monkeypatch.setitem(sys.modules, "rosbags", None)  # import rosbags -> ImportError
     assert main(["export", str(recording), str(tmp_path / "x.mcap")]) == 2
     err = capsys.readouterr().err
-    assert "rosbags" in err and "occ-igtl[record]" in err
+    assert err == (
+        "occ-record: --format mcap needs rosbags: pip install 'occ-igtl[record]'"
+        " (or pip install rosbags)\n"
+    )
     assert not (tmp_path / "x.mcap").exists()
 
 
@@ -453,3 +459,595 @@ def test_outputs_count_once_received_samples_all(tmp_path: Path) -> None:
     c = read_content(path)
     assert len(c.streams[("out", "Tip")].t) == 2
     assert [p[0, 3] for p in c.streams[("in", "Master")].pose] == [1.0, 2.0, 1.0, 2.0]
+
+
+# ---------------------------------------------------------------------- a recording made by hand
+#: the daemon's clock at the first record (a daemon's recording does not start at 0)
+T0 = 1000.25
+#: its wall clock minus its own
+WALL = 1.7e9
+COLUMNS = "t,state,q.a,q.b,sp.a,sp.b,tip.x_mm,tip.y_mm,tip.z_mm,eff.a,eff.b"
+#: the state per row: READY, READY, ENABLED, ENABLED, RUNNING ... (STATE_CODES)
+STATES = [1, 1, 2, 2, 3, 3, 3, 4, 4, 3]
+
+
+def turned(k: int) -> np.ndarray:
+    """The base of tick ``k``: turned a further 7 degrees about z and 3 about x each tick."""
+    m = rot("z", 7.0 * k) @ rot("x", -3.0 * k)
+    m[:3, 3] = (10.0 * k, -4.0, 2.5 * k)
+    return m
+
+
+def tip_pose(k: int) -> np.ndarray:
+    m = rot("y", 11.0 * k) @ rot("z", 5.0)
+    m[:3, 3] = (30.0 + k, 12.0 - 2.0 * k, 250.0 + 0.5 * k)
+    return m
+
+
+@pytest.fixture(scope="module")
+def handmade(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Ten ticks of a robot ``Rig 7`` (a haptic master's state columns, with efforts) through
+    the daemon's Recorder: its Tip and a moving Base sent on two interfaces each tick, a
+    master's POSITION twice a tick, its return channel (SlaveTip with force_n) every tick,
+    a TipForce to Slicer every other one and a displayed Force every fourth, a force and poses
+    received on names it sends or the exports take themselves (Force, SlaveTip, TipForce,
+    Base), a STRING; then what must not be read as a sample: a row of the wrong length, a pose
+    that is not finite, and a message no daemon recorded."""
+    path = tmp_path_factory.mktemp("hand") / "rig.igtl"
+    rec = Recorder(path).start()
+
+    def tf(m: np.ndarray, device: str, meta: dict[str, str] | None = None) -> Any:
+        return igtl.TransformMessage.from_matrix(
+            m, device_name=device, header_version=2, timestamp=WALL + t, metadata=meta or {}
+        )
+
+    for k in range(10):
+        t = T0 + 0.01 * k
+        row = [t, STATES[k], 0.1 * k, -0.2 * k, 0.1 * k + 0.01, -0.2 * k - 0.01]
+        row += [1.0, 2.0, 3.0, 0.5 * k, -0.25 * k]
+        state = igtl.NDArrayMessage(
+            array=np.asarray(row if k != 6 else row[:-1], dtype=np.float64),
+            device_name=STATE_DEVICE,
+            header_version=2,
+            metadata={"columns": COLUMNS, "robot": "Rig 7"} if k == 0 else {},
+            timestamp=0.0 if k == 0 else WALL + t - 0.0001,
+        )
+        rec.record_message(state, "out", "*", t)
+        f = (0.5 * k, -0.1 * k, 1.5)
+        force_n = f"{f[0]:.4f},{f[1]:.4f},{f[2]:.4f}"
+        slavetip = igtl.PositionMessage(
+            (5.0, 6.0, 7.0 + k), device_name="SlaveTip", header_version=2, timestamp=WALL + t,
+            metadata={"force_n": force_n, "map": "m1"},
+        )  # fmt: skip
+        # a slave's return channel and force arrow as received (before this tick's outputs,
+        # as a daemon reads before it sends): both on names outputs have
+        if k % 5 == 0:
+            rec.record_message(slavetip, "in", "slave", t + 0.0001)
+            arrow_in = tf(
+                np.eye(4), "TipForce", {"force_n": "0.0000,0.0000,2.0000", "mm_per_n": "5"}
+            )
+            rec.record_message(arrow_in, "in", "slave", t + 0.0001)
+        for itf in ("slicer", "viewer"):
+            rec.record_message(tf(turned(k), "Base"), "out", itf, t + 0.0004)
+            rec.record_message(tf(tip_pose(k), "Tip"), "out", itf, t + 0.0004)
+        for j in (1, 2):  # two datagrams drained in one tick: both count, the last stands
+            q = (0.0, math.sin(0.05 * (2 * k + j)), 0.0, math.cos(0.05 * (2 * k + j)))
+            pos = igtl.PositionMessage(
+                (1.0 * k, 2.0 * j, 3.0), q, device_name="Master", header_version=2,
+                timestamp=WALL + t, message_id=2 * k + j,
+            )  # fmt: skip
+            rec.record_message(pos, "in", "master", t + 0.0002)
+        rec.record_message(slavetip, "out", "master", t + 0.0004)
+        if k % 2 == 0:
+            arrow = np.eye(4)
+            arrow[:3, 3] = (30.0 + k, 12.0, 250.0)
+            meta = {"force_n": force_n, "mm_per_n": "10", "frame": "patient"}
+            rec.record_message(tf(arrow, "TipForce", meta), "out", "slicer", t + 0.0004)
+        hand = igtl.SensorMessage(
+            device_name="Force", data=(0.1 * k, 0.2, -0.3), header_version=2, timestamp=WALL + t
+        )
+        rec.record_message(hand, "in", "slave", t + 0.0003)
+        other = igtl.PositionMessage(
+            (9.0, 8.0, 7.0 * k), device_name="Base", header_version=2, timestamp=WALL + t
+        )
+        rec.record_message(other, "in", "tracker", t + 0.0003)
+        if k % 4 == 0:  # a force it displays itself (a master's, in its base frame)
+            shown = igtl.SensorMessage(
+                device_name="Force", data=(0.0, -1.0 * k, 0.5), header_version=2,
+                timestamp=WALL + t,
+            )  # fmt: skip
+            rec.record_message(shown, "out", "operator", t + 0.0004)
+        rec.record_message(igtl.StringMessage("x", device_name="Tip"), "out", "slicer", t)
+        bad = np.eye(4)
+        bad[0, 3] = math.nan
+        rec.record_message(tf(bad, "Tip"), "out", "slicer", t + 0.0005)
+    rec.close()
+    # a message no daemon recorded (no rec.t), first in the file: not a sample of any stream,
+    # and the rest is read
+    data = path.read_bytes()
+    path.write_bytes(bytes(tf(np.eye(4), "Tip").pack(2)) + data)
+    return path
+
+
+def handmade_messages(path: Path, mtype: str, device: str, direction: str) -> list[Any]:
+    """The recorded messages of one stream, an output once per tick (as the daemon sent it)."""
+    out: list[Any] = []
+    seen: set[str] = set()
+    for m in read_recording(path):
+        meta = m.metadata
+        if m.message_type != mtype or m.device_name != device or "rec.t" not in meta:
+            continue
+        if meta["rec.dir"] != direction:
+            continue
+        if direction == "out" and meta["rec.t"] in seen:
+            continue
+        seen.add(meta["rec.t"])
+        out.append(m)
+    return out
+
+
+def test_read_content_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
+    from occ.recexport import read_content
+
+    # the wall clock's offset from the first state row when it comes first (the pose after it
+    # has another offset)
+    small = tmp_path / "small.igtl"
+    rec = Recorder(small).start()
+    row = igtl.NDArrayMessage(
+        array=np.array([5.0, 1.0]), device_name=STATE_DEVICE, header_version=2,
+        metadata={"columns": "t,state", "robot": "r"}, timestamp=WALL + 5.0,
+    )  # fmt: skip
+    rec.record_message(row, "out", "*", 5.0)
+    tip = igtl.TransformMessage.from_matrix(
+        np.eye(4), device_name="Tip", header_version=2, timestamp=WALL + 9.0
+    )
+    rec.record_message(tip, "out", "slicer", 5.0)
+    rec.close()
+    assert read_content(small).wall_offset == WALL
+    # a state row with no columns or robot (not the daemon's): no rows, no name, no crash; an
+    # output stamped 0 gives no offset, the next one does; a force as an NDARRAY
+    other = tmp_path / "other.igtl"
+    rec = Recorder(other).start()
+    row = igtl.NDArrayMessage(array=np.array([5.0, 1.0]), device_name=STATE_DEVICE)
+    rec.record_message(row, "out", "*", 5.0)
+    for stamp, t in ((0.0, 5.0), (WALL + 7.0, 6.0)):
+        tip = igtl.TransformMessage.from_matrix(np.eye(4), device_name="Tip", timestamp=stamp)
+        rec.record_message(tip, "out", "slicer", t)
+    shown = igtl.NDArrayMessage(array=np.array([1.0, 2.0, 3.0]), device_name="Force")
+    rec.record_message(shown, "out", "operator", 6.0)
+    rec.close()
+    c = read_content(other)
+    assert (c.robot, c.columns, c.state_rows) == ("", [""], [])
+    assert len(c.streams[("out", "Tip")].t) == 2
+    assert c.wall_offset == WALL + 1.0
+    assert c.forces[("out", "Force")].force == [(1.0, 2.0, 3.0)]
+    assert c.forces[("out", "Force")].frame == "base"
+
+    c = read_content(handmade)
+    assert c.robot == "Rig 7" and c.columns == COLUMNS.split(",")
+    # the short row is left out; the first row's wall stamp (0) gives no offset: the first
+    # output's does (Base, 0.4 ms after the row)
+    assert c.state_t == pytest.approx([T0 + 0.01 * k for k in range(10) if k != 6], abs=1e-9)
+    assert c.state_wall[0] == 0.0
+    assert c.wall_offset == pytest.approx(WALL - 0.0004, abs=2e-6)
+    assert [int(r[1]) for r in c.state_rows] == [s for k, s in enumerate(STATES) if k != 6]
+    assert set(c.streams) == {
+        ("out", "Tip"), ("out", "Base"), ("out", "SlaveTip"), ("out", "TipForce"),
+        ("in", "Master"), ("in", "Base"), ("in", "SlaveTip"), ("in", "TipForce"),
+    }  # fmt: skip
+    tip = c.streams[("out", "Tip")]
+    assert tip.device == "Tip" and tip.direction == "out"
+    assert tip.t == pytest.approx([T0 + 0.01 * k + 0.0004 for k in range(10)], abs=1e-9)
+    for k, m in enumerate(tip.pose):
+        assert np.abs(m - tip_pose(k)).max() < TOL_MM
+    assert tip.stamp == pytest.approx([WALL + T0 + 0.01 * k for k in range(10)], abs=1e-5)
+    master = c.streams[("in", "Master")]
+    assert len(master.t) == 20
+    for m, msg in zip(master.pose, handmade_messages(handmade, "POSITION", "Master", "in"),
+                      strict=True):  # fmt: skip
+        x, y, z, w = msg.quaternion
+        assert np.abs(m[:3, 3] - msg.position).max() < 1e-9
+        # a turn about y: its cosine on the diagonal, its sine in (0, 2)
+        assert m[0, 0] == pytest.approx(1 - 2 * y * y, abs=1e-6)
+        assert m[0, 2] == pytest.approx(2 * y * w, abs=1e-6)
+    base_in = c.streams[("in", "Base")]
+    assert [m[:3, :3].tolist() for m in base_in.pose] == [np.eye(3).tolist()] * 10
+    # forces: the return channel and the Slicer arrow in the patient frame, the received
+    # SENSOR Force in its sender's base frame
+    assert set(c.forces) == {
+        ("out", "SlaveTip"), ("out", "TipForce"), ("out", "Force"), ("in", "Force"),
+        ("in", "SlaveTip"), ("in", "TipForce"),
+    }  # fmt: skip
+    shown = c.forces[("out", "Force")]
+    assert shown.frame == "base" and shown.force == [(0.0, -4.0 * k, 0.5) for k in (0, 1, 2)]
+    st = c.forces[("out", "SlaveTip")]
+    assert (st.device, st.direction, st.frame) == ("SlaveTip", "out", "patient")
+    assert st.force == [(round(0.5 * k, 4), round(-0.1 * k, 4), 1.5) for k in range(10)]
+    assert st.t == pytest.approx(tip.t, abs=1e-9) and st.stamp == pytest.approx(
+        [WALL + T0 + 0.01 * k for k in range(10)], abs=1e-5
+    )
+    assert len(c.forces[("out", "TipForce")].t) == 5
+    hand = c.forces[("in", "Force")]
+    assert hand.frame == "base"
+    assert np.abs(np.array(hand.force) - [(0.1 * k, 0.2, -0.3) for k in range(10)]).max() < 1e-6
+    assert c.forces[("in", "TipForce")].force == [(0.0, 0.0, 2.0)] * 2
+    assert c.force_transforms == {("out", "TipForce"), ("in", "TipForce")}
+
+
+def test_seq_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
+    from occ.recexport import read_content, write_seq
+
+    out = tmp_path / "deeper" / "still" / "rig.seq.mha"  # directories not there yet
+    summary = write_seq(read_content(handmade), out, source="rig.igtl")
+    text = out.read_text()
+    lines = text.splitlines()
+    # the header PLUS writes for a tracked sequence (no pixels), then the daemon's own fields
+    assert lines[:14] == [
+        "ObjectType = Image",
+        "NDims = 3",
+        "AnatomicalOrientation = RAI",
+        "BinaryData = True",
+        "BinaryDataByteOrderMSB = False",
+        "CompressedData = False",
+        "DimSize = 0 0 10",
+        "ElementSpacing = 1 1 1",
+        "Offset = 0 0 0",
+        "TransformMatrix = 1 0 0 0 1 0 0 0 1",
+        "ElementType = MET_UCHAR",
+        "Kinds = domain domain list",
+        "OCCRobot = Rig 7",
+        "OCCSource = rig.igtl",
+    ]
+    assert lines[-1] == "ElementDataFile = LOCAL" and text.endswith("\n")
+    header, sequences, last = slicer_parse(out)
+    assert last == 9  # a frame a tick: its samples 0.2 to 0.4 ms after its start, one ms
+    assert set(sequences) == {
+        "TipToWorld", "BaseToWorld", "SlaveTipToWorld", "TipForceToWorld",
+        "MasterToReference", "BaseToReference", "SlaveTipToReference", "TipForceToReference",
+    }  # fmt: skip
+    # timestamps from the first frame (the daemon's clock started long before)
+    stamps = sorted(float(v) for v in sequences["TipToWorld"])
+    assert stamps == [0.01 * k for k in range(10)]
+    # the master's two samples of a tick share its millisecond: the second one stands
+    masters = handmade_messages(handmade, "POSITION", "Master", "in")
+    seq = sequences["MasterToReference"]
+    for k in range(10):
+        got = seq[f"{0.01 * k:.3f}"]
+        assert got[:3, 3].tolist() == pytest.approx(masters[2 * k + 1].position, abs=1e-6)
+    assert summary == {
+        "frames": 10,
+        "transforms": {
+            "BaseToReference": 10, "BaseToWorld": 10, "MasterToReference": 10,
+            "SlaveTipToReference": 2, "SlaveTipToWorld": 10, "TipForceToReference": 2,
+            "TipForceToWorld": 5, "TipToWorld": 10,
+        },
+        "duration_s": 0.09,
+    }  # fmt: skip
+    # every frame lists the transforms in the same order (by name)
+    first = [ln.split(" = ")[0] for ln in lines if ln.startswith("Seq_Frame0000_")]
+    assert first == [
+        f"Seq_Frame0000_{n}{f}"
+        for n in ("BaseToReference", "BaseToWorld", "MasterToReference", "SlaveTipToReference",
+                  "SlaveTipToWorld", "TipForceToReference", "TipForceToWorld", "TipToWorld")
+        for f in ("Transform", "TransformStatus")
+    ] + ["Seq_Frame0000_Timestamp"]  # fmt: skip
+
+
+def test_seq_refuses_what_slicer_would_misread(tmp_path: Path) -> None:
+    from occ.recexport import ExportError, PoseStream, RecordingContent, write_seq
+
+    c = RecordingContent(robot="Zürich")  # written as ASCII, the rest replaced
+    c.streams[("out", "Tip")] = PoseStream("Tip", "out", [0.0], [0.0], [np.eye(4)])
+    out = tmp_path / "a.seq.mha"
+    write_seq(c, out)
+    assert "OCCRobot = Z?rich\n" in out.read_text(encoding="ascii")
+    assert "OCCSource" not in out.read_text()
+    # a line Slicer would read in two pieces (fgets with 1000 bytes: 999 with the newline):
+    # refused, nothing written; the longest line is a frame's Transform (65 + the device name)
+    long = "T" + "x" * 934  # 999 characters and the newline
+    c.streams = {("out", long): PoseStream(long, "out", [0.0], [0.0], [np.eye(4)])}
+    with pytest.raises(ExportError) as err:
+        write_seq(c, tmp_path / "b.seq.mha")
+    assert str(err.value) == (
+        f"header line too long for Slicer's reader: Seq_Frame0000_{long[:46]}..."
+    )
+    assert not (tmp_path / "b.seq.mha").exists()
+    just = "T" + "x" * 933  # 998 and the newline: read whole
+    c.streams = {("out", just): PoseStream(just, "out", [0.0], [0.0], [np.eye(4)])}
+    write_seq(c, tmp_path / "c.seq.mha")
+    assert max(len(b) for b in (tmp_path / "c.seq.mha").read_bytes().splitlines(True)) == 999
+    slicer_parse(tmp_path / "c.seq.mha")
+    # nothing to export: the error names what there is
+    c.streams[("in", "Master")] = PoseStream("Master", "in", [0.0], [0.0], [np.eye(4)])
+    with pytest.raises(ExportError) as err:
+        write_seq(c, tmp_path / "d.seq.mha", devices={"Nope"})
+    assert str(err.value) == (
+        f"no TRANSFORM or POSITION stream to export (the recording has: Master, {just})"
+    )
+    assert err.value.code == 1
+    with pytest.raises(ExportError) as err:
+        write_seq(RecordingContent(), tmp_path / "d.seq.mha")
+    assert str(err.value) == "no TRANSFORM or POSITION stream to export"
+
+
+def log_ns(t: float, offset: float) -> int:
+    return round((t + offset) * 1e9)
+
+
+def stamp_ns(header: Any) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def test_mcap_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
+    require("rosbags", "pip install -e .[record]")
+    from occ.recexport import export, read_content
+
+    out = tmp_path / "rig"  # a rosbag2 directory
+    counts = export(handmade, out, "mcap")
+    topics = decode_mcap(out / "rig.mcap")
+    assert counts == {t: len(v) for t, v in sorted(topics.items())}
+    assert set(topics) == {
+        "/occ/rig_7/measured_cp", "/occ/rig_7/base/measured_cp", "/tf",
+        "/occ/rig_7/master/measured_cp", "/occ/rig_7/slavetip/measured_cp",
+        "/occ/rig_7/input/base/measured_cp", "/occ/rig_7/input/slavetip/measured_cp",
+        "/occ/rig_7/measured_cf", "/occ/rig_7/tipforce/measured_cf",
+        "/occ/rig_7/slavetip/measured_cf", "/occ/rig_7/input/tipforce/measured_cf",
+        "/occ/rig_7/force/measured_cf", "/occ/rig_7/input/force/measured_cf",
+        "/occ/rig_7/measured_js", "/occ/rig_7/setpoint_js", "/occ/rig_7/state",
+    }  # fmt: skip
+    meta = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["custom_data"] == {"occ.robot": "Rig 7"}
+    c = read_content(handmade)
+    offset = c.wall_offset
+    assert offset is not None
+    # the tip in its own tick's base (the base moves every tick), stamped as the Tip was
+    tips = c.streams[("out", "Tip")]
+    for k, ((msg, t), (tf, tft)) in enumerate(zip(topics["/occ/rig_7/measured_cp"],
+                                                   topics["/tf"], strict=True)):  # fmt: skip
+        local = np.linalg.solve(turned(k), tip_pose(k))
+        assert msg.header.frame_id == "rig_7_base"
+        assert stamp_ns(msg.header) == round(tips.stamp[k] * 1e9)
+        assert t == tft == log_ns(tips.t[k], offset)
+        got = pose_mm(msg.pose.position, msg.pose.orientation)
+        assert np.abs(got - local).max() < 1e-3
+        a, b = tf.transforms
+        assert (a.header.frame_id, a.child_frame_id) == ("world", "rig_7_base")
+        assert (b.header.frame_id, b.child_frame_id) == ("rig_7_base", "rig_7_tip")
+        assert stamp_ns(a.header) == stamp_ns(b.header) == stamp_ns(msg.header)
+        assert (
+            np.abs(pose_mm(a.transform.translation, a.transform.rotation) - turned(k)).max() < 1e-3
+        )
+        assert np.abs(pose_mm(b.transform.translation, b.transform.rotation) - local).max() < 1e-3
+    for k, (msg, t) in enumerate(topics["/occ/rig_7/base/measured_cp"]):
+        assert msg.header.frame_id == "world" and t == log_ns(
+            c.streams[("out", "Base")].t[k], offset
+        )
+        assert np.abs(pose_mm(msg.pose.position, msg.pose.orientation) - turned(k)).max() < 1e-3
+    # the other pose streams: outputs in world, inputs in their sender's reference; an input
+    # on a name taken (Base, an output's SlaveTip) under input/
+    for topic, key, frame in (
+        ("/occ/rig_7/master/measured_cp", ("in", "Master"), "master_reference"),
+        ("/occ/rig_7/slavetip/measured_cp", ("out", "SlaveTip"), "world"),
+        ("/occ/rig_7/input/base/measured_cp", ("in", "Base"), "base_reference"),
+        ("/occ/rig_7/input/slavetip/measured_cp", ("in", "SlaveTip"), "slavetip_reference"),
+    ):
+        s = c.streams[key]
+        assert len(topics[topic]) == len(s.t), topic
+        for (msg, t), pose, stamp, rt in zip(topics[topic], s.pose, s.stamp, s.t, strict=True):
+            assert msg.header.frame_id == frame and t == log_ns(rt, offset)
+            assert stamp_ns(msg.header) == round(stamp * 1e9)
+            assert np.abs(pose_mm(msg.pose.position, msg.pose.orientation) - pose).max() < 1e-3
+    # forces: the own stream with the most samples (the return channel) on measured_cf; the
+    # others on their own topics, a received one on a name an output took under input/
+    for topic, key, frame in (
+        ("/occ/rig_7/measured_cf", ("out", "SlaveTip"), "world"),
+        ("/occ/rig_7/tipforce/measured_cf", ("out", "TipForce"), "world"),
+        ("/occ/rig_7/slavetip/measured_cf", ("in", "SlaveTip"), "slavetip_reference"),
+        ("/occ/rig_7/input/tipforce/measured_cf", ("in", "TipForce"), "tipforce_reference"),
+        ("/occ/rig_7/force/measured_cf", ("out", "Force"), "rig_7_base"),
+        ("/occ/rig_7/input/force/measured_cf", ("in", "Force"), "force_reference"),
+    ):
+        fs = c.forces[key]
+        assert len(topics[topic]) == len(fs.t), topic
+        for (msg, t), f, stamp, rt in zip(topics[topic], fs.force, fs.stamp, fs.t, strict=True):
+            assert msg.header.frame_id == frame and t == log_ns(rt, offset)
+            assert stamp_ns(msg.header) == round(stamp * 1e9)
+            w = msg.wrench
+            assert (w.force.x, w.force.y, w.force.z) == f
+            assert (w.torque.x, w.torque.y, w.torque.z) == (0.0, 0.0, 0.0)
+    # the state rows: joints measured and commanded, the efforts a master displays, the
+    # state when it changes
+    js, sp = topics["/occ/rig_7/measured_js"], topics["/occ/rig_7/setpoint_js"]
+    assert len(js) == len(sp) == len(c.state_rows) == 9
+    for (m, t), (s, ts), row, wall, rt in zip(js, sp, c.state_rows, c.state_wall, c.state_t,
+                                              strict=True):  # fmt: skip
+        assert t == ts == log_ns(rt, offset)
+        assert m.header.frame_id == s.header.frame_id == "rig_7_base"
+        assert stamp_ns(m.header) == stamp_ns(s.header) == round(wall * 1e9)
+        assert list(m.name) == list(s.name) == ["a", "b"]
+        assert list(m.position) == list(row[2:4]) and list(s.position) == list(row[4:6])
+        assert list(s.effort) == list(row[9:11])
+        assert len(m.velocity) == len(m.effort) == len(s.velocity) == 0
+    states = topics["/occ/rig_7/state"]
+    assert [m.data for m, _ in states] == ["READY", "ENABLED", "RUNNING", "STOPPED", "RUNNING"]
+    assert [t for _, t in states] == [log_ns(c.state_t[i], offset) for i in (0, 2, 4, 6, 8)]
+
+
+def test_mcap_single_file_name_and_devices(handmade: Path, tmp_path: Path) -> None:
+    require("rosbags", "pip install -e .[record]")
+    from occ.recexport import export
+
+    out = tmp_path / "one.mcap"
+    counts = export(handmade, out, "mcap", name="Other Arm", devices={"Tip"})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["one.mcap"]  # no bag directory left
+    topics = decode_mcap(out)
+    # --name: the namespace and frames; --device: the pose streams exported (the tip, in the
+    # world now: no base), forces and state rows all the same
+    assert set(topics) == {
+        "/occ/other_arm/measured_cp", "/tf", "/occ/other_arm/measured_cf",
+        "/occ/other_arm/tipforce/measured_cf", "/occ/other_arm/slavetip/measured_cf",
+        "/occ/other_arm/input/tipforce/measured_cf", "/occ/other_arm/force/measured_cf",
+        "/occ/other_arm/input/force/measured_cf",
+        "/occ/other_arm/measured_js", "/occ/other_arm/setpoint_js", "/occ/other_arm/state",
+    }  # fmt: skip
+    assert counts["/occ/other_arm/measured_cp"] == 10
+    for k, (msg, _) in enumerate(topics["/occ/other_arm/measured_cp"]):
+        assert msg.header.frame_id == "other_arm_base"
+        assert np.abs(pose_mm(msg.pose.position, msg.pose.orientation) - tip_pose(k)).max() < 1e-3
+    a, b = topics["/tf"][0][0].transforms
+    assert (a.child_frame_id, b.child_frame_id) == ("other_arm_base", "other_arm_tip")
+    assert np.abs(pose_mm(a.transform.translation, a.transform.rotation) - np.eye(4)).max() < 1e-9
+
+
+def test_mcap_state_rows_without_setpoints_or_joints(tmp_path: Path) -> None:
+    require("rosbags", "pip install -e .[record]")
+    from occ.recexport import RecordingContent, write_mcap
+
+    c = RecordingContent(columns=["t", "state", "q.a", "q.b", "sp.a", "eff.a", "eff.b"])
+    c.state_t, c.state_wall = [0.0, 2.0], [11.0, 12.0]
+    c.state_rows = [
+        np.array([1.0, 3.0, 0.5, 0.6, 0.7, 0.8, 0.9]),
+        np.array([2.0, 9, 0, 0, 0, 0, 0]),
+    ]
+    counts = write_mcap(c, tmp_path / "a.mcap")
+    # one commanded joint of two: no setpoint_js; an unknown state code: no state message
+    assert counts == {"/occ/robot/measured_js": 2, "/occ/robot/state": 1}
+    topics = decode_mcap(tmp_path / "a.mcap")
+    assert [list(m.position) for m, _ in topics["/occ/robot/measured_js"]] == [[0.5, 0.6], [0, 0]]
+    # no wall clock known: the log times are the recording's times
+    assert [t for _, t in topics["/occ/robot/measured_js"]] == [0, 2_000_000_000]
+    c.columns = ["t", "state", "sp.a", "eff.a"]
+    c.state_rows = [np.array([1.0, 3.0, 0.5, 0.6]), np.array([2.0, 4.0, 0.5, 0.6])]
+    c.robot = "Rig 7"
+    counts = write_mcap(c, tmp_path / "b.mcap")
+    assert counts == {"/occ/rig_7/state": 2}
+    # commanded joints with the efforts of some: setpoint_js without efforts
+    c.columns = ["t", "state", "q.a", "q.b", "sp.a", "sp.b", "eff.a"]
+    c.state_rows = [np.array([1.0, 3.0, 0.5, 0.6, 0.7, 0.8, 0.9])] * 2
+    write_mcap(c, tmp_path / "c.mcap")
+    sp = decode_mcap(tmp_path / "c.mcap")["/occ/rig_7/setpoint_js"]
+    assert [(list(m.position), len(m.effort)) for m, _ in sp] == [([0.7, 0.8], 0)] * 2
+
+
+def test_mcap_refusals(handmade: Path, tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    require("rosbags", "pip install -e .[record]")
+    from occ.recexport import ExportError, RecordingContent, export, read_content, write_mcap
+
+    c = read_content(handmade)
+    with monkeypatch.context() as m:  # rosbags without its writer: the same advice
+        m.setitem(sys.modules, "rosbags.rosbag2", None)
+        with pytest.raises(
+            ExportError, match=r"needs rosbags: pip install 'occ-igtl\[record\]'"
+        ) as err:
+            write_mcap(c, tmp_path / "w.mcap")
+        assert err.value.code == 2 and list(tmp_path.iterdir()) == []
+    with pytest.raises(ExportError) as err:
+        write_mcap(RecordingContent(), tmp_path / "none.mcap")
+    assert str(err.value) == "nothing to export: no pose stream and no state rows"
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "x.mcap").write_bytes(b"keep")
+    with pytest.raises(ExportError, match="exists; not overwriting"):
+        write_mcap(c, tmp_path / "x.mcap")
+    (tmp_path / "y.mcap.bagdir").mkdir()
+    with pytest.raises(ExportError, match="a leftover of an export"):
+        write_mcap(c, tmp_path / "y.mcap")
+    (tmp_path / "dir").mkdir()
+    with pytest.raises(ExportError, match="exists"):
+        write_mcap(c, tmp_path / "dir")
+    # export: an existing file is kept unless force, which replaces a file, never a
+    # directory; an unknown format is a usage error
+    with pytest.raises(ExportError, match="x.mcap exists; not overwriting"):
+        export(handmade, tmp_path / "x.mcap", "mcap")
+    assert (tmp_path / "x.mcap").read_bytes() == b"keep"
+    assert export(handmade, tmp_path / "x.mcap", "mcap", force=True)["/tf"] == 10
+    assert (tmp_path / "x.mcap").read_bytes()[:8] == b"\x89MCAP0\r\n"
+    with pytest.raises(ExportError, match="is a directory; remove it yourself") as err:
+        export(handmade, tmp_path / "dir", "mcap", force=True)
+    assert err.value.code == 1 and (tmp_path / "dir").is_dir()
+    with pytest.raises(ExportError, match="unknown format 'tiff'") as err:
+        export(handmade, tmp_path / "z.tiff", "tiff")
+    assert err.value.code == 2 and not (tmp_path / "z.tiff").exists()
+
+
+def test_names_for_slicer_plus_and_ros() -> None:
+    from occ.recexport import _ros_name, guess_format, transform_names
+
+    devices = ["a_b", "a-b", "a.b", "3d", "Transform1", "Status", "AToBToC", "stylusToTracker"]
+    devices += ["StylusToTracker", "", "ToTool", "toTarget", "TipTo"]
+    ins = ["a_b", "a+b", "a-b", "x", "X"]
+    names = transform_names([("out", d) for d in devices] + [("in", d) for d in ins])
+    # by device, outputs first; a name taken: In for the first input, then a number
+    assert names == {
+        ("out", "a-b"): "AbToWorld",
+        ("out", "a.b"): "Ab2ToWorld",
+        ("out", "a_b"): "Ab3ToWorld",
+        ("out", "3d"): "S3dToWorld",
+        ("out", "Transform1"): "Xform1ToWorld",
+        ("out", "Status"): "StateToWorld",
+        ("out", "AToBToC"): "AtoBtoCToWorld",
+        ("out", "stylusToTracker"): "StylustoTrackerToWorld",
+        ("out", "StylusToTracker"): "StylusToTracker",
+        ("out", ""): "StreamToWorld",
+        ("out", "ToTool"): "StoToolToWorld",
+        ("out", "toTarget"): "StoTargetToWorld",
+        ("out", "TipTo"): "TiptoToWorld",
+        ("in", "X"): "XToReference",
+        ("in", "a+b"): "AbToReference",
+        ("in", "a-b"): "AbInToReference",
+        ("in", "a_b"): "Ab3ToReference",
+        ("in", "x"): "XInToReference",
+    }
+    for name in names.values():  # one From/To split for PLUS, a capital first
+        frm, to = plus_split(name)
+        assert frm[0].isupper() and to in ("World", "Reference", "Tracker")
+    # PLUS names (once the name's other characters are dropped) kept; a PLUS name an output
+    # and an input share is the output's, whichever comes first; the words Slicer reads
+    # replaced inside a name
+    keys = [("in", "StylusToTracker"), ("out", "StylusToTracker"), ("out", "AToB")]
+    keys += [("out", "Probe_ToRef"), ("out", "MyTransform"), ("out", "LastStatus")]
+    assert transform_names(keys) == {
+        ("out", "AToB"): "AToB",
+        ("out", "LastStatus"): "LastStateToWorld",
+        ("out", "MyTransform"): "MyXformToWorld",
+        ("out", "Probe_ToRef"): "ProbeToRef",
+        ("out", "StylusToTracker"): "StylusToTracker",
+        ("in", "StylusToTracker"): "StylusInToTracker",
+    }
+    assert (_ros_name("Rig 7"), _ros_name("3D Probe"), _ros_name("--"), _ros_name("A__b")) == (
+        "rig_7", "s3d_probe", "stream", "a_b",
+    )  # fmt: skip
+    assert [guess_format(n) for n in ("a.seq.mha", "A.MHD", "b.MCAP", "c", "d.mha.csv")] == [
+        "seq", "seq", "mcap", "csv", "csv",
+    ]  # fmt: skip
+
+
+def test_quaternions_of_every_kind_of_rotation() -> None:
+    """quaternion_xyzw against the rotation it came from: the four branches of Shepperd's
+    method (a turn of 180 degrees about each axis, and near them), w >= 0, a float32 matrix."""
+    from occ.recexport import quaternion_xyzw
+
+    rng = np.random.default_rng(7)
+    cases = [np.eye(4), rot("x", 180), rot("y", 180), rot("z", 180), rot("x", 179) @ rot("y", 2)]
+    cases += [
+        rot("y", 178) @ rot("z", 3),
+        rot("z", 177) @ rot("x", -2),
+        rot("x", 90) @ rot("z", 180),
+    ]
+    cases += [
+        rot("x", a) @ rot("y", b) @ rot("z", c) for a, b, c in rng.uniform(-180, 180, (40, 3))
+    ]
+    for m in cases:
+        r = m[:3, :3]
+        for mat in (r, r.astype(np.float32)):
+            q = quaternion_xyzw(mat)
+            assert math.isclose(math.fsum(v * v for v in q), 1.0, abs_tol=1e-9)
+            assert q[3] >= 0.0
+            qq = type("Q", (), dict(zip("xyzw", q, strict=True)))
+            assert np.abs(quat_matrix(qq) - r).max() < 1e-6, (r, q)
+    # a turn about z by +90 and -90: the sign of the axis is the turn's direction
+    assert quaternion_xyzw(rot("z", 90)[:3, :3]) == pytest.approx(
+        (0, 0, math.sqrt(0.5), math.sqrt(0.5))
+    )
+    assert quaternion_xyzw(rot("z", -90)[:3, :3]) == pytest.approx(
+        (0, 0, -math.sqrt(0.5), math.sqrt(0.5))
+    )
