@@ -132,7 +132,9 @@ def test_the_target_is_in_the_patient_frame(rig: Rig, rpy: tuple[float, float, f
 
 
 @pytest.mark.req("SR-SERVO-2")
-def test_a_far_target_is_refused_with_an_alert_and_the_robot_holds(rig: Rig) -> None:
+def test_a_far_target_is_refused_with_an_alert_and_the_robot_holds(
+    rig: Rig, caplog: pytest.LogCaptureFixture
+) -> None:
     rig.running()
     here = rig.world_tip_mm()
     rig.target = (here + [0.0, 0.0, 10.5]).tolist()  # just beyond max_jump_mm (10)
@@ -142,7 +144,12 @@ def test_a_far_target_is_refused_with_an_alert_and_the_robot_holds(rig: Rig) -> 
     stats = rig.ctl.stats()
     assert stats["servo_refused"] == 50  # every sample of the far target
     alerts = [a for a in rig.alerts() if "servo target" in a]
-    assert len(alerts) == 1 and "10.5 mm from the tip refused" in alerts[0], rig.alerts()
+    assert len(alerts) == 1, rig.alerts()
+    assert alerts[0] == "servo target 10.5 mm from the tip refused (max_jump_mm 10): holding"
+    assert [r.getMessage() for r in caplog.records if "servo target" in r.getMessage()] == [
+        alerts[0]
+    ]  # and the log says the same, once
+    assert stats["master_ref_mm"] is None  # no target taken
     (status,) = [m for m in rig.operator.messages("STATUS") if "servo target" in m.status_message]
     assert status.error_name == "ServoTarget"
     assert status.code == igtl.StatusCode.UNKNOWN_ERROR  # an error, not PANICK_MODE (3)

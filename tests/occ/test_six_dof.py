@@ -379,9 +379,10 @@ def test_a_fast_turn_is_slowed_to_the_velocity_limits_all_joints_alike(
     frequency_hz: float, amplitude_deg: float, velocity: float, tmp_path: Path
 ) -> None:
     """The gimbal at 2 Hz (20 times the demo's), or at 0.25 Hz and 20 degrees on an arm limited
-    to 0.8 rad/s (where a step asks between one and two times the limit), asks the wrist faster than its
-    limits: every tick's joint step stays within 0.9 times them and reaches it, no drive clamps
-    on its own, the robot keeps running, and the tool still turns the way the handle does."""
+    to 0.8 rad/s (where a step asks between one and two times the limit), asks the wrist faster
+    than its limits: every tick's joint step stays within 0.9 times them and reaches them, no
+    drive clamps on its own, the robot keeps running, and every step turns the tool toward the
+    orientation it is asked for."""
     slave_cfg = CONFIGS / "ur5.yaml"
     if velocity != 1.0:
         cfg = yaml.safe_load(slave_cfg.read_text())
@@ -401,12 +402,13 @@ def test_a_fast_turn_is_slowed_to_the_velocity_limits_all_joints_alike(
         ctl: Any = slave.controller.controllers[0]
         prev = list(slave.data.setpoint)
         worst = turned = 0.0
-        moves = closer = 0
+        moves = closer = at_limit = 0
         for _ in range(3000):
             pair.step(1)
             sp = list(slave.data.setpoint)
             step = max(abs(x - y) for x, y in zip(sp, prev, strict=True))
             worst = max(worst, step / 1e-3)
+            at_limit += step >= 0.9 * velocity * 1e-3 * (1 - 1e-9)
             if step > 0.0 and ctl._rs_ref is not None:
                 # each step turns the tool toward the orientation it is asked for
                 want = ctl.target_rotation()
@@ -418,7 +420,8 @@ def test_a_fast_turn_is_slowed_to_the_velocity_limits_all_joints_alike(
             prev = sp
         assert worst <= 0.9 * velocity + 1e-9, worst  # rad/s: 0.9 x the limits
         assert worst >= 0.9 * velocity * (1 - 1e-6), worst  # and the limit is what it reached
-        assert ctl.stats()["rate_limited"] > 0
+        # GetStats' rate_limited: the ticks slowed, each one at the limit
+        assert ctl.stats()["rate_limited"] == at_limit > 0
         assert turned > 0.05  # rad: it turned, slowed
         assert closer == moves > 500, (closer, moves)
         assert sum(d.stats()["limit_events"] for d in slave.hardware.drivers) == 0
@@ -450,7 +453,31 @@ def test_a_port_along_the_tools_roll_axis_still_gives_an_orientation() -> None:
             np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
             assert np.linalg.det(r) == pytest.approx(1.0, abs=1e-12)
             np.testing.assert_allclose(r[:, 2], sign * x, atol=1e-12)
-        with pytest.raises(KinematicsError, match="the tip is at the port"):
+        with pytest.raises(KinematicsError, match="^the tip is at the port: the tool's axis is"):
             ctl.rcm_rotation(tuple(port.tolist()))
     finally:
         a.close()
+
+
+def test_a_turn_past_a_joints_limit_holds_that_joint_at_its_limit(tmp_path: Path) -> None:
+    """The last wrist joint limited to +-0.1 rad while the handle turns +-20 degrees about z:
+    the pose is solved with that joint held at its limit (counted as clamped), never refused
+    as unreachable (the arm would freeze where it is), and the robot keeps running."""
+    cfg = yaml.safe_load((CONFIGS / "ur5.yaml").read_text())
+    cfg["robot"]["joints"][5]["limits"].update({"min": -0.1, "max": 0.1})
+    slave_cfg = tmp_path / "ur5_narrow_wrist.yaml"
+    slave_cfg.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    pair = SimPair(CONFIGS / "master6.yaml", slave_cfg)
+    try:
+        pair.start()
+        slave = pair.slave.robot
+        ctl: Any = slave.controller.controllers[0]
+        wrist = []
+        for _ in range(3000):
+            pair.step(1)
+            wrist.append(slave.data.setpoint[5])
+        assert min(wrist) == -0.1 and max(wrist) <= 0.1  # at the limit, never past it
+        assert ctl.stats()["ik_clamped"] > 0 and ctl.stats()["ik_failures"] == 0
+        assert slave.state is RobotState.RUNNING
+    finally:
+        pair.close()
