@@ -283,3 +283,19 @@ def test_sample_to_write_latency_in_simulated_time(rig: Rig) -> None:
     assert lat["p50"] == pytest.approx(1000.0, abs=0.5) and lat["max"] == pytest.approx(
         1000.0, abs=0.5
     )
+
+
+@pytest.mark.req("SR-SERVO-1")
+def test_run_takes_the_last_target_checked_afresh(rig: Rig) -> None:
+    """Run again after a Stop, the source paused (inside its loss grace): the last target is
+    checked against where the drives hold and taken, without waiting for a new sample."""
+    rig.running()
+    here = rig.world_tip_mm()
+    rig.target = (here + [1.0, 0.0, 0.0]).tolist()
+    rig.step(2)  # one sample of the new target
+    rig.command("Stop")
+    rig.sending = False
+    rig.command("Run")
+    rig.step(80)
+    assert rig.robot.state is RobotState.RUNNING
+    assert rig.world_tip_mm().tolist() == pytest.approx(rig.target, abs=1e-6)
