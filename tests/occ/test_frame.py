@@ -231,7 +231,7 @@ def test_closed_form_world_pose_matches_pinocchio_under_any_base(name: str) -> N
     data = RobotData("r", frame.joint_names, [0.0] * frame.nq, frame, SimClock())
     rot = pin.rpy.rpyToMatrix(0.3, -0.2, 1.1)
     bases = [np.eye(4), pin.SE3(np.eye(3), np.array([0.1, -0.2, 0.3])).homogeneous]
-    bases.append(pin.SE3(rot, np.array([0.05, 0.0, -0.4])).homogeneous)
+    bases.append(pin.SE3(rot, np.array([0.05, 0.07, -0.4])).homogeneous)
     for base in bases:
         data.base = base
         for q in random_q(frame, 10, seed=11):
@@ -244,3 +244,133 @@ def test_closed_form_world_pose_matches_pinocchio_under_any_base(name: str) -> N
             np.testing.assert_allclose(
                 rotation_to_quaternion(rows), rotation_to_quaternion(want[:3, :3]), atol=1e-12
             )
+
+
+# A port off the base's axis with a tool turned on its tip, and a master mounted at an angle:
+# the shipped models have the port on the z axis, the tool and the master's axes aligned with
+# the base, where a closed form that drops or swaps a term still gives the right answer.
+def _moved_port(tmp_path: Path, *, rcm_link: bool = True) -> Path:
+    text = (robots_dir() / "occ_slave.urdf").read_text()
+    text = text.replace(
+        '<origin xyz="0 0 0.30" rpy="0 0 0"/>', '<origin xyz="0.04 -0.03 0.30" rpy="0 0 0"/>'
+    )
+    text = text.replace(
+        '<origin xyz="0 0 -0.02" rpy="0 0 0"/>', '<origin xyz="0 0 -0.02" rpy="0.3 -0.2 0.5"/>'
+    )
+    # yaw to +-3 rad: both branches, (yaw, pitch) and (yaw -+ pi, -pitch), inside the limits
+    text = text.replace(
+        'lower="-1.0471975511965976" upper="1.0471975511965976" velocity="1.5" effort="20.0"/>\n'
+        '    <dynamics damping="0.1" friction="0.05"/>\n  </joint>\n  <link name="yaw_link">',
+        'lower="-3.0" upper="3.0" velocity="1.5" effort="20.0"/>\n'
+        '    <dynamics damping="0.1" friction="0.05"/>\n  </joint>\n  <link name="yaw_link">',
+    )
+    if not rcm_link:
+        start = text.index('<joint name="rcm_joint"')
+        text = text[:start] + text[text.index('<link name="rcm"/>') + len('<link name="rcm"/>') :]
+    path = tmp_path / f"occ_slave_moved_{rcm_link}.urdf"
+    path.write_text(text)
+    return path
+
+
+def _tilted_master(tmp_path: Path) -> Path:
+    text = (robots_dir() / "master3.urdf").read_text()
+    text = text.replace(
+        '<origin xyz="0 0 0.20" rpy="0 0 0"/>', '<origin xyz="0.03 -0.02 0.20" rpy="0.2 0.1 -0.3"/>'
+    )
+    text = text.replace(
+        '<origin xyz="0 0 0.05" rpy="0 0 0"/>\n  </joint>',
+        '<origin xyz="0 0 0.05" rpy="0.1 0.2 0.3"/>\n  </joint>',
+    )
+    path = tmp_path / "master3_tilted.urdf"
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize("name", ["occ_slave", "master3"])
+def test_closed_forms_hold_off_axis_and_tilted(name: str, tmp_path: Path) -> None:
+    """With the port off the base's axis and the tool turned on its tip (the slave), or the
+    master's axes tilted and offset, the closed forms still match at load (the loop uses them)
+    and give pinocchio's tip position, pose and inverse."""
+    if name == "occ_slave":
+        frame = Frame.from_urdf(_moved_port(tmp_path), "tool_tip")
+        np.testing.assert_allclose(frame.rcm, [0.04, -0.03, 0.30], atol=1e-12)
+        assert not np.allclose(frame.fk(np.zeros(3))[:3, :3], np.eye(3))
+    else:
+        frame = Frame.from_urdf(_tilted_master(tmp_path), "handle")
+        axes = np.column_stack(
+            [frame.position(np.eye(3)[i]) - frame.position(np.zeros(3)) for i in range(3)]
+        )
+        assert np.count_nonzero(np.abs(axes) > 1e-3) == 9  # every axis mixes every base axis
+    assert frame.name == name and frame.has_analytic_ik
+    assert frame._analytic_pose is not None  # the closed-form pose matched pinocchio at load
+    for q in random_q(frame, 10, seed=5):
+        np.testing.assert_allclose(frame.tip_position(q.tolist()), frame.position(q), atol=1e-12)
+        rows, pos = frame.tip_pose(q.tolist())
+        np.testing.assert_allclose(np.array(rows), frame.fk(q)[:3, :3], atol=1e-12)
+        np.testing.assert_allclose(pos, frame.fk(q)[:3, 3], atol=1e-12)
+        target = tuple(frame.position(q).tolist())
+        got, clamped = frame.ik_clamped(target, (q + 0.01).tolist())
+        assert got == pytest.approx(q.tolist(), abs=1e-9) and not clamped
+
+
+def test_the_branch_nearest_the_seed_is_kept(tmp_path: Path) -> None:
+    """Where both of the port's branches are inside the limits, the one nearest the seed (the
+    joints where they are) is the answer: never the tool swung round by pi to the same tip."""
+    frame = Frame.from_urdf(_moved_port(tmp_path), "tool_tip")
+    for q in ([0.5, 0.4, 0.05], [-0.7, -0.3, 0.1], [2.0, 0.6, 0.02]):
+        flipped = [q[0] - math.pi if q[0] > 0.0 else q[0] + math.pi, -q[1], q[2]]
+        assert frame.within_limits(flipped)
+        target = frame.tip_position(q)
+        for want in (q, flipped):
+            seed = [want[0] + 0.05, want[1] - 0.05, want[2] + 0.01]
+            got, clamped = frame.ik_clamped(target, seed)
+            assert got == pytest.approx(want, abs=1e-9) and not clamped
+            assert frame.solve_ik(target, seed).q.tolist() == pytest.approx(want, abs=1e-9)
+
+
+def test_the_port_is_the_closed_forms_without_an_rcm_link(tmp_path: Path) -> None:
+    """A URDF without the ``rcm`` link: the port is the one the closed form found (the first
+    joint's origin), which the slave's RCM checks and the 6-DOF port mapping use."""
+    frame = Frame.from_urdf(_moved_port(tmp_path, rcm_link=False), "tool_tip")
+    assert frame.has_analytic_ik
+    np.testing.assert_allclose(frame.rcm, [0.04, -0.03, 0.30], atol=1e-12)
+
+
+def test_ik_clamped_below_the_port_keeps_the_seeds_yaw() -> None:
+    """Straight below the port the yaw is free: the loop's IK keeps the joints' yaw (no spin of
+    the tool), reachable or clamped to the insertion limit; at the port itself, a clear error."""
+    frame = Frame.builtin("occ_slave")
+    got, clamped = frame.ik_clamped((0.0, 0.0, RCM_HEIGHT - 0.1), [0.4, 0.2, 0.05])
+    assert got == pytest.approx([0.4, 0.0, 0.08], abs=1e-12) and not clamped
+    got, clamped = frame.ik_clamped((0.0, 0.0, RCM_HEIGHT - 0.5), [0.4, 0.2, 0.05])
+    assert got == pytest.approx([0.4, 0.0, 0.15], abs=1e-12) and clamped
+    with pytest.raises(KinematicsError, match="target at the RCM point: direction undefined"):
+        frame.ik_clamped((0.0, 0.0, RCM_HEIGHT), [0.4, 0.2, 0.05])
+
+
+def test_ik_clamped_never_sends_a_joint_past_its_limit() -> None:
+    """A solution a rounding error past a limit (inside the solver's tolerance) is sent as the
+    limit itself: a drive refuses any position past it."""
+    frame = Frame.builtin("master3")
+    lo, hi = frame.lower.tolist(), frame.upper.tolist()
+    z = frame.tip_position([0.0, 0.0, 0.0])[2]
+    for x, want in ((hi[0] + 5e-13, hi[0]), (lo[0] - 5e-13, lo[0])):
+        got, clamped = frame.ik_clamped((x, 0.0, z), [0.0, 0.0, 0.0])
+        assert got[0] == want and not clamped
+        assert all(a <= v <= b for v, a, b in zip(got, lo, hi, strict=True))
+
+
+def test_ik_clamped_without_a_closed_form_starts_from_the_seed() -> None:
+    """A chain with no closed form (a 6-joint arm, position only): the loop's IK is the DLS
+    from the seed, the joints' own pose, not from zero (a redundant arm would jump)."""
+    model = pin.buildSampleModelManipulator()
+    frame = Frame(model, model.frames[-1].name)
+    assert not frame.has_analytic_ik
+    q = np.array([0.3, -0.2, 0.4, 0.1, 0.5, -0.3])
+    target = tuple(frame.position(q).tolist())
+    seed = (q + 0.05).tolist()
+    got, clamped = frame.ik_clamped(target, seed)
+    np.testing.assert_allclose(frame.position(got), target, atol=1e-6)
+    assert got == pytest.approx(frame.solve_ik(target, seed, clamp=True).q.tolist(), abs=1e-12)
+    assert np.max(np.abs(np.array(got) - q)) < 0.2  # near the seed, not a far-off solution
+    assert not clamped

@@ -13,8 +13,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pinocchio as pin
 import pytest
 
+import igtl
 from occ.safety import RobotState
 from occ.testing import SimRobot
 
@@ -36,6 +38,7 @@ class Rig:
         self.run = True
         self.clutch = False
         self.sending = True
+        self.timestamped = False
 
     def world_tip_mm(self) -> np.ndarray:
         """The world (patient) position of the setpoint the slave writes, mm."""
@@ -49,8 +52,14 @@ class Rig:
         for _ in range(ms):
             if self.sending and self.sim.k % 2 == 0:
                 self.seq += 1
+                stamp = self.sim.clock.wall_time() if self.timestamped else 0.0
                 self.source.send_position(
-                    self.target, seq=self.seq, run=self.run, clutch=self.clutch, device="ServoCP"
+                    self.target,
+                    seq=self.seq,
+                    run=self.run,
+                    clutch=self.clutch,
+                    device="ServoCP",
+                    timestamp=stamp,
                 )
             self.sim.tick()
             out.append(list(self.robot.data.setpoint))
@@ -102,13 +111,13 @@ def test_the_tip_goes_to_the_target_within_the_velocity_limits(rig: Rig) -> None
 
 
 @pytest.mark.req("SR-SERVO-1")
-def test_the_target_is_in_the_patient_frame(rig: Rig) -> None:
-    """The base turned 30 degrees about z and moved 10, 20, 30 mm (a tracker's TRANSFORM): a
-    world displacement d moves the tip by R^T d in the base frame, and the world tip reaches
-    the world target."""
-    c, s = np.cos(0.5236), np.sin(0.5236)
+@pytest.mark.parametrize("rpy", [(0.0, 0.0, 0.5236), (0.2, -0.3, 0.5)], ids=["about-z", "tilted"])
+def test_the_target_is_in_the_patient_frame(rig: Rig, rpy: tuple[float, float, float]) -> None:
+    """The base turned 30 degrees about z (or tilted about every axis) and moved 10, 20, 30 mm
+    (a tracker's TRANSFORM): a world displacement d moves the tip by R^T d in the base frame,
+    and the world tip reaches the world target."""
     base = np.eye(4)
-    base[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    base[:3, :3] = pin.rpy.rpyToMatrix(*rpy)
     base[:3, 3] = [0.010, 0.020, 0.030]
     rig.robot.data.base = base
     rig.target = rig.world_tip_mm().tolist()
@@ -123,7 +132,9 @@ def test_the_target_is_in_the_patient_frame(rig: Rig) -> None:
 
 
 @pytest.mark.req("SR-SERVO-2")
-def test_a_far_target_is_refused_with_an_alert_and_the_robot_holds(rig: Rig) -> None:
+def test_a_far_target_is_refused_with_an_alert_and_the_robot_holds(
+    rig: Rig, caplog: pytest.LogCaptureFixture
+) -> None:
     rig.running()
     here = rig.world_tip_mm()
     rig.target = (here + [0.0, 0.0, 10.5]).tolist()  # just beyond max_jump_mm (10)
@@ -133,7 +144,15 @@ def test_a_far_target_is_refused_with_an_alert_and_the_robot_holds(rig: Rig) -> 
     stats = rig.ctl.stats()
     assert stats["servo_refused"] == 50  # every sample of the far target
     alerts = [a for a in rig.alerts() if "servo target" in a]
-    assert len(alerts) == 1 and "10.5 mm from the tip refused" in alerts[0], rig.alerts()
+    assert len(alerts) == 1, rig.alerts()
+    assert alerts[0] == "servo target 10.5 mm from the tip refused (max_jump_mm 10): holding"
+    assert [r.getMessage() for r in caplog.records if "servo target" in r.getMessage()] == [
+        alerts[0]
+    ]  # and the log says the same, once
+    assert stats["master_ref_mm"] is None  # no target taken
+    (status,) = [m for m in rig.operator.messages("STATUS") if "servo target" in m.status_message]
+    assert status.error_name == "ServoTarget"
+    assert status.code == igtl.StatusCode.UNKNOWN_ERROR  # an error, not PANICK_MODE (3)
     assert rig.robot.state is RobotState.RUNNING  # a refused command holds, it does not stop
     # a target within reach is taken again
     rig.target = (here + [0.0, 0.0, 9.5]).tolist()
@@ -157,9 +176,12 @@ def test_a_stopped_source_or_the_clutch_holds(rig: Rig, how: str) -> None:
     rig.target = (here + [3.0, 0.0, 0.0]).tolist()
     rig.step(100)
     assert rig.world_tip_mm().tolist() == pytest.approx(here.tolist(), abs=1e-9)
+    assert rig.ctl.stats()["master_ref_mm"] is None  # no target held while stopped
     rig.run, rig.clutch = True, False  # released: the target is taken (absolute: no re-index)
     rig.step(300)
     assert rig.world_tip_mm().tolist() == pytest.approx(rig.target, abs=1e-6)
+    # GetStats: the last accepted target (world, mm)
+    assert rig.ctl.stats()["master_ref_mm"] == pytest.approx(rig.target, abs=1e-5)
 
 
 @pytest.mark.req("SR-SERVO-3")
@@ -178,7 +200,7 @@ def test_not_a_number_is_no_target(rig: Rig) -> None:
     rig.target = [float("nan"), here[1], here[2]]
     rig.step(40)
     assert rig.world_tip_mm().tolist() == pytest.approx(here.tolist(), abs=1e-9)
-    assert rig.ctl.stats()["ik_failures"] >= 1
+    assert rig.ctl.stats()["ik_failures"] == 20  # each of the 20 samples, once
     assert rig.robot.state is RobotState.RUNNING
 
 
@@ -188,6 +210,7 @@ def test_run_again_after_a_stop_starts_from_where_the_drives_hold(rig: Rig) -> N
     here = rig.world_tip_mm()
     rig.target = (here + [2.0, 2.0, 2.0]).tolist()
     rig.step(300)
+    assert rig.ctl.stats()["reindexes"] == 1  # the first target after Run, not every one
     rig.command("Stop")
     held = rig.world_tip_mm()
     rig.step(20)
@@ -197,3 +220,82 @@ def test_run_again_after_a_stop_starts_from_where_the_drives_hold(rig: Rig) -> N
     assert rig.world_tip_mm().tolist() == pytest.approx(rig.target, abs=1e-6)
     first = np.array(rig.robot.frame.tip_position(written[0])) * 1e3
     assert np.linalg.norm(first - held) < 1.0  # no jump at the restart
+    assert rig.ctl.stats()["reindexes"] == 2
+
+
+@pytest.mark.req("SR-SERVO-2")
+def test_the_jump_is_measured_from_where_the_tip_is(rig: Rig) -> None:
+    """``max_jump_mm`` is the distance from the tip, wherever it is: off the base's axes a
+    target 9.5 mm away is taken and one 10.5 mm away refused."""
+    rig.running()
+    rig.target = (rig.world_tip_mm() + [8.0, 6.0, 0.0]).tolist()
+    rig.step(300)
+    here = rig.world_tip_mm()
+    assert here.tolist() == pytest.approx(rig.target, abs=1e-6)
+    assert abs(here[0]) > 7.0  # the tip is off the axes: x, y and z all count
+    rig.target = (here + [0.0, -9.5, 0.0]).tolist()
+    rig.step(300)
+    assert rig.world_tip_mm().tolist() == pytest.approx(rig.target, abs=1e-6)
+    assert rig.ctl.stats()["servo_refused"] == 0
+    rig.target = (rig.world_tip_mm() + [-10.5, 0.0, 0.0]).tolist()
+    rig.step(20)
+    assert rig.ctl.stats()["servo_refused"] == 10
+
+
+@pytest.mark.req("SR-SERVO-2")
+def test_a_target_out_of_reach_is_clamped_and_one_at_the_port_is_no_target() -> None:
+    """Past the insertion limit: the tool goes as deep as it can along the line to the target,
+    each sample counted as clamped; at the port itself (no direction for the tool): no target,
+    each sample counted as a failure, the robot holds and keeps running."""
+    rig = Rig(max_jump_mm=200.0)
+    try:
+        rig.running()
+        port = np.array(rig.robot.frame.rcm) * 1e3
+        tip = rig.world_tip_mm()
+        axis = (tip - port) / np.linalg.norm(tip - port)
+        rig.target = (port + axis * (20.0 + 150.0 + 5.0)).tolist()  # 5 mm past the limit
+        rig.step(1400)  # 0.1 m of insertion at 0.09 m/s
+        assert rig.robot.data.setpoint[2] == pytest.approx(0.15, abs=1e-12)
+        assert rig.world_tip_mm().tolist() == pytest.approx(
+            (port + axis * 170.0).tolist(), abs=1e-4
+        )
+        stats = rig.ctl.stats()
+        assert stats["ik_clamped"] == 700 and stats["ik_failures"] == 0
+        held = rig.world_tip_mm()
+        rig.target = port.tolist()
+        rig.step(40)
+        assert rig.world_tip_mm().tolist() == pytest.approx(held.tolist(), abs=1e-9)
+        assert rig.ctl.stats()["ik_failures"] == 20
+        assert rig.robot.state is RobotState.RUNNING
+    finally:
+        rig.close()
+
+
+def test_sample_to_write_latency_in_simulated_time(rig: Rig) -> None:
+    """GetStats' ``sample_to_write_us``: from the sample's time stamp to the tick that writes
+    it, one per sample; in simulated time a sample sent between ticks is written by the next."""
+    rig.timestamped = True
+    rig.running()
+    rig.step(100)
+    lat = rig.ctl.stats()["sample_to_write_us"]
+    assert lat["n"] == 60  # the 10 samples of running() and the 50 after
+    # one tick (the histogram keeps about 0.1 us)
+    assert lat["p50"] == pytest.approx(1000.0, abs=0.5) and lat["max"] == pytest.approx(
+        1000.0, abs=0.5
+    )
+
+
+@pytest.mark.req("SR-SERVO-1")
+def test_run_takes_the_last_target_checked_afresh(rig: Rig) -> None:
+    """Run again after a Stop, the source paused (inside its loss grace): the last target is
+    checked against where the drives hold and taken, without waiting for a new sample."""
+    rig.running()
+    here = rig.world_tip_mm()
+    rig.target = (here + [1.0, 0.0, 0.0]).tolist()
+    rig.step(2)  # one sample of the new target
+    rig.command("Stop")
+    rig.sending = False
+    rig.command("Run")
+    rig.step(80)
+    assert rig.robot.state is RobotState.RUNNING
+    assert rig.world_tip_mm().tolist() == pytest.approx(rig.target, abs=1e-6)

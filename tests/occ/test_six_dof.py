@@ -21,7 +21,7 @@ import pinocchio as pin
 import pytest
 import yaml
 
-from occ.errors import ConfigError
+from occ.errors import ConfigError, KinematicsError
 from occ.loader import load_config, parse_config
 from occ.safety import RobotState
 from occ.samples import quaternion_to_rotation
@@ -56,7 +56,22 @@ def arm() -> Any:
     a.close()
 
 
-def test_the_tool_follows_the_handle_in_position_and_orientation(arm: Arm) -> None:
+#: the master's axes seen in the slave's: a quarter turn about z, then a tilt about x
+TURNED = (pin.rpy.rpyToMatrix(0.3, 0.0, 0.0) @ pin.rpy.rpyToMatrix(0.0, 0.0, math.pi / 2)).tolist()
+
+
+@pytest.mark.parametrize("rotation", [None, TURNED], ids=["aligned", "turned"])
+def test_the_tool_follows_the_handle_in_position_and_orientation(rotation: Any) -> None:
+    """The handle's rotation since the re-index, seen in the slave's axes through ``rotation``
+    (``A dR A^T``), applied to the tool's; its displacement through ``scale * A``."""
+    arm = Arm() if rotation is None else Arm(rotation=rotation)
+    try:
+        _follows(arm, np.eye(3) if rotation is None else np.array(rotation))
+    finally:
+        arm.close()
+
+
+def _follows(arm: Arm, a: np.ndarray) -> None:
     ctl = arm.ctl
     worst_r = worst_p = 0.0
     turned = 0.0
@@ -67,12 +82,12 @@ def test_the_tool_follows_the_handle_in_position_and_orientation(arm: Arm) -> No
         pose = arm.setpoint_pose()
         # orientation: the handle's rotation since the re-index, applied to the tool's
         dm = quaternion_to_rotation(ctl.master_quat) @ ctl._rm_ref.T
-        expect_r = dm @ ctl._rs_ref  # rotation (master to slave) is the identity here
+        expect_r = a @ dm @ a.T @ ctl._rs_ref
         worst_r = max(worst_r, angle(expect_r, pose[:3, :3]))
         turned = max(turned, angle(ctl._rs_ref, pose[:3, :3]))
-        # position: slave_ref + scale * (master - master_ref)
+        # position: slave_ref + scale * A (master - master_ref)
         m, m0, s0 = (np.array(v) for v in (ctl.master_pos, ctl.master_ref, ctl.slave_ref))
-        worst_p = max(worst_p, float(np.linalg.norm(s0 + 0.5 * (m - m0) - pose[:3, 3])))
+        worst_p = max(worst_p, float(np.linalg.norm(s0 + 0.5 * a @ (m - m0) - pose[:3, 3])))
     assert arm.slave.state is RobotState.RUNNING
     assert ctl.ik_failures == 0 and ctl.reindexes == 1
     assert math.degrees(turned) > 15.0  # the gimbal's +-20 deg about z (and 10 about x, y)
@@ -300,24 +315,38 @@ def test_an_unreachable_orientation_is_refused_before_acknowledgement(tmp_path: 
 
 
 @pytest.mark.req("SR-SIX-1")
-def test_a_laparoscopic_tool_keeps_its_axis_through_the_port() -> None:
-    """``orientation: rcm``: the port 100 mm up the tool's axis from its tip at home; while the
-    tip follows the master (the paper's circle, 25 mm), the tool's axis passes through the port
-    to 1e-6 m every tick, and the tip is where the position mapping puts it."""
+@pytest.mark.parametrize("base_mm", [None, [40.0, -25.0, 60.0]], ids=["at-origin", "moved-base"])
+def test_a_laparoscopic_tool_keeps_its_axis_through_the_port(base_mm: list[float] | None) -> None:
+    """``orientation: rcm``: the port 100 mm up the tool's axis from its tip at home (given in
+    the patient frame: the base's position added when it is moved); while the tip follows the
+    master (the paper's circle, 25 mm), the tool's axis passes through the port to 1e-6 m every
+    tick, the tip is where the position mapping puts it, and the tool keeps its roll (its x
+    axis turns only as much as its axis does, tick by tick)."""
     cfg = load_config(CONFIGS / "ur5.yaml")
     from occ.assembly import build_hardware
 
     joints, frame, _ = build_hardware(cfg.robot)
     home = np.asarray(frame.fk([j.home for j in joints]))
     port = (home[:3, 3] - 0.1 * home[:3, 2]) * 1e3
-    a = Arm(orientation="rcm", rcm_mm=port.tolist())
+    if base_mm is None:
+        a = Arm(orientation="rcm", rcm_mm=port.tolist())
+    else:
+        a = Arm(orientation="rcm", rcm_mm=(port + base_mm).tolist(), base_mm=base_mm)
     try:
-        worst_axis = worst_p = 0.0
+        worst_axis = worst_p = worst_roll = 0.0
+        prev = a.setpoint_pose()
         for k in range(5000):
             a.pair.step(1)
+            pose = a.setpoint_pose()
+            if k >= 50:
+                # the new x axis is the previous one projected off the new tool axis
+                x0, z1 = prev[:3, 0], pose[:3, 2]
+                kept = x0 - float(x0 @ z1) * z1
+                roll = float(np.linalg.norm(kept / np.linalg.norm(kept) - pose[:3, 0]))
+                worst_roll = max(worst_roll, roll)
+            prev = pose
             if k < 50 or k % 25:
                 continue
-            pose = a.setpoint_pose()
             z, tip = pose[:3, 2], pose[:3, 3]
             r = port * 1e-3 - tip
             worst_axis = max(worst_axis, float(np.linalg.norm(r - float(r @ z) * z)))
@@ -327,6 +356,7 @@ def test_a_laparoscopic_tool_keeps_its_axis_through_the_port() -> None:
         assert a.slave.state is RobotState.RUNNING and a.ctl.ik_failures == 0
         assert worst_axis < 1e-6, worst_axis
         assert worst_p < 1e-6, worst_p
+        assert worst_roll < 1e-5, worst_roll
         travel = np.linalg.norm(a.setpoint_pose()[:3, 3] - home[:3, 3])
         assert travel > 0.005  # the tip really moved (and the axis turned about the port)
     finally:
@@ -340,28 +370,114 @@ def test_rcm_needs_its_port() -> None:
         parse_config(yaml.safe_dump(cfg, sort_keys=False))
 
 
-def test_a_fast_turn_is_slowed_to_the_velocity_limits_all_joints_alike() -> None:
-    """The gimbal at 2 Hz (20 times the demo's) asks the wrist faster than 1 rad/s: every
-    tick's joint step stays within 0.9 times the limits, no drive clamps on its own, and the
-    robot keeps running."""
+@pytest.mark.parametrize(
+    ("frequency_hz", "amplitude_deg", "velocity"),
+    [(2.0, 40.0, 1.0), (0.25, 20.0, 0.8)],
+    ids=["2Hz-1rad/s", "0.25Hz-0.8rad/s"],
+)
+def test_a_fast_turn_is_slowed_to_the_velocity_limits_all_joints_alike(
+    frequency_hz: float, amplitude_deg: float, velocity: float, tmp_path: Path
+) -> None:
+    """The gimbal at 2 Hz (20 times the demo's), or at 0.25 Hz and 20 degrees on an arm limited
+    to 0.8 rad/s (where a step asks between one and two times the limit), asks the wrist faster
+    than its limits: every tick's joint step stays within 0.9 times them and reaches them, no
+    drive clamps on its own, the robot keeps running, and every step turns the tool toward the
+    orientation it is asked for."""
+    slave_cfg = CONFIGS / "ur5.yaml"
+    if velocity != 1.0:
+        cfg = yaml.safe_load(slave_cfg.read_text())
+        for j in cfg["robot"]["joints"]:
+            j["limits"]["velocity"] = velocity
+        slave_cfg = tmp_path / "ur5_slow.yaml"
+        slave_cfg.write_text(yaml.safe_dump(cfg, sort_keys=False))
     pair = SimPair(
-        CONFIGS / "master6.yaml", CONFIGS / "ur5.yaml",
-        master_params={"frequency_hz": 2.0, "orientation_amplitude_deg": [0.0, 0.0, 40.0]},
+        CONFIGS / "master6.yaml", slave_cfg,
+        master_params={
+            "frequency_hz": frequency_hz, "orientation_amplitude_deg": [0.0, 0.0, amplitude_deg]
+        },
     )  # fmt: skip
     try:
         pair.start()
         slave = pair.slave.robot
         ctl: Any = slave.controller.controllers[0]
         prev = list(slave.data.setpoint)
-        worst = 0.0
+        worst = turned = 0.0
+        moves = closer = at_limit = 0
         for _ in range(3000):
             pair.step(1)
             sp = list(slave.data.setpoint)
-            worst = max(worst, max(abs(x - y) for x, y in zip(sp, prev, strict=True)) / 1e-3)
+            step = max(abs(x - y) for x, y in zip(sp, prev, strict=True))
+            worst = max(worst, step / 1e-3)
+            at_limit += step >= 0.9 * velocity * 1e-3 * (1 - 1e-9)
+            if step > 0.0 and ctl._rs_ref is not None:
+                # each step turns the tool toward the orientation it is asked for
+                want = ctl.target_rotation()
+                before = angle(want, np.asarray(slave.frame.fk(prev))[:3, :3])
+                after = angle(want, np.asarray(slave.frame.fk(sp))[:3, :3])
+                moves += 1
+                closer += after < before
+                turned = max(turned, angle(ctl._rs_ref, np.asarray(slave.frame.fk(sp))[:3, :3]))
             prev = sp
-        assert worst <= 0.9 * 1.0 + 1e-9, worst  # rad/s: 0.9 x the 1 rad/s limits
-        assert ctl.stats()["rate_limited"] > 0
+        assert worst <= 0.9 * velocity + 1e-9, worst  # rad/s: 0.9 x the limits
+        assert worst >= 0.9 * velocity * (1 - 1e-6), worst  # and the limit is what it reached
+        # GetStats' rate_limited: the ticks slowed, each one at the limit
+        assert ctl.stats()["rate_limited"] == at_limit > 0
+        assert turned > 0.05  # rad: it turned, slowed
+        assert closer == moves > 500, (closer, moves)
         assert sum(d.stats()["limit_events"] for d in slave.hardware.drivers) == 0
+        assert slave.state is RobotState.RUNNING
+    finally:
+        pair.close()
+
+
+@pytest.mark.req("SR-SIX-1")
+def test_a_port_along_the_tools_roll_axis_still_gives_an_orientation() -> None:
+    """``orientation: rcm`` with the port straight along the tool's x axis from the target: the
+    roll to keep is not defined (the x axis is the new tool axis), so any perpendicular serves,
+    a proper rotation with its z axis from the port to the tip; a target at the port itself
+    has no axis at all: an error the loop counts, never a NaN pose."""
+    cfg = load_config(CONFIGS / "ur5.yaml")
+    from occ.assembly import build_hardware
+
+    joints, frame, _ = build_hardware(cfg.robot)
+    home = np.asarray(frame.fk([j.home for j in joints]))
+    port = home[:3, 3] - 0.1 * home[:3, 2]
+    a = Arm(orientation="rcm", rcm_mm=(port * 1e3).tolist())
+    try:
+        a.pair.step(100)
+        ctl = a.ctl
+        x = np.asarray(frame.fk(ctl._q_last))[:3, 0]
+        for sign in (1.0, -1.0):
+            r = ctl.rcm_rotation(tuple((port + sign * 0.05 * x).tolist()))
+            assert np.all(np.isfinite(r))
+            np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
+            assert np.linalg.det(r) == pytest.approx(1.0, abs=1e-12)
+            np.testing.assert_allclose(r[:, 2], sign * x, atol=1e-12)
+        with pytest.raises(KinematicsError, match="^the tip is at the port: the tool's axis is"):
+            ctl.rcm_rotation(tuple(port.tolist()))
+    finally:
+        a.close()
+
+
+def test_a_turn_past_a_joints_limit_holds_that_joint_at_its_limit(tmp_path: Path) -> None:
+    """The last wrist joint limited to +-0.1 rad while the handle turns +-20 degrees about z:
+    the pose is solved with that joint held at its limit (counted as clamped), never refused
+    as unreachable (the arm would freeze where it is), and the robot keeps running."""
+    cfg = yaml.safe_load((CONFIGS / "ur5.yaml").read_text())
+    cfg["robot"]["joints"][5]["limits"].update({"min": -0.1, "max": 0.1})
+    slave_cfg = tmp_path / "ur5_narrow_wrist.yaml"
+    slave_cfg.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    pair = SimPair(CONFIGS / "master6.yaml", slave_cfg)
+    try:
+        pair.start()
+        slave = pair.slave.robot
+        ctl: Any = slave.controller.controllers[0]
+        wrist = []
+        for _ in range(3000):
+            pair.step(1)
+            wrist.append(slave.data.setpoint[5])
+        assert min(wrist) == -0.1 and max(wrist) <= 0.1  # at the limit, never past it
+        assert ctl.stats()["ik_clamped"] > 0 and ctl.stats()["ik_failures"] == 0
         assert slave.state is RobotState.RUNNING
     finally:
         pair.close()
