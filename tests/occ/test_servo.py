@@ -299,3 +299,39 @@ def test_run_takes_the_last_target_checked_afresh(rig: Rig) -> None:
     rig.step(80)
     assert rig.robot.state is RobotState.RUNNING
     assert rig.world_tip_mm().tolist() == pytest.approx(rig.target, abs=1e-6)
+
+
+@pytest.mark.req("SR-SERVO-2")
+def test_while_rejoining_after_a_hold_the_servo_keeps_its_own_path(rig: Rig) -> None:
+    """After a hold the setpoint re-joins the servo's solution at half the velocity limits
+    (occ/motion.py) while the servo goes on at 0.9 of them from its own last solution: a new
+    target is judged, and stepped to, from there (where the tip is told to go), not from the
+    setpoint trailing it; and the setpoint still never moves faster than half the limits."""
+    rig.running()
+    here0 = rig.world_tip_mm()
+    direction = np.array([0.0, 0.0, 1.0])
+    rig.target = (here0 + 9.5 * direction).tolist()
+    rig.step(4)
+    rig.sending = False  # the source goes quiet: the robot holds
+    rig.step(20)
+    rig.sending = True
+    rejoining = rig.step(60)
+    data = rig.robot.data
+    (servo,) = rig.robot.controller.controllers
+    solution = np.array(servo._q_last)  # the servo's own last solution
+    base = data.base
+
+    def world_mm(q: Any) -> np.ndarray:
+        return (base @ np.append(np.array(rig.robot.frame.tip_position(list(q))), 1.0))[:3] * 1e3
+
+    lead = float(np.linalg.norm(world_mm(solution) - world_mm(data.setpoint)))
+    assert lead > 1.5  # the setpoint trails the servo by more than max_jump's margin below
+    half = [0.5 * j.limits.velocity * 1e-3 * (1 + 1e-9) for j in rig.robot.joints]
+    steps = np.abs(np.diff(np.array(rejoining), axis=0)).max(axis=0)
+    assert all(s <= h for s, h in zip(steps.tolist(), half, strict=True))
+    # 9 mm beyond where the servo is: within max_jump_mm (10) of it, not of the setpoint
+    rig.target = (world_mm(solution) + 9.0 * direction).tolist()
+    rig.step(600)
+    assert rig.ctl.stats()["servo_refused"] == 0
+    # the target as the wire carries it (float32: 250 mm to 15 nm)
+    assert rig.world_tip_mm().tolist() == pytest.approx(rig.target, abs=2e-5)
