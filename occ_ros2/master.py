@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import logging
 import math
+import string
 import threading
 import time
 from typing import Any
@@ -47,7 +48,7 @@ log = logging.getLogger("occ_ros2.master")
 
 
 #: what a host name or an IPv4/IPv6 address is made of (parse_master)
-_HOST_CHARS = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789.-_:"
+_HOST_CHARS = string.ascii_letters + string.digits + ".-_:"
 
 
 def parse_master(text: str) -> tuple[str, str, int]:

@@ -250,7 +250,7 @@ class SimDriver(Driver):
         self._exact_encoder = not any(noise) and not any(resolution)
         self._noisy = any(n > 0.0 for n in noise)
         # the common read: a servoed drive, no averaging, a noiseless encoder (see _read)
-        self._plain = self.command_interface == "position" and not self._noisy
+        self._plain = self._servoed and not self._noisy
         # exact steps of the servoed joints: e = x - r obeys e'' + c e' + k e = 0 while the
         # effort stays inside its limit (k = kp/J, c = (kd + b)/J)
         self._servo_poles = [
