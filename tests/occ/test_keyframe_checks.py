@@ -151,6 +151,22 @@ def _hold_planner(s: Session) -> tuple[threading.Event, threading.Event]:
     return gate, entered
 
 
+def _plan_held(s: Session, text: str = "") -> tuple[int, threading.Event]:
+    """KeyframePlan sent and the planner thread held inside its checks: (the command's id,
+    the gate that releases it)."""
+    gate, entered = _hold_planner(s)
+    cid = s.slicer.send_command("KeyframePlan", text)
+    s.step(1)
+    assert entered.wait(30.0)
+    return cid, gate
+
+
+def _add_keyframe_meanwhile(s: Session) -> None:
+    added = s.slicer.send_command("KeyframeAdd", xml("KeyframeAdd", T=2.0, Pose="0 0.35 0.05"))
+    s.step(1)
+    assert s.slicer.reply_to(added).metadata["Status"] == "SUCCESS"  # type: ignore[union-attr]
+
+
 def _reply_after(s: Session, cid: int, gate: threading.Event) -> Any:
     gate.set()
     assert s.kf.wait_idle(30.0)
@@ -165,10 +181,7 @@ def test_a_plan_checked_while_the_regions_changed_is_dropped(session: Session) -
     against the old regions) and is dropped, not previewed."""
     s = session
     s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
-    gate, entered = _hold_planner(s)
-    cid = s.slicer.send_command("KeyframePlan")
-    s.step(1)
-    assert entered.wait(30.0)
+    cid, gate = _plan_held(s)
     s.kf.invalidate_plan("regions changed")
     reply = _reply_after(s, cid, gate)
     assert reply.metadata["Status"] == "FAIL"
@@ -184,13 +197,8 @@ def test_a_plan_checked_while_keyframes_and_regions_changed_is_dropped(session: 
     """A keyframe added while the planner works, then the regions changed: still stale."""
     s = session
     s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
-    gate, entered = _hold_planner(s)
-    cid = s.slicer.send_command("KeyframePlan")
-    s.step(1)
-    assert entered.wait(30.0)
-    added = s.slicer.send_command("KeyframeAdd", xml("KeyframeAdd", T=2.0, Pose="0 0.35 0.05"))
-    s.step(1)
-    assert s.slicer.reply_to(added).metadata["Status"] == "SUCCESS"  # type: ignore[union-attr]
+    cid, gate = _plan_held(s)
+    _add_keyframe_meanwhile(s)
     s.kf.invalidate_plan("regions changed")
     reply = _reply_after(s, cid, gate)
     assert reply.metadata["Status"] == "FAIL", reply.metadata
@@ -291,10 +299,7 @@ def test_a_plan_checked_across_a_run_is_dropped(
     s.start()
     s.ok("KeyframePlan")
     s.step(20)
-    gate, entered = _hold_planner(s)
-    cid = s.slicer.send_command("KeyframePlan", xml("KeyframePlan", Mode="continuous"))
-    s.step(1)
-    assert entered.wait(30.0)
+    cid, gate = _plan_held(s, xml("KeyframePlan", Mode="continuous"))
     # the planner is busy: commands answered on the loop, without waiting for it
     ack = s.slicer.send_command("KeyframeAck", xml("KeyframeAck", Plan=1))
     s.step(1)
@@ -707,13 +712,8 @@ def test_a_new_set_is_counted_and_drops_a_plan_being_checked(session: Session) -
     stats = s.kf.stats()
     assert stats["sets"] == 1
     assert stats["status"] == "1 keyframes from operator commands; send KeyframePlan"
-    gate, entered = _hold_planner(s)
-    cid = s.slicer.send_command("KeyframePlan")
-    s.step(1)
-    assert entered.wait(30.0)
-    added = s.slicer.send_command("KeyframeAdd", xml("KeyframeAdd", T=2.0, Pose="0 0.35 0.05"))
-    s.step(1)
-    assert s.slicer.reply_to(added).metadata["Status"] == "SUCCESS"  # type: ignore[union-attr]
+    cid, gate = _plan_held(s)
+    _add_keyframe_meanwhile(s)
     reply = _reply_after(s, cid, gate)
     assert reply.metadata["Error"] == "plan 1 dropped: the keyframes changed meanwhile; plan again"
     assert s.kf.plan is None and s.kf.stats()["sets"] == 2
