@@ -922,6 +922,8 @@ class KeyframeController(Controller):
             "library_loaded": 0,
             "library_deleted": 0,
             "library_refused": 0,
+            # how often the planner waited for the quiet part of the loop's period (Pacer)
+            "planner_waits": 0,
         }
         self.last_error = ""
 
@@ -1462,6 +1464,7 @@ class KeyframeController(Controller):
             except PlanRefused as err:
                 text = f"plan {plan_id} refused: {err}"
                 with self._lock:
+                    self._count_waits(req)
                     self.counters["plans_refused"] += 1
                     self.last_error = text
                     if self._generation == generation:
@@ -1469,6 +1472,7 @@ class KeyframeController(Controller):
                 answer.fail(text)
                 return
             with self._lock:
+                self._count_waits(req)
                 self.counters["plans_checked"] += 1
                 if self._generation != generation:
                     stale = True
@@ -1482,6 +1486,10 @@ class KeyframeController(Controller):
                 answer.resolve(checked.summary)
 
         return self._start(job)
+
+    def _count_waits(self, req: PlanRequest) -> None:
+        if req.pace is not None:
+            self.counters["planner_waits"] += req.pace.sleeps
 
     def _cmd_ack(self, args: dict[str, str], now: float) -> str:
         data = self.data

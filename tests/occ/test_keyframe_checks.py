@@ -12,6 +12,7 @@ import dataclasses
 import gc
 import logging
 import threading
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -885,5 +886,25 @@ def test_keyframes_in_the_config_are_said_to_come_from_the_config() -> None:
     try:
         assert s.kf.stats()["source"] == "config"
         assert "keyframes: 1 joint from config" in s.kf.describe()
+    finally:
+        s.close()
+
+
+def test_while_the_loop_runs_the_planner_works_only_in_the_quiet_part_of_its_period() -> None:
+    """A plan checked while the control loop runs is paced (keyframe.Pacer): the planner
+    thread waits for the quiet part of each 1 ms period before it takes the interpreter, so
+    the loop's tick never waits for it; operators see the waits in the controller's
+    `planner_waits`. Stepped without a loop (t0 NaN) there is no period to keep out of."""
+    s = Session({"keyframes": [{"t": 1.0, "pose": [0.2, 0.35, 0.05]}]})
+    try:
+        s.ok("Enable")
+        s.ok("KeyframePlan")
+        assert s.kf.stats()["planner_waits"] == 0  # no loop runs: nothing to wait for
+        # the loop runs from now, on the real clock the planner's pacer reads
+        s.robot.loop.t0 = time.perf_counter()
+        s.ok("KeyframePlan")
+        stats = s.kf.stats()
+        assert stats["plans_checked"] == 2
+        assert stats["planner_waits"] >= 1
     finally:
         s.close()
