@@ -519,6 +519,22 @@ class SimPair:
     def run_for(self, seconds: float) -> None:
         self.step(round(seconds / self.master.period))
 
+    def stall_master(self, n: int) -> None:
+        """The master's loop does not tick for ``n`` periods (a starved or frozen master
+        process) while the slave ticks alone: the master sends nothing and skips no sequence
+        number, and its time moves on (its motion continues from where the clock is when it
+        ticks again). The slave sees a late stream without a gap: it holds at the loss
+        monitor's deadline and resumes by itself, with no loss, when the silence is shorter
+        than its grace (100 ms in the shipped configs); the master's own drive heartbeat
+        (50 ms there) bounds ``n`` as well. Messages already on the forward line arrive on
+        time; the slave's return messages wait for the master's next tick."""
+        self.master.stall(n)
+        for _ in range(n):
+            for msg in self._due(self._forward, self.k):
+                self.s_link.send(msg)
+            self.slave.tick()
+            self.k += 1
+
     def start(self) -> None:
         """Enable and Run the slave, then the master (each answered with SUCCESS)."""
         for op, sim in ((self.s_op, self.slave), (self.m_op, self.master)):

@@ -8,6 +8,10 @@ and orientation.
   both without a jump; ``rotation_scale`` scales the angle; 3D Slicer's Tip carries the pose.
 - A URDF that does not load, a tip link it does not have, joints that are not its own: errors
   at load, with the line.
+- A hold and its re-entry (the master stalled 40 ms, a late stream without a gap): the pose
+  solve goes on from the pose it told the arm, within 0.9 of the velocity limits, ahead of the
+  setpoint re-joining it at half of them; through a laparoscopic port every told pose keeps
+  the axis through the port and the tool's roll; the tool ends in the pose it is asked for.
 """
 
 from __future__ import annotations
@@ -479,5 +483,150 @@ def test_a_turn_past_a_joints_limit_holds_that_joint_at_its_limit(tmp_path: Path
         assert min(wrist) == -0.1 and max(wrist) <= 0.1  # at the limit, never past it
         assert ctl.stats()["ik_clamped"] > 0 and ctl.stats()["ik_failures"] == 0
         assert slave.state is RobotState.RUNNING
+    finally:
+        pair.close()
+
+
+# ------------------------------------------------------------------ a hold and its re-entry
+
+
+def _rejoin_pair(**slave_params: Any) -> SimPair:
+    """master6 at 0.25 Hz (the gimbal up to 0.55 rad/s) streaming at the loop's rate, 1 kHz (the
+    slave's loss monitor told so), to the UR5: a new sample every tick, so that after a hold the
+    pose solve runs ahead of the setpoint re-joining it at half the velocity limits (at the
+    shipped 500 Hz the tick without a sample lets the setpoint catch up every other tick)."""
+    master = yaml.safe_load((CONFIGS / "master6.yaml").read_text())
+    for i in master["interfaces"]:
+        for o in i.get("outputs", []):
+            if o["source"] == "teleop":
+                o["rate_hz"] = 1000
+    slave = yaml.safe_load((CONFIGS / "ur5.yaml").read_text())
+    slave["safety"]["loss"]["period_ms"] = 1.0
+    pair = SimPair(
+        master, slave, master_params={"frequency_hz": 0.25}, slave_params=slave_params or None
+    )
+    pair.start()
+    return pair
+
+
+class Rejoin:
+    """A pair followed for 500 ms, its master stalled 40 ms (a late stream without a sequence
+    gap: the slave holds), then followed 300 ms more, tick by tick: ``told``, what the
+    controller told the motion layer (its pose solution), from the held setpoint (the last
+    solution before the hold) on; ``sp``, the setpoints written; ``ticks``, how long the
+    motion layer re-joined; ``rate_limited``, GetStats' count over those 300 ms."""
+
+    def __init__(self, pair: SimPair) -> None:
+        slave = self.slave = pair.slave.robot
+        self.ctl: Any = slave.controller.controllers[0]
+        told: list[list[float]] = []
+        update = slave.controller.update
+
+        def tell(now: float, current: Any) -> Any:
+            target = update(now, current)
+            told.append(list(target) if target is not None else told[-1])
+            return target
+
+        pair.step(500)
+        monitor = slave.streams.monitor
+        assert monitor is not None
+        holds = monitor.counters()["holds"]
+        pair.stall_master(40)
+        assert monitor.counters()["holds"] == holds + 1  # held, not stopped
+        told.append(list(slave.data.setpoint))
+        sp = [list(slave.data.setpoint)]
+        rejoining = []
+        limited = self.ctl.stats()["rate_limited"]
+        slave.controller.update = tell  # type: ignore[method-assign]
+        try:
+            for _ in range(300):
+                pair.step(1)
+                sp.append(list(slave.data.setpoint))
+                rejoining.append(slave.motion.reentry)
+        finally:
+            del slave.controller.update
+        c = monitor.counters()
+        assert c["lost_total"] == 0 and c["resumes"] >= 1 and slave.state is RobotState.RUNNING
+        self.rate_limited = self.ctl.stats()["rate_limited"] - limited
+        self.told, self.sp = np.array(told), np.array(sp)
+        self.ticks = rejoining.index(False)
+        assert not any(rejoining[self.ticks :])
+
+    def pose(self, q: Any) -> np.ndarray:
+        return np.asarray(self.slave.frame.fk(list(q)))
+
+    def check_limits(self) -> None:
+        """The setpoint re-joins at half the velocity limits, then is what the controller
+        says; the controller's own steps stay within 0.9 of them, all joints scaled alike
+        from where it told the arm to be (GetStats' ``rate_limited``: the ticks slowed, each
+        one with its largest step at 0.9 of the limit)."""
+        limit = np.array([j.limits.velocity * 1e-3 for j in self.slave.joints])
+        ticks, told, sp = self.ticks, self.told, self.sp
+        assert ticks > 20  # a real re-entry
+        assert (np.abs(np.diff(sp, axis=0))[:ticks] <= 0.5 * limit * (1 + 1e-9)).all()
+        lead = max(
+            float(np.linalg.norm(self.pose(q)[:3, 3] - self.pose(s)[:3, 3]))
+            for q, s in zip(told[1 : ticks + 1], sp[1 : ticks + 1], strict=True)
+        )
+        assert lead > 0.5e-3, lead  # metres: the setpoint trailed the solution by a millimetre
+        np.testing.assert_array_equal(sp[ticks + 1 :], told[ticks + 1 :])
+        steps = (np.abs(np.diff(told, axis=0)) / limit).max(axis=1)
+        assert steps.max() <= 0.9 * (1 + 1e-9)
+        assert self.rate_limited == int((steps >= 0.9 * (1 - 1e-9)).sum()) > 10
+
+
+def test_after_a_hold_the_tool_rejoins_its_pose_within_the_velocity_limits() -> None:
+    """A master that goes quiet for 40 ms while the handle turns: the slave holds, then the
+    setpoint re-joins at half the velocity limits the pose solve that went on at 0.9 of them
+    from where it told the arm to be (never from the setpoint trailing it), and the tool ends
+    in the pose it is asked for: the handle's rotation and displacement since the re-index."""
+    pair = _rejoin_pair()
+    try:
+        r = Rejoin(pair)
+        r.check_limits()
+        ctl = r.ctl
+        pose = r.pose(r.sp[-1])
+        assert angle(ctl.target_rotation(), pose[:3, :3]) < 1e-6
+        m, m0, s0 = (np.array(v) for v in (ctl.master_pos, ctl.master_ref, ctl.slave_ref))
+        assert float(np.linalg.norm(s0 + 0.5 * (m - m0) - pose[:3, 3])) < 1e-8
+        assert ctl.reindexes == 1 and ctl.ik_failures == 0
+    finally:
+        pair.close()
+
+
+@pytest.mark.req("SR-SIX-1")
+def test_after_a_hold_the_laparoscopic_tool_rejoins_through_its_port_with_its_roll() -> None:
+    """``orientation: rcm`` through a hold and its re-entry: every pose the controller tells
+    the arm keeps the tool's axis through the port (1e-6 m) and its roll from the pose it told
+    before (its x axis turns only as much as its axis does), not a roll re-derived from the
+    setpoint trailing it; the setpoint re-joins them within the limits and ends on them, the
+    tip where the position mapping puts it."""
+    cfg = load_config(CONFIGS / "ur5.yaml")
+    from occ.assembly import build_hardware
+
+    joints, frame, _ = build_hardware(cfg.robot)
+    home = np.asarray(frame.fk([j.home for j in joints]))
+    port = home[:3, 3] - 0.1 * home[:3, 2]
+    pair = _rejoin_pair(orientation="rcm", rcm_mm=(port * 1e3).tolist())
+    try:
+        r = Rejoin(pair)
+        r.check_limits()
+        worst_axis = worst_roll = 0.0
+        for a, b in zip(r.told[:-1], r.told[1:], strict=True):
+            before, after = r.pose(a), r.pose(b)
+            z, tip = after[:3, 2], after[:3, 3]
+            d = port - tip
+            worst_axis = max(worst_axis, float(np.linalg.norm(d - float(d @ z) * z)))
+            x0 = before[:3, 0]
+            kept = x0 - float(x0 @ z) * z
+            roll = float(np.linalg.norm(kept / np.linalg.norm(kept) - after[:3, 0]))
+            worst_roll = max(worst_roll, roll)
+        assert worst_axis < 1e-6, worst_axis
+        assert worst_roll < 1e-6, worst_roll
+        ctl = r.ctl
+        tip = r.pose(r.sp[-1])[:3, 3]
+        m, m0, s0 = (np.array(v) for v in (ctl.master_pos, ctl.master_ref, ctl.slave_ref))
+        assert float(np.linalg.norm(s0 + 0.5 * (m - m0) - tip)) < 1e-8
+        assert ctl.reindexes == 1 and ctl.ik_failures == 0
     finally:
         pair.close()

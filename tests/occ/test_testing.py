@@ -112,3 +112,36 @@ def test_the_module_docstring_example_runs() -> None:
         os.chdir(here)
     tips = scope["tips"]
     assert isinstance(tips, list) and len(tips) >= 2  # 10 Hz for 200 ms of running
+
+
+@pytest.mark.req("SR-LOSS-4")
+def test_a_stalled_master_is_a_late_stream_the_slave_holds_through_not_a_loss() -> None:
+    """SimPair.stall_master: the master's loop stops ticking while the slave's goes on. Nothing
+    is sent meanwhile and no sequence number is skipped: the slave holds its setpoint at the
+    deadline, counts no loss, and follows again by itself when the master's samples return;
+    both keep running and stay on one clock."""
+    from occ.testing import CONFIGS, SimPair
+
+    with SimPair(CONFIGS / "master.yaml", SLAVE) as pair:
+        pair.start()
+        pair.step(200)
+        slave = pair.slave.robot
+        monitor = slave.streams.monitor
+        assert monitor is not None
+        before = monitor.counters()
+        sent = pair.counts["forward"]
+        pair.stall_master(20)
+        held = list(slave.data.setpoint)
+        pair.stall_master(10)  # 30 ms of silence in all: past the deadline, short of the grace
+        assert list(slave.data.setpoint) == held  # holding
+        assert pair.counts["forward"] == sent  # the master sent nothing
+        c = monitor.counters()
+        assert c["holds"] == before["holds"] + 1 and c["resumes"] == before["resumes"]
+        pair.step(10)
+        c = monitor.counters()
+        assert c["resumes"] == before["resumes"] + 1
+        assert c["lost_total"] == 0 and c["trips"] == 0
+        assert pair.counts["forward"] > sent and list(slave.data.setpoint) != held
+        assert slave.state is RobotState.RUNNING
+        assert pair.master.robot.state is RobotState.RUNNING
+        assert pair.master.k == pair.slave.k == pair.k
