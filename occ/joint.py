@@ -236,6 +236,32 @@ class Joint:
         return out
 
 
+def step_together(values: list[float], target: Sequence[float], steps: Sequence[float]) -> bool:
+    """Move ``values`` (in place) toward ``target`` along the straight line between them, by
+    the largest common fraction of the way that keeps every joint within its ``steps``; True
+    while still away. Every joint arrives on the same tick: the path in joint space is the
+    straight line, not :func:`step_toward`'s corner (where the faster joints arrive first),
+    so a constraint both ends meet (a tool's axis through a port) is left only to second order
+    in the distance, never by the first-order detour of one joint moving alone."""
+    frac = 1.0
+    for i, step in enumerate(steps):
+        d = target[i] - values[i]
+        if d > step:
+            f = step / d
+        elif d < -step:
+            f = -step / d
+        else:
+            continue
+        if f < frac:
+            frac = f
+    if frac > 1.0 - 1e-12:  # there, or a rounding error away: exactly the target
+        values[:] = target
+        return False
+    for i, v in enumerate(values):
+        values[i] = v + frac * (target[i] - v)
+    return True
+
+
 def step_toward(values: list[float], target: Sequence[float], steps: Sequence[float]) -> bool:
     """Move each of ``values`` (in place) toward ``target`` by at most its ``steps``; True
     while any is still away (a rate limit: a re-join after a hold, an absolute servo target)."""

@@ -12,7 +12,7 @@ from .controllers import ControllerSet
 from .data import RobotData
 from .errors import ConfigError
 from .hardware import HardwareSet
-from .joint import Joint, step_toward
+from .joint import Joint, step_together
 from .safety import RobotState
 
 #: States in which drivers are ACTIVE (servos on).
@@ -133,8 +133,10 @@ class Motion:
         self._write(eff, now, True)
 
     def _rejoin(self, sp: list[float], target: Sequence[float]) -> bool:
-        """Move ``sp`` toward ``target`` by at most half the velocity limit; True while away."""
-        away = step_toward(sp, target, self._reentry_step)
+        """Move ``sp`` toward ``target`` by at most half the velocity limits, every joint
+        together along the straight line (a 6-DOF tool through a port keeps its axis there);
+        True while away."""
+        away = step_together(sp, target, self._reentry_step)
         if not away:
             self.reentries += 1
         return away

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from occ.joint import Joint, JointLimits, PIDGains
+from occ.joint import Joint, JointLimits, PIDGains, step_together
 
 
 def make_joint(**gains: float) -> Joint:
@@ -97,3 +97,29 @@ def test_zero_dt_uses_p_and_held_integral_only() -> None:
     j.position = 0.05
     out = j.servo(0.1, 0.0)
     assert out == pytest.approx(2.0 * 0.05 + held)
+
+
+def test_step_together_moves_every_joint_along_the_straight_line() -> None:
+    """The farthest joint (in steps) sets the pace; the others move the same fraction of their
+    way, so all arrive on the same tick, exactly on the target; none ever steps past its own
+    limit, and a joint already there stays."""
+    steps = [0.1, 0.2, 0.05, 0.1]
+    start = [0.0, 1.0, 2.0, 3.0]
+    target = [0.3, 0.2, 2.2, 3.0]  # 3, 4, 4 steps away; the last already there
+    values = list(start)
+    path = [list(values)]
+    while step_together(values, target, steps):
+        path.append(list(values))
+    path.append(list(values))
+    assert values == target  # exactly, not within rounding
+    assert len(path) == 5  # four ticks: the farthest joints' four steps
+    for a, b in zip(path, path[1:]):
+        assert all(abs(y - x) <= s * (1 + 1e-12) for x, y, s in zip(a, b, steps))
+        # on the line: the same fraction of the way for every joint that has a way to go
+        fracs = [(y - s0) / (t - s0) for y, s0, t in zip(b, start, target) if t != s0]
+        assert max(fracs) - min(fracs) < 1e-12
+        assert b[3] == 3.0
+    # within one step of every joint: there at once
+    values = [0.0, 0.0]
+    assert not step_together(values, [0.05, -0.2], [0.1, 0.2])
+    assert values == [0.05, -0.2]
