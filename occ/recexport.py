@@ -442,7 +442,7 @@ def write_mcap(
     robot = _ros_name(name or content.robot or "robot")
     ns = f"/occ/{robot}"
     base_frame, tip_frame, world = f"{robot}_base", f"{robot}_tip", "world"
-    single_file = out.suffix == ".mcap"
+    single_file = out.suffix.lower() == ".mcap"  # as guess_format reads the name
     if out.exists():
         raise ExportError(f"{out} exists; not overwriting (--force replaces it)")
     bag_dir = out.with_name(out.name + ".bagdir") if single_file else out

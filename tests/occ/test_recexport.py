@@ -899,6 +899,18 @@ def test_mcap_single_file_name_and_devices(handmade: Path, tmp_path: Path) -> No
     assert np.abs(pose_mm(a.transform.translation, a.transform.rotation) - np.eye(4)).max() < 1e-9
 
 
+def test_an_upper_case_mcap_name_is_one_mcap_file_as_the_format_guess_says(
+    handmade: Path, tmp_path: Path
+) -> None:
+    """`occ-record export REC OUT.MCAP` (no --format): the name asks for mcap, and the export
+    is the single MCAP file of that name, not a rosbag2 directory called OUT.MCAP."""
+    require("rosbags", "pip install -e .[record]")
+    out = tmp_path / "CASE.MCAP"
+    assert main(["export", str(handmade), str(out)]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["CASE.MCAP"]  # one file, no bag dir
+    assert "/occ/rig_7/measured_cp" in decode_mcap(out)
+
+
 def test_mcap_state_rows_without_setpoints_or_joints(tmp_path: Path) -> None:
     require("rosbags", "pip install -e .[record]")
     from occ.recexport import RecordingContent, write_mcap
