@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from occ.joint import Joint, JointLimits, PIDGains, step_together
+from occ.joint import Joint, JointLimits, PIDGains, step_together, step_toward
 
 
 def make_joint(**gains: float) -> Joint:
@@ -123,3 +123,112 @@ def test_step_together_moves_every_joint_along_the_straight_line() -> None:
     values = [0.0, 0.0]
     assert not step_together(values, [0.05, -0.2], [0.1, 0.2])
     assert values == [0.05, -0.2]
+
+
+@pytest.mark.parametrize("field", ["min", "max", "velocity", "effort"])
+def test_a_nan_limit_is_refused_by_name(field: str) -> None:
+    values = {"min": -1.0, "max": 1.0, "velocity": 1.0, "effort": 1.0, field: math.nan}
+    with pytest.raises(ValueError, match=f"JointLimits.{field} must be a number, got nan"):
+        JointLimits(**values)
+
+
+def test_limit_edges_a_locked_joint_and_a_zero_effort() -> None:
+    """min == max is a joint locked where it stands (valid); a zero effort limit would let the
+    servo give nothing (refused), as a zero velocity limit would let it never move."""
+    locked = JointLimits(0.2, 0.2)
+    assert locked.contains(0.2) and locked.clamp(0.3) == 0.2
+    with pytest.raises(ValueError, match=r"JointLimits.effort must be > 0, got 0.0"):
+        JointLimits(-1.0, 1.0, effort=0.0)
+
+
+@pytest.mark.parametrize("field", ["kp", "ki", "kd", "i_limit", "out_limit"])
+def test_a_nan_gain_is_refused_by_name(field: str) -> None:
+    values = {"kp": 1.0, field: math.nan}
+    with pytest.raises(ValueError, match=f"PIDGains.{field} must be a number >= 0, got nan"):
+        PIDGains(**values)
+
+
+def test_an_unmeasured_joint_reports_rest_and_no_effort_sent() -> None:
+    """Before any read the joint stands at home at rest with no effort measured, and no
+    effort has been sent (NaN, not a number a viewer could take for one)."""
+    j = Joint("yaw", "revolute", JointLimits(-1.0, 1.0), home=0.3)
+    assert (j.position, j.velocity, j.effort) == (0.3, 0.0, 0.0)
+    assert math.isnan(j.command_effort) and math.isnan(j.stamp)
+
+
+def test_the_effort_sent_is_the_servo_output() -> None:
+    j = make_joint(kp=10.0)
+    out = j.servo(0.2, 0.001)
+    assert j.command_effort == out == pytest.approx(2.0)
+
+
+def test_a_clock_that_went_back_changes_no_integral() -> None:
+    """dt < 0 (a clock stepped back): the proportional and the held integral act, the
+    integrator takes nothing (a negative dt would integrate the error backwards)."""
+    j = make_joint(kp=2.0, ki=10.0)
+    j.servo(0.1, 0.01)
+    held = j.servo(0.1, 0.0)  # dt 0: P plus the held integral
+    assert j.servo(0.1, -0.01) == held
+
+
+def test_a_small_integral_gain_integrates() -> None:
+    j = make_joint(kp=0.0, ki=0.5)
+    outs = [j.servo(0.2, 0.01) for _ in range(4)]
+    assert outs == pytest.approx([0.001, 0.002, 0.003, 0.004])
+
+
+def test_the_integral_term_is_clamped_both_ways() -> None:
+    j = make_joint(kp=0.0, ki=100.0, i_limit=0.3)
+    for _ in range(100):
+        out = j.servo(-0.1, 0.001)
+    assert out == pytest.approx(-0.3)
+
+
+def test_the_integrator_freezes_when_the_whole_output_would_saturate() -> None:
+    """Conditional integration counts the damping too: a joint pushed away from its setpoint
+    (derivative term 3.5) with an integral of 1 gives 4.5, under the limit 5; the next
+    integral (2.035) would take the sum to 5.535, past it, in the error's direction, so the
+    integrator holds and the output is 4.5, not the limit."""
+    j = make_joint(kp=0.0, ki=10000.0, kd=1.0)
+    j.position = 0.0
+    assert j.servo(0.1, 0.001) == pytest.approx(1.0)  # no previous measurement: no D yet
+    j.position = -0.0035  # pushed away: D = -kd * (-0.0035 - 0) / 0.001 = 3.5
+    assert j.servo(0.1, 0.001) == pytest.approx(4.5)
+
+
+def test_an_output_exactly_at_the_limit_is_not_saturated() -> None:
+    """The integrator freezes only past the limit: a sum of exactly the limit (5 N m, from
+    an integral step of exactly 5 with binary-exact gains) is accepted, either way."""
+    dt = 2.0**-10
+    j = make_joint(kp=0.0, ki=5.0 * 1024)
+    assert j.servo(1.0, dt) == 5.0
+    j = make_joint(kp=0.0, ki=5.0 * 1024)
+    assert j.servo(-1.0, dt) == -5.0
+
+
+def test_a_saturated_output_unwinds_when_the_error_opposes_it() -> None:
+    """Saturated negative by the damping (the joint moving fast toward a setpoint still
+    ahead), the error positive: integrating reduces the saturation, so the integrator
+    accepts it; once the joint stops, the output is the larger integral."""
+    j = make_joint(kp=0.0, ki=10000.0, kd=1.0)
+    j.position = 0.0
+    j.servo(0.1, 0.001)  # integral 1
+    j.position = 0.008  # D = -8: the sum 1.92 - 8 is past -5
+    assert j.servo(0.1, 0.001) == -5.0
+    out = j.servo(0.1, 0.001)  # the joint stopped: D = 0
+    assert out == pytest.approx(1.92 + 0.92)
+
+
+def test_step_toward_moves_each_joint_on_its_own() -> None:
+    """Each joint at most its own step toward its target, independently: the near ones
+    arrive first, exactly on the target; True while any is away."""
+    values = [0.0, 1.0, -1.0]
+    target = [0.25, 0.0, -1.0]
+    assert step_toward(values, target, [0.1, 0.4, 0.1])
+    assert values == pytest.approx([0.1, 0.6, -1.0])
+    assert step_toward(values, target, [0.1, 0.4, 0.1])
+    assert values == pytest.approx([0.2, 0.2, -1.0])
+    assert not step_toward(values, target, [0.1, 0.4, 0.1])  # both within a step: there
+    assert values == target
+    values = [0.0]
+    assert step_toward(values, [-1.0], [0.3]) and values == [-0.3]
