@@ -108,9 +108,11 @@ def test_step_together_moves_every_joint_along_the_straight_line() -> None:
     target = [0.3, 0.2, 2.2, 3.0]  # 3, 4, 4 steps away; the last already there
     values = list(start)
     path = [list(values)]
-    while step_together(values, target, steps):
+    for _ in range(10):  # bounded: a broken rate limit must fail here, not hang
+        away = step_together(values, target, steps)
         path.append(list(values))
-    path.append(list(values))
+        if not away:
+            break
     assert values == target  # exactly, not within rounding
     assert len(path) == 5  # four ticks: the farthest joints' four steps
     for a, b in zip(path, path[1:]):
@@ -231,4 +233,20 @@ def test_step_toward_moves_each_joint_on_its_own() -> None:
     assert not step_toward(values, target, [0.1, 0.4, 0.1])  # both within a step: there
     assert values == target
     values = [0.0]
-    assert step_toward(values, [-1.0], [0.3]) and values == [-0.3]
+    assert step_toward(values, [-1.0], [0.3]) is True and values == [-0.3]
+    values = [0.0]
+    assert step_toward(values, [1.0], [0.3]) is True and values == [0.3]
+    # exactly one step away either way: there, so no longer away (binary-exact values)
+    values = [0.0, 0.0]
+    assert step_toward(values, [0.5, -0.25], [0.5, 0.25]) is False and values == [0.5, -0.25]
+
+
+def test_every_refusal_of_a_joint_says_what_is_wrong() -> None:
+    with pytest.raises(ValueError, match=r"^JointLimits: min 1.0 > max -1.0$"):
+        JointLimits(1.0, -1.0)
+    with pytest.raises(ValueError, match=r"^JointLimits.velocity must be > 0, got 0.0$"):
+        JointLimits(-1.0, 1.0, velocity=0.0)
+    with pytest.raises(ValueError, match=r"^a joint needs a non-empty name$"):
+        Joint("")
+    with pytest.raises(ValueError, match=r"^joint 'x': home 0.2 outside limits \[0.0, 0.1\]$"):
+        Joint("x", "prismatic", JointLimits(0.0, 0.1), home=0.2)
