@@ -248,5 +248,7 @@ def test_every_refusal_of_a_joint_says_what_is_wrong() -> None:
         JointLimits(-1.0, 1.0, velocity=0.0)
     with pytest.raises(ValueError, match=r"^a joint needs a non-empty name$"):
         Joint("")
+    with pytest.raises(ValueError, match=r"^joint 'b': type must be one of \('revolute', 'prismatic'\), got 'spherical'$"):
+        Joint("b", "spherical")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match=r"^joint 'x': home 0.2 outside limits \[0.0, 0.1\]$"):
         Joint("x", "prismatic", JointLimits(0.0, 0.1), home=0.2)
