@@ -121,6 +121,11 @@ def test_step_together_moves_every_joint_along_the_straight_line() -> None:
         fracs = [(y - s0) / (t - s0) for y, s0, t in zip(b, start, target) if t != s0]
         assert max(fracs) - min(fracs) < 1e-12
         assert b[3] == 3.0
+    # the snap to the target absorbs rounding only: a joint whose step is 1e-12 of the way
+    # short of it (the tolerance's edge) still takes the step, not the target
+    step = 1.0 - 1e-12
+    values = [0.0]
+    assert step_together(values, [1.0], [step]) is True and values == [step]
     # within one step of every joint: there at once
     values = [0.0, 0.0]
     assert not step_together(values, [0.05, -0.2], [0.1, 0.2])
