@@ -549,3 +549,20 @@ def test_the_readings_go_in_newtons_in_either_version(view: Any, type_: str, ver
     else:
         assert dict(back.metadata) == (meta if type_ == "SENSOR" else {**meta, "unit": "N"})
         assert message_force(back) == ("patient", f)  # what a recording's reader finds
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")  # the norm of 1e200s
+@pytest.mark.parametrize(
+    "force",
+    [(math.nan, 0.0, 0.0), (0.0, math.inf, 0.0), (-math.inf, math.inf, 1.0), (1e200, 1e200, 0.0)],
+)
+def test_a_force_whose_arrow_has_no_finite_length_is_drawn_as_no_force(force: Vec3) -> None:
+    """Not finite, or finite but too large for its length to be (1e200 N on two axes: a force
+    sensor's reading in N): the short invertible transform and no arrow, never a NaN that 3D
+    Slicer cannot invert or draw (before: a NaN matrix and NaN points)."""
+    tip = (1.0, 2.0, 3.0)
+    m = force_matrix(tip, force, 10.0)
+    assert np.array_equal(m[:3, :3], np.diag([1.0, 1.0, MIN_LENGTH_MM]))
+    assert np.array_equal(m[:3, 3], tip) and np.isfinite(np.linalg.inv(m)).all()
+    points, polys = arrow_mesh(tip, force, 10.0)
+    assert points.shape == (0, 3) and polys == ()
