@@ -218,9 +218,9 @@ def test_a_reading_too_large_for_newtons_is_refused_and_counted() -> None:
     """1e306 kN is a finite number on the wire but no finite number of newtons: refused and
     counted like a NaN (before: an infinite force, sent to the master as ``inf`` and drawn in
     3D Slicer as a transform and an arrow of NaN), the last good reading kept."""
-    assert sensor_force(sensor((1e306, 0.0, 0.0), newtons(3))) == (
+    assert sensor_force(sensor((1e306, 0.0, 0.0, 4.0, 5.0, 6.0), newtons(3))) == (
         None,
-        "not a force: (1e+306, 0.0, 0.0) kiloN is not finite in N",
+        "not a force: (1e+306, 0.0, 0.0) kiloN is not finite in N",  # the force, not the torque
     )
     src = SlaveForce(("sensor",), sensor_interface="s")
     assert src.on_input(sensor((0.0, 0.0, 2.0)), "s", 1.0)
