@@ -58,7 +58,8 @@ FORCE_UNITS = {"": 1.0, "N": 1.0, "milliN": 1e-3, "kiloN": 1e3}
 
 def sensor_force(msg: Message) -> tuple[Vec3 | None, str]:
     """The force a SENSOR message carries (N): ``(force, "")``, or ``(None, why not)`` for a
-    message that is no SENSOR, not in newtons, of neither 3 nor 6 values, or not finite."""
+    message that is no SENSOR, not in newtons, of neither 3 nor 6 values, or not finite (in
+    its unit or in N)."""
     if not isinstance(msg, SensorMessage):
         return None, f"{msg.message_type} is not a SENSOR"
     unit = str(msg.unit)
@@ -70,7 +71,10 @@ def sensor_force(msg: Message) -> tuple[Vec3 | None, str]:
         return None, f"{len(values)} values (3: force, 6: force and torque)"
     if not all(math.isfinite(v) for v in values[:3]):
         return None, f"not a force: {values[:3]}"
-    return (values[0] * factor, values[1] * factor, values[2] * factor), ""
+    force = (values[0] * factor, values[1] * factor, values[2] * factor)
+    if not all(math.isfinite(v) for v in force):  # 1e306 kiloN: finite, but no float in N
+        return None, f"not a force: {values[:3]} {unit} is not finite in N"
+    return force, ""
 
 
 class SlaveForce:

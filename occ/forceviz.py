@@ -18,8 +18,8 @@ sends depends on the output's type:
     An arrow mesh in the patient frame: a shaft and a cone from the tip along the force,
     ``display_mm_per_n`` mm per N, closed, faces outward. SlicerOpenIGTLink makes a model node
     with display nodes for a new POLYDATA device and replaces its mesh with each message. No
-    force (shorter than :data:`MIN_LENGTH_MM`) is a mesh without points: the arrow disappears,
-    it never stays drawn with a force that is gone.
+    force (shorter than :data:`MIN_LENGTH_MM`, or of no finite length) is a mesh without
+    points: the arrow disappears, it never stays drawn with a force that is gone.
 ``SENSOR`` or ``NDARRAY``
     The three components, N, patient frame (SENSOR's unit field N; NDARRAY in header v2:
     metadata ``unit``).
@@ -88,17 +88,18 @@ def _basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def force_matrix(tip_mm: Vec3, force_n: Vec3, mm_per_n: float) -> np.ndarray:
     """The TRANSFORM's 4x4 (mm): origin ``tip_mm``, z axis the force scaled to its length in
     mm (at least :data:`MIN_LENGTH_MM`), x and y unit and at right angles (module docstring).
-    No force: the identity rotation with z at the minimum length."""
+    No force (or one whose length is not finite): the identity rotation with z at the minimum
+    length."""
     f = np.asarray(force_n, dtype=float)
     mag = float(np.linalg.norm(f))
-    length = max(mag * mm_per_n, MIN_LENGTH_MM)
+    length = mag * mm_per_n
     m = np.eye(4)
-    if mag * mm_per_n >= MIN_LENGTH_MM:
+    if MIN_LENGTH_MM <= length < math.inf:  # not NaN either
         d = f / mag
         x, y = _basis(d)
         m[:3, 0], m[:3, 1], m[:3, 2] = x, y, d * length
     else:
-        m[2, 2] = length
+        m[2, 2] = MIN_LENGTH_MM
     m[:3, 3] = tip_mm
     return m
 
@@ -111,11 +112,11 @@ def arrow_mesh(
     the shaft, the cone's underside (a ring between shaft and cone) and the cone. The shaft's
     radius is 4 % of the length (0.2 to 1 mm), the cone's 2.5 times that, the cone 30 % of the
     length (at most 8 mm). No points and no faces when the arrow is shorter than
-    :data:`MIN_LENGTH_MM`."""
+    :data:`MIN_LENGTH_MM` or its length is not finite (a force of NaN, or too large)."""
     f = np.asarray(force_n, dtype=float)
     mag = float(np.linalg.norm(f))
     length = mag * mm_per_n
-    if not length >= MIN_LENGTH_MM:  # also NaN
+    if not MIN_LENGTH_MM <= length < math.inf:  # also NaN
         return np.zeros((0, 3)), ()
     d = f / mag
     x, y = _basis(d)

@@ -214,6 +214,24 @@ def test_sensor_units_scale_every_axis_and_only_the_force_is_read() -> None:
     )
 
 
+def test_a_reading_too_large_for_newtons_is_refused_and_counted() -> None:
+    """1e306 kN is a finite number on the wire but no finite number of newtons: refused and
+    counted like a NaN (before: an infinite force, sent to the master as ``inf`` and drawn in
+    3D Slicer as a transform and an arrow of NaN), the last good reading kept."""
+    assert sensor_force(sensor((1e306, 0.0, 0.0, 4.0, 5.0, 6.0), newtons(3))) == (
+        None,
+        "not a force: (1e+306, 0.0, 0.0) kiloN is not finite in N",  # the force, not the torque
+    )
+    src = SlaveForce(("sensor",), sensor_interface="s")
+    assert src.on_input(sensor((0.0, 0.0, 2.0)), "s", 1.0)
+    assert not src.on_input(sensor((0.0, -1e306, 1.0), newtons(3)), "s", 1.001)
+    assert src.sensor_refused == 1 and src.sensor_samples == 1
+    assert src.sensor_last_error == (
+        "SENSOR 'ForceSensor': not a force: (0.0, -1e+306, 1.0) kiloN is not finite in N"
+    )
+    assert estimate(src, 1.002, ZERO3) == (0.0, 0.0, 2.0)
+
+
 def test_a_reading_as_old_as_the_timeout_is_used_and_an_older_one_is_not() -> None:
     timeout = 1.0 / 64.0  # exact in binary: the age at the boundary is exactly the timeout
     src = SlaveForce(("sensor",), sensor_interface="s", sensor_timeout_s=timeout)
