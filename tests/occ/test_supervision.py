@@ -276,3 +276,43 @@ def test_stopping_a_supervisor_thread_stuck_in_its_action_returns() -> None:
         release.set()
     th._thread.join(10.0)
     assert not th._thread.is_alive()
+
+
+def _robot(enabled: bool, clock: object, fifo_priority: int | None = None) -> object:
+    """What SupervisorThread.for_robot reads of a Robot: the supervisor's settings, the
+    supervisor and the clock."""
+    from types import SimpleNamespace
+
+    sv = SimpleNamespace(enabled=enabled, fifo_priority=fifo_priority)
+    return SimpleNamespace(
+        config=SimpleNamespace(safety=SimpleNamespace(supervisor=sv)),
+        supervisor=Supervisor(timeout_s=0.020),
+        clock=clock,
+    )
+
+
+@pytest.mark.parametrize(
+    ("configured", "loop", "expected"),
+    [(None, 60, 61), (None, 99, 99), (None, None, None), (70, 60, 70), (70, None, 70)],
+)
+def test_the_robots_supervisor_thread_runs_one_priority_above_the_loop(
+    configured: int | None, loop: int | None, expected: int | None
+) -> None:
+    """On a real clock the robot's supervisor gets its thread, started, one SCHED_FIFO
+    priority above the loop's (at most 99) unless the config names its own; no priority when
+    the loop has none."""
+    robot = _robot(True, RealClock(), configured)
+    th = SupervisorThread.for_robot(robot, loop)
+    assert th is not None
+    try:
+        assert th.supervisor is robot.supervisor and th.clock is robot.clock  # type: ignore[attr-defined]
+        assert th.fifo_priority == expected
+        assert wait_until(lambda: th.wakeups > 0, 5.0)  # started: it checks
+    finally:
+        th.stop()
+
+
+def test_no_supervisor_thread_when_it_is_off_or_the_clock_is_simulated() -> None:
+    assert SupervisorThread.for_robot(_robot(False, RealClock()), 60) is None
+    assert SupervisorThread.for_robot(_robot(True, SimClock()), 60) is None
+    assert SupervisorThread.for_robot(_robot(False, SimClock()), 60) is None
