@@ -95,6 +95,22 @@ def _follows(arm: Arm, a: np.ndarray) -> None:
     assert worst_p < 1e-8, worst_p  # metres: 1e-5 mm (the DLS tolerance, 1e-8)
 
 
+def test_a_port_left_in_the_config_is_not_used_when_following() -> None:
+    """``rcm_mm`` is the port of ``orientation: rcm`` only: a config switched to ``follow``
+    with the port still in it follows the handle's orientation, as without it."""
+    cfg = load_config(CONFIGS / "ur5.yaml")
+    from occ.assembly import build_hardware
+
+    joints, frame, _ = build_hardware(cfg.robot)
+    home = np.asarray(frame.fk([j.home for j in joints]))
+    port = (home[:3, 3] - 0.1 * home[:3, 2]) * 1e3
+    arm = Arm(orientation="follow", rcm_mm=port.tolist())
+    try:
+        _follows(arm, np.eye(3))
+    finally:
+        arm.close()
+
+
 def test_the_clutch_reindexes_orientation_without_a_jump(arm: Arm) -> None:
     arm.pair.step(1500)
     op = arm.pair.m_op
