@@ -564,6 +564,9 @@ def test_send_counts_outputs_and_drops_and_passes_the_peer_on(fake_transports):
     assert (iface.counters.sent, iface.counters.send_dropped) == (3, 2)
     st = iface.stats()
     assert st["sent"] == 3 and st["dropped"] == 2  # the transport reports neither
+    # outputs that may have nowhere to go are those of a link sending to its stream's owner
+    # (a udp link without a remote); a server's always have its clients: no such count
+    assert "no_destination" not in st
     # a reply is not an output: not counted, True only when queued
     assert iface.send_to_peer(msg, peer) is False
     t.send_result = 1
@@ -593,6 +596,7 @@ def test_stats_take_the_transports_counts_when_it_has_them(fake_transports):
     st = iface.stats()
     assert (st["sent"], st["dropped"], st["malformed"]) == (0, 0, 0)
     assert not any(k in st for k in ("denied", "over_budget", "refused_by_remote"))
+    assert st["no_destination"] == 0  # a udp link without a remote: it sends to its owner
     iface.counters.sent, iface.counters.send_dropped, iface.counters.malformed = 4, 1, 2
     assert (iface.stats()["sent"], iface.stats()["malformed"]) == (4, 2)
     q = iface.streams["POSITION"]

@@ -543,3 +543,62 @@ def test_an_external_force_is_displayed_while_it_keeps_coming(unpassivated) -> N
     replies = master.op.messages()[before:]
     assert any("is not a force" in str(getattr(m, "status_message", "")) + str(
         getattr(m, "command", "")) for m in replies), replies
+
+
+def _servo_cf(master: Master, values: tuple[float, float, float]) -> None:
+    """An operator's SENSOR ``ServoCF`` in newtons (occ-ros2's servo_cf)."""
+    from igtl.messages.sensor import Unit
+
+    unit = Unit(0, ((11, 1),))
+    master.op.send(igtl.SensorMessage(values, unit, device_name="ServoCF", header_version=2))
+
+
+@pytest.mark.req("SR-FORCE-2")
+def test_a_stop_shows_no_force_and_reports_none_from_that_tick(unpassivated) -> None:
+    """While the robot is not RUNNING the hand is given no force: what the master reports
+    as displayed (GetStats ``force_n``, ``feedback_n``) and what its Force output sends (ROS
+    2's measured_cf) is zero from the Stop on, not the last force shown, until RUNNING shows
+    the slave's force again."""
+    master = unpassivated
+    master.run()
+    master.feed.force = (0.0, 0.0, 3.0)
+    master.feed.step(30)
+    st = master.ctrl.stats()
+    assert st["feedback_n"][2] == pytest.approx(3.0) and st["force_n"][2] == pytest.approx(3.0)
+    master.op.send_command("Stop")
+    master.feed.step(1)
+    assert master.sim.robot.state is RobotState.STOPPED
+    st = master.ctrl.stats()
+    assert st["force_n"] == [0.0, 0.0, 0.0] and st["feedback_n"] == [0.0, 0.0, 0.0]
+    n = len(master.op.messages("SENSOR", "Force"))
+    master.feed.step(100)  # Force goes at 50 Hz: five of them while stopped
+    sent = master.op.messages("SENSOR", "Force")[n:]
+    assert len(sent) == 5 and all(tuple(m.data) == (0.0, 0.0, 0.0) for m in sent)
+    assert master.ctrl.stats()["force_n"] == [0.0, 0.0, 0.0]
+
+
+@pytest.mark.req("SR-FORCE-2")
+def test_an_external_force_across_stop_and_run_is_shown_from_the_first_tick_after_run(
+    unpassivated,
+) -> None:
+    """An external force (servo_cf) that keeps coming while the robot is stopped and run
+    again: none while stopped, shown whole on the first tick after Run (the handle's
+    velocity has no previous tick yet: nothing to passivate), the loop unharmed."""
+    master = unpassivated
+    master.run()
+    _servo_cf(master, (0.0, 0.0, 1.5))
+    master.feed.step(2)
+    assert master.ctrl.displayed_n[2] == pytest.approx(1.5, abs=0.05)
+    master.op.send_command("Stop")
+    master.feed.step(1)
+    assert master.sim.robot.state is RobotState.STOPPED
+    assert master.ctrl.displayed_n == (0.0, 0.0, 0.0)
+    _servo_cf(master, (0.0, 0.0, 1.5))
+    master.feed.step(1)
+    master.op.send_command("Run")
+    master.feed.step(1)
+    assert master.sim.robot.state is RobotState.RUNNING
+    assert master.ctrl.displayed_n == pytest.approx((0.0, 0.0, 1.5), abs=1e-9)
+    master.feed.step(5)
+    assert master.sim.robot.state is RobotState.RUNNING
+    assert master.ctrl.displayed_n[2] == pytest.approx(1.5, abs=0.05)

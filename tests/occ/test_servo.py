@@ -165,6 +165,22 @@ def test_a_far_target_is_refused_with_an_alert_and_the_robot_holds(
 
 
 @pytest.mark.req("SR-SERVO-2")
+def test_a_far_first_target_is_refused_with_an_alert_too(rig: Rig) -> None:
+    """The very first target a source sends (none taken before it) is judged as every other:
+    one too far is refused, the robot holds where it is and the operators are told, once."""
+    rig.command("Enable")
+    rig.command("Run")
+    here = rig.world_tip_mm()
+    rig.target = (here + [0.0, 0.0, 10.5]).tolist()  # just beyond max_jump_mm (10)
+    rig.step(100)
+    assert rig.robot.state is RobotState.RUNNING
+    assert rig.world_tip_mm().tolist() == pytest.approx(here.tolist(), abs=1e-9)
+    assert rig.ctl.stats()["servo_refused"] == 50 and rig.ctl.stats()["master_ref_mm"] is None
+    alerts = [a for a in rig.alerts() if "servo target" in a]
+    assert alerts == ["servo target 10.5 mm from the tip refused (max_jump_mm 10): holding"]
+
+
+@pytest.mark.req("SR-SERVO-2")
 @pytest.mark.parametrize("how", ["run", "clutch"])
 def test_a_stopped_source_or_the_clutch_holds(rig: Rig, how: str) -> None:
     rig.running()

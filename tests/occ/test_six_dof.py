@@ -99,6 +99,22 @@ def _follows(arm: Arm, a: np.ndarray) -> None:
     assert worst_p < 1e-8, worst_p  # metres: 1e-5 mm (the DLS tolerance, 1e-8)
 
 
+def test_a_port_left_in_the_config_is_not_used_when_following() -> None:
+    """``rcm_mm`` is the port of ``orientation: rcm`` only: a config switched to ``follow``
+    with the port still in it follows the handle's orientation, as without it."""
+    cfg = load_config(CONFIGS / "ur5.yaml")
+    from occ.assembly import build_hardware
+
+    joints, frame, _ = build_hardware(cfg.robot)
+    home = np.asarray(frame.fk([j.home for j in joints]))
+    port = (home[:3, 3] - 0.1 * home[:3, 2]) * 1e3
+    arm = Arm(orientation="follow", rcm_mm=port.tolist())
+    try:
+        _follows(arm, np.eye(3))
+    finally:
+        arm.close()
+
+
 def test_the_clutch_reindexes_orientation_without_a_jump(arm: Arm) -> None:
     arm.pair.step(1500)
     op = arm.pair.m_op
@@ -363,6 +379,43 @@ def test_a_laparoscopic_tool_keeps_its_axis_through_the_port(base_mm: list[float
         assert worst_roll < 1e-5, worst_roll
         travel = np.linalg.norm(a.setpoint_pose()[:3, 3] - home[:3, 3])
         assert travel > 0.005  # the tip really moved (and the axis turned about the port)
+    finally:
+        a.close()
+
+
+@pytest.mark.req("SR-SIX-1")
+def test_a_tool_off_its_port_is_brought_through_it_without_a_pause() -> None:
+    """``orientation: rcm`` with the port 10 mm off the tool's axis when following starts: the
+    tool turns until its axis passes through the port, moving on every master sample from the
+    first one it follows (never two ticks in a row without coming closer: at 500 Hz every
+    other tick brings a sample), then stays through it; the robot still RUNNING (the steps
+    within the velocity limits the drives check)."""
+    cfg = load_config(CONFIGS / "ur5.yaml")
+    from occ.assembly import build_hardware
+
+    joints, frame, _ = build_hardware(cfg.robot)
+    home = np.asarray(frame.fk([j.home for j in joints]))
+    port = home[:3, 3] - 0.1 * home[:3, 2] + 0.01 * home[:3, 0]
+    a = Arm(orientation="rcm", rcm_mm=(port * 1e3).tolist())
+
+    def off_axis() -> float:
+        pose = a.setpoint_pose()
+        z, r = pose[:3, 2], port - pose[:3, 3]
+        return float(np.linalg.norm(r - float(r @ z) * z))
+
+    try:
+        dist = [off_axis()]
+        assert dist[0] > 0.009  # 10 mm off, less the little the master moved it
+        while dist[-1] > 1e-6:
+            assert len(dist) < 400, dist[-1]
+            a.pair.step(1)
+            dist.append(off_axis())
+            if len(dist) > 2:
+                assert dist[-1] < dist[-2] or dist[-2] < dist[-3], (len(dist), dist[-3:])
+        for _ in range(100):
+            a.pair.step(1)
+            assert off_axis() < 1e-6
+        assert a.slave.state is RobotState.RUNNING and a.ctl.ik_failures == 0
     finally:
         a.close()
 

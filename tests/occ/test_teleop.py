@@ -513,15 +513,20 @@ def test_only_the_configured_interface_and_device_are_followed() -> None:
 
 
 @pytest.mark.req("SR-CLUTCH-1")
+@pytest.mark.parametrize("held", [2, 1], ids=["held-2-samples", "held-1-sample"])
 @pytest.mark.parametrize("flag", ["clutch", "run"])
-def test_a_clutch_or_run_cycle_inside_one_tick_still_reindexes(rig: Rig, flag: str) -> None:
+def test_a_clutch_or_run_cycle_inside_one_tick_still_reindexes(
+    rig: Rig, flag: str, held: int
+) -> None:
     """Samples queued between two ticks are all seen by on_sample, the mapping only once:
     a press and release (or run 0 then 1) among them must still re-index, or the slave
-    would jump by the master's motion while it was not followed."""
+    would jump by the master's motion while it was not followed. Also when the press is a
+    single sample (the shortest the stream carries: the release is the very next one)."""
     rig.running()
     before = rig.tip_mm()
     n = rig.ctl.stats()["reindexes"]
-    for moved, following in ((10.0, False), (20.0, False), (20.0, True)):
+    cycle = [(10.0, False)] + [(20.0, False)] * (held - 1) + [(20.0, True)]
+    for moved, following in cycle:
         rig.seq += 1
         rig.master.send_position(
             (moved, 50.0, 270.0), seq=rig.seq,
