@@ -5,9 +5,13 @@ sources), diffs every survivor against the original function and sorts it into
 
 - ``log``: the change is inside a logging call (its text or arguments); nothing the robot does
   depends on it;
-- ``text``: only the text of a string changes, or a message string becomes None (an error,
-  alert or hook-action name); behaviour is the same,
-  and the tests that matter match the message's substance, not its every character;
+- ``text``: only the text of a string changes, or a message string becomes None, on a line
+  that makes a message (a ``raise``, an error or warning constructed, an alert, a refusal, a
+  status or last-error text, a help or description string): what the robot does is the same,
+  and the tests that matter match the message's substance, not its every character. A string
+  anywhere else (compared, a key, a name looked up, a device, a unit, a format) is
+  ``behaviour``: before 2026-11-27 any string counted as text, and 15 of teleop's 18 "text"
+  survivors then were comparisons (``mode == 'rcm'``);
 - ``gc``: inside ``__del__`` (the leak warning at garbage collection);
 - ``behaviour``: everything else, a changed default argument included (it shows in the
   signature, ``def (...)``, which is compared along with the body): a test should kill it,
@@ -27,6 +31,11 @@ from collections import Counter
 from pathlib import Path
 
 SIGNATURE = "def "
+#: a line that makes a message: its strings are what a person reads, not what the code decides on
+MESSAGE = re.compile(
+    r"\braise\b|Error\(|Exception\(|Warning\(|\bwarn\(|\.fail\(|\b_?tell\(|\balert\(|"
+    r"\b_?refuse[ds]?\(|\bProblem\(|\blast_error\b|\bstatus\s*=|\bdescription=|\bhelp="
+)
 STRING = re.compile(r"""(?:[rbfu]{0,2})("([^"\\]|\\.)*"|'([^'\\]|\\.)*')""", re.I)
 
 
@@ -49,6 +58,8 @@ def classify(name: str, old: list[str], new: list[str]) -> str:
     changed = [line for line in old + new]
     if changed and all(re.search(r"\b(log|logger)\.\w+\(", line) for line in changed):
         return "log"
+    if not all(MESSAGE.search(x) for x in old):
+        return "behaviour"  # a string the code decides on, not one a person reads
     if [STRING.sub('""', x) for x in old] == [STRING.sub('""', x) for x in new]:
         return "text"
     # a message (a string argument) replaced by None: the same call, without its text
@@ -70,7 +81,9 @@ def main(argv: list[str]) -> int:
         funcs = functions(source)
         counts: Counter[str] = Counter()
         for key, code in codes.items():
-            state = {0: "survived", 1: "killed", 33: "no tests", None: "not run"}.get(code, "killed")
+            state = {0: "survived", 1: "killed", 33: "no tests", None: "not run"}.get(
+                code, "killed"
+            )
             if state != "survived":
                 counts[state] += 1
                 continue
@@ -88,11 +101,13 @@ def main(argv: list[str]) -> int:
         killed = counts["killed"]
         alive = sum(v for k, v in counts.items() if k.startswith("survived"))
         behaviour = counts["survived: behaviour"]
-        print(f"{source.relative_to(root / 'mutants')}: {n} mutants, killed {killed} "
-              f"({100 * killed / max(n, 1):.1f} %), survived {alive} "
-              f"(behaviour {behaviour}, text {counts['survived: text']}, log {counts['survived: log']}"
-              f", gc {counts['survived: gc']}), no tests {counts['no tests']}, not run {counts['not run']}; "
-              f"killed of all but log/text/gc: {100 * killed / max(n - alive + behaviour, 1):.1f} %")
+        print(
+            f"{source.relative_to(root / 'mutants')}: {n} mutants, killed {killed} "
+            f"({100 * killed / max(n, 1):.1f} %), survived {alive} "
+            f"(behaviour {behaviour}, text {counts['survived: text']}, log {counts['survived: log']}"
+            f", gc {counts['survived: gc']}), no tests {counts['no tests']}, not run {counts['not run']}; "
+            f"killed of all but log/text/gc: {100 * killed / max(n - alive + behaviour, 1):.1f} %"
+        )
         total.update(counts)
     for row in rows:
         print(row)
