@@ -109,6 +109,9 @@ MODE_POSITION = 1
 MODE_EFFORT = 2
 EFFORT_SCALE = 1000.0  # milli-units per unit
 HEARTBEAT_LOST = -32768  # the feedback effort value of a drive stopped by its heartbeat
+#: a read takes at most this many frames per joint off the bus; the rest wait for the next tick,
+#: so a babbling node costs the tick a bounded amount of work, never the loop itself
+MAX_FRAMES_PER_JOINT = 64
 VELOCITY_SCALE = 1000.0  # counts/ms -> counts/s
 
 _INT32_MAX = 2**31 - 1
@@ -322,7 +325,7 @@ class CANDriver(Driver):
         unpack = FEEDBACK_FRAME.unpack_from
         last_rx = self._last_rx
         # Bounded drain: a babbling node must not keep the loop here forever.
-        for _ in range(64 * len(last_rx)):
+        for _ in range(MAX_FRAMES_PER_JOINT * len(last_rx)):
             try:
                 msg = bus.recv(timeout=0.0)
             except can.CanError as err:

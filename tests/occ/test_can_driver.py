@@ -12,7 +12,14 @@ import pytest
 from can.interfaces.virtual import VirtualBus
 
 from occ.drivers import DriverState, create_driver
-from occ.drivers.can import COMMAND_FRAME, FEEDBACK_FRAME, HEARTBEAT_LOST, MODE_DISABLED, CANDriver
+from occ.drivers.can import (
+    COMMAND_FRAME,
+    FEEDBACK_FRAME,
+    HEARTBEAT_LOST,
+    MAX_FRAMES_PER_JOINT,
+    MODE_DISABLED,
+    CANDriver,
+)
 from occ.drivers.can_sim import DriveAxis, SimulatedDriveNode
 from occ.errors import DriverError
 from occ.joint import Joint, JointLimits, PIDGains
@@ -775,3 +782,28 @@ def test_a_bus_that_fails_to_receive_faults_with_the_reason(channel: str) -> Non
         drv.read(0.0)
     assert drv.state is DriverState.FAULT
     drv.shutdown()
+
+
+def test_a_babbling_bus_costs_a_read_a_bounded_number_of_frames(channel: str) -> None:
+    """A read takes at most MAX_FRAMES_PER_JOINT frames per joint off the bus (the bound the
+    driver declares); the rest wait for the next read: a node that floods the bus costs each tick a
+    bounded amount of work and never holds the loop in the driver."""
+    js = make_joints()
+    peer = can.Bus(interface="virtual", channel=channel)
+    drv = CANDriver("arm", js, params(channel, feedback_timeout=10.0))
+    try:
+        drv.configure()
+        for fid in (0x181, 0x182):
+            peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
+                                  data=FEEDBACK_FRAME.pack(100, 0, 0)))
+        drv.read(0.0)
+        bound = MAX_FRAMES_PER_JOINT * len(js)
+        for _ in range(bound + 5):  # frames for nobody here (29-bit): each one read, ignored
+            peer.send(can.Message(arbitration_id=0x181, is_extended_id=True, data=bytes(8)))
+        drv.read(0.001)
+        assert drv.stats()["ignored_frames"] == bound
+        drv.read(0.002)
+        assert drv.stats()["ignored_frames"] == bound + 5
+    finally:
+        drv.shutdown()
+        peer.shutdown()
