@@ -33,7 +33,6 @@ def started(d: SimDriver, now: float = 0.0) -> SimDriver:
     return d
 
 
-@pytest.mark.req("SR-HW-3")
 def test_faults_in_the_params_strike_from_the_start_each_on_its_joint() -> None:
     js = joints(3)
     d = SimDriver("s", js, {"faults": ["nan:1"], "encoder_resolution": 0.0})
@@ -66,7 +65,6 @@ def test_a_bad_fault_is_refused_naming_it() -> None:
     d.inject("nan", 1)  # the last joint is one
 
 
-@pytest.mark.req("SR-HW-9")
 def test_an_injected_jump_is_a_fifth_of_the_range_on_its_joint_only() -> None:
     js = joints(2, lo=-0.5, hi=1.5)
     params = {"faults": ["jump:1"], "encoder_resolution": 0.0, "initial_positions": [0.25, 0.75]}
@@ -78,7 +76,6 @@ def test_an_injected_jump_is_a_fifth_of_the_range_on_its_joint_only() -> None:
     assert d.true_positions == [0.25, 0.75]
 
 
-@pytest.mark.req("SR-HW-4")
 def test_a_hook_fault_is_reported_as_the_drive_raised_it() -> None:
     d = started(SimDriver("s", joints(1)))
     d.inject("hook")
