@@ -512,3 +512,91 @@ def test_the_path_check_places_the_arm_where_its_base_is() -> None:
         assert reply["Status"] == "FAIL" and "forbidden region 'ceiling'" in reply["Error"]
     finally:
         sim.close()
+
+
+# ------------------------------------------------------------------------------ the desk
+def region_points(name: str, *radius: str) -> igtl.PointMessage:
+    """A Markups point list from 3D Slicer marked as a forbidden region (far from the arm)."""
+    meta = {"kind": "forbidden-region", **({"radius": radius[0]} if radius else {})}
+    return igtl.PointMessage(
+        points=(igtl.PointElement(name="p", position=(0.0, 0.0, -900.0), radius=5.0),),
+        device_name=name,
+        header_version=2,
+        metadata=meta,
+    )
+
+
+def statuses(op: Any) -> list[str]:
+    return [m.status_message for m in op.messages("STATUS") if m.code != int(igtl.StatusCode.OK)]
+
+
+@pytest.mark.req("SR-COLL-3")
+def test_a_region_from_slicer_is_defined_and_voids_a_plan_not_yet_acknowledged() -> None:
+    """The operator desk (occ/operators.py ``_collision_region``): a forbidden region from
+    3D Slicer replaces the node's definition in the collision model, a checked plan that was
+    not yet acknowledged must be planned again (its Ack refused, saying why), the region is
+    never taken as keyframes; one that cannot be used is refused to its sender with the
+    reason and changes nothing; a node sent again replaces its own definition only; a robot
+    that checks no collisions refuses every region."""
+    low = [0.3, -1.1, 1.6, -2.0, -1.57, 0.2]
+    sim = keyframe_robot({"margin_mm": 10.0}, keyframes=[{"t": 2.0, "pose": low, "name": "low"}])
+    try:
+        command(sim, "Enable")
+        command(sim, "Run")
+        reply = command(sim, "KeyframePlan")
+        assert reply["Status"] == "SUCCESS", reply
+        plan_id = reply["Message"].split(":")[0].split()[1]
+        sim.step(150)  # the preview goes out
+        guard = sim.robot.collision
+        assert guard is not None and guard.cm.regions == ()
+        op = sim.test_operator  # type: ignore[attr-defined]
+        op.send(region_points("Vessel"))
+        sim.step(2)
+        (region,) = guard.cm.regions
+        assert (region.name, region.kind, region.source) == ("Vessel:0", "sphere", "Vessel")
+        assert statuses(op) == []  # taken, not refused (and not keyframes)
+        kf = sim.robot.controller.controllers[0]
+        assert kf.status == (
+            f"plan {plan_id} invalidated: the forbidden region 'Vessel' changed; plan again"
+        )
+        ack = command(sim, "KeyframeAck", Plan=plan_id)
+        assert ack["Status"] == "FAIL", ack
+        # planned again: the stored keyframes are still the YAML's, not the region's point
+        reply = command(sim, "KeyframePlan")
+        assert reply["Status"] == "SUCCESS", reply
+        plan = reply["Message"]
+        assert plan.startswith("plan 2: 1 keyframes (joint, linear, stop), 2.000 s"), plan
+        # a region that cannot be used: refused with the reason, nothing changes
+        op.send(region_points("Bad", "wide"))
+        sim.step(2)
+        assert statuses(op) == ["region 'Bad': radius 'wide' is no number"]
+        assert [r.source for r in guard.cm.regions] == ["Vessel"]
+        assert sim.robot.state is RobotState.RUNNING
+        assert sim.robot.snapshot()["collision"] == guard.stats()  # GetStats
+    finally:
+        sim.close()
+    # a teleoperated arm (its controller has no plan to void): each node its own definition
+    tele = SimRobot(ur5({"margin_mm": 10.0}))
+    try:
+        guard = tele.robot.collision
+        assert guard is not None
+        op = tele.peer("operator")
+        for name in ("Vessel", "Nerve", "Vessel"):
+            op.send(region_points(name))
+            tele.step(2)
+        assert sorted(r.source for r in guard.cm.regions) == ["Nerve", "Vessel"]
+        assert statuses(op) == [] and tele.robot.state is RobotState.READY
+    finally:
+        tele.close()
+    plain = SimRobot(ur5(None))
+    try:
+        assert plain.robot.collision is None
+        op = plain.peer("operator")
+        op.send(region_points("Vessel"))
+        plain.step(2)
+        assert statuses(op) == [
+            "region 'Vessel': this robot checks no collisions (config safety.collision)"
+        ]
+        assert plain.robot.state is RobotState.READY
+    finally:
+        plain.close()

@@ -920,3 +920,89 @@ def test_every_robot_command_in_the_table_is_answered_by_its_role_and_thread() -
             elif spec.name != "GetStateTable":  # the slave has no table: a clear refusal
                 assert not refused, (key, reply.metadata)
         assert sim.robot.state is RobotState.READY  # nothing a viewer sent changed anything
+
+
+def test_a_pose_on_the_command_queue_reaches_the_controller_as_a_sample(sim, monkeypatch):
+    """A TRANSFORM routed to the command queue (a Base, a fixture's pose) is given to the
+    controller as the typed sample a stream would give: its sender, its device, its pose and
+    its arrival time, with the loop's time; never as a discrete input."""
+    from igtl.transport.common import Peer
+    from occ.interfaces import Inbound
+
+    got: list = []
+    monkeypatch.setattr(sim.robot.controller, "on_sample", lambda s, now: got.append((s, now)))
+    monkeypatch.setattr(sim.robot.controller, "on_input", lambda *a: got.append(("input", a)))
+    sim.step(3)
+    m = np.eye(4)
+    m[:3, 3] = (1.0, 2.0, 3.0)
+    msg = igtl.TransformMessage.from_matrix(m, device_name="Base", header_version=2, message_id=9)
+    peer = Peer(4, ("127.0.0.1", 7))
+    item = Inbound("operator", peer, msg, sim.now - 0.004)
+    sim.robot.operators.handle(item, sim.now)
+    ((sample, now),) = got
+    assert now == sim.now
+    assert (sample.interface, sample.peer, sample.device) == ("operator", peer, "Base")
+    assert sample.position_mm == (1.0, 2.0, 3.0) and sample.kind == "TRANSFORM"
+    assert sample.t_rx == sim.now - 0.004 and sample.seq == 9
+
+
+def test_a_client_joining_a_latched_robot_is_told_the_alert_and_only_then(sim):
+    """The greeting names the last alert in FAULT and ESTOP (what the operator must clear),
+    not in a state that is not latched (an old alert is not the state's cause there)."""
+    r = sim.robot
+    r.alarms.last_alert = "driver tool: write failed"
+    op = sim.peer("operator")
+    sim.step()
+    (hello,) = op.messages("STATUS")
+    assert hello.status_message == "slave is READY"
+    r.state_machine.request("fault", "test")
+    r.alarms.last_alert = "driver tool: write failed"
+    late = sim.peer("operator")
+    sim.step()
+    (hello,) = late.messages("STATUS")
+    assert hello.status_message == "slave is FAULT: driver tool: write failed"
+    r.alarms.last_alert = ""
+    last = sim.peer("operator")
+    sim.step()
+    (hello,) = last.messages("STATUS")
+    assert hello.status_message == "slave is FAULT"
+
+
+def test_the_statistics_name_the_build_the_recording_and_the_hardware(sim):
+    from occ import _native
+
+    r = sim.robot
+    snap = r.snapshot()
+    assert snap["build"] == _native.BUILD and snap["build"]
+    assert snap["recording"] == r.operators.recording.stats() and snap["recording"]
+    assert snap["hardware"] == r.hardware.stats() and snap["hardware"]
+    assert "collision" not in snap  # the slave checks no collisions (test_collision: one that does)
+
+
+def test_recording_commands_reach_the_recording_control_by_name(sim):
+    """StartRecording through the desk is the recording control's (occ/reccontrol.py): a
+    file name it refuses is refused to the asker with its reason, whatever the spelling."""
+    op = sim.peer("operator")
+    sim.step()
+    for name in ("StartRecording", "startrecording "):
+        cid = op.send_command(name, f'<Command Name="{name}" OutputFilename="../x"/>')
+        sim.step()
+        reply = op.reply_to(cid).metadata
+        assert reply["Status"] == "FAIL" and reply["Error"].startswith(
+            "StartRecording: OutputFilename must be a bare file name"
+        ), reply
+    cid = op.send_command("GetRecordingStatus")
+    sim.step()
+    assert op.reply_to(cid).metadata["Status"] == "SUCCESS"
+
+
+def test_a_robot_command_without_a_handler_stops_the_build(sim, monkeypatch):
+    """The command table (occ/commands.py ROBOT_COMMANDS) and the desk's handlers are one list:
+    a command added to the table alone is caught when the desk is built, naming it."""
+    import occ.operators as operators
+
+    table = dict(operators.ROBOT_COMMANDS)
+    table["frobnicate"] = next(iter(table.values()))
+    monkeypatch.setattr(operators, "ROBOT_COMMANDS", table)
+    with pytest.raises(AssertionError, match="without a handler.*'frobnicate'"):
+        operators.OperatorDesk(sim.robot)

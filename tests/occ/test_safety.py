@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -165,6 +167,32 @@ def test_a_failing_listener_runs_the_others_and_is_not_swallowed() -> None:
     assert sm.state is S.ESTOP
     # a listener failing on the way out of ESTOP latches FAULT; try_request logs it
     assert sm.try_request("reset") is None and sm.state is S.FAULT
+
+
+@pytest.mark.req("SR-STATE-1")
+def test_every_failing_listener_is_named_and_a_removed_one_is_not_called() -> None:
+    sm = StateMachine(S.RUNNING)
+    seen: list[RobotState] = []
+
+    def first(old: RobotState, new: RobotState, *_args: object) -> None:
+        if new is S.STOPPED:
+            raise RuntimeError("one")
+
+    def second(old: RobotState, new: RobotState, *_args: object) -> None:
+        if new is S.STOPPED:
+            raise KeyError("two")
+
+    def watcher(old: RobotState, new: RobotState, *_args: object) -> None:
+        seen.append(new)
+
+    for listener in (first, second, watcher):
+        sm.add_listener(listener)
+    sm.remove_listener(watcher)
+    text = "state listener raised RuntimeError: one; state listener raised KeyError: 'two'"
+    with pytest.raises(TransitionFailed, match=f"^'stop': {re.escape(text)}; the robot is FAULT$"):
+        sm.request("stop", "operator")
+    assert sm.state is S.FAULT and sm.last_reason == text
+    assert seen == []  # removed: never called
 
 
 @pytest.mark.req("SR-HW-2")
@@ -1421,6 +1449,13 @@ def test_every_field_of_sequence_latch_and_deadline_only_resume_events() -> None
     mon.on_packet(1044, None, 0.008)
     assert _ev(mon.check(0.008)) == (
         "latch", "3 consecutive packets lost (seq 1041-1043 missing)", "sequence", 3, 0.008,
+        0.008)
+    # the time since the last good sample is counted from it, not from the clock's zero
+    mon = LossMonitor()
+    mon.on_packet(1040, None, 1.000)
+    mon.on_packet(1044, None, 1.008)
+    assert _ev(mon.check(1.008)) == (
+        "latch", "3 consecutive packets lost (seq 1041-1043 missing)", "sequence", 3, 1.008,
         0.008)
     # a stream without numbers or timestamps resumes by the deadline, and says so; twice
     mon = LossMonitor()
