@@ -375,7 +375,9 @@ def test_servo_cf_from_rclpy_is_displayed_on_the_master(netns: Netns, tmp_path: 
     finally:
         console.stop()
         stats = rig.stop_bridge()["/occ/master"]
-    assert stats["servo_cf"] > 10 and stats["servo_cf_refused"] > 0, stats
+    # forwarded (at least the one displayed above: the checks can all pass within the stream's
+    # first 10 ms, so no larger count is promised) and the other frame refused
+    assert stats["servo_cf"] >= 1 and stats["servo_cf_refused"] > 0, stats
 
 
 def test_measured_cf_is_the_slaves_contact_force(netns: Netns, tmp_path: Path) -> None:
