@@ -64,6 +64,14 @@ def arm() -> Any:
 TURNED = (pin.rpy.rpyToMatrix(0.3, 0.0, 0.0) @ pin.rpy.rpyToMatrix(0.0, 0.0, math.pi / 2)).tolist()
 
 
+def _ur5_home() -> np.ndarray:
+    """The shipped UR5's tool pose at its home joints (world <- tip, metres)."""
+    from occ.assembly import build_hardware
+
+    joints, frame, _ = build_hardware(load_config(CONFIGS / "ur5.yaml").robot)
+    return np.asarray(frame.fk([j.home for j in joints]))
+
+
 @pytest.mark.parametrize("rotation", [None, TURNED], ids=["aligned", "turned"])
 def test_the_tool_follows_the_handle_in_position_and_orientation(rotation: Any) -> None:
     """The handle's rotation since the re-index, seen in the slave's axes through ``rotation``
@@ -102,11 +110,7 @@ def _follows(arm: Arm, a: np.ndarray) -> None:
 def test_a_port_left_in_the_config_is_not_used_when_following() -> None:
     """``rcm_mm`` is the port of ``orientation: rcm`` only: a config switched to ``follow``
     with the port still in it follows the handle's orientation, as without it."""
-    cfg = load_config(CONFIGS / "ur5.yaml")
-    from occ.assembly import build_hardware
-
-    joints, frame, _ = build_hardware(cfg.robot)
-    home = np.asarray(frame.fk([j.home for j in joints]))
+    home = _ur5_home()
     port = (home[:3, 3] - 0.1 * home[:3, 2]) * 1e3
     arm = Arm(orientation="follow", rcm_mm=port.tolist())
     try:
@@ -342,11 +346,7 @@ def test_a_laparoscopic_tool_keeps_its_axis_through_the_port(base_mm: list[float
     master (the paper's circle, 25 mm), the tool's axis passes through the port to 1e-6 m every
     tick, the tip is where the position mapping puts it, and the tool keeps its roll (its x
     axis turns only as much as its axis does, tick by tick)."""
-    cfg = load_config(CONFIGS / "ur5.yaml")
-    from occ.assembly import build_hardware
-
-    joints, frame, _ = build_hardware(cfg.robot)
-    home = np.asarray(frame.fk([j.home for j in joints]))
+    home = _ur5_home()
     port = (home[:3, 3] - 0.1 * home[:3, 2]) * 1e3
     if base_mm is None:
         a = Arm(orientation="rcm", rcm_mm=port.tolist())
@@ -390,11 +390,7 @@ def test_a_tool_off_its_port_is_brought_through_it_without_a_pause() -> None:
     first one it follows (never two ticks in a row without coming closer: at 500 Hz every
     other tick brings a sample), then stays through it; the robot still RUNNING (the steps
     within the velocity limits the drives check)."""
-    cfg = load_config(CONFIGS / "ur5.yaml")
-    from occ.assembly import build_hardware
-
-    joints, frame, _ = build_hardware(cfg.robot)
-    home = np.asarray(frame.fk([j.home for j in joints]))
+    home = _ur5_home()
     port = home[:3, 3] - 0.1 * home[:3, 2] + 0.01 * home[:3, 0]
     a = Arm(orientation="rcm", rcm_mm=(port * 1e3).tolist())
 
@@ -493,17 +489,13 @@ def test_a_port_along_the_tools_roll_axis_still_gives_an_orientation() -> None:
     roll to keep is not defined (the x axis is the new tool axis), so any perpendicular serves,
     a proper rotation with its z axis from the port to the tip; a target at the port itself
     has no axis at all: an error the loop counts, never a NaN pose."""
-    cfg = load_config(CONFIGS / "ur5.yaml")
-    from occ.assembly import build_hardware
-
-    joints, frame, _ = build_hardware(cfg.robot)
-    home = np.asarray(frame.fk([j.home for j in joints]))
+    home = _ur5_home()
     port = home[:3, 3] - 0.1 * home[:3, 2]
     a = Arm(orientation="rcm", rcm_mm=(port * 1e3).tolist())
     try:
         a.pair.step(100)
         ctl = a.ctl
-        x = np.asarray(frame.fk(ctl._q_last))[:3, 0]
+        x = np.asarray(a.slave.frame.fk(ctl._q_last))[:3, 0]
         for sign in (1.0, -1.0):
             r = ctl.rcm_rotation(tuple((port + sign * 0.05 * x).tolist()))
             assert np.all(np.isfinite(r))
@@ -654,11 +646,7 @@ def test_after_a_hold_the_laparoscopic_tool_rejoins_through_its_port_with_its_ro
     before (its x axis turns only as much as its axis does), not a roll re-derived from the
     setpoint trailing it; the setpoint re-joins them within the limits and ends on them, the
     tip where the position mapping puts it."""
-    cfg = load_config(CONFIGS / "ur5.yaml")
-    from occ.assembly import build_hardware
-
-    joints, frame, _ = build_hardware(cfg.robot)
-    home = np.asarray(frame.fk([j.home for j in joints]))
+    home = _ur5_home()
     port = home[:3, 3] - 0.1 * home[:3, 2]
     pair = _rejoin_pair(orientation="rcm", rcm_mm=(port * 1e3).tolist())
     try:
