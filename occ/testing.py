@@ -511,10 +511,14 @@ class SimPair:
             for msg in self._due(self._return, self.k):
                 self.m_link.send(msg)
             self.master.tick()
-            for msg in self._due(self._forward, self.k):
-                self.s_link.send(msg)
-            self.slave.tick()
-            self.k += 1
+            self._slave_tick()
+
+    def _slave_tick(self) -> None:
+        """The forward messages due handed to the slave, its tick, the next tick number."""
+        for msg in self._due(self._forward, self.k):
+            self.s_link.send(msg)
+        self.slave.tick()
+        self.k += 1
 
     def run_for(self, seconds: float) -> None:
         self.step(round(seconds / self.master.period))
@@ -530,10 +534,7 @@ class SimPair:
         time; the slave's return messages wait for the master's next tick."""
         self.master.stall(n)
         for _ in range(n):
-            for msg in self._due(self._forward, self.k):
-                self.s_link.send(msg)
-            self.slave.tick()
-            self.k += 1
+            self._slave_tick()
 
     def start(self) -> None:
         """Enable and Run the slave, then the master (each answered with SUCCESS)."""
