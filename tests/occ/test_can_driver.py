@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 import sys
@@ -737,6 +738,19 @@ def test_a_29_bit_frame_with_a_feedback_number_is_not_feedback(channel: str) -> 
     """The feedback identifiers are 11-bit. A 29-bit frame whose identifier has the same
     number (another device, e.g. J1939, on a bus python-can filters in software) is a
     different frame: it must not become the joint's position."""
+    with fed_driver(channel) as (js, peer, drv):
+        peer.send(can.Message(arbitration_id=0x181, is_extended_id=True,
+                              data=FEEDBACK_FRAME.pack(-90000, 0, 0)))
+        drv.read(0.001)
+        assert js[0].position == 100 / CPU[0]
+        assert drv.stats()["ignored_frames"] == 1 and drv.stats()["feedback_frames"] == 2
+
+
+@contextlib.contextmanager
+def fed_driver(channel: str) -> Iterator[tuple[list[Joint], can.Bus, CANDriver]]:
+    """A CAN driver configured on ``channel`` (feedback timeout 10 s) that has read one
+    feedback frame of 100 counts per joint, sent by a raw peer on the bus; both shut down
+    after."""
     js = make_joints()
     peer = can.Bus(interface="virtual", channel=channel)
     drv = CANDriver("arm", js, params(channel, feedback_timeout=10.0))
@@ -746,11 +760,7 @@ def test_a_29_bit_frame_with_a_feedback_number_is_not_feedback(channel: str) -> 
             peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
                                   data=FEEDBACK_FRAME.pack(100, 0, 0)))
         drv.read(0.0)
-        peer.send(can.Message(arbitration_id=0x181, is_extended_id=True,
-                              data=FEEDBACK_FRAME.pack(-90000, 0, 0)))
-        drv.read(0.001)
-        assert js[0].position == 100 / CPU[0]
-        assert drv.stats()["ignored_frames"] == 1 and drv.stats()["feedback_frames"] == 2
+        yield js, peer, drv
     finally:
         drv.shutdown()
         peer.shutdown()
@@ -788,15 +798,7 @@ def test_a_babbling_bus_costs_a_read_a_bounded_number_of_frames(channel: str) ->
     """A read takes at most MAX_FRAMES_PER_JOINT frames per joint off the bus (the bound the
     driver declares); the rest wait for the next read: a node that floods the bus costs each tick a
     bounded amount of work and never holds the loop in the driver."""
-    js = make_joints()
-    peer = can.Bus(interface="virtual", channel=channel)
-    drv = CANDriver("arm", js, params(channel, feedback_timeout=10.0))
-    try:
-        drv.configure()
-        for fid in (0x181, 0x182):
-            peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
-                                  data=FEEDBACK_FRAME.pack(100, 0, 0)))
-        drv.read(0.0)
+    with fed_driver(channel) as (js, peer, drv):
         bound = MAX_FRAMES_PER_JOINT * len(js)
         for _ in range(bound + 5):  # frames for nobody here (29-bit): each one read, ignored
             peer.send(can.Message(arbitration_id=0x181, is_extended_id=True, data=bytes(8)))
@@ -804,6 +806,3 @@ def test_a_babbling_bus_costs_a_read_a_bounded_number_of_frames(channel: str) ->
         assert drv.stats()["ignored_frames"] == bound
         drv.read(0.002)
         assert drv.stats()["ignored_frames"] == bound + 5
-    finally:
-        drv.shutdown()
-        peer.shutdown()
