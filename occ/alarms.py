@@ -54,6 +54,8 @@ class Alarms:
         #: why the robot last stopped or faulted ('' once an operator cleared it)
         self.last_alert = ""
         self._errors_logged = 0
+        #: (drive, operation) failures told since the robot last left FAULT/ESTOP
+        self._told: set[tuple[str, str]] = set()
 
     def plugin_error(self, where: str, err: BaseException) -> None:
         """An exception from a plugin or handler: FAULT with an alert naming it."""
@@ -66,17 +68,38 @@ class Alarms:
 
     def hardware_fault(self, failures: Sequence[HardwareFailure]) -> None:
         """A drive failed (read, write, or not ACTIVE when it must be): FAULT naming each
-        drive and its cause; the FAULT transition powers every drive off in this tick."""
+        drive and its cause; the FAULT transition powers every drive off in this tick.
+
+        Already FAULT or ESTOP (no transition, so no state STATUS), a failure not told yet
+        since the robot last left FAULT/ESTOP (a drive and an operation) is an ALERT to
+        every operator and viewer: a second drive faulting, a read error during an E-stop,
+        are heard by whoever is connected, once each, not every tick."""
         reason = describe(failures)
-        if self.states.state is RobotState.FAULT:
-            if self._errors_logged < 20:  # a drive failing every tick must not flood the log
+        state = self.states.state
+        if state is RobotState.FAULT or state is RobotState.ESTOP:
+            new = [f for f in failures if (f.driver, f.action) not in self._told]
+            if new:
+                self._told.update((f.driver, f.action) for f in new)
+                text = f"while {state.value}: {describe(new)}"
+                log.error("ALERT: %s", text)
+                self.broadcast("ALERT", text, igtl.StatusCode.HARDWARE_FAILURE)
+            elif self._errors_logged < 20:  # a drive failing every tick must not flood the log
                 self._errors_logged += 1
-                log.error("while FAULT: %s", reason)
+                log.error("while %s: %s", state.value, reason)
             return
+        self._told.update((f.driver, f.action) for f in failures)
         self.fault(reason)
 
+    def cleared(self) -> None:
+        """The robot left FAULT/ESTOP (a Reset that succeeded): failures are news again."""
+        self._told.clear()
+        self._errors_logged = 0
+
     def hardware_alert(self, failures: Sequence[HardwareFailure]) -> None:
-        """Drives that failed to stop (latched FAULT by their base): an alert naming them."""
+        """Drives that failed to stop (latched FAULT by their base): an alert naming them.
+        The robot latches FAULT for it once the transition under way is done
+        (:meth:`occ.robot.Robot._on_transition`: a drive not proven off is never forgotten)."""
+        self._told.update((f.driver, f.action) for f in failures)
         text = f"drives failed to stop: {describe(failures)}"
         log.error("ALERT: %s", text)
         self.broadcast("ALERT", text, igtl.StatusCode.HARDWARE_FAILURE)
@@ -139,12 +162,18 @@ class Alarms:
             recorder.record_message(status, "out", "*", self.clock.now())
 
     def supervisor_trip(self, reason: str) -> None:
-        """On the supervisor thread, while the loop is stuck: drivers to their safe state at
-        once, operators alerted; the loop latches FAULT when it comes back (:meth:`tick`)."""
+        """On the supervisor thread, while the loop is stuck: operators alerted first, then
+        every drive to its safe state at once, in parallel (a drive whose stop hangs delays
+        neither the others nor the alert); a drive that did not confirm its stop within the
+        bound is a second alert naming it. The loop latches FAULT when it comes back."""
         self.last_alert = f"supervisor: {reason}"
         log.error("SUPERVISOR: %s; drivers to their safe state", reason)
-        self.hardware.safe_stop(reason)
         self.broadcast("SUPERVISOR", f"supervisor: {reason}", igtl.StatusCode.HARDWARE_FAILURE)
+        unconfirmed = self.hardware.safe_stop(reason)
+        if unconfirmed:
+            text = f"supervisor: drives not proven stopped: {describe(unconfirmed)}"
+            log.error("ALERT: %s", text)
+            self.broadcast("ALERT", text, igtl.StatusCode.HARDWARE_FAILURE)
 
     def safety_stop(self, reason: str, policy: str) -> None:
         self.last_alert = reason

@@ -9,10 +9,16 @@ operation      on failure
 configure      the failed drives are latched FAULT in their base; the robot starts in FAULT
 activate       all or nothing: the drives already powered are switched off again and the
                transition that asked for power (``enable``, ``run`` from STOPPED) is vetoed;
-               the robot latches FAULT naming the drive
+               the robot latches FAULT naming the drive (and any that failed to switch off
+               again). Once every drive is up, :meth:`HardwareSet.verify` proves it: a read
+               that passes every feedback check and a write of where the joints are, every
+               drive still ACTIVE after both; a failure vetoes the same way
 deactivate     never refused (a stop cannot be): a drive that fails to stop is latched FAULT
-               by its base (which tries its ``_deactivate`` once more) and named in an alert
-reset          the transition out of FAULT is vetoed: the robot stays FAULT
+               by its base (which tries its ``_deactivate`` once more), marked unsafe
+               (:attr:`~occ.drivers.base.Driver.stop_failed`) and named; the robot FAULTs
+reset          every faulted drive resets (its backend refuses while the cause persists) and
+               then every drive is read afresh through every feedback check; any failure
+               vetoes the transition out of FAULT: the robot stays FAULT, the reply names it
 read           every drive is still read; the robot latches FAULT naming the drive
 write          checked before anything is written: every drive must be ACTIVE (a drive that
                faulted by itself is never left out silently); a write that raises, whatever
@@ -22,12 +28,21 @@ write          checked before anything is written: every drive must be ACTIVE (a
 
 :attr:`HardwareSet.last_fault_to_safe_s` is the measured time (``time.perf_counter``) from
 the detection of a read or write failure to the moment the last drive was in its safe state
-(INACTIVE or FAULT, power stages off), reported by ``GetStats`` under ``hardware``.
+(INACTIVE or FAULT, power stages off), reported by ``GetStats`` under ``hardware``. A drive
+whose switch-off failed is never safe (:meth:`HardwareSet.unsafe`): while one is, the time is
+not taken, and ``GetStats`` lists it under ``unsafe``. The time from the fault itself (not its
+detection) is the fault matrix's to measure: it knows when it injected the fault
+(occ/faultmatrix.py).
+
+The supervisor's safe stop (:meth:`HardwareSet.safe_stop`) stops every drive at once, each on
+a thread of its own, and waits at most a bound for them: a plugin whose stop hangs delays
+neither the other drives nor the operators' alert (the supervisor alerts first).
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -56,6 +71,10 @@ class HardwareFailure:
 def describe(failures: Sequence[HardwareFailure]) -> str:
     """One line naming every failed drive and its cause."""
     return "; ".join(str(f) for f in failures)
+
+
+def _stop_one(driver: Driver, reason: str) -> None:
+    driver.safe_stop(reason)  # never raises (the base catches and keeps what failed)
 
 
 def _cause(err: BaseException) -> str:
@@ -112,13 +131,24 @@ class HardwareSet:
         return "; ".join(missing)
 
     def all_safe(self) -> bool:
-        return all(d.state in SAFE for d in self.drivers)
+        """Every drive's power stage off: a state in SAFE, and no switch-off that failed."""
+        return all(d.state in SAFE and d.stop_failed is None for d in self.drivers)
+
+    def unsafe(self) -> list[HardwareFailure]:
+        """The drives whose switch-off failed (their power stage may still be on)."""
+        return [
+            HardwareFailure(d.name, "switch-off", d.stop_failed)
+            for d in self.drivers
+            if d.stop_failed is not None
+        ]
 
     def stats(self) -> dict[str, Any]:
         lat = self.last_fault_to_safe_s
         return {
             "drivers": {d.name: d.stats() for d in self.drivers},
             "states": {d.name: d.state.value for d in self.drivers},
+            "unsafe": {f.driver: f.cause for f in self.unsafe()},
+            "all_safe": self.all_safe(),
             "failures": self.failures,
             "last_fault_to_safe_us": None if lat is None else round(lat * 1e6, 1),
             **({"environment": self.environment.stats()} if self.environment else {}),
@@ -139,7 +169,7 @@ class HardwareSet:
             time.sleep(0.005)
             read(now())
 
-    def configure(self) -> list[HardwareFailure]:
+    def configure(self, count: bool = True) -> list[HardwareFailure]:
         """Configure every unconfigured drive; the failed ones are latched FAULT."""
         failures = []
         for d in self.drivers:
@@ -149,7 +179,7 @@ class HardwareSet:
                 d.configure()
             except Exception as err:  # noqa: BLE001 - every drive is tried, each failure named
                 failures.append(HardwareFailure(d.name, "configure", _cause(err)))
-        return self._count(failures)
+        return self._count(failures) if count else failures
 
     def activate(self) -> list[HardwareFailure]:
         """Power every drive, or none: a drive that cannot be powered (its activation fails,
@@ -169,12 +199,38 @@ class HardwareSet:
                 failures.append(HardwareFailure(d.name, "activate", _cause(err)))
         if failures:
             self._detected()
-            self.deactivate()  # the ones that came up go off again: all or nothing
+            # the ones that came up go off again: all or nothing; one that fails to is a
+            # failure of its own (it may still be powered), never forgotten
+            failures += self.deactivate(count=False)
         return self._count(failures)
 
-    def deactivate(self) -> list[HardwareFailure]:
+    def verify(
+        self, joints: Sequence[Joint], now: float, effort: bool = False
+    ) -> list[HardwareFailure]:
+        """After :meth:`activate`, before the robot says it is powered: every drive read
+        through every feedback check, then told to hold where its joints are (zero effort on
+        an effort drive), and every drive still ACTIVE after both. The failures (none when
+        proven); the caller switches everything off again when there are any."""
+        failures = list(self.read(now) or ())
+        if not failures:
+            values = [0.0] * len(joints) if effort else [j.position for j in joints]
+            failed = self.write(values, now, effort)
+            if failed is not None:
+                failures.append(failed)
+        failures += [
+            HardwareFailure(d.name, "verify", f"left ACTIVE: {d.fault_reason or d.state.value}")
+            for d in self.drivers
+            if d.state is not DriverState.ACTIVE and not any(f.driver == d.name for f in failures)
+        ]
+        if failures:
+            self._detected()
+        return failures
+
+    def deactivate(self, count: bool = True) -> list[HardwareFailure]:
         """Every ACTIVE drive to its safe state; never stops half way. A drive whose
-        deactivation fails is latched FAULT by its base (which stops following commands)."""
+        deactivation fails is latched FAULT by its base (which tries once more and, when
+        that fails too, marks it :attr:`~occ.drivers.base.Driver.stop_failed`): named in the
+        failures, with whether it is still unsafe."""
         failures = []
         for d in self.drivers:
             if d.state is not DriverState.ACTIVE:
@@ -182,15 +238,19 @@ class HardwareSet:
             try:
                 d.deactivate()
             except Exception as err:  # noqa: BLE001
-                failures.append(HardwareFailure(d.name, "deactivate", _cause(err)))
+                still = " (still powered: its switch-off failed twice)" if d.stop_failed else ""
+                failures.append(HardwareFailure(d.name, "deactivate", _cause(err) + still))
         t = self._fault_t
         if t is not None and self.all_safe():
             self.last_fault_to_safe_s = time.perf_counter() - t
             self._fault_t = None
-        return self._count(failures)
+        return self._count(failures) if count else failures
 
-    def reset(self) -> list[HardwareFailure]:
-        """Clear every latched drive fault and configure the drives never configured."""
+    def reset(self, now: float | None = None) -> list[HardwareFailure]:
+        """Clear every latched drive fault, configure the drives never configured, and prove
+        the repair: every drive read afresh at ``now`` through every feedback check (a drive
+        that reset but still reads wrong is a failure; it is latched FAULT again by its base).
+        The failures, each naming its drive: the robot stays FAULT when there are any."""
         failures = []
         for d in self.drivers:
             if d.state is not DriverState.FAULT:
@@ -199,13 +259,39 @@ class HardwareSet:
                 d.reset()
             except Exception as err:  # noqa: BLE001
                 failures.append(HardwareFailure(d.name, "reset", _cause(err)))
-        failures += self.configure()
+        failures += self.configure(count=False)
+        if not failures and now is not None:
+            failures += [
+                HardwareFailure(f.driver, "reset", f"a fresh read failed: {f.cause}")
+                for f in self.read(now, count=False) or ()
+            ]
         return self._count(failures)
 
-    def safe_stop(self, reason: str) -> None:
-        """From the supervisor's thread: every drive to its safe state at once (never raises)."""
+    def safe_stop(self, reason: str, bound_s: float = 0.010) -> list[HardwareFailure]:
+        """From the supervisor's thread: every drive to its safe state at once, each on a
+        thread of its own (a drive whose stop hangs on a lock its hung read holds does not
+        delay the others); waits at most ``bound_s`` for them. Never raises. The drives that
+        did not confirm their stop within the bound, or whose stop failed."""
+        stoppers = []
         for d in self.drivers:
-            d.safe_stop(reason)
+            t = threading.Thread(
+                target=_stop_one, args=(d, reason), name=f"occ-safe-stop-{d.name}", daemon=True
+            )
+            t.start()
+            stoppers.append((d, t))
+        give_up = time.perf_counter() + bound_s
+        failures = []
+        for d, t in stoppers:
+            t.join(max(0.0, give_up - time.perf_counter()))
+            if t.is_alive():
+                failures.append(
+                    HardwareFailure(
+                        d.name, "safe stop", f"not confirmed within {bound_s * 1e3:g} ms"
+                    )
+                )
+            elif d.stop_failed is not None:
+                failures.append(HardwareFailure(d.name, "safe stop", d.stop_failed))
+        return failures
 
     def shutdown(self) -> list[HardwareFailure]:
         failures = []
@@ -218,7 +304,7 @@ class HardwareSet:
         return failures
 
     # ------------------------------------------------------------------ every tick
-    def read(self, now: float) -> list[HardwareFailure] | None:
+    def read(self, now: float, count: bool = True) -> list[HardwareFailure] | None:
         """Read every configured drive (one that fails does not keep the others unread)."""
         failures: list[HardwareFailure] | None = None
         for d in self.drivers:
@@ -233,7 +319,8 @@ class HardwareSet:
                 failures.append(HardwareFailure(d.name, "read", _cause(err)))
         if failures is not None:
             self._detected()
-            self.failures += len(failures)
+            if count:
+                self.failures += len(failures)
         return failures
 
     def write(

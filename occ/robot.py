@@ -169,6 +169,8 @@ class Robot:
         )
         self.set_recorder(recorder)
         self._shutdown_done = False
+        #: the tick under way (its `now`): what a transition's reads and writes happen at
+        self._tick_now: float | None = None
 
     def set_recorder(self, recorder: Any | None) -> None:
         """Attach a recorder (from any thread: the loop sees it from its next read) or detach
@@ -274,6 +276,7 @@ class Robot:
         from a driver, a controller or a handler puts the robot in FAULT with an alert
         naming it, and the daemon goes on serving operators."""
         self.ticks += 1
+        self._tick_now = now
         sup = self.supervisor
         sup.last_beat = now
         if not sup.armed:
@@ -335,12 +338,19 @@ class Robot:
         nothing (a failure vetoes); off on leaving it (never refused, a drive that fails to stop
         is named in an alert); reset and configured out of FAULT/ESTOP, or vetoed."""
         failures: list[HardwareFailure] = []
+        hw = self.hardware
         if new in POWERED and old not in POWERED:
-            failures = self.hardware.activate()
-        elif new not in POWERED and old in POWERED and (stopped := self.hardware.deactivate()):
+            failures = hw.activate()
+            if not failures:  # up: proven by a checked read and a write before it is said
+                now = self._tick_now if self._tick_now is not None else self.clock.now()
+                failures = hw.verify(self.joints, now, self.controller.commands_effort)
+                if failures:
+                    failures += hw.deactivate()
+        elif new not in POWERED and old in POWERED and (stopped := hw.deactivate()):
             self.alarms.hardware_alert(stopped)
         if new is RobotState.READY and old in (RobotState.FAULT, RobotState.ESTOP):
-            failures = self.hardware.reset()
+            now = self._tick_now if self._tick_now is not None else self.clock.now()
+            failures = hw.reset(now)
         return describe(failures)
 
     def _on_transition(
@@ -359,6 +369,12 @@ class Robot:
         self.controller.on_state(old, new, self.clock.now())
         text = f"{old.value} -> {new.value}{why}"
         self.alarms.broadcast(new.value, text, STATE_STATUS_CODE[new], timestamp=t)
+        if old in (RobotState.FAULT, RobotState.ESTOP) and new is RobotState.READY:
+            self.alarms.cleared()
+        # a drive whose switch-off failed (Disable, a roll-back) may still be powered: the
+        # robot may not look merely off, it latches FAULT naming it (issue 36)
+        if new is RobotState.READY and (unsafe := self.hardware.unsafe()):
+            self.alarms.fault(f"switch-off failed: {describe(unsafe)}")
 
     # ================================================================== collaboration
     def handover(self, to: str, interface: str, now: float) -> str:

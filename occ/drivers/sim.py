@@ -80,9 +80,17 @@ heartbeat       commands stop reaching the drive: it stops itself at its heartbe
 nan             joint ``joint`` reports NaN (from the start: a joint never measured)
 frozen          every position stays where it was at injection (the model moves on)
 jump            joint ``joint`` reports 20 % of its range further than it is
+drift           joint ``joint``'s reading runs away from the truth at ``amount`` per second
+                (default 0.1: 0.1 mm a tick on a prismatic joint) while the drive servos its
+                true position: a runaway encoder whose drive still answers
+slip            joint ``joint``'s reading is ``amount`` (default 0.5 mm or mrad) off the truth
+                from now on: an encoder that slipped once
 ==============  ===============================================================================
 
-:meth:`SimDriver.clear_faults` repairs the drive (a ``reset`` then succeeds).
+A spec in ``faults`` is ``kind``, ``kind:joint`` or ``kind:joint:amount`` (``drift:2:0.5``).
+
+:meth:`SimDriver.clear_faults` repairs the drive. Until then its ``reset`` fails naming the
+fault, as a drive's fault reset does while the cause persists; once repaired it succeeds.
 """
 
 from __future__ import annotations
@@ -98,10 +106,25 @@ from occ.drivers.base import CommandInterface, Driver, LimitPolicy
 from occ.errors import DriverError, caused
 from occ.joint import Joint
 
-__all__ = ["SimDriver", "SIM_DEFAULTS", "SIM_FAULTS"]
+__all__ = ["SimDriver", "SIM_DEFAULTS", "SIM_FAULTS", "FAULT_AMOUNTS"]
 
 #: the hardware faults :meth:`SimDriver.inject` can play (see the module docstring)
-SIM_FAULTS = ("configure", "activate", "hook", "write", "heartbeat", "nan", "frozen", "jump")
+SIM_FAULTS = (
+    "configure",
+    "activate",
+    "hook",
+    "write",
+    "heartbeat",
+    "nan",
+    "frozen",
+    "jump",
+    "drift",
+    "slip",
+)
+#: the default ``amount`` of the faults that take one: a runaway encoder at one period's worth
+#: of the shipped insertion's velocity limit a tick (0.1 m/s; rad/s on a revolute joint), a
+#: slip of five times that in one go (issue 36's cases)
+FAULT_AMOUNTS = {"drift": 0.1, "slip": 0.0005}
 
 _REVOLUTE_RESOLUTION = 2.0 * math.pi / 2**17  # a common 17-bit absolute rotary encoder
 _PRISMATIC_RESOLUTION = 1e-6  # a 1 um linear scale
@@ -290,15 +313,20 @@ class SimDriver(Driver):
         self.heartbeat_trips = 0
         #: injected faults: kind -> joint index (see :meth:`inject`); empty when healthy
         self._faults: dict[str, int] = {}
+        self._amounts: dict[str, float] = {}
+        self._drift_from = math.nan
         self._frozen_at: list[float] = []
         self._faulty_out = [0.0] * n
         faults = p["faults"]
         if isinstance(faults, str) or not isinstance(faults, (list, tuple)):
             raise ValueError(f"sim param 'faults' must be a list of fault kinds, got {faults!r}")
         for spec in faults:
-            kind, _, joint = str(spec).partition(":")
+            kind, _, rest = str(spec).partition(":")
+            joint, _, amount = rest.partition(":")
             try:
-                self.inject(kind, int(joint) if joint else 0)
+                self.inject(
+                    kind, int(joint) if joint else 0, float(amount) if amount else None
+                )
             except ValueError as err:
                 raise ValueError(f"sim param 'faults': {err}") from None
 
@@ -314,15 +342,23 @@ class SimDriver(Driver):
         return self._substep
 
     # ------------------------------------------------------------------ injected faults
-    def inject(self, kind: str, joint: int = 0) -> None:
+    def inject(self, kind: str, joint: int = 0, amount: float | None = None) -> None:
         """Make the simulated drive fail as ``kind`` (``SIM_FAULTS``, the module docstring)
-        from now on; ``joint`` (an index in this driver's joints) for nan and jump."""
+        from now on; ``joint`` (an index in this driver's joints) for nan, jump, drift and
+        slip; ``amount`` for drift (per second) and slip (``FAULT_AMOUNTS`` by default)."""
         if kind not in SIM_FAULTS:
             raise ValueError(f"unknown fault {kind!r}; faults are: {', '.join(SIM_FAULTS)}")
         if not 0 <= joint < len(self.joints):
             raise ValueError(f"joint index {joint} out of range for driver {self.name!r}")
+        if amount is not None and kind not in FAULT_AMOUNTS:
+            raise ValueError(f"fault {kind!r} takes no amount")
+        if amount is not None and not math.isfinite(amount):
+            raise ValueError(f"fault {kind!r}: amount must be finite, got {amount}")
         if kind == "frozen":
             self._frozen_at = list(self._measured)
+        if kind in FAULT_AMOUNTS:
+            self._amounts[kind] = FAULT_AMOUNTS[kind] if amount is None else float(amount)
+            self._drift_from = self._t  # NaN before the first step: from the first read
         self._faults[kind] = joint
 
     def clear_faults(self) -> None:
@@ -338,6 +374,12 @@ class SimDriver(Driver):
         if "jump" in faults:
             j = self.joints[faults["jump"]]
             res[faults["jump"]] += 0.2 * (j.limits.max - j.limits.min)
+        if "drift" in faults:
+            if self._drift_from != self._drift_from:
+                self._drift_from = self._t
+            res[faults["drift"]] += self._amounts["drift"] * (self._t - self._drift_from)
+        if "slip" in faults:
+            res[faults["slip"]] += self._amounts["slip"]
         if "nan" in faults:
             res[faults["nan"]] = math.nan
         return res
@@ -382,7 +424,28 @@ class SimDriver(Driver):
         # next step on.
         self._enabled = False
 
+    def _following_model(self) -> tuple[Sequence[float], Sequence[float | None]] | None:
+        # a PD servo trails a ramp by v (kd + b) / kp and gives way to a load by f / kp; half
+        # as much again and one period of margin, for the zero-order hold between commands
+        if self.command_interface != "position":
+            return None
+        lags = [
+            1.5 * (self._kd[i] + self._damping[i]) / self._kp[i] + self.period
+            for i in range(len(self.joints))
+        ]
+        return lags, list(self._kp)
+
+    def _default_noise(self) -> Sequence[float] | None:
+        return [r + 4.0 * s for r, s in zip(self._resolution, self._noise, strict=True)]
+
     def _reset(self) -> None:
+        # a drive's fault reset does not clear while its cause persists (CiA 402: the fault
+        # reset is refused while the fault condition remains): the simulated drive's own
+        # diagnosis reports an injected fault until it is repaired (clear_faults)
+        if self._faults:
+            raise DriverError(
+                f"sim driver {self.name!r}: fault persists ({', '.join(sorted(self._faults))})"
+            )
         self._deactivate()
         self._heartbeat_lost = None
         self._heartbeat_reported = False

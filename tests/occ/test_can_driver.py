@@ -411,11 +411,11 @@ def test_the_joint_table_as_a_list_in_joint_order(channel: str) -> None:
         assert [m.is_extended_id for m in sent] == [False, False]
         assert [COMMAND_FRAME.unpack(m.data) for m in sent] == [(0, MODE_DISABLED, 0, 255)] * 2
         peer.send(can.Message(arbitration_id=0x7FF, is_extended_id=False,
-                              data=FEEDBACK_FRAME.pack(1, 0, 0)))
+                              data=FEEDBACK_FRAME.pack(0, 0, 0)))
         peer.send(can.Message(arbitration_id=0x000, is_extended_id=False,
-                              data=FEEDBACK_FRAME.pack(-3, 0, 0)))
-        drv.read(0.0)
-        assert js[0].position == -3.0 and js[1].position == 1.0
+                              data=FEEDBACK_FRAME.pack(-1, 0, 0)))
+        drv.read(0.0)  # (one count is a metre here: the insertion's range holds only 0)
+        assert js[0].position == -1.0 and js[1].position == 0.0
     finally:
         drv.shutdown()
         peer.shutdown()

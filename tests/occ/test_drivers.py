@@ -548,7 +548,11 @@ def test_sim_common_read_reports_what_the_general_path_does() -> None:
             Joint("b", limits=JointLimits(-0.02, 0.02, velocity=100.0, effort=50.0)),
             Joint("c", type="prismatic", limits=JointLimits(0.0, 0.1, velocity=1.0, effort=50.0)),
         ]
-        d = SimDriver("s", js, {"encoder_resolution": [1e-4, 2e-5, 0.0], "heartbeat_ms": 0})
+        # a saturated servo cannot follow and one at its end stop does not move: the feedback
+        # checks that judge this (following error, frozen) are tested elsewhere
+        params = {"encoder_resolution": [1e-4, 2e-5, 0.0], "heartbeat_ms": 0,
+                  "following_error": None, "frozen_feedback_ms": 0}
+        d = SimDriver("s", js, params)
         d.environment = world
         d.configure()
         d.read(0.0)
@@ -807,8 +811,11 @@ def test_params_defaults_and_the_interface_from_params() -> None:
     assert d.period == 0.002 and d.command_interface == "effort"
     assert d.params == {
         "heartbeat_ms": 50.0,
-        "feedback_jump": 10.0,
+        "feedback_jump": 2.0,
         "frozen_feedback_ms": 50.0,
+        "feedback_noise": None,
+        "limit_margin": None,
+        "following_error": {},
         "period": 0.002,
         "command_interface": "effort",
     }

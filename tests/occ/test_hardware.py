@@ -210,10 +210,17 @@ def test_a_drive_that_fails_to_stop_is_named_and_the_others_still_stop() -> None
     a.breaks.add("deactivate")
     (fail,) = hw.deactivate()
     assert fail == HardwareFailure(
-        "a", "deactivate", "driver 'a': deactivate failed: RuntimeError()"
+        "a",
+        "deactivate",
+        "driver 'a': deactivate failed: RuntimeError() (still powered: its switch-off failed "
+        "twice)",
     )
     assert a.state is DriverState.FAULT and b.state is DriverState.INACTIVE
-    assert hw.all_safe() and hw.failures == 1
+    # latched, but not safe: its power stage was never proven off (issue 36)
+    assert not hw.all_safe() and hw.failures == 1
+    assert [u.driver for u in hw.unsafe()] == ["a"] and hw.stats()["unsafe"] == {
+        "a": "switch-off failed: RuntimeError()"
+    }
     (latched,) = hw.faulted()
     assert latched == HardwareFailure("a", "drive", a.fault_reason or "")
     a.breaks.clear()

@@ -57,7 +57,7 @@ def test_a_bad_fault_is_refused_naming_it() -> None:
     for faults, text in cases:
         with pytest.raises(ValueError, match=f"^{re.escape(text)}$"):
             SimDriver("s", joints(3), {"faults": faults})
-    assert kinds == "configure, activate, hook, write, heartbeat, nan, frozen, jump"
+    assert kinds == "configure, activate, hook, write, heartbeat, nan, frozen, jump, drift, slip"
     d = SimDriver("s", joints(2))
     for joint in (2, -1):
         with pytest.raises(ValueError, match=f"^joint index {joint} out of range for driver 's'$"):
