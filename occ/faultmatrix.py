@@ -31,7 +31,6 @@ from .clock import SimClock
 from .config import DaemonConfig
 from .drivers.base import DriverState
 from .drivers.can_sim import DriveAxis, SimulatedDriveNode
-from .hardware import SAFE
 from .loader import load_config
 from .safety import RobotState
 from .testing import SimPeer, SimRobot
@@ -65,6 +64,12 @@ ROWS: tuple[Row, ...] = (
     Row("nan", "sim", "running", "feedback NaN", ("nan",)),
     Row("frozen", "sim", "running", "feedback frozen, heartbeat alive", ("frozen",)),
     Row("jump", "sim", "running", "position jump beyond the velocity limit", ("jump",)),
+    # issue 36: feedback that lies while the drive answers and its heartbeat lives
+    Row("drift", "sim", "running", "runaway encoder, 0.1 mm a tick", ("drift:0:0.1",)),
+    Row("drift-fast", "sim", "running", "runaway encoder, 0.5 mm a tick", ("drift:0:0.5",)),
+    Row(
+        "slip", "sim", "running", "encoder slip of 0.5 mm (5 x a tick's limit)", ("slip:0:0.0005",)
+    ),
     Row("can-silent", "can", "running", "CAN node stops answering"),
     Row("can-late", "can", "running", "CAN node answers late"),
     Row("can-busoff", "can", "running", "CAN bus-off"),
@@ -87,6 +92,11 @@ class Outcome:
     enable_reply: str = ""
     recovered: bool = False
     partial_ticks: int = 0  # ticks RUNNING with a drive not ACTIVE (must be 0)
+    #: simulated ms from the injected fault (not its detection) to the tick in which the last
+    #: drive was safe (None when that never happened; a drive whose switch-off failed is not)
+    inject_to_safe_ms: float | None = None
+    #: the furthest the robot measured the faulty joint outside its limits, mm (0: never)
+    outside_limits_mm: float = 0.0
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -221,8 +231,10 @@ class _Run:
     def inject(self) -> None:
         row = self.row
         if row.backend == "sim":
-            for kind in row.sim_faults:
-                self.tool.inject(kind)
+            for spec in row.sim_faults:
+                kind, _, rest = spec.partition(":")
+                joint, _, amount = rest.partition(":")
+                self.tool.inject(kind, int(joint or 0), float(amount) if amount else None)
             return
         node = self.node
         assert node is not None
@@ -286,8 +298,12 @@ def _play(run: _Run, out: Outcome) -> None:
         n_view = len(run.viewer.messages("STATUS"))
         run.inject()
         injected_at = run.sim.k
+        limits = robot.joints[2].limits  # the tool's joint, insertion
         for _ in range(500):
             run.tick(stream=True)
+            x = robot.data.q[2]
+            outside = max(limits.min - x, x - limits.max, 0.0) * 1e3
+            out.outside_limits_mm = max(out.outside_limits_mm, outside)
             if robot.state is RobotState.FAULT:
                 break
     elif row.when == "enable":
@@ -297,7 +313,9 @@ def _play(run: _Run, out: Outcome) -> None:
             out.notes.append("Enable was accepted")
     if robot.state is RobotState.FAULT or row.when == "enable":
         out.detected_ms = (run.sim.k - injected_at) * 1e3 / robot.rate_hz
-        out.ticks_to_safe = 0 if all(d.state in SAFE for d in hw.drivers) else 1
+        out.ticks_to_safe = 0 if hw.all_safe() else 1
+        if hw.all_safe():
+            out.inject_to_safe_ms = (run.sim.k - injected_at) * 1e3 / robot.rate_hz
         lat = hw.last_fault_to_safe_s
         out.fault_to_safe_us = None if lat is None else lat * 1e6
     out.state = robot.state.value
@@ -327,12 +345,12 @@ def _play(run: _Run, out: Outcome) -> None:
 def table(outcomes: list[Outcome]) -> str:
     """The matrix as a Markdown table (``tools/fault_matrix.py``)."""
     lines = [
-        "| fault | drive | noticed after (sim ms) | ticks to all safe | fault -> last drive "
-        "safe (us) | state | Enable before Reset | alert to operators | pass |",
+        "| fault | drive | fault -> all safe (sim ms) | ticks to all safe | detection -> last "
+        "drive safe (us) | state | Enable before Reset | alert to operators | pass |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for o in outcomes:
-        det = "-" if o.detected_ms is None else f"{o.detected_ms:.0f}"
+        det = "-" if o.inject_to_safe_ms is None else f"{o.inject_to_safe_ms:.0f}"
         lat = "-" if o.fault_to_safe_us is None else f"{o.fault_to_safe_us:.0f}"
         alert = o.alert_operator.replace("|", "/")
         lines.append(

@@ -68,9 +68,9 @@ the figures and the rule, and the base powers the drive off in the same call.
 - **Following error** (``following_error: {window, time_ms, lag_ms, stiffness}``, the CiA 402
   way: object 0x6065 *following error window*, 0x6066 *time out*): while ACTIVE on position
   commands, a joint measured further from its command than the window for longer than
-  ``time_ms`` (default 5) latches FAULT. The window is ``window`` (default 5 mrad, 0.5 mm)
-  plus what a healthy servo lags: ``lag_ms`` times the commanded speed (an envelope that
-  decays over twice the lag, so the error of a servo settling after a fast move is covered),
+  ``time_ms`` (default 3) latches FAULT. The window is ``window`` (default 5 mrad, 0.5 mm)
+  plus what a healthy servo lags: ``lag_ms`` times the commanded speed averaged over the lag
+  (so a step after a stall of the loop widens it by the step, as much as the error it makes),
   plus the measured effort over the servo's ``stiffness`` (a position servo pushed by tissue
   or a load gives way by effort/stiffness; None leaves that term out). A backend that knows its
   servo supplies both (``sim``: from its bandwidth and gains); the defaults are 20 ms and
@@ -129,7 +129,7 @@ BASE_PARAMS: dict[str, Any] = {
 #: ``following_error``'s keys and defaults (None: by joint type, or from the backend)
 FOLLOWING_DEFAULTS: dict[str, Any] = {
     "window": None,
-    "time_ms": 5.0,
+    "time_ms": 3.0,
     "lag_ms": None,
     "stiffness": None,
 }
@@ -342,7 +342,7 @@ class Driver:
             (j.limits.min - m, j.limits.max + m, m) for j, m in zip(joints, margins, strict=True)
         ]
         # following error (per joint): window, lag (s), 1 / stiffness (0: no load term), the
-        # envelope of the commanded speed, since when the error is outside the window
+        # average of the commanded speed, since when the error is outside the window
         self._fe_window = [0.0] * len(joints)
         self._fe_lag = [0.0] * len(joints)
         self._fe_compliance = [0.0] * len(joints)
@@ -760,12 +760,15 @@ class Driver:
                     x = ref + max_step if step > 0.0 else ref - max_step
                     self._limit_events += 1
             if ref == ref:
-                # the commanded speed per nominal period (a step after a stall counts as
-                # fast: the servo catches up), an envelope decaying over twice the lag
+                # the commanded speed: each step over one nominal period (a step after a stall
+                # counts as fast: the servo catches up), averaged over the servo's lag (an
+                # exponential average: a step S raises lag x speed by S, as the error it
+                # makes, which then decays with the servo's own time)
                 moved = x - ref if x > ref else ref - x
-                speed = moved / self.period
-                decayed = cmd_speed[i] * (1.0 - dt * fade[i]) if dt * fade[i] < 1.0 else 0.0
-                cmd_speed[i] = speed if speed > decayed else decayed
+                gain = dt * fade[i]
+                if gain > 1.0:
+                    gain = 1.0
+                cmd_speed[i] += (moved / self.period - cmd_speed[i]) * gain
             prev[i] = x
             joint.command_position = x
             values[i] = joint.servo(x, dt) if effort else x
@@ -881,7 +884,7 @@ class Driver:
             self._fe_time = float(fe["time_s"])
         self._fe_lag = lags
         self._fe_compliance = [0.0 if k is None else 1.0 / k for k in stiff]
-        self._fade = [0.5 / max(lag, self.period) for lag in lags]
+        self._fade = [1.0 / max(lag, self.period) for lag in lags]
 
     def _require(self, allowed: tuple[DriverState, ...], action: str) -> None:
         if self._state not in allowed:
