@@ -711,6 +711,10 @@ def _mm(p: Sequence[float] | None) -> list[float] | None:
     return None if p is None else [round(float(v) / MM, 6) for v in p]
 
 
+def _m(p_mm: Sequence[float]) -> tuple[float, float, float]:
+    return (p_mm[0] * MM, p_mm[1] * MM, p_mm[2] * MM)
+
+
 @mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins extend built-ins
 class SlaveController(Controller):
     """The slave side of the OCC pair: follows the master's POSITION stream, scaled and
@@ -819,6 +823,24 @@ class SlaveController(Controller):
                 problems.append(
                     (("force", "sensor_interface"), f"no interface '{f.sensor_interface}'")
                 )
+        if f is not None and f.tool_mass_kg > 0.0:
+            if "sensor" not in f.sources:
+                problems.append(
+                    (
+                        ("force", "tool_mass_kg"),
+                        "the weight beyond the sensor is removed from the sensor's readings: "
+                        "needs `sensor` in sources (or 0)",
+                    )
+                )
+            g = math.sqrt(sum(v * v for v in f.gravity_mps2))
+            if not 9.76 <= g <= 9.84:  # the Earth's surface: 9.78 (equator) to 9.83 (poles)
+                problems.append(
+                    (
+                        ("force", "gravity_mps2"),
+                        f"magnitude {g:.4g} m/s^2: the Earth's is 9.78-9.83 m/s^2 (a unit or "
+                        "sign slip would compensate a weight that is not there)",
+                    )
+                )
         return problems + check_outputs(config, f is not None)
 
     def outputs(self) -> dict[str, SourceFn]:
@@ -836,10 +858,20 @@ class SlaveController(Controller):
     def on_command(self, request: Request, now: float) -> str | None:
         if request.name.strip().lower() != "forcetare" or self.force is None:
             raise CommandError(f"unknown command {request.name!r}")
-        assert self.data is not None
-        self.force.tare(self.data.effort)
-        bias = ", ".join(f"{v:.4g}" for v in self.data.effort)
-        return f"force bias taken: efforts [{bias}]"
+        data, ctx = self.data, self.ctx
+        assert data is not None and ctx is not None
+        # at rest and touching nothing, or refused (occ/forces.py: a tare in contact hides a
+        # real force from then on)
+        v = ctx.frame.jacobian(data.q)[:3] @ np.asarray(data.qdot, dtype=float)
+        env = ctx.environment
+        contact = None
+        if env is not None and env.in_contact:
+            deep = max(env.depth_mm.items(), key=lambda kv: kv[1])
+            contact = f"simulated tissue {deep[0]!r} {deep[1]:.2f} mm deep"
+        try:
+            return self.force.tare_all(now, data.effort, float(np.linalg.norm(v)), contact)
+        except ValueError as err:
+            raise caused(CommandError(str(err)), err) from err
 
     def on_input(self, item: Inbound, now: float) -> None:
         if self._tissue(item.msg):
@@ -954,6 +986,14 @@ class SlaveController(Controller):
                 effort_inertia=fp.effort_inertia,
                 environment=ctx.environment,
                 alert=ctx.alert,
+                pose=lambda: (data.tip, data.base),
+                tool_mass_kg=fp.tool_mass_kg,
+                tool_com_m=_m(fp.tool_com_mm),
+                gravity=fp.gravity_mps2,
+                tare_window_s=fp.tare_window_ms * 1e-3,
+                tare_max_speed=fp.tare_max_speed_mm_s * 1e-3,
+                tare_max_spread_n=fp.tare_max_spread_n,
+                tare_max_offset_n=fp.tare_max_offset_n,
             )
             self.force_view = ForceView(self.force, data, ctx, fp.display_mm_per_n)
         if self.base_mm is not None:

@@ -239,6 +239,43 @@ class SlaveForceParams(_Params):
         description="The output source `force` (3D Slicer): length of the force arrow, mm per N "
         "(the POLYDATA arrow's length, the TRANSFORM's z axis; occ/forceviz.py).",
     )
+    tool_mass_kg: Annotated[Float, Field(ge=0, le=20)] = Field(
+        0.0,
+        description="`sensor`: mass (kg) of what hangs beyond the force sensor (instrument, "
+        "its drive, the gripper): its weight is removed from every reading at the pose the "
+        "robot's kinematics give (force, and its moment for a 6-axis sensor); 0 = none.",
+    )
+    tool_com_mm: Vec3 = Field(
+        (0.0, 0.0, 0.0),
+        description="`sensor`: its centre of mass from the sensor's origin (mm, the tip "
+        "frame's axes): the lever of its weight's moment on a 6-axis sensor.",
+    )
+    gravity_mps2: Vec3 = Field(
+        (0.0, 0.0, -9.81),
+        description="Gravity in the robot's base frame (m/s^2; a base mounted upside down or "
+        "on a wall turns it): rotated into the sensor's frame for the weight compensation.",
+    )
+    tare_window_ms: Annotated[Float, Field(gt=0, le=2000)] = Field(
+        100.0,
+        description="`ForceTare`: the sensor's offset is the mean of its readings (the "
+        "tool's weight removed) over this last stretch of time.",
+    )
+    tare_max_speed_mm_s: PosFloat = Field(
+        0.5,
+        description="`ForceTare` is refused while the tip moves faster than this, now or on "
+        "average over the window (mm/s): a tare is taken at rest.",
+    )
+    tare_max_spread_n: PosFloat = Field(
+        0.05,
+        description="`ForceTare` is refused when a reading in the window is farther than "
+        "this from their mean (N): a force that varies is a contact or a vibration.",
+    )
+    tare_max_offset_n: PosFloat = Field(
+        1.0,
+        description="`ForceTare` is refused when more than this is left once the tool's "
+        "weight is removed (N): a load on the instrument (a tare in contact would hide it) "
+        "or a wrong tool model, not the sensor's zero.",
+    )
 
 
 class SlaveParams(_Params):
