@@ -250,10 +250,9 @@ class SlaveForce:
             return False
         tip, base = self._pose() if self._pose is not None else (np.eye(4), np.eye(4))
         if self.tool_mass_kg > 0.0:
-            gf, gt = gravity_wrench(
-                self.tool_mass_kg, self.tool_com_m, self.gravity, self.sensor_frame,
-                tip[:3, :3], base[:3, :3],
-            )  # fmt: skip
+            rt, rb = tip[:3, :3], base[:3, :3]
+            m, c, g = self.tool_mass_kg, self.tool_com_m, self.gravity
+            gf, gt = gravity_wrench(m, c, g, self.sensor_frame, rt, rb)
             force = _sub(force, gf)
             if torque is not None:
                 torque = _sub(torque, gt)

@@ -206,6 +206,14 @@ class MasterController(Controller):
         self.feedback_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.displayed_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.clamped_ticks = 0
+        #: a 6-axis sensor's torque from the slave (N m, the master's axes): displayed on a
+        #: master with rotational axes (:meth:`_display_torque`), in the stats for the others
+        self.max_torque = p.max_torque_nm
+        self.torque_passivity = PassivityController(p.passivity_max_rot_damping)
+        self.rotational = False
+        self.feedback_torque_nm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self.displayed_torque_nm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._t_torque = math.nan
         self._t_handle = math.nan
         self.target: np.ndarray | None = None
         self._t_run = 0.0
@@ -253,6 +261,7 @@ class MasterController(Controller):
         self._centre = tuple((self.origin + self.offset).tolist())
         n = len(data.joint_names)
         self._efforts = [0.0] * n
+        self.rotational = self.force_output and ctx.frame.nq >= 6
         if self.force_output:
             # efforts = J^T F; a Cartesian master's Jacobian is constant: worked out once
             j0 = ctx.frame.jacobian([0.0] * n)[:3]
@@ -426,6 +435,9 @@ class MasterController(Controller):
         self.feedback_n = self.displayed_n = (0.0, 0.0, 0.0)
         self._t_handle = math.nan
         self.passivity.reset()
+        self.feedback_torque_nm = self.displayed_torque_nm = (0.0, 0.0, 0.0)
+        self._t_torque = math.nan
+        self.torque_passivity.reset()
 
     # -------------------------------------------------------------- loop
     def operator_target(self, now: float) -> np.ndarray | tuple[float, float, float] | None:
@@ -454,7 +466,9 @@ class MasterController(Controller):
             else:
                 jac = ctx.frame.jacobian(data.q)[:3]
                 eff[:] = (jac.T @ np.array([fx, fy, fz])).tolist()
+            self._torque_feedback(now, eff)
             return eff
+        self._torque_feedback(now, None)
         if self.input == "driver":
             return None
         target = self.operator_target(now)
@@ -554,6 +568,45 @@ class MasterController(Controller):
                 self.passivity.observe((bx, by, bz), v, dt)
         self.displayed_n = self._clamp(fixture[0] + bx, fixture[1] + by, fixture[2] + bz)
         return self.displayed_n
+
+    def _torque_feedback(self, now: float, eff: list[float] | None) -> None:
+        """The slave's torque (a 6-axis sensor's, the return channel's ``torque_nm``) in the
+        master's axes, ``force_scale Q^T t``, gated as the force is (the same gain: faded
+        when late, zero when lost, the clutch); on a master with rotational axes, passivated
+        against the handle's angular velocity, clamped to ``max_torque_nm`` and added to the
+        efforts ``eff`` through the Jacobian's angular rows. Without them it is only in the
+        stats (and in the recording, with the return channel's samples)."""
+        name = self._driving()
+        link = self._links.get(name) if name is not None else None
+        t = link.torque if link is not None and self.force_feedback else None
+        if t is None or self.gain == 0.0:
+            self.feedback_torque_nm = self.displayed_torque_nm = (0.0, 0.0, 0.0)
+            self._t_torque = now
+            return
+        k = self.force_scale * self.gain
+        mx, my, mz = self.fixtures.mapping.force(t)  # a rotation, as for the force
+        self.feedback_torque_nm = (k * mx, k * my, k * mz)
+        if eff is None or not self.rotational:
+            return
+        data, ctx = self.data, self.ctx
+        assert data is not None and ctx is not None
+        jac = ctx.frame.jacobian(data.q)[3:]
+        out = self.feedback_torque_nm
+        last, self._t_torque = self._t_torque, now
+        if now > last:  # (NaN: the first tick, nothing to observe yet)
+            w = jac @ np.asarray(data.qdot, dtype=float)
+            wv = (float(w[0]), float(w[1]), float(w[2]))
+            if self.passivity_on:
+                out = self.torque_passivity.step(out, wv, now - last)
+            else:
+                self.torque_passivity.observe(out, wv, now - last)
+        mag = math.sqrt(out[0] * out[0] + out[1] * out[1] + out[2] * out[2])
+        if mag > self.max_torque:
+            c = self.max_torque / mag
+            out = (out[0] * c, out[1] * c, out[2] * c)
+        self.displayed_torque_nm = out
+        for i, v in enumerate((jac.T @ np.array(out)).tolist()):
+            eff[i] += v
 
     def _handle_velocity(self) -> tuple[float, float, float]:
         """The handle's velocity (m/s, the master's axes) from the drives' joint velocities:
@@ -665,7 +718,11 @@ class MasterController(Controller):
         """The displayed force (N, the master's axes: fixtures and the slave's feedback, as
         the hand feels it), every time."""
         assert self.ctx is not None
-        return VectorOut(self.displayed_n, self.ctx.clock.wall_time(), "N")
+        meta = None
+        if self.rotational:  # the displayed torque beside it (N m, the master's axes)
+            t = self.displayed_torque_nm
+            meta = {"torque_nm": f"{t[0]:.5f},{t[1]:.5f},{t[2]:.5f}"}
+        return VectorOut(self.displayed_n, self.ctx.clock.wall_time(), "N", meta)
 
     def stats(self) -> dict[str, Any]:
         fx = self.fixtures
@@ -688,6 +745,13 @@ class MasterController(Controller):
             "feedback_n": [round(v, 4) for v in self.feedback_n],
             "force_feedback": self.force_feedback,
             "force_scale": self.force_scale,
+            # a 6-axis sensor's torque (N m, the master's axes): displayed with rotational axes
+            "feedback_torque_nm": [round(v, 5) for v in self.feedback_torque_nm],
+            "torque": {
+                "displayed": self.rotational,
+                "torque_nm": [round(v, 5) for v in self.displayed_torque_nm],
+                "passivity": self.torque_passivity.stats(),
+            },
             "external_n": [round(v, 4) for v in self.external_n],
             "external_samples": self.external_samples,
             "external_fresh": now - self._t_external <= self._external_timeout,
@@ -950,7 +1014,11 @@ class SlaveController(Controller):
             )
             self._return_meta[key] = meta
         if self.force is not None:
-            meta = MappingProxyType({**meta, "force_n": self._force_meta(now)})
+            extra = {"force_n": self._force_meta(now)}
+            t = self.force.torque_nm
+            if t is not None:  # a 6-axis sensor's (occ/returnlink.py): old masters ignore it
+                extra["torque_nm"] = f"{t[0]:.5f},{t[1]:.5f},{t[2]:.5f}"
+            meta = MappingProxyType({**meta, **extra})
         rows, (x, y, z) = data.world_tip_pose()
         k = id(out)
         seq = (self._return_seqs.get(k, 0) + 1) & 0xFFFFFFFF

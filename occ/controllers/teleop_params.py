@@ -115,6 +115,17 @@ class MasterParams(_Params):
     passivity_max_damping: PosFloat = Field(
         200.0, description="The passivity controller's largest damping (N s/m)."
     )
+    max_torque_nm: PosFloat = Field(
+        0.5,
+        description="A master with rotational axes (6 or more joints, `force_output`): clamp "
+        "of the displayed torque (N m), a 6-axis sensor's torque from the slave (its return "
+        "channel's `torque_nm`) times `force_scale`; masters without them record it only.",
+    )
+    passivity_max_rot_damping: PosFloat = Field(
+        2.0,
+        description="The largest rotational damping (N m s/rad) of the displayed torque's own "
+        "passivity controller (the handle's angular velocity).",
+    )
     fixture_slide_mm: PosFloat = Field(
         1.0,
         description="Longest move of a contact's proxy per tick (mm): bounds the force step "
