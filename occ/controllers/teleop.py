@@ -69,10 +69,11 @@ from pydantic import BaseModel
 from ..collab import SlaveSelector
 from ..config import DaemonConfig
 from ..contact import tissue_from_message
-from ..errors import CommandError, KinematicsError, OCCError, caused
+from ..errors import CommandError, ConfigError, KinematicsError, OCCError, caused
 from ..fixture_defs import Defaults, DefinitionError, PatientMapping, from_markups_file
 from ..forces import SlaveForce, sensor_force
 from ..forceviz import ForceView, check_outputs
+from ..gripper import GripperFollower, GripperSource
 from ..haptics import MasterFixtures
 from ..joint import step_toward
 from ..outputs import VectorOut
@@ -206,6 +207,9 @@ class MasterController(Controller):
         self.feedback_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.displayed_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.clamped_ticks = 0
+        #: the gripper value sent with each sample (occ/gripper.py), None: none sent
+        self._gripper_params = p.gripper
+        self.gripper: GripperSource | None = None
         #: a 6-axis sensor's torque from the slave (N m, the master's axes): displayed on a
         #: master with rotational axes (:meth:`_display_torque`), in the stats for the others
         self.max_torque = p.max_torque_nm
@@ -240,6 +244,15 @@ class MasterController(Controller):
             problems.append(
                 (("tip_grace_ms",), "must be at least the deadline (3.25 x tip_period_ms)")
             )
+        g = params.gripper
+        if g is not None and g.source == "joint":
+            joints = [j.name for j in config.robot.joints]
+            if g.joint is None:
+                problems.append((("gripper", "joint"), "required with source: joint"))
+            elif g.joint not in joints:
+                problems.append((("gripper", "joint"), f"no joint '{g.joint}' ({joints})"))
+            if g.open == g.closed:
+                problems.append((("gripper", "closed"), "must differ from open"))
         if params.force_output and params.input != "driver":
             problems.append((("force_output",), "needs input: driver (a hand-moved master)"))
         for i, f in enumerate(params.fixture_files):
@@ -262,6 +275,12 @@ class MasterController(Controller):
         n = len(data.joint_names)
         self._efforts = [0.0] * n
         self.rotational = self.force_output and ctx.frame.nq >= 6
+        g = self._gripper_params
+        if g is not None:
+            joint = data.joint_names.index(g.joint) if g.source == "joint" else None
+            self.gripper = GripperSource(
+                g.source, joint=joint, open_pos=g.open, closed_pos=g.closed, period_s=g.period_s
+            )
         if self.force_output:
             # efforts = J^T F; a Cartesian master's Jacobian is constant: worked out once
             j0 = ctx.frame.jacobian([0.0] * n)[:3]
@@ -406,6 +425,12 @@ class MasterController(Controller):
             return self.selector.select(request.args.get("To", request.args.get("to", "")))
         if key == "toggle":
             return self.selector.toggle()
+        if key == "grip" and self.gripper is not None:
+            value = request.args.get("Value", request.args.get("value", "1"))
+            try:
+                return self.gripper.command(value)
+            except ValueError as err:
+                raise caused(CommandError(str(err)), err) from err
         if key == "clearfixtures":
             self.fixtures.clear()
             return "fixtures cleared"
@@ -415,7 +440,8 @@ class MasterController(Controller):
         raise CommandError(f"unknown command {request.name!r}")
 
     def commands(self) -> tuple[str, ...]:
-        return ("Clutch", "ClearFixtures", "GetFixtures", "Select", "Toggle")
+        grip = ("Grip",) if self.gripper is not None else ()
+        return ("Clutch", "ClearFixtures", "GetFixtures", "Select", "Toggle", *grip)
 
     def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
         # The simulated hand's time runs only while RUNNING: re-entering RUNNING resumes the
@@ -670,8 +696,20 @@ class MasterController(Controller):
             self._handle_orientation(now),
             seq=seq,
             t_sample=ctx.clock.wall_time(),
-            meta=_RUN_CLUTCH[bool(running), bool(self.clutch)],
+            meta=self._stream_meta(bool(running), now),
         )
+
+    def _stream_meta(self, running: bool, now: float) -> MappingProxyType[str, str]:
+        """``run`` and ``clutch`` (one shared mapping each), and the gripper value with them
+        when the master sends one (occ/gripper.py)."""
+        meta = _RUN_CLUTCH[running, bool(self.clutch)]
+        g = self.gripper
+        if g is None:
+            return meta
+        data = self.data
+        assert data is not None
+        t = now - self._t_run if data.state is RobotState.RUNNING else self._t_held
+        return MappingProxyType({**meta, "gripper": f"{g.update(data.q, t):.3f}"})
 
     def _handle_orientation(self, now: float) -> tuple[float, float, float, float]:
         """The handle's orientation: the simulated gimbal's (``orientation_amplitude_deg``),
@@ -768,6 +806,7 @@ class MasterController(Controller):
             **fx.stats(),
             "ik_failures": self.ik_failures,
             **({"slaves": self.selector.stats()} if self.selector.slaves else {}),
+            **({"gripper": self.gripper.stats()} if self.gripper is not None else {}),
         }
 
 
@@ -861,6 +900,9 @@ class SlaveController(Controller):
         self._refusing = False
         self.refused = 0
         self.rate_limited = 0
+        #: the jaw that follows the master's gripper value (occ/gripper.py)
+        self._gripper_params = p.gripper
+        self.gripper: GripperFollower | None = None
 
     @classmethod
     def check(cls, params: Any, config: DaemonConfig) -> list[Problem]:
@@ -905,6 +947,25 @@ class SlaveController(Controller):
                         "sign slip would compensate a weight that is not there)",
                     )
                 )
+        g = params.gripper
+        if g is not None:
+            joints = {j.name: j for j in config.robot.joints}
+            jc = joints.get(g.joint)
+            if jc is None:
+                problems.append((("gripper", "joint"), f"no joint '{g.joint}' ({list(joints)})"))
+            else:
+                lo, hi = jc.limits.min, jc.limits.max
+                for key in ("open", "closed"):
+                    v = getattr(g, key)
+                    if not lo <= v <= hi:
+                        problems.append(
+                            (
+                                ("gripper", key),
+                                f"{v:g} is outside joint '{g.joint}' [{lo:g}, {hi:g}]",
+                            )
+                        )
+            if g.open == g.closed:
+                problems.append((("gripper", "closed"), "must differ from open"))
         return problems + check_outputs(config, f is not None)
 
     def outputs(self) -> dict[str, SourceFn]:
@@ -1041,6 +1102,16 @@ class SlaveController(Controller):
         # absolute mapping: a step per tick within the velocity limits (the drivers' check
         # allows the limit itself; 0.9 keeps clear of it)
         self._step = [0.9 * lim.velocity * ctx.period_s for lim in ctx.joint_limits]
+        g = self._gripper_params
+        if g is not None:
+            i = data.joint_names.index(g.joint)
+            moves = float(np.linalg.norm(ctx.frame.jacobian(data.q)[:3, i]))
+            if moves > 1e-9:  # the IK would move it for the tip, the gripper for the jaw
+                raise ConfigError(
+                    f"teleop-slave gripper: joint '{g.joint}' moves the tool's tip "
+                    f"({moves:.3g} m per unit): a jaw must not"
+                )
+            self.gripper = GripperFollower(i, g.joint, g.open, g.closed, self._step[i])
         fp = self.force_params
         if fp is not None:
             self.force = SlaveForce(
@@ -1109,6 +1180,8 @@ class SlaveController(Controller):
         self.master_pos = (pos[0] * MM, pos[1] * MM, pos[2] * MM)
         self.master_quat = sample.quaternion
         self._fresh = True
+        if self.gripper is not None:
+            self.gripper.on_meta(sample.meta.get("gripper"))
         run = sample.run
         clutch = sample.clutch
         if (run and not self.master_run) or (self.master_clutch and not clutch):
@@ -1156,12 +1229,23 @@ class SlaveController(Controller):
     def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
         if new is RobotState.RUNNING:
             self.master_ref = None
+            if self.gripper is not None:
+                self.gripper.restart()
             if self.absolute:  # from where the drives hold; the last target checked afresh
                 self._q_goal = None
                 self._q_last = None
                 self._fresh = self.master_pos is not None
 
     def update(self, now: float) -> Sequence[float] | None:
+        q = self._follow(now)
+        g = self.gripper
+        if g is None or q is None:
+            return q
+        following = self.master_run and not self.master_clutch and self.master_ref is not None
+        return g.apply(list(q), following)
+
+    def _follow(self, now: float) -> Sequence[float] | None:
+        """The arm's setpoints (every joint; the jaw's is the gripper's: :meth:`update`)."""
         data, ctx = self.data, self.ctx
         assert data is not None and ctx is not None
         if self.absolute:
@@ -1376,6 +1460,8 @@ class SlaveController(Controller):
             out["servo_rate_limited"] = self.rate_limited
         if self.follow_orientation:
             out["rate_limited"] = self.rate_limited
+        if self.gripper is not None:
+            out["gripper"] = self.gripper.stats()
         if self.latency_us.count:
             lat = self.latency_us.summary()
             out["sample_to_write_us"] = {

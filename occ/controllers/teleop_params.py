@@ -28,6 +28,20 @@ class FixtureFile(_Params):
     damping: Annotated[Float, Field(ge=0)] = Field(0.0, description="N s/mm.")
 
 
+class MasterGripper(_Params):
+    """Where the master's gripper value comes from (occ/gripper.py)."""
+
+    source: Literal["joint", "command", "sim"] = Field(
+        description="`joint`: a master joint (a handle's grip or switch read as a position); "
+        "`command`: the operators' `Grip` command (the handle's switch on an operator client); "
+        "`sim`: the simulated operator closes and opens it every `period_s`."
+    )
+    joint: Name | None = Field(None, description="`joint`: the master joint (its name).")
+    open: Float = Field(0.0, description="`joint`: its position with the gripper open.")
+    closed: Float = Field(1.0, description="`joint`: its position with the gripper closed.")
+    period_s: PosFloat = Field(4.0, description="`sim`: one close and open (s).")
+
+
 class MasterParams(_Params):
     """Parameters of ``teleop-master``. Lengths in mm, as on the wire."""
 
@@ -197,6 +211,11 @@ class MasterParams(_Params):
     slave: Name | None = Field(
         None, description="The slave selected at start (one of `slaves`; null = the first)."
     )
+    gripper: MasterGripper | None = Field(
+        None,
+        description="Send a gripper value (0 open to 1 closed) with every sample, metadata "
+        "`gripper`: the slave's jaw follows it (its `gripper`); null = none sent.",
+    )
     toggle_tap_ms: PosFloat | None = Field(
         300.0,
         description="With several `slaves`: a clutch pressed and released within this time "
@@ -289,6 +308,16 @@ class SlaveForceParams(_Params):
     )
 
 
+class SlaveGripper(_Params):
+    """The slave's jaw, driven by the master's gripper value (occ/gripper.py)."""
+
+    joint: Name = Field(
+        description="The jaw's joint (one of the robot's; it must not move the tool's tip)."
+    )
+    open: Float = Field(description="Its position with the gripper open (m or rad).")
+    closed: Float = Field(description="Its position with the gripper closed (m or rad).")
+
+
 class SlaveParams(_Params):
     """Parameters of ``teleop-slave``. Lengths in mm, as on the wire."""
 
@@ -351,6 +380,12 @@ class SlaveParams(_Params):
         None,
         description="The tip force, sent to the master on the return channel (`force_n`: "
         "bilateral teleoperation, the master displays it); null = no force sent.",
+    )
+    gripper: SlaveGripper | None = Field(
+        None,
+        description="A jaw that follows the master's gripper value (its stream's `gripper` "
+        "metadata) at no more than 0.9 x its velocity limit, only while following; held "
+        "otherwise, and on a late or lost stream like every joint. null = none.",
     )
     phase_lock_us: Annotated[Float, Field(ge=0)] | None = Field(
         400.0,
