@@ -26,7 +26,8 @@ sends depends on the output's type:
 
 Every one carries, in header v2, the metadata ``force_n`` (``fx,fy,fz``, N, patient frame, 4
 decimals: what the return channel sends the master), ``force_mag_n``, ``source`` (the force
-source used, ``none`` when no source is healthy), ``frame`` (``patient``) and ``mm_per_n``.
+source used, ``none`` when no source is healthy), ``frame`` (``patient``) and ``mm_per_n``; with
+a 6-axis sensor, ``torque_nm`` too (``tx,ty,tz``, N m about the sensor's origin, patient frame).
 ``MRMLNodeName`` is the MRML node *tag* (``LinearTransform``, ``Model``): SlicerOpenIGTLink
 reads that key as the class of the node to create for a POLYDATA, and sends its own nodes' tags
 in it.
@@ -62,6 +63,7 @@ __all__ = [
     "check_outputs",
     "force_matrix",
     "message_force",
+    "message_torque",
     "parse_force",
 ]
 
@@ -180,6 +182,12 @@ def check_outputs(config: Any, has_force: bool) -> list[tuple[tuple[str | int, .
     return problems
 
 
+def message_torque(msg: Any) -> Vec3 | None:
+    """The torque (N m) a force message carries in its metadata ``torque_nm`` (a slave's
+    return channel or force output with a 6-axis sensor), else None."""
+    return parse_force(msg.metadata.get("torque_nm"))
+
+
 def message_force(msg: Any) -> tuple[str, tuple[float, float, float]] | None:
     """(frame, force in N) of a message that carries one (:class:`ForceStream`), else None."""
     meta = msg.metadata
@@ -239,6 +247,9 @@ class ForceView:
             "frame": "patient",
             "mm_per_n": f"{self.mm_per_n:g}",
         }
+        t = self.force.torque_nm
+        if t is not None:  # a 6-axis sensor's torque (N m, patient frame): old readers skip it
+            out["torque_nm"] = f"{t[0]:.5f},{t[1]:.5f},{t[2]:.5f}"
         if tag is not None:
             out["MRMLNodeName"] = tag
         return out

@@ -34,8 +34,9 @@ Its topics are those the ROS 2 bridge publishes (occ_ros2/bridge.py), in metres,
 - ``/occ/NAME/measured_js`` and ``/occ/NAME/setpoint_js`` (sensor_msgs/JointState): the loop
   state rows (measured and commanded joints; the commanded efforts of a haptic master);
 - ``/occ/NAME/state`` (std_msgs/String): the daemon's state when it changes;
-- ``/occ/NAME/measured_cf`` (geometry_msgs/WrenchStamped): the robot's own force, N (torque
-  zero): a slave's contact force (the ``force_n`` of its return channel's ``SlaveTip``, or of
+- ``/occ/NAME/measured_cf`` (geometry_msgs/WrenchStamped): the robot's own force, N (the
+  torque a 6-axis sensor measured, N m, where the message has ``torque_nm``; else zero): a
+  slave's contact force (the ``force_n`` of its return channel's ``SlaveTip``, or of
   its ``TipForce`` output to 3D Slicer, whichever has more samples; frame_id ``world``, the
   patient frame) or a master's displayed force (its SENSOR/NDARRAY ``Force`` output, frame_id
   ``NAME_base``, as the bridge publishes them); other force streams as
@@ -62,7 +63,7 @@ from typing import Any
 
 import numpy as np
 
-from .forceviz import message_force
+from .forceviz import message_force, message_torque
 from .record import STATE_DEVICE, STATE_NAMES, iter_recording
 from .samples import quaternion_to_rotation
 
@@ -108,6 +109,9 @@ class ForceStream:
     t: list[float] = field(default_factory=list)
     stamp: list[float] = field(default_factory=list)
     force: list[tuple[float, float, float]] = field(default_factory=list)
+    #: the torque with each force (N m, the same frame; zero when the message has none: a
+    #: 6-axis sensor's ``torque_nm`` metadata, or a 6-axis master's displayed torque)
+    torque: list[tuple[float, float, float]] = field(default_factory=list)
 
 
 @dataclass
@@ -181,6 +185,7 @@ def read_content(path: str | Path) -> RecordingContent:
             fs.t.append(t)
             fs.stamp.append(float(m.timestamp))
             fs.force.append(force[1])
+            fs.torque.append(message_torque(m) or (0.0, 0.0, 0.0))
             if "mm_per_n" in meta:
                 c.force_transforms.add(key)
         if mtype not in ("TRANSFORM", "POSITION"):
@@ -565,13 +570,14 @@ def _force_events(
     def on_force(s: ForceStream, topic: str, frame: str, i: int) -> Callable[[], None]:
         def emit() -> None:
             fx, fy, fz = s.force[i]
+            tx, ty, tz = s.torque[i]
             bag.write(
                 topic,
                 bag.WrenchStamped(
                     header=bag.header(s.stamp[i], frame),
                     wrench=bag.Wrench(
                         force=bag.Vector3(x=fx, y=fy, z=fz),
-                        torque=bag.Vector3(x=0.0, y=0.0, z=0.0),
+                        torque=bag.Vector3(x=tx, y=ty, z=tz),
                     ),
                 ),
                 s.t[i] + offset,

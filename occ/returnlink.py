@@ -21,6 +21,10 @@ the full quaternion. Everything else rides in the v2 metadata of the same messag
 ``force_n``
     (a slave with a force source) the force on its instrument, ``fx,fy,fz`` in N, patient
     frame: what the master displays (bilateral teleoperation, issue 27).
+``torque_nm``
+    (a slave whose force comes from a 6-axis sensor) the torque about the sensor's origin,
+    ``tx,ty,tz`` in N m, patient frame (issue 37): displayed by a master with rotational axes,
+    recorded by the others. Absent otherwise; a reader that does not know it ignores it.
 
 **One message, not a pair.** The slave's contact force rides in the same message (metadata
 ``force_n``), not in a SENSOR beside a POSITION: one datagram is one sample with one
@@ -63,6 +67,15 @@ from .samples import PoseSample
 __all__ = ["ReturnLink"]
 
 
+def _three(text: str) -> Vec3 | None:
+    """``"x,y,z"``: three finite numbers, else None."""
+    try:
+        x, y, z = (float(v) for v in text.split(","))
+    except ValueError:
+        return None
+    return (x, y, z) if math.isfinite(x) and math.isfinite(y) and math.isfinite(z) else None
+
+
 class ReturnLink:
     """One slave's tip stream as the master sees it (see the module docstring)."""
 
@@ -95,6 +108,8 @@ class ReturnLink:
         #: the force on the slave's instrument (N, patient frame) with the last tip; None
         #: while it sends none
         self.force: Vec3 | None = None
+        #: the torque with it (N m, patient frame, about the slave's sensor), None: none sent
+        self.torque: Vec3 | None = None
         #: the slave's map (handle mm -> patient mm), parsed; None until it sends one
         self.linear: tuple[tuple[float, float, float], ...] | None = None
         self._map_text = ""
@@ -154,7 +169,17 @@ class ReturnLink:
                 self.last_error = f"seq {seq}: force_n {force_text[:40]!r} is not 3 numbers"
                 return False
             force = (fx, fy, fz)
+        torque_text = meta.get("torque_nm")
+        torque: Vec3 | None = None
+        if torque_text is not None:
+            torque = _three(torque_text)
+            if torque is None:
+                self.bad_metadata += 1
+                self._bad_run += 1
+                self.last_error = f"seq {seq}: torque_nm {torque_text[:40]!r} is not 3 numbers"
+                return False
         self.force = force
+        self.torque = torque
         self.following = meta.get("following", "1") == "1"
         self.slave_state = meta.get("state", "")
         self.tip = tip
@@ -231,6 +256,7 @@ class ReturnLink:
             "age_ms": None if age is None else round(age * 1e3, 1),
             "tip_mm": None if self.tip is None else [round(v, 3) for v in self.tip],
             "force_n": None if self.force is None else [round(v, 4) for v in self.force],
+            "torque_nm": None if self.torque is None else [round(v, 5) for v in self.torque],
             "following": self.following,
             "slave_state": self.slave_state,
             "seq": self.seq,

@@ -224,16 +224,22 @@ class SimPeer:
         timestamp: float = 0.0,
         device: str = "SlaveTip",
         force_n: Sequence[float] | str | None = None,
+        torque_nm: Sequence[float] | str | None = None,
     ) -> int:
         """One sample of a slave's return channel, as the slave daemon sends it (POSITION,
         v2, message ID = sequence number, metadata ``following``, ``map``, ``state``, and
-        ``force_n`` when given (three numbers, or the text as is); occ/returnlink.py): the tip
+        ``force_n`` and ``torque_nm`` when given (three numbers, or the text as is);
+        occ/returnlink.py): the tip
         in the patient frame (mm)."""
         x, y, z = tip_mm
         meta = {"following": "1" if following else "0", "map": linear, "state": state}
         if force_n is not None:
             meta["force_n"] = (
                 force_n if isinstance(force_n, str) else ",".join(f"{v:.6g}" for v in force_n)
+            )
+        if torque_nm is not None:
+            meta["torque_nm"] = (
+                torque_nm if isinstance(torque_nm, str) else ",".join(f"{v:.6g}" for v in torque_nm)
             )
         return self.send(
             igtl.PositionMessage(
@@ -277,6 +283,8 @@ class SlaveTipFeed:
         self.paused = False
         #: the force on the slave's instrument sent with each tip (N, patient), None: none
         self.force: Sequence[float] | str | None = None
+        #: the torque sent with it (N m, patient), None: none (a 3-axis force)
+        self.torque: Sequence[float] | str | None = None
         self.linear = ",".join(f"{scale if i == j else 0.0:g}" for i in range(3) for j in range(3))
 
     def handle_mm(self) -> tuple[float, float, float]:
@@ -302,6 +310,7 @@ class SlaveTipFeed:
                 following=self.following,
                 linear=self.linear,
                 force_n=self.force,
+                torque_nm=self.torque,
             )
 
     def step(self, n: int = 1) -> None:

@@ -69,10 +69,11 @@ from pydantic import BaseModel
 from ..collab import SlaveSelector
 from ..config import DaemonConfig
 from ..contact import tissue_from_message
-from ..errors import CommandError, KinematicsError, OCCError, caused
+from ..errors import CommandError, ConfigError, KinematicsError, OCCError, caused
 from ..fixture_defs import Defaults, DefinitionError, PatientMapping, from_markups_file
 from ..forces import SlaveForce, sensor_force
 from ..forceviz import ForceView, check_outputs
+from ..gripper import GripperFollower, GripperSource
 from ..haptics import MasterFixtures
 from ..joint import step_toward
 from ..outputs import VectorOut
@@ -206,6 +207,17 @@ class MasterController(Controller):
         self.feedback_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.displayed_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.clamped_ticks = 0
+        #: the gripper value sent with each sample (occ/gripper.py), None: none sent
+        self._gripper_params = p.gripper
+        self.gripper: GripperSource | None = None
+        #: a 6-axis sensor's torque from the slave (N m, the master's axes): displayed on a
+        #: master with rotational axes (:meth:`_display_torque`), in the stats for the others
+        self.max_torque = p.max_torque_nm
+        self.torque_passivity = PassivityController(p.passivity_max_rot_damping)
+        self.rotational = False
+        self.feedback_torque_nm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self.displayed_torque_nm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._t_torque = math.nan
         self._t_handle = math.nan
         self.target: np.ndarray | None = None
         self._t_run = 0.0
@@ -232,6 +244,15 @@ class MasterController(Controller):
             problems.append(
                 (("tip_grace_ms",), "must be at least the deadline (3.25 x tip_period_ms)")
             )
+        g = params.gripper
+        if g is not None and g.source == "joint":
+            joints = [j.name for j in config.robot.joints]
+            if g.joint is None:
+                problems.append((("gripper", "joint"), "required with source: joint"))
+            elif g.joint not in joints:
+                problems.append((("gripper", "joint"), f"no joint '{g.joint}' ({joints})"))
+            if g.open == g.closed:
+                problems.append((("gripper", "closed"), "must differ from open"))
         if params.force_output and params.input != "driver":
             problems.append((("force_output",), "needs input: driver (a hand-moved master)"))
         for i, f in enumerate(params.fixture_files):
@@ -253,6 +274,13 @@ class MasterController(Controller):
         self._centre = tuple((self.origin + self.offset).tolist())
         n = len(data.joint_names)
         self._efforts = [0.0] * n
+        self.rotational = self.force_output and ctx.frame.nq >= 6
+        g = self._gripper_params
+        if g is not None:
+            joint = data.joint_names.index(g.joint) if g.source == "joint" else None
+            self.gripper = GripperSource(
+                g.source, joint=joint, open_pos=g.open, closed_pos=g.closed, period_s=g.period_s
+            )
         if self.force_output:
             # efforts = J^T F; a Cartesian master's Jacobian is constant: worked out once
             j0 = ctx.frame.jacobian([0.0] * n)[:3]
@@ -397,6 +425,12 @@ class MasterController(Controller):
             return self.selector.select(request.args.get("To", request.args.get("to", "")))
         if key == "toggle":
             return self.selector.toggle()
+        if key == "grip" and self.gripper is not None:
+            value = request.args.get("Value", request.args.get("value", "1"))
+            try:
+                return self.gripper.command(value)
+            except ValueError as err:
+                raise caused(CommandError(str(err)), err) from err
         if key == "clearfixtures":
             self.fixtures.clear()
             return "fixtures cleared"
@@ -406,7 +440,8 @@ class MasterController(Controller):
         raise CommandError(f"unknown command {request.name!r}")
 
     def commands(self) -> tuple[str, ...]:
-        return ("Clutch", "ClearFixtures", "GetFixtures", "Select", "Toggle")
+        grip = ("Grip",) if self.gripper is not None else ()
+        return ("Clutch", "ClearFixtures", "GetFixtures", "Select", "Toggle", *grip)
 
     def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
         # The simulated hand's time runs only while RUNNING: re-entering RUNNING resumes the
@@ -426,6 +461,9 @@ class MasterController(Controller):
         self.feedback_n = self.displayed_n = (0.0, 0.0, 0.0)
         self._t_handle = math.nan
         self.passivity.reset()
+        self.feedback_torque_nm = self.displayed_torque_nm = (0.0, 0.0, 0.0)
+        self._t_torque = math.nan
+        self.torque_passivity.reset()
 
     # -------------------------------------------------------------- loop
     def operator_target(self, now: float) -> np.ndarray | tuple[float, float, float] | None:
@@ -454,7 +492,9 @@ class MasterController(Controller):
             else:
                 jac = ctx.frame.jacobian(data.q)[:3]
                 eff[:] = (jac.T @ np.array([fx, fy, fz])).tolist()
+            self._torque_feedback(now, eff)
             return eff
+        self._torque_feedback(now, None)
         if self.input == "driver":
             return None
         target = self.operator_target(now)
@@ -555,6 +595,45 @@ class MasterController(Controller):
         self.displayed_n = self._clamp(fixture[0] + bx, fixture[1] + by, fixture[2] + bz)
         return self.displayed_n
 
+    def _torque_feedback(self, now: float, eff: list[float] | None) -> None:
+        """The slave's torque (a 6-axis sensor's, the return channel's ``torque_nm``) in the
+        master's axes, ``force_scale Q^T t``, gated as the force is (the same gain: faded
+        when late, zero when lost, the clutch); on a master with rotational axes, passivated
+        against the handle's angular velocity, clamped to ``max_torque_nm`` and added to the
+        efforts ``eff`` through the Jacobian's angular rows. Without them it is only in the
+        stats (and in the recording, with the return channel's samples)."""
+        name = self._driving()
+        link = self._links.get(name) if name is not None else None
+        t = link.torque if link is not None and self.force_feedback else None
+        if t is None or self.gain == 0.0:
+            self.feedback_torque_nm = self.displayed_torque_nm = (0.0, 0.0, 0.0)
+            self._t_torque = now
+            return
+        k = self.force_scale * self.gain
+        mx, my, mz = self.fixtures.mapping.force(t)  # a rotation, as for the force
+        self.feedback_torque_nm = (k * mx, k * my, k * mz)
+        if eff is None or not self.rotational:
+            return
+        data, ctx = self.data, self.ctx
+        assert data is not None and ctx is not None
+        jac = ctx.frame.jacobian(data.q)[3:]
+        out = self.feedback_torque_nm
+        last, self._t_torque = self._t_torque, now
+        if now > last:  # (NaN: the first tick, nothing to observe yet)
+            w = jac @ np.asarray(data.qdot, dtype=float)
+            wv = (float(w[0]), float(w[1]), float(w[2]))
+            if self.passivity_on:
+                out = self.torque_passivity.step(out, wv, now - last)
+            else:
+                self.torque_passivity.observe(out, wv, now - last)
+        mag = math.sqrt(out[0] * out[0] + out[1] * out[1] + out[2] * out[2])
+        if mag > self.max_torque:
+            c = self.max_torque / mag
+            out = (out[0] * c, out[1] * c, out[2] * c)
+        self.displayed_torque_nm = out
+        for i, v in enumerate((jac.T @ np.array(out)).tolist()):
+            eff[i] += v
+
     def _handle_velocity(self) -> tuple[float, float, float]:
         """The handle's velocity (m/s, the master's axes) from the drives' joint velocities:
         ``J qdot`` (a Cartesian master's constant Jacobian, else the model's at ``q``)."""
@@ -617,8 +696,20 @@ class MasterController(Controller):
             self._handle_orientation(now),
             seq=seq,
             t_sample=ctx.clock.wall_time(),
-            meta=_RUN_CLUTCH[bool(running), bool(self.clutch)],
+            meta=self._stream_meta(bool(running), now),
         )
+
+    def _stream_meta(self, running: bool, now: float) -> MappingProxyType[str, str]:
+        """``run`` and ``clutch`` (one shared mapping each), and the gripper value with them
+        when the master sends one (occ/gripper.py)."""
+        meta = _RUN_CLUTCH[running, bool(self.clutch)]
+        g = self.gripper
+        if g is None:
+            return meta
+        data = self.data
+        assert data is not None
+        t = now - self._t_run if data.state is RobotState.RUNNING else self._t_held
+        return MappingProxyType({**meta, "gripper": f"{g.update(data.q, t):.3f}"})
 
     def _handle_orientation(self, now: float) -> tuple[float, float, float, float]:
         """The handle's orientation: the simulated gimbal's (``orientation_amplitude_deg``),
@@ -665,7 +756,11 @@ class MasterController(Controller):
         """The displayed force (N, the master's axes: fixtures and the slave's feedback, as
         the hand feels it), every time."""
         assert self.ctx is not None
-        return VectorOut(self.displayed_n, self.ctx.clock.wall_time(), "N")
+        meta = None
+        if self.rotational:  # the displayed torque beside it (N m, the master's axes)
+            t = self.displayed_torque_nm
+            meta = {"torque_nm": f"{t[0]:.5f},{t[1]:.5f},{t[2]:.5f}"}
+        return VectorOut(self.displayed_n, self.ctx.clock.wall_time(), "N", meta)
 
     def stats(self) -> dict[str, Any]:
         fx = self.fixtures
@@ -688,6 +783,13 @@ class MasterController(Controller):
             "feedback_n": [round(v, 4) for v in self.feedback_n],
             "force_feedback": self.force_feedback,
             "force_scale": self.force_scale,
+            # a 6-axis sensor's torque (N m, the master's axes): displayed with rotational axes
+            "feedback_torque_nm": [round(v, 5) for v in self.feedback_torque_nm],
+            "torque": {
+                "displayed": self.rotational,
+                "torque_nm": [round(v, 5) for v in self.displayed_torque_nm],
+                "passivity": self.torque_passivity.stats(),
+            },
             "external_n": [round(v, 4) for v in self.external_n],
             "external_samples": self.external_samples,
             "external_fresh": now - self._t_external <= self._external_timeout,
@@ -704,11 +806,16 @@ class MasterController(Controller):
             **fx.stats(),
             "ik_failures": self.ik_failures,
             **({"slaves": self.selector.stats()} if self.selector.slaves else {}),
+            **({"gripper": self.gripper.stats()} if self.gripper is not None else {}),
         }
 
 
 def _mm(p: Sequence[float] | None) -> list[float] | None:
     return None if p is None else [round(float(v) / MM, 6) for v in p]
+
+
+def _m(p_mm: Sequence[float]) -> tuple[float, float, float]:
+    return (p_mm[0] * MM, p_mm[1] * MM, p_mm[2] * MM)
 
 
 @mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins extend built-ins
@@ -793,6 +900,9 @@ class SlaveController(Controller):
         self._refusing = False
         self.refused = 0
         self.rate_limited = 0
+        #: the jaw that follows the master's gripper value (occ/gripper.py)
+        self._gripper_params = p.gripper
+        self.gripper: GripperFollower | None = None
 
     @classmethod
     def check(cls, params: Any, config: DaemonConfig) -> list[Problem]:
@@ -819,6 +929,43 @@ class SlaveController(Controller):
                 problems.append(
                     (("force", "sensor_interface"), f"no interface '{f.sensor_interface}'")
                 )
+        if f is not None and f.tool_mass_kg > 0.0:
+            if "sensor" not in f.sources:
+                problems.append(
+                    (
+                        ("force", "tool_mass_kg"),
+                        "the weight beyond the sensor is removed from the sensor's readings: "
+                        "needs `sensor` in sources (or 0)",
+                    )
+                )
+            g = math.sqrt(sum(v * v for v in f.gravity_mps2))
+            if not 9.76 <= g <= 9.84:  # the Earth's surface: 9.78 (equator) to 9.83 (poles)
+                problems.append(
+                    (
+                        ("force", "gravity_mps2"),
+                        f"magnitude {g:.4g} m/s^2: the Earth's is 9.78-9.83 m/s^2 (a unit or "
+                        "sign slip would compensate a weight that is not there)",
+                    )
+                )
+        g = params.gripper
+        if g is not None:
+            joints = {j.name: j for j in config.robot.joints}
+            jc = joints.get(g.joint)
+            if jc is None:
+                problems.append((("gripper", "joint"), f"no joint '{g.joint}' ({list(joints)})"))
+            else:
+                lo, hi = jc.limits.min, jc.limits.max
+                for key in ("open", "closed"):
+                    v = getattr(g, key)
+                    if not lo <= v <= hi:
+                        problems.append(
+                            (
+                                ("gripper", key),
+                                f"{v:g} is outside joint '{g.joint}' [{lo:g}, {hi:g}]",
+                            )
+                        )
+            if g.open == g.closed:
+                problems.append((("gripper", "closed"), "must differ from open"))
         return problems + check_outputs(config, f is not None)
 
     def outputs(self) -> dict[str, SourceFn]:
@@ -836,10 +983,20 @@ class SlaveController(Controller):
     def on_command(self, request: Request, now: float) -> str | None:
         if request.name.strip().lower() != "forcetare" or self.force is None:
             raise CommandError(f"unknown command {request.name!r}")
-        assert self.data is not None
-        self.force.tare(self.data.effort)
-        bias = ", ".join(f"{v:.4g}" for v in self.data.effort)
-        return f"force bias taken: efforts [{bias}]"
+        data, ctx = self.data, self.ctx
+        assert data is not None and ctx is not None
+        # at rest and touching nothing, or refused (occ/forces.py: a tare in contact hides a
+        # real force from then on)
+        v = ctx.frame.jacobian(data.q)[:3] @ np.asarray(data.qdot, dtype=float)
+        env = ctx.environment
+        contact = None
+        if env is not None and env.in_contact:
+            deep = max(env.depth_mm.items(), key=lambda kv: kv[1])
+            contact = f"simulated tissue {deep[0]!r} {deep[1]:.2f} mm deep"
+        try:
+            return self.force.tare_all(now, data.effort, float(np.linalg.norm(v)), contact)
+        except ValueError as err:
+            raise caused(CommandError(str(err)), err) from err
 
     def on_input(self, item: Inbound, now: float) -> None:
         if self._tissue(item.msg):
@@ -918,7 +1075,11 @@ class SlaveController(Controller):
             )
             self._return_meta[key] = meta
         if self.force is not None:
-            meta = MappingProxyType({**meta, "force_n": self._force_meta(now)})
+            extra = {"force_n": self._force_meta(now)}
+            t = self.force.torque_nm
+            if t is not None:  # a 6-axis sensor's (occ/returnlink.py): old masters ignore it
+                extra["torque_nm"] = f"{t[0]:.5f},{t[1]:.5f},{t[2]:.5f}"
+            meta = MappingProxyType({**meta, **extra})
         rows, (x, y, z) = data.world_tip_pose()
         k = id(out)
         seq = (self._return_seqs.get(k, 0) + 1) & 0xFFFFFFFF
@@ -941,6 +1102,16 @@ class SlaveController(Controller):
         # absolute mapping: a step per tick within the velocity limits (the drivers' check
         # allows the limit itself; 0.9 keeps clear of it)
         self._step = [0.9 * lim.velocity * ctx.period_s for lim in ctx.joint_limits]
+        g = self._gripper_params
+        if g is not None:
+            i = data.joint_names.index(g.joint)
+            moves = float(np.linalg.norm(ctx.frame.jacobian(data.q)[:3, i]))
+            if moves > 1e-9:  # the IK would move it for the tip, the gripper for the jaw
+                raise ConfigError(
+                    f"teleop-slave gripper: joint '{g.joint}' moves the tool's tip "
+                    f"({moves:.3g} m per unit): a jaw must not"
+                )
+            self.gripper = GripperFollower(i, g.joint, g.open, g.closed, self._step[i])
         fp = self.force_params
         if fp is not None:
             self.force = SlaveForce(
@@ -954,6 +1125,14 @@ class SlaveController(Controller):
                 effort_inertia=fp.effort_inertia,
                 environment=ctx.environment,
                 alert=ctx.alert,
+                pose=lambda: (data.tip, data.base),
+                tool_mass_kg=fp.tool_mass_kg,
+                tool_com_m=_m(fp.tool_com_mm),
+                gravity=fp.gravity_mps2,
+                tare_window_s=fp.tare_window_ms * 1e-3,
+                tare_max_speed=fp.tare_max_speed_mm_s * 1e-3,
+                tare_max_spread_n=fp.tare_max_spread_n,
+                tare_max_offset_n=fp.tare_max_offset_n,
             )
             self.force_view = ForceView(self.force, data, ctx, fp.display_mm_per_n)
         if self.base_mm is not None:
@@ -1001,6 +1180,8 @@ class SlaveController(Controller):
         self.master_pos = (pos[0] * MM, pos[1] * MM, pos[2] * MM)
         self.master_quat = sample.quaternion
         self._fresh = True
+        if self.gripper is not None:
+            self.gripper.on_meta(sample.meta.get("gripper"))
         run = sample.run
         clutch = sample.clutch
         if (run and not self.master_run) or (self.master_clutch and not clutch):
@@ -1048,12 +1229,23 @@ class SlaveController(Controller):
     def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
         if new is RobotState.RUNNING:
             self.master_ref = None
+            if self.gripper is not None:
+                self.gripper.restart()
             if self.absolute:  # from where the drives hold; the last target checked afresh
                 self._q_goal = None
                 self._q_last = None
                 self._fresh = self.master_pos is not None
 
     def update(self, now: float) -> Sequence[float] | None:
+        q = self._follow(now)
+        g = self.gripper
+        if g is None or q is None:
+            return q
+        following = self.master_run and not self.master_clutch and self.master_ref is not None
+        return g.apply(list(q), following)
+
+    def _follow(self, now: float) -> Sequence[float] | None:
+        """The arm's setpoints (every joint; the jaw's is the gripper's: :meth:`update`)."""
         data, ctx = self.data, self.ctx
         assert data is not None and ctx is not None
         if self.absolute:
@@ -1268,6 +1460,8 @@ class SlaveController(Controller):
             out["servo_rate_limited"] = self.rate_limited
         if self.follow_orientation:
             out["rate_limited"] = self.rate_limited
+        if self.gripper is not None:
+            out["gripper"] = self.gripper.stats()
         if self.latency_us.count:
             lat = self.latency_us.summary()
             out["sample_to_write_us"] = {

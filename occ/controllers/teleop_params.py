@@ -28,6 +28,20 @@ class FixtureFile(_Params):
     damping: Annotated[Float, Field(ge=0)] = Field(0.0, description="N s/mm.")
 
 
+class MasterGripper(_Params):
+    """Where the master's gripper value comes from (occ/gripper.py)."""
+
+    source: Literal["joint", "command", "sim"] = Field(
+        description="`joint`: a master joint (a handle's grip or switch read as a position); "
+        "`command`: the operators' `Grip` command (the handle's switch on an operator client); "
+        "`sim`: the simulated operator closes and opens it every `period_s`."
+    )
+    joint: Name | None = Field(None, description="`joint`: the master joint (its name).")
+    open: Float = Field(0.0, description="`joint`: its position with the gripper open.")
+    closed: Float = Field(1.0, description="`joint`: its position with the gripper closed.")
+    period_s: PosFloat = Field(4.0, description="`sim`: one close and open (s).")
+
+
 class MasterParams(_Params):
     """Parameters of ``teleop-master``. Lengths in mm, as on the wire."""
 
@@ -115,6 +129,17 @@ class MasterParams(_Params):
     passivity_max_damping: PosFloat = Field(
         200.0, description="The passivity controller's largest damping (N s/m)."
     )
+    max_torque_nm: PosFloat = Field(
+        0.5,
+        description="A master with rotational axes (6 or more joints, `force_output`): clamp "
+        "of the displayed torque (N m), a 6-axis sensor's torque from the slave (its return "
+        "channel's `torque_nm`) times `force_scale`; masters without them record it only.",
+    )
+    passivity_max_rot_damping: PosFloat = Field(
+        2.0,
+        description="The largest rotational damping (N m s/rad) of the displayed torque's own "
+        "passivity controller (the handle's angular velocity).",
+    )
     fixture_slide_mm: PosFloat = Field(
         1.0,
         description="Longest move of a contact's proxy per tick (mm): bounds the force step "
@@ -186,6 +211,11 @@ class MasterParams(_Params):
     slave: Name | None = Field(
         None, description="The slave selected at start (one of `slaves`; null = the first)."
     )
+    gripper: MasterGripper | None = Field(
+        None,
+        description="Send a gripper value (0 open to 1 closed) with every sample, metadata "
+        "`gripper`: the slave's jaw follows it (its `gripper`); null = none sent.",
+    )
     toggle_tap_ms: PosFloat | None = Field(
         300.0,
         description="With several `slaves`: a clutch pressed and released within this time "
@@ -239,6 +269,53 @@ class SlaveForceParams(_Params):
         description="The output source `force` (3D Slicer): length of the force arrow, mm per N "
         "(the POLYDATA arrow's length, the TRANSFORM's z axis; occ/forceviz.py).",
     )
+    tool_mass_kg: Annotated[Float, Field(ge=0, le=20)] = Field(
+        0.0,
+        description="`sensor`: mass (kg) of what hangs beyond the force sensor (instrument, "
+        "its drive, the gripper): its weight is removed from every reading at the pose the "
+        "robot's kinematics give (force, and its moment for a 6-axis sensor); 0 = none.",
+    )
+    tool_com_mm: Vec3 = Field(
+        (0.0, 0.0, 0.0),
+        description="`sensor`: its centre of mass from the sensor's origin (mm, the tip "
+        "frame's axes): the lever of its weight's moment on a 6-axis sensor.",
+    )
+    gravity_mps2: Vec3 = Field(
+        (0.0, 0.0, -9.81),
+        description="Gravity in the robot's base frame (m/s^2; a base mounted upside down or "
+        "on a wall turns it): rotated into the sensor's frame for the weight compensation.",
+    )
+    tare_window_ms: Annotated[Float, Field(gt=0, le=2000)] = Field(
+        100.0,
+        description="`ForceTare`: the sensor's offset is the mean of its readings (the "
+        "tool's weight removed) over this last stretch of time.",
+    )
+    tare_max_speed_mm_s: PosFloat = Field(
+        0.5,
+        description="`ForceTare` is refused while the tip moves faster than this, now or on "
+        "average over the window (mm/s): a tare is taken at rest.",
+    )
+    tare_max_spread_n: PosFloat = Field(
+        0.05,
+        description="`ForceTare` is refused when a reading in the window is farther than "
+        "this from their mean (N): a force that varies is a contact or a vibration.",
+    )
+    tare_max_offset_n: PosFloat = Field(
+        1.0,
+        description="`ForceTare` is refused when more than this is left once the tool's "
+        "weight is removed (N): a load on the instrument (a tare in contact would hide it) "
+        "or a wrong tool model, not the sensor's zero.",
+    )
+
+
+class SlaveGripper(_Params):
+    """The slave's jaw, driven by the master's gripper value (occ/gripper.py)."""
+
+    joint: Name = Field(
+        description="The jaw's joint (one of the robot's; it must not move the tool's tip)."
+    )
+    open: Float = Field(description="Its position with the gripper open (m or rad).")
+    closed: Float = Field(description="Its position with the gripper closed (m or rad).")
 
 
 class SlaveParams(_Params):
@@ -303,6 +380,12 @@ class SlaveParams(_Params):
         None,
         description="The tip force, sent to the master on the return channel (`force_n`: "
         "bilateral teleoperation, the master displays it); null = no force sent.",
+    )
+    gripper: SlaveGripper | None = Field(
+        None,
+        description="A jaw that follows the master's gripper value (its stream's `gripper` "
+        "metadata) at no more than 0.9 x its velocity limit, only while following; held "
+        "otherwise, and on a late or lost stream like every joint. null = none.",
     )
     phase_lock_us: Annotated[Float, Field(ge=0)] | None = Field(
         400.0,

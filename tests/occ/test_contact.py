@@ -6,7 +6,8 @@
   differences on the slave's kinematics; the ``sim`` drive yields by tau / kp under it and,
   averaged over 2 ms, reports the effort that holds it.
 - The ``effort`` source gives back the contact force from those efforts (static: to 1 mN of 1.5 N;
-  moving, with the momentum observer: a few per cent); ``ForceTare`` removes a bias.
+  moving, with the momentum observer: a few per cent); a bias is removed (``ForceTare`` refuses
+  to take one in contact).
 - The ``sensor`` source: a SENSOR in N, in the patient, base or tip frame; refused and counted
   when it is no force; silent past its timeout: not used, the next source instead, one ALERT.
 - Configuration mistakes are errors at load.
@@ -144,10 +145,14 @@ def test_the_effort_source_gives_the_contact_force_back() -> None:
         # smallest singular value is the yaw's 14 mm lever)
         assert f == pytest.approx(env.force_n, abs=1e-3)
         assert math.hypot(*f) > 1.0
-        # a bias taken now is subtracted from then on: the force reads zero at this load
+        # the operator's tare is refused in contact (it would hide this force from then on;
+        # tests/occ/test_sensor_tare.py): nothing changes
         reply = sim.command(op, "ForceTare")
-        assert reply.metadata["Status"] == "SUCCESS", reply.metadata
-        assert "force bias taken" in reply.command
+        assert reply.metadata["Status"] == "FAIL", reply.metadata
+        assert "in contact (simulated tissue 'wall'" in reply.metadata["Error"]
+        assert ctl.force.bias is None
+        # a bias taken all the same is subtracted from then on: the force reads zero here
+        ctl.force.tare(sim.robot.data.effort)
         f = ctl.force.estimate(
             sim.now, sim.robot.frame, sim.robot.data.q, sim.robot.data.qdot,
             sim.robot.data.effort, sim.robot.data.base, lambda: sim.robot.data.tip[:3, :3],

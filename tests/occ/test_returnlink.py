@@ -320,6 +320,7 @@ def test_the_snapshot_shows_the_tip_its_age_and_the_counters() -> None:
         "age_ms": 1.2,
         "tip_mm": [1.235, -2.0, 3.0],
         "force_n": [0.1235, -1.0, 2.0],
+        "torque_nm": None,  # a 3-axis force (tests/occ/test_six_axis.py has one)
         "following": True,
         "slave_state": "RUNNING",
         "seq": 3,

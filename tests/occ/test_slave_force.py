@@ -291,6 +291,18 @@ def test_the_sensor_in_the_base_and_tip_frames_is_turned_into_the_patient_frame(
 
 
 # ------------------------------------------------------------------ counters, statistics
+#: a sensor source's tare before any (its statistics; tests/occ/test_sensor_tare.py has them after)
+UNTARED = {
+    "taken": 0,
+    "refused": 0,
+    "last": "",
+    "t": None,
+    "readings": 0,
+    "offset_n": [0.0, 0.0, 0.0],
+    "offset_nm": [0.0, 0.0, 0.0],
+}
+
+
 def test_the_statistics_report_every_source_and_the_sensors_counters() -> None:
     src = SlaveForce(("sensor", "effort"), sensor_interface="s")
     assert src.stats(3.0) == {
@@ -300,6 +312,8 @@ def test_the_statistics_report_every_source_and_the_sensors_counters() -> None:
         "estimates_n": {"sensor": None, "effort": None},
         "tared": False,
         "sensor": {"samples": 0, "refused": 0, "age_ms": None, "last_error": ""},
+        "torque_nm": None,
+        "tare": UNTARED,
     }
     assert not src.on_input(sensor((1.0, 2.0)), "s", 0.5)
     assert not src.on_input(sensor((1.0, 2.0, 3.0), Unit(0, ((1, 1),))), "s", 0.6)
@@ -318,6 +332,8 @@ def test_the_statistics_report_every_source_and_the_sensors_counters() -> None:
             "age_ms": 12.3,
             "last_error": "SENSOR 'ForceSensor': unit 'm' is not a force (N)",
         },
+        "torque_nm": None,  # three values: no torque
+        "tare": UNTARED,
     }
     assert "sensor" not in SlaveForce(("effort",)).stats(0.0)
 
