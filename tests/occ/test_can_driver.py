@@ -53,6 +53,14 @@ def channel() -> str:
     return f"occ-test-{next(_channels)}"
 
 
+def settle(node: SimulatedDriveNode, drv: CANDriver) -> None:
+    """Every frame the driver sent so far received and answered by ``node`` (answers only,
+    none muted): its answers are then in the driver's receive queue (the virtual bus delivers
+    before ``send`` returns)."""
+    sent = drv.stats()["command_frames"]
+    assert node.wait_commands(sent, timeout=2.0) and node.wait_feedback(sent, timeout=2.0)
+
+
 @pytest.fixture
 def node(channel: str) -> Iterator[SimulatedDriveNode]:
     axes = [DriveAxis(0x101, 0x181), DriveAxis(0x102, 0x182)]
@@ -68,10 +76,10 @@ def test_round_trip_position_and_scaling(channel: str, node: SimulatedDriveNode)
     with drv:
         drv.configure()  # asks each drive where it is (a mode-0 command each)
         assert node.wait_feedback(2, timeout=2.0)
-        drv.read(0.0)
+        drv.read(0.0)  # reads the answers, polls again (mode 0: not ACTIVE)
         drv.activate()
         drv.write([0.0012345, 0.0001], 0.001)
-        assert node.wait_feedback(4, timeout=2.0)
+        settle(node, drv)
         # The drive saw counts = round(value * counts_per_unit).
         assert node.axes[0].target == 12.0 and node.axes[1].target == 20.0
         assert node.axes[0].mode == 1
@@ -80,10 +88,12 @@ def test_round_trip_position_and_scaling(channel: str, node: SimulatedDriveNode)
         assert js[1].position == pytest.approx(20 / CPU[1])
         assert js[0].measured and js[1].stamp == 0.002
         stats = drv.stats()
-        assert stats["feedback_frames"] == 4 and stats["writes"] == 1
+        # configure's query, the poll of the first read, the command: each answered once
+        assert stats["feedback_frames"] == 6 and stats["writes"] == 1
+        assert stats["command_frames"] == 6 and stats["polls"] == 2
     assert drv.state is DriverState.SHUTDOWN
     # deactivate (from the context manager's shutdown) sent mode-0 frames.
-    assert node.wait_commands(6, timeout=2.0)
+    assert node.wait_commands(8, timeout=2.0)
     assert node.axes[0].mode == 0
 
 
@@ -95,9 +105,9 @@ def test_sequence_numbers_reach_the_drive(channel: str, node: SimulatedDriveNode
     drv.activate()
     for k in range(1, 6):
         drv.write([0.0, 0.0], k * 0.001)
-    assert node.wait_commands(12, timeout=2.0)
-    # the query at configure and five commands, numbered without a gap
-    assert node.axes[0].commands == 6 and node.axes[0].lost_commands == 0
+    assert node.wait_commands(14, timeout=2.0)
+    # the query at configure, the poll of the read and five commands, numbered without a gap
+    assert node.axes[0].commands == 7 and node.axes[0].lost_commands == 0
     drv.shutdown()
 
 
@@ -108,13 +118,15 @@ def test_feedback_timeout_faults(channel: str, node: SimulatedDriveNode) -> None
     drv.read(0.0)
     drv.activate()
     drv.write([0.0, 0.0], 0.001)
-    assert node.wait_feedback(4, timeout=2.0)
-    drv.read(0.002)
+    settle(node, drv)
+    drv.read(0.002)  # answers the command sent at 0.001
     node.mute()
     drv.write([0.0, 0.0], 0.003)
-    assert node.wait_commands(6, timeout=2.0)
-    drv.read(0.010)  # 8 ms since last feedback: still fine
-    with pytest.raises(DriverError, match=r"joint yaw: no feedback on id 0x181 for 13\.0 ms"):
+    assert node.wait_commands(drv.stats()["command_frames"], timeout=2.0)
+    drv.read(0.010)  # feedback 9 ms old: still fine
+    with pytest.raises(DriverError, match=r"joint yaw: no feedback on id 0x181 for 14\.0 ms: "
+                                          r"feedback age 14\.0 ms > feedback_timeout 10\.0 ms "
+                                          r"\(1 command unanswered\)"):
         drv.read(0.015)
     assert drv.state is DriverState.FAULT
     drv.shutdown()
@@ -276,7 +288,7 @@ def active_driver(channel: str, node: SimulatedDriveNode, **extra: object) -> CA
     drv.read(0.0)
     drv.activate()
     drv.write([0.0, 0.0], 0.001)
-    assert node.wait_feedback(4, timeout=2.0)
+    settle(node, drv)
     return drv
 
 
@@ -296,7 +308,7 @@ def test_error_frames_up_to_the_limit_are_counted_one_more_faults(
             drv.read(0.040)
         assert drv.state is DriverState.FAULT and drv.stats()["error_frames"] == 4
         # entering FAULT from ACTIVE told every drive to brake
-        assert node.wait_commands(6, timeout=2.0)
+        settle(node, drv)
         assert [a.mode for a in node.axes] == [MODE_DISABLED, MODE_DISABLED]
     finally:
         peer.shutdown()
@@ -343,7 +355,7 @@ def test_bus_off_faults_on_the_first_frame_whatever_the_limit(
                                           r"bus \(error frame 0x44\)"):
         drv.read(0.002)
     assert drv.state is DriverState.FAULT and drv.stats()["error_frames"] == 1
-    assert node.wait_commands(6, timeout=2.0)
+    settle(node, drv)
     assert [a.mode for a in node.axes] == [MODE_DISABLED, MODE_DISABLED]
     drv.shutdown()
 
@@ -447,11 +459,13 @@ def test_stop_frames_are_mode_0_with_value_0_to_each_drive(channel: str) -> None
         drv.deactivate()
         frames = drain(spy)
         assert [(m.arbitration_id, m.dlc, m.is_extended_id) for m in frames] == [
-            (0x101, 8, False), (0x102, 8, False)] * 3
+            (0x101, 8, False), (0x102, 8, False)] * 4
         told = [COMMAND_FRAME.unpack(m.data) for m in frames]
+        # configure's query, the read's poll, the command, the stop
         assert told == [(0, MODE_DISABLED, 0, 40), (0, MODE_DISABLED, 0, 40),
-                        (10, 1, 1, 40), (200, 1, 1, 40),
-                        (0, MODE_DISABLED, 2, 40), (0, MODE_DISABLED, 2, 40)]
+                        (0, MODE_DISABLED, 1, 40), (0, MODE_DISABLED, 1, 40),
+                        (10, 1, 2, 40), (200, 1, 2, 40),
+                        (0, MODE_DISABLED, 3, 40), (0, MODE_DISABLED, 3, 40)]
         drv.activate()
         drv.write([0.001, 0.002], 0.002)
         drain(spy)
@@ -564,8 +578,9 @@ def test_feedback_exactly_feedback_timeout_old_is_still_on_time(channel: str) ->
         drv.read(0.5)
         drv.read(0.75)
         assert drv.state is DriverState.INACTIVE
-        with pytest.raises(DriverError, match=r"joint yaw: no feedback on id 0x181 for 250\.1 ms "
-                                              r"\(timeout 250\.0 ms\)"):
+        with pytest.raises(DriverError, match=r"joint yaw: no feedback on id 0x181 for 250\.1 ms: "
+                                              r"feedback age 250\.1 ms > feedback_timeout "
+                                              r"250\.0 ms \(1 command unanswered\)"):
             drv.read(0.7501)
     finally:
         drv.shutdown()
