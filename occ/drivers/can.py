@@ -58,17 +58,19 @@ Commands sent outside a read or a write (configure, deactivate, reset, the safe 
 timed at the last ``now`` the driver saw, which can only make an answer look older.
 
 Counting cannot tell an answer that was lost (a drive that was muted, or restarted) from one
-that is still coming: unanswered commands are given up only when the joint has been quiet,
-nothing sent to it and nothing heard from it, for ``lost_after`` (default ten times
-``feedback_timeout``); then it is polled afresh. So after a silent or late drive is repaired,
-a reset passes once the bus has been quiet that long, not before. A drive later than
-``lost_after`` can pass single reads while the driver is not ACTIVE (its answers to the
-commands given up stand in for answers to later polls); once ACTIVE it faults soon after, as
-its late answers cannot keep up with a command every tick. A drive that also sends cyclically: its
-frames cannot be told from answers, so they are taken as answers to the oldest command, which
-judges a late cyclic drive too young; such frames are counted (``unsolicited_frames``, a
-frame with no command outstanding) and logged once. Set drives to answer only where the age
-must be judged. ``deactivate`` sends mode-0 frames so the drives brake.
+that is still coming: a command is given up as unanswered only when it is older than
+``lost_after`` (default ten times ``feedback_timeout``) and nothing has been heard from its
+joint for as long (a drive late by up to ``lost_after`` would have answered it by then, and
+while frames flow the counting stays in step); then the joint is polled afresh. So after a
+silent or late drive is repaired, a reset passes once it has been quiet that long, not before.
+A drive later than ``lost_after`` can pass single reads while the driver is not ACTIVE (its
+answers to the commands given up stand in for answers to later polls); once ACTIVE it faults
+soon after, as its late answers cannot keep up with a command every tick. A drive that also
+sends cyclically: its frames cannot be told from answers, so they are taken as answers to the
+oldest command, which judges a late cyclic drive too young; such frames are counted
+(``unsolicited_frames``, a frame with no command outstanding) and logged once. Set drives to
+answer only where the age must be judged. ``deactivate`` sends mode-0 frames so the drives
+brake.
 
 Parameters
 ==========
@@ -476,31 +478,37 @@ class CANDriver(Driver):
         for i, owed in enumerate(pending):
             if owed:
                 heard = last_rx[i]
-                newest = owed[-1]
-                if (
-                    now - (newest if newest == newest else t0) >= lost_after
-                    and now - (heard if heard == heard else t0) >= lost_after
-                ):
-                    # quiet that long: whatever was owed is not coming (module docstring)
-                    self._lost_answers += len(owed)
-                    logger.warning(
-                        "can driver %s: joint %s: %d commands unanswered for %.0f ms given "
-                        "up as lost; polling afresh",
-                        self.name,
-                        self.joints[i].name,
-                        len(owed),
-                        lost_after * 1e3,
-                    )
-                    owed.clear()
+                if now - (heard if heard == heard else t0) >= lost_after:
+                    # nothing heard that long: the commands older than that are not going to
+                    # be answered (module docstring); newer ones (a reset's) are still owed
+                    lost = 0
+                    while owed:
+                        sent = owed[0]
+                        if now - (sent if sent == sent else t0) < lost_after:
+                            break
+                        owed.popleft()
+                        lost += 1
+                    if lost:
+                        self._lost_answers += lost
+                        logger.warning(
+                            "can driver %s: joint %s: %d commands unanswered for %.0f ms "
+                            "given up as lost",
+                            self.name,
+                            self.joints[i].name,
+                            lost,
+                            lost_after * 1e3,
+                        )
             if polling and not owed:
                 sent = self._last_tx[i]
                 if sent != sent or now - sent >= self._poll_period:
                     self._polls += 1
                     self._send(i, MODE_DISABLED, 0, now)
+        # (the slack: now - sent in float may exceed a timeout it equals in milliseconds)
         timeout = self._timeout
+        limit = timeout * (1.0 + 1e-9)
         for i, t in enumerate(answered):
             age = now - (t if t == t else t0)
-            if age > timeout:
+            if age > limit:
                 owed_n = len(pending[i])
                 raise DriverError(
                     f"can driver {self.name!r}: joint {self.joints[i].name}: no feedback on id "
