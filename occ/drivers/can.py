@@ -47,15 +47,22 @@ a frame that arrives now may hold data of any age (a drive whose every answer is
 delivers one frame a tick, each 50 ms old). The driver keeps, per joint, the send times (loop
 clock) of its commands not yet answered, oldest first; a feedback frame is the answer to the
 oldest one (a drive answers each command once, in order), and the drive sampled it no earlier
-than that command was sent. A joint's *feedback age* is ``now`` minus the send time of the
-command its newest frame answers (before any answer: minus the first read after configure),
-an upper bound of the data's true age; above ``feedback_timeout`` the read raises
-:class:`~occ.errors.DriverError` naming the joint, the age, the limit and the commands still
-unanswered, which latches FAULT in the driver base. A silent drive and a late one fault
-alike, at run time and at the first read after a reset (the send times survive ``reset``: the
-answers a late drive still owes from before are judged by when they were asked for).
-Commands sent outside a read or a write (configure, deactivate, reset, the safe stop) are
-timed at the last ``now`` the driver saw, which can only make an answer look older.
+than that command was sent. A joint's *feedback age* is the larger of two ages, both measured
+on the loop clock: ``now`` minus the send time of the oldest command it still owes an answer
+to (that answer, whenever it comes, is at least that old: a silent drive), and the round trip
+of its newest answer, at least: the last read that found the receive queue empty (the answer
+came after it) minus the send time of its command (the age the data had when it arrived: a
+drive whose answers come late, kept until a newer answer, so a reset does not make it
+punctual). Above ``feedback_timeout`` the read raises
+:class:`~occ.errors.DriverError` naming the joint, the age, the limit and the commands
+unanswered, which latches FAULT in the driver base: a silent drive and a late one, at run time
+and at the first read after a reset (the send times survive ``reset``: the answers a late
+drive still owes from before are judged by when they were asked for). A pause of the host
+(nothing asked for a while, e.g. between Enable and the loop's first tick) is not the drive's:
+a drive that owes nothing, and answered on time, is not late. Commands sent outside a read or
+a write (configure, deactivate, reset, the safe stop) are timed at the last ``now`` the driver
+saw, which can only make them look older. :meth:`CANDriver.feedback_age` gives each joint's
+data age (since the command its newest frame answers was sent).
 
 Counting cannot tell an answer that was lost (a drive that was muted, or restarted) from one
 that is still coming: a command is given up as unanswered only when it is older than
@@ -266,6 +273,10 @@ class CANDriver(Driver):
         # frame answers; when the last frame arrived and the last command left (quiet)
         self._pending: list[deque[float]] = [deque() for _ in range(n)]
         self._answered = [math.nan] * n
+        # the newest answer's round trip, at least: when the receive queue was last seen
+        # empty (it arrived later) minus its command's send time
+        self._round_trip = [math.nan] * n
+        self._empty_at = math.nan  # the now of the last read that emptied the receive queue
         self._last_rx = [math.nan] * n
         self._last_tx = [math.nan] * n
         self._t0 = math.nan  # the first read's now: the age of a joint never answered
@@ -328,7 +339,8 @@ class CANDriver(Driver):
         return out
 
     def feedback_age(self, now: float) -> list[float]:
-        """Each joint's feedback age at ``now``, s (module docstring; NaN before any read)."""
+        """Each joint's data age at ``now``, s: since the command its newest frame answers was
+        sent (module docstring; NaN before any read)."""
         t0 = self._t0
         return [now - (t if t == t else t0) for t in self._answered]
 
@@ -359,6 +371,8 @@ class CANDriver(Driver):
         n = len(self.joints)
         self._pending = [deque() for _ in range(n)]
         self._answered = [math.nan] * n
+        self._round_trip = [math.nan] * n
+        self._empty_at = math.nan
         self._last_rx = [math.nan] * n
         self._last_tx = [math.nan] * n
         self._t0 = math.nan
@@ -368,8 +382,8 @@ class CANDriver(Driver):
             self._send(i, MODE_DISABLED, 0)
 
     def _activate(self) -> None:
-        # Nothing to send: the first write commands every joint. The feedback age runs on:
-        # the polls kept it fresh while INACTIVE, and a drive late then is late now.
+        # Nothing to send: the first write commands every joint. What the drives owe stays
+        # owed: a drive late while INACTIVE is late now.
         pass
 
     def _deactivate(self) -> None:
@@ -423,7 +437,11 @@ class CANDriver(Driver):
         unpack = FEEDBACK_FRAME.unpack_from
         pending = self._pending
         answered = self._answered
+        round_trip = self._round_trip
         last_rx = self._last_rx
+        # What is in the queue now arrived after it was last seen empty: a lower bound of each
+        # frame's arrival that a pause of the host (a late read) does not move.
+        empty_at = self._empty_at
         # Bounded drain: a babbling node must not keep the loop here forever.
         for _ in range(MAX_FRAMES_PER_JOINT * len(last_rx)):
             try:
@@ -431,6 +449,7 @@ class CANDriver(Driver):
             except can.CanError as err:
                 raise DriverError(f"can driver {self.name!r}: receive failed: {err}") from err
             if msg is None:
+                self._empty_at = now
                 break
             if msg.is_error_frame:
                 self._on_error_frame(msg, now)
@@ -460,7 +479,10 @@ class CANDriver(Driver):
             if owed:
                 sent = owed.popleft()
                 # the answer to the oldest command: its data is no older than that command
-                answered[i] = sent if sent == sent else self._t0
+                sent = sent if sent == sent else self._t0
+                answered[i] = sent
+                trip = empty_at - sent
+                round_trip[i] = trip if trip > 0.0 else 0.0  # NaN (first read) -> 0
             else:
                 # sent on its own: its age is unknown, so it does not make the joint fresh
                 if not self._unsolicited_frames:
@@ -503,23 +525,39 @@ class CANDriver(Driver):
                 if sent != sent or now - sent >= self._poll_period:
                     self._polls += 1
                     self._send(i, MODE_DISABLED, 0, now)
-        # (the slack: now - sent in float may exceed a timeout it equals in milliseconds)
+        # Judged (module docstring): the oldest command a joint still owes an answer to (that
+        # answer, whenever it comes, is at least that old) and the round trip of its newest
+        # answer (kept until a newer one: a reset does not make a late drive punctual). Not
+        # now minus the newest answer's command: after a pause of the host (nothing asked,
+        # e.g. between Enable and the loop's first tick) that is old through no fault of the
+        # drive. (The slack: now - sent in float may exceed a timeout it equals in ms.)
         timeout = self._timeout
         limit = timeout * (1.0 + 1e-9)
-        for i, t in enumerate(answered):
-            age = now - (t if t == t else t0)
-            if age > limit:
-                owed_n = len(pending[i])
-                raise DriverError(
-                    f"can driver {self.name!r}: joint {self.joints[i].name}: no feedback on id "
-                    f"{self._feedback_ids[i]:#x} for {age * 1e3:.1f} ms: feedback age "
-                    f"{age * 1e3:.1f} ms > feedback_timeout {timeout * 1e3:.1f} ms ("
-                    + (
-                        "no answer yet"
-                        if t != t
-                        else f"{owed_n} command{'' if owed_n == 1 else 's'} unanswered"
-                    )
+        for i, owed in enumerate(pending):
+            waited = 0.0
+            if owed:
+                sent = owed[0]
+                waited = now - (sent if sent == sent else t0)
+            trip = round_trip[i]
+            if waited > limit or trip > limit:
+                n_owed = len(owed)
+                tail = (
+                    f"{n_owed} command{'' if n_owed == 1 else 's'} unanswered"
+                    + (", none ever answered" if answered[i] != answered[i] else "")
                     + ")"
+                )
+                fid = self._feedback_ids[i]
+                where = f"can driver {self.name!r}: joint {self.joints[i].name}"
+                if waited >= trip or trip != trip:
+                    raise DriverError(
+                        f"{where}: no feedback on id {fid:#x} for {waited * 1e3:.1f} ms: "
+                        f"feedback age {waited * 1e3:.1f} ms > feedback_timeout "
+                        f"{timeout * 1e3:.1f} ms ({tail}"
+                    )
+                raise DriverError(
+                    f"{where}: feedback on id {fid:#x} answers a command sent at least "
+                    f"{trip * 1e3:.1f} ms before it arrived: feedback age {trip * 1e3:.1f} ms "
+                    f"> feedback_timeout {timeout * 1e3:.1f} ms (answer late; {tail}"
                 )
         return self._pos, self._vel, self._eff
 
