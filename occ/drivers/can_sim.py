@@ -20,6 +20,13 @@ it (``heartbeat_trips``) and flags every feedback frame (effort ``-32768``) unti
 frame acknowledges it; commands meanwhile are answered but not obeyed. The node checks at
 least every quarter of the heartbeat time (its own thread and clock), as drive firmware does.
 
+Fault modes, for tests of the host: :meth:`~SimulatedDriveNode.mute` (no feedback at all),
+``delay`` (every feedback frame held back), :meth:`~SimulatedDriveNode.send_error_frame` (one
+error frame), :meth:`~SimulatedDriveNode.error_flood` (error frames with every command, for
+as long as the host sends: a bus that stays bad) and
+:meth:`~SimulatedDriveNode.stale_dither` (feedback frozen at an old position that toggles by
+one count while the axis moves on: a stuck encoder whose last bit flickers).
+
 Use it without hardware with python-can's ``virtual`` interface: the node and the driver
 open the same channel name in one process. With real drives, use SocketCAN instead
 (``interface: socketcan``, ``channel: can0``, after ``ip link set can0 up type can bitrate
@@ -82,6 +89,9 @@ class DriveAxis:
     last_command_t: float = math.nan
     heartbeat_lost: bool = False
     heartbeat_trips: int = 0
+    #: the frozen (position, velocity) reported under stale_dither; None = live
+    stale: tuple[int, int] | None = None
+    stale_frames: int = 0  # frames sent frozen: the odd ones are one count off
 
 
 class SimulatedDriveNode:
@@ -124,6 +134,10 @@ class SimulatedDriveNode:
         #: seconds each feedback frame is held back (a drive that answers late); 0 = at once
         self.delay = 0.0
         self._late: list[tuple[float, can.Message]] = []
+        self._flood = 0  # error frames after each command frame (error_flood)
+        self._flood_class = 0x04
+        self._dither = 0  # counts of the stale position's toggle; 0 = live feedback
+        self.error_frames_sent = 0
         self._thread: threading.Thread | None = None
         self._t_model = clock()
         self.commands_received = 0
@@ -154,6 +168,31 @@ class SimulatedDriveNode:
         """Put an error frame on the bus, as a CAN controller reports one (SocketCAN's error
         classes: 0x04 controller problem, 0x40 bus-off, ...)."""
         self._bus.send(can.Message(arbitration_id=error_class, is_error_frame=True, dlc=8))
+        with self._cond:
+            self.error_frames_sent += 1
+            self._cond.notify_all()
+
+    def error_flood(self, per_command: int, error_class: int = 0x04) -> None:
+        """From now on put ``per_command`` error frames of ``error_class`` on the bus after
+        every command frame received (before its answer), as a bus with a bad termination or
+        a marginal transceiver corrupts traffic: the flood lasts as long as the host sends,
+        across its faults and resets. 0 stops it. Tied to the traffic, not to a clock, so a
+        test knows how many error frames each command brings."""
+        if per_command < 0:
+            raise ValueError("per_command must be >= 0")
+        self._flood_class = error_class
+        self._flood = per_command
+
+    def stale_dither(self, counts: int = 1) -> None:
+        """Freeze every axis's encoder feedback at the next frame it sends (position and
+        velocity as they are then), the position toggling by ``counts`` every other frame,
+        while the axes go on obeying commands (``DriveAxis.position`` moves): a stuck
+        encoder whose lowest bit flickers, which a check for "no change at all" never calls
+        frozen. The effort and the heartbeat flag stay live (the drive's, not the
+        encoder's). 0 resumes live feedback."""
+        if counts < 0:
+            raise ValueError("counts must be >= 0")
+        self._dither = counts
 
     def discard_late(self) -> None:
         """Forget the feedback frames still held back by ``delay``."""
@@ -228,6 +267,8 @@ class SimulatedDriveNode:
         axis.commands += 1
         axis.heartbeat_s = heartbeat_ms * 1e-3
         axis.last_command_t = self._clock()
+        for _ in range(self._flood):
+            self.send_error_frame(self._flood_class)
         if axis.heartbeat_lost:
             if mode != MODE_DISABLED:  # stopped until the host acknowledges with mode 0
                 with self._cond:
@@ -293,9 +334,19 @@ class SimulatedDriveNode:
         if self._muted:
             return
         effort = HEARTBEAT_LOST if axis.heartbeat_lost else _sat16(axis.effort)
-        data = FEEDBACK_FRAME.pack(
-            int(round(axis.position)), _sat16(axis.velocity / 1000.0), effort
-        )
+        position, velocity = int(round(axis.position)), _sat16(axis.velocity / 1000.0)
+        dither = self._dither
+        if dither:
+            # snapshot taken here, on the node's thread, where the model is consistent
+            if axis.stale is None:
+                axis.stale = (position, velocity)
+            position, velocity = axis.stale
+            if axis.stale_frames % 2:
+                position += dither
+            axis.stale_frames += 1
+        else:
+            axis.stale = None
+        data = FEEDBACK_FRAME.pack(position, velocity, effort)
         frame = can.Message(arbitration_id=axis.feedback_id, is_extended_id=False, data=data)
         if self.delay > 0.0:
             self._late.append((self._clock() + self.delay, frame))

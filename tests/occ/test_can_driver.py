@@ -53,6 +53,14 @@ def channel() -> str:
     return f"occ-test-{next(_channels)}"
 
 
+def settle(node: SimulatedDriveNode, drv: CANDriver) -> None:
+    """Every frame the driver sent so far received and answered by ``node`` (answers only,
+    none muted): its answers are then in the driver's receive queue (the virtual bus delivers
+    before ``send`` returns)."""
+    sent = drv.stats()["command_frames"]
+    assert node.wait_commands(sent, timeout=2.0) and node.wait_feedback(sent, timeout=2.0)
+
+
 @pytest.fixture
 def node(channel: str) -> Iterator[SimulatedDriveNode]:
     axes = [DriveAxis(0x101, 0x181), DriveAxis(0x102, 0x182)]
@@ -68,10 +76,10 @@ def test_round_trip_position_and_scaling(channel: str, node: SimulatedDriveNode)
     with drv:
         drv.configure()  # asks each drive where it is (a mode-0 command each)
         assert node.wait_feedback(2, timeout=2.0)
-        drv.read(0.0)
+        drv.read(0.0)  # reads the answers, polls again (mode 0: not ACTIVE)
         drv.activate()
         drv.write([0.0012345, 0.0001], 0.001)
-        assert node.wait_feedback(4, timeout=2.0)
+        settle(node, drv)
         # The drive saw counts = round(value * counts_per_unit).
         assert node.axes[0].target == 12.0 and node.axes[1].target == 20.0
         assert node.axes[0].mode == 1
@@ -80,10 +88,12 @@ def test_round_trip_position_and_scaling(channel: str, node: SimulatedDriveNode)
         assert js[1].position == pytest.approx(20 / CPU[1])
         assert js[0].measured and js[1].stamp == 0.002
         stats = drv.stats()
-        assert stats["feedback_frames"] == 4 and stats["writes"] == 1
+        # configure's query, the poll of the first read, the command: each answered once
+        assert stats["feedback_frames"] == 6 and stats["writes"] == 1
+        assert stats["command_frames"] == 6 and stats["polls"] == 2
     assert drv.state is DriverState.SHUTDOWN
     # deactivate (from the context manager's shutdown) sent mode-0 frames.
-    assert node.wait_commands(6, timeout=2.0)
+    assert node.wait_commands(8, timeout=2.0)
     assert node.axes[0].mode == 0
 
 
@@ -95,9 +105,9 @@ def test_sequence_numbers_reach_the_drive(channel: str, node: SimulatedDriveNode
     drv.activate()
     for k in range(1, 6):
         drv.write([0.0, 0.0], k * 0.001)
-    assert node.wait_commands(12, timeout=2.0)
-    # the query at configure and five commands, numbered without a gap
-    assert node.axes[0].commands == 6 and node.axes[0].lost_commands == 0
+    assert node.wait_commands(14, timeout=2.0)
+    # the query at configure, the poll of the read and five commands, numbered without a gap
+    assert node.axes[0].commands == 7 and node.axes[0].lost_commands == 0
     drv.shutdown()
 
 
@@ -108,13 +118,15 @@ def test_feedback_timeout_faults(channel: str, node: SimulatedDriveNode) -> None
     drv.read(0.0)
     drv.activate()
     drv.write([0.0, 0.0], 0.001)
-    assert node.wait_feedback(4, timeout=2.0)
-    drv.read(0.002)
+    settle(node, drv)
+    drv.read(0.002)  # answers the command sent at 0.001
     node.mute()
     drv.write([0.0, 0.0], 0.003)
-    assert node.wait_commands(6, timeout=2.0)
-    drv.read(0.010)  # 8 ms since last feedback: still fine
-    with pytest.raises(DriverError, match=r"joint yaw: no feedback on id 0x181 for 13\.0 ms"):
+    assert node.wait_commands(drv.stats()["command_frames"], timeout=2.0)
+    drv.read(0.010)  # the command of 3 ms unanswered for 7 ms: still fine
+    with pytest.raises(DriverError, match=r"joint yaw: no feedback on id 0x181 for 12\.0 ms: "
+                                          r"feedback age 12\.0 ms > feedback_timeout 10\.0 ms "
+                                          r"\(1 command unanswered\)"):
         drv.read(0.015)
     assert drv.state is DriverState.FAULT
     drv.shutdown()
@@ -276,7 +288,7 @@ def active_driver(channel: str, node: SimulatedDriveNode, **extra: object) -> CA
     drv.read(0.0)
     drv.activate()
     drv.write([0.0, 0.0], 0.001)
-    assert node.wait_feedback(4, timeout=2.0)
+    settle(node, drv)
     return drv
 
 
@@ -296,7 +308,7 @@ def test_error_frames_up_to_the_limit_are_counted_one_more_faults(
             drv.read(0.040)
         assert drv.state is DriverState.FAULT and drv.stats()["error_frames"] == 4
         # entering FAULT from ACTIVE told every drive to brake
-        assert node.wait_commands(6, timeout=2.0)
+        settle(node, drv)
         assert [a.mode for a in node.axes] == [MODE_DISABLED, MODE_DISABLED]
     finally:
         peer.shutdown()
@@ -343,7 +355,7 @@ def test_bus_off_faults_on_the_first_frame_whatever_the_limit(
                                           r"bus \(error frame 0x44\)"):
         drv.read(0.002)
     assert drv.state is DriverState.FAULT and drv.stats()["error_frames"] == 1
-    assert node.wait_commands(6, timeout=2.0)
+    settle(node, drv)
     assert [a.mode for a in node.axes] == [MODE_DISABLED, MODE_DISABLED]
     drv.shutdown()
 
@@ -385,6 +397,9 @@ def test_reset_forgets_the_error_frames_before_the_fault(
         (lambda p: p.update(feedback_timeout=0.0), "feedback_timeout must be > 0"),
         (lambda p: p.update(feedback_timeout=math.nan), "feedback_timeout must be > 0"),
         (lambda p: p.update(error_frames=-1), "error_frames must be >= 0"),
+        (lambda p: p.update(lost_after=0.005), "lost_after must be >= feedback_timeout"),
+        (lambda p: p.update(poll_period=0.01), "poll_period must be >= 0 and < feedback_timeout"),
+        (lambda p: p.update(poll_period=-0.001), "poll_period must be >= 0"),
         (lambda p: p.update(heartbeat_ms=256), "heartbeat_ms must be <= 255, got 256"),
     ],
 )
@@ -447,11 +462,13 @@ def test_stop_frames_are_mode_0_with_value_0_to_each_drive(channel: str) -> None
         drv.deactivate()
         frames = drain(spy)
         assert [(m.arbitration_id, m.dlc, m.is_extended_id) for m in frames] == [
-            (0x101, 8, False), (0x102, 8, False)] * 3
+            (0x101, 8, False), (0x102, 8, False)] * 4
         told = [COMMAND_FRAME.unpack(m.data) for m in frames]
+        # configure's query, the read's poll, the command, the stop
         assert told == [(0, MODE_DISABLED, 0, 40), (0, MODE_DISABLED, 0, 40),
-                        (10, 1, 1, 40), (200, 1, 1, 40),
-                        (0, MODE_DISABLED, 2, 40), (0, MODE_DISABLED, 2, 40)]
+                        (0, MODE_DISABLED, 1, 40), (0, MODE_DISABLED, 1, 40),
+                        (10, 1, 2, 40), (200, 1, 2, 40),
+                        (0, MODE_DISABLED, 3, 40), (0, MODE_DISABLED, 3, 40)]
         drv.activate()
         drv.write([0.001, 0.002], 0.002)
         drain(spy)
@@ -564,8 +581,9 @@ def test_feedback_exactly_feedback_timeout_old_is_still_on_time(channel: str) ->
         drv.read(0.5)
         drv.read(0.75)
         assert drv.state is DriverState.INACTIVE
-        with pytest.raises(DriverError, match=r"joint yaw: no feedback on id 0x181 for 250\.1 ms "
-                                              r"\(timeout 250\.0 ms\)"):
+        with pytest.raises(DriverError, match=r"joint yaw: no feedback on id 0x181 for 250\.1 ms: "
+                                              r"feedback age 250\.1 ms > feedback_timeout "
+                                              r"250\.0 ms \(1 command unanswered\)"):
             drv.read(0.7501)
     finally:
         drv.shutdown()
@@ -806,3 +824,349 @@ def test_a_babbling_bus_costs_a_read_a_bounded_number_of_frames(channel: str) ->
         assert drv.stats()["ignored_frames"] == bound
         drv.read(0.002)
         assert drv.stats()["ignored_frames"] == bound + 5
+
+
+# ---------------------------------------------------------------- polling (SR-HW-20)
+COMMAND_IDS = {0x101: 0x181, 0x102: 0x182}  # command id -> feedback id, as in params()
+
+
+def commands_sent(spy: can.BusABC) -> int:
+    """How many command frames went out since the last call (the spy sees the node's
+    feedback frames too: those are not counted)."""
+    return sum(1 for m in drain(spy) if m.arbitration_id in COMMAND_IDS)
+
+
+@pytest.mark.req("SR-HW-20")
+def test_a_node_that_only_answers_keeps_an_inactive_driver_healthy(
+    channel: str, node: SimulatedDriveNode
+) -> None:
+    """The project's own node answers commands only. While INACTIVE the driver polls it (a
+    mode-0 frame a read, once the last one is answered), so READY lasts: 300 reads, 30 times
+    the feedback timeout, without a fault. While ACTIVE nothing but the commands goes out;
+    after deactivate the polls resume."""
+    spy = can.Bus(interface="virtual", channel=channel)
+    drv = CANDriver("arm", make_joints(), params(channel))  # feedback_timeout 10 ms
+    try:
+        drv.configure()
+        sent = commands_sent(spy)
+        for k in range(300):
+            assert node.wait_commands(sent, timeout=2.0) and node.wait_feedback(sent, timeout=2.0)
+            drv.read(k * 0.001)
+            sent += commands_sent(spy)
+        assert drv.state is DriverState.INACTIVE
+        settle(node, drv)
+        assert [a.commands for a in node.axes] == [301, 301]  # configure's query + 300 polls
+        assert [a.mode for a in node.axes] == [MODE_DISABLED] * 2
+        assert max(drv.feedback_age(0.299)) <= 0.001 + 1e-12  # the poll of the read before
+        drv.activate()
+        for k in range(300, 320):
+            drv.write([0.001, 0.001], k * 0.001)
+            assert commands_sent(spy) == 2  # the commands, no poll
+            settle(node, drv)
+            drv.read((k + 1) * 0.001)
+            assert commands_sent(spy) == 0
+        assert drv.state is DriverState.ACTIVE and [a.mode for a in node.axes] == [1, 1]
+        drv.deactivate()
+        settle(node, drv)
+        drv.read(0.321)
+        assert commands_sent(spy) == 4  # the stop frames, then a poll each
+        assert drv.state is DriverState.INACTIVE and drv.stats()["polls"] == 2 * 301
+    finally:
+        drv.shutdown()
+        spy.shutdown()
+
+
+class ScriptedDrive:
+    """A drive played by the test on a raw bus of its own, all in the test's thread: at each
+    :meth:`step` it takes the command frames sent since, and answers each one with one
+    feedback frame (100 counts) ``lag`` steps later (0: at once). ``answer = False`` drops
+    the commands (a drive that lost power: what it was asked it never answers)."""
+
+    def __init__(self, channel: str) -> None:
+        self.bus = can.Bus(interface="virtual", channel=channel)
+        self.lag = 0
+        self.answer = True
+        self.k = 0
+        self.queue: list[tuple[int, int]] = []  # (due step, feedback id)
+
+    def step(self) -> None:
+        for msg in drain(self.bus):
+            fid = COMMAND_IDS.get(msg.arbitration_id)
+            if fid is not None and self.answer:
+                self.queue.append((self.k + self.lag, fid))
+        due = [q for q in self.queue if q[0] <= self.k]
+        self.queue = [q for q in self.queue if q[0] > self.k]
+        for _, fid in due:
+            self.bus.send(can.Message(arbitration_id=fid, is_extended_id=False,
+                                      data=FEEDBACK_FRAME.pack(100, 0, 0)))
+        self.k += 1
+
+
+@contextlib.contextmanager
+def scripted(channel: str, **extra: object) -> Iterator[tuple[ScriptedDrive, CANDriver]]:
+    drive = ScriptedDrive(channel)
+    drv = CANDriver("arm", make_joints(), params(channel, **extra))
+    try:
+        drv.configure()
+        yield drive, drv
+    finally:
+        drv.shutdown()
+        drive.bus.shutdown()
+
+
+def tick(drive: ScriptedDrive, drv: CANDriver, k: int) -> None:
+    """Tick k (k ms on the loop clock): the drive answers what is due, the driver reads (and
+    polls), and if ACTIVE commands. A read that fails while FAULT is swallowed (the robot
+    reads a faulted drive on)."""
+    drive.step()
+    now = k * 0.001
+    try:
+        drv.read(now)
+    except DriverError:
+        if drv.state is not DriverState.FAULT:
+            raise
+        return
+    if drv.state is DriverState.ACTIVE:
+        drv.write([0.0, 0.0], now)
+
+
+@pytest.mark.req("SR-HW-20")
+def test_poll_period_spaces_the_polls(channel: str) -> None:
+    with scripted(channel, poll_period=0.004) as (drive, drv):
+        ages = []
+        for k in range(20):
+            tick(drive, drv, k)
+            ages.append(max(drv.feedback_age(k * 0.001)))
+        # at 0, 4, 8, 12 and 16 ms, to each joint
+        assert drv.stats()["polls"] == 10 and drv.state is DriverState.INACTIVE
+        assert max(ages) == pytest.approx(0.004)  # a poll answered at the next read
+
+
+# ---------------------------------------------------------------- feedback age (SR-HW-21)
+@pytest.mark.req("SR-HW-21")
+def test_a_late_drive_faults_on_its_age_and_fails_the_first_read_after_reset(
+    channel: str,
+) -> None:
+    """A drive whose every answer comes 50 ms late still delivers a frame every tick once its
+    backlog flows. Judged by arrival it looked healthy after a reset (the deadline restarted
+    there); judged by age (the send time of the command each frame answers) it faults while
+    running, and the first read after the reset fails with the age and the limit. Once it
+    answers on time again (its backlog drained, nothing lost) it is healthy again."""
+    with scripted(channel) as (drive, drv):
+        for k in range(10):
+            tick(drive, drv, k)
+        drv.activate()
+        for k in range(10, 30):
+            tick(drive, drv, k)
+        assert drv.state is DriverState.ACTIVE
+        drive.lag = 50
+        k = 30
+        with pytest.raises(DriverError, match=r"^can driver 'arm': joint yaw: no feedback on id "
+                                              r"0x181 for 11\.0 ms: feedback age 11\.0 ms > "
+                                              r"feedback_timeout 10\.0 ms \(11 commands "
+                                              r"unanswered\)$"):
+            while True:
+                drive.step()
+                drv.read(k * 0.001)
+                drv.write([0.0, 0.0], k * 0.001)
+                k += 1
+        # the read at 40 ms: the command of 29 ms (the first one the drive holds back) owed for
+        # 11 ms, and the ten after it
+        assert k == 40 and drv.state is DriverState.FAULT
+        for k in range(41, 200):  # read on while FAULT: the backlog arrives, 50 ms late
+            tick(drive, drv, k)
+        assert drv.stats()["feedback_frames"] > 60  # frames kept coming, every one stale
+        drv.reset()
+        drive.step()
+        # the newest answer came at least 50 ms after its poll (it was not in the queue at
+        # the read before): late until a newer one comes on time, whatever the reset
+        with pytest.raises(DriverError, match=r"joint yaw: feedback on id 0x181 answers a command "
+                                              r"sent at least 50\.0 ms before it arrived: feedback "
+                                              r"age 50\.0 ms > feedback_timeout 10\.0 ms \(answer "
+                                              r"late; 2 commands unanswered\)$"):
+            drv.read(0.200)
+        assert drv.state is DriverState.FAULT
+        drive.lag = 0  # on time again
+        for k in range(201, 300):
+            tick(drive, drv, k)
+        drv.reset()
+        tick(drive, drv, 300)
+        drv.activate()
+        for k in range(301, 320):
+            tick(drive, drv, k)
+        assert drv.state is DriverState.ACTIVE and max(drv.feedback_age(0.319)) <= 0.001 + 1e-12
+        assert drv.stats()["lost_answers"] == 0  # a late drive's answers all came
+
+
+@pytest.mark.req("SR-HW-21")
+def test_lost_answers_are_given_up_only_after_lost_after_of_quiet(channel: str) -> None:
+    """A drive that lost power answers nothing of what it was asked, then comes back. Until
+    nothing has been heard from the joint for lost_after, the commands it owes could still
+    be coming (a late drive), so the first read after a reset fails; then the commands older
+    than that are given up, the joint is polled afresh, and a reset passes."""
+    with scripted(channel, lost_after=0.05) as (drive, drv):
+        for k in range(5):
+            tick(drive, drv, k)
+        drv.activate()
+        for k in range(5, 10):
+            tick(drive, drv, k)
+        drive.answer = False  # from the command of 9 ms on (the drive steps before the read)
+        for k in range(10, 25):
+            tick(drive, drv, k)
+        assert drv.state is DriverState.FAULT
+        assert drv.fault_reason is not None and "feedback age 11.0 ms" in drv.fault_reason
+        drive.answer = True  # repaired
+        drv.reset()
+        # it answers the reset's stop frames: taken for the oldest command owed (of 9 ms), which
+        # judges it older, never younger, than it is; the next owed (10 ms) is 15 ms old
+        drive.step()
+        with pytest.raises(DriverError, match=r"joint yaw: no feedback on id 0x181 for 15\.0 ms: "
+                                              r"feedback age 15\.0 ms > feedback_timeout "
+                                              r"10\.0 ms \(12 commands unanswered\)$"):
+            drv.read(0.025)
+        for k in range(26, 76):  # last heard at 25 ms (read at 26)
+            tick(drive, drv, k)
+        assert drv.stats()["lost_answers"] == 0
+        # 50 ms without a frame: the 12 owed per joint given up (the commands of 10 to 19 ms,
+        # the stop frames of the fault and of the reset), a poll
+        tick(drive, drv, 76)
+        assert drv.stats()["lost_answers"] == 24
+        tick(drive, drv, 77)  # the poll answered: fresh
+        assert max(drv.feedback_age(0.077)) == pytest.approx(0.001)
+        drv.reset()
+        drive.step()
+        drv.read(0.078)
+        assert drv.state is DriverState.INACTIVE
+
+
+@pytest.mark.req("SR-HW-21")
+def test_frames_with_no_command_outstanding_are_counted_and_do_not_refresh(
+    channel: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A frame the driver did not ask for (a drive that also sends cyclically) has no known
+    age: its values are read but it does not count as fresh data (feedback_age); it is
+    counted, and the first one logged."""
+    peer = can.Bus(interface="virtual", channel=channel)
+    drv = CANDriver("arm", make_joints(), params(channel, feedback_timeout=0.004))
+    try:
+        drv.configure()
+        drv.read(0.0)  # configure's query unanswered: polls wait for it
+        for fid in (0x181, 0x182):  # one answer each, and a frame nobody asked for
+            for pos in (100, 200):
+                peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
+                                      data=FEEDBACK_FRAME.pack(pos, 0, 0)))
+        with caplog.at_level("WARNING", logger="occ.drivers.can"):
+            drv.read(0.003)
+        assert drv.stats()["unsolicited_frames"] == 2
+        assert [r.getMessage() for r in caplog.records] == [
+            "can driver arm: joint yaw sends feedback on its own: cyclic frames cannot be told "
+            "from answers, its feedback age is judged too young if they are late"]
+        assert drv.joints[0].position == 200 / CPU[0]  # the newest values are read
+        for fid in (0x181, 0x182):  # frames again, but the polls of 3 ms are owed: answers
+            peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
+                                  data=FEEDBACK_FRAME.pack(300, 0, 0)))
+        drv.read(0.006)
+        assert max(drv.feedback_age(0.006)) == pytest.approx(0.003)
+        for fid in (0x181, 0x182):  # nothing owed now (polls of 6 ms answered below first)
+            peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
+                                  data=FEEDBACK_FRAME.pack(400, 0, 0)))
+            peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
+                                  data=FEEDBACK_FRAME.pack(500, 0, 0)))
+        drv.read(0.009)
+        assert drv.stats()["unsolicited_frames"] == 4
+        # the data: from the answer to the poll of 6 ms, not from the frames nobody asked for
+        assert max(drv.feedback_age(0.009)) == pytest.approx(0.003)
+        assert drv.joints[0].position == 500 / CPU[0] and drv.state is DriverState.INACTIVE
+    finally:
+        drv.shutdown()
+        peer.shutdown()
+
+
+# ---------------------------------------------------------------- a bus still flooding
+@pytest.mark.req("SR-HW-13")
+def test_a_reset_with_the_bus_still_flooding_fails_its_first_read(
+    channel: str, node: SimulatedDriveNode
+) -> None:
+    """The error frames that faulted the driver are forgotten by a reset; those heard since
+    are not: a bus that still floods (3 error frames with every command, the polls of the
+    faulted driver included) fails the first read after the reset. Once it has been clean
+    for 100 ms, a reset passes."""
+    drv = active_driver(channel, node, feedback_timeout=10.0)  # error_frames 10 (default)
+    node.error_flood(3)
+    k = 2
+    with pytest.raises(DriverError, match=r"11 error frames in 100 ms"):
+        while True:
+            drv.write([0.0, 0.0], k * 0.001)
+            settle(node, drv)
+            drv.read(k * 0.001 + 0.0005)
+            k += 1
+    assert k == 3  # 6 with the first command, 6 more with the second
+    for k in range(4, 10):  # while FAULT the driver polls: the flood goes on
+        settle(node, drv)
+        with pytest.raises(DriverError, match=r"error frames in 100 ms"):
+            drv.read(k * 0.001)
+    drv.reset()
+    settle(node, drv)
+    with pytest.raises(DriverError, match=r"\d+ error frames in 100 ms"):
+        drv.read(0.010)
+    node.error_flood(0)
+    for k in range(11, 120):  # clean for more than 100 ms
+        settle(node, drv)
+        try:
+            drv.read(k * 0.001)
+        except DriverError:
+            assert drv.state is DriverState.FAULT
+    drv.reset()
+    settle(node, drv)
+    drv.read(0.120)
+    assert drv.state is DriverState.INACTIVE
+    drv.shutdown()
+
+
+# ---------------------------------------------------------------- the node's fault modes
+def test_the_nodes_error_flood_puts_error_frames_before_each_answer(channel: str) -> None:
+    axes = [DriveAxis(0x101, 0x181)]
+    with SimulatedDriveNode(axes, channel=channel, tau=0.0) as node:
+        host = can.Bus(interface="virtual", channel=channel)
+        try:
+            node.error_flood(2, error_class=0x10)
+            for seq in range(3):
+                host.send(can.Message(arbitration_id=0x101, is_extended_id=False,
+                                      data=COMMAND_FRAME.pack(0, MODE_DISABLED, seq, 0)))
+                assert node.wait_feedback(seq + 1, timeout=2.0)
+            node.error_flood(0)
+            host.send(can.Message(arbitration_id=0x101, is_extended_id=False,
+                                  data=COMMAND_FRAME.pack(0, MODE_DISABLED, 3, 0)))
+            assert node.wait_feedback(4, timeout=2.0)
+            got = [(m.is_error_frame, m.arbitration_id) for m in drain(host)]
+            assert got == [(True, 0x10), (True, 0x10), (False, 0x181)] * 3 + [(False, 0x181)]
+            assert node.error_frames_sent == 6
+        finally:
+            host.shutdown()
+    assert node.error is None
+
+
+def test_the_nodes_stale_dither_freezes_the_position_toggling_one_count(
+    channel: str, node: SimulatedDriveNode
+) -> None:
+    """Under stale_dither the node reports the position it had when frozen (at its next
+    frame: the answer to the first command, 1 mm), one count more every other frame, while
+    its axes follow the commands: the tool moves, the feedback does not (but never stays
+    exactly the same)."""
+    drv = active_driver(channel, node, feedback_timeout=10.0)  # at 0 counts
+    node.stale_dither(1)
+    seen = []
+    for k in range(2, 12):
+        drv.write([0.0, 0.001 * (k - 1)], k * 0.001)  # insertion +1 mm a tick
+        settle(node, drv)
+        drv.read(k * 0.001)
+        seen.append(round(drv.joints[1].position * CPU[1]))
+    assert seen == [200, 201] * 5
+    assert node.axes[1].position == 10 * 200  # the axis went 10 mm
+    assert node.axes[1].stale is not None and node.axes[1].stale[0] == 200
+    node.stale_dither(0)
+    drv.write([0.0, 0.011], 0.012)
+    settle(node, drv)
+    drv.read(0.012)
+    assert round(drv.joints[1].position * CPU[1]) == 11 * 200 and node.axes[1].stale is None
+    drv.shutdown()
