@@ -74,6 +74,7 @@ ROWS: tuple[Row, ...] = (
     Row("can-late", "can", "running", "CAN node answers late"),
     Row("can-busoff", "can", "running", "CAN bus-off"),
     Row("can-errors", "can", "running", "CAN error frames"),
+    Row("can-dither", "can", "running", "CAN node's stale position toggling by a count"),
 )
 
 
@@ -142,6 +143,9 @@ def slave_config(backend: str, sim_faults: tuple[str, ...] = (), channel: str = 
                         }
                     },
                     "feedback_timeout": 0.010,
+                    # the drive's own figures, as a lab sets a CiA 402 drive's following
+                    # error window: the node's servo (tau 2 ms) trails by 2 ms of motion
+                    "following_error": {"window": 0.0002, "lag_ms": 5.0},
                 },
             }
         )
@@ -185,7 +189,6 @@ class _Run:
 
     def tick(self, stream: bool = False) -> None:
         node = self.node
-        before = node.feedback_sent if node is not None else 0
         if stream and self.sim.k % 2 == 0:
             self.seq += 1
             # a ramp: 200 mm/s at the master, 20 mm/s at the tool (scale 0.1)
@@ -197,17 +200,11 @@ class _Run:
             d.state is not DriverState.ACTIVE for d in r.hardware.drivers
         ):
             self.partial_ticks += 1
-        if (
-            node is not None
-            and self.sync
-            and r.state
-            in (
-                RobotState.ENABLED,
-                RobotState.RUNNING,
-                RobotState.STOPPED,
-            )
-        ):
-            node.wait_feedback(before + 1, timeout=1.0)
+        if node is not None and self.sync:
+            # every frame the driver sent (commands and its polls while not powered) answered
+            # before the next tick, so the simulated clock never outruns the node's thread
+            st = self.tool.stats()
+            node.wait_feedback(st["command_frames"] - st["lost_answers"], 1.0)
 
     def command(self, name: str) -> tuple[bool, str]:
         cid = self.op.send_command(name)
@@ -249,6 +246,8 @@ class _Run:
         elif row.name == "can-errors":
             for _ in range(11):
                 node.send_error_frame(0x04)
+        elif row.name == "can-dither":
+            node.stale_dither(1)
 
     def repair(self) -> None:
         if self.row.backend == "sim":
@@ -259,6 +258,7 @@ class _Run:
         node.mute(False)
         node.delay = 0.0
         node.discard_late()
+        node.stale_dither(0)
         self.sync = True
 
 
@@ -325,9 +325,10 @@ def _play(run: _Run, out: Outcome) -> None:
     out.enable_refused = not ok
     if not out.enable_reply:
         out.enable_reply = text
-    # repaired and reset, the robot works again on all of its hardware
+    # repaired and reset, the robot works again on all of its hardware (a CAN drive's
+    # unanswered commands are given up as lost after its ``lost_after``, 100 ms, of quiet)
     run.repair()
-    for _ in range(3):
+    for _ in range(3 if row.backend == "sim" else 110):
         run.tick()
     if robot.state is not RobotState.READY:
         run.command("Reset")

@@ -390,6 +390,10 @@ class CANDriver(Driver):
         for i in range(len(self.joints)):
             self._send(i, MODE_DISABLED, 0)
 
+    def _default_noise(self) -> Sequence[float] | None:
+        # one count: what a healthy encoder's reading toggles by at rest
+        return [1.0 / abs(c) for c in self._counts_per_unit]
+
     def _reset(self) -> None:
         # A mode-0 frame to each drive: it acknowledges a heartbeat stop and answers where it
         # is. The feedback age is NOT restarted: the answers a late drive owes from before

@@ -282,6 +282,9 @@ def error_frame(error_class: int) -> can.Message:
 
 def active_driver(channel: str, node: SimulatedDriveNode, **extra: object) -> CANDriver:
     """Configured, measured and ACTIVE, with one command answered."""
+    # the scripted drive answers at a position of its own, not the one commanded: this is
+    # about the age of its answers, not about following (the base's following error)
+    extra.setdefault("following_error", None)
     drv = CANDriver("arm", make_joints(), params(channel, **extra))
     drv.configure()
     assert node.wait_feedback(2, timeout=2.0)
@@ -905,6 +908,9 @@ class ScriptedDrive:
 @contextlib.contextmanager
 def scripted(channel: str, **extra: object) -> Iterator[tuple[ScriptedDrive, CANDriver]]:
     drive = ScriptedDrive(channel)
+    # the scripted drive answers at a position of its own, not the one commanded: this is
+    # about the age of its answers, not about following (the base's following error)
+    extra.setdefault("following_error", None)
     drv = CANDriver("arm", make_joints(), params(channel, **extra))
     try:
         drv.configure()
@@ -1153,7 +1159,9 @@ def test_the_nodes_stale_dither_freezes_the_position_toggling_one_count(
     frame: the answer to the first command, 1 mm), one count more every other frame, while
     its axes follow the commands: the tool moves, the feedback does not (but never stays
     exactly the same)."""
-    drv = active_driver(channel, node, feedback_timeout=10.0)  # at 0 counts
+    # the node's own behaviour, with the base's feedback checks (which catch it) off
+    drv = active_driver(channel, node, feedback_timeout=10.0, feedback_jump=0,
+                        following_error=None, frozen_feedback_ms=0)  # at 0 counts
     node.stale_dither(1)
     seen = []
     for k in range(2, 12):

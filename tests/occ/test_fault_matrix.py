@@ -142,3 +142,11 @@ def test_a_runaway_encoder_at_five_times_the_limit_is_a_jump_in_its_first_tick()
 def test_a_single_slip_of_five_ticks_worth_is_caught() -> None:
     # 10 x the velocity limit let it through; 2 x plus the encoder's quantum does not
     check_lie("slip", "feedback jump of", when_ms=1.0)
+
+@pytest.mark.req("SR-HW-14")
+def test_a_can_node_whose_stale_position_dithers_by_a_count_is_caught() -> None:
+    # frames keep coming, the heartbeat lives, the position toggles by one count while the
+    # tool moves on: on today's main never judged frozen (issue 36). Caught by the following
+    # error with the drive's own figures (window 0.2 mm, lag 5 ms; the node's servo trails by
+    # 2 ms): 19 ms after the fault; with the generic defaults (0.5 mm, 20 ms) it is 47 ms.
+    check_lie("can-dither", "following error", when_ms=20.0)

@@ -289,3 +289,150 @@ def test_the_faults_say_how_far_in_how_long_and_the_limit() -> None:
         "driver 'drive': joint r: feedback frozen at 0 for 900 ms while commanded +0.05 away "
         "(no move beyond its noise, 0)"
     )
+
+
+# ------------------------------------------------------- issue 36: range, dither, following
+@pytest.mark.req("SR-HW-22")
+def test_a_reading_outside_the_limits_by_more_than_the_margin_faults_in_every_state() -> None:
+    for powered in (False, True):
+        j = prismatic(velocity=10.0)  # limits [-0.5, 0.5]; default margin 2 mm
+        d = ScriptedFeedback([j], heartbeat_ms=0)
+        d.configure()
+        if powered:
+            d.activate()
+        d.feedback = [0.5019]
+        d.read(0.0)  # within the margin: a joint at its stop, an encoder's quantum
+        assert d.state is not DriverState.FAULT and j.position == 0.5019
+        d.feedback = [0.5021]
+        with pytest.raises(DriverError, match=r"joint p: measured position 0\.5021 outside its "
+                           r"limits \[-0\.5, 0\.5\] by more than 0\.002 \(limit_margin\)"):
+            d.read(0.001)
+        assert j.position == 0.5019  # not believed: the last reading stays
+
+
+def test_the_limit_margin_is_configurable_per_joint() -> None:
+    a, b = prismatic("a", 10.0), prismatic("b", 10.0)
+    d = ScriptedFeedback([a, b], heartbeat_ms=0, limit_margin={"a": 0.0, "b": 0.01})
+    d.configure()
+    d.feedback = [0.5, 0.509]
+    d.read(0.0)
+    d.feedback = [0.50001, 0.509]
+    with pytest.raises(DriverError, match="joint a: measured position"):
+        d.read(0.001)
+    with pytest.raises(ValueError, match=r"limit_margin names joints .* \(missing: \['b'\]\)"):
+        ScriptedFeedback([a, b], limit_margin={"a": 0.0})
+
+
+@pytest.mark.req("SR-HW-8")
+def test_a_stale_reading_that_dithers_by_a_count_is_still_frozen() -> None:
+    # a CAN node whose stale position toggles by one count: on today's main never frozen
+    j = prismatic(velocity=10.0)
+    d = active(j, feedback_noise=1e-6)
+    d.feedback = [0.0]
+    d.read(0.0)
+    d.write([0.001], 0.0)
+    for k in range(1, 50):
+        d.feedback = [1e-6 * (k % 2)]
+        d.read(k * 0.001)
+    assert d.state is DriverState.ACTIVE
+    d.feedback = [1e-6]
+    with pytest.raises(DriverError, match=r"joint p: feedback frozen at 1e-06 for 51 ms .*"
+                       r"no move beyond its noise, 1e-06"):
+        d.read(0.051)
+
+
+def fe_drive(joint: Joint, **fe: Any) -> ScriptedFeedback:
+    d = active(joint, frozen_feedback_ms=0, feedback_jump=0, following_error=fe)
+    d.feedback = [0.0]
+    d.read(0.0)
+    return d
+
+
+@pytest.mark.req("SR-HW-14")
+def test_the_following_error_faults_after_its_time_outside_the_window() -> None:
+    j = prismatic(velocity=0.1)
+    d = fe_drive(j, window=0.001, time_ms=3, lag_ms=0)
+    for k in range(1, 20):  # the command still; the reading runs away at 0.1 mm a tick
+        d.write([0.0], (k - 1) * 0.001)
+        d.feedback = [1e-4 * k]
+        if 1e-4 * k <= 0.001 + 1e-12 or k < 14:
+            d.read(k * 0.001)  # inside the window, then outside it for less than 3 ms
+            assert d.state is DriverState.ACTIVE, k
+        else:
+            with pytest.raises(DriverError, match=r"joint p: following error 0\.0014 beyond "
+                               r"its window 0\.001 for 3 ms"):
+                d.read(k * 0.001)
+            break
+    assert d.state is DriverState.FAULT
+
+
+def test_back_inside_the_window_restarts_the_time() -> None:
+    j = prismatic(velocity=0.1)
+    d = fe_drive(j, window=0.001, time_ms=3, lag_ms=0)
+    d.write([0.0], 0.0)
+    for k, x in enumerate([0.002, 0.002, 0.0, 0.002, 0.002, 0.002], start=1):
+        d.feedback = [x]
+        d.read(k * 0.001)  # never outside for 3 ms in a row
+    assert d.state is DriverState.ACTIVE
+
+
+def test_the_window_widens_with_the_commanded_speed_and_the_load() -> None:
+    # 20 ms of lag at 0.1 m/s widen a 0.5 mm window by 2 mm; 10 N on a 1e4 N/m servo by 1 mm
+    j = prismatic(velocity=0.1)
+    d = fe_drive(j, window=0.0005, time_ms=0, lag_ms=20, stiffness=1.0e4)
+    for k in range(1, 200):  # a ramp at the velocity limit; the servo falls 2.4 mm behind
+        x = 1e-4 * k
+        d.write([x], k * 0.001)
+        d.feedback = [x - 0.0024 * (1.0 - math.exp(-k / 20.0))]
+        d.read(k * 0.001 + 0.0005)
+    assert d.state is DriverState.ACTIVE
+    d.feedback = [0.0199 - 0.0027]  # more than the window allows (0.5 + ~2 mm)
+    with pytest.raises(DriverError, match="following error"):
+        d.read(0.2)
+
+
+def test_a_loaded_servo_is_allowed_its_give() -> None:
+    class Loaded(ScriptedFeedback):
+        def _read(self, now: float) -> tuple[Sequence[float], Sequence[float], Sequence[float]]:
+            return list(self.feedback), [0.0], [10.0]  # 10 N pushing back
+
+    j = prismatic(velocity=10.0)
+    d = Loaded([j], heartbeat_ms=0, frozen_feedback_ms=0,
+               following_error={"window": 0.0005, "time_ms": 0, "stiffness": 1.0e4})
+    d.configure()
+    d.activate()
+    d.feedback = [0.0]
+    d.read(0.0)
+    d.write([0.0014], 0.001)
+    d.read(0.5)  # 1.4 mm off: 0.5 + 10 N / 1e4 N/m = 1.5 mm allowed
+    assert d.state is DriverState.ACTIVE
+
+
+def test_following_error_off_and_bad_settings() -> None:
+    for off in (None, False):
+        d = active(prismatic(velocity=0.1), frozen_feedback_ms=0, following_error=off)
+        d.feedback = [0.0]
+        d.read(0.0)
+        d.write([0.0], 0.0)
+        d.feedback = [0.3]
+        d.read(5.0)
+        assert d.state is DriverState.ACTIVE
+    for bad, text in [
+        ({"windw": 1}, r"following_error: unknown keys \['windw'\]"),
+        ({"window": 0}, r"following_error.window must be a finite number > 0"),
+        ({"time_ms": -1}, r"following_error.time_ms must be a finite number >= 0"),
+        ("tight", r"following_error must be a mapping"),
+    ]:
+        with pytest.raises(ValueError, match=text):
+            ScriptedFeedback([prismatic()], following_error=bad)
+
+
+def test_an_effort_drive_is_not_judged_by_a_following_error() -> None:
+    gains = PIDGains(kp=1.0, ki=0.0, kd=0.0)
+    e = Joint("e", "revolute", JointLimits(-3.0, 3.0, 100.0, 50.0), gains=gains)
+    h = active(e, command_interface="effort", frozen_feedback_ms=0)
+    h.feedback = [0.0]
+    h.read(0.0)
+    h.write([0.05], 0.0)
+    h.read(1.0)  # the hand holds it 50 mrad away (ten windows): not the drive's error
+    assert h.state is DriverState.ACTIVE
