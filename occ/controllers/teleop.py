@@ -93,6 +93,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 MM = 1e-3
+#: the force limit's approach and retreat rate (m/s per N from 90 % of max_tissue_force_n)
+LIMIT_GAIN = 0.005
 #: OpenIGTLink STATUS codes the controller's alerts carry (igtl.StatusCode: OK 1, TIME_OUT 7)
 STATUS_OK = 1
 STATUS_TIME_OUT = 7
@@ -1203,6 +1205,14 @@ class SlaveController(Controller):
                 self._q_goal = None
                 self._q_last = None
                 self._fresh = self.master_pos is not None
+            elif old is RobotState.STOPPED:
+                # never the target of before the stop: a stop in contact let go of the tissue
+                # (hold), and re-joining that target would press into it again; nor a
+                # reference from the last sample before it (a latched loss: the master moved
+                # on since, and its next sample would jump the tool by as much). The drives
+                # hold until the next sample re-indexes from where they are.
+                self._q_last = None
+                self._fresh = False
 
     def update(self, now: float) -> Sequence[float] | None:
         data, ctx = self.data, self.ctx
@@ -1213,6 +1223,8 @@ class SlaveController(Controller):
             self.master_ref = None
             return self._q_last if self._q_last is not None else None
         if self.master_ref is None:
+            if not self._fresh:
+                return self._q_last  # a reference only from a sample that just came
             if not all(math.isfinite(v) for v in self.master_pos):
                 # never a reference from a sample that is no point (NaN, inf): every later
                 # target would be NaN until the next re-index. Counted once, held meanwhile.
@@ -1305,13 +1317,13 @@ class SlaveController(Controller):
         f = self._force_base()
         if lim is None or f is None:
             return False
-        return math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2]) >= 0.9 * lim
+        return f != (0.0, 0.0, 0.0)  # in contact: the approach to the limit is rate-limited
 
     def _shape(self, now: float) -> tuple[float, float, float]:
         """The tip to command (base frame, m): the master's mapped target, the gap left so far
-        given back at up to ``drift_return_mm_s``, the motion into the tissue stopped from 90 %
-        of ``max_tissue_force_n`` (and backed out above it: 5 mm/s per N), the rest within the
-        energy the hand put in (the slave's port, occ/passivity.py)."""
+        given back at up to ``drift_return_mm_s``, the motion into the tissue no faster than
+        5 mm/s per N below 90 % of ``max_tissue_force_n`` (backing out as fast above it), the
+        rest within the energy the hand put in (the slave's port, occ/passivity.py)."""
         raw, cmd = self._raw, self._cmd
         ctx = self.ctx
         assert raw is not None and cmd is not None and ctx is not None
@@ -1330,14 +1342,19 @@ class SlaveController(Controller):
             fx, fy, fz = f
             mag = math.sqrt(fx * fx + fy * fy + fz * fz)
             lim = self.max_tissue_force
-            if lim is not None:
+            if lim is not None and mag > 0.0:
+                # into the tissue at no more than 5 mm/s per N below 90 % of the limit, and
+                # out of it as fast per N above: a first-order approach to the limit that the
+                # measurement's age and the servo's lag cannot carry far past it, however fast
+                # the master moves (10 N/mm: 20 ms)
                 engage = 0.9 * lim
-                if mag >= engage:
-                    nx, ny, nz = fx / mag, fy / mag, fz / mag  # out of the tissue
-                    inward = -(dx * nx + dy * ny + dz * nz)
-                    back = (mag - engage) * 0.005 * dt  # 5 mm/s per N over the engage level
-                    push = back + (inward if inward > 0.0 else 0.0)
+                nx, ny, nz = fx / mag, fy / mag, fz / mag  # out of the tissue
+                inward = -(dx * nx + dy * ny + dz * nz)
+                room = (engage - mag) * LIMIT_GAIN * dt
+                if inward > room:
+                    push = inward - room
                     dx, dy, dz = dx + push * nx, dy + push * ny, dz + push * nz
+                if mag >= engage:
                     self.limit_ticks += 1
                     if not self._limiting:
                         self._limiting = True

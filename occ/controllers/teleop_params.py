@@ -319,10 +319,10 @@ class SlaveParams(_Params):
     max_tissue_force_n: PosFloat | None = Field(
         10.0,
         description="The force limit at the instrument (N, the measured contact force: needs "
-        "`force`; without one the default is not applied and setting it is an error). From 90 % "
-        "of it the slave's motion into the tissue is stopped, above that it backs out in "
-        "proportion to the excess (5 mm/s per N), whatever the master commands and whatever "
-        "the delay; an ALERT `ForceLimit` each time it is reached. null = no limit.",
+        "`force`; without one the default is not applied and setting it is an error). In "
+        "contact the tool moves into the tissue no faster than 5 mm/s per N below 90 % of it, "
+        "and backs out as fast per N above, whatever the master commands and whatever the "
+        "delay; an ALERT `ForceLimit` each time 90 % is reached. null = no limit.",
     )
     passivity: Bool = Field(
         True,
