@@ -89,8 +89,8 @@ class MasterParams(_Params):
     force_feedback: Bool = Field(
         True,
         description="Display the slave's contact force (its return channel's `force_n`, a "
-        "slave with `force`) with the fixture force: bilateral teleoperation. Faded with the "
-        "fixture force by `tip_fade_ms` (late), zero at once when the return link is lost.",
+        "slave with `force`) with the fixture force: bilateral teleoperation. Late or lost, "
+        "held and faded out by `feedback_fade_ms`.",
     )
     feedback_fade_ms: PosFloat = Field(
         300.0,
