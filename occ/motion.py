@@ -112,6 +112,10 @@ class Motion:
                         self.refused += 1
             self._write(sp, now, False)
         elif state in POWERED:
+            if state is RobotState.STOPPED:
+                # a stop in contact lets go of the tissue: the controllers may move the held
+                # setpoint out of it (teleop-slave's release, issue 37)
+                controller.hold(now, data.hold_setpoint)
             self._write(data.hold_setpoint, now, False)
 
     def _control_effort(self, state: RobotState, now: float, holding: bool) -> None:

@@ -20,11 +20,15 @@ the full quaternion. Everything else rides in the v2 metadata of the same messag
     the slave's state (``RUNNING``, ``STOPPED``, ...);
 ``force_n``
     (a slave with a force source) the force on its instrument, ``fx,fy,fz`` in N, patient
-    frame: what the master displays (bilateral teleoperation, issue 27).
+    frame: what the master displays (bilateral teleoperation, issue 27);
 ``torque_nm``
     (a slave whose force comes from a 6-axis sensor) the torque about the sensor's origin,
     ``tx,ty,tz`` in N m, patient frame (issue 37): displayed by a master with rotational axes,
     recorded by the others. Absent otherwise; a reader that does not know it ignores it.
+``energy_j``
+    (with ``force_n``) the energy that has flowed into the channel at the slave's port since it
+    started (J at the instrument, never decreasing): the master's port controller gives the hand
+    no more than this (occ/passivity.py, issue 37).
 
 **One message, not a pair.** The slave's contact force rides in the same message (metadata
 ``force_n``), not in a SENSOR beside a POSITION: one datagram is one sample with one
@@ -39,11 +43,16 @@ peer). Its :attr:`ReturnLink.status`:
 ``none``   no tip yet (the slave not started, or no return channel configured);
 ``fresh``  a tip within the deadline (3 periods + a quarter: 6.5 ms at 500 Hz);
 ``stale``  late (overdue past the deadline, not yet lost): the last tip is kept and shown,
-           marked stale; the controller fades the force it last computed to zero within
-           ``tip_fade_ms`` and computes none from the stale pose;
+           marked stale; the controller fades the fixture force it last computed to zero
+           within ``tip_fade_ms`` and computes none from the stale pose;
 ``lost``   three or more consecutive sequence numbers missing, or silence past the grace
            (100 ms: a dead slave): the fixture force is zero at once and the operators get an
            ALERT; the next good sample re-arms it (a STATUS ``STREAM`` says so).
+
+The slave's force (``force_n``) is not dropped with the link: late or lost, the master holds
+the last one and fades it out within ``feedback_fade_ms``, its energy accounted by the
+passivity controller all along (a force dropped to zero and snapped back gave the hand energy
+it never put in: issue 37).
 
 A sample whose content is refused (a tip that is not a point, a malformed ``map`` or
 ``force_n``: counted in ``bad``) still arrived, so the monitor accounts for its sequence number
@@ -110,6 +119,9 @@ class ReturnLink:
         self.force: Vec3 | None = None
         #: the torque with it (N m, patient frame, about the slave's sensor), None: none sent
         self.torque: Vec3 | None = None
+        #: the slave's port energy in (J at its instrument, cumulative: occ/passivity.py) with
+        #: the last tip; None while it sends none
+        self.energy: float | None = None
         #: the slave's map (handle mm -> patient mm), parsed; None until it sends one
         self.linear: tuple[tuple[float, float, float], ...] | None = None
         self._map_text = ""
@@ -178,8 +190,21 @@ class ReturnLink:
                 self._bad_run += 1
                 self.last_error = f"seq {seq}: torque_nm {torque_text[:40]!r} is not 3 numbers"
                 return False
+        energy_text = meta.get("energy_j")
+        energy: float | None = None
+        if energy_text is not None:
+            try:
+                energy = float(energy_text)
+            except ValueError:
+                energy = math.nan
+            if not (math.isfinite(energy) and energy >= 0.0):
+                self.bad_metadata += 1
+                self._bad_run += 1
+                self.last_error = f"seq {seq}: energy_j {energy_text[:40]!r} is not an energy"
+                return False
         self.force = force
         self.torque = torque
+        self.energy = energy
         self.following = meta.get("following", "1") == "1"
         self.slave_state = meta.get("state", "")
         self.tip = tip
@@ -257,6 +282,7 @@ class ReturnLink:
             "tip_mm": None if self.tip is None else [round(v, 3) for v in self.tip],
             "force_n": None if self.force is None else [round(v, 4) for v in self.force],
             "torque_nm": None if self.torque is None else [round(v, 5) for v in self.torque],
+            "energy_mj": None if self.energy is None else round(self.energy * 1e3, 4),
             "following": self.following,
             "slave_state": self.slave_state,
             "seq": self.seq,

@@ -33,7 +33,9 @@ that share a stream (fixture definitions, keyframes), both in arrival order;
 ``on_command(request, now) -> str | None`` for the operator commands it lists in
 ``commands()`` (a command nobody lists is offered to each in turn; work too long for a tick
 returns a :class:`~occ.commands.Deferred`, answered later); ``on_state(old, new, now)`` after
-every transition; ``update(now) -> setpoints | None`` while RUNNING (None = hold); ``outputs()``
+every transition; ``update(now) -> setpoints | None`` while RUNNING (None = hold);
+``hold(now, setpoint)`` while STOPPED (the held setpoint, changed in place to let go of a
+contact, or left alone); ``outputs()``
 the named output sources it adds (``source: NAME`` in an
 interface's outputs); ``stats()``.
 """
@@ -164,6 +166,11 @@ class Controller:
         return None
 
     def update(self, now: float) -> Sequence[float] | None:
+        return None
+
+    def hold(self, now: float, setpoint: list[float]) -> None:
+        """While STOPPED, every tick: the held setpoint, which a controller may change in place
+        for its own joints (a slave in contact lets go of the tissue); the default holds."""
         return None
 
     def commands(self) -> tuple[str, ...]:
@@ -322,6 +329,11 @@ class ControllerSet:
         for c in self._monitors:
             c.update(now)  # monitors run too
         return merged
+
+    def hold(self, now: float, setpoint: list[float]) -> None:
+        """Each controller's :meth:`Controller.hold` (while STOPPED)."""
+        for c in self.controllers:
+            c.hold(now, setpoint)
 
     def commands(self) -> tuple[str, ...]:
         return tuple(n for c in self.controllers for n in c.commands())

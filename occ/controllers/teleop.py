@@ -77,7 +77,7 @@ from ..gripper import GripperFollower, GripperSource
 from ..haptics import MasterFixtures
 from ..joint import step_toward
 from ..outputs import VectorOut
-from ..passivity import PassivityController
+from ..passivity import MasterPort, OnePort, SlavePort
 from ..returnlink import ReturnLink
 from ..safety import RobotState
 from ..samples import PoseSample, quaternion_to_rotation, rotation_to_quaternion
@@ -94,6 +94,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 MM = 1e-3
+#: the force limit's approach and retreat rate (m/s per N from 90 % of max_tissue_force_n)
+LIMIT_GAIN = 0.005
 #: OpenIGTLink STATUS codes the controller's alerts carry (igtl.StatusCode: OK 1, TIME_OUT 7)
 STATUS_OK = 1
 STATUS_TIME_OUT = 7
@@ -196,7 +198,15 @@ class MasterController(Controller):
         self.force_scale = p.force_scale
         self.max_force = p.max_force_n
         self.passivity_on = p.passivity
-        self.passivity = PassivityController(p.passivity_max_damping)
+        #: the master's port of the two-port passivity scheme (occ/passivity.py)
+        self.passivity = MasterPort(p.passivity_max_damping)
+        #: the share of the slave's force displayed (0..1): rises within ``tip_fade_ms`` while
+        #: the slave follows with a fresh link, falls within ``feedback_fade_ms`` otherwise
+        self.feedback_gain = 0.0
+        self._feedback_fade_s = p.feedback_fade_ms * 1e-3
+        self._x_handle: tuple[float, float, float] | None = None
+        #: the driving slave's state as its return link last said, and its force then (N)
+        self._slave_state = ""
         self.external_device = p.external_force_device
         self._external_timeout = p.external_force_timeout_ms * 1e-3
         #: the external force (CRTK servo_cf: N, the master's axes) and when it came
@@ -213,11 +223,12 @@ class MasterController(Controller):
         #: a 6-axis sensor's torque from the slave (N m, the master's axes): displayed on a
         #: master with rotational axes (:meth:`_display_torque`), in the stats for the others
         self.max_torque = p.max_torque_nm
-        self.torque_passivity = PassivityController(p.passivity_max_rot_damping)
+        self.torque_passivity = OnePort(p.passivity_max_rot_damping)
         self.rotational = False
         self.feedback_torque_nm: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.displayed_torque_nm: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._t_torque = math.nan
+        self._clamped_by = 1.0  # the last clamp's factor
         self._t_handle = math.nan
         self.target: np.ndarray | None = None
         self._t_run = 0.0
@@ -460,6 +471,8 @@ class MasterController(Controller):
         self.fixtures.displayed((0.0, 0.0, 0.0))
         self.feedback_n = self.displayed_n = (0.0, 0.0, 0.0)
         self._t_handle = math.nan
+        self._x_handle = None
+        self.feedback_gain = 0.0
         self.passivity.reset()
         self.feedback_torque_nm = self.displayed_torque_nm = (0.0, 0.0, 0.0)
         self._t_torque = math.nan
@@ -546,21 +559,55 @@ class MasterController(Controller):
                 k = self.force_scale
                 mx, my, mz = fixtures.mapping.force(f)
                 self._feedback_raw = (k * mx, k * my, k * mz)
+                if link.energy is not None and k > 0.0:
+                    # J at the instrument -> J at the handle: kf / kp (occ/passivity.py)
+                    self.passivity.account.receive(link.energy * k / fixtures.mapping.factor)
+            self._slave_news(link)
+        fade = self._fade_s
+        following = status == "fresh" and link.following and not self.clutch
         if status == "lost" or status == "none":
             self.gain = 0.0
         else:
-            fade = self._fade_s
             step = 1.0 if fade <= 0.0 else dt / fade
-            if status == "fresh" and link.following and not self.clutch:
+            if following:
                 self.gain = min(1.0, self.gain + step)
             else:
                 self.gain = max(0.0, self.gain - step)
+        # the slave's force: held and faded, never dropped (issue 37): a force dropped to zero
+        # and snapped back gave the hand energy it never put in
+        if status == "none":
+            self.feedback_gain = 0.0
+        elif following:
+            self.feedback_gain = min(1.0, self.feedback_gain + (1.0 if fade <= 0.0 else dt / fade))
+        else:
+            self.feedback_gain = max(0.0, self.feedback_gain - dt / self._feedback_fade_s)
         g = self.gain
         rx, ry, rz = fixtures.raw_force_n
         fixtures.displayed((g * rx, g * ry, g * rz))
         bx, by, bz = self._feedback_raw
-        self.feedback_n = (g * bx, g * by, g * bz)
+        h = self.feedback_gain
+        self.feedback_n = (h * bx, h * by, h * bz)
         return fixtures.force_n
+
+    def _slave_news(self, link: ReturnLink) -> None:
+        """The hand is told when its slave stops while pressing on tissue (it lets go of it:
+        teleop-slave ``release_*``), and the force it feels then fades out."""
+        state = link.slave_state
+        if state == self._slave_state:
+            return
+        before, self._slave_state = self._slave_state, state
+        bx, by, bz = self._feedback_raw
+        force = math.sqrt(bx * bx + by * by + bz * bz)
+        if before == "RUNNING" and state in ("STOPPED", "FAULT", "ESTOP") and force > 0.2:
+            data = self.data
+            if data is not None and data.state is RobotState.RUNNING:
+                self._alert(
+                    "ALERT",
+                    f"slave on {link.interface} {state} while pressing {force:.1f} N: it lets go "
+                    f"of the tissue; its force fades out within "
+                    f"{self._feedback_fade_s * 1e3:g} ms",
+                    STATUS_TIME_OUT,
+                )
 
     def _display(
         self, now: float, fixture: tuple[float, float, float]
@@ -583,16 +630,26 @@ class MasterController(Controller):
             bx, by, bz = bx + ex, by + ey, bz + ez
         t_last = self._t_handle
         self._t_handle = now
-        if (bx != 0.0 or by != 0.0 or bz != 0.0) and now > t_last:
-            # (no feedback: no power through the port, nothing to observe: the common case
-            # costs nothing here)
-            dt = now - t_last
-            v = self._handle_velocity()
-            if self.passivity_on:
-                bx, by, bz = self.passivity.step((bx, by, bz), v, dt)
-            else:
-                self.passivity.observe((bx, by, bz), v, dt)
-        self.displayed_n = self._clamp(fixture[0] + bx, fixture[1] + by, fixture[2] + bz)
+        port = self.passivity
+        shown = port.shown
+        if bx != 0.0 or by != 0.0 or bz != 0.0 or shown != (0.0, 0.0, 0.0):
+            # (no feedback now or last tick: no power through the port, nothing to observe:
+            # the common case costs nothing here)
+            x = self._handle_position()
+            last = self._x_handle
+            self._x_handle = x
+            if last is not None:
+                # what the force displayed over the last tick did, exactly
+                port.observe((x[0] - last[0], x[1] - last[1], x[2] - last[2]))
+            if self.passivity_on and now > t_last:
+                v = self._handle_velocity()
+                bx, by, bz = port.step((bx, by, bz), v, now - t_last)
+        else:
+            self._x_handle = None
+        fx, fy, fz = fixture[0] + bx, fixture[1] + by, fixture[2] + bz
+        self.displayed_n = self._clamp(fx, fy, fz)
+        k = self._clamped_by
+        port.displayed((k * bx, k * by, k * bz))
         return self.displayed_n
 
     def _torque_feedback(self, now: float, eff: list[float] | None) -> None:
@@ -634,6 +691,30 @@ class MasterController(Controller):
         for i, v in enumerate((jac.T @ np.array(out)).tolist()):
             eff[i] += v
 
+    def _handle_position(self) -> tuple[float, float, float]:
+        """The handle's position (m, the master's axes; a Cartesian master's ``J q``: only its
+        changes are used)."""
+        data, ctx = self.data, self.ctx
+        assert data is not None and ctx is not None
+        q = data.q
+        jt = self._jt
+        if jt is not None:
+            x = y = z = 0.0
+            for i, (a, b, c) in enumerate(jt):
+                w = q[i]
+                x, y, z = x + a * w, y + b * w, z + c * w
+            return (x, y, z)
+        return tuple(float(v) for v in ctx.frame.tip_position(q))  # type: ignore[return-value]
+
+    def energy_out(self) -> float | None:
+        """The energy the hand has put into the channel (J at the slave's instrument: the
+        stream's ``energy_j``), or None when this master sends none (no force displayed on a
+        hand, or passivity off: the slave's port controller then stays off)."""
+        k = self.force_scale
+        if not (self.passivity_on and self.force_feedback and self.force_output and k > 0.0):
+            return None
+        return self.passivity.account.e_in * self.fixtures.mapping.factor / k
+
     def _handle_velocity(self) -> tuple[float, float, float]:
         """The handle's velocity (m/s, the master's axes) from the drives' joint velocities:
         ``J qdot`` (a Cartesian master's constant Jacobian, else the model's at ``q``)."""
@@ -654,14 +735,18 @@ class MasterController(Controller):
         mag = math.sqrt(fx * fx + fy * fy + fz * fz)
         if mag > self.max_force:
             self.clamped_ticks += 1
-            k = self.max_force / mag
+            k = self._clamped_by = self.max_force / mag
             return (fx * k, fy * k, fz * k)
+        self._clamped_by = 1.0
         return (fx, fy, fz)
 
     def _tip_event(self, link: ReturnLink, kind: str, cause: str, driving: bool) -> None:
         where = f"slave tip on {link.interface}"
         if kind == "latch":
-            text = f"{where} lost: {cause}; virtual-fixture force off"
+            text = (
+                f"{where} lost: {cause}; virtual-fixture force off, the slave's force held "
+                f"and fading"
+            )
             if driving:
                 log.error("ALERT: %s", text)
                 self._alert("ALERT", text, STATUS_TIME_OUT)
@@ -688,6 +773,12 @@ class MasterController(Controller):
         self._seqs[key] = seq
         if out.type != "POSITION":
             raise OCCError("teleop output must be of type POSITION")
+        meta = self._stream_meta(bool(running), now)
+        energy = self.energy_out() if name == self._driving() else None
+        if energy is not None:
+            # the hand's energy into the channel, with every sample: the slave's port
+            # controller puts no more into the tissue (occ/passivity.py)
+            meta = MappingProxyType({**meta, "energy_j": f"{energy:.9g}"})
         return PoseSample(
             name,
             None,
@@ -696,7 +787,7 @@ class MasterController(Controller):
             self._handle_orientation(now),
             seq=seq,
             t_sample=ctx.clock.wall_time(),
-            meta=self._stream_meta(bool(running), now),
+            meta=meta,
         )
 
     def _stream_meta(self, running: bool, now: float) -> MappingProxyType[str, str]:
@@ -795,6 +886,7 @@ class MasterController(Controller):
             "external_fresh": now - self._t_external <= self._external_timeout,
             "force_clamped_ticks": self.clamped_ticks,
             "passivity": {"on": self.passivity_on, **self.passivity.stats()},
+            "feedback_gain": round(self.feedback_gain, 4),
             "fixture_gain": round(self.gain, 4),
             "force_output": self.force_output,
             "slave_tip": tips.get(name) if name is not None else None,
@@ -903,6 +995,33 @@ class SlaveController(Controller):
         #: the jaw that follows the master's gripper value (occ/gripper.py)
         self._gripper_params = p.gripper
         self.gripper: GripperFollower | None = None
+        #: the force limit at the instrument (N; None: none), resolved at configure
+        self.max_tissue_force = p.max_tissue_force_n if p.force is not None else None
+        #: the slave's port of the two-port passivity scheme (occ/passivity.py): on while the
+        #: followed stream carries the master's energy
+        self.port = SlavePort()
+        self.port_on = p.passivity
+        self._port_active = False
+        self.bad_energy = 0
+        self._drift_speed = p.drift_return_mm_s * MM
+        #: the master's target mapped (base frame, m), the tip commanded, and the gap the
+        #: port and the force limit left between them (commanded - mapped)
+        self._raw: tuple[float, float, float] | None = None
+        self._cmd: tuple[float, float, float] | None = None
+        self._offset = (0.0, 0.0, 0.0)
+        self._t_shape = math.nan
+        self.offset_max_mm = 0.0
+        self.limit_ticks = 0
+        self.limit_hits = 0
+        self._limiting = False
+        #: a latched stop in contact lets go of the tissue (see :meth:`hold`)
+        self._release_speed = p.release_speed_mm_s * MM
+        self._release_force = p.release_force_n
+        self._release_max = p.release_max_mm * MM
+        self.releasing = False
+        self.released_mm = 0.0
+        self.releases = 0
+        self._release_done = False
 
     @classmethod
     def check(cls, params: Any, config: DaemonConfig) -> list[Problem]:
@@ -966,6 +1085,11 @@ class SlaveController(Controller):
                         )
             if g.open == g.closed:
                 problems.append((("gripper", "closed"), "must differ from open"))
+        if f is None and "max_tissue_force_n" in params.model_fields_set:
+            if params.max_tissue_force_n is not None:
+                problems.append(
+                    (("max_tissue_force_n",), "needs `force` (a measured contact force to limit)")
+                )
         return problems + check_outputs(config, f is not None)
 
     def outputs(self) -> dict[str, SourceFn]:
@@ -1080,6 +1204,15 @@ class SlaveController(Controller):
             if t is not None:  # a 6-axis sensor's (occ/returnlink.py): old masters ignore it
                 extra["torque_nm"] = f"{t[0]:.5f},{t[1]:.5f},{t[2]:.5f}"
             meta = MappingProxyType({**meta, **extra})
+            meta = MappingProxyType(
+                {
+                    **meta,
+                    "force_n": self._force_meta(now),
+                    # this port's energy in (J at the instrument): what the master may give
+                    # the hand (occ/passivity.py)
+                    "energy_j": f"{self.port.account.e_in:.9g}",
+                }
+            )
         rows, (x, y, z) = data.world_tip_pose()
         k = id(out)
         seq = (self._return_seqs.get(k, 0) + 1) & 0xFFFFFFFF
@@ -1165,9 +1298,13 @@ class SlaveController(Controller):
             self.master_ref = None
             self.master_run = False
             self._phases.clear()
+            self._port_active = False  # the new master's energy, when it sends some
         self.samples += 1
         self.last_seq = sample.seq
         self.last_sample_t = sample.t_rx
+        energy = sample.meta.get("energy_j")
+        if energy is not None:
+            self._master_energy(energy)
         ts = sample.t_sample
         if self.phase_lock is not None:
             clock = self.ctx.clock  # type: ignore[union-attr]
@@ -1226,7 +1363,24 @@ class SlaveController(Controller):
             ctx.shift(error)
             self.phase_shifts += 1
 
+    def _master_energy(self, text: str) -> None:
+        """The master's energy in (``energy_j``: J at this instrument, cumulative): the budget
+        of this port's controller. One that is no energy is counted and not used (the budget
+        then stays where it was: the safe side)."""
+        try:
+            e = float(text)
+        except ValueError:
+            e = math.nan
+        if not (math.isfinite(e) and e >= 0.0):
+            self.bad_energy += 1
+            return
+        self.port.account.receive(e)
+        self._port_active = True
+
     def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
+        if new is RobotState.STOPPED or old is RobotState.STOPPED:
+            self.releasing = self._release_done = False
+            self.released_mm = 0.0
         if new is RobotState.RUNNING:
             self.master_ref = None
             if self.gripper is not None:
@@ -1235,6 +1389,14 @@ class SlaveController(Controller):
                 self._q_goal = None
                 self._q_last = None
                 self._fresh = self.master_pos is not None
+            elif old is RobotState.STOPPED:
+                # never the target of before the stop: a stop in contact let go of the tissue
+                # (hold), and re-joining that target would press into it again; nor a
+                # reference from the last sample before it (a latched loss: the master moved
+                # on since, and its next sample would jump the tool by as much). The drives
+                # hold until the next sample re-indexes from where they are.
+                self._q_last = None
+                self._fresh = False
 
     def update(self, now: float) -> Sequence[float] | None:
         q = self._follow(now)
@@ -1254,6 +1416,8 @@ class SlaveController(Controller):
             self.master_ref = None
             return self._q_last if self._q_last is not None else None
         if self.master_ref is None:
+            if not self._fresh:
+                return self._q_last  # a reference only from a sample that just came
             if not all(math.isfinite(v) for v in self.master_pos):
                 # never a reference from a sample that is no point (NaN, inf): every later
                 # target would be NaN until the next re-index. Counted once, held meanwhile.
@@ -1273,20 +1437,35 @@ class SlaveController(Controller):
                 self._rs_ref = np.asarray(ctx.frame.fk(here))[:3, :3].copy()
             self.reindexes += 1
             self._q_last = list(here)
+            sx, sy, sz = self.slave_ref
+            self._raw = self._cmd = (float(sx), float(sy), float(sz))
+            self._offset = (0.0, 0.0, 0.0)
+            self._t_shape = now
+            self.port.reset()  # a new session: nothing the tissue stored before is counted
         assert self.slave_ref is not None
-        if not self._fresh and self._q_last is not None:
+        fresh = self._fresh
+        if fresh:
+            self._fresh = False
+            (a, b, c), (d, e, f), (g, h, i) = self._sr
+            mx, my, mz = self.master_pos
+            rx, ry, rz = self.master_ref
+            dx, dy, dz = mx - rx, my - ry, mz - rz
+            sx, sy, sz = self.slave_ref
+            raw = (
+                sx + a * dx + b * dy + c * dz,
+                sy + d * dx + e * dy + f * dz,
+                sz + g * dx + h * dy + i * dz,
+            )
+            if not all(math.isfinite(v) for v in raw):
+                self.ik_failures += 1  # no point: never a target (nor a gap) from it
+                return self._q_last
+            self._raw = raw
+        elif self._q_last is not None and not self._shaping():
             return self._q_last  # no new master sample since the last solve: same target
-        self._fresh = False
-        (a, b, c), (d, e, f), (g, h, i) = self._sr
-        mx, my, mz = self.master_pos
-        rx, ry, rz = self.master_ref
-        dx, dy, dz = mx - rx, my - ry, mz - rz
-        sx, sy, sz = self.slave_ref
-        target = (
-            sx + a * dx + b * dy + c * dz,
-            sy + d * dx + e * dy + f * dz,
-            sz + g * dx + h * dy + i * dz,
-        )
+        before = self._cmd
+        target = self._shape(now)
+        if not fresh and target == before and self._q_last is not None:
+            return self._q_last
         try:
             if self.follow_orientation:
                 q, clamped = self._solve_pose(target)
@@ -1298,13 +1477,167 @@ class SlaveController(Controller):
         if clamped:
             self.clamped += 1
         self._q_last = q
-        if self.pending_ts is not None:
+        if fresh and self.pending_ts is not None:
             wall, mono = ctx.clock.wall_time(), ctx.clock.now()
             self.latency_us.add((wall - self.pending_ts) * 1e6)
             # split: master timestamp -> received by our interface thread -> used here
             self.rx_latency_us.add((wall - (mono - self.pending_rx) - self.pending_ts) * 1e6)
             self.pending_ts = None
         return self._q_last
+
+    # ------------------------------------------------------------------ the instrument
+    def _force_base(self) -> tuple[float, float, float] | None:
+        """The contact force on the instrument (N, the base frame: the frame of the targets)
+        from the last estimate (the return channel's: at most one stream period old), or None
+        without a healthy force source."""
+        force, data = self.force, self.data
+        if force is None or force.used is None or data is None:
+            return None
+        fx, fy, fz = force.force_n
+        r = data.base
+        return (
+            float(r[0, 0] * fx + r[1, 0] * fy + r[2, 0] * fz),
+            float(r[0, 1] * fx + r[1, 1] * fy + r[2, 1] * fz),
+            float(r[0, 2] * fx + r[1, 2] * fy + r[2, 2] * fz),
+        )
+
+    def _shaping(self) -> bool:
+        """Has the command to move without a new master sample? (a gap to give back, or the
+        force limit backing the tool out)"""
+        if self._cmd != self._raw:
+            return True
+        lim = self.max_tissue_force
+        f = self._force_base()
+        if lim is None or f is None:
+            return False
+        return f != (0.0, 0.0, 0.0)  # in contact: the approach to the limit is rate-limited
+
+    def _shape(self, now: float) -> tuple[float, float, float]:
+        """The tip to command (base frame, m): the master's mapped target, the gap left so far
+        given back at up to ``drift_return_mm_s``, the motion into the tissue no faster than
+        5 mm/s per N below 90 % of ``max_tissue_force_n`` (backing out as fast above it), the
+        rest within the energy the hand put in (the slave's port, occ/passivity.py)."""
+        raw, cmd = self._raw, self._cmd
+        ctx = self.ctx
+        assert raw is not None and cmd is not None and ctx is not None
+        last = self._t_shape
+        self._t_shape = now
+        dt = now - last if last == last else ctx.period_s
+        dt = min(max(dt, 0.0), 0.05)
+        ox, oy, oz = self._offset
+        gap = math.sqrt(ox * ox + oy * oy + oz * oz)
+        if gap > 0.0:
+            keep = max(0.0, 1.0 - self._drift_speed * dt / gap)
+            ox, oy, oz = keep * ox, keep * oy, keep * oz
+        dx, dy, dz = raw[0] + ox - cmd[0], raw[1] + oy - cmd[1], raw[2] + oz - cmd[2]
+        f = self._force_base()
+        if f is not None:
+            fx, fy, fz = f
+            mag = math.sqrt(fx * fx + fy * fy + fz * fz)
+            lim = self.max_tissue_force
+            if lim is not None and mag > 0.0:
+                # into the tissue at no more than 5 mm/s per N below 90 % of the limit, and
+                # out of it as fast per N above: a first-order approach to the limit that the
+                # measurement's age and the servo's lag cannot carry far past it, however fast
+                # the master moves (10 N/mm: 20 ms)
+                engage = 0.9 * lim
+                nx, ny, nz = fx / mag, fy / mag, fz / mag  # out of the tissue
+                inward = -(dx * nx + dy * ny + dz * nz)
+                room = (engage - mag) * LIMIT_GAIN * dt
+                if inward > room:
+                    push = inward - room
+                    dx, dy, dz = dx + push * nx, dy + push * ny, dz + push * nz
+                if mag >= engage:
+                    self.limit_ticks += 1
+                    if not self._limiting:
+                        self._limiting = True
+                        self.limit_hits += 1
+                        self._tell(
+                            "ForceLimit",
+                            f"tissue force {mag:.2f} N at the limit (max_tissue_force_n {lim:g}): "
+                            f"motion into the tissue stopped",
+                            2,
+                        )
+                elif self._limiting and mag < 0.8 * lim:
+                    self._limiting = False
+            if self.port_on and self._port_active:
+                dx, dy, dz = self.port.step(f, (dx, dy, dz))
+        new = (cmd[0] + dx, cmd[1] + dy, cmd[2] + dz)
+        ox, oy, oz = new[0] - raw[0], new[1] - raw[1], new[2] - raw[2]
+        self._offset = (ox, oy, oz)
+        gap_mm = math.sqrt(ox * ox + oy * oy + oz * oz) / MM
+        if gap_mm > self.offset_max_mm:
+            self.offset_max_mm = gap_mm
+        self._cmd = new
+        return new
+
+    def _tell(self, name: str, text: str, code: int) -> None:
+        log.warning("%s: %s", name, text)
+        ctx = self.ctx
+        alert = ctx.alert if ctx is not None else None
+        if alert is not None:
+            alert(name, text, code)
+
+    def hold(self, now: float, setpoint: list[float]) -> None:
+        """While STOPPED: a stop in contact lets go of the tissue (DESIGN.md: "a stop in
+        contact lets go of the tissue rather than holding a position inside it"). While the
+        measured contact force is over ``release_force_n`` the held setpoint backs the tool out
+        along the force at ``release_speed_mm_s``, up to ``release_max_mm`` in all; under it,
+        it holds (and backs out again if the tissue presses again: a compliant hold). The
+        operators are told when it starts, when it is done and when the travel runs out; the
+        master sees the stop on the return channel (``state``) and tells the hand."""
+        data, ctx = self.data, self.ctx
+        f = self._force_base()
+        if f is None or data is None or ctx is None:
+            return
+        fx, fy, fz = f
+        mag = math.sqrt(fx * fx + fy * fy + fz * fz)
+        if mag <= self._release_force:
+            if self.releasing:
+                self.releasing = False
+                self._tell(
+                    "Release",
+                    f"let go of the tissue: {mag:.2f} N after {self.released_mm:.2f} mm",
+                    STATUS_OK,
+                )
+            return
+        room = self._release_max - self.released_mm * MM
+        if room <= 1e-12:
+            if not self._release_done:
+                self._release_done = True
+                self._tell(
+                    "Release",
+                    f"still pressing {mag:.2f} N after backing out {self.released_mm:.2f} mm "
+                    f"(release_max_mm): holding",
+                    2,
+                )
+            return
+        if not self.releasing:
+            self.releasing = True
+            self.releases += 1
+            self._tell(
+                "Release",
+                f"stopped pressing {mag:.2f} N on tissue: backing out along the force until "
+                f"it is under {self._release_force:g} N",
+                2,
+            )
+        step = min(self._release_speed * ctx.period_s, room)
+        tx, ty, tz = ctx.frame.tip_position(setpoint)
+        target = (tx + step * fx / mag, ty + step * fy / mag, tz + step * fz / mag)
+        try:
+            if self.follow_orientation:
+                pose = np.asarray(ctx.frame.fk(setpoint), dtype=float).copy()
+                if self.rcm_mm is not None:
+                    pose[:3, :3] = self.rcm_rotation(target)
+                pose[:3, 3] = target
+                q = ctx.frame.solve_ik(pose, setpoint, clamp=True, method="dls").q.tolist()
+            else:
+                q, _clamped = ctx.frame.ik_clamped(target, setpoint)
+        except (KinematicsError, ValueError):
+            self.ik_failures += 1
+            return
+        setpoint[:] = q
+        self.released_mm += step / MM
 
     def rcm_rotation(self, target: tuple[float, float, float]) -> np.ndarray:
         """The tool's orientation for a tip at ``target`` (base frame) through the port: its z
@@ -1430,6 +1763,24 @@ class SlaveController(Controller):
             self.pending_ts = None
         return out
 
+    def _instrument_stats(self) -> dict[str, Any]:
+        """The instrument's limit, release and passivity port (GetStats ``instrument``)."""
+        return {
+            "max_tissue_force_n": self.max_tissue_force,
+            "limit_hits": self.limit_hits,
+            "limit_ticks": self.limit_ticks,
+            "offset_max_mm": round(self.offset_max_mm, 4),
+            "releasing": self.releasing,
+            "releases": self.releases,
+            "released_mm": round(self.released_mm, 4),
+            "passivity": {
+                "on": self.port_on,
+                "active": self._port_active,
+                "bad_energy": self.bad_energy,
+                **self.port.stats(),
+            },
+        }
+
     def stats(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "mapping": "absolute" if self.absolute else "relative",
@@ -1451,6 +1802,7 @@ class SlaveController(Controller):
             "slave_ref_mm": _mm(self.slave_ref),
         }
         if self.force is not None:
+            out["instrument"] = self._instrument_stats()
             now = self.ctx.clock.now() if self.ctx is not None else math.nan
             out["force"] = self.force.stats(now)
             if self.force_view is not None:

@@ -103,8 +103,15 @@ class MasterParams(_Params):
     force_feedback: Bool = Field(
         True,
         description="Display the slave's contact force (its return channel's `force_n`, a "
-        "slave with `force`) with the fixture force: bilateral teleoperation. Faded with the "
-        "fixture force by `tip_fade_ms` (late), zero at once when the return link is lost.",
+        "slave with `force`) with the fixture force: bilateral teleoperation. Late or lost, "
+        "held and faded out by `feedback_fade_ms`.",
+    )
+    feedback_fade_ms: PosFloat = Field(
+        300.0,
+        description="While the return link is late or lost, or the slave stops following "
+        "(a stop, the clutch), the slave's force is held and fades out within this time, "
+        "passivated all along (never dropped to zero and snapped back: issue 37); it comes "
+        "back within `tip_fade_ms` when the slave follows again.",
     )
     force_scale: Annotated[Float, Field(ge=0, le=100)] = Field(
         1.0,
@@ -122,12 +129,17 @@ class MasterParams(_Params):
     )
     passivity: Bool = Field(
         True,
-        description="Time-domain passivity observer and controller at the handle (Hannaford "
-        "and Ryu 2002; occ/passivity.py): the network never gives the hand more energy than it "
-        "took, whatever the delay and loss. Off: observed only (statistics).",
+        description="Two-port time-domain passivity (Ryu, Artigas and Preusche 2010; "
+        "occ/passivity.py): the master's port controller keeps the energy the hand gets below "
+        "what the slave's tissue gave back, and the master sends its energy with the stream so "
+        "the slave's keeps what it puts into the tissue below what the hand put in; whatever "
+        "the delay and loss. Off: observed only (statistics), and no energy sent.",
     )
     passivity_max_damping: PosFloat = Field(
-        200.0, description="The passivity controller's largest damping (N s/m)."
+        200.0,
+        description="The master port's largest damper (N s/m); beyond it the controller cuts "
+        "the force's component along the handle's motion instead (counted apart), never "
+        "more than that component.",
     )
     max_torque_nm: PosFloat = Field(
         0.5,
@@ -386,6 +398,42 @@ class SlaveParams(_Params):
         description="A jaw that follows the master's gripper value (its stream's `gripper` "
         "metadata) at no more than 0.9 x its velocity limit, only while following; held "
         "otherwise, and on a late or lost stream like every joint. null = none.",
+    )
+    max_tissue_force_n: PosFloat | None = Field(
+        10.0,
+        description="The force limit at the instrument (N, the measured contact force: needs "
+        "`force`; without one the default is not applied and setting it is an error). In "
+        "contact the tool moves into the tissue no faster than 5 mm/s per N below 90 % of it, "
+        "and backs out as fast per N above, whatever the master commands and whatever the "
+        "delay; an ALERT `ForceLimit` each time 90 % is reached. null = no limit.",
+    )
+    passivity: Bool = Field(
+        True,
+        description="The slave's port of the two-port passivity scheme (occ/passivity.py): a "
+        "step into the tissue that would put in more energy than the master's hand has put "
+        "in (the master's `energy_j`, sent with its stream) is shortened; the difference is "
+        "given back at `drift_return_mm_s` when the energy allows. Acts only on a stream "
+        "that carries `energy_j` (a master with `passivity` and force feedback).",
+    )
+    drift_return_mm_s: PosFloat = Field(
+        5.0,
+        description="How fast (tip mm/s) the slave closes the gap the passivity controller "
+        "and the force limit left between it and the master's command, when it may.",
+    )
+    release_speed_mm_s: PosFloat = Field(
+        40.0,
+        description="A latched stop in contact (the measured force over `release_force_n`): "
+        "the tool backs out along the contact force at this speed (tip mm/s) until the force "
+        "is under `release_force_n` (then it holds there, and backs out again if the tissue "
+        "presses again): a stop lets go of the tissue rather than holding a position in it.",
+    )
+    release_force_n: PosFloat = Field(
+        0.2, description="A stop lets go of the tissue until the contact force is under this (N)."
+    )
+    release_max_mm: PosFloat = Field(
+        10.0,
+        description="The farthest a stop backs the tool out (tip mm, in all); reached, it holds "
+        "and alerts.",
     )
     phase_lock_us: Annotated[Float, Field(ge=0)] | None = Field(
         400.0,

@@ -324,9 +324,7 @@ class SimDriver(Driver):
             kind, _, rest = str(spec).partition(":")
             joint, _, amount = rest.partition(":")
             try:
-                self.inject(
-                    kind, int(joint) if joint else 0, float(amount) if amount else None
-                )
+                self.inject(kind, int(joint) if joint else 0, float(amount) if amount else None)
             except ValueError as err:
                 raise ValueError(f"sim param 'faults': {err}") from None
 

@@ -111,13 +111,18 @@ def test_the_master_displays_the_slaves_force_and_drops_it_when_the_slave_dies(
     assert math.hypot(*shown) <= math.hypot(*sent) + 0.05
     assert math.hypot(*shown) > 0.5 * math.hypot(*sent), (shown, sent)
     assert shown[0] < 0.0  # out of the wall (its normal is -x)
-    # the slave dies: the return channel is lost; zero force at once and an ALERT
+    # the slave dies: the return channel is lost, an ALERT; its force is held and faded out
+    # within feedback_fade_ms (300 ms), never dropped at once (issue 37), never held on
     pair.procs[0].kill()
     pair.procs[0].wait(10.0)
     m = pair.wait(
-        lambda: (lambda s: s if s["slave_tip"]["status"] == "lost" else None)(pair.master_ctl()),
+        lambda: (
+            lambda s: s
+            if s["slave_tip"]["status"] == "lost" and s["feedback_n"] == [0.0, 0.0, 0.0]
+            else None
+        )(pair.master_ctl()),
         10.0,
-        "the return channel lost",
+        "the return channel lost and the force faded out",
     )
     assert m["feedback_n"] == [0.0, 0.0, 0.0] and m["force_n"] == [0.0, 0.0, 0.0]
     assert any("slave tip on slave lost" in s for s in pair.master.statuses), pair.master.statuses

@@ -398,26 +398,44 @@ def test_force_scale_and_the_10_n_clamp() -> None:
         m.close()
 
 
-@pytest.mark.req("SR-FORCE-2")
-def test_a_late_force_fades_to_zero_and_a_lost_one_is_zero_at_once_with_an_alert(master) -> None:
+@pytest.mark.req("SR-FORCE-2", "SR-FORCE-5")
+def test_a_late_or_lost_force_is_held_and_faded_never_dropped_and_snapped_back(master) -> None:
+    """Late or lost, the slave's force is held and fades out linearly within
+    ``feedback_fade_ms`` (300 ms), the same direction, never dropped to zero at once; a lost
+    link alerts once; back, the force returns within ``tip_fade_ms`` (20 ms) from where the
+    fade had brought it, not from zero (issue 37: a force dropped and snapped back gave the
+    hand energy it never put in)."""
+    master = Master(passivity=False)  # the fade itself, not what the controller makes of it
     master.run()
     master.feed.force = (0.0, 0.0, 3.0)
     master.feed.step(30)
     assert feedback(master)[2] == pytest.approx(3.0)
-    master.feed.paused = True  # late: held, decaying to zero within tip_fade_ms (20 ms)
+    master.feed.paused = True  # late (from 7 ms): held, fading
     shown = []
     for _ in range(40):
         master.feed.step(1)
         shown.append(feedback(master)[2])
     assert all(b <= a for a, b in zip(shown, shown[1:], strict=False))
-    assert 0.0 < shown[8] < 3.0 and shown[30] == 0.0 and not master.alerts()
+    assert shown[39] == pytest.approx(3.0 * (1.0 - 33e-3 / 0.3), abs=0.02)  # 1/300 per ms
+    assert not master.alerts()
     master.feed.paused = False
     master.feed.step(30)
     assert feedback(master)[2] == pytest.approx(3.0)
-    master.feed.skip(3)  # proven loss: zero at once, an alert
+    master.feed.skip(3)  # proven loss: an alert, the force held and fading, not zero
     master.feed.step(1)
-    assert feedback(master) == (0.0, 0.0, 0.0) and master.ctrl.displayed_n == (0.0, 0.0, 0.0)
-    assert any("lost" in a for a in master.alerts())
+    master.feed.paused = True
+    assert feedback(master)[2] == pytest.approx(3.0, abs=0.02)
+    assert any("lost" in a and "held and fading" in a for a in master.alerts())
+    master.feed.step(99)  # 100 ms lost: a third gone
+    assert feedback(master)[2] == pytest.approx(2.0, abs=0.02)
+    master.feed.paused = False  # back: from 2 N up to 3 N within 20 ms, never through zero
+    back = []
+    for _ in range(25):
+        master.feed.step(1)
+        back.append(feedback(master)[2])
+    assert min(back) >= 1.95 and back[-1] == pytest.approx(3.0)
+    assert all(b >= a for a, b in zip(back, back[1:], strict=False))
+    master.close()
 
 
 @pytest.mark.req("SR-FORCE-2")
@@ -426,7 +444,10 @@ def test_a_dead_slave_leaves_no_force_on_the_hand(master) -> None:
     master.feed.force = (1.0, 1.0, 1.0)
     master.feed.step(30)
     master.feed.paused = True
-    master.feed.step(150)  # past the 100 ms grace
+    master.feed.step(150)  # past the 100 ms grace: lost, one alert, the force fading
+    assert len([a for a in master.alerts() if "lost" in a]) == 1
+    assert 0.0 < feedback(master)[0] < 1.0
+    master.feed.step(160)  # feedback_fade_ms (300 ms) from late: gone
     assert master.ctrl.displayed_n == (0.0, 0.0, 0.0)
     assert len([a for a in master.alerts() if "lost" in a]) == 1
 
@@ -451,8 +472,9 @@ def test_a_slave_whose_samples_all_come_refused_is_late_then_lost_never_a_held_f
     master,
 ) -> None:
     """Samples keep coming, none usable (a malformed force in each): not a fresh link holding
-    the last good force on the hand, but a late one (the force fades within tip_fade_ms), then
-    a lost one past the grace (zero, one ALERT naming the cause); good samples re-arm it."""
+    the last good force on the hand, but a late one (the force fades within feedback_fade_ms),
+    then a lost one past the grace (one ALERT naming the cause; the force gone by the end of
+    the fade); good samples re-arm it."""
     master.run()
     master.feed.force = (0.0, 0.0, 3.0)
     master.feed.step(30)
@@ -463,7 +485,7 @@ def test_a_slave_whose_samples_all_come_refused_is_late_then_lost_never_a_held_f
         master.feed.step(1)
         shown.append(feedback(master)[2])
     assert all(b <= a for a, b in zip(shown, shown[1:], strict=False))
-    assert 0.0 < shown[8] < 3.0 and shown[30] == 0.0 and not master.alerts()
+    assert 0.0 < shown[30] < shown[8] < 3.0 and not master.alerts()
     st = master.ctrl.stats()["slave_tip"]
     assert st["status"] == "stale" and st["bad"] == 40 and st["lost_total"] == 0
     master.feed.step(62)  # 101 ms without a usable tip: past the grace
@@ -471,7 +493,7 @@ def test_a_slave_whose_samples_all_come_refused_is_late_then_lost_never_a_held_f
     assert "slave tip on slave lost: no usable tip for 101.00 ms (limit 100.0 ms)" in alert
     assert "101 samples refused" in alert and "force_n 'nan,0,0'" in alert
     assert master.ctrl.stats()["slave_tip"]["status"] == "lost"
-    master.feed.step(200)
+    master.feed.step(210)  # 300 ms of fade since it went late: gone
     assert len(master.alerts()) == 1 and feedback(master) == (0.0, 0.0, 0.0)
     assert master.ctrl.stats()["slave_tip"]["losses"] == 1
     master.feed.force = (0.0, 0.0, 3.0)
@@ -497,18 +519,20 @@ def test_force_feedback_off_displays_only_the_fixtures() -> None:
 
 @pytest.mark.req("SR-FORCE-1")
 def test_the_passivity_controller_damps_a_force_the_network_gave_no_energy_for(master) -> None:
-    """A constant 3 N on the moving hand from nothing the hand pushed (no spring, no wall):
-    the observer sees the network giving energy and the controller damps it; the observed
-    energy never goes below zero."""
+    """A constant 3 N on the moving hand from nothing the hand pushed (no spring, no wall, no
+    energy from the slave): the observer sees the network giving energy and the controller cuts
+    it; the hand's balance (what the port observed over the handle's real displacement) stays
+    within 30 uJ of zero (the one-tick prediction: the force shown accelerates the handle within
+    the tick, 3 N on 0.5 kg), where uncut it would give the hand tens of millijoules."""
     master.run()
     master.feed.force = (3.0, 3.0, 0.0)
     energies = []
     for _ in range(2000):
         master.feed.step(1)
-        energies.append(master.ctrl.passivity.energy)
+        energies.append(master.ctrl.passivity.account.net)
     st = master.ctrl.stats()["passivity"]
-    assert st["on"] and st["active_ticks"] > 0 and st["dissipated_mj"] > 0.0
-    assert min(energies) >= -1e-12
+    assert st["on"] and st["active_ticks"] > 0 and st["dissipated_mj"] > 10.0
+    assert min(energies) >= -3e-5
 
 
 # ------------------------------------------------------------------ an external force (servo_cf)

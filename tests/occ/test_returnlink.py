@@ -305,6 +305,23 @@ def test_an_unnumbered_tip_is_judged_by_its_timestamp() -> None:
     assert link2.samples == 4 and link2.monitor.lost_total == 0
 
 
+# ------------------------------------------------------------------ the slave's energy (issue 37)
+@pytest.mark.req("SR-FORCE-1")
+@pytest.mark.parametrize("bad", ["x", "nan", "-1e-3", "inf", ""])
+def test_the_slaves_energy_is_read_and_one_that_is_no_energy_refuses_its_sample(bad: str) -> None:
+    """``energy_j``: the slave port's energy in (J, cumulative) for the master's passivity
+    budget; one that is not a finite, non-negative number refuses the whole sample (counted),
+    as a malformed force does: a budget is never taken from a sample that is not sound."""
+    link = ReturnLink("slave")
+    assert link.on_sample(tip(1, force_n="1,2,3", energy_j="0.00125"), 0.0, 0.0)
+    assert link.energy == 0.00125 and link.stats(0.0)["energy_mj"] == 1.25
+    assert not link.on_sample(tip(2, force_n="1,2,3", energy_j=bad), P, P)
+    assert link.bad_metadata == 1 and "energy_j" in link.last_error
+    assert link.energy == 0.00125  # the last sound one
+    assert link.on_sample(tip(3, force_n="1,2,3"), 2 * P, 2 * P)
+    assert link.energy is None  # a slave that sends none: none
+
+
 # ------------------------------------------------------------------ the snapshot
 def test_the_snapshot_shows_the_tip_its_age_and_the_counters() -> None:
     link = ReturnLink("slave2")
@@ -321,6 +338,7 @@ def test_the_snapshot_shows_the_tip_its_age_and_the_counters() -> None:
         "tip_mm": [1.235, -2.0, 3.0],
         "force_n": [0.1235, -1.0, 2.0],
         "torque_nm": None,  # a 3-axis force (tests/occ/test_six_axis.py has one)
+        "energy_mj": None,
         "following": True,
         "slave_state": "RUNNING",
         "seq": 3,

@@ -370,8 +370,14 @@ def test_stop_and_run_between_two_stamped_samples_keeps_following(rig: Rig) -> N
     rig.master.send_position(rig.pos, seq=rig.seq, timestamp=rig.sim.clock.wall_time())
     rig.sim.tick()  # the stamped sample is followed (its latency measured)
     rig.command("Stop")
-    rig.command("Run")  # no new sample: the slave re-indexes and solves again
+    rig.command("Run")
     assert rig.robot.state is RobotState.RUNNING
+    # no new sample yet: no reference from the one before the stop (issue 37: after a latched
+    # loss the master has moved on, and its next sample would jump the tool); the next one
+    # re-indexes, and the slave follows from there
+    assert rig.ctl.stats()["reindexes"] == 1
+    rig.step(2)
+    assert rig.ctl.stats()["reindexes"] == 2
     before = rig.tip_mm()
     rig.pos[1] += 10.0
     rig.step(2)
