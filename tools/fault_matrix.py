@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
         lat = [o.fault_to_safe_us for o in runs if o.fault_to_safe_us is not None]
         if args.repeat > 1 and lat:
             spread.append(
-                f"{row.name}: fault -> last drive safe median {statistics.median(lat):.0f} us, "
+                f"{row.name}: detection -> last drive safe median {statistics.median(lat):.0f} us, "
                 f"max {max(lat):.0f} us over {len(lat)} runs; "
                 f"{sum(o.ok for o in runs)}/{len(runs)} PASS"
             )
