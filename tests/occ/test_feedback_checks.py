@@ -436,3 +436,24 @@ def test_an_effort_drive_is_not_judged_by_a_following_error() -> None:
     h.write([0.05], 0.0)
     h.read(1.0)  # the hand holds it 50 mrad away (ten windows): not the drive's error
     assert h.state is DriverState.ACTIVE
+
+
+@pytest.mark.req("SR-HW-14")
+def test_a_step_after_a_stall_enters_the_average_in_full_once_then_decays() -> None:
+    """The commanded speed is an average over the servo's lag (5 ms here): a step after a stall
+    of 7.5 ms (longer than the lag) counts in full (S / period: the window widens by lag x that,
+    5 S), never more, and then decays by dt / lag a write. A joint left 10 mm from its command
+    is judged outside the window exactly when 0.5 mm + 50 mm x 0.8^k falls under 10 mm: k = 8."""
+    j = prismatic(velocity=10.0)
+    d = fe_drive(j, window=0.0005, time_ms=0, lag_ms=5)
+    d.write([0.0], 0.0)
+    t = 0.0075
+    d.write([0.01], t)
+    d.read(t + 0.0005)  # 10 mm off, window 0.5 + 50 mm: a step the servo has yet to follow
+    for k in range(1, 8):
+        d.write([0.01], t + k * 0.001)
+        d.read(t + k * 0.001 + 0.0005)
+        assert d.state is DriverState.ACTIVE, k
+    d.write([0.01], t + 0.008)
+    with pytest.raises(DriverError, match=r"following error 0\.01 beyond its window 0\.00888"):
+        d.read(t + 0.0085)
