@@ -209,7 +209,10 @@ class OnePort:
     the torque of a 6-axis sensor displayed on a master's rotational axes (issue 37). The
     hand's own balance bounds what it is given back: the energy it put in through this
     channel minus what came out; beyond that the torque is cut along the motion (a damper up
-    to ``max_damping``, N m s/rad, never more than the component along the motion)."""
+    to ``max_damping``, N m s/rad, never more than the component along the motion). What a
+    damper at its cap leaves is observed (``energy_mj`` below 0), not cut further: without
+    the peer's energy an uncapped cut would take every steady torque off a yielding hand.
+    ``passivity_max_rot_damping`` (occ/controllers/teleop_params.py) is the cap."""
 
     def __init__(self, max_damping: float = 2.0) -> None:
         self.max_damping = max_damping
@@ -241,10 +244,9 @@ class OnePort:
                 # the cut never reverses the torque's component along the motion: beyond the
                 # damper's cap it removes that component and no more
                 along = (fx * vx + fy * vy + fz * vz) / v2
-                if alpha > along:
-                    alpha = along
+                alpha = min(alpha, along, self.max_damping)
                 fx, fy, fz = fx - alpha * vx, fy - alpha * vy, fz - alpha * vz
-                self.dissipated += out - allowed
+                self.dissipated += alpha * v2 * dt
                 self.active_ticks += 1
         self.last_damping = alpha
         result = (fx, fy, fz)

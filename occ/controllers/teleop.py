@@ -1199,20 +1199,19 @@ class SlaveController(Controller):
             )
             self._return_meta[key] = meta
         if self.force is not None:
-            extra = {"force_n": self._force_meta(now)}
+            # one estimate per return sample: the effort source's momentum observer takes
+            # the time since its last estimate (a second one now would see dt = 0 and count
+            # the joints' acceleration as a load)
+            extra = {
+                "force_n": self._force_meta(now),
+                # this port's energy in (J at the instrument): what the master may give the
+                # hand (occ/passivity.py)
+                "energy_j": f"{self.port.account.e_in:.9g}",
+            }
             t = self.force.torque_nm
             if t is not None:  # a 6-axis sensor's (occ/returnlink.py): old masters ignore it
                 extra["torque_nm"] = f"{t[0]:.5f},{t[1]:.5f},{t[2]:.5f}"
             meta = MappingProxyType({**meta, **extra})
-            meta = MappingProxyType(
-                {
-                    **meta,
-                    "force_n": self._force_meta(now),
-                    # this port's energy in (J at the instrument): what the master may give
-                    # the hand (occ/passivity.py)
-                    "energy_j": f"{self.port.account.e_in:.9g}",
-                }
-            )
         rows, (x, y, z) = data.world_tip_pose()
         k = id(out)
         seq = (self._return_seqs.get(k, 0) + 1) & 0xFFFFFFFF

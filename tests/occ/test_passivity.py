@@ -12,7 +12,7 @@ import math
 
 import pytest
 
-from occ.passivity import EnergyAccount, MasterPort, SlavePort
+from occ.passivity import EnergyAccount, MasterPort, OnePort, SlavePort
 
 pytestmark = pytest.mark.req("SR-FORCE-1")
 
@@ -150,3 +150,25 @@ def test_the_slave_shortens_a_step_into_the_tissue_to_the_energy_the_hand_put_in
     assert port.account.e_in == pytest.approx(7e-4)
     # free space: no force, no energy, any step
     assert port.step((0.0, 0.0, 0.0), (1e-3, 0.0, 0.0)) == (1e-3, 0.0, 0.0)
+
+
+def test_the_torque_channels_one_port_damps_up_to_its_cap_and_observes_the_rest() -> None:
+    """OnePort (the displayed torque, no energy from the peer): within ``max_damping`` the
+    hand gets back no more than it put in; past it the damper stays at the cap, never more
+    than the torque's component along the motion, and the excess shows as energy below 0."""
+    v = (0.2, 0.0, 0.0)
+    port = OnePort(max_damping=1e6)
+    port.account.flow(1e-4)  # the hand put 0.1 mJ in
+    t = port.step((3.0, 1.0, 0.0), v, 0.001)  # would give 0.6 mJ
+    assert t[0] * 0.2 * 0.001 == pytest.approx(1e-4) and t[1] == 1.0
+    assert port.account.net == pytest.approx(0.0, abs=1e-15)
+    assert port.dissipated == pytest.approx(5e-4) and port.active_ticks == 1
+    port = OnePort(max_damping=2.0)
+    t = port.step((3.0, 1.0, 0.0), v, 0.001)
+    assert port.last_damping == 2.0 and t == pytest.approx((3.0 - 2.0 * 0.2, 1.0, 0.0))
+    assert port.dissipated == pytest.approx(2.0 * 0.04 * 0.001)
+    assert port.account.net == pytest.approx(-(3.0 - 0.4) * 0.2 * 0.001)
+    port = OnePort(max_damping=1e12)  # a handle nearly at rest: the component along, no more
+    t = port.step((3.0, 1.0, 0.0), (1e-6, 0.0, 0.0), 0.001)
+    assert t == pytest.approx((0.0, 1.0, 0.0), abs=1e-12)
+    assert port.step((1.0, 2.0, 3.0), (0.0, 0.0, 0.0), 0.001) == (1.0, 2.0, 3.0)
