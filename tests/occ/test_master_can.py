@@ -29,6 +29,9 @@ def test_can_master_streams_hand_motion() -> None:
     driver = cfg.robot.drivers[0].model_copy(update={
         "plugin": "can",
         "params": {"interface": "virtual", "channel": channel, "joints": joints, "feedback_timeout": 0.05,
+                   # Enable is asked here before the loop starts (not as occd does): its verifying
+                   # write (issue 36) starts the drive's heartbeat ~100 ms before the first tick
+                   "heartbeat_ms": 255,
                    "command_interface": "effort"},
     })
     robot_cfg = cfg.robot.model_copy(update={"drivers": (driver,),
