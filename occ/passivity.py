@@ -62,11 +62,22 @@ sum went down has started afresh (a restarted daemon): the account starts a new 
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
-__all__ = ["EnergyAccount", "MasterPort", "OnePort", "SlavePort"]
+__all__ = ["EnergyAccount", "MasterPort", "OnePort", "SlavePort", "parse_energy"]
 
 Vec3 = tuple[float, float, float]
+
+
+def parse_energy(text: str) -> float | None:
+    """An ``energy_j`` value as sent with the samples (J, cumulative: finite and >= 0), or
+    None when it is no energy (the caller counts it and keeps its budget where it was)."""
+    try:
+        e = float(text)
+    except ValueError:
+        return None
+    return e if math.isfinite(e) and e >= 0.0 else None
 
 
 class EnergyAccount:

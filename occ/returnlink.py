@@ -70,6 +70,7 @@ import math
 from typing import Any
 
 from .fixture_defs import DefinitionError, Vec3, parse_linear
+from .passivity import parse_energy
 from .safety import LossEvent, LossMonitor, Verdict
 from .samples import PoseSample
 
@@ -193,11 +194,8 @@ class ReturnLink:
         energy_text = meta.get("energy_j")
         energy: float | None = None
         if energy_text is not None:
-            try:
-                energy = float(energy_text)
-            except ValueError:
-                energy = math.nan
-            if not (math.isfinite(energy) and energy >= 0.0):
+            energy = parse_energy(energy_text)
+            if energy is None:
                 self.bad_metadata += 1
                 self._bad_run += 1
                 self.last_error = f"seq {seq}: energy_j {energy_text[:40]!r} is not an energy"

@@ -77,7 +77,7 @@ from ..gripper import GripperFollower, GripperSource
 from ..haptics import MasterFixtures
 from ..joint import step_toward
 from ..outputs import VectorOut
-from ..passivity import MasterPort, OnePort, SlavePort
+from ..passivity import MasterPort, OnePort, SlavePort, parse_energy
 from ..returnlink import ReturnLink
 from ..safety import RobotState
 from ..samples import PoseSample, quaternion_to_rotation, rotation_to_quaternion
@@ -699,11 +699,7 @@ class MasterController(Controller):
         q = data.q
         jt = self._jt
         if jt is not None:
-            x = y = z = 0.0
-            for i, (a, b, c) in enumerate(jt):
-                w = q[i]
-                x, y, z = x + a * w, y + b * w, z + c * w
-            return (x, y, z)
+            return _apply_jt(jt, q)
         return tuple(float(v) for v in ctx.frame.tip_position(q))  # type: ignore[return-value]
 
     def energy_out(self) -> float | None:
@@ -723,11 +719,7 @@ class MasterController(Controller):
         qd = data.qdot
         jt = self._jt
         if jt is not None:
-            vx = vy = vz = 0.0
-            for i, (a, b, c) in enumerate(jt):
-                w = qd[i]
-                vx, vy, vz = vx + a * w, vy + b * w, vz + c * w
-            return (vx, vy, vz)
+            return _apply_jt(jt, qd)
         v = ctx.frame.jacobian(data.q)[:3] @ np.asarray(qd, dtype=float)
         return (float(v[0]), float(v[1]), float(v[2]))
 
@@ -773,12 +765,8 @@ class MasterController(Controller):
         self._seqs[key] = seq
         if out.type != "POSITION":
             raise OCCError("teleop output must be of type POSITION")
-        meta = self._stream_meta(bool(running), now)
         energy = self.energy_out() if name == self._driving() else None
-        if energy is not None:
-            # the hand's energy into the channel, with every sample: the slave's port
-            # controller puts no more into the tissue (occ/passivity.py)
-            meta = MappingProxyType({**meta, "energy_j": f"{energy:.9g}"})
+        meta = self._stream_meta(bool(running), now, energy)
         return PoseSample(
             name,
             None,
@@ -790,17 +778,26 @@ class MasterController(Controller):
             meta=meta,
         )
 
-    def _stream_meta(self, running: bool, now: float) -> MappingProxyType[str, str]:
-        """``run`` and ``clutch`` (one shared mapping each), and the gripper value with them
-        when the master sends one (occ/gripper.py)."""
+    def _stream_meta(
+        self, running: bool, now: float, energy: float | None
+    ) -> MappingProxyType[str, str]:
+        """``run`` and ``clutch`` (one shared mapping each), with the gripper value when the
+        master sends one (occ/gripper.py) and the hand's energy into the channel when it has
+        one (``energy_j``: the slave's port puts no more into the tissue, occ/passivity.py);
+        one mapping a sample."""
         meta = _RUN_CLUTCH[running, bool(self.clutch)]
         g = self.gripper
-        if g is None:
+        if g is None and energy is None:
             return meta
-        data = self.data
-        assert data is not None
-        t = now - self._t_run if data.state is RobotState.RUNNING else self._t_held
-        return MappingProxyType({**meta, "gripper": f"{g.update(data.q, t):.3f}"})
+        extra = dict(meta)
+        if g is not None:
+            data = self.data
+            assert data is not None
+            t = now - self._t_run if data.state is RobotState.RUNNING else self._t_held
+            extra["gripper"] = f"{g.update(data.q, t):.3f}"
+        if energy is not None:
+            extra["energy_j"] = f"{energy:.9g}"
+        return MappingProxyType(extra)
 
     def _handle_orientation(self, now: float) -> tuple[float, float, float, float]:
         """The handle's orientation: the simulated gimbal's (``orientation_amplitude_deg``),
@@ -904,6 +901,18 @@ class MasterController(Controller):
 
 def _mm(p: Sequence[float] | None) -> list[float] | None:
     return None if p is None else [round(float(v) / MM, 6) for v in p]
+
+
+def _apply_jt(
+    jt: Sequence[tuple[float, float, float]], w: Sequence[float]
+) -> tuple[float, float, float]:
+    """``J w`` for a Cartesian master's constant Jacobian, kept as its transpose's rows
+    (a joint's column): the handle's position from ``q``, its velocity from ``qdot``."""
+    x = y = z = 0.0
+    for i, (a, b, c) in enumerate(jt):
+        v = w[i]
+        x, y, z = x + a * v, y + b * v, z + c * v
+    return (x, y, z)
 
 
 def _m(p_mm: Sequence[float]) -> tuple[float, float, float]:
@@ -1366,11 +1375,8 @@ class SlaveController(Controller):
         """The master's energy in (``energy_j``: J at this instrument, cumulative): the budget
         of this port's controller. One that is no energy is counted and not used (the budget
         then stays where it was: the safe side)."""
-        try:
-            e = float(text)
-        except ValueError:
-            e = math.nan
-        if not (math.isfinite(e) and e >= 0.0):
+        e = parse_energy(text)
+        if e is None:
             self.bad_energy += 1
             return
         self.port.account.receive(e)
