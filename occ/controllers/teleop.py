@@ -1465,10 +1465,12 @@ class SlaveController(Controller):
                 self.ik_failures += 1  # no point: never a target (nor a gap) from it
                 return self._q_last
             self._raw = raw
-        elif self._q_last is not None and not self._shaping():
+        # the contact force once a tick (base frame): whether to shape, and how
+        force = self._force_base()
+        if not fresh and self._q_last is not None and not self._shaping(force):
             return self._q_last  # no new master sample since the last solve: same target
         before = self._cmd
-        target = self._shape(now)
+        target = self._shape(now, force)
         if not fresh and target == before and self._q_last is not None:
             return self._q_last
         try:
@@ -1506,18 +1508,19 @@ class SlaveController(Controller):
             float(r[0, 2] * fx + r[1, 2] * fy + r[2, 2] * fz),
         )
 
-    def _shaping(self) -> bool:
+    def _shaping(self, f: tuple[float, float, float] | None) -> bool:
         """Has the command to move without a new master sample? (a gap to give back, or the
-        force limit backing the tool out)"""
+        force limit backing the tool out; ``f``: :meth:`_force_base`)"""
         if self._cmd != self._raw:
             return True
         lim = self.max_tissue_force
-        f = self._force_base()
         if lim is None or f is None:
             return False
         return f != (0.0, 0.0, 0.0)  # in contact: the approach to the limit is rate-limited
 
-    def _shape(self, now: float) -> tuple[float, float, float]:
+    def _shape(
+        self, now: float, f: tuple[float, float, float] | None
+    ) -> tuple[float, float, float]:
         """The tip to command (base frame, m): the master's mapped target, the gap left so far
         given back at up to ``drift_return_mm_s``, the motion into the tissue no faster than
         5 mm/s per N below 90 % of ``max_tissue_force_n`` (backing out as fast above it), the
@@ -1535,7 +1538,6 @@ class SlaveController(Controller):
             keep = max(0.0, 1.0 - self._drift_speed * dt / gap)
             ox, oy, oz = keep * ox, keep * oy, keep * oz
         dx, dy, dz = raw[0] + ox - cmd[0], raw[1] + oy - cmd[1], raw[2] + oz - cmd[2]
-        f = self._force_base()
         if f is not None:
             fx, fy, fz = f
             mag = math.sqrt(fx * fx + fy * fy + fz * fz)
