@@ -167,10 +167,8 @@ def run(config: Any, args: argparse.Namespace) -> int:
         robot.activate()
         if recorder is not None:
             recorder.start()
-        if args.start in ("enabled", "running"):
-            robot.state_machine.request("enable", "--start")
-        if args.start == "running":
-            robot.state_machine.request("run", "--start")
+        # in the loop's first tick: power comes on where the loop goes on commanding it
+        robot.start_in(*{"enabled": ("enable",), "running": ("enable", "run")}.get(args.start, ()))
         threading.Thread(target=reporter, name="occd-reporter", daemon=True).start()
         log.info(
             "%s running at %d Hz (%s); hot path %s",

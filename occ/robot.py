@@ -171,6 +171,7 @@ class Robot:
         self._shutdown_done = False
         #: the tick under way (its `now`): what a transition's reads and writes happen at
         self._tick_now: float | None = None
+        self._at_start: list[str] = []
 
     def set_recorder(self, recorder: Any | None) -> None:
         """Attach a recorder (from any thread: the loop sees it from its next read) or detach
@@ -222,6 +223,13 @@ class Robot:
             return self.loop.run(duration=duration, ticks=ticks)
         finally:
             self.supervisor.disarm()  # the loop ended on purpose: nothing to watch
+
+    def start_in(self, *events: str) -> None:
+        """Transitions for the loop's first tick (``occd --start``): Enable writes to the
+        drives to prove them (issue 36), and a drive's heartbeat runs from its first command,
+        so power comes on inside the run of ticks that goes on commanding it, never before
+        the loop has started (which can take longer than the heartbeat)."""
+        self._at_start = list(events)
 
     def stop_loop(self) -> None:
         self.loop.stop()
@@ -290,6 +298,12 @@ class Robot:
         except Exception as err:  # noqa: BLE001
             self.alarms.plugin_error(f"controller {self.controller.name}: on_sample", err)
         # commands, bounded per tick so a flood cannot stall the loop (parsed already)
+        if self._at_start:
+            events, self._at_start = self._at_start, []
+            for ev in events:  # a refusal or a failure is alerted by the state machine
+                if self.state_machine.try_request(ev, "--start") is None:
+                    log.error("--start: %s refused or failed (%s)", ev, self.last_alert)
+                    break
         commands = self.interfaces.commands
         if commands.pending:
             for item in commands.drain(limit=16):

@@ -903,9 +903,7 @@ def _mm(p: Sequence[float] | None) -> list[float] | None:
     return None if p is None else [round(float(v) / MM, 6) for v in p]
 
 
-def _apply_jt(
-    jt: Sequence[tuple[float, float, float]], w: Sequence[float]
-) -> tuple[float, float, float]:
+def _apply_jt(jt: Sequence[Sequence[float]], w: Sequence[float]) -> tuple[float, float, float]:
     """``J w`` for a Cartesian master's constant Jacobian, kept as its transpose's rows
     (a joint's column): the handle's position from ``q``, its velocity from ``qdot``."""
     x = y = z = 0.0

@@ -29,9 +29,6 @@ def test_can_master_streams_hand_motion() -> None:
     driver = cfg.robot.drivers[0].model_copy(update={
         "plugin": "can",
         "params": {"interface": "virtual", "channel": channel, "joints": joints, "feedback_timeout": 0.05,
-                   # Enable is asked here before the loop starts (not as occd does): its verifying
-                   # write (issue 36) starts the drive's heartbeat ~100 ms before the first tick
-                   "heartbeat_ms": 255,
                    "command_interface": "effort"},
     })
     robot_cfg = cfg.robot.model_copy(update={"drivers": (driver,),
@@ -50,8 +47,7 @@ def test_can_master_streams_hand_motion() -> None:
             # the interfaces only: this test is about the CAN input, and a supervisor thread
             # could trip on a loaded machine
             robot.interfaces.start()
-            robot.state_machine.request("enable")
-            robot.state_machine.request("run")
+            robot.start_in("enable", "run")  # in the first tick, as occd --start does
             robot.loop.run_in_thread(duration=3.0)
             assert _wait(lambda: len(sent) > 20, 2.0)
             # the operator pushes the handle 12 mm along x (the drive reports it), at a hand's

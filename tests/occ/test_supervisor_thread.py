@@ -48,8 +48,7 @@ def test_a_hung_tick_is_caught_by_the_supervisor_thread() -> None:
     robot.activate()
     loop = threading.Thread(target=robot.run, kwargs={"duration": 30.0})
     try:
-        robot.state_machine.request("enable")
-        robot.state_machine.request("run")
+        robot.start_in("enable", "run")  # in the first tick, as occd --start does
         loop.start()
         assert hung.wait(10.0)
         drv = robot.hardware.drivers[0]
