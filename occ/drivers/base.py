@@ -62,9 +62,11 @@ the figures and the rule, and the base powers the drive off in the same call.
   every state (a joint outside its range at power-up is not enabled).
 - **Jump**: while ACTIVE, a step larger than ``feedback_jump`` (default 2) times the speed
   the joint may have (its velocity limit, or the commanded speed while a command catches up
-  after a stall) over the time since its last reading (at least one ``period``), plus twice
-  the encoder's noise (``feedback_noise``), latches FAULT: no healthy joint moves that fast;
-  a slipped encoder or a corrupted frame does. 0 = off.
+  after a stall) over the time since its last reading (at least one ``period``), or than
+  ``feedback_jump`` times the last commanded step (a late tick's step shows in the next
+  reading, however soon it comes), plus twice the encoder's noise (``feedback_noise``),
+  latches FAULT: no healthy joint moves that fast; a slipped encoder or a corrupted frame
+  does. 0 = off.
 - **Following error** (``following_error: {window, time_ms, lag_ms, stiffness}``, the CiA 402
   way: object 0x6065 *following error window*, 0x6066 *time out*): while ACTIVE on position
   commands, a joint measured further from its command than the window for longer than
@@ -348,6 +350,8 @@ class Driver:
         self._fe_compliance = [0.0] * len(joints)
         self._fe_time = 0.0
         self._cmd_speed = [0.0] * len(joints)
+        #: each joint's last commanded step (the next reading may show it whole)
+        self._last_step = [0.0] * len(joints)
         self._fe_since = [math.nan] * len(joints)
         self._commanded = False
         #: a safe stop asked for while an activation was under way (supervisor): the
@@ -431,6 +435,7 @@ class Driver:
         self._changed_at = [math.nan] * len(self.joints)  # frozen: watched from the next read
         self._fe_since = [math.nan] * len(self.joints)
         self._cmd_speed = [0.0] * len(self.joints)
+        self._last_step = [0.0] * len(self.joints)
         self._commanded = False
         # the limits as plain floats, read by every write (fewer look-ups on the loop)
         self._limit_table = [
@@ -579,6 +584,7 @@ class Driver:
             raise self._hook_failed("read", err) from err
         jump = self._jump_speed
         cmd_speed = self._cmd_speed
+        last_step = self._last_step
         jump_factor = self._jump
         noise = self._fb_noise
         changed = self._changed_at
@@ -628,7 +634,13 @@ class Driver:
                     catching_up = jump_factor * cmd_speed[i]
                     if catching_up > speed:
                         speed = catching_up
-                    reach = speed * dt + 2.0 * noise[i]
+                    # a reading shows the step commanded over the previous write's interval,
+                    # which a late tick made longer than this reading's: that step is plausible
+                    reach = speed * dt
+                    stepped = jump_factor * last_step[i]
+                    if stepped > reach:
+                        reach = stepped
+                    reach += 2.0 * noise[i]
                     if step > reach:
                         why = (
                             f"joint {joint.name}: feedback jump of {step:.6g} in "
@@ -765,6 +777,7 @@ class Driver:
                 # exponential average: a step S raises lag x speed by S, as the error it
                 # makes, which then decays with the servo's own time)
                 moved = x - ref if x > ref else ref - x
+                self._last_step[i] = moved
                 gain = dt * fade[i]
                 if gain > 1.0:
                     gain = 1.0

@@ -457,3 +457,30 @@ def test_a_step_after_a_stall_enters_the_average_in_full_once_then_decays() -> N
     d.write([0.01], t + 0.008)
     with pytest.raises(DriverError, match=r"following error 0\.01 beyond its window 0\.00888"):
         d.read(t + 0.0085)
+
+
+@pytest.mark.req("SR-HW-9")
+def test_a_late_ticks_step_shown_by_a_reading_that_comes_soon_after_is_no_jump() -> None:
+    """On the real clock a late tick commands the velocity limit over its longer interval
+    (0.21 mm in 2.1 ms at 0.1 m/s); a drive that follows at once shows that step in the next
+    reading, which may come 1 ms later or sooner: the step commanded is plausible, a slip of
+    more than twice it is not (a CI run faulted a keyframe plan on the first)."""
+    j = prismatic(velocity=0.1)
+    d = active(j, frozen_feedback_ms=0, following_error=None)
+    x = 0.0
+
+    def tick(now: float, command: float, shown: float | None = None) -> None:
+        nonlocal x
+        d.feedback = [x if shown is None else shown]  # the drive has followed the last command
+        d.read(now)
+        d.write([command], now)
+        x = command
+
+    tick(0.0, 0.0)
+    tick(0.001, 0.0001)
+    tick(0.0031, 0.00031)  # late by 1.1 ms: 0.21 mm at the limit over 2.1 ms
+    tick(0.004, 0.0004)  # on time: the reading shows the 0.21 mm in 0.9 ms
+    tick(0.005, 0.0005)
+    assert d.state is DriverState.ACTIVE
+    with pytest.raises(DriverError, match="feedback jump of 0.00035 in 1 ms"):
+        tick(0.006, 0.0006, shown=0.0004 + 0.00035)  # 0.35 mm for a 0.1 mm command: a slip
