@@ -346,6 +346,10 @@ class _Counters:
     moves_waiting: int = 0
     forces: int = 0
     forces_refused: int = 0
+    #: TipForce received in header version 1 (no metadata, so no force_n): the daemon answers
+    #: in v1 until it has read the bridge's v2 greeting, so the first one or two after a
+    #: connect come this way; a v1-only daemon sends nothing else (logged once)
+    forces_v1: int = 0
     #: servo_cf wrenches forwarded to the daemon (SENSOR ServoCF), refused (frame, not
     #: finite, no operator link)
     servo_cf: int = 0
@@ -780,8 +784,17 @@ class Bridge:
     def _on_tip_force(self, robot: Robot, msg: Message, stamp: msgs.Time) -> None:
         """TRANSFORM ``TipForce`` (a slave's contact force, its output source ``force``:
         occ/forceviz.py) -> ``measured_cf``: metadata ``force_n`` (N, the patient frame, which
-        is the world of ``measured_cp``), frame_id the world frame. Without a readable
-        ``force_n`` (a v1 connection has no metadata) nothing is published and it is counted."""
+        is the world of ``measured_cp``), frame_id the world frame. One in header version 1
+        (no metadata: sent before the daemon read the v2 greeting) is counted in ``forces_v1``;
+        a v2 one without a readable ``force_n`` or in another frame in ``forces_refused``."""
+        if msg.header_version == 1:
+            robot.counters.forces_v1 += 1
+            if robot.counters.forces_v1 == 3:  # past a connect's gap: the daemon speaks v1 only
+                log.warning(
+                    "%s: TipForce arrives in header version 1 (no metadata, no force_n): "
+                    "measured_cf needs a daemon that answers in v2", robot.ns,
+                )  # fmt: skip
+            return
         f = parse_force(msg.metadata.get("force_n"))
         if f is None or msg.metadata.get("frame", "patient") != "patient":
             robot.counters.forces_refused += 1

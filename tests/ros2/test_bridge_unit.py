@@ -320,8 +320,11 @@ def test_a_slaves_tip_force_becomes_measured_cf_in_the_world(
     dds: tuple[int, Any], namespace: str
 ) -> None:
     """TRANSFORM ``TipForce`` (occ/forceviz.py) -> WrenchStamped from its metadata ``force_n``,
-    frame_id the world frame; one without a readable ``force_n`` (a v1 connection) or in another
-    frame is counted, not published."""
+    frame_id the world frame; one in header version 1 (no metadata: before the daemon reads the
+    bridge's v2 greeting) is counted apart, one without a readable ``force_n`` or in another
+    frame is refused and counted; neither is published."""
+    import dataclasses
+
     import igtl
     from occ.forceviz import force_matrix
 
@@ -339,7 +342,9 @@ def test_a_slaves_tip_force_becomes_measured_cf_in_the_world(
                 timestamp=1_700_000_000.5, header_version=2, metadata=meta,
             )  # fmt: skip
 
-        bridge._on_igtl(robot, tip_force({}))  # v1: no metadata
+        # v1, no metadata: what a daemon sends before it reads the greeting
+        bridge._on_igtl(robot, dataclasses.replace(tip_force({}), header_version=1))
+        bridge._on_igtl(robot, tip_force({}))  # v2 without force_n
         bridge._on_igtl(robot, tip_force({"force_n": "1,2", "frame": "patient"}))
         bridge._on_igtl(robot, tip_force({"force_n": "1,2,3", "frame": "tip"}))
         bridge._on_igtl(robot, tip_force({"force_n": ",".join(map(str, f)), "frame": "patient"}))
@@ -349,4 +354,4 @@ def test_a_slaves_tip_force_becomes_measured_cf_in_the_world(
     force, torque = w.wrench.force, w.wrench.torque
     assert (force.x, force.y, force.z) == f and (torque.x, torque.y, torque.z) == (0, 0, 0)
     st = bridge.stats()[namespace]
-    assert st["forces"] == 1 and st["forces_refused"] == 3
+    assert st["forces"] == 1 and st["forces_refused"] == 3 and st["forces_v1"] == 1

@@ -434,3 +434,4 @@ def test_measured_cf_is_the_slaves_contact_force(netns: Netns, tmp_path: Path) -
     stats = rig.stop_bridge()["/occ/slave"]
     assert stats["forces"] >= received >= 10
     assert stats["forces_refused"] == 0 and stats["publish_errors"] == 0
+    assert stats["forces_v1"] <= 2  # sent before the daemon read the v2 greeting
