@@ -5,7 +5,7 @@ The console asks each daemon ``GetStats`` (``Format="json"``, ``Histogram="laten
 ``--poll-hz`` times a second. The daemon builds the answer on its worker thread, off the loop
 (``OperatorDesk._reply_stats``: the statistics snapshot, the raw lateness buckets, the JSON);
 the console then folds it into its view and serves snapshots to the page. Both are timed here
-on the slave (configs/slave.yaml, simulated drives, ``occ.testing.SimRobot``) after
+on the slave (configs/slave.yaml, simulated drives, ``occ_testkit.testing.SimRobot``) after
 ``--ticks`` ticks, its lateness histogram filled with ``--ticks`` values spread as a busy
 machine spreads them (log-normal, median 25 µs, a tail past 10 ms; seeded), so the answer has
 as many buckets as a real daemon's after a while. Reports median and p99 over ``--n`` calls,
@@ -25,8 +25,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
-from occ.testing import SimRobot  # noqa: E402
 from occ_console.model import DaemonView  # noqa: E402
+from occ_testkit.testing import SimRobot  # noqa: E402
 
 
 def timed(fn, n: int) -> tuple[float, float]:  # type: ignore[no-untyped-def]

@@ -31,7 +31,7 @@ from occ.clock import RealClock  # noqa: E402
 from occ.controllers.keyframe import KeyframeController, PlanRequest, build_plan  # noqa: E402
 from occ.loader import load_config  # noqa: E402
 from occ.robot import build_robot  # noqa: E402
-from occ.testing import SimPeer, SimRobot, inproc_config  # noqa: E402
+from occ_testkit.testing import SimPeer, SimRobot, inproc_config  # noqa: E402
 
 CONFIG = ROOT / "configs" / "keyframe.yaml"
 

@@ -2,8 +2,8 @@
 """What an operator query costs the control loop.
 
 The slave robot (configs/slave.yaml, simulated drives) is built on a simulated clock and fed
-the master's 500 Hz stream on in-process interfaces (occ.testing.SimRobot); every tenth tick an
-operator request arrives on the operator interface (parsed on the sending thread, as the
+the master's 500 Hz stream on in-process interfaces (occ_testkit.testing.SimRobot); every tenth tick
+an operator request arrives on the operator interface (parsed on the sending thread, as the
 interface threads do) and the tick that handles it is timed against the ticks that handle
 none. Replies go to the asking peer, through the codec. Reports, per request, the extra
 time the handling tick took: median and p99 over ``--n`` requests, in µs.
@@ -31,7 +31,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 import igtl  # noqa: E402
-from occ.testing import SimRobot  # noqa: E402
+from occ_testkit.testing import SimRobot  # noqa: E402
 
 
 def requests(table: bool = False) -> dict[str, igtl.Message]:

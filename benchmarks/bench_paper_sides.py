@@ -22,7 +22,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import occ.testing as testing  # noqa: E402
+import occ_testkit.testing as testing  # noqa: E402
 
 
 def main() -> None:

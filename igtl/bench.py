@@ -1,5 +1,9 @@
 """Codec micro-benchmarks, shared by ``igtl bench`` and ``benchmarks/bench_codec.py``.
 
+It stays in ``igtl`` (not in the test harness, ``occ_testkit``): it backs ``igtl bench``, a
+command the installed package gives its users to measure the codec on their own machine, and it
+needs nothing but ``igtl`` itself (pyigtl, for the comparison, only when importable).
+
 For each message type we time, on one pre-built message:
 
 - ``pack``: ``msg.pack()`` (header, CRC-64 over the body, content);

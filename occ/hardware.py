@@ -32,7 +32,7 @@ the detection of a read or write failure to the moment the last drive was in its
 whose switch-off failed is never safe (:meth:`HardwareSet.unsafe`): while one is, the time is
 not taken, and ``GetStats`` lists it under ``unsafe``. The time from the fault itself (not its
 detection) is the fault matrix's to measure: it knows when it injected the fault
-(occ/faultmatrix.py).
+(occ_testkit/faultmatrix.py).
 
 The supervisor's safe stop (:meth:`HardwareSet.safe_stop`) stops every drive at once, each on
 a thread of its own, and waits at most a bound for them: a plugin whose stop hangs delays

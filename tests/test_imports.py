@@ -1,6 +1,7 @@
-"""House rules on imports: ``igtl`` never imports ``occ``, and no module of ``occ`` imports
-itself back through others at import time (an import cycle: the order modules happen to load
-in would decide whether the daemon starts).
+"""House rules on imports: ``igtl`` never imports ``occ``, no runtime package imports the
+harness ``occ_testkit``, and no module of ``occ`` imports itself back through others at import
+time (an import cycle: the order modules happen to load in would decide whether the daemon
+starts).
 
 Only imports that run when a module loads count: those at module level outside ``if
 TYPE_CHECKING:``. Imports inside functions are deliberate late binding (e.g. the loader
@@ -191,6 +192,22 @@ def test_the_core_never_imports_the_console() -> None:
             for name in _named_imports(path):
                 where = path.relative_to(ROOT)
                 assert name.split(".")[0] not in banned, f"{where} imports {name}"
+
+
+def test_the_runtime_never_imports_the_testkit() -> None:
+    """``occ_testkit`` is the test and tool harness (simulated time, the fault matrix, network
+    namespaces): no runtime package imports it, anywhere, so the daemons, the bridge and the
+    console run without it and it never runs in them."""
+    for package in ("igtl", "occ", "occ_ros2", "occ_console"):
+        for path in (ROOT / package).rglob("*.py"):
+            for name in _named_imports(path):
+                where = path.relative_to(ROOT)
+                assert name.split(".")[0] != "occ_testkit", f"{where} imports {name}"
+
+
+def test_the_testkit_has_no_import_cycle() -> None:
+    cycle = _cycle(_graph("occ_testkit"))
+    assert cycle is None, "import cycle: " + " -> ".join(cycle or [])
 
 
 def test_the_console_has_no_import_cycle() -> None:

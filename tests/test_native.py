@@ -176,7 +176,7 @@ from occ.controllers import register_controller
 from occ.controllers.teleop import SlaveController
 from occ.drivers import register_driver
 from occ.drivers.sim import SimDriver
-from occ.testing import SimRobot
+from occ_testkit.testing import SimRobot
 
 
 class CountingSim(SimDriver):

@@ -1,5 +1,5 @@
-"""House rules as tests: ``mypy``, ``ruff check`` and ``ruff format --check`` are clean on igtl, occ,
-occ_ros2 and occ_console (and the two ruff checks on tools and benchmarks).
+"""House rules as tests: ``mypy``, ``ruff check`` and ``ruff format --check`` are clean on igtl,
+occ, occ_ros2, occ_console and occ_testkit (and the two ruff checks on tools and benchmarks).
 
 Both tools come with the ``test`` extra (``pip install -e .[test]``, which the README's test
 command runs); they read their settings from pyproject.toml, so they run from the repository root.
@@ -17,7 +17,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow  # subprocesses; mypy alone takes ~30 s on a cold cache
 
-PACKAGES = ("igtl", "occ", "occ_ros2", "occ_console")
+PACKAGES = ("igtl", "occ", "occ_ros2", "occ_console", "occ_testkit")
 #: held to ruff too (not to mypy: scripts and measurements)
 SCRIPTS = ("tools", "benchmarks")
 

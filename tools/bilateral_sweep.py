@@ -3,8 +3,8 @@
 
 The shipped master (configs/master.yaml: a simulated hand on a haptic device) and the wall slave
 (configs/wall.yaml: the tool pressing on a simulated tissue wall, its force read by a simulated
-sensor at the instrument) as an :class:`occ.testing.SimPair` in simulated time, everything else
-the daemons' own code. The hand makes the OCC paper's motion (a 50 mm circle at 0.1 Hz on the
+sensor at the instrument) as an :class:`occ_testkit.testing.SimPair` in simulated time, everything
+else the daemons' own code. The hand makes the OCC paper's motion (a 50 mm circle at 0.1 Hz on the
 master, 5 mm on the slave): the tool enters the wall (x > 2 mm) at 0.65 s of every 10 s turn
 and leaves it 3.7 s later. Each condition is one wall stiffness (N/mm), one delay (ms, each way)
 and one loss pattern, run for ``--seconds`` (two turns by default: the second shows growth):
@@ -68,7 +68,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from occ.safety import RobotState  # noqa: E402
-from occ.testing import CONFIGS, SimPair  # noqa: E402
+from occ_testkit.testing import CONFIGS, SimPair  # noqa: E402
 
 STIFFNESS = (2.0, 5.0, 10.0)
 DELAYS = (0.0, 10.0, 25.0, 50.0)

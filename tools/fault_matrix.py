@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Print the hardware fault matrix: every drive fault injected into the shipped slave, and what
-the robot did (occ/faultmatrix.py; docs/SAFETY.md SR-HW-1..13).
+the robot did (occ_testkit/faultmatrix.py; docs/SAFETY.md SR-HW-1..13).
 
     python tools/fault_matrix.py                 # every row, a Markdown table
     python tools/fault_matrix.py --row nan jump  # some rows
@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from occ.faultmatrix import ROWS, Outcome, run_row, table  # noqa: E402
+from occ_testkit.faultmatrix import ROWS, Outcome, run_row, table  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -3,7 +3,7 @@
 
 Transparency of the bilateral pair (issue 27): the shipped master (configs/master.yaml, the
 simulated hand on a haptic device) and the wall slave (configs/wall.yaml, its tool pressing on a
-simulated tissue wall) as an :class:`occ.testing.SimPair` in simulated time, the hand making
+simulated tissue wall) as an :class:`occ_testkit.testing.SimPair` in simulated time, the hand making
 the OCC paper's motion (50 mm circle at 0.1 Hz; the slave's 5 mm circle presses up to 3 mm into
 the wall, 0.5 N/mm). For each condition (added delay each way, the OCC paper's double losses on
 both links) it measures, every 1 ms tick over ``--seconds`` after a 2 s settle:
@@ -45,7 +45,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from occ.testing import CONFIGS, SimPair  # noqa: E402
+from occ_testkit.testing import CONFIGS, SimPair  # noqa: E402
 
 
 def double_loss(rate: float, seed: int) -> Callable[[str, Any, int], bool] | None:

@@ -4,8 +4,8 @@ Arata et al. (IJCARS 2010) test their fixture with the operator's motion on the 
 (X = 50 mm sine, Y = 50 mm cosine, 0.1 Hz, Z constant), an accessible sphere of 200 mm
 diameter with stiffness 1 N/mm, and 10:1 motion scaling: the trajectory stayed inside and at
 most 10 N was displayed. Here the shipped pair runs on one :class:`~occ.clock.SimClock` with
-in-process interfaces (:class:`occ.testing.SimRobot`): the master (``configs/master.yaml``: a
-simulated hand that intends the paper's motion and yields to the displayed force) streams its
+in-process interfaces (:class:`occ_testkit.testing.SimRobot`): the master (``configs/master.yaml``:
+a simulated hand that intends the paper's motion and yields to the displayed force) streams its
 measured handle to the slave (``configs/slave.yaml``), which follows at 10:1 and sends its
 measured tip back (the return channel, ``SlaveTip``): the force is computed where the slave's
 tool is. The fixture goes to the master as a VFIXTURE in the patient frame (the frame of the
@@ -33,7 +33,7 @@ from typing import Any
 
 import igtl
 from occ.clock import SimClock
-from occ.testing import SimRobot
+from occ_testkit.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[1]
 

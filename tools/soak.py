@@ -11,7 +11,7 @@ contiguous numbers only hold and resume (docs/ARCHITECTURE.md, "Safety").
 ``sim``
     The slave :class:`~occ.robot.Robot` (``configs/slave.yaml``) stepped tick by tick on a
     :class:`~occ.clock.SimClock` with its interfaces on in-process channels
-    (:class:`occ.testing.SimRobot`, no sockets): the master's datagrams and the operator's
+    (:class:`occ_testkit.testing.SimRobot`, no sockets): the master's datagrams and the operator's
     COMMANDs come from peers on those channels, packed and decoded like real ones, and the
     operator reads the replies and alerts the robot sends it.
     The simulated master sends one POSITION every 2 ms (even ticks); a seeded
@@ -109,10 +109,11 @@ PERIOD_MS = 2.0
 
 class SimSlave:
     """The slave Robot stepped tick by tick (1 kHz) on a SimClock, its interfaces on in-process
-    channels (:class:`occ.testing.SimRobot`): the master and an operator are peers on them."""
+    channels (:class:`occ_testkit.testing.SimRobot`): the master and an operator are peers on
+    them."""
 
     def __init__(self, config: Path, *, first_seq: int = 0) -> None:
-        from occ.testing import SimRobot
+        from occ_testkit.testing import SimRobot
 
         self.sim = SimRobot(config)
         self.robot = self.sim.robot

@@ -10,7 +10,7 @@ hours. The paper reports no instability, a mean tracking error of 0.094 mm (X) a
 and the input and output trajectories (Fig. 12).
 
 Set-up (no sockets, no threads): the shipped ``configs/master.yaml`` and ``configs/slave.yaml``
-as two :class:`occ.testing.SimRobot` on ONE :class:`~occ.clock.SimClock`, both ticked at
+as two :class:`occ_testkit.testing.SimRobot` on ONE :class:`~occ.clock.SimClock`, both ticked at
 1 kHz (master first, then slave, at the same simulated instant). A peer on the master's
 ``slave`` interface receives the master controller's own POSITION stream (``teleop-master``
 output, 500 Hz, sequence numbers, ``run``/``clutch`` metadata) and forwards each message to a
@@ -251,7 +251,7 @@ class _MasterSide:
     def __init__(self, args: argparse.Namespace, total_ticks: int) -> None:
         from occ.clock import SimClock
         from occ.safety import RobotState
-        from occ.testing import SimRobot
+        from occ_testkit.testing import SimRobot
 
         self.running_state = RobotState.RUNNING
         packets = total_ticks // PERIOD_MS
@@ -534,7 +534,7 @@ def run(args: argparse.Namespace) -> tuple[Report, Traces]:
 
     from occ.clock import SimClock
     from occ.safety import RobotState
-    from occ.testing import SimRobot
+    from occ_testkit.testing import SimRobot
 
     running = RobotState.RUNNING
     rep = Report("stability")

@@ -45,7 +45,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tools"))
 
-from occ.netns import Netns  # noqa: E402
+from occ_testkit.netns import Netns  # noqa: E402
 
 CONSOLE = "10.211.7.1"
 ROBOT = "10.211.7.2"

@@ -26,7 +26,7 @@ import pytest
 from occ.clock import SimClock
 from occ.loader import parse_config
 from occ.robot import Robot, build_robot
-from occ.testing import wait_until as poll
+from occ_testkit.testing import wait_until as poll
 
 ROOT = Path(__file__).resolve().parents[2]
 

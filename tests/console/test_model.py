@@ -166,7 +166,7 @@ def _get_stats(pair: Any, op: Any) -> dict[str, Any]:
     """A daemon's GetStats answer as the console asks it (JSON), through its operator port."""
     import json
 
-    from occ.testing import wait_until
+    from occ_testkit.testing import wait_until
 
     before = len(op.messages("STRING", "STATS"))
     op.send_command("GetStats", '<Command Name="GetStats" Format="json" Histogram="lateness"/>')
@@ -176,12 +176,12 @@ def _get_stats(pair: Any, op: Any) -> dict[str, Any]:
 
 
 def test_forces_of_the_wall_pair() -> None:
-    """The wall pair (occ.testing.SimPair: configs/master.yaml + configs/wall.yaml) pressing
+    """The wall pair (occ_testkit.testing.SimPair: configs/master.yaml + configs/wall.yaml) pressing
     into the tissue: the slave's panel has its contact force, the master's the force on the
     hand, the slave's feedback and the passivity controller, from the daemons' own answers."""
     import yaml
 
-    from occ.testing import CONFIGS, SimPair
+    from occ_testkit.testing import CONFIGS, SimPair
 
     cfg = yaml.safe_load((CONFIGS / "wall.yaml").read_text())
     with SimPair(CONFIGS / "master.yaml", cfg, delay_ms=40.0) as p:

@@ -59,7 +59,7 @@ def console_on_tissue_slave(tmp_path: Path) -> Iterator[str]:
     a master."""
     import yaml
 
-    from occ.testing import CONFIGS, SimRobot
+    from occ_testkit.testing import CONFIGS, SimRobot
 
     slave_cfg, _, ports = pair_configs()
     wall = yaml.safe_load((CONFIGS / "wall.yaml").read_text())

@@ -8,8 +8,8 @@ the in-process transport delivers before ``send`` returns.
 from __future__ import annotations
 
 import itertools
-import time
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any

@@ -20,7 +20,7 @@ import igtl
 from igtl import wire
 from igtl.errors import CRCError, DecodeError, TransportError
 from igtl.transport import Peer, TCPClient, TCPServer
-from occ.testing import wait_until as _wait
+from occ_testkit.testing import wait_until as _wait
 
 WAIT = 5.0
 

@@ -1,7 +1,7 @@
 """The slave's contact force as 3D Slicer is sent it (occ/forceviz.py), read by real peers.
 
-The wall pair (configs/master.yaml + configs/wall.yaml, :class:`occ.testing.SimPair`) runs the
-paper's motion into the tissue in simulated time; what the slave's Slicer interface sent at the
+The wall pair (configs/master.yaml + configs/wall.yaml, :class:`occ_testkit.testing.SimPair`) runs
+the paper's motion into the tissue in simulated time; what the slave's Slicer interface sent at the
 peak force (the ``TipForce`` TRANSFORM and the ``ForceArrow`` POLYDATA, the daemon's own bytes)
 goes out of our TCP server to:
 
@@ -22,7 +22,7 @@ import pytest
 import yaml
 
 from occ.forceviz import parse_force
-from occ.testing import CONFIGS, SimPair
+from occ_testkit.testing import CONFIGS, SimPair
 
 from . import helpers as h
 

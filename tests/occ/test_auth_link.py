@@ -13,8 +13,8 @@ import igtl
 from igtl.auth import sign, verify
 from igtl.transport import UDPEndpoint
 from occ.clock import SimClock
-from occ.loader import parse_config
 from occ.errors import ConfigError
+from occ.loader import parse_config
 from occ.robot import Robot, build_robot
 
 ROOT = Path(__file__).resolve().parents[2]

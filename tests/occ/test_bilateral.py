@@ -2,8 +2,8 @@
 
 The shipped master (configs/master.yaml: the simulated hand on a haptic device) and the wall
 slave (configs/wall.yaml: configs/slave.yaml whose simulated drives press on a tissue wall and
-whose force is estimated from their efforts) as a :class:`occ.testing.SimPair`: the stream and
-the return channel through lines that delay and lose messages, everything else the daemons'
+whose force is estimated from their efforts) as a :class:`occ_testkit.testing.SimPair`: the stream
+and the return channel through lines that delay and lose messages, everything else the daemons'
 code. The wall slave's force comes from its simulated instrument sensor (``tissue``), or from
 the drives' efforts alone in one test. The hand makes the OCC paper's motion (50 mm circle at 0.1 Hz); the slave's tool presses
 up to 3 mm into the wall on each turn.
@@ -24,7 +24,7 @@ import pytest
 import yaml
 
 from occ.safety import RobotState
-from occ.testing import CONFIGS, SimPair
+from occ_testkit.testing import CONFIGS, SimPair
 
 from ..tools.tooling import load_tool
 

@@ -1,7 +1,7 @@
 """Stiff contact, delay and loss, a stop in contact, a hard hit (issue 37), in simulated time.
 
 The shipped master (the simulated hand on a haptic device) and the wall slave with a stiffer
-wall, as the sweep of tools/bilateral_sweep.py runs them (:class:`occ.testing.SimPair`): the
+wall, as the sweep of tools/bilateral_sweep.py runs them (:class:`occ_testkit.testing.SimPair`): the
 hardest conditions of the sweep hold its bars (the hand's energy, measured independently of
 the controllers, never below -1 % of its peak; no buzz; no growth; the hand under 10 N), a hit
 at 95 mm/s with 50 ms each way keeps the instrument under ``max_tissue_force_n``, and a stop
@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from occ.safety import RobotState
-from occ.testing import CONFIGS, SimPair
+from occ_testkit.testing import CONFIGS, SimPair
 
 from ..tools.tooling import load_tool
 

@@ -1,7 +1,7 @@
 """Collaborative control in simulated time (issue 12): two masters, one slave, hand-over.
 
-The shipped configs/collab/slave.yaml on in-process channels (occ.testing.SimRobot): the mentor's
-and the trainee's POSITION streams come from two peers (a packet every 2 ms each, different
+The shipped configs/collab/slave.yaml on in-process channels (occ_testkit.testing.SimRobot): the
+mentor's and the trainee's POSITION streams come from two peers (a packet every 2 ms each, different
 motions), the operators from the bedside port and the two consoles. Everything between the peers
 and the loop is the daemon's own code, stepped tick by tick.
 """
@@ -20,8 +20,8 @@ import igtl
 from occ.errors import ConfigError
 from occ.loader import load_config, parse_config
 from occ.safety import RobotState
-from occ.testing import SimPeer, SimRobot
-from occ.testing import wait_until as wait_for
+from occ_testkit.testing import SimPeer, SimRobot
+from occ_testkit.testing import wait_until as wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 SLAVE = ROOT / "configs" / "collab" / "slave.yaml"

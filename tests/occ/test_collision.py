@@ -25,7 +25,7 @@ from occ.errors import ConfigError
 from occ.loader import load_config
 from occ.safety import RobotState
 from occ.supervision import Worker
-from occ.testing import CONFIGS, SimRobot
+from occ_testkit.testing import CONFIGS, SimRobot
 
 HOME = [0.0, -1.2, 1.5, -1.9, -1.57, 0.0]
 #: the shoulder and elbow raised: the forearm rises through z = 560 mm, the tip sinks to 236 mm
@@ -443,7 +443,7 @@ def test_a_urdf_without_collision_geometry_gets_capsules() -> None:
 @pytest.mark.req("SR-COLL-2")
 def test_the_guard_on_its_worker_thread_gives_verdicts_the_loop_admits_by() -> None:
     from occ.collision import CollisionGuard
-    from occ.testing import wait_until
+    from occ_testkit.testing import wait_until
 
     cm = model(regions=[CEILING])
     guard = CollisionGuard(cm, inline=False, name="test-collision")

@@ -58,7 +58,7 @@ from occ.frame import Frame
 from occ.loader import load_config
 from occ.safety import RobotState
 from occ.supervision import Worker
-from occ.testing import CONFIGS, SimRobot
+from occ_testkit.testing import CONFIGS, SimRobot
 
 HOME = [0.0, -1.2, 1.5, -1.9, -1.57, 0.0]
 RAISED = [0.0, -1.5, 2.0, -2.0, -1.57, 0.0]  # the forearm through z = 560 mm
@@ -1243,7 +1243,7 @@ def test_a_robot_on_the_real_clock_checks_on_a_worker_thread_of_its_own() -> Non
     from occ.loader import parse_config
     from occ.record import writer_priority
     from occ.robot import build_robot
-    from occ.testing import inproc_config
+    from occ_testkit.testing import inproc_config
 
     cfg = parse_config(yaml.safe_dump(ur5_collision(margin_mm=5.0)), base_dir=CONFIGS)
     robot = build_robot(inproc_config(cfg), clock=RealClock())

@@ -12,8 +12,8 @@ import pytest
 
 from occ.config import DaemonConfig, InterfaceConfig
 from occ.configdoc import DOC_BEGIN, DOC_END, config_reference_markdown
-from occ.loader import load_config, parse_config
 from occ.errors import ConfigError, OCCError
+from occ.loader import load_config, parse_config
 
 DATA = Path(__file__).parent / "data"
 ROOT = Path(__file__).resolve().parents[2]

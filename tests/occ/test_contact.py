@@ -32,7 +32,7 @@ from occ.forces import SlaveForce
 from occ.frame import Frame
 from occ.loader import parse_config
 from occ.safety import RobotState
-from occ.testing import CONFIGS, SimRobot
+from occ_testkit.testing import CONFIGS, SimRobot
 
 pytestmark = pytest.mark.req("SR-FORCE-3")
 
@@ -422,7 +422,6 @@ def test_the_joints_feel_the_damper_through_the_tips_velocity() -> None:
 
 def test_tissue_from_slicer_defaults_visibility_and_refusals() -> None:
     from igtl.messages.point import PointElement
-
     from occ.contact import tissue_from_message
 
     def points(*els: Any, **meta: str) -> Any:

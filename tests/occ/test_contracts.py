@@ -54,7 +54,7 @@ from occ.errors import CommandError, ConfigError, DriverError, LimitError, OCCEr
 from occ.joint import Joint, JointLimits, PIDGains
 from occ.loader import load_config, parse_config
 from occ.safety import RobotState
-from occ.testing import SimPeer, SimRobot
+from occ_testkit.testing import SimPeer, SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"

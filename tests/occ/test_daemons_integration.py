@@ -21,7 +21,8 @@ sys.path.insert(0, str(ROOT / "tools"))
 
 from loopback import pair_configs, stop_processes, wait_port, write_yaml  # noqa: E402
 from slicer_standin import SlicerStandIn  # noqa: E402
-from occ.testing import wait_until as wait_for
+
+from occ_testkit.testing import wait_until as wait_for
 
 pytestmark = pytest.mark.realtime
 

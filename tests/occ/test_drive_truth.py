@@ -1,6 +1,6 @@
 """A drive that lies, or stays broken, never moves the robot (issue 36), on the shipped slave
 with its joints split over two drives, ``arm`` (yaw, pitch) and ``tool`` (insertion), as in the
-fault matrix (occ/faultmatrix.py), in simulated time with an operator and a viewer.
+fault matrix (occ_testkit/faultmatrix.py), in simulated time with an operator and a viewer.
 
 - Reset proves the repair: refused, the state unchanged, while a drive is still broken.
 - Enable is proven by a checked read and a write before ENABLED is said; never SUCCESS with a
@@ -18,18 +18,18 @@ import threading
 from collections.abc import Callable, Sequence
 from typing import Any
 
-import igtl
 import pytest
 
+import igtl
 from occ.clock import SimClock
 from occ.drivers import register_driver
 from occ.drivers.base import DriverState
 from occ.drivers.sim import SimDriver
-from occ.faultmatrix import slave_config
 from occ.hardware import HardwareSet
 from occ.joint import Joint, JointLimits
 from occ.safety import RobotState
-from occ.testing import SimPeer, SimRobot
+from occ_testkit.faultmatrix import slave_config
+from occ_testkit.testing import SimPeer, SimRobot
 
 
 class PluginDrive(SimDriver):

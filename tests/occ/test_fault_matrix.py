@@ -1,4 +1,4 @@
-"""The hardware fault matrix (occ/faultmatrix.py; docs/SAFETY.md SR-HW-1..13), one test a row.
+"""The hardware fault matrix (occ_testkit/faultmatrix.py; docs/SAFETY.md SR-HW-1..13), one test a row.
 
 Each fault is injected into the drive ``tool`` of the shipped slave, whose other drive
 ``arm`` stays healthy. Every row must end with: every drive safe in the tick the robot
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import pytest
 
-from occ.faultmatrix import ROWS, Outcome, run_row
+from occ_testkit.faultmatrix import ROWS, Outcome, run_row
 
 BY_NAME = {row.name: row for row in ROWS}
 

@@ -2,8 +2,8 @@
 
 The geometry (the TRANSFORM whose z axis is the force, the arrow mesh) is checked as numbers;
 the output source ``force`` on the shipped wall pair (configs/master.yaml + configs/wall.yaml,
-:class:`occ.testing.SimPair`) through the daemons' own code in simulated time: what 3D Slicer's
-port receives against what the slave sent its master on the return channel and against the
+:class:`occ_testkit.testing.SimPair`) through the daemons' own code in simulated time: what 3D
+Slicer's port receives against what the slave sent its master on the return channel and against the
 simulated tissue's force.
 """
 
@@ -20,7 +20,7 @@ import yaml
 from occ.errors import ConfigError
 from occ.forceviz import MIN_LENGTH_MM, arrow_mesh, force_matrix, parse_force
 from occ.loader import parse_config
-from occ.testing import CONFIGS, SimPair, SimRobot
+from occ_testkit.testing import CONFIGS, SimPair, SimRobot
 
 MM_PER_N = 10.0
 

@@ -1,12 +1,12 @@
 """Forces in recordings, their plot and their exports (issue 27, "Visible").
 
-The wall pair (configs/master.yaml + configs/wall.yaml, :class:`occ.testing.SimPair`) recorded on
-both sides for 10 s of the paper's motion pressing into the tissue: the slave's recording holds
-its return channel's ``SlaveTip`` (``force_n``, 500 Hz) and its ``TipForce``/``ForceArrow``
-outputs to Slicer (10 Hz); the master's holds the ``SlaveTip`` it received and its ``Force``
-output (the displayed force, 50 Hz). The expected values are read from the recorded messages
-themselves; the MCAP is decoded by mcap-ros2-support, the sequence metafile by the rules of
-Slicer's reader (tests/occ/test_recexport.py).
+The wall pair (configs/master.yaml + configs/wall.yaml, :class:`occ_testkit.testing.SimPair`)
+recorded on both sides for 10 s of the paper's motion pressing into the tissue: the slave's
+recording holds its return channel's ``SlaveTip`` (``force_n``, 500 Hz) and its
+``TipForce``/``ForceArrow`` outputs to Slicer (10 Hz); the master's holds the ``SlaveTip`` it
+received and its ``Force`` output (the displayed force, 50 Hz). The expected values are read from
+the recorded messages themselves; the MCAP is decoded by mcap-ros2-support, the sequence metafile by
+the rules of Slicer's reader (tests/occ/test_recexport.py).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from occ.forceviz import parse_force
 from occ.record import Recorder, read_recording
 from occ.recordcli import main
 from occ.recplot import plot_recording, summarize_recording
-from occ.testing import CONFIGS, SimPair
+from occ_testkit.testing import CONFIGS, SimPair
 
 from .test_recexport import decode_mcap, require, slicer_parse
 

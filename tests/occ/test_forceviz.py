@@ -25,7 +25,7 @@ from occ.errors import ConfigError, OCCError
 from occ.forceviz import MIN_LENGTH_MM, arrow_mesh, force_matrix, message_force, parse_force
 from occ.loader import parse_config
 from occ.outputs import Output, VectorOut, pack_output
-from occ.testing import CONFIGS, SimRobot
+from occ_testkit.testing import CONFIGS, SimRobot
 
 Vec3 = tuple[float, float, float]
 NEWTON = Unit(0, ((11, 1),))

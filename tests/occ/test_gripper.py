@@ -27,7 +27,7 @@ from occ.errors import ConfigError
 from occ.gripper import GripperFollower, GripperSource, parse_gripper
 from occ.loader import parse_config
 from occ.safety import RobotState
-from occ.testing import CONFIGS, SimPair, SimRobot
+from occ_testkit.testing import CONFIGS, SimPair, SimRobot
 
 pytestmark = pytest.mark.req("SR-FORCE-23")
 

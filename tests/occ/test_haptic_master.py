@@ -20,7 +20,7 @@ from igtl.messages.point import PointElement
 from occ.fixture_defs import DefinitionError, PatientMapping, from_markups_file
 from occ.record import Recorder, read_recording
 from occ.safety import RobotState
-from occ.testing import SimRobot, SlaveTipFeed
+from occ_testkit.testing import SimRobot, SlaveTipFeed
 
 from ..tools.tooling import load_tool
 

@@ -1,5 +1,5 @@
 """occ/interfaces.py: the queues that feed the loop, who owns a stream, and what each interface
-counts. Queues are tested alone; routing over in-process interfaces (occ.testing.SimRobot),
+counts. Queues are tested alone; routing over in-process interfaces (occ_testkit.testing.SimRobot),
 where a peer's address is chosen, so ownership is exact.
 
 Several of these were written to catch faults the other tests let through (mutation testing,
@@ -16,7 +16,7 @@ import pytest
 import igtl
 from igtl.transport.common import Peer
 from occ.interfaces import CommandQueue, Inbound, StreamQueue, is_operator_request
-from occ.testing import SimRobot
+from occ_testkit.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
 SLAVE = ROOT / "configs" / "slave.yaml"

@@ -31,7 +31,7 @@ from occ.drivers.base import Driver
 from occ.errors import ConfigError
 from occ.loader import load_config, parse_config
 from occ.safety import RobotState
-from occ.testing import SimPeer, SimRobot
+from occ_testkit.testing import SimPeer, SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"

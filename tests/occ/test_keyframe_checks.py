@@ -397,7 +397,7 @@ def _ur5_plan(keyframes: list[dict[str, Any]]) -> dict[str, str]:
     """KeyframePlan on configs/ur5-keyframe.yaml with these keyframes: the reply's metadata."""
     import yaml
 
-    from occ.testing import CONFIGS, SimRobot
+    from occ_testkit.testing import CONFIGS, SimRobot
 
     cfg = yaml.safe_load((CONFIGS / "ur5-keyframe.yaml").read_text())
     params = cfg["controller"]["params"]
@@ -427,7 +427,7 @@ def _ur5_home_turned(angle_deg: float) -> tuple[list[float], list[float]]:
     from occ.assembly import build_hardware
     from occ.loader import load_config
     from occ.samples import rotation_to_quaternion
-    from occ.testing import CONFIGS
+    from occ_testkit.testing import CONFIGS
 
     cfg = yaml.safe_load((CONFIGS / "ur5-keyframe.yaml").read_text())
     home_q = [j["home"] for j in cfg["robot"]["joints"]]

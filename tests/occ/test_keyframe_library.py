@@ -1,8 +1,8 @@
 """The trajectory library through the daemon (issue 28, item 5): KeyframeSave, KeyframeLibrary,
 KeyframeLoad Set=..., KeyframeDelete on configs/keyframe.yaml.
 
-In simulated time (occ.testing.SimRobot, every setpoint the drivers were told), and over real
-processes: ``occd`` saves a plan, is killed, starts again, loads it by name and runs it to the
+In simulated time (occ_testkit.testing.SimRobot, every setpoint the drivers were told), and over
+real processes: ``occd`` saves a plan, is killed, starts again, loads it by name and runs it to the
 same keyframes. The database itself is tested in tests/occ/test_trajlib.py.
 """
 
@@ -24,7 +24,7 @@ from occ.controllers.keyframe import KeyframeController
 from occ.errors import ConfigError
 from occ.loader import load_config, parse_config
 from occ.safety import RobotState
-from occ.testing import SimPeer, SimRobot
+from occ_testkit.testing import SimPeer, SimRobot
 
 from .test_keyframe import Session, xml
 

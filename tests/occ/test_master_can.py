@@ -9,12 +9,12 @@ from pathlib import Path
 import pytest
 
 import igtl
-from occ.loader import load_config
 from occ.drivers.can_sim import DriveAxis, SimulatedDriveNode
+from occ.loader import load_config
 from occ.robot import build_robot
 from occ.safety import RobotState
-from occ.testing import SimPeer, inproc_config
-from occ.testing import wait_until as _wait
+from occ_testkit.testing import SimPeer, inproc_config
+from occ_testkit.testing import wait_until as _wait
 
 ROOT = Path(__file__).resolve().parents[2]
 COUNTS_PER_M = 1_000_000  # 1 count = 1 um
@@ -106,7 +106,7 @@ def test_can_haptic_master_gets_the_fixture_force_on_its_effort_interface() -> N
     drive node): the fixture force computed each tick goes out as effort frames (mode 2,
     mN), zero while only ENABLED."""
     from occ.drivers.can import MODE_EFFORT
-    from occ.testing import SimRobot, SlaveTipFeed
+    from occ_testkit.testing import SimRobot, SlaveTipFeed
 
     channel = f"occ-test-{time.monotonic_ns()}"
     cfg = load_config(ROOT / "configs" / "master.yaml")

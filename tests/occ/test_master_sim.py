@@ -1,8 +1,8 @@
 """The master robot in simulated time: the 500 Hz POSITION stream, inputs, clutch, fixtures.
 
-The robot's interfaces are in-process channels (occ.testing.SimRobot): a peer on the ``slave``
-channel receives the stream exactly as the slave would (decoded from the wire form), and the
-operator's peer sends commands and fixtures and reads the replies sent to it.
+The robot's interfaces are in-process channels (occ_testkit.testing.SimRobot): a peer on the
+``slave`` channel receives the stream exactly as the slave would (decoded from the wire form), and
+the operator's peer sends commands and fixtures and reads the replies sent to it.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import yaml
 
 import igtl
 from occ.safety import RobotState
-from occ.testing import SimRobot, SlaveTipFeed
+from occ_testkit.testing import SimRobot, SlaveTipFeed
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -19,7 +19,7 @@ from occ.config import DaemonConfig
 from occ.errors import ConfigError
 from occ.loader import load_config
 from occ.safety import RobotState
-from occ.testing import SimPeer, SimRobot
+from occ_testkit.testing import SimPeer, SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
 SIDES = ("left", "right")

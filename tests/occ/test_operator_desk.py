@@ -17,7 +17,7 @@ import pytest
 import igtl
 from occ.operators import VIEWER_HIDDEN, redact_for_viewer
 from occ.safety import RobotState
-from occ.testing import SimPeer, SimRobot, wait_until
+from occ_testkit.testing import SimPeer, SimRobot, wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 SLAVE = ROOT / "configs" / "slave.yaml"
@@ -58,7 +58,7 @@ def answers(sim: SimRobot, msg: igtl.Message, role: str = "operator") -> list[ig
 
 
 def wait_for(cond, timeout: float = 5.0) -> bool:
-    """The worker thread answers GetStats: wait for it (occ.testing.wait_until)."""
+    """The worker thread answers GetStats: wait for it (occ_testkit.testing.wait_until)."""
     return bool(wait_until(cond, timeout, every=0.002))
 
 
@@ -902,7 +902,7 @@ def test_every_robot_command_in_the_table_is_answered_by_its_role_and_thread() -
     commands and is refused the others by its interface; every command gets an answer (the
     worker's ones from the worker thread)."""
     from occ.commands import ROBOT_COMMANDS
-    from occ.testing import wait_until
+    from occ_testkit.testing import wait_until
 
     with SimRobot(SLAVE) as sim:
         viewer = sim.peer("slicer")

@@ -12,7 +12,6 @@ from occ.controllers.teleop import SlaveController
 from occ.frame import Frame
 from occ.loop import ControlLoop
 
-
 # controllers that never use their frame still get a real one (a compiled ControllerContext checks
 # the type of each field)
 SLAVE_FRAME = Frame.builtin("occ_slave")

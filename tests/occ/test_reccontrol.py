@@ -25,7 +25,7 @@ import yaml
 
 import igtl
 from occ.record import STATE_DEVICE, read_recording
-from occ.testing import SimPeer, SimRobot, wait_until
+from occ_testkit.testing import SimPeer, SimRobot, wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tools"))

@@ -23,7 +23,7 @@ import yaml
 import igtl
 from occ.record import STATE_DEVICE, Recorder, read_recording
 from occ.recordcli import main
-from occ.testing import SimRobot
+from occ_testkit.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
 TOL_MM = 1e-4

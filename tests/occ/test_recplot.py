@@ -12,7 +12,7 @@ import pytest
 from occ.record import Recorder
 from occ.recordcli import main as record_main
 from occ.recplot import PlotError, plot_recording, summarize_recording
-from occ.testing import SimRobot
+from occ_testkit.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -15,7 +15,7 @@ import pytest
 import igtl
 from occ.clock import SimClock
 from occ.safety import RobotState
-from occ.testing import SimRobot, SlaveTipFeed
+from occ_testkit.testing import SimRobot, SlaveTipFeed
 
 from ..tools.tooling import load_tool
 

@@ -1,9 +1,9 @@
 """The slave robot in simulated time: loss logic exact to the tick, teleop following, commands.
 
-No sockets are opened: the robot's interfaces are in-process channels (occ.testing.SimRobot); the
-master's stream and the operator's requests come from peers on those channels, through the real
-codec and the interfaces' routing, and each peer reads only what the robot sent to it. The loop
-is stepped tick by tick on a SimClock.
+No sockets are opened: the robot's interfaces are in-process channels
+(occ_testkit.testing.SimRobot); the master's stream and the operator's requests come from peers on
+those channels, through the real codec and the interfaces' routing, and each peer reads only what
+the robot sent to it. The loop is stepped tick by tick on a SimClock.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from occ.clock import SimClock
 from occ.loader import load_config
 from occ.robot import build_robot
 from occ.safety import RobotState
-from occ.testing import SimRobot
+from occ_testkit.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
 MASTER_ADDRESS = ("127.0.0.1", 40000)

@@ -32,7 +32,7 @@ from occ.commands import ROBOT_COMMANDS
 from occ.loader import parse_config
 from occ.robot import Robot, build_robot
 from occ.safety import RobotState
-from occ.testing import wait_until
+from occ_testkit.testing import wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 KEY = b"the operators' shared key, 32 b."

@@ -33,7 +33,7 @@ from occ.errors import ConfigError
 from occ.forces import SlaveForce, TareRefused, gravity_wrench
 from occ.frame import Frame
 from occ.loader import parse_config
-from occ.testing import CONFIGS, SimRobot
+from occ_testkit.testing import CONFIGS, SimRobot
 
 SLAVE = Frame.builtin("occ_slave")
 G = (0.0, 0.0, -9.81)

@@ -18,7 +18,7 @@ import pytest
 
 import igtl
 from occ.safety import RobotState
-from occ.testing import SimRobot
+from occ_testkit.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "configs" / "servo.yaml"

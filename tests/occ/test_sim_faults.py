@@ -1,6 +1,6 @@
 """The simulated drive's hardware faults and what it reports (occ/drivers/sim.py; issue 26's
-fault matrix plays them, occ/faultmatrix.py): faults given in the params, each on its joint, the
-errors that name a bad one, a jump of exactly a fifth of the range, a drive that holds where it
+fault matrix plays them, occ_testkit/faultmatrix.py): faults given in the params, each on its joint,
+the errors that name a bad one, a jump of exactly a fifth of the range, a drive that holds where it
 is when powered, the heartbeat deadline to the tick and every loss reported, and the encoder's,
 the load's and the averaged effort's readings the robot sees. All in simulated time: every
 ``now`` is passed in.

@@ -31,7 +31,7 @@ from occ.record import Recorder
 from occ.recordcli import main
 from occ.returnlink import ReturnLink
 from occ.samples import PoseSample
-from occ.testing import CONFIGS, SimRobot, SlaveTipFeed
+from occ_testkit.testing import CONFIGS, SimRobot, SlaveTipFeed
 
 from .test_recexport import decode_mcap, require
 from .test_sensor_tare import SENSOR_IFACE

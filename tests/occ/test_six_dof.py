@@ -2,7 +2,7 @@
 and orientation.
 
 - configs/ur5.yaml (a UR5 from example-robot-data) follows configs/master6.yaml (the paper's
-  motion with a gimbal turning the handle) as a :class:`occ.testing.SimPair` in simulated
+  motion with a gimbal turning the handle) as a :class:`occ_testkit.testing.SimPair` in simulated
   time: the tool's orientation is the handle's rotation since the re-index applied to the
   tool's, to 1e-6 rad; its position the scaled displacement, to 1e-6 mm; the clutch re-indexes
   both without a jump; ``rotation_scale`` scales the angle; 3D Slicer's Tip carries the pose.
@@ -29,7 +29,7 @@ from occ.errors import ConfigError, KinematicsError
 from occ.loader import load_config, parse_config
 from occ.safety import RobotState
 from occ.samples import quaternion_to_rotation
-from occ.testing import CONFIGS, SimPair
+from occ_testkit.testing import CONFIGS, SimPair
 
 pytestmark = pytest.mark.req("SR-SIX-1")
 
@@ -226,7 +226,7 @@ class Plan6:
     """configs/ur5-keyframe.yaml in simulated time, its operator (3D Slicer's port)."""
 
     def __init__(self, **params: Any) -> None:
-        from occ.testing import SimRobot
+        from occ_testkit.testing import SimRobot
 
         self.sim = SimRobot(CONFIGS / "ur5-keyframe.yaml", params=params or None)
         self.robot = self.sim.robot
@@ -288,7 +288,7 @@ def test_an_unreachable_orientation_is_refused_before_acknowledgement(tmp_path: 
     """The wrist's joints limited to 0.3 rad around home: a keyframe turning the tool 1.2 rad
     about its own axis is refused when planned, naming the keyframe and a joint at its limit;
     the robot does not move."""
-    from occ.testing import SimRobot
+    from occ_testkit.testing import SimRobot
 
     cfg = yaml.safe_load((CONFIGS / "ur5-keyframe.yaml").read_text())
     for j in cfg["robot"]["joints"][3:]:

@@ -21,7 +21,7 @@ from occ.loader import parse_config
 from occ.record import STATE_DEVICE, Recorder, read_recording
 from occ.safety import RobotState
 from occ.statetable import MAX_ROWS, StateTable, capacity_for
-from occ.testing import SimRobot
+from occ_testkit.testing import SimRobot
 
 from .test_collab import SLAVE, Collab, error_of, handover, ok, wait_for
 

@@ -26,7 +26,7 @@ from occ.robot import Robot
 from occ.safety import RobotState
 from occ.samples import PoseSample, pose_sample, quaternion_to_rotation, rotation_to_quaternion
 from occ.streams import POLL_LIMIT, StreamInputs, judge
-from occ.testing import SimRobot, loopback_robot
+from occ_testkit.testing import SimRobot, loopback_robot
 
 ROOT = Path(__file__).resolve().parents[2]
 SLAVE = ROOT / "configs" / "slave.yaml"

@@ -13,7 +13,7 @@ import pytest
 
 import igtl
 from occ.robot import Robot
-from occ.testing import loopback_robot
+from occ_testkit.testing import loopback_robot
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -16,7 +16,7 @@ import igtl
 from occ.clock import SimClock
 from occ.robot import Robot
 from occ.safety import RobotState
-from occ.testing import loopback_robot
+from occ_testkit.testing import loopback_robot
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -14,7 +14,7 @@ import pytest
 from occ.clock import RealClock, SimClock
 from occ.safety import Supervisor
 from occ.supervision import SupervisorThread, Worker
-from occ.testing import wait_until
+from occ_testkit.testing import wait_until
 
 
 def _fifo_report(report: str, priority: int) -> bool:

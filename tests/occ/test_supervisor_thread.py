@@ -14,7 +14,7 @@ from occ.clock import RealClock
 from occ.loader import load_config
 from occ.robot import build_robot
 from occ.safety import RobotState
-from occ.testing import wait_until as wait_for
+from occ_testkit.testing import wait_until as wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -21,7 +21,7 @@ import yaml
 import igtl
 from occ.frame import Frame
 from occ.safety import RobotState
-from occ.testing import SimRobot, SlaveTipFeed
+from occ_testkit.testing import SimRobot, SlaveTipFeed
 
 ROOT = Path(__file__).resolve().parents[2]
 MASTER = ("127.0.0.1", 40000)

@@ -1,4 +1,4 @@
-"""occ.testing: the helper the simulated-time tests stand on routes like the real daemon."""
+"""occ_testkit.testing: the helper the simulated-time tests stand on routes like the real daemon."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import pytest
 import yaml
 
 import igtl
-from occ.loader import parse_config
 from occ.errors import ConfigError
+from occ.loader import parse_config
 from occ.safety import RobotState
-from occ.testing import SimRobot
+from occ_testkit.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
 SLAVE = ROOT / "configs" / "slave.yaml"
@@ -92,14 +92,14 @@ def test_getstats_as_plain_json() -> None:
 
 
 def test_the_module_docstring_example_runs() -> None:
-    """occ.testing's own example (its module docstring) runs as written, from the root."""
+    """occ_testkit.testing's own example (its module docstring) runs as written, from the root."""
     import os
     import textwrap
 
-    import occ.testing
+    import occ_testkit.testing
 
 
-    doc = occ.testing.__doc__ or ""
+    doc = occ_testkit.testing.__doc__ or ""
     block = doc.split("::\n\n", 1)[1].split("\nTests use it", 1)[0]
     code = textwrap.dedent(block)
     assert "SimRobot(" in code
@@ -107,7 +107,7 @@ def test_the_module_docstring_example_runs() -> None:
     os.chdir(ROOT)  # the example names configs/slave.yaml
     try:
         scope: dict[str, object] = {}
-        exec(compile(code, "occ.testing example", "exec"), scope)  # noqa: S102
+        exec(compile(code, "occ_testkit.testing example", "exec"), scope)  # noqa: S102
     finally:
         os.chdir(here)
     tips = scope["tips"]
@@ -120,7 +120,7 @@ def test_a_stalled_master_is_a_late_stream_the_slave_holds_through_not_a_loss() 
     is sent meanwhile and no sequence number is skipped: the slave holds its setpoint at the
     deadline, counts no loss, and follows again by itself when the master's samples return;
     both keep running and stay on one clock."""
-    from occ.testing import CONFIGS, SimPair
+    from occ_testkit.testing import CONFIGS, SimPair
 
     with SimPair(CONFIGS / "master.yaml", SLAVE) as pair:
         pair.start()

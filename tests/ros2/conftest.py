@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 
-from occ.testing import wait_until
+from occ_testkit.testing import wait_until
 
 #: how long ``poll`` waits by default: 10 s; scripts/mutate sets 2 (OCC_BRIDGE_WAIT_S) since a
 #: killed mutant is often a reply or a sample that never comes (a loopback answer takes
@@ -25,8 +25,8 @@ WAIT_S = float(os.environ.get("OCC_BRIDGE_WAIT_S", "10"))
 
 
 def poll(pred: Callable[[], Any], timeout: float | None = None, every: float = 0.005) -> Any:
-    """:func:`occ.testing.wait_until`, by default for :data:`WAIT_S` (the ros2 tests import it
-    from here)."""
+    """:func:`occ_testkit.testing.wait_until`, by default for :data:`WAIT_S` (the ros2 tests import
+    it from here)."""
     return wait_until(pred, WAIT_S if timeout is None else timeout, every)
 
 
@@ -78,7 +78,7 @@ def namespace(request: pytest.FixtureRequest) -> str:
 def netns() -> Iterator[Any]:
     """A private network namespace (netns.py) for a test that runs real ROS 2 nodes; skipped
     without rclpy or root, failed instead in CI (rig.require)."""
-    from occ.netns import Netns
+    from occ_testkit.netns import Netns
 
     from .rig import require
 

@@ -19,7 +19,7 @@ from typing import Any
 
 import pytest
 
-from occ.netns import Netns, available
+from occ_testkit.netns import Netns, available
 
 ROOT = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent

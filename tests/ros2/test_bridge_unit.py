@@ -202,8 +202,8 @@ def test_plan_running_reads_the_keyframe_controllers_statistics() -> None:
     import yaml
 
     from occ.controllers import keyframe
-    from occ.testing import SimRobot
     from occ_ros2 import bridge as b
+    from occ_testkit.testing import SimRobot
 
     assert (b.KEYFRAME_RUNNING, b.KEYFRAME_ENDED) == (
         keyframe.STATUS_RUNNING,

@@ -33,8 +33,8 @@ from typing import Any
 import pytest
 import yaml
 
-from occ.netns import Netns
-from occ.testing import wait_until
+from occ_testkit.netns import Netns
+from occ_testkit.testing import wait_until
 
 from .rig import ROOT, Rig, clean_env
 from .test_crtk import CrtkClient

@@ -24,8 +24,8 @@ from typing import Any
 
 import pytest
 
-from occ.netns import Netns
-from occ.testing import wait_until
+from occ_testkit.netns import Netns
+from occ_testkit.testing import wait_until
 
 from .rig import NS, ROOT, Rig, clean_env
 

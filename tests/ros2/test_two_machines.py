@@ -20,7 +20,7 @@ from typing import Any
 
 import pytest
 
-from occ.testing import wait_until
+from occ_testkit.testing import wait_until
 
 from .rig import HERE, NS, ROOT, Agent, clean_env, require
 

@@ -2,13 +2,14 @@
 and what the robot did (docs/SAFETY.md, SR-HW-1; ``tools/fault_matrix.py`` prints the table,
 ``tests/occ/test_fault_matrix.py`` checks every row).
 
-The robot is ``configs/slave.yaml`` with its joints split over two drives: ``arm`` (yaw,
-pitch; simulated) and ``tool`` (insertion; simulated, or the CAN driver on python-can's
-``virtual`` bus talking to :class:`~occ.drivers.can_sim.SimulatedDriveNode`). The fault is
-always in ``tool``; ``arm`` stays healthy, so a robot that went on moving ``arm`` alone would
-show. Each run is in simulated time on in-process interfaces (:class:`~occ.testing.SimRobot`),
-with an operator, a viewer (Slicer) and the master streaming a ramp; for the CAN rows each tick
-waits for the drive node's answer, so the bus is real and the run still deterministic.
+The robot is ``configs/slave.yaml`` (the checkout's, :data:`occ_testkit.CONFIGS`) with its
+joints split over two drives: ``arm`` (yaw, pitch; simulated) and ``tool`` (insertion;
+simulated, or the CAN driver on python-can's ``virtual`` bus talking to
+:class:`~occ.drivers.can_sim.SimulatedDriveNode`). The fault is always in ``tool``; ``arm``
+stays healthy, so a robot that went on moving ``arm`` alone would show. Each run is in simulated
+time on in-process interfaces (:class:`~occ_testkit.testing.SimRobot`), with an operator, a
+viewer (Slicer) and the master streaming a ramp; for the CAN rows each tick waits for the drive
+node's answer, so the bus is real and the run still deterministic.
 
 For every row the run records: when the robot noticed (simulated ms after the injection), how
 many ticks passed from then until every drive was in its safe state (0: the same tick), the
@@ -22,22 +23,21 @@ from __future__ import annotations
 import itertools
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import igtl
+from occ.clock import SimClock
+from occ.config import DaemonConfig
+from occ.drivers.base import DriverState
+from occ.drivers.can_sim import DriveAxis, SimulatedDriveNode
+from occ.loader import load_config
+from occ.safety import RobotState
 
-from .clock import SimClock
-from .config import DaemonConfig
-from .drivers.base import DriverState
-from .drivers.can_sim import DriveAxis, SimulatedDriveNode
-from .loader import load_config
-from .safety import RobotState
+from . import CONFIGS
 from .testing import SimPeer, SimRobot
 
 __all__ = ["ROWS", "Outcome", "Row", "run_row", "slave_config"]
 
-ROOT = Path(__file__).resolve().parent.parent
 COUNTS_PER_M = 1_000_000.0
 _channels = itertools.count(1)
 
@@ -118,7 +118,7 @@ class Outcome:
 
 def slave_config(backend: str, sim_faults: tuple[str, ...] = (), channel: str = "") -> DaemonConfig:
     """The shipped slave with its joints on two drives, ``arm`` and ``tool`` (module doc)."""
-    cfg = load_config(ROOT / "configs" / "slave.yaml")
+    cfg = load_config(CONFIGS / "slave.yaml")
     shipped = cfg.robot.drivers[0]
     arm = shipped.model_copy(update={"name": "arm", "joints": ("yaw", "pitch")})
     if backend == "sim":

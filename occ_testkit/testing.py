@@ -10,7 +10,7 @@ what the robot sends *to it* (replies go to the peer who asked; broadcasts and o
 peer of that interface). Delivery is synchronous, so the whole run is deterministic: the loop is
 stepped tick by tick on a :class:`~occ.clock.SimClock` (tick ``k`` runs at ``k / rate_hz``)::
 
-    from occ.testing import SimRobot
+    from occ_testkit.testing import SimRobot
 
     with SimRobot("configs/slave.yaml") as sim:
         master = sim.peer("master", address=("127.0.0.1", 40000))
@@ -39,13 +39,15 @@ from typing import Any
 import igtl
 from igtl.messages.base import Message
 from igtl.transport import InprocTransport, Peer
+from occ.clock import SimClock
+from occ.config import DaemonConfig
+from occ.loader import load_config
+from occ.robot import Robot, build_robot
 
-from .clock import SimClock
-from .config import DaemonConfig
-from .loader import load_config
-from .robot import Robot, build_robot
+from . import CONFIGS
 
 __all__ = [
+    "CONFIGS",
     "SimPair",
     "SimPeer",
     "SimRobot",
@@ -431,9 +433,6 @@ class SimRobot:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-
-#: the shipped configurations (a source checkout: the repository's configs/)
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 #: a drop rule: (direction ``"forward"`` or ``"return"``, the message, its 0-based index in that
 #: direction) -> True to lose it
