@@ -32,6 +32,7 @@ import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -91,11 +92,15 @@ _CHECK_TOL = 1e-9  # metres; closed form vs pinocchio at load time
 
 
 def robots_dir() -> Path:
-    """Directory of the shipped URDFs (``$OCC_ROBOTS_DIR`` overrides ``configs/robots``)."""
+    """Directory of the shipped URDFs: the package data ``occ/robots`` (installed with the
+    package, found through :mod:`importlib.resources`, so a wheel finds them as a checkout
+    does); ``$OCC_ROBOTS_DIR`` overrides it."""
     env = os.environ.get("OCC_ROBOTS_DIR")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parent.parent / "configs" / "robots"
+    # a directory on the file system (pinocchio reads files by name): the package is installed
+    # unpacked (setuptools' wheels are), never imported from a zip
+    return Path(str(resources.files("occ").joinpath("robots")))
 
 
 def register_analytic_ik(model_name: str, factory: AnalyticFactory) -> None:

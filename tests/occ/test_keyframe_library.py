@@ -22,6 +22,7 @@ import yaml
 
 from occ.controllers.keyframe import KeyframeController
 from occ.errors import ConfigError
+from occ.frame import robots_dir
 from occ.loader import load_config, parse_config
 from occ.safety import RobotState
 from occ_testkit.testing import SimPeer, SimRobot
@@ -178,7 +179,7 @@ def test_a_plan_from_another_robot_or_configuration_never_loads(library: Path) -
     finally:
         other.close()
     # the same name, another kinematic chain: the tool tip moved to another link of the URDF
-    frame = {"urdf": str(CONFIGS / "robots" / "occ_slave.urdf"), "tip_link": "tool_link"}
+    frame = {"urdf": str(robots_dir() / "occ_slave.urdf"), "tip_link": "tool_link"}
     moved = Daemon(library, frame=frame)
     try:
         error = moved.refused("KeyframeLoad", Set="demo")
@@ -187,7 +188,7 @@ def test_a_plan_from_another_robot_or_configuration_never_loads(library: Path) -
     finally:
         moved.close()
     # the same robot from the same URDF written out in full loads it
-    frame = {"urdf": str(CONFIGS / "robots" / "occ_slave.urdf"), "tip_link": "tool_tip"}
+    frame = {"urdf": str(robots_dir() / "occ_slave.urdf"), "tip_link": "tool_tip"}
     same = Daemon(library, frame=frame)
     try:
         assert "from the library: 'demo'" in same.ok("KeyframeLoad", Set="demo")

@@ -23,7 +23,7 @@ from typing import Any
 import pytest
 
 from occ.errors import LibraryError
-from occ.frame import Frame
+from occ.frame import Frame, robots_dir
 from occ.trajlib import (
     APPLICATION_ID,
     SCHEMA_VERSION,
@@ -121,7 +121,7 @@ def test_another_robot_or_another_configuration_is_refused_with_the_reason(
 
 
 def test_the_config_hash_follows_the_kinematics_not_the_file(tmp_path: Path) -> None:
-    urdf = (ROOT / "configs" / "robots" / "occ_slave.urdf").read_text()
+    urdf = (robots_dir() / "occ_slave.urdf").read_text()
     a = Frame.builtin("occ_slave")
     (tmp_path / "same.urdf").write_text(urdf)  # the same robot from another file
     same = Frame.from_urdf(tmp_path / "same.urdf", "tool_tip")
