@@ -1,5 +1,6 @@
 """The test and tool harness: the robot in simulated time on in-process channels
-(:mod:`occ_testkit.testing`), the hardware fault matrix (:mod:`occ_testkit.faultmatrix`) and
+(:mod:`occ_testkit.testing`), the slave and master rigs the tests drive most
+(:mod:`occ_testkit.rigs`), the hardware fault matrix (:mod:`occ_testkit.faultmatrix`) and
 private network namespaces (:mod:`occ_testkit.netns`).
 
 It drives the daemons from outside, the way the tests, ``tools/`` and ``benchmarks/`` do, and is

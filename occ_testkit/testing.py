@@ -566,12 +566,21 @@ class SimPair:
         self.close()
 
 
-def wait_until(pred: Callable[[], Any], timeout: float = 10.0, every: float = 0.005) -> Any:
+def wait_until(
+    pred: Callable[[], Any],
+    timeout: float = 10.0,
+    every: float = 0.005,
+    *,
+    each: Callable[[], object] | None = None,
+) -> Any:
     """For tests with threads or processes (real sockets, a daemon, a worker's reply): call
     ``pred`` until it returns something true, and return that; after ``timeout`` seconds,
-    return its last (false) value. Simulated-time tests need none of this: they tick."""
+    return its last (false) value. ``each`` is called before every look (a loop on the real
+    clock the test ticks itself). Simulated-time tests need none of this: they tick."""
     end = time.monotonic() + timeout
     while True:
+        if each is not None:
+            each()
         value = pred()
         if value or time.monotonic() >= end:
             return value

@@ -3,7 +3,6 @@ on 127.0.0.1: the master signs what it sends, the slave takes only what carries 
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -16,19 +15,10 @@ from occ.clock import SimClock
 from occ.errors import ConfigError
 from occ.loader import parse_config
 from occ.robot import Robot, build_robot
+from occ_testkit.testing import wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 KEY = "a shared key for the master link"
-
-
-def wait_for(cond: Callable[[], object], step: Callable[[], None], timeout: float = 5.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        step()
-        if cond():
-            return True
-        time.sleep(0.001)
-    return bool(cond())
 
 
 def _with_key(name: str, tmp_path: Path, edit: Callable[[str], str]) -> Robot:
@@ -86,7 +76,7 @@ def test_slave_takes_only_signed_samples(tmp_path: Path) -> None:
             slave.tick(slave.clock.now(), k[0])
             slave.clock.advance(0.001)  # type: ignore[attr-defined]
 
-        assert wait_for(lambda: iface.counters.received == 15, tick)
+        assert wait_until(lambda: iface.counters.received == 15, 5.0, 0.001, each=tick)
         assert iface.counters.unauthenticated == 10
         assert iface.stats()["streams"]["POSITION"]["received"] == 5
         assert slave.snapshot()["interfaces"]["master"]["unauthenticated"] == 10
@@ -113,7 +103,7 @@ def test_master_signs_its_stream(tmp_path: Path) -> None:
             master.tick(master.clock.now(), k[0])
             master.clock.advance(0.001)  # type: ignore[attr-defined]
 
-        assert wait_for(lambda: len(got) >= 10, tick)
+        assert wait_until(lambda: len(got) >= 10, 5.0, 0.001, each=tick)
         key = KEY.encode()
         assert all(verify(m, key) == "" for m in got)
         assert all(verify(m, b"the wrong key, 16 bytes+") == "wrong HMAC" for m in got)
@@ -161,7 +151,7 @@ def test_a_new_client_of_a_keyed_interface_gets_a_signed_greeting(tmp_path: Path
     port = robot.interfaces["operator"].address[1]  # type: ignore[index]
     client = TCPClient("127.0.0.1", port, on_message=lambda p, m: got.append(m)).start()
     try:
-        assert wait_for(lambda: got, lambda: None)
+        assert wait_until(lambda: got, 5.0, 0.001)
         greeting = got[0]
         assert greeting.message_type == "STATUS" and greeting.header_version == 2
         assert verify(greeting, KEY.encode()) == ""
@@ -212,7 +202,9 @@ def test_the_return_channel_is_signed_when_the_link_is(tmp_path: Path) -> None:
     try:
         ctrl = master.controller.controllers[0]
         tick = _tick_both(slave, master)
-        assert wait_for(lambda: (ctrl.stats()["slave_tip"] or {}).get("samples", 0) >= 20, tick)
+        assert wait_until(
+            lambda: (ctrl.stats()["slave_tip"] or {}).get("samples", 0) >= 20, 5.0, 0.001, each=tick
+        )
         assert master.interfaces["slave"].counters.unauthenticated == 0
         assert slave.interfaces["master"].counters.unauthenticated == 0
         assert ctrl.stats()["slave_tip"]["following"] is True
@@ -228,7 +220,7 @@ def test_an_unsigned_return_channel_on_a_keyed_link_is_refused(tmp_path: Path) -
         ctrl = master.controller.controllers[0]
         tick = _tick_both(slave, master)
         iface = master.interfaces["slave"]
-        assert wait_for(lambda: iface.counters.unauthenticated >= 20, tick)
+        assert wait_until(lambda: iface.counters.unauthenticated >= 20, 5.0, 0.001, each=tick)
         st = ctrl.stats()["slave_tip"]
         assert st is None or st["samples"] == 0
         assert ctrl.stats()["tool_mm"] is None

@@ -20,7 +20,7 @@ from igtl.messages.point import PointElement
 from occ.fixture_defs import DefinitionError, PatientMapping, from_markups_file
 from occ.record import Recorder, read_recording
 from occ.safety import RobotState
-from occ_testkit.testing import SimRobot, SlaveTipFeed
+from occ_testkit.rigs import SimMaster
 
 from ..tools.tooling import load_tool
 
@@ -28,48 +28,13 @@ ROOT = Path(__file__).resolve().parents[2]
 standin = load_tool("slicer_standin")
 
 
-class Master:
-    def __init__(self, config: object = None, recorder: Recorder | None = None, **params: object) -> None:
-        self.sim = SimRobot(config or ROOT / "configs" / "master.yaml", params=params or None,
-                            recorder=recorder)
-        self.robot = self.sim.robot
-        self.ctrl = self.robot.controller.controllers[0]
-        self.hand = self.robot.hardware.drivers[0]
-        self.op = self.sim.peer("operator", address=("127.0.0.1", 41000))
-        self.sim.step(1)  # the master's first output: its slave link is known
-        self.feed = SlaveTipFeed(self.sim)
-
-    def step(self, n: int = 1) -> None:
-        self.feed.step(n)
-
-    def p(self, handle_mm) -> tuple[float, float, float]:
-        """The patient point under the handle position ``handle_mm`` (the feed's slave)."""
-        return self.feed.patient(handle_mm)
-
-    def command(self, name: str, text: str = "") -> igtl.Message:
-        cid = self.op.send_command(name, text)
-        self.step(1)  # the feed's step: the slave's tip comes with the tick
-        reply = self.op.reply_to(cid)
-        assert reply is not None
-        return reply
-
-    def run(self) -> None:
-        for c in ("Enable", "Run"):
-            assert self.command(c).metadata["Status"] == "SUCCESS"
-        self.step(25)  # the force fades in within tip_fade_ms (20 ms) of Run
-
-    @property
-    def tool(self) -> tuple[float, float, float]:
-        x, y, z = self.robot.frame.tip_position(self.robot.data.q)
-        return (x * 1e3, y * 1e3, z * 1e3)
-
-    def close(self) -> None:
-        self.sim.close()
+#: the master's controller ticks 25 times after Run: its force has faded in (tip_fade_ms, 20 ms)
+SETTLE = 25
 
 
 @pytest.fixture
 def master():
-    m = Master()
+    m = SimMaster(feed=True)
     yield m
     m.close()
 
@@ -81,29 +46,29 @@ def forbidden_at(centre, radius=1.0, k=1.0, name="VF") -> igtl.Message:
 
 
 # ------------------------------------------------------------------ the force on the effort interface
-def test_force_is_commanded_only_while_running(master: Master) -> None:
+def test_force_is_commanded_only_while_running(master: SimMaster) -> None:
     master.command("Enable")
-    t = master.tool
+    t = master.feed.handle_mm()
     # 4 mm of the handle to the tool's +x, radius 10 mm of the handle: the tool 6 mm deep
-    master.op.send(forbidden_at(master.p((t[0] + 4.0, t[1], t[2])), k=0.5))
+    master.op.send(forbidden_at(master.feed.patient((t[0] + 4.0, t[1], t[2])), k=0.5))
     master.step(100)
     assert master.robot.data.effort_command == [0.0, 0.0, 0.0]  # ENABLED: the device is free
-    assert master.hand._cmd == [0.0, 0.0, 0.0]
+    assert master.robot.hardware.drivers[0]._cmd == [0.0, 0.0, 0.0]
     master.command("Run")
     master.step(25)  # faded in (tip_fade_ms)
     eff = master.robot.data.effort_command
     # out of the sphere (centred 4 mm to the tool's +x when sent; the hand has moved since)
-    away = [a - c for a, c in zip(master.tool, (t[0] + 4.0, t[1], t[2]))]
+    away = [a - c for a, c in zip(master.feed.handle_mm(), (t[0] + 4.0, t[1], t[2]))]
     assert math.hypot(*eff) > 2.5 and sum(e * a for e, a in zip(eff, away)) > 0.0
-    assert master.hand._cmd == pytest.approx(eff)  # what the drive got, this tick
+    assert master.robot.hardware.drivers[0]._cmd == pytest.approx(eff)  # what the drive got, this tick
     master.command("Stop")
     assert master.robot.state is RobotState.STOPPED
     master.step(1)
     assert master.robot.data.effort_command == [0.0, 0.0, 0.0]
 
 
-def test_slicer_point_list_changes_the_force_within_one_tick(master: Master) -> None:
-    master.run()
+def test_slicer_point_list_changes_the_force_within_one_tick(master: SimMaster) -> None:
+    master.run(SETTLE)
     master.step(300)
     assert master.robot.data.effort_command == [0.0, 0.0, 0.0]
     # Slicer's RAS: where the slave's tip is (the Tip Slicer shows; 10:1)
@@ -115,18 +80,18 @@ def test_slicer_point_list_changes_the_force_within_one_tick(master: Master) -> 
     master.step(1)  # the tick after arrival
     eff = master.robot.data.effort_command
     assert eff[0] == pytest.approx(-3.0, abs=0.1) and abs(eff[1]) < 0.05 and abs(eff[2]) < 0.05
-    assert master.hand._cmd == pytest.approx(eff)
-    stats = master.ctrl.stats()
+    assert master.robot.hardware.drivers[0]._cmd == pytest.approx(eff)
+    stats = master.ctl.stats()
     assert stats["contact"] == ["Keepout-1"] and stats["fixture_sources"] == ["POINT:Keepout"]
 
 
-def test_point_list_as_a_guide(master: Master) -> None:
-    master.run()
+def test_point_list_as_a_guide(master: SimMaster) -> None:
+    master.run(SETTLE)
     master.step(10)
-    t = master.tool
+    t = master.feed.handle_mm()
     # a straight guide 3 mm of the handle (0.3 mm in the patient) above the tool
-    msg = standin.markups_points([master.p((t[0] - 50, t[1], t[2] + 3.0)),
-                                  master.p((t[0] + 50, t[1], t[2] + 3.0))],
+    msg = standin.markups_points([master.feed.patient((t[0] - 50, t[1], t[2] + 3.0)),
+                                  master.feed.patient((t[0] + 50, t[1], t[2] + 3.0))],
                                  "Path", kind="guide", stiffness=0.5)
     master.op.send(msg)
     master.step(1)
@@ -166,29 +131,29 @@ def bad_messages():
 
 
 @pytest.mark.parametrize("why,msg", bad_messages(), ids=[b[0] for b in bad_messages()])
-def test_invalid_definitions_are_refused_and_the_previous_set_stays(master: Master, why, msg) -> None:
-    master.run()
+def test_invalid_definitions_are_refused_and_the_previous_set_stays(master: SimMaster, why, msg) -> None:
+    master.run(SETTLE)
     master.step(100)
-    t = master.tool
-    master.op.send(forbidden_at(master.p((t[0] + 4.0, t[1], t[2])), name="Good"))
+    t = master.feed.handle_mm()
+    master.op.send(forbidden_at(master.feed.patient((t[0] + 4.0, t[1], t[2])), name="Good"))
     master.step(1)
     before = master.robot.data.effort_command[:]
     assert before[0] < -5.0
-    active = master.ctrl.fixtures.active
+    active = master.ctl.fixtures.active
     n = len(master.op.received)
     master.op.send(msg)
     master.step(1)
     replies = [m for m in master.op.received[n:] if m.message_type == "STATUS"]
     assert replies and "refused" in replies[-1].status_message, why
     assert replies[-1].code == igtl.StatusCode.ILLEGAL_INSTRUCTION
-    assert master.ctrl.fixtures.active is active  # not swapped
-    stats = master.ctrl.stats()
+    assert master.ctl.fixtures.active is active  # not swapped
+    stats = master.ctl.stats()
     assert stats["fixtures"] == 1 and stats["fixtures_refused"] == 1
     assert master.robot.state is RobotState.RUNNING  # refused, not a fault
     assert master.robot.data.effort_command[0] == pytest.approx(before[0], abs=0.2)
 
 
-def test_too_many_planes_refused(master: Master) -> None:
+def test_too_many_planes_refused(master: SimMaster) -> None:
     plane = lambda i: igtl.TransformMessage.from_position((0.0, 0.0, -100.0 - i),  # noqa: E731
                                                           device_name=f"P{i}", header_version=2,
                                                           metadata={"kind": "plane"})
@@ -196,25 +161,25 @@ def test_too_many_planes_refused(master: Master) -> None:
         master.op.send(plane(i))
     master.op.send(plane(8))
     master.step(1)
-    stats = master.ctrl.stats()
+    stats = master.ctl.stats()
     assert stats["fixture_kinds"]["plane"] == 8 and stats["fixtures_refused"] == 1
     assert "max_planes" in stats["fixture_last_error"]
 
 
-def test_empty_definition_removes_its_source_only(master: Master) -> None:
+def test_empty_definition_removes_its_source_only(master: SimMaster) -> None:
     master.op.send(forbidden_at((0.0, 0.0, 0.0), name="A"))
     master.op.send(forbidden_at((0.0, 0.0, 50.0), name="B"))
     master.step(1)
-    assert master.ctrl.stats()["fixtures"] == 2
+    assert master.ctl.stats()["fixtures"] == 2
     master.op.send(igtl.VirtualFixtureMessage(hardness=1.0, spheres=(), device_name="A"))
     master.step(1)
-    assert master.ctrl.stats()["fixture_sources"] == ["VFIXTURE:B"]
+    assert master.ctl.stats()["fixture_sources"] == ["VFIXTURE:B"]
     assert master.command("ClearFixtures").metadata["Status"] == "SUCCESS"
-    assert master.ctrl.stats()["fixtures"] == 0
+    assert master.ctl.stats()["fixtures"] == 0
 
 
 # ------------------------------------------------------------------ encodings
-def test_vfixture_paper_layout_and_default_kind_accessible(master: Master) -> None:
+def test_vfixture_paper_layout_and_default_kind_accessible(master: SimMaster) -> None:
     # the paper's 8 + 16 n layout, from a v1 sender (no metadata): an accessible sphere
     import struct
 
@@ -222,27 +187,27 @@ def test_vfixture_paper_layout_and_default_kind_accessible(master: Master) -> No
     raw = igtl.RawMessage(type_name="VFIXTURE", device_name="VF", content=content).pack()
     assert master.op.send(raw) == 1
     master.step(1)
-    (prim,) = master.ctrl.fixtures.active.primitives
+    (prim,) = master.ctl.fixtures.active.primitives
     # 100 patient mm at 10:1: 1000 mm of the master's motion
     assert prim.kind == "accessible" and prim.radius == pytest.approx(1000.0)
-    assert master.ctrl.fixtures.groups["VFIXTURE:VF"][0].radius == 100.0
+    assert master.ctl.fixtures.groups["VFIXTURE:VF"][0].radius == 100.0
 
 
-def test_markups_plane_as_transform(master: Master) -> None:
-    master.run()
-    t = master.tool
+def test_markups_plane_as_transform(master: SimMaster) -> None:
+    master.run(SETTLE)
+    t = master.feed.handle_mm()
     # a plane 2 mm above the tool, normal -z (its z axis: the allowed side is below): free
     m = np.eye(4)
     m[:3, 2] = (0.0, 0.0, -1.0)
     m[:3, 0] = (-1.0, 0.0, 0.0)
-    m[:3, 3] = master.p((t[0], t[1], t[2] + 2.0))
+    m[:3, 3] = master.feed.patient((t[0], t[1], t[2] + 2.0))
     master.op.send(igtl.TransformMessage.from_matrix(
         m, device_name="Floor", header_version=2,
         metadata={"kind": "plane", "stiffness": "2.0", "MRMLNodeName": "Floor"}))
     master.step(1)
     assert master.robot.data.effort_command[2] == pytest.approx(0.0, abs=1e-9)
     # moved 2 mm below the tool (the same source: it replaces the first): 2 mm deep
-    m[:3, 3] = master.p((t[0], t[1], t[2] - 2.0))
+    m[:3, 3] = master.feed.patient((t[0], t[1], t[2] - 2.0))
     master.op.send(igtl.TransformMessage.from_matrix(
         m, device_name="Floor", header_version=2,
         metadata={"kind": "plane", "frame": "patient", "stiffness": "2.0"}))
@@ -250,11 +215,11 @@ def test_markups_plane_as_transform(master: Master) -> None:
     assert master.robot.data.effort_command[2] == pytest.approx(-4.0, abs=0.1)
 
 
-def test_polydata_lines_as_guides(master: Master) -> None:
-    master.run()
-    t = master.tool
-    pts = np.array([master.p((t[0] - 40, t[1] + 2.0, t[2])),
-                    master.p((t[0] + 40, t[1] + 2.0, t[2]))])
+def test_polydata_lines_as_guides(master: SimMaster) -> None:
+    master.run(SETTLE)
+    t = master.feed.handle_mm()
+    pts = np.array([master.feed.patient((t[0] - 40, t[1] + 2.0, t[2])),
+                    master.feed.patient((t[0] + 40, t[1] + 2.0, t[2]))])
     msg = igtl.PolyDataMessage(points=pts, lines=((0, 1),), device_name="Guide",
                                header_version=2, metadata={"kind": "guide"})
     master.op.send(msg)
@@ -291,11 +256,11 @@ def test_markups_file_from_yaml_lps_to_ras(tmp_path: Path) -> None:
         {"file": "plan.mrk.json", "kind": "forbidden", "radius_mm": 2.0}]
     cfg_path = tmp_path / "master.yaml"
     cfg_path.write_text(yaml.safe_dump(raw))
-    m = Master(cfg_path)
+    m = SimMaster(cfg_path, feed=True)
     try:
-        assert m.ctrl.stats()["fixture_kinds"] == {"accessible": 0, "forbidden": 1, "plane": 1,
+        assert m.ctl.stats()["fixture_kinds"] == {"accessible": 0, "forbidden": 1, "plane": 1,
                                                    "guide": 1}
-        (src,) = m.ctrl.stats()["fixture_sources"]
+        (src,) = m.ctl.stats()["fixture_sources"]
         assert src == f"file:{tmp_path / 'plan.mrk.json'}"
     finally:
         m.close()
@@ -330,13 +295,13 @@ def test_patient_to_master_map_scale_registration_and_the_slaves_own_map() -> No
         m.set_linear(((0.1, 0.0, 0.0), (0.0, 0.2, 0.0), (0.0, 0.0, 0.1)))
 
 
-def test_clutch_leaves_the_fixtures_where_they_are_and_fades_the_force(master: Master) -> None:
-    master.run()
+def test_clutch_leaves_the_fixtures_where_they_are_and_fades_the_force(master: SimMaster) -> None:
+    master.run(SETTLE)
     master.step(100)
-    t = master.tool
-    master.op.send(forbidden_at(master.p((t[0] + 4.0, t[1], t[2])), k=0.5, name="Keepout"))
+    t = master.feed.handle_mm()
+    master.op.send(forbidden_at(master.feed.patient((t[0] + 4.0, t[1], t[2])), k=0.5, name="Keepout"))
     master.step(1)
-    (before,) = master.ctrl.fixtures.active.primitives
+    (before,) = master.ctl.fixtures.active.primitives
     f0 = math.hypot(*master.robot.data.effort_command)
     assert f0 > 2.5
     master.command("Clutch", '<Command Name="Clutch" Value="1"/>')
@@ -347,41 +312,41 @@ def test_clutch_leaves_the_fixtures_where_they_are_and_fades_the_force(master: M
     master.command("Clutch", '<Command Name="Clutch" Value="0"/>')
     master.feed.following = True
     master.step(1)
-    (after,) = master.ctrl.fixtures.active.primitives
+    (after,) = master.ctl.fixtures.active.primitives
     # patient fixtures stay put on the master: the tool is where the slave measures it
     assert after.centre == pytest.approx(before.centre)
-    assert master.ctrl.stats()["fixture_map"] == {"source": "slave", "scale": 0.1}
+    assert master.ctl.stats()["fixture_map"] == {"source": "slave", "scale": 0.1}
 
 
-def test_registration_transform_sets_the_map_when_the_slave_sends_none(master: Master) -> None:
+def test_registration_transform_sets_the_map_when_the_slave_sends_none(master: SimMaster) -> None:
     master.close()
-    m = Master()
+    m = SimMaster(feed=True)
     try:
         m.feed.paused = True  # a slave that sends no map (and no tip)
         m.op.send(standin.markups_points([(1.0, 0.0, 0.0)], "T", kind="forbidden", radius=1.0))
         m.step(1)
-        (a,) = m.ctrl.fixtures.active.primitives
+        (a,) = m.ctl.fixtures.active.primitives
         assert a.centre == pytest.approx((10.0, 0.0, 0.0))
         reg = np.eye(4)
         reg[:3, 3] = (-5.0, 0.0, 0.0)  # a translation moves nothing on the master
         m.op.send(igtl.TransformMessage.from_matrix(reg, device_name="Base", header_version=2))
         m.step(1)
-        assert m.ctrl.fixtures.active.primitives[0].centre == pytest.approx((10.0, 0.0, 0.0))
+        assert m.ctl.fixtures.active.primitives[0].centre == pytest.approx((10.0, 0.0, 0.0))
         reg[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]  # 90 deg about z
         m.op.send(igtl.TransformMessage.from_matrix(reg, device_name="Base", header_version=2))
         m.step(1)
-        assert m.ctrl.fixtures.active.primitives[0].centre == pytest.approx((0.0, -10.0, 0.0))
+        assert m.ctl.fixtures.active.primitives[0].centre == pytest.approx((0.0, -10.0, 0.0))
     finally:
         m.close()
 
 
 # ------------------------------------------------------------------ display, stats, recording
-def test_models_and_proxy_shown_in_slicer(master: Master) -> None:
+def test_models_and_proxy_shown_in_slicer(master: SimMaster) -> None:
     slicer = master.sim.peer("operator")
-    master.run()
+    master.run(SETTLE)
     master.step(100)
-    t = master.tool
-    master.op.send(forbidden_at(master.p((t[0] + 4.0, t[1], t[2])), name="Keepout"))
+    t = master.feed.handle_mm()
+    master.op.send(forbidden_at(master.feed.patient((t[0] + 4.0, t[1], t[2])), name="Keepout"))
     plane = igtl.TransformMessage.from_position((0.0, 0.0, 0.0), device_name="Floor",
                                                 header_version=2, metadata={"kind": "plane"})
     master.op.send(plane)
@@ -417,15 +382,15 @@ def test_the_displayed_force_as_sensor_and_ndarray_outputs() -> None:
         {"type": "SENSOR", "device": "Force", "source": "force", "rate_hz": 100},
         {"type": "NDARRAY", "device": "ForceArray", "source": "force", "rate_hz": 100},
     ]
-    m = Master(cfg)
+    m = SimMaster(cfg, feed=True)
     try:
         viewer = m.sim.peer("operator")
-        m.run()
+        m.run(SETTLE)
         m.step(100)
         before = viewer.messages("SENSOR", "Force")
         assert before and all(x.data == (0.0, 0.0, 0.0) for x in before)
-        t = m.tool
-        m.op.send(forbidden_at(m.p((t[0] + 4.0, t[1], t[2]))))
+        t = m.feed.handle_mm()
+        m.op.send(forbidden_at(m.feed.patient((t[0] + 4.0, t[1], t[2]))))
         m.step(30)
         # each message carries the force displayed in the tick that sent it
         checked = 0
@@ -435,7 +400,7 @@ def test_the_displayed_force_as_sensor_and_ndarray_outputs() -> None:
             sent = viewer.messages("SENSOR", "Force")[n:]
             if not sent:
                 continue
-            force = tuple(m.ctrl.fixtures.force_n)
+            force = tuple(m.ctl.fixtures.force_n)
             assert force[0] < -1.0  # pushed out of the sphere, toward -x
             (sensor,) = sent
             assert str(sensor.unit) == "N" and sensor.unit.units == ((11, 1),)
@@ -452,12 +417,12 @@ def test_the_displayed_force_as_sensor_and_ndarray_outputs() -> None:
 def test_getstats_and_recording_have_tool_and_force(tmp_path: Path) -> None:
     path = tmp_path / "master.igtl"
     rec = Recorder(path, rate_hz=100).start()
-    m = Master(recorder=rec)
+    m = SimMaster(recorder=rec, feed=True)
     try:
-        m.run()
+        m.run(SETTLE)
         m.step(100)
-        t = m.tool
-        m.op.send(forbidden_at(m.p((t[0] + 4.0, t[1], t[2]))))
+        t = m.feed.handle_mm()
+        m.op.send(forbidden_at(m.feed.patient((t[0] + 4.0, t[1], t[2]))))
         m.step(300)
         cid = m.op.send_command("GetStats")
         m.step(1)
@@ -483,7 +448,7 @@ def test_getstats_and_recording_have_tool_and_force(tmp_path: Path) -> None:
     assert row["eff.x"] < -1.0
 
 
-def test_a_burst_beyond_the_tick_budget_is_refused_busy_then_taken(master: Master) -> None:
+def test_a_burst_beyond_the_tick_budget_is_refused_busy_then_taken(master: SimMaster) -> None:
     spheres = tuple((float(i), 0.0, 0.0, 5.0) for i in range(40))
     msg = igtl.VirtualFixtureMessage(hardness=1.0, spheres=spheres, device_name="Big",
                                      header_version=2)
@@ -492,7 +457,7 @@ def test_a_burst_beyond_the_tick_budget_is_refused_busy_then_taken(master: Maste
     master.step(1)
     statuses = [m for m in master.op.received if m.message_type == "STATUS"
                 and "busy" in m.status_message]
-    assert len(statuses) == 1 and master.ctrl.stats()["fixtures"] == 40
+    assert len(statuses) == 1 and master.ctl.stats()["fixtures"] == 40
     master.op.send(msg)
     master.step(1)  # next tick: taken
-    assert master.ctrl.stats()["fixtures_applied"] == 2
+    assert master.ctl.stats()["fixtures_applied"] == 2

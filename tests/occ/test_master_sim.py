@@ -15,7 +15,7 @@ import yaml
 
 import igtl
 from occ.safety import RobotState
-from occ_testkit.testing import SimRobot, SlaveTipFeed
+from occ_testkit.rigs import SimMaster, SlaveTipFeed
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -32,31 +32,6 @@ def position_master(**params: object) -> dict:
     return raw
 
 
-class SimMaster:
-    def __init__(self, config: object = None, **teleop: object) -> None:
-        self.sim = SimRobot(config or ROOT / "configs" / "master.yaml", params=teleop or None)
-        self.robot = self.sim.robot
-        self.slave = self.sim.peer("slave")
-        self.operator = self.sim.peer("operator", address=("127.0.0.1", 41000))
-        #: the stream as the slave receives it
-        self.sent = self.slave.received
-        #: everything the robot sent to the operator
-        self.replies = self.operator.received
-
-    @property
-    def k(self) -> int:
-        return self.sim.k
-
-    def ticks(self, n: int) -> None:
-        self.sim.step(n)
-
-    def command(self, name: str, text: str = "") -> igtl.Message:
-        return self.sim.command(self.operator, name, text)
-
-    def close(self) -> None:
-        self.sim.close()
-
-
 @pytest.fixture
 def master() -> SimMaster:
     m = SimMaster()
@@ -65,12 +40,12 @@ def master() -> SimMaster:
 
 
 def test_stream_is_500hz_v2_with_sequence_and_run_flag(master: SimMaster) -> None:
-    master.ticks(100)  # READY: the stream already flows, run=0
+    master.step(100)  # READY: the stream already flows, run=0
     assert len(master.sent) == 50
     assert all(m.metadata["run"] == "0" for m in master.sent)
     for name in ("Enable", "Run"):
         assert master.command(name).metadata["Status"] == "SUCCESS"
-    master.ticks(1000)
+    master.step(1000)
     msgs = master.sent
     ids = [m.message_id for m in msgs]
     assert ids == list(range(1, len(msgs) + 1))
@@ -82,7 +57,7 @@ def test_simulated_operator_follows_paper_trajectory(master: SimMaster) -> None:
     master.command("Enable")
     master.command("Run")
     t_run = (master.k - 1) * 0.001
-    master.ticks(2500)
+    master.step(2500)
     origin = master.robot.controller.controllers[0].origin * 1000.0
     last = master.sent[-1]
     t = (master.k - 1) * 0.001 - t_run
@@ -108,9 +83,9 @@ def test_igtl_input_drives_the_handle() -> None:
         limit = [0.5 * j.limits.velocity * 1e-3 for j in m.robot.joints]
         previous = list(m.robot.data.setpoint)
         for _ in range(300):
-            assert m.operator.send(igtl.TransformMessage.from_position(target, device_name="Tracker")) == 1
+            assert m.op.send(igtl.TransformMessage.from_position(target, device_name="Tracker")) == 1
             for _ in range(2):
-                m.ticks(1)
+                m.step(1)
                 now = list(m.robot.data.setpoint)
                 assert all(abs(a - b) <= lim + 1e-12 for a, b, lim in zip(now, previous, limit))
                 previous = now
@@ -125,10 +100,10 @@ def test_clutch_travels_with_the_stream(master: SimMaster) -> None:
     master.command("Run")
     r = master.command("Clutch", '<Command Name="Clutch" Value="1"/>')
     assert r.metadata["Status"] == "SUCCESS"
-    master.ticks(4)
+    master.step(4)
     assert master.sent[-1].metadata["clutch"] == "1"
     master.command("Clutch", '<Command Name="Clutch" Value="0"/>')
-    master.ticks(4)
+    master.step(4)
     assert master.sent[-1].metadata["clutch"] == "0"
 
 
@@ -148,7 +123,7 @@ def test_forbidden_sphere_pushes_the_hand_out_and_reports_force(master: SimMaste
     fx = igtl.VirtualFixtureMessage(hardness=0.5, spheres=((*feed.patient(centre), 1.0),),
                                     device_name="Fixtures", header_version=2,
                                     metadata={"MRMLNodeName": "VF", "kind": "forbidden"})
-    assert master.operator.send(fx) == 1
+    assert master.op.send(fx) == 1
     feed.step(1)
     stats = master.robot.controller.stats()
     assert stats["fixtures"] == 1 and stats["fixture_contacts"] == 1
@@ -168,17 +143,17 @@ def test_stop_state_holds_and_reports() -> None:
     master = SimMaster(position_master())
     master.command("Enable")
     master.command("Run")
-    master.ticks(100)
+    master.step(100)
     master.command("Stop")
     assert master.robot.state is RobotState.STOPPED
     p0 = master.sent[-1].position
-    master.ticks(200)
+    master.step(200)
     assert master.sent[-1].metadata["run"] == "0"
     # holds the last commanded setpoint: the handle settles where it was told (the simulated
     # drive lags its command by ~0.3 mm at this speed) and then stays there
     p1 = master.sent[-1].position
     assert p1 == pytest.approx(p0, abs=0.5)
-    master.ticks(100)
+    master.step(100)
     assert master.sent[-1].position == pytest.approx(p1, abs=0.01)
     master.close()
 
@@ -198,7 +173,7 @@ def test_slicer_markups_points_become_fixture_spheres(master: SimMaster) -> None
     pts = igtl.PointMessage(points=(near, hidden), device_name="F", header_version=2,
                             metadata={"MRMLNodeName": "MarkupsFiducial", "kind": "forbidden",
                                       "radius": "0.5"})
-    assert master.operator.send(pts) == 1
+    assert master.op.send(pts) == 1
     feed.step(1)
     stats = master.robot.controller.stats()
     assert stats["fixtures"] == 1  # the hidden point (alpha 0) is not a fixture

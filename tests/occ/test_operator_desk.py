@@ -57,9 +57,8 @@ def answers(sim: SimRobot, msg: igtl.Message, role: str = "operator") -> list[ig
     return out
 
 
-def wait_for(cond, timeout: float = 5.0) -> bool:
-    """The worker thread answers GetStats: wait for it (occ_testkit.testing.wait_until)."""
-    return bool(wait_until(cond, timeout, every=0.002))
+#: how long a test waits for the worker thread that answers GetStats (s)
+WORKER_S = 5.0
 
 
 @pytest.mark.req("SR-ROUTE-1")
@@ -252,7 +251,7 @@ def test_getstats_is_compact_json_with_the_lateness_buckets_on_request(sim):
     plain = op.send_command("GetStats")
     hist = op.send_command("GetStats", '<Command Name="GetStats" Histogram="Lateness"/>')
     sim.step()
-    assert wait_for(lambda: op.reply_to(plain) and op.reply_to(hist))
+    assert wait_until(lambda: op.reply_to(plain) and op.reply_to(hist), WORKER_S)
     text = op.reply_to(plain).metadata["Message"]
     assert ", " not in text and '": ' not in text  # compact separators
     snap = json.loads(text)
@@ -274,7 +273,7 @@ def test_getstats_as_json_names_the_request_it_answers(sim):
         )
     )
     sim.step()
-    assert wait_for(lambda: op.messages("STRING", "ACK_9"))
+    assert wait_until(lambda: op.messages("STRING", "ACK_9"), WORKER_S)
     (ack,) = op.messages("STRING", "ACK_9")
     assert (ack.header_version, ack.message_id) == (2, 66) and ack.timestamp > 1e9
     assert json.loads(ack.string)["robot"] == "slave"
@@ -285,7 +284,7 @@ def test_getstats_as_json_names_the_request_it_answers(sim):
         )
     )
     sim.step()
-    assert wait_for(lambda: viewer.messages("STRING", "ACK_1"))
+    assert wait_until(lambda: viewer.messages("STRING", "ACK_1"), WORKER_S)
     (ack,) = viewer.messages("STRING", "ACK_1")
     text = ack.string
     assert '"seq"' not in text and '"stream_owner"' not in text
@@ -300,7 +299,7 @@ def test_a_statistic_json_cannot_encode_is_given_as_text(sim, monkeypatch):
     )
     cid = op.send_command("GetStats")
     sim.step()
-    assert wait_for(lambda: op.reply_to(cid))
+    assert wait_until(lambda: op.reply_to(cid), WORKER_S)
     assert json.loads(op.reply_to(cid).metadata["Message"])["odd"] == "<class 'set'>"
 
 
@@ -325,7 +324,7 @@ def test_getstats_as_json_keeps_the_requests_form(sim, monkeypatch):
         out.clear()
         item = Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now)
         sim.robot.operators.handle(item, sim.now)
-        assert wait_for(lambda: out)
+        assert wait_until(lambda: out, WORKER_S)
         (reply,) = out
         assert reply.message_type == "STRING"
         assert reply.device_name == ("ACK_5" if msg.message_type == "STRING" else "STATS")
@@ -343,7 +342,7 @@ def desk_replies(sim: SimRobot, monkeypatch, msg: igtl.Message, n: int) -> list[
     monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
     item = Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now)
     sim.robot.operators.handle(item, sim.now)
-    assert wait_for(lambda: len(out) >= n), out
+    assert wait_until(lambda: len(out) >= n, WORKER_S), out
     return out
 
 
@@ -902,7 +901,6 @@ def test_every_robot_command_in_the_table_is_answered_by_its_role_and_thread() -
     commands and is refused the others by its interface; every command gets an answer (the
     worker's ones from the worker thread)."""
     from occ.commands import ROBOT_COMMANDS
-    from occ_testkit.testing import wait_until
 
     with SimRobot(SLAVE) as sim:
         viewer = sim.peer("slicer")

@@ -15,7 +15,8 @@ import pytest
 import igtl
 from occ.clock import SimClock
 from occ.safety import RobotState
-from occ_testkit.testing import SimRobot, SlaveTipFeed
+from occ_testkit.rigs import SimMaster
+from occ_testkit.testing import SimRobot
 
 from ..tools.tooling import load_tool
 
@@ -23,45 +24,25 @@ ROOT = Path(__file__).resolve().parents[2]
 standin = load_tool("slicer_standin")
 
 
-class Master:
-    def __init__(self, **params: Any) -> None:
-        self.sim = SimRobot(ROOT / "configs" / "master.yaml", params=params or None)
-        self.ctrl: Any = self.sim.robot.controller.controllers[0]
-        self.op = self.sim.peer("operator", address=("127.0.0.1", 41000))
-        self.sim.step(1)
-        self.feed = SlaveTipFeed(self.sim)
+def keepout(master: SimMaster, depth_mm: float = 6.0) -> None:
+    """A forbidden sphere (radius 1 mm patient = 10 mm of the handle) with the tool
+    ``depth_mm`` (of the handle) deep, on the tool's -x side of the centre."""
+    t = master.feed.handle_mm()
+    c = master.feed.patient((t[0] + 10.0 - depth_mm, t[1], t[2]))
+    master.op.send(igtl.VirtualFixtureMessage(hardness=0.5, spheres=((*c, 1.0),),
+                                              device_name="VF", header_version=2,
+                                              metadata={"kind": "forbidden"}))
+    master.feed.step(1)
 
-    def run(self) -> None:
-        for c in ("Enable", "Run"):
-            self.op.send_command(c)
-            self.feed.step(1)
-        assert self.sim.robot.state is RobotState.RUNNING
-        self.feed.step(30)
 
-    def keepout(self, depth_mm: float = 6.0) -> None:
-        """A forbidden sphere (radius 1 mm patient = 10 mm of the handle) with the tool
-        ``depth_mm`` (of the handle) deep, on the tool's -x side of the centre."""
-        t = self.feed.handle_mm()
-        c = self.feed.patient((t[0] + 10.0 - depth_mm, t[1], t[2]))
-        self.op.send(igtl.VirtualFixtureMessage(hardness=0.5, spheres=((*c, 1.0),),
-                                                device_name="VF", header_version=2,
-                                                metadata={"kind": "forbidden"}))
-        self.feed.step(1)
-
-    @property
-    def force(self) -> float:
-        return math.hypot(*self.ctrl.fixtures.force_n)
-
-    def alerts(self, name: str = "ALERT") -> list[str]:
-        return [m.status_message for m in self.op.messages("STATUS") if m.error_name == name]
-
-    def close(self) -> None:
-        self.sim.close()
+def force(master: SimMaster) -> float:
+    """The fixtures' force on the handle (N)."""
+    return math.hypot(*master.ctl.fixtures.force_n)
 
 
 @pytest.fixture
 def master() -> Any:
-    m = Master()
+    m = SimMaster(feed=True)
     yield m
     m.close()
 
@@ -70,17 +51,17 @@ def master() -> Any:
 @pytest.mark.req("SR-FIX-2")
 def test_a_late_tip_is_kept_marked_stale_and_its_force_fades_never_recomputed(master) -> None:
     master.run()
-    master.keepout()
+    keepout(master)
     master.feed.step(5)
-    f0 = master.ctrl.fixtures.force_n
+    f0 = master.ctl.fixtures.force_n
     assert math.hypot(*f0) == pytest.approx(3.0, abs=0.3)
-    tip = master.ctrl.stats()["tool_mm"]
+    tip = master.ctl.stats()["tool_mm"]
     master.feed.paused = True  # the slave's samples stop coming (not lost yet)
     forces = []
     for _ in range(40):
         master.feed.step(1)
-        forces.append(master.ctrl.fixtures.force_n)
-    st = master.ctrl.stats()
+        forces.append(master.ctl.fixtures.force_n)
+    st = master.ctl.stats()
     assert st["slave_tip"]["status"] == "stale" and st["slave_tip"]["late"] == 1
     assert st["tool_mm"] == tip  # the last tip is kept, shown
     # late from 7 ms: from there the force is the last one computed, scaled down (same
@@ -90,53 +71,53 @@ def test_a_late_tip_is_kept_marked_stale_and_its_force_fades_never_recomputed(ma
         assert f[1] == pytest.approx(f0[1] * f[0] / f0[0], abs=1e-9)
     mags = [math.hypot(*f) for f in late]
     assert all(b <= a for a, b in zip(mags, mags[1:]))
-    assert mags[21] == 0.0 and not master.alerts()
+    assert mags[21] == 0.0 and not master.alerts("ALERT")
     # back in time: fresh again, the force fades back in; no alert (late is not lost)
     master.feed.paused = False
     master.feed.step(25)
-    assert master.ctrl.stats()["slave_tip"]["status"] == "fresh"
-    assert master.force == pytest.approx(3.0, abs=0.4) and not master.alerts()
+    assert master.ctl.stats()["slave_tip"]["status"] == "fresh"
+    assert force(master) == pytest.approx(3.0, abs=0.4) and not master.alerts("ALERT")
 
 
 @pytest.mark.req("SR-FIX-2")
 def test_a_lost_tip_zeroes_the_force_at_once_and_alerts_the_operators(master) -> None:
     master.run()
-    master.keepout()
+    keepout(master)
     master.feed.step(5)
-    assert master.force > 2.5
+    assert force(master) > 2.5
     master.feed.skip(3)  # three sequence numbers lost on the way: proven loss
     master.feed.step(1)
-    assert master.force == 0.0
-    (alert,) = master.alerts()
+    assert force(master) == 0.0
+    (alert,) = master.alerts("ALERT")
     assert "slave tip on slave lost" in alert and "3 consecutive packets lost" in alert
-    assert master.ctrl.stats()["slave_tip"]["losses"] == 1
+    assert master.ctl.stats()["slave_tip"]["losses"] == 1
     # the next good sample re-arms it (a STREAM status says so) and the force fades back in
     master.feed.step(1)
-    assert master.ctrl.stats()["slave_tip"]["status"] == "fresh"
+    assert master.ctl.stats()["slave_tip"]["status"] == "fresh"
     assert any("back" in t for t in master.alerts("STREAM"))
     assert {m.code for m in master.op.messages("STATUS") if m.error_name == "STREAM"} == {
         int(igtl.StatusCode.OK)
     }
     master.feed.step(25)
-    assert master.force > 2.5 and master.sim.robot.state is RobotState.RUNNING
+    assert force(master) > 2.5 and master.sim.robot.state is RobotState.RUNNING
 
 
 @pytest.mark.req("SR-FIX-2")
 def test_a_dead_slave_zeroes_the_force_and_alerts_once(master) -> None:
     master.run()
-    master.keepout()
+    keepout(master)
     master.feed.step(5)
     master.feed.paused = True
     master.feed.step(99)
-    assert master.force == 0.0 and not master.alerts()  # faded out, late: no alert yet
+    assert force(master) == 0.0 and not master.alerts("ALERT")  # faded out, late: no alert yet
     master.feed.step(5)  # past the grace (100 ms)
-    (alert,) = master.alerts()
+    (alert,) = master.alerts("ALERT")
     assert "no packet for" in alert and "virtual-fixture force off" in alert
     codes = [m.code for m in master.op.messages("STATUS") if m.error_name == "ALERT"]
     assert codes == [int(igtl.StatusCode.TIME_OUT)]  # a lost link, as the slave's own alerts say
     master.feed.step(300)
-    assert len(master.alerts()) == 1  # latched: said once
-    assert master.ctrl.stats()["slave_tip"]["status"] == "lost"
+    assert len(master.alerts("ALERT")) == 1  # latched: said once
+    assert master.ctl.stats()["slave_tip"]["status"] == "lost"
     assert master.sim.robot.state is RobotState.RUNNING  # the master itself goes on
 
 
@@ -146,23 +127,23 @@ def test_a_master_whose_slave_never_answers_is_told(master) -> None:
         master.op.send_command(c)
         master.feed.step(1)
     master.feed.step(120)
-    (alert,) = master.alerts()
+    (alert,) = master.alerts("ALERT")
     assert "slave tip on slave lost" in alert
-    st = master.ctrl.stats()
+    st = master.ctl.stats()
     assert st["tool_mm"] is None and st["slave_tip"]["status"] == "lost"
 
 
 def test_a_slave_that_does_not_follow_this_master_gives_no_force(master) -> None:
     master.run()
-    master.keepout()
+    keepout(master)
     master.feed.step(5)
-    assert master.force > 2.5
+    assert force(master) > 2.5
     master.feed.following = False  # another master has control, or the slave holds
     master.feed.step(20)
-    assert master.force == 0.0 and master.ctrl.stats()["slave_tip"]["following"] is False
+    assert force(master) == 0.0 and master.ctl.stats()["slave_tip"]["following"] is False
     master.feed.following = True
     master.feed.step(20)
-    assert master.force > 2.5
+    assert force(master) > 2.5
 
 
 def test_a_tip_from_anywhere_but_the_slave_link_is_refused_and_answered(master) -> None:
@@ -172,14 +153,14 @@ def test_a_tip_from_anywhere_but_the_slave_link_is_refused_and_answered(master) 
     master.feed.step(1)
     (reply,) = [m for m in master.op.received[n:] if m.message_type == "STATUS"]
     assert "is a slave's return stream" in reply.status_message
-    assert master.ctrl.stats()["slave_tip"]["samples"] == 1  # the feed's, not this one
+    assert master.ctl.stats()["slave_tip"]["samples"] == 1  # the feed's, not this one
 
 
 def test_a_bad_map_is_counted_and_its_sample_not_used(master) -> None:
     master.run()
     master.feed.linear = "1,2,3"
     master.feed.step(1)
-    st = master.ctrl.stats()["slave_tip"]
+    st = master.ctl.stats()["slave_tip"]
     assert st["bad"] == 1 and "expected 9 numbers" in st["last_error"]
 
 
@@ -348,15 +329,15 @@ def test_a_hand_over_moves_the_force_to_the_master_in_control() -> None:
 
 
 # ------------------------------------------------------------------ the slave's force (issue 27)
-def feedback(master: Master) -> tuple[float, float, float]:
-    return tuple(master.ctrl.feedback_n)
+def feedback(master: SimMaster) -> tuple[float, float, float]:
+    return tuple(master.ctl.feedback_n)
 
 
 @pytest.fixture
 def unpassivated() -> Any:
     """The master with the passivity controller off: a constant force on the moving hand is
     work the network never received, which the controller would damp (its own test below)."""
-    m = Master(passivity=False)
+    m = SimMaster(params=dict(passivity=False), feed=True)
     yield m
     m.close()
 
@@ -368,21 +349,21 @@ def test_the_slaves_force_is_displayed_scaled_and_summed_with_the_fixtures(unpas
     master.feed.force = (-2.0, 0.5, 1.0)  # N, patient frame; the map is 0.1 I: same axes
     master.feed.step(30)
     assert feedback(master) == pytest.approx((-2.0, 0.5, 1.0), abs=1e-9)
-    st = master.ctrl.stats()
+    st = master.ctl.stats()
     assert st["slave_tip"]["force_n"] == [-2.0, 0.5, 1.0]
     assert st["force_n"] == pytest.approx([-2.0, 0.5, 1.0], abs=1e-3)  # the hand feels it
     # a fixture pushing too: the hand feels the sum
-    master.keepout()
+    keepout(master)
     master.feed.step(10)
-    fix = master.ctrl.fixtures.force_n
-    shown = master.ctrl.displayed_n
+    fix = master.ctl.fixtures.force_n
+    shown = master.ctl.displayed_n
     for i in range(3):
         assert shown[i] == pytest.approx(fix[i] + feedback(master)[i], abs=0.05)
 
 
 @pytest.mark.req("SR-FORCE-2")
 def test_force_scale_and_the_10_n_clamp() -> None:
-    m = Master(force_scale=2.5, passivity=False)
+    m = SimMaster(params=dict(force_scale=2.5, passivity=False), feed=True)
     try:
         m.run()
         m.feed.force = (0.0, 2.0, 0.0)
@@ -390,10 +371,10 @@ def test_force_scale_and_the_10_n_clamp() -> None:
         assert feedback(m) == pytest.approx((0.0, 5.0, 0.0), abs=1e-9)
         m.feed.force = (3.0, 0.0, -4.0)  # 5 N x 2.5 = 12.5 N: clamped to 10 N, same direction
         m.feed.step(30)
-        shown = m.ctrl.displayed_n
+        shown = m.ctl.displayed_n
         assert math.hypot(*shown) == pytest.approx(10.0, abs=1e-9)
         assert shown[0] / shown[2] == pytest.approx(-0.75)
-        assert m.ctrl.stats()["force_clamped_ticks"] > 0
+        assert m.ctl.stats()["force_clamped_ticks"] > 0
     finally:
         m.close()
 
@@ -405,7 +386,8 @@ def test_a_late_or_lost_force_is_held_and_faded_never_dropped_and_snapped_back(m
     link alerts once; back, the force returns within ``tip_fade_ms`` (20 ms) from where the
     fade had brought it, not from zero (issue 37: a force dropped and snapped back gave the
     hand energy it never put in)."""
-    master = Master(passivity=False)  # the fade itself, not what the controller makes of it
+    # the fade itself, not what the controller makes of it
+    master = SimMaster(params=dict(passivity=False), feed=True)
     master.run()
     master.feed.force = (0.0, 0.0, 3.0)
     master.feed.step(30)
@@ -417,7 +399,7 @@ def test_a_late_or_lost_force_is_held_and_faded_never_dropped_and_snapped_back(m
         shown.append(feedback(master)[2])
     assert all(b <= a for a, b in zip(shown, shown[1:], strict=False))
     assert shown[39] == pytest.approx(3.0 * (1.0 - 33e-3 / 0.3), abs=0.02)  # 1/300 per ms
-    assert not master.alerts()
+    assert not master.alerts("ALERT")
     master.feed.paused = False
     master.feed.step(30)
     assert feedback(master)[2] == pytest.approx(3.0)
@@ -425,7 +407,7 @@ def test_a_late_or_lost_force_is_held_and_faded_never_dropped_and_snapped_back(m
     master.feed.step(1)
     master.feed.paused = True
     assert feedback(master)[2] == pytest.approx(3.0, abs=0.02)
-    assert any("lost" in a and "held and fading" in a for a in master.alerts())
+    assert any("lost" in a and "held and fading" in a for a in master.alerts("ALERT"))
     master.feed.step(99)  # 100 ms lost: a third gone
     assert feedback(master)[2] == pytest.approx(2.0, abs=0.02)
     master.feed.paused = False  # back: from 2 N up to 3 N within 20 ms, never through zero
@@ -445,11 +427,11 @@ def test_a_dead_slave_leaves_no_force_on_the_hand(master) -> None:
     master.feed.step(30)
     master.feed.paused = True
     master.feed.step(150)  # past the 100 ms grace: lost, one alert, the force fading
-    assert len([a for a in master.alerts() if "lost" in a]) == 1
+    assert len([a for a in master.alerts("ALERT") if "lost" in a]) == 1
     assert 0.0 < feedback(master)[0] < 1.0
     master.feed.step(160)  # feedback_fade_ms (300 ms) from late: gone
-    assert master.ctrl.displayed_n == (0.0, 0.0, 0.0)
-    assert len([a for a in master.alerts() if "lost" in a]) == 1
+    assert master.ctl.displayed_n == (0.0, 0.0, 0.0)
+    assert len([a for a in master.alerts("ALERT") if "lost" in a]) == 1
 
 
 @pytest.mark.req("SR-FORCE-2")
@@ -458,10 +440,10 @@ def test_a_malformed_force_is_refused_and_counted_not_displayed(master, bad: str
     master.run()
     master.feed.force = (0.0, 2.0, 0.0)
     master.feed.step(30)
-    before = master.ctrl.stats()["slave_tip"]
+    before = master.ctl.stats()["slave_tip"]
     master.feed.force = bad
     master.feed.step(1)
-    st = master.ctrl.stats()["slave_tip"]
+    st = master.ctl.stats()["slave_tip"]
     assert st["bad"] == before["bad"] + 1 and "force_n" in st["last_error"]
     assert st["samples"] == before["samples"]  # the whole sample refused: its tip too
     assert st["force_n"] == [0.0, 2.0, 0.0]  # the last good force, fading as any late one
@@ -485,34 +467,34 @@ def test_a_slave_whose_samples_all_come_refused_is_late_then_lost_never_a_held_f
         master.feed.step(1)
         shown.append(feedback(master)[2])
     assert all(b <= a for a, b in zip(shown, shown[1:], strict=False))
-    assert 0.0 < shown[30] < shown[8] < 3.0 and not master.alerts()
-    st = master.ctrl.stats()["slave_tip"]
+    assert 0.0 < shown[30] < shown[8] < 3.0 and not master.alerts("ALERT")
+    st = master.ctl.stats()["slave_tip"]
     assert st["status"] == "stale" and st["bad"] == 40 and st["lost_total"] == 0
     master.feed.step(62)  # 101 ms without a usable tip: past the grace
-    (alert,) = master.alerts()
+    (alert,) = master.alerts("ALERT")
     assert "slave tip on slave lost: no usable tip for 101.00 ms (limit 100.0 ms)" in alert
     assert "101 samples refused" in alert and "force_n 'nan,0,0'" in alert
-    assert master.ctrl.stats()["slave_tip"]["status"] == "lost"
+    assert master.ctl.stats()["slave_tip"]["status"] == "lost"
     master.feed.step(210)  # 300 ms of fade since it went late: gone
-    assert len(master.alerts()) == 1 and feedback(master) == (0.0, 0.0, 0.0)
-    assert master.ctrl.stats()["slave_tip"]["losses"] == 1
+    assert len(master.alerts("ALERT")) == 1 and feedback(master) == (0.0, 0.0, 0.0)
+    assert master.ctl.stats()["slave_tip"]["losses"] == 1
     master.feed.force = (0.0, 0.0, 3.0)
     master.feed.step(30)
-    st = master.ctrl.stats()["slave_tip"]
+    st = master.ctl.stats()["slave_tip"]
     assert st["status"] == "fresh" and st["recoveries"] == 1
     assert any("back" in t for t in master.alerts("STREAM"))
-    assert feedback(master)[2] == pytest.approx(3.0) and len(master.alerts()) == 1
+    assert feedback(master)[2] == pytest.approx(3.0) and len(master.alerts("ALERT")) == 1
 
 
 @pytest.mark.req("SR-FORCE-2")
 def test_force_feedback_off_displays_only_the_fixtures() -> None:
-    m = Master(force_feedback=False)
+    m = SimMaster(params=dict(force_feedback=False), feed=True)
     try:
         m.run()
         m.feed.force = (0.0, 2.0, 0.0)
         m.feed.step(30)
-        assert m.ctrl.feedback_n == (0.0, 0.0, 0.0) and m.ctrl.displayed_n == (0.0, 0.0, 0.0)
-        assert m.ctrl.stats()["slave_tip"]["force_n"] == [0.0, 2.0, 0.0]  # received, not shown
+        assert m.ctl.feedback_n == (0.0, 0.0, 0.0) and m.ctl.displayed_n == (0.0, 0.0, 0.0)
+        assert m.ctl.stats()["slave_tip"]["force_n"] == [0.0, 2.0, 0.0]  # received, not shown
     finally:
         m.close()
 
@@ -529,8 +511,8 @@ def test_the_passivity_controller_damps_a_force_the_network_gave_no_energy_for(m
     energies = []
     for _ in range(2000):
         master.feed.step(1)
-        energies.append(master.ctrl.passivity.account.net)
-    st = master.ctrl.stats()["passivity"]
+        energies.append(master.ctl.passivity.account.net)
+    st = master.ctl.stats()["passivity"]
     assert st["on"] and st["active_ticks"] > 0 and st["dissipated_mj"] > 10.0
     assert min(energies) >= -3e-5
 
@@ -552,24 +534,24 @@ def test_an_external_force_is_displayed_while_it_keeps_coming(unpassivated) -> N
 
     servo_cf((0.0, 0.0, 1.5))
     master.feed.step(2)
-    assert master.ctrl.displayed_n[2] == pytest.approx(1.5, abs=0.05)
-    st = master.ctrl.stats()
+    assert master.ctl.displayed_n[2] == pytest.approx(1.5, abs=0.05)
+    st = master.ctl.stats()
     assert st["external_n"] == [0.0, 0.0, 1.5] and st["external_fresh"]
     master.feed.step(99)  # 100 ms after it came: still shown
-    assert master.ctrl.displayed_n[2] == pytest.approx(1.5, abs=0.05)
+    assert master.ctl.displayed_n[2] == pytest.approx(1.5, abs=0.05)
     master.feed.step(2)  # past the timeout: gone
-    assert master.ctrl.displayed_n == (0.0, 0.0, 0.0)
-    assert not master.ctrl.stats()["external_fresh"]
+    assert master.ctl.displayed_n == (0.0, 0.0, 0.0)
+    assert not master.ctl.stats()["external_fresh"]
     before = len(master.op.messages())
     servo_cf((0.0, 0.0, 1.5), Unit(0, ((1, 1),)))  # metres: no force
     master.feed.step(2)
-    assert master.ctrl.displayed_n == (0.0, 0.0, 0.0)
+    assert master.ctl.displayed_n == (0.0, 0.0, 0.0)
     replies = master.op.messages()[before:]
     assert any("is not a force" in str(getattr(m, "status_message", "")) + str(
         getattr(m, "command", "")) for m in replies), replies
 
 
-def _servo_cf(master: Master, values: tuple[float, float, float]) -> None:
+def _servo_cf(master: SimMaster, values: tuple[float, float, float]) -> None:
     """An operator's SENSOR ``ServoCF`` in newtons (occ-ros2's servo_cf)."""
     from igtl.messages.sensor import Unit
 
@@ -587,18 +569,18 @@ def test_a_stop_shows_no_force_and_reports_none_from_that_tick(unpassivated) -> 
     master.run()
     master.feed.force = (0.0, 0.0, 3.0)
     master.feed.step(30)
-    st = master.ctrl.stats()
+    st = master.ctl.stats()
     assert st["feedback_n"][2] == pytest.approx(3.0) and st["force_n"][2] == pytest.approx(3.0)
     master.op.send_command("Stop")
     master.feed.step(1)
     assert master.sim.robot.state is RobotState.STOPPED
-    st = master.ctrl.stats()
+    st = master.ctl.stats()
     assert st["force_n"] == [0.0, 0.0, 0.0] and st["feedback_n"] == [0.0, 0.0, 0.0]
     n = len(master.op.messages("SENSOR", "Force"))
     master.feed.step(100)  # Force goes at 50 Hz: five of them while stopped
     sent = master.op.messages("SENSOR", "Force")[n:]
     assert len(sent) == 5 and all(tuple(m.data) == (0.0, 0.0, 0.0) for m in sent)
-    assert master.ctrl.stats()["force_n"] == [0.0, 0.0, 0.0]
+    assert master.ctl.stats()["force_n"] == [0.0, 0.0, 0.0]
 
 
 @pytest.mark.req("SR-FORCE-2")
@@ -612,17 +594,17 @@ def test_an_external_force_across_stop_and_run_is_shown_from_the_first_tick_afte
     master.run()
     _servo_cf(master, (0.0, 0.0, 1.5))
     master.feed.step(2)
-    assert master.ctrl.displayed_n[2] == pytest.approx(1.5, abs=0.05)
+    assert master.ctl.displayed_n[2] == pytest.approx(1.5, abs=0.05)
     master.op.send_command("Stop")
     master.feed.step(1)
     assert master.sim.robot.state is RobotState.STOPPED
-    assert master.ctrl.displayed_n == (0.0, 0.0, 0.0)
+    assert master.ctl.displayed_n == (0.0, 0.0, 0.0)
     _servo_cf(master, (0.0, 0.0, 1.5))
     master.feed.step(1)
     master.op.send_command("Run")
     master.feed.step(1)
     assert master.sim.robot.state is RobotState.RUNNING
-    assert master.ctrl.displayed_n == pytest.approx((0.0, 0.0, 1.5), abs=1e-9)
+    assert master.ctl.displayed_n == pytest.approx((0.0, 0.0, 1.5), abs=1e-9)
     master.feed.step(5)
     assert master.sim.robot.state is RobotState.RUNNING
-    assert master.ctrl.displayed_n[2] == pytest.approx(1.5, abs=0.05)
+    assert master.ctl.displayed_n[2] == pytest.approx(1.5, abs=0.05)

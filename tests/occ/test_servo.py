@@ -18,73 +18,21 @@ import pytest
 
 import igtl
 from occ.safety import RobotState
-from occ_testkit.testing import SimRobot
+from occ_testkit.rigs import SlaveRig
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "configs" / "servo.yaml"
 
 
-class Rig:
-    """The servo slave, its command source (a sample every 2 ms) and an operator."""
-
-    def __init__(self, **params: Any) -> None:
-        self.sim = SimRobot(CONFIG, params=params or None)
-        self.robot = self.sim.robot
-        self.ctl: Any = self.robot.controller
-        self.source = self.sim.peer("servo", address=("127.0.0.1", 40000))
-        self.operator = self.sim.peer("operator", address=("127.0.0.1", 40001))
-        self.seq = 0
-        self.target = self.world_tip_mm().tolist()
-        self.run = True
-        self.clutch = False
-        self.sending = True
-        self.timestamped = False
-
-    def world_tip_mm(self) -> np.ndarray:
-        """The world (patient) position of the setpoint the slave writes, mm."""
-        q = self.robot.data.setpoint
-        tip = np.append(np.array(self.robot.frame.tip_position(q)), 1.0)
-        return (self.robot.data.base @ tip)[:3] * 1e3
-
-    def step(self, ms: int) -> list[list[float]]:
-        """``ms`` ticks; the setpoints written, one per tick."""
-        out = []
-        for _ in range(ms):
-            if self.sending and self.sim.k % 2 == 0:
-                self.seq += 1
-                stamp = self.sim.clock.wall_time() if self.timestamped else 0.0
-                self.source.send_position(
-                    self.target,
-                    seq=self.seq,
-                    run=self.run,
-                    clutch=self.clutch,
-                    device="ServoCP",
-                    timestamp=stamp,
-                )
-            self.sim.tick()
-            out.append(list(self.robot.data.setpoint))
-        return out
-
-    def command(self, name: str) -> None:
-        reply = self.sim.command(self.operator, name)
-        assert reply.metadata["Status"] == "SUCCESS", name
-
-    def running(self) -> None:
-        self.command("Enable")
-        self.command("Run")
-        self.step(20)
-        assert self.robot.state is RobotState.RUNNING
-
-    def alerts(self) -> list[str]:
-        return [m.status_message for m in self.operator.messages("STATUS")]
-
-    def close(self) -> None:
-        self.sim.close()
+def servo(**params: Any) -> SlaveRig:
+    """The servo slave, its command source (``ServoCP`` on the ``servo`` interface, a sample
+    every 2 ms, at the tip to begin with) and an operator."""
+    return SlaveRig(CONFIG, params=params, stream="servo", device="ServoCP")
 
 
 @pytest.fixture
 def rig() -> Any:
-    r = Rig()
+    r = servo()
     yield r
     r.close()
 
@@ -95,7 +43,7 @@ def max_speed(setpoints: list[list[float]], period: float) -> list[float]:
 
 
 @pytest.mark.req("SR-SERVO-1")
-def test_the_tip_goes_to_the_target_within_the_velocity_limits(rig: Rig) -> None:
+def test_the_tip_goes_to_the_target_within_the_velocity_limits(rig: SlaveRig) -> None:
     rig.running()
     start = rig.world_tip_mm()
     rig.target = (start + [4.0, -3.0, 6.0]).tolist()
@@ -112,7 +60,7 @@ def test_the_tip_goes_to_the_target_within_the_velocity_limits(rig: Rig) -> None
 
 @pytest.mark.req("SR-SERVO-1")
 @pytest.mark.parametrize("rpy", [(0.0, 0.0, 0.5236), (0.2, -0.3, 0.5)], ids=["about-z", "tilted"])
-def test_the_target_is_in_the_patient_frame(rig: Rig, rpy: tuple[float, float, float]) -> None:
+def test_the_target_is_in_the_patient_frame(rig: SlaveRig, rpy: tuple[float, float, float]) -> None:
     """The base turned 30 degrees about z (or tilted about every axis) and moved 10, 20, 30 mm
     (a tracker's TRANSFORM): a world displacement d moves the tip by R^T d in the base frame,
     and the world tip reaches the world target."""
@@ -133,7 +81,7 @@ def test_the_target_is_in_the_patient_frame(rig: Rig, rpy: tuple[float, float, f
 
 @pytest.mark.req("SR-SERVO-2")
 def test_a_far_target_is_refused_with_an_alert_and_the_robot_holds(
-    rig: Rig, caplog: pytest.LogCaptureFixture
+    rig: SlaveRig, caplog: pytest.LogCaptureFixture
 ) -> None:
     rig.running()
     here = rig.world_tip_mm()
@@ -165,7 +113,7 @@ def test_a_far_target_is_refused_with_an_alert_and_the_robot_holds(
 
 
 @pytest.mark.req("SR-SERVO-2")
-def test_a_far_first_target_is_refused_with_an_alert_too(rig: Rig) -> None:
+def test_a_far_first_target_is_refused_with_an_alert_too(rig: SlaveRig) -> None:
     """The very first target a source sends (none taken before it) is judged as every other:
     one too far is refused, the robot holds where it is and the operators are told, once."""
     rig.command("Enable")
@@ -182,7 +130,7 @@ def test_a_far_first_target_is_refused_with_an_alert_too(rig: Rig) -> None:
 
 @pytest.mark.req("SR-SERVO-2")
 @pytest.mark.parametrize("how", ["run", "clutch"])
-def test_a_stopped_source_or_the_clutch_holds(rig: Rig, how: str) -> None:
+def test_a_stopped_source_or_the_clutch_holds(rig: SlaveRig, how: str) -> None:
     rig.running()
     here = rig.world_tip_mm()
     if how == "run":
@@ -201,7 +149,7 @@ def test_a_stopped_source_or_the_clutch_holds(rig: Rig, how: str) -> None:
 
 
 @pytest.mark.req("SR-SERVO-3")
-def test_a_dead_source_stops_the_robot_by_the_loss_rules(rig: Rig) -> None:
+def test_a_dead_source_stops_the_robot_by_the_loss_rules(rig: SlaveRig) -> None:
     rig.running()
     rig.sending = False
     rig.step(150)  # past the 100 ms grace
@@ -210,7 +158,7 @@ def test_a_dead_source_stops_the_robot_by_the_loss_rules(rig: Rig) -> None:
 
 
 @pytest.mark.req("SR-SERVO-2")
-def test_not_a_number_is_no_target(rig: Rig) -> None:
+def test_not_a_number_is_no_target(rig: SlaveRig) -> None:
     rig.running()
     here = rig.world_tip_mm()
     rig.target = [float("nan"), here[1], here[2]]
@@ -221,7 +169,7 @@ def test_not_a_number_is_no_target(rig: Rig) -> None:
 
 
 @pytest.mark.req("SR-SERVO-1")
-def test_run_again_after_a_stop_starts_from_where_the_drives_hold(rig: Rig) -> None:
+def test_run_again_after_a_stop_starts_from_where_the_drives_hold(rig: SlaveRig) -> None:
     rig.running()
     here = rig.world_tip_mm()
     rig.target = (here + [2.0, 2.0, 2.0]).tolist()
@@ -240,7 +188,7 @@ def test_run_again_after_a_stop_starts_from_where_the_drives_hold(rig: Rig) -> N
 
 
 @pytest.mark.req("SR-SERVO-2")
-def test_the_jump_is_measured_from_where_the_tip_is(rig: Rig) -> None:
+def test_the_jump_is_measured_from_where_the_tip_is(rig: SlaveRig) -> None:
     """``max_jump_mm`` is the distance from the tip, wherever it is: off the base's axes a
     target 9.5 mm away is taken and one 10.5 mm away refused."""
     rig.running()
@@ -263,7 +211,7 @@ def test_a_target_out_of_reach_is_clamped_and_one_at_the_port_is_no_target() -> 
     """Past the insertion limit: the tool goes as deep as it can along the line to the target,
     each sample counted as clamped; at the port itself (no direction for the tool): no target,
     each sample counted as a failure, the robot holds and keeps running."""
-    rig = Rig(max_jump_mm=200.0)
+    rig = servo(max_jump_mm=200.0)
     try:
         rig.running()
         port = np.array(rig.robot.frame.rcm) * 1e3
@@ -287,7 +235,7 @@ def test_a_target_out_of_reach_is_clamped_and_one_at_the_port_is_no_target() -> 
         rig.close()
 
 
-def test_sample_to_write_latency_in_simulated_time(rig: Rig) -> None:
+def test_sample_to_write_latency_in_simulated_time(rig: SlaveRig) -> None:
     """GetStats' ``sample_to_write_us``: from the sample's time stamp to the tick that writes
     it, one per sample; in simulated time a sample sent between ticks is written by the next."""
     rig.timestamped = True
@@ -302,7 +250,7 @@ def test_sample_to_write_latency_in_simulated_time(rig: Rig) -> None:
 
 
 @pytest.mark.req("SR-SERVO-1")
-def test_run_takes_the_last_target_checked_afresh(rig: Rig) -> None:
+def test_run_takes_the_last_target_checked_afresh(rig: SlaveRig) -> None:
     """Run again after a Stop, the source paused (inside its loss grace): the last target is
     checked against where the drives hold and taken, without waiting for a new sample."""
     rig.running()
@@ -318,7 +266,7 @@ def test_run_takes_the_last_target_checked_afresh(rig: Rig) -> None:
 
 
 @pytest.mark.req("SR-SERVO-2")
-def test_while_rejoining_after_a_hold_the_servo_keeps_its_own_path(rig: Rig) -> None:
+def test_while_rejoining_after_a_hold_the_servo_keeps_its_own_path(rig: SlaveRig) -> None:
     """After a hold the setpoint re-joins the servo's solution at half the velocity limits
     (occ/motion.py) while the servo goes on at 0.9 of them from its own last solution: a new
     target is judged, and stepped to, from there (where the tip is told to go), not from the

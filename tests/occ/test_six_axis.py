@@ -31,6 +31,7 @@ from occ.record import Recorder
 from occ.recordcli import main
 from occ.returnlink import ReturnLink
 from occ.samples import PoseSample
+from occ_testkit.rigs import SimMaster
 from occ_testkit.testing import CONFIGS, SimRobot, SlaveTipFeed
 
 from .test_recexport import decode_mcap, require
@@ -175,30 +176,25 @@ def six_joint_master(**params: Any) -> dict[str, Any]:
     return cfg
 
 
-class SixMaster:
-    def __init__(self, **params: Any) -> None:
-        self.sim = SimRobot(six_joint_master(**params))
-        self.ctl: Any = self.sim.robot.controller.controllers[0]
-        op = self.sim.peer("operator", address=("127.0.0.1", 41000))
-        self.sim.step(1)
-        self.feed = SlaveTipFeed(self.sim)
-        for c in ("Enable", "Run"):
-            op.send_command(c)
-            self.feed.step(1)
-        self.feed.step(30)
+def six_master(**params: Any) -> SimMaster:
+    """The six-joint master, its slave played by a tip feed, running."""
+    m = SimMaster(six_joint_master(**params), feed=True)
+    m.run()
+    return m
 
-    def efforts_check(self) -> None:
-        """The efforts the drives were told are J^T [F; T] of what is displayed."""
-        data = self.sim.robot.data
-        jac = self.sim.robot.frame.jacobian(data.q)
-        want = jac[:3].T @ np.array(self.ctl.displayed_n) + jac[3:].T @ np.array(
-            self.ctl.displayed_torque_nm
-        )
-        assert data.effort_command == pytest.approx(list(want), abs=1e-12)
+
+def efforts_check(m: SimMaster) -> None:
+    """The efforts the drives were told are J^T [F; T] of what is displayed."""
+    data = m.sim.robot.data
+    jac = m.sim.robot.frame.jacobian(data.q)
+    want = jac[:3].T @ np.array(m.ctl.displayed_n) + jac[3:].T @ np.array(
+        m.ctl.displayed_torque_nm
+    )
+    assert data.effort_command == pytest.approx(list(want), abs=1e-12)
 
 
 def test_a_master_with_rotational_axes_displays_the_torque_clamped_and_gated() -> None:
-    m = SixMaster()
+    m = six_master()
     try:
         assert m.ctl.rotational
         m.feed.force = (0.0, 0.0, 1.0)
@@ -208,23 +204,23 @@ def test_a_master_with_rotational_axes_displays_the_torque_clamped_and_gated() -
         # the handle at rest: no damper without motion, the torque as sent
         assert m.ctl.feedback_torque_nm == pytest.approx((0.05, -0.1, 0.2), abs=1e-12)
         assert m.ctl.displayed_torque_nm == pytest.approx((0.05, -0.1, 0.2), abs=1e-12)
-        m.efforts_check()
+        efforts_check(m)
         m.feed.step(20)  # the hand yields: the passivity controller acts on what it gives
         assert m.ctl.torque_passivity.active_ticks > 0
-        m.efforts_check()
+        efforts_check(m)
         wrist = [abs(v) for v in m.sim.robot.data.effort_command[3:]]
         assert max(wrist) > 0.05  # the wrist's joints carry it
         # 2 N m: clamped to max_torque_nm (0.5)
         m.feed.torque = (0.0, 2.0, 0.0)
         m.feed.step(1)
         assert math.hypot(*m.ctl.displayed_torque_nm) == pytest.approx(0.5, abs=1e-12)
-        m.efforts_check()
+        efforts_check(m)
         # the slave lost (silent past the grace): zero at once, with the force
         m.feed.paused = True
         m.sim.step(120)
         assert m.ctl.displayed_torque_nm == (0.0, 0.0, 0.0)
         assert m.ctl.feedback_torque_nm == (0.0, 0.0, 0.0)
-        m.efforts_check()
+        efforts_check(m)
     finally:
         m.sim.close()
 
@@ -237,12 +233,12 @@ def test_the_displayed_torque_is_passivated_against_the_handles_rotation() -> No
     before the handle moves, where no damper can act (a step onto a handle at rest)."""
     energy = {}
     for on in (True, False):
-        m = SixMaster(passivity=on, passivity_max_rot_damping=20.0)
+        m = six_master(passivity=on, passivity_max_rot_damping=20.0)
         try:
             m.feed.torque = (0.0, 0.0, 0.1)
             m.feed.step(300)
             st = m.ctl.stats()["torque"]["passivity"]
-            m.efforts_check()
+            efforts_check(m)
         finally:
             m.sim.close()
         energy[on] = st["energy_mj"]

@@ -21,10 +21,12 @@ import yaml
 import igtl
 from occ.frame import Frame
 from occ.safety import RobotState
-from occ_testkit.testing import SimRobot, SlaveTipFeed
+from occ_testkit.rigs import SimMaster, SlaveRig
+from occ_testkit.testing import SlaveTipFeed
 
 ROOT = Path(__file__).resolve().parents[2]
-MASTER = ("127.0.0.1", 40000)
+#: where the master's handle is when the tests start (mm)
+HANDLE = (0.0, 50.0, 270.0)
 
 # controllers that never use their frame still get a real one (a compiled ControllerContext checks
 # the type of each field)
@@ -45,73 +47,31 @@ def rotation(yaw: float, pitch: float, roll: float) -> list[list[float]]:
 R = rotation(0.3, -0.5, 0.7)
 
 
-class Rig:
-    """The slave, its master's stream (a sample every 2 ms) and an operator."""
-
-    def __init__(self, **params: Any) -> None:
-        self.sim = SimRobot(ROOT / "configs" / "slave.yaml", params=params or None)
-        self.robot = self.sim.robot
-        self.ctl: Any = self.robot.controller
-        self.master = self.sim.peer("master", address=MASTER)
-        self.operator = self.sim.peer("operator", address=("127.0.0.1", 40001))
-        self.seq = 0
-        self.pos = [0.0, 50.0, 270.0]
-        self.run = True
-        self.clutch = False
-
-    def send(self, **kw: Any) -> None:
-        self.seq += 1
-        self.master.send_position(self.pos, seq=self.seq, run=self.run, clutch=self.clutch, **kw)
-
-    def step(self, ms: int) -> None:
-        for _ in range(ms):
-            if self.sim.k % 2 == 0:
-                self.send()
-            self.sim.tick()
-
-    def command(self, name: str) -> None:
-        reply = self.sim.command(self.operator, name)
-        assert reply.metadata["Status"] == "SUCCESS", name
-
-    def running(self) -> None:
-        self.command("Enable")
-        self.command("Run")
-        self.step(20)
-        assert self.robot.state is RobotState.RUNNING
-
-    def tip_mm(self) -> np.ndarray:
-        """FK of the setpoint the slave writes, mm."""
-        return np.array(self.robot.frame.tip_position(self.robot.data.setpoint)) * 1e3
-
-    def close(self) -> None:
-        self.sim.close()
-
-
 @pytest.fixture
 def rig() -> Any:
-    r = Rig()
+    r = SlaveRig(target=HANDLE)
     yield r
     r.close()
 
 
 @pytest.mark.req("SR-TELE-1")
 def test_every_entry_of_scale_times_rotation_is_applied() -> None:
-    rig = Rig(scale=0.2, rotation=R)
+    rig = SlaveRig(params={"scale": 0.2, "rotation": R}, target=HANDLE)
     try:
         rig.running()
         start = rig.tip_mm()
         stats = rig.ctl.stats()
         assert stats["slave_ref_mm"] == pytest.approx(start.tolist(), abs=1e-6)
-        assert stats["master_ref_mm"] == pytest.approx(rig.pos)
-        m0 = list(rig.pos)
+        assert stats["master_ref_mm"] == pytest.approx(rig.target)
+        m0 = list(rig.target)
         for axis in range(3):  # 3 mm along each master axis in turn: one column of 0.2 R each
-            rig.pos = list(m0)
-            rig.pos[axis] += 3.0
+            rig.target = list(m0)
+            rig.target[axis] += 3.0
             rig.step(2)
             moved = rig.tip_mm() - start
             expect = [0.2 * 3.0 * R[row][axis] for row in range(3)]
             assert moved.tolist() == pytest.approx(expect, abs=1e-6), axis
-        rig.pos = [m0[0] + 1.0, m0[1] - 2.0, m0[2] + 4.0]  # a general displacement
+        rig.target = [m0[0] + 1.0, m0[1] - 2.0, m0[2] + 4.0]  # a general displacement
         rig.step(2)
         d = np.array([1.0, -2.0, 4.0])
         expect = (0.2 * np.array(R) @ d).tolist()
@@ -122,16 +82,16 @@ def test_every_entry_of_scale_times_rotation_is_applied() -> None:
 
 
 @pytest.mark.req("SR-CLUTCH-1")
-def test_clutch_holds_exactly_and_release_reindexes_where_the_master_is(rig: Rig) -> None:
+def test_clutch_holds_exactly_and_release_reindexes_where_the_master_is(rig: SlaveRig) -> None:
     rig.running()
-    rig.pos[0] += 5.0
+    rig.target[0] += 5.0
     rig.step(2)
     before = rig.tip_mm()
     setpoint = list(rig.robot.data.setpoint)
     assert rig.ctl.stats()["reindexes"] == 1
     rig.clutch = True
     for _ in range(10):
-        rig.pos[1] += 2.0
+        rig.target[1] += 2.0
         rig.step(2)
         assert list(rig.robot.data.setpoint) == setpoint  # not one bit of motion
     stats = rig.ctl.stats()
@@ -140,21 +100,21 @@ def test_clutch_holds_exactly_and_release_reindexes_where_the_master_is(rig: Rig
     rig.step(2)  # released 20 mm away: the new references are here, no jump
     stats = rig.ctl.stats()
     assert stats["master_clutch"] is False and stats["reindexes"] == 2
-    assert stats["master_ref_mm"] == pytest.approx(rig.pos)
+    assert stats["master_ref_mm"] == pytest.approx(rig.target)
     assert rig.tip_mm().tolist() == pytest.approx(before.tolist(), abs=1e-6)
-    rig.pos[2] -= 10.0
+    rig.target[2] -= 10.0
     rig.step(2)
     assert (rig.tip_mm() - before).tolist() == pytest.approx([0.0, 0.0, -1.0], abs=1e-6)
     assert rig.ctl.stats()["reindexes"] == 2  # pressing and holding does not re-index again
 
 
 @pytest.mark.req("SR-CLUTCH-1")
-def test_run_flag_zero_holds_and_its_rising_edge_reindexes(rig: Rig) -> None:
+def test_run_flag_zero_holds_and_its_rising_edge_reindexes(rig: SlaveRig) -> None:
     rig.running()
     setpoint = list(rig.robot.data.setpoint)
     before = rig.tip_mm()
     rig.run = False
-    rig.pos[0] += 30.0
+    rig.target[0] += 30.0
     rig.step(10)
     assert list(rig.robot.data.setpoint) == setpoint
     assert rig.ctl.stats()["master_run"] is False
@@ -163,19 +123,19 @@ def test_run_flag_zero_holds_and_its_rising_edge_reindexes(rig: Rig) -> None:
     stats = rig.ctl.stats()
     assert stats["master_run"] is True and stats["reindexes"] == 2
     assert rig.tip_mm().tolist() == pytest.approx(before.tolist(), abs=1e-6)
-    rig.pos[0] += 1.0
+    rig.target[0] += 1.0
     rig.step(2)
     assert (rig.tip_mm() - before).tolist() == pytest.approx([0.1, 0.0, 0.0], abs=1e-6)
 
 
 @pytest.mark.req("SR-TELE-1")
-def test_entering_running_reindexes_from_the_held_pose(rig: Rig) -> None:
+def test_entering_running_reindexes_from_the_held_pose(rig: SlaveRig) -> None:
     rig.running()
-    rig.pos[0] += 10.0
+    rig.target[0] += 10.0
     rig.step(4)
     rig.command("Stop")
     held = rig.tip_mm()
-    rig.pos[0] += 40.0  # the master moves on while the slave is stopped
+    rig.target[0] += 40.0  # the master moves on while the slave is stopped
     rig.step(10)
     rig.command("Run")
     rig.step(2)
@@ -185,7 +145,7 @@ def test_entering_running_reindexes_from_the_held_pose(rig: Rig) -> None:
 
 
 def test_samples_are_counted_and_filtered_by_interface_device_and_type() -> None:
-    rig = Rig(input_device="Master")
+    rig = SlaveRig(params={"input_device": "Master"}, target=HANDLE)
     try:
         rig.running()
         stats = rig.ctl.stats()
@@ -195,7 +155,7 @@ def test_samples_are_counted_and_filtered_by_interface_device_and_type() -> None
         before = rig.tip_mm()
         # another device on the same interface: ignored
         rig.seq += 1
-        rig.master.send_position((rig.pos[0] + 50.0, rig.pos[1], rig.pos[2]), seq=rig.seq,
+        rig.source.send_position((rig.target[0] + 50.0, rig.target[1], rig.target[2]), seq=rig.seq,
                                  device="Other")
         rig.sim.tick()
         rig.sim.tick()
@@ -206,13 +166,13 @@ def test_samples_are_counted_and_filtered_by_interface_device_and_type() -> None
 
 
 def test_a_sample_on_another_interface_is_not_followed() -> None:
-    rig = Rig()
+    rig = SlaveRig(target=HANDLE)
     try:
         rig.running()
         n = rig.ctl.stats()["samples"]
         before = rig.tip_mm()
         other = rig.sim.peer("operator", address=("127.0.0.1", 40009))
-        other.send_position((rig.pos[0] + 50.0, rig.pos[1], rig.pos[2]), seq=1)
+        other.send_position((rig.target[0] + 50.0, rig.target[1], rig.target[2]), seq=1)
         rig.sim.tick()
         rig.sim.tick()
         assert rig.ctl.stats()["samples"] == n and rig.ctl.stats()["source"] == "master"
@@ -222,26 +182,9 @@ def test_a_sample_on_another_interface_is_not_followed() -> None:
 
 
 # -- the master's side: its stream, the clutch command, the fixture commands ---------------
-class Master:
-    """The shipped master (configs/master.yaml) with a peer reading its stream as the slave."""
-
-    def __init__(self, config: Any = None, link: str = "slave") -> None:
-        self.sim = SimRobot(config if config is not None else ROOT / "configs" / "master.yaml")
-        self.robot = self.sim.robot
-        self.ctl: Any = self.robot.controller.controllers[0]
-        self.stream = self.sim.peer(link).received
-        self.op = self.sim.peer("operator", address=("127.0.0.1", 41000))
-
-    def command(self, name: str, text: str = "") -> igtl.Message:
-        return self.sim.command(self.op, name, text)
-
-    def close(self) -> None:
-        self.sim.close()
-
-
 @pytest.fixture
 def master() -> Any:
-    m = Master()
+    m = SimMaster()
     yield m
     m.close()
 
@@ -252,7 +195,7 @@ def _status(reply: igtl.Message) -> tuple[str, str]:
 
 
 @pytest.mark.req("SR-CLUTCH-1")
-def test_clutch_command_values(master: Master) -> None:
+def test_clutch_command_values(master: SimMaster) -> None:
     cases = [
         ('<Command Name="Clutch" Value="1"/>', True),
         ('<Command Name="Clutch" Value="0"/>', False),
@@ -270,19 +213,19 @@ def test_clutch_command_values(master: Master) -> None:
         assert message == ("clutch pressed" if pressed else "clutch released"), text
         assert master.ctl.clutch is pressed, text
         master.sim.step(2)
-        assert master.stream[-1].metadata["clutch"] == ("1" if pressed else "0"), text
+        assert master.sent[-1].metadata["clutch"] == ("1" if pressed else "0"), text
 
 
-def test_the_stream_carries_the_handle_the_time_and_the_run_flag(master: Master) -> None:
+def test_the_stream_carries_the_handle_the_time_and_the_run_flag(master: SimMaster) -> None:
     master.sim.step(4)
-    m = master.stream[-1]
+    m = master.sent[-1]
     assert m.metadata["run"] == "0" and m.device_name == "Master"
     for name in ("Enable", "Run"):
         assert _status(master.command(name))[0] == "SUCCESS"
-    n = len(master.stream)
-    while len(master.stream) == n:  # the next tick that sends (500 Hz: every other tick)
+    n = len(master.sent)
+    while len(master.sent) == n:  # the next tick that sends (500 Hz: every other tick)
         master.sim.tick()
-    m = master.stream[-1]
+    m = master.sent[-1]
     assert m.timestamp == pytest.approx(master.sim.clock.wall_time(), abs=1e-6)
     assert m.metadata["run"] == "1" and m.device_name == "Master" and m.layout == 24
     assert tuple(m.quaternion[:3]) == (0.0, 0.0, 0.0)
@@ -290,7 +233,7 @@ def test_the_stream_carries_the_handle_the_time_and_the_run_flag(master: Master)
     assert m.position == pytest.approx([v * 1e3 for v in tip], abs=1e-3)
 
 
-def test_fixture_commands_and_unknown_ones(master: Master) -> None:
+def test_fixture_commands_and_unknown_ones(master: SimMaster) -> None:
     status, message = _status(master.command("GetFixtures"))
     assert (status, message) == ("SUCCESS", "0 fixtures; models follow")
     status, message = _status(master.command("ClearFixtures"))
@@ -310,7 +253,7 @@ def test_select_names_the_slave_in_either_case() -> None:
     cfg = cfg.model_copy(
         update={"interfaces": (*[i for i in cfg.interfaces if i.name != "slave"], *links)}
     ).with_params(slaves=["left", "right"])
-    m = Master(cfg, link="left")
+    m = SimMaster(cfg, link="left")
     try:
         assert _status(m.command("Select", '<Command Name="Select" to="right"/>')) == (
             "SUCCESS", "slave left -> right")
@@ -322,9 +265,9 @@ def test_select_names_the_slave_in_either_case() -> None:
         m.close()
 
 
-def test_a_target_outside_the_workspace_is_clamped_once_per_sample(rig: Rig) -> None:
+def test_a_target_outside_the_workspace_is_clamped_once_per_sample(rig: SlaveRig) -> None:
     rig.running()
-    rig.pos[2] += 5000.0  # 500 mm deeper at the slave: past the insertion limit
+    rig.target[2] += 5000.0  # 500 mm deeper at the slave: past the insertion limit
     rig.step(10)  # five samples, ten ticks: each sample solved once
     assert rig.ctl.stats()["ik_clamped"] == 5
     setpoint = list(rig.robot.data.setpoint)
@@ -332,27 +275,27 @@ def test_a_target_outside_the_workspace_is_clamped_once_per_sample(rig: Rig) -> 
     assert rig.ctl.stats()["ik_clamped"] == 5 and list(rig.robot.data.setpoint) == setpoint
 
 
-def test_a_sample_that_cannot_be_solved_is_counted_and_the_slave_holds(rig: Rig) -> None:
+def test_a_sample_that_cannot_be_solved_is_counted_and_the_slave_holds(rig: SlaveRig) -> None:
     rig.running()
     setpoint = list(rig.robot.data.setpoint)
-    good = list(rig.pos)
-    rig.pos = [math.nan, good[1], good[2]]
+    good = list(rig.target)
+    rig.target = [math.nan, good[1], good[2]]
     rig.step(4)  # two samples the inverse kinematics refuses
     assert rig.ctl.stats()["ik_failures"] == 2
     assert list(rig.robot.data.setpoint) == setpoint
-    rig.pos = [good[0] + 1.0, good[1], good[2]]
+    rig.target = [good[0] + 1.0, good[1], good[2]]
     rig.step(2)  # and a good one is followed again, from the same references
     assert rig.ctl.stats()["ik_failures"] == 2 and rig.ctl.stats()["reindexes"] == 1
     assert rig.robot.data.setpoint != setpoint
 
 
-def test_sample_latency_is_measured_from_the_masters_timestamp(rig: Rig) -> None:
+def test_sample_latency_is_measured_from_the_masters_timestamp(rig: SlaveRig) -> None:
     rig.running()
     for _ in range(10):
         # sampled 0.5 ms before it is sent, sent one tick (1 ms) before the tick that uses it
         rig.seq += 1
         stamp = rig.sim.clock.wall_time() - 0.0005
-        rig.master.send_position(rig.pos, seq=rig.seq, timestamp=stamp)
+        rig.source.send_position(rig.target, seq=rig.seq, timestamp=stamp)
         rig.sim.tick()
         rig.sim.tick()
     stats = rig.ctl.stats()
@@ -364,10 +307,10 @@ def test_sample_latency_is_measured_from_the_masters_timestamp(rig: Rig) -> None
     assert stats["sample_to_rx_us"]["p99"] == pytest.approx(500.0, abs=1.0)
 
 
-def test_stop_and_run_between_two_stamped_samples_keeps_following(rig: Rig) -> None:
+def test_stop_and_run_between_two_stamped_samples_keeps_following(rig: SlaveRig) -> None:
     rig.running()
     rig.seq += 1
-    rig.master.send_position(rig.pos, seq=rig.seq, timestamp=rig.sim.clock.wall_time())
+    rig.source.send_position(rig.target, seq=rig.seq, timestamp=rig.sim.clock.wall_time())
     rig.sim.tick()  # the stamped sample is followed (its latency measured)
     rig.command("Stop")
     rig.command("Run")
@@ -379,7 +322,7 @@ def test_stop_and_run_between_two_stamped_samples_keeps_following(rig: Rig) -> N
     rig.step(2)
     assert rig.ctl.stats()["reindexes"] == 2
     before = rig.tip_mm()
-    rig.pos[1] += 10.0
+    rig.target[1] += 10.0
     rig.step(2)
     assert rig.robot.state is RobotState.RUNNING
     assert (rig.tip_mm() - before)[1] != 0.0 and rig.ctl.stats()["reindexes"] == 2
@@ -397,12 +340,7 @@ def test_the_base_pose_from_a_tracker_does_not_stop_the_following() -> None:
     cfg = cfg.model_copy(update={
         "interfaces": tuple(slicer if i.name == "slicer" else i for i in cfg.interfaces),
     }).with_params(base_interface="slicer", base_mm=None)
-    rig = Rig.__new__(Rig)
-    rig.sim = SimRobot(cfg)
-    rig.robot, rig.ctl = rig.sim.robot, rig.sim.robot.controller
-    rig.master = rig.sim.peer("master", address=MASTER)
-    rig.operator = rig.sim.peer("operator", address=("127.0.0.1", 40001))
-    rig.seq, rig.pos, rig.run, rig.clutch = 0, [0.0, 50.0, 270.0], True, False
+    rig = SlaveRig(cfg, target=HANDLE)
     try:
         tracker = rig.sim.peer("slicer")
         tracker.send(igtl.TransformMessage.from_position((10.0, 20.0, 30.0), device_name="Base"))
@@ -420,7 +358,7 @@ def test_the_base_pose_from_a_tracker_does_not_stop_the_following() -> None:
                                                                      abs=1e-12)
         rig.running()  # and the master's stream is still followed
         before = rig.tip_mm()
-        rig.pos[0] += 10.0
+        rig.target[0] += 10.0
         rig.step(2)
         assert (rig.tip_mm() - before).tolist() == pytest.approx([1.0, 0.0, 0.0], abs=1e-6)
     finally:
@@ -430,7 +368,7 @@ def test_the_base_pose_from_a_tracker_does_not_stop_the_following() -> None:
 def test_the_simulated_hand_resumes_where_it_was_held() -> None:
     from tests.occ.test_master_sim import position_master
 
-    m = Master(position_master())
+    m = SimMaster(position_master())
     try:
         ctl = m.ctl
         assert _status(m.command("Enable"))[0] == "SUCCESS"
@@ -522,7 +460,7 @@ def test_only_the_configured_interface_and_device_are_followed() -> None:
 @pytest.mark.parametrize("held", [2, 1], ids=["held-2-samples", "held-1-sample"])
 @pytest.mark.parametrize("flag", ["clutch", "run"])
 def test_a_clutch_or_run_cycle_inside_one_tick_still_reindexes(
-    rig: Rig, flag: str, held: int
+    rig: SlaveRig, flag: str, held: int
 ) -> None:
     """Samples queued between two ticks are all seen by on_sample, the mapping only once:
     a press and release (or run 0 then 1) among them must still re-index, or the slave
@@ -534,18 +472,18 @@ def test_a_clutch_or_run_cycle_inside_one_tick_still_reindexes(
     cycle = [(10.0, False)] + [(20.0, False)] * (held - 1) + [(20.0, True)]
     for moved, following in cycle:
         rig.seq += 1
-        rig.master.send_position(
+        rig.source.send_position(
             (moved, 50.0, 270.0), seq=rig.seq,
             clutch=(flag == "clutch" and not following), run=(flag != "run" or following),
         )
-    rig.pos = [20.0, 50.0, 270.0]
+    rig.target = [20.0, 50.0, 270.0]
     rig.sim.tick()
     assert rig.ctl.stats()["reindexes"] == n + 1
     assert rig.tip_mm().tolist() == pytest.approx(before.tolist(), abs=1e-6)
 
 
 def test_the_masters_fixture_force_is_off_while_the_robot_is_not_running(
-    master: Master,
+    master: SimMaster,
 ) -> None:
     """Fixtures do not follow the master's handle any more (the tool is the slave's tip): what
     leaving and re-entering RUNNING does is zero the displayed force and fade it back in."""
@@ -577,7 +515,7 @@ def test_a_teleop_output_that_is_not_position_faults_and_says_so() -> None:
     for itf in raw["interfaces"]:
         if itf["name"] == "slave":
             itf["outputs"][0]["type"] = "TRANSFORM"
-    m = Master(raw)
+    m = SimMaster(raw)
     try:
         m.sim.step(3)
         assert m.robot.state is RobotState.FAULT
@@ -590,7 +528,7 @@ def test_a_teleop_output_that_is_not_position_faults_and_says_so() -> None:
 @pytest.mark.req("SR-LOSS-2")
 @pytest.mark.parametrize("flag", ["run", "clutch", None])
 def test_a_re_entry_ramp_after_a_late_stream_finishes_when_the_master_lets_go(
-    rig: Rig, flag: str | None
+    rig: SlaveRig, flag: str | None
 ) -> None:
     """The stream goes silent (the slave holds), the master moves 20 mm meanwhile, and the
     slave re-joins the mapped target at half the velocity limits. If the operator then lets go
@@ -602,7 +540,7 @@ def test_a_re_entry_ramp_after_a_late_stream_finishes_when_the_master_lets_go(
     for _ in range(12):  # 12 ms without a sample: the loss monitor holds
         rig.sim.tick()
     assert rig.robot.streams.monitor.holding and rig.robot.state is RobotState.RUNNING
-    rig.pos[0] += 20.0  # 2 mm of the slave's tip at the configured scale
+    rig.target[0] += 20.0  # 2 mm of the slave's tip at the configured scale
     rig.step(4)
     mid = rig.tip_mm() - before
     assert 0.01 < mid[0] < 1.0  # on the way, far from the target
@@ -613,7 +551,7 @@ def test_a_re_entry_ramp_after_a_late_stream_finishes_when_the_master_lets_go(
     assert rig.robot.motion.reentries == reentries + 1
 
 
-def test_the_tick_that_stops_the_master_keeps_its_fixture_work_budget(master: Master) -> None:
+def test_the_tick_that_stops_the_master_keeps_its_fixture_work_budget(master: SimMaster) -> None:
     """Leaving RUNNING in the middle of a tick: the tick's budget
     of compiled definitions (max_fixtures, 64) goes on counting, so 40 definitions before
     the Stop and 40 after it in the same tick are not 80 compiled in one tick."""
@@ -653,7 +591,7 @@ def test_a_refused_fixture_on_a_stream_queue_is_answered_and_faults_nothing() ->
                 inp["queue"] = "stream"
                 routed += 1
     assert routed == 1
-    m = Master(cfg)
+    m = SimMaster(cfg)
     try:
         for name in ("Enable", "Run"):
             assert _status(m.command(name))[0] == "SUCCESS"
@@ -682,24 +620,24 @@ def test_a_refused_fixture_on_a_stream_queue_is_answered_and_faults_nothing() ->
         m.close()
 
 
-def test_a_sample_that_is_no_point_is_never_taken_as_the_reference(rig: Rig) -> None:
+def test_a_sample_that_is_no_point_is_never_taken_as_the_reference(rig: SlaveRig) -> None:
     """The first samples after Run (the re-index) carry NaN: they are counted as failures and
     the slave holds; the first good sample becomes the reference and the slave follows from
     there (before the fix, the NaN reference made every later target NaN until a clutch)."""
     rig.command("Enable")
     rig.command("Run")
     held = list(rig.robot.data.setpoint)
-    good = list(rig.pos)
-    rig.pos = [math.nan, good[1], good[2]]
+    good = list(rig.target)
+    rig.target = [math.nan, good[1], good[2]]
     rig.step(4)  # two samples, four ticks
     stats = rig.ctl.stats()
     assert stats["ik_failures"] == 2 and stats["master_ref_mm"] is None
     assert list(rig.robot.data.setpoint) == held
-    rig.pos = [good[0] + 10.0, good[1], good[2]]
+    rig.target = [good[0] + 10.0, good[1], good[2]]
     rig.step(2)
     before = rig.tip_mm()
-    assert rig.ctl.stats()["master_ref_mm"] == pytest.approx(rig.pos)
-    rig.pos[0] += 5.0
+    assert rig.ctl.stats()["master_ref_mm"] == pytest.approx(rig.target)
+    rig.target[0] += 5.0
     rig.step(2)
     assert (rig.tip_mm() - before).tolist() == pytest.approx([0.5, 0.0, 0.0], abs=1e-6)
     assert rig.ctl.stats()["ik_failures"] == 2 and rig.ctl.stats()["reindexes"] == 1
