@@ -84,14 +84,28 @@ class SimSlave:
 
 
 def run_sim(args: argparse.Namespace, out: Path) -> Report:
-    from occ.safety import RobotState
-
-    RUNNING, STOPPED = RobotState.RUNNING, RobotState.STOPPED
     rep = Report("sim")
     sim_s = float(args.sim_seconds)
     total_ticks = int(round(sim_s * 1000.0))
     pause = max(1, int(round(args.pause_ms)))
-    packets = total_ticks // 2
+    pattern = _sim_pattern(args, sim_s, total_ticks // 2, pause)
+    slave = _started_slave(Path(args.config), args.first_seq)
+    oracle = _Oracle(rep, slave, pause)
+    t_wall0 = time.perf_counter()
+    oracle.run(slave.k + total_ticks, pattern, progress=args.progress, sim_s=sim_s)
+    oracle.finish()
+    elapsed = time.perf_counter() - t_wall0
+    monitor = slave.robot.streams.monitor
+    counters = monitor.counters() if monitor is not None else {}
+    slave.close()
+    _sim_numbers(rep, oracle, pattern, args, sim_s, pause, counters, elapsed)
+    _sim_checks(rep, oracle, counters)
+    return rep
+
+
+def _sim_pattern(args: argparse.Namespace, sim_s: float, packets: int, pause: int) -> LossPattern:
+    """The drops: from the options, or by default Gilbert-Elliott bursts (mean length 2) plus
+    0.5 % independent loss."""
     # scheduled runs must not fall into the stop-and-resume window of the previous one
     min_gap_default = int(math.ceil((pause + 100) / PERIOD_MS))
     try:
@@ -99,59 +113,72 @@ def run_sim(args: argparse.Namespace, out: Path) -> Report:
     except ValueError as err:
         raise SystemExit(f"soak sim: {err}") from None
     if not (args.loss or args.burst or args.drop_runs or args.drop_cycle):
-        # default: Gilbert-Elliott bursts (mean length 2) plus 0.5 % independent loss
         pattern = LossPattern(seed=args.seed, loss=0.005, burst=(0.002, 0.5, 1.0))
-    slave = SimSlave(Path(args.config), first_seq=args.first_seq)
-    robot = slave.robot
+    return pattern
+
+
+def _started_slave(config: Path, first_seq: int) -> SimSlave:
+    """The simulated slave, enabled and RUNNING by its operator's commands."""
+    from occ.safety import RobotState
+
+    slave = SimSlave(config, first_seq=first_seq)
     for name in ("Enable", "Run"):
         r = slave.command(name)
         if r is None or r.metadata.get("Status") != "SUCCESS":
             raise SystemExit(f"soak sim: {name} refused: {r}")
-    if robot.state is not RUNNING:
-        raise SystemExit(f"soak sim: robot is {robot.state.value}, not RUNNING")
-    t_origin = slave.k  # tick of the first packet
-    w = 2.0 * math.pi * 0.1
+    if slave.robot.state is not RobotState.RUNNING:
+        raise SystemExit(f"soak sim: robot is {slave.robot.state.value}, not RUNNING")
+    return slave
 
-    armed = False  # oracle: the monitor has seen a good packet since the last (re)start
-    last_good: int | None = None
-    open_run: dict[str, Any] | None = None  # the current run of drops
-    expected_stop: int | None = None
-    resume_at: int | None = None
-    resume_cid: int | None = None
-    stop_latencies: list[float] = []
-    all_lengths: list[int] = []
-    failures = rep.failures
-    stops_ok = unexpected = missed = resumes = resume_failed = 0
-    drops = 0
-    t_wall0 = time.perf_counter()
-    next_progress = t_wall0 + 30.0
-    end_tick = slave.k + total_ticks
-    status_seen = 0
-    alert_ok = 0
-    alert_bad: list[str] = []
-    monitor = robot.streams.monitor
-    assert monitor is not None
-    grace_ticks = int(math.floor(monitor.grace_s * 1000.0 + 1e-9)) + 1  # elapsed > grace
-    hold_latencies: list[float] = []
-    unexpected_holds = 0
-    was_holding = False
 
-    def close_run(k: int) -> None:
-        nonlocal open_run
-        assert open_run is not None
-        run = open_run
-        open_run = None
+class _Oracle:
+    """What the loss monitor must do, followed independently tick by tick: the drops it sees,
+    when it must hold and latch a stop, the operator's Run after each stop, and the alerts."""
+
+    def __init__(self, rep: Report, slave: SimSlave, pause: int) -> None:
+        from occ.safety import RobotState
+
+        self.RUNNING, self.STOPPED = RobotState.RUNNING, RobotState.STOPPED
+        self.rep, self.slave, self.robot, self.pause = rep, slave, slave.robot, pause
+        self.t_origin = slave.k  # tick of the first packet
+        self.w = 2.0 * math.pi * 0.1
+        self.armed = False  # the monitor has seen a good packet since the last (re)start
+        self.last_good: int | None = None
+        self.open_run: dict[str, Any] | None = None  # the current run of drops
+        self.expected_stop: int | None = None
+        self.resume_at: int | None = None
+        self.resume_cid: int | None = None
+        self.stop_latencies: list[float] = []
+        self.all_lengths: list[int] = []
+        self.failures = rep.failures
+        self.stops_ok = self.unexpected = self.missed = self.resumes = self.resume_failed = 0
+        self.drops = 0
+        self.status_seen = 0
+        self.alert_ok = 0
+        self.alert_bad: list[str] = []
+        monitor = self.robot.streams.monitor
+        assert monitor is not None
+        self.monitor = monitor
+        self.grace_ticks = int(math.floor(monitor.grace_s * 1000.0 + 1e-9)) + 1  # elapsed > grace
+        self.hold_latencies: list[float] = []
+        self.unexpected_holds = 0
+        self.was_holding = False
+
+    def close_run(self, k: int) -> None:
+        assert self.open_run is not None
+        run = self.open_run
+        self.open_run = None
         length = run["length"]
-        all_lengths.append(length)
+        self.all_lengths.append(length)
         if not run["evaluated"]:
             cat = "masked"
         elif run["stopped"]:
             cat = "stop" if length > MAX_TOLERATED else "bad-stop"
         else:
             cat = "no-stop" if length <= MAX_TOLERATED else "missed"
-        rep.runs.append(
+        self.rep.runs.append(
             RunOutcome(
-                round((run["tick"] - t_origin) / 1000.0, 3),
+                round((run["tick"] - self.t_origin) / 1000.0, 3),
                 length,
                 run["seq"],
                 cat,
@@ -160,17 +187,29 @@ def run_sim(args: argparse.Namespace, out: Path) -> Report:
             )
         )
 
-    while slave.k < end_tick:
-        k = slave.k
-        if time.perf_counter() > next_progress and args.progress:
-            next_progress += 30.0
-            print(
-                f"soak sim: {(k - t_origin) / 1000.0:.0f}/{sim_s:.0f} simulated s, "
-                f"{stops_ok} stops, {len(failures)} failures, "
-                f"{time.perf_counter() - t_wall0:.0f} s",
-                file=sys.stderr,
-                flush=True,
-            )
+    def run(self, end_tick: int, pattern: LossPattern, *, progress: bool, sim_s: float) -> None:
+        """Tick the slave to ``end_tick`` (or an abort), judging every tick."""
+        t_wall0 = time.perf_counter()
+        next_progress = t_wall0 + 30.0
+        slave = self.slave
+        while slave.k < end_tick:
+            k = slave.k
+            if time.perf_counter() > next_progress and progress:
+                next_progress += 30.0
+                print(
+                    f"soak sim: {(k - self.t_origin) / 1000.0:.0f}/{sim_s:.0f} simulated s, "
+                    f"{self.stops_ok} stops, {len(self.failures)} failures, "
+                    f"{time.perf_counter() - t_wall0:.0f} s",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            if not self.step(k, pattern):
+                break
+
+    def step(self, k: int, pattern: LossPattern) -> bool:
+        """One tick: the master's packet (or its drop), the operator's Run when due, the tick,
+        then what should have happened at it; False when the soak must stop."""
+        slave, robot = self.slave, self.robot
         pre = robot.state
         is_packet = k % 2 == 0
         drop = False
@@ -179,194 +218,236 @@ def run_sim(args: argparse.Namespace, out: Path) -> Report:
             seq = slave.next_seq()
             drop = pattern.decide() is not None
             if not drop:
-                t = (k - t_origin) * 0.001
+                t = (k - self.t_origin) * 0.001
+                w = self.w
                 slave.deliver(seq, (50.0 * math.sin(w * t), 50.0 * math.cos(w * t), 20.0))
             else:
-                drops += 1
-        is_resume = resume_at == k
+                self.drops += 1
+        is_resume = self.resume_at == k
         if is_resume:
-            resume_cid = slave.inject_command("Run")
+            self.resume_cid = slave.inject_command("Run")
         slave.tick()
         post = robot.state
-
-        # ---- oracle: what should have happened at this tick
-        closing = False
-        if is_packet:
-            if drop:
-                if open_run is None:
-                    open_run = {
-                        "tick": k,
-                        "seq": seq,
-                        "length": 0,
-                        "evaluated": armed and pre is RUNNING,
-                        "last_good": last_good,
-                        "stopped": False,
-                        "hold": None,
-                    }
-                open_run["length"] += 1
-            else:
-                if open_run is not None:
-                    closing = True
-                    if (
-                        open_run["evaluated"]
-                        and not open_run["stopped"]
-                        and open_run["length"] > MAX_TOLERATED
-                    ):
-                        expected_stop = k  # this packet proves the numbers missing
-                if pre is RUNNING and not is_resume:
-                    armed = True  # the first good packet after a (re)start arms the monitor
-                    last_good = k
-        if (
-            open_run is not None
-            and open_run["evaluated"]
-            and not open_run["stopped"]
-            and open_run["last_good"] is not None
-            and k == open_run["last_good"] + grace_ticks
-        ):
-            expected_stop = k  # silent past the grace: a dead master
-        # holds: exactly at +7 ms for a run of >= 3, never otherwise
-        holding = monitor.holding and post is RUNNING
-        if holding and not was_holding:
-            if (
-                open_run is not None
-                and open_run["evaluated"]
-                and open_run["hold"] is None
-                and open_run["last_good"] is not None
-            ):
-                open_run["hold"] = k - open_run["last_good"]
-                hold_latencies.append(float(open_run["hold"]))
-            else:
-                unexpected_holds += 1
-                failures.append(
-                    f"tick {k}: UNEXPECTED hold; open run "
-                    f"{open_run['length'] if open_run else 0}, armed {armed}"
-                )
-        was_holding = holding
+        closing = is_packet and self._account_packet(k, drop, seq, pre, is_resume)
+        self._check_grace(k)
+        self._check_hold(k, post)
         if is_resume:
-            resumes += 1
-            r = slave.reply_to(resume_cid) if resume_cid is not None else None
-            if r is None or r.metadata.get("Status") != "SUCCESS" or post is not RUNNING:
-                resume_failed += 1
-                failures.append(
-                    f"tick {k}: operator Run failed: {r and r.metadata}, state {post.value}"
-                )
-            armed = False  # reset by entering RUNNING: armed again by the next packet
-            resume_at = None
-        if pre is RUNNING and post is STOPPED:
-            reason = robot.state_machine.last_reason
-            if expected_stop == k and open_run is not None:
-                stops_ok += 1
-                lat = float(k - open_run["last_good"])
-                open_run["stopped"] = True
-                open_run["latency"] = lat
-                stop_latencies.append(lat)
-                rep.stops.append(
-                    {
-                        "t_s": round((k - t_origin) / 1000.0, 3),
-                        "latency_ms": lat,
-                        "hold_ms": open_run["hold"],
-                        "first_lost_seq": open_run["seq"],
-                        "reason": reason,
-                    }
-                )
-            else:
-                unexpected += 1
-                if open_run is not None:
-                    open_run["stopped"] = True
-                failures.append(
-                    f"tick {k}: UNEXPECTED stop ({reason}); open run "
-                    f"{open_run['length'] if open_run else 0}, armed {armed}, last good {last_good}"
-                )
-                rep.stops.append(
-                    {
-                        "t_s": round((k - t_origin) / 1000.0, 3),
-                        "latency_ms": None,
-                        "reason": reason,
-                        "unexpected": True,
-                    }
-                )
-            expected_stop = None
-            armed = False
-            was_holding = False
-            resume_at = k + pause
-        elif expected_stop == k:
-            missed += 1
-            failures.append(
-                f"tick {k}: MISSED stop: run of {open_run and open_run['length']} losses "
-                f"from seq {open_run and open_run['seq']}, robot {post.value}"
+            self._check_resume(k, post)
+        if pre is self.RUNNING and post is self.STOPPED:
+            self._on_stop(k)
+        elif self.expected_stop == k:
+            self.missed += 1
+            run = self.open_run
+            self.failures.append(
+                f"tick {k}: MISSED stop: run of {run and run['length']} losses "
+                f"from seq {run and run['seq']}, robot {post.value}"
             )
-            expected_stop = None
+            self.expected_stop = None
         if closing:
-            close_run(k)
-        if post is not RUNNING and post is not STOPPED:
-            failures.append(
+            self.close_run(k)
+        if post is not self.RUNNING and post is not self.STOPPED:
+            self.failures.append(
                 f"tick {k}: robot left RUNNING/STOPPED: {post.value} "
                 f"({robot.state_machine.last_reason}); soak aborted"
             )
-            break
-        # every STATUS to the operators: a STOPPED one must name the packet loss
-        while status_seen < len(slave.statuses):
-            tk, st = slave.statuses[status_seen]
-            status_seen += 1
+            return False
+        self._read_alerts()
+        if len(self.failures) > 1000:
+            self.failures.append("more than 1000 failures: soak aborted")
+            return False
+        return True
+
+    def _account_packet(self, k: int, drop: bool, seq: int, pre: Any, is_resume: bool) -> bool:
+        """A packet tick: a drop opens or lengthens the run of drops; a good packet ends it (and
+        proves a run of >= 3 missing) and arms the monitor. True when a run ends here."""
+        if drop:
+            if self.open_run is None:
+                self.open_run = {
+                    "tick": k,
+                    "seq": seq,
+                    "length": 0,
+                    "evaluated": self.armed and pre is self.RUNNING,
+                    "last_good": self.last_good,
+                    "stopped": False,
+                    "hold": None,
+                }
+            self.open_run["length"] += 1
+            return False
+        closing = False
+        run = self.open_run
+        if run is not None:
+            closing = True
+            if run["evaluated"] and not run["stopped"] and run["length"] > MAX_TOLERATED:
+                self.expected_stop = k  # this packet proves the numbers missing
+        if pre is self.RUNNING and not is_resume:
+            self.armed = True  # the first good packet after a (re)start arms the monitor
+            self.last_good = k
+        return closing
+
+    def _check_grace(self, k: int) -> None:
+        run = self.open_run
+        if (
+            run is not None
+            and run["evaluated"]
+            and not run["stopped"]
+            and run["last_good"] is not None
+            and k == run["last_good"] + self.grace_ticks
+        ):
+            self.expected_stop = k  # silent past the grace: a dead master
+
+    def _check_hold(self, k: int, post: Any) -> None:
+        """Holds: exactly at +7 ms for a run of >= 3, never otherwise."""
+        holding = self.monitor.holding and post is self.RUNNING
+        if holding and not self.was_holding:
+            run = self.open_run
+            if (
+                run is not None
+                and run["evaluated"]
+                and run["hold"] is None
+                and run["last_good"] is not None
+            ):
+                run["hold"] = k - run["last_good"]
+                self.hold_latencies.append(float(run["hold"]))
+            else:
+                self.unexpected_holds += 1
+                self.failures.append(
+                    f"tick {k}: UNEXPECTED hold; open run "
+                    f"{run['length'] if run else 0}, armed {self.armed}"
+                )
+        self.was_holding = holding
+
+    def _check_resume(self, k: int, post: Any) -> None:
+        self.resumes += 1
+        cid = self.resume_cid
+        r = self.slave.reply_to(cid) if cid is not None else None
+        if r is None or r.metadata.get("Status") != "SUCCESS" or post is not self.RUNNING:
+            self.resume_failed += 1
+            self.failures.append(
+                f"tick {k}: operator Run failed: {r and r.metadata}, state {post.value}"
+            )
+        self.armed = False  # reset by entering RUNNING: armed again by the next packet
+        self.resume_at = None
+
+    def _on_stop(self, k: int) -> None:
+        """RUNNING -> STOPPED at tick ``k``: expected here, or a failure."""
+        reason = self.robot.state_machine.last_reason
+        run = self.open_run
+        t_s = round((k - self.t_origin) / 1000.0, 3)
+        if self.expected_stop == k and run is not None:
+            self.stops_ok += 1
+            lat = float(k - run["last_good"])
+            run["stopped"] = True
+            run["latency"] = lat
+            self.stop_latencies.append(lat)
+            self.rep.stops.append(
+                {
+                    "t_s": t_s,
+                    "latency_ms": lat,
+                    "hold_ms": run["hold"],
+                    "first_lost_seq": run["seq"],
+                    "reason": reason,
+                }
+            )
+        else:
+            self.unexpected += 1
+            if run is not None:
+                run["stopped"] = True
+            self.failures.append(
+                f"tick {k}: UNEXPECTED stop ({reason}); open run "
+                f"{run['length'] if run else 0}, armed {self.armed}, last good {self.last_good}"
+            )
+            self.rep.stops.append(
+                {"t_s": t_s, "latency_ms": None, "reason": reason, "unexpected": True}
+            )
+        self.expected_stop = None
+        self.armed = False
+        self.was_holding = False
+        self.resume_at = k + self.pause
+
+    def _read_alerts(self) -> None:
+        """Every STATUS to the operators: a STOPPED one must name the packet loss."""
+        statuses = self.slave.statuses
+        while self.status_seen < len(statuses):
+            tk, st = statuses[self.status_seen]
+            self.status_seen += 1
             if st.error_name == "STOPPED":
                 if "packet loss" in st.status_message:
-                    alert_ok += 1
+                    self.alert_ok += 1
                 else:
-                    alert_bad.append(f"tick {tk}: {st.status_message}")
-        if len(failures) > 1000:
-            failures.append("more than 1000 failures: soak aborted")
-            break
-    if open_run is not None:
-        # the soak ended inside a run: judge it only if its outcome is already decided
-        if open_run["evaluated"] and (open_run["stopped"] or open_run["length"] > MAX_TOLERATED):
-            close_run(slave.k)
-        else:
-            all_lengths.append(open_run["length"])
-    elapsed = time.perf_counter() - t_wall0
-    counters = robot.streams.monitor.counters() if robot.streams.monitor is not None else {}
-    slave.close()
+                    self.alert_bad.append(f"tick {tk}: {st.status_message}")
 
+    def finish(self) -> None:
+        """The soak ended inside a run: judge it only if its outcome is already decided."""
+        run = self.open_run
+        if run is not None:
+            if run["evaluated"] and (run["stopped"] or run["length"] > MAX_TOLERATED):
+                self.close_run(self.slave.k)
+            else:
+                self.all_lengths.append(run["length"])
+
+
+def _sim_numbers(
+    rep: Report,
+    o: _Oracle,
+    pattern: LossPattern,
+    args: argparse.Namespace,
+    sim_s: float,
+    pause: int,
+    counters: dict[str, Any],
+    elapsed: float,
+) -> None:
+    cats = Counter(r.category for r in rep.runs)
+    evaluated = [r for r in rep.runs if r.category != "masked"]
+    ev_long = [r for r in evaluated if r.length > MAX_TOLERATED]
+    ticks = o.slave.k - o.t_origin
+    rep.numbers = {
+        "sim_seconds": sim_s,
+        "ticks": ticks,
+        "packets": pattern.index,
+        "dropped": o.drops,
+        "drop_fraction": round(o.drops / pattern.index, 6) if pattern.index else 0.0,
+        "pattern": pattern.describe(),
+        "first_seq": args.first_seq,
+        "last_seq": o.slave.seq,
+        "pause_ms": pause,
+        "runs_total": len(o.all_lengths),
+        "runs_evaluated": len(evaluated),
+        "runs_masked": cats.get("masked", 0),
+        "runs_by_outcome": dict(sorted(cats.items())),
+        "run_length_histogram_all": histogram(o.all_lengths),
+        "run_length_histogram_evaluated": histogram([r.length for r in evaluated]),
+        "stops": o.stops_ok + o.unexpected,
+        "stops_expected": len(ev_long),
+        "stops_unexpected": o.unexpected,
+        "stops_missed": o.missed,
+        "hold_latency_ms": summarize(o.hold_latencies),
+        "holds_unexpected": o.unexpected_holds,
+        "stop_latency_ms": summarize(o.stop_latencies),
+        "stop_latency_histogram_ms": histogram([int(v) for v in o.stop_latencies]),
+        "operator_runs": o.resumes,
+        "operator_runs_failed": o.resume_failed,
+        "status_alerts_stopped": o.alert_ok + len(o.alert_bad),
+        "loss_monitor": counters,
+        "wall_seconds": round(elapsed, 1),
+        "speed_x_realtime": round(ticks / 1000.0 / elapsed, 2) if elapsed else None,
+    }
+
+
+def _sim_checks(rep: Report, o: _Oracle, counters: dict[str, Any]) -> None:
     cats = Counter(r.category for r in rep.runs)
     evaluated = [r for r in rep.runs if r.category != "masked"]
     ev_short = [r for r in evaluated if r.length <= MAX_TOLERATED]
     ev_long = [r for r in evaluated if r.length > MAX_TOLERATED]
-    n_stops = stops_ok + unexpected
-    rep.numbers = {
-        "sim_seconds": sim_s,
-        "ticks": slave.k - t_origin,
-        "packets": pattern.index,
-        "dropped": drops,
-        "drop_fraction": round(drops / pattern.index, 6) if pattern.index else 0.0,
-        "pattern": pattern.describe(),
-        "first_seq": args.first_seq,
-        "last_seq": slave.seq,
-        "pause_ms": pause,
-        "runs_total": len(all_lengths),
-        "runs_evaluated": len(evaluated),
-        "runs_masked": cats.get("masked", 0),
-        "runs_by_outcome": dict(sorted(cats.items())),
-        "run_length_histogram_all": histogram(all_lengths),
-        "run_length_histogram_evaluated": histogram([r.length for r in evaluated]),
-        "stops": n_stops,
-        "stops_expected": len(ev_long),
-        "stops_unexpected": unexpected,
-        "stops_missed": missed,
-        "hold_latency_ms": summarize(hold_latencies),
-        "holds_unexpected": unexpected_holds,
-        "stop_latency_ms": summarize(stop_latencies),
-        "stop_latency_histogram_ms": histogram([int(v) for v in stop_latencies]),
-        "operator_runs": resumes,
-        "operator_runs_failed": resume_failed,
-        "status_alerts_stopped": alert_ok + len(alert_bad),
-        "loss_monitor": counters,
-        "wall_seconds": round(elapsed, 1),
-        "speed_x_realtime": round((slave.k - t_origin) / 1000.0 / elapsed, 2) if elapsed else None,
-    }
+    n_stops = o.stops_ok + o.unexpected
     rep.check(
         "stop iff run >= 3",
-        unexpected == 0 and missed == 0 and cats.get("missed", 0) == 0 and stops_ok == len(ev_long),
-        f"{len(ev_long)} evaluated runs >= 3 -> {stops_ok} latched stops at the expected tick "
-        f"(the packet that proves the gap, or the grace); {unexpected} unexpected, {missed} missed",
+        o.unexpected == 0
+        and o.missed == 0
+        and cats.get("missed", 0) == 0
+        and o.stops_ok == len(ev_long),
+        f"{len(ev_long)} evaluated runs >= 3 -> {o.stops_ok} latched stops at the expected tick "
+        f"(the packet that proves the gap, or the grace); {o.unexpected} unexpected, "
+        f"{o.missed} missed",
     )
     rep.check(
         "runs of 1-2 never stop",
@@ -377,18 +458,18 @@ def run_sim(args: argparse.Namespace, out: Path) -> Report:
     held = [r for r in ev_long if r.hold_ms is not None]
     rep.check(
         "every run >= 3 holds motion at exactly +7 ms",
-        unexpected_holds == 0
+        o.unexpected_holds == 0
         and len(held) == len(ev_long)
-        and all(v == STOP_WITHIN_MS for v in hold_latencies),
-        f"{len(hold_latencies)} holds, at {summarize(hold_latencies)} ms after the last good "
-        f"packet (tick = 1 ms); {unexpected_holds} unexpected holds; latched stops at "
-        f"{summarize(stop_latencies)} ms",
+        and all(v == STOP_WITHIN_MS for v in o.hold_latencies),
+        f"{len(o.hold_latencies)} holds, at {summarize(o.hold_latencies)} ms after the last good "
+        f"packet (tick = 1 ms); {o.unexpected_holds} unexpected holds; latched stops at "
+        f"{summarize(o.stop_latencies)} ms",
     )
     rep.check(
         "every stop alerts the operators",
-        alert_ok == n_stops and not alert_bad,
-        f"{alert_ok} STATUS STOPPED 'packet loss' alerts for {n_stops} stops"
-        + (f"; other: {alert_bad[:3]}" if alert_bad else ""),
+        o.alert_ok == n_stops and not o.alert_bad,
+        f"{o.alert_ok} STATUS STOPPED 'packet loss' alerts for {n_stops} stops"
+        + (f"; other: {o.alert_bad[:3]}" if o.alert_bad else ""),
     )
     rep.check(
         "loss monitor trips == stops",
@@ -397,8 +478,8 @@ def run_sim(args: argparse.Namespace, out: Path) -> Report:
     )
     rep.check(
         "operator Run resumes after every stop",
-        resume_failed == 0 and resumes >= n_stops - 1,
-        f"{resumes} Runs after {n_stops} stops, {resume_failed} failed",
+        o.resume_failed == 0 and o.resumes >= n_stops - 1,
+        f"{o.resumes} Runs after {n_stops} stops, {o.resume_failed} failed",
     )
     rep.check(
         "enough evidence",
@@ -406,4 +487,3 @@ def run_sim(args: argparse.Namespace, out: Path) -> Report:
         f"{len(ev_long)} runs >= 3 and {len(ev_short)} runs of 1-2 were judged",
         severity="warn",
     )
-    return rep
