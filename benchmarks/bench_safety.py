@@ -59,7 +59,7 @@ sys.path.insert(0, str(ROOT / "tools"))
 
 from loopback import pair_configs, stop_processes, wait_port, write_yaml  # noqa: E402
 from slicer_standin import SlicerStandIn  # noqa: E402
-from soak import start_hogs, stop_hogs  # noqa: E402
+from soaklib.hogs import start_hogs, stop_hogs  # noqa: E402
 
 
 def start(

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime as _dt
+import functools
 import json
 import logging
 import math
@@ -953,18 +954,35 @@ def build_parser() -> argparse.ArgumentParser:
     parser.set_defaults(verbose=0)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    def add(name: str, help_text: str, description: str) -> argparse.ArgumentParser:
-        p = sub.add_parser(
-            name,
-            help=help_text,
-            description=textwrap.fill(description, 79),
-            epilog=EXIT_CODES_HELP,
-            formatter_class=_Formatter,
-            parents=[common],
-        )
-        p.set_defaults(parser=p)
-        return p
+    add = functools.partial(_add_command, sub, common)
+    _add_listen(add)
+    _add_connect(add)
+    _add_send(add)
+    _add_dump(add)
+    _add_bench(add)
+    return parser
 
+
+#: adds one sub-command: (name, help, description) -> its parser
+_Add = Callable[[str, str, str], argparse.ArgumentParser]
+
+
+def _add_command(
+    sub: Any, common: argparse.ArgumentParser, name: str, help_text: str, description: str
+) -> argparse.ArgumentParser:
+    p: argparse.ArgumentParser = sub.add_parser(
+        name,
+        help=help_text,
+        description=textwrap.fill(description, 79),
+        epilog=EXIT_CODES_HELP,
+        formatter_class=_Formatter,
+        parents=[common],
+    )
+    p.set_defaults(parser=p)
+    return p
+
+
+def _add_listen(add: _Add) -> None:
     p = add(
         "listen",
         "run a server and print every message received",
@@ -979,6 +997,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_receive_options(p)
     p.set_defaults(func=cmd_listen)
 
+
+def _add_connect(add: _Add) -> None:
     p = add(
         "connect",
         "connect to a server and print every message received",
@@ -1001,6 +1021,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_connect)
 
+
+def _add_send(add: _Add) -> None:
     p = add(
         "send",
         "send messages to a server (TCP) or a UDP endpoint",
@@ -1019,7 +1041,31 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"message type ({', '.join(sorted(REGISTRY))}, or any other name)",
     )
     p.add_argument("--device", default="", metavar="D", help="device name (<= 20 bytes)")
-    g = p.add_argument_group("header")
+    _add_send_header(p.add_argument_group("header"))
+    _add_send_content(p.add_argument_group("content"))
+    _add_send_repetition(p.add_argument_group("repetition"))
+    p.add_argument(
+        "--connect-timeout",
+        type=_positive_float,
+        default=DEFAULT_CONNECT_TIMEOUT,
+        metavar="S",
+        help="TCP: give up (exit 1) if not connected within S seconds",
+    )
+    p.add_argument(
+        "--wait",
+        type=float,
+        default=2.0,
+        metavar="S",
+        help="TCP requests (COMMAND, STRING CMD_*, GET_*): print the answers arriving within S "
+        "seconds (default 2; 0 = do not wait)",
+    )
+    p.add_argument("--no-wait", dest="wait", action="store_const", const=0.0, help="--wait 0")
+    p.add_argument("--json", action="store_true", help="print the answers as JSON")
+    p.set_defaults(func=cmd_send)
+
+
+def _add_send_header(g: argparse._ArgumentGroup) -> None:
+    """send: the header options."""
     g.add_argument(
         "--header-version",
         type=int,
@@ -1046,7 +1092,10 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SECONDS",
         help="fixed header timestamp in Unix seconds (0 = unused; default: now)",
     )
-    g = p.add_argument_group("content")
+
+
+def _add_send_content(g: argparse._ArgumentGroup) -> None:
+    """send: the content options, by message type."""
     g.add_argument("--json-body", metavar="FILE", help="content fields as JSON ('-' = stdin)")
     g.add_argument(
         "--matrix",
@@ -1085,7 +1134,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--command-name", metavar="NAME", help="COMMAND: command name")
     g.add_argument("--command-text", metavar="TEXT", help="COMMAND: command body (usually XML)")
     g.add_argument("--command-id", type=int, metavar="N", help="COMMAND: command ID")
-    g = p.add_argument_group("repetition")
+
+
+def _add_send_repetition(g: argparse._ArgumentGroup) -> None:
+    """send: how many messages, how fast."""
     g.add_argument(
         "--count",
         type=_positive_int,
@@ -1099,25 +1151,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="HZ",
         help="messages per second (default: as fast as possible)",
     )
-    p.add_argument(
-        "--connect-timeout",
-        type=_positive_float,
-        default=DEFAULT_CONNECT_TIMEOUT,
-        metavar="S",
-        help="TCP: give up (exit 1) if not connected within S seconds",
-    )
-    p.add_argument(
-        "--wait",
-        type=float,
-        default=2.0,
-        metavar="S",
-        help="TCP requests (COMMAND, STRING CMD_*, GET_*): print the answers arriving within S "
-        "seconds (default 2; 0 = do not wait)",
-    )
-    p.add_argument("--no-wait", dest="wait", action="store_const", const=0.0, help="--wait 0")
-    p.add_argument("--json", action="store_true", help="print the answers as JSON")
-    p.set_defaults(func=cmd_send)
 
+
+def _add_dump(add: _Add) -> None:
     p = add(
         "dump",
         "decode files of concatenated messages",
@@ -1140,6 +1176,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_dump)
 
+
+def _add_bench(add: _Add) -> None:
     p = add(
         "bench",
         "codec throughput per message type, against pyigtl if installed",
@@ -1159,7 +1197,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-pyigtl", action="store_true", help="time igtl only")
     p.add_argument("--json", action="store_true", help="one JSON object per result row")
     p.set_defaults(func=cmd_bench)
-    return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:

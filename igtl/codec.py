@@ -133,6 +133,20 @@ def _decode(
             msg = fast(body, device_name, t, ts, wire_bytes)
             if msg is not None:
                 return msg
+    return _decode_slow(version, message_type, device_name, t, ts, body, wire_bytes)
+
+
+def _decode_slow(
+    version: int,
+    message_type: str,
+    device_name: str,
+    t: float,
+    ts: int,
+    body: bytes | bytearray,
+    wire_bytes: bytes | WirePieces,
+) -> Message:
+    """:func:`_decode` past the fast paths: a header-version-2 body's metadata, then the
+    registered class's content codec (a :class:`RawMessage` for a type nobody registered)."""
     common: dict[str, Any] = {
         "device_name": device_name,
         "timestamp": t,
@@ -141,47 +155,20 @@ def _decode(
     }
     try:
         if version == 2:
-            layout = wire.split_v2_body(body)
-            meta_start = layout.content_end
-            content: bytes | bytearray
-            meta_raw: bytes | bytearray
-            if type(body) is bytearray:
-                # Cut the metadata off the end and the extended header off the front: no copy
-                # of the content (CPython deletes a bytearray's head by moving its start).
-                meta_raw = bytes(memoryview(body)[meta_start:])
-                front = bytes(memoryview(body)[: layout.content_start])
-                del body[meta_start:]
-                del body[: layout.content_start]
-                content = body
-                # The content is the message's (its arrays view it): re-packing joins the
-                # small pieces cut off around it instead of keeping a copy of the whole body.
-                wire_bytes = (wire_bytes[0], front, body, meta_raw)
-            else:
-                meta_raw = body[meta_start:]
-                content = body[layout.content_start : meta_start]
-            meta, encodings = wire.unpack_metadata(
-                meta_raw[: layout.meta_header_size],
-                meta_raw[layout.meta_header_size :],
-                base_offset=_HEADER_SIZE + meta_start,
-            )
-            common["metadata"] = meta
-            if encodings:
-                common["metadata_encoding"] = encodings
-            common["message_id"] = layout.message_id
-            content_offset = _HEADER_SIZE + layout.content_start
+            content, content_offset, wire_bytes = _v2_content(body, wire_bytes, common)
         else:
             content = body
             content_offset = _HEADER_SIZE
         cls = _registry_get(message_type)
         if cls is None:
             common["message_type"] = message_type
-            msg = RawMessage.unpack_content(content, common)  # type: ignore[arg-type]
+            raw_msg = RawMessage.unpack_content(content, common)  # type: ignore[arg-type]
             if type(content) is bytearray and type(wire_bytes) is tuple:
                 # RawMessage copies its content: keep that copy, not the collected body too
-                raw = msg.content
+                raw = raw_msg.content
                 wire_bytes = tuple(raw if p is content else p for p in wire_bytes)
-            _set_wire(msg, wire_bytes)
-            return msg
+            _set_wire(raw_msg, wire_bytes)
+            return raw_msg
         needs = _needs_type_name.get(cls)
         if needs is None:
             needs = _needs_type_name[cls] = bool(getattr(cls, "NEEDS_TYPE_NAME", False))
@@ -205,6 +192,41 @@ def _decode(
             err.message_type = message_type
             err.device_name = device_name
         raise
+
+
+def _v2_content(
+    body: bytes | bytearray, wire_bytes: bytes | WirePieces, common: dict[str, Any]
+) -> tuple[bytes | bytearray, int, bytes | WirePieces]:
+    """A header-version-2 body split: its metadata and message ID into ``common``; returns
+    (the content, its offset in the message, what the message re-packs to)."""
+    layout = wire.split_v2_body(body)
+    meta_start = layout.content_end
+    content: bytes | bytearray
+    meta_raw: bytes | bytearray
+    if type(body) is bytearray:
+        # Cut the metadata off the end and the extended header off the front: no copy
+        # of the content (CPython deletes a bytearray's head by moving its start).
+        meta_raw = bytes(memoryview(body)[meta_start:])
+        front = bytes(memoryview(body)[: layout.content_start])
+        del body[meta_start:]
+        del body[: layout.content_start]
+        content = body
+        # The content is the message's (its arrays view it): re-packing joins the
+        # small pieces cut off around it instead of keeping a copy of the whole body.
+        wire_bytes = (wire_bytes[0], front, body, meta_raw)
+    else:
+        meta_raw = body[meta_start:]
+        content = body[layout.content_start : meta_start]
+    meta, encodings = wire.unpack_metadata(
+        meta_raw[: layout.meta_header_size],
+        meta_raw[layout.meta_header_size :],
+        base_offset=_HEADER_SIZE + meta_start,
+    )
+    common["metadata"] = meta
+    if encodings:
+        common["metadata_encoding"] = encodings
+    common["message_id"] = layout.message_id
+    return content, _HEADER_SIZE + layout.content_start, wire_bytes
 
 
 def decode_body(

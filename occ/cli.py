@@ -120,21 +120,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run(config: Any, args: argparse.Namespace) -> int:
-    from .record import Recorder, writer_priority
     from .robot import build_robot
     from .safety import RobotState
 
-    rec_path = args.record or config.recording.path
-    recorder = (
-        Recorder(
-            rec_path,
-            rate_hz=config.recording.rate_hz,
-            include_messages=config.recording.include_messages,
-            fifo_priority=writer_priority(config),
-        )
-        if rec_path
-        else None
-    )
+    recorder = _recorder(config, args)
     try:
         robot = build_robot(config, recorder=recorder)
     except (OCCError, OSError, ImportError, ValueError) as err:  # ValueError: plugin params
@@ -149,18 +138,6 @@ def run(config: Any, args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, on_signal)
 
     stop_reporter = threading.Event()
-
-    def reporter() -> None:
-        every = config.stats.log_every_s
-        last = 0.0
-        while not stop_reporter.wait(1.0):
-            last += 1.0
-            if args.status_line:
-                print("\r" + status_line(robot), end="", file=sys.stderr, flush=True)
-            if every and last >= every:
-                last = 0.0
-                log.info("%s", robot.stats.format_line())
-
     code = EXIT_OK
     try:
         robot.configure()
@@ -169,7 +146,12 @@ def run(config: Any, args: argparse.Namespace) -> int:
             recorder.start()
         # in the loop's first tick: power comes on where the loop goes on commanding it
         robot.start_in(*{"enabled": ("enable",), "running": ("enable", "run")}.get(args.start, ()))
-        threading.Thread(target=reporter, name="occd-reporter", daemon=True).start()
+        threading.Thread(
+            target=_report,
+            args=(robot, config.stats.log_every_s, args.status_line, stop_reporter),
+            name="occd-reporter",
+            daemon=True,
+        ).start()
         log.info(
             "%s running at %d Hz (%s); hot path %s",
             config.robot.name,
@@ -187,24 +169,58 @@ def run(config: Any, args: argparse.Namespace) -> int:
         code = EXIT_RUNTIME
     finally:
         stop_reporter.set()
-        if args.status_line:
-            print(file=sys.stderr)
-        final_state = robot.state
-        robot.shutdown()
-        if recorder is not None:
-            recorder.close()
-        snap = robot.snapshot()
-        snap["final_state"] = final_state.value  # before the shutdown
-        log.info("%s", robot.stats.format_line())
-        if args.stats is not None:
-            args.stats.parent.mkdir(parents=True, exist_ok=True)
-            args.stats.write_text(json.dumps(snap, indent=2, default=str) + "\n")
-            log.info("statistics written to %s", args.stats)
+        final_state = _shut_down(robot, recorder, args)
     if code == EXIT_OK and final_state in (RobotState.FAULT, RobotState.ESTOP):
         code = EXIT_FAULT
     elif code == EXIT_OK and final_state is RobotState.STOPPED and robot.last_alert:
         code = EXIT_STOPPED
     return code
+
+
+def _recorder(config: Any, args: argparse.Namespace) -> Any:
+    """The recorder of ``--record`` or the configured ``recording.path``; None when neither."""
+    from .record import Recorder, writer_priority
+
+    rec_path = args.record or config.recording.path
+    if not rec_path:
+        return None
+    return Recorder(
+        rec_path,
+        rate_hz=config.recording.rate_hz,
+        include_messages=config.recording.include_messages,
+        fifo_priority=writer_priority(config),
+    )
+
+
+def _report(robot: Any, every: float, show_status: bool, stop: threading.Event) -> None:
+    """The reporter thread: the status line each second, the statistics every ``every`` s."""
+    last = 0.0
+    while not stop.wait(1.0):
+        last += 1.0
+        if show_status:
+            print("\r" + status_line(robot), end="", file=sys.stderr, flush=True)
+        if every and last >= every:
+            last = 0.0
+            log.info("%s", robot.stats.format_line())
+
+
+def _shut_down(robot: Any, recorder: Any, args: argparse.Namespace) -> Any:
+    """Shut the robot and its recorder down, log and write the statistics; the robot's state
+    before the shutdown."""
+    if args.status_line:
+        print(file=sys.stderr)
+    final_state = robot.state
+    robot.shutdown()
+    if recorder is not None:
+        recorder.close()
+    snap = robot.snapshot()
+    snap["final_state"] = final_state.value  # before the shutdown
+    log.info("%s", robot.stats.format_line())
+    if args.stats is not None:
+        args.stats.parent.mkdir(parents=True, exist_ok=True)
+        args.stats.write_text(json.dumps(snap, indent=2, default=str) + "\n")
+        log.info("statistics written to %s", args.stats)
+    return final_state
 
 
 def status_line(robot: Any) -> str:

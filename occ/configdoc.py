@@ -19,7 +19,8 @@ from typing import Any
 from pydantic import BaseModel
 
 from ._native import class_doc
-from .config import MESSAGE_TYPE_PATTERN, NAME_PATTERN, REMOTE_PATTERN, DaemonConfig, _num
+from .config import MESSAGE_TYPE_PATTERN, NAME_PATTERN, REMOTE_PATTERN, DaemonConfig
+from .config.base import _num
 
 __all__ = ["config_reference_markdown", "update_reference_doc"]
 

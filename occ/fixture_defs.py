@@ -283,83 +283,113 @@ def from_markups_file(
     for m_index, m in enumerate(markups):
         if not isinstance(m, dict):
             raise DefinitionError(f"{path}: markups[{m_index}] is not an object")
-        system = str(m.get("coordinateSystem", "LPS")).upper()
-        if system not in ("LPS", "RAS"):
-            raise DefinitionError(f"{path}: markups[{m_index}]: coordinate system {system!r}")
-        flip = -1.0 if system == "LPS" else 1.0
-        units = m.get("coordinateUnits", "mm")
-        units = units[0] if isinstance(units, list) and units else units
-        if units not in ("mm", "um"):
-            raise DefinitionError(f"{path}: markups[{m_index}]: coordinate units {units!r}")
-        unit = 1e-3 if units == "um" else 1.0
-
-        def ras(p: Any, what: str, flip: float = flip, unit: float = unit) -> Vec3:
-            if not isinstance(p, (list, tuple)) or len(p) != 3:
-                raise DefinitionError(f"{path}: {what}: expected [x, y, z]")
-            x, y, z = _finite(p, f"{path}: {what}")
-            return (flip * x * unit, flip * y * unit, z * unit)
-
-        mtype = str(m.get("type", ""))
+        frame = _markup_frame(path, m, m_index)
         label = str(m.get("name", "") or f"markups{m_index}")
-        points = []
-        for c_index, cp in enumerate(m.get("controlPoints") or []):
-            if not isinstance(cp, dict) or "position" not in cp:
-                raise DefinitionError(f"{path}: {label}: control point {c_index} has no position")
-            if cp.get("visibility", True) is False or cp.get("positionStatus") == "undefined":
-                continue
-            points.append(
-                (
-                    str(cp.get("label", "") or f"{label}-{c_index}"),
-                    ras(cp["position"], f"{label} point {c_index}"),
-                )
+        points = _markup_points(path, m, label, frame)
+        fixture = (kind, radius_mm, stiffness, damping)
+        out.extend(_markup_definitions(path, m, label, points, frame, fixture))
+    return out
+
+
+def _markup_frame(path: str | Path, m: dict[str, Any], m_index: int) -> tuple[float, float]:
+    """A markup's coordinate system and units: (the sign of x and y, the factor to mm)."""
+    system = str(m.get("coordinateSystem", "LPS")).upper()
+    if system not in ("LPS", "RAS"):
+        raise DefinitionError(f"{path}: markups[{m_index}]: coordinate system {system!r}")
+    flip = -1.0 if system == "LPS" else 1.0
+    units = m.get("coordinateUnits", "mm")
+    units = units[0] if isinstance(units, list) and units else units
+    if units not in ("mm", "um"):
+        raise DefinitionError(f"{path}: markups[{m_index}]: coordinate units {units!r}")
+    return flip, (1e-3 if units == "um" else 1.0)
+
+
+def _ras(path: str | Path, p: Any, what: str, frame: tuple[float, float]) -> Vec3:
+    """A file's ``[x, y, z]`` in RAS millimetres (``frame``: :func:`_markup_frame`)."""
+    flip, unit = frame
+    if not isinstance(p, (list, tuple)) or len(p) != 3:
+        raise DefinitionError(f"{path}: {what}: expected [x, y, z]")
+    x, y, z = _finite(p, f"{path}: {what}")
+    return (flip * x * unit, flip * y * unit, z * unit)
+
+
+def _markup_points(
+    path: str | Path, m: dict[str, Any], label: str, frame: tuple[float, float]
+) -> list[tuple[str, Vec3]]:
+    """A markup's visible, defined control points: (label, RAS point)."""
+    points = []
+    for c_index, cp in enumerate(m.get("controlPoints") or []):
+        if not isinstance(cp, dict) or "position" not in cp:
+            raise DefinitionError(f"{path}: {label}: control point {c_index} has no position")
+        if cp.get("visibility", True) is False or cp.get("positionStatus") == "undefined":
+            continue
+        points.append(
+            (
+                str(cp.get("label", "") or f"{label}-{c_index}"),
+                _ras(path, cp["position"], f"{label} point {c_index}", frame),
             )
-        if mtype == "Fiducial":
-            if kind == "guide":
-                if len(points) >= 2:
-                    out.append(
-                        Definition(
-                            "guide",
-                            tuple(p for _, p in points),
-                            0.0,
-                            None,
-                            stiffness,
-                            damping,
-                            label,
-                            "patient",
-                        )
+        )
+    return points
+
+
+def _markup_definitions(
+    path: str | Path,
+    m: dict[str, Any],
+    label: str,
+    points: list[tuple[str, Vec3]],
+    frame: tuple[float, float],
+    fixture: tuple[Kind, float, float, float],
+) -> list[Definition]:
+    """What one markup defines, by its type; ``fixture`` is (kind, radius_mm, stiffness,
+    damping) as :func:`from_markups_file` was given them."""
+    kind, radius_mm, stiffness, damping = fixture
+    mtype = str(m.get("type", ""))
+    out: list[Definition] = []
+    if mtype == "Fiducial":
+        if kind == "guide":
+            if len(points) >= 2:
+                out.append(
+                    Definition(
+                        "guide",
+                        tuple(p for _, p in points),
+                        0.0,
+                        None,
+                        stiffness,
+                        damping,
+                        label,
+                        "patient",
                     )
-                continue
-            for n, p in points:
-                out.append(
-                    Definition(kind, (p,), radius_mm, None, stiffness, damping, n, "patient")
                 )
-        elif mtype in ("Line", "Curve", "ClosedCurve"):
-            path_pts = tuple(p for _, p in points)
-            if mtype == "ClosedCurve" and path_pts:
-                path_pts = (*path_pts, path_pts[0])
-            if len(path_pts) >= 2:
-                out.append(
-                    Definition("guide", path_pts, 0.0, None, stiffness, damping, label, "patient")
-                )
-        elif mtype == "Plane":
-            centre = (
-                ras(m["center"], f"{label} center")
-                if "center" in m
-                else (points[0][1] if points else None)
-            )
-            if centre is None or "normal" not in m:
-                raise DefinitionError(
-                    f"{path}: plane {label!r} needs a center (or a control point) and a normal"
-                )
-            normal = ras(m["normal"], f"{label} normal", unit=1.0)
+            return out
+        for n, p in points:
+            out.append(Definition(kind, (p,), radius_mm, None, stiffness, damping, n, "patient"))
+    elif mtype in ("Line", "Curve", "ClosedCurve"):
+        path_pts = tuple(p for _, p in points)
+        if mtype == "ClosedCurve" and path_pts:
+            path_pts = (*path_pts, path_pts[0])
+        if len(path_pts) >= 2:
             out.append(
-                Definition("plane", (centre,), 0.0, normal, stiffness, damping, label, "patient")
+                Definition("guide", path_pts, 0.0, None, stiffness, damping, label, "patient")
             )
-        else:
+    elif mtype == "Plane":
+        centre = (
+            _ras(path, m["center"], f"{label} center", frame)
+            if "center" in m
+            else (points[0][1] if points else None)
+        )
+        if centre is None or "normal" not in m:
             raise DefinitionError(
-                f"{path}: markups type {mtype!r} is not a fixture "
-                "(Fiducial, Line, Curve, ClosedCurve, Plane are)"
+                f"{path}: plane {label!r} needs a center (or a control point) and a normal"
             )
+        normal = _ras(path, m["normal"], f"{label} normal", (frame[0], 1.0))
+        out.append(
+            Definition("plane", (centre,), 0.0, normal, stiffness, damping, label, "patient")
+        )
+    else:
+        raise DefinitionError(
+            f"{path}: markups type {mtype!r} is not a fixture "
+            "(Fiducial, Line, Curve, ClosedCurve, Plane are)"
+        )
     return out
 
 

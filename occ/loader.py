@@ -27,7 +27,8 @@ import yaml
 from pydantic import BaseModel, ValidationError
 from pydantic_core import ErrorDetails
 
-from .config import _CROSS, _PATTERN_TEXT, DaemonConfig, Loc, _did_you_mean, _format_loc, _num
+from .config import DaemonConfig
+from .config.base import _CROSS, _PATTERN_TEXT, Loc, _did_you_mean, _format_loc, _num
 from .errors import ConfigError, OCCError
 
 __all__ = ["load_config", "parse_config", "format_errors"]

@@ -446,8 +446,39 @@ def write_mcap(
     out = Path(out)
     robot = _ros_name(name or content.robot or "robot")
     ns = f"/occ/{robot}"
-    base_frame, tip_frame, world = f"{robot}_base", f"{robot}_tip", "world"
+    base_frame = f"{robot}_base"
     single_file = out.suffix.lower() == ".mcap"  # as guess_format reads the name
+    bag_dir = _mcap_bag_dir(content, out, single_file)
+    offset = content.wall_offset or 0.0
+    bag = _Bag(bag_dir)
+    # every record with its receive time (the recording's time on the wall clock), written in
+    # time order; at equal times Base before Tip, so a tip is expressed in its own tick's base
+    events = _tip_base_events(bag, content, ns, robot, offset)
+    taken = {f"{ns}/measured_cp", f"{ns}/base/measured_cp"}
+    events.extend(_other_pose_events(bag, content, ns, offset, taken))
+    events.extend(_force_events(bag, content, ns, base_frame, offset, taken))
+    events.extend(_state_events(bag, content, ns, base_frame, offset))
+    events.sort(key=lambda e: (e[0], e[1]))
+    bag.writer.set_custom_data("occ.robot", content.robot or robot)
+    bag.writer.open()
+    try:
+        for _, _, emit in events:
+            emit()
+    except BaseException:
+        bag.writer.close()
+        raise
+    bag.writer.close()
+    if single_file:
+        produced = bag_dir / f"{bag_dir.name}.mcap"
+        os.replace(produced, out)
+        (bag_dir / "metadata.yaml").unlink(missing_ok=True)
+        bag_dir.rmdir()
+    return dict(sorted(bag.counts.items()))
+
+
+def _mcap_bag_dir(content: RecordingContent, out: Path, single_file: bool) -> Path:
+    """The rosbag2 directory to write (beside ``out`` for a single file); ExportError when
+    ``out`` or it exists, or when there is nothing to export."""
     if out.exists():
         raise ExportError(f"{out} exists; not overwriting (--force replaces it)")
     bag_dir = out.with_name(out.name + ".bagdir") if single_file else out
@@ -455,10 +486,14 @@ def write_mcap(
         raise ExportError(f"{bag_dir} exists (a leftover of an export?); remove it first")
     if not content.streams and not content.state_rows:
         raise ExportError("nothing to export: no pose stream and no state rows")
-    offset = content.wall_offset or 0.0
-    bag = _Bag(bag_dir)
-    # every record with its receive time (the recording's time on the wall clock), written in
-    # time order; at equal times Base before Tip, so a tip is expressed in its own tick's base
+    return bag_dir
+
+
+def _tip_base_events(
+    bag: _Bag, content: RecordingContent, ns: str, robot: str, offset: float
+) -> list[tuple[float, int, Callable[[], None]]]:
+    """The robot's Base (world frame) and Tip (in its base: measured_cp, and /tf) streams."""
+    base_frame, tip_frame, world = f"{robot}_base", f"{robot}_tip", "world"
     events: list[tuple[float, int, Callable[[], None]]] = []
     tip = content.streams.get(("out", "Tip"))
     base = content.streams.get(("out", "Base"))
@@ -504,6 +539,22 @@ def write_mcap(
 
         return emit
 
+    if base is not None:
+        events.extend((t, 0, on_base(i)) for i, t in enumerate(base.t))
+    if tip is not None:
+        events.extend((t, 1, on_tip(i)) for i, t in enumerate(tip.t))
+    return events
+
+
+def _other_pose_events(
+    bag: _Bag, content: RecordingContent, ns: str, offset: float, taken: set[str]
+) -> list[tuple[float, int, Callable[[], None]]]:
+    """Every other pose stream on a topic of its own (added to ``taken``)."""
+    world = "world"
+    tip = content.streams.get(("out", "Tip"))
+    base = content.streams.get(("out", "Base"))
+    events: list[tuple[float, int, Callable[[], None]]] = []
+
     def on_other(s: PoseStream, topic: str, frame: str, i: int) -> Callable[[], None]:
         def emit() -> None:
             bag.write(
@@ -514,11 +565,6 @@ def write_mcap(
 
         return emit
 
-    if base is not None:
-        events.extend((t, 0, on_base(i)) for i, t in enumerate(base.t))
-    if tip is not None:
-        events.extend((t, 1, on_tip(i)) for i, t in enumerate(tip.t))
-    taken = {f"{ns}/measured_cp", f"{ns}/base/measured_cp"}
     # outputs first: a name both an output and an input have is the output's; the input's
     # goes under input/
     for _key, s in sorted(content.streams.items(), key=_outputs_first):
@@ -531,24 +577,7 @@ def write_mcap(
         taken.add(topic)
         frame = world if s.direction == "out" else f"{leaf}_reference"
         events.extend((t, 2, on_other(s, topic, frame, i)) for i, t in enumerate(s.t))
-    events.extend(_force_events(bag, content, ns, base_frame, offset, taken))
-    events.extend(_state_events(bag, content, ns, base_frame, offset))
-    events.sort(key=lambda e: (e[0], e[1]))
-    bag.writer.set_custom_data("occ.robot", content.robot or robot)
-    bag.writer.open()
-    try:
-        for _, _, emit in events:
-            emit()
-    except BaseException:
-        bag.writer.close()
-        raise
-    bag.writer.close()
-    if single_file:
-        produced = bag_dir / f"{bag_dir.name}.mcap"
-        os.replace(produced, out)
-        (bag_dir / "metadata.yaml").unlink(missing_ok=True)
-        bag_dir.rmdir()
-    return dict(sorted(bag.counts.items()))
+    return events
 
 
 def _outputs_first(item: tuple[tuple[str, str], Any]) -> tuple[bool, str]:

@@ -319,8 +319,21 @@ def plot_recording(
     ax_tr, ax_err, ax_st, ax_tm = axes[:4]
     if has_forces:
         _plot_forces(axes[4], s, t0)
-    # 1. trajectories (X and Y: Z, mostly far from both, would flatten them; its range is in
-    # the legend)
+    _plot_trajectories(ax_tr, s, t0)
+    _plot_error(ax_err, s, t0)
+    _plot_states(ax_st, s, t0)
+    _plot_timing(ax_tm, s)
+    for ax in (ax_tr, ax_err, ax_st):
+        ax.set_xlabel("time since the first state row (s)", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out, dpi=dpi)
+    plt.close(fig)
+    return out
+
+
+def _plot_trajectories(ax_tr: Any, s: RecordingSummary, t0: float) -> None:
+    """Panel 1: the tip's X and Y (Z, mostly far from both, would flatten them: its range is
+    in the legend), and the input stream on a second axis."""
     colors = ("tab:blue", "tab:orange", "tab:green")
     for c, color in zip(("tip.x_mm", "tip.y_mm"), colors, strict=False):
         if c in s.columns:
@@ -347,7 +360,10 @@ def plot_recording(
         ax_tr.legend(h1 + h2, l1 + l2, fontsize=7, ncol=5, loc="upper right")
     else:
         ax_tr.legend(fontsize=7, ncol=3, loc="upper right")
-    # 2. tracking error
+
+
+def _plot_error(ax_err: Any, s: RecordingSummary, t0: float) -> None:
+    """Panel 2: the tracking error."""
     stats = s.error_stats()
     for i, label in enumerate(s.error_labels):
         st = stats.get(label)
@@ -362,7 +378,10 @@ def plot_recording(
         ax_err.text(
             0.5, 0.5, "no tracking error: never RUNNING", ha="center", transform=ax_err.transAxes
         )
-    # 3. state timeline with causes
+
+
+def _plot_states(ax_st: Any, s: RecordingSummary, t0: float) -> None:
+    """Panel 3: the state timeline, with the STATUS the robot sent and their causes."""
     order = list(STATE_CODES)
     ax_st.step(s.t - t0, s.rows[:, 1], where="post", color="k", linewidth=1.0)
     ax_st.set_yticks(range(len(order)))
@@ -403,7 +422,10 @@ def plot_recording(
             label=f"{len(others)} other alerts, e.g. {others[0][1]}: {others[0][2][:60]}",
         )
         ax_st.legend(fontsize=6, loc="lower right")
-    # 4. loop timing
+
+
+def _plot_timing(ax_tm: Any, s: RecordingSummary) -> None:
+    """Panel 4: the loop timing."""
     ax_tm.set_title("loop timing", fontsize=9)
     rows_ms = np.diff(s.t) * 1e3
     if len(rows_ms):
@@ -426,12 +448,6 @@ def plot_recording(
     ax_tm.set_xlabel("ms")
     ax_tm.set_ylabel("count")
     ax_tm.legend(fontsize=7)
-    for ax in (ax_tr, ax_err, ax_st):
-        ax.set_xlabel("time since the first state row (s)", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out, dpi=dpi)
-    plt.close(fig)
-    return out
 
 
 def _plot_forces(ax: object, s: RecordingSummary, t0: float) -> None:

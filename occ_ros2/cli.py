@@ -82,6 +82,17 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="occ-ros2", description="Bridge OCC daemons (OpenIGTLink) to ROS 2 topics over DDS."
     )
+    _add_endpoints(p)
+    _add_publishing(p)
+    _add_moves(p)
+    p.add_argument("--duration", type=float, default=0.0, help="seconds to run (0: until Ctrl-C)")
+    p.add_argument("--stats", type=Path, default=None, help="write statistics JSON here at exit")
+    p.add_argument("--log-level", default="INFO")
+    return p
+
+
+def _add_endpoints(p: argparse.ArgumentParser) -> None:
+    """The daemons the bridge talks to, and in which mode."""
     p.add_argument(
         "--connect",
         action="append",
@@ -124,6 +135,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="master and servo modes: the slave's shared key file (its "
         "interfaces[].auth_key_file): every POSITION carries the HMAC tag the slave requires",
     )
+
+
+def _add_publishing(p: argparse.ArgumentParser) -> None:
+    """DDS, frames and the rate of what the bridge publishes."""
     p.add_argument(
         "--domain-id",
         type=_domain_id,
@@ -147,6 +162,10 @@ def build_parser() -> argparse.ArgumentParser:
         "default 0: as the daemon's viewer output sends, its rate_hz)",
     )
     p.add_argument("--no-tf", action="store_true", help="do not publish /tf and /tf_static")
+
+
+def _add_moves(p: argparse.ArgumentParser) -> None:
+    """move_jp/move_cp: who acknowledges their plans and how long they take."""
     p.add_argument(
         "--ack-moves",
         action="store_true",
@@ -171,10 +190,6 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"move_cp's time: the tip's distance over this (m/s; default {MOVE_TIP_SPEED:g}), "
         f"at least {MOVE_MIN_S:g} s",
     )
-    p.add_argument("--duration", type=float, default=0.0, help="seconds to run (0: until Ctrl-C)")
-    p.add_argument("--stats", type=Path, default=None, help="write statistics JSON here at exit")
-    p.add_argument("--log-level", default="INFO")
-    return p
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -80,7 +80,7 @@ if str(ROOT) not in sys.path:
 
 from loopback import pair_configs, wait_port, write_yaml  # noqa: E402
 from slicer_standin import SlicerStandIn  # noqa: E402
-from soak import start_occd, stop_proc  # noqa: E402
+from soaklib.daemons import start_occd, stop_proc  # noqa: E402
 
 import igtl  # noqa: E402
 from occ.stats import Histogram  # noqa: E402

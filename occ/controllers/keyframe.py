@@ -127,8 +127,8 @@ from ..config import (
     OutputPath,
     PosFloat,
     Vec3,
-    _resolve_path,
 )
+from ..config.base import _resolve_path
 from ..errors import CommandError, ConfigError, KinematicsError, LibraryError
 from ..fixtures import ForbiddenPlane, ForbiddenSphere, forbidden_hit
 from ..joint import JointLimits
@@ -930,7 +930,7 @@ class KeyframeController(Controller):
     # ------------------------------------------------------------------ configuration
     @classmethod
     def check(cls, params: Any, config: DaemonConfig) -> list[Problem]:
-        from ..config import _did_you_mean
+        from ..config.base import _did_you_mean
 
         problems: list[Problem] = []
         names = [i.name for i in config.interfaces]

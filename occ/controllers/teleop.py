@@ -109,7 +109,7 @@ _RUN_CLUTCH = {
 
 
 def _interfaces_exist(params: Any, config: DaemonConfig, keys: tuple[str, ...]) -> list[Problem]:
-    from ..config import _did_you_mean
+    from ..config.base import _did_you_mean
 
     names = [i.name for i in config.interfaces]
     out: list[Problem] = []
