@@ -45,6 +45,8 @@ MODULES: tuple[str, ...] = (
     "occ.joint",
     "occ.data",
     "occ.safety",
+    "occ.drivers.params",
+    "occ.drivers.checks",
     "occ.drivers.base",
     "occ.drivers.sim",
     "occ.drivers.sim_hand",
