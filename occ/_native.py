@@ -48,6 +48,8 @@ MODULES: tuple[str, ...] = (
     "occ.drivers.params",
     "occ.drivers.checks",
     "occ.drivers.base",
+    "occ.drivers.sim_model",
+    "occ.drivers.sim_faults",
     "occ.drivers.sim",
     "occ.drivers.sim_hand",
     "occ.interfaces",
