@@ -171,20 +171,7 @@ class Frame:
         self._neutral: FloatArray = self._clip(np.zeros(model.nq))
 
         # The base must be rigidly attached to the root, so base <- root is a constant.
-        self._base_inv: pin.SE3 | None = None
-        self._base_rot_t: FloatArray | None = None
-        if base_link is not None:
-            if not model.existFrame(base_link):
-                raise KinematicsError(f"model {model.name!r} has no link {base_link!r}")
-            base_frame = model.frames[model.getFrameId(base_link)]
-            if base_frame.parentJoint != 0:
-                raise KinematicsError(
-                    f"base link {base_link!r} moves with joint "
-                    f"{model.names[base_frame.parentJoint]!r}; it must be fixed to the root"
-                )
-            if not base_frame.placement.isIdentity():
-                self._base_inv = base_frame.placement.inverse()
-                self._base_rot_t = np.ascontiguousarray(base_frame.placement.rotation.T)
+        self._base_inv, self._base_rot_t = _fixed_base(model, base_link)
 
         self._rcm: FloatArray | None = None
         if model.existFrame("rcm"):
@@ -505,13 +492,13 @@ class Frame:
         if not candidates:
             raise KinematicsError(f"{self.name}: no solution for target {list(position)}")
         arrays = [np.asarray(q, dtype=np.float64) for q in candidates]
-        best_a = min(arrays, key=self._violation)
+        best_a = min(arrays, key=lambda q: _violation(self, q))
         if not clamp:
             raise KinematicsError(
                 f"{self.name}: target {[round(v, 6) for v in position]} unreachable within "
-                f"limits: {self._describe_violation(best_a)}"
+                f"limits: {_describe_violation(self, best_a)}"
             )
-        clamped = self._clamped_names(best_a)
+        clamped = _clamped_names(self, best_a)
         qa = self._clip(best_a)
         return IKResult(qa, "analytic", 0, self._residual(qa, position), clamped)
 
@@ -561,7 +548,7 @@ class Frame:
                 stalled = True
                 break
             q = q_next
-        at_limit = self._at_limit_names(q)
+        at_limit = _at_limit_names(self, q)
         if stalled and at_limit:
             if clamp:
                 return IKResult(q, "dls", iterations, error, at_limit)
@@ -586,29 +573,60 @@ class Frame:
         d = self._placement(np.asarray(q, dtype=np.float64)).translation - np.asarray(position)
         return math.sqrt(float(d @ d))
 
-    def _violation(self, q: FloatArray) -> float:
-        return float(np.sum(np.maximum(self.lower - q, 0.0) + np.maximum(q - self.upper, 0.0)))
 
-    def _clamped_names(self, q: FloatArray) -> tuple[str, ...]:
-        return tuple(
-            name
-            for name, v, lo, hi in zip(self.joint_names, q, self.lower, self.upper, strict=True)
-            if v < lo - _LIMIT_TOL or v > hi + _LIMIT_TOL
+# ---------------------------------------------------------------------- the base
+def _fixed_base(
+    model: pin.Model, base_link: str | None
+) -> tuple[pin.SE3 | None, FloatArray | None]:
+    """``base_link``'s placement on the root, inverted, and its rotation transposed (None,
+    None: no base link, or one at the root's origin); KinematicsError for a base link that is
+    missing or moves with a joint."""
+    if base_link is None:
+        return None, None
+    if not model.existFrame(base_link):
+        raise KinematicsError(f"model {model.name!r} has no link {base_link!r}")
+    base_frame = model.frames[model.getFrameId(base_link)]
+    if base_frame.parentJoint != 0:
+        raise KinematicsError(
+            f"base link {base_link!r} moves with joint "
+            f"{model.names[base_frame.parentJoint]!r}; it must be fixed to the root"
         )
+    if base_frame.placement.isIdentity():
+        return None, None
+    return base_frame.placement.inverse(), np.ascontiguousarray(base_frame.placement.rotation.T)
 
-    def _at_limit_names(self, q: FloatArray) -> tuple[str, ...]:
-        return tuple(
-            name
-            for name, v, lo, hi in zip(self.joint_names, q, self.lower, self.upper, strict=True)
-            if v <= lo + _LIMIT_TOL or v >= hi - _LIMIT_TOL
-        )
 
-    def _describe_violation(self, q: FloatArray) -> str:
-        parts = []
-        for name, v, lo, hi in zip(self.joint_names, q, self.lower, self.upper, strict=True):
-            if v < lo - _LIMIT_TOL or v > hi + _LIMIT_TOL:
-                parts.append(f"joint {name} needs {v:.6g}, limits [{lo:.6g}, {hi:.6g}]")
-        return "; ".join(parts)
+# ---------------------------------------------------------------------- limit reports
+def _violation(frame: Frame, q: FloatArray) -> float:
+    """How far ``q`` is outside ``frame``'s joint limits, summed over the joints."""
+    return float(np.sum(np.maximum(frame.lower - q, 0.0) + np.maximum(q - frame.upper, 0.0)))
+
+
+def _clamped_names(frame: Frame, q: FloatArray) -> tuple[str, ...]:
+    """The joints of ``q`` outside ``frame``'s limits (a clip moves them)."""
+    return tuple(
+        name
+        for name, v, lo, hi in zip(frame.joint_names, q, frame.lower, frame.upper, strict=True)
+        if v < lo - _LIMIT_TOL or v > hi + _LIMIT_TOL
+    )
+
+
+def _at_limit_names(frame: Frame, q: FloatArray) -> tuple[str, ...]:
+    """The joints of ``q`` on (or beyond) one of ``frame``'s limits."""
+    return tuple(
+        name
+        for name, v, lo, hi in zip(frame.joint_names, q, frame.lower, frame.upper, strict=True)
+        if v <= lo + _LIMIT_TOL or v >= hi - _LIMIT_TOL
+    )
+
+
+def _describe_violation(frame: Frame, q: FloatArray) -> str:
+    """Each joint of ``q`` outside ``frame``'s limits, with what it needs, in words."""
+    parts = []
+    for name, v, lo, hi in zip(frame.joint_names, q, frame.lower, frame.upper, strict=True):
+        if v < lo - _LIMIT_TOL or v > hi + _LIMIT_TOL:
+            parts.append(f"joint {name} needs {v:.6g}, limits [{lo:.6g}, {hi:.6g}]")
+    return "; ".join(parts)
 
 
 # ---------------------------------------------------------------------- analytic solvers

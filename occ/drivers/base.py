@@ -101,10 +101,12 @@ import math
 import threading
 from collections.abc import Mapping, Sequence
 from types import TracebackType
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, cast
 
 from mypy_extensions import mypyc_attr
 
+from occ.drivers.checks import FeedbackChecks
+from occ.drivers.params import driver_params
 from occ.errors import DriverError, LimitError, OCCError, StateError, caused
 from occ.joint import Joint
 
@@ -114,114 +116,11 @@ logger = logging.getLogger(__name__)
 
 CommandInterface = Literal["position", "effort"]
 LimitPolicy = Literal["clamp", "fault"]
-_INTERFACES = ("position", "effort")
 _POLICIES = ("clamp", "fault")
-
-#: Parameters every driver takes (the base reads them), whatever its own DEFAULT_PARAMS say:
-#: the device heartbeat, and the feedback checks (see "Feedback checks" in the docstring).
-BASE_PARAMS: dict[str, Any] = {
-    "heartbeat_ms": 50.0,
-    "feedback_jump": 2.0,
-    "frozen_feedback_ms": 50.0,
-    "feedback_noise": None,
-    "limit_margin": None,
-    "following_error": {},
-}
-
-#: ``following_error``'s keys and defaults (None: by joint type, or from the backend)
-FOLLOWING_DEFAULTS: dict[str, Any] = {
-    "window": None,
-    "time_ms": 3.0,
-    "lag_ms": None,
-    "stiffness": None,
-}
-#: the following-error window's default: far beyond a healthy servo's error at rest
-FOLLOWING_WINDOW = {"revolute": 0.005, "prismatic": 0.0005}
-#: how far a joint may be measured outside its limits before its feedback is not believed
-LIMIT_MARGIN = {"revolute": 0.02, "prismatic": 0.002}
-#: a healthy servo's lag behind a moving command, when the backend does not know its own
-DEFAULT_LAG_S = 0.020
-
-#: How far (rad, m) the command must be from a joint that has not moved at all for
-#: ``frozen_feedback_ms`` before its feedback is called frozen: far beyond the tracking lag of
-#: a healthy servo at the velocity limits, so a joint holding still never trips it.
-FROZEN_AWAY = {"revolute": 0.005, "prismatic": 0.0005}
 
 # Relative slack on the velocity check, so that a setpoint moving at exactly the limit is not
 # flagged because of float rounding in (x - prev) / dt.
 _VEL_SLACK = 1e-9
-
-
-def _number(name: str, key: str, raw: Any, *, positive: bool = False) -> float:
-    try:
-        value = float(raw)
-    except (TypeError, ValueError):
-        value = math.nan
-    if not (value > 0.0 if positive else value >= 0.0) or value == math.inf:
-        want = "> 0" if positive else ">= 0"
-        raise ValueError(f"driver {name!r}: {key} must be a finite number {want}, got {raw!r}")
-    return value
-
-
-def _per_joint_param(
-    name: str, key: str, raw: Any, joints: Sequence[Joint], *, positive: bool = False
-) -> list[float] | None:
-    """``raw`` as one value per joint: None (the default applies), one number for every
-    joint, or ``{joint: number}`` naming every joint. ValueError naming the key otherwise."""
-    if raw is None:
-        return None
-    if isinstance(raw, Mapping):
-        names = [j.name for j in joints]
-        unknown = sorted(set(map(str, raw)) - set(names))
-        missing = [n for n in names if n not in raw]
-        if unknown or missing:
-            raise ValueError(
-                f"driver {name!r}: {key} names joints {sorted(map(str, raw))}; its joints are "
-                f"{names}"
-                + (f" (unknown: {unknown})" if unknown else "")
-                + (f" (missing: {missing})" if missing else "")
-            )
-        return [_number(name, f"{key}.{n}", raw[n], positive=positive) for n in names]
-    if isinstance(raw, (bool, str)) or not isinstance(raw, (int, float)):
-        raise ValueError(
-            f"driver {name!r}: {key} must be a number or {{joint: number}}, got {raw!r}"
-        )
-    value = _number(name, key, raw, positive=positive)
-    return [value] * len(joints)
-
-
-def _following_params(name: str, raw: Any, joints: Sequence[Joint]) -> dict[str, Any] | None:
-    """``following_error`` checked: None when off (null, false), else its keys with their
-    defaults merged (``FOLLOWING_DEFAULTS``); ValueError naming what is wrong."""
-    if raw is None or raw is False:
-        return None
-    if not isinstance(raw, Mapping):
-        raise ValueError(
-            f"driver {name!r}: following_error must be a mapping {{window, time_ms, lag_ms, "
-            f"stiffness}} or null (off), got {raw!r}"
-        )
-    unknown = sorted(set(map(str, raw)) - set(FOLLOWING_DEFAULTS))
-    if unknown:
-        raise ValueError(
-            f"driver {name!r}: following_error: unknown keys {unknown}; known: "
-            f"{sorted(FOLLOWING_DEFAULTS)}"
-        )
-    cfg = {**FOLLOWING_DEFAULTS, **raw}
-    return {
-        "window": _per_joint_param(
-            name, "following_error.window", cfg["window"], joints, positive=True
-        ),
-        "time_s": _number(name, "following_error.time_ms", cfg["time_ms"]) * 1e-3,
-        "lag": None
-        if cfg["lag_ms"] is None
-        else [
-            v * 1e-3
-            for v in _per_joint_param(name, "following_error.lag_ms", cfg["lag_ms"], joints) or ()
-        ],
-        "stiffness": _per_joint_param(
-            name, "following_error.stiffness", cfg["stiffness"], joints, positive=True
-        ),
-    }
 
 
 class DriverState(enum.Enum):
@@ -234,126 +133,15 @@ class DriverState(enum.Enum):
     SHUTDOWN = "shutdown"
 
 
-@mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins and tests subclass it
-class Driver:
-    """Base class of all joint drivers (see the module docstring for the contract).
+@mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: Driver and its plugins subclass it
+class DriverLifecycle:
+    """The lifecycle of a driver: the state machine of the module docstring, the safe stop
+    from another thread, the hooks' errors latched as FAULT. :class:`Driver` adds the joints'
+    commands and readings; a backend subclasses Driver, never this class alone."""
 
-    ``params`` is the backend's free-form parameter mapping from the config; the base reads
-    only ``command_interface`` (if the ``command_interface`` argument is None) and ``period``
-    (the nominal loop period in seconds, default 0.001, used for the velocity check and the
-    servo ``dt`` of the first write after activation, when no previous write exists).
-    """
-
-    #: What the hardware takes: position setpoints, or efforts computed by the joints' PIDs.
-    command_interface: CommandInterface = "position"
-    #: The interfaces a backend can accept; a subclass narrows this if it must.
-    supported_interfaces: ClassVar[tuple[str, ...]] = ("position",)
-    #: A backend's parameters and their defaults. When set, the base refuses unknown keys
-    #: (a typo in the YAML must not be silently ignored) and ``self.params`` holds the defaults
-    #: merged with the configured values.
-    DEFAULT_PARAMS: ClassVar[Mapping[str, Any] | None] = None
-
-    def __init__(
-        self,
-        name: str,
-        joints: Sequence[Joint],
-        params: Mapping[str, Any] | None = None,
-        on_limit: LimitPolicy = "clamp",
-        command_interface: CommandInterface | None = None,
-    ) -> None:
-        if not joints:
-            raise ValueError(f"driver {name!r}: needs at least one joint")
-        if on_limit not in _POLICIES:
-            raise ValueError(f"driver {name!r}: on_limit must be one of {_POLICIES}")
-        params = dict(params or {})
-        if self.DEFAULT_PARAMS is not None:
-            known = set(self.DEFAULT_PARAMS) | set(BASE_PARAMS)
-            unknown = set(params) - known
-            if unknown:
-                raise ValueError(
-                    f"driver {name!r} ({type(self).__name__}): unknown params "
-                    f"{sorted(unknown)}; known: {sorted(known)}"
-                )
-            params = {**BASE_PARAMS, **self.DEFAULT_PARAMS, **params}
-        else:
-            params = {**BASE_PARAMS, **params}
-        heartbeat = params["heartbeat_ms"]
-        try:
-            heartbeat_s = 0.0 if heartbeat is None else float(heartbeat) * 1e-3
-        except (TypeError, ValueError):
-            heartbeat_s = math.nan
-        if not heartbeat_s >= 0.0:
-            raise ValueError(
-                f"driver {name!r}: heartbeat_ms must be a number >= 0 (0 = off), got {heartbeat!r}"
-            )
-        checks: list[float] = []
-        for key in ("feedback_jump", "frozen_feedback_ms"):
-            raw = params[key]
-            try:
-                value = 0.0 if raw is None else float(raw)
-            except (TypeError, ValueError):
-                value = math.nan
-            if not value >= 0.0:
-                raise ValueError(
-                    f"driver {name!r}: {key} must be a number >= 0 (0 = off), got {raw!r}"
-                )
-            checks.append(value)
-        noise_cfg = _per_joint_param(name, "feedback_noise", params["feedback_noise"], joints)
-        margin_cfg = _per_joint_param(name, "limit_margin", params["limit_margin"], joints)
-        self._following = _following_params(name, params["following_error"], joints)
-        interface = command_interface or params.get("command_interface") or self.command_interface
-        if interface not in _INTERFACES or interface not in self.supported_interfaces:
-            raise ValueError(
-                f"driver {name!r} ({type(self).__name__}): command_interface {interface!r} not "
-                f"supported; choose one of {self.supported_interfaces}"
-            )
-        period = float(params.get("period", 0.001))
-        if not period > 0.0:
-            raise ValueError(f"driver {name!r}: period must be > 0, got {period}")
-        names = [j.name for j in joints]
-        if len(set(names)) != len(names):
-            raise ValueError(f"driver {name!r}: duplicate joint names {names}")
-        #: joints whose effort would come from a PID without gains: position setpoints
-        #: (:meth:`write`) are refused for them; direct efforts (:meth:`write_effort`, a haptic
-        #: master's force) need none
-        self.missing_gains: list[str] = (
-            [j.name for j in joints if j.gains is None] if interface == "effort" else []
-        )
-
+    def __init__(self, name: str, joints: Sequence[Joint]) -> None:
         self.name: str = name
         self.joints: list[Joint] = list(joints)
-        self.params: dict[str, Any] = params
-        self.on_limit: LimitPolicy = on_limit
-        self.command_interface = interface  # instance attribute shadows the class default
-        self.period: float = period
-        #: the device stops itself when not commanded for this long while ACTIVE (0 = off)
-        self.heartbeat_s: float = heartbeat_s
-        # feedback checks: per joint (max speed for a plausible step, distance for "frozen")
-        self._jump = checks[0]
-        self._jump_speed = [checks[0] * j.limits.velocity for j in joints]
-        self._frozen_s = checks[1] * 1e-3
-        self._frozen_away = [FROZEN_AWAY.get(j.type, 0.005) for j in joints]
-        self._changed_at = [math.nan] * len(joints)
-        #: where each joint was when its reading last moved by more than its noise
-        self._anchor = [math.nan] * len(joints)
-        self._noise_cfg = noise_cfg
-        self._fb_noise = [0.0] * len(joints)  # set by _setup_checks (the backend may know it)
-        margins = margin_cfg or [LIMIT_MARGIN.get(j.type, 0.02) for j in joints]
-        #: the measured range each joint must stay in: its limits widened by its margin
-        self._range = [
-            (j.limits.min - m, j.limits.max + m, m) for j, m in zip(joints, margins, strict=True)
-        ]
-        # following error (per joint): window, lag (s), 1 / stiffness (0: no load term), the
-        # average of the commanded speed, since when the error is outside the window
-        self._fe_window = [0.0] * len(joints)
-        self._fe_lag = [0.0] * len(joints)
-        self._fe_compliance = [0.0] * len(joints)
-        self._fe_time = 0.0
-        self._cmd_speed = [0.0] * len(joints)
-        #: each joint's last commanded step (the next reading may show it whole)
-        self._last_step = [0.0] * len(joints)
-        self._fe_since = [math.nan] * len(joints)
-        self._commanded = False
         #: a safe stop asked for while an activation was under way (supervisor): the
         #: activation must not leave the drive powered (see :meth:`activate`)
         self._stop_asked: str | None = None
@@ -361,24 +149,13 @@ class Driver:
         #: a switch-off (deactivate, safe stop) raised and no later one succeeded: the power
         #: stage may still be on whatever the state says (never counted safe; issue 36)
         self.stop_failed: str | None = None
-        self._setup_checks()
         self._safe_lock = threading.Lock()
         self._safe_stops = 0
         self._state: DriverState = DriverState.UNCONFIGURED
         self._configured: bool = False
         self._fault_reason: str | None = None
-        n = len(self.joints)
-        # Preallocated per-tick buffers: write() never allocates lists.
-        self._values: list[float] = [0.0] * n
-        self._limit_table: list[tuple[Joint, float, float, float]] = []
-        self._prev_setpoint: list[float] = [0.0] * n
-        self._prev_write_time: float = math.nan
-        self._reads: int = 0
-        self._writes: int = 0
-        self._limit_events: int = 0
         self._errors: int = 0
 
-    # ------------------------------------------------------------------ properties
     @property
     def state(self) -> DriverState:
         """The current lifecycle state."""
@@ -388,27 +165,6 @@ class Driver:
     def fault_reason(self) -> str | None:
         """Why the driver is in FAULT (None otherwise)."""
         return self._fault_reason if self._state is DriverState.FAULT else None
-
-    @property
-    def joint_names(self) -> list[str]:
-        """Joint names in command/measurement order."""
-        return [j.name for j in self.joints]
-
-    def stats(self) -> dict[str, int]:
-        """Counters since construction: reads, writes, limit_events, errors, safe_stops."""
-        return {
-            "reads": self._reads,
-            "writes": self._writes,
-            "limit_events": self._limit_events,
-            "errors": self._errors,
-            "safe_stops": self._safe_stops,
-        }
-
-    def __repr__(self) -> str:
-        return (
-            f"{type(self).__name__}({self.name!r}, joints={self.joint_names}, "
-            f"state={self._state.value}, interface={self.command_interface})"
-        )
 
     # ------------------------------------------------------------------ lifecycle
     def configure(self) -> None:
@@ -429,19 +185,7 @@ class Driver:
         up: the drive is switched off again and latched FAULT, and this raises.
         """
         self._require((DriverState.INACTIVE,), "activate")
-        for joint in self.joints:
-            joint.reset_servo()
-        self._prev_write_time = math.nan
-        self._changed_at = [math.nan] * len(self.joints)  # frozen: watched from the next read
-        self._fe_since = [math.nan] * len(self.joints)
-        self._cmd_speed = [0.0] * len(self.joints)
-        self._last_step = [0.0] * len(self.joints)
-        self._commanded = False
-        # the limits as plain floats, read by every write (fewer look-ups on the loop)
-        self._limit_table = [
-            (j, j.limits.min, j.limits.max, j.limits.velocity * (1.0 + _VEL_SLACK))
-            for j in self.joints
-        ]
+        self._start_commands()
         with self._safe_lock:
             self._stop_asked = None
             self._activating = True
@@ -487,10 +231,7 @@ class Driver:
             self._call_hook(self._deactivate, "reset (switch-off)")
             self.stop_failed = None
         self._call_hook(self._reset, "reset")
-        for joint in self.joints:
-            joint.reset_servo()
-        self._prev_write_time = math.nan
-        self._anchor = [math.nan] * len(self.joints)
+        self._forget_commands()
         logger.info("driver %s: fault reset (was: %s)", self.name, self._fault_reason)
         self._fault_reason = None
         self._transition(DriverState.INACTIVE if self._configured else DriverState.UNCONFIGURED)
@@ -547,6 +288,188 @@ class Driver:
             failed = DriverError(f"driver {self.name!r}: shutdown failed: {first_error}")
             raise caused(failed, first_error) from first_error
 
+    def __del__(self) -> None:
+        # Like python-can's leaked-bus warning: a configured driver nobody shut down may still
+        # hold hardware. getattr because __init__ may have failed half way.
+        if getattr(self, "_configured", False) and getattr(self, "_state", None) not in (
+            DriverState.SHUTDOWN,
+            None,
+        ):
+            logger.warning("driver %s was not shut down properly", getattr(self, "name", "?"))
+
+    # ------------------------------------------------------------------ hooks
+    def _configure(self) -> None:
+        """Open the hardware (override)."""
+
+    def _activate(self) -> None:
+        """Enable the power stages and hold the current position (override)."""
+
+    def _deactivate(self) -> None:
+        """Stop following commands; brake or hold (override)."""
+
+    def _reset(self) -> None:
+        """Clear a hardware fault if the backend can (override; default does nothing)."""
+
+    def _safe_stop(self) -> None:
+        """Put the hardware in its safe state now, from another thread (override if
+        ``_deactivate`` is not safe to call while the loop thread is inside a hook)."""
+        self._deactivate()
+
+    def _shutdown(self) -> None:
+        """Release the hardware (override)."""
+
+    def _setup_checks(self, backend: bool = False) -> None:
+        """The feedback checks' figures, once the backend is configured (:class:`Driver`)."""
+
+    def _start_commands(self) -> None:
+        """At activation, before the power stage comes up: commands start afresh
+        (:class:`Driver`)."""
+
+    def _forget_commands(self) -> None:
+        """At a fault's reset, once the hardware's is cleared (:class:`Driver`)."""
+
+    # ------------------------------------------------------------------ internals
+    def _require(self, allowed: tuple[DriverState, ...], action: str) -> None:
+        if self._state not in allowed:
+            raise StateError(
+                f"driver {self.name!r}: cannot {action} in state {self._state.value}"
+                + (f" ({self._fault_reason}); reset() first" if self._fault_reason else "")
+            )
+
+    def _transition(self, new: DriverState) -> None:
+        old = self._state
+        self._state = new
+        logger.info("driver %s: %s -> %s", self.name, old.value, new.value)
+
+    def _call_hook(self, hook: Any, action: str) -> None:
+        try:
+            hook()
+        except Exception as err:
+            raise self._hook_failed(action, err) from err
+
+    def _hook_failed(self, action: str, err: Exception) -> OCCError:
+        """Count, latch FAULT and return the error to raise (DriverErrors pass through)."""
+        self._errors += 1
+        wrapped: OCCError
+        if isinstance(err, OCCError):
+            wrapped = err
+        else:
+            wrapped = caused(DriverError(f"driver {self.name!r}: {action} failed: {err!r}"), err)
+        self._enter_fault(str(wrapped))
+        return wrapped
+
+    def _enter_fault(self, reason: str) -> None:
+        if self._state is DriverState.SHUTDOWN:
+            return
+        was_active = self._state is DriverState.ACTIVE
+        if self._state is not DriverState.FAULT:
+            self._fault_reason = reason
+            logger.error("driver %s: FAULT: %s", self.name, reason)
+            self._transition(DriverState.FAULT)
+        if was_active:
+            try:
+                self._deactivate()
+            except Exception as err:  # noqa: BLE001 - already faulted; keep the first reason
+                self._errors += 1
+                self.stop_failed = f"switch-off failed: {err!r}"
+                logger.exception("driver %s: deactivate after fault failed", self.name)
+            else:
+                self.stop_failed = None
+
+
+@mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins and tests subclass it
+class Driver(DriverLifecycle):
+    """Base class of all joint drivers (see the module docstring for the contract).
+
+    ``params`` is the backend's free-form parameter mapping from the config; the base reads
+    only ``command_interface`` (if the ``command_interface`` argument is None) and ``period``
+    (the nominal loop period in seconds, default 0.001, used for the velocity check and the
+    servo ``dt`` of the first write after activation, when no previous write exists).
+    """
+
+    #: What the hardware takes: position setpoints, or efforts computed by the joints' PIDs.
+    command_interface: CommandInterface = "position"
+    #: The interfaces a backend can accept; a subclass narrows this if it must.
+    supported_interfaces: ClassVar[tuple[str, ...]] = ("position",)
+    #: A backend's parameters and their defaults. When set, the base refuses unknown keys
+    #: (a typo in the YAML must not be silently ignored) and ``self.params`` holds the defaults
+    #: merged with the configured values.
+    DEFAULT_PARAMS: ClassVar[Mapping[str, Any] | None] = None
+
+    def __init__(
+        self,
+        name: str,
+        joints: Sequence[Joint],
+        params: Mapping[str, Any] | None = None,
+        on_limit: LimitPolicy = "clamp",
+        command_interface: CommandInterface | None = None,
+    ) -> None:
+        if not joints:
+            raise ValueError(f"driver {name!r}: needs at least one joint")
+        if on_limit not in _POLICIES:
+            raise ValueError(f"driver {name!r}: on_limit must be one of {_POLICIES}")
+        p = driver_params(
+            name,
+            type(self).__name__,
+            joints,
+            params,
+            self.DEFAULT_PARAMS,
+            command_interface,
+            self.command_interface,
+            self.supported_interfaces,
+        )
+        interface = p.interface
+        #: joints whose effort would come from a PID without gains: position setpoints
+        #: (:meth:`write`) are refused for them; direct efforts (:meth:`write_effort`, a haptic
+        #: master's force) need none
+        self.missing_gains: list[str] = (
+            [j.name for j in joints if j.gains is None] if interface == "effort" else []
+        )
+
+        super().__init__(name, joints)
+        self.params: dict[str, Any] = p.values
+        self.on_limit: LimitPolicy = on_limit
+        self.command_interface = cast(CommandInterface, interface)  # shadows the class's
+        self.period: float = p.period
+        #: the device stops itself when not commanded for this long while ACTIVE (0 = off)
+        self.heartbeat_s: float = p.heartbeat_s
+        #: the feedback checks, run by every read (see "Feedback checks" above)
+        self._checks = FeedbackChecks(
+            joints, p.jump, p.frozen_ms, p.noise, p.margin, p.following, p.period
+        )
+        self._setup_checks()
+        n = len(self.joints)
+        # Preallocated per-tick buffers: write() never allocates lists.
+        self._values: list[float] = [0.0] * n
+        self._limit_table: list[tuple[Joint, float, float, float]] = []
+        self._prev_setpoint: list[float] = [0.0] * n
+        self._prev_write_time: float = math.nan
+        self._reads: int = 0
+        self._writes: int = 0
+        self._limit_events: int = 0
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def joint_names(self) -> list[str]:
+        """Joint names in command/measurement order."""
+        return [j.name for j in self.joints]
+
+    def stats(self) -> dict[str, int]:
+        """Counters since construction: reads, writes, limit_events, errors, safe_stops."""
+        return {
+            "reads": self._reads,
+            "writes": self._writes,
+            "limit_events": self._limit_events,
+            "errors": self._errors,
+            "safe_stops": self._safe_stops,
+        }
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}({self.name!r}, joints={self.joint_names}, "
+            f"state={self._state.value}, interface={self.command_interface})"
+        )
+
     def __enter__(self) -> Driver:
         return self
 
@@ -557,15 +480,6 @@ class Driver:
         tb: TracebackType | None,
     ) -> None:
         self.shutdown()
-
-    def __del__(self) -> None:
-        # Like python-can's leaked-bus warning: a configured driver nobody shut down may still
-        # hold hardware. getattr because __init__ may have failed half way.
-        if getattr(self, "_configured", False) and getattr(self, "_state", None) not in (
-            DriverState.SHUTDOWN,
-            None,
-        ):
-            logger.warning("driver %s was not shut down properly", getattr(self, "name", "?"))
 
     # ------------------------------------------------------------------ I/O
     def read(self, now: float) -> None:
@@ -582,132 +496,21 @@ class Driver:
             positions, velocities, efforts = self._read(now)
         except Exception as err:
             raise self._hook_failed("read", err) from err
-        jump = self._jump_speed
-        cmd_speed = self._cmd_speed
-        last_step = self._last_step
-        jump_factor = self._jump
-        noise = self._fb_noise
-        changed = self._changed_at
-        anchor = self._anchor
-        ranges = self._range
-        period = self.period
-        frozen_s = self._frozen_s if state is DriverState.ACTIVE else 0.0
-        # the following error: only for a drive that is servoing our commands
-        following = state is DriverState.ACTIVE and self._commanded and self._following is not None
-        if self.command_interface == "effort":
-            frozen_s = 0.0  # the hand, not a servo, moves an effort-driven joint
-            following = False
         # in FAULT the drive is off and its last reading may be the one that was not
         # believed: positions are still read (operators see where the robot is), lost and
         # out-of-range readings still reported, the rest judged again after a reset
-        judged = state is not DriverState.FAULT
-        # a jump is judged on a powered drive: powered off, a joint moved by hand goes as fast
-        # as the hand (the velocity limit bounds commands), and Enable holds a fresh reading
-        active = state is DriverState.ACTIVE and jump_factor > 0.0
-        bad: str | None = None  # the first failed check: raised once every joint is read
-        for i, joint in enumerate(self.joints):
-            x = positions[i]
-            if x - x != 0.0:  # NaN or inf (math.isfinite without a call)
-                if joint.measured and bad is None:
-                    bad = f"joint {joint.name}: feedback lost (position {x})"
-                continue  # not reported yet: the joint stays unmeasured
-            lo, hi, margin = ranges[i]
-            if x < lo or x > hi:
-                if bad is None:
-                    bad = (
-                        f"joint {joint.name}: measured position {x:.6g} outside its limits "
-                        f"[{joint.limits.min:.6g}, {joint.limits.max:.6g}] by more than "
-                        f"{margin:.6g} (limit_margin)"
-                    )
-                continue  # not believed: the joint keeps its last reading
-            why = ""
-            if joint.measured and judged:
-                prev = joint.position
-                if x != prev and active:
-                    step = x - prev if x > prev else prev - x
-                    dt = now - joint.stamp
-                    if dt < period:
-                        dt = period
-                    # the speed this joint may have: its limit, or faster while a command
-                    # catches up after a stall of the loop (the servo follows a step)
-                    speed = jump[i]
-                    catching_up = jump_factor * cmd_speed[i]
-                    if catching_up > speed:
-                        speed = catching_up
-                    # a reading shows the step commanded over the previous write's interval,
-                    # which a late tick made longer than this reading's: that step is plausible
-                    reach = speed * dt
-                    stepped = jump_factor * last_step[i]
-                    if stepped > reach:
-                        reach = stepped
-                    reach += 2.0 * noise[i]
-                    if step > reach:
-                        why = (
-                            f"joint {joint.name}: feedback jump of {step:.6g} in "
-                            f"{dt * 1e3:.3g} ms (at most {reach:.6g}: feedback_jump "
-                            f"{jump_factor:g} x {speed / jump_factor:.6g}/s, the speed it may "
-                            f"have, plus twice the noise {noise[i]:.3g})"
-                        )
-                ref = anchor[i]
-                if ref != ref or x - ref > noise[i] or ref - x > noise[i]:
-                    anchor[i] = x  # moved beyond the encoder's noise: not frozen
-                    changed[i] = now
-                elif frozen_s > 0.0:
-                    since = changed[i]
-                    if since != since:
-                        changed[i] = now
-                    elif now - since > frozen_s:
-                        away = joint.command_position - x
-                        if away > self._frozen_away[i] or -away > self._frozen_away[i]:
-                            why = (
-                                f"joint {joint.name}: feedback frozen at {x:.6g} for "
-                                f"{(now - since) * 1e3:.0f} ms while commanded {away:+.6g} "
-                                f"away (no move beyond its noise, {noise[i]:.3g})"
-                            )
-            else:
-                anchor[i] = x
-                changed[i] = now
-            if following and not why:
-                why = self._following_error(i, joint, x, efforts[i], now)
-            if why:
-                if bad is None:
-                    bad = why
-                continue  # not believed: the joint keeps its last reading
-            # Joint.set_measured, inlined: this runs for every joint every tick
-            joint.position = x
-            joint.velocity = velocities[i]
-            joint.effort = efforts[i]
-            joint.measured = True
-            joint.stamp = now
+        bad = self._checks.apply(
+            positions,
+            velocities,
+            efforts,
+            now,
+            state is DriverState.ACTIVE,
+            state is not DriverState.FAULT,
+            self.command_interface == "effort",
+        )
         self._reads += 1
         if bad is not None:
             self._feedback_fault(bad)
-
-    def _following_error(self, i: int, joint: Joint, x: float, effort: float, now: float) -> str:
-        """The following error of joint ``i`` (see "Following error" in the module doc): ''
-        while within its window, or the fault's words once outside it for ``time_ms``."""
-        error = joint.command_position - x
-        if error < 0.0:
-            error = -error
-        load = effort if effort >= 0.0 else -effort
-        window = (
-            self._fe_window[i]
-            + self._fe_lag[i] * self._cmd_speed[i]
-            + load * self._fe_compliance[i]
-        )
-        if error <= window:
-            self._fe_since[i] = math.nan
-            return ""
-        since = self._fe_since[i]
-        if since != since:
-            self._fe_since[i] = since = now
-        if now - since < self._fe_time:
-            return ""
-        return (
-            f"joint {joint.name}: following error {error:.6g} beyond its window "
-            f"{window:.6g} for {(now - since) * 1e3:.3g} ms (following_error: measured "
-            f"{x:.6g}, commanded {joint.command_position:.6g}, time_ms {self._fe_time * 1e3:g})"
-        )
 
     def write(self, setpoints: Sequence[float], now: float) -> None:
         """Command one position setpoint per joint (ACTIVE only), limit-checked.
@@ -736,20 +539,17 @@ class Driver:
         values = self._values
         effort = self.command_interface == "effort"
         clamp = self.on_limit == "clamp"
-        cmd_speed = self._cmd_speed
-        fade = self._fade
+        checks = self._checks
+        cmd_speed = checks.cmd_speed
+        last_step = checks.last_step
+        fade = checks.fade
         for i, (joint, lo, hi, vmax) in enumerate(self._limit_table):
             x = float(setpoints[i])
             if x - x != 0.0:  # inf or NaN (math.isfinite without a call: every joint, every tick)
                 self._fault(LimitError(f"driver {self.name!r}: joint {joint.name}: setpoint {x}"))
             if x < lo or x > hi:
                 if not clamp:
-                    self._fault(
-                        LimitError(
-                            f"driver {self.name!r}: joint {joint.name}: position {x:.6g} outside "
-                            f"limits [{lo:.6g}, {hi:.6g}]"
-                        )
-                    )
+                    self._fault(self._outside(joint, x, lo, hi))
                 x = lo if x < lo else hi
                 self._limit_events += 1
             if first:
@@ -761,13 +561,7 @@ class Driver:
                 reach = vmax * dt
                 if step > reach or -step > reach:
                     if not clamp:
-                        speed = abs(step) / dt if dt > 0.0 else math.inf
-                        self._fault(
-                            LimitError(
-                                f"driver {self.name!r}: joint {joint.name}: velocity {speed:.6g} "
-                                f"exceeds limit {joint.limits.velocity:.6g} (setpoint {x:.6g})"
-                            )
-                        )
+                        self._fault(self._too_fast(joint, step, dt, x))
                     max_step = joint.limits.velocity * dt
                     x = ref + max_step if step > 0.0 else ref - max_step
                     self._limit_events += 1
@@ -777,7 +571,7 @@ class Driver:
                 # exponential average: a step S raises lag x speed by S, as the error it
                 # makes, which then decays with the servo's own time)
                 moved = x - ref if x > ref else ref - x
-                self._last_step[i] = moved
+                last_step[i] = moved
                 gain = dt * fade[i]
                 if gain > 1.0:
                     gain = 1.0
@@ -785,13 +579,28 @@ class Driver:
             prev[i] = x
             joint.command_position = x
             values[i] = joint.servo(x, dt) if effort else x
-        self._commanded = True
+        checks.commanded = True
         self._prev_write_time = now
         try:
             self._write(values, now)
         except Exception as err:
             raise self._hook_failed("write", err) from err
         self._writes += 1
+
+    def _outside(self, joint: Joint, x: float, lo: float, hi: float) -> LimitError:
+        """The error of a setpoint ``x`` outside ``joint``'s limits ``[lo, hi]``."""
+        return LimitError(
+            f"driver {self.name!r}: joint {joint.name}: position {x:.6g} outside "
+            f"limits [{lo:.6g}, {hi:.6g}]"
+        )
+
+    def _too_fast(self, joint: Joint, step: float, dt: float, x: float) -> LimitError:
+        """The error of a setpoint ``x`` a ``step`` away from the last in ``dt``: too fast."""
+        speed = abs(step) / dt if dt > 0.0 else math.inf
+        return LimitError(
+            f"driver {self.name!r}: joint {joint.name}: velocity {speed:.6g} "
+            f"exceeds limit {joint.limits.velocity:.6g} (setpoint {x:.6g})"
+        )
 
     def write_effort(self, efforts: Sequence[float], now: float) -> None:
         """Command one effort per joint directly (N for prismatic joints, N m for revolute
@@ -831,17 +640,6 @@ class Driver:
         self._writes += 1
 
     # ------------------------------------------------------------------ hooks
-    def _configure(self) -> None:
-        """Open the hardware (override)."""
-
-    def _activate(self) -> None:
-        """Enable the power stages and hold the current position (override)."""
-
-    def _deactivate(self) -> None:
-        """Stop following commands; brake or hold (override)."""
-
-    def _reset(self) -> None:
-        """Clear a hardware fault if the backend can (override; default does nothing)."""
 
     def _following_model(self) -> tuple[Sequence[float], Sequence[float | None]] | None:
         """What the backend knows of its servo, per joint: (the lag behind a moving command,
@@ -853,14 +651,6 @@ class Driver:
         """The encoders' noise at rest, per joint (rad or m, the quantum included), when the
         backend knows it and ``feedback_noise`` is not configured; None = 0."""
         return None
-
-    def _safe_stop(self) -> None:
-        """Put the hardware in its safe state now, from another thread (override if
-        ``_deactivate`` is not safe to call while the loop thread is inside a hook)."""
-        self._deactivate()
-
-    def _shutdown(self) -> None:
-        """Release the hardware (override)."""
 
     def _read(self, now: float) -> tuple[Sequence[float], Sequence[float], Sequence[float]]:
         """Return (positions, velocities, efforts), one float per joint, SI units."""
@@ -874,59 +664,28 @@ class Driver:
     def _setup_checks(self, backend: bool = False) -> None:
         """The per-joint figures of the feedback checks, from the parameters and, once the
         backend is configured (``backend``), from what it knows of its encoders and servo."""
-        n = len(self.joints)
-        noise = self._noise_cfg
-        if noise is None and backend:
-            noise = list(self._default_noise() or ())
-        self._fb_noise = list(noise) if noise and len(noise) == n else [0.0] * n
-        model = self._following_model() if backend else None
-        fe = self._following
-        lags: list[float] = [DEFAULT_LAG_S] * n
-        stiff: list[float | None] = [None] * n
-        if model is not None:
-            lags = [float(v) for v in model[0]]
-            stiff = list(model[1])
-        if fe is not None:
-            if fe["lag"] is not None:
-                lags = list(fe["lag"])
-            if fe["stiffness"] is not None:
-                stiff = list(fe["stiffness"])
-            window = fe["window"] or [FOLLOWING_WINDOW.get(j.type, 0.005) for j in self.joints]
-            # the encoder's own noise never counts as an error
-            self._fe_window = [w + 2.0 * e for w, e in zip(window, self._fb_noise, strict=True)]
-            self._fe_time = float(fe["time_s"])
-        self._fe_lag = lags
-        self._fe_compliance = [0.0 if k is None else 1.0 / k for k in stiff]
-        self._fade = [1.0 / max(lag, self.period) for lag in lags]
+        checks = self._checks
+        noise = self._default_noise() if backend and checks.noise_cfg is None else None
+        checks.setup(noise, self._following_model() if backend else None)
 
-    def _require(self, allowed: tuple[DriverState, ...], action: str) -> None:
-        if self._state not in allowed:
-            raise StateError(
-                f"driver {self.name!r}: cannot {action} in state {self._state.value}"
-                + (f" ({self._fault_reason}); reset() first" if self._fault_reason else "")
-            )
+    def _start_commands(self) -> None:
+        # servo memories and the previous setpoint cleared: the first write is checked
+        # against the measured position (see activate)
+        for joint in self.joints:
+            joint.reset_servo()
+        self._prev_write_time = math.nan
+        self._checks.restart()
+        # the limits as plain floats, read by every write (fewer look-ups on the loop)
+        self._limit_table = [
+            (j, j.limits.min, j.limits.max, j.limits.velocity * (1.0 + _VEL_SLACK))
+            for j in self.joints
+        ]
 
-    def _transition(self, new: DriverState) -> None:
-        old = self._state
-        self._state = new
-        logger.info("driver %s: %s -> %s", self.name, old.value, new.value)
-
-    def _call_hook(self, hook: Any, action: str) -> None:
-        try:
-            hook()
-        except Exception as err:
-            raise self._hook_failed(action, err) from err
-
-    def _hook_failed(self, action: str, err: Exception) -> OCCError:
-        """Count, latch FAULT and return the error to raise (DriverErrors pass through)."""
-        self._errors += 1
-        wrapped: OCCError
-        if isinstance(err, OCCError):
-            wrapped = err
-        else:
-            wrapped = caused(DriverError(f"driver {self.name!r}: {action} failed: {err!r}"), err)
-        self._enter_fault(str(wrapped))
-        return wrapped
+    def _forget_commands(self) -> None:
+        for joint in self.joints:
+            joint.reset_servo()
+        self._prev_write_time = math.nan
+        self._checks.forget()
 
     def _feedback_fault(self, what: str) -> None:
         """Latch FAULT for feedback that cannot be trusted and raise it."""
@@ -939,21 +698,3 @@ class Driver:
         """Latch FAULT for a limit violation and raise it."""
         self._enter_fault(str(err))
         raise err
-
-    def _enter_fault(self, reason: str) -> None:
-        if self._state is DriverState.SHUTDOWN:
-            return
-        was_active = self._state is DriverState.ACTIVE
-        if self._state is not DriverState.FAULT:
-            self._fault_reason = reason
-            logger.error("driver %s: FAULT: %s", self.name, reason)
-            self._transition(DriverState.FAULT)
-        if was_active:
-            try:
-                self._deactivate()
-            except Exception as err:  # noqa: BLE001 - already faulted; keep the first reason
-                self._errors += 1
-                self.stop_failed = f"switch-off failed: {err!r}"
-                logger.exception("driver %s: deactivate after fault failed", self.name)
-            else:
-                self.stop_failed = None

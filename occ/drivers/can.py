@@ -271,15 +271,7 @@ class CANDriver(Driver):
         # answered, oldest first (deque: the supervisor's safe stop appends from its thread
         # while the loop pops, each one atomic); the send time of the command the newest
         # frame answers; when the last frame arrived and the last command left (quiet)
-        self._pending: list[deque[float]] = [deque() for _ in range(n)]
-        self._answered = [math.nan] * n
-        # the newest answer's round trip, at least: when the receive queue was last seen
-        # empty (it arrived later) minus its command's send time
-        self._round_trip = [math.nan] * n
-        self._empty_at = math.nan  # the now of the last read that emptied the receive queue
-        self._last_rx = [math.nan] * n
-        self._last_tx = [math.nan] * n
-        self._t0 = math.nan  # the first read's now: the age of a joint never answered
+        self._forget_answers()
         self._now = math.nan  # the last now seen: the send time of a hook's frames
         self._feedback_frames = 0
         self._ignored_frames = 0
@@ -293,6 +285,20 @@ class CANDriver(Driver):
             raise ValueError("can driver: error_frames must be >= 0")
         self._error_window: list[float] = []  # times of the error frames in the window
         self._errors_judged_at = math.nan  # the now of the error frames that faulted it
+
+    def _forget_answers(self) -> None:
+        """No command owed an answer, none answered, no frame heard (feedback age, module
+        docstring)."""
+        n = len(self.joints)
+        self._pending: list[deque[float]] = [deque() for _ in range(n)]
+        self._answered = [math.nan] * n
+        # the newest answer's round trip, at least: when the receive queue was last seen
+        # empty (it arrived later) minus its command's send time
+        self._round_trip = [math.nan] * n
+        self._empty_at = math.nan  # the now of the last read that emptied the receive queue
+        self._last_rx = [math.nan] * n
+        self._last_tx = [math.nan] * n
+        self._t0 = math.nan  # the first read's now: the age of a joint never answered
 
     def _parse_axes(self, spec: Any) -> list[tuple[int, int, float]]:
         if spec is None:
@@ -368,14 +374,7 @@ class CANDriver(Driver):
         # frames: this driver sorts the frames itself (foreign ones are counted as ignored)
         self._bus = bus
         self._error_window = []
-        n = len(self.joints)
-        self._pending = [deque() for _ in range(n)]
-        self._answered = [math.nan] * n
-        self._round_trip = [math.nan] * n
-        self._empty_at = math.nan
-        self._last_rx = [math.nan] * n
-        self._last_tx = [math.nan] * n
-        self._t0 = math.nan
+        self._forget_answers()
         # ask every drive for a first feedback frame: a command in the disabled mode moves
         # nothing, and drives that only answer commands then report where they are
         for i in range(len(self.joints)):
@@ -437,6 +436,14 @@ class CANDriver(Driver):
         if self._t0 != self._t0:
             self._t0 = now
         self._now = now
+        self._drain(bus, now)
+        self._give_up_and_poll(now)
+        self._judge_age(now)
+        return self._pos, self._vel, self._eff
+
+    def _drain(self, bus: can.BusABC, now: float) -> None:
+        """The frames received since the last read (at most ``MAX_FRAMES_PER_JOINT`` a
+        joint): the feedback taken, each answering its joint's oldest command owed."""
         index_of = self._index_of_feedback
         unpack = FEEDBACK_FRAME.unpack_from
         pending = self._pending
@@ -498,6 +505,12 @@ class CANDriver(Driver):
                         self.joints[i].name,
                     )
                 self._unsolicited_frames += 1
+
+    def _give_up_and_poll(self, now: float) -> None:
+        """Commands owed for ``lost_after`` by a joint heard nothing from since are given up
+        as lost; while not ACTIVE, a joint owed nothing is asked every ``poll_period``."""
+        pending = self._pending
+        last_rx = self._last_rx
         polling = self.state is not DriverState.ACTIVE
         lost_after = self._lost_after
         t0 = self._t0
@@ -529,6 +542,13 @@ class CANDriver(Driver):
                 if sent != sent or now - sent >= self._poll_period:
                     self._polls += 1
                     self._send(i, MODE_DISABLED, 0, now)
+
+    def _judge_age(self, now: float) -> None:
+        """Raise DriverError for a joint whose feedback is older than ``feedback_timeout``."""
+        pending = self._pending
+        answered = self._answered
+        round_trip = self._round_trip
+        t0 = self._t0
         # Judged (module docstring): the oldest command a joint still owes an answer to (that
         # answer, whenever it comes, is at least that old) and the round trip of its newest
         # answer (kept until a newer one: a reset does not make a late drive punctual). Not
@@ -563,7 +583,6 @@ class CANDriver(Driver):
                     f"{trip * 1e3:.1f} ms before it arrived: feedback age {trip * 1e3:.1f} ms "
                     f"> feedback_timeout {timeout * 1e3:.1f} ms (answer late; {tail}"
                 )
-        return self._pos, self._vel, self._eff
 
     def _on_error_frame(self, msg: can.Message, now: float) -> None:
         self._error_frames += 1

@@ -103,78 +103,20 @@ from typing import Any
 from mypy_extensions import mypyc_attr
 
 from occ.drivers.base import CommandInterface, Driver, LimitPolicy
-from occ.errors import DriverError, caused
+from occ.drivers.sim_faults import FAULT_AMOUNTS, SIM_FAULTS, SimFaults, fault_specs
+from occ.drivers.sim_model import (
+    SIM_DEFAULTS,
+    average_effort,
+    distinct_poles,
+    effort_substeps,
+    exact_steps,
+    position_substeps,
+    sim_params,
+)
+from occ.errors import DriverError
 from occ.joint import Joint
 
 __all__ = ["SimDriver", "SIM_DEFAULTS", "SIM_FAULTS", "FAULT_AMOUNTS"]
-
-#: the hardware faults :meth:`SimDriver.inject` can play (see the module docstring)
-SIM_FAULTS = (
-    "configure",
-    "activate",
-    "hook",
-    "write",
-    "heartbeat",
-    "nan",
-    "frozen",
-    "jump",
-    "drift",
-    "slip",
-)
-#: the default ``amount`` of the faults that take one: a runaway encoder at one period's worth
-#: of the shipped insertion's velocity limit a tick (0.1 m/s; rad/s on a revolute joint), a
-#: slip of five times that in one go (issue 36's cases)
-FAULT_AMOUNTS = {"drift": 0.1, "slip": 0.0005}
-
-_REVOLUTE_RESOLUTION = 2.0 * math.pi / 2**17  # a common 17-bit absolute rotary encoder
-_PRISMATIC_RESOLUTION = 1e-6  # a 1 um linear scale
-
-SIM_DEFAULTS: dict[str, Any] = {
-    "command_interface": "position",
-    "inertia": 0.01,
-    "damping": 0.1,
-    "bandwidth_hz": 10.0,
-    "damping_ratio": 1.0,
-    "encoder_resolution": None,  # by joint type, see the module docstring
-    "noise_std": 0.0,
-    "seed": 0,
-    "initial_positions": None,
-    "max_substep": 0.0005,
-    "brakes": True,
-    "period": 0.001,
-    "faults": (),
-    "effort_average_ms": 0.0,
-}
-
-# A substep must stay well inside the stability region of semi-implicit Euler for the
-# fastest pole of the model; 0.1 / rate keeps the discretisation error around 1 %.
-_STEP_PER_RATE = 0.1
-
-
-def _per_joint(
-    key: str, value: Any, joints: Sequence[Joint], defaults: Sequence[float] | None = None
-) -> list[float]:
-    """Expand a scalar / list / {name: value} parameter into one float per joint.
-
-    Joints missing from a mapping take ``defaults`` (per joint) or the scalar default.
-    """
-    n = len(joints)
-    if isinstance(value, Mapping):
-        unknown = set(value) - {j.name for j in joints}
-        if unknown:
-            raise ValueError(f"sim param {key!r}: unknown joints {sorted(unknown)}")
-        fallback = list(defaults) if defaults is not None else [SIM_DEFAULTS[key]] * n
-        out = [value.get(j.name, fallback[i]) for i, j in enumerate(joints)]
-    elif isinstance(value, (list, tuple)):
-        if len(value) != n:
-            raise ValueError(f"sim param {key!r}: expected {n} values, got {len(value)}")
-        out = list(value)
-    else:
-        out = [value] * n
-    try:
-        return [float(v) for v in out]
-    except (TypeError, ValueError) as err:
-        raise caused(ValueError(f"sim param {key!r}: not a number: {value!r}"), err) from err
 
 
 @mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins extend built-ins
@@ -195,55 +137,16 @@ class SimDriver(Driver):
         super().__init__(name, joints, params, on_limit, command_interface)
         p = self.params  # defaults merged, unknown keys refused by the base
         js = self.joints
-        self._inertia = _per_joint("inertia", p["inertia"], js)
-        self._damping = _per_joint("damping", p["damping"], js)
-        bandwidth = _per_joint("bandwidth_hz", p["bandwidth_hz"], js)
-        zeta = _per_joint("damping_ratio", p["damping_ratio"], js)
-        noise = _per_joint("noise_std", p["noise_std"], js)
-        by_type = [
-            _REVOLUTE_RESOLUTION if j.type == "revolute" else _PRISMATIC_RESOLUTION for j in js
-        ]
-        resolution = (
-            by_type
-            if p["encoder_resolution"] is None
-            else _per_joint("encoder_resolution", p["encoder_resolution"], js, by_type)
-        )
-        homes = [j.home for j in js]
-        self._initial = (
-            homes
-            if p["initial_positions"] is None
-            else _per_joint("initial_positions", p["initial_positions"], js, homes)
-        )
-        for i, j in enumerate(js):
-            if self._inertia[i] <= 0.0 or self._damping[i] < 0.0:
-                raise ValueError(f"sim joint {j.name!r}: inertia must be > 0 and damping >= 0")
-            if bandwidth[i] <= 0.0 or zeta[i] <= 0.0:
-                raise ValueError(f"sim joint {j.name!r}: bandwidth and damping ratio must be > 0")
-            if resolution[i] < 0.0 or noise[i] < 0.0:
-                raise ValueError(f"sim joint {j.name!r}: resolution and noise must be >= 0")
-            if not j.limits.contains(self._initial[i]):
-                raise ValueError(f"sim joint {j.name!r}: initial position outside limits")
-        max_substep = float(p["max_substep"])
-        if not max_substep > 0.0:
-            raise ValueError("sim param 'max_substep' must be > 0")
-
-        # Servo gains placing the closed-loop poles (position interface).
-        wn = [2.0 * math.pi * f for f in bandwidth]
-        self._kp = [self._inertia[i] * wn[i] ** 2 for i in range(len(js))]
-        self._kd = [
-            max(0.0, 2.0 * zeta[i] * wn[i] * self._inertia[i] - self._damping[i])
-            for i in range(len(js))
-        ]
-        fastest = 0.0
-        for i in range(len(js)):
-            rate = self._damping[i] / self._inertia[i]
-            if self.command_interface == "position":
-                rate = max(rate, wn[i], (self._damping[i] + self._kd[i]) / self._inertia[i])
-            fastest = max(fastest, rate)
-        self._substep = min(max_substep, _STEP_PER_RATE / fastest) if fastest > 0 else max_substep
-        self._resolution = resolution
+        model = sim_params(p, js, self.command_interface)
+        self._inertia = model.inertia
+        self._damping = model.damping
+        self._initial = model.initial
+        self._kp = model.kp
+        self._kd = model.kd
+        self._substep = model.substep
+        self._resolution = resolution = model.resolution
         self._encoders = list(enumerate(resolution))
-        self._noise = noise
+        self._noise = noise = model.noise
         self._brakes = bool(p["brakes"])
         self._seed = p["seed"]
         self._rng = random.Random(self._seed)
@@ -280,14 +183,16 @@ class SimDriver(Driver):
             (self._kp[i] / self._inertia[i], (self._kd[i] + self._damping[i]) / self._inertia[i])
             for i in range(len(js))
         ]
-        # what of the exact step does not depend on its length, per joint: (k, c/2, d^2,
-        # sqrt(|d^2|)) (see _exact_steps; computed once: the loop's jitter makes every step
-        # a new length)
         self._set_poles(self._servo_poles)
         self._step_h = math.nan
         self._step: list[tuple[float, float, float, float]] = []
+        self._avg_window = model.avg_window
+        self._init_state()
+        self._init_faults(p["faults"])
 
-        n = len(js)
+    def _init_state(self) -> None:
+        """The model's state at construction: at its initial positions, off, no load."""
+        n = len(self.joints)
         self._x = list(self._initial)
         self._v = [0.0] * n
         self._u = [0.0] * n  # applied effort
@@ -299,29 +204,23 @@ class SimDriver(Driver):
         self.environment: Any = None
         #: the efforts it applied over the last interval
         self.external_effort = [0.0] * n
-        avg = float(p["effort_average_ms"])
-        if not (avg >= 0.0 and math.isfinite(avg)):
-            raise ValueError("sim param 'effort_average_ms' must be >= 0")
-        self._avg_window = avg * 1e-3
         #: the last intervals: (length, per joint the integral of the effort over it)
         self._effort_hist: list[tuple[float, list[float]]] = []
         self._effort_avg = [0.0] * n
         self._measured = [0.0] * n
+
+    def _init_faults(self, faults: Any) -> None:
+        """The drive's own heartbeat state and its hardware faults from the start (the
+        ``faults`` parameter)."""
         self._last_cmd_t = math.nan  # model time of the last command (heartbeat)
         self._heartbeat_lost: str | None = None
         self._heartbeat_reported = False
         self.heartbeat_trips = 0
+        self._fault_set = SimFaults(self.joints)
         #: injected faults: kind -> joint index (see :meth:`inject`); empty when healthy
-        self._faults: dict[str, int] = {}
-        self._amounts: dict[str, float] = {}
-        self._drift_from = math.nan
-        self._frozen_at: list[float] = []
-        self._faulty_out = [0.0] * n
-        faults = p["faults"]
-        if isinstance(faults, str) or not isinstance(faults, (list, tuple)):
-            raise ValueError(f"sim param 'faults' must be a list of fault kinds, got {faults!r}")
-        for spec in faults:
-            kind, _, rest = str(spec).partition(":")
+        self._faults = self._fault_set.kinds
+        for spec in fault_specs(faults):
+            kind, _, rest = spec.partition(":")
             joint, _, amount = rest.partition(":")
             try:
                 self.inject(kind, int(joint) if joint else 0, float(amount) if amount else None)
@@ -344,43 +243,14 @@ class SimDriver(Driver):
         """Make the simulated drive fail as ``kind`` (``SIM_FAULTS``, the module docstring)
         from now on; ``joint`` (an index in this driver's joints) for nan, jump, drift and
         slip; ``amount`` for drift (per second) and slip (``FAULT_AMOUNTS`` by default)."""
-        if kind not in SIM_FAULTS:
-            raise ValueError(f"unknown fault {kind!r}; faults are: {', '.join(SIM_FAULTS)}")
-        if not 0 <= joint < len(self.joints):
-            raise ValueError(f"joint index {joint} out of range for driver {self.name!r}")
-        if amount is not None and kind not in FAULT_AMOUNTS:
-            raise ValueError(f"fault {kind!r} takes no amount")
-        if amount is not None and not math.isfinite(amount):
-            raise ValueError(f"fault {kind!r}: amount must be finite, got {amount}")
-        if kind == "frozen":
-            self._frozen_at = list(self._measured)
-        if kind in FAULT_AMOUNTS:
-            self._amounts[kind] = FAULT_AMOUNTS[kind] if amount is None else float(amount)
-            self._drift_from = self._t  # NaN before the first step: from the first read
-        self._faults[kind] = joint
+        self._fault_set.inject(kind, joint, amount, self.name, self._measured, self._t)
 
     def clear_faults(self) -> None:
         """Repair the drive: no injected fault from now on."""
         self._faults.clear()
 
     def _injected(self, out: Sequence[float]) -> Sequence[float]:
-        faults = self._faults
-        if "hook" in faults:
-            raise RuntimeError("simulated fault: exception in the drive's read hook")
-        res = self._faulty_out
-        res[:] = self._frozen_at if "frozen" in faults else out
-        if "jump" in faults:
-            j = self.joints[faults["jump"]]
-            res[faults["jump"]] += 0.2 * (j.limits.max - j.limits.min)
-        if "drift" in faults:
-            if self._drift_from != self._drift_from:
-                self._drift_from = self._t
-            res[faults["drift"]] += self._amounts["drift"] * (self._t - self._drift_from)
-        if "slip" in faults:
-            res[faults["slip"]] += self._amounts["slip"]
-        if "nan" in faults:
-            res[faults["nan"]] = math.nan
-        return res
+        return self._fault_set.reading(out, self._t)
 
     # ------------------------------------------------------------------ hooks
     def _configure(self) -> None:
@@ -535,27 +405,9 @@ class SimDriver(Driver):
         self._integrate(now)
 
     def _exact_steps(self, h: float) -> list[tuple[float, float, float, float]]:
-        """Per joint, the transition matrix over ``h`` of ``(e, v)`` (``e = x - r``) for
-        ``e'' + c e' + k e = 0``: ``exp(A h)`` with ``A = [[0, 1], [-k, -c]]``, written as
-        ``exp(s h) (C I + S (A - s I))``, ``s = -c/2``, ``d^2 = c^2/4 - k``, ``C = cosh(d h)``
-        and ``S = sinh(d h)/d`` (cos and sin/omega when ``d^2 < 0``; series near 0). Cached
-        for the last ``h``."""
-        out = []
-        for k, half, d2, root in self._servo_distinct:  # root: d, or w when d^2 < 0
-            z = d2 * h * h
-            if abs(z) < 1e-8:  # near critical damping: the series of cosh and sinh/d
-                big_c = 1.0 + 0.5 * z
-                big_s = h * (1.0 + z / 6.0)
-            elif d2 > 0.0:
-                big_c = math.cosh(root * h)
-                big_s = math.sinh(root * h) / root
-            else:
-                big_c = math.cos(root * h)
-                big_s = math.sin(root * h) / root
-            g = math.exp(-half * h)
-            out.append(
-                (g * (big_c + half * big_s), g * big_s, -g * big_s * k, g * (big_c - half * big_s))
-            )
+        """Per joint, the transition matrix over ``h`` of its exact step
+        (:func:`~occ.drivers.sim_model.exact_steps`). Cached for the last ``h``."""
+        out = exact_steps(self._servo_distinct, h)
         # joints with the same poles share one step (one computed for all: the shipped arms)
         out = out * self._n if self._one_pole else [out[j] for j in self._servo_which]
         self._step_h = h
@@ -566,18 +418,9 @@ class SimDriver(Driver):
         """The poles ``(k, c)`` of each joint's exact step (``e'' + c e' + k e = 0``): what of
         the step does not depend on its length, computed once per distinct pair
         (:meth:`_exact_steps` then computes one step per distinct pair)."""
-        distinct: list[tuple[float, float]] = []
-        for pole in poles:
-            if pole not in distinct:
-                distinct.append(pole)
-        self._servo_which = [distinct.index(pole) for pole in poles]
-        self._one_pole = len(distinct) == 1
+        self._servo_which, self._servo_distinct = distinct_poles(poles)
+        self._one_pole = len(self._servo_distinct) == 1
         self._n = len(poles)
-        self._servo_distinct = []
-        for k, c in distinct:
-            half = 0.5 * c
-            d2 = half * half - k
-            self._servo_distinct.append((k, half, d2, math.sqrt(d2 if d2 > 0.0 else -d2)))
 
     def _integrate(self, now: float) -> None:
         t = self._t
@@ -627,6 +470,19 @@ class SimDriver(Driver):
             x1 = x_all[i]
             out[i] = math.floor(x1 / res + 0.5) * res if res > 0.0 else x1
 
+    def _load(self) -> Any:
+        """The world's load on the joints now (None: no world), held over the interval
+        (zero-order hold, as the commands) and shown in ``external_effort``."""
+        env = self.environment
+        ext = self.external_effort
+        tau = env.efforts(self._x, self._v) if env is not None else None
+        if tau is not None:
+            ext[:] = tau
+        elif env is not None:
+            for i in range(len(ext)):
+                ext[i] = 0.0
+        return tau
+
     def _integrate_joints(self, dt: float, joints: Sequence[int]) -> None:
         """Every case, for ``joints``: a load, averaging, saturation, end stops, the effort
         interface, a drive off (the exact step where it holds, substeps otherwise)."""
@@ -640,15 +496,7 @@ class SimDriver(Driver):
         x_all, v_all, u_all, cmd = self._x, self._v, self._u, self._cmd
         step_h = self._step_h
         step = self._step
-        # the world's load, held over the interval (zero-order hold, as the commands)
-        env = self.environment
-        ext = self.external_effort
-        tau = env.efforts(x_all, v_all) if env is not None else None
-        if tau is not None:
-            ext[:] = tau
-        elif env is not None:
-            for i in range(len(ext)):
-                ext[i] = 0.0
+        tau = self._load()
         averaging = self._avg_window > 0.0
         integral = [0.0] * len(x_all) if averaging else x_all  # (unused when not averaging)
         model = self._model
@@ -691,26 +539,10 @@ class SimDriver(Driver):
                         if averaging:
                             integral[i] = (v1 - v0) / inv_j + b * (x1 - x0) - te * dt
                         continue
-                u = 0.0
-                for _ in range(steps):
-                    u = kp * (r - x) - kd * v
-                    if u > ulim:
-                        u = ulim
-                    elif u < -ulim:
-                        u = -ulim
-                    v += (u + te - b * v) * inv_j * h
-                    x += v * h
-                    if x < lo or x > hi:  # end stop
-                        x = lo if x < lo else hi
-                        v = 0.0
+                x, v, u = position_substeps(model[i], x, v, r, te, steps, h)
             else:
                 u = cmd[i] if enabled else 0.0
-                for _ in range(steps):
-                    v += (u + te - b * v) * inv_j * h
-                    x += v * h
-                    if x < lo or x > hi:
-                        x = lo if x < lo else hi
-                        v = 0.0
+                x, v = effort_substeps(model[i], x, v, u, te, steps, h)
             if averaging:
                 # an end stop zeroes v: the stop's impulse is not the motor's, so the balance
                 # is taken only without one; the stop's interval reports its last effort
@@ -723,20 +555,4 @@ class SimDriver(Driver):
             v_all[i] = v
             u_all[i] = u
         if averaging:
-            self._average_effort(dt, integral)
-
-    def _average_effort(self, dt: float, integral: list[float]) -> None:
-        """The reported effort: the mean over the last intervals spanning the window."""
-        hist = self._effort_hist
-        hist.append((dt, integral))
-        span = 0.0
-        for h, _ in hist:
-            span += h
-        while len(hist) > 1 and span - hist[0][0] >= self._avg_window - 1e-9:
-            span -= hist.pop(0)[0]
-        avg = self._effort_avg
-        for i in range(len(avg)):
-            total = 0.0
-            for _, part in hist:
-                total += part[i]
-            avg[i] = total / span
+            average_effort(self._effort_hist, self._avg_window, dt, integral, self._effort_avg)

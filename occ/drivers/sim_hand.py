@@ -50,7 +50,9 @@ from typing import Any, ClassVar
 from mypy_extensions import mypyc_attr
 
 from occ.drivers.base import CommandInterface, LimitPolicy
-from occ.drivers.sim import SIM_DEFAULTS, SimDriver, _per_joint
+from occ.drivers.sim import SimDriver
+from occ.drivers.sim_model import SIM_DEFAULTS
+from occ.drivers.sim_model import per_joint as _per_joint
 from occ.joint import Joint
 
 __all__ = ["SimHandDriver", "HAND_DEFAULTS"]

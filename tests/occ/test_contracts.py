@@ -48,7 +48,8 @@ from occ.controllers import (
     load_controller_class,
 )
 from occ.drivers import Driver, DriverState, available_drivers, create_driver, load_driver_class
-from occ.drivers.base import BASE_PARAMS, LimitPolicy
+from occ.drivers.base import LimitPolicy
+from occ.drivers.params import BASE_PARAMS
 from occ.drivers.can_sim import DriveAxis, SimulatedDriveNode
 from occ.errors import CommandError, ConfigError, DriverError, LimitError, OCCError, StateError
 from occ.joint import Joint, JointLimits, PIDGains
