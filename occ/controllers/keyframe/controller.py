@@ -85,7 +85,7 @@ _CODE_DROPPED = 15
 
 class KeyframeController(Controller):
     """Keyframe trajectories: stored keyframes planned, checked, previewed in Slicer, run
-    after the operator's acknowledgement (issue 11; the module docstring has the details)."""
+    after the operator's acknowledgement (issue 11; the package docstring has the details)."""
 
     name = "keyframe"
     Params = KeyframeParams
@@ -475,7 +475,7 @@ class KeyframeController(Controller):
         return q
 
     def _announce(self, name: str, text: str, code: int) -> None:
-        """A run's start or end as a STATUS to every viewer and operator (module docstring);
+        """A run's start or end as a STATUS to every viewer and operator (package docstring);
         on the loop thread, once per run and end."""
         ctx = self.ctx
         if ctx is not None and ctx.alert is not None:

@@ -3,7 +3,7 @@ of the configuration (``occd --check``)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
@@ -26,7 +26,6 @@ from .sets import KeyframeFile, KeyframeItem, Space, _Model, file_set, read_keyf
 if TYPE_CHECKING:
     from ...config import DaemonConfig
     from .. import Problem
-    from .plan import ForbiddenCheck
 
 ExistingDir = Annotated[DirectoryPath, BeforeValidator(_resolve_path)]
 
@@ -193,9 +192,12 @@ def check_params(params: Any, config: DaemonConfig) -> list[Problem]:
     return problems
 
 
-def regions_check(items: Sequence[ForbiddenSphereItem | ForbiddenPlaneItem]) -> ForbiddenCheck:
-    """The ``forbidden`` parameter as one tip check (the virtual fixtures' regions, mm, base
-    frame; immutable, so the planner thread reads it safely); ValueError for a bad region."""
+def regions_check(
+    items: Sequence[ForbiddenSphereItem | ForbiddenPlaneItem],
+) -> Callable[[tuple[float, float, float]], str | None]:
+    """The ``forbidden`` parameter as one tip check (a ForbiddenCheck: the virtual fixtures'
+    regions, mm, base frame; immutable, so the planner thread reads it safely); ValueError for
+    a bad region."""
     regions = [
         ForbiddenSphere(f.centre_mm, f.radius_mm, name=f.name)
         if isinstance(f, ForbiddenSphereItem)
