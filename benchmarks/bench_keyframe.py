@@ -28,7 +28,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 import igtl  # noqa: E402
 from occ.clock import RealClock  # noqa: E402
-from occ.controllers.keyframe import KeyframeController, PlanRequest, build_plan  # noqa: E402
+from occ.controllers.keyframe import KeyframeController  # noqa: E402
+from occ.controllers.keyframe.plan import PlanRequest, build_plan  # noqa: E402
 from occ.loader import load_config  # noqa: E402
 from occ.robot import build_robot  # noqa: E402
 from occ_testkit.testing import SimPeer, SimRobot, inproc_config  # noqa: E402
@@ -93,7 +94,7 @@ def plan_cost(kf_plan: Any, sim_cfg: Path, file: str | None, interpolation: str)
             sim.step(1)
             kf.wait_idle(60)
         captured: list[PlanRequest] = []
-        import occ.controllers.keyframe as module
+        import occ.controllers.keyframe.planner as module
 
         real = module.build_plan
 
@@ -173,11 +174,11 @@ def main(argv: list[str] | None = None) -> int:
         "--pace",
         choices=("phase", "rest", "yield"),
         default="phase",
-        help="how the planner shares the interpreter (occ.controllers.keyframe.Pacer)",
+        help="how the planner shares the interpreter (occ.controllers.keyframe.pacer.Pacer)",
     )
     p.add_argument("--only-loop", action="store_true", help="part 3 only")
     args = p.parse_args(argv)
-    import occ.controllers.keyframe as module
+    import occ.controllers.keyframe.pacer as module
 
     module.PACE_MODE = args.pace
     if args.only_loop:

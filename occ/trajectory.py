@@ -3,7 +3,7 @@
 After the German Heart Center system, which let surgeons program robot motion the way animators
 do: put poses on a timeline as *keyframes* and let the planner fill in the motion. This module is
 the planner only; it knows nothing about robots, the loop or IGTL (the controller plugin that
-plays a plan is `occ/controllers/keyframe.py`, see docs/ARCHITECTURE.md).
+plays a plan is `occ/controllers/keyframe/`, see docs/ARCHITECTURE.md).
 
 API::
 

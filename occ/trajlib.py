@@ -2,7 +2,7 @@
 
 The German Heart Center system kept its trajectories in a database; here a planned and
 acknowledged keyframe set is saved under a name (``KeyframeSave Set=...`` on the ``keyframe``
-controller, occ/controllers/keyframe.py), listed, loaded again after a restart and deleted.
+controller, occ/controllers/keyframe/library.py), listed, loaded after a restart, deleted.
 This module is the database and nothing else: no robot, no loop, no commands. It takes and
 gives :class:`SavedSet` values; the controller turns them into keyframe sets.
 

@@ -232,7 +232,8 @@ ACK_RETRIES = 50
 #: how long operating_state waits for the answer to the bridge's GetStats on connecting
 PROBE_WAIT_S = 1.0
 #: the keyframe controller's STATUS names of a run's start and end
-#: (occ/controllers/keyframe.py STATUS_RUNNING, STATUS_ENDED; a test checks they agree)
+#: (occ/controllers/keyframe/controller.py STATUS_RUNNING, STATUS_ENDED; a test checks they
+#: agree)
 KEYFRAME_RUNNING = "KEYFRAME_RUNNING"
 KEYFRAME_ENDED = "KEYFRAME_ENDED"
 

@@ -21,14 +21,12 @@ import yaml
 
 import igtl
 from occ.commands import Deferred
-from occ.controllers.keyframe import (
-    KeyframeController,
-    items_from_message,
-    make_set,
-)
+from occ.controllers.keyframe import KeyframeController
+from occ.controllers.keyframe.sets import make_set
 from occ.drivers import register_driver
 from occ.drivers.base import Driver
 from occ.errors import ConfigError
+from occ.keyframe_inputs import items_from_message
 from occ.loader import load_config, parse_config
 from occ.safety import RobotState
 from occ_testkit.testing import SimPeer, SimRobot
@@ -802,7 +800,7 @@ def wait_text(command: Any, name: str, text: str, timeout: float = 20.0) -> str:
 def test_the_pacer_keeps_the_planner_out_of_the_loops_deadlines(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    import occ.controllers.keyframe as module
+    import occ.controllers.keyframe.pacer as module
 
     slept: list[float] = []
     monkeypatch.setattr(module.time, "sleep", slept.append)

@@ -20,7 +20,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from occ.controllers.keyframe import KeyframeController, _where
+from occ.controllers.keyframe import KeyframeController
+from occ.controllers.keyframe.plan import _where
 from occ.errors import KinematicsError
 from occ.safety import RobotState
 
@@ -745,7 +746,7 @@ def test_every_stop_of_a_run_is_counted_said_and_logged(
 
 
 def test_a_keyframe_set_is_refused_with_the_reason() -> None:
-    from occ.controllers.keyframe import make_set
+    from occ.controllers.keyframe.sets import make_set
 
     def error(space: Any, items: Any, cap: int = 4) -> str:
         with pytest.raises(ValueError) as info:

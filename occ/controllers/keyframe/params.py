@@ -1,0 +1,211 @@
+"""The keyframe controller's parameters (``KeyframeParams``) and their checks against the rest
+of the configuration (``occd --check``)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any, Literal
+
+from pydantic import BeforeValidator, DirectoryPath, Field
+
+from ...config import (
+    Bool,
+    ExistingFile,
+    Float,
+    Int,
+    Name,
+    OutputPath,
+    PosFloat,
+    Vec3,
+)
+from ...config.base import _resolve_path
+from ...fixtures import ForbiddenPlane, ForbiddenSphere, forbidden_hit
+from .sets import KeyframeFile, KeyframeItem, Space, _Model, file_set, read_keyframe_file
+
+if TYPE_CHECKING:
+    from ...config import DaemonConfig
+    from .. import Problem
+
+ExistingDir = Annotated[DirectoryPath, BeforeValidator(_resolve_path)]
+
+
+class WorkspaceBox(_Model):
+    """An axis-aligned box the tip must stay in (mm, robot base frame)."""
+
+    min_mm: Vec3 = Field(description="Lower corner (mm).")
+    max_mm: Vec3 = Field(description="Upper corner (mm).")
+
+
+class ForbiddenSphereItem(_Model):
+    """A sphere the tip must not enter (mm, robot base frame)."""
+
+    centre_mm: Vec3 = Field(description="Centre (mm).")
+    radius_mm: PosFloat = Field(description="Radius (mm).")
+    name: str = Field("", description="Named in a refusal.")
+
+
+class ForbiddenPlaneItem(_Model):
+    """A half-space the tip must not enter: behind ``point_mm`` against ``normal`` (which
+    points to the allowed side; mm, robot base frame)."""
+
+    point_mm: Vec3 = Field(description="A point on the plane (mm).")
+    normal: Vec3 = Field(description="Normal toward the allowed side (any length > 0).")
+    name: str = Field("", description="Named in a refusal.")
+
+
+class KeyframeParams(_Model):
+    """Parameters of ``keyframe``."""
+
+    space: Space = Field(
+        "joint",
+        description="Space of the keyframes given in YAML, in a file or by KeyframeAdd: "
+        "`joint` (one position per joint, rad/m) or `cartesian` (tip position, mm, world "
+        "frame). POINT and TRAJ are always Cartesian.",
+    )
+    keyframes: tuple[KeyframeItem, ...] = Field(
+        (), description="Keyframes loaded at start-up: a list of `{t, pose, name}`."
+    )
+    file: ExistingFile | None = Field(
+        None,
+        description="A keyframe file loaded at start-up instead (YAML: `space`, `keyframes`); "
+        "relative to the config file's folder.",
+    )
+    keyframe_dir: ExistingDir | None = Field(
+        None,
+        description="An existing folder KeyframeLoad may read from (names inside it only), "
+        "relative to the config file's folder; null = the command is refused.",
+    )
+    library: OutputPath | None = Field(
+        None,
+        description="The trajectory library: an SQLite file (created if missing, in an "
+        "existing folder; relative to the config file's folder) where KeyframeSave keeps "
+        "acknowledged keyframe sets by name for KeyframeLoad Set=...; null = no library, the "
+        "library commands are refused.",
+    )
+    interpolation: Literal["linear", "spline"] = Field(
+        "linear", description="Default interpolation of KeyframePlan."
+    )
+    mode: Literal["stop", "continuous"] = Field(
+        "stop", description="Default mode: rest at every keyframe, or move through them."
+    )
+    steepness: PosFloat = Field(6.0, description="Default steepness n of the sigmoid ramps.")
+    ramp: Annotated[Float, Field(gt=0, le=0.5)] = Field(
+        0.25, description="Default share of each segment's time spent on each ramp."
+    )
+    input_interface: Name | None = Field(
+        None, description="Interface whose POINT/TRAJ messages are keyframes (null = any)."
+    )
+    point_interval_s: PosFloat = Field(
+        2.0, description="Time between keyframes from POINT/TRAJ without `times` metadata."
+    )
+    max_keyframes: Annotated[Int, Field(ge=2, le=1000)] = Field(
+        100, description="Most keyframes a set may hold."
+    )
+    max_duration_s: PosFloat = Field(300.0, description="Longest plan accepted (s).")
+    velocity_scale: Annotated[Float, Field(gt=0, le=1)] = Field(
+        1.0, description="Share of each joint's velocity limit a plan may use."
+    )
+    start_tolerance: PosFloat = Field(
+        1e-3,
+        description="Joint space: how far (rad or m) a keyframe at t = 0 may be from the "
+        "robot's pose (it is then replaced by it).",
+    )
+    start_tolerance_mm: PosFloat = Field(
+        0.5, description="Cartesian: the same, for the tip position (mm)."
+    )
+    start_tolerance_deg: PosFloat = Field(
+        0.5, description="Cartesian with orientation: the same, for the tool's turn (degrees)."
+    )
+    workspace_mm: WorkspaceBox | None = Field(
+        None, description="Box the tip must stay in (mm, base frame); null = joint limits only."
+    )
+    forbidden: list[ForbiddenSphereItem | ForbiddenPlaneItem] = Field(
+        default_factory=list,
+        description="Forbidden regions every plan is checked against, as the virtual "
+        "fixtures' forbidden spheres and planes (occ/fixtures.py; mm, base frame): "
+        "`{centre_mm, radius_mm, name}` or `{point_mm, normal, name}`.",
+    )
+    preview_points: Annotated[Int, Field(ge=2, le=10000)] = Field(
+        256, description="Most points of the previewed path (the polyline is decimated)."
+    )
+    preview_repeat_s: PosFloat | None = Field(
+        5.0, description="Send the preview again this often (late viewers); null = once."
+    )
+    preview_required: Bool = Field(
+        True,
+        description="Refuse a configuration in which no interface sends the preview (an "
+        "output with source `keyframe-path`): a plan must be seen before it is acknowledged.",
+    )
+
+
+def check_params(params: Any, config: DaemonConfig) -> list[Problem]:
+    """What ``KeyframeController.check`` reports: the input interface named, the start-up
+    keyframes (YAML or file) valid for this robot, the library's folder, the preview sent."""
+    from ...config.base import _did_you_mean
+
+    problems: list[Problem] = []
+    names = [i.name for i in config.interfaces]
+    ref = params.input_interface
+    if ref is not None and ref not in names:
+        problems.append(
+            (("input_interface",), f"unknown interface '{ref}'" + _did_you_mean(ref, names))
+        )
+    if params.keyframes and params.file is not None:
+        problems.append((("file",), "give `keyframes` or `file`, not both"))
+    joints = len(config.robot.joints)
+    try:
+        if params.keyframes:
+            file_set(
+                KeyframeFile(keyframes=params.keyframes),
+                params.space,
+                "config",
+                joints,
+                params.max_keyframes,
+            )
+    except ValueError as err:
+        problems.append((("keyframes",), str(err)))
+    if params.file is not None:
+        try:
+            file_set(
+                read_keyframe_file(Path(params.file)),
+                params.space,
+                "file",
+                joints,
+                params.max_keyframes,
+            )
+        except ValueError as err:
+            problems.append((("file",), str(err)))
+    if params.library is not None and not Path(params.library).parent.is_dir():
+        problems.append((("library",), f"the folder {Path(params.library).parent} does not exist"))
+    if params.preview_required and not any(
+        o.source == "keyframe-path" for i in config.interfaces for o in i.outputs
+    ):
+        problems.append(
+            (
+                ("preview_required",),
+                "no interface sends the preview: add an output with source keyframe-path "
+                "(POLYDATA) for 3D Slicer (and keyframe-points, POINT), or set "
+                "preview_required: false",
+            )
+        )
+    return problems
+
+
+def regions_check(
+    items: Sequence[ForbiddenSphereItem | ForbiddenPlaneItem],
+) -> Callable[[tuple[float, float, float]], str | None]:
+    """The ``forbidden`` parameter as one tip check (a ForbiddenCheck: the virtual fixtures'
+    regions, mm, base frame; immutable, so the planner thread reads it safely); ValueError for
+    a bad region."""
+    regions = [
+        ForbiddenSphere(f.centre_mm, f.radius_mm, name=f.name)
+        if isinstance(f, ForbiddenSphereItem)
+        else ForbiddenPlane(f.point_mm, f.normal, name=f.name)
+        for f in items
+    ]
+
+    def configured_regions(point: tuple[float, float, float]) -> str | None:
+        return forbidden_hit(regions, (point[0] * 1e3, point[1] * 1e3, point[2] * 1e3))
+
+    return configured_regions

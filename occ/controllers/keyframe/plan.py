@@ -1,0 +1,499 @@
+"""Keyframe plans: what a plan is made from (:class:`PlanRequest`), the planning and the check
+of every tick of it as it would run (:func:`build_plan`, on the planner thread), and what
+passed (:class:`CheckedPlan`). The checks are listed in :mod:`occ.controllers.keyframe`'s
+docstring, "Plan, check and preview"."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Literal, NoReturn, Protocol
+
+import numpy as np
+
+from ...config import Vec3
+from ...errors import CommandError, KinematicsError
+from ...joint import JointLimits
+from ...samples import quaternion_to_rotation, rotation_to_quaternion
+from ...trajectory import Keyframe, Trajectory, plan
+from .pacer import Pacer
+from .sets import KeyframeSet, PlanSettings, Space
+
+if TYPE_CHECKING:
+    from ...data import RobotData
+    from ...frame import Frame
+    from .. import ControllerContext
+    from .params import KeyframeParams
+
+MM = 1e-3
+
+
+class ForbiddenCheck(Protocol):
+    """Whether a tip position (metres, robot base frame) is forbidden: a false value when it
+    is free, True or a short description of what it hits when it is not."""
+
+    def __call__(self, point: tuple[float, float, float], /) -> str | bool | None: ...
+
+
+class PathCheck(Protocol):
+    """A whole-arm check of a plan's joint path (occ/collision.py ``PathCheck``): given the
+    plan's samples (one per loop period, joint values), the base pose (world <- base) and the
+    pacer, None when clear, else (the first sample that fails, what it hits)."""
+
+    def check_path(
+        self,
+        qs: Sequence[Sequence[float]],
+        base: np.ndarray,
+        pace: Callable[[], None] | None,
+        /,
+    ) -> tuple[int, str] | None: ...
+
+
+class PlanRefused(Exception):
+    """A plan that failed its checks (the message names the keyframe and the limit)."""
+
+
+@dataclass(frozen=True)
+class PlanRequest:
+    """Everything a plan is made from, snapshot on the loop thread when it is asked for."""
+
+    id: int
+    kset: KeyframeSet
+    q_start: tuple[float, ...]
+    base: np.ndarray  # world <- base, metres
+    interpolation: Literal["linear", "spline"]
+    mode: Literal["stop", "continuous"]
+    steepness: float
+    ramp: float
+    period: float
+    joint_names: tuple[str, ...]
+    limits: tuple[JointLimits, ...]
+    velocity_scale: float
+    start_tolerance: float
+    start_tolerance_mm: float
+    workspace: tuple[Vec3, Vec3] | None  # metres, base frame
+    forbidden: tuple[ForbiddenCheck, ...]
+    max_duration_s: float
+    preview_points: int
+    #: Cartesian with orientation: how far keyframe 0 may be turned from the tool (rad)
+    start_tolerance_rad: float = 0.0087
+    #: called between samples: gives the interpreter back to the loop (None: never)
+    pace: Pacer | None = None
+    #: whole-arm checks of the sampled joint path (after the per-tick checks)
+    path_checks: tuple[PathCheck, ...] = ()
+
+
+@dataclass(frozen=True)
+class CheckedPlan:
+    """A plan that passed every check, with what is needed to run and preview it."""
+
+    id: int
+    space: Space
+    traj: Trajectory  # joint SI, or the tip in the base frame (metres)
+    labels: tuple[str, ...]  # of the plan's keyframes (the implicit start included)
+    point_names: tuple[str, ...]  # short names for the previewed points
+    q_start: tuple[float, ...]
+    q_end: tuple[float, ...]
+    path_mm: np.ndarray  # (n, 3) tip path, world mm (decimated)
+    keys_mm: np.ndarray  # (k, 3) keyframe tip positions, world mm
+    peak: tuple[str, float]  # the joint closest to its velocity limit, and the share used
+    summary: str
+    ticks: int
+    #: the set it was planned from, and how (what KeyframeSave stores once it is acknowledged)
+    kset: KeyframeSet | None = None
+    settings: PlanSettings | None = None
+
+
+def rotation_to_quaternion_np(r: np.ndarray) -> np.ndarray:
+    return np.array(rotation_to_quaternion(np.asarray(r)), dtype=float)
+
+
+def pose_ik(
+    frame: Frame, traj: Trajectory, t: float, seed: Sequence[float]
+) -> tuple[list[float], bool]:
+    """The joints for the plan's full pose at ``t`` (position and orientation, base frame):
+    damped least squares from ``seed`` (the previous tick), the limits held; ``clamped`` when
+    a joint had to stop at a limit. KinematicsError when the pose is not reached (residual over
+    1e-6: a position in metres and an angle in radians)."""
+    pose = np.eye(4)
+    pose[:3, :3] = quaternion_to_rotation(traj.orientation(t).tolist())
+    pose[:3, 3] = traj.position(t)
+    res = frame.solve_ik(pose, list(seed), clamp=True, method="dls")
+    if res.error > 1e-6 and not res.clamped:
+        raise KinematicsError(f"the pose is not reached (residual {res.error:.3g})")
+    return res.q.tolist(), bool(res.clamped)
+
+
+def _where(t: float, times: Sequence[float], labels: Sequence[str], period: float) -> str:
+    """Which keyframe (or segment between two) time ``t`` falls on, for a refusal."""
+    for i, tk in enumerate(times):
+        if abs(t - tk) <= 0.5 * period:
+            return f"at {labels[i]}"
+    for i in range(len(times) - 1):
+        if times[i] < t < times[i + 1]:
+            return f"at t={t:.3f} s, between {labels[i]} and {labels[i + 1]}"
+    return f"at t={t:.3f} s"
+
+
+@dataclass
+class _Timeline:
+    """The keyframes a plan goes through, in the units it is planned in (joint SI, or the tip
+    in the base frame, metres), the start joined to where the robot is."""
+
+    frames: list[Keyframe]
+    labels: list[str]  # for refusals (the implicit start included)
+    short: list[str]  # the previewed points' names
+    cart: bool
+    oriented: bool  # Cartesian with the tool's orientation
+    notes: list[str] = field(default_factory=list)  # said in the plan's summary
+
+
+def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
+    """Plan ``req`` and check every tick of it (see the package docstring); PlanRefused with
+    the reason otherwise. Runs on the planner thread with a Frame of its own."""
+    if req.pace is not None:
+        req.pace.begin()
+    tl = _timeline(req, frame)
+    try:
+        traj = plan(tl.frames, req.interpolation, req.mode, req.steepness, req.ramp)
+    except ValueError as err:
+        raise PlanRefused(f"cannot plan: {err}") from err
+    ticks = math.ceil(traj.end / req.period - 1e-9)
+    checks = _TickChecks(req, [k.t for k in tl.frames], tl.labels)
+    path, qs = _sample(req, frame, traj, tl, checks, ticks)
+    for path_check in req.path_checks:
+        crossing = path_check.check_path(qs, req.base, req.pace)
+        if crossing is not None:
+            t = min(crossing[0] * req.period, traj.end)
+            raise PlanRefused(f"{crossing[1]} {checks.where(t)}")
+    return _checked(req, frame, traj, tl, checks, path, qs[-1], ticks)
+
+
+def _timeline(req: PlanRequest, frame: Frame) -> _Timeline:
+    """The set's keyframes in the plan's units, starting where the robot is (an implicit
+    keyframe at t = 0, or keyframe 0 replaced by the robot's pose when within tolerance);
+    PlanRefused when keyframe 0 is too far from it or the plan too long."""
+    kset = req.kset
+    cart = kset.space == "cartesian"
+    here: tuple[float, ...] = (
+        tuple(float(v) for v in frame.tip_position(list(req.q_start))) if cart else req.q_start
+    )
+    oriented = cart and kset.keyframes[0].rotation is not None
+    if oriented and frame.nq < 6:
+        raise PlanRefused(
+            f"the keyframes have orientations, but {frame.name!r} has {frame.nq} joints: "
+            "orientation needs a 6-DOF arm"
+        )
+    here_rot = (
+        rotation_to_quaternion_np(np.asarray(frame.fk(list(req.q_start)))[:3, :3])
+        if oriented
+        else None
+    )
+    tl = _Timeline(
+        frames=_base_frames(req) if cart else list(kset.keyframes),
+        labels=[kset.label(i) for i in range(len(kset.keyframes))],
+        short=[f"{kset.names[i] or f'K{i}'} t={k.t:g}s" for i, k in enumerate(kset.keyframes)],
+        cart=cart,
+        oriented=oriented,
+    )
+    _join_start(req, tl, here, here_rot)
+    if tl.frames[-1].t > req.max_duration_s:
+        raise PlanRefused(
+            f"{tl.labels[-1]}: the plan would last {tl.frames[-1].t:g} s, more than "
+            f"max_duration_s ({req.max_duration_s:g})"
+        )
+    return tl
+
+
+def _base_frames(req: PlanRequest) -> list[Keyframe]:
+    """A Cartesian set's keyframes in the robot's base frame (metres; from world mm)."""
+    r_t = req.base[:3, :3].T
+    origin = req.base[:3, 3]
+
+    def to_base(p_mm: Sequence[float]) -> np.ndarray:
+        return np.asarray(r_t @ (np.asarray(p_mm, dtype=float) * MM - origin), dtype=float)
+
+    def to_base_rotation(q: Sequence[float] | None) -> np.ndarray | None:
+        if q is None:
+            return None
+        return rotation_to_quaternion_np(r_t @ quaternion_to_rotation(q))
+
+    return [
+        Keyframe(k.t, to_base(k.pose), to_base_rotation(k.rotation)) for k in req.kset.keyframes
+    ]
+
+
+def _join_start(
+    req: PlanRequest, tl: _Timeline, here: tuple[float, ...], here_rot: np.ndarray | None
+) -> None:
+    """Make the timeline start at the robot's pose ``here`` (and turn ``here_rot``)."""
+    first = tl.frames[0]
+    gap = float(np.linalg.norm(np.subtract(first.pose, here)))
+    if tl.oriented and first.t == 0.0:
+        assert first.rotation is not None and here_rot is not None
+        turn = 2.0 * math.acos(min(1.0, abs(float(np.dot(first.rotation, here_rot)))))
+        if turn > req.start_tolerance_rad:
+            raise PlanRefused(
+                f"{tl.labels[0]} is turned {math.degrees(turn):.3g} deg from the tool (tolerance "
+                f"{math.degrees(req.start_tolerance_rad):g} deg): give keyframe 0 a later time "
+                "so the robot turns there, or turn it"
+            )
+    if first.t > 0.0:
+        tl.frames.insert(0, Keyframe(0.0, here, here_rot))
+        tl.labels.insert(0, "the start (the robot's pose)")
+        tl.short.insert(0, "start t=0s")
+        return
+    cart = tl.cart
+    tol = req.start_tolerance_mm * MM if cart else req.start_tolerance
+    if gap > tol:
+        unit, scale = ("mm", 1 / MM) if cart else ("rad/m", 1.0)
+        raise PlanRefused(
+            f"{tl.labels[0]} is {gap * scale:.4g} {unit} from where the robot is (tolerance "
+            f"{tol * scale:g}): a run starts where the robot is; give keyframe 0 a later "
+            "time so the robot moves there, or move it"
+        )
+    tl.frames[0] = Keyframe(0.0, here, here_rot)
+    if gap > 0.0:
+        unit = "mm" if cart else "rad/m"
+        tl.notes.append(
+            f"keyframe 0 replaced by the robot's pose ({gap / (MM if cart else 1):.3g} {unit} away)"
+        )
+
+
+class _TickChecks:
+    """The checks of one tick of a plan, as the drivers and the loop will see it: joint
+    limits, the step over one period against the velocity limits (the peak kept for the
+    summary), the workspace box and the forbidden regions."""
+
+    def __init__(self, req: PlanRequest, times: list[float], labels: list[str]) -> None:
+        self.req = req
+        self.times = times
+        self.labels = labels
+        self.names = req.joint_names
+        self.lo = [lim.min for lim in req.limits]
+        self.hi = [lim.max for lim in req.limits]
+        self.vmax = [lim.velocity * req.velocity_scale for lim in req.limits]
+        self.peak_share, self.peak_joint = 0.0, 0
+
+    def where(self, t: float) -> str:
+        return _where(t, self.times, self.labels, self.req.period)
+
+    def joints(self, t: float, q: list[float]) -> None:
+        """A joint plan's sample within the joints' position limits."""
+        lo, hi = self.lo, self.hi
+        for i, v in enumerate(q):
+            if v < lo[i] - 1e-12 or v > hi[i] + 1e-12:
+                raise PlanRefused(
+                    f"joint {self.names[i]!r} position {v:.6g} is outside its limits "
+                    f"[{lo[i]:g}, {hi[i]:g}] {self.where(t)}"
+                )
+
+    def clamped(self, t: float, tip: tuple[float, float, float], q: list[float]) -> NoReturn:
+        """A Cartesian sample whose IK stopped at a joint limit: refused, naming the joints."""
+        lo, hi = self.lo, self.hi
+        at = [self.names[i] for i, v in enumerate(q) if v <= lo[i] + 1e-12 or v >= hi[i] - 1e-12]
+        raise PlanRefused(
+            f"the tip leaves the workspace {self.where(t)}: "
+            f"({tip[0] / MM:.2f}, {tip[1] / MM:.2f}, {tip[2] / MM:.2f}) mm needs joint "
+            f"{', '.join(at) or '?'} beyond its limits"
+        )
+
+    def step(self, t: float, q: list[float], q_prev: list[float]) -> None:
+        """Each joint's step over one period, as the drivers check it (the first one too: from
+        the held pose to the plan's first sample)."""
+        req = self.req
+        for i, v in enumerate(q):
+            speed = abs(v - q_prev[i]) / req.period
+            share = speed / req.limits[i].velocity
+            if share > self.peak_share:
+                self.peak_share, self.peak_joint = share, i
+            if speed > self.vmax[i] * (1.0 + 1e-9):
+                scaled = (
+                    f" (velocity_scale {req.velocity_scale:g} of {req.limits[i].velocity:g})"
+                    if req.velocity_scale < 1.0
+                    else ""
+                )
+                raise PlanRefused(
+                    f"joint {self.names[i]!r} velocity {speed:.4g} exceeds its limit "
+                    f"{self.vmax[i]:.4g}{scaled} {self.where(t)}; give that segment more time"
+                )
+
+    def tip(self, t: float, tip: tuple[float, float, float]) -> None:
+        """The tip inside the workspace box and outside every forbidden region."""
+        box = self.req.workspace
+        if box is not None:
+            (x0, y0, z0), (x1, y1, z1) = box
+            if not (x0 <= tip[0] <= x1 and y0 <= tip[1] <= y1 and z0 <= tip[2] <= z1):
+                raise PlanRefused(
+                    f"the tip leaves workspace_mm {self.where(t)}: "
+                    f"({tip[0] / MM:.2f}, {tip[1] / MM:.2f}, {tip[2] / MM:.2f}) mm"
+                )
+        for check in self.req.forbidden:
+            hit = check(tip)
+            if hit:
+                what = f" ({hit})" if isinstance(hit, str) else ""
+                raise PlanRefused(
+                    f"the tip enters a forbidden region{what} "
+                    f"{self.where(t)}: ({tip[0] / MM:.2f}, {tip[1] / MM:.2f}, "
+                    f"{tip[2] / MM:.2f}) mm"
+                )
+
+
+def _sample(
+    req: PlanRequest,
+    frame: Frame,
+    traj: Trajectory,
+    tl: _Timeline,
+    checks: _TickChecks,
+    ticks: int,
+) -> tuple[list[tuple[float, float, float]], list[list[float]]]:
+    """Every tick of the plan sampled as the loop will (Cartesian ones through the same IK,
+    seeded with the previous tick) and checked: (the decimated tip path, base frame metres;
+    the joint samples)."""
+    period = req.period
+    pace = req.pace if req.pace is not None else (lambda: None)
+    q_prev = list(req.q_start)
+    stride = max(1, math.ceil((ticks + 1) / (req.preview_points - 1)))
+    path: list[tuple[float, float, float]] = []
+    qs: list[list[float]] = []
+    for j in range(ticks + 1):
+        pace()
+        t = min(j * period, traj.end)
+        pos = traj.position(t)
+        if tl.cart:
+            tip = (float(pos[0]), float(pos[1]), float(pos[2]))
+            try:
+                if tl.oriented:
+                    q, clamped = pose_ik(frame, traj, t, q_prev)
+                else:
+                    q, clamped = frame.ik_clamped(tip, q_prev)
+            except (KinematicsError, ValueError) as err:
+                raise PlanRefused(f"the tip is unreachable {checks.where(t)}: {err}") from err
+            if clamped:
+                checks.clamped(t, tip, q)
+        else:
+            q = pos.tolist()
+            checks.joints(t, q)
+            tip = frame.tip_position(q)
+        checks.step(t, q, q_prev)
+        checks.tip(t, tip)
+        if j % stride == 0 or j == ticks:
+            path.append(tip)
+        q_prev = list(q)
+        qs.append(q_prev)
+    return path, qs
+
+
+def _checked(
+    req: PlanRequest,
+    frame: Frame,
+    traj: Trajectory,
+    tl: _Timeline,
+    checks: _TickChecks,
+    path: list[tuple[float, float, float]],
+    q_end: list[float],
+    ticks: int,
+) -> CheckedPlan:
+    """The plan that passed, with its preview (world mm) and summary."""
+    kset = req.kset
+    rot = req.base[:3, :3]
+    origin = req.base[:3, 3]
+
+    def to_world_mm(p: Sequence[float]) -> np.ndarray:
+        return np.asarray((rot @ np.asarray(p) + origin) / MM, dtype=float)
+
+    keys = [k.pose if tl.cart else frame.tip_position(list(k.pose)) for k in tl.frames]
+    peak_share = checks.peak_share
+    peak = (req.joint_names[checks.peak_joint], peak_share)
+    summary = (
+        f"plan {req.id}: {len(kset.keyframes)} keyframes ({kset.space}, {traj.interpolation}, "
+        f"{traj.mode}), {traj.duration:.3f} s; peak joint speed {peak_share:.0%} of the limit "
+        f"({peak[0]})"
+        + (f"; {'; '.join(tl.notes)}" if tl.notes else "")
+        + f"; preview on its way to the viewers; acknowledge with KeyframeAck Plan={req.id}"
+    )
+    return CheckedPlan(
+        id=req.id,
+        space=kset.space,
+        traj=traj,
+        labels=tuple(tl.labels),
+        point_names=tuple(tl.short),
+        q_start=tuple(req.q_start),
+        q_end=tuple(q_end),
+        path_mm=np.array([to_world_mm(p) for p in path]),
+        keys_mm=np.array([to_world_mm(p) for p in keys]),
+        peak=peak,
+        summary=summary,
+        ticks=ticks,
+        kset=kset,
+        settings=PlanSettings(req.interpolation, req.mode, req.steepness, req.ramp),
+    )
+
+
+def plan_settings(args: dict[str, str], given: PlanSettings) -> PlanSettings:
+    """KeyframePlan's ``Interpolation``, ``Mode``, ``Steepness`` and ``Ramp`` (``args``, keys
+    in lower case), each defaulting to ``given``; CommandError naming a bad one."""
+    interpolation = args.get("interpolation", given.interpolation).strip().lower()
+    mode = args.get("mode", given.mode).strip().lower()
+    if interpolation not in ("linear", "spline"):
+        raise CommandError(f"Interpolation must be linear or spline, got {interpolation!r}")
+    if mode not in ("stop", "continuous"):
+        raise CommandError(f"Mode must be stop or continuous, got {mode!r}")
+    try:
+        steepness = float(args.get("steepness", given.steepness))
+        ramp = float(args.get("ramp", given.ramp))
+    except ValueError as err:
+        raise CommandError(f"KeyframePlan: {err}") from None
+    if not (math.isfinite(steepness) and steepness > 0):
+        raise CommandError(f"Steepness must be > 0, got {steepness:g}")
+    if not 0 < ramp <= 0.5:
+        raise CommandError(f"Ramp must be in (0, 0.5], got {ramp:g}")
+    return PlanSettings(interpolation, mode, steepness, ramp)  # type: ignore[arg-type]
+
+
+def plan_request(
+    plan_id: int,
+    kset: KeyframeSet,
+    st: PlanSettings,
+    p: KeyframeParams,
+    data: RobotData,
+    ctx: ControllerContext,
+    limits: Sequence[JointLimits],
+    checks: tuple[tuple[ForbiddenCheck, ...], tuple[PathCheck, ...]],
+) -> PlanRequest:
+    """What plan ``plan_id`` of ``kset`` is made from, snapshot on the loop thread: the
+    robot's commanded pose and base, the limits, the params' checks, the tip ``checks`` and
+    whole-arm ones, and a Pacer on the loop's clock."""
+    box = p.workspace_mm
+    return PlanRequest(
+        id=plan_id,
+        kset=kset,
+        q_start=tuple(data.commanded()),
+        base=np.array(data.base, dtype=float),
+        interpolation=st.interpolation,
+        mode=st.mode,
+        steepness=st.steepness,
+        ramp=st.ramp,
+        period=ctx.period_s,
+        joint_names=data.joint_names,
+        limits=tuple(limits),
+        velocity_scale=p.velocity_scale,
+        start_tolerance=p.start_tolerance,
+        start_tolerance_mm=p.start_tolerance_mm,
+        start_tolerance_rad=math.radians(p.start_tolerance_deg),
+        workspace=(
+            (
+                tuple(v * MM for v in box.min_mm),  # type: ignore[arg-type]
+                tuple(v * MM for v in box.max_mm),
+            )
+            if box is not None
+            else None
+        ),
+        forbidden=checks[0],
+        path_checks=checks[1],
+        max_duration_s=p.max_duration_s,
+        preview_points=p.preview_points,
+        pace=Pacer(time.perf_counter, ctx.loop_t0, ctx.period_s),
+    )
