@@ -98,7 +98,7 @@ class Robot:
         self._record_out: Any = None
         self.recorder = self.alarms.recorder = recorder
         if recorder is not None:
-            self._record_out = lambda msg, iface, at: recorder.record_message(msg, "out", iface, at)
+            self._record_out = lambda m, iface, at: recorder.record_message(m, "out", iface, at)
 
     # ================================================================== lifecycle
     @property
