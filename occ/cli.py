@@ -24,11 +24,14 @@ import signal
 import sys
 import threading
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from . import _native
 from .errors import ConfigError, OCCError
 from .loader import load_config
+
+if TYPE_CHECKING:
+    from .robot import Robot
 
 EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, EXIT_FAULT, EXIT_STOPPED = 0, 1, 2, 3, 4
 
@@ -207,7 +210,7 @@ def run(config: Any, args: argparse.Namespace) -> int:
     return code
 
 
-def status_line(robot: Any) -> str:
+def status_line(robot: Robot) -> str:
     s = robot.stats
     late = s.lateness.summary()
     parts = [
