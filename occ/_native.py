@@ -63,6 +63,8 @@ MODULES: tuple[str, ...] = (
     "occ.streams",
     "occ.motion",
     "occ.robot",
+    "occ.transitions",
+    "occ.wiring",
 )
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -24,11 +24,14 @@ import signal
 import sys
 import threading
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from . import _native
 from .errors import ConfigError, OCCError
 from .loader import load_config
+
+if TYPE_CHECKING:
+    from .robot import Robot
 
 EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, EXIT_FAULT, EXIT_STOPPED = 0, 1, 2, 3, 4
 
@@ -192,7 +195,7 @@ def _recorder(config: Any, args: argparse.Namespace) -> Any:
     )
 
 
-def _report(robot: Any, every: float, show_status: bool, stop: threading.Event) -> None:
+def _report(robot: Robot, every: float, show_status: bool, stop: threading.Event) -> None:
     """The reporter thread: the status line each second, the statistics every ``every`` s."""
     last = 0.0
     while not stop.wait(1.0):
@@ -204,7 +207,7 @@ def _report(robot: Any, every: float, show_status: bool, stop: threading.Event) 
             log.info("%s", robot.stats.format_line())
 
 
-def _shut_down(robot: Any, recorder: Any, args: argparse.Namespace) -> Any:
+def _shut_down(robot: Robot, recorder: Any, args: argparse.Namespace) -> Any:
     """Shut the robot and its recorder down, log and write the statistics; the robot's state
     before the shutdown."""
     if args.status_line:
@@ -223,7 +226,7 @@ def _shut_down(robot: Any, recorder: Any, args: argparse.Namespace) -> Any:
     return final_state
 
 
-def status_line(robot: Any) -> str:
+def status_line(robot: Robot) -> str:
     s = robot.stats
     late = s.lateness.summary()
     parts = [

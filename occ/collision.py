@@ -87,7 +87,9 @@ from .supervision import Worker
 
 if TYPE_CHECKING:
     from .config import CollisionConfig, FrameConfig, RegionConfig
+    from .data import RobotData
     from .frame import Frame
+    from .safety import RobotState
 
 __all__ = [
     "CollisionGuard",
@@ -806,22 +808,26 @@ class CollisionGuard:
         self.worker_failed = ""
 
     @classmethod
-    def for_robot(cls, robot: Any) -> CollisionGuard | None:
-        """The collision model of ``robot`` (its URDF and ``safety.collision``) and its
-        run-time guard (inline in simulated time, a worker thread of its own on the real
-        clock); None without ``safety.collision``. ConfigError for a margin a link can cross
-        in one tick."""
-        from .clock import RealClock
-        from .record import writer_priority
-
-        config, frame, joints, period = robot.config, robot.frame, robot.joints, robot.period
-        real = isinstance(robot.clock, RealClock)
-        fifo_priority, name = writer_priority(config), f"occ-{robot.name}-collision"
-        cc = config.safety.collision
+    def build(
+        cls,
+        cc: CollisionConfig | None,
+        frame_cfg: FrameConfig,
+        frame: Frame,
+        velocities: Sequence[float],
+        period: float,
+        *,
+        real: bool,
+        fifo_priority: int | None,
+        name: str,
+    ) -> CollisionGuard | None:
+        """The collision model (the URDF, ``safety.collision`` ``cc``) and its run-time guard
+        (inline in simulated time, a worker thread ``name`` of its own on the real clock,
+        ``real``); None without ``cc``. ConfigError for a margin a link can cross in one tick
+        (``velocities``: the joints' limits, ``period``: the loop's)."""
         if cc is None:
             return None
-        cm = CollisionModel.build(cc, config.robot.frame, frame)
-        step = cm.step_bound([j.limits.velocity for j in joints], period)
+        cm = CollisionModel.build(cc, frame_cfg, frame)
+        step = cm.step_bound(velocities, period)
         if step >= 2.0 * cm.margin:
             # a plan is checked at the loop's samples: between two, a link moves at most
             # `step`, so a margin over half of it keeps every link out of every region
@@ -840,14 +846,14 @@ class CollisionGuard:
         guard.policy = cc.policy
         return guard
 
-    def admitter(self, data: Any) -> Any:
+    def admitter(self, data: RobotData) -> Callable[[Sequence[float]], bool] | None:
         """What the loop's motion asks before writing a setpoint (:meth:`admit`, with the
         robot's base pose), or None when run-time checking is off."""
         if not self.runtime:
             return None
         return lambda sp: self.admit(sp, data.base)
 
-    def after_control(self, state: Any, data: Any, now: float) -> str | None:
+    def after_control(self, state: RobotState, data: RobotData, now: float) -> str | None:
         """Each tick after the drives were written: entering or leaving RUNNING noted
         (:meth:`on_running`), the reason to stop now if a verdict says so (:meth:`poll`), and
         the new setpoint handed to the worker (run-time checking on, the drives powered)."""

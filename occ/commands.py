@@ -23,30 +23,13 @@ import threading
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import cast
+from typing import Protocol, cast
 from xml.sax.saxutils import quoteattr
 
 import igtl
 from igtl.messages.base import REGISTRY, Message
 
 from .errors import CommandError
-
-#: Operator commands understood by every robot (robots may add their own).
-BASE_COMMANDS = (
-    "Enable",
-    "Disable",
-    "Run",
-    "Stop",
-    "EStop",
-    "Reset",
-    "GetState",
-    "GetStats",
-    "GetStateTable",
-    "Handover",
-    "StartRecording",
-    "StopRecording",
-    "GetRecordingStatus",
-)
 
 
 @dataclass
@@ -57,47 +40,6 @@ class Request:
     name: str  # command name, or the query type (e.g. "GET_STATUS")
     args: dict[str, str] = field(default_factory=dict)
     msg: Message | None = None
-
-
-@dataclass(frozen=True)
-class CommandSpec:
-    """One of the robot's own commands (not a controller's): who may send it and which thread
-    answers it."""
-
-    name: str
-    #: ``viewer``: read-only, any client of a viewer or operator interface may ask;
-    #: ``operator``: changes something, operator interfaces only
-    role: str
-    #: ``loop``: answered in the tick that takes it; ``worker``: built and sent by the worker
-    #: thread (the loop only hands it over); ``deferred``: answered when its work is done
-    thread: str
-    summary: str
-
-
-#: The robot's commands, by lower-case name (occ/operators.py has a handler for each; a name
-#: not here goes to the controllers). docs/ARCHITECTURE.md, "Add an operator command".
-ROBOT_COMMANDS: dict[str, CommandSpec] = {
-    c.name.lower(): c
-    for c in (
-        CommandSpec("Enable", "operator", "loop", "servos on, holding: READY -> ENABLED"),
-        CommandSpec("Run", "operator", "loop", "follow the controllers: -> RUNNING"),
-        CommandSpec("Stop", "operator", "loop", "hold the last setpoint: -> STOPPED"),
-        CommandSpec("Hold", "operator", "loop", "RUNNING -> ENABLED"),
-        CommandSpec("Disable", "operator", "loop", "servos off: -> READY"),
-        CommandSpec("EStop", "operator", "loop", "emergency stop, latched: -> ESTOP"),
-        CommandSpec("Reset", "operator", "loop", "clear a latch: FAULT/ESTOP -> READY"),
-        CommandSpec("GetState", "viewer", "loop", "the state and why"),
-        CommandSpec("GetStats", "viewer", "worker", "every statistic (JSON)"),
-        CommandSpec("GetStateTable", "viewer", "worker", "the State Data Table (NDARRAY)"),
-        CommandSpec("Handover", "operator", "loop", "give the motion to another master"),
-        CommandSpec("StartRecording", "operator", "deferred", "record to OutputFilename"),
-        CommandSpec("StopRecording", "operator", "deferred", "close the recording"),
-        CommandSpec("GetRecordingStatus", "viewer", "loop", "whether and where it records"),
-    )
-}
-
-#: what a viewer may ask (the rest of its requests are refused by its interface)
-READ_ONLY_COMMANDS = frozenset(k for k, c in ROBOT_COMMANDS.items() if c.role == "viewer")
 
 
 class Deferred:
@@ -144,6 +86,152 @@ class Deferred:
             callback = self._callback
         if callback is not None:
             callback(ok, text)
+
+
+#: the thread column: answered in the tick that takes it
+LOOP = "loop"
+#: built and sent by the worker thread (the loop only checks the request and hands it over)
+WORKER = "worker"
+#: answered when its work is done, from whichever thread did it (a :class:`Deferred`)
+DEFERRED = "deferred"
+
+#: what a worker row's handler returns: the job the worker runs (it sends the reply itself)
+Job = Callable[[], None]
+
+
+class Asked(Protocol):
+    """A request's arrival as a handler sees it (occ/interfaces.py ``Inbound``)."""
+
+    @property
+    def interface(self) -> str: ...
+
+    @property
+    def role(self) -> str: ...
+
+
+class RecordingCommands(Protocol):
+    """StartRecording, StopRecording, GetRecordingStatus (occ/reccontrol.py)."""
+
+    def start(self, req: Request) -> Deferred: ...
+
+    def stop(self, req: Request) -> Deferred: ...
+
+    def describe(self) -> str: ...
+
+
+class CommandDesk(Protocol):
+    """What the rows' handlers use of the operator desk (occ/operators.py)."""
+
+    @property
+    def recording(self) -> RecordingCommands: ...
+
+    def transition(self, req: Request) -> str: ...
+
+    def describe_state(self) -> str: ...
+
+    def stats_job(self, req: Request, item: Asked) -> Job: ...
+
+    def state_table_job(self, req: Request, item: Asked) -> Job: ...
+
+    def handover(self, req: Request, item: Asked, now: float) -> str: ...
+
+
+#: ``handler(desk, request, arrival, now)``, on the loop thread: the reply's text (loop), a
+#: Deferred (deferred) or the job (worker)
+Handler = Callable[[CommandDesk, Request, Asked, float], "str | Deferred | Job"]
+
+
+@dataclass(frozen=True)
+class CommandSpec:
+    """One of the robot's own commands (not a controller's): who may send it, which thread
+    answers it, and its handler. The operator desk calls the handler on the loop thread and
+    dispatches by ``thread``: a ``loop`` row's text is the reply in that tick; a ``worker``
+    row's handler checks the request (a bad one is refused at once) and returns the job,
+    which the desk hands to the worker thread (it builds and sends the reply; a full queue is
+    refused with ``busy``); a ``deferred`` row's Deferred is answered when its work is done."""
+
+    name: str
+    #: ``viewer``: read-only, any client of a viewer or operator interface may ask;
+    #: ``operator``: changes something, operator interfaces only
+    role: str
+    #: :data:`LOOP`, :data:`WORKER` or :data:`DEFERRED`
+    thread: str
+    summary: str
+    handler: Handler
+    #: a worker row refused because the worker's queue is full: ``busy: <this>; try again``
+    busy: str = ""
+
+
+def _transition(desk: CommandDesk, req: Request, item: Asked, now: float) -> str:
+    return desk.transition(req)
+
+
+#: The robot's commands, by lower-case name (a name not here goes to the controllers).
+#: docs/ARCHITECTURE.md, "Add an operator command".
+ROBOT_COMMANDS: dict[str, CommandSpec] = {
+    c.name.lower(): c
+    for c in (
+        CommandSpec(
+            "Enable", "operator", LOOP, "servos on, holding: READY -> ENABLED", _transition
+        ),
+        CommandSpec("Run", "operator", LOOP, "follow the controllers: -> RUNNING", _transition),
+        CommandSpec("Stop", "operator", LOOP, "hold the last setpoint: -> STOPPED", _transition),
+        CommandSpec("Hold", "operator", LOOP, "RUNNING -> ENABLED", _transition),
+        CommandSpec("Disable", "operator", LOOP, "servos off: -> READY", _transition),
+        CommandSpec("EStop", "operator", LOOP, "emergency stop, latched: -> ESTOP", _transition),
+        CommandSpec("Reset", "operator", LOOP, "clear a latch: FAULT/ESTOP -> READY", _transition),
+        CommandSpec(
+            "GetState", "viewer", LOOP, "the state and why", lambda d, r, i, n: d.describe_state()
+        ),
+        CommandSpec(
+            "GetStats",
+            "viewer",
+            WORKER,
+            "every statistic (JSON)",
+            lambda d, r, i, n: d.stats_job(r, i),
+            busy="too many statistics requests",
+        ),
+        CommandSpec(
+            "GetStateTable",
+            "viewer",
+            WORKER,
+            "the State Data Table (NDARRAY)",
+            lambda d, r, i, n: d.state_table_job(r, i),
+            busy="too many requests for the worker",
+        ),
+        CommandSpec(
+            "Handover",
+            "operator",
+            LOOP,
+            "give the motion to another master",
+            lambda d, r, i, n: d.handover(r, i, n),
+        ),
+        CommandSpec(
+            "StartRecording",
+            "operator",
+            DEFERRED,
+            "record to OutputFilename",
+            lambda d, r, i, n: d.recording.start(r),
+        ),
+        CommandSpec(
+            "StopRecording",
+            "operator",
+            DEFERRED,
+            "close the recording",
+            lambda d, r, i, n: d.recording.stop(r),
+        ),
+        CommandSpec(
+            "GetRecordingStatus",
+            "viewer",
+            LOOP,
+            "whether and where it records",
+            lambda d, r, i, n: d.recording.describe(),
+        ),
+    )
+}
+
+#: what a viewer may ask (the rest of its requests are refused by its interface)
+READ_ONLY_COMMANDS = frozenset(k for k, c in ROBOT_COMMANDS.items() if c.role == "viewer")
 
 
 def _parse_xml_command(text: str) -> tuple[str, dict[str, str]] | None:

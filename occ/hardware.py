@@ -44,7 +44,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -156,7 +156,12 @@ class HardwareSet:
 
     # ------------------------------------------------------------------ lifecycle
     def await_measured(
-        self, joints: Sequence[Joint], read: Any, now: Any, wait_s: float, real: bool
+        self,
+        joints: Sequence[Joint],
+        read: Callable[[float], None],
+        now: Callable[[], float],
+        wait_s: float,
+        real: bool,
     ) -> None:
         """After :meth:`configure`: ``read(now())`` once, and on the real clock (``real``)
         again every 5 ms until every joint is measured or ``wait_s`` has passed (a joint still

@@ -1,30 +1,32 @@
 """Operator requests: commands, queries and their replies, on the loop thread.
 
 Requests arrive parsed (XML included) from the interface threads through the command queue;
-the loop hands at most 16 a tick to :meth:`OperatorDesk.handle`. State commands (Enable, Run,
-Stop, EStop, Reset, ...) go to the state machine, ``GetState`` and GET_* queries are answered at
-once, ``GetStats`` is built by the worker thread (it costs milliseconds), and anything else goes
-to the controllers. Every request gets a reply in its sender's form, an error reply when it is
-refused; a failing handler is a FAULT with an alert, never a crash. Viewers are shown
-statistics without what it would take to forge the master stream.
-"""
+the loop hands at most 16 a tick to :meth:`OperatorDesk.handle`. The robot's own commands
+(Enable, Run, Stop, EStop, Reset, GetStats, ...) are the rows of one table (occ/commands.py
+``ROBOT_COMMANDS``): each row's handler answers it, and its thread column says whether the
+reply goes now, from the worker thread (``GetStats`` costs milliseconds) or when its work is
+done. GET_* queries are answered at once, anything else goes to the controllers. Every request
+gets a reply in its sender's form, an error reply when it is refused; a failing handler is a
+FAULT with an alert, never a crash. Viewers are shown statistics without what it would take to
+forge the master stream. The desk sees the robot through its port (occ/ports.py)."""
 
 from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import igtl
 from igtl.messages.base import Message
 from igtl.transport.common import RateLimit
 
-from . import _native
 from .collision import RegionError, regions_from_message
 from .commands import (
     ROBOT_COMMANDS,
+    WORKER,
+    Asked,
     Deferred,
+    Job,
     Request,
     error_reply,
     parse_request,
@@ -34,24 +36,17 @@ from .commands import (
 from .errors import CommandError, StateError, caused
 from .interfaces import Inbound, is_operator_request
 from .outputs import STATE_STATUS_CODE, pose_to_message
-from .reccontrol import RECORDING_COMMANDS, RecordingControl
 from .safety import RobotState
 from .samples import pose_sample
+
+if TYPE_CHECKING:
+    from .ports import DeskPort
+    from .reccontrol import RecordingControl
 
 #: states a robot stays in until an operator clears them: greeted with why
 LATCHED_STATES = (RobotState.FAULT, RobotState.ESTOP, RobotState.STOPPED)
 
-if TYPE_CHECKING:
-    from .ports import RobotPort
-
 log = logging.getLogger("occ.robot")
-
-#: The robot commands that are state-machine events (the event has the command's name).
-COMMAND_EVENTS = frozenset({"enable", "disable", "run", "stop", "estop", "reset", "hold"})
-
-#: a robot command's handler: its reply text, a Deferred (answered later), or None (the
-#: worker thread sends the reply)
-Handler = Callable[["Request", Inbound, float], "str | Deferred | None"]
 
 #: statistics a viewer is not shown: what it would take to forge the master stream (the next
 #: sequence number, the stream's source port)
@@ -70,39 +65,31 @@ def redact_for_viewer(value: Any) -> Any:
 class OperatorDesk:
     """Answers the operators of one robot (see the module docstring)."""
 
-    def __init__(self, robot: RobotPort) -> None:
-        self.robot = robot
+    def __init__(self, port: DeskPort, recording: RecordingControl) -> None:
+        self.port = port
         self.handled = 0
         self.refused = 0
         self.reply_errors = 0
         self._refusal_log = RateLimit(5)
         #: StartRecording, StopRecording, GetRecordingStatus (occ/reccontrol.py)
-        self.recording = RecordingControl(robot)
-        transitions = dict.fromkeys(COMMAND_EVENTS, self._transition)
-        self._handlers: dict[str, Handler] = {
-            **transitions,
-            "getstate": self._get_state,
-            "getstats": self._get_stats,
-            "getstatetable": self._get_state_table,
-            "handover": self._handover,
-            **dict.fromkeys(RECORDING_COMMANDS, self._recording),
-        }
-        missing = set(ROBOT_COMMANDS) ^ set(self._handlers)
-        if missing:  # the table and the handlers are one list: a new command needs both
-            raise AssertionError(f"robot commands without a handler (or vice versa): {missing}")
+        self.recording = recording
 
     def greet(self, iface: Any, peer: Any) -> None:
         """A new client of a viewer or operator interface is told the state (runs on the
         interface thread: only queues a STATUS)."""
-        r = self.robot
+        r = self.port
         if iface.answers:
-            st = r.state_machine.state
+            st = r.states.state
             iface.send_to_peer(
                 igtl.StatusMessage(
                     code=int(STATE_STATUS_CODE[st]),
                     error_name=st.value,
                     status_message=f"{r.name} is {st.value}"
-                    + (f": {r.last_alert}" if st in LATCHED_STATES and r.last_alert else ""),
+                    + (
+                        f": {r.alarms.last_alert}"
+                        if st in LATCHED_STATES and r.alarms.last_alert
+                        else ""
+                    ),
                     device_name=r.name[:20],
                     timestamp=r.clock.wall_time(),
                 ),
@@ -114,14 +101,14 @@ class OperatorDesk:
             "handled": self.handled,
             "refused": self.refused,
             "reply_errors": self.reply_errors,
-            "worker_refused": self.robot.worker.refused,
+            "worker_refused": self.port.worker.refused,
         }
 
     def refuse_input(self, item: Inbound, err: CommandError) -> None:
         """A controller refused an input (an invalid fixture, from the command queue or a
         stream): nothing changed; counted, logged (at most five lines a second) and the sender
         told with an error reply."""
-        r = self.robot
+        r = self.port
         msg = item.msg
         self.refused += 1
         if self._refusal_log.allow():
@@ -132,7 +119,7 @@ class OperatorDesk:
                 *item.peer.address[:2],
                 err,
             )
-        r.interfaces.reply(
+        r.reply(
             item,
             error_reply(
                 msg,
@@ -153,7 +140,7 @@ class OperatorDesk:
             raise caused(CommandError(str(err)), err) from err
         if found is None:
             return False
-        r = self.robot
+        r = self.port
         name, regions = found
         if r.collision is None:
             raise CommandError(
@@ -168,10 +155,11 @@ class OperatorDesk:
         return True
 
     def handle(self, item: Inbound, now: float) -> None:
-        r = self.robot
+        r = self.port
         msg = item.msg
-        if r.recorder is not None:
-            r.recorder.record_message(msg, "in", item.interface, now)
+        recorder = r.recorder()
+        if recorder is not None:
+            recorder.record_message(msg, "in", item.interface, now)
         req: Request | None = item.request
         if req is None and not is_operator_request(msg):
             # a discrete input routed to the command queue (e.g. VFIXTURE); a pose (a Base
@@ -231,21 +219,22 @@ class OperatorDesk:
         self._send_reply(item, reply, now)
 
     def _send_reply(self, item: Inbound, reply: Message, now: float) -> None:
-        r = self.robot
+        r = self.port
         try:
-            r.interfaces.reply(item, reply)
+            r.reply(item, reply)
         except Exception as err:  # noqa: BLE001 - a reply that cannot be sent is counted
             self.reply_errors += 1
             log.warning("%s: reply to %s could not be sent: %s", item.interface, item.peer, err)
             return
-        if r.recorder is not None:
-            r.recorder.record_message(reply, "out", item.interface, now)
+        recorder = r.recorder()
+        if recorder is not None:
+            recorder.record_message(reply, "out", item.interface, now)
 
     def _reply_later(self, item: Inbound, req: Request, ok: bool, text: str) -> None:
         """The answer to a :class:`Deferred` command, on whichever thread finished it (the
         transports' ``send`` is thread-safe; the recording takes it through its any-thread
         entry)."""
-        r = self.robot
+        r = self.port
         wall = r.clock.wall_time()
         assert req.msg is not None
         if ok:
@@ -256,50 +245,56 @@ class OperatorDesk:
                 req.msg, text, code=igtl.StatusCode.ILLEGAL_INSTRUCTION, timestamp=wall
             )
         try:
-            r.interfaces.reply(item, reply)
+            r.reply(item, reply)
         except Exception as err:  # noqa: BLE001 - a reply that cannot be sent is counted
             self.reply_errors += 1
             log.warning("%s: reply to %s could not be sent: %s", item.interface, item.peer, err)
             return
-        recorder = r.recorder  # read once: StopRecording detaches it on the loop thread
+        recorder = r.recorder()  # read once: StopRecording detaches it on the loop thread
         if recorder is not None:
             recorder.record_message_late(reply, "out", item.interface, r.clock.now())
 
-    def _reply_stats(self, item: Inbound, req: Request) -> None:
-        """On the worker thread: the snapshot (histogram percentiles, controller statistics)
-        costs milliseconds; the loop only handed the request over."""
-        r = self.robot
-        snap = self.report()
-        if req.args.get("Histogram", "").lower() == "lateness":
-            # the raw buckets: a client subtracts two of them into a window's percentiles
-            snap["lateness_buckets"] = r.stats.lateness.buckets()
-        if item.role != "operator":
-            snap = redact_for_viewer(snap)
-        text = json.dumps(snap, separators=(",", ":"), default=str)
-        wall = r.clock.wall_time()
-        if req.args.get("Format", "").lower() == "json":
-            # plain JSON a script can parse as it is: a STRING (ACK_<id> for a PLUS-style
-            # request, STATS for a COMMAND) holding nothing but the statistics
-            msg = req.msg
-            assert msg is not None
-            device = "ACK_" + msg.device_name[4:] if req.kind == "string" else "STATS"
-            reply: Message = igtl.StringMessage(
-                text,
-                device_name=safe_name(device),
-                header_version=msg.header_version,
-                message_id=msg.message_id,
-                timestamp=wall,
-            )
-        else:
-            reply = success_reply(req, text, timestamp=wall)
-        r.interfaces.reply(item, reply)
+    def _execute(self, req: Request, item: Inbound, now: float) -> str | Deferred | None:
+        """A robot command through its row's handler, dispatched by the row's thread
+        (occ/commands.py ROBOT_COMMANDS), any other to the controllers. None: the worker
+        thread sends the reply."""
+        spec = ROBOT_COMMANDS.get(req.name.strip().lower())
+        if spec is None:
+            return self.port.controller.on_command(req, now) or "OK"
+        answer = spec.handler(self, req, item, now)
+        if spec.thread != WORKER:
+            assert isinstance(answer, str | Deferred), spec.name
+            return answer
+        assert callable(answer), spec.name
+        # built off the loop thread: the worker replies
+        if not self.port.worker.start().submit(answer):
+            raise CommandError(f"busy: {spec.busy}; try again")
+        return None
 
-    def _state_table_job(self, item: Inbound, req: Request) -> Callable[[], None]:
+    # -- what the rows of ROBOT_COMMANDS call (occ/commands.py ``CommandDesk``)
+    def transition(self, req: Request) -> str:
+        """A state-machine event of the command's name; Reset clears the monitors first, and
+        in STOPPED only the alert (Run resumes)."""
+        port = self.port
+        event = req.name.strip().lower()
+        if event == "reset":
+            port.reset_monitors()
+            if port.states.state is RobotState.STOPPED:
+                port.alarms.last_alert = ""
+                return "STOPPED: alerts cleared; send Run to resume"
+        tr = port.states.request(event, f"operator {req.name}")
+        return f"{tr.old.value} -> {tr.new.value}"
+
+    def stats_job(self, req: Request, item: Asked) -> Job:
+        assert isinstance(item, Inbound)
+        return lambda: self._reply_stats(item, req)
+
+    def state_table_job(self, req: Request, item: Asked) -> Job:
         """``GetStateTable`` (``Seconds``: the last seconds, default all; ``Since``: rows after
         this daemon time; ``Every``: every n-th row): the worker sends an ``NDARRAY``
         ``StateTable`` (rows x columns, names in metadata ``columns``), then the reply."""
-        table = self.robot.state_table
-        if table is None:
+        assert isinstance(item, Inbound)
+        if self.port.state_table is None:
             raise CommandError("GetStateTable: no state table (configure state_table.seconds)")
         args = {k.lower(): v for k, v in req.args.items()}
         try:
@@ -316,19 +311,59 @@ class OperatorDesk:
             raise CommandError(f"GetStateTable: Every must be >= 1, got {every}")
         return lambda: self._reply_state_table(item, req, seconds, since, every)
 
+    def handover(self, req: Request, item: Asked, now: float) -> str:
+        to = req.args.get("To", req.args.get("to", "")).strip()
+        return self.port.handover(to, item.interface, now)
+
+    # -- the worker's jobs
+    def _reply_stats(self, item: Inbound, req: Request) -> None:
+        """On the worker thread: the snapshot (histogram percentiles, controller statistics)
+        costs milliseconds; the loop only handed the request over."""
+        port = self.port
+        snap = self.report()
+        if req.args.get("Histogram", "").lower() == "lateness":
+            # the raw buckets: a client subtracts two of them into a window's percentiles
+            snap["lateness_buckets"] = port.lateness_buckets()
+        if item.role != "operator":
+            snap = redact_for_viewer(snap)
+        text = json.dumps(snap, separators=(",", ":"), default=str)
+        wall = port.clock.wall_time()
+        if req.args.get("Format", "").lower() == "json":
+            # plain JSON a script can parse as it is: a STRING (ACK_<id> for a PLUS-style
+            # request, STATS for a COMMAND) holding nothing but the statistics
+            msg = req.msg
+            assert msg is not None
+            device = "ACK_" + msg.device_name[4:] if req.kind == "string" else "STATS"
+            reply: Message = igtl.StringMessage(
+                text,
+                device_name=safe_name(device),
+                header_version=msg.header_version,
+                message_id=msg.message_id,
+                timestamp=wall,
+            )
+        else:
+            reply = success_reply(req, text, timestamp=wall)
+        port.reply(item, reply)
+
     def _reply_state_table(
-        self, item: Inbound, req: Request, seconds: float | None, since: float | None, every: int
+        self,
+        item: Inbound,
+        req: Request,
+        seconds: float | None,
+        since: float | None,
+        every: int,
     ) -> None:
-        r = self.robot
-        table = r.state_table
+        """On the worker thread: the rows asked for as an ``NDARRAY``, then the reply."""
+        port = self.port
+        table = port.state_table
         assert table is not None
         rows = table.window(seconds, since=since, every=every)
         msg = req.msg
         assert msg is not None
-        wall = r.clock.wall_time()
-        meta = {"columns": ",".join(table.columns), "robot": r.name}
-        if r.collab is not None:
-            meta["owners"] = ",".join(r.collab.masters)
+        wall = port.clock.wall_time()
+        meta = {"columns": ",".join(table.columns), "robot": port.name}
+        if port.collab is not None:
+            meta["owners"] = ",".join(port.collab.masters)
         array = igtl.NDArrayMessage(
             array=rows,
             device_name="StateTable",
@@ -337,61 +372,19 @@ class OperatorDesk:
             metadata=meta,
             timestamp=wall,
         )
-        r.interfaces.reply(item, array)
+        port.reply(item, array)
         span = f" from t={rows[0, 0]:.6f} to t={rows[-1, 0]:.6f}" if len(rows) else ""
         # the columns in the reply too: a header-version-1 client gets the array without metadata
         text = f"StateTable: {len(rows)} rows{span}; columns {meta['columns']}"
-        r.interfaces.reply(item, success_reply(req, text, timestamp=wall))
-
-    def _execute(self, req: Request, item: Inbound, now: float) -> str | Deferred | None:
-        """A robot command through its handler (occ/commands.py, ROBOT_COMMANDS), any other to
-        the controllers. None: the worker thread sends the reply."""
-        key = req.name.strip().lower()
-        if key not in ROBOT_COMMANDS:
-            return self.robot.controller.on_command(req, now) or "OK"
-        return self._handlers[key](req, item, now)
-
-    # -- the handlers of ROBOT_COMMANDS, by name (``_handlers``, checked complete at build)
-    def _transition(self, req: Request, item: Inbound, now: float) -> str:
-        r = self.robot
-        event = req.name.strip().lower()
-        if event == "reset":
-            r.reset_monitors()
-            if r.state_machine.state is RobotState.STOPPED:
-                r.alarms.last_alert = ""
-                return "STOPPED: alerts cleared; send Run to resume"
-        tr = r.state_machine.request(event, f"operator {req.name}")
-        return f"{tr.old.value} -> {tr.new.value}"
-
-    def _get_state(self, req: Request, item: Inbound, now: float) -> str:
-        return self.describe_state()
-
-    def _get_stats(self, req: Request, item: Inbound, now: float) -> None:
-        # statistics are built off the loop thread; the worker replies
-        if not self.robot.worker.start().submit(lambda: self._reply_stats(item, req)):
-            raise CommandError("busy: too many statistics requests; try again")
-
-    def _get_state_table(self, req: Request, item: Inbound, now: float) -> None:
-        # arguments checked here (a bad one is answered at once), the table read and sent by
-        # the worker
-        job = self._state_table_job(item, req)
-        if not self.robot.worker.start().submit(job):
-            raise CommandError("busy: too many requests for the worker; try again")
-
-    def _handover(self, req: Request, item: Inbound, now: float) -> str:
-        to = req.args.get("To", req.args.get("to", "")).strip()
-        return self.robot.handover(to, item.interface, now)
-
-    def _recording(self, req: Request, item: Inbound, now: float) -> str | Deferred:
-        return self.recording.execute(req.name.strip().lower(), req)
+        port.reply(item, success_reply(req, text, timestamp=wall))
 
     def _answer_query(self, req: Request, wall: float) -> Message:
-        r = self.robot
+        r = self.port
         msg = req.msg
         assert msg is not None
         name = req.name
         if name == "GET_STATUS":
-            st = r.state_machine.state
+            st = r.states.state
             return igtl.StatusMessage(
                 code=int(STATE_STATUS_CODE[st]),
                 error_name=st.value,
@@ -429,45 +422,16 @@ class OperatorDesk:
         raise CommandError(f"{name} is not supported by {r.name}")
 
     def describe_state(self) -> str:
-        r = self.robot
-        st = r.state_machine.state
+        r = self.port
+        st = r.states.state
         parts = [f"state={st.value}"]
-        if r.last_alert:
-            parts.append(f"alert={r.last_alert}")
-        if r.state_machine.last_reason:
-            parts.append(f"reason={r.state_machine.last_reason}")
+        if r.alarms.last_alert:
+            parts.append(f"alert={r.alarms.last_alert}")
+        if r.states.last_reason:
+            parts.append(f"reason={r.states.last_reason}")
         return "; ".join(parts)
 
     def report(self) -> dict[str, Any]:
-        """Every statistic of the robot (GetStats, ``occd --stats``); off the loop thread."""
-        r = self.robot
-        snap = r.stats.snapshot()
-        snap["robot"] = r.name
-        snap["build"] = _native.BUILD  # compiled or pure hot path (occ/_native.py)
-        snap["state"] = r.state_machine.state.value
-        snap["commands"] = self.counters()
-        snap["watchdog"] = r.watchdog.counters()
-        snap["supervisor"] = {
-            "timeout_ms": r.supervisor.timeout_s * 1e3,
-            "trips": r.supervisor.trips,
-            "tripped": r.supervisor.tripped,
-            "thread": r.supervisor_thread.report if r.supervisor_thread else None,
-        }
-        snap["reentries"] = r.motion.reentries
-        snap["last_alert"] = r.last_alert
-        if r.streams.monitor is not None:
-            snap["loss"] = r.streams.monitor.counters()
-        if r.collab is not None:
-            snap["owner"] = r.collab.owner
-            snap["collaboration"] = r.collab.stats()
-            snap["loss_by_stream"] = {n: m.counters() for n, m in r.streams.monitors.items()}
-        if r.state_table is not None:
-            snap["state_table"] = r.state_table.stats()
-        snap["recording"] = self.recording.stats()
-        snap["controller"] = r.controller.stats()
-        if r.collision is not None:
-            snap["collision"] = r.collision.stats()
-        snap["drivers"] = {drv.name: drv.stats() for drv in r.hardware.drivers}
-        snap["hardware"] = r.hardware.stats()
-        snap["realtime"] = r.loop.realtime_report
-        return snap
+        """Every statistic of the robot (GetStats, ``occd --stats``): each part's, from the
+        registry the robot was assembled with (occ/assembly.py); off the loop thread."""
+        return self.port.stats.report()

@@ -1,64 +1,86 @@
-"""What the Robot's front desk may use of it: the port the operator desk (occ/operators.py) and
-the run-time recording control (occ/reccontrol.py) are given, instead of the Robot class.
+"""Narrow ports: what each of the robot's collaborators is given of it, instead of the Robot.
 
-They answer operators about everything (``GetStats`` reads every part), so the port is wide;
-but it is written here, one list, and neither module imports occ/robot.py, which builds them:
-no module knows one that knows it (tests/test_imports.py).
+occ/robot.py builds its parts (occ/assembly.py) and hands each one only what it uses: the few
+parts it reads, and callables for what only the Robot can do (swap the recorder, reset the
+monitors, hand the motion over). No collaborator imports occ/robot.py, so no module knows one
+that knows it (tests/test_imports.py); the types below are imported for checking only.
+
+- :class:`DeskPort`: the operator desk (occ/operators.py), which answers the robot's own
+  commands (occ/commands.py ``ROBOT_COMMANDS``). It answers operators about the whole robot,
+  so it names more parts than the others; the statistics come through one
+  :class:`~occ.stats.StatsRegistry`.
+- :class:`RecordingPort`: the run-time recording control (occ/reccontrol.py).
+- The alarms (occ/alarms.py), the supervisor's thread (``SupervisorThread.build``), the
+  collision guard (``CollisionGuard.build``) and the motion (occ/motion.py) take their few
+  parts as arguments of their own.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Protocol
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from igtl.messages.base import Message
+
     from .alarms import Alarms
     from .clock import Clock
     from .collab import Collaboration
     from .collision import CollisionGuard
-    from .config import DaemonConfig
+    from .config import RecordingConfig
     from .controllers import ControllerSet
     from .data import RobotData
-    from .hardware import HardwareSet
-    from .interfaces import InterfaceManager
-    from .loop import ControlLoop
-    from .motion import Motion
-    from .safety import StateMachine, Supervisor, Watchdog
+    from .interfaces import Inbound
+    from .record import Recorder
+    from .safety import StateMachine
     from .statetable import StateTable
-    from .stats import LoopStats
-    from .streams import StreamInputs
-    from .supervision import SupervisorThread, Worker
+    from .stats import StatsRegistry
+    from .supervision import Worker
 
 
-class RobotPort(Protocol):
-    """The Robot as its desk sees it (attributes and the four calls it makes)."""
+@dataclass(frozen=True)
+class RecordingPort:
+    """What StartRecording, StopRecording and GetRecordingStatus use of the robot."""
+
+    #: the robot's name (a recording's default file name starts with it)
+    name: str
+    config: RecordingConfig
+    #: SCHED_FIFO priority of a recorder's writer thread (``occ.record.writer_priority``)
+    fifo_priority: int | None
+    #: opens and closes the files (never the loop)
+    worker: Worker
+    #: the recorder the loop writes to now (None: not recording)
+    recorder: Callable[[], Recorder | None]
+    #: attach (any thread) or detach (the loop thread only) the loop's recorder
+    set_recorder: Callable[[Recorder | None], None]
+
+
+@dataclass(frozen=True)
+class DeskPort:
+    """What the operator desk uses of the robot (occ/operators.py)."""
 
     name: str
-    config: DaemonConfig
     clock: Clock
-    state_machine: StateMachine
+    states: StateMachine
     data: RobotData
-    hardware: HardwareSet
-    interfaces: InterfaceManager
-    streams: StreamInputs
-    motion: Motion
-    controller: ControllerSet
-    collab: Collaboration | None
-    collision: CollisionGuard | None
+    #: a plugin's failure (FAULT with an alert) and the last alert (cleared by a Reset)
     alarms: Alarms
+    controller: ControllerSet
+    #: builds what the loop must not pay for (GetStats, GetStateTable); replies itself
     worker: Worker
-    loop: ControlLoop
-    stats: LoopStats
-    watchdog: Watchdog
-    supervisor: Supervisor
-    supervisor_thread: SupervisorThread | None
+    #: a reply to the sender of a request (thread-safe: queues it)
+    reply: Callable[[Inbound, Message], object]
+    #: the recorder the loop writes to now (None: not recording)
+    recorder: Callable[[], Recorder | None]
+    #: every part's statistics (GetStats)
+    stats: StatsRegistry
+    #: the loop lateness histogram's raw buckets (GetStats ``Histogram=lateness``)
+    lateness_buckets: Callable[[], dict[int, int]]
+    #: an operator's Reset of the watchdog, the supervisor and the loss monitors
+    reset_monitors: Callable[[], None]
+    #: ``handover(to, interface, now)``: the motion to another master, or CommandError
+    handover: Callable[[str, str, float], str]
+    collision: CollisionGuard | None
     state_table: StateTable | None
-    recorder: Any | None
-
-    @property
-    def last_alert(self) -> str: ...
-
-    def handover(self, to: str, interface: str, now: float) -> str: ...
-
-    def reset_monitors(self) -> None: ...
-
-    def set_recorder(self, recorder: Any | None) -> None: ...
+    collab: Collaboration | None

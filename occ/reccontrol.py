@@ -41,15 +41,12 @@ from typing import TYPE_CHECKING, Any
 
 from .commands import Deferred, Request
 from .errors import CommandError
-from .record import Recorder, writer_priority
+from .record import Recorder
 
 if TYPE_CHECKING:
-    from .ports import RobotPort
+    from .ports import RecordingPort
 
 log = logging.getLogger("occ.robot")
-
-#: the commands this module answers (lower case, as the operator desk compares them)
-RECORDING_COMMANDS = frozenset({"startrecording", "stoprecording", "getrecordingstatus"})
 
 #: a bare file name: no directory, no leading dot, nothing a shell or another OS would mangle
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,199}")
@@ -69,8 +66,8 @@ def _arg(req: Request, name: str) -> str:
 class RecordingControl:
     """StartRecording, StopRecording and GetRecordingStatus of one robot (module docstring)."""
 
-    def __init__(self, robot: RobotPort) -> None:
-        self.robot = robot
+    def __init__(self, port: RecordingPort) -> None:
+        self.port = port
         #: the file a start is opening on the worker (None when none is)
         self._pending: Path | None = None
         #: recorders started or stopped here that may still need closing (at shutdown)
@@ -83,15 +80,8 @@ class RecordingControl:
         self.failed = 0
 
     # ------------------------------------------------------------------ loop thread
-    def execute(self, key: str, req: Request) -> str | Deferred:
-        if key == "startrecording":
-            return self._start(req)
-        if key == "stoprecording":
-            return self._stop(req)
-        return self.describe()
-
     def directory(self) -> Path:
-        return Path(self.robot.config.recording.directory)
+        return Path(self.port.config.directory)
 
     def file_name(self, text: str, command: str) -> str:
         """``text`` as a recording's file name in the directory, or CommandError saying why."""
@@ -108,9 +98,10 @@ class RecordingControl:
             )
         return text if lower.endswith(".igtl") else text + ".igtl"
 
-    def _start(self, req: Request) -> Deferred:
-        r = self.robot
-        current = r.recorder
+    def start(self, req: Request) -> Deferred:
+        """StartRecording (module docstring)."""
+        r = self.port
+        current = r.recorder()
         if current is not None:
             raise CommandError(
                 f"StartRecording: already recording to {current.path}; send StopRecording first"
@@ -130,9 +121,10 @@ class RecordingControl:
             raise CommandError("StartRecording: busy (the worker's queue is full); try again")
         return done
 
-    def _stop(self, req: Request) -> Deferred:
-        r = self.robot
-        rec = r.recorder
+    def stop(self, req: Request) -> Deferred:
+        """StopRecording (module docstring)."""
+        r = self.port
+        rec = r.recorder()
         if rec is None:
             if self._pending is not None:
                 raise CommandError(
@@ -154,7 +146,7 @@ class RecordingControl:
 
     def describe(self) -> str:
         """GetRecordingStatus's answer."""
-        rec = self.robot.recorder
+        rec = self.port.recorder()
         if rec is not None:
             s = rec.stats()
             return (
@@ -169,7 +161,7 @@ class RecordingControl:
 
     def stats(self) -> dict[str, Any]:
         """For GetStats."""
-        rec = self.robot.recorder
+        rec = self.port.recorder()
         return {
             "active": rec is not None,
             "file": str(rec.path) if rec is not None else None,
@@ -182,12 +174,12 @@ class RecordingControl:
 
     # ------------------------------------------------------------------ worker thread
     def _open_file(self, path: Path, done: Deferred) -> None:
-        cfg = self.robot.config.recording
+        cfg = self.port.config
         rec = Recorder(
             path,
             rate_hz=cfg.rate_hz,
             include_messages=cfg.include_messages,
-            fifo_priority=writer_priority(self.robot.config),
+            fifo_priority=self.port.fifo_priority,
         )
         try:
             # its own step: a FileExistsError here is the directory's name taken by a file,
@@ -217,7 +209,7 @@ class RecordingControl:
             rec.close()
             self._fail(done, "StartRecording: the daemon is shutting down")
             return
-        self.robot.set_recorder(rec)
+        self.port.set_recorder(rec)
         self._pending = None
         self.started += 1
         log.info("recording started at run time: %s", path)

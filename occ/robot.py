@@ -25,25 +25,15 @@ from typing import Any
 
 import igtl
 
-from .alarms import Alarms
-from .assembly import attach_environment, build_hardware, build_watchdog, realtime_settings
+from . import wiring
 from .clock import Clock, RealClock
-from .collab import Collaboration
-from .collision import CollisionGuard
 from .config import DaemonConfig
-from .controllers import Controller, ControllerContext, ControllerSet, create_controller
-from .data import RobotData
-from .hardware import HardwareFailure, HardwareSet, describe
-from .interfaces import InterfaceManager
-from .loop import ControlLoop
-from .motion import POWERED, Motion
-from .operators import OperatorDesk
-from .outputs import STATE_STATUS_CODE, BuiltinSources, OutputScheduler
+from .controllers import Controller, create_controller
+from .hardware import describe
 from .record import writer_priority
-from .safety import RobotState, StateMachine, Supervisor
-from .statetable import StateTable, table_for
+from .safety import RobotState, StateMachine
+from .statetable import table_for
 from .stats import LoopStats
-from .streams import StreamInputs
 from .supervision import SupervisorThread, Worker
 
 log = logging.getLogger(__name__)
@@ -63,114 +53,42 @@ class Robot:
         controllers: Sequence[Controller] = (),
         recorder: Any | None = None,
     ) -> None:
-        self.config = config
-        rc = config.robot
-        self.name = rc.name
+        self.config, rc = config, config.robot
+        self.name, self.rate_hz, self.period = rc.name, rc.rate_hz, 1.0 / rc.rate_hz
         self.clock: Clock = clock if clock is not None else RealClock(spin_us=rc.realtime.spin_us)
-        self.rate_hz = rc.rate_hz
-        self.period = 1.0 / rc.rate_hz
         self.state_machine = StateMachine(clock=self.clock)
-        self.state_machine.add_listener(self._on_transition)
-        self.state_machine.add_guard(self._may_power)
-        self.state_machine.set_effector(self._effect)
         self.recorder = recorder
-        # --- Joints, Frame, Drivers (hardware-dependent parts)
-        self.joints, self.frame, pairs = build_hardware(rc)
-        #: the drives as one unit whose transitions succeed or fail whole (occ/hardware.py)
-        self.hardware = HardwareSet(pairs)
-        names, homes = [j.name for j in self.joints], [j.home for j in self.joints]
-        self.data = RobotData(self.name, names, homes, self.frame, self.clock)
-        env = attach_environment(config.environment, pairs, self.frame, lambda: self.data.base)
-        self.hardware.environment = env  # simulated tissue (occ/contact.py), or None
+        # --- Joints, Frame, Drivers: the drives as one unit (occ/hardware.py); the data
+        self.joints, self.frame, self.hardware, self.data, env = wiring.build_drives(self)
         #: whole-arm collision checking (occ/collision.py): plans and, at run time, a worker
-        self.collision = CollisionGuard.for_robot(self)
+        self.collision = wiring.build_collision(self)
         # --- Interfaces, and the streams among them (polled, judged, one in control)
-        self.interfaces = InterfaceManager(
-            config.interfaces, clock_now=self.clock.now, poll_streams=rc.realtime.poll_streams
-        )
-        co = config.collaboration  # several masters, one owner (occ/collab.py)
-        self.collab: Collaboration | None = Collaboration(co) if co is not None else None
-        self.streams = StreamInputs(
-            self.interfaces,
-            config.safety.loss,
-            self.collab,
-            self.clock.wall_time,
-        )
-
-        # --- Safety
-        ports = (self.interfaces.broadcast_operators, self.hardware, self.streams, recorder)
-        self.alarms = Alarms(self.name, self.state_machine, self.clock, *ports)
-        wd = config.safety.watchdog
-        self.watchdog = build_watchdog(
-            wd,
-            self.period,
-            on_alert=self.alarms.watchdog_alert,
-            on_stop=lambda reason, policy: self.alarms.safety_stop(f"watchdog: {reason}", policy),
-        )
-        sv = self._supervisor_cfg = config.safety.supervisor
-        self.supervisor = Supervisor(sv.timeout_ms * 1e-3, on_trip=self.alarms.supervisor_trip)
+        self.interfaces, self.collab, self.streams = wiring.build_inputs(config, self.clock)
+        # --- Safety: alarms, loop watchdog, supervisor (occ/alarms.py, occ/safety.py)
+        self.alarms, self.watchdog, self.supervisor = wiring.build_safety(self, recorder)
         self.supervisor_thread: SupervisorThread | None = None
         self._supervisor_handled = False
         #: jobs the loop must not pay for (GetStats); the worker sends the reply itself
         self.worker = Worker(f"occ-{self.name}-report", fifo_priority=writer_priority(config))
-        self._side_threads: list[Any] = [t for t in (self.worker, self.collision) if t]
         self.ticks = 0
         #: the State Data Table (``state_table.seconds``), written once a tick
-        self.state_table: StateTable | None = table_for(
-            config.state_table.seconds, self.joints, self.rate_hz, self.frame
-        )
+        seconds = config.state_table.seconds
+        self.state_table = table_for(seconds, self.joints, self.rate_hz, self.frame)
         self._owner_code = float(self.collab.code()) if self.collab is not None else -1.0
         # --- Loop and statistics
-        self.stats = LoopStats(self.rate_hz, budget_s=wd.budget_us * 1e-6)
-        for name, iface in self.interfaces.interfaces.items():
-            self.stats.interfaces[name] = iface.stats
-        self.loop = ControlLoop(
-            self.rate_hz,
-            self.tick,
-            clock=self.clock,
-            stats=self.stats,
-            watchdog=self.watchdog,
-            realtime=realtime_settings(rc.realtime),
-        )
-        # --- Controllers, operators, outputs
-        self.controller = ControllerSet(controllers)
-        self.controller.configure(
-            self.data,
-            ControllerContext(
-                clock=self.clock,
-                frame=self.frame,
-                rate_hz=self.rate_hz,
-                interfaces=tuple(self.interfaces.interfaces),
-                loop_t0=lambda: self.loop.t0,
-                period_s=self.loop.period_s,
-                shift=self.loop.shift,
-                joint_limits=tuple(j.limits for j in self.joints),
-                alert=self.alarms.broadcast,
-                environment=env,
-                collision=self.collision.cm if self.collision is not None else None,
-            ),
-        )
-        Motion.check_command_kinds(self.controller, self.hardware)
-        self.motion = Motion(self.data, self.controller, self.joints, self.period, self._write)
-        self.motion.admit = self.collision.admitter(self.data) if self.collision else None
-        if self.controller.commands_effort:
-            self.data.effort_command = [0.0] * len(self.joints)
-        self.operators = OperatorDesk(self)
+        self.stats, self.loop = wiring.build_loop(self)
+        # --- Controllers and motion; what a state change means (occ/transitions.py)
+        self.controller, self.motion = wiring.build_motion(self, controllers, env)
+        self.effects = wiring.build_effects(self)  # the state machine's guard, effector, listener
+        # --- Operators and outputs
+        self.operators = wiring.build_desk(self)
         self.streams.bind(
             self.controller.on_sample, self.controller.on_input, self.operators.refuse_input
         )
         self.interfaces.on_connect(self.operators.greet)
-        sources = {
-            **BuiltinSources(self.data, self.operators.describe_state).table(),
-            **self.controller.outputs(),
-        }
-        self.outputs = OutputScheduler.for_interfaces(
-            self.interfaces.interfaces.values(), self.rate_hz, sources
-        )
+        self.outputs = wiring.build_outputs(self)
         self.set_recorder(recorder)
         self._shutdown_done = False
-        #: the tick under way (its `now`): what a transition's reads and writes happen at
-        self._tick_now: float | None = None
         self._at_start: list[str] = []
 
     def set_recorder(self, recorder: Any | None) -> None:
@@ -180,7 +98,7 @@ class Robot:
         self._record_out: Any = None
         self.recorder = self.alarms.recorder = recorder
         if recorder is not None:
-            self._record_out = lambda msg, iface, at: recorder.record_message(msg, "out", iface, at)
+            self._record_out = lambda m, iface, at: recorder.record_message(m, "out", iface, at)
 
     # ================================================================== lifecycle
     @property
@@ -191,7 +109,7 @@ class Robot:
         """Configure drivers (servos off): INIT -> READY, or FAULT with an alert naming each
         drive that failed (``Reset`` configures again). On the real clock it waits up to
         ``MEASURE_WAIT_S`` for every joint's first measurement; a joint still unmeasured keeps
-        the robot from being enabled (:meth:`_may_power`)."""
+        the robot from being enabled (``StateEffects.may_power``, occ/transitions.py)."""
         failures = self.hardware.configure()
         if failures:
             self.alarms.fault(f"configure failed: {describe(failures)}")
@@ -214,9 +132,12 @@ class Robot:
         if prio:
             report = self.interfaces.set_thread_priority(max(1, prio - 1))
             log.info("interface threads: %s", report)
-        for side in self._side_threads:
-            side.start()
-        self.supervisor_thread = self.supervisor_thread or SupervisorThread.for_robot(self, prio)
+        self.worker.start()
+        if self.collision is not None:
+            self.collision.start()
+        self.supervisor_thread = self.supervisor_thread or SupervisorThread.build(
+            self.config.safety.supervisor, self.supervisor, self.clock, prio
+        )
 
     def run(self, duration: float | None = None, ticks: int | None = None) -> LoopStats:
         try:
@@ -251,22 +172,13 @@ class Robot:
         self.controller.shutdown()
         self.hardware.shutdown()
         self.interfaces.stop()
-        for side in self._side_threads:
-            side.stop()
+        self.worker.stop()
+        if self.collision is not None:
+            self.collision.stop()
         self.operators.recording.close_all()  # recordings started at run time
 
     def __exit__(self, *exc: object) -> None:
         self.shutdown()
-
-    def _may_power(self, state: RobotState, event: str) -> str:
-        """Servos go on only when every joint has been measured: the held setpoint is where
-        the joints are, never a default the hardware did not report."""
-        missing = self.hardware.unmeasured(self.joints) if event == "enable" else ""
-        if not missing:
-            return ""
-        why = f"no measurement yet from {missing} (are the drives on and answering?)"
-        self.alarms.broadcast("ALERT", f"enable refused: {why}", igtl.StatusCode.NOT_READY)
-        return why
 
     def reset_monitors(self) -> None:
         """An operator's Reset: watchdog, supervisor and loss monitor cleared, and every
@@ -284,7 +196,7 @@ class Robot:
         from a driver, a controller or a handler puts the robot in FAULT with an alert
         naming it, and the daemon goes on serving operators."""
         self.ticks += 1
-        self._tick_now = now
+        self.effects.tick_now = now
         sup = self.supervisor
         sup.last_beat = now
         if not sup.armed:
@@ -338,57 +250,13 @@ class Robot:
         if failures is not None:
             self.alarms.hardware_fault(failures)
 
-    def _write(self, values: Sequence[float], now: float, effort: bool = False) -> None:
+    def write(self, values: Sequence[float], now: float, effort: bool = False) -> None:
         """Every drive its slice of ``values`` (position setpoints, or efforts), or none:
         a drive that is not ACTIVE or whose write fails latches FAULT, which powers every
         drive off in this tick."""
         failure = self.hardware.write(values, now, effort)
         if failure is not None:
             self.alarms.hardware_fault([failure])
-
-    # ================================================================== state changes
-    def _effect(self, old: RobotState, new: RobotState, event: str) -> str:
-        """The state machine's effector: every drive powered on entering POWERED, all or
-        nothing (a failure vetoes); off on leaving it (never refused, a drive that fails to stop
-        is named in an alert); reset and configured out of FAULT/ESTOP, or vetoed."""
-        failures: list[HardwareFailure] = []
-        hw = self.hardware
-        if new in POWERED and old not in POWERED:
-            failures = hw.activate()
-            if not failures:  # up: proven by a checked read and a write before it is said
-                now = self._tick_now if self._tick_now is not None else self.clock.now()
-                failures = hw.verify(self.joints, now, self.controller.commands_effort)
-                if failures:
-                    failures += hw.deactivate()
-        elif new not in POWERED and old in POWERED and (stopped := hw.deactivate()):
-            self.alarms.hardware_alert(stopped)
-        if new is RobotState.READY and old in (RobotState.FAULT, RobotState.ESTOP):
-            now = self._tick_now if self._tick_now is not None else self.clock.now()
-            failures = hw.reset(now)
-        return describe(failures)
-
-    def _on_transition(
-        self, old: RobotState, new: RobotState, event: str, reason: str, t: float
-    ) -> None:
-        self.data.state = new
-        stopped = new in (RobotState.FAULT, RobotState.ESTOP, RobotState.STOPPED)
-        why = f": {reason}" if reason else ""
-        log.log(logging.WARNING if stopped else logging.INFO, "state %s -> %s (%s)%s",
-                old.value, new.value, event, why)  # fmt: skip
-        self.motion.on_state(old, new)  # held and first setpoints (the drives: _effect)
-        if new is RobotState.RUNNING:
-            # Armed by the first packet after (re)starting: a slave waiting for its master
-            # holds still (no target), and a master that vanishes afterwards is caught.
-            self.streams.reset()
-        self.controller.on_state(old, new, self.clock.now())
-        text = f"{old.value} -> {new.value}{why}"
-        self.alarms.broadcast(new.value, text, STATE_STATUS_CODE[new], timestamp=t)
-        if old in (RobotState.FAULT, RobotState.ESTOP) and new is RobotState.READY:
-            self.alarms.cleared()
-        # a drive whose switch-off failed (Disable, a roll-back) may still be powered: the
-        # robot may not look merely off, it latches FAULT naming it (issue 36)
-        if new is RobotState.READY and (unsafe := self.hardware.unsafe()):
-            self.alarms.fault(f"switch-off failed: {describe(unsafe)}")
 
     # ================================================================== collaboration
     def handover(self, to: str, interface: str, now: float) -> str:
@@ -418,7 +286,7 @@ class Robot:
         return self.operators.describe_state()
 
     def snapshot(self) -> dict[str, Any]:
-        """Every statistic (GetStats, ``occd --stats``): built by the operator desk."""
+        """Every statistic (GetStats, ``occd --stats``): every part's, registered at build."""
         return self.operators.report()
 
 

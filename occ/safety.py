@@ -753,61 +753,97 @@ class LossMonitor:
     def _judge(
         self, seq: int | None, ts: float | None, now: float, rx: float, rx_lo: float
     ) -> Verdict:
+        """The verdict on one sample, in three steps: what its sequence number (or, without
+        one, its timestamp) says was lost before it (:meth:`_by_sequence`,
+        :meth:`_by_timestamp`, counted by :meth:`_count_gap`); whether its timestamp fits the
+        peer's clock (:meth:`_check_clock`); accepted (:meth:`_accept`)."""
         # 1. the sequence number: every plausible new number is accounted for, whatever its
         # timestamp (a late sample arrived: it is not lost), so only gaps prove a loss
-        gap = 0
-        where = ""
-        source = "sequence"
+        found: Verdict | tuple[int, str]
         if seq is not None:
-            seq &= _MASK32
-            last = self._last_seq
-            if last is None:
-                self._window = 1
-            else:
-                d = (seq - last) & _MASK32
-                if d == 0:
-                    return Verdict.DUPLICATE
-                if d >= _HALF32:  # behind the newest
-                    back = (last - seq) & _MASK32
-                    if back >= _WINDOW:
-                        return self._implausible(f"seq {seq} is {back} behind {last}", now)
-                    bit = 1 << back
-                    if self._window & bit:
-                        return Verdict.DUPLICATE
-                    self._window |= bit
-                    if self.lost_total > 0:
-                        self.lost_total -= 1
-                    return Verdict.LATE
-                lg = self._last_good
-                allowed = self.seq_slack + (
-                    0 if lg is None else int((now - lg) / self.period_s) + 1
-                )
-                if d > allowed:
-                    return self._implausible(
-                        f"seq {seq} is {d} ahead of {last} (at most {allowed} possible)", now
-                    )
-                gap = d - 1
-                self._window = ((self._window << d) | 1) & _WINDOW_MASK if d < _WINDOW else 1
-                if gap > self.max_consecutive:
-                    where = f"seq {(last + 1) & _MASK32}-{(seq - 1) & _MASK32} missing"
-            self._last_seq = seq
+            source = "sequence"
+            found = self._by_sequence(seq & _MASK32, now)
         elif self._last_seq is not None:
             return Verdict.UNSEQUENCED
         elif ts is not None and ts > 0.0:
             source = "timestamp"
-            last_ts = self._last_ts
-            if last_ts is not None:
-                dt = ts - last_ts
-                if dt == 0.0:
-                    return Verdict.DUPLICATE
-                if dt < 0.0:
-                    return Verdict.LATE
-                gap = max(0, round(dt / self.period_s) - 1)
-                if gap > self.max_consecutive:
-                    where = f"timestamp gap {dt * 1e3:.1f} ms"
-            self._last_ts = ts
+            found = self._by_timestamp(ts)
         else:
-            source = "deadline"
+            source, found = "deadline", (0, "")
+        if isinstance(found, Verdict):
+            return found
+        gap, where = found
+        self._count_gap(gap, where, source, now)
+        # 2. the timestamp, against the peer's learned clock offset
+        refused = self._check_clock(ts, rx, rx_lo)
+        if refused is not None:
+            return refused
+        # 3. accepted: resume after a hold
+        return self._accept(gap, source, now)
+
+    def _by_sequence(self, seq: int, now: float) -> Verdict | tuple[int, str]:
+        """A sequenced sample (``seq`` masked to 32 bits): its verdict when it ends here
+        (duplicate, late, implausible), else the packets missing before it and, when they are
+        more than ``max_consecutive``, which."""
+        gap = 0
+        where = ""
+        last = self._last_seq
+        if last is None:
+            self._window = 1
+        else:
+            d = (seq - last) & _MASK32
+            if d == 0:
+                return Verdict.DUPLICATE
+            if d >= _HALF32:  # behind the newest
+                return self._behind(seq, last, now)
+            lg = self._last_good
+            allowed = self.seq_slack + (0 if lg is None else int((now - lg) / self.period_s) + 1)
+            if d > allowed:
+                why = f"seq {seq} is {d} ahead of {last} (at most {allowed} possible)"
+                return self._implausible(why, now)
+            gap = d - 1
+            self._window = ((self._window << d) | 1) & _WINDOW_MASK if d < _WINDOW else 1
+            if gap > self.max_consecutive:
+                where = f"seq {(last + 1) & _MASK32}-{(seq - 1) & _MASK32} missing"
+        self._last_seq = seq
+        return gap, where
+
+    def _behind(self, seq: int, last: int, now: float) -> Verdict:
+        """A number behind the newest: late when it is in the window and not seen yet (no
+        longer lost), a duplicate when seen, implausible when further back."""
+        back = (last - seq) & _MASK32
+        if back >= _WINDOW:
+            return self._implausible(f"seq {seq} is {back} behind {last}", now)
+        bit = 1 << back
+        if self._window & bit:
+            return Verdict.DUPLICATE
+        self._window |= bit
+        if self.lost_total > 0:
+            self.lost_total -= 1
+        return Verdict.LATE
+
+    def _by_timestamp(self, ts: float) -> Verdict | tuple[int, str]:
+        """An unsequenced sample with a timestamp: its verdict when it ends here (duplicate,
+        late), else the periods missing before it and, past ``max_consecutive``, how long the
+        gap was."""
+        gap = 0
+        where = ""
+        last_ts = self._last_ts
+        if last_ts is not None:
+            dt = ts - last_ts
+            if dt == 0.0:
+                return Verdict.DUPLICATE
+            if dt < 0.0:
+                return Verdict.LATE
+            gap = max(0, round(dt / self.period_s) - 1)
+            if gap > self.max_consecutive:
+                where = f"timestamp gap {dt * 1e3:.1f} ms"
+        self._last_ts = ts
+        return gap, where
+
+    def _count_gap(self, gap: int, where: str, source: str, now: float) -> None:
+        """The packets missing before a sample counted; more than ``max_consecutive`` trips
+        the latch (once)."""
         self.lost_total += gap
         if gap > self.max_run:
             self.max_run = gap
@@ -815,10 +851,13 @@ class LossMonitor:
             lg = self._last_good
             since = now - lg if lg is not None else 0.0
             self._trip(f"{gap} consecutive packets lost ({where})", source, gap, now, since)
-        # 2. the timestamp, against the peer's learned clock offset: a sample too old (or from
-        # the future) is not applied and does not refresh the deadline, so a late stream
-        # holds and a silent one latches at the grace, as any late stream does; it is never
-        # called lost by itself (a busy sender stamps, then sends late)
+
+    def _check_clock(self, ts: float | None, rx: float, rx_lo: float) -> Verdict | None:
+        """The timestamp against the peer's learned clock offset: a sample too old (or from
+        the future) is not applied and does not refresh the deadline, so a late stream holds
+        and a silent one latches at the grace, as any late stream does; it is never called
+        lost by itself (a busy sender stamps, then sends late). None: it fits (the offset
+        learned from it)."""
         tol = self.timestamp_tolerance_s
         if tol is not None and ts is not None and ts > 0.0:
             age = rx - ts
@@ -831,7 +870,10 @@ class LossMonitor:
             else:
                 # slow tracking upward (drift), bounded per sample
                 self.offset_s = offset + 0.01 * (age - offset)
-        # 3. accepted: resume after a hold
+        return None
+
+    def _accept(self, gap: int, source: str, now: float) -> Verdict:
+        """Accepted: the deadline refreshed, and a stream that was held resumes."""
         self.accepted += 1
         lg = self._last_good
         since = now - lg if lg is not None else 0.0

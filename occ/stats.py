@@ -364,3 +364,30 @@ class LoopStats:
             f"late>1ms {self.late_over_1ms} ({pct:.3f}%); overruns {self.overruns}; "
             f"missed {self.missed_ticks}; cpu {self.cpu_percent:.1f}%"
         )
+
+
+class StatsRegistry:
+    """Every part's statistics, for ``GetStats`` (``occd --stats``): each part registers a
+    name and a callable giving its statistics; :meth:`report` starts from the loop's snapshot
+    and adds every entry under its name, in the order registered. Called off the loop thread
+    (the worker's), so every callable must be safe there."""
+
+    def __init__(self, base: Callable[[], dict[str, Any]]) -> None:
+        self._base = base
+        self._entries: list[tuple[str, Callable[[], Any]]] = []
+
+    def add(self, name: str, stats: Callable[[], Any]) -> None:
+        """``stats()`` reported under ``name`` (ValueError for a name taken twice)."""
+        if any(name == taken for taken, _ in self._entries):
+            raise ValueError(f"statistics {name!r} registered twice")
+        self._entries.append((name, stats))
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(name for name, _ in self._entries)
+
+    def report(self) -> dict[str, Any]:
+        snap = self._base()
+        for name, stats in self._entries:
+            snap[name] = stats()
+        return snap

@@ -21,10 +21,13 @@ import queue
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING
 
-from .clock import Clock
+from .clock import Clock, RealClock
 from .safety import Supervisor
+
+if TYPE_CHECKING:
+    from .config import SupervisorConfig
 
 __all__ = ["SupervisorThread", "Worker"]
 
@@ -62,13 +65,12 @@ class SupervisorThread:
         self.report = ""
 
     @classmethod
-    def for_robot(cls, robot: Any, loop_priority: int | None) -> SupervisorThread | None:
-        """The thread for the robot's ``safety.supervisor`` (started), one SCHED_FIFO priority
-        above the loop's unless it names its own; None when it is off or the clock is
+    def build(
+        cls, sv: SupervisorConfig, supervisor: Supervisor, clock: Clock, loop_priority: int | None
+    ) -> SupervisorThread | None:
+        """The thread for ``safety.supervisor`` (started), one SCHED_FIFO priority above the
+        loop's unless the config names its own; None when it is off or the clock is
         simulated."""
-        from .clock import RealClock
-
-        sv, supervisor, clock = robot.config.safety.supervisor, robot.supervisor, robot.clock
         if not sv.enabled or not isinstance(clock, RealClock):
             return None
         prio = sv.fifo_priority or (min(99, loop_priority + 1) if loop_priority else None)

@@ -994,13 +994,40 @@ def test_recording_commands_reach_the_recording_control_by_name(sim):
     assert op.reply_to(cid).metadata["Status"] == "SUCCESS"
 
 
-def test_a_robot_command_without_a_handler_stops_the_build(sim, monkeypatch):
-    """The command table (occ/commands.py ROBOT_COMMANDS) and the desk's handlers are one list:
-    a command added to the table alone is caught when the desk is built, naming it."""
+def test_the_thread_column_dispatches_a_row(sim, monkeypatch):
+    """The command table (occ/commands.py ROBOT_COMMANDS) is what dispatches: a row's
+    handler runs on the loop thread; a ``loop`` row's text is the reply in that tick, a
+    ``worker`` row's job runs on the worker thread, which sends the reply."""
+    import threading
+
     import occ.operators as operators
+    from occ.commands import success_reply
+    from occ.commands import LOOP, WORKER, CommandSpec
+    from occ.testing import wait_until
+
+    ran: list[tuple[str, str]] = []
+
+    def worker_row(desk, req, item, now):  # type: ignore[no-untyped-def]
+        ran.append(("handler", threading.current_thread().name))
+
+        def job() -> None:
+            ran.append(("job", threading.current_thread().name))
+            desk.port.reply(item, success_reply(req, "pong", timestamp=0.0))
+
+        return job
 
     table = dict(operators.ROBOT_COMMANDS)
-    table["frobnicate"] = next(iter(table.values()))
+    table["ping"] = CommandSpec("Ping", "operator", WORKER, "a test row", worker_row, busy="x")
+    table["echo"] = CommandSpec("Echo", "operator", LOOP, "a test row", lambda *a: "echoed")
     monkeypatch.setattr(operators, "ROBOT_COMMANDS", table)
-    with pytest.raises(AssertionError, match="without a handler.*'frobnicate'"):
-        operators.OperatorDesk(sim.robot)
+    op = sim.peer("operator")
+    sim.step(2)
+    cid = op.send_command("Echo")
+    sim.step(1)
+    assert op.reply_to(cid).metadata["Message"] == "echoed"
+    loop = threading.current_thread().name
+    cid = op.send_command("Ping")
+    sim.step(1)
+    reply = wait_until(lambda: op.reply_to(cid), timeout=5.0)
+    assert reply is not None and reply.metadata["Message"] == "pong"
+    assert ran == [("handler", loop), ("job", f"occ-{sim.robot.name}-report")]

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from occ.clock import RealClock, SimClock
+from occ.config import SupervisorConfig
 from occ.safety import Supervisor
 from occ.supervision import SupervisorThread, Worker
 from occ_testkit.testing import wait_until
@@ -278,17 +279,12 @@ def test_stopping_a_supervisor_thread_stuck_in_its_action_returns() -> None:
     assert not th._thread.is_alive()
 
 
-def _robot(enabled: bool, clock: object, fifo_priority: int | None = None) -> object:
-    """What SupervisorThread.for_robot reads of a Robot: the supervisor's settings, the
-    supervisor and the clock."""
-    from types import SimpleNamespace
-
-    sv = SimpleNamespace(enabled=enabled, fifo_priority=fifo_priority)
-    return SimpleNamespace(
-        config=SimpleNamespace(safety=SimpleNamespace(supervisor=sv)),
-        supervisor=Supervisor(timeout_s=0.020),
-        clock=clock,
-    )
+def _built(
+    enabled: bool, clock: RealClock | SimClock, loop: int | None, fifo_priority: int | None = None
+) -> SupervisorThread | None:
+    """SupervisorThread.build from the supervisor's settings, the supervisor and the clock."""
+    sv = SupervisorConfig(enabled=enabled, fifo_priority=fifo_priority)
+    return SupervisorThread.build(sv, Supervisor(timeout_s=0.020), clock, loop)
 
 
 @pytest.mark.parametrize(
@@ -301,11 +297,11 @@ def test_the_robots_supervisor_thread_runs_one_priority_above_the_loop(
     """On a real clock the robot's supervisor gets its thread, started, one SCHED_FIFO
     priority above the loop's (at most 99) unless the config names its own; no priority when
     the loop has none."""
-    robot = _robot(True, RealClock(), configured)
-    th = SupervisorThread.for_robot(robot, loop)
+    clock = RealClock()
+    th = _built(True, clock, loop, configured)
     assert th is not None
     try:
-        assert th.supervisor is robot.supervisor and th.clock is robot.clock  # type: ignore[attr-defined]
+        assert th.clock is clock and th.supervisor.timeout_s == 0.020
         assert th.fifo_priority == expected
         assert wait_until(lambda: th.wakeups > 0, 5.0)  # started: it checks
     finally:
@@ -313,6 +309,6 @@ def test_the_robots_supervisor_thread_runs_one_priority_above_the_loop(
 
 
 def test_no_supervisor_thread_when_it_is_off_or_the_clock_is_simulated() -> None:
-    assert SupervisorThread.for_robot(_robot(False, RealClock()), 60) is None
-    assert SupervisorThread.for_robot(_robot(True, SimClock()), 60) is None
-    assert SupervisorThread.for_robot(_robot(False, SimClock()), 60) is None
+    assert _built(False, RealClock(), 60) is None
+    assert _built(True, SimClock(), 60) is None
+    assert _built(False, SimClock(), 60) is None
