@@ -55,6 +55,8 @@ MODULES: tuple[str, ...] = (
     "occ.controllers",
     "occ.controllers.teleop",
     "occ.samples",
+    "occ.decoders",
+    "occ.packers",
     "occ.hardware",
     "occ.streams",
     "occ.motion",

@@ -113,8 +113,6 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, BeforeValidator, ConfigDict, DirectoryPath, Field, ValidationError
 
-from igtl.transport.common import RateLimit
-
 from ..commands import Deferred
 from ..config import (
     Bool,
@@ -130,10 +128,11 @@ from ..config import (
     _resolve_path,
 )
 from ..errors import CommandError, ConfigError, KinematicsError, LibraryError
+from ..events import PointsOut, PolylineOut
 from ..fixtures import ForbiddenPlane, ForbiddenSphere, forbidden_hit
 from ..joint import JointLimits
-from ..keyframe_inputs import items_from_message
-from ..outputs import PointsOut, PolylineOut
+from ..keyframe_inputs import items_from_event
+from ..ratelimit import RateLimit
 from ..safety import RobotState
 from ..samples import quaternion_to_rotation, rotation_to_quaternion
 from ..trajectory import Keyframe, Trajectory, plan
@@ -143,8 +142,8 @@ from . import Controller, ControllerContext, Problem, SourceFn
 if TYPE_CHECKING:
     from ..commands import Request
     from ..data import RobotData
+    from ..events import InputEvent
     from ..frame import Frame
-    from ..interfaces import Inbound
     from ..outputs import Output
 
 log = logging.getLogger(__name__)
@@ -1052,17 +1051,16 @@ class KeyframeController(Controller):
                 self._set_plan(None)
 
     # ------------------------------------------------------------------ inputs
-    def on_input(self, item: Inbound, now: float) -> None:
+    def on_input(self, event: InputEvent, now: float) -> None:
         """Keyframes from 3D Slicer: a Markups POINT list or a TRAJ (a discrete input)."""
-        msg = item.msg
-        if msg.message_type not in ("POINT", "TRAJ"):
+        if event.kind not in ("POINT", "TRAJ"):
             return
-        if self.p.input_interface is not None and item.interface != self.p.input_interface:
+        if self.p.input_interface is not None and event.interface != self.p.input_interface:
             return
         assert self.data is not None
-        source = f"{msg.message_type} {msg.device_name!r} from {item.interface}"
+        source = f"{event.describe()} from {event.interface}"
         try:
-            items = items_from_message(msg, self.p.point_interval_s)
+            items = items_from_event(event, self.p.point_interval_s)
             kset = make_set(
                 "cartesian",
                 items,

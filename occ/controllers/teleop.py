@@ -68,15 +68,15 @@ from pydantic import BaseModel
 
 from ..collab import SlaveSelector
 from ..config import DaemonConfig
-from ..contact import tissue_from_message
+from ..contact import tissue_from_event
 from ..errors import CommandError, ConfigError, KinematicsError, OCCError, caused
+from ..events import InputEvent, VectorOut
 from ..fixture_defs import Defaults, DefinitionError, PatientMapping, from_markups_file
 from ..forces import SlaveForce, sensor_force
 from ..forceviz import ForceView, check_outputs
 from ..gripper import GripperFollower, GripperSource
 from ..haptics import MasterFixtures
 from ..joint import step_toward
-from ..outputs import VectorOut
 from ..passivity import MasterPort, OnePort, SlavePort, parse_energy
 from ..returnlink import ReturnLink
 from ..safety import RobotState
@@ -88,7 +88,6 @@ from .teleop_params import MasterParams, SlaveParams
 if TYPE_CHECKING:
     from ..commands import Request
     from ..data import RobotData
-    from ..interfaces import Inbound
     from ..outputs import Outgoing, Output
 
 log = logging.getLogger(__name__)
@@ -332,7 +331,7 @@ class MasterController(Controller):
             return
         if sample.kind == "TRANSFORM" and not (is_input and "kind" not in sample.meta):
             # a TRANSFORM that defines a fixture (Slicer's transform of a box, a plane)
-            if self._fixture_input(sample.msg, now) is not None:
+            if self._fixture_input(sample, now) is not None:
                 return
         if not is_input:
             return
@@ -343,23 +342,22 @@ class MasterController(Controller):
         self.target = np.array([x * MM, y * MM, z * MM])
         self.handle_quat = sample.quaternion
 
-    def on_input(self, item: Inbound, now: float) -> None:
+    def on_input(self, event: InputEvent, now: float) -> None:
         """Fixture definitions (VFIXTURE, Markups POINT, POLYDATA) that share a stream, and
         the external force (a SENSOR ``external_force_device``: CRTK ``servo_cf``)."""
-        msg = item.msg
-        if self.external_device is not None and msg.device_name == self.external_device:
-            force, error = sensor_force(msg)
+        if self.external_device is not None and event.device == self.external_device:
+            force, error = sensor_force(event)
             if force is None:
-                raise CommandError(f"{msg.message_type} {msg.device_name!r}: {error}")
+                raise CommandError(f"{event.describe()}: {error}")
             self.external_n = force
             self._t_external = now
             self.external_samples += 1
             return
-        self._fixture_input(msg, now)
+        self._fixture_input(event, now)
 
-    def _fixture_input(self, msg: Any, now: float) -> str | None:
+    def _fixture_input(self, event: Any, now: float) -> str | None:
         try:
-            return self.fixtures.on_message(msg, now)
+            return self.fixtures.on_event(event, now)
         except DefinitionError as err:
             raise caused(CommandError(str(err)), err) from err
 
@@ -827,7 +825,7 @@ class MasterController(Controller):
             return None
         self._models_sent[id(out)] = version
         assert self.ctx is not None
-        return self.fixtures.model_message(out.device, self.ctx.clock.wall_time())
+        return self.fixtures.model(out.device, self.ctx.clock.wall_time())
 
     def _source_contact(self, out: Output, now: float) -> Outgoing | None:
         """The proxy and contact state, while in contact and once when it ends."""
@@ -838,7 +836,7 @@ class MasterController(Controller):
             return None
         self._contact_sent[id(out)] = touching
         assert self.ctx is not None
-        return self.fixtures.proxy_message(out.device, self.ctx.clock.wall_time())
+        return self.fixtures.proxy(out.device, self.ctx.clock.wall_time())
 
     def _source_force(self, out: Output, now: float) -> VectorOut:
         """The displayed force (N, the master's axes: fixtures and the slave's feedback, as
@@ -1129,18 +1127,18 @@ class SlaveController(Controller):
         except ValueError as err:
             raise caused(CommandError(str(err)), err) from err
 
-    def on_input(self, item: Inbound, now: float) -> None:
-        if self._tissue(item.msg):
+    def on_input(self, event: InputEvent, now: float) -> None:
+        if self._tissue(event):
             return
         if self.force is not None:
-            self.force.on_input(item.msg, item.interface, now)
+            self.force.on_input(event, now)
 
-    def _tissue(self, msg: Any) -> bool:
+    def _tissue(self, event: Any) -> bool:
         """A tissue definition from 3D Slicer (``kind=tissue``: occ/contact.py) for the
         simulated world: True when it was one (CommandError when it is wrong, or when this
         robot has no simulated world to put it in)."""
         try:
-            found = tissue_from_message(msg)
+            found = tissue_from_event(event)
         except ValueError as err:
             raise caused(CommandError(str(err)), err) from err
         if found is None:
@@ -1281,7 +1279,7 @@ class SlaveController(Controller):
 
     def on_sample(self, sample: PoseSample, now: float) -> None:
         if sample.kind == "TRANSFORM" and sample.meta.get("kind") == "tissue":
-            self._tissue(sample.msg)
+            self._tissue(sample)
             return
         if self.base_interface and sample.interface == self.base_interface:
             if sample.kind == "TRANSFORM" and sample.device == self.base_device:

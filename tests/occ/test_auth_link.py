@@ -13,8 +13,8 @@ import igtl
 from igtl.auth import sign, verify
 from igtl.transport import UDPEndpoint
 from occ.clock import SimClock
-from occ.loader import parse_config
 from occ.errors import ConfigError
+from occ.loader import parse_config
 from occ.robot import Robot, build_robot
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -176,11 +176,10 @@ def _keyed_pair(tmp_path: Path, slave_keyed: bool = True) -> tuple[Robot, Robot]
     if slave_keyed:
         slave = _with_key("slave.yaml", tmp_path, lambda t: t.replace("port: 18946", "port: 0"))
     else:
-        cfg = parse_config(
-            (ROOT / "configs" / "slave.yaml").read_text(), base_dir=ROOT / "configs"
+        cfg = parse_config((ROOT / "configs" / "slave.yaml").read_text(), base_dir=ROOT / "configs")
+        cfg = cfg.model_copy(
+            update={"interfaces": tuple(i.model_copy(update={"port": 0}) for i in cfg.interfaces)}
         )
-        cfg = cfg.model_copy(update={"interfaces": tuple(
-            i.model_copy(update={"port": 0}) for i in cfg.interfaces)})
         slave = build_robot(cfg, clock=SimClock())
         slave.configure()
         slave.activate()

@@ -18,9 +18,9 @@ import threading
 from collections.abc import Callable, Sequence
 from typing import Any
 
-import igtl
 import pytest
 
+import igtl
 from occ.clock import SimClock
 from occ.drivers import register_driver
 from occ.drivers.base import DriverState

@@ -18,8 +18,8 @@ import igtl
 from igtl.transport import TCPClient, TCPServer
 from igtl.transport.common import HostLogLimits
 from occ.clock import SimClock
-from occ.loader import parse_config
 from occ.errors import ConfigError
+from occ.loader import parse_config
 from occ.robot import Robot, build_robot
 from occ.safety import RobotState
 from occ.testing import wait_until as wait_for

@@ -16,14 +16,9 @@ other senders' datagrams. ``KNOWN_FAILING`` stays as the place for a case that m
 
 from __future__ import annotations
 
-
 import pytest
 
 from .tooling import load_tool
-
-
-
-
 
 attack = load_tool("attack")
 
