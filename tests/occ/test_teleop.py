@@ -1,4 +1,4 @@
-"""The teleoperation mapping of the slave, exact to float precision (occ/controllers/teleop.py).
+"""The teleoperation mapping of the slave, exact to float precision (occ/controllers/teleop/).
 
 ``target = slave_ref + scale * R * (master - master_ref)``: the slave robot (configs/slave.yaml)
 on in-process channels, stepped tick by tick; the master's stream comes from a peer. The
