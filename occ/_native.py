@@ -54,6 +54,8 @@ MODULES: tuple[str, ...] = (
     "occ.haptics",
     "occ.controllers",
     "occ.controllers.teleop.common",
+    "occ.controllers.teleop.phaselock",
+    "occ.controllers.teleop.sixdof",
     "occ.controllers.teleop.master",
     "occ.controllers.teleop.slave",
     "occ.controllers.teleop",

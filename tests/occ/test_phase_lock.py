@@ -52,15 +52,15 @@ def test_phase_lock_brings_arrivals_to_the_target_phase() -> None:
     )
     # packets arrive 0.35 ms after each deadline: they would wait 0.65 ms for the next tick
     for i in range(250):
-        ctrl._track_phase(i * 0.002 + 0.00035 + (1e-5 if i % 7 == 0 else 0.0))
+        ctrl.phase.track(i * 0.002 + 0.00035 + (1e-5 if i % 7 == 0 else 0.0), ctrl.ctx)
     assert len(shifts) == 1
     # target (phase_lock_us=200): arrive 0.2 ms before a deadline, at phase 0.8 ms -> shift -0.45 ms
     assert shifts[0] == pytest.approx(-0.00045, abs=1e-6)
     # once locked (arrivals around phase 0.8 ms), no further shifts
     fake_loop.t0 = shifts[0]
     for i in range(250):
-        ctrl._track_phase(i * 0.002 + 0.00035 + (0.00015, -0.00015, 0.0)[i % 3])
-    assert len(shifts) == 1 and abs(ctrl.phase_error_us or 0.0) < 1.0
+        ctrl.phase.track(i * 0.002 + 0.00035 + (0.00015, -0.00015, 0.0)[i % 3], ctrl.ctx)
+    assert len(shifts) == 1 and abs(ctrl.phase.error_us or 0.0) < 1.0
 
 
 def test_phase_lock_median_survives_the_wrap_around() -> None:
@@ -78,8 +78,8 @@ def test_phase_lock_median_survives_the_wrap_around() -> None:
     )
     # target phase 0.95 ms; arrivals at 0.95 +- 0.15 ms, half of them past the deadline (0.1)
     for i in range(250):
-        ctrl._track_phase(i * 0.002 + 0.00095 + (0.00015, -0.00015, 0.0)[i % 3])
-    assert shifts == [] and abs(ctrl.phase_error_us or 0.0) < 1.0
+        ctrl.phase.track(i * 0.002 + 0.00095 + (0.00015, -0.00015, 0.0)[i % 3], ctrl.ctx)
+    assert shifts == [] and abs(ctrl.phase.error_us or 0.0) < 1.0
 
 
 def _locked_slave(shifts: list[float]) -> SlaveController:
@@ -127,7 +127,7 @@ def test_the_phase_is_the_masters_sample_time_else_the_reception_time(stamped: b
         )
         ctrl.on_sample(pose_sample("master", None, msg, t_rx), t_rx)  # type: ignore[arg-type]
     assert shifts == [pytest.approx(-0.00045, abs=2e-6)]
-    assert ctrl.phase_shifts == 1 and ctrl.stats()["phase_error_us"] == pytest.approx(-450.0, abs=2)
+    assert ctrl.phase.shifts == 1 and ctrl.stats()["phase_error_us"] == pytest.approx(-450.0, abs=2)
     assert ctrl.samples == 250 and ctrl.last_seq == 250 and ctrl.last_sample_t == t_rx
     assert (ctrl.pending_ts is not None) is stamped
 

@@ -9,7 +9,6 @@ from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pinocchio as pin
 import pydantic.main  # noqa: F401 - mypyc: the module its run-time BaseModel checks look up
 from mypy_extensions import mypyc_attr
 from pydantic import BaseModel
@@ -24,7 +23,7 @@ from ...gripper import GripperFollower
 from ...joint import step_toward
 from ...passivity import SlavePort, parse_energy
 from ...safety import RobotState
-from ...samples import PoseSample, quaternion_to_rotation, rotation_to_quaternion
+from ...samples import PoseSample, rotation_to_quaternion
 from ...stats import Histogram
 from .. import Controller, ControllerContext, Problem, SourceFn
 from ..teleop_params import SlaveParams
@@ -35,6 +34,8 @@ if TYPE_CHECKING:
     from ...outputs import Outgoing, Output
 
 from .common import LIMIT_GAIN, MM, STATUS_OK, _interfaces_exist, _m, _mm
+from .phaselock import PhaseLock
+from .sixdof import SixDof
 
 log = logging.getLogger(__name__)
 
@@ -63,11 +64,8 @@ class SlaveController(Controller):
         self.base_mm = p.base_mm
         self.base_interface = p.base_interface
         self.base_device = p.base_device
-        self.phase_lock = None if p.phase_lock_us is None else p.phase_lock_us * 1e-6
-        self._phases: list[float] = []
-        self.phase_shifts = 0
-        self.phase_error_us: float | None = None
-        self.phase_history: list[float] = []
+        #: the loop phase-locked to the master's stream (phaselock.py), or None
+        self.phase = None if p.phase_lock_us is None else PhaseLock(p.phase_lock_us * 1e-6)
         self.master_pos: tuple[float, float, float] | None = None
         self.master_run = False
         self.master_clutch = False
@@ -106,12 +104,10 @@ class SlaveController(Controller):
         #: orientation following (a 6-DOF arm): the master's quaternion, and at the
         #: re-index its rotation and the tool's (base frame)
         self.follow_orientation = p.orientation in ("follow", "rcm")
-        self.rcm_mm = p.rcm_mm if p.orientation == "rcm" else None
+        self.six = SixDof(
+            self.rotation, p.rotation_scale, p.rcm_mm if p.orientation == "rcm" else None
+        )
         self.rcm_error_max = 0.0
-        self.rotation_scale = p.rotation_scale
-        self.master_quat: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
-        self._rm_ref: np.ndarray | None = None
-        self._rs_ref: np.ndarray | None = None
         #: ``absolute`` mapping (an external command source, CRTK ``servo_cp``)
         self.absolute = p.mapping == "absolute"
         self.max_jump = p.max_jump_mm * MM
@@ -360,6 +356,7 @@ class SlaveController(Controller):
 
     def configure(self, data: RobotData, ctx: ControllerContext) -> None:
         super().configure(data, ctx)
+        self.six.bind(data, ctx)
         # absolute mapping: a step per tick within the velocity limits (the drivers' check
         # allows the limit itself; 0.9 keeps clear of it)
         self._step = [0.9 * lim.velocity * ctx.period_s for lim in ctx.joint_limits]
@@ -425,7 +422,8 @@ class SlaveController(Controller):
             self.source = sample.interface
             self.master_ref = None
             self.master_run = False
-            self._phases.clear()
+            if self.phase is not None:
+                self.phase.phases.clear()
             self._port_active = False  # the new master's energy, when it sends some
         self.samples += 1
         self.last_seq = sample.seq
@@ -434,16 +432,17 @@ class SlaveController(Controller):
         if energy is not None:
             self._master_energy(energy)
         ts = sample.t_sample
-        if self.phase_lock is not None:
+        phase = self.phase
+        if phase is not None:
             clock = self.ctx.clock  # type: ignore[union-attr]
             if ts > 0.0:  # when the master sampled, on our loop's clock
-                self._track_phase(ts - (clock.wall_time() - clock.now()))
+                phase.track(ts - (clock.wall_time() - clock.now()), self.ctx)
             else:
-                self._track_phase(sample.t_rx)
+                phase.track(sample.t_rx, self.ctx)
         self.pending_ts = ts if ts > 0.0 else None
         self.pending_rx = sample.t_rx
         self.master_pos = (pos[0] * MM, pos[1] * MM, pos[2] * MM)
-        self.master_quat = sample.quaternion
+        self.six.master_quat = sample.quaternion
         self._fresh = True
         if self.gripper is not None:
             self.gripper.on_meta(sample.meta.get("gripper"))
@@ -452,44 +451,6 @@ class SlaveController(Controller):
         if (run and not self.master_run) or (self.master_clutch and not clutch):
             self.master_ref = None  # re-index on the next update
         self.master_run, self.master_clutch = run, clutch
-
-    def _track_phase(self, t_sample: float) -> None:
-        """Phase-lock the loop to the master's stream.
-
-        Both loops tick at 1 kHz on the same clock but with an arbitrary phase between them, so
-        without this a sample waits anywhere from 0 to 1 ms (constant for a whole run) before
-        the tick that uses it. The phase used is the master's *sample time* (its POSITION
-        timestamp, same machine clock; the reception time for peers without timestamps), which
-        does not depend on which of our threads read the datagram. Every 250 samples the
-        median phase within the period is compared with ``phase_lock_us`` before the next
-        deadline, and the deadlines are shifted when it is off by more than 100 us (median:
-        robust to the odd late packet). ``phase_lock_us`` must cover the transport time
-        (p50 ~50-200 us here); the tick polls the socket itself, so a packet that arrived
-        during the clock's spin is still used at once.
-        """
-        ctx = self.ctx
-        lock = self.phase_lock
-        assert ctx is not None and lock is not None  # called only while phase-locking
-        t0 = ctx.loop_t0()
-        if t0 != t0:  # NaN: the loop is not running (simulated-time tests stepping ticks)
-            return
-        period = ctx.period_s
-        # deviation from the target phase, wrapped to [-period/2, period/2): taking the median
-        # of raw phases would be wrong when they straddle the wrap-around point
-        target = period - lock
-        half = period / 2
-        self._phases.append((t_sample - t0 - target + half) % period - half)
-        if len(self._phases) < 250:
-            return
-        phases = sorted(self._phases)
-        self._phases.clear()
-        error = phases[len(phases) // 2]
-        self.phase_error_us = round(error * 1e6, 1)
-        self.phase_history.append(self.phase_error_us)
-        del self.phase_history[:-20]
-        if abs(error) > 100e-6:  # arrivals jitter by ~100 us here: don't chase the noise
-            ctx.shift(error)
-            self.phase_shifts += 1
 
     def _master_energy(self, text: str) -> None:
         """The master's energy in (``energy_j``: J at this instrument, cumulative): the budget
@@ -558,8 +519,7 @@ class SlaveController(Controller):
             here = data.commanded()
             self.slave_ref = ctx.frame.tip_position(here)
             if self.follow_orientation:
-                self._rm_ref = quaternion_to_rotation(self.master_quat)
-                self._rs_ref = np.asarray(ctx.frame.fk(here))[:3, :3].copy()
+                self.six.reindex(here)
             self.reindexes += 1
             self._q_last = list(here)
             sx, sy, sz = self.slave_ref
@@ -595,7 +555,8 @@ class SlaveController(Controller):
             return self._q_last
         try:
             if self.follow_orientation:
-                q, clamped = self._solve_pose(target)
+                q, clamped, limited = self.six.solve(target, self._q_last)
+                self.rate_limited += limited
             else:
                 q, clamped = ctx.frame.ik_clamped(target, data.q)
         except (KinematicsError, ValueError):
@@ -754,8 +715,8 @@ class SlaveController(Controller):
         try:
             if self.follow_orientation:
                 pose = np.asarray(ctx.frame.fk(setpoint), dtype=float).copy()
-                if self.rcm_mm is not None:
-                    pose[:3, :3] = self.rcm_rotation(target)
+                if self.six.rcm_mm is not None:
+                    pose[:3, :3] = self.six.rcm_rotation(target, self._q_last)
                 pose[:3, 3] = target
                 q = ctx.frame.solve_ik(pose, setpoint, clamp=True, method="dls").q.tolist()
             else:
@@ -765,65 +726,6 @@ class SlaveController(Controller):
             return
         setpoint[:] = q
         self.released_mm += step / MM
-
-    def rcm_rotation(self, target: tuple[float, float, float]) -> np.ndarray:
-        """The tool's orientation for a tip at ``target`` (base frame) through the port: its z
-        axis from the port to the tip, its x axis the current one's projection (the roll
-        kept)."""
-        data, ctx = self.data, self.ctx
-        assert data is not None and ctx is not None and self.rcm_mm is not None
-        b = data.base
-        port = b[:3, :3].T @ (np.asarray(self.rcm_mm, dtype=float) * MM - b[:3, 3])
-        z = np.asarray(target) - port
-        n = float(np.linalg.norm(z))
-        if n < 1e-6:
-            raise KinematicsError("the tip is at the port: the tool's axis is not defined")
-        z /= n
-        here = self._q_last if self._q_last is not None else data.commanded()
-        x = np.asarray(ctx.frame.fk(here))[:3, 0]
-        x = x - float(x @ z) * z
-        if float(np.linalg.norm(x)) < 1e-9:  # x along the new axis: any perpendicular
-            x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
-        x /= float(np.linalg.norm(x))
-        return np.column_stack((x, np.cross(z, x), z))
-
-    def target_rotation(self) -> np.ndarray:
-        """The tool's orientation target (base frame): the handle's rotation since the
-        re-index, ``dR = R_m R_m0^T`` (scaled in angle by ``rotation_scale``), seen in the
-        slave's axes through ``rotation`` (``A dR A^T``), applied to the tool's orientation at
-        the re-index."""
-        assert self._rm_ref is not None and self._rs_ref is not None
-        d = quaternion_to_rotation(self.master_quat) @ self._rm_ref.T
-        if self.rotation_scale != 1.0:
-            d = pin.exp3(self.rotation_scale * pin.log3(d))
-        a = self.rotation
-        return np.asarray(a @ d @ a.T @ self._rs_ref)
-
-    def _solve_pose(self, target: tuple[float, float, float]) -> tuple[list[float], bool]:
-        """The full pose (position ``target`` and :meth:`target_rotation`) by damped least
-        squares from the last solution (the joint limits held)."""
-        ctx, data = self.ctx, self.data
-        assert ctx is not None and data is not None
-        pose = np.eye(4)
-        pose[:3, :3] = (
-            self.rcm_rotation(target) if self.rcm_mm is not None else self.target_rotation()
-        )
-        pose[:3, 3] = target
-        seed = self._q_last if self._q_last is not None else data.q
-        res = ctx.frame.solve_ik(pose, seed, clamp=True, method="dls")
-        q = res.q.tolist()
-        # the velocity limits, all joints scaled alike (the tool keeps its direction; a drive
-        # clamping each joint on its own would bend the path): the step is written in one tick
-        prev = self._q_last if self._q_last is not None else data.commanded()
-        ratio = 0.0
-        for i, lim in enumerate(ctx.joint_limits):
-            r = abs(q[i] - prev[i]) / (0.9 * lim.velocity * ctx.period_s)
-            if r > ratio:
-                ratio = r
-        if ratio > 1.0:
-            q = [p + (v - p) / ratio for p, v in zip(prev, q, strict=True)]
-            self.rate_limited += 1
-        return q, bool(res.clamped)
 
     def _update_absolute(self, data: RobotData, ctx: ControllerContext) -> Sequence[float] | None:
         """The ``absolute`` mapping: each sample is the tip's target in the patient frame.
@@ -909,6 +811,7 @@ class SlaveController(Controller):
         }
 
     def stats(self) -> dict[str, Any]:
+        phase = self.phase
         out: dict[str, Any] = {
             "mapping": "absolute" if self.absolute else "relative",
             "samples": self.samples,
@@ -920,9 +823,9 @@ class SlaveController(Controller):
             "source_changes": self.source_changes,
             "ik_clamped": self.clamped,
             "ik_failures": self.ik_failures,
-            "phase_shifts": self.phase_shifts,
-            "phase_error_us": self.phase_error_us,
-            "phase_history_us": list(self.phase_history),
+            "phase_shifts": phase.shifts if phase is not None else 0,
+            "phase_error_us": phase.error_us if phase is not None else None,
+            "phase_history_us": list(phase.history) if phase is not None else [],
             # the references of the last re-index (mm): the tracking error of a recording is
             # measured against slave_ref + scale * (master - master_ref) (tools/soak.py paper)
             "master_ref_mm": _mm(self.master_ref),
