@@ -20,7 +20,8 @@ import time
 from collections.abc import Callable
 
 import igtl
-from occ.fixture_defs import Defaults, PatientMapping, compile_definitions, from_message
+from occ.decoders import event_of
+from occ.fixture_defs import Defaults, PatientMapping, compile_definitions, from_event
 from occ.fixtures import (
     AccessibleSphere,
     FixtureSet,
@@ -124,7 +125,7 @@ def main() -> None:
         mapping = PatientMapping(0.1)
 
         def apply(msg: igtl.Message = msg, mapping: PatientMapping = mapping) -> None:
-            defs = from_message(msg, Defaults())
+            defs = from_event(event_of(msg), Defaults())
             assert defs is not None
             FixtureSet(compile_definitions(defs, mapping))
 

@@ -100,7 +100,7 @@ __all__ = [
     "RegionError",
     "mesh_region",
     "plane_region",
-    "regions_from_message",
+    "regions_from_event",
     "sphere_region",
 ]
 
@@ -263,18 +263,18 @@ def _finite(values: Sequence[float], name: str, what: str) -> tuple[float, float
     return (x, y, z)
 
 
-def regions_from_message(msg: Any) -> tuple[str, list[Region]] | None:
+def regions_from_event(event: Any) -> tuple[str, list[Region]] | None:
     """Forbidden regions from 3D Slicer: a message with metadata ``kind=forbidden-region``, or
     None for any other. A Markups point list (POINT): a sphere per visible point (its radius,
     else metadata ``radius``, else 10 mm); a Markups plane (TRANSFORM): the half-space behind
     it, its z axis the normal out of the forbidden side (as the fixtures' planes); a model
     (POLYDATA): its polygons, triangulated, as a mesh. Returns (the definition's name: the
     device name, its regions: none removes it). RegionError for one that cannot be used."""
-    meta = getattr(msg, "metadata", {}) or {}
+    meta = event.meta or {}
     if meta.get("kind", "").strip().lower() != REGION_KIND:
         return None
-    name = msg.device_name or "region"
-    mtype = msg.message_type
+    name = event.device or "region"
+    mtype = event.kind
     if mtype == "POINT":
         try:
             radius = float(meta.get("radius", 10.0))
@@ -283,24 +283,24 @@ def regions_from_message(msg: Any) -> tuple[str, list[Region]] | None:
                 f"region {name!r}: radius {meta.get('radius')!r} is no number"
             ) from None
         out = []
-        for i, p in enumerate(x for x in msg.points if x.rgba[3] > 0):
+        for i, p in enumerate(x for x in event.points if x.visible):
             r = float(p.radius) if p.radius > 0.0 else radius
             out.append(sphere_region(f"{name}:{i}", p.position, r, source=name))
         return name, out
     if mtype == "TRANSFORM":
-        m = np.asarray(msg.matrix, dtype=float)
+        m = np.asarray(event.matrix, dtype=float)
         if m.shape != (4, 4) or not np.isfinite(m).all():
             raise RegionError(f"region {name!r}: not a transform")
         point, normal = m[:3, 3].tolist(), m[:3, 2].tolist()
         return name, [plane_region(name, point, normal, source=name)]
     if mtype == "POLYDATA":
-        pts = np.asarray(msg.points, dtype=float).reshape(-1, 3)
+        pts = np.asarray(event.points, dtype=float).reshape(-1, 3)
         tris: list[tuple[int, int, int]] = []
-        for i, cell in enumerate(msg.polygons):
+        for i, cell in enumerate(event.polygons):
             if len(cell) < 3:
                 raise RegionError(f"region {name!r}: polygon {i} has fewer than 3 points")
             tris.extend((cell[0], cell[k], cell[k + 1]) for k in range(1, len(cell) - 1))
-        for strip in getattr(msg, "strips", ()) or ():
+        for strip in event.strips:
             for k in range(len(strip) - 2):
                 a, b, c = strip[k], strip[k + 1], strip[k + 2]
                 tris.append((a, b, c) if k % 2 == 0 else (b, a, c))

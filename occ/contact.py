@@ -2,7 +2,7 @@
 
 A simulated slave in free space never touches anything, so no force exists to feed back
 (issue 27). The config's ``environment`` puts tissue in the patient frame (the frame of 3D
-Slicer's ``Tip``, mm), and 3D Slicer can add or move it at run time (:func:`tissue_from_message`:
+Slicer's ``Tip``, mm), and 3D Slicer can add or move it at run time (:func:`tissue_from_event`:
 a Markups point list or plane with the attribute ``kind=tissue``, sent to the slave's operator
 port):
 
@@ -95,7 +95,7 @@ class Contact:
         return (mag * n[0], mag * n[1], mag * n[2]), d
 
 
-def tissue_from_message(msg: Any) -> tuple[str, list[Contact]] | None:
+def tissue_from_event(event: Any) -> tuple[str, list[Contact]] | None:
     """Tissue defined in 3D Slicer: a message with metadata ``kind=tissue``, or None for any
     other. A Markups point list (POINT) is spheres (each visible point's radius, else
     ``radius`` metadata, else 10 mm); a Markups plane sent as a TRANSFORM is a wall through its
@@ -103,10 +103,10 @@ def tissue_from_message(msg: Any) -> tuple[str, list[Contact]] | None:
     is for the fixtures. ``stiffness`` (N/mm, default 0.5) and ``damping`` (N s/mm) from the
     metadata. Returns (the definition's name: its device name, the contacts; none when every
     point was removed). ValueError for a definition that is no tissue."""
-    meta = getattr(msg, "metadata", {}) or {}
+    meta = event.meta or {}
     if meta.get("kind") != "tissue":
         return None
-    name = msg.device_name or "tissue"
+    name = event.device or "tissue"
 
     def number(key: str, default: float, low: float) -> float:
         try:
@@ -119,18 +119,18 @@ def tissue_from_message(msg: Any) -> tuple[str, list[Contact]] | None:
 
     k = number("stiffness", 0.5, 0.0)
     b = number("damping", 0.0, 0.0)
-    if msg.message_type == "POINT":
+    if event.kind == "POINT":
         radius = number("radius", 10.0, 1e-9)
         out = []
-        for i, p in enumerate(x for x in msg.points if x.rgba[3] > 0):
+        for i, p in enumerate(x for x in event.points if x.visible):
             r = float(p.radius) if p.radius > 0.0 else radius
             c = tuple(float(v) for v in p.position)
             if not all(math.isfinite(v) for v in (*c, r)):
                 raise ValueError(f"tissue {name!r}: point {i} is not a point")
             out.append(Contact(f"{name}:{i}", "sphere", c, (0.0, 0.0, 1.0), r, k, b))  # type: ignore[arg-type]
         return name, out
-    if msg.message_type == "TRANSFORM":
-        m = np.asarray(msg.matrix, dtype=float)
+    if event.kind == "TRANSFORM":
+        m = np.asarray(event.matrix, dtype=float)
         if m.shape != (4, 4) or not np.all(np.isfinite(m)):
             raise ValueError(f"tissue {name!r}: not a transform")
         n = m[:3, 2]
@@ -140,7 +140,7 @@ def tissue_from_message(msg: Any) -> tuple[str, list[Contact]] | None:
         point = tuple(float(v) for v in m[:3, 3])
         normal = tuple(float(v) / norm for v in n)
         return name, [Contact(name, "wall", point, normal, 0.0, k, b)]  # type: ignore[arg-type]
-    raise ValueError(f"tissue {name!r}: a {msg.message_type} defines no tissue (POINT, TRANSFORM)")
+    raise ValueError(f"tissue {name!r}: a {event.kind} defines no tissue (POINT, TRANSFORM)")
 
 
 class Environment:

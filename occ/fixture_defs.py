@@ -53,8 +53,7 @@ from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
-from igtl.messages.base import Message
-
+from .events import Event, Mesh, PointList, SphereList
 from .fixtures import (
     AccessibleSphere,
     ForbiddenPlane,
@@ -71,7 +70,7 @@ __all__ = [
     "PatientMapping",
     "compile_definitions",
     "from_markups_file",
-    "from_message",
+    "from_event",
     "parse_linear",
 ]
 
@@ -154,105 +153,133 @@ def _finite(values: Iterable[float], what: str) -> tuple[float, ...]:
     return out
 
 
-# ------------------------------------------------------------------------------ messages
-def from_message(msg: Message, defaults: Defaults) -> list[Definition] | None:
-    """The definitions ``msg`` carries, or None when it is no fixture message (a TRANSFORM
-    without ``kind=plane``, say). Raises :class:`DefinitionError` for a bad one."""
-    mtype = msg.message_type
-    meta = msg.metadata
-    name = msg.device_name
-    if mtype == "VFIXTURE":
-        kind = _choice(meta, "kind", defaults.vfixture_kind, ("accessible", "forbidden"))
-        frame = _frame(meta)
-        version = getattr(msg, "version", 1)
-        if version != 1:
-            raise DefinitionError(f"VFIXTURE version {version} is not known (1 is)")
-        hardness = float(getattr(msg, "hardness", 0.0))
-        if not math.isfinite(hardness) or hardness < 0.0:
-            raise DefinitionError(f"VFIXTURE hardness {hardness!r} must be >= 0")
-        damping = _num(meta, "damping", defaults.damping)
-        spheres = getattr(msg, "spheres", ())
-        # one vectorised check for the whole message: this runs on the loop thread
-        arr = np.asarray(spheres, dtype=float).reshape(-1, 4)
-        if arr.size and not (np.isfinite(arr).all() and (arr[:, 3] > 0.0).all()):
-            i = int(np.flatnonzero(~(np.isfinite(arr).all(axis=1) & (arr[:, 3] > 0.0)))[0])
-            raise DefinitionError(
-                f"VFIXTURE sphere {i} {tuple(spheres[i])}: needs finite numbers and a radius > 0"
-            )
-        return [
-            Definition(kind, ((x, y, z),), r, None, hardness, damping, f"{name}-{i}", frame)  # type: ignore[arg-type]
-            for i, (x, y, z, r) in enumerate(spheres)
-        ]
-    if mtype == "POINT":
-        kind = _choice(meta, "kind", defaults.point_kind, ("accessible", "forbidden", "guide"))
-        frame = _frame(meta)
-        k = _num(meta, "stiffness", defaults.stiffness)
-        b = _num(meta, "damping", defaults.damping)
-        radius = _num(meta, "radius", defaults.point_radius_mm)
-        visible = [p for p in getattr(msg, "points", ()) if p.rgba[3] > 0]
-        if kind == "guide":
-            if not visible:
-                return []
-            path = tuple(_finite(p.position, f"point {p.name!r}") for p in visible)
-            if len(path) < 2:
-                raise DefinitionError("a guide needs at least two visible points")
-            return [Definition("guide", path, 0.0, None, k, b, name, frame)]  # type: ignore[arg-type]
-        out = []
-        for i, p in enumerate(visible):
-            c = _finite(p.position, f"point {p.name!r}")
-            r = float(p.radius) if p.radius > 0.0 else radius
-            if not (r > 0.0 and math.isfinite(r)):
-                raise DefinitionError(f"point {p.name!r}: radius {r} must be > 0")
-            out.append(
-                Definition(kind, (c,), r, None, k, b, p.name or f"{name}-{i}", frame)  # type: ignore[arg-type]
-            )
-        return out
-    if mtype == "TRANSFORM":
-        if meta.get("kind", "").strip().lower() != "plane":
-            return None
-        frame = _frame(meta)
-        e = _finite(getattr(msg, "elements", ()), f"plane {name!r}")
-        # wire order: the 3x3 column by column, then the translation: the z axis is e[6:9]
-        point, normal = (e[9], e[10], e[11]), (e[6], e[7], e[8])
-        if math.sqrt(sum(v * v for v in normal)) < 1e-9:
-            raise DefinitionError(f"plane {name!r}: the rotation's z axis is zero")
-        k = _num(meta, "stiffness", defaults.stiffness)
-        b = _num(meta, "damping", defaults.damping)
-        return [Definition("plane", (point,), 0.0, normal, k, b, name, frame)]  # type: ignore[arg-type]
-    if mtype == "POLYDATA":
-        kind = meta.get("kind", "").strip().lower()
-        if kind not in ("guide", "plane"):
-            return None
-        frame = _frame(meta)
-        k = _num(meta, "stiffness", defaults.stiffness)
-        b = _num(meta, "damping", defaults.damping)
-        poly: Any = msg
-        pts = [_finite(p, f"polydata {name!r}") for p in poly.points.tolist()]
-        n = len(pts)
-        out = []
-        cells = poly.lines if kind == "guide" else poly.polygons
-        for i, cell in enumerate(cells):
-            if any(j >= n for j in cell):
-                raise DefinitionError(f"polydata {name!r}: cell {i} refers to a missing point")
-            if kind == "guide":
-                if len(cell) < 2:
-                    raise DefinitionError(f"polydata {name!r}: line {i} has fewer than 2 points")
-                path = tuple(pts[j] for j in cell)
-                out.append(Definition("guide", path, 0.0, None, k, b, f"{name}-{i}", frame))  # type: ignore[arg-type]
-            else:
-                if len(cell) < 3:
-                    raise DefinitionError(f"polydata {name!r}: polygon {i} has fewer than 3 points")
-                a, c, d = (pts[j] for j in cell[:3])
-                u = (c[0] - a[0], c[1] - a[1], c[2] - a[2])
-                v = (d[0] - a[0], d[1] - a[1], d[2] - a[2])
-                nrm = (
-                    u[1] * v[2] - u[2] * v[1],
-                    u[2] * v[0] - u[0] * v[2],
-                    u[0] * v[1] - u[1] * v[0],
-                )
-                out.append(Definition("plane", (a,), 0.0, nrm, k, b, f"{name}-{i}", frame))  # type: ignore[arg-type]
-        return out
+# ------------------------------------------------------------------------------ inputs
+def from_event(event: Event | Any, defaults: Defaults) -> list[Definition] | None:
+    """The definitions an input (occ/events.py) carries, or None when it is no fixture (a
+    TRANSFORM without ``kind=plane``, say). Raises :class:`DefinitionError` for a bad one."""
+    if isinstance(event, SphereList):
+        return _spheres(event, defaults)
+    if isinstance(event, PointList):
+        return _points(event, defaults)
+    if isinstance(event, Mesh):
+        return _mesh(event, defaults)
+    if getattr(event, "kind", "") == "TRANSFORM":  # a pose sample (occ/samples.py)
+        return _plane(event, defaults)
     return None
+
+
+def _spheres(event: SphereList, defaults: Defaults) -> list[Definition]:
+    """VFIXTURE: the OCC paper's spheres."""
+    meta, name = event.meta, event.device
+    kind = _choice(meta, "kind", defaults.vfixture_kind, ("accessible", "forbidden"))
+    frame = _frame(meta)
+    version = event.version
+    if version != 1:
+        raise DefinitionError(f"VFIXTURE version {version} is not known (1 is)")
+    hardness = event.hardness
+    if not math.isfinite(hardness) or hardness < 0.0:
+        raise DefinitionError(f"VFIXTURE hardness {hardness!r} must be >= 0")
+    damping = _num(meta, "damping", defaults.damping)
+    spheres = event.spheres
+    # one vectorised check for the whole message: this runs on the loop thread
+    arr = np.asarray(spheres, dtype=float).reshape(-1, 4)
+    if arr.size and not (np.isfinite(arr).all() and (arr[:, 3] > 0.0).all()):
+        i = int(np.flatnonzero(~(np.isfinite(arr).all(axis=1) & (arr[:, 3] > 0.0)))[0])
+        raise DefinitionError(
+            f"VFIXTURE sphere {i} {tuple(spheres[i])}: needs finite numbers and a radius > 0"
+        )
+    return [
+        Definition(kind, ((x, y, z),), r, None, hardness, damping, f"{name}-{i}", frame)  # type: ignore[arg-type]
+        for i, (x, y, z, r) in enumerate(spheres)
+    ]
+
+
+def _points(event: PointList, defaults: Defaults) -> list[Definition]:
+    """POINT: a Markups point list, spheres or a guide."""
+    meta, name = event.meta, event.device
+    kind = _choice(meta, "kind", defaults.point_kind, ("accessible", "forbidden", "guide"))
+    frame = _frame(meta)
+    k = _num(meta, "stiffness", defaults.stiffness)
+    b = _num(meta, "damping", defaults.damping)
+    radius = _num(meta, "radius", defaults.point_radius_mm)
+    visible = [p for p in event.points if p.visible]
+    if kind == "guide":
+        if not visible:
+            return []
+        path = tuple(_finite(p.position, f"point {p.name!r}") for p in visible)
+        if len(path) < 2:
+            raise DefinitionError("a guide needs at least two visible points")
+        return [Definition("guide", path, 0.0, None, k, b, name, frame)]  # type: ignore[arg-type]
+    out = []
+    for i, p in enumerate(visible):
+        c = _finite(p.position, f"point {p.name!r}")
+        r = float(p.radius) if p.radius > 0.0 else radius
+        if not (r > 0.0 and math.isfinite(r)):
+            raise DefinitionError(f"point {p.name!r}: radius {r} must be > 0")
+        out.append(
+            Definition(kind, (c,), r, None, k, b, p.name or f"{name}-{i}", frame)  # type: ignore[arg-type]
+        )
+    return out
+
+
+def _plane(sample: Any, defaults: Defaults) -> list[Definition] | None:
+    """TRANSFORM with ``kind=plane``: a Markups plane (its matrix as sent)."""
+    meta, name = sample.meta, sample.device
+    if meta.get("kind", "").strip().lower() != "plane":
+        return None
+    frame = _frame(meta)
+    m = sample.matrix
+    # the upper 3x4 in wire order (column by column): the z axis is e[6:9]
+    e = _finite(() if m is None else m[:3, :].T.ravel().tolist(), f"plane {name!r}")
+    point, normal = (e[9], e[10], e[11]), (e[6], e[7], e[8])
+    if math.sqrt(sum(v * v for v in normal)) < 1e-9:
+        raise DefinitionError(f"plane {name!r}: the rotation's z axis is zero")
+    k = _num(meta, "stiffness", defaults.stiffness)
+    b = _num(meta, "damping", defaults.damping)
+    return [Definition("plane", (point,), 0.0, normal, k, b, name, frame)]  # type: ignore[arg-type]
+
+
+def _mesh(event: Mesh, defaults: Defaults) -> list[Definition] | None:
+    """POLYDATA with ``kind=guide`` (line cells) or ``kind=plane`` (polygons)."""
+    meta, name = event.meta, event.device
+    kind = meta.get("kind", "").strip().lower()
+    if kind not in ("guide", "plane"):
+        return None
+    frame = _frame(meta)
+    k = _num(meta, "stiffness", defaults.stiffness)
+    b = _num(meta, "damping", defaults.damping)
+    pts = [_finite(p, f"polydata {name!r}") for p in event.points.tolist()]
+    n = len(pts)
+    out = []
+    cells = event.lines if kind == "guide" else event.polygons
+    for i, cell in enumerate(cells):
+        if any(j >= n for j in cell):
+            raise DefinitionError(f"polydata {name!r}: cell {i} refers to a missing point")
+        if kind == "guide":
+            if len(cell) < 2:
+                raise DefinitionError(f"polydata {name!r}: line {i} has fewer than 2 points")
+            path = tuple(pts[j] for j in cell)
+            out.append(Definition("guide", path, 0.0, None, k, b, f"{name}-{i}", frame))  # type: ignore[arg-type]
+        else:
+            if len(cell) < 3:
+                raise DefinitionError(f"polydata {name!r}: polygon {i} has fewer than 3 points")
+            out.append(_polygon_plane(pts, cell, k, b, f"{name}-{i}", frame))
+    return out
+
+
+def _polygon_plane(
+    pts: list[tuple[float, ...]], cell: Sequence[int], k: float, b: float, name: str, frame: str
+) -> Definition:
+    """A plane through a polygon's first point, the normal of its first three."""
+    a, c, d = (pts[j] for j in cell[:3])
+    u = (c[0] - a[0], c[1] - a[1], c[2] - a[2])
+    v = (d[0] - a[0], d[1] - a[1], d[2] - a[2])
+    nrm = (
+        u[1] * v[2] - u[2] * v[1],
+        u[2] * v[0] - u[0] * v[2],
+        u[0] * v[1] - u[1] * v[0],
+    )
+    return Definition("plane", (a,), 0.0, nrm, k, b, name, frame)  # type: ignore[arg-type]
 
 
 # ------------------------------------------------------------------------------ files

@@ -72,8 +72,7 @@ from typing import Any
 
 import numpy as np
 
-from igtl.messages.base import Message
-from igtl.messages.sensor import SensorMessage
+from .events import Event, ForceReading
 
 __all__ = ["SlaveForce", "TareRefused", "gravity_wrench", "sensor_wrench"]
 
@@ -87,17 +86,19 @@ class TareRefused(ValueError):
     """A tare that cannot be taken now: its text says why (the operator's reply)."""
 
 
-def sensor_wrench(msg: Message) -> tuple[Vec3 | None, Vec3 | None, str]:
-    """The wrench a SENSOR message carries: ``(force N, torque N m or None, "")`` (torque None
-    for 3 values), or ``(None, None, why not)`` as :func:`sensor_force` refuses; a torque that
-    is not finite refuses the reading too (a 6-axis reading is one measurement)."""
-    force, error = sensor_force(msg)
+def sensor_wrench(reading: Event) -> tuple[Vec3 | None, Vec3 | None, str]:
+    """The wrench a SENSOR reading (occ/events.py) carries: ``(force N, torque N m or None,
+    "")`` (torque None for 3 values), or ``(None, None, why not)`` as :func:`sensor_force`
+    refuses; a torque that is not finite refuses the reading too (a 6-axis reading is one
+    measurement)."""
+    force, error = sensor_force(reading)
     if force is None:
         return None, None, error
-    values = msg.data  # type: ignore[attr-defined]
+    assert isinstance(reading, ForceReading)
+    values = reading.values
     if len(values) != 6:
         return force, None, ""
-    factor = FORCE_UNITS[str(msg.unit)]  # type: ignore[attr-defined]
+    factor = FORCE_UNITS[reading.unit]
     torque = (values[3] * factor, values[4] * factor, values[5] * factor)
     if not all(math.isfinite(v) for v in torque):
         return None, None, f"not a torque: {tuple(values[3:6])}"
@@ -134,15 +135,15 @@ def _sub(a: Vec3, b: Vec3) -> Vec3:
     return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
 
 
-def sensor_force(msg: Message) -> tuple[Vec3 | None, str]:
-    """The force a SENSOR message carries (N): ``(force, "")``, or ``(None, why not)`` for a
-    message that is no SENSOR, not in newtons, of neither 3 nor 6 values, or not finite (in
+def sensor_force(reading: Event) -> tuple[Vec3 | None, str]:
+    """The force a SENSOR reading carries (N): ``(force, "")``, or ``(None, why not)`` for an
+    input that is no SENSOR, not in newtons, of neither 3 nor 6 values, or not finite (in
     its unit or in N)."""
-    if not isinstance(msg, SensorMessage):
-        return None, f"{msg.message_type} is not a SENSOR"
-    unit = str(msg.unit)
+    if not isinstance(reading, ForceReading):
+        return None, f"{reading.kind} is not a SENSOR"
+    unit = reading.unit
     factor = FORCE_UNITS.get(unit)
-    values = msg.data
+    values = reading.values
     if factor is None:
         return None, f"unit {unit!r} is not a force (N)"
     if len(values) not in (3, 6):
@@ -234,19 +235,19 @@ class SlaveForce:
         self.tare_readings = 0
 
     # ------------------------------------------------------------------ sensor
-    def on_input(self, msg: Message, interface: str, now: float) -> bool:
+    def on_input(self, event: Event, now: float) -> bool:
         """A discrete input: a SENSOR reading, if it is the configured one: True when taken
         (the controller passes every input on; this is where a SENSOR is read)."""
         if (
-            not isinstance(msg, SensorMessage)
-            or interface != self.sensor_interface
-            or msg.device_name != self.sensor_device
+            not isinstance(event, ForceReading)
+            or event.interface != self.sensor_interface
+            or event.device != self.sensor_device
         ):
             return False
-        force, torque, error = sensor_wrench(msg)
+        force, torque, error = sensor_wrench(event)
         if force is None:
             self.sensor_refused += 1
-            self.sensor_last_error = f"SENSOR {msg.device_name!r}: {error}"
+            self.sensor_last_error = f"SENSOR {event.device!r}: {error}"
             return False
         tip, base = self._pose() if self._pose is not None else (np.eye(4), np.eye(4))
         if self.tool_mass_kg > 0.0:

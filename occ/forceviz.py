@@ -45,15 +45,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-import igtl
-from igtl.messages.base import Message
-
 from .errors import OCCError
-from .outputs import Output, VectorOut
+from .events import MeshOut, TransformOut, VectorOut
+
+if TYPE_CHECKING:
+    from .packers import Target as Output
 
 __all__ = [
     "MIN_LENGTH_MM",
@@ -62,8 +62,6 @@ __all__ = [
     "arrow_mesh",
     "check_outputs",
     "force_matrix",
-    "message_force",
-    "message_torque",
     "parse_force",
 ]
 
@@ -182,32 +180,6 @@ def check_outputs(config: Any, has_force: bool) -> list[tuple[tuple[str | int, .
     return problems
 
 
-def message_torque(msg: Any) -> Vec3 | None:
-    """The torque (N m) a force message carries in its metadata ``torque_nm`` (a slave's
-    return channel or force output with a 6-axis sensor), else None."""
-    return parse_force(msg.metadata.get("torque_nm"))
-
-
-def message_force(msg: Any) -> tuple[str, tuple[float, float, float]] | None:
-    """(frame, force in N) of a message that carries one (:class:`ForceStream`), else None."""
-    meta = msg.metadata
-    mtype = msg.message_type
-    if mtype in ("POSITION", "TRANSFORM"):
-        # a slave's return channel (its map rides along) or its force output to Slicer; the
-        # master's FixtureProxy has a force_n too, the fixtures' (in the master's axes)
-        if "force_n" not in meta or not ("map" in meta or "mm_per_n" in meta):
-            return None
-        f = parse_force(meta["force_n"])
-        return None if f is None else ("patient", f)
-    if mtype in ("SENSOR", "NDARRAY") and msg.device_name == "Force":
-        values = msg.data if mtype == "SENSOR" else np.asarray(msg.array).ravel()
-        if len(values) not in (3, 6) or not all(math.isfinite(float(v)) for v in values[:3]):
-            return None
-        frame = "patient" if meta.get("frame") == "patient" else "base"
-        return frame, (float(values[0]), float(values[1]), float(values[2]))
-    return None
-
-
 class ForceView:
     """The output source ``force`` of ``teleop-slave`` (module docstring). ``force`` is the
     controller's ``SlaveForce``, ``data`` its ``RobotData``, ``ctx`` its context."""
@@ -254,7 +226,7 @@ class ForceView:
             out["MRMLNodeName"] = tag
         return out
 
-    def __call__(self, out: Output, now: float) -> Message | VectorOut:
+    def __call__(self, out: Output, now: float) -> VectorOut | TransformOut | MeshOut:
         if out.type not in TYPES:
             raise OCCError(f"output source 'force' goes as {', '.join(TYPES)}, not {out.type}")
         f = self.current(out, now)
@@ -266,21 +238,17 @@ class ForceView:
         tip = self.data.world_tip()
         tip_mm = (tip[0, 3] * 1e3, tip[1, 3] * 1e3, tip[2, 3] * 1e3)
         if out.type == "TRANSFORM":
-            return igtl.TransformMessage.from_matrix(
+            return TransformOut(
                 force_matrix(tip_mm, f, self.mm_per_n),
-                device_name=out.device,
-                timestamp=stamp,
-                header_version=out.header_version,
-                metadata=dict(self.meta(f, "LinearTransform")) if v2 else {},
+                stamp,
+                self.meta(f, "LinearTransform") if v2 else None,
             )
         points, polys = arrow_mesh(tip_mm, f, self.mm_per_n)
-        return igtl.PolyDataMessage(
-            points=points.astype(np.float32),
+        return MeshOut(
+            points.astype(np.float32),
+            stamp,
             polygons=polys,
-            device_name=out.device,
-            timestamp=stamp,
-            header_version=out.header_version,
-            metadata=dict(self.meta(f, "Model")) if v2 else {},
+            meta=self.meta(f, "Model") if v2 else None,
         )
 
     def stats(self) -> dict[str, Any]:

@@ -23,9 +23,9 @@ way in and out; the primitives themselves live in the master's force frame
 (:class:`~occ.fixture_defs.PatientMapping`: mm of master motion, the master's axes), where
 the tool is mapped too.
 
-Display (3D Slicer): :meth:`model_message` draws the active fixtures as one POLYDATA
+Display (3D Slicer): :meth:`model` draws the active fixtures as one POLYDATA
 (spheres as triangle meshes, planes as squares, guides as lines; a cell scalar ``kind``: 1
-accessible, 2 forbidden, 3 plane, 4 guide) and :meth:`proxy_message` the contact state as a
+accessible, 2 forbidden, 3 plane, 4 guide) and :meth:`proxy` the contact state as a
 TRANSFORM at the first contact's proxy (the tool when free) with metadata ``contact``
 (primitive names), ``force_n`` and ``tool_mm``; both with ``MRMLNodeName`` metadata, in the
 patient frame.
@@ -41,19 +41,16 @@ from typing import Any
 
 import numpy as np
 
-import igtl
-from igtl.messages.base import Message
-from igtl.messages.polydata import CELL_SCALAR, PolyDataAttribute
-
 from .errors import caused
+from .events import Event, MeshOut, TransformOut
 from .fixture_defs import (
     Defaults,
     Definition,
     DefinitionError,
     PatientMapping,
     compile_definitions,
+    from_event,
     from_markups_file,
-    from_message,
 )
 from .fixtures import (
     AccessibleSphere,
@@ -127,26 +124,27 @@ class MasterFixtures:
             self._work_now = now
             self._tick_work = 0
 
-    def on_message(self, msg: Message, now: float = math.nan) -> str | None:
-        """A definition message: applied (a short description) or None when ``msg`` is no
-        fixture; :class:`DefinitionError` when it is refused (the active set unchanged)."""
+    def on_event(self, event: Event, now: float = math.nan) -> str | None:
+        """A definition (a decoded input, occ/events.py): applied (a short description) or
+        None when ``event`` is no fixture; :class:`DefinitionError` when it is refused (the
+        active set unchanged)."""
         self._new_tick(now)
         try:
-            defs = from_message(msg, self.defaults)
+            defs = from_event(event, self.defaults)
         except DefinitionError as err:
-            self._refuse(msg, err)
+            self._refuse(event, err)
         if defs is None:
             return None
-        key = f"{msg.message_type}:{msg.device_name}"
+        key = f"{event.kind}:{event.device}"
         try:
             self._replace(key, defs)
         except DefinitionError as err:
-            self._refuse(msg, err)
+            self._refuse(event, err)
         return f"{len(defs)} fixtures from {key}; {len(self.active)} active"
 
-    def _refuse(self, msg: Message, err: DefinitionError) -> None:
+    def _refuse(self, event: Event, err: DefinitionError) -> None:
         self.refused += 1
-        self.last_error = f"{msg.message_type} {msg.device_name!r}: {err}"
+        self.last_error = f"{event.describe()}: {err}"
         raise caused(
             DefinitionError(f"fixture refused ({self.last_error}); the previous set stays"), err
         ) from err
@@ -275,7 +273,7 @@ class MasterFixtures:
     def _display_dir(self, n: Sequence[float]) -> Vec3:
         return self.mapping.patient_direction(n)
 
-    def model_message(self, device: str, timestamp: float = 0.0) -> Message:
+    def model(self, device: str, timestamp: float = 0.0) -> MeshOut:
         """The active fixtures as one POLYDATA (see the module docstring)."""
         points: list[Vec3] = []
         lines: list[tuple[int, ...]] = []
@@ -307,34 +305,34 @@ class MasterFixtures:
                 line_kind.append(code)
         # VTK's cell order: vertices, lines, polygons
         kinds = np.array(line_kind + poly_kind, dtype=np.float32)
-        return igtl.PolyDataMessage(
-            points=np.array(points, dtype=np.float32).reshape(-1, 3),
+        return MeshOut(
+            np.array(points, dtype=np.float32).reshape(-1, 3),
+            timestamp,
             lines=tuple(lines),
             polygons=tuple(polygons),
-            attributes=(PolyDataAttribute(CELL_SCALAR, "kind", kinds),) if len(kinds) else (),
-            device_name=device,
-            timestamp=timestamp,
-            header_version=2,
-            metadata={
+            cell_scalars=(("kind", kinds),) if len(kinds) else (),
+            v2=True,
+            meta={
                 "MRMLNodeName": device,
                 "fixtures": str(len(self.active)),
                 "frame": "patient",
             },
         )
 
-    def proxy_message(self, device: str, timestamp: float = 0.0) -> Message:
+    def proxy(self, device: str, timestamp: float = 0.0) -> TransformOut:
         """The contact state: a TRANSFORM at the first contact's proxy (the tool when
         free), metadata ``contact``, ``force_n``, ``tool_mm``."""
         contacts = self.active.contacts()
         x, y, z = self._display_point(contacts[0].proxy) if contacts else self.tool_mm
         f = self.force_n
         t = self.tool_mm
-        return igtl.TransformMessage.from_position(
-            (x, y, z),
-            device_name=device,
-            timestamp=timestamp,
-            header_version=2,
-            metadata={
+        m = np.eye(4)
+        m[:3, 3] = (x, y, z)
+        return TransformOut(
+            m,
+            timestamp,
+            v2=True,
+            meta={
                 "MRMLNodeName": device,
                 "contact": ",".join(c.name or c.kind for c in contacts) or "none",
                 "force_n": f"{f[0]:.4f},{f[1]:.4f},{f[2]:.4f}",

@@ -52,8 +52,8 @@ from igtl.transport import InprocTransport, Peer, TCPClient, TCPServer, UDPEndpo
 from igtl.transport.common import AccessList, RateLimit
 
 from .commands import READ_ONLY_COMMANDS, error_reply, parse_request
+from .decoders import decode, pose_sample
 from .errors import CommandError
-from .samples import PoseSample, pose_sample
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +73,9 @@ QUERY_PREFIXES = ("GET_", "STT_", "STP_")
 
 @dataclass(slots=True)
 class Inbound:
-    """One received message, as the loop sees it."""
+    """One received message, as the loop sees it: the message as it came (for the recording
+    and for replies) and, for an input a controller takes, its typed event (occ/events.py,
+    decoded here once: the controllers only ever see that)."""
 
     interface: str
     peer: Peer
@@ -83,10 +85,12 @@ class Inbound:
     request: Any = None
     #: the sender's role when it was received (``operator`` or ``viewer``)
     role: str = "operator"
+    #: the decoded input (a pose sample, a point list...; None for an operator request)
+    event: Any = None
 
 
-#: what a stream queue holds: a pose, typed (occ/samples.py), or a discrete input as it came
-StreamItem = PoseSample | Inbound
+#: what a stream queue holds: a received message with its event (a pose or a discrete input)
+StreamItem = Inbound
 
 
 class StreamQueue:
@@ -403,10 +407,12 @@ class Interface:
                             *owner,
                         )
                     return None
-                # a pose becomes a typed sample here, once; other stream inputs (fixture
-                # definitions, keyframes) go as they came
-                sample = pose_sample(self.name, peer, msg, t_rx)
-                return sample if sample is not None else Inbound(self.name, peer, msg, t_rx)
+                # decoded here, once: a pose as a typed sample (one object: the 500 Hz
+                # path), another input (fixture definitions, keyframes) as its event
+                name = self.name
+                sample = pose_sample(name, peer, msg, t_rx)
+                event = sample if sample is not None else decode(name, peer, msg, t_rx)
+                return Inbound(name, peer, msg, t_rx, None, "operator", event)
         item = Inbound(self.name, peer, msg, t_rx)
         request = is_operator_request(msg)
         if request or mtype in self.command_inputs:
@@ -445,6 +451,8 @@ class Interface:
                     return None
                 item.request = req
                 item.role = role
+            else:  # a discrete input routed to the command queue (e.g. VFIXTURE): decoded
+                item.event = decode(self.name, peer, msg, t_rx)
             if not self.manager.commands.put(item):
                 self._refuse(item, "command queue full", igtl.StatusCode.BUSY)
             return None

@@ -20,7 +20,7 @@ import igtl
 from igtl.messages.base import Message
 from igtl.transport.common import RateLimit
 
-from .collision import RegionError, regions_from_message
+from .collision import RegionError, regions_from_event
 from .commands import (
     ROBOT_COMMANDS,
     WORKER,
@@ -33,11 +33,12 @@ from .commands import (
     safe_name,
     success_reply,
 )
+from .decoders import decode
 from .errors import CommandError, StateError, caused
 from .interfaces import Inbound, is_operator_request
 from .outputs import STATE_STATUS_CODE, pose_to_message
 from .safety import RobotState
-from .samples import pose_sample
+from .samples import PoseSample
 
 if TYPE_CHECKING:
     from .ports import DeskPort
@@ -129,13 +130,13 @@ class OperatorDesk:
             ),
         )
 
-    def _collision_region(self, msg: Message) -> bool:
+    def _collision_region(self, event: Any) -> bool:
         """A forbidden region from 3D Slicer for the whole-arm collision check (metadata
         ``kind=forbidden-region``: occ/collision.py): defined (replacing the node's previous
         one), a checked plan not yet acknowledged invalidated; True when it was one.
         CommandError when it cannot be used or the robot checks no collisions."""
         try:
-            found = regions_from_message(msg)
+            found = regions_from_event(event)
         except RegionError as err:
             raise caused(CommandError(str(err)), err) from err
         if found is None:
@@ -162,16 +163,19 @@ class OperatorDesk:
             recorder.record_message(msg, "in", item.interface, now)
         req: Request | None = item.request
         if req is None and not is_operator_request(msg):
-            # a discrete input routed to the command queue (e.g. VFIXTURE); a pose (a Base
-            # TRANSFORM, a fixture's) as a typed sample, as on a stream
+            # a discrete input routed to the command queue (e.g. VFIXTURE), decoded by its
+            # interface (here when it was not: a test, a replay); a pose (a Base TRANSFORM, a
+            # fixture's) as a typed sample, as on a stream
+            event = item.event
+            if event is None:
+                event = decode(item.interface, item.peer, msg, item.t_rx)
             try:
-                if self._collision_region(msg):
+                if self._collision_region(event):
                     return
-                sample = pose_sample(item.interface, item.peer, msg, item.t_rx)
-                if sample is not None:
-                    r.controller.on_sample(sample, now)
+                if isinstance(event, PoseSample):
+                    r.controller.on_sample(event, now)
                 else:
-                    r.controller.on_input(item, now)
+                    r.controller.on_input(event, now)
             except CommandError as err:
                 self.refuse_input(item, err)
             except Exception as err:  # noqa: BLE001

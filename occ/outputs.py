@@ -9,7 +9,7 @@ loses its own oldest messages inside the transport, OCC's per-subscriber ``Fq``)
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -17,11 +17,11 @@ import numpy as np
 
 import igtl
 from igtl.messages.base import Message
-from igtl.messages.sensor import UNITS, SensorMessage, Unit
-from igtl.messages.transform import POSITION_ALL, POSITION_QUATERNION3, position_v2
 
 from .errors import OCCError
+from .events import MeshOut, PointsOut, PolylineOut, TransformOut, VectorOut
 from .interfaces import Interface  # mypyc: Output's field types are looked up at import
+from .packers import pack_output
 from .safety import RobotState
 from .samples import PoseSample, rotation_to_quaternion
 
@@ -56,142 +56,11 @@ class Output:
     seq: int = 0
 
 
-@dataclass
-class PointsOut:
-    """A named point list for 3D Slicer (a Markups point list): what a controller's source
-    returns instead of packing a POINT message itself."""
-
-    names: Sequence[str]
-    positions_mm: Sequence[Sequence[float]]
-    timestamp: float
-    group: str = "Point"
-    rgba: tuple[int, int, int, int] = (255, 200, 0, 255)
-    meta: Mapping[str, str] | None = None
-
-
-@dataclass
-class PolylineOut:
-    """A polyline (N x 3, mm) for 3D Slicer, sent as POLYDATA with one line through the points."""
-
-    points_mm: np.ndarray
-    timestamp: float
-    meta: Mapping[str, str] | None = None
-
-
-@dataclass
-class VectorOut:
-    """A few readings in one SI unit (a force: ``unit="N"``), sent as SENSOR (OpenIGTLink's
-    sensor message, its unit field set) or NDARRAY (float64; in header v2 the unit rides as
-    metadata ``unit``)."""
-
-    values: Sequence[float]
-    timestamp: float
-    unit: str = ""
-    meta: Mapping[str, str] | None = None
-
-
-#: SENSOR's unit code of each SI unit name (``"N"`` -> 11), for :class:`VectorOut`
-_UNIT_CODES = {name: code for code, name in UNITS.items()}
-
-_NO_ROTATION = (0.0, 0.0, 0.0, 1.0)
-
-#: what a source returns: a typed value the scheduler packs as the output's type (a pose, a
-#: point list, a polyline, readings), or a message already built (the fixtures' models)
-Outgoing = PoseSample | PointsOut | PolylineOut | VectorOut | Message
+#: what a source returns: a typed value occ/packers.py packs as the output's type (a pose, a
+#: point list, a polyline, readings, a model, a matrix), or a message the built-in sources
+#: below build themselves
+Outgoing = PoseSample | PointsOut | PolylineOut | VectorOut | MeshOut | TransformOut | Message
 SourceFn = Callable[[Output, float], Outgoing | None]
-
-
-def _pack_vector(value: VectorOut, out: Output) -> Message:
-    """A :class:`VectorOut` as SENSOR or NDARRAY (its docstring)."""
-    meta = dict(value.meta or {}) if out.header_version == 2 else {}
-    if out.type == "SENSOR":
-        code = _UNIT_CODES.get(value.unit) if value.unit else None
-        if value.unit and code is None:
-            raise OCCError(f"SENSOR: no unit code for {value.unit!r}")
-        return SensorMessage(
-            data=tuple(float(v) for v in value.values),
-            unit=Unit(0, ((code, 1),)) if code is not None else Unit(),
-            device_name=out.device,
-            header_version=out.header_version,
-            timestamp=value.timestamp,
-            metadata=meta,
-        )
-    if out.type == "NDARRAY":
-        if value.unit and out.header_version == 2:
-            meta["unit"] = value.unit
-        return igtl.NDArrayMessage(
-            array=np.array(value.values, dtype=np.float64),
-            device_name=out.device,
-            header_version=out.header_version,
-            timestamp=value.timestamp,
-            metadata=meta,
-        )
-    raise OCCError(f"readings go as SENSOR or NDARRAY, not {out.type}")
-
-
-def pack_output(value: PoseSample | PointsOut | PolylineOut | VectorOut, out: Output) -> Message:
-    """The message of a typed source value, as ``out`` is configured (type, device, version).
-    A pose goes as a POSITION (header v2: its sequence number and metadata) or a TRANSFORM."""
-    if isinstance(value, PoseSample):
-        q = value.quaternion
-        if q[3] < 0.0:
-            q = (-q[0], -q[1], -q[2], -q[3])
-        # the 24-byte variant (3-element quaternion) when there is no rotation to carry (a
-        # master's handle position), else all four elements (a slave's tip)
-        layout = POSITION_QUATERNION3 if q == _NO_ROTATION else POSITION_ALL
-        if out.type == "POSITION" and out.header_version == 2:
-            seq = value.seq if value.seq is not None else 0
-            return position_v2(
-                out.device, value.t_sample, seq, value.meta, value.position_mm, q, layout
-            )
-        if out.type == "POSITION":
-            return igtl.PositionMessage(
-                value.position_mm, q, layout, device_name=out.device, timestamp=value.t_sample
-            )
-        if out.type == "TRANSFORM":
-            v2 = out.header_version == 2
-            return igtl.TransformMessage.from_matrix(
-                value.matrix_mm(),
-                device_name=out.device,
-                timestamp=value.t_sample,
-                header_version=out.header_version,
-                metadata=dict(value.meta) if v2 else {},
-                message_id=(value.seq or 0) if v2 else 0,
-            )
-        raise OCCError(f"output type {out.type} cannot carry a pose")
-    if isinstance(value, VectorOut):
-        return _pack_vector(value, out)
-    meta = dict(value.meta or {}) if out.header_version == 2 else {}
-    if isinstance(value, PointsOut):
-        if out.type != "POINT":
-            raise OCCError(f"a point list goes as POINT, not {out.type}")
-        points = [
-            igtl.PointElement(
-                name=name.encode("utf-8")[:64].decode("utf-8", "ignore"),
-                group=value.group,
-                rgba=value.rgba,
-                position=(float(p[0]), float(p[1]), float(p[2])),
-            )
-            for name, p in zip(value.names, value.positions_mm, strict=True)
-        ]
-        return igtl.PointMessage(
-            points=tuple(points),
-            device_name=out.device,
-            header_version=out.header_version,
-            timestamp=value.timestamp,
-            metadata=meta,
-        )
-    if out.type != "POLYDATA":
-        raise OCCError(f"a polyline goes as POLYDATA, not {out.type}")
-    pts = value.points_mm
-    return igtl.PolyDataMessage(
-        points=np.asarray(pts, dtype=np.float32),
-        lines=(tuple(range(len(pts))),) if len(pts) >= 2 else (),
-        device_name=out.device,
-        header_version=out.header_version,
-        timestamp=value.timestamp,
-        metadata=meta,
-    )
 
 
 def pose_to_message(

@@ -53,7 +53,7 @@ slave's units and reads the slave's in its own.
   handle's displacement (``-f . dx``), so what the budget counts is what the hand got.
 - At the slave (:class:`SlavePort`), on the position: a commanded step into the tissue that
   would take out more than the budget is shortened along the force (the tool stops short: a
-  position drift, given back when the energy allows it, occ/controllers/teleop.py).
+  position drift, given back when the energy allows it, occ/controllers/teleop/).
 
 **Sessions.** Each side's budget counts the peer's energy since its own last reset (the master
 entering RUNNING, the slave re-indexing: nothing it stored before is taken over). A peer whose

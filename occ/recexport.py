@@ -63,7 +63,7 @@ from typing import Any
 
 import numpy as np
 
-from .forceviz import message_force, message_torque
+from .decoders import message_force, message_torque
 from .record import STATE_DEVICE, STATE_NAMES, iter_recording
 from .samples import quaternion_to_rotation
 

@@ -48,14 +48,14 @@ from typing import Any
 
 import numpy as np
 
-from .forceviz import message_force
+from .decoders import message_force
 from .record import STATE_CODES, STATE_DEVICE, STATE_NAMES, iter_recording
 
 __all__ = ["PlotError", "RecordingSummary", "plot_recording", "summarize_recording"]
 
 #: at most this many causes are written on the state timeline
 MAX_CAUSES = 12
-#: the messages a force comes in (occ.forceviz.message_force)
+#: the messages a force comes in (occ.decoders.message_force)
 _FORCE_TYPES = ("POSITION", "TRANSFORM", "SENSOR", "NDARRAY")
 
 

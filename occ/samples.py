@@ -4,8 +4,8 @@ A :class:`PoseSample` carries everything the loss monitor and the controllers us
 sample (who sent it, its sequence number, when it was sampled and when it arrived, the pose,
 the master's ``run`` and ``clutch``, the rest of its metadata), so neither parses a wire
 message: the interface does, once, on its own thread (or in the loop's poll of a UDP socket,
-where the datagram goes straight to the tick). The message itself rides along only for the
-recording.
+where the datagram goes straight to the tick: occ/decoders.py). The message itself stays with
+the interface layer (``Inbound.msg``), for the recording and for replies.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["PoseSample", "pose_sample", "quaternion_to_rotation", "rotation_to_quaternion"]
+__all__ = ["PoseSample", "quaternion_to_rotation", "rotation_to_quaternion"]
 
 _EMPTY: Mapping[str, str] = {}
 
@@ -37,7 +37,7 @@ class PoseSample:
         "run",
         "clutch",
         "meta",
-        "msg",
+        "matrix",
     )
 
     def __init__(
@@ -55,7 +55,7 @@ class PoseSample:
         run: bool = True,
         clutch: bool = False,
         meta: Mapping[str, str] = _EMPTY,
-        msg: Any = None,
+        matrix: np.ndarray | None = None,
     ) -> None:
         self.interface = interface
         #: the sender (the transport's peer: its ``address``; an answer goes there)
@@ -76,8 +76,9 @@ class PoseSample:
         self.clutch = clutch
         #: the rest of the sender's metadata (a slave's ``following``, ``state``, ``map``)
         self.meta = meta
-        #: the message as received, for the recording only
-        self.msg = msg
+        #: a TRANSFORM's matrix as sent (4x4, translation mm: not necessarily a rotation, e.g.
+        #: a Markups plane's), None for a POSITION or a pose the daemon built
+        self.matrix = matrix
 
     def matrix_mm(self) -> np.ndarray:
         """The pose as a 4x4 matrix, translation in millimetres."""
@@ -86,41 +87,15 @@ class PoseSample:
         m[:3, 3] = self.position_mm
         return m
 
+    def describe(self) -> str:
+        """``TYPE 'device'``: how an error names this input (as every event, occ/events.py)."""
+        return f"{self.kind} {self.device!r}"
+
     def __repr__(self) -> str:
         return (
             f"PoseSample({self.interface!r}, {self.device!r}, seq={self.seq}, "
             f"position_mm={self.position_mm}, run={self.run}, clutch={self.clutch})"
         )
-
-
-def pose_sample(interface: str, peer: Any, msg: Any, t_rx: float) -> PoseSample | None:
-    """The sample of a received POSITION or TRANSFORM (None for any other message)."""
-    mtype = msg.message_type
-    if mtype == "POSITION":
-        x, y, z = msg.position
-        q = msg.quaternion
-    elif mtype == "TRANSFORM":
-        m = msg.matrix
-        x, y, z = m[:3, 3].tolist()
-        q = rotation_to_quaternion(m[:3, :3])
-    else:
-        return None
-    meta = msg.metadata
-    return PoseSample(
-        interface,
-        peer,
-        msg.device_name,
-        (float(x), float(y), float(z)),
-        (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
-        kind=mtype,
-        seq=msg.message_id if msg.header_version == 2 else None,
-        t_sample=msg.timestamp,
-        t_rx=t_rx,
-        run=meta.get("run", "1") == "1",
-        clutch=meta.get("clutch", "0") == "1",
-        meta=meta,
-        msg=msg,
-    )
 
 
 def rotation_to_quaternion(

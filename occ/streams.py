@@ -48,7 +48,7 @@ def judge(
 
 
 OnSample = Callable[[PoseSample, float], Any]
-OnInput = Callable[[Inbound, float], Any]
+OnInput = Callable[[Any, float], Any]  # an input event (occ/events.py)
 Refuse = Callable[[Inbound, CommandError], None]
 
 
@@ -149,8 +149,9 @@ class StreamInputs:
             # samples the loop could not take in time: seen, never called lost
             now, since, to_wall = self._now, self._since, self._wall()
             for old in q.drain_overflow():
-                if isinstance(old, PoseSample):
-                    judge(monitor, old, now, to_wall, since)
+                event = old.event
+                if isinstance(event, PoseSample):
+                    judge(monitor, event, now, to_wall, since)
         elif q.evicted:
             q.drain_overflow()
         handle = self._handle
@@ -201,16 +202,17 @@ class StreamInputs:
         if recorder is not None:
             recorder.record_message(item.msg, "in", name, now)
         follow = not master or name == self.input
-        if isinstance(item, PoseSample):
+        event = item.event
+        if isinstance(event, PoseSample):
             if monitor is not None:
-                rx = item.t_rx
+                rx = event.t_rx
                 since = self._since
                 to_wall = self._to_wall
                 if to_wall is None:  # once a tick, and only when a sample needs it
                     to_wall = self._to_wall = self._wall_time() - now
                 verdict = monitor.on_packet(
-                    item.seq,
-                    item.t_sample,
+                    event.seq,
+                    event.t_sample,
                     now,
                     rx + to_wall,
                     (rx if rx < since else since) + to_wall,
@@ -219,12 +221,12 @@ class StreamInputs:
                     return
             if follow:
                 try:
-                    self._on_sample(item, now)
+                    self._on_sample(event, now)
                 except CommandError as err:  # a TRANSFORM fixture refused
-                    self._refuse(Inbound(item.interface, item.peer, item.msg, item.t_rx), err)
+                    self._refuse(item, err)
         elif follow:
             try:
-                self._on_input(item, now)
+                self._on_input(event, now)
             except CommandError as err:
                 # a discrete input on a stream queue (a VFIXTURE) that the controller
                 # refused: an answer to its sender, not a FAULT

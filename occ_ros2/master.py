@@ -2,7 +2,7 @@
 
 ``occ-ros2 --master /occ/master=127.0.0.1:18946`` subscribes to ``/occ/master/servo_cp``
 (geometry_msgs/PoseStamped, CRTK's Cartesian setpoint; metres) and sends what the
-``teleop-master`` controller sends (occ/controllers/teleop.py): POSITION, 24-byte variant
+``teleop-master`` controller sends (occ/controllers/teleop/): POSITION, 24-byte variant
 (position in mm + 3-element quaternion, w >= 0), header version 2, device ``Master``, the
 message ID a sequence number (+1 per packet), metadata ``run`` and ``clutch``, at 500 Hz over
 UDP, the latest pose each period.

@@ -55,6 +55,7 @@ def _load_time_imports(path: Path, name: str) -> set[str]:
             found |= _imported(sub, package)
     return found
 
+
 def _graph(package: str) -> dict[str, set[str]]:
     modules = {_module_name(p): p for p in (ROOT / package).rglob("*.py")}
     graph: dict[str, set[str]] = {}
@@ -229,6 +230,7 @@ def _all_imports(path: Path, name: str, package: str) -> set[str]:
         found |= _imported(sub, pkg)
     return found
 
+
 def _design_graph(folder: str) -> dict[str, set[str]]:
     """Who knows whom, at any time: every import counts (type-only and late ones too). The
     tools are top-level modules (tools/ on sys.path): named by their file."""
@@ -250,6 +252,56 @@ def test_no_module_knows_one_that_knows_it(folder: str) -> None:
     record <-> recplot and soak <-> stability once did)."""
     cycle = _cycle(_design_graph(folder))
     assert cycle is None, "circle: " + " -> ".join(cycle or [])
+
+
+#: the modules of occ/ that may import ``igtl`` at all (issue 39: bytes become typed values
+#: in one layer, and typed values become bytes in one place), and why each must
+IGTL_ALLOWED = {
+    "occ.interfaces": "the transports, routing and the replies to refused requests",
+    "occ.streams": "the polled UDP sockets: the loop reads them itself",
+    "occ.decoders": "every received message to its typed event (occ/events.py)",
+    "occ.packers": "every typed output value to its message",
+    "occ.outputs": "the built-in sources (tip, base, status, joints) build their messages",
+    "occ.commands": "operator requests and their replies are messages (RTS_, ACK_, STATUS)",
+    "occ.operators": "the operator desk answers requests with messages",
+    "occ.alarms": "alerts go to the operators as STATUS messages",
+    "occ.robot": "the status codes of the alerts it raises",
+    "occ.config": "the interfaces' authentication key (igtl.auth.load_key), checked at load",
+    "occ.loop": "names its native thread (igtl.transport.common.name_native_thread)",
+    "occ.supervision": "names its native thread, as the loop does",
+    "occ.record": "a recording is the messages as they were sent and received",
+    "occ.recordcli": "replays and reads recordings (messages)",
+    "occ.faultmatrix": "drives a daemon over the wire and reads its STATUS answers",
+    "occ.testing": "the in-process harness: peers that send and receive messages",
+}
+
+
+def test_only_the_edge_of_the_daemon_imports_igtl() -> None:
+    """Issue 39: only the modules of :data:`IGTL_ALLOWED` import ``igtl``, at module level,
+    under ``TYPE_CHECKING`` or inside a function; every other module of occ/ (the controllers,
+    their helpers, the core) sees typed values only."""
+    root = ROOT / "occ"
+    for path in root.rglob("*.py"):
+        name = _module_name(path)
+        if name in IGTL_ALLOWED:
+            continue
+        found = sorted(m for m in _all_imports(path, name, "occ") if m.split(".")[0] == "igtl")
+        assert not found, f"{path.relative_to(ROOT)} imports {found[0]}: not in IGTL_ALLOWED"
+
+
+def test_the_igtl_rule_catches_a_controller_that_imports_it(tmp_path: Path) -> None:
+    """The rule above reads every kind of import (late, type-only) the way it reads occ/."""
+    src = (
+        "from typing import TYPE_CHECKING\n"
+        "if TYPE_CHECKING:\n    from igtl.messages.base import Message\n"
+        "def f():\n    import igtl\n"
+    )
+    path = tmp_path / "teleop.py"
+    path.write_text(src, encoding="utf-8")
+    found = {m for m in _all_imports(path, "occ.controllers.teleop", "occ") if m.startswith("igtl")}
+    assert {"igtl", "igtl.messages.base"} <= found
+    assert "occ.controllers.teleop" not in IGTL_ALLOWED
+    assert not any(k.startswith("occ.controllers") for k in IGTL_ALLOWED)
 
 
 def test_no_controller_imports_igtl_messages() -> None:

@@ -28,8 +28,9 @@ Interfaces (ros2_control's model)
 Hooks, all on the loop thread: ``configure(data, ctx)`` once; ``on_sample(sample, now)`` for
 every stream pose the loss monitor accepted, a typed :class:`~occ.samples.PoseSample` (who, the
 sequence number, sample and arrival times, the pose in mm, ``run``, ``clutch``, the rest of
-the metadata: no wire message to parse), and ``on_input(item, now)`` for the discrete inputs
-that share a stream (fixture definitions, keyframes), both in arrival order;
+the metadata: no wire message to parse), and ``on_input(event, now)`` for the discrete inputs
+(fixture definitions, keyframes, tissue, force readings), each a typed event the interface
+decoded (:mod:`occ.events`: a controller never sees a wire message), both in arrival order;
 ``on_command(request, now) -> str | None`` for the operator commands it lists in
 ``commands()`` (a command nobody lists is offered to each in turn; work too long for a tick
 returns a :class:`~occ.commands.Deferred`, answered later); ``on_state(old, new, now)`` after
@@ -61,7 +62,7 @@ if TYPE_CHECKING:
     from ..commands import Deferred, Request
     from ..config import DaemonConfig
     from ..data import RobotData
-    from ..interfaces import Inbound
+    from ..events import InputEvent
     from ..outputs import Outgoing, Output
     from ..safety import RobotState
     from ..samples import PoseSample
@@ -156,7 +157,7 @@ class Controller:
     def on_sample(self, sample: PoseSample, now: float) -> None:
         return None
 
-    def on_input(self, item: Inbound, now: float) -> None:
+    def on_input(self, event: InputEvent, now: float) -> None:
         return None
 
     def on_command(self, request: Request, now: float) -> str | Deferred | None:
@@ -290,9 +291,9 @@ class ControllerSet:
         for c in self.controllers:
             c.on_sample(sample, now)
 
-    def on_input(self, item: Inbound, now: float) -> None:
+    def on_input(self, event: InputEvent, now: float) -> None:
         for c in self.controllers:
-            c.on_input(item, now)
+            c.on_input(event, now)
 
     def on_command(self, request: Request, now: float) -> str | Deferred | None:
         key = request.name.strip().lower()

@@ -58,8 +58,9 @@ def tcp(answer: Callable[[Peer, igtl.Message], None], inboxes: list[Inbox]) -> I
 @contextmanager
 def udp(answer: Callable[[Peer, igtl.Message], None], inboxes: list[Inbox]) -> Iterator[Pair]:
     server = UDPEndpoint("127.0.0.1", 0, on_message=answer).start()
-    clients = [UDPEndpoint("127.0.0.1", 0, remote=server.address, on_message=i).start()
-               for i in inboxes]
+    clients = [
+        UDPEndpoint("127.0.0.1", 0, remote=server.address, on_message=i).start() for i in inboxes
+    ]
     try:
         yield server, clients
     finally:
@@ -71,8 +72,10 @@ def udp(answer: Callable[[Peer, igtl.Message], None], inboxes: list[Inbox]) -> I
 def inproc(answer: Callable[[Peer, igtl.Message], None], inboxes: list[Inbox]) -> Iterator[Pair]:
     channel = f"contract-{next(_channels)}"
     server = InprocTransport(channel, on_message=answer).start()
-    clients = [InprocTransport(channel, listen=False, negotiate=False, on_message=i).start()
-               for i in inboxes]
+    clients = [
+        InprocTransport(channel, listen=False, negotiate=False, on_message=i).start()
+        for i in inboxes
+    ]
     try:
         yield server, clients
     finally:

@@ -166,11 +166,10 @@ def _keyed_pair(tmp_path: Path, slave_keyed: bool = True) -> tuple[Robot, Robot]
     if slave_keyed:
         slave = _with_key("slave.yaml", tmp_path, lambda t: t.replace("port: 18946", "port: 0"))
     else:
-        cfg = parse_config(
-            (ROOT / "configs" / "slave.yaml").read_text(), base_dir=ROOT / "configs"
+        cfg = parse_config((ROOT / "configs" / "slave.yaml").read_text(), base_dir=ROOT / "configs")
+        cfg = cfg.model_copy(
+            update={"interfaces": tuple(i.model_copy(update={"port": 0}) for i in cfg.interfaces)}
         )
-        cfg = cfg.model_copy(update={"interfaces": tuple(
-            i.model_copy(update={"port": 0}) for i in cfg.interfaces)})
         slave = build_robot(cfg, clock=SimClock())
         slave.configure()
         slave.activate()

@@ -30,9 +30,20 @@ pytestmark = pytest.mark.realtime
 
 def start(cfg: Path, stats: Path, *extra: str) -> subprocess.Popen[bytes]:
     return subprocess.Popen(
-        [sys.executable, "-m", "occ.cli", str(cfg), "--stats", str(stats),
-         "--log-level", "ERROR", *extra],
-        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        [
+            sys.executable,
+            "-m",
+            "occ.cli",
+            str(cfg),
+            "--stats",
+            str(stats),
+            "--log-level",
+            "ERROR",
+            *extra,
+        ],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
     )
 
 
@@ -68,10 +79,12 @@ def trio(tmp_path: Path):  # type: ignore[no-untyped-def]
 
 def test_three_daemons_handover_and_loss_rules(trio) -> None:  # type: ignore[no-untyped-def]
     ports, procs = trio
-    with SlicerStandIn("127.0.0.1", ports["slicer"]) as viewer, \
-            SlicerStandIn("127.0.0.1", ports["operator"]) as bedside, \
-            SlicerStandIn("127.0.0.1", ports["mentor_desk"]) as mentor, \
-            SlicerStandIn("127.0.0.1", ports["trainee_desk"]) as trainee:
+    with (
+        SlicerStandIn("127.0.0.1", ports["slicer"]) as viewer,
+        SlicerStandIn("127.0.0.1", ports["operator"]) as bedside,
+        SlicerStandIn("127.0.0.1", ports["mentor_desk"]) as mentor,
+        SlicerStandIn("127.0.0.1", ports["trainee_desk"]) as trainee,
+    ):
         for c in (viewer, bedside, mentor, trainee):
             assert c.connected.wait(5.0)
         for name in ("Enable", "Run"):
@@ -89,7 +102,10 @@ def test_three_daemons_handover_and_loss_rules(trio) -> None:  # type: ignore[no
             return snap["owner"] == owner and ctrl["source"] == owner and ctrl["samples"] > 200
 
         assert wait_for(lambda: following("mentor"), 15.0), (
-            last.get("state"), last.get("owner"), last.get("controller"), last.get("last_alert"),
+            last.get("state"),
+            last.get("owner"),
+            last.get("controller"),
+            last.get("last_alert"),
             [f"{s.error_name}: {s.status_message}" for s in bedside.statuses],
         )
         # the trainee may not take control; the mentor (supervisor) hands it over
@@ -100,7 +116,10 @@ def test_three_daemons_handover_and_loss_rules(trio) -> None:  # type: ignore[no
         for c in (viewer, bedside, mentor, trainee):
             assert wait_for(lambda c=c: any(s.error_name == "HANDOVER" for s in c.statuses), 5.0)
         assert wait_for(lambda: following("trainee"), 15.0), (
-            last.get("state"), last.get("owner"), last.get("controller"), last.get("last_alert"),
+            last.get("state"),
+            last.get("owner"),
+            last.get("controller"),
+            last.get("last_alert"),
         )
         snap = stats_of(bedside)
         assert snap["collaboration"]["handovers"] == 1 and snap["collaboration"]["refused"] == 1
@@ -117,8 +136,10 @@ def test_three_daemons_handover_and_loss_rules(trio) -> None:  # type: ignore[no
         # the mentor's console dies: it is not in control, so only an alert
         procs["mentor"].send_signal(signal.SIGKILL)
         assert wait_for(
-            lambda: any(s.error_name == "ALERT" and "mentor (not in control)" in s.status_message
-                        for s in bedside.statuses),
+            lambda: any(
+                s.error_name == "ALERT" and "mentor (not in control)" in s.status_message
+                for s in bedside.statuses
+            ),
             5.0,
         ), [f"{s.error_name}: {s.status_message}" for s in bedside.statuses]
         n = stats_of(bedside)["controller"]["samples"]
@@ -127,7 +148,9 @@ def test_three_daemons_handover_and_loss_rules(trio) -> None:  # type: ignore[no
         # the trainee's dies: it has control, so the slave stops and says why
         procs["trainee"].send_signal(signal.SIGKILL)
         assert wait_for(
-            lambda: any(s.error_name == "STOPPED" and "packet loss on trainee" in s.status_message
-                        for s in bedside.statuses),
+            lambda: any(
+                s.error_name == "STOPPED" and "packet loss on trainee" in s.status_message
+                for s in bedside.statuses
+            ),
             5.0,
         ), [f"{s.error_name}: {s.status_message}" for s in bedside.statuses]

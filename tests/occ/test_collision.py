@@ -19,8 +19,9 @@ import pytest
 import yaml
 
 import igtl
-from occ.collision import CollisionModel, regions_from_message
+from occ.collision import CollisionModel, regions_from_event
 from occ.config import CollisionConfig
+from occ.decoders import event_of
 from occ.errors import ConfigError
 from occ.loader import load_config
 from occ.safety import RobotState
@@ -379,7 +380,7 @@ def test_regions_from_other_messages_are_not_regions() -> None:
     msg = igtl.TransformMessage.from_matrix(
         np.eye(4), device_name="Base", header_version=2, metadata={"kind": "plane"}
     )
-    assert regions_from_message(msg) is None
+    assert regions_from_event(event_of(msg)) is None
 
 
 # ------------------------------------------------------------------------------ config

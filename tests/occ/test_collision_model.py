@@ -48,11 +48,12 @@ from occ.collision import (
     mesh_region,
     plane_region,
     region_from_config,
-    regions_from_message,
+    regions_from_event,
     sphere_region,
 )
 from occ.config import CollisionConfig, RegionConfig
 from occ.data import RobotData
+from occ.decoders import event_of
 from occ.errors import ConfigError
 from occ.frame import Frame
 from occ.loader import load_config
@@ -296,7 +297,7 @@ def test_slicer_points_are_spheres_of_their_radius_and_only_the_visible_ones() -
         igtl.PointElement(position=(8.0, 9.0, 10.0), rgba=(255, 0, 0, 1)),  # no radius
     )
     msg = igtl.PointMessage(pts, device_name="Marks", header_version=2, metadata=forbidden())
-    name, regions = regions_from_message(msg)  # type: ignore[misc]
+    name, regions = regions_from_event(event_of(msg))  # type: ignore[misc]
     assert name == "Marks"
     assert [(r.name, r.kind, r.source) for r in regions] == [
         ("Marks:0", "sphere", "Marks"), ("Marks:1", "sphere", "Marks")
@@ -306,26 +307,26 @@ def test_slicer_points_are_spheres_of_their_radius_and_only_the_visible_ones() -
     msg = igtl.PointMessage(
         pts, device_name="M", header_version=2, metadata=forbidden(radius="2.5")
     )
-    _, regions = regions_from_message(msg)  # type: ignore[misc]
+    _, regions = regions_from_event(event_of(msg))  # type: ignore[misc]
     assert [r.bound[4] for r in regions] == pytest.approx([4e-3, 2.5e-3])
     # a point radius under 1 mm is still the point's
     small = (igtl.PointElement(radius=0.5),)
     msg = igtl.PointMessage(small, device_name="P", header_version=2, metadata=forbidden())
-    assert regions_from_message(msg)[1][0].bound[4] == pytest.approx(0.5e-3)  # type: ignore[index]
+    assert regions_from_event(event_of(msg))[1][0].bound[4] == pytest.approx(0.5e-3)  # type: ignore[index]
     # a point with a zero radius and one negative: the metadata's
     zero = (igtl.PointElement(radius=0.0), igtl.PointElement(radius=-1.0))
     msg = igtl.PointMessage(zero, device_name="Z", header_version=2, metadata=forbidden(radius="3"))
-    _, regions = regions_from_message(msg)  # type: ignore[misc]
+    _, regions = regions_from_event(event_of(msg))  # type: ignore[misc]
     assert [r.bound[4] for r in regions] == pytest.approx([3e-3, 3e-3])
     bad = igtl.PointMessage(
         pts, device_name="B", header_version=2, metadata=forbidden(radius="big")
     )
     with pytest.raises(RegionError) as err:
-        regions_from_message(bad)
+        regions_from_event(event_of(bad))
     assert str(err.value) == "region 'B': radius 'big' is no number"
     # a point list with no visible point: the definition removes its regions
     hidden = igtl.PointMessage(pts[1:2], device_name="H", header_version=2, metadata=forbidden())
-    assert regions_from_message(hidden) == ("H", [])
+    assert regions_from_event(event_of(hidden)) == ("H", [])
 
 
 @pytest.mark.req("SR-COLL-3")
@@ -336,7 +337,7 @@ def test_a_slicer_plane_is_the_half_space_behind_its_z_axis() -> None:
     msg = igtl.TransformMessage.from_matrix(
         m, device_name="Wall", header_version=2, metadata={"kind": " Forbidden-Region "}
     )
-    name, (r,) = regions_from_message(msg)  # type: ignore[misc]
+    name, (r,) = regions_from_event(event_of(msg))  # type: ignore[misc]
     assert (name, r.name, r.kind, r.source) == ("Wall", "Wall", "plane", "Wall")
     assert r.bound[:4] == pytest.approx((0.0, -1.0, 0.0, -0.02))
     bad = np.eye(4)
@@ -345,11 +346,11 @@ def test_a_slicer_plane_is_the_half_space_behind_its_z_axis() -> None:
         bad, device_name="W", header_version=2, metadata=forbidden()
     )
     with pytest.raises(RegionError) as err:
-        regions_from_message(msg)
+        regions_from_event(event_of(msg))
     assert str(err.value) == "region 'W': not a transform"
     # no device name: the definition is called "region"
     anon = igtl.TransformMessage.from_matrix(np.eye(4), header_version=2, metadata=forbidden())
-    assert regions_from_message(anon)[0] == "region"  # type: ignore[index]
+    assert regions_from_event(event_of(anon))[0] == "region"  # type: ignore[index]
 
 
 @pytest.mark.req("SR-COLL-3")
@@ -364,7 +365,7 @@ def test_slicer_polygons_and_strips_are_triangulated_with_one_winding() -> None:
         points=pts, polygons=((0, 1, 2, 3, 4),), strips=((5, 6, 7, 8, 9),),
         device_name="Organ", header_version=2, metadata=forbidden(),
     )  # fmt: skip
-    name, (r,) = regions_from_message(msg)  # type: ignore[misc]
+    name, (r,) = regions_from_event(event_of(msg))  # type: ignore[misc]
     assert (name, r.name, r.kind, r.source) == ("Organ", "Organ", "mesh", "Organ")
     v, tris = triangles(r)
     assert v == pytest.approx(pts * 1e-3)
@@ -378,24 +379,24 @@ def test_slicer_polygons_and_strips_are_triangulated_with_one_winding() -> None:
         points=pts, polygons=((0, 1),), device_name="T", header_version=2, metadata=forbidden()
     )
     with pytest.raises(RegionError) as err:
-        regions_from_message(tiny)
+        regions_from_event(event_of(tiny))
     assert str(err.value) == "region 'T': polygon 0 has fewer than 3 points"
     only_strip = igtl.PolyDataMessage(
         points=pts, strips=((5, 6, 7),), device_name="S", header_version=2, metadata=forbidden()
     )
-    _, (s,) = regions_from_message(only_strip)  # type: ignore[misc]
+    _, (s,) = regions_from_event(event_of(only_strip))  # type: ignore[misc]
     assert triangles(s)[1] == [(5, 6, 7)]
 
 
 @pytest.mark.req("SR-COLL-3")
 def test_messages_that_define_no_region() -> None:
     plain = igtl.TransformMessage.from_matrix(np.eye(4), device_name="Base")
-    assert regions_from_message(plain) is None  # no metadata
+    assert regions_from_event(event_of(plain)) is None  # no metadata
     other = igtl.TransformMessage.from_matrix(np.eye(4), header_version=2, metadata={"x": "1"})
-    assert regions_from_message(other) is None
+    assert regions_from_event(event_of(other)) is None
     text = igtl.StringMessage("x", device_name="S", header_version=2, metadata=forbidden())
     with pytest.raises(RegionError) as err:
-        regions_from_message(text)
+        regions_from_event(event_of(text))
     assert str(err.value) == ("region 'S': a STRING defines no region (POINT, TRANSFORM, POLYDATA)")
 
 

@@ -131,7 +131,9 @@ def test_dump_and_revalidate_round_trip() -> None:
 
 def test_controller_params_are_validated_with_lines() -> None:
     cfg = parse_config(MINIMAL_ROBOT + "controller: {plugin: teleop-slave, params: {scale: 0.2}}\n")
-    assert cfg.controllers[0].plugin == "teleop-slave" and cfg.controllers[0].params == {"scale": 0.2}
+    assert cfg.controllers[0].plugin == "teleop-slave" and cfg.controllers[0].params == {
+        "scale": 0.2
+    }
     text = MINIMAL_ROBOT + (
         "controller:\n  plugin: teleop-slave\n  params:\n    scael: 0.2\n"
         "    input_interface: nope\n    phase_lock_us: fast\n"
@@ -153,7 +155,9 @@ def test_controller_params_are_validated_with_lines() -> None:
 def test_driver_params_are_checked_at_load() -> None:
     """A driver parameter typo fails `occd --check` with its line, not the daemon at start."""
     text = MINIMAL_ROBOT.replace("joints: [a]}", "joints: [a], params: {bandwith_hz: 30}}")
-    with pytest.raises(ConfigError, match=r"robot.drivers\[0\].params: .*unknown params \['bandwith_hz'\]"):
+    with pytest.raises(
+        ConfigError, match=r"robot.drivers\[0\].params: .*unknown params \['bandwith_hz'\]"
+    ):
         parse_config(text)
 
 
@@ -229,8 +233,7 @@ BROKEN = {
         "19 robot.drivers[1].joints[0]: joint 'yaw' is already driven by driver 'sim0'",
     ],
     "bad_daemon_cross.yaml": [
-        "15 interfaces[0].outputs[0].rate_hz: 1000 Hz exceeds the loop rate "
-        "(robot.rate_hz = 500)",
+        "15 interfaces[0].outputs[0].rate_hz: 1000 Hz exceeds the loop rate (robot.rate_hz = 500)",
         "16 interfaces[1].name: duplicate interface name 'slicer' (first at interfaces[0])",
         "18 interfaces[1].port: tcp-server bind 127.0.0.1:18944 conflicts with 0.0.0.0:18944 "
         "of interface 'slicer' (interfaces[0])",
@@ -294,9 +297,7 @@ def test_missing_file_is_a_config_error(tmp_path: Path) -> None:
 
 
 def test_strict_scalars() -> None:
-    text = MINIMAL_ROBOT.replace("velocity: 1}", "velocity: .nan}").replace(
-        "name: r", "name: 12"
-    )
+    text = MINIMAL_ROBOT.replace("velocity: 1}", "velocity: .nan}").replace("name: r", "name: 12")
     assert errors_of(text) == [
         "c.yaml:2 robot.name: expected a string, got 12",
         "c.yaml:5 robot.joints[0].limits.velocity: expected a finite number, got nan",
@@ -439,19 +440,25 @@ def test_config_md_example_is_valid() -> None:
 def test_an_empty_allowed_peers_list_is_refused_with_a_clear_error(tmp_path) -> None:
     from occ.loader import load_config as _load
 
-    text = (ROOT / "configs" / "slave.yaml").read_text().replace(
-        "    port: 18944\n", "    port: 18944\n    allowed_peers: []\n", 1
+    text = (
+        (ROOT / "configs" / "slave.yaml")
+        .read_text()
+        .replace("    port: 18944\n", "    port: 18944\n    allowed_peers: []\n", 1)
     )
     path = tmp_path / "slave.yaml"
     path.write_text(text)
     with pytest.raises(ConfigError) as info:
         _load(path)
-    assert any("allowed_peers: an empty list would refuse every peer" in e for e in info.value.errors)
+    assert any(
+        "allowed_peers: an empty list would refuse every peer" in e for e in info.value.errors
+    )
 
 
 def test_two_controllers_owning_one_joint_are_refused_at_load() -> None:
     text = MINIMAL_ROBOT + "controller: [{plugin: hold}, {plugin: hold}]\n"
-    with pytest.raises(ConfigError, match=r"controller\[1\]: command interface 'a/position' is claimed"):
+    with pytest.raises(
+        ConfigError, match=r"controller\[1\]: command interface 'a/position' is claimed"
+    ):
         parse_config(text)
 
 

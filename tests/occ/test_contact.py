@@ -27,6 +27,7 @@ import igtl
 from igtl.messages.sensor import Unit
 from occ.config import ContactConfig
 from occ.contact import Contact, Environment
+from occ.decoders import event_of
 from occ.errors import ConfigError
 from occ.forces import SlaveForce
 from occ.frame import Frame
@@ -182,14 +183,14 @@ def test_the_sensor_source_takes_newtons_in_its_frame() -> None:
         ("tip", tuple(rot @ tip @ [1.0, 2.0, 3.0])),
     ):
         src = SlaveForce(("sensor",), sensor_interface="sensor", sensor_frame=frame)
-        assert src.on_input(sensor((1.0, 2.0, 3.0), newtons()), "sensor", 0.0)
+        assert src.on_input(event_of(sensor((1.0, 2.0, 3.0), newtons()), "sensor"), 0.0)
         f = src.estimate(0.005, SLAVE, [0.0] * 3, [0.0] * 3, [0.0] * 3, base, lambda: tip)
         assert f == pytest.approx(expect), frame
         assert src.used == "sensor"
     # a milli-newton sensor is scaled; six values (force and torque) are taken
     src = SlaveForce(("sensor",), sensor_interface="sensor")
     assert src.on_input(
-        sensor((1000.0, 0.0, 0.0, 1.0, 1.0, 1.0), Unit(11, ((11, 1),))), "sensor", 0.0
+        event_of(sensor((1000.0, 0.0, 0.0, 1.0, 1.0, 1.0), Unit(11, ((11, 1),))), "sensor"), 0.0
     )
     assert src.estimate(0.0, SLAVE, [0.0] * 3, [0.0] * 3, [0.0] * 3, np.eye(4), lambda: tip) == (
         pytest.approx((1.0, 0.0, 0.0))
@@ -206,16 +207,18 @@ def test_the_sensor_source_takes_newtons_in_its_frame() -> None:
 )
 def test_a_reading_that_is_no_force_is_refused_and_counted(msg: Any, error: str) -> None:
     src = SlaveForce(("sensor",), sensor_interface="sensor")
-    assert not src.on_input(msg, "sensor", 0.0)
+    assert not src.on_input(event_of(msg, "sensor"), 0.0)
     st = src.stats(0.0)["sensor"]
     assert st["refused"] == 1 and st["samples"] == 0 and error in st["last_error"]
 
 
 def test_other_devices_and_interfaces_are_not_the_sensor() -> None:
     src = SlaveForce(("sensor",), sensor_interface="sensor")
-    assert not src.on_input(sensor((1.0, 2.0, 3.0), device="Other"), "sensor", 0.0)
-    assert not src.on_input(sensor((1.0, 2.0, 3.0)), "slicer", 0.0)
-    assert not src.on_input(igtl.StringMessage("x", device_name="ForceSensor"), "sensor", 0.0)
+    assert not src.on_input(event_of(sensor((1.0, 2.0, 3.0), device="Other"), "sensor"), 0.0)
+    assert not src.on_input(event_of(sensor((1.0, 2.0, 3.0)), "slicer"), 0.0)
+    assert not src.on_input(
+        event_of(igtl.StringMessage("x", device_name="ForceSensor"), "sensor"), 0.0
+    )
     assert src.stats(0.0)["sensor"]["refused"] == 0
 
 
@@ -226,14 +229,14 @@ def test_a_silent_sensor_is_not_used_the_next_source_is_and_one_alert_says_so() 
         alert=lambda *a: alerts.append(a),
     )  # fmt: skip
     q = [0.0, 0.35, 0.05]
-    src.on_input(sensor((0.0, 0.0, 2.0)), "sensor", 0.0)
+    src.on_input(event_of(sensor((0.0, 0.0, 2.0)), "sensor"), 0.0)
     base = np.eye(4)
     assert src.estimate(0.01, SLAVE, q, [0.0] * 3, [0.0] * 3, base, np.eye) == (0.0, 0.0, 2.0)
     for t in (0.05, 0.06, 0.07):
         assert src.estimate(t, SLAVE, q, [0.0] * 3, [0.0] * 3, base, np.eye) == (0.0, 0.0, 0.0)
         assert src.used == "effort"
     assert len(alerts) == 1 and alerts[0][0] == "ALERT" and "silent" in alerts[0][1]
-    src.on_input(sensor((0.0, 0.0, 1.0)), "sensor", 0.08)  # back: used again, told
+    src.on_input(event_of(sensor((0.0, 0.0, 1.0)), "sensor"), 0.08)  # back: used again, told
     assert src.estimate(0.081, SLAVE, q, [0.0] * 3, [0.0] * 3, base, np.eye) == (0.0, 0.0, 1.0)
     assert alerts[-1][0] == "STREAM" and "back" in alerts[-1][1]
 
@@ -332,7 +335,9 @@ def test_bad_tissue_and_tissue_without_a_simulated_world_are_refused_with_a_repl
         sim = SimRobot(cfg)
         try:
             op = sim.peer("operator", address=("127.0.0.1", 41001))
-            before = [c.name for c in env.contacts] if (env := sim.robot.hardware.environment) else []
+            before = (
+                [c.name for c in env.contacts] if (env := sim.robot.hardware.environment) else []
+            )
             op.send(msg)
             sim.step(2)
             text = " ".join(str(getattr(m, "status_message", "")) for m in op.messages())
@@ -422,7 +427,7 @@ def test_the_joints_feel_the_damper_through_the_tips_velocity() -> None:
 
 def test_tissue_from_slicer_defaults_visibility_and_refusals() -> None:
     from igtl.messages.point import PointElement
-    from occ.contact import tissue_from_message
+    from occ.contact import tissue_from_event
 
     def points(*els: Any, **meta: str) -> Any:
         return igtl.PointMessage(points=els, device_name="T", header_version=2,
@@ -431,23 +436,27 @@ def test_tissue_from_slicer_defaults_visibility_and_refusals() -> None:
     def el(pos: tuple[float, float, float], r: float, alpha: int = 255) -> Any:
         return PointElement(name="p", group="G", rgba=(1, 2, 3, alpha), position=pos, radius=r)
 
-    name, shapes = tissue_from_message(
-        points(el((1.0, 2.0, 3.0), 0.0), el((9.0, 9.0, 9.0), 4.0, alpha=0), el((4.0, 5.0, 6.0), 0.5))
+    name, shapes = tissue_from_event(
+        event_of(
+            points(
+                el((1.0, 2.0, 3.0), 0.0),
+                el((9.0, 9.0, 9.0), 4.0, alpha=0),
+                el((4.0, 5.0, 6.0), 0.5),
+            )
+        )
     )  # the hidden point is skipped; a radius of 0 takes the default (10 mm); 0.5 mm is kept
     assert name == "T" and [s.name for s in shapes] == ["T:0", "T:1"]
     assert [s.radius for s in shapes] == [10.0, 0.5]
     assert [(s.stiffness, s.damping) for s in shapes] == [(0.5, 0.0), (0.5, 0.0)]
     assert shapes[1].point == (4.0, 5.0, 6.0) and shapes[0].kind == "sphere"
-    _, (wall_,) = tissue_from_message(
-        igtl.TransformMessage.from_matrix(
+    _, (wall_,) = tissue_from_event(event_of(igtl.TransformMessage.from_matrix(
             np.array([[1, 0, 0, 1], [0, 1, 0, 2], [0, 0, 3, 4], [0, 0, 0, 1]], dtype=float),
             device_name="W", header_version=2,
             metadata={"kind": "tissue", "stiffness": "2", "damping": "0.1"},
-        )
-    )  # fmt: skip
+        )))  # fmt: skip
     assert wall_.normal == (0.0, 0.0, 1.0) and wall_.point == (1.0, 2.0, 4.0)
     assert (wall_.stiffness, wall_.damping, wall_.radius) == (2.0, 0.1, 0.0)
-    assert tissue_from_message(igtl.StringMessage("x", device_name="S")) is None
+    assert tissue_from_event(event_of(igtl.StringMessage("x", device_name="S"))) is None
     for bad, why in (
         (points(el((0.0, 0.0, 0.0), 1.0), damping="-1"), "damping -1.0 must be >= 0"),
         (points(el((0.0, 0.0, 0.0), 0.0), radius="0"), "radius 0.0 must be >= 1e-09"),
@@ -460,7 +469,7 @@ def test_tissue_from_slicer_defaults_visibility_and_refusals() -> None:
          "z axis is zero"),
     ):  # fmt: skip
         with pytest.raises(ValueError, match=why):
-            tissue_from_message(bad)
+            tissue_from_event(event_of(bad))
 
 
 def test_the_worlds_counters_before_and_away_from_any_contact() -> None:
@@ -476,12 +485,12 @@ def test_the_worlds_counters_before_and_away_from_any_contact() -> None:
 
 
 def test_a_normal_is_made_unit_in_every_component_and_a_nan_plane_is_refused() -> None:
-    from occ.contact import tissue_from_message
+    from occ.contact import tissue_from_event
 
     assert wall(normal=(0.0, 3.0, 4.0)).normal == pytest.approx((0.0, 0.6, 0.8))
     assert wall(normal=(2.0, 0.0, -2.0)).normal == pytest.approx((0.7071068, 0.0, -0.7071068))
     m = np.eye(4)
     m[0, 3] = float("nan")
     with pytest.raises(ValueError, match="not a transform"):
-        tissue_from_message(igtl.TransformMessage.from_matrix(
-            m, device_name="N", header_version=2, metadata={"kind": "tissue"}))  # fmt: skip
+        tissue_from_event(event_of(igtl.TransformMessage.from_matrix(
+            m, device_name="N", header_version=2, metadata={"kind": "tissue"})))  # fmt: skip

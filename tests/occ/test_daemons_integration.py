@@ -36,8 +36,20 @@ def write_configs(tmp: Path) -> dict[str, int]:
 
 def start(cfg: Path, stats: Path, *extra: str) -> subprocess.Popen[bytes]:
     return subprocess.Popen(
-        [sys.executable, "-m", "occ.cli", str(cfg), "--stats", str(stats), "--log-level", "WARNING", *extra],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        [
+            sys.executable,
+            "-m",
+            "occ.cli",
+            str(cfg),
+            "--stats",
+            str(stats),
+            "--log-level",
+            "WARNING",
+            *extra,
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
     )
 
 
@@ -47,7 +59,9 @@ def daemons(tmp_path: Path):  # type: ignore[no-untyped-def]
     procs: list[subprocess.Popen[bytes]] = []
     slave = start(tmp_path / "slave.yaml", tmp_path / "slave.json")
     procs.append(slave)
-    assert wait_port(ports["slave_tcp"]), slave.stderr.read().decode() if slave.poll() is not None else "slave did not listen"
+    assert wait_port(ports["slave_tcp"]), (
+        slave.stderr.read().decode() if slave.poll() is not None else "slave did not listen"
+    )
     master = start(tmp_path / "master.yaml", tmp_path / "master.json", "--start", "running")
     procs.append(master)
     assert wait_port(ports["master_tcp"]), "master did not listen"
@@ -57,8 +71,10 @@ def daemons(tmp_path: Path):  # type: ignore[no-untyped-def]
 
 def test_slicer_sees_tip_follow_master_and_dead_master_stops_slave(daemons) -> None:  # type: ignore[no-untyped-def]
     ports, slave, master, tmp = daemons
-    with SlicerStandIn("127.0.0.1", ports["slave_tcp"]) as s, \
-            SlicerStandIn("127.0.0.1", ports["slave_op"]) as op:
+    with (
+        SlicerStandIn("127.0.0.1", ports["slave_tcp"]) as s,
+        SlicerStandIn("127.0.0.1", ports["slave_op"]) as op,
+    ):
         assert s.connected.wait(5.0) and op.connected.wait(5.0)
         # 3D Slicer's connection is a viewer: it may not move the robot
         refused = s.wait_reply(s.send_command("Enable"), 5.0)
@@ -86,8 +102,10 @@ def test_slicer_sees_tip_follow_master_and_dead_master_stops_slave(daemons) -> N
         # kill the master: the slave stops and tells the operator why
         master.send_signal(signal.SIGKILL)
         assert wait_for(
-            lambda: any(st.error_name == "STOPPED" and "packet loss" in st.status_message
-                        for st in s.statuses[n_status:]),
+            lambda: any(
+                st.error_name == "STOPPED" and "packet loss" in st.status_message
+                for st in s.statuses[n_status:]
+            ),
             5.0,
         ), [f"{st.error_name}: {st.status_message}" for st in s.statuses]
         # GetState confirms, and nothing moves any more
@@ -100,13 +118,23 @@ def test_slicer_sees_tip_follow_master_and_dead_master_stops_slave(daemons) -> N
 
 
 def test_occd_check_and_bad_config(tmp_path: Path) -> None:
-    ok = subprocess.run([sys.executable, "-m", "occ.cli", "--check", str(ROOT / "configs" / "slave.yaml")],
-                        capture_output=True, text=True, timeout=60)
+    ok = subprocess.run(
+        [sys.executable, "-m", "occ.cli", "--check", str(ROOT / "configs" / "slave.yaml")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert ok.returncode == 0, ok.stderr
     bad = tmp_path / "bad.yaml"
-    bad.write_text((ROOT / "configs" / "slave.yaml").read_text().replace("rate_hz: 1000", "rate_hz: fast"))
-    res = subprocess.run([sys.executable, "-m", "occ.cli", "--check", str(bad)], capture_output=True,
-                         text=True, timeout=60)
+    bad.write_text(
+        (ROOT / "configs" / "slave.yaml").read_text().replace("rate_hz: 1000", "rate_hz: fast")
+    )
+    res = subprocess.run(
+        [sys.executable, "-m", "occ.cli", "--check", str(bad)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert res.returncode == 2
     assert "robot.rate_hz" in res.stderr and "bad.yaml:" in res.stderr
 
@@ -128,8 +156,16 @@ def test_sigterm_stops_cleanly_and_writes_stats(tmp_path: Path) -> None:
     import json
 
     d = json.loads((tmp_path / "s.json").read_text())
-    for key in ("ticks", "rate_hz", "lateness_us", "compute_us", "late_over_1ms", "overruns",
-                "cpu_percent", "interfaces"):
+    for key in (
+        "ticks",
+        "rate_hz",
+        "lateness_us",
+        "compute_us",
+        "late_over_1ms",
+        "overruns",
+        "cpu_percent",
+        "interfaces",
+    ):
         assert key in d
     for key in ("p50", "p99", "p99_9", "max"):
         assert key in d["lateness_us"] and key in d["compute_us"]
@@ -148,7 +184,10 @@ def test_port_in_use_exits_1_with_a_clear_error(tmp_path: Path) -> None:
         busy.listen()
         res = subprocess.run(
             [sys.executable, "-m", "occ.cli", str(tmp_path / "slave.yaml"), "--duration", "1"],
-            cwd=ROOT, capture_output=True, text=True, timeout=60,
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=60,
         )
     assert res.returncode == 1, res.stderr
     assert "Address already in use" in res.stderr or "in use" in res.stderr.lower()
@@ -164,7 +203,10 @@ def test_unknown_driver_param_is_a_config_error_with_its_line(tmp_path: Path, ch
     args = ["--check"] if check else ["--duration", "0.1"]
     res = subprocess.run(
         [sys.executable, "-m", "occ.cli", *args, str(path)],
-        cwd=ROOT, capture_output=True, text=True, timeout=60,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert res.returncode == 2, res.stderr
     lines = path.read_text().splitlines()

@@ -17,14 +17,15 @@ import pytest
 
 import igtl
 from igtl.messages.point import PointElement
+from occ.decoders import event_of
 from occ.fixture_defs import (
     Defaults,
     Definition,
     DefinitionError,
     PatientMapping,
     compile_definitions,
+    from_event,
     from_markups_file,
-    from_message,
     parse_linear,
     to_master,
 )
@@ -34,8 +35,9 @@ D = Defaults()
 
 
 def vf(spheres: Any, hardness: float = 1.0, name: str = "VF", **meta: str) -> igtl.Message:
-    return igtl.VirtualFixtureMessage(hardness=hardness, spheres=spheres, device_name=name,
-                                      header_version=2, metadata=meta)
+    return igtl.VirtualFixtureMessage(
+        hardness=hardness, spheres=spheres, device_name=name, header_version=2, metadata=meta
+    )
 
 
 def pt(name: str, xyz: Any, alpha: int = 255, radius: float = 0.0) -> PointElement:
@@ -43,13 +45,12 @@ def pt(name: str, xyz: Any, alpha: int = 255, radius: float = 0.0) -> PointEleme
 
 
 def points(pts: Any, name: str = "P", **meta: str) -> igtl.Message:
-    return igtl.PointMessage(points=tuple(pts), device_name=name, header_version=2,
-                             metadata=meta)
+    return igtl.PointMessage(points=tuple(pts), device_name=name, header_version=2, metadata=meta)
 
 
 def refused(msg: igtl.Message, defaults: Defaults = D) -> str:
     with pytest.raises(DefinitionError) as err:
-        from_message(msg, defaults)
+        from_event(event_of(msg), defaults)
     return str(err.value)
 
 
@@ -59,27 +60,30 @@ def test_defaults_are_the_documented_ones() -> None:
 
 
 def test_vfixture_spheres_become_definitions_named_by_index() -> None:
-    got = from_message(vf(((1.0, 2.0, 3.0, 4.0), (-1.0, -2.0, -3.0, 0.5)), hardness=2.5,
-                          damping="0.25"), D)
+    got = from_event(
+        event_of(vf(((1.0, 2.0, 3.0, 4.0), (-1.0, -2.0, -3.0, 0.5)), hardness=2.5, damping="0.25")),
+        D,
+    )
     assert got == [
         Definition("accessible", ((1.0, 2.0, 3.0),), 4.0, None, 2.5, 0.25, "VF-0", "patient"),
         Definition("accessible", ((-1.0, -2.0, -3.0),), 0.5, None, 2.5, 0.25, "VF-1", "patient"),
     ]
     # the kind from metadata (any case, spaces around) or from the controller's defaults
-    (f,) = from_message(vf(((0.0, 0.0, 0.0, 1.0),), kind=" Forbidden "), D)  # type: ignore[misc]
+    (f,) = from_event(event_of(vf(((0.0, 0.0, 0.0, 1.0),), kind=" Forbidden ")), D)  # type: ignore[misc]
     assert f.kind == "forbidden" and f.damping == 0.0
-    (g,) = from_message(vf(((0.0, 0.0, 0.0, 1.0),)), Defaults(vfixture_kind="forbidden"))  # type: ignore[misc]
+    (g,) = from_event(event_of(vf(((0.0, 0.0, 0.0, 1.0),))), Defaults(vfixture_kind="forbidden"))  # type: ignore[misc]
     assert g.kind == "forbidden"
-    (h,) = from_message(vf(((0.0, 0.0, 0.0, 1.0),)), Defaults(damping=0.5))  # type: ignore[misc]
+    (h,) = from_event(event_of(vf(((0.0, 0.0, 0.0, 1.0),))), Defaults(damping=0.5))  # type: ignore[misc]
     assert h.damping == 0.5
     # a hardness of 0 is a sphere that pushes nothing: allowed; no spheres: none
-    (z,) = from_message(vf(((0.0, 0.0, 0.0, 1.0),), hardness=0.0), D)  # type: ignore[misc]
+    (z,) = from_event(event_of(vf(((0.0, 0.0, 0.0, 1.0),), hardness=0.0)), D)  # type: ignore[misc]
     assert z.stiffness == 0.0
-    assert from_message(vf(()), D) == []
+    assert from_event(event_of(vf(())), D) == []
     # a v1 sender (no metadata) gets the defaults
-    v1 = igtl.VirtualFixtureMessage(hardness=1.0, spheres=((0.0, 0.0, 0.0, 1.0),),
-                                    device_name="Old")
-    assert from_message(v1, D) == [
+    v1 = igtl.VirtualFixtureMessage(
+        hardness=1.0, spheres=((0.0, 0.0, 0.0, 1.0),), device_name="Old"
+    )
+    assert from_event(event_of(v1), D) == [
         Definition("accessible", ((0.0, 0.0, 0.0),), 1.0, None, 1.0, 0.0, "Old-0", "patient")
     ]
 
@@ -87,36 +91,70 @@ def test_vfixture_spheres_become_definitions_named_by_index() -> None:
 @pytest.mark.parametrize(
     ("msg", "text"),
     [
-        (vf(((0.0, 0.0, 0.0, 1.0),), kind="sticky"),
-         "metadata kind='sticky': expected one of accessible, forbidden"),
-        (vf(((0.0, 0.0, 0.0, 1.0),), kind="guide"),
-         "metadata kind='guide': expected one of accessible, forbidden"),
-        (igtl.VirtualFixtureMessage(hardness=1.0, spheres=((0.0, 0.0, 0.0, 1.0),), version=2,
-                                    device_name="VF"),
-         "VFIXTURE version 2 is not known (1 is)"),
+        (
+            vf(((0.0, 0.0, 0.0, 1.0),), kind="sticky"),
+            "metadata kind='sticky': expected one of accessible, forbidden",
+        ),
+        (
+            vf(((0.0, 0.0, 0.0, 1.0),), kind="guide"),
+            "metadata kind='guide': expected one of accessible, forbidden",
+        ),
+        (
+            igtl.VirtualFixtureMessage(
+                hardness=1.0, spheres=((0.0, 0.0, 0.0, 1.0),), version=2, device_name="VF"
+            ),
+            "VFIXTURE version 2 is not known (1 is)",
+        ),
         (vf(((0.0, 0.0, 0.0, 1.0),), hardness=-0.5), "VFIXTURE hardness -0.5 must be >= 0"),
         (vf(((0.0, 0.0, 0.0, 1.0),), hardness=math.nan), "VFIXTURE hardness nan must be >= 0"),
         (vf(((0.0, 0.0, 0.0, 1.0),), hardness=math.inf), "VFIXTURE hardness inf must be >= 0"),
-        (vf(((0.0, 0.0, 0.0, 1.0), (1.0, 2.0, 3.0, 0.0))),
-         "VFIXTURE sphere 1 (1.0, 2.0, 3.0, 0.0): needs finite numbers and a radius > 0"),
-        (vf(((0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0, 1.0), (math.nan, 0.0, 0.0, 1.0))),
-         "VFIXTURE sphere 2 (nan, 0.0, 0.0, 1.0): needs finite numbers and a radius > 0"),
-        (vf(((0.0, 0.0, 0.0, -1.0),)),
-         "VFIXTURE sphere 0 (0.0, 0.0, 0.0, -1.0): needs finite numbers and a radius > 0"),
+        (
+            vf(((0.0, 0.0, 0.0, 1.0), (1.0, 2.0, 3.0, 0.0))),
+            "VFIXTURE sphere 1 (1.0, 2.0, 3.0, 0.0): needs finite numbers and a radius > 0",
+        ),
+        (
+            vf(((0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0, 1.0), (math.nan, 0.0, 0.0, 1.0))),
+            "VFIXTURE sphere 2 (nan, 0.0, 0.0, 1.0): needs finite numbers and a radius > 0",
+        ),
+        (
+            vf(((0.0, 0.0, 0.0, -1.0),)),
+            "VFIXTURE sphere 0 (0.0, 0.0, 0.0, -1.0): needs finite numbers and a radius > 0",
+        ),
         (vf(((0.0, 0.0, 0.0, 1.0),), damping="soft"), "metadata damping='soft' is not a number"),
-        (vf(((0.0, 0.0, 0.0, 1.0),), damping="-1"),
-         "metadata damping='-1' must be a finite number >= 0"),
-        (vf(((0.0, 0.0, 0.0, 1.0),), damping="inf"),
-         "metadata damping='inf' must be a finite number >= 0"),
-        (vf(((0.0, 0.0, 0.0, 1.0),), damping="nan"),
-         "metadata damping='nan' must be a finite number >= 0"),
-        (vf(((0.0, 0.0, 0.0, 1.0),), frame="master"),
-         "metadata frame='master': fixtures are in the patient frame (3D Slicer's RAS, the "
-         "frame of the slave's Tip); send them there, without frame or with frame=patient"),
+        (
+            vf(((0.0, 0.0, 0.0, 1.0),), damping="-1"),
+            "metadata damping='-1' must be a finite number >= 0",
+        ),
+        (
+            vf(((0.0, 0.0, 0.0, 1.0),), damping="inf"),
+            "metadata damping='inf' must be a finite number >= 0",
+        ),
+        (
+            vf(((0.0, 0.0, 0.0, 1.0),), damping="nan"),
+            "metadata damping='nan' must be a finite number >= 0",
+        ),
+        (
+            vf(((0.0, 0.0, 0.0, 1.0),), frame="master"),
+            "metadata frame='master': fixtures are in the patient frame (3D Slicer's RAS, the "
+            "frame of the slave's Tip); send them there, without frame or with frame=patient",
+        ),
     ],
-    ids=["kind", "guide-kind", "version", "hardness", "nan-hardness", "inf-hardness",
-         "zero-radius", "nan-centre", "negative-radius", "damping-text", "damping-negative",
-         "damping-inf", "damping-nan", "frame"],
+    ids=[
+        "kind",
+        "guide-kind",
+        "version",
+        "hardness",
+        "nan-hardness",
+        "inf-hardness",
+        "zero-radius",
+        "nan-centre",
+        "negative-radius",
+        "damping-text",
+        "damping-negative",
+        "damping-inf",
+        "damping-nan",
+        "frame",
+    ],
 )
 def test_a_malformed_vfixture_is_refused_with_what_is_wrong(msg: igtl.Message, text: str) -> None:
     assert refused(msg) == text
@@ -124,65 +162,111 @@ def test_a_malformed_vfixture_is_refused_with_what_is_wrong(msg: igtl.Message, t
 
 def test_the_frame_may_be_named_patient_in_any_case() -> None:
     for frame in ("patient", " Patient "):
-        (d,) = from_message(vf(((0.0, 0.0, 0.0, 1.0),), frame=frame), D)  # type: ignore[misc]
+        (d,) = from_event(event_of(vf(((0.0, 0.0, 0.0, 1.0),), frame=frame)), D)  # type: ignore[misc]
         assert d.frame == "patient"
     assert "frame='world'" in refused(points([pt("a", (0, 0, 0))], frame="world"))
 
 
 # ------------------------------------------------------------------ POINT
 def test_points_become_spheres_with_their_radius_the_metadata_or_the_default() -> None:
-    msg = points([pt("a", (1.0, 2.0, 3.0), radius=1.5), pt("hidden", (9, 9, 9), alpha=0),
-                  pt("", (4.0, 5.0, 6.0), alpha=1)], name="Targets",
-                 kind="Forbidden", stiffness="0.5", damping="0.125", radius="2.25")
-    assert from_message(msg, D) == [
+    msg = points(
+        [
+            pt("a", (1.0, 2.0, 3.0), radius=1.5),
+            pt("hidden", (9, 9, 9), alpha=0),
+            pt("", (4.0, 5.0, 6.0), alpha=1),
+        ],
+        name="Targets",
+        kind="Forbidden",
+        stiffness="0.5",
+        damping="0.125",
+        radius="2.25",
+    )
+    assert from_event(event_of(msg), D) == [
         Definition("forbidden", ((1.0, 2.0, 3.0),), 1.5, None, 0.5, 0.125, "a", "patient"),
         # unnamed: the list's name and the point's place among the visible ones
-        Definition("forbidden", ((4.0, 5.0, 6.0),), 2.25, None, 0.5, 0.125, "Targets-1",
-                   "patient"),
+        Definition("forbidden", ((4.0, 5.0, 6.0),), 2.25, None, 0.5, 0.125, "Targets-1", "patient"),
     ]
     # no metadata: the controller's defaults
     mine = Defaults(point_kind="forbidden", point_radius_mm=3.0, stiffness=0.75, damping=0.5)
-    assert from_message(points([pt("b", (0.0, 0.0, 0.0))]), mine) == [
+    assert from_event(event_of(points([pt("b", (0.0, 0.0, 0.0))])), mine) == [
         Definition("forbidden", ((0.0, 0.0, 0.0),), 3.0, None, 0.75, 0.5, "b", "patient")
     ]
-    assert from_message(points([pt("b", (0.0, 0.0, 0.0))]), D)[0].radius == 5.0  # type: ignore[index]
+    assert from_event(event_of(points([pt("b", (0.0, 0.0, 0.0))])), D)[0].radius == 5.0  # type: ignore[index]
 
 
 def test_points_as_a_guide_in_their_order() -> None:
-    msg = points([pt("a", (0.0, 0.0, 0.0)), pt("skip", (5, 5, 5), alpha=0),
-                  pt("b", (0.0, 0.0, 10.0)), pt("c", (10.0, 0.0, 10.0))],
-                 name="Path", kind="guide", stiffness="0.5", damping="0.25")
-    assert from_message(msg, D) == [
-        Definition("guide", ((0.0, 0.0, 0.0), (0.0, 0.0, 10.0), (10.0, 0.0, 10.0)), 0.0, None,
-                   0.5, 0.25, "Path", "patient")
+    msg = points(
+        [
+            pt("a", (0.0, 0.0, 0.0)),
+            pt("skip", (5, 5, 5), alpha=0),
+            pt("b", (0.0, 0.0, 10.0)),
+            pt("c", (10.0, 0.0, 10.0)),
+        ],
+        name="Path",
+        kind="guide",
+        stiffness="0.5",
+        damping="0.25",
+    )
+    assert from_event(event_of(msg), D) == [
+        Definition(
+            "guide",
+            ((0.0, 0.0, 0.0), (0.0, 0.0, 10.0), (10.0, 0.0, 10.0)),
+            0.0,
+            None,
+            0.5,
+            0.25,
+            "Path",
+            "patient",
+        )
     ]
     two = points([pt("a", (0.0, 0.0, 0.0)), pt("b", (0.0, 0.0, 1.0))], kind="guide")
-    assert len(from_message(two, D)[0].points) == 2  # type: ignore[index]
+    assert len(from_event(event_of(two), D)[0].points) == 2  # type: ignore[index]
     # every point hidden: no guide (the node is empty), not an error
-    assert from_message(points([pt("a", (0, 0, 0), alpha=0)], kind="guide"), D) == []
+    assert from_event(event_of(points([pt("a", (0, 0, 0), alpha=0)], kind="guide")), D) == []
 
 
 @pytest.mark.parametrize(
     ("msg", "text"),
     [
-        (points([pt("a", (0.0, 0.0, 0.0))], kind="guide"),
-         "a guide needs at least two visible points"),
-        (points([pt("a", (0.0, 0.0, 0.0)), pt("b", (0.0, 0.0, 0.0), alpha=0)], kind="guide"),
-         "a guide needs at least two visible points"),
-        (points([pt("a", (0.0, 0.0, 0.0)), pt("b", (0.0, math.inf, 0.0))], kind="guide"),
-         "point 'b': not a finite number (inf)"),
+        (
+            points([pt("a", (0.0, 0.0, 0.0))], kind="guide"),
+            "a guide needs at least two visible points",
+        ),
+        (
+            points([pt("a", (0.0, 0.0, 0.0)), pt("b", (0.0, 0.0, 0.0), alpha=0)], kind="guide"),
+            "a guide needs at least two visible points",
+        ),
+        (
+            points([pt("a", (0.0, 0.0, 0.0)), pt("b", (0.0, math.inf, 0.0))], kind="guide"),
+            "point 'b': not a finite number (inf)",
+        ),
         (points([pt("a", (0.0, math.nan, 0.0))]), "point 'a': not a finite number (nan)"),
         (points([pt("a", (0.0, 0.0, 0.0))], radius="0"), "point 'a': radius 0.0 must be > 0"),
-        (points([pt("a", (0.0, 0.0, 0.0))], kind="plane"),
-         "metadata kind='plane': expected one of accessible, forbidden, guide"),
-        (points([pt("a", (0.0, 0.0, 0.0))], stiffness="stiff"),
-         "metadata stiffness='stiff' is not a number"),
+        (
+            points([pt("a", (0.0, 0.0, 0.0))], kind="plane"),
+            "metadata kind='plane': expected one of accessible, forbidden, guide",
+        ),
+        (
+            points([pt("a", (0.0, 0.0, 0.0))], stiffness="stiff"),
+            "metadata stiffness='stiff' is not a number",
+        ),
         (points([pt("a", (0.0, 0.0, 0.0))], damping="x"), "metadata damping='x' is not a number"),
-        (points([pt("a", (0.0, 0.0, 0.0))], radius="-2"),
-         "metadata radius='-2' must be a finite number >= 0"),
+        (
+            points([pt("a", (0.0, 0.0, 0.0))], radius="-2"),
+            "metadata radius='-2' must be a finite number >= 0",
+        ),
     ],
-    ids=["guide-one", "guide-one-visible", "guide-inf", "nan", "zero-radius", "kind",
-         "stiffness", "damping", "radius"],
+    ids=[
+        "guide-one",
+        "guide-one-visible",
+        "guide-inf",
+        "nan",
+        "zero-radius",
+        "kind",
+        "stiffness",
+        "damping",
+        "radius",
+    ],
 )
 def test_a_malformed_point_list_is_refused_with_what_is_wrong(msg: igtl.Message, text: str) -> None:
     assert refused(msg) == text
@@ -198,47 +282,64 @@ def test_a_point_with_no_radius_anywhere_is_refused() -> None:
 def test_a_plane_is_the_translation_and_the_rotations_third_column() -> None:
     # twelve different numbers in wire order (the 3x3 column by column, the translation)
     e = tuple(float(v) for v in range(1, 13))
-    msg = igtl.TransformMessage(elements=e, device_name="Wall", header_version=2,
-                                metadata={"kind": " Plane ", "stiffness": "3", "damping": "0.5"})
-    assert from_message(msg, D) == [
-        Definition("plane", ((10.0, 11.0, 12.0),), 0.0, (7.0, 8.0, 9.0), 3.0, 0.5, "Wall",
-                   "patient")
+    msg = igtl.TransformMessage(
+        elements=e,
+        device_name="Wall",
+        header_version=2,
+        metadata={"kind": " Plane ", "stiffness": "3", "damping": "0.5"},
+    )
+    assert from_event(event_of(msg), D) == [
+        Definition(
+            "plane", ((10.0, 11.0, 12.0),), 0.0, (7.0, 8.0, 9.0), 3.0, 0.5, "Wall", "patient"
+        )
     ]
-    plain = igtl.TransformMessage(elements=e, device_name="Wall", header_version=2,
-                                  metadata={"kind": "plane"})
-    (d,) = from_message(plain, Defaults(stiffness=0.25, damping=0.125))  # type: ignore[misc]
+    plain = igtl.TransformMessage(
+        elements=e, device_name="Wall", header_version=2, metadata={"kind": "plane"}
+    )
+    (d,) = from_event(event_of(plain), Defaults(stiffness=0.25, damping=0.125))  # type: ignore[misc]
     assert (d.stiffness, d.damping) == (0.25, 0.125)
     # a TRANSFORM without kind=plane is no fixture (a tracker, the slave's base, ...)
-    assert from_message(igtl.TransformMessage(elements=e, device_name="Base"), D) is None
-    other = igtl.TransformMessage(elements=e, device_name="T", header_version=2,
-                                  metadata={"kind": "guide"})
-    assert from_message(other, D) is None
+    assert from_event(event_of(igtl.TransformMessage(elements=e, device_name="Base")), D) is None
+    other = igtl.TransformMessage(
+        elements=e, device_name="T", header_version=2, metadata={"kind": "guide"}
+    )
+    assert from_event(event_of(other), D) is None
     # a tiny but non-zero z axis is a direction
     tiny = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 2e-9, 0.0, 0.0, 0.0)
-    small = igtl.TransformMessage(elements=tiny, device_name="T", header_version=2,
-                                  metadata={"kind": "plane"})
-    assert from_message(small, D)[0].normal == (0.0, 0.0, pytest.approx(2e-9))  # type: ignore[index]
+    small = igtl.TransformMessage(
+        elements=tiny, device_name="T", header_version=2, metadata={"kind": "plane"}
+    )
+    assert from_event(event_of(small), D)[0].normal == (0.0, 0.0, pytest.approx(2e-9))  # type: ignore[index]
 
 
 @pytest.mark.parametrize(
     ("elements", "meta", "text"),
     [
-        ((1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 2.0, 3.0), {},
-         "plane 'Wall': the rotation's z axis is zero"),
-        ((1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, math.nan, 2.0, 3.0), {},
-         "plane 'Wall': not a finite number (nan)"),
-        ((1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 1.0, 2.0, 3.0), {"stiffness": "-1"},
-         "metadata stiffness='-1' must be a finite number >= 0"),
-        ((1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 1.0, 2.0, 3.0), {"frame": "master"},
-         None),
+        (
+            (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 2.0, 3.0),
+            {},
+            "plane 'Wall': the rotation's z axis is zero",
+        ),
+        (
+            (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, math.nan, 2.0, 3.0),
+            {},
+            "plane 'Wall': not a finite number (nan)",
+        ),
+        (
+            (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 1.0, 2.0, 3.0),
+            {"stiffness": "-1"},
+            "metadata stiffness='-1' must be a finite number >= 0",
+        ),
+        ((1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 1.0, 2.0, 3.0), {"frame": "master"}, None),
     ],
     ids=["zero-normal", "nan", "stiffness", "frame"],
 )
 def test_a_malformed_plane_is_refused(
     elements: Any, meta: dict[str, str], text: str | None
 ) -> None:
-    msg = igtl.TransformMessage(elements=elements, device_name="Wall", header_version=2,
-                                metadata={"kind": "plane", **meta})
+    msg = igtl.TransformMessage(
+        elements=elements, device_name="Wall", header_version=2, metadata={"kind": "plane", **meta}
+    )
     got = refused(msg)
     assert got == text if text else got.startswith("metadata frame='master'")
 
@@ -248,22 +349,30 @@ def poly(kind: str | None, pts: Any, lines: Any = (), polygons: Any = (), **meta
     m = dict(meta)
     if kind is not None:
         m["kind"] = kind
-    return igtl.PolyDataMessage(points=np.array(pts, dtype=float).reshape(-1, 3),
-                                lines=lines, polygons=polygons, device_name="Model",
-                                header_version=2, metadata=m)
+    return igtl.PolyDataMessage(
+        points=np.array(pts, dtype=float).reshape(-1, 3),
+        lines=lines,
+        polygons=polygons,
+        device_name="Model",
+        header_version=2,
+        metadata=m,
+    )
 
 
 PTS = [(0.5, -1.0, 2.0), (2.5, 1.5, -0.25), (-1.5, 3.0, 0.75), (1.0, 1.25, 4.0)]
 
 
 def test_polydata_lines_are_guides_and_polygons_planes() -> None:
-    got = from_message(poly(" Guide ", PTS, lines=((0, 1), (3, 2, 1)), stiffness="0.5"), D)
+    got = from_event(event_of(poly(" Guide ", PTS, lines=((0, 1), (3, 2, 1)), stiffness="0.5")), D)
     assert got == [
         Definition("guide", (PTS[0], PTS[1]), 0.0, None, 0.5, 0.0, "Model-0", "patient"),
         Definition("guide", (PTS[3], PTS[2], PTS[1]), 0.0, None, 0.5, 0.0, "Model-1", "patient"),
     ]
     # a polygon's plane: its first point, the normal (p1 - p0) x (p2 - p0) of its first three
-    got = from_message(poly("plane", PTS, polygons=((1, 2, 3), (0, 1, 2, 3)), damping="0.5"), D)
+    got = from_event(
+        event_of(poly("plane", PTS, polygons=((1, 2, 3), (0, 1, 2, 3)), damping="0.5")), D
+    )
+
     def normal(a: int, b: int, c: int) -> tuple[float, float, float]:
         x, y, z = np.cross(np.subtract(PTS[b], PTS[a]), np.subtract(PTS[c], PTS[a])).tolist()
         return (x, y, z)
@@ -275,32 +384,47 @@ def test_polydata_lines_are_guides_and_polygons_planes() -> None:
     # every coordinate different and non-zero: each term of the cross product counts
     assert all(abs(c) > 0.1 for c in normal(1, 2, 3) + normal(0, 1, 2))
     # the lines of a plane model and the polygons of a guide model are not read
-    assert from_message(poly("plane", PTS, lines=((0, 1),)), D) == []
-    assert from_message(poly("guide", PTS, polygons=((0, 1, 2),)), D) == []
+    assert from_event(event_of(poly("plane", PTS, lines=((0, 1),))), D) == []
+    assert from_event(event_of(poly("guide", PTS, polygons=((0, 1, 2),))), D) == []
     # without kind guide or plane a model is no fixture (Slicer sends models for display)
-    assert from_message(poly(None, PTS, lines=((0, 1),)), D) is None
-    assert from_message(poly("sphere", PTS, lines=((0, 1),)), D) is None
+    assert from_event(event_of(poly(None, PTS, lines=((0, 1),))), D) is None
+    assert from_event(event_of(poly("sphere", PTS, lines=((0, 1),))), D) is None
     # no fixture message at all
-    assert from_message(igtl.StringMessage(string="x", device_name="S"), D) is None
+    assert from_event(event_of(igtl.StringMessage(string="x", device_name="S")), D) is None
 
 
 @pytest.mark.parametrize(
     ("msg", "text"),
     [
         (poly("guide", PTS, lines=((0, 4),)), "polydata 'Model': cell 0 refers to a missing point"),
-        (poly("plane", PTS, polygons=((0, 1, 2), (0, 1, 7))),
-         "polydata 'Model': cell 1 refers to a missing point"),
-        (poly("guide", PTS, lines=((0, 1), (2,))),
-         "polydata 'Model': line 1 has fewer than 2 points"),
-        (poly("plane", PTS, polygons=((0, 1),)),
-         "polydata 'Model': polygon 0 has fewer than 3 points"),
-        (poly("guide", [(0.0, 0.0, 0.0), (math.inf, 0.0, 0.0)], lines=((0, 1),)),
-         "polydata 'Model': not a finite number (inf)"),
+        (
+            poly("plane", PTS, polygons=((0, 1, 2), (0, 1, 7))),
+            "polydata 'Model': cell 1 refers to a missing point",
+        ),
+        (
+            poly("guide", PTS, lines=((0, 1), (2,))),
+            "polydata 'Model': line 1 has fewer than 2 points",
+        ),
+        (
+            poly("plane", PTS, polygons=((0, 1),)),
+            "polydata 'Model': polygon 0 has fewer than 3 points",
+        ),
+        (
+            poly("guide", [(0.0, 0.0, 0.0), (math.inf, 0.0, 0.0)], lines=((0, 1),)),
+            "polydata 'Model': not a finite number (inf)",
+        ),
         (poly("guide", PTS, lines=((0, 1),), damping="?"), "metadata damping='?' is not a number"),
         (poly("plane", PTS, polygons=((0, 1, 2),), frame="master"), "frame"),
     ],
-    ids=["missing-point", "missing-in-polygon", "short-line", "short-polygon", "inf",
-         "damping", "frame"],
+    ids=[
+        "missing-point",
+        "missing-in-polygon",
+        "short-line",
+        "short-polygon",
+        "inf",
+        "damping",
+        "frame",
+    ],
 )
 def test_a_malformed_model_is_refused(msg: igtl.Message, text: str) -> None:
     got = refused(msg)
@@ -322,35 +446,74 @@ def test_a_markups_file_default_is_accessible_spheres_of_5_mm(tmp_path: Path) ->
     path = write(tmp_path, [{"type": "Fiducial", "controlPoints": cps((1, 2, 3))}])
     # no coordinate system: LPS (Slicer's default for files); no name: markups + its index
     assert from_markups_file(path) == [
-        Definition("accessible", ((-1.0, -2.0, 3.0),), 5.0, None, 1.0, 0.0, "markups0-0",
-                   "patient")
+        Definition("accessible", ((-1.0, -2.0, 3.0),), 5.0, None, 1.0, 0.0, "markups0-0", "patient")
     ]
 
 
 def test_a_markups_file_in_ras_and_um_with_every_type(tmp_path: Path) -> None:
-    path = write(tmp_path, [
-        {"type": "Fiducial", "name": "T", "coordinateSystem": "ras", "coordinateUnits": ["um"],
-         "controlPoints": [{"label": "t1", "position": [1000, 2000, 3000]},
-                           {"position": [4000, 5000, 6000]},
-                           {"label": "off", "position": [0, 0, 0], "positionStatus": "undefined"},
-                           {"label": "t4", "position": [7000, 8000, 9000]}]},
-        {"type": "Curve", "name": "C", "coordinateUnits": "mm",
-         "controlPoints": cps((1, 1, 1), (2, 2, 2), (3, 3, 3))},
-        {"type": "ClosedCurve", "name": "Loop", "coordinateSystem": "RAS",
-         "controlPoints": cps((0, 0, 0), (1, 0, 0), (0, 1, 0))},
-        {"type": "Line", "name": "Short", "controlPoints": cps((0, 0, 0))},
-        {"type": "Plane", "name": "P", "coordinateSystem": "RAS", "coordinateUnits": "um",
-         "normal": [0, 0, 2], "controlPoints": cps((1000, 0, 0))},
-    ])
+    path = write(
+        tmp_path,
+        [
+            {
+                "type": "Fiducial",
+                "name": "T",
+                "coordinateSystem": "ras",
+                "coordinateUnits": ["um"],
+                "controlPoints": [
+                    {"label": "t1", "position": [1000, 2000, 3000]},
+                    {"position": [4000, 5000, 6000]},
+                    {"label": "off", "position": [0, 0, 0], "positionStatus": "undefined"},
+                    {"label": "t4", "position": [7000, 8000, 9000]},
+                ],
+            },
+            {
+                "type": "Curve",
+                "name": "C",
+                "coordinateUnits": "mm",
+                "controlPoints": cps((1, 1, 1), (2, 2, 2), (3, 3, 3)),
+            },
+            {
+                "type": "ClosedCurve",
+                "name": "Loop",
+                "coordinateSystem": "RAS",
+                "controlPoints": cps((0, 0, 0), (1, 0, 0), (0, 1, 0)),
+            },
+            {"type": "Line", "name": "Short", "controlPoints": cps((0, 0, 0))},
+            {
+                "type": "Plane",
+                "name": "P",
+                "coordinateSystem": "RAS",
+                "coordinateUnits": "um",
+                "normal": [0, 0, 2],
+                "controlPoints": cps((1000, 0, 0)),
+            },
+        ],
+    )
     got = from_markups_file(path, kind="forbidden", radius_mm=2.0, stiffness=0.5, damping=0.25)
     assert got == [
         Definition("forbidden", ((1.0, 2.0, 3.0),), 2.0, None, 0.5, 0.25, "t1", "patient"),
         Definition("forbidden", ((4.0, 5.0, 6.0),), 2.0, None, 0.5, 0.25, "T-1", "patient"),
         Definition("forbidden", ((7.0, 8.0, 9.0),), 2.0, None, 0.5, 0.25, "t4", "patient"),
-        Definition("guide", ((-1.0, -1.0, 1.0), (-2.0, -2.0, 2.0), (-3.0, -3.0, 3.0)), 0.0,
-                   None, 0.5, 0.25, "C", "patient"),
-        Definition("guide", ((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 0.0)),
-                   0.0, None, 0.5, 0.25, "Loop", "patient"),
+        Definition(
+            "guide",
+            ((-1.0, -1.0, 1.0), (-2.0, -2.0, 2.0), (-3.0, -3.0, 3.0)),
+            0.0,
+            None,
+            0.5,
+            0.25,
+            "C",
+            "patient",
+        ),
+        Definition(
+            "guide",
+            ((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 0.0)),
+            0.0,
+            None,
+            0.5,
+            0.25,
+            "Loop",
+            "patient",
+        ),
         # a line of one defined point is no guide: left out
         # a plane's normal is a direction: not scaled by the units
         Definition("plane", ((1.0, 0.0, 0.0),), 0.0, (0.0, 0.0, 2.0), 0.5, 0.25, "P", "patient"),
@@ -358,75 +521,142 @@ def test_a_markups_file_in_ras_and_um_with_every_type(tmp_path: Path) -> None:
 
 
 def test_a_markups_fiducial_list_as_a_guide(tmp_path: Path) -> None:
-    path = write(tmp_path, [
-        {"type": "Fiducial", "name": "G", "coordinateSystem": "RAS",
-         "controlPoints": cps((0, 0, 0), (0, 0, 5))},
-        {"type": "Fiducial", "name": "One", "controlPoints": cps((0, 0, 0))},
-        {"type": "Fiducial", "name": "After", "coordinateSystem": "RAS",
-         "controlPoints": cps((1, 0, 0), (2, 0, 0)) + cps((3, 0, 0), visibility=False)},
-    ])
+    path = write(
+        tmp_path,
+        [
+            {
+                "type": "Fiducial",
+                "name": "G",
+                "coordinateSystem": "RAS",
+                "controlPoints": cps((0, 0, 0), (0, 0, 5)),
+            },
+            {"type": "Fiducial", "name": "One", "controlPoints": cps((0, 0, 0))},
+            {
+                "type": "Fiducial",
+                "name": "After",
+                "coordinateSystem": "RAS",
+                "controlPoints": cps((1, 0, 0), (2, 0, 0)) + cps((3, 0, 0), visibility=False),
+            },
+        ],
+    )
     assert from_markups_file(path, kind="guide", stiffness=2.0) == [
-        Definition("guide", ((0.0, 0.0, 0.0), (0.0, 0.0, 5.0)), 0.0, None, 2.0, 0.0, "G",
-                   "patient"),
+        Definition(
+            "guide", ((0.0, 0.0, 0.0), (0.0, 0.0, 5.0)), 0.0, None, 2.0, 0.0, "G", "patient"
+        ),
         # one point is no guide; the next markups are still read
-        Definition("guide", ((1.0, 0.0, 0.0), (2.0, 0.0, 0.0)), 0.0, None, 2.0, 0.0, "After",
-                   "patient"),
+        Definition(
+            "guide", ((1.0, 0.0, 0.0), (2.0, 0.0, 0.0)), 0.0, None, 2.0, 0.0, "After", "patient"
+        ),
     ]
 
 
 def test_a_markups_plane_takes_its_center_else_its_first_point(tmp_path: Path) -> None:
-    path = write(tmp_path, [
-        {"type": "Plane", "name": "A", "center": [1, 2, 3], "normal": [0, 0, 1],
-         "controlPoints": cps((9, 9, 9))},
-        {"type": "Plane", "name": "B", "normal": [1, 0, 0],
-         "controlPoints": cps((4, 5, 6), (7, 8, 9))},
-    ])
+    path = write(
+        tmp_path,
+        [
+            {
+                "type": "Plane",
+                "name": "A",
+                "center": [1, 2, 3],
+                "normal": [0, 0, 1],
+                "controlPoints": cps((9, 9, 9)),
+            },
+            {
+                "type": "Plane",
+                "name": "B",
+                "normal": [1, 0, 0],
+                "controlPoints": cps((4, 5, 6), (7, 8, 9)),
+            },
+        ],
+    )
     assert from_markups_file(path) == [
-        Definition("plane", ((-1.0, -2.0, 3.0),), 0.0, (-0.0, -0.0, 1.0), 1.0, 0.0, "A",
-                   "patient"),
-        Definition("plane", ((-4.0, -5.0, 6.0),), 0.0, (-1.0, -0.0, 0.0), 1.0, 0.0, "B",
-                   "patient"),
+        Definition("plane", ((-1.0, -2.0, 3.0),), 0.0, (-0.0, -0.0, 1.0), 1.0, 0.0, "A", "patient"),
+        Definition("plane", ((-4.0, -5.0, 6.0),), 0.0, (-1.0, -0.0, 0.0), 1.0, 0.0, "B", "patient"),
     ]
 
 
 @pytest.mark.parametrize(
     ("markups", "text"),
     [
-        ("{not json", "cannot read a markups file: Expecting property name enclosed in double "
-                      "quotes: line 1 column 2 (char 1)"),
+        (
+            "{not json",
+            "cannot read a markups file: Expecting property name enclosed in double "
+            "quotes: line 1 column 2 (char 1)",
+        ),
         ("[1, 2]", "no 'markups' list (is it a Slicer .mrk.json file?)"),
         ('{"markups": {}}', "no 'markups' list (is it a Slicer .mrk.json file?)"),
         ([{"type": "Fiducial"}, 3], "markups[1] is not an object"),
         ([{"type": "Fiducial", "coordinateSystem": "XYZ"}], "markups[0]: coordinate system 'XYZ'"),
         ([{"type": "Fiducial", "coordinateUnits": "cm"}], "markups[0]: coordinate units 'cm'"),
-        ([{"type": "Fiducial", "coordinateUnits": ["cm", "um"]}],
-         "markups[0]: coordinate units 'cm'"),
-        ([{"type": "Fiducial", "name": "F", "controlPoints": [{"label": "x"}]}],
-         "F: control point 0 has no position"),
-        ([{"type": "Fiducial", "name": "F", "controlPoints": cps((0, 0, 0)) + [[1, 2, 3]]}],
-         "F: control point 1 has no position"),
-        ([{"type": "Fiducial", "name": "F", "controlPoints": cps((0, 0, 0), (1, 2))}],
-         "F point 1: expected [x, y, z]"),
-        ([{"type": "Fiducial", "name": "F", "controlPoints": [{"position": "1,2,3"}]}],
-         "F point 0: expected [x, y, z]"),
-        ([{"type": "Fiducial", "name": "F", "controlPoints": cps((0, 0, "NaN"))}],
-         "F point 0: not a finite number (nan)"),
-        ([{"type": "Plane", "name": "W", "controlPoints": cps((0, 0, 0))}],
-         "plane 'W' needs a center (or a control point) and a normal"),
-        ([{"type": "Plane", "name": "W", "normal": [0, 0, 1], "controlPoints": []}],
-         "plane 'W' needs a center (or a control point) and a normal"),
-        ([{"type": "Plane", "name": "W", "center": [0, 0], "normal": [0, 0, 1]}],
-         "W center: expected [x, y, z]"),
-        ([{"type": "Plane", "name": "W", "center": [0, 0, 0], "normal": [0, 1]}],
-         "W normal: expected [x, y, z]"),
-        ([{"type": "Angle", "name": "A"}],
-         "markups type 'Angle' is not a fixture (Fiducial, Line, Curve, ClosedCurve, Plane are)"),
-        ([{"name": "A"}],
-         "markups type '' is not a fixture (Fiducial, Line, Curve, ClosedCurve, Plane are)"),
+        (
+            [{"type": "Fiducial", "coordinateUnits": ["cm", "um"]}],
+            "markups[0]: coordinate units 'cm'",
+        ),
+        (
+            [{"type": "Fiducial", "name": "F", "controlPoints": [{"label": "x"}]}],
+            "F: control point 0 has no position",
+        ),
+        (
+            [{"type": "Fiducial", "name": "F", "controlPoints": cps((0, 0, 0)) + [[1, 2, 3]]}],
+            "F: control point 1 has no position",
+        ),
+        (
+            [{"type": "Fiducial", "name": "F", "controlPoints": cps((0, 0, 0), (1, 2))}],
+            "F point 1: expected [x, y, z]",
+        ),
+        (
+            [{"type": "Fiducial", "name": "F", "controlPoints": [{"position": "1,2,3"}]}],
+            "F point 0: expected [x, y, z]",
+        ),
+        (
+            [{"type": "Fiducial", "name": "F", "controlPoints": cps((0, 0, "NaN"))}],
+            "F point 0: not a finite number (nan)",
+        ),
+        (
+            [{"type": "Plane", "name": "W", "controlPoints": cps((0, 0, 0))}],
+            "plane 'W' needs a center (or a control point) and a normal",
+        ),
+        (
+            [{"type": "Plane", "name": "W", "normal": [0, 0, 1], "controlPoints": []}],
+            "plane 'W' needs a center (or a control point) and a normal",
+        ),
+        (
+            [{"type": "Plane", "name": "W", "center": [0, 0], "normal": [0, 0, 1]}],
+            "W center: expected [x, y, z]",
+        ),
+        (
+            [{"type": "Plane", "name": "W", "center": [0, 0, 0], "normal": [0, 1]}],
+            "W normal: expected [x, y, z]",
+        ),
+        (
+            [{"type": "Angle", "name": "A"}],
+            "markups type 'Angle' is not a fixture (Fiducial, Line, Curve, ClosedCurve, Plane are)",
+        ),
+        (
+            [{"name": "A"}],
+            "markups type '' is not a fixture (Fiducial, Line, Curve, ClosedCurve, Plane are)",
+        ),
     ],
-    ids=["json", "list", "dict", "entry", "system", "units", "units-list", "no-position",
-         "not-object", "two-numbers", "text", "nan", "plane-no-normal", "plane-no-point",
-         "plane-center", "plane-normal", "angle", "no-type"],
+    ids=[
+        "json",
+        "list",
+        "dict",
+        "entry",
+        "system",
+        "units",
+        "units-list",
+        "no-position",
+        "not-object",
+        "two-numbers",
+        "text",
+        "nan",
+        "plane-no-normal",
+        "plane-no-point",
+        "plane-center",
+        "plane-normal",
+        "angle",
+        "no-type",
+    ],
 )
 def test_a_malformed_markups_file_is_refused_with_its_path_and_what_is_wrong(
     tmp_path: Path, markups: Any, text: str
@@ -442,8 +672,15 @@ def test_a_markups_file_is_read_as_utf_8_whatever_the_locale(tmp_path: Path) -> 
     """Slicer writes its files in UTF-8; a daemon started under another locale (``C`` here,
     ASCII) still reads a non-ASCII label."""
     path = tmp_path / "plan.mrk.json"
-    doc = {"markups": [{"type": "Fiducial", "coordinateSystem": "RAS",
-                        "controlPoints": [{"label": "Läsion", "position": [1, 2, 3]}]}]}
+    doc = {
+        "markups": [
+            {
+                "type": "Fiducial",
+                "coordinateSystem": "RAS",
+                "controlPoints": [{"label": "Läsion", "position": [1, 2, 3]}],
+            }
+        ]
+    }
     path.write_bytes(json.dumps(doc, ensure_ascii=False).encode("utf-8"))
     old = locale.setlocale(locale.LC_CTYPE)
     try:
@@ -476,8 +713,11 @@ def test_parse_linear_reads_nine_numbers_row_by_row() -> None:
     text = ", ".join(repr(v) for v in m.ravel().tolist())
     got = parse_linear(text)
     assert np.array_equal(np.array(got), m)
-    assert parse_linear("2 0 0  0 2 0  0 0 2") == ((2.0, 0.0, 0.0), (0.0, 2.0, 0.0),
-                                                  (0.0, 0.0, 2.0))
+    assert parse_linear("2 0 0  0 2 0  0 0 2") == (
+        (2.0, 0.0, 0.0),
+        (0.0, 2.0, 0.0),
+        (0.0, 0.0, 2.0),
+    )
 
 
 @pytest.mark.parametrize(
@@ -579,12 +819,18 @@ def test_a_bad_scale_is_refused(scale: float) -> None:
     [
         (np.eye(3).tolist(), "registration must be a 4x4 matrix"),
         ([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]], "registration must be a 4x4 matrix"),
-        ([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0]],
-         "registration must be a 4x4 matrix"),
-        ([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, math.nan], [0.0, 0.0, 1.0, 0.0]],
-         "registration: not a finite number (nan)"),
-        ([[1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]],
-         "map: not a scaled rotation (determinant <= 0)"),
+        (
+            [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0]],
+            "registration must be a 4x4 matrix",
+        ),
+        (
+            [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, math.nan], [0.0, 0.0, 1.0, 0.0]],
+            "registration: not a finite number (nan)",
+        ),
+        (
+            [[1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]],
+            "map: not a scaled rotation (determinant <= 0)",
+        ),
     ],
     ids=["3x3", "two-rows", "short-row", "nan", "mirror"],
 )

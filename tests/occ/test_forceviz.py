@@ -21,10 +21,13 @@ import yaml
 
 import igtl
 from igtl.messages.sensor import Unit
+from occ.decoders import message_force
 from occ.errors import ConfigError, OCCError
-from occ.forceviz import MIN_LENGTH_MM, arrow_mesh, force_matrix, message_force, parse_force
+from occ.events import VectorOut
+from occ.forceviz import MIN_LENGTH_MM, arrow_mesh, force_matrix, parse_force
 from occ.loader import parse_config
-from occ.outputs import Output, VectorOut, pack_output
+from occ.outputs import Output
+from occ.packers import pack_output
 from occ_testkit.testing import CONFIGS, SimRobot
 
 Vec3 = tuple[float, float, float]
@@ -511,9 +514,10 @@ def test_the_message_is_in_the_outputs_header_version_as_a_datagram_sender_packs
     answer in kind): version 1 carries no metadata (packing it with some is an error), version
     2 all of it; the time stamp is the tick's."""
     sim, source, f = view
-    msg = source(_out(type_, version, "Dev"), sim.now)
-    assert isinstance(msg, igtl.Message)
-    back = igtl.unpack(msg.pack())
+    out = _out(type_, version, "Dev")
+    value = source(out, sim.now)
+    assert not isinstance(value, igtl.Message)  # a typed value: occ/packers.py packs it
+    back = igtl.unpack(pack_output(value, out).pack())
     assert back.message_type == type_ and back.device_name == "Dev"
     assert back.header_version == version
     assert back.timestamp == pytest.approx(sim.clock.wall_time(), abs=1e-6)

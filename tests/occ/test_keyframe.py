@@ -23,10 +23,11 @@ import igtl
 from occ.commands import Deferred
 from occ.controllers.keyframe import KeyframeController
 from occ.controllers.keyframe.sets import make_set
+from occ.decoders import event_of
+from occ.keyframe_inputs import items_from_event
 from occ.drivers import register_driver
 from occ.drivers.base import Driver
 from occ.errors import ConfigError
-from occ.keyframe_inputs import items_from_message
 from occ.loader import load_config, parse_config
 from occ.safety import RobotState
 from occ_testkit.testing import SimPeer, SimRobot
@@ -706,11 +707,11 @@ def test_make_set_and_messages_refuse_bad_keyframes() -> None:
     with pytest.raises(ValueError, match="must be finite"):
         make_set("cartesian", [(1.0, [math.nan, 0, 0], "")], "x", joints=3, max_keyframes=4)
     with pytest.raises(ValueError, match="no visible points"):
-        items_from_message(point_message([(0.0, 0.0, 0.0)], hidden=0), 1.0)
+        items_from_event(event_of(point_message([(0.0, 0.0, 0.0)], hidden=0)), 1.0)
     with pytest.raises(ValueError, match="metadata 'times'"):
-        items_from_message(point_message([(0.0, 0.0, 0.0)], times="soon"), 1.0)
+        items_from_event(event_of(point_message([(0.0, 0.0, 0.0)], times="soon")), 1.0)
     with pytest.raises(ValueError, match="no keyframes"):
-        items_from_message(igtl.StringMessage("x", device_name="S"), 1.0)
+        items_from_event(event_of(igtl.StringMessage("x", device_name="S")), 1.0)
 
 
 # ============================================================================ real sockets

@@ -24,18 +24,34 @@ COUNTS_PER_M = 1_000_000  # 1 count = 1 um
 def test_can_master_streams_hand_motion() -> None:
     channel = f"occ-test-{time.monotonic_ns()}"
     cfg = load_config(ROOT / "configs" / "master.yaml")
-    joints = {name: {"can_id": 0x100 + i, "feedback_id": 0x180 + i, "counts_per_unit": COUNTS_PER_M}
-              for i, name in enumerate(("x", "y", "z"))}
-    driver = cfg.robot.drivers[0].model_copy(update={
-        "plugin": "can",
-        "params": {"interface": "virtual", "channel": channel, "joints": joints, "feedback_timeout": 0.05,
-                   "command_interface": "effort"},
-    })
-    robot_cfg = cfg.robot.model_copy(update={"drivers": (driver,),
-                                             "realtime": cfg.robot.realtime.model_copy(update={"fifo_priority": None})})
+    joints = {
+        name: {"can_id": 0x100 + i, "feedback_id": 0x180 + i, "counts_per_unit": COUNTS_PER_M}
+        for i, name in enumerate(("x", "y", "z"))
+    }
+    driver = cfg.robot.drivers[0].model_copy(
+        update={
+            "plugin": "can",
+            "params": {
+                "interface": "virtual",
+                "channel": channel,
+                "joints": joints,
+                "feedback_timeout": 0.05,
+                "command_interface": "effort",
+            },
+        }
+    )
+    robot_cfg = cfg.robot.model_copy(
+        update={
+            "drivers": (driver,),
+            "realtime": cfg.robot.realtime.model_copy(update={"fifo_priority": None}),
+        }
+    )
     cfg = cfg.model_copy(update={"robot": robot_cfg}).with_params(input="driver")
-    axes = [DriveAxis(0x100, 0x180, position=0.0), DriveAxis(0x101, 0x181, position=50_000.0),
-            DriveAxis(0x102, 0x182, position=20_000.0)]
+    axes = [
+        DriveAxis(0x100, 0x180, position=0.0),
+        DriveAxis(0x101, 0x181, position=50_000.0),
+        DriveAxis(0x102, 0x182, position=20_000.0),
+    ]
     # the stream goes to an in-process slave: what it receives is what the wire would carry
     cfg = inproc_config(cfg)
     with SimulatedDriveNode(axes, channel=channel, tau=0.0, feedback_period=0.001):
@@ -55,7 +71,17 @@ def test_can_master_streams_hand_motion() -> None:
             for step in range(1, 61):
                 axes[0].position = axes[0].target = 200.0 * step
                 time.sleep(0.001)
-            assert _wait(lambda: abs(sent[-1].position[0] - robot.controller.controllers[0].origin[0] * 1e3 - 12.0) < 0.05, 2.0), sent[-1]
+            assert _wait(
+                lambda: (
+                    abs(
+                        sent[-1].position[0]
+                        - robot.controller.controllers[0].origin[0] * 1e3
+                        - 12.0
+                    )
+                    < 0.05
+                ),
+                2.0,
+            ), sent[-1]
             assert robot.state is RobotState.RUNNING
         finally:
             robot.loop.stop()
@@ -74,21 +100,37 @@ def test_no_enable_before_every_joint_is_measured() -> None:
 
     channel = f"occ-test-{time.monotonic_ns()}"
     cfg = load_config(ROOT / "configs" / "master.yaml")
-    joints = {name: {"can_id": 0x100 + i, "feedback_id": 0x180 + i, "counts_per_unit": COUNTS_PER_M}
-              for i, name in enumerate(("x", "y", "z"))}
-    driver = cfg.robot.drivers[0].model_copy(update={
-        "plugin": "can",
-        "params": {"interface": "virtual", "channel": channel, "joints": joints, "feedback_timeout": 10.0,
-                   "command_interface": "effort"},
-    })
-    cfg = inproc_config(cfg.model_copy(update={"robot": cfg.robot.model_copy(update={"drivers": (driver,)})}))
+    joints = {
+        name: {"can_id": 0x100 + i, "feedback_id": 0x180 + i, "counts_per_unit": COUNTS_PER_M}
+        for i, name in enumerate(("x", "y", "z"))
+    }
+    driver = cfg.robot.drivers[0].model_copy(
+        update={
+            "plugin": "can",
+            "params": {
+                "interface": "virtual",
+                "channel": channel,
+                "joints": joints,
+                "feedback_timeout": 10.0,
+                "command_interface": "effort",
+            },
+        }
+    )
+    cfg = inproc_config(
+        cfg.model_copy(update={"robot": cfg.robot.model_copy(update={"drivers": (driver,)})})
+    )
     robot = build_robot(cfg, clock=SimClock())
     try:
         robot.configure()  # nothing on the bus answers
-        with pytest.raises(StateError, match=r"no measurement yet from driver hand joints \['x', 'y', 'z'\]"):
+        with pytest.raises(
+            StateError, match=r"no measurement yet from driver hand joints \['x', 'y', 'z'\]"
+        ):
             robot.state_machine.request("enable", "test")
         assert robot.state is RobotState.READY
-        axes = [DriveAxis(0x100 + i, 0x180 + i, position=p) for i, p in enumerate((0.0, 50_000.0, 20_000.0))]
+        axes = [
+            DriveAxis(0x100 + i, 0x180 + i, position=p)
+            for i, p in enumerate((0.0, 50_000.0, 20_000.0))
+        ]
         with SimulatedDriveNode(axes, channel=channel, tau=0.0, feedback_period=0.001) as node:
             assert node.wait_feedback(3, timeout=2.0)
             robot.tick(robot.clock.now(), 0)
@@ -110,19 +152,35 @@ def test_can_haptic_master_gets_the_fixture_force_on_its_effort_interface() -> N
 
     channel = f"occ-test-{time.monotonic_ns()}"
     cfg = load_config(ROOT / "configs" / "master.yaml")
-    joints = {name: {"can_id": 0x100 + i, "feedback_id": 0x180 + i, "counts_per_unit": COUNTS_PER_M}
-              for i, name in enumerate(("x", "y", "z"))}
-    driver = cfg.robot.drivers[0].model_copy(update={
-        "plugin": "can",
-        "params": {"interface": "virtual", "channel": channel, "joints": joints,
-                   "feedback_timeout": 10.0, "command_interface": "effort"},
-    })
+    joints = {
+        name: {"can_id": 0x100 + i, "feedback_id": 0x180 + i, "counts_per_unit": COUNTS_PER_M}
+        for i, name in enumerate(("x", "y", "z"))
+    }
+    driver = cfg.robot.drivers[0].model_copy(
+        update={
+            "plugin": "can",
+            "params": {
+                "interface": "virtual",
+                "channel": channel,
+                "joints": joints,
+                "feedback_timeout": 10.0,
+                "command_interface": "effort",
+            },
+        }
+    )
     cfg = cfg.model_copy(update={"robot": cfg.robot.model_copy(update={"drivers": (driver,)})})
-    axes = [DriveAxis(0x100 + i, 0x180 + i, position=p) for i, p in enumerate((0.0, 50_000.0, 20_000.0))]
+    axes = [
+        DriveAxis(0x100 + i, 0x180 + i, position=p) for i, p in enumerate((0.0, 50_000.0, 20_000.0))
+    ]
     box: dict[str, SimRobot] = {}
     # the node on the simulated clock: its heartbeat is judged in the test's time
-    node = SimulatedDriveNode(axes, channel=channel, tau=0.0, effort_gain=0.0,
-                              clock=lambda: box["sim"].clock.now() if "sim" in box else 0.0)
+    node = SimulatedDriveNode(
+        axes,
+        channel=channel,
+        tau=0.0,
+        effort_gain=0.0,
+        clock=lambda: box["sim"].clock.now() if "sim" in box else 0.0,
+    )
     with node:
         sim = SimRobot(cfg)
         box["sim"] = sim
@@ -142,12 +200,22 @@ def test_can_haptic_master_gets_the_fixture_force_on_its_effort_interface() -> N
             handle = [v * 1e3 for v in sim.robot.frame.tip_position(sim.robot.data.q)]
             # 4 mm of the handle to the tool's +x, 10 mm of the handle in radius
             centre = feed.patient((handle[0] + 4.0, handle[1], handle[2]))
-            op.send(igtl.VirtualFixtureMessage(
-                hardness=0.5, spheres=((*centre, 1.0),),
-                device_name="VF", header_version=2, metadata={"kind": "forbidden"}))
+            op.send(
+                igtl.VirtualFixtureMessage(
+                    hardness=0.5,
+                    spheres=((*centre, 1.0),),
+                    device_name="VF",
+                    header_version=2,
+                    metadata={"kind": "forbidden"},
+                )
+            )
             feed.step(5)
             settle()
-            assert [a.mode for a in axes] == [MODE_EFFORT] * 3 and [a.effort for a in axes] == [0, 0, 0]
+            assert [a.mode for a in axes] == [MODE_EFFORT] * 3 and [a.effort for a in axes] == [
+                0,
+                0,
+                0,
+            ]
             op.send_command("Run")
             feed.step(21)  # the force fades in within tip_fade_ms (20 ms)
             settle()

@@ -231,7 +231,9 @@ def test_the_statistics_hold_what_they_name(sim):
     assert r.streams.monitor is not None and snap["loss"] == r.streams.monitor.counters()
     assert "owner" not in snap and "collaboration" not in snap  # not a collaboration robot
     assert snap["controller"] == r.controller.stats()
-    assert snap["drivers"] == {drv.name: drv.stats() for drv in r.hardware.drivers} and snap["drivers"]
+    assert (
+        snap["drivers"] == {drv.name: drv.stats() for drv in r.hardware.drivers} and snap["drivers"]
+    )
     assert snap["realtime"] == r.loop.realtime_report
     if r.state_table is not None:
         assert snap["state_table"] == r.state_table.stats()
@@ -504,8 +506,8 @@ def test_a_discrete_input_refused_by_the_controller_is_answered_and_counted(sim,
 
     seen: list = []
 
-    def refuse(item, now):
-        seen.append((item.msg.message_type, now))
+    def refuse(event, now):
+        seen.append((event.kind, now))  # a typed event (here UnknownInput), no message
         raise CommandError("fixture 'wall' has no normal")
 
     monkeypatch.setattr(sim.robot.controller, "on_input", refuse)

@@ -29,6 +29,7 @@ import yaml
 
 import igtl
 from igtl.messages.sensor import NEWTON
+from occ.decoders import event_of
 from occ.errors import ConfigError
 from occ.forces import SlaveForce, TareRefused, gravity_wrench
 from occ.frame import Frame
@@ -87,7 +88,7 @@ def feed(src: SlaveForce, posed: Posed, t0: float, t1: float, values: Any) -> fl
     t = t0
     while t <= t1 + 1e-12:
         v = values(t) if callable(values) else values
-        assert src.on_input(msg(v), "s", t)
+        assert src.on_input(event_of(msg(v), "s"), t)
         t = round(t + 0.002, 9)
     return t - 0.002
 
@@ -126,7 +127,9 @@ def test_a_tare_at_rest_takes_the_windows_mean_and_subtracts_it_from_then_on() -
         "N [0.00380, -0.00220, 0.00080] N m from 51 readings"
     )
     # a load of (1, -2, 0.5) N read on top of the offset: the load alone, torque too
-    src.on_input(msg((OFFSET[0] + 1.0, OFFSET[1] - 2.0, OFFSET[2] + 0.5, *OFFSET_T)), "s", 0.21)
+    src.on_input(
+        event_of(msg((OFFSET[0] + 1.0, OFFSET[1] - 2.0, OFFSET[2] + 0.5, *OFFSET_T)), "s"), 0.21
+    )
     f, t = estimate(src, 0.21, posed)
     assert f == pytest.approx((1.0 + 0.01 / 51, -2.0 + 0.01 / 51, 0.5 + 0.01 / 51), abs=1e-12)
     assert t == pytest.approx((0.01 / 51,) * 3, abs=1e-12)
@@ -227,12 +230,12 @@ def test_the_weight_beyond_the_sensor_is_removed_at_every_pose_in_each_frame(fra
         posed = Posed(tip, base)
         kw: Any = {"sensor_interface": "s", "sensor_frame": frame, "pose": posed}
         src = SlaveForce(("sensor",), tool_mass_kg=MASS, tool_com_m=tuple(COM), **kw)
-        assert src.on_input(msg(values), "s", 0.0)
+        assert src.on_input(event_of(msg(values), "s"), 0.0)
         f, t = estimate(src, 0.0, posed)
         assert f == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
         assert t == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
         bare = SlaveForce(("sensor",), **kw)
-        assert bare.on_input(msg(values), "s", 0.0)
+        assert bare.on_input(event_of(msg(values), "s"), 0.0)
         f, _ = estimate(bare, 0.0, posed)
         assert f == pytest.approx(tuple(base[:3, :3] @ w), abs=1e-12)  # the weight, patient
 
@@ -258,7 +261,7 @@ def test_a_tare_at_one_pose_shows_no_phantom_force_at_another() -> None:
             src.tare_max_offset_n = 10.0
             src.tare_all(end, [], 0.0)
         posed.tip = b
-        src.on_input(msg(reading(b, MASS, COM, load)), "s", end + 0.002)
+        src.on_input(event_of(msg(reading(b, MASS, COM, load)), "s"), end + 0.002)
         f, t = estimate(src, end + 0.002, posed)
         want = b[:3, :3] @ load  # the patient frame (base: identity)
         phantom = float(np.linalg.norm(np.array(f) - want))

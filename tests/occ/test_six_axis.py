@@ -25,6 +25,7 @@ import yaml
 
 import igtl
 from igtl.messages.sensor import NEWTON, Unit
+from occ.decoders import event_of
 from occ.forces import SlaveForce, sensor_wrench
 from occ.frame import Frame
 from occ.record import Recorder
@@ -48,23 +49,23 @@ def sensor(values: tuple[float, ...], unit: Unit | int = NEWTON) -> Any:
 
 # ------------------------------------------------------------------------------ read
 def test_six_values_are_a_wrench_scaled_alike_and_refused_whole() -> None:
-    assert sensor_wrench(sensor((1.0, 2.0, 3.0, 0.1, -0.2, 0.3))) == (
+    assert sensor_wrench(event_of(sensor((1.0, 2.0, 3.0, 0.1, -0.2, 0.3)))) == (
         (1.0, 2.0, 3.0),
         (0.1, -0.2, 0.3),
         "",
     )
     milli = Unit(11, ((11, 1),))  # mN, so mN m
-    f, t, _ = sensor_wrench(sensor((1000.0, 0.0, -500.0, 20.0, 0.0, -5.0), milli))
+    f, t, _ = sensor_wrench(event_of(sensor((1000.0, 0.0, -500.0, 20.0, 0.0, -5.0), milli)))
     assert f == pytest.approx((1.0, 0.0, -0.5)) and t == pytest.approx((0.02, 0.0, -0.005))
-    assert sensor_wrench(sensor((1.0, 2.0, 3.0))) == ((1.0, 2.0, 3.0), None, "")
-    assert sensor_wrench(sensor((1.0, 2.0, 3.0, math.nan, 0.0, 0.0))) == (
+    assert sensor_wrench(event_of(sensor((1.0, 2.0, 3.0)))) == ((1.0, 2.0, 3.0), None, "")
+    assert sensor_wrench(event_of(sensor((1.0, 2.0, 3.0, math.nan, 0.0, 0.0)))) == (
         None,
         None,
         "not a torque: (nan, 0.0, 0.0)",
     )
     src = SlaveForce(("sensor",), sensor_interface="s")
-    assert src.on_input(sensor((0.0, 0.0, 1.0, 0.0, 0.0, 0.2)), "s", 0.0)
-    assert not src.on_input(sensor((0.0, 0.0, 9.0, math.inf, 0.0, 0.0)), "s", 0.001)
+    assert src.on_input(event_of(sensor((0.0, 0.0, 1.0, 0.0, 0.0, 0.2)), "s"), 0.0)
+    assert not src.on_input(event_of(sensor((0.0, 0.0, 9.0, math.inf, 0.0, 0.0)), "s"), 0.001)
     assert src.sensor_refused == 1  # the last good reading kept, whole
     assert src.estimate(0.002, SLAVE, [0.0] * 3, [0.0] * 3, [0.0] * 3, np.eye(4), np.eye) == (
         0.0,
@@ -82,7 +83,7 @@ def test_the_torque_turns_with_the_force_and_is_sent_only_from_the_sensor() -> N
     t = np.array([0.01, -0.03, 0.02])
     for frame, rot in (("patient", np.eye(3)), ("base", base[:3, :3]), ("tip", base[:3, :3] @ tip)):
         src = SlaveForce(("sensor", "effort"), sensor_interface="s", sensor_frame=frame)
-        assert src.on_input(sensor((0.5, 0.0, 0.0, *t)), "s", 0.0)
+        assert src.on_input(event_of(sensor((0.5, 0.0, 0.0, *t)), "s"), 0.0)
         f = src.estimate(0.0, SLAVE, [0.0, 0.35, 0.05], [0.0] * 3, [0.0] * 3, base, lambda: tip)
         assert f == pytest.approx(tuple(rot @ [0.5, 0.0, 0.0]), abs=1e-15)
         assert src.torque_nm == pytest.approx(tuple(rot @ t), abs=1e-15), frame

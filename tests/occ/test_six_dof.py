@@ -40,7 +40,9 @@ def angle(a: np.ndarray, b: np.ndarray) -> float:
 
 class Arm:
     def __init__(self, **slave_params: Any) -> None:
-        self.pair = SimPair(CONFIGS / "master6.yaml", CONFIGS / "ur5.yaml", slave_params=slave_params or None)
+        self.pair = SimPair(
+            CONFIGS / "master6.yaml", CONFIGS / "ur5.yaml", slave_params=slave_params or None
+        )
         self.pair.start()
         self.slave = self.pair.slave.robot
         self.ctl: Any = self.slave.controller.controllers[0]
@@ -93,10 +95,10 @@ def _follows(arm: Arm, a: np.ndarray) -> None:
             continue
         pose = arm.setpoint_pose()
         # orientation: the handle's rotation since the re-index, applied to the tool's
-        dm = quaternion_to_rotation(ctl.master_quat) @ ctl._rm_ref.T
-        expect_r = a @ dm @ a.T @ ctl._rs_ref
+        dm = quaternion_to_rotation(ctl.six.master_quat) @ ctl.six.rm_ref.T
+        expect_r = a @ dm @ a.T @ ctl.six.rs_ref
         worst_r = max(worst_r, angle(expect_r, pose[:3, :3]))
-        turned = max(turned, angle(ctl._rs_ref, pose[:3, :3]))
+        turned = max(turned, angle(ctl.six.rs_ref, pose[:3, :3]))
         # position: slave_ref + scale * A (master - master_ref)
         m, m0, s0 = (np.array(v) for v in (ctl.master_pos, ctl.master_ref, ctl.slave_ref))
         worst_p = max(worst_p, float(np.linalg.norm(s0 + 0.5 * a @ (m - m0) - pose[:3, 3])))
@@ -126,7 +128,10 @@ def test_the_clutch_reindexes_orientation_without_a_jump(arm: Arm) -> None:
     op.send_command("Clutch", '<Command Name="Clutch" Value="1"/>')
     arm.pair.step(2000)  # the handle turns and moves on while clutched: the tool holds
     held = arm.setpoint_pose()
-    assert angle(before[:3, :3], held[:3, :3]) < 0.02 and np.linalg.norm(before[:3, 3] - held[:3, 3]) < 1e-3
+    assert (
+        angle(before[:3, :3], held[:3, :3]) < 0.02
+        and np.linalg.norm(before[:3, 3] - held[:3, 3]) < 1e-3
+    )
     op.send_command("Clutch", '<Command Name="Clutch" Value="0"/>')
     arm.pair.step(3)
     after = arm.setpoint_pose()
@@ -139,8 +144,8 @@ def test_rotation_scale_halves_the_angle() -> None:
     try:
         a.pair.step(2600)  # a quarter turn of the gimbal: its largest angle
         ctl = a.ctl
-        handle = angle(ctl._rm_ref, quaternion_to_rotation(ctl.master_quat))
-        tool = angle(ctl._rs_ref, a.setpoint_pose()[:3, :3])
+        handle = angle(ctl.six.rm_ref, quaternion_to_rotation(ctl.six.master_quat))
+        tool = angle(ctl.six.rs_ref, a.setpoint_pose()[:3, :3])
         assert handle > 0.3
         assert tool == pytest.approx(0.5 * handle, rel=1e-5)
     finally:
@@ -462,14 +467,14 @@ def test_a_fast_turn_is_slowed_to_the_velocity_limits_all_joints_alike(
             step = max(abs(x - y) for x, y in zip(sp, prev, strict=True))
             worst = max(worst, step / 1e-3)
             at_limit += step >= 0.9 * velocity * 1e-3 * (1 - 1e-9)
-            if step > 0.0 and ctl._rs_ref is not None:
+            if step > 0.0 and ctl.six.rs_ref is not None:
                 # each step turns the tool toward the orientation it is asked for
-                want = ctl.target_rotation()
+                want = ctl.six.target_rotation()
                 before = angle(want, np.asarray(slave.frame.fk(prev))[:3, :3])
                 after = angle(want, np.asarray(slave.frame.fk(sp))[:3, :3])
                 moves += 1
                 closer += after < before
-                turned = max(turned, angle(ctl._rs_ref, np.asarray(slave.frame.fk(sp))[:3, :3]))
+                turned = max(turned, angle(ctl.six.rs_ref, np.asarray(slave.frame.fk(sp))[:3, :3]))
             prev = sp
         assert worst <= 0.9 * velocity + 1e-9, worst  # rad/s: 0.9 x the limits
         assert worst >= 0.9 * velocity * (1 - 1e-6), worst  # and the limit is what it reached
@@ -497,13 +502,13 @@ def test_a_port_along_the_tools_roll_axis_still_gives_an_orientation() -> None:
         ctl = a.ctl
         x = np.asarray(a.slave.frame.fk(ctl._q_last))[:3, 0]
         for sign in (1.0, -1.0):
-            r = ctl.rcm_rotation(tuple((port + sign * 0.05 * x).tolist()))
+            r = ctl.six.rcm_rotation(tuple((port + sign * 0.05 * x).tolist()))
             assert np.all(np.isfinite(r))
             np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
             assert np.linalg.det(r) == pytest.approx(1.0, abs=1e-12)
             np.testing.assert_allclose(r[:, 2], sign * x, atol=1e-12)
         with pytest.raises(KinematicsError, match="^the tip is at the port: the tool's axis is"):
-            ctl.rcm_rotation(tuple(port.tolist()))
+            ctl.six.rcm_rotation(tuple(port.tolist()))
     finally:
         a.close()
 
@@ -631,7 +636,7 @@ def test_after_a_hold_the_tool_rejoins_its_pose_within_the_velocity_limits() -> 
         r.check_limits()
         ctl = r.ctl
         pose = r.pose(r.sp[-1])
-        assert angle(ctl.target_rotation(), pose[:3, :3]) < 1e-6
+        assert angle(ctl.six.target_rotation(), pose[:3, :3]) < 1e-6
         m, m0, s0 = (np.array(v) for v in (ctl.master_pos, ctl.master_ref, ctl.slave_ref))
         assert float(np.linalg.norm(s0 + 0.5 * (m - m0) - pose[:3, 3])) < 1e-8
         assert ctl.reindexes == 1 and ctl.ik_failures == 0

@@ -29,6 +29,7 @@ from igtl.messages.sensor import Unit
 from occ.config import ContactConfig
 from occ.contact import Contact, Environment
 from occ.controllers.teleop_params import SlaveForceParams
+from occ.decoders import event_of
 from occ.forces import SlaveForce, sensor_force
 from occ.frame import Frame
 
@@ -173,7 +174,7 @@ def test_without_the_observer_the_joints_dynamics_read_as_a_load() -> None:
 
 def test_efforts_that_are_not_finite_give_no_estimate_and_the_next_source_is_sent() -> None:
     src = SlaveForce(("effort", "sensor"), sensor_interface="s")
-    assert src.on_input(sensor((1.0, 2.0, 3.0)), "s", 0.0)
+    assert src.on_input(event_of(sensor((1.0, 2.0, 3.0)), "s"), 0.0)
     assert estimate(src, 0.01, [0.0, math.inf, 0.0]) == (1.0, 2.0, 3.0)
     assert src.used == "sensor" and src.estimates == {"effort": None, "sensor": (1.0, 2.0, 3.0)}
 
@@ -199,16 +200,22 @@ def test_the_tissue_source_is_the_simulated_contact_force() -> None:
 
 # ------------------------------------------------------------------ sensor
 def test_sensor_units_scale_every_axis_and_only_the_force_is_read() -> None:
-    assert sensor_force(sensor((1000.0, -2000.0, 500.0), newtons(11))) == ((1.0, -2.0, 0.5), "")
-    assert sensor_force(sensor((0.001, 0.002, -0.003), newtons(3))) == (
+    assert sensor_force(event_of(sensor((1000.0, -2000.0, 500.0), newtons(11)))) == (
+        (1.0, -2.0, 0.5),
+        "",
+    )
+    assert sensor_force(event_of(sensor((0.001, 0.002, -0.003), newtons(3)))) == (
         pytest.approx((1.0, 2.0, -3.0)),
         "",
     )
     # six values: force and torque; the torque is not used, so not judged
-    assert sensor_force(sensor((1.0, 2.0, 3.0, math.nan, 0.0, 0.0))) == ((1.0, 2.0, 3.0), "")
-    assert sensor_force(igtl.StringMessage("x")) == (None, "STRING is not a SENSOR")
+    assert sensor_force(event_of(sensor((1.0, 2.0, 3.0, math.nan, 0.0, 0.0)))) == (
+        (1.0, 2.0, 3.0),
+        "",
+    )
+    assert sensor_force(event_of(igtl.StringMessage("x"))) == (None, "STRING is not a SENSOR")
     # a force that is not finite: refused, the error showing the force (not the torque)
-    assert sensor_force(sensor((1.0, math.nan, 3.0, 4.0, 5.0, 6.0))) == (
+    assert sensor_force(event_of(sensor((1.0, math.nan, 3.0, 4.0, 5.0, 6.0)))) == (
         None,
         "not a force: (1.0, nan, 3.0)",
     )
@@ -218,13 +225,13 @@ def test_a_reading_too_large_for_newtons_is_refused_and_counted() -> None:
     """1e306 kN is a finite number on the wire but no finite number of newtons: refused and
     counted like a NaN (before: an infinite force, sent to the master as ``inf`` and drawn in
     3D Slicer as a transform and an arrow of NaN), the last good reading kept."""
-    assert sensor_force(sensor((1e306, 0.0, 0.0, 4.0, 5.0, 6.0), newtons(3))) == (
+    assert sensor_force(event_of(sensor((1e306, 0.0, 0.0, 4.0, 5.0, 6.0), newtons(3)))) == (
         None,
         "not a force: (1e+306, 0.0, 0.0) kiloN is not finite in N",  # the force, not the torque
     )
     src = SlaveForce(("sensor",), sensor_interface="s")
-    assert src.on_input(sensor((0.0, 0.0, 2.0)), "s", 1.0)
-    assert not src.on_input(sensor((0.0, -1e306, 1.0), newtons(3)), "s", 1.001)
+    assert src.on_input(event_of(sensor((0.0, 0.0, 2.0)), "s"), 1.0)
+    assert not src.on_input(event_of(sensor((0.0, -1e306, 1.0), newtons(3)), "s"), 1.001)
     assert src.sensor_refused == 1 and src.sensor_samples == 1
     assert src.sensor_last_error == (
         "SENSOR 'ForceSensor': not a force: (0.0, -1e+306, 1.0) kiloN is not finite in N"
@@ -235,7 +242,7 @@ def test_a_reading_too_large_for_newtons_is_refused_and_counted() -> None:
 def test_a_reading_as_old_as_the_timeout_is_used_and_an_older_one_is_not() -> None:
     timeout = 1.0 / 64.0  # exact in binary: the age at the boundary is exactly the timeout
     src = SlaveForce(("sensor",), sensor_interface="s", sensor_timeout_s=timeout)
-    assert src.on_input(sensor((0.0, 0.0, 2.0)), "s", 1.0)
+    assert src.on_input(event_of(sensor((0.0, 0.0, 2.0)), "s"), 1.0)
     assert estimate(src, 1.0 + timeout, ZERO3) == (0.0, 0.0, 2.0)
     assert estimate(src, 1.0 + 2 * timeout, ZERO3) == (0.0, 0.0, 0.0) and src.used is None
 
@@ -255,7 +262,7 @@ def test_a_sensor_never_heard_gives_no_force_and_no_alert() -> None:
 def test_each_silence_is_one_alert_and_each_return_is_told() -> None:
     alerts = Alerts()
     src = SlaveForce(("sensor",), sensor_interface="s", alert=alerts)  # timeout: the default
-    assert src.on_input(sensor((1.0, 0.0, 0.0)), "s", 0.0)
+    assert src.on_input(event_of(sensor((1.0, 0.0, 0.0)), "s"), 0.0)
     for t in (1.0, 1.5, 2.0):
         assert estimate(src, t, ZERO3) == (0.0, 0.0, 0.0)
     assert alerts.got == [
@@ -265,8 +272,8 @@ def test_each_silence_is_one_alert_and_each_return_is_told() -> None:
             2,
         )
     ]
-    assert src.on_input(sensor((2.0, 0.0, 0.0)), "s", 2.0)
-    assert src.on_input(sensor((3.0, 0.0, 0.0)), "s", 2.001)  # still back: not told again
+    assert src.on_input(event_of(sensor((2.0, 0.0, 0.0)), "s"), 2.0)
+    assert src.on_input(event_of(sensor((3.0, 0.0, 0.0)), "s"), 2.001)  # still back: not told again
     assert alerts.got[1:] == [("STREAM", "force sensor 'ForceSensor' back", 1)]
     assert estimate(src, 2.002, ZERO3) == (3.0, 0.0, 0.0)
     estimate(src, 2.5, ZERO3)  # silent again: told again
@@ -284,7 +291,7 @@ def test_the_sensor_in_the_base_and_tip_frames_is_turned_into_the_patient_frame(
         ("tip", base[:3, :3] @ tip @ v),
     ):
         src = SlaveForce(("sensor",), sensor_interface="s", sensor_frame=frame)
-        assert src.on_input(sensor(tuple(v)), "s", 0.0)
+        assert src.on_input(event_of(sensor(tuple(v)), "s"), 0.0)
         f = estimate(src, 0.0, ZERO3, base=base, tip=lambda: tip)
         assert f == pytest.approx(tuple(expect), abs=1e-12), frame
         assert all(type(c) is float for c in f)
@@ -315,10 +322,10 @@ def test_the_statistics_report_every_source_and_the_sensors_counters() -> None:
         "torque_nm": None,
         "tare": UNTARED,
     }
-    assert not src.on_input(sensor((1.0, 2.0)), "s", 0.5)
-    assert not src.on_input(sensor((1.0, 2.0, 3.0), Unit(0, ((1, 1),))), "s", 0.6)
-    assert src.on_input(sensor((9.0, 9.0, 9.0)), "s", 0.7)
-    assert src.on_input(sensor((0.123456, -1.000049, 2.5)), "s", 1.0)
+    assert not src.on_input(event_of(sensor((1.0, 2.0)), "s"), 0.5)
+    assert not src.on_input(event_of(sensor((1.0, 2.0, 3.0), Unit(0, ((1, 1),))), "s"), 0.6)
+    assert src.on_input(event_of(sensor((9.0, 9.0, 9.0)), "s"), 0.7)
+    assert src.on_input(event_of(sensor((0.123456, -1.000049, 2.5)), "s"), 1.0)
     estimate(src, 1.01, ZERO3)
     assert src.stats(1.0123456) == {
         "sources": ["sensor", "effort"],

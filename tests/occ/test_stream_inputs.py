@@ -13,18 +13,20 @@ import math
 import socket
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pytest
 
 import igtl
+from occ.decoders import pose_sample
 from occ.errors import CommandError
+from occ.events import SphereList
 from occ.interfaces import Inbound
 from occ.loader import load_config, parse_config
 from occ.robot import Robot
 from occ.safety import RobotState
-from occ.samples import PoseSample, pose_sample, quaternion_to_rotation, rotation_to_quaternion
+from occ.samples import PoseSample, quaternion_to_rotation, rotation_to_quaternion
 from occ.streams import POLL_LIMIT, StreamInputs, judge
 from occ_testkit.testing import SimRobot, loopback_robot
 
@@ -213,10 +215,12 @@ def test_a_sample_queued_late_by_its_reader_is_judged_by_its_own_arrival(slave: 
     master.send(slave.position(1))
     slave.drain(0.5)
     slave.clock.set(0.55)
-    late = pose_sample("master", None, slave.position(2, age_s=0.04), slave.clock.now())
+    msg = slave.position(2, age_s=0.04)
+    late = pose_sample("master", None, msg, slave.clock.now())
     assert late is not None and late.t_rx == 0.55
     slave.drain(0.6)
-    slave.robot.interfaces["master"].streams["POSITION"].put(late)
+    item = Inbound("master", cast(Any, None), msg, late.t_rx, event=late)
+    slave.robot.interfaces["master"].streams["POSITION"].put(item)
     slave.drain(0.61)  # 40 ms old at its arrival (followed), 90 ms at the previous tick
     assert slave.seen.seqs() == [1, 2] and slave.streams.monitor.stale == 0  # type: ignore[union-attr]
 
@@ -343,8 +347,9 @@ def test_a_pose_the_controller_refuses_is_answered_to_its_sender(slave: Slave) -
     slave.drain(0.01)
     ((item, err),) = slave.seen.refused
     ((sample, _),) = slave.seen.samples
-    assert isinstance(item, Inbound) and not isinstance(item, PoseSample)
-    assert item.interface == "master" and item.peer is sample.peer and item.msg is sample.msg
+    # the refused item is the one the interface made: the message beside its event
+    assert isinstance(item, Inbound) and item.event is sample
+    assert item.interface == "master" and item.peer is sample.peer and item.msg is not None
     assert item.t_rx == 0.009 and str(err) == "no such fixture"
     # any other error is the tick's (a FAULT naming the controller, occ/robot.py)
     slave.seen.sample_error = RuntimeError("bug")
@@ -363,13 +368,14 @@ def test_a_discrete_input_on_a_stream_goes_to_the_controllers_and_a_refusal_to_i
         tracker.send(vf)
         s.drain(0.01)
         ((item, now),) = s.seen.inputs
-        assert isinstance(item, Inbound) and item.msg.message_type == "VFIXTURE" and now == 0.01
+        assert isinstance(item, SphereList) and item.kind == "VFIXTURE" and now == 0.01
+        assert item.spheres == ((0.0, 0.0, 0.0, 1.0),) and item.hardness == 0.5
         assert s.seen.samples == [] and s.seen.refused == []
         s.seen.input_error = CommandError("refused VF")
         tracker.send(vf)
         s.drain(0.02)
         ((ref, err),) = s.seen.refused
-        assert ref is s.seen.inputs[-1][0] and str(err) == "refused VF"
+        assert ref.event is s.seen.inputs[-1][0] and str(err) == "refused VF"
         s.seen.input_error = RuntimeError("bug")
         tracker.send(vf)
         with pytest.raises(RuntimeError, match="bug"):
@@ -638,7 +644,7 @@ def test_a_polled_datagram_is_counted_on_the_queue_of_its_type() -> None:
         while not ready(0) and time.monotonic() < end:
             time.sleep(0.0005)
         robot.streams.drain(0.001, seen)
-        assert [i.msg.message_type for i, _ in seen.inputs] == ["VFIXTURE"]
+        assert [i.kind for i, _ in seen.inputs] == ["VFIXTURE"]
         assert iface.streams["VFIXTURE"].received == 1
         assert iface.streams["TRANSFORM"].received == 0
     finally:
@@ -659,7 +665,7 @@ def test_a_position_becomes_a_sample_with_everything_the_controllers_use() -> No
     assert s.position_mm == (1.5, -2.0, 3.25)
     assert s.quaternion == pytest.approx((0.1, -0.5, 0.3, 0.8))
     assert all(type(v) is float for v in (*s.position_mm, *s.quaternion))
-    assert s.run is False and s.clutch is True and s.meta["x"] == "y" and s.msg is msg
+    assert s.run is False and s.clutch is True and s.meta["x"] == "y" and s.matrix is None
     # run defaults to 1, clutch to 0; only "1" means on
     for meta, run, clutch in (({}, True, False), ({"run": "1", "clutch": "0"}, True, False),
                               ({"run": "yes", "clutch": "yes"}, False, False)):  # fmt: skip
@@ -685,6 +691,7 @@ def test_a_transform_becomes_a_sample_with_its_translation_and_rotation() -> Non
     assert s.position_mm == pytest.approx((10.0, 20.0, -30.0))
     assert s.quaternion == pytest.approx((0.0, 0.0, math.sin(0.3), math.cos(0.3)), abs=1e-6)
     assert s.matrix_mm() == pytest.approx(m, abs=1e-6)
+    assert s.matrix is not None and s.matrix == pytest.approx(m, abs=1e-6)  # as sent
 
 
 def test_any_other_message_is_no_sample() -> None:
@@ -696,7 +703,7 @@ def test_a_sample_made_by_hand_has_the_defaults_of_a_master_that_follows() -> No
     s = PoseSample("a", None, "D", (1.0, 2.0, 3.0))
     assert s.quaternion == (0.0, 0.0, 0.0, 1.0) and s.kind == "POSITION" and s.seq is None
     assert s.t_sample == 0.0 and s.t_rx == 0.0 and s.run is True and s.clutch is False
-    assert s.meta == {} and s.msg is None
+    assert s.meta == {} and s.matrix is None
     m = s.matrix_mm()
     assert m.tolist() == [[1, 0, 0, 1], [0, 1, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]]
     assert repr(s) == (

@@ -1,4 +1,4 @@
-"""The teleoperation mapping of the slave, exact to float precision (occ/controllers/teleop.py).
+"""The teleoperation mapping of the slave, exact to float precision (occ/controllers/teleop/).
 
 ``target = slave_ref + scale * R * (master - master_ref)``: the slave robot (configs/slave.yaml)
 on in-process channels, stepped tick by tick; the master's stream comes from a peer. The
@@ -256,9 +256,13 @@ def test_select_names_the_slave_in_either_case() -> None:
     m = SimMaster(cfg, link="left")
     try:
         assert _status(m.command("Select", '<Command Name="Select" to="right"/>')) == (
-            "SUCCESS", "slave left -> right")
+            "SUCCESS",
+            "slave left -> right",
+        )
         assert _status(m.command("Select", '<Command Name="Select" To="left"/>')) == (
-            "SUCCESS", "slave right -> left")
+            "SUCCESS",
+            "slave right -> left",
+        )
         status, message = _status(m.command("Select"))
         assert status == "FAIL" and "slave interface '' is not one of ['left', 'right']" in message
     finally:
@@ -334,8 +338,12 @@ def test_the_base_pose_from_a_tracker_does_not_stop_the_following() -> None:
 
     cfg = load_config(ROOT / "configs" / "slave.yaml")
     slicer = cfg.interface("slicer").model_copy(
-        update={"inputs": (InputConfig(type="TRANSFORM", queue="stream", depth=10),
-                           InputConfig(type="POSITION", queue="stream", depth=10))}
+        update={
+            "inputs": (
+                InputConfig(type="TRANSFORM", queue="stream", depth=10),
+                InputConfig(type="POSITION", queue="stream", depth=10),
+            )
+        }
     )
     cfg = cfg.model_copy(update={
         "interfaces": tuple(slicer if i.name == "slicer" else i for i in cfg.interfaces),
@@ -347,15 +355,18 @@ def test_the_base_pose_from_a_tracker_does_not_stop_the_following() -> None:
         rig.sim.tick()
         expect = np.eye(4)
         expect[:3, 3] = [0.010, 0.020, 0.030]
-        assert rig.robot.data.base.ravel().tolist() == pytest.approx(expect.ravel().tolist(),
-                                                                     abs=1e-12)
+        assert rig.robot.data.base.ravel().tolist() == pytest.approx(
+            expect.ravel().tolist(), abs=1e-12
+        )
         # other devices and types on the tracker's interface leave the base alone
         tracker.send(igtl.TransformMessage.from_position((1.0, 2.0, 3.0), device_name="Probe"))
-        tracker.send(igtl.PositionMessage((4.0, 5.0, 6.0), (0.0, 0.0, 0.0, 1.0), 24,
-                                          device_name="Base"))
+        tracker.send(
+            igtl.PositionMessage((4.0, 5.0, 6.0), (0.0, 0.0, 0.0, 1.0), 24, device_name="Base")
+        )
         rig.sim.tick()
-        assert rig.robot.data.base.ravel().tolist() == pytest.approx(expect.ravel().tolist(),
-                                                                     abs=1e-12)
+        assert rig.robot.data.base.ravel().tolist() == pytest.approx(
+            expect.ravel().tolist(), abs=1e-12
+        )
         rig.running()  # and the master's stream is still followed
         before = rig.tip_mm()
         rig.target[0] += 10.0
@@ -389,7 +400,8 @@ def test_the_simulated_hand_resumes_where_it_was_held() -> None:
         ox, oy, oz = (ctl.origin + np.array([0.0, 0.0, 0.020])).tolist()
         x, y, z = ctl.operator_target(t)
         assert (x - ox, y - oy, z - oz) == pytest.approx(
-            (0.050 * math.sin(w * run_time), 0.050 * math.cos(w * run_time), 0.0), abs=1e-12)
+            (0.050 * math.sin(w * run_time), 0.050 * math.cos(w * run_time), 0.0), abs=1e-12
+        )
     finally:
         m.close()
 
@@ -399,12 +411,17 @@ def test_on_sample_takes_position_and_transform_and_counts_source_changes() -> N
     from occ.clock import SimClock
     from occ.controllers import ControllerContext
     from occ.controllers.teleop import SlaveController
-    from occ.samples import pose_sample
+    from occ.decoders import pose_sample
 
     ctrl = SlaveController({"phase_lock_us": None})
     ctrl.ctx = ControllerContext(
-        clock=SimClock(), frame=SLAVE_FRAME, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
-        loop_t0=lambda: math.nan, period_s=0.001, shift=lambda s: None,
+        clock=SimClock(),
+        frame=SLAVE_FRAME,
+        rate_hz=1000.0,
+        interfaces=(),  # type: ignore[arg-type]
+        loop_t0=lambda: math.nan,
+        period_s=0.001,
+        shift=lambda s: None,
     )
 
     def take(itf: str, msg: igtl.Message, t: float) -> None:
@@ -413,15 +430,28 @@ def test_on_sample_takes_position_and_transform_and_counts_source_changes() -> N
             ctrl.on_sample(sample, t)
 
     assert ctrl.stats() == {  # before any sample
-        "mapping": "relative", "samples": 0, "last_seq": None, "master_run": False,
+        "mapping": "relative",
+        "samples": 0,
+        "last_seq": None,
+        "master_run": False,
         "master_clutch": False,
-        "reindexes": 0, "source": None, "source_changes": 0, "ik_clamped": 0,
-        "ik_failures": 0, "phase_shifts": 0, "phase_error_us": None, "phase_history_us": [],
-        "master_ref_mm": None, "slave_ref_mm": None,
+        "reindexes": 0,
+        "source": None,
+        "source_changes": 0,
+        "ik_clamped": 0,
+        "ik_failures": 0,
+        "phase_shifts": 0,
+        "phase_error_us": None,
+        "phase_history_us": [],
+        "master_ref_mm": None,
+        "slave_ref_mm": None,
     }
 
-    take("a", igtl.PositionMessage((1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0), 24,
-                                   device_name="Master"), 0.001)
+    take(
+        "a",
+        igtl.PositionMessage((1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0), 24, device_name="Master"),
+        0.001,
+    )
     assert ctrl.master_pos == pytest.approx((0.001, 0.002, 0.003))
     take("a", igtl.StringMessage("hello", device_name="Master"), 0.002)  # not a pose: ignored
     assert ctrl.samples == 1 and ctrl.master_pos == pytest.approx((0.001, 0.002, 0.003))
@@ -439,13 +469,19 @@ def test_only_the_configured_interface_and_device_are_followed() -> None:
     from occ.clock import SimClock
     from occ.controllers import ControllerContext
     from occ.controllers.teleop import SlaveController
-    from occ.samples import pose_sample
+    from occ.decoders import pose_sample
 
-    ctrl = SlaveController({"input_interface": "master", "input_device": "Master",
-                            "phase_lock_us": None})
+    ctrl = SlaveController(
+        {"input_interface": "master", "input_device": "Master", "phase_lock_us": None}
+    )
     ctrl.ctx = ControllerContext(
-        clock=SimClock(), frame=SLAVE_FRAME, rate_hz=1000.0, interfaces=(),  # type: ignore[arg-type]
-        loop_t0=lambda: math.nan, period_s=0.001, shift=lambda s: None,
+        clock=SimClock(),
+        frame=SLAVE_FRAME,
+        rate_hz=1000.0,
+        interfaces=(),  # type: ignore[arg-type]
+        loop_t0=lambda: math.nan,
+        period_s=0.001,
+        shift=lambda s: None,
     )
     for itf, dev in (("other", "Master"), ("master", "Other")):
         msg = igtl.PositionMessage((1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0), 24, device_name=dev)
@@ -492,9 +528,15 @@ def test_the_masters_fixture_force_is_off_while_the_robot_is_not_running(
         assert _status(master.command(name))[0] == "SUCCESS"
     feed.step(50)
     t = feed.handle_mm()
-    master.op.send(igtl.VirtualFixtureMessage(
-        hardness=1.0, spheres=((*feed.patient((t[0] + 4.0, t[1], t[2])), 1.0),),
-        device_name="VF", header_version=2, metadata={"kind": "forbidden"}))
+    master.op.send(
+        igtl.VirtualFixtureMessage(
+            hardness=1.0,
+            spheres=((*feed.patient((t[0] + 4.0, t[1], t[2])), 1.0),),
+            device_name="VF",
+            header_version=2,
+            metadata={"kind": "forbidden"},
+        )
+    )
     feed.step(30)
     assert master.ctl.gain == 1.0 and math.hypot(*master.ctl.fixtures.force_n) > 2.0
     assert _status(master.command("Stop"))[0] == "SUCCESS"
@@ -559,18 +601,24 @@ def test_the_tick_that_stops_the_master_keeps_its_fixture_work_budget(master: Si
         assert _status(master.command(name))[0] == "SUCCESS"
     master.sim.step(50)
     spheres = tuple((float(i), 0.0, 0.0, 5.0) for i in range(40))
-    burst = igtl.VirtualFixtureMessage(hardness=1.0, spheres=spheres, device_name="Burst",
-                                       header_version=2)
+    burst = igtl.VirtualFixtureMessage(
+        hardness=1.0, spheres=spheres, device_name="Burst", header_version=2
+    )
     master.op.send(burst)
     cid = master.op.send_command("Stop")
     master.op.send(burst)
     master.sim.tick()  # all three in one tick, in that order
     assert master.robot.state is RobotState.STOPPED
     assert _status(master.op.reply_to(cid))[0] == "SUCCESS"
-    refused = [m.status_message for m in master.op.received if m.message_type == "STATUS"
-               and "busy" in m.status_message]
-    assert refused == ["fixture refused (VFIXTURE 'Burst': busy: 40 fixtures compiled this tick "
-                       "already; send it again); the previous set stays"]
+    refused = [
+        m.status_message
+        for m in master.op.received
+        if m.message_type == "STATUS" and "busy" in m.status_message
+    ]
+    assert refused == [
+        "fixture refused (VFIXTURE 'Burst': busy: 40 fixtures compiled this tick "
+        "already; send it again); the previous set stays"
+    ]
     stats = master.ctl.stats()
     assert (stats["fixtures"], stats["fixtures_applied"], stats["fixtures_refused"]) == (40, 1, 1)
     master.op.send(burst)

@@ -64,8 +64,9 @@ def test_inproc_interfaces_need_a_channel() -> None:
     text = SLAVE.read_text().replace("transport: udp", "transport: inproc")
     with pytest.raises(ConfigError, match="channel: required for transport 'inproc'"):
         parse_config(text, source=str(SLAVE))
-    cfg = parse_config(text.replace("transport: inproc", "transport: inproc\n    channel: m"),
-                       source=str(SLAVE))
+    cfg = parse_config(
+        text.replace("transport: inproc", "transport: inproc\n    channel: m"), source=str(SLAVE)
+    )
     assert cfg.interface("master").channel == "m"
 
 
@@ -77,8 +78,12 @@ def test_getstats_as_plain_json() -> None:
 
     with SimRobot(SLAVE) as sim:
         op = sim.peer("operator")
-        assert op.send(igtl.StringMessage('<Command Name="GetStats" Format="json"/>',
-                                          device_name="CMD_42")) == 1
+        assert (
+            op.send(
+                igtl.StringMessage('<Command Name="GetStats" Format="json"/>', device_name="CMD_42")
+            )
+            == 1
+        )
         cid = op.send_command("GetStats", '<Command Name="GetStats" Format="json"/>')
         sim.step()
         end = time.monotonic() + 5.0  # the worker thread builds the statistics

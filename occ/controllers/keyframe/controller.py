@@ -12,13 +12,13 @@ from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel
 
-from igtl.transport.common import RateLimit
 
 from ...commands import Deferred
 from ...errors import CommandError, ConfigError, KinematicsError, LibraryError
 from ...joint import JointLimits
-from ...keyframe_inputs import items_from_message
-from ...outputs import PointsOut, PolylineOut
+from ...events import PointsOut, PolylineOut
+from ...keyframe_inputs import items_from_event
+from ...ratelimit import RateLimit
 from ...safety import RobotState
 from ...trajlib import Library, config_hash
 from .. import Controller, ControllerContext, Problem, SourceFn
@@ -51,7 +51,7 @@ if TYPE_CHECKING:
     from ...config import DaemonConfig
     from ...data import RobotData
     from ...frame import Frame
-    from ...interfaces import Inbound
+    from ...events import InputEvent
     from ...outputs import Output
 
 #: the controller's statistics counters ("planner_waits": how often the planner waited for the
@@ -201,17 +201,16 @@ class KeyframeController(Controller):
                 self._set_plan(None)
 
     # ------------------------------------------------------------------ inputs
-    def on_input(self, item: Inbound, now: float) -> None:
+    def on_input(self, event: InputEvent, now: float) -> None:
         """Keyframes from 3D Slicer: a Markups POINT list or a TRAJ (a discrete input)."""
-        msg = item.msg
-        if msg.message_type not in ("POINT", "TRAJ"):
+        if event.kind not in ("POINT", "TRAJ"):
             return
-        if self.p.input_interface is not None and item.interface != self.p.input_interface:
+        if self.p.input_interface is not None and event.interface != self.p.input_interface:
             return
         assert self.data is not None
-        source = f"{msg.message_type} {msg.device_name!r} from {item.interface}"
+        source = f"{event.describe()} from {event.interface}"
         try:
-            items = items_from_message(msg, self.p.point_interval_s)
+            items = items_from_event(event, self.p.point_interval_s)
             kset = make_set(
                 "cartesian",
                 items,

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ...outputs import PointsOut, PolylineOut
+from ...events import PointsOut, PolylineOut
 from .plan import CheckedPlan
 
 if TYPE_CHECKING:

@@ -1,0 +1,102 @@
+"""The slave's tool orientation (a 6-DOF arm): following the handle's rotation, or through a
+port (``orientation: rcm``), and the full pose solved within the velocity limits."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from ...errors import KinematicsError
+from ...samples import quaternion_to_rotation
+from .common import MM
+
+Vec3 = tuple[float, float, float]
+
+
+class SixDof:
+    """The orientation half of the slave's mapping: ``rotation`` (master to slave axes),
+    ``rotation_scale`` (of the handle's angle), ``rcm_mm`` (the port, or None). The master's
+    quaternion comes with each sample; the references are taken at each re-index."""
+
+    def __init__(self, rotation: np.ndarray, rotation_scale: float, rcm_mm: Any) -> None:
+        self.rotation = rotation
+        self.rotation_scale = rotation_scale
+        self.rcm_mm = rcm_mm
+        self.master_quat: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+        #: at the re-index: the handle's rotation and the tool's (base frame)
+        self.rm_ref: np.ndarray | None = None
+        self.rs_ref: np.ndarray | None = None
+        self.data: Any = None
+        self.ctx: Any = None
+
+    def bind(self, data: Any, ctx: Any) -> None:
+        self.data, self.ctx = data, ctx
+
+    def reindex(self, here: Sequence[float]) -> None:
+        """The references of a re-index, the tool at joint values ``here``."""
+        self.rm_ref = quaternion_to_rotation(self.master_quat)
+        self.rs_ref = np.asarray(self.ctx.frame.fk(here))[:3, :3].copy()
+
+    def rcm_rotation(self, target: Vec3, last: Sequence[float] | None = None) -> np.ndarray:
+        """The tool's orientation for a tip at ``target`` (base frame) through the port: its z
+        axis from the port to the tip, its x axis the current one's projection (the roll
+        kept); the current one at ``last`` (the last solution), else where the drives are
+        told to be."""
+        data, ctx = self.data, self.ctx
+        assert data is not None and ctx is not None and self.rcm_mm is not None
+        b = data.base
+        port = b[:3, :3].T @ (np.asarray(self.rcm_mm, dtype=float) * MM - b[:3, 3])
+        z = np.asarray(target) - port
+        n = float(np.linalg.norm(z))
+        if n < 1e-6:
+            raise KinematicsError("the tip is at the port: the tool's axis is not defined")
+        z /= n
+        here = last if last is not None else data.commanded()
+        x = np.asarray(ctx.frame.fk(here))[:3, 0]
+        x = x - float(x @ z) * z
+        if float(np.linalg.norm(x)) < 1e-9:  # x along the new axis: any perpendicular
+            x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
+        x /= float(np.linalg.norm(x))
+        return np.column_stack((x, np.cross(z, x), z))
+
+    def target_rotation(self) -> np.ndarray:
+        """The tool's orientation target (base frame): the handle's rotation since the
+        re-index, ``dR = R_m R_m0^T`` (scaled in angle by ``rotation_scale``), seen in the
+        slave's axes through ``rotation`` (``A dR A^T``), applied to the tool's orientation at
+        the re-index."""
+        assert self.rm_ref is not None and self.rs_ref is not None
+        d = quaternion_to_rotation(self.master_quat) @ self.rm_ref.T
+        if self.rotation_scale != 1.0:
+            d = pin.exp3(self.rotation_scale * pin.log3(d))
+        a = self.rotation
+        return np.asarray(a @ d @ a.T @ self.rs_ref)
+
+    def solve(self, target: Vec3, last: Sequence[float] | None) -> tuple[list[float], bool, bool]:
+        """The full pose (position ``target`` and :meth:`target_rotation`) by damped least
+        squares from the last solution ``last`` (the joint limits held): (joints, clamped,
+        slowed to the velocity limits)."""
+        ctx, data = self.ctx, self.data
+        assert ctx is not None and data is not None
+        pose = np.eye(4)
+        pose[:3, :3] = (
+            self.rcm_rotation(target, last) if self.rcm_mm is not None else self.target_rotation()
+        )
+        pose[:3, 3] = target
+        seed = last if last is not None else data.q
+        res = ctx.frame.solve_ik(pose, seed, clamp=True, method="dls")
+        q = res.q.tolist()
+        # the velocity limits, all joints scaled alike (the tool keeps its direction; a drive
+        # clamping each joint on its own would bend the path): the step is written in one tick
+        prev = last if last is not None else data.commanded()
+        ratio = 0.0
+        for i, lim in enumerate(ctx.joint_limits):
+            r = abs(q[i] - prev[i]) / (0.9 * lim.velocity * ctx.period_s)
+            if r > ratio:
+                ratio = r
+        limited = ratio > 1.0
+        if limited:
+            q = [p + (v - p) / ratio for p, v in zip(prev, q, strict=True)]
+        return q, bool(res.clamped), limited
