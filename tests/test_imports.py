@@ -266,13 +266,13 @@ IGTL_ALLOWED = {
     "occ.operators": "the operator desk answers requests with messages",
     "occ.alarms": "alerts go to the operators as STATUS messages",
     "occ.robot": "the status codes of the alerts it raises",
-    "occ.config": "the interfaces' authentication key (igtl.auth.load_key), checked at load",
+    "occ.transitions": "the status code of the alert a refused Enable raises",
+    "occ.ports": "the desk's reply port is typed with the reply message (a type hint only)",
+    "occ.config.interfaces": "the interfaces' authentication key (igtl.auth.load_key), checked at load",
     "occ.loop": "names its native thread (igtl.transport.common.name_native_thread)",
     "occ.supervision": "names its native thread, as the loop does",
     "occ.record": "a recording is the messages as they were sent and received",
     "occ.recordcli": "replays and reads recordings (messages)",
-    "occ.faultmatrix": "drives a daemon over the wire and reads its STATUS answers",
-    "occ.testing": "the in-process harness: peers that send and receive messages",
 }
 
 

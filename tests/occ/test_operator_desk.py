@@ -1005,7 +1005,7 @@ def test_the_thread_column_dispatches_a_row(sim, monkeypatch):
     import occ.operators as operators
     from occ.commands import success_reply
     from occ.commands import LOOP, WORKER, CommandSpec
-    from occ.testing import wait_until
+    from occ_testkit.testing import wait_until
 
     ran: list[tuple[str, str]] = []
 
