@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Whole-arm collision checking (occ/collision.py): what a check costs, and what checking at
+"""Whole-arm collision checking (occ/kinematics/collision.py): what a check costs, and what checking
+at
 run time does to the loop.
 
 ``check``
@@ -106,10 +107,10 @@ def timed(checker: Any, qs: list[np.ndarray]) -> dict[str, float]:
 
 
 def run_check(args: argparse.Namespace) -> dict[str, Any]:
-    from occ.assembly import build_hardware
-    from occ.collision import CollisionModel, mesh_region
     from occ.config import CollisionConfig
-    from occ.loader import load_config
+    from occ.core.assembly import build_hardware
+    from occ.core.loader import load_config
+    from occ.kinematics.collision import CollisionModel, mesh_region
 
     daemon = load_config(ROOT / "configs" / "ur5.yaml")
     _joints, frame, _pairs = build_hardware(daemon.robot)

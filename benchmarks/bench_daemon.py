@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
         "--record-at-run-time",
         action="store_true",
         help="the slave starts without recording; the operator sends StartRecording once the "
-        "load runs and StopRecording at the end (PLUS-style, occ/reccontrol.py)",
+        "load runs and StopRecording at the end (PLUS-style, occ/recording/control.py)",
     )
     p.add_argument(
         "--thread-streams",

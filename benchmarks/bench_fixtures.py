@@ -20,9 +20,8 @@ import time
 from collections.abc import Callable
 
 import igtl
-from occ.decoders import event_of
-from occ.fixture_defs import Defaults, PatientMapping, compile_definitions, from_event
-from occ.fixtures import (
+from occ.haptics.fixture_defs import Defaults, PatientMapping, compile_definitions, from_event
+from occ.haptics.fixtures import (
     AccessibleSphere,
     FixtureSet,
     ForbiddenPlane,
@@ -30,6 +29,7 @@ from occ.fixtures import (
     Guide,
     Primitive,
 )
+from occ.net.decoders import event_of
 
 
 def sets(n: int, rng: random.Random) -> dict[str, list[Primitive]]:

@@ -17,8 +17,8 @@ import numpy as np
 import pinocchio as pin
 
 from occ.drivers.sim import SimDriver
-from occ.frame import Frame
 from occ.joint import Joint, JointLimits, PIDGains
+from occ.kinematics.frame import Frame
 
 
 def per_call_us(func: Callable[[], object], number: int, repeat: int) -> float:

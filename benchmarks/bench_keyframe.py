@@ -30,8 +30,8 @@ import igtl  # noqa: E402
 from occ.clock import RealClock  # noqa: E402
 from occ.controllers.keyframe import KeyframeController  # noqa: E402
 from occ.controllers.keyframe.plan import PlanRequest, build_plan  # noqa: E402
-from occ.loader import load_config  # noqa: E402
-from occ.robot import build_robot  # noqa: E402
+from occ.core.loader import load_config  # noqa: E402
+from occ.core.robot import build_robot  # noqa: E402
 from occ_testkit.testing import SimPeer, SimRobot, inproc_config  # noqa: E402
 
 CONFIG = ROOT / "configs" / "keyframe.yaml"

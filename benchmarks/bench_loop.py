@@ -4,7 +4,7 @@
     python benchmarks/bench_loop.py -s 5 --mode rt --cpu 0 --json out.json
     python benchmarks/bench_loop.py --load-threads 2  # with Python threads competing for the GIL
 
-Each run uses occ.loop.ControlLoop on a RealClock in its own thread (scheduling settings are
+Each run uses occ.core.loop.ControlLoop on a RealClock in its own thread (scheduling settings are
 per thread and restored afterwards). When SCHED_FIFO or pinning is refused, the run falls
 back and the "realtime:" line says so. Prints one row per run; ``--json`` writes the
 snapshots.
@@ -19,7 +19,7 @@ import time
 from typing import Any
 
 from occ.clock import RealClock
-from occ.loop import ControlLoop
+from occ.core.loop import ControlLoop
 
 
 def _load_thread(stop: threading.Event, period_s: float) -> None:

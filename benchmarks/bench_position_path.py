@@ -30,8 +30,8 @@ from typing import Any
 
 import igtl
 from occ.clock import RealClock
-from occ.loader import load_config
-from occ.robot import build_robot
+from occ.core.loader import load_config
+from occ.core.robot import build_robot
 
 ROOT = Path(__file__).resolve().parents[1]
 

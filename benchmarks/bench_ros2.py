@@ -31,7 +31,7 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
-from occ.stats import Histogram
+from occ.core.stats import Histogram
 from occ_ros2 import msgs
 from occ_ros2.bridge import QOS_DEFAULT, topic_name
 

@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 from loopback import pair_configs, stop_processes, wait_port, write_yaml  # noqa: E402
 from slicer_standin import SlicerStandIn  # noqa: E402
 
-from occ.stats import Histogram  # noqa: E402
+from occ.core.stats import Histogram  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

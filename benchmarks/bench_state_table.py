@@ -13,9 +13,9 @@ from __future__ import annotations
 import argparse
 import time
 
-from occ.frame import Frame
+from occ.core.statetable import StateTable, capacity_for
 from occ.joint import Joint, JointLimits
-from occ.statetable import StateTable, capacity_for
+from occ.kinematics.frame import Frame
 
 NAMES = ("yaw", "pitch", "insertion")
 

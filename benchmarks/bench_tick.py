@@ -40,8 +40,8 @@ from typing import Any
 
 import igtl
 from occ.clock import SimClock
-from occ.loader import load_config
-from occ.robot import build_robot
+from occ.core.loader import load_config
+from occ.core.robot import build_robot
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -56,7 +56,7 @@ ROBOTS: dict[str, tuple[str, tuple[str, ...], float | None]] = {
     "collab-no-table": ("collab/slave.yaml", ("mentor", "trainee"), 0.0),
 }
 
-#: the slave's return-channel metadata (occ/returnlink.py): following, RUNNING, its 10:1 map
+#: the slave's return-channel metadata (occ/haptics/returnlink.py): following, RUNNING, its 10:1 map
 RETURN_META = {"following": "1", "state": "RUNNING", "map": "0.1,0,0,0,0.1,0,0,0,0.1"}
 
 

@@ -18,7 +18,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from occ.trajectory import Keyframe, plan
+from occ.kinematics.trajectory import Keyframe, plan
 
 
 def per_call_us(func: Callable[[float], object], ts: list[float], repeat: int) -> float:

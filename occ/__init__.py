@@ -2,4 +2,4 @@
 
 # Decides, before any hot-path module is imported, whether the mypyc-compiled build or the pure
 # sources run (occ/_native.py).
-from ._native import BUILD as BUILD
+from occ._native import BUILD as BUILD

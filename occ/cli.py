@@ -26,12 +26,12 @@ import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from . import _native
-from .errors import ConfigError, OCCError
-from .loader import load_config
+from occ import _native
+from occ.core.loader import load_config
+from occ.errors import ConfigError, OCCError
 
 if TYPE_CHECKING:
-    from .robot import Robot
+    from occ.core.robot import Robot
 
 EXIT_OK, EXIT_RUNTIME, EXIT_USAGE, EXIT_FAULT, EXIT_STOPPED = 0, 1, 2, 3, 4
 
@@ -123,8 +123,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run(config: Any, args: argparse.Namespace) -> int:
-    from .robot import build_robot
-    from .safety import RobotState
+    from occ.core.robot import build_robot
+    from occ.core.safety import RobotState
 
     recorder = _recorder(config, args)
     try:
@@ -182,7 +182,7 @@ def run(config: Any, args: argparse.Namespace) -> int:
 
 def _recorder(config: Any, args: argparse.Namespace) -> Any:
     """The recorder of ``--record`` or the configured ``recording.path``; None when neither."""
-    from .record import Recorder, writer_priority
+    from occ.recording.record import Recorder, writer_priority
 
     rec_path = args.record or config.recording.path
     if not rec_path:

@@ -18,9 +18,9 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from ._native import class_doc
-from .config import MESSAGE_TYPE_PATTERN, NAME_PATTERN, REMOTE_PATTERN, DaemonConfig
-from .config.base import _num
+from occ._native import class_doc
+from occ.config import MESSAGE_TYPE_PATTERN, NAME_PATTERN, REMOTE_PATTERN, DaemonConfig
+from occ.config.base import _num
 
 __all__ = ["config_reference_markdown", "update_reference_doc"]
 
@@ -32,7 +32,7 @@ def config_reference_markdown() -> str:
     """A Markdown table of every field (path, type, default, meaning), then one table per
     built-in controller plugin's parameters."""
     parts = [_table(DaemonConfig, "")]
-    from .controllers import BUILTIN_CONTROLLERS, load_controller_class
+    from occ.controllers import BUILTIN_CONTROLLERS, load_controller_class
 
     for name in BUILTIN_CONTROLLERS:
         cls = load_controller_class(name)

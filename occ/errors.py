@@ -9,7 +9,7 @@
      |    +-- LimitError          a command violated a joint limit and the policy is "fault"
      +-- KinematicsError          no inverse-kinematics solution, singular pose, bad model
      +-- CommandError             an operator command is unknown or malformed
- +-- LibraryError             the trajectory library refused or failed (occ/trajlib.py)
+ +-- LibraryError             the trajectory library refused or failed (occ/kinematics/trajlib.py)
 
 ``ValueError``/``TypeError`` remain for programming mistakes (bad arguments).
 """
@@ -68,5 +68,6 @@ class CommandError(OCCError):
 
 
 class LibraryError(OCCError):
-    """The trajectory library (occ/trajlib.py) refused a request (a bad or unknown name, a set
+    """The trajectory library (occ/kinematics/trajlib.py) refused a request (a bad or unknown name,
+    a set
     of another robot) or its file is unusable (not a library, a newer schema, locked)."""

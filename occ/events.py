@@ -2,8 +2,8 @@
 output *says* before it is packed.
 
 Inputs
-    The interface layer (occ/interfaces.py) decodes every message a controller may take into
-    one of these, once, on its own thread (occ/decoders.py holds the table); the loop and the
+    The interface layer (occ/net/interfaces.py) decodes every message a controller may take into
+    one of these, once, on its own thread (occ/net/decoders.py holds the table); the loop and the
     controllers never see a wire message. Every event carries who sent it (``interface``,
     ``peer``: the transport's peer, to answer), when it arrived (``t_rx``, the daemon's clock),
     its wire ``kind`` (the message type), its ``device`` name and its ``meta`` (the sender's
@@ -25,12 +25,14 @@ Inputs
 
     What a content *means* is the receiver's to say (a POINT is a fixture to a master, a
     keyframe list to the keyframe controller): the helpers that interpret them
-    (occ/fixture_defs.py, occ/contact.py, occ/collision.py, occ/keyframe_inputs.py,
-    occ/forces.py) take these values.
+    (occ/haptics/fixture_defs.py, occ/haptics/contact.py, occ/kinematics/collision.py,
+    occ/kinematics/keyframe_inputs.py,
+    occ/haptics/forces.py) take these values.
 
 Outputs
-    What a controller's output source, :mod:`occ.haptics` and :mod:`occ.forceviz` return
-    instead of a message: occ/packers.py packs them as the output is configured.
+    What a controller's output source, :mod:`occ.haptics.master_fixtures` and
+    :mod:`occ.haptics.forceviz` return
+    instead of a message: occ/net/packers.py packs them as the output is configured.
 
 This module imports nothing of the wire protocol: a controller and its helpers import it.
 """
@@ -43,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from .samples import PoseSample
+from occ.samples import PoseSample
 
 __all__ = [
     "Event",

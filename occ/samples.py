@@ -4,7 +4,7 @@ A :class:`PoseSample` carries everything the loss monitor and the controllers us
 sample (who sent it, its sequence number, when it was sampled and when it arrived, the pose,
 the master's ``run`` and ``clutch``, the rest of its metadata), so neither parses a wire
 message: the interface does, once, on its own thread (or in the loop's poll of a UDP socket,
-where the datagram goes straight to the tick: occ/decoders.py). The message itself stays with
+where the datagram goes straight to the tick: occ/net/decoders.py). The message itself stays with
 the interface layer (``Inbound.msg``), for the recording and for replies.
 """
 

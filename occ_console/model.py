@@ -15,7 +15,7 @@ start):
   not a hold);
 - the live loop-timing histogram: the daemon's raw lateness buckets (``Histogram="lateness"``)
   of now minus those of ``window_s`` ago, re-binned into a few 1-2-5 bins, with that window's
-  percentiles (:class:`occ.stats.Histogram`);
+  percentiles (:class:`occ.core.stats.Histogram`);
 - fixtures, tool and owner: whichever of :data:`HIGHLIGHT_KEYS` the statistics carry, at the
   top level or in the controller's, shown as they are.
 - forces (bilateral teleoperation, issue 27): :func:`forces_of` picks what a slave reports of
@@ -35,9 +35,9 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
-from occ.stats import Histogram, bucket_bounds
+from occ.core.stats import Histogram, bucket_bounds
 
-#: the daemon's states (occ.safety.RobotState values): a STATUS with one of these names is a
+#: the daemon's states (occ.core.safety.RobotState values): a STATUS with one of these names is a
 #: state report (the greeting or a transition); any other name is an alert
 STATES = ("INIT", "READY", "ENABLED", "RUNNING", "STOPPED", "FAULT", "ESTOP", "SHUTDOWN")
 

@@ -123,8 +123,8 @@ import igtl
 from igtl.messages.base import Message
 from igtl.messages.sensor import NEWTON
 from igtl.transport import TCPClient
-from occ.forceviz import parse_force
-from occ.stats import Histogram
+from occ.core.stats import Histogram
+from occ.haptics.forceviz import parse_force
 
 from . import msgs
 
@@ -135,7 +135,7 @@ DEFAULT_CONFIG = Path(__file__).with_name("cyclonedds-lo.xml")
 
 MM = 1e-3
 
-#: the daemon's states (occ.safety.RobotState values) as CRTK meta-states
+#: the daemon's states (occ.core.safety.RobotState values) as CRTK meta-states
 CRTK_STATE = {
     "INIT": "DISABLED",
     "READY": "DISABLED",
@@ -784,7 +784,8 @@ class Bridge:
 
     def _on_tip_force(self, robot: Robot, msg: Message, stamp: msgs.Time) -> None:
         """TRANSFORM ``TipForce`` (a slave's contact force, its output source ``force``:
-        occ/forceviz.py) -> ``measured_cf``: metadata ``force_n`` (N, the patient frame, which
+        occ/haptics/forceviz.py) -> ``measured_cf``: metadata ``force_n`` (N, the patient frame,
+        which
         is the world of ``measured_cp``), frame_id the world frame. One in header version 1
         (no metadata: sent before the daemon read the v2 greeting) is counted in ``forces_v1``;
         a v2 one without a readable ``force_n`` or in another frame in ``forces_refused``."""

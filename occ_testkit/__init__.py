@@ -15,5 +15,5 @@ from __future__ import annotations
 from pathlib import Path
 
 #: the repository's configs/ (the harness runs from a source checkout; an installed daemon finds
-#: its robot descriptions through package data, occ/frame.py)
+#: its robot descriptions through package data, occ/kinematics/frame.py)
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"

@@ -28,10 +28,10 @@ from typing import Any
 import igtl
 from occ.clock import SimClock
 from occ.config import DaemonConfig
+from occ.core.loader import load_config
+from occ.core.safety import RobotState
 from occ.drivers.base import DriverState
 from occ.drivers.can_sim import DriveAxis, SimulatedDriveNode
-from occ.loader import load_config
-from occ.safety import RobotState
 
 from . import CONFIGS
 from .testing import SimPeer, SimRobot

@@ -19,8 +19,8 @@ import numpy.typing as npt
 from igtl.messages.base import Message
 from igtl.messages.status import StatusMessage
 from occ.config import DaemonConfig
-from occ.record import Recorder
-from occ.safety import RobotState
+from occ.core.safety import RobotState
+from occ.recording.record import Recorder
 
 from . import CONFIGS
 from .testing import SimPeer, SimRobot, SlaveTipFeed

@@ -1,4 +1,5 @@
-"""Test a robot without a network: a :class:`~occ.robot.Robot` in simulated time whose interfaces
+"""Test a robot without a network: a :class:`~occ.core.robot.Robot` in simulated time whose
+interfaces
 are in-process channels (:class:`igtl.transport.InprocTransport`), and peers that talk to it.
 
 The robot is built from its own configuration file (or a :class:`~occ.config.DaemonConfig`, or a
@@ -41,8 +42,8 @@ from igtl.messages.base import Message
 from igtl.transport import InprocTransport, Peer
 from occ.clock import SimClock
 from occ.config import DaemonConfig
-from occ.loader import load_config
-from occ.robot import Robot, build_robot
+from occ.core.loader import load_config
+from occ.core.robot import Robot, build_robot
 
 from . import CONFIGS
 
@@ -231,7 +232,7 @@ class SimPeer:
         """One sample of a slave's return channel, as the slave daemon sends it (POSITION,
         v2, message ID = sequence number, metadata ``following``, ``map``, ``state``, and
         ``force_n`` and ``torque_nm`` when given (three numbers, or the text as is);
-        occ/returnlink.py): the tip
+        occ/haptics/returnlink.py): the tip
         in the patient frame (mm)."""
         x, y, z = tip_mm
         meta = {"following": "1" if following else "0", "map": linear, "state": state}

@@ -1,4 +1,5 @@
-"""The surviving branch mutants of occ.recexport.quaternion_xyzw, measured (docs/VERIFICATION.md).
+"""The surviving branch mutants of occ.recording.export.quaternion_xyzw, measured
+(docs/VERIFICATION.md).
 
 Shepperd's method has four formulas for the quaternion of a rotation matrix; each is exact
 whenever its divisor is not zero, and the branch conditions only pick the one with the largest
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from occ import recexport  # noqa: E402
+from occ.recording import export as recexport  # noqa: E402
 
 BRANCH_X = "elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:"
 BRANCH_Y = "elif r[1, 1] > r[2, 2]:"

@@ -127,9 +127,9 @@ def test_the_cycle_finder_finds_cycles() -> None:
 
 
 #: the one place in the core that may import rosbags: ``occ-record export --format mcap``
-#: (occ/recexport.py, the optional ``record`` extra), inside its functions only, and no daemon
+#: (occ/recording/export.py, the optional ``record`` extra), inside its functions only, and no daemon
 #: module imports that file at module level (test below)
-ROSBAGS_EXPORTER = Path("occ") / "recexport.py"
+ROSBAGS_EXPORTER = Path("occ") / "recording" / "export.py"
 
 
 def _function_local(tree: ast.AST) -> set[int]:
@@ -171,7 +171,7 @@ def test_the_core_never_imports_dds() -> None:
 
 
 def test_no_daemon_module_imports_the_exporter_at_import_time() -> None:
-    """occ/recexport.py (rosbags, for ``occ-record export``) is imported only inside
+    """occ/recording/export.py (rosbags, for ``occ-record export``) is imported only inside
     functions: the daemons never load it."""
     for path in (ROOT / "occ").rglob("*.py"):
         tree = ast.parse(path.read_text(encoding="utf-8"))
@@ -257,22 +257,22 @@ def test_no_module_knows_one_that_knows_it(folder: str) -> None:
 #: the modules of occ/ that may import ``igtl`` at all (issue 39: bytes become typed values
 #: in one layer, and typed values become bytes in one place), and why each must
 IGTL_ALLOWED = {
-    "occ.interfaces": "the transports, routing and the replies to refused requests",
-    "occ.streams": "the polled UDP sockets: the loop reads them itself",
-    "occ.decoders": "every received message to its typed event (occ/events.py)",
-    "occ.packers": "every typed output value to its message",
-    "occ.outputs": "the built-in sources (tip, base, status, joints) build their messages",
-    "occ.commands": "operator requests and their replies are messages (RTS_, ACK_, STATUS)",
-    "occ.operators": "the operator desk answers requests with messages",
-    "occ.alarms": "alerts go to the operators as STATUS messages",
-    "occ.robot": "the status codes of the alerts it raises",
-    "occ.transitions": "the status code of the alert a refused Enable raises",
-    "occ.ports": "the desk's reply port is typed with the reply message (a type hint only)",
+    "occ.net.interfaces": "the transports, routing and the replies to refused requests",
+    "occ.net.streams": "the polled UDP sockets: the loop reads them itself",
+    "occ.net.decoders": "every received message to its typed event (occ/events.py)",
+    "occ.net.packers": "every typed output value to its message",
+    "occ.net.outputs": "the built-in sources (tip, base, status, joints) build their messages",
+    "occ.net.commands": "operator requests and their replies are messages (RTS_, ACK_, STATUS)",
+    "occ.net.operators": "the operator desk answers requests with messages",
+    "occ.core.alarms": "alerts go to the operators as STATUS messages",
+    "occ.core.robot": "the status codes of the alerts it raises",
+    "occ.core.transitions": "the status code of the alert a refused Enable raises",
+    "occ.core.ports": "the desk's reply port is typed with the reply message (a type hint only)",
     "occ.config.interfaces": "the interfaces' authentication key (igtl.auth.load_key), checked at load",
-    "occ.loop": "names its native thread (igtl.transport.common.name_native_thread)",
-    "occ.supervision": "names its native thread, as the loop does",
-    "occ.record": "a recording is the messages as they were sent and received",
-    "occ.recordcli": "replays and reads recordings (messages)",
+    "occ.core.loop": "names its native thread (igtl.transport.common.name_native_thread)",
+    "occ.core.supervision": "names its native thread, as the loop does",
+    "occ.recording.record": "a recording is the messages as they were sent and received",
+    "occ.recording.cli": "replays and reads recordings (messages)",
 }
 
 
@@ -306,7 +306,7 @@ def test_the_igtl_rule_catches_a_controller_that_imports_it(tmp_path: Path) -> N
 
 def test_no_controller_imports_igtl_messages() -> None:
     """Issue 26: controllers take typed samples (occ/samples.py) and return typed outputs
-    (occ/outputs.py packs them); none imports OpenIGTLink's message classes, not even for
+    (occ/net/outputs.py packs them); none imports OpenIGTLink's message classes, not even for
     type hints."""
     for path in (ROOT / "occ" / "controllers").rglob("*.py"):
         for name in _named_imports(path):
@@ -314,3 +314,93 @@ def test_no_controller_imports_igtl_messages() -> None:
             assert name != "igtl" and not name.startswith("igtl.messages"), (
                 f"{where} imports {name}"
             )
+
+
+# --------------------------------------------------------------------------- the rooms of occ/
+#: occ/'s top-level modules: the vocabulary every room speaks (they import no room)
+VOCABULARY = {"errors", "plugins", "clock", "joint", "samples", "events", "ratelimit", "_native"}
+#: the daemon's commands, which may import anything
+ENTRY = {"cli", "configdoc"}
+#: room -> the rooms it may import (its own and the vocabulary always); each subpackage's
+#: docstring says the same in words (issue 39)
+ROOMS: dict[str, set[str]] = {
+    "drivers": set(),
+    "config": {"kinematics"},  # the robot section loads the URDF through the Frame at check
+    "kinematics": {"config"},
+    "haptics": {"config", "kinematics"},
+    "recording": {"net", "haptics"},
+    "controllers": {"config", "kinematics", "haptics", "net"},
+    "net": {"config", "kinematics", "haptics", "recording", "controllers"},
+    "core": {"config", "kinematics", "haptics", "net", "recording", "controllers", "drivers"},
+}
+#: the few imports across the rules, each with its reason
+ROOM_EXCEPTIONS = {
+    # what a controller, the outputs and the recorder read of the robot: its data and state
+    ("*", "occ.core.data"): "RobotData: the robot's state as every part reads it",
+    ("*", "occ.core.safety"): "RobotState and the loss monitor's verdicts are shared names",
+    ("occ.kinematics.collision", "occ.core.supervision"): "the run-time guard checks on the "
+    "worker thread",
+    ("occ.haptics.forceviz", "occ.net.packers"): "a type hint: the output it fills",
+    ("occ.recording.control", "occ.core.ports"): "the recording control's narrow port",
+    ("occ.net.operators", "occ.core.ports"): "the operator desk's narrow port",
+    ("occ.controllers.teleop.slave", "occ.core.stats"): "the loop's Histogram for its latencies",
+    ("occ.net.streams", "occ.core.assembly"): "a hand-over rebuilds the loss monitors as the "
+    "assembly built them",
+}
+
+
+def _room(module: str) -> str | None:
+    parts = module.split(".")
+    if parts[0] != "occ" or len(parts) < 2:
+        return None
+    if parts[1] in VOCABULARY:
+        return "vocabulary"
+    if parts[1] in ENTRY:
+        return "entry"
+    return parts[1]
+
+
+def test_occ_is_a_few_rooms_and_the_vocabulary() -> None:
+    """Issue 39: occ/ is subpackages by room plus a small vocabulary at the top; no module of
+    the top level is anything else."""
+    top = {p.stem for p in (ROOT / "occ").glob("*.py")} - {"__init__"}
+    assert top <= VOCABULARY | ENTRY, top - VOCABULARY - ENTRY
+    rooms = {p.name for p in (ROOT / "occ").iterdir() if (p / "__init__.py").exists()}
+    assert rooms == set(ROOMS), rooms ^ set(ROOMS)
+    for room in rooms:
+        doc = ast.get_docstring(ast.parse((ROOT / "occ" / room / "__init__.py").read_text()))
+        assert doc and "import" in doc, f"occ/{room}/__init__.py: what lives there, what it imports"
+
+
+def test_each_room_imports_only_what_its_rule_allows() -> None:
+    """Issue 39: every import (module level, type-only, late) of a module of occ/ stays in its
+    room, the vocabulary and the rooms its rule names, or is one of the named exceptions."""
+    bad = []
+    for path in (ROOT / "occ").rglob("*.py"):
+        name = _module_name(path)
+        room = _room(name) or "vocabulary"
+        if room == "entry":
+            continue
+        for imp in sorted(_all_imports(path, name, "occ")):
+            other = _room(imp)
+            if other is None or other in (room, "vocabulary"):
+                continue
+            if room != "vocabulary" and other in ROOMS[room]:
+                continue
+            target = next((m for m in (imp, imp.rpartition(".")[0]) if _room(m) == other), imp)
+            if ("*", target) in ROOM_EXCEPTIONS or (name, target) in ROOM_EXCEPTIONS:
+                continue
+            if any(imp.startswith(t + ".") or imp == t for (w, t) in ROOM_EXCEPTIONS
+                   if w in ("*", name)):
+                continue
+            bad.append(f"{name} ({room}) imports {imp} ({other})")
+    assert not bad, "\n".join(bad)
+
+
+def test_the_room_rule_catches_a_driver_that_reaches_into_the_core(tmp_path: Path) -> None:
+    """The rule above would see a driver importing the Robot (a late import too)."""
+    src = "def f():\n    from occ.core.robot import Robot\n"
+    path = tmp_path / "mydrive.py"
+    path.write_text(src, encoding="utf-8")
+    imps = _all_imports(path, "occ.drivers.mydrive", "occ")
+    assert "occ.core.robot" in imps and _room("occ.core.robot") not in ROOMS["drivers"]

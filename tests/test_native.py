@@ -105,14 +105,14 @@ def test_a_changed_source_runs_every_module_pure_and_says_which(tmp_path: Path) 
     root = copy_build(tmp_path)
     info, _ = probe(root)
     assert info["build"] == "compiled" and all_extensions(info["files"], root / "occ")
-    safety = root / "occ" / "safety.py"
+    safety = root / "occ" / "core" / "safety.py"
     safety.write_text(safety.read_text() + "\n# edited after the build\n")
     info, err = probe(root)
-    why = "stale build: occ/safety.py changed since (python scripts/build_native.py)"
+    why = "stale build: occ/core/safety.py changed since (python scripts/build_native.py)"
     assert (info["build"], info["reason"]) == ("pure", why)
     # all or nothing: the unchanged modules run from their sources too, the extensions beside
     assert all_sources(info["files"], root / "occ")
-    assert _native.extension_path("occ.robot", root).exists()
+    assert _native.extension_path("occ.core.robot", root).exists()
     assert f"occ: running the pure Python hot path: {why}" in err
 
 
@@ -137,7 +137,7 @@ def test_a_build_that_does_not_fit_runs_pure(tmp_path: Path, damage: str, reason
     elif damage == "manifest":
         manifest.unlink()
     elif damage == "extension":
-        _native.extension_path("occ.frame", root).unlink()
+        _native.extension_path("occ.kinematics.frame", root).unlink()
     elif damage == "group":
         (root / json.loads(manifest.read_text())["group"]).unlink()
     else:
@@ -148,10 +148,10 @@ def test_a_build_that_does_not_fit_runs_pure(tmp_path: Path, damage: str, reason
 
 
 def test_class_doc_reads_a_compiled_class_s_docstring_from_its_source() -> None:
-    from occ.robot import Robot
-    from occ.safety import StateMachine
+    from occ.core.robot import Robot
+    from occ.core.safety import StateMachine
 
-    for cls, file in ((Robot, "occ/robot.py"), (StateMachine, "occ/safety.py")):
+    for cls, file in ((Robot, "occ/core/robot.py"), (StateMachine, "occ/core/safety.py")):
         tree = ast.parse((ROOT / file).read_text())
         node = next(
             n for n in ast.walk(tree) if isinstance(n, ast.ClassDef) and n.name == cls.__name__
@@ -201,7 +201,7 @@ class LoggingSlave(SlaveController):
 
 register_driver("counting-sim", CountingSim)
 register_controller("logging-slave", LoggingSlave)
-from occ.loader import load_config
+from occ.core.loader import load_config
 base = load_config("configs/slave.yaml")
 drv = base.robot.drivers[0].model_copy(update={"plugin": "counting-sim"})
 ctl = base.controllers[0].model_copy(update={"plugin": "logging-slave"})

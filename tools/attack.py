@@ -83,7 +83,7 @@ from slicer_standin import SlicerStandIn  # noqa: E402
 from soaklib.daemons import start_occd, stop_proc  # noqa: E402
 
 import igtl  # noqa: E402
-from occ.stats import Histogram  # noqa: E402
+from occ.core.stats import Histogram  # noqa: E402
 
 #: the issue's bar for the garbage flood: lateness p99.9 under attack within 2x the baseline
 FLOOD_BAR = 2.0

@@ -67,7 +67,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from occ.safety import RobotState  # noqa: E402
+from occ.core.safety import RobotState  # noqa: E402
 from occ_testkit.testing import CONFIGS, SimPair  # noqa: E402
 
 STIFFNESS = (2.0, 5.0, 10.0)

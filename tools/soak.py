@@ -9,7 +9,7 @@ grace (100 ms) latch the stop and alert the operators with a STATUS; late packet
 contiguous numbers only hold and resume (docs/ARCHITECTURE.md, "Safety").
 
 ``sim``
-    The slave :class:`~occ.robot.Robot` (``configs/slave.yaml``) stepped tick by tick on a
+    The slave :class:`~occ.core.robot.Robot` (``configs/slave.yaml``) stepped tick by tick on a
     :class:`~occ.clock.SimClock` with its interfaces on in-process channels
     (:class:`occ_testkit.testing.SimRobot`, no sockets): the master's datagrams and the operator's
     COMMANDs come from peers on those channels, packed and decoded like real ones, and the

@@ -250,7 +250,7 @@ class _MasterSide:
 
     def __init__(self, args: argparse.Namespace, total_ticks: int) -> None:
         from occ.clock import SimClock
-        from occ.safety import RobotState
+        from occ.core.safety import RobotState
         from occ_testkit.testing import SimRobot
 
         self.running_state = RobotState.RUNNING
@@ -533,7 +533,7 @@ def run(args: argparse.Namespace) -> tuple[Report, Traces]:
     import numpy as np
 
     from occ.clock import SimClock
-    from occ.safety import RobotState
+    from occ.core.safety import RobotState
     from occ_testkit.testing import SimRobot
 
     running = RobotState.RUNNING

@@ -3,7 +3,7 @@
 Strict: a quoted "1000" is not silently a number, ``true`` is not 1. The scalar types are
 public (plugin parameter models use them, so their errors read like the rest of the file's).
 A cross-field validator collects (relative location, message) pairs and raises them together
-(:func:`_raise_problems`); :mod:`occ.loader` expands them into one line each.
+(:func:`_raise_problems`); :mod:`occ.core.loader` expands them into one line each.
 """
 
 from __future__ import annotations

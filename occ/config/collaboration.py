@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from .base import Name, _Model
+from occ.config.base import Name, _Model
 
 
 class CollabMaster(_Model):

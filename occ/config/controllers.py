@@ -6,7 +6,7 @@ from typing import Any
 
 from pydantic import Field, ValidationInfo, field_validator
 
-from .base import Name, _Model, _resolve_path
+from occ.config.base import Name, _Model, _resolve_path
 
 
 class ControllerConfig(_Model):

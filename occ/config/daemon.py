@@ -8,14 +8,14 @@ from typing import Any
 
 from pydantic import Field, model_validator
 
-from .base import _WILDCARD_HOSTS, Loc, _did_you_mean, _Model, _num, _raise_problems
-from .collaboration import CollaborationConfig
-from .controllers import ControllerConfig
-from .environment import EnvironmentConfig
-from .interfaces import InterfaceConfig
-from .recording import RecordingConfig, StateTableConfig, StatsConfig
-from .robot import RobotConfig, _Failed, _quietly
-from .safety import SafetyConfig
+from occ.config.base import _WILDCARD_HOSTS, Loc, _did_you_mean, _Model, _num, _raise_problems
+from occ.config.collaboration import CollaborationConfig
+from occ.config.controllers import ControllerConfig
+from occ.config.environment import EnvironmentConfig
+from occ.config.interfaces import InterfaceConfig
+from occ.config.recording import RecordingConfig, StateTableConfig, StatsConfig
+from occ.config.robot import RobotConfig, _Failed, _quietly
+from occ.config.safety import SafetyConfig
 
 
 class DaemonConfig(_Model):
@@ -167,7 +167,7 @@ class DaemonConfig(_Model):
         try:
             path = fc.urdf_path()
             if path is None:
-                from ..frame import BUILTIN_MODELS, robots_dir
+                from occ.kinematics.frame import BUILTIN_MODELS, robots_dir
 
                 assert fc.model is not None
                 path = robots_dir() / BUILTIN_MODELS[fc.model][0]

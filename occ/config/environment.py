@@ -6,11 +6,11 @@ from typing import Annotated, Literal
 
 from pydantic import Field, field_validator
 
-from .base import Float, Name, PosFloat, Vec3, _Model
+from occ.config.base import Float, Name, PosFloat, Vec3, _Model
 
 
 class ContactConfig(_Model):
-    """One simulated tissue the tool presses on (patient frame, mm; occ/contact.py)."""
+    """One simulated tissue the tool presses on (patient frame, mm; occ/haptics/contact.py)."""
 
     name: Name = Field("tissue", description="Its name (statistics, alerts, Slicer).")
     kind: Literal["wall", "sphere"] = Field(

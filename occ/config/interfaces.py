@@ -9,8 +9,7 @@ from pydantic import Field, IPvAnyNetwork, model_validator
 from pydantic_core import PydanticCustomError
 
 from igtl.auth import load_key
-
-from .base import (
+from occ.config.base import (
     Bool,
     DeviceName,
     ExistingFile,

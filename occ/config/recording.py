@@ -6,7 +6,7 @@ from typing import Annotated
 
 from pydantic import Field
 
-from .base import Bool, OutputPath, PosFloat, _Model
+from occ.config.base import Bool, OutputPath, PosFloat, _Model
 
 
 class RecordingConfig(_Model):

@@ -9,7 +9,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field, model_validator
 
-from .base import (
+from occ.config.base import (
     Bool,
     BuiltinModel,
     ExistingFile,

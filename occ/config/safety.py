@@ -6,7 +6,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
-from .base import (
+from occ.config.base import (
     Bool,
     ExistingFile,
     Float,
@@ -124,7 +124,8 @@ _XYZ = tuple[Float, Float, Float]
 
 
 class RegionConfig(_Model):
-    """A forbidden region of the whole-arm collision check (occ/collision.py): patient frame
+    """A forbidden region of the whole-arm collision check (occ/kinematics/collision.py): patient
+    frame
     (3D Slicer's RAS), mm."""
 
     name: Name = Field(description="Its name (the refusal and the alert name it).")
@@ -172,7 +173,8 @@ class ToolConfig(_Model):
 
 
 class CollisionConfig(_Model):
-    """Whole-arm collision checking (occ/collision.py, coal): the arm's links and the tool
+    """Whole-arm collision checking (occ/kinematics/collision.py, coal): the arm's links and the
+    tool
     against forbidden regions and each other, in every keyframe plan before it is
     acknowledged, and at run time on a worker thread, which stops the robot when a link comes
     within the margin."""

@@ -1,7 +1,7 @@
 """Controllers: what the robot does while RUNNING, as plugins (the way drivers are).
 
 A controller never touches hardware and never holds the Robot (ros2_control's rule). It is
-given, once, the robot's :class:`~occ.data.RobotData` (joint state, tip, base, robot state) and
+given, once, the robot's :class:`~occ.core.data.RobotData` (joint state, tip, base, robot state) and
 a narrow :class:`ControllerContext` (clock, kinematics, the loop's phase, the interface names);
 each tick it reads the samples drained from its input streams and returns joint setpoints. The
 Robot passes those to its drivers, which check state and limits.
@@ -33,12 +33,16 @@ the metadata: no wire message to parse), and ``on_input(event, now)`` for the di
 decoded (:mod:`occ.events`: a controller never sees a wire message), both in arrival order;
 ``on_command(request, now) -> str | None`` for the operator commands it lists in
 ``commands()`` (a command nobody lists is offered to each in turn; work too long for a tick
-returns a :class:`~occ.commands.Deferred`, answered later); ``on_state(old, new, now)`` after
+returns a :class:`~occ.net.commands.Deferred`, answered later); ``on_state(old, new, now)`` after
 every transition; ``update(now) -> setpoints | None`` while RUNNING (None = hold);
 ``hold(now, setpoint)`` while STOPPED (the held setpoint, changed in place to let go of a
 contact, or left alone); ``outputs()``
 the named output sources it adds (``source: NAME`` in an
 interface's outputs); ``stats()``.
+
+Imports: the vocabulary of ``occ`` (typed events, samples, errors), the configuration's models,
+``occ.kinematics``, ``occ.haptics`` and, of ``occ.net``, the command and output types; of the
+core only RobotData and RobotState. Never ``igtl``, never the Robot (tests/test_imports.py).
 """
 
 from __future__ import annotations
@@ -52,20 +56,20 @@ import pydantic.main  # noqa: F401 - mypyc: declares the module its BaseModel su
 from mypy_extensions import mypyc_attr
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from ..clock import Clock  # mypyc: a native dataclass's field types are looked up at import
-from ..errors import CommandError, ConfigError, caused
-from ..frame import Frame
-from ..joint import JointLimits
-from ..plugins import PluginRegistry
+from occ.clock import Clock  # mypyc: a native dataclass's field types are looked up at import
+from occ.errors import CommandError, ConfigError, caused
+from occ.joint import JointLimits
+from occ.kinematics.frame import Frame
+from occ.plugins import PluginRegistry
 
 if TYPE_CHECKING:
-    from ..commands import Deferred, Request
-    from ..config import DaemonConfig
-    from ..data import RobotData
-    from ..events import InputEvent
-    from ..outputs import Outgoing, Output
-    from ..safety import RobotState
-    from ..samples import PoseSample
+    from occ.config import DaemonConfig
+    from occ.core.data import RobotData
+    from occ.core.safety import RobotState
+    from occ.events import InputEvent
+    from occ.net.commands import Deferred, Request
+    from occ.net.outputs import Outgoing, Output
+    from occ.samples import PoseSample
 
 log = logging.getLogger(__name__)
 
@@ -108,10 +112,10 @@ class ControllerContext:
     #: a STATUS to every viewer and operator (name, text, code), as the robot's own alerts
     #: go (None: logged only, e.g. in a unit test)
     alert: Callable[[str, str, int], None] | None = None
-    #: the simulated world the robot's ``sim`` drive touches (occ/contact.py), None on real
+    #: the simulated world the robot's ``sim`` drive touches (occ/haptics/contact.py), None on real
     #: hardware: a simulated slave's force sensor reads its contact force
     environment: Any = None
-    #: the whole-arm collision model (occ/collision.py ``CollisionModel``, from
+    #: the whole-arm collision model (occ/kinematics/collision.py ``CollisionModel``, from
     #: ``safety.collision``), None without one: a planner checks its plans against it
     collision: Any = None
 

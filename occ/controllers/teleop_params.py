@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from ..config import Bool, DeviceName, Float, Int, Name, PosFloat, Str, Vec3
+from occ.config import Bool, DeviceName, Float, Int, Name, PosFloat, Str, Vec3
 
 
 class _Params(BaseModel):
@@ -29,7 +29,7 @@ class FixtureFile(_Params):
 
 
 class MasterGripper(_Params):
-    """Where the master's gripper value comes from (occ/gripper.py)."""
+    """Where the master's gripper value comes from (occ/haptics/gripper.py)."""
 
     source: Literal["joint", "command", "sim"] = Field(
         description="`joint`: a master joint (a handle's grip or switch read as a position); "
@@ -130,8 +130,8 @@ class MasterParams(_Params):
     passivity: Bool = Field(
         True,
         description="Two-port time-domain passivity (Ryu, Artigas and Preusche 2010; "
-        "occ/passivity.py): the master's port controller keeps the energy the hand gets below "
-        "what the slave's tissue gave back, and the master sends its energy with the stream so "
+        "occ/haptics/passivity.py): the master's port controller keeps the energy the hand "
+        "gets below what the slave's tissue gave back, and the master sends its energy with the stream so "
         "the slave's keeps what it puts into the tissue below what the hand put in; whatever "
         "the delay and loss. Off: observed only (statistics), and no energy sent.",
     )
@@ -237,7 +237,7 @@ class MasterParams(_Params):
 
 
 class SlaveForceParams(_Params):
-    """The slave's tip force, sent to the master on the return channel (occ/forces.py)."""
+    """The slave's tip force, sent to the master on the return channel (occ/haptics/forces.py)."""
 
     sources: tuple[Literal["effort", "sensor", "tissue"], ...] = Field(
         ("effort",),
@@ -279,7 +279,7 @@ class SlaveForceParams(_Params):
     display_mm_per_n: PosFloat = Field(
         10.0,
         description="The output source `force` (3D Slicer): length of the force arrow, mm per N "
-        "(the POLYDATA arrow's length, the TRANSFORM's z axis; occ/forceviz.py).",
+        "(the POLYDATA arrow's length, the TRANSFORM's z axis; occ/haptics/forceviz.py).",
     )
     tool_mass_kg: Annotated[Float, Field(ge=0, le=20)] = Field(
         0.0,
@@ -321,7 +321,7 @@ class SlaveForceParams(_Params):
 
 
 class SlaveGripper(_Params):
-    """The slave's jaw, driven by the master's gripper value (occ/gripper.py)."""
+    """The slave's jaw, driven by the master's gripper value (occ/haptics/gripper.py)."""
 
     joint: Name = Field(
         description="The jaw's joint (one of the robot's; it must not move the tool's tip)."
@@ -409,8 +409,8 @@ class SlaveParams(_Params):
     )
     passivity: Bool = Field(
         True,
-        description="The slave's port of the two-port passivity scheme (occ/passivity.py): a "
-        "step into the tissue that would put in more energy than the master's hand has put "
+        description="The slave's port of the two-port passivity scheme "
+        "(occ/haptics/passivity.py): a step into the tissue that would put in more energy than the master's hand has put "
         "in (the master's `energy_j`, sent with its stream) is shortened; the difference is "
         "given back at `drift_return_mm_s` when the energy allows. Acts only on a stream "
         "that carries `energy_j` (a master with `passivity` and force feedback).",

@@ -24,6 +24,9 @@ A third-party package adds a driver with, in its ``pyproject.toml``::
 
 Precedence: :func:`register_driver` (explicit, at run time) > built-ins > entry points. An
 entry point cannot silently replace a built-in such as ``sim``; it is ignored with a warning.
+
+A driver imports only the vocabulary of ``occ`` (errors, joints, plugins) and its vendor's
+library: never the Robot, the network or a controller (tests/test_imports.py).
 """
 
 from __future__ import annotations

@@ -224,7 +224,7 @@ class DriverLifecycle:
         stage on that nobody commands); the backend's ``_reset`` then clears the hardware's
         fault and must raise when it cannot (the cause persists). Whether the drive is healthy
         again is the robot's question: it reads every drive afresh before it leaves FAULT
-        (:meth:`occ.hardware.HardwareSet.reset`).
+        (:meth:`occ.core.hardware.HardwareSet.reset`).
         """
         self._require((DriverState.FAULT,), "reset")
         if self.stop_failed is not None:

@@ -199,7 +199,7 @@ class SimDriver(Driver):
         self._cmd = [0.0] * n  # position target or effort command
         self._t = math.nan
         self._enabled = False
-        #: the simulated world (occ/contact.py ``Environment``): ``efforts(q, qd)``, the
+        #: the simulated world (occ/haptics/contact.py ``Environment``): ``efforts(q, qd)``, the
         #: joint efforts the tissue applies (None: none); set by the robot's assembly
         self.environment: Any = None
         #: the efforts it applied over the last interval

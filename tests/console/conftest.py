@@ -24,8 +24,8 @@ from typing import Any
 import pytest
 
 from occ.clock import SimClock
-from occ.loader import parse_config
-from occ.robot import Robot, build_robot
+from occ.core.loader import parse_config
+from occ.core.robot import Robot, build_robot
 from occ_testkit.testing import wait_until as poll
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -18,7 +18,7 @@ import httpx  # noqa: E402
 
 from igtl.auth import load_key  # noqa: E402
 from igtl.transport import TCPServer  # noqa: E402
-from occ.safety import RobotState  # noqa: E402
+from occ.core.safety import RobotState  # noqa: E402
 from occ_console.link import CommandTimeout, Console  # noqa: E402
 
 from .conftest import TickedRobot, WebServer, free_port, poll  # noqa: E402

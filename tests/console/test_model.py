@@ -7,7 +7,7 @@ from typing import Any
 
 import pytest
 
-from occ.stats import Histogram, bucket_bounds
+from occ.core.stats import Histogram, bucket_bounds
 from occ_console.link import parse_endpoint
 from occ_console.model import HIST_EDGES_US, DaemonView, parse_state_text, rebin
 

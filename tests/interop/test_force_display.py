@@ -1,4 +1,4 @@
-"""The slave's contact force as 3D Slicer is sent it (occ/forceviz.py), read by real peers.
+"""The slave's contact force as 3D Slicer is sent it (occ/haptics/forceviz.py), read by real peers.
 
 The wall pair (configs/master.yaml + configs/wall.yaml, :class:`occ_testkit.testing.SimPair`) runs
 the paper's motion into the tissue in simulated time; what the slave's Slicer interface sent at the
@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import yaml
 
-from occ.forceviz import parse_force
+from occ.haptics.forceviz import parse_force
 from occ_testkit.testing import CONFIGS, SimPair
 
 from . import helpers as h

@@ -13,8 +13,8 @@ from igtl.auth import sign, verify
 from igtl.transport import UDPEndpoint
 from occ.clock import SimClock
 from occ.errors import ConfigError
-from occ.loader import parse_config
-from occ.robot import Robot, build_robot
+from occ.core.loader import parse_config
+from occ.core.robot import Robot, build_robot
 from occ_testkit.testing import wait_until
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 import yaml
 
-from occ.safety import RobotState
+from occ.core.safety import RobotState
 from occ_testkit.testing import CONFIGS, SimPair
 
 from ..tools.tooling import load_tool

@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 
-from occ.safety import RobotState
+from occ.core.safety import RobotState
 from occ_testkit.testing import CONFIGS, SimPair
 
 from ..tools.tooling import load_tool

@@ -18,8 +18,8 @@ import pytest
 
 import igtl
 from occ.errors import ConfigError
-from occ.loader import load_config, parse_config
-from occ.safety import RobotState
+from occ.core.loader import load_config, parse_config
+from occ.core.safety import RobotState
 from occ_testkit.testing import SimPeer, SimRobot
 from occ_testkit.testing import wait_until as wait_for
 
@@ -458,7 +458,7 @@ def test_a_handover_rejoins_the_new_target_through_the_re_entry(
     counted in ``reentries``), never taken in one step; the hand-over is logged."""
     collab.running()
     before = collab.robot.motion.reentries
-    caplog.set_level(logging.WARNING, logger="occ.robot")
+    caplog.set_level(logging.WARNING, logger="occ.core.robot")
     # the PLUS spelling of the argument, lower case, is taken as well
     reply = collab.command(
         collab.desks["mentor"], "Handover", '<Command Name="Handover" to="trainee"/>'
@@ -466,7 +466,7 @@ def test_a_handover_rejoins_the_new_target_through_the_re_entry(
     assert ok(reply) and reply.metadata["Message"] == (
         "control mentor -> trainee (by mentor (supervisor))"
     )
-    assert [r.getMessage() for r in caplog.records if r.name == "occ.robot"] == [
+    assert [r.getMessage() for r in caplog.records if r.name == "occ.core.robot"] == [
         "handover: control mentor -> trainee (by mentor (supervisor))"
     ]
     collab.step_ms(50)

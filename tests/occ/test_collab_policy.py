@@ -1,5 +1,5 @@
 """Who may hand over control of a collaborative slave, and which slave a master drives:
-occ.collab's Collaboration (the hand-over policy) and SlaveSelector, each alone, every case
+occ.net.collab's Collaboration (the hand-over policy) and SlaveSelector, each alone, every case
 answered with its whole text (issue 29: mutation testing of the hand-over path). The path
 through a running slave (the desk, the streams' liveness check, the re-entry) is in
 test_collab.py."""
@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from occ.collab import Collaboration, SlaveSelector
+from occ.net.collab import Collaboration, SlaveSelector
 from occ.config import CollaborationConfig
 from occ.errors import CommandError
 

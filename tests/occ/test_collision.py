@@ -1,4 +1,4 @@
-"""Whole-arm collision checking (issue 28, item 4; occ/collision.py, docs/SAFETY.md SR-COLL-1..3).
+"""Whole-arm collision checking (issue 28, item 4; occ/kinematics/collision.py, docs/SAFETY.md SR-COLL-1..3).
 
 - A UR5 (configs/ur5.yaml) keyframe plan whose *elbow* (the forearm), not its tip, crosses a
   forbidden plane is refused naming the link, the region and the time; the same plan passes the
@@ -19,13 +19,13 @@ import pytest
 import yaml
 
 import igtl
-from occ.collision import CollisionModel, regions_from_event
+from occ.kinematics.collision import CollisionModel, regions_from_event
 from occ.config import CollisionConfig
-from occ.decoders import event_of
+from occ.net.decoders import event_of
 from occ.errors import ConfigError
-from occ.loader import load_config
-from occ.safety import RobotState
-from occ.supervision import Worker
+from occ.core.loader import load_config
+from occ.core.safety import RobotState
+from occ.core.supervision import Worker
 from occ_testkit.testing import CONFIGS, SimRobot
 
 HOME = [0.0, -1.2, 1.5, -1.9, -1.57, 0.0]
@@ -248,7 +248,7 @@ def test_without_a_verdict_the_loop_holds_and_rejoins_after() -> None:
 
 # ------------------------------------------------------------------------------ the model
 def model(**cfg: Any) -> CollisionModel:
-    from occ.assembly import build_hardware
+    from occ.core.assembly import build_hardware
 
     daemon = load_config(CONFIGS / "ur5.yaml")
     _joints, frame, _pairs = build_hardware(daemon.robot)
@@ -425,7 +425,7 @@ def test_an_excluded_link_the_urdf_does_not_have_is_an_error() -> None:
 
 
 def test_a_urdf_without_collision_geometry_gets_capsules() -> None:
-    from occ.assembly import build_hardware
+    from occ.core.assembly import build_hardware
 
     daemon = load_config(CONFIGS / "slave.yaml")
     _j, frame, _p = build_hardware(daemon.robot)
@@ -443,7 +443,7 @@ def test_a_urdf_without_collision_geometry_gets_capsules() -> None:
 
 @pytest.mark.req("SR-COLL-2")
 def test_the_guard_on_its_worker_thread_gives_verdicts_the_loop_admits_by() -> None:
-    from occ.collision import CollisionGuard
+    from occ.kinematics.collision import CollisionGuard
     from occ_testkit.testing import wait_until
 
     cm = model(regions=[CEILING])
@@ -533,7 +533,7 @@ def statuses(op: Any) -> list[str]:
 
 @pytest.mark.req("SR-COLL-3")
 def test_a_region_from_slicer_is_defined_and_voids_a_plan_not_yet_acknowledged() -> None:
-    """The operator desk (occ/operators.py ``_collision_region``): a forbidden region from
+    """The operator desk (occ/net/operators.py ``_collision_region``): a forbidden region from
     3D Slicer replaces the node's definition in the collision model, a checked plan that was
     not yet acknowledged must be planned again (its Ack refused, saying why), the region is
     never taken as keyframes; one that cannot be used is refused to its sender with the

@@ -1,4 +1,4 @@
-"""Whole-arm collision checking (occ/collision.py) piece by piece, without a loop: the
+"""Whole-arm collision checking (occ/kinematics/collision.py) piece by piece, without a loop: the
 `collision` selection of scripts/mutate (test_collision.py has the same through the robot).
 
 - Regions: spheres, planes and meshes placed in metres with their broad-phase bounds; every
@@ -30,9 +30,9 @@ import pinocchio as pin
 import pytest
 
 import igtl
-from occ.assembly import build_hardware
+from occ.core.assembly import build_hardware
 from occ.clock import SimClock
-from occ.collision import (
+from occ.kinematics.collision import (
     BROAD_PAD_M,
     ESCAPE_TOLERANCE_M,
     MAX_TRIANGLES,
@@ -52,13 +52,13 @@ from occ.collision import (
     sphere_region,
 )
 from occ.config import CollisionConfig, RegionConfig
-from occ.data import RobotData
-from occ.decoders import event_of
+from occ.core.data import RobotData
+from occ.net.decoders import event_of
 from occ.errors import ConfigError
-from occ.frame import Frame
-from occ.loader import load_config
-from occ.safety import RobotState
-from occ.supervision import Worker
+from occ.kinematics.frame import Frame
+from occ.core.loader import load_config
+from occ.core.safety import RobotState
+from occ.core.supervision import Worker
 from occ_testkit.testing import CONFIGS, SimRobot
 
 HOME = [0.0, -1.2, 1.5, -1.9, -1.57, 0.0]
@@ -1241,9 +1241,9 @@ def test_a_robot_on_the_real_clock_checks_on_a_worker_thread_of_its_own() -> Non
     import yaml
 
     from occ.clock import RealClock
-    from occ.loader import parse_config
-    from occ.record import writer_priority
-    from occ.robot import build_robot
+    from occ.core.loader import parse_config
+    from occ.recording.record import writer_priority
+    from occ.core.robot import build_robot
     from occ_testkit.testing import inproc_config
 
     cfg = parse_config(yaml.safe_dump(ur5_collision(margin_mm=5.0)), base_dir=CONFIGS)

@@ -1,5 +1,5 @@
 """Operator requests: parsing (COMMAND, PLUS-style STRING, queries) and the reply each sender
-expects (occ/commands.py). Pure functions: no robot, no sockets.
+expects (occ/net/commands.py). Pure functions: no robot, no sockets.
 
 Each expectation here is one the operators rely on (the reply names the request it answers, in
 the form its sender speaks, with the refusal's reason); several were written to catch faults
@@ -11,7 +11,7 @@ from __future__ import annotations
 import pytest
 
 import igtl
-from occ.commands import (
+from occ.net.commands import (
     MAX_XML_BYTES,
     Deferred,
     Request,
@@ -213,7 +213,7 @@ def test_a_deferred_answer_is_delivered_once_bound_or_not():
 
 
 def test_a_name_cut_through_a_character_loses_the_broken_character_only():
-    from occ.commands import safe_name
+    from occ.net.commands import safe_name
 
     name = "a" + "é" * 10  # 21 bytes: the 20-byte cut falls inside the last é
     assert safe_name(name) == "a" + "é" * 9
@@ -223,7 +223,7 @@ def test_a_name_cut_through_a_character_loses_the_broken_character_only():
 def test_reply_builders_default_to_an_empty_message_and_no_timestamp():
     """Called without them, the builders stamp nothing (0: the reference's "unused") and say
     nothing beyond the status: callers that want a time or a text pass it."""
-    from occ.commands import error_reply, parse_request, success_reply
+    from occ.net.commands import error_reply, parse_request, success_reply
 
     cmd = igtl.CommandMessage(command_id=3, command_name="Ping", device_name="CMD", command="")
     req = parse_request(cmd)

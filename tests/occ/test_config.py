@@ -13,7 +13,7 @@ import pytest
 from occ.config import DaemonConfig, InterfaceConfig
 from occ.configdoc import DOC_BEGIN, DOC_END, config_reference_markdown
 from occ.errors import ConfigError, OCCError
-from occ.loader import load_config, parse_config
+from occ.core.loader import load_config, parse_config
 
 DATA = Path(__file__).parent / "data"
 ROOT = Path(__file__).resolve().parents[2]
@@ -438,7 +438,7 @@ def test_config_md_example_is_valid() -> None:
 
 
 def test_an_empty_allowed_peers_list_is_refused_with_a_clear_error(tmp_path) -> None:
-    from occ.loader import load_config as _load
+    from occ.core.loader import load_config as _load
 
     text = (
         (ROOT / "configs" / "slave.yaml")

@@ -1,4 +1,4 @@
-"""Simulated tissue (occ/contact.py) and the slave's force sources (occ/forces.py).
+"""Simulated tissue (occ/haptics/contact.py) and the slave's force sources (occ/haptics/forces.py).
 
 - The force law: a wall and a sphere push the tool out along their normal, k d + b d', never
   pull; shapes add up.
@@ -26,13 +26,13 @@ import yaml
 import igtl
 from igtl.messages.sensor import Unit
 from occ.config import ContactConfig
-from occ.contact import Contact, Environment
-from occ.decoders import event_of
+from occ.haptics.contact import Contact, Environment
+from occ.net.decoders import event_of
 from occ.errors import ConfigError
-from occ.forces import SlaveForce
-from occ.frame import Frame
-from occ.loader import parse_config
-from occ.safety import RobotState
+from occ.haptics.forces import SlaveForce
+from occ.kinematics.frame import Frame
+from occ.core.loader import parse_config
+from occ.core.safety import RobotState
 from occ_testkit.testing import CONFIGS, SimRobot
 
 pytestmark = pytest.mark.req("SR-FORCE-3")
@@ -427,7 +427,7 @@ def test_the_joints_feel_the_damper_through_the_tips_velocity() -> None:
 
 def test_tissue_from_slicer_defaults_visibility_and_refusals() -> None:
     from igtl.messages.point import PointElement
-    from occ.contact import tissue_from_event
+    from occ.haptics.contact import tissue_from_event
 
     def points(*els: Any, **meta: str) -> Any:
         return igtl.PointMessage(points=els, device_name="T", header_version=2,
@@ -485,7 +485,7 @@ def test_the_worlds_counters_before_and_away_from_any_contact() -> None:
 
 
 def test_a_normal_is_made_unit_in_every_component_and_a_nan_plane_is_refused() -> None:
-    from occ.contact import tissue_from_event
+    from occ.haptics.contact import tissue_from_event
 
     assert wall(normal=(0.0, 3.0, 4.0)).normal == pytest.approx((0.0, 0.6, 0.8))
     assert wall(normal=(2.0, 0.0, -2.0)).normal == pytest.approx((0.7071068, 0.0, -0.7071068))

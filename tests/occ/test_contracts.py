@@ -39,7 +39,7 @@ import pytest
 import yaml
 from pydantic import BaseModel, ValidationError
 
-from occ.commands import Request
+from occ.net.commands import Request
 from occ.config import ControllerConfig, DaemonConfig
 from occ.controllers import (
     Controller,
@@ -53,8 +53,8 @@ from occ.drivers.params import BASE_PARAMS
 from occ.drivers.can_sim import DriveAxis, SimulatedDriveNode
 from occ.errors import CommandError, ConfigError, DriverError, LimitError, OCCError, StateError
 from occ.joint import Joint, JointLimits, PIDGains
-from occ.loader import parse_config
-from occ.safety import RobotState
+from occ.core.loader import parse_config
+from occ.core.safety import RobotState
 from occ_testkit.testing import SimPeer, SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]

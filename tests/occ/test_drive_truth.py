@@ -25,9 +25,9 @@ from occ.clock import SimClock
 from occ.drivers import register_driver
 from occ.drivers.base import DriverState
 from occ.drivers.sim import SimDriver
-from occ.hardware import HardwareSet
+from occ.core.hardware import HardwareSet
 from occ.joint import Joint, JointLimits
-from occ.safety import RobotState
+from occ.core.safety import RobotState
 from occ_testkit.faultmatrix import slave_config
 from occ_testkit.testing import SimPeer, SimRobot
 
@@ -312,8 +312,8 @@ def test_a_stop_that_hangs_delays_neither_the_other_drives_nor_the_alert() -> No
         def __call__(self, msg: igtl.StatusMessage) -> None:
             order.append(f"{msg.error_name}: ok={ok.state.value} hung={hung.state.value}")
 
-    from occ.alarms import Alarms
-    from occ.safety import StateMachine
+    from occ.core.alarms import Alarms
+    from occ.core.safety import StateMachine
 
     alarms = Alarms("slave", StateMachine(), SimClock(), Sender(), hw, None)  # type: ignore[arg-type]
     hung.lock.acquire()  # the loop thread is stuck in hung's read, holding its lock

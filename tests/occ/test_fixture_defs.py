@@ -1,8 +1,8 @@
-"""Fixture definitions (occ/fixture_defs.py) read alone: what 3D Slicer and scripts send
+"""Fixture definitions (occ/haptics/fixture_defs.py) read alone: what 3D Slicer and scripts send
 (VFIXTURE, POINT, TRANSFORM, POLYDATA, ``.mrk.json`` files) becomes exactly these definitions,
 a malformed one is refused with a message that names what is wrong, and the patient-to-master
 mapping is the linear map it documents, entry by entry (issue 29: the mutation run of
-occ/fixture_defs.py; the master that uses them is tests/occ/test_haptic_master.py)."""
+occ/haptics/fixture_defs.py; the master that uses them is tests/occ/test_haptic_master.py)."""
 
 from __future__ import annotations
 
@@ -17,8 +17,8 @@ import pytest
 
 import igtl
 from igtl.messages.point import PointElement
-from occ.decoders import event_of
-from occ.fixture_defs import (
+from occ.net.decoders import event_of
+from occ.haptics.fixture_defs import (
     Defaults,
     Definition,
     DefinitionError,
@@ -29,7 +29,7 @@ from occ.fixture_defs import (
     parse_linear,
     to_master,
 )
-from occ.fixtures import AccessibleSphere, ForbiddenPlane, ForbiddenSphere, Guide
+from occ.haptics.fixtures import AccessibleSphere, ForbiddenPlane, ForbiddenSphere, Guide
 
 D = Defaults()
 

@@ -1,4 +1,4 @@
-"""occ.fixtures: the force laws, the proxy, the clamp (pure, no robot)."""
+"""occ.haptics.fixtures: the force laws, the proxy, the clamp (pure, no robot)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from occ.fixtures import (
+from occ.haptics.fixtures import (
     AccessibleSphere,
     FixtureSet,
     ForbiddenPlane,

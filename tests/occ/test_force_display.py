@@ -1,4 +1,4 @@
-"""The slave's contact force made visible to 3D Slicer (issue 27, "Visible"; occ/forceviz.py).
+"""The slave's contact force made visible to 3D Slicer (issue 27, "Visible"; occ/haptics/forceviz.py).
 
 The geometry (the TRANSFORM whose z axis is the force, the arrow mesh) is checked as numbers;
 the output source ``force`` on the shipped wall pair (configs/master.yaml + configs/wall.yaml,
@@ -18,8 +18,8 @@ import pytest
 import yaml
 
 from occ.errors import ConfigError
-from occ.forceviz import MIN_LENGTH_MM, arrow_mesh, force_matrix, parse_force
-from occ.loader import parse_config
+from occ.haptics.forceviz import MIN_LENGTH_MM, arrow_mesh, force_matrix, parse_force
+from occ.core.loader import parse_config
 from occ_testkit.testing import CONFIGS, SimPair, SimRobot
 
 MM_PER_N = 10.0

@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 import yaml
 
-from occ.forceviz import parse_force
-from occ.record import Recorder, read_recording
-from occ.recordcli import main
-from occ.recplot import plot_recording, summarize_recording
+from occ.haptics.forceviz import parse_force
+from occ.recording.record import Recorder, read_recording
+from occ.recording.cli import main
+from occ.recording.plot import plot_recording, summarize_recording
 from occ_testkit.testing import CONFIGS, SimPair
 
 from .test_recexport import decode_mcap, require, slicer_parse

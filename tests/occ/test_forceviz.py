@@ -1,8 +1,8 @@
-"""occ/forceviz.py piece by piece: what 3D Slicer, a recording's reader and ``occd --check`` get.
+"""occ/haptics/forceviz.py piece by piece: what 3D Slicer, a recording's reader and ``occd --check`` get.
 
 The arrow's documented proportions and its faces as a renderer takes them, the TRANSFORM's frame
 for a force along any axis and at the exact minimum length, which messages carry a force (the
-recordings' reader, occ/recexport.py and occ/recplot.py), the output checks' exact errors, and
+recordings' reader, occ/recording/export.py and occ/recording/plot.py), the output checks' exact errors, and
 the output source ``force`` on a slave alone in simulated time: every type's force, timestamp,
 header version and metadata, from each force source (the tissue, the drives' efforts, a force
 sensor on the tool). No pair and no wall clock: each test is quick (the mutation run of
@@ -21,13 +21,13 @@ import yaml
 
 import igtl
 from igtl.messages.sensor import Unit
-from occ.decoders import message_force
+from occ.net.decoders import message_force
 from occ.errors import ConfigError, OCCError
 from occ.events import VectorOut
-from occ.forceviz import MIN_LENGTH_MM, arrow_mesh, force_matrix, parse_force
-from occ.loader import parse_config
-from occ.outputs import Output
-from occ.packers import pack_output
+from occ.haptics.forceviz import MIN_LENGTH_MM, arrow_mesh, force_matrix, parse_force
+from occ.core.loader import parse_config
+from occ.net.outputs import Output
+from occ.net.packers import pack_output
 from occ_testkit.testing import CONFIGS, SimRobot
 
 Vec3 = tuple[float, float, float]
@@ -516,7 +516,7 @@ def test_the_message_is_in_the_outputs_header_version_as_a_datagram_sender_packs
     sim, source, f = view
     out = _out(type_, version, "Dev")
     value = source(out, sim.now)
-    assert not isinstance(value, igtl.Message)  # a typed value: occ/packers.py packs it
+    assert not isinstance(value, igtl.Message)  # a typed value: occ/net/packers.py packs it
     back = igtl.unpack(pack_output(value, out).pack())
     assert back.message_type == type_ and back.device_name == "Dev"
     assert back.header_version == version

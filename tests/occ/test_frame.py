@@ -10,7 +10,7 @@ import pinocchio as pin
 import pytest
 
 from occ.errors import KinematicsError
-from occ.frame import Frame, robots_dir
+from occ.kinematics.frame import Frame, robots_dir
 
 RCM_HEIGHT = 0.30
 TIP_PAST_RCM = 0.02
@@ -214,11 +214,11 @@ def test_closed_form_world_pose_matches_pinocchio_under_any_base(name: str) -> N
     where the model has one, else pinocchio) is ``base @ fk(q)``: with no base, a translated
     base and a rotated one."""
     from occ.clock import SimClock
-    from occ.data import RobotData
+    from occ.core.data import RobotData
     from occ.samples import rotation_to_quaternion
 
     if name == "ur5":
-        from occ.loader import load_config
+        from occ.core.loader import load_config
 
         fc = load_config(ROOT / "configs" / "ur5.yaml").robot.frame
         path = fc.urdf_path()

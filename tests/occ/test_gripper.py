@@ -1,4 +1,4 @@
-"""The gripper channel (issue 37, item 5; occ/gripper.py): the master's handle opens and closes
+"""The gripper channel (issue 37, item 5; occ/haptics/gripper.py): the master's handle opens and closes
 the slave's grippers, as the German Heart Center's handle switch did.
 
 - The master's value from each source: a joint (mapped between its open and closed positions,
@@ -24,9 +24,9 @@ import pytest
 import yaml
 
 from occ.errors import ConfigError
-from occ.gripper import GripperFollower, GripperSource, parse_gripper
-from occ.loader import parse_config
-from occ.safety import RobotState
+from occ.haptics.gripper import GripperFollower, GripperSource, parse_gripper
+from occ.core.loader import parse_config
+from occ.core.safety import RobotState
 from occ_testkit.testing import CONFIGS, SimPair, SimRobot
 
 pytestmark = pytest.mark.req("SR-FORCE-23")

@@ -17,9 +17,9 @@ import yaml
 
 import igtl
 from igtl.messages.point import PointElement
-from occ.fixture_defs import DefinitionError, PatientMapping, from_markups_file
-from occ.record import Recorder, read_recording
-from occ.safety import RobotState
+from occ.haptics.fixture_defs import DefinitionError, PatientMapping, from_markups_file
+from occ.recording.record import Recorder, read_recording
+from occ.core.safety import RobotState
 from occ_testkit.rigs import SimMaster
 
 from ..tools.tooling import load_tool

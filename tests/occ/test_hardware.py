@@ -1,4 +1,4 @@
-"""The HardwareSet alone (occ/hardware.py): every operation reaches every drive and reports the
+"""The HardwareSet alone (occ/core/hardware.py): every operation reaches every drive and reports the
 failures by drive, action and cause; power is all or nothing; a write checks every drive first.
 The robot-level outcomes are tests/occ/test_fault_matrix.py's."""
 
@@ -10,7 +10,7 @@ import pytest
 
 from occ.drivers.base import DriverState
 from occ.drivers.sim import SimDriver
-from occ.hardware import HardwareFailure, HardwareSet, describe
+from occ.core.hardware import HardwareFailure, HardwareSet, describe
 from occ.joint import Joint, JointLimits
 
 
@@ -299,7 +299,7 @@ def test_failures_are_counted_across_operations_and_the_time_to_safe_is_sane() -
 
 
 def test_a_cause_without_words_is_named_by_its_type() -> None:
-    from occ.hardware import _cause
+    from occ.core.hardware import _cause
 
     assert _cause(RuntimeError()) == "RuntimeError"
     assert _cause(OSError("bus gone")) == "bus gone"
@@ -381,7 +381,7 @@ def test_a_failed_shutdown_is_logged_naming_the_drive(caplog: pytest.LogCaptureF
     hw, a, b = _brittle()
     hw.configure()
     a.breaks.add("shutdown")
-    with caplog.at_level("ERROR", logger="occ.hardware"):
+    with caplog.at_level("ERROR", logger="occ.core.hardware"):
         hw.shutdown()
     assert [r.getMessage() for r in caplog.records] == ["driver a: shutdown failed"]
 
@@ -392,7 +392,7 @@ def test_await_measured_reads_once_on_simulated_time_and_polls_on_the_real_clock
     """After configure: one read; on the real clock, reads every 5 ms until every joint is
     measured or the wait is over."""
     slept: list[float] = []
-    monkeypatch.setattr("occ.hardware.time.sleep", slept.append)
+    monkeypatch.setattr("occ.core.hardware.time.sleep", slept.append)
     joints = _joints("xy")
     hw = HardwareSet([])
     reads: list[float] = []

@@ -1,4 +1,4 @@
-"""occ/interfaces.py: the queues that feed the loop, who owns a stream, and what each interface
+"""occ/net/interfaces.py: the queues that feed the loop, who owns a stream, and what each interface
 counts. Queues are tested alone; routing over in-process interfaces (occ_testkit.testing.SimRobot),
 where a peer's address is chosen, so ownership is exact.
 
@@ -15,7 +15,7 @@ import pytest
 
 import igtl
 from igtl.transport.common import Peer
-from occ.interfaces import CommandQueue, Inbound, StreamQueue, is_operator_request
+from occ.net.interfaces import CommandQueue, Inbound, StreamQueue, is_operator_request
 from occ_testkit.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -369,7 +369,7 @@ class _Udp(_Recorder):
 
 @pytest.fixture
 def fake_transports(monkeypatch):
-    import occ.interfaces as mod
+    import occ.net.interfaces as mod
 
     monkeypatch.setattr(mod, "TCPServer", _Server)
     monkeypatch.setattr(mod, "TCPClient", _Client)
@@ -378,7 +378,7 @@ def fake_transports(monkeypatch):
 
 def manager(*cfgs: dict, **kw):
     from occ.config import InterfaceConfig
-    from occ.interfaces import InterfaceManager
+    from occ.net.interfaces import InterfaceManager
 
     return InterfaceManager([InterfaceConfig(**c) for c in cfgs], clock_now=lambda: 1.5, **kw)
 
@@ -536,7 +536,7 @@ def test_streams_are_not_polled_unless_asked(fake_transports):
 def test_an_unknown_transport_is_named_in_the_error(fake_transports):
     from types import SimpleNamespace
 
-    from occ.interfaces import Interface
+    from occ.net.interfaces import Interface
 
     cfg = manager(dict(name="x", transport="udp", port=0))["x"].cfg
     bad = SimpleNamespace(**{**dict(cfg), "transport": "carrier-pigeon"})
@@ -640,11 +640,11 @@ def test_stats_take_the_transports_counts_when_it_has_them(fake_transports):
 
 
 def _log(caplog) -> list[tuple[str, str]]:
-    return [(r.levelname, r.getMessage()) for r in caplog.records if r.name == "occ.interfaces"]
+    return [(r.levelname, r.getMessage()) for r in caplog.records if r.name == "occ.net.interfaces"]
 
 
 def test_the_log_tells_an_operator_what_each_interface_did(fake_transports, caplog, tmp_path):
-    caplog.set_level("DEBUG", logger="occ.interfaces")
+    caplog.set_level("DEBUG", logger="occ.net.interfaces")
     stream = [{"type": "POSITION", "queue": "stream", "depth": 5}]
     m = manager(
         dict(name="ops", transport="tcp-server", port=0, role="viewer"),
@@ -706,7 +706,7 @@ def test_the_log_tells_an_operator_what_each_interface_did(fake_transports, capl
 
 
 def test_refusals_are_logged_at_most_five_a_second(fake_transports, caplog, tmp_path):
-    caplog.set_level("DEBUG", logger="occ.interfaces")
+    caplog.set_level("DEBUG", logger="occ.net.interfaces")
     key = b"a shared key for the master link"
     (tmp_path / "k").write_text(key.decode() + "\n")
     stream = [{"type": "POSITION", "queue": "stream", "depth": 5}]
@@ -746,7 +746,7 @@ def test_an_interface_pins_its_configured_source_when_it_starts(fake_transports)
 
 
 def test_an_interface_made_alone_does_not_poll(fake_transports):
-    from occ.interfaces import Interface
+    from occ.net.interfaces import Interface
 
     stream = [{"type": "POSITION", "queue": "stream", "depth": 5}]
     m = manager(dict(name="rx", transport="udp", port=0, inputs=stream))
@@ -789,7 +789,7 @@ def test_thread_priority_says_where_it_applied_and_why_not(fake_transports, monk
 
 
 def test_an_inproc_interface_gets_its_channel_and_limits(monkeypatch):
-    import occ.interfaces as mod
+    import occ.net.interfaces as mod
 
     class _Inproc(_Recorder):
         kind = "inproc"
@@ -828,7 +828,7 @@ def test_an_inproc_interface_gets_its_channel_and_limits(monkeypatch):
 def test_ipv6_peers_are_logged_by_host_and_port(fake_transports, caplog, tmp_path):
     """An IPv6 address arrives as a 4-tuple (host, port, flowinfo, scope): the log shows
     host:port (the Peer keeps those two)."""
-    caplog.set_level("INFO", logger="occ.interfaces")
+    caplog.set_level("INFO", logger="occ.net.interfaces")
     (tmp_path / "k").write_text("a shared key for the master link\n")
     m = manager(
         dict(name="ops", transport="tcp-server", port=0, role="none"),
@@ -870,7 +870,7 @@ def test_a_key_file_is_read_as_utf8_whatever_the_locale(tmp_path):
     code = (
         "import locale, sys\n"
         "from occ.config import InterfaceConfig\n"
-        "from occ.interfaces import InterfaceManager\n"
+        "from occ.net.interfaces import InterfaceManager\n"
         "assert locale.getpreferredencoding(False).lower() not in ('utf-8', 'utf8')\n"
         f"cfg = InterfaceConfig(name='k', transport='inproc', channel='c', port=0,"
         f" auth_key_file={str(tmp_path / 'k')!r})\n"

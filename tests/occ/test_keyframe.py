@@ -20,16 +20,16 @@ import pytest
 import yaml
 
 import igtl
-from occ.commands import Deferred
+from occ.net.commands import Deferred
 from occ.controllers.keyframe import KeyframeController
 from occ.controllers.keyframe.sets import make_set
-from occ.decoders import event_of
-from occ.keyframe_inputs import items_from_event
+from occ.net.decoders import event_of
+from occ.kinematics.keyframe_inputs import items_from_event
 from occ.drivers import register_driver
 from occ.drivers.base import Driver
 from occ.errors import ConfigError
-from occ.loader import load_config, parse_config
-from occ.safety import RobotState
+from occ.core.loader import load_config, parse_config
+from occ.core.safety import RobotState
 from occ_testkit.testing import SimPeer, SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -723,7 +723,7 @@ def test_over_loopback_tcp_with_the_real_loop() -> None:
     import time
 
     from igtl.transport import TCPClient
-    from occ.robot import build_robot
+    from occ.core.robot import build_robot
 
     data = yaml.safe_load((CONFIGS / "keyframe.yaml").read_text())
     data["interfaces"][0]["port"] = 0
@@ -882,7 +882,7 @@ def test_a_controller_shutdown_error_does_not_skip_the_drivers(
 def test_a_deferred_answer_is_recorded(tmp_path: Path) -> None:
     """The planner's answer goes out later, from its own thread; a recording holds it like
     every other reply (through the recorder's any-thread entry)."""
-    from occ.record import Recorder, read_recording
+    from occ.recording.record import Recorder, read_recording
 
     path = tmp_path / "kf.igtl"
     rec = Recorder(path, rate_hz=10).start()

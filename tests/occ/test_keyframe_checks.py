@@ -23,7 +23,7 @@ import pytest
 from occ.controllers.keyframe import KeyframeController
 from occ.controllers.keyframe.plan import _where
 from occ.errors import KinematicsError
-from occ.safety import RobotState
+from occ.core.safety import RobotState
 
 from .test_keyframe import HOME, Session, xml
 
@@ -425,8 +425,8 @@ def _ur5_home_turned(angle_deg: float) -> tuple[list[float], list[float]]:
     import pinocchio as pin
     import yaml
 
-    from occ.assembly import build_hardware
-    from occ.loader import load_config
+    from occ.core.assembly import build_hardware
+    from occ.core.loader import load_config
     from occ.samples import rotation_to_quaternion
     from occ_testkit.testing import CONFIGS
 

@@ -1,4 +1,4 @@
-"""Keyframes from 3D Slicer's messages (occ/keyframe_inputs.py): a Markups point list (POINT)
+"""Keyframes from 3D Slicer's messages (occ/kinematics/keyframe_inputs.py): a Markups point list (POINT)
 or a TRAJ made into Cartesian keyframes as the keyframe controller takes them, with the
 `times` metadata, Slicer's hidden points left out, and every refusal saying why.
 
@@ -9,8 +9,8 @@ from __future__ import annotations
 import pytest
 
 import igtl
-from occ.decoders import event_of
-from occ.keyframe_inputs import items_from_event, parse_times
+from occ.net.decoders import event_of
+from occ.kinematics.keyframe_inputs import items_from_event, parse_times
 
 
 def wire(msg: igtl.Message) -> igtl.Message:

@@ -22,9 +22,9 @@ import yaml
 
 from occ.controllers.keyframe import KeyframeController
 from occ.errors import ConfigError
-from occ.frame import robots_dir
-from occ.loader import load_config, parse_config
-from occ.safety import RobotState
+from occ.kinematics.frame import robots_dir
+from occ.core.loader import load_config, parse_config
+from occ.core.safety import RobotState
 from occ_testkit.testing import SimPeer, SimRobot
 
 from .test_keyframe import Session, xml

@@ -13,11 +13,11 @@ import time
 import numpy as np
 import pytest
 
-from occ import loop as loop_mod
+from occ.core import loop as loop_mod
 from occ.clock import SimClock
-from occ.loop import ControlLoop
-from occ.safety import Watchdog
-from occ.stats import Histogram, LoopStats
+from occ.core.loop import ControlLoop
+from occ.core.safety import Watchdog
+from occ.core.stats import Histogram, LoopStats
 
 RATE = 1000.0
 PERIOD = 1.0 / RATE
@@ -436,7 +436,7 @@ def test_snapshot_shape_and_json() -> None:
 
 
 def test_cpu_percent_is_process_time_over_wall_time(monkeypatch: pytest.MonkeyPatch) -> None:
-    import occ.stats as stats_mod
+    import occ.core.stats as stats_mod
 
     class FakeTime:
         wall, cpu = 10.0, 1.0

@@ -10,9 +10,9 @@ import pytest
 
 import igtl
 from occ.drivers.can_sim import DriveAxis, SimulatedDriveNode
-from occ.loader import load_config
-from occ.robot import build_robot
-from occ.safety import RobotState
+from occ.core.loader import load_config
+from occ.core.robot import build_robot
+from occ.core.safety import RobotState
 from occ_testkit.testing import SimPeer, inproc_config
 from occ_testkit.testing import wait_until as _wait
 

@@ -14,7 +14,7 @@ import pytest
 import yaml
 
 import igtl
-from occ.safety import RobotState
+from occ.core.safety import RobotState
 from occ_testkit.rigs import SimMaster, SlaveTipFeed
 
 ROOT = Path(__file__).resolve().parents[2]

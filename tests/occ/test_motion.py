@@ -1,4 +1,4 @@
-"""What the drives are told each tick, by the robot's state (occ/motion.py), the policy alone
+"""What the drives are told each tick, by the robot's state (occ/core/motion.py), the policy alone
 on real joints, robot data and controllers: while RUNNING the controllers' targets, held
 while the stream in control is late and re-joined at half the velocity limits (never a jump);
 the held setpoint while ENABLED or STOPPED; nothing while the drives are off; for a haptic
@@ -13,14 +13,14 @@ import pytest
 
 from occ.clock import SimClock
 from occ.controllers import Controller, ControllerContext, ControllerSet
-from occ.data import RobotData
+from occ.core.data import RobotData
 from occ.drivers.sim import SimDriver
 from occ.errors import ConfigError
-from occ.frame import Frame
-from occ.hardware import HardwareSet
+from occ.kinematics.frame import Frame
+from occ.core.hardware import HardwareSet
 from occ.joint import Joint, JointLimits
-from occ.motion import POWERED, Motion
-from occ.safety import RobotState as S
+from occ.core.motion import POWERED, Motion
+from occ.core.safety import RobotState as S
 
 PERIOD = 0.001
 VMAX = (1.0, 0.5, 2.0)  # rad/s: half of it a tick is 0.5, 0.25 and 1 mrad

@@ -1,4 +1,4 @@
-"""The operator desk (occ/operators.py) over in-process interfaces in simulated time: what each
+"""The operator desk (occ/net/operators.py) over in-process interfaces in simulated time: what each
 query and command is answered with, to whom, and what the statistics say.
 
 Written to catch faults the robot-level tests let through (mutation testing,
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 import igtl
-from occ.operators import VIEWER_HIDDEN, redact_for_viewer
-from occ.safety import RobotState
+from occ.net.operators import VIEWER_HIDDEN, redact_for_viewer
+from occ.core.safety import RobotState
 from occ_testkit.testing import SimPeer, SimRobot, wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -44,7 +44,7 @@ def answers(sim: SimRobot, msg: igtl.Message, role: str = "operator") -> list[ig
     """What the desk sends back for ``msg`` (its version, ID and timestamp as built: the
     in-process transport re-packs replies in the version its peer speaks)."""
     from igtl.transport.common import Peer
-    from occ.interfaces import Inbound
+    from occ.net.interfaces import Inbound
 
     out: list[igtl.Message] = []
     real = sim.robot.interfaces.reply
@@ -307,7 +307,7 @@ def test_a_statistic_json_cannot_encode_is_given_as_text(sim, monkeypatch):
 
 def test_getstats_as_json_keeps_the_requests_form(sim, monkeypatch):
     from igtl.transport.common import Peer
-    from occ.interfaces import Inbound
+    from occ.net.interfaces import Inbound
 
     out: list[igtl.Message] = []
     monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
@@ -338,7 +338,7 @@ def test_getstats_as_json_keeps_the_requests_form(sim, monkeypatch):
 def desk_replies(sim: SimRobot, monkeypatch, msg: igtl.Message, n: int) -> list[igtl.Message]:
     """The first ``n`` replies the desk sends for ``msg`` (some come from the worker thread)."""
     from igtl.transport.common import Peer
-    from occ.interfaces import Inbound
+    from occ.net.interfaces import Inbound
 
     out: list[igtl.Message] = []
     monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
@@ -423,7 +423,7 @@ def test_getstatetable_sends_the_rows_then_the_reply(monkeypatch):
 
 
 def test_a_deferred_command_is_answered_when_its_work_is_done(sim, monkeypatch):
-    from occ.commands import Deferred
+    from occ.net.commands import Deferred
 
     pending: list[Deferred] = []
 
@@ -439,7 +439,7 @@ def test_a_deferred_command_is_answered_when_its_work_is_done(sim, monkeypatch):
     desk = sim.robot.operators
     for mid, name in ((70, "Plan"), (71, "Plan2")):
         from igtl.transport.common import Peer
-        from occ.interfaces import Inbound
+        from occ.net.interfaces import Inbound
 
         msg = igtl.CommandMessage(
             command_id=mid, command_name=name, device_name="x", header_version=2, message_id=mid
@@ -471,7 +471,7 @@ def test_a_deferred_command_is_answered_when_its_work_is_done(sim, monkeypatch):
 
 def handle(sim: SimRobot, msg: igtl.Message, request=None) -> None:
     from igtl.transport.common import Peer
-    from occ.interfaces import Inbound
+    from occ.net.interfaces import Inbound
 
     item = Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now, request=request)
     sim.robot.operators.handle(item, sim.now)
@@ -609,7 +609,7 @@ def test_a_deferred_answer_goes_to_the_asker_only_with_its_code(sim, monkeypatch
     """Through the real interface: two operators, one asks; the answer that comes later (a
     planner thread's) reaches the asker and not the other, a refusal with its status code,
     each counted once."""
-    from occ.commands import Deferred
+    from occ.net.commands import Deferred
 
     pending: list[Deferred] = []
 
@@ -646,7 +646,7 @@ def test_a_new_client_is_greeted_with_the_state_its_code_and_the_time(sim):
 
 
 def test_a_long_robot_name_is_cut_to_20_characters_in_the_greeting():
-    from occ.loader import parse_config
+    from occ.core.loader import parse_config
 
     text = SLAVE.read_text().replace("name: slave", "name: a-slave-with-a-very-long-name", 1)
     cfg = parse_config(text, base_dir=ROOT / "configs")
@@ -671,7 +671,7 @@ def test_a_client_joining_a_stopped_robot_is_greeted_with_the_stop_code(sim):
 def test_late_answers_are_counted_each_and_recorded_as_sent(monkeypatch):
     """Every refusal and every reply that could not be sent is counted (not just the first),
     and the recording gets each late answer as sent, on its interface, at the daemon's time."""
-    from occ.commands import Deferred
+    from occ.net.commands import Deferred
 
     late: list[tuple] = []
 
@@ -758,7 +758,7 @@ def test_refusals_carry_the_wall_time_and_each_is_counted(sim, monkeypatch):
     def parse_fails(msg):
         raise RuntimeError("parser broke")
 
-    monkeypatch.setattr("occ.operators.parse_request", parse_fails)
+    monkeypatch.setattr("occ.net.operators.parse_request", parse_fails)
     out.clear()
     handle(sim, igtl.CommandMessage(command_id=4, command_name="Run", device_name="x"))
     (reply,) = out
@@ -856,9 +856,9 @@ def test_the_log_names_each_refusal_and_lost_reply_at_most_five_a_second(sim, mo
     import logging
 
     from igtl.transport.common import Peer
-    from occ.commands import Deferred
+    from occ.net.commands import Deferred
     from occ.errors import CommandError
-    from occ.interfaces import Inbound
+    from occ.net.interfaces import Inbound
 
     def refuse(item, now):
         raise CommandError("fixture 'wall' has no normal")
@@ -866,7 +866,7 @@ def test_the_log_names_each_refusal_and_lost_reply_at_most_five_a_second(sim, mo
     monkeypatch.setattr(sim.robot.controller, "on_input", refuse)
     out: list[igtl.Message] = []
     monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
-    caplog.set_level(logging.WARNING, logger="occ.robot")
+    caplog.set_level(logging.WARNING, logger="occ.core.robot")
     handle(sim, igtl.StringMessage("wall", device_name="VF"))
     for n in range(6):
         handle(sim, igtl.CommandMessage(command_id=n, command_name="NoSuchThing", device_name="x"))
@@ -899,10 +899,10 @@ def test_the_log_names_each_refusal_and_lost_reply_at_most_five_a_second(sim, mo
 
 
 def test_every_robot_command_in_the_table_is_answered_by_its_role_and_thread() -> None:
-    """ROBOT_COMMANDS (occ/commands.py) is the one list: a viewer may ask the ``viewer``
+    """ROBOT_COMMANDS (occ/net/commands.py) is the one list: a viewer may ask the ``viewer``
     commands and is refused the others by its interface; every command gets an answer (the
     worker's ones from the worker thread)."""
-    from occ.commands import ROBOT_COMMANDS
+    from occ.net.commands import ROBOT_COMMANDS
 
     with SimRobot(SLAVE) as sim:
         viewer = sim.peer("slicer")
@@ -927,7 +927,7 @@ def test_a_pose_on_the_command_queue_reaches_the_controller_as_a_sample(sim, mon
     controller as the typed sample a stream would give: its sender, its device, its pose and
     its arrival time, with the loop's time; never as a discrete input."""
     from igtl.transport.common import Peer
-    from occ.interfaces import Inbound
+    from occ.net.interfaces import Inbound
 
     got: list = []
     monkeypatch.setattr(sim.robot.controller, "on_sample", lambda s, now: got.append((s, now)))
@@ -980,7 +980,7 @@ def test_the_statistics_name_the_build_the_recording_and_the_hardware(sim):
 
 
 def test_recording_commands_reach_the_recording_control_by_name(sim):
-    """StartRecording through the desk is the recording control's (occ/reccontrol.py): a
+    """StartRecording through the desk is the recording control's (occ/recording/control.py): a
     file name it refuses is refused to the asker with its reason, whatever the spelling."""
     op = sim.peer("operator")
     sim.step()
@@ -997,14 +997,14 @@ def test_recording_commands_reach_the_recording_control_by_name(sim):
 
 
 def test_the_thread_column_dispatches_a_row(sim, monkeypatch):
-    """The command table (occ/commands.py ROBOT_COMMANDS) is what dispatches: a row's
+    """The command table (occ/net/commands.py ROBOT_COMMANDS) is what dispatches: a row's
     handler runs on the loop thread; a ``loop`` row's text is the reply in that tick, a
     ``worker`` row's job runs on the worker thread, which sends the reply."""
     import threading
 
-    import occ.operators as operators
-    from occ.commands import success_reply
-    from occ.commands import LOOP, WORKER, CommandSpec
+    import occ.net.operators as operators
+    from occ.net.commands import success_reply
+    from occ.net.commands import LOOP, WORKER, CommandSpec
     from occ_testkit.testing import wait_until
 
     ran: list[tuple[str, str]] = []

@@ -8,8 +8,8 @@ from typing import Any
 
 import pytest
 
-import occ.outputs as outputs_mod
-from occ.outputs import Output, OutputScheduler
+import occ.net.outputs as outputs_mod
+from occ.net.outputs import Output, OutputScheduler
 
 
 class _Iface:

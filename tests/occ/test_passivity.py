@@ -1,4 +1,4 @@
-"""The two-port time-domain passivity scheme (occ/passivity.py), number by number.
+"""The two-port time-domain passivity scheme (occ/haptics/passivity.py), number by number.
 
 Each port's account splits its flow into energy in (sent to the peer, never decreasing) and out;
 the master's controller cuts the displayed force along the handle's motion so its energy out
@@ -12,7 +12,7 @@ import math
 
 import pytest
 
-from occ.passivity import EnergyAccount, MasterPort, OnePort, SlavePort
+from occ.haptics.passivity import EnergyAccount, MasterPort, OnePort, SlavePort
 
 pytestmark = pytest.mark.req("SR-FORCE-1")
 

@@ -9,8 +9,8 @@ import pytest
 from occ.clock import SimClock
 from occ.controllers import ControllerContext
 from occ.controllers.teleop import SlaveController
-from occ.frame import Frame
-from occ.loop import ControlLoop
+from occ.kinematics.frame import Frame
+from occ.core.loop import ControlLoop
 
 # controllers that never use their frame still get a real one (a compiled ControllerContext checks
 # the type of each field)
@@ -106,7 +106,7 @@ def test_the_phase_is_the_masters_sample_time_else_the_reception_time(stamped: b
     sampled (its wall-clock stamp moved onto the loop's clock), not when the datagram was
     read; without one (0), the reception time. Either way 0.35 ms after the deadlines here."""
     import igtl
-    from occ.decoders import pose_sample
+    from occ.net.decoders import pose_sample
 
     shifts: list[float] = []
     ctrl = _locked_slave(shifts)
@@ -134,7 +134,7 @@ def test_the_phase_is_the_masters_sample_time_else_the_reception_time(stamped: b
 
 def test_a_small_positive_timestamp_is_a_timestamp() -> None:
     import igtl
-    from occ.decoders import pose_sample
+    from occ.net.decoders import pose_sample
 
     shifts: list[float] = []
     ctrl = _locked_slave(shifts)
@@ -168,7 +168,7 @@ def test_the_phase_lock_at_other_rates_and_fractional_locks(period, lock_us, shi
     """The lock is in microseconds whatever the loop's period: the shift is the wrapped
     distance from the arrivals' phase to ``period - phase_lock_us``."""
     import igtl
-    from occ.decoders import pose_sample
+    from occ.net.decoders import pose_sample
 
     shifts: list[float] = []
     ctrl = SlaveController({"phase_lock_us": lock_us})

@@ -24,7 +24,7 @@ import pytest
 import yaml
 
 import igtl
-from occ.record import STATE_DEVICE, read_recording
+from occ.recording.record import STATE_DEVICE, read_recording
 from occ_testkit.testing import SimPeer, SimRobot, wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -400,7 +400,7 @@ def test_shutdown_while_a_start_is_being_opened(rig) -> None:  # type: ignore[no
 
 def test_getstats_counts_starts_stops_and_failures(rig, caplog) -> None:  # type: ignore[no-untyped-def]
     sim, op, _, recs = rig
-    caplog.set_level(logging.INFO, logger="occ.robot")
+    caplog.set_level(logging.INFO, logger="occ.core.robot")
     assert stats(sim, op) == {
         "active": False,
         "file": None,
@@ -433,7 +433,7 @@ def test_getstats_counts_starts_stops_and_failures(rig, caplog) -> None:  # type
         )
     done = stats(sim, op)
     # the operator's log says what became of each: the stop with its summary, each refusal
-    logged = [(r.levelno, r.getMessage()) for r in caplog.records if r.name == "occ.robot"]
+    logged = [(r.levelno, r.getMessage()) for r in caplog.records if r.name == "occ.core.robot"]
     one = recs / "one.igtl"
     started = [m for lvl, m in logged if lvl == logging.INFO and m.startswith("recording started")]
     assert started == [f"recording started at run time: {one}"]

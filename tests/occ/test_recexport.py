@@ -21,8 +21,8 @@ import pytest
 import yaml
 
 import igtl
-from occ.record import STATE_DEVICE, Recorder, read_recording
-from occ.recordcli import main
+from occ.recording.record import STATE_DEVICE, Recorder, read_recording
+from occ.recording.cli import main
 from occ_testkit.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -291,7 +291,7 @@ def test_seq_device_filter_and_errors(recording: Path, tmp_path: Path, capsys) -
 
 
 def test_transform_names_fit_plus_and_slicer() -> None:
-    from occ.recexport import transform_names
+    from occ.recording.export import transform_names
 
     devices = ["Tip", "ToolTip", "StylusToTracker", "Transform1", "Status", "3d", "a_b", "AToBToC"]
     names = transform_names([("out", d) for d in devices] + [("in", "Tip"), ("in", "Master")])
@@ -430,7 +430,7 @@ def test_mcap_without_rosbags_says_so(recording: Path, tmp_path: Path, monkeypat
 def test_occ_record_command_line(recording: Path, tmp_path: Path) -> None:
     out = tmp_path / "cli.seq.mha"
     res = subprocess.run(
-        [sys.executable, "-m", "occ.recordcli", "export", str(recording), str(out)],
+        [sys.executable, "-m", "occ.recording.cli", "export", str(recording), str(out)],
         capture_output=True,
         text=True,
         timeout=120,
@@ -444,7 +444,7 @@ def test_outputs_count_once_received_samples_all(tmp_path: Path) -> None:
     """An output sent on two interfaces in one tick is one sample; two datagrams drained in
     one tick are two (they share the tick's time)."""
     import igtl
-    from occ.recexport import read_content
+    from occ.recording.export import read_content
 
     path = tmp_path / "r.igtl"
     rec = Recorder(path).start()
@@ -587,7 +587,7 @@ def handmade_messages(path: Path, mtype: str, device: str, direction: str) -> li
 
 
 def test_read_content_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
-    from occ.recexport import read_content
+    from occ.recording.export import read_content
 
     # the wall clock's offset from the first state row when it comes first (the pose after it
     # has another offset)
@@ -675,7 +675,7 @@ def test_read_content_of_a_handmade_recording(handmade: Path, tmp_path: Path) ->
 
 
 def test_seq_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
-    from occ.recexport import read_content, write_seq
+    from occ.recording.export import read_content, write_seq
 
     out = tmp_path / "deeper" / "still" / "rig.seq.mha"  # directories not there yet
     summary = write_seq(read_content(handmade), out, source="rig.igtl")
@@ -734,7 +734,7 @@ def test_seq_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
 
 
 def test_seq_refuses_what_slicer_would_misread(tmp_path: Path) -> None:
-    from occ.recexport import ExportError, PoseStream, RecordingContent, write_seq
+    from occ.recording.export import ExportError, PoseStream, RecordingContent, write_seq
 
     c = RecordingContent(robot="Zürich")  # written as ASCII, the rest replaced
     c.streams[("out", "Tip")] = PoseStream("Tip", "out", [0.0], [0.0], [np.eye(4)])
@@ -780,7 +780,7 @@ def stamp_ns(header: Any) -> int:
 
 def test_mcap_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
     require("rosbags", "pip install -e .[record]")
-    from occ.recexport import export, read_content
+    from occ.recording.export import export, read_content
 
     out = tmp_path / "rig"  # a rosbag2 directory
     counts = export(handmade, out, "mcap")
@@ -796,7 +796,7 @@ def test_mcap_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
         "/occ/rig_7/measured_js", "/occ/rig_7/setpoint_js", "/occ/rig_7/state",
     }  # fmt: skip
     meta = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
-    assert meta["custom_data"] == {"occ.robot": "Rig 7"}
+    assert meta["custom_data"] == {"occ.core.robot": "Rig 7"}
     c = read_content(handmade)
     offset = c.wall_offset
     assert offset is not None
@@ -875,7 +875,7 @@ def test_mcap_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
 
 def test_mcap_single_file_name_and_devices(handmade: Path, tmp_path: Path) -> None:
     require("rosbags", "pip install -e .[record]")
-    from occ.recexport import export
+    from occ.recording.export import export
 
     out = tmp_path / "one.mcap"
     counts = export(handmade, out, "mcap", name="Other Arm", devices={"Tip"})
@@ -913,7 +913,7 @@ def test_an_upper_case_mcap_name_is_one_mcap_file_as_the_format_guess_says(
 
 def test_mcap_state_rows_without_setpoints_or_joints(tmp_path: Path) -> None:
     require("rosbags", "pip install -e .[record]")
-    from occ.recexport import RecordingContent, write_mcap
+    from occ.recording.export import RecordingContent, write_mcap
 
     c = RecordingContent(columns=["t", "state", "q.a", "q.b", "sp.a", "eff.a", "eff.b"])
     c.state_t, c.state_wall = [0.0, 2.0], [11.0, 12.0]
@@ -943,7 +943,7 @@ def test_mcap_state_rows_without_setpoints_or_joints(tmp_path: Path) -> None:
 
 def test_mcap_refusals(handmade: Path, tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
     require("rosbags", "pip install -e .[record]")
-    from occ.recexport import ExportError, RecordingContent, export, read_content, write_mcap
+    from occ.recording.export import ExportError, RecordingContent, export, read_content, write_mcap
 
     c = read_content(handmade)
     with monkeypatch.context() as m:  # rosbags without its writer: the same advice
@@ -982,7 +982,7 @@ def test_mcap_refusals(handmade: Path, tmp_path: Path, monkeypatch) -> None:  # 
 
 
 def test_names_for_slicer_plus_and_ros() -> None:
-    from occ.recexport import _ros_name, guess_format, transform_names
+    from occ.recording.export import _ros_name, guess_format, transform_names
 
     devices = ["a_b", "a-b", "a.b", "3d", "Transform1", "Status", "AToBToC", "stylusToTracker"]
     devices += ["StylusToTracker", "", "ToTool", "toTarget", "TipTo"]
@@ -1036,7 +1036,7 @@ def test_names_for_slicer_plus_and_ros() -> None:
 def test_quaternions_of_every_kind_of_rotation() -> None:
     """quaternion_xyzw against the rotation it came from: the four branches of Shepperd's
     method (a turn of 180 degrees about each axis, and near them), w >= 0, a float32 matrix."""
-    from occ.recexport import quaternion_xyzw
+    from occ.recording.export import quaternion_xyzw
 
     rng = np.random.default_rng(7)
     cases = [np.eye(4), rot("x", 180), rot("y", 180), rot("z", 180), rot("x", 179) @ rot("y", 2)]

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from occ.record import Recorder
-from occ.recordcli import main as record_main
-from occ.recplot import PlotError, plot_recording, summarize_recording
+from occ.recording.record import Recorder
+from occ.recording.cli import main as record_main
+from occ.recording.plot import PlotError, plot_recording, summarize_recording
 from occ_testkit.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,4 +1,4 @@
-"""The return channel slave -> master (occ/returnlink.py) in simulated time: what the slave
+"""The return channel slave -> master (occ/haptics/returnlink.py) in simulated time: what the slave
 sends, how the master judges it (late: stale and the force fades; lost or dead: zero at once
 and an alert; back: re-armed), and the real pair (configs/slave.yaml + configs/master.yaml on
 one SimClock) keeping the tool on the slave's tip through the clutch; the collaborative trio
@@ -14,7 +14,7 @@ import pytest
 
 import igtl
 from occ.clock import SimClock
-from occ.safety import RobotState
+from occ.core.safety import RobotState
 from occ_testkit.rigs import SimMaster
 from occ_testkit.testing import SimRobot
 

@@ -1,4 +1,4 @@
-"""The master's view of the slave's tip stream (occ/returnlink.py), the link alone: every
+"""The master's view of the slave's tip stream (occ/haptics/returnlink.py), the link alone: every
 sample judged (a late or repeated one never moves the tool), the status a user sees (none,
 fresh, stale, lost) and what it means for the fixture force, the metadata parsed (a malformed
 map or force is refused and counted, never used), the counters and the snapshot in GetStats.
@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from occ.returnlink import ReturnLink
+from occ.haptics.returnlink import ReturnLink
 from occ.samples import PoseSample
 
 P = 0.002  # the shipped tip stream: 500 Hz
@@ -157,7 +157,7 @@ def test_a_malformed_map_is_refused_counted_and_the_last_good_one_kept(bad: str)
 
 
 def test_a_map_is_parsed_once_while_its_text_is_the_same(monkeypatch: pytest.MonkeyPatch) -> None:
-    import occ.returnlink as rl
+    import occ.haptics.returnlink as rl
 
     calls: list[str] = []
     real = rl.parse_linear

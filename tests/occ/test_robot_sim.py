@@ -15,9 +15,9 @@ import yaml
 
 import igtl
 from occ.clock import SimClock
-from occ.loader import load_config
-from occ.robot import build_robot
-from occ.safety import RobotState
+from occ.core.loader import load_config
+from occ.core.robot import build_robot
+from occ.core.safety import RobotState
 from occ_testkit.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -19,9 +19,9 @@ from igtl.transport import TCPClient, TCPServer
 from igtl.transport.common import HostLogLimits
 from occ.clock import SimClock
 from occ.errors import ConfigError
-from occ.loader import parse_config
-from occ.robot import Robot, build_robot
-from occ.safety import RobotState
+from occ.core.loader import parse_config
+from occ.core.robot import Robot, build_robot
+from occ.core.safety import RobotState
 from occ_testkit.testing import wait_until as wait_for
 
 ROOT = Path(__file__).resolve().parents[2]

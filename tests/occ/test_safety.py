@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from occ._native import class_doc
 from occ.clock import SimClock
 from occ.errors import StateError
-from occ.safety import (
+from occ.core.safety import (
     EVENTS,
     TRANSITIONS,
     LossEvent,
@@ -851,8 +851,8 @@ def test_supervisor_thread_sleeps_until_a_trip_could_be_due() -> None:
     """The supervisor thread wakes when a hung loop's silence would first exceed the timeout,
     at most timeout/2: two wake-ups per timeout for a healthy loop, never a sleep
     so long that its own check would take it for a paused process."""
-    from occ.safety import Supervisor
-    from occ.supervision import SupervisorThread
+    from occ.core.safety import Supervisor
+    from occ.core.supervision import SupervisorThread
 
     sup = Supervisor(timeout_s=0.020)
     th = SupervisorThread(sup, SimClock())  # never started: sleep_after is pure
@@ -1311,7 +1311,7 @@ def test_supervisor_state_reason_and_disarm() -> None:
 def test_the_table_builder_makes_the_specified_table() -> None:
     # TRANSITIONS is built once at import; the builder itself is checked against the spec too
     # (a mutation tool that changes the builder after import is seen only here)
-    from occ.safety import _build_table
+    from occ.core.safety import _build_table
 
     assert _build_table() == {k: v for k, v in EXPECTED.items() if v is not None}
 

@@ -28,10 +28,10 @@ import pytest
 import igtl
 from igtl.auth import HMAC_KEY, sign, verify
 from occ.clock import SimClock
-from occ.commands import ROBOT_COMMANDS
-from occ.loader import parse_config
-from occ.robot import Robot, build_robot
-from occ.safety import RobotState
+from occ.net.commands import ROBOT_COMMANDS
+from occ.core.loader import parse_config
+from occ.core.robot import Robot, build_robot
+from occ.core.safety import RobotState
 from occ_testkit.testing import wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -271,7 +271,7 @@ def test_a_viewer_may_read_and_is_refused_every_command_that_acts(
 ) -> None:
     peer = Peer(robot, iface, host)
     counters = robot.interfaces[iface].counters
-    caplog.set_level(logging.WARNING, logger="occ.interfaces")
+    caplog.set_level(logging.WARNING, logger="occ.net.interfaces")
     try:
         refused = 0
         for name in ACTING + ["enable", " Run ", "ESTOP", "getstate now"]:

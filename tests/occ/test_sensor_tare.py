@@ -1,5 +1,5 @@
 """The instrument's force sensor as the German Heart Center used it (issue 37, item 5): its tare
-and the weight of what hangs beyond it (occ/forces.py).
+and the weight of what hangs beyond it (occ/haptics/forces.py).
 
 - The tare: the mean of the last ``tare_window_ms`` of readings (the weight removed), older
   readings not counted, subtracted from every later one, force and torque; the drives' bias with
@@ -15,7 +15,7 @@ and the weight of what hangs beyond it (occ/forces.py).
 
 The simulated sensor here is the test's own: what a sensor on the slave's instrument reads at
 the robot's pose (an offset, the weight, the tissue's force), written out independently of
-occ/forces.py.
+occ/haptics/forces.py.
 """
 
 from __future__ import annotations
@@ -29,11 +29,11 @@ import yaml
 
 import igtl
 from igtl.messages.sensor import NEWTON
-from occ.decoders import event_of
+from occ.net.decoders import event_of
 from occ.errors import ConfigError
-from occ.forces import SlaveForce, TareRefused, gravity_wrench
-from occ.frame import Frame
-from occ.loader import parse_config
+from occ.haptics.forces import SlaveForce, TareRefused, gravity_wrench
+from occ.kinematics.frame import Frame
+from occ.core.loader import parse_config
 from occ_testkit.testing import CONFIGS, SimRobot
 
 SLAVE = Frame.builtin("occ_slave")

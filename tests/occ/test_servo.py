@@ -17,7 +17,7 @@ import pinocchio as pin
 import pytest
 
 import igtl
-from occ.safety import RobotState
+from occ.core.safety import RobotState
 from occ_testkit.rigs import SlaveRig
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -268,7 +268,7 @@ def test_run_takes_the_last_target_checked_afresh(rig: SlaveRig) -> None:
 @pytest.mark.req("SR-SERVO-2")
 def test_while_rejoining_after_a_hold_the_servo_keeps_its_own_path(rig: SlaveRig) -> None:
     """After a hold the setpoint re-joins the servo's solution at half the velocity limits
-    (occ/motion.py) while the servo goes on at 0.9 of them from its own last solution: a new
+    (occ/core/motion.py) while the servo goes on at 0.9 of them from its own last solution: a new
     target is judged, and stepped to, from there (where the tip is told to go), not from the
     setpoint trailing it; and the setpoint still never moves faster than half the limits."""
     rig.running()

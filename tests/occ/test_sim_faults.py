@@ -159,7 +159,7 @@ def test_a_command_acts_from_its_time_on() -> None:
 
 
 class ConstantLoad:
-    """The world pressing on every joint with the same effort (occ/contact.py's interface)."""
+    """The world pressing on every joint with the same effort (occ/haptics/contact.py's interface)."""
 
     def __init__(self, effort: float) -> None:
         self.effort = effort

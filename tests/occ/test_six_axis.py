@@ -25,12 +25,12 @@ import yaml
 
 import igtl
 from igtl.messages.sensor import NEWTON, Unit
-from occ.decoders import event_of
-from occ.forces import SlaveForce, sensor_wrench
-from occ.frame import Frame
-from occ.record import Recorder
-from occ.recordcli import main
-from occ.returnlink import ReturnLink
+from occ.net.decoders import event_of
+from occ.haptics.forces import SlaveForce, sensor_wrench
+from occ.kinematics.frame import Frame
+from occ.recording.record import Recorder
+from occ.recording.cli import main
+from occ.haptics.returnlink import ReturnLink
 from occ.samples import PoseSample
 from occ_testkit.rigs import SimMaster
 from occ_testkit.testing import CONFIGS, SimRobot, SlaveTipFeed

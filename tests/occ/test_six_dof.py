@@ -26,8 +26,8 @@ import pytest
 import yaml
 
 from occ.errors import ConfigError, KinematicsError
-from occ.loader import load_config, parse_config
-from occ.safety import RobotState
+from occ.core.loader import load_config, parse_config
+from occ.core.safety import RobotState
 from occ.samples import quaternion_to_rotation
 from occ_testkit.testing import CONFIGS, SimPair
 
@@ -68,7 +68,7 @@ TURNED = (pin.rpy.rpyToMatrix(0.3, 0.0, 0.0) @ pin.rpy.rpyToMatrix(0.0, 0.0, mat
 
 def _ur5_home() -> np.ndarray:
     """The shipped UR5's tool pose at its home joints (world <- tip, metres)."""
-    from occ.assembly import build_hardware
+    from occ.core.assembly import build_hardware
 
     joints, frame, _ = build_hardware(load_config(CONFIGS / "ur5.yaml").robot)
     return np.asarray(frame.fk([j.home for j in joints]))
@@ -300,7 +300,7 @@ def test_an_unreachable_orientation_is_refused_before_acknowledgement(tmp_path: 
         j["limits"].update(min=j["home"] - 0.3, max=j["home"] + 0.3)
     home_q = [j["home"] for j in cfg["robot"]["joints"]]
     frame_cfg = load_config(CONFIGS / "ur5.yaml")
-    from occ.assembly import build_hardware
+    from occ.core.assembly import build_hardware
     from occ.samples import rotation_to_quaternion
 
     _, frame, _ = build_hardware(frame_cfg.robot)

@@ -1,4 +1,4 @@
-"""The slave's tip force (occ/forces.py) on its own: what is sent to the master, source by
+"""The slave's tip force (occ/haptics/forces.py) on its own: what is sent to the master, source by
 source, without a robot around it (test_contact.py has the same sources on the simulated
 slave; this file is the module's unit tests, the `tipforce` selection of scripts/mutate).
 
@@ -27,11 +27,11 @@ import pytest
 import igtl
 from igtl.messages.sensor import Unit
 from occ.config import ContactConfig
-from occ.contact import Contact, Environment
+from occ.haptics.contact import Contact, Environment
 from occ.controllers.teleop_params import SlaveForceParams
-from occ.decoders import event_of
-from occ.forces import SlaveForce, sensor_force
-from occ.frame import Frame
+from occ.net.decoders import event_of
+from occ.haptics.forces import SlaveForce, sensor_force
+from occ.kinematics.frame import Frame
 
 pytestmark = pytest.mark.req("SR-FORCE-3")
 
@@ -55,7 +55,7 @@ def base_pose() -> np.ndarray:
 
 def held(force_patient: Any, base: np.ndarray, q: list[float] = Q) -> np.ndarray:
     """The efforts of drives holding the tip against ``force_patient`` (N): ``-J^T F`` with
-    ``F`` in the base frame (what occ/contact.py loads the ``sim`` drives with, opposed)."""
+    ``F`` in the base frame (what occ/haptics/contact.py loads the ``sim`` drives with, opposed)."""
     jac = SLAVE.jacobian(q)[:3]
     f_base = base[:3, :3].T @ np.asarray(force_patient, dtype=float)
     return -(jac.T @ f_base)

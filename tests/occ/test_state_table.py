@@ -2,7 +2,7 @@
 
 The ring is tested alone (wrap-around, windows, no allocation per row, a reader racing the
 writer); then on the collaborative slave in simulated time: the table's rows against what the
-recorder (occ/record.py) wrote for the same ticks, and the NDARRAY an operator gets.
+recorder (occ/recording/record.py) wrote for the same ticks, and the NDARRAY an operator gets.
 """
 
 from __future__ import annotations
@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 
 import igtl
-from occ.frame import Frame
+from occ.kinematics.frame import Frame
 from occ.joint import Joint, JointLimits
-from occ.loader import parse_config
-from occ.record import STATE_DEVICE, Recorder, read_recording
-from occ.safety import RobotState
-from occ.statetable import MAX_ROWS, StateTable, capacity_for
+from occ.core.loader import parse_config
+from occ.recording.record import STATE_DEVICE, Recorder, read_recording
+from occ.core.safety import RobotState
+from occ.core.statetable import MAX_ROWS, StateTable, capacity_for
 from occ_testkit.testing import SimRobot
 
 from .test_collab import SLAVE, Collab, error_of, handover, ok, wait_for
@@ -234,7 +234,7 @@ def test_no_table_no_cost_and_a_clear_refusal() -> None:
 
 
 # ---------------------------------------------------------------------------- the ring's edges
-# (issue 29: the mutation run of occ/statetable.py, docs/VERIFICATION.md)
+# (issue 29: the mutation run of occ/core/statetable.py, docs/VERIFICATION.md)
 
 
 def test_a_table_of_one_row_keeps_the_newest_and_none_is_refused() -> None:
@@ -307,7 +307,7 @@ def test_a_long_read_hands_the_interpreter_lock_back_every_16_rows(
     """The reader computes forward kinematics row by row on a worker thread: every 16 rows it
     lets the loop thread run (``time.sleep(0)``), so a 10 s table never holds the loop off
     for the whole read."""
-    import occ.statetable as statetable
+    import occ.core.statetable as statetable
 
     joints = _joints()
     table = _table(100)

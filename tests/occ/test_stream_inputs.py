@@ -1,4 +1,4 @@
-"""The robot's stream inputs (occ/streams.py) and the typed sample (occ/samples.py), on the
+"""The robot's stream inputs (occ/net/streams.py) and the typed sample (occ/samples.py), on the
 shipped slaves (configs/slave.yaml; configs/collab/slave.yaml for two masters) in simulated
 time: every sample judged by its loss monitor in arrival order, only the accepted samples of
 the stream in control followed (a late, repeated or stale one never moves the robot), samples
@@ -19,15 +19,15 @@ import numpy as np
 import pytest
 
 import igtl
-from occ.decoders import pose_sample
+from occ.net.decoders import pose_sample
 from occ.errors import CommandError
 from occ.events import SphereList
-from occ.interfaces import Inbound
-from occ.loader import load_config, parse_config
-from occ.robot import Robot
-from occ.safety import RobotState
+from occ.net.interfaces import Inbound
+from occ.core.loader import load_config, parse_config
+from occ.core.robot import Robot
+from occ.core.safety import RobotState
 from occ.samples import PoseSample, quaternion_to_rotation, rotation_to_quaternion
-from occ.streams import POLL_LIMIT, StreamInputs, judge
+from occ.net.streams import POLL_LIMIT, StreamInputs, judge
 from occ_testkit.testing import SimRobot, loopback_robot
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -351,7 +351,7 @@ def test_a_pose_the_controller_refuses_is_answered_to_its_sender(slave: Slave) -
     assert isinstance(item, Inbound) and item.event is sample
     assert item.interface == "master" and item.peer is sample.peer and item.msg is not None
     assert item.t_rx == 0.009 and str(err) == "no such fixture"
-    # any other error is the tick's (a FAULT naming the controller, occ/robot.py)
+    # any other error is the tick's (a FAULT naming the controller, occ/core/robot.py)
     slave.seen.sample_error = RuntimeError("bug")
     master.send(slave.position(2))
     with pytest.raises(RuntimeError, match="bug"):
@@ -498,7 +498,7 @@ def test_a_discrete_input_before_bind_has_nowhere_to_go() -> None:
 
 
 def test_judge_takes_the_earlier_of_the_arrival_and_the_previous_tick() -> None:
-    from occ.safety import LossMonitor, Verdict
+    from occ.core.safety import LossMonitor, Verdict
 
     mon = LossMonitor(0.002, 2, timestamp_tolerance_s=0.05)
     s1 = PoseSample("m", None, "Master", (0.0, 0.0, 0.0), seq=1, t_sample=1000.0, t_rx=0.0)
@@ -596,7 +596,7 @@ def test_a_polled_master_not_in_control_is_judged_and_moves_nothing() -> None:
 def test_every_polled_datagram_that_fails_to_route_is_counted(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    import occ.interfaces as interfaces_mod
+    import occ.net.interfaces as interfaces_mod
 
     robot = _polled_slave()
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

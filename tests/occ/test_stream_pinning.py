@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 import igtl
-from occ.robot import Robot
+from occ.core.robot import Robot
 from occ_testkit.testing import loopback_robot
 
 ROOT = Path(__file__).resolve().parents[2]

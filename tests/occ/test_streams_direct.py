@@ -14,8 +14,8 @@ import pytest
 
 import igtl
 from occ.clock import SimClock
-from occ.robot import Robot
-from occ.safety import RobotState
+from occ.core.robot import Robot
+from occ.core.safety import RobotState
 from occ_testkit.testing import loopback_robot
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -118,7 +118,7 @@ def test_a_routing_error_is_counted_and_the_tick_goes_on(
     slave: Any, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     robot, tx = slave
-    import occ.interfaces as interfaces_mod
+    import occ.net.interfaces as interfaces_mod
 
     def broken(*args: Any) -> None:
         raise RuntimeError("routing bug")

@@ -1,4 +1,4 @@
-"""occ.supervision: the supervisor's thread and the worker, each alone with real threads
+"""occ.core.supervision: the supervisor's thread and the worker, each alone with real threads
 (issue 29: mutation testing of the code beside the loop). Nothing here waits on a wall-clock
 limit: each step waits for an event or a count (``wait_until``, bounded), never for a time."""
 
@@ -13,8 +13,8 @@ import pytest
 
 from occ.clock import RealClock, SimClock
 from occ.config import SupervisorConfig
-from occ.safety import Supervisor
-from occ.supervision import SupervisorThread, Worker
+from occ.core.safety import Supervisor
+from occ.core.supervision import SupervisorThread, Worker
 from occ_testkit.testing import wait_until
 
 
@@ -52,7 +52,7 @@ def test_the_supervisor_thread_catches_a_silent_loop_and_outlives_a_failing_acti
     th = SupervisorThread(sup, clock, name="test-supervisor")
     assert (th.min_sleep_s, th.max_sleep_s) == (0.020 / 8.0, 0.020 / 2.0)
     assert th.report == "" and th.wakeups == 0
-    caplog.set_level(logging.ERROR, logger="occ.supervision")
+    caplog.set_level(logging.ERROR, logger="occ.core.supervision")
     th.start()
     try:
         assert th._thread.name == "test-supervisor" and th._thread.daemon
@@ -134,7 +134,7 @@ def test_the_worker_runs_jobs_in_order_counts_and_survives_a_failing_one(
     def fail() -> None:
         raise ValueError("boom")
 
-    caplog.set_level(logging.ERROR, logger="occ.supervision")
+    caplog.set_level(logging.ERROR, logger="occ.core.supervision")
     try:
         assert w.submit(lambda: ran.append(1))
         assert w.submit(fail)

@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 
 from occ.clock import RealClock
-from occ.loader import load_config
-from occ.robot import build_robot
-from occ.safety import RobotState
+from occ.core.loader import load_config
+from occ.core.robot import build_robot
+from occ.core.safety import RobotState
 from occ_testkit.testing import wait_until as wait_for
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -19,8 +19,8 @@ import pytest
 import yaml
 
 import igtl
-from occ.frame import Frame
-from occ.safety import RobotState
+from occ.kinematics.frame import Frame
+from occ.core.safety import RobotState
 from occ_testkit.rigs import SimMaster, SlaveRig
 from occ_testkit.testing import SlaveTipFeed
 
@@ -245,7 +245,7 @@ def test_fixture_commands_and_unknown_ones(master: SimMaster) -> None:
 
 
 def test_select_names_the_slave_in_either_case() -> None:
-    from occ.loader import load_config
+    from occ.core.loader import load_config
 
     cfg = load_config(ROOT / "configs" / "master.yaml")
     link = cfg.interface("slave")
@@ -334,7 +334,7 @@ def test_stop_and_run_between_two_stamped_samples_keeps_following(rig: SlaveRig)
 
 def test_the_base_pose_from_a_tracker_does_not_stop_the_following() -> None:
     from occ.config import InputConfig
-    from occ.loader import load_config
+    from occ.core.loader import load_config
 
     cfg = load_config(ROOT / "configs" / "slave.yaml")
     slicer = cfg.interface("slicer").model_copy(
@@ -411,7 +411,7 @@ def test_on_sample_takes_position_and_transform_and_counts_source_changes() -> N
     from occ.clock import SimClock
     from occ.controllers import ControllerContext
     from occ.controllers.teleop import SlaveController
-    from occ.decoders import pose_sample
+    from occ.net.decoders import pose_sample
 
     ctrl = SlaveController({"phase_lock_us": None})
     ctrl.ctx = ControllerContext(
@@ -469,7 +469,7 @@ def test_only_the_configured_interface_and_device_are_followed() -> None:
     from occ.clock import SimClock
     from occ.controllers import ControllerContext
     from occ.controllers.teleop import SlaveController
-    from occ.decoders import pose_sample
+    from occ.net.decoders import pose_sample
 
     ctrl = SlaveController(
         {"input_interface": "master", "input_device": "Master", "phase_lock_us": None}

@@ -9,8 +9,8 @@ import yaml
 
 import igtl
 from occ.errors import ConfigError
-from occ.loader import parse_config
-from occ.safety import RobotState
+from occ.core.loader import parse_config
+from occ.core.safety import RobotState
 from occ_testkit.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]

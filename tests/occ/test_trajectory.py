@@ -1,4 +1,4 @@
-"""occ.trajectory: keyframes met at their times, rest where promised, continuous velocity, and the
+"""occ.kinematics.trajectory: keyframes met at their times, rest where promised, continuous velocity, and the
 German Heart Center sigmoid (normalised) with its half-speed point and area rule."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from occ.trajectory import Keyframe, Trajectory, plan, ramp_integral, ramp_speed
+from occ.kinematics.trajectory import Keyframe, Trajectory, plan, ramp_integral, ramp_speed
 
 COMBOS = list(itertools.product(("linear", "spline"), ("stop", "continuous")))
 

@@ -1,9 +1,9 @@
-"""occ.trajectory: the promises mutation testing found unchecked (issue 29).
+"""occ.kinematics.trajectory: the promises mutation testing found unchecked (issue 29).
 
-Each test states a behaviour the planner documents (module docstring of occ/trajectory.py) and
+Each test states a behaviour the planner documents (module docstring of occ/kinematics/trajectory.py) and
 checks it against an independent computation: the natural cubic spline solved here as a dense
 linear system, Shoemake's squad written here with quaternions as (w, v) pairs, the turn of a
-quaternion measured as an angle. docs/VERIFICATION.md ("occ/trajectory.py") lists what each
+quaternion measured as an angle. docs/VERIFICATION.md ("occ/kinematics/trajectory.py") lists what each
 one kills.
 """
 
@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from occ.trajectory import Keyframe, _slerp, plan, ramp_integral
+from occ.kinematics.trajectory import Keyframe, _slerp, plan, ramp_integral
 
 # --------------------------------------------------------------------------- helpers
 

@@ -1,4 +1,4 @@
-"""The trajectory library's database (occ/trajlib.py, issue 28): schema, round trip, the robot's
+"""The trajectory library's database (occ/kinematics/trajlib.py, issue 28): schema, round trip, the robot's
 identity, names, concurrency, and a writer killed mid-transaction.
 
 The library through the daemon (KeyframeSave/Load/Delete/Library) is tested in
@@ -23,8 +23,8 @@ from typing import Any
 import pytest
 
 from occ.errors import LibraryError
-from occ.frame import Frame, robots_dir
-from occ.trajlib import (
+from occ.kinematics.frame import Frame, robots_dir
+from occ.kinematics.trajlib import (
     APPLICATION_ID,
     SCHEMA_VERSION,
     Library,
@@ -246,7 +246,7 @@ def test_a_reader_sees_the_last_commit_while_a_writer_holds_its_transaction(
 WRITER = textwrap.dedent(
     """
     import sqlite3, sys
-    from occ.trajlib import Library, SavedSet
+    from occ.kinematics.trajlib import Library, SavedSet
     path, n = sys.argv[1], int(sys.argv[2])
     lib = Library(path)
     big = SavedSet("big", "kf", "h" * 64, "joint", "linear", "stop", 6.0, 0.25, float(n),
@@ -312,7 +312,7 @@ def test_a_writer_killed_mid_transaction_leaves_the_library_intact(tmp_path: Pat
 KILLER_LOOP = textwrap.dedent(
     """
     import sys
-    from occ.trajlib import Library, SavedSet
+    from occ.kinematics.trajlib import Library, SavedSet
     lib = Library(sys.argv[1])
     print("ready", flush=True)
     i = 0
@@ -382,7 +382,7 @@ def test_orientations_are_kept_exactly(tmp_path: Path) -> None:
 
 # -------------------------------------------------------------------------------------------
 # Which robot a saved plan belongs to: each part of the kinematics changed on its own (issue 29,
-# mutation testing of occ/trajlib.py). A small arm written here, each variant from its own file:
+# mutation testing of occ/kinematics/trajlib.py). A small arm written here, each variant from its own file:
 # a revolute joint about z, one about x on a 0.1 m link, a prismatic one along an unaligned axis
 # (pinocchio keeps the axis as numbers), a fixed tool tip 0.02 m past it, and a fixed mount.
 

@@ -97,7 +97,7 @@ class DaemonPort:
                 self.reply(msg, *got)
 
     def reply(self, cmd: igtl.Message, status: str, text: str) -> None:
-        """The daemon's answer (occ/commands.py), stamped :data:`REPLY_STAMP`."""
+        """The daemon's answer (occ/net/commands.py), stamped :data:`REPLY_STAMP`."""
         self.server.send(
             igtl.RTSCommandMessage(
                 command_id=cmd.command_id,  # type: ignore[attr-defined]

@@ -319,14 +319,14 @@ def test_a_move_becomes_the_daemons_keyframe_commands() -> None:
 def test_a_slaves_tip_force_becomes_measured_cf_in_the_world(
     dds: tuple[int, Any], namespace: str
 ) -> None:
-    """TRANSFORM ``TipForce`` (occ/forceviz.py) -> WrenchStamped from its metadata ``force_n``,
+    """TRANSFORM ``TipForce`` (occ/haptics/forceviz.py) -> WrenchStamped from its metadata ``force_n``,
     frame_id the world frame; one in header version 1 (no metadata: before the daemon reads the
     bridge's v2 greeting) is counted apart, one without a readable ``force_n`` or in another
     frame is refused and counted; neither is published."""
     import dataclasses
 
     import igtl
-    from occ.forceviz import force_matrix
+    from occ.haptics.forceviz import force_matrix
 
     domain_id, dp = dds
     wrenches: DataReader[Any] = DataReader(

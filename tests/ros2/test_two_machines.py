@@ -45,7 +45,7 @@ def test_the_shipped_configs_change_only_in_host_remote_and_allowed_peers(tmp_pa
     paths = tm.two_machine_configs(tmp_path)
     changed = tm.changed_keys(paths)
     assert changed and all(c.rsplit(".", 1)[-1] in tm.CHANGED_KEYS for c in changed), changed
-    from occ.loader import load_config
+    from occ.core.loader import load_config
 
     for path in paths.values():
         load_config(path)  # valid as they are

@@ -157,7 +157,7 @@ def _read_paper_recordings(rec: dict[str, Path]) -> dict[str, Any]:
     and the slave's state rows (t, state code, tip mm)."""
     import numpy as np
 
-    from occ.record import STATE_DEVICE, iter_recording
+    from occ.recording.record import STATE_DEVICE, iter_recording
 
     m_t, m_pos = [], []
     for msg in iter_recording(rec["master"]):
@@ -190,9 +190,9 @@ def _read_paper_recordings(rec: dict[str, Path]) -> dict[str, Any]:
 
 def _paper_forces(traces: Any, rec: dict[str, Path]) -> dict[str, float]:
     """A slave that sends its contact force (configs/wall.yaml): the force panel's traces
-    (occ/recplot.py reads both recordings: the slave's SlaveTip ``force_n``, the master's
+    (occ/recording/plot.py reads both recordings: the slave's SlaveTip ``force_n``, the master's
     ``Force`` output) and their peaks and RMS difference in the report."""
-    from occ.recplot import summarize_recording
+    from occ.recording.plot import summarize_recording
 
     s = summarize_recording(rec["slave"], master=rec["master"])
     if not len(s.cf_t):
@@ -220,7 +220,7 @@ def analyse_paper_real(
     import numpy as np
     import stability
 
-    from occ.record import STATE_CODES
+    from occ.recording.record import STATE_CODES
 
     traces = stability.Traces(time_label="time since the stream started (s)")
     psum = proxy.summary()

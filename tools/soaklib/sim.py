@@ -18,7 +18,8 @@ from .common import MAX_TOLERATED, PERIOD_MS, STOP_WITHIN_MS
 
 class SimSlave:
     """The slave Robot stepped tick by tick (1 kHz) on a SimClock, its interfaces on in-process
-    channels (:class:`occ_testkit.testing.SimRobot`): the master and an operator are peers on them."""
+    channels (:class:`occ_testkit.testing.SimRobot`): the master and an operator are peers on
+    them."""
 
     def __init__(self, config: Path, *, first_seq: int = 0) -> None:
         from occ_testkit.testing import SimRobot
@@ -119,7 +120,7 @@ def _sim_pattern(args: argparse.Namespace, sim_s: float, packets: int, pause: in
 
 def _started_slave(config: Path, first_seq: int) -> SimSlave:
     """The simulated slave, enabled and RUNNING by its operator's commands."""
-    from occ.safety import RobotState
+    from occ.core.safety import RobotState
 
     slave = SimSlave(config, first_seq=first_seq)
     for name in ("Enable", "Run"):
@@ -136,7 +137,7 @@ class _Oracle:
     when it must hold and latch a stop, the operator's Run after each stop, and the alerts."""
 
     def __init__(self, rep: Report, slave: SimSlave, pause: int) -> None:
-        from occ.safety import RobotState
+        from occ.core.safety import RobotState
 
         self.RUNNING, self.STOPPED = RobotState.RUNNING, RobotState.STOPPED
         self.rep, self.slave, self.robot, self.pause = rep, slave, slave.robot, pause

@@ -1,7 +1,8 @@
 """Keyframe trajectories on the robot (issue 11): plan, check, preview, acknowledge, run.
 
 After the German Heart Center system: an operator puts poses on a timeline (keyframes), the
-planner (:mod:`occ.trajectory`) fills in the motion, and the plan runs only once it has passed
+planner (:mod:`occ.kinematics.trajectory`) fills in the motion, and the plan runs only once it has
+passed
 its checks, been shown in 3D Slicer and been acknowledged. Plugin name ``keyframe``.
 
 Keyframes
@@ -38,7 +39,7 @@ Plan, check and preview (offline mode, the paper's safety rule)
     checking run on a planner thread (a spline plan takes milliseconds, a check 30-70 us a
     tick of motion), SCHED_FIFO one below the loop when the loop has it and paced into the
     quiet part of each period (:class:`~.pacer.Pacer`); the command is answered
-    when they finish (:class:`~occ.commands.Deferred`): the plan's number and summary, or the
+    when they finish (:class:`~occ.net.commands.Deferred`): the plan's number and summary, or the
     refusal naming the keyframe (or the segment between two) and the limit. A plan that passed
     is previewed: output source ``keyframe-path`` (POLYDATA: the tip's path as a polyline, world
     mm) and ``keyframe-points`` (POINT: the keyframes), both with v2 metadata
@@ -67,7 +68,7 @@ Stop
     and ``KeyframeAck`` run them again. The refused, stopped or finished state is in
     ``KeyframeList`` and the statistics.
 
-The trajectory library (issue 28; :mod:`occ.trajlib`, ``params.library``)
+The trajectory library (issue 28; :mod:`occ.kinematics.trajlib`, ``params.library``)
     ``KeyframeSave Set=N [Replace=1]`` keeps the stored set in an SQLite file under a name,
     with the settings of the plan that ran it, the robot's name and the hash of its kinematic
     configuration; only a set whose plan was acknowledged (and not changed since) is saved; a
@@ -77,9 +78,9 @@ The trajectory library (issue 28; :mod:`occ.trajlib`, ``params.library``)
     does, its plan settings the defaults of the next ``KeyframePlan``; it never runs on load:
     it is planned, checked, previewed and acknowledged again. A set saved by another robot, or
     with another kinematic configuration, is refused with the reason. The file work runs on
-    the planner thread, answered by a :class:`~occ.commands.Deferred` like a plan (a request
+    the planner thread, answered by a :class:`~occ.net.commands.Deferred` like a plan (a request
     while it is busy is refused "busy"). The argument is ``Set``, not ``Name``: in the XML form
-    ``Name`` is the command's own name (PlusServer's convention, :mod:`occ.commands`).
+    ``Name`` is the command's own name (PlusServer's convention, :mod:`occ.net.commands`).
 
 Forbidden regions (the collision check)
     :class:`ForbiddenCheck`: any callable taking a tip position (metres, robot base frame) and
@@ -90,7 +91,8 @@ Forbidden regions (the collision check)
     :meth:`KeyframeController.invalidate_plan` makes a checked but unacknowledged plan unusable
     (it must be planned again), as the paper requires of a plan that would now collide.
     A :class:`PathCheck` (anything with ``check_path``, e.g. the whole-arm check of
-    ``safety.collision``, occ/collision.py, added at configure) gets the plan's joint samples
+    ``safety.collision``, occ/kinematics/collision.py, added at configure) gets the plan's joint
+    samples
     after the per-tick checks and names the first that fails.
 
 Layout
@@ -101,7 +103,7 @@ Layout
     the preview outputs; :mod:`.library` the trajectory library's commands.
 """
 
-from .controller import STATUS_ENDED, STATUS_RUNNING, KeyframeController
-from .params import KeyframeParams
+from occ.controllers.keyframe.controller import STATUS_ENDED, STATUS_RUNNING, KeyframeController
+from occ.controllers.keyframe.params import KeyframeParams
 
 __all__ = ["STATUS_ENDED", "STATUS_RUNNING", "KeyframeController", "KeyframeParams"]

@@ -12,19 +12,10 @@ from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel
 
-
-from ...commands import Deferred
-from ...errors import CommandError, ConfigError, KinematicsError, LibraryError
-from ...joint import JointLimits
-from ...events import PointsOut, PolylineOut
-from ...keyframe_inputs import items_from_event
-from ...ratelimit import RateLimit
-from ...safety import RobotState
-from ...trajlib import Library, config_hash
-from .. import Controller, ControllerContext, Problem, SourceFn
-from .library import LibraryCommands
-from .params import KeyframeParams, check_params, regions_check
-from .plan import (
+from occ.controllers import Controller, ControllerContext, Problem, SourceFn
+from occ.controllers.keyframe.library import LibraryCommands
+from occ.controllers.keyframe.params import KeyframeParams, check_params, regions_check
+from occ.controllers.keyframe.plan import (
     CheckedPlan,
     ForbiddenCheck,
     PathCheck,
@@ -33,9 +24,9 @@ from .plan import (
     plan_settings,
     pose_ik,
 )
-from .planner import PlannerThread, load_file_job, plan_job
-from .preview import Preview
-from .sets import (
+from occ.controllers.keyframe.planner import PlannerThread, load_file_job, plan_job
+from occ.controllers.keyframe.preview import Preview
+from occ.controllers.keyframe.sets import (
     KeyframeFile,
     KeyframeSet,
     PlanSettings,
@@ -45,14 +36,22 @@ from .sets import (
     make_set,
     read_keyframe_file,
 )
+from occ.core.safety import RobotState
+from occ.errors import CommandError, ConfigError, KinematicsError, LibraryError
+from occ.events import PointsOut, PolylineOut
+from occ.joint import JointLimits
+from occ.kinematics.keyframe_inputs import items_from_event
+from occ.kinematics.trajlib import Library, config_hash
+from occ.net.commands import Deferred
+from occ.ratelimit import RateLimit
 
 if TYPE_CHECKING:
-    from ...commands import Request
-    from ...config import DaemonConfig
-    from ...data import RobotData
-    from ...frame import Frame
-    from ...events import InputEvent
-    from ...outputs import Output
+    from occ.config import DaemonConfig
+    from occ.core.data import RobotData
+    from occ.events import InputEvent
+    from occ.kinematics.frame import Frame
+    from occ.net.commands import Request
+    from occ.net.outputs import Output
 
 #: the controller's statistics counters ("planner_waits": how often the planner waited for the
 #: quiet part of the loop's period, the Pacer)

@@ -1,7 +1,8 @@
 """The trajectory library's commands (issue 28): ``KeyframeSave``, ``KeyframeLoad Set=``,
 ``KeyframeDelete`` and ``KeyframeLibrary`` (package docstring, "The trajectory library").
 
-The storage is :mod:`occ.trajlib`; this is what the keyframe controller does with it: what may
+The storage is :mod:`occ.kinematics.trajlib`; this is what the keyframe controller does with it:
+what may
 be saved (the acknowledged set, while it is still the stored one), what a load installs, the
 listing, the refusals. The file work runs as jobs on the planner thread; what they need of the
 controller is :class:`LibraryPort`."""
@@ -12,11 +13,11 @@ import dataclasses
 from collections.abc import Callable
 from typing import Protocol
 
-from ...commands import Deferred
-from ...errors import CommandError, LibraryError
-from ...trajlib import Library, SavedSet, check_name
-from .plan import CheckedPlan
-from .sets import KeyframeSet, PlanSettings, make_set
+from occ.controllers.keyframe.plan import CheckedPlan
+from occ.controllers.keyframe.sets import KeyframeSet, PlanSettings, make_set
+from occ.errors import CommandError, LibraryError
+from occ.kinematics.trajlib import Library, SavedSet, check_name
+from occ.net.commands import Deferred
 
 #: most sets KeyframeLibrary lists (a reply is one command message)
 MAX_LIBRARY_LINES = 200
@@ -46,7 +47,7 @@ class LibraryCommands:
     port: LibraryPort
     library: Library | None = None
     robot: str = ""  # the robot's name, saved with a set and required to load it
-    digest: str = ""  # its kinematic configuration's hash (occ.trajlib.config_hash)
+    digest: str = ""  # its kinematic configuration's hash (occ.kinematics.trajlib.config_hash)
     joint_names: tuple[str, ...] = ()
     max_keyframes: int = 100
 

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import BeforeValidator, DirectoryPath, Field
 
-from ...config import (
+from occ.config import (
     Bool,
     ExistingFile,
     Float,
@@ -19,13 +19,20 @@ from ...config import (
     PosFloat,
     Vec3,
 )
-from ...config.base import _resolve_path
-from ...fixtures import ForbiddenPlane, ForbiddenSphere, forbidden_hit
-from .sets import KeyframeFile, KeyframeItem, Space, _Model, file_set, read_keyframe_file
+from occ.config.base import _resolve_path
+from occ.controllers.keyframe.sets import (
+    KeyframeFile,
+    KeyframeItem,
+    Space,
+    _Model,
+    file_set,
+    read_keyframe_file,
+)
+from occ.haptics.fixtures import ForbiddenPlane, ForbiddenSphere, forbidden_hit
 
 if TYPE_CHECKING:
-    from ...config import DaemonConfig
-    from .. import Problem
+    from occ.config import DaemonConfig
+    from occ.controllers import Problem
 
 ExistingDir = Annotated[DirectoryPath, BeforeValidator(_resolve_path)]
 
@@ -123,7 +130,7 @@ class KeyframeParams(_Model):
     forbidden: list[ForbiddenSphereItem | ForbiddenPlaneItem] = Field(
         default_factory=list,
         description="Forbidden regions every plan is checked against, as the virtual "
-        "fixtures' forbidden spheres and planes (occ/fixtures.py; mm, base frame): "
+        "fixtures' forbidden spheres and planes (occ/haptics/fixtures.py; mm, base frame): "
         "`{centre_mm, radius_mm, name}` or `{point_mm, normal, name}`.",
     )
     preview_points: Annotated[Int, Field(ge=2, le=10000)] = Field(
@@ -142,7 +149,7 @@ class KeyframeParams(_Model):
 def check_params(params: Any, config: DaemonConfig) -> list[Problem]:
     """What ``KeyframeController.check`` reports: the input interface named, the start-up
     keyframes (YAML or file) valid for this robot, the library's folder, the preview sent."""
-    from ...config.base import _did_you_mean
+    from occ.config.base import _did_you_mean
 
     problems: list[Problem] = []
     names = [i.name for i in config.interfaces]

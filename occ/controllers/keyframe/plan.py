@@ -13,19 +13,19 @@ from typing import TYPE_CHECKING, Literal, NoReturn, Protocol
 
 import numpy as np
 
-from ...config import Vec3
-from ...errors import CommandError, KinematicsError
-from ...joint import JointLimits
-from ...samples import quaternion_to_rotation, rotation_to_quaternion
-from ...trajectory import Keyframe, Trajectory, plan
-from .pacer import Pacer
-from .sets import KeyframeSet, PlanSettings, Space
+from occ.config import Vec3
+from occ.controllers.keyframe.pacer import Pacer
+from occ.controllers.keyframe.sets import KeyframeSet, PlanSettings, Space
+from occ.errors import CommandError, KinematicsError
+from occ.joint import JointLimits
+from occ.kinematics.trajectory import Keyframe, Trajectory, plan
+from occ.samples import quaternion_to_rotation, rotation_to_quaternion
 
 if TYPE_CHECKING:
-    from ...data import RobotData
-    from ...frame import Frame
-    from .. import ControllerContext
-    from .params import KeyframeParams
+    from occ.controllers import ControllerContext
+    from occ.controllers.keyframe.params import KeyframeParams
+    from occ.core.data import RobotData
+    from occ.kinematics.frame import Frame
 
 MM = 1e-3
 
@@ -38,7 +38,8 @@ class ForbiddenCheck(Protocol):
 
 
 class PathCheck(Protocol):
-    """A whole-arm check of a plan's joint path (occ/collision.py ``PathCheck``): given the
+    """A whole-arm check of a plan's joint path (occ/kinematics/collision.py ``PathCheck``): given
+    the
     plan's samples (one per loop period, joint values), the base pose (world <- base) and the
     pacer, None when clear, else (the first sample that fails, what it hits)."""
 

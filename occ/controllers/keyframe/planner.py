@@ -13,13 +13,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
-from ...commands import Deferred
-from ...errors import CommandError
-from .plan import CheckedPlan, PlanRefused, PlanRequest, build_plan
-from .sets import KeyframeSet, Space, file_set, read_keyframe_file
+from occ.controllers.keyframe.plan import CheckedPlan, PlanRefused, PlanRequest, build_plan
+from occ.controllers.keyframe.sets import KeyframeSet, Space, file_set, read_keyframe_file
+from occ.errors import CommandError
+from occ.net.commands import Deferred
 
 if TYPE_CHECKING:
-    from ...frame import Frame
+    from occ.kinematics.frame import Frame
 
 # the package's one logger (the name operators and tests filter on)
 log = logging.getLogger("occ.controllers.keyframe")

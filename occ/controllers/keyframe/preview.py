@@ -11,11 +11,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ...events import PointsOut, PolylineOut
-from .plan import CheckedPlan
+from occ.controllers.keyframe.plan import CheckedPlan
+from occ.events import PointsOut, PolylineOut
 
 if TYPE_CHECKING:
-    from ...outputs import Output
+    from occ.net.outputs import Output
 
 
 @dataclass

@@ -11,9 +11,9 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from ...config import Float, NonNegFloat
-from ...errors import CommandError
-from ...trajectory import Keyframe
+from occ.config import Float, NonNegFloat
+from occ.errors import CommandError
+from occ.kinematics.trajectory import Keyframe
 
 Space = Literal["joint", "cartesian"]
 

@@ -21,13 +21,14 @@ Master daemon (:class:`MasterController`)
     The stream never stops while the daemon runs, so the slave can tell a stopped master from a
     dead one.
 
-    Virtual fixtures (:mod:`occ.fixtures`, :mod:`occ.fixture_defs`, :mod:`occ.haptics`): the
+    Virtual fixtures (:mod:`occ.haptics.fixtures`, :mod:`occ.haptics.fixture_defs`,
+    :mod:`occ.haptics.master_fixtures`): the
     OCC paper's accessible spheres (the default meaning of VFIXTURE), forbidden spheres and
     planes, guides; defined by VFIXTURE, Slicer Markups (POINT, TRANSFORM and POLYDATA with
     metadata) and ``.mrk.json`` files (``fixture_files``), all in the patient frame (3D
     Slicer's RAS, the frame of the slave's ``Tip``). The tool is where the slave measures it:
     its tip, sent back on the stream link at the stream rate (``SlaveTip``,
-    :mod:`occ.returnlink`), judged by a loss monitor (late: the force fades out; lost: zero
+    :mod:`occ.haptics.returnlink`), judged by a loss monitor (late: the force fades out; lost: zero
     and an alert). Fixtures and tool are mapped into the master's force frame by the slave's
     own ``map`` (its base rotation x scale x rotation), so the clutch, re-indexing and a
     hand-over change nothing; a new tip gives a new force (a proxy per contact, clamped to
@@ -57,7 +58,7 @@ collaborators they build, each in a module of its own.
 
 from __future__ import annotations
 
-from .master import MasterController
-from .slave import SlaveController
+from occ.controllers.teleop.master import MasterController
+from occ.controllers.teleop.slave import SlaveController
 
 __all__ = ["MasterController", "SlaveController"]

@@ -6,8 +6,8 @@ from collections.abc import Sequence
 from types import MappingProxyType
 from typing import Any
 
-from ...config import DaemonConfig
-from .. import Problem
+from occ.config import DaemonConfig
+from occ.controllers import Problem
 
 MM = 1e-3
 #: the force limit's approach and retreat rate (m/s per N from 90 % of max_tissue_force_n)
@@ -25,7 +25,7 @@ _RUN_CLUTCH = {
 
 
 def _interfaces_exist(params: Any, config: DaemonConfig, keys: tuple[str, ...]) -> list[Problem]:
-    from ...config.base import _did_you_mean
+    from occ.config.base import _did_you_mean
 
     names = [i.name for i in config.interfaces]
     out: list[Problem] = []

@@ -14,27 +14,34 @@ import pydantic.main  # noqa: F401 - mypyc: the module its run-time BaseModel ch
 from mypy_extensions import mypyc_attr
 from pydantic import BaseModel
 
-from ...collab import SlaveSelector
-from ...config import DaemonConfig
-from ...errors import CommandError, KinematicsError, OCCError, caused
-from ...events import InputEvent, VectorOut
-from ...fixture_defs import Defaults, DefinitionError, PatientMapping, from_markups_file
-from ...forces import sensor_force
-from ...gripper import GripperSource
-from ...haptics import MasterFixtures
-from ...passivity import MasterPort, OnePort
-from ...returnlink import ReturnLink
-from ...safety import RobotState
-from ...samples import PoseSample, rotation_to_quaternion
-from .. import Controller, ControllerContext, Problem, SourceFn
-from ..teleop_params import MasterParams
+from occ.config import DaemonConfig
+from occ.controllers import Controller, ControllerContext, Problem, SourceFn
+from occ.controllers.teleop_params import MasterParams
+from occ.core.safety import RobotState
+from occ.errors import CommandError, KinematicsError, OCCError, caused
+from occ.events import InputEvent, VectorOut
+from occ.haptics.fixture_defs import Defaults, DefinitionError, PatientMapping, from_markups_file
+from occ.haptics.forces import sensor_force
+from occ.haptics.gripper import GripperSource
+from occ.haptics.master_fixtures import MasterFixtures
+from occ.haptics.passivity import MasterPort, OnePort
+from occ.haptics.returnlink import ReturnLink
+from occ.net.collab import SlaveSelector
+from occ.samples import PoseSample, rotation_to_quaternion
 
 if TYPE_CHECKING:
-    from ...commands import Request
-    from ...data import RobotData
-    from ...outputs import Outgoing, Output
+    from occ.core.data import RobotData
+    from occ.net.commands import Request
+    from occ.net.outputs import Outgoing, Output
 
-from .common import _RUN_CLUTCH, MM, STATUS_OK, STATUS_TIME_OUT, _apply_jt, _interfaces_exist
+from occ.controllers.teleop.common import (
+    _RUN_CLUTCH,
+    MM,
+    STATUS_OK,
+    STATUS_TIME_OUT,
+    _apply_jt,
+    _interfaces_exist,
+)
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +79,7 @@ class MasterController(Controller):
         self._first_seq = self.seq
         #: each teleop output's own sequence numbers (one stream per slave), by id(output)
         self._seqs: dict[int, int] = {}
-        #: which slave the master drives when it has several (occ/collab.py)
+        #: which slave the master drives when it has several (occ/net/collab.py)
         self.selector = SlaveSelector(
             p.slaves, p.slave, p.toggle_tap_ms * 1e-3 if p.toggle_tap_ms is not None else None
         )
@@ -93,7 +100,8 @@ class MasterController(Controller):
         self.slave_base_device = p.slave_base_device
         self.slave_tip_device = p.slave_tip_device
         self._fixture_files = p.fixture_files
-        #: the return channel: each slave link's tip stream (occ/returnlink.py), by interface
+        # : the return channel: each slave link's tip stream (occ/haptics/returnlink.py), by
+        # interface
         self._links: dict[str, ReturnLink] = {}
         #: the interfaces this master streams to (its ``teleop`` outputs), learned as they send
         self._teleop_ifaces: list[str] = []
@@ -111,13 +119,13 @@ class MasterController(Controller):
         self._contact_sent: dict[int, bool] = {}
         self._centre: tuple[float, ...] | None = None  # origin + offset, once configured
         self._amp: tuple[float, ...] = tuple(self.amplitude.tolist())
-        #: bilateral teleoperation: the slave's force displayed (occ/passivity.py keeps the
+        #: bilateral teleoperation: the slave's force displayed (occ/haptics/passivity.py keeps the
         #: loop passive); the displayed force is fixtures + feedback, clamped, passivated
         self.force_feedback = p.force_feedback
         self.force_scale = p.force_scale
         self.max_force = p.max_force_n
         self.passivity_on = p.passivity
-        #: the master's port of the two-port passivity scheme (occ/passivity.py)
+        #: the master's port of the two-port passivity scheme (occ/haptics/passivity.py)
         self.passivity = MasterPort(p.passivity_max_damping)
         #: the share of the slave's force displayed (0..1): rises within ``tip_fade_ms`` while
         #: the slave follows with a fresh link, falls within ``feedback_fade_ms`` otherwise
@@ -136,7 +144,7 @@ class MasterController(Controller):
         self.feedback_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.displayed_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.clamped_ticks = 0
-        #: the gripper value sent with each sample (occ/gripper.py), None: none sent
+        #: the gripper value sent with each sample (occ/haptics/gripper.py), None: none sent
         self._gripper_params = p.gripper
         self.gripper: GripperSource | None = None
         #: a 6-axis sensor's torque from the slave (N m, the master's axes): displayed on a
@@ -282,7 +290,7 @@ class MasterController(Controller):
             raise caused(CommandError(str(err)), err) from err
 
     def _tip_input(self, sample: PoseSample, now: float) -> None:
-        """A sample of a slave's tip stream (the return channel, occ/returnlink.py)."""
+        """A sample of a slave's tip stream (the return channel, occ/haptics/returnlink.py)."""
         name = sample.interface
         if name not in self._teleop_ifaces:
             raise CommandError(
@@ -478,7 +486,7 @@ class MasterController(Controller):
                 mx, my, mz = fixtures.mapping.force(f)
                 self._feedback_raw = (k * mx, k * my, k * mz)
                 if link.energy is not None and k > 0.0:
-                    # J at the instrument -> J at the handle: kf / kp (occ/passivity.py)
+                    # J at the instrument -> J at the handle: kf / kp (occ/haptics/passivity.py)
                     self.passivity.account.receive(link.energy * k / fixtures.mapping.factor)
             self._slave_news(link)
         fade = self._fade_s
@@ -531,7 +539,8 @@ class MasterController(Controller):
         self, now: float, fixture: tuple[float, float, float]
     ) -> tuple[float, float, float]:
         """The force to display this tick: the slave's (feedback) through the passivity
-        controller (occ/passivity.py) with the handle's velocity, plus the fixtures', clamped
+        controller (occ/haptics/passivity.py) with the handle's velocity, plus the fixtures',
+        clamped
         to ``max_force_n``.
 
         Only the feedback is passivated: a virtual fixture defined with the tool outside its
@@ -700,8 +709,8 @@ class MasterController(Controller):
         self, running: bool, now: float, energy: float | None
     ) -> MappingProxyType[str, str]:
         """``run`` and ``clutch`` (one shared mapping each), with the gripper value when the
-        master sends one (occ/gripper.py) and the hand's energy into the channel when it has
-        one (``energy_j``: the slave's port puts no more into the tissue, occ/passivity.py);
+        master sends one (occ/haptics/gripper.py) and the hand's energy into the channel when it has
+        one (``energy_j``: the slave's port puts no more into the tissue, occ/haptics/passivity.py);
         one mapping a sample."""
         meta = _RUN_CLUTCH[running, bool(self.clutch)]
         g = self.gripper

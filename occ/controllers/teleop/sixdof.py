@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from ...errors import KinematicsError
-from ...samples import quaternion_to_rotation
-from .common import MM
+from occ.controllers.teleop.common import MM
+from occ.errors import KinematicsError
+from occ.samples import quaternion_to_rotation
 
 Vec3 = tuple[float, float, float]
 

@@ -13,29 +13,29 @@ import pydantic.main  # noqa: F401 - mypyc: the module its run-time BaseModel ch
 from mypy_extensions import mypyc_attr
 from pydantic import BaseModel
 
-from ...config import DaemonConfig
-from ...contact import tissue_from_event
-from ...errors import CommandError, ConfigError, KinematicsError, OCCError, caused
-from ...events import InputEvent
-from ...forces import SlaveForce
-from ...forceviz import ForceView, check_outputs
-from ...gripper import GripperFollower
-from ...joint import step_toward
-from ...passivity import SlavePort, parse_energy
-from ...safety import RobotState
-from ...samples import PoseSample, rotation_to_quaternion
-from ...stats import Histogram
-from .. import Controller, ControllerContext, Problem, SourceFn
-from ..teleop_params import SlaveParams
+from occ.config import DaemonConfig
+from occ.controllers import Controller, ControllerContext, Problem, SourceFn
+from occ.controllers.teleop_params import SlaveParams
+from occ.core.safety import RobotState
+from occ.core.stats import Histogram
+from occ.errors import CommandError, ConfigError, KinematicsError, OCCError, caused
+from occ.events import InputEvent
+from occ.haptics.contact import tissue_from_event
+from occ.haptics.forces import SlaveForce
+from occ.haptics.forceviz import ForceView, check_outputs
+from occ.haptics.gripper import GripperFollower
+from occ.haptics.passivity import SlavePort, parse_energy
+from occ.joint import step_toward
+from occ.samples import PoseSample, rotation_to_quaternion
 
 if TYPE_CHECKING:
-    from ...commands import Request
-    from ...data import RobotData
-    from ...outputs import Outgoing, Output
+    from occ.core.data import RobotData
+    from occ.net.commands import Request
+    from occ.net.outputs import Outgoing, Output
 
-from .common import LIMIT_GAIN, MM, STATUS_OK, _interfaces_exist, _m, _mm
-from .phaselock import PhaseLock
-from .sixdof import SixDof
+from occ.controllers.teleop.common import LIMIT_GAIN, MM, STATUS_OK, _interfaces_exist, _m, _mm
+from occ.controllers.teleop.phaselock import PhaseLock
+from occ.controllers.teleop.sixdof import SixDof
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +45,7 @@ class SlaveController(Controller):
     """The slave side of the OCC pair: follows the master's POSITION stream, scaled and
     re-indexed so it never jumps; the base pose from the config or a tracker. Output source
     ``teleop-return``: its tip (patient frame, as 3D Slicer's ``Tip``) back to the master at the
-    stream rate, the tool of the master's virtual fixtures (occ/returnlink.py)."""
+    stream rate, the tool of the master's virtual fixtures (occ/haptics/returnlink.py)."""
 
     name = "teleop-slave"
     Params = SlaveParams
@@ -97,7 +97,7 @@ class SlaveController(Controller):
         self._map_base: np.ndarray | None = None
         self._map_text = ""
         self.returned = 0
-        #: the tip force sent on the return channel (occ/forces.py), built at configure
+        #: the tip force sent on the return channel (occ/haptics/forces.py), built at configure
         self.force_params = p.force
         self.force: SlaveForce | None = None
         self.force_view: ForceView | None = None
@@ -117,12 +117,13 @@ class SlaveController(Controller):
         self._refusing = False
         self.refused = 0
         self.rate_limited = 0
-        #: the jaw that follows the master's gripper value (occ/gripper.py)
+        #: the jaw that follows the master's gripper value (occ/haptics/gripper.py)
         self._gripper_params = p.gripper
         self.gripper: GripperFollower | None = None
         #: the force limit at the instrument (N; None: none), resolved at configure
         self.max_tissue_force = p.max_tissue_force_n if p.force is not None else None
-        #: the slave's port of the two-port passivity scheme (occ/passivity.py): on while the
+        # : the slave's port of the two-port passivity scheme (occ/haptics/passivity.py): on while
+        # the
         #: followed stream carries the master's energy
         self.port = SlavePort()
         self.port_on = p.passivity
@@ -220,7 +221,7 @@ class SlaveController(Controller):
     def outputs(self) -> dict[str, SourceFn]:
         out: dict[str, SourceFn] = {"teleop-return": self._source_return}
         if self.force_params is not None:
-            out["force"] = self._source_force  # the force to 3D Slicer (occ/forceviz.py)
+            out["force"] = self._source_force  # the force to 3D Slicer (occ/haptics/forceviz.py)
         return out
 
     def _source_force(self, out: Output, now: float) -> Outgoing | None:
@@ -234,7 +235,7 @@ class SlaveController(Controller):
             raise CommandError(f"unknown command {request.name!r}")
         data, ctx = self.data, self.ctx
         assert data is not None and ctx is not None
-        # at rest and touching nothing, or refused (occ/forces.py: a tare in contact hides a
+        # at rest and touching nothing, or refused (occ/haptics/forces.py: a tare in contact hides a
         # real force from then on)
         v = ctx.frame.jacobian(data.q)[:3] @ np.asarray(data.qdot, dtype=float)
         env = ctx.environment
@@ -254,7 +255,7 @@ class SlaveController(Controller):
             self.force.on_input(event, now)
 
     def _tissue(self, event: Any) -> bool:
-        """A tissue definition from 3D Slicer (``kind=tissue``: occ/contact.py) for the
+        """A tissue definition from 3D Slicer (``kind=tissue``: occ/haptics/contact.py) for the
         simulated world: True when it was one (CommandError when it is wrong, or when this
         robot has no simulated world to put it in)."""
         try:
@@ -298,7 +299,7 @@ class SlaveController(Controller):
 
     def _source_return(self, out: Output, now: float) -> PoseSample | None:
         """The return channel: the tip as 3D Slicer sees it (patient frame), to the master
-        that streams to this interface (occ/returnlink.py has the format)."""
+        that streams to this interface (occ/haptics/returnlink.py has the format)."""
         if out.type != "POSITION":
             raise OCCError("teleop-return output must be of type POSITION")
         iface = out.interface
@@ -330,11 +331,13 @@ class SlaveController(Controller):
             extra = {
                 "force_n": self._force_meta(now),
                 # this port's energy in (J at the instrument): what the master may give the
-                # hand (occ/passivity.py)
+                # hand (occ/haptics/passivity.py)
                 "energy_j": f"{self.port.account.e_in:.9g}",
             }
             t = self.force.torque_nm
-            if t is not None:  # a 6-axis sensor's (occ/returnlink.py): old masters ignore it
+            if (
+                t is not None
+            ):  # a 6-axis sensor's (occ/haptics/returnlink.py): old masters ignore it
                 extra["torque_nm"] = f"{t[0]:.5f},{t[1]:.5f},{t[2]:.5f}"
             meta = MappingProxyType({**meta, **extra})
         rows, (x, y, z) = data.world_tip_pose()
@@ -605,7 +608,7 @@ class SlaveController(Controller):
         """The tip to command (base frame, m): the master's mapped target, the gap left so far
         given back at up to ``drift_return_mm_s``, the motion into the tissue no faster than
         5 mm/s per N below 90 % of ``max_tissue_force_n`` (backing out as fast above it), the
-        rest within the energy the hand put in (the slave's port, occ/passivity.py)."""
+        rest within the energy the hand put in (the slave's port, occ/haptics/passivity.py)."""
         raw, cmd = self._raw, self._cmd
         ctx = self.ctx
         assert raw is not None and cmd is not None and ctx is not None
