@@ -24,10 +24,10 @@ from collections.abc import Sequence
 from typing import Any
 
 import igtl
-from occ.core import wiring
 from occ.clock import Clock, RealClock
 from occ.config import DaemonConfig
 from occ.controllers import Controller, create_controller
+from occ.core import wiring
 from occ.core.hardware import describe
 from occ.core.safety import RobotState, StateMachine
 from occ.core.statetable import table_for
