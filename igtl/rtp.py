@@ -255,6 +255,8 @@ class Reassembler:
             raise
 
     def _feed(self, datagram: bytes | bytearray | memoryview, sender: Hashable) -> bytes | None:
+        # The checks of the headers and the two whole-message cases stay inline (every RTP
+        # datagram takes this path); a fragment goes on to _fragment_slot and _add_fragment.
         n = len(datagram)
         if n < RTP_HEADER_SIZE + wire.HEADER_SIZE:
             raise FragmentError(f"RTP datagram of {n} bytes is shorter than 70", offset=n)
@@ -312,6 +314,18 @@ class Reassembler:
         key = (sender, ssrc, (seq - k) & 0xFFFF)
         mv = memoryview(datagram)
         head = bytes(mv[RTP_HEADER_SIZE : RTP_HEADER_SIZE + _MSG_ID_OFFSET])
+        part = self._fragment_slot(key, head, msg_id, total, now)
+        if k in part.chunks:
+            self.duplicates += 1
+            return None
+        return self._add_fragment(key, part, k, is_last, mv[prefix_end:], n)
+
+    def _fragment_slot(
+        self, key: tuple[Any, ...], head: bytes, msg_id: int, total: int, now: float
+    ) -> _Partial:
+        """The incomplete message a fragment belongs to: the one held under ``key`` when its
+        header and message ID match the fragment's, else a new one (replacing a stale one, and
+        evicting the oldest while ``max_pending`` are held)."""
         part = self._pending.get(key)
         if part is not None and (
             part.prefix[:_MSG_ID_OFFSET] != head
@@ -327,9 +341,21 @@ class Reassembler:
                 self.evicted += 1
             part = _Partial(head + _MSG_ID.pack(msg_id), total, now)
             self._pending[key] = part
-        if k in part.chunks:
-            self.duplicates += 1
-            return None
+        return part
+
+    def _add_fragment(
+        self,
+        key: tuple[Any, ...],
+        part: _Partial,
+        k: int,
+        is_last: bool,
+        body: memoryview,
+        n: int,
+    ) -> bytes | None:
+        """Store fragment ``k`` (not held yet) of ``part``; return the whole message when it
+        completes it, else None (evicting the oldest while over ``max_buffered``). ``body`` is
+        the datagram after its prefix, ``n`` the datagram's size (the offset in errors)."""
+        prefix_end = RTP_HEADER_SIZE + PREFIX_SIZE
         if is_last:
             if part.last is not None or (part.chunks and max(part.chunks) > k):
                 self._discard(key)
@@ -338,7 +364,7 @@ class Reassembler:
         elif part.last is not None and k > part.last:
             self._discard(key)
             raise FragmentError(f"fragment {k} after last fragment {part.last}", offset=prefix_end)
-        chunk = bytes(mv[prefix_end:])
+        chunk = bytes(body)
         part.chunks[k] = chunk
         part.size += len(chunk)
         self._buffered += len(chunk)

@@ -624,93 +624,110 @@ class Bridge:
         mtype = msg.message_type
         stamp = msgs.Time.from_seconds(msg.timestamp if msg.timestamp > 0.0 else time.time())
         if mtype == "TRANSFORM":
-            m = msg.matrix  # type: ignore[attr-defined]
-            m[:3, 3] *= MM
-            name = msg.device_name
-            if name == "Base":
-                robot.counters.bases += 1
-                changed = robot.base_m is None or not np.allclose(robot.base_m, m, atol=1e-9)
-                robot.base_m = m
-                if changed:
-                    self._publish_static(robot, m, stamp)
-                if self._due(robot, "base/measured_cp"):
-                    self._publish(
-                        robot, "base/measured_cp", pose_stamped(m, stamp, self.world_frame)
-                    )
-            elif name in ("Tip", "SetpointTip"):
-                if name == "Tip":
-                    robot.tip_m = m  # a move_cp's start
-                if robot.base_m is None:
-                    # the daemon sends Tip before Base each period: the very first Tip has no
-                    # base to be expressed in yet
-                    robot.counters.tips_without_base += 1
-                    return
-                kind = "measured" if name == "Tip" else "setpoint"
-                if not self._due(robot, f"{kind}_cp"):
-                    return
-                if kind == "setpoint":
-                    self._lazy_writer(robot, "setpoint_cp", msgs.PoseStamped)
-                    self._lazy_writer(robot, "local/setpoint_cp", msgs.PoseStamped)
-                local = np.linalg.solve(robot.base_m, m)  # Base^-1 . Tip
-                if kind == "measured":
-                    robot.counters.tips += 1
-                self._publish(robot, f"{kind}_cp", pose_stamped(m, stamp, self.world_frame))
-                self._publish(
-                    robot, f"local/{kind}_cp", pose_stamped(local, stamp, robot.base_frame)
-                )
-                if kind == "measured" and self._tf is not None:
-                    tf = msgs.TFMessage(
-                        transforms=[transform_stamped(local, stamp, robot.base_frame,
-                                                      robot.tip_frame)]
-                    )  # fmt: skip
-                    try:
-                        self._tf.write(tf)
-                    except Exception as err:  # noqa: BLE001 - as _publish
-                        robot.counters.publish_errors += 1
-                        log.warning("%s: publishing /tf failed: %s", robot.ns, err)
-            elif name == "TipForce":
-                self._on_tip_force(robot, msg, stamp)
-                return
-            else:
-                return
-            self.latency_us.add((time.perf_counter() - t_in) * 1e6)
+            if self._on_transform(robot, msg, stamp):
+                self.latency_us.add((time.perf_counter() - t_in) * 1e6)
         elif mtype in ("SENSOR", "NDARRAY") and msg.device_name == "Force":
             self._on_force(robot, msg, stamp)
         elif mtype == "NDARRAY" and msg.device_name in ("Joints", "Setpoints"):
-            leaf = "measured_js" if msg.device_name == "Joints" else "setpoint_js"
-            values = [float(v) for v in np.asarray(msg.array).ravel()]  # type: ignore[attr-defined]
-            names = msg.metadata.get("joints", "")
-            joint_names = names.split(",") if names else [f"joint{i}" for i in range(len(values))]
-            if len(joint_names) != len(values):
-                joint_names = [f"joint{i}" for i in range(len(values))]
-            if leaf == "measured_js":
-                robot.joints = (joint_names, values)  # a move_jp's start
-            if not self._due(robot, leaf):
-                return
-            if leaf == "setpoint_js":
-                self._lazy_writer(robot, leaf, msgs.JointState)
-            self._publish(
-                robot,
-                leaf,
-                msgs.JointState(
-                    header=msgs.Header(stamp=stamp, frame_id=robot.leaf),
-                    name=joint_names,
-                    position=values,
-                ),
-            )
+            self._on_joints(robot, msg, stamp)
         elif mtype == "STATUS":
-            robot.counters.statuses += 1
-            name = getattr(msg, "error_name", "")
-            text = getattr(msg, "status_message", "")
-            if name == "" and text == "":
-                return  # a keep-alive or greeting, nothing to say
-            self._publish(robot, "status", msgs.String(data=f"{name}: {text}"))
-            if name in CRTK_STATE:
-                self._set_state(robot, name, stamp)
-            elif name in (KEYFRAME_RUNNING, KEYFRAME_ENDED):
-                self._set_busy(robot, name == KEYFRAME_RUNNING, stamp)
+            self._on_status(robot, msg, stamp)
         elif mtype == "RTS_COMMAND":
             self._on_reply(robot, msg, stamp)
+
+    def _on_transform(self, robot: Robot, msg: Message, stamp: msgs.Time) -> bool:
+        """TRANSFORM ``Base``, ``Tip``, ``SetpointTip`` or ``TipForce`` (translation in mm, made
+        m here). True when a pose was taken in (its latency is counted), False when the
+        message was dropped, thinned or is ``TipForce``."""
+        m = msg.matrix  # type: ignore[attr-defined]
+        m[:3, 3] *= MM
+        name = msg.device_name
+        if name == "Base":
+            robot.counters.bases += 1
+            changed = robot.base_m is None or not np.allclose(robot.base_m, m, atol=1e-9)
+            robot.base_m = m
+            if changed:
+                self._publish_static(robot, m, stamp)
+            if self._due(robot, "base/measured_cp"):
+                self._publish(robot, "base/measured_cp", pose_stamped(m, stamp, self.world_frame))
+            return True
+        if name in ("Tip", "SetpointTip"):
+            return self._on_tip(robot, name, m, stamp)
+        if name == "TipForce":
+            self._on_tip_force(robot, msg, stamp)
+        return False
+
+    def _on_tip(self, robot: Robot, name: str, m: np.ndarray, stamp: msgs.Time) -> bool:
+        """``Tip`` -> ``measured_cp``, ``local/measured_cp`` (Base^-1 . Tip) and /tf;
+        ``SetpointTip`` -> ``setpoint_cp`` and ``local/setpoint_cp``. False when there is no
+        base yet or the rate cap skips it."""
+        if name == "Tip":
+            robot.tip_m = m  # a move_cp's start
+        if robot.base_m is None:
+            # the daemon sends Tip before Base each period: the very first Tip has no
+            # base to be expressed in yet
+            robot.counters.tips_without_base += 1
+            return False
+        kind = "measured" if name == "Tip" else "setpoint"
+        if not self._due(robot, f"{kind}_cp"):
+            return False
+        if kind == "setpoint":
+            self._lazy_writer(robot, "setpoint_cp", msgs.PoseStamped)
+            self._lazy_writer(robot, "local/setpoint_cp", msgs.PoseStamped)
+        local = np.linalg.solve(robot.base_m, m)  # Base^-1 . Tip
+        if kind == "measured":
+            robot.counters.tips += 1
+        self._publish(robot, f"{kind}_cp", pose_stamped(m, stamp, self.world_frame))
+        self._publish(robot, f"local/{kind}_cp", pose_stamped(local, stamp, robot.base_frame))
+        if kind == "measured" and self._tf is not None:
+            tf = msgs.TFMessage(
+                transforms=[transform_stamped(local, stamp, robot.base_frame, robot.tip_frame)]
+            )
+            try:
+                self._tf.write(tf)
+            except Exception as err:  # noqa: BLE001 - as _publish
+                robot.counters.publish_errors += 1
+                log.warning("%s: publishing /tf failed: %s", robot.ns, err)
+        return True
+
+    def _on_joints(self, robot: Robot, msg: Message, stamp: msgs.Time) -> None:
+        """NDARRAY ``Joints`` -> ``measured_js``, ``Setpoints`` -> ``setpoint_js`` (the joint
+        names from the metadata ``joints``, else joint0, joint1, ...)."""
+        leaf = "measured_js" if msg.device_name == "Joints" else "setpoint_js"
+        values = [float(v) for v in np.asarray(msg.array).ravel()]  # type: ignore[attr-defined]
+        names = msg.metadata.get("joints", "")
+        joint_names = names.split(",") if names else [f"joint{i}" for i in range(len(values))]
+        if len(joint_names) != len(values):
+            joint_names = [f"joint{i}" for i in range(len(values))]
+        if leaf == "measured_js":
+            robot.joints = (joint_names, values)  # a move_jp's start
+        if not self._due(robot, leaf):
+            return
+        if leaf == "setpoint_js":
+            self._lazy_writer(robot, leaf, msgs.JointState)
+        self._publish(
+            robot,
+            leaf,
+            msgs.JointState(
+                header=msgs.Header(stamp=stamp, frame_id=robot.leaf),
+                name=joint_names,
+                position=values,
+            ),
+        )
+
+    def _on_status(self, robot: Robot, msg: Message, stamp: msgs.Time) -> None:
+        """STATUS -> ``status`` ("name: text"), and the operating state or busy flag when its
+        name is one of CRTK's states or the keyframe plan's running/ended."""
+        robot.counters.statuses += 1
+        name = getattr(msg, "error_name", "")
+        text = getattr(msg, "status_message", "")
+        if name == "" and text == "":
+            return  # a keep-alive or greeting, nothing to say
+        self._publish(robot, "status", msgs.String(data=f"{name}: {text}"))
+        if name in CRTK_STATE:
+            self._set_state(robot, name, stamp)
+        elif name in (KEYFRAME_RUNNING, KEYFRAME_ENDED):
+            self._set_busy(robot, name == KEYFRAME_RUNNING, stamp)
 
     def _on_force(self, robot: Robot, msg: Message, stamp: msgs.Time) -> None:
         """SENSOR or NDARRAY ``Force`` (N: a master's displayed force; 3 values, or 6 with a

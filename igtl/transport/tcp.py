@@ -374,23 +374,14 @@ class TCPServer(_StreamTransport):
         max_buffered: int | None = None,
         name: str = "igtl-tcp-server",
     ) -> None:
-        for what, value in (
-            ("message_timeout", message_timeout),
-            ("send_stall_timeout", send_stall_timeout),
-        ):
-            if value is not None and value <= 0:
-                raise ValueError(f"{what} must be positive or None, got {value}")
-        if max_clients < 1:
-            raise ValueError(f"max_clients must be >= 1, got {max_clients}")
-        if idle_timeout is not None and idle_timeout <= 0:
-            raise ValueError(f"idle_timeout must be positive or None, got {idle_timeout}")
-        if not 0 <= reserved_slots < max_clients:
-            raise ValueError(
-                f"reserved_slots must be >= 0 and < max_clients ({max_clients}), "
-                f"got {reserved_slots}"
-            )
-        if reserved_slots and privileged_peers is None:
-            raise ValueError("reserved_slots needs privileged_peers (who may take them)")
+        self._check_limits(
+            message_timeout=message_timeout,
+            send_stall_timeout=send_stall_timeout,
+            max_clients=max_clients,
+            idle_timeout=idle_timeout,
+            reserved_slots=reserved_slots,
+            privileged_peers=privileged_peers,
+        )
         self._access = AccessList(allowed_peers)
         #: the last ``reserved_slots`` client slots are kept for these hosts (operators), so
         #: viewers or a flood of connections from elsewhere cannot lock them out
@@ -424,6 +415,41 @@ class TCPServer(_StreamTransport):
         self.max_buffered = max_buffered
         self.negotiate = negotiate
         self.address: tuple[str, int] = (host, port)
+        self._init_server_state()
+
+    @staticmethod
+    def _check_limits(
+        *,
+        message_timeout: float | None,
+        send_stall_timeout: float | None,
+        max_clients: int,
+        idle_timeout: float | None,
+        reserved_slots: int,
+        privileged_peers: list[str] | None,
+    ) -> None:
+        """ValueError for a timeout that is not positive, fewer than one client slot, or
+        reserved slots that leave none for others or that nobody may take."""
+        for what, value in (
+            ("message_timeout", message_timeout),
+            ("send_stall_timeout", send_stall_timeout),
+        ):
+            if value is not None and value <= 0:
+                raise ValueError(f"{what} must be positive or None, got {value}")
+        if max_clients < 1:
+            raise ValueError(f"max_clients must be >= 1, got {max_clients}")
+        if idle_timeout is not None and idle_timeout <= 0:
+            raise ValueError(f"idle_timeout must be positive or None, got {idle_timeout}")
+        if not 0 <= reserved_slots < max_clients:
+            raise ValueError(
+                f"reserved_slots must be >= 0 and < max_clients ({max_clients}), "
+                f"got {reserved_slots}"
+            )
+        if reserved_slots and privileged_peers is None:
+            raise ValueError("reserved_slots needs privileged_peers (who may take them)")
+
+    def _init_server_state(self) -> None:
+        """The listener (opened by :meth:`start`), the connection table, the close queue, the
+        counters and the ACCESS_DENIED farewell."""
         self._listener: socket.socket | None = None
         # Published copy-on-write by the I/O thread; senders read it without a lock.
         self._conns: dict[int, Connection] = {}

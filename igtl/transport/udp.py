@@ -105,12 +105,7 @@ class UDPEndpoint(IOThreadOwner):
         connect_remote: bool = False,
         name: str = "igtl-udp",
     ) -> None:
-        if not 1 <= max_datagram <= MAX_UDP_PAYLOAD:
-            raise ValueError(f"max_datagram must be 1..{MAX_UDP_PAYLOAD}, got {max_datagram}")
-        if not _rtp.PREFIX_SIZE < rtp_payload <= MAX_UDP_PAYLOAD - _rtp.RTP_HEADER_SIZE:
-            raise ValueError(f"rtp_payload must be 71..{MAX_UDP_PAYLOAD - 12}, got {rtp_payload}")
-        if not 0 <= rtp_payload_type <= 0x7F:
-            raise ValueError(f"rtp_payload_type must be 0..127, got {rtp_payload_type}")
+        self._check_sizes(max_datagram, rtp_payload, rtp_payload_type)
         self.host = host
         self.port = port
         self.remote = remote
@@ -139,6 +134,31 @@ class UDPEndpoint(IOThreadOwner):
         self.polled = polled
         self.name = name
         self.address: tuple[str, int] = (host, port)
+        self._init_decoding(
+            allowed_peers, crc_check, max_body_size, reassembly_timeout, receive_queue
+        )
+        self._init_io()
+        self._init_counters()
+
+    @staticmethod
+    def _check_sizes(max_datagram: int, rtp_payload: int, rtp_payload_type: int) -> None:
+        """ValueError for a datagram size, RTP payload size or RTP payload type out of range."""
+        if not 1 <= max_datagram <= MAX_UDP_PAYLOAD:
+            raise ValueError(f"max_datagram must be 1..{MAX_UDP_PAYLOAD}, got {max_datagram}")
+        if not _rtp.PREFIX_SIZE < rtp_payload <= MAX_UDP_PAYLOAD - _rtp.RTP_HEADER_SIZE:
+            raise ValueError(f"rtp_payload must be 71..{MAX_UDP_PAYLOAD - 12}, got {rtp_payload}")
+        if not 0 <= rtp_payload_type <= 0x7F:
+            raise ValueError(f"rtp_payload_type must be 0..127, got {rtp_payload_type}")
+
+    def _init_decoding(
+        self,
+        allowed_peers: list[str] | None,
+        crc_check: bool,
+        max_body_size: int,
+        reassembly_timeout: float,
+        receive_queue: int,
+    ) -> None:
+        """Who may send, the decoding limits, RTP reassembly, the inbox, the callback guard."""
         self._access = AccessList(allowed_peers)
         self._crc_check = crc_check
         self._max_body = max_body_size
@@ -146,7 +166,11 @@ class UDPEndpoint(IOThreadOwner):
             timeout=reassembly_timeout, max_body_size=max_body_size
         )
         self._inbox = Inbox(receive_queue)
-        self._guard = CallbackGuard(name)
+        self._guard = CallbackGuard(self.name)
+
+    def _init_io(self) -> None:
+        """The peers, the RTP sequence, the socket (bound by :meth:`start`), the I/O thread,
+        the receive buffer and the log rate limits."""
         self._next_id = IdCounter()
         self._peers: dict[Any, Peer] = {}
         self._peers_lock = threading.Lock()
@@ -165,7 +189,9 @@ class UDPEndpoint(IOThreadOwner):
         self._rxview = memoryview(self._rxbuf)
         #: the pinned source once its socket's queue was seen empty after the connect
         self._clean_source: tuple[str, int] | None = None
-        # Endpoint-wide counters (per-peer ones live on the Peers).
+
+    def _init_counters(self) -> None:
+        """Endpoint-wide counters (per-peer ones live on the Peers)."""
         self._sent = 0
         self._dropped = 0
         self._send_errors = 0
