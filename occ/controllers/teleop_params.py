@@ -130,10 +130,10 @@ class MasterParams(_Params):
     passivity: Bool = Field(
         True,
         description="Two-port time-domain passivity (Ryu, Artigas and Preusche 2010; "
-        "occ/haptics/passivity.py): the master's port controller keeps the energy the hand "
-        "gets below what the slave's tissue gave back, and the master sends its energy with "
-        "the stream so the slave's keeps what it puts into the tissue below what the hand put in; whatever "
-        "the delay and loss. Off: observed only (statistics), and no energy sent.",
+        "occ/haptics/passivity.py): the master's port controller keeps the energy the hand gets"
+        " below what the slave's tissue gave back, and the master sends its energy with the "
+        "stream so the slave's keeps what it puts into the tissue below what the hand put in; "
+        "whatever the delay and loss. Off: observed only (statistics), and no energy sent.",
     )
     passivity_max_damping: PosFloat = Field(
         200.0,
@@ -410,10 +410,10 @@ class SlaveParams(_Params):
     passivity: Bool = Field(
         True,
         description="The slave's port of the two-port passivity scheme "
-        "(occ/haptics/passivity.py): a step into the tissue that would put in more energy "
-        "than the master's hand has put in (the master's `energy_j`, sent with its stream) is shortened; the difference is "
-        "given back at `drift_return_mm_s` when the energy allows. Acts only on a stream "
-        "that carries `energy_j` (a master with `passivity` and force feedback).",
+        "(occ/haptics/passivity.py): a step into the tissue that would put in more energy than the master's hand has put in (the "
+        "master's `energy_j`, sent with its stream) is shortened; the difference is given back "
+        "at `drift_return_mm_s` when the energy allows. Acts only on a stream that carries "
+        "`energy_j` (a master with `passivity` and force feedback).",
     )
     drift_return_mm_s: PosFloat = Field(
         5.0,
