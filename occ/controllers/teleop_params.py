@@ -410,7 +410,8 @@ class SlaveParams(_Params):
     passivity: Bool = Field(
         True,
         description="The slave's port of the two-port passivity scheme "
-        "(occ/haptics/passivity.py): a step into the tissue that would put in more energy than the master's hand has put in (the "
+        "(occ/haptics/passivity.py): a step into the tissue that would put in more energy "
+        "than the master's hand has put in (the "
         "master's `energy_j`, sent with its stream) is shortened; the difference is given back "
         "at `drift_return_mm_s` when the energy allows. Acts only on a stream that carries "
         "`energy_j` (a master with `passivity` and force feedback).",
