@@ -1,7 +1,6 @@
 #!/usr/bin/env python3
 """Whole-arm collision checking (occ/kinematics/collision.py): what a check costs, and what checking
-at
-run time does to the loop.
+at run time does to the loop.
 
 ``check``
     The UR5 of configs/ur5.yaml (its collision meshes as convex hulls, 15 self pairs from the

@@ -19,17 +19,17 @@ topic                          type                         from
 ``NS/base/measured_cp``        geometry_msgs/PoseStamped    TRANSFORM ``Base``; frame_id the
                                                             world frame (``world``)
 ``NS/measured_js``             sensor_msgs/JointState       NDARRAY ``Joints`` (positions;
-                                                            names from its metadata);
-                                                            frame_id ``<leaf>``
+                                                            names from its metadata); frame_id
+                                                            ``<leaf>``
 ``NS/setpoint_js``             sensor_msgs/JointState       NDARRAY ``Setpoints`` (when the
                                                             daemon's viewer output sends it)
 ``NS/setpoint_cp``,            geometry_msgs/PoseStamped    TRANSFORM ``SetpointTip`` (when
 ``NS/local/setpoint_cp``                                    sent), as measured_cp
 ``NS/measured_cf``             geometry_msgs/WrenchStamped  SENSOR or NDARRAY ``Force`` (a
-                                                            master's displayed force, N);
-                                                            frame_id ``<leaf>_base``
-                                                            or TRANSFORM ``TipForce`` (a
-                                                            slave's contact force, metadata
+                                                            master's displayed force, N); frame_id
+                                                            ``<leaf>_base`` or TRANSFORM
+                                                            ``TipForce`` (a slave's contact force,
+                                                            metadata
                                                             ``force_n``); frame_id the world
                                                             frame
 ``NS/operating_state``         crtk_msgs/OperatingState     STATUS of a state, GetState;
@@ -802,8 +802,7 @@ class Bridge:
     def _on_tip_force(self, robot: Robot, msg: Message, stamp: msgs.Time) -> None:
         """TRANSFORM ``TipForce`` (a slave's contact force, its output source ``force``:
         occ/haptics/forceviz.py) -> ``measured_cf``: metadata ``force_n`` (N, the patient frame,
-        which
-        is the world of ``measured_cp``), frame_id the world frame. One in header version 1
+        which is the world of ``measured_cp``), frame_id the world frame. One in header version 1
         (no metadata: sent before the daemon read the v2 greeting) is counted in ``forces_v1``;
         a v2 one without a readable ``force_n`` or in another frame in ``forces_refused``."""
         if msg.header_version == 1:

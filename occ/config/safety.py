@@ -174,8 +174,7 @@ class ToolConfig(_Model):
 
 class CollisionConfig(_Model):
     """Whole-arm collision checking (occ/kinematics/collision.py, coal): the arm's links and the
-    tool
-    against forbidden regions and each other, in every keyframe plan before it is
+    tool against forbidden regions and each other, in every keyframe plan before it is
     acknowledged, and at run time on a worker thread, which stops the robot when a link comes
     within the margin."""
 

@@ -191,8 +191,7 @@ class Alarms:
 
     def collision_stop(self, why: str, policy: str) -> None:
         """A link inside its margin (occ/kinematics/collision.py's verdict): a ``COLLISION`` ALERT
-        naming
-        link and region to every operator and viewer, and the safety stop (held until Run, or
+        naming link and region to every operator and viewer, and the safety stop (held until Run, or
         FAULT with ``policy: fault``)."""
         self.broadcast("COLLISION", why, igtl.StatusCode.ILLEGAL_INSTRUCTION)
         self.safety_stop(why, policy)

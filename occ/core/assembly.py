@@ -24,8 +24,7 @@ def attach_environment(
     base: Callable[[], Any],
 ) -> Environment | None:
     """The simulated world (occ/haptics/contact.py) attached to the one ``sim`` driver that has
-    every
-    joint (it computes the load from the whole arm's pose); None without contacts. ConfigError
+    every joint (it computes the load from the whole arm's pose); None without contacts. ConfigError
     when no driver can carry it. ``environment: {contacts: []}`` is a world without tissue yet
     (3D Slicer may define some at run time)."""
     if env is None:

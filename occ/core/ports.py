@@ -1,8 +1,7 @@
 """Narrow ports: what each of the robot's collaborators is given of it, instead of the Robot.
 
 occ/core/robot.py builds its parts (occ/core/assembly.py) and hands each one only what it uses: the
-few
-parts it reads, and callables for what only the Robot can do (swap the recorder, reset the
+few parts it reads, and callables for what only the Robot can do (swap the recorder, reset the
 monitors, hand the motion over). No collaborator imports occ/core/robot.py, so no module knows one
 that knows it (tests/test_imports.py); the types below are imported for checking only.
 

@@ -7,8 +7,7 @@ operators read a time window with ``GetStateTable``, answered by the worker thre
 the last seconds at full rate without the loop paying for the reply.
 
 Columns (the first ones are the recording's ``OCCState`` columns, :mod:`occ.recording.record`, in
-the
-same units): ``t`` (daemon clock, s), ``state`` (code as in the recording), ``q.<joint>``,
+the same units): ``t`` (daemon clock, s), ``state`` (code as in the recording), ``q.<joint>``,
 ``sp.<joint>`` (what the drivers hold: the running setpoint, else the held one),
 ``tip.x_mm tip.y_mm tip.z_mm`` (tip in the base frame), then ``eff.<joint>`` (measured effort,
 N or N m) and ``owner`` (index of the master in control, -1 without collaboration). The loop

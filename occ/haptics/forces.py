@@ -2,8 +2,7 @@
 
 The slave (``teleop-slave`` with ``force``) sends its tip force to the master on the return
 channel (occ/haptics/returnlink.py, metadata ``force_n``, N in the patient frame). Two sources, used
-in
-the configured order of preference (the first one healthy is sent; every one is in the
+in the configured order of preference (the first one healthy is sent; every one is in the
 statistics, so a sensor and the drives cross-check each other):
 
 ``effort``

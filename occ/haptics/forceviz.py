@@ -34,9 +34,8 @@ in it.
 
 Which force: the one the slave sends its master on the return channel (``SlaveForce``'s last
 estimate, occ/haptics/forces.py). The estimate is made once per return sample; when none was made
-since
-this output last sent (no master streaming, so no return channel), the source makes one itself,
-so Slicer is never shown a force older than its own period.
+since this output last sent (no master streaming, so no return channel), the source makes one
+itself, so Slicer is never shown a force older than its own period.
 
 Pure functions of numbers here (:func:`force_matrix`, :func:`arrow_mesh`); :class:`ForceView`
 is the source the controller hands the output scheduler.

@@ -15,8 +15,7 @@ the full quaternion. Everything else rides in the v2 metadata of the same messag
     9 numbers, row by row: how a handle displacement (master mm) moves the tip in the patient
     frame (mm), i.e. the slave's base rotation x motion scaling x master-to-slave rotation.
     The master maps fixtures and tool with it (:class:`~occ.haptics.fixture_defs.PatientMapping`),
-    so
-    nothing is calibrated by hand;
+    so nothing is calibrated by hand;
 ``state``
     the slave's state (``RUNNING``, ``STOPPED``, ...);
 ``force_n``
@@ -122,8 +121,7 @@ class ReturnLink:
         #: the torque with it (N m, patient frame, about the slave's sensor), None: none sent
         self.torque: Vec3 | None = None
         # : the slave's port energy in (J at its instrument, cumulative: occ/haptics/passivity.py)
-        # with
-        #: the last tip; None while it sends none
+        # with : the last tip; None while it sends none
         self.energy: float | None = None
         #: the slave's map (handle mm -> patient mm), parsed; None until it sends one
         self.linear: tuple[tuple[float, float, float], ...] | None = None

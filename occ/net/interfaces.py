@@ -412,52 +412,65 @@ class Interface:
                 sample = pose_sample(name, peer, msg, t_rx)
                 event = sample if sample is not None else decode(name, peer, msg, t_rx)
                 return Inbound(name, peer, msg, t_rx, None, "operator", event)
-        item = Inbound(self.name, peer, msg, t_rx)
-        request = is_operator_request(msg)
-        if request or mtype in self.command_inputs:
-            replay = self._replay
-            if replay is not None and (why := replay.check(msg, time.time())):
-                c.replayed += 1  # answered: a sender with the key learns why (its clock?)
-                self._refuse(item, f"{mtype} refused: {why}", igtl.StatusCode.ACCESS_DENIED)
-                return None
-            # an operator request is judged by the sender's role even where its type is also
-            # listed as an input (a viewer must not become an operator by the config's inputs)
-            if request:
-                role = self.peer_role(peer)
-                if role == "none":
-                    self._refuse(
-                        item,
-                        f"interface {self.name} is a data link: it takes no requests",
-                        igtl.StatusCode.ACCESS_DENIED,
-                    )
-                    return None
-                try:
-                    req = parse_request(msg)
-                except CommandError as err:
-                    self._refuse(item, str(err), igtl.StatusCode.ILLEGAL_INSTRUCTION)
-                    return None
-                if (
-                    role == "viewer"
-                    and req.kind != "query"
-                    and req.name.strip().lower() not in READ_ONLY_COMMANDS
-                ):
-                    self._refuse(
-                        item,
-                        f"{req.name}: a viewer may query but not command the robot; send "
-                        "commands to an operator interface",
-                        igtl.StatusCode.ACCESS_DENIED,
-                    )
-                    return None
-                item.request = req
-                item.role = role
-            else:  # a discrete input routed to the command queue (e.g. VFIXTURE): decoded
-                item.event = decode(self.name, peer, msg, t_rx)
-            if not self.manager.commands.put(item):
-                self._refuse(item, "command queue full", igtl.StatusCode.BUSY)
+        if is_operator_request(msg) or mtype in self.command_inputs:
+            self._command_input(peer, msg, t_rx)
             return None
         if mtype == "STATUS":
             c.keepalive += 1
             return None
+        self._unexpected(peer, mtype)
+        return None
+
+    def _command_input(self, peer: Peer, msg: Message, t_rx: float) -> None:
+        """An operator request or a discrete input routed to the command queue: judged (replay,
+        the sender's role, the request's form), then queued, or refused with an answer."""
+        c = self.counters
+        mtype = msg.message_type
+        item = Inbound(self.name, peer, msg, t_rx)
+        request = is_operator_request(msg)
+        replay = self._replay
+        if replay is not None and (why := replay.check(msg, time.time())):
+            c.replayed += 1  # answered: a sender with the key learns why (its clock?)
+            self._refuse(item, f"{mtype} refused: {why}", igtl.StatusCode.ACCESS_DENIED)
+            return
+        # an operator request is judged by the sender's role even where its type is also
+        # listed as an input (a viewer must not become an operator by the config's inputs)
+        if request:
+            role = self.peer_role(peer)
+            if role == "none":
+                self._refuse(
+                    item,
+                    f"interface {self.name} is a data link: it takes no requests",
+                    igtl.StatusCode.ACCESS_DENIED,
+                )
+                return
+            try:
+                req = parse_request(msg)
+            except CommandError as err:
+                self._refuse(item, str(err), igtl.StatusCode.ILLEGAL_INSTRUCTION)
+                return
+            if (
+                role == "viewer"
+                and req.kind != "query"
+                and req.name.strip().lower() not in READ_ONLY_COMMANDS
+            ):
+                self._refuse(
+                    item,
+                    f"{req.name}: a viewer may query but not command the robot; send "
+                    "commands to an operator interface",
+                    igtl.StatusCode.ACCESS_DENIED,
+                )
+                return
+            item.request = req
+            item.role = role
+        else:  # a discrete input routed to the command queue (e.g. VFIXTURE): decoded
+            item.event = decode(self.name, peer, msg, t_rx)
+        if not self.manager.commands.put(item):
+            self._refuse(item, "command queue full", igtl.StatusCode.BUSY)
+
+    def _unexpected(self, peer: Peer, mtype: str) -> None:
+        """A message this interface does not take: counted, its type logged once."""
+        c = self.counters
         c.unexpected += 1
         if mtype not in c.unexpected_types:
             c.unexpected_types.add(mtype)
@@ -467,7 +480,6 @@ class Interface:
                 mtype,
                 *peer.address[:2],
             )
-        return None
 
     def peer_role(self, peer: Peer) -> str:
         """``operator``, ``viewer`` or ``none``: what this peer may ask on this interface."""

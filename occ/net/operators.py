@@ -132,8 +132,7 @@ class OperatorDesk:
     def _collision_region(self, event: Any) -> bool:
         """A forbidden region from 3D Slicer for the whole-arm collision check (metadata
         ``kind=forbidden-region``: occ/kinematics/collision.py): defined (replacing the node's
-        previous
-        one), a checked plan not yet acknowledged invalidated; True when it was one.
+        previous one), a checked plan not yet acknowledged invalidated; True when it was one.
         CommandError when it cannot be used or the robot checks no collisions."""
         try:
             found = regions_from_event(event)

@@ -16,8 +16,7 @@ Three operator commands, over COMMAND (answered by RTS_COMMAND) or a PLUS-style 
   ``recording=starting; file=...`` or ``recording=false`` (with ``last=`` the last file).
 
 The recorder is the one ``--record`` uses (occ/recording/record.py): the loop only appends to its
-queue,
-its own thread writes. Opening the file and closing it (which waits for the writer to drain)
+queue, its own thread writes. Opening the file and closing it (which waits for the writer to drain)
 happen on the robot's worker thread, never on the loop: the loop hands the job over and the
 reply is sent when the worker is done (a :class:`~occ.net.commands.Deferred`). The recorder is
 attached by the worker (a reference the loop reads from its next tick) and detached by the loop

@@ -43,8 +43,7 @@ Its topics are those the ROS 2 bridge publishes (occ_ros2/bridge.py), in metres,
   ``/occ/NAME/<device>/measured_cf`` (a master's recording: the slave's force as it arrived on
   ``SlaveTip``, frame_id ``slavetip_reference`` like that stream's pose). The ``TipForce``
   transform (origin at the tip, z axis the force; occ/haptics/forceviz.py) is a force, not a pose:
-  it
-  is not exported as a ``measured_cp``. In the sequence metafile it is a transform like any
+  it is not exported as a ``measured_cp``. In the sequence metafile it is a transform like any
   other (``TipForceToWorld``), which 3D Slicer plays back as it showed it live.
 - ``/tf`` (tf2_msgs/TFMessage): ``world`` -> ``NAME_base`` -> ``NAME_tip`` at each tip sample.
 

@@ -25,8 +25,7 @@ record.
 
 ``occ-record`` (console script) exports a recording to CSV, to 3D Slicer's and PLUS's sequence
 metafile (``--format seq``) or to a ROS 2 bag (``--format mcap``; occ/recording/export.py), replays
-one
-into a peer, and plots one (``occ-record plot``: trajectories, tracking error, states with
+one into a peer, and plots one (``occ-record plot``: trajectories, tracking error, states with
 causes, loop timing as a PNG; occ/recording/plot.py, matplotlib optional).
 
 A recorder may also be started and stopped while the daemon runs (PLUS's ``StartRecording`` and

@@ -2,8 +2,7 @@
 
 After the German Heart Center system: an operator puts poses on a timeline (keyframes), the
 planner (:mod:`occ.kinematics.trajectory`) fills in the motion, and the plan runs only once it has
-passed
-its checks, been shown in 3D Slicer and been acknowledged. Plugin name ``keyframe``.
+passed its checks, been shown in 3D Slicer and been acknowledged. Plugin name ``keyframe``.
 
 Keyframes
     A *keyframe set* is one timeline: times in seconds from the start of the run, and poses
@@ -92,8 +91,7 @@ Forbidden regions (the collision check)
     (it must be planned again), as the paper requires of a plan that would now collide.
     A :class:`PathCheck` (anything with ``check_path``, e.g. the whole-arm check of
     ``safety.collision``, occ/kinematics/collision.py, added at configure) gets the plan's joint
-    samples
-    after the per-tick checks and names the first that fails.
+    samples after the per-tick checks and names the first that fails.
 
 Layout
     :mod:`.controller` the controller on the loop thread (the set, the commands, the

@@ -2,9 +2,8 @@
 ``KeyframeDelete`` and ``KeyframeLibrary`` (package docstring, "The trajectory library").
 
 The storage is :mod:`occ.kinematics.trajlib`; this is what the keyframe controller does with it:
-what may
-be saved (the acknowledged set, while it is still the stored one), what a load installs, the
-listing, the refusals. The file work runs as jobs on the planner thread; what they need of the
+what may be saved (the acknowledged set, while it is still the stored one), what a load installs,
+the listing, the refusals. The file work runs as jobs on the planner thread; what they need of the
 controller is :class:`LibraryPort`."""
 
 from __future__ import annotations

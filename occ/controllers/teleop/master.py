@@ -540,8 +540,7 @@ class MasterController(Controller):
     ) -> tuple[float, float, float]:
         """The force to display this tick: the slave's (feedback) through the passivity
         controller (occ/haptics/passivity.py) with the handle's velocity, plus the fixtures',
-        clamped
-        to ``max_force_n``.
+        clamped to ``max_force_n``.
 
         Only the feedback is passivated: a virtual fixture defined with the tool outside its
         region starts stretched and pulls the hand in, giving energy it never received (by

@@ -123,8 +123,7 @@ class SlaveController(Controller):
         #: the force limit at the instrument (N; None: none), resolved at configure
         self.max_tissue_force = p.max_tissue_force_n if p.force is not None else None
         # : the slave's port of the two-port passivity scheme (occ/haptics/passivity.py): on while
-        # the
-        #: followed stream carries the master's energy
+        # the : followed stream carries the master's energy
         self.port = SlavePort()
         self.port_on = p.passivity
         self._port_active = False
