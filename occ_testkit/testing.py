@@ -1,5 +1,6 @@
 """Test a robot without a network: a :class:`~occ.core.robot.Robot` in simulated time whose
-interfaces are in-process channels (:class:`igtl.transport.InprocTransport`), and peers that talk to it.
+interfaces are in-process channels (:class:`igtl.transport.InprocTransport`), and peers that
+talk to it.
 
 The robot is built from its own configuration file (or a :class:`~occ.config.DaemonConfig`, or a
 mapping as the YAML file would hold it) with every interface turned into ``transport: inproc``
