@@ -296,7 +296,7 @@ class SlaveController(Controller):
                     self.ik_failures += 1
                 return None
             self._reindex(data, ctx, now)
-        assert self.slave_ref is not None
+        assert self.slave_ref is not None and self.master_ref is not None
         shaper = self.shaper
         fresh = self._fresh
         if fresh:
