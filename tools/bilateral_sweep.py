@@ -182,7 +182,7 @@ def run_condition(
         t_stop: float | None = None
         for k in range(round(seconds * 1000)):
             pair.step(1)
-            trace.hand.append(ctl.displayed_n)
+            trace.hand.append(ctl.display.displayed_n)
             trace.tip.append(mapping.force(env.force_n))
             trace.handle.append(mrobot.frame.tip_position(mrobot.data.q))
             state = srobot.state
@@ -203,7 +203,7 @@ def run_condition(
             reruns=reruns,
             states=[mrobot.state.value, srobot.state.value],
             counts=dict(pair.counts),
-            master_passivity=ctl.passivity.stats(),
+            master_passivity=ctl.display.passivity.stats(),
             slave=pair.slave.robot.controller.controllers[0].stats().get("instrument"),
             instrument_truth_peak_n=round(env.peak_force_n, 3),
         )
@@ -300,7 +300,7 @@ def run_impact(
                 drv: Any = mrobot.hardware.drivers[0]
                 drv.intent_t = quarter  # the hand stays at the crest
             pair.step(1)
-            trace.hand.append(ctl.displayed_n)
+            trace.hand.append(ctl.display.displayed_n)
             trace.tip.append(ctl.fixtures.mapping.force(env.force_n))
             trace.handle.append(mrobot.frame.tip_position(mrobot.data.q))
             trace.slave_state.append(pair.slave.robot.state.value)

@@ -92,10 +92,10 @@ def run_condition(
         for k in range(n):
             pair.step(1)
             tip[k] = ctl.fixtures.mapping.force(env.force_n)
-            hand[k] = ctl.displayed_n
+            hand[k] = ctl.display.displayed_n
             handle[k] = pair.master.robot.frame.tip_position(pair.master.robot.data.q)
         states = (pair.master.robot.state.value, pair.slave.robot.state.value)
-        passive = ctl.passivity.stats()
+        passive = ctl.display.passivity.stats()
         counts = dict(pair.counts)
     finally:
         pair.close()

@@ -199,7 +199,7 @@ def test_forces_of_the_wall_pair() -> None:
             if contact["magnitude_n"] > 0.5 and pressed is None:
                 pressed = snap
         master_ctl: Any = p.master.robot.controller.controllers[0]
-        passivity = master_ctl.passivity.stats()
+        passivity = master_ctl.display.passivity.stats()
     assert pressed is not None
     contact = pressed["slave"]["forces"]["contact"]
     assert contact["source"] == "tissue" and contact["sources"] == ["tissue", "effort"]

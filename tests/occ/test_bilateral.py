@@ -65,13 +65,13 @@ class Run:
             for _ in range(round(seconds * 1000)):
                 p.step(1)
                 tip.append(ctl.fixtures.mapping.force(env.force_n))
-                hand.append(ctl.displayed_n)
+                hand.append(ctl.display.displayed_n)
                 handle.append(p.master.robot.frame.tip_position(p.master.robot.data.q))
             self.tip = np.array(tip)
             self.hand = np.array(hand)
             self.velocity = np.diff(np.array(handle), axis=0) * 1000.0
             self.states = (p.master.robot.state, p.slave.robot.state)
-            self.passivity = ctl.passivity.stats()
+            self.passivity = ctl.display.passivity.stats()
             self.counts = dict(p.counts)
         finally:
             p.close()

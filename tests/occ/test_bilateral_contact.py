@@ -159,7 +159,7 @@ def test_a_limit_without_a_measured_force_is_a_config_error() -> None:
     # the default is not applied without a force: no problem, no limit
     params = SlaveController.Params.model_validate({})
     assert not [p for p in SlaveController.check(params, cfg) if p[0] == ("max_tissue_force_n",)]
-    assert SlaveController(params).max_tissue_force is None
+    assert SlaveController(params).shaper.max_tissue_force is None
 
 
 # ------------------------------------------------------------------ a stop in contact

@@ -330,7 +330,7 @@ def test_a_hand_over_moves_the_force_to_the_master_in_control() -> None:
 
 # ------------------------------------------------------------------ the slave's force (issue 27)
 def feedback(master: SimMaster) -> tuple[float, float, float]:
-    return tuple(master.ctl.feedback_n)
+    return tuple(master.ctl.display.feedback_n)
 
 
 @pytest.fixture
@@ -356,7 +356,7 @@ def test_the_slaves_force_is_displayed_scaled_and_summed_with_the_fixtures(unpas
     keepout(master)
     master.feed.step(10)
     fix = master.ctl.fixtures.force_n
-    shown = master.ctl.displayed_n
+    shown = master.ctl.display.displayed_n
     for i in range(3):
         assert shown[i] == pytest.approx(fix[i] + feedback(master)[i], abs=0.05)
 
@@ -371,7 +371,7 @@ def test_force_scale_and_the_10_n_clamp() -> None:
         assert feedback(m) == pytest.approx((0.0, 5.0, 0.0), abs=1e-9)
         m.feed.force = (3.0, 0.0, -4.0)  # 5 N x 2.5 = 12.5 N: clamped to 10 N, same direction
         m.feed.step(30)
-        shown = m.ctl.displayed_n
+        shown = m.ctl.display.displayed_n
         assert math.hypot(*shown) == pytest.approx(10.0, abs=1e-9)
         assert shown[0] / shown[2] == pytest.approx(-0.75)
         assert m.ctl.stats()["force_clamped_ticks"] > 0
@@ -430,7 +430,7 @@ def test_a_dead_slave_leaves_no_force_on_the_hand(master) -> None:
     assert len([a for a in master.alerts("ALERT") if "lost" in a]) == 1
     assert 0.0 < feedback(master)[0] < 1.0
     master.feed.step(160)  # feedback_fade_ms (300 ms) from late: gone
-    assert master.ctl.displayed_n == (0.0, 0.0, 0.0)
+    assert master.ctl.display.displayed_n == (0.0, 0.0, 0.0)
     assert len([a for a in master.alerts("ALERT") if "lost" in a]) == 1
 
 
@@ -493,7 +493,8 @@ def test_force_feedback_off_displays_only_the_fixtures() -> None:
         m.run()
         m.feed.force = (0.0, 2.0, 0.0)
         m.feed.step(30)
-        assert m.ctl.feedback_n == (0.0, 0.0, 0.0) and m.ctl.displayed_n == (0.0, 0.0, 0.0)
+        shown = m.ctl.display
+        assert shown.feedback_n == (0.0, 0.0, 0.0) and shown.displayed_n == (0.0, 0.0, 0.0)
         assert m.ctl.stats()["slave_tip"]["force_n"] == [0.0, 2.0, 0.0]  # received, not shown
     finally:
         m.close()
@@ -511,7 +512,7 @@ def test_the_passivity_controller_damps_a_force_the_network_gave_no_energy_for(m
     energies = []
     for _ in range(2000):
         master.feed.step(1)
-        energies.append(master.ctl.passivity.account.net)
+        energies.append(master.ctl.display.passivity.account.net)
     st = master.ctl.stats()["passivity"]
     assert st["on"] and st["active_ticks"] > 0 and st["dissipated_mj"] > 10.0
     assert min(energies) >= -3e-5
@@ -534,18 +535,18 @@ def test_an_external_force_is_displayed_while_it_keeps_coming(unpassivated) -> N
 
     servo_cf((0.0, 0.0, 1.5))
     master.feed.step(2)
-    assert master.ctl.displayed_n[2] == pytest.approx(1.5, abs=0.05)
+    assert master.ctl.display.displayed_n[2] == pytest.approx(1.5, abs=0.05)
     st = master.ctl.stats()
     assert st["external_n"] == [0.0, 0.0, 1.5] and st["external_fresh"]
     master.feed.step(99)  # 100 ms after it came: still shown
-    assert master.ctl.displayed_n[2] == pytest.approx(1.5, abs=0.05)
+    assert master.ctl.display.displayed_n[2] == pytest.approx(1.5, abs=0.05)
     master.feed.step(2)  # past the timeout: gone
-    assert master.ctl.displayed_n == (0.0, 0.0, 0.0)
+    assert master.ctl.display.displayed_n == (0.0, 0.0, 0.0)
     assert not master.ctl.stats()["external_fresh"]
     before = len(master.op.messages())
     servo_cf((0.0, 0.0, 1.5), Unit(0, ((1, 1),)))  # metres: no force
     master.feed.step(2)
-    assert master.ctl.displayed_n == (0.0, 0.0, 0.0)
+    assert master.ctl.display.displayed_n == (0.0, 0.0, 0.0)
     replies = master.op.messages()[before:]
     assert any("is not a force" in str(getattr(m, "status_message", "")) + str(
         getattr(m, "command", "")) for m in replies), replies
@@ -594,17 +595,17 @@ def test_an_external_force_across_stop_and_run_is_shown_from_the_first_tick_afte
     master.run()
     _servo_cf(master, (0.0, 0.0, 1.5))
     master.feed.step(2)
-    assert master.ctl.displayed_n[2] == pytest.approx(1.5, abs=0.05)
+    assert master.ctl.display.displayed_n[2] == pytest.approx(1.5, abs=0.05)
     master.op.send_command("Stop")
     master.feed.step(1)
     assert master.sim.robot.state is RobotState.STOPPED
-    assert master.ctl.displayed_n == (0.0, 0.0, 0.0)
+    assert master.ctl.display.displayed_n == (0.0, 0.0, 0.0)
     _servo_cf(master, (0.0, 0.0, 1.5))
     master.feed.step(1)
     master.op.send_command("Run")
     master.feed.step(1)
     assert master.sim.robot.state is RobotState.RUNNING
-    assert master.ctl.displayed_n == pytest.approx((0.0, 0.0, 1.5), abs=1e-9)
+    assert master.ctl.display.displayed_n == pytest.approx((0.0, 0.0, 1.5), abs=1e-9)
     master.feed.step(5)
     assert master.sim.robot.state is RobotState.RUNNING
-    assert master.ctl.displayed_n[2] == pytest.approx(1.5, abs=0.05)
+    assert master.ctl.display.displayed_n[2] == pytest.approx(1.5, abs=0.05)

@@ -188,8 +188,8 @@ def efforts_check(m: SimMaster) -> None:
     """The efforts the drives were told are J^T [F; T] of what is displayed."""
     data = m.sim.robot.data
     jac = m.sim.robot.frame.jacobian(data.q)
-    want = jac[:3].T @ np.array(m.ctl.displayed_n) + jac[3:].T @ np.array(
-        m.ctl.displayed_torque_nm
+    want = jac[:3].T @ np.array(m.ctl.display.displayed_n) + jac[3:].T @ np.array(
+        m.ctl.display.displayed_torque_nm
     )
     assert data.effort_command == pytest.approx(list(want), abs=1e-12)
 
@@ -197,30 +197,30 @@ def efforts_check(m: SimMaster) -> None:
 def test_a_master_with_rotational_axes_displays_the_torque_clamped_and_gated() -> None:
     m = six_master()
     try:
-        assert m.ctl.rotational
+        assert m.ctl.display.rotational
         m.feed.force = (0.0, 0.0, 1.0)
         m.feed.torque = (0.05, -0.1, 0.2)
         m.feed.step(1)
-        assert m.ctl.gain == 1.0  # the tip fresh, the slave following: the force's own gain
+        assert m.ctl.display.gain == 1.0  # the tip fresh, the slave following: the force's own gain
         # the handle at rest: no damper without motion, the torque as sent
-        assert m.ctl.feedback_torque_nm == pytest.approx((0.05, -0.1, 0.2), abs=1e-12)
-        assert m.ctl.displayed_torque_nm == pytest.approx((0.05, -0.1, 0.2), abs=1e-12)
+        assert m.ctl.display.feedback_torque_nm == pytest.approx((0.05, -0.1, 0.2), abs=1e-12)
+        assert m.ctl.display.displayed_torque_nm == pytest.approx((0.05, -0.1, 0.2), abs=1e-12)
         efforts_check(m)
         m.feed.step(20)  # the hand yields: the passivity controller acts on what it gives
-        assert m.ctl.torque_passivity.active_ticks > 0
+        assert m.ctl.display.torque_passivity.active_ticks > 0
         efforts_check(m)
         wrist = [abs(v) for v in m.sim.robot.data.effort_command[3:]]
         assert max(wrist) > 0.05  # the wrist's joints carry it
         # 2 N m: clamped to max_torque_nm (0.5)
         m.feed.torque = (0.0, 2.0, 0.0)
         m.feed.step(1)
-        assert math.hypot(*m.ctl.displayed_torque_nm) == pytest.approx(0.5, abs=1e-12)
+        assert math.hypot(*m.ctl.display.displayed_torque_nm) == pytest.approx(0.5, abs=1e-12)
         efforts_check(m)
         # the slave lost (silent past the grace): zero at once, with the force
         m.feed.paused = True
         m.sim.step(120)
-        assert m.ctl.displayed_torque_nm == (0.0, 0.0, 0.0)
-        assert m.ctl.feedback_torque_nm == (0.0, 0.0, 0.0)
+        assert m.ctl.display.displayed_torque_nm == (0.0, 0.0, 0.0)
+        assert m.ctl.display.feedback_torque_nm == (0.0, 0.0, 0.0)
         efforts_check(m)
     finally:
         m.sim.close()
@@ -260,13 +260,14 @@ def test_a_three_axis_master_records_the_torque_and_displays_the_force_only() ->
             feed.step(1)
         feed.force, feed.torque = (0.0, 0.0, 1.0), (0.05, -0.1, 0.2)
         feed.step(40)
-        assert not ctl.rotational
-        assert ctl.feedback_torque_nm == pytest.approx((0.05, -0.1, 0.2), abs=1e-12)
-        assert ctl.displayed_torque_nm == (0.0, 0.0, 0.0)
+        assert not ctl.display.rotational
+        assert ctl.display.feedback_torque_nm == pytest.approx((0.05, -0.1, 0.2), abs=1e-12)
+        assert ctl.display.displayed_torque_nm == (0.0, 0.0, 0.0)
         assert ctl.stats()["torque"]["displayed"] is False
         data = sim.robot.data
         jac = sim.robot.frame.jacobian(data.q)[:3]
-        assert data.effort_command == pytest.approx(list(jac.T @ ctl.displayed_n), abs=1e-12)
+        shown = ctl.display.displayed_n
+        assert data.effort_command == pytest.approx(list(jac.T @ shown), abs=1e-12)
     finally:
         sim.close()
 

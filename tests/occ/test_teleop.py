@@ -538,16 +538,16 @@ def test_the_masters_fixture_force_is_off_while_the_robot_is_not_running(
         )
     )
     feed.step(30)
-    assert master.ctl.gain == 1.0 and math.hypot(*master.ctl.fixtures.force_n) > 2.0
+    assert master.ctl.display.gain == 1.0 and math.hypot(*master.ctl.fixtures.force_n) > 2.0
     assert _status(master.command("Stop"))[0] == "SUCCESS"
-    assert master.robot.state is RobotState.STOPPED and master.ctl.gain == 0.0
+    assert master.robot.state is RobotState.STOPPED and master.ctl.display.gain == 0.0
     assert master.ctl.fixtures.force_n == (0.0, 0.0, 0.0)
     feed.step(300)
     assert _status(master.command("Run"))[0] == "SUCCESS"
     feed.step(10)
-    assert 0.3 < master.ctl.gain < 0.7  # half way through tip_fade_ms
+    assert 0.3 < master.ctl.display.gain < 0.7  # half way through tip_fade_ms
     feed.step(20)
-    assert master.ctl.gain == 1.0
+    assert master.ctl.display.gain == 1.0
 
 
 def test_a_teleop_output_that_is_not_position_faults_and_says_so() -> None:

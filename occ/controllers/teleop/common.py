@@ -17,14 +17,14 @@ STATUS_OK = 1
 STATUS_TIME_OUT = 7
 #: the master stream's metadata, one read-only mapping per (run, clutch): shared by every
 #: message sent (500 Hz), so none is built per packet
-_RUN_CLUTCH = {
+RUN_CLUTCH = {
     (run, clutch): MappingProxyType({"run": "1" if run else "0", "clutch": "1" if clutch else "0"})
     for run in (False, True)
     for clutch in (False, True)
 }
 
 
-def _interfaces_exist(params: Any, config: DaemonConfig, keys: tuple[str, ...]) -> list[Problem]:
+def interfaces_exist(params: Any, config: DaemonConfig, keys: tuple[str, ...]) -> list[Problem]:
     from occ.config.base import _did_you_mean
 
     names = [i.name for i in config.interfaces]
@@ -36,11 +36,11 @@ def _interfaces_exist(params: Any, config: DaemonConfig, keys: tuple[str, ...]) 
     return out
 
 
-def _mm(p: Sequence[float] | None) -> list[float] | None:
+def as_mm(p: Sequence[float] | None) -> list[float] | None:
     return None if p is None else [round(float(v) / MM, 6) for v in p]
 
 
-def _apply_jt(jt: Sequence[Sequence[float]], w: Sequence[float]) -> tuple[float, float, float]:
+def apply_jt(jt: Sequence[Sequence[float]], w: Sequence[float]) -> tuple[float, float, float]:
     """``J w`` for a Cartesian master's constant Jacobian, kept as its transpose's rows
     (a joint's column): the handle's position from ``q``, its velocity from ``qdot``."""
     x = y = z = 0.0
@@ -50,5 +50,5 @@ def _apply_jt(jt: Sequence[Sequence[float]], w: Sequence[float]) -> tuple[float,
     return (x, y, z)
 
 
-def _m(p_mm: Sequence[float]) -> tuple[float, float, float]:
+def as_m(p_mm: Sequence[float]) -> tuple[float, float, float]:
     return (p_mm[0] * MM, p_mm[1] * MM, p_mm[2] * MM)
