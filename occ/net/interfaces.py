@@ -411,7 +411,7 @@ class Interface:
                 name = self.name
                 sample = pose_sample(name, peer, msg, t_rx)
                 event = sample if sample is not None else decode(name, peer, msg, t_rx)
-                return Inbound(name, peer, msg, t_rx, None, "operator", event)
+                return Inbound(name, peer, msg, t_rx, event=event)
         if is_operator_request(msg) or mtype in self.command_inputs:
             self._command_input(peer, msg, t_rx)
             return None

@@ -883,3 +883,45 @@ def test_a_key_file_is_read_as_utf8_whatever_the_locale(tmp_path):
     )
     assert out.returncode == 0, out.stderr
     assert bytes.fromhex(out.stdout) == "clé partagée du lien maître".encode()
+
+
+def _points() -> igtl.PointMessage:
+    el = igtl.PointElement(name="F-1", group="Fiducial", rgba=(255, 0, 0, 255), position=(1, 2, 3))
+    return igtl.PointMessage(points=(el,), device_name="F", header_version=2)
+
+
+def test_the_interface_decodes_what_it_routes_once_naming_who_sent_it_and_when() -> None:
+    """Issue 39: an item the interface routes carries its typed event, made there once, with
+    the interface's name, the sender and the reception time: a pose on its stream (a
+    PoseSample), a discrete input on a stream queue, a discrete input of the command queue."""
+    import yaml
+
+    from occ.events import PointList
+    from occ.samples import PoseSample
+
+    cfg = yaml.safe_load(SLAVE.read_text(encoding="utf-8"))
+    (master,) = [i for i in cfg["interfaces"] if i["name"] == "master"]
+    master["inputs"].append({"type": "POINT", "queue": "stream", "depth": 10})
+    (op,) = [i for i in cfg["interfaces"] if i["name"] == "operator"]
+    op["inputs"] = [{"type": "POINT", "queue": "command", "depth": 4}]
+    with SimRobot(cfg) as sim:
+        sim.clock.set(0.5)
+        iface = sim.robot.interfaces["master"]
+        peer = Peer(7, ("127.0.0.1", 4000))
+        item = iface.route(peer, position(1))
+        assert isinstance(item, Inbound) and isinstance(item.event, PoseSample)
+        sample = item.event
+        assert (sample.interface, sample.peer, sample.t_rx, sample.seq) == ("master", peer, 0.5, 1)
+        assert item.request is None and item.role == "operator"
+        item = iface.route(peer, _points())
+        assert isinstance(item, Inbound) and isinstance(item.event, PointList)
+        ev = item.event
+        assert (ev.interface, ev.peer, ev.t_rx, ev.device) == ("master", peer, 0.5, "F")
+        # the command queue: decoded by the interface before it is queued
+        ops = sim.robot.interfaces["operator"]
+        asker = Peer(8, ("127.0.0.1", 4001))
+        assert ops.route(asker, _points()) is None
+        (queued,) = sim.robot.interfaces.commands.drain()
+        assert isinstance(queued.event, PointList)
+        ev = queued.event
+        assert (ev.interface, ev.peer, ev.t_rx) == ("operator", asker, 0.5)
