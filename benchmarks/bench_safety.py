@@ -87,7 +87,7 @@ def start(
 
 PROBE_SRC = ROOT / "benchmarks" / "stall_probe.c"
 LATE_LINE = re.compile(r"^late cpu(\d+) (\d\d:\d\d:\d\d\.\d\d\d) ([\d.]+) ms$")
-STATE_LINE = re.compile(r"^(\d\d:\d\d:\d\d\.\d+) \w+ +occ\.robot: state (\w+) -> (\w+) (.*)$")
+STATE_LINE = re.compile(r"^(\d\d:\d\d:\d\d\.\d+) \w+ +occ\.core\.robot: state (\w+) -> (\w+) (.*)$")
 
 
 def start_probe(
