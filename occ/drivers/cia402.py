@@ -45,7 +45,9 @@ SYNC itself so positions stay readable. The master's heartbeat goes out every qu
 ``heartbeat_ms``.
 
 ``deactivate`` (Disable): disable voltage (controlword 0x00). A fault, and the supervisor's
-safe stop (EStop): quick stop (0x02) on every node in the same call. ``reset``: the fault reset
+safe stop (EStop): quick stop (0x02) on every node in the same call (in the RPDOs, with a
+SYNC; to a node whose heartbeat says it left OPERATIONAL, where PDOs are not taken, also as an
+expedited SDO download of 0x6040 that is sent and not waited for). ``reset``: the fault reset
 (controlword bit 7, a rising edge), NMT start for a node that left OPERATIONAL; it succeeds only
 when every node answers the reset's SYNC with a TPDO whose statusword is out of FAULT, and
 raises naming the nodes that did not (a persisting cause). The heartbeat's and TPDO's ages are
@@ -86,7 +88,11 @@ al., Real-Time Systems 35(3), 2007, eq. 2; :func:`~occ.drivers.cia402_protocol.f
 Above ``bus_load_limit`` (0.7) the configuration is refused with the load, the figures and the
 advice (fewer nodes per bus, or the ``sync_every`` that fits). Three CSP nodes at 1 Mbit/s
 with a 1 kHz loop need 111 % with a SYNC every tick and 57 % with ``sync_every: 2``; eight
-need 140 % even then.
+need 146 % even then.
+
+With ``sync_every`` N above 1 a reading shows up to N ticks of motion at once (the TPDOs come
+every N ticks): unless ``feedback_jump`` is configured, the base's jump bound is widened N times
+for this driver.
 
 Parameters
 ==========
@@ -144,6 +150,7 @@ from occ.drivers.cia402_protocol import (
     COB_EMCY,
     COB_HEARTBEAT,
     COB_RPDO,
+    COB_SDO_RX,
     COB_SDO_TX,
     COB_SYNC,
     COB_TPDO,
@@ -414,13 +421,21 @@ class CiA402Driver(Driver):
         if self.bus_load > limit:
             fits = next((k for k in range(self._sync_every + 1, 11) if load_at(k)[0] <= limit), None)
             most = max((k for k in range(1, len(self._nodes)) if load_at(self._sync_every, k)[0] <= limit), default=0)
-            advice = [f"at most {most} nodes per bus at this rate" if most else "a faster bus"]
+            advice = [
+                f"at most {most} node{'s' if most > 1 else ''} per bus at this rate"
+                if most
+                else "a faster bus"
+            ]
             if fits is not None:
                 advice.append(f"sync_every: {fits} ({load_at(fits)[0]:.0%})")
             raise ValueError(
                 f"{where}: bus load {self.bus_load:.0%} exceeds bus_load_limit {limit:.0%}: "
                 f"{detail}; use " + ", or ".join(advice)
             )
+        if self._sync_every > 1 and "feedback_jump" not in (params or {}):
+            # a reading shows up to sync_every ticks of motion (module docstring)
+            self._jump *= self._sync_every
+            self._jump_speed = [v * self._sync_every for v in self._jump_speed]
         n = len(self.joints)
         self._rx: dict[int, tuple[int, _Node]] = {}
         for node in self._nodes:
@@ -947,6 +962,7 @@ class CiA402Driver(Driver):
         }
         try:
             while True:
+                self._drain(self._now)  # TPDOs of earlier SYNCs: judged before this step
                 why = self._judge(self._now, active=False)
                 if why is not None:
                     raise DriverError(f"{why}; not enabled")
@@ -987,6 +1003,13 @@ class CiA402Driver(Driver):
         self._counters["rpdo_frames"] += len(self._nodes)
         self._send(can.Message(arbitration_id=COB_SYNC, is_extended_id=False, data=b""))
         self._counters["sync_frames"] += 1
+        for node in self._nodes:
+            if node.nmt is not None and node.nmt != NMT_OPERATIONAL:
+                # a node out of OPERATIONAL takes no PDO: the controlword as an expedited SDO
+                # download, sent and not waited for (its answer is dropped by _take)
+                request = struct.pack("<BHBH2x", 0x2B, 0x6040, 0, cw)
+                self._send(can.Message(arbitration_id=COB_SDO_RX + node.node_id,
+                                       is_extended_id=False, data=request))  # fmt: skip
         if cw == CW_QUICK_STOP:
             self._counters["quick_stops"] += 1
 

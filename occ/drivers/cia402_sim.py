@@ -613,6 +613,7 @@ class DriveEmulator:
         self.frames_in = 0
         self.frames_out = 0
         self.ignored = 0
+        self.errors = 0
         self.nodes: dict[int, EmulatedNode] = {}
         for nid in node_ids:
             self.nodes[nid] = EmulatedNode(
@@ -715,7 +716,15 @@ class DriveEmulator:
                 node.timers(now)
 
     def handle(self, msg: can.Message) -> None:
-        """One received frame."""
+        """One received frame (a frame the emulator cannot handle is logged and counted: the
+        emulator goes on, as a drive would)."""
+        try:
+            self._handle(msg)
+        except Exception:  # noqa: BLE001 - one bad frame must not stop the emulated drives
+            self.errors += 1
+            logger.exception("cia402 emulator: frame %s not handled", msg)
+
+    def _handle(self, msg: can.Message) -> None:
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             self.ignored += 1
             return
