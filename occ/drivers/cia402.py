@@ -160,8 +160,8 @@ from occ.drivers.cia402_protocol import (
     CW_QUICK_STOP,
     CW_SHUTDOWN,
     CW_SWITCH_ON,
-    MODE_CST,
     MODE_CSP,
+    MODE_CST,
     NMT_OPERATIONAL,
     NMT_STATES,
     cia402_state,
@@ -386,7 +386,10 @@ class CiA402Driver(Driver):
             )
         self._node_hb_ms = int(p["node_heartbeat_ms"])
         self._node_hb_timeout = float(p["node_heartbeat_timeout_ms"]) * 1e-3
-        if not 0 < self._node_hb_ms <= 0xFFFF or not self._node_hb_timeout > self._node_hb_ms * 1e-3:
+        if (
+            not 0 < self._node_hb_ms <= 0xFFFF
+            or not self._node_hb_timeout > self._node_hb_ms * 1e-3
+        ):
             raise ValueError(
                 f"{where}: node_heartbeat_ms must be 1-65535 and node_heartbeat_timeout_ms "
                 f"above it, got {p['node_heartbeat_ms']} and {p['node_heartbeat_timeout_ms']}"
@@ -419,8 +422,13 @@ class CiA402Driver(Driver):
 
         self.bus_load, detail = load_at(self._sync_every)
         if self.bus_load > limit:
-            fits = next((k for k in range(self._sync_every + 1, 11) if load_at(k)[0] <= limit), None)
-            most = max((k for k in range(1, len(self._nodes)) if load_at(self._sync_every, k)[0] <= limit), default=0)
+            fits = next(
+                (k for k in range(self._sync_every + 1, 11) if load_at(k)[0] <= limit), None
+            )
+            most = max(
+                (k for k in range(1, len(self._nodes)) if load_at(self._sync_every, k)[0] <= limit),
+                default=0,
+            )
             advice = [
                 f"at most {most} node{'s' if most > 1 else ''} per bus at this rate"
                 if most
@@ -495,7 +503,8 @@ class CiA402Driver(Driver):
             extra = sorted(set(map(str, entry)) - _NODE_KEYS)
             if extra:
                 raise ValueError(
-                    f"{where}: nodes.{joint.name}: unknown keys {extra}; known: {sorted(_NODE_KEYS)}"
+                    f"{where}: nodes.{joint.name}: unknown keys {extra}; "
+                    f"known: {sorted(_NODE_KEYS)}"
                 )
             try:
                 node = _Node(i, joint, entry, self._effort)
@@ -511,7 +520,9 @@ class CiA402Driver(Driver):
             if node.cpu == 0.0 or not math.isfinite(node.cpu):
                 raise ValueError(f"{where}: nodes.{joint.name}: counts_per_unit must be != 0")
             if not node.eds.is_file():
-                raise ValueError(f"{where}: nodes.{joint.name}: eds file {str(node.eds)!r} not found")
+                raise ValueError(
+                    f"{where}: nodes.{joint.name}: eds file {str(node.eds)!r} not found"
+                )
             try:
                 node.od = _load_od(str(node.eds))
             except Exception as err:  # noqa: BLE001 - a broken EDS, whatever the parser says
@@ -580,8 +591,11 @@ class CiA402Driver(Driver):
                 "nmt": None if node.nmt is None else NMT_STATES.get(node.nmt, hex(node.nmt)),
                 "last_emcy": None
                 if emcy is None
-                else {"code": f"{emcy[0]:#06x}", "meaning": emcy_meaning(emcy[0]),
-                      "register": f"{emcy[1]:#04x}"},  # fmt: skip
+                else {
+                    "code": f"{emcy[0]:#06x}",
+                    "meaning": emcy_meaning(emcy[0]),
+                    "register": f"{emcy[1]:#04x}",
+                },  # fmt: skip
                 "tpdos": node.tpdo1 + node.tpdo2,
                 "emcys": node.emcys,
                 "heartbeats": node.heartbeats,
@@ -602,7 +616,7 @@ class CiA402Driver(Driver):
         network = canopen.Network(bus)
         network.NOTIFIER_CYCLE = 0.01  # its reader thread stops within 10 ms
         echo = _EchoFilter(network.listeners[0], self._master_id)
-        network.listeners = [echo]
+        network.listeners = [echo]  # type: ignore[list-item]  # any can.Listener will do
         try:
             network.connect()
             for node in self._nodes:

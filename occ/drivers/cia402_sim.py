@@ -127,7 +127,17 @@ STATE_NAMES = {
 }
 
 #: struct codes of the CANopen basic data types (CiA 301 data type indices)
-_STRUCT = {0x1: "?", 0x2: "b", 0x3: "h", 0x4: "i", 0x5: "B", 0x6: "H", 0x7: "I", 0x15: "q", 0x1B: "Q"}
+_STRUCT = {
+    0x1: "?",
+    0x2: "b",
+    0x3: "h",
+    0x4: "i",
+    0x5: "B",
+    0x6: "H",
+    0x7: "I",
+    0x15: "q",
+    0x1B: "Q",
+}
 _ABORT_NO_OBJECT = 0x06020000
 _ABORT_NO_SUB = 0x06090011
 _ABORT_READ_ONLY = 0x06010002
@@ -472,7 +482,9 @@ class EmulatedNode:
                 target = float(self.get(0x607A, 0))
                 alpha = 1.0 - math.exp(-dt * 2.0 * math.pi * self.bandwidth_hz)
                 self.position += (target - self.position) * alpha
-                self.torque = max(-3000.0, min(3000.0, (target - self.position) * self.torque_per_count))
+                self.torque = max(
+                    -3000.0, min(3000.0, (target - self.position) * self.torque_per_count)
+                )
             elif mode == MODE_CST:
                 self.torque = float(self.get(0x6071, 0))
                 accel = self.torque * self.accel_per_permille - self.damping * self.velocity
@@ -747,10 +759,11 @@ class DriveEmulator:
                 node.master_heartbeat(self.master_id, now)
             return
         node_id = cob & 0x7F
-        node = self.nodes.get(node_id)
-        if node is None:
+        target = self.nodes.get(node_id)
+        if target is None:
             self.ignored += 1  # another node's, or an echo of our own frames
             return
+        node = target
         function = cob & 0x780
         if function == COB_SDO_RX:
             answer = node.sdo(data, now)
@@ -856,7 +869,9 @@ class DriveEmulator:
             elif verb == "stall":
                 self.stall(nums[0])
             elif verb == "nmt":
-                state = {"pre": NMT_PRE_OPERATIONAL, "stop": NMT_STOPPED}.get(args[1], NMT_OPERATIONAL)
+                state = {"pre": NMT_PRE_OPERATIONAL, "stop": NMT_STOPPED}.get(
+                    args[1], NMT_OPERATIONAL
+                )
                 self.leave_operational(nums[0], state)
             elif verb == "refuse":
                 self.refuse_enable(nums[0])
@@ -891,15 +906,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--master-id", type=int, default=127)
     parser.add_argument("--bandwidth-hz", type=float, default=40.0)
     parser.add_argument(
-        "--fault", action="append", default=[],
+        "--fault",
+        action="append",
+        default=[],
         help="a fault command run at start (as typed on standard input), e.g. 'emcy 2 0x2310'",
     )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     ids = [int(n, 0) for n in args.nodes.split(",") if n.strip()]
     emulator = DriveEmulator(
-        ids, args.eds, interface=args.interface, channel=args.channel,
-        master_id=args.master_id, bandwidth_hz=args.bandwidth_hz,
+        ids,
+        args.eds,
+        interface=args.interface,
+        channel=args.channel,
+        master_id=args.master_id,
+        bandwidth_hz=args.bandwidth_hz,
     )
     emulator.start()
     print(f"cia402 emulator: nodes {ids} on {args.interface} {args.channel}", flush=True)

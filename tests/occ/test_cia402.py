@@ -296,16 +296,31 @@ def _move(r: Rig) -> Callable[[int], list[float]]:
 
 
 FAULTS: dict[str, tuple[Callable[[DriveEmulator], None], dict[str, Any], list[str]]] = {
-    "emcy": (lambda e: e.inject_emcy(2, 0x2310), {}, ["node 2 (joint pitch)", "EMCY 0x2310",
-                                                      "overcurrent"]),
-    "temperature": (lambda e: e.inject_emcy(3, 0x4310), {}, ["node 3 (joint insertion)",
-                                                             "EMCY 0x4310", "temperature"]),
-    "fault_bit": (lambda e: e.inject_fault_bit(2), {}, ["node 2 (joint pitch)", "statusword",
-                                                        "FAULT (fault bit set)"]),
-    "heartbeat": (lambda e: e.stop_heartbeat(2), {}, ["node 2 (joint pitch)",
-                                                      "heartbeat consumer timeout"]),
-    "tpdo_missing": (lambda e: e.mute_tpdos(3), {}, ["node 3 (joint insertion)", "no TPDO for",
-                                                     "feedback_timeout 10 ms"]),
+    "emcy": (
+        lambda e: e.inject_emcy(2, 0x2310),
+        {},
+        ["node 2 (joint pitch)", "EMCY 0x2310", "overcurrent"],
+    ),
+    "temperature": (
+        lambda e: e.inject_emcy(3, 0x4310),
+        {},
+        ["node 3 (joint insertion)", "EMCY 0x4310", "temperature"],
+    ),
+    "fault_bit": (
+        lambda e: e.inject_fault_bit(2),
+        {},
+        ["node 2 (joint pitch)", "statusword", "FAULT (fault bit set)"],
+    ),
+    "heartbeat": (
+        lambda e: e.stop_heartbeat(2),
+        {},
+        ["node 2 (joint pitch)", "heartbeat consumer timeout"],
+    ),
+    "tpdo_missing": (
+        lambda e: e.mute_tpdos(3),
+        {},
+        ["node 3 (joint insertion)", "no TPDO for", "feedback_timeout 10 ms"],
+    ),
     "tpdo_late": (lambda e: e.pause_tpdos(1, 0.05), {}, ["node 1 (joint yaw)", "no TPDO for"]),
     # the drive's own following error (its window 0x6065 set to 500 counts here); the base's
     # check is off in this case so that the drive's EMCY is what faults
@@ -314,8 +329,11 @@ FAULTS: dict[str, tuple[Callable[[DriveEmulator], None], dict[str, Any], list[st
         {"following_error": None, "frozen_feedback_ms": 0},
         ["node 1 (joint yaw)", "EMCY 0x8611", "following error"],
     ),
-    "nmt": (lambda e: e.leave_operational(2), {}, ["node 2 (joint pitch)",
-                                                   "left NMT OPERATIONAL", "PRE-OPERATIONAL"]),
+    "nmt": (
+        lambda e: e.leave_operational(2),
+        {},
+        ["node 2 (joint pitch)", "left NMT OPERATIONAL", "PRE-OPERATIONAL"],
+    ),
 }
 
 
@@ -471,7 +489,9 @@ def test_params_are_checked_when_the_driver_is_built() -> None:
     with pytest.raises(ValueError, match="not a mappable 32-bit object"):
         CiA402Driver("arm", make_joints(3), {**base, "nodes": nodes})
     with pytest.raises(ValueError, match="feedback_timeout"):
-        CiA402Driver("arm", make_joints(3), {**base, "nodes": node_params(3), "feedback_timeout": 1})
+        CiA402Driver(
+            "arm", make_joints(3), {**base, "nodes": node_params(3), "feedback_timeout": 1}
+        )
     drv = create_driver("cia402", "arm", make_joints(3), {**base, "nodes": node_params(3)})
     assert isinstance(drv, CiA402Driver)
 
