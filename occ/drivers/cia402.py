@@ -64,7 +64,8 @@ and the cause, and quick-stops every node in that call)
   while ACTIVE, a statusword that is not OPERATION ENABLED (the drive stopped on its own);
 - a heartbeat consumer timeout: no heartbeat from a node for ``node_heartbeat_timeout_ms``;
 - a node whose heartbeat says it left NMT OPERATIONAL;
-- no TPDO from a node for ``feedback_timeout`` ms;
+- no TPDO from a node for ``feedback_timeout`` ms since a SYNC asked for one (a pause of the
+  host, when no SYNC went out, is not the node's);
 - a second position sensor that disagrees with the first by more than its ``tolerance`` for
   longer than its ``latency_ms``.
 
@@ -90,9 +91,10 @@ advice (fewer nodes per bus, or the ``sync_every`` that fits). Three CSP nodes a
 with a 1 kHz loop need 111 % with a SYNC every tick and 57 % with ``sync_every: 2``; eight
 need 146 % even then.
 
-With ``sync_every`` N above 1 a reading shows up to N ticks of motion at once (the TPDOs come
-every N ticks): unless ``feedback_jump`` is configured, the base's jump bound is widened N times
-for this driver.
+A reading's age: a TPDO shows the drive at the SYNC it answers, and TPDOs come every
+``sync_every`` ticks, or late in a burst. So that the base's jump check judges a step over the
+time it really took, each joint's ``stamp`` is set back, when a new TPDO shows it, to the SYNC
+of the reading it replaces (the base stamps every read, fresh or not).
 
 Parameters
 ==========
@@ -287,7 +289,7 @@ class _Node:
         "index", "node_id", "joint", "cpu", "torque_scale", "eds", "od", "second",
         "statusword", "nmt", "hb_at", "tpdo_at", "emcy_pending", "last_emcy", "counts",
         "second_counts", "second_since", "tpdo1", "tpdo2", "emcys", "heartbeats",
-        "target", "rpdo", "rpdo_msg", "cw",
+        "target", "rpdo", "rpdo_msg", "cw", "owed_since", "sampled_at",
     )  # fmt: skip
 
     def __init__(self, index: int, joint: Joint, spec: Mapping[str, Any], effort: bool) -> None:
@@ -310,6 +312,10 @@ class _Node:
         self.forget()
         self.hb_at = math.nan
         self.tpdo_at = math.nan
+        #: the now of the first SYNC sent since this node's last TPDO 1 (NaN: none owed)
+        self.owed_since = math.nan
+        #: when the drive sampled its newest TPDO 1: the SYNC it answered (else its arrival)
+        self.sampled_at = math.nan
 
     def forget(self) -> None:
         """What a new configuration starts without."""
@@ -440,10 +446,6 @@ class CiA402Driver(Driver):
                 f"{where}: bus load {self.bus_load:.0%} exceeds bus_load_limit {limit:.0%}: "
                 f"{detail}; use " + ", or ".join(advice)
             )
-        if self._sync_every > 1 and "feedback_jump" not in (params or {}):
-            # a reading shows up to sync_every ticks of motion (module docstring)
-            self._jump *= self._sync_every
-            self._jump_speed = [v * self._sync_every for v in self._jump_speed]
         n = len(self.joints)
         self._rx: dict[int, tuple[int, _Node]] = {}
         for node in self._nodes:
@@ -641,7 +643,7 @@ class CiA402Driver(Driver):
         self._master_hb_at = math.nan
         self._pos = [math.nan] * len(self.joints)
         for node in self._nodes:
-            node.hb_at = node.tpdo_at = math.nan
+            node.hb_at = node.tpdo_at = node.owed_since = node.sampled_at = math.nan
 
     def _configure_node(self, node: _Node, remote: Any) -> None:
         import canopen
@@ -770,8 +772,15 @@ class CiA402Driver(Driver):
             for node in self._nodes:
                 self._send(node.rpdo_msg)
             self._counters["rpdo_frames"] += len(self._nodes)
+        self._owe(self._now)
         self._send(self._sync_msg)
         self._counters["sync_frames"] += 1
+
+    def _owe(self, now: float) -> None:
+        """A SYNC goes out at ``now``: every node owes a TPDO from then on."""
+        for node in self._nodes:
+            if node.owed_since != node.owed_since:
+                node.owed_since = now
 
     def _take(self, msg: can.Message, now: float) -> None:
         """One received frame (module docstring): its node's state updated."""
@@ -797,6 +806,9 @@ class CiA402Driver(Driver):
             self._pos[i] = counts / node.cpu
             self._eff[i] = torque * node.torque_scale
             node.tpdo_at = now
+            owed = node.owed_since
+            node.sampled_at = owed if owed == owed else now
+            node.owed_since = math.nan
             node.tpdo1 += 1
             self._counters["tpdo_frames"] += 1
         elif kind == _K_TPDO2:
@@ -870,7 +882,15 @@ class CiA402Driver(Driver):
         if self._t0 != self._t0:
             self._t0 = now
         self._now = now
+        nodes = self._nodes
+        shown = [n.sampled_at for n in nodes]
+        fresh = [n.tpdo1 for n in nodes]
         self._drain(now)
+        joints = self.joints
+        for i, node in enumerate(nodes):
+            if node.tpdo1 != fresh[i] and shown[i] == shown[i]:
+                # a new reading: the one it replaces was sampled then, not at the last read
+                joints[i].stamp = shown[i]
         state = self.state
         if state is not DriverState.FAULT:
             why = self._judge(now, state is DriverState.ACTIVE)
@@ -914,13 +934,11 @@ class CiA402Driver(Driver):
                         f"ms (producer time {self._node_hb_ms} ms, timeout "
                         f"{self._node_hb_timeout * 1e3:g} ms)"
                     )
-                else:
-                    seen = node.tpdo_at if node.tpdo_at == node.tpdo_at else t0
-                    if now - seen > self._feedback_timeout:
-                        cause = (
-                            f"no TPDO for {(now - seen) * 1e3:.1f} ms (feedback_timeout "
-                            f"{self._feedback_timeout * 1e3:g} ms)"
-                        )
+                elif now - node.owed_since > self._feedback_timeout:  # NaN: nothing owed
+                    cause = (
+                        f"no TPDO for {(now - node.owed_since) * 1e3:.1f} ms since a SYNC asked "
+                        f"for one (feedback_timeout {self._feedback_timeout * 1e3:g} ms)"
+                    )
             if cause is None and node.second is not None:
                 cause = self._second_check(node, now)
             if cause is not None:
@@ -1015,6 +1033,7 @@ class CiA402Driver(Driver):
             self._send(can.Message(arbitration_id=node.rpdo_msg.arbitration_id,
                                    is_extended_id=False, data=data))  # fmt: skip
         self._counters["rpdo_frames"] += len(self._nodes)
+        self._owe(self._now)
         self._send(can.Message(arbitration_id=COB_SYNC, is_extended_id=False, data=b""))
         self._counters["sync_frames"] += 1
         for node in self._nodes:
