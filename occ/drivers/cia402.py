@@ -607,6 +607,10 @@ class CiA402Driver(Driver):
             out["last_fault"] = self.last_fault
         return out
 
+    def _default_noise(self) -> Sequence[float] | None:
+        # one count: what a healthy encoder's reading toggles by at rest
+        return [1.0 / abs(n.cpu) for n in self._nodes]
+
     # ------------------------------------------------------------------ configure
     def _configure(self) -> None:
         import canopen
