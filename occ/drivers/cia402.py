@@ -42,7 +42,7 @@ and a SYNC (a synchronous RPDO takes effect at the SYNC, so the ticks between wo
 overwritten unused); ``read`` takes every frame that arrived (the TPDOs the previous SYNC
 brought, EMCYs, heartbeats) without waiting, and, while the driver is not ACTIVE, sends the
 SYNC itself so positions stay readable. The master's heartbeat goes out every quarter of
-``heartbeat_ms``.
+``heartbeat_ms`` (from reads and writes: a drive commanded is not orphaned).
 
 ``deactivate`` (Disable): disable voltage (controlword 0x00). A fault, and the supervisor's
 safe stop (EStop): quick stop (0x02) on every node in the same call (in the RPDOs, with a
@@ -648,6 +648,8 @@ class CiA402Driver(Driver):
         self._pos = [math.nan] * len(self.joints)
         for node in self._nodes:
             node.hb_at = node.tpdo_at = node.owed_since = node.sampled_at = math.nan
+        # a first SYNC: every node's first TPDO is waiting for the first read (where it is)
+        self._sync(rpdos=False)
 
     def _configure_node(self, node: _Node, remote: Any) -> None:
         import canopen
@@ -905,12 +907,16 @@ class CiA402Driver(Driver):
             self._tick += 1
             if self._tick % self._sync_every == 0:
                 self._sync(rpdos=False)
+        self._heartbeat(now)
+        return self._pos, self._vel, self._eff
+
+    def _heartbeat(self, now: float) -> None:
+        """The master's heartbeat, every quarter of ``heartbeat_ms`` of reads and writes."""
         if self._master_hb_s > 0.0:
             last = self._master_hb_at
             if last != last or now - last >= self._master_hb_s:
                 self._master_hb_at = now
                 self._send(self._hb_msg)
-        return self._pos, self._vel, self._eff
 
     def _judge(self, now: float, active: bool) -> str | None:
         """The first fault among the nodes (module docstring, "Faults"), or None."""
@@ -983,6 +989,7 @@ class CiA402Driver(Driver):
         self._tick += 1
         if self._tick % self._sync_every == 0:
             self._sync(rpdos=True)
+        self._heartbeat(now)
 
     # ------------------------------------------------------------------ state machine
     def _activate(self) -> None:
