@@ -285,14 +285,8 @@ class SimHandRig(DriverRig):
     ) -> Driver:
         for j in joints:
             j.gains = PIDGains(kp=2000.0, ki=0.0, kd=80.0)
-        hand = {
-            "hand_stiffness": 0.0,
-            "hand_damping": 0.0,
-            "intent_amplitude": 0.0,
-            "intent_offset": 0.0,
-            "inertia": 0.1,
-            "damping": 1.0,
-        }
+        hand = {"hand_stiffness": 0.0, "hand_damping": 0.0, "intent_amplitude": 0.0,
+                "intent_offset": 0.0, "inertia": 0.1, "damping": 1.0}
         return super().make(joints, {**hand, **(params or {})}, on_limit)
 
 
@@ -678,14 +672,8 @@ CONTROLLER_RIGS: dict[str, ControllerRig] = {
     "teleop-master": ControllerRig(
         CONFIGS / "master.yaml",
         {"input": "sim"},
-        drivers=(
-            {
-                "name": "sim",
-                "plugin": "sim",
-                "joints": ["x", "y", "z"],
-                "params": {"bandwidth_hz": 30.0},
-            },
-        ),
+        drivers=({"name": "sim", "plugin": "sim", "joints": ["x", "y", "z"],
+                  "params": {"bandwidth_hz": 30.0}},),
     ),
     "keyframe": ControllerRig(
         CONFIGS / "keyframe.yaml", {"file": str(CONFIGS / "keyframes" / "demo.yaml")}
