@@ -160,7 +160,7 @@ def run(
                     "tpdo_frames": arm.get("tpdo_frames"),
                 }
             )
-            if snap["state"] == "stopped":
+            if snap["state"] == "STOPPED":
                 command(operator, "Run")  # a late master on a loaded machine: go on
         window = time.monotonic() - t0
         report["cpu_percent"] = {
@@ -180,7 +180,9 @@ def run(
             snap = last
             while time.monotonic() < end:
                 snap = operator.stats()
-                if snap["state"] == "fault":
+                if snap["state"] == "FAULT":
+                    time.sleep(0.2)  # the nodes' TPDOs after the quick stop
+                    snap = operator.stats()
                     break
                 time.sleep(0.1)
             report["fault"] = {
