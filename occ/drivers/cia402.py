@@ -67,7 +67,9 @@ and the cause, and quick-stops every node in that call)
 - no TPDO from a node for ``feedback_timeout`` ms since a SYNC asked for one (a pause of the
   host, when no SYNC went out, is not the node's);
 - a second position sensor that disagrees with the first by more than its ``tolerance`` for
-  longer than its ``latency_ms``.
+  longer than its ``latency_ms``;
+- a bus-off error frame (SocketCAN's error class 0x40; error frames are enabled on SocketCAN
+  and counted in ``error_frames``).
 
 The base class adds its own checks (following error, jump, frozen, limits).
 
@@ -137,6 +139,7 @@ from __future__ import annotations
 
 import logging
 import math
+import socket as _socket
 import struct
 import threading
 import time
@@ -213,6 +216,12 @@ EMCY = struct.Struct("<HB")  # error code, error register
 _BITS = {0x6040: 16, 0x607A: 32, 0x6071: 16, 0x6041: 16, 0x6064: 32, 0x6077: 16, 0x606C: 32}
 _INT32 = (-(2**31), 2**31 - 1)
 _INT16 = (-(2**15), 2**15 - 1)
+
+#: a SocketCAN error frame's bus-off class, the mask of every class, and the socket option
+#: that lets error frames through (linux/can/error.h, linux/can/raw.h)
+CAN_ERR_BUSOFF = 0x40
+CAN_ERR_MASK = 0x1FFFFFFF
+CAN_RAW_ERR_FILTER = 2
 
 # frame kinds in the receive table
 _K_TPDO1, _K_TPDO2, _K_EMCY, _K_HB, _K_SDO = range(5)
@@ -481,7 +490,10 @@ class CiA402Driver(Driver):
             "ignored_frames": 0,
             "quick_stops": 0,
             "fault_resets": 0,
+            "error_frames": 0,
         }
+        #: the identifier of a bus-off error frame not yet acted on (None: none)
+        self._bus_off: int | None = None
         self.last_fault: str | None = None
 
     # ------------------------------------------------------------------ parameters
@@ -619,6 +631,14 @@ class CiA402Driver(Driver):
             bus = can.Bus(**self._bus_args)
         except (can.CanError, OSError, ImportError, ValueError, TypeError) as err:
             raise DriverError(f"{self._where}: cannot open bus {self._bus_args}: {err}") from err
+        sock = getattr(bus, "socket", None)
+        if self._bus_args["interface"] == "socketcan" and sock is not None:
+            try:  # error frames, every class (python-can leaves them off; as the can driver)
+                sock.setsockopt(
+                    _socket.SOL_CAN_RAW, CAN_RAW_ERR_FILTER, struct.pack("=I", CAN_ERR_MASK)
+                )
+            except (OSError, AttributeError) as err:
+                logger.warning("%s: error frames not enabled: %s", self._where, err)
         network = canopen.Network(bus)
         network.NOTIFIER_CYCLE = 0.01  # its reader thread stops within 10 ms
         echo = _EchoFilter(network.listeners[0], self._master_id)
@@ -790,7 +810,12 @@ class CiA402Driver(Driver):
 
     def _take(self, msg: can.Message, now: float) -> None:
         """One received frame (module docstring): its node's state updated."""
-        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+        if msg.is_error_frame:
+            self._counters["error_frames"] += 1
+            if msg.arbitration_id & CAN_ERR_BUSOFF and self._bus_off is None:
+                self._bus_off = msg.arbitration_id
+            return
+        if msg.is_remote_frame or msg.is_extended_id:
             self._counters["ignored_frames"] += 1
             return
         cob = msg.arbitration_id
@@ -920,6 +945,11 @@ class CiA402Driver(Driver):
 
     def _judge(self, now: float, active: bool) -> str | None:
         """The first fault among the nodes (module docstring, "Faults"), or None."""
+        if self._bus_off is not None:
+            return (
+                f"{self._where}: bus-off on {self._bus_args['channel']}: the CAN controller "
+                f"left the bus (error frame {self._bus_off:#x})"
+            )
         t0 = self._t0
         for node in self._nodes:
             cause: str | None = None
@@ -1068,6 +1098,7 @@ class CiA402Driver(Driver):
         if self._bus is None:
             return  # never configured: the base configures it again
         self._drain(self._now)  # what came before the reset was acted on
+        self._bus_off = None
         for node in self._nodes:
             node.emcy_pending = None
             node.second_since = math.nan

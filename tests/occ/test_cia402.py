@@ -591,3 +591,24 @@ def test_the_emulator_command_lines() -> None:
     assert emu.command("bogus").startswith("commands:")
     assert "bad command" in emu.command("emcy")
     assert math.isnan(emu.node(1).fe_since)
+
+
+@pytest.mark.req("SR-HW-33")
+def test_a_bus_off_error_frame_faults_naming_the_bus(rig: Callable[..., Rig]) -> None:
+    import can
+
+    r = rig()
+    r.enabled()
+    r.ticks(4, r.here())
+    with can.Bus(interface="virtual", channel=r.channel) as other:
+        other.send(can.Message(arbitration_id=0x04, is_error_frame=True))  # warning: counted
+        r.tick(r.here())
+        assert r.drv.state is DriverState.ACTIVE and r.drv.stats()["error_frames"] == 1
+        other.send(can.Message(arbitration_id=0x40, is_error_frame=True))  # bus-off
+        err = r.until_fault(3, lambda k: r.here())
+    assert f"bus-off on {r.channel}" in str(err) and "error frame 0x40" in str(err)
+    r.ticks(2)
+    assert all(0x02 in r.emu.node(n).controlwords for n in (1, 2, 3))
+    r.drv.reset()  # the bus-off was acted on: a bus that is back takes a reset
+    r.ticks(2)
+    assert r.drv.state is DriverState.INACTIVE
