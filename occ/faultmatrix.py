@@ -81,6 +81,7 @@ ROWS: tuple[Row, ...] = (
     Row("cia402-fault-bit", "cia402", "running", "CiA 402 statusword fault bit, no EMCY"),
     Row("cia402-heartbeat", "cia402", "running", "CiA 402 node's heartbeat stops"),
     Row("cia402-tpdo-late", "cia402", "running", "CiA 402 TPDOs 50 ms late"),
+    Row("cia402-refuse", "cia402", "enable", "a CiA 402 node that will not enable"),
 )
 #: the CiA 402 rows' node id and encoder (the emulated drive of ``tool``)
 CIA402_NODE = 3
@@ -202,6 +203,8 @@ class _Run:
         self.sim = SimRobot(slave_config(row.backend, at_start, channel), clock=clock)
         if self.node is not None:  # the drive's first answer (to configure's mode-0 frame)
             self.node.wait_feedback(1, timeout=1.0)
+        if self.emulator is not None and row.when != "running":
+            self.inject()  # a fault there before the robot is asked for anything
         self.robot = self.sim.robot
         self.op: SimPeer = self.sim.peer("operator")
         self.viewer: SimPeer = self.sim.peer("slicer")
@@ -279,6 +282,8 @@ class _Run:
                 emu.stop_heartbeat(CIA402_NODE)
             elif row.name == "cia402-tpdo-late":
                 emu.pause_tpdos(CIA402_NODE, 0.050)
+            elif row.name == "cia402-refuse":
+                emu.refuse_enable(CIA402_NODE)
             return
         node = self.node
         assert node is not None

@@ -171,3 +171,11 @@ def test_a_cia402_node_whose_heartbeat_stops_is_caught_by_its_consumer() -> None
 @pytest.mark.req("SR-HW-33")
 def test_cia402_tpdos_later_than_the_feedback_timeout_are_caught() -> None:
     check_running("cia402-tpdo-late", "no TPDO for", when_ms=12.0)
+
+
+@pytest.mark.req("SR-HW-32")
+def test_a_cia402_node_that_will_not_enable_vetoes_enable_and_the_robot_faults() -> None:
+    out = check("cia402-refuse", "enable failed: driver tool: ", when_ms=2.0)
+    assert "node 3 (joint insertion) in SWITCHED ON" in out.enable_reply
+    assert "every node switched off again" in out.enable_reply
+    assert out.alert_operator.startswith("READY -> FAULT: ")  # never ENABLED, never RUNNING
