@@ -1,8 +1,9 @@
 """CANopen CiA 402 servo drives (Maxon EPOS4, Elmo, ...) through the ``canopen`` library.
 
 One driver owns one CAN bus (python-can) and one node per joint. Configuration happens off the
-loop, over SDO; the loop only sends and reads process data (PDOs), SYNC and heartbeats, never
-waiting for an answer.
+loop, over SDO; each tick only sends and reads process data (PDOs), SYNC and heartbeats, never
+waiting for an answer. Only ``activate`` and ``reset`` (Enable, Reset) wait: for the nodes'
+statuswords, over PDOs too, at most ``state_timeout_ms``.
 
 Configuration (``configure``, off the loop)
 ===========================================
