@@ -5,11 +5,13 @@ and what the robot did (docs/SAFETY.md, SR-HW-1; ``tools/fault_matrix.py`` print
 The robot is ``configs/slave.yaml`` (the checkout's, :data:`occ_testkit.CONFIGS`) with its
 joints split over two drives: ``arm`` (yaw, pitch; simulated) and ``tool`` (insertion;
 simulated, or the CAN driver on python-can's ``virtual`` bus talking to
-:class:`~occ.drivers.can_sim.SimulatedDriveNode`). The fault is always in ``tool``; ``arm``
-stays healthy, so a robot that went on moving ``arm`` alone would show. Each run is in simulated
-time on in-process interfaces (:class:`~occ_testkit.testing.SimRobot`), with an operator, a
-viewer (Slicer) and the master streaming a ramp; for the CAN rows each tick waits for the drive
-node's answer, so the bus is real and the run still deterministic.
+:class:`~occ.drivers.can_sim.SimulatedDriveNode`, or the CiA 402 driver talking to
+:class:`~occ.drivers.cia402_sim.DriveEmulator`, settled after every tick). The fault is always
+in ``tool``; ``arm`` stays healthy, so a robot that went on moving ``arm`` alone would show.
+Each run is in simulated time on in-process interfaces (:class:`~occ_testkit.testing.SimRobot`),
+with an operator, a viewer (Slicer) and the master streaming a ramp; for the CAN and CiA 402
+rows each tick waits for the drive node's answer, so the bus is real and the run still
+deterministic.
 
 For every row the run records: when the robot noticed (simulated ms after the injection), how
 many ticks passed from then until every drive was in its safe state (0: the same tick), the
@@ -75,7 +77,16 @@ ROWS: tuple[Row, ...] = (
     Row("can-busoff", "can", "running", "CAN bus-off"),
     Row("can-errors", "can", "running", "CAN error frames"),
     Row("can-dither", "can", "running", "CAN node's stale position toggling by a count"),
+    # issue 38: a CiA 402 drive (the cia402 driver, its emulator on a virtual bus)
+    Row("cia402-emcy", "cia402", "running", "CiA 402 EMCY 0x2310 (overcurrent)"),
+    Row("cia402-fault-bit", "cia402", "running", "CiA 402 statusword fault bit, no EMCY"),
+    Row("cia402-heartbeat", "cia402", "running", "CiA 402 node's heartbeat stops"),
+    Row("cia402-tpdo-late", "cia402", "running", "CiA 402 TPDOs 50 ms late"),
+    Row("cia402-refuse", "cia402", "enable", "a CiA 402 node that will not enable"),
 )
+#: the CiA 402 rows' node id and encoder (the emulated drive of ``tool``)
+CIA402_NODE = 3
+CIA402_COUNTS_PER_M = 2_000_000.0
 
 
 @dataclass
@@ -126,6 +137,21 @@ def slave_config(backend: str, sim_faults: tuple[str, ...] = (), channel: str = 
         tool = shipped.model_copy(
             update={"name": "tool", "joints": ("insertion",), "params": params}
         )
+    elif backend == "cia402":
+        node = {"node_id": CIA402_NODE, "counts_per_unit": CIA402_COUNTS_PER_M}
+        tool = shipped.model_copy(
+            update={
+                "name": "tool",
+                "plugin": "cia402",
+                "joints": ("insertion",),
+                "params": {
+                    "interface": "virtual",
+                    "channel": channel,
+                    "nodes": {"insertion": node},
+                    "feedback_timeout": 10.0,
+                },
+            }
+        )
     else:
         tool = shipped.model_copy(
             update={
@@ -159,6 +185,7 @@ class _Run:
     def __init__(self, row: Row) -> None:
         self.row = row
         self.node: SimulatedDriveNode | None = None
+        self.emulator: Any = None
         channel = f"occ-faults-{next(_channels)}-{id(self)}"
         at_start = row.sim_faults if row.when != "running" else ()
         clock = SimClock()
@@ -167,9 +194,18 @@ class _Run:
             # ticks is one period's, however long the machine took between them
             axis = DriveAxis(can_id=0x101, feedback_id=0x181, position=0.05 * COUNTS_PER_M)
             self.node = SimulatedDriveNode([axis], channel, tau=0.002, clock=clock.now).start()
+        elif row.backend == "cia402":
+            from .drivers.cia402_sim import DriveEmulator
+
+            # the emulated drive on the robot's simulated clock, settled after every tick
+            self.emulator = DriveEmulator([CIA402_NODE], channel=channel, clock=clock.now)
+            self.emulator.node(CIA402_NODE).position = 0.05 * CIA402_COUNTS_PER_M
+            self.emulator.start()
         self.sim = SimRobot(slave_config(row.backend, at_start, channel), clock=clock)
         if self.node is not None:  # the drive's first answer (to configure's mode-0 frame)
             self.node.wait_feedback(1, timeout=1.0)
+        if self.emulator is not None and row.when != "running":
+            self.inject()  # a fault there before the robot is asked for anything
         self.robot = self.sim.robot
         self.op: SimPeer = self.sim.peer("operator")
         self.viewer: SimPeer = self.sim.peer("slicer")
@@ -186,6 +222,8 @@ class _Run:
         self.sim.close()
         if self.node is not None:
             self.node.stop()
+        if self.emulator is not None:
+            self.emulator.stop()
 
     def tick(self, stream: bool = False) -> None:
         node = self.node
@@ -195,6 +233,8 @@ class _Run:
             x = 0.4 * self.seq
             self.master.send_position((0.3 * x, 0.3 * x, -x), seq=self.seq)
         self.sim.tick()
+        if self.emulator is not None:
+            self.emulator.settle()  # its TPDOs are there for the next tick's read
         r = self.robot
         if r.state is RobotState.RUNNING and any(
             d.state is not DriverState.ACTIVE for d in r.hardware.drivers
@@ -233,6 +273,19 @@ class _Run:
                 joint, _, amount = rest.partition(":")
                 self.tool.inject(kind, int(joint or 0), float(amount) if amount else None)
             return
+        emu = self.emulator
+        if emu is not None:
+            if row.name == "cia402-emcy":
+                emu.inject_emcy(CIA402_NODE, 0x2310)
+            elif row.name == "cia402-fault-bit":
+                emu.inject_fault_bit(CIA402_NODE)
+            elif row.name == "cia402-heartbeat":
+                emu.stop_heartbeat(CIA402_NODE)
+            elif row.name == "cia402-tpdo-late":
+                emu.pause_tpdos(CIA402_NODE, 0.050)
+            elif row.name == "cia402-refuse":
+                emu.refuse_enable(CIA402_NODE)
+            return
         node = self.node
         assert node is not None
         if row.name == "can-silent":
@@ -252,6 +305,9 @@ class _Run:
     def repair(self) -> None:
         if self.row.backend == "sim":
             self.tool.clear_faults()
+            return
+        if self.emulator is not None:
+            self.emulator.clear(CIA402_NODE)
             return
         node = self.node
         assert node is not None
@@ -328,7 +384,7 @@ def _play(run: _Run, out: Outcome) -> None:
     # repaired and reset, the robot works again on all of its hardware (a CAN drive's
     # unanswered commands are given up as lost after its ``lost_after``, 100 ms, of quiet)
     run.repair()
-    for _ in range(3 if row.backend == "sim" else 110):
+    for _ in range({"sim": 3, "cia402": 60}.get(row.backend, 110)):
         run.tick()
     if robot.state is not RobotState.READY:
         run.command("Reset")

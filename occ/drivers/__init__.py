@@ -11,8 +11,13 @@ Built in:
 name     target                                what
 =======  ====================================  =====================================
 ``sim``  ``occ.drivers.sim:SimDriver``         simulated second-order joints (default)
-``can``  ``occ.drivers.can:CANDriver``         drives on a CAN bus through python-can
+``can``  ``occ.drivers.can:CANDriver``         drives on a CAN bus speaking this project's own
+                                               simple frame protocol (a lab's own boards)
 =======  ====================================  =====================================
+
+and ``cia402`` (``occ.drivers.cia402:CiA402Driver``): CANopen CiA 402 servo drives (Maxon
+EPOS4, Elmo, ...) through the ``canopen`` library, with its emulator in
+``occ.drivers.cia402_sim``;
 
 and ``sim-hand`` (``occ.drivers.sim_hand:SimHandDriver``): a simulated haptic master in effort
 mode moved by a simulated hand (the OCC paper's test motion as the operator's intention).
@@ -56,6 +61,7 @@ BUILTIN_DRIVERS: dict[str, str] = {
     "sim": "occ.drivers.sim:SimDriver",
     "can": "occ.drivers.can:CANDriver",
     "sim-hand": "occ.drivers.sim_hand:SimHandDriver",
+    "cia402": "occ.drivers.cia402:CiA402Driver",
 }
 
 _REGISTRY: PluginRegistry[Driver] = PluginRegistry(

@@ -212,6 +212,68 @@ class CANRig(DriverRig):
             self.spy.shutdown()
 
 
+class CiA402Rig(DriverRig):
+    """The ``cia402`` driver against the CiA 402 drive emulator (occ/drivers/cia402_sim.py) on
+    a python-can ``virtual`` channel of its own, on the test's clock. The emulator answers SDO
+    and the activation's SYNCs from its thread; :meth:`settle` has it handle, on the test's
+    thread, every frame sent so far (its TPDOs are then queued for the driver)."""
+
+    COUNTS_PER_UNIT = 100_000.0  # 1e-5 rad or m per count: below TOL
+    _channels = itertools.count()
+
+    def __init__(self, plugin: str) -> None:
+        super().__init__(plugin)
+        self.channel = f"occ-contract-cia402-{next(self._channels)}"
+        self.clock = DeviceClock()
+        self.emulator: Any = None
+
+    def params(self, joints: list[Joint]) -> dict[str, Any]:
+        return {
+            "interface": "virtual",
+            "channel": self.channel,
+            "nodes": {
+                j.name: {"node_id": i + 1, "counts_per_unit": self.COUNTS_PER_UNIT}
+                for i, j in enumerate(joints)
+            },
+            # a SYNC every write, whatever the bus load (tests/occ/test_cia402.py checks the
+            # budget); the activation's bound on the wall clock, generous
+            "bus_load_limit": 10.0,
+            "state_timeout_ms": 2000.0,
+        }
+
+    def make(
+        self,
+        joints: list[Joint],
+        params: Mapping[str, Any] | None = None,
+        on_limit: LimitPolicy = "clamp",
+    ) -> Driver:
+        if self.emulator is None:
+            from occ.drivers.cia402_sim import DriveEmulator
+
+            # a servo far faster than a tick: the drive is where it was told at each SYNC
+            self.emulator = DriveEmulator(
+                range(1, len(joints) + 1), channel=self.channel, clock=self.clock,
+                bandwidth_hz=1e6,
+            ).start()  # fmt: skip
+        return super().make(joints, params, on_limit)
+
+    def at(self, now: float) -> None:
+        self.clock.t = now
+
+    def settle(self) -> None:
+        assert self.emulator is not None
+        self.emulator.settle()
+
+    def wait_device(self) -> None:
+        time.sleep(0.001)
+
+    def close(self) -> None:
+        super().close()
+        if self.emulator is not None:
+            self.emulator.stop()
+            assert self.emulator.errors == 0
+
+
 class SimHandRig(DriverRig):
     """``sim-hand`` takes efforts only; under the position contract its joints get PID gains
     (the base turns setpoints into efforts) and the hand lets go (no stiffness, no motion)."""
@@ -242,6 +304,7 @@ DRIVER_RIGS: dict[str, Callable[[str], DriverRig]] = {
     "sim": DriverRig,
     "can": CANRig,
     "sim-hand": SimHandRig,
+    "cia402": CiA402Rig,
 }
 
 

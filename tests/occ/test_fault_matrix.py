@@ -150,3 +150,32 @@ def test_a_can_node_whose_stale_position_dithers_by_a_count_is_caught() -> None:
     # error with the drive's own figures (window 0.2 mm, lag 5 ms; the node's servo trails by
     # 2 ms): 19 ms after the fault; with the generic defaults (0.5 mm, 20 ms) it is 47 ms.
     check_lie("can-dither", "following error", when_ms=20.0)
+
+
+# issue 38: a CiA 402 drive (the cia402 driver and its emulator)
+@pytest.mark.req("SR-HW-33")
+def test_a_cia402_emcy_stops_every_drive_in_the_tick() -> None:
+    check_running("cia402-emcy", "node 3 (joint insertion): EMCY 0x2310 (continuous overcurrent")
+
+
+@pytest.mark.req("SR-HW-33")
+def test_a_cia402_statusword_fault_bit_without_emcy_stops_every_drive() -> None:
+    check_running("cia402-fault-bit", "node 3 (joint insertion): statusword", when_ms=3.0)
+
+
+@pytest.mark.req("SR-HW-33")
+def test_a_cia402_node_whose_heartbeat_stops_is_caught_by_its_consumer() -> None:
+    check_running("cia402-heartbeat", "heartbeat consumer timeout", when_ms=32.0)
+
+
+@pytest.mark.req("SR-HW-33")
+def test_cia402_tpdos_later_than_the_feedback_timeout_are_caught() -> None:
+    check_running("cia402-tpdo-late", "no TPDO for", when_ms=12.0)
+
+
+@pytest.mark.req("SR-HW-32")
+def test_a_cia402_node_that_will_not_enable_vetoes_enable_and_the_robot_faults() -> None:
+    out = check("cia402-refuse", "enable failed: driver tool: ", when_ms=2.0)
+    assert "node 3 (joint insertion) in SWITCHED ON" in out.enable_reply
+    assert "every node switched off again" in out.enable_reply
+    assert out.alert_operator.startswith("READY -> FAULT: ")  # never ENABLED, never RUNNING
