@@ -195,7 +195,7 @@ class _Run:
             axis = DriveAxis(can_id=0x101, feedback_id=0x181, position=0.05 * COUNTS_PER_M)
             self.node = SimulatedDriveNode([axis], channel, tau=0.002, clock=clock.now).start()
         elif row.backend == "cia402":
-            from .drivers.cia402_sim import DriveEmulator
+            from occ.drivers.cia402_sim import DriveEmulator
 
             # the emulated drive on the robot's simulated clock, settled after every tick
             self.emulator = DriveEmulator([CIA402_NODE], channel=channel, clock=clock.now)

@@ -125,8 +125,7 @@ _XYZ = tuple[Float, Float, Float]
 
 class RegionConfig(_Model):
     """A forbidden region of the whole-arm collision check (occ/kinematics/collision.py): patient
-    frame
-    (3D Slicer's RAS), mm."""
+    frame (3D Slicer's RAS), mm."""
 
     name: Name = Field(description="Its name (the refusal and the alert name it).")
     kind: Literal["sphere", "plane", "mesh"] = Field(

@@ -4,8 +4,8 @@ A robot never moves on part of its hardware. Every operation here goes to every 
 reports what failed instead of raising, so the robot decides (:mod:`occ.core.robot`):
 
 =============  ===============================================================================
-operation on failure =============
-===============================================================================
+operation      on failure
+=============  ===============================================================================
 configure      the failed drives are latched FAULT in their base; the robot starts in FAULT
 activate       all or nothing: the drives already powered are switched off again and the
                transition that asked for power (``enable``, ``run`` from STOPPED) is vetoed;

@@ -59,8 +59,8 @@ class Robot:
         self.recorder = recorder
         # --- Joints, Frame, Drivers: the drives as one unit (occ/core/hardware.py); the data
         self.joints, self.frame, self.hardware, self.data, env = wiring.build_drives(self)
-        # : whole-arm collision checking (occ/kinematics/collision.py): plans and, at run time, a
-        # worker
+        # whole-arm collision checking (occ/kinematics/collision.py): plans and, at run time,
+        # a worker
         self.collision = wiring.build_collision(self)
         # --- Interfaces, and the streams among them (polled, judged, one in control)
         self.interfaces, self.collab, self.streams = wiring.build_inputs(config, self.clock)

@@ -8,7 +8,8 @@ narrow private hooks) and on the ros2_control hardware lifecycle::
          |                          |   +---deactivate()-----+
          |                          |
          +--(reset, never configured)--- FAULT <--(hook error, limit with on_limit='fault')
-                                         | +--reset()--> INACTIVE
+                                         |
+                                         +--reset()--> INACTIVE
     any state --shutdown()--> SHUTDOWN   (idempotent; also via the context manager)
 
 * INACTIVE: states are readable (``read``), commands are refused.

@@ -2,8 +2,7 @@
 
 :class:`MasterFixtures` is what the ``teleop-master`` controller holds. It keeps the
 definitions by source (:mod:`occ.haptics.fixture_defs`), the patient-to-master mapping, and the
-active
-:class:`~occ.haptics.fixtures.FixtureSet`; all on the loop thread, all bounded:
+active :class:`~occ.haptics.fixtures.FixtureSet`; all on the loop thread, all bounded:
 
 - a definition message (decoded by the interface thread) is validated and compiled when the
   loop takes it, into a *new* set that replaces the active one in one assignment, so a tick

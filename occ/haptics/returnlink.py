@@ -120,8 +120,8 @@ class ReturnLink:
         self.force: Vec3 | None = None
         #: the torque with it (N m, patient frame, about the slave's sensor), None: none sent
         self.torque: Vec3 | None = None
-        # : the slave's port energy in (J at its instrument, cumulative: occ/haptics/passivity.py)
-        # with : the last tip; None while it sends none
+        #: the slave's port energy in (J at its instrument, cumulative:
+        #: occ/haptics/passivity.py) with the last tip; None while it sends none
         self.energy: float | None = None
         #: the slave's map (handle mm -> patient mm), parsed; None until it sends one
         self.linear: tuple[tuple[float, float, float], ...] | None = None

@@ -141,8 +141,8 @@ def test_the_effort_source_gives_the_contact_force_back() -> None:
         f = ctl.force.estimate(
             sim.now, sim.robot.frame, sim.robot.data.q, sim.robot.data.qdot,
             sim.robot.data.effort, sim.robot.data.base, lambda: sim.robot.data.tip[:3, :3],
-        ) # fmt: skip to 1 mN of 1.5 N: the damped inverse's bias (damping 1e-4 m against a Jacobian
-        whose
+        )  # fmt: skip
+        # to 1 mN of 1.5 N: the damped inverse's bias (damping 1e-4 m against a Jacobian whose
         # smallest singular value is the yaw's 14 mm lever)
         assert f == pytest.approx(env.force_n, abs=1e-3)
         assert math.hypot(*f) > 1.0

@@ -704,7 +704,8 @@ def test_seq_of_a_handmade_recording(handmade: Path, tmp_path: Path) -> None:
     assert set(sequences) == {
         "TipToWorld", "BaseToWorld", "SlaveTipToWorld", "TipForceToWorld",
         "MasterToReference", "BaseToReference", "SlaveTipToReference", "TipForceToReference",
-    } # fmt: skip timestamps from the first frame (the daemon's clock started long before)
+    }  # fmt: skip
+    # timestamps from the first frame (the daemon's clock started long before)
     stamps = sorted(float(v) for v in sequences["TipToWorld"])
     assert stamps == [0.01 * k for k in range(10)]
     # the master's two samples of a tick share its millisecond: the second one stands

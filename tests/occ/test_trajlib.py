@@ -258,7 +258,8 @@ WRITER = textwrap.dedent(
     db.execute("PRAGMA synchronous = FULL")
     db.execute("PRAGMA foreign_keys = ON")
     db.execute("PRAGMA cache_size = 8")  # spill: the uncommitted pages go to the WAL file
-    db.execute("BEGIN IMMEDIATE") db.execute("DELETE FROM keyframe_sets WHERE name = 'demo'")
+    db.execute("BEGIN IMMEDIATE")
+    db.execute("DELETE FROM keyframe_sets WHERE name = 'demo'")
     cur = db.execute(
         "INSERT INTO keyframe_sets (robot, name, config_hash, space, interpolation, mode, "
         "steepness, ramp, duration_s, keyframe_count, joint_names, source, saved_at) "

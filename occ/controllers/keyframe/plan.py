@@ -39,8 +39,8 @@ class ForbiddenCheck(Protocol):
 
 class PathCheck(Protocol):
     """A whole-arm check of a plan's joint path (occ/kinematics/collision.py ``PathCheck``): given
-    the plan's samples (one per loop period, joint values), the base pose (world <- base) and the
-    pacer, None when clear, else (the first sample that fails, what it hits)."""
+    the plan's samples (one per loop period, joint values), the base pose (world <- base) and
+    the pacer, None when clear, else (the first sample that fails, what it hits)."""
 
     def check_path(
         self,
