@@ -149,8 +149,9 @@ def build_motion(
 
 
 def build_collision(robot: Assembling) -> CollisionGuard | None:
-    """The whole-arm collision guard of ``safety.collision`` (occ/kinematics/collision.py), None
-    without one: checked inline in simulated time, on a worker thread of its own on the real clock."""
+    """The whole-arm collision guard of ``safety.collision`` (occ/kinematics/collision.py),
+    None without one: checked inline in simulated time, on a worker thread of its own on the
+    real clock."""
     config = robot.config
     return CollisionGuard.build(
         config.safety.collision,
