@@ -154,6 +154,7 @@ class FeedbackChecks:
         # as the hand (the velocity limit bounds commands), and Enable holds a fresh reading
         jumps = active and self.jump > 0.0
         bad: str | None = None  # the first failed check: returned once every joint is read
+        anchor, changed, noises = self._anchor, self._changed_at, self.noise
         for i, joint in enumerate(self.joints):
             x = positions[i]
             if x - x != 0.0:  # NaN or inf (math.isfinite without a call)
@@ -173,12 +174,19 @@ class FeedbackChecks:
             if joint.measured and judged:
                 if x != joint.position and jumps:
                     why = self._jump(i, joint, x, now)
-                frozen = self._frozen(i, joint, x, now, frozen_s)
-                if frozen:
-                    why = frozen
+                ref = anchor[i]
+                if ref != ref or x - ref > noises[i] or ref - x > noises[i]:
+                    anchor[i] = x  # moved beyond the encoder's noise: not frozen (inlined:
+                    changed[i] = now  # every moving joint, every tick)
+                elif frozen_s > 0.0:  # still for how long (inlined as well)
+                    since = changed[i]
+                    if since != since:
+                        changed[i] = now
+                    elif now - since > frozen_s:
+                        why = self._frozen(i, joint, x, now - since) or why
             else:
-                self._anchor[i] = x
-                self._changed_at[i] = now
+                anchor[i] = x
+                changed[i] = now
             if following and not why:
                 why = self._following_error(i, joint, x, efforts[i], now)
             if why:
@@ -225,27 +233,17 @@ class FeedbackChecks:
             )
         return ""
 
-    def _frozen(self, i: int, joint: Joint, x: float, now: float, frozen_s: float) -> str:
-        """Whether joint ``i``'s reading ``x`` has moved beyond its noise (see "Frozen" in the
-        base's doc; ``frozen_s`` 0: not judged): '' or the fault's words."""
-        noise = self.noise[i]
-        ref = self._anchor[i]
-        changed = self._changed_at
-        if ref != ref or x - ref > noise or ref - x > noise:
-            self._anchor[i] = x  # moved beyond the encoder's noise: not frozen
-            changed[i] = now
-        elif frozen_s > 0.0:
-            since = changed[i]
-            if since != since:
-                changed[i] = now
-            elif now - since > frozen_s:
-                away = joint.command_position - x
-                if away > self._frozen_away[i] or -away > self._frozen_away[i]:
-                    return (
-                        f"joint {joint.name}: feedback frozen at {x:.6g} for "
-                        f"{(now - since) * 1e3:.0f} ms while commanded {away:+.6g} "
-                        f"away (no move beyond its noise, {noise:.3g})"
-                    )
+    def _frozen(self, i: int, joint: Joint, x: float, still_s: float) -> str:
+        """Joint ``i``'s reading ``x``, not moved beyond its noise for ``still_s``, longer
+        than ``frozen_feedback_ms`` (``apply`` checks both, inline; see "Frozen" in the base's
+        doc): frozen ('' not) when the joint is commanded far enough away to move."""
+        away = joint.command_position - x
+        if away > self._frozen_away[i] or -away > self._frozen_away[i]:
+            return (
+                f"joint {joint.name}: feedback frozen at {x:.6g} for {still_s * 1e3:.0f} ms "
+                f"while commanded {away:+.6g} away (no move beyond its noise, "
+                f"{self.noise[i]:.3g})"
+            )
         return ""
 
     def _following_error(self, i: int, joint: Joint, x: float, effort: float, now: float) -> str:

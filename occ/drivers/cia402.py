@@ -126,11 +126,12 @@ period                     0.001            the loop period, s (make it robot.ra
 =========================  ===============  ==============================================
 
 Per node: ``node_id`` (1-127), ``counts_per_unit`` (encoder counts per rad or m; negative for a
-drive mounted reversed), ``eds`` (default configs/eds/drive.eds; a relative path is taken from
-the working directory, else from the project's root), ``rated_torque`` (N m or N at 1000 per
-mille of torque actual/target, default 1.0), ``second_sensor`` (optional: ``{index, subindex,
-counts_per_unit, tolerance, latency_ms}``, a 32-bit object mapped into TPDO 2; tolerance in rad
-or m, default 1 mm or 10 mrad by joint type, latency 5 ms).
+drive mounted reversed), ``eds`` (a path, absolute or from the working directory, or the name
+of an EDS shipped in occ/drivers/eds/: ``drive.eds``, the emulator's, is the default),
+``rated_torque`` (N m or N at 1000 per mille of torque actual/target, default 1.0),
+``second_sensor`` (optional: ``{index, subindex, counts_per_unit, tolerance, latency_ms}``, a
+32-bit object mapped into TPDO 2; tolerance in rad or m, default 1 mm or 10 mrad by joint type,
+latency 5 ms).
 
 Without hardware: ``interface: virtual`` with :class:`occ.drivers.cia402_sim.DriveEmulator` in
 the same process, or ``udp_multicast`` with ``python -m occ.drivers.cia402_sim`` in another.
@@ -140,13 +141,10 @@ from __future__ import annotations
 
 import logging
 import math
-import socket as _socket
 import struct
 import threading
 import time
 from collections.abc import Mapping, Sequence
-from functools import lru_cache
-from pathlib import Path
 from typing import Any
 
 import can
@@ -155,7 +153,6 @@ from occ.drivers.base import CommandInterface, Driver, DriverState, LimitPolicy
 from occ.drivers.cia402_protocol import (
     COB_EMCY,
     COB_HEARTBEAT,
-    COB_RPDO,
     COB_SDO_RX,
     COB_SDO_TX,
     COB_SYNC,
@@ -166,15 +163,24 @@ from occ.drivers.cia402_protocol import (
     CW_QUICK_STOP,
     CW_SHUTDOWN,
     CW_SWITCH_ON,
-    MODE_CSP,
-    MODE_CST,
     NMT_OPERATIONAL,
     NMT_STATES,
     cia402_state,
     emcy_meaning,
-    frame_bits,
     master_sends,
-    sdo_abort_meaning,
+)
+from occ.drivers.cia402_setup import (
+    CAN_ERR_BUSOFF,
+    DEFAULT_EDS,
+    RPDO_CSP,
+    RPDO_CST,
+    Node,
+    bus_load,
+    check_budget,
+    close_network,
+    open_network,
+    parse_nodes,
+    read_settings,
 )
 from occ.errors import DriverError
 from occ.joint import Joint
@@ -183,8 +189,6 @@ __all__ = ["CiA402Driver", "bus_load", "DEFAULT_EDS"]
 
 logger = logging.getLogger(__name__)
 
-_ROOT = Path(__file__).resolve().parents[2]
-DEFAULT_EDS = _ROOT / "configs" / "eds" / "drive.eds"
 
 _DEFAULTS: dict[str, Any] = {
     "interface": "socketcan",
@@ -203,26 +207,9 @@ _DEFAULTS: dict[str, Any] = {
     "command_interface": "position",
     "period": 0.001,
 }
-_NODE_KEYS = {"node_id", "counts_per_unit", "eds", "rated_torque", "second_sensor"}
-_SECOND_KEYS = {"index", "subindex", "counts_per_unit", "tolerance", "latency_ms"}
-_SECOND_TOLERANCE = {"revolute": 0.01, "prismatic": 0.001}
-
-RPDO_CSP = struct.Struct("<Hi")  # controlword, target position (counts)
-RPDO_CST = struct.Struct("<Hh")  # controlword, target torque (per mille)
-TPDO1 = struct.Struct("<Hih")  # statusword, position actual, torque actual
-TPDO2 = struct.Struct("<i")  # velocity actual (counts/s)
-TPDO2_SECOND = struct.Struct("<ii")  # velocity actual, second sensor (counts)
-EMCY = struct.Struct("<HB")  # error code, error register
-#: the objects' sizes in bits as mapped (index, subindex) -> bits
-_BITS = {0x6040: 16, 0x607A: 32, 0x6071: 16, 0x6041: 16, 0x6064: 32, 0x6077: 16, 0x606C: 32}
 _INT32 = (-(2**31), 2**31 - 1)
 _INT16 = (-(2**15), 2**15 - 1)
 
-#: a SocketCAN error frame's bus-off class, the mask of every class, and the socket option
-#: that lets error frames through (linux/can/error.h, linux/can/raw.h)
-CAN_ERR_BUSOFF = 0x40
-CAN_ERR_MASK = 0x1FFFFFFF
-CAN_RAW_ERR_FILTER = 2
 
 # frame kinds in the receive table
 _K_TPDO1, _K_TPDO2, _K_EMCY, _K_HB, _K_SDO = range(5)
@@ -237,132 +224,6 @@ def _saturate(value: float, bounds: tuple[int, int]) -> int:
     if value <= lo:
         return lo
     return int(math.floor(value + 0.5))
-
-
-def _resolve_eds(raw: Any) -> Path:
-    if raw is None:
-        return DEFAULT_EDS
-    path = Path(str(raw))
-    if path.is_absolute() or path.exists():
-        return path
-    beside = _ROOT / path
-    return beside if beside.exists() else path
-
-
-@lru_cache(maxsize=16)
-def _load_od(path: str) -> Any:
-    import canopen
-
-    return canopen.import_od(path)
-
-
-def bus_load(
-    *,
-    nodes: int,
-    period: float,
-    sync_every: int,
-    bitrate: float,
-    effort: bool = False,
-    second_sensors: int = 0,
-    node_heartbeat_ms: float = 10.0,
-    master_heartbeat_ms: float = 12.5,
-) -> tuple[float, str]:
-    """The bus load (a fraction) of ``nodes`` CiA 402 nodes cycled as this driver does, and
-    how it is made up (module docstring, "Bus budget")."""
-    rpdo = frame_bits(RPDO_CST.size if effort else RPDO_CSP.size)
-    tpdo1 = frame_bits(TPDO1.size)
-    tpdo2 = frame_bits(TPDO2.size)
-    tpdo2_second = frame_bits(TPDO2_SECOND.size)
-    sync = frame_bits(0)
-    per_cycle = nodes * (rpdo + tpdo1 + tpdo2) + second_sensors * (tpdo2_second - tpdo2) + sync
-    cycle_s = period * sync_every
-    bits_per_s = per_cycle / cycle_s
-    heartbeat = frame_bits(1)
-    if node_heartbeat_ms > 0:
-        bits_per_s += nodes * heartbeat / (node_heartbeat_ms * 1e-3)
-    if master_heartbeat_ms > 0:
-        bits_per_s += heartbeat / (master_heartbeat_ms * 1e-3)
-    load = bits_per_s / bitrate
-    detail = (
-        f"{nodes} node{'s' if nodes != 1 else ''} x (RPDO {rpdo} + TPDO1 {tpdo1} + TPDO2 "
-        f"{tpdo2} bits) + SYNC {sync} bits every {cycle_s * 1e3:g} ms, plus heartbeats: "
-        f"{bits_per_s / 1e3:.0f} kbit/s of {bitrate / 1e3:g} kbit/s (worst-case frames, "
-        f"55 + 10 x bytes bits)"
-    )
-    return load, detail
-
-
-class _Node:
-    """What the driver knows of one node (joint ``index``)."""
-
-    __slots__ = (
-        "index", "node_id", "joint", "cpu", "torque_scale", "eds", "od", "second",
-        "statusword", "nmt", "hb_at", "tpdo_at", "emcy_pending", "last_emcy", "counts",
-        "second_counts", "second_since", "tpdo1", "tpdo2", "emcys", "heartbeats",
-        "target", "rpdo", "rpdo_msg", "cw", "owed_since", "sampled_at",
-    )  # fmt: skip
-
-    def __init__(self, index: int, joint: Joint, spec: Mapping[str, Any], effort: bool) -> None:
-        self.index = index
-        self.joint = joint.name
-        self.node_id = int(spec["node_id"])
-        self.cpu = float(spec["counts_per_unit"])
-        rated = float(spec.get("rated_torque", 1.0))
-        # per mille -> effort units, in the joint's sense (reversed with its counts)
-        self.torque_scale = rated / 1000.0 * (1.0 if self.cpu > 0.0 else -1.0)
-        self.eds = _resolve_eds(spec.get("eds"))
-        self.od: Any = None
-        self.second: tuple[int, int, float, float, float] | None = None
-        self.rpdo = bytearray((RPDO_CST if effort else RPDO_CSP).size)
-        self.rpdo_msg = can.Message(
-            arbitration_id=COB_RPDO[0] + self.node_id, is_extended_id=False, data=self.rpdo
-        )
-        self.cw = CW_DISABLE_VOLTAGE
-        self.target = 0
-        self.forget()
-        self.hb_at = math.nan
-        self.tpdo_at = math.nan
-        #: the now of the first SYNC sent since this node's last TPDO 1 (NaN: none owed)
-        self.owed_since = math.nan
-        #: when the drive sampled its newest TPDO 1: the SYNC it answered (else its arrival)
-        self.sampled_at = math.nan
-
-    def forget(self) -> None:
-        """What a new configuration starts without."""
-        self.statusword: int | None = None
-        self.nmt: int | None = None
-        self.emcy_pending: tuple[int, int] | None = None
-        self.last_emcy: tuple[int, int] | None = None
-        self.counts: int | None = None
-        self.second_counts: int | None = None
-        self.second_since = math.nan
-        self.tpdo1 = self.tpdo2 = self.emcys = self.heartbeats = 0
-
-    @property
-    def where(self) -> str:
-        return f"node {self.node_id} (joint {self.joint})"
-
-    def state(self) -> str:
-        sw = self.statusword
-        return "NO STATUSWORD YET" if sw is None else cia402_state(sw)
-
-
-class _EchoFilter(can.Listener):
-    """canopen's listener, minus the frames only a master sends (its own, echoed)."""
-
-    def __init__(self, inner: can.Listener, master_id: int) -> None:
-        self.inner = inner
-        self.master_id = master_id
-        self.dropped = 0
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if master_sends(msg.arbitration_id, self.master_id):
-            self.dropped += 1
-            return
-        self.inner.on_message_received(msg)
-
-    def stop(self) -> None:
-        self.inner.stop()
 
 
 class CiA402Driver(Driver):
@@ -383,81 +244,23 @@ class CiA402Driver(Driver):
         p = self.params
         where = f"cia402 driver {name!r}"
         self._where = where
-        self._bus_args: dict[str, Any] = {
-            "interface": p["interface"],
-            "channel": p["channel"],
-            "bitrate": int(p["bitrate"]),
-            **dict(p["bus_kwargs"] or {}),
-        }
         self._effort = self.command_interface == "effort"
-        self._sync_every = int(p["sync_every"])
-        if self._sync_every < 1:
-            raise ValueError(f"{where}: sync_every must be an integer >= 1")
-        cycle = self.period * self._sync_every
-        self._feedback_timeout = float(p["feedback_timeout"]) * 1e-3
-        if not self._feedback_timeout > cycle:
-            raise ValueError(
-                f"{where}: feedback_timeout {p['feedback_timeout']} ms must exceed the SYNC "
-                f"period ({cycle * 1e3:g} ms: period x sync_every)"
-            )
-        self._node_hb_ms = int(p["node_heartbeat_ms"])
-        self._node_hb_timeout = float(p["node_heartbeat_timeout_ms"]) * 1e-3
-        if (
-            not 0 < self._node_hb_ms <= 0xFFFF
-            or not self._node_hb_timeout > self._node_hb_ms * 1e-3
-        ):
-            raise ValueError(
-                f"{where}: node_heartbeat_ms must be 1-65535 and node_heartbeat_timeout_ms "
-                f"above it, got {p['node_heartbeat_ms']} and {p['node_heartbeat_timeout_ms']}"
-            )
-        self._master_id = int(p["master_node_id"])
-        if not 1 <= self._master_id <= 127:
-            raise ValueError(f"{where}: master_node_id must be 1-127")
-        hb_ms = round(self.heartbeat_s * 1e3)
-        if hb_ms > 0xFFFF:
-            raise ValueError(f"{where}: heartbeat_ms must be <= 65535, got {hb_ms}")
-        self._consumer_ms = hb_ms  # the drives' consumer time of the master's heartbeat
-        self._master_hb_s = self.heartbeat_s / 4.0
-        self._sdo_timeout = float(p["sdo_timeout_ms"]) * 1e-3
-        self._state_timeout = float(p["state_timeout_ms"]) * 1e-3
-        if not (self._sdo_timeout > 0.0 and self._state_timeout > 0.0):
-            raise ValueError(f"{where}: sdo_timeout_ms and state_timeout_ms must be > 0")
-        self._nodes = self._parse_nodes(p["nodes"])
+        st = read_settings(where, p, self.period, self.heartbeat_s, self._effort)
+        self._settings = st
+        self._bus_args = st.bus_args
+        self._sync_every = st.sync_every
+        self._feedback_timeout = st.feedback_timeout
+        self._node_hb_ms, self._node_hb_timeout = st.node_hb_ms, st.node_hb_timeout
+        self._master_id = st.master_id
+        self._consumer_ms, self._master_hb_s = st.consumer_ms, st.master_hb_s
+        self._sdo_timeout, self._state_timeout = st.sdo_timeout, st.state_timeout
+        self._nodes = parse_nodes(where, self.joints, p["nodes"], self._effort, self._master_id)
         # the bus budget (module docstring)
-        limit = float(p["bus_load_limit"])
-        seconds = sum(1 for n in self._nodes if n.second is not None)
-        hb_master_ms = self._master_hb_s * 1e3
-
-        def load_at(every: int, nodes: int = len(self._nodes)) -> tuple[float, str]:
-            return bus_load(
-                nodes=nodes, period=self.period, sync_every=every,
-                bitrate=self._bus_args["bitrate"], effort=self._effort,
-                second_sensors=min(seconds, nodes), node_heartbeat_ms=self._node_hb_ms,
-                master_heartbeat_ms=hb_master_ms,
-            )  # fmt: skip
-
-        self.bus_load, detail = load_at(self._sync_every)
-        if self.bus_load > limit:
-            fits = next(
-                (k for k in range(self._sync_every + 1, 11) if load_at(k)[0] <= limit), None
-            )
-            most = max(
-                (k for k in range(1, len(self._nodes)) if load_at(self._sync_every, k)[0] <= limit),
-                default=0,
-            )
-            advice = [
-                f"at most {most} node{'s' if most > 1 else ''} per bus at this rate"
-                if most
-                else "a faster bus"
-            ]
-            if fits is not None:
-                advice.append(f"sync_every: {fits} ({load_at(fits)[0]:.0%})")
-            raise ValueError(
-                f"{where}: bus load {self.bus_load:.0%} exceeds bus_load_limit {limit:.0%}: "
-                f"{detail}; use " + ", or ".join(advice)
-            )
+        self.bus_load = check_budget(
+            where, st, self._nodes, self.period, float(p["bus_load_limit"])
+        )
         n = len(self.joints)
-        self._rx: dict[int, tuple[int, _Node]] = {}
+        self._rx: dict[int, tuple[int, Node]] = {}
         for node in self._nodes:
             nid = node.node_id
             self._rx[COB_TPDO[0] + nid] = (_K_TPDO1, node)
@@ -497,98 +300,6 @@ class CiA402Driver(Driver):
         self._bus_off: int | None = None
         self.last_fault: str | None = None
 
-    # ------------------------------------------------------------------ parameters
-    def _parse_nodes(self, spec: Any) -> list[_Node]:
-        where = self._where
-        if not isinstance(spec, Mapping):
-            raise ValueError(
-                f"{where}: params['nodes'] is required: {{joint: {{node_id, counts_per_unit, "
-                f"eds}}}} for joints {self.joint_names}"
-            )
-        names = self.joint_names
-        missing = [j for j in names if j not in spec]
-        unknown = sorted(set(map(str, spec)) - set(names))
-        if missing or unknown:
-            raise ValueError(f"{where}: nodes: missing joints {missing}, unknown {unknown}")
-        nodes: list[_Node] = []
-        for i, joint in enumerate(self.joints):
-            entry = spec[joint.name]
-            if not isinstance(entry, Mapping):
-                raise ValueError(f"{where}: nodes.{joint.name} must be a mapping, got {entry!r}")
-            extra = sorted(set(map(str, entry)) - _NODE_KEYS)
-            if extra:
-                raise ValueError(
-                    f"{where}: nodes.{joint.name}: unknown keys {extra}; "
-                    f"known: {sorted(_NODE_KEYS)}"
-                )
-            try:
-                node = _Node(i, joint, entry, self._effort)
-            except (KeyError, TypeError, ValueError) as err:
-                raise ValueError(
-                    f"{where}: nodes.{joint.name}: needs node_id and counts_per_unit ({err!r})"
-                ) from err
-            if not 1 <= node.node_id <= 127 or node.node_id == self._master_id:
-                raise ValueError(
-                    f"{where}: nodes.{joint.name}: node_id {node.node_id} must be 1-127 and not "
-                    f"the master's ({self._master_id})"
-                )
-            if node.cpu == 0.0 or not math.isfinite(node.cpu):
-                raise ValueError(f"{where}: nodes.{joint.name}: counts_per_unit must be != 0")
-            if not node.eds.is_file():
-                raise ValueError(
-                    f"{where}: nodes.{joint.name}: eds file {str(node.eds)!r} not found"
-                )
-            try:
-                node.od = _load_od(str(node.eds))
-            except Exception as err:  # noqa: BLE001 - a broken EDS, whatever the parser says
-                raise ValueError(
-                    f"{where}: nodes.{joint.name}: eds {str(node.eds)!r} does not load: {err}"
-                ) from err
-            needed = [0x1000, 0x1016, 0x1017, 0x1400, 0x1600, 0x1800, 0x1801, 0x1A00, 0x1A01,
-                      0x6040, 0x6041, 0x6060, 0x6064, 0x606C, 0x6077, 0x60C2,
-                      0x6071 if self._effort else 0x607A]  # fmt: skip
-            absent = [f"{k:#06x}" for k in needed if k not in node.od]
-            if absent:
-                raise ValueError(
-                    f"{where}: nodes.{joint.name}: eds {str(node.eds)!r} lacks objects {absent}"
-                )
-            second = entry.get("second_sensor")
-            if second is not None:
-                node.second = self._parse_second(joint, node, second)
-            nodes.append(node)
-        ids = [n.node_id for n in nodes]
-        if len(set(ids)) != len(ids):
-            raise ValueError(f"{where}: node_id values must be distinct, got {ids}")
-        return nodes
-
-    def _parse_second(
-        self, joint: Joint, node: _Node, raw: Any
-    ) -> tuple[int, int, float, float, float]:
-        where = f"{self._where}: nodes.{joint.name}.second_sensor"
-        if not isinstance(raw, Mapping) or "index" not in raw or "counts_per_unit" not in raw:
-            raise ValueError(
-                f"{where}: a mapping {{index, subindex, counts_per_unit, tolerance, "
-                f"latency_ms}} is needed, got {raw!r}"
-            )
-        extra = sorted(set(map(str, raw)) - _SECOND_KEYS)
-        if extra:
-            raise ValueError(f"{where}: unknown keys {extra}; known: {sorted(_SECOND_KEYS)}")
-        index, sub = int(raw["index"]), int(raw.get("subindex", 0))
-        cpu = float(raw["counts_per_unit"])
-        tol = float(raw.get("tolerance", _SECOND_TOLERANCE.get(joint.type, 0.01)))
-        latency = float(raw.get("latency_ms", 5.0)) * 1e-3
-        if cpu == 0.0 or not math.isfinite(cpu) or not tol > 0.0 or not latency >= 0.0:
-            raise ValueError(
-                f"{where}: counts_per_unit != 0, tolerance > 0 and latency_ms >= 0 are needed"
-            )
-        var = node.od.get_variable(index, sub)
-        if var is None or not var.pdo_mappable or var.data_type not in (0x4, 0x7):
-            raise ValueError(
-                f"{where}: object {index:#06x}:{sub:02x} is not a mappable 32-bit object of "
-                f"{str(node.eds)!r}"
-            )
-        return index, sub, cpu, tol, latency
-
     # ------------------------------------------------------------------ statistics
     def stats(self) -> dict[str, Any]:  # type: ignore[override]
         """Base counters, the frame counters, the bus load, and per joint its node: the
@@ -596,26 +307,7 @@ class CiA402Driver(Driver):
         out: dict[str, Any] = dict(super().stats())
         out.update(self._counters)
         out["bus_load"] = round(self.bus_load, 3)
-        nodes: dict[str, Any] = {}
-        for node in self._nodes:
-            emcy = node.last_emcy
-            nodes[node.joint] = {
-                "node_id": node.node_id,
-                "cia402": node.state(),
-                "statusword": None if node.statusword is None else f"{node.statusword:#06x}",
-                "nmt": None if node.nmt is None else NMT_STATES.get(node.nmt, hex(node.nmt)),
-                "last_emcy": None
-                if emcy is None
-                else {
-                    "code": f"{emcy[0]:#06x}",
-                    "meaning": emcy_meaning(emcy[0]),
-                    "register": f"{emcy[1]:#04x}",
-                },  # fmt: skip
-                "tpdos": node.tpdo1 + node.tpdo2,
-                "emcys": node.emcys,
-                "heartbeats": node.heartbeats,
-            }
-        out["nodes"] = nodes
+        out["nodes"] = {node.joint: node.stats() for node in self._nodes}
         if self.last_fault is not None:
             out["last_fault"] = self.last_fault
         return out
@@ -626,41 +318,8 @@ class CiA402Driver(Driver):
 
     # ------------------------------------------------------------------ configure
     def _configure(self) -> None:
-        import canopen
-
-        try:
-            bus = can.Bus(**self._bus_args)
-        except (can.CanError, OSError, ImportError, ValueError, TypeError) as err:
-            raise DriverError(f"{self._where}: cannot open bus {self._bus_args}: {err}") from err
-        sock = getattr(bus, "socket", None)
-        if self._bus_args["interface"] == "socketcan" and sock is not None:
-            try:  # error frames, every class (python-can leaves them off; as the can driver)
-                sock.setsockopt(
-                    _socket.SOL_CAN_RAW, CAN_RAW_ERR_FILTER, struct.pack("=I", CAN_ERR_MASK)
-                )
-            except (OSError, AttributeError) as err:
-                logger.warning("%s: error frames not enabled: %s", self._where, err)
-        network = canopen.Network(bus)
-        network.NOTIFIER_CYCLE = 0.01  # its reader thread stops within 10 ms
-        echo = _EchoFilter(network.listeners[0], self._master_id)
-        network.listeners = [echo]  # type: ignore[list-item]  # any can.Listener will do
-        try:
-            network.connect()
-            for node in self._nodes:
-                node.forget()
-                remote = canopen.RemoteNode(node.node_id, node.od)
-                network.add_node(remote)
-                remote.sdo.RESPONSE_TIMEOUT = self._sdo_timeout
-                self._configure_node(node, remote)
-            for node in self._nodes:
-                network[node.node_id].nmt.send_command(0x01)  # NMT start
-        except BaseException:
-            self._close(network, bus)
-            raise
-        notifier, network.notifier = network.notifier, None
-        if notifier is not None:
-            notifier.stop(1.0)  # from here on the loop reads the bus itself (read)
-        self._counters["echoes"] += echo.dropped
+        bus, network, echoes = open_network(self._where, self._settings, self._nodes, self.period)
+        self._counters["echoes"] += echoes
         self._bus = bus
         self._network = network
         self._tick = 0
@@ -672,103 +331,11 @@ class CiA402Driver(Driver):
         # a first SYNC: every node's first TPDO is waiting for the first read (where it is)
         self._sync(rpdos=False)
 
-    def _configure_node(self, node: _Node, remote: Any) -> None:
-        import canopen
-
-        nid = node.node_id
-        remote.nmt.send_command(0x80)  # enter pre-operational: PDOs stop, SDO answers
-        try:
-            device = int.from_bytes(remote.sdo.upload(0x1000, 0), "little")
-        except canopen.SdoAbortedError as err:
-            raise self._sdo_error(node, 0x1000, 0, "device type", "read", err) from err
-        except (canopen.SdoCommunicationError, can.CanError) as err:
-            raise self._sdo_error(node, 0x1000, 0, "device type", "read", err) from err
-        if device & 0xFFFF != 402:
-            raise DriverError(
-                f"{self._where}: {node.where}: device type {device:#010x} is not a CiA 402 "
-                f"drive (profile {device & 0xFFFF}, not 402)"
-            )
-        mode = MODE_CST if self._effort else MODE_CSP
-        target = 0x6071 if self._effort else 0x607A
-
-        def entry(index: int, sub: int = 0, bits: int | None = None) -> int:
-            return (index << 16) | (sub << 8) | (bits if bits is not None else _BITS[index])
-
-        tpdo2 = [entry(0x606C)]
-        if node.second is not None:
-            tpdo2.append(entry(node.second[0], node.second[1], 32))
-        period_value, period_index = _interpolation_period(self.period * self._sync_every)
-        writes: list[tuple[int, int, int]] = []
-        for k in range(4):  # every PDO off while remapped
-            writes.append((0x1400 + k, 1, 0x80000000 | (COB_RPDO[k] + nid)))
-            writes.append((0x1800 + k, 1, 0x80000000 | (COB_TPDO[k] + nid)))
-        for mapping, entries in (
-            (0x1600, [entry(0x6040), entry(target)]),
-            (0x1A00, [entry(0x6041), entry(0x6064), entry(0x6077)]),
-            (0x1A01, tpdo2),
-        ):
-            writes.append((mapping, 0, 0))
-            writes.extend((mapping, s, e) for s, e in enumerate(entries, 1))
-            writes.append((mapping, 0, len(entries)))
-        writes += [
-            (0x1400, 2, 1),  # synchronous
-            (0x1400, 1, COB_RPDO[0] + nid),
-            (0x1800, 2, 1),
-            (0x1800, 1, COB_TPDO[0] + nid),
-            (0x1801, 2, 1),
-            (0x1801, 1, COB_TPDO[1] + nid),
-            (0x6060, 0, mode),
-            (0x60C2, 1, period_value),
-            (0x60C2, 2, period_index),
-            (0x1017, 0, self._node_hb_ms),
-            (0x1016, 1, (self._master_id << 16) | self._consumer_ms),
-        ]
-        for index, sub, value in writes:
-            var = node.od.get_variable(index, sub)
-            name = var.name if var is not None else "?"
-            try:
-                if var is None:
-                    raise DriverError(
-                        f"{self._where}: {node.where}: the EDS {str(node.eds)!r} has no object "
-                        f"{index:#06x}:{sub:02x}"
-                    )
-                remote.sdo.download(index, sub, var.encode_raw(value))
-            except canopen.SdoAbortedError as err:
-                raise self._sdo_error(node, index, sub, name, f"write {value:#x}", err) from err
-            except (canopen.SdoCommunicationError, can.CanError) as err:
-                raise self._sdo_error(node, index, sub, name, f"write {value:#x}", err) from err
-
-    def _sdo_error(
-        self, node: _Node, index: int, sub: int, name: str, what: str, err: Exception
-    ) -> DriverError:
-        code = getattr(err, "code", None)
-        if code is not None:
-            cause = f"aborted by the node with {code:#010x}: {sdo_abort_meaning(code)}"
-        elif isinstance(err, can.CanError):
-            cause = f"not sent: {err}"
-        else:
-            cause = f"no answer within {self._sdo_timeout * 1e3:.0f} ms (SDO timeout: {err})"
-        return DriverError(
-            f"{self._where}: {node.where}: configure: SDO {what} to {index:04X}:{sub:02X} "
-            f"({name}) {cause}"
-        )
-
-    @staticmethod
-    def _close(network: Any, bus: can.BusABC) -> None:
-        notifier = getattr(network, "notifier", None)
-        if notifier is not None:
-            network.notifier = None
-            try:
-                notifier.stop(1.0)
-            except Exception:  # noqa: BLE001 - closing anyway
-                logger.exception("cia402: notifier did not stop")
-        bus.shutdown()
-
     def _shutdown(self) -> None:
         bus, self._bus = self._bus, None
         network, self._network = self._network, None
         if bus is not None:
-            self._close(network, bus)
+            close_network(network, bus)
 
     # ------------------------------------------------------------------ frames
     def _send(self, msg: can.Message) -> None:
@@ -783,12 +350,12 @@ class CiA402Driver(Driver):
                 f"{self._where}: send of {msg.arbitration_id:#05x} failed: {err}"
             ) from err
 
-    def _pack(self, node: _Node, cw: int, target: int) -> None:
+    def _pack(self, node: Node, cw: int, target: int) -> None:
         node.cw = cw
         node.target = target
         (RPDO_CST if self._effort else RPDO_CSP).pack_into(node.rpdo, 0, cw, target)
 
-    def _hold_target(self, node: _Node) -> int:
+    def _hold_target(self, node: Node) -> int:
         """What an RPDO commands while not servoing: the measured position (CSP) or 0 (CST)."""
         if self._effort:
             return 0
@@ -827,50 +394,29 @@ class CiA402Driver(Driver):
             return
         kind, node = found
         data = msg.data
+        counters = self._counters
         if kind == _K_TPDO1:
-            if len(data) < TPDO1.size:
-                self._counters["ignored_frames"] += 1
+            got = node.take_tpdo1(data, now)
+            if got is None:
+                counters["ignored_frames"] += 1
                 return
-            sw, counts, torque = TPDO1.unpack_from(data)
-            node.statusword = sw
-            node.counts = counts
             i = node.index
-            self._pos[i] = counts / node.cpu
-            self._eff[i] = torque * node.torque_scale
-            node.tpdo_at = now
-            owed = node.owed_since
-            node.sampled_at = owed if owed == owed else now
-            node.owed_since = math.nan
-            node.tpdo1 += 1
-            self._counters["tpdo_frames"] += 1
+            self._pos[i], self._eff[i] = got
+            counters["tpdo_frames"] += 1
         elif kind == _K_TPDO2:
-            if node.second is not None and len(data) >= TPDO2_SECOND.size:
-                vel, node.second_counts = TPDO2_SECOND.unpack_from(data)
-            elif len(data) >= TPDO2.size:
-                (vel,) = TPDO2.unpack_from(data)
-            else:
-                self._counters["ignored_frames"] += 1
+            vel = node.take_tpdo2(data)
+            if vel is None:
+                counters["ignored_frames"] += 1
                 return
-            self._vel[node.index] = vel / node.cpu
-            node.tpdo2 += 1
-            self._counters["tpdo_frames"] += 1
+            self._vel[node.index] = vel
+            counters["tpdo_frames"] += 1
         elif kind == _K_EMCY:
-            if len(data) < EMCY.size:
-                self._counters["ignored_frames"] += 1
+            if not node.take_emcy(data):
+                counters["ignored_frames"] += 1
                 return
-            code, register = EMCY.unpack_from(data)
-            node.emcys += 1
-            self._counters["emcy_frames"] += 1
-            if code != 0:  # 0: the node's error reset
-                node.last_emcy = (code, register)
-                if node.emcy_pending is None:
-                    node.emcy_pending = (code, register)
-        elif kind == _K_HB:
-            if data:
-                node.nmt = data[0] & 0x7F
-                node.hb_at = now
-                node.heartbeats += 1
-                self._counters["heartbeat_frames"] += 1
+            counters["emcy_frames"] += 1
+        elif kind == _K_HB and node.take_heartbeat(data, now):
+            counters["heartbeat_frames"] += 1
         # _K_SDO: a late SDO answer from configure: nothing to do
 
     def _drain(self, now: float, limit: int = 0) -> int:
@@ -981,33 +527,10 @@ class CiA402Driver(Driver):
                         f"for one (feedback_timeout {self._feedback_timeout * 1e3:g} ms)"
                     )
             if cause is None and node.second is not None:
-                cause = self._second_check(node, now)
+                cause = node.second_check(self._pos[node.index], now)
             if cause is not None:
                 return f"{self._where}: {node.where}: {cause}"
         return None
-
-    def _second_check(self, node: _Node, now: float) -> str | None:
-        assert node.second is not None
-        first = self._pos[node.index]
-        counts = node.second_counts
-        if counts is None or first != first:
-            return None
-        _, _, cpu, tol, latency = node.second
-        second = counts / cpu
-        distance = abs(first - second)
-        if distance <= tol:
-            node.second_since = math.nan
-            return None
-        since = node.second_since
-        if since != since:
-            node.second_since = since = now
-        if now - since <= latency:
-            return None
-        return (
-            f"joint {node.joint}: second position sensor disagrees by {distance:.6g} "
-            f"(first {first:.6g}, second {second:.6g}; tolerance {tol:g} for more than "
-            f"latency_ms {latency * 1e3:g}, now {(now - since) * 1e3:.1f} ms)"
-        )
 
     def _write(self, values: Sequence[float], now: float) -> None:
         self._now = now
@@ -1144,13 +667,3 @@ class CiA402Driver(Driver):
                     f"{self._where}: fault reset refused within "
                     f"{self._state_timeout * 1e3:g} ms: {'; '.join(words)}"
                 )
-        self.last_fault = None
-
-
-def _interpolation_period(seconds: float) -> tuple[int, int]:
-    """0x60C2's (value, index): ``seconds = value x 10^index``, value 1-255."""
-    for index in (-3, -4, -5, -6):
-        value = seconds / 10.0**index
-        if abs(value - round(value)) < 1e-6 and 1 <= round(value) <= 255:
-            return round(value), index
-    raise ValueError(f"interpolation period {seconds} s cannot be written to 0x60C2")

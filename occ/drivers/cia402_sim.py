@@ -1,8 +1,8 @@
 """A CiA 402 servo drive emulator: CANopen slave nodes on a python-can bus.
 
 One :class:`DriveEmulator` plays one or more drives (node ids) on one bus. Each node's object
-dictionary comes from an EDS (``canopen.import_od``; configs/eds/drive.eds by default) and it
-answers as a CiA 301/402 slave would:
+dictionary comes from an EDS (``canopen.import_od``; by default occ/drivers/eds/drive.eds,
+shipped as package data) and it answers as a CiA 301/402 slave would:
 
 - **NMT**: boot-up message, then PRE-OPERATIONAL; start, stop, enter pre-operational, reset
   node and reset communication (both back to PRE-OPERATIONAL). A heartbeat on every state
@@ -47,7 +47,7 @@ interpolation period, once per SYNC.
 Run as a process (udp_multicast: every process on the host that opens the group is on the bus)::
 
     python -m occ.drivers.cia402_sim --interface udp_multicast --channel 239.74.163.2 \\
-        --nodes 1,2,3 --eds configs/eds/drive.eds
+        --nodes 1,2,3 --eds occ/drivers/eds/drive.eds
 
 and type fault commands on its standard input, one a line (``help`` lists them)::
 
@@ -100,13 +100,12 @@ from occ.drivers.cia402_protocol import (
     SW_VOLTAGE_ENABLED,
     emcy_meaning,
 )
+from occ.drivers.cia402_setup import DEFAULT_EDS
 
 __all__ = ["DriveEmulator", "EmulatedNode", "DEFAULT_EDS", "main"]
 
 logger = logging.getLogger(__name__)
 
-#: the EDS shipped with the project (the driver's default too)
-DEFAULT_EDS = Path(__file__).resolve().parents[2] / "configs" / "eds" / "drive.eds"
 
 # CiA 402 states, as statusword state bits
 NOT_READY = 0x0000

@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 
 from occ.drivers import DriverState, create_driver
-from occ.drivers.cia402 import CiA402Driver, bus_load
+from occ.drivers.cia402 import DEFAULT_EDS, CiA402Driver, bus_load
 from occ.drivers.cia402_protocol import (
     COB_SYNC,
     NMT_PRE_OPERATIONAL,
@@ -34,7 +34,7 @@ from occ.errors import DriverError, StateError
 from occ.joint import Joint, JointLimits
 
 ROOT = Path(__file__).resolve().parents[2]
-EDS = ROOT / "configs" / "eds" / "drive.eds"
+EDS = DEFAULT_EDS  # shipped with the driver (package data)
 _channels = itertools.count()
 DT = 0.001
 
