@@ -3,7 +3,10 @@
 One driver owns one CAN bus (python-can) and one node per joint. Configuration happens off the
 loop, over SDO; each tick only sends and reads process data (PDOs), SYNC and heartbeats, never
 waiting for an answer. Only ``activate`` and ``reset`` (Enable, Reset) wait: for the nodes'
-statuswords, over PDOs too, at most ``state_timeout_ms``.
+statuswords, over PDOs too, at most ``state_timeout_ms``. The driver says so
+(``activation_waits = True``): the robot runs its ``activate`` on a thread of its own while the
+loop goes on ticking, and touches the driver again only once it has ended (occ/core/powerup.py);
+``reset`` still runs in the tick of the Reset.
 
 Configuration (``configure``, off the loop)
 ===========================================
@@ -37,6 +40,16 @@ statusword of the TPDO it brings), holding each joint's measured position as its
 that is not OPERATION ENABLED within ``state_timeout_ms`` (or is in FAULT) makes activate raise
 naming it and its state, and every node is switched off again (controlword 0x00): Enable is
 vetoed.
+
+Off the loop thread: while activate waits, the loop neither reads nor writes the driver, so
+activate sends the master's heartbeat itself (every quarter of ``heartbeat_ms`` of wall clock:
+a node already enabled must not find its master silent) and, between its steps and every 10 ms
+of a wait, looks at the base's ``activation_cancelled``: a cancel (Disable) or a safe stop
+(EStop, Fault, the supervisor) asked from another thread switches every node off at once
+(0x00) and ends it; the base then leaves the driver INACTIVE (cancel), or latches FAULT and
+quick-stops every node (safe stop). The frames it took are stamped with the last read's
+``now`` (the driver has no clock of its own): the first read after it counts the heartbeats'
+and owed TPDOs' ages from its own ``now``.
 
 Each tick: ``write`` packs each node's RPDO and, every ``sync_every``-th tick, sends the RPDOs
 and a SYNC (a synchronous RPDO takes effect at the SYNC, so the ticks between would be
@@ -370,6 +383,8 @@ class CiA402Driver(Driver):
 
     supported_interfaces = ("position", "effort")
     DEFAULT_PARAMS = _DEFAULTS
+    #: the state machine's round trips: the robot powers it up off the loop thread
+    activation_waits = True
 
     def __init__(
         self,
@@ -480,6 +495,11 @@ class CiA402Driver(Driver):
         self._now = math.nan
         self._t0 = math.nan
         self._master_hb_at = math.nan
+        #: the master's heartbeat while activate waits (wall clock: the loop's is not read)
+        self._waiting_hb_at = -math.inf
+        #: the frames taken while activate waited are stamped with the last read's ``now``:
+        #: the first read after it counts their ages from its own (see _read)
+        self._restamp = False
         self._send_lock = threading.Lock()
         self._counters = {
             "sync_frames": 0,
@@ -900,8 +920,9 @@ class CiA402Driver(Driver):
             if all(n.tpdo1 > b for n, b in zip(self._nodes, before, strict=True)):
                 return
             left = deadline - time.monotonic()
-            if left <= 0.0:
+            if left <= 0.0 or self.activation_cancelled:
                 return
+            self._waiting_heartbeat()
             try:
                 msg = bus.recv(timeout=min(left, 0.01))
             except can.CanError as err:
@@ -915,6 +936,15 @@ class CiA402Driver(Driver):
             self._t0 = now
         self._now = now
         nodes = self._nodes
+        if self._restamp:
+            # heard while activate waited on another thread, stamped then with the last
+            # read's now: heard now, as far as the ages go (the loop's time moved on)
+            self._restamp = False
+            for node in nodes:
+                if node.hb_at == node.hb_at:
+                    node.hb_at = now
+                if node.owed_since == node.owed_since:
+                    node.owed_since = now
         shown = [n.sampled_at for n in nodes]
         fresh = [n.tpdo1 for n in nodes]
         self._drain(now)
@@ -935,6 +965,15 @@ class CiA402Driver(Driver):
                 self._sync(rpdos=False)
         self._heartbeat(now)
         return self._pos, self._vel, self._eff
+
+    def _waiting_heartbeat(self) -> None:
+        """The master's heartbeat while activate or reset waits (the loop neither reads nor
+        writes meanwhile): a node already enabled must not find its master silent."""
+        if self._master_hb_s > 0.0:
+            t = time.monotonic()
+            if t - self._waiting_hb_at >= self._master_hb_s:
+                self._waiting_hb_at = t
+                self._send(self._hb_msg)
 
     def _heartbeat(self, now: float) -> None:
         """The master's heartbeat, every quarter of ``heartbeat_ms`` of reads and writes."""
@@ -1034,8 +1073,16 @@ class CiA402Driver(Driver):
             "SWITCHED ON": CW_ENABLE_OPERATION,
             "OPERATION ENABLED": CW_ENABLE_OPERATION,
         }
+        self._waiting_hb_at = -math.inf
+        self._restamp = True  # what it takes is stamped with the last read's now
         try:
             while True:
+                if self.activation_cancelled:
+                    # a safe stop or a cancel while powering up: off now (the base then
+                    # latches FAULT and quick-stops, or leaves it INACTIVE)
+                    self._stop_all(CW_DISABLE_VOLTAGE)
+                    return
+                self._waiting_heartbeat()
                 self._drain(self._now)  # TPDOs of earlier SYNCs: judged before this step
                 why = self._judge(self._now, active=False)
                 if why is not None:
