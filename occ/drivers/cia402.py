@@ -168,6 +168,7 @@ from occ.drivers.base import CommandInterface, Driver, DriverState, LimitPolicy
 from occ.drivers.cia402_protocol import (
     COB_EMCY,
     COB_HEARTBEAT,
+    COB_NMT,
     COB_RPDO,
     COB_SDO_RX,
     COB_SDO_TX,
@@ -183,6 +184,7 @@ from occ.drivers.cia402_protocol import (
     MODE_CST,
     NMT_OPERATIONAL,
     NMT_STATES,
+    STATUS_WORDS,
     cia402_state,
     emcy_meaning,
     frame_bits,
@@ -236,6 +238,9 @@ _INT16 = (-(2**15), 2**15 - 1)
 CAN_ERR_BUSOFF = 0x40
 CAN_ERR_MASK = 0x1FFFFFFF
 CAN_RAW_ERR_FILTER = 2
+
+#: OPERATION ENABLED's statusword mask and value (CiA 402's table), checked every read
+_OE_MASK, _OE_VALUE = next((m, v) for m, v, name in STATUS_WORDS if name == "OPERATION ENABLED")
 
 # frame kinds in the receive table
 _K_TPDO1, _K_TPDO2, _K_EMCY, _K_HB, _K_SDO = range(5)
@@ -480,6 +485,13 @@ class CiA402Driver(Driver):
             self._rx[COB_EMCY + nid] = (_K_EMCY, node)
             self._rx[COB_HEARTBEAT + nid] = (_K_HB, node)
             self._rx[COB_SDO_TX + nid] = (_K_SDO, node)
+        #: the COB-IDs of the frames it sends itself (RPDO 1, SDO requests, SYNC, NMT, its
+        #: heartbeat): what an echo usually is, told by one look-up
+        self._own = frozenset(
+            [COB_SYNC, COB_NMT, COB_HEARTBEAT + self._master_id]
+            + [COB_RPDO[0] + n.node_id for n in self._nodes]
+            + [COB_SDO_RX + n.node_id for n in self._nodes]
+        )
         self._bus: can.BusABC | None = None
         self._network: Any = None
         self._pos = [math.nan] * n
@@ -815,13 +827,27 @@ class CiA402Driver(Driver):
         return node.counts if node.counts is not None else node.target
 
     def _sync(self, rpdos: bool) -> None:
-        if rpdos:
-            for node in self._nodes:
-                self._send(node.rpdo_msg)
-            self._counters["rpdo_frames"] += len(self._nodes)
+        """Every node's RPDO (``rpdos``) and a SYNC, under one hold of the send lock."""
+        bus = self._bus
+        if bus is None:
+            return
+        counters = self._counters
+        msg = self._sync_msg
         self._owe(self._now)
-        self._send(self._sync_msg)
-        self._counters["sync_frames"] += 1
+        try:
+            with self._send_lock:
+                if rpdos:
+                    for node in self._nodes:
+                        msg = node.rpdo_msg
+                        bus.send(msg, timeout=0.0005)
+                    counters["rpdo_frames"] += len(self._nodes)
+                    msg = self._sync_msg
+                bus.send(msg, timeout=0.0005)
+        except can.CanError as err:
+            raise DriverError(
+                f"{self._where}: send of {msg.arbitration_id:#05x} failed: {err}"
+            ) from err
+        counters["sync_frames"] += 1
 
     def _owe(self, now: float) -> None:
         """A SYNC goes out at ``now``: every node owes a TPDO from then on."""
@@ -842,6 +868,9 @@ class CiA402Driver(Driver):
         cob = msg.arbitration_id
         found = self._rx.get(cob)
         if found is None:
+            if cob in self._own:  # its own frame, echoed (udp_multicast): the usual case
+                self._counters["echoes"] += 1
+                return
             key = "echoes" if master_sends(cob, self._master_id) else "ignored_frames"
             self._counters[key] += 1
             return
@@ -999,7 +1028,7 @@ class CiA402Driver(Driver):
                 cause = f"EMCY {code:#06x} ({emcy_meaning(code)}), error register {register:#04x}"
             elif sw is not None and sw & 0x08:
                 cause = f"statusword {sw:#06x}: {cia402_state(sw)} (fault bit set)"
-            elif active and sw is not None and cia402_state(sw) != "OPERATION ENABLED":
+            elif active and sw is not None and sw & _OE_MASK != _OE_VALUE:
                 cause = f"statusword {sw:#06x}: left OPERATION ENABLED, now {cia402_state(sw)}"
             elif node.nmt is not None and node.nmt != NMT_OPERATIONAL:
                 cause = (
@@ -1050,14 +1079,26 @@ class CiA402Driver(Driver):
 
     def _write(self, values: Sequence[float], now: float) -> None:
         self._now = now
-        if self._effort:
-            for node, u in zip(self._nodes, values, strict=True):
-                self._pack(node, CW_ENABLE_OPERATION, _saturate(u / node.torque_scale, _INT16))
-        else:
-            for node, x in zip(self._nodes, values, strict=True):
-                self._pack(node, CW_ENABLE_OPERATION, _saturate(x * node.cpu, _INT32))
         self._tick += 1
         if self._tick % self._sync_every == 0:
+            # packed only when sent: a synchronous RPDO takes effect at the SYNC, so the ticks
+            # between would be overwritten unused (the base checked every one of them)
+            cw = CW_ENABLE_OPERATION
+            if self._effort:
+                pack, bounds = RPDO_CST.pack_into, _INT16
+                for i, node in enumerate(self._nodes):
+                    target = _saturate(values[i] / node.torque_scale, bounds)
+                    node.cw, node.target = cw, target
+                    pack(node.rpdo, 0, cw, target)
+            else:
+                pack, lo, hi = RPDO_CSP.pack_into, _INT32[0], _INT32[1]
+                for i, node in enumerate(self._nodes):
+                    c = values[i] * node.cpu  # _saturate inline: every node, every SYNC
+                    if c != c:
+                        raise ValueError("NaN cannot be sent")
+                    target = hi if c >= hi else lo if c <= lo else int(math.floor(c + 0.5))
+                    node.cw, node.target = cw, target
+                    pack(node.rpdo, 0, cw, target)
             self._sync(rpdos=True)
         self._heartbeat(now)
 
