@@ -51,12 +51,12 @@ quick-stops every node (safe stop). The frames it took are stamped with the last
 ``now`` (the driver has no clock of its own): the first read after it counts the heartbeats'
 and owed TPDOs' ages from its own ``now``.
 
-Each tick: ``write`` packs each node's RPDO and, every ``sync_every``-th tick, sends the RPDOs
-and a SYNC (a synchronous RPDO takes effect at the SYNC, so the ticks between would be
-overwritten unused); ``read`` takes every frame that arrived (the TPDOs the previous SYNC
-brought, EMCYs, heartbeats) without waiting, and, while the driver is not ACTIVE, sends the
-SYNC itself so positions stay readable. The master's heartbeat goes out every quarter of
-``heartbeat_ms`` (from reads and writes: a drive commanded is not orphaned).
+Each tick the base checks the setpoints; every ``sync_every``-th tick ``write`` packs each node's
+RPDO and sends the RPDOs and a SYNC (a synchronous RPDO takes effect at the SYNC, so the ticks
+between would be overwritten unused); ``read`` takes every frame that arrived (the TPDOs the
+previous SYNC brought, EMCYs, heartbeats) without waiting, and, while the driver is not
+ACTIVE, sends the SYNC itself so positions stay readable. The master's heartbeat goes out
+every quarter of ``heartbeat_ms`` (from reads and writes: a drive commanded is not orphaned).
 
 ``deactivate`` (Disable): disable voltage (controlword 0x00). A fault, and the supervisor's
 safe stop (EStop): quick stop (0x02) on every node in the same call (in the RPDOs, with a
