@@ -144,13 +144,14 @@ class HardwareSet:
             d.state in SAFE and d.stop_failed is None for d in self.drivers
         )
 
-    def waiting(self) -> list[Driver]:
-        """The drives an Enable would power up that wait while they do
-        (:attr:`~occ.drivers.base.Driver.activation_waits`): INACTIVE and not busy."""
+    def waiting(self, state: DriverState = DriverState.INACTIVE) -> list[Driver]:
+        """The drives an Enable would power up (``state`` INACTIVE), or a Reset reset (FAULT),
+        that wait while they do (:attr:`~occ.drivers.base.Driver.activation_waits`): in
+        ``state`` and not busy."""
         return [
             d
             for d in self.drivers
-            if d.activation_waits and d.state is DriverState.INACTIVE and d not in self.busy
+            if d.activation_waits and d.state is state and d not in self.busy
         ]
 
     def hold(self, drivers: Sequence[Driver]) -> None:
@@ -286,14 +287,18 @@ class HardwareSet:
             self._fault_t = None
         return self._count(failures) if count else failures
 
-    def reset(self, now: float | None = None) -> list[HardwareFailure]:
+    def reset(
+        self, now: float | None = None, prior: Sequence[HardwareFailure] = ()
+    ) -> list[HardwareFailure]:
         """Clear every latched drive fault, configure the drives never configured, and prove
         the repair: every drive read afresh at ``now`` through every feedback check (a drive
         that reset but still reads wrong is a failure; it is latched FAULT again by its base).
-        The failures, each naming its drive: the robot stays FAULT when there are any."""
-        failures = []
+        The failures, each naming its drive: the robot stays FAULT when there are any.
+        ``prior``: what failed of the resets run on other threads (occ/core/powerup.py)."""
+        failures = list(prior)
+        tried = {f.driver for f in prior}  # their reset failed already: not twice
         for d in self.drivers:
-            if d.state is not DriverState.FAULT:
+            if d.state is not DriverState.FAULT or d.name in tried:
                 continue
             if d in self.busy:
                 failures.append(HardwareFailure(d.name, "reset", "still being powered up"))

@@ -23,6 +23,12 @@ the robot stays READY). An EStop, a Fault, the shutdown or the supervisor's safe
 (:meth:`~occ.drivers.base.Driver.safe_stop`: the driver base switches the power stage off as
 soon as it is up and latches FAULT). Either way the pending Enable is answered with a refusal,
 and whatever came up is switched off again when the loop collects the power-up.
+
+A Reset out of FAULT or ESTOP with such drives latched FAULT goes the same way
+(``action="reset"``: each one's fault reset, which waits for its nodes as well, on a thread of
+its own; the loop then completes the Reset: the other drives' resets, the fresh checked read,
+READY, or FAULT naming the node whose cause persists). A transition meanwhile (an EStop) only
+discards its result: a fault reset leaves the power stages off.
 """
 
 from __future__ import annotations
@@ -52,9 +58,16 @@ class PowerUp:
     :meth:`cancel` from the loop thread too. ``answer`` is the operator's reply, if any."""
 
     def __init__(
-        self, drivers: Sequence[Driver], reason: str, answer: Deferred | None = None
+        self,
+        drivers: Sequence[Driver],
+        reason: str,
+        answer: Deferred | None = None,
+        action: str = "activate",
     ) -> None:
         self.drivers = list(drivers)
+        #: ``activate`` (an Enable) or ``reset`` (a Reset: each drive's fault reset, which
+        #: waits the same way; its power stages stay off)
+        self.action = action
         #: why it was asked (the Enable's reason: ``operator Enable``, ``--start``)
         self.reason = reason
         self.answer = answer
@@ -82,10 +95,14 @@ class PowerUp:
     def _activate(self, driver: Driver) -> None:
         try:
             if self.cancelled is None:  # cancelled before it began: not powered at all
-                driver.activate()
+                if self.action == "reset":
+                    driver.reset()
+                else:
+                    driver.activate()
         except Exception as err:  # noqa: BLE001 - every drive's failure is named
             with self._lock:
-                self._failures[driver.name] = HardwareFailure(driver.name, "activate", _cause(err))
+                failure = HardwareFailure(driver.name, self.action, _cause(err))
+                self._failures[driver.name] = failure
         finally:
             with self._lock:
                 self._left -= 1
@@ -117,7 +134,9 @@ class PowerUp:
         first = self.cancelled is None
         if first:
             self.cancelled = why
-        if stop and not self.stopped:
+        if self.action == "reset":
+            pass  # a fault reset leaves the power stages off: its result is only discarded
+        elif stop and not self.stopped:
             self.stopped = True
             for d in self.drivers:
                 d.safe_stop(why)  # honoured by the base while its activation runs
@@ -125,7 +144,8 @@ class PowerUp:
             for d in self.drivers:
                 d.cancel_activation(why)
         if first and self.answer is not None:
-            self.answer.fail(f"Enable cancelled while the drives powered up: {why}")
+            what = "Reset" if self.action == "reset" else "Enable"
+            self.answer.fail(f"{what} cancelled while the drives worked: {why}")
 
     def leftovers(self) -> list[Driver]:
         """Once :attr:`done`: the drives that came up all the same (an activation that had

@@ -30,6 +30,7 @@ from occ.core.hardware import HardwareFailure, HardwareSet, describe
 from occ.core.motion import POWERED, Motion
 from occ.core.powerup import PowerUp
 from occ.core.safety import TRANSITIONS, RobotState, StateMachine
+from occ.drivers.base import DriverState
 from occ.errors import StateError
 from occ.joint import Joint
 from occ.net.commands import Deferred
@@ -88,9 +89,14 @@ class StateEffects:
                     f"'enable' refused in state {states.state.value}: the drives are powering "
                     f"up ({pu.reason}{'; cancelled: ' + pu.cancelled if pu.cancelled else ''})"
                 )
+            if name == "reset":
+                raise StateError(
+                    f"'reset' refused in state {states.state.value}: the drives are still "
+                    f"working ({pu.action}, {pu.reason})"
+                )
             if name in ("disable", "stop") and states.state is RobotState.READY:
                 pu.cancel(f"{reason} ({name})", stop=False)  # idempotent
-                return "READY: the power-up is cancelled, its drives switched off again"
+                return "READY: the power-up is cancelled; its drives go off as it ends"
             # estop, fault, shutdown: through the state machine, whose effector stops it
         elif name == "enable":
             old = states.state
@@ -107,6 +113,14 @@ class StateEffects:
                     ", ".join(d.name for d in waiting),
                     reason,
                 )
+                return answer
+        elif name == "reset" and states.state in (RobotState.FAULT, RobotState.ESTOP):
+            waiting = self.hardware.waiting(DriverState.FAULT)
+            if waiting:  # their fault resets wait too: on threads of their own
+                states.check(name)
+                answer = Deferred()
+                self.hardware.hold(waiting)
+                self.powerup = PowerUp(waiting, reason, answer, action="reset").start()
                 return answer
         tr = states.request(name, reason)
         return f"{tr.old.value} -> {tr.new.value}"
@@ -129,6 +143,8 @@ class StateEffects:
         if pu.took_s is not None:
             self.last_powerup_ms = round(pu.took_s * 1e3, 3)
         if pu.cancelled is not None:
+            if pu.action == "reset":
+                return  # the resets' result is discarded: the robot stays where it went
             for d in pu.leftovers():
                 if pu.stopped:
                     d.safe_stop(pu.cancelled)  # came up before the stop reached it
@@ -138,16 +154,17 @@ class StateEffects:
         states = self.states
         assert states is not None
         self._landed = pu.failures()
+        event = "reset" if pu.action == "reset" else "enable"
         try:
-            tr = states.request("enable", pu.reason)
+            tr = states.request(event, pu.reason)
         except StateError as err:  # refused or vetoed (TransitionFailed): FAULT latched
             if pu.answer is not None:
                 pu.answer.fail(str(err))
-            log.error("enable: %s", err)
+            log.error("%s: %s", event, err)
         except Exception as err:  # noqa: BLE001 - a failing part is a FAULT, not a crash
             if pu.answer is not None:
-                pu.answer.fail(f"Enable failed: {err}")
-            self.alarms.plugin_error("enable (power-up)", err)
+                pu.answer.fail(f"{event} failed: {err}")
+            self.alarms.plugin_error(f"{event} (off the loop thread)", err)
         else:
             if pu.answer is not None:
                 pu.answer.resolve(f"{tr.old.value} -> {tr.new.value}")
@@ -205,7 +222,7 @@ class StateEffects:
         elif new not in POWERED and old in POWERED and (stopped := hw.deactivate()):
             self.alarms.hardware_alert(stopped)
         if new is RobotState.READY and old in (RobotState.FAULT, RobotState.ESTOP):
-            failures = hw.reset(self._now())
+            failures = hw.reset(self._now(), landed or ())
         return describe(failures)
 
     def on_transition(

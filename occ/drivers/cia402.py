@@ -6,7 +6,7 @@ waiting for an answer. Only ``activate`` and ``reset`` (Enable, Reset) wait: for
 statuswords, over PDOs too, at most ``state_timeout_ms``. The driver says so
 (``activation_waits = True``): the robot runs its ``activate`` on a thread of its own while the
 loop goes on ticking, and touches the driver again only once it has ended (occ/core/powerup.py);
-``reset`` still runs in the tick of the Reset.
+a Reset's ``reset`` likewise.
 
 Configuration (``configure``, off the loop)
 ===========================================
@@ -1186,6 +1186,7 @@ class CiA402Driver(Driver):
     def _reset(self) -> None:
         if self._bus is None:
             return  # never configured: the base configures it again
+        self._restamp = True  # it may run off the loop thread: see _activate
         self._drain(self._now)  # what came before the reset was acted on
         self._bus_off = None
         for node in self._nodes:

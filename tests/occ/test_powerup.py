@@ -259,3 +259,38 @@ def test_start_enabled_powers_up_then_runs(rig: type[Rig]) -> None:
     r.landed()
     r.tick()
     assert r.robot.state is RobotState.RUNNING, r.robot.last_alert
+
+
+@pytest.mark.req("SR-HW-39")
+def test_a_reset_of_cia402_drives_runs_off_the_loop_thread_and_is_refused_while_the_cause_persists(
+    rig: type[Rig],
+) -> None:
+    r = rig(state_timeout_ms=200.0)
+    assert r.sim.command(r.op, "Enable").metadata["Status"] == "SUCCESS"
+    r.ticks(10)
+    r.emu.inject_emcy(2, 0x2310, persist=True)
+    for _ in range(20):
+        r.tick()
+        if r.robot.state is RobotState.FAULT:
+            break
+    assert r.robot.state is RobotState.FAULT and r.arm.state is DriverState.FAULT
+    r.ticks(3)
+    with r.emu.held():  # the fault reset waits for the drives: the loop goes on ticking
+        cid = r.op.send_command("Reset")
+        before = r.robot.ticks
+        r.ticks(20, settle=False)
+        assert r.robot.ticks - before == 20 and r.robot.powering_up
+        assert r.robot.state is RobotState.FAULT and r.reply(cid) is None
+    r.landed()
+    answer = r.reply(cid)
+    assert answer is not None and not answer[0], answer
+    assert "fault reset refused" in answer[1] and "node 2 (joint pitch): still FAULT" in answer[1]
+    assert r.robot.state is RobotState.FAULT
+    r.emu.clear(2)
+    reply = r.sim.command(r.op, "Reset")
+    assert reply.metadata["Status"] == "SUCCESS", reply.metadata
+    assert reply.metadata["Message"] == "FAULT -> READY"
+    r.ticks(3)
+    assert r.sim.command(r.op, "Enable").metadata["Status"] == "SUCCESS"
+    r.ticks(20)
+    assert r.robot.state is RobotState.ENABLED, r.robot.last_alert
