@@ -407,9 +407,14 @@ class SimRobot:
     def command(self, peer: SimPeer, name: str, text: str = "", ticks: int = 1) -> Message:
         """``peer`` sends the COMMAND ``name`` (``text``: its XML), the loop runs ``ticks``
         ticks, and the RTS_COMMAND that answered it is returned (AssertionError when none
-        came: a command the tick did not answer is a test failure, not a None to check)."""
+        came: a command the tick did not answer is a test failure, not a None to check). An
+        Enable whose drives power up off the loop thread (occ/core/powerup.py) is waited for
+        on the wall clock without ticking, then the tick that completes it runs."""
         cid = peer.send_command(name, text)
         self.step(ticks)
+        while self.robot.powering_up:  # drives powering up off the loop thread (an Enable)
+            assert self.robot.await_power_up(10.0), f"{name}: the power-up did not end"
+            self.tick()  # it completes the transition and replies
         reply = peer.reply_to(cid)
         assert reply is not None, f"no RTS_COMMAND for {name} (command ID {cid})"
         return reply

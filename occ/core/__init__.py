@@ -3,7 +3,8 @@
 The :class:`~occ.core.robot.Robot` and its assembly from a configuration (``assembly``,
 ``loader``, ``build``), the loop (``loop``, ``stats``), the robot's state and its state
 machine with the watchdog, supervisor and loss monitor (``data``, ``safety``, ``supervision``,
-``alarms``), the drives as one unit (``hardware``), what the drives are told each tick
+``alarms``), the drives as one unit (``hardware``) and the power-up of those whose activation
+waits, off the loop thread (``powerup``), what the drives are told each tick
 (``motion``), the State Data Table (``statetable``) and the narrow ports the front desk gets
 (``ports``).
 

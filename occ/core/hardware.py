@@ -12,7 +12,11 @@ activate       all or nothing: the drives already powered are switched off again
                the robot latches FAULT naming the drive (and any that failed to switch off
                again). Once every drive is up, :meth:`HardwareSet.verify` proves it: a read
                that passes every feedback check and a write of where the joints are, every
-               drive still ACTIVE after both; a failure vetoes the same way
+               drive still ACTIVE after both; a failure vetoes the same way. The drives whose
+               activation waits (:meth:`HardwareSet.waiting`) are powered on threads of their
+               own first (occ/core/powerup.py), :attr:`HardwareSet.busy` meanwhile: no
+               operation here touches them (not read, never written, not switched off: their
+               power-up does that) until the loop releases them and completes the rule
 deactivate     never refused (a stop cannot be): a drive that fails to stop is latched FAULT
                by its base (which tries its ``_deactivate`` once more), marked unsafe
                (:attr:`~occ.drivers.base.Driver.stop_failed`) and named; the robot FAULTs
@@ -107,6 +111,9 @@ class HardwareSet:
         #: fault detected (read or write) -> last drive safe, seconds (None before any)
         self.last_fault_to_safe_s: float | None = None
         self.failures = 0
+        #: drives another thread is powering up (occ/core/powerup.py): no operation here
+        #: touches them until the loop releases them (only the loop thread changes this set)
+        self.busy: frozenset[Driver] = frozenset()
         #: the simulated world the drives touch (occ/haptics/contact.py), None on real hardware
         self.environment: Any = None
 
@@ -131,8 +138,30 @@ class HardwareSet:
         return "; ".join(missing)
 
     def all_safe(self) -> bool:
-        """Every drive's power stage off: a state in SAFE, and no switch-off that failed."""
-        return all(d.state in SAFE and d.stop_failed is None for d in self.drivers)
+        """Every drive's power stage off: a state in SAFE, no switch-off that failed, and none
+        being powered up on another thread."""
+        return not self.busy and all(
+            d.state in SAFE and d.stop_failed is None for d in self.drivers
+        )
+
+    def waiting(self, state: DriverState = DriverState.INACTIVE) -> list[Driver]:
+        """The drives an Enable would power up (``state`` INACTIVE), or a Reset reset (FAULT),
+        that wait while they do (:attr:`~occ.drivers.base.Driver.activation_waits`): in
+        ``state`` and not busy."""
+        return [
+            d
+            for d in self.drivers
+            if d.activation_waits and d.state is state and d not in self.busy
+        ]
+
+    def hold(self, drivers: Sequence[Driver]) -> None:
+        """On the loop thread: ``drivers`` are being powered up on another thread; nothing here
+        touches them until :meth:`release`."""
+        self.busy = self.busy | frozenset(drivers)
+
+    def release(self, drivers: Sequence[Driver]) -> None:
+        """On the loop thread, once their activation has ended: the loop's again."""
+        self.busy = self.busy - frozenset(drivers)
 
     def unsafe(self) -> list[HardwareFailure]:
         """The drives whose switch-off failed (their power stage may still be on)."""
@@ -186,13 +215,20 @@ class HardwareSet:
                 failures.append(HardwareFailure(d.name, "configure", _cause(err)))
         return self._count(failures) if count else failures
 
-    def activate(self) -> list[HardwareFailure]:
+    def activate(self, prior: Sequence[HardwareFailure] = ()) -> list[HardwareFailure]:
         """Power every drive, or none: a drive that cannot be powered (its activation fails,
-        or it is latched FAULT, or was never configured) switches the others off again."""
-        failures = []
-        for d in self.drivers:
+        or it is latched FAULT, or was never configured) switches the others off again.
+
+        ``prior``: what failed of the activations run on other threads (occ/core/powerup.py;
+        the drives that came up there are ACTIVE already). When any did, no other drive is
+        powered: every one that came up is switched off again, the failures returned."""
+        failures = list(prior)
+        for d in self.drivers if not failures else ():
             st = d.state
             if st is DriverState.ACTIVE:
+                continue
+            if d in self.busy:
+                failures.append(HardwareFailure(d.name, "activate", "being powered up already"))
                 continue
             if st is not DriverState.INACTIVE:
                 why = d.fault_reason or f"drive is {st.value}"
@@ -238,8 +274,8 @@ class HardwareSet:
         failures, with whether it is still unsafe."""
         failures = []
         for d in self.drivers:
-            if d.state is not DriverState.ACTIVE:
-                continue
+            if d.state is not DriverState.ACTIVE or d in self.busy:
+                continue  # a busy drive: its power-up switches it off (occ/core/powerup.py)
             try:
                 d.deactivate()
             except Exception as err:  # noqa: BLE001
@@ -251,14 +287,21 @@ class HardwareSet:
             self._fault_t = None
         return self._count(failures) if count else failures
 
-    def reset(self, now: float | None = None) -> list[HardwareFailure]:
+    def reset(
+        self, now: float | None = None, prior: Sequence[HardwareFailure] = ()
+    ) -> list[HardwareFailure]:
         """Clear every latched drive fault, configure the drives never configured, and prove
         the repair: every drive read afresh at ``now`` through every feedback check (a drive
         that reset but still reads wrong is a failure; it is latched FAULT again by its base).
-        The failures, each naming its drive: the robot stays FAULT when there are any."""
-        failures = []
+        The failures, each naming its drive: the robot stays FAULT when there are any.
+        ``prior``: what failed of the resets run on other threads (occ/core/powerup.py)."""
+        failures = list(prior)
+        tried = {f.driver for f in prior}  # their reset failed already: not twice
         for d in self.drivers:
-            if d.state is not DriverState.FAULT:
+            if d.state is not DriverState.FAULT or d.name in tried:
+                continue
+            if d in self.busy:
+                failures.append(HardwareFailure(d.name, "reset", "still being powered up"))
                 continue
             try:
                 d.reset()
@@ -312,10 +355,13 @@ class HardwareSet:
     def read(self, now: float, count: bool = True) -> list[HardwareFailure] | None:
         """Read every configured drive (one that fails does not keep the others unread)."""
         failures: list[HardwareFailure] | None = None
+        busy = self.busy
         for d in self.drivers:
             st = d.state
             if st is DriverState.UNCONFIGURED or st is DriverState.SHUTDOWN:
                 continue
+            if busy and d in busy:
+                continue  # another thread is powering it up: its joints keep their reading
             try:
                 d.read(now)
             except Exception as err:  # noqa: BLE001
@@ -335,9 +381,9 @@ class HardwareSet:
         must be ACTIVE, checked before anything is written; the first failure ends the write
         (the caller latches FAULT, which powers every drive off)."""
         whole = self._whole
-        if whole is None or whole.state is not DriverState.ACTIVE:
+        if whole is None or whole.state is not DriverState.ACTIVE or self.busy:
             for d, _idx, _buf in self._slices:
-                if d.state is not DriverState.ACTIVE:
+                if d.state is not DriverState.ACTIVE or d in self.busy:
                     self._detected()
                     why = d.fault_reason or f"drive is {d.state.value}"
                     return self._one(HardwareFailure(d.name, "write", f"not active ({why})"))

@@ -34,6 +34,7 @@ if TYPE_CHECKING:
     from occ.core.supervision import Worker
     from occ.kinematics.collision import CollisionGuard
     from occ.net.collab import Collaboration
+    from occ.net.commands import Deferred
     from occ.net.interfaces import Inbound
     from occ.recording.record import Recorder
 
@@ -78,6 +79,9 @@ class DeskPort:
     lateness_buckets: Callable[[], dict[int, int]]
     #: an operator's Reset of the watchdog, the supervisor and the loss monitors
     reset_monitors: Callable[[], None]
+    #: ``transition(event, reason)``: a state-machine event; its text, or a Deferred answered
+    #: when a power-up off the loop thread is done (occ/core/powerup.py); StateError if refused
+    transition: Callable[[str, str], str | Deferred]
     #: ``handover(to, interface, now)``: the motion to another master, or CommandError
     handover: Callable[[str, str, float], str]
     collision: CollisionGuard | None

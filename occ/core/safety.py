@@ -470,16 +470,7 @@ class StateMachine:
         name = self._normalise(event)
         with self._lock:
             old = self._state
-            new = TRANSITIONS.get((old, name))
-            if new is None:
-                allowed = ", ".join(self.allowed_events(old)) or "nothing"
-                raise StateError(
-                    f"{name!r} refused in state {old.value}; allowed from {old.value}: {allowed}"
-                )
-            for guard in self._guards:
-                why = guard(old, name)
-                if why:
-                    raise StateError(f"{name!r} refused in state {old.value}: {why}")
+            new = self._admit(old, name)
             failed = ""
             if new is not old and self._effector is not None:
                 failed = self._effector(old, new, name)
@@ -509,6 +500,27 @@ class StateMachine:
                     self.request("fault", text)
                 raise TransitionFailed(f"{name!r}: {text}; the robot is {self._state.value}")
         return transition
+
+    def check(self, event: str) -> RobotState:
+        """The state ``event`` would lead to now, or the :class:`StateError` :meth:`request`
+        would raise (its table and its guards); nothing is carried out (a power-up off the
+        loop thread asks first, occ/core/powerup.py)."""
+        name = self._normalise(event)
+        with self._lock:
+            return self._admit(self._state, name)
+
+    def _admit(self, old: RobotState, name: str) -> RobotState:
+        new = TRANSITIONS.get((old, name))
+        if new is None:
+            allowed = ", ".join(self.allowed_events(old)) or "nothing"
+            raise StateError(
+                f"{name!r} refused in state {old.value}; allowed from {old.value}: {allowed}"
+            )
+        for guard in self._guards:
+            why = guard(old, name)
+            if why:
+                raise StateError(f"{name!r} refused in state {old.value}: {why}")
+        return new
 
     def try_request(self, event: str, reason: str = "") -> Transition | None:
         """Like :meth:`request` but return None instead of raising when refused (for safety

@@ -7,6 +7,10 @@ its three hooks:
 - the effector (:meth:`StateEffects.effect`): the drives powered all or nothing on entering a
   powered state, and proven by a checked read and a write; off on leaving it; reset out of
   FAULT/ESTOP (a failure vetoes the transition, named);
+- the requests (:meth:`StateEffects.request`): an Enable whose drives' activation waits is
+  powered up off the loop thread (occ/core/powerup.py) and completed by the loop when it has
+  ended (:meth:`StateEffects.land`, every tick); a Disable or a Stop meanwhile cancels it, any
+  other transition (EStop, Fault, shutdown) stops it;
 - the listener (:meth:`StateEffects.on_transition`): the held setpoints, the streams, the
   controllers, the STATUS to every operator, and a FAULT for a drive still powered after a
   switch-off that failed.
@@ -24,8 +28,12 @@ from occ.core.alarms import Alarms
 from occ.core.data import RobotData
 from occ.core.hardware import HardwareFailure, HardwareSet, describe
 from occ.core.motion import POWERED, Motion
-from occ.core.safety import RobotState
+from occ.core.powerup import PowerUp
+from occ.core.safety import TRANSITIONS, RobotState, StateMachine
+from occ.drivers.base import DriverState
+from occ.errors import StateError
 from occ.joint import Joint
+from occ.net.commands import Deferred
 from occ.net.outputs import STATE_STATUS_CODE
 from occ.net.streams import StreamInputs
 
@@ -56,6 +64,124 @@ class StateEffects:
         self.alarms = alarms
         #: the tick under way (its `now`): what a transition's reads and writes happen at
         self.tick_now: float | None = None
+        #: the robot's state machine (set by occ/core/wiring.py ``build_effects``)
+        self.states: StateMachine | None = None
+        #: the power-up under way off the loop thread (None: none)
+        self.powerup: PowerUp | None = None
+        #: while the loop completes a power-up: what failed of it (the effector's input)
+        self._landed: list[HardwareFailure] | None = None
+        #: power-ups started, and the wall-clock time of the last one (GetStats ``power_up``)
+        self.powerups = 0
+        self.last_powerup_ms: float | None = None
+
+    # ------------------------------------------------------------------ requests
+    def request(self, event: str, reason: str) -> str | Deferred:
+        """A state-machine event from an operator (occ/net/operators.py) or ``--start``, on the
+        loop thread: the transition's text, or a :class:`Deferred` answered when a power-up
+        off the loop thread is done (module docstring). StateError when refused."""
+        states = self.states
+        assert states is not None
+        name = event.strip().lower()
+        pu = self.powerup
+        if pu is not None:
+            if name == "enable":
+                raise StateError(
+                    f"'enable' refused in state {states.state.value}: the drives are powering "
+                    f"up ({pu.reason}{'; cancelled: ' + pu.cancelled if pu.cancelled else ''})"
+                )
+            if name == "reset":
+                raise StateError(
+                    f"'reset' refused in state {states.state.value}: the drives are still "
+                    f"working ({pu.action}, {pu.reason})"
+                )
+            if name in ("disable", "stop") and states.state is RobotState.READY:
+                pu.cancel(f"{reason} ({name})", stop=False)  # idempotent
+                return "READY: the power-up is cancelled; its drives go off as it ends"
+            # estop, fault, shutdown: through the state machine, whose effector stops it
+        elif name == "enable":
+            old = states.state
+            new = TRANSITIONS.get((old, name))
+            waiting = self.hardware.waiting()
+            if new in POWERED and old not in POWERED and waiting:
+                states.check(name)  # its table and its guards, as request would
+                answer = Deferred()
+                self.hardware.hold(waiting)
+                self.powerup = PowerUp(waiting, reason, answer).start()
+                self.powerups += 1
+                log.info(
+                    "enable: powering up %s off the loop thread (%s)",
+                    ", ".join(d.name for d in waiting),
+                    reason,
+                )
+                return answer
+        elif name == "reset" and states.state in (RobotState.FAULT, RobotState.ESTOP):
+            waiting = self.hardware.waiting(DriverState.FAULT)
+            if waiting:  # their fault resets wait too: on threads of their own
+                states.check(name)
+                answer = Deferred()
+                self.hardware.hold(waiting)
+                self.powerup = PowerUp(waiting, reason, answer, action="reset").start()
+                return answer
+        tr = states.request(name, reason)
+        return f"{tr.old.value} -> {tr.new.value}"
+
+    @property
+    def powering_up(self) -> bool:
+        """A power-up is under way off the loop thread (or ended and not yet collected)."""
+        return self.powerup is not None
+
+    def land(self) -> None:
+        """Every tick, on the loop thread: a power-up whose activations have all ended is
+        collected. Its drives are the loop's again; cancelled, whatever came up is switched
+        off; else the loop completes the Enable (the HardwareSet's rule, verify, ENABLED) and
+        answers the operator."""
+        pu = self.powerup
+        if pu is None or not pu.done:
+            return
+        self.powerup = None
+        self.hardware.release(pu.drivers)
+        if pu.took_s is not None:
+            self.last_powerup_ms = round(pu.took_s * 1e3, 3)
+        if pu.cancelled is not None:
+            if pu.action == "reset":
+                return  # the resets' result is discarded: the robot stays where it went
+            for d in pu.leftovers():
+                if pu.stopped:
+                    d.safe_stop(pu.cancelled)  # came up before the stop reached it
+            if stopped := self.hardware.deactivate():
+                self.alarms.hardware_alert(stopped)
+            return
+        states = self.states
+        assert states is not None
+        self._landed = pu.failures()
+        event = "reset" if pu.action == "reset" else "enable"
+        try:
+            tr = states.request(event, pu.reason)
+        except StateError as err:  # refused or vetoed (TransitionFailed): FAULT latched
+            if pu.answer is not None:
+                pu.answer.fail(str(err))
+            log.error("%s: %s", event, err)
+        except Exception as err:  # noqa: BLE001 - a failing part is a FAULT, not a crash
+            if pu.answer is not None:
+                pu.answer.fail(f"{event} failed: {err}")
+            self.alarms.plugin_error(f"{event} (off the loop thread)", err)
+        else:
+            if pu.answer is not None:
+                pu.answer.resolve(f"{tr.old.value} -> {tr.new.value}")
+        finally:
+            self._landed = None
+
+    def finish(self, timeout: float) -> None:
+        """At shutdown: a power-up under way is stopped, waited for (at most ``timeout``)
+        and collected, so no thread is left powering a drive the robot closes."""
+        pu = self.powerup
+        if pu is None:
+            return
+        pu.cancel("shutdown", stop=True)
+        if not pu.wait(timeout):
+            log.error("shutdown: power-up of %s did not end", [d.name for d in pu.drivers])
+            return
+        self.land()
 
     def _now(self) -> float:
         return self.tick_now if self.tick_now is not None else self.clock.now()
@@ -76,16 +202,27 @@ class StateEffects:
         is named in an alert); reset and configured out of FAULT/ESTOP, or vetoed."""
         failures: list[HardwareFailure] = []
         hw = self.hardware
+        landed, self._landed = self._landed, None
+        pu = self.powerup
+        if pu is not None and landed is None:
+            # any other transition while the drives power up (EStop, Fault, shutdown) wins:
+            # every drive coming up is stopped, the Enable answered with a refusal
+            pu.cancel(f"{event}: {old.value} -> {new.value}", stop=True)
         if new in POWERED and old not in POWERED:
-            failures = hw.activate()
+            # landed: the power-up off the loop thread ended (its drives ACTIVE, or failed)
+            failures = hw.activate(landed or ())
             if not failures:  # up: proven by a checked read and a write before it is said
                 failures = hw.verify(self.joints, self._now(), self.controller.commands_effort)
                 if failures:
                     failures += hw.deactivate()
+                elif landed is not None:
+                    # the drives powered up off the loop were not read meanwhile: the held
+                    # setpoint starts from verify's fresh reading, not the one before
+                    self.data.measured_from(self.joints)
         elif new not in POWERED and old in POWERED and (stopped := hw.deactivate()):
             self.alarms.hardware_alert(stopped)
         if new is RobotState.READY and old in (RobotState.FAULT, RobotState.ESTOP):
-            failures = hw.reset(self._now())
+            failures = hw.reset(self._now(), landed or ())
         return describe(failures)
 
     def on_transition(

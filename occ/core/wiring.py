@@ -37,6 +37,7 @@ from occ.recording.record import writer_priority
 if TYPE_CHECKING:
     from occ.core.statetable import StateTable
     from occ.core.supervision import SupervisorThread, Worker
+    from occ.net.commands import Deferred
     from occ.recording.record import Recorder
 
 
@@ -94,11 +95,14 @@ class Assembling(Protocol):
     @property
     def motion(self) -> Motion: ...
     @property
+    def effects(self) -> StateEffects: ...
+    @property
     def operators(self) -> OperatorDesk: ...
     @property
     def recorder(self) -> Recorder | None: ...
     def set_recorder(self, recorder: Recorder | None) -> None: ...
     def reset_monitors(self) -> None: ...
+    def request(self, event: str, reason: str) -> str | Deferred: ...
     def handover(self, to: str, interface: str, now: float) -> str: ...
     def tick(self, now: float, k: int) -> None: ...
     def write(self, values: Sequence[float], now: float, effort: bool = False) -> None: ...
@@ -212,6 +216,7 @@ def build_effects(robot: Assembling) -> StateEffects:
         robot.alarms,
     )
     states = robot.state_machine
+    effects.states = states
     states.add_listener(effects.on_transition)
     states.add_guard(effects.may_power)
     states.set_effector(effects.effect)
@@ -274,6 +279,7 @@ def build_desk(robot: Assembling) -> OperatorDesk:
         stats=registry,
         lateness_buckets=robot.stats.lateness.buckets,
         reset_monitors=robot.reset_monitors,
+        transition=robot.request,
         handover=robot.handover,
         collision=robot.collision,
         state_table=robot.state_table,
@@ -323,6 +329,15 @@ def register_stats(registry: StatsRegistry, robot: Assembling, desk: OperatorDes
     drivers = robot.hardware.drivers
     add("drivers", lambda: {drv.name: drv.stats() for drv in drivers})
     add("hardware", robot.hardware.stats)
+    effects = robot.effects
+    add(
+        "power_up",
+        lambda: {
+            "under_way": effects.powering_up,
+            "count": effects.powerups,
+            "last_ms": effects.last_powerup_ms,
+        },
+    )
     loop = robot.loop
     add("realtime", lambda: loop.realtime_report)
 

@@ -48,6 +48,16 @@ Two more duties, because the loop itself can fail (see docs/ARCHITECTURE.md, "Sa
   while the loop thread is inside ``_read`` or ``_write``; the driver then latches FAULT, so a
   ``write`` from the resumed loop is refused until :meth:`Driver.reset`.
 
+**Activation that waits.** A backend whose ``_activate`` waits for the hardware (several bus
+round trips: a CiA 402 state machine) sets the class attribute ``activation_waits = True``: the
+robot then calls :meth:`Driver.activate` on a thread of its own while the loop goes on ticking,
+and touches the driver (read, write, deactivate, reset) only once it has returned
+(occ/core/powerup.py). Such a hook looks at :attr:`~DriverLifecycle.activation_cancelled`
+between its steps: when another thread asked for a safe stop (:meth:`~DriverLifecycle.safe_stop`:
+the drive ends FAULT, switched off) or a cancel (:meth:`~DriverLifecycle.cancel_activation`: it
+ends INACTIVE, switched off, and ``activate`` raises StateError), it switches its power stages
+off and returns at once.
+
 Feedback checks (every ``read``, in the base, so every backend has them): a joint's position
 is its feedback, and feedback can fail while the drive still answers. The robot never trusts
 what it cannot check (issue 36); each failed check latches FAULT naming the drive, the joint,
@@ -139,12 +149,21 @@ class DriverLifecycle:
     from another thread, the hooks' errors latched as FAULT. :class:`Driver` adds the joints'
     commands and readings; a backend subclasses Driver, never this class alone."""
 
+    #: The backend's ``_activate`` waits for the hardware (a CiA 402 state machine: several
+    #: bus round trips, up to a timeout): the robot runs it on a thread of its own while the
+    #: loop goes on ticking, and touches the drive again only once it has ended
+    #: (occ/core/powerup.py). False (the default): ``activate`` is quick and runs in the tick.
+    activation_waits: ClassVar[bool] = False
+
     def __init__(self, name: str, joints: Sequence[Joint]) -> None:
         self.name: str = name
         self.joints: list[Joint] = list(joints)
         #: a safe stop asked for while an activation was under way (supervisor): the
         #: activation must not leave the drive powered (see :meth:`activate`)
         self._stop_asked: str | None = None
+        #: the activation under way on another thread is to end switched off, not faulted
+        #: (a Disable while powering up): see :meth:`cancel_activation`
+        self._cancel_asked: str | None = None
         self._activating = False
         #: a switch-off (deactivate, safe stop) raised and no later one succeeded: the power
         #: stage may still be on whatever the state says (never counted safe; issue 36)
@@ -188,6 +207,7 @@ class DriverLifecycle:
         self._start_commands()
         with self._safe_lock:
             self._stop_asked = None
+            self._cancel_asked = None
             self._activating = True
         try:
             self._call_hook(self._activate, "activate")
@@ -195,7 +215,8 @@ class DriverLifecycle:
             with self._safe_lock:
                 self._activating = False
                 asked = self._stop_asked
-                self._stop_asked = None
+                cancel = self._cancel_asked
+                self._stop_asked = self._cancel_asked = None
         if asked is not None:
             # the supervisor found the loop hung while the power stage came up: it must not
             # stay up (issue 36: a slow power-up left one drive powered after the trip)
@@ -206,7 +227,40 @@ class DriverLifecycle:
             self._errors += 1
             self._enter_fault(str(err))
             raise err
+        if cancel is not None:
+            # not wanted any more (a Disable while it came up): off again, not faulted
+            self._state = DriverState.ACTIVE  # so deactivate switches it off
+            self.deactivate()
+            raise StateError(
+                f"driver {self.name!r}: activation cancelled: {cancel}; switched off again"
+            )
         self._transition(DriverState.ACTIVE)
+
+    def cancel_activation(self, reason: str) -> bool:
+        """From any thread: the activation under way on another thread (a driver whose
+        :attr:`activation_waits`) is not wanted any more. It ends switched off again, INACTIVE
+        (not FAULT), and :meth:`activate` raises :class:`~occ.errors.StateError`; a backend that
+        waits looks at :attr:`activation_cancelled` between its steps and gives up early. True
+        when an activation was under way (else nothing to do)."""
+        with self._safe_lock:
+            if not self._activating:
+                return False
+            if self._cancel_asked is None:
+                self._cancel_asked = reason
+            return True
+
+    @property
+    def activating(self) -> bool:
+        """An activation is under way (on whichever thread runs it)."""
+        return self._activating
+
+    @property
+    def activation_cancelled(self) -> bool:
+        """For a backend's ``_activate`` that waits: a safe stop (:meth:`safe_stop`) or a
+        cancel (:meth:`cancel_activation`) was asked while it runs. The hook then switches its
+        power stages off and returns at once; the base does the rest (FAULT after a safe stop,
+        INACTIVE after a cancel)."""
+        return self._activating and (self._stop_asked is not None or self._cancel_asked is not None)
 
     def deactivate(self) -> None:
         """ACTIVE -> INACTIVE: stop accepting commands; states stay readable. A switch-off

@@ -3,7 +3,10 @@
 One driver owns one CAN bus (python-can) and one node per joint. Configuration happens off the
 loop, over SDO; each tick only sends and reads process data (PDOs), SYNC and heartbeats, never
 waiting for an answer. Only ``activate`` and ``reset`` (Enable, Reset) wait: for the nodes'
-statuswords, over PDOs too, at most ``state_timeout_ms``.
+statuswords, over PDOs too, at most ``state_timeout_ms``. The driver says so
+(``activation_waits = True``): the robot runs its ``activate`` on a thread of its own while the
+loop goes on ticking, and touches the driver again only once it has ended (occ/core/powerup.py);
+a Reset's ``reset`` likewise.
 
 Configuration (``configure``, off the loop)
 ===========================================
@@ -38,12 +41,22 @@ that is not OPERATION ENABLED within ``state_timeout_ms`` (or is in FAULT) makes
 naming it and its state, and every node is switched off again (controlword 0x00): Enable is
 vetoed.
 
-Each tick: ``write`` packs each node's RPDO and, every ``sync_every``-th tick, sends the RPDOs
-and a SYNC (a synchronous RPDO takes effect at the SYNC, so the ticks between would be
-overwritten unused); ``read`` takes every frame that arrived (the TPDOs the previous SYNC
-brought, EMCYs, heartbeats) without waiting, and, while the driver is not ACTIVE, sends the
-SYNC itself so positions stay readable. The master's heartbeat goes out every quarter of
-``heartbeat_ms`` (from reads and writes: a drive commanded is not orphaned).
+Off the loop thread: while activate waits, the loop neither reads nor writes the driver, so
+activate sends the master's heartbeat itself (every quarter of ``heartbeat_ms`` of wall clock:
+a node already enabled must not find its master silent) and, between its steps and every 10 ms
+of a wait, looks at the base's ``activation_cancelled``: a cancel (Disable) or a safe stop
+(EStop, Fault, the supervisor) asked from another thread switches every node off at once
+(0x00) and ends it; the base then leaves the driver INACTIVE (cancel), or latches FAULT and
+quick-stops every node (safe stop). The frames it took are stamped with the last read's
+``now`` (the driver has no clock of its own): the first read after it counts the heartbeats'
+and owed TPDOs' ages from its own ``now``.
+
+Each tick the base checks the setpoints; every ``sync_every``-th tick ``write`` packs each node's
+RPDO and sends the RPDOs and a SYNC (a synchronous RPDO takes effect at the SYNC, so the ticks
+between would be overwritten unused); ``read`` takes every frame that arrived (the TPDOs the
+previous SYNC brought, EMCYs, heartbeats) without waiting, and, while the driver is not
+ACTIVE, sends the SYNC itself so positions stay readable. The master's heartbeat goes out
+every quarter of ``heartbeat_ms`` (from reads and writes: a drive commanded is not orphaned).
 
 ``deactivate`` (Disable): disable voltage (controlword 0x00). A fault, and the supervisor's
 safe stop (EStop): quick stop (0x02) on every node in the same call (in the RPDOs, with a
@@ -153,6 +166,8 @@ from occ.drivers.base import CommandInterface, Driver, DriverState, LimitPolicy
 from occ.drivers.cia402_protocol import (
     COB_EMCY,
     COB_HEARTBEAT,
+    COB_NMT,
+    COB_RPDO,
     COB_SDO_RX,
     COB_SDO_TX,
     COB_SYNC,
@@ -165,6 +180,7 @@ from occ.drivers.cia402_protocol import (
     CW_SWITCH_ON,
     NMT_OPERATIONAL,
     NMT_STATES,
+    STATUS_WORDS,
     cia402_state,
     emcy_meaning,
     master_sends,
@@ -211,6 +227,9 @@ _INT32 = (-(2**31), 2**31 - 1)
 _INT16 = (-(2**15), 2**15 - 1)
 
 
+#: OPERATION ENABLED's statusword mask and value (CiA 402's table), checked every read
+_OE_MASK, _OE_VALUE = next((m, v) for m, v, name in STATUS_WORDS if name == "OPERATION ENABLED")
+
 # frame kinds in the receive table
 _K_TPDO1, _K_TPDO2, _K_EMCY, _K_HB, _K_SDO = range(5)
 
@@ -231,6 +250,8 @@ class CiA402Driver(Driver):
 
     supported_interfaces = ("position", "effort")
     DEFAULT_PARAMS = _DEFAULTS
+    #: the state machine's round trips: the robot powers it up off the loop thread
+    activation_waits = True
 
     def __init__(
         self,
@@ -268,6 +289,13 @@ class CiA402Driver(Driver):
             self._rx[COB_EMCY + nid] = (_K_EMCY, node)
             self._rx[COB_HEARTBEAT + nid] = (_K_HB, node)
             self._rx[COB_SDO_TX + nid] = (_K_SDO, node)
+        #: the COB-IDs of the frames it sends itself (RPDO 1, SDO requests, SYNC, NMT, its
+        #: heartbeat): what an echo usually is, told by one look-up
+        self._own = frozenset(
+            [COB_SYNC, COB_NMT, COB_HEARTBEAT + self._master_id]
+            + [COB_RPDO[0] + n.node_id for n in self._nodes]
+            + [COB_SDO_RX + n.node_id for n in self._nodes]
+        )
         self._bus: can.BusABC | None = None
         self._network: Any = None
         self._pos = [math.nan] * n
@@ -283,6 +311,11 @@ class CiA402Driver(Driver):
         self._now = math.nan
         self._t0 = math.nan
         self._master_hb_at = math.nan
+        #: the master's heartbeat while activate waits (wall clock: the loop's is not read)
+        self._waiting_hb_at = -math.inf
+        #: the frames taken while activate waited are stamped with the last read's ``now``:
+        #: the first read after it counts their ages from its own (see _read)
+        self._restamp = False
         self._send_lock = threading.Lock()
         self._counters = {
             "sync_frames": 0,
@@ -362,13 +395,27 @@ class CiA402Driver(Driver):
         return node.counts if node.counts is not None else node.target
 
     def _sync(self, rpdos: bool) -> None:
-        if rpdos:
-            for node in self._nodes:
-                self._send(node.rpdo_msg)
-            self._counters["rpdo_frames"] += len(self._nodes)
+        """Every node's RPDO (``rpdos``) and a SYNC, under one hold of the send lock."""
+        bus = self._bus
+        if bus is None:
+            return
+        counters = self._counters
+        msg = self._sync_msg
         self._owe(self._now)
-        self._send(self._sync_msg)
-        self._counters["sync_frames"] += 1
+        try:
+            with self._send_lock:
+                if rpdos:
+                    for node in self._nodes:
+                        msg = node.rpdo_msg
+                        bus.send(msg, timeout=0.0005)
+                    counters["rpdo_frames"] += len(self._nodes)
+                    msg = self._sync_msg
+                bus.send(msg, timeout=0.0005)
+        except can.CanError as err:
+            raise DriverError(
+                f"{self._where}: send of {msg.arbitration_id:#05x} failed: {err}"
+            ) from err
+        counters["sync_frames"] += 1
 
     def _owe(self, now: float) -> None:
         """A SYNC goes out at ``now``: every node owes a TPDO from then on."""
@@ -389,6 +436,9 @@ class CiA402Driver(Driver):
         cob = msg.arbitration_id
         found = self._rx.get(cob)
         if found is None:
+            if cob in self._own:  # its own frame, echoed (udp_multicast): the usual case
+                self._counters["echoes"] += 1
+                return
             key = "echoes" if master_sends(cob, self._master_id) else "ignored_frames"
             self._counters[key] += 1
             return
@@ -446,8 +496,9 @@ class CiA402Driver(Driver):
             if all(n.tpdo1 > b for n, b in zip(self._nodes, before, strict=True)):
                 return
             left = deadline - time.monotonic()
-            if left <= 0.0:
+            if left <= 0.0 or self.activation_cancelled:
                 return
+            self._waiting_heartbeat()
             try:
                 msg = bus.recv(timeout=min(left, 0.01))
             except can.CanError as err:
@@ -461,6 +512,15 @@ class CiA402Driver(Driver):
             self._t0 = now
         self._now = now
         nodes = self._nodes
+        if self._restamp:
+            # heard while activate waited on another thread, stamped then with the last
+            # read's now: heard now, as far as the ages go (the loop's time moved on)
+            self._restamp = False
+            for node in nodes:
+                if node.hb_at == node.hb_at:
+                    node.hb_at = now
+                if node.owed_since == node.owed_since:
+                    node.owed_since = now
         shown = [n.sampled_at for n in nodes]
         fresh = [n.tpdo1 for n in nodes]
         self._drain(now)
@@ -481,6 +541,15 @@ class CiA402Driver(Driver):
                 self._sync(rpdos=False)
         self._heartbeat(now)
         return self._pos, self._vel, self._eff
+
+    def _waiting_heartbeat(self) -> None:
+        """The master's heartbeat while activate or reset waits (the loop neither reads nor
+        writes meanwhile): a node already enabled must not find its master silent."""
+        if self._master_hb_s > 0.0:
+            t = time.monotonic()
+            if t - self._waiting_hb_at >= self._master_hb_s:
+                self._waiting_hb_at = t
+                self._send(self._hb_msg)
 
     def _heartbeat(self, now: float) -> None:
         """The master's heartbeat, every quarter of ``heartbeat_ms`` of reads and writes."""
@@ -506,7 +575,7 @@ class CiA402Driver(Driver):
                 cause = f"EMCY {code:#06x} ({emcy_meaning(code)}), error register {register:#04x}"
             elif sw is not None and sw & 0x08:
                 cause = f"statusword {sw:#06x}: {cia402_state(sw)} (fault bit set)"
-            elif active and sw is not None and cia402_state(sw) != "OPERATION ENABLED":
+            elif active and sw is not None and sw & _OE_MASK != _OE_VALUE:
                 cause = f"statusword {sw:#06x}: left OPERATION ENABLED, now {cia402_state(sw)}"
             elif node.nmt is not None and node.nmt != NMT_OPERATIONAL:
                 cause = (
@@ -534,14 +603,26 @@ class CiA402Driver(Driver):
 
     def _write(self, values: Sequence[float], now: float) -> None:
         self._now = now
-        if self._effort:
-            for node, u in zip(self._nodes, values, strict=True):
-                self._pack(node, CW_ENABLE_OPERATION, _saturate(u / node.torque_scale, _INT16))
-        else:
-            for node, x in zip(self._nodes, values, strict=True):
-                self._pack(node, CW_ENABLE_OPERATION, _saturate(x * node.cpu, _INT32))
         self._tick += 1
         if self._tick % self._sync_every == 0:
+            # packed only when sent: a synchronous RPDO takes effect at the SYNC, so the ticks
+            # between would be overwritten unused (the base checked every one of them)
+            cw = CW_ENABLE_OPERATION
+            if self._effort:
+                pack, bounds = RPDO_CST.pack_into, _INT16
+                for i, node in enumerate(self._nodes):
+                    target = _saturate(values[i] / node.torque_scale, bounds)
+                    node.cw, node.target = cw, target
+                    pack(node.rpdo, 0, cw, target)
+            else:
+                pack, lo, hi = RPDO_CSP.pack_into, _INT32[0], _INT32[1]
+                for i, node in enumerate(self._nodes):
+                    c = values[i] * node.cpu  # _saturate inline: every node, every SYNC
+                    if c != c:
+                        raise ValueError("NaN cannot be sent")
+                    target = hi if c >= hi else lo if c <= lo else int(math.floor(c + 0.5))
+                    node.cw, node.target = cw, target
+                    pack(node.rpdo, 0, cw, target)
             self._sync(rpdos=True)
         self._heartbeat(now)
 
@@ -557,8 +638,16 @@ class CiA402Driver(Driver):
             "SWITCHED ON": CW_ENABLE_OPERATION,
             "OPERATION ENABLED": CW_ENABLE_OPERATION,
         }
+        self._waiting_hb_at = -math.inf
+        self._restamp = True  # what it takes is stamped with the last read's now
         try:
             while True:
+                if self.activation_cancelled:
+                    # a safe stop or a cancel while powering up: off now (the base then
+                    # latches FAULT and quick-stops, or leaves it INACTIVE)
+                    self._stop_all(CW_DISABLE_VOLTAGE)
+                    return
+                self._waiting_heartbeat()
                 self._drain(self._now)  # TPDOs of earlier SYNCs: judged before this step
                 why = self._judge(self._now, active=False)
                 if why is not None:
@@ -621,6 +710,7 @@ class CiA402Driver(Driver):
     def _reset(self) -> None:
         if self._bus is None:
             return  # never configured: the base configures it again
+        self._restamp = True  # it may run off the loop thread: see _activate
         self._drain(self._now)  # what came before the reset was acted on
         self._bus_off = None
         for node in self._nodes:

@@ -59,13 +59,14 @@ and type fault commands on its standard input, one a line (``help`` lists them):
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import math
 import struct
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -661,6 +662,14 @@ class DriveEmulator:
 
     def node(self, node_id: int) -> EmulatedNode:
         return self.nodes[node_id]
+
+    @contextlib.contextmanager
+    def held(self) -> Iterator[None]:
+        """Inside, the emulated drives answer nothing: the frames sent to them wait on the bus
+        and are handled, in order, once it ends (nodes slow to answer). The thread that holds
+        them must not :meth:`settle` meanwhile (it would handle them itself)."""
+        with self._lock:
+            yield
 
     # ------------------------------------------------------------ frames
     def _send(self, cob: int, data: bytes) -> None:

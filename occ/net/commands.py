@@ -13,8 +13,9 @@ Three forms are accepted (shared/IGTL-PROTOCOL.md §3.18, §6.1, §6.2):
   requested type; refused ones with a ``STATUS`` carrying the error code.
 
 An unknown or refused request always gets an error reply and changes nothing. A command whose
-work must not run on the loop thread (planning a trajectory) may be answered later: its handler
-returns a :class:`Deferred` and completes it from any thread; the reply then goes out at once.
+work must not run on the loop thread (planning a trajectory, an Enable whose drives power up
+off the loop thread) may be answered later: its handler returns a :class:`Deferred` and completes
+it from any thread; the reply then goes out at once.
 """
 
 from __future__ import annotations
@@ -124,7 +125,7 @@ class CommandDesk(Protocol):
     @property
     def recording(self) -> RecordingCommands: ...
 
-    def transition(self, req: Request) -> str: ...
+    def transition(self, req: Request) -> str | Deferred: ...
 
     def describe_state(self) -> str: ...
 
@@ -161,7 +162,7 @@ class CommandSpec:
     busy: str = ""
 
 
-def _transition(desk: CommandDesk, req: Request, item: Asked, now: float) -> str:
+def _transition(desk: CommandDesk, req: Request, item: Asked, now: float) -> str | Deferred:
     return desk.transition(req)
 
 
@@ -171,7 +172,11 @@ ROBOT_COMMANDS: dict[str, CommandSpec] = {
     c.name.lower(): c
     for c in (
         CommandSpec(
-            "Enable", "operator", LOOP, "servos on, holding: READY -> ENABLED", _transition
+            "Enable",
+            "operator",
+            DEFERRED,  # in the tick, or when drives that power up off the loop thread are up
+            "servos on, holding: READY -> ENABLED",
+            _transition,
         ),
         CommandSpec("Run", "operator", LOOP, "follow the controllers: -> RUNNING", _transition),
         CommandSpec("Stop", "operator", LOOP, "hold the last setpoint: -> STOPPED", _transition),

@@ -275,9 +275,10 @@ class OperatorDesk:
         return None
 
     # -- what the rows of ROBOT_COMMANDS call (occ/net/commands.py ``CommandDesk``)
-    def transition(self, req: Request) -> str:
+    def transition(self, req: Request) -> str | Deferred:
         """A state-machine event of the command's name; Reset clears the monitors first, and
-        in STOPPED only the alert (Run resumes)."""
+        in STOPPED only the alert (Run resumes). An Enable whose drives power up off the loop
+        thread is answered when they are up (a Deferred: occ/core/powerup.py)."""
         port = self.port
         event = req.name.strip().lower()
         if event == "reset":
@@ -285,8 +286,7 @@ class OperatorDesk:
             if port.states.state is RobotState.STOPPED:
                 port.alarms.last_alert = ""
                 return "STOPPED: alerts cleared; send Run to resume"
-        tr = port.states.request(event, f"operator {req.name}")
-        return f"{tr.old.value} -> {tr.new.value}"
+        return port.transition(event, f"operator {req.name}")
 
     def stats_job(self, req: Request, item: Asked) -> Job:
         assert isinstance(item, Inbound)

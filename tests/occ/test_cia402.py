@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import itertools
 import math
+import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -266,6 +268,54 @@ def test_one_node_that_will_not_enable_vetoes_and_the_others_go_down(
         node = r.emu.node(nid)
         assert node.controlwords[-1] == 0x00  # disable voltage
         assert node.describe()["state"] == "SWITCH ON DISABLED"
+
+
+@pytest.mark.req("SR-HW-39")
+@pytest.mark.parametrize("how", ["cancel", "safe_stop"])
+def test_an_activation_on_another_thread_gives_up_when_cancelled_or_stopped(
+    rig: Callable[..., Rig], how: str
+) -> None:
+    """The robot runs activate on a thread of its own (activation_waits): a cancel (Disable)
+    or a safe stop (EStop, the supervisor) from another thread ends it at once, every node
+    switched off, while the drives have not answered yet."""
+    r = rig()
+    assert r.drv.activation_waits
+    r.drv.configure()
+    r.ticks(4)
+    errors: list[Exception] = []
+
+    def power_up() -> None:
+        try:
+            r.drv.activate()
+        except Exception as err:  # noqa: BLE001 - what activate raised, checked below
+            errors.append(err)
+
+    with r.emu.held():  # the drives answer nothing: the activation waits for them
+        thread = threading.Thread(target=power_up)
+        thread.start()
+        give_up = time.monotonic() + 5.0
+        while not r.drv.activating:
+            assert time.monotonic() < give_up
+            time.sleep(0.001)
+        if how == "cancel":
+            assert r.drv.cancel_activation("operator Disable")
+        else:
+            r.drv.safe_stop("EStop")
+        thread.join(2.0)  # it gave up without them
+        assert not thread.is_alive()
+    r.emu.settle()
+    assert len(errors) == 1
+    if how == "cancel":
+        assert isinstance(errors[0], StateError) and "activation cancelled" in str(errors[0])
+        assert r.drv.state is DriverState.INACTIVE
+    else:
+        assert "safe stop while powering up: EStop" in str(errors[0])
+        assert r.drv.state is DriverState.FAULT
+        assert all(0x02 in r.emu.node(n).controlwords for n in (1, 2, 3))  # quick stop
+    r.ticks(2)
+    for nid in (1, 2, 3):
+        assert r.emu.node(nid).describe()["state"] == "SWITCH ON DISABLED"
+    assert not r.drv.cancel_activation("late")  # nothing under way any more
 
 
 def test_positions_round_trip_in_counts_per_unit(rig: Callable[..., Rig]) -> None:

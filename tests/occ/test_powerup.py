@@ -1,0 +1,296 @@
+"""Power-up off the loop thread (occ/core/powerup.py, issue 38): the slave on three CiA 402
+drives (configs/slave-cia402.yaml on python-can's ``virtual`` bus) against the drive emulator
+in this process, in simulated time (:class:`~occ_testkit.testing.SimRobot`).
+
+The emulator's own thread answers the activation's SYNCs; a test holds it
+(:meth:`DriveEmulator.held`) to keep the activation waiting while the loop ticks, and waits on
+the wall clock for the activation's thread (``Robot.await_power_up``) without ticking, so the
+ticks the test counts are its own.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+
+from occ.clock import SimClock
+from occ.core.loader import load_config
+from occ.core.safety import RobotState
+from occ.drivers.base import DriverState
+from occ.drivers.cia402_sim import DriveEmulator
+from occ_testkit import CONFIGS
+from occ_testkit.testing import SimPeer, SimRobot
+
+_channels = itertools.count(1)
+#: where the emulated joints start (counts): yaw 0, pitch 0.1 rad, insertion 50 mm
+START = {1: 0.0, 2: 0.1 * 52152.0, 3: 0.05 * 2.0e6}
+
+
+def wait_for(what: Callable[[], bool], timeout: float = 5.0) -> None:
+    """Wall clock, no tick: until ``what()`` (the activation's thread has got that far)."""
+    give_up = time.monotonic() + timeout
+    while not what():
+        assert time.monotonic() < give_up, "timed out"
+        time.sleep(0.001)
+
+
+class Rig:
+    """The CiA 402 slave and its three emulated drives on one simulated clock."""
+
+    def __init__(self, **params: Any) -> None:
+        self.channel = f"occ-powerup-{next(_channels)}"
+        self.clock = SimClock()
+        self.emu = DriveEmulator([1, 2, 3], channel=self.channel, clock=self.clock.now)
+        for nid, counts in START.items():
+            self.emu.node(nid).position = counts
+        self.emu.start()
+        cfg = load_config(CONFIGS / "slave-cia402.yaml")
+        drv = cfg.robot.drivers[0]
+        p = {
+            **dict(drv.params),
+            "interface": "virtual",
+            "channel": self.channel,
+            "state_timeout_ms": 2000.0,
+            **params,
+        }
+        robot = cfg.robot.model_copy(update={"drivers": (drv.model_copy(update={"params": p}),)})
+        self.sim = SimRobot(cfg.model_copy(update={"robot": robot}), clock=self.clock)
+        self.robot = self.sim.robot
+        self.op: SimPeer = self.sim.peer("operator")
+        self.ticks(3)
+
+    @property
+    def arm(self) -> Any:
+        return self.robot.hardware.drivers[0]
+
+    def tick(self, settle: bool = True) -> None:
+        self.sim.tick()
+        if settle:
+            self.emu.settle()  # its TPDOs are there for the next tick's read
+
+    def ticks(self, n: int, settle: bool = True) -> None:
+        for _ in range(n):
+            self.tick(settle)
+
+    def landed(self) -> None:
+        """The activation's thread has ended (wall clock, no tick), and the tick that
+        completes the power-up has run."""
+        assert self.robot.await_power_up(10.0)
+        self.tick()
+        assert not self.robot.powering_up
+
+    def reply(self, cid: int) -> tuple[bool, str] | None:
+        msg = self.op.reply_to(cid)
+        if msg is None:
+            return None
+        meta = msg.metadata
+        return meta.get("Status") == "SUCCESS", meta.get("Message", "")
+
+    def states(self) -> list[str]:
+        return [self.emu.node(n).describe()["state"] for n in (1, 2, 3)]
+
+    def close(self) -> None:
+        try:
+            self.sim.close()
+        finally:
+            self.emu.stop()
+
+
+@pytest.fixture
+def rig() -> Iterator[type[Rig]]:
+    made: list[Rig] = []
+
+    class Made(Rig):
+        def __init__(self, **params: Any) -> None:
+            made.append(self)
+            super().__init__(**params)
+
+    yield Made
+    for r in made:
+        r.close()
+
+
+@pytest.mark.req("SR-HW-39")
+def test_enable_powers_the_drives_up_while_the_loop_goes_on_ticking(rig: type[Rig]) -> None:
+    r = rig()
+    assert r.arm.activation_waits
+    with r.emu.held():  # the drives answer nothing yet: the activation waits
+        cid = r.op.send_command("Enable")
+        before = r.robot.ticks
+        r.ticks(50, settle=False)
+        # the loop ticked 50 times while the activation waited on its thread: READY, no
+        # reply yet, the drive busy (neither read nor written by the loop)
+        assert r.robot.ticks - before == 50
+        assert r.robot.state is RobotState.READY and r.robot.powering_up
+        assert r.reply(cid) is None
+        assert r.robot.hardware.busy == frozenset({r.arm})
+        assert r.arm.state is DriverState.INACTIVE
+        assert not r.robot.hardware.all_safe()  # a drive coming up is not safe
+    r.landed()
+    assert r.reply(cid) == (True, "READY -> ENABLED")
+    assert r.robot.state is RobotState.ENABLED
+    assert r.arm.state is DriverState.ACTIVE and not r.robot.hardware.busy
+    r.ticks(100)  # held where it was measured, heartbeats and TPDOs judged as usual
+    assert r.robot.state is RobotState.ENABLED, r.robot.last_alert
+    assert r.states() == ["OPERATION ENABLED"] * 3
+    assert [j.position for j in r.robot.joints] == pytest.approx([0.0, 0.1, 0.05], abs=1e-4)
+    stats = r.robot.snapshot()["power_up"]
+    assert stats["count"] == 1 and stats["last_ms"] > 0.0 and not stats["under_way"]
+
+
+@pytest.mark.req("SR-HW-39")
+def test_a_node_that_never_enables_vetoes_enable_and_every_node_goes_off(
+    rig: type[Rig],
+) -> None:
+    r = rig(state_timeout_ms=100.0)
+    r.emu.refuse_enable(2)
+    cid = r.op.send_command("Enable")
+    r.tick()
+    assert r.robot.powering_up and r.reply(cid) is None
+    r.landed()
+    answer = r.reply(cid)
+    assert answer is not None
+    ok, text = answer
+    assert not ok
+    assert "node 2 (joint pitch) in SWITCHED ON" in text, text
+    assert "every node switched off again" in text
+    assert r.robot.state is RobotState.FAULT  # never ENABLED
+    assert r.arm.state is DriverState.FAULT and r.robot.hardware.all_safe()
+    r.ticks(3)
+    assert r.states() == ["SWITCH ON DISABLED"] * 3
+    assert all(r.emu.node(n).controlwords[-1] == 0x00 for n in (1, 2, 3))
+
+
+@pytest.mark.req("SR-HW-39")
+def test_an_estop_while_powering_up_wins_every_node_off_and_estop(rig: type[Rig]) -> None:
+    r = rig()
+    with r.emu.held():
+        enable = r.op.send_command("Enable")
+        r.ticks(5, settle=False)
+        assert r.robot.powering_up
+        wait_for(lambda: r.arm.activating)  # its thread is waiting for the drives
+        estop = r.op.send_command("EStop")
+        r.tick(settle=False)
+        assert r.robot.state is RobotState.ESTOP
+        assert r.reply(estop) == (True, "READY -> ESTOP")
+        answer = r.reply(enable)  # refused at once: the power-up's result is discarded
+        assert answer is not None and not answer[0] and "cancelled" in answer[1], answer
+        assert r.robot.await_power_up(10.0)  # it gave up without waiting for the drives
+    r.landed()
+    assert r.robot.state is RobotState.ESTOP
+    assert r.arm.state is DriverState.FAULT  # latched: safe stop while powering up
+    assert "safe stop while powering up" in (r.arm.fault_reason or "")
+    assert r.robot.hardware.all_safe()
+    r.ticks(3)
+    for nid in (1, 2, 3):
+        node = r.emu.node(nid)
+        assert 0x02 in node.controlwords, (nid, node.controlwords)  # quick stop
+        assert node.describe()["state"] != "OPERATION ENABLED"
+    # after a Reset the drives come up again
+    assert r.sim.command(r.op, "Reset").metadata["Status"] == "SUCCESS"
+    r.ticks(3)
+    reply = r.sim.command(r.op, "Enable")
+    assert reply.metadata["Status"] == "SUCCESS", reply.metadata
+    assert r.robot.state is RobotState.ENABLED
+
+
+@pytest.mark.req("SR-HW-39")
+def test_a_disable_while_powering_up_cancels_it_and_the_drives_stay_usable(
+    rig: type[Rig],
+) -> None:
+    r = rig()
+    with r.emu.held():
+        enable = r.op.send_command("Enable")
+        r.ticks(3, settle=False)
+        wait_for(lambda: r.arm.activating)
+        disable = r.op.send_command("Disable")
+        again = r.op.send_command("Enable")  # same tick: refused, the power-up has not ended
+        r.tick(settle=False)
+        ok, text = r.reply(disable) or (False, "no reply")
+        assert ok and "power-up is cancelled" in text
+        answer = r.reply(enable)
+        assert answer is not None and not answer[0] and "operator Disable" in answer[1]
+        answer = r.reply(again)
+        assert answer is not None and not answer[0] and "powering up" in answer[1]
+    r.landed()
+    assert r.robot.state is RobotState.READY
+    assert r.arm.state is DriverState.INACTIVE  # switched off, not faulted
+    r.ticks(3)
+    assert r.states() == ["SWITCH ON DISABLED"] * 3
+    reply = r.sim.command(r.op, "Enable")
+    assert reply.metadata["Status"] == "SUCCESS", reply.metadata
+    r.ticks(20)
+    assert r.robot.state is RobotState.ENABLED
+    assert r.states() == ["OPERATION ENABLED"] * 3
+
+
+@pytest.mark.req("SR-HW-39")
+def test_the_supervisors_safe_stop_while_powering_up_switches_every_node_off(
+    rig: type[Rig],
+) -> None:
+    r = rig()
+    with r.emu.held():
+        r.op.send_command("Enable")
+        r.tick(settle=False)
+        assert r.robot.powering_up
+        wait_for(lambda: r.arm.activating)
+        # the supervisor's thread (as Alarms.supervisor_trip does): every drive's safe stop
+        assert r.robot.hardware.safe_stop("loop hung") == []
+        assert r.robot.await_power_up(10.0)
+    r.landed()
+    assert r.arm.state is DriverState.FAULT
+    assert r.robot.state is not RobotState.ENABLED
+    r.ticks(3)
+    assert all(0x02 in r.emu.node(n).controlwords for n in (1, 2, 3))
+    assert all(s != "OPERATION ENABLED" for s in r.states())
+
+
+@pytest.mark.req("SR-HW-39")
+def test_start_enabled_powers_up_then_runs(rig: type[Rig]) -> None:
+    """``occd --start running``: Enable powers up off the loop thread, Run follows it."""
+    r = rig()
+    r.robot.start_in("enable", "run")
+    r.tick()
+    assert r.robot.powering_up and r.robot.state is RobotState.READY
+    r.landed()
+    r.tick()
+    assert r.robot.state is RobotState.RUNNING, r.robot.last_alert
+
+
+@pytest.mark.req("SR-HW-39")
+def test_a_reset_of_cia402_drives_runs_off_the_loop_thread_and_is_refused_while_the_cause_persists(
+    rig: type[Rig],
+) -> None:
+    r = rig(state_timeout_ms=200.0)
+    assert r.sim.command(r.op, "Enable").metadata["Status"] == "SUCCESS"
+    r.ticks(10)
+    r.emu.inject_emcy(2, 0x2310, persist=True)
+    for _ in range(20):
+        r.tick()
+        if r.robot.state is RobotState.FAULT:
+            break
+    assert r.robot.state is RobotState.FAULT and r.arm.state is DriverState.FAULT
+    r.ticks(3)
+    with r.emu.held():  # the fault reset waits for the drives: the loop goes on ticking
+        cid = r.op.send_command("Reset")
+        before = r.robot.ticks
+        r.ticks(20, settle=False)
+        assert r.robot.ticks - before == 20 and r.robot.powering_up
+        assert r.robot.state is RobotState.FAULT and r.reply(cid) is None
+    r.landed()
+    answer = r.reply(cid)
+    assert answer is not None and not answer[0], answer
+    assert "fault reset refused" in answer[1] and "node 2 (joint pitch): still FAULT" in answer[1]
+    assert r.robot.state is RobotState.FAULT
+    r.emu.clear(2)
+    reply = r.sim.command(r.op, "Reset")
+    assert reply.metadata["Status"] == "SUCCESS", reply.metadata
+    assert reply.metadata["Message"] == "FAULT -> READY"
+    r.ticks(3)
+    assert r.sim.command(r.op, "Enable").metadata["Status"] == "SUCCESS"
+    r.ticks(20)
+    assert r.robot.state is RobotState.ENABLED, r.robot.last_alert
