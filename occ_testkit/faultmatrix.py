@@ -249,10 +249,10 @@ class _Run:
     def command(self, name: str) -> tuple[bool, str]:
         cid = self.op.send_command(name)
         self.tick()
-        if self.robot.powering_up:
+        if self.robot.effects.powering_up:
             # the CiA 402 drive powers up off the loop thread: waited for without ticking (the
             # run stays deterministic), then completed by the next tick, which replies
-            self.robot.await_power_up(10.0)
+            self.robot.effects.await_power_up(10.0)
             self.tick()
         reply = self.op.reply_to(cid)
         if reply is None:

@@ -412,8 +412,8 @@ class SimRobot:
         on the wall clock without ticking, then the tick that completes it runs."""
         cid = peer.send_command(name, text)
         self.step(ticks)
-        while self.robot.powering_up:  # drives powering up off the loop thread (an Enable)
-            assert self.robot.await_power_up(10.0), f"{name}: the power-up did not end"
+        while self.robot.effects.powering_up:  # drives powering up off the loop thread (an Enable)
+            assert self.robot.effects.await_power_up(10.0), f"{name}: the power-up did not end"
             self.tick()  # it completes the transition and replies
         reply = peer.reply_to(cid)
         assert reply is not None, f"no RTS_COMMAND for {name} (command ID {cid})"

@@ -33,8 +33,6 @@ from occ.core.safety import RobotState, StateMachine
 from occ.core.statetable import table_for
 from occ.core.stats import LoopStats
 from occ.core.supervision import SupervisorThread, Worker
-from occ.errors import StateError
-from occ.net.commands import Deferred
 from occ.recording.record import writer_priority
 
 log = logging.getLogger(__name__)
@@ -91,7 +89,6 @@ class Robot:
         self.outputs = wiring.build_outputs(self)
         self.set_recorder(recorder)
         self._shutdown_done = False
-        self._at_start: list[str] = []
 
     def set_recorder(self, recorder: Any | None) -> None:
         """Attach a recorder (from any thread: the loop sees it from its next read) or detach
@@ -152,7 +149,7 @@ class Robot:
         drives to prove them (issue 36), and a drive's heartbeat runs from its first command,
         so power comes on inside the run of ticks that goes on commanding it, never before
         the loop has started (which can take longer than the heartbeat)."""
-        self._at_start = list(events)
+        self.effects.start_in(events)
 
     def stop_loop(self) -> None:
         self.loop.stop()
@@ -182,24 +179,6 @@ class Robot:
 
     def __exit__(self, *exc: object) -> None:
         self.shutdown()
-
-    def request(self, event: str, reason: str) -> str | Deferred:
-        """A state-machine event on the loop thread (an operator's command, ``--start``): the
-        transition's text, or a :class:`~occ.net.commands.Deferred` answered when drives whose
-        activation waits are up (occ/core/powerup.py); StateError when refused."""
-        return self.effects.request(event, reason)
-
-    @property
-    def powering_up(self) -> bool:
-        """Drives are being powered up off the loop thread (occ/core/powerup.py)."""
-        return self.effects.powering_up
-
-    def await_power_up(self, timeout: float) -> bool:
-        """Wait (wall clock, at most ``timeout``) until the activations of a power-up under way
-        have all ended, without ticking (the next tick completes it); True when they have or
-        none was under way. For tests and tools in simulated time."""
-        pu = self.effects.powerup
-        return True if pu is None else pu.wait(timeout)
 
     def reset_monitors(self) -> None:
         """An operator's Reset: watchdog, supervisor and loss monitor cleared, and every
@@ -233,8 +212,8 @@ class Robot:
         except Exception as err:  # noqa: BLE001
             self.alarms.plugin_error(f"controller {self.controller.name}: on_sample", err)
         # commands, bounded per tick so a flood cannot stall the loop (parsed already)
-        if self._at_start and not self.effects.powering_up:
-            self._start_events()
+        if self.effects.starting and not self.effects.powering_up:
+            self.effects.start_events()
         commands = self.interfaces.commands
         if commands.pending:
             for item in commands.drain(limit=16):
@@ -261,28 +240,6 @@ class Robot:
             self.recorder.record_state(self.data, now)
         if self.state_table is not None:
             self.state_table.write_data(now, self._owner_code, self.data, self.joints)
-
-    def _start_events(self) -> None:
-        """``--start``'s transitions, in order; one that powers drives up off the loop thread
-        leaves the rest for the tick after it has landed."""
-        while self._at_start:
-            ev = self._at_start.pop(0)
-            try:
-                answer = self.request(ev, "--start")
-            except StateError as err:  # a refusal or a failure is alerted by the state machine
-                log.error("--start: %s refused or failed (%s)", ev, err)
-                self._at_start = []
-                return
-            if isinstance(answer, Deferred):
-                answer.bind(self._started)  # the rest once it has landed
-                return
-
-    def _started(self, ok: bool, text: str) -> None:
-        """A power-up asked by ``--start`` has landed: the remaining events go on, unless it
-        failed."""
-        if not ok:
-            log.error("--start: enable refused or failed (%s)", text)
-            self._at_start = []
 
     def _read(self, now: float) -> None:
         """Every drive read (a failed one latches FAULT naming it; the others still read)."""

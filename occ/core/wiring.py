@@ -37,7 +37,6 @@ from occ.recording.record import writer_priority
 if TYPE_CHECKING:
     from occ.core.statetable import StateTable
     from occ.core.supervision import SupervisorThread, Worker
-    from occ.net.commands import Deferred
     from occ.recording.record import Recorder
 
 
@@ -102,7 +101,6 @@ class Assembling(Protocol):
     def recorder(self) -> Recorder | None: ...
     def set_recorder(self, recorder: Recorder | None) -> None: ...
     def reset_monitors(self) -> None: ...
-    def request(self, event: str, reason: str) -> str | Deferred: ...
     def handover(self, to: str, interface: str, now: float) -> str: ...
     def tick(self, now: float, k: int) -> None: ...
     def write(self, values: Sequence[float], now: float, effort: bool = False) -> None: ...
@@ -279,7 +277,7 @@ def build_desk(robot: Assembling) -> OperatorDesk:
         stats=registry,
         lateness_buckets=robot.stats.lateness.buckets,
         reset_monitors=robot.reset_monitors,
-        transition=robot.request,
+        transition=robot.effects.request,
         handover=robot.handover,
         collision=robot.collision,
         state_table=robot.state_table,

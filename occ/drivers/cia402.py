@@ -154,7 +154,6 @@ from __future__ import annotations
 
 import logging
 import math
-import struct
 import threading
 import time
 from collections.abc import Mapping, Sequence
@@ -174,15 +173,11 @@ from occ.drivers.cia402_protocol import (
     COB_TPDO,
     CW_DISABLE_VOLTAGE,
     CW_ENABLE_OPERATION,
-    CW_FAULT_RESET,
     CW_QUICK_STOP,
     CW_SHUTDOWN,
     CW_SWITCH_ON,
     NMT_OPERATIONAL,
-    NMT_STATES,
     STATUS_WORDS,
-    cia402_state,
-    emcy_meaning,
     master_sends,
 )
 from occ.drivers.cia402_setup import (
@@ -228,6 +223,17 @@ _INT16 = (-(2**15), 2**15 - 1)
 
 
 #: OPERATION ENABLED's statusword mask and value (CiA 402's table), checked every read
+#: the controlword that takes a node from each CiA 402 state towards OPERATION ENABLED
+ENABLE_STEPS = {
+    "SWITCH ON DISABLED": CW_SHUTDOWN,
+    "READY TO SWITCH ON": CW_SWITCH_ON,
+    "SWITCHED ON": CW_ENABLE_OPERATION,
+    "OPERATION ENABLED": CW_ENABLE_OPERATION,
+}
+COUNTERS = (
+    "sync_frames", "rpdo_frames", "tpdo_frames", "emcy_frames", "heartbeat_frames", "echoes",
+    "ignored_frames", "quick_stops", "fault_resets", "error_frames",
+)  # fmt: skip
 _OE_MASK, _OE_VALUE = next((m, v) for m, v, name in STATUS_WORDS if name == "OPERATION ENABLED")
 
 # frame kinds in the receive table
@@ -317,18 +323,7 @@ class CiA402Driver(Driver):
         #: the first read after it counts their ages from its own (see _read)
         self._restamp = False
         self._send_lock = threading.Lock()
-        self._counters = {
-            "sync_frames": 0,
-            "rpdo_frames": 0,
-            "tpdo_frames": 0,
-            "emcy_frames": 0,
-            "heartbeat_frames": 0,
-            "echoes": 0,
-            "ignored_frames": 0,
-            "quick_stops": 0,
-            "fault_resets": 0,
-            "error_frames": 0,
-        }
+        self._counters = dict.fromkeys(COUNTERS, 0)
         #: the identifier of a bus-off error frame not yet acted on (None: none)
         self._bus_off: int | None = None
         self.last_fault: str | None = None
@@ -566,37 +561,9 @@ class CiA402Driver(Driver):
                 f"{self._where}: bus-off on {self._bus_args['channel']}: the CAN controller "
                 f"left the bus (error frame {self._bus_off:#x})"
             )
-        t0 = self._t0
+        t0, settings = self._t0, self._settings
         for node in self._nodes:
-            cause: str | None = None
-            sw = node.statusword
-            if node.emcy_pending is not None:
-                code, register = node.emcy_pending
-                cause = f"EMCY {code:#06x} ({emcy_meaning(code)}), error register {register:#04x}"
-            elif sw is not None and sw & 0x08:
-                cause = f"statusword {sw:#06x}: {cia402_state(sw)} (fault bit set)"
-            elif active and sw is not None and sw & _OE_MASK != _OE_VALUE:
-                cause = f"statusword {sw:#06x}: left OPERATION ENABLED, now {cia402_state(sw)}"
-            elif node.nmt is not None and node.nmt != NMT_OPERATIONAL:
-                cause = (
-                    f"left NMT OPERATIONAL: its heartbeat says "
-                    f"{NMT_STATES.get(node.nmt, hex(node.nmt))}"
-                )
-            else:
-                seen = node.hb_at if node.hb_at == node.hb_at else t0
-                if now - seen > self._node_hb_timeout:
-                    cause = (
-                        f"heartbeat consumer timeout: no heartbeat for {(now - seen) * 1e3:.1f} "
-                        f"ms (producer time {self._node_hb_ms} ms, timeout "
-                        f"{self._node_hb_timeout * 1e3:g} ms)"
-                    )
-                elif now - node.owed_since > self._feedback_timeout:  # NaN: nothing owed
-                    cause = (
-                        f"no TPDO for {(now - node.owed_since) * 1e3:.1f} ms since a SYNC asked "
-                        f"for one (feedback_timeout {self._feedback_timeout * 1e3:g} ms)"
-                    )
-            if cause is None and node.second is not None:
-                cause = node.second_check(self._pos[node.index], now)
+            cause = node.fault(now, active, t0, settings, self._pos[node.index])
             if cause is not None:
                 return f"{self._where}: {node.where}: {cause}"
         return None
@@ -632,12 +599,6 @@ class CiA402Driver(Driver):
         if unknown:
             raise DriverError(f"{self._where}: {', '.join(unknown)}: no position reported yet")
         deadline = time.monotonic() + self._state_timeout
-        steps = {
-            "SWITCH ON DISABLED": CW_SHUTDOWN,
-            "READY TO SWITCH ON": CW_SWITCH_ON,
-            "SWITCHED ON": CW_ENABLE_OPERATION,
-            "OPERATION ENABLED": CW_ENABLE_OPERATION,
-        }
         self._waiting_hb_at = -math.inf
         self._restamp = True  # what it takes is stamped with the last read's now
         try:
@@ -656,17 +617,15 @@ class CiA402Driver(Driver):
                 if all(s == "OPERATION ENABLED" for s in states):
                     break
                 if time.monotonic() > deadline:
-                    late = [
-                        f"{n.where} in {s} (statusword {n.statusword or 0:#06x})"
-                        for n, s in zip(self._nodes, states, strict=True)
-                        if s != "OPERATION ENABLED"
-                    ]
+                    late = [n.described() for n in self._nodes if not n.enabled()]
                     raise DriverError(
                         f"{self._where}: not OPERATION ENABLED within "
                         f"{self._state_timeout * 1e3:g} ms: {'; '.join(late)}"
                     )
                 for node, s in zip(self._nodes, states, strict=True):
-                    self._pack(node, steps.get(s, CW_DISABLE_VOLTAGE), self._hold_target(node))
+                    self._pack(
+                        node, ENABLE_STEPS.get(s, CW_DISABLE_VOLTAGE), self._hold_target(node)
+                    )
                 before = [n.tpdo1 for n in self._nodes]
                 self._sync(rpdos=True)
                 self._wait_tpdo(before, deadline)
@@ -691,12 +650,9 @@ class CiA402Driver(Driver):
         self._send(can.Message(arbitration_id=COB_SYNC, is_extended_id=False, data=b""))
         self._counters["sync_frames"] += 1
         for node in self._nodes:
-            if node.nmt is not None and node.nmt != NMT_OPERATIONAL:
-                # a node out of OPERATIONAL takes no PDO: the controlword as an expedited SDO
-                # download, sent and not waited for (its answer is dropped by _take)
-                request = struct.pack("<BHBH2x", 0x2B, 0x6040, 0, cw)
-                self._send(can.Message(arbitration_id=COB_SDO_RX + node.node_id,
-                                       is_extended_id=False, data=request))  # fmt: skip
+            msg = node.controlword_by_sdo(cw)  # out of OPERATIONAL: no PDO taken
+            if msg is not None:
+                self._send(msg)
         if cw == CW_QUICK_STOP:
             self._counters["quick_stops"] += 1
 
@@ -726,33 +682,20 @@ class CiA402Driver(Driver):
                 if node.nmt is not None and node.nmt != NMT_OPERATIONAL and network is not None:
                     network[node.node_id].nmt.send_command(0x01)
                     node.nmt = None  # judged again from its next heartbeat
-                in_fault = node.statusword is not None and node.statusword & 0x08
-                # the fault reset is bit 7's rising edge: 0x00, then 0x80
-                cw = CW_FAULT_RESET if in_fault and edge[i] else CW_DISABLE_VOLTAGE
-                edge[i] = bool(in_fault) and not edge[i]
+                cw, edge[i] = node.fault_reset_word(edge[i])
                 self._pack(node, cw, self._hold_target(node))
             before = [n.tpdo1 for n in self._nodes]
             self._sync(rpdos=True)
             self._wait_tpdo(before, deadline)
             for i, (node, b) in enumerate(zip(self._nodes, before, strict=True)):
                 answered[i] = answered[i] or node.tpdo1 > b
-            bad = [
-                n for n, a in zip(self._nodes, answered, strict=True)
-                if not a or (n.statusword or 0) & 0x08 or n.emcy_pending is not None
+            words = [
+                w for n, a in zip(self._nodes, answered, strict=True)
+                if (w := n.reset_refusal(a)) is not None
             ]  # fmt: skip
-            if not bad:
+            if not words:
                 break
             if time.monotonic() > deadline:
-                words = []
-                for node, a in zip(self._nodes, answered, strict=True):
-                    if node not in bad:
-                        continue
-                    if not a:
-                        words.append(f"{node.where}: no TPDO answered the reset's SYNC")
-                        continue
-                    emcy = node.emcy_pending or node.last_emcy
-                    tail = f" (EMCY {emcy[0]:#06x}: {emcy_meaning(emcy[0])})" if emcy else ""
-                    words.append(f"{node.where}: still {node.state()}{tail}")
                 raise DriverError(
                     f"{self._where}: fault reset refused within "
                     f"{self._state_timeout * 1e3:g} ms: {'; '.join(words)}"

@@ -24,11 +24,15 @@ import can
 
 from occ.drivers.cia402_protocol import (
     COB_RPDO,
+    COB_SDO_RX,
     COB_TPDO,
     CW_DISABLE_VOLTAGE,
+    CW_FAULT_RESET,
     MODE_CSP,
     MODE_CST,
+    NMT_OPERATIONAL,
     NMT_STATES,
+    STATUS_WORDS,
     cia402_state,
     emcy_meaning,
     frame_bits,
@@ -45,6 +49,9 @@ logger = logging.getLogger("occ.drivers.cia402")
 CAN_ERR_BUSOFF = 0x40
 CAN_ERR_MASK = 0x1FFFFFFF
 CAN_RAW_ERR_FILTER = 2
+
+#: the statusword mask and value of OPERATION ENABLED
+OE_MASK, OE_VALUE = next((m, v) for m, v, name in STATUS_WORDS if name == "OPERATION ENABLED")
 
 #: the EDS files shipped with the driver, and the one a node without ``eds`` uses
 EDS_DIR = Path(str(files("occ.drivers") / "eds"))
@@ -246,6 +253,78 @@ class Node:
             f"(first {first:.6g}, second {second:.6g}; tolerance {tol:g} for more than "
             f"latency_ms {latency * 1e3:g}, now {(now - since) * 1e3:.1f} ms)"
         )
+
+    def fault(
+        self, now: float, active: bool, t0: float, s: Settings, position: float
+    ) -> str | None:
+        """This node's first fault (occ/drivers/cia402.py, "Faults"), or None: an EMCY, the
+        fault bit, OPERATION ENABLED left while ``active``, NMT OPERATIONAL left, its
+        heartbeat or its TPDO overdue (``t0``: when the driver started listening), the second
+        sensor against the first (``position``)."""
+        sw = self.statusword
+        if self.emcy_pending is not None:
+            code, register = self.emcy_pending
+            return f"EMCY {code:#06x} ({emcy_meaning(code)}), error register {register:#04x}"
+        if sw is not None and sw & 0x08:
+            return f"statusword {sw:#06x}: {cia402_state(sw)} (fault bit set)"
+        if active and sw is not None and sw & OE_MASK != OE_VALUE:
+            return f"statusword {sw:#06x}: left OPERATION ENABLED, now {cia402_state(sw)}"
+        if self.nmt is not None and self.nmt != NMT_OPERATIONAL:
+            return (
+                f"left NMT OPERATIONAL: its heartbeat says "
+                f"{NMT_STATES.get(self.nmt, hex(self.nmt))}"
+            )
+        seen = self.hb_at if self.hb_at == self.hb_at else t0
+        if now - seen > s.node_hb_timeout:
+            return (
+                f"heartbeat consumer timeout: no heartbeat for {(now - seen) * 1e3:.1f} "
+                f"ms (producer time {s.node_hb_ms} ms, timeout "
+                f"{s.node_hb_timeout * 1e3:g} ms)"
+            )
+        if now - self.owed_since > s.feedback_timeout:  # NaN: nothing owed
+            return (
+                f"no TPDO for {(now - self.owed_since) * 1e3:.1f} ms since a SYNC asked "
+                f"for one (feedback_timeout {s.feedback_timeout * 1e3:g} ms)"
+            )
+        if self.second is not None:
+            return self.second_check(position, now)
+        return None
+
+    def controlword_by_sdo(self, cw: int) -> can.Message | None:
+        """For a node out of NMT OPERATIONAL (it takes no PDO): the controlword as an
+        expedited SDO download, to be sent and not waited for (the driver drops its answer);
+        None for a node that takes PDOs."""
+        if self.nmt is None or self.nmt == NMT_OPERATIONAL:
+            return None
+        request = struct.pack("<BHBH2x", 0x2B, 0x6040, 0, cw)
+        return can.Message(
+            arbitration_id=COB_SDO_RX + self.node_id, is_extended_id=False, data=request
+        )
+
+    def enabled(self) -> bool:
+        return self.state() == "OPERATION ENABLED"
+
+    def described(self) -> str:
+        """Where the node is, for an Enable that did not get there."""
+        return f"{self.where} in {self.state()} (statusword {self.statusword or 0:#06x})"
+
+    def fault_reset_word(self, edge: bool) -> tuple[int, bool]:
+        """The controlword of one step of a fault reset, and the next step's ``edge``: the
+        reset is bit 7's rising edge (0x00, then 0x80) for a node in FAULT."""
+        in_fault = self.statusword is not None and bool(self.statusword & 0x08)
+        cw = CW_FAULT_RESET if in_fault and edge else CW_DISABLE_VOLTAGE
+        return cw, in_fault and not edge
+
+    def reset_refusal(self, answered: bool) -> str | None:
+        """Why this node is not (yet) out of FAULT after a reset: no TPDO ``answered`` the
+        reset's SYNC, or still the fault bit or an EMCY; None when it is out."""
+        if not answered:
+            return f"{self.where}: no TPDO answered the reset's SYNC"
+        if not (self.statusword or 0) & 0x08 and self.emcy_pending is None:
+            return None
+        emcy = self.emcy_pending or self.last_emcy
+        tail = f" (EMCY {emcy[0]:#06x}: {emcy_meaning(emcy[0])})" if emcy else ""
+        return f"{self.where}: still {self.state()}{tail}"
 
     def stats(self) -> dict[str, Any]:
         """The node as GetStats shows it: its CiA 402 and NMT states, its last EMCY (code,

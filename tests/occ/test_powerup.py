@@ -4,7 +4,7 @@ in this process, in simulated time (:class:`~occ_testkit.testing.SimRobot`).
 
 The emulator's own thread answers the activation's SYNCs; a test holds it
 (:meth:`DriveEmulator.held`) to keep the activation waiting while the loop ticks, and waits on
-the wall clock for the activation's thread (``Robot.await_power_up``) without ticking, so the
+the wall clock for the activation's thread (``StateEffects.await_power_up``) without ticking, so the
 ticks the test counts are its own.
 """
 
@@ -79,9 +79,9 @@ class Rig:
     def landed(self) -> None:
         """The activation's thread has ended (wall clock, no tick), and the tick that
         completes the power-up has run."""
-        assert self.robot.await_power_up(10.0)
+        assert self.robot.effects.await_power_up(10.0)
         self.tick()
-        assert not self.robot.powering_up
+        assert not self.robot.effects.powering_up
 
     def reply(self, cid: int) -> tuple[bool, str] | None:
         msg = self.op.reply_to(cid)
@@ -125,7 +125,7 @@ def test_enable_powers_the_drives_up_while_the_loop_goes_on_ticking(rig: type[Ri
         # the loop ticked 50 times while the activation waited on its thread: READY, no
         # reply yet, the drive busy (neither read nor written by the loop)
         assert r.robot.ticks - before == 50
-        assert r.robot.state is RobotState.READY and r.robot.powering_up
+        assert r.robot.state is RobotState.READY and r.robot.effects.powering_up
         assert r.reply(cid) is None
         assert r.robot.hardware.busy == frozenset({r.arm})
         assert r.arm.state is DriverState.INACTIVE
@@ -150,7 +150,7 @@ def test_a_node_that_never_enables_vetoes_enable_and_every_node_goes_off(
     r.emu.refuse_enable(2)
     cid = r.op.send_command("Enable")
     r.tick()
-    assert r.robot.powering_up and r.reply(cid) is None
+    assert r.robot.effects.powering_up and r.reply(cid) is None
     r.landed()
     answer = r.reply(cid)
     assert answer is not None
@@ -171,7 +171,7 @@ def test_an_estop_while_powering_up_wins_every_node_off_and_estop(rig: type[Rig]
     with r.emu.held():
         enable = r.op.send_command("Enable")
         r.ticks(5, settle=False)
-        assert r.robot.powering_up
+        assert r.robot.effects.powering_up
         wait_for(lambda: r.arm.activating)  # its thread is waiting for the drives
         estop = r.op.send_command("EStop")
         r.tick(settle=False)
@@ -179,7 +179,7 @@ def test_an_estop_while_powering_up_wins_every_node_off_and_estop(rig: type[Rig]
         assert r.reply(estop) == (True, "READY -> ESTOP")
         answer = r.reply(enable)  # refused at once: the power-up's result is discarded
         assert answer is not None and not answer[0] and "cancelled" in answer[1], answer
-        assert r.robot.await_power_up(10.0)  # it gave up without waiting for the drives
+        assert r.robot.effects.await_power_up(10.0)  # it gave up without waiting for the drives
     r.landed()
     assert r.robot.state is RobotState.ESTOP
     assert r.arm.state is DriverState.FAULT  # latched: safe stop while powering up
@@ -236,11 +236,11 @@ def test_the_supervisors_safe_stop_while_powering_up_switches_every_node_off(
     with r.emu.held():
         r.op.send_command("Enable")
         r.tick(settle=False)
-        assert r.robot.powering_up
+        assert r.robot.effects.powering_up
         wait_for(lambda: r.arm.activating)
         # the supervisor's thread (as Alarms.supervisor_trip does): every drive's safe stop
         assert r.robot.hardware.safe_stop("loop hung") == []
-        assert r.robot.await_power_up(10.0)
+        assert r.robot.effects.await_power_up(10.0)
     r.landed()
     assert r.arm.state is DriverState.FAULT
     assert r.robot.state is not RobotState.ENABLED
@@ -255,7 +255,7 @@ def test_start_enabled_powers_up_then_runs(rig: type[Rig]) -> None:
     r = rig()
     r.robot.start_in("enable", "run")
     r.tick()
-    assert r.robot.powering_up and r.robot.state is RobotState.READY
+    assert r.robot.effects.powering_up and r.robot.state is RobotState.READY
     r.landed()
     r.tick()
     assert r.robot.state is RobotState.RUNNING, r.robot.last_alert
@@ -279,7 +279,7 @@ def test_a_reset_of_cia402_drives_runs_off_the_loop_thread_and_is_refused_while_
         cid = r.op.send_command("Reset")
         before = r.robot.ticks
         r.ticks(20, settle=False)
-        assert r.robot.ticks - before == 20 and r.robot.powering_up
+        assert r.robot.ticks - before == 20 and r.robot.effects.powering_up
         assert r.robot.state is RobotState.FAULT and r.reply(cid) is None
     r.landed()
     answer = r.reply(cid)
