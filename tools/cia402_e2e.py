@@ -36,8 +36,6 @@ from typing import Any
 
 import yaml
 
-import igtl
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))
 
@@ -47,31 +45,6 @@ from loopback import stop_processes, wait_port  # noqa: E402
 SLAVE = ROOT / "configs" / "slave-cia402.yaml"
 MASTER = ROOT / "configs" / "master.yaml"
 OPERATOR, SLICER = 18947, 18944
-
-
-def command(client: Client, name: str, timeout: float = 10.0) -> dict[str, str]:
-    """An operator COMMAND and its RTS_COMMAND reply's metadata (Status, Message)."""
-    client._id += 1
-    cid = client._id
-    client.send(
-        igtl.CommandMessage(
-            command_id=cid,
-            command_name=name,
-            command="",
-            device_name="command",
-            header_version=2,
-            metadata={"MRMLNodeName": "CommandNode"},
-        )
-    )
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        try:
-            msg = client.replies.get(timeout=0.2)
-        except Exception:  # noqa: BLE001 - queue.Empty: wait on
-            continue
-        if msg.message_type == "RTS_COMMAND" and getattr(msg, "command_id", None) == cid:
-            return dict(msg.metadata)
-    raise TimeoutError(f"no reply to {name}")
 
 
 def cpu_seconds(pid: int) -> float:
@@ -131,8 +104,8 @@ def run(
             "drivers": before["drivers"],
             "hardware": before.get("hardware", {}).get("states"),
         }
-        report["enable"] = command(operator, "Enable")
-        report["run"] = command(operator, "Run")
+        report["enable"] = operator.command("Enable")
+        report["run"] = operator.command("Run")
         first = None
         end = time.monotonic() + 20.0
         while time.monotonic() < end and first is None:
@@ -161,7 +134,7 @@ def run(
                 }
             )
             if snap["state"] == "STOPPED":
-                command(operator, "Run")  # a late master on a loaded machine: go on
+                operator.command("Run")  # a late master on a loaded machine: go on
         window = time.monotonic() - t0
         report["cpu_percent"] = {
             name: round(100.0 * (cpu_seconds(pid) - cpu0[name]) / window, 1)

@@ -101,30 +101,51 @@ class Client:
         t, msg = got
         return t, tuple(float(v) for v in msg.translation)  # type: ignore[return-value]
 
-    def stats(self, timeout: float = 5.0) -> dict[str, Any]:
-        """The daemon's GetStats as JSON (a COMMAND answered by a STRING ``STATS``)."""
+    def _ask(self, name: str, text: str) -> int:
+        """Send COMMAND ``name`` (replies to earlier ones dropped); its id."""
         self._id += 1
         while not self.replies.empty():
             self.replies.get_nowait()
         self.client.send(
             igtl.CommandMessage(
                 command_id=self._id,
-                command_name="GetStats",
-                command='<Command Name="GetStats" Format="json"/>',
+                command_name=name,
+                command=text,
                 device_name="command",
                 header_version=2,
                 metadata={"MRMLNodeName": "CommandNode"},
             )
         )
+        return self._id
+
+    def _reply(self, what: str, match: Any, timeout: float) -> igtl.Message:
         end = time.monotonic() + timeout
         while time.monotonic() < end:
             try:
                 msg = self.replies.get(timeout=0.2)
             except queue.Empty:
                 continue
-            if msg.message_type == "STRING" and msg.device_name == "STATS":
-                return json.loads(msg.string)  # type: ignore[attr-defined,no-any-return]
-        raise TimeoutError("no GetStats reply")
+            if match(msg):
+                return msg
+        raise TimeoutError(f"no {what} reply")
+
+    def stats(self, timeout: float = 5.0) -> dict[str, Any]:
+        """The daemon's GetStats as JSON (a COMMAND answered by a STRING ``STATS``)."""
+        self._ask("GetStats", '<Command Name="GetStats" Format="json"/>')
+        msg = self._reply(
+            "GetStats", lambda m: m.message_type == "STRING" and m.device_name == "STATS", timeout
+        )
+        return json.loads(msg.string)  # type: ignore[attr-defined,no-any-return]
+
+    def command(self, name: str, timeout: float = 10.0) -> dict[str, str]:
+        """An operator COMMAND and its RTS_COMMAND reply's metadata (Status, Message)."""
+        cid = self._ask(name, "")
+        msg = self._reply(
+            name,
+            lambda m: m.message_type == "RTS_COMMAND" and getattr(m, "command_id", None) == cid,
+            timeout,
+        )
+        return dict(msg.metadata)
 
     def send(self, msg: igtl.Message) -> None:
         self.client.send(msg)
