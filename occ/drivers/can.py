@@ -192,14 +192,15 @@ CAN_RAW_ERR_FILTER = 2
 ERROR_WINDOW = 0.1
 
 
-def _to_int32(value: float) -> int:
-    """Round to nearest and saturate: a command must never wrap around to the other sign."""
+def round_saturated(value: float, lo: int, hi: int) -> int:
+    """Round to nearest and saturate to [lo, hi]: a command must never wrap around to the
+    other sign (the integers of a CAN frame: this driver's, CiA 402's PDOs)."""
     if value != value:
         raise ValueError("NaN cannot be sent")
-    if value >= _INT32_MAX:
-        return _INT32_MAX
-    if value <= _INT32_MIN:
-        return _INT32_MIN
+    if value >= hi:
+        return hi
+    if value <= lo:
+        return lo
     return int(math.floor(value + 0.5))
 
 
@@ -608,11 +609,18 @@ class CANDriver(Driver):
     def _write(self, values: Sequence[float], now: float) -> None:
         if self.command_interface == "position":
             for i, x in enumerate(values):
-                self._send(i, MODE_POSITION, _to_int32(x * self._counts_per_unit[i]), now)
+                self._send(
+                    i,
+                    MODE_POSITION,
+                    round_saturated(x * self._counts_per_unit[i], _INT32_MIN, _INT32_MAX),
+                    now,
+                )
         else:
             scale = self._effort_scale
             for i, u in enumerate(values):
-                self._send(i, MODE_EFFORT, _to_int32(u * scale[i]), now)
+                self._send(
+                    i, MODE_EFFORT, round_saturated(u * scale[i], _INT32_MIN, _INT32_MAX), now
+                )
 
     def _send(self, i: int, mode: int, value: int, now: float | None = None) -> None:
         """One command frame to joint ``i``, owed an answer from ``now`` (None: from the

@@ -162,6 +162,7 @@ from typing import Any
 import can
 
 from occ.drivers.base import CommandInterface, Driver, DriverState, LimitPolicy
+from occ.drivers.can import round_saturated
 from occ.drivers.cia402_protocol import (
     COB_EMCY,
     COB_HEARTBEAT,
@@ -238,17 +239,6 @@ _OE_MASK, _OE_VALUE = next((m, v) for m, v, name in STATUS_WORDS if name == "OPE
 
 # frame kinds in the receive table
 _K_TPDO1, _K_TPDO2, _K_EMCY, _K_HB, _K_SDO = range(5)
-
-
-def _saturate(value: float, bounds: tuple[int, int]) -> int:
-    if value != value:
-        raise ValueError("NaN cannot be sent")
-    lo, hi = bounds
-    if value >= hi:
-        return hi
-    if value <= lo:
-        return lo
-    return int(math.floor(value + 0.5))
 
 
 class CiA402Driver(Driver):
@@ -578,13 +568,13 @@ class CiA402Driver(Driver):
             if self._effort:
                 pack, bounds = RPDO_CST.pack_into, _INT16
                 for i, node in enumerate(self._nodes):
-                    target = _saturate(values[i] / node.torque_scale, bounds)
+                    target = round_saturated(values[i] / node.torque_scale, *bounds)
                     node.cw, node.target = cw, target
                     pack(node.rpdo, 0, cw, target)
             else:
                 pack, lo, hi = RPDO_CSP.pack_into, _INT32[0], _INT32[1]
                 for i, node in enumerate(self._nodes):
-                    c = values[i] * node.cpu  # _saturate inline: every node, every SYNC
+                    c = values[i] * node.cpu  # round_saturated inline: every node, every SYNC
                     if c != c:
                         raise ValueError("NaN cannot be sent")
                     target = hi if c >= hi else lo if c <= lo else int(math.floor(c + 0.5))
