@@ -212,7 +212,7 @@ class Robot:
         except Exception as err:  # noqa: BLE001
             self.alarms.plugin_error(f"controller {self.controller.name}: on_sample", err)
         # commands, bounded per tick so a flood cannot stall the loop (parsed already)
-        if self.effects.starting and not self.effects.powering_up:
+        if self.effects.pending_start and not self.effects.powering_up:
             self.effects.start_events()
         commands = self.interfaces.commands
         if commands.pending:

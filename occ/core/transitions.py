@@ -73,8 +73,9 @@ class StateEffects:
         #: power-ups started, and the wall-clock time of the last one (GetStats ``power_up``)
         self.powerups = 0
         self.last_powerup_ms: float | None = None
-        #: ``occd --start``'s transitions not yet asked (start_in)
-        self._at_start: list[str] = []
+        #: ``occd --start``'s transitions not yet asked (start_in; the tick checks it, a
+        #: plain attribute: the loop looks every tick)
+        self.pending_start: list[str] = []
 
     # ------------------------------------------------------------------ requests
     def request(self, event: str, reason: str) -> str | Deferred:
@@ -188,22 +189,18 @@ class StateEffects:
     # -- occd --start: transitions for the loop's first ticks ------------------------------
     def start_in(self, events: tuple[str, ...] | list[str]) -> None:
         """``--start``'s transitions, asked in the loop's first tick (Robot.start_in)."""
-        self._at_start = list(events)
-
-    @property
-    def starting(self) -> bool:
-        return bool(self._at_start)
+        self.pending_start = list(events)
 
     def start_events(self) -> None:
         """``--start``'s transitions, in order; one that powers drives up off the loop thread
         leaves the rest for the tick after it has landed."""
-        while self._at_start:
-            ev = self._at_start.pop(0)
+        while self.pending_start:
+            ev = self.pending_start.pop(0)
             try:
                 answer = self.request(ev, "--start")
             except StateError as err:  # a refusal or a failure is alerted by the state machine
                 log.error("--start: %s refused or failed (%s)", ev, err)
-                self._at_start = []
+                self.pending_start = []
                 return
             if isinstance(answer, Deferred):
                 answer.bind(self._started)  # the rest once it has landed
@@ -214,7 +211,7 @@ class StateEffects:
         failed."""
         if not ok:
             log.error("--start: enable refused or failed (%s)", text)
-            self._at_start = []
+            self.pending_start = []
 
     def await_power_up(self, timeout: float) -> bool:
         """Wait (wall clock, at most ``timeout``) until the activations of a power-up under way
