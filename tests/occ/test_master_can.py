@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -20,26 +21,32 @@ ROOT = Path(__file__).resolve().parents[2]
 COUNTS_PER_M = 1_000_000  # 1 count = 1 um
 
 
-@pytest.mark.realtime
-def test_can_master_streams_hand_motion() -> None:
-    channel = f"occ-test-{time.monotonic_ns()}"
-    cfg = load_config(ROOT / "configs" / "master.yaml")
+def _can_driver(cfg: Any, channel: str, feedback_timeout: float) -> Any:
+    """The master's driver made the CAN one, in effort mode, on ``channel`` of python-can's
+    virtual bus: joints x, y, z on command ids 0x100-0x102, feedback 0x180-0x182."""
     joints = {
         name: {"can_id": 0x100 + i, "feedback_id": 0x180 + i, "counts_per_unit": COUNTS_PER_M}
         for i, name in enumerate(("x", "y", "z"))
     }
-    driver = cfg.robot.drivers[0].model_copy(
+    return cfg.robot.drivers[0].model_copy(
         update={
             "plugin": "can",
             "params": {
                 "interface": "virtual",
                 "channel": channel,
                 "joints": joints,
-                "feedback_timeout": 0.05,
+                "feedback_timeout": feedback_timeout,
                 "command_interface": "effort",
             },
         }
     )
+
+
+@pytest.mark.realtime
+def test_can_master_streams_hand_motion() -> None:
+    channel = f"occ-test-{time.monotonic_ns()}"
+    cfg = load_config(ROOT / "configs" / "master.yaml")
+    driver = _can_driver(cfg, channel, feedback_timeout=0.05)
     robot_cfg = cfg.robot.model_copy(
         update={
             "drivers": (driver,),
@@ -100,22 +107,7 @@ def test_no_enable_before_every_joint_is_measured() -> None:
 
     channel = f"occ-test-{time.monotonic_ns()}"
     cfg = load_config(ROOT / "configs" / "master.yaml")
-    joints = {
-        name: {"can_id": 0x100 + i, "feedback_id": 0x180 + i, "counts_per_unit": COUNTS_PER_M}
-        for i, name in enumerate(("x", "y", "z"))
-    }
-    driver = cfg.robot.drivers[0].model_copy(
-        update={
-            "plugin": "can",
-            "params": {
-                "interface": "virtual",
-                "channel": channel,
-                "joints": joints,
-                "feedback_timeout": 10.0,
-                "command_interface": "effort",
-            },
-        }
-    )
+    driver = _can_driver(cfg, channel, feedback_timeout=10.0)
     cfg = inproc_config(
         cfg.model_copy(update={"robot": cfg.robot.model_copy(update={"drivers": (driver,)})})
     )
@@ -152,22 +144,7 @@ def test_can_haptic_master_gets_the_fixture_force_on_its_effort_interface() -> N
 
     channel = f"occ-test-{time.monotonic_ns()}"
     cfg = load_config(ROOT / "configs" / "master.yaml")
-    joints = {
-        name: {"can_id": 0x100 + i, "feedback_id": 0x180 + i, "counts_per_unit": COUNTS_PER_M}
-        for i, name in enumerate(("x", "y", "z"))
-    }
-    driver = cfg.robot.drivers[0].model_copy(
-        update={
-            "plugin": "can",
-            "params": {
-                "interface": "virtual",
-                "channel": channel,
-                "joints": joints,
-                "feedback_timeout": 10.0,
-                "command_interface": "effort",
-            },
-        }
-    )
+    driver = _can_driver(cfg, channel, feedback_timeout=10.0)
     cfg = cfg.model_copy(update={"robot": cfg.robot.model_copy(update={"drivers": (driver,)})})
     axes = [
         DriveAxis(0x100 + i, 0x180 + i, position=p) for i, p in enumerate((0.0, 50_000.0, 20_000.0))
