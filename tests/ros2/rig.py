@@ -93,6 +93,7 @@ class Rig:
         self.bridge: subprocess.Popen[Any] | None = None
         self.node: Agent | None = None
         self.bridge_runs = 0
+        self.daemon_runs = 0
 
     # -------------------------------------------------------------- daemon
     def start_daemon(
@@ -102,10 +103,13 @@ class Rig:
         ports: tuple[int, ...] = (18944, 18947),
     ) -> subprocess.Popen[Any]:
         """``occd config args...``, waited for until it listens on ``ports``."""
+        self.daemon_runs += 1
+        log = (self.tmp / f"daemon{self.daemon_runs}.log").open("w")  # read by daemon_log()
         proc = self.ns.popen(
             [sys.executable, "-m", "occ.cli", str(config), "--log-level", "WARNING", *args],
-            cwd=ROOT, env=clean_env(),
+            cwd=ROOT, env=clean_env(), stderr=log,
         )  # fmt: skip
+        log.close()  # the child has its own descriptor
         self.daemon = self.daemon or proc
         wait = (
             "import socket,time,sys\n"
@@ -120,6 +124,11 @@ class Rig:
         for port in ports:
             self.ns.run([sys.executable, "-c", wait, str(port)], timeout=35.0)
         return proc
+
+    def daemon_log(self) -> str:
+        """What every daemon started here logged (WARNING and above), for a failure's message."""
+        logs = sorted(self.tmp.glob("daemon*.log"))
+        return "\n".join(f"--- {p.name}\n{p.read_text()[-3000:]}" for p in logs)
 
     # -------------------------------------------------------------- bridge
     def start_bridge(self, *extra: str, ports: tuple[str, ...] | None = None) -> None:

@@ -67,7 +67,7 @@ def check_node_gets_everything(rig: Rig, since: float, *, command: str = "GetSta
     assert local and local[-1][2] == "slave_base"
     # the latched state: here at once, with no state change to publish it again
     states = [s for s in snap["states"] if s[0] >= since]
-    assert states and states[-1][1] == "READY", snap["states"]
+    assert states and states[-1][1] == "READY", (snap["states"], rig.daemon_log())
     # a command from the node reaches the daemon, and its reply the node; the publisher
     # must have matched the bridge's subscription first (a volatile sample sent before
     # the match is lost, in any ROS 2)
