@@ -261,6 +261,7 @@ IGTL_ALLOWED = {
     "occ.net.streams": "the polled UDP sockets: the loop reads them itself",
     "occ.net.decoders": "every received message to its typed event (occ/events.py)",
     "occ.net.packers": "every typed output value to its message",
+    "occ.net.celllink": "the cell's heartbeats are NDARRAY messages on its own UDP endpoint",
     "occ.net.outputs": "the built-in sources (tip, base, status, joints) build their messages",
     "occ.net.commands": "operator requests and their replies are messages (RTS_, ACK_, STATUS)",
     "occ.net.operators": "the operator desk answers requests with messages",

@@ -9,6 +9,7 @@ section of the file:
 - :mod:`~occ.config.safety`: ``safety`` (watchdog, loss, supervisor, collision);
 - :mod:`~occ.config.recording`: ``recording``, ``stats``, ``state_table``;
 - :mod:`~occ.config.collaboration`: ``collaboration`` (several masters);
+- :mod:`~occ.config.cell`: ``cell`` (several arms, one stop);
 - :mod:`~occ.config.environment`: ``environment`` (simulated tissue);
 - :mod:`~occ.config.controllers`: ``controller`` (the plugins);
 - :mod:`~occ.config.daemon`: :class:`DaemonConfig` and its checks across sections.
@@ -50,6 +51,7 @@ from occ.config.base import (
     Str,
     Vec3,
 )
+from occ.config.cell import CellConfig, CellMember
 from occ.config.collaboration import CollabMaster, CollaborationConfig
 from occ.config.controllers import ControllerConfig
 from occ.config.daemon import DaemonConfig
@@ -78,6 +80,8 @@ from occ.config.safety import (
 )
 
 __all__ = [
+    "CellConfig",
+    "CellMember",
     "DaemonConfig",
     "RobotConfig",
     "FrameConfig",

@@ -9,6 +9,7 @@ from typing import Any
 from pydantic import Field, model_validator
 
 from occ.config.base import _WILDCARD_HOSTS, Loc, _did_you_mean, _Model, _num, _raise_problems
+from occ.config.cell import CellConfig
 from occ.config.collaboration import CollaborationConfig
 from occ.config.controllers import ControllerConfig
 from occ.config.environment import EnvironmentConfig
@@ -30,6 +31,11 @@ class DaemonConfig(_Model):
     stats: StatsConfig = Field(StatsConfig(), description="Timing statistics.")
     collaboration: CollaborationConfig | None = Field(
         None, description="Several masters for one slave (hand-over); null = one master."
+    )
+    cell: CellConfig | None = Field(
+        None,
+        description="The cell this daemon is a member of (several arms around one patient: a "
+        "stop in one stops all, arms checked against each other); null = none.",
     )
     state_table: StateTableConfig = Field(
         StateTableConfig(), description="State Data Table (`GetStateTable`)."
@@ -105,6 +111,8 @@ class DaemonConfig(_Model):
             problems.extend(self._collab_problems())
         if self.safety.collision is not None:
             problems.extend(self._collision_problems())
+        if self.cell is not None:
+            problems.extend(self._cell_problems())
         _raise_problems(problems)
         return self
 
@@ -186,6 +194,35 @@ class DaemonConfig(_Model):
                         )
                     )
         return out
+
+    def _cell_problems(self) -> list[tuple[Loc, str]]:
+        """This daemon among the cell's members, and its link's port among the interfaces."""
+        cell = self.cell
+        assert cell is not None
+        me = cell.me(self.robot.name)
+        names = [m.name for m in cell.members]
+        if me not in names:
+            where = "member" if cell.member is not None else "member (null: the robot's name)"
+            return [
+                (
+                    ("cell", where.split(" ")[0]),
+                    f"{me!r} is not among the members" + _did_you_mean(me, names),
+                )
+            ]
+        host, port = cell.entry(me).address.rsplit(":", 1)
+        for i, itf in enumerate(self.interfaces):
+            if (
+                itf.transport == "udp"
+                and itf.port == int(port)
+                and (itf.host == host or itf.host in _WILDCARD_HOSTS)
+            ):
+                return [
+                    (
+                        ("cell", "members", names.index(me), "address"),
+                        f"udp {host}:{port} is interface '{itf.name}''s (interfaces[{i}])",
+                    )
+                ]
+        return []
 
     def _collab_problems(self) -> list[tuple[Loc, str]]:
         """The collaboration's names against the interfaces and each other."""

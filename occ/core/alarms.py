@@ -54,6 +54,11 @@ class Alarms:
         self._errors_logged = 0
         #: (drive, operation) failures told since the robot last left FAULT/ESTOP
         self._told: set[tuple[str, str]] = set()
+        #: True while a safety stop's transition runs (its listeners tell it from an
+        #: operator's Stop: occ/core/cell.py)
+        self.safety_stopping = False
+        #: told on the supervisor's thread when it trips (the cell announces the hung loop)
+        self.on_supervisor_trip: Callable[[str], None] | None = None
 
     def plugin_error(self, where: str, err: BaseException) -> None:
         """An exception from a plugin or handler: FAULT with an alert naming it."""
@@ -166,6 +171,8 @@ class Alarms:
         bound is a second alert naming it. The loop latches FAULT when it comes back."""
         self.last_alert = f"supervisor: {reason}"
         log.error("SUPERVISOR: %s; drivers to their safe state", reason)
+        if (announce := self.on_supervisor_trip) is not None:
+            announce(f"supervisor: {reason}")  # the cell's other arms first: they still move
         self.broadcast("SUPERVISOR", f"supervisor: {reason}", igtl.StatusCode.HARDWARE_FAILURE)
         unconfirmed = self.hardware.safe_stop(reason)
         if unconfirmed:
@@ -179,7 +186,11 @@ class Alarms:
         if policy == "fault":
             self.fault(reason)
         elif self.states.state in (RobotState.RUNNING, RobotState.ENABLED):
-            self.states.try_request("stop", reason)
+            self.safety_stopping = True
+            try:
+                self.states.try_request("stop", reason)
+            finally:
+                self.safety_stopping = False
         else:
             # not moving: still tell the operators why
             self.broadcast("ALERT", reason, igtl.StatusCode.TIME_OUT)

@@ -7,7 +7,14 @@ import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from occ.config import EnvironmentConfig, LossConfig, RealtimeConfig, RobotConfig, WatchdogConfig
+from occ.config import (
+    EnvironmentConfig,
+    FrameConfig,
+    LossConfig,
+    RealtimeConfig,
+    RobotConfig,
+    WatchdogConfig,
+)
 from occ.core.safety import LossMonitor, Watchdog
 from occ.drivers import create_driver
 from occ.drivers.base import Driver
@@ -61,18 +68,21 @@ def build_joint(jc: Any) -> Joint:
     )
 
 
+def frame_for(fc: FrameConfig) -> Frame:
+    """The kinematic model of a ``frame:`` section (the robot's, or a cell member's)."""
+    if fc.model is not None:
+        return Frame.builtin(fc.model)
+    assert fc.tip_link is not None  # the schema requires it with urdf
+    path = fc.urdf_path()
+    assert path is not None
+    return Frame.from_urdf(path, fc.tip_link, fc.base_link)
+
+
 def build_hardware(rc: RobotConfig) -> tuple[list[Joint], Frame, list[tuple[Driver, list[int]]]]:
     """The joints, the kinematic model and the drivers (each with the indices of its joints),
     drivers UNCONFIGURED. OCCError when the configured joints are not the model's."""
     joints = [build_joint(jc) for jc in rc.joints]
-    fc = rc.frame
-    if fc.model is not None:
-        frame = Frame.builtin(fc.model)
-    else:
-        assert fc.tip_link is not None  # the schema requires it with urdf
-        path = fc.urdf_path()
-        assert path is not None
-        frame = Frame.from_urdf(path, fc.tip_link, fc.base_link)
+    frame = frame_for(rc.frame)
     # The configured joints are the kinematic model's, in its order: FK and IK index them.
     names = [j.name for j in joints]
     if list(frame.joint_names) != names:

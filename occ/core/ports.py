@@ -87,3 +87,6 @@ class DeskPort:
     collision: CollisionGuard | None
     state_table: StateTable | None
     collab: Collaboration | None
+    #: ``cell(command, args)``: CellLeave, CellJoin, CellForget (occ/core/cell.py); its text,
+    #: ValueError when refused; None without a cell
+    cell: Callable[[str, dict[str, str]], str] | None = None

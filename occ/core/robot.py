@@ -12,10 +12,9 @@ Lifecycle (ros2_control): ``configure()`` configures the drivers (state READY, s
 ``shutdown()`` stops drivers safely and closes everything (safe twice).
 
 Each tick (:meth:`Robot.tick`, on the loop thread): read every drive (:mod:`occ.core.hardware`);
-the stream samples, judged (:mod:`occ.net.streams`), and at most 16 operator requests; the loss
-monitors' events; the controllers and the drive writes (:mod:`occ.core.motion`); the outputs due
-(sends only queue, never block); the recording and the State Data Table.
-"""
+the stream samples, judged (:mod:`occ.net.streams`), and at most 16 operator requests; the cell
+(:mod:`occ.core.cell`); the loss monitors' events; the controllers and the drive writes
+(:mod:`occ.core.motion`); the outputs due; the recording and the State Data Table."""
 
 from __future__ import annotations
 
@@ -66,6 +65,7 @@ class Robot:
         self.interfaces, self.collab, self.streams = wiring.build_inputs(config, self.clock)
         # --- Safety: alarms, loop watchdog, supervisor (occ/core/alarms.py, occ/core/safety.py)
         self.alarms, self.watchdog, self.supervisor = wiring.build_safety(self, recorder)
+        self.cell = wiring.build_cell(self)  # several arms, one stop (occ/core/cell.py)
         self.supervisor_thread: SupervisorThread | None = None
         self._supervisor_handled = False
         #: jobs the loop must not pay for (GetStats); the worker sends the reply itself
@@ -88,6 +88,7 @@ class Robot:
         self.interfaces.on_connect(self.operators.greet)
         self.outputs = wiring.build_outputs(self)
         self.set_recorder(recorder)
+        self.services = [p for p in (self.collision, self.cell) if p is not None]
         self._shutdown_done = False
 
     def set_recorder(self, recorder: Any | None) -> None:
@@ -132,8 +133,8 @@ class Robot:
             report = self.interfaces.set_thread_priority(max(1, prio - 1))
             log.info("interface threads: %s", report)
         self.worker.start()
-        if self.collision is not None:
-            self.collision.start()
+        for part in self.services:  # the collision worker, the cell link
+            part.start()
         self.supervisor_thread = self.supervisor_thread or SupervisorThread.build(
             self.config.safety.supervisor, self.supervisor, self.clock, prio
         )
@@ -173,8 +174,8 @@ class Robot:
         self.hardware.shutdown()
         self.interfaces.stop()
         self.worker.stop()
-        if self.collision is not None:
-            self.collision.stop()
+        for part in self.services:
+            part.stop()
         self.operators.recording.close_all()  # recordings started at run time
 
     def __exit__(self, *exc: object) -> None:
@@ -218,6 +219,8 @@ class Robot:
         if commands.pending:
             for item in commands.drain(limit=16):
                 self.operators.handle(item, now)
+        if self.cell is not None:  # the other arms' heartbeats: a hold in this tick
+            self.cell.tick(now)
         state = self.state_machine.state
         for name, mon, event in self.streams.events(now):
             if name == self.streams.input:

@@ -13,7 +13,15 @@ from occ.clock import Clock, RealClock
 from occ.config import DaemonConfig
 from occ.controllers import Controller, ControllerContext, ControllerSet
 from occ.core.alarms import Alarms
-from occ.core.assembly import attach_environment, build_hardware, build_watchdog, realtime_settings
+from occ.core.assembly import (
+    attach_environment,
+    build_hardware,
+    build_watchdog,
+    frame_for,
+    realtime_settings,
+)
+from occ.core.cell import Cell
+from occ.core.cell import build_cell as _build_cell
 from occ.core.data import RobotData
 from occ.core.hardware import HardwareSet
 from occ.core.loop import ControlLoop
@@ -25,7 +33,7 @@ from occ.core.transitions import StateEffects
 from occ.haptics.contact import Environment
 from occ.joint import Joint
 from occ.kinematics.collision import CollisionGuard
-from occ.kinematics.frame import Frame
+from occ.kinematics.frame import Frame, chain_hash
 from occ.net.collab import Collaboration
 from occ.net.interfaces import InterfaceManager
 from occ.net.operators import OperatorDesk
@@ -71,6 +79,8 @@ class Assembling(Protocol):
     def interfaces(self) -> InterfaceManager: ...
     @property
     def collab(self) -> Collaboration | None: ...
+    @property
+    def cell(self) -> Cell | None: ...
     @property
     def streams(self) -> StreamInputs: ...
     @property
@@ -183,6 +193,25 @@ def build_safety(robot: Assembling, recorder: Any | None) -> tuple[Alarms, Watch
     return alarms, watchdog, Supervisor(timeout_s, on_trip=alarms.supervisor_trip)
 
 
+def build_cell(robot: Assembling) -> Cell | None:
+    """The robot's side of its cell (``cell``, occ/core/cell.py), None without one: its chain's
+    hash, and each member's from its configured URDF (checked against what it announces)."""
+    cfg = robot.config.cell
+    if cfg is None:
+        return None
+    chains = {m.name: chain_hash(frame_for(m.frame)) for m in cfg.members if m.frame is not None}
+    return _build_cell(
+        cfg,
+        robot.name,
+        states=robot.state_machine,
+        alarms=robot.alarms,
+        data=robot.data,
+        clock=robot.clock,
+        chain=chain_hash(robot.frame),
+        chains=chains,
+    )
+
+
 def build_loop(robot: Assembling) -> tuple[LoopStats, ControlLoop]:
     """The control loop that ticks the robot, and its statistics (every interface's too)."""
     budget_s = robot.config.safety.watchdog.budget_us * 1e-6
@@ -282,6 +311,7 @@ def build_desk(robot: Assembling) -> OperatorDesk:
         collision=robot.collision,
         state_table=robot.state_table,
         collab=robot.collab,
+        cell=robot.cell.command if robot.cell is not None else None,
     )
     desk = OperatorDesk(port, recording)
     register_stats(registry, robot, desk)
@@ -324,6 +354,8 @@ def register_stats(registry: StatsRegistry, robot: Assembling, desk: OperatorDes
     add("controller", robot.controller.stats)
     if robot.collision is not None:
         add("collision", robot.collision.stats)
+    if robot.cell is not None:
+        add("cell", robot.cell.stats)
     drivers = robot.hardware.drivers
     add("drivers", lambda: {drv.name: drv.stats() for drv in drivers})
     add("hardware", robot.hardware.stats)

@@ -788,3 +788,21 @@ def _cartesian_factory(frame: Frame) -> AnalyticIK | None:
 
 register_analytic_ik("occ_slave", _rcm_factory)
 register_analytic_ik("master3", _cartesian_factory)
+
+
+def chain_hash(frame: Frame) -> str:
+    """A short hash of ``frame``'s kinematic chain: each joint's name, type (its axis with it)
+    and placement in its parent (to 1 um / 1 urad), the tip and base links. Two daemons that
+    agree on it agree on where an arm is for the same joint positions (a cell member's
+    heartbeat carries it, occ/net/celllink.py)."""
+    import hashlib
+
+    model = frame.model
+    h = hashlib.sha256()
+    for i in range(1, model.njoints):
+        m = model.jointPlacements[i]
+        numbers = np.round(np.concatenate([m.rotation.ravel(), m.translation]), 6) + 0.0
+        h.update(f"{model.names[i]}|{model.joints[i].shortname()}|".encode())
+        h.update(",".join(f"{v:.6f}" for v in numbers).encode())
+    h.update(f"|{frame.tip_link}|{frame.base_link}".encode())
+    return h.hexdigest()[:16]

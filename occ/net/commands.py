@@ -134,6 +134,7 @@ class CommandDesk(Protocol):
     def state_table_job(self, req: Request, item: Asked) -> Job: ...
 
     def handover(self, req: Request, item: Asked, now: float) -> str: ...
+    def cell(self, req: Request) -> str: ...
 
 
 #: ``handler(desk, request, arrival, now)``, on the loop thread: the reply's text (loop), a
@@ -209,6 +210,23 @@ ROBOT_COMMANDS: dict[str, CommandSpec] = {
             LOOP,
             "give the motion to another master",
             lambda d, r, i, n: d.handover(r, i, n),
+        ),
+        CommandSpec(
+            "CellLeave",
+            "operator",
+            LOOP,
+            "leave the cell: this arm's stops stop no other, theirs not this one",
+            lambda d, r, i, n: d.cell(r),
+        ),
+        CommandSpec(
+            "CellJoin", "operator", LOOP, "join the cell again", lambda d, r, i, n: d.cell(r)
+        ),
+        CommandSpec(
+            "CellForget",
+            "operator",
+            LOOP,
+            "Member=<name>: a member that is gone stops this one no more (until heard again)",
+            lambda d, r, i, n: d.cell(r),
         ),
         CommandSpec(
             "StartRecording",

@@ -314,6 +314,15 @@ class OperatorDesk:
             raise CommandError(f"GetStateTable: Every must be >= 1, got {every}")
         return lambda: self._reply_state_table(item, req, seconds, since, every)
 
+    def cell(self, req: Request) -> str:
+        """``CellLeave``, ``CellJoin``, ``CellForget Member=<name>`` (occ/core/cell.py)."""
+        if self.port.cell is None:
+            raise CommandError("this daemon is in no cell (no `cell:` section)")
+        try:
+            return self.port.cell(req.name, req.args)
+        except ValueError as err:
+            raise CommandError(str(err)) from err
+
     def handover(self, req: Request, item: Asked, now: float) -> str:
         to = req.args.get("To", req.args.get("to", "")).strip()
         return self.port.handover(to, item.interface, now)

@@ -1,0 +1,287 @@
+"""The cell link: a member's heartbeats to its peers and theirs to it (issue 40).
+
+No new wire protocol: a heartbeat is an OpenIGTLink NDARRAY over UDP, header version 2, one
+datagram, as the master's stream is a POSITION over UDP. Its device name is ``CELL``, its array
+the member's measured joint positions (float64, the URDF's order), its header message ID the
+member's sequence number (uint32, one more per heartbeat), its timestamp the sender's wall
+clock, and its metadata what the others need to know:
+
+==============  ==============================================================================
+key             value
+==============  ==============================================================================
+``cell``        the cell's name (a heartbeat of another cell is refused)
+``member``      the sender's name in the cell
+``boot``        the sender's start (Unix ns): a restarted member is a newer boot
+``state``       its robot state (``RUNNING``, ``FAULT``...)
+``cause``       why it left RUNNING for a safety reason ('' when none stands)
+``origin``      the member that stop comes from: itself, or a member whose stop it relays
+``stop_wall``   when the origin stopped (its wall clock, s): the measured propagation
+``chain``       the hash of its kinematic chain (occ.kinematics.frame.chain_hash)
+``base``        its base pose in the patient frame: 12 numbers, rotation rows then metres
+``leaving``     ``1`` in the heartbeat of a member that leaves the cell (an operator's command)
+==============  ==============================================================================
+
+With a key (``cell.auth_key_file``) every heartbeat carries the HMAC tag of igtl/auth.py and
+one without a valid tag is refused and counted; a keyed heartbeat must also be fresh (its
+timestamp within ``FRESH_S`` of this daemon's clock), so a recorded heartbeat of an earlier
+boot cannot be passed off after this daemon restarts. Within a boot the sequence number refuses
+a replay (the cell's judgement, occ/core/cell.py).
+
+Sending is on the caller's thread (the loop, or the supervisor's when the loop hangs), never
+blocking; receiving is polled by the loop each tick (the endpoint's own thread takes what the
+loop leaves, in arrival order, into the same inbox).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from igtl.auth import load_key, sign, verify
+from igtl.messages.base import Message
+from igtl.messages.ndarray import NDArrayMessage
+from igtl.transport import Peer, UDPEndpoint
+from igtl.transport.common import RateLimit
+
+__all__ = ["Beat", "CellLink", "FRESH_S"]
+
+log = logging.getLogger(__name__)
+
+DEVICE = "CELL"
+#: a keyed heartbeat's timestamp must be within this of the receiver's clock (s)
+FRESH_S = 2.0
+
+
+@dataclass(frozen=True, slots=True)
+class Beat:
+    """One heartbeat as received (or about to be sent)."""
+
+    cell: str
+    member: str
+    boot: int
+    seq: int
+    state: str
+    cause: str
+    origin: str
+    stop_wall: float
+    chain: str
+    q: tuple[float, ...]
+    base: tuple[float, ...]
+    leaving: bool = False
+    #: the sender's wall clock when sent
+    sent_wall: float = 0.0
+    #: this daemon's clock when it arrived (0 for one being sent)
+    t_rx: float = 0.0
+
+
+def pack_beat(beat: Beat, key: bytes | None) -> Message:
+    """The NDARRAY of one heartbeat (module docstring), signed with ``key``."""
+    meta = {
+        "cell": beat.cell,
+        "member": beat.member,
+        "boot": str(beat.boot),
+        "state": beat.state,
+        "cause": beat.cause,
+        "origin": beat.origin,
+        "stop_wall": repr(beat.stop_wall),
+        "chain": beat.chain,
+        "base": ",".join(repr(float(v)) for v in beat.base),
+    }
+    if beat.leaving:
+        meta["leaving"] = "1"
+    msg: Message = NDArrayMessage(
+        device_name=DEVICE,
+        header_version=2,
+        timestamp=beat.sent_wall,
+        message_id=beat.seq & 0xFFFFFFFF,
+        metadata=meta,
+        array=np.asarray(beat.q, dtype=np.float64),
+    )
+    return sign(msg, key) if key is not None else msg
+
+
+class BeatError(ValueError):
+    """A message on the cell link that is no heartbeat, or a malformed one."""
+
+
+def unpack_beat(msg: Message, t_rx: float) -> Beat:
+    """The heartbeat in ``msg``; BeatError saying what is wrong with it."""
+    if not isinstance(msg, NDArrayMessage) or msg.device_name != DEVICE:
+        raise BeatError(f"not a heartbeat: {msg.message_type} {msg.device_name!r}")
+    if msg.header_version != 2:
+        raise BeatError("header version 1: a heartbeat needs its metadata")
+    m = msg.metadata
+    try:
+        base = tuple(float(v) for v in str(m["base"]).split(","))
+        q = tuple(float(v) for v in np.asarray(msg.array, dtype=np.float64).ravel())
+        beat = Beat(
+            cell=str(m["cell"]),
+            member=str(m["member"]),
+            boot=int(str(m["boot"])),
+            seq=int(msg.message_id),
+            state=str(m["state"]),
+            cause=str(m.get("cause", "")),
+            origin=str(m.get("origin", "")),
+            stop_wall=float(str(m.get("stop_wall", "0"))),
+            chain=str(m.get("chain", "")),
+            q=q,
+            base=base,
+            leaving=str(m.get("leaving", "")) == "1",
+            sent_wall=float(msg.timestamp),
+            t_rx=t_rx,
+        )
+    except KeyError as err:
+        raise BeatError(f"heartbeat without {err.args[0]!r}") from err
+    except (TypeError, ValueError) as err:
+        raise BeatError(f"heartbeat with a bad value: {err}") from err
+    if len(base) != 12 or not all(math.isfinite(v) for v in (*base, *q, beat.stop_wall)):
+        raise BeatError("heartbeat with a base that is not 12 finite numbers or a joint not finite")
+    return beat
+
+
+@dataclass
+class LinkCounters:
+    sent: int = 0
+    send_failed: int = 0
+    received: int = 0
+    #: not a heartbeat, malformed, of another cell, or from an unknown member / address
+    refused: int = 0
+    unauthenticated: int = 0
+    stale: int = 0
+
+
+class CellLink:
+    """The UDP endpoint of one member: ``send`` a heartbeat to every peer, ``take`` the
+    heartbeats received since the last call (each from a known member at its address,
+    authenticated when keyed)."""
+
+    def __init__(
+        self,
+        cell: str,
+        me: str,
+        bind: tuple[str, int],
+        peers: dict[str, tuple[str, int]],
+        *,
+        key_text: str | None = None,
+        now: Callable[[], float],
+        wall: Callable[[], float] = time.time,
+    ) -> None:
+        self.cell, self.me = cell, me
+        self.peers = dict(peers)
+        self._by_address = {addr: name for name, addr in peers.items()}
+        self.key = load_key(key_text) if key_text is not None else None
+        self._now, self._wall = now, wall
+        self.counters = LinkCounters()
+        self._inbox: deque[Beat] = deque(maxlen=1024)
+        self._seq = itertools.count(1)  # next() is atomic: the loop and the supervisor send
+        self._send_lock = threading.Lock()
+        self._log_limit = RateLimit(5)
+        self.endpoint = UDPEndpoint(
+            bind[0],
+            bind[1],
+            allowed_peers=sorted({h for h, _ in peers.values()}),
+            polled=True,
+            on_message=self._receive,
+            on_error=self._on_error,
+            name=f"cell-{me}",
+        )
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        self.endpoint.start()
+
+    def stop(self) -> None:
+        self.endpoint.stop()
+
+    # ------------------------------------------------------------------ sending
+    def send(self, beat: Beat, to: Sequence[str] | None = None) -> int:
+        """``beat`` (its ``seq`` and ``sent_wall`` filled here) to every peer (or those named
+        in ``to``); never blocks. The number of peers it went to."""
+        with self._send_lock:  # one sequence order on the wire, whichever thread sends
+            msg = pack_beat(_with(beat, seq=next(self._seq), sent_wall=self._wall()), self.key)
+            ok = 0
+            for name, addr in self.peers.items():
+                if to is not None and name not in to:
+                    continue
+                try:
+                    sent = self.endpoint.send(msg, addr)
+                except (OSError, ValueError):
+                    sent = 0
+                ok += sent
+                if sent:
+                    self.counters.sent += 1
+                else:
+                    self.counters.send_failed += 1
+            return ok
+
+    # ------------------------------------------------------------------ receiving
+    def take(self) -> list[Beat]:
+        """The heartbeats received since the last call, in arrival order (the loop's)."""
+        self.endpoint.poll(32, self._receive)
+        inbox = self._inbox
+        out = []
+        while inbox:
+            out.append(inbox.popleft())
+        return out
+
+    def _receive(self, peer: Peer, msg: Message) -> None:
+        c = self.counters
+        c.received += 1
+        name = self._by_address.get(peer.address[:2])
+        if name is None:
+            self._refuse(f"from {peer.address[0]}:{peer.address[1]}, no member's address")
+            return
+        if self.key is not None:
+            why = verify(msg, self.key)
+            if why:
+                c.unauthenticated += 1
+                self._refuse(f"from {name}: {why}", count=False)
+                return
+            age = self._wall() - float(msg.timestamp)
+            if not abs(age) <= FRESH_S:
+                c.stale += 1
+                self._refuse(f"from {name}: sent {age:.1f} s ago (clocks apart?)", count=False)
+                return
+        try:
+            beat = unpack_beat(msg, self._now())
+        except BeatError as err:
+            self._refuse(f"from {name}: {err}")
+            return
+        if beat.cell != self.cell or beat.member != name:
+            self._refuse(f"from {name}'s address: member {beat.member!r} of cell {beat.cell!r}")
+            return
+        self._inbox.append(beat)
+
+    def _refuse(self, why: str, count: bool = True) -> None:
+        if count:
+            self.counters.refused += 1
+        if self._log_limit.allow():
+            log.warning("cell link: refused a heartbeat %s", why)
+
+    def _on_error(self, peer: Peer | None, exc: BaseException) -> None:
+        self.counters.refused += 1
+
+    def stats(self) -> dict[str, int]:
+        c = self.counters
+        return {
+            "sent": c.sent,
+            "send_failed": c.send_failed,
+            "received": c.received,
+            "refused": c.refused,
+            "unauthenticated": c.unauthenticated,
+            "stale": c.stale,
+        }
+
+
+def _with(beat: Beat, **changes: object) -> Beat:
+    import dataclasses
+
+    return dataclasses.replace(beat, **changes)  # type: ignore[arg-type]

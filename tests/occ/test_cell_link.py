@@ -1,0 +1,175 @@
+"""The cell link (occ/net/celllink.py) and the cell's judgement of what it brings: what a
+heartbeat is on the wire, and what is refused (counted, never acted on)."""
+
+from __future__ import annotations
+
+import dataclasses
+import socket
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import igtl
+from occ.config import DaemonConfig
+from occ.net.celllink import Beat, BeatError, CellLink, pack_beat, unpack_beat
+from occ_testkit.testing import SimRobot
+from tests.occ.test_cell import _udp_ports, member_config
+
+KEY = "a cell key of at least sixteen bytes"
+
+BEAT = Beat(
+    cell="or1", member="arm1", boot=1, seq=0, state="RUNNING", cause="", origin="",
+    stop_wall=0.0, chain="abc", q=(0.1, 0.2, 0.3),
+    base=(1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.5, 0.0, 0.0),
+)  # fmt: skip
+
+
+def test_a_heartbeat_is_an_ndarray_with_its_sequence_and_metadata() -> None:
+    msg = pack_beat(dataclasses.replace(BEAT, seq=7, sent_wall=123.5), None)
+    wire = msg.pack()
+    back = igtl.unpack(wire)
+    assert back.message_type == "NDARRAY" and back.device_name == "CELL"
+    assert back.header_version == 2 and back.message_id == 7
+    assert back.metadata["member"] == "arm1" and back.metadata["state"] == "RUNNING"
+    beat = unpack_beat(back, 9.0)
+    assert beat.q == BEAT.q and beat.base == BEAT.base and beat.seq == 7 and beat.t_rx == 9.0
+
+
+@pytest.mark.req("SR-CELL-3")
+@pytest.mark.parametrize(
+    "change, why",
+    [
+        (lambda m: dataclasses.replace(m, device_name="OTHER"), "not a heartbeat"),
+        (lambda m: dataclasses.replace(m, header_version=1), "header version 1"),
+        (lambda m: dataclasses.replace(m, metadata={**m.metadata, "base": "1,2"}), "12 finite"),
+        (lambda m: dataclasses.replace(m, metadata={**m.metadata, "boot": "x"}), "bad value"),
+        (
+            lambda m: dataclasses.replace(m, metadata={k: v for k, v in m.metadata.items()
+                                                        if k != "state"}),
+            "without 'state'",
+        ),
+        (lambda m: dataclasses.replace(m, array=np.array([np.nan, 0.0, 0.0])), "not finite"),
+    ],
+)  # fmt: skip
+def test_a_malformed_heartbeat_says_what_is_wrong(change: object, why: str) -> None:
+    msg = change(pack_beat(BEAT, None))  # type: ignore[operator]
+    with pytest.raises(BeatError, match=why):
+        unpack_beat(msg, 0.0)
+
+
+class Pair:
+    """Our link ``arm0`` and a raw socket at arm1's address that sends what a test makes."""
+
+    def __init__(self, key: str | None = None) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        (port0,) = _udp_ports(1)
+        self.link = CellLink(
+            "or1", "arm0", ("127.0.0.1", port0), {"arm1": self.sock.getsockname()},
+            key_text=key, now=time.monotonic,
+        )  # fmt: skip
+        self.link.start()
+        self.address = ("127.0.0.1", port0)
+
+    def send(self, msg: igtl.Message | bytes, sock: socket.socket | None = None) -> list[Beat]:
+        data = msg if isinstance(msg, bytes) else msg.pack()
+        (sock or self.sock).sendto(data, self.address)
+        time.sleep(0.02)
+        return self.link.take()
+
+    def close(self) -> None:
+        self.link.stop()
+        self.sock.close()
+
+
+@pytest.mark.req("SR-CELL-3")
+def test_a_keyed_link_takes_only_signed_fresh_heartbeats_of_its_members() -> None:
+    pair = Pair(KEY)
+    try:
+        good = dataclasses.replace(BEAT, sent_wall=time.time())
+        assert pair.send(pack_beat(good, KEY.encode()))  # signed: taken
+        assert not pair.send(pack_beat(good, None))  # unsigned
+        assert not pair.send(pack_beat(good, b"another key of sixteen bytes"))
+        assert pair.link.counters.unauthenticated == 2
+        old = dataclasses.replace(BEAT, sent_wall=time.time() - 60.0)
+        assert not pair.send(pack_beat(old, KEY.encode()))  # recorded a minute ago
+        assert pair.link.counters.stale == 1
+        # another cell's heartbeat, or another member's name at arm1's address
+        assert not pair.send(pack_beat(dataclasses.replace(good, cell="or2"), KEY.encode()))
+        assert not pair.send(pack_beat(dataclasses.replace(good, member="arm2"), KEY.encode()))
+        assert not pair.send(b"\x00" * 70)  # not a message
+        assert pair.link.counters.refused >= 3
+        # from an address that is no member's (a socket of the same host, another port)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as other:
+            other.bind(("127.0.0.1", 0))
+            assert not pair.send(pack_beat(good, KEY.encode()), other)
+        assert pair.link.stats()["refused"] >= 4
+    finally:
+        pair.close()
+
+
+def _link_pair_sims() -> tuple[SimRobot, CellLink, socket.socket]:
+    ports = _udp_ports(2)
+    members = [{"name": f"arm{i}", "address": f"127.0.0.1:{p}"} for i, p in enumerate(ports)]
+    sim = SimRobot(member_config("arm0", members))
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", ports[1]))
+    cell = sim.robot.cell
+    assert cell is not None
+    return sim, cell.link, sock
+
+
+@pytest.mark.req("SR-CELL-3")
+def test_duplicates_and_older_heartbeats_are_refused_a_restart_is_taken() -> None:
+    sim, link, sock = _link_pair_sims()
+    addr = link.endpoint.address
+    try:
+
+        def send(seq: int, boot: int = 5, state: str = "RUNNING") -> None:
+            beat = dataclasses.replace(BEAT, seq=seq, boot=boot, state=state, cell="or1")
+            sock.sendto(pack_beat(beat, None).pack(), addr)
+            time.sleep(0.01)
+            sim.tick()
+
+        send(10)
+        send(10)  # the same again: a replay
+        send(9)  # older
+        send(13)  # two lost between
+        m = sim.robot.snapshot()["cell"]["members"]["arm1"]
+        assert (m["stale"], m["lost"], m["state"]) == (2, 2, "RUNNING")
+        send(1, boot=4, state="FAULT")  # an earlier boot: refused
+        assert sim.robot.snapshot()["cell"]["members"]["arm1"]["state"] == "RUNNING"
+        send(1, boot=6, state="READY")  # restarted: taken from its first number
+        m = sim.robot.snapshot()["cell"]["members"]["arm1"]
+        assert (m["state"], m["restarts"], m["stale"]) == ("READY", 1, 3)
+    finally:
+        sock.close()
+        sim.close()
+
+
+@pytest.mark.req("SR-CELL-3")
+def test_the_cell_section_is_checked_at_load(tmp_path: Path) -> None:
+    members = [
+        {"name": "arm0", "address": "127.0.0.1:18950"},
+        {"name": "arm1", "address": "127.0.0.1:18951"},
+    ]
+    with pytest.raises(ValueError, match="'armX' is not among the members"):
+        member_config("armX", members)
+    with pytest.raises(ValueError, match="duplicate member 'arm0'"):
+        member_config("arm0", [members[0], {**members[1], "name": "arm0"}])
+    with pytest.raises(ValueError, match="members\\[0\\]'s too"):
+        member_config("arm0", [members[0], {**members[1], "address": "127.0.0.1:18950"}])
+    with pytest.raises(ValueError, match="at least 3 heartbeat periods"):
+        member_config("arm0", members, grace_ms=12.0)
+    with pytest.raises(ValueError, match="period_ms"):
+        member_config("arm0", members, period_ms=10.0)
+    with pytest.raises(ValueError, match="policy"):
+        member_config("arm0", members, policy="stop-some")
+    cfg = member_config("arm0", members).model_dump(mode="json")
+    cfg["interfaces"].append(
+        {"name": "master", "transport": "udp", "host": "127.0.0.1", "port": 18950}
+    )
+    with pytest.raises(ValueError, match="is interface 'master''s"):
+        DaemonConfig.model_validate(cfg)
