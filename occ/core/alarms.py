@@ -20,7 +20,7 @@ if TYPE_CHECKING:
     from igtl.messages.base import Message
     from occ.clock import Clock
     from occ.core.hardware import HardwareSet
-    from occ.core.safety import LossMonitor, StateMachine
+    from occ.core.safety import LossMonitor, StateMachine, Supervisor
     from occ.net.streams import StreamInputs
 
 log = logging.getLogger("occ.core.robot")
@@ -179,6 +179,23 @@ class Alarms:
             text = f"supervisor: drives not proven stopped: {describe(unconfirmed)}"
             log.error("ALERT: %s", text)
             self.broadcast("ALERT", text, igtl.StatusCode.HARDWARE_FAILURE)
+
+    def supervisor_back(self, supervisor: Supervisor) -> bool:
+        """The loop ticks again after the supervisor tripped: FAULT naming it (True: handled)
+        unless the robot was never powered (INIT, READY with every drive safe), where nothing
+        moved or could: then an alert, and the supervisor watches again (False). A loaded
+        machine that stalls an idle daemon's loop does not latch it (the watchdog alerts the
+        same way there)."""
+        reason = f"supervisor: {supervisor.reason}"
+        idle = self.states.state in (RobotState.INIT, RobotState.READY)
+        if idle and not self.hardware.unsafe():
+            text = f"{reason}; no drive powered: not latched"
+            log.warning("%s", text)
+            self.broadcast("SUPERVISOR", text, igtl.StatusCode.OK)
+            supervisor.reset()
+            return False
+        self.fault(reason)
+        return True
 
     def safety_stop(self, reason: str, policy: str) -> None:
         self.last_alert = reason

@@ -223,6 +223,8 @@ class Cell:
     def announce_hung(self, reason: str) -> None:
         """On the supervisor's thread: the loop is hung, so tell the others now (the loop
         would send nothing until it comes back)."""
+        if self.states.state not in (*_POWERED, RobotState.STOPPED):
+            return  # nothing of this arm is powered: its loop comes back to an alert only
         own = self.own
         own.cause, own.origin, own.stop_wall = f"hung loop: {reason}", self.me, time.time()
         self._send(self.clock.now())

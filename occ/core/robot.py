@@ -202,9 +202,8 @@ class Robot:
         sup.last_beat = now
         if not sup.armed:
             sup.arm(now)
-        elif sup.tripped and not self._supervisor_handled:
-            self._supervisor_handled = True
-            self.alarms.fault(f"supervisor: {sup.reason}")
+        elif sup.tripped and not self._supervisor_handled:  # back after a hung tick
+            self._supervisor_handled = self.alarms.supervisor_back(sup)
         self._read(now)
         if self.effects.powerup is not None:
             self.effects.land()  # a power-up off the loop thread that has ended: completed

@@ -50,8 +50,13 @@ class SimSlave:
     def position(self, *, run: bool = True, skew: float = 0.0) -> igtl.Message:
         ts = self.clock.wall_time() + skew if self.stamp else 0.0
         return igtl.PositionMessage(
-            tuple(self.master_pos), (0.0, 0.0, 0.0, 1.0), 24, device_name="Master",
-            header_version=2, message_id=self.seq, timestamp=ts,
+            tuple(self.master_pos),
+            (0.0, 0.0, 0.0, 1.0),
+            24,
+            device_name="Master",
+            header_version=2,
+            message_id=self.seq,
+            timestamp=ts,
             metadata={"run": "1" if run else "0", "clutch": "1" if self.clutch else "0"},
         )
 
@@ -333,8 +338,9 @@ def _slave_config(policy: str) -> dict:
 
 
 @pytest.mark.req("SR-WD-2")
-@pytest.mark.parametrize(("policy", "state"), [("hold", RobotState.STOPPED),
-                                                ("fault", RobotState.FAULT)])
+@pytest.mark.parametrize(
+    ("policy", "state"), [("hold", RobotState.STOPPED), ("fault", RobotState.FAULT)]
+)
 def test_a_watchdog_stop_stops_the_robot(policy: str, state: RobotState) -> None:
     slave = SimSlave(_slave_config(policy))
     try:
@@ -445,7 +451,9 @@ def test_tip_is_sent_in_world_coordinates_with_the_base_offset() -> None:
         s.tick()
         tip = [r for r in s.replies if r.message_type == "TRANSFORM" and r.device_name == "Tip"][-1]
         fk = s.robot.data.tip[:3, 3] * 1000.0
-        assert tip.translation == pytest.approx((fk[0] + 100.0, fk[1] - 20.0, fk[2] + 5.0), abs=1e-3)
+        assert tip.translation == pytest.approx(
+            (fk[0] + 100.0, fk[1] - 20.0, fk[2] + 5.0), abs=1e-3
+        )
     finally:
         s.close()
 
@@ -457,9 +465,11 @@ def test_base_pose_from_a_tracker_transform() -> None:
     slicer = cfg.interface("slicer").model_copy(
         update={"inputs": (InputConfig(type="TRANSFORM", device="Base", queue="stream", depth=10),)}
     )
-    cfg = cfg.model_copy(update={
-        "interfaces": tuple(slicer if i.name == "slicer" else i for i in cfg.interfaces),
-    }).with_params(base_interface="slicer", base_mm=None)
+    cfg = cfg.model_copy(
+        update={
+            "interfaces": tuple(slicer if i.name == "slicer" else i for i in cfg.interfaces),
+        }
+    ).with_params(base_interface="slicer", base_mm=None)
     with SimRobot(cfg) as sim:
         robot = sim.robot
         tracker = sim.peer("slicer")
@@ -467,7 +477,9 @@ def test_base_pose_from_a_tracker_transform() -> None:
         assert tracker.send(m) == 1
         sim.tick()
         assert robot.data.base[:3, 3] * 1000.0 == pytest.approx([10.0, 20.0, 30.0])
-        assert robot.data.world_tip()[:3, 3] * 1000.0 == pytest.approx(robot.data.tip[:3, 3] * 1000.0 + [10, 20, 30])
+        assert robot.data.world_tip()[:3, 3] * 1000.0 == pytest.approx(
+            robot.data.tip[:3, 3] * 1000.0 + [10, 20, 30]
+        )
 
 
 def test_joints_must_match_the_kinematic_model() -> None:
@@ -523,7 +535,9 @@ def test_a_hung_tick_trips_the_supervisor_drivers_stop_then_fault(slave: SimSlav
     assert reason is not None and "did not tick for 25.0 ms" in reason
     drv = slave.robot.hardware.drivers[0]
     assert drv.state.value == "fault" and drv.fault_reason.startswith("safe stop: ")
-    alerts = [r for r in slave.replies if r.message_type == "STATUS" and r.error_name == "SUPERVISOR"]
+    alerts = [
+        r for r in slave.replies if r.message_type == "STATUS" and r.error_name == "SUPERVISOR"
+    ]
     assert alerts and reason in alerts[-1].status_message
     # the loop comes back: latched FAULT, and it stays there until Reset
     slave.step_ms(5)
@@ -533,6 +547,32 @@ def test_a_hung_tick_trips_the_supervisor_drivers_stop_then_fault(slave: SimSlav
     assert slave.robot.state is RobotState.READY and not sup.tripped
     assert slave.command("Enable").metadata["Status"] == "SUCCESS"
     assert drv.state.value == "active"
+
+
+@pytest.mark.req("SR-SUP-1")
+def test_a_hung_tick_of_an_unpowered_robot_is_an_alert_and_is_watched_again(
+    slave: SimSlave,
+) -> None:
+    """READY, every drive off: nothing moved or could; a loaded machine's stall is told, not
+    latched, and the supervisor watches again (a later trip while powered still faults)."""
+    slave.step_ms(5)
+    assert slave.robot.state is RobotState.READY
+    sup = slave.robot.supervisor
+    last = slave.k - 1
+    assert sup.check(last * 0.001 + 0.010) is None
+    assert sup.check(last * 0.001 + 0.025) is not None
+    slave.step_ms(2)
+    assert slave.robot.state is RobotState.READY and not sup.tripped
+    alerts = [
+        r for r in slave.replies if r.message_type == "STATUS" and r.error_name == "SUPERVISOR"
+    ]
+    assert alerts and "no drive powered: not latched" in alerts[-1].status_message
+    run(slave)
+    last = slave.k - 1
+    assert sup.check(last * 0.001 + 0.010) is None
+    assert sup.check(last * 0.001 + 0.025) is not None
+    slave.step_ms(2)
+    assert slave.robot.state is RobotState.FAULT
 
 
 @pytest.mark.req("SR-HB-1")
@@ -557,10 +597,13 @@ def _packs(m: igtl.Message) -> bool:
 
 
 def test_names_that_cannot_be_re_encoded_are_answered_safely(slave: SimSlave) -> None:
-    cmd = _with_raw_name(igtl.StringMessage('<Command Name="GetState"/>', device_name="CMD_x",
-                                            header_version=2), b"CMD_" + b"\xff" * 16)
-    get = _with_raw_name(igtl.REGISTRY["GET_STATUS"](type_name="GET_STATUS", device_name="x"),
-                         b"\xff" * 20)
+    cmd = _with_raw_name(
+        igtl.StringMessage('<Command Name="GetState"/>', device_name="CMD_x", header_version=2),
+        b"CMD_" + b"\xff" * 16,
+    )
+    get = _with_raw_name(
+        igtl.REGISTRY["GET_STATUS"](type_name="GET_STATUS", device_name="x"), b"\xff" * 20
+    )
     answers = []
     for data in (cmd, get):
         slave.replies.clear()
@@ -577,10 +620,14 @@ def test_names_that_cannot_be_re_encoded_are_answered_safely(slave: SimSlave) ->
 
 
 def test_xml_with_a_dtd_is_refused_before_parsing(slave: SimSlave) -> None:
-    laughs = ('<?xml version="1.0"?><!DOCTYPE l [<!ENTITY a "aaaaaaaaaa">'
-              + "".join(f'<!ENTITY {c} "&{p};&{p};&{p};&{p};&{p};&{p};&{p};&{p};&{p};&{p};">'
-                        for p, c in zip("abcdefg", "bcdefgh"))
-              + ']><Command Name="&h;"/>')
+    laughs = (
+        '<?xml version="1.0"?><!DOCTYPE l [<!ENTITY a "aaaaaaaaaa">'
+        + "".join(
+            f'<!ENTITY {c} "&{p};&{p};&{p};&{p};&{p};&{p};&{p};&{p};&{p};&{p};">'
+            for p, c in zip("abcdefg", "bcdefgh")
+        )
+        + ']><Command Name="&h;"/>'
+    )
     slave.operator.send(igtl.StringMessage(laughs, device_name="CMD_9"))
     # answered at once by the interface thread, never queued for the loop
     assert len(slave.robot.interfaces.commands) == 0
@@ -594,8 +641,14 @@ def test_xml_with_a_dtd_is_refused_before_parsing(slave: SimSlave) -> None:
 @pytest.mark.req("SR-ROUTE-1")
 def test_command_replies_echo_the_request_message_id(slave: SimSlave) -> None:
     cls = igtl.REGISTRY["COMMAND"]
-    msg = cls(command_id=5, command_name="GetState", command="", device_name="command",
-              header_version=2, message_id=4242)
+    msg = cls(
+        command_id=5,
+        command_name="GetState",
+        command="",
+        device_name="command",
+        header_version=2,
+        message_id=4242,
+    )
     slave.operator.send(msg)
     slave.tick()
     rts = [r for r in slave.replies if r.message_type == "RTS_COMMAND"][-1]
