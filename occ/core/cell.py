@@ -175,7 +175,7 @@ class Cell:
         self._told: dict[str, str] = {}
         self._next_send = 0.0
         self._due = True
-        self._started: float | None = None
+        self._start_told = ""
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -233,8 +233,6 @@ class Cell:
     def tick(self, now: float) -> None:
         """On the loop thread, before the controllers: the heartbeats received, the members
         judged (a hold in this tick), this member's heartbeat when due."""
-        if self._started is None:
-            self._started = now
         for beat in self.link.take():
             self._on_beat(beat)
         self._judge(now)
@@ -378,6 +376,21 @@ class Cell:
         if unheard:
             return f"cell {self.name}: not heard yet from {', '.join(unheard)}"
         return ""
+
+    def start_wait(self, event: str) -> str:
+        """``occd --start``'s gate: its Run waits (ticks on, ENABLED) until every member has
+        been heard (members start one by one); why, told once, or '' to go. A latched stop
+        does not wait: the Run is refused as an operator's would be."""
+        if event != "run" or not self.stop_all or self.own.leaving or self.latched:
+            return ""
+        unheard = [m.name for m in self.members.values() if m.heard is None and not m.out]
+        if not unheard:
+            return ""
+        why = f"--start: Run waits for cell {self.name}: not heard yet from {', '.join(unheard)}"
+        if why != self._start_told:
+            self._start_told = why
+            log.warning("%s", why)
+        return why
 
     # ------------------------------------------------------------------ heartbeats
     def _send(self, now: float) -> None:

@@ -19,7 +19,7 @@ its three hooks:
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import igtl
 from occ.clock import Clock
@@ -187,6 +187,10 @@ class StateEffects:
         self.land()
 
     # -- occd --start: transitions for the loop's first ticks ------------------------------
+    #: ``gate(event)``: why ``--start``'s ``event`` must wait a tick ('' to go now); the cell's
+    #: ``start_wait`` (a Run waits until every member has been heard)
+    start_gate: Callable[[str], str] | None = None
+
     def start_in(self, events: tuple[str, ...] | list[str]) -> None:
         """``--start``'s transitions, asked in the loop's first tick (Robot.start_in)."""
         self.pending_start = list(events)
@@ -195,7 +199,11 @@ class StateEffects:
         """``--start``'s transitions, in order; one that powers drives up off the loop thread
         leaves the rest for the tick after it has landed."""
         while self.pending_start:
-            ev = self.pending_start.pop(0)
+            ev = self.pending_start[0]
+            gate = self.start_gate
+            if gate is not None and gate(ev):
+                return  # asked again next tick (a cell not complete yet: occ/core/cell.py)
+            self.pending_start.pop(0)
             try:
                 answer = self.request(ev, "--start")
             except StateError as err:  # a refusal or a failure is alerted by the state machine

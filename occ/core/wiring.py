@@ -244,6 +244,8 @@ def build_effects(robot: Assembling) -> StateEffects:
     )
     states = robot.state_machine
     effects.states = states
+    if robot.cell is not None:  # --start's Run waits until every member has been heard
+        effects.start_gate = robot.cell.start_wait
     states.add_listener(effects.on_transition)
     states.add_guard(effects.may_power)
     states.set_effector(effects.effect)
