@@ -40,7 +40,6 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tools"))
 
 import yaml  # noqa: E402
-
 from fixture_e2e import Client  # noqa: E402
 from loopback import free_port, stop_processes, wait_port  # noqa: E402
 
@@ -153,6 +152,7 @@ def one_fault(kind: str, origin: Member, others: list[Member]) -> dict[str, Any]
     t0 = inject(kind, origin)
     row: dict[str, Any] = {"kind": kind, "held": {}, "ms": {}, "named": {}, "early_runs": 0}
     for m in others:
+
         def held(m: Member = m) -> bool:
             s = m.stats()
             last = s["cell"]["last_stop"]
@@ -200,21 +200,17 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--count", type=int, default=100, help="faults (cycling through the kinds)")
-    p.add_argument("--members", type=int, default=3)
-    p.add_argument("--kinds", default=",".join(KINDS), help="comma-separated subset of " + ",".join(KINDS))
-    p.add_argument("--out", type=Path, default=None)
-    args = p.parse_args(argv)
-    kinds = [k for k in args.kinds.split(",") if k]
-    bad = [k for k in kinds if k not in KINDS]
-    if bad or not kinds:
-        p.error(f"unknown kinds {bad}; known: {', '.join(KINDS)}")
+def run(count: int, members_n: int = 3, kinds: list[str] | None = None, *,
+        verbose: bool = False) -> dict[str, Any]:  # fmt: skip
+    """``count`` faults in ``arm0`` of a cell of ``members_n`` daemons (module docstring)."""
+    kinds = kinds or list(KINDS)
     tmp = Path(tempfile.mkdtemp(prefix="cell-faults-"))
-    names = [f"arm{i}" for i in range(args.members)]
+    names = [f"arm{i}" for i in range(members_n)]
     cell_ports = [free_port(2) for _ in names]  # SOCK_DGRAM
-    members = [{"name": n, "address": f"127.0.0.1:{port}"} for n, port in zip(names, cell_ports)]
+    members = [
+        {"name": n, "address": f"127.0.0.1:{port}"}
+        for n, port in zip(names, cell_ports, strict=True)
+    ]
     daemons = []
     for n in names:
         op_port = free_port()
@@ -228,13 +224,14 @@ def main(argv: list[str] | None = None) -> int:
         if not wait(lambda: all(d.state() == "RUNNING" for d in daemons), 15.0, 0.1):
             raise RuntimeError({d.name: d.stats().get("last_alert") for d in daemons})
         origin, others = daemons[0], daemons[1:]
-        for i in range(args.count):
+        for i in range(count):
             kind = kinds[i % len(kinds)]
             row = one_fault(kind, origin, others)
             rows.append(row)
             worst = max(row["ms"].values(), default=float("nan"))
-            print(f"{i + 1:3d} {kind:5s} held {sum(row['held'].values())}/{len(others)}"
-                  f" worst {worst:6.1f} ms", flush=True)  # fmt: skip
+            if verbose:
+                print(f"{i + 1:3d} {kind:5s} held {sum(row['held'].values())}/{len(others)}"
+                      f" worst {worst:6.1f} ms", flush=True)  # fmt: skip
     finally:
         for d in daemons:
             if d.proc is not None and d.proc.poll() is None:
@@ -242,13 +239,32 @@ def main(argv: list[str] | None = None) -> int:
             if d.client is not None:
                 d.client.client.stop()
         stop_processes([d.proc for d in daemons if d.proc is not None])
-    result = {"members": args.members, "count": len(rows), "summary": summary(rows), "rows": rows}
+    result = {"members": members_n, "count": len(rows), "summary": summary(rows), "rows": rows}
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--count", type=int, default=100, help="faults (cycling through the kinds)")
+    p.add_argument("--members", type=int, default=3)
+    p.add_argument(
+        "--kinds", default=",".join(KINDS), help="comma-separated subset of " + ",".join(KINDS)
+    )
+    p.add_argument("--out", type=Path, default=None)
+    args = p.parse_args(argv)
+    kinds = [k for k in args.kinds.split(",") if k]
+    bad = [k for k in kinds if k not in KINDS]
+    if bad or not kinds:
+        p.error(f"unknown kinds {bad}; known: {', '.join(KINDS)}")
+    result = run(args.count, args.members, kinds, verbose=True)
     print(json.dumps(result["summary"], indent=2))
     if args.out is not None:
         args.out.write_text(json.dumps(result, indent=1))
     s = result["summary"]
-    failed = s["early_runs"] or s["unnamed"] or any(
-        v["missed"] or v["over_bound"] for k, v in s.items() if isinstance(v, dict)
+    failed = (
+        s["early_runs"]
+        or s["unnamed"]
+        or any(v["missed"] or v["over_bound"] for k, v in s.items() if isinstance(v, dict))
     )
     return 1 if failed else 0
 
