@@ -135,6 +135,41 @@ LOSS_EVENTS = ("holds", "resumes", "trips", "lost_total")
 ALERT_LOG = 200
 
 
+def cell_of(stats: dict[str, Any]) -> dict[str, Any] | None:
+    """The cell panel from one ``GetStats`` answer (occ/core/cell.py's ``cell``): the policy,
+    this member's own stop, each member's state and when it was last heard, what holds this
+    one and the last stop with its origin; None for a daemon in no cell or a malformed one."""
+    cell = stats.get("cell")
+    if not isinstance(cell, dict) or not isinstance(cell.get("members"), dict):
+        return None
+    members = []
+    for name, m in cell["members"].items():
+        if not isinstance(m, dict):
+            continue
+        members.append({
+            "name": str(name),
+            "state": m.get("state"),
+            "heard_ms_ago": m.get("heard_ms_ago"),
+            "cause": m.get("cause") or "",
+            "origin": m.get("origin") or "",
+            "left": bool(m.get("left")),
+            "chain_ok": m.get("chain_ok"),
+        })  # fmt: skip
+    last = cell.get("last_stop") if isinstance(cell.get("last_stop"), dict) else None
+    latched = cell.get("latched") if isinstance(cell.get("latched"), dict) else {}
+    return {
+        "name": cell.get("name"),
+        "me": cell.get("me"),
+        "policy": cell.get("policy"),
+        "left": bool(cell.get("left")),
+        "cause": cell.get("cause") or "",
+        "origin": cell.get("origin") or "",
+        "members": members,
+        "latched": {str(k): str(v) for k, v in latched.items()},
+        "last_stop": last,
+    }
+
+
 def _number(value: Any) -> float:
     return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else 0.0
 
@@ -451,6 +486,7 @@ class DaemonView:
             "commands": s.get("commands"),
             "highlights": self.highlights(),
             "forces": self.forces or None,
+            "cell": cell_of(s),
             "controller": s.get("controller"),
             "log": [e.as_dict() for e in self.log],
             "last_reply": self.last_reply,

@@ -79,6 +79,28 @@ function forcesHtml(f) {
   return kvTable(rows);
 }
 
+// the cell panel: the members around the patient, what holds this one, the last stop's origin
+function cellHtml(c) {
+  if (!c) return "<p class=\"muted\">in no cell</p>";
+  const rows = [["cell · policy", `${esc(c.name)} · ${esc(c.policy)}${c.left ? " · <b>left</b>" : ""}`]];
+  rows.push([`${esc(c.me)} (this)`, c.cause ? `<b>stopped</b>: ${esc(c.cause)}` +
+    (c.origin && c.origin !== c.me ? ` (origin ${esc(c.origin)})` : "") : "no stop"]);
+  for (const m of c.members) {
+    const heard = m.heard_ms_ago === null ? "not heard yet" : `heard ${num(m.heard_ms_ago)} ms ago`;
+    const chain = m.chain_ok === false ? " · <b>chain mismatch</b>" : "";
+    const stop = m.cause ? ` · ${esc(m.cause)}` : "";
+    rows.push([esc(m.name), `${esc(m.state || "?")} · ${heard}${m.left ? " · left" : ""}${chain}${stop}`]);
+  }
+  const held = Object.entries(c.latched || {});
+  rows.push(["holding for", held.length ? held.map(([o, w]) => `<b>${esc(o)}</b>: ${esc(w)}`).join("<br>") : "nobody"]);
+  if (c.last_stop) {
+    const p = c.last_stop.propagation_ms;
+    rows.push(["last stop", `${esc(c.last_stop.origin)}: ${esc(c.last_stop.cause)} · ${when(c.last_stop.wall)}` +
+      (p === null || p === undefined ? "" : ` · ${num(p, 1)} ms after it`)]);
+  }
+  return kvTable(rows);
+}
+
 function render(card, d) {
   const el = (sel) => card.querySelector(sel);
   card.classList.toggle("stale", !d.connected);
@@ -130,6 +152,7 @@ function render(card, d) {
     : "<p class=\"muted\">no loss monitor on this daemon</p>";
 
   el(".forces").innerHTML = forcesHtml(d.forces);
+  el(".cell").innerHTML = cellHtml(d.cell);
 
   const hl = Object.entries(d.highlights || {});
   el(".highlights").innerHTML = hl.length

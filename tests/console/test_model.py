@@ -244,3 +244,30 @@ def test_forces_engaged_only_when_the_passivity_controller_acted_since_the_last_
     }  # fmt: skip
     v.on_stats(2.0, 2.0, stats(2, 0, controller={"seq": 1}))
     assert v.snapshot(2.0)["forces"] is None
+
+
+# ------------------------------------------------------------------------------ cell
+def test_the_cell_panel_shows_members_states_and_the_last_stops_origin() -> None:
+    """Two members of a cell (tests/occ/test_cell.py's), one EStopped: the other's panel names
+    the origin, what holds it, and the members as it hears them, from its own GetStats."""
+    from tests.occ.test_cell import Cell
+
+    c = Cell(2)
+    try:
+        c.run_all()
+        c.command(0, "EStop")
+        c.step(2)
+        view = DaemonView("0", "127.0.0.1", 18947)
+        view.on_stats(1000.0, 0.0, c.cell_stats_full(1))
+        panel = view.snapshot(now=1000.0)["cell"]
+        assert panel["name"] == "or1" and panel["me"] == "arm1" and panel["policy"] == "stop-all"
+        assert panel["origin"] == "arm0" and "ESTOP" in panel["cause"]
+        (m,) = panel["members"]
+        assert m["name"] == "arm0" and m["state"] == "ESTOP" and m["heard_ms_ago"] is not None
+        assert "arm0" in panel["latched"] and panel["last_stop"]["origin"] == "arm0"
+    finally:
+        c.close()
+    assert DaemonView("1", "127.0.0.1", 1).snapshot(now=0.0)["cell"] is None
+    bad = DaemonView("2", "127.0.0.1", 2)
+    bad.on_stats(1.0, 0.0, {"cell": {"members": "nonsense"}})
+    assert bad.snapshot(now=1.0)["cell"] is None

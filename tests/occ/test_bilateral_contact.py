@@ -155,7 +155,10 @@ def test_a_limit_without_a_measured_force_is_a_config_error() -> None:
     cfg = DaemonConfig.model_validate(_yaml(CONFIGS / "slave.yaml"))
     params = SlaveController.Params.model_validate({"max_tissue_force_n": 5.0})
     problems = SlaveController.check(params, cfg)
-    assert (("max_tissue_force_n",), "needs `force` (a measured contact force to limit)") in problems
+    assert (
+        ("max_tissue_force_n",),
+        "needs `force` (a measured contact force to limit)",
+    ) in problems
     # the default is not applied without a force: no problem, no limit
     params = SlaveController.Params.model_validate({})
     assert not [p for p in SlaveController.check(params, cfg) if p[0] == ("max_tissue_force_n",)]

@@ -124,9 +124,12 @@ def test_feedback_timeout_faults(channel: str, node: SimulatedDriveNode) -> None
     drv.write([0.0, 0.0], 0.003)
     assert node.wait_commands(drv.stats()["command_frames"], timeout=2.0)
     drv.read(0.010)  # the command of 3 ms unanswered for 7 ms: still fine
-    with pytest.raises(DriverError, match=r"joint yaw: no feedback on id 0x181 for 12\.0 ms: "
-                                          r"feedback age 12\.0 ms > feedback_timeout 10\.0 ms "
-                                          r"\(1 command unanswered\)"):
+    with pytest.raises(
+        DriverError,
+        match=r"joint yaw: no feedback on id 0x181 for 12\.0 ms: "
+        r"feedback age 12\.0 ms > feedback_timeout 10\.0 ms "
+        r"\(1 command unanswered\)",
+    ):
         drv.read(0.015)
     assert drv.state is DriverState.FAULT
     drv.shutdown()
@@ -156,11 +159,19 @@ def test_frame_layout_is_big_endian_and_foreign_frames_are_ignored(channel: str)
     drv = CANDriver("arm", js, params(channel))
     try:
         drv.configure()
-        peer.send(can.Message(arbitration_id=0x181, is_extended_id=False,
-                              data=FEEDBACK_FRAME.pack(-5000, -10, 1234)))
+        peer.send(
+            can.Message(
+                arbitration_id=0x181,
+                is_extended_id=False,
+                data=FEEDBACK_FRAME.pack(-5000, -10, 1234),
+            )
+        )
         peer.send(can.Message(arbitration_id=0x181, is_extended_id=False, data=b"\x00"))
-        peer.send(can.Message(arbitration_id=0x182, is_extended_id=False,
-                              data=FEEDBACK_FRAME.pack(2000, 1, -1)))
+        peer.send(
+            can.Message(
+                arbitration_id=0x182, is_extended_id=False, data=FEEDBACK_FRAME.pack(2000, 1, -1)
+            )
+        )
         drv.read(0.0)
         assert js[0].position == pytest.approx(-0.5)
         assert js[0].velocity == pytest.approx(-10 * 1000 / CPU[0])
@@ -192,8 +203,11 @@ def test_bad_bus_and_params() -> None:
 
 def test_command_saturates_instead_of_wrapping(channel: str, node: SimulatedDriveNode) -> None:
     js = [Joint("big", "prismatic", JointLimits(-1e9, 1e9, math.inf, math.inf))]
-    p = {"interface": "virtual", "channel": channel,
-         "joints": [{"can_id": 0x101, "feedback_id": 0x181, "counts_per_unit": 1e6}]}
+    p = {
+        "interface": "virtual",
+        "channel": channel,
+        "joints": [{"can_id": 0x101, "feedback_id": 0x181, "counts_per_unit": 1e6}],
+    }
     drv = CANDriver("big", js, p)
     drv.configure()
     drv.activate()
@@ -218,8 +232,11 @@ def test_the_drive_stops_itself_without_heartbeat(channel: str, node: SimulatedD
     assert node.wait_feedback(sent + 2, timeout=5.0)
     assert [a.heartbeat_trips for a in node.axes] == [1, 1]
     assert all(a.mode == MODE_DISABLED and a.heartbeat_lost for a in node.axes)
-    with pytest.raises(DriverError, match=r"joint yaw: heartbeat lost: the drive stopped itself "
-                                          r"\(no command for 20 ms\)"):
+    with pytest.raises(
+        DriverError,
+        match=r"joint yaw: heartbeat lost: the drive stopped itself "
+        r"\(no command for 20 ms\)",
+    ):
         drv.read(0.5)
     assert drv.state is DriverState.FAULT
     # entering FAULT sent mode 0 (the acknowledgement): after a reset the drive obeys again
@@ -264,8 +281,11 @@ def test_a_joint_is_unmeasured_until_its_drive_answers(channel: str) -> None:
         assert not js[0].measured and not js[1].measured
         peer = can.Bus(interface="virtual", channel=channel)
         try:
-            peer.send(can.Message(arbitration_id=0x181, is_extended_id=False,
-                                  data=FEEDBACK_FRAME.pack(3000, 0, 0)))
+            peer.send(
+                can.Message(
+                    arbitration_id=0x181, is_extended_id=False, data=FEEDBACK_FRAME.pack(3000, 0, 0)
+                )
+            )
             drv.read(0.001)
         finally:
             peer.shutdown()
@@ -306,8 +326,11 @@ def test_error_frames_up_to_the_limit_are_counted_one_more_faults(
             drv.read(0.010 + k * 0.010)
         assert drv.state is DriverState.ACTIVE and drv.stats()["error_frames"] == 3
         peer.send(error_frame(0x04))
-        with pytest.raises(DriverError, match=r"4 error frames in 100 ms on occ-test-\d+ "
-                                               r"\(limit 3; last 0x4\)"):
+        with pytest.raises(
+            DriverError,
+            match=r"4 error frames in 100 ms on occ-test-\d+ "
+            r"\(limit 3; last 0x4\)",
+        ):
             drv.read(0.040)
         assert drv.state is DriverState.FAULT and drv.stats()["error_frames"] == 4
         # entering FAULT from ACTIVE told every drive to brake
@@ -354,8 +377,11 @@ def test_bus_off_faults_on_the_first_frame_whatever_the_limit(
 ) -> None:
     drv = active_driver(channel, node, error_frames=1000, feedback_timeout=10.0)
     node.send_error_frame(0x40 | 0x04)  # bus-off among other classes
-    with pytest.raises(DriverError, match=r"bus-off on occ-test-\d+: the controller left the "
-                                          r"bus \(error frame 0x44\)"):
+    with pytest.raises(
+        DriverError,
+        match=r"bus-off on occ-test-\d+: the controller left the "
+        r"bus \(error frame 0x44\)",
+    ):
         drv.read(0.002)
     assert drv.state is DriverState.FAULT and drv.stats()["error_frames"] == 1
     settle(node, drv)
@@ -428,10 +454,16 @@ def test_the_joint_table_as_a_list_in_joint_order(channel: str) -> None:
         assert [m.arbitration_id for m in sent] == [0x7FF, 0x000]
         assert [m.is_extended_id for m in sent] == [False, False]
         assert [COMMAND_FRAME.unpack(m.data) for m in sent] == [(0, MODE_DISABLED, 0, 255)] * 2
-        peer.send(can.Message(arbitration_id=0x7FF, is_extended_id=False,
-                              data=FEEDBACK_FRAME.pack(0, 0, 0)))
-        peer.send(can.Message(arbitration_id=0x000, is_extended_id=False,
-                              data=FEEDBACK_FRAME.pack(-1, 0, 0)))
+        peer.send(
+            can.Message(
+                arbitration_id=0x7FF, is_extended_id=False, data=FEEDBACK_FRAME.pack(0, 0, 0)
+            )
+        )
+        peer.send(
+            can.Message(
+                arbitration_id=0x000, is_extended_id=False, data=FEEDBACK_FRAME.pack(-1, 0, 0)
+            )
+        )
         drv.read(0.0)  # (one count is a metre here: the insertion's range holds only 0)
         assert js[0].position == -1.0 and js[1].position == 0.0
     finally:
@@ -455,23 +487,37 @@ def test_stop_frames_are_mode_0_with_value_0_to_each_drive(channel: str) -> None
     drv = CANDriver("arm", make_joints(), params(channel, heartbeat_ms=40, feedback_timeout=10.0))
     try:
         drv.configure()
-        spy.send(can.Message(arbitration_id=0x181, is_extended_id=False,
-                             data=FEEDBACK_FRAME.pack(0, 0, 0)))
-        spy.send(can.Message(arbitration_id=0x182, is_extended_id=False,
-                             data=FEEDBACK_FRAME.pack(0, 0, 0)))
+        spy.send(
+            can.Message(
+                arbitration_id=0x181, is_extended_id=False, data=FEEDBACK_FRAME.pack(0, 0, 0)
+            )
+        )
+        spy.send(
+            can.Message(
+                arbitration_id=0x182, is_extended_id=False, data=FEEDBACK_FRAME.pack(0, 0, 0)
+            )
+        )
         drv.read(0.0)
         drv.activate()
         drv.write([0.001, 0.001], 0.001)
         drv.deactivate()
         frames = drain(spy)
         assert [(m.arbitration_id, m.dlc, m.is_extended_id) for m in frames] == [
-            (0x101, 8, False), (0x102, 8, False)] * 4
+            (0x101, 8, False),
+            (0x102, 8, False),
+        ] * 4
         told = [COMMAND_FRAME.unpack(m.data) for m in frames]
         # configure's query, the read's poll, the command, the stop
-        assert told == [(0, MODE_DISABLED, 0, 40), (0, MODE_DISABLED, 0, 40),
-                        (0, MODE_DISABLED, 1, 40), (0, MODE_DISABLED, 1, 40),
-                        (10, 1, 2, 40), (200, 1, 2, 40),
-                        (0, MODE_DISABLED, 3, 40), (0, MODE_DISABLED, 3, 40)]
+        assert told == [
+            (0, MODE_DISABLED, 0, 40),
+            (0, MODE_DISABLED, 0, 40),
+            (0, MODE_DISABLED, 1, 40),
+            (0, MODE_DISABLED, 1, 40),
+            (10, 1, 2, 40),
+            (200, 1, 2, 40),
+            (0, MODE_DISABLED, 3, 40),
+            (0, MODE_DISABLED, 3, 40),
+        ]
         drv.activate()
         drv.write([0.001, 0.002], 0.002)
         drain(spy)
@@ -494,13 +540,17 @@ def test_a_jammed_bus_faults_the_write_instead_of_blocking_the_loop(
     import threading
 
     feeder = can.Bus(interface="virtual", channel=channel)
-    drv = CANDriver("arm", make_joints(), params(channel, send_timeout=0.001,
-                                                 feedback_timeout=10.0))
+    drv = CANDriver(
+        "arm", make_joints(), params(channel, send_timeout=0.001, feedback_timeout=10.0)
+    )
 
     def ready(now: float) -> None:
         for fid in (0x181, 0x182):
-            feeder.send(can.Message(arbitration_id=fid, is_extended_id=False,
-                                    data=FEEDBACK_FRAME.pack(0, 0, 0)))
+            feeder.send(
+                can.Message(
+                    arbitration_id=fid, is_extended_id=False, data=FEEDBACK_FRAME.pack(0, 0, 0)
+                )
+            )
         drv.read(now)
         drv.activate()
 
@@ -554,14 +604,21 @@ def test_foreign_remote_and_short_frames_are_counted_and_change_nothing(channel:
     try:
         drv.configure()
         for fid, pos in ((0x181, 100), (0x182, 200)):
-            peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
-                                  data=FEEDBACK_FRAME.pack(pos, 0, 0)))
+            peer.send(
+                can.Message(
+                    arbitration_id=fid, is_extended_id=False, data=FEEDBACK_FRAME.pack(pos, 0, 0)
+                )
+            )
         drv.read(0.0)
         # another node's full 8-byte frame, a remote request on a feedback id, a short frame
-        peer.send(can.Message(arbitration_id=0x183, is_extended_id=False,
-                              data=FEEDBACK_FRAME.pack(999, 9, 9)))
-        peer.send(can.Message(arbitration_id=0x181, is_extended_id=False,
-                              is_remote_frame=True, dlc=8))
+        peer.send(
+            can.Message(
+                arbitration_id=0x183, is_extended_id=False, data=FEEDBACK_FRAME.pack(999, 9, 9)
+            )
+        )
+        peer.send(
+            can.Message(arbitration_id=0x181, is_extended_id=False, is_remote_frame=True, dlc=8)
+        )
         peer.send(can.Message(arbitration_id=0x182, is_extended_id=False, data=b"\x00" * 7))
         drv.read(0.001)
         assert drv.state is DriverState.INACTIVE
@@ -579,14 +636,20 @@ def test_feedback_exactly_feedback_timeout_old_is_still_on_time(channel: str) ->
     try:
         drv.configure()
         for fid in (0x181, 0x182):
-            peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
-                                  data=FEEDBACK_FRAME.pack(0, 0, 0)))
+            peer.send(
+                can.Message(
+                    arbitration_id=fid, is_extended_id=False, data=FEEDBACK_FRAME.pack(0, 0, 0)
+                )
+            )
         drv.read(0.5)
         drv.read(0.75)
         assert drv.state is DriverState.INACTIVE
-        with pytest.raises(DriverError, match=r"joint yaw: no feedback on id 0x181 for 250\.1 ms: "
-                                              r"feedback age 250\.1 ms > feedback_timeout "
-                                              r"250\.0 ms \(1 command unanswered\)"):
+        with pytest.raises(
+            DriverError,
+            match=r"joint yaw: no feedback on id 0x181 for 250\.1 ms: "
+            r"feedback age 250\.1 ms > feedback_timeout "
+            r"250\.0 ms \(1 command unanswered\)",
+        ):
             drv.read(0.7501)
     finally:
         drv.shutdown()
@@ -613,10 +676,18 @@ def test_a_heartbeat_flag_while_not_active_reads_as_no_effort(channel: str) -> N
     drv = CANDriver("arm", js, params(channel, feedback_timeout=10.0))
     try:
         drv.configure()
-        peer.send(can.Message(arbitration_id=0x181, is_extended_id=False,
-                              data=FEEDBACK_FRAME.pack(500, 0, HEARTBEAT_LOST)))
-        peer.send(can.Message(arbitration_id=0x182, is_extended_id=False,
-                              data=FEEDBACK_FRAME.pack(0, 0, 0)))
+        peer.send(
+            can.Message(
+                arbitration_id=0x181,
+                is_extended_id=False,
+                data=FEEDBACK_FRAME.pack(500, 0, HEARTBEAT_LOST),
+            )
+        )
+        peer.send(
+            can.Message(
+                arbitration_id=0x182, is_extended_id=False, data=FEEDBACK_FRAME.pack(0, 0, 0)
+            )
+        )
         drv.read(0.0)
         assert drv.state is DriverState.INACTIVE
         assert js[0].position == 500 / CPU[0] and js[0].effort == 0.0
@@ -666,8 +737,11 @@ class SocketBus(VirtualBus):
 
 @pytest.mark.parametrize("refuse", [False, True])
 def test_socketcan_gets_the_feedback_ids_and_every_error_class(
-    channel: str, node: SimulatedDriveNode, monkeypatch: pytest.MonkeyPatch,
-    caplog: pytest.LogCaptureFixture, refuse: bool,
+    channel: str,
+    node: SimulatedDriveNode,
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+    refuse: bool,
 ) -> None:
     """On SocketCAN the kernel filters the feedback identifiers (11-bit, exact) and lets
     error frames of every class through (CAN_RAW_ERR_FILTER): without it no bus-off ever
@@ -692,7 +766,8 @@ def test_socketcan_gets_the_feedback_ids_and_every_error_class(
         if refuse:
             assert sock.options == []
             assert [r.getMessage() for r in caplog.records] == [
-                "can driver arm: error frames not enabled: [Errno 92] Protocol not available"]
+                "can driver arm: error frames not enabled: [Errno 92] Protocol not available"
+            ]
         else:
             assert sock.options == [(101, 2, (0x1FFFFFFF).to_bytes(4, sys.byteorder))]
             assert caplog.text == ""
@@ -760,8 +835,11 @@ def test_a_29_bit_frame_with_a_feedback_number_is_not_feedback(channel: str) -> 
     number (another device, e.g. J1939, on a bus python-can filters in software) is a
     different frame: it must not become the joint's position."""
     with fed_driver(channel) as (js, peer, drv):
-        peer.send(can.Message(arbitration_id=0x181, is_extended_id=True,
-                              data=FEEDBACK_FRAME.pack(-90000, 0, 0)))
+        peer.send(
+            can.Message(
+                arbitration_id=0x181, is_extended_id=True, data=FEEDBACK_FRAME.pack(-90000, 0, 0)
+            )
+        )
         drv.read(0.001)
         assert js[0].position == 100 / CPU[0]
         assert drv.stats()["ignored_frames"] == 1 and drv.stats()["feedback_frames"] == 2
@@ -778,8 +856,11 @@ def fed_driver(channel: str) -> Iterator[tuple[list[Joint], can.Bus, CANDriver]]
     try:
         drv.configure()
         for fid in (0x181, 0x182):
-            peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
-                                  data=FEEDBACK_FRAME.pack(100, 0, 0)))
+            peer.send(
+                can.Message(
+                    arbitration_id=fid, is_extended_id=False, data=FEEDBACK_FRAME.pack(100, 0, 0)
+                )
+            )
         drv.read(0.0)
         yield js, peer, drv
     finally:
@@ -900,8 +981,11 @@ class ScriptedDrive:
         due = [q for q in self.queue if q[0] <= self.k]
         self.queue = [q for q in self.queue if q[0] > self.k]
         for _, fid in due:
-            self.bus.send(can.Message(arbitration_id=fid, is_extended_id=False,
-                                      data=FEEDBACK_FRAME.pack(100, 0, 0)))
+            self.bus.send(
+                can.Message(
+                    arbitration_id=fid, is_extended_id=False, data=FEEDBACK_FRAME.pack(100, 0, 0)
+                )
+            )
         self.k += 1
 
 
@@ -967,10 +1051,13 @@ def test_a_late_drive_faults_on_its_age_and_fails_the_first_read_after_reset(
         assert drv.state is DriverState.ACTIVE
         drive.lag = 50
         k = 30
-        with pytest.raises(DriverError, match=r"^can driver 'arm': joint yaw: no feedback on id "
-                                              r"0x181 for 11\.0 ms: feedback age 11\.0 ms > "
-                                              r"feedback_timeout 10\.0 ms \(11 commands "
-                                              r"unanswered\)$"):
+        with pytest.raises(
+            DriverError,
+            match=r"^can driver 'arm': joint yaw: no feedback on id "
+            r"0x181 for 11\.0 ms: feedback age 11\.0 ms > "
+            r"feedback_timeout 10\.0 ms \(11 commands "
+            r"unanswered\)$",
+        ):
             while True:
                 drive.step()
                 drv.read(k * 0.001)
@@ -986,10 +1073,13 @@ def test_a_late_drive_faults_on_its_age_and_fails_the_first_read_after_reset(
         drive.step()
         # the newest answer came at least 50 ms after its poll (it was not in the queue at
         # the read before): late until a newer one comes on time, whatever the reset
-        with pytest.raises(DriverError, match=r"joint yaw: feedback on id 0x181 answers a command "
-                                              r"sent at least 50\.0 ms before it arrived: feedback "
-                                              r"age 50\.0 ms > feedback_timeout 10\.0 ms \(answer "
-                                              r"late; 2 commands unanswered\)$"):
+        with pytest.raises(
+            DriverError,
+            match=r"joint yaw: feedback on id 0x181 answers a command "
+            r"sent at least 50\.0 ms before it arrived: feedback "
+            r"age 50\.0 ms > feedback_timeout 10\.0 ms \(answer "
+            r"late; 2 commands unanswered\)$",
+        ):
             drv.read(0.200)
         assert drv.state is DriverState.FAULT
         drive.lag = 0  # on time again
@@ -1026,9 +1116,12 @@ def test_lost_answers_are_given_up_only_after_lost_after_of_quiet(channel: str) 
         # it answers the reset's stop frames: taken for the oldest command owed (of 9 ms), which
         # judges it older, never younger, than it is; the next owed (10 ms) is 15 ms old
         drive.step()
-        with pytest.raises(DriverError, match=r"joint yaw: no feedback on id 0x181 for 15\.0 ms: "
-                                              r"feedback age 15\.0 ms > feedback_timeout "
-                                              r"10\.0 ms \(12 commands unanswered\)$"):
+        with pytest.raises(
+            DriverError,
+            match=r"joint yaw: no feedback on id 0x181 for 15\.0 ms: "
+            r"feedback age 15\.0 ms > feedback_timeout "
+            r"10\.0 ms \(12 commands unanswered\)$",
+        ):
             drv.read(0.025)
         for k in range(26, 76):  # last heard at 25 ms (read at 26)
             tick(drive, drv, k)
@@ -1059,25 +1152,40 @@ def test_frames_with_no_command_outstanding_are_counted_and_do_not_refresh(
         drv.read(0.0)  # configure's query unanswered: polls wait for it
         for fid in (0x181, 0x182):  # one answer each, and a frame nobody asked for
             for pos in (100, 200):
-                peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
-                                      data=FEEDBACK_FRAME.pack(pos, 0, 0)))
+                peer.send(
+                    can.Message(
+                        arbitration_id=fid,
+                        is_extended_id=False,
+                        data=FEEDBACK_FRAME.pack(pos, 0, 0),
+                    )
+                )
         with caplog.at_level("WARNING", logger="occ.drivers.can"):
             drv.read(0.003)
         assert drv.stats()["unsolicited_frames"] == 2
         assert [r.getMessage() for r in caplog.records] == [
             "can driver arm: joint yaw sends feedback on its own: cyclic frames cannot be told "
-            "from answers, its feedback age is judged too young if they are late"]
+            "from answers, its feedback age is judged too young if they are late"
+        ]
         assert drv.joints[0].position == 200 / CPU[0]  # the newest values are read
         for fid in (0x181, 0x182):  # frames again, but the polls of 3 ms are owed: answers
-            peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
-                                  data=FEEDBACK_FRAME.pack(300, 0, 0)))
+            peer.send(
+                can.Message(
+                    arbitration_id=fid, is_extended_id=False, data=FEEDBACK_FRAME.pack(300, 0, 0)
+                )
+            )
         drv.read(0.006)
         assert max(drv.feedback_age(0.006)) == pytest.approx(0.003)
         for fid in (0x181, 0x182):  # nothing owed now (polls of 6 ms answered below first)
-            peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
-                                  data=FEEDBACK_FRAME.pack(400, 0, 0)))
-            peer.send(can.Message(arbitration_id=fid, is_extended_id=False,
-                                  data=FEEDBACK_FRAME.pack(500, 0, 0)))
+            peer.send(
+                can.Message(
+                    arbitration_id=fid, is_extended_id=False, data=FEEDBACK_FRAME.pack(400, 0, 0)
+                )
+            )
+            peer.send(
+                can.Message(
+                    arbitration_id=fid, is_extended_id=False, data=FEEDBACK_FRAME.pack(500, 0, 0)
+                )
+            )
         drv.read(0.009)
         assert drv.stats()["unsolicited_frames"] == 4
         # the data: from the answer to the poll of 6 ms, not from the frames nobody asked for
@@ -1137,12 +1245,22 @@ def test_the_nodes_error_flood_puts_error_frames_before_each_answer(channel: str
         try:
             node.error_flood(2, error_class=0x10)
             for seq in range(3):
-                host.send(can.Message(arbitration_id=0x101, is_extended_id=False,
-                                      data=COMMAND_FRAME.pack(0, MODE_DISABLED, seq, 0)))
+                host.send(
+                    can.Message(
+                        arbitration_id=0x101,
+                        is_extended_id=False,
+                        data=COMMAND_FRAME.pack(0, MODE_DISABLED, seq, 0),
+                    )
+                )
                 assert node.wait_feedback(seq + 1, timeout=2.0)
             node.error_flood(0)
-            host.send(can.Message(arbitration_id=0x101, is_extended_id=False,
-                                  data=COMMAND_FRAME.pack(0, MODE_DISABLED, 3, 0)))
+            host.send(
+                can.Message(
+                    arbitration_id=0x101,
+                    is_extended_id=False,
+                    data=COMMAND_FRAME.pack(0, MODE_DISABLED, 3, 0),
+                )
+            )
             assert node.wait_feedback(4, timeout=2.0)
             got = [(m.is_error_frame, m.arbitration_id) for m in drain(host)]
             assert got == [(True, 0x10), (True, 0x10), (False, 0x181)] * 3 + [(False, 0x181)]
@@ -1160,8 +1278,14 @@ def test_the_nodes_stale_dither_freezes_the_position_toggling_one_count(
     its axes follow the commands: the tool moves, the feedback does not (but never stays
     exactly the same)."""
     # the node's own behaviour, with the base's feedback checks (which catch it) off
-    drv = active_driver(channel, node, feedback_timeout=10.0, feedback_jump=0,
-                        following_error=None, frozen_feedback_ms=0)  # at 0 counts
+    drv = active_driver(
+        channel,
+        node,
+        feedback_timeout=10.0,
+        feedback_jump=0,
+        following_error=None,
+        frozen_feedback_ms=0,
+    )  # at 0 counts
     node.stale_dither(1)
     seen = []
     for k in range(2, 12):

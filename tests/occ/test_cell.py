@@ -124,6 +124,12 @@ class Cell:
     def cell_stats(self, i: int) -> dict[str, Any]:
         return dict(self.sims[i].robot.snapshot()["cell"])
 
+    def cell_stats_full(self, i: int) -> dict[str, Any]:
+        """Member ``i``'s GetStats as JSON carries it (what the staff console reads)."""
+        import json
+
+        return dict(json.loads(json.dumps(self.sims[i].robot.snapshot(), default=str)))
+
     def close(self) -> None:
         for s in self.sims:
             s.close()

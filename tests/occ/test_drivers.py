@@ -550,8 +550,12 @@ def test_sim_common_read_reports_what_the_general_path_does() -> None:
         ]
         # a saturated servo cannot follow and one at its end stop does not move: the feedback
         # checks that judge this (following error, frozen) are tested elsewhere
-        params = {"encoder_resolution": [1e-4, 2e-5, 0.0], "heartbeat_ms": 0,
-                  "following_error": None, "frozen_feedback_ms": 0}
+        params = {
+            "encoder_resolution": [1e-4, 2e-5, 0.0],
+            "heartbeat_ms": 0,
+            "following_error": None,
+            "frozen_feedback_ms": 0,
+        }
         d = SimDriver("s", js, params)
         d.environment = world
         d.configure()
@@ -572,7 +576,9 @@ def test_sim_common_read_reports_what_the_general_path_does() -> None:
     # the same to the last bit but for rounding: the general path forms the effort from the
     # position, the common one from the error (x - r)
     assert [row[:3] for row in fast] == [row[:3] for row in general]
-    assert [row[3:] for row in fast] == [pytest.approx(row[3:], rel=1e-12, abs=1e-15) for row in general]
+    assert [row[3:] for row in fast] == [
+        pytest.approx(row[3:], rel=1e-12, abs=1e-15) for row in general
+    ]
     assert any(abs(row[3]) == pytest.approx(0.5) for row in fast)  # a saturated
     assert max(row[1] for row in fast) == pytest.approx(0.02)  # b at its end stop
     assert all(abs(row[0] / 1e-4 - round(row[0] / 1e-4)) < 1e-6 for row in fast)

@@ -54,8 +54,9 @@ def test_power_on_fails_enable_is_vetoed_and_the_robot_faults() -> None:
 
 @pytest.mark.req("SR-HW-3")
 def test_a_joint_never_measured_refuses_enable_and_keeps_the_state() -> None:
-    out = check("unmeasured", "no measurement yet from driver tool joints ['insertion']",
-                state="READY")
+    out = check(
+        "unmeasured", "no measurement yet from driver tool joints ['insertion']", state="READY"
+    )
     assert out.enable_reply.startswith("'enable' refused in state READY: no measurement")
 
 
@@ -142,6 +143,7 @@ def test_a_runaway_encoder_at_five_times_the_limit_is_a_jump_in_its_first_tick()
 def test_a_single_slip_of_five_ticks_worth_is_caught() -> None:
     # 10 x the velocity limit let it through; 2 x plus the encoder's quantum does not
     check_lie("slip", "feedback jump of", when_ms=1.0)
+
 
 @pytest.mark.req("SR-HW-14")
 def test_a_can_node_whose_stale_position_dithers_by_a_count_is_caught() -> None:

@@ -304,8 +304,11 @@ def test_a_reading_outside_the_limits_by_more_than_the_margin_faults_in_every_st
         d.read(0.0)  # within the margin: a joint at its stop, an encoder's quantum
         assert d.state is not DriverState.FAULT and j.position == 0.5019
         d.feedback = [0.5021]
-        with pytest.raises(DriverError, match=r"joint p: measured position 0\.5021 outside its "
-                           r"limits \[-0\.5, 0\.5\] by more than 0\.002 \(limit_margin\)"):
+        with pytest.raises(
+            DriverError,
+            match=r"joint p: measured position 0\.5021 outside its "
+            r"limits \[-0\.5, 0\.5\] by more than 0\.002 \(limit_margin\)",
+        ):
             d.read(0.001)
         assert j.position == 0.5019  # not believed: the last reading stays
 
@@ -336,8 +339,11 @@ def test_a_stale_reading_that_dithers_by_a_count_is_still_frozen() -> None:
         d.read(k * 0.001)
     assert d.state is DriverState.ACTIVE
     d.feedback = [1e-6]
-    with pytest.raises(DriverError, match=r"joint p: feedback frozen at 1e-06 for 51 ms .*"
-                       r"no move beyond its noise, 1e-06"):
+    with pytest.raises(
+        DriverError,
+        match=r"joint p: feedback frozen at 1e-06 for 51 ms .*"
+        r"no move beyond its noise, 1e-06",
+    ):
         d.read(0.051)
 
 
@@ -359,8 +365,11 @@ def test_the_following_error_faults_after_its_time_outside_the_window() -> None:
             d.read(k * 0.001)  # inside the window, then outside it for less than 3 ms
             assert d.state is DriverState.ACTIVE, k
         else:
-            with pytest.raises(DriverError, match=r"joint p: following error 0\.0014 beyond "
-                               r"its window 0\.001 for 3 ms"):
+            with pytest.raises(
+                DriverError,
+                match=r"joint p: following error 0\.0014 beyond "
+                r"its window 0\.001 for 3 ms",
+            ):
                 d.read(k * 0.001)
             break
     assert d.state is DriverState.FAULT
@@ -397,8 +406,12 @@ def test_a_loaded_servo_is_allowed_its_give() -> None:
             return list(self.feedback), [0.0], [10.0]  # 10 N pushing back
 
     j = prismatic(velocity=10.0)
-    d = Loaded([j], heartbeat_ms=0, frozen_feedback_ms=0,
-               following_error={"window": 0.0005, "time_ms": 0, "stiffness": 1.0e4})
+    d = Loaded(
+        [j],
+        heartbeat_ms=0,
+        frozen_feedback_ms=0,
+        following_error={"window": 0.0005, "time_ms": 0, "stiffness": 1.0e4},
+    )
     d.configure()
     d.activate()
     d.feedback = [0.0]

@@ -74,8 +74,10 @@ def test_clamp_to_the_configured_maximum() -> None:
 def two_spheres() -> FixtureSet:
     # two overlapping accessible spheres along x: the union is a peanut
     return FixtureSet(
-        [AccessibleSphere((0.0, 0.0, 0.0), 30.0, name="A"),
-         AccessibleSphere((40.0, 0.0, 0.0), 30.0, name="B")],
+        [
+            AccessibleSphere((0.0, 0.0, 0.0), 30.0, name="A"),
+            AccessibleSphere((40.0, 0.0, 0.0), 30.0, name="B"),
+        ],
         max_force_n=1e6,
     )
 
@@ -99,6 +101,7 @@ def test_union_switch_between_nearest_spheres_without_a_force_jump() -> None:
     # the tool moves 0.05 mm a tick: the force may move by k x that plus the proxy's slide
     # limit, never by the jump of the naive nearest-sphere rule
     assert max(steps[1:]) < 1.0 * (0.05 + fs.slide_mm) + 1e-9
+
     # and the naive rule jumps: at the bisector the nearest-sphere force flips from pointing
     # toward A's centre to toward B's, a change of about 2 N here
     def naive(p):
@@ -106,8 +109,10 @@ def test_union_switch_between_nearest_spheres_without_a_force_jump() -> None:
         d, c = best
         u = tuple((ci - pi) / math.dist(p, c) for ci, pi in zip(c, p))
         return tuple(max(0.0, d) * ui for ui in u)
-    naive_steps = [norm(tuple(a - b for a, b in zip(naive(p1), naive(p0))))
-                   for p0, p1 in zip(path, path[1:])]
+
+    naive_steps = [
+        norm(tuple(a - b for a, b in zip(naive(p1), naive(p0)))) for p0, p1 in zip(path, path[1:])
+    ]
     assert max(naive_steps) > 1.0
     # at the end the tool is above B's centre, 4 mm out: the paper's law on B
     assert forces[-1] == pytest.approx((0.0, -4.0, 0.0), abs=1e-6)
@@ -160,8 +165,10 @@ def test_guidance_pulls_onto_the_polyline() -> None:
 
 
 def test_damping_only_in_contact_and_along_the_spring() -> None:
-    fs = FixtureSet([ForbiddenPlane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), stiffness=1.0,
-                                    damping=0.01)], max_force_n=1e6)
+    fs = FixtureSet(
+        [ForbiddenPlane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), stiffness=1.0, damping=0.01)],
+        max_force_n=1e6,
+    )
     fs.force((0.0, 0.0, 5.0), DT)
     assert fs.force((0.0, 0.0, 4.0), DT) == (0.0, 0.0, 0.0)  # moving but free: nothing
     fs.force((0.0, 0.0, -1.0), DT)
@@ -204,9 +211,13 @@ def test_a_force_of_exactly_the_maximum_is_not_clamped_and_just_over_is() -> Non
     assert fs.force((0.0, 0.0, -10.5), DT) == (0.0, 0.0, 10.0)  # 10.5 N: clamped, counted
     assert fs.clamped == 1
     # the clamp scales the vector: its direction stays (6, 8) / 10
-    corner = FixtureSet([ForbiddenPlane((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), stiffness=1.0),
-                         ForbiddenPlane((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), stiffness=1.0)],
-                        max_force_n=5.0)
+    corner = FixtureSet(
+        [
+            ForbiddenPlane((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), stiffness=1.0),
+            ForbiddenPlane((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), stiffness=1.0),
+        ],
+        max_force_n=5.0,
+    )
     assert corner.force((-6.0, -8.0, 0.0), DT) == pytest.approx((3.0, 4.0, 0.0), abs=1e-12)
     assert corner.clamped == 1 and corner.force_n == pytest.approx((3.0, 4.0, 0.0), abs=1e-12)
     for bad in (0.0, -1.0, math.inf, math.nan):
@@ -233,8 +244,9 @@ def test_on_a_plane_or_a_forbidden_surface_is_free_even_moving_in() -> None:
 
 def test_damping_in_contact_with_a_sphere_acts_along_the_spring() -> None:
     # accessible sphere: the tool 2 mm out, moving further out at 1000 mm/s and sideways
-    fs = FixtureSet([AccessibleSphere((0.0, 0.0, 0.0), 10.0, stiffness=1.0, damping=0.01)],
-                    max_force_n=1e6)
+    fs = FixtureSet(
+        [AccessibleSphere((0.0, 0.0, 0.0), 10.0, stiffness=1.0, damping=0.01)], max_force_n=1e6
+    )
     fs.force((0.0, 0.0, 9.0), DT)
     fs.force((0.0, 0.0, 11.0), DT)  # left at the top: proxy (0, 0, 10)
     f = fs.force((1e-9, 0.0, 12.0), DT)
@@ -352,7 +364,8 @@ def test_contacts_report_each_primitive_with_its_proxy_and_force(prim, path) -> 
     assert c.force == pytest.approx(f, abs=1e-9) and f != (0.0, 0.0, 0.0)
     tool = path[-1]
     assert c.force == pytest.approx(
-        tuple(3.0 * (q - t) for q, t in zip(c.proxy, tool, strict=True)), abs=1e-9)
+        tuple(3.0 * (q - t) for q, t in zip(c.proxy, tool, strict=True)), abs=1e-9
+    )
 
 
 def test_no_contact_while_free_inside_the_accessible_area() -> None:
@@ -378,9 +391,13 @@ def _turn(f):
 
 def test_the_union_of_spheres_moved_anywhere_gives_the_same_forces_rotated() -> None:
     def scene(move, k2: float):
-        fs = FixtureSet([AccessibleSphere(move((0.0, 0.0, 0.0)), 30.0, name="A"),
-                         AccessibleSphere(move((40.0, 0.0, 0.0)), 30.0, stiffness=k2, name="B")],
-                        max_force_n=1e6)
+        fs = FixtureSet(
+            [
+                AccessibleSphere(move((0.0, 0.0, 0.0)), 30.0, name="A"),
+                AccessibleSphere(move((40.0, 0.0, 0.0)), 30.0, stiffness=k2, name="B"),
+            ],
+            max_force_n=1e6,
+        )
         path = [(0.0, 0.0, 0.0), (0.0, 28.0, 0.0), (0.0, 34.0, 0.0)]
         path += [(x * 0.25, 34.0, 3.0) for x in range(0, 161)]  # over the waist onto B
         return [fs.force(move(p), DT) for p in path], fs
@@ -418,29 +435,40 @@ def test_leaving_tangentially_from_the_surface_starts_the_proxy_where_it_left() 
 def test_a_set_swapped_in_starts_from_the_previous_tool_position() -> None:
     old = FixtureSet([AccessibleSphere((1.0, 2.0, 3.0), 4.0)], max_force_n=1e6)
     old.force((1.0, 2.0, 7.0), DT)  # on the surface of the new set's sphere too
-    new = FixtureSet([AccessibleSphere((1.0, 2.0, 3.0), 4.0, stiffness=1.5)],
-                     max_force_n=1e6).carry_from(old)
+    new = FixtureSet(
+        [AccessibleSphere((1.0, 2.0, 3.0), 4.0, stiffness=1.5)], max_force_n=1e6
+    ).carry_from(old)
     new.force((3.0, 2.0, 7.0), DT)
     (c,) = new.contacts()
     nearest = (1.0 + 8.0 / math.sqrt(20.0), 2.0, 3.0 + 16.0 / math.sqrt(20.0))
     assert c.proxy != pytest.approx(nearest)
     assert norm(tuple(a - b for a, b in zip(c.proxy, (1.0, 2.0, 7.0), strict=True))) == (
-        pytest.approx(1.0))
+        pytest.approx(1.0)
+    )
     # carried from a position outside every sphere: the nearest surface, no entry point
     far = FixtureSet([AccessibleSphere((0.0, 0.0, 0.0), 1.0)])
     far.force((50.0, 0.0, 0.0), DT)
-    two = FixtureSet([AccessibleSphere(C, 5.0, stiffness=2.0, name="near"),
-                      AccessibleSphere((100.0, 100.0, 100.0), 5.0, name="far")],
-                     max_force_n=1e6).carry_from(far)
+    two = FixtureSet(
+        [
+            AccessibleSphere(C, 5.0, stiffness=2.0, name="near"),
+            AccessibleSphere((100.0, 100.0, 100.0), 5.0, name="far"),
+        ],
+        max_force_n=1e6,
+    ).carry_from(far)
     f = two.force(at(6.0), DT)
     assert f == pytest.approx(tuple(-2.0 * u for u in U), abs=1e-9)
     assert two.contacts()[0].name == "near"
 
 
 def test_with_no_history_the_nearest_surface_of_several_spheres() -> None:
-    fs = FixtureSet([AccessibleSphere((100.0, 100.0, 100.0), 5.0, name="far"),
-                     AccessibleSphere(C, 5.0, stiffness=2.0, name="near"),
-                     AccessibleSphere((-60.0, 50.0, 0.0), 5.0, name="other")], max_force_n=1e6)
+    fs = FixtureSet(
+        [
+            AccessibleSphere((100.0, 100.0, 100.0), 5.0, name="far"),
+            AccessibleSphere(C, 5.0, stiffness=2.0, name="near"),
+            AccessibleSphere((-60.0, 50.0, 0.0), 5.0, name="other"),
+        ],
+        max_force_n=1e6,
+    )
     f = fs.force(at(6.5), DT)  # the first call, already 1.5 mm out
     assert f == pytest.approx(tuple(-2.0 * 1.5 * u for u in U), abs=1e-9)
     assert fs.contacts()[0].name == "near" and fs.contacts_entered == 1
@@ -478,14 +506,20 @@ def test_a_forbidden_sphere_entered_obliquely_keeps_the_entry_point(step: float)
     f = fs.force(tool, DT)
     entry = _entry(last, tool, C, 5.0)
     assert fs.contacts()[0].proxy == pytest.approx(entry, abs=1e-9)
-    assert f == pytest.approx(tuple(2.0 * (e - t) for e, t in zip(entry, tool, strict=True)),
-                              abs=1e-9)
+    assert f == pytest.approx(
+        tuple(2.0 * (e - t) for e, t in zip(entry, tool, strict=True)), abs=1e-9
+    )
 
 
 def test_two_forbidden_spheres_and_damping_in_every_direction() -> None:
-    fs = FixtureSet([ForbiddenSphere((100.0, 0.0, 0.0), 5.0, name="first"),
-                     ForbiddenSphere(C, 5.0, stiffness=2.0, damping=0.01, name="second")],
-                    max_force_n=1e6, slide_mm=1e-12)
+    fs = FixtureSet(
+        [
+            ForbiddenSphere((100.0, 0.0, 0.0), 5.0, name="first"),
+            ForbiddenSphere(C, 5.0, stiffness=2.0, damping=0.01, name="second"),
+        ],
+        max_force_n=1e6,
+        slide_mm=1e-12,
+    )
     fs.force(at(7.0), DT)
     f = fs.force(at(4.0), DT)  # radially in at 3 mm/ms = 3000 mm/s, into the second only
     assert f == pytest.approx(tuple((2.0 * 1.0 + 0.01 * 3000.0) * u for u in U), abs=1e-6)
@@ -511,8 +545,9 @@ def test_damping_of_an_accessible_sphere_along_the_spring_anywhere() -> None:
 
 
 def test_every_clamped_tick_is_counted_and_small_maximums_work() -> None:
-    fs = FixtureSet([ForbiddenPlane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0))], max_force_n=0.5,
-                    label="floor")
+    fs = FixtureSet(
+        [ForbiddenPlane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0))], max_force_n=0.5, label="floor"
+    )
     assert fs.force_n == (0.0, 0.0, 0.0) and fs.label == "floor"  # before any tick
     for k in range(1, 4):
         assert fs.force((0.0, 0.0, -1.0), DT) == (0.0, 0.0, 0.5)
@@ -520,8 +555,7 @@ def test_every_clamped_tick_is_counted_and_small_maximums_work() -> None:
 
 
 def test_a_polyline_with_a_repeated_point_and_a_short_segment() -> None:
-    g = Guide(((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.5, 0.0, 0.0), (0.5, 0.0, 40.0)),
-              stiffness=1.0)
+    g = Guide(((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.5, 0.0, 0.0), (0.5, 0.0, 40.0)), stiffness=1.0)
     fs = FixtureSet([g], max_force_n=1e6, slide_mm=1e6)
     assert fs.force((0.25, 3.0, 0.0), DT) == pytest.approx((0.0, -3.0, 0.0))  # the 0.5 mm one
     assert fs.force((0.5, 2.0, 20.0), DT) == pytest.approx((0.0, -2.0, 0.0))
@@ -530,14 +564,22 @@ def test_a_polyline_with_a_repeated_point_and_a_short_segment() -> None:
 @pytest.mark.parametrize(
     ("make", "message"),
     [
-        (lambda: AccessibleSphere((0, 0), 1.0, name="a"),
-         r"sphere 'a': expected \(x, y, z\), got \(0, 0\)"),
-        (lambda: ForbiddenSphere((0, math.nan, 0), 1.0, name="b"),
-         r"sphere 'b': not finite: \(0.0, nan, 0.0\)"),
-        (lambda: ForbiddenSphere((0, 0, 0), 1.0, stiffness=math.inf, name="c"),
-         r"sphere 'c': stiffness and damping must be finite and >= 0 \(got inf, 0.0\)"),
-        (lambda: ForbiddenPlane((0, 0, 0), (0, 0, 1), damping=math.inf, name="d"),
-         r"plane 'd': stiffness and damping must be finite and >= 0 \(got 1.0, inf\)"),
+        (
+            lambda: AccessibleSphere((0, 0), 1.0, name="a"),
+            r"sphere 'a': expected \(x, y, z\), got \(0, 0\)",
+        ),
+        (
+            lambda: ForbiddenSphere((0, math.nan, 0), 1.0, name="b"),
+            r"sphere 'b': not finite: \(0.0, nan, 0.0\)",
+        ),
+        (
+            lambda: ForbiddenSphere((0, 0, 0), 1.0, stiffness=math.inf, name="c"),
+            r"sphere 'c': stiffness and damping must be finite and >= 0 \(got inf, 0.0\)",
+        ),
+        (
+            lambda: ForbiddenPlane((0, 0, 0), (0, 0, 1), damping=math.inf, name="d"),
+            r"plane 'd': stiffness and damping must be finite and >= 0 \(got 1.0, inf\)",
+        ),
     ],
 )
 def test_refusals_name_the_primitive_and_the_value(make, message) -> None:
@@ -571,8 +613,9 @@ def test_leaving_an_accessible_sphere_obliquely_keeps_the_exit_point(step: float
     f = fs.force(tool, DT)
     out = _exit(last, tool, C, 5.0)
     assert fs.contacts()[0].proxy == pytest.approx(out, abs=1e-9)
-    assert f == pytest.approx(tuple(2.0 * (e - t) for e, t in zip(out, tool, strict=True)),
-                              abs=1e-9)
+    assert f == pytest.approx(
+        tuple(2.0 * (e - t) for e, t in zip(out, tool, strict=True)), abs=1e-9
+    )
 
 
 W = (0.36, 0.48, -0.8)  # another unit vector, not along U
@@ -589,16 +632,18 @@ def test_with_no_history_the_nearer_of_two_close_surfaces(nearer: str, along) ->
     side = (cx_ / m, cy_ / m, cz_ / m)  # perpendicular to along: equal distances at shift 6
     shift = 6.0 + (-0.05 if nearer == "A" else 0.05)
     tool = tuple(c + shift * a + 7.0 * s for c, a, s in zip(C, along, side, strict=True))
-    fs = FixtureSet([AccessibleSphere(C, 5.0, name="A"), AccessibleSphere(cb, 5.0, name="B")],
-                    max_force_n=1e6)
+    fs = FixtureSet(
+        [AccessibleSphere(C, 5.0, name="A"), AccessibleSphere(cb, 5.0, name="B")], max_force_n=1e6
+    )
     fs.force(tool, DT)
     (c,) = fs.contacts()
     centre = C if nearer == "A" else cb
     d = [t - k for t, k in zip(tool, centre, strict=True)]
     n = norm(tuple(d))
     assert c.name == nearer
-    assert c.proxy == pytest.approx([k + 5.0 * v / n for k, v in zip(centre, d, strict=True)],
-                                    abs=1e-9)
+    assert c.proxy == pytest.approx(
+        [k + 5.0 * v / n for k, v in zip(centre, d, strict=True)], abs=1e-9
+    )
 
 
 def test_a_guide_proxy_slides_in_a_straight_line_anywhere() -> None:
@@ -632,8 +677,13 @@ class _UnionReference:
         self.contact = None  # index of the proxy's sphere, None = free
         self.proxy = None
         self.last = None
-        self.seen = {"free": 0, "exit from several": 0, "nearest surface": 0,
-                     "handed over": 0, "kept though inside another": 0}
+        self.seen = {
+            "free": 0,
+            "exit from several": 0,
+            "nearest surface": 0,
+            "handed over": 0,
+            "kept though inside another": 0,
+        }
 
     @staticmethod
     def _sub(a, b):
@@ -658,12 +708,16 @@ class _UnionReference:
             return (0.0, 0.0, 0.0)
         if self.contact is None:
             start = self.proxy if self.proxy is not None else last
-            holders = [] if start is None else [
-                j for j in range(len(self.spheres)) if self._inside(start, j, 1e-9)]
+            holders = (
+                []
+                if start is None
+                else [j for j in range(len(self.spheres)) if self._inside(start, j, 1e-9)]
+            )
             if holders:
                 # the sphere the segment start -> tool leaves last (the first such on a tie)
-                exits = [(_exit(start, tool, self.spheres[j][0], self.spheres[j][1]), j)
-                         for j in holders]
+                exits = [
+                    (_exit(start, tool, self.spheres[j][0], self.spheres[j][1]), j) for j in holders
+                ]
                 ts = [math.dist(start, e) for e, _ in exits]
                 k = max(range(len(exits)), key=lambda n: (ts[n], -n))
                 self.proxy, self.contact = exits[k][0], exits[k][1]
@@ -708,9 +762,14 @@ def _compare_walk(spheres, slide, seed, ticks, reach):
 
     rng = random.Random(seed)
     names = ["A", "B", "D"]
-    fs = FixtureSet([AccessibleSphere(tuple(c), r, stiffness=k, name=n)
-                     for (c, r, k), n in zip(spheres, names, strict=True)],
-                    max_force_n=1e6, slide_mm=slide)
+    fs = FixtureSet(
+        [
+            AccessibleSphere(tuple(c), r, stiffness=k, name=n)
+            for (c, r, k), n in zip(spheres, names, strict=True)
+        ],
+        max_force_n=1e6,
+        slide_mm=slide,
+    )
     ref = _UnionReference(spheres, slide)
     tool = list(C)
     for tick in range(ticks):
@@ -758,9 +817,14 @@ def test_hand_over_only_to_a_nearer_surface_with_the_proxy_lagging_inside() -> N
     # into B and is handed to B only when B's surface is nearer the tool, and back to A on
     # the way back past the start
     spheres = _three_spheres()[:2]
-    fs = FixtureSet([AccessibleSphere(tuple(c), r, stiffness=k, name=n)
-                     for (c, r, k), n in zip(spheres, ["A", "B"], strict=True)],
-                    max_force_n=1e6, slide_mm=0.5)
+    fs = FixtureSet(
+        [
+            AccessibleSphere(tuple(c), r, stiffness=k, name=n)
+            for (c, r, k), n in zip(spheres, ["A", "B"], strict=True)
+        ],
+        max_force_n=1e6,
+        slide_mm=0.5,
+    )
     ref = _UnionReference(spheres, 0.5)
     p = _perpendicular_to_u()
     fs.force(C, DT)
@@ -790,9 +854,13 @@ def test_with_no_history_the_nearest_surface_of_spheres_of_different_radii(seed:
     for _ in range(300):
         tool = [c + rng.uniform(-40.0, 40.0) for c in C]
         ref = _UnionReference(spheres, 1.0)
-        fs = FixtureSet([AccessibleSphere(tuple(c), r, stiffness=k, name=n)
-                         for (c, r, k), n in zip(spheres, "ABD", strict=True)],
-                        max_force_n=1e6)
+        fs = FixtureSet(
+            [
+                AccessibleSphere(tuple(c), r, stiffness=k, name=n)
+                for (c, r, k), n in zip(spheres, "ABD", strict=True)
+            ],
+            max_force_n=1e6,
+        )
         want = ref.step(tool)
         assert fs.force(tuple(tool), DT) == pytest.approx(want, abs=1e-9)
         if ref.contact is not None:
@@ -834,8 +902,10 @@ def test_the_hand_over_goes_to_the_nearer_surface_by_the_smallest_margin() -> No
         return (math.dist(p, ca) - ra) - (math.dist(p, cb) - rb)
 
     pu = _perpendicular_to_u()
-    P, Q = pu, [U[1] * pu[2] - U[2] * pu[1], U[2] * pu[0] - U[0] * pu[2],
-                U[0] * pu[1] - U[1] * pu[0]]  # P, Q and U orthonormal
+    P, Q = (
+        pu,
+        [U[1] * pu[2] - U[2] * pu[1], U[2] * pu[0] - U[0] * pu[2], U[0] * pu[1] - U[1] * pu[0]],
+    )  # P, Q and U orthonormal
     outcomes = {"A": 0, "B": 0}
     tries = 0
     while min(outcomes.values()) < 20:
@@ -883,8 +953,11 @@ def test_the_hand_over_goes_to_the_nearer_surface_by_the_smallest_margin() -> No
         offsets = [abs(t - x) for t, x in zip(tool, x1, strict=True)]
         if math.dist(tool, ca) - ra < 0.5 or min(offsets) < 0.5:
             continue
-        fs = FixtureSet([AccessibleSphere(ca, ra, name="A"), AccessibleSphere(cb, rb, name="B")],
-                        max_force_n=1e6, slide_mm=1e-9)
+        fs = FixtureSet(
+            [AccessibleSphere(ca, ra, name="A"), AccessibleSphere(cb, rb, name="B")],
+            max_force_n=1e6,
+            slide_mm=1e-9,
+        )
         fs.force(tuple(start), DT)
         fs.force(tuple(tool), DT)
         (c,) = fs.contacts()

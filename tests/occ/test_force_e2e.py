@@ -117,9 +117,11 @@ def test_the_master_displays_the_slaves_force_and_drops_it_when_the_slave_dies(
     pair.procs[0].wait(10.0)
     m = pair.wait(
         lambda: (
-            lambda s: s
-            if s["slave_tip"]["status"] == "lost" and s["feedback_n"] == [0.0, 0.0, 0.0]
-            else None
+            lambda s: (
+                s
+                if s["slave_tip"]["status"] == "lost" and s["feedback_n"] == [0.0, 0.0, 0.0]
+                else None
+            )
         )(pair.master_ctl()),
         10.0,
         "the return channel lost and the force faded out",

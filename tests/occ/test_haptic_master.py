@@ -41,8 +41,13 @@ def master():
 
 def forbidden_at(centre, radius=1.0, k=1.0, name="VF") -> igtl.Message:
     """A forbidden VFIXTURE sphere, patient frame (mm): 1 mm there is 10 mm of the handle."""
-    return igtl.VirtualFixtureMessage(hardness=k, spheres=((*centre, radius),), device_name=name,
-                                      header_version=2, metadata={"kind": "forbidden"})
+    return igtl.VirtualFixtureMessage(
+        hardness=k,
+        spheres=((*centre, radius),),
+        device_name=name,
+        header_version=2,
+        metadata={"kind": "forbidden"},
+    )
 
 
 # ------------------------------------------------------------------ the force on the effort interface
@@ -60,7 +65,9 @@ def test_force_is_commanded_only_while_running(master: SimMaster) -> None:
     # out of the sphere (centred 4 mm to the tool's +x when sent; the hand has moved since)
     away = [a - c for a, c in zip(master.feed.handle_mm(), (t[0] + 4.0, t[1], t[2]))]
     assert math.hypot(*eff) > 2.5 and sum(e * a for e, a in zip(eff, away)) > 0.0
-    assert master.robot.hardware.drivers[0]._cmd == pytest.approx(eff)  # what the drive got, this tick
+    assert master.robot.hardware.drivers[0]._cmd == pytest.approx(
+        eff
+    )  # what the drive got, this tick
     master.command("Stop")
     assert master.robot.state is RobotState.STOPPED
     master.step(1)
@@ -74,8 +81,9 @@ def test_slicer_point_list_changes_the_force_within_one_tick(master: SimMaster) 
     # Slicer's RAS: where the slave's tip is (the Tip Slicer shows; 10:1)
     tip = master.feed.tip()
     # a forbidden point 0.2 mm (patient) = 2 mm (master) from the tool, radius 0.5 mm = 5 mm
-    msg = standin.markups_points([(tip[0] + 0.2, tip[1], tip[2])], "Keepout",
-                                 kind="forbidden", radius=0.5)
+    msg = standin.markups_points(
+        [(tip[0] + 0.2, tip[1], tip[2])], "Keepout", kind="forbidden", radius=0.5
+    )
     assert master.op.send(msg) == 1
     master.step(1)  # the tick after arrival
     eff = master.robot.data.effort_command
@@ -90,9 +98,15 @@ def test_point_list_as_a_guide(master: SimMaster) -> None:
     master.step(10)
     t = master.feed.handle_mm()
     # a straight guide 3 mm of the handle (0.3 mm in the patient) above the tool
-    msg = standin.markups_points([master.feed.patient((t[0] - 50, t[1], t[2] + 3.0)),
-                                  master.feed.patient((t[0] + 50, t[1], t[2] + 3.0))],
-                                 "Path", kind="guide", stiffness=0.5)
+    msg = standin.markups_points(
+        [
+            master.feed.patient((t[0] - 50, t[1], t[2] + 3.0)),
+            master.feed.patient((t[0] + 50, t[1], t[2] + 3.0)),
+        ],
+        "Path",
+        kind="guide",
+        stiffness=0.5,
+    )
     master.op.send(msg)
     master.step(1)
     assert master.robot.data.effort_command[2] == pytest.approx(1.5, abs=0.05)
@@ -103,35 +117,86 @@ def bad_messages():
     pt = PointElement(name="p", rgba=(255, 0, 0, 255), position=(0.0, 0.0, math.nan))
     ok_pt = PointElement(name="p", rgba=(255, 0, 0, 255), position=(0.0, 0.0, 0.0))
     return [
-        ("negative radius", igtl.VirtualFixtureMessage(hardness=1.0, spheres=((0, 0, 0, -1.0),),
-                                                       device_name="VF", header_version=2)),
-        ("nan hardness", igtl.VirtualFixtureMessage(hardness=math.nan, spheres=((0, 0, 0, 1.0),),
-                                                    device_name="VF", header_version=2)),
-        ("unknown kind", igtl.VirtualFixtureMessage(hardness=1.0, spheres=((0, 0, 0, 1.0),),
-                                                    device_name="VF", header_version=2,
-                                                    metadata={"kind": "sticky"})),
-        ("unknown version", igtl.VirtualFixtureMessage(hardness=1.0, spheres=((0, 0, 0, 1.0),),
-                                                       version=7, device_name="VF")),
+        (
+            "negative radius",
+            igtl.VirtualFixtureMessage(
+                hardness=1.0, spheres=((0, 0, 0, -1.0),), device_name="VF", header_version=2
+            ),
+        ),
+        (
+            "nan hardness",
+            igtl.VirtualFixtureMessage(
+                hardness=math.nan, spheres=((0, 0, 0, 1.0),), device_name="VF", header_version=2
+            ),
+        ),
+        (
+            "unknown kind",
+            igtl.VirtualFixtureMessage(
+                hardness=1.0,
+                spheres=((0, 0, 0, 1.0),),
+                device_name="VF",
+                header_version=2,
+                metadata={"kind": "sticky"},
+            ),
+        ),
+        (
+            "unknown version",
+            igtl.VirtualFixtureMessage(
+                hardness=1.0, spheres=((0, 0, 0, 1.0),), version=7, device_name="VF"
+            ),
+        ),
         ("nan point", igtl.PointMessage(points=(pt,), device_name="P", header_version=2)),
-        ("bad stiffness", igtl.PointMessage(points=(ok_pt,), device_name="P", header_version=2,
-                                            metadata={"stiffness": "stiff"})),
-        ("guide of one point", igtl.PointMessage(points=(ok_pt,), device_name="P", header_version=2,
-                                                 metadata={"kind": "guide"})),
-        ("too many", igtl.VirtualFixtureMessage(hardness=1.0, spheres=((0, 0, 0, 1.0),) * 65,
-                                                device_name="VF", header_version=2)),
-        ("zero normal", igtl.TransformMessage(elements=(0.0,) * 12, device_name="Plane",
-                                              header_version=2, metadata={"kind": "plane"})),
-        ("bad frame", igtl.PointMessage(points=(ok_pt,), device_name="P", header_version=2,
-                                        metadata={"frame": "world"})),
+        (
+            "bad stiffness",
+            igtl.PointMessage(
+                points=(ok_pt,), device_name="P", header_version=2, metadata={"stiffness": "stiff"}
+            ),
+        ),
+        (
+            "guide of one point",
+            igtl.PointMessage(
+                points=(ok_pt,), device_name="P", header_version=2, metadata={"kind": "guide"}
+            ),
+        ),
+        (
+            "too many",
+            igtl.VirtualFixtureMessage(
+                hardness=1.0, spheres=((0, 0, 0, 1.0),) * 65, device_name="VF", header_version=2
+            ),
+        ),
+        (
+            "zero normal",
+            igtl.TransformMessage(
+                elements=(0.0,) * 12,
+                device_name="Plane",
+                header_version=2,
+                metadata={"kind": "plane"},
+            ),
+        ),
+        (
+            "bad frame",
+            igtl.PointMessage(
+                points=(ok_pt,), device_name="P", header_version=2, metadata={"frame": "world"}
+            ),
+        ),
         # one frame for every fixture: the patient's (the master's workspace is none)
-        ("master frame", igtl.VirtualFixtureMessage(hardness=1.0, spheres=((0, 0, 0, 1.0),),
-                                                    device_name="VF", header_version=2,
-                                                    metadata={"frame": "master"})),
+        (
+            "master frame",
+            igtl.VirtualFixtureMessage(
+                hardness=1.0,
+                spheres=((0, 0, 0, 1.0),),
+                device_name="VF",
+                header_version=2,
+                metadata={"frame": "master"},
+            ),
+        ),
     ]
 
 
 @pytest.mark.parametrize("why,msg", bad_messages(), ids=[b[0] for b in bad_messages()])
-def test_invalid_definitions_are_refused_and_the_previous_set_stays(master: SimMaster, why, msg) -> None:
+def test_invalid_definitions_are_refused_and_the_previous_set_stays(
+    master: SimMaster, why, msg
+) -> None:
     master.run(SETTLE)
     master.step(100)
     t = master.feed.handle_mm()
@@ -154,9 +219,12 @@ def test_invalid_definitions_are_refused_and_the_previous_set_stays(master: SimM
 
 
 def test_too_many_planes_refused(master: SimMaster) -> None:
-    plane = lambda i: igtl.TransformMessage.from_position((0.0, 0.0, -100.0 - i),  # noqa: E731
-                                                          device_name=f"P{i}", header_version=2,
-                                                          metadata={"kind": "plane"})
+    plane = lambda i: igtl.TransformMessage.from_position(
+        (0.0, 0.0, -100.0 - i),  # noqa: E731
+        device_name=f"P{i}",
+        header_version=2,
+        metadata={"kind": "plane"},
+    )
     for i in range(8):
         master.op.send(plane(i))
     master.op.send(plane(8))
@@ -201,16 +269,26 @@ def test_markups_plane_as_transform(master: SimMaster) -> None:
     m[:3, 2] = (0.0, 0.0, -1.0)
     m[:3, 0] = (-1.0, 0.0, 0.0)
     m[:3, 3] = master.feed.patient((t[0], t[1], t[2] + 2.0))
-    master.op.send(igtl.TransformMessage.from_matrix(
-        m, device_name="Floor", header_version=2,
-        metadata={"kind": "plane", "stiffness": "2.0", "MRMLNodeName": "Floor"}))
+    master.op.send(
+        igtl.TransformMessage.from_matrix(
+            m,
+            device_name="Floor",
+            header_version=2,
+            metadata={"kind": "plane", "stiffness": "2.0", "MRMLNodeName": "Floor"},
+        )
+    )
     master.step(1)
     assert master.robot.data.effort_command[2] == pytest.approx(0.0, abs=1e-9)
     # moved 2 mm below the tool (the same source: it replaces the first): 2 mm deep
     m[:3, 3] = master.feed.patient((t[0], t[1], t[2] - 2.0))
-    master.op.send(igtl.TransformMessage.from_matrix(
-        m, device_name="Floor", header_version=2,
-        metadata={"kind": "plane", "frame": "patient", "stiffness": "2.0"}))
+    master.op.send(
+        igtl.TransformMessage.from_matrix(
+            m,
+            device_name="Floor",
+            header_version=2,
+            metadata={"kind": "plane", "frame": "patient", "stiffness": "2.0"},
+        )
+    )
     master.step(1)
     assert master.robot.data.effort_command[2] == pytest.approx(-4.0, abs=0.1)
 
@@ -218,10 +296,19 @@ def test_markups_plane_as_transform(master: SimMaster) -> None:
 def test_polydata_lines_as_guides(master: SimMaster) -> None:
     master.run(SETTLE)
     t = master.feed.handle_mm()
-    pts = np.array([master.feed.patient((t[0] - 40, t[1] + 2.0, t[2])),
-                    master.feed.patient((t[0] + 40, t[1] + 2.0, t[2]))])
-    msg = igtl.PolyDataMessage(points=pts, lines=((0, 1),), device_name="Guide",
-                               header_version=2, metadata={"kind": "guide"})
+    pts = np.array(
+        [
+            master.feed.patient((t[0] - 40, t[1] + 2.0, t[2])),
+            master.feed.patient((t[0] + 40, t[1] + 2.0, t[2])),
+        ]
+    )
+    msg = igtl.PolyDataMessage(
+        points=pts,
+        lines=((0, 1),),
+        device_name="Guide",
+        header_version=2,
+        metadata={"kind": "guide"},
+    )
     master.op.send(msg)
     master.step(1)
     assert master.robot.data.effort_command[1] == pytest.approx(2.0, abs=0.05)
@@ -230,15 +317,31 @@ def test_polydata_lines_as_guides(master: SimMaster) -> None:
 def test_markups_file_from_yaml_lps_to_ras(tmp_path: Path) -> None:
     doc = {
         "@schema": "https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/"
-                   "Markups/Resources/Schema/markups-schema-v1.0.3.json#",
+        "Markups/Resources/Schema/markups-schema-v1.0.3.json#",
         "markups": [
-            {"type": "Fiducial", "coordinateSystem": "LPS", "name": "Targets",
-             "controlPoints": [{"label": "T-1", "position": [10.0, 20.0, 30.0]},
-                               {"label": "T-2", "position": [0.0, 0.0, 0.0], "visibility": False}]},
-            {"type": "Line", "coordinateSystem": "RAS", "name": "Path",
-             "controlPoints": [{"position": [0, 0, 0]}, {"position": [0, 0, 10]}]},
-            {"type": "Plane", "coordinateSystem": "LPS", "name": "Wall", "center": [1, 2, 3],
-             "normal": [1, 0, 0], "controlPoints": []},
+            {
+                "type": "Fiducial",
+                "coordinateSystem": "LPS",
+                "name": "Targets",
+                "controlPoints": [
+                    {"label": "T-1", "position": [10.0, 20.0, 30.0]},
+                    {"label": "T-2", "position": [0.0, 0.0, 0.0], "visibility": False},
+                ],
+            },
+            {
+                "type": "Line",
+                "coordinateSystem": "RAS",
+                "name": "Path",
+                "controlPoints": [{"position": [0, 0, 0]}, {"position": [0, 0, 10]}],
+            },
+            {
+                "type": "Plane",
+                "coordinateSystem": "LPS",
+                "name": "Wall",
+                "center": [1, 2, 3],
+                "normal": [1, 0, 0],
+                "controlPoints": [],
+            },
         ],
     }
     path = tmp_path / "plan.mrk.json"
@@ -253,13 +356,18 @@ def test_markups_file_from_yaml_lps_to_ras(tmp_path: Path) -> None:
     # loaded at start from the YAML, relative to the config file
     raw = yaml.safe_load((ROOT / "configs" / "master.yaml").read_text())
     raw["controller"]["params"]["fixture_files"] = [
-        {"file": "plan.mrk.json", "kind": "forbidden", "radius_mm": 2.0}]
+        {"file": "plan.mrk.json", "kind": "forbidden", "radius_mm": 2.0}
+    ]
     cfg_path = tmp_path / "master.yaml"
     cfg_path.write_text(yaml.safe_dump(raw))
     m = SimMaster(cfg_path, feed=True)
     try:
-        assert m.ctl.stats()["fixture_kinds"] == {"accessible": 0, "forbidden": 1, "plane": 1,
-                                                   "guide": 1}
+        assert m.ctl.stats()["fixture_kinds"] == {
+            "accessible": 0,
+            "forbidden": 1,
+            "plane": 1,
+            "guide": 1,
+        }
         (src,) = m.ctl.stats()["fixture_sources"]
         assert src == f"file:{tmp_path / 'plan.mrk.json'}"
     finally:
@@ -272,8 +380,12 @@ def test_markups_file_from_yaml_lps_to_ras(tmp_path: Path) -> None:
 
 # ------------------------------------------------------------------ frames
 def test_patient_to_master_map_scale_registration_and_the_slaves_own_map() -> None:
-    rz = [[0.0, -1.0, 0.0, 100.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, -20.0],
-          [0.0, 0.0, 0.0, 1.0]]  # the slave's base: 90 deg about z, at (100, 0, -20)
+    rz = [
+        [0.0, -1.0, 0.0, 100.0],
+        [1.0, 0.0, 0.0, 0.0],
+        [0.0, 0.0, 1.0, -20.0],
+        [0.0, 0.0, 0.0, 1.0],
+    ]  # the slave's base: 90 deg about z, at (100, 0, -20)
     m = PatientMapping(0.1, registration=rz)
     assert m.source == "params" and m.factor == pytest.approx(0.1)
     # 1 mm in the patient along the base's x (patient +y) is 10 mm on the master's x;
@@ -299,7 +411,9 @@ def test_clutch_leaves_the_fixtures_where_they_are_and_fades_the_force(master: S
     master.run(SETTLE)
     master.step(100)
     t = master.feed.handle_mm()
-    master.op.send(forbidden_at(master.feed.patient((t[0] + 4.0, t[1], t[2])), k=0.5, name="Keepout"))
+    master.op.send(
+        forbidden_at(master.feed.patient((t[0] + 4.0, t[1], t[2])), k=0.5, name="Keepout")
+    )
     master.step(1)
     (before,) = master.ctl.fixtures.active.primitives
     f0 = math.hypot(*master.robot.data.effort_command)
@@ -347,8 +461,9 @@ def test_models_and_proxy_shown_in_slicer(master: SimMaster) -> None:
     master.step(100)
     t = master.feed.handle_mm()
     master.op.send(forbidden_at(master.feed.patient((t[0] + 4.0, t[1], t[2])), name="Keepout"))
-    plane = igtl.TransformMessage.from_position((0.0, 0.0, 0.0), device_name="Floor",
-                                                header_version=2, metadata={"kind": "plane"})
+    plane = igtl.TransformMessage.from_position(
+        (0.0, 0.0, 0.0), device_name="Floor", header_version=2, metadata={"kind": "plane"}
+    )
     master.op.send(plane)
     master.step(200)
     models = slicer.messages("POLYDATA", "VirtualFixtures")
@@ -440,8 +555,11 @@ def test_getstats_and_recording_have_tool_and_force(tmp_path: Path) -> None:
     finally:
         m.close()
         rec.close()
-    states = [x for x in read_recording(path) if x.message_type == "NDARRAY"
-              and x.device_name == "OCCState"]
+    states = [
+        x
+        for x in read_recording(path)
+        if x.message_type == "NDARRAY" and x.device_name == "OCCState"
+    ]
     cols = states[-1].metadata["columns"].split(",")
     row = dict(zip(cols, states[-1].array.ravel().tolist()))
     assert {"tip.x_mm", "eff.x", "eff.y", "eff.z"} <= set(cols)
@@ -450,13 +568,15 @@ def test_getstats_and_recording_have_tool_and_force(tmp_path: Path) -> None:
 
 def test_a_burst_beyond_the_tick_budget_is_refused_busy_then_taken(master: SimMaster) -> None:
     spheres = tuple((float(i), 0.0, 0.0, 5.0) for i in range(40))
-    msg = igtl.VirtualFixtureMessage(hardness=1.0, spheres=spheres, device_name="Big",
-                                     header_version=2)
+    msg = igtl.VirtualFixtureMessage(
+        hardness=1.0, spheres=spheres, device_name="Big", header_version=2
+    )
     master.op.send(msg)
     master.op.send(msg)  # the same tick: 80 definitions to compile, over max_fixtures (64)
     master.step(1)
-    statuses = [m for m in master.op.received if m.message_type == "STATUS"
-                and "busy" in m.status_message]
+    statuses = [
+        m for m in master.op.received if m.message_type == "STATUS" and "busy" in m.status_message
+    ]
     assert len(statuses) == 1 and master.ctl.stats()["fixtures"] == 40
     master.op.send(msg)
     master.step(1)  # next tick: taken

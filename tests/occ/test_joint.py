@@ -11,7 +11,10 @@ from occ.joint import Joint, JointLimits, PIDGains, step_together, step_toward
 
 def make_joint(**gains: float) -> Joint:
     return Joint(
-        "j1", "revolute", JointLimits(-1.0, 1.0, velocity=2.0, effort=5.0), home=0.0,
+        "j1",
+        "revolute",
+        JointLimits(-1.0, 1.0, velocity=2.0, effort=5.0),
+        home=0.0,
         gains=PIDGains(**gains) if gains else None,
     )
 
@@ -253,7 +256,10 @@ def test_every_refusal_of_a_joint_says_what_is_wrong() -> None:
         JointLimits(-1.0, 1.0, velocity=0.0)
     with pytest.raises(ValueError, match=r"^a joint needs a non-empty name$"):
         Joint("")
-    with pytest.raises(ValueError, match=r"^joint 'b': type must be one of \('revolute', 'prismatic'\), got 'spherical'$"):
+    with pytest.raises(
+        ValueError,
+        match=r"^joint 'b': type must be one of \('revolute', 'prismatic'\), got 'spherical'$",
+    ):
         Joint("b", "spherical")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match=r"^joint 'x': home 0.2 outside limits \[0.0, 0.1\]$"):
         Joint("x", "prismatic", JointLimits(0.0, 0.1), home=0.2)

@@ -25,10 +25,22 @@ def position_master(**params: object) -> dict:
     the controller's target (``input: sim``, the paper's motion played as positions, or
     ``igtl``), instead of the shipped simulated hand."""
     raw = yaml.safe_load((ROOT / "configs" / "master.yaml").read_text())
-    raw["robot"]["drivers"] = [{"name": "sim", "plugin": "sim", "joints": ["x", "y", "z"],
-                                "on_limit": "clamp", "params": {"bandwidth_hz": 30.0}}]
-    raw["controller"]["params"] = {"input": "sim", "amplitude_mm": [50.0, 50.0, 0.0],
-                                   "offset_mm": [0.0, 0.0, 20.0], "frequency_hz": 0.1, **params}
+    raw["robot"]["drivers"] = [
+        {
+            "name": "sim",
+            "plugin": "sim",
+            "joints": ["x", "y", "z"],
+            "on_limit": "clamp",
+            "params": {"bandwidth_hz": 30.0},
+        }
+    ]
+    raw["controller"]["params"] = {
+        "input": "sim",
+        "amplitude_mm": [50.0, 50.0, 0.0],
+        "offset_mm": [0.0, 0.0, 20.0],
+        "frequency_hz": 0.1,
+        **params,
+    }
     return raw
 
 
@@ -49,7 +61,9 @@ def test_stream_is_500hz_v2_with_sequence_and_run_flag(master: SimMaster) -> Non
     msgs = master.sent
     ids = [m.message_id for m in msgs]
     assert ids == list(range(1, len(msgs) + 1))
-    assert all(m.header_version == 2 and m.message_type == "POSITION" and m.layout == 24 for m in msgs)
+    assert all(
+        m.header_version == 2 and m.message_type == "POSITION" and m.layout == 24 for m in msgs
+    )
     assert msgs[-1].metadata["run"] == "1" and msgs[-1].metadata["clutch"] == "0"
 
 
@@ -61,9 +75,11 @@ def test_simulated_operator_follows_paper_trajectory(master: SimMaster) -> None:
     origin = master.robot.controller.controllers[0].origin * 1000.0
     last = master.sent[-1]
     t = (master.k - 1) * 0.001 - t_run
-    expect = (origin[0] + 50.0 * math.sin(2 * math.pi * 0.1 * t),
-              origin[1] + 50.0 * math.cos(2 * math.pi * 0.1 * t),
-              origin[2] + 20.0)
+    expect = (
+        origin[0] + 50.0 * math.sin(2 * math.pi * 0.1 * t),
+        origin[1] + 50.0 * math.cos(2 * math.pi * 0.1 * t),
+        origin[2] + 20.0,
+    )
     # the simulated servo lags the 0.1 Hz target by a few ms: within 0.5 mm
     for got, want in zip(last.position, expect):
         assert got == pytest.approx(want, abs=0.5)
@@ -83,7 +99,9 @@ def test_igtl_input_drives_the_handle() -> None:
         limit = [0.5 * j.limits.velocity * 1e-3 for j in m.robot.joints]
         previous = list(m.robot.data.setpoint)
         for _ in range(300):
-            assert m.op.send(igtl.TransformMessage.from_position(target, device_name="Tracker")) == 1
+            assert (
+                m.op.send(igtl.TransformMessage.from_position(target, device_name="Tracker")) == 1
+            )
             for _ in range(2):
                 m.step(1)
                 now = list(m.robot.data.setpoint)
@@ -120,9 +138,13 @@ def test_forbidden_sphere_pushes_the_hand_out_and_reports_force(master: SimMaste
     # a forbidden sphere of 10 mm radius (of the handle's motion) centred 4 mm from the handle
     # (in +x): the tool is inside. Sent in the patient frame: 1 mm there is 10 on the master
     centre = (handle[0] + 4.0, handle[1], handle[2])
-    fx = igtl.VirtualFixtureMessage(hardness=0.5, spheres=((*feed.patient(centre), 1.0),),
-                                    device_name="Fixtures", header_version=2,
-                                    metadata={"MRMLNodeName": "VF", "kind": "forbidden"})
+    fx = igtl.VirtualFixtureMessage(
+        hardness=0.5,
+        spheres=((*feed.patient(centre), 1.0),),
+        device_name="Fixtures",
+        header_version=2,
+        metadata={"MRMLNodeName": "VF", "kind": "forbidden"},
+    )
     assert master.op.send(fx) == 1
     feed.step(1)
     stats = master.robot.controller.stats()
@@ -134,7 +156,12 @@ def test_forbidden_sphere_pushes_the_hand_out_and_reports_force(master: SimMaste
     # the hand yields: the handle is pushed out toward the surface, away from where the hand
     # means to be (the arm, 300 N/m, against the fixture, 500 N/m)
     p = master.sent[-1].position
-    intended = [v * 1000.0 + o for v, o in zip(hand(master).intended(), master.robot.controller.controllers[0].origin * 1000.0)]
+    intended = [
+        v * 1000.0 + o
+        for v, o in zip(
+            hand(master).intended(), master.robot.controller.controllers[0].origin * 1000.0
+        )
+    ]
     assert math.dist(p, centre) > math.dist(intended, centre) + 2.0
 
 
@@ -166,13 +193,24 @@ def test_slicer_markups_points_become_fixture_spheres(master: SimMaster) -> None
     feed = SlaveTipFeed(master.sim)  # the slave's tip (patient) = 0.1 x the handle
     feed.step(200)
     handle = master.sent[-1].position
-    near = PointElement(name="F-1", group="Selected", rgba=(255, 0, 0, 255),
-                        position=feed.patient((handle[0] + 2.0, handle[1], handle[2])))
-    hidden = PointElement(name="F-2", group="Selected", rgba=(0, 255, 0, 0),
-                          position=feed.patient((handle[0] - 2.0, handle[1], handle[2])))
-    pts = igtl.PointMessage(points=(near, hidden), device_name="F", header_version=2,
-                            metadata={"MRMLNodeName": "MarkupsFiducial", "kind": "forbidden",
-                                      "radius": "0.5"})
+    near = PointElement(
+        name="F-1",
+        group="Selected",
+        rgba=(255, 0, 0, 255),
+        position=feed.patient((handle[0] + 2.0, handle[1], handle[2])),
+    )
+    hidden = PointElement(
+        name="F-2",
+        group="Selected",
+        rgba=(0, 255, 0, 0),
+        position=feed.patient((handle[0] - 2.0, handle[1], handle[2])),
+    )
+    pts = igtl.PointMessage(
+        points=(near, hidden),
+        device_name="F",
+        header_version=2,
+        metadata={"MRMLNodeName": "MarkupsFiducial", "kind": "forbidden", "radius": "0.5"},
+    )
     assert master.op.send(pts) == 1
     feed.step(1)
     stats = master.robot.controller.stats()

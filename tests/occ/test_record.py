@@ -58,7 +58,9 @@ def test_igtl_dump_reads_a_recording(tmp_path: Path, capsys) -> None:  # type: i
     path = tmp_path / "r.igtl"
     record_some(path, ticks=50)
     assert igtl_main(["dump", str(path), "--json"]) == 0
-    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    lines = [
+        json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")
+    ]
     assert {"POSITION", "NDARRAY", "TRANSFORM"} <= {d["type"] for d in lines}
 
 

@@ -29,9 +29,15 @@ def keepout(master: SimMaster, depth_mm: float = 6.0) -> None:
     ``depth_mm`` (of the handle) deep, on the tool's -x side of the centre."""
     t = master.feed.handle_mm()
     c = master.feed.patient((t[0] + 10.0 - depth_mm, t[1], t[2]))
-    master.op.send(igtl.VirtualFixtureMessage(hardness=0.5, spheres=((*c, 1.0),),
-                                              device_name="VF", header_version=2,
-                                              metadata={"kind": "forbidden"}))
+    master.op.send(
+        igtl.VirtualFixtureMessage(
+            hardness=0.5,
+            spheres=((*c, 1.0),),
+            device_name="VF",
+            header_version=2,
+            metadata={"kind": "forbidden"},
+        )
+    )
     master.feed.step(1)
 
 
@@ -148,8 +154,11 @@ def test_a_slave_that_does_not_follow_this_master_gives_no_force(master) -> None
 
 def test_a_tip_from_anywhere_but_the_slave_link_is_refused_and_answered(master) -> None:
     n = len(master.op.received)
-    master.op.send(igtl.TransformMessage.from_position((0.0, 0.0, 0.0), device_name="SlaveTip",
-                                                       header_version=2, message_id=1))
+    master.op.send(
+        igtl.TransformMessage.from_position(
+            (0.0, 0.0, 0.0), device_name="SlaveTip", header_version=2, message_id=1
+        )
+    )
     master.feed.step(1)
     (reply,) = [m for m in master.op.received[n:] if m.message_type == "STATUS"]
     assert "is a slave's return stream" in reply.status_message
@@ -183,7 +192,8 @@ def test_the_slave_sends_its_tip_back_as_slicer_sees_it() -> None:
         last = tips[-1]
         assert last.metadata["following"] == "1" and last.metadata["state"] == "RUNNING"
         assert [float(v) for v in last.metadata["map"].split(",")] == pytest.approx(
-            [0.1, 0, 0, 0, 0.1, 0, 0, 0, 0.1])
+            [0.1, 0, 0, 0, 0.1, 0, 0, 0, 0.1]
+        )
         # the same pose as the Tip 3D Slicer gets (patient frame), at the same tick
         sim.step(100 - sim.k % 100)  # the next 10 Hz Tip
         sim.step(1)
@@ -207,8 +217,7 @@ class Pair:
         self.slave = SimRobot(ROOT / "configs" / "slave.yaml", clock=clock)
         box: dict[str, Any] = {}
         m_link = self.master.peer("slave", on_message=lambda m: box["s"].send(m))
-        box["s"] = self.slave.peer("master", address=("127.0.0.1", 40000),
-                                   on_message=m_link.send)
+        box["s"] = self.slave.peer("master", address=("127.0.0.1", 40000), on_message=m_link.send)
         self.m_op = self.master.peer("operator", address=("127.0.0.1", 41000))
         self.s_op = self.slave.peer("operator", address=("127.0.0.1", 41001))
         self.slicer = self.slave.peer("slicer")
@@ -312,8 +321,9 @@ def test_a_hand_over_moves_the_force_to_the_master_in_control() -> None:
         assert cm.stats()["slave_tip"]["following"] and not ct.stats()["slave_tip"]["following"]
         t = cm.stats()["tool_mm"]
         # an accessible sphere whose surface is 20 mm from the tool: a pull toward it
-        target = standin.markups_points([(t[0] + 40.0, t[1], t[2])], "Target", radius=20.0,
-                                        stiffness=0.02)
+        target = standin.markups_points(
+            [(t[0] + 40.0, t[1], t[2])], "Target", radius=20.0, stiffness=0.02
+        )
         for op in ops[:2]:
             op.send(target)
         step(50)
@@ -548,8 +558,10 @@ def test_an_external_force_is_displayed_while_it_keeps_coming(unpassivated) -> N
     master.feed.step(2)
     assert master.ctl.display.displayed_n == (0.0, 0.0, 0.0)
     replies = master.op.messages()[before:]
-    assert any("is not a force" in str(getattr(m, "status_message", "")) + str(
-        getattr(m, "command", "")) for m in replies), replies
+    assert any(
+        "is not a force" in str(getattr(m, "status_message", "")) + str(getattr(m, "command", ""))
+        for m in replies
+    ), replies
 
 
 def _servo_cf(master: SimMaster, values: tuple[float, float, float]) -> None:

@@ -154,8 +154,11 @@ def test_a_failing_listener_runs_the_others_and_is_not_swallowed() -> None:
     sm.add_listener(bad)
     sm.add_listener(lambda old, new, *_: seen.append((old, new)))
     # a stop whose listener raises: the others still run, then the robot latches FAULT
-    with pytest.raises(TransitionFailed, match=r"^'stop': state listener raised RuntimeError: "
-                       r"listener bug; the robot is FAULT$"):
+    with pytest.raises(
+        TransitionFailed,
+        match=r"^'stop': state listener raised RuntimeError: "
+        r"listener bug; the robot is FAULT$",
+    ):
         sm.request("stop", "operator")
     assert sm.state is S.FAULT and seen == [(S.RUNNING, S.STOPPED), (S.STOPPED, S.FAULT)]
     assert sm.last_reason == "state listener raised RuntimeError: listener bug"
@@ -208,8 +211,11 @@ def test_an_effector_that_fails_to_power_up_vetoes_and_latches_fault() -> None:
     sm.set_effector(effector)
     seen: list[tuple[RobotState, RobotState, str]] = []
     sm.add_listener(lambda old, new, event, reason, t: seen.append((old, new, reason)))
-    with pytest.raises(TransitionFailed, match=r"^'enable' failed in state READY: driver arm: "
-                       r"activate failed: no power; the robot is FAULT$"):
+    with pytest.raises(
+        TransitionFailed,
+        match=r"^'enable' failed in state READY: driver arm: "
+        r"activate failed: no power; the robot is FAULT$",
+    ):
         sm.request("enable")
     assert sm.state is S.FAULT
     # the ENABLED state was never entered: listeners saw READY -> FAULT only
@@ -358,8 +364,13 @@ def test_watchdog_counters_and_stop_reason() -> None:
     wd.feed(None, 2 * B)
     assert wd.max_consecutive == 4 and wd.consecutive == 1 and wd.overruns == 5
     assert wd.stop_reason == stops[0][0] and wd.stop_reason.startswith("3 consecutive overruns")
-    assert wd.counters() == {"overruns": 5, "max_consecutive": 4, "alerts": 1, "stops": 1,
-                             "stopped": True}
+    assert wd.counters() == {
+        "overruns": 5,
+        "max_consecutive": 4,
+        "alerts": 1,
+        "stops": 1,
+        "stopped": True,
+    }
 
 
 @pytest.mark.req("SR-WD-1")
@@ -710,8 +721,10 @@ def test_refused_timestamps_latch_only_at_the_grace_or_on_a_proven_gap() -> None
     mon.on_packet(0, 500.0, 0.0, 0.0)
     assert mon.on_packet(4, 500.0 - 10.0, 0.008, 0.008) is Verdict.STALE  # 1-3 missing
     ev = mon.check(0.008)
-    assert ev is not None and ev.kind == "latch" and ev.cause == (
-        "3 consecutive packets lost (seq 1-3 missing)"
+    assert (
+        ev is not None
+        and ev.kind == "latch"
+        and ev.cause == ("3 consecutive packets lost (seq 1-3 missing)")
     )
     assert mon.lost_total == 3
 
@@ -945,14 +958,31 @@ def test_arm_starts_the_deadline_without_a_packet() -> None:
 def test_loss_monitor_counters_report_every_count_by_name() -> None:
     mon = LossMonitor(max_consecutive=3, timestamp_tolerance_s=0.050)  # deadline 8.5 ms
     assert mon.counters() == {
-        "received": 0, "accepted": 0, "lost_total": 0, "max_run": 0, "duplicates": 0,
-        "reordered": 0, "implausible_seq": 0, "stale": 0, "future": 0, "unsequenced": 0,
-        "holds": 0, "resumes": 0, "trips": 0, "holding": False, "tripped": False,
+        "received": 0,
+        "accepted": 0,
+        "lost_total": 0,
+        "max_run": 0,
+        "duplicates": 0,
+        "reordered": 0,
+        "implausible_seq": 0,
+        "stale": 0,
+        "future": 0,
+        "unsequenced": 0,
+        "holds": 0,
+        "resumes": 0,
+        "trips": 0,
+        "holding": False,
+        "tripped": False,
         "clock_offset_ms": None,
     }
     t0 = 1.0123456  # the sender's clock: offset -1012.3456 ms
-    A, D, L, IM, U = (Verdict.ACCEPT, Verdict.DUPLICATE, Verdict.LATE, Verdict.IMPLAUSIBLE,
-                      Verdict.UNSEQUENCED)
+    A, D, L, IM, U = (
+        Verdict.ACCEPT,
+        Verdict.DUPLICATE,
+        Verdict.LATE,
+        Verdict.IMPLAUSIBLE,
+        Verdict.UNSEQUENCED,
+    )
     got = [
         mon.on_packet(10, t0, 0.0),
         mon.on_packet(10, t0, 0.0),  # duplicate
@@ -971,9 +1001,21 @@ def test_loss_monitor_counters_report_every_count_by_name() -> None:
     assert mon.check(0.014) is not None
     assert mon.check(0.115) is not None  # then silence past the grace: latch
     assert mon.counters() == {
-        "received": 11, "accepted": 3, "lost_total": 1, "max_run": 2, "duplicates": 2,
-        "reordered": 1, "implausible_seq": 1, "stale": 1, "future": 2, "unsequenced": 1,
-        "holds": 1, "resumes": 1, "trips": 1, "holding": True, "tripped": True,
+        "received": 11,
+        "accepted": 3,
+        "lost_total": 1,
+        "max_run": 2,
+        "duplicates": 2,
+        "reordered": 1,
+        "implausible_seq": 1,
+        "stale": 1,
+        "future": 2,
+        "unsequenced": 1,
+        "holds": 1,
+        "resumes": 1,
+        "trips": 1,
+        "holding": True,
+        "tripped": True,
         "clock_offset_ms": -1012.346,
     }
 
@@ -1005,8 +1047,11 @@ def test_bad_settings_are_refused_with_the_name_and_the_value() -> None:
         LossMonitor(grace_s=0.005)
     deadline = LossMonitor().deadline_s
     assert LossMonitor(grace_s=deadline).grace_s == deadline  # exactly the deadline is allowed
-    with pytest.raises(ValueError, match=r"^unknown event 'jump'; events are: configure, enable, "
-                       r"run, hold, stop, disable, fault, estop, reset, shutdown$"):
+    with pytest.raises(
+        ValueError,
+        match=r"^unknown event 'jump'; events are: configure, enable, "
+        r"run, hold, stop, disable, fault, estop, reset, shutdown$",
+    ):
         StateMachine().request("jump")
 
 
@@ -1014,8 +1059,14 @@ def _ev(event: LossEvent | None) -> tuple[object, ...] | None:
     """Every field of an event, times rounded to the nanosecond (exact comparisons)."""
     if event is None:
         return None
-    return (event.kind, event.cause, event.source, event.run, round(event.time, 9),
-            round(event.since_last_good_s, 9))
+    return (
+        event.kind,
+        event.cause,
+        event.source,
+        event.run,
+        round(event.time, 9),
+        round(event.since_last_good_s, 9),
+    )
 
 
 @pytest.mark.req("SR-LOSS-2", "SR-LOSS-3", "SR-SEQ-1")
@@ -1024,8 +1075,14 @@ def test_every_field_of_hold_refused_resume_and_grace_events() -> None:
     assert mon.on_packet(1, None, 0.0) is Verdict.ACCEPT
     assert all(mon.check(t * MS) is None for t in range(7))
     # first noticed 8 ms after the last good sample: 3 periods overdue past the tolerance
-    assert _ev(mon.check(0.008)) == ("hold", "no packet for 8.0 ms: holding", "deadline", 3,
-                                     0.008, 0.008)
+    assert _ev(mon.check(0.008)) == (
+        "hold",
+        "no packet for 8.0 ms: holding",
+        "deadline",
+        3,
+        0.008,
+        0.008,
+    )
     assert mon.holding and mon.check(0.009) is None and mon.holds == 1  # once per hold
     # two implausible numbers meanwhile: one alert (rate-limited), both counted for the resume
     assert mon.on_packet(5001, None, 0.009) is Verdict.IMPLAUSIBLE
@@ -1034,12 +1091,19 @@ def test_every_field_of_hold_refused_resume_and_grace_events() -> None:
         "refused",
         "refused an implausible sequence number: seq 5001 is 5000 ahead of 1 "
         "(at most 15 possible) (1 so far)",
-        "sequence", 0, 0.009, 0.0,
+        "sequence",
+        0,
+        0.009,
+        0.0,
     )
     assert mon.on_packet(2, None, 0.010) is Verdict.ACCEPT
     assert _ev(mon.check(0.010)) == (
-        "resume", "stream back after 10.0 ms (gap 0, 2 refused meanwhile); following again",
-        "sequence", 0, 0.010, 0.010,
+        "resume",
+        "stream back after 10.0 ms (gap 0, 2 refused meanwhile); following again",
+        "sequence",
+        0,
+        0.010,
+        0.010,
     )
     assert not mon.holding and mon.resumes == 1
     # then silence, with three more implausible numbers (no alert: rate-limited)
@@ -1049,8 +1113,12 @@ def test_every_field_of_hold_refused_resume_and_grace_events() -> None:
     assert mon.check(0.110) is None  # exactly the grace: holding, not latched
     latch = mon.check(0.112)
     assert _ev(latch) == (
-        "latch", "no packet for 102.00 ms (limit 100.0 ms); 3 samples refused meanwhile",
-        "grace", 50, 0.112, 0.102,
+        "latch",
+        "no packet for 102.00 ms (limit 100.0 ms); 3 samples refused meanwhile",
+        "grace",
+        50,
+        0.112,
+        0.102,
     )
     assert mon.trip_event is latch and mon.check(0.113) is None
     assert mon.tripped and mon.holding and mon.trips == 1
@@ -1060,16 +1128,31 @@ def test_every_field_of_hold_refused_resume_and_grace_events() -> None:
     assert _ev(mon.check(1.008))[0] == "hold"  # type: ignore[index]
     mon.on_packet(8, None, 1.009)
     assert _ev(mon.check(1.009)) == (
-        "resume", "stream back after 9.0 ms (gap 0); following again", "sequence", 0, 1.009,
+        "resume",
+        "stream back after 9.0 ms (gap 0); following again",
+        "sequence",
+        0,
+        1.009,
         0.009,
     )
     # a hold noticed at 7 ms and a grace latch with nothing refused
     mon = LossMonitor()
     mon.on_packet(1, None, 0.0)
-    assert _ev(mon.check(0.007)) == ("hold", "no packet for 7.0 ms: holding", "deadline", 3,
-                                     0.007, 0.007)
+    assert _ev(mon.check(0.007)) == (
+        "hold",
+        "no packet for 7.0 ms: holding",
+        "deadline",
+        3,
+        0.007,
+        0.007,
+    )
     assert _ev(mon.check(0.250)) == (
-        "latch", "no packet for 250.00 ms (limit 100.0 ms)", "grace", 124, 0.25, 0.25,
+        "latch",
+        "no packet for 250.00 ms (limit 100.0 ms)",
+        "grace",
+        124,
+        0.25,
+        0.25,
     )
 
 
@@ -1080,16 +1163,31 @@ def test_the_grace_boundary_is_exact_and_strict_mode_names_the_deadline() -> Non
     assert _ev(mon.check(0.100))[0] == "hold"  # type: ignore[index]  # exactly the grace
     assert not mon.tripped
     assert _ev(mon.check(0.100 + 1e-9))[:3] == (  # type: ignore[index]
-        "latch", "no packet for 100.00 ms (limit 100.0 ms)", "grace")
+        "latch",
+        "no packet for 100.00 ms (limit 100.0 ms)",
+        "grace",
+    )
     # strict: the deadline latches, and names itself even when first checked at the grace
     mon = LossMonitor(strict=True)
     mon.on_packet(1, None, 0.0)
     assert _ev(mon.check(0.100)) == (
-        "latch", "no packet for 100.00 ms (limit 6.5 ms, strict)", "deadline", 49, 0.1, 0.1)
+        "latch",
+        "no packet for 100.00 ms (limit 6.5 ms, strict)",
+        "deadline",
+        49,
+        0.1,
+        0.1,
+    )
     mon = LossMonitor(strict=True)
     mon.on_packet(1, None, 0.0)
     assert _ev(mon.check(0.008)) == (
-        "latch", "no packet for 8.00 ms (limit 6.5 ms, strict)", "deadline", 3, 0.008, 0.008)
+        "latch",
+        "no packet for 8.00 ms (limit 6.5 ms, strict)",
+        "deadline",
+        3,
+        0.008,
+        0.008,
+    )
     assert mon.holds == 0 and mon.trips == 1
 
 
@@ -1112,7 +1210,10 @@ def test_one_event_per_tick_the_most_important_and_the_latest_of_a_kind() -> Non
         "refused",
         "refused an implausible sequence number: seq 9500 is 9499 ahead of 1 "
         "(at most 12 possible) (2 so far)",
-        "sequence", 0, 0.002, 0.0,
+        "sequence",
+        0,
+        0.002,
+        0.0,
     )
 
 
@@ -1186,9 +1287,7 @@ def test_refused_timestamps_are_judged_at_the_earliest_arrival_and_never_latch_a
     assert verdicts == [Verdict.STALE] * 3
     assert mon.check(0.006) is None and not mon.tripped and mon.lost_total == 0
     # 49 ms older than its offset at the earliest arrival: accepted (the stall was ours)
-    assert mon.on_packet(4, 500.0 + 8 * MS - 0.059, 0.008, 0.008, 0.008 - 0.010) is (
-        Verdict.ACCEPT
-    )
+    assert mon.on_packet(4, 500.0 + 8 * MS - 0.059, 0.008, 0.008, 0.008 - 0.010) is (Verdict.ACCEPT)
     mon = LossMonitor(max_consecutive=1, timestamp_tolerance_s=0.0125)
     mon.on_packet(0, 500.0, 0.0, 0.0)
     assert mon.on_packet(1, 500.0 + 2.5, 0.002) is Verdict.FUTURE
@@ -1214,16 +1313,25 @@ def test_timestamp_refusals_are_counted_in_the_resume_event() -> None:
     assert mon.on_packet(2, 600.0, 0.009) is Verdict.FUTURE
     assert mon.on_packet(3, 500.010, 0.010) is Verdict.ACCEPT
     assert _ev(mon.check(0.010)) == (
-        "resume", "stream back after 10.0 ms (gap 0, 2 refused meanwhile); following again",
-        "sequence", 0, 0.010, 0.010,
+        "resume",
+        "stream back after 10.0 ms (gap 0, 2 refused meanwhile); following again",
+        "sequence",
+        0,
+        0.010,
+        0.010,
     )
 
 
 @pytest.mark.req("SR-WD-1")
 def test_watchdog_defaults_and_an_explicit_period_limit() -> None:
     wd, alerts, stops = _wd()
-    assert wd.counters() == {"overruns": 0, "max_consecutive": 0, "alerts": 0, "stops": 0,
-                             "stopped": False}
+    assert wd.counters() == {
+        "overruns": 0,
+        "max_consecutive": 0,
+        "alerts": 0,
+        "stops": 0,
+        "stopped": False,
+    }
     assert wd.stop_reason is None and wd.stopped is False
     # by default: every overrun alerts (rate-limited), five in a row stop with "hold"
     for _ in range(4):
@@ -1255,8 +1363,7 @@ def test_watchdog_alert_text_rate_limit_boundary_and_reset() -> None:
         wd.feed(0.25, 2 * B)
     assert [a for a, _ in alerts] == [
         "overrun: compute 2.000 ms > budget 1.000 ms (1 consecutive, 1 total)",
-        "overrun: compute 2.000 ms > budget 1.000 ms (5 consecutive, 5 total, "
-        "3 alerts suppressed)",
+        "overrun: compute 2.000 ms > budget 1.000 ms (5 consecutive, 5 total, 3 alerts suppressed)",
     ]
     assert [n for _, n in alerts] == [1, 5] and wd.alerts == 2 and stops == []
     # a compute time of exactly the budget is not the cause: the period is
@@ -1277,8 +1384,13 @@ def test_watchdog_alert_text_rate_limit_boundary_and_reset() -> None:
     wd.reset()
     wd.feed(B, 2 * B)  # no alert was suppressed since the reset
     assert alerts[-1][0] == "overrun: compute 2.000 ms > budget 1.000 ms (1 consecutive, 7 total)"
-    assert wd.counters() == {"overruns": 7, "max_consecutive": 3, "alerts": 3, "stops": 2,
-                             "stopped": False}
+    assert wd.counters() == {
+        "overruns": 7,
+        "max_consecutive": 3,
+        "alerts": 3,
+        "stops": 2,
+        "stopped": False,
+    }
 
 
 @pytest.mark.req("SR-SUP-1")
@@ -1349,8 +1461,12 @@ def test_sequence_window_boundaries_and_a_reordered_start() -> None:
     assert mon.on_packet(37, None, 0.002) is Verdict.LATE  # 63 behind
     assert mon.on_packet(36, None, 0.002) is Verdict.IMPLAUSIBLE  # 64 behind
     assert _ev(mon.check(0.002)) == (
-        "refused", "refused an implausible sequence number: seq 36 is 64 behind 100 (1 so far)",
-        "sequence", 0, 0.002, 0.0,
+        "refused",
+        "refused an implausible sequence number: seq 36 is 64 behind 100 (1 so far)",
+        "sequence",
+        0,
+        0.002,
+        0.0,
     )
     assert mon.lost_total == 98
     # half the number space away is behind, not ahead
@@ -1358,8 +1474,8 @@ def test_sequence_window_boundaries_and_a_reordered_start() -> None:
     mon.on_packet(0, None, 0.0)
     assert mon.on_packet(2**31, None, 0.002) is Verdict.IMPLAUSIBLE
     assert _ev(mon.check(0.002))[1] == (  # type: ignore[index]
-        "refused an implausible sequence number: seq 2147483648 is 2147483648 behind 0 "
-        "(1 so far)")
+        "refused an implausible sequence number: seq 2147483648 is 2147483648 behind 0 (1 so far)"
+    )
     assert mon.on_packet(2**31 - 1, None, 0.002) is Verdict.IMPLAUSIBLE
     assert "is 2147483647 ahead of 0 (at most 12 possible)" in mon.check(0.002).cause  # type: ignore[union-attr]
 
@@ -1436,8 +1552,13 @@ def test_v1_streams_zero_small_and_large_timestamp_gaps() -> None:
     mon.on_packet(None, 50.0, 0.0)
     mon.on_packet(None, 50.1, 0.100)
     assert _ev(mon.check(0.100)) == (
-        "latch", "49 consecutive packets lost (timestamp gap 100.0 ms)", "timestamp", 49, 0.1,
-        0.1)
+        "latch",
+        "49 consecutive packets lost (timestamp gap 100.0 ms)",
+        "timestamp",
+        49,
+        0.1,
+        0.1,
+    )
     # without a tolerance the timestamps teach no clock offset
     assert mon.offset_s is None and mon.counters()["clock_offset_ms"] is None
 
@@ -1448,23 +1569,38 @@ def test_every_field_of_sequence_latch_and_deadline_only_resume_events() -> None
     mon.on_packet(1040, None, 0.000)
     mon.on_packet(1044, None, 0.008)
     assert _ev(mon.check(0.008)) == (
-        "latch", "3 consecutive packets lost (seq 1041-1043 missing)", "sequence", 3, 0.008,
-        0.008)
+        "latch",
+        "3 consecutive packets lost (seq 1041-1043 missing)",
+        "sequence",
+        3,
+        0.008,
+        0.008,
+    )
     # the time since the last good sample is counted from it, not from the clock's zero
     mon = LossMonitor()
     mon.on_packet(1040, None, 1.000)
     mon.on_packet(1044, None, 1.008)
     assert _ev(mon.check(1.008)) == (
-        "latch", "3 consecutive packets lost (seq 1041-1043 missing)", "sequence", 3, 1.008,
-        0.008)
+        "latch",
+        "3 consecutive packets lost (seq 1041-1043 missing)",
+        "sequence",
+        3,
+        1.008,
+        0.008,
+    )
     # a stream without numbers or timestamps resumes by the deadline, and says so; twice
     mon = LossMonitor()
     mon.on_packet(None, None, 0.0)
     assert _ev(mon.check(0.007))[0] == "hold"  # type: ignore[index]
     mon.on_packet(None, None, 0.008)
     assert _ev(mon.check(0.008)) == (
-        "resume", "stream back after 8.0 ms (gap 0); following again", "deadline", 0, 0.008,
-        0.008)
+        "resume",
+        "stream back after 8.0 ms (gap 0); following again",
+        "deadline",
+        0,
+        0.008,
+        0.008,
+    )
     assert _ev(mon.check(0.015))[0] == "hold"  # type: ignore[index]
     mon.on_packet(None, None, 0.016)
     assert _ev(mon.check(0.016))[0] == "resume"  # type: ignore[index]
@@ -1485,11 +1621,18 @@ def test_an_explicit_tolerance_moves_the_deadline() -> None:
 def test_long_silences_are_reported_in_whole_ms() -> None:
     mon = LossMonitor()
     mon.on_packet(1, None, 0.0)
-    assert _ev(mon.check(0.060)) == ("hold", "no packet for 60.0 ms: holding", "deadline", 29,
-                                     0.06, 0.06)
+    assert _ev(mon.check(0.060)) == (
+        "hold",
+        "no packet for 60.0 ms: holding",
+        "deadline",
+        29,
+        0.06,
+        0.06,
+    )
     mon.on_packet(2, None, 0.080)
     assert mon.check(0.080).cause == (  # type: ignore[union-attr]
-        "stream back after 80.0 ms (gap 0); following again")
+        "stream back after 80.0 ms (gap 0); following again"
+    )
     # armed without a packet, then silence past the grace: nothing was refused meanwhile
     mon.reset(1.0)
     assert mon.check(1.25).cause == "no packet for 250.00 ms (limit 100.0 ms)"  # type: ignore[union-attr]

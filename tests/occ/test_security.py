@@ -1109,4 +1109,3 @@ interfaces:
                 peer.close()
     finally:
         r.shutdown()
-

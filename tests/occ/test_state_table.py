@@ -350,8 +350,14 @@ class _RacedTable(StateTable):
             race, self._race = self._race, 0
             _fill(self, race, self.joints, t0=n)
             with pytest.raises(_Interrupted):
-                self.write((n + race) * 0.001, 3.0, 0.0, [0.001 * (n + race), 0.35, 0.05],
-                           [0.0, 0.0, 0.0], [*self.joints[:2], _Stalled()])  # type: ignore[list-item]
+                self.write(
+                    (n + race) * 0.001,
+                    3.0,
+                    0.0,
+                    [0.001 * (n + race), 0.35, 0.05],
+                    [0.0, 0.0, 0.0],
+                    [*self.joints[:2], _Stalled()],
+                )  # type: ignore[list-item]
         return n
 
     @count.setter

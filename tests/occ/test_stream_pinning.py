@@ -24,8 +24,13 @@ def _slave() -> Robot:
 
 def _position(seq: int) -> bytes:
     return igtl.PositionMessage(
-        (0.0, 50.0, 270.0), (0.0, 0.0, 0.0, 1.0), 24, device_name="Master", header_version=2,
-        message_id=seq, metadata={"run": "1", "clutch": "0"},
+        (0.0, 50.0, 270.0),
+        (0.0, 0.0, 0.0, 1.0),
+        24,
+        device_name="Master",
+        header_version=2,
+        message_id=seq,
+        metadata={"run": "1", "clutch": "0"},
     ).pack()
 
 

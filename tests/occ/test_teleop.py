@@ -155,8 +155,9 @@ def test_samples_are_counted_and_filtered_by_interface_device_and_type() -> None
         before = rig.tip_mm()
         # another device on the same interface: ignored
         rig.seq += 1
-        rig.source.send_position((rig.target[0] + 50.0, rig.target[1], rig.target[2]), seq=rig.seq,
-                                 device="Other")
+        rig.source.send_position(
+            (rig.target[0] + 50.0, rig.target[1], rig.target[2]), seq=rig.seq, device="Other"
+        )
         rig.sim.tick()
         rig.sim.tick()
         assert rig.ctl.stats()["samples"] == n
@@ -345,9 +346,11 @@ def test_the_base_pose_from_a_tracker_does_not_stop_the_following() -> None:
             )
         }
     )
-    cfg = cfg.model_copy(update={
-        "interfaces": tuple(slicer if i.name == "slicer" else i for i in cfg.interfaces),
-    }).with_params(base_interface="slicer", base_mm=None)
+    cfg = cfg.model_copy(
+        update={
+            "interfaces": tuple(slicer if i.name == "slicer" else i for i in cfg.interfaces),
+        }
+    ).with_params(base_interface="slicer", base_mm=None)
     rig = SlaveRig(cfg, target=HANDLE)
     try:
         tracker = rig.sim.peer("slicer")
@@ -509,8 +512,10 @@ def test_a_clutch_or_run_cycle_inside_one_tick_still_reindexes(
     for moved, following in cycle:
         rig.seq += 1
         rig.source.send_position(
-            (moved, 50.0, 270.0), seq=rig.seq,
-            clutch=(flag == "clutch" and not following), run=(flag != "run" or following),
+            (moved, 50.0, 270.0),
+            seq=rig.seq,
+            clutch=(flag == "clutch" and not following),
+            run=(flag != "run" or following),
         )
     rig.target = [20.0, 50.0, 270.0]
     rig.sim.tick()

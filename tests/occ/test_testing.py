@@ -103,7 +103,6 @@ def test_the_module_docstring_example_runs() -> None:
 
     import occ_testkit.testing
 
-
     doc = occ_testkit.testing.__doc__ or ""
     block = doc.split("::\n\n", 1)[1].split("\nTests use it", 1)[0]
     code = textwrap.dedent(block)
