@@ -54,7 +54,11 @@ ROBOTS: dict[str, tuple[str, tuple[str, ...], float | None]] = {
     "slave+table": ("slave.yaml", ("master",), 10.0),
     "collab": ("collab/slave.yaml", ("mentor", "trainee"), None),
     "collab-no-table": ("collab/slave.yaml", ("mentor", "trainee"), 0.0),
+    "slave+cell": ("slave.yaml", ("master",), None),
 }
+#: robots that are a member of a two-member cell (occ/core/cell.py): the other member is a socket
+#: of this benchmark sending a heartbeat every 5 ticks (its 5 ms period), as a peer daemon does
+CELL_ROBOTS = ("slave+cell",)
 
 #: the slave's return-channel metadata (occ/haptics/returnlink.py): following, RUNNING, its 10:1 map
 RETURN_META = {"following": "1", "state": "RUNNING", "map": "0.1,0,0,0,0.1,0,0,0,0.1"}
@@ -103,12 +107,18 @@ def run(
         for i in cfg.interfaces
     )
     cfg = cfg.model_copy(update={"interfaces": ifaces})
+    peer_beats = None
+    if name in CELL_ROBOTS:
+        cfg, peer_beats = _cell_member(cfg)
     clock = SimClock()
     robot = build_robot(cfg, clock=clock)
     robot.configure()
     robot.state_machine.request("enable", "bench")
     robot.state_machine.request("run", "bench")
     robot.interfaces.start()  # the sockets, as the daemon's activate (no supervisor)
+    if robot.cell is not None:
+        robot.cell.start()  # after Run: its guard would wait for the peer's first heartbeat
+        robot.cell.link.polled = False  # as on the real clock: the link's I/O thread reads
     senders = []
     for i, sock in socks.items():
         returning = robot.config.interfaces[[c.name for c in robot.config.interfaces].index(i)]
@@ -147,6 +157,8 @@ def run(
                         continue  # the master has not streamed yet: a slave would not answer
                     sock.sendto(back if returning else forward, addr)
                     _drain(sock)  # what the robot sent this peer: read, as the peer does
+            if peer_beats is not None and k % 5 == 0:
+                peer_beats(k, clock.wall_time())
             t0 = timer()
             if opcodes is not None:
                 sys.settrace(_opcode_counter(opcodes))
@@ -162,6 +174,41 @@ def run(
         for sock in socks.values():
             sock.close()
     return total / ticks * 1e6
+
+
+def _cell_member(cfg: Any) -> tuple[Any, Any]:
+    """``cfg`` as member ``slave`` of a cell with one other member, ``peer``: a socket here that
+    sends its heartbeat when asked and reads (drops) the robot's."""
+    import dataclasses
+
+    from occ.config import CellConfig
+    from occ.net.celllink import Beat, pack_beat
+
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    peer.bind(("127.0.0.1", 0))
+    peer.setblocking(False)
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    own = probe.getsockname()[1]
+    probe.close()
+    cell = CellConfig.model_validate(
+        {
+            "name": "bench",
+            "members": [
+                {"name": "slave", "address": f"127.0.0.1:{own}"},
+                {"name": "peer", "address": f"127.0.0.1:{peer.getsockname()[1]}"},
+            ],
+        }
+    )
+    base = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+    beat = Beat("bench", "peer", 1, 0, "RUNNING", "", "", 0.0, "", (0.0, 0.35, 0.05), base)
+
+    def send(k: int, wall: float) -> None:
+        msg = pack_beat(dataclasses.replace(beat, seq=k // 5 + 1, sent_wall=wall), None)
+        peer.sendto(msg.pack(), ("127.0.0.1", own))
+        _drain(peer)
+
+    return cfg.model_copy(update={"cell": cell}), send
 
 
 def _drain(sock: socket.socket) -> None:

@@ -41,6 +41,7 @@ same host's clock, or clocks agreeing as the auth freshness needs).
 from __future__ import annotations
 
 import logging
+import math
 import socket
 import time
 from collections import deque
@@ -48,6 +49,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from occ.clock import RealClock
 from occ.core.safety import RobotState
 from occ.net.celllink import Beat, CellLink
 
@@ -176,6 +178,10 @@ class Cell:
         self._next_send = 0.0
         self._due = True
         self._start_told = ""
+        #: judge again though nothing came (an operator's command changed the members)
+        self._dirty = True
+        #: when the member heard longest ago falls silent (the next judgement due without news)
+        self._silence_due = 0.0
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -233,9 +239,11 @@ class Cell:
     def tick(self, now: float) -> None:
         """On the loop thread, before the controllers: the heartbeats received, the members
         judged (a hold in this tick), this member's heartbeat when due."""
-        for beat in self.link.take():
+        beats = self.link.take()
+        for beat in beats:
             self._on_beat(beat)
-        self._judge(now)
+        if beats or self._dirty or now > self._silence_due:
+            self._judge(now)
         if self._due or now >= self._next_send:
             self._send(now)
 
@@ -313,6 +321,9 @@ class Cell:
         )
 
     def _judge(self, now: float) -> None:
+        self._dirty = False
+        heard = [m.heard for m in self.members.values() if m.heard is not None and not m.out]
+        self._silence_due = min(heard) + self.grace_s if heard else math.inf
         if self.own.leaving:
             self.live = {}
             return
@@ -421,6 +432,7 @@ class Cell:
         """``CellLeave``, ``CellJoin``, ``CellForget Member=<name>``: the reply text;
         ValueError saying why it is refused."""
         key = name.lower()
+        self._dirty = True
         if key == "cellleave":
             self.own.leaving, self._due = True, True
             self.latched.clear()
@@ -505,6 +517,7 @@ def build_cell(
         key_text=key,
         now=clock.now,
         wall=clock.wall_time,
+        polled=not isinstance(clock, RealClock),  # simulated time: deterministic turns
     )
     return Cell(
         cfg, me, link, members, states=states, alarms=alarms, data=data, clock=clock, chain=chain

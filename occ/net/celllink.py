@@ -1,10 +1,14 @@
 """The cell link: a member's heartbeats to its peers and theirs to it (issue 40).
 
 No new wire protocol: a heartbeat is an OpenIGTLink NDARRAY over UDP, header version 2, one
-datagram, as the master's stream is a POSITION over UDP. Its device name is ``CELL``, its array
-the member's measured joint positions (float64, the URDF's order), its header message ID the
-member's sequence number (uint32, one more per heartbeat), its timestamp the sender's wall
-clock, and its metadata what the others need to know:
+datagram, as the master's stream is a POSITION over UDP. Its device name is ``CELL``, its header
+message ID the member's sequence number (uint32, one more per heartbeat), its timestamp the
+sender's wall clock. Its array (float64) holds the numbers: the member's measured joint
+positions (the URDF's order), then its base pose in the patient frame (12 numbers: the rotation
+by rows, then the translation in metres), then when its stop began (``stop_wall``, its wall
+clock in s, 0 without a stop: the measured propagation). Its metadata (at most 8 entries, the
+same from one heartbeat to the next until the state changes: packed once, igtl/wire.py's cache)
+says what the others need to know:
 
 ==============  ==============================================================================
 key             value
@@ -15,9 +19,7 @@ key             value
 ``state``       its robot state (``RUNNING``, ``FAULT``...)
 ``cause``       why it left RUNNING for a safety reason ('' when none stands)
 ``origin``      the member that stop comes from: itself, or a member whose stop it relays
-``stop_wall``   when the origin stopped (its wall clock, s): the measured propagation
 ``chain``       the hash of its kinematic chain (occ.kinematics.frame.chain_hash)
-``base``        its base pose in the patient frame: 12 numbers, rotation rows then metres
 ``leaving``     ``1`` in the heartbeat of a member that leaves the cell (an operator's command)
 ==============  ==============================================================================
 
@@ -28,15 +30,16 @@ boot cannot be passed off after this daemon restarts. Within a boot the sequence
 a replay (the cell's judgement, occ/core/cell.py).
 
 Sending is on the caller's thread (the loop, or the supervisor's when the loop hangs), never
-blocking; receiving is polled by the loop each tick (the endpoint's own thread takes what the
-loop leaves, in arrival order, into the same inbox).
+blocking. Receiving, checking and decoding are the endpoint's own I/O thread's: it queues each
+accepted heartbeat, and the loop takes them in arrival order (a check of an empty deque when
+none came: no system call per tick; a heartbeat waits at most the interpreter's switch
+interval, 0.5 ms in the shipped configs, for that thread).
 """
 
 from __future__ import annotations
 
 import itertools
 import logging
-import math
 import threading
 import time
 from collections import deque
@@ -82,8 +85,11 @@ class Beat:
     t_rx: float = 0.0
 
 
-def pack_beat(beat: Beat, key: bytes | None) -> Message:
-    """The NDARRAY of one heartbeat (module docstring), signed with ``key``."""
+def pack_beat(
+    beat: Beat, key: bytes | None, *, seq: int | None = None, sent_wall: float | None = None
+) -> Message:
+    """The NDARRAY of one heartbeat (module docstring), signed with ``key``; ``seq`` and
+    ``sent_wall`` instead of the beat's own when given."""
     meta = {
         "cell": beat.cell,
         "member": beat.member,
@@ -91,19 +97,17 @@ def pack_beat(beat: Beat, key: bytes | None) -> Message:
         "state": beat.state,
         "cause": beat.cause,
         "origin": beat.origin,
-        "stop_wall": repr(beat.stop_wall),
         "chain": beat.chain,
-        "base": ",".join(repr(float(v)) for v in beat.base),
     }
     if beat.leaving:
         meta["leaving"] = "1"
     msg: Message = NDArrayMessage(
         device_name=DEVICE,
         header_version=2,
-        timestamp=beat.sent_wall,
-        message_id=beat.seq & 0xFFFFFFFF,
+        timestamp=beat.sent_wall if sent_wall is None else sent_wall,
+        message_id=(beat.seq if seq is None else seq) & 0xFFFFFFFF,
         metadata=meta,
-        array=np.asarray(beat.q, dtype=np.float64),
+        array=np.array((*beat.q, *beat.base, beat.stop_wall), dtype=np.float64),
     )
     return sign(msg, key) if key is not None else msg
 
@@ -119,9 +123,11 @@ def unpack_beat(msg: Message, t_rx: float) -> Beat:
     if msg.header_version != 2:
         raise BeatError("header version 1: a heartbeat needs its metadata")
     m = msg.metadata
+    numbers = np.asarray(msg.array, dtype=np.float64).ravel()
+    if len(numbers) < 13 or not bool(np.isfinite(numbers).all()):
+        raise BeatError("heartbeat without its base and stop time, or a number not finite")
+    values = [float(v) for v in numbers]
     try:
-        base = tuple(float(v) for v in str(m["base"]).split(","))
-        q = tuple(float(v) for v in np.asarray(msg.array, dtype=np.float64).ravel())
         beat = Beat(
             cell=str(m["cell"]),
             member=str(m["member"]),
@@ -130,10 +136,10 @@ def unpack_beat(msg: Message, t_rx: float) -> Beat:
             state=str(m["state"]),
             cause=str(m.get("cause", "")),
             origin=str(m.get("origin", "")),
-            stop_wall=float(str(m.get("stop_wall", "0"))),
+            stop_wall=values[-1],
             chain=str(m.get("chain", "")),
-            q=q,
-            base=base,
+            q=tuple(values[:-13]),
+            base=tuple(values[-13:-1]),
             leaving=str(m.get("leaving", "")) == "1",
             sent_wall=float(msg.timestamp),
             t_rx=t_rx,
@@ -142,8 +148,6 @@ def unpack_beat(msg: Message, t_rx: float) -> Beat:
         raise BeatError(f"heartbeat without {err.args[0]!r}") from err
     except (TypeError, ValueError) as err:
         raise BeatError(f"heartbeat with a bad value: {err}") from err
-    if len(base) != 12 or not all(math.isfinite(v) for v in (*base, *q, beat.stop_wall)):
-        raise BeatError("heartbeat with a base that is not 12 finite numbers or a joint not finite")
     return beat
 
 
@@ -173,7 +177,10 @@ class CellLink:
         key_text: str | None = None,
         now: Callable[[], float],
         wall: Callable[[], float] = time.time,
+        polled: bool = False,
     ) -> None:
+        """``polled``: :meth:`take` reads the socket itself first (simulated time: a heartbeat
+        sent before a tick is taken in that tick, whatever the I/O thread is doing)."""
         self.cell, self.me = cell, me
         self.peers = dict(peers)
         self._by_address = {addr: name for name, addr in peers.items()}
@@ -184,11 +191,12 @@ class CellLink:
         self._seq = itertools.count(1)  # next() is atomic: the loop and the supervisor send
         self._send_lock = threading.Lock()
         self._log_limit = RateLimit(5)
+        self.polled = polled
         self.endpoint = UDPEndpoint(
             bind[0],
             bind[1],
             allowed_peers=sorted({h for h, _ in peers.values()}),
-            polled=True,
+            polled=polled,
             on_message=self._receive,
             on_error=self._on_error,
             name=f"cell-{me}",
@@ -203,10 +211,11 @@ class CellLink:
 
     # ------------------------------------------------------------------ sending
     def send(self, beat: Beat, to: Sequence[str] | None = None) -> int:
-        """``beat`` (its ``seq`` and ``sent_wall`` filled here) to every peer (or those named
-        in ``to``); never blocks. The number of peers it went to."""
+        """``beat`` to every peer (or those named in ``to``), its ``seq`` and ``sent_wall`` given
+        here (:meth:`Beat` fields left 0 by the caller); never blocks. The number of peers it
+        went to."""
         with self._send_lock:  # one sequence order on the wire, whichever thread sends
-            msg = pack_beat(_with(beat, seq=next(self._seq), sent_wall=self._wall()), self.key)
+            msg = pack_beat(beat, self.key, seq=next(self._seq), sent_wall=self._wall())
             ok = 0
             for name, addr in self.peers.items():
                 if to is not None and name not in to:
@@ -225,8 +234,11 @@ class CellLink:
     # ------------------------------------------------------------------ receiving
     def take(self) -> list[Beat]:
         """The heartbeats received since the last call, in arrival order (the loop's)."""
-        self.endpoint.poll(32, self._receive)
+        if self.polled:
+            self.endpoint.poll(32, self._receive)
         inbox = self._inbox
+        if not inbox:
+            return []
         out = []
         while inbox:
             out.append(inbox.popleft())
@@ -279,9 +291,3 @@ class CellLink:
             "unauthenticated": c.unauthenticated,
             "stale": c.stale,
         }
-
-
-def _with(beat: Beat, **changes: object) -> Beat:
-    import dataclasses
-
-    return dataclasses.replace(beat, **changes)  # type: ignore[arg-type]

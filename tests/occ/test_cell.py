@@ -373,3 +373,41 @@ def test_a_member_whose_chain_is_not_its_urdf_is_not_trusted() -> None:
     finally:
         for s in sims:
             s.close()
+
+
+@pytest.mark.req("SR-CELL-2")
+def test_the_shipped_cell_agrees_and_its_arms_hold_for_each_other() -> None:
+    """configs/cell/: both slaves list the same cell, each member's URDF is the one the member
+    announces (its chain hash), and on free ports the two UR5s hold for each other."""
+    import yaml
+
+    from occ.core.loader import load_config
+    from occ_testkit.testing import CONFIGS
+
+    a, b = (load_config(CONFIGS / "cell" / f"ur5-{n}.yaml") for n in "ab")
+    assert a.cell is not None and b.cell is not None
+    assert a.cell.model_dump() | {"member": None} == b.cell.model_dump() | {"member": None}
+    ports = _udp_ports(2)
+    sims = []
+    try:
+        for n in "ab":
+            raw = yaml.safe_load((CONFIGS / "cell" / f"ur5-{n}.yaml").read_text())
+            for m, port in zip(raw["cell"]["members"], ports, strict=True):
+                m["address"] = f"127.0.0.1:{port}"
+            sims.append(SimRobot(raw))
+        for _ in range(10):
+            for s in sims:
+                s.tick()
+        for s in sims:
+            (m,) = s.robot.snapshot()["cell"]["members"].values()
+            assert m["chain_ok"] is True and m["state"] == "READY"
+        ops = [s.peer("operator") for s in sims]
+        for s, op in zip(sims, ops, strict=True):
+            for cmd in ("Enable", "Run"):
+                assert ok(s.command(op, cmd)), cmd
+        assert ok(sims[1].command(ops[1], "EStop"))
+        sims[0].tick()
+        assert sims[0].robot.state is S.STOPPED
+    finally:
+        for s in sims:
+            s.close()
