@@ -505,7 +505,8 @@ def test_a_joint_set_is_planned_through_the_port_and_reaches_its_joints() -> Non
     the shaft is within 1e-5 mm of the port, and the arm reaches each keyframe's joints
     (1e-6 rad). Planned in joint space without the port, the same keyframes sweep the shaft
     more than 1 mm across the port (what the port prevents). A joint keyframe whose tool is
-    not through the port (a wrist turned 0.1 rad) is refused with the angle."""
+    not through the port (a wrist turned 0.1 rad) is refused with the angle, one whose pose
+    the arm reaches through the port in another configuration is refused naming the joint."""
     arm = Ur5Port()
     try:
         arm.ok("Enable")
@@ -543,5 +544,24 @@ def test_a_joint_set_is_planned_through_the_port_and_reaches_its_joints() -> Non
         assert "keyframe 0 (t=2 s) contradicts the port: its tool axis is" in error, error
         degrees = float(error.split("tool axis is ")[1].split(" deg")[0])
         assert 1.0 < degrees < 2.0, error  # the wrist's 5.7 deg, less the tip's own move
+        # the first keyframe rolled 1 rad (the same axis) but in the arm's other configuration
+        # that reaches the same pose (elbow and wrist flipped): planned through the port from
+        # where the arm is, the IK stays in its own; refused, naming the furthest joint
+        rolled = list(picks[0])
+        rolled[5] += 1.0
+        target = np.asarray(frame.fk(rolled))
+        seed = np.add(rolled, [0.0, 0.5, -0.84, 3.47, 3.14, -3.14])
+        other = frame.solve_ik(target, list(np.clip(seed, frame.lower, frame.upper)), clamp=True)
+        assert other.error < 1e-9 and max(abs(np.subtract(other.q, rolled))) > 3.0
+        arm.ok("KeyframeClear")
+        pose = " ".join(f"{v:.12f}" for v in other.q)
+        arm.ok("KeyframeAdd", T="2", Pose=pose, Space="joint")
+        error = arm.refused("KeyframePlan")
+        assert (
+            "keyframe 0 (t=2 s): through the port the arm reaches its tool pose in another "
+            in error
+        )
+        assert "configuration (joint 'wrist_1_joint' 3." in error, error
+        assert "give these keyframes in Cartesian space" in error, error
     finally:
         arm.close()

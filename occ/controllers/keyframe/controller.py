@@ -450,9 +450,11 @@ class KeyframeController(Controller):
         q, failure = run_tick(self.ctx.frame, run, t, self._q_last)
         if failure is not None:
             # checked offline, so only a different sampling time can get here: hold
-            self.last_error = f"plan {run.id}: {failure[1]} at t={t:.3f} s"
-            text = f"plan {run.id} stopped at t={t:.3f} s: {failure[1]}"
-            self._end_run(failure[0], text, _CODE_DROPPED)
+            counter, why, error = failure
+            if error is not None:
+                self.last_error = error
+            text = f"plan {run.id} stopped at t={t:.3f} s: {why}"
+            self._end_run(counter, text, _CODE_DROPPED)
             return None
         self._q_last = q
         if t >= run.traj.end:

@@ -578,12 +578,12 @@ def _checked(
 
 def run_tick(
     frame: Frame, run: CheckedPlan, t: float, q_last: list[float]
-) -> tuple[list[float], tuple[str, str] | None]:
+) -> tuple[list[float], tuple[str, str, str | None] | None]:
     """Tick ``t`` of the running plan ``run``, sampled as it was checked (joint plans directly,
     Cartesian ones through the same IK seeded with ``q_last``): (the joints, None), or
-    (``q_last``, (the counter, why the run must stop): the tip unreachable (``ik_failures``),
-    or the tool's shaft off the port by more than :data:`SHAFT_BOUND_M` (``port_stops``)).
-    On the loop thread."""
+    (``q_last``, why the run must stop: (its counter, the reason for its status, the error to
+    keep or None)): the tip unreachable (``ik_failures``), or the tool's shaft off the port by
+    more than :data:`SHAFT_BOUND_M` (``port_stops``). On the loop thread."""
     traj = run.traj
     pos = traj.position(t)
     if run.space == "joint":
@@ -594,17 +594,15 @@ def run_tick(
         else:
             q, clamped = frame.ik_clamped((float(pos[0]), float(pos[1]), float(pos[2])), q_last)
     except (KinematicsError, ValueError) as err:
-        return q_last, ("ik_failures", f"tip unreachable (IK failed: {err})")
+        error = f"plan {run.id}: IK failed at t={t:.3f} s: {err}"
+        return q_last, ("ik_failures", "tip unreachable", error)
     if clamped:
-        return q_last, ("ik_failures", "tip unreachable")
+        return q_last, ("ik_failures", "tip unreachable", None)
     if isinstance(traj, PortTrajectory):
         off, _ = shaft_offset(np.asarray(frame.fk(q)), traj.port)
         if off > SHAFT_BOUND_M:
-            bound = f"bound {SHAFT_BOUND_M / MM:g} mm"
-            return q_last, (
-                "port_stops",
-                f"the tool's shaft {off / MM:.4g} mm from the port ({bound})",
-            )
+            why = f"the tool's shaft {off / MM:.4g} mm from the port (bound {SHAFT_BOUND_M / MM:g} mm)"
+            return q_last, ("port_stops", why, f"plan {run.id}: {why} at t={t:.3f} s")
     return q, None
 
 
