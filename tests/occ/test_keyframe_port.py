@@ -397,7 +397,9 @@ def _request(frame: Any, home_q: list[float], kset: Any, port: np.ndarray) -> Pl
         ramp=0.25,
         period=1e-3,
         joint_names=tuple(frame.joint_names),
-        limits=tuple(JointLimits(lo, hi, 1.0) for lo, hi in zip(frame.lower, frame.upper)),
+        limits=tuple(
+            JointLimits(lo, hi, 1.0) for lo, hi in zip(frame.lower, frame.upper, strict=True)
+        ),
         velocity_scale=1.0,
         start_tolerance=1e-3,
         start_tolerance_mm=0.5,
@@ -525,7 +527,7 @@ def test_a_joint_set_is_planned_through_the_port_and_reaches_its_joints() -> Non
         assert max(arm.offset(q) for q in run) < 1e-8
         for i, q in enumerate(picks):
             got = run[round(2.0 * (i + 1) / 1e-3)]
-            assert max(abs(a - b) for a, b in zip(got, q)) < 1e-6, i
+            assert max(abs(a - b) for a, b in zip(got, q, strict=True)) < 1e-6, i
         frame, _ = _ur5()
         joint = plan(
             [Keyframe(0.0, run[-1])] + [Keyframe(2.0 * (i + 1), q) for i, q in enumerate(picks)],

@@ -601,7 +601,8 @@ def run_tick(
     if isinstance(traj, PortTrajectory):
         off, _ = shaft_offset(np.asarray(frame.fk(q)), traj.port)
         if off > SHAFT_BOUND_M:
-            why = f"the tool's shaft {off / MM:.4g} mm from the port (bound {SHAFT_BOUND_M / MM:g} mm)"
+            bound = SHAFT_BOUND_M / MM
+            why = f"the tool's shaft {off / MM:.4g} mm from the port (bound {bound:g} mm)"
             return q_last, ("port_stops", why, f"plan {run.id}: {why} at t={t:.3f} s")
     return q, None
 
