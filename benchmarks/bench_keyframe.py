@@ -10,8 +10,14 @@
    while an operator keeps the planner busy (the next KeyframePlan as soon as the last is
    answered): tick lateness and compute time. The planner thread gives the interpreter back
    every 16 samples; this shows what is left.
+4. ``--port``: a laparoscopic tool through its port (issue 40; configs/ur5-port.yaml, the UR5
+   with ``rcm_mm`` and configs/keyframes/ur5-port.yaml): ``update()`` per tick and
+   ``build_plan`` for the same keyframes with the port and without it (``rcm_mm: null``: the
+   tip's position only, the orientation left to the IK), and beside them the full-pose plan
+   of configs/ur5-keyframe.yaml (orientations given, slerp/squad), linear and spline.
 
     python benchmarks/bench_keyframe.py --seconds 10
+    python benchmarks/bench_keyframe.py --port      # part 4 only
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ from occ.core.robot import build_robot  # noqa: E402
 from occ_testkit.testing import SimPeer, SimRobot, inproc_config  # noqa: E402
 
 CONFIG = ROOT / "configs" / "keyframe.yaml"
+PORT_CONFIG = ROOT / "configs" / "ur5-port.yaml"
 
 
 def command(name: str, cid: int, **args: str) -> igtl.Message:
@@ -47,8 +54,10 @@ def command(name: str, cid: int, **args: str) -> igtl.Message:
     )
 
 
-def update_cost(file: str | None, interpolation: str) -> tuple[float, float, int, Any]:
-    with SimRobot(CONFIG) as sim:
+def update_cost(
+    file: str | None, interpolation: str, cfg: Path = CONFIG, params: dict[str, Any] | None = None
+) -> tuple[float, float, int, Any]:
+    with SimRobot(cfg, params=params) as sim:
         (kf,) = sim.robot.controller.controllers
         assert isinstance(kf, KeyframeController)
         peer = sim.peer("slicer", on_message=lambda m: None)
@@ -83,9 +92,15 @@ def update_cost(file: str | None, interpolation: str) -> tuple[float, float, int
         return statistics.median(us), us[int(0.99 * len(us))], len(us), plan
 
 
-def plan_cost(kf_plan: Any, sim_cfg: Path, file: str | None, interpolation: str) -> float:
+def plan_cost(
+    kf_plan: Any,
+    sim_cfg: Path,
+    file: str | None,
+    interpolation: str,
+    params: dict[str, Any] | None = None,
+) -> float:
     """ms of build_plan for the same request, median of 5."""
-    with SimRobot(sim_cfg) as sim:
+    with SimRobot(sim_cfg, params=params) as sim:
         (kf,) = sim.robot.controller.controllers
         assert isinstance(kf, KeyframeController)
         peer = sim.peer("slicer", on_message=lambda m: None)
@@ -177,12 +192,15 @@ def main(argv: list[str] | None = None) -> int:
         help="how the planner shares the interpreter (occ.controllers.keyframe.pacer.Pacer)",
     )
     p.add_argument("--only-loop", action="store_true", help="part 3 only")
+    p.add_argument("--port", action="store_true", help="part 4 only (a tool through its port)")
     args = p.parse_args(argv)
     import occ.controllers.keyframe.pacer as module
 
     module.PACE_MODE = args.pace
     if args.only_loop:
         return loop_part(args.seconds, args.pace)
+    if args.port:
+        return port_part()
 
     print("1. update() per tick while running (simulated time)")
     plans = {}
@@ -200,6 +218,24 @@ def main(argv: list[str] | None = None) -> int:
             f"   {label}: {ms:.1f} ms for {plan.ticks} ticks = {ms * 1e3 / plan.ticks:.1f} us/tick"
         )
     return loop_part(args.seconds, args.pace)
+
+
+def port_part() -> int:
+    print("4. a tool through its port (configs/ur5-port.yaml, 7 s of motion; simulated time)")
+    cases: tuple[tuple[str, Path, dict[str, Any] | None], ...] = (
+        ("port", PORT_CONFIG, None),
+        ("no port (position IK)", PORT_CONFIG, {"rcm_mm": None}),
+        ("orientations given (ur5-keyframe.yaml)", ROOT / "configs" / "ur5-keyframe.yaml", None),
+    )
+    for interp in ("linear", "spline"):
+        for label, cfg, params in cases:
+            med, p99, n, plan = update_cost(None, interp, cfg, params)
+            ms = plan_cost(plan, cfg, None, interp, params)
+            print(
+                f"   {interp:6} {label}: update() median {med:.1f} us, p99 {p99:.1f} us "
+                f"({n} ticks); build_plan {ms:.1f} ms = {ms * 1e3 / plan.ticks:.1f} us/tick"
+            )
+    return 0
 
 
 def loop_part(seconds: float, pace: str) -> int:

@@ -691,6 +691,19 @@ def plan(
     Raises ValueError for fewer than 2 keyframes, times not strictly increasing, poses of
     different dimensions, non-finite values or parameters out of range.
     """
+    frames = checked_keyframes(keyframes, interpolation, mode, steepness, ramp)
+    return Trajectory(frames, interpolation, mode, float(steepness), float(ramp))
+
+
+def checked_keyframes(
+    keyframes: Sequence[Keyframe],
+    interpolation: Interpolation,
+    mode: Mode,
+    steepness: float,
+    ramp: float,
+) -> list[Keyframe]:
+    """The keyframes of a plan and its settings validated as :func:`plan` documents (for a
+    :class:`Trajectory` subclass built otherwise, occ/kinematics/port.py); ValueError."""
     if interpolation not in ("linear", "spline"):
         raise ValueError(f"interpolation must be 'linear' or 'spline', got {interpolation!r}")
     if mode not in ("stop", "continuous"):
@@ -722,4 +735,4 @@ def plan(
                 f"keyframe times must be strictly increasing: keyframe {i} at "
                 f"{frames[i].t} s follows {frames[i - 1].t} s"
             )
-    return Trajectory(frames, interpolation, mode, float(steepness), float(ramp))
+    return frames

@@ -93,6 +93,21 @@ Forbidden regions (the collision check)
     ``safety.collision``, occ/kinematics/collision.py, added at configure) gets the plan's joint
     samples after the per-tick checks and names the first that fails.
 
+A laparoscopic tool's port (issue 40; ``params.rcm_mm``)
+    With a port (a 6-DOF arm; the patient frame, mm, as ``teleop-slave``'s ``rcm_mm``) every
+    plan turns the tool about it (:mod:`occ.kinematics.port`): the tip's path as planned, the
+    tool's axis (its z) from the port through the tip at every tick, the roll the keyframes'
+    (interpolated) or, none given, the one the tool has where the plan starts. A joint set is
+    planned through the port as the tool's poses (forward kinematics of its keyframes), and
+    each keyframe's joints must then be reached (0.1 rad: not another arm configuration).
+    Refused when planned, naming why: the tool's shaft more than 0.05 mm from the port where
+    the plan starts; a keyframe whose own orientation is more than ``rcm_tolerance_deg`` off
+    the axis through the port and its tip (named, with the angle; within it, turned onto the
+    axis); a tip less than ``rcm_min_depth_mm`` from the port at a keyframe or a sample; the
+    shaft more than 0.05 mm from the port at any sample (the joints' forward kinematics; the
+    worst sample named). At run time each tick's joints are held to the same 0.05 mm: past
+    it the run ends (``port_stops``) and the robot holds.
+
 Layout
     :mod:`.controller` the controller on the loop thread (the set, the commands, the
     acknowledgement, the run); :mod:`.params` its parameters and their checks; :mod:`.sets`

@@ -22,7 +22,7 @@ from occ.controllers.keyframe.plan import (
     PlanRequest,
     plan_request,
     plan_settings,
-    pose_ik,
+    run_tick,
 )
 from occ.controllers.keyframe.planner import PlannerThread, load_file_job, plan_job
 from occ.controllers.keyframe.preview import Preview
@@ -37,7 +37,7 @@ from occ.controllers.keyframe.sets import (
     read_keyframe_file,
 )
 from occ.core.safety import RobotState
-from occ.errors import CommandError, ConfigError, KinematicsError, LibraryError
+from occ.errors import CommandError, ConfigError, LibraryError
 from occ.events import PointsOut, PolylineOut
 from occ.joint import JointLimits
 from occ.kinematics.keyframe_inputs import items_from_event
@@ -64,6 +64,7 @@ COUNTERS = (
     "runs_completed",
     "runs_stopped",
     "ik_failures",
+    "port_stops",
     "library_saved",
     "library_loaded",
     "library_deleted",
@@ -445,27 +446,16 @@ class KeyframeController(Controller):
         if run is None:
             return None
         t = now - self._t0
-        pos = run.traj.position(t)
-        if run.space == "joint":
-            q: list[float] = pos.tolist()
-        else:
-            ctx = self.ctx
-            assert ctx is not None
-            try:
-                if run.traj.has_rotation:
-                    q, clamped = pose_ik(ctx.frame, run.traj, t, self._q_last)
-                else:
-                    q, clamped = ctx.frame.ik_clamped(
-                        (float(pos[0]), float(pos[1]), float(pos[2])), self._q_last
-                    )
-            except (KinematicsError, ValueError) as err:
-                clamped, q = True, self._q_last
-                self.last_error = f"plan {run.id}: IK failed at t={t:.3f} s: {err}"
-            if clamped:
-                # checked offline, so only a different sampling time can get here: hold
-                text = f"plan {run.id} stopped at t={t:.3f} s: tip unreachable"
-                self._end_run("ik_failures", text, _CODE_DROPPED)
-                return None
+        assert self.ctx is not None
+        q, failure = run_tick(self.ctx.frame, run, t, self._q_last)
+        if failure is not None:
+            # checked offline, so only a different sampling time can get here: hold
+            counter, why, error = failure
+            if error is not None:
+                self.last_error = error
+            text = f"plan {run.id} stopped at t={t:.3f} s: {why}"
+            self._end_run(counter, text, _CODE_DROPPED)
+            return None
         self._q_last = q
         if t >= run.traj.end:
             text = f"plan {run.id} completed ({run.traj.duration:.3f} s)"

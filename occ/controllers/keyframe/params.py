@@ -133,6 +133,29 @@ class KeyframeParams(_Model):
         "fixtures' forbidden spheres and planes (occ/haptics/fixtures.py; mm, base frame): "
         "`{centre_mm, radius_mm, name}` or `{point_mm, normal, name}`.",
     )
+    rcm_mm: Vec3 | None = Field(
+        None,
+        description="A laparoscopic tool's port, the remote centre of motion its shaft must "
+        "keep (patient frame, mm; as teleop-slave's `rcm_mm`); a 6-DOF arm. Every plan then "
+        "turns the tool about it: the tip's path as planned, the tool's axis (its z) from the "
+        "port through the tip, the roll the keyframes' (interpolated) or, when they give "
+        "none, the one it has where the plan starts; joint keyframes are planned through the "
+        "port as the tool's poses. A plan is refused unless the shaft passes within 0.05 mm "
+        "of the port at every sample, and a run stops (the robot holds) at a tick where it "
+        "would not. null = no port.",
+    )
+    rcm_tolerance_deg: Annotated[Float, Field(gt=0, le=5)] = Field(
+        0.5,
+        description="With `rcm_mm`: how far a keyframe's own orientation (given, or a joint "
+        "keyframe's) may turn the tool's axis from the axis through the port and its tip "
+        "(degrees); it is turned onto that axis (the plan's summary says how far), beyond "
+        "this the plan is refused naming the keyframe and the angle.",
+    )
+    rcm_min_depth_mm: PosFloat = Field(
+        10.0,
+        description="With `rcm_mm`: the tip stays at least this far beyond the port (mm) at "
+        "every keyframe and sample: a plan that would draw the tip back to the port is refused.",
+    )
     preview_points: Annotated[Int, Field(ge=2, le=10000)] = Field(
         256, description="Most points of the previewed path (the polyline is decimated)."
     )
@@ -183,6 +206,10 @@ def check_params(params: Any, config: DaemonConfig) -> list[Problem]:
             )
         except ValueError as err:
             problems.append((("file",), str(err)))
+    if params.rcm_mm is not None and joints < 6:
+        problems.append(
+            (("rcm_mm",), f"a port needs a 6-DOF arm to turn the tool about it; {joints} joints")
+        )
     if params.library is not None and not Path(params.library).parent.is_dir():
         problems.append((("library",), f"the folder {Path(params.library).parent} does not exist"))
     if params.preview_required and not any(

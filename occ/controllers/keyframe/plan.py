@@ -18,6 +18,16 @@ from occ.controllers.keyframe.pacer import Pacer
 from occ.controllers.keyframe.sets import KeyframeSet, PlanSettings, Space
 from occ.errors import CommandError, KinematicsError
 from occ.joint import JointLimits
+from occ.kinematics.port import (
+    SHAFT_BOUND_M,
+    PortMismatch,
+    PortTrajectory,
+    ShaftWatch,
+    keyframes_through_port,
+    port_in_base,
+    port_plan,
+    shaft_offset,
+)
 from occ.kinematics.trajectory import Keyframe, Trajectory, plan
 from occ.samples import quaternion_to_rotation, rotation_to_quaternion
 
@@ -83,6 +93,11 @@ class PlanRequest:
     pace: Pacer | None = None
     #: whole-arm checks of the sampled joint path (after the per-tick checks)
     path_checks: tuple[PathCheck, ...] = ()
+    #: a laparoscopic tool's port (base frame, metres; None: no port) and its rules: how far a
+    #: keyframe's given axis may be from the port's (rad), the tip's least depth beyond it (m)
+    port: np.ndarray | None = None
+    port_tolerance_rad: float = 0.0087
+    port_min_depth: float = 0.01
 
 
 @dataclass(frozen=True)
@@ -118,7 +133,11 @@ def pose_ik(
     a joint had to stop at a limit. KinematicsError when the pose is not reached (residual over
     1e-6: a position in metres and an angle in radians)."""
     pose = np.eye(4)
-    pose[:3, :3] = quaternion_to_rotation(traj.orientation(t).tolist())
+    pose[:3, :3] = (
+        traj.rotation(t)
+        if isinstance(traj, PortTrajectory)
+        else quaternion_to_rotation(traj.orientation(t).tolist())
+    )
     pose[:3, 3] = traj.position(t)
     res = frame.solve_ik(pose, list(seed), clamp=True, method="dls")
     if res.error > 1e-6 and not res.clamped:
@@ -148,6 +167,8 @@ class _Timeline:
     cart: bool
     oriented: bool  # Cartesian with the tool's orientation
     notes: list[str] = field(default_factory=list)  # said in the plan's summary
+    #: a joint set planned through a port: its keyframes' joints (the arm must reach them)
+    joint_keys: list[tuple[float, ...]] | None = None
 
 
 def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
@@ -157,12 +178,20 @@ def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
         req.pace.begin()
     tl = _timeline(req, frame)
     try:
-        traj = plan(tl.frames, req.interpolation, req.mode, req.steepness, req.ramp)
+        if req.port is not None:
+            traj: Trajectory = port_plan(
+                tl.frames, req.port, req.interpolation, req.mode, req.steepness, req.ramp
+            )
+        else:
+            traj = plan(tl.frames, req.interpolation, req.mode, req.steepness, req.ramp)
     except ValueError as err:
         raise PlanRefused(f"cannot plan: {err}") from err
     ticks = math.ceil(traj.end / req.period - 1e-9)
     checks = _TickChecks(req, [k.t for k in tl.frames], tl.labels)
-    path, qs = _sample(req, frame, traj, tl, checks, ticks)
+    watch = ShaftWatch(req.port) if req.port is not None else None
+    path, qs = _sample(req, frame, traj, tl, checks, ticks, watch)
+    if watch is not None:
+        _port_verdict(req, tl, checks, watch, qs)
     for path_check in req.path_checks:
         crossing = path_check.check_path(qs, req.base, req.pace)
         if crossing is not None:
@@ -199,6 +228,8 @@ def _timeline(req: PlanRequest, frame: Frame) -> _Timeline:
         oriented=oriented,
     )
     _join_start(req, tl, here, here_rot)
+    if req.port is not None:
+        _onto_port(req, frame, tl)
     if tl.frames[-1].t > req.max_duration_s:
         raise PlanRefused(
             f"{tl.labels[-1]}: the plan would last {tl.frames[-1].t:g} s, more than "
@@ -262,6 +293,102 @@ def _join_start(
         )
 
 
+#: how far (rad) a joint may be, at a keyframe of a joint set planned through a port, from the
+#: keyframe's value: the same tool pose reached by another arm configuration is further apart
+CONFIGURATION_TOLERANCE_RAD = 0.1
+
+
+def _onto_port(req: PlanRequest, frame: Frame, tl: _Timeline) -> None:
+    """A plan through the port (``req.port``): the tool through it where the plan starts, a
+    joint set turned into the tool's poses (tip and axis, by FK), every keyframe's orientation
+    the port's (:func:`~occ.kinematics.port.keyframes_through_port`); PlanRefused naming the
+    keyframe otherwise."""
+    port = req.port
+    assert port is not None
+    if frame.nq < 6:
+        raise PlanRefused(
+            f"a plan through a port (rcm_mm) turns the tool about it, but {frame.name!r} has "
+            f"{frame.nq} joints: it needs a 6-DOF arm"
+        )
+    start = np.asarray(frame.fk(list(req.q_start)))
+    off, _ = shaft_offset(start, port)
+    if off > SHAFT_BOUND_M:
+        raise PlanRefused(
+            f"the tool's shaft is {off / MM:.4g} mm from the port (rcm_mm) where the plan starts "
+            f"(bound {SHAFT_BOUND_M / MM:g} mm): bring the tool through the port first"
+        )
+    start_rot = rotation_to_quaternion_np(start[:3, :3])
+    if not tl.cart:
+        tl.joint_keys = [tuple(float(v) for v in k.pose) for k in tl.frames]
+        poses = [np.asarray(frame.fk(list(k.pose))) for k in tl.frames]
+        tl.frames = [
+            Keyframe(k.t, p[:3, 3], rotation_to_quaternion_np(p[:3, :3]))
+            for k, p in zip(tl.frames, poses, strict=True)
+        ]
+        tl.cart = True
+        tl.notes.append("joint keyframes planned through the port as the tool's poses")
+    if tl.frames[0].rotation is None:
+        tl.frames[0] = Keyframe(0.0, tl.frames[0].pose, start_rot)
+    for i, k in enumerate(tl.frames):
+        d = float(np.linalg.norm(np.subtract(k.pose, port)))
+        if d < req.port_min_depth:
+            raise PlanRefused(
+                f"{tl.labels[i]}: the tip is {d / MM:.3g} mm beyond the port, less "
+                f"than rcm_min_depth_mm ({req.port_min_depth / MM:g})"
+            )
+    try:
+        tl.frames, turns = keyframes_through_port(tl.frames, port, req.port_tolerance_rad)
+    except PortMismatch as err:
+        raise PlanRefused(
+            f"{tl.labels[err.index]} contradicts the port: its tool axis is "
+            f"{math.degrees(err.angle):.3g} deg from the axis through the port and its tip "
+            f"(rcm_tolerance_deg {math.degrees(req.port_tolerance_rad):g})"
+        ) from err
+    except ValueError as err:
+        raise PlanRefused(f"cannot keep the port: {err}") from err
+    tl.oriented = True
+    turned = max(turns[1:], default=0.0)
+    if turned > 0.0:
+        tl.notes.append(
+            f"keyframe orientations turned onto the port's axis (at most "
+            f"{math.degrees(turned):.3g} deg)"
+        )
+
+
+def _port_verdict(
+    req: PlanRequest,
+    tl: _Timeline,
+    checks: _TickChecks,
+    watch: ShaftWatch,
+    qs: Sequence[Sequence[float]],
+) -> None:
+    """After the samples: the shaft within :data:`SHAFT_BOUND_M` of the port at every one
+    (else refused naming the worst), and a joint set's keyframes reached with the arm in their
+    own configuration."""
+    if watch.worst > SHAFT_BOUND_M:
+        t = min(watch.worst_at * req.period, tl.frames[-1].t)
+        raise PlanRefused(
+            f"the tool's shaft passes {watch.worst / MM:.4g} mm from the port {checks.where(t)} "
+            f"(sample {watch.worst_at}, the worst of {watch.seen}; bound "
+            f"{SHAFT_BOUND_M / MM:g} mm)"
+        )
+    tl.notes.append(
+        f"the tool's shaft within {watch.worst / MM:.2g} mm of the port at every sample"
+    )
+    if tl.joint_keys is None:
+        return
+    for i in range(1, len(tl.frames)):
+        j = min(round(tl.frames[i].t / req.period), len(qs) - 1)
+        gaps = [abs(a - b) for a, b in zip(qs[j], tl.joint_keys[i], strict=True)]
+        worst = max(range(len(gaps)), key=gaps.__getitem__)
+        if gaps[worst] > CONFIGURATION_TOLERANCE_RAD:
+            raise PlanRefused(
+                f"{tl.labels[i]}: through the port the arm reaches its tool pose in another "
+                f"configuration (joint {req.joint_names[worst]!r} {gaps[worst]:.3g} rad from the "
+                "keyframe's): give these keyframes in Cartesian space"
+            )
+
+
 class _TickChecks:
     """The checks of one tick of a plan, as the drivers and the loop will see it: joint
     limits, the step over one period against the velocity limits (the peak kept for the
@@ -276,6 +403,7 @@ class _TickChecks:
         self.hi = [lim.max for lim in req.limits]
         self.vmax = [lim.velocity * req.velocity_scale for lim in req.limits]
         self.peak_share, self.peak_joint = 0.0, 0
+        self.port = None if req.port is None else tuple(float(v) for v in req.port)
 
     def where(self, t: float) -> str:
         return _where(t, self.times, self.labels, self.req.period)
@@ -320,6 +448,18 @@ class _TickChecks:
                     f"{self.vmax[i]:.4g}{scaled} {self.where(t)}; give that segment more time"
                 )
 
+    def depth(self, t: float, tip: tuple[float, float, float]) -> None:
+        """Through a port: the tip at least ``port_min_depth`` from it (before the IK, which
+        the port's axis does not define at the port)."""
+        port = self.port
+        if port is not None:
+            d = math.dist(tip, port)
+            if d < self.req.port_min_depth:
+                raise PlanRefused(
+                    f"the tip comes {d / MM:.6g} mm from the port {self.where(t)}, closer than "
+                    f"rcm_min_depth_mm ({self.req.port_min_depth / MM:g})"
+                )
+
     def tip(self, t: float, tip: tuple[float, float, float]) -> None:
         """The tip inside the workspace box and outside every forbidden region."""
         box = self.req.workspace
@@ -348,10 +488,11 @@ def _sample(
     tl: _Timeline,
     checks: _TickChecks,
     ticks: int,
+    watch: ShaftWatch | None = None,
 ) -> tuple[list[tuple[float, float, float]], list[list[float]]]:
     """Every tick of the plan sampled as the loop will (Cartesian ones through the same IK,
     seeded with the previous tick) and checked: (the decimated tip path, base frame metres;
-    the joint samples)."""
+    the joint samples). ``watch`` sees the tool's pose (FK of the joints) at every sample."""
     period = req.period
     pace = req.pace if req.pace is not None else (lambda: None)
     q_prev = list(req.q_start)
@@ -364,6 +505,7 @@ def _sample(
         pos = traj.position(t)
         if tl.cart:
             tip = (float(pos[0]), float(pos[1]), float(pos[2]))
+            checks.depth(t, tip)
             try:
                 if tl.oriented:
                     q, clamped = pose_ik(frame, traj, t, q_prev)
@@ -379,6 +521,8 @@ def _sample(
             tip = frame.tip_position(q)
         checks.step(t, q, q_prev)
         checks.tip(t, tip)
+        if watch is not None:
+            watch.see(j, np.asarray(frame.fk(q)))
         if j % stride == 0 or j == ticks:
             path.append(tip)
         q_prev = list(q)
@@ -416,7 +560,7 @@ def _checked(
     )
     return CheckedPlan(
         id=req.id,
-        space=kset.space,
+        space="cartesian" if tl.cart else "joint",
         traj=traj,
         labels=tuple(tl.labels),
         point_names=tuple(tl.short),
@@ -430,6 +574,37 @@ def _checked(
         kset=kset,
         settings=PlanSettings(req.interpolation, req.mode, req.steepness, req.ramp),
     )
+
+
+def run_tick(
+    frame: Frame, run: CheckedPlan, t: float, q_last: list[float]
+) -> tuple[list[float], tuple[str, str, str | None] | None]:
+    """Tick ``t`` of the running plan ``run``, sampled as it was checked (joint plans directly,
+    Cartesian ones through the same IK seeded with ``q_last``): (the joints, None), or
+    (``q_last``, why the run must stop: (its counter, the reason for its status, the error to
+    keep or None)): the tip unreachable (``ik_failures``), or the tool's shaft off the port by
+    more than :data:`SHAFT_BOUND_M` (``port_stops``). On the loop thread."""
+    traj = run.traj
+    pos = traj.position(t)
+    if run.space == "joint":
+        return pos.tolist(), None
+    try:
+        if traj.has_rotation:
+            q, clamped = pose_ik(frame, traj, t, q_last)
+        else:
+            q, clamped = frame.ik_clamped((float(pos[0]), float(pos[1]), float(pos[2])), q_last)
+    except (KinematicsError, ValueError) as err:
+        error = f"plan {run.id}: IK failed at t={t:.3f} s: {err}"
+        return q_last, ("ik_failures", "tip unreachable", error)
+    if clamped:
+        return q_last, ("ik_failures", "tip unreachable", None)
+    if isinstance(traj, PortTrajectory):
+        off, _ = shaft_offset(np.asarray(frame.fk(q)), traj.port)
+        if off > SHAFT_BOUND_M:
+            bound = SHAFT_BOUND_M / MM
+            why = f"the tool's shaft {off / MM:.4g} mm from the port (bound {bound:g} mm)"
+            return q_last, ("port_stops", why, f"plan {run.id}: {why} at t={t:.3f} s")
+    return q, None
 
 
 def plan_settings(args: dict[str, str], given: PlanSettings) -> PlanSettings:
@@ -493,6 +668,9 @@ def plan_request(
         ),
         forbidden=checks[0],
         path_checks=checks[1],
+        port=None if p.rcm_mm is None else port_in_base(p.rcm_mm, np.asarray(data.base)),
+        port_tolerance_rad=math.radians(p.rcm_tolerance_deg),
+        port_min_depth=p.rcm_min_depth_mm * MM,
         max_duration_s=p.max_duration_s,
         preview_points=p.preview_points,
         pace=Pacer(time.perf_counter, ctx.loop_t0, ctx.period_s),
