@@ -48,7 +48,12 @@ GRACE_MS = 100.0
 BOUND_MS = {"drive": 20.0, "estop": 20.0, "kill": GRACE_MS + 10.0, "stop": GRACE_MS + 10.0}
 
 
-def member_yaml(name: str, op_port: int, members: list[dict[str, str]]) -> dict[str, Any]:
+def member_yaml(
+    name: str, op_port: int, members: list[dict[str, str]], host: str = "127.0.0.1"
+) -> dict[str, Any]:
+    """A member on ``host``: its operators may come from any member's host (this tool runs on
+    the first one)."""
+    peers = sorted({m["address"].rsplit(":", 1)[0] + "/32" for m in members} | {"127.0.0.1/32"})
     limits = {"min": -1.0, "max": 1.0, "velocity": 1.5, "effort": 20.0}
     return {
         "robot": {
@@ -66,8 +71,8 @@ def member_yaml(name: str, op_port: int, members: list[dict[str, str]]) -> dict[
             "realtime": {"fifo_priority": 60, "gc": "freeze", "switch_interval_us": 500},
         },
         "interfaces": [
-            {"name": "operator", "transport": "tcp-server", "host": "127.0.0.1",
-             "port": op_port, "role": "operator"},
+            {"name": "operator", "transport": "tcp-server", "host": host,
+             "port": op_port, "role": "operator", "allowed_peers": peers},
         ],
         "safety": {"loss": {"enabled": False}},
         "cell": {"name": "bench", "members": members, "grace_ms": GRACE_MS},
@@ -75,22 +80,29 @@ def member_yaml(name: str, op_port: int, members: list[dict[str, str]]) -> dict[
 
 
 class Member:
-    def __init__(self, name: str, cfg: Path, op_port: int, log: Path) -> None:
+    def __init__(
+        self, name: str, cfg: Path, op_port: int, log: Path, host: str = "127.0.0.1",
+        enter: str = "",
+    ) -> None:  # fmt: skip
         self.name, self.cfg, self.op_port, self.log = name, cfg, op_port, log
+        self.host = host
+        #: the pid whose network namespace the daemon runs in ('' = this one's): another host
+        self.enter = enter
         self.proc: subprocess.Popen[bytes] | None = None
         self.client: Client | None = None
 
     def start(self) -> None:
         with self.log.open("ab") as log:
+            prefix = ["nsenter", "-n", "-t", self.enter] if self.enter else []
             self.proc = subprocess.Popen(
-                [sys.executable, str(ROOT / "tools" / "cellmember.py"), str(self.cfg),
+                [*prefix, sys.executable, str(ROOT / "tools" / "cellmember.py"), str(self.cfg),
                  "--start", "running", "--log-level", "WARNING"],
                 cwd=ROOT, stdout=log, stderr=log,
             )  # fmt: skip
-        if not wait_port(self.op_port, 30.0, self.proc):
+        if not wait_port(self.op_port, 30.0, self.proc, host=self.host):
             raise RuntimeError(f"{self.name} did not start: see {self.log}")
         if self.client is None:
-            self.client = Client(self.op_port)
+            self.client = Client(self.op_port, host=self.host)
             self.client.client.start()
         assert self.client.connected.wait(10.0), f"{self.name}: no operator connection"
 
@@ -200,23 +212,33 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def run(count: int, members_n: int = 3, kinds: list[str] | None = None, *,
-        verbose: bool = False) -> dict[str, Any]:  # fmt: skip
-    """``count`` faults in ``arm0`` of a cell of ``members_n`` daemons (module docstring)."""
+def run(
+    count: int,
+    members_n: int = 3,
+    kinds: list[str] | None = None,
+    *,
+    verbose: bool = False,
+    hosts: list[tuple[str, str]] | None = None,
+) -> dict[str, Any]:
+    """``count`` faults in ``arm0`` of a cell of ``members_n`` daemons (module docstring);
+    ``hosts``: (address, namespace pid or '') each member runs on, in turn (default: all on
+    127.0.0.1 here)."""
     kinds = kinds or list(KINDS)
+    hosts = hosts or [("127.0.0.1", "")]
     tmp = Path(tempfile.mkdtemp(prefix="cell-faults-"))
     names = [f"arm{i}" for i in range(members_n)]
     cell_ports = [free_port(2) for _ in names]  # SOCK_DGRAM
+    where = [hosts[i % len(hosts)] for i in range(members_n)]
     members = [
-        {"name": n, "address": f"127.0.0.1:{port}"}
-        for n, port in zip(names, cell_ports, strict=True)
+        {"name": n, "address": f"{host}:{port}"}
+        for n, port, (host, _) in zip(names, cell_ports, where, strict=True)
     ]
     daemons = []
-    for n in names:
+    for n, (host, enter) in zip(names, where, strict=True):
         op_port = free_port()
         cfg = tmp / f"{n}.yaml"
-        cfg.write_text(yaml.safe_dump(member_yaml(n, op_port, members)))
-        daemons.append(Member(n, cfg, op_port, tmp / f"{n}.log"))
+        cfg.write_text(yaml.safe_dump(member_yaml(n, op_port, members, host)))
+        daemons.append(Member(n, cfg, op_port, tmp / f"{n}.log", host, enter))
     rows: list[dict[str, Any]] = []
     try:
         for d in daemons:
@@ -251,12 +273,21 @@ def main(argv: list[str] | None = None) -> int:
         "--kinds", default=",".join(KINDS), help="comma-separated subset of " + ",".join(KINDS)
     )
     p.add_argument("--out", type=Path, default=None)
+    p.add_argument(
+        "--host",
+        action="append",
+        default=[],
+        metavar="ADDR[@PID]",
+        help="a host the members run on, in turn: its address and the pid whose network "
+        "namespace it is (nsenter; none = this one). Default: 127.0.0.1 here",
+    )
     args = p.parse_args(argv)
     kinds = [k for k in args.kinds.split(",") if k]
     bad = [k for k in kinds if k not in KINDS]
     if bad or not kinds:
         p.error(f"unknown kinds {bad}; known: {', '.join(KINDS)}")
-    result = run(args.count, args.members, kinds, verbose=True)
+    hosts = [(h.partition("@")[0], h.partition("@")[2]) for h in args.host] or None
+    result = run(args.count, args.members, kinds, verbose=True, hosts=hosts)
     print(json.dumps(result["summary"], indent=2))
     if args.out is not None:
         args.out.write_text(json.dumps(result, indent=1))

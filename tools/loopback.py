@@ -34,16 +34,19 @@ def free_port(kind: int = socket.SOCK_STREAM) -> int:
 
 
 def wait_port(
-    port: int, timeout: float = 20.0, proc: subprocess.Popen[bytes] | None = None
+    port: int,
+    timeout: float = 20.0,
+    proc: subprocess.Popen[bytes] | None = None,
+    host: str = "127.0.0.1",
 ) -> bool:
-    """True once a TCP listener accepts on 127.0.0.1:port; False on timeout or if ``proc`` exits."""
+    """True once a TCP listener accepts on host:port; False on timeout or if ``proc`` exits."""
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         if proc is not None and proc.poll() is not None:
             return False
         with socket.socket() as s:
             s.settimeout(0.2)
-            if s.connect_ex(("127.0.0.1", port)) == 0:
+            if s.connect_ex((host, port)) == 0:
                 return True
         time.sleep(0.05)
     return False
