@@ -63,6 +63,10 @@ class ServoTarget:
         #: ``follow``: the tool's orientation kept (base frame), taken when control starts
         self._rotation: np.ndarray | None = None
         self._first_solve = False
+        #: the target taken last (base frame) and whether its joints were clamped: the same
+        #: target again (a source repeating its last command) goes on along the same way
+        self._taken: Vec3 | None = None
+        self._taken_clamped = False
         self._steps: list[float] = []
         self.data: RobotData | None = None
         self.ctx: ControllerContext | None = None
@@ -76,6 +80,7 @@ class ServoTarget:
         """No target (a stopped source, the clutch, a stop): hold where told."""
         self._q_goal = None
         self._tip_goal = None
+        self._taken = None
 
     def take(self, p: Vec3, here: Sequence[float], first: bool) -> tuple[bool, bool, bool]:
         """A new target ``p`` (world frame, m), the joints told to be at ``here``, ``first``
@@ -83,14 +88,17 @@ class ServoTarget:
         taken: refused (too far) or no target (not finite, unsolvable); the robot holds."""
         data, ctx = self.data, self.ctx
         assert data is not None and ctx is not None
-        self.drop()
         target = self._to_base(p, data.base)
+        if target is not None and target == self._taken and not first:
+            return True, self._taken_clamped, False  # its way goes on, not solved again
+        self.drop()
         if target is None:
             return False, False, True
         if not self._within_reach(target, here, ctx):
             return False, False, False
         if first or self._rotation is None:
             self._rotation = np.asarray(ctx.frame.fk(here))[:3, :3].copy()
+        self._taken, self._taken_clamped = target, False
         if self.orientation == "rcm":
             self._tip_goal = target
             self._first_solve = True
@@ -101,9 +109,11 @@ class ServoTarget:
             else:
                 q, clamped = ctx.frame.ik_clamped(target, list(here))
         except (KinematicsError, ValueError):
+            self._taken = None
             return False, False, True
         self._q_goal = q
-        return True, bool(clamped), False
+        self._taken_clamped = bool(clamped)
+        return True, self._taken_clamped, False
 
     def step(self, here: Sequence[float]) -> tuple[list[float] | None, bool, bool, bool]:
         """This tick's joints on the way to the target from ``here``: (joints or None to
@@ -118,10 +128,11 @@ class ServoTarget:
         try:
             q, clamped, slowed = self.six.solve(tip, here)
         except (KinematicsError, ValueError):
-            self._tip_goal = None
+            self.drop()
             return None, False, False, True
         if not slowed:
             self._tip_goal = None  # there: its pose solved, nothing left to do until the next
+        self._taken_clamped = self._taken_clamped or clamped
         clamped, self._first_solve = clamped and self._first_solve, False
         return q, slowed, clamped, False
 
