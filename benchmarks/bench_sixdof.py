@@ -10,8 +10,9 @@ the servo cases on a SlaveRig, a target every other tick):
 - ``fast``: the gimbal at 2 Hz and 40 degrees about z: the wrist slowed to 0.9 of its limit on
   every tick, so a solve on every tick (the one between two samples too).
 - ``rcm-fast``: ``orientation: rcm`` (the port 100 mm up the axis), the master's circle at 2 Hz:
-  slowed on every tick, each slowed step solved twice (the full pose, then the pose a share of
-  the straight way on, through the port).
+  slowed on every tick; the first slowed step solved twice (the full pose, then the pose a share
+  of the straight way on, through the port), the next ones once (the tip as far on as the last
+  step went at the limits).
 - ``servo-rcm``: ``mapping: absolute`` with ``orientation: rcm``, a servo target drawing a 20 mm
   circle at 1 Hz around the tip.
 - ``servo-follow``: ``mapping: absolute`` with ``orientation: follow``, the same circle: one
