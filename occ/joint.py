@@ -240,9 +240,10 @@ def step_together(values: list[float], target: Sequence[float], steps: Sequence[
     """Move ``values`` (in place) toward ``target`` along the straight line between them, by
     the largest common fraction of the way that keeps every joint within its ``steps``; True
     while still away. Every joint arrives on the same tick: the path in joint space is the
-    straight line, not :func:`step_toward`'s corner (where the faster joints arrive first),
-    so a constraint both ends meet (a tool's axis through a port) is left only to second order
-    in the distance, never by the first-order detour of one joint moving alone."""
+    straight line, not the corner of each joint stepping on its own (where the faster joints
+    arrive first), so a constraint both ends meet (a tool's axis through a port) is left only
+    to second order in the distance, never by the first-order detour of one joint moving
+    alone."""
     frac = 1.0
     for i, step in enumerate(steps):
         d = target[i] - values[i]
@@ -260,20 +261,3 @@ def step_together(values: list[float], target: Sequence[float], steps: Sequence[
     for i, v in enumerate(values):
         values[i] = v + frac * (target[i] - v)
     return True
-
-
-def step_toward(values: list[float], target: Sequence[float], steps: Sequence[float]) -> bool:
-    """Move each of ``values`` (in place) toward ``target`` by at most its ``steps``; True
-    while any is still away (a rate limit: a re-join after a hold, an absolute servo target)."""
-    away = False
-    for i, step in enumerate(steps):
-        d = target[i] - values[i]
-        if d > step:
-            values[i] += step
-            away = True
-        elif d < -step:
-            values[i] -= step
-            away = True
-        else:
-            values[i] = target[i]
-    return away

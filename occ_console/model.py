@@ -156,7 +156,8 @@ def cell_of(stats: dict[str, Any]) -> dict[str, Any] | None:
             "chain_ok": m.get("chain_ok"),
         })  # fmt: skip
     last = cell.get("last_stop") if isinstance(cell.get("last_stop"), dict) else None
-    latched = cell.get("latched") if isinstance(cell.get("latched"), dict) else {}
+    raw = cell.get("latched")
+    latched: dict[Any, Any] = raw if isinstance(raw, dict) else {}
     return {
         "name": cell.get("name"),
         "me": cell.get("me"),

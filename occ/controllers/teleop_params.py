@@ -378,14 +378,19 @@ class SlaveParams(_Params):
         "re-index. `absolute` (an external command source, e.g. CRTK `servo_cp` through "
         "`occ-ros2 --servo`): each sample is the tip's target position in the patient frame "
         "(mm; what 3D Slicer's `Tip` and ROS 2's `measured_cp` show), `scale` and `rotation` "
-        "unused; the joints move toward it at no more than their velocity limits; a target "
-        "farther than `max_jump_mm` from the tip is refused (hold and an ALERT); `run=0` or "
-        "the clutch pressed holds.",
+        "unused; every joint moves toward it together along the straight line, at no more "
+        "than 0.9 of its velocity limit (with `orientation: follow` the tool keeps the "
+        "orientation it had when the source took control; with `rcm` the tip goes along the "
+        "straight way, the tool's axis through the port at every tick); a target farther than "
+        "`max_jump_mm` from the tip is refused (hold and an ALERT); `run=0` or the clutch "
+        "pressed holds.",
     )
     max_jump_mm: PosFloat = Field(
         10.0,
         description="`absolute`: the farthest a target may be from where the tip is told to "
-        "be (mm); a farther one is refused, the robot holds (a servo command is a small step; "
+        "be (mm); a farther one is refused, never clipped nor approached: the robot holds "
+        "where it was told to be (on the way to an earlier target too), stays RUNNING, and the "
+        "operators get one ALERT per run of refused samples (a servo command is a small step; "
         "a far goal is a `move_cp`, planned and acknowledged).",
     )
     force: SlaveForceParams | None = Field(

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from occ.joint import Joint, JointLimits, PIDGains, step_together, step_toward
+from occ.joint import Joint, JointLimits, PIDGains, step_together
 
 
 def make_joint(**gains: float) -> Joint:
@@ -227,26 +227,6 @@ def test_a_saturated_output_unwinds_when_the_error_opposes_it() -> None:
     assert j.servo(0.1, 0.001) == -5.0
     out = j.servo(0.1, 0.001)  # the joint stopped: D = 0
     assert out == pytest.approx(1.92 + 0.92)
-
-
-def test_step_toward_moves_each_joint_on_its_own() -> None:
-    """Each joint at most its own step toward its target, independently: the near ones
-    arrive first, exactly on the target; True while any is away."""
-    values = [0.0, 1.0, -1.0]
-    target = [0.25, 0.0, -1.0]
-    assert step_toward(values, target, [0.1, 0.4, 0.1])
-    assert values == pytest.approx([0.1, 0.6, -1.0])
-    assert step_toward(values, target, [0.1, 0.4, 0.1])
-    assert values == pytest.approx([0.2, 0.2, -1.0])
-    assert not step_toward(values, target, [0.1, 0.4, 0.1])  # both within a step: there
-    assert values == target
-    values = [0.0]
-    assert step_toward(values, [-1.0], [0.3]) is True and values == [-0.3]
-    values = [0.0]
-    assert step_toward(values, [1.0], [0.3]) is True and values == [0.3]
-    # exactly one step away either way: there, so no longer away (binary-exact values)
-    values = [0.0, 0.0]
-    assert step_toward(values, [0.5, -0.25], [0.5, 0.25]) is False and values == [0.5, -0.25]
 
 
 def test_every_refusal_of_a_joint_says_what_is_wrong() -> None:

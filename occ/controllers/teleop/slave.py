@@ -30,7 +30,6 @@ from occ.events import InputEvent
 from occ.haptics.forces import SlaveForce
 from occ.haptics.forceviz import ForceView
 from occ.haptics.gripper import GripperFollower
-from occ.joint import step_toward
 from occ.samples import PoseSample
 
 if TYPE_CHECKING:
@@ -102,12 +101,12 @@ class SlaveController(Controller):
             self.rotation, p.rotation_scale, p.rcm_mm if p.orientation == "rcm" else None
         )
         self.rcm_error_max = 0.0
+        #: the last pose solve was slowed to the velocity limits short of its target: the
+        #: ticks between samples go on toward it (a 500 Hz stream on the 1 kHz loop)
+        self._behind = False
         #: ``absolute`` mapping (an external command source, CRTK ``servo_cp``)
         self.absolute = p.mapping == "absolute"
-        self.servo = ServoTarget(p.max_jump_mm * MM)
-        #: where the joints are going (absolute mapping): the last accepted target's solution
-        self._q_goal: list[float] | None = None
-        self._step: list[float] = []
+        self.servo = ServoTarget(p.max_jump_mm * MM, self.six, p.orientation)
         self.rate_limited = 0
         #: the jaw that follows the master's gripper value (occ/haptics/gripper.py)
         self._gripper_params = p.gripper
@@ -170,9 +169,7 @@ class SlaveController(Controller):
     def configure(self, data: RobotData, ctx: ControllerContext) -> None:
         super().configure(data, ctx)
         self.six.bind(data, ctx)
-        # absolute mapping: a step per tick within the velocity limits (the drivers' check
-        # allows the limit itself; 0.9 keeps clear of it)
-        self._step = [0.9 * lim.velocity * ctx.period_s for lim in ctx.joint_limits]
+        self.servo.bind(data, ctx)
         g = self._gripper_params
         if g is not None:
             i = data.joint_names.index(g.joint)
@@ -182,7 +179,8 @@ class SlaveController(Controller):
                     f"teleop-slave gripper: joint '{g.joint}' moves the tool's tip "
                     f"({moves:.3g} m per unit): a jaw must not"
                 )
-            self.gripper = GripperFollower(i, g.joint, g.open, g.closed, self._step[i])
+            step = 0.9 * ctx.joint_limits[i].velocity * ctx.period_s
+            self.gripper = GripperFollower(i, g.joint, g.open, g.closed, step)
         fp = self.force_params
         if fp is not None:
             self.force = build_force(fp, data, ctx)
@@ -256,7 +254,7 @@ class SlaveController(Controller):
             if self.gripper is not None:
                 self.gripper.restart()
             if self.absolute:  # from where the drives hold; the last target checked afresh
-                self._q_goal = None
+                self.servo.drop()
                 self._q_last = None
                 self._fresh = self.master_pos is not None
             elif old is RobotState.STOPPED:
@@ -317,20 +315,25 @@ class SlaveController(Controller):
             shaper.raw = raw
         # the contact force once a tick (base frame): whether to shape, and how
         force = shaper.force_base()
-        if not fresh and self._q_last is not None and not shaper.shaping(force):
-            return self._q_last  # no new master sample since the last solve: same target
+        # no new master sample since the last solve: the same target, reached already unless
+        # the solve was slowed (then this tick goes on toward it, SR-SIXDOF-1)
+        idle = not fresh and self._q_last is not None and not self._behind
+        if idle and not shaper.shaping(force):
+            return self._q_last
         before = shaper.cmd
         target = shaper.shape(now, force)
-        if not fresh and target == before and self._q_last is not None:
+        if idle and target == before:
             return self._q_last
         try:
             if self.follow_orientation:
                 q, clamped, limited = self.six.solve(target, self._q_last)
                 self.rate_limited += limited
+                self._behind = limited
             else:
                 q, clamped = ctx.frame.ik_clamped(target, data.q)
         except (KinematicsError, ValueError):
             self.ik_failures += 1
+            self._behind = False  # tried again with the next sample, not every tick
             return self._q_last
         if clamped:
             self.clamped += 1
@@ -356,6 +359,7 @@ class SlaveController(Controller):
             self.six.reindex(here)
         self.reindexes += 1
         self._q_last = list(here)
+        self._behind = False
         sx, sy, sz = self.slave_ref
         self.shaper.reindex((float(sx), float(sy), float(sz)), now)
 
@@ -385,40 +389,39 @@ class SlaveController(Controller):
         self.shaper.released_mm += length / MM
 
     def _update_absolute(self, data: RobotData, ctx: ControllerContext) -> Sequence[float] | None:
-        """The ``absolute`` mapping: each sample is the tip's target in the patient frame.
-
-        A new target is checked against where the tip is told to be (``max_jump_mm``) and
-        solved once; every tick the joints step toward the solution by at most 0.9 times their
-        velocity limit. A stopped stream (``run=0``), the clutch, a refused or unsolvable
-        target: hold where the joints were told to be (never a jump when it comes back)."""
+        """The ``absolute`` mapping (absolute.py): each sample is the tip's target in the
+        patient frame, judged against where the tip is told to be (``max_jump_mm``); every
+        tick the joints go on toward it, together, within 0.9 of their velocity limits. A
+        stopped stream (``run=0``), the clutch, a refused or unsolvable target: hold where the
+        joints were told to be (never a jump when it comes back)."""
         here = self._q_last if self._q_last is not None else data.commanded()
+        servo = self.servo
         if self.master_pos is None or not self.master_run or self.master_clutch:
-            self._q_goal = None
+            servo.drop()
             self.master_ref = None
             return self._q_last
         if self._fresh:
             self._fresh = False
-            self._q_goal = None
             self.master_ref = None
-            q, clamped, failed = self.servo.solve(self.master_pos, here, data, ctx)
-            if q is None:
+            first = self._q_last is None
+            taken, clamped, failed = servo.take(self.master_pos, here, first)
+            if not taken:
                 self.ik_failures += failed
                 return self._q_last
-            if clamped:
-                self.clamped += 1
-            self._q_goal = q
+            self.clamped += clamped
             self.master_ref = self.master_pos
-            self.reindexes += self._q_last is None
-        goal = self._q_goal
-        if goal is None:
+            self.reindexes += first
+        q, slowed, clamped, failed = servo.step(here)
+        self.clamped += clamped
+        if q is None:
+            self.ik_failures += failed
             return self._q_last
-        out = list(here)
-        self.rate_limited += step_toward(out, goal, self._step)
-        self._q_last = out
+        self.rate_limited += slowed
+        self._q_last = q
         if self.pending_ts is not None:
             self.latency_us.add((ctx.clock.wall_time() - self.pending_ts) * 1e6)
             self.pending_ts = None
-        return out
+        return q
 
     def stats(self) -> dict[str, Any]:
         phase = self.phase
