@@ -126,7 +126,9 @@ def test_a_plan_clear_of_the_regions_passes_and_runs() -> None:
         assert sim.robot.state is RobotState.RUNNING
         assert np.allclose(sim.robot.data.setpoint, low, atol=1e-9)
         guard = sim.robot.collision
-        assert guard is not None and guard.stops == 0 and guard.verdicts > 2000
+        assert guard is not None and guard.stops == 0 and guard.holds == 0
+        # every setpoint offered, each covered by a verdict; a new one only when due
+        assert guard.verdicts + guard.skipped > 2000 and guard.verdicts < 200
     finally:
         sim.close()
 
