@@ -495,7 +495,8 @@ class Checker:
                     (best - margin, best, cm.links[i].name, f"{ARM}{arm.name}:{plinks[j].name}")
                 )
             pobjs = arm.arm.geom.geometryObjects
-            for i, j in zip(*np.nonzero(near), strict=True):
+            rows, cols = np.nonzero(near)
+            for i, j in zip(rows.tolist(), cols.tolist(), strict=True):
                 res.clear()
                 d = coal.distance(objs[i].geometry, tf[i], pobjs[j].geometry, pl.tf[j], req, res)
                 self.exact += 1
@@ -544,7 +545,7 @@ class Checker:
         far = float(low[~near].min()) if not near.all() else math.inf
         if not near.any():
             return far
-        parts = tuple(r.parts[k] for k in np.flatnonzero(near))
+        parts = tuple(r.parts[k] for k in np.flatnonzero(near).tolist())
         return min(far, self._levels(g, tf, parts, r.placement, far))
 
     def _levels(self, g: Any, tf: Any, parts: Sequence[Any], placement: Any, cap: float) -> float:
