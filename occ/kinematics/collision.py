@@ -1,5 +1,7 @@
 """Whole-arm collision checking (issue 28): the arm's links and its tool against forbidden
-regions and against each other, with coal (the collision library under pinocchio).
+regions, against each other and against the other arms of its cell (issue 40), with coal (the
+collision library under pinocchio). The arm geometry is built in occ/kinematics/armgeom.py,
+the regions in occ/kinematics/regions.py, the other arms in occ/kinematics/peers.py.
 
 What is checked
     The links' collision geometry from the robot's URDF (``pin.buildGeomFromUrdf``, the meshes
@@ -13,14 +15,18 @@ What is checked
     (``RobotData.base``) times forward kinematics. Self-collision: every pair of links that
     are not adjacent (same joint, or parent and child), minus the SRDF's
     ``disable_collisions`` pairs (the package's ``srdf/<urdf name>.srdf`` when there is one);
-  none for capsules (they meet at every joint by construction).
+    none for capsules (they meet at every joint by construction). Other arms (*peers*,
+    :meth:`CollisionModel.add_peer`): each built from its ``frame:`` configuration by the
+    same hull and capsule rules, every own link checked against every one of its links at
+    its last known state, with the regions' margin.
 
 What a check says
     :meth:`Checker.check` (``q``, base) gives every pair closer than its margin as a
-    :class:`Contact` (link, region or ``self:<link>``, signed distance: negative is
-    penetration), nearest first; :meth:`Checker.clearance` the nearest pair and the smallest
-    slack (distance minus the pair's margin) in one pass, which is what the plan check and the
-    run-time guard use.
+    :class:`Contact` (link, region, ``self:<link>`` or ``arm:<arm>:<link>``, signed
+    distance: negative is penetration; ``Contact.pair`` names both sides, e.g.
+    ``wrist_3_link vs ur5-b:forearm_link``), nearest first; :meth:`Checker.clearance` the
+    nearest pair and the smallest slack (distance minus the pair's margin) in one pass, which
+    is what the plan check and the run-time guard use.
 
 Cost
     A pair costs a coal distance call (~2 us between two hulls or a hull and a sphere or a
@@ -31,8 +37,11 @@ Cost
     ``margin`` plus 50, 25, 12.5 or 0 mm of it (collision queries with a security margin,
     ~10 us each where the mesh's exact distance costs 200-600 us), its distance then the
     largest of those it exceeds; only inside the margin is the exact distance computed (for
-    the report). A coal call holds the interpreter lock while it runs, so its cost is what the
-    loop may wait for (docs/BENCHMARKS.md, "Collision checking").
+    the report); a mesh in parts asks only the parts whose balls are near. A peer arm's
+    pairs are settled by their balls in one array operation, coal only for the near ones,
+    and a peer is placed once per state, not per check. A coal call holds the interpreter
+    lock while it runs, so its cost is what the loop may wait for (docs/BENCHMARKS.md,
+    "Collision checking").
 
 How far a link can move: :meth:`CollisionModel.bound`
     ``sum_i |dq_i| R_i``, with ``R_i`` the reach of joint ``i`` (the farthest any point of the
@@ -47,16 +56,31 @@ How far a link can move: :meth:`CollisionModel.bound`
 
 Run time: :class:`CollisionGuard`
     The loop never computes a distance. Each tick it offers the setpoint it just wrote to the
-    guard (``publish``: O(1), a job for the guard's own worker thread when it is idle); the
-    worker checks it and posts a *verdict* (the configuration, its clearance, its slack, the
-    nearest pair) by swapping one reference. The loop then:
+    guard (``publish``: O(1), a job for the guard's own worker thread when it is idle and a
+    verdict is *due*); the worker checks it and posts a *verdict* (the configuration, its
+    clearance, its slack, the nearest pair, the state of each peer arm it used and the
+    distance to it) by swapping one reference. A verdict is due (:meth:`CollisionGuard.due`)
+    when the regions, the arms of the cell or the base pose changed, or the setpoint has used
+    a quarter of the last clearance (``RECHECK_FRACTION``, half of what admission allows, so
+    the next verdict comes before the loop must hold), or a peer has a newer state and its
+    possible motion has used as much; otherwise the last verdict covers the setpoint with room
+    to spare and the check would add nothing (most ticks: docs/BENCHMARKS.md). The loop then:
 
     - *admits* each new setpoint only when its bound from the last verdict's configuration is
       under half that verdict's clearance (:meth:`CollisionGuard.admit`); otherwise it holds
       the previous setpoint (a late verdict holds the robot, the way a late stream does, and
       the re-entry after it is rate-limited). So whatever the worker's timing, no link gets
       closer than half the clearance the last verdict saw, and a verdict inside the margin
-      stops the robot at least a quarter of the margin away;
+      stops the robot at least a quarter of the margin away. Against a peer arm the verdict
+      saw ``d`` away from the state it was last told (measured at ``t``), the setpoint is
+      admitted at ``now`` only while its bound plus the peer's speed bound times
+      ``now - t`` (occ/kinematics/peers.py: its velocity limits through its reach) is under
+      ``d / 2``: whatever the peer does within its velocity limits, the two stay more than
+      ``d / 2`` apart, so two arms driven toward each other, each stopping on a verdict
+      inside the margin, end more than half the margin apart. A peer never heard of, or
+      whose last state is older than ``stale_s`` (50 ms), is an unknown obstacle: the guard
+      holds (admits nothing) and says why (``held_for``, :meth:`CollisionGuard.peer_problem`);
+      one that left the cell (:meth:`CollisionGuard.peer_gone`) is not checked;
     - *stops* when a verdict's slack is negative (a link inside its margin):
       ``CollisionGuard.poll`` returns the reason and the robot raises its safety stop
       (STOPPED, or FAULT with ``policy: fault``) with an ALERT ``COLLISION`` naming the link,
@@ -709,6 +733,7 @@ class CollisionGuard:
         self._best = math.inf
         self._stopped_for: Verdict | None = None
         self.running = False
+        self._new_run = False  # a stop ended the run: the next RUNNING tick starts another
         # statistics
         self.verdicts = 0
         self.skipped = 0  # setpoints the last verdict still covered with room: not checked
@@ -771,7 +796,7 @@ class CollisionGuard:
         (:meth:`on_running`), the reason to stop now if a verdict says so (:meth:`poll`), and
         the new setpoint handed to the worker (run-time checking on, the drives powered)."""
         running = state.value == "RUNNING"
-        if running != self.running:
+        if running != self.running or (running and self._new_run):
             self.on_running(running)
         why = self.poll()
         if self.runtime and state.value in ("ENABLED", "RUNNING", "STOPPED"):  # powered
@@ -827,9 +852,10 @@ class CollisionGuard:
 
     def due(self, v: Verdict, q: Sequence[float], base: Any, now: float | None) -> bool:
         """Is a new verdict due for ``q``? When the regions, the arms of the cell or the base
-        pose changed, when ``q`` used :data:`RECHECK_FRACTION` of ``v``'s clearance, or when a
-        peer arm has a newer state and its possible motion since ``v``'s, with ``q``'s, used
-        as much of its clearance. Otherwise ``v`` covers ``q`` with room to spare."""
+        pose changed, when ``q`` used :data:`RECHECK_FRACTION` of ``v``'s clearance (to the
+        regions and own links, or to a peer arm), or when a peer arm has a newer state and its
+        possible motion since ``v``'s, with ``q``'s, used as much of its clearance. Otherwise
+        ``v`` covers ``q`` with room to spare."""
         cm = self.cm
         if v.version != cm.version or v.peer_epoch != cm.peer_epoch:
             return True
@@ -839,6 +865,8 @@ class CollisionGuard:
         if own >= RECHECK_FRACTION * v.gap:
             return True
         for arm, st, d in v.peers:
+            if own >= RECHECK_FRACTION * d:
+                return True
             if arm.state is st:
                 continue  # nothing newer to check against
             if st is None or now is None or own + arm.speed * (now - st.t) >= RECHECK_FRACTION * d:
@@ -906,6 +934,7 @@ class CollisionGuard:
         """The robot enters (True) or leaves RUNNING: a run starts with the current slack as
         its best, so one started inside the margin may move away."""
         self.running = running
+        self._new_run = False
         v = self.verdict
         self._best = v.slack if (running and v is not None) else math.inf
         self._stopped_for = None
@@ -924,8 +953,8 @@ class CollisionGuard:
         self._stopped_for = v
         self.stops += 1
         # the run ends here: a Run in the very next tick (before this guard sees the stopped
-        # state) starts a new one from this verdict's slack
-        self.running = False
+        # state) starts a new one from this verdict's slack (after_control)
+        self._new_run = True
         w = v.worst
         margin = self.cm.self_margin if w.region.startswith("self:") else self.cm.margin
         self.last_contact = f"{w.describe()} (margin {margin / MM:g} mm)"

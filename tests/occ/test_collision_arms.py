@@ -285,6 +285,9 @@ def test_a_new_verdict_is_due_only_when_something_changed_or_a_quarter_is_used()
     assert not guard.due(v, HOME, eye, 2.5)  # no newer state: nothing new to check against
     guard.publish(HOME, eye, 2.5)
     assert guard.verdicts == 1 and guard.skipped == 1
+    assert d < v.gap  # the arm is the nearest: a quarter of d used by the own motion is due
+    toward = [HOME[0] + 0.26 * d / cm.reach[0], *HOME[1:]]
+    assert 0.26 * d < 0.25 * v.gap and guard.due(v, toward, eye, 2.0)
     guard.peer_update("ur5-b", REACH, b_base(), 2.0 + 0.1 * d / arm.speed)
     assert not guard.due(v, HOME, eye, 2.0 + 0.2 * d / arm.speed)  # newer, little used
     assert guard.due(v, HOME, eye, 2.0 + 0.26 * d / arm.speed)
