@@ -18,11 +18,22 @@ at run time does to the loop.
     ``--duration`` seconds each: the slave loop's lateness p99.9 and max, its CPU, and the
     guard's verdicts, holds and stops (both must be zero: nothing is near).
 
+``guard``
+    The run-time guard alone, inline, on the master's circle at 1 kHz: CPU per tick with a
+    verdict every tick against one when due, with and without a peer arm (issue 40).
+
+``mesh``
+    A 3D Slicer model (1k, 10k, 200k triangles) made a region on a thread of its own, in parts,
+    while the main thread ticks: the build time, the longest tick wait, the one-call build, and
+    a check near it in parts against one hierarchy (issue 40).
+
 Examples::
 
     python benchmarks/bench_collision.py check
     python benchmarks/bench_collision.py loop --duration 60
     python benchmarks/bench_collision.py loop --duration 60 --runtime-hz 250
+    python benchmarks/bench_collision.py guard --seconds 10
+    python benchmarks/bench_collision.py mesh
 
 The result is printed as JSON.
 """
@@ -239,20 +250,27 @@ def run_mesh(args: argparse.Namespace) -> dict[str, Any]:
     longest this thread waited (a tick late by that much is what the loop would see)."""
     import threading
 
+    import coal
+
     import igtl
     from occ.config import CollisionConfig
     from occ.core.assembly import build_hardware
     from occ.core.loader import load_config
     from occ.kinematics.collision import CollisionModel, regions_from_event
+    from occ.kinematics.regions import Region, _bvh
     from occ.net.decoders import event_of
 
+    sys.setswitchinterval(500e-6)  # as the daemon sets it (configs/ur5.yaml switch_interval_us)
     daemon = load_config(ROOT / "configs" / "ur5.yaml")
     _joints, frame, _pairs = build_hardware(daemon.robot)
+    probe = CollisionModel.build(CollisionConfig(), daemon.robot.frame, frame).checker()
+    probe.pairs(HOME)
+    above_wrist = np.asarray(probe._centres[5]) * 1e3 + np.array([0.0, 0.0, 150.0])
     out: dict[str, Any] = {"mode": "mesh", "by_triangles": {}}
     levels = {1280: 3, 20480: 5, 200_000: 7}
     for n in args.triangles:
         level = min(lv for k, lv in levels.items() if k >= n) if n <= 200_000 else 7
-        v, t = icosphere(80.0, np.array([600.0, 100.0, 400.0]), level)
+        v, t = icosphere(60.0, above_wrist, level)
         t = t[:n]
         msg = igtl.PolyDataMessage(
             points=v.astype(np.float32),
@@ -285,17 +303,23 @@ def run_mesh(args: argparse.Namespace) -> dict[str, Any]:
             th.join()
             (_name, (region,)), seconds = built
             rows.append((seconds, max(gaps)))
-        cm = CollisionModel.build(CollisionConfig(), daemon.robot.frame, frame)
-        cm.define("Model", [region])
-        checker = cm.checker()
-        rng = np.random.default_rng(2)
-        near = timed(checker, [np.array(HOME) + rng.normal(0.0, 0.02, 6) for _ in range(200)])
-        out["by_triangles"][str(len(t))] = {
+        t0 = time.perf_counter()  # the same mesh as one hierarchy, built in one call
+        single = Region("Model", "mesh", _bvh(v * 1e-3, t), coal.Transform3s())
+        one_call = time.perf_counter() - t0
+        row: dict[str, Any] = {
             "parts": len(region.parts) or 1,
             "build_ms_median": round(statistics.median(r[0] for r in rows) * 1e3, 1),
             "longest_wait_ms_max": round(max(r[1] for r in rows) * 1e3, 2),
-            "check_near_home": near,
+            "one_call_build_ms": round(one_call * 1e3, 1),
         }
+        # the check with the mesh 150 mm above the wrist: in parts, and as one hierarchy
+        for label, r in (("check_parts", region), ("check_one_bvh", single)):
+            cm = CollisionModel.build(CollisionConfig(), daemon.robot.frame, frame)
+            cm.define("Model", [r])
+            rng = np.random.default_rng(2)
+            qs = [np.array(HOME) + rng.normal(0.0, 0.02, 6) for _ in range(args.checks)]
+            row[label] = timed(cm.checker(), qs)
+        out["by_triangles"][str(len(t))] = row
     return out
 
 
@@ -370,6 +394,7 @@ def main() -> None:
     mp = sub.add_parser("mesh")
     mp.add_argument("--triangles", type=int, nargs="+", default=[1000, 10_000, 200_000])
     mp.add_argument("--repeat", type=int, default=3)
+    mp.add_argument("--checks", type=int, default=60)
     gp = sub.add_parser("guard")
     gp.add_argument("--seconds", type=float, default=20.0)
     args = ap.parse_args()
