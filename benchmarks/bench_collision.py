@@ -18,11 +18,22 @@ at run time does to the loop.
     ``--duration`` seconds each: the slave loop's lateness p99.9 and max, its CPU, and the
     guard's verdicts, holds and stops (both must be zero: nothing is near).
 
+``guard``
+    The run-time guard alone, inline, on the master's circle at 1 kHz: CPU per tick with a
+    verdict every tick against one when due, with and without a peer arm (issue 40).
+
+``mesh``
+    A 3D Slicer model (1k, 10k, 200k triangles) made a region on a thread of its own, in parts,
+    while the main thread ticks: the build time, the longest tick wait, the one-call build, and
+    a check near it in parts against one hierarchy (issue 40).
+
 Examples::
 
     python benchmarks/bench_collision.py check
     python benchmarks/bench_collision.py loop --duration 60
     python benchmarks/bench_collision.py loop --duration 60 --runtime-hz 250
+    python benchmarks/bench_collision.py guard --seconds 10
+    python benchmarks/bench_collision.py mesh
 
 The result is printed as JSON.
 """
@@ -232,6 +243,140 @@ def run_loop(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     }
 
 
+def run_mesh(args: argparse.Namespace) -> dict[str, Any]:
+    """A 3D Slicer model (POLYDATA, triangles) made a forbidden region as the desk's worker
+    makes it (occ/net/operators.py): on a thread of its own, the interpreter lock given up
+    between the mesh's parts, while this thread ticks every 0.5 ms; the build's time and the
+    longest this thread waited (a tick late by that much is what the loop would see)."""
+    import threading
+
+    import coal
+
+    import igtl
+    from occ.config import CollisionConfig
+    from occ.core.assembly import build_hardware
+    from occ.core.loader import load_config
+    from occ.kinematics.collision import CollisionModel, regions_from_event
+    from occ.kinematics.regions import Region, _bvh
+    from occ.net.decoders import event_of
+
+    sys.setswitchinterval(500e-6)  # as the daemon sets it (configs/ur5.yaml switch_interval_us)
+    daemon = load_config(ROOT / "configs" / "ur5.yaml")
+    _joints, frame, _pairs = build_hardware(daemon.robot)
+    probe = CollisionModel.build(CollisionConfig(), daemon.robot.frame, frame).checker()
+    probe.pairs(HOME)
+    above_wrist = np.asarray(probe._centres[5]) * 1e3 + np.array([0.0, 0.0, 150.0])
+    out: dict[str, Any] = {"mode": "mesh", "by_triangles": {}}
+    levels = {1280: 3, 20480: 5, 200_000: 7}
+    for n in args.triangles:
+        level = min(lv for k, lv in levels.items() if k >= n) if n <= 200_000 else 7
+        v, t = icosphere(60.0, above_wrist, level)
+        t = t[:n]
+        msg = igtl.PolyDataMessage(
+            points=v.astype(np.float32),
+            polygons=tuple(tuple(int(i) for i in tri) for tri in t),
+            device_name="Model",
+            header_version=2,
+            metadata={"kind": "forbidden-region"},
+        )
+        event = event_of(msg)
+        rows = []
+        for _ in range(args.repeat):
+            gaps: list[float] = []
+            done = threading.Event()
+            built: list[Any] = []
+
+            def build(ev: Any = event, sink: list[Any] = built, flag: Any = done) -> None:
+                t0 = time.perf_counter()
+                sink.append(regions_from_event(ev, pause=lambda: time.sleep(0)))
+                sink.append(time.perf_counter() - t0)
+                flag.set()
+
+            th = threading.Thread(target=build)
+            last = time.perf_counter()
+            th.start()
+            while not done.is_set():
+                time.sleep(0.0005)
+                now = time.perf_counter()
+                gaps.append(now - last)
+                last = now
+            th.join()
+            (_name, (region,)), seconds = built
+            rows.append((seconds, max(gaps)))
+        t0 = time.perf_counter()  # the same mesh as one hierarchy, built in one call
+        single = Region("Model", "mesh", _bvh(v * 1e-3, t), coal.Transform3s())
+        one_call = time.perf_counter() - t0
+        row: dict[str, Any] = {
+            "parts": len(region.parts) or 1,
+            "build_ms_median": round(statistics.median(r[0] for r in rows) * 1e3, 1),
+            "longest_wait_ms_max": round(max(r[1] for r in rows) * 1e3, 2),
+            "one_call_build_ms": round(one_call * 1e3, 1),
+        }
+        # the check with the mesh 150 mm above the wrist: in parts, and as one hierarchy
+        for label, r in (("check_parts", region), ("check_one_bvh", single)):
+            cm = CollisionModel.build(CollisionConfig(), daemon.robot.frame, frame)
+            cm.define("Model", [r])
+            rng = np.random.default_rng(2)
+            qs = [np.array(HOME) + rng.normal(0.0, 0.02, 6) for _ in range(args.checks)]
+            row[label] = timed(cm.checker(), qs)
+        out["by_triangles"][str(len(t))] = row
+    return out
+
+
+def run_guard(args: argparse.Namespace) -> dict[str, Any]:
+    """The run-time guard's cost per tick, inline (no thread hand-over): the UR5 following
+    the 6-DOF master's circle (configs/master6.yaml's path scaled 0.5: 25 mm at 0.5 Hz, its
+    tool turning) with the regions of ``loop``, at 1 kHz for ``--seconds``; a verdict every
+    tick (``due`` forced) against one when due, with and without a peer UR5 1.6 m away (its
+    state every 5 ticks). CPU per tick, so points of a core at 1 kHz."""
+    from occ.config import CollisionConfig
+    from occ.core.assembly import build_hardware
+    from occ.core.loader import load_config
+    from occ.kinematics.collision import CollisionGuard, CollisionModel
+
+    daemon = load_config(ROOT / "configs" / "ur5.yaml")
+    _joints, frame, _pairs = build_hardware(daemon.robot)
+    ticks = int(args.seconds * 1000)
+    home_tip = frame.fk(HOME)
+    qs = []
+    q = list(HOME)
+    for k in range(ticks):
+        a = 2.0 * math.pi * 0.5 * k * 1e-3
+        target = home_tip.copy()
+        target[:3, 3] += 0.0125 * np.array([math.cos(a) - 1.0, math.sin(a), 0.0])
+        q = list(frame.ik(target, q))
+        qs.append(q)
+    b = np.eye(4)
+    b[:3, :3] = np.diag([-1.0, -1.0, 1.0])
+    b[:3, 3] = [1.6, 0.218, 0.0]
+    out: dict[str, Any] = {"mode": "guard", "seconds": args.seconds, "runs": {}}
+    for peer in (False, True):
+        for rule in ("every tick", "when due"):
+            cm = CollisionModel.build(CollisionConfig(regions=FAR), daemon.robot.frame, frame)
+            if peer:
+                cm.add_peer("ur5-b", daemon.robot.frame, velocities=[1.0] * 6)
+            guard = CollisionGuard(cm, inline=True)
+            if rule == "every tick":
+                guard.due = lambda *_a: True  # type: ignore[method-assign]
+            base = np.eye(4)
+            t0 = time.process_time()
+            for k, qk in enumerate(qs):
+                now = k * 1e-3
+                if peer and k % 5 == 0:
+                    guard.peer_update("ur5-b", HOME, b, now)
+                guard.admit(qk, base, now)
+                guard.publish(qk, base, now)
+            cpu = time.process_time() - t0
+            label = f"{rule}{', a peer arm' if peer else ''}"
+            out["runs"][label] = {
+                "verdicts": guard.verdicts,
+                "holds": guard.holds,
+                "us_per_tick": round(cpu / ticks * 1e6, 1),
+                "points_at_1khz": round(cpu / ticks * 1e3 * 100, 2),
+            }
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="mode", required=True)
@@ -246,9 +391,19 @@ def main() -> None:
         default=None,
         help="safety.collision.runtime_hz (null: every tick)",
     )
+    mp = sub.add_parser("mesh")
+    mp.add_argument("--triangles", type=int, nargs="+", default=[1000, 10_000, 200_000])
+    mp.add_argument("--repeat", type=int, default=3)
+    mp.add_argument("--checks", type=int, default=60)
+    gp = sub.add_parser("guard")
+    gp.add_argument("--seconds", type=float, default=20.0)
     args = ap.parse_args()
     if args.mode == "check":
         result = run_check(args)
+    elif args.mode == "mesh":
+        result = run_mesh(args)
+    elif args.mode == "guard":
+        result = run_guard(args)
     else:
         with tempfile.TemporaryDirectory(prefix="bench-collision-") as tmp:
             result = run_loop(args, Path(tmp))

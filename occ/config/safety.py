@@ -214,8 +214,9 @@ class CollisionConfig(_Model):
     runtime_hz: PosFloat | None = Field(
         None,
         description="At most this many run-time verdicts a second (each costs the worker "
-        "30-70 us for the UR5: ~10 % of a core at one a tick); null = a verdict whenever the "
-        "worker is idle. Fewer verdicts mean more holds when moving fast, never less safety.",
+        "30-70 us for the UR5; one is computed only when due: the last no longer covers the "
+        "setpoint with room); null = a verdict whenever one is due and the worker is idle. "
+        "Fewer verdicts mean more holds when moving fast, never less safety.",
     )
     policy: Policy = Field(
         "hold", description="On a contact at run time: `hold` (STOPPED until Run) or `fault`."

@@ -1,5 +1,7 @@
 """Whole-arm collision checking (issue 28): the arm's links and its tool against forbidden
-regions and against each other, with coal (the collision library under pinocchio).
+regions, against each other and against the other arms of its cell (issue 40), with coal (the
+collision library under pinocchio). The arm geometry is built in occ/kinematics/armgeom.py,
+the regions in occ/kinematics/regions.py, the other arms in occ/kinematics/peers.py.
 
 What is checked
     The links' collision geometry from the robot's URDF (``pin.buildGeomFromUrdf``, the meshes
@@ -13,14 +15,18 @@ What is checked
     (``RobotData.base``) times forward kinematics. Self-collision: every pair of links that
     are not adjacent (same joint, or parent and child), minus the SRDF's
     ``disable_collisions`` pairs (the package's ``srdf/<urdf name>.srdf`` when there is one);
-  none for capsules (they meet at every joint by construction).
+    none for capsules (they meet at every joint by construction). Other arms (*peers*,
+    :meth:`CollisionModel.add_peer`): each built from its ``frame:`` configuration by the
+    same hull and capsule rules, every own link checked against every one of its links at
+    its last known state, with the regions' margin.
 
 What a check says
     :meth:`Checker.check` (``q``, base) gives every pair closer than its margin as a
-    :class:`Contact` (link, region or ``self:<link>``, signed distance: negative is
-    penetration), nearest first; :meth:`Checker.clearance` the nearest pair and the smallest
-    slack (distance minus the pair's margin) in one pass, which is what the plan check and the
-    run-time guard use.
+    :class:`Contact` (link, region, ``self:<link>`` or ``arm:<arm>:<link>``, signed
+    distance: negative is penetration; ``Contact.pair`` names both sides, e.g.
+    ``wrist_3_link vs ur5-b:forearm_link``), nearest first; :meth:`Checker.clearance` the
+    nearest pair and the smallest slack (distance minus the pair's margin) in one pass, which
+    is what the plan check and the run-time guard use.
 
 Cost
     A pair costs a coal distance call (~2 us between two hulls or a hull and a sphere or a
@@ -31,8 +37,11 @@ Cost
     ``margin`` plus 50, 25, 12.5 or 0 mm of it (collision queries with a security margin,
     ~10 us each where the mesh's exact distance costs 200-600 us), its distance then the
     largest of those it exceeds; only inside the margin is the exact distance computed (for
-    the report). A coal call holds the interpreter lock while it runs, so its cost is what the
-    loop may wait for (docs/BENCHMARKS.md, "Collision checking").
+    the report); a mesh in parts asks only the parts whose balls are near. A peer arm's
+    pairs are settled by their balls in one array operation, coal only for the near ones,
+    and a peer is placed once per state, not per check. A coal call holds the interpreter
+    lock while it runs, so its cost is what the loop may wait for (docs/BENCHMARKS.md,
+    "Collision checking").
 
 How far a link can move: :meth:`CollisionModel.bound`
     ``sum_i |dq_i| R_i``, with ``R_i`` the reach of joint ``i`` (the farthest any point of the
@@ -47,16 +56,31 @@ How far a link can move: :meth:`CollisionModel.bound`
 
 Run time: :class:`CollisionGuard`
     The loop never computes a distance. Each tick it offers the setpoint it just wrote to the
-    guard (``publish``: O(1), a job for the guard's own worker thread when it is idle); the
-    worker checks it and posts a *verdict* (the configuration, its clearance, its slack, the
-    nearest pair) by swapping one reference. The loop then:
+    guard (``publish``: O(1), a job for the guard's own worker thread when it is idle and a
+    verdict is *due*); the worker checks it and posts a *verdict* (the configuration, its
+    clearance, its slack, the nearest pair, the state of each peer arm it used and the
+    distance to it) by swapping one reference. A verdict is due (:meth:`CollisionGuard.due`)
+    when the regions, the arms of the cell or the base pose changed, or the setpoint has used
+    a quarter of the last clearance (``RECHECK_FRACTION``, half of what admission allows, so
+    the next verdict comes before the loop must hold), or a peer has a newer state and its
+    possible motion has used as much; otherwise the last verdict covers the setpoint with room
+    to spare and the check would add nothing (most ticks: docs/BENCHMARKS.md). The loop then:
 
     - *admits* each new setpoint only when its bound from the last verdict's configuration is
       under half that verdict's clearance (:meth:`CollisionGuard.admit`); otherwise it holds
       the previous setpoint (a late verdict holds the robot, the way a late stream does, and
       the re-entry after it is rate-limited). So whatever the worker's timing, no link gets
       closer than half the clearance the last verdict saw, and a verdict inside the margin
-      stops the robot at least a quarter of the margin away;
+      stops the robot at least a quarter of the margin away. Against a peer arm the verdict
+      saw ``d`` away from the state it was last told (measured at ``t``), the setpoint is
+      admitted at ``now`` only while its bound plus the peer's speed bound times
+      ``now - t`` (occ/kinematics/peers.py: its velocity limits through its reach) is under
+      ``d / 2``: whatever the peer does within its velocity limits, the two stay more than
+      ``d / 2`` apart, so two arms driven toward each other, each stopping on a verdict
+      inside the margin, end more than half the margin apart. A peer never heard of, or
+      whose last state is older than ``stale_s`` (50 ms), is an unknown obstacle: the guard
+      holds (admits nothing) and says why (``held_for``, :meth:`CollisionGuard.peer_problem`);
+      one that left the cell (:meth:`CollisionGuard.peer_gone`) is not checked;
     - *stops* when a verdict's slack is negative (a link inside its margin):
       ``CollisionGuard.poll`` returns the reason and the robot raises its safety stop
       (STOPPED, or FAULT with ``policy: fault``) with an ALERT ``COLLISION`` naming the link,
@@ -72,7 +96,6 @@ from __future__ import annotations
 import logging
 import math
 import threading
-import xml.etree.ElementTree as ET
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -84,33 +107,49 @@ import pinocchio as pin
 
 from occ.core.supervision import Worker
 from occ.errors import ConfigError
+from occ.kinematics.armgeom import ArmLink, load_arm, package_srdf, self_pairs, srdf_disabled
+from occ.kinematics.peers import PeerArm, PeerState, build_peer
+from occ.kinematics.regions import (
+    MAX_TRIANGLES,
+    MM,
+    REGION_KIND,
+    Region,
+    RegionError,
+    mesh_region,
+    plane_region,
+    region_event,
+    region_from_config,
+    regions_from_event,
+    sphere_region,
+)
 
 if TYPE_CHECKING:
-    from occ.config import CollisionConfig, FrameConfig, RegionConfig
+    from occ.config import CollisionConfig, FrameConfig
     from occ.core.data import RobotData
     from occ.core.safety import RobotState
     from occ.kinematics.frame import Frame
 
 __all__ = [
+    "MAX_TRIANGLES",
+    "REGION_KIND",
     "CollisionGuard",
     "CollisionModel",
     "Checker",
     "Contact",
+    "PeerArm",
+    "PeerState",
     "Region",
     "RegionError",
     "mesh_region",
     "plane_region",
+    "region_event",
+    "region_from_config",
     "regions_from_event",
     "sphere_region",
 ]
 
 log = logging.getLogger(__name__)
 
-MM = 1e-3
-#: the Slicer metadata ``kind`` of a forbidden region for the collision check
-REGION_KIND = "forbidden-region"
-#: the largest Slicer mesh taken as a region (triangles)
-MAX_TRIANGLES = 200_000
 #: a pair whose bounding balls are farther apart than its margin plus this is not computed
 #: exactly: the balls' distance stands for it (a lower bound)
 BROAD_PAD_M = 0.05
@@ -120,10 +159,14 @@ BROAD_PAD_M = 0.05
 MESH_LEVELS = (1.0, 0.5, 0.25, 0.125, 0.0)
 #: after a Run inside the margin, how much closer than its best the arm may come (m)
 ESCAPE_TOLERANCE_M = 0.5e-3
-
-
-class RegionError(ValueError):
-    """A region definition that cannot be used (the message says why)."""
+#: a new verdict is due once the setpoint (and a peer's possible motion) has used this much
+#: of the last verdict's clearance: half of what admission allows, so the next verdict comes
+#: before the loop must hold
+RECHECK_FRACTION = 0.25
+#: a peer arm whose last state is older than this (s) is an unknown obstacle: the guard holds
+STALE_S = 0.05
+#: the prefix of a peer arm's link in a contact's ``region`` (``arm:<arm>:<link>``)
+ARM = "arm:"
 
 
 @dataclass(frozen=True, slots=True)
@@ -131,202 +174,47 @@ class Contact:
     """A link (or the tool) closer to a region or another link than the margin."""
 
     link: str
-    region: str  # a region's name, or ``self:<link>``
+    region: str  # a region's name, ``self:<link>``, or ``arm:<arm>:<link>`` (another arm's)
     distance: float  # metres; negative: penetration
 
+    @property
+    def other(self) -> str:
+        """What the link is near: a region's name, ``<link>`` of this arm, ``<arm>:<link>``."""
+        r = self.region
+        if r.startswith("self:"):
+            return r[5:]
+        return r[len(ARM) :] if r.startswith(ARM) else r
+
+    @property
+    def pair(self) -> str:
+        """Both sides: ``wrist_3_link vs ur5-b:forearm_link``."""
+        return f"{self.link} vs {self.other}"
+
     def describe(self) -> str:
-        what = (
-            f"link {self.region[5:]!r}"
-            if self.region.startswith("self:")
-            else f"forbidden region {self.region!r}"
-        )
+        r = self.region
+        if r.startswith("self:"):
+            what = f"link {self.other!r}"
+        elif r.startswith(ARM):
+            arm, _, link = self.other.partition(":")
+            what = f"link {link!r} of the arm {arm!r} ({self.pair})"
+        else:
+            what = f"forbidden region {r!r}"
         if self.distance < 0.0:
             return f"link {self.link!r} penetrates {what} by {-self.distance / MM:.2f} mm"
         return f"link {self.link!r} is {self.distance / MM:.2f} mm from {what}"
 
 
-@dataclass(frozen=True)
-class Region:
-    """A forbidden region, placed in the patient frame (metres)."""
-
-    name: str
-    kind: str  # sphere, plane, mesh
-    geometry: Any  # a coal.CollisionGeometry
-    placement: Any  # coal.Transform3s
-    exclude: frozenset[str] = frozenset()
-    source: str = "config"  # the Slicer node it came from, or "config"
-    #: the broad phase's bound (module docstring, "Cost"): a ball around it (centre x, y, z,
-    #: 0, radius), or a plane's (nx, ny, nz, d, NaN)
-    bound: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, math.inf)
-
-    def __post_init__(self) -> None:
-        g = self.geometry
-        if isinstance(g, coal.Halfspace):
-            n = g.n
-            b = (float(n[0]), float(n[1]), float(n[2]), float(g.d), math.nan)
-            object.__setattr__(self, "bound", b)
-            return
-        g.computeLocalAABB()
-        c = self.placement.transform(np.asarray(g.aabb_center, dtype=float))
-        r = float(g.aabb_radius)
-        object.__setattr__(self, "bound", (float(c[0]), float(c[1]), float(c[2]), 0.0, r))
-
-
-def sphere_region(
-    name: str,
-    centre_mm: Sequence[float],
-    radius_mm: float,
-    *,
-    exclude: Sequence[str] = (),
-    source: str = "config",
-) -> Region:
-    c = _finite(centre_mm, name, "centre")
-    if not (math.isfinite(radius_mm) and radius_mm > 0.0):
-        raise RegionError(f"region {name!r}: radius {radius_mm} must be > 0")
-    tf = coal.Transform3s(np.eye(3), np.asarray(c) * MM)
-    return Region(name, "sphere", coal.Sphere(radius_mm * MM), tf, frozenset(exclude), source)
-
-
-def plane_region(
-    name: str,
-    point_mm: Sequence[float],
-    normal: Sequence[float],
-    *,
-    exclude: Sequence[str] = (),
-    source: str = "config",
-) -> Region:
-    """The half-space behind a plane: the side opposite ``normal`` is forbidden."""
-    p = np.asarray(_finite(point_mm, name, "point")) * MM
-    n = np.asarray(_finite(normal, name, "normal"))
-    norm = float(np.linalg.norm(n))
-    if norm < 1e-12:
-        raise RegionError(f"region {name!r}: the normal is zero")
-    n = n / norm
-    # coal's Halfspace(n, d) is {x: n.x <= d}: the forbidden side
-    hs = coal.Halfspace(n, float(n @ p))
-    return Region(name, "plane", hs, coal.Transform3s(), frozenset(exclude), source)
-
-
-def mesh_region(
-    name: str,
-    vertices_mm: Any,
-    triangles: Any,
-    *,
-    exclude: Sequence[str] = (),
-    source: str = "config",
-) -> Region:
-    """A triangle mesh (vertices in patient mm, triangles as vertex index triples)."""
-    v = np.asarray(vertices_mm, dtype=float).reshape(-1, 3)
-    t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    if len(t) == 0:
-        raise RegionError(f"region {name!r}: the mesh has no triangles")
-    if len(t) > MAX_TRIANGLES:
-        raise RegionError(f"region {name!r}: {len(t)} triangles (at most {MAX_TRIANGLES})")
-    if not np.isfinite(v).all():
-        raise RegionError(f"region {name!r}: a vertex is not a finite number")
-    if t.min() < 0 or t.max() >= len(v):
-        raise RegionError(f"region {name!r}: a triangle refers to a missing point")
-    bvh = coal.BVHModelOBBRSS()
-    bvh.beginModel(len(t), len(v))
-    bvh.addVertices(v * MM)
-    bvh.addTriangles(t)
-    bvh.endModel()
-    return Region(name, "mesh", bvh, coal.Transform3s(), frozenset(exclude), source)
-
-
-def region_from_config(rc: RegionConfig) -> Region:
-    """A region of the YAML (``safety.collision.regions``)."""
-    ex = tuple(rc.exclude_links)
-    if rc.kind == "sphere":
-        return sphere_region(rc.name, rc.point_mm, rc.radius_mm, exclude=ex)
-    if rc.kind == "plane":
-        return plane_region(rc.name, rc.point_mm, rc.normal, exclude=ex)
-    assert rc.file is not None
-    try:
-        loaded = coal.MeshLoader().load(str(rc.file), np.ones(3))
-    except Exception as err:  # noqa: BLE001 - coal raises what assimp says
-        raise RegionError(f"region {rc.name!r}: cannot read {rc.file}: {err}") from err
-    vertices = np.asarray(loaded.vertices(), dtype=float) + np.asarray(rc.point_mm)
-    tris = np.array(
-        [[tr[0], tr[1], tr[2]] for tr in (loaded.tri_indices(i) for i in range(loaded.num_tris))]
-    )
-    return mesh_region(rc.name, vertices, tris, exclude=ex)
-
-
-def _finite(values: Sequence[float], name: str, what: str) -> tuple[float, float, float]:
-    try:
-        x, y, z = (float(v) for v in values)
-    except (TypeError, ValueError):
-        raise RegionError(f"region {name!r}: the {what} needs three numbers") from None
-    if not all(math.isfinite(v) for v in (x, y, z)):
-        raise RegionError(f"region {name!r}: the {what} is not finite")
-    return (x, y, z)
-
-
-def regions_from_event(event: Any) -> tuple[str, list[Region]] | None:
-    """Forbidden regions from 3D Slicer: a message with metadata ``kind=forbidden-region``, or
-    None for any other. A Markups point list (POINT): a sphere per visible point (its radius,
-    else metadata ``radius``, else 10 mm); a Markups plane (TRANSFORM): the half-space behind
-    it, its z axis the normal out of the forbidden side (as the fixtures' planes); a model
-    (POLYDATA): its polygons, triangulated, as a mesh. Returns (the definition's name: the
-    device name, its regions: none removes it). RegionError for one that cannot be used."""
-    meta = event.meta or {}
-    if meta.get("kind", "").strip().lower() != REGION_KIND:
-        return None
-    name = event.device or "region"
-    mtype = event.kind
-    if mtype == "POINT":
-        try:
-            radius = float(meta.get("radius", 10.0))
-        except ValueError:
-            raise RegionError(
-                f"region {name!r}: radius {meta.get('radius')!r} is no number"
-            ) from None
-        out = []
-        for i, p in enumerate(x for x in event.points if x.visible):
-            r = float(p.radius) if p.radius > 0.0 else radius
-            out.append(sphere_region(f"{name}:{i}", p.position, r, source=name))
-        return name, out
-    if mtype == "TRANSFORM":
-        m = np.asarray(event.matrix, dtype=float)
-        if m.shape != (4, 4) or not np.isfinite(m).all():
-            raise RegionError(f"region {name!r}: not a transform")
-        point, normal = m[:3, 3].tolist(), m[:3, 2].tolist()
-        return name, [plane_region(name, point, normal, source=name)]
-    if mtype == "POLYDATA":
-        pts = np.asarray(event.points, dtype=float).reshape(-1, 3)
-        tris: list[tuple[int, int, int]] = []
-        for i, cell in enumerate(event.polygons):
-            if len(cell) < 3:
-                raise RegionError(f"region {name!r}: polygon {i} has fewer than 3 points")
-            tris.extend((cell[0], cell[k], cell[k + 1]) for k in range(1, len(cell) - 1))
-        for strip in event.strips:
-            for k in range(len(strip) - 2):
-                a, b, c = strip[k], strip[k + 1], strip[k + 2]
-                tris.append((a, b, c) if k % 2 == 0 else (b, a, c))
-        if not tris:
-            return name, []
-        return name, [mesh_region(name, pts, tris, source=name)]
-    raise RegionError(f"region {name!r}: a {mtype} defines no region (POINT, TRANSFORM, POLYDATA)")
-
-
 # ------------------------------------------------------------------------------ the model
-@dataclass(frozen=True)
-class _Link:
-    name: str
-    index: int  # in the geometry model
-    joint: int
-
-
 @dataclass
 class CollisionModel:
-    """The arm's collision geometry, its self-collision pairs, and the forbidden regions (an
-    immutable tuple swapped whole: :meth:`set_regions`). Thread-safe to share; each thread
-    checks with its own :meth:`checker`."""
+    """The arm's collision geometry, its self-collision pairs, the forbidden regions (an
+    immutable tuple swapped whole: :meth:`define`) and the other arms of its cell
+    (:meth:`add_peer`; their states change under a check: each is one reference). Thread-safe
+    to share; each thread checks with its own :meth:`checker`."""
 
     model: Any  # pin.Model
     geom: Any  # pin.GeometryModel
-    links: tuple[_Link, ...]
+    links: tuple[ArmLink, ...]
     self_pairs: tuple[tuple[int, int], ...]
     reach: tuple[float, ...]  # per joint (q index), metres per unit of q
     margin: float  # metres
@@ -335,6 +223,13 @@ class CollisionModel:
     regions: tuple[Region, ...] = ()
     #: bumped by every change of the regions (a plan checked against older ones is stale)
     version: int = 0
+    #: the other arms of the cell (a tuple swapped whole), and a number bumped whenever one
+    #: is added, leaves or comes back (a verdict for another set of arms is no verdict)
+    peers: tuple[PeerArm, ...] = ()
+    peer_epoch: int = 0
+    #: how a peer's geometry is built (the own arm's rules: ``safety.collision``)
+    convex: bool = True
+    link_radius: float = 0.03
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     # ------------------------------------------------------------------ build
@@ -347,41 +242,11 @@ class CollisionModel:
     ) -> CollisionModel:
         """From the configuration: the URDF's collision geometry (capsules where it has
         none), the tool, the self pairs, the configured regions. ConfigError naming the key."""
-        from occ.kinematics.frame import BUILTIN_MODELS, robots_dir
-
-        model = frame.model
-        urdf = frame_cfg.urdf_path()
-        if urdf is None:
-            assert frame_cfg.model is not None
-            urdf = robots_dir() / BUILTIN_MODELS[frame_cfg.model][0]
-        dirs = [str(urdf.parent)]
-        if frame_cfg.package is not None:
-            from occ.config import package_dir
-
-            dirs.insert(0, str(package_dir(frame_cfg.package).parent))
-        try:
-            geom = pin.buildGeomFromUrdf(
-                model, str(urdf), pin.GeometryType.COLLISION, package_dirs=dirs
-            )
-        except (RuntimeError, ValueError) as err:
-            raise ConfigError(
-                f"safety.collision: the URDF's collision geometry does not load: {err}"
-            ) from err
-        if cfg.convex:
-            for g in geom.geometryObjects:
-                if isinstance(g.geometry, coal.BVHModelBase):
-                    g.geometry.buildConvexRepresentation(False)
-                    g.geometry = g.geometry.convex
-        capsules = geom.ngeoms == 0
-        if capsules:
-            _add_capsules(model, geom, frame.tip_link, cfg.link_radius_mm * MM)
-        if cfg.tool is not None:
-            _add_tool(model, geom, frame.tip_link, cfg.tool.length_mm * MM, cfg.tool.radius_mm * MM)
-        links = tuple(
-            _Link("tool" if g.name == "tool" else _link_name(model, g), i, int(g.parentJoint))
-            for i, g in enumerate(geom.geometryObjects)
+        tool = None if cfg.tool is None else (cfg.tool.length_mm * MM, cfg.tool.radius_mm * MM)
+        arm = load_arm(
+            frame_cfg, frame, convex=cfg.convex, link_radius=cfg.link_radius_mm * MM, tool=tool
         )
-        names = {lk.name for lk in links}
+        names = {lk.name for lk in arm.links}
         for i, rc in enumerate(cfg.regions):
             for ex in rc.exclude_links:
                 if ex not in names:
@@ -389,32 +254,28 @@ class CollisionModel:
                         f"safety.collision.regions[{i}].exclude_links: no link {ex!r} with "
                         f"collision geometry (links: {', '.join(sorted(names))})"
                     )
-        base_inv = None
-        if frame.base_link is not None:
-            fid = model.getFrameId(frame.base_link)
-            d = model.createData()
-            pin.framesForwardKinematics(model, d, pin.neutral(model))
-            base_inv = d.oMf[fid].inverse()
         pairs: tuple[tuple[int, int], ...] = ()
         # capsules between joint origins meet at every joint (an RCM's tool passes through the
         # column's top): their self pairs would be contacts by construction, so none
-        if cfg.self_collision and not capsules:
-            srdf = Path(str(cfg.srdf)) if cfg.srdf is not None else _package_srdf(urdf)
-            pairs = _self_pairs(model, links, _srdf_disabled(srdf) if srdf else set())
+        if cfg.self_collision and not arm.capsules:
+            srdf = Path(str(cfg.srdf)) if cfg.srdf is not None else package_srdf(arm.urdf)
+            pairs = self_pairs(arm.model, arm.links, srdf_disabled(srdf) if srdf else set())
         try:
             regions = tuple(region_from_config(rc) for rc in cfg.regions)
         except RegionError as err:
             raise ConfigError(f"safety.collision.regions: {err}") from err
         return cls(
-            model=model,
-            geom=geom,
-            links=links,
+            model=arm.model,
+            geom=arm.geom,
+            links=arm.links,
             self_pairs=pairs,
-            reach=_reach(model, geom),
+            reach=arm.reach,
             margin=cfg.margin_mm * MM,
             self_margin=cfg.self_margin_mm * MM,
-            base_inv=base_inv,
+            base_inv=arm.base_inv,
             regions=regions,
+            convex=cfg.convex,
+            link_radius=cfg.link_radius_mm * MM,
         )
 
     # ------------------------------------------------------------------ regions
@@ -427,6 +288,50 @@ class CollisionModel:
             self.regions = keep + tuple(regions)
             self.version += 1
             return self.version
+
+    # ------------------------------------------------------------------ other arms
+    def add_peer(
+        self,
+        name: str,
+        frame_cfg: FrameConfig,
+        *,
+        velocities: Sequence[float] | None = None,
+        tool: tuple[float, float] | None = None,
+    ) -> PeerArm:
+        """Another arm of the cell, checked against every link of this one (the regions'
+        margin) once its state is known (:meth:`CollisionGuard.peer_update`): its link
+        geometry from ``frame_cfg`` (the robot section's ``frame:`` schema) by this arm's hull
+        and capsule rules, ``velocities`` its joints' limits (None: its URDF's), ``tool``
+        (length, radius) in metres. ConfigError for a name taken or geometry that cannot be
+        used. Until its first state it is an unknown obstacle (the guard holds)."""
+        with self._lock:
+            if any(p.name == name for p in self.peers):
+                raise ConfigError(f"peer arm {name!r}: already added")
+        peer = build_peer(
+            name,
+            frame_cfg,
+            convex=self.convex,
+            link_radius=self.link_radius,
+            velocities=velocities,
+            tool=tool,
+        )
+        with self._lock:
+            self.peers = (*self.peers, peer)
+            self.peer_epoch += 1
+        return peer
+
+    def peer(self, name: str) -> PeerArm:
+        """The peer arm ``name``; ValueError naming the known ones."""
+        for p in self.peers:
+            if p.name == name:
+                return p
+        known = ", ".join(p.name for p in self.peers) or "none"
+        raise ValueError(f"no peer arm {name!r} (peer arms: {known})")
+
+    def peer_changed(self) -> None:
+        """A peer left the cell or came back: verdicts for the former set are void."""
+        with self._lock:
+            self.peer_epoch += 1
 
     def checker(self) -> Checker:
         """A checker with its own pinocchio and coal data, for one thread."""
@@ -445,7 +350,7 @@ class CollisionModel:
         return sum(v * period * r for v, r in zip(velocities, self.reach, strict=True))
 
     def describe(self) -> dict[str, Any]:
-        return {
+        out: dict[str, Any] = {
             "links": [lk.name for lk in self.links],
             "self_pairs": len(self.self_pairs),
             "regions": [r.name for r in self.regions],
@@ -453,130 +358,26 @@ class CollisionModel:
             "self_margin_mm": round(self.self_margin / MM, 3),
             "reach_m": [round(r, 4) for r in self.reach],
         }
+        if self.peers:
+            out["peers"] = {p.name: p.describe() for p in self.peers}
+        return out
 
     def path_check(self) -> PathCheck:
         """The keyframe controller's whole-arm check of a plan (``add_forbidden_check``)."""
         return PathCheck(self)
 
 
-def _link_name(model: Any, g: Any) -> str:
-    name = str(model.frames[g.parentFrame].name) if g.parentFrame < len(model.frames) else ""
-    return name or str(g.name)
-
-
-def _add_capsules(model: Any, geom: Any, tip_link: str, radius: float) -> None:
-    """A capsule per link between joint origins (and to the tip) where the URDF has no
-    collision geometry."""
-    body_of: dict[int, int] = {}
-    for fid, f in enumerate(model.frames):
-        if f.type == pin.FrameType.BODY and int(f.parentJoint) not in body_of:
-            body_of[int(f.parentJoint)] = fid
-    segments: list[tuple[int, np.ndarray]] = []
-    for j in range(1, model.njoints):
-        segments.append((int(model.parents[j]), np.asarray(model.jointPlacements[j].translation)))
-    tip = model.frames[model.getFrameId(tip_link)]
-    segments.append((int(tip.parentJoint), np.asarray(tip.placement.translation)))
-    for k, (parent, t) in enumerate(segments):
-        length = float(np.linalg.norm(t))
-        if length < 1e-6:
-            continue
-        z = t / length
-        rot = _rotation_to(z)
-        placement = pin.SE3(rot, t / 2.0)
-        fid = body_of.get(parent, 0)
-        obj = pin.GeometryObject(
-            f"{model.frames[fid].name}_capsule{k}",
-            parent,
-            fid,
-            placement,
-            coal.Capsule(radius, length),
-        )
-        geom.addGeometryObject(obj)
-
-
-def _add_tool(model: Any, geom: Any, tip_link: str, length: float, radius: float) -> None:
-    fid = model.getFrameId(tip_link)
-    tip = model.frames[fid]
-    placement = tip.placement * pin.SE3(np.eye(3), np.array([0.0, 0.0, length / 2.0]))
-    obj = pin.GeometryObject(
-        "tool", int(tip.parentJoint), fid, placement, coal.Capsule(radius, length)
-    )
-    obj_index = geom.addGeometryObject(obj)
-    assert obj_index >= 0
-
-
-def _rotation_to(z: np.ndarray) -> np.ndarray:
-    """A rotation whose z axis is the unit vector ``z``."""
-    a = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = np.cross(a, z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    return np.column_stack((x, y, z))
-
-
-def _package_srdf(urdf: Path) -> Path | None:
-    """The package's ``srdf/<urdf stem>.srdf`` beside the URDF's directory, when present."""
-    cand = urdf.parent.parent / "srdf" / f"{urdf.stem}.srdf"
-    return cand if cand.is_file() else None
-
-
-def _srdf_disabled(path: Path) -> set[frozenset[str]]:
-    try:
-        root = ET.parse(path).getroot()
-    except (OSError, ET.ParseError) as err:
-        raise ConfigError(f"safety.collision.srdf: cannot read {path}: {err}") from err
-    return {
-        frozenset((e.get("link1", ""), e.get("link2", ""))) for e in root.iter("disable_collisions")
-    }
-
-
-def _self_pairs(
-    model: Any, links: Sequence[_Link], disabled: set[frozenset[str]]
-) -> tuple[tuple[int, int], ...]:
-    """Pairs of links neither on the same joint nor parent and child, nor disabled."""
-    parents = model.parents
-    out = []
-    for i, a in enumerate(links):
-        for b in links[i + 1 :]:
-            if a.joint == b.joint or parents[a.joint] == b.joint or parents[b.joint] == a.joint:
-                continue
-            if frozenset((a.name, b.name)) in disabled:
-                continue
-            out.append((a.index, b.index))
-    return tuple(out)
-
-
-def _reach(model: Any, geom: Any) -> tuple[float, ...]:
-    """Per joint (q order): the farthest any geometry point after it can be from its origin,
-    over every configuration (a revolute joint moves such a point by at most that times its
-    angle); 1 for a prismatic joint."""
-    # the largest distance from joint j's origin to each geometry, by chain lengths
-    radius = []
-    for g in geom.geometryObjects:
-        g.geometry.computeLocalAABB()
-        radius.append(
-            float(g.geometry.aabb_radius) + float(np.linalg.norm(g.placement.translation))
-        )
-    out = []
-    for j in range(1, model.njoints):
-        kind = str(model.joints[j].shortname())
-        if "Prismatic" in kind or kind.startswith("JointModelP"):
-            out.append(1.0)
-            continue
-        r = 0.0
-        for gi, g in enumerate(geom.geometryObjects):
-            k = int(g.parentJoint)
-            chain = 0.0
-            while k > j:
-                chain += float(np.linalg.norm(model.jointPlacements[k].translation))
-                k = int(model.parents[k])
-            if k == j:
-                r = max(r, chain + radius[gi])
-        out.append(r)
-    return tuple(out)
-
-
 # ------------------------------------------------------------------------------ checks
+class _Placed:
+    """A peer arm placed at one of its states (in one checker): its links' coal transforms
+    and bounding balls (centres as rows, radii)."""
+
+    __slots__ = ("centres", "radius", "state", "tf")
+
+    def __init__(self, state: PeerState, tf: list[Any], centres: Any, radius: Any) -> None:
+        self.state, self.tf, self.centres, self.radius = state, tf, centres, radius
+
+
 class Checker:
     """Distances on one thread (its own pinocchio and coal data)."""
 
@@ -591,17 +392,21 @@ class Checker:
         self._world = [coal.Transform3s() for _ in cm.links]
         self._centres: list[tuple[float, float, float]] = [(0.0, 0.0, 0.0)] * len(cm.links)
         objs = cm.geom.geometryObjects
-        self._local = []
-        self._radius = []
-        for lk in cm.links:
-            geo = objs[lk.index].geometry
-            geo.computeLocalAABB()
-            self._local.append(np.asarray(geo.aabb_center, dtype=float))
-            self._radius.append(float(geo.aabb_radius))
+        self._local, self._radius = _balls(objs)
+        self._radius_col = np.asarray(self._radius, dtype=float)[:, None]
+        #: per peer arm: its pinocchio data, its balls' local centres and radii; where it was
+        #: last placed
+        self._peer_data: dict[PeerArm, tuple[Any, Any, list[Any], Any]] = {}
+        self._placed: dict[PeerArm, _Placed] = {}
         #: pairs whose distance coal computed, and pairs the broad phase settled (last check)
         self.exact = 0
         self.bounded = 0
         self.checks = 0
+        #: the last check's smallest distance to a region or between two own links (m), and
+        #: each peer arm it saw: (the arm, the state it used or None: unknown, the smallest
+        #: distance to it)
+        self.static_gap = math.inf
+        self.peer_seen: list[tuple[PeerArm, PeerState | None, float]] = []
 
     def _place(self, q: Sequence[float], base: np.ndarray | None) -> list[Any]:
         cm = self.cm
@@ -620,10 +425,12 @@ class Checker:
             centres[i] = (x, y, z)
         return out
 
+    # one function: the broad phase and the exact pairs of regions and self, in one pass
     def pairs(
         self, q: Sequence[float], base: np.ndarray | None = None
     ) -> list[tuple[float, float, str, str]]:
-        """Every checked pair at ``q``: (slack = distance - margin, distance, link, region)."""
+        """Every checked pair at ``q``: (slack = distance - margin, distance, link, region);
+        a peer arm's pairs far apart are summed up by the nearest of them (a lower bound)."""
         self.checks += 1
         cm = self.cm
         tf = self._place(q, base)
@@ -633,6 +440,7 @@ class Checker:
         centres, radius = self._centres, self._radius
         out = []
         exact = bounded = 0
+        gap = math.inf
         regions = cm.regions  # one read: a definition swapped meanwhile is for the next check
         near = cm.margin + BROAD_PAD_M
         for lk in cm.links:
@@ -652,12 +460,13 @@ class Checker:
                     d = low  # a lower bound: far enough not to need the exact distance
                     bounded += 1
                 elif r.kind == "mesh":
-                    d = self._mesh(g, tf[i], r)
+                    d = self._mesh(g, tf[i], r, centres[i], rl)
                     exact += 1
                 else:
                     res.clear()
                     d = dist(g, tf[i], r.geometry, r.placement, req, res)
                     exact += 1
+                gap = min(gap, d)
                 out.append((d - cm.margin, d, lk.name, r.name))
         near = cm.self_margin + BROAD_PAD_M
         for a, b in cm.self_pairs:
@@ -671,24 +480,120 @@ class Checker:
                 res.clear()
                 d = dist(objs[a].geometry, tf[a], objs[b].geometry, tf[b], req, res)
                 exact += 1
+            gap = min(gap, d)
             out.append((d - cm.self_margin, d, cm.links[a].name, f"self:{cm.links[b].name}"))
-        self.exact, self.bounded = exact, bounded
+        self.exact, self.bounded, self.static_gap = exact, bounded, gap
+        self.peer_seen = []
+        if cm.peers:
+            self._peers(tf, out)
         return out
 
-    def _mesh(self, g: Any, tf: Any, r: Region) -> float:
+    def _peers(self, tf: list[Any], out: list[tuple[float, float, str, str]]) -> None:
+        """Every own link against every link of each present peer arm at its last state:
+        the balls' distances at once (an array), coal only for the near pairs."""
+        cm = self.cm
+        own = np.asarray(self._centres, dtype=float)
+        margin, near_at = cm.margin, cm.margin + BROAD_PAD_M
+        objs = cm.geom.geometryObjects
+        req, res = self._req, self._res
+        for arm in cm.peers:
+            if not arm.present:
+                continue
+            st = arm.state  # one read: an update meanwhile is for the next check
+            if st is None:
+                self.peer_seen.append((arm, None, math.inf))
+                continue
+            pl = self._placement(arm, st)
+            diff = own[:, None, :] - pl.centres[None, :, :]
+            balls = np.sqrt((diff * diff).sum(axis=2)) - self._radius_col - pl.radius[None, :]
+            near = balls <= near_at
+            plinks = arm.arm.links
+            best = math.inf
+            if not near.all():
+                far = np.where(near, math.inf, balls)
+                k = int(far.argmin())
+                i, j = divmod(k, len(plinks))
+                best = float(far[i, j])
+                self.bounded += int(far.size - near.sum())
+                out.append(
+                    (best - margin, best, cm.links[i].name, f"{ARM}{arm.name}:{plinks[j].name}")
+                )
+            pobjs = arm.arm.geom.geometryObjects
+            rows, cols = np.nonzero(near)
+            for i, j in zip(rows.tolist(), cols.tolist(), strict=True):
+                res.clear()
+                d = coal.distance(objs[i].geometry, tf[i], pobjs[j].geometry, pl.tf[j], req, res)
+                self.exact += 1
+                best = min(best, d)
+                out.append((d - margin, d, cm.links[i].name, f"{ARM}{arm.name}:{plinks[j].name}"))
+            self.peer_seen.append((arm, st, best))
+
+    def _placement(self, arm: PeerArm, st: PeerState) -> _Placed:
+        """The peer arm's links where ``st`` puts them (computed once per state)."""
+        pl = self._placed.get(arm)
+        if pl is not None and pl.state is st:
+            return pl
+        geo = arm.arm
+        known = self._peer_data.get(arm)
+        if known is None:
+            local, radius = _balls(geo.geom.geometryObjects)
+            known = (geo.model.createData(), pin.GeometryData(geo.geom), local, radius)
+            self._peer_data[arm] = known
+        data, gdata, local, radius = known
+        pin.updateGeometryPlacements(geo.model, data, geo.geom, gdata, np.asarray(st.q))
+        world = pin.SE3(np.asarray(st.base, dtype=float))
+        if geo.base_inv is not None:
+            world = world * geo.base_inv
+        tfs = []
+        centres = np.empty((len(local), 3))
+        for k, m in enumerate(gdata.oMg):
+            w = world * m
+            tfs.append(coal.Transform3s(w))
+            centres[k] = w.act(local[k])
+        pl = _Placed(st, tfs, centres, np.asarray(radius, dtype=float))
+        self._placed[arm] = pl
+        return pl
+
+    def _mesh(self, g: Any, tf: Any, r: Region, centre: Sequence[float], rl: float) -> float:
         """A link near a mesh region: the largest of ``margin + level x BROAD_PAD_M`` the
         distance is known to exceed (collision queries with that security margin), or the
-        exact distance when it is inside the margin."""
+        exact distance when it is inside the margin. A mesh in parts: the parts whose balls
+        are near asked so, the others' balls their lower bound."""
+        margin = self.cm.margin
+        if not r.parts:
+            return self._levels(g, tf, (r.geometry,), r.placement, math.inf)
+        balls = r.part_balls
+        diff = balls[:, :3] - np.asarray(centre)
+        low = np.sqrt((diff * diff).sum(axis=1)) - balls[:, 3] - rl
+        near = low <= margin + BROAD_PAD_M
+        far = float(low[~near].min()) if not near.all() else math.inf
+        if not near.any():
+            return far
+        parts = tuple(r.parts[k] for k in np.flatnonzero(near).tolist())
+        return min(far, self._levels(g, tf, parts, r.placement, far))
+
+    def _levels(self, g: Any, tf: Any, parts: Sequence[Any], placement: Any, cap: float) -> float:
         creq, cres = self._creq, self._cres
         margin = self.cm.margin
         for level in MESH_LEVELS:
-            creq.security_margin = margin + level * BROAD_PAD_M
-            cres.clear()
-            if not coal.collide(g, tf, r.geometry, r.placement, creq, cres):
-                return creq.security_margin  # type: ignore[no-any-return]
+            m = margin + level * BROAD_PAD_M
+            if m >= cap:
+                continue  # the far parts bound it lower already
+            creq.security_margin = m
+            hit = False
+            for part in parts:
+                cres.clear()
+                if coal.collide(g, tf, part, placement, creq, cres):
+                    hit = True
+                    break
+            if not hit:
+                return m
         res = self._res
-        res.clear()
-        return coal.distance(g, tf, r.geometry, r.placement, self._req, res)  # type: ignore[no-any-return]
+        best = math.inf
+        for part in parts:
+            res.clear()
+            best = min(best, coal.distance(g, tf, part, placement, self._req, res))
+        return best
 
     def check(self, q: Sequence[float], base: np.ndarray | None = None) -> list[Contact]:
         """Every pair closer than its margin at ``q`` (``base``: world <- base, metres; None:
@@ -712,11 +617,24 @@ class Checker:
         return slack, gap, worst
 
 
+def _balls(objs: Any) -> tuple[list[Any], list[float]]:
+    """Each geometry's bounding ball in its own frame: (centres, radii)."""
+    local, radius = [], []
+    for obj in objs:
+        geo = obj.geometry
+        geo.computeLocalAABB()
+        local.append(np.asarray(geo.aabb_center, dtype=float))
+        radius.append(float(geo.aabb_radius))
+    return local, radius
+
+
 class PathCheck:
     """A keyframe plan's whole-arm check (``KeyframeController.add_forbidden_check``):
     ``check_path(qs, base, pace)`` over the plan's samples, one per loop period, advancing by
     the motion bound (module docstring); None when clear, else (the first sample inside a
-    margin, what it hits). Runs on the planner thread with a checker of its own."""
+    margin, what it hits). The other arms of the cell stand where they were last known (their
+    current envelope); one whose place is unknown refuses the plan. Runs on the planner thread
+    with a checker of its own."""
 
     def __init__(self, cm: CollisionModel) -> None:
         self.cm = cm
@@ -741,6 +659,9 @@ class PathCheck:
                 pace()
             slack, _gap, worst = checker.clearance(qs[i], base)
             self.checked += 1
+            unknown = [a.name for a, st, _d in checker.peer_seen if st is None]
+            if unknown:
+                return i, f"the arm {unknown[0]!r} is not known to be anywhere yet (no state)"
             if worst is not None and slack < 0.0:
                 margin = cm.self_margin if worst.region.startswith("self:") else cm.margin
                 return i, f"{worst.describe()} (margin {margin / MM:g} mm)"
@@ -761,15 +682,25 @@ class Verdict:
     q: tuple[float, ...]
     base: Any  # the base pose object the check used (identity-compared)
     slack: float
-    gap: float
+    gap: float  # the smallest distance to a region or between two own links
     worst: Contact | None
     version: int
+    #: each present peer arm: (the arm, the state the check used or None, the smallest
+    #: distance to it)
+    peers: tuple[tuple[PeerArm, PeerState | None, float], ...] = ()
+    peer_epoch: int = 0
+
+    @property
+    def clearance(self) -> float:
+        """The smallest distance to anything checked (m)."""
+        return min([self.gap, *(d for _a, _s, d in self.peers)])
 
 
 class CollisionGuard:
     """The run-time check (module docstring, "Run time"). The loop calls :meth:`publish`
-    (after writing a setpoint), :meth:`admit` (before) and :meth:`poll` (each tick); the
-    worker thread calls nothing else."""
+    (after writing a setpoint), :meth:`admit` (before), :meth:`poll` (each tick) and the
+    peer arms' :meth:`peer_update` and :meth:`peer_gone`; the worker thread calls nothing
+    else."""
 
     def __init__(
         self,
@@ -780,6 +711,7 @@ class CollisionGuard:
         runtime_hz: float | None = None,
         fifo_priority: int | None = None,
         name: str = "occ-collision",
+        stale_s: float = STALE_S,
     ) -> None:
         self.cm = cm
         self.inline = inline
@@ -789,6 +721,8 @@ class CollisionGuard:
         self.runtime = runtime
         self._every = 1.0 / runtime_hz if runtime_hz else 0.0
         self._next = -math.inf
+        #: a peer arm's state older than this (s) is an unknown obstacle: hold
+        self.stale_s = stale_s
         self._checker = cm.checker()
         self._worker: Worker | None = (
             None if inline or not runtime else Worker(name, depth=2, fifo_priority=fifo_priority)
@@ -799,9 +733,12 @@ class CollisionGuard:
         self._best = math.inf
         self._stopped_for: Verdict | None = None
         self.running = False
+        self._new_run = False  # a stop ended the run: the next RUNNING tick starts another
         # statistics
         self.verdicts = 0
+        self.skipped = 0  # setpoints the last verdict still covered with room: not checked
         self.holds = 0  # setpoints not admitted (no verdict covering them)
+        self.held_for = ""  # why the last one was not
         self.stops = 0
         self.last_contact = ""
         self.min_slack = math.inf
@@ -848,17 +785,18 @@ class CollisionGuard:
 
     def admitter(self, data: RobotData) -> Callable[[Sequence[float]], bool] | None:
         """What the loop's motion asks before writing a setpoint (:meth:`admit`, with the
-        robot's base pose), or None when run-time checking is off."""
+        robot's base pose and its clock's time), or None when run-time checking is off."""
         if not self.runtime:
             return None
-        return lambda sp: self.admit(sp, data.base)
+        clock = data.clock
+        return lambda sp: self.admit(sp, data.base, clock.now())
 
     def after_control(self, state: RobotState, data: RobotData, now: float) -> str | None:
         """Each tick after the drives were written: entering or leaving RUNNING noted
         (:meth:`on_running`), the reason to stop now if a verdict says so (:meth:`poll`), and
         the new setpoint handed to the worker (run-time checking on, the drives powered)."""
         running = state.value == "RUNNING"
-        if running != self.running:
+        if running != self.running or (running and self._new_run):
             self.on_running(running)
         why = self.poll()
         if self.runtime and state.value in ("ENABLED", "RUNNING", "STOPPED"):  # powered
@@ -874,10 +812,30 @@ class CollisionGuard:
             self._worker.stop()
 
     # ---------------------------------------------------------------- loop thread
+    def peer_update(self, name: str, q: Sequence[float], base: Any, t: float) -> None:
+        """Where the peer arm ``name`` is: joint positions ``q`` (its URDF's order), its base
+        pose ``base`` (world <- its base link, metres, as ``RobotData.base``) and when ``q``
+        was measured, ``t`` on this robot's clock. O(joints); ValueError for an unknown arm
+        or a state that cannot be used (nothing changes)."""
+        arm = self.cm.peer(name)
+        if arm.update(q, base, t):
+            self.cm.peer_changed()
+
+    def peer_gone(self, name: str) -> None:
+        """The peer arm ``name`` left the cell (an operator's word): no longer checked until
+        its next :meth:`peer_update`. ValueError for an unknown arm."""
+        self.cm.peer(name).gone()
+        self.cm.peer_changed()
+
     def publish(self, q: Sequence[float], base: Any, now: float | None = None) -> None:
-        """The setpoint the drives now hold: checked next (if the worker is idle and, with
-        ``runtime_hz``, a verdict is due at ``now``)."""
+        """The setpoint the drives now hold: checked next if a verdict is due
+        (:meth:`due`), the worker is idle and, with ``runtime_hz``, its time has come at
+        ``now``."""
         if self._busy:
+            return
+        v = self.verdict
+        if v is not None and not self.due(v, q, base, now):
+            self.skipped += 1
             return
         if now is not None and self._every:
             if now < self._next:
@@ -892,26 +850,91 @@ class CollisionGuard:
         if not self._worker.submit(lambda: self._job(snap, base)):
             self._busy = False
 
-    def admit(self, sp: Sequence[float], base: Any) -> bool:
-        """May the loop write ``sp``? Only within half the last verdict's clearance of its
-        configuration (and with the base pose it used)."""
-        v = self.verdict
-        if (
-            v is None
-            or v.version != self.cm.version
-            or (v.base is not base and not np.array_equal(v.base, base))
-        ):  # no verdict for these regions and this base pose (a tracker moved it): hold
-            self.holds += 1
-            return False
-        if self.cm.bound(sp, v.q) < 0.5 * v.gap:
+    def due(self, v: Verdict, q: Sequence[float], base: Any, now: float | None) -> bool:
+        """Is a new verdict due for ``q``? When the regions, the arms of the cell or the base
+        pose changed, when ``q`` used :data:`RECHECK_FRACTION` of ``v``'s clearance (to the
+        regions and own links, or to a peer arm), or when a peer arm has a newer state and its
+        possible motion since ``v``'s, with ``q``'s, used as much of its clearance. Otherwise
+        ``v`` covers ``q`` with room to spare."""
+        cm = self.cm
+        if v.version != cm.version or v.peer_epoch != cm.peer_epoch:
             return True
-        self.holds += 1
+        if v.base is not base and not np.array_equal(v.base, base):
+            return True
+        own = cm.bound(q, v.q)
+        if own >= RECHECK_FRACTION * v.gap:
+            return True
+        for arm, st, d in v.peers:
+            if own >= RECHECK_FRACTION * d:
+                return True
+            if arm.state is st:
+                continue  # nothing newer to check against
+            if st is None or now is None or own + arm.speed * (now - st.t) >= RECHECK_FRACTION * d:
+                return True
         return False
+
+    def admit(self, sp: Sequence[float], base: Any, now: float | None = None) -> bool:
+        """May the loop write ``sp`` at ``now``? Only within half the last verdict's clearance
+        of its configuration (and with the base pose, regions and arms it used); against a
+        peer arm, what the arm can have moved since the state the verdict used counts
+        against that half, and an arm whose last state is older than :attr:`stale_s` holds."""
+        v = self.verdict
+        cm = self.cm
+        if v is None or v.version != cm.version or v.peer_epoch != cm.peer_epoch:
+            return self._hold("no verdict for these regions and arms yet")
+        if v.base is not base and not np.array_equal(v.base, base):
+            return self._hold("no verdict for this base pose yet")  # a tracker moved it
+        own = cm.bound(sp, v.q)
+        if own >= 0.5 * v.gap:
+            return self._hold("the setpoint left half the last verdict's clearance")
+        if v.peers:
+            if now is None:
+                return self._hold("no time to age the other arms' states by")
+            for arm, st, d in v.peers:
+                why = self._peer_hold(arm, st, d, own, now)
+                if why:
+                    return self._hold(why)
+        return True
+
+    def _peer_hold(
+        self, arm: PeerArm, st: PeerState | None, d: float, own: float, now: float
+    ) -> str:
+        """Why ``arm`` holds the setpoint (``own``: its motion bound), or ''."""
+        latest = arm.state
+        if st is None or latest is None:
+            return f"the arm {arm.name!r}: where it is is unknown (an unknown obstacle)"
+        age = now - latest.t
+        if age > self.stale_s:
+            return (
+                f"the arm {arm.name!r}: its state is {age * 1e3:.0f} ms old (stale after "
+                f"{self.stale_s * 1e3:g} ms): an unknown obstacle"
+            )
+        if own + arm.speed * (now - st.t) >= 0.5 * d:
+            return f"the arm {arm.name!r} may have moved into half the last clearance"
+        return ""
+
+    def _hold(self, why: str) -> bool:
+        self.holds += 1
+        self.held_for = why
+        return False
+
+    def peer_problem(self, now: float) -> str | None:
+        """Why the other arms hold this one at ``now`` (one unknown or stale), or None: what
+        an alert says (the guard holds by itself)."""
+        for arm in self.cm.peers:
+            if not arm.present:
+                continue
+            st = arm.state
+            why = self._peer_hold(arm, st, math.inf, 0.0, now)
+            if why:
+                return why
+        return None
 
     def on_running(self, running: bool) -> None:
         """The robot enters (True) or leaves RUNNING: a run starts with the current slack as
         its best, so one started inside the margin may move away."""
         self.running = running
+        self._new_run = False
         v = self.verdict
         self._best = v.slack if (running and v is not None) else math.inf
         self._stopped_for = None
@@ -929,6 +952,9 @@ class CollisionGuard:
             return None
         self._stopped_for = v
         self.stops += 1
+        # the run ends here: a Run in the very next tick (before this guard sees the stopped
+        # state) starts a new one from this verdict's slack (after_control)
+        self._new_run = True
         w = v.worst
         margin = self.cm.self_margin if w.region.startswith("self:") else self.cm.margin
         self.last_contact = f"{w.describe()} (margin {margin / MM:g} mm)"
@@ -937,9 +963,12 @@ class CollisionGuard:
     # ---------------------------------------------------------------- worker thread
     def _job(self, q: tuple[float, ...], base: Any) -> None:
         try:
-            version = self.cm.version
-            slack, gap, worst = self._checker.clearance(q, base)
-            self.verdict = Verdict(q, base, slack, gap, worst, version)
+            cm = self.cm
+            version, epoch = cm.version, cm.peer_epoch  # read before the check reads them
+            checker = self._checker
+            slack, _gap, worst = checker.clearance(q, base)
+            peers = tuple(checker.peer_seen)
+            self.verdict = Verdict(q, base, slack, checker.static_gap, worst, version, peers, epoch)
             self.verdicts += 1
             if slack < self.min_slack:
                 self.min_slack = slack
@@ -951,15 +980,21 @@ class CollisionGuard:
 
     def stats(self) -> dict[str, Any]:
         v = self.verdict
-        return {
+        gap = math.inf if v is None else v.clearance
+        out = {
             **self.cm.describe(),
             "verdicts": self.verdicts,
+            "skipped": self.skipped,
             "holds": self.holds,
+            "held_for": self.held_for,
             "stops": self.stops,
             "last_contact": self.last_contact,
-            "clearance_mm": None if v is None or not math.isfinite(v.gap) else round(v.gap / MM, 3),
+            "clearance_mm": None if not math.isfinite(gap) else round(gap / MM, 3),
             "min_slack_mm": None
             if not math.isfinite(self.min_slack)
             else round(self.min_slack / MM, 3),
             "worker_failed": self.worker_failed,
         }
+        if self.cm.peers:
+            out["stale_s"] = self.stale_s
+        return out

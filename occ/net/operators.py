@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from typing import TYPE_CHECKING, Any
 
 import igtl
@@ -21,7 +22,7 @@ from igtl.messages.base import Message
 from igtl.transport.common import RateLimit
 from occ.core.safety import RobotState
 from occ.errors import CommandError, StateError, caused
-from occ.kinematics.collision import RegionError, regions_from_event
+from occ.kinematics.collision import Region, RegionError, region_event, regions_from_event
 from occ.net.commands import (
     ROBOT_COMMANDS,
     WORKER,
@@ -129,30 +130,55 @@ class OperatorDesk:
             ),
         )
 
-    def _collision_region(self, event: Any) -> bool:
+    def _collision_region(self, item: Inbound, event: Any) -> bool:
         """A forbidden region from 3D Slicer for the whole-arm collision check (metadata
         ``kind=forbidden-region``: occ/kinematics/collision.py): defined (replacing the node's
         previous one), a checked plan not yet acknowledged invalidated; True when it was one.
+        A model (POLYDATA: up to 200k triangles, hundreds of milliseconds) is built on the
+        worker and takes effect when built (refused from there when it cannot be used).
         CommandError when it cannot be used or the robot checks no collisions."""
-        try:
-            found = regions_from_event(event)
-        except RegionError as err:
-            raise caused(CommandError(str(err)), err) from err
-        if found is None:
+        name = region_event(event)
+        if name is None:
             return False
         r = self.port
-        name, regions = found
         if r.collision is None:
             raise CommandError(
                 f"region {name!r}: this robot checks no collisions (config safety.collision)"
             )
-        r.collision.cm.define(name, regions)
-        for c in r.controller.controllers:
+        if event.kind == "POLYDATA":
+            if not r.worker.start().submit(lambda: self._build_region(item, event)):
+                raise CommandError(f"region {name!r}: busy building regions; try again")
+            return True
+        try:
+            found = regions_from_event(event)
+        except RegionError as err:
+            raise caused(CommandError(str(err)), err) from err
+        assert found is not None
+        self._define_region(*found)
+        return True
+
+    def _build_region(self, item: Inbound, event: Any) -> None:
+        """On the worker: a Slicer model made a mesh region (giving up the interpreter lock
+        between its parts: occ/kinematics/regions.py), then defined; refused with the reason
+        when it cannot be used."""
+        try:
+            found = regions_from_event(event, pause=_let_others_run)
+        except RegionError as err:
+            self.refuse_input(item, caused(CommandError(str(err)), err))
+            return
+        assert found is not None
+        self._define_region(*found)
+
+    def _define_region(self, name: str, regions: list[Region]) -> None:
+        """Any thread: the node's regions replaced; a checked plan not acknowledged voided."""
+        guard = self.port.collision
+        assert guard is not None
+        guard.cm.define(name, regions)
+        for c in self.port.controller.controllers:
             invalidate = getattr(c, "invalidate_plan", None)
             if invalidate is not None:
                 invalidate(f"the forbidden region {name!r} changed")
         log.info("forbidden region %r: %d shape(s) from 3D Slicer", name, len(regions))
-        return True
 
     def handle(self, item: Inbound, now: float) -> None:
         r = self.port
@@ -169,7 +195,7 @@ class OperatorDesk:
             if event is None:
                 event = decode(item.interface, item.peer, msg, item.t_rx)
             try:
-                if self._collision_region(event):
+                if self._collision_region(item, event):
                     return
                 if isinstance(event, PoseSample):
                     r.controller.on_sample(event, now)
@@ -447,3 +473,8 @@ class OperatorDesk:
         """Every statistic of the robot (GetStats, ``occd --stats``): each part's, from the
         registry the robot was assembled with (occ/core/assembly.py); off the loop thread."""
         return self.port.stats.report()
+
+
+def _let_others_run() -> None:
+    """Give up the interpreter lock for a moment (the loop thread takes it if it waits)."""
+    time.sleep(0)

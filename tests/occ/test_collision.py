@@ -26,7 +26,7 @@ from occ.errors import ConfigError
 from occ.core.loader import load_config
 from occ.core.safety import RobotState
 from occ.core.supervision import Worker
-from occ_testkit.testing import CONFIGS, SimRobot
+from occ_testkit.testing import CONFIGS, SimRobot, wait_until
 
 HOME = [0.0, -1.2, 1.5, -1.9, -1.57, 0.0]
 #: the shoulder and elbow raised: the forearm rises through z = 560 mm, the tip sinks to 236 mm
@@ -126,7 +126,9 @@ def test_a_plan_clear_of_the_regions_passes_and_runs() -> None:
         assert sim.robot.state is RobotState.RUNNING
         assert np.allclose(sim.robot.data.setpoint, low, atol=1e-9)
         guard = sim.robot.collision
-        assert guard is not None and guard.stops == 0 and guard.verdicts > 2000
+        assert guard is not None and guard.stops == 0 and guard.holds == 0
+        # every setpoint offered, each covered by a verdict; a new one only when due
+        assert guard.verdicts + guard.skipped > 2000 and guard.verdicts < 200
     finally:
         sim.close()
 
@@ -323,7 +325,8 @@ def test_a_slicer_polydata_mesh_becomes_a_region_and_a_bad_one_is_refused() -> N
         )
         op = sim.peer("operator")
         op.send(box)
-        sim.step(2)
+        sim.step(2)  # built on the desk's worker: defined when built
+        assert wait_until(lambda: guard.cm.regions)
         (region,) = guard.cm.regions
         assert region.name == "Tumour" and region.kind == "mesh"
         hits = guard.cm.checker().check(HOME, sim.robot.data.base)
@@ -339,7 +342,7 @@ def test_a_slicer_polydata_mesh_becomes_a_region_and_a_bad_one_is_refused() -> N
             )
         )
         sim.step(2)
-        assert guard.cm.regions == ()
+        assert wait_until(lambda: guard.cm.regions == ())
         # a polygon that points past the mesh's points: refused with the reason, nothing changes
         bad = igtl.PolyDataMessage(
             points=corners.astype(np.float32),
@@ -350,13 +353,16 @@ def test_a_slicer_polydata_mesh_becomes_a_region_and_a_bad_one_is_refused() -> N
         )
         op.send(bad)
         sim.step(2)
-        errors = [
-            m
-            for m in op.messages()
-            if "missing point" in str(getattr(m, "metadata", {}))
-            or "missing point" in getattr(m, "status_message", "")
-        ]
-        assert errors and guard.cm.regions == ()
+
+        def errors() -> list[Any]:
+            return [
+                m
+                for m in op.messages()
+                if "missing point" in str(getattr(m, "metadata", {}))
+                or "missing point" in getattr(m, "status_message", "")
+            ]
+
+        assert wait_until(errors) and guard.cm.regions == ()
         # a Markups plane (TRANSFORM) and a point list: a half-space and spheres
         plane = np.eye(4)
         plane[:3, 3] = (0.0, 0.0, 560.0)

@@ -43,8 +43,6 @@ from occ.kinematics.collision import (
     Region,
     RegionError,
     Verdict,
-    _rotation_to,
-    _srdf_disabled,
     mesh_region,
     plane_region,
     region_from_config,
@@ -52,6 +50,8 @@ from occ.kinematics.collision import (
     sphere_region,
 )
 from occ.config import CollisionConfig, RegionConfig
+from occ.kinematics.armgeom import rotation_to as _rotation_to
+from occ.kinematics.armgeom import srdf_disabled as _srdf_disabled
 from occ.core.data import RobotData
 from occ.net.decoders import event_of
 from occ.errors import ConfigError
@@ -235,7 +235,7 @@ def test_a_region_that_cannot_be_used_is_refused_with_the_reason(make: Any, erro
 @pytest.mark.req("SR-COLL-1")
 def test_the_largest_mesh_is_taken() -> None:
     r = mesh_region("m", [[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]] * MAX_TRIANGLES)
-    assert r.geometry.num_tris == MAX_TRIANGLES
+    assert r.triangles == MAX_TRIANGLES and len(r.parts) > 1  # built in parts
 
 
 @pytest.mark.req("SR-COLL-1")
@@ -1084,9 +1084,9 @@ def test_verdicts_are_paced_by_runtime_hz() -> None:
     assert guard.verdicts == 2
     guard.publish(HOME, np.eye(4))  # no time given: checked
     assert guard.verdicts == 3
-    every = CollisionGuard(cm, inline=True)  # no rate: every one
-    for t in (1.0, 1.0, 1.001):
-        every.publish(HOME, np.eye(4), t)
+    every = CollisionGuard(cm, inline=True)  # no rate: every one due
+    for t, q in ((1.0, HOME), (1.0, RAISED), (1.001, HOME)):
+        every.publish(q, np.eye(4), t)
     assert every.verdicts == 3
 
 
@@ -1107,7 +1107,9 @@ def test_the_worker_gets_one_job_at_a_time_and_a_failed_one_is_told() -> None:
     job = silent._jobs.get_nowait()
     job()  # the worker runs it
     assert guard.verdict is not None and guard.verdicts == 1
-    guard.publish(HOME, np.eye(4))
+    guard.publish(HOME, np.eye(4))  # the verdict covers it: not due
+    assert silent._jobs.qsize() == 0 and guard.skipped == 1
+    guard.publish(RAISED, np.eye(4))
     assert silent._jobs.qsize() == 1
     # a failing check: no verdict, the reason kept, the next one taken
     guard._checker = None  # type: ignore[assignment]
@@ -1115,7 +1117,7 @@ def test_the_worker_gets_one_job_at_a_time_and_a_failed_one_is_told() -> None:
         silent._jobs.get_nowait()()
     assert guard.worker_failed == "AttributeError: 'NoneType' object has no attribute 'clearance'"
     assert guard.verdicts == 1
-    guard.publish(HOME, np.eye(4))
+    guard.publish(RAISED, np.eye(4))
     assert silent._jobs.qsize() == 1
     # a real worker thread
     real = CollisionGuard(cm, name="test-collision-2")
@@ -1286,8 +1288,8 @@ def test_the_statistics() -> None:
     guard = CollisionGuard(cm, inline=True)
     assert guard.stats() == {
         **cm.describe(),
-        "verdicts": 0, "holds": 0, "stops": 0, "last_contact": "",
-        "clearance_mm": None, "min_slack_mm": None, "worker_failed": "",
+        "verdicts": 0, "skipped": 0, "holds": 0, "held_for": "", "stops": 0,
+        "last_contact": "", "clearance_mm": None, "min_slack_mm": None, "worker_failed": "",
     }  # fmt: skip
     guard.admit(HOME, np.eye(4))
     guard.on_running(True)
