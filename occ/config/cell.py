@@ -12,6 +12,7 @@ from occ.config.base import (
     Float,
     Loc,
     Name,
+    PosFloat,
     Remote,
     _Model,
     _raise_problems,
@@ -34,6 +35,18 @@ class CellMember(_Model):
         "chain's hash must match the one the member announces; its links are checked against "
         "this robot's (`safety.collision`). null = no geometry: the member's stops still stop "
         "this one, its arm is not checked.",
+    )
+    velocities: tuple[PosFloat, ...] | None = Field(
+        None,
+        description="The member's joint velocity limits (rad/s or m/s, its URDF's joint order): "
+        "how far its arm can move between two heartbeats, in the arm-against-arm check; null "
+        "= its URDF's (often far above what its own file allows: give its `robot.joints` "
+        "limits).",
+    )
+    tool_mm: tuple[PosFloat, PosFloat] | None = Field(
+        None,
+        description="The member's tool on its tip link, a capsule (length, radius in mm) checked "
+        "with its links; null = none.",
     )
 
 

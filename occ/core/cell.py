@@ -499,6 +499,7 @@ def build_cell(
     clock: Clock,
     chain: str,
     chains: Mapping[str, str | None],
+    arms: tuple[Any, Any] | None = None,
 ) -> Cell:
     """The cell of ``cfg`` for this robot: its link bound to its own entry's address, the other
     members by their addresses (host names resolved once, here: a heartbeat is recognised by
@@ -519,8 +520,19 @@ def build_cell(
         wall=clock.wall_time,
         polled=not isinstance(clock, RealClock),  # simulated time: deterministic turns
     )
+    on_peer, on_gone = arms if arms is not None else (None, None)
     return Cell(
-        cfg, me, link, members, states=states, alarms=alarms, data=data, clock=clock, chain=chain
+        cfg,
+        me,
+        link,
+        members,
+        states=states,
+        alarms=alarms,
+        data=data,
+        clock=clock,
+        chain=chain,
+        on_peer=on_peer,
+        on_peer_gone=on_gone,
     )
 
 

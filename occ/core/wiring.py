@@ -8,6 +8,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, Protocol
 
+import numpy as np
+
 from occ import _native
 from occ.clock import Clock, RealClock
 from occ.config import DaemonConfig
@@ -165,7 +167,7 @@ def build_collision(robot: Assembling) -> CollisionGuard | None:
     None without one: checked inline in simulated time, on a worker thread of its own on the
     real clock."""
     config = robot.config
-    return CollisionGuard.build(
+    guard = CollisionGuard.build(
         config.safety.collision,
         config.robot.frame,
         robot.frame,
@@ -175,6 +177,14 @@ def build_collision(robot: Assembling) -> CollisionGuard | None:
         fifo_priority=writer_priority(config),
         name=f"occ-{config.robot.name}-collision",
     )
+    cell = config.cell
+    if guard is not None and cell is not None:  # the other arms of its cell (occ/core/cell.py)
+        me = cell.me(config.robot.name)
+        for m in cell.members:
+            if m.name != me and m.frame is not None:
+                tool = None if m.tool_mm is None else (m.tool_mm[0] * 1e-3, m.tool_mm[1] * 1e-3)
+                guard.cm.add_peer(m.name, m.frame, velocities=m.velocities, tool=tool)
+    return guard
 
 
 def build_safety(robot: Assembling, recorder: Any | None) -> tuple[Alarms, Watchdog, Supervisor]:
@@ -200,6 +210,8 @@ def build_cell(robot: Assembling) -> Cell | None:
     if cfg is None:
         return None
     chains = {m.name: chain_hash(frame_for(m.frame)) for m in cfg.members if m.frame is not None}
+    guard = robot.collision
+    arms = {p.name for p in guard.cm.peers} if guard is not None else set()
     return _build_cell(
         cfg,
         robot.name,
@@ -209,7 +221,26 @@ def build_cell(robot: Assembling) -> Cell | None:
         clock=robot.clock,
         chain=chain_hash(robot.frame),
         chains=chains,
+        arms=_peer_feed(guard, arms) if guard is not None and arms else None,
     )
+
+
+def _peer_feed(guard: CollisionGuard, arms: set[str]) -> tuple[Any, Any]:
+    """The cell's heartbeats to the collision guard's peer arms: where each arm is (its joints,
+    its base as 12 numbers, when), and which one an operator said is gone."""
+
+    def update(name: str, q: tuple[float, ...], base: tuple[float, ...], t: float) -> None:
+        if name in arms:
+            b = np.eye(4)
+            b[:3, :3] = np.asarray(base[:9]).reshape(3, 3)
+            b[:3, 3] = base[9:12]
+            guard.peer_update(name, q, b, t)
+
+    def gone(name: str) -> None:
+        if name in arms:
+            guard.peer_gone(name)
+
+    return update, gone
 
 
 def build_loop(robot: Assembling) -> tuple[LoopStats, ControlLoop]:
