@@ -20,6 +20,7 @@ from occ.config.base import (
     NonNegFloat,
     PosFloat,
     Str,
+    Vec3,
     _did_you_mean,
     _Model,
     _num,
@@ -289,6 +290,18 @@ class RobotConfig(_Model):
         description="Drivers; every joint is driven by exactly one driver."
     )
     realtime: RealtimeConfig = Field(RealtimeConfig(), description="Loop scheduling.")
+    base_mm: Vec3 | None = Field(
+        None,
+        description="Where the robot's base stands in the patient frame (3D Slicer's, mm): the "
+        "world pose of its `Tip`, its forbidden regions' frame, and where the other arms of "
+        "its cell see it; null = at the origin. A controller may set it otherwise "
+        "(teleop-slave's `base_mm`, a tracked base).",
+    )
+    base_rpy_deg: Vec3 = Field(
+        (0.0, 0.0, 0.0),
+        description="With `base_mm`: the base's orientation in the patient frame, roll, pitch, "
+        "yaw about the fixed x, y, z axes (degrees).",
+    )
 
     @property
     def period_s(self) -> float:

@@ -127,9 +127,27 @@ def build_drives(
     hardware = HardwareSet(pairs)
     names, homes = [j.name for j in joints], [j.home for j in joints]
     data = RobotData(robot.name, names, homes, frame, robot.clock)
+    rc = robot.config.robot
+    if rc.base_mm is not None:  # where it stands in the patient frame (a controller may move it)
+        data.base = base_pose(rc.base_mm, rc.base_rpy_deg)
     env = attach_environment(robot.config.environment, pairs, frame, lambda: data.base)
     hardware.environment = env  # simulated tissue (occ/haptics/contact.py), or None
     return joints, frame, hardware, data, env
+
+
+def base_pose(xyz_mm: Sequence[float], rpy_deg: Sequence[float]) -> np.ndarray:
+    """The 4x4 pose (metres) of ``xyz_mm`` turned by roll, pitch, yaw about the fixed x, y, z
+    axes (degrees): R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    r, p, y = (np.radians(v) for v in rpy_deg)
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    b = np.eye(4)
+    b[:3, :3] = [
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ]
+    b[:3, 3] = np.asarray(xyz_mm, dtype=float) * 1e-3
+    return b
 
 
 def build_inputs(
