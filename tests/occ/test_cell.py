@@ -411,3 +411,28 @@ def test_the_shipped_cell_agrees_and_its_arms_hold_for_each_other() -> None:
     finally:
         for s in sims:
             s.close()
+
+
+def test_a_robots_base_stands_where_its_file_says() -> None:
+    """``robot.base_mm`` and ``base_rpy_deg``: the base pose in the patient frame (what the
+    other members of a cell see in its heartbeats), R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    import numpy as np
+
+    from occ.core.wiring import base_pose
+
+    ports = _udp_ports(2)
+    members = [{"name": f"arm{i}", "address": f"127.0.0.1:{p}"} for i, p in enumerate(ports)]
+    raw = member_config("arm0", members).model_dump(mode="json")
+    raw["robot"]["base_mm"] = [600.0, -20.0, 5.0]
+    raw["robot"]["base_rpy_deg"] = [0.0, 0.0, 90.0]
+    with SimRobot(DaemonConfig.model_validate(raw)) as sim:
+        b = sim.robot.data.base
+        assert np.allclose(b[:3, 3], [0.6, -0.02, 0.005])
+        assert np.allclose(b[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    r = base_pose([0, 0, 0], [30.0, 20.0, 10.0])[:3, :3]
+    assert np.allclose(r @ r.T, np.eye(3)) and np.isclose(np.linalg.det(r), 1.0)
+    # roll first about x, then pitch about y, then yaw about z (fixed axes)
+    rx = base_pose([0, 0, 0], [30.0, 0, 0])[:3, :3]
+    ry = base_pose([0, 0, 0], [0, 20.0, 0])[:3, :3]
+    rz = base_pose([0, 0, 0], [0, 0, 10.0])[:3, :3]
+    assert np.allclose(r, rz @ ry @ rx)
