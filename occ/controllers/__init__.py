@@ -118,6 +118,11 @@ class ControllerContext:
     #: the whole-arm collision model (occ/kinematics/collision.py ``CollisionModel``, from
     #: ``safety.collision``), None without one: a planner checks its plans against it
     collision: Any = None
+    #: this robot's name in its cell (occ/core/cell.py), None in no cell
+    cell_member: str | None = None
+    #: ``cell_stop(cause)``: this member stops the whole cell for ``cause`` (every other member
+    #: holds until this one runs again), as its safety stops do; None in no cell
+    cell_stop: Callable[[str], None] | None = None
 
 
 @mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins and tests subclass it

@@ -226,6 +226,14 @@ class Cell:
             elif self.alarms.safety_stopping:
                 own.cause, own.origin, own.stop_wall = reason, self.me, t
 
+    def announce_stop(self, cause: str) -> None:
+        """A controller's word (ControllerContext.cell_stop): this member stops the cell for
+        ``cause`` (a plan run by the whole cell dropped here), as a safety stop would: the
+        others hold until this member runs again."""
+        own = self.own
+        own.cause, own.origin, own.stop_wall = cause, self.me, self.clock.wall_time()
+        self._send(self.clock.now())
+
     def announce_hung(self, reason: str) -> None:
         """On the supervisor's thread: the loop is hung, so tell the others now (the loop
         would send nothing until it comes back)."""

@@ -316,6 +316,8 @@ def controller_context(robot: Assembling, environment: Environment | None) -> Co
         alert=robot.alarms.broadcast,
         environment=environment,
         collision=collision.cm if collision is not None else None,
+        cell_member=robot.cell.me if robot.cell is not None else None,
+        cell_stop=robot.cell.announce_stop if robot.cell is not None else None,
     )
 
 

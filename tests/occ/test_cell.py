@@ -436,3 +436,19 @@ def test_a_robots_base_stands_where_its_file_says() -> None:
     ry = base_pose([0, 0, 0], [0, 20.0, 0])[:3, :3]
     rz = base_pose([0, 0, 0], [0, 0, 10.0])[:3, :3]
     assert np.allclose(r, rz @ ry @ rx)
+
+
+@pytest.mark.req("SR-CELL-1")
+def test_a_controller_may_stop_the_whole_cell(cell: Cell) -> None:
+    """ControllerContext.cell_stop (a plan run by the whole cell dropped in one member): the
+    others hold, naming it, until that member runs again."""
+    cell.run_all()
+    ctx = cell.sims[0].robot.controller.controllers[0].ctx
+    assert ctx is not None and ctx.cell_member == "arm0" and ctx.cell_stop is not None
+    ctx.cell_stop("cell plan 3 dropped: an operator's Stop")
+    cell.step(1)
+    assert cell.state(1) is S.STOPPED and cell.state(2) is S.STOPPED
+    assert "cell plan 3 dropped" in cell.cell_stats(1)["latched"]["arm0"]
+    assert ok(cell.command(0, "Stop")) and ok(cell.command(0, "Run"))
+    cell.step(2)
+    assert ok(cell.command(1, "Run")) and ok(cell.command(2, "Run"))
