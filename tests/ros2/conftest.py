@@ -85,3 +85,25 @@ def netns() -> Iterator[Any]:
     require()
     with Netns() as ns:
         yield ns
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[Any]) -> Iterator[None]:
+    """A failed test of a daemon in a namespace rig (rig.py) shows what every daemon it started
+    logged (WARNING and up): a daemon's FAULT names its cause there, and the test's temporary
+    directory is gone a few runs later."""
+    outcome = yield
+    report = outcome.get_result()  # type: ignore[attr-defined]
+    if report.when == "call" and report.failed:
+        from .rig import Rig
+
+        for rig in Rig.started:
+            text = rig.daemon_log()
+            if text:
+                report.sections.append(("daemon log", text))
+        Rig.started.clear()
+    elif report.when == "teardown":
+        from .rig import Rig
+
+        Rig.started.clear()
+

@@ -85,6 +85,9 @@ def clean_env(**extra: str) -> dict[str, str]:
 class Rig:
     """The daemon, the bridge and the node in one namespace, each restartable."""
 
+    #: the rigs of the test running (conftest.py shows their daemons' logs when it fails)
+    started: list[Rig] = []
+
     def __init__(self, ns: Netns, tmp: Path, node_env: dict[str, str], topics: str = NS) -> None:
         self.ns, self.tmp, self.node_env = ns, tmp, node_env
         #: the ROS 2 namespace the node and the Cyclone participant use
@@ -94,6 +97,7 @@ class Rig:
         self.node: Agent | None = None
         self.bridge_runs = 0
         self.daemon_runs = 0
+        Rig.started.append(self)
 
     # -------------------------------------------------------------- daemon
     def start_daemon(
