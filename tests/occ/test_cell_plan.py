@@ -394,3 +394,55 @@ def test_a_fault_in_one_member_drops_the_others_run_before_its_start(cell: PlanC
     cell.step(1500)
     assert cell.a.robot.state is S.STOPPED and cell.kf(cell.a).active is None
     assert list(cell.a.robot.data.setpoint) == qa0  # ur5-a never started its part
+
+
+# ------------------------------------------------------------------------------ shipped
+class ShippedCell(PlanCell):
+    """configs/cell/ur5-a-keyframe.yaml and ur5-b-keyframe.yaml (bases 600 mm apart), the cell
+    link on free ports, the shipped sets of configs/keyframes/."""
+
+    def __init__(self) -> None:
+        ports = _udp_ports(2)
+        sims = []
+        for n in "ab":
+            raw = yaml.safe_load((CONFIGS / "cell" / f"ur5-{n}-keyframe.yaml").read_text())
+            for m, port in zip(raw["cell"]["members"], ports, strict=True):
+                m["address"] = f"127.0.0.1:{port}"
+            raw["controller"]["params"]["keyframe_dir"] = str(CONFIGS / "keyframes")
+            sims.append(SimRobot(raw))
+        self.a, self.b = sims
+        self.links = [Link(self, self.a, "ur5-a"), Link(self, self.b, "ur5-b")]
+        self.step(10)
+        for link in self.links:
+            assert link.ask("Enable")[0]
+            assert link.ask("Run")[0]
+
+
+@pytest.mark.req("SR-CELLPLAN-2", "SR-CELLPLAN-3")
+def test_the_shipped_cell_sets_one_refused_one_run_in_turns() -> None:
+    cell = ShippedCell()
+    try:
+        out = cell.coordinate("cell-cross.yaml")
+        plans = [(m, ok) for m, c, ok, _ in out.replies if c == "KeyframePlan"]
+        assert plans == [("ur5-a", True), ("ur5-b", True)], out.replies
+        assert "KeyframeCellCheck refused: cell plan refused: at t=" in out.why, out.why
+        assert "of ur5-a comes" in out.why and "of ur5-b (ur5-a:" in out.why, out.why
+        out = cell.coordinate("cell-turns.yaml", lead_s=0.2)
+        assert out.ok, out.why
+        closest = math.inf
+        judge = pair_model()
+        peer, checker = judge.peer("ur5-b"), judge.checker()
+        b_at = np.eye(4)
+        b_at[0, 3] = 0.6
+        for k in range(18500):
+            cell.step(1)
+            if k % 50 == 0:
+                peer.update(cell.b.robot.data.q, b_at, 0.0)
+                checker.clearance(cell.a.robot.data.q, np.eye(4))
+                closest = min(closest, checker.peer_seen[0][2])
+        for sim in (cell.a, cell.b):
+            assert sim.robot.state is S.RUNNING, sim.robot.last_alert
+            assert cell.kf(sim).stats()["runs_completed"] == 1
+        assert closest > 0.04, closest
+    finally:
+        cell.close()

@@ -16,9 +16,9 @@ import json
 import math
 import threading
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Protocol
+from typing import TYPE_CHECKING, Annotated, Any, Literal, Protocol
 
 import numpy as np
 import yaml
@@ -29,6 +29,7 @@ from occ.controllers.keyframe.sets import (
     MAX_FILE_BYTES,
     KeyframeFile,
     KeyframeSet,
+    PlanSettings,
     Space,
     _Model,
     file_set,
@@ -52,12 +53,25 @@ MAX_SAMPLES = MAX_CELL_SAMPLES
 MemberName = Annotated[str, StringConstraints(pattern=r"^[^\s:]+$", max_length=64)]
 
 
+class CellPlanItem(_Model):
+    """How every member plans its part (KeyframePlan's settings; the command's arguments
+    still override them)."""
+
+    interpolation: Literal["linear", "spline"] = Field("linear", description="Interpolation.")
+    mode: Literal["stop", "continuous"] = Field("stop", description="Rest at each keyframe.")
+    steepness: Annotated[float, Field(gt=0)] = Field(6.0, description="Sigmoid steepness n.")
+    ramp: Annotated[float, Field(gt=0, le=0.5)] = Field(0.25, description="Ramp share.")
+
+
 class CellKeyframeFile(_Model):
     """A cell keyframe file: ``{cell: ..., space: ..., arms: {<member>: {space, keyframes}}}``,
     one timeline per member arm, all on one time base (s from the common start)."""
 
     cell: str | None = Field(None, description="The cell's name (said in replies).")
     space: Space | None = Field(None, description="The parts' space unless a part gives one.")
+    plan: CellPlanItem | None = Field(
+        None, description="How every member plans its part (default: its own params')."
+    )
     arms: Annotated[dict[MemberName, KeyframeFile], Field(min_length=2)] = Field(
         description="One part per member arm, by its name in the cell."
     )
@@ -125,6 +139,9 @@ def cell_set(
         own = file_set(own_file, default, source, joints, cap)
     except ValueError as err:
         raise ValueError(f"{name}: arms.{me}: {err}") from err
+    if cf.plan is not None:
+        p = cf.plan
+        own = replace(own, settings=PlanSettings(p.interpolation, p.mode, p.steepness, p.ramp))
     return CellSet(name, cf, digest, me, own)
 
 
