@@ -159,7 +159,6 @@ def cross_check(
     return CrossResult(None, closest, closest_at, closest_pair, checked)
 
 
-# one function: the advancement loop over both paths, its bounds and the clash it may find
 def _pair(
     cm: CollisionModel,
     checker: Checker,
@@ -180,10 +179,13 @@ def _pair(
     last_b = len(qb) - 1
     half = math.ceil(skew / other.period) + 1  # its samples within the skew, and a half period
 
-    def at(j: int) -> tuple[int, int, int]:
-        """The other arm's sample at own sample ``j``'s time, and its window's first and last."""
-        k = min(max(round(j * period / other.period), 0), last_b)
-        return k, max(k - half, 0), min(k + half, last_b)
+    # for every own sample: the other arm's sample at its time, and its window's first and last
+    times = np.arange(n) * period
+    kb_all = np.clip(np.rint(times / other.period).astype(np.int64), 0, last_b)
+    lo_all = np.maximum(kb_all - half, 0)
+    hi_all = np.minimum(kb_all + half, last_b)
+    reach_a = np.asarray(cm.reach, dtype=float)
+    qa_all = qa[np.minimum(np.arange(n), len(qa) - 1)]
 
     closest, closest_at, closest_pair, checked = math.inf, 0.0, "", 0
     base_b = np.asarray(other.base, dtype=float)
@@ -191,8 +193,8 @@ def _pair(
     while j < n:
         if pace is not None:
             pace()
-        q = qa[min(j, len(qa) - 1)]
-        kb, lo, hi = at(j)
+        q = qa_all[j]
+        kb, lo, hi = int(kb_all[j]), int(lo_all[j]), int(hi_all[j])
         st = PeerState(tuple(float(v) for v in qb[kb]), base_b, 0.0)
         d, contact = checker.arm_distance(q.tolist(), own.base, arm, st)
         checked += 1
@@ -208,16 +210,35 @@ def _pair(
             return CrossResult(clash, closest, closest_at, closest_pair, checked)
         if not math.isfinite(slack):
             break
-        k = j + 1
-        while k < n:
-            kk, klo, khi = at(k)
-            span = float(cum[max(khi, kb)] - cum[min(klo, kb)])
-            qk = qa[min(k, len(qa) - 1)]
-            if cm.bound(qk, q) + span >= slack:
-                break
-            k += 1
-        j = k
+        j = _advance(j, n, slack, q, kb, qa_all, reach_a, cum, lo_all, hi_all)
     return CrossResult(None, closest, closest_at, closest_pair, checked)
+
+
+def _advance(
+    j: int,
+    n: int,
+    slack: float,
+    q: np.ndarray,
+    kb: int,
+    qa: np.ndarray,
+    reach_a: np.ndarray,
+    cum: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+) -> int:
+    """The next sample to check after ``j`` (slack ``slack``, the other arm at ``kb``): the
+    first whose own motion bound from ``q`` plus the other arm's span from ``kb`` to its window
+    reaches the slack (in blocks, as arrays)."""
+    start, block = j + 1, 64
+    while start < n:
+        stop = min(start + block, n)
+        own = np.abs(qa[start:stop] - q) @ reach_a
+        span = cum[np.maximum(hi[start:stop], kb)] - cum[np.minimum(lo[start:stop], kb)]
+        over = np.flatnonzero(own + span >= slack)
+        if len(over):
+            return start + int(over[0])
+        start, block = stop, block * 2
+    return n
 
 
 def _links(pair: str) -> tuple[str, str]:

@@ -86,7 +86,8 @@ def member(name: str, members: list[dict[str, Any]], folder: Path) -> SimRobot:
 
 class Link:
     """A member's operator port in simulated time (occ_testkit/cellplan.py ``MemberLink``):
-    a command is answered while the whole cell ticks on."""
+    a command goes in with a tick of the whole cell, and 50 more follow its answer (an
+    operator's pace: the previews go out at 10 Hz before a plan is acknowledged)."""
 
     def __init__(self, cell: PlanCell, sim: SimRobot, name: str) -> None:
         self.cell, self.sim, self.name = cell, sim, name
@@ -95,15 +96,12 @@ class Link:
     def ask(self, command: str, **args: str) -> tuple[bool, str]:
         attrs = "".join(f' {k}="{v}"' for k, v in args.items())
         cid = self.peer.send_command(command, f'<Command Name="{command}"{attrs}/>')
-        kf = self.sim.robot.controller.controllers[0]
-
-        def answered() -> Any:
-            self.cell.step(1)
-            return kf.wait_idle(0.0) and self.peer.reply_to(cid)
-
+        self.cell.step(1)
         # the planner's and the desk worker's threads answer on the wall clock: wait for them
-        reply = wait_until(answered, 60.0, 0.0)
+        # (the cell does not tick meanwhile), then the same ticks whatever they took
+        reply = wait_until(lambda: self.peer.reply_to(cid), 60.0, 0.001)
         assert reply is not None, command
+        self.cell.step(50)
         meta = reply.metadata
         return meta["Status"] == "SUCCESS", meta.get("Message") or meta.get("Error", "")
 
