@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -110,13 +111,13 @@ def main() -> None:
         print(f"{name}:")
         paths = {}
         for me, (cfg, frame, cm) in arms.items():
-            med, mx, plan = timed(lambda: part_plan(name, me, cfg, frame, cm), args.repeat)
+            med, mx, plan = timed(partial(part_plan, name, me, cfg, frame, cm), args.repeat)
             assert plan.qs is not None
             path = ArmPath(me, plan.qs, base(me), 1e-3)
             paths[me] = path
-            dmed, dmx, _ = timed(lambda: path_digest(path), args.repeat)
+            dmed, dmx, _ = timed(partial(path_digest, path), args.repeat)
             msg = igtl.NDArrayMessage(array=plan.qs, device_name="CellPath", header_version=2)
-            pmed, pmx, wire = timed(lambda: msg.pack(), args.repeat)
+            pmed, pmx, wire = timed(msg.pack, args.repeat)
             print(
                 f"  {me}: plan+checks {med:.0f} ms (max {mx:.0f}), {len(plan.qs)} samples; "
                 f"digest {dmed:.2f} ms (max {dmx:.2f}); NDARRAY {len(wire) / 1e6:.2f} MB "
@@ -126,7 +127,7 @@ def main() -> None:
             other = paths["ur5-b" if me == "ur5-a" else "ur5-a"]
             checker = cm.checker()
             med, mx, res = timed(
-                lambda: cross_check(cm, paths[me], [other], 0.002, checker=checker), args.repeat
+                partial(cross_check, cm, paths[me], [other], 0.002, checker=checker), args.repeat
             )
             verdict = "clear" if res.clash is None else f"refused ({res.clash.describe()})"
             print(

@@ -112,10 +112,18 @@ def main(argv: list[str] | None = None) -> int:
             cfg = ROOT / "configs" / "cell" / f"{CONFIGS[name]}.yaml"
             procs.append(
                 subprocess.Popen(
-                    [sys.executable, "-m", "occ.cli", str(cfg), "--start", "running",
-                     "--log-level", "WARNING"],
+                    [
+                        sys.executable,
+                        "-m",
+                        "occ.cli",
+                        str(cfg),
+                        "--start",
+                        "running",
+                        "--log-level",
+                        "WARNING",
+                    ],
                     cwd=ROOT,
-                )  # fmt: skip
+                )
             )
     members = [TcpMember(n, a, args.timeout) for n, a in addresses.items()]
     try:

@@ -15,11 +15,11 @@ import math
 from pathlib import Path
 from typing import Any
 
-import igtl
 import numpy as np
 import pytest
 import yaml
 
+import igtl
 from occ.controllers.keyframe.cellset import CellKeyframeFile, cell_set
 from occ.core.safety import RobotState
 from occ.kinematics.cellpaths import ArmPath, cross_check, path_digest
@@ -215,7 +215,7 @@ def test_a_cell_set_that_cannot_be_used_is_refused_saying_why(cell: PlanCell) ->
 
 
 # ------------------------------------------------------------------------------ the cross-check
-@pytest.mark.req("SR-CELLPLAN-2")
+@pytest.mark.req("SR-CELLPLAN-2", "SR-CELLPLAN-3")
 def test_plans_that_meet_are_refused_though_each_clears_the_other_standing(
     cell: PlanCell,
 ) -> None:
