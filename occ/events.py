@@ -20,6 +20,7 @@ Inputs
     SphereList          a VFIXTURE: the OCC paper's spheres and their hardness
     Mesh                a POLYDATA: guides, planes, forbidden meshes
     ForceReading        a SENSOR: a force (torque) reading, the unit as sent
+    ArrayInput          an NDARRAY: its array as sent (a cell plan's joint path)
     UnknownInput        a message no decoder takes: its type and device, to refuse
     ==================  ===========================================================
 
@@ -48,6 +49,7 @@ import numpy as np
 from occ.samples import PoseSample
 
 __all__ = [
+    "ArrayInput",
     "Event",
     "ForceReading",
     "InputEvent",
@@ -150,6 +152,13 @@ class ForceReading(Event):
     values: tuple[float, ...]
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class ArrayInput(Event):
+    """An NDARRAY: its array (read-only, the type and shape as sent)."""
+
+    array: np.ndarray
+
+
 @dataclass(frozen=True, slots=True)
 class UnknownInput(Event):
     """A message no decoder takes: a controller that must take it refuses it by
@@ -157,7 +166,9 @@ class UnknownInput(Event):
 
 
 #: what a controller's ``on_input`` receives (a pose goes to ``on_sample``)
-InputEvent = PointList | TrajectoryList | SphereList | Mesh | ForceReading | UnknownInput
+InputEvent = (
+    PointList | TrajectoryList | SphereList | Mesh | ForceReading | ArrayInput | UnknownInput
+)
 
 
 # ------------------------------------------------------------------------------ outputs

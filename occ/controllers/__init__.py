@@ -67,7 +67,7 @@ if TYPE_CHECKING:
     from occ.core.data import RobotData
     from occ.core.safety import RobotState
     from occ.events import InputEvent
-    from occ.net.commands import Deferred, Request
+    from occ.net.commands import ArrayReply, Deferred, Request
     from occ.net.outputs import Outgoing, Output
     from occ.samples import PoseSample
 
@@ -169,7 +169,7 @@ class Controller:
     def on_input(self, event: InputEvent, now: float) -> None:
         return None
 
-    def on_command(self, request: Request, now: float) -> str | Deferred | None:
+    def on_command(self, request: Request, now: float) -> str | Deferred | ArrayReply | None:
         raise CommandError(f"unknown command {request.name!r}")
 
     def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
@@ -304,7 +304,7 @@ class ControllerSet:
         for c in self.controllers:
             c.on_input(event, now)
 
-    def on_command(self, request: Request, now: float) -> str | Deferred | None:
+    def on_command(self, request: Request, now: float) -> str | Deferred | ArrayReply | None:
         key = request.name.strip().lower()
         for c in self.controllers:
             if key in (n.lower() for n in c.commands()):

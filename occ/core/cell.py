@@ -229,9 +229,12 @@ class Cell:
     def announce_stop(self, cause: str) -> None:
         """A controller's word (ControllerContext.cell_stop): this member stops the cell for
         ``cause`` (a plan run by the whole cell dropped here), as a safety stop would: the
-        others hold until this member runs again."""
+        others hold until this member runs again. A stop already announced stands: a relay
+        keeps its origin (two members each naming itself would wait for each other), a fault
+        its cause."""
         own = self.own
-        own.cause, own.origin, own.stop_wall = cause, self.me, self.clock.wall_time()
+        if not own.cause:
+            own.cause, own.origin, own.stop_wall = cause, self.me, self.clock.wall_time()
         self._send(self.clock.now())
 
     def announce_hung(self, reason: str) -> None:

@@ -489,44 +489,63 @@ class Checker:
         return out
 
     def _peers(self, tf: list[Any], out: list[tuple[float, float, str, str]]) -> None:
-        """Every own link against every link of each present peer arm at its last state:
-        the balls' distances at once (an array), coal only for the near pairs."""
-        cm = self.cm
-        own = np.asarray(self._centres, dtype=float)
-        margin, near_at = cm.margin, cm.margin + BROAD_PAD_M
-        objs = cm.geom.geometryObjects
-        req, res = self._req, self._res
-        for arm in cm.peers:
+        """Every own link against every link of each present peer arm at its last state."""
+        for arm in self.cm.peers:
             if not arm.present:
                 continue
             st = arm.state  # one read: an update meanwhile is for the next check
             if st is None:
                 self.peer_seen.append((arm, None, math.inf))
                 continue
-            pl = self._placement(arm, st)
-            diff = own[:, None, :] - pl.centres[None, :, :]
-            balls = np.sqrt((diff * diff).sum(axis=2)) - self._radius_col - pl.radius[None, :]
-            near = balls <= near_at
-            plinks = arm.arm.links
-            best = math.inf
-            if not near.all():
-                far = np.where(near, math.inf, balls)
-                k = int(far.argmin())
-                i, j = divmod(k, len(plinks))
-                best = float(far[i, j])
-                self.bounded += int(far.size - near.sum())
-                out.append(
-                    (best - margin, best, cm.links[i].name, f"{ARM}{arm.name}:{plinks[j].name}")
-                )
-            pobjs = arm.arm.geom.geometryObjects
-            rows, cols = np.nonzero(near)
-            for i, j in zip(rows.tolist(), cols.tolist(), strict=True):
-                res.clear()
-                d = coal.distance(objs[i].geometry, tf[i], pobjs[j].geometry, pl.tf[j], req, res)
-                self.exact += 1
-                best = min(best, d)
-                out.append((d - margin, d, cm.links[i].name, f"{ARM}{arm.name}:{plinks[j].name}"))
-            self.peer_seen.append((arm, st, best))
+            self.peer_seen.append((arm, st, self._arm_pairs(tf, arm, st, out)))
+
+    def _arm_pairs(
+        self, tf: list[Any], arm: PeerArm, st: PeerState, out: list[tuple[float, float, str, str]]
+    ) -> float:
+        """Every own link (placed: ``tf``) against every link of ``arm`` at ``st``: the balls'
+        distances at once (an array), coal only for the near pairs; the smallest distance."""
+        cm = self.cm
+        own = np.asarray(self._centres, dtype=float)
+        margin, near_at = cm.margin, cm.margin + BROAD_PAD_M
+        objs = cm.geom.geometryObjects
+        req, res = self._req, self._res
+        pl = self._placement(arm, st)
+        diff = own[:, None, :] - pl.centres[None, :, :]
+        balls = np.sqrt((diff * diff).sum(axis=2)) - self._radius_col - pl.radius[None, :]
+        near = balls <= near_at
+        plinks = arm.arm.links
+        best = math.inf
+        if not near.all():
+            far = np.where(near, math.inf, balls)
+            k = int(far.argmin())
+            i, j = divmod(k, len(plinks))
+            best = float(far[i, j])
+            self.bounded += int(far.size - near.sum())
+            out.append((best - margin, best, cm.links[i].name, f"{ARM}{arm.name}:{plinks[j].name}"))
+        pobjs = arm.arm.geom.geometryObjects
+        rows, cols = np.nonzero(near)
+        for i, j in zip(rows.tolist(), cols.tolist(), strict=True):
+            res.clear()
+            d = coal.distance(objs[i].geometry, tf[i], pobjs[j].geometry, pl.tf[j], req, res)
+            self.exact += 1
+            best = min(best, d)
+            out.append((d - margin, d, cm.links[i].name, f"{ARM}{arm.name}:{plinks[j].name}"))
+        return best
+
+    def arm_distance(
+        self, q: Sequence[float], base: np.ndarray | None, arm: PeerArm, st: PeerState
+    ) -> tuple[float, Contact | None]:
+        """This arm at ``q`` (``base``) against ``arm`` at the state ``st`` given (not its last
+        known one: a planned configuration, occ/kinematics/cellpaths.py) alone, no regions and
+        no self pairs: (the smallest distance, lower-bounded for far pairs; the nearest pair)."""
+        tf = self._place(q, base)
+        out: list[tuple[float, float, str, str]] = []
+        self.exact = self.bounded = 0
+        best = self._arm_pairs(tf, arm, st, out)
+        if not out:
+            return best, None
+        _s, d, lk, rg = min(out, key=lambda r: r[1])
+        return best, Contact(lk, rg, d)
 
     def _placement(self, arm: PeerArm, st: PeerState) -> _Placed:
         """The peer arm's links where ``st`` puts them (computed once per state)."""

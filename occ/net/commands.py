@@ -24,7 +24,7 @@ import threading
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol, cast
+from typing import Any, Protocol, cast
 from xml.sax.saxutils import quoteattr
 
 import igtl
@@ -86,6 +86,18 @@ class Deferred:
             callback = self._callback
         if callback is not None:
             callback(ok, text)
+
+
+@dataclass(frozen=True, eq=False)
+class ArrayReply:
+    """A controller command's answer that carries an array (a cell plan's joint path): the
+    operator desk's worker sends ``array`` as an ``NDARRAY`` named ``device`` with ``meta``
+    (header version 2), then the reply ``text``, both to the sender alone."""
+
+    text: str
+    array: Any  # np.ndarray; read, never written, by the worker
+    device: str
+    meta: dict[str, str] = field(default_factory=dict)
 
 
 #: the thread column: answered in the tick that takes it

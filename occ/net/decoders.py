@@ -21,6 +21,7 @@ import numpy as np
 
 from igtl.messages.base import Message
 from occ.events import (
+    ArrayInput,
     Event,
     ForceReading,
     Mesh,
@@ -140,6 +141,12 @@ def _force(interface: str, peer: Any, msg: Any, t_rx: float) -> ForceReading:
     )
 
 
+def _array(interface: str, peer: Any, msg: Any, t_rx: float) -> ArrayInput:
+    array = np.asarray(msg.array)
+    array.flags.writeable = False  # shared with the message (its wire bytes)
+    return ArrayInput(interface, peer, t_rx, msg.message_type, msg.device_name, msg.metadata, array)
+
+
 def _pose(interface: str, peer: Any, msg: Any, t_rx: float) -> Event:
     sample = pose_sample(interface, peer, msg, t_rx)
     assert sample is not None
@@ -155,6 +162,7 @@ DECODERS: dict[str, Decoder] = {
     "VFIXTURE": _spheres,
     "POLYDATA": _mesh,
     "SENSOR": _force,
+    "NDARRAY": _array,
 }
 
 

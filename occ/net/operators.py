@@ -26,6 +26,7 @@ from occ.kinematics.collision import Region, RegionError, region_event, regions_
 from occ.net.commands import (
     ROBOT_COMMANDS,
     WORKER,
+    ArrayReply,
     Asked,
     Deferred,
     Job,
@@ -217,6 +218,10 @@ class OperatorDesk:
                 if text is None:  # the worker replies (statistics, the state table)
                     self.handled += 1
                     return
+                if isinstance(text, ArrayReply):
+                    self._reply_array(item, req, text)
+                    self.handled += 1
+                    return
                 if isinstance(text, Deferred):
                     # answered when the work is done (a controller's planner thread)
                     self.handled += 1
@@ -283,7 +288,32 @@ class OperatorDesk:
         if recorder is not None:
             recorder.record_message_late(reply, "out", item.interface, r.clock.now())
 
-    def _execute(self, req: Request, item: Inbound, now: float) -> str | Deferred | None:
+    def _reply_array(self, item: Inbound, req: Request, answer: ArrayReply) -> None:
+        """A controller's answer with an array (:class:`ArrayReply`): packed and sent by the
+        worker (a plan's path is megabytes: its CRC is not the loop's to compute), the NDARRAY
+        first, then the reply."""
+
+        def job() -> None:
+            msg = req.msg
+            assert msg is not None
+            wall = self.port.clock.wall_time()
+            array = igtl.NDArrayMessage(
+                array=answer.array,
+                device_name=safe_name(answer.device),
+                header_version=2,
+                message_id=msg.message_id,
+                metadata=dict(answer.meta),
+                timestamp=wall,
+            )
+            self.port.reply(item, array)
+            self.port.reply(item, success_reply(req, answer.text, timestamp=wall))
+
+        if not self.port.worker.start().submit(job):
+            raise CommandError("busy: the worker is still sending an earlier reply; try again")
+
+    def _execute(
+        self, req: Request, item: Inbound, now: float
+    ) -> str | Deferred | ArrayReply | None:
         """A robot command through its row's handler, dispatched by the row's thread
         (occ/net/commands.py ROBOT_COMMANDS), any other to the controllers. None: the worker
         thread sends the reply."""

@@ -108,12 +108,50 @@ A laparoscopic tool's port (issue 40; ``params.rcm_mm``)
     worst sample named). At run time each tick's joints are held to the same 0.05 mm: past
     it the run ends (``port_stops``) and the robot holds.
 
+A cell keyframe set (issue 40, item 5; :mod:`.cellset`, :mod:`occ.kinematics.cellpaths`)
+    A file with one timeline per arm of the cell, on one time base, by member name
+    (``{cell, space, plan: {interpolation, mode, steepness, ramp}, arms: {<member>:
+    {space, keyframes}}}``, at least two parts). ``KeyframeLoad File=`` on a member (its name
+    in the cell, ``ControllerContext.cell_member``) makes its own part the stored set and keeps
+    the whole file; the set's digest (SHA-256 of its canonical content) is the same on every
+    member. Each member then:
+
+    - ``KeyframePlan``: plans and checks its part as any plan (the other arms standing where
+      they are), keeping its sampled joint path and the path's digest (a part is at most 65535
+      samples: an NDARRAY's dimension);
+    - ``KeyframeCellPath Plan=N``: answers that path as an NDARRAY ``CellPath`` (metadata
+      ``member``, ``set``, ``plan``, ``digest``, ``period``, ``base``), sent by the operator
+      desk's worker, then the reply;
+    - takes the other members' ``CellPath`` messages as inputs (its operator interface lists
+      ``NDARRAY`` ``CellPath`` with ``queue: command``); one of another set or not another
+      member's is refused to its sender;
+    - ``KeyframeCellCheck Plan=N`` (planner thread): checks each path given against its digest,
+      then its own path against each at the same times (the collision model's peer geometry
+      and margin; every other arm anywhere within ``cell_skew_ms`` of the aligned time), and
+      answers the identity of the cell plan (a hash of the set's digest and every member's path
+      digest) or the refusal naming both arms, both links and the time. Another arm's plan is
+      never planned here: what is checked is what that arm will run, byte for byte;
+    - ``KeyframeAck Plan=N StartAt=<unix time> Cell=<identity>``: a part runs only with the
+      identity of its own passed cross-check and a common start; it holds at the plan's start
+      until the first tick of the loop at or after ``StartAt`` (on the loop's tick grid: the
+      samples are the checked ones), then runs. A ``StartAt`` in the past or more than
+      ``cell_start_max_s`` ahead is refused (``StartAt`` works for a plain plan too).
+
+    Stopped as one: a cell plan's run that ends other than by completing (an operator's Stop, a
+    fault, a cell hold, a failed tick; before or after its start) calls
+    ``ControllerContext.cell_stop``: every other member holds, which drops its own run (never
+    resumed). A run dropped while this robot stays RUNNING (a failed tick) keeps the others
+    held until this member is stopped and run again. ``policy: alert-only`` cells do not hold:
+    their members' parts then run on. The coordinator is occ_testkit/cellplan.py
+    (tools/cell_plan.py over TCP).
+
 Layout
     :mod:`.controller` the controller on the loop thread (the set, the commands, the
     acknowledgement, the run); :mod:`.params` its parameters and their checks; :mod:`.sets`
     keyframe sets and files; :mod:`.plan` the plan request, ``build_plan`` and its checks;
     :mod:`.planner` the planner thread and its jobs; :mod:`.pacer` the Pacer; :mod:`.preview`
-    the preview outputs; :mod:`.library` the trajectory library's commands.
+    the preview outputs; :mod:`.library` the trajectory library's commands; :mod:`.cellset`
+    cell keyframe sets and this member's side of their exchange.
 """
 
 from occ.controllers.keyframe.controller import STATUS_ENDED, STATUS_RUNNING, KeyframeController

@@ -5,21 +5,26 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 import weakref
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel
 
 from occ.controllers import Controller, ControllerContext, Problem, SourceFn
+from occ.controllers.keyframe.cellset import PATH_DEVICE, CellRole, CellSet, previewed
 from occ.controllers.keyframe.library import LibraryCommands
+from occ.controllers.keyframe.pacer import Pacer
 from occ.controllers.keyframe.params import KeyframeParams, check_params, regions_check
 from occ.controllers.keyframe.plan import (
     CheckedPlan,
     ForbiddenCheck,
     PathCheck,
     PlanRequest,
+    ack_ready,
     plan_request,
     plan_settings,
     run_tick,
@@ -38,11 +43,11 @@ from occ.controllers.keyframe.sets import (
 )
 from occ.core.safety import RobotState
 from occ.errors import CommandError, ConfigError, LibraryError
-from occ.events import PointsOut, PolylineOut
+from occ.events import ArrayInput, PointsOut, PolylineOut
 from occ.joint import JointLimits
 from occ.kinematics.keyframe_inputs import items_from_event
 from occ.kinematics.trajlib import Library, config_hash
-from occ.net.commands import Deferred
+from occ.net.commands import ArrayReply, Deferred
 from occ.ratelimit import RateLimit
 
 if TYPE_CHECKING:
@@ -100,6 +105,8 @@ class KeyframeController(Controller):
         "KeyframeSave",
         "KeyframeLibrary",
         "KeyframeDelete",
+        "KeyframeCellPath",
+        "KeyframeCellCheck",
     )
 
     def __init__(self, params: BaseModel | dict[str, Any] | None = None) -> None:
@@ -132,6 +139,8 @@ class KeyframeController(Controller):
         self._acked: CheckedPlan | None = None
         self.counters = dict.fromkeys(COUNTERS, 0)
         self.last_error = ""
+        #: a cell keyframe set's part: the exchange, the cross-check, the common start
+        self.cell = CellRole(self._lock)
 
     # ------------------------------------------------------------------ configuration
     @classmethod
@@ -202,7 +211,11 @@ class KeyframeController(Controller):
 
     # ------------------------------------------------------------------ inputs
     def on_input(self, event: InputEvent, now: float) -> None:
-        """Keyframes from 3D Slicer: a Markups POINT list or a TRAJ (a discrete input)."""
+        """Keyframes from 3D Slicer: a Markups POINT list or a TRAJ (a discrete input); an
+        NDARRAY ``CellPath``: another member's plan of the stored cell set."""
+        if isinstance(event, ArrayInput) and event.device == PATH_DEVICE:
+            self.cell.take_path(event, self.kset)  # CommandError: the sender is told
+            return
         if event.kind not in ("POINT", "TRAJ"):
             return
         if self.p.input_interface is not None and event.interface != self.p.input_interface:
@@ -227,11 +240,13 @@ class KeyframeController(Controller):
         self._install(kset)
         log.info("keyframes: %d from %s", len(kset.keyframes), source)
 
-    def _install(self, kset: KeyframeSet | None) -> None:
-        """A new keyframe set (or none): any checked plan is dropped (a running one runs on)."""
+    def _install(self, kset: KeyframeSet | None, cset: CellSet | None = None) -> None:
+        """A new keyframe set (or none; ``cset``: the cell set it is this member's part of):
+        any checked plan is dropped (a running one runs on)."""
         with self._lock:
             self._generation += 1
             self.kset = kset
+            self.cell.install(cset)
             if kset is not None:
                 self.counters["sets"] += 1
             self._set_plan(None)
@@ -249,14 +264,16 @@ class KeyframeController(Controller):
         self._preview.show(plan_)
 
     # ------------------------------------------------------------------ the planner's port
-    def install_unless_changed(self, kset: KeyframeSet, generation: int) -> bool:
-        """Install ``kset`` (from the planner thread) unless the set changed or a plan was
-        invalidated since ``generation``; False then."""
+    def install_unless_changed(
+        self, kset: KeyframeSet, generation: int, cell: CellSet | None = None
+    ) -> bool:
+        """Install ``kset`` (from the planner thread; ``cell``: its cell set) unless the set
+        changed or a plan was invalidated since ``generation``; False then."""
         with self._lock:
             superseded = self._generation != generation
         if superseded:
             return False
-        self._install(kset)
+        self._install(kset, cell)
         return True
 
     def record(self, counter: str, error: str | None = None) -> None:
@@ -277,7 +294,7 @@ class KeyframeController(Controller):
         return self._planner is None or self._planner.idle.wait(timeout)
 
     # ------------------------------------------------------------------ commands
-    def on_command(self, request: Request, now: float) -> str | Deferred | None:
+    def on_command(self, request: Request, now: float) -> str | Deferred | ArrayReply | None:
         key = request.name.strip().lower()
         args = {k.lower(): v for k, v in request.args.items()}
         if key == "keyframelist":
@@ -305,6 +322,8 @@ class KeyframeController(Controller):
             return self.library_cmds.listing()
         if key == "keyframedelete":
             return self.library_cmds.delete(args)
+        if key in ("keyframecellpath", "keyframecellcheck"):
+            return self._cmd_cell(key, args)
         raise CommandError(f"unknown command {request.name!r}")
 
     def _cmd_load(self, args: dict[str, str]) -> Deferred:
@@ -317,8 +336,9 @@ class KeyframeController(Controller):
         name, path = keyframe_path(self.p.keyframe_dir, args)
         assert self.data is not None
         n, p = len(self.data.joint_names), self.p
+        member = self.ctx.cell_member if self.ctx is not None else None
         return self.start(
-            load_file_job(self, path, name, p.space, n, p.max_keyframes, self._generation)
+            load_file_job(self, path, name, p.space, n, p.max_keyframes, self._generation, member)
         )
 
     def _cmd_plan(self, args: dict[str, str]) -> Deferred:
@@ -346,6 +366,9 @@ class KeyframeController(Controller):
             self.limits,
             (tuple(self.forbidden_checks), tuple(self.path_checks)),
         )
+        cset = self.cell.current(kset)
+        if cset is not None:  # a part of a cell set: its path is kept to be exchanged
+            req = replace(req, cell_member=cset.me)
         frame = self._frame_planner
         assert frame is not None
         return self.start(plan_job(self, req, frame, generation))
@@ -371,48 +394,36 @@ class KeyframeController(Controller):
             self.status = f"plan {req.id} previewed; KeyframeAck Plan={req.id} runs it"
             return True
 
+    def _cmd_cell(self, key: str, args: dict[str, str]) -> ArrayReply | Deferred:
+        """``KeyframeCellPath Plan=N`` and ``KeyframeCellCheck Plan=N`` (cellset.py)."""
+        assert self.ctx is not None
+        pace = Pacer(time.perf_counter, self.ctx.loop_t0, self.ctx.period_s)
+        return self.cell.command(
+            key, args, self.kset, self.plan, self.ctx, self.p.cell_skew_ms * 1e-3, pace, self
+        )
+
     def _cmd_ack(self, args: dict[str, str], now: float) -> str:
-        data = self.data
-        assert data is not None
-        text = args.get("plan", "").strip()
-        if not text:
-            raise CommandError("KeyframeAck needs Plan (the number of the previewed plan)")
-        try:
-            plan_id = int(text)
-        except ValueError:
-            raise CommandError(f"KeyframeAck: Plan must be a number, got {text!r}") from None
+        data, ctx = self.data, self.ctx
+        assert data is not None and ctx is not None
         if self.active is not None:
             raise CommandError(f"plan {self.active.id} is running already")
-        pending = self.plan
-        if pending is None or pending.id != plan_id:
-            have = f"plan {pending.id} is previewed" if pending else "no plan is previewed"
-            raise CommandError(f"KeyframeAck: plan {plan_id} is not the previewed plan ({have})")
-        if self.p.preview_required and not self._preview.sent:
-            raise CommandError(
-                f"KeyframeAck: plan {plan_id} has not been previewed yet (its preview goes out "
-                "with the next keyframe-path output); look at it, then acknowledge"
-            )
-        if data.state is not RobotState.RUNNING:
-            raise CommandError(
-                f"KeyframeAck: the robot is {data.state.value}; send Run first (it holds "
-                "until a plan is acknowledged)"
-            )
-        away = max(abs(a - b) for a, b in zip(data.setpoint, pending.q_start, strict=True))
-        if away > 1e-9:
-            raise CommandError(
-                f"KeyframeAck: the robot moved since plan {plan_id} was checked "
-                f"({away:.3g} rad/m); plan again"
-            )
+        pending = previewed(self.plan, args, "KeyframeAck")
+        plan_id = pending.id
+        ack_ready(pending, data, self.p.preview_required and not self._preview.sent)
+        identity, t0 = self.cell.ack(self.kset, pending, args, ctx, now, self.p.cell_start_max_s)
         self.active = pending
         self._acked = pending
-        self._t0 = now
+        self._t0 = t0
         self._q_last = list(pending.q_start)
+        self.cell.running = identity
         self.counters["runs"] += 1
+        what = f"plan {plan_id}" + (f" (cell plan {identity[:12]})" if identity else "")
+        when = f"starts in {t0 - now:.3f} s, " if t0 > now else ""
         with self._lock:
-            self.status = f"plan {plan_id} running ({pending.traj.duration:.3f} s)"
+            self.status = f"{what} running ({when}{pending.traj.duration:.3f} s)"
         self._announce(STATUS_RUNNING, self.status, _CODE_OK)
-        log.info("keyframes: plan %d acknowledged, running %.3f s", plan_id, pending.traj.duration)
-        return f"plan {plan_id} running: {pending.traj.duration:.3f} s"
+        log.info("keyframes: %s acknowledged, running %s%.3f s", what, when, pending.traj.duration)
+        return f"{what} running: {when}{pending.traj.duration:.3f} s"
 
     # ------------------------------------------------------------------ the loop
     def on_state(self, old: RobotState, new: RobotState, now: float) -> None:
@@ -428,8 +439,13 @@ class KeyframeController(Controller):
             )
 
     def _end_run(self, counter: str, status: str, code: int) -> None:
-        """The run ends (completed, or dropped: the robot holds); announced and logged."""
+        """The run ends (completed, or dropped: the robot holds); announced and logged. A cell
+        plan dropped stops the cell: every other member holds (and drops its part)."""
         self.active = None
+        identity, self.cell.running = self.cell.running, None
+        ctx = self.ctx
+        if identity is not None and code != _CODE_OK and ctx is not None and ctx.cell_stop:
+            ctx.cell_stop(f"cell plan {identity[:12]} dropped in {ctx.cell_member}: {status}")
         self.counters[counter] += 1
         with self._lock:
             self._generation += 1
@@ -446,6 +462,8 @@ class KeyframeController(Controller):
         if run is None:
             return None
         t = now - self._t0
+        if t < 0.0:
+            return list(run.q_start)  # acknowledged with a common start: it holds until then
         assert self.ctx is not None
         q, failure = run_tick(self.ctx.frame, run, t, self._q_last)
         if failure is not None:
@@ -470,7 +488,6 @@ class KeyframeController(Controller):
             ctx.alert(name, text, code)
 
     # ------------------------------------------------------------------ preview
-    # ------------------------------------------------------------------ preview
     def _source_path(self, out: Output, now: float) -> PolylineOut | None:
         assert self.ctx is not None
         return self._preview.path(out, now, self.ctx.clock.wall_time)
@@ -487,6 +504,7 @@ class KeyframeController(Controller):
         acked = self._acked
         if acked is not None and kset is not None and acked.kset is kset:
             lines.append(f"acknowledged: plan {acked.id} (KeyframeSave Set=... keeps the set)")
+        lines += self.cell.describe(kset)
         pending = self.plan
         if pending is not None:
             lines.append(f"previewed: {pending.summary}")
@@ -517,4 +535,5 @@ class KeyframeController(Controller):
             "last_error": self.last_error,
             "forbidden_checks": len(self.forbidden_checks),
             "planner_fifo": self._planner.fifo if self._planner else None,
+            **self.cell.stats(),
         }

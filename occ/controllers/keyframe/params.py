@@ -156,6 +156,18 @@ class KeyframeParams(_Model):
         description="With `rcm_mm`: the tip stays at least this far beyond the port (mm) at "
         "every keyframe and sample: a plan that would draw the tip back to the port is refused.",
     )
+    cell_skew_ms: Annotated[Float, Field(ge=0, le=100)] = Field(
+        2.0,
+        description="A cell keyframe set (one part per arm of the cell): how far apart in time "
+        "two members' parts may run (the phase of their loops' ticks, up to one period, plus "
+        "the disagreement of their hosts' clocks); the cross-check of the plans counts every "
+        "other arm anywhere within this of the aligned time (ms).",
+    )
+    cell_start_max_s: Annotated[Float, Field(gt=0, le=600)] = Field(
+        30.0,
+        description="A cell plan's `KeyframeAck StartAt=`: how far ahead (s) a common start "
+        "may be; further, or in the past, is refused.",
+    )
     preview_points: Annotated[Int, Field(ge=2, le=10000)] = Field(
         256, description="Most points of the previewed path (the polyline is decimated)."
     )

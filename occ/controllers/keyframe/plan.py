@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Literal, NoReturn, Protocol
 
 import numpy as np
@@ -18,6 +18,7 @@ from occ.controllers.keyframe.pacer import Pacer
 from occ.controllers.keyframe.sets import KeyframeSet, PlanSettings, Space
 from occ.errors import CommandError, KinematicsError
 from occ.joint import JointLimits
+from occ.kinematics.cellpaths import ArmPath, path_digest
 from occ.kinematics.port import (
     SHAFT_BOUND_M,
     PortMismatch,
@@ -38,6 +39,8 @@ if TYPE_CHECKING:
     from occ.kinematics.frame import Frame
 
 MM = 1e-3
+#: most samples of a cell set's part: an NDARRAY's dimension is at most 65535
+MAX_CELL_SAMPLES = 65535
 
 
 class ForbiddenCheck(Protocol):
@@ -98,6 +101,9 @@ class PlanRequest:
     port: np.ndarray | None = None
     port_tolerance_rad: float = 0.0087
     port_min_depth: float = 0.01
+    #: a part of a cell set: this member's name; the plan keeps its sampled joint path and
+    #: its digest (they are exchanged with the other members). None: not kept
+    cell_member: str | None = None
 
 
 @dataclass(frozen=True)
@@ -119,6 +125,13 @@ class CheckedPlan:
     #: the set it was planned from, and how (what KeyframeSave stores once it is acknowledged)
     kset: KeyframeSet | None = None
     settings: PlanSettings | None = None
+    #: the base pose it was planned with (world <- base, m) and the period it was sampled at
+    base: np.ndarray | None = None
+    period: float = 0.0
+    #: the joints commanded at each loop period from t = 0 (samples x joints) and their
+    #: digest (occ/kinematics/cellpaths.py): kept for a part of a cell set, else None and ''
+    qs: np.ndarray | None = None
+    digest: str = ""
 
 
 def rotation_to_quaternion_np(r: np.ndarray) -> np.ndarray:
@@ -197,7 +210,17 @@ def build_plan(req: PlanRequest, frame: Frame) -> CheckedPlan:
         if crossing is not None:
             t = min(crossing[0] * req.period, traj.end)
             raise PlanRefused(f"{crossing[1]} {checks.where(t)}")
-    return _checked(req, frame, traj, tl, checks, path, qs[-1], ticks)
+    checked = _checked(req, frame, traj, tl, checks, path, qs[-1], ticks)
+    if req.cell_member is not None:
+        if len(qs) > MAX_CELL_SAMPLES:
+            raise PlanRefused(
+                f"a part of a cell set is exchanged as an NDARRAY of at most "
+                f"{MAX_CELL_SAMPLES} samples; this plan has {len(qs)} ({traj.end:.1f} s)"
+            )
+        arr = np.array(qs, dtype=float)
+        digest = path_digest(ArmPath(req.cell_member, arr, req.base, req.period))
+        checked = replace(checked, qs=arr, digest=digest)
+    return checked
 
 
 def _timeline(req: PlanRequest, frame: Frame) -> _Timeline:
@@ -573,6 +596,8 @@ def _checked(
         ticks=ticks,
         kset=kset,
         settings=PlanSettings(req.interpolation, req.mode, req.steepness, req.ramp),
+        base=req.base,
+        period=req.period,
     )
 
 
@@ -605,6 +630,28 @@ def run_tick(
             why = f"the tool's shaft {off / MM:.4g} mm from the port (bound {bound:g} mm)"
             return q_last, ("port_stops", why, f"plan {run.id}: {why} at t={t:.3f} s")
     return q, None
+
+
+def ack_ready(plan: CheckedPlan, data: RobotData, unseen: bool) -> None:
+    """KeyframeAck's checks that ``plan`` may start now: seen (``unseen``: its preview has not
+    gone out yet), the robot RUNNING and still where the plan starts; CommandError saying why
+    not."""
+    if unseen:
+        raise CommandError(
+            f"KeyframeAck: plan {plan.id} has not been previewed yet (its preview goes out "
+            "with the next keyframe-path output); look at it, then acknowledge"
+        )
+    if data.state.value != "RUNNING":
+        raise CommandError(
+            f"KeyframeAck: the robot is {data.state.value}; send Run first (it holds "
+            "until a plan is acknowledged)"
+        )
+    away = max(abs(a - b) for a, b in zip(data.setpoint, plan.q_start, strict=True))
+    if away > 1e-9:
+        raise CommandError(
+            f"KeyframeAck: the robot moved since plan {plan.id} was checked "
+            f"({away:.3g} rad/m); plan again"
+        )
 
 
 def plan_settings(args: dict[str, str], given: PlanSettings) -> PlanSettings:

@@ -13,8 +13,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
+from occ.controllers.keyframe.cellset import (
+    CellKeyframeFile,
+    CellSet,
+    cell_set,
+    read_any_keyframe_file,
+)
 from occ.controllers.keyframe.plan import CheckedPlan, PlanRefused, PlanRequest, build_plan
-from occ.controllers.keyframe.sets import KeyframeSet, Space, file_set, read_keyframe_file
+from occ.controllers.keyframe.sets import KeyframeSet, Space, file_set
 from occ.errors import CommandError
 from occ.net.commands import Deferred
 
@@ -113,8 +119,11 @@ class PlannerPort(Protocol):
     """What the planner's jobs hand their results to (the keyframe controller; under its
     lock, which the loop shares)."""
 
-    def install_unless_changed(self, kset: KeyframeSet, generation: int) -> bool:
-        """Make ``kset`` the stored set unless the set changed since ``generation``."""
+    def install_unless_changed(
+        self, kset: KeyframeSet, generation: int, cell: CellSet | None = None
+    ) -> bool:
+        """Make ``kset`` the stored set (``cell``: the cell set it is this member's part of)
+        unless the set changed since ``generation``."""
         ...
 
     def plan_done(
@@ -148,19 +157,39 @@ def plan_job(
 
 
 def load_file_job(
-    port: PlannerPort, path: Path, name: str, space: Space, joints: int, cap: int, generation: int
+    port: PlannerPort,
+    path: Path,
+    name: str,
+    space: Space,
+    joints: int,
+    cap: int,
+    generation: int,
+    member: str | None = None,
 ) -> Callable[[Deferred], None]:
-    """KeyframeLoad File=NAME's job: read and validate the file, install its set."""
+    """KeyframeLoad File=NAME's job: read and validate the file, install its set; a cell
+    keyframe set's part for ``member`` (this robot's name in its cell)."""
 
     def job(answer: Deferred) -> None:
+        cset: CellSet | None = None
         try:
-            kset = file_set(read_keyframe_file(path), space, f"file {name}", joints, cap)
+            kf = read_any_keyframe_file(path)
+            if isinstance(kf, CellKeyframeFile):
+                cset = cell_set(kf, name, member, space, joints, cap)
+                kset = cset.own
+            else:
+                kset = file_set(kf, space, f"file {name}", joints, cap)
         except ValueError as err:
             answer.fail(f"KeyframeLoad refused: {err}")
             return
-        if not port.install_unless_changed(kset, generation):
+        if not port.install_unless_changed(kset, generation, cset):
             answer.fail("KeyframeLoad: the keyframes changed meanwhile; load again")
             return
-        answer.resolve(f"{len(kset.keyframes)} keyframes ({kset.space}) from {name}")
+        text = f"{len(kset.keyframes)} keyframes ({kset.space}) from {name}"
+        if cset is not None:
+            text += (
+                f": part {cset.me} of cell set {cset.digest} (parts "
+                f"{', '.join(cset.members)}); KeyframePlan, then KeyframeCellPath"
+            )
+        answer.resolve(text)
 
     return job
