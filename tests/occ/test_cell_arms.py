@@ -166,3 +166,36 @@ def test_the_shipped_cells_arms_teleoperated_toward_each_other_both_stop() -> No
     finally:
         for rig in rigs:
             rig.close()
+
+
+@pytest.mark.req("SR-CELL-1")
+def test_a_loss_stop_in_one_arm_of_the_shipped_cell_holds_the_other() -> None:
+    """ur5-a's master falls silent: its loss monitor stops it (latched), and ur5-b, following
+    its own master, holds for it, the alert naming ur5-a and the lost stream."""
+    from occ_testkit.rigs import SlaveRig
+
+    ports = _udp_ports(2)
+    rigs = []
+    try:
+        for n in "ab":
+            raw = yaml.safe_load((CONFIGS / "cell" / f"ur5-{n}.yaml").read_text())
+            for m, port in zip(raw["cell"]["members"], ports, strict=True):
+                m["address"] = f"127.0.0.1:{port}"
+            rigs.append(SlaveRig(raw))
+        for _ in range(10):
+            for rig in rigs:
+                rig.step(1)
+        for rig in rigs:
+            rig.running()
+        rigs[0].sending = False
+        for _ in range(150):
+            for rig in rigs:
+                rig.step(1)
+        assert rigs[0].robot.state is RobotState.STOPPED
+        assert "packet loss" in rigs[0].robot.last_alert
+        assert rigs[1].robot.state is RobotState.STOPPED
+        why = rigs[1].robot.snapshot()["cell"]["latched"]["ur5-a"]
+        assert why.startswith("ur5-a packet loss on master"), why
+    finally:
+        for rig in rigs:
+            rig.close()
