@@ -758,3 +758,72 @@ def test_a_stop_whose_close_raises_is_still_answered(rig, monkeypatch) -> None: 
     )
     monkeypatch.undo()
     rec.close()
+
+
+@pytest.mark.slow
+@pytest.mark.req("SR-REC-1")
+def test_occd_recording_to_dev_full(tmp_path: Path) -> None:
+    """The issue's own case, on a real ``occd --record /dev/full`` over TCP: one alert to the
+    connected operator, one line in the log and no traceback, the daemon running, StopRecording
+    answered, exit 0."""
+    from loopback import free_port, stop_processes, wait_port, write_yaml
+    from slicer_standin import SlicerStandIn
+
+    cfg = slave_config(tmp_path / "recs")
+    ports = {}
+    for itf in cfg["interfaces"]:
+        if itf["transport"] == "tcp-server":
+            itf["port"] = ports[itf["name"]] = free_port()
+        else:
+            import socket
+
+            itf["port"] = free_port(socket.SOCK_DGRAM)
+    cfg["recording"]["path"] = None
+    write_yaml(tmp_path / "slave.yaml", cfg)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "occ.cli", str(tmp_path / "slave.yaml"), "--record", "/dev/full"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        assert wait_port(ports["operator"]), (
+            proc.stderr.read().decode() if proc.poll() else "no port"
+        )
+        with SlicerStandIn("127.0.0.1", ports["operator"]) as op:
+            assert op.connected.wait(5.0)
+
+            def ask(name: str) -> Any:
+                reply = op.wait_reply(op.send_command(name), 10.0)
+                assert reply is not None, f"no reply to {name}"
+                return reply
+
+            def recording_alerts() -> list[Any]:
+                return [s for s in op.statuses if s.error_name == "RECORDING"]
+
+            # the writer meets the full disk at its first flush, 50 ms in (maybe before the
+            # operator connected: then the status says it)
+            status = wait_until(
+                lambda: (
+                    (m := ask("GetRecordingStatus").metadata["Message"]).startswith(
+                        "recording=failed"
+                    )
+                    and m
+                ),
+                10.0,
+                every=0.05,
+            )
+            assert "cause=No space left on device (ENOSPC)" in status
+            time.sleep(0.5)  # ten more flushes of the writer: still one alert, one log line
+            assert len(recording_alerts()) <= 1  # 0 when it failed before the connection
+            assert ask("GetStats").metadata["Status"] == "SUCCESS"  # the daemon serves
+            stop = ask("StopRecording")
+            assert stop.metadata["Status"] == "FAIL"
+            assert "it had FAILED: No space left on device (ENOSPC)" in stop.metadata["Message"]
+            assert "records not written" in stop.metadata["Message"]
+    finally:
+        stop_processes([proc])
+    err = proc.stderr.read().decode() if proc.stderr else ""
+    assert proc.returncode == 0, err
+    assert err.count("recording /dev/full failed: No space left on device (ENOSPC)") == 1, err
+    assert "Traceback" not in err, err
