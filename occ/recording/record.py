@@ -15,7 +15,10 @@ File format: a plain concatenation of OpenIGTLink header-version-2 messages.
 The loop thread only appends references to a bounded in-memory queue; a writer thread adds the
 recording metadata, packs and writes, handing the interpreter lock back after every record so
 the loop never waits for it. If the writer falls behind by more than ``max_backlog``
-records, new records are dropped and counted (``dropped``), never blocking the loop. Where the
+records, new records are dropped and counted (``dropped``), never blocking the loop. A
+backlog is written as it is packed (every MiB), and ``close`` waits for the writer as long as it
+takes records from its queue; a writer that takes none for ``CLOSE_WAIT_S`` is stuck (a hung
+disk) and given up, never raced by a second writer. Where the
 loop runs SCHED_FIFO the writer does too, two priorities below it (the interface threads are one
 below): a writer at normal priority could be preempted by another process while it holds the
 interpreter lock, and the loop would wait for the lock that long (measured: the loop's lateness
@@ -76,6 +79,10 @@ STATE_CODES = {
     "SHUTDOWN": 7,
 }
 STATE_NAMES = {code: name for name, code in STATE_CODES.items()}
+#: bytes packed before they are written (a backlog is written as it is packed)
+WRITE_BATCH = 1 << 20
+#: how long close waits for a writer that takes nothing from its queue (a hung disk)
+CLOSE_WAIT_S = 5.0
 
 
 class Recorder:
@@ -126,6 +133,7 @@ class Recorder:
         self.written = 0  # records on disk
         self.errors = 0  # records that could not be packed (each counted, the rest goes on)
         self.lost = 0  # records queued but never written: the recording had failed
+        self.progress = 0  # records taken from the queue (close waits while it grows)
         #: why the recording failed ("No space left on device (ENOSPC)"); None while it has
         #: not. Set once, by the writer (or by close), read by anyone.
         self.failure: str | None = None
@@ -257,15 +265,25 @@ class Recorder:
         if self.failure is not None:
             self._discard()
             return
-        chunks = []
+        chunks: list[bytes] = []
+        size = 0
         sleep = time.sleep
         while self._q:
+            if size >= WRITE_BATCH:  # a backlog goes out as it is packed: progress shows
+                self._write(chunks)
+                chunks, size = [], 0
+                if self.failure is not None:
+                    self._discard()
+                    return
             try:
                 item = self._q.popleft()
             except IndexError:  # pragma: no cover
                 break
+            self.progress += 1
             try:
-                chunks.append(self._encode(item))
+                chunk = self._encode(item)
+                chunks.append(chunk)
+                size += len(chunk)
             except (ValueError, TypeError, igtl.IGTLError) as err:
                 self.errors += 1
                 if self.errors <= 3:  # one bad record is not a failure; its kind is told
@@ -275,14 +293,17 @@ class Recorder:
             # default) while this thread packs a batch (measured: the slave's lateness p99.9
             # 1.8-3.0 ms with recording on vs 0.1 ms off).
             sleep(0)
-        if chunks and self._file is not None:
+        if chunks:
             self._write(chunks)
-        if self._file is not None and self.failure is None:
+        if self.failure is None:
             self._check_file()
 
     def _write(self, chunks: list[bytes]) -> None:
         """Write whole records; on an error, cut the file back to the last whole record and
         fail with the cause."""
+        if self._file is None:  # closed under a writer given up for stuck
+            self.lost += len(chunks)
+            return
         data = memoryview(b"".join(chunks))
         done = 0
         try:
@@ -318,6 +339,8 @@ class Recorder:
     def _check_file(self) -> None:
         """A file removed while it is written (its directory deleted) takes every byte with
         it when it is closed: a failure, said now rather than found later."""
+        if self._file is None:
+            return
         try:
             gone = os.fstat(self._file.fileno()).st_nlink == 0
         except (OSError, ValueError) as err:
@@ -335,6 +358,7 @@ class Recorder:
             except IndexError:  # pragma: no cover
                 break
             self.lost += 1
+            self.progress += 1
 
     def _fail(self, cause: str, err: BaseException | None = None) -> None:
         """The recording failed: said once in the log (with ``err``'s traceback: a bug's) and
@@ -386,10 +410,14 @@ class Recorder:
             self._closed = True
             self._cond.notify_all()
         thread = self._thread
-        if thread is not None:
-            thread.join(timeout=5.0)
-        if thread is not None and thread.is_alive():  # a hung disk: never race the writer
-            self._fail("the writer did not finish within 5 s (a hung disk?)")
+        seen = -1
+        # as long as the writer drains a backlog it is waited for; a writer that takes
+        # nothing for CLOSE_WAIT_S is stuck (a hung disk): given up, never raced
+        while thread is not None and thread.is_alive() and self.progress != seen:
+            seen = self.progress
+            thread.join(timeout=CLOSE_WAIT_S)
+        if thread is not None and thread.is_alive():
+            self._fail(f"the writer made no progress for {CLOSE_WAIT_S:g} s (a hung disk?)")
         else:
             self._flush()
         try:

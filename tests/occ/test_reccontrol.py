@@ -827,3 +827,24 @@ def test_occd_recording_to_dev_full(tmp_path: Path) -> None:
     assert proc.returncode == 0, err
     assert err.count("recording /dev/full failed: No space left on device (ENOSPC)") == 1, err
     assert "Traceback" not in err, err
+
+
+@pytest.mark.req("SR-REC-1")
+def test_close_waits_for_a_writer_that_drains_a_backlog(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A backlog that takes the writer longer than close's wait: close waits as long as the
+    writer takes records (before: it gave up after 5 s and flushed from a second thread while
+    the writer still wrote, losing records); only a writer that takes nothing is given up."""
+    from occ.recording import record
+
+    monkeypatch.setattr(record, "CLOSE_WAIT_S", 0.05)
+    path = tmp_path / "backlog.igtl"
+    rec = Recorder(path, max_backlog=10**6).start()
+    n = 8000
+    for k in range(n):
+        msg = igtl.StatusMessage(code=1, error_name="E", status_message=f"m{k}", device_name="D")
+        rec.record_message(msg, "out", "*", float(k))
+    rec.close()
+    assert rec.failure is None, rec.failure
+    assert rec.written == n and rec.not_written() == 0
+    msgs = read_recording(path)
+    assert [m.status_message for m in msgs] == [f"m{k}" for k in range(n)]  # type: ignore[attr-defined]
