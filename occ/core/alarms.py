@@ -150,6 +150,20 @@ class Alarms:
             log.warning("stream %s (not in control): %s", name, event.cause)
             self.broadcast("STREAM", f"stream {name}: {event.cause}", igtl.StatusCode.OK)
 
+    def watch_recording(self, recorder: Any | None) -> Any | None:
+        """The recorder the alarms write their STATUS to, and whose failure they announce
+        (:meth:`recording_failed`); returns it (``Robot.set_recorder``)."""
+        self.recorder = recorder
+        if recorder is not None:
+            recorder.on_failure(self.recording_failed)
+        return recorder
+
+    def recording_failed(self, text: str) -> None:
+        """A recording that cannot be written (a full disk, its file removed, its writer
+        gone): a ``RECORDING`` alert to every operator and viewer, once per recording (the
+        recorder tells it once and has logged it). Nothing moves for it: the robot goes on."""
+        self.broadcast("RECORDING", text, igtl.StatusCode.RESOURCE_ERROR)
+
     def broadcast(self, name: str, text: str, code: int, timestamp: float | None = None) -> None:
         """A STATUS to every viewer and operator (and the recording)."""
         status = igtl.StatusMessage(

@@ -96,7 +96,7 @@ class Robot:
         it (None; on the loop thread only, so the loop never loses it between a check and a
         call). Run-time recording, occ/recording/control.py."""
         self._record_out: Any = None
-        self.recorder = self.alarms.recorder = recorder
+        self.recorder = self.alarms.watch_recording(recorder)  # its failure: an alert
         if recorder is not None:
             self._record_out = lambda m, iface, at: recorder.record_message(m, "out", iface, at)
 

@@ -3,6 +3,17 @@
 A module of its own so that the recording format imports neither its plots
 (occ/recording/plot.py) nor its exports (occ/recording/export.py), which import it: no import
 circle.
+
+Exit status of ``occ-record export``:
+
+- 0: the recording was read to its end and exported whole;
+- 1: nothing was exported (nothing to export, an existing output, a file that cannot be read
+  or written); nothing was written;
+- 2: the command was wrong (an output name whose form the exporter cannot write, a format that
+  does not fit the name, a missing optional dependency); nothing was read or written;
+- 3: SALVAGED: the recording is damaged (cut mid-message, a bad header, damaged messages);
+  what could be read was exported, and the message on stderr says where the damage is (its
+  byte offset, the last message read, its time).
 """
 
 from __future__ import annotations
@@ -13,7 +24,10 @@ from pathlib import Path
 from typing import Any
 
 import igtl
-from occ.recording.record import export_csv, replay
+from occ.recording.record import ReadReport, replay
+
+#: the exit status of an export of a damaged recording, made up to the damage
+SALVAGED = 3
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -32,7 +46,11 @@ def main(argv: list[str] | None = None) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="occ-record", description="Export, replay or plot an occd recording."
+        prog="occ-record",
+        description="Export, replay or plot an occd recording.",
+        epilog="export exits 0 when complete, 3 when a damaged recording was salvaged up to "
+        "the damage, 1 when nothing was exported, 2 for a wrong command (an output name it "
+        "cannot write)",
     )
     sub = p.add_subparsers(dest="cmd", required=True)
     _add_export(sub)
@@ -51,14 +69,14 @@ def _add_export(sub: Any) -> None:
     e.add_argument(
         "out",
         type=Path,
-        help="CSV: a directory; seq: OUT.seq.mha; mcap: OUT.mcap (one file) or OUT (a rosbag2 "
-        "directory)",
+        help="CSV: a directory (a name without a file suffix); seq: OUT.seq.mha (.mha, .mhd); "
+        "mcap: OUT.mcap (one file) or OUT (a rosbag2 directory); other names are refused",
     )
     e.add_argument(
         "--format",
         choices=["csv", "seq", "mcap"],
         default=None,
-        help="default: from OUT (.mha/.mhd -> seq, .mcap -> mcap, else csv)",
+        help="default: from OUT (.mha/.mhd -> seq, .mcap -> mcap, a directory -> csv)",
     )
     e.add_argument(
         "--device",
@@ -67,7 +85,12 @@ def _add_export(sub: Any) -> None:
         help="seq/mcap: only this TRANSFORM/POSITION stream (repeatable; default all)",
     )
     e.add_argument("--name", default=None, help="mcap: the robot's ROS name (default its own)")
-    e.add_argument("--force", action="store_true", help="seq/mcap: replace an existing OUT")
+    e.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing OUT (CSV: its state.csv and messages.csv), once the new one "
+        "is whole",
+    )
 
 
 def _add_replay(sub: Any) -> None:
@@ -116,26 +139,28 @@ def _plot(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from occ.recording.export import ExportError, export, guess_format  # rosbags lives there
+    from occ.recording.export import ExportError, export  # rosbags lives there
 
-    fmt = args.format or guess_format(args.out)
-    if fmt == "csv":
-        s, m = export_csv(args.file, args.out)
-        print(f"wrote {s} and {m}")
-        return 0
+    report = ReadReport()
     try:
         summary = export(
             args.file,
             args.out,
-            fmt,
+            args.format,
             devices=set(args.device) if args.device else None,
             name=args.name,
             force=args.force,
+            report=report,
         )
     except ExportError as err:
         print(f"occ-record: {err}", file=sys.stderr)
+        if report.path and not report.complete:
+            print(f"occ-record: {report.describe()}", file=sys.stderr)
         return err.code
     print(f"wrote {args.out}: {summary}")
+    if not report.complete:
+        print(f"occ-record: SALVAGED: {report.describe()}", file=sys.stderr)
+        return SALVAGED
     return 0
 
 

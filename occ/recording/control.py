@@ -13,7 +13,15 @@ Three operator commands, over COMMAND (answered by RTS_COMMAND) or a PLUS-style 
   is on disk, says how many records went to which file (PLUS: ``Recording N frames successful to
   file F``). ``OutputFilename`` renames the file on the way (never over an existing one).
 - ``GetRecordingStatus``: ``recording=true; file=...; records=...; bytes=...; dropped=...``,
-  ``recording=starting; file=...`` or ``recording=false`` (with ``last=`` the last file).
+  ``recording=failed; file=...; cause=...; ...`` (below), ``recording=starting; file=...`` or
+  ``recording=false`` (with ``last=`` the last file).
+
+A recording that fails (a full disk, ``ENOSPC``; its file or directory removed; its writer
+gone: occ/recording/record.py) is an ALERT to every operator once, with the cause (the robot's
+alarms), and stays attached, marked failed, until StopRecording, whose answer (a FAIL: the
+recording is not whole) says what is on disk and how many records were not written. Every
+command is answered whatever the disk does: a job of the worker that raises answers its
+command with the error.
 
 The recorder is the one ``--record`` uses (occ/recording/record.py): the loop only appends to its
 queue, its own thread writes. Opening the file and closing it (which waits for the writer to drain)
@@ -147,6 +155,13 @@ class RecordingControl:
     def describe(self) -> str:
         """GetRecordingStatus's answer."""
         rec = self.port.recorder()
+        if rec is not None and rec.failure is not None:
+            s = rec.stats()
+            return (
+                f"recording=failed; file={rec.path}; cause={rec.failure}; "
+                f"records={s['records']}; written={s['written']}; bytes={s['bytes']}; "
+                f"not_written={rec.not_written()}"
+            )
         if rec is not None:
             s = rec.stats()
             return (
@@ -174,6 +189,13 @@ class RecordingControl:
 
     # ------------------------------------------------------------------ worker thread
     def _open_file(self, path: Path, done: Deferred) -> None:
+        try:
+            self._start_file(path, done)
+        except Exception as err:  # noqa: BLE001 - the command is answered whatever happened
+            log.exception("StartRecording: %s", path)
+            self._fail(done, f"StartRecording: cannot record to {path}: {err}")
+
+    def _start_file(self, path: Path, done: Deferred) -> None:
         cfg = self.port.config
         rec = Recorder(
             path,
@@ -222,7 +244,15 @@ class RecordingControl:
         done.fail(text)
 
     def _close_file(self, rec: Recorder, target: Path, done: Deferred) -> None:
-        rec.close()
+        try:
+            self._stop_file(rec, target, done)
+        except Exception as err:  # noqa: BLE001 - the command is answered whatever happened
+            log.exception("StopRecording: %s", rec.path)
+            self.failed += 1
+            done.fail(f"StopRecording: recording stopped; closing {rec.path} failed: {err}")
+
+    def _stop_file(self, rec: Recorder, target: Path, done: Deferred) -> None:
+        rec.close()  # never raises: what it could not do is the recording's failure
         with self._lock:
             self._open.discard(rec)
         s = rec.stats()
@@ -241,9 +271,18 @@ class RecordingControl:
                 done.fail(
                     f"StopRecording: recording stopped, {summary} in {path}; cannot name it "
                     f"{target.name}: {err.strerror or err}"
+                    + (f"; it had FAILED: {rec.failure}" if rec.failure is not None else "")
                 )
                 return
         self.last_path = path
+        if rec.failure is not None:  # stopped, but not whole: the operator must know
+            self.failed += 1
+            done.fail(
+                f"StopRecording: recording stopped; it had FAILED: {rec.failure}; "
+                f"{s['written']} records ({s['bytes']} bytes) in {path} up to the failure, "
+                f"{rec.not_written()} records not written"
+            )
+            return
         log.info("recording stopped: %s in %s", summary, path)
         done.resolve(f"Recording {summary} successful to file {path}")
 

@@ -6,9 +6,15 @@ data: a MetaImage header with no pixels (``DimSize = 0 0 N``, ``ElementDataFile 
 custom fields hold, per frame ``NNNN``,
 
 - ``Seq_FrameNNNN_<From>To<To>Transform``: the 4x4 pose, 16 numbers row by row, mm;
-- ``Seq_FrameNNNN_<From>To<To>TransformStatus``: ``OK`` when the stream has a sample in this
-  frame, ``INVALID`` otherwise (the last sample held, or identity before the first one);
+- ``Seq_FrameNNNN_<From>To<To>TransformStatus``: ``OK``;
 - ``Seq_FrameNNNN_Timestamp``: seconds since the first frame.
+
+A transform is in a frame only when its stream has a sample in that frame's millisecond:
+every pose in the file was measured at the time it is given. Slicer's reader ignores
+``TransformStatus`` (any field named ``...Transform`` is a pose), so the PLUS habit of writing
+every transform in every frame, a held or identity pose marked ``INVALID``, would put the tool
+at the world's origin before its first sample; Slicer's browser shows a transform's last pose
+until its next one, which is what it means.
 
 The rules it follows are those of Slicer's reader (``vtkMRMLLinearTransformSequenceStorageNode``:
 a frame field is ``Seq_Frame`` + number + ``_`` + name; a field whose name holds ``Transform``
@@ -49,13 +55,33 @@ Its topics are those the ROS 2 bridge publishes (occ_ros2/bridge.py), in metres,
 
 Header stamps are the messages' own timestamps (the daemon's wall clock); the bag's receive times
 are the recording's times (``rec.t``) on the same wall clock.
+
+``occ-record export REC OUT_DIR`` writes ``state.csv`` (the loop state rows, the state by name)
+and ``messages.csv`` (one row per message) in a directory.
+
+The output's name says its form, and a form the exporter cannot write is refused before
+anything is read or written (:func:`output_format`): ``.seq.mha``/``.mha``/``.seq.mhd``/``.mhd``
+(sequence), ``.mcap`` (one bag file), or a directory (CSV; a rosbag2 directory with ``--format
+mcap``), whose name has no file suffix. ``.seq.nrrd`` is refused: Slicer reads a transform
+sequence only from a MetaImage header (``vtkMRMLLinearTransformSequenceStorageNode``); its NRRD
+sequences are image volumes.
+
+Every output is written beside its final name and moved there when whole: an export that fails
+leaves nothing behind, and an existing output (replaced only with ``force``) is kept until the
+new one is complete. A damaged recording (cut mid-message: a crash, an interrupted copy) is
+salvaged up to the damage (occ/recording/record.py, :class:`ReadReport`): the export is made of
+what was read, and the report says where it stopped; ``occ-record`` exits 3 then.
 """
 
 from __future__ import annotations
 
+import csv
+import json
 import math
 import os
 import re
+import shutil
+import tempfile
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -64,7 +90,7 @@ from typing import Any
 import numpy as np
 
 from occ.net.decoders import message_force, message_torque
-from occ.recording.record import STATE_DEVICE, STATE_NAMES, iter_recording
+from occ.recording.record import STATE_DEVICE, STATE_NAMES, ReadReport, iter_recording
 from occ.samples import quaternion_to_rotation
 
 #: the frame of the daemon's own pose outputs (3D Slicer's RAS, the ROS frame ``world``)
@@ -143,13 +169,14 @@ def message_pose(msg: Any) -> np.ndarray | None:
     return m if bool(np.isfinite(m).all()) else None
 
 
-def read_content(path: str | Path) -> RecordingContent:
+def read_content(path: str | Path, report: ReadReport | None = None) -> RecordingContent:
     """The pose streams, the loop state rows and the robot's name of a recording. An output
     recorded twice in one tick (sent on two interfaces) counts once; every received sample
-    counts (two may arrive in one tick)."""
+    counts (two may arrive in one tick). ``report``: salvage a damaged recording up to the
+    damage (:func:`~occ.recording.record.iter_recording`) instead of raising."""
     c = RecordingContent()
     seen: set[tuple[str, str, float]] = set()
-    for m in iter_recording(path):
+    for m in iter_recording(path, report):
         meta = m.metadata
         mtype = m.message_type
         if mtype == "NDARRAY" and m.device_name == STATE_DEVICE:
@@ -255,9 +282,6 @@ def _matrix_text(m: np.ndarray) -> str:
     return " ".join(format(float(v), ".12g") for v in m.reshape(16))
 
 
-IDENTITY_TEXT = "1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1"
-
-
 def write_seq(
     content: RecordingContent,
     out: str | Path,
@@ -301,27 +325,26 @@ def write_seq(
         lines.append(f"OCCRobot = {content.robot}")
     if source:
         lines.append(f"OCCSource = {source}")
-    held: dict[tuple[str, str], str] = {k: IDENTITY_TEXT for k in keys}
     ok_counts = dict.fromkeys(keys, 0)
     for n, ms in enumerate(order):
         here = frames[ms]
         prefix = f"Seq_Frame{n:04d}_"
         for key in keys:
             sample = here.get(key)
-            if sample is not None:
-                held[key] = _matrix_text(streams[key].pose[sample])
-                ok_counts[key] += 1
-            lines.append(f"{prefix}{names[key]}Transform = {held[key]}")
-            status = "OK" if sample is not None else "INVALID"
-            lines.append(f"{prefix}{names[key]}TransformStatus = {status}")
+            if sample is None:  # not measured in this frame: no pose (module docstring)
+                continue
+            ok_counts[key] += 1
+            lines.append(
+                f"{prefix}{names[key]}Transform = {_matrix_text(streams[key].pose[sample])}"
+            )
+            lines.append(f"{prefix}{names[key]}TransformStatus = OK")
         lines.append(f"{prefix}Timestamp = {ms / 1000.0:.3f}")
     lines.append("ElementDataFile = LOCAL")
     too_long = [line[:60] for line in lines if len(line) > MAX_LINE]
     if too_long:  # cannot happen with 16 numbers of 12 digits; kept as a guard
         raise ExportError(f"header line too long for Slicer's reader: {too_long[0]}...")
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines) + "\n", encoding="ascii", errors="replace")
+    text = "\n".join(lines) + "\n"
+    write_whole(Path(out), lambda tmp: tmp.write_text(text, encoding="ascii", errors="replace"))
     return {
         "frames": len(order),
         "transforms": {names[k]: ok_counts[k] for k in keys},
@@ -440,17 +463,38 @@ def quaternion_xyzw(r: np.ndarray) -> tuple[float, float, float, float]:
 
 
 def write_mcap(
-    content: RecordingContent, out: str | Path, *, name: str | None = None
+    content: RecordingContent,
+    out: str | Path,
+    *,
+    name: str | None = None,
+    replace: bool = False,
 ) -> dict[str, Any]:
-    """Write the ROS 2 bag ``out`` (module docstring); returns the message count per topic."""
+    """Write the ROS 2 bag ``out`` (module docstring); returns the message count per topic.
+    The bag is made in a directory of its own, removed if the export fails; ``replace``: an
+    existing single file ``out`` is replaced once the new one is whole."""
     out = Path(out)
     robot = _ros_name(name or content.robot or "robot")
+    single_file = out.suffix.lower() == ".mcap"  # as guess_format reads the name
+    bag_dir = _mcap_bag_dir(content, out, single_file, replace and single_file)
+    bag = _Bag(bag_dir)
+    try:
+        counts = _fill_bag(bag, content, robot)
+        if single_file:
+            produced = bag_dir / f"{bag_dir.name}.mcap"
+            os.replace(produced, out)
+            (bag_dir / "metadata.yaml").unlink(missing_ok=True)
+            bag_dir.rmdir()
+    except BaseException:
+        shutil.rmtree(bag_dir, ignore_errors=True)  # made here (refused when it existed)
+        raise
+    return counts
+
+
+def _fill_bag(bag: _Bag, content: RecordingContent, robot: str) -> dict[str, Any]:
+    """Every record of the recording into ``bag``, in time order; the count per topic."""
     ns = f"/occ/{robot}"
     base_frame = f"{robot}_base"
-    single_file = out.suffix.lower() == ".mcap"  # as guess_format reads the name
-    bag_dir = _mcap_bag_dir(content, out, single_file)
     offset = content.wall_offset or 0.0
-    bag = _Bag(bag_dir)
     # every record with its receive time (the recording's time on the wall clock), written in
     # time order; at equal times Base before Tip, so a tip is expressed in its own tick's base
     events = _tip_base_events(bag, content, ns, robot, offset)
@@ -464,22 +508,15 @@ def write_mcap(
     try:
         for _, _, emit in events:
             emit()
-    except BaseException:
+    finally:
         bag.writer.close()
-        raise
-    bag.writer.close()
-    if single_file:
-        produced = bag_dir / f"{bag_dir.name}.mcap"
-        os.replace(produced, out)
-        (bag_dir / "metadata.yaml").unlink(missing_ok=True)
-        bag_dir.rmdir()
     return dict(sorted(bag.counts.items()))
 
 
-def _mcap_bag_dir(content: RecordingContent, out: Path, single_file: bool) -> Path:
+def _mcap_bag_dir(content: RecordingContent, out: Path, single_file: bool, replace: bool) -> Path:
     """The rosbag2 directory to write (beside ``out`` for a single file); ExportError when
-    ``out`` or it exists, or when there is nothing to export."""
-    if out.exists():
+    ``out`` (unless ``replace``) or it exists, or when there is nothing to export."""
+    if out.exists() and not replace:
         raise ExportError(f"{out} exists; not overwriting (--force replaces it)")
     bag_dir = out.with_name(out.name + ".bagdir") if single_file else out
     if bag_dir.exists():
@@ -685,37 +722,212 @@ def _state_events(
     return events
 
 
+# ---------------------------------------------------------------------- CSV
+def export_csv(
+    path: str | Path,
+    out_dir: str | Path,
+    *,
+    report: ReadReport | None = None,
+    force: bool = False,
+) -> tuple[Path, Path]:
+    """Write ``state.csv`` (the loop state rows) and ``messages.csv`` (one row per message) in
+    the directory ``out_dir``, made when missing. Both are written aside and moved into place
+    when whole: a failure leaves nothing (not even the directory); an existing file of those
+    names is replaced only with ``force``. ``report``: salvage a damaged recording."""
+    out = Path(out_dir)
+    names = ("state.csv", "messages.csv")
+    if out.is_dir():
+        there = [n for n in names if (out / n).exists()]
+        if there and not force:
+            raise ExportError(f"{out / there[0]} exists; not overwriting (--force replaces it)")
+        state_path, msg_path = out / names[0], out / names[1]
+
+        def both(tmp_state: Path) -> None:  # messages.csv moved in first, state.csv last
+            write_whole(msg_path, lambda tmp_msgs: _write_csv(path, tmp_state, tmp_msgs, report))
+
+        write_whole(state_path, both)
+        return state_path, msg_path
+    if out.exists():
+        raise ExportError(f"{out} exists and is not a directory")
+
+    def fill(tmp_dir: Path) -> None:
+        _write_csv(path, tmp_dir / names[0], tmp_dir / names[1], report)
+
+    write_whole(out, fill, directory=True)
+    return out / names[0], out / names[1]
+
+
+def _write_csv(
+    path: str | Path, state_path: Path, msg_path: Path, report: ReadReport | None
+) -> None:
+    with open(state_path, "w", newline="") as fs, open(msg_path, "w", newline="") as fm:
+        ws, wm = csv.writer(fs), csv.writer(fm)
+        header_written = False
+        wm.writerow(
+            ["t", "dir", "interface", "type", "device", "message_id", "timestamp", "content"]
+        )
+        n = 0
+        for m in iter_recording(path, report):
+            n += 1
+            if m.message_type == "NDARRAY" and m.device_name == STATE_DEVICE:
+                if not header_written:
+                    ws.writerow(m.metadata.get("columns", "").split(","))
+                    header_written = True
+                row = [f"{v:.9g}" for v in np.asarray(m.array).ravel().tolist()]  # type: ignore[attr-defined]
+                if len(row) > 1:  # the state column by its name, not its code (READY, RUNNING)
+                    row[1] = STATE_NAMES.get(int(float(row[1])), row[1])
+                ws.writerow(row)
+                continue
+            meta = m.metadata
+            wm.writerow(
+                [
+                    meta.get("rec.t", ""),
+                    meta.get("rec.dir", ""),
+                    meta.get("rec.if", ""),
+                    m.message_type,
+                    m.device_name,
+                    m.message_id,
+                    f"{m.timestamp:.6f}",
+                    _short(m),
+                ]
+            )
+    if n == 0:
+        raise ExportError("nothing to export: no message could be read")
+
+
+def _short(m: Any) -> str:
+    text = json.dumps(m.content_summary(), separators=(",", ":"), default=str)
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+# ---------------------------------------------------------------------- outputs
+def write_whole(out: Path, write: Callable[[Path], object], *, directory: bool = False) -> None:
+    """``write(tmp)`` to a file (or a ``directory``) beside ``out``, then ``tmp`` renamed to
+    ``out``: ``out`` is whole or untouched (an existing file is replaced only at the end), and
+    a failure leaves nothing behind, the directories made for ``out`` included."""
+    made = _make_parents(out.parent)
+    try:
+        if directory:
+            tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent))
+        else:
+            fd, name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent)
+            os.close(fd)
+            tmp = Path(name)
+    except BaseException:
+        _remove_dirs(made)
+        raise
+    try:
+        write(tmp)
+        if directory:
+            os.rename(tmp, out)  # never over something that appeared meanwhile
+        else:
+            os.replace(tmp, out)
+    except BaseException:
+        if tmp.is_dir():
+            shutil.rmtree(tmp, ignore_errors=True)
+        else:
+            tmp.unlink(missing_ok=True)
+        _remove_dirs(made)
+        raise
+
+
+def _make_parents(directory: Path) -> list[Path]:
+    """Make ``directory`` and the parents it lacks; the ones made, outermost first."""
+    missing: list[Path] = []
+    d = directory
+    while not d.exists() and d != d.parent:
+        missing.append(d)
+        d = d.parent
+    directory.mkdir(parents=True, exist_ok=True)
+    return missing[::-1]
+
+
+def _remove_dirs(made: list[Path]) -> None:
+    for d in reversed(made):  # innermost first; one that is not empty stays with its parents
+        try:
+            d.rmdir()
+        except OSError:
+            return
+
+
+#: the output names the exporter writes, for its refusals
+SUPPORTED = (
+    "occ-record export writes OUT.seq.mha (or .mha, .seq.mhd, .mhd: the transform sequence "
+    "of 3D Slicer and PLUS), OUT.mcap (a ROS 2 bag, one file) or a directory whose name has "
+    "no file suffix (CSV: state.csv and messages.csv; a rosbag2 directory with --format mcap)"
+)
+#: a name's last suffix that says "a file of this kind" (``.nrrd``, ``.csv``), unlike a
+#: dated directory's (``run.2025-01-31``)
+_FILE_SUFFIX = re.compile(r"\.[a-z][a-z0-9]{0,7}")
+FORMATS = ("csv", "seq", "mcap")
+
+
+def output_format(out: str | Path, fmt: str | None = None) -> str:
+    """The format ``out`` is written in (``fmt``, or what its name asks for), or ExportError
+    (code 2: the command was wrong, nothing read or written) for a name whose form the
+    exporter cannot write, or that another format than ``fmt`` would need."""
+    if fmt is not None and fmt not in FORMATS:
+        raise ExportError(f"unknown format {fmt!r} (one of {', '.join(FORMATS)})", code=2)
+    out = Path(out)
+    lower = out.name.lower()
+    suffix = Path(lower).suffix
+    if lower.endswith((".mha", ".mhd")):
+        form = "seq"
+    elif suffix == ".mcap":
+        form = "mcap"
+    elif out.is_dir() or not _FILE_SUFFIX.fullmatch(suffix):
+        form = "dir"
+    else:
+        why = ""
+        if suffix in (".nrrd", ".nhdr"):
+            why = (
+                "3D Slicer reads a transform sequence only from a MetaImage header (.seq.mha); "
+                "its NRRD sequences are image volumes. "
+            )
+        raise ExportError(f"cannot write {out.name!r}: {why}{SUPPORTED}", code=2)
+    guessed = {"seq": "seq", "mcap": "mcap", "dir": "csv"}[form]
+    if fmt is None or fmt == guessed or (fmt == "mcap" and form == "dir"):
+        return fmt or guessed
+    raise ExportError(
+        f"--format {fmt} cannot write {out.name!r} (that name is a {guessed} output): {SUPPORTED}",
+        code=2,
+    )
+
+
 # ---------------------------------------------------------------------- entry point
 def export(
     path: str | Path,
     out: str | Path,
-    fmt: str,
+    fmt: str | None = None,
     *,
     devices: set[str] | None = None,
     name: str | None = None,
     force: bool = False,
+    report: ReadReport | None = None,
 ) -> dict[str, Any]:
-    """``occ-record export --format seq|mcap``: read ``path``, write ``out``."""
+    """``occ-record export``: check the output's name (:func:`output_format`), read ``path``
+    (salvaged into ``report`` when given), write ``out`` whole or not at all."""
     out = Path(out)
+    fmt = output_format(out, fmt)
     if fmt == "mcap":
         try:
             import rosbags  # noqa: F401
         except ImportError as err:
             raise _missing("rosbags") from err
+    if fmt == "csv":
+        state, messages = export_csv(path, out, report=report, force=force)
+        return {"state": str(state), "messages": str(messages)}
     if out.exists():
-        if not force:
-            raise ExportError(f"{out} exists; not overwriting (--force replaces it)")
         if out.is_dir():
             raise ExportError(f"{out} is a directory; remove it yourself")
-        out.unlink()
-    content = read_content(path)
+        if not force:
+            raise ExportError(f"{out} exists; not overwriting (--force replaces it)")
+    content = read_content(path, report)
     if fmt == "seq":
         return write_seq(content, out, devices=devices, source=Path(path).name)
-    if fmt == "mcap":
-        if devices is not None:
-            content.streams = {k: s for k, s in content.streams.items() if s.device in devices}
-        return write_mcap(content, out, name=name)
-    raise ExportError(f"unknown format {fmt!r}", code=2)
+    if devices is not None:
+        content.streams = {k: s for k, s in content.streams.items() if s.device in devices}
+    return write_mcap(content, out, name=name, replace=force)
 
 
 def guess_format(out: str | Path) -> str:

@@ -7,9 +7,12 @@ does the same over real TCP sockets against a running ``occd``.
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
+import os
 import re
+import shutil
 import subprocess
 import sys
 import threading
@@ -24,7 +27,7 @@ import pytest
 import yaml
 
 import igtl
-from occ.recording.record import STATE_DEVICE, read_recording
+from occ.recording.record import STATE_DEVICE, Recorder, read_recording
 from occ_testkit.testing import SimPeer, SimRobot, wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -568,3 +571,280 @@ def test_a_directory_that_is_a_file_is_no_existing_recording(tmp_path: Path) -> 
         )
     finally:
         sim.close()
+
+
+# ---------------------------------------------------------------------- a recording that fails
+def alerts(peer: SimPeer) -> list[Any]:
+    """The RECORDING alerts a peer received."""
+    return [m for m in peer.messages("STATUS") if m.error_name == "RECORDING"]
+
+
+def failed(sim: SimRobot, rec: Recorder, peer: SimPeer) -> Any:
+    """Tick until the recorder's writer (its own thread, every 50 ms) has met the failure and
+    ``peer`` has its alert; the failure."""
+    assert wait_until(lambda: (sim.tick(), alerts(peer))[1], 10.0, every=0.001)
+    return rec.failure
+
+
+def recorder_errors(caplog: pytest.LogCaptureFixture) -> list[logging.LogRecord]:
+    return [
+        r for r in caplog.records if r.name == "occ.recording.record" and r.levelno >= logging.ERROR
+    ]
+
+
+@pytest.mark.req("SR-REC-1")
+def test_a_full_disk_is_one_alert_and_stop_is_answered(tmp_path: Path, caplog) -> None:  # type: ignore[no-untyped-def]
+    """``occd --record /dev/full`` (issue 41): the robot goes on, every operator and viewer
+    hears it once with the cause, the log says it once without a traceback, the status says
+    failed, StopRecording is answered with what was lost."""
+    caplog.set_level(logging.INFO)
+    rec = Recorder("/dev/full", rate_hz=100).start()
+    sim = SimRobot(slave_config(tmp_path / "recs"), recorder=rec)
+    try:
+        op, slicer = sim.peer("operator"), sim.peer("slicer")
+        assert command(sim, op, "Enable").metadata["Status"] == "SUCCESS"
+        assert failed(sim, rec, op) == "No space left on device (ENOSPC)"
+        for _ in range(5):  # more records, more flushes: no second alert, no second line
+            sim.step(20)
+            rec._flush()
+        for peer in (op, slicer):
+            (alert,) = alerts(peer)
+            assert alert.code == igtl.StatusCode.RESOURCE_ERROR
+            assert alert.status_message.startswith(
+                "recording /dev/full failed: No space left on device (ENOSPC); 0 records "
+                "(0 bytes) on disk, "
+            )
+        (line,) = recorder_errors(caplog)
+        assert line.exc_info is None and "ENOSPC" in line.getMessage()
+        assert sim.robot.state.value == "ENABLED"  # the robot goes on
+        status = command(sim, op, "GetRecordingStatus").metadata["Message"]
+        assert status.startswith(
+            "recording=failed; file=/dev/full; cause=No space left on device (ENOSPC); "
+        ), status
+        assert "written=0; bytes=0; not_written=" in status
+        stop = command(sim, op, "StopRecording")
+        assert stop.metadata["Status"] == "FAIL"
+        text = stop.metadata["Message"]
+        assert text.startswith(
+            "StopRecording: recording stopped; it had FAILED: No space left on device (ENOSPC); "
+            "0 records (0 bytes) in /dev/full up to the failure, "
+        ), text
+        lost = int(re.search(r"failure, (\d+) records not written", text).group(1))  # type: ignore[union-attr]
+        assert lost == rec.stats()["records"] + rec.stats()["dropped"] > 0
+        after = command(sim, op, "GetRecordingStatus").metadata["Message"]
+        assert after == "recording=false; last=/dev/full"
+        assert len(alerts(op)) == 1 and len(recorder_errors(caplog)) == 1
+    finally:
+        sim.close()
+        rec.close()  # twice: never raises
+
+
+class FillsUp:
+    """A real file on a file system that fills up after ``budget`` bytes, as a disk does: a
+    short write, then ENOSPC."""
+
+    def __init__(self, path: Path, budget: int) -> None:
+        self.f = open(path, "wb", buffering=0)  # noqa: SIM115 - closed by the recorder
+        self.budget = budget
+
+    def write(self, data: Any) -> int:
+        if self.budget <= 0:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        n = min(len(data), self.budget)
+        self.f.write(bytes(data[:n]))
+        self.budget -= n
+        return n
+
+    def fileno(self) -> int:
+        return self.f.fileno()
+
+    def close(self) -> None:
+        self.f.close()
+
+
+@pytest.mark.req("SR-REC-1")
+def test_a_disk_full_mid_record_keeps_every_whole_record(tmp_path: Path, caplog) -> None:  # type: ignore[no-untyped-def]
+    """A write cut by a full disk: the file is cut back to its last whole record (it reads
+    without damage), the counts say what is on disk and what is not, close never raises, and
+    the failure is told once, also to a callback set after it."""
+    path = tmp_path / "r.igtl"
+    rec = Recorder(path).start()
+    rec._file.close()
+    rec._file = FillsUp(path, 1000)
+    told: list[str] = []
+    for k in range(40):
+        msg = igtl.StatusMessage(code=1, error_name="E", status_message=f"m{k}", device_name="D")
+        rec.record_message(msg, "out", "*", float(k))
+    rec.close()
+    assert rec.failure == "No space left on device (ENOSPC)"
+    rec.on_failure(told.append)  # after the failure: told at once, once
+    rec.on_failure(told.append)
+    assert len(told) == 1 and told[0] == rec.describe_failure()
+    msgs = read_recording(path)  # no damage: whole records only
+    assert 0 < rec.written == len(msgs) < 40
+    assert path.stat().st_size == rec.bytes_written < 1000
+    assert rec.not_written() == 40 - rec.written
+    assert [m.status_message for m in msgs] == [f"m{k}" for k in range(rec.written)]  # type: ignore[attr-defined]
+    assert told[0] == (
+        f"recording {path} failed: No space left on device (ENOSPC); {rec.written} records "
+        f"({rec.bytes_written} bytes) on disk, {40 - rec.written} not written"
+    )
+    assert len(recorder_errors(caplog)) == 1
+
+
+@pytest.mark.req("SR-REC-1")
+def test_a_recording_whose_directory_is_removed_fails_aloud(rig) -> None:  # type: ignore[no-untyped-def]
+    """The directory of a running recording deleted: its bytes would vanish at close; the
+    recorder says so at once, and StopRecording is answered."""
+    sim, op, _, recs = rig
+    assert command(sim, op, "StartRecording", start_xml("gone")).metadata["Status"] == "SUCCESS"
+    rec = sim.robot.recorder
+    shutil.rmtree(recs)
+    assert failed(sim, rec, op) == "the file was removed while recording (its directory deleted?)"
+    (alert,) = alerts(op)
+    assert "gone.igtl failed: the file was removed" in alert.status_message
+    status = command(sim, op, "GetRecordingStatus").metadata["Message"]
+    assert status.startswith("recording=failed; file=") and "removed" in status
+    stop = command(sim, op, "StopRecording")
+    assert stop.metadata["Status"] == "FAIL"
+    assert "it had FAILED: the file was removed" in stop.metadata["Message"]
+    # a new recording may start again (the directory is made again)
+    assert command(sim, op, "StartRecording", start_xml("again")).metadata["Status"] == "SUCCESS"
+    assert command(sim, op, "StopRecording").metadata["Status"] == "SUCCESS"
+    assert len(alerts(op)) == 1
+
+
+@pytest.mark.req("SR-REC-1")
+def test_a_writer_that_dies_is_a_failure_not_a_silent_recording(rig, caplog) -> None:  # type: ignore[no-untyped-def]
+    """A bug in the writer thread: its traceback logged once, an alert, nothing more queued
+    (the queue would grow without a writer), StopRecording answered."""
+    sim, op, _, _ = rig
+    assert command(sim, op, "StartRecording", start_xml("bug")).metadata["Status"] == "SUCCESS"
+    rec = sim.robot.recorder
+
+    def broken(item: Any) -> bytes:
+        raise RuntimeError("a bug in the writer")
+
+    rec._encode = broken
+    assert failed(sim, rec, op) == "the writer thread ended: RuntimeError: a bug in the writer"
+    (line,) = recorder_errors(caplog)
+    assert line.exc_info is not None  # a bug's traceback, once
+    queued = len(rec._q)
+    sim.step(50)
+    assert len(rec._q) == queued  # nothing more taken
+    (alert,) = alerts(op)
+    assert "the writer thread ended" in alert.status_message
+    stop = command(sim, op, "StopRecording")
+    assert stop.metadata["Status"] == "FAIL" and "not written" in stop.metadata["Message"]
+
+
+@pytest.mark.req("SR-REC-1")
+def test_a_stop_whose_close_raises_is_still_answered(rig, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Whatever the close does, StopRecording gets its answer (before: the worker's job raised
+    and the operator waited forever)."""
+    sim, op, _, recs = rig
+    assert command(sim, op, "StartRecording", start_xml("c")).metadata["Status"] == "SUCCESS"
+    rec = sim.robot.recorder
+
+    def bad_close() -> None:
+        raise OSError(errno.EIO, "Input/output error")
+
+    monkeypatch.setattr(rec, "close", bad_close)
+    stop = command(sim, op, "StopRecording")
+    assert stop.metadata["Status"] == "FAIL"
+    assert stop.metadata["Message"] == (
+        f"StopRecording: recording stopped; closing {recs / 'c.igtl'} failed: "
+        "[Errno 5] Input/output error"
+    )
+    monkeypatch.undo()
+    rec.close()
+
+
+@pytest.mark.slow
+@pytest.mark.req("SR-REC-1")
+def test_occd_recording_to_dev_full(tmp_path: Path) -> None:
+    """The issue's own case, on a real ``occd --record /dev/full`` over TCP: one alert to the
+    connected operator, one line in the log and no traceback, the daemon running, StopRecording
+    answered, exit 0."""
+    from loopback import free_port, stop_processes, wait_port, write_yaml
+    from slicer_standin import SlicerStandIn
+
+    cfg = slave_config(tmp_path / "recs")
+    ports = {}
+    for itf in cfg["interfaces"]:
+        if itf["transport"] == "tcp-server":
+            itf["port"] = ports[itf["name"]] = free_port()
+        else:
+            import socket
+
+            itf["port"] = free_port(socket.SOCK_DGRAM)
+    cfg["recording"]["path"] = None
+    write_yaml(tmp_path / "slave.yaml", cfg)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "occ.cli", str(tmp_path / "slave.yaml"), "--record", "/dev/full"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        assert wait_port(ports["operator"]), (
+            proc.stderr.read().decode() if proc.poll() else "no port"
+        )
+        with SlicerStandIn("127.0.0.1", ports["operator"]) as op:
+            assert op.connected.wait(5.0)
+
+            def ask(name: str) -> Any:
+                reply = op.wait_reply(op.send_command(name), 10.0)
+                assert reply is not None, f"no reply to {name}"
+                return reply
+
+            def recording_alerts() -> list[Any]:
+                return [s for s in op.statuses if s.error_name == "RECORDING"]
+
+            # the writer meets the full disk at its first flush, 50 ms in (maybe before the
+            # operator connected: then the status says it)
+            status = wait_until(
+                lambda: (
+                    (m := ask("GetRecordingStatus").metadata["Message"]).startswith(
+                        "recording=failed"
+                    )
+                    and m
+                ),
+                10.0,
+                every=0.05,
+            )
+            assert "cause=No space left on device (ENOSPC)" in status
+            time.sleep(0.5)  # ten more flushes of the writer: still one alert, one log line
+            assert len(recording_alerts()) <= 1  # 0 when it failed before the connection
+            assert ask("GetStats").metadata["Status"] == "SUCCESS"  # the daemon serves
+            stop = ask("StopRecording")
+            assert stop.metadata["Status"] == "FAIL"
+            assert "it had FAILED: No space left on device (ENOSPC)" in stop.metadata["Message"]
+            assert "records not written" in stop.metadata["Message"]
+    finally:
+        stop_processes([proc])
+    err = proc.stderr.read().decode() if proc.stderr else ""
+    assert proc.returncode == 0, err
+    assert err.count("recording /dev/full failed: No space left on device (ENOSPC)") == 1, err
+    assert "Traceback" not in err, err
+
+
+@pytest.mark.req("SR-REC-1")
+def test_close_waits_for_a_writer_that_drains_a_backlog(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A backlog that takes the writer longer than close's wait: close waits as long as the
+    writer takes records (before: it gave up after 5 s and flushed from a second thread while
+    the writer still wrote, losing records); only a writer that takes nothing is given up."""
+    from occ.recording import record
+
+    monkeypatch.setattr(record, "CLOSE_WAIT_S", 0.05)
+    path = tmp_path / "backlog.igtl"
+    rec = Recorder(path, max_backlog=10**6).start()
+    n = 8000
+    for k in range(n):
+        msg = igtl.StatusMessage(code=1, error_name="E", status_message=f"m{k}", device_name="D")
+        rec.record_message(msg, "out", "*", float(k))
+    rec.close()
+    assert rec.failure is None, rec.failure
+    assert rec.written == n and rec.not_written() == 0
+    msgs = read_recording(path)
+    assert [m.status_message for m in msgs] == [f"m{k}" for k in range(n)]  # type: ignore[attr-defined]

@@ -13,6 +13,7 @@ import os
 import re
 import subprocess
 import sys
+from importlib.util import find_spec
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +22,8 @@ import pytest
 import yaml
 
 import igtl
-from occ.recording.record import STATE_DEVICE, Recorder, read_recording
 from occ.recording.cli import main
+from occ.recording.record import STATE_DEVICE, Recorder, read_recording
 from occ_testkit.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -213,12 +214,11 @@ def test_seq_follows_slicers_reading_rules(recording: Path, tmp_path: Path) -> N
     t0 = frames[0]
     for key, source in names.items():
         seq = sequences[source]
-        assert len(seq) == len(frames)  # every frame has every transform
-        held = np.eye(4)
-        for ms in frames:
-            held = per[key].get(ms, held)
+        # a transform only where it was measured: Slicer takes every pose it reads as real
+        assert sorted(seq) == [f"{(ms - t0) / 1000.0:.3f}" for ms in sorted(per[key])]
+        for ms, pose in per[key].items():
             got = seq[f"{(ms - t0) / 1000.0:.3f}"]
-            assert np.abs(got - held).max() < TOL_MM, (source, ms)
+            assert np.abs(got - pose).max() < TOL_MM, (source, ms)
 
 
 def test_seq_status_and_timestamps(recording: Path, tmp_path: Path) -> None:
@@ -235,8 +235,11 @@ def test_seq_status_and_timestamps(recording: Path, tmp_path: Path) -> None:
             (("out", "Tip"), "TipToWorld"),
             (("in", "Master"), "MasterToReference"),
         ):
-            status = fields[f"Seq_Frame{n:04d}_{source}TransformStatus"]
-            assert status == ("OK" if ms in per[key] else "INVALID")
+            # a frame without a sample of the stream has no field: no pose that was not
+            # measured, whatever a reader makes of TransformStatus
+            status = fields.get(f"Seq_Frame{n:04d}_{source}TransformStatus")
+            assert status == ("OK" if ms in per[key] else None)
+            assert (f"Seq_Frame{n:04d}_{source}Transform" in fields) == (ms in per[key])
     # OK exactly once per recorded sample
     oks = sum(
         1 for k, v in fields.items() if k.endswith("_TipToWorldTransformStatus") and v == "OK"
@@ -260,17 +263,16 @@ def test_seq_opens_with_simpleitk(recording: Path, tmp_path: Path) -> None:
     names = {("out", "Tip"): "TipToWorld", ("out", "Base"): "BaseToWorld"}
     names[("in", "Master")] = "MasterToReference"
     for key, source in names.items():
-        held = np.eye(4)
         for n, ms in enumerate(frames):
             field = f"Seq_Frame{n:04d}_{source}Transform"
-            assert field in keys and f"{field}Status" in keys
-            got = np.array([float(v) for v in reader.GetMetaData(field).split()]).reshape(4, 4)
-            held = per[key].get(ms, held)
-            assert np.abs(got - held).max() < TOL_MM, (source, n)
-            status = reader.GetMetaData(f"{field}Status")
-            assert status == ("OK" if ms in per[key] else "INVALID")
             stamp = float(reader.GetMetaData(f"Seq_Frame{n:04d}_Timestamp"))
             assert stamp == pytest.approx((ms - frames[0]) / 1000.0, abs=1e-9)
+            if ms not in per[key]:  # not measured here: no pose at all (no held, no identity)
+                assert field not in keys and f"{field}Status" not in keys, (source, n)
+                continue
+            got = np.array([float(v) for v in reader.GetMetaData(field).split()]).reshape(4, 4)
+            assert np.abs(got - per[key][ms]).max() < TOL_MM, (source, n)
+            assert reader.GetMetaData(f"{field}Status") == "OK"
     # the whole image reads too (no pixels)
     assert reader.Execute().GetSize() == (0, 0, len(frames))
 
@@ -1063,3 +1065,210 @@ def test_quaternions_of_every_kind_of_rotation() -> None:
     assert quaternion_xyzw(rot("z", -90)[:3, :3]) == pytest.approx(
         (0, 0, -math.sqrt(0.5), math.sqrt(0.5))
     )
+
+
+# ---------------------------------------------------------------------- damaged recordings
+def cut(recording: Path, tmp_path: Path, at: int, name: str = "cut.igtl") -> Path:
+    """The recording's first ``at`` bytes: a crash, an interrupted copy."""
+    out = tmp_path / name
+    out.write_bytes(recording.read_bytes()[:at])
+    return out
+
+
+def message_ends(path: Path) -> list[int]:
+    """The byte offset after each message of a whole recording."""
+    dec = igtl.StreamDecoder()
+    dec.feed(path.read_bytes())
+    ends = []
+    for _ in dec:
+        ends.append(dec.offset)
+    return ends
+
+
+@pytest.mark.req("SR-REC-2")
+def test_a_recording_cut_in_half_exports_up_to_the_cut(
+    recording: Path, tmp_path: Path, capsys
+) -> None:  # type: ignore[no-untyped-def]
+    """seq, mcap and CSV of a recording cut mid-message: made of every whole message before
+    the cut, exit 3, and the message says where (byte, message count, time)."""
+    ends = message_ends(recording)
+    half = len(ends) // 2
+    at = ends[half - 1] + 30  # 30 bytes into message half + 1: inside its header
+    damaged = cut(recording, tmp_path, at)
+    whole = read_recording(recording)[:half]
+    last_t = float(whole[-1].metadata["rec.t"])
+    expected = (
+        f"{damaged}: DAMAGED; salvaged {half} messages up to message {half} ending at byte "
+        f"{ends[half - 1]} (t={last_t:.6f} s on the daemon's clock, "
+    )
+    stop = (
+        f"stopped at byte {ends[half - 1]} of {at} (the file ends inside a message, 30 bytes "
+        "of it); the 30 bytes from there are not exported"
+    )
+    seq = tmp_path / "cut.seq.mha"
+    assert main(["export", str(damaged), str(seq)]) == 3
+    err = capsys.readouterr().err
+    assert err.startswith(f"occ-record: SALVAGED: {expected}") and err.rstrip().endswith(stop)
+    # the sequence holds the poses up to the cut, read by SimpleITK and by Slicer's rules
+    _, sequences, _ = slicer_parse(seq)
+    tips = [m for m in whole if m.message_type == "TRANSFORM" and m.device_name == "Tip"]
+    tips = [
+        m
+        for i, m in enumerate(tips)
+        if i == 0 or m.metadata["rec.t"] != tips[i - 1].metadata["rec.t"]
+    ]
+    assert 3 <= len(sequences["TipToWorld"]) == len(tips)
+    sitk = require("SimpleITK", "pip install -e .[test] (SimpleITK reads MetaImage files)")
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(seq))
+    reader.ReadImageInformation()
+    assert reader.GetSize()[2] > 0
+    # CSV: every message before the cut, one row each
+    out = tmp_path / "csv"
+    assert main(["export", str(damaged), str(out)]) == 3
+    assert expected in capsys.readouterr().err
+    states = (out / "state.csv").read_text().splitlines()
+    n_states = sum(1 for m in whole if m.device_name == STATE_DEVICE)
+    assert len(states) == n_states + 1  # and the header
+    n_msgs = len((out / "messages.csv").read_text().splitlines()) - 1
+    assert n_msgs + n_states == half
+    # the ROS 2 bag
+    if find_spec("rosbags") is not None:
+        bag = tmp_path / "cut.mcap"
+        assert main(["export", str(damaged), str(bag)]) == 3
+        assert expected in capsys.readouterr().err
+        assert len(decode_mcap(bag)["/occ/slave/measured_cp"]) == len(tips)
+    # the whole recording: exit 0, nothing on stderr
+    assert main(["export", str(recording), str(tmp_path / "whole.seq.mha")]) == 0
+    assert capsys.readouterr().err == ""
+
+
+@pytest.mark.req("SR-REC-2")
+def test_a_damaged_message_is_skipped_and_the_rest_exported(
+    recording: Path, tmp_path: Path, capsys
+) -> None:  # type: ignore[no-untyped-def]
+    """A message whose body is damaged (its CRC fails) but whose framing holds: skipped and
+    named, everything after it exported (exit 3)."""
+    ends = message_ends(recording)
+    data = bytearray(recording.read_bytes())
+    k = len(ends) // 3
+    data[ends[k] - 1] ^= 0xFF  # the last byte of message k + 1's body
+    damaged = tmp_path / "bitflip.igtl"
+    damaged.write_bytes(bytes(data))
+    out = tmp_path / "csv"
+    assert main(["export", str(damaged), str(out)]) == 3
+    err = capsys.readouterr().err
+    assert f"1 damaged messages skipped (byte {ends[k - 1]}: " in err, err
+    assert "CRC" in err and "stopped at" not in err
+    rows = len((out / "state.csv").read_text().splitlines()) - 1
+    rows += len((out / "messages.csv").read_text().splitlines()) - 1
+    assert rows == len(ends) - 1
+
+
+@pytest.mark.req("SR-REC-2")
+def test_an_export_that_fails_leaves_nothing_behind(
+    recording: Path, tmp_path: Path, capsys
+) -> None:  # type: ignore[no-untyped-def]
+    """Nothing readable (the cut inside the first message): exit 1 naming the damage, no CSV
+    directory (nor the directories made for it), no sequence file; an existing output kept."""
+    damaged = cut(recording, tmp_path, 40)
+    out = tmp_path / "new" / "deeper" / "csv"
+    assert main(["export", str(damaged), str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "nothing to export" in err and "stopped at byte 0 of 40" in err
+    assert not (tmp_path / "new").exists()
+    assert main(["export", str(damaged), str(tmp_path / "x.seq.mha")]) == 1
+    capsys.readouterr()
+    existing = tmp_path / "kept.seq.mha"
+    existing.write_text("an earlier export")
+    assert main(["export", str(damaged), str(existing), "--force"]) == 1
+    capsys.readouterr()
+    assert existing.read_text() == "an earlier export"
+    # an existing CSV directory: its files kept unless --force
+    out = tmp_path / "csvdir"
+    assert main(["export", str(recording), str(out)]) == 0
+    before = (out / "state.csv").read_text()
+    assert main(["export", str(damaged), str(out)]) == 1
+    assert "state.csv exists; not overwriting" in capsys.readouterr().err
+    assert main(["export", str(damaged), str(out), "--force"]) == 1
+    assert (out / "state.csv").read_text() == before
+    assert sorted(p.name for p in out.iterdir()) == ["messages.csv", "state.csv"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["csvdir", "cut.igtl", "kept.seq.mha"]
+
+
+@pytest.mark.req("SR-REC-4")
+def test_an_output_name_the_exporter_cannot_write_is_refused(
+    recording: Path, tmp_path: Path, capsys
+) -> None:  # type: ignore[no-untyped-def]
+    """``X.seq.nrrd`` (issue 41: exit 0 and a CSV directory of that name): refused, exit 2,
+    nothing written, the supported forms said; a format that does not fit the name too."""
+    from occ.recording.export import SUPPORTED
+
+    for name, extra in [
+        ("X.seq.nrrd", []),
+        ("X.nhdr", []),
+        ("X.csv", []),
+        ("X.json", []),
+        ("X.mcap", ["--format", "seq"]),
+        ("X.seq.mha", ["--format", "csv"]),
+        ("X.seq.mha", ["--format", "mcap"]),
+    ]:
+        assert main(["export", str(recording), str(tmp_path / name), *extra]) == 2, name
+        err = capsys.readouterr().err
+        assert SUPPORTED in err and repr(name) in err, err
+        assert list(tmp_path.iterdir()) == [], name
+    main(["export", str(recording), str(tmp_path / "X.seq.nrrd")])
+    assert "its NRRD sequences are image volumes" in capsys.readouterr().err
+    # what it writes: a dated directory is a directory, not a file suffix
+    assert main(["export", str(recording), str(tmp_path / "run.2025-01-31")]) == 0
+    assert (tmp_path / "run.2025-01-31" / "state.csv").is_file()
+    assert main(["export", str(recording), str(tmp_path / "a.MHD")]) == 0
+    assert (tmp_path / "a.MHD").read_text().startswith("ObjectType = Image\n")
+
+
+@pytest.mark.req("SR-REC-3")
+def test_no_pose_in_a_sequence_was_not_measured(tmp_path: Path) -> None:
+    """Slicer's reader takes every ``...Transform`` field as a pose, whatever its status: a
+    stream that starts late (the master's, 80 ms in) is in no frame before its first sample,
+    and every pose read (SimpleITK, and Slicer's rules) is one measured at that frame's time:
+    never the origin (issue 41: the identity before the first sample, shown as real)."""
+    sitk = require("SimpleITK", "pip install -e .[test] (SimpleITK reads MetaImage files)")
+    recording = tmp_path / "late_master.igtl"
+    rec = Recorder(recording, rate_hz=100).start()
+    sim = SimRobot(ROOT / "configs" / "slave.yaml", recorder=rec)
+    master = sim.peer("master", address=("127.0.0.1", 5000))
+    sim.peer("slicer")
+    for k in range(200):  # the robot's outputs from the start, the master's stream from 80 ms
+        if k >= 80 and k % 2 == 0:
+            assert master.send_position((1.0 + k / 100.0, 50.0, 270.0), seq=k // 2 - 39) == 1
+        sim.tick()
+    sim.close()
+    rec.close()
+    out = tmp_path / "slave.seq.mha"
+    assert main(["export", str(recording), str(out)]) == 0
+    poses = recorded_poses(recording)
+    frames, per = expected_frames(poses)
+    master_poses = per[("in", "Master")]
+    first = min(master_poses)
+    assert frames.index(first) >= 35  # frames of the other streams before the master's first
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(out))
+    reader.ReadImageInformation()
+    for source, samples in (
+        ("MasterToReference", master_poses),
+        ("TipToWorld", per[("out", "Tip")]),
+    ):
+        read = {}
+        for n, ms in enumerate(frames):
+            field = f"Seq_Frame{n:04d}_{source}Transform"
+            if reader.HasMetaDataKey(field):
+                values = [float(v) for v in reader.GetMetaData(field).split()]
+                read[ms] = np.array(values).reshape(4, 4)
+        assert sorted(read) == sorted(samples), source
+        for ms, pose in read.items():
+            assert np.abs(pose - samples[ms]).max() < TOL_MM
+            assert np.linalg.norm(pose[:3, 3]) > 1.0  # not the world's origin
+    _, sequences, _ = slicer_parse(out)
+    t0 = frames[0]
+    got = sorted(float(v) for v in sequences["MasterToReference"])
+    assert got[0] == pytest.approx((first - t0) / 1000.0) and len(got) == len(master_poses)

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import igtl
 from igtl.transport import Peer, UDPEndpoint
-from occ.recording.record import Recorder, export_csv, original, read_recording, replay
+from occ.recording.export import export_csv
+from occ.recording.record import Recorder, original, read_recording, replay
 from occ_testkit.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
