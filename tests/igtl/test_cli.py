@@ -663,6 +663,7 @@ def _refusing_daemon(status: str, error: str) -> Any:
     return server
 
 
+@pytest.mark.req("SR-REPLY-4")
 @pytest.mark.parametrize(
     "request_args",
     [
@@ -696,6 +697,7 @@ def test_send_exits_5_when_the_daemon_answers_fail(
         server.stop()
 
 
+@pytest.mark.req("SR-REPLY-4")
 def test_send_exits_5_on_a_refused_query_but_not_on_a_status_answer(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
@@ -711,6 +713,7 @@ def test_send_exits_5_on_a_refused_query_but_not_on_a_status_answer(
         server.stop()
 
 
+@pytest.mark.req("SR-REPLY-4")
 def test_refusal_reads_every_reply_form() -> None:
     cmd = igtl.CommandMessage(command_id=1, command_name="Run", command="", header_version=2)
     rts = igtl.REGISTRY["RTS_COMMAND"]

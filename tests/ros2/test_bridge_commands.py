@@ -427,6 +427,7 @@ def test_crtk_words_become_the_daemons_commands_and_its_answers_come_back(
     assert (st["commands"], st["replies"], st["commands_refused"]) == (7, 7, 0)
 
 
+@pytest.mark.req("SR-REPLY-3")
 def test_enable_stops_at_the_first_refusal_and_says_where(rig: Callable[..., Any]) -> None:
     """An Enable refused: no Run is sent; a Run refused after the Enable: the reply says the
     robot is enabled (CRTK's PAUSED) and why it does not run."""
@@ -454,6 +455,7 @@ def transitions(name: str, text: str) -> tuple[str, str] | None:
     return ("SUCCESS", moves[name]) if name in moves else ok(name, text)
 
 
+@pytest.mark.req("SR-REPLY-3")
 def test_resume_runs_again_only_out_of_this_bridges_own_pause(rig: Callable[..., Any]) -> None:
     """pause from RUNNING is the daemon's Stop; resume (or enable) Runs again out of that
     stop. A stop the bridge did not cause (a safety stop, an operator's), or an alarm during

@@ -147,6 +147,7 @@ CRTK_CASES: dict[tuple[str, str | tuple[str, bool]], str] = {
 }
 
 
+@pytest.mark.req("SR-REPLY-3")
 def test_crtk_table_covers_every_word_in_every_powered_state() -> None:
     """Every CRTK word has a row for every daemon state but INIT and SHUTDOWN (which refuse
     all), and the mapping is CRTK's: ENABLED only where motion commands run (RUNNING)."""
@@ -178,6 +179,7 @@ def _first(reader: DataReader[Any], what: object) -> Any:
     return got[0]
 
 
+@pytest.mark.req("SR-REPLY-3")
 def test_crtk_state_table_every_cell_answered(dds: tuple[int, Any], namespace: str) -> None:
     """CRTK's words in each daemon state: the bridge's own answers (no-ops, refusals, the
     latch) word for word, and the forwards by the daemon command they become. The daemon side

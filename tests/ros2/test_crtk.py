@@ -129,6 +129,7 @@ def daemon_state(rig: Rig) -> str:
     return str(rig.ask("snapshot")["states"][-1][1])
 
 
+@pytest.mark.req("SR-REPLY-3")
 def test_crtk_state_table_from_a_real_ros2_node(netns: Netns, tmp_path: Path) -> None:
     rig = Rig(netns, tmp_path, clean_env(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
     rig.start_daemon()
