@@ -23,6 +23,7 @@ import threading
 import time
 import types
 import typing
+import xml.etree.ElementTree as ET
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NoReturn, TextIO
 
@@ -38,6 +39,7 @@ EXIT_ERROR = 1  # runtime failure: connection refused or lost, cannot bind, unre
 EXIT_USAGE = 2  # bad command line (argparse's own convention)
 EXIT_TIMEOUT = 3  # --timeout expired before --count messages arrived
 EXIT_DECODE = 4  # dump: at least one decode error
+EXIT_REFUSED = 5  # send: the peer answered a request FAIL (its error is printed on stderr)
 EXIT_INTERRUPTED = 130  # Ctrl-C while a --count was still outstanding
 
 EXIT_CODES_HELP = """\
@@ -48,6 +50,8 @@ exit codes:
   2    usage error (bad or inconsistent options)
   3    timeout: --timeout expired with fewer than --count messages
   4    dump: at least one decode error (errors are reported with their offsets)
+  5    send: the peer answered a request FAIL (RTS_COMMAND or ACK_ STRING with
+       Status=FAIL, or an error STATUS); the reply's error is printed on stderr
   130  interrupted (Ctrl-C) before --count messages arrived
 """
 
@@ -646,7 +650,12 @@ def build_message(args: argparse.Namespace) -> Message:
             f"unknown message type {type_name!r}: give its content with --json-body FILE "
             f'({{"content": "text"}} or {{"content": {{"hex": "0a0b"}}}}), or use one of: {known}'
         )
-    return typing.cast(Message, cls(**_content_from_options(type_name, args), **common))
+    fields = _content_from_options(type_name, args)
+    if getattr(cls, "NEEDS_TYPE_NAME", False):
+        # one class for several types (GET_TRANS, GET_STATUS, RTS_TDATA ...): without its
+        # name it would be its default type, and `--type GET_TRANS` would send a GET_STATUS
+        fields["type_name"] = type_name
+    return typing.cast(Message, cls(**fields, **common))
 
 
 def cmd_send(args: argparse.Namespace) -> int:
@@ -694,6 +703,7 @@ def cmd_send(args: argparse.Namespace) -> int:
     replies: queue.Queue[Message] = queue.Queue()
     wants_reply = not args.udp and args.wait > 0 and _is_request(template)
     answered = 0
+    refusals: list[str] = []
     try:
         if not args.udp:
             _start_client(sender, host, port, args.connect_timeout, errors)
@@ -701,7 +711,9 @@ def cmd_send(args: argparse.Namespace) -> int:
         if wants_reply and sent:
             # a request's answer (RTS_, ACK_ or the queried type, STATUS for a refusal) comes
             # back on this connection: print it, so `igtl send ... GetState` shows the state
-            answered = _print_replies(replies, template, sent, args.wait, Printer(args.json))
+            answered = _print_replies(
+                replies, template, sent, args.wait, Printer(args.json), refusals
+            )
     finally:
         sender.stop()
     if wants_reply and sent and answered < sent:
@@ -712,7 +724,52 @@ def cmd_send(args: argparse.Namespace) -> int:
         return EXIT_ERROR
     if args.verbose:
         printer.note(f"sent {sent} message(s) to {host}:{port}")
-    return EXIT_OK
+    for refusal in refusals:
+        printer.note(refusal)
+    return EXIT_REFUSED if refusals else EXIT_OK
+
+
+def _reply_attributes(text: str) -> dict[str, str]:
+    """The attributes of an XML reply (``<CommandReply Status="FAIL" Error="..."/>``, as
+    PlusServer and the OCC daemons answer), or none when the text is not one."""
+    text = text.strip()
+    if not text.startswith("<"):
+        return {}
+    try:
+        return dict(ET.fromstring(text).attrib)
+    except ET.ParseError:
+        return {}
+
+
+def refusal(reply: Message, request: Message) -> str | None:
+    """What a reply to ``request`` says went wrong, or None when it is not a refusal: an
+    RTS_COMMAND or an ACK_ STRING whose Status is FAIL (metadata, else its XML content), or a
+    STATUS with an error code refusing a command or a query (a GET_STATUS is answered with a
+    STATUS: that one is the answer, whatever its code)."""
+    rtype = reply.message_type
+    if rtype == "STATUS":
+        code = int(getattr(reply, "code", 1))
+        if code == 1 or request.message_type == "GET_STATUS":
+            return None
+        name = getattr(reply, "error_name", "") or f"code {code}"
+        return f"refused ({name}): {getattr(reply, 'status_message', '')}"
+    if rtype == "RTS_COMMAND":
+        attrs = _reply_attributes(str(getattr(reply, "command", "")))
+        meta = reply.metadata
+        status = meta.get("Status") or attrs.get("Status", "")
+        error = meta.get("Error") or meta.get("Message") or attrs.get("Error")
+        error = error or attrs.get("Message", "")
+        what = str(getattr(reply, "command_name", "")) or "command"
+    elif rtype == "STRING":
+        attrs = _reply_attributes(str(getattr(reply, "string", "")))
+        status = attrs.get("Status", "")
+        error = attrs.get("Error") or attrs.get("Message", "")
+        what = attrs.get("Name") or reply.device_name
+    else:
+        return None
+    if status.upper() != "FAIL":
+        return None
+    return f"{what}: FAIL: {error or '(no reason given)'}"
 
 
 def _is_request(msg: Message) -> bool:
@@ -736,11 +793,17 @@ def _is_reply_to(reply: Message, request: Message) -> bool:
 
 
 def _print_replies(
-    replies: queue.Queue[Message], request: Message, expected: int, wait: float, out: Printer
+    replies: queue.Queue[Message],
+    request: Message,
+    expected: int,
+    wait: float,
+    out: Printer,
+    refusals: list[str],
 ) -> int:
     """Print the replies to ``expected`` requests like ``request`` arriving within ``wait``
     seconds of the last send (other messages, e.g. a connect greeting or a pose stream, are
-    skipped); returns how many came."""
+    skipped); returns how many came. What each refusal says (:func:`refusal`) is appended to
+    ``refusals``."""
     got = 0
     deadline = time.monotonic() + wait
     while got < expected:
@@ -754,6 +817,9 @@ def _print_replies(
         if _is_reply_to(msg, request):
             out.message(msg)
             got += 1
+            why = refusal(msg, request)
+            if why is not None:
+                refusals.append(why)
     return got
 
 

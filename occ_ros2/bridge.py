@@ -36,7 +36,8 @@ topic                          type                         from
                                                             ``is_busy`` from the keyframe
                                                             controller's run STATUS
 ``NS/state``                   std_msgs/String              the daemon's own state name
-``NS/status``                  std_msgs/String              every STATUS (alerts included)
+``NS/status``                  std_msgs/String              every STATUS (alerts included),
+                                                            once whichever link it came on
 ``NS/command_reply``           std_msgs/String              the answer to a command
 ``/tf``                        tf2_msgs/TFMessage           ``<leaf>_base`` -> ``<leaf>_tip``
                                                             at the pose rate
@@ -48,12 +49,20 @@ Commands come on ``NS/state_command`` (crtk_msgs/StringStamped, CRTK's topic) an
 (std_msgs/String, publishable without crtk_msgs). CRTK's words (lower case: ``enable``,
 ``disable``, ``pause``, ``resume``, ``home``, ``unhome``) follow CRTK's state table
 (:data:`CRTK_TABLE`): the bridge answers the no-ops itself (``enable`` when ENABLED), forwards
-the others as the daemon's commands, and refuses what CRTK refuses. Where CRTK would retry out
-of FAULT (``enable``, ``disable``), the daemon's latch wins: the fault stays until an operator's
-``Reset``, and the reply says so. Any other word (``Run``, ``EStop``, ``Reset``, ``GetState``,
-``GetStats``, ``Clutch`` ...) goes to the daemon as it is, as an IGTL COMMAND on the operator
-port. The reply is published on ``NS/command_reply`` as ``"<Name> <SUCCESS|FAIL>: <message>"``,
-and ``operating_state`` again after every CRTK word (a fresh stamp: CRTK clients wait for one).
+the others as the daemon's commands (``enable`` out of READY: ``Enable`` then ``Run``, so that
+a CRTK client moves with CRTK's words alone), and refuses what CRTK refuses. Where CRTK would
+retry out of FAULT (``enable``, ``disable``), the daemon's latch wins: the fault stays until an
+operator's ``Reset``, and the reply says so; likewise a STOPPED that this bridge's ``pause`` did
+not cause (a safety stop) is the daemon's ``Run``'s to resume, not CRTK's. Any other word
+(``Run``, ``EStop``, ``Reset``, ``GetState``, ``GetStats``, ``Clutch`` ...) goes to the daemon as
+it is, as an IGTL COMMAND on the operator port. The reply is published on ``NS/command_reply``
+as ``"<Name> <SUCCESS|FAIL>: <message>"`` (a CRTK word's: ``"enable SUCCESS: Enable: <answer>;
+Run: <answer>"``), and ``operating_state`` again after every CRTK word (a fresh stamp: CRTK
+clients wait for one). A command may begin with a request id of the client's choosing,
+``"[ID] word"`` (1..64 letters, digits, ``_.:-``); its reply begins ``"[ID] "``: every client of
+the namespace reads the one reply topic and tells its own replies by their id, as a ROS 2
+service client tells its response by its request's id. A move is named by its goal's header
+stamp (``"[sec.nanosec] move_cp SUCCESS: ..."``).
 
 Forces: ``NS/servo_cf`` (geometry_msgs/WrenchStamped, N, frame ``<leaf>_base``: the frame of
 ``measured_cf``) becomes a SENSOR ``ServoCF`` on the operator port, which a master displays
@@ -84,7 +93,8 @@ gets the current state at once (ROS 2's "latched" topics); tf2's own QoS for ``/
 ROS 2 Jazzy type hash in USER_DATA (:func:`typed_qos`), as the rmw implementations do.
 
 ``operating_state`` maps the daemon's states onto CRTK's meta-states: INIT, READY, SHUTDOWN ->
-DISABLED; ENABLED, RUNNING -> ENABLED; STOPPED -> PAUSED; FAULT, ESTOP -> FAULT. ``is_busy``
+DISABLED; RUNNING (motion commands executed) -> ENABLED; ENABLED (holding, "send Run first")
+and STOPPED -> PAUSED; FAULT, ESTOP -> FAULT. ``is_busy``
 is CRTK's: true only while a move or a homing runs. Homing has nothing to do (the daemons'
 joints are absolute: ``is_homed`` is true past INIT), following a master is not a move; a move
 is a keyframe plan running: from the keyframe controller's STATUS ``KEYFRAME_RUNNING`` to its
@@ -135,50 +145,104 @@ DEFAULT_CONFIG = Path(__file__).with_name("cyclonedds-lo.xml")
 
 MM = 1e-3
 
-#: the daemon's states (occ.core.safety.RobotState values) as CRTK meta-states
+#: the daemon's states (occ.core.safety.RobotState values) as CRTK meta-states. CRTK's ENABLED
+#: is "accepts motion commands" (crtk_python_client's examples enable, then move): the daemon's
+#: RUNNING. Its ENABLED (powered, holding, "send Run first") and STOPPED (holding after a stop)
+#: are CRTK's PAUSED: powered, not moving, motion commands not executed.
 CRTK_STATE = {
     "INIT": "DISABLED",
     "READY": "DISABLED",
     "SHUTDOWN": "DISABLED",
-    "ENABLED": "ENABLED",
+    "ENABLED": "PAUSED",
     "RUNNING": "ENABLED",
     "STOPPED": "PAUSED",
     "FAULT": "FAULT",
     "ESTOP": "FAULT",
 }
 
-#: CRTK's state table: (CRTK word, CRTK meta-state) -> what the bridge does. ``("send", X)``:
-#: the daemon's operator command X; ``("ok", why)``: nothing to do, SUCCESS; ``("fail", why)``:
-#: refused. A word in a state not listed is refused as CRTK refuses it ("not valid in STATE").
-#: ``resume`` returns to the state ``pause`` left (RUNNING -> Run, else Enable: hold), see
-#: :meth:`Bridge._crtk`.
 LATCHED = (
     "the daemon's {state} is latched until an operator's Reset (command Reset, after the "
     "cause is found); a CRTK retry does not clear it"
 )
-CRTK_TABLE: dict[tuple[str, str], tuple[str, str]] = {
-    ("enable", "DISABLED"): ("send", "Enable"),
-    ("enable", "ENABLED"): ("ok", "already ENABLED"),
-    ("enable", "PAUSED"): ("send", "Enable"),
-    ("enable", "FAULT"): ("fail", LATCHED),
-    ("disable", "DISABLED"): ("ok", "already DISABLED"),
-    ("disable", "ENABLED"): ("send", "Disable"),
-    ("disable", "PAUSED"): ("send", "Disable"),
-    ("disable", "FAULT"): ("fail", LATCHED),
-    ("pause", "ENABLED"): ("send", "Stop"),
-    ("pause", "PAUSED"): ("ok", "already PAUSED"),
-    ("resume", "PAUSED"): ("send", "resume"),
-    ("resume", "ENABLED"): ("ok", "already ENABLED"),
-    ("home", "DISABLED"): ("ok", "homed: the joint sensors are absolute"),
-    ("home", "ENABLED"): ("ok", "homed: the joint sensors are absolute"),
-    ("home", "PAUSED"): ("ok", "homed: the joint sensors are absolute"),
-    ("home", "FAULT"): ("ok", "homed: the joint sensors are absolute"),
-    ("unhome", "DISABLED"): ("fail", "the joint sensors are absolute: always homed"),
-    ("unhome", "ENABLED"): ("fail", "the joint sensors are absolute: always homed"),
-    ("unhome", "PAUSED"): ("fail", "the joint sensors are absolute: always homed"),
-    ("unhome", "FAULT"): ("fail", "the joint sensors are absolute: always homed"),
-}
+#: a STOPPED this bridge's ``pause`` did not cause: a safety stop, a cell's, an operator's
+HELD = (
+    "the daemon is STOPPED ({why}) and not by this bridge's pause: a stop is resumed by the "
+    "daemon's Run (command Run), sent once its cause is known; CRTK's {word} does not"
+)
+ABSOLUTE = "the joint sensors are absolute: always homed"
+HOMED = "homed: the joint sensors are absolute"
+
+CrtkAction = tuple[str, str | tuple[str, ...]]
+
+
+def _crtk_table() -> dict[tuple[str, str], CrtkAction]:
+    """CRTK's state table over the daemon's states (docs/ROS2.md). ``("send", (A, B))``: the
+    daemon's operator commands A then B (B when A succeeded); ``("ok", why)``: nothing to do,
+    SUCCESS; ``("fail", why)``: refused. A pair not listed is refused as CRTK refuses it
+    ("not valid in <meta-state>"); INIT and SHUTDOWN refuse every word. ``Run`` out of STOPPED
+    is sent only when this bridge's own ``pause`` stopped the robot (:meth:`Bridge._crtk`)."""
+    table: dict[tuple[str, str], CrtkAction] = {
+        ("enable", "READY"): ("send", ("Enable", "Run")),
+        ("enable", "ENABLED"): ("send", ("Run",)),
+        ("enable", "STOPPED"): ("send", ("Run",)),
+        ("enable", "RUNNING"): ("ok", "already ENABLED"),
+        ("disable", "READY"): ("ok", "already DISABLED"),
+        ("pause", "RUNNING"): ("send", ("Stop",)),
+        ("pause", "ENABLED"): ("ok", "already PAUSED"),
+        ("pause", "STOPPED"): ("ok", "already PAUSED"),
+        ("resume", "ENABLED"): ("send", ("Run",)),
+        ("resume", "STOPPED"): ("send", ("Run",)),
+        ("resume", "RUNNING"): ("ok", "already ENABLED"),
+    }
+    for state in ("ENABLED", "STOPPED", "RUNNING"):
+        table[("disable", state)] = ("send", ("Disable",))
+    for state in ("FAULT", "ESTOP"):
+        table[("enable", state)] = ("fail", LATCHED)
+        table[("disable", state)] = ("fail", LATCHED)
+    for state in ("READY", "ENABLED", "STOPPED", "RUNNING", "FAULT", "ESTOP"):
+        table[("home", state)] = ("ok", HOMED)
+        table[("unhome", state)] = ("fail", ABSOLUTE)
+    return table
+
+
+CRTK_TABLE = _crtk_table()
 CRTK_WORDS = ("enable", "disable", "pause", "resume", "home", "unhome")
+#: the STATUS names of the daemon's alarms (occ/core/alarms.py): one that comes while this
+#: bridge's pause holds the robot ends the bridge's claim to resume it
+ALARMS = frozenset({"ALERT", "COLLISION", "SUPERVISOR", "WATCHDOG", "CELL"})
+
+#: a request id (docs/ROS2.md, "Replies"): ``[ID] word`` on ``command`` or ``state_command``
+#: (or a move goal's header stamp), echoed as ``[ID] `` before its reply
+REQUEST_ID = re.compile(r"[A-Za-z0-9_.:-]{1,64}")
+#: how many stamped STATUS messages a robot remembers to drop their copy on its other link
+STATUS_MEMORY = 64
+
+
+def split_request(text: str) -> tuple[str, str]:
+    """``"[ID] word"`` -> ``(ID, word)``; ``"word"`` -> ``("", word)``. ValueError for a
+    request id that is not 1..64 letters, digits or ``_.:-`` in brackets."""
+    text = text.strip()
+    if not text.startswith("["):
+        return "", text
+    rid, sep, word = text[1:].partition("]")
+    if not sep or REQUEST_ID.fullmatch(rid) is None:
+        raise ValueError(
+            f"{text[:80]!r}: a request id is 1..64 letters, digits or _.:- in brackets "
+            'before the command ("[42] enable")'
+        )
+    return rid, word.strip()
+
+
+def stamp_request(header: Any) -> str:
+    """A move goal's request id: its header stamp as ``sec.nanosec`` (a client stamps its goal;
+    an unstamped goal has none)."""
+    sec, nsec = int(header.stamp.sec), int(header.stamp.nanosec)
+    return "" if sec == 0 and nsec == 0 else f"{sec}.{nsec:09d}"
+
+
+def _named(rid: str) -> str:
+    return f"[{rid}] " if rid else ""
+
 
 #: plain CDR (XCDR1), what rmw_cyclonedds writes and reads; a Cyclone writer may otherwise
 #: choose XCDR2, which a ROS 2 Humble reader does not accept
@@ -334,6 +398,9 @@ class _Counters:
     tips_without_base: int = 0
     bases: int = 0
     statuses: int = 0
+    #: STATUS not published again: the copy of one that came on the robot's other link, or
+    #: the second link's greeting of the state already announced
+    statuses_repeated: int = 0
     commands: int = 0
     replies: int = 0
     commands_refused: int = 0
@@ -366,6 +433,19 @@ class _Move:
     started: float
     plan: int | None = None
     ack_tries: int = 0
+    #: the request id its replies carry (the goal's stamp)
+    rid: str = ""
+
+
+@dataclass
+class _Word:
+    """A CRTK word forwarded as one or more of the daemon's commands, one after the other."""
+
+    word: str
+    rid: str
+    steps: list[str]
+    #: "<Command>: <the daemon's answer>" of each command answered so far
+    answers: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -377,6 +457,9 @@ class _Pending:
     name: str
     move: _Move | None = None
     probe: bool = False
+    #: the client's request id (echoed in the reply), the CRTK word this command is a step of
+    rid: str = ""
+    word: _Word | None = None
 
 
 @dataclass
@@ -389,8 +472,18 @@ class Robot:
     operator: TCPClient | None = None
     base_m: np.ndarray | None = None
     state: str | None = None
-    #: the daemon's state when CRTK's ``pause`` came (``resume`` returns to it)
-    paused_from: str | None = None
+    #: the name and text of the daemon's last state STATUS ("RUNNING -> STOPPED: <why>")
+    status_state: str | None = None
+    state_text: str = ""
+    #: the daemon is STOPPED by this bridge's ``pause`` (and no alarm since): CRTK's
+    #: ``resume`` and ``enable`` may Run it again; any other stop is the daemon's Run's
+    paused_by_bridge: bool = False
+    #: the links (viewer, operator) whose greeting STATUS is still to come, and the stamped
+    #: STATUS messages lately seen with the link they came on: the daemon sends its STATUS to
+    #: every link, the bridge publishes each once
+    greeting_due: set[str] = field(default_factory=set)
+    recent_status: OrderedDict[tuple[Any, ...], str] = field(default_factory=OrderedDict)
+    status_lock: threading.Lock = field(default_factory=threading.Lock)
     #: CRTK's is_busy: a keyframe plan runs (module docstring)
     busy: bool = False
     #: the last Tip (world, metres) and measured joints (names, positions): a move's start
@@ -530,6 +623,8 @@ class Bridge:
         client: TCPClient
 
         def on_connect(peer: Any) -> None:
+            with robot.status_lock:
+                robot.greeting_due.add(role)
             # as 3D Slicer does: a v2 STATUS first, so the daemon answers in header version 2;
             # then ask the state (a late joiner must not wait for the next change)
             client.send(igtl.StatusMessage(header_version=2, metadata={"dummy": "dummy"}))
@@ -544,7 +639,7 @@ class Bridge:
         client = TCPClient(
             host,
             port,
-            on_message=lambda peer, msg: self._on_igtl(robot, msg),
+            on_message=lambda peer, msg: self._on_igtl(robot, msg, role),
             on_connect=on_connect,
             name=f"occ-ros2-{role}-{robot.leaf}",
         )
@@ -619,7 +714,7 @@ class Bridge:
         if leaf not in robot.writers:
             self._writer(robot, leaf, cls, QOS_DEFAULT)
 
-    def _on_igtl(self, robot: Robot, msg: Message) -> None:
+    def _on_igtl(self, robot: Robot, msg: Message, link: str = "viewer") -> None:
         t_in = time.perf_counter()
         mtype = msg.message_type
         stamp = msgs.Time.from_seconds(msg.timestamp if msg.timestamp > 0.0 else time.time())
@@ -631,7 +726,7 @@ class Bridge:
         elif mtype == "NDARRAY" and msg.device_name in ("Joints", "Setpoints"):
             self._on_joints(robot, msg, stamp)
         elif mtype == "STATUS":
-            self._on_status(robot, msg, stamp)
+            self._on_status(robot, msg, stamp, link)
         elif mtype == "RTS_COMMAND":
             self._on_reply(robot, msg, stamp)
 
@@ -715,19 +810,61 @@ class Bridge:
             ),
         )
 
-    def _on_status(self, robot: Robot, msg: Message, stamp: msgs.Time) -> None:
+    def _on_status(
+        self, robot: Robot, msg: Message, stamp: msgs.Time, link: str = "viewer"
+    ) -> None:
         """STATUS -> ``status`` ("name: text"), and the operating state or busy flag when its
-        name is one of CRTK's states or the keyframe plan's running/ended."""
+        name is one of CRTK's states or the keyframe plan's running/ended; once, whichever of
+        the robot's links it came on (:meth:`_first_copy`)."""
         robot.counters.statuses += 1
         name = getattr(msg, "error_name", "")
         text = getattr(msg, "status_message", "")
         if name == "" and text == "":
             return  # a keep-alive or greeting, nothing to say
-        self._publish(robot, "status", msgs.String(data=f"{name}: {text}"))
-        if name in CRTK_STATE:
-            self._set_state(robot, name, stamp)
-        elif name in (KEYFRAME_RUNNING, KEYFRAME_ENDED):
-            self._set_busy(robot, name == KEYFRAME_RUNNING, stamp)
+        # one STATUS at a time, whichever link it came on: the copy on the other link is
+        # judged once the first is published and its state set
+        with robot.status_lock:
+            if not self._first_copy(robot, msg, name, text, link):
+                robot.counters.statuses_repeated += 1
+                return
+            if name in ALARMS:
+                robot.paused_by_bridge = False  # an alarm while paused: not ours to resume
+            self._publish(robot, "status", msgs.String(data=f"{name}: {text}"))
+            if name in CRTK_STATE:
+                robot.state_text = text
+                robot.status_state = name
+                self._set_state(robot, name, stamp)
+            elif name in (KEYFRAME_RUNNING, KEYFRAME_ENDED):
+                self._set_busy(robot, name == KEYFRAME_RUNNING, stamp)
+
+    def _first_copy(self, robot: Robot, msg: Message, name: str, text: str, link: str) -> bool:
+        """Whether a STATUS is news, with ``robot.status_lock`` held. A bridge with a viewer and
+        an operator link to one daemon gets each of its broadcasts twice (the daemon sends its
+        STATUS to every client) and a greeting on each link: a stamped STATUS equal to one
+        lately seen on the *other* link is its copy; a link's greeting that names the state
+        the other (connected) link has announced already (its last state STATUS) says
+        nothing new. Unstamped STATUS
+        cannot be told apart: each is news."""
+        greeting = link in robot.greeting_due
+        robot.greeting_due.discard(link)
+        others = [
+            client
+            for role, client in (("viewer", robot.viewer), ("operator", robot.operator))
+            if role != link and client is not None
+        ]
+        if greeting and name == robot.status_state and any(c.connected for c in others):
+            return False
+        if msg.timestamp <= 0.0:
+            return True
+        key = (name, text, int(getattr(msg, "code", 0)), msg.timestamp)
+        seen_on = robot.recent_status.get(key)
+        if seen_on is not None and seen_on != link:
+            del robot.recent_status[key]  # each broadcast comes once per link
+            return False
+        robot.recent_status[key] = link
+        while len(robot.recent_status) > STATUS_MEMORY:
+            robot.recent_status.popitem(last=False)
+        return True
 
     def _on_force(self, robot: Robot, msg: Message, stamp: msgs.Time) -> None:
         """SENSOR or NDARRAY ``Force`` (N: a master's displayed force; 3 values, or 6 with a
@@ -874,6 +1011,8 @@ class Bridge:
         if state == robot.state:
             return
         robot.state = state
+        if state != "STOPPED":
+            robot.paused_by_bridge = False
         if state != "RUNNING":
             robot.busy = False  # a plan runs only while RUNNING (the daemon drops it otherwise)
         self._publish(robot, "state", msgs.String(data=state))
@@ -896,7 +1035,8 @@ class Bridge:
             for part in text.split(";"):
                 key, _, value = part.strip().partition("=")
                 if key == "state" and value in CRTK_STATE:
-                    self._set_state(robot, value, stamp)
+                    with robot.status_lock:
+                        self._set_state(robot, value, stamp)
         if pending is None:
             return  # our own GetState on connect
         if pending.probe:
@@ -907,11 +1047,37 @@ class Bridge:
         if pending.move is not None:
             self._move_reply(robot, pending.move, name, status == "SUCCESS", text)
             return
+        if pending.word is not None:
+            self._word_reply(robot, pending.word, name, status == "SUCCESS", text)
+            return
         robot.counters.replies += 1
-        self._publish(robot, "command_reply", msgs.String(data=f"{name} {status}: {text}"))
-        if name in ("Enable", "Disable", "Stop", "Run"):
+        reply = f"{_named(pending.rid)}{name} {status}: {text}"
+        self._publish(robot, "command_reply", msgs.String(data=reply))
+        if name in ("Enable", "Disable", "Stop", "Run", "Hold"):
             # a CRTK client waits for an operating_state after its command, changed or not
             self._operating_state(robot)
+
+    def _word_reply(self, robot: Robot, word: _Word, name: str, ok: bool, text: str) -> None:
+        """The daemon's answer to one of a CRTK word's commands: the next one, or the word's
+        reply (``enable SUCCESS: Enable: READY -> ENABLED; Run: ENABLED -> RUNNING``)."""
+        word.answers.append(f"{name}: {text}")
+        if ok and name == "Stop" and word.word == "pause" and text.startswith("RUNNING -> STOPPED"):
+            robot.paused_by_bridge = True
+        if ok and word.steps:
+            self._word_next(robot, word)
+            return
+        robot.counters.replies += 1
+        status = "SUCCESS" if ok else "FAIL"
+        reply = f"{_named(word.rid)}{word.word} {status}: {'; '.join(word.answers)}"
+        self._publish(robot, "command_reply", msgs.String(data=reply))
+        self._operating_state(robot)  # CRTK's client waits for one after its command
+
+    def _word_next(self, robot: Robot, word: _Word) -> None:
+        name = word.steps.pop(0)
+        client = robot.operator
+        if client is None or not self._send_command(robot, client, name, word=word):
+            why = f"{name}: operator interface not connected"
+            self._refuse(robot, word.word, "; ".join([*word.answers, why]), word.rid)
 
     # ------------------------------------------------------------------ DDS -> IGTL
     def _command_loop(self) -> None:
@@ -925,51 +1091,59 @@ class Bridge:
                         if not isinstance(sample, InvalidSample):
                             handle(sample)
 
-    def command(self, ns: str, word: str) -> None:
+    def command(self, ns: str, text: str) -> None:
         """Forward one command to the daemon of ``ns`` (what the DDS subscriptions do): a CRTK
-        word through :data:`CRTK_TABLE`, any other word as the daemon's own command."""
+        word through :data:`CRTK_TABLE`, any other word as the daemon's own command; either
+        may begin with a request id (``[ID] word``), which its reply echoes."""
         robot = self.robots[ns]
-        word = word.strip()
         robot.counters.commands += 1
-        if word in CRTK_WORDS and robot.operator is not None:
-            self._crtk(robot, word)
+        try:
+            rid, word = split_request(text)
+        except ValueError as err:
+            self._refuse(robot, "(request)", str(err))
             return
-        self._forward(robot, word)  # without an operator port: refused, saying so
+        if word in CRTK_WORDS and robot.operator is not None:
+            self._crtk(robot, word, rid)
+            return
+        self._forward(robot, word, rid)  # without an operator port: refused, saying so
 
-    def _forward(self, robot: Robot, name: str) -> None:
+    def _forward(self, robot: Robot, name: str, rid: str = "") -> None:
         if not name or not name.replace("_", "").isalnum():
-            self._refuse(robot, name or "(empty)", "not a command name")
+            self._refuse(robot, name or "(empty)", "not a command name", rid)
         elif robot.operator is None:
-            self._refuse(robot, name, f"no operator interface for {robot.ns} (occ-ros2 --operator)")
-        elif not self._send_command(robot, robot.operator, name):
-            self._refuse(robot, name, "operator interface not connected")
+            why = f"no operator interface for {robot.ns} (occ-ros2 --operator)"
+            self._refuse(robot, name, why, rid)
+        elif not self._send_command(robot, robot.operator, name, rid=rid):
+            self._refuse(robot, name, "operator interface not connected", rid)
 
-    def _crtk(self, robot: Robot, word: str) -> None:
+    def _crtk(self, robot: Robot, word: str, rid: str = "") -> None:
         """CRTK's state table (module docstring, :data:`CRTK_TABLE`)."""
         state = robot.state
         if state is None:
-            self._refuse(robot, word, "the daemon's state is not known yet (not connected)")
+            self._refuse(robot, word, "the daemon's state is not known yet (not connected)", rid)
             return
         meta = CRTK_STATE[state]
+        action: str
+        what: str | tuple[str, ...]
         if state in ("INIT", "SHUTDOWN"):
-            action, why = "fail", f"the daemon is in {state}"
+            action, what = "fail", f"the daemon is in {state}"
         else:
-            action, why = CRTK_TABLE.get((word, meta), ("fail", f"not valid in {meta}"))
+            action, what = CRTK_TABLE.get((word, state), ("fail", f"not valid in {meta}"))
+        if action == "send" and state == "STOPPED" and "Run" in what and not robot.paused_by_bridge:
+            why = robot.state_text or "a stop"
+            action, what = "fail", HELD.format(why=why, word=word)
         if action == "send":
-            if word == "pause":
-                robot.paused_from = state
-            if why == "resume":
-                # back where pause left it: RUNNING follows its master again; otherwise (or
-                # paused by someone else) hold, the conservative choice
-                why = "Run" if robot.paused_from == "RUNNING" else "Enable"
-            self._forward(robot, why)
+            assert isinstance(what, tuple)
+            self._word_next(robot, _Word(word, rid, list(what)))
             return
+        assert isinstance(what, str)
         robot.counters.replies += 1
         if action == "fail":
             robot.counters.commands_refused += 1
         status = "SUCCESS" if action == "ok" else "FAIL"
-        text = why.format(state=state)
-        self._publish(robot, "command_reply", msgs.String(data=f"{word} {status}: {text}"))
+        text = what.format(state=state)
+        reply = f"{_named(rid)}{word} {status}: {text}"
+        self._publish(robot, "command_reply", msgs.String(data=reply))
         self._operating_state(robot)
 
     # ------------------------------------------------------------------ moves
@@ -978,6 +1152,7 @@ class Bridge:
         commands, one after the other as each is answered (module docstring)."""
         robot = self.robots[ns]
         robot.counters.moves += 1
+        rid = stamp_request(goal.header)
         try:
             if robot.operator is None:
                 raise ValueError(f"no operator interface for {robot.ns} (occ-ros2 --operator)")
@@ -991,7 +1166,7 @@ class Bridge:
             else:
                 space, pose, t = self._tip_goal(robot, goal)
         except ValueError as err:
-            self._refuse(robot, kind, str(err))
+            self._refuse(robot, kind, str(err), rid)
             return
         move = _Move(
             kind,
@@ -1001,6 +1176,7 @@ class Bridge:
                 ("KeyframePlan", {"Interpolation": "linear", "Mode": "stop"}),
             ],
             time.monotonic(),
+            rid=rid,
         )
         robot.move = move
         self._move_next(robot, move)
@@ -1062,7 +1238,7 @@ class Bridge:
             return  # given up (timed out) meanwhile
         if client is None or not self._send_command(robot, client, name, args=args, move=move):
             robot.move = None
-            self._refuse(robot, move.kind, "operator interface not connected")
+            self._refuse(robot, move.kind, "operator interface not connected", move.rid)
 
     def _ack(self, robot: Robot, move: _Move) -> None:
         self._move_send(robot, move, "KeyframeAck", {"Plan": str(move.plan)})
@@ -1085,13 +1261,15 @@ class Bridge:
                 timer.start()
                 return
             robot.move = None
-            self._refuse(robot, kind, text if text.startswith(name) else f"{name}: {text}")
+            why = text if text.startswith(name) else f"{name}: {text}"
+            self._refuse(robot, kind, why, move.rid)
             return
         if name == "KeyframePlan":
             found = re.match(r"plan (\d+):", text)
             if found is None:
                 robot.move = None
-                self._refuse(robot, kind, f"KeyframePlan answered {text!r}: no plan number")
+                why = f"KeyframePlan answered {text!r}: no plan number"
+                self._refuse(robot, kind, why, move.rid)
                 return
             move.plan = int(found.group(1))
             if self.ack_moves:
@@ -1105,21 +1283,22 @@ class Bridge:
                 "(occ-ros2 runs without --ack-moves)"
             )
             self._publish(robot, "status", msgs.String(data=f"KEYFRAME_WAITING: {waits}"))
-            self._publish(
-                robot, "command_reply", msgs.String(data=f"{kind} WAITING: {waits}: {text}")
-            )
+            reply = f"{_named(move.rid)}{kind} WAITING: {waits}: {text}"
+            self._publish(robot, "command_reply", msgs.String(data=reply))
             return
         if name == "KeyframeAck":
             robot.move = None
             robot.counters.moves_running += 1
             robot.counters.replies += 1
-            self._publish(robot, "command_reply", msgs.String(data=f"{kind} SUCCESS: {text}"))
+            reply = f"{_named(move.rid)}{kind} SUCCESS: {text}"
+            self._publish(robot, "command_reply", msgs.String(data=reply))
             return
         self._move_next(robot, move)  # KeyframeClear, KeyframeAdd done: the next
 
-    def _refuse(self, robot: Robot, name: str, why: str) -> None:
+    def _refuse(self, robot: Robot, name: str, why: str, rid: str = "") -> None:
         robot.counters.commands_refused += 1
-        self._publish(robot, "command_reply", msgs.String(data=f"{name} FAIL: {why}"))
+        reply = f"{_named(rid)}{name} FAIL: {why}"
+        self._publish(robot, "command_reply", msgs.String(data=reply))
 
     def _send_command(
         self,
@@ -1131,6 +1310,8 @@ class Bridge:
         args: dict[str, str] | None = None,
         move: _Move | None = None,
         probe: bool = False,
+        rid: str = "",
+        word: _Word | None = None,
     ) -> bool:
         """Send the daemon's command ``name`` (``args``: its XML attributes, as 3D Slicer
         sends them); ``quiet``: its answer is not waited for."""
@@ -1138,7 +1319,7 @@ class Bridge:
             self._cmd_id = (self._cmd_id + 1) & 0xFFFFFFFF
             cid = self._cmd_id
             if not quiet:
-                self._pending[cid] = _Pending(robot, name, move, probe)
+                self._pending[cid] = _Pending(robot, name, move, probe, rid, word)
                 while len(self._pending) > 256:
                     self._pending.popitem(last=False)
         text = ""

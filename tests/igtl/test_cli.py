@@ -43,7 +43,8 @@ def _vector_dir() -> Path | None:
 
 VECTORS = _vector_dir()
 needs_vectors = pytest.mark.skipif(
-    VECTORS is None, reason="reference vectors not found (tests/data/igtl-vectors, or set IGTL_VECTORS)"
+    VECTORS is None,
+    reason="reference vectors not found (tests/data/igtl-vectors, or set IGTL_VECTORS)",
 )
 
 
@@ -83,6 +84,7 @@ def test_help_everywhere_lists_exit_codes(
     out = capsys.readouterr().out
     assert "usage: igtl" in out
     assert "exit codes:" in out and "3    timeout" in out
+    assert "5    send: the peer answered a request FAIL" in out
 
 
 def test_no_command_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
@@ -176,6 +178,14 @@ def test_position_quaternion_for_transform_and_position() -> None:
     assert isinstance(p, igtl.PositionMessage) and p.position == (1.0, 2.0, 3.0)
 
 
+def test_a_query_type_is_sent_as_named() -> None:
+    """GET_TRANS, STP_TDATA, RTS_TDATA share a class each with their siblings: the message is
+    the type named on the command line, not the class's default (GET_STATUS)."""
+    for name in ("GET_TRANS", "GET_STATUS", "STP_TDATA", "RTS_TDATA"):
+        assert _built("--type", name).message_type == name
+        assert igtl.unpack(_built("--type", name).pack()).message_type == name
+
+
 def test_meta_switches_to_header_version_2() -> None:
     msg = _built("--type", "STRING", "--string", "hi", "--meta", "k=v", "--meta", "e=")
     assert msg.header_version == 2 and dict(msg.metadata) == {"k": "v", "e": ""}
@@ -257,7 +267,9 @@ def test_dump_every_reference_vector_as_json(capsys: pytest.CaptureFixture[str])
     assert v2["message_id"] == 1
     bind = by_type["BIND"]  # its children decoded, each like a message of its own
     assert [(c["type"], c["device"]) for c in bind["children"]] == [
-        ("TRANSFORM", "ChildTrans"), ("IMAGE", "ChildImage"), ("SENSOR", "ChildSensor")
+        ("TRANSFORM", "ChildTrans"),
+        ("IMAGE", "ChildImage"),
+        ("SENSOR", "ChildSensor"),
     ]
     assert isinstance(bind["children"][0]["content"], dict)
 
@@ -603,7 +615,8 @@ def test_send_prints_the_answer_to_a_request(capsys: pytest.CaptureFixture[str])
         server.send(igtl.TransformMessage.from_position((1, 2, 3), device_name="Tip"), peer)
         if msg.message_type == "COMMAND":
             reply = igtl.REGISTRY["RTS_COMMAND"](
-                command_id=msg.command_id, command_name=msg.command_name,
+                command_id=msg.command_id,
+                command_name=msg.command_name,
                 command='<CommandReply Status="SUCCESS"/>',
             )
             server.send(reply, peer)
@@ -615,12 +628,110 @@ def test_send_prints_the_answer_to_a_request(capsys: pytest.CaptureFixture[str])
         out = capsys.readouterr().out
         assert out.count("RTS_COMMAND") == 1 and "TRANSFORM" not in out
         assert "SUCCESS" in out
-        assert cli.main(
-            ["send", target, "--type", "COMMAND", "--command-name", "GetState", "--no-wait"]
-        ) == 0
+        assert (
+            cli.main(
+                ["send", target, "--type", "COMMAND", "--command-name", "GetState", "--no-wait"]
+            )
+            == 0
+        )
         assert capsys.readouterr().out == ""
     finally:
         server.stop()
+
+
+def _refusing_daemon(status: str, error: str) -> Any:
+    """A TCP server answering each request as the OCC daemon's operator desk does
+    (occ/net/commands.py: RTS_COMMAND with metadata and XML, ACK_ STRING with XML, an error
+    STATUS to a query), with ``status`` (SUCCESS or FAIL) and ``error``."""
+    from igtl.transport import TCPServer
+    from occ.net.commands import Request, error_reply, success_reply
+
+    def answer(peer: object, msg: igtl.Message) -> None:
+        if msg.message_type == "COMMAND":
+            req = Request("command", msg.command_name, msg=msg)  # type: ignore[attr-defined]
+        elif msg.message_type == "STRING":
+            req = Request("string", "Run", msg=msg)
+        else:
+            server.send(error_reply(msg, error), peer)
+            return
+        ok = status == "SUCCESS"
+        server.send(
+            success_reply(req, "ENABLED -> RUNNING") if ok else error_reply(msg, error), peer
+        )
+
+    server = TCPServer("127.0.0.1", 0, on_message=answer).start()
+    return server
+
+
+@pytest.mark.req("SR-REPLY-4")
+@pytest.mark.parametrize(
+    "request_args",
+    [
+        ["--type", "COMMAND", "--command-name", "Run"],
+        ["--type", "COMMAND", "--command-name", "Run", "--header-version", "2"],
+        ["--type", "STRING", "--device", "CMD_7", "--string", '<Command Name="Run"/>'],
+    ],
+)
+def test_send_exits_5_when_the_daemon_answers_fail(
+    request_args: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A FAIL answer (RTS_COMMAND Status=FAIL, an ACK_ STRING saying FAIL) is exit 5 with the
+    reply's error on stderr; the reply itself is printed as any answer; SUCCESS is exit 0."""
+    why = "the robot is READY; send Enable first"
+    server = _refusing_daemon("FAIL", why)
+    try:
+        target = f"127.0.0.1:{server.address[1]}"
+        assert cli.main(["send", target, *request_args]) == cli.EXIT_REFUSED == 5
+        out, err = capsys.readouterr()
+        assert "FAIL" in out  # the reply, as printed for any answer
+        (line,) = err.splitlines()
+        assert line.startswith("igtl: ") and line.endswith(f": FAIL: {why}"), line
+    finally:
+        server.stop()
+    server = _refusing_daemon("SUCCESS", "")
+    try:
+        target = f"127.0.0.1:{server.address[1]}"
+        assert cli.main(["send", target, *request_args]) == cli.EXIT_OK
+        assert capsys.readouterr().err == ""
+    finally:
+        server.stop()
+
+
+@pytest.mark.req("SR-REPLY-4")
+def test_send_exits_5_on_a_refused_query_but_not_on_a_status_answer(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A query refused with an error STATUS is a refusal; GET_STATUS's answer is a STATUS
+    whatever its code, never one."""
+    server = _refusing_daemon("FAIL", "no such device")
+    try:
+        target = f"127.0.0.1:{server.address[1]}"
+        assert cli.main(["send", target, "--type", "GET_TRANS", "--device", "Nope"]) == 5
+        assert "no such device" in capsys.readouterr().err
+        assert cli.main(["send", target, "--type", "GET_STATUS"]) == cli.EXIT_OK
+    finally:
+        server.stop()
+
+
+@pytest.mark.req("SR-REPLY-4")
+def test_refusal_reads_every_reply_form() -> None:
+    cmd = igtl.CommandMessage(command_id=1, command_name="Run", command="", header_version=2)
+    rts = igtl.REGISTRY["RTS_COMMAND"]
+    # metadata first, the XML content when there is none (a v1 reply), the reference's bare one
+    meta = rts(command_id=1, command_name="Run", command="", header_version=2,
+               metadata={"Status": "FAIL", "Error": "no"})  # fmt: skip
+    assert cli.refusal(meta, cmd) == "Run: FAIL: no"
+    xml = rts(command_id=1, command_name="Run",
+              command='<CommandReply Status="FAIL" Message="not now" />')  # fmt: skip
+    assert cli.refusal(xml, cmd) == "Run: FAIL: not now"
+    bare = rts(command_id=1, command_name="Run", command='<CommandReply Status="FAIL" />')
+    assert cli.refusal(bare, cmd) == "Run: FAIL: (no reason given)"
+    ok = rts(command_id=1, command_name="Run", command='<CommandReply Status="SUCCESS" />')
+    assert cli.refusal(ok, cmd) is None
+    assert cli.refusal(rts(command_id=1, command_name="Run", command="not xml <"), cmd) is None
+    ack = igtl.StringMessage('<CommandReply Name="Run" Status="FAIL" Error="x" />',
+                             device_name="ACK_1")  # fmt: skip
+    assert cli.refusal(ack, cmd) == "Run: FAIL: x"
 
 
 def test_send_says_when_a_request_is_not_answered(capsys: pytest.CaptureFixture[str]) -> None:

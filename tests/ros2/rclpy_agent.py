@@ -14,7 +14,8 @@ stdin and answers each with one JSON line on stdout:
 - ``{"op": "move_jp", "name": [...], "position": [...]}``: one sensor_msgs/JointState on
   ``NAMESPACE/move_jp``; ``{"op": "move_cp", "frame": "world", "position": [x, y, z]}``: one
   geometry_msgs/PoseStamped (metres) on ``NAMESPACE/move_cp``; both answer the wall time of
-  sending (``wall``: a CRTK client's ``start_time``);
+  sending (``wall``: a CRTK client's ``start_time``) and the goal's stamp as the bridge names
+  the move's reply (``id``);
 - ``{"op": "servo", "frame": "world", "position": [x, y, z], "rate_hz": 100, "seconds": 5}``:
   geometry_msgs/PoseStamped on ``NAMESPACE/servo_cp`` at ``rate_hz`` for ``seconds`` (a CRTK
   servo client's stream; a new ``servo`` replaces the running one, ``{"op": "servo_stop"}``
@@ -51,6 +52,11 @@ KEEP = 400  # poses kept per topic (the newest)
 
 def now() -> float:
     return time.monotonic() - T0
+
+
+def stamp_id(stamp: Any) -> str:
+    """The request id the bridge names a move's reply with: its goal's stamp (docs/ROS2.md)."""
+    return f"{stamp.sec}.{stamp.nanosec:09d}"
 
 
 def main() -> int:
@@ -186,7 +192,7 @@ def main() -> int:
             goal.header.stamp = node.get_clock().now().to_msg()
             wall = time.time()
             move_jp.publish(goal)
-            answer({"t": now(), "wall": wall})
+            answer({"t": now(), "wall": wall, "id": stamp_id(goal.header.stamp)})
         elif op == "move_cp":
             pose = PoseStamped()
             pose.header.stamp = node.get_clock().now().to_msg()
@@ -195,7 +201,7 @@ def main() -> int:
             pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = x, y, z
             wall = time.time()
             move_cp.publish(pose)
-            answer({"t": now(), "wall": wall})
+            answer({"t": now(), "wall": wall, "id": stamp_id(pose.header.stamp)})
         elif op in ("servo", "servo_cf", "servo_stop"):
             servo_stop.set()
             if servo_thread is not None:

@@ -157,35 +157,37 @@ def test_commands_round_trip_and_state_is_latched(
     assert poll(lambda: ros.take("operating_state")), "no operating_state"
     assert ros.seen["operating_state"][-1].state == "DISABLED"
 
-    # CRTK's word on CRTK's topic
+    # CRTK's word on CRTK's topic: enable is ENABLED, accepting motion: the daemon RUNNING
     crtk = ros.writer("state_command", msgs.StringStamped)
     crtk.write(msgs.StringStamped(header=msgs.Header(frame_id=""), string="enable"))
     assert poll(lambda: ros.take("command_reply")), "no reply to enable"
-    assert ros.seen["command_reply"][0].data == "Enable SUCCESS: READY -> ENABLED"
-    assert poll(lambda: state() == "ENABLED")
-    op = ros.take("operating_state")[-1]
+    assert ros.seen["command_reply"][0].data == (
+        "enable SUCCESS: Enable: READY -> ENABLED; Run: ENABLED -> RUNNING"
+    )
+    assert poll(lambda: state() == "RUNNING")
+    # CRTK: following the master is not a move: RUNNING is ENABLED and not busy
+    assert poll(lambda: ros.take("operating_state")[-1].state == "ENABLED")
+    op = ros.seen["operating_state"][-1]
     assert (op.state, op.is_busy, op.is_homed) == ("ENABLED", False, True)
 
-    # the daemon's own command names on the plain String topic
+    # the daemon's own command names on the plain String topic, with a request id or without
     plain = ros.writer("command", msgs.String)
-    plain.write(msgs.String(data="Run"))
-    assert poll(lambda: state() == "RUNNING")
+    plain.write(msgs.String(data="[h1] Hold"))
+    assert poll(lambda: state() == "ENABLED")
     plain.write(msgs.String(data="NoSuchCommand"))
     assert poll(lambda: len(ros.take("command_reply")) >= 3)
     replies = [r.data for r in ros.seen["command_reply"]]
-    assert replies[1] == "Run SUCCESS: ENABLED -> RUNNING"
+    assert replies[1] == "[h1] Hold SUCCESS: RUNNING -> ENABLED"
     assert replies[2].startswith("NoSuchCommand FAIL:"), replies
-    # CRTK: following the master is not a move: RUNNING is ENABLED and not busy
-    op = ros.take("operating_state")[-1]
-    assert (op.state, op.is_busy) == ("ENABLED", False)
-    # CRTK: enable when ENABLED is a no-op that succeeds (the daemon would refuse Enable)
+    # the daemon ENABLED (holding) is CRTK's PAUSED; enable Runs it
+    assert poll(lambda: ros.take("operating_state")[-1].state == "PAUSED")
     crtk.write(msgs.StringStamped(string="enable"))
     assert poll(lambda: len(ros.take("command_reply")) >= 4)
-    assert ros.seen["command_reply"][3].data == "enable SUCCESS: already ENABLED"
+    assert ros.seen["command_reply"][3].data == "enable SUCCESS: Run: ENABLED -> RUNNING"
     crtk.write(msgs.StringStamped(string="pause"))
     assert poll(lambda: state() == "STOPPED")
     assert poll(lambda: ros.take("operating_state")[-1].state == "PAUSED")
-    crtk.write(msgs.StringStamped(string="resume"))  # back to where pause left: RUNNING
+    crtk.write(msgs.StringStamped(string="resume"))  # out of its own pause: Run again
     assert poll(lambda: state() == "RUNNING")
     assert bridge.poll() is None
 

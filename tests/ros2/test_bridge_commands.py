@@ -215,8 +215,8 @@ def test_every_daemon_state_as_crtk_operating_state(rig: Callable[..., Any]) -> 
     assert ros.ops()[0] == ("DISABLED", True, False)
     expected = {
         "INIT": ("DISABLED", False),
-        "ENABLED": ("ENABLED", True),
-        "RUNNING": ("ENABLED", True),
+        "ENABLED": ("PAUSED", True),  # powered, holding: motion commands wait for Run
+        "RUNNING": ("ENABLED", True),  # CRTK's ENABLED: motion commands are executed
         "STOPPED": ("PAUSED", True),
         "FAULT": ("FAULT", True),
         "ESTOP": ("FAULT", True),
@@ -374,7 +374,7 @@ def test_a_daemon_that_never_answers_get_stats_does_not_silence_operating_state(
     assert poll(lambda: time.monotonic() > robot.probing_until)
     daemon.status("ENABLED")
     assert poll(lambda: bool(ros.ops()))
-    assert ros.ops() == [("ENABLED", True, False)]
+    assert ros.ops() == [("PAUSED", True, False)]
 
 
 # ---------------------------------------------------------------------------- command forwarding
@@ -383,9 +383,10 @@ def test_a_daemon_that_never_answers_get_stats_does_not_silence_operating_state(
 def test_crtk_words_become_the_daemons_commands_and_its_answers_come_back(
     rig: Callable[..., Any],
 ) -> None:
-    """``enable`` in READY is the daemon's Enable, sent as 3D Slicer sends commands (COMMAND,
-    header version 2, device occ-ros2, a new id each); the daemon's answer is published on
-    command_reply, then operating_state again (a fresh stamp, for crtk_python_client)."""
+    """``enable`` in READY is the daemon's Enable, then its Run once Enable is answered (CRTK's
+    ENABLED accepts motion commands: the daemon's RUNNING), sent as 3D Slicer sends commands
+    (COMMAND, header version 2, device occ-ros2, a new id each); one reply names the word and
+    each answer, then operating_state again (a fresh stamp, for crtk_python_client)."""
     bridge, daemon, ros = rig()
     connected(bridge, daemon, ros, "READY")
     ns = ros_ns(bridge)
@@ -393,19 +394,23 @@ def test_crtk_words_become_the_daemons_commands_and_its_answers_come_back(
     bridge.command(ns, "  enable \n")
     cmd = daemon.wait_command("Enable")
     assert (cmd.header_version, cmd.device_name, cmd.command) == (2, "occ-ros2", "")
-    assert ros.replies(1) == ["Enable SUCCESS: Enable done"]
+    daemon.wait_command("Run")
+    assert ros.replies(1) == ["enable SUCCESS: Enable: Enable done; Run: Run done"]
     assert poll(lambda: len(ros.ops()) == n + 1)  # unchanged, published again
     fresh = ros.take("operating_state")[-1]
     assert (
         fresh.state == "DISABLED" and fresh.header.stamp.sec > REPLY_STAMP
     )  # now, not the reply's
-    daemon.status("ENABLED")
+    daemon.status("RUNNING")
     assert poll(lambda: len(ros.ops()) == n + 2)
     bridge.command(ns, "pause")
     assert daemon.wait_command("Stop").command_name == "Stop"
     bridge.command(ns, "disable")
     daemon.wait_command("Disable")
-    assert ros.replies(3)[1:] == ["Stop SUCCESS: Stop done", "Disable SUCCESS: Disable done"]
+    assert ros.replies(3)[1:] == [
+        "pause SUCCESS: Stop: Stop done",
+        "disable SUCCESS: Disable: Disable done",
+    ]
     assert poll(lambda: len(ros.ops()) == n + 4)
     # the daemon's words that change its state are followed by operating_state too, the others
     # not (Sync's reply comes after the last of them)
@@ -422,31 +427,79 @@ def test_crtk_words_become_the_daemons_commands_and_its_answers_come_back(
     assert (st["commands"], st["replies"], st["commands_refused"]) == (7, 7, 0)
 
 
-def test_resume_returns_to_where_pause_left(rig: Callable[..., Any]) -> None:
-    """pause from RUNNING, resume: Run (the slave follows its master again); pause from
-    ENABLED (holding), resume: Enable (holds)."""
-    bridge, daemon, ros = rig()
+@pytest.mark.req("SR-REPLY-3")
+def test_enable_stops_at_the_first_refusal_and_says_where(rig: Callable[..., Any]) -> None:
+    """An Enable refused: no Run is sent; a Run refused after the Enable: the reply says the
+    robot is enabled (CRTK's PAUSED) and why it does not run."""
+
+    def daemon_answer(name: str, text: str) -> tuple[str, str] | None:
+        if name == "Run":
+            return "FAIL", "no master connected"
+        return ok(name, text)
+
+    bridge, daemon, ros = rig(daemon_answer)
+    connected(bridge, daemon, ros, "READY")
     ns = ros_ns(bridge)
-    connected(bridge, daemon, ros, "RUNNING")
-    bridge.command(ns, "pause")
-    daemon.wait_command("Stop")
-    daemon.status("STOPPED")
-    assert poll(lambda: bridge.robots[ns].state == "STOPPED")
-    bridge.command(ns, "resume")
-    daemon.wait_command("Run")
+    bridge.command(ns, "enable")
+    assert ros.replies(1) == ["enable FAIL: Enable: Enable done; Run: no master connected"]
     daemon.status("ENABLED")
     assert poll(lambda: bridge.robots[ns].state == "ENABLED")
+    bridge.command(ns, "[r2] enable")  # out of PAUSED (the daemon's ENABLED): Run alone
+    assert ros.replies(2)[1] == "[r2] enable FAIL: Run: no master connected"
+    assert daemon.names()[2:] == ["Enable", "Run", "Run"]
+
+
+def transitions(name: str, text: str) -> tuple[str, str] | None:
+    """The daemon's answers to its state commands (occ/core/transitions.py's text)."""
+    moves = {"Stop": "RUNNING -> STOPPED", "Run": "STOPPED -> RUNNING", "Enable": "x -> ENABLED"}
+    return ("SUCCESS", moves[name]) if name in moves else ok(name, text)
+
+
+@pytest.mark.req("SR-REPLY-3")
+def test_resume_runs_again_only_out_of_this_bridges_own_pause(rig: Callable[..., Any]) -> None:
+    """pause from RUNNING is the daemon's Stop; resume (or enable) Runs again out of that
+    stop. A stop the bridge did not cause (a safety stop, an operator's), or an alarm during
+    the pause, is the daemon's Run's to resume: CRTK's resume and enable are refused, saying
+    so; the daemon's own Run still goes."""
+    bridge, daemon, ros = rig(transitions)
+    ns = ros_ns(bridge)
+    robot = bridge.robots[ns]
+    connected(bridge, daemon, ros, "RUNNING")
+
+    def to(state: str, text: str) -> None:
+        daemon.status(state, f"RUNNING -> {state}{text}", timestamp=time.time())
+        assert poll(lambda: robot.state == state and robot.state_text.endswith(text))
+
+    bridge.command(ns, "pause")
+    daemon.wait_command("Stop")
+    to("STOPPED", ": operator Stop")
+    assert ros.replies(1) == ["pause SUCCESS: Stop: RUNNING -> STOPPED"]
+    bridge.command(ns, "resume")
+    daemon.wait_command("Run")
+    assert ros.replies(2)[1] == "resume SUCCESS: Run: STOPPED -> RUNNING"
+    to("RUNNING", "")
+    # the daemon's own stop (a loss of the master): not the bridge's to resume
+    to("STOPPED", ": master lost: 3 consecutive samples")
+    for word in ("resume", "enable"):
+        bridge.command(ns, word)
+    for reply, word in zip(ros.replies(4)[2:], ("resume", "enable"), strict=True):
+        assert reply.startswith(
+            f"{word} FAIL: the daemon is STOPPED (RUNNING -> STOPPED: master lost: 3 consecutive "
+            "samples) and not by this bridge's pause: a stop is resumed by the daemon's Run"
+        ), reply
+    # paused by the bridge, then an alarm while paused: no longer the bridge's to resume
+    to("RUNNING", "")
     bridge.command(ns, "pause")
     daemon.wait_command("Stop", 2)
-    daemon.status("STOPPED")
-    assert poll(lambda: bridge.robots[ns].state == "STOPPED")
+    to("STOPPED", ": operator Stop")
+    assert ros.replies(5)[4] == "pause SUCCESS: Stop: RUNNING -> STOPPED"
+    daemon.status("COLLISION", "link 'insertion' 1.2 mm from 'table'", timestamp=time.time())
+    assert poll(lambda: not robot.paused_by_bridge)
     bridge.command(ns, "resume")
-    daemon.wait_command("Enable")
-    assert daemon.names()[2:] == ["Stop", "Run", "Stop", "Enable"]
-    assert ros.replies(4) == [
-        "Stop SUCCESS: Stop done", "Run SUCCESS: Run done",
-        "Stop SUCCESS: Stop done", "Enable SUCCESS: Enable done",
-    ]  # fmt: skip
+    assert ros.replies(6)[5].startswith("resume FAIL: the daemon is STOPPED"), ros.replies(6)
+    bridge.command(ns, "Run")  # the daemon's word, deliberate: goes as it is
+    assert ros.replies(7)[6] == "Run SUCCESS: STOPPED -> RUNNING"
+    assert daemon.names()[2:] == ["Stop", "Run", "Stop", "Run"]
 
 
 def test_the_daemons_own_words_go_as_they_are_and_bad_names_are_refused(
@@ -1311,7 +1364,7 @@ def test_every_status_is_on_the_status_topic_but_keep_alives(rig: Callable[..., 
     assert bridge.stats()[ns]["statuses"] == before + 5
     assert poll(lambda: len(ros.ops()) == n + 2)
     enabled, estop = ros.take("operating_state")[-2:]
-    assert enabled.state == "ENABLED"
+    assert enabled.state == "PAUSED"
     assert (enabled.header.stamp.sec, enabled.header.stamp.nanosec) == (0, 500_000_000)
     assert estop.state == "FAULT" and estop.header.stamp.sec > REPLY_STAMP
     assert bridge.robots[ns].state == "ESTOP"
@@ -1359,3 +1412,141 @@ def test_master_stream_takes_the_next_nodes_pose_behind_a_gone_one(
     (m,) = slave.take(1)
     assert m.position == pytest.approx((0.0, 3.0, 0.0), abs=1e-4)
     assert m.metadata["clutch"] == "0"
+
+
+# ---------------------------------------------------------------------------- each STATUS once
+
+
+@pytest.mark.req("SR-REPLY-1")
+def test_a_daemon_on_two_links_has_each_status_published_once(
+    dds: tuple[int, Any], namespace: str
+) -> None:
+    """``--connect`` and ``--operator`` to one daemon: it sends every STATUS to both links
+    (occ/core/alarms.py ``broadcast``) and greets each new link with its state
+    (occ/net/operators.py ``greet``). Each is published once on ``status``; the state and
+    operating_state change once. Unstamped STATUS cannot be told apart and is published as it
+    comes."""
+    domain_id, dp = dds
+    daemon = DaemonPort()
+    stamp = [1_700_000_000.0]
+
+    def greet(peer: Any) -> None:
+        stamp[0] += 1.0
+        msg = igtl.StatusMessage(error_name="READY", status_message="occd is READY",
+                                 header_version=2, timestamp=stamp[0])  # fmt: skip
+        daemon.server.send(msg, peer)
+
+    daemon.server.on_connect = greet
+    daemon.server.start()
+    ros = RosSide(dp, namespace)
+    link = [("127.0.0.1", daemon.port, namespace)]
+    with Bridge(link, link, domain_id=domain_id, tf=False) as bridge:
+        assert bridge.wait_connected()
+        robot = bridge.robots[namespace]
+        assert poll(lambda: robot.counters.statuses == 2)  # both greetings handled
+        for i, (state, text) in enumerate(
+            [("ENABLED", "READY -> ENABLED"), ("RUNNING", "ENABLED -> RUNNING"),
+             ("ALERT", "master late by 4.1 ms"), ("STOPPED", "RUNNING -> STOPPED: loss")]
+        ):  # fmt: skip
+            daemon.status(state, text, timestamp=1_700_000_100.0 + i)
+        assert poll(lambda: robot.counters.statuses == 2 + 8)
+        daemon.status("RUNNING", "unstamped")  # no time stamp: each copy is news
+        assert poll(lambda: robot.counters.statuses == 2 + 8 + 2)
+        assert poll(lambda: len(ros.take("status")) >= 7)
+        assert [s.data for s in ros.take("status")] == [
+            "READY: occd is READY",
+            "ENABLED: READY -> ENABLED",
+            "RUNNING: ENABLED -> RUNNING",
+            "ALERT: master late by 4.1 ms",
+            "STOPPED: RUNNING -> STOPPED: loss",
+            "RUNNING: unstamped",
+            "RUNNING: unstamped",
+        ]
+        assert [s.data for s in ros.take("state")] == ["READY", "ENABLED", "RUNNING", "STOPPED",
+                                                       "RUNNING"]  # fmt: skip
+        assert [o[0] for o in ros.ops()] == ["DISABLED", "PAUSED", "ENABLED", "PAUSED", "ENABLED"]
+        assert bridge.stats()[namespace]["statuses_repeated"] == 5
+    daemon.server.stop()
+
+
+def test_a_late_copy_never_sets_an_old_state_again(dds: tuple[int, Any], namespace: str) -> None:
+    """The copies of a daemon's STATUS reach the bridge's two links in any order: a state the
+    first link has already moved past, arriving on the second, is a copy, not a change."""
+    domain_id, _ = dds
+    with Bridge((), [("127.0.0.1", free_port(), namespace)], domain_id=domain_id, tf=False
+                ) as bridge:  # fmt: skip
+        robot = bridge.robots[namespace]
+        robot.viewer = robot.operator  # a second link (neither connected: no greeting rule)
+
+        def status(name: str, t: float, link: str) -> None:
+            msg = igtl.StatusMessage(error_name=name, status_message=name, timestamp=t)
+            bridge._on_igtl(robot, msg, link)
+
+        status("STOPPED", 5.0, "viewer")
+        status("RUNNING", 6.0, "viewer")
+        status("STOPPED", 5.0, "operator")  # the slow link's copy of the first
+        status("RUNNING", 6.0, "operator")
+        assert robot.state == "RUNNING"
+        status("STOPPED", 5.0, "viewer")  # the same link twice: a new STATUS
+        assert robot.state == "STOPPED"
+        assert robot.counters.statuses_repeated == 2
+
+
+# ---------------------------------------------------------------------------- request ids
+
+
+@pytest.mark.req("SR-REPLY-2")
+def test_a_reply_names_the_request_it_answers(rig: Callable[..., Any]) -> None:
+    """``[ID] word`` (a daemon command, a CRTK word, a word the bridge refuses) is answered
+    ``[ID] ...``; a move is named by its goal's stamp; a word without an id is answered as
+    before; a malformed id is refused, saying how to write one, and nothing is sent."""
+    bridge, daemon, ros = rig(keyframe_daemon())
+    connected(bridge, daemon, ros, "RUNNING")
+    joints(bridge)
+    ns = ros_ns(bridge)
+    bridge.command(ns, "[a-1] GetRecordingStatus")
+    bridge.command(ns, " [node_7:2.x]   enable")
+    bridge.command(ns, "[a-2] rm -rf")
+    bridge.command(ns, "Sync")
+    goal = msgs.JointState(header=msgs.Header(stamp=msgs.Time(1_700_000_123, 45)),
+                           name=["yaw"], position=[0.1])  # fmt: skip
+    bridge.move(ns, "move_jp", goal)
+    assert poll(lambda: len(ros.take("command_reply")) == 5)
+    bridge.move(ns, "move_jp", msgs.JointState(name=["roll"], position=[0.1]))  # unstamped
+    replies = ros.replies(6)
+    assert sorted(replies[:4]) == [  # the bridge's own answers may overtake the daemon's
+        "Sync SUCCESS: Sync done",
+        "[a-1] GetRecordingStatus SUCCESS: GetRecordingStatus done",
+        "[a-2] rm -rf FAIL: not a command name",
+        "[node_7:2.x] enable SUCCESS: already ENABLED",
+    ]
+    assert replies[4].startswith("[1700000123.000000045] move_jp WAITING: plan 7 waits")
+    assert replies[5].startswith("move_jp FAIL: no joint 'roll'")
+    sent = len(daemon.commands())
+    for bad in ("[] enable", "[a b] enable", "[x" + "y" * 64 + "] Run", "[unclosed Run"):
+        bridge.command(ns, bad)
+    for reply in ros.replies(10)[6:]:
+        assert reply.startswith("(request) FAIL: ") and "a request id is 1..64" in reply, reply
+    assert len(daemon.commands()) == sent  # refused: nothing went to the daemon
+
+
+@pytest.mark.req("SR-REPLY-2")
+def test_a_client_takes_only_its_own_reply_when_a_gone_clients_comes_first(
+    rig: Callable[..., Any], dds: tuple[int, Any]
+) -> None:
+    """Client A asks, and goes before the answer; client B subscribes, asks, and A's answer is
+    published first (the daemon answers in its own time): on the shared reply topic B tells
+    its own by its id, as a ROS 2 service client tells its response by its request's id."""
+    bridge, daemon, _ = rig(lambda name, text: None if name == "Slow" else ok(name, text))
+    ns = ros_ns(bridge)
+    bridge.command(ns, "[A-1] Slow")  # answered later
+    a_cmd = daemon.wait_command("Slow")
+    _, dp = dds
+    b_side = RosSide(dp, ns)  # client B comes after A's request
+    bridge.command(ns, "[B-1] Slow")
+    b_cmd = daemon.wait_command("Slow", 2)
+    daemon.reply(a_cmd, "SUCCESS", "for A")  # A's answer, late: before B's
+    daemon.reply(b_cmd, "SUCCESS", "for B")
+    got = [s.data for s in b_side.wait("command_reply", 2)]
+    assert got == ["[A-1] Slow SUCCESS: for A", "[B-1] Slow SUCCESS: for B"]
+    assert [r for r in got if r.startswith("[B-1] ")] == ["[B-1] Slow SUCCESS: for B"]

@@ -111,32 +111,61 @@ def test_commands_without_an_operator_port_are_refused_with_a_reply(
 
 #: every (word, daemon state) of CRTK's table and the answer the bridge gives itself, or
 #: ``None`` where it forwards the daemon's command (then refused here: nothing listens on the
-#: operator port, so the forward is visible as "<DaemonCommand> FAIL: ... not connected")
-CRTK_CASES = {
-    ("enable", "READY"): "Enable",
-    ("enable", "ENABLED"): "enable SUCCESS: already ENABLED",
+#: operator port, so the forward is visible as "<word> FAIL: <DaemonCommand>: ... not
+#: connected"); ``("STOPPED", True)``: STOPPED by this bridge's own pause
+CRTK_CASES: dict[tuple[str, str | tuple[str, bool]], str] = {
+    ("enable", "READY"): "Enable",  # then Run: CRTK's ENABLED accepts motion commands
+    ("enable", "ENABLED"): "Run",
+    ("enable", "STOPPED"): "enable FAIL: the daemon is STOPPED (RUNNING -> STOPPED: a loss)",
+    ("enable", ("STOPPED", True)): "Run",
     ("enable", "RUNNING"): "enable SUCCESS: already ENABLED",
-    ("enable", "STOPPED"): "Enable",
     ("enable", "FAULT"): "enable FAIL: the daemon's FAULT is latched",
     ("enable", "ESTOP"): "enable FAIL: the daemon's ESTOP is latched",
     ("disable", "READY"): "disable SUCCESS: already DISABLED",
+    ("disable", "ENABLED"): "Disable",
     ("disable", "RUNNING"): "Disable",
     ("disable", "STOPPED"): "Disable",
     ("disable", "FAULT"): "disable FAIL: the daemon's FAULT is latched",
+    ("disable", "ESTOP"): "disable FAIL: the daemon's ESTOP is latched",
     ("pause", "READY"): "pause FAIL: not valid in DISABLED",
+    ("pause", "ENABLED"): "pause SUCCESS: already PAUSED",
     ("pause", "RUNNING"): "Stop",
     ("pause", "STOPPED"): "pause SUCCESS: already PAUSED",
     ("pause", "ESTOP"): "pause FAIL: not valid in FAULT",
     ("resume", "READY"): "resume FAIL: not valid in DISABLED",
-    ("resume", "ENABLED"): "resume SUCCESS: already ENABLED",
-    ("resume", "STOPPED"): "Enable",  # paused by someone else: hold
+    ("resume", "ENABLED"): "Run",
+    ("resume", "RUNNING"): "resume SUCCESS: already ENABLED",
+    ("resume", "STOPPED"): "resume FAIL: the daemon is STOPPED (RUNNING -> STOPPED: a loss)",
+    ("resume", ("STOPPED", True)): "Run",
     ("resume", "FAULT"): "resume FAIL: not valid in FAULT",
     ("home", "READY"): "home SUCCESS: homed",
+    ("home", "RUNNING"): "home SUCCESS: homed",
     ("home", "FAULT"): "home SUCCESS: homed",
     ("unhome", "ENABLED"): "unhome FAIL: the joint sensors are absolute",
     ("enable", "INIT"): "enable FAIL: the daemon is in INIT",
     ("home", "SHUTDOWN"): "home FAIL: the daemon is in SHUTDOWN",
 }
+
+
+@pytest.mark.req("SR-REPLY-3")
+def test_crtk_table_covers_every_word_in_every_powered_state() -> None:
+    """Every CRTK word has a row for every daemon state but INIT and SHUTDOWN (which refuse
+    all), and the mapping is CRTK's: ENABLED only where motion commands run (RUNNING)."""
+    from occ_ros2.bridge import CRTK_STATE, CRTK_TABLE, CRTK_WORDS
+
+    assert {s for s, meta in CRTK_STATE.items() if meta == "ENABLED"} == {"RUNNING"}
+    assert {s for s, meta in CRTK_STATE.items() if meta == "PAUSED"} == {"ENABLED", "STOPPED"}
+    powered = ("READY", "ENABLED", "STOPPED", "RUNNING", "FAULT", "ESTOP")
+    missing = [(w, s) for w in CRTK_WORDS for s in powered if (w, s) not in CRTK_TABLE]
+    # CRTK refuses these itself ("not valid in ..."): pause and resume need power, no fault
+    assert sorted(missing) == sorted(
+        [(w, s) for w in ("pause", "resume") for s in ("READY", "FAULT", "ESTOP")]
+    )
+    # each forward ends in the daemon state of the CRTK state the word asks for
+    last = {"enable": "Run", "resume": "Run", "disable": "Disable", "pause": "Stop"}
+    for (word, state), (action, what) in CRTK_TABLE.items():
+        if action == "send":
+            assert isinstance(what, tuple) and what[-1] == last[word], (word, state, what)
 
 
 def _first(reader: DataReader[Any], what: object) -> Any:
@@ -150,6 +179,7 @@ def _first(reader: DataReader[Any], what: object) -> Any:
     return got[0]
 
 
+@pytest.mark.req("SR-REPLY-3")
 def test_crtk_state_table_every_cell_answered(dds: tuple[int, Any], namespace: str) -> None:
     """CRTK's words in each daemon state: the bridge's own answers (no-ops, refusals, the
     latch) word for word, and the forwards by the daemon command they become. The daemon side
@@ -164,17 +194,21 @@ def test_crtk_state_table_every_cell_answered(dds: tuple[int, Any], namespace: s
     endpoint = [("127.0.0.1", free_port(), namespace)]
     with Bridge(endpoint, endpoint, domain_id=domain_id) as bridge:
         robot = bridge.robots[namespace]
-        for (word, state), expected in CRTK_CASES.items():
-            robot.state, robot.paused_from = state, None
+        for (word, where), expected in CRTK_CASES.items():
+            state, ours = where if isinstance(where, tuple) else (where, False)
+            robot.state, robot.paused_by_bridge = state, ours
+            robot.state_text = "RUNNING -> STOPPED: a loss"
             ops.take()
             bridge.command(namespace, word)
             text = _first(replies, (word, state)).data
             if " " not in expected:  # forwarded as this daemon command
-                assert text == f"{expected} FAIL: operator interface not connected", text
+                assert text == f"{word} FAIL: {expected}: operator interface not connected"
                 continue
             assert text.startswith(expected), (word, state, text)
             if "latched" in expected:
                 assert "until an operator's Reset" in text and "CRTK retry" in text
+            if "STOPPED" in expected:
+                assert "not by this bridge's pause" in text and "daemon's Run" in text
             # and operating_state again, with a fresh stamp, for the CRTK client's wait
             if state not in ("INIT", "SHUTDOWN"):
                 fresh = _first(ops, (word, state))

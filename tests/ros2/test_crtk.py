@@ -73,8 +73,8 @@ class CrtkClient:
         self.state_command(word, via)
         return self._wait_event(mark, lambda s: s[2] == target, timeout)
 
-    def enable(self, timeout: float = 0.0) -> bool:
-        return self._to_state("enable", "ENABLED", timeout)
+    def enable(self, timeout: float = 0.0, via: str = "rclpy") -> bool:
+        return self._to_state("enable", "ENABLED", timeout, via)
 
     def disable(self, timeout: float = 0.0, via: str = "rclpy") -> bool:
         return self._to_state("disable", "DISABLED", timeout, via)
@@ -129,6 +129,7 @@ def daemon_state(rig: Rig) -> str:
     return str(rig.ask("snapshot")["states"][-1][1])
 
 
+@pytest.mark.req("SR-REPLY-3")
 def test_crtk_state_table_from_a_real_ros2_node(netns: Netns, tmp_path: Path) -> None:
     rig = Rig(netns, tmp_path, clean_env(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
     rig.start_daemon()
@@ -168,35 +169,43 @@ def test_crtk_state_table_from_a_real_ros2_node(netns: Netns, tmp_path: Path) ->
     assert word("resume") == "resume FAIL: not valid in DISABLED"
     assert crtk.disable() is True  # already DISABLED: sent, True at once
     assert crtk.reply() == "disable SUCCESS: already DISABLED"
-    # enable: DISABLED -> ENABLED (the daemon's Enable), then a no-op that succeeds
+    # enable: DISABLED -> ENABLED, CRTK's "accepts motion commands": the daemon's Enable and
+    # Run (the client sees PAUSED on the way and waits on); then a no-op that succeeds
     assert crtk.enable(timeout=5.0)
-    assert crtk.reply() == "Enable SUCCESS: READY -> ENABLED"
+    assert crtk.reply() == "enable SUCCESS: Enable: READY -> ENABLED; Run: ENABLED -> RUNNING"
     assert crtk.enable() is True
     assert crtk.reply() == "enable SUCCESS: already ENABLED"
-    assert daemon_state(rig) == "ENABLED"
+    assert daemon_state(rig) == "RUNNING"
     # following the master (RUNNING) is ENABLED and not busy: wait_for_busy returns
     start = time.time()
-    assert word("Run") == "Run SUCCESS: ENABLED -> RUNNING"
-    assert crtk.wait_for_busy(is_busy=False, start_time=start, timeout=5.0)
-    assert not crtk.is_busy(start_time=start)
-    assert crtk.last()[2] == "ENABLED"
+    assert crtk.wait_for_busy(is_busy=False, start_time=start - 5.0, timeout=5.0)
+    assert not crtk.is_busy(start_time=start - 5.0)
     assert word("resume") == "resume SUCCESS: already ENABLED"
-    # pause and resume: back to RUNNING (where pause came from)
-    assert word("pause") == "Stop SUCCESS: RUNNING -> STOPPED"
+    # pause and resume: the daemon's Stop, and Run out of that stop
+    assert word("pause") == "pause SUCCESS: Stop: RUNNING -> STOPPED"
     assert crtk.wait_for_operating_state("PAUSED", timeout=5.0)
     assert word("pause") == "pause SUCCESS: already PAUSED"
-    assert word("resume") == "Run SUCCESS: STOPPED -> RUNNING"
+    assert word("resume") == "resume SUCCESS: Run: STOPPED -> RUNNING"
     assert crtk.wait_for_operating_state("ENABLED", timeout=5.0)
     assert wait_until(lambda: daemon_state(rig) == "RUNNING", timeout=5.0)
-    # paused from ENABLED (holding), resume holds again: it does not start following
+    # a stop this bridge's pause did not cause (the daemon's own Stop, here sent as a word of
+    # the daemon's: a safety stop is the same to the bridge) is not CRTK's to resume
     assert word("Stop") == "Stop SUCCESS: RUNNING -> STOPPED"
-    assert word("enable") == "Enable SUCCESS: STOPPED -> ENABLED"  # enable from PAUSED
-    assert word("pause") == "Stop SUCCESS: ENABLED -> STOPPED"
-    assert word("resume") == "Enable SUCCESS: STOPPED -> ENABLED"
-    assert wait_until(lambda: daemon_state(rig) == "ENABLED", timeout=5.0)
+    for w in ("resume", "enable"):
+        reply = word(w)
+        assert reply.startswith(
+            f"{w} FAIL: the daemon is STOPPED (RUNNING -> STOPPED: operator Stop) and not by "
+            "this bridge's pause"
+        ), reply
+    assert word("Run") == "Run SUCCESS: STOPPED -> RUNNING"
+    # the daemon's ENABLED (holding: an operator's Hold or Enable) is PAUSED; resume Runs
+    assert word("Hold") == "Hold SUCCESS: RUNNING -> ENABLED"
+    assert crtk.wait_for_operating_state("PAUSED", timeout=5.0)
+    assert word("resume") == "resume SUCCESS: Run: ENABLED -> RUNNING"
+    assert wait_until(lambda: daemon_state(rig) == "RUNNING", timeout=5.0)
     # disable, and unhome: refused (the sensors are absolute), the client's unhome times out
     assert crtk.disable(timeout=5.0)
-    assert crtk.reply() == "Disable SUCCESS: ENABLED -> READY"
+    assert crtk.reply() == "disable SUCCESS: Disable: RUNNING -> READY"
     assert crtk.unhome(timeout=1.0) is False
     assert crtk.reply() == "unhome FAIL: the joint sensors are absolute: always homed"
     assert crtk.last()[3] is True
@@ -214,17 +223,87 @@ def test_crtk_state_table_from_a_real_ros2_node(netns: Netns, tmp_path: Path) ->
     assert word("resume") == "resume FAIL: not valid in FAULT"
     assert word("home") == "home SUCCESS: homed: the joint sensors are absolute"
     assert daemon_state(rig) == "ESTOP"
-    # the operator's Reset (the daemon's command, deliberate) clears it; then CRTK works again
+    # the operator's Reset (the daemon's command, deliberate) clears it; then CRTK works again,
+    # on CRTK's own topic too (crtk_msgs/StringStamped on state_command)
     assert word("Reset").startswith("Reset SUCCESS")
     assert crtk.wait_for_operating_state("DISABLED", timeout=5.0)
-    assert crtk.enable(timeout=5.0)
-    assert crtk.reply().startswith("Enable SUCCESS")
-    # and the CRTK topic itself (crtk_msgs/StringStamped on state_command)
+    assert crtk.enable(timeout=5.0, via="state_command")
+    assert crtk.reply().startswith("enable SUCCESS: Enable: READY -> ENABLED; Run:")
     assert crtk.disable(timeout=5.0, via="state_command")
-    assert crtk.reply() == "Disable SUCCESS: ENABLED -> READY"
+    assert crtk.reply() == "disable SUCCESS: Disable: RUNNING -> READY"
     assert wait_until(lambda: daemon_state(rig) == "READY", timeout=5.0)
     stats = rig.stop_bridge()["/occ/slave"]
-    assert stats["publish_errors"] == 0 and stats["commands_refused"] == 7
+    assert stats["publish_errors"] == 0 and stats["commands_refused"] == 9
+
+
+@pytest.mark.req("SR-REPLY-1")
+def test_each_status_once_on_the_status_topic(netns: Netns, tmp_path: Path) -> None:
+    """The documented bridge (``--connect`` the viewer port and ``--operator`` the operator
+    port of one slave): the daemon sends each STATUS to both links and greets each; a real
+    rclpy node gets each once on ``status``."""
+    rig = Rig(netns, tmp_path, clean_env(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+    rig.start_daemon()
+    rig.start_bridge()
+    rig.start_node()
+    ready(rig)
+    for w, change in (("Enable", "READY -> ENABLED"), ("Run", "ENABLED -> RUNNING"),
+                      ("Stop", "RUNNING -> STOPPED"), ("Disable", "STOPPED -> READY")):  # fmt: skip
+        rig.ask("publish", data=w)
+        target = change.split()[-1]
+        assert wait_until(lambda: daemon_state(rig) == target, timeout=5.0)  # noqa: B023
+    time.sleep(0.5)  # a copy would come within milliseconds of the first
+    statuses = [s[1] for s in rig.ask("snapshot")["statuses"]]
+    states = [s for s in statuses if s.split(":")[0] in ("READY", "ENABLED", "RUNNING", "STOPPED")]
+    # (the greetings went out before the node's subscription matched: tests/ros2/
+    # test_bridge_commands.py shows the two links' greetings published once)
+    assert states == [
+        "ENABLED: READY -> ENABLED: operator Enable",
+        "RUNNING: ENABLED -> RUNNING: operator Run",
+        "STOPPED: RUNNING -> STOPPED: operator Stop",
+        "READY: STOPPED -> READY: operator Disable",
+    ], statuses
+    assert len(set(statuses)) == len(statuses), statuses
+    stats = rig.stop_bridge()["/occ/slave"]
+    assert stats["statuses_repeated"] >= 5  # each copy on the second link, and its greeting
+
+
+@pytest.mark.req("SR-REPLY-2")
+def test_a_node_after_one_killed_takes_only_its_own_replies(netns: Netns, tmp_path: Path) -> None:
+    """A node asks and is killed (SIGKILL: no clean exit) right after; the next node asks
+    with its own id: every reply it reads names its request, and it takes only its own."""
+    rig = Rig(netns, tmp_path, clean_env(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+    rig.start_daemon()
+    rig.start_bridge()
+    rig.start_node()
+    ready(rig)
+    for i in range(20):
+        rig.ask("publish", data=f"[A-{i}] GetStats")
+    assert rig.node is not None
+    rig.node.proc.kill()  # unclean: its DDS participant is not deleted
+    rig.node.proc.wait(10.0)
+    rig.node = None
+    rig.start_node()
+
+    def own() -> list[str]:
+        return [r[1] for r in rig.ask("snapshot")["replies"] if r[1].startswith("[B-1] ")]
+
+    def answered() -> bool:
+        rig.ask("publish", data="[B-1] GetState")
+        return bool(wait_until(own, timeout=0.5))
+
+    assert wait_until(answered, timeout=10.0), rig.ask("snapshot")["replies"]
+    assert own()[0].startswith("[B-1] GetState SUCCESS: state=READY"), own()
+    replies = [r[1] for r in rig.ask("snapshot")["replies"]]
+    assert all(r.startswith(("[A-", "[B-1] ")) for r in replies), replies
+
+
+def ready(rig: Rig) -> None:
+    """The node's command publisher and reply subscription matched, the state in."""
+    assert wait_until(lambda: rig.ask("snapshot")["states"], timeout=5.0), "no state"
+    assert wait_until(
+        lambda: min(rig.ask("matched")[k] for k in ("matched", "reply_publishers")) >= 1,
+        timeout=5.0,
+    )
 
 
 def test_tf_frames_and_a_late_cyclone_participant(netns: Netns, tmp_path: Path) -> None:

@@ -87,6 +87,16 @@ def ready(rig: Rig, crtk: CrtkClient) -> None:
     crtk.replies_seen = len(rig.ask("snapshot")["replies"])
 
 
+def move(rig: Rig, crtk: CrtkClient, kind: str, **goal: Any) -> tuple[float, str]:
+    """Publish a move goal; (the wall time of sending, its reply without the request id, which
+    is checked to be the goal's stamp)."""
+    sent = rig.ask(kind, **goal)
+    reply = crtk.reply()
+    prefix = f"[{sent['id']}] "
+    assert reply.startswith(prefix), (prefix, reply)
+    return float(sent["wall"]), reply[len(prefix) :]
+
+
 def joints(rig: Rig) -> list[float]:
     return list(rig.ask("snapshot")["joints"]["measured_js"][-1][3])
 
@@ -115,8 +125,7 @@ def test_move_jp_and_move_cp_run_with_ack_moves(netns: Netns, tmp_path: Path) ->
     assert at(rig, HOME, 1e-4)
 
     # move_jp by name: yaw 0.1 rad, 0.1 / 0.05 rad/s = 2 s
-    start = rig.ask("move_jp", name=["yaw"], position=[0.1])["wall"]
-    reply = crtk.reply()
+    start, reply = move(rig, crtk, "move_jp", name=["yaw"], position=[0.1])
     assert reply.startswith("move_jp SUCCESS: plan ") and reply.endswith("running: 2.000 s")
     assert crtk.wait_for_busy(is_busy=True, start_time=start, timeout=5.0)
     assert crtk.is_busy(start_time=start)
@@ -131,8 +140,7 @@ def test_move_jp_and_move_cp_run_with_ack_moves(netns: Netns, tmp_path: Path) ->
     cp = rig.ask("snapshot")["poses"]["measured_cp"][-1]
     assert cp[2] == "world"
     target = [cp[3] + 0.003, cp[4] + 0.003, cp[5] - 0.0025]
-    start = rig.ask("move_cp", frame="world", position=target)["wall"]
-    reply = crtk.reply()
+    start, reply = move(rig, crtk, "move_cp", frame="world", position=target)
     assert reply.startswith("move_cp SUCCESS: plan ") and reply.endswith("running: 1.000 s")
     assert crtk.wait_for_busy(is_busy=True, start_time=start, timeout=5.0)
     assert crtk.wait_for_busy(is_busy=False, start_time=start, timeout=10.0)
@@ -147,6 +155,53 @@ def test_move_jp_and_move_cp_run_with_ack_moves(netns: Netns, tmp_path: Path) ->
     assert stats["commands_refused"] == 0 and stats["publish_errors"] == 0
 
 
+@pytest.mark.req("SR-REPLY-3")
+def test_a_crtk_client_enables_and_moves_with_crtks_words_alone(
+    netns: Netns, tmp_path: Path
+) -> None:
+    """The keyframe robot as it starts (READY), a bridge with ``--ack-moves``: a CRTK client
+    sends ``enable`` on ``state_command`` (crtk_msgs/StringStamped) and waits for ENABLED,
+    then ``move_cp``, as crtk_python_client's move_cp example does: the tip goes to the goal,
+    is_busy while it moves; ``pause`` and ``resume`` on state_command, then ``move_jp``; no
+    word of the daemon's own is sent."""
+    rig = Rig(netns, tmp_path, clean_env(**LOCALHOST), topics=KF)
+    rig.start_daemon(keyframe_config(tmp_path), ports=(18944,))
+    rig.start_bridge("--ack-moves", ports=OPERATOR)
+    rig.start_node()
+    crtk = CrtkClient(rig, rig.start_cyclone())
+    ready(rig, crtk)
+    assert crtk.last()[2:] == ["DISABLED", True, False]
+    assert crtk.enable(timeout=10.0, via="state_command")
+    assert crtk.reply() == "enable SUCCESS: Enable: READY -> ENABLED; Run: ENABLED -> RUNNING"
+    cp = rig.ask("snapshot")["poses"]["measured_cp"][-1]
+    target = [cp[3] + 0.004, cp[4] - 0.003, cp[5]]  # 5 mm: 1 s
+    start, reply = move(rig, crtk, "move_cp", frame="world", position=target)
+    assert reply.startswith("move_cp SUCCESS: plan ") and reply.endswith("running: 1.000 s")
+    assert crtk.wait_for_busy(is_busy=True, start_time=start, timeout=5.0)
+    assert crtk.wait_for_busy(is_busy=False, start_time=start, timeout=10.0)
+
+    def tip_error() -> float:
+        return math.dist(rig.ask("snapshot")["poses"]["measured_cp"][-1][3:6], target)
+
+    assert wait_until(lambda: tip_error() < 2e-5, timeout=2.0), tip_error()
+    # pause (PAUSED: a move now is refused by the daemon), resume (ENABLED), move_jp
+    mark = len(crtk.samples())
+    crtk.state_command("pause", via="state_command")
+    assert crtk.reply() == "pause SUCCESS: Stop: RUNNING -> STOPPED"
+    assert crtk._wait_event(mark, lambda s: s[2] == "PAUSED", 5.0)
+    mark = len(crtk.samples())
+    crtk.state_command("resume", via="state_command")
+    assert crtk.reply() == "resume SUCCESS: Run: STOPPED -> RUNNING"
+    assert crtk._wait_event(mark, lambda s: s[2] == "ENABLED", 5.0)
+    here = joints(rig)
+    start, reply = move(rig, crtk, "move_jp", name=["yaw"], position=[here[0] + 0.05])
+    assert reply.endswith("running: 1.000 s"), reply
+    assert crtk.wait_for_busy(is_busy=False, start_time=start, timeout=10.0)
+    assert wait_until(lambda: abs(joints(rig)[0] - here[0] - 0.05) < 1e-4, timeout=2.0)
+    stats = rig.stop_bridge()[KF]
+    assert stats["moves_running"] == 2 and stats["commands_refused"] == 0
+
+
 def test_without_ack_moves_the_plan_waits_for_an_operator(netns: Netns, tmp_path: Path) -> None:
     rig = Rig(netns, tmp_path, clean_env(**LOCALHOST), topics=KF)
     rig.start_daemon(keyframe_config(tmp_path), "--start", "running", ports=(18944,))
@@ -158,8 +213,7 @@ def test_without_ack_moves_the_plan_waits_for_an_operator(netns: Netns, tmp_path
 
     # all three joints, in the daemon's order (no names): the largest change, 0.2 rad -> 4 s
     goal = [-0.2, 0.4, 0.06]
-    start = rig.ask("move_jp", position=goal)["wall"]
-    reply = crtk.reply()
+    start, reply = move(rig, crtk, "move_jp", position=goal)
     assert reply.startswith("move_jp WAITING: plan "), reply
     plan = reply.split()[3]
     assert f"waits for an operator's KeyframeAck Plan={plan}" in reply
@@ -200,33 +254,33 @@ def test_refusals_say_why(netns: Netns, tmp_path: Path) -> None:
     crtk = CrtkClient(rig, rig.start_cyclone())
     ready(rig, crtk)
 
-    def move(kind: str, **goal: Any) -> str:
-        rig.ask(kind, **goal)
-        return crtk.reply()
+    def goal(kind: str, **goal: Any) -> str:
+        return move(rig, crtk, kind, **goal)[1]
 
     # the bridge's own: a joint the daemon does not have, a frame it does not know
-    assert move("move_jp", name=["roll"], position=[0.1]) == (
+    assert goal("move_jp", name=["roll"], position=[0.1]) == (
         "move_jp FAIL: no joint 'roll' (the daemon's: yaw, pitch, insertion)"
     )
-    reply = move("move_cp", frame="map", position=[0.0, 0.0, 0.2])
+    reply = goal("move_cp", frame="map", position=[0.0, 0.0, 0.2])
     assert reply.startswith("move_cp FAIL: frame_id 'map': a goal is in 'world'"), reply
     # the daemon's checks: beyond yaw's limit (1.0 rad)
-    reply = move("move_jp", name=["yaw"], position=[1.2])
+    reply = goal("move_jp", name=["yaw"], position=[1.2])
     assert reply.startswith("move_jp FAIL: KeyframePlan: plan "), reply
     assert "refused: joint 'yaw' position" in reply, reply
     assert "outside its limits [-1, 1]" in reply, reply
-    # the robot ENABLED, not RUNNING: planned, previewed, and the acknowledgement refused
-    reply = move("move_jp", name=["yaw"], position=[0.05])
+    # the robot ENABLED (CRTK's PAUSED), not RUNNING: planned, previewed, and the
+    # acknowledgement refused
+    assert crtk.last()[2] == "PAUSED"
+    reply = goal("move_jp", name=["yaw"], position=[0.05])
     assert reply.startswith("move_jp FAIL: KeyframeAck: the robot is ENABLED; send Run first")
     # RUNNING: the move runs; a second one while it runs is refused by the daemon
     rig.ask("publish", data="Run")
     assert crtk.reply() == "Run SUCCESS: ENABLED -> RUNNING"
-    start = rig.ask("move_jp", name=["yaw"], position=[0.1])["wall"]
-    reply = crtk.reply()
+    start, reply = move(rig, crtk, "move_jp", name=["yaw"], position=[0.1])
     assert reply.endswith("running: 2.000 s"), reply
     plan = reply.split()[3]
     assert crtk.wait_for_busy(is_busy=True, start_time=start, timeout=5.0)
-    reply = move("move_jp", name=["yaw"], position=[0.0])
+    reply = goal("move_jp", name=["yaw"], position=[0.0])
     assert reply == f"move_jp FAIL: KeyframeClear: plan {plan} is running; Stop first", reply
     assert crtk.last()[4] is True  # the refusal did not touch the running plan
     assert crtk.wait_for_busy(is_busy=False, start_time=start, timeout=10.0)
@@ -246,10 +300,10 @@ def test_a_daemon_without_the_keyframe_controller_refuses_moves(
     crtk = CrtkClient(rig, rig.start_cyclone())
     ready(rig, crtk)
     assert crtk.last()[2:] == ["DISABLED", True, False]  # its GetStats: no plan running
-    rig.ask("move_jp", name=["yaw"], position=[0.1])
-    assert crtk.reply() == "move_jp FAIL: KeyframeClear: unknown command 'KeyframeClear'"
-    rig.ask("move_cp", position=[0.0, 0.02, 0.23])
-    assert crtk.reply() == "move_cp FAIL: KeyframeClear: unknown command 'KeyframeClear'"
+    _, reply = move(rig, crtk, "move_jp", name=["yaw"], position=[0.1])
+    assert reply == "move_jp FAIL: KeyframeClear: unknown command 'KeyframeClear'"
+    _, reply = move(rig, crtk, "move_cp", position=[0.0, 0.02, 0.23])
+    assert reply == "move_cp FAIL: KeyframeClear: unknown command 'KeyframeClear'"
     stats = rig.stop_bridge()["/occ/slave"]
     assert stats["moves"] == 2 and stats["commands_refused"] == 2
 
