@@ -9,6 +9,7 @@ from typing import Any
 from pydantic import Field, model_validator
 
 from occ.config.base import _WILDCARD_HOSTS, Loc, _did_you_mean, _Model, _num, _raise_problems
+from occ.config.blackbox import BlackBoxConfig
 from occ.config.cell import CellConfig
 from occ.config.collaboration import CollaborationConfig
 from occ.config.controllers import ControllerConfig
@@ -39,6 +40,11 @@ class DaemonConfig(_Model):
     )
     state_table: StateTableConfig = Field(
         StateTableConfig(), description="State Data Table (`GetStateTable`)."
+    )
+    black_box: BlackBoxConfig = Field(
+        BlackBoxConfig(),
+        description="The flight recorder: always on, dumped when the robot stops for a safety "
+        "reason, faults or is emergency-stopped, and on `DumpBlackBox`.",
     )
     environment: EnvironmentConfig | None = Field(
         None,

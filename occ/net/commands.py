@@ -147,6 +147,7 @@ class CommandDesk(Protocol):
 
     def handover(self, req: Request, item: Asked, now: float) -> str: ...
     def cell(self, req: Request) -> str: ...
+    def dump_black_box(self, req: Request) -> str: ...
 
 
 #: ``handler(desk, request, arrival, now)``, on the loop thread: the reply's text (loop), a
@@ -253,6 +254,13 @@ ROBOT_COMMANDS: dict[str, CommandSpec] = {
             DEFERRED,
             "close the recording",
             lambda d, r, i, n: d.recording.stop(r),
+        ),
+        CommandSpec(
+            "DumpBlackBox",
+            "operator",
+            LOOP,
+            "write the black box (the last black_box.seconds) off the loop; Reason= optional",
+            lambda d, r, i, n: d.dump_black_box(r),
         ),
         CommandSpec(
             "GetRecordingStatus",

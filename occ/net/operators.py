@@ -187,6 +187,8 @@ class OperatorDesk:
         recorder = r.recorder()
         if recorder is not None:
             recorder.record_message(msg, "in", item.interface, now)
+        if r.black_box is not None:
+            r.black_box.took(msg, item.interface)
         req: Request | None = item.request
         if req is None and not is_operator_request(msg):
             # a discrete input routed to the command queue (e.g. VFIXTURE), decoded by its
@@ -263,6 +265,8 @@ class OperatorDesk:
         recorder = r.recorder()
         if recorder is not None:
             recorder.record_message(reply, "out", item.interface, now)
+        if r.black_box is not None:
+            r.black_box.sent(reply, item.interface)
 
     def _reply_later(self, item: Inbound, req: Request, ok: bool, text: str) -> None:
         """The answer to a :class:`Deferred` command, on whichever thread finished it (the
@@ -287,6 +291,8 @@ class OperatorDesk:
         recorder = r.recorder()  # read once: StopRecording detaches it on the loop thread
         if recorder is not None:
             recorder.record_message_late(reply, "out", item.interface, r.clock.now())
+        if r.black_box is not None:  # any thread: stamped with the tick under way
+            r.black_box.sent(reply, item.interface)
 
     def _reply_array(self, item: Inbound, req: Request, answer: ArrayReply) -> None:
         """A controller's answer with an array (:class:`ArrayReply`): packed and sent by the
@@ -343,6 +349,17 @@ class OperatorDesk:
                 port.alarms.last_alert = ""
                 return "STOPPED: alerts cleared; send Run to resume"
         return port.transition(event, f"operator {req.name}")
+
+    def dump_black_box(self, req: Request) -> str:
+        """``DumpBlackBox`` (``Reason``: why, optional): the black box written off the loop,
+        its window closing at the end of this tick; the reply names the directory, the
+        ``BLACKBOX`` alert says when it is written."""
+        box = self.port.black_box
+        if box is None or not box.enabled:
+            raise CommandError("DumpBlackBox: no black box (black_box.enabled is false)")
+        reason = req.args.get("Reason", "") or req.args.get("reason", "")
+        path = box.request("operator", f"operator DumpBlackBox{': ' + reason if reason else ''}")
+        return f"black box: writing {path}"
 
     def stats_job(self, req: Request, item: Asked) -> Job:
         assert isinstance(item, Inbound)
