@@ -79,6 +79,15 @@ class DaemonConfig(_Model):
                 return itf
         raise KeyError(name)
 
+    @model_validator(mode="before")
+    @classmethod
+    def _paths_of_the_file(cls, data: Any) -> Any:
+        """A ``black_box`` the file leaves out is validated like one it gives, so its ``dir``
+        is relative to the file's directory (a default model's paths are the import's)."""
+        if isinstance(data, dict) and "black_box" not in data:
+            data = {**data, "black_box": {}}
+        return data
+
     @model_validator(mode="after")
     def _cross_sections(self) -> DaemonConfig:
         problems: list[tuple[Loc, str]] = []

@@ -75,6 +75,7 @@ class OperatorDesk:
         self._refusal_log = RateLimit(5)
         #: StartRecording, StopRecording, GetRecordingStatus (occ/recording/control.py)
         self.recording = recording
+        self.black_box = port.black_box  # DumpBlackBox (occ/net/commands.py)
 
     def greet(self, iface: Any, peer: Any) -> None:
         """A new client of a viewer or operator interface is told the state (runs on the
@@ -349,17 +350,6 @@ class OperatorDesk:
                 port.alarms.last_alert = ""
                 return "STOPPED: alerts cleared; send Run to resume"
         return port.transition(event, f"operator {req.name}")
-
-    def dump_black_box(self, req: Request) -> str:
-        """``DumpBlackBox`` (``Reason``: why, optional): the black box written off the loop,
-        its window closing at the end of this tick; the reply names the directory, the
-        ``BLACKBOX`` alert says when it is written."""
-        box = self.port.black_box
-        if box is None or not box.enabled:
-            raise CommandError("DumpBlackBox: no black box (black_box.enabled is false)")
-        reason = req.args.get("Reason", "") or req.args.get("reason", "")
-        path = box.request("operator", f"operator DumpBlackBox{': ' + reason if reason else ''}")
-        return f"black box: writing {path}"
 
     def stats_job(self, req: Request, item: Asked) -> Job:
         assert isinstance(item, Inbound)
