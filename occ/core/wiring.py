@@ -266,6 +266,7 @@ def build_black_box(robot: Assembling, controllers: Sequence[Controller]) -> Bla
         lambda req: write_dump(box, req, ctx),
         f"occ-{robot.name}-blackbox",
         fifo_priority=writer_priority(config),
+        inline=not isinstance(robot.clock, RealClock),
     )
     box.bind(robot.data, robot.joints, robot.collision, writer, cfg.dir)
     robot.streams.tap = box.took

@@ -457,12 +457,20 @@ class BlackBox:
 
 class DumpWriter:
     """The thread that writes dumps (``write(request)`` does the work: occ/recording/dump.py);
-    a bounded queue, never blocking the loop."""
+    a bounded queue, never blocking the loop. ``inline``: in simulated time, each dump is
+    written when it is submitted, in the tick that closes its window (exact, repeatable runs,
+    as the collision guard checks inline there); never on the real clock."""
 
     def __init__(
-        self, write: Callable[[DumpRequest], object], name: str, fifo_priority: int | None = None
+        self,
+        write: Callable[[DumpRequest], object],
+        name: str,
+        fifo_priority: int | None = None,
+        *,
+        inline: bool = False,
     ) -> None:
         self._write = write
+        self.inline = inline
         self._q: queue.Queue[DumpRequest | None] = queue.Queue(QUEUE_DEPTH)
         self._thread = threading.Thread(target=self._main, name=name, daemon=True)
         self._started = False
@@ -474,13 +482,16 @@ class DumpWriter:
         self.last = ""
 
     def start(self) -> None:
-        if not self._started:
+        if not self._started and not self.inline:
             self._started = True
             self._thread.start()
 
     def submit(self, req: DumpRequest) -> bool:
         with self._idle:
             self._outstanding += 1
+        if self.inline:
+            self._run(req)
+            return True
         try:
             self._q.put_nowait(req)
         except queue.Full:
@@ -496,14 +507,14 @@ class DumpWriter:
     def wait_idle(self, timeout: float) -> bool:
         """True once every dump submitted is written (False after ``timeout``, or at once
         when the thread was never started: the robot was never activated)."""
-        if not self._started:
+        if not self._started or self.inline:
             return self._outstanding == 0
         with self._idle:
             return self._idle.wait_for(lambda: self._outstanding == 0, timeout)
 
     def stop(self, timeout: float = 10.0) -> None:
         """Write what is queued (up to ``timeout``), then end the thread."""
-        if self._started:
+        if self._started and not self.inline:
             self.wait_idle(timeout)
             try:
                 self._q.put_nowait(None)

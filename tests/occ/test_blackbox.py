@@ -119,7 +119,9 @@ def test_an_estop_dumps_the_black_box(rig: SlaveRig) -> None:
 def test_dump_black_box_is_written_off_the_loop_and_the_reply_says_where(rig: SlaveRig) -> None:
     threads: list[str] = []
     writer = rig.robot.black_box.writer
-    assert writer is not None
+    assert writer is not None and writer.inline  # simulated time: in the tick, repeatable
+    writer.inline = False  # as on the real clock: its own thread
+    writer.start()
     write = writer._write
     writer._write = lambda req: (threads.append(threading.current_thread().name), write(req))
     rig.running()
