@@ -56,7 +56,7 @@ def plugin_entry(obj: object) -> dict[str, Any]:
     entry: dict[str, Any] = {"class": f"{cls.__module__}.{cls.__qualname__}"}
     try:
         src = inspect.getsourcefile(cls)
-    except TypeError:  # a built-in or compiled class without a Python source
+    except (TypeError, OSError):  # a built-in, compiled or interactive class: no source
         src = None
     if src is not None and Path(src).is_file():
         entry["file"] = src
