@@ -372,6 +372,7 @@ def controller_context(robot: Assembling, environment: Environment | None) -> Co
         collision=collision.cm if collision is not None else None,
         cell_member=robot.cell.me if robot.cell is not None else None,
         cell_stop=robot.cell.announce_stop if robot.cell is not None else None,
+        note=robot.black_box.note if robot.black_box.enabled else None,
     )
 
 
