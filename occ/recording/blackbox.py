@@ -35,7 +35,9 @@ thread copies the window out of the live ring, oldest rows first, in chunks that
 interpreter lock back, while the loop goes on writing (the ring has a margin of
 :data:`MARGIN_S` beyond ``seconds``, so the rows it copies are not overwritten meanwhile; rows
 it finds overwritten after all are dropped and the dump says so). Nothing is swapped or
-stopped, so consecutive dumps each hold their whole window.
+stopped, so consecutive dumps each hold their whole window. In simulated time the dump is
+written inline, at the end of the tick that closes its window (exact, repeatable runs, as the
+collision guard checks inline there); on the real clock always by the writer thread.
 
 What a deterministic replay (issue 41, item 4, built on these dumps) still needs and this does
 not record, and how to close each gap:
