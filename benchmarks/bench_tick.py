@@ -7,7 +7,9 @@
 
 Robots: ``slave`` and ``master`` (the shipped pair), ``slave+table`` (the slave with a 10 s State
 Data Table), ``collab`` (configs/collab/slave.yaml: two master streams, each sample judged by its
-own loss monitor, the table on) and ``collab-no-table`` (the same without the table).
+own loss monitor, the table on) and ``collab-no-table`` (the same without the table),
+``slave-no-bb`` and ``master-no-bb`` (the pair with the black box off: it is on by default, in
+every other robot here).
 
 The robots are built from configs/slave.yaml and configs/master.yaml on a SimClock and put
 RUNNING; the slave's master stream is a POSITION every other tick (the paper's 500 Hz motion),
@@ -55,7 +57,11 @@ ROBOTS: dict[str, tuple[str, tuple[str, ...], float | None]] = {
     "collab": ("collab/slave.yaml", ("mentor", "trainee"), None),
     "collab-no-table": ("collab/slave.yaml", ("mentor", "trainee"), 0.0),
     "slave+cell": ("slave.yaml", ("master",), None),
+    "slave-no-bb": ("slave.yaml", ("master",), None),
+    "master-no-bb": ("master.yaml", ("slave",), None),
 }
+#: robots run with the black box off (``black_box.enabled: false``; it is on in the others)
+NO_BLACK_BOX = ("slave-no-bb", "master-no-bb")
 #: robots that are a member of a two-member cell (occ/core/cell.py): the other member is a socket
 #: of this benchmark sending a heartbeat every 5 ticks (its 5 ms period), as a peer daemon does
 CELL_ROBOTS = ("slave+cell",)
@@ -82,6 +88,9 @@ def run(
     if table is not None:
         st = cfg.state_table.model_copy(update={"seconds": table or None})
         cfg = cfg.model_copy(update={"state_table": st})
+    if name in NO_BLACK_BOX:
+        bb = cfg.black_box.model_copy(update={"enabled": False})
+        cfg = cfg.model_copy(update={"black_box": bb})
     # the peers: one socket per fed interface. An interface with a ``remote`` (the master's
     # link to its slave) sends to that socket, which answers as the slave does (SlaveTip, the
     # return channel); one without (the slave's stream) is sent the master's POSITIONs.

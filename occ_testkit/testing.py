@@ -30,8 +30,11 @@ Tests use it (``tests/occ``; tests/occ/test_testing.py runs this example), and s
 
 from __future__ import annotations
 
+import atexit
 import itertools
 import os
+import shutil
+import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -77,10 +80,28 @@ def inproc_config(config: DaemonConfig, prefix: str | None = None) -> DaemonConf
 
 def _as_config(config: DaemonConfig | str | os.PathLike[str] | Mapping[str, Any]) -> DaemonConfig:
     if isinstance(config, DaemonConfig):
+        cfg = config
+    elif isinstance(config, Mapping):
+        cfg = DaemonConfig.model_validate(dict(config), context={"base_dir": Path.cwd()})
+    else:
+        cfg = load_config(config)
+    return scratch_black_box(cfg)
+
+
+_scratch: list[Path] = []
+
+
+def scratch_black_box(config: DaemonConfig) -> DaemonConfig:
+    """``config`` with its black box dumped into a scratch directory of this process (removed
+    at exit) unless its ``black_box.dir`` was set: a simulated robot that faults in a test
+    must not write into the source tree beside its config."""
+    bb = config.black_box
+    if "dir" in bb.model_fields_set:
         return config
-    if isinstance(config, Mapping):
-        return DaemonConfig.model_validate(dict(config), context={"base_dir": Path.cwd()})
-    return load_config(config)
+    if not _scratch:
+        _scratch.append(Path(tempfile.mkdtemp(prefix="occ-blackbox-")))
+        atexit.register(shutil.rmtree, _scratch[0], True)
+    return config.model_copy(update={"black_box": bb.model_copy(update={"dir": _scratch[0]})})
 
 
 class _BytesEndpoint(InprocTransport):

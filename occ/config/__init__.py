@@ -8,6 +8,7 @@ section of the file:
 - :mod:`~occ.config.interfaces`: ``interfaces`` (OpenIGTLink endpoints);
 - :mod:`~occ.config.safety`: ``safety`` (watchdog, loss, supervisor, collision);
 - :mod:`~occ.config.recording`: ``recording``, ``stats``, ``state_table``;
+- :mod:`~occ.config.blackbox`: ``black_box`` (the flight recorder);
 - :mod:`~occ.config.collaboration`: ``collaboration`` (several masters);
 - :mod:`~occ.config.cell`: ``cell`` (several arms, one stop);
 - :mod:`~occ.config.environment`: ``environment`` (simulated tissue);
@@ -51,6 +52,7 @@ from occ.config.base import (
     Str,
     Vec3,
 )
+from occ.config.blackbox import BlackBoxConfig
 from occ.config.cell import CellConfig, CellMember
 from occ.config.collaboration import CollabMaster, CollaborationConfig
 from occ.config.controllers import ControllerConfig
@@ -80,6 +82,7 @@ from occ.config.safety import (
 )
 
 __all__ = [
+    "BlackBoxConfig",
     "CellConfig",
     "CellMember",
     "DaemonConfig",

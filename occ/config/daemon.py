@@ -9,6 +9,7 @@ from typing import Any
 from pydantic import Field, model_validator
 
 from occ.config.base import _WILDCARD_HOSTS, Loc, _did_you_mean, _Model, _num, _raise_problems
+from occ.config.blackbox import BlackBoxConfig
 from occ.config.cell import CellConfig
 from occ.config.collaboration import CollaborationConfig
 from occ.config.controllers import ControllerConfig
@@ -39,6 +40,11 @@ class DaemonConfig(_Model):
     )
     state_table: StateTableConfig = Field(
         StateTableConfig(), description="State Data Table (`GetStateTable`)."
+    )
+    black_box: BlackBoxConfig = Field(
+        BlackBoxConfig(),
+        description="The flight recorder: always on, dumped when the robot stops for a safety "
+        "reason, faults or is emergency-stopped, and on `DumpBlackBox`.",
     )
     environment: EnvironmentConfig | None = Field(
         None,
@@ -72,6 +78,15 @@ class DaemonConfig(_Model):
             if itf.name == name:
                 return itf
         raise KeyError(name)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _paths_of_the_file(cls, data: Any) -> Any:
+        """A ``black_box`` the file leaves out is validated like one it gives, so its ``dir``
+        is relative to the file's directory (a default model's paths are the import's)."""
+        if isinstance(data, dict) and "black_box" not in data:
+            data = {**data, "black_box": {}}
+        return data
 
     @model_validator(mode="after")
     def _cross_sections(self) -> DaemonConfig:

@@ -123,6 +123,9 @@ class ControllerContext:
     #: ``cell_stop(cause)``: this member stops the whole cell for ``cause`` (every other member
     #: holds until this one runs again), as its safety stops do; None in no cell
     cell_stop: Callable[[str], None] | None = None
+    #: ``note(what, result)``: a worker's result the loop took (a plan it runs), recorded with
+    #: the tick by the black box (occ/recording/blackbox.py); None when nothing records
+    note: Callable[[str, Any], None] | None = None
 
 
 @mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins and tests subclass it

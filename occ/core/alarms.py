@@ -59,6 +59,8 @@ class Alarms:
         self.safety_stopping = False
         #: told on the supervisor's thread when it trips (the cell announces the hung loop)
         self.on_supervisor_trip: Callable[[str], None] | None = None
+        #: ``tap(status, "*")``: every STATUS sent, from any thread (the black box), or None
+        self.tap: Callable[[Message, str], None] | None = None
 
     def plugin_error(self, where: str, err: BaseException) -> None:
         """An exception from a plugin or handler: FAULT with an alert naming it."""
@@ -177,6 +179,14 @@ class Alarms:
         recorder = self.recorder  # read once: this may run off the loop thread (supervisor)
         if recorder is not None:
             recorder.record_message(status, "out", "*", self.clock.now())
+        if self.tap is not None:
+            self.tap(status, "*")
+
+    def black_box_written(self, text: str, ok: bool) -> None:
+        """A black box dump written (where, what it holds) or not (why): a ``BLACKBOX``
+        STATUS to every operator and viewer, from the dump writer's thread."""
+        code = igtl.StatusCode.OK if ok else igtl.StatusCode.RESOURCE_ERROR
+        self.broadcast("BLACKBOX", text, code)
 
     def supervisor_trip(self, reason: str) -> None:
         """On the supervisor thread, while the loop is stuck: operators alerted first, then

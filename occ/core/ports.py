@@ -36,6 +36,7 @@ if TYPE_CHECKING:
     from occ.net.collab import Collaboration
     from occ.net.commands import Deferred
     from occ.net.interfaces import Inbound
+    from occ.recording.blackbox import BlackBox
     from occ.recording.record import Recorder
 
 
@@ -90,3 +91,6 @@ class DeskPort:
     #: ``cell(command, args)``: CellLeave, CellJoin, CellForget (occ/core/cell.py); its text,
     #: ValueError when refused; None without a cell
     cell: Callable[[str, dict[str, str]], str] | None = None
+    #: the flight recorder (occ/recording/blackbox.py): what the desk takes and answers, and
+    #: ``DumpBlackBox``
+    black_box: BlackBox | None = None

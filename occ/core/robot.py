@@ -14,7 +14,8 @@ Lifecycle (ros2_control): ``configure()`` configures the drivers (state READY, s
 Each tick (:meth:`Robot.tick`, on the loop thread): read every drive (:mod:`occ.core.hardware`);
 the stream samples, judged (:mod:`occ.net.streams`), and at most 16 operator requests; the cell
 (:mod:`occ.core.cell`); the loss monitors' events; the controllers and the drive writes
-(:mod:`occ.core.motion`); the outputs due; the recording and the State Data Table."""
+(:mod:`occ.core.motion`); the outputs due; the recording, the State Data Table and the black
+box (:mod:`occ.recording.blackbox`)."""
 
 from __future__ import annotations
 
@@ -66,6 +67,7 @@ class Robot:
         # --- Safety: alarms, loop watchdog, supervisor (occ/core/alarms.py, occ/core/safety.py)
         self.alarms, self.watchdog, self.supervisor = wiring.build_safety(self, recorder)
         self.cell = wiring.build_cell(self)  # several arms, one stop (occ/core/cell.py)
+        self.black_box = wiring.build_black_box(self, controllers)  # occ/recording/blackbox.py
         self.supervisor_thread: SupervisorThread | None = None
         self._supervisor_handled = False
         #: jobs the loop must not pay for (GetStats); the worker sends the reply itself
@@ -88,17 +90,15 @@ class Robot:
         self.interfaces.on_connect(self.operators.greet)
         self.outputs = wiring.build_outputs(self)
         self.set_recorder(recorder)
-        self.services = [p for p in (self.collision, self.cell) if p is not None]
+        self.services = [p for p in (self.collision, self.cell, self.black_box) if p is not None]
         self._shutdown_done = False
 
     def set_recorder(self, recorder: Any | None) -> None:
         """Attach a recorder (from any thread: the loop sees it from its next read) or detach
         it (None; on the loop thread only, so the loop never loses it between a check and a
         call). Run-time recording, occ/recording/control.py."""
-        self._record_out: Any = None
         self.recorder = self.alarms.watch_recording(recorder)  # its failure: an alert
-        if recorder is not None:
-            self._record_out = lambda m, iface, at: recorder.record_message(m, "out", iface, at)
+        self._record_out = self.black_box.outputs_tap(recorder)  # the outputs sent: to both
 
     # ================================================================== lifecycle
     @property
@@ -242,6 +242,7 @@ class Robot:
             self.recorder.record_state(self.data, now)
         if self.state_table is not None:
             self.state_table.write_data(now, self._owner_code, self.data, self.joints)
+        self.black_box.end_tick(now, k)  # what this tick read and did (black_box)
 
     def _read(self, now: float) -> None:
         """Every drive read (a failed one latches FAULT naming it; the others still read)."""

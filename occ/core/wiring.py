@@ -1,7 +1,8 @@
 """How a robot's parts are given to each other (what :class:`~occ.core.robot.Robot` is wired from):
-the collision guard, the controllers' context, the operator desk with its port and the
-recording control with theirs (occ/core/ports.py), the statistics of every part registered for
-GetStats, and the scheduled outputs. The hardware side is occ/core/assembly.py's."""
+the collision guard, the black box and its taps, the controllers' context, the operator desk
+with its port and the recording control with theirs (occ/core/ports.py), the statistics of
+every part registered for GetStats, and the scheduled outputs. The hardware side is
+occ/core/assembly.py's."""
 
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ from occ.core.hardware import HardwareSet
 from occ.core.loop import ControlLoop
 from occ.core.motion import Motion
 from occ.core.ports import DeskPort, RecordingPort
+from occ.core.provenance import config_yaml, provenance
 from occ.core.safety import LossMonitor, StateMachine, Supervisor, Watchdog
 from occ.core.stats import LoopStats, StatsRegistry
 from occ.core.transitions import StateEffects
@@ -41,7 +43,9 @@ from occ.net.interfaces import InterfaceManager
 from occ.net.operators import OperatorDesk
 from occ.net.outputs import BuiltinSources, OutputScheduler
 from occ.net.streams import StreamInputs
+from occ.recording.blackbox import BlackBox, DumpWriter
 from occ.recording.control import RecordingControl
+from occ.recording.dump import DumpContext, write_dump
 from occ.recording.record import writer_priority
 
 if TYPE_CHECKING:
@@ -97,6 +101,8 @@ class Assembling(Protocol):
     def worker(self) -> Worker: ...
     @property
     def state_table(self) -> StateTable | None: ...
+    @property
+    def black_box(self) -> BlackBox: ...
     @property
     def stats(self) -> LoopStats: ...
     @property
@@ -173,7 +179,16 @@ def build_motion(
     controller = ControllerSet(controllers)
     controller.configure(robot.data, controller_context(robot, env))
     Motion.check_command_kinds(controller, robot.hardware)
-    motion = Motion(robot.data, controller, robot.joints, robot.period, robot.write)
+    write = robot.write
+    box = robot.black_box
+    if box.enabled:  # what the drives are told, in the black box's row of the tick
+        wrote, write_drives = box.wrote, robot.write
+
+        def write(values: Sequence[float], now: float, effort: bool = False) -> None:
+            wrote(values, effort)
+            write_drives(values, now, effort)
+
+    motion = Motion(robot.data, controller, robot.joints, robot.period, write)
     motion.admit = robot.collision.admitter(robot.data) if robot.collision else None
     if controller.commands_effort:
         robot.data.effort_command = [0.0] * len(robot.joints)
@@ -219,6 +234,45 @@ def build_safety(robot: Assembling, recorder: Any | None) -> tuple[Alarms, Watch
     )
     timeout_s = robot.config.safety.supervisor.timeout_ms * 1e-3
     return alarms, watchdog, Supervisor(timeout_s, on_trip=alarms.supervisor_trip)
+
+
+def build_black_box(robot: Assembling, controllers: Sequence[Controller]) -> BlackBox:
+    """The flight recorder of ``black_box`` (occ/recording/blackbox.py), its taps on what the
+    loop takes and sends (the streams, the alarms; the desk, the outputs and the motion take
+    it from the robot), the state machine's listener that dumps it, and its writer thread
+    (started with the robot) with what a dump says of the software (occ/core/provenance.py)."""
+    cfg, config = robot.config.black_box, robot.config
+    names = [j.name for j in robot.joints]
+    box = BlackBox(
+        robot.name, names, robot.rate_hz, cfg.seconds, cfg.events_per_s, enabled=cfg.enabled
+    )
+    if not cfg.enabled:
+        return box
+    model, n = robot.frame.copy(), len(names)  # the writer's own: FK off the loop thread
+
+    def tip_mm(q: list[float]) -> tuple[float, float, float]:
+        m = model.fk(q[:n])
+        return (m[0, 3] * 1000.0, m[1, 3] * 1000.0, m[2, 3] * 1000.0)
+
+    ctx = DumpContext(
+        config_yaml=config_yaml(config),
+        provenance=provenance(config, robot.hardware.drivers, controllers),
+        tip_mm=tip_mm,
+        max_dumps=cfg.max_dumps,
+        max_bytes=int(cfg.max_mb * 1e6),
+        tell=robot.alarms.black_box_written,
+    )
+    writer = DumpWriter(
+        lambda req: write_dump(box, req, ctx),
+        f"occ-{robot.name}-blackbox",
+        fifo_priority=writer_priority(config),
+        inline=not isinstance(robot.clock, RealClock),
+    )
+    box.bind(robot.data, robot.joints, robot.collision, writer, cfg.dir)
+    robot.streams.tap = box.took
+    robot.alarms.tap = box.sent
+    robot.state_machine.add_listener(box.on_transition)
+    return box
 
 
 def build_cell(robot: Assembling) -> Cell | None:
@@ -318,6 +372,7 @@ def controller_context(robot: Assembling, environment: Environment | None) -> Co
         collision=collision.cm if collision is not None else None,
         cell_member=robot.cell.me if robot.cell is not None else None,
         cell_stop=robot.cell.announce_stop if robot.cell is not None else None,
+        note=robot.black_box.note if robot.black_box.enabled else None,
     )
 
 
@@ -365,6 +420,7 @@ def build_desk(robot: Assembling) -> OperatorDesk:
         state_table=robot.state_table,
         collab=robot.collab,
         cell=robot.cell.command if robot.cell is not None else None,
+        black_box=robot.black_box if robot.black_box.enabled else None,
     )
     desk = OperatorDesk(port, recording)
     register_stats(registry, robot, desk)
@@ -403,6 +459,7 @@ def register_stats(registry: StatsRegistry, robot: Assembling, desk: OperatorDes
         add("loss_by_stream", lambda: {n: m.counters() for n, m in streams.monitors.items()})
     if robot.state_table is not None:
         add("state_table", robot.state_table.stats)
+    add("black_box", robot.black_box.stats)
     add("recording", desk.recording.stats)
     add("controller", robot.controller.stats)
     if robot.collision is not None:

@@ -131,11 +131,23 @@ class RecordingCommands(Protocol):
     def describe(self) -> str: ...
 
 
+class BlackBoxCommands(Protocol):
+    """``DumpBlackBox`` (occ/recording/blackbox.py)."""
+
+    @property
+    def enabled(self) -> bool: ...
+
+    def request(self, cause: str, why: str) -> str: ...
+
+
 class CommandDesk(Protocol):
     """What the rows' handlers use of the operator desk (occ/net/operators.py)."""
 
     @property
     def recording(self) -> RecordingCommands: ...
+
+    @property
+    def black_box(self) -> BlackBoxCommands | None: ...
 
     def transition(self, req: Request) -> str | Deferred: ...
 
@@ -177,6 +189,18 @@ class CommandSpec:
 
 def _transition(desk: CommandDesk, req: Request, item: Asked, now: float) -> str | Deferred:
     return desk.transition(req)
+
+
+def _dump_black_box(desk: CommandDesk, req: Request, item: Asked, now: float) -> str:
+    """``DumpBlackBox`` (``Reason``: why, optional): the black box written off the loop, its
+    window closing at the end of this tick; the reply names the directory, the ``BLACKBOX``
+    alert says when it is written."""
+    box = desk.black_box
+    if box is None or not box.enabled:
+        raise CommandError("DumpBlackBox: no black box (black_box.enabled is false)")
+    reason = req.args.get("Reason", "") or req.args.get("reason", "")
+    path = box.request("operator", f"operator DumpBlackBox{': ' + reason if reason else ''}")
+    return f"black box: writing {path}"
 
 
 #: The robot's commands, by lower-case name (a name not here goes to the controllers).
@@ -253,6 +277,13 @@ ROBOT_COMMANDS: dict[str, CommandSpec] = {
             DEFERRED,
             "close the recording",
             lambda d, r, i, n: d.recording.stop(r),
+        ),
+        CommandSpec(
+            "DumpBlackBox",
+            "operator",
+            LOOP,
+            "write the black box (the last black_box.seconds) off the loop; Reason= optional",
+            _dump_black_box,
         ),
         CommandSpec(
             "GetRecordingStatus",

@@ -75,6 +75,7 @@ class OperatorDesk:
         self._refusal_log = RateLimit(5)
         #: StartRecording, StopRecording, GetRecordingStatus (occ/recording/control.py)
         self.recording = recording
+        self.black_box = port.black_box  # DumpBlackBox (occ/net/commands.py)
 
     def greet(self, iface: Any, peer: Any) -> None:
         """A new client of a viewer or operator interface is told the state (runs on the
@@ -187,6 +188,8 @@ class OperatorDesk:
         recorder = r.recorder()
         if recorder is not None:
             recorder.record_message(msg, "in", item.interface, now)
+        if r.black_box is not None:
+            r.black_box.took(msg, item.interface)
         req: Request | None = item.request
         if req is None and not is_operator_request(msg):
             # a discrete input routed to the command queue (e.g. VFIXTURE), decoded by its
@@ -263,6 +266,8 @@ class OperatorDesk:
         recorder = r.recorder()
         if recorder is not None:
             recorder.record_message(reply, "out", item.interface, now)
+        if r.black_box is not None:
+            r.black_box.sent(reply, item.interface)
 
     def _reply_later(self, item: Inbound, req: Request, ok: bool, text: str) -> None:
         """The answer to a :class:`Deferred` command, on whichever thread finished it (the
@@ -287,6 +292,8 @@ class OperatorDesk:
         recorder = r.recorder()  # read once: StopRecording detaches it on the loop thread
         if recorder is not None:
             recorder.record_message_late(reply, "out", item.interface, r.clock.now())
+        if r.black_box is not None:  # any thread: stamped with the tick under way
+            r.black_box.sent(reply, item.interface)
 
     def _reply_array(self, item: Inbound, req: Request, answer: ArrayReply) -> None:
         """A controller's answer with an array (:class:`ArrayReply`): packed and sent by the

@@ -109,6 +109,8 @@ class StreamInputs:
         self._on_input: OnInput = _unbound
         self._refuse: Refuse = _unbound
         self._recorder: Any | None = None
+        #: ``tap(message, interface)``: each item the loop takes (the black box), or None
+        self.tap: Callable[[Message, str], None] | None = None
 
     @property
     def holding(self) -> bool:
@@ -200,6 +202,9 @@ class StreamInputs:
         recorder = self._recorder
         if recorder is not None:
             recorder.record_message(item.msg, "in", name, now)
+        tap = self.tap
+        if tap is not None:
+            tap(item.msg, name)
         follow = not master or name == self.input
         event = item.event
         if isinstance(event, PoseSample):

@@ -198,14 +198,7 @@ class Recorder:
         self._next_state = now + 1.0 / self.rate_hz
         if self._columns is None:
             self._robot = data.name
-            names = data.joint_names
-            self._columns = ",".join(
-                ["t", "state"]
-                + [f"q.{n}" for n in names]
-                + [f"sp.{n}" for n in names]
-                + ["tip.x_mm", "tip.y_mm", "tip.z_mm"]
-                + ([f"eff.{n}" for n in names] if data.effort_command is not None else [])
-            )
+            self._columns = state_columns(data.joint_names, data.effort_command is not None)
         tip = data.tip
         row = [
             now,
@@ -224,21 +217,9 @@ class Recorder:
     def _encode(self, item: tuple[Any, ...]) -> bytes:
         if item[0] == "msg":
             _, msg, direction, interface, now = item
-            meta = dict(msg.metadata)
-            meta["rec.dir"] = direction
-            meta["rec.if"] = interface
-            meta["rec.t"] = f"{now:.6f}"
-            meta["rec.hv"] = str(msg.header_version)
-            return bytes(msg.pack(2, metadata=meta))
+            return pack_message_record(msg, direction, interface, now)
         _, row, wall = item
-        state = igtl.NDArrayMessage(
-            array=np.asarray(row, dtype=np.float64),
-            device_name=STATE_DEVICE,
-            header_version=2,
-            metadata={"columns": self._columns or "", "robot": self._robot},
-            timestamp=wall,
-        )
-        return bytes(state.pack())
+        return pack_state_record(row, self._columns or "", self._robot, wall)
 
     def _writer(self) -> None:
         name_native_thread("recorder")
@@ -446,6 +427,58 @@ class Recorder:
         }
 
 
+def pack_message_record(
+    msg: Message, direction: str, interface: str, now: float, extra: dict[str, str] | None = None
+) -> bytes:
+    """One message as a recording stores it (module docstring): its own metadata and the
+    recording's (``rec.dir``, ``rec.if``, ``rec.t``, ``rec.hv``, and ``extra``), header v2."""
+    meta = dict(msg.metadata)
+    meta["rec.dir"] = direction
+    meta["rec.if"] = interface
+    meta["rec.t"] = f"{now:.6f}"
+    meta["rec.hv"] = str(msg.header_version)
+    if extra:
+        meta.update(extra)
+    return bytes(msg.pack(2, metadata=meta))
+
+
+def pack_state_record(row: Any, columns: str, robot: str, wall: float) -> bytes:
+    """One ``OCCState`` row as a recording stores it (an NDARRAY of float64)."""
+    state = igtl.NDArrayMessage(
+        array=np.asarray(row, dtype=np.float64),
+        device_name=STATE_DEVICE,
+        header_version=2,
+        metadata={"columns": columns, "robot": robot},
+        timestamp=wall,
+    )
+    return bytes(state.pack())
+
+
+def state_columns(names: Any, efforts: bool) -> str:
+    """The ``columns`` of a robot's ``OCCState`` rows (joint ``names``; ``efforts``: a robot
+    that commands efforts, whose rows end with them)."""
+    return ",".join(
+        ["t", "state"]
+        + [f"q.{n}" for n in names]
+        + [f"sp.{n}" for n in names]
+        + ["tip.x_mm", "tip.y_mm", "tip.z_mm"]
+        + ([f"eff.{n}" for n in names] if efforts else [])
+    )
+
+
+def recording_file(path: str | Path) -> Path:
+    """The recording at ``path``: the file itself, or a black box dump's (a directory with
+    ``recording.igtl``, occ/recording/blackbox.py), so every reader takes both."""
+    p = Path(path)
+    if p.is_dir() and (p / DUMP_RECORDING).is_file():
+        return p / DUMP_RECORDING
+    return p
+
+
+#: the recording inside a black box dump's directory
+DUMP_RECORDING = "recording.igtl"
+
+
 def os_cause(err: OSError) -> str:
     """An OS error as an operator reads it: ``No space left on device (ENOSPC)``."""
     name = errno.errorcode.get(err.errno or 0)
@@ -540,6 +573,7 @@ def iter_recording(path: str | Path, report: ReadReport | None = None) -> Iterat
     """The messages of a recording one by one, read 1 MiB at a time (a 12-hour recording need
     not fit in memory). Without ``report`` a damaged file raises igtl.DecodeError; with one it
     is salvaged (:class:`ReadReport`): the messages up to the damage, and where it is."""
+    path = recording_file(path)  # a black box dump: its recording
     dec = igtl.StreamDecoder()
     if report is not None:
         report.path, report.size = str(path), os.path.getsize(path)

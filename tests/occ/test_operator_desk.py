@@ -958,8 +958,9 @@ def test_a_client_joining_a_latched_robot_is_told_the_alert_and_only_then(sim):
     r.state_machine.request("fault", "test")
     r.alarms.last_alert = "driver tool: write failed"
     late = sim.peer("operator")
-    sim.step()
-    (hello,) = late.messages("STATUS")
+    sim.step()  # the FAULT's black box is dumped at the end of this tick: told too
+    (hello, dumped) = late.messages("STATUS")
+    assert dumped.error_name == "BLACKBOX"
     assert hello.status_message == "slave is FAULT: driver tool: write failed"
     r.alarms.last_alert = ""
     last = sim.peer("operator")

@@ -411,8 +411,9 @@ class KeyframeController(Controller):
         plan_id = pending.id
         ack_ready(pending, data, self.p.preview_required and not self._preview.sent)
         identity, t0 = self.cell.ack(self.kset, pending, args, ctx, now, self.p.cell_start_max_s)
-        self.active = pending
-        self._acked = pending
+        self.active = self._acked = pending
+        if ctx.note is not None:  # the planner's result the loop runs now (the black box)
+            ctx.note("plan", {"id": plan_id, "t0": t0, "duration": pending.traj.duration})
         self._t0 = t0
         self._q_last = list(pending.q_start)
         self.cell.running = identity

@@ -1,0 +1,553 @@
+"""The black box: the flight recorder every daemon keeps, and dumps when it matters.
+
+Always on (``black_box:``, occ/config/blackbox.py). The loop writes, every tick, what it read
+and what it did into rings preallocated at start, and a thread of its own writes a ring's
+window to ``black_box.dir/<robot>-<time>-<cause>/`` (occ/recording/dump.py) when the robot
+stops for a safety reason, faults, is emergency-stopped, or an operator asks
+(``DumpBlackBox``). The alert that follows (a ``BLACKBOX`` STATUS to every operator and
+viewer) says where.
+
+What is kept, per tick (the *tick ring*, one float64 row a tick, ``array('d')`` written by
+element assignment as the State Data Table is, occ/core/statetable.py):
+
+- ``t``: the clock value the tick used (``now``), ``k``: its deadline index, ``state``: the
+  state code the tick ended in (the recording's codes);
+- every joint's drive reading as the loop got it: ``pos``, ``vel``, ``eff`` and ``stamp`` (the
+  reading's time; NaN before a joint's first measurement);
+- what the loop wrote to the drives: ``sp.<joint>`` (position setpoints) and ``ew.<joint>``
+  (efforts), NaN in a tick that wrote none.
+
+And in the *event ring*, each with the index of the tick it happened in (the row it belongs
+to): every message the loop consumed (a stream sample, an operator's request: the message
+object itself, which keeps its wire bytes), every message it sent (outputs, replies, alerts),
+every state transition with its event and reason, each collision guard verdict with the tick
+the loop first saw it, a controller's note of a worker's result it took (a keyframe plan), and
+the dump requests. Events from other threads (a reply answered later, an alert from the
+supervisor's thread, a verdict published off the loop) go to a small bounded deque beside the
+ring, stamped with the tick under way.
+
+Cost on the loop thread (docs/BENCHMARKS.md, "The black box"): element assignments into the
+preallocated rings and a reference stored per message; no I/O, no lock, no container grows.
+What Python allocates regardless are the integer and float temporaries of the arithmetic (as
+in the State Data Table) and, at a transition or a dump request (rare, not per tick), a tuple
+and the request handed to the writer. A dump costs the loop only that request: the writer
+thread copies the window out of the live ring, oldest rows first, in chunks that hand the
+interpreter lock back, while the loop goes on writing (the ring has a margin of
+:data:`MARGIN_S` beyond ``seconds``, so the rows it copies are not overwritten meanwhile; rows
+it finds overwritten after all are dropped and the dump says so). Nothing is swapped or
+stopped, so consecutive dumps each hold their whole window. In simulated time the dump is
+written inline, at the end of the tick that closes its window (exact, repeatable runs, as the
+collision guard checks inline there); on the real clock always by the writer thread.
+
+What a deterministic replay (issue 41, item 4, built on these dumps) still needs and this does
+not record, and how to close each gap:
+
+- *The state of every part at the ring's first tick*: the controllers' integrators and filters,
+  the loss monitors' counters and clock offsets, the motion's re-entry ramp, the collision
+  guard's run threshold, the drives' own state (a simulated drive's dynamics). A replay can
+  start from a quiet tick (READY, or holding with no stream) and compare only from there; to
+  close it, give each part a ``snapshot()``/``restore()`` of its few numbers, taken by the
+  writer thread at a quiet tick into a third ring slot (a checkpoint every few seconds).
+- *The order within a tick of events from other threads*: a reply sent off the loop, or a
+  collision verdict swapped in by the worker between the admission of a setpoint and the
+  guard's poll in the same tick, is stamped with its tick only (in simulated time the guard
+  checks inline and this cannot happen). To close it: the guard records the verdict each
+  admission used (its identity is enough).
+- *A planner's result* is noted with the tick the controller took it (``ControllerContext.note``);
+  its content is the controller's (a keyframe plan is recomputed deterministically from the
+  keyframes and the request, both recorded as inputs).
+- *Inputs an interface refused before the loop* (authentication, ownership, a full queue) never
+  reach the loop and are counted by the interfaces, not recorded: they cannot change what the
+  loop does.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import queue
+import threading
+import time
+from array import array
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from occ.core.safety import RobotState
+from occ.recording.record import STATE_CODES
+
+if TYPE_CHECKING:
+    from occ.core.data import RobotData
+    from occ.joint import Joint
+
+log = logging.getLogger(__name__)
+
+#: event kinds (the event ring's ``kind`` column)
+IN, OUT, TRANSITION, VERDICT, NOTE, REQUEST = 1, 2, 3, 4, 5, 6
+KIND_NAMES = {
+    IN: "in",
+    OUT: "out",
+    TRANSITION: "transition",
+    VERDICT: "verdict",
+    NOTE: "note",
+    REQUEST: "dump",
+}
+#: seconds of ring beyond ``black_box.seconds``: how late the writer may start copying a
+#: window before its oldest rows are overwritten
+MARGIN_S = 2.0
+#: rows (events) copied between two hand-backs of the interpreter lock
+CHUNK = 2048
+#: dump requests waiting for the writer (a burst beyond is refused and counted)
+QUEUE_DEPTH = 4
+#: events from other threads kept beside the ring
+OFF_LOOP_EVENTS = 4096
+#: states whose entry dumps the ring (STOPPED only for a safety reason: not an operator's Stop)
+DUMPED_STATES = (RobotState.FAULT, RobotState.ESTOP, RobotState.STOPPED)
+_STATE_CODE = {st: float(STATE_CODES.get(st.value, -1)) for st in RobotState}
+
+
+def tick_columns(joint_names: Sequence[str]) -> list[str]:
+    """The tick ring's columns, in order (module docstring)."""
+    cols = ["t", "k", "state"]
+    for j in joint_names:
+        cols += [f"pos.{j}", f"vel.{j}", f"eff.{j}", f"stamp.{j}"]
+    return cols + [f"sp.{j}" for j in joint_names] + [f"ew.{j}" for j in joint_names]
+
+
+@dataclass
+class DumpRequest:
+    """One dump to write: where, why, and the window's end (exclusive: the rows and events
+    of the trigger's tick are in it)."""
+
+    name: str
+    path: Path
+    causes: list[tuple[str, str]]
+    #: rows written when the window closed (the trigger's tick is row ``end - 1``)
+    end: int
+    #: events written then
+    events_end: int
+    #: the trigger: the loop's time, its deadline index, the wall time
+    t: float
+    k: int
+    wall: float
+
+
+@dataclass
+class Window:
+    """What the writer copied out of the rings for one dump (oldest first)."""
+
+    rows: np.ndarray
+    first_row: int  #: the ring index of ``rows[0]``
+    #: (tick index, kind, where, object), in order
+    events: list[tuple[int, int, Any, Any]] = field(default_factory=list)
+    #: the first tick whose events are all in the window (events overwritten before it)
+    events_whole_from: int = 0
+    #: rows of the promised window lost to a writer that started too late
+    rows_lost: int = 0
+
+
+class BlackBox:
+    """The rings and the loop's taps (module docstring). One per robot; the loop thread
+    writes, the dump writer thread (:class:`DumpWriter`) reads."""
+
+    def __init__(
+        self,
+        name: str,
+        joint_names: Sequence[str],
+        rate_hz: float,
+        seconds: float,
+        events_per_s: int,
+        *,
+        enabled: bool = True,
+    ) -> None:
+        self.name = name
+        self.enabled = enabled
+        self.joint_names = tuple(joint_names)
+        self.columns = tick_columns(self.joint_names)
+        n = len(self.joint_names)
+        self.width = len(self.columns)
+        self._sp_at = 3 + 4 * n  # the written columns' offset in a row
+        self._ew_at = self._sp_at + n
+        self.rate_hz = float(rate_hz)
+        self.seconds = float(seconds) if enabled else 0.0
+        #: rows a dump holds (seconds x rate); the ring has a margin beyond them
+        self.capacity = max(1, math.ceil(self.seconds * rate_hz))
+        self._slots = self.capacity + math.ceil(MARGIN_S * rate_hz) if enabled else 1
+        self._buf = array("d", bytes(8 * self._slots * self.width))
+        self._view = np.frombuffer(self._buf, dtype=np.float64).reshape(self._slots, self.width)
+        self._end = self._slots * self.width
+        self._pos = 0
+        self._nan = array("d", [math.nan] * (2 * n))
+        self._buf[self._sp_at : self._sp_at + 2 * n] = self._nan
+        #: rows written since start (the tick under way writes row ``count``)
+        self.count = 0
+        self.ev_capacity = max(16, math.ceil(self.seconds * events_per_s))
+        self._ev_slots = self.ev_capacity + math.ceil(MARGIN_S * events_per_s) if enabled else 1
+        self._ev_tick = array("q", bytes(8 * self._ev_slots))
+        self._ev_kind = array("b", bytes(self._ev_slots))
+        self._ev_where: list[Any] = [None] * self._ev_slots
+        self._ev_obj: list[Any] = [None] * self._ev_slots
+        #: events written since start
+        self.ev_count = 0
+        self._off_loop: deque[tuple[int, int, Any, Any]] = deque(maxlen=OFF_LOOP_EVENTS)
+        self._loop_ident: int | None = None
+        self._data: RobotData | None = None
+        self._joints: Sequence[Joint] = ()
+        self._guard: Any = None
+        self._verdict: Any = None
+        self._state_code = -1.0
+        self._pending: DumpRequest | None = None
+        self._names: set[str] = set()
+        self.writer: DumpWriter | None = None
+        self.dir = Path(".")
+        self.requested = 0
+        self.refused = 0
+
+    def bind(
+        self,
+        data: RobotData,
+        joints: Sequence[Joint],
+        guard: Any | None,
+        writer: DumpWriter | None,
+        directory: Path,
+    ) -> None:
+        """What the loop's row reads (the robot's data and joints, the collision guard whose
+        ``verdict`` it watches), and who writes the dumps where."""
+        self._data = data
+        self._joints = tuple(joints)
+        self._guard = guard
+        self._state_code = _STATE_CODE[data.state]
+        self.writer = writer
+        self.dir = Path(directory)
+
+    def start(self) -> None:
+        """The writer thread (the robot's activation)."""
+        if self.writer is not None:
+            self.writer.start()
+
+    def stop(self) -> None:
+        """The dumps under way written (up to 10 s), the writer ended (the robot's shutdown)."""
+        if self.writer is not None:
+            self.writer.stop()
+
+    def outputs_tap(self, recorder: Any | None) -> Callable[[Any, str, float], None] | None:
+        """What the output scheduler calls with each message it sent: this box's
+        :meth:`sent` and, when one is attached, the recorder's ``record_message``."""
+        if recorder is None:
+            return self.sent if self.enabled else None
+        record = recorder.record_message
+        if not self.enabled:
+            return lambda m, iface, at: record(m, "out", iface, at)
+
+        def both(m: Any, iface: str, at: float) -> None:
+            self.sent(m, iface)
+            record(m, "out", iface, at)
+
+        return both
+
+    # ------------------------------------------------------------------ loop thread
+    def _put(self, kind: int, where: Any, obj: Any) -> None:
+        if not self.enabled:
+            return
+        if threading.get_ident() != self._loop_ident:
+            self._off_loop.append((self.count, kind, where, obj))  # atomic; bounded
+            return
+        i = self.ev_count % self._ev_slots
+        self._ev_tick[i] = self.count
+        self._ev_kind[i] = kind
+        self._ev_where[i] = where
+        self._ev_obj[i] = obj
+        self.ev_count += 1  # after the event: a reader never takes half of one
+
+    def took(self, msg: Any, interface: str) -> None:
+        """A message the loop consumed (a stream sample, an operator's request)."""
+        self._put(IN, interface, msg)
+
+    def sent(self, msg: Any, interface: str, now: float = 0.0) -> None:
+        """A message the robot sent (``*``: to every operator and viewer); any thread."""
+        self._put(OUT, interface, msg)
+
+    def note(self, what: str, obj: Any) -> None:
+        """A worker's result the loop took (a controller's plan), or anything a part wants in
+        the record; any thread."""
+        self._put(NOTE, what, obj)
+
+    def wrote(self, values: Sequence[float], effort: bool) -> None:
+        """What the loop wrote to the drives this tick (positions or efforts)."""
+        if not self.enabled:
+            return
+        buf = self._buf
+        i = self._pos + (self._ew_at if effort else self._sp_at)
+        for v in values:
+            buf[i] = v
+            i += 1
+
+    def end_tick(self, now: float, k: int) -> None:
+        """The tick's row (the loop, last thing in the tick): element assignments."""
+        if not self.enabled:
+            return
+        self._loop_ident = threading.get_ident()
+        guard = self._guard
+        if guard is not None:
+            v = guard.verdict
+            if v is not self._verdict:  # a new verdict: the tick the loop first saw it
+                self._verdict = v
+                self._put(VERDICT, None, v)
+        buf = self._buf
+        i = self._pos
+        buf[i] = now
+        buf[i + 1] = k
+        buf[i + 2] = self._state_code
+        i += 3
+        for jt in self._joints:
+            buf[i] = jt.position
+            buf[i + 1] = jt.velocity
+            buf[i + 2] = jt.effort
+            buf[i + 3] = jt.stamp
+            i += 4
+        nxt = self._pos + self.width
+        if nxt >= self._end:
+            nxt = 0
+        at = nxt + self._sp_at
+        buf[at : at + len(self._nan)] = self._nan  # the next tick wrote nothing yet
+        self._pos = nxt
+        self.count += 1  # after the row: a reader never takes a half-written one
+        pending = self._pending
+        if pending is not None:
+            self._pending = None
+            pending.end, pending.events_end = self.count, self.ev_count
+            self._submit(pending)
+
+    def on_transition(
+        self, old: RobotState, new: RobotState, event: str, reason: str, t: float
+    ) -> None:
+        """The state machine's listener: the transition recorded, and a dump requested on
+        entering FAULT or ESTOP, or STOPPED for anything but an operator's Stop."""
+        self._state_code = _STATE_CODE[new]
+        self._put(TRANSITION, None, (old.value, new.value, event, reason))
+        if new in DUMPED_STATES and not (
+            new is RobotState.STOPPED and reason.startswith("operator ")
+        ):
+            self.request(new.value.lower(), reason)
+
+    def request(self, cause: str, why: str) -> str:
+        """Dump the ring for ``cause`` (a word: ``fault``, ``operator``...) and ``why``. On the
+        loop thread the window closes at the end of this tick (several requests in one tick
+        are one dump); from another thread at once. Returns the directory it goes to, or
+        why not."""
+        if not self.enabled or self.writer is None:
+            return "no black box (black_box.enabled is false)"
+        self.requested += 1
+        pending = self._pending
+        on_loop = threading.get_ident() == self._loop_ident
+        if pending is not None and on_loop:
+            pending.causes.append((cause, why))
+            return str(pending.path)
+        req = self._new_request(cause, why)
+        self._put(REQUEST, cause, why)
+        if on_loop:
+            self._pending = req
+        else:
+            req.end, req.events_end = self.count, self.ev_count
+            self._submit(req)
+        return str(req.path)
+
+    def _new_request(self, cause: str, why: str) -> DumpRequest:
+        assert self._data is not None
+        clock = self._data.clock
+        wall = clock.wall_time()
+        stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime(wall))
+        ms = int(wall * 1000.0) % 1000
+        slug = "".join(c if c.isalnum() else "-" for c in cause.lower())[:32] or "dump"
+        name = f"{self.name}-{stamp}.{ms:03d}Z-{slug}"
+        base, n = name, 1
+        while name in self._names:  # no file system call on the loop: the writer checks
+            n += 1
+            name = f"{base}-{n}"
+        self._names.add(name)
+        k = self.count  # the tick under way (its deadline index is in its row)
+        return DumpRequest(name, self.dir / name, [(cause, why)], -1, -1, clock.now(), k, wall)
+
+    def _submit(self, req: DumpRequest) -> None:
+        writer = self.writer
+        if writer is None or not writer.submit(req):
+            self.refused += 1
+            log.error(
+                "black box: dump %s refused (%d waiting for the writer)", req.name, QUEUE_DEPTH
+            )
+
+    # ------------------------------------------------------------------ the writer's side
+    def window(self, req: DumpRequest) -> Window:
+        """The rows and events of ``req``'s window, copied out of the live rings (oldest
+        first, in chunks that hand the interpreter lock back); what was overwritten before
+        it was copied is dropped and counted."""
+        end = req.end
+        first = max(0, end - self.capacity)
+        rows = np.empty((end - first, self.width), dtype=np.float64)
+        slots = self._slots
+        r = first
+        while r < end:
+            s = r % slots
+            m = min(end - r, slots - s, CHUNK)
+            rows[r - first : r - first + m] = self._view[s : s + m]
+            r += m
+            time.sleep(0)
+        gone = (self.count + 1 - slots) - first  # rows the loop may have written over
+        lost = max(0, gone)
+        if lost:
+            rows, first = rows[lost:], first + lost
+        events, whole_from = self._events(req.events_end, first, end)
+        return Window(rows, first, events, whole_from, lost)
+
+    def _events(
+        self, end: int, first_row: int, end_row: int
+    ) -> tuple[list[tuple[int, int, Any, Any]], int]:
+        slots = self._ev_slots
+        start = max(0, end - self.ev_capacity)
+        ticks: list[int] = []
+        kinds: list[int] = []
+        wheres: list[Any] = []
+        objs: list[Any] = []
+        e = start
+        while e < end:
+            s = e % slots
+            m = min(end - e, slots - s, CHUNK)
+            ticks.extend(self._ev_tick[s : s + m])
+            kinds.extend(self._ev_kind[s : s + m])
+            wheres.extend(self._ev_where[s : s + m])
+            objs.extend(self._ev_obj[s : s + m])
+            e += m
+            time.sleep(0)
+        gone = max(0, (self.ev_count + 1 - slots) - start)
+        del ticks[:gone], kinds[:gone], wheres[:gone], objs[:gone]
+        # events overwritten before the window's first tick: the first tick kept may have
+        # lost some, the next ones are whole
+        cut = start + gone > 0 and bool(ticks)
+        whole_from = max(first_row, ticks[0] + 1) if cut else first_row
+        out = [
+            (t, kd, w, o)
+            for t, kd, w, o in zip(ticks, kinds, wheres, objs, strict=True)
+            if first_row <= t < end_row
+        ]
+        off = [ev for ev in list(self._off_loop) if first_row <= ev[0] < end_row]
+        if off:
+            out = sorted(out + off, key=lambda ev: ev[0])  # stable: the loop's first in a tick
+        return out, whole_from
+
+    def wait_idle(self, timeout: float = 10.0) -> bool:
+        """Wait until every dump requested so far is written (tests, tools, shutdown)."""
+        return self.writer is None or self.writer.wait_idle(timeout)
+
+    def stats(self) -> dict[str, Any]:
+        w = self.writer
+        return {
+            "enabled": self.enabled,
+            "seconds": self.seconds,
+            "ticks": min(self.count, self.capacity),
+            "events": min(self.ev_count, self.ev_capacity),
+            "requested": self.requested,
+            "refused": self.refused,
+            "dir": str(self.dir),
+            **(w.stats() if w is not None else {}),
+        }
+
+
+class DumpWriter:
+    """The thread that writes dumps (``write(request)`` does the work: occ/recording/dump.py);
+    a bounded queue, never blocking the loop. ``inline``: in simulated time, each dump is
+    written when it is submitted, in the tick that closes its window (exact, repeatable runs,
+    as the collision guard checks inline there); never on the real clock."""
+
+    def __init__(
+        self,
+        write: Callable[[DumpRequest], object],
+        name: str,
+        fifo_priority: int | None = None,
+        *,
+        inline: bool = False,
+    ) -> None:
+        self._write = write
+        self.inline = inline
+        self._q: queue.Queue[DumpRequest | None] = queue.Queue(QUEUE_DEPTH)
+        self._thread = threading.Thread(target=self._main, name=name, daemon=True)
+        self._started = False
+        self.fifo_priority = fifo_priority
+        self._idle = threading.Condition()
+        self._outstanding = 0
+        self.written = 0
+        self.failed = 0
+        self.last = ""
+
+    def start(self) -> None:
+        if not self._started and not self.inline:
+            self._started = True
+            self._thread.start()
+
+    def submit(self, req: DumpRequest) -> bool:
+        with self._idle:
+            self._outstanding += 1
+        if self.inline:
+            self._run(req)
+            return True
+        try:
+            self._q.put_nowait(req)
+        except queue.Full:
+            self._done()
+            return False
+        return True
+
+    def _done(self) -> None:
+        with self._idle:
+            self._outstanding -= 1
+            self._idle.notify_all()
+
+    def wait_idle(self, timeout: float) -> bool:
+        """True once every dump submitted is written (False after ``timeout``, or at once
+        when the thread was never started: the robot was never activated)."""
+        if not self._started or self.inline:
+            return self._outstanding == 0
+        with self._idle:
+            return self._idle.wait_for(lambda: self._outstanding == 0, timeout)
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Write what is queued (up to ``timeout``), then end the thread."""
+        if self._started and not self.inline:
+            self.wait_idle(timeout)
+            try:
+                self._q.put_nowait(None)
+            except queue.Full:
+                return
+            self._thread.join(1.0)
+
+    def _main(self) -> None:
+        if self.fifo_priority is not None:
+            try:
+                os.sched_setscheduler(
+                    threading.get_native_id(), os.SCHED_FIFO, os.sched_param(self.fifo_priority)
+                )
+            except (OSError, AttributeError):
+                pass  # normal priority: it hands the lock back every chunk anyway
+        while True:
+            req = self._q.get()
+            if req is None:
+                return
+            self._run(req)
+
+    def _run(self, req: DumpRequest) -> None:
+        try:
+            self._write(req)
+            self.written += 1
+            self.last = str(req.path)
+        except Exception:  # noqa: BLE001 - a failed dump is told by write; the thread lives
+            self.failed += 1
+            log.exception("black box: writing %s failed", req.path)
+        finally:
+            self._done()
+
+    def stats(self) -> dict[str, Any]:
+        return {"written": self.written, "failed": self.failed, "last": self.last}

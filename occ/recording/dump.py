@@ -1,0 +1,322 @@
+"""A black box dump on disk: what the dump writer thread writes (occ/recording/blackbox.py).
+
+``black_box.dir/<robot>-<UTC time>-<cause>/`` holds:
+
+- ``manifest.json``: the format (``occ-black-box`` 1), the robot, the causes (each with its
+  reason), the trigger (tick index, the loop's time and deadline index, the wall time), the
+  window (first tick index, rows, events, from which tick the events are whole, rows lost),
+  the software (``occ`` version, Python, the hot path's build), the SHA-256 of the URDF, of
+  every plugin's source file (drivers and controllers) and of ``config.yaml``, the tick
+  columns, and what a replay still needs that is not recorded;
+- ``config.yaml``: the daemon's whole configuration as it ran (the validated model: it loads
+  again with :class:`~occ.config.DaemonConfig`);
+- ``ticks.npy``: the tick rows as the loop wrote them (float64, bit for bit; columns in the
+  manifest): the clock each tick used, its deadline index, its state, every drive reading,
+  what was written to the drives;
+- ``recording.igtl``: the window in the recording format (occ/recording/record.py), so
+  ``occ-record export DIR`` (CSV, ``.seq.mha``, ``.mcap``), ``plot`` and ``replay`` read a dump
+  as any recording: every message in and out with ``rec.t`` the tick's time and ``rec.tick``
+  its tick index, then that tick's ``OCCState`` row (the tip by forward kinematics on the
+  writer's own model; ``sp`` the last position setpoint written);
+- ``events.jsonl``: the events that are not messages, one JSON object a line with their tick:
+  state transitions with their reasons, collision verdicts, controllers' notes, dump requests.
+
+A dump is written into ``.<name>.partial`` and renamed when whole, so a directory with a
+manifest is complete. Then the dumps of this robot in ``dir`` are bounded: the oldest go
+beyond ``max_dumps`` or ``max_mb`` (the newest is always kept), and stale partial ones too.
+A dump that cannot be written (a full disk) is removed and told (``BLACKBOX`` alert).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import shutil
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, fields, is_dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from occ.recording.blackbox import (
+    IN,
+    KIND_NAMES,
+    OUT,
+    REQUEST,
+    TRANSITION,
+    BlackBox,
+    DumpRequest,
+    Window,
+)
+from occ.recording.record import (
+    DUMP_RECORDING,
+    os_cause,
+    pack_message_record,
+    pack_state_record,
+    state_columns,
+)
+
+log = logging.getLogger(__name__)
+
+FORMAT = "occ-black-box"
+FORMAT_VERSION = 1
+MANIFEST = "manifest.json"
+#: records packed before they are written
+BATCH = 256
+
+#: what a replay needs that a dump does not hold (the module docstring of blackbox.py says how
+#: to close each gap)
+NOT_RECORDED = [
+    "the state of every part at the window's first tick (controllers' integrators and "
+    "filters, loss monitors' counters and clock offsets, the motion's re-entry ramp, the "
+    "collision guard's run threshold, a simulated drive's dynamics)",
+    "the order within a tick of events from other threads (stamped with their tick only)",
+    "inputs the interfaces refused before the loop (counted by the interfaces)",
+]
+
+
+@dataclass(frozen=True)
+class DumpContext:
+    """What the writer needs besides the rings: fixed at build, off the loop."""
+
+    #: the daemon's configuration, as YAML text
+    config_yaml: str
+    #: software version, build, hashes of the URDF and plugins (occ/core/provenance.py)
+    provenance: dict[str, Any]
+    #: the tip position (mm, base frame) of joint positions, on the writer's own model
+    tip_mm: Callable[[list[float]], tuple[float, float, float]]
+    max_dumps: int
+    max_bytes: int
+    #: ``tell(text, ok)``: the alert that says where the dump went (or why it did not)
+    tell: Callable[[str, bool], None]
+
+
+def write_dump(box: BlackBox, req: DumpRequest, ctx: DumpContext) -> Path | None:
+    """Copy ``req``'s window out of ``box`` and write it (module docstring); the alert told
+    either way. Returns the dump's directory, None when it could not be written."""
+    window = box.window(req)
+    if req.path.exists():  # another daemon of this robot's name, in this millisecond
+        req.path = req.path.with_name(f"{req.name}-{os.getpid()}")
+    tmp = req.path.parent / f".{req.name}.partial"
+    try:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        tmp.mkdir(parents=True)
+        size = _write_files(tmp, box, req, window, ctx)
+        os.replace(tmp, req.path)
+    except OSError as err:
+        shutil.rmtree(tmp, ignore_errors=True)
+        text = f"black box of {_causes(req)} NOT written to {req.path}: {os_cause(err)}"
+        log.error("%s", text)
+        ctx.tell(text, False)
+        return None
+    removed = prune(req.path.parent, box.name, ctx.max_dumps, ctx.max_bytes, keep=req.path)
+    secs = len(window.rows) / box.rate_hz
+    text = (
+        f"black box of {_causes(req)} written to {req.path} ({len(window.rows)} ticks, "
+        f"{secs:.1f} s, {len(window.events)} events, {size / 1e6:.1f} MB)"
+        + (f"; {len(removed)} older dump(s) removed" if removed else "")
+    )
+    log.warning("%s", text)
+    ctx.tell(text, True)
+    return req.path
+
+
+def _causes(req: DumpRequest) -> str:
+    return "; ".join(f"{c} ({why})" if why else c for c, why in req.causes)
+
+
+def _write_files(
+    tmp: Path, box: BlackBox, req: DumpRequest, window: Window, ctx: DumpContext
+) -> int:
+    """Every file of the dump into ``tmp``; the bytes written."""
+    np.save(tmp / "ticks.npy", window.rows)
+    (tmp / "config.yaml").write_text(ctx.config_yaml, encoding="utf-8")
+    n_msgs = _write_recording(tmp / DUMP_RECORDING, box, req, window, ctx)
+    n_other = _write_events(tmp / "events.jsonl", window, box)
+    rows = window.rows
+    manifest = {
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        "robot": box.name,
+        "causes": [{"cause": c, "reason": why} for c, why in req.causes],
+        "trigger": {"tick": req.end - 1, "t": req.t, "wall": req.wall},
+        "window": {
+            "first_tick": window.first_row,
+            "ticks": len(rows),
+            "seconds": len(rows) / box.rate_hz,
+            "t_first": float(rows[0, 0]) if len(rows) else None,
+            "t_last": float(rows[-1, 0]) if len(rows) else None,
+            "rows_lost": window.rows_lost,
+            "messages": n_msgs,
+            "events": n_other,
+            "events_whole_from_tick": window.events_whole_from,
+        },
+        "rate_hz": box.rate_hz,
+        "joints": list(box.joint_names),
+        "tick_columns": box.columns,
+        **ctx.provenance,
+        "config_sha256": hashlib.sha256(ctx.config_yaml.encode("utf-8")).hexdigest(),
+        "not_recorded": NOT_RECORDED,
+        "files": ["manifest.json", "config.yaml", "ticks.npy", DUMP_RECORDING, "events.jsonl"],
+    }
+    (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1, default=str), encoding="utf-8")
+    return sum(p.stat().st_size for p in tmp.iterdir())
+
+
+def _write_recording(
+    path: Path, box: BlackBox, req: DumpRequest, window: Window, ctx: DumpContext
+) -> int:
+    """The window as a recording: each tick's messages, then its OCCState row. Returns the
+    messages written."""
+    rows, events, n = window.rows, window.events, len(box.joint_names)
+    sp_at, ew_at = 3 + 4 * n, 3 + 5 * n
+    # a robot that commands efforts (a haptic master): its rows end with them, as recorded
+    efforts = bool(len(rows)) and not np.isnan(rows[:, ew_at : ew_at + n]).all()
+    columns = state_columns(box.joint_names, efforts)
+    to_wall = req.wall - req.t
+    last_sp = [math.nan] * n
+    last_ew = [0.0] * n
+    e, written = 0, 0
+    chunks: list[bytes] = []
+    with open(path, "wb") as f:
+        for r in range(len(rows)):
+            row = rows[r]
+            tick = window.first_row + r
+            t = float(row[0])
+            while e < len(events) and events[e][0] <= tick:
+                ev_tick, kind, where, obj = events[e]
+                e += 1
+                if kind == IN or kind == OUT:
+                    extra = {"rec.tick": str(ev_tick)}
+                    direction = "in" if kind == IN else "out"
+                    try:
+                        chunks.append(pack_message_record(obj, direction, where, t, extra))
+                        written += 1
+                    except Exception as err:  # noqa: BLE001 - one message, not the dump
+                        log.warning("black box: a %s message could not be packed: %s", kind, err)
+            sp = row[sp_at : sp_at + n]
+            if not math.isnan(sp[0]):
+                last_sp = sp.tolist()
+            ew = row[ew_at : ew_at + n]
+            if not math.isnan(ew[0]):
+                last_ew = ew.tolist()
+            q = row[3 : 3 + 4 * n : 4].tolist()
+            tip = ctx.tip_mm(q)
+            state = [t, float(row[2]), *q, *last_sp, *tip, *(last_ew if efforts else ())]
+            chunks.append(pack_state_record(state, columns, box.name, t + to_wall))
+            if r & 15 == 15:
+                # hand the interpreter lock back every 16 ticks packed (~0.2 ms of work):
+                # the loop, waking for its deadline, waits for it otherwise (the recorder's
+                # lesson, occ/recording/record.py)
+                time.sleep(0)
+            if len(chunks) >= BATCH:
+                f.write(b"".join(chunks))
+                chunks.clear()
+        f.write(b"".join(chunks))
+    return written
+
+
+def _write_events(path: Path, window: Window, box: BlackBox) -> int:
+    """The events that are not messages (JSON lines). Returns how many."""
+    rows, first = window.rows, window.first_row
+    n = 0
+    with open(path, "w", encoding="utf-8") as f:
+        for tick, kind, where, obj in window.events:
+            if kind == IN or kind == OUT:
+                continue
+            r = tick - first
+            t = float(rows[r, 0]) if 0 <= r < len(rows) else None
+            rec: dict[str, Any] = {"tick": tick, "t": t, "kind": KIND_NAMES.get(kind, kind)}
+            if kind == TRANSITION:
+                rec.update(zip(("from", "to", "event", "reason"), obj, strict=True))
+            elif kind == REQUEST:
+                rec.update({"cause": where, "reason": obj})
+            else:
+                if where is not None:
+                    rec["what"] = where
+                rec["value"] = jsonable(obj)
+            f.write(json.dumps(rec, default=str) + "\n")
+            n += 1
+    return n
+
+
+def jsonable(obj: Any, depth: int = 0) -> Any:
+    """A verdict, a plan or a note as JSON can hold it: dataclasses by their fields, arrays
+    as lists, infinities as text, a named part by its name, anything else by its repr."""
+    if obj is None or isinstance(obj, bool | int | str):
+        return obj
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else str(obj)
+    if depth > 4:
+        return repr(obj)[:200]
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist(), depth + 1)
+    if isinstance(obj, list | tuple):
+        return [jsonable(v, depth + 1) for v in obj]
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v, depth + 1) for k, v in obj.items()}
+    describe = getattr(obj, "describe", None)
+    if callable(describe) and not is_dataclass(obj):
+        return str(describe())
+    if is_dataclass(obj):
+        out = {f.name: jsonable(getattr(obj, f.name), depth + 1) for f in fields(obj)}
+        if callable(describe):
+            out["text"] = str(describe())
+        return out
+    name = getattr(obj, "name", None)
+    if isinstance(name, str):
+        return name
+    return repr(obj)[:200]
+
+
+# ---------------------------------------------------------------------- bounds
+def dumps_of(directory: Path, robot: str) -> Iterator[Path]:
+    """The complete dumps of ``robot`` in ``directory`` (a manifest of this format)."""
+    if not directory.is_dir():
+        return
+    for p in directory.iterdir():
+        if p.is_dir() and p.name.startswith(f"{robot}-") and (p / MANIFEST).is_file():
+            yield p
+
+
+def _size(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+def prune(directory: Path, robot: str, max_dumps: int, max_bytes: int, keep: Path) -> list[Path]:
+    """Remove ``robot``'s oldest dumps beyond ``max_dumps`` or ``max_bytes`` (never ``keep``,
+    the newest), and its partial dumps left by a crash. Returns what was removed. Only this
+    robot's: daemons of other robots may share the directory."""
+    for p in directory.glob(f".{robot}-*.partial"):
+        shutil.rmtree(p, ignore_errors=True)
+    dumps = sorted(dumps_of(directory, robot), key=lambda p: (p.stat().st_mtime, p.name))
+    sizes = {p: _size(p) for p in dumps}
+    total, left = sum(sizes.values()), len(dumps)
+    gone: list[Path] = []
+    for p in dumps:  # oldest first
+        if left <= max_dumps and total <= max_bytes:
+            break
+        if p == keep:
+            continue
+        shutil.rmtree(p, ignore_errors=True)
+        gone.append(p)
+        total, left = total - sizes[p], left - 1
+    return gone
+
+
+def read_manifest(path: str | Path) -> dict[str, Any]:
+    """A dump's manifest (ValueError when ``path`` is not a dump of this format)."""
+    p = Path(path) / MANIFEST
+    try:
+        manifest: dict[str, Any] = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as err:
+        raise ValueError(f"{path}: not a black box dump ({err})") from err
+    if manifest.get("format") != FORMAT:
+        raise ValueError(f"{path}: not a black box dump (format {manifest.get('format')!r})")
+    return manifest
