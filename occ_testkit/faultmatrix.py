@@ -176,7 +176,13 @@ def slave_config(backend: str, sim_faults: tuple[str, ...] = (), channel: str = 
             }
         )
     robot = cfg.robot.model_copy(update={"drivers": (arm, tool)})
-    return cfg.model_copy(update={"robot": robot})
+    # No black box here: in simulated time its dump is written inline, in the tick of the
+    # FAULT (tens of ms of wall time), while the CAN rows' drive node answers on a thread of
+    # its own that must keep pace with the ticks (``_Run.tick``'s sync); the pause put the
+    # node and the harness out of step and a repaired node's Reset read failed (the drive
+    # faults' dumps are tests/occ/test_blackbox.py's)
+    box = cfg.black_box.model_copy(update={"enabled": False})
+    return cfg.model_copy(update={"robot": robot, "black_box": box})
 
 
 class _Run:
