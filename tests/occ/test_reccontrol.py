@@ -836,10 +836,12 @@ def test_close_waits_for_a_writer_that_drains_a_backlog(tmp_path: Path, monkeypa
     the writer still wrote, losing records); only a writer that takes nothing is given up."""
     from occ.recording import record
 
-    monkeypatch.setattr(record, "CLOSE_WAIT_S", 0.05)
+    # the wait: well above a loaded machine's scheduling gaps (the writer must get going),
+    # well below the backlog's time (20000 records take the writer 1-2 s here)
+    monkeypatch.setattr(record, "CLOSE_WAIT_S", 0.3)
     path = tmp_path / "backlog.igtl"
     rec = Recorder(path, max_backlog=10**6).start()
-    n = 8000
+    n = 20000
     for k in range(n):
         msg = igtl.StatusMessage(code=1, error_name="E", status_message=f"m{k}", device_name="D")
         rec.record_message(msg, "out", "*", float(k))
