@@ -86,8 +86,6 @@ class Member:
     origin: str = ""
     stop_wall: float = 0.0
     their_chain: str = ""
-    q: tuple[float, ...] = ()
-    base: tuple[float, ...] = ()
     #: it left (its own command, announced), or was forgotten here (an operator's command)
     left: bool = False
     forgotten: bool = False
@@ -169,8 +167,6 @@ class Cell:
         self.own = _Own()
         #: origin -> why, latched until it runs again, left, or relays only this daemon
         self.latched: dict[str, str] = {}
-        #: the origins seen this tick (recomputed every tick)
-        self.live: dict[str, str] = {}
         self.last_stop: LastStop | None = None
         self.holds = 0
         self.alerts = 0
@@ -243,7 +239,8 @@ class Cell:
         if self.states.state not in (*_POWERED, RobotState.STOPPED):
             return  # nothing of this arm is powered: its loop comes back to an alert only
         own = self.own
-        own.cause, own.origin, own.stop_wall = f"hung loop: {reason}", self.me, time.time()
+        own.cause, own.origin = f"hung loop: {reason}", self.me
+        own.stop_wall = self.clock.wall_time()
         self._send(self.clock.now())
 
     # ------------------------------------------------------------------ the tick
@@ -284,7 +281,7 @@ class Cell:
             beat.origin,
             beat.stop_wall,
         )
-        m.their_chain, m.q, m.base = beat.chain, beat.q, beat.base
+        m.their_chain = beat.chain
         if beat.leaving != m.left:
             m.left = beat.leaving
             log.warning("cell: %s %s the cell", m.name, "left" if m.left else "joined")
@@ -336,10 +333,8 @@ class Cell:
         heard = [m.heard for m in self.members.values() if m.heard is not None and not m.out]
         self._silence_due = min(heard) + self.grace_s if heard else math.inf
         if self.own.leaving:
-            self.live = {}
             return
         origins = self._origins(now)
-        self.live = {k: v[0] for k, v in origins.items()}
         for origin, (why, stop_wall) in origins.items():
             if self.latched.get(origin) != why:
                 self.latched[origin] = why
@@ -394,10 +389,12 @@ class Cell:
                 f"cell {self.name}: {why}; Run once {origin} runs again or leaves the cell "
                 f"(CellLeave there, or CellForget {origin} here)"
             )
-        unheard = [m.name for m in self.members.values() if m.heard is None and not m.out]
-        if unheard:
-            return f"cell {self.name}: not heard yet from {', '.join(unheard)}"
-        return ""
+        unheard = self._unheard()
+        return f"cell {self.name}: not heard yet from {unheard}" if unheard else ""
+
+    def _unheard(self) -> str:
+        """The members in the cell not heard since this daemon started, named ('' none)."""
+        return ", ".join(m.name for m in self.members.values() if m.heard is None and not m.out)
 
     def start_wait(self, event: str) -> str:
         """``occd --start``'s gate: its Run waits (ticks on, ENABLED) until every member has
@@ -405,10 +402,10 @@ class Cell:
         does not wait: the Run is refused as an operator's would be."""
         if event != "run" or not self.stop_all or self.own.leaving or self.latched:
             return ""
-        unheard = [m.name for m in self.members.values() if m.heard is None and not m.out]
+        unheard = self._unheard()
         if not unheard:
             return ""
-        why = f"--start: Run waits for cell {self.name}: not heard yet from {', '.join(unheard)}"
+        why = f"--start: Run waits for cell {self.name}: not heard yet from {unheard}"
         if why != self._start_told:
             self._start_told = why
             log.warning("%s", why)

@@ -10,6 +10,7 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
+import pinocchio as pin
 
 from occ import _native
 from occ.clock import Clock, RealClock
@@ -143,15 +144,9 @@ def build_drives(
 
 def base_pose(xyz_mm: Sequence[float], rpy_deg: Sequence[float]) -> np.ndarray:
     """The 4x4 pose (metres) of ``xyz_mm`` turned by roll, pitch, yaw about the fixed x, y, z
-    axes (degrees): R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    r, p, y = (np.radians(v) for v in rpy_deg)
-    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    axes (degrees): R = Rz(yaw) Ry(pitch) Rx(roll) (pinocchio's rpyToMatrix)."""
     b = np.eye(4)
-    b[:3, :3] = [
-        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-        [-sp, cp * sr, cp * cr],
-    ]
+    b[:3, :3] = pin.utils.rpyToMatrix(*np.radians(np.asarray(rpy_deg, dtype=float)))
     b[:3, 3] = np.asarray(xyz_mm, dtype=float) * 1e-3
     return b
 
