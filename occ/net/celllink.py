@@ -43,7 +43,7 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -210,18 +210,15 @@ class CellLink:
         self.endpoint.stop()
 
     # ------------------------------------------------------------------ sending
-    def send(self, beat: Beat, to: Sequence[str] | None = None) -> int:
-        """``beat`` to every peer (or those named in ``to``), its ``seq`` and ``sent_wall`` given
-        here (:meth:`Beat` fields left 0 by the caller); never blocks. The number of peers it
-        went to."""
+    def send(self, beat: Beat) -> int:
+        """``beat`` to every peer, its ``seq`` and ``sent_wall`` given here (:meth:`Beat` fields
+        left 0 by the caller), packed once; never blocks. The number of peers it went to."""
         with self._send_lock:  # one sequence order on the wire, whichever thread sends
-            msg = pack_beat(beat, self.key, seq=next(self._seq), sent_wall=self._wall())
+            data = pack_beat(beat, self.key, seq=next(self._seq), sent_wall=self._wall()).pack()
             ok = 0
-            for name, addr in self.peers.items():
-                if to is not None and name not in to:
-                    continue
+            for addr in self.peers.values():
                 try:
-                    sent = self.endpoint.send(msg, addr)
+                    sent = self.endpoint.send(data, addr)
                 except (OSError, ValueError):
                     sent = 0
                 ok += sent

@@ -270,7 +270,7 @@ def test_two_members_that_lost_each_other_may_both_run_again() -> None:
         links = [s.robot.cell.link for s in c.sims]  # type: ignore[union-attr]
         sends = [link.send for link in links]
         for link in links:  # the network between them cut: nothing either way
-            link.send = lambda beat, to=None: 0  # type: ignore[method-assign]
+            link.send = lambda beat: 0  # type: ignore[method-assign]
         c.step(110)
         assert c.state(0) is S.STOPPED and c.state(1) is S.STOPPED
         for link, send in zip(links, sends, strict=True):
