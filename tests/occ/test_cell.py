@@ -32,6 +32,22 @@ def _udp_ports(n: int) -> list[int]:
     return ports
 
 
+def shipped_cell() -> list[dict[str, Any]]:
+    """configs/cell/ur5-a.yaml and ur5-b.yaml as mappings, their cell links on free ports."""
+    import yaml
+
+    from occ_testkit.testing import CONFIGS
+
+    ports = _udp_ports(2)
+    raws = []
+    for n in "ab":
+        raw = yaml.safe_load((CONFIGS / "cell" / f"ur5-{n}.yaml").read_text())
+        for m, port in zip(raw["cell"]["members"], ports, strict=True):
+            m["address"] = f"127.0.0.1:{port}"
+        raws.append(raw)
+    return raws
+
+
 def member_config(name: str, members: list[dict[str, Any]], **cell: Any) -> DaemonConfig:
     """A 3-DOF slave on simulated drives that holds where it is (no stream to lose), member
     ``name`` of the cell ``members``."""
@@ -379,21 +395,15 @@ def test_a_member_whose_chain_is_not_its_urdf_is_not_trusted() -> None:
 def test_the_shipped_cell_agrees_and_its_arms_hold_for_each_other() -> None:
     """configs/cell/: both slaves list the same cell, each member's URDF is the one the member
     announces (its chain hash), and on free ports the two UR5s hold for each other."""
-    import yaml
-
     from occ.core.loader import load_config
     from occ_testkit.testing import CONFIGS
 
     a, b = (load_config(CONFIGS / "cell" / f"ur5-{n}.yaml") for n in "ab")
     assert a.cell is not None and b.cell is not None
     assert a.cell.model_dump() | {"member": None} == b.cell.model_dump() | {"member": None}
-    ports = _udp_ports(2)
     sims = []
     try:
-        for n in "ab":
-            raw = yaml.safe_load((CONFIGS / "cell" / f"ur5-{n}.yaml").read_text())
-            for m, port in zip(raw["cell"]["members"], ports, strict=True):
-                m["address"] = f"127.0.0.1:{port}"
+        for raw in shipped_cell():
             sims.append(SimRobot(raw))
         for _ in range(10):
             for s in sims:

@@ -5,7 +5,9 @@ tests/occ/test_collision_arms.py's: the second arm 1.6 m along x, turned half ro
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -14,7 +16,7 @@ import yaml
 
 from occ.core.safety import RobotState
 from occ_testkit.testing import CONFIGS, SimRobot
-from tests.occ.test_cell import _udp_ports
+from tests.occ.test_cell import _udp_ports, shipped_cell
 from tests.occ.test_collision_arms import REACH, b_base, command, pair_model
 
 UR5_FRAME = {
@@ -124,26 +126,33 @@ def test_a_plan_into_the_other_arm_of_the_cell_is_refused_naming_both_links(
     assert "of the arm 'ur5-b'" in err and " vs ur5-b:" in err, err
 
 
-@pytest.mark.req("SR-ARMS-2")
-def test_the_shipped_cells_arms_teleoperated_toward_each_other_both_stop() -> None:
-    """configs/cell/ (bases 600 mm apart, the cell link on free ports), each UR5 following its
-    master's stream at 500 Hz: the masters move the two tips toward each other at 100 mm/s of
-    the tool; both arms stop, the measured arms never closer than half the margin (10 mm)."""
+@contextlib.contextmanager
+def shipped_rigs() -> Iterator[list[Any]]:
+    """configs/cell/'s two UR5 slaves (tests/occ/test_cell.py's ``shipped_cell``), each with
+    its master's stream (occ_testkit.rigs.SlaveRig), heard by each other and RUNNING."""
     from occ_testkit.rigs import SlaveRig
 
-    ports = _udp_ports(2)
-    rigs = []
+    rigs: list[Any] = []
     try:
-        for n in "ab":
-            raw = yaml.safe_load((CONFIGS / "cell" / f"ur5-{n}.yaml").read_text())
-            for m, port in zip(raw["cell"]["members"], ports, strict=True):
-                m["address"] = f"127.0.0.1:{port}"
+        for raw in shipped_cell():
             rigs.append(SlaveRig(raw))
         for _ in range(10):
             for rig in rigs:
                 rig.step(1)
         for rig in rigs:
             rig.running()
+        yield rigs
+    finally:
+        for rig in rigs:
+            rig.close()
+
+
+@pytest.mark.req("SR-ARMS-2")
+def test_the_shipped_cells_arms_teleoperated_toward_each_other_both_stop() -> None:
+    """configs/cell/ (bases 600 mm apart, the cell link on free ports), each UR5 following its
+    master's stream at 500 Hz: the masters move the two tips toward each other at 100 mm/s of
+    the tool; both arms stop, the measured arms never closer than half the margin (10 mm)."""
+    with shipped_rigs() as rigs:
         b_base_m = np.eye(4)
         b_base_m[0, 3] = 0.6
         judge = pair_model()
@@ -163,30 +172,13 @@ def test_the_shipped_cells_arms_teleoperated_toward_each_other_both_stop() -> No
         assert states == [RobotState.STOPPED] * 2, (states, alerts)
         assert any(" vs ur5-" in a for a in alerts), alerts
         assert 0.01 <= closest < 0.05, closest  # close, as driven, and never within 10 mm
-    finally:
-        for rig in rigs:
-            rig.close()
 
 
 @pytest.mark.req("SR-CELL-1")
 def test_a_loss_stop_in_one_arm_of_the_shipped_cell_holds_the_other() -> None:
     """ur5-a's master falls silent: its loss monitor stops it (latched), and ur5-b, following
     its own master, holds for it, the alert naming ur5-a and the lost stream."""
-    from occ_testkit.rigs import SlaveRig
-
-    ports = _udp_ports(2)
-    rigs = []
-    try:
-        for n in "ab":
-            raw = yaml.safe_load((CONFIGS / "cell" / f"ur5-{n}.yaml").read_text())
-            for m, port in zip(raw["cell"]["members"], ports, strict=True):
-                m["address"] = f"127.0.0.1:{port}"
-            rigs.append(SlaveRig(raw))
-        for _ in range(10):
-            for rig in rigs:
-                rig.step(1)
-        for rig in rigs:
-            rig.running()
+    with shipped_rigs() as rigs:
         rigs[0].sending = False
         for _ in range(150):
             for rig in rigs:
@@ -196,6 +188,3 @@ def test_a_loss_stop_in_one_arm_of_the_shipped_cell_holds_the_other() -> None:
         assert rigs[1].robot.state is RobotState.STOPPED
         why = rigs[1].robot.snapshot()["cell"]["latched"]["ur5-a"]
         assert why.startswith("ur5-a packet loss on master"), why
-    finally:
-        for rig in rigs:
-            rig.close()
