@@ -21,18 +21,18 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal, Protocol
 
 import numpy as np
-import yaml
-from pydantic import Field, StringConstraints, ValidationError
+from pydantic import Field, StringConstraints
 
 from occ.controllers.keyframe.plan import MAX_CELL_SAMPLES
 from occ.controllers.keyframe.sets import (
-    MAX_FILE_BYTES,
     KeyframeFile,
     KeyframeSet,
     PlanSettings,
     Space,
     _Model,
     file_set,
+    read_file_data,
+    validated_file,
 )
 from occ.errors import CommandError
 from occ.kinematics.cellpaths import ArmPath, cell_identity, cross_check, path_digest
@@ -80,24 +80,11 @@ class CellKeyframeFile(_Model):
 def read_any_keyframe_file(path: Path) -> KeyframeFile | CellKeyframeFile:
     """A keyframe file, or a cell keyframe file (it has ``arms``); ValueError with the
     reason."""
-    try:
-        size = path.stat().st_size
-        if size > MAX_FILE_BYTES:
-            raise ValueError(f"{path.name}: {size} bytes, more than {MAX_FILE_BYTES}")
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
-        raise ValueError(f"{path.name}: cannot read: {err}") from err
-    if isinstance(data, list):
-        data = {"keyframes": data}
+    data = read_file_data(path)
     model: type[KeyframeFile] | type[CellKeyframeFile] = (
         CellKeyframeFile if isinstance(data, dict) and "arms" in data else KeyframeFile
     )
-    try:
-        return model.model_validate(data)
-    except ValidationError as err:
-        first = err.errors()[0]
-        where = ".".join(str(p) for p in first["loc"])
-        raise ValueError(f"{path.name}: {where}: {first['msg']}") from err
+    return validated_file(model, data, path)
 
 
 @dataclass(frozen=True, eq=False)

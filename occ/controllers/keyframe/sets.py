@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -14,6 +14,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from occ.config import Float, NonNegFloat
 from occ.errors import CommandError
 from occ.kinematics.trajectory import Keyframe
+
+M = TypeVar("M", bound=BaseModel)
 
 Space = Literal["joint", "cartesian"]
 
@@ -130,6 +132,12 @@ def make_set(
 
 def read_keyframe_file(path: Path) -> KeyframeFile:
     """Parse and validate a keyframe file; ValueError with the reason."""
+    return validated_file(KeyframeFile, read_file_data(path), path)
+
+
+def read_file_data(path: Path) -> Any:
+    """A keyframe file's YAML (at most ``MAX_FILE_BYTES``; a bare list is its ``keyframes``);
+    ValueError with the reason."""
     try:
         size = path.stat().st_size
         if size > MAX_FILE_BYTES:
@@ -137,10 +145,13 @@ def read_keyframe_file(path: Path) -> KeyframeFile:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
         raise ValueError(f"{path.name}: cannot read: {err}") from err
-    if isinstance(data, list):
-        data = {"keyframes": data}
+    return {"keyframes": data} if isinstance(data, list) else data
+
+
+def validated_file(model: type[M], data: Any, path: Path) -> M:
+    """``data`` as ``model``; ValueError naming the file, the first field wrong and why."""
     try:
-        return KeyframeFile.model_validate(data)
+        return model.model_validate(data)
     except ValidationError as err:
         first = err.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
