@@ -214,11 +214,12 @@ def test_shutdown_closes_a_running_recording(tmp_path: Path) -> None:
     assert len(states) >= 19
 
 
-# ---------------------------------------------------------------------- a running daemon, TCP
-@pytest.mark.realtime
-def test_start_stop_on_a_running_daemon(tmp_path: Path) -> None:
-    from loopback import free_port, stop_processes, wait_port, write_yaml
-    from slicer_standin import SlicerStandIn
+def start_slave(tmp_path: Path, *args: str) -> tuple[subprocess.Popen[bytes], dict[str, int]]:
+    """``occd`` of the shipped slave on free ports, not recording (``args``: its options); the
+    process and the ports of its TCP interfaces by name."""
+    import socket
+
+    from loopback import free_port, write_yaml
 
     cfg = slave_config(tmp_path / "recs")
     ports = {}
@@ -226,17 +227,25 @@ def test_start_stop_on_a_running_daemon(tmp_path: Path) -> None:
         if itf["transport"] == "tcp-server":
             itf["port"] = ports[itf["name"]] = free_port()
         else:
-            import socket
-
             itf["port"] = free_port(socket.SOCK_DGRAM)
     cfg["recording"]["path"] = None
     write_yaml(tmp_path / "slave.yaml", cfg)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "occ.cli", str(tmp_path / "slave.yaml"), "--log-level", "WARNING"],
+        [sys.executable, "-m", "occ.cli", str(tmp_path / "slave.yaml"), *args],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
     )
+    return proc, ports
+
+
+# ---------------------------------------------------------------------- a running daemon, TCP
+@pytest.mark.realtime
+def test_start_stop_on_a_running_daemon(tmp_path: Path) -> None:
+    from loopback import stop_processes, wait_port
+    from slicer_standin import SlicerStandIn
+
+    proc, ports = start_slave(tmp_path, "--log-level", "WARNING")
     try:
         assert wait_port(ports["operator"]), (
             proc.stderr.read().decode() if proc.poll() else "no port"
@@ -766,26 +775,10 @@ def test_occd_recording_to_dev_full(tmp_path: Path) -> None:
     """The issue's own case, on a real ``occd --record /dev/full`` over TCP: one alert to the
     connected operator, one line in the log and no traceback, the daemon running, StopRecording
     answered, exit 0."""
-    from loopback import free_port, stop_processes, wait_port, write_yaml
+    from loopback import stop_processes, wait_port
     from slicer_standin import SlicerStandIn
 
-    cfg = slave_config(tmp_path / "recs")
-    ports = {}
-    for itf in cfg["interfaces"]:
-        if itf["transport"] == "tcp-server":
-            itf["port"] = ports[itf["name"]] = free_port()
-        else:
-            import socket
-
-            itf["port"] = free_port(socket.SOCK_DGRAM)
-    cfg["recording"]["path"] = None
-    write_yaml(tmp_path / "slave.yaml", cfg)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "occ.cli", str(tmp_path / "slave.yaml"), "--record", "/dev/full"],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-    )
+    proc, ports = start_slave(tmp_path, "--record", "/dev/full")
     try:
         assert wait_port(ports["operator"]), (
             proc.stderr.read().decode() if proc.poll() else "no port"
