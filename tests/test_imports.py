@@ -345,6 +345,8 @@ ROOM_EXCEPTIONS = {
     "worker thread",
     ("occ.haptics.forceviz", "occ.net.packers"): "a type hint: the output it fills",
     ("occ.recording.control", "occ.core.ports"): "the recording control's narrow port",
+    ("occ.recording.cli", "occ.core.replay"): "replay --deterministic rebuilds the robot from "
+    "a black box dump (inside the command's function only)",
     ("occ.net.operators", "occ.core.ports"): "the operator desk's narrow port",
     ("occ.controllers.teleop.slave", "occ.core.stats"): "the loop's Histogram for its latencies",
     ("occ.net.streams", "occ.core.assembly"): "a hand-over rebuilds the loss monitors as the "

@@ -160,6 +160,8 @@ class Cell:
         self.states, self.alarms, self.data, self.clock = states, alarms, data, clock
         self.chain = chain
         self.on_peer, self.on_peer_gone = on_peer, on_peer_gone
+        #: ``tap(beat, "cell")``: each heartbeat the loop takes (the black box), or None
+        self.tap: Callable[[Beat, str], None] | None = None
         self.stop_all = cfg.policy == "stop-all"
         self.period_s = cfg.period_ms * 1e-3
         self.grace_s = cfg.grace_ms * 1e-3
@@ -248,7 +250,10 @@ class Cell:
         """On the loop thread, before the controllers: the heartbeats received, the members
         judged (a hold in this tick), this member's heartbeat when due."""
         beats = self.link.take()
+        tap = self.tap
         for beat in beats:
+            if tap is not None:
+                tap(beat, "cell")
             self._on_beat(beat)
         if beats or self._dirty or now > self._silence_due:
             self._judge(now)

@@ -182,6 +182,11 @@ class ControlLoop:
         self.gc_every = int(rt.get("gc_every", 100))
         self.gc_min_spare_s = float(rt.get("gc_min_spare_us", 300.0)) * 1e-6
         self.switch_interval_s: float | None = rt.get("switch_interval_s")
+        #: work for the time a tick leaves before the next deadline (the black box's
+        #: checkpoints): called after a tick that leaves more than ``spare_min_s``; returns
+        #: True when it did some (then no collection in that tick)
+        self.spare: Callable[[], bool] | None = None
+        self.spare_min_s = 0.6 * self.period_s
         self.realtime_report = ""
         self.missed_ticks = 0
         self.t0 = math.nan  # deadline k is t0 + k / rate_hz (updated by shift())
@@ -323,6 +328,8 @@ class ControlLoop:
         gc_min_spare = self.gc_min_spare_s
         next_gc = gc_every
         gc_count = 0
+        spare = self.spare
+        spare_min = self.spare_min_s
 
         t0 = now()
         self.t0 = t0
@@ -362,6 +369,8 @@ class ControlLoop:
             k += 1
             n += 1
             self.ticks_run = n
+            if spare is not None and (t0 + k * period) - end > spare_min and spare():
+                continue  # spare time used: no collection after it
             if spare_gc and n >= next_gc and (t0 + k * period) - end > gc_min_spare:
                 gc_count += 1
                 gc.collect(1 if gc_count % 10 == 0 else 0)

@@ -200,8 +200,9 @@ class Robot:
         self.effects.tick_now = now
         sup = self.supervisor
         sup.last_beat = now
-        if not sup.armed:
+        if not sup.armed:  # the first tick of a run: the black box learns the loop thread
             sup.arm(now)
+            self.black_box.on_loop()
         elif sup.tripped and not self._supervisor_handled:  # back after a hung tick
             self._supervisor_handled = self.alarms.supervisor_back(sup)
         self._read(now)
@@ -211,9 +212,8 @@ class Robot:
             self.streams.drain(now, self.recorder)
         except Exception as err:  # noqa: BLE001
             self.alarms.plugin_error(f"controller {self.controller.name}: on_sample", err)
-        # commands, bounded per tick so a flood cannot stall the loop (parsed already)
         if self.effects.pending_start and not self.effects.powering_up:
-            self.effects.start_events()
+            self.effects.start_events()  # commands next: at most 16 a tick, parsed already
         commands = self.interfaces.commands
         if commands.pending:
             for item in commands.drain(limit=16):

@@ -86,6 +86,8 @@ class Histogram:
     """
 
     __slots__ = ("_counts", "count", "max", "min", "total")
+    #: statistics steer nothing: a checkpoint does not take them (occ/core/checkpoint.py)
+    checkpoint_opaque = True
 
     def __init__(self) -> None:
         self._counts: list[int] = [0] * N_BUCKETS

@@ -26,6 +26,7 @@ from occ.core.assembly import (
 )
 from occ.core.cell import Cell
 from occ.core.cell import build_cell as _build_cell
+from occ.core.checkpoint import Checkpointer
 from occ.core.data import RobotData
 from occ.core.hardware import HardwareSet
 from occ.core.loop import ControlLoop
@@ -263,11 +264,40 @@ def build_black_box(robot: Assembling, controllers: Sequence[Controller]) -> Bla
         fifo_priority=writer_priority(config),
         inline=not isinstance(robot.clock, RealClock),
     )
-    box.bind(robot.data, robot.joints, robot.collision, writer, cfg.dir)
+    drives = [(d, idx) for d, idx in robot.hardware.pairs]
+    box.bind(robot.data, robot.joints, robot.collision, writer, cfg.dir, drives, robot.streams)
+    box.inline_checkpoints = writer.inline
+    box.make_checkpointer = lambda: checkpointer(robot)
+    for d, _ in drives:
+        d.hook_tap = box.hook_failed
     robot.streams.tap = box.took
     robot.alarms.tap = box.sent
+    if robot.cell is not None:
+        robot.cell.tap = box.took
     robot.state_machine.add_listener(box.on_transition)
     return box
+
+
+def checkpointer(robot: Any) -> Checkpointer:
+    """What a checkpoint of ``robot`` takes (occ/core/checkpoint.py): every part but its I/O
+    and its records (the interfaces and the cell's link, the recorders, the black box, the
+    State Data Table, the loop and its clock, the report worker), the plugins' modules with
+    occ's."""
+    opaque = [
+        robot.black_box,
+        robot.state_table,
+        robot.recorder,
+        robot.loop,
+        robot.clock,
+        robot.worker,
+        robot.stats,
+        robot.supervisor_thread,
+        robot.operators.recording,
+    ]
+    io = [robot.interfaces, robot.cell.link if robot.cell is not None else None]
+    plugins = [*robot.hardware.drivers, *robot.controller.controllers]
+    roots = {type(p).__module__.partition(".")[0] for p in plugins}
+    return Checkpointer(robot, opaque=opaque, io=io, roots=roots)
 
 
 def build_cell(robot: Assembling) -> Cell | None:
@@ -324,6 +354,8 @@ def build_loop(robot: Assembling) -> tuple[LoopStats, ControlLoop]:
         watchdog=robot.watchdog,
         realtime=realtime_settings(robot.config.robot.realtime),
     )
+    if robot.black_box.enabled:
+        loop.spare = robot.black_box.spare  # its checkpoints, in the time a tick leaves
     return stats, loop
 
 

@@ -109,7 +109,7 @@ import enum
 import logging
 import math
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from types import TracebackType
 from typing import Any, ClassVar, Literal, cast
 
@@ -174,6 +174,8 @@ class DriverLifecycle:
         self._configured: bool = False
         self._fault_reason: str | None = None
         self._errors: int = 0
+        #: ``tap(driver, action, error)`` of every hook that raised (the black box), or None
+        self.hook_tap: Callable[[str, str, BaseException], None] | None = None
 
     @property
     def state(self) -> DriverState:
@@ -404,6 +406,9 @@ class DriverLifecycle:
     def _hook_failed(self, action: str, err: Exception) -> OCCError:
         """Count, latch FAULT and return the error to raise (DriverErrors pass through)."""
         self._errors += 1
+        tap = self.hook_tap
+        if tap is not None:  # the black box: what a replay raises again
+            tap(self.name, action, err)
         wrapped: OCCError
         if isinstance(err, OCCError):
             wrapped = err
@@ -499,6 +504,10 @@ class Driver(DriverLifecycle):
         self._prev_setpoint: list[float] = [0.0] * n
         self._prev_write_time: float = math.nan
         self._reads: int = 0
+        #: the last reading as ``_read`` returned it, and the ``now`` of its read (the black
+        #: box keeps it: what a replay gives the checks again, occ/core/replay.py)
+        self.raw: tuple[Sequence[float], Sequence[float], Sequence[float]] = ((), (), ())
+        self.raw_now = math.nan
         self._writes: int = 0
         self._limit_events: int = 0
 
@@ -547,9 +556,11 @@ class Driver(DriverLifecycle):
             if not (state is DriverState.FAULT and self._configured):
                 raise StateError(f"driver {self.name!r}: cannot read in state {state.value}")
         try:
-            positions, velocities, efforts = self._read(now)
+            raw = self._read(now)
         except Exception as err:
             raise self._hook_failed("read", err) from err
+        self.raw, self.raw_now = raw, now
+        positions, velocities, efforts = raw
         # in FAULT the drive is off and its last reading may be the one that was not
         # believed: positions are still read (operators see where the robot is), lost and
         # out-of-range readings still reported, the rest judged again after a reset

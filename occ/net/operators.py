@@ -189,7 +189,7 @@ class OperatorDesk:
         if recorder is not None:
             recorder.record_message(msg, "in", item.interface, now)
         if r.black_box is not None:
-            r.black_box.took(msg, item.interface)
+            r.black_box.took_request(item, item.interface)
         req: Request | None = item.request
         if req is None and not is_operator_request(msg):
             # a discrete input routed to the command queue (e.g. VFIXTURE), decoded by its

@@ -109,8 +109,13 @@ class StreamInputs:
         self._on_input: OnInput = _unbound
         self._refuse: Refuse = _unbound
         self._recorder: Any | None = None
-        #: ``tap(message, interface)``: each item the loop takes (the black box), or None
-        self.tap: Callable[[Message, str], None] | None = None
+        #: ``tap(item, interface)``: each item the loop takes (the black box), or None
+        self.tap: Callable[[StreamItem, str], None] | None = None
+
+    @property
+    def wall_offset(self) -> float | None:
+        """Wall time minus loop time as this tick asked it (None: no sample needed it)."""
+        return self._to_wall
 
     @property
     def holding(self) -> bool:
@@ -132,15 +137,29 @@ class StreamInputs:
         keyframes) to ``on_input`` (:meth:`bind`). Polled UDP sockets are read first, at most
         ``POLL_LIMIT`` datagrams each, each item handled as it is read; then the queues the
         interface threads filled."""
-        self._since = self._prev_tick
-        self._prev_tick = self._now = now
-        self._to_wall = None
-        self._recorder = recorder
+        self._begin(now, recorder)
         for poll, direct in self._pollers:
             poll(POLL_LIMIT, direct)
         for name, q, monitor, master in self._queues:
             if q.pending or q.evicted:  # most ticks nothing arrived (checked without a call)
                 self._drain_queue(name, q, monitor, master)
+
+    def _begin(self, now: float, recorder: Any | None) -> None:
+        self._since = self._prev_tick
+        self._prev_tick = self._now = now
+        self._to_wall = None
+        self._recorder = recorder
+
+    def replay(
+        self, now: float, recorder: Any | None, items: Sequence[tuple[str, StreamItem]]
+    ) -> None:
+        """:meth:`drain` of the items a recorded tick took, in their order (a deterministic
+        replay, occ/core/replay.py: every interface on its queue)."""
+        self._begin(now, recorder)
+        routes = {name: (monitor, master) for name, _q, monitor, master in self._queues}
+        for name, item in items:
+            monitor, master = routes[name]
+            self._handle(name, monitor, master, item)
 
     def _drain_queue(
         self, name: str, q: StreamQueue, monitor: LossMonitor | None, master: bool
@@ -204,7 +223,7 @@ class StreamInputs:
             recorder.record_message(item.msg, "in", name, now)
         tap = self.tap
         if tap is not None:
-            tap(item.msg, name)
+            tap(item, name)
         follow = not master or name == self.input
         event = item.event
         if isinstance(event, PoseSample):

@@ -88,7 +88,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 #: event kinds (the event ring's ``kind`` column)
-IN, OUT, TRANSITION, VERDICT, NOTE, REQUEST = 1, 2, 3, 4, 5, 6
+IN, OUT, TRANSITION, VERDICT, NOTE, REQUEST, HOOK, CMD = 1, 2, 3, 4, 5, 6, 7, 8
 KIND_NAMES = {
     IN: "in",
     OUT: "out",
@@ -96,7 +96,11 @@ KIND_NAMES = {
     VERDICT: "verdict",
     NOTE: "note",
     REQUEST: "dump",
+    HOOK: "driver error",
+    CMD: "in",  # a received item the operator desk took (IN: the streams and the cell)
 }
+#: seconds between two checkpoints of the robot's state (occ/core/checkpoint.py)
+CHECKPOINT_S = 1.0
 #: seconds of ring beyond ``black_box.seconds``: how late the writer may start copying a
 #: window before its oldest rows are overwritten
 MARGIN_S = 2.0
@@ -116,7 +120,10 @@ def tick_columns(joint_names: Sequence[str]) -> list[str]:
     cols = ["t", "k", "state"]
     for j in joint_names:
         cols += [f"pos.{j}", f"vel.{j}", f"eff.{j}", f"stamp.{j}"]
-    return cols + [f"sp.{j}" for j in joint_names] + [f"ew.{j}" for j in joint_names]
+    cols += [f"sp.{j}" for j in joint_names] + [f"ew.{j}" for j in joint_names]
+    for j in joint_names:
+        cols += [f"raw.pos.{j}", f"raw.vel.{j}", f"raw.eff.{j}"]
+    return [*cols, "to_wall"]
 
 
 @dataclass
@@ -149,6 +156,10 @@ class Window:
     events_whole_from: int = 0
     #: rows of the promised window lost to a writer that started too late
     rows_lost: int = 0
+    #: the robot's state before ``rows[0]`` was ticked (a replay's start), None: none kept
+    checkpoint: list[Any] | None = None
+    #: the loop thread's own events from the checkpoint on (what a replay feeds and expects)
+    loop_events: list[tuple[int, int, Any, Any]] = field(default_factory=list)
 
 
 class BlackBox:
@@ -173,21 +184,30 @@ class BlackBox:
         self.width = len(self.columns)
         self._sp_at = 3 + 4 * n  # the written columns' offset in a row
         self._ew_at = self._sp_at + n
+        self._raw_at = self._ew_at + n  # the drives' own readings
+        self._wall_at = self._raw_at + 3 * n
         self.rate_hz = float(rate_hz)
         self.seconds = float(seconds) if enabled else 0.0
         #: rows a dump holds (seconds x rate); the ring has a margin beyond them
         self.capacity = max(1, math.ceil(self.seconds * rate_hz))
-        self._slots = self.capacity + math.ceil(MARGIN_S * rate_hz) if enabled else 1
+        margin = MARGIN_S + CHECKPOINT_S  # a window starts at a checkpoint before its seconds
+        self._slots = self.capacity + math.ceil(margin * rate_hz) if enabled else 1
         self._buf = array("d", bytes(8 * self._slots * self.width))
         self._view = np.frombuffer(self._buf, dtype=np.float64).reshape(self._slots, self.width)
         self._end = self._slots * self.width
         self._pos = 0
         self._nan = array("d", [math.nan] * (2 * n))
+        self._raw_nan = array("d", [math.nan] * (3 * n))
         self._buf[self._sp_at : self._sp_at + 2 * n] = self._nan
+        self._buf[self._raw_at : self._raw_at + 3 * n] = self._raw_nan
+        #: simulated time: checkpoints taken at the end of the tick (no loop calls spare())
+        self.inline_checkpoints = False
+        #: what builds the robot's checkpointer at activation (occ/core/wiring.py)
+        self.make_checkpointer: Callable[[], Any] | None = None
         #: rows written since start (the tick under way writes row ``count``)
         self.count = 0
         self.ev_capacity = max(16, math.ceil(self.seconds * events_per_s))
-        self._ev_slots = self.ev_capacity + math.ceil(MARGIN_S * events_per_s) if enabled else 1
+        self._ev_slots = self.ev_capacity + math.ceil(margin * events_per_s) if enabled else 1
         self._ev_tick = array("q", bytes(8 * self._ev_slots))
         self._ev_kind = array("b", bytes(self._ev_slots))
         self._ev_where: list[Any] = [None] * self._ev_slots
@@ -198,6 +218,12 @@ class BlackBox:
         self._loop_ident: int | None = None
         self._data: RobotData | None = None
         self._joints: Sequence[Joint] = ()
+        #: (driver, the row offsets of its joints' raw columns)
+        self._drives: tuple[tuple[Any, tuple[int, ...]], ...] = ()
+        self._streams: Any = None
+        #: the robot's state every CHECKPOINT_S (a replay starts from one); None: not taken
+        self.checkpoints: Checkpoints | None = None
+        self.checkpointer: Any = None
         self._guard: Any = None
         self._verdict: Any = None
         self._state_code = -1.0
@@ -215,20 +241,41 @@ class BlackBox:
         guard: Any | None,
         writer: DumpWriter | None,
         directory: Path,
+        drives: Sequence[tuple[Any, Sequence[int]]] = (),
+        streams: Any = None,
     ) -> None:
-        """What the loop's row reads (the robot's data and joints, the collision guard whose
-        ``verdict`` it watches), and who writes the dumps where."""
+        """What the loop's row reads (the robot's data and joints, each driver with the
+        indices of its joints, the streams' wall offset, the collision guard whose ``verdict``
+        it watches), and who writes the dumps where."""
         self._data = data
         self._joints = tuple(joints)
+        self._drives = tuple((d, tuple(self._raw_at + 3 * i for i in idx)) for d, idx in drives)
+        self._streams = streams
         self._guard = guard
         self._state_code = _STATE_CODE[data.state]
         self.writer = writer
         self.dir = Path(directory)
 
     def start(self) -> None:
-        """The writer thread (the robot's activation)."""
+        """The writer thread and the first checkpoint (the robot's activation)."""
         if self.writer is not None:
             self.writer.start()
+        if self.enabled and self.make_checkpointer is not None and self.checkpoints is None:
+            keep = math.ceil((self.seconds + MARGIN_S) / CHECKPOINT_S) + 2
+            cp = self.make_checkpointer()
+            self.checkpointer = cp
+            self.checkpoints = Checkpoints(cp.take, self.rate_hz, keep)
+        if self.checkpoints is not None:
+            self.checkpoints.take(self.count, self.ev_count)
+
+    def spare(self) -> bool:
+        """Time the loop has to spare before its next deadline: a checkpoint when one is due
+        (on the loop thread, between two ticks: a consistent state). True when one was taken."""
+        cps = self.checkpoints
+        if cps is not None and self.count >= cps.due:
+            cps.take(self.count, self.ev_count)
+            return True
+        return False
 
     def stop(self) -> None:
         """The dumps under way written (up to 10 s), the writer ended (the robot's shutdown)."""
@@ -251,6 +298,15 @@ class BlackBox:
         return both
 
     # ------------------------------------------------------------------ loop thread
+    def resync(self) -> None:
+        """The state code from the robot's state again (a checkpoint restored under it)."""
+        assert self._data is not None
+        self._state_code = _STATE_CODE[self._data.state]
+
+    def on_loop(self) -> None:
+        """The calling thread is the loop's (its first tick): its events go to the ring."""
+        self._loop_ident = threading.get_ident()
+
     def _put(self, kind: int, where: Any, obj: Any) -> None:
         if not self.enabled:
             return
@@ -264,9 +320,20 @@ class BlackBox:
         self._ev_obj[i] = obj
         self.ev_count += 1  # after the event: a reader never takes half of one
 
-    def took(self, msg: Any, interface: str) -> None:
-        """A message the loop consumed (a stream sample, an operator's request)."""
-        self._put(IN, interface, msg)
+    def took(self, item: Any, interface: str) -> None:
+        """An input the streams took (a received message as the loop saw it:
+        :class:`~occ.net.interfaces.Inbound`) or the cell (a member's heartbeat,
+        ``interface`` ``cell``)."""
+        self._put(IN, interface, item)
+
+    def took_request(self, item: Any, interface: str) -> None:
+        """A received item the operator desk took (a request, a discrete input)."""
+        self._put(CMD, interface, item)
+
+    def hook_failed(self, driver: str, action: str, err: BaseException) -> None:
+        """A driver's hook raised (its ``_read`` or ``_write``): what a replay raises again."""
+        cls = type(err)
+        self._put(HOOK, (driver, action), (cls.__module__, cls.__qualname__, str(err), repr(err)))
 
     def sent(self, msg: Any, interface: str, now: float = 0.0) -> None:
         """A message the robot sent (``*``: to every operator and viewer); any thread."""
@@ -310,13 +377,30 @@ class BlackBox:
             buf[i + 2] = jt.effort
             buf[i + 3] = jt.stamp
             i += 4
+        at = self._pos
+        for d, cols in self._drives:  # each drive's reading as its hook returned it
+            if d.raw_now == now:
+                p, v, e = d.raw
+                for n, c in enumerate(cols):
+                    c += at
+                    buf[c] = p[n]
+                    buf[c + 1] = v[n]
+                    buf[c + 2] = e[n]
+        streams = self._streams
+        if streams is not None:
+            w = streams.wall_offset
+            buf[at + self._wall_at] = math.nan if w is None else w
         nxt = self._pos + self.width
         if nxt >= self._end:
             nxt = 0
         at = nxt + self._sp_at
         buf[at : at + len(self._nan)] = self._nan  # the next tick wrote nothing yet
+        at = nxt + self._raw_at
+        buf[at : at + len(self._raw_nan)] = self._raw_nan  # nor read
         self._pos = nxt
         self.count += 1  # after the row: a reader never takes a half-written one
+        if self.inline_checkpoints:
+            self.spare()
         pending = self._pending
         if pending is not None:
             self._pending = None
@@ -388,6 +472,12 @@ class BlackBox:
         it was copied is dropped and counted."""
         end = req.end
         first = max(0, end - self.capacity)
+        checkpoint, cp_events = None, 0
+        if self.checkpoints is not None:  # start at the checkpoint before the window's seconds
+            oldest = max(0, self.count + 1 - self._slots + CHUNK)  # not overwritten meanwhile
+            found = self.checkpoints.start(first, oldest, end)
+            if found is not None:
+                first, cp_events, checkpoint = found
         rows = np.empty((end - first, self.width), dtype=np.float64)
         slots = self._slots
         r = first
@@ -401,14 +491,19 @@ class BlackBox:
         lost = max(0, gone)
         if lost:
             rows, first = rows[lost:], first + lost
-        events, whole_from = self._events(req.events_end, first, end)
-        return Window(rows, first, events, whole_from, lost)
+        if lost:
+            checkpoint = None  # its rows are gone: the replay could not start there
+        events, loop_events, whole_from = self._events(req.events_end, first, end, cp_events)
+        return Window(rows, first, events, whole_from, lost, checkpoint, loop_events)
 
     def _events(
-        self, end: int, first_row: int, end_row: int
-    ) -> tuple[list[tuple[int, int, Any, Any]], int]:
+        self, end: int, first_row: int, end_row: int, cp_events: int = 0
+    ) -> tuple[list[tuple[int, int, Any, Any]], list[tuple[int, int, Any, Any]], int]:
+        """The window's events, oldest first (the loop's and, merged by tick, the other
+        threads'); the loop's own from event ``cp_events`` on (taken after the checkpoint);
+        the first tick whose events are all there."""
         slots = self._ev_slots
-        start = max(0, end - self.ev_capacity)
+        start = max(0, end - self._ev_slots + CHUNK)
         ticks: list[int] = []
         kinds: list[int] = []
         wheres: list[Any] = []
@@ -429,15 +524,17 @@ class BlackBox:
         # lost some, the next ones are whole
         cut = start + gone > 0 and bool(ticks)
         whole_from = max(first_row, ticks[0] + 1) if cut else first_row
-        out = [
-            (t, kd, w, o)
-            for t, kd, w, o in zip(ticks, kinds, wheres, objs, strict=True)
-            if first_row <= t < end_row
-        ]
+        base = start + gone  # the index of ticks[0] among every event written
+        out: list[tuple[int, int, Any, Any]] = []
+        since_cp: list[tuple[int, int, Any, Any]] = []
+        for n, ev in enumerate(zip(ticks, kinds, wheres, objs, strict=True)):
+            if first_row <= ev[0] < end_row:
+                out.append(ev)
+                if base + n >= cp_events:
+                    since_cp.append(ev)
         off = [ev for ev in list(self._off_loop) if first_row <= ev[0] < end_row]
-        if off:
-            out = sorted(out + off, key=lambda ev: ev[0])  # stable: the loop's first in a tick
-        return out, whole_from
+        merged = sorted(out + off, key=lambda ev: ev[0]) if off else out  # stable: loop's first
+        return merged, since_cp, whole_from
 
     def wait_idle(self, timeout: float = 10.0) -> bool:
         """Wait until every dump requested so far is written (tests, tools, shutdown)."""
@@ -455,6 +552,45 @@ class BlackBox:
             "dir": str(self.dir),
             **(w.stats() if w is not None else {}),
         }
+
+
+class Checkpoints:
+    """The robot's state every :data:`CHECKPOINT_S` (a :class:`~occ.core.checkpoint.Checkpointer`'s
+    ``take``), the last ``keep`` kept, each with the row it was taken before."""
+
+    def __init__(self, take: Callable[[], list[Any]], rate_hz: float, keep: int) -> None:
+        self._take = take
+        self.every = max(1, round(CHECKPOINT_S * rate_hz))
+        #: the row count at which the next one is due
+        self.due = 0
+        #: (row, events written by then, the state)
+        self._ring: deque[tuple[int, int, list[Any]]] = deque(maxlen=keep)
+        self.taken = 0
+        self.cost_max_s = 0.0
+        #: the first one: the robot as built, before its first tick
+        self.baseline: list[Any] | None = None
+
+    def take(self, row: int, events: int) -> None:
+        """The state now, before row ``row`` is ticked and after ``events`` events (the loop
+        thread, between ticks)."""
+        t0 = time.perf_counter()
+        values = self._take()
+        self._ring.append((row, events, values))  # atomic: the writer reads all or nothing
+        if self.baseline is None:
+            self.baseline = values
+        self.due = row + self.every
+        self.taken += 1
+        self.cost_max_s = max(self.cost_max_s, time.perf_counter() - t0)
+
+    def start(self, first: int, oldest: int, end: int) -> tuple[int, int, list[Any]] | None:
+        """Where a window that should start at row ``first`` starts: the last checkpoint at
+        or before it whose rows are still in the ring (from ``oldest``), else the first after
+        it before ``end``; None when there is none."""
+        kept = [c for c in list(self._ring) if oldest <= c[0] < end]
+        before = [c for c in kept if c[0] <= first]
+        if before:
+            return before[-1]
+        return kept[0] if kept else None
 
 
 class DumpWriter:

@@ -11,6 +11,9 @@ Exit status of ``occ-record export``:
   or written); nothing was written;
 - 2: the command was wrong (an output name whose form the exporter cannot write, a format that
   does not fit the name, a missing optional dependency); nothing was read or written;
+- 4 (``replay --deterministic``): the replay DIVERGED from the recorded run (the first
+  difference printed: tick, field, recorded, replayed); 0 when it was exact, 1 when the
+  dump cannot be replayed (none there, no checkpoint, inputs overwritten);
 - 3: SALVAGED: the recording is damaged (cut mid-message, a bad header, damaged messages);
   what could be read was exported, and the message on stderr says where the damage is (its
   byte offset, the last message read, its time).
@@ -94,9 +97,27 @@ def _add_export(sub: Any) -> None:
 
 
 def _add_replay(sub: Any) -> None:
-    r = sub.add_parser("replay", help="send recorded messages to HOST:PORT with original timing")
+    r = sub.add_parser(
+        "replay",
+        help="send recorded messages to HOST:PORT with original timing; or, with "
+        "--deterministic DIR, run a black box dump's ticks again and compare every output",
+    )
     r.add_argument("file", type=Path)
-    r.add_argument("target", help="HOST:PORT")
+    r.add_argument("target", nargs="?", default=None, help="HOST:PORT")
+    r.add_argument(
+        "--deterministic",
+        action="store_true",
+        help="FILE is a black box dump: rebuild the robot from its config in simulated time, "
+        "feed every input at its recorded tick, compare every output bit for bit (exit 0 "
+        "exact, 4 diverged: the first difference printed)",
+    )
+    r.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="with --deterministic: this daemon config instead of the dump's (what if)",
+    )
+    r.add_argument("--json", action="store_true", help="with --deterministic: JSON output")
     r.add_argument("--udp", action="store_true")
     r.add_argument("--speed", type=float, default=1.0)
     r.add_argument("--direction", choices=["in", "out"], default="in")
@@ -165,6 +186,16 @@ def _export(args: argparse.Namespace) -> int:
 
 
 def _replay(p: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    if args.deterministic:
+        if args.target is not None:
+            p.error("replay --deterministic takes a dump directory, not a target")
+        from occ.core.replay import main_deterministic  # the robot: only when asked
+
+        return main_deterministic(args.file, args.config, as_json=args.json)
+    if args.config is not None or args.json:
+        p.error("--config and --json go with --deterministic")
+    if args.target is None:
+        p.error("replay needs HOST:PORT (or --deterministic DIR)")
     host, _, port = args.target.rpartition(":")
     if not host or not port.isdigit():
         p.error(f"target must be HOST:PORT, got {args.target!r}")

@@ -34,6 +34,7 @@ import json
 import logging
 import math
 import os
+import pickle
 import shutil
 import time
 from collections.abc import Callable, Iterator
@@ -44,11 +45,14 @@ from typing import Any
 import numpy as np
 
 from occ.recording.blackbox import (
+    CMD,
+    HOOK,
     IN,
     KIND_NAMES,
     OUT,
     REQUEST,
     TRANSITION,
+    VERDICT,
     BlackBox,
     DumpRequest,
     Window,
@@ -66,6 +70,8 @@ log = logging.getLogger(__name__)
 FORMAT = "occ-black-box"
 FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
+#: what a deterministic replay reads (occ/core/replay.py)
+REPLAY = "replay.pkl"
 #: records packed before they are written
 BATCH = 256
 
@@ -139,6 +145,7 @@ def _write_files(
     (tmp / "config.yaml").write_text(ctx.config_yaml, encoding="utf-8")
     n_msgs = _write_recording(tmp / DUMP_RECORDING, box, req, window, ctx)
     n_other = _write_events(tmp / "events.jsonl", window, box)
+    replayable = _write_replay(tmp / REPLAY, box, window)
     rows = window.rows
     manifest = {
         "format": FORMAT,
@@ -162,8 +169,16 @@ def _write_files(
         "tick_columns": box.columns,
         **ctx.provenance,
         "config_sha256": hashlib.sha256(ctx.config_yaml.encode("utf-8")).hexdigest(),
+        "replay": replayable,
         "not_recorded": NOT_RECORDED,
-        "files": ["manifest.json", "config.yaml", "ticks.npy", DUMP_RECORDING, "events.jsonl"],
+        "files": [
+            "manifest.json",
+            "config.yaml",
+            "ticks.npy",
+            DUMP_RECORDING,
+            "events.jsonl",
+            REPLAY,
+        ],
     }
     (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1, default=str), encoding="utf-8")
     return sum(p.stat().st_size for p in tmp.iterdir())
@@ -192,9 +207,13 @@ def _write_recording(
             while e < len(events) and events[e][0] <= tick:
                 ev_tick, kind, where, obj = events[e]
                 e += 1
-                if kind == IN or kind == OUT:
+                if kind == IN or kind == OUT or kind == CMD:
                     extra = {"rec.tick": str(ev_tick)}
-                    direction = "in" if kind == IN else "out"
+                    direction = "out" if kind == OUT else "in"
+                    if kind != OUT:
+                        obj = getattr(obj, "msg", None)  # a received item: its message
+                        if obj is None:
+                            continue  # a cell member's heartbeat: in replay.pkl only
                     try:
                         chunks.append(pack_message_record(obj, direction, where, t, extra))
                         written += 1
@@ -222,13 +241,48 @@ def _write_recording(
     return written
 
 
+def _write_replay(path: Path, box: BlackBox, window: Window) -> dict[str, Any]:
+    """What a deterministic replay needs beside the ticks (occ/core/replay.py): the
+    robot's state before the window's first tick (its checkpoint, every part by its path),
+    and every input of the window with its tick: the received items as the loop took them
+    (their reception times and the requests parsed), the cell's heartbeats, the collision
+    verdicts, the drivers' hook errors. Returns the manifest's ``replay`` entry."""
+    cp = box.checkpointer
+    if window.checkpoint is None or cp is None or box.checkpoints is None:
+        why = "no checkpoint of the robot's state in the window"
+        return {"possible": False, "why": why}
+    first = window.first_row
+    whole = window.events_whole_from <= first
+    inputs = [
+        (tick, kind, where, obj)
+        for tick, kind, where, obj in window.loop_events
+        if kind == IN or kind == CMD or kind == VERDICT or kind == HOOK or kind == TRANSITION
+    ]
+    try:
+        blob = pickle.dumps(
+            {
+                "checkpoint": cp.dumps(window.checkpoint, box.checkpoints.baseline),
+                "inputs": cp.dumps_values(inputs),
+            },
+            protocol=pickle.HIGHEST_PROTOCOL,
+        )
+    except Exception as err:  # noqa: BLE001 - the dump is still a record: say why not
+        log.exception("black box: the replay inputs could not be written")
+        return {"possible": False, "why": f"inputs could not be written: {err!r}"}
+    path.write_bytes(blob)
+    entry: dict[str, Any] = {"possible": whole, "from_tick": first, "inputs": len(inputs)}
+    if not whole:
+        entry["why"] = f"inputs before tick {window.events_whole_from} were overwritten"
+    return entry
+
+
 def _write_events(path: Path, window: Window, box: BlackBox) -> int:
     """The events that are not messages (JSON lines). Returns how many."""
     rows, first = window.rows, window.first_row
     n = 0
     with open(path, "w", encoding="utf-8") as f:
         for tick, kind, where, obj in window.events:
-            if kind == IN or kind == OUT:
+            if kind == IN or kind == OUT or kind == HOOK or kind == CMD:
                 continue
             r = tick - first
             t = float(rows[r, 0]) if 0 <= r < len(rows) else None

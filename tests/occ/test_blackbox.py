@@ -159,7 +159,12 @@ def test_the_ring_holds_what_the_loop_read_and_did(tmp_path: Path) -> None:
     finally:
         rig.close()
     rows = np.load(path / "ticks.npy")
-    assert len(rows) == 100 and m["window"]["rows_lost"] == 0
+    assert len(rows) >= 100 and m["window"]["rows_lost"] == 0
+    # the window starts at the checkpoint at or before its 100 ticks (a replay's start)
+    assert m["replay"]["from_tick"] == m["window"]["first_tick"] == m["trigger"]["tick"] - (
+        len(rows) - 1
+    )
+    rows = rows[-100:]
     cols = m["tick_columns"]
     n = len(m["joints"])
     # the last 100 ticks before the dump's: the clock, the index, every reading, every setpoint
@@ -177,7 +182,9 @@ def test_the_ring_holds_what_the_loop_read_and_did(tmp_path: Path) -> None:
     assert float(pos_in[-1].metadata["rec.t"]) == sent_at * 0.001
     assert len({int(x.metadata["rec.tick"]) for x in pos_in}) == len(pos_in)  # one a tick
     cmd = [x for x in msgs if x.message_type == "COMMAND"]
-    assert [c.metadata["rec.tick"] for c in cmd] == [str(m["trigger"]["tick"])]
+    # Enable and Run in the first two ticks (the window starts at the first checkpoint), then
+    # the dump's request in the trigger's tick
+    assert [c.metadata["rec.tick"] for c in cmd] == ["0", "1", str(m["trigger"]["tick"])]
 
 
 @pytest.mark.req("SR-BOX-1")

@@ -1,0 +1,400 @@
+"""Deterministic replay of a black box dump: ``occ-record replay --deterministic DIR``.
+
+The robot is rebuilt from the dump's ``config.yaml`` (every interface on an in-process
+channel: nothing is sent or bound; the cell's heartbeats are not sent), in simulated time, and
+put in the state its checkpoint holds (occ/core/checkpoint.py): the state of every part before
+the window's first tick. Then each recorded tick runs again through :meth:`Robot.tick
+<occ.core.robot.Robot.tick>`, the robot's own code, with what that tick had:
+
+- the clock value it read, and the wall-clock offset the streams asked for;
+- every drive's reading as its hook returned it (the drivers keep their lifecycle and their
+  feedback checks; only the hooks that touch hardware are the replay's), and a hook's error
+  raised again where one was raised;
+- every item the streams took, in order, with its reception time; every request the
+  operator desk took (queued before the tick, as the interface thread did); every heartbeat
+  the cell took.
+
+After each tick its row (the replayed robot's own black box writes one) is compared with the
+recorded row, bit for bit as float64: the state, every position setpoint and effort written,
+and every joint's believed reading; and the tick's state transitions with theirs. The first
+difference is reported (tick, field, recorded, replayed); none means the replay is exact.
+
+``config`` replaces the dump's configuration (what-if: a changed gain); the replay then says
+where its outputs first differ.
+
+Not replayed, and reported as a divergence where it mattered: what another thread did to the
+loop's state (a hung loop's supervisor, a collision verdict that a worker thread delivered on
+the real clock: in simulated time the guard checks inline and the replay recomputes it), a
+drive's power-up on a thread of its own, samples the loop could not take in time (an
+overflowing queue).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import pickle
+import sys
+import tempfile
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from occ.clock import SimClock
+from occ.config import DaemonConfig
+from occ.core.checkpoint import build_readings, restore
+from occ.core.loader import load_config
+from occ.core.robot import Robot, build_robot
+from occ.core.wiring import checkpointer
+from occ.errors import DriverError
+from occ.recording.blackbox import CMD, HOOK, IN, TRANSITION
+from occ.recording.dump import REPLAY, read_manifest
+
+#: the row fields compared, by column prefix (the rest are inputs)
+COMPARED = ("state", "sp.", "ew.", "pos.", "vel.", "eff.", "stamp.")
+
+
+@dataclass
+class Divergence:
+    """The first difference between the recorded run and the replay."""
+
+    tick: int
+    t: float
+    field: str
+    recorded: Any
+    replayed: Any
+
+    def describe(self) -> str:
+        return (
+            f"tick {self.tick} (t={self.t:.6f} s): {self.field}: recorded {self.recorded!r}, "
+            f"replayed {self.replayed!r}"
+        )
+
+
+@dataclass
+class ReplayResult:
+    """What a replay found."""
+
+    first_tick: int
+    ticks: int = 0
+    #: (tick, from, to, event, reason) of every transition replayed
+    transitions: list[tuple[int, str, str, str, str]] = field(default_factory=list)
+    divergence: Divergence | None = None
+    #: slots of the checkpoint that could not be restored (named)
+    problems: list[str] = field(default_factory=list)
+    #: slots that the replayed robot's build made differently from the recorded robot's
+    #: (a changed configuration: kept as built here, not restored)
+    built_differently: list[str] = field(default_factory=list)
+
+    @property
+    def exact(self) -> bool:
+        return self.divergence is None
+
+    def report(self) -> dict[str, Any]:
+        """For ``--json``."""
+        d = self.divergence
+        return {
+            "exact": self.exact,
+            "first_tick": self.first_tick,
+            "ticks": self.ticks,
+            "divergence": None if d is None else vars(d),
+            "transitions": [
+                dict(zip(("tick", "from", "to", "event", "reason"), t, strict=True))
+                for t in self.transitions
+            ],
+            "not_restored": self.problems,
+            "built_differently": self.built_differently,
+        }
+
+    def describe(self, path: str | Path) -> str:
+        """For the terminal."""
+        last = self.first_tick + self.ticks - 1
+        lines = [f"{path}: ticks {self.first_tick}..{last} replayed ({self.ticks})"]
+        for tick, old, new, event, reason in self.transitions:
+            lines.append(f"  tick {tick}: {old} -> {new} ({event}): {reason}")
+        if self.built_differently:
+            lines.append(
+                "  built differently here (the configuration given): "
+                + ", ".join(self.built_differently[:8])
+                + (" ..." if len(self.built_differently) > 8 else "")
+            )
+        for p in self.problems:
+            lines.append(f"  NOT RESTORED: {p}")
+        if self.divergence is None:
+            lines.append("EXACT: every setpoint, effort, state and reading equal bit for bit")
+        else:
+            lines.append(f"DIVERGED at {self.divergence.describe()}")
+        return "\n".join(lines)
+
+
+class ReplayClock(SimClock):
+    """Simulated time that reads, as its wall clock, the offset the recorded tick had."""
+
+    __slots__ = ("to_wall",)
+
+    def __init__(self, start: float, to_wall: float) -> None:
+        super().__init__(start)
+        self.to_wall = to_wall
+
+    def wall_time(self) -> float:
+        return self._t + self.to_wall
+
+
+class _Replayed(Exception):
+    """A hook's error raised again: the same words (``repr`` and ``str``) as recorded."""
+
+    def __init__(self, text: str, rep: str) -> None:
+        super().__init__(text)
+        self._rep = rep
+
+    def __repr__(self) -> str:
+        return self._rep
+
+
+def _error(cls: tuple[str, str, str, str]) -> Exception:
+    module, name, text, rep = cls
+    if module.startswith("occ.") and name.endswith("Error"):
+        return DriverError(text)  # an OCCError passes through the driver as it is
+    return _Replayed(text, rep)
+
+
+class _Drives:
+    """The drivers' hardware hooks, answered from the recorded rows."""
+
+    def __init__(self, robot: Robot, columns: Sequence[str], built: dict[str, Any]) -> None:
+        self.row: np.ndarray | None = None
+        self.errors: dict[tuple[str, str], Exception] = {}
+        paths = checkpointer(robot).paths  # the drivers' paths, as the checkpoint names them
+        #: each driver's reading when the recorded robot was configured
+        self.built = {d.name: built.get(f"{paths.get(id(d))}.raw") for d in robot.hardware.drivers}
+        col = {c: i for i, c in enumerate(columns)}
+        for d, idx in robot.hardware.pairs:
+            names = [robot.joints[i].name for i in idx]
+            cols = [(col[f"raw.pos.{j}"], col[f"raw.vel.{j}"], col[f"raw.eff.{j}"]) for j in names]
+            d._read = self._reader(d.name, cols)  # type: ignore[method-assign]
+            d._write = self._writer(d.name)  # type: ignore[method-assign]
+            for hook in ("_configure", "_activate", "_deactivate", "_shutdown", "_safe_stop"):
+                setattr(d, hook, _nothing)
+            d.activation_waits = False  # type: ignore[misc]
+
+    def _reader(self, name: str, cols: list[tuple[int, int, int]]) -> Any:
+        def read(now: float) -> Any:
+            err = self.errors.pop((name, "read"), None)
+            if err is not None:
+                raise err
+            row = self.row
+            if row is None:  # configuring: what the recorded robot read then
+                return self.built.get(name) or _unread(len(cols))
+            return (
+                [float(row[p]) for p, _, _ in cols],
+                [float(row[v]) for _, v, _ in cols],
+                [float(row[e]) for _, _, e in cols],
+            )
+
+        return read
+
+    def _writer(self, name: str) -> Any:
+        def write(values: Sequence[float], now: float) -> None:
+            err = self.errors.pop((name, "write"), None)
+            if err is not None:
+                raise err
+
+        return write
+
+
+def _nothing(*_args: Any) -> None:
+    return None
+
+
+def _unread(n: int) -> tuple[list[float], list[float], list[float]]:
+    nan = [math.nan] * n
+    return nan, nan, nan
+
+
+def load_dump(path: str | Path) -> tuple[dict[str, Any], DaemonConfig, np.ndarray, bytes]:
+    """A dump's manifest, configuration, rows and replay file (ValueError when it has none)."""
+    p = Path(path)
+    manifest = read_manifest(p)
+    entry = manifest.get("replay") or {}
+    if not entry.get("possible"):
+        why = entry.get("why", "a dump of a version without replay")
+        raise ValueError(f"{p}: cannot be replayed: {why}")
+    raw = yaml.safe_load((p / "config.yaml").read_text(encoding="utf-8"))
+    config = DaemonConfig.model_validate(raw, context={"base_dir": p})
+    rows = np.load(p / "ticks.npy", allow_pickle=False)
+    return manifest, config, rows, (p / REPLAY).read_bytes()
+
+
+def for_replay(config: DaemonConfig, scratch: Path) -> DaemonConfig:
+    """``config`` rebuilt where nothing leaves the process: every interface in-process, the
+    black box's own dumps in ``scratch`` (never written: the replay compares its rows)."""
+    interfaces = tuple(
+        itf.model_copy(
+            update={"transport": "inproc", "channel": f"replay-{id(scratch)}-{itf.name}"}
+        )
+        for itf in config.interfaces
+    )
+    box = config.black_box.model_copy(update={"enabled": True, "dir": scratch})
+    return config.model_copy(update={"interfaces": interfaces, "black_box": box})
+
+
+def replay_dump(path: str | Path, config: DaemonConfig | None = None) -> ReplayResult:
+    """Replay the dump at ``path`` (module docstring), with ``config`` instead of its own when
+    given. ValueError when it cannot be replayed (no checkpoint, inputs overwritten)."""
+    manifest, recorded_config, rows, blob = load_dump(path)
+    columns: list[str] = manifest["tick_columns"]
+    with tempfile.TemporaryDirectory(prefix="occ-replay-") as scratch:
+        cfg = for_replay(config or recorded_config, Path(scratch))
+        return _run(cfg, manifest, columns, rows, blob)
+
+
+def _run(
+    cfg: DaemonConfig,
+    manifest: dict[str, Any],
+    columns: list[str],
+    rows: np.ndarray,
+    blob: bytes,
+) -> ReplayResult:
+    wall_at = columns.index("to_wall")
+    first = int(manifest["window"]["first_tick"])
+    clock = ReplayClock(float(rows[0, 0]), _first_finite(rows[:, wall_at]))
+    robot = build_robot(cfg, clock=clock)
+    try:
+        outer = _loads(blob)
+        drives = _Drives(robot, columns, build_readings(outer["checkpoint"]))
+        robot.black_box.writer = None  # its rows are compared, its dumps never written
+        robot.configure()
+        if robot.cell is not None:
+            robot.cell.link.send = lambda beat: len(robot.cell.link.peers)  # type: ignore[union-attr,method-assign]
+        cp = checkpointer(robot)
+        result = ReplayResult(first)
+        result.problems, result.built_differently = restore(cp, outer["checkpoint"])
+        robot.black_box.resync()
+        inputs = cp.loads(outer["inputs"])
+        _replay_ticks(robot, clock, drives, columns, rows, inputs, result)
+        return result
+    finally:
+        robot.shutdown()
+
+
+def _loads(blob: bytes) -> dict[str, bytes]:
+    """The replay file's outer layer: a dict of two byte strings (no class may load)."""
+
+    class _Plain(pickle.Unpickler):
+        def find_class(self, module: str, name: str) -> Any:
+            raise pickle.UnpicklingError(f"replay.pkl may not load {module}.{name}")
+
+    out: dict[str, bytes] = _Plain(io.BytesIO(blob)).load()
+    return out
+
+
+def _first_finite(values: np.ndarray) -> float:
+    ok = values[np.isfinite(values)]
+    return float(ok[0]) if len(ok) else 1_700_000_000.0
+
+
+def _replay_ticks(
+    robot: Robot,
+    clock: ReplayClock,
+    drives: _Drives,
+    columns: list[str],
+    rows: np.ndarray,
+    inputs: list[tuple[int, int, Any, Any]],
+    result: ReplayResult,
+) -> None:
+    by_tick: dict[int, list[tuple[int, Any, Any]]] = defaultdict(list)
+    for tick, kind, where, obj in inputs:
+        by_tick[tick].append((kind, where, obj))
+    compared = [i for i, c in enumerate(columns) if c.startswith(COMPARED)]
+    wall_at = columns.index("to_wall")
+    box = robot.black_box
+    streams, cell = robot.streams, robot.cell
+    pending: list[tuple[str, Any]] = []
+    robot.streams.drain = lambda now, recorder: streams.replay(now, recorder, pending)  # type: ignore[method-assign]
+    beats: list[Any] = []
+    if cell is not None:
+        cell.link.take = lambda: list(beats)  # type: ignore[method-assign]
+    transitions: list[tuple[int, str, str, str, str]] = []
+    here = [0]
+    robot.state_machine.add_listener(
+        lambda old, new, event, reason, t: transitions.append(
+            (here[0], old.value, new.value, event, reason)
+        )
+    )
+    for r in range(len(rows)):
+        row = rows[r]
+        tick = result.first_tick + r
+        here[0] = tick
+        t, k = float(row[0]), int(row[1])
+        if math.isfinite(row[wall_at]):
+            clock.to_wall = float(row[wall_at])
+        clock.set(t)
+        drives.row = row
+        pending.clear()
+        beats.clear()
+        expected: list[tuple[int, str, str, str, str]] = []
+        for kind, where, obj in by_tick.get(tick, ()):
+            if kind == IN and where == "cell":
+                beats.append(obj)
+            elif kind == IN:
+                pending.append((where, obj))
+            elif kind == CMD:
+                robot.interfaces.commands.put(obj)
+            elif kind == HOOK:
+                drives.errors[tuple(where)] = _error(obj)
+            elif kind == TRANSITION:
+                expected.append((tick, *obj))
+        robot.tick(t, k)
+        result.ticks += 1
+        got = box._view[(box.count - 1) % box._slots]
+        diff = _first_difference(row, got, compared, columns)
+        if diff is None and transitions != expected:
+            diff = ("transitions", expected, list(transitions))
+        result.transitions.extend(transitions)
+        transitions.clear()
+        if diff is not None:
+            result.divergence = Divergence(tick, t, *diff)
+            return
+
+
+def _first_difference(
+    recorded: np.ndarray, replayed: np.ndarray, compared: list[int], columns: list[str]
+) -> tuple[str, Any, Any] | None:
+    a = recorded[compared].view(np.uint64)
+    b = replayed[compared].view(np.uint64)
+    if np.array_equal(a, b):
+        return None
+    i = int(np.flatnonzero(a != b)[0])
+    c = compared[i]
+    return columns[c], float(recorded[c]), float(replayed[c])
+
+
+def bit_equal(a: float, b: float) -> bool:
+    """Equal as float64 bit patterns (NaN equals the same NaN)."""
+    return np.float64(a).view(np.uint64) == np.float64(b).view(np.uint64)
+
+
+#: exit status of a replay that diverged from the recorded run
+DIVERGED = 4
+
+
+def main_deterministic(path: Path, config: Path | None, *, as_json: bool = False) -> int:
+    """``occ-record replay --deterministic DIR [--config FILE] [--json]``: 0 exact, 4
+    diverged, 1 when it cannot be replayed."""
+    try:
+        cfg = load_config(config) if config is not None else None
+        result = replay_dump(path, cfg)
+    except (ValueError, OSError) as err:
+        print(f"occ-record: {err}", file=sys.stderr)
+        return 1
+    if as_json:
+        print(json.dumps(result.report(), indent=1, default=str))
+    else:
+        print(result.describe(path))
+    return 0 if result.exact else DIVERGED
