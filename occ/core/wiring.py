@@ -266,6 +266,7 @@ def build_black_box(robot: Assembling, controllers: Sequence[Controller]) -> Bla
     box.bind(robot.data, robot.joints, robot.collision, writer, cfg.dir)
     robot.streams.tap = box.took
     robot.alarms.tap = box.sent
+    robot.alarms.note = box.note  # the loss events and drive failures behind a stop
     robot.state_machine.add_listener(box.on_transition)
     return box
 
