@@ -61,6 +61,9 @@ class Alarms:
         self.on_supervisor_trip: Callable[[str], None] | None = None
         #: ``tap(status, "*")``: every STATUS sent, from any thread (the black box), or None
         self.tap: Callable[[Message, str], None] | None = None
+        #: ``note(what, obj)``: the facts behind a stop, kept in the black box when it happens
+        #: (the loss event with its stream, the drive failures), or None; never per tick
+        self.note: Callable[[str, Any], None] | None = None
 
     def plugin_error(self, where: str, err: BaseException) -> None:
         """An exception from a plugin or handler: FAULT with an alert naming it."""
@@ -81,9 +84,12 @@ class Alarms:
         are heard by whoever is connected, once each, not every tick."""
         reason = describe(failures)
         state = self.states.state
+        note = self.note  # which drive, which operation, its words (occ-record why): once each
         if state is RobotState.FAULT or state is RobotState.ESTOP:
             new = [f for f in failures if (f.driver, f.action) not in self._told]
             if new:
+                if note is not None:
+                    note("drive failure", {"state": state.value, "failures": new})
                 self._told.update((f.driver, f.action) for f in new)
                 text = f"while {state.value}: {describe(new)}"
                 log.error("ALERT: %s", text)
@@ -92,6 +98,8 @@ class Alarms:
                 self._errors_logged += 1
                 log.error("while %s: %s", state.value, reason)
             return
+        if note is not None:
+            note("drive failure", {"state": state.value, "failures": list(failures)})
         self._told.update((f.driver, f.action) for f in failures)
         self.fault(reason)
 
@@ -113,6 +121,8 @@ class Alarms:
         """Act on the loss monitor: only while RUNNING does the stream move the robot, so only
         then is its loss an alert (before Run, or while stopped, it is only counted)."""
         where = f"stream {self.streams.input}"
+        if self.note is not None:  # the event as judged, its numbers and times (occ-record why)
+            self.note("loss", {"stream": self.streams.input, "state": state.value, "event": event})
         if state is not RobotState.RUNNING:
             log.debug("%s: %s (%s, not acted on in %s)", where, event.kind, event.cause, state)
             return
@@ -134,6 +144,10 @@ class Alarms:
         the monitor re-arms (its master may come back and be handed control later); the
         others are logged and, like the owner's, told as a ``STREAM`` warning."""
         owner = self.streams.input
+        if self.note is not None:
+            self.note(
+                "loss", {"stream": name, "state": state.value, "event": event, "owner": owner}
+            )
         if state is not RobotState.RUNNING:
             log.debug(
                 "stream %s: %s (%s, not acted on in %s)", name, event.kind, event.cause, state

@@ -587,6 +587,9 @@ class LossEvent:
     run: int
     time: float
     since_last_good_s: float
+    #: the first and last sequence numbers judged lost (a latch proven by a gap in the
+    #: numbers), None otherwise: what ``occ-record why`` names from a black box dump
+    lost: tuple[int, int] | None = None
 
     @property
     def latched(self) -> bool:
@@ -862,7 +865,12 @@ class LossMonitor:
         if gap > self.max_consecutive and not self._tripped:
             lg = self._last_good
             since = now - lg if lg is not None else 0.0
-            self._trip(f"{gap} consecutive packets lost ({where})", source, gap, now, since)
+            seq = self._last_seq  # the number that proved the gap (sequenced streams)
+            lost = None
+            if source == "sequence" and seq is not None:
+                lost = ((seq - gap) & _MASK32, (seq - 1) & _MASK32)
+            cause = f"{gap} consecutive packets lost ({where})"
+            self._trip(cause, source, gap, now, since, lost)
 
     def _check_clock(self, ts: float | None, rx: float, rx_lo: float) -> Verdict | None:
         """The timestamp against the peer's learned clock offset: a sample too old (or from
@@ -969,11 +977,19 @@ class LossMonitor:
         if p is None or _PRIORITY[event.kind] >= _PRIORITY[p.kind]:
             self._pending = event
 
-    def _trip(self, cause: str, source: str, run: int, now: float, since: float = 0.0) -> None:
+    def _trip(
+        self,
+        cause: str,
+        source: str,
+        run: int,
+        now: float,
+        since: float = 0.0,
+        lost: tuple[int, int] | None = None,
+    ) -> None:
         self._tripped = True
         self._holding = False
         self.trips += 1
-        event = LossEvent("latch", cause, source, run, now, since)
+        event = LossEvent("latch", cause, source, run, now, since, lost)
         self.trip_event = event
         self._post(event)
 

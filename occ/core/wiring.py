@@ -274,6 +274,7 @@ def build_black_box(robot: Assembling, controllers: Sequence[Controller]) -> Bla
     robot.alarms.tap = box.sent
     if robot.cell is not None:
         robot.cell.tap = box.took
+    robot.alarms.note = box.note  # the loss events and drive failures behind a stop
     robot.state_machine.add_listener(box.on_transition)
     return box
 

@@ -18,6 +18,7 @@ import time
 from typing import TYPE_CHECKING, Any
 
 import igtl
+from igtl.auth import HMAC_KEY
 from igtl.messages.base import Message
 from igtl.transport.common import RateLimit
 from occ.core.safety import RobotState
@@ -217,6 +218,8 @@ class OperatorDesk:
             if req.kind == "query":
                 reply = self._answer_query(req, wall)
             else:
+                if r.black_box is not None:  # who asked (occ-record why): commands, not queries
+                    r.black_box.note("request", _requester(item, req.name))
                 text = self._execute(req, item, now)
                 if text is None:  # the worker replies (statistics, the state table)
                     self.handled += 1
@@ -515,3 +518,17 @@ class OperatorDesk:
 def _let_others_run() -> None:
     """Give up the interpreter lock for a moment (the loop thread takes it if it waits)."""
     time.sleep(0)
+
+
+def _requester(item: Inbound, name: str) -> dict[str, str]:
+    """Who sent a command, as the black box notes it: the interface, the command's name, the
+    sender's address and role, and whether it was signed (a shared key's HMAC)."""
+    host, port = item.peer.address[:2]
+    signed = HMAC_KEY in item.msg.metadata
+    return {
+        "interface": item.interface,
+        "name": name,
+        "peer": f"{host}:{port}",
+        "role": item.role,
+        "signed": "yes" if signed else "no",
+    }

@@ -1,4 +1,5 @@
-"""``occ-record``: export, replay or plot a recording (occ/recording/record.py is the format).
+"""``occ-record``: export, replay or plot a recording (occ/recording/record.py is the format),
+or tell why a black box dump was written (``why``, occ/recording/why.py).
 
 A module of its own so that the recording format imports neither its plots
 (occ/recording/plot.py) nor its exports (occ/recording/export.py), which import it: no import
@@ -17,6 +18,10 @@ Exit status of ``occ-record export``:
 - 3: SALVAGED: the recording is damaged (cut mid-message, a bad header, damaged messages);
   what could be read was exported, and the message on stderr says where the damage is (its
   byte offset, the last message read, its time).
+
+Exit status of ``occ-record why DIR``: 0 when the stop was explained (what the dump did not
+hold is said in the output); 1 when DIR is not a black box dump (the message says why); 2 for
+a wrong command.
 """
 
 from __future__ import annotations
@@ -41,6 +46,8 @@ def main(argv: list[str] | None = None) -> int:
             return _plot(args)
         if args.cmd == "export":
             return _export(args)
+        if args.cmd == "why":
+            return _why(args)
         return _replay(p, args)
     except (OSError, igtl.IGTLError) as err:
         print(f"occ-record: {err}", file=sys.stderr)
@@ -50,15 +57,18 @@ def main(argv: list[str] | None = None) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="occ-record",
-        description="Export, replay or plot an occd recording.",
+        description="Export, replay or plot an occd recording; tell why a black box dump was "
+        "written.",
         epilog="export exits 0 when complete, 3 when a damaged recording was salvaged up to "
         "the damage, 1 when nothing was exported, 2 for a wrong command (an output name it "
-        "cannot write)",
+        "cannot write); why exits 0 when it explained the dump, 1 when DIR is not a dump, 2 "
+        "for a wrong command",
     )
     sub = p.add_subparsers(dest="cmd", required=True)
     _add_export(sub)
     _add_replay(sub)
     _add_plot(sub)
+    _add_why(sub)
     return p
 
 
@@ -145,6 +155,48 @@ def _add_plot(sub: Any) -> None:
         default=None,
         help="the master's recording: its own POSITION stream as the reference (every packet)",
     )
+
+
+def _add_why(sub: Any) -> None:
+    w = sub.add_parser(
+        "why",
+        help="the chain that led to a black box dump: the numbers a loss stop judged lost, "
+        "the samples a late stream brought, a drive fault's reading and rule, a collision's "
+        "link and clearance, who asked an EStop or a dump; the transitions before it",
+    )
+    w.add_argument("dir", type=Path, help="a black box dump (black_box.dir/<robot>-<time>-<cause>)")
+    w.add_argument("--json", action="store_true", help="JSON for machines instead of text")
+    w.add_argument(
+        "--last",
+        type=_seconds,
+        default=5.0,
+        metavar="S",
+        help="the state transitions and holds of the last S seconds before the trigger (default 5)",
+    )
+
+
+def _seconds(text: str) -> float:
+    try:
+        s = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number of seconds: {text!r}") from None
+    if not s >= 0.0 or s == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be 0 or more seconds, got {text!r}")
+    return s
+
+
+def _why(args: argparse.Namespace) -> int:
+    from occ.recording.why import NotADump, explain, load_dump, to_json
+    from occ.recording.whytext import render
+
+    try:
+        dump = load_dump(args.dir)
+    except NotADump as err:
+        print(f"occ-record why: {err}", file=sys.stderr)
+        return 1
+    x = explain(dump, args.last)
+    sys.stdout.write(to_json(x) + "\n" if args.json else render(x))
+    return 0
 
 
 def _plot(args: argparse.Namespace) -> int:
