@@ -86,6 +86,17 @@ _SAFE_GLOBALS = {
 _SAFE_MODULES = ("numpy", "numpy.core", "numpy._core", "numpy.core.multiarray")
 
 
+class _Keep:
+    """A slot whose value is not state (an object of a class marked ``checkpoint_opaque``
+    made after the robot was built: the supervisor's thread): the replay keeps its own."""
+
+    def __repr__(self) -> str:
+        return "<kept as built>"
+
+
+KEEP = _Keep()
+
+
 class Unsaved:
     """A slot whose value could not be copied at the checkpoint (named by :func:`restore`)."""
 
@@ -274,6 +285,8 @@ class Checkpointer:
             out = array(v.typecode, v)
         elif _wiring(v, self.roots):
             return v
+        elif getattr(t, "checkpoint_opaque", False):
+            return KEEP
         else:
             return copy.deepcopy(v, memo)  # it records what it copied in the memo
         memo[id(v)] = out
@@ -339,6 +352,10 @@ class Checkpointer:
         return _PartUnpickler(io.BytesIO(blob), self.parts, self.roots).load()
 
 
+def _keep() -> _Keep:
+    return KEEP
+
+
 def _mapping_proxy(d: dict[Any, Any]) -> MappingProxyType[Any, Any]:
     return MappingProxyType(d)
 
@@ -367,6 +384,8 @@ class _PartPickler(pickle.Pickler):
     def reducer_override(self, obj: Any) -> Any:
         if isinstance(obj, Unsaved):
             return (Unsaved, (obj.why,))
+        if obj is KEEP:
+            return (_keep, ())
         if type(obj) is MappingProxyType:  # a message's metadata, read-only
             return (_mapping_proxy, (dict(obj),))
         return NotImplemented
@@ -426,6 +445,8 @@ def restore(checkpointer: Checkpointer, blob: bytes) -> tuple[list[str], list[st
             continue
         if isinstance(value, Unsaved):
             problems.append(f"{path}: {value.why}")
+            continue
+        if value is KEEP:
             continue
         try:
             object.__setattr__(holder, name, value)

@@ -39,12 +39,16 @@ log = logging.getLogger(__name__)
 class SupervisorThread:
     """Checks a :class:`Supervisor` on its own thread, waking when a trip could first be due.
 
+    Not the loop's state: a checkpoint keeps no part of it (occ/core/checkpoint.py).
+
     After each check it sleeps until the moment the loop's silence would exceed the timeout
     (last beat + timeout), at most ``timeout / 2`` (see :meth:`sleep_after`): a healthy
     loop costs two wake-ups per timeout (100 a second at the default 20 ms, where a fixed
     ``timeout / 4`` cost 200), a hung loop is caught about one timeout after its last beat, and
     the supervisor never sleeps so long that :meth:`Supervisor.check` would take its own
     normal sleep for a paused process."""
+
+    checkpoint_opaque = True
 
     def __init__(
         self,
