@@ -47,7 +47,8 @@ from mypy_extensions import mypyc_attr
 
 import igtl
 from igtl.auth import ReplayGuard, load_key, sign, verify
-from igtl.messages.base import Message
+from igtl.codec import unpack
+from igtl.messages.base import Message, join_wire
 from igtl.transport import InprocTransport, Peer, TCPClient, TCPServer, UDPEndpoint
 from igtl.transport.common import AccessList, RateLimit
 from occ.errors import CommandError
@@ -90,6 +91,22 @@ class Inbound:
 
 #: what a stream queue holds: a received message with its event (a pose or a discrete input)
 StreamItem = Inbound
+
+
+def stream_item(interface: str, peer: Peer, msg: Message, t_rx: float) -> StreamItem:
+    """A stream's message as the loop takes it, decoded once (on the interface thread): a
+    pose as a typed sample (one object: the 500 Hz path), another input (fixture definitions,
+    keyframes) as its event. The black box rebuilds its items with it (from their bytes)."""
+    sample = pose_sample(interface, peer, msg, t_rx)
+    event = sample if sample is not None else decode(interface, peer, msg, t_rx)
+    return Inbound(interface, peer, msg, t_rx, event=event)
+
+
+def rebuild_stream_item(interface: str, peer: Peer, wire: Any, t_rx: float) -> StreamItem:
+    """A stream item kept as its message's wire bytes (``Message._wire``: bytes, or the
+    decoder's pieces) rebuilt as :func:`stream_item` built it (the black box's writer)."""
+    data = wire if isinstance(wire, bytes) else join_wire(wire)
+    return stream_item(interface, peer, unpack(data, crc_check=False), t_rx)
 
 
 class StreamQueue:
@@ -408,10 +425,7 @@ class Interface:
                     return None
                 # decoded here, once: a pose as a typed sample (one object: the 500 Hz
                 # path), another input (fixture definitions, keyframes) as its event
-                name = self.name
-                sample = pose_sample(name, peer, msg, t_rx)
-                event = sample if sample is not None else decode(name, peer, msg, t_rx)
-                return Inbound(name, peer, msg, t_rx, event=event)
+                return stream_item(self.name, peer, msg, t_rx)
         if is_operator_request(msg) or mtype in self.command_inputs:
             self._command_input(peer, msg, t_rx)
             return None

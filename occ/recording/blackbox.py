@@ -79,6 +79,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from occ.core.safety import RobotState
+from occ.net.interfaces import rebuild_stream_item
 from occ.recording.record import STATE_CODES
 
 if TYPE_CHECKING:
@@ -89,6 +90,8 @@ log = logging.getLogger(__name__)
 
 #: event kinds (the event ring's ``kind`` column)
 IN, OUT, TRANSITION, VERDICT, NOTE, REQUEST, HOOK, CMD = 1, 2, 3, 4, 5, 6, 7, 8
+#: a stream item kept as its wire bytes, reception time and peer (read back as IN)
+_IN_WIRE = 9
 KIND_NAMES = {
     IN: "in",
     OUT: "out",
@@ -212,6 +215,9 @@ class BlackBox:
         self._ev_kind = array("b", bytes(self._ev_slots))
         self._ev_where: list[Any] = [None] * self._ev_slots
         self._ev_obj: list[Any] = [None] * self._ev_slots
+        # a stream item's reception time and peer (_IN_WIRE events)
+        self._ev_t = array("d", bytes(8 * self._ev_slots))
+        self._ev_peer: list[Any] = [None] * self._ev_slots
         #: events written since start
         self.ev_count = 0
         self._off_loop: deque[tuple[int, int, Any, Any]] = deque(maxlen=OFF_LOOP_EVENTS)
@@ -283,19 +289,17 @@ class BlackBox:
             self.writer.stop()
 
     def outputs_tap(self, recorder: Any | None) -> Callable[[Any, str, float], None] | None:
-        """What the output scheduler calls with each message it sent: this box's
-        :meth:`sent` and, when one is attached, the recorder's ``record_message``."""
+        """What the output scheduler calls with each message it sent: the recorder's
+        ``record_message`` when one is attached. The black box keeps none of them: the
+        periodic outputs (the tip to 3D Slicer, the stream to the slave, the return channel)
+        are what the rows' readings and setpoints make of the state, and a deterministic
+        replay makes them again; 30 s of 500 Hz message objects kept alive would cost every
+        collection of the interpreter (docs/BENCHMARKS.md, "The black box"). Alerts and
+        replies are kept (:meth:`sent`, from the alarms and the operator desk)."""
         if recorder is None:
-            return self.sent if self.enabled else None
+            return None
         record = recorder.record_message
-        if not self.enabled:
-            return lambda m, iface, at: record(m, "out", iface, at)
-
-        def both(m: Any, iface: str, at: float) -> None:
-            self.sent(m, iface)
-            record(m, "out", iface, at)
-
-        return both
+        return lambda m, iface, at: record(m, "out", iface, at)
 
     # ------------------------------------------------------------------ loop thread
     def resync(self) -> None:
@@ -323,8 +327,22 @@ class BlackBox:
     def took(self, item: Any, interface: str) -> None:
         """An input the streams took (a received message as the loop saw it:
         :class:`~occ.net.interfaces.Inbound`) or the cell (a member's heartbeat,
-        ``interface`` ``cell``)."""
-        self._put(IN, interface, item)
+        ``interface`` ``cell``). A received stream message is kept as its wire bytes, its
+        reception time and its peer, no object of its own (the collector never walks 30 s of
+        messages), and rebuilt as the interface built it when a dump reads it."""
+        msg = getattr(item, "msg", None)
+        wire = None if msg is None else msg._wire
+        if wire is None or not self.enabled or threading.get_ident() != self._loop_ident:
+            self._put(IN, interface, item)
+            return
+        i = self.ev_count % self._ev_slots
+        self._ev_tick[i] = self.count
+        self._ev_kind[i] = _IN_WIRE
+        self._ev_where[i] = interface
+        self._ev_obj[i] = wire
+        self._ev_t[i] = item.t_rx
+        self._ev_peer[i] = item.peer
+        self.ev_count += 1
 
     def took_request(self, item: Any, interface: str) -> None:
         """A received item the operator desk took (a request, a discrete input)."""
@@ -505,6 +523,8 @@ class BlackBox:
         slots = self._ev_slots
         start = max(0, end - self._ev_slots + CHUNK)
         ticks: list[int] = []
+        rx: list[float] = []
+        peers: list[Any] = []
         kinds: list[int] = []
         wheres: list[Any] = []
         objs: list[Any] = []
@@ -516,10 +536,16 @@ class BlackBox:
             kinds.extend(self._ev_kind[s : s + m])
             wheres.extend(self._ev_where[s : s + m])
             objs.extend(self._ev_obj[s : s + m])
+            rx.extend(self._ev_t[s : s + m])
+            peers.extend(self._ev_peer[s : s + m])
             e += m
             time.sleep(0)
         gone = max(0, (self.ev_count + 1 - slots) - start)
-        del ticks[:gone], kinds[:gone], wheres[:gone], objs[:gone]
+        del ticks[:gone], kinds[:gone], wheres[:gone], objs[:gone], rx[:gone], peers[:gone]
+        for n, kind in enumerate(kinds):  # stream items kept as bytes: rebuilt
+            if kind == _IN_WIRE:
+                kinds[n] = IN
+                objs[n] = rebuild_stream_item(wheres[n], peers[n], objs[n], rx[n])
         # events overwritten before the window's first tick: the first tick kept may have
         # lost some, the next ones are whole
         cut = start + gone > 0 and bool(ticks)
