@@ -53,6 +53,15 @@ try:
             if not wait_port(ports[port], 30.0, procs[-1]):
                 raise SystemExit(f"{root}: {role} did not start")
     time.sleep(duration)
+    rss = {}  # resident memory at the end (kB), before the daemons are stopped
+    for i, proc in enumerate(procs):
+        try:
+            status = Path(f"/proc/{proc.pid}/status").read_text()
+            rss[i] = int(
+                next(ln for ln in status.splitlines() if ln.startswith("VmRSS")).split()[1]
+            )
+        except (OSError, StopIteration, ValueError):
+            rss[i] = 0
 finally:
     stop_processes(procs)
 for n, root in enumerate(trees):
@@ -61,5 +70,7 @@ for n, root in enumerate(trees):
     print(
         f"{str(root):40s} slave {s['cpu_percent']:5.2f} %  master {m['cpu_percent']:5.2f} %  "
         f"compute p50 slave {s['compute_us']['p50']:5.1f} µs  master {m['compute_us']['p50']:5.1f}"
-        f" µs  {s['final_state']}/{m['final_state']}"
+        f" µs  late p99.9 slave {s['lateness_us']['p99_9']:6.1f} µs  master "
+        f"{m['lateness_us']['p99_9']:6.1f} µs  RSS {rss.get(2 * n, 0) / 1024:5.1f}/"
+        f"{rss.get(2 * n + 1, 0) / 1024:5.1f} MB  {s['final_state']}/{m['final_state']}"
     )
