@@ -113,11 +113,6 @@ class StreamInputs:
         self.tap: Callable[[StreamItem, str], None] | None = None
 
     @property
-    def wall_offset(self) -> float | None:
-        """Wall time minus loop time as this tick asked it (None: no sample needed it)."""
-        return self._to_wall
-
-    @property
     def holding(self) -> bool:
         """The stream in control is overdue (or latched): the robot must not follow it."""
         monitor = self.monitor

@@ -12,53 +12,53 @@ element assignment as the State Data Table is, occ/core/statetable.py):
 
 - ``t``: the clock value the tick used (``now``), ``k``: its deadline index, ``state``: the
   state code the tick ended in (the recording's codes);
-- every joint's drive reading as the loop got it: ``pos``, ``vel``, ``eff`` and ``stamp`` (the
-  reading's time; NaN before a joint's first measurement);
+- ``pos.<joint>``: the position each joint believes (what the loop controlled from);
 - what the loop wrote to the drives: ``sp.<joint>`` (position setpoints) and ``ew.<joint>``
-  (efforts), NaN in a tick that wrote none.
+  (efforts), NaN in a tick that wrote none;
+- ``raw.pos|vel|eff.<joint>``: every drive's reading as its hook returned it, before the
+  feedback checks (NaN in a tick that did not read it);
+- ``to_wall``: the wall clock minus the loop's clock as the streams asked it this tick (the
+  offset against which sample timestamps were judged; NaN when no sample needed it).
 
 And in the *event ring*, each with the index of the tick it happened in (the row it belongs
-to): every message the loop consumed (a stream sample, an operator's request: the message
-object itself, which keeps its wire bytes), every message it sent (outputs, replies, alerts),
-every state transition with its event and reason, each collision guard verdict with the tick
-the loop first saw it, a controller's note of a worker's result it took (a keyframe plan), and
-the dump requests. Events from other threads (a reply answered later, an alert from the
-supervisor's thread, a verdict published off the loop) go to a small bounded deque beside the
-ring, stamped with the tick under way.
+to): every input the loop consumed (a stream item as its wire bytes, reception time and peer;
+an operator's request as the item the desk took; a cell member's heartbeat), the alerts and
+replies sent, every state transition with its event and reason, each collision guard verdict
+with the tick the loop first saw it, a driver hook's error, a controller's note of a worker's
+result it took (a keyframe plan), the facts behind a stop (``note``), and the dump requests.
+Events from other threads (a reply answered later, an alert from the supervisor's thread, a
+verdict published off the loop) go to a small bounded deque beside the ring, stamped with the
+tick under way. The periodic outputs (the tip to 3D Slicer, the stream to the slave) are not
+kept: they are what the rows make of the state, and a replay makes them again.
+
+Every :data:`CHECKPOINT_S` the loop, in the time a tick leaves before its next deadline
+(:meth:`BlackBox.spare`; in simulated time at the end of the tick), takes a *checkpoint* of the
+robot's state (occ/core/checkpoint.py); a dump's window starts at the last checkpoint at or
+before its ``seconds``, so a deterministic replay (occ/core/replay.py) starts from the state
+the robot had there and runs every tick of the window again.
 
 Cost on the loop thread (docs/BENCHMARKS.md, "The black box"): element assignments into the
-preallocated rings and a reference stored per message; no I/O, no lock, no container grows.
-What Python allocates regardless are the integer and float temporaries of the arithmetic (as
-in the State Data Table) and, at a transition or a dump request (rare, not per tick), a tuple
-and the request handed to the writer. A dump costs the loop only that request: the writer
-thread copies the window out of the live ring, oldest rows first, in chunks that hand the
-interpreter lock back, while the loop goes on writing (the ring has a margin of
-:data:`MARGIN_S` beyond ``seconds``, so the rows it copies are not overwritten meanwhile; rows
-it finds overwritten after all are dropped and the dump says so). Nothing is swapped or
-stopped, so consecutive dumps each hold their whole window. In simulated time the dump is
-written inline, at the end of the tick that closes its window (exact, repeatable runs, as the
-collision guard checks inline there); on the real clock always by the writer thread.
+preallocated rings and a reference stored per input; no I/O, no lock, no container grows, and
+no object kept per stream message (the collector never walks 30 s of them). What Python
+allocates regardless are the integer and float temporaries of the arithmetic (as in the State
+Data Table) and, at a transition or a dump request (rare, not per tick), a tuple and the
+request handed to the writer; a checkpoint (once a second, in spare time) copies the state. A
+dump costs the loop only that request: the writer thread copies the window out of the live
+ring, oldest rows first, in chunks that hand the interpreter lock back, while the loop goes on
+writing (the ring has a margin of :data:`MARGIN_S` plus :data:`CHECKPOINT_S` beyond
+``seconds``, so the rows it copies are not overwritten meanwhile; rows it finds overwritten
+after all are dropped and the dump says so). Nothing is swapped or stopped, so consecutive
+dumps each hold their whole window. In simulated time the dump is written inline, at the end
+of the tick that closes its window (exact, repeatable runs, as the collision guard checks
+inline there); on the real clock always by the writer thread.
 
-What a deterministic replay (issue 41, item 4, built on these dumps) still needs and this does
-not record, and how to close each gap:
-
-- *The state of every part at the ring's first tick*: the controllers' integrators and filters,
-  the loss monitors' counters and clock offsets, the motion's re-entry ramp, the collision
-  guard's run threshold, the drives' own state (a simulated drive's dynamics). A replay can
-  start from a quiet tick (READY, or holding with no stream) and compare only from there; to
-  close it, give each part a ``snapshot()``/``restore()`` of its few numbers, taken by the
-  writer thread at a quiet tick into a third ring slot (a checkpoint every few seconds).
-- *The order within a tick of events from other threads*: a reply sent off the loop, or a
-  collision verdict swapped in by the worker between the admission of a setpoint and the
-  guard's poll in the same tick, is stamped with its tick only (in simulated time the guard
-  checks inline and this cannot happen). To close it: the guard records the verdict each
-  admission used (its identity is enough).
-- *A planner's result* is noted with the tick the controller took it (``ControllerContext.note``);
-  its content is the controller's (a keyframe plan is recomputed deterministically from the
-  keyframes and the request, both recorded as inputs).
-- *Inputs an interface refused before the loop* (authentication, ownership, a full queue) never
-  reach the loop and are counted by the interfaces, not recorded: they cannot change what the
-  loop does.
+What a deterministic replay cannot reproduce, because no tick of the loop did it (reported as
+a divergence where it mattered): another thread's change to the loop's state (the supervisor
+catching a hung loop, a collision verdict a worker thread delivered on the real clock between
+two uses, a region defined from another thread), a drive's power-up on its own thread, and the
+samples the loop could not take in time (an overflowing stream queue, judged without being
+recorded). Inputs an interface refused before the loop (authentication, ownership, a full
+queue) never reach the loop and are counted by the interfaces: they cannot change what it does.
 """
 
 from __future__ import annotations
@@ -120,9 +120,7 @@ _STATE_CODE = {st: float(STATE_CODES.get(st.value, -1)) for st in RobotState}
 
 def tick_columns(joint_names: Sequence[str]) -> list[str]:
     """The tick ring's columns, in order (module docstring)."""
-    cols = ["t", "k", "state"]
-    for j in joint_names:
-        cols += [f"pos.{j}", f"vel.{j}", f"eff.{j}", f"stamp.{j}"]
+    cols = ["t", "k", "state", *(f"pos.{j}" for j in joint_names)]
     cols += [f"sp.{j}" for j in joint_names] + [f"ew.{j}" for j in joint_names]
     for j in joint_names:
         cols += [f"raw.pos.{j}", f"raw.vel.{j}", f"raw.eff.{j}"]
@@ -185,7 +183,7 @@ class BlackBox:
         self.columns = tick_columns(self.joint_names)
         n = len(self.joint_names)
         self.width = len(self.columns)
-        self._sp_at = 3 + 4 * n  # the written columns' offset in a row
+        self._sp_at = 3 + n  # the written columns' offset in a row
         self._ew_at = self._sp_at + n
         self._raw_at = self._ew_at + n  # the drives' own readings
         self._wall_at = self._raw_at + 3 * n
@@ -376,7 +374,6 @@ class BlackBox:
         """The tick's row (the loop, last thing in the tick): element assignments."""
         if not self.enabled:
             return
-        self._loop_ident = threading.get_ident()
         guard = self._guard
         if guard is not None:
             v = guard.verdict
@@ -389,32 +386,33 @@ class BlackBox:
         buf[i + 1] = k
         buf[i + 2] = self._state_code
         i += 3
-        for jt in self._joints:
+        for jt in self._joints:  # the position each joint believes (its checks passed)
             buf[i] = jt.position
-            buf[i + 1] = jt.velocity
-            buf[i + 2] = jt.effort
-            buf[i + 3] = jt.stamp
-            i += 4
+            i += 1
         at = self._pos
         for d, cols in self._drives:  # each drive's reading as its hook returned it
             if d.raw_now == now:
                 p, v, e = d.raw
-                for n, c in enumerate(cols):
+                n = 0
+                for c in cols:
                     c += at
                     buf[c] = p[n]
                     buf[c + 1] = v[n]
                     buf[c + 2] = e[n]
+                    n += 1
+            else:  # not read in this tick (powering up, unconfigured)
+                for c in cols:
+                    c += at
+                    buf[c] = buf[c + 1] = buf[c + 2] = math.nan
         streams = self._streams
         if streams is not None:
-            w = streams.wall_offset
+            w = streams._to_wall
             buf[at + self._wall_at] = math.nan if w is None else w
         nxt = self._pos + self.width
         if nxt >= self._end:
             nxt = 0
         at = nxt + self._sp_at
         buf[at : at + len(self._nan)] = self._nan  # the next tick wrote nothing yet
-        at = nxt + self._raw_at
-        buf[at : at + len(self._raw_nan)] = self._raw_nan  # nor read
         self._pos = nxt
         self.count += 1  # after the row: a reader never takes a half-written one
         if self.inline_checkpoints:

@@ -7,19 +7,25 @@
   window (first tick index, rows, events, from which tick the events are whole, rows lost),
   the software (``occ`` version, Python, the hot path's build), the SHA-256 of the URDF, of
   every plugin's source file (drivers and controllers) and of ``config.yaml``, the tick
-  columns, and what a replay still needs that is not recorded;
+  columns, whether the dump replays (``replay``: from which tick, or why not) and what a
+  dump does not hold;
 - ``config.yaml``: the daemon's whole configuration as it ran (the validated model: it loads
   again with :class:`~occ.config.DaemonConfig`);
 - ``ticks.npy``: the tick rows as the loop wrote them (float64, bit for bit; columns in the
-  manifest): the clock each tick used, its deadline index, its state, every drive reading,
-  what was written to the drives;
+  manifest): the clock each tick used, its deadline index, its state, every joint's
+  believed position, what was written to the drives, every drive's raw reading;
 - ``recording.igtl``: the window in the recording format (occ/recording/record.py), so
   ``occ-record export DIR`` (CSV, ``.seq.mha``, ``.mcap``), ``plot`` and ``replay`` read a dump
   as any recording: every message in and out with ``rec.t`` the tick's time and ``rec.tick``
-  its tick index, then that tick's ``OCCState`` row (the tip by forward kinematics on the
-  writer's own model; ``sp`` the last position setpoint written);
+  its tick index (alerts and replies out; the periodic outputs are not kept), then that
+  tick's ``OCCState`` row (the tip by forward kinematics on the writer's own model; ``sp``
+  the last position setpoint written);
 - ``events.jsonl``: the events that are not messages, one JSON object a line with their tick:
-  state transitions with their reasons, collision verdicts, controllers' notes, dump requests.
+  state transitions with their reasons, collision verdicts, controllers' notes, dump requests;
+- ``replay.pkl``: what ``occ-record replay --deterministic`` reads (occ/core/replay.py): the
+  robot's state at the window's first tick (a checkpoint: the slots changed since the robot
+  was built, every part by its path) and every input with its tick, pickled; loaded with only
+  this project's classes, numpy's and a few builtins allowed (occ/core/checkpoint.py).
 
 A dump is written into ``.<name>.partial`` and renamed when whole, so a directory with a
 manifest is complete. Then the dumps of this robot in ``dir`` are bounded: the oldest go
@@ -75,13 +81,14 @@ REPLAY = "replay.pkl"
 #: records packed before they are written
 BATCH = 256
 
-#: what a replay needs that a dump does not hold (the module docstring of blackbox.py says how
-#: to close each gap)
+#: what a dump does not hold (the module docstring of blackbox.py says why)
 NOT_RECORDED = [
-    "the state of every part at the window's first tick (controllers' integrators and "
-    "filters, loss monitors' counters and clock offsets, the motion's re-entry ramp, the "
-    "collision guard's run threshold, a simulated drive's dynamics)",
-    "the order within a tick of events from other threads (stamped with their tick only)",
+    "another thread's change to the loop's state (the supervisor catching a hung loop, a "
+    "collision verdict delivered by the worker thread on the real clock, a region defined "
+    "from another thread)",
+    "a drive's power-up on a thread of its own",
+    "stream samples the loop could not take in time (an overflowing queue)",
+    "the periodic outputs (a replay makes them again from the state)",
     "inputs the interfaces refused before the loop (counted by the interfaces)",
 ]
 
@@ -190,7 +197,7 @@ def _write_recording(
     """The window as a recording: each tick's messages, then its OCCState row. Returns the
     messages written."""
     rows, events, n = window.rows, window.events, len(box.joint_names)
-    sp_at, ew_at = 3 + 4 * n, 3 + 5 * n
+    sp_at, ew_at = 3 + n, 3 + 2 * n
     # a robot that commands efforts (a haptic master): its rows end with them, as recorded
     efforts = bool(len(rows)) and not np.isnan(rows[:, ew_at : ew_at + n]).all()
     columns = state_columns(box.joint_names, efforts)
@@ -225,7 +232,7 @@ def _write_recording(
             ew = row[ew_at : ew_at + n]
             if not math.isnan(ew[0]):
                 last_ew = ew.tolist()
-            q = row[3 : 3 + 4 * n : 4].tolist()
+            q = row[3 : 3 + n].tolist()
             tip = ctx.tip_mm(q)
             state = [t, float(row[2]), *q, *last_sp, *tip, *(last_ew if efforts else ())]
             chunks.append(pack_state_record(state, columns, box.name, t + to_wall))
