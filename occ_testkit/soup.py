@@ -300,7 +300,10 @@ def lock_problems(lock: Mapping[str, Locked], reqs: Mapping[str, list[Requiremen
             if key == PROJECT:
                 continue
             if key not in lock:
-                problems.append(f"{req.name} ({group}) is not in constraints.txt")
+                problems.append(
+                    f"{req.name} ({group}) is not in constraints.txt (install it, run the tests, "
+                    "then scripts/soup --lock)"
+                )
             elif not req.specifier.contains(lock[key].version, prereleases=True):
                 problems.append(
                     f"constraints.txt pins {lock[key].name} {lock[key].version}, which "

@@ -129,9 +129,10 @@ def test_the_check_names_each_disagreement() -> None:
         "docs/soup.yaml: delta is tested by 'tests/test_gone.py', which does not exist",
     ]
     missing = soup.read_lock(LOCK.split("delta==2")[0])  # alpha and beta only
+    hint = " (install it, run the tests, then scripts/soup --lock)"
     assert soup.lock_problems(missing, reqs) == [
-        "gamma (test) is not in constraints.txt",
-        "delta (plot) is not in constraints.txt",
+        "gamma (test) is not in constraints.txt" + hint,
+        "delta (plot) is not in constraints.txt" + hint,
     ]
 
 
