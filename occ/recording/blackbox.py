@@ -573,6 +573,10 @@ class BlackBox:
             "events": min(self.ev_count, self.ev_capacity),
             "requested": self.requested,
             "refused": self.refused,
+            "checkpoints": self.checkpoints.taken if self.checkpoints is not None else 0,
+            "checkpoint_max_ms": (
+                round(self.checkpoints.cost_max_s * 1e3, 3) if self.checkpoints is not None else 0.0
+            ),
             "dir": str(self.dir),
             **(w.stats() if w is not None else {}),
         }
