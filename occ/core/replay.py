@@ -53,7 +53,7 @@ from occ.core.loader import load_config
 from occ.core.robot import Robot, build_robot
 from occ.core.wiring import checkpointer
 from occ.errors import DriverError
-from occ.recording.blackbox import CMD, HOOK, IN, TRANSITION
+from occ.recording.blackbox import CMD, HOOK, IN, TRANSITION, VERDICT
 from occ.recording.dump import REPLAY, read_manifest
 
 #: the row fields compared, by column prefix (the rest are inputs)
@@ -277,7 +277,8 @@ def _run(
         result.problems, result.built_differently = restore(cp, outer["checkpoint"])
         robot.black_box.resync()
         inputs = cp.loads(outer["inputs"])
-        _replay_ticks(robot, clock, drives, columns, rows, inputs, result)
+        verdicts = _verdicts(robot, manifest)
+        _replay_ticks(robot, clock, drives, columns, rows, inputs, result, verdicts)
         return result
     finally:
         robot.shutdown()
@@ -299,6 +300,22 @@ def _first_finite(values: np.ndarray) -> float:
     return float(ok[0]) if len(ok) else 1_700_000_000.0
 
 
+def _verdicts(robot: Robot, manifest: dict[str, Any]) -> Any:
+    """Where a recorded collision verdict goes: on the real clock the worker's verdicts came
+    when they came, so the replay checks nothing and hands each one to the guard at the tick
+    that took it (``CollisionGuard.fresh``, taken at the start of ``after_control``); in
+    simulated time the guard checked inline and checks again (None)."""
+    guard = robot.collision
+    if guard is None or manifest.get("clock") != "real":
+        return None
+    guard.publish = lambda q, base, now=None: None  # type: ignore[method-assign]
+
+    def give(verdict: Any) -> None:
+        guard.fresh = verdict
+
+    return give
+
+
 def _replay_ticks(
     robot: Robot,
     clock: ReplayClock,
@@ -307,6 +324,7 @@ def _replay_ticks(
     rows: np.ndarray,
     inputs: list[tuple[int, int, Any, Any]],
     result: ReplayResult,
+    verdicts: Any = None,
 ) -> None:
     by_tick: dict[int, list[tuple[int, Any, Any]]] = defaultdict(list)
     for tick, kind, where, obj in inputs:
@@ -350,6 +368,8 @@ def _replay_ticks(
                 drives.errors[tuple(where)] = _error(obj)
             elif kind == TRANSITION:
                 expected.append((tick, *obj))
+            elif kind == VERDICT and verdicts is not None:
+                verdicts(obj)
         robot.tick(t, k)
         result.ticks += 1
         got = box._view[(box.count - 1) % box._slots]

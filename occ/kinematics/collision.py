@@ -89,6 +89,9 @@ Run time: :class:`CollisionGuard`
       until the slack is positive again.
 
     In simulated time (``inline=True``) the check runs in ``publish`` itself, so runs are exact.
+    On the real clock the worker's verdict waits in ``fresh`` until the loop takes it at the
+    start of its next ``after_control``: every verdict is used from one defined point of a tick,
+    the one a deterministic replay feeds it at (occ/core/replay.py).
 """
 
 from __future__ import annotations
@@ -747,7 +750,12 @@ class CollisionGuard:
             None if inline or not runtime else Worker(name, depth=2, fifo_priority=fifo_priority)
         )
         self._busy = False
+        #: the verdict the loop uses (admit, poll, publish); the worker's newest waits in
+        #: ``fresh`` until the loop takes it, at the start of :meth:`after_control`: one
+        #: defined point of the tick, which a deterministic replay can feed (the black box
+        #: records the verdict the tick took; occ/core/replay.py)
         self.verdict: Verdict | None = None
+        self.fresh: Verdict | None = None
         self._threshold = 0.0  # the run's stop threshold on the slack (escape: below 0)
         self._best = math.inf
         self._stopped_for: Verdict | None = None
@@ -814,6 +822,7 @@ class CollisionGuard:
         """Each tick after the drives were written: entering or leaving RUNNING noted
         (:meth:`on_running`), the reason to stop now if a verdict says so (:meth:`poll`), and
         the new setpoint handed to the worker (run-time checking on, the drives powered)."""
+        self.take()
         running = state.value == "RUNNING"
         if running != self.running or (running and self._new_run):
             self.on_running(running)
@@ -821,6 +830,14 @@ class CollisionGuard:
         if self.runtime and state.value in ("ENABLED", "RUNNING", "STOPPED"):  # powered
             self.publish(data.commanded(), data.base, now)
         return why
+
+    def take(self) -> None:
+        """The worker's newest verdict becomes the loop's (the start of :meth:`after_control`;
+        nothing when none came since)."""
+        fresh = self.fresh
+        if fresh is not None:
+            self.fresh = None
+            self.verdict = fresh
 
     def start(self) -> None:
         if self._worker is not None:
@@ -987,7 +1004,11 @@ class CollisionGuard:
             checker = self._checker
             slack, _gap, worst = checker.clearance(q, base)
             peers = tuple(checker.peer_seen)
-            self.verdict = Verdict(q, base, slack, checker.static_gap, worst, version, peers, epoch)
+            v = Verdict(q, base, slack, checker.static_gap, worst, version, peers, epoch)
+            if self.inline:
+                self.verdict = v  # simulated time: checked in the loop's tick, used at once
+            else:
+                self.fresh = v  # the loop takes it at its next after_control
             self.verdicts += 1
             if slack < self.min_slack:
                 self.min_slack = slack

@@ -172,6 +172,8 @@ def _write_files(
             "events_whole_from_tick": window.events_whole_from,
         },
         "rate_hz": box.rate_hz,
+        # on the real clock collision verdicts came from a worker thread: a replay feeds them
+        "clock": "simulated" if box.inline_checkpoints else "real",
         "joints": list(box.joint_names),
         "tick_columns": box.columns,
         **ctx.provenance,

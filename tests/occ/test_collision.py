@@ -459,7 +459,9 @@ def test_the_guard_on_its_worker_thread_gives_verdicts_the_loop_admits_by() -> N
         base = np.eye(4)
         assert not guard.admit(HOME, base)  # no verdict yet: hold
         guard.publish(HOME, base)
-        assert wait_until(lambda: guard.verdict is not None, 10.0)
+        assert wait_until(lambda: guard.fresh is not None, 10.0)
+        assert guard.verdict is None and not guard.admit(HOME, base)  # not the loop's yet
+        guard.take()  # the loop takes it (after_control)
         v = guard.verdict
         assert v is not None and v.q == tuple(HOME) and 0.010 < v.gap < 0.020
         assert guard.admit(HOME, base)
@@ -473,7 +475,9 @@ def test_the_guard_on_its_worker_thread_gives_verdicts_the_loop_admits_by() -> N
         assert not guard.admit(HOME, np.diag([1.0, 1.0, 1.0, 1.0]) + 0.001)  # another base
         guard.on_running(True)
         guard.publish(RAISED, base)  # the forearm through the ceiling
-        assert wait_until(lambda: guard.verdict is not None and guard.verdict.q == tuple(RAISED))
+        assert wait_until(lambda: guard.fresh is not None and guard.fresh.q == tuple(RAISED))
+        assert guard.poll() is None  # the loop has not taken it
+        guard.take()
         why = guard.poll()
         assert why is not None and "forearm_link" in why and "ceiling" in why
         assert guard.poll() is None  # once per verdict
