@@ -15,7 +15,13 @@ element assignment as the State Data Table is, occ/core/statetable.py):
 - every joint's drive reading as the loop got it: ``pos``, ``vel``, ``eff`` and ``stamp`` (the
   reading's time; NaN before a joint's first measurement);
 - what the loop wrote to the drives: ``sp.<joint>`` (position setpoints) and ``ew.<joint>``
-  (efforts), NaN in a tick that wrote none.
+  (efforts), NaN in a tick that wrote none;
+- each drive's reading as its hook returned it (``raw.pos``, ``raw.vel``, ``raw.eff``: NaN in a
+  tick that did not read it) and the streams' wall-clock offset (``to_wall``);
+- with a simulated world (a config's ``environment``, occ/haptics/contact.py), what the drive's
+  hook left in it and the controller reads as its tissue sensor: the contact force
+  (``world.fx``, ``world.fy``, ``world.fz``, N, patient frame) and whether the tool touches
+  (``world.contact``, 1 or 0).
 
 And in the *event ring*, each with the index of the tick it happened in (the row it belongs
 to): every message the loop consumed (a stream sample, an operator's request: the message
@@ -39,15 +45,13 @@ stopped, so consecutive dumps each hold their whole window. In simulated time th
 written inline, at the end of the tick that closes its window (exact, repeatable runs, as the
 collision guard checks inline there); on the real clock always by the writer thread.
 
-What a deterministic replay (issue 41, item 4, built on these dumps) still needs and this does
-not record, and how to close each gap:
+A deterministic replay (occ/core/replay.py) starts from a *checkpoint*: the state of every
+part (occ/core/checkpoint.py), taken every :data:`CHECKPOINT_S` on the loop thread between two
+ticks (:meth:`BlackBox.spare`; in simulated time at the end of the tick), the last few kept;
+a window starts at the last one at or before its ``seconds``, and the first one (the robot as
+built, with the clock then) tells the replay what its own build must equal. What it still
+needs and this does not record, and how to close each gap:
 
-- *The state of every part at the ring's first tick*: the controllers' integrators and filters,
-  the loss monitors' counters and clock offsets, the motion's re-entry ramp, the collision
-  guard's run threshold, the drives' own state (a simulated drive's dynamics). A replay can
-  start from a quiet tick (READY, or holding with no stream) and compare only from there; to
-  close it, give each part a ``snapshot()``/``restore()`` of its few numbers, taken by the
-  writer thread at a quiet tick into a third ring slot (a checkpoint every few seconds).
 - *The order within a tick of events from other threads*: a reply sent off the loop, or a
   collision verdict swapped in by the worker between the admission of a setpoint and the
   guard's poll in the same tick, is stamped with its tick only (in simulated time the guard
@@ -55,7 +59,10 @@ not record, and how to close each gap:
   admission used (its identity is enough).
 - *A planner's result* is noted with the tick the controller took it (``ControllerContext.note``);
   its content is the controller's (a keyframe plan is recomputed deterministically from the
-  keyframes and the request, both recorded as inputs).
+  keyframes and the request, both recorded as inputs), but not the tick it landed in (the
+  planner thread hands it over between two ticks): a replay lets it land before the tick after
+  the request, as a simulated-time run that waits for its planner does. To close it: the
+  controller notes, on the loop, the tick it first sees a result.
 - *Inputs an interface refused before the loop* (authentication, ownership, a full queue) never
   reach the loop and are counted by the interfaces, not recorded: they cannot change what the
   loop does.
@@ -110,20 +117,23 @@ CHUNK = 2048
 QUEUE_DEPTH = 4
 #: events from other threads kept beside the ring
 OFF_LOOP_EVENTS = 4096
+#: the simulated world's columns (a config's ``environment``), after ``to_wall``
+WORLD_COLUMNS = ("world.fx", "world.fy", "world.fz", "world.contact")
 #: states whose entry dumps the ring (STOPPED only for a safety reason: not an operator's Stop)
 DUMPED_STATES = (RobotState.FAULT, RobotState.ESTOP, RobotState.STOPPED)
 _STATE_CODE = {st: float(STATE_CODES.get(st.value, -1)) for st in RobotState}
 
 
-def tick_columns(joint_names: Sequence[str]) -> list[str]:
-    """The tick ring's columns, in order (module docstring)."""
+def tick_columns(joint_names: Sequence[str], world: bool = False) -> list[str]:
+    """The tick ring's columns, in order (module docstring); ``world``: with the simulated
+    world's."""
     cols = ["t", "k", "state"]
     for j in joint_names:
         cols += [f"pos.{j}", f"vel.{j}", f"eff.{j}", f"stamp.{j}"]
     cols += [f"sp.{j}" for j in joint_names] + [f"ew.{j}" for j in joint_names]
     for j in joint_names:
         cols += [f"raw.pos.{j}", f"raw.vel.{j}", f"raw.eff.{j}"]
-    return [*cols, "to_wall"]
+    return [*cols, "to_wall", *(WORLD_COLUMNS if world else ())]
 
 
 @dataclass
@@ -175,17 +185,21 @@ class BlackBox:
         events_per_s: int,
         *,
         enabled: bool = True,
+        world: bool = False,
     ) -> None:
+        """``world``: the robot has a simulated world (its columns, bound by :meth:`bind`)."""
         self.name = name
         self.enabled = enabled
         self.joint_names = tuple(joint_names)
-        self.columns = tick_columns(self.joint_names)
+        self.columns = tick_columns(self.joint_names, world)
         n = len(self.joint_names)
         self.width = len(self.columns)
         self._sp_at = 3 + 4 * n  # the written columns' offset in a row
         self._ew_at = self._sp_at + n
         self._raw_at = self._ew_at + n  # the drives' own readings
         self._wall_at = self._raw_at + 3 * n
+        self._world_at = self._wall_at + 1
+        self._world: Any = None  # the simulated world (bind), None: no world columns
         self.rate_hz = float(rate_hz)
         self.seconds = float(seconds) if enabled else 0.0
         #: rows a dump holds (seconds x rate); the ring has a margin beyond them
@@ -243,10 +257,15 @@ class BlackBox:
         directory: Path,
         drives: Sequence[tuple[Any, Sequence[int]]] = (),
         streams: Any = None,
+        world: Any = None,
     ) -> None:
         """What the loop's row reads (the robot's data and joints, each driver with the
-        indices of its joints, the streams' wall offset, the collision guard whose ``verdict``
-        it watches), and who writes the dumps where."""
+        indices of its joints, the streams' wall offset, the simulated world when the box was
+        made with its columns, the collision guard whose ``verdict`` it watches), and who
+        writes the dumps where."""
+        if (world is not None) != (self.width > self._world_at):
+            raise ValueError("a simulated world needs a black box made with world=True")
+        self._world = world
         self._data = data
         self._joints = tuple(joints)
         self._drives = tuple((d, tuple(self._raw_at + 3 * i for i in idx)) for d, idx in drives)
@@ -265,8 +284,11 @@ class BlackBox:
             cp = self.make_checkpointer()
             self.checkpointer = cp
             self.checkpoints = Checkpoints(cp.take, self.rate_hz, keep)
-        if self.checkpoints is not None:
-            self.checkpoints.take(self.count, self.ev_count)
+        cps = self.checkpoints
+        if cps is not None:
+            if cps.baseline is None and self._data is not None:
+                cps.built_at = self._data.clock.now()
+            cps.take(self.count, self.ev_count)
 
     def spare(self) -> bool:
         """Time the loop has to spare before its next deadline: a checkpoint when one is due
@@ -390,6 +412,14 @@ class BlackBox:
         if streams is not None:
             w = streams.wall_offset
             buf[at + self._wall_at] = math.nan if w is None else w
+        world = self._world
+        if world is not None:  # what the drive's hook left in the simulated world
+            c = at + self._world_at
+            f = world.force_n
+            buf[c] = f[0]
+            buf[c + 1] = f[1]
+            buf[c + 2] = f[2]
+            buf[c + 3] = 1.0 if world.in_contact else 0.0
         nxt = self._pos + self.width
         if nxt >= self._end:
             nxt = 0
@@ -569,6 +599,9 @@ class Checkpoints:
         self.cost_max_s = 0.0
         #: the first one: the robot as built, before its first tick
         self.baseline: list[Any] | None = None
+        #: the clock when it was taken (the activation; in simulated time the configure's
+        #: time as well): a replay configures its robot then
+        self.built_at = math.nan
 
     def take(self, row: int, events: int) -> None:
         """The state now, before row ``row`` is ticked and after ``events`` events (the loop

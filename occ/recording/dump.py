@@ -78,10 +78,10 @@ BATCH = 256
 #: what a replay needs that a dump does not hold (the module docstring of blackbox.py says how
 #: to close each gap)
 NOT_RECORDED = [
-    "the state of every part at the window's first tick (controllers' integrators and "
-    "filters, loss monitors' counters and clock offsets, the motion's re-entry ramp, the "
-    "collision guard's run threshold, a simulated drive's dynamics)",
     "the order within a tick of events from other threads (stamped with their tick only)",
+    "the tick a planner's result landed in (a replay lets it land before the tick after its "
+    "request)",
+    "a simulated world's depth in each shape (only a refused ForceTare's words name it)",
     "inputs the interfaces refused before the loop (counted by the interfaces)",
 ]
 
@@ -244,9 +244,10 @@ def _write_recording(
 def _write_replay(path: Path, box: BlackBox, window: Window) -> dict[str, Any]:
     """What a deterministic replay needs beside the ticks (occ/core/replay.py): the
     robot's state before the window's first tick (its checkpoint, every part by its path),
-    and every input of the window with its tick: the received items as the loop took them
-    (their reception times and the requests parsed), the cell's heartbeats, the collision
-    verdicts, the drivers' hook errors. Returns the manifest's ``replay`` entry."""
+    the clock when it was built, and every input of the window with its tick: the received
+    items as the loop took them (their reception times and the requests parsed), the cell's
+    heartbeats, the collision verdicts, the drivers' hook errors. Returns the manifest's
+    ``replay`` entry."""
     cp = box.checkpointer
     if window.checkpoint is None or cp is None or box.checkpoints is None:
         why = "no checkpoint of the robot's state in the window"
@@ -263,6 +264,7 @@ def _write_replay(path: Path, box: BlackBox, window: Window) -> dict[str, Any]:
             {
                 "checkpoint": cp.dumps(window.checkpoint, box.checkpoints.baseline),
                 "inputs": cp.dumps_values(inputs),
+                "built_at": box.checkpoints.built_at,
             },
             protocol=pickle.HIGHEST_PROTOCOL,
         )
