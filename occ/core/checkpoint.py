@@ -13,7 +13,8 @@ checkpointer finds the state itself, once, when the robot is built and configure
 - every attribute of a part is a *slot*, except what is wiring, not state: callables (bound
   methods, handlers), locks, threads, sockets, queues, loggers, the validated configuration
   (pydantic models, fixed at build) and objects of foreign libraries (a pinocchio model's
-  scratch data, rewritten by each use);
+  scratch data, rewritten by each use), alone or as the only items of a list or tuple (a
+  collision checker's coal transforms, one a link);
 - the subtrees that are I/O or records, not the loop's state, are *opaque*: the interfaces
   (their threads), the black box, the State Data Table, the recorder, the loop and its clock.
   A slot that refers to one keeps the reference, nothing inside is taken.
@@ -28,7 +29,8 @@ numpy and a few builtins: a dump from elsewhere cannot run code (the ``find_clas
 the :mod:`pickle` documentation recommends).
 
 What a checkpoint cannot hold is reported, never silently dropped: a slot whose value cannot be
-copied (it holds a thread: a power-up under way) is marked and named by :func:`restore`.
+copied (it holds a thread: a power-up under way), or written, or read back as a replay reads it
+(it holds an object of a foreign class) is marked and named by :func:`restore`.
 """
 
 from __future__ import annotations
@@ -138,6 +140,17 @@ def _wiring(value: object, roots: frozenset[str] = OURS) -> bool:
     return root not in roots and root not in _VALUE_ROOTS
 
 
+def _scratch(value: object, roots: frozenset[str]) -> bool:
+    """A list or tuple of foreign objects only (a collision checker's coal transforms, one a
+    link): a foreign library's scratch data as its items are, rewritten by each use."""
+    if type(value) not in (list, tuple) or not value:
+        return False
+    return all(
+        not callable(v) and _root(v) not in roots and _root(v) not in _VALUE_ROOTS
+        for v in value  # type: ignore[attr-defined]
+    )
+
+
 class Checkpointer:
     """The slots of one robot (module docstring): found once, read by :meth:`take`."""
 
@@ -194,7 +207,7 @@ class Checkpointer:
             if id(obj) in self._opaque:
                 continue
             for name, value in _attrs(obj):
-                if _wiring(value, self.roots):
+                if _wiring(value, self.roots) or _scratch(value, self.roots):
                     continue
                 where = f"{path}.{name}"
                 self.slots.append((obj, name, where))
@@ -296,17 +309,20 @@ class Checkpointer:
     def dumps(self, values: list[Any], baseline: list[Any] | None = None) -> bytes:
         """``values`` (a :meth:`take`) pickled with every part written as its path; with the
         ``baseline`` (the :meth:`take` of the robot as built, before its first tick), only
-        the slots that changed since, and a digest of every slot's baseline: a replay keeps
-        what its own build made of the rest, so a changed configuration counts
-        (:func:`restore`)."""
+        the slots that changed since, a digest of every slot's baseline, and the drivers'
+        own slots as built: a replay keeps what its own build made of the rest, so a changed
+        configuration counts, but its drives are the recorded ones (:func:`restore`)."""
         items = [(path, v) for (_, _, path), v in zip(self.slots, values, strict=True)]
         digests: dict[str, str] = {}
-        readings: dict[str, Any] = {}
+        drives: dict[str, Any] = {}
         if baseline is not None:
-            readings = {  # the drives' readings the build took (a replay's configure)
+            # the drives as the build left them: every slot of each driver (a part with the
+            # readings ``raw``), among them the readings the build took (a replay's configure)
+            held = {p.rpartition(".")[0] for _, name, p in self.slots if name == "raw"}
+            drives = {
                 p: v
-                for (_, name, p), v in zip(self.slots, baseline, strict=True)
-                if name in ("raw", "raw_now")
+                for (_, _, p), v in zip(self.slots, baseline, strict=True)
+                if p.rpartition(".")[0] in held
             }
             base = [self._bytes(v) for v in baseline]
             digests = {
@@ -318,14 +334,19 @@ class Checkpointer:
                 for (path, v), b in zip(items, base, strict=True)
                 if isinstance(v, Unsaved) or self._bytes(v) != b
             ]
-        kept = []
-        for path, v in items:
-            try:
-                self._bytes(v)
-            except Exception as err:  # noqa: BLE001 - this slot cannot be written: marked
-                v = Unsaved(f"cannot be written: {type(err).__name__}: {err}")
-            kept.append((path, v))
-        return self.dumps_values({"slots": kept, "baseline": digests, "readings": readings})
+        kept = [(path, self._writable(v)) for path, v in items]
+        drives = {p: self._writable(v) for p, v in drives.items()}
+        return self.dumps_values({"slots": kept, "baseline": digests, "drives": drives})
+
+    def _writable(self, v: Any) -> Any:
+        """``v``, or Unsaved when it cannot be written, or read back as :func:`restore`
+        reads it (it holds an object of a class no checkpoint may load: one slot marked,
+        not the whole checkpoint lost)."""
+        try:
+            _PartUnpickler(io.BytesIO(self.dumps_values(v)), {}, self.roots).load()
+        except Exception as err:  # noqa: BLE001 - this slot cannot be kept: marked
+            return Unsaved(f"cannot be written: {type(err).__name__}: {err}")
+        return v
 
     def _bytes(self, v: Any) -> bytes:
         try:
@@ -416,12 +437,13 @@ class _PartUnpickler(pickle.Unpickler):
         raise pickle.UnpicklingError(f"a checkpoint may not load {module}.{name}")
 
 
-def build_readings(blob: bytes) -> dict[str, Any]:
-    """The drives' readings the recorded robot's build took, by path (``X.raw``,
-    ``X.raw_now``): what a replay's drives answer while it is configured."""
-    loader = _PartUnpickler(io.BytesIO(blob), {}, OURS)
+def build_readings(blob: bytes, roots: frozenset[str] = OURS) -> dict[str, Any]:
+    """The drivers' slots as the recorded robot's build left them, by path, among them the
+    readings it took (``X.raw``, ``X.raw_now``): what a replay's drives answer while it is
+    configured. ``roots``: the module roots whose classes may load (a checkpointer's)."""
+    loader = _PartUnpickler(io.BytesIO(blob), {}, roots)
     saved: dict[str, Any] = loader.load()
-    return dict(saved.get("readings", {}))
+    return dict(saved.get("drives", {}))
 
 
 def restore(checkpointer: Checkpointer, blob: bytes) -> tuple[list[str], list[str]]:
@@ -429,15 +451,22 @@ def restore(checkpointer: Checkpointer, blob: bytes) -> tuple[list[str], list[st
     :meth:`Checkpointer.dumps` of a robot built from the same config: the slots changed since
     its build). Returns what could not be restored, by path (empty: the whole state), and the
     slots whose value as built here differs from the recorded robot's as built (a changed
-    configuration, or a build that is not repeatable)."""
+    configuration, or a build that is not repeatable). A driver's own slot built differently
+    is set as the recorded build left it: a replay answers the drives' hooks from the record
+    (occ/core/replay.py), so their side of the drive (a simulated drive's model, filled by
+    the hooks the replay does not run) is the recorded one, and a changed driver parameter
+    changes nothing in a replay. Its checks (a part of their own) are the loop's and count."""
     loader = _PartUnpickler(io.BytesIO(blob), checkpointer.parts, checkpointer.roots)
     saved: dict[str, Any] = loader.load()
     problems = [f"{p}: part not in this robot" for p in dict.fromkeys(loader.missing)]
     recorded = saved["baseline"]
     here = checkpointer.digests() if recorded else {}
     restored = {p for p, _ in saved["slots"]}
-    built = sorted(p for p, d in recorded.items() if here.get(p, d) != d and p not in restored)
-    for path, value in saved["slots"]:
+    drives = saved.get("drives", {})
+    differ = [p for p, d in recorded.items() if here.get(p, d) != d and p not in restored]
+    built = sorted(p for p in differ if p not in drives)
+    slots = [(p, drives[p]) for p in differ if p in drives] + list(saved["slots"])
+    for path, value in slots:
         holder_path, _, name = path.rpartition(".")
         holder = checkpointer.parts.get(holder_path)
         if holder is None:

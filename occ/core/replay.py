@@ -10,6 +10,8 @@ the window's first tick. Then each recorded tick runs again through :meth:`Robot
 - every drive's reading as its hook returned it (the drivers keep their lifecycle and their
   feedback checks; only the hooks that touch hardware are the replay's), and a hook's error
   raised again where one was raised;
+- with a simulated world, what the drive's hook left in it (the contact force the tissue
+  sensor reads, and whether the tool touches): the hook that computed it is the replay's;
 - every item the streams took, in order, with its reception time; every request the
   operator desk took (queued before the tick, as the interface thread did); every heartbeat
   the cell took.
@@ -22,11 +24,16 @@ difference is reported (tick, field, recorded, replayed); none means the replay 
 ``config`` replaces the dump's configuration (what-if: a changed gain); the replay then says
 where its outputs first differ.
 
+A controller's worker (the keyframe planner) runs what a tick asked of it (a plan, from the
+request and the keyframes: recorded inputs) and the replay waits for it before the next tick,
+so its result lands between the two ticks, as in a simulated-time run that waits for its
+workers (each test and tool does).
+
 Not replayed, and reported as a divergence where it mattered: what another thread did to the
 loop's state (a hung loop's supervisor, a collision verdict that a worker thread delivered on
-the real clock: in simulated time the guard checks inline and the replay recomputes it), a
-drive's power-up on a thread of its own, samples the loop could not take in time (an
-overflowing queue).
+the real clock: in simulated time the guard checks inline and the replay recomputes it; a
+planner's result that landed ticks later on the real clock), a drive's power-up on a thread
+of its own, samples the loop could not take in time (an overflowing queue).
 """
 
 from __future__ import annotations
@@ -56,8 +63,10 @@ from occ.errors import DriverError
 from occ.recording.blackbox import CMD, HOOK, IN, TRANSITION, VERDICT
 from occ.recording.dump import REPLAY, read_manifest
 
+#: how long a replay waits for a controller's worker (a plan) after each tick
+WORKER_WAIT_S = 60.0
 #: the row fields compared, by column prefix (the rest are inputs)
-COMPARED = ("state", "sp.", "ew.", "pos.", "vel.", "eff.", "stamp.")
+COMPARED = ("state", "sp.", "ew.", "pos.")
 
 
 @dataclass
@@ -167,10 +176,13 @@ def _error(cls: tuple[str, str, str, str]) -> Exception:
 class _Drives:
     """The drivers' hardware hooks, answered from the recorded rows."""
 
-    def __init__(self, robot: Robot, columns: Sequence[str], built: dict[str, Any]) -> None:
+    def __init__(
+        self, robot: Robot, columns: Sequence[str], built: dict[str, Any], paths: dict[int, str]
+    ) -> None:
+        """``built``: the drivers' slots as the recorded build left them; ``paths``: the
+        parts' paths (a checkpointer's), the drivers' among them."""
         self.row: np.ndarray | None = None
         self.errors: dict[tuple[str, str], Exception] = {}
-        paths = checkpointer(robot).paths  # the drivers' paths, as the checkpoint names them
         #: each driver's reading when the recorded robot was configured
         self.built = {d.name: built.get(f"{paths.get(id(d))}.raw") for d in robot.hardware.drivers}
         col = {c: i for i, c in enumerate(columns)}
@@ -208,6 +220,28 @@ class _Drives:
         return write
 
 
+class _World:
+    """The simulated world's state from the recorded rows (``world.*`` columns, when the
+    robot has one): set before each tick, as the drive's hook set it in the tick's read."""
+
+    def __init__(self, robot: Robot, columns: Sequence[str]) -> None:
+        self.env = robot.hardware.environment
+        self.at = columns.index("world.fx") if "world.fx" in columns else -1
+        if (self.env is None) != (self.at < 0):
+            has = "has no" if self.at < 0 else "has a"
+            raise ValueError(
+                f"the dump {has} simulated world (environment) and the configuration replayed "
+                "the other way round"
+            )
+
+    def set(self, row: np.ndarray) -> None:
+        if self.env is None:
+            return
+        i = self.at
+        self.env.force_n = (float(row[i]), float(row[i + 1]), float(row[i + 2]))
+        self.env.in_contact = bool(row[i + 3] == 1.0)
+
+
 def _nothing(*_args: Any) -> None:
     return None
 
@@ -217,18 +251,32 @@ def _unread(n: int) -> tuple[list[float], list[float], list[float]]:
     return nan, nan, nan
 
 
+class Damaged(ValueError):
+    """A dump whose files cannot be read back (missing, cut, changed): it cannot be replayed."""
+
+
 def load_dump(path: str | Path) -> tuple[dict[str, Any], DaemonConfig, np.ndarray, bytes]:
-    """A dump's manifest, configuration, rows and replay file (ValueError when it has none)."""
+    """A dump's manifest, configuration, rows and replay file (ValueError when it has none,
+    :class:`Damaged` when one of them cannot be read)."""
     p = Path(path)
     manifest = read_manifest(p)
     entry = manifest.get("replay") or {}
     if not entry.get("possible"):
         why = entry.get("why", "a dump of a version without replay")
         raise ValueError(f"{p}: cannot be replayed: {why}")
-    raw = yaml.safe_load((p / "config.yaml").read_text(encoding="utf-8"))
-    config = DaemonConfig.model_validate(raw, context={"base_dir": p})
-    rows = np.load(p / "ticks.npy", allow_pickle=False)
-    return manifest, config, rows, (p / REPLAY).read_bytes()
+    name = "config.yaml"
+    try:
+        raw = yaml.safe_load((p / name).read_text(encoding="utf-8"))
+        config = DaemonConfig.model_validate(raw, context={"base_dir": p})
+        name = "ticks.npy"
+        rows = np.load(p / name, allow_pickle=False)
+        name = REPLAY
+        blob = (p / name).read_bytes()
+    except FileNotFoundError as err:
+        raise Damaged(f"{p}: cannot be replayed: {name} is missing") from err
+    except (OSError, ValueError, yaml.YAMLError) as err:
+        raise Damaged(f"{p}: cannot be replayed: {name} is damaged ({err})") from err
+    return manifest, config, rows, blob
 
 
 def for_replay(config: DaemonConfig, scratch: Path) -> DaemonConfig:
@@ -251,7 +299,10 @@ def replay_dump(path: str | Path, config: DaemonConfig | None = None) -> ReplayR
     columns: list[str] = manifest["tick_columns"]
     with tempfile.TemporaryDirectory(prefix="occ-replay-") as scratch:
         cfg = for_replay(config or recorded_config, Path(scratch))
-        return _run(cfg, manifest, columns, rows, blob)
+        try:
+            return _run(cfg, manifest, columns, rows, blob)
+        except Damaged as err:
+            raise Damaged(f"{path}: cannot be replayed: {REPLAY} is damaged ({err})") from err
 
 
 def _run(
@@ -263,20 +314,25 @@ def _run(
 ) -> ReplayResult:
     wall_at = columns.index("to_wall")
     first = int(manifest["window"]["first_tick"])
-    clock = ReplayClock(float(rows[0, 0]), _first_finite(rows[:, wall_at]))
+    outer = _unpickled(_loads, blob)
+    built_at = float(outer.get("built_at", math.nan))  # configured when the recorded one was
+    start = built_at if math.isfinite(built_at) else float(rows[0, 0])
+    clock = ReplayClock(start, _first_finite(rows[:, wall_at]))
     robot = build_robot(cfg, clock=clock)
     try:
-        outer = _loads(blob)
-        drives = _Drives(robot, columns, build_readings(outer["checkpoint"]))
+        built = checkpointer(robot)  # the parts as built: the drivers' paths, the plugins
+        readings = _unpickled(lambda b: build_readings(b, built.roots), outer["checkpoint"])
+        drives = _Drives(robot, columns, readings, built.paths)
         robot.black_box.writer = None  # its rows are compared, its dumps never written
         robot.configure()
         if robot.cell is not None:
             robot.cell.link.send = lambda beat: len(robot.cell.link.peers)  # type: ignore[union-attr,method-assign]
         cp = checkpointer(robot)
         result = ReplayResult(first)
-        result.problems, result.built_differently = restore(cp, outer["checkpoint"])
+        restored = _unpickled(lambda b: restore(cp, b), outer["checkpoint"])
+        result.problems, result.built_differently = restored
         robot.black_box.resync()
-        inputs = cp.loads(outer["inputs"])
+        inputs = _unpickled(cp.loads, outer["inputs"])
         verdicts = _verdicts(robot, manifest)
         _replay_ticks(robot, clock, drives, columns, rows, inputs, result, verdicts)
         return result
@@ -284,14 +340,28 @@ def _run(
         robot.shutdown()
 
 
-def _loads(blob: bytes) -> dict[str, bytes]:
-    """The replay file's outer layer: a dict of two byte strings (no class may load)."""
+def _unpickled(load: Any, blob: Any) -> Any:
+    """``load(blob)``, any error of a cut or changed pickle :class:`Damaged` (a pickle that
+    is not this format's can raise almost anything while it is read)."""
+    try:
+        return load(blob)
+    except Exception as err:  # noqa: BLE001 - told as the file's damage, with its words
+        raise Damaged(f"{type(err).__name__}: {err}") from err
+
+
+def _loads(blob: bytes) -> dict[str, Any]:
+    """The replay file's outer layer: a dict of two byte strings and the build's clock (no
+    class may load)."""
 
     class _Plain(pickle.Unpickler):
         def find_class(self, module: str, name: str) -> Any:
             raise pickle.UnpicklingError(f"replay.pkl may not load {module}.{name}")
 
-    out: dict[str, bytes] = _Plain(io.BytesIO(blob)).load()
+    out = _Plain(io.BytesIO(blob)).load()
+    if not isinstance(out, dict) or not isinstance(out.get("checkpoint"), bytes):
+        raise ValueError("not a replay file")
+    if not isinstance(out.get("built_at", 0.0), float):
+        raise ValueError("not a replay file (built_at)")
     return out
 
 
@@ -331,6 +401,9 @@ def _replay_ticks(
         by_tick[tick].append((kind, where, obj))
     compared = [i for i, c in enumerate(columns) if c.startswith(COMPARED)]
     wall_at = columns.index("to_wall")
+    world = _World(robot, columns)
+    waits = (getattr(c, "wait_idle", None) for c in robot.controller.controllers)
+    workers = [w for w in waits if callable(w)]  # the controllers' threads (a keyframe planner)
     box = robot.black_box
     streams, cell = robot.streams, robot.cell
     pending: list[tuple[str, Any]] = []
@@ -354,6 +427,7 @@ def _replay_ticks(
             clock.to_wall = float(row[wall_at])
         clock.set(t)
         drives.row = row
+        world.set(row)
         pending.clear()
         beats.clear()
         expected: list[tuple[int, str, str, str, str]] = []
@@ -371,6 +445,8 @@ def _replay_ticks(
             elif kind == VERDICT and verdicts is not None:
                 verdicts(obj)
         robot.tick(t, k)
+        for idle in workers:  # what the tick asked of them lands before the next one
+            idle(WORKER_WAIT_S)
         result.ticks += 1
         got = box._view[(box.count - 1) % box._slots]
         diff = _first_difference(row, got, compared, columns)

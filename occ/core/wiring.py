@@ -239,8 +239,15 @@ def build_black_box(robot: Assembling, controllers: Sequence[Controller]) -> Bla
     (started with the robot) with what a dump says of the software (occ/core/provenance.py)."""
     cfg, config = robot.config.black_box, robot.config
     names = [j.name for j in robot.joints]
+    world = robot.hardware.environment  # a simulated world: its force in every row
     box = BlackBox(
-        robot.name, names, robot.rate_hz, cfg.seconds, cfg.events_per_s, enabled=cfg.enabled
+        robot.name,
+        names,
+        robot.rate_hz,
+        cfg.seconds,
+        cfg.events_per_s,
+        enabled=cfg.enabled,
+        world=world is not None,
     )
     if not cfg.enabled:
         return box
@@ -265,7 +272,9 @@ def build_black_box(robot: Assembling, controllers: Sequence[Controller]) -> Bla
         inline=not isinstance(robot.clock, RealClock),
     )
     drives = [(d, idx) for d, idx in robot.hardware.pairs]
-    box.bind(robot.data, robot.joints, robot.collision, writer, cfg.dir, drives, robot.streams)
+    box.bind(
+        robot.data, robot.joints, robot.collision, writer, cfg.dir, drives, robot.streams, world
+    )
     box.inline_checkpoints = writer.inline
     box.make_checkpointer = lambda: checkpointer(robot)
     for d, _ in drives:

@@ -505,8 +505,11 @@ class Driver(DriverLifecycle):
         self._prev_write_time: float = math.nan
         self._reads: int = 0
         #: the last reading as ``_read`` returned it, and the ``now`` of its read (the black
-        #: box keeps it: what a replay gives the checks again, occ/core/replay.py)
+        #: box keeps it: what a replay gives the checks again, occ/core/replay.py): a copy in
+        #: buffers of its own, since a hook may return its own buffers and change them later
+        #: in the tick (a simulated drive switched off zeroes its velocities)
         self.raw: tuple[Sequence[float], Sequence[float], Sequence[float]] = ((), (), ())
+        self._raw_copy: tuple[list[float], list[float], list[float]] = ([], [], [])
         self.raw_now = math.nan
         self._writes: int = 0
         self._limit_events: int = 0
@@ -559,8 +562,12 @@ class Driver(DriverLifecycle):
             raw = self._read(now)
         except Exception as err:
             raise self._hook_failed("read", err) from err
-        self.raw, self.raw_now = raw, now
         positions, velocities, efforts = raw
+        copy = self._raw_copy
+        copy[0][:] = positions  # element copies: nothing allocated for a hook's lists
+        copy[1][:] = velocities
+        copy[2][:] = efforts
+        self.raw, self.raw_now = copy, now
         # in FAULT the drive is off and its last reading may be the one that was not
         # believed: positions are still read (operators see where the robot is), lost and
         # out-of-range readings still reported, the rest judged again after a reset

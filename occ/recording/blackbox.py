@@ -18,7 +18,11 @@ element assignment as the State Data Table is, occ/core/statetable.py):
 - ``raw.pos|vel|eff.<joint>``: every drive's reading as its hook returned it, before the
   feedback checks (NaN in a tick that did not read it);
 - ``to_wall``: the wall clock minus the loop's clock as the streams asked it this tick (the
-  offset against which sample timestamps were judged; NaN when no sample needed it).
+  offset against which sample timestamps were judged; NaN when no sample needed it);
+- with a simulated world (a config's ``environment``, occ/haptics/contact.py), what the drive's
+  hook left in it and the controller reads as its tissue sensor: the contact force
+  (``world.fx``, ``world.fy``, ``world.fz``, N, patient frame) and whether the tool touches
+  (``world.contact``, 1 or 0).
 
 And in the *event ring*, each with the index of the tick it happened in (the row it belongs
 to): every input the loop consumed (a stream item as its wire bytes, reception time and peer;
@@ -54,11 +58,16 @@ inline there); on the real clock always by the writer thread.
 
 What a deterministic replay cannot reproduce, because no tick of the loop did it (reported as
 a divergence where it mattered): another thread's change to the loop's state (the supervisor
-catching a hung loop, a collision verdict a worker thread delivered on the real clock between
-two uses, a region defined from another thread), a drive's power-up on its own thread, and the
-samples the loop could not take in time (an overflowing stream queue, judged without being
-recorded). Inputs an interface refused before the loop (authentication, ownership, a full
-queue) never reach the loop and are counted by the interfaces: they cannot change what it does.
+catching a hung loop, a region defined from another thread), a drive's power-up on its own
+thread, the tick a planner's result landed in (the planner thread hands it over between two
+ticks: a replay lets it land before the tick after the request, as a simulated-time run that
+waits for its planner does; to close it, the controller would note on the loop the tick it
+first sees a result), and the samples the loop could not take in time (an overflowing stream
+queue, judged without being recorded). A collision verdict from the worker thread is taken by
+the loop at one point of its tick (``CollisionGuard.fresh``, at the start of
+``after_control``) and recorded with that tick: a replay hands it over there. Inputs an
+interface refused before the loop (authentication, ownership, a full queue) never reach the
+loop and are counted by the interfaces: they cannot change what it does.
 """
 
 from __future__ import annotations
@@ -113,18 +122,21 @@ CHUNK = 2048
 QUEUE_DEPTH = 4
 #: events from other threads kept beside the ring
 OFF_LOOP_EVENTS = 4096
+#: the simulated world's columns (a config's ``environment``), after ``to_wall``
+WORLD_COLUMNS = ("world.fx", "world.fy", "world.fz", "world.contact")
 #: states whose entry dumps the ring (STOPPED only for a safety reason: not an operator's Stop)
 DUMPED_STATES = (RobotState.FAULT, RobotState.ESTOP, RobotState.STOPPED)
 _STATE_CODE = {st: float(STATE_CODES.get(st.value, -1)) for st in RobotState}
 
 
-def tick_columns(joint_names: Sequence[str]) -> list[str]:
-    """The tick ring's columns, in order (module docstring)."""
+def tick_columns(joint_names: Sequence[str], world: bool = False) -> list[str]:
+    """The tick ring's columns, in order (module docstring); ``world``: with the simulated
+    world's."""
     cols = ["t", "k", "state", *(f"pos.{j}" for j in joint_names)]
     cols += [f"sp.{j}" for j in joint_names] + [f"ew.{j}" for j in joint_names]
     for j in joint_names:
         cols += [f"raw.pos.{j}", f"raw.vel.{j}", f"raw.eff.{j}"]
-    return [*cols, "to_wall"]
+    return [*cols, "to_wall", *(WORLD_COLUMNS if world else ())]
 
 
 @dataclass
@@ -176,17 +188,21 @@ class BlackBox:
         events_per_s: int,
         *,
         enabled: bool = True,
+        world: bool = False,
     ) -> None:
+        """``world``: the robot has a simulated world (its columns, bound by :meth:`bind`)."""
         self.name = name
         self.enabled = enabled
         self.joint_names = tuple(joint_names)
-        self.columns = tick_columns(self.joint_names)
+        self.columns = tick_columns(self.joint_names, world)
         n = len(self.joint_names)
         self.width = len(self.columns)
         self._sp_at = 3 + n  # the written columns' offset in a row
         self._ew_at = self._sp_at + n
         self._raw_at = self._ew_at + n  # the drives' own readings
         self._wall_at = self._raw_at + 3 * n
+        self._world_at = self._wall_at + 1
+        self._world: Any = None  # the simulated world (bind), None: no world columns
         self.rate_hz = float(rate_hz)
         self.seconds = float(seconds) if enabled else 0.0
         #: rows a dump holds (seconds x rate); the ring has a margin beyond them
@@ -247,10 +263,15 @@ class BlackBox:
         directory: Path,
         drives: Sequence[tuple[Any, Sequence[int]]] = (),
         streams: Any = None,
+        world: Any = None,
     ) -> None:
         """What the loop's row reads (the robot's data and joints, each driver with the
-        indices of its joints, the streams' wall offset, the collision guard whose ``verdict``
-        it watches), and who writes the dumps where."""
+        indices of its joints, the streams' wall offset, the simulated world when the box was
+        made with its columns, the collision guard whose ``verdict`` it watches), and who
+        writes the dumps where."""
+        if (world is not None) != (self.width > self._world_at):
+            raise ValueError("a simulated world needs a black box made with world=True")
+        self._world = world
         self._data = data
         self._joints = tuple(joints)
         self._drives = tuple((d, tuple(self._raw_at + 3 * i for i in idx)) for d, idx in drives)
@@ -269,8 +290,11 @@ class BlackBox:
             cp = self.make_checkpointer()
             self.checkpointer = cp
             self.checkpoints = Checkpoints(cp.take, self.rate_hz, keep)
-        if self.checkpoints is not None:
-            self.checkpoints.take(self.count, self.ev_count)
+        cps = self.checkpoints
+        if cps is not None:
+            if cps.baseline is None and self._data is not None:
+                cps.built_at = self._data.clock.now()
+            cps.take(self.count, self.ev_count)
 
     def spare(self) -> bool:
         """Time the loop has to spare before its next deadline: a checkpoint when one is due
@@ -408,6 +432,14 @@ class BlackBox:
         if streams is not None:
             w = streams._to_wall
             buf[at + self._wall_at] = math.nan if w is None else w
+        world = self._world
+        if world is not None:  # what the drive's hook left in the simulated world
+            c = at + self._world_at
+            f = world.force_n
+            buf[c] = f[0]
+            buf[c + 1] = f[1]
+            buf[c + 2] = f[2]
+            buf[c + 3] = 1.0 if world.in_contact else 0.0
         nxt = self._pos + self.width
         if nxt >= self._end:
             nxt = 0
@@ -597,6 +629,9 @@ class Checkpoints:
         self.cost_max_s = 0.0
         #: the first one: the robot as built, before its first tick
         self.baseline: list[Any] | None = None
+        #: the clock when it was taken (the activation; in simulated time the configure's
+        #: time as well): a replay configures its robot then
+        self.built_at = math.nan
 
     def take(self, row: int, events: int) -> None:
         """The state now, before row ``row`` is ticked and after ``events`` events (the loop

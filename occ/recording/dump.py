@@ -84,11 +84,13 @@ BATCH = 256
 #: what a dump does not hold (the module docstring of blackbox.py says why)
 NOT_RECORDED = [
     "another thread's change to the loop's state (the supervisor catching a hung loop, a "
-    "collision verdict delivered by the worker thread on the real clock, a region defined "
-    "from another thread)",
+    "region defined from another thread)",
     "a drive's power-up on a thread of its own",
     "stream samples the loop could not take in time (an overflowing queue)",
     "the periodic outputs (a replay makes them again from the state)",
+    "the tick a planner's result landed in (a replay lets it land before the tick after its "
+    "request)",
+    "a simulated world's depth in each shape (only a refused ForceTare's words name it)",
     "inputs the interfaces refused before the loop (counted by the interfaces)",
 ]
 
@@ -253,9 +255,10 @@ def _write_recording(
 def _write_replay(path: Path, box: BlackBox, window: Window) -> dict[str, Any]:
     """What a deterministic replay needs beside the ticks (occ/core/replay.py): the
     robot's state before the window's first tick (its checkpoint, every part by its path),
-    and every input of the window with its tick: the received items as the loop took them
-    (their reception times and the requests parsed), the cell's heartbeats, the collision
-    verdicts, the drivers' hook errors. Returns the manifest's ``replay`` entry."""
+    the clock when it was built, and every input of the window with its tick: the received
+    items as the loop took them (their reception times and the requests parsed), the cell's
+    heartbeats, the collision verdicts, the drivers' hook errors. Returns the manifest's
+    ``replay`` entry."""
     cp = box.checkpointer
     if window.checkpoint is None or cp is None or box.checkpoints is None:
         why = "no checkpoint of the robot's state in the window"
@@ -272,6 +275,7 @@ def _write_replay(path: Path, box: BlackBox, window: Window) -> dict[str, Any]:
             {
                 "checkpoint": cp.dumps(window.checkpoint, box.checkpoints.baseline),
                 "inputs": cp.dumps_values(inputs),
+                "built_at": box.checkpoints.built_at,
             },
             protocol=pickle.HIGHEST_PROTOCOL,
         )
