@@ -126,6 +126,15 @@ class ControllerContext:
     #: ``note(what, result)``: a worker's result the loop took (a plan it runs), recorded with
     #: the tick by the black box (occ/recording/blackbox.py); None when nothing records
     note: Callable[[str, Any], None] | None = None
+    #: ``to_wall()``: wall time minus loop time, read once a tick (the streams' reading: the
+    #: one the black box records, so a replay reads it again), None outside a robot
+    to_wall: Callable[[], float] | None = None
+
+    def wall_offset(self) -> float:
+        """Wall time minus loop time for this tick (one clock reading a tick, recorded)."""
+        if self.to_wall is not None:
+            return self.to_wall()
+        return self.clock.wall_time() - self.clock.now()
 
 
 @mypyc_attr(allow_interpreted_subclasses=True)  # mypyc: plugins and tests subclass it

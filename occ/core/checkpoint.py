@@ -309,21 +309,21 @@ class Checkpointer:
     def dumps(self, values: list[Any], baseline: list[Any] | None = None) -> bytes:
         """``values`` (a :meth:`take`) pickled with every part written as its path; with the
         ``baseline`` (the :meth:`take` of the robot as built, before its first tick), only
-        the slots that changed since, a digest of every slot's baseline, and the drivers'
-        own slots as built: a replay keeps what its own build made of the rest, so a changed
-        configuration counts, but its drives are the recorded ones (:func:`restore`)."""
+        the slots that changed since, a digest of every slot's baseline and every slot's value
+        as built (``built``), the drivers' own named (``drives``): a replay of the same
+        configuration takes the recorded build where its own differs (a boot number, the
+        time of a reading), one with another configuration keeps what its build made of it,
+        so the change counts, but always takes the recorded drives (:func:`restore`)."""
         items = [(path, v) for (_, _, path), v in zip(self.slots, values, strict=True)]
         digests: dict[str, str] = {}
         drives: dict[str, Any] = {}
+        built: dict[str, Any] = {}
         if baseline is not None:
             # the drives as the build left them: every slot of each driver (a part with the
             # readings ``raw``), among them the readings the build took (a replay's configure)
             held = {p.rpartition(".")[0] for _, name, p in self.slots if name == "raw"}
-            drives = {
-                p: v
-                for (_, _, p), v in zip(self.slots, baseline, strict=True)
-                if p.rpartition(".")[0] in held
-            }
+            built = {p: v for (_, _, p), v in zip(self.slots, baseline, strict=True)}
+            drives = {p: v for p, v in built.items() if p.rpartition(".")[0] in held}
             base = [self._bytes(v) for v in baseline]
             digests = {
                 p: hashlib.sha256(b).hexdigest()[:16]
@@ -336,7 +336,9 @@ class Checkpointer:
             ]
         kept = [(path, self._writable(v)) for path, v in items]
         drives = {p: self._writable(v) for p, v in drives.items()}
-        return self.dumps_values({"slots": kept, "baseline": digests, "drives": drives})
+        built = {p: self._writable(v) for p, v in built.items()}
+        saved = {"slots": kept, "baseline": digests, "drives": drives, "built": built}
+        return self.dumps_values(saved)
 
     def _writable(self, v: Any) -> Any:
         """``v``, or Unsaved when it cannot be written, or read back as :func:`restore`
@@ -446,7 +448,9 @@ def build_readings(blob: bytes, roots: frozenset[str] = OURS) -> dict[str, Any]:
     return dict(saved.get("drives", {}))
 
 
-def restore(checkpointer: Checkpointer, blob: bytes) -> tuple[list[str], list[str]]:
+def restore(
+    checkpointer: Checkpointer, blob: bytes, same_config: bool = False
+) -> tuple[list[str], list[str]]:
     """Set the slots of ``checkpointer``'s robot that ``blob`` holds (a
     :meth:`Checkpointer.dumps` of a robot built from the same config: the slots changed since
     its build). Returns what could not be restored, by path (empty: the whole state), and the
@@ -455,30 +459,56 @@ def restore(checkpointer: Checkpointer, blob: bytes) -> tuple[list[str], list[st
     is set as the recorded build left it: a replay answers the drives' hooks from the record
     (occ/core/replay.py), so their side of the drive (a simulated drive's model, filled by
     the hooks the replay does not run) is the recorded one, and a changed driver parameter
-    changes nothing in a replay. Its checks (a part of their own) are the loop's and count."""
+    changes nothing in a replay. Its checks (a part of their own) are the loop's and count.
+    ``same_config``: the replay's configuration is the recorded one, so every slot built
+    differently is a build that is not repeatable (a boot number, the time of a reading, a
+    real clock's worker where the replay has none): set as the recorded build left it, or
+    kept as built here where that value is a part this robot has not (the replay's clock
+    is simulated: the collision guard's worker thread); none is reported."""
     loader = _PartUnpickler(io.BytesIO(blob), checkpointer.parts, checkpointer.roots)
     saved: dict[str, Any] = loader.load()
-    problems = [f"{p}: part not in this robot" for p in dict.fromkeys(loader.missing)]
+    problems: list[str] = []
     recorded = saved["baseline"]
     here = checkpointer.digests() if recorded else {}
     restored = {p for p, _ in saved["slots"]}
     drives = saved.get("drives", {})
     differ = [p for p, d in recorded.items() if here.get(p, d) != d and p not in restored]
-    built = sorted(p for p in differ if p not in drives)
-    slots = [(p, drives[p]) for p in differ if p in drives] + list(saved["slots"])
-    for path, value in slots:
-        holder_path, _, name = path.rpartition(".")
-        holder = checkpointer.parts.get(holder_path)
-        if holder is None:
-            problems.append(f"{path}: no such part here")
-            continue
-        if isinstance(value, Unsaved):
-            problems.append(f"{path}: {value.why}")
-            continue
-        if value is KEEP:
-            continue
+    as_built = saved.get("built", {}) if same_config else drives
+    built = sorted(p for p in differ if p not in as_built)
+    from_build = [(p, as_built[p]) for p in differ if p in as_built]
+    for path, value in from_build:  # what could not load is kept as built here
+        if not isinstance(value, Unsaved) and not _unsaved_in(value):
+            _set(checkpointer, path, value, problems)
+    for path, value in saved["slots"]:
+        inside = _unsaved_in(value)
+        if inside:  # kept as built here: a value holding what cannot load is not set
+            problems += [f"{path}: {why}" for why in inside]
+        else:
+            _set(checkpointer, path, value, problems)
+    return problems, built
+
+
+def _unsaved_in(value: Any, depth: int = 0) -> list[str]:
+    """What could not be loaded inside a container value (a part this robot has not)."""
+    if depth > 6 or type(value) in _IMMUTABLE:
+        return []
+    if isinstance(value, list | tuple | deque | set | frozenset):
+        return [w for v in value for w in _unsaved_in(v, depth + 1)]
+    if isinstance(value, dict):
+        return [w for v in value.values() for w in _unsaved_in(v, depth + 1)]
+    return [value.why] if isinstance(value, Unsaved) and depth else []
+
+
+def _set(checkpointer: Checkpointer, path: str, value: Any, problems: list[str]) -> None:
+    """One slot set (or why not, in ``problems``)."""
+    holder_path, _, name = path.rpartition(".")
+    holder = checkpointer.parts.get(holder_path)
+    if holder is None:
+        problems.append(f"{path}: no such part here")
+    elif isinstance(value, Unsaved):
+        problems.append(f"{path}: {value.why}")
+    elif value is not KEEP:
         try:
             object.__setattr__(holder, name, value)
         except (AttributeError, TypeError) as err:
             problems.append(f"{path}: {err}")
-    return problems, built

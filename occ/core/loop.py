@@ -330,6 +330,8 @@ class ControlLoop:
         gc_count = 0
         spare = self.spare
         spare_min = self.spare_min_s
+        if spare is not None:
+            spare()  # before the first tick: the black box's first checkpoint
 
         t0 = now()
         self.t0 = t0

@@ -44,7 +44,7 @@ class Motion:
         self.reentries = 0
         #: may this setpoint be written? (the collision guard's ``admit``: a setpoint no
         #: verdict covers is not written, the previous one is held and re-joined after)
-        self.admit: Callable[[Sequence[float]], bool] | None = None
+        self.admit: Callable[[Sequence[float], float], bool] | None = None
         self._prev = [0.0] * len(joints)
         self.refused = 0
 
@@ -106,7 +106,7 @@ class Motion:
                         self.reentry = self._rejoin(sp, target)
                     else:
                         sp[:] = target
-                    if admit is not None and not admit(sp):
+                    if admit is not None and not admit(sp, now):
                         sp[:] = self._prev
                         self.reentry = True
                         self.refused += 1

@@ -300,7 +300,7 @@ def replay_dump(path: str | Path, config: DaemonConfig | None = None) -> ReplayR
     with tempfile.TemporaryDirectory(prefix="occ-replay-") as scratch:
         cfg = for_replay(config or recorded_config, Path(scratch))
         try:
-            return _run(cfg, manifest, columns, rows, blob)
+            return _run(cfg, manifest, columns, rows, blob, config is None)
         except Damaged as err:
             raise Damaged(f"{path}: cannot be replayed: {REPLAY} is damaged ({err})") from err
 
@@ -311,6 +311,7 @@ def _run(
     columns: list[str],
     rows: np.ndarray,
     blob: bytes,
+    same_config: bool = True,
 ) -> ReplayResult:
     wall_at = columns.index("to_wall")
     first = int(manifest["window"]["first_tick"])
@@ -329,7 +330,8 @@ def _run(
             robot.cell.link.send = lambda beat: len(robot.cell.link.peers)  # type: ignore[union-attr,method-assign]
         cp = checkpointer(robot)
         result = ReplayResult(first)
-        restored = _unpickled(lambda b: restore(cp, b), outer["checkpoint"])
+        same = same_config
+        restored = _unpickled(lambda b: restore(cp, b, same), outer["checkpoint"])
         result.problems, result.built_differently = restored
         robot.black_box.resync()
         inputs = _unpickled(cp.loads, outer["inputs"])

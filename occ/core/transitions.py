@@ -283,7 +283,7 @@ class StateEffects:
             # Armed by the first packet after (re)starting: a slave waiting for its master
             # holds still (no target), and a master that vanishes afterwards is caught.
             self.streams.reset()
-        self.controller.on_state(old, new, self.clock.now())
+        self.controller.on_state(old, new, self._now())  # the tick's time, as replayed
         text = f"{old.value} -> {new.value}{why}"
         self.alarms.broadcast(new.value, text, STATE_STATUS_CODE[new], timestamp=t)
         if old in (RobotState.FAULT, RobotState.ESTOP) and new is RobotState.READY:

@@ -185,7 +185,8 @@ def build_motion(
             write_drives(values, now, effort)
 
     motion = Motion(robot.data, controller, robot.joints, robot.period, write)
-    motion.admit = robot.collision.admitter(robot.data) if robot.collision else None
+    guard = robot.collision
+    motion.admit = guard.admitter(robot.data) if guard is not None else None
     if controller.commands_effort:
         robot.data.effort_command = [0.0] * len(robot.joints)
     return controller, motion
@@ -410,6 +411,7 @@ def controller_context(robot: Assembling, environment: Environment | None) -> Co
         cell_member=robot.cell.me if robot.cell is not None else None,
         cell_stop=robot.cell.announce_stop if robot.cell is not None else None,
         note=robot.black_box.note if robot.black_box.enabled else None,
+        to_wall=robot.streams.to_wall,
     )
 
 

@@ -810,13 +810,16 @@ class CollisionGuard:
         guard.policy = cc.policy
         return guard
 
-    def admitter(self, data: RobotData) -> Callable[[Sequence[float]], bool] | None:
-        """What the loop's motion asks before writing a setpoint (:meth:`admit`, with the
-        robot's base pose and its clock's time), or None when run-time checking is off."""
+    def admitter(self, data: RobotData) -> Callable[[Sequence[float], float], bool] | None:
+        """What the loop's motion asks before writing a setpoint at the tick's time ``now``
+        (:meth:`admit`, with the robot's base pose), or None when run-time checking is off.
+        The other arms are aged to the tick's time, not to a clock read in the middle of the
+        tick: one defined time, the one a replay gives it (the read was later by the tick's
+        compute time so far, a tenth of a millisecond: a fraction of a millimetre of a peer
+        arm's motion against a margin of tens)."""
         if not self.runtime:
             return None
-        clock = data.clock
-        return lambda sp: self.admit(sp, data.base, clock.now())
+        return lambda sp, now: self.admit(sp, data.base, now)
 
     def after_control(self, state: RobotState, data: RobotData, now: float) -> str | None:
         """Each tick after the drives were written: entering or leaving RUNNING noted

@@ -173,6 +173,11 @@ class StreamInputs:
         for item in q.drain():
             handle(name, monitor, master, item)
 
+    def to_wall(self) -> float:
+        """Wall time minus loop time this tick, read once a tick (the controllers' too: the
+        black box records it, so a replay reads the same)."""
+        return self._wall()
+
     def _wall(self) -> float:
         """Wall time minus loop time this tick (reception times on the wall clock, to compare
         with header timestamps), asked once a tick and only when a sample needs it."""

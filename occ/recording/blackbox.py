@@ -294,7 +294,10 @@ class BlackBox:
         if cps is not None:
             if cps.baseline is None and self._data is not None:
                 cps.built_at = self._data.clock.now()
-            cps.take(self.count, self.ev_count)
+            if self.inline_checkpoints:
+                cps.take(self.count, self.ev_count)
+            # on the real clock the loop takes the first one just before its first tick
+            # (ControlLoop calls spare() then): after what occd --start asked of that tick
 
     def spare(self) -> bool:
         """Time the loop has to spare before its next deadline: a checkpoint when one is due

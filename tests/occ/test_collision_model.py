@@ -1106,7 +1106,9 @@ def test_the_worker_gets_one_job_at_a_time_and_a_failed_one_is_told() -> None:
     assert silent._jobs.qsize() == 1 and silent.refused == 0
     job = silent._jobs.get_nowait()
     job()  # the worker runs it
-    assert guard.verdict is not None and guard.verdicts == 1
+    assert guard.verdict is None and guard.fresh is not None and guard.verdicts == 1
+    guard.take()  # the loop takes it (the start of after_control)
+    assert guard.verdict is not None and guard.fresh is None
     guard.publish(HOME, np.eye(4))  # the verdict covers it: not due
     assert silent._jobs.qsize() == 0 and guard.skipped == 1
     guard.publish(RAISED, np.eye(4))
@@ -1125,9 +1127,10 @@ def test_the_worker_gets_one_job_at_a_time_and_a_failed_one_is_told() -> None:
     try:
         real.publish(RAISED, np.eye(4))
         for _ in range(2000):
-            if real.verdict is not None:
+            if real.fresh is not None:
                 break
             threading_sleep()
+        real.take()
         assert real.verdict is not None and real.verdict.slack < 0.0
     finally:
         real.stop()
@@ -1197,11 +1200,11 @@ def test_the_admitter_asks_with_the_robots_base_pose_now() -> None:
     admit = guard.admitter(data)
     assert admit is not None
     guard.publish(HOME, data.base)
-    assert admit(HOME)
+    assert admit(HOME, 0.0)
     data.base = turned_base()  # a tracker moved it: no verdict for it yet
-    assert not admit(HOME)
+    assert not admit(HOME, 0.0)
     guard.publish(HOME, data.base)
-    assert admit(HOME)
+    assert admit(HOME, 0.0)
 
 
 def ur5_collision(**collision: Any) -> dict[str, Any]:

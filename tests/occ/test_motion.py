@@ -247,7 +247,7 @@ def test_a_setpoint_the_collision_guard_does_not_admit_is_not_written() -> None:
     seen: list[list[float]] = []
     allow = [True]
 
-    def admit(sp: Sequence[float]) -> bool:
+    def admit(sp: Sequence[float], now: float) -> bool:
         seen.append(list(sp))
         return allow[0]
 

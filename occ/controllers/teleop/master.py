@@ -184,9 +184,8 @@ class MasterController(Controller):
                 f"({', '.join(self._teleop_ifaces) or 'none yet'})"
             )
         link = self._link(name)
-        clock = self.ctx.clock  # type: ignore[union-attr]
         recovered = link.recoveries
-        if not link.on_sample(sample, now, sample.t_rx + (clock.wall_time() - clock.now())):
+        if not link.on_sample(sample, now, sample.t_rx + self.ctx.wall_offset()):  # type: ignore[union-attr]
             return
         if name != self._driving():
             return

@@ -228,9 +228,8 @@ class SlaveController(Controller):
         ts = sample.t_sample
         phase = self.phase
         if phase is not None:
-            clock = self.ctx.clock  # type: ignore[union-attr]
             if ts > 0.0:  # when the master sampled, on our loop's clock
-                phase.track(ts - (clock.wall_time() - clock.now()), self.ctx)
+                phase.track(ts - self.ctx.wall_offset(), self.ctx)  # type: ignore[union-attr]
             else:
                 phase.track(sample.t_rx, self.ctx)
         self.pending_ts = ts if ts > 0.0 else None
