@@ -42,7 +42,7 @@ import io
 import pickle
 from array import array
 from collections import deque
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from types import MappingProxyType
 from typing import Any
 
@@ -306,14 +306,22 @@ class Checkpointer:
         return out
 
     # ------------------------------------------------------------------ the writer thread
-    def dumps(self, values: list[Any], baseline: list[Any] | None = None) -> bytes:
+    def dumps(
+        self,
+        values: list[Any],
+        baseline: list[Any] | None = None,
+        pace: Callable[[], None] | None = None,
+    ) -> bytes:
         """``values`` (a :meth:`take`) pickled with every part written as its path; with the
         ``baseline`` (the :meth:`take` of the robot as built, before its first tick), only
         the slots that changed since, a digest of every slot's baseline and every slot's value
         as built (``built``), the drivers' own named (``drives``): a replay of the same
         configuration takes the recorded build where its own differs (a boot number, the
         time of a reading), one with another configuration keeps what its build made of it,
-        so the change counts, but always takes the recorded drives (:func:`restore`)."""
+        so the change counts, but always takes the recorded drives (:func:`restore`).
+        ``pace()`` is called every few slots (the black box's writer: out of the loop's
+        way)."""
+        step = _paced(pace)
         items = [(path, v) for (_, _, path), v in zip(self.slots, values, strict=True)]
         digests: dict[str, str] = {}
         drives: dict[str, Any] = {}
@@ -324,7 +332,7 @@ class Checkpointer:
             held = {p.rpartition(".")[0] for _, name, p in self.slots if name == "raw"}
             built = {p: v for (_, _, p), v in zip(self.slots, baseline, strict=True)}
             drives = {p: v for p, v in built.items() if p.rpartition(".")[0] in held}
-            base = [self._bytes(v) for v in baseline]
+            base = [step(self._bytes(v)) for v in baseline]
             digests = {
                 p: hashlib.sha256(b).hexdigest()[:16]
                 for (_, _, p), b in zip(self.slots, base, strict=True)
@@ -332,11 +340,11 @@ class Checkpointer:
             items = [
                 (path, v)
                 for (path, v), b in zip(items, base, strict=True)
-                if isinstance(v, Unsaved) or self._bytes(v) != b
+                if isinstance(v, Unsaved) or step(self._bytes(v)) != b
             ]
-        kept = [(path, self._writable(v)) for path, v in items]
-        drives = {p: self._writable(v) for p, v in drives.items()}
-        built = {p: self._writable(v) for p, v in built.items()}
+        kept = [(path, step(self._writable(v))) for path, v in items]
+        drives = {p: step(self._writable(v)) for p, v in drives.items()}
+        built = {p: step(self._writable(v)) for p, v in built.items()}
         saved = {"slots": kept, "baseline": digests, "drives": drives, "built": built}
         return self.dumps_values(saved)
 
@@ -377,6 +385,21 @@ class Checkpointer:
 
 def _keep() -> _Keep:
     return KEEP
+
+
+def _paced(pace: Callable[[], None] | None) -> Callable[[Any], Any]:
+    """``step(x)``: ``x``, with ``pace()`` called every eighth step."""
+    if pace is None:
+        return lambda x: x
+    n = [0]
+
+    def step(x: Any) -> Any:
+        n[0] += 1
+        if n[0] & 7 == 0:
+            pace()
+        return x
+
+    return step
 
 
 def _mapping_proxy(d: dict[Any, Any]) -> MappingProxyType[Any, Any]:

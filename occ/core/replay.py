@@ -334,7 +334,7 @@ def _run(
         restored = _unpickled(lambda b: restore(cp, b, same), outer["checkpoint"])
         result.problems, result.built_differently = restored
         robot.black_box.resync()
-        inputs = _unpickled(cp.loads, outer["inputs"])
+        inputs = [ev for piece in outer["inputs"] for ev in _unpickled(cp.loads, piece)]
         verdicts = _verdicts(robot, manifest)
         _replay_ticks(robot, clock, drives, columns, rows, inputs, result, verdicts)
         return result
@@ -362,6 +362,9 @@ def _loads(blob: bytes) -> dict[str, Any]:
     out = _Plain(io.BytesIO(blob)).load()
     if not isinstance(out, dict) or not isinstance(out.get("checkpoint"), bytes):
         raise ValueError("not a replay file")
+    pieces = out.get("inputs")
+    if not isinstance(pieces, list) or not all(isinstance(p, bytes) for p in pieces):
+        raise ValueError("not a replay file (inputs)")
     if not isinstance(out.get("built_at", 0.0), float):
         raise ValueError("not a replay file (built_at)")
     return out

@@ -6,6 +6,7 @@ occ/core/assembly.py's."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -47,7 +48,7 @@ from occ.net.outputs import BuiltinSources, OutputScheduler
 from occ.net.streams import StreamInputs
 from occ.recording.blackbox import BlackBox, DumpWriter
 from occ.recording.control import RecordingControl
-from occ.recording.dump import DumpContext, write_dump
+from occ.recording.dump import DumpContext, write_dump, write_dump_forked
 from occ.recording.record import writer_priority
 
 if TYPE_CHECKING:
@@ -266,10 +267,16 @@ def build_black_box(robot: Assembling, controllers: Sequence[Controller]) -> Bla
         max_bytes=int(cfg.max_mb * 1e6),
         tell=robot.alarms.black_box_written,
     )
+    real = isinstance(robot.clock, RealClock)
+    write = write_dump_forked if real and hasattr(os, "fork") else write_dump
     writer = DumpWriter(
-        lambda req: write_dump(box, req, ctx),
+        lambda req: write(box, req, ctx),
         f"occ-{robot.name}-blackbox",
-        fifo_priority=writer_priority(config),
+        # the thread forks and waits (on the real clock the child writes: dump.py); never
+        # SCHED_FIFO, which would make the child real-time too, and a second of busy
+        # real-time work exhausts the kernel's real-time budget (sched_rt_runtime_us),
+        # throttling every real-time thread of the CPU, the loop's too
+        fifo_priority=None,
         inline=not isinstance(robot.clock, RealClock),
     )
     drives = [(d, idx) for d, idx in robot.hardware.pairs]
@@ -367,6 +374,8 @@ def build_loop(robot: Assembling) -> tuple[LoopStats, ControlLoop]:
     )
     if robot.black_box.enabled:
         loop.spare = robot.black_box.spare  # its checkpoints, in the time a tick leaves
+        if isinstance(robot.clock, RealClock):  # its dumps' writer: only when the loop is idle
+            robot.black_box.pace = loop.yield_to_loop
     return stats, loop
 
 

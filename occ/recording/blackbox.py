@@ -219,6 +219,10 @@ class BlackBox:
         self._buf[self._raw_at : self._raw_at + 3 * n] = self._raw_nan
         #: simulated time: checkpoints taken at the end of the tick (no loop calls spare())
         self.inline_checkpoints = False
+        #: what the dump's writer calls between pieces of its work: on the real clock the
+        #: loop's ``yield_to_loop`` (it works only while the loop is idle), else a hand-back
+        #: of the interpreter lock
+        self.pace: Callable[[], None] = _hand_back
         #: what builds the robot's checkpointer at activation (occ/core/wiring.py)
         self.make_checkpointer: Callable[[], Any] | None = None
         #: rows written since start (the tick under way writes row ``count``)
@@ -537,7 +541,7 @@ class BlackBox:
             m = min(end - r, slots - s, CHUNK)
             rows[r - first : r - first + m] = self._view[s : s + m]
             r += m
-            time.sleep(0)
+            self.pace()
         gone = (self.count + 1 - slots) - first  # rows the loop may have written over
         lost = max(0, gone)
         if lost:
@@ -572,13 +576,19 @@ class BlackBox:
             rx.extend(self._ev_t[s : s + m])
             peers.extend(self._ev_peer[s : s + m])
             e += m
-            time.sleep(0)
+            self.pace()
         gone = max(0, (self.ev_count + 1 - slots) - start)
         del ticks[:gone], kinds[:gone], wheres[:gone], objs[:gone], rx[:gone], peers[:gone]
+        rebuilt = 0
         for n, kind in enumerate(kinds):  # stream items kept as bytes: rebuilt
             if kind == _IN_WIRE:
                 kinds[n] = IN
+                if ticks[n] < first_row:
+                    continue  # before the window: dropped below
                 objs[n] = rebuild_stream_item(wheres[n], peers[n], objs[n], rx[n])
+                rebuilt += 1
+                if rebuilt & 7 == 0:
+                    self.pace()
         # events overwritten before the window's first tick: the first tick kept may have
         # lost some, the next ones are whole
         cut = start + gone > 0 and bool(ticks)
@@ -615,6 +625,10 @@ class BlackBox:
             "dir": str(self.dir),
             **(w.stats() if w is not None else {}),
         }
+
+
+def _hand_back() -> None:
+    time.sleep(0)
 
 
 class Checkpoints:
