@@ -188,9 +188,10 @@ class ControlLoop:
         self.gc_min_spare_s = float(rt.get("gc_min_spare_us", 300.0)) * 1e-6
         self.switch_interval_s: float | None = rt.get("switch_interval_s")
         #: work for the time a tick leaves before the next deadline (the black box's
-        #: checkpoints): called after a tick that leaves more than ``spare_min_s``; returns
-        #: True when it did some (then no collection in that tick)
-        self.spare: Callable[[], bool] | None = None
+        #: checkpoints): ``spare(roomy)`` after every tick, ``roomy`` when the tick left more
+        #: than ``spare_min_s``; returns True when it did some (then no collection in that
+        #: tick)
+        self.spare: Callable[[bool], bool] | None = None
         self.spare_min_s = 0.6 * self.period_s
         self.realtime_report = ""
         self.missed_ticks = 0
@@ -358,7 +359,7 @@ class ControlLoop:
         spare = self.spare
         spare_min = self.spare_min_s
         if spare is not None:
-            spare()  # before the first tick: the black box's first checkpoint
+            spare(True)  # before the first tick: the black box's first checkpoint
 
         t0 = now()
         self.t0 = t0
@@ -399,7 +400,7 @@ class ControlLoop:
             k += 1
             n += 1
             self.ticks_run = n
-            if spare is not None and (t0 + k * period) - end > spare_min and spare():
+            if spare is not None and spare((t0 + k * period) - end > spare_min):
                 continue  # spare time used: no collection after it
             if spare_gc and n >= next_gc and (t0 + k * period) - end > gc_min_spare:
                 gc_count += 1

@@ -303,11 +303,14 @@ class BlackBox:
             # on the real clock the loop takes the first one just before its first tick
             # (ControlLoop calls spare() then): after what occd --start asked of that tick
 
-    def spare(self) -> bool:
-        """Time the loop has to spare before its next deadline: a checkpoint when one is due
-        (on the loop thread, between two ticks: a consistent state). True when one was taken."""
+    def spare(self, roomy: bool = True) -> bool:
+        """After a tick, on the loop thread (between two ticks: a consistent state): a
+        checkpoint when one is due and the tick left room (``roomy``), or, on a machine so
+        loaded that no tick has left room for a whole interval since it was due, after this
+        tick anyway (a late tick at worst, rather than a window whose start cannot be
+        replayed). True when one was taken."""
         cps = self.checkpoints
-        if cps is not None and self.count >= cps.due:
+        if cps is not None and self.count >= cps.due and (roomy or self.count >= cps.late):
             cps.take(self.count, self.ev_count)
             return True
         return False
@@ -638,8 +641,9 @@ class Checkpoints:
     def __init__(self, take: Callable[[], list[Any]], rate_hz: float, keep: int) -> None:
         self._take = take
         self.every = max(1, round(CHECKPOINT_S * rate_hz))
-        #: the row count at which the next one is due
+        #: the row count at which the next one is due, and when it is taken without room
         self.due = 0
+        self.late = 0
         #: (row, events written by then, the state)
         self._ring: deque[tuple[int, int, list[Any]]] = deque(maxlen=keep)
         self.taken = 0
@@ -656,6 +660,7 @@ class Checkpoints:
         t0 = time.perf_counter()
         values = self._take()
         self._ring.append((row, events, values))  # atomic: the writer reads all or nothing
+        self.late = row + 2 * self.every  # due at row + every, overdue one interval later
         if self.baseline is None:
             self.baseline = values
         self.due = row + self.every

@@ -161,8 +161,10 @@ def test_the_ring_holds_what_the_loop_read_and_did(tmp_path: Path) -> None:
     rows = np.load(path / "ticks.npy")
     assert len(rows) >= 100 and m["window"]["rows_lost"] == 0
     # the window starts at the checkpoint at or before its 100 ticks (a replay's start)
-    assert m["replay"]["from_tick"] == m["window"]["first_tick"] == m["trigger"]["tick"] - (
-        len(rows) - 1
+    assert (
+        m["replay"]["from_tick"]
+        == m["window"]["first_tick"]
+        == m["trigger"]["tick"] - (len(rows) - 1)
     )
     rows = rows[-100:]
     cols = m["tick_columns"]
@@ -289,3 +291,29 @@ def test_black_box_defaults_and_off() -> None:
         assert rig.robot.black_box.stats()["requested"] == 0
     finally:
         rig.close()
+
+
+@pytest.mark.req("SR-BOX-6")
+def test_a_checkpoint_waits_for_a_tick_that_leaves_room_but_never_a_whole_interval() -> None:
+    """Checkpoints (a replay's start) are taken in the time a tick leaves; on a machine so
+    loaded that no tick leaves room for a whole interval after one is due, after the next
+    tick anyway: a window always starts at a checkpoint within two intervals of its seconds."""
+    from occ.recording.blackbox import Checkpoints
+
+    box = BlackBox("r", ["j"], 1000.0, 1.0, 100)
+    box.checkpoints = cps = Checkpoints(list, 1000.0, 4)
+
+    def taken() -> list[int]:
+        return [row for row, _events, _state in cps._ring]
+
+    assert box.spare(False) and taken() == [0]  # the first: at once, room or not
+    box.count = 999
+    assert not box.spare(True)  # not due yet
+    box.count = 1000
+    assert not box.spare(False)  # due, but the tick left no room: later
+    box.count = 1999
+    assert not box.spare(False)
+    box.count = 2000  # a whole interval past due: after this tick anyway
+    assert box.spare(False) and taken() == [0, 2000]
+    box.count = 3000
+    assert box.spare(True) and taken() == [0, 2000, 3000]
