@@ -13,6 +13,7 @@ import pytest
 
 import igtl
 from occ.config import DaemonConfig
+from occ.config.cell import CellConfig, CellMember, cell_problems
 from occ.net.celllink import Beat, BeatError, CellLink, pack_beat, unpack_beat
 from occ_testkit.testing import SimRobot
 from tests.occ.test_cell import _udp_ports, member_config
@@ -62,7 +63,10 @@ def test_a_malformed_heartbeat_says_what_is_wrong(change: object, why: str) -> N
 
 
 class Pair:
-    """Our link ``arm0`` and a raw socket at arm1's address that sends what a test makes."""
+    """Our link ``arm0`` and a raw socket at arm1's address that sends what a test makes.
+    The link is polled (as in simulated time: ``take`` reads the socket itself) and ``send``
+    takes until the datagram has been judged (received, or refused by the endpoint), so each
+    one's verdict is in the counters when ``send`` returns, whatever the machine's load."""
 
     def __init__(self, key: str | None = None) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -70,16 +74,22 @@ class Pair:
         (port0,) = _udp_ports(1)
         self.link = CellLink(
             "or1", "arm0", ("127.0.0.1", port0), {"arm1": self.sock.getsockname()},
-            key_text=key, now=time.monotonic,
+            key_text=key, now=time.monotonic, polled=True,
         )  # fmt: skip
         self.link.start()
         self.address = ("127.0.0.1", port0)
 
     def send(self, msg: igtl.Message | bytes, sock: socket.socket | None = None) -> list[Beat]:
         data = msg if isinstance(msg, bytes) else msg.pack()
+        c = self.link.counters
+        before = (c.received, c.refused)
         (sock or self.sock).sendto(data, self.address)
-        time.sleep(0.02)
-        return self.link.take()
+        deadline = time.monotonic() + 5.0
+        out = self.link.take()
+        while not out and (c.received, c.refused) == before and time.monotonic() < deadline:
+            time.sleep(0.001)
+            out = self.link.take()
+        return out
 
     def close(self) -> None:
         self.link.stop()
@@ -98,16 +108,22 @@ def test_a_keyed_link_takes_only_signed_fresh_heartbeats_of_its_members() -> Non
         old = dataclasses.replace(BEAT, sent_wall=time.time() - 60.0)
         assert not pair.send(pack_beat(old, KEY.encode()))  # recorded a minute ago
         assert pair.link.counters.stale == 1
+        # the refusals above have their own counts, not `refused`'s
+        assert pair.link.counters.refused == 0
         # another cell's heartbeat, or another member's name at arm1's address
         assert not pair.send(pack_beat(dataclasses.replace(good, cell="or2"), KEY.encode()))
         assert not pair.send(pack_beat(dataclasses.replace(good, member="arm2"), KEY.encode()))
-        assert not pair.send(b"\x00" * 70)  # not a message
-        assert pair.link.counters.refused >= 3
+        assert pair.link.counters.refused == 2
+        assert not pair.send(b"\x00" * 70)  # not a message: the endpoint's error, counted once
+        assert pair.link.counters.refused == 3
         # from an address that is no member's (a socket of the same host, another port)
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as other:
             other.bind(("127.0.0.1", 0))
             assert not pair.send(pack_beat(good, KEY.encode()), other)
-        assert pair.link.stats()["refused"] >= 4
+        assert pair.link.stats() == {
+            "sent": 0, "send_failed": 0, "received": 7, "refused": 4, "unauthenticated": 2,
+            "stale": 1,
+        }  # fmt: skip
     finally:
         pair.close()
 
@@ -175,3 +191,29 @@ def test_the_cell_section_is_checked_at_load(tmp_path: Path) -> None:
     )
     with pytest.raises(ValueError, match="is interface 'master''s"):
         DaemonConfig.model_validate(cfg)
+
+
+@pytest.mark.req("SR-CELL-3")
+def test_the_cell_sections_checks_name_each_repeat_and_bound_the_grace() -> None:
+    """The section's checks themselves (occ/config/cell.py): every repeat of a name or an
+    address is a problem naming the first one given, and the grace may be 3 periods, not less;
+    this daemon's name in the cell is its ``member`` entry, else its robot's name."""
+    a, b = "127.0.0.1:18950", "127.0.0.1:18951"
+    members = tuple(
+        CellMember(name=n, address=addr)
+        for n, addr in (("arm0", a), ("arm1", b), ("arm0", "127.0.0.1:18952"), ("arm0", b))
+    )
+    assert cell_problems(members, 5.0, 100.0) == [
+        (("members", 2, "name"), "duplicate member 'arm0' (members[0])"),
+        (("members", 3, "name"), "duplicate member 'arm0' (members[0])"),
+        (("members", 3, "address"), f"{b} is members[1]'s too"),
+    ]
+    assert cell_problems(members[:2], 2.5, 7.5) == []
+    assert cell_problems(members[:2], 2.5, 7.49) == [
+        (("grace_ms",), "must be at least 3 heartbeat periods (7.5 ms)")
+    ]
+    cfg = CellConfig(name="or1", members=members[:2], member="arm1")
+    assert cfg.me("robot") == "arm1" and cfg.entry("arm1") is members[1]
+    assert CellConfig(name="or1", members=members[:2]).me("arm0") == "arm0"
+    with pytest.raises(KeyError, match="arm7"):
+        cfg.entry("arm7")
