@@ -54,9 +54,12 @@ class Judge:
     """``arm0`` (a robot in simulated time, 1 ms ticks) with its played link; ``arm1`` and
     ``arm2`` exist only as the heartbeats a test queues."""
 
-    def __init__(self, **cell: Any) -> None:
+    def __init__(self, *, frames: bool = False, **cell: Any) -> None:
         ports = _udp_ports(3)
-        members = [{"name": f"arm{i}", "address": f"127.0.0.1:{p}"} for i, p in enumerate(ports)]
+        frame = {"frame": {"model": "occ_slave"}} if frames else {}
+        members = [
+            {"name": f"arm{i}", "address": f"127.0.0.1:{p}"} | frame for i, p in enumerate(ports)
+        ]
         self.sim = SimRobot(member_config("arm0", members, **cell))
         cell_ = self.sim.robot.cell
         assert cell_ is not None
@@ -71,12 +74,12 @@ class Judge:
         """The time of the next tick (a heartbeat queued now arrives in it)."""
         return self.sim.k * self.sim.period
 
-    def beat(self, member: str, state: str = "RUNNING", *, boot: int = 1, seq: int = 0,
+    def beat(self, member: str, state: str = "RUNNING", *, boot: int = 1, seq: int | None = None,
              cause: str = "", origin: str = "", stop_wall: float = 0.0, chain: str = "",
              leaving: bool = False) -> None:  # fmt: skip
-        """A heartbeat of ``member`` taken in the next tick (``seq`` 0: one more than its
+        """A heartbeat of ``member`` taken in the next tick (``seq`` None: one more than its
         last)."""
-        if not seq:
+        if seq is None:
             self.seq[member] += 1
             seq = self.seq[member]
         self.link.inbox.append(
@@ -356,3 +359,69 @@ def test_the_black_box_is_given_each_heartbeat_the_loop_takes(judge: Judge) -> N
     beats += judge.link.inbox
     judge.sim.tick()
     assert taken == [(b, "cell") for b in beats] and len(taken) == 3
+
+
+@pytest.mark.req("SR-CELL-3")
+def test_sequence_numbers_count_losses_across_the_wrap_and_refuse_half_a_turn_back(
+    judge: Judge,
+) -> None:
+    """The sequence is uint32: 0xFFFFFFFF then 1 lost one (0), a step of less than half the
+    range is ahead, half the range or more is behind (a replay); a heartbeat of a member not
+    in this cell (a cell renamed under its link) is ignored."""
+    m = judge.cell.members["arm1"]
+    for seq in (0xFFFFFFFF, 1, 1 + (1 << 31), (1 << 31)):
+        judge.beat("arm1", seq=seq)
+    judge.beat("arm9", seq=1)  # no such member here
+    judge.sim.tick()
+    assert (m.seq, m.lost, m.stale) == ((1 << 31), 1 + (1 << 31) - 2, 1)
+    # exactly half the range ahead of 1 << 31 is 0: behind, refused
+    judge.beat("arm1", "FAULT", seq=0)
+    judge.sim.tick()
+    assert (m.seq, m.stale, m.state) == ((1 << 31), 2, "RUNNING")
+
+
+@pytest.mark.req("SR-CELL-2")
+def test_a_member_forgotten_stays_so_while_it_says_it_left_and_the_peer_arm_is_fed() -> None:
+    """A forgotten member heard leaving stays out; heard in the cell it is in again. Its arm
+    is given to the arm check (``on_peer``) from each heartbeat while its chain is its URDF's
+    (or not announced), never when it is another."""
+    j = Judge(frames=True)
+    try:
+        fed: list[tuple[Any, ...]] = []
+        j.cell.on_peer = lambda *a: fed.append(a)
+        chain = j.cell.members["arm1"].chain
+        assert chain is not None
+        assert ok(j.command("CellForget", '<Command Name="CellForget" Member="arm1"/>'))
+        j.beat("arm1", chain=chain, leaving=True)
+        t = j.next_t
+        j.sim.tick()
+        assert j.cell.members["arm1"].out
+        j.beat("arm1", chain="another")
+        j.beat("arm1")
+        j.sim.tick()
+        assert not j.cell.members["arm1"].out
+        q, base = (0.0, 0.35, 0.05), (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+        assert fed == [("arm1", q, base, t), ("arm1", q, base, t + j.sim.period)]
+    finally:
+        j.close()
+
+
+@pytest.mark.req("SR-CELL-4")
+def test_silence_is_judged_from_the_member_heard_longest_ago_though_nothing_comes(
+    judge: Judge,
+) -> None:
+    """Nothing arrives at all: arm1 (heard at 0) holds arm0 in the first tick past its grace,
+    though arm2 was heard 50 ms later; not one tick before."""
+    judge.run()
+    start = judge.next_t
+    judge.beat("arm1")
+    judge.beat("arm2")
+    judge.sim.tick()
+    while judge.next_t < start + 0.05:
+        judge.beat("arm2")
+        judge.sim.tick()
+    while judge.next_t <= start + judge.cell.grace_s:
+        judge.sim.tick()
+        assert judge.state is S.RUNNING, judge.next_t
+    judge.sim.tick()
+    assert judge.state is S.STOPPED and list(judge.cell.latched) == ["arm1"]

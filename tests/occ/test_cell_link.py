@@ -6,12 +6,15 @@ from __future__ import annotations
 import dataclasses
 import socket
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 import igtl
+from igtl.messages.ndarray import NDArrayMessage
 from occ.config import DaemonConfig
 from occ.config.cell import CellConfig, CellMember, cell_problems
 from occ.net.celllink import Beat, BeatError, CellLink, pack_beat, unpack_beat
@@ -68,13 +71,16 @@ class Pair:
     takes until the datagram has been judged (received, or refused by the endpoint), so each
     one's verdict is in the counters when ``send`` returns, whatever the machine's load."""
 
-    def __init__(self, key: str | None = None) -> None:
+    def __init__(
+        self, key: str | None = None, wall: Callable[[], float] = time.time, **more_peers: Any
+    ) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(5.0)
         (port0,) = _udp_ports(1)
         self.link = CellLink(
-            "or1", "arm0", ("127.0.0.1", port0), {"arm1": self.sock.getsockname()},
-            key_text=key, now=time.monotonic, polled=True,
+            "or1", "arm0", ("127.0.0.1", port0), {"arm1": self.sock.getsockname(), **more_peers},
+            key_text=key, now=time.monotonic, wall=wall, polled=True,
         )  # fmt: skip
         self.link.start()
         self.address = ("127.0.0.1", port0)
@@ -217,3 +223,56 @@ def test_the_cell_sections_checks_name_each_repeat_and_bound_the_grace() -> None
     assert CellConfig(name="or1", members=members[:2]).me("arm0") == "arm0"
     with pytest.raises(KeyError, match="arm7"):
         cfg.entry("arm7")
+
+
+@pytest.mark.req("SR-CELL-3")
+def test_every_field_of_a_heartbeat_comes_back_and_the_optional_ones_default() -> None:
+    full = dataclasses.replace(
+        BEAT, seq=(1 << 32) + 9, state="STOPPED", cause="ESTOP: pedal", origin="arm2",
+        stop_wall=1_700_000_000.5, leaving=True, sent_wall=1_700_000_001.25,
+    )  # fmt: skip
+    back = unpack_beat(igtl.unpack(pack_beat(full, None).pack()), 4.5)
+    assert back == dataclasses.replace(full, seq=9, t_rx=4.5)  # the sequence is uint32
+    # only what a heartbeat must carry: no stop, no chain, not leaving; no joints is 13 numbers
+    bare = NDArrayMessage(
+        device_name="CELL", header_version=2, timestamp=1_700_000_002.5, message_id=4,
+        metadata={"cell": "or1", "member": "arm1", "boot": "3", "state": "READY",
+                  "leaving": "0"},
+        array=np.arange(13, dtype=np.float64),
+    )  # fmt: skip
+    assert unpack_beat(igtl.unpack(bare.pack()), 0.0) == Beat(
+        cell="or1", member="arm1", boot=3, seq=4, state="READY", cause="", origin="",
+        stop_wall=12.0, chain="", q=(), base=tuple(float(v) for v in range(12)),
+        leaving=False, sent_wall=1_700_000_002.5, t_rx=0.0,
+    )  # fmt: skip
+
+
+@pytest.mark.req("SR-CELL-3")
+def test_a_keyed_heartbeat_is_fresh_within_two_seconds_either_side() -> None:
+    wall = 1_700_000_000.0
+    pair = Pair(KEY, wall=lambda: wall)
+    try:
+        for sent, taken in ((-2.0, True), (2.0, True), (-2.5, False), (3.0, False)):
+            beat = dataclasses.replace(BEAT, sent_wall=wall + sent)
+            assert bool(pair.send(pack_beat(beat, KEY.encode()))) is taken, sent
+        assert pair.link.counters.stale == 2
+    finally:
+        pair.close()
+
+
+@pytest.mark.req("SR-CELL-3")
+def test_a_link_numbers_its_heartbeats_from_one_and_counts_what_it_could_not_send() -> None:
+    pair = Pair(wall=lambda: 1_700_000_123.25, arm2=("127.0.0.1", 0))  # arm2: no such port
+    try:
+        assert pair.link.send(BEAT) == 1 and pair.link.send(BEAT) == 1
+        msgs = [igtl.unpack(pair.sock.recv(65536)) for _ in range(2)]
+        assert [m.message_id for m in msgs] == [1, 2]
+        assert unpack_beat(msgs[1], 0.0) == dataclasses.replace(
+            BEAT, seq=2, sent_wall=1_700_000_123.25
+        )
+        assert pair.link.stats() == {
+            "sent": 2, "send_failed": 2, "received": 0, "refused": 0, "unauthenticated": 0,
+            "stale": 0,
+        }  # fmt: skip
+    finally:
+        pair.close()
