@@ -425,3 +425,63 @@ def test_silence_is_judged_from_the_member_heard_longest_ago_though_nothing_come
         assert judge.state is S.RUNNING, judge.next_t
     judge.sim.tick()
     assert judge.state is S.STOPPED and list(judge.cell.latched) == ["arm1"]
+
+
+@pytest.mark.req("SR-CELL-1")
+def test_each_heartbeat_says_this_members_state_its_stop_joints_and_base(judge: Judge) -> None:
+    """What arm0 sends: its boot and chain, its state, its stop (cause, itself as origin, the
+    transition's wall time), its joints and its base (the rotation by rows, then the
+    translation); every 5 ms while nothing changes, at once when it does."""
+    robot = judge.sim.robot
+    robot.data.base[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    robot.data.base[:3, 3] = [0.6, -0.02, 0.005]
+    judge.run()
+    sent = len(judge.link.sent)
+    while len(judge.link.sent) == sent:
+        judge.sim.tick()
+    ticks = []  # the ticks that send, for 100 ms from one that sent
+    for k in range(100):
+        sent = len(judge.link.sent)
+        judge.beat("arm1")
+        judge.beat("arm2")
+        judge.sim.tick()
+        ticks += [k] * (len(judge.link.sent) - sent)
+    assert ticks == list(range(4, 100, 5))  # one every 5 ms, never 6 (a float's rounding)
+    assert ok(judge.command("EStop"))
+    b = judge.link.sent[-1]
+    assert b.cause.startswith("ESTOP: ") and b.stop_wall == WALL0 + judge.next_t - judge.sim.period
+    assert b == Beat(
+        cell="or1", member="arm0", boot=judge.cell.boot, seq=0, state="ESTOP", cause=b.cause,
+        origin="arm0", stop_wall=b.stop_wall, chain=judge.cell.chain,
+        q=tuple(float(v) for v in robot.data.q),
+        base=(0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.6, -0.02, 0.005),
+    )  # fmt: skip
+    assert judge.cell.boot > 1_700_000_000 * 10**9  # a start in Unix ns: a restart is newer
+    for cmd in ("Reset", "Enable"):
+        assert ok(judge.command(cmd))
+    assert judge.link.sent[-1].cause == b.cause  # a stop stands until it runs again
+    assert ok(judge.command("Run")) and judge.link.sent[-1].cause == ""
+    assert ok(judge.command("Stop"))  # an operator's Stop is no stop of the cell's
+    assert judge.link.sent[-1].state == "STOPPED" and judge.link.sent[-1].cause == ""
+
+
+@pytest.mark.req("SR-CELL-1")
+def test_a_member_held_for_another_relays_its_origin_and_keeps_it(judge: Judge) -> None:
+    """Held for arm1's stop, arm0's heartbeats name arm1 and arm1's stop time; a controller's
+    stop of the cell then keeps that origin (else two members would wait for each other). A
+    hung loop is announced only while something of the arm is powered."""
+    judge.run()
+    judge.beat("arm1", "FAULT", cause="FAULT: drive", origin="arm1", stop_wall=WALL0 + 0.001)
+    judge.sim.tick()
+    relay = judge.link.sent[-1]
+    assert (relay.state, relay.cause, relay.origin, relay.stop_wall) == (
+        "STOPPED", "arm1 FAULT: drive", "arm1", WALL0 + 0.001,
+    )  # fmt: skip
+    judge.cell.announce_stop("cell plan 3 dropped")
+    assert judge.link.sent[-1] == relay
+    judge.beat("arm1")
+    judge.sim.tick()
+    assert ok(judge.command("Disable"))  # READY: nothing powered
+    sent = len(judge.link.sent)
+    judge.cell.announce_hung("no tick for 25 ms")
+    assert len(judge.link.sent) == sent and judge.cell.own.cause == "arm1 FAULT: drive"
