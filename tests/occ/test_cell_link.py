@@ -17,6 +17,7 @@ import igtl
 from igtl.messages.ndarray import NDArrayMessage
 from occ.config import DaemonConfig
 from occ.config.cell import CellConfig, CellMember, cell_problems
+from occ.core.safety import RobotState
 from occ.net.celllink import Beat, BeatError, CellLink, pack_beat, unpack_beat
 from occ_testkit.testing import SimRobot
 from tests.occ.test_cell import _udp_ports, member_config
@@ -276,3 +277,35 @@ def test_a_link_numbers_its_heartbeats_from_one_and_counts_what_it_could_not_sen
         }  # fmt: skip
     finally:
         pair.close()
+
+
+@pytest.mark.req("SR-CELL-3")
+def test_a_keyed_cell_signs_its_heartbeats_and_hears_only_signed_ones(tmp_path: Path) -> None:
+    """Members sharing ``cell.auth_key_file`` hear each other (a stop goes round); a member
+    whose heartbeats are not signed is never heard (Run refused: not heard yet)."""
+    from tests.occ.test_cell import Cell, error_of, ok
+
+    key = tmp_path / "cell.key"
+    key.write_text(KEY, encoding="utf-8")
+    c = Cell(2, auth_key_file=str(key))
+    try:
+        c.run_all()
+        assert ok(c.command(0, "EStop"))
+        c.step(1)
+        assert c.state(1) is RobotState.STOPPED
+        links = [s.robot.cell.link for s in c.sims]  # type: ignore[union-attr]
+        assert all(link.counters.unauthenticated == 0 for link in links)
+        links[0].key = None  # arm0 stops signing: arm1 hears nothing more of it
+        c.step(150)
+        assert links[1].counters.unauthenticated > 0
+        assert "arm0 silent" in c.cell_stats(1)["latched"]["arm0"]
+        assert "arm0" in error_of(c.command(1, "Run"))
+    finally:
+        c.close()
+
+
+def test_a_members_address_is_resolved_once_or_used_as_written() -> None:
+    from occ.core.cell import _address
+
+    assert _address("localhost:18950") == ("127.0.0.1", 18950)
+    assert _address("[::1]:18951") == ("::1", 18951)  # an IPv6 literal: as written
