@@ -257,23 +257,30 @@ def test_a_latch_stands_through_a_restart_until_running_and_ends_when_the_origin
 
 @pytest.mark.req("SR-CELL-2")
 def test_leave_and_join_are_announced_at_once_and_judged_again(judge: Judge) -> None:
-    """CellLeave and CellJoin go out in the tick of the command, not a period later; after
-    CellJoin a stop that stood is latched again though no heartbeat came, held, and not
-    told the operators a second time."""
+    """CellLeave and CellJoin go out in the tick of the command, not a period later, with or
+    without a stop standing; after CellJoin a stop that stood is latched again though no
+    heartbeat came, held, and not told the operators a second time."""
+    replies = {
+        "CellLeave": "arm0 left cell or1: its stops stop no one, the cell's stop it no more",
+        "CellJoin": "arm0 joined cell or1",
+    }
     judge.run()
-    judge.beat("arm1", "FAULT", cause="FAULT: drive", origin="arm1")
-    judge.sim.tick()
-    assert judge.state is S.STOPPED and judge.cell.alerts == 1
-    for name, leaving in (("CellLeave", True), ("CellJoin", False)):
-        sent = len(judge.link.sent)
-        while len(judge.link.sent) == sent:  # until a periodic heartbeat: the next is 5 ms off
+    for stop in (False, True):
+        if stop:
+            judge.beat("arm1", "FAULT", cause="FAULT: drive", origin="arm1")
             judge.sim.tick()
-        sent = len(judge.link.sent)
-        assert ok(judge.command(name))
-        assert len(judge.link.sent) == sent + 1 and judge.link.sent[-1].leaving is leaving
-        if leaving:
-            assert judge.cell.latched == {} and ok(judge.command("Run"))
-            assert judge.state is S.RUNNING
+            assert judge.state is S.STOPPED and judge.cell.alerts == 1
+        for name, leaving in (("CellLeave", True), ("CellJoin", False)):
+            sent = len(judge.link.sent)
+            while len(judge.link.sent) == sent:  # a periodic heartbeat: the next is 5 ms off
+                judge.sim.tick()
+            sent = len(judge.link.sent)
+            reply = judge.command(name)
+            assert ok(reply) and reply.metadata["Message"] == replies[name]
+            assert len(judge.link.sent) == sent + 1 and judge.link.sent[-1].leaving is leaving
+            if leaving and stop:
+                assert judge.cell.latched == {} and ok(judge.command("Run"))
+                assert judge.state is S.RUNNING
     # joined again: arm1's stop stands (nothing new came from it) and holds
     assert judge.cell.latched == {"arm1": "arm1 FAULT: drive"}
     assert judge.state is S.STOPPED and judge.cell.holds == 2 and judge.cell.alerts == 1
@@ -283,20 +290,28 @@ def test_leave_and_join_are_announced_at_once_and_judged_again(judge: Judge) -> 
 def test_forget_takes_member_in_either_case_and_its_stop_is_told_again_if_heard(
     judge: Judge,
 ) -> None:
+    """CellForget ends the latch at once (a Run in the same tick goes), tells the arm check
+    the member is gone, and takes ``member=`` as well as ``Member=``; heard in the cell
+    again, the member's stop latches and is told again."""
     gone: list[str] = []
     judge.cell.on_peer_gone = gone.append
+    judge.both_running()
+    assert ok(judge.command("Enable"))
     judge.beat("arm1", "FAULT", cause="FAULT: drive", origin="arm1")
-    judge.beat("arm2")
     judge.sim.tick()
     assert judge.cell.latched == {"arm1": "arm1 FAULT: drive"} and judge.cell.alerts == 1
-    assert ok(judge.command("CellForget", '<Command Name="CellForget" member="arm1"/>'))
-    assert gone == ["arm1"] and judge.cell.latched == {}
+    assert judge.state is S.STOPPED
+    forget = judge.op.send_command("CellForget", '<Command Name="CellForget" member="arm1"/>')
+    run = judge.op.send_command("Run")
+    judge.sim.tick()  # both in one tick, the Run after the CellForget
+    assert ok(judge.op.reply_to(forget)) and ok(judge.op.reply_to(run))
+    assert gone == ["arm1"] and judge.cell.latched == {} and judge.state is S.RUNNING
     why = error_of(judge.command("CellForget", '<Command Name="CellForget"/>'))
     assert why == "no member '' in cell or1 (members: arm1, arm2)"
     judge.beat("arm1", "FAULT", cause="FAULT: drive", origin="arm1")  # heard in the cell again
     judge.sim.tick()
     assert judge.cell.latched == {"arm1": "arm1 FAULT: drive"} and judge.cell.alerts == 2
-    assert judge.alerts() == ["cell or1: arm1 FAULT: drive"] * 2
+    assert judge.alerts() == ["cell or1: arm1 FAULT: drive; holding"] * 2
 
 
 def _tick_powered(judge: Judge, n: int) -> None:

@@ -309,3 +309,31 @@ def test_a_members_address_is_resolved_once_or_used_as_written() -> None:
 
     assert _address("localhost:18950") == ("127.0.0.1", 18950)
     assert _address("[::1]:18951") == ("::1", 18951)  # an IPv6 literal: as written
+
+
+@pytest.mark.req("SR-CELL-3")
+def test_a_member_on_ipv6_is_heard_at_its_address() -> None:
+    """An IPv6 datagram comes from (host, port, flow, scope): the member is found by host and
+    port."""
+    socks = [socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) for _ in range(2)]
+    for s in socks:
+        s.bind(("::1", 0))
+    port0 = socks[0].getsockname()[1]
+    socks[0].close()
+    peer = socks[1]
+    link = CellLink(
+        "or1", "arm0", ("::1", port0), {"arm1": ("::1", peer.getsockname()[1])},
+        now=time.monotonic, polled=True,
+    )  # fmt: skip
+    link.start()
+    try:
+        peer.sendto(pack_beat(BEAT, None).pack(), ("::1", port0))
+        deadline = time.monotonic() + 5.0
+        taken = link.take()
+        while not taken and link.counters.refused == 0 and time.monotonic() < deadline:
+            time.sleep(0.001)
+            taken = link.take()
+        assert [b.member for b in taken] == ["arm1"] and link.counters.refused == 0
+    finally:
+        link.stop()
+        peer.close()
