@@ -356,6 +356,12 @@ def test_start_does_not_wait_for_a_latched_stop_a_cell_left_or_alert_only() -> N
         assert ok(j.command("CellLeave")) and j.cell.start_wait("run") == ""
     finally:
         j.close()
+    j = Judge()
+    try:
+        assert j.cell.may_run(S.ENABLED, "run") == "cell or1: not heard yet from arm1, arm2"
+        assert j.cell.may_run(S.READY, "enable") == ""
+    finally:
+        j.close()
     j = Judge(policy="alert-only")
     try:
         assert j.cell.start_wait("run") == "" and j.cell.may_run(S.ENABLED, "run") == ""
@@ -438,8 +444,14 @@ def test_silence_is_judged_from_the_member_heard_longest_ago_though_nothing_come
     while judge.next_t <= start + judge.cell.grace_s:
         judge.sim.tick()
         assert judge.state is S.RUNNING, judge.next_t
+    held_at = WALL0 + judge.next_t
     judge.sim.tick()
     assert judge.state is S.STOPPED and list(judge.cell.latched) == ["arm1"]
+    # a silence has no stop time of its own: arm0's relay of it says when arm0 held
+    b = judge.link.sent[-1]
+    assert (b.origin, b.cause, b.stop_wall) == (
+        "arm1", "arm1 silent (nothing for over 100 ms)", held_at,
+    )  # fmt: skip
 
 
 @pytest.mark.req("SR-CELL-1")
@@ -492,11 +504,15 @@ def test_a_member_held_for_another_relays_its_origin_and_keeps_it(judge: Judge) 
     assert (relay.state, relay.cause, relay.origin, relay.stop_wall) == (
         "STOPPED", "arm1 FAULT: drive", "arm1", WALL0 + 0.001,
     )  # fmt: skip
+    assert judge.sim.robot.state_machine.last_reason == "cell: arm1 FAULT: drive"
     judge.cell.announce_stop("cell plan 3 dropped")
     assert judge.link.sent[-1] == relay
     judge.beat("arm1")
     judge.sim.tick()
+    # running again, an operator's Stop: no stop of the cell's, nobody held for
+    assert ok(judge.command("Run")) and ok(judge.command("Stop"))
+    assert (judge.link.sent[-1].state, judge.link.sent[-1].cause) == ("STOPPED", "")
     assert ok(judge.command("Disable"))  # READY: nothing powered
     sent = len(judge.link.sent)
     judge.cell.announce_hung("no tick for 25 ms")
-    assert len(judge.link.sent) == sent and judge.cell.own.cause == "arm1 FAULT: drive"
+    assert len(judge.link.sent) == sent and judge.cell.own.cause == ""
