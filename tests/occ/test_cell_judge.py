@@ -54,20 +54,22 @@ class Judge:
     """``arm0`` (a robot in simulated time, 1 ms ticks) with its played link; ``arm1`` and
     ``arm2`` exist only as the heartbeats a test queues."""
 
-    def __init__(self, *, frames: bool = False, **cell: Any) -> None:
-        ports = _udp_ports(3)
+    def __init__(self, n: int = 3, *, frames: bool = False, box: bool = True, **cell: Any) -> None:
+        ports = _udp_ports(n)
         frame = {"frame": {"model": "occ_slave"}} if frames else {}
         members = [
             {"name": f"arm{i}", "address": f"127.0.0.1:{p}"} | frame for i, p in enumerate(ports)
         ]
-        self.sim = SimRobot(member_config("arm0", members, **cell))
+        raw = member_config("arm0", members, **cell).model_dump(mode="json")
+        raw["black_box"] = raw["black_box"] | {"enabled": box}
+        self.sim = SimRobot(raw)
         cell_ = self.sim.robot.cell
         assert cell_ is not None
         self.cell: Cell = cell_
         self.link = PlayedLink(cell_.link)
         cell_.link = self.link  # type: ignore[assignment]
         self.op = self.sim.peer("operator")
-        self.seq = {"arm1": 0, "arm2": 0}
+        self.seq = {f"arm{i}": 0 for i in range(1, n)}
 
     @property
     def next_t(self) -> float:
@@ -151,13 +153,14 @@ def test_a_members_row_says_what_was_heard_of_it(judge: Judge) -> None:
 
 @pytest.mark.req("SR-CELL-1")
 def test_stats_count_each_hold_and_its_propagation(judge: Judge) -> None:
-    """Four stops of arm1, each begun 4, 1, 3 and 2 ms before arm0 reads it: four holds and
-    alerts, the propagation of each (median the third of the four sorted, as the others'
-    statistics), the last stop's origin, cause and wall time."""
+    """Four stops of arm1 (two alike, then two others alike), each begun 4, 1, 3 and 2 ms
+    before arm0 reads it: four holds and alerts, the propagation of each (median the third
+    of the four sorted, as the others' statistics), the last stop's origin, cause and wall
+    time."""
     judge.run()
     for i, ms in enumerate((4, 1, 3, 2)):
         wall = WALL0 + judge.next_t
-        judge.beat("arm1", "FAULT", cause=f"FAULT: {i}", origin="arm1",
+        judge.beat("arm1", "FAULT", cause=f"FAULT: {i // 2}", origin="arm1",
                    stop_wall=wall - ms * 1e-3)  # fmt: skip
         judge.sim.tick()
         assert judge.state is S.STOPPED
@@ -169,14 +172,15 @@ def test_stats_count_each_hold_and_its_propagation(judge: Judge) -> None:
     near = pytest.approx  # wall times near 1.7e9 s: a ms difference good to about 1e-4 ms
     assert props == {"n": 4, "p50": near(3.0, abs=1e-3), "max": near(4.0, abs=1e-3)}
     last = st.pop("last_stop")
-    assert last == {"origin": "arm1", "cause": "arm1 FAULT: 3", "wall": wall,
+    assert last == {"origin": "arm1", "cause": "arm1 FAULT: 1", "wall": wall,
                     "propagation_ms": near(2.0, abs=1e-3)}  # fmt: skip
     members = st.pop("members")
     assert set(members) == {"arm1", "arm2"} and members["arm1"]["state"] == "RUNNING"
     assert st == {"name": "or1", "me": "arm0", "policy": "stop-all", "left": False,
                   "cause": "", "origin": "", "latched": {}, "holds": 4, "alerts": 4,
                   "link": {"sent": len(judge.link.sent)}}  # fmt: skip
-    assert judge.alerts() == [f"cell or1: arm1 FAULT: {i}; holding" for i in range(4)]
+    # a stop over and the same again is told again
+    assert judge.alerts() == [f"cell or1: arm1 FAULT: {i // 2}; holding" for i in range(4)]
 
 
 @pytest.mark.req("SR-CELL-4")
@@ -239,6 +243,10 @@ def test_a_latch_stands_through_a_restart_until_running_and_ends_when_the_origin
     judge.beat("arm1", "FAULT", cause="FAULT: drive", origin="arm1")
     judge.sim.tick()
     assert judge.state is S.STOPPED
+    last = judge.cell.last_stop
+    judge.beat("arm1", "FAULT", cause="FAULT: drive", origin="arm1")  # the same stop again
+    judge.sim.tick()
+    assert judge.cell.last_stop == last and judge.cell.alerts == 1
     judge.beat("arm1", "READY", boot=2, seq=1)  # restarted: no stop, not running either
     judge.sim.tick()
     assert judge.cell.latched == {"arm1": "arm1 FAULT: drive"}
@@ -487,7 +495,8 @@ def test_each_heartbeat_says_this_members_state_its_stop_joints_and_base(judge: 
     for cmd in ("Reset", "Enable"):
         assert ok(judge.command(cmd))
     assert judge.link.sent[-1].cause == b.cause  # a stop stands until it runs again
-    assert ok(judge.command("Run")) and judge.link.sent[-1].cause == ""
+    assert ok(judge.command("Run"))
+    assert (judge.link.sent[-1].cause, judge.link.sent[-1].stop_wall) == ("", 0.0)
     assert ok(judge.command("Stop"))  # an operator's Stop is no stop of the cell's
     assert judge.link.sent[-1].state == "STOPPED" and judge.link.sent[-1].cause == ""
 
@@ -516,3 +525,57 @@ def test_a_member_held_for_another_relays_its_origin_and_keeps_it(judge: Judge) 
     sent = len(judge.link.sent)
     judge.cell.announce_hung("no tick for 25 ms")
     assert len(judge.link.sent) == sent and judge.cell.own.cause == ""
+
+
+@pytest.mark.req("SR-CELL-1")
+def test_a_relay_that_is_over_hides_no_other_members_stop() -> None:
+    """Four members: arm1 still relays arm2's stop, over (arm2 runs); arm3's own stop after
+    them in the cell's order holds arm0 all the same."""
+    j = Judge(4)
+    try:
+        j.beat("arm3")
+        j.run()
+        j.beat("arm1", "STOPPED", cause="FAULT: drive", origin="arm2", stop_wall=WALL0)
+        j.beat("arm2")
+        j.beat("arm3", "ESTOP", cause="ESTOP: pedal", origin="arm3", stop_wall=WALL0)
+        j.sim.tick()
+        assert j.cell.latched == {"arm3": "arm3 ESTOP: pedal"} and j.state is S.STOPPED
+    finally:
+        j.close()
+
+
+@pytest.mark.req("SR-CELL-2")
+def test_a_cell_without_a_black_box_takes_heartbeats() -> None:
+    j = Judge(box=False)
+    try:
+        assert j.cell.tap is None
+        j.both_running()
+        assert j.cell.members["arm1"].state == "RUNNING"
+    finally:
+        j.close()
+
+
+@pytest.mark.req("SR-CELL-2")
+def test_the_shipped_cells_arm_check_is_fed_by_the_heartbeats_until_forgotten() -> None:
+    """configs/cell/: each UR5 checks the other's links where its heartbeats put them (from
+    the first heartbeat), until an operator forgets it."""
+    from tests.occ.test_cell import shipped_cell
+
+    sims: list[SimRobot] = []
+    try:
+        for raw in shipped_cell():
+            sims.append(SimRobot(raw))
+        guard = sims[0].robot.collision
+        assert guard is not None
+        other = guard.cm.peer("ur5-b")
+        assert other.describe()["t"] is None
+        for _ in range(10):
+            for sim in sims:
+                sim.tick()
+        assert other.describe()["t"] is not None and other.describe()["present"] is True
+        op = sims[0].peer("operator")
+        assert ok(sims[0].command(op, "CellForget", '<Command Name="CellForget" Member="ur5-b"/>'))
+        assert other.describe()["present"] is False
+    finally:
+        for sim in sims:
+            sim.close()
