@@ -19,7 +19,7 @@ from occ.config import DaemonConfig
 from occ.config.cell import CellConfig, CellMember, cell_problems
 from occ.core.safety import RobotState
 from occ.net.celllink import Beat, BeatError, CellLink, pack_beat, unpack_beat
-from occ_testkit.testing import SimRobot
+from occ_testkit.testing import SimRobot, wait_until
 from tests.occ.test_cell import _udp_ports, member_config
 
 KEY = "a cell key of at least sixteen bytes"
@@ -337,3 +337,30 @@ def test_a_member_on_ipv6_is_heard_at_its_address() -> None:
     finally:
         link.stop()
         peer.close()
+
+
+@pytest.mark.req("SR-CELL-3")
+def test_a_link_on_the_real_clock_receives_on_its_own_thread_from_member_hosts_only() -> None:
+    """Built without ``polled`` (a daemon on the real clock) the link's I/O thread receives
+    and judges each heartbeat as it comes, before any ``take``; a datagram from a host that is
+    no member's (127.0.0.2: loopback, another host) is dropped by the endpoint, never judged."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    (port0,) = _udp_ports(1)
+    link = CellLink(
+        "or1", "arm0", ("127.0.0.1", port0), {"arm1": sock.getsockname()}, now=time.monotonic
+    )
+    link.start()
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as foreign:
+            foreign.bind(("127.0.0.2", 0))
+            foreign.sendto(pack_beat(BEAT, None).pack(), ("127.0.0.1", port0))
+        sock.sendto(pack_beat(BEAT, None).pack(), ("127.0.0.1", port0))
+        assert wait_until(lambda: link.counters.received == 1, timeout=5.0)  # no take yet
+        beats: list[Beat] = []
+        assert wait_until(lambda: beats.extend(link.take()) or beats, timeout=5.0)
+        assert [b.member for b in beats] == ["arm1"]
+        assert link.counters.received == 1 and link.counters.refused == 0
+    finally:
+        link.stop()
+        sock.close()
