@@ -364,3 +364,21 @@ def test_a_link_on_the_real_clock_receives_on_its_own_thread_from_member_hosts_o
     finally:
         link.stop()
         sock.close()
+
+
+def test_heartbeats_in_simulated_time_carry_the_simulated_wall_clock() -> None:
+    """A member on a SimClock stamps its heartbeats with that clock's wall time (simulated
+    runs, their black boxes and replays, have reproducible timestamps), never the host's."""
+    from tests.occ.test_cell import Cell
+
+    c = Cell(2)
+    try:
+        taken: list[Beat] = []
+        c.sims[1].robot.cell.tap = lambda beat, source: taken.append(beat)  # type: ignore[union-attr]
+        c.step(20)
+        sender = c.sims[0].clock
+        assert len(taken) >= 4
+        for beat in taken:
+            assert sender.wall_epoch <= beat.sent_wall <= sender.wall_time() + 1e-6
+    finally:
+        c.close()
