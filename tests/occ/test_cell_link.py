@@ -304,11 +304,24 @@ def test_a_keyed_cell_signs_its_heartbeats_and_hears_only_signed_ones(tmp_path: 
         c.close()
 
 
-def test_a_members_address_is_resolved_once_or_used_as_written() -> None:
-    from occ.core.cell import _address
+def test_a_members_address_is_resolved_once_or_used_as_written(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from occ.core import cell
 
-    assert _address("localhost:18950") == ("127.0.0.1", 18950)
-    assert _address("[::1]:18951") == ("::1", 18951)  # an IPv6 literal: as written
+    assert cell._address("localhost:18950") == ("127.0.0.1", 18950)
+    assert cell._address("[::1]:18951") == ("::1", 18951)  # an IPv6 literal: as written
+    # a host name is looked up as written, whatever its letters (a resolver of two names)
+    names = {"XRAY-ARM": "10.0.0.7", "ARM-X": "10.0.0.8"}
+
+    def resolve(host: str) -> str:
+        if host not in names:
+            raise OSError(f"unknown host {host}")
+        return names[host]
+
+    monkeypatch.setattr(cell.socket, "gethostbyname", resolve)
+    assert cell._address("XRAY-ARM:18952") == ("10.0.0.7", 18952)
+    assert cell._address("ARM-X:18953") == ("10.0.0.8", 18953)
 
 
 @pytest.mark.req("SR-CELL-3")
