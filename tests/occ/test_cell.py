@@ -366,7 +366,7 @@ def test_a_shut_down_member_holds_the_others(cell: Cell) -> None:
     cell.frozen.add(1)
     cell.step(1)
     assert cell.state(0) is S.STOPPED and cell.state(2) is S.STOPPED
-    assert "shut down" in cell.cell_stats(0)["latched"]["arm1"]
+    assert cell.cell_stats(0)["latched"]["arm1"] == "arm1 shut down"
 
 
 @pytest.mark.req("SR-CELL-2")
@@ -383,6 +383,7 @@ def test_a_member_whose_chain_is_not_its_urdf_is_not_trusted() -> None:
                 s.tick()
         st = sims[0].robot.snapshot()["cell"]
         assert st["members"]["arm1"]["chain_ok"] is False
+        assert st["last_stop"]["propagation_ms"] is None  # no stop time: the chain is wrong
         op = sims[0].peer("operator")
         assert ok(sims[0].command(op, "Enable"))
         assert "kinematic chain" in error_of(sims[0].command(op, "Run"))
