@@ -322,12 +322,9 @@ class BlackBox:
 
     def outputs_tap(self, recorder: Any | None) -> Callable[[Any, str, float], None] | None:
         """What the output scheduler calls with each message it sent: the recorder's
-        ``record_message`` when one is attached. The black box keeps none of them: the
-        periodic outputs (the tip to 3D Slicer, the stream to the slave, the return channel)
-        are what the rows' readings and setpoints make of the state, and a deterministic
-        replay makes them again; 30 s of 500 Hz message objects kept alive would cost every
-        collection of the interpreter (docs/BENCHMARKS.md, "The black box"). Alerts and
-        replies are kept (:meth:`sent`, from the alarms and the operator desk)."""
+        ``record_message`` when one is attached. The black box keeps none of the periodic
+        outputs (a replay makes them again from the state; 30 s of them alive would cost every
+        collection, docs/BENCHMARKS.md); alerts and replies it keeps (:meth:`sent`)."""
         if recorder is None:
             return None
         record = recorder.record_message
