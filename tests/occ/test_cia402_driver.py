@@ -1,0 +1,141 @@
+"""The ``cia402`` driver against the emulator, the cases mutation testing found unproved
+(issue 42, docs/VERIFICATION.md): the safe stop of a supervisor, the fault reset's words and
+its NMT restart, a reset that no TPDO answers, the ages counted after a reset that took the
+loop's time, the second sensor after a reset. The rig is test_cia402.py's: python-can's
+``virtual`` bus, simulated time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import pytest
+
+from occ.drivers import DriverState
+from occ.drivers.cia402_protocol import NMT_OPERATIONAL
+from occ.errors import DriverError
+from tests.occ import test_cia402
+from tests.occ.test_cia402 import Rig, _move, node_params
+
+rig = test_cia402.rig  # the fixture: a driver and the emulator on a virtual channel
+
+
+@pytest.mark.req("SR-HW-33")
+def test_the_supervisors_safe_stop_quick_stops_every_node_at_once(rig: Callable[..., Rig]) -> None:
+    r = rig()
+    r.enabled()
+    r.ticks(4, r.here())
+    before = r.drv.stats()
+    r.drv.safe_stop("EStop")  # from the supervisor: no read, no write
+    assert r.drv.state is DriverState.FAULT and r.drv.stop_failed is None
+    r.emu.settle()
+    for nid in (1, 2, 3):
+        node = r.emu.node(nid)
+        assert node.controlwords[-1] == 0x02, (nid, node.controlwords)
+        assert node.quick_stops == 1
+    stats = r.drv.stats()
+    assert stats["quick_stops"] == before["quick_stops"] + 1
+    assert stats["rpdo_frames"] == before["rpdo_frames"] + 3
+    assert stats["sync_frames"] == before["sync_frames"] + 1
+
+
+@pytest.mark.req("SR-HW-34")
+def test_a_fault_reset_sends_the_edge_to_the_node_in_fault_and_counts_it(
+    rig: Callable[..., Rig],
+) -> None:
+    r = rig()
+    r.enabled()
+    r.emu.inject_emcy(2, 0x2310)
+    r.until_fault(20, lambda k: r.here())
+    r.ticks(2)
+    sent = {nid: len(r.emu.node(nid).controlwords) for nid in (1, 2, 3)}
+    r.drv.reset()
+    r.emu.settle()
+    assert r.drv.state is DriverState.INACTIVE
+    assert r.drv.stats()["fault_resets"] == 1
+    # the node in FAULT: bit 7 low, then its rising edge; the others: voltage off only
+    assert r.emu.node(2).controlwords[sent[2] :][:2] == [0x00, 0x80]
+    for nid in (1, 3):
+        assert set(r.emu.node(nid).controlwords[sent[nid] :]) == {0x00}, nid
+    r.ticks(4)
+    r.drv.activate()
+    r.emu.settle()
+    r.ticks(4, r.here())
+    assert r.drv.state is DriverState.ACTIVE
+
+
+@pytest.mark.req("SR-HW-34")
+def test_a_reset_starts_a_node_that_left_operational_again(rig: Callable[..., Rig]) -> None:
+    r = rig()
+    r.enabled()
+    r.emu.leave_operational(2)
+    err = r.until_fault(20, lambda k: r.here())
+    assert "node 2 (joint pitch): left NMT OPERATIONAL" in str(err)
+    r.ticks(2)
+    r.drv.reset()
+    r.emu.settle()
+    assert r.emu.node(2).nmt == NMT_OPERATIONAL
+    assert r.drv.state is DriverState.INACTIVE
+    r.ticks(40)  # its heartbeats say OPERATIONAL again: no fault
+    assert r.drv.stats()["nodes"]["pitch"]["nmt"] == "OPERATIONAL"
+    assert r.drv.stats()["fault_resets"] == 1
+
+
+@pytest.mark.req("SR-HW-34")
+def test_a_reset_that_no_tpdo_answers_is_refused_naming_the_node(rig: Callable[..., Rig]) -> None:
+    r = rig(state_timeout_ms=40.0)
+    r.enabled()
+    r.emu.mute_tpdos(3)
+    err = r.until_fault(40, lambda k: r.here())
+    assert "node 3 (joint insertion): no TPDO for" in str(err)
+    with pytest.raises(DriverError) as info:
+        r.drv.reset()
+    text = str(info.value)
+    assert "fault reset refused within 40 ms" in text
+    assert "node 3 (joint insertion): no TPDO answered the reset's SYNC" in text
+    assert "node 1" not in text and "node 2" not in text
+    assert r.drv.state is DriverState.FAULT
+
+
+@pytest.mark.req("SR-HW-34")
+def test_the_first_read_after_a_reset_that_took_the_loop_s_time_counts_from_itself(
+    rig: Callable[..., Rig],
+) -> None:
+    """A reset runs off the loop thread (occ/core/powerup.py): the loop's next read of the
+    driver may come later than a heartbeat's timeout after the last; what the reset heard is
+    as fresh as that read."""
+    r = rig()
+    r.enabled()
+    r.ticks(15, r.here())  # every node's heartbeat heard (each 10 ms)
+    r.emu.inject_emcy(1, 0x7300)
+    r.until_fault(20, lambda k: r.here())
+    r.ticks(2)
+    r.drv.reset()
+    r.t += 0.035  # node_heartbeat_timeout_ms 30: the reset's heartbeat would be too old
+    r.drv.read(r.t)
+    r.emu.settle()
+    r.ticks(4)
+    assert r.drv.state is DriverState.INACTIVE
+
+
+@pytest.mark.req("SR-HW-36")
+def test_a_second_sensor_still_off_after_a_reset_waits_its_latency_again(
+    rig: Callable[..., Rig],
+) -> None:
+    nodes = node_params()
+    nodes["yaw"]["second_sensor"] = {
+        "index": 0x2100, "counts_per_unit": 52152.0, "tolerance": 0.002, "latency_ms": 5.0,
+    }  # fmt: skip
+    r = rig(nodes=nodes)
+    r.enabled()
+    move = _move(r)
+    r.ticks(10, move(0))
+    r.emu.offset_second_encoder(1, 0.01 * 52152.0)
+    r.until_fault(20, lambda k: move(0))
+    r.ticks(2)
+    r.drv.reset()
+    r.emu.settle()
+    r.ticks(4)  # within the latency: not yet
+    assert r.drv.state is DriverState.INACTIVE
+    err = r.until_fault(20, lambda k: move(0))
+    assert "joint yaw: second position sensor disagrees by 0.01" in str(err)

@@ -1,0 +1,273 @@
+"""The CiA 402 drive emulator on its own (occ/drivers/cia402_sim.py; issue 42: found by
+mutation testing, docs/VERIFICATION.md). The driver's tests (test_cia402.py) prove the driver
+against the emulator; these prove the emulator plays a drive as its docstring says, so that a
+fault the driver's tests inject is the fault a drive would show: the device state machine and
+its statusword, a fault and its EMCY, the fault reset, NMT and the heartbeats, the PDOs at a
+SYNC, the following error, and every fault injected, by method and by command line.
+
+No bus: a node's frames go to a list, and a DriveEmulator that is not started sends none.
+Every ``now`` is passed in.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import pytest
+
+from occ.drivers.cia402_protocol import (
+    NMT_OPERATIONAL,
+    NMT_PRE_OPERATIONAL,
+    NMT_STOPPED,
+)
+from occ.drivers.cia402_setup import DEFAULT_EDS
+from occ.drivers.cia402_sim import (
+    FAULT,
+    OPERATION_ENABLED,
+    QUICK_STOP_ACTIVE,
+    READY_TO_SWITCH_ON,
+    SWITCH_ON_DISABLED,
+    SWITCHED_ON,
+    DriveEmulator,
+    EmulatedNode,
+)
+
+Frames = list[tuple[int, bytes]]
+
+
+def make_node(node_id: int = 4, **kwargs: Any) -> tuple[EmulatedNode, Frames]:
+    sent: Frames = []
+    node = EmulatedNode(node_id, DEFAULT_EDS, lambda cob, data: sent.append((cob, data)), **kwargs)
+    return node, sent
+
+
+def emcys(sent: Frames, node_id: int = 4) -> list[bytes]:
+    return [data for cob, data in sent if cob == 0x080 + node_id]
+
+
+# ----------------------------------------------------------------------------- fault and EMCY
+def test_a_fault_enters_fault_with_its_code_register_and_emcy() -> None:
+    node, sent = make_node()
+    node.state, node.velocity = OPERATION_ENABLED, 1234.0
+    node.fault(0x2311, 0.0)  # current: the register's current bit too
+    assert node.state == FAULT and node.velocity == 0.0
+    assert node.get(0x603F, 0) == 0x2311 and node.get(0x1001, 0) == 0x03
+    assert emcys(sent) == [bytes([0x11, 0x23, 0x03, 0, 0, 0, 0, 0])]
+    assert node.emcys == 1
+    node.fault(0x4310, 0.0)  # temperature: the generic bit only
+    assert node.get(0x603F, 0) == 0x4310 and node.get(0x1001, 0) == 0x01
+    assert emcys(sent)[-1] == bytes([0x10, 0x43, 0x01, 0, 0, 0, 0, 0])
+    assert node.emcys == 2
+    node.fault(0x1000, 0.0, send_emcy=False)  # the fault bit alone
+    assert node.get(0x603F, 0) == 0x1000 and len(emcys(sent)) == 2 and node.emcys == 2
+
+
+def test_a_fault_reset_is_a_rising_edge_of_bit_7_refused_while_the_cause_persists() -> None:
+    node, sent = make_node()
+    node.persist = True
+    node.fault(0x3210, 0.0)
+    node._controlword(0x00)
+    node._controlword(0x80)
+    assert node.state == FAULT and node.fault_resets_refused == 1
+    assert emcys(sent)[-1] == bytes([0x10, 0x32, 0x01, 0, 0, 0, 0, 0])  # said again
+    node._controlword(0x80)  # no edge: nothing
+    assert node.fault_resets_refused == 1 and len(emcys(sent)) == 2
+    node._controlword(0x00)
+    node._controlword(0x80)
+    assert node.fault_resets_refused == 2 and len(emcys(sent)) == 3
+    node.persist = False
+    node._controlword(0x0F)  # not a reset: FAULT stays
+    assert node.state == FAULT
+    node._controlword(0x8F)  # the edge, whatever else is set
+    assert node.state == SWITCH_ON_DISABLED
+    assert node.get(0x603F, 0) == 0 and node.get(0x1001, 0) == 0
+    assert emcys(sent)[-1] == bytes(8)  # error reset: code 0, register 0
+    assert node.controlwords[-1] == 0x8F
+
+
+# ----------------------------------------------------------------------------- injected, by method
+def emulator(t: list[float]) -> DriveEmulator:
+    return DriveEmulator([1, 2, 3], DEFAULT_EDS, channel="occ-cia402-unused", clock=lambda: t[0])
+
+
+def test_the_faults_injected_by_method_and_cleared() -> None:
+    t = [2.0]
+    emu = emulator(t)
+    emu.inject_emcy(1, 0x2310)
+    one = emu.node(1)
+    assert one.state == FAULT and one.get(0x603F, 0) == 0x2310 and not one.persist
+    one._controlword(0x80)
+    assert one.state == SWITCH_ON_DISABLED  # not persistent: reset at once
+    emu.inject_fault_bit(2)
+    two = emu.node(2)
+    assert two.state == FAULT and two.get(0x603F, 0) == 0x1000 and not two.persist
+    assert two.emcys == 0
+    emu.inject_fault_bit(2, 0x7300, persist=True)
+    assert two.get(0x603F, 0) == 0x7300 and two.persist
+    emu.stall(3)
+    three = emu.node(3)
+    assert three.stalled and three.persist is True
+    emu.stop_heartbeat(3)
+    emu.mute_tpdos(3)
+    emu.pause_tpdos(3, 0.05)
+    emu.refuse_enable(3)
+    emu.offset_second_encoder(3, 250.0)
+    emu.abort_sdo(3, 0x6060, 0, 0x06090030)
+    assert three.heartbeat_on is False and three.tpdo_on is False
+    assert three.tpdo_paused_until == pytest.approx(2.05) and three.refuse_enable
+    assert three.second_offset == 250.0 and three.sdo_aborts == {(0x6060, 0): 0x06090030}
+    emu.leave_operational(3, NMT_STOPPED)
+    assert three.nmt == NMT_STOPPED
+    emu.clear(3)
+    assert three.persist is False and three.stalled is False and three.refuse_enable is False
+    assert three.heartbeat_on is True and three.tpdo_on is True
+    assert three.tpdo_paused_until == -math.inf and three.second_offset == 0.0
+    assert three.sdo_aborts == {}
+    assert emu.node(1).heartbeat_on and emu.node(2).persist  # the others' left alone
+
+
+# ----------------------------------------------------------------------------- injected, by line
+HELP = (
+    "commands: emcy N CODE [persist] | fault N [persist] | heartbeat N on|off | "
+    "tpdo N on|off | pause N MS | stall N | nmt N pre|stop|op | refuse N | "
+    "abort N INDEX SUB CODE | second N COUNTS | clear N | status"
+)
+
+
+def test_the_command_lines_inject_on_the_node_they_name() -> None:
+    t = [3.0]
+    emu = emulator(t)
+    one, two, three = emu.node(1), emu.node(2), emu.node(3)
+    assert emu.command("") == "" and emu.command("   ") == ""
+    assert emu.command("emcy 2 0x2310") == "ok: emcy 2 0x2310"
+    assert two.state == FAULT and two.get(0x603F, 0) == 0x2310 and not two.persist
+    assert one.state != FAULT and three.state != FAULT
+    assert emu.command("EMCY 3 0x4310 persist\n") == "ok: EMCY 3 0x4310 persist"
+    assert three.get(0x603F, 0) == 0x4310 and three.persist and three.emcys == 1
+    assert emu.command("fault 1") == "ok: fault 1"
+    assert one.state == FAULT and one.get(0x603F, 0) == 0x1000 and one.emcys == 0
+    assert not one.persist
+    emu.command("fault 1 persist")
+    assert one.persist
+    assert emu.command("heartbeat 2 off").startswith("ok")
+    assert two.heartbeat_on is False and one.heartbeat_on is True
+    emu.command("heartbeat 2 on")
+    assert two.heartbeat_on is True
+    emu.command("tpdo 3 off")
+    assert three.tpdo_on is False and two.tpdo_on is True
+    emu.command("tpdo 3 on")
+    assert three.tpdo_on is True
+    emu.command("pause 2 50")
+    assert two.tpdo_paused_until == pytest.approx(3.05) and one.tpdo_paused_until == -math.inf
+    emu.command("stall 3")
+    assert three.stalled and not two.stalled
+    for word, state in (
+        ("pre", NMT_PRE_OPERATIONAL),
+        ("stop", NMT_STOPPED),
+        ("op", NMT_OPERATIONAL),
+    ):
+        emu.command(f"nmt 2 {word}")
+        assert two.nmt == state, word
+    assert one.nmt == 0x00  # BOOT: the emulator was not started, and node 2 only was named
+    emu.command("second 1 500")
+    assert one.second_offset == 500 and two.second_offset == 0.0
+    assert emu.command("refuse 3").startswith("ok") and three.refuse_enable
+    status = emu.command("status")
+    assert status.startswith(
+        "1: {'nmt': 'BOOT-UP', 'state': 'FAULT', 'position': 0, "
+        "'error_code': '0x1000 generic error'"
+    )
+    assert "; 2: {" in status and "; 3: {" in status
+    assert emu.command("help") == HELP and emu.command("bogus 1") == HELP
+    assert emu.command("nmt 2") == "bad command 'nmt 2': IndexError('list index out of range')"
+    assert emu.command("stall 9").startswith("bad command 'stall 9': KeyError(9)")
+
+
+# ----------------------------------------------------------------------------- the state machine
+def powered(state: int) -> tuple[EmulatedNode, Frames]:
+    node, sent = make_node()
+    node.boot(0.0)
+    node.state = state
+    return node, sent
+
+
+@pytest.mark.parametrize(
+    ("start", "cw", "end"),
+    [
+        (SWITCH_ON_DISABLED, 0x06, READY_TO_SWITCH_ON),
+        (READY_TO_SWITCH_ON, 0x07, SWITCHED_ON),
+        (SWITCHED_ON, 0x0F, OPERATION_ENABLED),
+        (READY_TO_SWITCH_ON, 0x0F, OPERATION_ENABLED),  # switch on and enable at once
+        (OPERATION_ENABLED, 0x07, SWITCHED_ON),  # disable operation
+        (OPERATION_ENABLED, 0x06, READY_TO_SWITCH_ON),
+        (SWITCHED_ON, 0x06, READY_TO_SWITCH_ON),
+        (OPERATION_ENABLED, 0x02, QUICK_STOP_ACTIVE),
+        (OPERATION_ENABLED, 0x0B, QUICK_STOP_ACTIVE),  # quick stop with the others set
+        (SWITCHED_ON, 0x02, SWITCH_ON_DISABLED),
+        (QUICK_STOP_ACTIVE, 0x02, QUICK_STOP_ACTIVE),
+        (OPERATION_ENABLED, 0x00, SWITCH_ON_DISABLED),
+        (OPERATION_ENABLED, 0x0D, SWITCH_ON_DISABLED),  # bit 1 clear: disable voltage
+        (SWITCH_ON_DISABLED, 0x07, SWITCH_ON_DISABLED),  # not from there
+        (SWITCH_ON_DISABLED, 0x0F, SWITCH_ON_DISABLED),
+        (QUICK_STOP_ACTIVE, 0x06, QUICK_STOP_ACTIVE),
+        (READY_TO_SWITCH_ON, 0x86, READY_TO_SWITCH_ON),  # bit 7 set: no transition
+        (0x0000, 0x06, 0x0000),  # NOT READY TO SWITCH ON: nothing taken
+    ],
+)
+def test_the_controlword_drives_the_device_state_machine(start: int, cw: int, end: int) -> None:
+    node, _ = powered(start)
+    node.position = 1234.4
+    node.fe_since = 5.0
+    node._controlword(cw)
+    assert node.state == end
+    assert node.controlwords == [cw]
+    if end == OPERATION_ENABLED and start != end:
+        assert node.get(0x607A, 0) == 1234 and math.isnan(node.fe_since)  # no jump at enable
+    if end == QUICK_STOP_ACTIVE and start == OPERATION_ENABLED:
+        assert node.quick_stops == 1
+    else:
+        assert node.quick_stops == 0
+
+
+def test_an_enable_refused_stays_switched_on() -> None:
+    node, _ = powered(SWITCHED_ON)
+    node.refuse_enable = True
+    node._controlword(0x0F)
+    assert node.state == SWITCHED_ON
+    node, _ = powered(READY_TO_SWITCH_ON)
+    node.refuse_enable = True
+    node._controlword(0x0F)
+    assert node.state == SWITCHED_ON
+
+
+@pytest.mark.parametrize(
+    ("state", "word"),
+    [
+        (0x0000, 0x0200),
+        (SWITCH_ON_DISABLED, 0x0240),
+        (READY_TO_SWITCH_ON, 0x0231),
+        (SWITCHED_ON, 0x0233),
+        (QUICK_STOP_ACTIVE, 0x0217),
+        (FAULT, 0x0208),
+    ],
+)
+def test_the_statusword_shows_the_state_remote_voltage_and_quick_stop(
+    state: int, word: int
+) -> None:
+    node, _ = powered(state)
+    assert node.statusword() == word
+
+
+def test_the_statusword_in_csp_shows_following_target_reached_and_following_error() -> None:
+    node, _ = powered(OPERATION_ENABLED)
+    node.set(0x6060, 0, 8)
+    node.set(0x607A, 0, 100)
+    node.position = 99.5
+    assert node.statusword() == 0x1637  # follows the target, reached (within a count)
+    node.position = 99.0
+    assert node.statusword() == 0x1237  # a count away: not reached
+    node.fe_since = 1.0
+    assert node.statusword() == 0x3237
+    node.set(0x6060, 0, 10)  # CST: none of the CSP bits
+    assert node.statusword() == 0x0237
