@@ -7,6 +7,7 @@ loop's time, the second sensor after a reset. The rig is test_cia402.py's: pytho
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Callable
 
 import pytest
@@ -139,3 +140,33 @@ def test_a_second_sensor_still_off_after_a_reset_waits_its_latency_again(
     assert r.drv.state is DriverState.INACTIVE
     err = r.until_fault(20, lambda k: move(0))
     assert "joint yaw: second position sensor disagrees by 0.01" in str(err)
+
+
+def test_a_sync_and_the_rpdos_go_out_every_sync_every_th_write(rig: Callable[..., Rig]) -> None:
+    r = rig(sync_every=2)
+    r.enabled()
+    r.ticks(2, r.here())
+    before = r.drv.stats()
+    r.ticks(10, r.here())
+    stats = r.drv.stats()
+    assert stats["sync_frames"] - before["sync_frames"] == 5
+    assert stats["rpdo_frames"] - before["rpdo_frames"] == 15  # three nodes each SYNC
+    assert r.emu.node(1).syncs == r.emu.node(3).syncs
+
+
+def test_a_target_beyond_32_bits_of_counts_is_sent_as_the_bound(rig: Callable[..., Rig]) -> None:
+    """A fine encoder on a long axis can count past a signed 32-bit target: the target sent is
+    the nearest bound, never a wrapped (far, opposite) value."""
+    r = rig()
+    r.drv.configure()
+    r.ticks(4)
+    node = r.drv._nodes[2]  # insertion, 2e6 counts/m
+    for metres, counts in ((1100.0, 2**31 - 1), (-1100.0, -(2**31)), (0.5, 10**6)):
+        r.t += 0.001
+        r.drv._write(
+            [0.0, 0.0, metres], r.t
+        )  # the hook itself: the base's limits are not under test
+        r.t += 0.001
+        r.drv._write([0.0, 0.0, metres], r.t)  # sync_every 2: packed on the second
+        assert node.target == counts, metres
+        assert struct.unpack("<Hi", bytes(node.rpdo)) == (0x0F, counts)

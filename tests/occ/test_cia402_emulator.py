@@ -12,6 +12,7 @@ Every ``now`` is passed in.
 from __future__ import annotations
 
 import math
+import struct
 from typing import Any
 
 import pytest
@@ -271,3 +272,169 @@ def test_the_statusword_in_csp_shows_following_target_reached_and_following_erro
     assert node.statusword() == 0x3237
     node.set(0x6060, 0, 10)  # CST: none of the CSP bits
     assert node.statusword() == 0x0237
+
+
+# ----------------------------------------------------------------------------- NMT, heartbeats
+def test_nmt_commands_and_the_heartbeat_on_each_change() -> None:
+    node, sent = make_node()
+    node.boot(0.0)
+    assert sent == [(0x704, bytes([0x00]))]  # boot-up
+    assert node.nmt == NMT_PRE_OPERATIONAL and node.state == SWITCH_ON_DISABLED
+    node.nmt_command(0x01, 0.0)
+    assert node.nmt == NMT_OPERATIONAL and sent[-1] == (0x704, bytes([NMT_OPERATIONAL]))
+    node.nmt_command(0x01, 0.0)  # no change: no heartbeat
+    assert len(sent) == 2
+    node.nmt_command(0x02, 0.0)
+    assert node.nmt == NMT_STOPPED and sent[-1] == (0x704, bytes([NMT_STOPPED]))
+    node.nmt_command(0x80, 0.0)
+    assert node.nmt == NMT_PRE_OPERATIONAL and len(sent) == 4
+    node.heartbeat_on = False
+    node.nmt_command(0x01, 0.0)
+    assert node.nmt == NMT_OPERATIONAL and len(sent) == 4  # a heartbeat stopped says nothing
+
+
+def test_a_reset_node_forgets_its_configuration_a_reset_communication_keeps_it() -> None:
+    node, sent = make_node()
+    node.boot(0.0)
+    node.set(0x6060, 0, 8)
+    node.position = 777.0
+    node.state = OPERATION_ENABLED
+    node.nmt_command(0x82, 1.0)  # reset communication
+    assert node.get(0x6060, 0) == 8 and node.nmt == NMT_PRE_OPERATIONAL
+    assert sent[-1] == (0x704, bytes([0x00])) and node.hb_next == 1.0
+    node.nmt_command(0x81, 2.0)  # reset node: the object dictionary's defaults
+    assert node.get(0x6060, 0) != 8 and node.position == 777.0
+    assert node.state == SWITCH_ON_DISABLED and node.nmt == NMT_PRE_OPERATIONAL
+    node.nmt_command(0x33, 3.0)  # no such command
+    assert node.nmt == NMT_PRE_OPERATIONAL
+
+
+def test_the_heartbeat_producer_every_producer_time() -> None:
+    node, sent = make_node()
+    node.boot(0.0)
+    sent.clear()
+    node.timers(0.5)  # producer time 0: none
+    assert sent == []
+    node._write_object(0x1017, 0, 10, 1.0)  # restarts the producer at once
+    node.timers(1.0)
+    assert sent == [(0x704, bytes([NMT_PRE_OPERATIONAL]))] and node.hb_next == pytest.approx(1.01)
+    node.timers(1.0099)
+    assert len(sent) == 1
+    node.timers(1.01)
+    assert len(sent) == 2
+    node.heartbeat_on = False
+    node.timers(1.03)
+    assert len(sent) == 2 and node.hb_next == pytest.approx(1.04)
+
+
+def test_the_heartbeat_consumer_faults_an_enabled_drive_once_per_loss() -> None:
+    node, sent = make_node()
+    node.boot(0.0)
+    node.set(0x1016, 1, (127 << 16) | 20)
+    node.timers(5.0)  # no master heard yet: nothing to judge
+    assert node.state == SWITCH_ON_DISABLED
+    node.master_heartbeat(126, 0.0)  # another master's
+    assert math.isnan(node.master_seen)
+    node.master_heartbeat(127, 0.0)
+    node.state = OPERATION_ENABLED
+    node.timers(0.02)
+    assert node.state == OPERATION_ENABLED  # exactly the consumer time: in time
+    node.timers(0.0201)
+    assert node.state == FAULT and node.get(0x603F, 0) == 0x8130
+    assert emcys(sent) == [bytes([0x30, 0x81, 0x01, 0, 0, 0, 0, 0])]
+    node.timers(1.5)
+    assert len(emcys(sent)) == 1  # once
+    node.master_heartbeat(127, 2.0)
+    node.state = SWITCHED_ON
+    node.timers(2.5)  # lost while not enabled: no fault
+    assert node.state == SWITCHED_ON and math.isnan(node.master_seen)
+    node.set(0x1016, 1, 127 << 16)  # consumer time 0: off
+    node.master_heartbeat(127, 3.0)
+    node.state = OPERATION_ENABLED
+    node.timers(9.0)
+    assert node.state == OPERATION_ENABLED
+
+
+# ----------------------------------------------------------------------------- PDOs and SYNC
+def mapped(node: EmulatedNode, rpdo_type: int = 1, tpdo_type: int = 1) -> None:
+    """RPDO 1: controlword, target position; TPDO 1: statusword, position actual."""
+    for index, entries in ((0x1600, [0x60400010, 0x607A0020]), (0x1A00, [0x60410010, 0x60640020])):
+        for sub, entry in enumerate(entries, 1):
+            node.set(index, sub, entry)
+        node.set(index, 0, len(entries))
+    node.set(0x1400, 1, 0x204)
+    node.set(0x1400, 2, rpdo_type)
+    node.set(0x1800, 1, 0x184)
+    node.set(0x1800, 2, tpdo_type)
+    node.set(0x6060, 0, 8)
+    node.nmt = NMT_OPERATIONAL
+
+
+def rpdo(cw: int, target: int) -> bytes:
+    return cw.to_bytes(2, "little") + target.to_bytes(4, "little", signed=True)
+
+
+def test_a_synchronous_rpdo_waits_for_the_sync_an_asynchronous_one_does_not() -> None:
+    node, sent = make_node()
+    node.boot(0.0)
+    mapped(node, rpdo_type=240)
+    node.state = OPERATION_ENABLED
+    node.rpdo(0, rpdo(0x0F, 500), 0.0)
+    assert node.rpdos == 1 and node.get(0x607A, 0) != 500  # pending
+    node.sync(0.001)
+    assert node.get(0x607A, 0) == 500 and node.syncs == 1
+    node.set(0x1400, 2, 254)  # event-driven: at once
+    node.rpdo(0, rpdo(0x0F, -600), 0.002)
+    assert node.get(0x607A, 0) == -600 and node.rpdos == 2
+    node.rpdo(0, rpdo(0x0F, 1)[:5], 0.003)  # too short: EMCY 0x8210, not applied
+    assert node.get(0x607A, 0) == -600
+    assert emcys(sent)[-1] == bytes([0x10, 0x82, 0x00, 0, 0, 0, 0, 0])
+    node.nmt = NMT_PRE_OPERATIONAL  # PDOs are not taken out of OPERATIONAL
+    node.rpdo(0, rpdo(0x00, 9), 0.004)
+    node.sync(0.005)
+    assert node.rpdos == 3 and node.get(0x607A, 0) == -600 and node.syncs == 1
+    assert node.state == OPERATION_ENABLED
+
+
+def test_the_controlword_of_an_rpdo_is_applied_after_its_target() -> None:
+    node, _ = make_node()
+    node.boot(0.0)
+    mapped(node)
+    node.state = SWITCHED_ON
+    node.position = 321.2
+    node.rpdo(0, rpdo(0x0F, 9999), 0.0)
+    node.sync(0.001)
+    # enabled with the target it came with replaced by where the motor is: no jump
+    assert node.state == OPERATION_ENABLED and node.get(0x607A, 0) == 321
+    node.rpdo(0, rpdo(0x02, 400), 0.001)
+    node.sync(0.002)
+    assert node.controlwords == [0x0F, 0x02] and node.get(0x607A, 0) == 400
+    assert node.state == SWITCH_ON_DISABLED  # quick stop, then disabled (option 2)
+
+
+def test_tpdos_every_nth_sync_unless_muted_or_paused() -> None:
+    node, sent = make_node()
+    node.boot(0.0)
+    mapped(node, tpdo_type=2)
+    sent.clear()
+    for k in range(1, 7):
+        node.sync(k * 0.001)
+    tpdos = [data for cob, data in sent if cob == 0x184]
+    assert len(tpdos) == 3 and node.tpdos == 3
+    assert tpdos[-1] == struct.pack("<Hi", node.statusword(), 0)
+    node.tpdo_on = False
+    node.sync(0.007)
+    node.sync(0.008)
+    assert node.tpdos == 3
+    node.tpdo_on = True
+    node.tpdo_paused_until = 0.010
+    node.sync(0.009)
+    node.sync(0.0095)
+    assert node.tpdos == 3
+    node.sync(0.010)  # the pause ends at its time
+    node.sync(0.011)
+    assert node.tpdos == 4
+    node.set(0x1800, 1, 0x80000184)  # off
+    node.sync(0.012)
+    node.sync(0.013)
+    assert node.tpdos == 4

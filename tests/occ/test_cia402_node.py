@@ -320,7 +320,7 @@ def test_the_protocol_s_tables_and_bounds() -> None:
     assert sdo_abort_meaning(0x12345678) == "not a CiA 301 abort code (manufacturer specific?)"
     assert emcy_meaning(0x0000) == "error reset or no error"
     assert emcy_meaning(0x8612) == "position controller: reference limit"  # exact before class
-    assert emcy_meaning(0x2391) == "current"  # by 0xFF00: 0x2300 is not in the table
+    assert emcy_meaning(0x84F1) == "velocity controller: deviation too large"  # by 0xFF00
     assert emcy_meaning(0x3999) == "voltage"  # by 0xF000
     assert emcy_meaning(0xA123) == "unknown error code"
     assert cia402_state(0x0000) == "NOT READY TO SWITCH ON"
