@@ -438,3 +438,102 @@ def test_tpdos_every_nth_sync_unless_muted_or_paused() -> None:
     node.sync(0.012)
     node.sync(0.013)
     assert node.tpdos == 4
+
+
+# ----------------------------------------------------------------------------- the motor
+def enabled_in(mode: int, **kwargs: Any) -> tuple[EmulatedNode, Frames]:
+    node, sent = make_node(**kwargs)
+    node.boot(0.0)
+    node.set(0x6060, 0, mode)
+    node.state = OPERATION_ENABLED
+    return node, sent
+
+
+def test_csp_follows_the_target_first_order_and_shows_it_in_the_objects() -> None:
+    node, _ = enabled_in(8, bandwidth_hz=40.0, torque_per_count=0.05, second_ratio=2.0)
+    assert node.interpolation_period() == pytest.approx(0.001)  # 1 x 10^-3 (the EDS)
+    node.set(0x60C2, 1, 2)
+    assert node.interpolation_period() == pytest.approx(0.002)
+    node.set(0x607A, 0, 1000)
+    node.second_offset = 7.0
+    node.step(0.002, 0.0)
+    alpha = 1.0 - math.exp(-0.002 * 2.0 * math.pi * 40.0)
+    assert node.position == pytest.approx(1000.0 * alpha, rel=1e-12)
+    assert node.velocity == pytest.approx(1000.0 * alpha / 0.002, rel=1e-12)
+    assert node.torque == pytest.approx(1000.0 * (1.0 - alpha) * 0.05, rel=1e-12)
+    counts = round(1000.0 * alpha)
+    assert node.get(0x6064, 0) == counts and node.get(0x606C, 0) == round(node.velocity)
+    assert node.get(0x6077, 0) == round(node.torque)
+    assert node.get(0x2100, 0) == round(node.position * 2.0 + 7.0)
+    assert node.get(0x60F4, 0) == 1000 - counts
+    assert node.get(0x6041, 0) == node.statusword()
+    node.set(0x607A, 0, 10**9)
+    node.step(0.002, 0.002)
+    assert node.torque == 3000.0  # the drive's torque limit
+    node.set(0x607A, 0, -(10**9))
+    node.step(0.002, 0.004)
+    assert node.torque == -3000.0
+
+
+def test_cst_drives_a_damped_mass_with_the_target_torque() -> None:
+    node, _ = enabled_in(10, accel_per_permille=2000.0, damping=20.0)
+    node.set(0x6071, 0, 100)
+    node.step(0.001, 0.0)
+    assert node.torque == 100.0
+    assert node.velocity == pytest.approx(200.0) and node.position == pytest.approx(0.2)
+    node.step(0.001, 0.001)
+    v = 200.0 + (200000.0 - 20.0 * 200.0) * 0.001
+    assert node.velocity == pytest.approx(v) and node.position == pytest.approx(0.2 + v * 0.001)
+
+
+def test_a_motor_not_enabled_or_stalled_does_not_move() -> None:
+    node, _ = enabled_in(8)
+    node.set(0x607A, 0, 1000)
+    node.stalled = True
+    node.step(0.001, 0.0)
+    assert node.position == 0.0 and node.velocity == 0.0 and node.torque == 0.0
+    node, _ = enabled_in(10)
+    node.state = SWITCHED_ON
+    node.set(0x6071, 0, 500)
+    node.velocity = 50.0  # coasting is not modelled: a disabled motor holds
+    node.step(0.001, 0.0)
+    assert node.position == 0.0 and node.velocity == 0.0 and node.torque == 0.0
+    node.state = QUICK_STOP_ACTIVE
+    node.torque = 12.0
+    node.step(0.001, 0.001)  # quick stop option 2: stopped, then SWITCH ON DISABLED
+    assert node.state == SWITCH_ON_DISABLED and node.torque == 0.0
+    node.step(0.0, 0.002)
+    assert node.velocity == 0.0
+
+
+def test_a_following_error_past_the_window_for_the_time_out_faults_0x8611() -> None:
+    node, sent = enabled_in(8)
+    node.set(0x6065, 0, 100)  # window, counts
+    node.set(0x6066, 0, 4)  # time out, ms
+    node.stalled = True
+    node.set(0x607A, 0, 100)
+    node.step(0.001, 0.0)
+    assert math.isnan(node.fe_since)  # the window exactly: no error
+    node.set(0x607A, 0, 101)
+    node.step(0.001, 0.0)
+    assert node.fe_since == 0.0 and node.state == OPERATION_ENABLED
+    assert node.statusword() & 0x2000  # following error shown (in the TPDO of the next SYNC)
+    node.step(0.001, 0.0039)
+    assert node.state == OPERATION_ENABLED and node.get(0x6041, 0) & 0x2000
+    node.step(0.001, 0.004)  # the time out reached, exactly
+    assert node.state == FAULT and node.get(0x603F, 0) == 0x8611
+    assert node.get(0x6041, 0) == node.statusword() and node.get(0x6041, 0) & 0x08
+    assert emcys(sent) == [bytes([0x11, 0x86, 0x01, 0, 0, 0, 0, 0])]
+    node, _ = enabled_in(8)
+    node.set(0x6065, 0, 100)
+    node.stalled = True
+    node.set(0x607A, 0, 500)
+    node.step(0.001, 1.0)
+    node.set(0x607A, 0, 50)  # back within the window: the time out starts again
+    node.step(0.001, 1.001)
+    assert math.isnan(node.fe_since)
+    node.set(0x6065, 0, 0xFFFFFFFF)  # no window at all
+    node.set(0x607A, 0, 10**6)
+    node.step(0.001, 2.0)
+    node.step(0.001, 3.0)
+    assert node.state == OPERATION_ENABLED and math.isnan(node.fe_since)
