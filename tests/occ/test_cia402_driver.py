@@ -46,11 +46,14 @@ def test_a_fault_reset_sends_the_edge_to_the_node_in_fault_and_counts_it(
 ) -> None:
     r = rig()
     r.enabled()
+    r.ticks(15, r.here())  # every node's heartbeat heard (each 10 ms)
     r.emu.inject_emcy(2, 0x2310)
     r.until_fault(20, lambda k: r.here())
     r.ticks(2)
     sent = {nid: len(r.emu.node(nid).controlwords) for nid in (1, 2, 3)}
     r.drv.reset()
+    # the nodes that stayed OPERATIONAL were not restarted: their NMT state is still known
+    assert {n["nmt"] for n in r.drv.stats()["nodes"].values()} == {"OPERATIONAL"}
     r.emu.settle()
     assert r.drv.state is DriverState.INACTIVE
     assert r.drv.stats()["fault_resets"] == 1
@@ -63,6 +66,22 @@ def test_a_fault_reset_sends_the_edge_to_the_node_in_fault_and_counts_it(
     r.emu.settle()
     r.ticks(4, r.here())
     assert r.drv.state is DriverState.ACTIVE
+    r.emu.inject_fault_bit(3)
+    r.until_fault(20, lambda k: r.here())
+    r.drv.reset()
+    assert r.drv.stats()["fault_resets"] == 2
+
+
+def test_the_stats_show_the_bus_load_and_the_last_fault(rig: Callable[..., Rig]) -> None:
+    r = rig()
+    assert round(r.drv.bus_load, 4) != round(r.drv.bus_load, 3)  # the figure has more digits
+    r.enabled()
+    stats = r.drv.stats()
+    assert stats["bus_load"] == round(r.drv.bus_load, 3) and 0.5 < stats["bus_load"] < 0.6
+    assert "last_fault" not in stats
+    r.emu.inject_emcy(3, 0x4310)
+    err = r.until_fault(20, lambda k: r.here())
+    assert r.drv.stats()["last_fault"] == str(err)
 
 
 @pytest.mark.req("SR-HW-34")

@@ -201,6 +201,8 @@ def test_a_fault_reset_is_a_rising_edge_and_refused_while_the_cause_persists() -
     node = make_node()
     assert node.fault_reset_word(False) == (CW_DISABLE_VOLTAGE, False)  # nothing to reset
     assert node.fault_reset_word(True) == (CW_DISABLE_VOLTAGE, False)
+    node.take_tpdo1(tpdo1(0x0237, 0), 0.0)  # OPERATION ENABLED: bits 0-2 and 5, not 3
+    assert node.fault_reset_word(True) == (CW_DISABLE_VOLTAGE, False)
     node.take_tpdo1(tpdo1(0x0218, 0), 0.0)  # FAULT
     assert node.fault_reset_word(False) == (CW_DISABLE_VOLTAGE, True)  # low first
     assert node.fault_reset_word(True) == (CW_FAULT_RESET, False)  # then the edge
@@ -343,7 +345,7 @@ def test_an_sdo_failure_says_what_became_of_the_transfer() -> None:
     class Aborted(Exception):
         code = 0x06090030
 
-    args = (WHERE, 0.03, node, 0x6060, 0, "Modes of operation", "write 0x8")
+    args = (WHERE, 1.0, node, 0x6060, 0, "Modes of operation", "write 0x8")
     assert str(sdo_error(*args, Aborted())) == (
         f"{WHERE}: node 5 (joint yaw): configure: SDO write 0x8 to 6060:00 (Modes of "
         "operation) aborted by the node with 0x06090030: invalid value (download only)"
@@ -352,5 +354,5 @@ def test_an_sdo_failure_says_what_became_of_the_transfer() -> None:
         "(Modes of operation) not sent: queue full"
     )
     assert str(sdo_error(*args, TimeoutError("nothing"))).endswith(
-        "(Modes of operation) no answer within 30 ms (SDO timeout: nothing)"
+        "(Modes of operation) no answer within 1000 ms (SDO timeout: nothing)"
     )
