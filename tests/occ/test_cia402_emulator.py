@@ -151,6 +151,8 @@ def test_the_command_lines_inject_on_the_node_they_name() -> None:
     assert not one.persist
     emu.command("fault 1 persist")
     assert one.persist
+    assert emu.command("fault bit 3") == "ok: fault bit 3"  # the docstring's way: words skipped
+    assert three.get(0x603F, 0) == 0x1000
     assert emu.command("heartbeat 2 off").startswith("ok")
     assert two.heartbeat_on is False and one.heartbeat_on is True
     emu.command("heartbeat 2 on")
@@ -348,6 +350,10 @@ def test_the_heartbeat_consumer_faults_an_enabled_drive_once_per_loss() -> None:
     node.state = SWITCHED_ON
     node.timers(2.5)  # lost while not enabled: no fault
     assert node.state == SWITCHED_ON and math.isnan(node.master_seen)
+    node.set(0x1016, 1, (5 << 16) | 20)  # the consumer of master 5 does not hear 127
+    node.master_seen = math.nan
+    node.master_heartbeat(127, 3.0)
+    assert math.isnan(node.master_seen)
     node.set(0x1016, 1, 127 << 16)  # consumer time 0: off
     node.master_heartbeat(127, 3.0)
     node.state = OPERATION_ENABLED
@@ -383,9 +389,10 @@ def test_a_synchronous_rpdo_waits_for_the_sync_an_asynchronous_one_does_not() ->
     assert node.rpdos == 1 and node.get(0x607A, 0) != 500  # pending
     node.sync(0.001)
     assert node.get(0x607A, 0) == 500 and node.syncs == 1
-    node.set(0x1400, 2, 254)  # event-driven: at once
+    node.set(0x1400, 2, 241)  # above 240: not synchronous, at once
     node.rpdo(0, rpdo(0x0F, -600), 0.002)
     assert node.get(0x607A, 0) == -600 and node.rpdos == 2
+    assert node.get(0x6040, 0) == 0x0F  # the controlword object too
     node.rpdo(0, rpdo(0x0F, 1)[:5], 0.003)  # too short: EMCY 0x8210, not applied
     assert node.get(0x607A, 0) == -600
     assert emcys(sent)[-1] == bytes([0x10, 0x82, 0x00, 0, 0, 0, 0, 0])
@@ -427,17 +434,46 @@ def test_tpdos_every_nth_sync_unless_muted_or_paused() -> None:
     node.sync(0.008)
     assert node.tpdos == 3
     node.tpdo_on = True
+    node.set(0x1800, 2, 1)
     node.tpdo_paused_until = 0.010
     node.sync(0.009)
     node.sync(0.0095)
     assert node.tpdos == 3
     node.sync(0.010)  # the pause ends at its time
-    node.sync(0.011)
     assert node.tpdos == 4
     node.set(0x1800, 1, 0x80000184)  # off
     node.sync(0.012)
     node.sync(0.013)
     assert node.tpdos == 4
+    # TPDO 2 on while TPDO 1 is off: still sent
+    node.set(0x1A01, 1, 0x606C0020)
+    node.set(0x1A01, 0, 1)
+    node.set(0x1801, 1, 0x284)
+    node.set(0x1801, 2, 1)
+    node.sync(0.014)
+    assert node.tpdos == 5 and sent[-1][0] == 0x284
+
+
+@pytest.mark.parametrize(("kind", "count"), [(240, 1), (241, 0), (0, 0)])
+def test_a_tpdo_of_type_240_is_the_slowest_synchronous_one(kind: int, count: int) -> None:
+    node, _ = make_node()
+    node.boot(0.0)
+    mapped(node, tpdo_type=kind)
+    for k in range(241):
+        node.sync(k * 0.001)
+    assert node.tpdos == count
+
+
+def test_rpdo_2_is_mapped_and_typed_by_its_own_objects() -> None:
+    node, _ = make_node()
+    node.boot(0.0)
+    mapped(node)
+    node.set(0x1601, 1, 0x60710010)  # target torque
+    node.set(0x1601, 0, 1)
+    node.set(0x1401, 1, 0x304)
+    node.set(0x1401, 2, 255)
+    node.rpdo(1, (-250).to_bytes(2, "little", signed=True), 0.0)
+    assert node.get(0x6071, 0) == -250
 
 
 # ----------------------------------------------------------------------------- the motor
