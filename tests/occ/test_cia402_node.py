@@ -218,6 +218,8 @@ def test_a_fault_reset_is_a_rising_edge_and_refused_while_the_cause_persists() -
     )
     node.emcy_pending = None  # the reset clears it (the driver's _reset)
     assert node.reset_refusal(True) is None
+    node.take_tpdo1(tpdo1(0x0237, 0), 0.0)  # any state out of FAULT, bit 0 set or not
+    assert node.reset_refusal(True) is None
     node.take_tpdo1(tpdo1(0x0218, 0), 0.0)  # FAULT again, no new EMCY: the last one said
     assert node.reset_refusal(True) == (
         "node 5 (joint yaw): still FAULT (EMCY 0x3210: DC link overvoltage)"
@@ -305,7 +307,10 @@ def test_a_second_sensor_s_defaults_and_its_mapping_check(eds_with_a_record: Pat
         ({"index": 0x2100, "counts_per_unit": 1.0, "tolerance": 0.0}, "tolerance > 0"),
         ({"index": 0x2100, "counts_per_unit": 1.0, "latency_ms": -1.0}, "latency_ms >= 0"),
         ({"index": 0x2999, "counts_per_unit": 1.0}, "object 0x2999:00 is not a mappable"),
-        ({"index": 0x6041, "counts_per_unit": 1.0}, "object 0x6041:00 is not a mappable 32-bit"),
+        (
+            {"index": 0x6041, "counts_per_unit": 1.0},
+            f"object 0x6041:00 is not a mappable 32-bit object of {str(DEFAULT_EDS)!r}",
+        ),
         ({"index": 0x1016, "subindex": 1, "counts_per_unit": 1.0}, "0x1016:01 is not a mappable"),
     ],
 )
