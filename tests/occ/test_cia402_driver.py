@@ -122,17 +122,17 @@ def test_the_first_read_after_a_reset_that_took_the_loop_s_time_counts_from_itse
     rig: Callable[..., Rig],
 ) -> None:
     """A reset runs off the loop thread (occ/core/powerup.py): the loop's next read of the
-    driver may come later than a heartbeat's timeout after the last; what the reset heard is
-    as fresh as that read."""
+    driver comes when the reset has ended, maybe later than a heartbeat's timeout after the
+    last read; the heartbeats heard while the reset waited are as fresh as that read."""
     r = rig()
     r.enabled()
     r.ticks(15, r.here())  # every node's heartbeat heard (each 10 ms)
     r.emu.inject_emcy(1, 0x7300)
     r.until_fault(20, lambda k: r.here())
     r.ticks(2)
-    r.drv.reset()
-    r.t += 0.035  # node_heartbeat_timeout_ms 30: the reset's heartbeat would be too old
-    r.drv.read(r.t)
+    r.t += 0.035  # the drives' time goes on while the reset runs: they send heartbeats
+    r.drv.reset()  # what it hears is stamped with the last read's now, 35 ms before
+    r.drv.read(r.t)  # node_heartbeat_timeout_ms 30: their age is counted from here
     r.emu.settle()
     r.ticks(4)
     assert r.drv.state is DriverState.INACTIVE
@@ -189,3 +189,22 @@ def test_a_target_beyond_32_bits_of_counts_is_sent_as_the_bound(rig: Callable[..
         r.drv._write([0.0, 0.0, metres], r.t)  # sync_every 2: packed on the second
         assert node.target == counts, metres
         assert struct.unpack("<Hi", bytes(node.rpdo)) == (0x0F, counts)
+
+
+@pytest.mark.req("SR-HW-34")
+def test_a_node_heard_before_and_silent_since_fails_the_first_read_after_a_reset(
+    rig: Callable[..., Rig],
+) -> None:
+    """The reset's own frames are as fresh as the read after it; a heartbeat last heard before
+    the fault is not: a node that stopped its heartbeat is judged on its real age."""
+    r = rig()
+    r.enabled()
+    r.ticks(15, r.here())  # every node's heartbeat heard (each 10 ms)
+    r.emu.stop_heartbeat(1)
+    err = r.until_fault(100, lambda k: r.here())
+    assert "node 1 (joint yaw): heartbeat consumer timeout" in str(err)
+    r.drv.reset()  # its TPDOs answer: the fault reset itself passes
+    r.t += 0.001
+    with pytest.raises(DriverError) as info:
+        r.drv.read(r.t)
+    assert "node 1 (joint yaw): heartbeat consumer timeout" in str(info.value)
