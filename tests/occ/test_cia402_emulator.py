@@ -15,6 +15,7 @@ import math
 import struct
 from typing import Any
 
+import can
 import pytest
 
 from occ.drivers.cia402_protocol import (
@@ -233,6 +234,14 @@ def test_the_controlword_drives_the_device_state_machine(start: int, cw: int, en
         assert node.quick_stops == 0
 
 
+def test_each_quick_stop_is_counted() -> None:
+    node, _ = powered(OPERATION_ENABLED)
+    for k in (1, 2):
+        node.state = OPERATION_ENABLED
+        node._controlword(0x02)
+        assert node.state == QUICK_STOP_ACTIVE and node.quick_stops == k
+
+
 def test_an_enable_refused_stays_switched_on() -> None:
     node, _ = powered(SWITCHED_ON)
     node.refuse_enable = True
@@ -282,14 +291,18 @@ def test_nmt_commands_and_the_heartbeat_on_each_change() -> None:
     node.boot(0.0)
     assert sent == [(0x704, bytes([0x00]))]  # boot-up
     assert node.nmt == NMT_PRE_OPERATIONAL and node.state == SWITCH_ON_DISABLED
-    node.nmt_command(0x01, 0.0)
+    node.set(0x1017, 0, 10)
+    node.nmt_command(0x01, 1.0)
     assert node.nmt == NMT_OPERATIONAL and sent[-1] == (0x704, bytes([NMT_OPERATIONAL]))
-    node.nmt_command(0x01, 0.0)  # no change: no heartbeat
-    assert len(sent) == 2
-    node.nmt_command(0x02, 0.0)
+    assert node.hb_next == pytest.approx(1.01)  # the producer restarts from the change
+    node.nmt_command(0x01, 1.5)  # no change: no heartbeat
+    assert len(sent) == 2 and node.hb_next == pytest.approx(1.01)
+    node.nmt_command(0x02, 2.0)
     assert node.nmt == NMT_STOPPED and sent[-1] == (0x704, bytes([NMT_STOPPED]))
-    node.nmt_command(0x80, 0.0)
+    assert node.hb_next == pytest.approx(2.01)
+    node.nmt_command(0x80, 3.0)
     assert node.nmt == NMT_PRE_OPERATIONAL and len(sent) == 4
+    assert node.hb_next == pytest.approx(3.01)
     node.heartbeat_on = False
     node.nmt_command(0x01, 0.0)
     assert node.nmt == NMT_OPERATIONAL and len(sent) == 4  # a heartbeat stopped says nothing
@@ -327,6 +340,13 @@ def test_the_heartbeat_producer_every_producer_time() -> None:
     node.heartbeat_on = False
     node.timers(1.03)
     assert len(sent) == 2 and node.hb_next == pytest.approx(1.04)
+    node.heartbeat_on = True
+    node._write_object(0x1017, 0, 1, 2.0)  # 1 ms: the shortest producer time
+    node.timers(2.0)
+    node.timers(2.0005)
+    assert len(sent) == 3 and node.hb_next == pytest.approx(2.001)
+    node.timers(2.001)
+    assert len(sent) == 4
 
 
 def test_the_heartbeat_consumer_faults_an_enabled_drive_once_per_loss() -> None:
@@ -568,8 +588,56 @@ def test_a_following_error_past_the_window_for_the_time_out_faults_0x8611() -> N
     node.set(0x607A, 0, 50)  # back within the window: the time out starts again
     node.step(0.001, 1.001)
     assert math.isnan(node.fe_since)
+    node.state = SWITCHED_ON  # not enabled: no following error is judged
+    node.set(0x6065, 0, 100)
+    node.set(0x607A, 0, 10**6)
+    node.step(0.001, 2.0)
+    node.step(0.001, 3.0)
+    assert node.state == SWITCHED_ON and math.isnan(node.fe_since)
+    node.state = OPERATION_ENABLED
     node.set(0x6065, 0, 0xFFFFFFFF)  # no window at all
     node.set(0x607A, 0, 10**6)
     node.step(0.001, 2.0)
     node.step(0.001, 3.0)
     assert node.state == OPERATION_ENABLED and math.isnan(node.fe_since)
+
+
+# ----------------------------------------------------------------------------- frames in
+def frame(cob: int, data: bytes = b"", **kw: Any) -> can.Message:
+    return can.Message(arbitration_id=cob, data=data, is_extended_id=False, **kw)
+
+
+def test_the_emulator_takes_each_frame_to_the_node_and_object_it_names() -> None:
+    t = [1.0]
+    emu = emulator(t)
+    one, two, three = emu.node(1), emu.node(2), emu.node(3)
+    emu.handle(frame(0x000, bytes([0x01, 0x00])))  # NMT start, every node
+    assert {n.nmt for n in (one, two, three)} == {NMT_OPERATIONAL}
+    emu.handle(frame(0x000, bytes([0x80, 0x02])))  # enter pre-operational, node 2 only
+    assert (one.nmt, two.nmt, three.nmt) == (NMT_OPERATIONAL, NMT_PRE_OPERATIONAL, NMT_OPERATIONAL)
+    assert emu.frames_in == 2 and emu.ignored == 0
+    for bad in (
+        can.Message(arbitration_id=0x000, is_error_frame=True),
+        can.Message(arbitration_id=0x201, is_remote_frame=True, is_extended_id=False),
+        can.Message(arbitration_id=0x201, data=bytes(6), is_extended_id=True),
+    ):
+        emu.handle(bad)
+    assert emu.ignored == 3 and emu.frames_in == 2
+    emu.handle(frame(0x209, bytes(6)))  # node 9 is not emulated
+    assert emu.ignored == 4 and emu.frames_in == 3
+    for node in (one, three):
+        mapped(node)
+        node.set(0x1400, 1, 0x200 + node.node_id)
+        node.set(0x1400, 2, 255)
+        node.state = OPERATION_ENABLED
+    one.set(0x1601, 1, 0x60710010)
+    one.set(0x1601, 0, 1)
+    one.set(0x1401, 1, 0x301)
+    one.set(0x1401, 2, 255)
+    emu.handle(frame(0x301, (-250).to_bytes(2, "little", signed=True)))  # RPDO 2 of node 1
+    assert one.get(0x6071, 0) == -250 and one.rpdos == 1
+    three.set(0x1400, 1, 0x80000203)  # RPDO 1 of node 3 off: its frames are not taken
+    emu.handle(frame(0x203, rpdo(0x0F, 777)))
+    assert three.rpdos == 0 and three.get(0x607A, 0) != 777 and emu.ignored == 5
+    emu.handle(frame(0x7F0 & 0x780 | 0x01, bytes([0x05])))  # a heartbeat of node 1: not ours
+    assert emu.ignored == 6 and emu.errors == 0
