@@ -10,6 +10,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Callable
 
+import can
 import pytest
 
 from occ.drivers import DriverState
@@ -69,7 +70,7 @@ def test_a_fault_reset_sends_the_edge_to_the_node_in_fault_and_counts_it(
     r.emu.inject_fault_bit(3)
     r.until_fault(20, lambda k: r.here())
     r.drv.reset()
-    assert r.drv.stats()["fault_resets"] == 2
+    assert r.drv.stats()["fault_resets"] == 2 and r.drv.stats()["quick_stops"] == 2
 
 
 def test_the_stats_show_the_bus_load_and_the_last_fault(rig: Callable[..., Rig]) -> None:
@@ -208,3 +209,131 @@ def test_a_node_heard_before_and_silent_since_fails_the_first_read_after_a_reset
     with pytest.raises(DriverError) as info:
         r.drv.read(r.t)
     assert "node 1 (joint yaw): heartbeat consumer timeout" in str(info.value)
+
+
+@pytest.mark.req("SR-HW-32")
+def test_an_enable_before_any_position_is_refused_naming_every_node(
+    rig: Callable[..., Rig],
+) -> None:
+    r = rig()
+    r.drv.configure()  # no read yet: no TPDO taken
+    with pytest.raises(DriverError) as info:
+        r.drv.activate()
+    assert str(info.value) == (
+        "cia402 driver 'arm': node 1 (joint yaw), node 2 (joint pitch), node 3 (joint "
+        "insertion): no position reported yet"
+    )
+    r.emu.settle()
+    assert all(r.emu.node(n).describe()["state"] != "OPERATION ENABLED" for n in (1, 2, 3))
+
+
+@pytest.mark.req("SR-HW-32")
+def test_two_nodes_that_will_not_enable_are_both_named(rig: Callable[..., Rig]) -> None:
+    r = rig(state_timeout_ms=50.0)
+    r.emu.refuse_enable(2)
+    r.emu.refuse_enable(3)
+    r.drv.configure()
+    r.ticks(4)
+    with pytest.raises(DriverError) as info:
+        r.drv.activate()
+    assert str(info.value).startswith(
+        "cia402 driver 'arm': not OPERATION ENABLED within 50 ms: node 2 (joint pitch) in "
+        "SWITCHED ON (statusword 0x0233); node 3 (joint insertion) in SWITCHED ON "
+        "(statusword 0x0233); every node switched off again"
+    )
+
+
+@pytest.mark.req("SR-HW-32")
+def test_a_node_that_faults_while_enabling_vetoes_it_at_once(rig: Callable[..., Rig]) -> None:
+    r = rig(state_timeout_ms=5000.0)
+    r.drv.configure()
+    r.ticks(4)
+    r.emu.inject_emcy(2, 0x2310)  # its EMCY waits on the bus: the activation takes it
+    with pytest.raises(DriverError) as info:
+        r.drv.activate()
+    assert str(info.value).startswith(
+        "cia402 driver 'arm': node 2 (joint pitch): EMCY 0x2310 (continuous overcurrent (motor "
+        "side)), error register 0x03; not enabled; every node switched off again"
+    )
+
+
+def test_the_master_s_heartbeat_goes_on_while_an_activation_waits(rig: Callable[..., Rig]) -> None:
+    """Activate waits on the drives off the loop thread: it sends the master's heartbeat
+    itself (every quarter of heartbeat_ms), or a drive already enabled would stop (0x8130)."""
+    r = rig(heartbeat_ms=20.0, state_timeout_ms=150.0)
+    r.drv.configure()
+    r.ticks(4)
+    with can.Bus(interface="virtual", channel=r.channel) as sniffer:
+        with r.emu.held(), pytest.raises(DriverError):  # the drives answer nothing
+            r.drv.activate()
+        beats = 0
+        while (msg := sniffer.recv(timeout=0.0)) is not None:
+            beats += msg.arbitration_id == 0x77F
+    assert beats >= 5  # every 5 ms of a 150 ms wait, whatever the load
+
+
+def test_the_stop_frames_have_the_mapped_length_and_an_empty_sync(rig: Callable[..., Rig]) -> None:
+    from occ.joint import PIDGains
+
+    r = rig(command_interface="effort")
+    for j in r.joints:
+        j.gains = PIDGains(kp=1.0)
+    r.enabled()
+    with can.Bus(interface="virtual", channel=r.channel) as sniffer:
+        r.drv.safe_stop("EStop")
+        frames = []
+        while (msg := sniffer.recv(timeout=0.0)) is not None:
+            frames.append(msg)
+    rpdos = [m for m in frames if 0x201 <= m.arbitration_id <= 0x203]
+    assert [bytes(m.data) for m in rpdos] == [bytes([0x02, 0, 0, 0])] * 3  # CST: 4 bytes
+    syncs = [m for m in frames if m.arbitration_id == 0x080]
+    assert len(syncs) == 1 and syncs[0].dlc == 0 and not syncs[0].is_extended_id
+    r.emu.settle()
+    assert all(r.emu.node(n).controlwords[-1] == 0x02 for n in (1, 2, 3))
+
+
+@pytest.mark.req("SR-HW-34")
+def test_a_reset_with_a_heartbeat_waiting_on_the_bus_reads_fine_after(
+    rig: Callable[..., Rig],
+) -> None:
+    r = rig()
+    r.enabled()
+    r.ticks(15, r.here())
+    r.emu.inject_emcy(1, 0x7300)
+    r.until_fault(20, lambda k: r.here())
+    r.t += 0.010
+    r.emu.settle()  # the nodes' heartbeats, sent since the last read, wait on the bus
+    r.drv.reset()
+    r.ticks(4)
+    assert r.drv.state is DriverState.INACTIVE
+
+
+@pytest.mark.req("SR-HW-34")
+def test_a_reset_of_nodes_never_heard_is_refused_naming_each(rig: Callable[..., Rig]) -> None:
+    r = rig(state_timeout_ms=40.0)
+    r.emu.mute_tpdos(2)
+    r.emu.mute_tpdos(3)
+    r.drv.configure()
+    err = r.until_fault(40, lambda k: r.here())
+    assert "no TPDO for" in str(err)
+    with pytest.raises(DriverError) as info:
+        r.drv.reset()
+    assert str(info.value) == (
+        "cia402 driver 'arm': fault reset refused within 40 ms: node 2 (joint pitch): no TPDO "
+        "answered the reset's SYNC; node 3 (joint insertion): no TPDO answered the reset's SYNC"
+    )
+    with pytest.raises(DriverError) as again:  # they still hold 0: never heard, never moved
+        r.drv.reset()
+    assert str(again.value) == str(info.value)
+
+
+@pytest.mark.req("SR-HW-32")
+def test_heartbeats_heard_while_enabling_are_judged_as_fresh(rig: Callable[..., Rig]) -> None:
+    r = rig()
+    r.drv.configure()
+    r.ticks(4)
+    r.t += 0.02  # the drives' time goes on: they send heartbeats while the activation waits
+    r.drv.activate()
+    r.emu.settle()
+    r.ticks(10, r.here())
+    assert r.drv.state is DriverState.ACTIVE
