@@ -17,7 +17,7 @@ from occ.drivers import DriverState
 from occ.drivers.cia402_protocol import NMT_OPERATIONAL
 from occ.errors import DriverError
 from tests.occ import test_cia402
-from tests.occ.test_cia402 import Rig, _move, node_params
+from tests.occ.test_cia402 import DT, Rig, _move, node_params
 
 rig = test_cia402.rig  # the fixture: a driver and the emulator on a virtual channel
 
@@ -337,3 +337,40 @@ def test_heartbeats_heard_while_enabling_are_judged_as_fresh(rig: Callable[..., 
     r.emu.settle()
     r.ticks(10, r.here())
     assert r.drv.state is DriverState.ACTIVE
+
+
+@pytest.mark.req("SR-HW-37")
+def test_each_frame_is_taken_counted_or_ignored_by_its_cob_id(rig: Callable[..., Rig]) -> None:
+    r = rig()
+    r.drv.configure()
+    r.ticks(4)
+    before = r.drv.stats()
+    r.ticks(10)
+    stats = r.drv.stats()
+    syncs = stats["sync_frames"] - before["sync_frames"]
+    assert syncs == 5 and stats["tpdo_frames"] - before["tpdo_frames"] == 6 * syncs
+    std = {"is_extended_id": False}
+    with can.Bus(interface="virtual", channel=r.channel) as other:
+        for msg in (
+            can.Message(arbitration_id=0x04, is_error_frame=True),  # a warning: counted
+            can.Message(arbitration_id=0x04, is_error_frame=True),
+            can.Message(arbitration_id=0x181, is_remote_frame=True, **std),  # ignored
+            can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=True),  # ignored
+            can.Message(arbitration_id=0x189, data=bytes(8), **std),  # node 9: not ours
+            can.Message(arbitration_id=0x209, data=bytes(6), **std),  # a master's RPDO: echo
+            can.Message(arbitration_id=0x080, **std),  # a SYNC: its own, echoed
+            can.Message(arbitration_id=0x181, data=bytes(7), **std),  # TPDO 1 too short
+            can.Message(arbitration_id=0x281, data=bytes(3), **std),  # TPDO 2 too short
+            can.Message(arbitration_id=0x081, data=bytes(2), **std),  # EMCY too short
+            can.Message(arbitration_id=0x701, **std),  # an empty heartbeat
+        ):
+            other.send(msg)
+        before = r.drv.stats()
+        r.t += DT
+        r.drv.read(r.t)
+    stats = r.drv.stats()
+    got = {k: stats[k] - before[k] for k in ("error_frames", "ignored_frames", "echoes")}
+    assert got == {"error_frames": 2, "ignored_frames": 6, "echoes": 2}
+    assert stats["tpdo_frames"] == before["tpdo_frames"] + 6  # the last SYNC's, whole
+    assert stats["emcy_frames"] == 0 and stats["heartbeat_frames"] == before["heartbeat_frames"]
+    assert r.drv.state is DriverState.INACTIVE
