@@ -286,8 +286,7 @@ class CiA402Driver(Driver):
             self._rx[COB_EMCY + nid] = (_K_EMCY, node)
             self._rx[COB_HEARTBEAT + nid] = (_K_HB, node)
             self._rx[COB_SDO_TX + nid] = (_K_SDO, node)
-        #: the COB-IDs of the frames it sends itself (RPDO 1, SDO requests, SYNC, NMT, its
-        #: heartbeat): what an echo usually is, told by one look-up
+        #: the COB-IDs it sends itself (RPDO 1, SDO requests, SYNC, NMT, heartbeat): echoes
         self._own = frozenset(
             [COB_SYNC, COB_NMT, COB_HEARTBEAT + self._master_id]
             + [COB_RPDO[0] + n.node_id for n in self._nodes]
@@ -311,10 +310,8 @@ class CiA402Driver(Driver):
         #: the master's heartbeat while activate waits (wall clock: the loop's is not read)
         self._waiting_hb_at = -math.inf
         #: the frames taken while activate waited are stamped with the last read's ``now``:
-        #: the first read after it counts their ages from its own (see _read); the nodes'
-        #: heartbeat counts when the wait began tell which were heard meanwhile
-        self._restamp = False
-        self._heard = [0] * n
+        #: the first read counts their ages from its own (_read; _heard: which were heard)
+        self._restamp, self._heard = False, [0] * n
         self._send_lock = threading.Lock()
         self._counters = dict.fromkeys(COUNTERS, 0)
         #: the identifier of a bus-off error frame not yet acted on (None: none)
