@@ -14,10 +14,11 @@ import can
 import pytest
 
 from occ.drivers import DriverState
+from occ.drivers.cia402 import CiA402Driver
 from occ.drivers.cia402_protocol import NMT_OPERATIONAL
 from occ.errors import DriverError
 from tests.occ import test_cia402
-from tests.occ.test_cia402 import DT, Rig, _move, node_params
+from tests.occ.test_cia402 import DT, Rig, _move, make_joints, node_params
 
 rig = test_cia402.rig  # the fixture: a driver and the emulator on a virtual channel
 
@@ -374,3 +375,35 @@ def test_each_frame_is_taken_counted_or_ignored_by_its_cob_id(rig: Callable[...,
     assert stats["tpdo_frames"] == before["tpdo_frames"] + 6  # the last SYNC's, whole
     assert stats["emcy_frames"] == 0 and stats["heartbeat_frames"] == before["heartbeat_frames"]
     assert r.drv.state is DriverState.INACTIVE
+
+
+def test_no_master_heartbeat_while_an_activation_waits_with_the_heartbeat_off(
+    rig: Callable[..., Rig],
+) -> None:
+    r = rig(heartbeat_ms=0.0, state_timeout_ms=60.0)
+    r.drv.configure()
+    r.ticks(4)
+    with can.Bus(interface="virtual", channel=r.channel) as sniffer:
+        with r.emu.held(), pytest.raises(DriverError):
+            r.drv.activate()
+        beats = 0
+        while (msg := sniffer.recv(timeout=0.0)) is not None:
+            beats += msg.arbitration_id == 0x77F
+    assert beats == 0
+
+
+@pytest.mark.req("SR-HW-32")
+def test_a_node_in_quick_stop_active_is_switched_off_first_when_enabling() -> None:
+    """A drive whose quick stop option keeps it in QUICK STOP ACTIVE (CiA 402 options 5-8; the
+    emulator's option 2 leaves it at once) is told disable voltage, the way to SWITCH ON
+    DISABLED, then the enable steps. The hook alone, with no bus: its controlwords are packed,
+    nothing answers, the state machine's bound ends it."""
+    drv = CiA402Driver("arm", make_joints(), {"sync_every": 2, "nodes": node_params(),
+                                              "state_timeout_ms": 20.0})  # fmt: skip
+    for node, word in zip(drv._nodes, (0x0207, 0x0237, 0x0233), strict=True):
+        node.counts, node.statusword = 0, word
+    with pytest.raises(DriverError) as info:
+        drv._activate()
+    assert "node 1 (joint yaw) in QUICK STOP ACTIVE (statusword 0x0207)" in str(info.value)
+    # the step each was told last: voltage off (out of QUICK STOP ACTIVE), enable, enable
+    assert [n.rpdo[0] for n in drv._nodes] == [0x00, 0x0F, 0x0F]
