@@ -407,3 +407,22 @@ def test_a_node_in_quick_stop_active_is_switched_off_first_when_enabling() -> No
     assert "node 1 (joint yaw) in QUICK STOP ACTIVE (statusword 0x0207)" in str(info.value)
     # the step each was told last: voltage off (out of QUICK STOP ACTIVE), enable, enable
     assert [n.rpdo[0] for n in drv._nodes] == [0x00, 0x0F, 0x0F]
+
+
+@pytest.mark.req("SR-HW-33")
+def test_a_node_silent_after_a_disable_is_caught_by_the_feedback_deadline(
+    rig: Callable[..., Rig],
+) -> None:
+    """Disable's SYNC asks every node for a TPDO too: one that does not answer is late by
+    feedback_timeout from that SYNC, not before."""
+    r = rig()
+    r.enabled()
+    r.ticks(4, r.here())
+    r.t += DT
+    r.drv.read(r.t)  # every TPDO owed taken: none owed when Disable comes
+    r.emu.mute_tpdos(2)
+    r.drv.deactivate()
+    r.tick()  # 1 ms after: within feedback_timeout (10 ms)
+    assert r.drv.state is DriverState.INACTIVE
+    err = r.until_fault(20, lambda k: [])
+    assert "node 2 (joint pitch): no TPDO for" in str(err)
