@@ -375,6 +375,34 @@ def test_each_frame_is_taken_counted_or_ignored_by_its_cob_id(rig: Callable[...,
     assert stats["tpdo_frames"] == before["tpdo_frames"] + 6  # the last SYNC's, whole
     assert stats["emcy_frames"] == 0 and stats["heartbeat_frames"] == before["heartbeat_frames"]
     assert r.drv.state is DriverState.INACTIVE
+    with can.Bus(interface="virtual", channel=r.channel) as other:
+        for _ in range(2):  # an EMCY of code 0 (the node's error reset) and a heartbeat
+            other.send(can.Message(arbitration_id=0x081, data=bytes(8), **std))
+            other.send(can.Message(arbitration_id=0x701, data=bytes([0x05]), **std))
+        r.t += DT
+        r.drv.read(r.t)
+    stats = r.drv.stats()
+    assert stats["emcy_frames"] == 2
+    assert stats["heartbeat_frames"] == before["heartbeat_frames"] + 2
+
+
+def test_a_read_takes_at_most_64_frames_a_node(rig: Callable[..., Rig]) -> None:
+    """A babbling bus costs a read a bounded number of frames; the rest wait for the next."""
+    r = rig()
+    r.drv.configure()
+    r.ticks(4)
+    with r.emu.held(), can.Bus(interface="virtual", channel=r.channel) as other:
+        r.t += DT
+        r.drv.read(r.t)  # what the emulator sent is taken: the bus holds only what follows
+        for _ in range(64 * 3 + 5):
+            other.send(can.Message(arbitration_id=0x189, data=bytes(8), is_extended_id=False))
+        counts = []
+        for _ in range(2):
+            before = r.drv.stats()["ignored_frames"]
+            r.t += DT
+            r.drv.read(r.t)
+            counts.append(r.drv.stats()["ignored_frames"] - before)
+    assert counts == [192, 5]
 
 
 def test_no_master_heartbeat_while_an_activation_waits_with_the_heartbeat_off(
