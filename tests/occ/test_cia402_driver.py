@@ -8,6 +8,8 @@ loop's time, the second sensor after a reset. The rig is test_cia402.py's: pytho
 from __future__ import annotations
 
 import struct
+import threading
+import time
 from collections.abc import Callable
 
 import can
@@ -454,3 +456,38 @@ def test_a_node_silent_after_a_disable_is_caught_by_the_feedback_deadline(
     assert r.drv.state is DriverState.INACTIVE
     err = r.until_fault(20, lambda k: [])
     assert "node 2 (joint pitch): no TPDO for" in str(err)
+
+
+@pytest.mark.req("SR-HW-39")
+def test_heartbeats_taken_while_an_activation_waits_are_as_fresh_as_its_read(
+    rig: Callable[..., Rig],
+) -> None:
+    """While activate waits for the drives' TPDOs, what it takes is stamped with the last
+    read's ``now``: the heartbeats heard then are judged with it (and at the next read)."""
+    r = rig()
+    r.drv.configure()
+    r.ticks(4)
+    errors: list[Exception] = []
+
+    def power_up() -> None:
+        try:
+            r.drv.activate()
+        except Exception as err:  # noqa: BLE001 - what activate raised, checked below
+            errors.append(err)
+
+    with can.Bus(interface="virtual", channel=r.channel) as other:
+        with r.emu.held():  # the drives answer nothing yet: the activation waits
+            thread = threading.Thread(target=power_up)
+            thread.start()
+            give_up = time.monotonic() + 5.0
+            while (msg := other.recv(timeout=0.01)) is None or msg.arbitration_id != 0x080:
+                assert time.monotonic() < give_up  # its first SYNC: it waits for the TPDOs
+            # ahead of every TPDO on the bus: the wait takes them, whenever it polls
+            for nid in (1, 2, 3):
+                other.send(can.Message(arbitration_id=0x700 + nid, data=bytes([0x05]),
+                                       is_extended_id=False))  # fmt: skip
+        thread.join(5.0)
+    assert not thread.is_alive() and errors == []
+    r.emu.settle()
+    r.ticks(4, r.here())
+    assert r.drv.state is DriverState.ACTIVE
