@@ -29,9 +29,18 @@ rig = test_cia402.rig  # the fixture: a driver and the emulator on a virtual cha
 def test_the_supervisors_safe_stop_quick_stops_every_node_at_once(rig: Callable[..., Rig]) -> None:
     r = rig()
     r.enabled()
-    r.ticks(4, r.here())
+    move = _move(r)
+    for k in range(20):  # moving: the last target is ahead of where the motor is
+        r.tick(move(k))
     before = r.drv.stats()
-    r.drv.safe_stop("EStop")  # from the supervisor: no read, no write
+    with can.Bus(interface="virtual", channel=r.channel) as sniffer:
+        r.drv.safe_stop("EStop")  # from the supervisor: no read, no write
+        frames = []
+        while (msg := sniffer.recv(timeout=0.0)) is not None:
+            frames.append(msg)
+    held = [struct.pack("<Hi", 0x02, n.counts) for n in r.drv._nodes]
+    assert [bytes(m.data) for m in frames if 0x201 <= m.arbitration_id <= 0x203] == held
+    assert held[0] != struct.pack("<Hi", 0x02, r.drv._nodes[0].target)
     assert r.drv.state is DriverState.FAULT and r.drv.stop_failed is None
     r.emu.settle()
     for nid in (1, 2, 3):
@@ -283,6 +292,12 @@ def test_the_stop_frames_have_the_mapped_length_and_an_empty_sync(rig: Callable[
         j.gains = PIDGains(kp=1.0)
     r.enabled()
     with can.Bus(interface="virtual", channel=r.channel) as sniffer:
+        for _ in range(2):  # a SYNC's worth of writes: the cycle's RPDOs, 4 bytes each
+            r.t += DT
+            r.drv.read(r.t)
+            r.drv.write_effort([0.0, 0.0, 0.0], r.t)
+        cycle = [m for m in iter(lambda: sniffer.recv(timeout=0.0), None)]
+        assert [m.dlc for m in cycle if 0x201 <= m.arbitration_id <= 0x203] == [4, 4, 4]
         r.drv.safe_stop("EStop")
         frames = []
         while (msg := sniffer.recv(timeout=0.0)) is not None:
@@ -416,10 +431,41 @@ def test_no_master_heartbeat_while_an_activation_waits_with_the_heartbeat_off(
     with can.Bus(interface="virtual", channel=r.channel) as sniffer:
         with r.emu.held(), pytest.raises(DriverError):
             r.drv.activate()
+        r.ticks(10)
         beats = 0
         while (msg := sniffer.recv(timeout=0.0)) is not None:
             beats += msg.arbitration_id == 0x77F
     assert beats == 0
+
+
+def test_the_master_s_heartbeat_every_quarter_of_heartbeat_ms(rig: Callable[..., Rig]) -> None:
+    r = rig(heartbeat_ms=40.0)  # every 10 ms of reads and writes
+    r.drv.configure()
+    r.ticks(4)
+    with can.Bus(interface="virtual", channel=r.channel) as sniffer:
+        r.ticks(40)
+        beats = [
+            m for m in iter(lambda: sniffer.recv(timeout=0.0), None) if m.arbitration_id == 0x77F
+        ]
+    assert len(beats) == 4 and all(bytes(m.data) == bytes([0x05]) for m in beats)
+
+
+@pytest.mark.req("SR-HW-33")
+def test_a_drive_that_leaves_operation_enabled_on_its_own_faults_the_driver(
+    rig: Callable[..., Rig],
+) -> None:
+    from occ.drivers.cia402_sim import QUICK_STOP_ACTIVE
+
+    r = rig()
+    r.enabled()
+    r.ticks(4, r.here())
+    with r.emu.held():
+        r.emu.node(2).state = QUICK_STOP_ACTIVE  # stopped by itself (a local stop input)
+    err = r.until_fault(10, lambda k: r.here())
+    assert (
+        "node 2 (joint pitch): statusword 0x0240: left OPERATION ENABLED, now SWITCH ON "
+        "DISABLED" in str(err)
+    )
 
 
 @pytest.mark.req("SR-HW-32")

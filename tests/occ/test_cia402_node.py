@@ -95,6 +95,11 @@ def test_tpdos_scale_counts_to_units_and_per_mille_to_effort() -> None:
     assert node.second_counts == 777
 
 
+def test_a_fine_drive_below_one_count_per_unit_keeps_its_torque_s_sense() -> None:
+    node = make_node(cpu=0.5, rated_torque=2.0)
+    assert node.take_tpdo1(tpdo1(0x0237, 10, 500), 0.0) == (20.0, 1.0)
+
+
 def test_a_tpdo_is_stamped_at_the_sync_it_answers() -> None:
     node = make_node()
     node.take_tpdo1(tpdo1(0x0237, 0), 1.0)
@@ -340,6 +345,7 @@ def test_the_protocol_s_tables_and_bounds() -> None:
     # the master's frames of every node id, and nothing of node 0 or a node's own
     assert master_sends(0x27F, 5) and master_sends(0x401, 5) and master_sends(0x67F, 5)
     assert master_sends(0x705, 5) and not master_sends(0x77F, 5)
+    assert master_sends(0x305, 5) and master_sends(0x37F, 5)  # RPDO 2 too
     for cob in (0x200, 0x300, 0x600, 0x080 + 5, 0x180 + 5, 0x580 + 5, 0x700 + 5 + 1, 0x680 + 1):
         assert not master_sends(cob, 5), hex(cob)
 
