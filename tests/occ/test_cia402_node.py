@@ -139,6 +139,13 @@ def test_a_node_s_faults_in_their_order_and_at_their_deadlines() -> None:
     assert node.fault(1.0105, True, 0.0, s, 0.0) == (
         "no TPDO for 10.5 ms since a SYNC asked for one (feedback_timeout 10 ms)"
     )
+    node.owed_since = 1.0
+    node.take_heartbeat(bytes([NMT_OPERATIONAL]), 1.1)
+    assert (node.fault(1.1, True, 0.0, s, 0.0) or "").startswith("no TPDO for 100.0 ms")
+    node.take_heartbeat(bytes([NMT_OPERATIONAL]), 1.0)
+    assert (node.fault(1.1, True, 0.0, s, 0.0) or "").startswith(
+        "heartbeat consumer timeout: no heartbeat for 100.0 ms"
+    )
     node.take_tpdo1(tpdo1(0x0237, 0), 1.0105)  # OPERATION ENABLED
     assert node.fault(1.011, True, 0.0, s, 0.0) is None
     node.take_tpdo1(tpdo1(0x0233, 0), 1.011)  # SWITCHED ON: fine unless active
