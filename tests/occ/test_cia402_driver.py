@@ -537,3 +537,47 @@ def test_heartbeats_taken_while_an_activation_waits_are_as_fresh_as_its_read(
     r.emu.settle()
     r.ticks(4, r.here())
     assert r.drv.state is DriverState.ACTIVE
+
+
+def _returns(call: Callable[[], None]) -> bool:
+    """Whether ``call`` returned within 5 s on a thread of its own (a send that would wait for
+    ever does not)."""
+    thread = threading.Thread(target=call, daemon=True)
+    thread.start()
+    thread.join(5.0)
+    return not thread.is_alive()
+
+
+@pytest.mark.parametrize("active", [False, True])
+def test_a_jammed_bus_faults_the_cycle_instead_of_blocking_the_loop(
+    rig: Callable[..., Rig], active: bool
+) -> None:
+    """A receiver whose queue is full (nothing gets through): the SYNC of a read (not ACTIVE)
+    or the RPDOs of a write (ACTIVE) give up at once and the driver faults."""
+    r = rig(heartbeat_ms=0.0)  # no master heartbeat: the cycle's own frames are what is sent
+    if active:
+        r.enabled()
+    else:
+        r.drv.configure()
+    r.ticks(4, r.here() if active else None)
+    failures: list[str] = []
+
+    def cycle() -> None:
+        for _ in range(4):  # two SYNCs (sync_every 2): the first frame fills the jam
+            r.t += DT
+            try:
+                r.drv.read(r.t)
+                if active:
+                    r.drv.write(r.here(), r.t)
+            except DriverError as err:
+                failures.append(str(err))
+                return
+
+    with can.Bus(interface="virtual", channel=r.channel, rx_queue_size=1) as jam:
+        jam_free = _returns(cycle)
+        while jam.recv(timeout=0.0) is not None:  # unblocks a send that would wait for ever
+            pass
+        assert jam_free
+    sent = "send of 0x20" if active else "send of 0x080 failed"  # an RPDO, or the SYNC
+    assert failures and sent in failures[0]
+    assert r.drv.state is DriverState.FAULT
