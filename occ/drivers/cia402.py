@@ -48,9 +48,8 @@ of a wait, looks at the base's ``activation_cancelled``: a cancel (Disable) or a
 (EStop, Fault, the supervisor) asked from another thread switches every node off at once
 (0x00) and ends it; the base then leaves the driver INACTIVE (cancel), or latches FAULT and
 quick-stops every node (safe stop). The frames it took are stamped with the last read's
-``now`` (the driver has no clock of its own): the first read after it counts the ages of the
-heartbeats heard while it waited, and of the TPDOs owed, from its own ``now``; a node not heard
-meanwhile keeps the age of its last heartbeat (a reset likewise).
+``now`` (the driver has no clock of its own): the first read after it counts the heartbeats'
+and owed TPDOs' ages from its own ``now``.
 
 Each tick the base checks the setpoints; every ``sync_every``-th tick ``write`` packs each node's
 RPDO and sends the RPDOs and a SYNC (a synchronous RPDO takes effect at the SYNC, so the ticks
@@ -286,7 +285,8 @@ class CiA402Driver(Driver):
             self._rx[COB_EMCY + nid] = (_K_EMCY, node)
             self._rx[COB_HEARTBEAT + nid] = (_K_HB, node)
             self._rx[COB_SDO_TX + nid] = (_K_SDO, node)
-        #: the COB-IDs it sends itself (RPDO 1, SDO requests, SYNC, NMT, heartbeat): echoes
+        #: the COB-IDs of the frames it sends itself (RPDO 1, SDO requests, SYNC, NMT, its
+        #: heartbeat): what an echo usually is, told by one look-up
         self._own = frozenset(
             [COB_SYNC, COB_NMT, COB_HEARTBEAT + self._master_id]
             + [COB_RPDO[0] + n.node_id for n in self._nodes]
@@ -310,8 +310,8 @@ class CiA402Driver(Driver):
         #: the master's heartbeat while activate waits (wall clock: the loop's is not read)
         self._waiting_hb_at = -math.inf
         #: the frames taken while activate waited are stamped with the last read's ``now``:
-        #: the first read counts their ages from its own (_read; _heard: which were heard)
-        self._restamp, self._heard = False, [0] * n
+        #: the first read after it counts their ages from its own (see _read)
+        self._restamp = False
         self._send_lock = threading.Lock()
         self._counters = dict.fromkeys(COUNTERS, 0)
         #: the identifier of a bus-off error frame not yet acted on (None: none)
@@ -501,8 +501,8 @@ class CiA402Driver(Driver):
             # heard while activate waited on another thread, stamped then with the last
             # read's now: heard now, as far as the ages go (the loop's time moved on)
             self._restamp = False
-            for node, heard in zip(nodes, self._heard, strict=True):
-                if node.heartbeats != heard:  # not one heard before it: that age stands
+            for node in nodes:
+                if node.hb_at == node.hb_at:
                     node.hb_at = now
                 if node.owed_since == node.owed_since:
                     node.owed_since = now
@@ -591,7 +591,6 @@ class CiA402Driver(Driver):
         deadline = time.monotonic() + self._state_timeout
         self._waiting_hb_at = -math.inf
         self._restamp = True  # what it takes is stamped with the last read's now
-        self._heard = [node.heartbeats for node in self._nodes]
         try:
             while True:
                 if self.activation_cancelled:
@@ -659,7 +658,6 @@ class CiA402Driver(Driver):
             return  # never configured: the base configures it again
         self._restamp = True  # it may run off the loop thread: see _activate
         self._drain(self._now)  # what came before the reset was acted on
-        self._heard = [node.heartbeats for node in self._nodes]
         self._bus_off = None
         for node in self._nodes:
             node.emcy_pending = None

@@ -204,7 +204,13 @@ def test_a_target_beyond_32_bits_of_counts_is_sent_as_the_bound(rig: Callable[..
         assert struct.unpack("<Hi", bytes(node.rpdo)) == (0x0F, counts)
 
 
-@pytest.mark.req("SR-HW-34")
+@pytest.mark.xfail(
+    strict=True,
+    reason="a known defect (docs/VERIFICATION.md, the cia402 section): after a reset every node "
+    "heard before counts as fresh at the first read; its fix made the real-daemon e2e fault on "
+    "a TPDO deadline under load and was reverted until that is understood (so it verifies no "
+    "requirement yet: SR-HW-34's row says so)",
+)
 def test_a_node_heard_before_and_silent_since_fails_the_first_read_after_a_reset(
     rig: Callable[..., Rig],
 ) -> None:
