@@ -406,15 +406,24 @@ def _mapping_proxy(d: dict[Any, Any]) -> MappingProxyType[Any, Any]:
     return MappingProxyType(d)
 
 
-def _parts_in(value: object, is_part: Any, depth: int = 0) -> list[object]:
-    """The parts ``value`` holds (itself, or in its containers)."""
+def _leaves(value: object, depth: int = 0) -> Iterator[tuple[object, int]]:
+    """What ``value`` holds that is not a container (itself, or in its containers, nested up
+    to six deep), each with its depth; immutable values left out."""
     if type(value) in _IMMUTABLE or depth > 6:
-        return []
+        return
     if isinstance(value, list | tuple | deque | set | frozenset):
-        return [p for v in value for p in _parts_in(v, is_part, depth + 1)]
-    if isinstance(value, dict):
-        return [p for v in value.values() for p in _parts_in(v, is_part, depth + 1)]
-    return [value] if is_part(value) else []
+        for v in value:
+            yield from _leaves(v, depth + 1)
+    elif isinstance(value, dict):
+        for v in value.values():
+            yield from _leaves(v, depth + 1)
+    else:
+        yield value, depth
+
+
+def _parts_in(value: object, is_part: Any) -> list[object]:
+    """The parts ``value`` holds (itself, or in its containers)."""
+    return [v for v, _ in _leaves(value) if is_part(v)]
 
 
 class _PartPickler(pickle.Pickler):
@@ -442,12 +451,10 @@ class _PartUnpickler(pickle.Unpickler):
         super().__init__(f)
         self._parts = parts
         self._roots = roots
-        self.missing: list[str] = []
 
     def persistent_load(self, pid: Any) -> object:  # noqa: D102 - pickle's hook
         part = self._parts.get(str(pid))
         if part is None:
-            self.missing.append(str(pid))
             return Unsaved(f"part {pid} is not in this robot")
         return part
 
@@ -511,15 +518,9 @@ def restore(
     return problems, built
 
 
-def _unsaved_in(value: Any, depth: int = 0) -> list[str]:
+def _unsaved_in(value: Any) -> list[str]:
     """What could not be loaded inside a container value (a part this robot has not)."""
-    if depth > 6 or type(value) in _IMMUTABLE:
-        return []
-    if isinstance(value, list | tuple | deque | set | frozenset):
-        return [w for v in value for w in _unsaved_in(v, depth + 1)]
-    if isinstance(value, dict):
-        return [w for v in value.values() for w in _unsaved_in(v, depth + 1)]
-    return [value.why] if isinstance(value, Unsaved) and depth else []
+    return [v.why for v, depth in _leaves(value) if depth and isinstance(v, Unsaved)]
 
 
 def _set(checkpointer: Checkpointer, path: str, value: Any, problems: list[str]) -> None:

@@ -476,11 +476,6 @@ def _first_difference(
     return columns[c], float(recorded[c]), float(replayed[c])
 
 
-def bit_equal(a: float, b: float) -> bool:
-    """Equal as float64 bit patterns (NaN equals the same NaN)."""
-    return np.float64(a).view(np.uint64) == np.float64(b).view(np.uint64)
-
-
 #: exit status of a replay that diverged from the recorded run
 DIVERGED = 4
 

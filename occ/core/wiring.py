@@ -270,16 +270,9 @@ def build_black_box(robot: Assembling, controllers: Sequence[Controller]) -> Bla
     real = isinstance(robot.clock, RealClock)
     write = write_dump_forked if real and hasattr(os, "fork") else write_dump
     writer = DumpWriter(
-        lambda req: write(box, req, ctx),
-        f"occ-{robot.name}-blackbox",
-        # the thread forks and waits (on the real clock the child writes: dump.py); never
-        # SCHED_FIFO, which would make the child real-time too, and a second of busy
-        # real-time work exhausts the kernel's real-time budget (sched_rt_runtime_us),
-        # throttling every real-time thread of the CPU, the loop's too
-        fifo_priority=None,
-        inline=not isinstance(robot.clock, RealClock),
+        lambda req: write(box, req, ctx), f"occ-{robot.name}-blackbox", inline=not real
     )
-    drives = [(d, idx) for d, idx in robot.hardware.pairs]
+    drives = robot.hardware.pairs
     box.bind(
         robot.data, robot.joints, robot.collision, writer, cfg.dir, drives, robot.streams, world
     )

@@ -74,7 +74,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import queue
 import threading
 import time
@@ -679,22 +678,20 @@ class DumpWriter:
     """The thread that writes dumps (``write(request)`` does the work: occ/recording/dump.py);
     a bounded queue, never blocking the loop. ``inline``: in simulated time, each dump is
     written when it is submitted, in the tick that closes its window (exact, repeatable runs,
-    as the collision guard checks inline there); never on the real clock."""
+    as the collision guard checks inline there); never on the real clock. The thread runs at
+    normal priority, never SCHED_FIFO: on the real clock it forks a child that writes
+    (occ/recording/dump.py), which would inherit the policy, and a second of busy real-time
+    work exhausts the kernel's real-time budget (sched_rt_runtime_us), throttling every
+    real-time thread of the CPU, the loop's too."""
 
     def __init__(
-        self,
-        write: Callable[[DumpRequest], object],
-        name: str,
-        fifo_priority: int | None = None,
-        *,
-        inline: bool = False,
+        self, write: Callable[[DumpRequest], object], name: str, *, inline: bool = False
     ) -> None:
         self._write = write
         self.inline = inline
         self._q: queue.Queue[DumpRequest | None] = queue.Queue(QUEUE_DEPTH)
         self._thread = threading.Thread(target=self._main, name=name, daemon=True)
         self._started = False
-        self.fifo_priority = fifo_priority
         self._idle = threading.Condition()
         self._outstanding = 0
         self.written = 0
@@ -743,13 +740,6 @@ class DumpWriter:
             self._thread.join(1.0)
 
     def _main(self) -> None:
-        if self.fifo_priority is not None:
-            try:
-                os.sched_setscheduler(
-                    threading.get_native_id(), os.SCHED_FIFO, os.sched_param(self.fifo_priority)
-                )
-            except (OSError, AttributeError):
-                pass  # normal priority: it hands the lock back every chunk anyway
         while True:
             req = self._q.get()
             if req is None:
