@@ -22,7 +22,7 @@ from __future__ import annotations
 import ast
 import re
 import sys
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -114,17 +114,26 @@ def marked_tests(tests: Path | None = None, root: Path = ROOT) -> dict[str, set[
     return {name: ids for name, ids in found.items() if ids}
 
 
+def _rows(text: str, pattern: re.Pattern[str], doc: str) -> Iterator[tuple[str, str]]:
+    """(ID, the rest of the row) of each table row of ``doc`` that ``pattern`` matches; an ID
+    listed twice is a ValueError naming it."""
+    seen: set[str] = set()
+    for line in text.splitlines():
+        m = pattern.match(line)
+        if m is None:
+            continue
+        rid, rest = m.groups()
+        if rid in seen:
+            raise ValueError(f"{doc}: {rid} is listed twice")
+        seen.add(rid)
+        yield rid, rest
+
+
 def requirements(text: str | None = None) -> Requirements:
     """``{ID: (pending, {tests listed})}`` from the rows of docs/SAFETY.md."""
     text = SAFETY.read_text(encoding="utf-8") if text is None else text
     out: Requirements = {}
-    for line in text.splitlines():
-        m = ROW.match(line)
-        if m is None:
-            continue
-        rid, rest = m.groups()
-        if rid in out:
-            raise ValueError(f"docs/SAFETY.md: {rid} is listed twice")
+    for rid, rest in _rows(text, ROW, "docs/SAFETY.md"):
         cells = rest.split("|")
         tests = {f"{f}::{t}" for f, t in TEST_REF.findall(cells[-1])}
         out[rid] = ("pending" in cells[-1].lower(), tests)
@@ -173,13 +182,7 @@ def hazards(text: str | None = None) -> dict[str, Hazard]:
     """The rows of docs/HAZARDS.md by ID; a row of the wrong shape is a ValueError naming it."""
     text = HAZARDS.read_text(encoding="utf-8") if text is None else text
     out: dict[str, Hazard] = {}
-    for line in text.splitlines():
-        m = HAZ_ROW.match(line)
-        if m is None:
-            continue
-        hid, rest = m.groups()
-        if hid in out:
-            raise ValueError(f"docs/HAZARDS.md: {hid} is listed twice")
+    for hid, rest in _rows(text, HAZ_ROW, "docs/HAZARDS.md"):
         cells = [c.strip() for c in rest.split("|")]
         if len(cells) != len(HAZ_COLUMNS):
             raise ValueError(
