@@ -298,12 +298,23 @@ def test_a_node_after_one_killed_takes_only_its_own_replies(netns: Netns, tmp_pa
 
 
 def ready(rig: Rig) -> None:
-    """The node's command publisher and reply subscription matched, the state in."""
+    """The node's command publisher and reply subscription matched, the state in, and the
+    command path proven by an answer: rclpy's subscription count comes from the ROS graph,
+    which can know the bridge's reader before the DDS writer has matched it, and a volatile
+    command published in between is lost (a CI run lost the first Enable so): ask GetState
+    until one comes back, as a ROS 2 client would."""
     assert wait_until(lambda: rig.ask("snapshot")["states"], timeout=5.0), "no state"
     assert wait_until(
         lambda: min(rig.ask("matched")[k] for k in ("matched", "reply_publishers")) >= 1,
         timeout=5.0,
     )
+
+    def answered() -> bool:
+        rig.ask("publish", data="GetState")
+        return bool(wait_until(lambda: rig.ask("snapshot")["replies"], timeout=0.5))
+
+    assert wait_until(answered, timeout=10.0), "no reply to GetState"
+    time.sleep(0.3)  # a second GetState's reply may still be on its way
 
 
 def test_tf_frames_and_a_late_cyclone_participant(netns: Netns, tmp_path: Path) -> None:
