@@ -1,30 +1,43 @@
 """Which mutation scores are older than their code: for every module of scripts/mutate, the
-newest row of docs/VERIFICATION.md's Scores table that names one of its source files, against
-the last commit that changed each file (issue 29: "re-run after the last change to each
-module").
+newest row of docs/VERIFICATION.md's Scores table that names one of its source files (under its
+name now or any name git followed it by), against the code as it was at that row (issue 29:
+"re-run after the last change to each module"; issue 42: "the staleness check clean").
 
     python scripts/mutants_stale.py          # every module, stale ones marked; exit 1 if any
+    python scripts/mutants_stale.py -v       # and every changed unit of each stale module
 
 A row's time is the latest HH:MM in its date cell (the end of its last run), on the cell's
-date. Each source file of a module must have a row whose first cell names it, newer than the
-file's last change; a file without one makes the module stale. Modules that score parts of one file
-(`interfaces` and `roles`, `teleop` and `teleop6`) share its rows here, and a section of
-docs/VERIFICATION.md may say why a function-scoped module needed no re-run (its functions did
-not change): this file-level check lists, it does not judge.
+date. mutmut makes its mutants from the code of functions and methods, and their verdicts
+depend on that code and the module-level and class-level statements around it; it makes none
+from docstrings, comments or import lines. So a module is judged by its *units*, each a
+function, a method (``Class.method``) or another top-level or class-level statement, compared
+as Python's AST with docstrings and imports taken out: a module is fresh when every unit of its
+files, as they are now, existed word for word (same qualified name, same code) somewhere in the
+project at the commit its row was made on; a move to another file or package (the rooms of
+issue 39, a module split into a package), a reworded docstring or a changed import keeps it
+fresh, any changed line of code makes it stale and is named. A file with no row under any of
+its names makes its module stale. Modules that score parts of one file (`interfaces` and
+`roles`, `teleop` and `teleop6`) share its rows here, and a section of docs/VERIFICATION.md
+may say why a function-scoped module needed no re-run (its changed units are outside the
+scope): this check lists, it does not judge.
 """
 
 from __future__ import annotations
 
+import ast
 import re
 import subprocess
 import sys
-from datetime import UTC, datetime
+from datetime import datetime
+from functools import cache
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 ENTRY = re.compile(r'^\s*(?:\[(\w+)\]|MODULES\[(\w+)\])="([^"|]+)\|')
 DATE = re.compile(r"(\d{4}-\d{2}-\d{2})")
 TIME = re.compile(r"\b(\d{2}):(\d)(\d|x)(?::\d{2})?\b")  # "10:5x": the end of that ten minutes
+#: where the project's code lives (a unit may have moved anywhere among them)
+CODE_DIRS = ("occ", "igtl", "occ_ros2", "occ_console", "occ_testkit")
 
 
 def modules() -> dict[str, list[str]]:
@@ -60,32 +73,140 @@ def rows() -> list[tuple[str, datetime]]:
     return found
 
 
-def last_change(path: str) -> datetime:
-    stamp = subprocess.run(
-        ["git", "log", "-1", "--format=%ct", "--", path],
+def git(*args: str) -> str:
+    return subprocess.run(
+        ["git", *args], cwd=ROOT, capture_output=True, text=True, check=True
+    ).stdout
+
+
+def names(path: str) -> set[str]:
+    """Every path the file had, as git follows its renames (the path now included)."""
+    out = git("log", "--follow", "--name-only", "--format=", "--", path)
+    return {path} | {line for line in out.splitlines() if line.strip()}
+
+
+def _strip(body: list[ast.stmt]) -> list[ast.stmt]:
+    """A body without its docstring and its import lines (a docstring alone leaves ``pass``)."""
+    if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
+        if isinstance(body[0].value.value, str):
+            body = body[1:]
+    return [s for s in body if not isinstance(s, ast.Import | ast.ImportFrom)] or [ast.Pass()]
+
+
+class _Normal(ast.NodeTransformer):
+    """Docstrings out of every function and class, import lines out of every block (an
+    ``if TYPE_CHECKING:`` of imports alone becomes ``pass``)."""
+
+    def generic_visit(self, node: ast.AST) -> ast.AST:
+        super().generic_visit(node)
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+            node.body = _strip(node.body)
+        else:
+            for name in ("body", "orelse", "finalbody"):
+                block = getattr(node, name, None)
+                if isinstance(block, list) and block and isinstance(block[0], ast.stmt):
+                    kept = [s for s in block if not isinstance(s, ast.Import | ast.ImportFrom)]
+                    setattr(node, name, kept or [ast.Pass()])
+        return node
+
+
+def _empty(stmt: ast.stmt) -> bool:
+    """``pass``, or an ``if`` that holds nothing else (imports taken out)."""
+    if isinstance(stmt, ast.If):
+        return all(_empty(s) for s in [*stmt.body, *stmt.orelse])
+    return isinstance(stmt, ast.Pass)
+
+
+def units(source: str) -> set[tuple[str, str]]:
+    """(qualified name, code) of each unit of a module's source (module docstring); an
+    unparsable source has none."""
+    try:
+        tree = ast.parse(source)
+    except SyntaxError:
+        return set()
+    out: set[tuple[str, str]] = set()
+
+    def add(name: str, node: ast.AST) -> None:
+        node = _Normal().visit(node)
+        out.add((name, ast.dump(node, include_attributes=False)))
+
+    for stmt in _strip(tree.body):
+        if isinstance(stmt, ast.ClassDef):
+            for inner in _strip(stmt.body):
+                if isinstance(inner, ast.FunctionDef | ast.AsyncFunctionDef):
+                    add(f"{stmt.name}.{inner.name}", inner)
+                else:
+                    add(stmt.name, inner)
+            head = ast.ClassDef(
+                name=stmt.name, bases=stmt.bases, keywords=stmt.keywords, body=[ast.Pass()],
+                decorator_list=stmt.decorator_list, type_params=[],
+            )  # fmt: skip
+            add(stmt.name, head)
+        elif isinstance(stmt, ast.FunctionDef | ast.AsyncFunctionDef):
+            add(stmt.name, stmt)
+        elif not _empty(_Normal().visit(stmt)):
+            add("<module>", stmt)
+    return out
+
+
+@cache
+def commit_at(when: datetime) -> str:
+    return git("rev-list", "-1", f"--before={when.isoformat()}", "HEAD").strip()
+
+
+@cache
+def project_units(commit: str) -> frozenset[tuple[str, str]]:
+    """Every unit of the project's code at ``commit``."""
+    listing = git("ls-tree", "-r", "--name-only", commit, "--", *CODE_DIRS).splitlines()
+    paths = [p for p in listing if p.endswith(".py")]
+    blobs = subprocess.run(
+        ["git", "cat-file", "--batch"],
         cwd=ROOT,
+        input="".join(f"{commit}:{p}\n" for p in paths).encode(),
         capture_output=True,
-        text=True,
         check=True,
-    ).stdout.strip()
-    return datetime.fromtimestamp(int(stamp), UTC)
+    ).stdout
+    found: set[tuple[str, str]] = set()
+    at = 0
+    while at < len(blobs):
+        end = blobs.index(b"\n", at)
+        size = int(blobs[at:end].split()[2])
+        found |= units(blobs[end + 1 : end + 1 + size].decode("utf-8", "replace"))
+        at = end + 1 + size + 1
+    return frozenset(found)
 
 
-def main() -> int:
+def changed_units(path: str, row: datetime) -> list[str]:
+    """The units of ``path`` now that the project did not have at ``row``'s commit."""
+    old = project_units(commit_at(row))
+    now = units((ROOT / path).read_text(encoding="utf-8"))
+    return sorted({name for name, code in now if (name, code) not in old})
+
+
+def main(argv: list[str]) -> int:
+    verbose = "-v" in argv
     table = rows()
     stale = 0
     for name, files in sorted(modules().items()):
         late = []
-        newest: datetime | None = None
+        own: dict[str, datetime | None] = {}
         for f in files:
-            scored = [when for cell, when in table if f"`{f}`" in cell]
-            row = max(scored) if scored else None
-            if row is not None and (newest is None or row > newest):
-                newest = row
-            changed = last_change(f)
-            if row is None or changed > row:
-                seen = row.strftime("%Y-%m-%d %H:%M") if row else "no row"
-                late.append(f"{f} changed {changed:%Y-%m-%d %H:%M} (its newest row: {seen})")
+            called = names(f)
+            scored = [when for cell, when in table if any(f"`{n}`" in cell for n in called)]
+            own[f] = max(scored) if scored else None
+        known = [w for w in own.values() if w is not None]
+        newest = max(known) if known else None
+        for f in files:
+            # a file with no row of its own (split out of a scored file, or new): judged
+            # against the module's newest row, every unit it has must have existed then
+            row = own[f] or newest
+            if row is None:
+                late.append(f"{f}: no row")
+                continue
+            changed = changed_units(f, row)
+            if changed:
+                shown = ", ".join(changed) if verbose else f"{len(changed)} units"
+                late.append(f"{f} changed since {row:%Y-%m-%d %H:%M}: {shown}")
         stale += bool(late)
         shown = newest.strftime("%Y-%m-%d %H:%M") if newest else "no row"
         print(f"{'STALE' if late else 'ok':5} {name:12} newest row {shown}", *late, sep="; ")
@@ -93,4 +214,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main(sys.argv[1:]))

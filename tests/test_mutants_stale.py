@@ -1,0 +1,139 @@
+"""scripts/mutants_stale.py judges a mutation score by the code it was made from: a reworded
+docstring, a changed import or a move to another file keeps a score; a changed line of code,
+a changed constant beside the functions or a new function makes its module stale and is named.
+Checked on the units of sources (no repository) and on a small git repository of its own."""
+
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load(root: Path | None = None):  # type: ignore[no-untyped-def]
+    spec = importlib.util.spec_from_file_location(
+        "mutants_stale", ROOT / "scripts" / "mutants_stale.py"
+    )
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["mutants_stale"] = mod
+    spec.loader.exec_module(mod)
+    if root is not None:
+        mod.ROOT = root
+    return mod
+
+
+BASE = '''"""A module."""
+from __future__ import annotations
+
+import math
+
+LIMIT = 3
+
+
+class Judge:
+    """Judges."""
+
+    bound = 2
+
+    def check(self, x: float) -> bool:
+        """True when in bounds."""
+        return abs(x) <= self.bound * LIMIT
+
+
+def scale(x: float) -> float:
+    return math.sqrt(x) * 2
+'''
+
+
+def test_units_ignore_docstrings_imports_and_a_type_checking_block() -> None:
+    m = load()
+    reworded = BASE.replace('"""True when in bounds."""', '"""Whether it is in bounds."""')
+    reworded = reworded.replace(
+        "import math", "import math\nimport os\nif TYPE_CHECKING:\n    import x"
+    )
+    assert m.units(reworded) == m.units(BASE)
+
+
+@pytest.mark.parametrize(
+    ("edit", "changed"),
+    [
+        (("<= self.bound", "< self.bound"), {"Judge.check"}),
+        (("LIMIT = 3", "LIMIT = 4"), {"<module>"}),
+        (("bound = 2", "bound = 1"), {"Judge"}),
+        (("class Judge:", "class Judge(object):"), {"Judge"}),
+        (("* 2\n", "* 3\n"), {"scale"}),
+        (("return math.sqrt", "y = 1\n    return math.sqrt"), {"scale"}),
+    ],
+)
+def test_a_changed_line_of_code_changes_its_unit_alone(
+    edit: tuple[str, str], changed: set[str]
+) -> None:
+    m = load()
+    old, new = m.units(BASE), m.units(BASE.replace(*edit))
+    assert {name for name, code in new - old} == changed
+
+
+def git(cwd: Path, *args: str, when: str = "") -> None:
+    env = {"GIT_AUTHOR_DATE": when, "GIT_COMMITTER_DATE": when} if when else {}
+    subprocess.run(
+        ["git", "-c", "user.name=t", "-c", "user.email=t@t", *args],
+        cwd=cwd, check=True, capture_output=True,
+        env={**__import__("os").environ, **env},
+    )  # fmt: skip
+
+
+def repo(tmp_path: Path, after: dict[str, str]) -> Path:
+    """A repository: occ/judge.py scored at 10:00 (a row of 10:05), then ``after`` (path:
+    source, "" to remove) committed at 11:00."""
+    root = tmp_path / "r"
+    (root / "occ").mkdir(parents=True)
+    (root / "scripts").mkdir()
+    (root / "docs").mkdir()
+    (root / "occ" / "judge.py").write_text(BASE)
+    git(root, "init", "-q")
+    git(root, "add", ".")
+    git(root, "commit", "-qm", "one", when="2026-01-01T10:00:00+00:00")
+    for path, text in after.items():
+        p = root / path
+        if text:
+            p.parent.mkdir(parents=True, exist_ok=True)
+            p.write_text(text)
+        else:
+            p.unlink()
+    git(root, "add", "-A")
+    git(root, "commit", "-qm", "two", when="2026-01-01T11:00:00+00:00")
+    target = next(p for p in after if after[p]) if any(after.values()) else "occ/judge.py"
+    (root / "scripts" / "mutate").write_text(f'  [judge]="{target}|tests/x.py"\n')
+    (root / "docs" / "VERIFICATION.md").write_text(
+        "## Scores\n\n| module | date | t |\n|---|---|---|\n"
+        "| `occ/judge.py` | 2026-01-01 10:05 | x | 1 |\n\n## Next\n"
+    )
+    return root
+
+
+def test_a_move_with_its_docstrings_reworded_keeps_the_score(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    moved = BASE.replace('"""Judges."""', '"""Judges, in a room now."""')
+    m = load(repo(tmp_path, {"occ/judge.py": "", "occ/core/judge.py": moved}))
+    assert m.main([]) == 0
+    assert capsys.readouterr().out.startswith("ok    judge")
+
+
+def test_a_changed_comparison_after_the_row_is_named(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    m = load(repo(tmp_path, {"occ/judge.py": BASE.replace("<= self.bound", "< self.bound")}))
+    assert m.main(["-v"]) == 1
+    out = capsys.readouterr().out
+    assert out.startswith("STALE judge") and "Judge.check" in out and "scale" not in out
+
+
+def test_a_file_with_no_row_under_any_name_is_stale(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    root = repo(tmp_path, {"occ/other.py": BASE})
+    (root / "docs" / "VERIFICATION.md").write_text("## Scores\n\n| module | date |\n\n## Next\n")
+    m = load(root)
+    assert m.main([]) == 1
+    assert "no row" in capsys.readouterr().out
