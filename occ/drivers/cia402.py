@@ -309,9 +309,7 @@ class CiA402Driver(Driver):
         self._master_hb_at = math.nan
         #: the master's heartbeat while activate waits (wall clock: the loop's is not read)
         self._waiting_hb_at = -math.inf
-        #: the frames taken while activate waited are stamped with the last read's ``now``:
-        #: the first read after it counts their ages from its own (see _read)
-        self._restamp = False
+        self._restamp = False  # a wait off the loop thread marked (_mark), not yet read
         self._send_lock = threading.Lock()
         self._counters = dict.fromkeys(COUNTERS, 0)
         #: the identifier of a bus-off error frame not yet acted on (None: none)
@@ -340,7 +338,7 @@ class CiA402Driver(Driver):
         self._counters["echoes"] += echoes
         self._bus = bus
         self._network = network
-        self._tick = 0
+        self._tick, self._restamp = 0, False  # counts start again: no marks stand
         self._t0 = math.nan
         self._master_hb_at = math.nan
         self._pos = [math.nan] * len(self.joints)
@@ -498,14 +496,9 @@ class CiA402Driver(Driver):
         self._now = now
         nodes = self._nodes
         if self._restamp:
-            # heard while activate waited on another thread, stamped then with the last
-            # read's now: heard now, as far as the ages go (the loop's time moved on)
-            self._restamp = False
+            self._restamp = False  # after a wait off the loop thread (_mark)
             for node in nodes:
-                if node.hb_at == node.hb_at:
-                    node.hb_at = now
-                if node.owed_since == node.owed_since:
-                    node.owed_since = now
+                node.restamp(now)
         shown = [n.sampled_at for n in nodes]
         fresh = [n.tpdo1 for n in nodes]
         self._drain(now)
@@ -590,7 +583,7 @@ class CiA402Driver(Driver):
             raise DriverError(f"{self._where}: {', '.join(unknown)}: no position reported yet")
         deadline = time.monotonic() + self._state_timeout
         self._waiting_hb_at = -math.inf
-        self._restamp = True  # what it takes is stamped with the last read's now
+        self._mark()
         try:
             while True:
                 if self.activation_cancelled:
@@ -622,6 +615,15 @@ class CiA402Driver(Driver):
         except DriverError as err:
             self._stop_all(CW_DISABLE_VOLTAGE)
             raise DriverError(f"{err}; every node switched off again") from err
+
+    def _mark(self) -> None:
+        """A wait off the loop thread begins: what came before taken, each node's counts marked
+        (a second wait before any read keeps the first's); the first read restamps (_read)."""
+        self._drain(self._now)
+        if not self._restamp:
+            self._restamp = True
+            for node in self._nodes:
+                node.mark()
 
     def _stop_all(self, cw: int) -> None:
         """``cw`` (quick stop or disable voltage) to every node at once, with a SYNC."""
@@ -656,8 +658,7 @@ class CiA402Driver(Driver):
     def _reset(self) -> None:
         if self._bus is None:
             return  # never configured: the base configures it again
-        self._restamp = True  # it may run off the loop thread: see _activate
-        self._drain(self._now)  # what came before the reset was acted on
+        self._mark()  # it may run off the loop thread, as activate
         self._bus_off = None
         for node in self._nodes:
             node.emcy_pending = None
