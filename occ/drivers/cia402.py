@@ -48,8 +48,11 @@ of a wait, looks at the base's ``activation_cancelled``: a cancel (Disable) or a
 (EStop, Fault, the supervisor) asked from another thread switches every node off at once
 (0x00) and ends it; the base then leaves the driver INACTIVE (cancel), or latches FAULT and
 quick-stops every node (safe stop). The frames it took are stamped with the last read's
-``now`` (the driver has no clock of its own): the first read after it counts the heartbeats'
-and owed TPDOs' ages from its own ``now``.
+``now`` (the driver has no clock of its own). The first read after it counts from its own
+``now`` the ages of what was heard while it waited: the heartbeat of a node heard meanwhile,
+and the TPDO owed for one of its SYNCs by a node that answered one of them. A node not heard
+meanwhile keeps its ages (each node's counts are marked when the wait begins, after what came
+before it is taken; a second wait before any read keeps the first one's marks).
 
 Each tick the base checks the setpoints; every ``sync_every``-th tick ``write`` packs each node's
 RPDO and sends the RPDOs and a SYNC (a synchronous RPDO takes effect at the SYNC, so the ticks
@@ -64,8 +67,8 @@ SYNC; to a node whose heartbeat says it left OPERATIONAL, where PDOs are not tak
 expedited SDO download of 0x6040 that is sent and not waited for). ``reset``: the fault reset
 (controlword bit 7, a rising edge), NMT start for a node that left OPERATIONAL; it succeeds only
 when every node answers the reset's SYNC with a TPDO whose statusword is out of FAULT, and
-raises naming the nodes that did not (a persisting cause). The heartbeat's and TPDO's ages are
-not restarted by a reset: the first read after it judges a node that is still silent.
+raises naming the nodes that did not (a persisting cause). A reset waits as activate does, and
+the first read after it likewise judges a node silent since before it on its real age.
 
 Faults (each raises from ``read``, which latches FAULT naming the driver, the node, the joint
 and the cause, and quick-stops every node in that call)
