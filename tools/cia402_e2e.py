@@ -1,7 +1,8 @@
 """The OCC slave on CiA 402 drives, end to end: ``occd configs/slave-cia402.yaml`` against the
 CiA 402 drive emulator in another process, on python-can's ``udp_multicast`` bus.
 
-1. start ``python -m occ.drivers.cia402_sim`` (nodes 1, 2, 3 on 239.74.163.2) and
+1. start ``python -m occ.drivers.cia402_sim`` (nodes 1, 2, 3 on 239.74.163.2, SCHED_FIFO 60
+   where permitted, as the daemons' loops) and
    ``occd configs/slave-cia402.yaml``, which configures the three nodes over SDO;
 2. start ``occd configs/master.yaml --start running`` (its simulated hand streams the OCC
    paper's motion to the slave) and, on the slave's operator port (18947), Enable and Run;
@@ -45,6 +46,11 @@ from loopback import stop_processes, wait_port  # noqa: E402
 SLAVE = ROOT / "configs" / "slave-cia402.yaml"
 MASTER = ROOT / "configs" / "master.yaml"
 OPERATOR, SLICER = 18947, 18944
+#: the emulated drives' SCHED_FIFO priority (where permitted), the daemons' loops' own (their
+#: configs' realtime): drives are hardware of their own, and a drive emulator starved by the
+#: host's other work answered its SYNCs 20-90 ms late under load, which the slave rightly
+#: faulted (docs/VERIFICATION.md, the cia402 section)
+EMULATOR_FIFO = 60
 
 
 def cpu_seconds(pid: int) -> float:
@@ -78,7 +84,8 @@ def run(
             emulator = start(
                 "emulator",
                 [sys.executable, "-m", "occ.drivers.cia402_sim", "--interface",
-                 "udp_multicast", "--channel", "239.74.163.2", "--nodes", "1,2,3"],
+                 "udp_multicast", "--channel", "239.74.163.2", "--nodes", "1,2,3",
+                 "--fifo-priority", str(EMULATOR_FIFO)],
                 stdin=subprocess.PIPE,
             )  # fmt: skip
             end = time.monotonic() + 30.0

@@ -48,8 +48,11 @@ of a wait, looks at the base's ``activation_cancelled``: a cancel (Disable) or a
 (EStop, Fault, the supervisor) asked from another thread switches every node off at once
 (0x00) and ends it; the base then leaves the driver INACTIVE (cancel), or latches FAULT and
 quick-stops every node (safe stop). The frames it took are stamped with the last read's
-``now`` (the driver has no clock of its own): the first read after it counts the heartbeats'
-and owed TPDOs' ages from its own ``now``.
+``now`` (the driver has no clock of its own). The first read after it counts from its own
+``now`` the ages of what was heard while it waited: the heartbeat of a node heard meanwhile,
+and the TPDO owed for one of its SYNCs by a node that answered one of them. A node not heard
+meanwhile keeps its ages (each node's counts are marked when the wait begins, after what came
+before it is taken; a second wait before any read keeps the first one's marks).
 
 Each tick the base checks the setpoints; every ``sync_every``-th tick ``write`` packs each node's
 RPDO and sends the RPDOs and a SYNC (a synchronous RPDO takes effect at the SYNC, so the ticks
@@ -64,8 +67,8 @@ SYNC; to a node whose heartbeat says it left OPERATIONAL, where PDOs are not tak
 expedited SDO download of 0x6040 that is sent and not waited for). ``reset``: the fault reset
 (controlword bit 7, a rising edge), NMT start for a node that left OPERATIONAL; it succeeds only
 when every node answers the reset's SYNC with a TPDO whose statusword is out of FAULT, and
-raises naming the nodes that did not (a persisting cause). The heartbeat's and TPDO's ages are
-not restarted by a reset: the first read after it judges a node that is still silent.
+raises naming the nodes that did not (a persisting cause). A reset waits as activate does, and
+the first read after it likewise judges a node silent since before it on its real age.
 
 Faults (each raises from ``read``, which latches FAULT naming the driver, the node, the joint
 and the cause, and quick-stops every node in that call)
@@ -309,9 +312,7 @@ class CiA402Driver(Driver):
         self._master_hb_at = math.nan
         #: the master's heartbeat while activate waits (wall clock: the loop's is not read)
         self._waiting_hb_at = -math.inf
-        #: the frames taken while activate waited are stamped with the last read's ``now``:
-        #: the first read after it counts their ages from its own (see _read)
-        self._restamp = False
+        self._restamp = False  # a wait off the loop thread marked (_mark), not yet read
         self._send_lock = threading.Lock()
         self._counters = dict.fromkeys(COUNTERS, 0)
         #: the identifier of a bus-off error frame not yet acted on (None: none)
@@ -340,7 +341,7 @@ class CiA402Driver(Driver):
         self._counters["echoes"] += echoes
         self._bus = bus
         self._network = network
-        self._tick = 0
+        self._tick, self._restamp = 0, False  # counts start again: no marks stand
         self._t0 = math.nan
         self._master_hb_at = math.nan
         self._pos = [math.nan] * len(self.joints)
@@ -498,14 +499,9 @@ class CiA402Driver(Driver):
         self._now = now
         nodes = self._nodes
         if self._restamp:
-            # heard while activate waited on another thread, stamped then with the last
-            # read's now: heard now, as far as the ages go (the loop's time moved on)
-            self._restamp = False
+            self._restamp = False  # after a wait off the loop thread (_mark)
             for node in nodes:
-                if node.hb_at == node.hb_at:
-                    node.hb_at = now
-                if node.owed_since == node.owed_since:
-                    node.owed_since = now
+                node.restamp(now)
         shown = [n.sampled_at for n in nodes]
         fresh = [n.tpdo1 for n in nodes]
         self._drain(now)
@@ -590,7 +586,7 @@ class CiA402Driver(Driver):
             raise DriverError(f"{self._where}: {', '.join(unknown)}: no position reported yet")
         deadline = time.monotonic() + self._state_timeout
         self._waiting_hb_at = -math.inf
-        self._restamp = True  # what it takes is stamped with the last read's now
+        self._mark()
         try:
             while True:
                 if self.activation_cancelled:
@@ -622,6 +618,15 @@ class CiA402Driver(Driver):
         except DriverError as err:
             self._stop_all(CW_DISABLE_VOLTAGE)
             raise DriverError(f"{err}; every node switched off again") from err
+
+    def _mark(self) -> None:
+        """A wait off the loop thread begins: what came before taken, each node's counts marked
+        (a second wait before any read keeps the first's); the first read restamps (_read)."""
+        self._drain(self._now)
+        if not self._restamp:
+            self._restamp = True
+            for node in self._nodes:
+                node.mark()
 
     def _stop_all(self, cw: int) -> None:
         """``cw`` (quick stop or disable voltage) to every node at once, with a SYNC."""
@@ -656,8 +661,7 @@ class CiA402Driver(Driver):
     def _reset(self) -> None:
         if self._bus is None:
             return  # never configured: the base configures it again
-        self._restamp = True  # it may run off the loop thread: see _activate
-        self._drain(self._now)  # what came before the reset was acted on
+        self._mark()  # it may run off the loop thread, as activate
         self._bus_off = None
         for node in self._nodes:
             node.emcy_pending = None

@@ -133,7 +133,7 @@ class Node:
         "index", "node_id", "joint", "cpu", "torque_scale", "eds", "od", "second",
         "statusword", "nmt", "hb_at", "tpdo_at", "emcy_pending", "last_emcy", "counts",
         "second_counts", "second_since", "tpdo1", "tpdo2", "emcys", "heartbeats",
-        "target", "rpdo", "rpdo_msg", "cw", "owed_since", "sampled_at",
+        "target", "rpdo", "rpdo_msg", "cw", "owed_since", "sampled_at", "marks",
     )  # fmt: skip
 
     def __init__(self, index: int, joint: Joint, spec: Mapping[str, Any], effort: bool) -> None:
@@ -171,6 +171,8 @@ class Node:
         self.second_counts: int | None = None
         self.second_since = math.nan
         self.tpdo1 = self.tpdo2 = self.emcys = self.heartbeats = 0
+        #: its heartbeat and TPDO 1 counts when a wait off the loop thread began (mark)
+        self.marks = (0, 0)
 
     @property
     def where(self) -> str:
@@ -229,6 +231,21 @@ class Node:
         self.hb_at = now
         self.heartbeats += 1
         return True
+
+    def mark(self) -> None:
+        """An activation or a fault reset begins to wait off the loop thread: what it hears
+        from here on is stamped with the last read's ``now`` (occ/drivers/cia402.py)."""
+        self.marks = (self.heartbeats, self.tpdo1)
+
+    def restamp(self, now: float) -> None:
+        """The first read after that wait, at ``now``: a heartbeat heard while it waited was
+        heard now, as far as its age goes, and a TPDO owed for one of its SYNCs is owed since
+        now, if the node answered one then; a node not heard meanwhile keeps its ages."""
+        beats, tpdos = self.marks
+        if self.heartbeats != beats:
+            self.hb_at = now
+        if self.tpdo1 != tpdos and self.owed_since == self.owed_since:
+            self.owed_since = now
 
     def second_check(self, first: float, now: float) -> str | None:
         """The second position sensor against the first (``first``, the joint's reading): the

@@ -62,6 +62,7 @@ import argparse
 import contextlib
 import logging
 import math
+import os
 import struct
 import sys
 import threading
@@ -903,6 +904,16 @@ class DriveEmulator:
         return f"ok: {line.strip()}"
 
 
+def _fifo(priority: int) -> str:
+    """SCHED_FIFO ``priority`` for this thread and the threads it starts after (where
+    permitted): what the emulated drives' thread runs with, said in one line."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (OSError, AttributeError) as err:  # not permitted, or not Linux
+        return f"cia402 emulator: SCHED_FIFO {priority} refused ({err}): SCHED_OTHER"
+    return f"cia402 emulator: SCHED_FIFO {priority}"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m occ.drivers.cia402_sim", description="CiA 402 drive emulator"
@@ -919,8 +930,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=[],
         help="a fault command run at start (as typed on standard input), e.g. 'emcy 2 0x2310'",
     )
+    parser.add_argument(
+        "--fifo-priority",
+        type=int,
+        default=None,
+        help="SCHED_FIFO priority (1-99) of the emulated drives, where permitted: drives are "
+        "hardware of their own, whose answers no load of the host delays",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    if args.fifo_priority is not None:
+        print(_fifo(args.fifo_priority), flush=True)  # before its thread starts: inherited
     ids = [int(n, 0) for n in args.nodes.split(",") if n.strip()]
     emulator = DriveEmulator(
         ids,

@@ -204,13 +204,7 @@ def test_a_target_beyond_32_bits_of_counts_is_sent_as_the_bound(rig: Callable[..
         assert struct.unpack("<Hi", bytes(node.rpdo)) == (0x0F, counts)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="a known defect (docs/VERIFICATION.md, the cia402 section): after a reset every node "
-    "heard before counts as fresh at the first read; its fix made the real-daemon e2e fault on "
-    "a TPDO deadline under load and was reverted until that is understood (so it verifies no "
-    "requirement yet: SR-HW-34's row says so)",
-)
+@pytest.mark.req("SR-HW-34")
 def test_a_node_heard_before_and_silent_since_fails_the_first_read_after_a_reset(
     rig: Callable[..., Rig],
 ) -> None:
@@ -227,6 +221,115 @@ def test_a_node_heard_before_and_silent_since_fails_the_first_read_after_a_reset
     with pytest.raises(DriverError) as info:
         r.drv.read(r.t)
     assert "node 1 (joint yaw): heartbeat consumer timeout" in str(info.value)
+
+
+@pytest.mark.req("SR-HW-34")
+def test_a_node_restarted_by_the_reset_and_silent_since_fails_the_first_read(
+    rig: Callable[..., Rig],
+) -> None:
+    """A node that left OPERATIONAL and stopped its heartbeat: the reset's NMT start brings its
+    TPDOs back, but no heartbeat has said it is OPERATIONAL since its last, 40 ms old."""
+    r = rig()
+    r.enabled()
+    r.ticks(15, r.here())
+    r.emu.leave_operational(2)
+    r.emu.stop_heartbeat(2)
+    err = r.until_fault(20, lambda k: r.here())
+    assert "node 2 (joint pitch): left NMT OPERATIONAL" in str(err)
+    r.ticks(40)  # latched: its silence is not judged meanwhile
+    r.drv.reset()
+    r.emu.settle()
+    assert r.emu.node(2).nmt == NMT_OPERATIONAL  # started again, answering the reset's SYNC
+    r.t += 0.001
+    with pytest.raises(DriverError) as info:
+        r.drv.read(r.t)
+    assert "node 2 (joint pitch): heartbeat consumer timeout: no heartbeat for 4" in str(info.value)
+
+
+@pytest.mark.req("SR-HW-34")
+def test_two_resets_before_a_read_count_what_either_heard_from_the_read(
+    rig: Callable[..., Rig],
+) -> None:
+    """A reset refused, then another before the loop read: the heartbeats heard in the first
+    (stamped with the read before both, 35 ms ago) are as fresh as the read after them."""
+    r = rig(state_timeout_ms=40.0)
+    r.enabled()
+    r.ticks(15, r.here())
+    r.emu.inject_emcy(1, 0x7300, persist=True)
+    r.until_fault(20, lambda k: r.here())
+    r.ticks(2)
+    r.t += 0.035  # the drives' time goes on: their heartbeats come during the first reset
+    hb = r.drv.stats()["heartbeat_frames"]
+    with pytest.raises(DriverError, match="node 1 \\(joint yaw\\): still FAULT"):
+        r.drv.reset()
+    assert r.drv.stats()["heartbeat_frames"] > hb
+    r.emu.clear(1)
+    hb = r.drv.stats()["heartbeat_frames"]
+    r.drv.reset()  # again, before any read: accepted, and no heartbeat heard in it
+    assert r.drv.stats()["heartbeat_frames"] == hb
+    r.t += 0.001
+    r.drv.read(r.t)
+    r.emu.settle()
+    r.ticks(4)
+    assert r.drv.state is DriverState.INACTIVE
+
+
+@pytest.mark.req("SR-HW-34")
+def test_a_node_whose_tpdos_stop_after_the_reset_fails_within_its_feedback_timeout(
+    rig: Callable[..., Rig],
+) -> None:
+    """Heartbeating, answering the reset's SYNC, then no TPDO: the SYNCs of the reads after
+    the reset are owed from those reads, and the feedback timeout (10 ms) judges them."""
+    r = rig()
+    r.enabled()
+    r.ticks(15, r.here())
+    r.emu.inject_emcy(2, 0x2310)
+    r.until_fault(20, lambda k: r.here())
+    r.ticks(2)
+    r.drv.reset()
+    r.emu.settle()
+    r.emu.mute_tpdos(3)
+    r.ticks(2)
+    err = r.until_fault(12, lambda k: None)  # 10 ms, and the SYNC every 2 ticks
+    assert "node 3 (joint insertion): no TPDO for 1" in str(err)
+    assert r.drv.stats()["nodes"]["insertion"]["nmt"] == "OPERATIONAL"
+
+
+@pytest.mark.req("SR-HW-34")
+def test_a_node_silent_in_its_tpdos_through_a_cancelled_enable_fails_the_first_read(
+    rig: Callable[..., Rig],
+) -> None:
+    """An Enable that waited 15 ms of the loop's time, on its thread, for a node whose TPDOs had
+    stopped, then cancelled (INACTIVE): the TPDO it owes since the last read is owed from then
+    at the first read after it, not from that read (the others answered: owed from it)."""
+    r = rig()
+    r.drv.configure()
+    r.ticks(4)  # the last read's SYNC is answered by every node
+    r.emu.mute_tpdos(3)
+    r.t += 0.015  # the loop's time goes on while the Enable waits on its thread
+    syncs = r.drv.stats()["sync_frames"]
+    errors: list[Exception] = []
+
+    def power_up() -> None:
+        try:
+            r.drv.activate()
+        except Exception as err:  # noqa: BLE001 - what activate raised, checked below
+            errors.append(err)
+
+    thread = threading.Thread(target=power_up)
+    thread.start()
+    give_up = time.monotonic() + 5.0
+    while r.drv.stats()["sync_frames"] == syncs:  # its first step sent: node 3 never answers
+        assert time.monotonic() < give_up
+        time.sleep(0.001)
+    assert r.drv.cancel_activation("operator Disable")
+    thread.join(2.0)
+    assert not thread.is_alive() and len(errors) == 1
+    assert r.drv.state is DriverState.INACTIVE
+    r.t += 0.001
+    with pytest.raises(DriverError) as info:
+        r.drv.read(r.t)
+    assert "node 3 (joint insertion): no TPDO for 16.0 ms" in str(info.value)
 
 
 @pytest.mark.req("SR-HW-32")
