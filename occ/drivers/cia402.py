@@ -193,6 +193,7 @@ from occ.drivers.cia402_setup import (
     bus_load,
     check_budget,
     close_network,
+    enable_late,
     open_network,
     parse_nodes,
     read_settings,
@@ -603,11 +604,7 @@ class CiA402Driver(Driver):
                 if all(s == "OPERATION ENABLED" for s in states):
                     break
                 if time.monotonic() > deadline:
-                    late = [n.described() for n in self._nodes if not n.enabled()]
-                    raise DriverError(
-                        f"{self._where}: not OPERATION ENABLED within "
-                        f"{self._state_timeout * 1e3:g} ms: {'; '.join(late)}"
-                    )
+                    raise DriverError(enable_late(self._where, self._nodes, self._state_timeout))
                 for node, s in zip(self._nodes, states, strict=True):
                     self._pack(
                         node, ENABLE_STEPS.get(s, CW_DISABLE_VOLTAGE), self._hold_target(node)

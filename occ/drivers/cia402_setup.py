@@ -321,9 +321,18 @@ class Node:
     def enabled(self) -> bool:
         return self.state() == "OPERATION ENABLED"
 
+    def silent(self) -> bool:
+        """No TPDO 1 since the wait off the loop thread began (:meth:`mark`): what its
+        statusword says is older than the wait."""
+        return self.tpdo1 == self.marks[1]
+
     def described(self) -> str:
-        """Where the node is, for an Enable that did not get there."""
-        return f"{self.where} in {self.state()} (statusword {self.statusword or 0:#06x})"
+        """Where the node is, for an Enable that did not get there; a node silent through it
+        is told so, whatever its last statusword said."""
+        sw = f"statusword {self.statusword or 0:#06x}"
+        if self.silent():
+            return f"{self.where}: no TPDO answered any SYNC of it (its last {sw}, {self.state()})"
+        return f"{self.where} in {self.state()} ({sw})"
 
     def fault_reset_word(self, edge: bool) -> tuple[int, bool]:
         """The controlword of one step of a fault reset, and the next step's ``edge``: the
@@ -725,3 +734,15 @@ def interpolation_period(seconds: float) -> tuple[int, int]:
         if abs(value - round(value)) < 1e-6 and 1 <= round(value) <= 255:
             return round(value), index
     raise ValueError(f"interpolation period {seconds} s cannot be written to 0x60C2")
+
+
+def enable_late(where: str, nodes: Sequence[Node], timeout: float) -> str:
+    """Why an Enable did not get every node to OPERATION ENABLED within ``timeout``: the nodes
+    that answered none of its SYNCs first (the Enable waited on them, so the others may not
+    have got their next step, and a silent node's old statusword may still say OPERATION
+    ENABLED), then every other node short of it."""
+    silent = [n.described() for n in nodes if n.silent()]
+    short = [n.described() for n in nodes if not n.silent() and not n.enabled()]
+    return (
+        f"{where}: not OPERATION ENABLED within {timeout * 1e3:g} ms: {'; '.join(silent + short)}"
+    )

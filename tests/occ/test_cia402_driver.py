@@ -365,6 +365,33 @@ def test_two_nodes_that_will_not_enable_are_both_named(rig: Callable[..., Rig]) 
 
 
 @pytest.mark.req("SR-HW-32")
+def test_an_enable_refused_for_a_silent_node_names_it_first(rig: Callable[..., Rig]) -> None:
+    """A node whose TPDOs stopped while its heartbeat goes on, its last statusword still
+    OPERATION ENABLED: the Enable waits on it until the timeout (the other nodes get no further
+    step meanwhile); the refusal names the silent node first, not as enabled, then the others."""
+    r = rig(state_timeout_ms=40.0)
+    r.enabled()
+    r.ticks(15, r.here())
+    r.emu.mute_tpdos(3)  # node 3 stops its TPDOs; its heartbeat goes on
+    r.drv.deactivate()  # every node off; node 3 never says so
+    r.emu.settle()
+    with pytest.raises(DriverError) as info:
+        r.drv.activate()
+    msg = str(info.value)
+    assert msg.startswith(
+        "cia402 driver 'arm': not OPERATION ENABLED within 40 ms: node 3 (joint insertion): "
+        "no TPDO answered any SYNC of it (its last statusword 0x"
+    ), msg
+    silent, *others = msg.split(": not OPERATION ENABLED within 40 ms: ")[1].split("; ")
+    assert "OPERATION ENABLED" in silent  # what its old statusword said, told as old
+    assert [o.split(" in ")[0] for o in others[:2]] == [
+        "node 1 (joint yaw)",
+        "node 2 (joint pitch)",
+    ]
+    assert msg.endswith("; every node switched off again")
+
+
+@pytest.mark.req("SR-HW-32")
 def test_a_node_that_faults_while_enabling_vetoes_it_at_once(rig: Callable[..., Rig]) -> None:
     r = rig(state_timeout_ms=5000.0)
     r.drv.configure()
@@ -589,7 +616,10 @@ def test_a_node_in_quick_stop_active_is_switched_off_first_when_enabling() -> No
         node.counts, node.statusword = 0, word
     with pytest.raises(DriverError) as info:
         drv._activate()
-    assert "node 1 (joint yaw) in QUICK STOP ACTIVE (statusword 0x0207)" in str(info.value)
+    assert (
+        "node 1 (joint yaw): no TPDO answered any SYNC of it (its last statusword 0x0207, "
+        "QUICK STOP ACTIVE)" in str(info.value)
+    )
     # the step each was told last: voltage off (out of QUICK STOP ACTIVE), enable, enable
     assert [n.rpdo[0] for n in drv._nodes] == [0x00, 0x0F, 0x0F]
 

@@ -241,7 +241,11 @@ def test_a_fault_reset_is_a_rising_edge_and_refused_while_the_cause_persists() -
 def test_a_node_described_and_in_the_stats() -> None:
     node = make_node()
     assert node.state() == "NO STATUSWORD YET" and not node.enabled()
-    assert node.described() == "node 5 (joint yaw) in NO STATUSWORD YET (statusword 0x0000)"
+    # silent since the wait began (none answered yet): told so, with what it said last
+    assert node.described() == (
+        "node 5 (joint yaw): no TPDO answered any SYNC of it (its last statusword 0x0000, "
+        "NO STATUSWORD YET)"
+    )
     assert node.stats() == {
         "node_id": 5, "cia402": "NO STATUSWORD YET", "statusword": None, "nmt": None,
         "last_emcy": None, "tpdos": 0, "emcys": 0, "heartbeats": 0,
@@ -253,6 +257,12 @@ def test_a_node_described_and_in_the_stats() -> None:
     assert not node.enabled()
     node.take_tpdo1(tpdo1(0x1637, 0), 0.0)
     assert node.enabled()
+    node.mark()  # a wait begins: silent until its next TPDO 1, whatever it said before
+    assert node.silent() and node.described().endswith(
+        "(its last statusword 0x1637, OPERATION ENABLED)"
+    )
+    node.take_tpdo1(tpdo1(0x1637, 0), 0.0)
+    assert not node.silent()
     node.take_tpdo2(struct.pack("<i", 0))
     node.take_heartbeat(bytes([0x42]), 0.0)
     node.take_emcy(struct.pack("<HB", 0x8611, 0x21))
@@ -260,7 +270,7 @@ def test_a_node_described_and_in_the_stats() -> None:
         "node_id": 5, "cia402": "OPERATION ENABLED", "statusword": "0x1637", "nmt": "0x42",
         "last_emcy": {"code": "0x8611", "meaning": "position controller: following error",
                       "register": "0x21"},
-        "tpdos": 4, "emcys": 1, "heartbeats": 1,
+        "tpdos": 5, "emcys": 1, "heartbeats": 1,
     }  # fmt: skip
     node.take_heartbeat(bytes([NMT_OPERATIONAL]), 0.0)
     assert node.stats()["nmt"] == "OPERATIONAL"
