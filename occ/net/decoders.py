@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from igtl.messages.base import Message
+from igtl.messages.base import Message, RawMessage
 from occ.events import (
     ArrayInput,
     Event,
@@ -94,9 +94,7 @@ def _trajectories(interface: str, peer: Any, msg: Any, t_rx: float) -> Trajector
 
 
 def _spheres(interface: str, peer: Any, msg: Any, t_rx: float) -> SphereList:
-    spheres = tuple(
-        (float(x), float(y), float(z), float(r)) for x, y, z, r in getattr(msg, "spheres", ())
-    )
+    spheres = tuple((float(x), float(y), float(z), float(r)) for x, y, z, r in msg.spheres)
     return SphereList(
         interface,
         peer,
@@ -104,8 +102,8 @@ def _spheres(interface: str, peer: Any, msg: Any, t_rx: float) -> SphereList:
         msg.message_type,
         msg.device_name,
         msg.metadata,
-        int(getattr(msg, "version", 1)),
-        float(getattr(msg, "hardness", 0.0)),
+        int(msg.version),
+        float(msg.hardness),
         spheres,
     )
 
@@ -124,7 +122,7 @@ def _mesh(interface: str, peer: Any, msg: Any, t_rx: float) -> Mesh:
         np.asarray(msg.points, dtype=float).reshape(-1, 3),
         cells(msg.lines),
         cells(msg.polygons),
-        cells(getattr(msg, "strips", ())),
+        cells(msg.strips),
     )
 
 
@@ -168,10 +166,13 @@ DECODERS: dict[str, Decoder] = {
 
 def decode(interface: str, peer: Any, msg: Message, t_rx: float) -> Any:
     """The event of a received message (module docstring): a :class:`PoseSample` for a pose,
-    an :class:`~occ.events.UnknownInput` for a type no decoder takes."""
+    an :class:`~occ.events.UnknownInput` for a type no decoder takes and for a message whose
+    content was never decoded (a :class:`~igtl.messages.base.RawMessage`, whatever type it
+    names: one made in the process, a replay's or a test's; from the wire a type the library
+    knows is always decoded or refused)."""
     mtype = msg.message_type
     fn = DECODERS.get(mtype)
-    if fn is None:
+    if fn is None or isinstance(msg, RawMessage):
         return UnknownInput(interface, peer, t_rx, mtype, msg.device_name, msg.metadata)
     return fn(interface, peer, msg, t_rx)
 
