@@ -235,6 +235,11 @@ class BlackBox:
         # a stream item's reception time and peer (_IN_WIRE events)
         self._ev_t = array("d", bytes(8 * self._ev_slots))
         self._ev_peer: list[Any] = [None] * self._ev_slots
+        #: rows (events) at the ring's old end the writer leaves to the loop while it copies:
+        #: a chunk, or what the loop writes in MARGIN_S when that is fewer (a small ring,
+        #: whose margin a chunk would exceed: nothing of its window would be copied)
+        self._copy_margin = min(CHUNK, math.ceil(MARGIN_S * rate_hz))
+        self._ev_copy_margin = min(CHUNK, math.ceil(MARGIN_S * events_per_s))
         #: events written since start
         self.ev_count = 0
         self._off_loop: deque[tuple[int, int, Any, Any]] = deque(maxlen=OFF_LOOP_EVENTS)
@@ -528,7 +533,8 @@ class BlackBox:
         first = max(0, end - self.capacity)
         checkpoint, cp_events = None, 0
         if self.checkpoints is not None:  # start at the checkpoint before the window's seconds
-            oldest = max(0, self.count + 1 - self._slots + CHUNK)  # not overwritten meanwhile
+            # not overwritten meanwhile
+            oldest = max(0, self.count + 1 - self._slots + self._copy_margin)
             found = self.checkpoints.start(first, oldest, end)
             if found is not None:
                 first, cp_events, checkpoint = found
@@ -557,7 +563,7 @@ class BlackBox:
         threads'); the loop's own from event ``cp_events`` on (taken after the checkpoint);
         the first tick whose events are all there."""
         slots = self._ev_slots
-        start = max(0, end - self._ev_slots + CHUNK)
+        start = max(0, end - self._ev_slots + self._ev_copy_margin)
         ticks: list[int] = []
         rx: list[float] = []
         peers: list[Any] = []
@@ -589,9 +595,13 @@ class BlackBox:
                 if rebuilt & 7 == 0:
                     self.pace()
         # events overwritten before the window's first tick: the first tick kept may have
-        # lost some, the next ones are whole
-        cut = start + gone > 0 and bool(ticks)
-        whole_from = max(first_row, ticks[0] + 1) if cut else first_row
+        # lost some, the next ones are whole (none when the loop wrote over every one)
+        if start + gone <= 0:
+            whole_from = first_row
+        elif ticks:
+            whole_from = max(first_row, ticks[0] + 1)
+        else:
+            whole_from = end_row
         base = start + gone  # the index of ticks[0] among every event written
         out: list[tuple[int, int, Any, Any]] = []
         since_cp: list[tuple[int, int, Any, Any]] = []

@@ -241,7 +241,7 @@ def _write_files(
     np.save(tmp / "ticks.npy", window.rows)
     (tmp / "config.yaml").write_text(ctx.config_yaml, encoding="utf-8")
     n_msgs = _write_recording(tmp / DUMP_RECORDING, box, req, window, ctx)
-    n_other = _write_events(tmp / "events.jsonl", window, box)
+    n_other = _write_events(tmp / "events.jsonl", window)
     replayable = _write_replay(tmp / REPLAY, box, window)
     rows = window.rows
     manifest = {
@@ -276,7 +276,7 @@ def _write_files(
             "ticks.npy",
             DUMP_RECORDING,
             "events.jsonl",
-            REPLAY,
+            *([REPLAY] if (tmp / REPLAY).is_file() else []),  # none without a checkpoint
         ],
     }
     (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1, default=str), encoding="utf-8")
@@ -377,7 +377,7 @@ def _write_replay(path: Path, box: BlackBox, window: Window) -> dict[str, Any]:
     return entry
 
 
-def _write_events(path: Path, window: Window, box: BlackBox) -> int:
+def _write_events(path: Path, window: Window) -> int:
     """The events that are not messages (JSON lines). Returns how many."""
     rows, first = window.rows, window.first_row
     n = 0

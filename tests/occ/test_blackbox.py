@@ -103,6 +103,9 @@ def test_a_drive_fault_dumps_with_the_config_version_and_hashes(rig: SlaveRig) -
     assert m["config_sha256"] == hashlib.sha256(text.encode()).hexdigest()
     again = DaemonConfig.model_validate(yaml.safe_load(text))
     assert again == rig.robot.config
+    # every file it holds (replay.pkl: the window starts at a checkpoint), in simulated time
+    assert sorted(m["files"]) == sorted(p.name for p in path.iterdir())
+    assert m["files"][-1] == "replay.pkl" and m["clock"] == "simulated"
 
 
 @pytest.mark.req("SR-BOX-2")
@@ -317,3 +320,42 @@ def test_a_checkpoint_waits_for_a_tick_that_leaves_room_but_never_a_whole_interv
     assert box.spare(False) and taken() == [0, 2000]
     box.count = 3000
     assert box.spare(True) and taken() == [0, 2000, 3000]
+
+
+@pytest.mark.req("SR-BOX-1")
+def test_a_small_event_ring_dumps_the_loops_events_and_says_truly_whether_they_are_whole(
+    tmp_path: Path,
+) -> None:
+    """The fewest events a second (100) and a short box: the ring's margin (300 events) is
+    smaller than the writer's copy margin (a chunk, 2048). Until 2026-11-29 such a dump held
+    none of the loop's events and its manifest said they were whole (replay possible, no
+    inputs); now it holds them, and says from which tick on they are whole."""
+    rig = _slave(tmp_path, seconds=1.0, events_per_s=100)
+    try:
+        rig.running()
+        rig.step(40)
+        rig.command("EStop")
+        path, m = _the_dump(rig, "estop")
+        box = rig.robot.black_box
+        assert box.ev_count < box.ev_capacity  # every event of the run is in the window
+    finally:
+        rig.close()
+    lines = [json.loads(s) for s in (path / "events.jsonl").read_text().splitlines()]
+    assert [e["to"] for e in lines if e["kind"] == "transition"][-2:] == ["RUNNING", "ESTOP"]
+    assert m["window"]["events_whole_from_tick"] == m["window"]["first_tick"]
+    assert m["replay"]["possible"] and m["replay"]["inputs"] > 30
+    # a longer run: more events than the ring holds, and the dump says so
+    rig = _slave(tmp_path / "long", seconds=1.0, events_per_s=100)
+    try:
+        rig.running()
+        rig.step(600)  # a sample every other tick: 300 events, 100 a window holds
+        rig.command("EStop")
+        path, m = _the_dump(rig, "estop")
+    finally:
+        rig.close()
+    whole = m["window"]["events_whole_from_tick"]
+    assert m["window"]["first_tick"] < whole < m["trigger"]["tick"]
+    assert not m["replay"]["possible"] and f"before tick {whole}" in m["replay"]["why"]
+    msgs = read_recording(path)
+    ticks = [int(x.metadata["rec.tick"]) for x in msgs if x.message_type == "POSITION"]
+    assert ticks and ticks[0] >= whole - 1 and ticks[-1] >= m["trigger"]["tick"] - 2
