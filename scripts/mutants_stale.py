@@ -7,19 +7,21 @@ name now or any name git followed it by), against the code as it was at that row
     python scripts/mutants_stale.py -v       # and every changed unit of each stale module
 
 A row's time is the latest HH:MM in its date cell (the end of its last run), on the cell's
-date. mutmut makes its mutants from the code of functions and methods, and their verdicts
-depend on that code and the module-level and class-level statements around it; it makes none
-from docstrings, comments or import lines. So a module is judged by its *units*, each a
-function, a method (``Class.method``) or another top-level or class-level statement, compared
-as Python's AST with docstrings and imports taken out: a module is fresh when every unit of its
-files, as they are now, existed word for word (same qualified name, same code) somewhere in the
-project at the commit its row was made on; a move to another file or package (the rooms of
-issue 39, a module split into a package), a reworded docstring or a changed import keeps it
-fresh, any changed line of code makes it stale and is named. A file with no row under any of
-its names makes its module stale. Modules that score parts of one file (`interfaces` and
-`roles`, `teleop` and `teleop6`) share its rows here, and a section of docs/VERIFICATION.md
-may say why a function-scoped module needed no re-run (its changed units are outside the
-scope): this check lists, it does not judge.
+date; a run on code committed only after it ended names that commit in its date cell ("code as
+committed in abc1234"), and its code is read there. mutmut makes its mutants from the code of
+functions and methods, and their verdicts depend on that code and the module-level and class-
+level statements around it; it makes none from docstrings, comments or import lines. So a
+module is judged by its *units*, each a function, a method (``Class.method``) or another top-
+level or class-level statement, compared as Python's AST with docstrings and imports taken out:
+a module is fresh when every unit of its files, as they are now, existed word for word (same
+qualified name, same code) somewhere in the project at the commit its row was made on; a move
+to another file or package (the rooms of issue 39, a module split into a package), a reworded
+docstring or a changed import keeps it fresh, any changed line of code makes it stale and is
+named. A file with no row under any of its names makes its module stale. Modules that score
+parts of one file (`interfaces` and `roles`, `teleop` and `teleop6`) share its rows here. A
+scoped module (scripts/mutate's SCOPES, read with `scripts/mutate --scope MODULE`) is judged by
+the units its scope mutates, with the statements at the top of their files and the bodies of
+their classes; `-v` lists its changed units outside the scope.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ import re
 import subprocess
 import sys
 from datetime import datetime
+from fnmatch import fnmatchcase
 from functools import cache
 from pathlib import Path
 
@@ -49,8 +52,13 @@ def modules() -> dict[str, list[str]]:
     return out
 
 
-def rows() -> list[tuple[str, datetime]]:
-    """(the row's module cell, the end of its last run) for each row of the Scores table."""
+#: a row whose run mutated code committed after the run ended names that commit
+COMMITTED = re.compile(r"code as committed in `?([0-9a-f]{7,40})`?")
+
+
+def rows() -> list[tuple[str, datetime, str | None]]:
+    """(the row's module cell, the end of its last run, the commit its code is in when the
+    date cell names one) for each row of the Scores table."""
     text = (ROOT / "docs" / "VERIFICATION.md").read_text()
     table = text.split("## Scores", 1)[1].split("\n## ", 1)[0]
     found = []
@@ -69,7 +77,8 @@ def rows() -> list[tuple[str, datetime]]:
         ]
         h, m = max(times) if times else (0, 0)
         when = datetime.fromisoformat(f"{day.group(1)}T{h:02d}:{m:02d}:59+00:00")
-        found.append((cells[0], when))
+        named = COMMITTED.search(date_cell)
+        found.append((cells[0], when, named.group(1) if named else None))
     return found
 
 
@@ -176,9 +185,45 @@ def project_units(commit: str) -> frozenset[tuple[str, str]]:
     return frozenset(found)
 
 
-def changed_units(path: str, row: datetime) -> list[str]:
-    """The units of ``path`` now that the project did not have at ``row``'s commit."""
-    old = project_units(commit_at(row))
+#: a mutant-name glob of a scope: the module, then a method (xǁClassǁname) or a function (x_name)
+GLOB = re.compile(
+    r"^(?P<mod>[\w.]+?)\.(?:x\u01c1(?P<cls>\w+)\u01c1(?P<meth>.*)|x_(?P<func>.*)|\*)$"
+)
+
+
+def scope(module: str) -> dict[str, list[str]] | None:
+    """The units a scoped module mutates, as name patterns per file (``Class.method``,
+    ``function``, ``*``: every unit), from ``scripts/mutate --scope``; None: the whole module."""
+    globs = subprocess.run(
+        ["bash", str(ROOT / "scripts" / "mutate"), "--scope", module],
+        capture_output=True, text=True, check=True,
+    ).stdout.split()  # fmt: skip
+    if not globs:
+        return None
+    out: dict[str, list[str]] = {}
+    for g in globs:
+        m = GLOB.match(g)
+        if m is None:
+            raise ValueError(f"scripts/mutate's scope of {module}: cannot read {g!r}")
+        name = m["meth"] if m["cls"] else m["func"]
+        name = "*" if name is None else re.sub(r"__mutmut_.*$", "", name)
+        pattern = f"{m['cls']}.{name}" if m["cls"] else name
+        out.setdefault(m["mod"].replace(".", "/") + ".py", []).append(pattern)
+    return out
+
+
+def in_scope(unit: str, patterns: list[str]) -> bool:
+    """A changed unit a scope's mutants see: one it names, a statement at the top of its file,
+    or the body of a class one of whose methods it names."""
+    if unit == "<module>":
+        return True
+    return any(fnmatchcase(unit, p) or p.startswith(unit + ".") for p in patterns)
+
+
+def changed_units(path: str, row: datetime, commit: str | None = None) -> list[str]:
+    """The units of ``path`` now that the project did not have at ``row``'s commit (the one
+    made last before it, or the one it names)."""
+    old = project_units(git("rev-parse", commit).strip() if commit else commit_at(row))
     now = units((ROOT / path).read_text(encoding="utf-8"))
     return sorted({name for name, code in now if (name, code) not in old})
 
@@ -189,21 +234,29 @@ def main(argv: list[str]) -> int:
     stale = 0
     for name, files in sorted(modules().items()):
         late = []
-        own: dict[str, datetime | None] = {}
+        scoped = scope(name)
+        own: dict[str, tuple[datetime, str | None] | None] = {}
         for f in files:
             called = names(f)
-            scored = [when for cell, when in table if any(f"`{n}`" in cell for n in called)]
-            own[f] = max(scored) if scored else None
+            scored = [(w, c) for cell, w, c in table if any(f"`{n}`" in cell for n in called)]
+            own[f] = max(scored, key=lambda wc: wc[0]) if scored else None
         known = [w for w in own.values() if w is not None]
-        newest = max(known) if known else None
+        last = max(known, key=lambda wc: wc[0]) if known else None
+        newest = last[0] if last else None
         for f in files:
             # a file with no row of its own (split out of a scored file, or new): judged
             # against the module's newest row, every unit it has must have existed then
-            row = own[f] or newest
-            if row is None:
+            found = own[f] or last
+            if found is None:
                 late.append(f"{f}: no row")
                 continue
-            changed = changed_units(f, row)
+            row, commit = found
+            changed = changed_units(f, row, commit)
+            if scoped is not None:
+                outside = [u for u in changed if not in_scope(u, scoped.get(f, []))]
+                changed = [u for u in changed if u not in outside]
+                if outside and verbose:
+                    print(f"      {name}: {f}: changed outside its scope: {', '.join(outside)}")
             if changed:
                 shown = ", ".join(changed) if verbose else f"{len(changed)} units"
                 late.append(f"{f} changed since {row:%Y-%m-%d %H:%M}: {shown}")

@@ -109,7 +109,9 @@ def repo(tmp_path: Path, after: dict[str, str]) -> Path:
     git(root, "add", "-A")
     git(root, "commit", "-qm", "two", when="2026-01-01T11:00:00+00:00")
     target = next(p for p in after if after[p]) if any(after.values()) else "occ/judge.py"
-    (root / "scripts" / "mutate").write_text(f'  [judge]="{target}|tests/x.py"\n')
+    (root / "scripts" / "mutate").write_text(
+        f'MODULES[judge]="{target}|tests/x.py"\n[ "$1" = --scope ] && echo ""\n'
+    )
     (root / "docs" / "VERIFICATION.md").write_text(
         "## Scores\n\n| module | date | t |\n|---|---|---|\n"
         "| `occ/judge.py` | 2026-01-01 10:05 | x | 1 |\n\n## Next\n"
@@ -137,3 +139,19 @@ def test_a_file_with_no_row_under_any_name_is_stale(tmp_path: Path, capsys) -> N
     m = load(root)
     assert m.main([]) == 1
     assert "no row" in capsys.readouterr().out
+
+
+def test_a_scoped_module_is_judged_by_the_units_its_scope_mutates() -> None:
+    """scripts/mutate's scope of cia402sim, read back as unit names: its emulated node's
+    methods are in it, the process's main and a class body of one of its classes count, a
+    function it does not name does not."""
+    m = load()
+    scope = m.scope("cia402sim")
+    names = scope["occ/drivers/cia402_sim.py"]
+    assert "EmulatedNode._controlword" in names and "DriveEmulator.inject_emcy" in names
+    assert m.in_scope("EmulatedNode.sync", names) and m.in_scope("EmulatedNode", names)
+    assert m.in_scope("<module>", names)
+    assert not m.in_scope("main", names) and not m.in_scope("EmulatedNode.sdo_server", names)
+    assert m.scope("safety") is None  # whole
+    assert m.scope("cia402")["occ/drivers/cia402_protocol.py"] == ["*"]
+    assert m.in_scope("x_anything", ["*"])
