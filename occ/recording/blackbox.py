@@ -396,12 +396,17 @@ class BlackBox:
         self._put(NOTE, what, obj)
 
     def wrote(self, values: Sequence[float], effort: bool) -> None:
-        """What the loop wrote to the drives this tick (positions or efforts)."""
+        """What the loop wrote to the drives this tick (positions or efforts): one per joint;
+        a longer list (which the drives refuse) keeps its first, never spilling into the next
+        columns."""
         if not self.enabled:
             return
         buf = self._buf
         i = self._pos + (self._ew_at if effort else self._sp_at)
+        end = i + len(self.joint_names)
         for v in values:
+            if i == end:
+                break
             buf[i] = v
             i += 1
 

@@ -1,6 +1,6 @@
 """The black box's row, column by column: each drive's raw reading lands in its own joints'
 columns whatever order the drives hold their joints in, a drive not read in a tick leaves NaN,
-and a write of the wrong count keeps what fits (occ/recording/blackbox.py)."""
+and a write of the wrong count keeps what fits and spills nothing (occ/recording/blackbox.py)."""
 
 from __future__ import annotations
 
@@ -59,3 +59,9 @@ def test_each_drive_reading_lands_in_its_joints_columns_whatever_their_order() -
     assert all(math.isnan(row[f"raw.{k}.{j}"]) for k in ("pos", "vel", "eff") for j in "ab")
     assert (row["raw.pos.d"], row["raw.eff.e"], row["raw.vel.c"]) == (4.0, 5.25, 3.5)
     assert all(math.isnan(row[f"sp.{j}"]) for j in names)  # nothing written in it
+    # a write of one value too many (the drives refuse it): the row keeps the first five
+    box.wrote([0.5, 0.6, 0.7, 0.8, 0.9, 99.0], False)
+    box.end_tick(0.003, 3)
+    row = dict(zip(box.columns, box._view[2].tolist(), strict=True))
+    assert [row[f"sp.{j}"] for j in names] == [0.5, 0.6, 0.7, 0.8, 0.9]
+    assert math.isnan(row["ew.a"])  # not the sixth value
