@@ -228,16 +228,11 @@ class BlackBox:
         self.count = 0
         self.ev_capacity = max(16, math.ceil(self.seconds * events_per_s))
         self._ev_slots = self.ev_capacity + math.ceil(margin * events_per_s) if enabled else 1
-        self._ev_tick = array("q", bytes(8 * self._ev_slots))
-        self._ev_kind = array("b", bytes(self._ev_slots))
-        self._ev_where: list[Any] = [None] * self._ev_slots
-        self._ev_obj: list[Any] = [None] * self._ev_slots
-        # a stream item's reception time and peer (_IN_WIRE events)
-        self._ev_t = array("d", bytes(8 * self._ev_slots))
-        self._ev_peer: list[Any] = [None] * self._ev_slots
-        #: rows (events) at the ring's old end the writer leaves to the loop while it copies:
-        #: a chunk, or what the loop writes in MARGIN_S when that is fewer (a small ring,
-        #: whose margin a chunk would exceed: nothing of its window would be copied)
+        self._ev_rings = event_rings(self._ev_slots)
+        self._ev_tick, self._ev_kind, self._ev_where, self._ev_obj = self._ev_rings[:4]
+        self._ev_t, self._ev_peer = self._ev_rings[4:]  # a stream item's (_IN_WIRE) t_rx, peer
+        #: rows (events) at the ring's old end the writer leaves to the loop while it copies: a
+        #: chunk, or what the loop writes in MARGIN_S if fewer (else a small ring copies none)
         self._copy_margin = min(CHUNK, math.ceil(MARGIN_S * rate_hz))
         self._ev_copy_margin = min(CHUNK, math.ceil(MARGIN_S * events_per_s))
         #: events written since start
@@ -509,15 +504,7 @@ class BlackBox:
         assert self._data is not None
         clock = self._data.clock
         wall = clock.wall_time()
-        stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime(wall))
-        ms = int(wall * 1000.0) % 1000
-        slug = "".join(c if c.isalnum() else "-" for c in cause.lower())[:32] or "dump"
-        name = f"{self.name}-{stamp}.{ms:03d}Z-{slug}"
-        base, n = name, 1
-        while name in self._names:  # no file system call on the loop: the writer checks
-            n += 1
-            name = f"{base}-{n}"
-        self._names.add(name)
+        name = dump_name(self.name, cause, wall, self._names)
         k = self.count  # the tick under way (its deadline index is in its row)
         return DumpRequest(name, self.dir / name, [(cause, why)], -1, -1, clock.now(), k, wall)
 
@@ -569,26 +556,19 @@ class BlackBox:
         the first tick whose events are all there."""
         slots = self._ev_slots
         start = max(0, end - self._ev_slots + self._ev_copy_margin)
-        ticks: list[int] = []
-        rx: list[float] = []
-        peers: list[Any] = []
-        kinds: list[int] = []
-        wheres: list[Any] = []
-        objs: list[Any] = []
+        cols: list[list[Any]] = [[] for _ in self._ev_rings]  # each ring's, in its order
         e = start
         while e < end:
             s = e % slots
             m = min(end - e, slots - s, CHUNK)
-            ticks.extend(self._ev_tick[s : s + m])
-            kinds.extend(self._ev_kind[s : s + m])
-            wheres.extend(self._ev_where[s : s + m])
-            objs.extend(self._ev_obj[s : s + m])
-            rx.extend(self._ev_t[s : s + m])
-            peers.extend(self._ev_peer[s : s + m])
+            for col, ring in zip(cols, self._ev_rings, strict=True):
+                col.extend(ring[s : s + m])
             e += m
             self.pace()
         gone = max(0, (self.ev_count + 1 - slots) - start)
-        del ticks[:gone], kinds[:gone], wheres[:gone], objs[:gone], rx[:gone], peers[:gone]
+        for col in cols:
+            del col[:gone]
+        ticks, kinds, wheres, objs, rx, peers = cols
         rebuilt = 0
         for n, kind in enumerate(kinds):  # stream items kept as bytes: rebuilt
             if kind == _IN_WIRE:
@@ -639,6 +619,34 @@ class BlackBox:
             "dir": str(self.dir),
             **(w.stats() if w is not None else {}),
         }
+
+
+def event_rings(slots: int) -> tuple[Any, ...]:
+    """The event ring's columns, preallocated: tick, kind, where, object, and a stream
+    item's reception time and peer."""
+    return (
+        array("q", bytes(8 * slots)),
+        array("b", bytes(slots)),
+        [None] * slots,
+        [None] * slots,
+        array("d", bytes(8 * slots)),
+        [None] * slots,
+    )
+
+
+def dump_name(robot: str, cause: str, wall: float, taken: set[str]) -> str:
+    """A dump's directory name, ``<robot>-<UTC time>-<cause>``, made unique among ``taken``
+    (and added to it) with a counter: no file system call on the loop (the writer checks)."""
+    stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime(wall))
+    ms = int(wall * 1000.0) % 1000
+    slug = "".join(c if c.isalnum() else "-" for c in cause.lower())[:32] or "dump"
+    name = f"{robot}-{stamp}.{ms:03d}Z-{slug}"
+    base, n = name, 1
+    while name in taken:
+        n += 1
+        name = f"{base}-{n}"
+    taken.add(name)
+    return name
 
 
 def _hand_back() -> None:
