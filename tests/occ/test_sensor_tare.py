@@ -216,6 +216,15 @@ def test_every_tare_taken_is_counted_and_one_with_nothing_to_tare_says_so() -> N
     assert world.tare_last == "taken: nothing to tare" and world.tares == 1
 
 
+def test_the_statistics_give_the_tools_centre_of_mass_in_mm_and_whether_a_tare_was_taken() -> None:
+    src = SlaveForce(("sensor",), tool_mass_kg=0.25, tool_com_m=(0.0123456, -0.0004, 0.05))
+    assert src.stats(0.0)["tool"] == {"mass_kg": 0.25, "com_mm": [12.346, -0.4, 50.0]}
+    assert not src.stats(0.0)["tared"]
+    world = SlaveForce(("tissue",), environment=object())
+    world.tare_all(0.0, [], 0.0)
+    assert world.bias is None and world.stats(0.0)["tared"]  # one tare, no bias: tared
+
+
 # ------------------------------------------------------------------------------ the weight
 MASS = 0.25  # kg: an instrument with its drive
 COM = np.array([0.004, -0.002, 0.06])  # m, the tip frame's axes, from the sensor's origin
