@@ -248,9 +248,11 @@ class _Run:
             self.partial_ticks += 1
         if node is not None and self.sync:
             # every frame the driver sent (commands and its polls while not powered) answered
-            # before the next tick, so the simulated clock never outruns the node's thread
-            st = self.tool.stats()
-            node.wait_feedback(st["command_frames"] - st["lost_answers"], 1.0)
+            # before the next tick, so the simulated clock never outruns the node's thread.
+            # Counted by the commands the node acted on, not by the answers it sent: after
+            # can-late's repair the answers it held back and dropped were counted as sent and
+            # again as lost by the driver, and the wait returned before a poll was answered
+            node.wait_commands(self.tool.stats()["command_frames"], 1.0)
 
     def command(self, name: str) -> tuple[bool, str]:
         cid = self.op.send_command(name)

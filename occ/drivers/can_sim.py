@@ -216,7 +216,8 @@ class SimulatedDriveNode:
         self.stop()
 
     def wait_commands(self, count: int, timeout: float = 1.0) -> bool:
-        """Block until at least ``count`` command frames were received in total."""
+        """Block until at least ``count`` command frames were received and acted on in total
+        (each one's answer sent, or held back by ``delay``, or not sent while muted)."""
         with self._cond:
             return self._cond.wait_for(lambda: self.commands_received >= count, timeout)
 
@@ -271,10 +272,8 @@ class SimulatedDriveNode:
             self.send_error_frame(self._flood_class)
         if axis.heartbeat_lost:
             if mode != MODE_DISABLED:  # stopped until the host acknowledges with mode 0
-                with self._cond:
-                    self.commands_received += 1
-                    self._cond.notify_all()
                 self._send_feedback(axis)
+                self._acted_on()
                 return
             axis.heartbeat_lost = False
         axis.mode = mode
@@ -288,10 +287,15 @@ class SimulatedDriveNode:
         else:
             axis.velocity = 0.0
             axis.effort = 0
+        self._send_feedback(axis)
+        self._acted_on()
+
+    def _acted_on(self) -> None:
+        # counted once its answer is on the bus (or held back, or muted): a waiter on
+        # commands_received may read the answer at once
         with self._cond:
             self.commands_received += 1
             self._cond.notify_all()
-        self._send_feedback(axis)
 
     def _check_heartbeats(self) -> None:
         now = self._clock()

@@ -5,12 +5,13 @@ The robot-level outcomes are tests/occ/test_fault_matrix.py's."""
 from __future__ import annotations
 
 import math
+import threading
 
 import pytest
 
+from occ.core.hardware import HardwareFailure, HardwareSet, describe
 from occ.drivers.base import DriverState
 from occ.drivers.sim import SimDriver
-from occ.core.hardware import HardwareFailure, HardwareSet, describe
 from occ.joint import Joint, JointLimits
 
 
@@ -190,6 +191,11 @@ class Brittle(SimDriver):
             raise OSError("the drive does not clear its fault")
         super()._reset()
 
+    def _read(self, now: float):  # type: ignore[no-untyped-def]
+        if "read" in self.breaks:
+            raise OSError("encoder silent")
+        return super()._read(now)
+
     def _shutdown(self) -> None:
         if "shutdown" in self.breaks:
             raise OSError("bus gone")
@@ -218,9 +224,9 @@ def test_a_drive_that_fails_to_stop_is_named_and_the_others_still_stop() -> None
     assert a.state is DriverState.FAULT and b.state is DriverState.INACTIVE
     # latched, but not safe: its power stage was never proven off (issue 36)
     assert not hw.all_safe() and hw.failures == 1
-    assert [u.driver for u in hw.unsafe()] == ["a"] and hw.stats()["unsafe"] == {
-        "a": "switch-off failed: RuntimeError()"
-    }
+    assert hw.unsafe() == [
+        HardwareFailure("a", "switch-off", "switch-off failed: RuntimeError()")
+    ] and hw.stats()["unsafe"] == {"a": "switch-off failed: RuntimeError()"}
     (latched,) = hw.faulted()
     assert latched == HardwareFailure("a", "drive", a.fault_reason or "")
     a.breaks.clear()
@@ -419,3 +425,211 @@ def test_await_measured_reads_once_on_simulated_time_and_polls_on_the_real_clock
     hw.await_measured(joints, read, now, 0.004, real=True)
     # gives up once the wait is over: reads at +1 ms, then every poll (each now() +1 ms)
     assert 2 <= len(reads) <= 3 and not joints[0].measured
+
+
+class Hung(SimDriver):
+    """A simulated drive whose stop hangs until ``release`` is set (a hook stuck on a lock its
+    hung read holds), or raises with ``fail``; it notes the thread each stop ran on."""
+
+    def __init__(self, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+        super().__init__(*args, **kwargs)
+        self.release: threading.Event | None = None
+        self.fail = False
+        self.threads: list[tuple[str, bool]] = []
+
+    def _safe_stop(self) -> None:
+        t = threading.current_thread()
+        self.threads.append((t.name, t.daemon))
+        if self.release is not None:
+            self.release.wait()
+        if self.fail:
+            raise OSError("relay stuck")
+        super()._safe_stop()
+
+
+def test_a_safe_stop_names_the_drive_that_does_not_confirm_and_the_one_whose_stop_failed() -> None:
+    a = Hung("a", _joints("xy"), {"heartbeat_ms": 0})
+    b = Hung("b", _joints("z"), {"heartbeat_ms": 0})
+    hw = HardwareSet([(a, [0, 1]), (b, [2])])
+    hw.configure()
+    hw.read(0.0)
+    assert hw.activate() == []
+    a.release = threading.Event()
+    b.fail = True
+    try:
+        # a's stop hangs: b is stopped all the same, each on a daemon thread of its own
+        assert hw.safe_stop("loop hung") == [
+            HardwareFailure("a", "safe stop", "not confirmed within 10 ms"),
+            HardwareFailure("b", "safe stop", "safe stop failed: OSError('relay stuck')"),
+        ]
+        assert b.state is DriverState.FAULT
+        assert a.threads == [("occ-safe-stop-a", True)] and b.threads == [("occ-safe-stop-b", True)]
+        # the bound is the caller's, and named; b's failed stop is still reported
+        assert hw.safe_stop("again", bound_s=0.02) == [
+            HardwareFailure("a", "safe stop", "not confirmed within 20 ms"),
+            HardwareFailure("b", "safe stop", "safe stop failed: OSError('relay stuck')"),
+        ]
+    finally:
+        a.release.set()
+    for t in threading.enumerate():
+        if t.name == "occ-safe-stop-a":
+            t.join()
+    assert a.state is DriverState.FAULT and a.stop_failed is None
+    hw.shutdown()
+
+
+def test_a_drive_being_powered_up_elsewhere_is_left_alone_and_the_others_go_on() -> None:
+    """A drive held by the power-up's thread (``hold``) is not read, powered or reset by the
+    loop; the drives after it still are; a power-up or reset that meets it fails naming it."""
+    hw, a, b = _brittle()
+    hw.configure()
+    hw.read(0.0)
+    hw.hold([a])
+    assert hw.read(0.001) is None
+    assert a.stats()["reads"] == 1 and b.stats()["reads"] == 2  # a skipped, b still read
+    assert hw.activate() == [HardwareFailure("a", "activate", "being powered up already")]
+    assert b.activations == 1 and b.state is DriverState.INACTIVE  # tried, then off again
+    a.safe_stop("x")  # not ACTIVE: nothing to do
+    b.activate()
+    b.safe_stop("y")
+    a._state = DriverState.FAULT  # latched while its power-up ran
+    assert hw.reset() == [HardwareFailure("a", "reset", "still being powered up")]
+    assert b.state is DriverState.INACTIVE  # reset though a came first
+    hw.release([a])
+    a._state = DriverState.INACTIVE
+    hw.shutdown()
+
+
+def test_what_failed_on_other_threads_stops_an_activation_and_is_counted_once() -> None:
+    hw, a, b = _brittle()
+    hw.configure()
+    hw.read(0.0)
+    prior = [HardwareFailure("c", "activate", "node 3 never enabled")]
+    assert hw.activate(prior) == prior
+    assert a.activations == 0 and b.activations == 0  # nothing else powered
+    assert hw.failures == 1
+    # a roll-back whose switch-off fails: both failures, each counted once
+    b.inject("activate")
+    a.breaks.add("deactivate")
+    failures = hw.activate()
+    assert [(f.driver, f.action) for f in failures] == [("b", "activate"), ("a", "deactivate")]
+    assert hw.failures == 3
+    a.breaks.clear()
+    hw.shutdown()
+
+
+def test_a_reset_counts_each_failure_once() -> None:
+    hw, a, b = _set()
+    b.configure()
+    a.inject("configure")  # a never configured: the reset configures it, and that fails
+    (fail,) = hw.reset()
+    assert (fail.driver, fail.action) == ("a", "configure") and hw.failures == 1
+    a.clear_faults()
+    assert hw.reset() == [] and hw.failures == 1
+    hw.shutdown()
+    # the drive resets but its fresh read fails: named as the reset's, counted once
+    hw, a, b = _brittle()
+    hw.configure()
+    b.breaks.add("read")
+    (fail,) = hw.read(0.0) or ()
+    assert fail.driver == "b" and hw.failures == 1
+    (fail,) = hw.reset(0.001)
+    assert fail == HardwareFailure(
+        "b", "reset", "a fresh read failed: driver 'b': read failed: OSError('encoder silent')"
+    )
+    assert hw.failures == 2
+    b.breaks.clear()
+    hw.shutdown()
+
+
+def test_a_switch_off_that_fails_once_is_not_called_still_powered() -> None:
+    hw, a, b = _brittle()
+    hw.configure()
+    hw.read(0.0)
+    hw.activate()
+    calls = [0]
+    real = Brittle._deactivate
+
+    def once(self: Brittle) -> None:
+        calls[0] += 1
+        if calls[0] == 1:
+            raise RuntimeError()
+        real(self)
+
+    a._deactivate = once.__get__(a)  # type: ignore[method-assign]
+    (fail,) = hw.deactivate()
+    # the base's second try switched it off: latched FAULT, safe, nothing appended
+    assert fail == HardwareFailure(
+        "a", "deactivate", "driver 'a': deactivate failed: RuntimeError()"
+    )
+    assert a.stop_failed is None and hw.all_safe() and hw.unsafe() == []
+    hw.shutdown()
+
+
+class Recorded(SimDriver):
+    """A simulated drive that notes every write (positions or efforts)."""
+
+    def __init__(self, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+        super().__init__(*args, **kwargs)
+        self.told: list[tuple[str, list[float]]] = []
+
+    def write(self, values, now):  # type: ignore[no-untyped-def]
+        self.told.append(("position", list(values)))
+        super().write(values, now)
+
+    def write_effort(self, values, now):  # type: ignore[no-untyped-def]
+        self.told.append(("effort", list(values)))
+        super().write_effort(values, now)
+
+
+def test_verify_reads_then_holds_the_joints_where_they_are_or_at_zero_effort() -> None:
+    joints = _joints("xyz")
+    a = Recorded("a", joints[:2], {"heartbeat_ms": 0, "initial_positions": [0.1, -0.2]})
+    b = Recorded("b", joints[2:], {"heartbeat_ms": 0, "initial_positions": [0.3]})
+    hw = HardwareSet([(a, [0, 1]), (b, [2])])
+    hw.configure()
+    hw.read(0.0)
+    hw.activate()
+    assert hw.verify(joints, 0.001) == []
+    # where the fresh read put them (the drives' start, quantised), not zero
+    here = [j.position for j in joints]
+    assert here == pytest.approx([0.1, -0.2, 0.3], abs=1e-4)
+    assert a.told == [("position", here[:2])] and b.told == [("position", here[2:])]
+    hw.shutdown()
+    # an effort drive away from zero: zero effort, not its position
+    c = Recorded(
+        "c",
+        _joints("xy"),
+        {"heartbeat_ms": 0, "initial_positions": [0.1, -0.2]},
+        command_interface="effort",
+    )
+    hw = HardwareSet([(c, [0, 1])])
+    hw.configure()
+    hw.read(0.0)
+    hw.activate()
+    assert hw.verify(c.joints, 0.001, effort=True) == []
+    assert c.joints[0].position == pytest.approx(0.1, abs=1e-4)
+    assert c.told == [("effort", [0.0, 0.0])]
+    hw.shutdown()
+
+
+def test_verify_names_a_drive_left_not_active_once_with_why() -> None:
+    hw, a, b = _set()
+    hw.configure()
+    hw.read(0.0)
+    hw.activate()
+    a.inject("hook")  # a's read fails: named by its read, not again
+    b.safe_stop("overcurrent")  # b stopped itself: named by verify with its reason
+    failures = hw.verify(_joints("xyz"), 0.001)
+    assert [(f.driver, f.action) for f in failures] == [("a", "read"), ("b", "verify")]
+    assert failures[1].cause == "left ACTIVE: safe stop: overcurrent"
+    hw.shutdown()
+    hw, a, b = _set()
+    hw.configure()
+    hw.read(0.0)
+    hw.activate()
+    a.inject("hook")
+    b.deactivate()  # off without a fault: its state is the reason
+    failures = hw.verify(_joints("xyz"), 0.001)
+    assert failures[1] == HardwareFailure("b", "verify", "left ACTIVE: inactive")
+    hw.shutdown()

@@ -14,13 +14,13 @@ import pytest
 from occ.clock import SimClock
 from occ.controllers import Controller, ControllerContext, ControllerSet
 from occ.core.data import RobotData
-from occ.drivers.sim import SimDriver
-from occ.errors import ConfigError
-from occ.kinematics.frame import Frame
 from occ.core.hardware import HardwareSet
-from occ.joint import Joint, JointLimits
 from occ.core.motion import POWERED, Motion
 from occ.core.safety import RobotState as S
+from occ.drivers.sim import SimDriver
+from occ.errors import ConfigError
+from occ.joint import Joint, JointLimits
+from occ.kinematics.frame import Frame
 
 PERIOD = 0.001
 VMAX = (1.0, 0.5, 2.0)  # rad/s: half of it a tick is 0.5, 0.25 and 1 mrad
@@ -40,6 +40,10 @@ class Scripted(Controller):
         self.joints = joints  # the joints it commands (None: all)
         self.target: Sequence[float] | None = None
         self.calls: list[float] = []
+        #: each ``hold`` call's time and the held setpoint as it was given
+        self.holds: list[tuple[float, list[float]]] = []
+        #: moved into the held setpoint by ``hold`` (a slave letting go of the tissue)
+        self.release: Sequence[float] | None = None
 
     def command_interfaces(self) -> tuple[str, ...]:
         assert self.data is not None
@@ -53,6 +57,11 @@ class Scripted(Controller):
     def update(self, now: float) -> Sequence[float] | None:
         self.calls.append(now)
         return None if self.target is None else list(self.target)
+
+    def hold(self, now: float, setpoint: list[float]) -> None:
+        self.holds.append((now, list(setpoint)))
+        if self.release is not None:
+            setpoint[:] = self.release
 
 
 class Rig:
@@ -201,6 +210,27 @@ def test_a_stop_holds_what_the_drives_were_last_told_not_where_they_lag() -> Non
     assert out == pytest.approx([0.4 - 0.4 * f, 0.5 - STEP[1], 0.6 - 0.6 * f], abs=1e-15)
 
 
+def test_while_stopped_the_controllers_may_move_the_held_setpoint_and_that_is_written() -> None:
+    """STOPPED asks the controllers' ``hold`` each tick with its time and the held setpoint
+    (a slave in contact lets go of the tissue); what they leave there is what the drives are
+    told. ENABLED holds without asking them."""
+    rig = Rig()
+    rig.data.q[:] = [0.1, 0.2, 0.3]
+    rig.enter(S.READY, S.ENABLED)
+    assert rig.tick(S.ENABLED, 0.001) == [0.1, 0.2, 0.3]
+    assert rig.ctl.holds == []  # not asked while ENABLED
+    rig.enter(S.STOPPED)
+    assert rig.tick(S.STOPPED, 0.002) == [0.1, 0.2, 0.3]
+    assert rig.ctl.holds == [(0.002, [0.1, 0.2, 0.3])]
+    rig.ctl.release = (0.1, 0.15, 0.3)  # backs off along the second joint
+    assert rig.tick(S.STOPPED, 0.003) == [0.1, 0.15, 0.3]
+    assert rig.ctl.holds[-1] == (0.003, [0.1, 0.2, 0.3])
+    assert rig.data.hold_setpoint == [0.1, 0.15, 0.3]  # moved in place: kept on Run
+    rig.ctl.release = None
+    assert rig.tick(S.STOPPED, 0.004) == [0.1, 0.15, 0.3]
+    assert rig.ctl.holds[-1] == (0.004, [0.1, 0.15, 0.3])
+
+
 def test_running_back_to_enabled_holds_the_last_setpoint() -> None:
     rig = Rig()
     rig.enter(S.READY, S.ENABLED, S.RUNNING)
@@ -247,8 +277,11 @@ def test_a_setpoint_the_collision_guard_does_not_admit_is_not_written() -> None:
     seen: list[list[float]] = []
     allow = [True]
 
+    times: list[float] = []
+
     def admit(sp: Sequence[float], now: float) -> bool:
         seen.append(list(sp))
+        times.append(now)
         return allow[0]
 
     rig.motion.admit = admit
@@ -258,6 +291,7 @@ def test_a_setpoint_the_collision_guard_does_not_admit_is_not_written() -> None:
     rig.ctl.target = (0.2, 0.3, 0.4)
     assert rig.tick(S.RUNNING, 0.002) == [0.2, 0.3, 0.4]
     assert rig.motion.refused == 0 and not rig.motion.reentry
+    assert times == [0.001, 0.002]  # each setpoint asked about at the tick's time
     # refused: the previous setpoint held, counted, and the next admitted one re-joined
     allow[0] = False
     rig.ctl.target = (1.0, 1.0, 1.0)

@@ -322,6 +322,54 @@ def test_the_slaves_energy_is_read_and_one_that_is_no_energy_refuses_its_sample(
     assert link.energy is None  # a slave that sends none: none
 
 
+@pytest.mark.parametrize(
+    ("key", "why"), [("torque_nm", "is not 3 numbers"), ("energy_j", "is not an energy")]
+)
+def test_samples_refused_for_their_torque_or_energy_are_lost_at_the_grace_counted(
+    key: str, why: str
+) -> None:
+    """A slave whose samples keep coming with a torque or an energy that is not one: each
+    refused and counted, and past the grace (100 ms after the last usable tip) the link is
+    lost, the cause naming how many were refused and the last one's fault."""
+    link = ReturnLink("slave")
+    assert link.on_sample(tip(1), 0.0, 0.0)
+    link.check(0.0)
+    event = None
+    seq = 1
+    while event is None and seq < 200:
+        seq += 1
+        t = (seq - 1) * P
+        assert not link.on_sample(tip(seq, force_n="1,2,3", **{key: "x"}), t, t)
+        event = link.check(t)
+    assert event is not None and event.kind == "latch" and link.status == "lost"
+    assert seq == 52 and link.bad_metadata == 51  # 102 ms after the last usable tip
+    assert event.cause.endswith(f": 51 samples refused, the last: seq 52: {key} 'x' {why}")
+
+
+def test_the_slaves_energy_is_shown_in_millijoules_to_four_places() -> None:
+    link = ReturnLink("slave")
+    assert link.on_sample(tip(1, force_n="1,2,3", energy_j="0.0012345678"), 0.0, 0.0)
+    assert link.stats(0.0)["energy_mj"] == 1.2346
+
+
+@pytest.mark.parametrize("bad", ["1,2", "1,2,3,4", "1,x,3", "1,nan,3", "inf,0,0", ""])
+def test_the_slaves_torque_is_read_and_a_malformed_one_refuses_its_sample(bad: str) -> None:
+    """``torque_nm`` (a slave with a 6-axis sensor, issue 37): three finite numbers in N m,
+    kept with the tip and shown in the snapshot to five places; anything else refuses the
+    whole sample (counted, quoted at most 40 characters), the last sound torque kept."""
+    link = ReturnLink("slave")
+    assert link.torque is None and link.stats(0.0)["torque_nm"] is None
+    assert link.on_sample(tip(1, force_n="1,2,3", torque_nm="0.0123456,-0.5,2"), 0.0, 0.0)
+    assert link.torque == (0.0123456, -0.5, 2.0)
+    assert link.stats(0.0)["torque_nm"] == [0.01235, -0.5, 2.0]
+    assert not link.on_sample(tip(2, force_n="1,2,3", torque_nm=bad), P, P)
+    assert link.bad_metadata == 1
+    assert link.last_error == f"seq 2: torque_nm {bad[:40]!r} is not 3 numbers"
+    assert link.torque == (0.0123456, -0.5, 2.0)
+    assert link.on_sample(tip(3, force_n="1,2,3"), 2 * P, 2 * P)
+    assert link.torque is None and link.stats(2 * P)["torque_nm"] is None
+
+
 # ------------------------------------------------------------------ the snapshot
 def test_the_snapshot_shows_the_tip_its_age_and_the_counters() -> None:
     link = ReturnLink("slave2")

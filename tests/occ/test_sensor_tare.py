@@ -29,11 +29,11 @@ import yaml
 
 import igtl
 from igtl.messages.sensor import NEWTON
-from occ.net.decoders import event_of
+from occ.core.loader import parse_config
 from occ.errors import ConfigError
 from occ.haptics.forces import SlaveForce, TareRefused, gravity_wrench
 from occ.kinematics.frame import Frame
-from occ.core.loader import parse_config
+from occ.net.decoders import event_of
 from occ_testkit.testing import CONFIGS, SimRobot
 
 SLAVE = Frame.builtin("occ_slave")
@@ -204,6 +204,25 @@ def test_a_tare_is_refused_with_its_reason_when_not_at_rest_or_in_contact() -> N
     assert "moving" in refusal(eff, 0.0, speed=0.01)
     assert eff.tare_all(0.0, [1.0, 2.0, 3.0], 0.0) == "force tare taken: effort bias [1, 2, 3]"
     assert eff.bias == [1.0, 2.0, 3.0]
+
+
+def test_every_tare_taken_is_counted_and_one_with_nothing_to_tare_says_so() -> None:
+    eff = SlaveForce(("effort",))
+    eff.tare_all(0.0, [1.0, 2.0, 3.0], 0.0)
+    eff.tare_all(0.001, [2.0, 2.0, 2.0], 0.0)
+    assert eff.tares == 2 and eff.tare_last == "taken: effort bias [2, 2, 2]"
+    world = SlaveForce(("tissue",), environment=object())  # the tissue's force: no zero to take
+    assert world.tare_all(0.0, [], 0.0) == "force tare taken: nothing to tare"
+    assert world.tare_last == "taken: nothing to tare" and world.tares == 1
+
+
+def test_the_statistics_give_the_tools_centre_of_mass_in_mm_and_whether_a_tare_was_taken() -> None:
+    src = SlaveForce(("sensor",), tool_mass_kg=0.25, tool_com_m=(0.0123456, -0.0004, 0.05))
+    assert src.stats(0.0)["tool"] == {"mass_kg": 0.25, "com_mm": [12.346, -0.4, 50.0]}
+    assert not src.stats(0.0)["tared"]
+    world = SlaveForce(("tissue",), environment=object())
+    world.tare_all(0.0, [], 0.0)
+    assert world.bias is None and world.stats(0.0)["tared"]  # one tare, no bias: tared
 
 
 # ------------------------------------------------------------------------------ the weight

@@ -159,7 +159,8 @@ def test_a_command_acts_from_its_time_on() -> None:
 
 
 class ConstantLoad:
-    """The world pressing on every joint with the same effort (occ/haptics/contact.py's interface)."""
+    """The world pressing on every joint with the same effort (the interface of
+    occ/haptics/contact.py)."""
 
     def __init__(self, effort: float) -> None:
         self.effort = effort
@@ -221,3 +222,34 @@ def test_a_noisy_encoder_reads_the_position_to_its_nearest_count() -> None:
         assert js[1].position == pytest.approx(0.2, abs=1e-6)
         seen.add(js[1].position)
     assert len(seen) > 10  # the noise is there
+
+
+def test_a_slip_and_a_drift_move_their_joint_by_their_amounts() -> None:
+    """``slip`` adds its amount (from the params' ``kind:joint:amount``, else
+    ``FAULT_AMOUNTS``) to its joint's reading; ``drift`` its rate times the time since it
+    began, from the first read when it was injected before any."""
+    js = joints(2)
+    params = {
+        "faults": ["slip:1:0.25"],
+        "encoder_resolution": 0.0,
+        "initial_positions": [0.25, 0.5],
+    }
+    d = SimDriver("s", js, params)
+    d.configure()
+    d.read(0.0)
+    assert [j.position for j in js] == [0.25, 0.75]
+    js = joints(2)
+    d = SimDriver("s", js, {"encoder_resolution": 0.0, "initial_positions": [0.25, 0.5]})
+    d.configure()
+    d.read(0.0)
+    d.inject("slip")  # joint 0, the default amount
+    d.read(0.001)
+    assert [j.position for j in js] == [0.25 + 0.0005, 0.5]
+    js = joints(1)
+    d = SimDriver("s", js, {"encoder_resolution": 0.0, "initial_positions": [0.25]})
+    d.inject("drift", 0, 2.0)  # before the model's first step
+    d.configure()
+    d.read(0.0)
+    assert js[0].position == 0.25
+    d.read(0.01)
+    assert js[0].position == pytest.approx(0.25 + 2.0 * 0.01)
