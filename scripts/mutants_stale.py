@@ -220,10 +220,28 @@ def in_scope(unit: str, patterns: list[str]) -> bool:
     return any(fnmatchcase(unit, p) or p.startswith(unit + ".") for p in patterns)
 
 
+def file_units_before(path: str, row: datetime) -> frozenset[tuple[str, str]]:
+    """The units of ``path`` (under any of its names) as last committed before ``row``, on
+    whichever branch: a run made on a branch merged later saw that version."""
+    found: set[tuple[str, str]] = set()
+    for name in names(path):
+        commit = git("log", "-1", f"--before={row.isoformat()}", "--format=%H", "--", name)
+        if commit.strip():
+            shown = subprocess.run(
+                ["git", "show", f"{commit.strip()}:{name}"], cwd=ROOT, capture_output=True
+            )
+            if shown.returncode == 0:
+                found |= units(shown.stdout.decode("utf-8", "replace"))
+    return frozenset(found)
+
+
 def changed_units(path: str, row: datetime, commit: str | None = None) -> list[str]:
     """The units of ``path`` now that the project did not have at ``row``'s commit (the one
     made last before it, or the one it names)."""
-    old = project_units(git("rev-parse", commit).strip() if commit else commit_at(row))
+    if commit:
+        old = project_units(git("rev-parse", commit).strip())
+    else:  # the project then, and the file as last committed before the row on any branch
+        old = project_units(commit_at(row)) | file_units_before(path, row)
     now = units((ROOT / path).read_text(encoding="utf-8"))
     return sorted({name for name, code in now if (name, code) not in old})
 
