@@ -24,9 +24,14 @@ values as they are, a reference to a part as the reference, anything else (a lis
 a sample object made at run time) copied deeply, its references to parts kept as references.
 :meth:`Checkpointer.dumps` (the dump writer's thread) pickles it with each part written as its
 path, and :func:`restore` (the replay) sets every slot of a robot built from the same config,
-each path resolved to that robot's own part. Loading refuses every class outside this project,
-numpy and a few builtins: a dump from elsewhere cannot run code (the ``find_class`` restriction
-the :mod:`pickle` documentation recommends).
+each path resolved to that robot's own part. Loading takes only the classes this project
+defines, numpy's arrays, scalars, dtypes and random generators, a few builtins and the
+checkpoint's own two constructors (:meth:`_PartUnpickler.find_class`): never a function that
+could call another (``getattr``), a module or a foreign class one of this project's modules
+imports, or the rest of numpy, so a dump from elsewhere cannot run code (the ``find_class``
+restriction the :mod:`pickle` documentation recommends; until 2026-11-29 ``getattr`` and
+anything an ``occ`` module held, its ``os`` among them, were allowed: a crafted replay.pkl
+ran a shell command).
 
 What a checkpoint cannot hold is reported, never silently dropped: a slot whose value cannot be
 copied (it holds a thread: a power-up under way), or written, or read back as a replay reads it
@@ -66,26 +71,52 @@ _VALUE_ROOTS = frozenset(
 )
 _IMMUTABLE = frozenset({float, int, bool, str, bytes, type(None), complex, MappingProxyType})
 _CONTAINERS = frozenset({tuple, frozenset, list, set, deque, dict})
-#: classes a checkpoint may load besides this project's (numpy arrays and scalars, containers)
-_SAFE_GLOBALS = {
-    ("builtins", "set"),
-    ("builtins", "frozenset"),
-    ("builtins", "complex"),
-    ("builtins", "slice"),
-    ("builtins", "bytearray"),
-    ("builtins", "getattr"),
-    ("builtins", "object"),
-    ("collections", "deque"),
-    ("collections", "OrderedDict"),
-    ("array", "array"),
-    ("array", "_array_reconstructor"),
-    ("copyreg", "_reconstructor"),
-    ("_codecs", "encode"),
-    ("random", "Random"),
-    ("itertools", "count"),
-    ("types", "MappingProxyType"),
-}
-_SAFE_MODULES = ("numpy", "numpy.core", "numpy._core", "numpy.core.multiarray")
+#: what a checkpoint may load besides this project's classes: the builtins and standard
+#: library classes a slot's value may hold (containers, numbers, a random generator), numpy's
+#: arrays, scalars and dtypes (the constructors pickle writes for them, in numpy 1's spelling
+#: too: a dump written elsewhere) and random generators' constructors; never a function that
+#: could do anything else (``getattr``: with it any object reached is a way to ``os.system``;
+#: numpy's others: they write files, and one runs a string as code)
+_SAFE_GLOBALS = frozenset(
+    {
+        ("builtins", "set"),
+        ("builtins", "frozenset"),
+        ("builtins", "complex"),
+        ("builtins", "slice"),
+        ("builtins", "bytearray"),
+        ("builtins", "object"),
+        ("collections", "deque"),
+        ("collections", "OrderedDict"),
+        ("array", "array"),
+        ("array", "_array_reconstructor"),
+        ("random", "Random"),
+        ("itertools", "count"),
+        ("numpy", "ndarray"),
+        ("numpy", "dtype"),
+        ("numpy.core.multiarray", "_reconstruct"),
+        ("numpy._core.multiarray", "_reconstruct"),
+        ("numpy.core.multiarray", "scalar"),
+        ("numpy._core.multiarray", "scalar"),
+        ("numpy.core.numeric", "_frombuffer"),
+        ("numpy._core.numeric", "_frombuffer"),
+        ("numpy.random._pickle", "__generator_ctor"),
+        ("numpy.random._pickle", "__bit_generator_ctor"),
+        ("numpy.random._pickle", "__randomstate_ctor"),
+        ("numpy.random.bit_generator", "__pyx_unpickle_SeedSequence"),
+    }
+)
+#: numpy's modules of the random generators' bits, whose classes may load when they are one
+#: (numpy.random.PCG64 and its kin, SeedSequence)
+_NUMPY_BITS = frozenset(
+    {
+        "numpy.random.bit_generator",
+        "numpy.random._mt19937",
+        "numpy.random._pcg64",
+        "numpy.random._philox",
+        "numpy.random._sfc64",
+    }
+)
+_BITS_CLASSES = (np.random.BitGenerator, np.random.SeedSequence)
 
 
 class _Keep:
@@ -337,10 +368,13 @@ class Checkpointer:
                 p: hashlib.sha256(b).hexdigest()[:16]
                 for (_, _, p), b in zip(self.slots, base, strict=True)
             }
+            # a baseline that could not be pickled (b""; no pickle is empty) compares equal
+            # to nothing: the slot is written, and marked if it still cannot be (before
+            # 2026-11-29 a slot unpicklable in both was skipped and never named)
             items = [
                 (path, v)
                 for (path, v), b in zip(items, base, strict=True)
-                if isinstance(v, Unsaved) or step(self._bytes(v)) != b
+                if isinstance(v, Unsaved) or not b or step(self._bytes(v)) != b
             ]
         kept = [(path, step(self._writable(v))) for path, v in items]
         drives = {p: step(self._writable(v)) for p, v in drives.items()}
@@ -459,14 +493,27 @@ class _PartUnpickler(pickle.Unpickler):
         return part
 
     def find_class(self, module: str, name: str) -> Any:  # noqa: D102 - pickle's hook
-        if (
-            module.partition(".")[0] in self._roots
-            or (module, name) in _SAFE_GLOBALS
-            or module in _SAFE_MODULES
-            or module.startswith("numpy.")
-        ):
+        """A class this project defines (not a module, a function or a foreign class one of
+        its modules imports, whatever the dotted name), the checkpoint's own two
+        constructors, one of :data:`_SAFE_GLOBALS`, or a random generator's bits; anything
+        else refused, and imported only when it is in this project."""
+        if (module, name) in _SAFE_GLOBALS:
             return super().find_class(module, name)
+        ours = module.partition(".")[0] in self._roots
+        if ours or module in _NUMPY_BITS:
+            obj = super().find_class(module, name)
+            if obj is _keep or obj is _mapping_proxy:
+                return obj
+            if isinstance(obj, type) and (
+                _root_of(obj) in self._roots if ours else issubclass(obj, _BITS_CLASSES)
+            ):
+                return obj
         raise pickle.UnpicklingError(f"a checkpoint may not load {module}.{name}")
+
+
+def _root_of(cls: type) -> str:
+    """The module root a class is defined in."""
+    return str(cls.__module__).partition(".")[0]
 
 
 def build_readings(blob: bytes, roots: frozenset[str] = OURS) -> dict[str, Any]:

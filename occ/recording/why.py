@@ -732,10 +732,13 @@ def _num(x: Any) -> float:
 
 
 def _t(d: Dump, e: dict[str, Any]) -> float:
+    """An event's time: its own, else its tick's row's (``-inf``: neither; a row's time of 0.0
+    is a time, not none: before 2026-11-29 such a transition was left out)."""
     t = e.get("t")
     if isinstance(t, int | float):
         return float(t)
-    return d.t_of(int(e["tick"])) or -math.inf
+    row = d.t_of(int(e["tick"]))
+    return -math.inf if row is None else row
 
 
 def _utc(wall: Any) -> str | None:

@@ -169,17 +169,21 @@ def _collision(c: dict[str, Any], t0: float) -> list[str]:
     if "verdict" not in c:
         return ["collision stop"]
     v = c["verdict"]
+    # a clearance may be no number (JSON's "inf": a peer arm not seen, occ/kinematics/collision.py)
     out = [
-        f"link {v['link']!r} near {v['near']!r}: clearance {v['clearance_mm']:.2f} mm, "
-        f"margin {v['margin_mm']:.2f} mm (inside it by {v['inside_by_mm']:.2f} mm)",
+        f"link {v['link']!r} near {v['near']!r}: clearance {_num(v['clearance_mm'], '.2f')} mm, "
+        f"margin {_num(v['margin_mm'], '.2f')} mm (inside it by {_num(v['inside_by_mm'], '.2f')} "
+        "mm)",
         f"verdict    seen by the loop {_at(v, t0)}" + (f": {v['text']}" if v.get("text") else ""),
     ]
-    out += [f"other arm  {p['arm']}: clearance {p['clearance_mm']:.2f} mm" for p in v["peers"]]
+    out += [
+        f"other arm  {p['arm']}: clearance {_num(p['clearance_mm'], '.2f')} mm" for p in v["peers"]
+    ]
     if c["before"]:
         out.append("verdicts before it:")
         out += [
             f"  {_at(b, t0)}  link {b['link']!r} near {b['near']!r}: clearance "
-            f"{b['clearance_mm']:.2f} mm"
+            f"{_num(b['clearance_mm'], '.2f')} mm"
             for b in c["before"]
         ]
     return out

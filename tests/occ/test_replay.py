@@ -12,6 +12,7 @@ or damaged is refused with the reason (the CLI exits 1), and the CLI's exits 0 a
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Callable
 from fractions import Fraction
 from pathlib import Path
@@ -401,3 +402,136 @@ def test_a_slot_no_replay_can_read_is_named_and_scratch_is_no_slot() -> None:
     (why,) = problems
     assert why.startswith("robot.history: cannot be written: UnpicklingError")
     assert "may not load fractions.Fraction" in why
+
+
+# ------------------------------------------------------------------ the replay's pieces alone
+def test_a_result_reports_and_describes_what_the_replay_found() -> None:
+    from occ.core.replay import Divergence, ReplayResult
+
+    r = ReplayResult(10, ticks=3)
+    r.transitions = [(11, "RUNNING", "STOPPED", "stop", "why")]
+    r.problems = ["robot.a: gone"]
+    r.built_differently = [f"robot.s{i}" for i in range(9)]
+    assert r.exact
+    assert r.report() == {
+        "exact": True,
+        "first_tick": 10,
+        "ticks": 3,
+        "divergence": None,
+        "transitions": [
+            {"tick": 11, "from": "RUNNING", "to": "STOPPED", "event": "stop", "reason": "why"}
+        ],
+        "not_restored": ["robot.a: gone"],
+        "built_differently": r.built_differently,
+    }
+    eight = ", ".join(f"robot.s{i}" for i in range(8))
+    assert r.describe("D").splitlines() == [
+        "D: ticks 10..12 replayed (3)",
+        "  tick 11: RUNNING -> STOPPED (stop): why",
+        f"  built differently here (the configuration given): {eight} ...",
+        "  NOT RESTORED: robot.a: gone",
+        "EXACT: every setpoint, effort, state and reading equal bit for bit",
+    ]
+    r.built_differently = r.built_differently[:8]
+    r.divergence = Divergence(12, 0.0125, "sp.j", 1.0, 2.0)
+    assert not r.exact
+    assert r.report()["divergence"] == {
+        "tick": 12,
+        "t": 0.0125,
+        "field": "sp.j",
+        "recorded": 1.0,
+        "replayed": 2.0,
+    }
+    assert r.describe("D").splitlines()[2:] == [
+        f"  built differently here (the configuration given): {eight}",
+        "  NOT RESTORED: robot.a: gone",
+        "DIVERGED at tick 12 (t=0.012500 s): sp.j: recorded 1.0, replayed 2.0",
+    ]
+
+
+def test_a_hooks_error_is_raised_again_with_its_recorded_words() -> None:
+    from occ.core.replay import ReplayClock, _error, _first_difference, _first_finite
+    from occ.errors import DriverError
+
+    err = _error(("occ.errors", "DriverError", "joint 1: lost", "DriverError('joint 1: lost')"))
+    assert type(err) is DriverError and str(err) == "joint 1: lost"
+    for cls in (
+        ("occ.errors", "Warning", "t", "r"),
+        ("can", "BusError", "t", "r"),
+        ("xocc.errors", "DriverError", "t", "r"),
+    ):
+        other = _error(cls)
+        assert type(other) is not DriverError and (str(other), repr(other)) == ("t", "r")
+    clock = ReplayClock(2.0, 100.0)
+    assert clock.wall_time() == 102.0
+    clock.to_wall = 50.0
+    clock.set(3.0)
+    assert clock.wall_time() == 53.0
+    assert _first_finite(np.array([np.nan, np.inf, 5.0, 6.0])) == 5.0
+    assert _first_finite(np.array([np.nan])) == 1_700_000_000.0
+    cols = ["t", "state", "sp.a", "x"]
+    a = np.array([0.0, 1.0, 2.0, 3.0])
+    assert _first_difference(a, a.copy(), [1, 2], cols) is None
+    b = a.copy()
+    b[3] = 9.0  # not compared
+    assert _first_difference(a, b, [1, 2], cols) is None
+    b[2] = -0.0 if a[2] == 0.0 else np.nextafter(a[2], 0.0)
+    assert _first_difference(a, b, [1, 2], cols) == ("sp.a", 2.0, float(b[2]))
+    zero, minus = np.array([0.0, 0.0]), np.array([0.0, -0.0])  # equal, not the same bits
+    assert _first_difference(zero, minus, [0, 1], ["state", "sp.b"]) == ("sp.b", 0.0, -0.0)
+
+
+@pytest.mark.parametrize(
+    ("outer", "words"),
+    [
+        ([1, 2], "not a replay file"),
+        ({"checkpoint": "text"}, "not a replay file"),
+        ({"checkpoint": b"", "inputs": (b"",)}, "not a replay file (inputs)"),
+        ({"checkpoint": b"", "inputs": [b"", "x"]}, "not a replay file (inputs)"),
+        ({"checkpoint": b"", "inputs": [], "built_at": 1}, "not a replay file (built_at)"),
+    ],
+)
+def test_the_replay_files_outer_layer_is_plain_data(outer: Any, words: str) -> None:
+    import pickle
+
+    from occ.core.replay import _loads
+
+    with pytest.raises(ValueError, match=f"^{re.escape(words)}$"):
+        _loads(pickle.dumps(outer))
+    ok = {"checkpoint": b"c", "inputs": [b"i"], "built_at": 0.5}
+    assert _loads(pickle.dumps(ok)) == ok
+    assert _loads(pickle.dumps({"checkpoint": b"c", "inputs": []}))["inputs"] == []
+    # no class at all: not even a harmless one
+    with pytest.raises(pickle.UnpicklingError, match="^replay.pkl may not load builtins.complex$"):
+        _loads(pickle.dumps({"checkpoint": b"", "inputs": [], "x": 1j}))
+
+
+def test_a_dump_without_a_replay_says_why(tmp_path: Path) -> None:
+    from occ.core.replay import load_dump
+
+    (tmp_path / "manifest.json").write_text(json.dumps({"format": "occ-black-box"}))
+    with pytest.raises(ValueError, match="cannot be replayed: a dump of a version without replay$"):
+        load_dump(tmp_path)
+    (tmp_path / "manifest.json").write_text(
+        json.dumps({"format": "occ-black-box", "replay": {"possible": False, "why": "no room"}})
+    )
+    with pytest.raises(
+        ValueError, match=f"^{re.escape(str(tmp_path))}: cannot be replayed: no room$"
+    ):
+        load_dump(tmp_path)
+    (tmp_path / "manifest.json").write_text(
+        json.dumps({"format": "occ-black-box", "replay": {"possible": True}})
+    )
+    with pytest.raises(ValueError, match="cannot be replayed: config.yaml is missing$"):
+        load_dump(tmp_path)
+
+
+def test_a_dumps_rows_holding_pickles_are_refused(slave_dump: Path, tmp_path: Path) -> None:
+    """ticks.npy is read without pickles: an object array (code on load) is damage."""
+    copy = tmp_path / slave_dump.name
+    copy.mkdir()
+    for f in slave_dump.iterdir():
+        (copy / f.name).write_bytes(f.read_bytes())
+    np.save(copy / "ticks.npy", np.array([[object()]], dtype=object), allow_pickle=True)
+    with pytest.raises(ValueError, match="ticks.npy is damaged .*allow_pickle=False"):
+        replay_dump(copy)
