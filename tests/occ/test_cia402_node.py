@@ -194,6 +194,19 @@ def test_a_second_sensor_is_judged_against_its_tolerance_and_latency() -> None:
     assert node.second_check(0.5, 10.5) is None
 
 
+@pytest.mark.req("SR-HW-36")
+def test_a_second_sensor_that_disagrees_from_its_first_reading_waits_its_latency() -> None:
+    """Right after a configuration (``forget``), a disagreement from the very first reading
+    starts the latency there and faults after it, as a later one does."""
+    node = make_node(cpu=1024.0)
+    node.second = (0x2100, 0, 1024.0, 2.0**-7, 0.0625)
+    node.forget()
+    node.second_counts = 600
+    assert node.second_check(0.5, 3.0) is None and node.second_since == 3.0
+    assert node.second_check(0.5, 3.0625) is None
+    assert (node.second_check(0.5, 3.07) or "").startswith("joint yaw: second position sensor")
+
+
 # ----------------------------------------------------------------------------- stop and reset
 def test_a_controlword_goes_by_sdo_only_to_a_node_out_of_operational() -> None:
     node = make_node()
