@@ -606,7 +606,7 @@ def test_a_drive_that_leaves_operation_enabled_on_its_own_faults_the_driver(
 
 
 @pytest.mark.req("SR-HW-32")
-def test_a_node_in_quick_stop_active_is_switched_off_first_when_enabling() -> None:
+def test_a_node_in_quick_stop_active_is_switched_off_first_when_enabling_and_named_once() -> None:
     """A drive whose quick stop option keeps it in QUICK STOP ACTIVE (CiA 402 options 5-8; the
     emulator's option 2 leaves it at once) is told disable voltage, the way to SWITCH ON
     DISABLED, then the enable steps. The hook alone, with no bus: its controlwords are packed,
@@ -621,6 +621,8 @@ def test_a_node_in_quick_stop_active_is_switched_off_first_when_enabling() -> No
         "node 1 (joint yaw): no TPDO answered any SYNC of it (its last statusword 0x0207, "
         "QUICK STOP ACTIVE)" in str(info.value)
     )
+    # every node silent and short of OPERATION ENABLED: each named once
+    assert [str(info.value).count(f"node {n} (joint") for n in (1, 2, 3)] == [1, 1, 1]
     # the step each was told last: voltage off (out of QUICK STOP ACTIVE), enable, enable
     assert [n.rpdo[0] for n in drv._nodes] == [0x00, 0x0F, 0x0F]
 
