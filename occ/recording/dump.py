@@ -276,7 +276,7 @@ def _write_files(
             "ticks.npy",
             DUMP_RECORDING,
             "events.jsonl",
-            *([REPLAY] if (tmp / REPLAY).is_file() else []),  # none without a checkpoint
+            *([REPLAY] if "from_tick" in replayable else []),  # written only with a checkpoint
         ],
     }
     (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1, default=str), encoding="utf-8")
