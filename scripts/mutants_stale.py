@@ -88,16 +88,18 @@ def git(*args: str) -> str:
     ).stdout
 
 
-def names(path: str) -> set[str]:
+@cache
+def names(path: str) -> frozenset[str]:
     """Every path the file had, as git follows its renames (the path now included)."""
     out = git("log", "--follow", "--name-only", "--format=", "--", path)
-    return {path} | {line for line in out.splitlines() if line.strip()}
+    return frozenset({path} | {line for line in out.splitlines() if line.strip()})
 
 
-def _strip(body: list[ast.stmt]) -> list[ast.stmt]:
-    """A body without its docstring and its import lines (a docstring alone leaves ``pass``)."""
-    if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
-        if isinstance(body[0].value.value, str):
+def _strip(body: list[ast.stmt], docstring: bool = True) -> list[ast.stmt]:
+    """A body without its import lines and (``docstring``) its docstring; one left empty is
+    ``pass``."""
+    if docstring and body and isinstance(body[0], ast.Expr):
+        if isinstance(body[0].value, ast.Constant) and isinstance(body[0].value.value, str):
             body = body[1:]
     return [s for s in body if not isinstance(s, ast.Import | ast.ImportFrom)] or [ast.Pass()]
 
@@ -114,8 +116,7 @@ class _Normal(ast.NodeTransformer):
             for name in ("body", "orelse", "finalbody"):
                 block = getattr(node, name, None)
                 if isinstance(block, list) and block and isinstance(block[0], ast.stmt):
-                    kept = [s for s in block if not isinstance(s, ast.Import | ast.ImportFrom)]
-                    setattr(node, name, kept or [ast.Pass()])
+                    setattr(node, name, _strip(block, docstring=False))
         return node
 
 
@@ -227,11 +228,10 @@ def file_units_before(path: str, row: datetime) -> frozenset[tuple[str, str]]:
     for name in names(path):
         commit = git("log", "-1", f"--before={row.isoformat()}", "--format=%H", "--", name)
         if commit.strip():
-            shown = subprocess.run(
-                ["git", "show", f"{commit.strip()}:{name}"], cwd=ROOT, capture_output=True
-            )
-            if shown.returncode == 0:
-                found |= units(shown.stdout.decode("utf-8", "replace"))
+            try:
+                found |= units(git("show", f"{commit.strip()}:{name}"))
+            except subprocess.CalledProcessError:
+                continue  # the commit removed it under that name
     return frozenset(found)
 
 
