@@ -13,6 +13,7 @@ import json
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -77,6 +78,17 @@ def trio(tmp_path: Path):  # type: ignore[no-untyped-def]
         stop_processes(procs.values())
 
 
+def streaming(slave: SlicerStandIn, console: SlicerStandIn, name: str) -> bool:
+    """The master daemon ``name`` is RUNNING (run again if a stall stopped it) and its stream
+    reaches the slave: the slave's interface ``name`` received more over 50 ms."""
+    if stats_of(console)["state"] != "RUNNING":
+        command(console, "Run")
+        return False
+    before = stats_of(slave)["interfaces"][name]["received"]
+    time.sleep(0.05)
+    return bool(stats_of(slave)["interfaces"][name]["received"] > before)
+
+
 def test_three_daemons_handover_and_loss_rules(trio) -> None:  # type: ignore[no-untyped-def]
     ports, procs = trio
     with (
@@ -111,8 +123,22 @@ def test_three_daemons_handover_and_loss_rules(trio) -> None:  # type: ignore[no
         # the trainee may not take control; the mentor (supervisor) hands it over
         refused = command(trainee, "Handover", '<Command Name="Handover" To="trainee"/>')
         assert refused.metadata["Status"] == "FAIL"
-        reply = command(mentor, "Handover", '<Command Name="Handover" To="trainee"/>')
-        assert reply.metadata["Status"] == "SUCCESS", reply.metadata
+        assert "may not take control itself" in refused.metadata["Error"], refused.metadata
+        # the slave refuses a handover to a stream it has not heard since Run (SR of issue 12);
+        # a stall of this shared machine can stop the trainee's own daemon, which then sends
+        # nothing: its operator runs it again, as one would, and the refusal is counted
+        not_live = 0
+        with SlicerStandIn("127.0.0.1", ports["trainee_op"]) as trainee_console:
+            assert trainee_console.connected.wait(5.0)
+            for _ in range(5):
+                assert wait_for(lambda: streaming(bedside, trainee_console, "trainee"), 15.0)
+                reply = command(mentor, "Handover", '<Command Name="Handover" To="trainee"/>')
+                if reply.metadata["Status"] == "SUCCESS" or "not live" not in reply.metadata.get(
+                    "Error", ""
+                ):
+                    break
+                not_live += 1
+        assert reply.metadata["Status"] == "SUCCESS", (reply.metadata, not_live)
         for c in (viewer, bedside, mentor, trainee):
             assert wait_for(lambda c=c: any(s.error_name == "HANDOVER" for s in c.statuses), 5.0)
         assert wait_for(lambda: following("trainee"), 15.0), (
@@ -122,7 +148,8 @@ def test_three_daemons_handover_and_loss_rules(trio) -> None:  # type: ignore[no
             last.get("last_alert"),
         )
         snap = stats_of(bedside)
-        assert snap["collaboration"]["handovers"] == 1 and snap["collaboration"]["refused"] == 1
+        assert snap["collaboration"]["handovers"] == 1
+        assert snap["collaboration"]["refused"] == 1 + not_live
         # the State Data Table: the last second at the loop rate, as an NDARRAY
         reply = command(viewer, "GetStateTable", '<Command Name="GetStateTable" Seconds="1"/>')
         assert reply.metadata["Status"] == "SUCCESS", reply.metadata
