@@ -15,6 +15,9 @@ checkpointer finds the state itself, once, when the robot is built and configure
   (pydantic models, fixed at build) and objects of foreign libraries (a pinocchio model's
   scratch data, rewritten by each use), alone or as the only items of a list or tuple (a
   collision checker's coal transforms, one a link);
+- an attribute a class names in ``checkpoint_fixed`` is wiring too: a table its constructor
+  derives from the configuration and nothing changes after (the output scheduler's schedule,
+  the statistics registry's entries), rebuilt the same by every robot built from that config;
 - the subtrees that are I/O or records, not the loop's state, are *opaque*: the interfaces
   (their threads), the black box, the State Data Table, the recorder, the loop and its clock.
   A slot that refers to one keeps the reference, nothing inside is taken.
@@ -45,6 +48,7 @@ import enum
 import hashlib
 import io
 import pickle
+import random
 from array import array
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
@@ -237,8 +241,9 @@ class Checkpointer:
             obj, path = todo.popleft()
             if id(obj) in self._opaque:
                 continue
+            fixed = getattr(type(obj), "checkpoint_fixed", ())
             for name, value in _attrs(obj):
-                if _wiring(value, self.roots) or _scratch(value, self.roots):
+                if name in fixed or _wiring(value, self.roots) or _scratch(value, self.roots):
                     continue
                 where = f"{path}.{name}"
                 self.slots.append((obj, name, where))
@@ -327,6 +332,9 @@ class Checkpointer:
             out = v.copy()
         elif t is array:
             out = array(v.typecode, v)
+        elif t is random.Random:  # its state as a tuple: a seventh of a deep copy's time
+            out = t.__new__(t)
+            out.setstate(v.getstate())
         elif _wiring(v, self.roots):
             return v
         elif getattr(t, "checkpoint_opaque", False):

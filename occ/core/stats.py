@@ -374,6 +374,9 @@ class StatsRegistry:
     and adds every entry under its name, in the order registered. Called off the loop thread
     (the worker's), so every callable must be safe there."""
 
+    #: registered as the robot is built, never changed after: not a checkpoint's
+    checkpoint_fixed = ("_entries",)
+
     def __init__(self, base: Callable[[], dict[str, Any]]) -> None:
         self._base = base
         self._entries: list[tuple[str, Callable[[], Any]]] = []

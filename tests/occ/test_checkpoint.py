@@ -723,3 +723,30 @@ def test_wiring_made_at_run_time_is_kept_as_it_is_not_copied() -> None:
     root.x = [[1.0], lock]
     (value,) = cp.take()
     assert value[1] is lock and value[0] == [1.0] and value[0] is not root.x[0]
+
+
+class Scheduled:
+    """A part with a table fixed at build (``checkpoint_fixed``) beside its state."""
+
+    checkpoint_fixed = ("table",)
+
+    def __init__(self) -> None:
+        self.table = [(Kept(1.0), print)] * 3  # derived from the config, never changed
+        self.count = [0]  # state
+        self.rng = random.Random(7)  # a simulated drive's noise
+
+
+def test_a_fixed_table_is_no_slot_and_a_generator_is_copied_to_its_exact_state() -> None:
+    part = Scheduled()
+    cp = Checkpointer(part, roots=["tests"])
+    assert _paths(cp) == ["robot.count", "robot.rng"]  # not robot.table, nor what it reaches
+    part.rng.random()
+    values = dict(zip(_paths(cp), cp.take(), strict=True))
+    copied = values["robot.rng"]
+    assert type(copied) is random.Random and copied is not part.rng
+    ahead = [part.rng.random() for _ in range(3)]
+    assert [copied.random() for _ in range(3)] == ahead  # the same sequence from there
+    other = Scheduled()  # another build: restored, it draws what the first drew
+    other_cp = Checkpointer(other, roots=["tests"])
+    restore(other_cp, cp.dumps(cp.take()))
+    assert [other.rng.random() for _ in range(3)] == [part.rng.random() for _ in range(3)]
