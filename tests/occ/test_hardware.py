@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 
 import pytest
 
@@ -475,6 +476,34 @@ def test_a_safe_stop_names_the_drive_that_does_not_confirm_and_the_one_whose_sto
         if t.name == "occ-safe-stop-a":
             t.join()
     assert a.state is DriverState.FAULT and a.stop_failed is None
+    hw.shutdown()
+
+
+def test_a_hung_stop_holds_the_supervisor_for_its_bound_not_longer() -> None:
+    """The supervisor waits for a drive whose stop hangs only as long as the bound it gives: a
+    ratio of two bounds, not a wall-clock limit (5 ms against 400 ms; a floor under the wait,
+    such as one second, would make both the same)."""
+    a = Hung("a", _joints("xy"), {"heartbeat_ms": 0})
+    hw = HardwareSet([(a, [0, 1])])
+    hw.configure()
+    hw.read(0.0)
+    assert hw.activate() == []
+    a.release = threading.Event()
+
+    def waited(bound_s: float) -> float:
+        t = time.perf_counter()
+        assert hw.safe_stop("loop hung", bound_s=bound_s)[0].driver == "a"
+        return time.perf_counter() - t
+
+    try:
+        short = min(waited(0.005) for _ in range(3))
+        long = waited(0.4)
+    finally:
+        a.release.set()
+    for t in threading.enumerate():
+        if t.name == "occ-safe-stop-a":
+            t.join()
+    assert long >= 0.4 and short < long / 8, (short, long)
     hw.shutdown()
 
 
