@@ -185,8 +185,9 @@ SCHEDULE_MAX = 10_000
 class OutputScheduler:
     """Every output of every interface, each sent every ``every`` ticks from its source."""
 
-    #: built from the configuration, never changed: not a checkpoint's (occ/core/checkpoint.py)
-    checkpoint_fixed = ("_due", "_schedule", "outputs")
+    #: built from the configuration, never changed: not a checkpoint's (occ/core/checkpoint.py;
+    #: the outputs themselves are, through ``outputs``: each one's ``seq``)
+    checkpoint_fixed = ("_due", "_schedule")
 
     def __init__(self, outputs: Sequence[Output], sources: dict[str, SourceFn]) -> None:
         for out in outputs:

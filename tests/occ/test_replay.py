@@ -535,3 +535,19 @@ def test_a_dumps_rows_holding_pickles_are_refused(slave_dump: Path, tmp_path: Pa
     np.save(copy / "ticks.npy", np.array([[object()]], dtype=object), allow_pickle=True)
     with pytest.raises(ValueError, match="ticks.npy is damaged .*allow_pickle=False"):
         replay_dump(copy)
+
+
+def test_each_outputs_sequence_is_a_slot_and_the_schedule_built_from_the_config_is_not() -> None:
+    """The output scheduler's tables derived from the config are ``checkpoint_fixed`` (no
+    checkpoint copies them again each second); the outputs they point to are still parts, so
+    a replay numbers its messages on from where the recorded robot was."""
+    from occ.core.wiring import checkpointer
+
+    sim = SimRobot(CONFIGS / "slave.yaml")
+    try:
+        paths = [p for _, _, p in checkpointer(sim.robot).slots]
+    finally:
+        sim.close()
+    assert "robot.outputs.outputs[0].seq" in paths
+    assert not any("_schedule" in p or "_due" in p for p in paths if p.startswith("robot.outputs"))
+    assert not any(p.startswith("robot.operators.port.stats._entries") for p in paths)
