@@ -241,6 +241,9 @@ def test_fixture_commands_and_unknown_ones(master: SimMaster) -> None:
     assert (status, message) == ("SUCCESS", "fixtures cleared")
     status, message = _status(master.command("Fly"))
     assert status == "FAIL" and "unknown command 'Fly'" in message
+    # a master without a gripper has no Grip: refused as any unknown command
+    status, message = _status(master.command("Grip", '<Command Name="Grip" Value="close"/>'))
+    assert status == "FAIL" and "unknown command 'Grip'" in message
     status, message = _status(master.command("Select", '<Command Name="Select" to="left"/>'))
     assert status == "FAIL" and "nothing to select" in message
 
