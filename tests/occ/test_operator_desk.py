@@ -116,6 +116,15 @@ def test_reset_in_stopped_clears_the_alert_and_says_how_to_resume(sim):
     assert op.reply_to(cid).metadata["Message"] == "STOPPED -> RUNNING"
 
 
+def test_cell_commands_on_a_daemon_in_no_cell_are_refused_saying_so(sim):
+    op = sim.peer("operator")
+    for name in ("CellLeave", "CellJoin", "CellForget"):
+        reply = sim.command(op, name)
+        assert reply.metadata["Status"] == "FAIL", name
+        assert "this daemon is in no cell (no `cell:` section)" in reply.metadata["Error"], name
+    assert sim.robot.state is RobotState.READY
+
+
 def test_get_capabil_lists_what_the_robot_answers(sim):
     viewer = sim.peer("slicer", header_version=1)
     query(viewer, "GET_CAPABIL", "Cap", version=1)
