@@ -456,9 +456,15 @@ def test_a_deferred_command_is_answered_when_its_work_is_done(sim, monkeypatch):
         desk.handle(Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now), sim.now)
     assert out == [] and desk.counters()["handled"] == 2
     sim.step(10)
+    # the flight recorder keeps a late answer as it keeps any reply: the message, its interface
+    box = sim.robot.black_box
+    assert box is not None
+    kept: list[tuple[igtl.Message, str]] = []
+    monkeypatch.setattr(box, "sent", lambda msg, interface, now=0.0: kept.append((msg, interface)))
     pending[0].resolve("planned 3 segments")
     pending[1].fail("unreachable pose")
     ok_reply, bad_reply = out
+    assert kept == [(ok_reply, "operator"), (bad_reply, "operator")]
     assert (ok_reply.command_id, ok_reply.message_id) == (70, 70)
     assert ok_reply.metadata == {"Status": "SUCCESS", "Message": "planned 3 segments"}
     assert ok_reply.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
