@@ -579,6 +579,45 @@ def test_a_failing_command_handler_faults_and_the_asker_is_told(sim, monkeypatch
     assert out[-1].status_message == "GET_STATUS failed: bad"
 
 
+def test_an_array_answer_is_sent_by_the_worker_the_ndarray_first_then_the_reply(sim, monkeypatch):
+    import threading
+
+    from occ.net.commands import ArrayReply
+
+    path = np.arange(12.0).reshape(4, 3)
+    answer = ArrayReply("path of 4 samples", path, "CellPath", {"member": "arm0", "set": "ab"})
+    monkeypatch.setattr(sim.robot.controller, "on_command", lambda req, now: answer)
+    out: list[tuple[str, igtl.Message]] = []
+
+    def reply(item, msg):
+        out.append((threading.current_thread().name, msg))
+
+    monkeypatch.setattr(sim.robot.interfaces, "reply", reply)
+    msg = igtl.CommandMessage(
+        command_id=81, command_name="CellPath", device_name="x", header_version=2, message_id=81
+    )
+    handle(sim, msg)
+    assert wait_until(lambda: len(out) == 2, 10.0, 0.001)
+    (t_array, array), (t_reply, text) = out
+    loop = threading.current_thread().name
+    assert t_array != loop and t_reply != loop  # packed and sent by the worker
+    assert array.message_type == "NDARRAY" and array.device_name == "CellPath"
+    assert np.array_equal(array.array, path)
+    assert dict(array.metadata) == {"member": "arm0", "set": "ab"}
+    assert (array.header_version, array.message_id) == (2, 81)
+    assert array.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
+    assert (text.message_type, text.command_id, text.message_id) == ("RTS_COMMAND", 81, 81)
+    assert text.metadata == {"Status": "SUCCESS", "Message": "path of 4 samples"}
+    assert text.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
+    # a worker still busy with an earlier one: refused at once, nothing sent
+    out.clear()
+    monkeypatch.setattr(sim.robot.worker.start(), "submit", lambda job: False)
+    handle(sim, igtl.CommandMessage(command_id=82, command_name="CellPath", device_name="x"))
+    ((_, busy),) = out
+    assert busy.metadata["Status"] == "FAIL"
+    assert busy.metadata["Error"] == "busy: the worker is still sending an earlier reply; try again"
+
+
 def test_a_busy_worker_refuses_at_once(sim, monkeypatch):
     out: list[igtl.Message] = []
     monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
