@@ -618,6 +618,44 @@ def test_an_array_answer_is_sent_by_the_worker_the_ndarray_first_then_the_reply(
     assert busy.metadata["Error"] == "busy: the worker is still sending an earlier reply; try again"
 
 
+def test_the_black_box_notes_who_asked_a_command_and_keeps_each_reply(sim, monkeypatch):
+    from igtl.auth import HMAC_KEY
+    from igtl.transport.common import Peer
+    from occ.net.interfaces import Inbound
+
+    box = sim.robot.black_box
+    assert box is not None
+    notes: list[tuple[str, object]] = []
+    kept: list[tuple[igtl.Message, str]] = []
+    monkeypatch.setattr(box, "note", lambda what, obj: notes.append((what, obj)))
+    monkeypatch.setattr(box, "sent", lambda msg, interface, now=0.0: kept.append((msg, interface)))
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    desk = sim.robot.operators
+    plain = igtl.CommandMessage(command_id=5, command_name="Enable", device_name="x")
+    desk.handle(Inbound("operator", Peer(1, ("127.0.0.9", 4000)), plain, sim.now), sim.now)
+    signed = igtl.CommandMessage(
+        command_id=6, command_name="Disable", device_name="x", header_version=2,
+        metadata={HMAC_KEY: "0" * 64},
+    )  # fmt: skip
+    viewer = Inbound("slicer", Peer(2, ("127.0.0.8", 4001)), signed, sim.now, role="viewer")
+    desk.handle(viewer, sim.now)
+    query = igtl.REGISTRY["GET_STATUS"](type_name="GET_STATUS", device_name="x")
+    desk.handle(Inbound("operator", Peer(1, ("127.0.0.9", 4000)), query, sim.now), sim.now)
+    requests = [obj for what, obj in notes if what == "request"]
+    assert requests == [  # commands only: a query asks for nothing to be done
+        {"interface": "operator", "name": "Enable", "peer": "127.0.0.9:4000",
+         "role": "operator", "signed": "no"},
+        {"interface": "slicer", "name": "Disable", "peer": "127.0.0.8:4001",
+         "role": "viewer", "signed": "yes"},
+    ]  # fmt: skip
+    assert len(out) == 3 and kept == [
+        (out[0], "operator"),
+        (out[1], "slicer"),
+        (out[2], "operator"),
+    ]
+
+
 def test_a_busy_worker_refuses_at_once(sim, monkeypatch):
     out: list[igtl.Message] = []
     monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
