@@ -629,6 +629,8 @@ def test_the_black_box_notes_who_asked_a_command_and_keeps_each_reply(sim, monke
     kept: list[tuple[igtl.Message, str]] = []
     monkeypatch.setattr(box, "note", lambda what, obj: notes.append((what, obj)))
     monkeypatch.setattr(box, "sent", lambda msg, interface, now=0.0: kept.append((msg, interface)))
+    took: list[tuple[object, str]] = []
+    monkeypatch.setattr(box, "took_request", lambda item, interface: took.append((item, interface)))
     out: list[igtl.Message] = []
     monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
     desk = sim.robot.operators
@@ -654,6 +656,10 @@ def test_the_black_box_notes_who_asked_a_command_and_keeps_each_reply(sim, monke
         (out[1], "slicer"),
         (out[2], "operator"),
     ]
+    # every item the desk took, as it came (a replay puts them back on the command queue)
+    assert [(i.msg, where) for i, where in took] == [
+        (plain, "operator"), (signed, "slicer"), (query, "operator")
+    ]  # fmt: skip
 
 
 def test_a_busy_worker_refuses_at_once(sim, monkeypatch):
