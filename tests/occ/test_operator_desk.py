@@ -609,6 +609,7 @@ def test_an_array_answer_is_sent_by_the_worker_the_ndarray_first_then_the_reply(
     assert (text.message_type, text.command_id, text.message_id) == ("RTS_COMMAND", 81, 81)
     assert text.metadata == {"Status": "SUCCESS", "Message": "path of 4 samples"}
     assert text.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
+    assert sim.robot.operators.counters()["handled"] == 1  # counted once, when handed over
     # a worker still busy with an earlier one: refused at once, nothing sent
     out.clear()
     monkeypatch.setattr(sim.robot.worker.start(), "submit", lambda job: False)
