@@ -314,7 +314,7 @@ def test_black_box_defaults_and_off() -> None:
         rig.step(1)
         reply = rig.operator.reply_to(cid)
         assert reply is not None and reply.metadata["Status"] == "FAIL"
-        assert "DumpBlackBox: no black box (black_box.enabled is false)" in reply.metadata["Error"]
+        assert reply.metadata["Error"] == "DumpBlackBox: no black box (black_box.enabled is false)"
         rig.command("EStop")
         assert rig.robot.black_box.stats()["requested"] == 0
     finally:

@@ -121,7 +121,7 @@ def test_cell_commands_on_a_daemon_in_no_cell_are_refused_saying_so(sim):
     for name in ("CellLeave", "CellJoin", "CellForget"):
         reply = sim.command(op, name)
         assert reply.metadata["Status"] == "FAIL", name
-        assert "this daemon is in no cell (no `cell:` section)" in reply.metadata["Error"], name
+        assert reply.metadata["Error"] == "this daemon is in no cell (no `cell:` section)", name
     assert sim.robot.state is RobotState.READY
 
 
@@ -588,8 +588,10 @@ def test_an_array_answer_is_sent_by_the_worker_the_ndarray_first_then_the_reply(
     answer = ArrayReply("path of 4 samples", path, "CellPath", {"member": "arm0", "set": "ab"})
     monkeypatch.setattr(sim.robot.controller, "on_command", lambda req, now: answer)
     out: list[tuple[str, igtl.Message]] = []
+    to: list[object] = []
 
     def reply(item, msg):
+        to.append(item)
         out.append((threading.current_thread().name, msg))
 
     monkeypatch.setattr(sim.robot.interfaces, "reply", reply)
@@ -610,6 +612,7 @@ def test_an_array_answer_is_sent_by_the_worker_the_ndarray_first_then_the_reply(
     assert text.metadata == {"Status": "SUCCESS", "Message": "path of 4 samples"}
     assert text.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
     assert sim.robot.operators.counters()["handled"] == 1  # counted once, when handed over
+    assert [(i.interface, i.msg) for i in to] == [("operator", msg)] * 2  # to the asker
     # a worker still busy with an earlier one: refused at once, nothing sent
     out.clear()
     monkeypatch.setattr(sim.robot.worker.start(), "submit", lambda job: False)
