@@ -334,6 +334,9 @@ def test_a_slicer_polydata_mesh_becomes_a_region_and_a_bad_one_is_refused(monkey
         (region,) = guard.cm.regions
         assert region.name == "Tumour" and region.kind == "mesh"
         assert pauses  # it paused at least once while building
+        # taken, so not refused: the asker is told nothing about it
+        assert not [m for m in op.messages() if "Tumour" in str(getattr(m, "metadata", {}))
+                    or "Tumour" in getattr(m, "status_message", "")]  # fmt: skip
         hits = guard.cm.checker().check(HOME, sim.robot.data.base)
         assert {h.region for h in hits} == {"Tumour"}, hits
         assert {"wrist_3_link", "ee_link"} <= {h.link for h in hits}, hits
