@@ -140,6 +140,30 @@ def test_dump_black_box_is_written_off_the_loop_and_the_reply_says_where(rig: Sl
     assert rig.robot.state is RobotState.RUNNING  # nothing moved for it
 
 
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [
+        ('<Command Name="DumpBlackBox" reason="y"/>', "operator DumpBlackBox: y"),
+        ("", "operator DumpBlackBox"),
+    ],
+    ids=["lower-case-reason", "no-reason"],
+)
+def test_dump_black_box_takes_its_reason_in_either_case_or_none(
+    tmp_path: Path, text: str, reason: str
+) -> None:
+    rig = _slave(tmp_path)
+    try:
+        rig.running()
+        rig.step(40)
+        reply = rig.sim.command(rig.operator, "DumpBlackBox", text)
+        assert reply.metadata["Status"] == "SUCCESS"
+        path, m = _the_dump(rig, "operator")
+        assert f"black box: writing {path}" in str(reply.command)
+        assert m["causes"] == [{"cause": "operator", "reason": reason}]
+    finally:
+        rig.close()
+
+
 @pytest.mark.req("SR-BOX-1")
 def test_the_ring_holds_what_the_loop_read_and_did(tmp_path: Path) -> None:
     rig = _slave(tmp_path, seconds=0.1)  # 100 rows: the ring wraps in this run
@@ -290,6 +314,7 @@ def test_black_box_defaults_and_off() -> None:
         rig.step(1)
         reply = rig.operator.reply_to(cid)
         assert reply is not None and reply.metadata["Status"] == "FAIL"
+        assert reply.metadata["Error"] == "DumpBlackBox: no black box (black_box.enabled is false)"
         rig.command("EStop")
         assert rig.robot.black_box.stats()["requested"] == 0
     finally:

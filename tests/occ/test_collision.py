@@ -305,7 +305,11 @@ def test_the_motion_bound_covers_every_link_point() -> None:
 
 
 @pytest.mark.req("SR-COLL-3")
-def test_a_slicer_polydata_mesh_becomes_a_region_and_a_bad_one_is_refused() -> None:
+def test_a_slicer_polydata_mesh_becomes_a_region_and_a_bad_one_is_refused(monkeypatch) -> None:
+    import occ.net.operators as operators
+
+    pauses: list[int] = []  # the build gives the loop thread the interpreter between its parts
+    monkeypatch.setattr(operators, "_let_others_run", lambda: pauses.append(1))
     sim = SimRobot(ur5({"margin_mm": 10.0}))
     try:
         guard = sim.robot.collision
@@ -329,6 +333,10 @@ def test_a_slicer_polydata_mesh_becomes_a_region_and_a_bad_one_is_refused() -> N
         assert wait_until(lambda: guard.cm.regions)
         (region,) = guard.cm.regions
         assert region.name == "Tumour" and region.kind == "mesh"
+        assert pauses  # it paused at least once while building
+        # taken, so not refused: the asker is told nothing about it
+        assert not [m for m in op.messages() if "Tumour" in str(getattr(m, "metadata", {}))
+                    or "Tumour" in getattr(m, "status_message", "")]  # fmt: skip
         hits = guard.cm.checker().check(HOME, sim.robot.data.base)
         assert {h.region for h in hits} == {"Tumour"}, hits
         assert {"wrist_3_link", "ee_link"} <= {h.link for h in hits}, hits

@@ -202,6 +202,30 @@ def test_the_handles_switch_closes_and_opens_the_jaw_within_its_velocity_limit()
         pair.p.close()
 
 
+def test_grip_takes_value_in_either_case_closes_without_one_and_leaves_other_commands() -> None:
+    pair = Pair()
+    try:
+        op = pair.p.m_op
+
+        def said(text: str) -> str:
+            cid = op.send_command("Grip", text)
+            pair.p.step(1)
+            reply = op.reply_to(cid)
+            assert reply is not None and reply.metadata["Status"] == "SUCCESS", text
+            return str(reply.command)
+
+        assert 'Message="gripper at 0.25"' in said('<Command Name="Grip" value="0.25"/>')
+        assert 'Message="gripper open"' in said('<Command Name="Grip" value="open"/>')
+        assert 'Message="gripper closed"' in said("")  # no value: close it
+        assert pair.p.master.robot.controller.controllers[0].stats()["gripper"]["value"] == 1.0
+        # the master's other commands are not the gripper's
+        cleared = pair.command(op, "ClearFixtures")
+        assert 'Message="fixtures cleared"' in cleared.command
+        assert pair.p.master.robot.controller.controllers[0].stats()["gripper"]["value"] == 1.0
+    finally:
+        pair.p.close()
+
+
 def test_the_jaw_holds_through_the_clutch_a_late_stream_and_a_stop() -> None:
     pair = Pair()
     try:

@@ -15,7 +15,14 @@ import pytest
 
 import igtl
 from igtl.transport.common import Peer
-from occ.net.interfaces import CommandQueue, Inbound, StreamQueue, is_operator_request
+from occ.net.interfaces import (
+    CommandQueue,
+    Inbound,
+    StreamQueue,
+    is_operator_request,
+    rebuild_stream_item,
+    stream_item,
+)
 from occ_testkit.testing import SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -320,6 +327,39 @@ def test_an_ipv6_stream_source_and_the_operators_list():
         assert op.peer_role(Peer(1, ("10.0.0.5", 4000))) == "operator"
         assert op.peer_role(Peer(2, ("10.0.0.6", 4000))) == "viewer"
         assert sim.robot.interfaces["slicer"].peer_role(Peer(3, ("10.0.0.5", 1))) == "viewer"
+
+
+def _pose_items(msg: igtl.Message):
+    """The same POSITION as the two kinds of wire a received message keeps: whole bytes (a
+    datagram, ``igtl.unpack``) and the stream decoder's pieces (a TCP stream)."""
+    data = msg.pack()
+    whole = igtl.unpack(data)
+    decoder = igtl.StreamDecoder()
+    decoder.feed(data)
+    (streamed,) = list(decoder)
+    return whole, streamed
+
+
+def test_a_stream_item_rebuilt_from_its_wire_is_the_one_the_interface_built():
+    # the flight recorder keeps a stream item as its wire, its reception time and its peer, and
+    # its writer rebuilds the item from them: the same sample, sender, interface and time
+    peer = Peer(3, ("127.0.0.5", 40123))
+    whole, streamed = _pose_items(position(7))
+    assert isinstance(whole._wire, bytes)
+    assert not isinstance(streamed._wire, bytes)  # the pieces, joined by the writer
+    for msg in (whole, streamed):
+        built = stream_item("master", peer, msg, 12.5)
+        again = rebuild_stream_item("master", peer, msg._wire, 12.5)
+        assert (again.interface, again.peer, again.t_rx) == ("master", peer, 12.5)
+        assert again.msg.message_type == "POSITION"
+        assert again.msg.device_name == "Master"
+        assert again.msg.message_id == 7
+        sample, want = again.event, built.event
+        assert type(sample) is type(want)
+        for name in want.__slots__:
+            assert getattr(sample, name) == getattr(want, name), name
+        assert (sample.interface, sample.peer, sample.t_rx, sample.seq) == ("master", peer, 12.5, 7)
+        assert sample.position_mm == pytest.approx((0.0, 50.0, 270.0))
 
 
 # ------------------------------------------------------------ transports built from the config

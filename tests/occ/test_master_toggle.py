@@ -102,6 +102,10 @@ def test_only_the_selected_slave_follows_and_numbers_stay_consecutive(rig: Rig) 
     rig.tick(1000)
     assert runs(rig.streams["left"][n["left"] :]) == {"1"}
     assert runs(rig.streams["right"][n["right"] :]) == {"0"}
+    # the hand's energy goes to the slave it drives, never to the other (whose port would
+    # spend a budget the hand never gave it)
+    assert all("energy_j" in m.metadata for m in rig.streams["left"][n["left"] :])
+    assert not any("energy_j" in m.metadata for m in rig.streams["right"])
     assert math.dist(rig.tip_mm("left"), start["left"]) > 1.0  # 31 mm/s x 0.1 for 1 s
     assert math.dist(rig.tip_mm("right"), start["right"]) < 1e-9  # holds, stream alive
     for side in SIDES:

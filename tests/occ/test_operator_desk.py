@@ -116,6 +116,15 @@ def test_reset_in_stopped_clears_the_alert_and_says_how_to_resume(sim):
     assert op.reply_to(cid).metadata["Message"] == "STOPPED -> RUNNING"
 
 
+def test_cell_commands_on_a_daemon_in_no_cell_are_refused_saying_so(sim):
+    op = sim.peer("operator")
+    for name in ("CellLeave", "CellJoin", "CellForget"):
+        reply = sim.command(op, name)
+        assert reply.metadata["Status"] == "FAIL", name
+        assert reply.metadata["Error"] == "this daemon is in no cell (no `cell:` section)", name
+    assert sim.robot.state is RobotState.READY
+
+
 def test_get_capabil_lists_what_the_robot_answers(sim):
     viewer = sim.peer("slicer", header_version=1)
     query(viewer, "GET_CAPABIL", "Cap", version=1)
@@ -447,9 +456,15 @@ def test_a_deferred_command_is_answered_when_its_work_is_done(sim, monkeypatch):
         desk.handle(Inbound("operator", Peer(1, ("127.0.0.1", 5)), msg, sim.now), sim.now)
     assert out == [] and desk.counters()["handled"] == 2
     sim.step(10)
+    # the flight recorder keeps a late answer as it keeps any reply: the message, its interface
+    box = sim.robot.black_box
+    assert box is not None
+    kept: list[tuple[igtl.Message, str]] = []
+    monkeypatch.setattr(box, "sent", lambda msg, interface, now=0.0: kept.append((msg, interface)))
     pending[0].resolve("planned 3 segments")
     pending[1].fail("unreachable pose")
     ok_reply, bad_reply = out
+    assert kept == [(ok_reply, "operator"), (bad_reply, "operator")]
     assert (ok_reply.command_id, ok_reply.message_id) == (70, 70)
     assert ok_reply.metadata == {"Status": "SUCCESS", "Message": "planned 3 segments"}
     assert ok_reply.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
@@ -562,6 +577,93 @@ def test_a_failing_command_handler_faults_and_the_asker_is_told(sim, monkeypatch
     handle(sim, get)
     assert out[-1].code == int(igtl.StatusCode.UNKNOWN_ERROR)
     assert out[-1].status_message == "GET_STATUS failed: bad"
+
+
+def test_an_array_answer_is_sent_by_the_worker_the_ndarray_first_then_the_reply(sim, monkeypatch):
+    import threading
+
+    from occ.net.commands import ArrayReply
+
+    path = np.arange(12.0).reshape(4, 3)
+    answer = ArrayReply("path of 4 samples", path, "CellPath", {"member": "arm0", "set": "ab"})
+    monkeypatch.setattr(sim.robot.controller, "on_command", lambda req, now: answer)
+    out: list[tuple[str, igtl.Message]] = []
+    to: list[object] = []
+
+    def reply(item, msg):
+        to.append(item)
+        out.append((threading.current_thread().name, msg))
+
+    monkeypatch.setattr(sim.robot.interfaces, "reply", reply)
+    msg = igtl.CommandMessage(
+        command_id=81, command_name="CellPath", device_name="x", header_version=2, message_id=81
+    )
+    handle(sim, msg)
+    assert wait_until(lambda: len(out) == 2, 10.0, 0.001)
+    (t_array, array), (t_reply, text) = out
+    loop = threading.current_thread().name
+    assert t_array != loop and t_reply != loop  # packed and sent by the worker
+    assert array.message_type == "NDARRAY" and array.device_name == "CellPath"
+    assert np.array_equal(array.array, path)
+    assert dict(array.metadata) == {"member": "arm0", "set": "ab"}
+    assert (array.header_version, array.message_id) == (2, 81)
+    assert array.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
+    assert (text.message_type, text.command_id, text.message_id) == ("RTS_COMMAND", 81, 81)
+    assert text.metadata == {"Status": "SUCCESS", "Message": "path of 4 samples"}
+    assert text.timestamp == pytest.approx(sim.clock.wall_time(), abs=0.01)
+    assert sim.robot.operators.counters()["handled"] == 1  # counted once, when handed over
+    assert [(i.interface, i.msg) for i in to] == [("operator", msg)] * 2  # to the asker
+    # a worker still busy with an earlier one: refused at once, nothing sent
+    out.clear()
+    monkeypatch.setattr(sim.robot.worker.start(), "submit", lambda job: False)
+    handle(sim, igtl.CommandMessage(command_id=82, command_name="CellPath", device_name="x"))
+    ((_, busy),) = out
+    assert busy.metadata["Status"] == "FAIL"
+    assert busy.metadata["Error"] == "busy: the worker is still sending an earlier reply; try again"
+
+
+def test_the_black_box_notes_who_asked_a_command_and_keeps_each_reply(sim, monkeypatch):
+    from igtl.auth import HMAC_KEY
+    from igtl.transport.common import Peer
+    from occ.net.interfaces import Inbound
+
+    box = sim.robot.black_box
+    assert box is not None
+    notes: list[tuple[str, object]] = []
+    kept: list[tuple[igtl.Message, str]] = []
+    monkeypatch.setattr(box, "note", lambda what, obj: notes.append((what, obj)))
+    monkeypatch.setattr(box, "sent", lambda msg, interface, now=0.0: kept.append((msg, interface)))
+    took: list[tuple[object, str]] = []
+    monkeypatch.setattr(box, "took_request", lambda item, interface: took.append((item, interface)))
+    out: list[igtl.Message] = []
+    monkeypatch.setattr(sim.robot.interfaces, "reply", lambda item, reply: out.append(reply))
+    desk = sim.robot.operators
+    plain = igtl.CommandMessage(command_id=5, command_name="Enable", device_name="x")
+    desk.handle(Inbound("operator", Peer(1, ("127.0.0.9", 4000)), plain, sim.now), sim.now)
+    signed = igtl.CommandMessage(
+        command_id=6, command_name="Disable", device_name="x", header_version=2,
+        metadata={HMAC_KEY: "0" * 64},
+    )  # fmt: skip
+    viewer = Inbound("slicer", Peer(2, ("127.0.0.8", 4001)), signed, sim.now, role="viewer")
+    desk.handle(viewer, sim.now)
+    query = igtl.REGISTRY["GET_STATUS"](type_name="GET_STATUS", device_name="x")
+    desk.handle(Inbound("operator", Peer(1, ("127.0.0.9", 4000)), query, sim.now), sim.now)
+    requests = [obj for what, obj in notes if what == "request"]
+    assert requests == [  # commands only: a query asks for nothing to be done
+        {"interface": "operator", "name": "Enable", "peer": "127.0.0.9:4000",
+         "role": "operator", "signed": "no"},
+        {"interface": "slicer", "name": "Disable", "peer": "127.0.0.8:4001",
+         "role": "viewer", "signed": "yes"},
+    ]  # fmt: skip
+    assert len(out) == 3 and kept == [
+        (out[0], "operator"),
+        (out[1], "slicer"),
+        (out[2], "operator"),
+    ]
+    # every item the desk took, as it came (a replay puts them back on the command queue)
+    assert [(i.msg, where) for i, where in took] == [
+        (plain, "operator"), (signed, "slicer"), (query, "operator")
+    ]  # fmt: skip
 
 
 def test_a_busy_worker_refuses_at_once(sim, monkeypatch):

@@ -229,6 +229,9 @@ def test_the_stream_carries_the_handle_the_time_and_the_run_flag(master: SimMast
     m = master.sent[-1]
     assert m.timestamp == pytest.approx(master.sim.clock.wall_time(), abs=1e-6)
     assert m.metadata["run"] == "1" and m.device_name == "Master" and m.layout == 24
+    # with the hand's energy into the channel (passivity on, the slave's force displayed): the
+    # slave's port keeps what it puts into the tissue below it
+    assert dict(m.metadata) == {"run": "1", "clutch": "0", "energy_j": "0"}
     assert tuple(m.quaternion[:3]) == (0.0, 0.0, 0.0)
     tip = master.robot.frame.tip_position(master.robot.data.q)
     assert m.position == pytest.approx([v * 1e3 for v in tip], abs=1e-3)
@@ -241,6 +244,9 @@ def test_fixture_commands_and_unknown_ones(master: SimMaster) -> None:
     assert (status, message) == ("SUCCESS", "fixtures cleared")
     status, message = _status(master.command("Fly"))
     assert status == "FAIL" and "unknown command 'Fly'" in message
+    # a master without a gripper has no Grip: refused as any unknown command
+    status, message = _status(master.command("Grip", '<Command Name="Grip" Value="close"/>'))
+    assert status == "FAIL" and "unknown command 'Grip'" in message
     status, message = _status(master.command("Select", '<Command Name="Select" to="left"/>'))
     assert status == "FAIL" and "nothing to select" in message
 
