@@ -349,7 +349,9 @@ def test_a_sphere_is_shown_as_a_closed_outward_mesh_on_its_surface() -> None:
     fx = fixtures(scale=0.1, rotation=R1.tolist())
     c, r = (10.0, -20.0, 30.0), 2.5
     fx.on_event(event_of(points([pt("S", c, radius=r)], kind="forbidden")), 1.0)
-    model: Any = mesh_message(fx.model("VirtualFixtures", timestamp=12.5), "VirtualFixtures")
+    value = fx.model("VirtualFixtures", timestamp=12.5)
+    assert value.points_mm.shape == (62, 3)  # MeshOut's points are N x 3 before any packer
+    model: Any = mesh_message(value, "VirtualFixtures")
     pts = model.points.astype(float)
     assert pts.shape == (62, 3)  # the poles and 5 rings of 12
     rel = pts - c
