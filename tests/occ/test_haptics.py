@@ -1,9 +1,10 @@
-"""The master's fixtures at run time (occ/haptics/master_fixtures.py, :class:`MasterFixtures`) driven alone,
-without a loop: a definition is applied whole or refused whole (counted, the reason kept and
-told, the previous set in force), the limits and the per-tick budget at their edges, the
+"""The master's fixtures at run time (occ/haptics/master_fixtures.py, :class:`MasterFixtures`)
+driven alone, without a loop: a definition is applied whole or refused whole (counted, the reason
+kept and told, the previous set in force), the limits and the per-tick budget at their edges, the
 mapping's changes, the force a tick with its time step, and what 3D Slicer is shown (the
 fixtures' model and the contact proxy) checked geometrically (issue 29: the mutation run of
-occ/haptics/master_fixtures.py; the shipped master in simulated time is tests/occ/test_haptic_master.py)."""
+occ/haptics/master_fixtures.py; the shipped master in simulated time is
+tests/occ/test_haptic_master.py)."""
 
 from __future__ import annotations
 
@@ -17,10 +18,10 @@ import pytest
 
 import igtl
 from igtl.messages.polydata import CELL_SCALAR
-from occ.net.decoders import event_of
 from occ.haptics.fixture_defs import Defaults, DefinitionError, PatientMapping
 from occ.haptics.fixtures import AccessibleSphere, ForbiddenSphere
 from occ.haptics.master_fixtures import KIND_CODE, MasterFixtures, _square
+from occ.net.decoders import event_of
 from occ.net.packers import mesh_message, transform_message
 
 from .test_fixture_defs import R1, points, pt, vf
