@@ -748,10 +748,16 @@ def test_a_writer_that_dies_is_a_failure_not_a_silent_recording(rig, caplog) -> 
 
 
 @pytest.mark.req("SR-REC-1")
-def test_a_stop_whose_close_raises_is_still_answered(rig, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+def test_a_stop_whose_close_raises_is_still_answered(rig, monkeypatch, caplog) -> None:  # type: ignore[no-untyped-def]
     """Whatever the close does, StopRecording gets its answer (before: the worker's job raised
-    and the operator waited forever)."""
+    and the operator waited forever), the failure is counted on top of the others and the
+    operator's log has the exception with the file it was closing."""
     sim, op, _, recs = rig
+    caplog.set_level(logging.INFO, logger="occ.core.robot")
+    recs.mkdir(parents=True)
+    (recs / "taken.igtl").write_bytes(b"")
+    assert command(sim, op, "StartRecording", start_xml("taken")).metadata["Status"] == "FAIL"
+    assert stats(sim, op)["failed"] == 1  # a failure before: the next one is counted on it
     assert command(sim, op, "StartRecording", start_xml("c")).metadata["Status"] == "SUCCESS"
     rec = sim.robot.recorder
 
@@ -765,6 +771,15 @@ def test_a_stop_whose_close_raises_is_still_answered(rig, monkeypatch) -> None: 
         f"StopRecording: recording stopped; closing {recs / 'c.igtl'} failed: "
         "[Errno 5] Input/output error"
     )
+    done = stats(sim, op)
+    assert (done["active"], done["started"], done["stopped"], done["failed"]) == (False, 1, 0, 2)
+    errors = [
+        r for r in caplog.records if r.name == "occ.core.robot" and r.levelno >= logging.ERROR
+    ]
+    assert [(r.levelno, r.getMessage()) for r in errors] == [
+        (logging.ERROR, f"StopRecording: {recs / 'c.igtl'}")
+    ]
+    assert errors[0].exc_info is not None and isinstance(errors[0].exc_info[1], OSError)
     monkeypatch.undo()
     rec.close()
 
