@@ -717,10 +717,23 @@ def test_a_recording_whose_directory_is_removed_fails_aloud(rig) -> None:  # typ
     stop = command(sim, op, "StopRecording")
     assert stop.metadata["Status"] == "FAIL"
     assert "it had FAILED: the file was removed" in stop.metadata["Message"]
-    # a new recording may start again (the directory is made again)
+    assert stats(sim, op)["failed"] == 1
+    # a new recording may start again (the directory is made again); removed too, and stopped
+    # with a new name that cannot be given: both said, and counted once more
     assert command(sim, op, "StartRecording", start_xml("again")).metadata["Status"] == "SUCCESS"
+    rec = sim.robot.recorder
+    shutil.rmtree(recs)
+    assert wait_until(lambda: (sim.tick(), len(alerts(op)) == 2)[1], 10.0, every=0.001)
+    stop = command(sim, op, "StopRecording", start_xml("kept").replace("Start", "Stop"))
+    assert stop.metadata["Status"] == "FAIL"
+    assert stop.metadata["Message"].endswith(
+        f" in {recs / 'again.igtl'}; cannot name it kept.igtl: No such file or directory"
+        f"; it had FAILED: {rec.failure}"
+    ), stop.metadata["Message"]
+    assert stats(sim, op)["failed"] == 2
+    assert command(sim, op, "StartRecording", start_xml("last")).metadata["Status"] == "SUCCESS"
     assert command(sim, op, "StopRecording").metadata["Status"] == "SUCCESS"
-    assert len(alerts(op)) == 1
+    assert len(alerts(op)) == 2
 
 
 @pytest.mark.req("SR-REC-1")
