@@ -760,6 +760,35 @@ def test_a_writer_that_dies_is_a_failure_not_a_silent_recording(rig, caplog) -> 
     assert stop.metadata["Status"] == "FAIL" and "not written" in stop.metadata["Message"]
 
 
+def test_a_start_whose_open_raises_is_answered_logged_and_counted(rig, monkeypatch, caplog) -> None:  # type: ignore[no-untyped-def]
+    """A start that fails in a way the file checks do not foresee (a bug in the recorder):
+    StartRecording is answered with the cause, the operator's log has the exception with the
+    file, the failure is counted, and a start after it is not held up by it."""
+    sim, op, _, recs = rig
+    caplog.set_level(logging.INFO, logger="occ.core.robot")
+
+    def broken(self: Recorder, *, exclusive: bool = False) -> Recorder:
+        raise RuntimeError("a bug in the recorder")
+
+    monkeypatch.setattr(Recorder, "start", broken)
+    reply = command(sim, op, "StartRecording", start_xml("b"))
+    assert reply.metadata["Status"] == "FAIL"
+    assert reply.metadata["Message"] == (
+        f"StartRecording: cannot record to {recs / 'b.igtl'}: a bug in the recorder"
+    )
+    errors = [
+        r for r in caplog.records if r.name == "occ.core.robot" and r.levelno >= logging.ERROR
+    ]
+    assert [(r.levelno, r.getMessage()) for r in errors] == [
+        (logging.ERROR, f"StartRecording: {recs / 'b.igtl'}")
+    ]
+    assert errors[0].exc_info is not None and isinstance(errors[0].exc_info[1], RuntimeError)
+    assert stats(sim, op)["failed"] == 1
+    monkeypatch.undo()
+    assert command(sim, op, "StartRecording", start_xml("b")).metadata["Status"] == "SUCCESS"
+    assert command(sim, op, "StopRecording").metadata["Status"] == "SUCCESS"
+
+
 @pytest.mark.req("SR-REC-1")
 def test_a_stop_whose_close_raises_is_still_answered(rig, monkeypatch, caplog) -> None:  # type: ignore[no-untyped-def]
     """Whatever the close does, StopRecording gets its answer (before: the worker's job raised
