@@ -1360,3 +1360,27 @@ def test_csv_state_rows_short_unknown_and_without_columns(tmp_path: Path) -> Non
         whole, cut = [r[7] for r in list(csv.reader(f))[1:]]
     assert whole == summary(n200)
     assert len(cut) == 200 and cut == summary(n200 + 1)[:197] + "..."
+
+
+@pytest.mark.req("SR-REC-2")
+def test_a_bag_export_that_fails_midway_leaves_nothing_and_raises_its_own_error(
+    handmade: Path, tmp_path: Path, monkeypatch
+) -> None:  # type: ignore[no-untyped-def]
+    """The bag is begun (its directory made by rosbags' writer) and the export fails: the
+    error is the export's own, and neither the bag's directory nor the output is left, for a
+    single file and for a directory bag alike."""
+    require("rosbags", "pip install -e .[record]")
+    import occ.recording.export as export_module
+
+    content = export_module.read_content(handmade)
+
+    def fails(bag: Any, content: Any, robot: str) -> dict[str, Any]:
+        bag.writer.open()
+        assert any(tmp_path.iterdir())  # begun: there is something to remove
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(export_module, "_fill_bag", fails)
+    for name in ("one.mcap", "bagdir"):
+        with pytest.raises(OSError, match="No space left on device"):
+            export_module.write_mcap(content, tmp_path / name)
+        assert list(tmp_path.iterdir()) == []
