@@ -1384,3 +1384,24 @@ def test_a_bag_export_that_fails_midway_leaves_nothing_and_raises_its_own_error(
         with pytest.raises(OSError, match="No space left on device"):
             export_module.write_mcap(content, tmp_path / name)
         assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.req("SR-REC-2")
+def test_a_damaged_recording_is_salvaged_into_an_existing_csv_directory(
+    recording: Path, tmp_path: Path
+) -> None:
+    """The report reaches the reading in an existing directory too: the CSV is made of the
+    messages before the cut, and the report says where the reading stopped."""
+    from occ.recording.export import export_csv
+    from occ.recording.record import ReadReport
+
+    ends = message_ends(recording)
+    damaged = cut(recording, tmp_path, ends[9] + 20)  # ten whole messages and a piece
+    out = tmp_path / "existing"
+    out.mkdir()
+    report = ReadReport()
+    state_path, msg_path = export_csv(damaged, out, report=report)
+    assert report.messages == 10 and report.stop is not None and report.stop[0] == ends[9]
+    rows = len(state_path.read_text().splitlines()) - 1
+    rows += len(msg_path.read_text().splitlines()) - 1
+    assert rows == 10
