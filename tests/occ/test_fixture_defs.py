@@ -17,7 +17,6 @@ import pytest
 
 import igtl
 from igtl.messages.point import PointElement
-from occ.net.decoders import event_of
 from occ.haptics.fixture_defs import (
     Defaults,
     Definition,
@@ -30,6 +29,8 @@ from occ.haptics.fixture_defs import (
     to_master,
 )
 from occ.haptics.fixtures import AccessibleSphere, ForbiddenPlane, ForbiddenSphere, Guide
+from occ.net.decoders import event_of
+from occ.samples import PoseSample
 
 D = Defaults()
 
@@ -310,6 +311,25 @@ def test_a_plane_is_the_translation_and_the_rotations_third_column() -> None:
         elements=tiny, device_name="T", header_version=2, metadata={"kind": "plane"}
     )
     assert from_event(event_of(small), D)[0].normal == (0.0, 0.0, pytest.approx(2e-9))  # type: ignore[index]
+
+
+def test_a_plane_z_axis_of_exactly_1e_9_mm_is_a_direction_and_a_shorter_one_is_zero() -> None:
+    """The zero test is ``< 1e-9``: a float64 matrix (a sample built in the process, not the
+    float32 wire) puts the boundary exactly there."""
+
+    def sample(z: float) -> PoseSample:
+        m = np.eye(4)
+        m[:3, 2] = (0.0, 0.0, z)
+        return PoseSample("i", None, "Wall", (0.0, 0.0, 0.0), kind="TRANSFORM",
+                          meta={"kind": "plane"}, matrix=m)  # fmt: skip
+
+    (d,) = from_event(sample(1e-9), D)  # type: ignore[misc]
+    assert d.normal == (0.0, 0.0, 1e-9)
+    # compiled for the master, its direction is made unit
+    (p,) = compile_definitions([d], PatientMapping(0.1))
+    assert isinstance(p, ForbiddenPlane) and tuple(p.normal) == (0.0, 0.0, 1.0)
+    with pytest.raises(DefinitionError, match="the rotation's z axis is zero"):
+        from_event(sample(math.nextafter(1e-9, 0.0)), D)
 
 
 @pytest.mark.parametrize(

@@ -1,12 +1,13 @@
-"""occ/haptics/forceviz.py piece by piece: what 3D Slicer, a recording's reader and ``occd --check`` get.
+"""occ/haptics/forceviz.py piece by piece: what 3D Slicer, a recording's reader and ``occd
+--check`` get.
 
 The arrow's documented proportions and its faces as a renderer takes them, the TRANSFORM's frame
 for a force along any axis and at the exact minimum length, which messages carry a force (the
-recordings' reader, occ/recording/export.py and occ/recording/plot.py), the output checks' exact errors, and
-the output source ``force`` on a slave alone in simulated time: every type's force, timestamp,
-header version and metadata, from each force source (the tissue, the drives' efforts, a force
-sensor on the tool). No pair and no wall clock: each test is quick (the mutation run of
-``forceviz`` runs them per mutant; docs/VERIFICATION.md).
+recordings' reader, occ/recording/export.py and occ/recording/plot.py), the output checks' exact
+errors, and the output source ``force`` on a slave alone in simulated time: every type's force,
+timestamp, header version and metadata, from each force source (the tissue, the drives'
+efforts, a force sensor on the tool, a 6-axis sensor's torque). No pair and no wall clock: each
+test is quick (the mutation run of ``forceviz`` runs them per mutant; docs/VERIFICATION.md).
 """
 
 from __future__ import annotations
@@ -21,11 +22,11 @@ import yaml
 
 import igtl
 from igtl.messages.sensor import Unit
-from occ.net.decoders import message_force
+from occ.core.loader import parse_config
 from occ.errors import ConfigError, OCCError
 from occ.events import VectorOut
 from occ.haptics.forceviz import MIN_LENGTH_MM, arrow_mesh, force_matrix, parse_force
-from occ.core.loader import parse_config
+from occ.net.decoders import message_force
 from occ.net.outputs import Output
 from occ.net.packers import pack_output
 from occ_testkit.testing import CONFIGS, SimRobot
@@ -474,6 +475,32 @@ def test_a_force_sensor_on_the_tool_is_shown_in_the_patient_frame() -> None:
         _check_tick(
             slicer.received[start:], (0.0, 0.0, 0.0), sim.clock.wall_epoch + 0.060, "none", 10.0
         )
+
+
+def test_a_six_axis_sensors_torque_goes_beside_the_force_in_every_type() -> None:
+    """A 6-axis reading's torque (N m, turned into the patient frame as the force is) is
+    ``torque_nm`` in the metadata of each output of the source ``force``, its three components
+    in order, 5 decimals; a 3-axis reading has no such key (old readers see what they saw)."""
+    force = {"sources": ["sensor"], "sensor_interface": "ft", "sensor_frame": "tip"}
+    devices = ("Force", "TipForce", "ForceArrow", "ForceArray")
+    with SimRobot(_alone(force, EVERY_TYPE)) as sim:
+        slicer, ft = sim.peer("slicer"), sim.peer("ft")
+        sim.step(5)
+        torque = (0.004, -0.005, 0.006)
+        ft.send(igtl.SensorMessage((0.3, -1.2, 0.8, *torque), NEWTON, device_name="ForceSensor"))
+        start = len(slicer.received)
+        sim.step(6)
+        got = [m for m in slicer.received[start:] if m.device_name in devices]
+        t = sim.robot.data.world_tip()[:3, :3] @ np.array(torque)
+        assert len(set(t.round(5).tolist())) == 3  # three different numbers to tell apart
+        want = f"{t[0]:.5f},{t[1]:.5f},{t[2]:.5f}"
+        assert sorted(m.device_name for m in got) == sorted(devices)
+        assert all(m.metadata["torque_nm"] == want for m in got), [m.metadata for m in got]
+        ft.send(igtl.SensorMessage((0.3, -1.2, 0.8), NEWTON, device_name="ForceSensor"))
+        start = len(slicer.received)
+        sim.step(10)
+        got = [m for m in slicer.received[start:] if m.device_name in devices]
+        assert len(got) == 4 and all("torque_nm" not in m.metadata for m in got)
 
 
 # ------------------------------------------------------------------------------ the source

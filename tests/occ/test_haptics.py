@@ -1,9 +1,10 @@
-"""The master's fixtures at run time (occ/haptics/master_fixtures.py, :class:`MasterFixtures`) driven alone,
-without a loop: a definition is applied whole or refused whole (counted, the reason kept and
-told, the previous set in force), the limits and the per-tick budget at their edges, the
+"""The master's fixtures at run time (occ/haptics/master_fixtures.py, :class:`MasterFixtures`)
+driven alone, without a loop: a definition is applied whole or refused whole (counted, the reason
+kept and told, the previous set in force), the limits and the per-tick budget at their edges, the
 mapping's changes, the force a tick with its time step, and what 3D Slicer is shown (the
 fixtures' model and the contact proxy) checked geometrically (issue 29: the mutation run of
-occ/haptics/master_fixtures.py; the shipped master in simulated time is tests/occ/test_haptic_master.py)."""
+occ/haptics/master_fixtures.py; the shipped master in simulated time is
+tests/occ/test_haptic_master.py)."""
 
 from __future__ import annotations
 
@@ -17,10 +18,10 @@ import pytest
 
 import igtl
 from igtl.messages.polydata import CELL_SCALAR
-from occ.net.decoders import event_of
 from occ.haptics.fixture_defs import Defaults, DefinitionError, PatientMapping
 from occ.haptics.fixtures import AccessibleSphere, ForbiddenSphere
 from occ.haptics.master_fixtures import KIND_CODE, MasterFixtures, _square
+from occ.net.decoders import event_of
 from occ.net.packers import mesh_message, transform_message
 
 from .test_fixture_defs import R1, points, pt, vf
@@ -349,7 +350,9 @@ def test_a_sphere_is_shown_as_a_closed_outward_mesh_on_its_surface() -> None:
     fx = fixtures(scale=0.1, rotation=R1.tolist())
     c, r = (10.0, -20.0, 30.0), 2.5
     fx.on_event(event_of(points([pt("S", c, radius=r)], kind="forbidden")), 1.0)
-    model: Any = mesh_message(fx.model("VirtualFixtures", timestamp=12.5), "VirtualFixtures")
+    value = fx.model("VirtualFixtures", timestamp=12.5)
+    assert value.points_mm.shape == (62, 3)  # MeshOut's points are N x 3 before any packer
+    model: Any = mesh_message(value, "VirtualFixtures")
     pts = model.points.astype(float)
     assert pts.shape == (62, 3)  # the poles and 5 rings of 12
     rel = pts - c

@@ -717,10 +717,23 @@ def test_a_recording_whose_directory_is_removed_fails_aloud(rig) -> None:  # typ
     stop = command(sim, op, "StopRecording")
     assert stop.metadata["Status"] == "FAIL"
     assert "it had FAILED: the file was removed" in stop.metadata["Message"]
-    # a new recording may start again (the directory is made again)
+    assert stats(sim, op)["failed"] == 1
+    # a new recording may start again (the directory is made again); removed too, and stopped
+    # with a new name that cannot be given: both said, and counted once more
     assert command(sim, op, "StartRecording", start_xml("again")).metadata["Status"] == "SUCCESS"
+    rec = sim.robot.recorder
+    shutil.rmtree(recs)
+    assert wait_until(lambda: (sim.tick(), len(alerts(op)) == 2)[1], 10.0, every=0.001)
+    stop = command(sim, op, "StopRecording", start_xml("kept").replace("Start", "Stop"))
+    assert stop.metadata["Status"] == "FAIL"
+    assert stop.metadata["Message"].endswith(
+        f" in {recs / 'again.igtl'}; cannot name it kept.igtl: No such file or directory"
+        f"; it had FAILED: {rec.failure}"
+    ), stop.metadata["Message"]
+    assert stats(sim, op)["failed"] == 2
+    assert command(sim, op, "StartRecording", start_xml("last")).metadata["Status"] == "SUCCESS"
     assert command(sim, op, "StopRecording").metadata["Status"] == "SUCCESS"
-    assert len(alerts(op)) == 1
+    assert len(alerts(op)) == 2
 
 
 @pytest.mark.req("SR-REC-1")
@@ -747,11 +760,46 @@ def test_a_writer_that_dies_is_a_failure_not_a_silent_recording(rig, caplog) -> 
     assert stop.metadata["Status"] == "FAIL" and "not written" in stop.metadata["Message"]
 
 
-@pytest.mark.req("SR-REC-1")
-def test_a_stop_whose_close_raises_is_still_answered(rig, monkeypatch) -> None:  # type: ignore[no-untyped-def]
-    """Whatever the close does, StopRecording gets its answer (before: the worker's job raised
-    and the operator waited forever)."""
+def test_a_start_whose_open_raises_is_answered_logged_and_counted(rig, monkeypatch, caplog) -> None:  # type: ignore[no-untyped-def]
+    """A start that fails in a way the file checks do not foresee (a bug in the recorder):
+    StartRecording is answered with the cause, the operator's log has the exception with the
+    file, the failure is counted, and a start after it is not held up by it."""
     sim, op, _, recs = rig
+    caplog.set_level(logging.INFO, logger="occ.core.robot")
+
+    def broken(self: Recorder, *, exclusive: bool = False) -> Recorder:
+        raise RuntimeError("a bug in the recorder")
+
+    monkeypatch.setattr(Recorder, "start", broken)
+    reply = command(sim, op, "StartRecording", start_xml("b"))
+    assert reply.metadata["Status"] == "FAIL"
+    assert reply.metadata["Message"] == (
+        f"StartRecording: cannot record to {recs / 'b.igtl'}: a bug in the recorder"
+    )
+    errors = [
+        r for r in caplog.records if r.name == "occ.core.robot" and r.levelno >= logging.ERROR
+    ]
+    assert [(r.levelno, r.getMessage()) for r in errors] == [
+        (logging.ERROR, f"StartRecording: {recs / 'b.igtl'}")
+    ]
+    assert errors[0].exc_info is not None and isinstance(errors[0].exc_info[1], RuntimeError)
+    assert stats(sim, op)["failed"] == 1
+    monkeypatch.undo()
+    assert command(sim, op, "StartRecording", start_xml("b")).metadata["Status"] == "SUCCESS"
+    assert command(sim, op, "StopRecording").metadata["Status"] == "SUCCESS"
+
+
+@pytest.mark.req("SR-REC-1")
+def test_a_stop_whose_close_raises_is_still_answered(rig, monkeypatch, caplog) -> None:  # type: ignore[no-untyped-def]
+    """Whatever the close does, StopRecording gets its answer (before: the worker's job raised
+    and the operator waited forever), the failure is counted on top of the others and the
+    operator's log has the exception with the file it was closing."""
+    sim, op, _, recs = rig
+    caplog.set_level(logging.INFO, logger="occ.core.robot")
+    recs.mkdir(parents=True)
+    (recs / "taken.igtl").write_bytes(b"")
+    assert command(sim, op, "StartRecording", start_xml("taken")).metadata["Status"] == "FAIL"
+    assert stats(sim, op)["failed"] == 1  # a failure before: the next one is counted on it
     assert command(sim, op, "StartRecording", start_xml("c")).metadata["Status"] == "SUCCESS"
     rec = sim.robot.recorder
 
@@ -765,6 +813,15 @@ def test_a_stop_whose_close_raises_is_still_answered(rig, monkeypatch) -> None: 
         f"StopRecording: recording stopped; closing {recs / 'c.igtl'} failed: "
         "[Errno 5] Input/output error"
     )
+    done = stats(sim, op)
+    assert (done["active"], done["started"], done["stopped"], done["failed"]) == (False, 1, 0, 2)
+    errors = [
+        r for r in caplog.records if r.name == "occ.core.robot" and r.levelno >= logging.ERROR
+    ]
+    assert [(r.levelno, r.getMessage()) for r in errors] == [
+        (logging.ERROR, f"StopRecording: {recs / 'c.igtl'}")
+    ]
+    assert errors[0].exc_info is not None and isinstance(errors[0].exc_info[1], OSError)
     monkeypatch.undo()
     rec.close()
 

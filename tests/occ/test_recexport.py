@@ -1272,3 +1272,136 @@ def test_no_pose_in_a_sequence_was_not_measured(tmp_path: Path) -> None:
     t0 = frames[0]
     got = sorted(float(v) for v in sequences["MasterToReference"])
     assert got[0] == pytest.approx((first - t0) / 1000.0) and len(got) == len(master_poses)
+
+
+# ------------------------------------------------------------------------------ CSV
+def test_csv_of_a_handmade_recording_row_by_row(handmade: Path, tmp_path: Path) -> None:
+    """``state.csv``: the first state row's ``columns`` as its header, then each state row's
+    numbers (9 significant digits) with the state by its name; ``messages.csv``: a header and one
+    row per other message, in the file's order, with its recording time, direction and
+    interface ("" where no daemon recorded them), its type, device, ID, header time stamp and
+    a summary of its content (JSON, at most 200 characters). Read back with Python's csv."""
+    import csv
+    import json
+
+    from occ.recording.export import export_csv
+    from occ.recording.record import STATE_NAMES
+
+    out = tmp_path / "out"
+    assert export_csv(handmade, out) == (out / "state.csv", out / "messages.csv")
+    states, others = [], []
+    for m in read_recording(handmade):
+        (
+            states if m.message_type == "NDARRAY" and m.device_name == STATE_DEVICE else others
+        ).append(m)
+    with open(out / "state.csv", newline="") as f:
+        rows = list(csv.reader(f))
+    assert rows[0] == COLUMNS.split(",")
+    want = []
+    for m in states:
+        values = np.asarray(m.array).ravel().tolist()
+        want.append([f"{v:.9g}" for v in values])
+        want[-1][1] = STATE_NAMES[int(values[1])]
+    assert rows[1:] == want and {r[1] for r in want} == {"READY", "ENABLED", "RUNNING", "STOPPED"}
+    with open(out / "messages.csv", newline="") as f:
+        mrows = list(csv.reader(f))
+    assert mrows[0] == [
+        "t", "dir", "interface", "type", "device", "message_id", "timestamp", "content"
+    ]  # fmt: skip
+    assert len(mrows) == len(others) + 1
+    for row, m in zip(mrows[1:], others, strict=True):
+        meta = m.metadata
+        summary = json.dumps(m.content_summary(), separators=(",", ":"), default=str)
+        assert row == [
+            meta.get("rec.t", ""), meta.get("rec.dir", ""), meta.get("rec.if", ""),
+            m.message_type, m.device_name, str(m.message_id), f"{m.timestamp:.6f}",
+            summary if len(summary) <= 200 else summary[:197] + "...",
+        ], (row, m)  # fmt: skip
+    assert mrows[1][:3] == ["", "", ""]  # the first message: no daemon recorded it
+    assert {r[1] for r in mrows[2:]} == {"in", "out"}
+
+
+def test_csv_state_rows_short_unknown_and_without_columns(tmp_path: Path) -> None:
+    """A state row of two numbers has its state named, one of one number has none to name, an
+    unknown code stays a number, and a first row without ``columns`` gives an empty header; an
+    existing CSV directory is written into only with ``force``."""
+    import csv
+    import json
+
+    from occ.recording.export import ExportError, export_csv
+
+    path = tmp_path / "short.igtl"
+    rec = Recorder(path).start()
+    for k, row in enumerate(([1.5, 3.0], [2.5], [3.5, 99.0])):
+        msg = igtl.NDArrayMessage(
+            array=np.asarray(row, dtype=np.float64), device_name=STATE_DEVICE, header_version=2
+        )
+        rec.record_message(msg, "out", "*", float(k))
+    # a content summary of exactly 200 characters kept whole, a longer one cut to 200
+
+    def summary(n: int) -> str:
+        wire = igtl.StringMessage("a" * n, device_name="S").pack()
+        text = igtl.unpack(wire).content_summary()  # as the recording reads it back
+        return json.dumps(text, separators=(",", ":"), default=str)
+
+    n200 = next(n for n in range(300) if len(summary(n)) == 200)
+    for n in (n200, n200 + 1):
+        rec.record_message(igtl.StringMessage("a" * n, device_name="S"), "in", "op", 4.0)
+    rec.close()
+    out = tmp_path / "csv"
+    out.mkdir()
+    (out / "messages.csv").write_text("before")
+    with pytest.raises(ExportError, match="messages.csv exists; not overwriting"):
+        export_csv(path, out)
+    assert export_csv(path, out, force=True) == (out / "state.csv", out / "messages.csv")
+    with open(out / "state.csv", newline="") as f:
+        assert list(csv.reader(f)) == [[""], ["1.5", "RUNNING"], ["2.5"], ["3.5", "99"]]
+    with open(out / "messages.csv", newline="") as f:
+        whole, cut = [r[7] for r in list(csv.reader(f))[1:]]
+    assert whole == summary(n200)
+    assert len(cut) == 200 and cut == summary(n200 + 1)[:197] + "..."
+
+
+@pytest.mark.req("SR-REC-2")
+def test_a_bag_export_that_fails_midway_leaves_nothing_and_raises_its_own_error(
+    handmade: Path, tmp_path: Path, monkeypatch
+) -> None:  # type: ignore[no-untyped-def]
+    """The bag is begun (its directory made by rosbags' writer) and the export fails: the
+    error is the export's own, and neither the bag's directory nor the output is left, for a
+    single file and for a directory bag alike."""
+    require("rosbags", "pip install -e .[record]")
+    import occ.recording.export as export_module
+
+    content = export_module.read_content(handmade)
+
+    def fails(bag: Any, content: Any, robot: str) -> dict[str, Any]:
+        bag.writer.open()
+        assert any(tmp_path.iterdir())  # begun: there is something to remove
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(export_module, "_fill_bag", fails)
+    for name in ("one.mcap", "bagdir"):
+        with pytest.raises(OSError, match="No space left on device"):
+            export_module.write_mcap(content, tmp_path / name)
+        assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.req("SR-REC-2")
+def test_a_damaged_recording_is_salvaged_into_an_existing_csv_directory(
+    recording: Path, tmp_path: Path
+) -> None:
+    """The report reaches the reading in an existing directory too: the CSV is made of the
+    messages before the cut, and the report says where the reading stopped."""
+    from occ.recording.export import export_csv
+    from occ.recording.record import ReadReport
+
+    ends = message_ends(recording)
+    damaged = cut(recording, tmp_path, ends[9] + 20)  # ten whole messages and a piece
+    out = tmp_path / "existing"
+    out.mkdir()
+    report = ReadReport()
+    state_path, msg_path = export_csv(damaged, out, report=report)
+    assert report.messages == 10 and report.stop is not None and report.stop[0] == ends[9]
+    rows = len(state_path.read_text().splitlines()) - 1
+    rows += len(msg_path.read_text().splitlines()) - 1
+    assert rows == 10
