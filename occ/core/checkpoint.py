@@ -333,7 +333,7 @@ class Checkpointer:
         elif t is array:
             out = array(v.typecode, v)
         elif t is random.Random:  # its state as a tuple: a seventh of a deep copy's time
-            out = t.__new__(t)
+            out = random.Random(0)
             out.setstate(v.getstate())
         elif _wiring(v, self.roots):
             return v
