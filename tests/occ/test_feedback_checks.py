@@ -122,6 +122,36 @@ def test_a_slow_joint_is_judged_by_its_own_velocity_limit() -> None:
         d.read(0.002)
 
 
+class KnownNoise(ScriptedFeedback):
+    """A backend that knows its encoders' noise at rest (1 mrad a joint)."""
+
+    def _default_noise(self) -> Sequence[float] | None:
+        return [0.001] * len(self.joints)
+
+
+@pytest.mark.req("SR-HW-9")
+def test_the_backends_own_noise_widens_the_reach_unless_feedback_noise_is_configured() -> None:
+    # 2 x 2 rad/s over 1 ms is 0.004 rad; twice the backend's 1 mrad makes it 0.006
+    d = KnownNoise([revolute(velocity=2.0)], heartbeat_ms=0)
+    d.configure()
+    d.activate()
+    d.read(0.0)
+    d.feedback = [0.0059]
+    d.read(0.001)
+    assert d.state is DriverState.ACTIVE
+    d.feedback = [0.0059 + 0.0061]
+    with pytest.raises(DriverError, match=r"at most 0\.006: .* plus twice the noise 0\.001\)"):
+        d.read(0.002)
+    # a configured feedback_noise is the backend's word no more
+    d = KnownNoise([revolute(velocity=2.0)], heartbeat_ms=0, feedback_noise=0.0)
+    d.configure()
+    d.activate()
+    d.read(0.0)
+    d.feedback = [0.0059]
+    with pytest.raises(DriverError, match=r"at most 0\.004: .* plus twice the noise 0\)"):
+        d.read(0.001)
+
+
 def test_feedback_jump_zero_or_none_switches_the_check_off() -> None:
     for off in (0, None, "0"):
         j = revolute()
