@@ -685,3 +685,47 @@ def test_the_backends_servo_model_sets_the_lag() -> None:
         d.write([1e-4 * k], 0.001 * k)
     with pytest.raises(DriverError, match=r"beyond its window 0\.0005 "):
         d.read(0.0105)
+
+
+def test_every_per_joint_setting_refused_names_the_driver_the_key_and_the_fault() -> None:
+    both = [revolute("r"), revolute("s")]
+    for params, text in [
+        (
+            {"feedback_noise": {"r": 0.1, "x": 0.2}},
+            "driver 'drive': feedback_noise names joints ['r', 'x']; its joints are ['r', 's'] "
+            "(unknown: ['x']) (missing: ['s'])",
+        ),
+        (
+            {"limit_margin": {"r": 0.1, "s": 0.1, "x": 0.2}},
+            "driver 'drive': limit_margin names joints ['r', 's', 'x']; its joints are "
+            "['r', 's'] (unknown: ['x'])",
+        ),
+        (
+            {"feedback_noise": {"r": 0.1}},
+            "driver 'drive': feedback_noise names joints ['r']; its joints are ['r', 's'] "
+            "(missing: ['s'])",
+        ),
+        (
+            {"feedback_noise": {"r": 0.1, "s": "ten"}},
+            "driver 'drive': feedback_noise.s must be a finite number >= 0, got 'ten'",
+        ),
+        (
+            {"following_error": {"window": {"r": 0.001, "s": 0}}},
+            "driver 'drive': following_error.window.s must be a finite number > 0, got 0",
+        ),
+        (
+            {"following_error": {"window": -1}},
+            "driver 'drive': following_error.window must be a finite number > 0, got -1",
+        ),
+        (
+            {"feedback_noise": -1.0},
+            "driver 'drive': feedback_noise must be a finite number >= 0, got -1.0",
+        ),
+        (
+            {"feedback_noise": "ten"},
+            "driver 'drive': feedback_noise must be a number or {joint: number}, got 'ten'",
+        ),
+    ]:
+        with pytest.raises(ValueError) as info:
+            ScriptedFeedback(both, **params)
+        assert str(info.value) == text
