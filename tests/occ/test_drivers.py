@@ -1000,6 +1000,15 @@ def test_a_failed_switch_off_is_kept_until_one_succeeds() -> None:
     assert d.state is DriverState.FAULT and d.stop_failed is None
 
 
+def test_the_last_reading_is_kept_as_the_hook_returned_it_and_none_before_any() -> None:
+    d = MirrorDriver("m", joints())
+    assert d.raw == ((), (), ()) and math.isnan(d.raw_now)  # the black box: nothing read yet
+    d.configure()
+    d.last = [0.25, -0.5]
+    d.read(0.003)
+    assert d.raw == ([0.25, -0.5], [0.0, 0.0], [0.0, 0.0]) and d.raw_now == 0.003
+
+
 def test_every_failing_hook_is_told_to_the_tap() -> None:
     told: list[tuple[str, str, str]] = []
     d = flaky()

@@ -725,6 +725,30 @@ def test_every_per_joint_setting_refused_names_the_driver_the_key_and_the_fault(
             {"feedback_noise": "ten"},
             "driver 'drive': feedback_noise must be a number or {joint: number}, got 'ten'",
         ),
+        (
+            {"limit_margin": -1},
+            "driver 'drive': limit_margin must be a finite number >= 0, got -1",
+        ),
+        (
+            {"feedback_jump": -1},
+            "driver 'drive': feedback_jump must be a number >= 0 (0 = off), got -1",
+        ),
+        (
+            {"frozen_feedback_ms": -1},
+            "driver 'drive': frozen_feedback_ms must be a number >= 0 (0 = off), got -1",
+        ),
+        (
+            {"following_error": {"time_ms": -1}},
+            "driver 'drive': following_error.time_ms must be a finite number >= 0, got -1",
+        ),
+        (
+            {"following_error": {"lag_ms": -1}},
+            "driver 'drive': following_error.lag_ms must be a finite number >= 0, got -1",
+        ),
+        (
+            {"following_error": {"stiffness": 0}},
+            "driver 'drive': following_error.stiffness must be a finite number > 0, got 0",
+        ),
     ]:
         with pytest.raises(ValueError) as info:
             ScriptedFeedback(both, **params)
