@@ -939,6 +939,12 @@ def test_a_safe_stop_while_powering_up_switches_it_off_again_and_faults() -> Non
     d.activate()
     assert d.state is DriverState.ACTIVE and d.seen == [(True, False), (True, False)]
     assert d.activating is False and d.stats()["errors"] == 1
+    # a second one is counted on top of the first
+    d.deactivate()
+    d.during = [("stop", "loop hung again")]
+    with pytest.raises(DriverError, match="loop hung again"):
+        d.activate()
+    assert d.stats()["errors"] == 2
 
 
 @pytest.mark.req("SR-HW-39")

@@ -753,3 +753,43 @@ def test_every_per_joint_setting_refused_names_the_driver_the_key_and_the_fault(
         with pytest.raises(ValueError) as info:
             ScriptedFeedback(both, **params)
         assert str(info.value) == text
+
+
+@pytest.mark.req("SR-HW-14")
+def test_the_window_is_widened_by_twice_the_noise_and_the_load_over_the_stiffness() -> None:
+    class Loaded(ScriptedFeedback):
+        def _read(self, now: float) -> tuple[Sequence[float], Sequence[float], Sequence[float]]:
+            return list(self.feedback), [0.0], [10.0]  # 10 N pushing back
+
+    def drive(**fe: Any) -> ScriptedFeedback:
+        d = Loaded(
+            [prismatic(velocity=10.0)],
+            heartbeat_ms=0,
+            frozen_feedback_ms=0,
+            feedback_jump=0,
+            feedback_noise=0.0001,
+            following_error={"window": 0.0005, "time_ms": 0, **fe},
+        )
+        d.configure()
+        d.activate()
+        d.feedback = [0.0]
+        d.read(0.0)
+        d.write([0.0], 0.001)
+        return d
+
+    # without a stiffness the load widens nothing: 0.5 + 2 x 0.1 mm
+    d = drive()
+    d.feedback = [0.0007]
+    d.read(0.002)
+    assert d.state is DriverState.ACTIVE
+    d.feedback = [0.00071]
+    with pytest.raises(DriverError, match=r"beyond its window 0\.0007 "):
+        d.read(0.003)
+    # 10 N on 1e4 N/m: 1 mm more, and not a hair beyond it
+    d = drive(stiffness=1.0e4)
+    d.feedback = [0.0017]
+    d.read(0.002)
+    assert d.state is DriverState.ACTIVE
+    d.feedback = [0.00171]
+    with pytest.raises(DriverError, match=r"beyond its window 0\.0017 "):
+        d.read(0.003)
