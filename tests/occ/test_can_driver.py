@@ -1468,7 +1468,9 @@ def test_a_position_dithering_by_two_counts_is_moving_by_one_is_still(channel: s
                 tick(drive, drv, k)
             drv.activate()
             for k in range(5, 120):
-                drive.counts = 100 + step * (k % 2)
+                # 102 and 104 counts: 0.0104 - 0.0102 rad is a hair under 2e-4 in floats, so a
+                # noise of two counts would call it still
+                drive.counts = 102 + step * (k % 2)
                 tick(drive, drv, k)
             assert (drv.state is DriverState.FAULT) is frozen
             if frozen:
