@@ -454,6 +454,24 @@ def test_only_the_owners_stream_moves_the_robot_the_other_is_judged_and_counted(
         t.s.close()
 
 
+def test_a_replay_follows_only_the_stream_in_control() -> None:
+    t = Trio()
+    tapped: list[tuple[Any, str]] = []
+    t.s.streams.tap = lambda item, name: tapped.append((item, name))
+    again = Slave(COLLAB)
+    try:
+        t.send(t.mentor, 1)
+        t.send(t.trainee, 11)
+        t.s.drain(0.01)
+        again.clock.set(0.01)
+        again.streams.replay(0.01, again.seen, [(name, item) for item, name in tapped])
+        assert again.seen.seqs() == [1]  # the trainee's is judged, not followed
+        assert again.streams.monitors["trainee"].accepted == 1
+    finally:
+        t.s.close()
+        again.close()
+
+
 def test_holding_is_the_monitor_of_the_stream_in_control() -> None:
     t = Trio()
     try:
