@@ -20,6 +20,7 @@ from occ.drivers.can import (
     MAX_FRAMES_PER_JOINT,
     MODE_DISABLED,
     CANDriver,
+    round_saturated,
 )
 from occ.drivers.can_sim import DriveAxis, SimulatedDriveNode
 from occ.errors import DriverError
@@ -572,10 +573,12 @@ def test_a_jammed_bus_faults_the_write_instead_of_blocking_the_loop(
         drv.configure()
         ready(0.0)
         jam = can.Bus(interface="virtual", channel=channel, rx_queue_size=1)
+        before = drv.stats()["command_frames"]
         returned = in_thread(write)
         drain(jam)  # unblocks a send that would wait for ever
         assert returned
         assert failures and "send to id 0x102 failed" in failures[0]
+        assert drv.stats()["command_frames"] == before + 1  # the frame not sent is not counted
         assert drv.state is DriverState.FAULT
         jam.shutdown()
         drv.reset()
@@ -972,6 +975,7 @@ class ScriptedDrive:
         self.answer = True
         self.k = 0
         self.queue: list[tuple[int, int]] = []  # (due step, feedback id)
+        self.counts = 100  # the position every answer reports
 
     def step(self) -> None:
         for msg in drain(self.bus):
@@ -983,7 +987,9 @@ class ScriptedDrive:
         for _, fid in due:
             self.bus.send(
                 can.Message(
-                    arbitration_id=fid, is_extended_id=False, data=FEEDBACK_FRAME.pack(100, 0, 0)
+                    arbitration_id=fid,
+                    is_extended_id=False,
+                    data=FEEDBACK_FRAME.pack(self.counts, 0, 0),
                 )
             )
         self.k += 1
@@ -1301,4 +1307,200 @@ def test_the_nodes_stale_dither_freezes_the_position_toggling_one_count(
     settle(node, drv)
     drv.read(0.012)
     assert round(drv.joints[1].position * CPU[1]) == 11 * 200 and node.axes[1].stale is None
+    drv.shutdown()
+
+
+# ----------------------------------- what the fresh mutation run of 2026-11-29 found unchecked
+U = 2.0**-7  # a tick of 7.8125 ms: every time below is exact in binary
+
+
+def test_round_saturated_refuses_nan_and_keeps_the_bounds() -> None:
+    with pytest.raises(ValueError, match="^NaN cannot be sent$"):
+        round_saturated(math.nan, -10, 10)
+    assert round_saturated(10.0, -10, 10) == 10 and round_saturated(-10.0, -10, 10) == -10
+    assert round_saturated(9.5, -10, 10) == 10 and round_saturated(1e30, -10, 10) == 10
+
+
+@pytest.mark.req("SR-HW-21")
+def test_a_drive_silent_from_the_start_is_aged_from_the_first_read(channel: str) -> None:
+    """Never heard from: the age of its joints runs from the first read (the queries of
+    configure were sent before any time was known), it faults past feedback_timeout saying
+    none was ever answered, and the query is given up lost_after (by default ten times
+    feedback_timeout) after the first read."""
+    drv = CANDriver("arm", make_joints(), params(channel, feedback_timeout=2 * U))
+    try:
+        drv.configure()
+        drv.read(0.0)
+        assert drv.feedback_age(3 * U) == [3 * U, 3 * U]
+        drv.read(2 * U)
+        assert drv.state is DriverState.INACTIVE
+        with pytest.raises(DriverError) as info:
+            drv.read(3 * U)
+        assert str(info.value) == (
+            "can driver 'arm': joint yaw: no feedback on id 0x181 for 23.4 ms: feedback age "
+            "23.4 ms > feedback_timeout 15.6 ms (1 command unanswered, none ever answered)"
+        )
+        for k in range(4, 21):
+            with contextlib.suppress(DriverError):
+                drv.read(k * U)
+            assert drv.stats()["lost_answers"] == (2 if k == 20 else 0), k
+    finally:
+        drv.shutdown()
+    # lost_after may equal feedback_timeout
+    CANDriver("arm", make_joints(), params(channel, feedback_timeout=0.01, lost_after=0.01))
+
+
+@pytest.mark.req("SR-HW-21")
+def test_only_the_commands_older_than_lost_after_are_given_up_exactly_then(channel: str) -> None:
+    peer = can.Bus(interface="virtual", channel=channel)
+    drv = CANDriver(
+        "arm",
+        make_joints(),
+        params(channel, feedback_timeout=2 * U, lost_after=8 * U, following_error=None),
+    )
+    try:
+        drv.configure()
+        for fid in (0x181, 0x182):  # the queries answered, then never again
+            peer.send(
+                can.Message(
+                    arbitration_id=fid, is_extended_id=False, data=FEEDBACK_FRAME.pack(0, 0, 0)
+                )
+            )
+        drv.read(0.0)  # heard at 0; a poll each, owed from 0
+        drv.activate()
+        for k in (1, 2):
+            drv.read(k * U)
+            drv.write([0.0, 0.0], k * U)
+        with pytest.raises(DriverError, match="no feedback on id 0x181 for 23.4 ms"):
+            drv.read(3 * U)  # its switch-off frames owed from 3 U too
+        for k in range(4, 8):
+            with contextlib.suppress(DriverError):
+                drv.read(k * U)
+        assert drv.stats()["lost_answers"] == 0
+        with contextlib.suppress(DriverError):
+            drv.read(8 * U)  # 8 U of quiet: the poll of 0 given up, the commands of 1-3 U not
+        assert drv.stats()["lost_answers"] == 2
+    finally:
+        drv.shutdown()
+        peer.shutdown()
+
+
+@pytest.mark.req("SR-HW-21")
+def test_an_age_or_a_round_trip_of_exactly_the_limit_is_on_time(channel: str) -> None:
+    peer = can.Bus(interface="virtual", channel=channel)
+    drv = CANDriver("arm", make_joints(), params(channel, feedback_timeout=0.25))
+    limit = 0.25 * (1.0 + 1e-9)  # the driver's own slack for float rounding
+
+    def answer() -> None:
+        for fid in (0x181, 0x182):
+            peer.send(
+                can.Message(
+                    arbitration_id=fid, is_extended_id=False, data=FEEDBACK_FRAME.pack(0, 0, 0)
+                )
+            )
+
+    try:
+        drv.configure()
+        drv.read(0.0)
+        drv.read(limit)  # the queries owed for exactly the limit
+        answer()
+        drv.read(limit + 0.001)  # answered after a round trip of exactly the limit
+        assert drv.state is DriverState.INACTIVE
+        # the poll of limit + 1 ms unanswered: a fault, then its answer's round trip named
+        with pytest.raises(DriverError, match=r"for 624\.0 ms"):
+            drv.read(0.875)
+        answer()
+        with pytest.raises(DriverError) as info:
+            drv.read(1.0)
+        assert str(info.value) == (
+            "can driver 'arm': joint yaw: feedback on id 0x181 answers a command sent at least "
+            "624.0 ms before it arrived: feedback age 624.0 ms > feedback_timeout 250.0 ms "
+            "(answer late; 1 command unanswered)"
+        )
+    finally:
+        drv.shutdown()
+        peer.shutdown()
+
+
+@pytest.mark.req("SR-HW-21")
+def test_an_effort_command_is_owed_from_the_time_it_was_written(channel: str) -> None:
+    with scripted(channel, command_interface="effort") as (drive, drv):
+        for k in range(5):
+            tick(drive, drv, k)
+        drive.step()
+        drv.read(0.005)  # a poll each, owed from 5 ms
+        drv.activate()
+        drive.step()  # the polls answered
+        drive.answer = False
+        drv.write_effort([0.0, 0.0], 0.009)
+        drive.step()
+        drv.read(0.0185)  # owed 9.5 ms: on time
+        assert drv.state is DriverState.ACTIVE
+
+
+@pytest.mark.req("SR-HW-21")
+def test_the_stop_frames_of_a_safe_stop_are_counted_and_owed_an_answer(channel: str) -> None:
+    with scripted(channel) as (drive, drv):
+        for k in range(5):
+            tick(drive, drv, k)
+        drv.activate()
+        for k in range(5, 10):
+            tick(drive, drv, k)
+        before = drv.stats()
+        drv.safe_stop("supervisor")
+        assert drv.stats()["command_frames"] == before["command_frames"] + 2
+        drive.step()
+        drv.read(0.010)  # their answers, taken as theirs
+        after = drv.stats()
+        # the commands written at 9 ms and the stop frames (sent at the last read's now)
+        assert after["feedback_frames"] == before["feedback_frames"] + 4
+        assert after["unsolicited_frames"] == 0
+        assert drv.feedback_age(0.010) == pytest.approx([0.001, 0.001])
+
+
+@pytest.mark.req("SR-HW-8")
+def test_a_position_dithering_by_two_counts_is_moving_by_one_is_still(channel: str) -> None:
+    """A CAN drive's encoder noise is one count: a reading that toggles by two is a joint
+    that moves (never frozen however long), one that toggles by one is frozen."""
+    for step, frozen in ((2, False), (1, True)):
+        with scripted(channel + f"-{step}") as (drive, drv):
+            for k in range(5):
+                tick(drive, drv, k)
+            drv.activate()
+            for k in range(5, 120):
+                # 102 and 104 counts: 0.0104 - 0.0102 rad is a hair under 2e-4 in floats, so a
+                # noise of two counts would call it still
+                drive.counts = 102 + step * (k % 2)
+                tick(drive, drv, k)
+            assert (drv.state is DriverState.FAULT) is frozen
+            if frozen:
+                assert "feedback frozen" in (drv.fault_reason or "")
+
+
+def test_a_reset_keeps_the_error_frames_heard_while_faulted_by_something_else(
+    channel: str, node: SimulatedDriveNode
+) -> None:
+    drv = active_driver(channel, node, error_frames=1, feedback_timeout=10.0)
+    drv.safe_stop("supervisor")  # a fault that is not the error frames'
+    node.send_error_frame(0x04)
+    drv.read(0.002)  # heard while FAULT: not what faulted it
+    drv.reset()
+    drv.read(0.003)
+    drv.activate()
+    node.send_error_frame(0x04)  # with the one kept: two in 100 ms, one over the limit
+    with pytest.raises(DriverError, match="2 error frames"):
+        drv.read(0.004)
+    drv.reset()  # forgets both
+    drv.read(0.005)
+    drv.activate()
+    drv.safe_stop("supervisor")
+    node.send_error_frame(0x04)
+    drv.read(0.006)
+    drv.reset()  # keeps the one heard while stopped
+    drv.read(0.007)
+    assert drv.state is DriverState.INACTIVE and drv.stats()["error_frames"] == 3
+    drv.activate()
+    node.send_error_frame(0x04)
+    with pytest.raises(DriverError, match="2 error frames"):
+        drv.read(0.008)
     drv.shutdown()

@@ -896,6 +896,138 @@ def test_a_failing_lifecycle_hook_faults_naming_the_action(hook: str) -> None:
     assert d.stats()["errors"] == (2 if hook == "deactivate" else 1)
 
 
+class PowerUp(FlakyDriver):
+    """A flaky mirror whose power-up runs ``during`` (what another thread asks meanwhile)
+    and records what the driver says of itself while it is coming up."""
+
+    def __init__(self, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+        super().__init__(*args, **kwargs)
+        self.during: list[tuple[str, str]] = []
+        self.seen: list[tuple[bool, bool]] = []
+
+    def _activate(self) -> None:
+        self.seen.append((self.activating, self.activation_cancelled))
+        for ask, reason in self.during:
+            if ask == "cancel":
+                assert self.cancel_activation(reason) is True
+            else:
+                self.safe_stop(reason)
+        self.seen.append((self.activating, self.activation_cancelled))
+        self._maybe("activate")
+
+
+@pytest.mark.req("SR-HW-39", "SR-SAFE-1")
+def test_a_safe_stop_while_powering_up_switches_it_off_again_and_faults() -> None:
+    d = PowerUp("m", joints())
+    assert d.activating is False and d.cancel_activation("nothing under way") is False
+    d.configure()
+    assert d.activating is False and d.cancel_activation("nothing under way") is False
+    d.during = [("stop", "loop hung")]
+    error = "driver 'm': safe stop while powering up: loop hung; switched off"
+    with pytest.raises(DriverError) as info:
+        d.activate()
+    assert str(info.value) == error
+    assert d.seen == [(True, False), (True, True)]  # the hook can see it and give up
+    assert d.state is DriverState.FAULT and d.fault_reason == error
+    assert d.calls == ["configure", "activate", "deactivate"]  # off again once it was up
+    assert d.stats() == {"reads": 0, "writes": 0, "limit_events": 0, "errors": 1, "safe_stops": 0}
+    assert d.activating is False and d.stop_failed is None
+    # after the reset a power-up with nothing asked is a plain one
+    d.reset()
+    d.during = []
+    d.seen.clear()
+    d.activate()
+    assert d.state is DriverState.ACTIVE and d.seen == [(True, False), (True, False)]
+    assert d.activating is False and d.stats()["errors"] == 1
+    # a second one is counted on top of the first
+    d.deactivate()
+    d.during = [("stop", "loop hung again")]
+    with pytest.raises(DriverError, match="loop hung again"):
+        d.activate()
+    assert d.stats()["errors"] == 2
+
+
+@pytest.mark.req("SR-HW-39")
+def test_a_cancelled_power_up_ends_switched_off_and_inactive() -> None:
+    d = PowerUp("m", joints())
+    d.configure()
+    d.during = [("cancel", "disable asked"), ("cancel", "a second reason")]
+    with pytest.raises(StateError) as info:
+        d.activate()
+    # the first reason is kept
+    assert str(info.value) == "driver 'm': activation cancelled: disable asked; switched off again"
+    assert d.seen == [(True, False), (True, True)]
+    assert d.state is DriverState.INACTIVE and d.fault_reason is None
+    assert d.calls == ["configure", "activate", "deactivate"]
+    assert d.stats()["errors"] == 0 and d.activating is False
+    assert d.cancel_activation("too late") is False
+    # a stop and a cancel both asked: the stop wins (FAULT, not INACTIVE)
+    d.during = [("cancel", "disable asked"), ("stop", "estop")]
+    with pytest.raises(DriverError, match="safe stop while powering up: estop; switched off$"):
+        d.activate()
+    assert d.state is DriverState.FAULT
+
+
+@pytest.mark.req("SR-HW-17")
+def test_a_failed_switch_off_is_kept_until_one_succeeds() -> None:
+    d = flaky()
+    d.configure()
+    d.activate()
+    d.deactivate()
+    assert d.stop_failed is None
+    d.activate()
+    d.fail = {"safe_stop"}
+    d.safe_stop("loop hung")
+    assert d.stop_failed == "safe stop failed: OSError('safe_stop broke')"
+    # a reset switches it off first, and is refused while it cannot
+    d.fail = {"deactivate"}
+    error = "driver 'm': reset (switch-off) failed: OSError('deactivate broke')"
+    with pytest.raises(DriverError) as info:
+        d.reset()
+    assert str(info.value) == error and d.state is DriverState.FAULT
+    assert d.stop_failed == "safe stop failed: OSError('safe_stop broke')"
+    d.fail = set()
+    d.calls.clear()
+    d.reset()
+    assert d.calls == ["deactivate", "reset"] and d.stop_failed is None
+    assert d.state is DriverState.INACTIVE
+    # a fault from ACTIVE switches off; a failure of that is kept, a success clears it
+    d.activate()
+    d.fail = {"write", "deactivate"}
+    with pytest.raises(DriverError, match="write failed"):
+        d.write([0.0, 0.0], 0.001)
+    assert d.stop_failed == "switch-off failed: OSError('deactivate broke')"
+    d.fail = set()
+    d.reset()
+    d.activate()
+    d.fail = {"write"}
+    with pytest.raises(DriverError, match="write failed"):
+        d.write([0.0, 0.0], 0.002)
+    assert d.state is DriverState.FAULT and d.stop_failed is None
+
+
+def test_the_last_reading_is_kept_as_the_hook_returned_it_and_none_before_any() -> None:
+    d = MirrorDriver("m", joints())
+    assert d.raw == ((), (), ()) and math.isnan(d.raw_now)  # the black box: nothing read yet
+    d.configure()
+    d.last = [0.25, -0.5]
+    d.read(0.003)
+    assert d.raw == ([0.25, -0.5], [0.0, 0.0], [0.0, 0.0]) and d.raw_now == 0.003
+
+
+def test_every_failing_hook_is_told_to_the_tap() -> None:
+    told: list[tuple[str, str, str]] = []
+    d = flaky()
+    d.hook_tap = lambda name, action, err: told.append((name, action, repr(err)))
+    d.fail = {"configure"}
+    with pytest.raises(DriverError):
+        d.configure()
+    d.fail = set()
+    d.reset()
+    d.configure()
+    assert told == [("m", "configure", "OSError('configure broke')")]
+
+
 def test_a_driver_that_never_configured_resets_to_unconfigured() -> None:
     d = flaky()
     d.fail.add("configure")
@@ -1134,6 +1266,8 @@ def test_a_driver_left_configured_warns_once_it_is_collected(
     """python-can's leaked-bus warning: a configured driver nobody shut down may still hold
     hardware. One shut down, or never configured, or half built, says nothing."""
     caplog.set_level("WARNING", logger="occ.drivers.base")
+    gc.collect()  # earlier tests' drivers left in cycles warn when collected: not here
+    caplog.clear()
     leaked = MirrorDriver("leaky", joints(1))
     leaked.configure()
     leaked.__del__()

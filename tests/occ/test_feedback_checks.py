@@ -122,6 +122,36 @@ def test_a_slow_joint_is_judged_by_its_own_velocity_limit() -> None:
         d.read(0.002)
 
 
+class KnownNoise(ScriptedFeedback):
+    """A backend that knows its encoders' noise at rest (1 mrad a joint)."""
+
+    def _default_noise(self) -> Sequence[float] | None:
+        return [0.001] * len(self.joints)
+
+
+@pytest.mark.req("SR-HW-9")
+def test_the_backends_own_noise_widens_the_reach_unless_feedback_noise_is_configured() -> None:
+    # 2 x 2 rad/s over 1 ms is 0.004 rad; twice the backend's 1 mrad makes it 0.006
+    d = KnownNoise([revolute(velocity=2.0)], heartbeat_ms=0)
+    d.configure()
+    d.activate()
+    d.read(0.0)
+    d.feedback = [0.0059]
+    d.read(0.001)
+    assert d.state is DriverState.ACTIVE
+    d.feedback = [0.0059 + 0.0061]
+    with pytest.raises(DriverError, match=r"at most 0\.006: .* plus twice the noise 0\.001\)"):
+        d.read(0.002)
+    # a configured feedback_noise is the backend's word no more
+    d = KnownNoise([revolute(velocity=2.0)], heartbeat_ms=0, feedback_noise=0.0)
+    d.configure()
+    d.activate()
+    d.read(0.0)
+    d.feedback = [0.0059]
+    with pytest.raises(DriverError, match=r"at most 0\.004: .* plus twice the noise 0\)"):
+        d.read(0.001)
+
+
 def test_feedback_jump_zero_or_none_switches_the_check_off() -> None:
     for off in (0, None, "0"):
         j = revolute()
@@ -211,6 +241,7 @@ def test_frozen_is_not_judged_while_inactive_or_on_an_effort_drive() -> None:
     d.write([0.05], 0.0)
     d.deactivate()  # powered off: nothing moves the joint, so nothing is frozen
     d.read(1.0)
+    d.read(5.0)  # however long (a window of its own would still fault here)
     assert d.state is DriverState.INACTIVE
     gains = PIDGains(kp=1.0, ki=0.0, kd=0.0)
     e = Joint("e", "revolute", JointLimits(-3.0, 3.0, 100.0, 50.0), gains=gains)
@@ -221,6 +252,7 @@ def test_frozen_is_not_judged_while_inactive_or_on_an_effort_drive() -> None:
     h.write([0.05], 0.0)  # a position through its PID: still the hand's to move
     assert e.command_position == 0.05
     h.read(1.0)
+    h.read(5.0)
     assert h.state is DriverState.ACTIVE
 
 
@@ -497,3 +529,267 @@ def test_a_late_ticks_step_shown_by_a_reading_that_comes_soon_after_is_no_jump()
     assert d.state is DriverState.ACTIVE
     with pytest.raises(DriverError, match="feedback jump of 0.00035 in 1 ms"):
         tick(0.006, 0.0006, shown=0.0004 + 0.00035)  # 0.35 mm for a 0.1 mm command: a slip
+
+
+# ------------------------------------- what the fresh mutation run of 2026-11-29 found unchecked
+@pytest.mark.req("SR-HW-9")
+def test_a_jump_factor_under_one_still_judges_steps() -> None:
+    # feedback_jump 0.5 x 2 rad/s over 1 ms: 1 mrad a tick; 1.5 mrad is a jump
+    d = active(revolute(velocity=2.0), feedback_jump=0.5)
+    d.read(0.0)
+    d.feedback = [0.001]
+    d.read(0.001)
+    assert d.state is DriverState.ACTIVE
+    d.feedback = [0.0025]
+    with pytest.raises(DriverError, match=r"feedback jump of 0\.0015 in 1 ms \(at most 0\.001:"):
+        d.read(0.002)
+
+
+@pytest.mark.req("SR-HW-22")
+def test_a_reading_exactly_at_the_limit_plus_the_margin_is_believed() -> None:
+    j = prismatic(velocity=10.0)  # limits [-0.5, 0.5], margin 2 mm
+    d = ScriptedFeedback([j], heartbeat_ms=0)
+    d.configure()
+    for x in (-0.5 - 0.002, 0.5 + 0.002):
+        d.feedback = [x]
+        d.read(0.0)
+        assert d.state is DriverState.INACTIVE and j.position == x
+
+
+@pytest.mark.req("SR-HW-9", "SR-HW-22")
+def test_the_joints_after_a_failed_one_are_still_read() -> None:
+    # a fault names the first joint that failed, but every joint's believable reading is taken
+    for bad in (9.0, 0.5):  # out of range, then a jump
+        a, b = revolute("a", velocity=2.0), revolute("b", velocity=2.0)
+        d = active(a, b)
+        d.read(0.0)
+        d.feedback = [bad, 0.001]
+        with pytest.raises(DriverError, match="joint a: "):
+            d.read(0.001)
+        assert a.position == 0.0 and b.position == 0.001 and b.stamp == 0.001
+
+
+def test_a_first_reading_is_believed_wherever_it_is_even_when_already_stamped() -> None:
+    # a CiA 402 drive stamps each reading with its sample time, so a joint not yet measured
+    # may carry a stamp; its first reading is still not a jump from where it never was
+    j = revolute(velocity=2.0)
+    d = active(j)
+    j.stamp = 0.0
+    d.feedback = [2.5]
+    d.read(0.001)
+    assert d.state is DriverState.ACTIVE and j.measured and j.position == 2.5
+
+
+@pytest.mark.req("SR-HW-9")
+def test_a_servo_catching_up_after_a_stall_may_move_at_the_commanded_speed() -> None:
+    # a 5 mm step after 50 ms without a write is 5 m/s over a period (the 20 ms lag's average
+    # takes it in full); three writes later (no step, 5 % decay each) the servo may still move
+    # 2 x 4.3 m/s x 1 ms = 8.6 mm a reading, though 2 x its 0.1 m/s allows 0.2 mm
+    j = prismatic(velocity=0.1)
+    d = active(j, frozen_feedback_ms=0)
+    d.feedback = [0.0]
+    d.read(0.0)
+    d.write([0.0], 0.0)
+    d.write([0.005], 0.05)
+    for k in range(1, 4):
+        d.write([0.005], 0.05 + 0.001 * k)
+    d.read(0.053)
+    d.feedback = [0.004]
+    d.read(0.054)
+    assert d.state is DriverState.ACTIVE and j.position == 0.004
+    d.feedback = [0.0135]
+    with pytest.raises(DriverError, match="feedback jump of 0.0095 in 1 ms"):
+        d.read(0.055)
+
+
+def test_a_jump_after_a_pause_names_its_time_in_ms() -> None:
+    d = active(revolute(velocity=1.0))
+    d.read(0.0)
+    d.feedback = [2.5]
+    with pytest.raises(DriverError, match=r"feedback jump of 2\.5 in 999 ms \(at most 1\.998:"):
+        d.read(0.999)
+
+
+@pytest.mark.req("SR-HW-14")
+def test_a_load_either_way_widens_the_window_alike() -> None:
+    class Pushed(ScriptedFeedback):
+        def _read(self, now: float) -> tuple[Sequence[float], Sequence[float], Sequence[float]]:
+            return list(self.feedback), [0.0], [-10.0]  # 10 N pulling
+
+    j = prismatic(velocity=10.0)
+    d = Pushed(
+        [j],
+        heartbeat_ms=0,
+        frozen_feedback_ms=0,
+        following_error={"window": 0.0005, "time_ms": 0, "stiffness": 1.0e4},
+    )
+    d.configure()
+    d.activate()
+    d.feedback = [0.0]
+    d.read(0.0)
+    d.write([0.0014], 0.001)
+    d.read(0.5)  # 1.4 mm off: 0.5 + |-10 N| / 1e4 N/m = 1.5 mm allowed
+    assert d.state is DriverState.ACTIVE
+
+
+@pytest.mark.req("SR-HW-14")
+def test_the_following_error_fault_says_how_long_and_its_time_ms() -> None:
+    j = prismatic(velocity=0.1)
+    d = fe_drive(j, window=0.001, time_ms=7, lag_ms=0)
+    d.write([0.0], 0.0)
+    d.feedback = [0.002]
+    d.read(0.001)
+    with pytest.raises(DriverError) as info:
+        d.read(0.0085)
+    assert str(info.value) == (
+        "driver 'drive': joint p: following error 0.002 beyond its window 0.001 for 7.5 ms "
+        "(following_error: measured 0.002, commanded 0, time_ms 7)"
+    )
+
+
+@pytest.mark.req("SR-HW-14")
+def test_the_default_window_is_half_a_millimetre_or_5_mrad_by_joint_type() -> None:
+    for joint, inside, outside in (
+        (prismatic(velocity=0.1), 0.0005, 0.0006),
+        (revolute(velocity=2.0), 0.005, 0.0051),
+    ):
+        d = fe_drive(joint, time_ms=0)
+        d.write([0.0], 0.0)
+        d.feedback = [inside]
+        d.read(0.001)
+        assert d.state is DriverState.ACTIVE
+        d.feedback = [outside]
+        with pytest.raises(DriverError, match="following error"):
+            d.read(0.002)
+
+
+class KnownServo(ScriptedFeedback):
+    """A backend that knows its servo: no lag behind a moving command, 1e4 N/m stiff."""
+
+    def _following_model(self) -> tuple[Sequence[float], Sequence[float | None]] | None:
+        return [0.0] * len(self.joints), [1.0e4] * len(self.joints)
+
+
+@pytest.mark.req("SR-HW-14")
+def test_the_backends_servo_model_sets_the_lag() -> None:
+    # no lag: a moving command widens nothing, so 1 mm behind a 0.5 mm window faults
+    j = prismatic(velocity=0.1)
+    d = KnownServo(
+        [j], heartbeat_ms=0, frozen_feedback_ms=0, following_error={"window": 0.0005, "time_ms": 0}
+    )
+    d.configure()
+    d.activate()
+    d.feedback = [0.0]
+    d.read(0.0)
+    for k in range(1, 11):
+        d.write([1e-4 * k], 0.001 * k)
+    with pytest.raises(DriverError, match=r"beyond its window 0\.0005 "):
+        d.read(0.0105)
+
+
+def test_every_per_joint_setting_refused_names_the_driver_the_key_and_the_fault() -> None:
+    both = [revolute("r"), revolute("s")]
+    for params, text in [
+        (
+            {"feedback_noise": {"r": 0.1, "x": 0.2}},
+            "driver 'drive': feedback_noise names joints ['r', 'x']; its joints are ['r', 's'] "
+            "(unknown: ['x']) (missing: ['s'])",
+        ),
+        (
+            {"limit_margin": {"r": 0.1, "s": 0.1, "x": 0.2}},
+            "driver 'drive': limit_margin names joints ['r', 's', 'x']; its joints are "
+            "['r', 's'] (unknown: ['x'])",
+        ),
+        (
+            {"feedback_noise": {"r": 0.1}},
+            "driver 'drive': feedback_noise names joints ['r']; its joints are ['r', 's'] "
+            "(missing: ['s'])",
+        ),
+        (
+            {"feedback_noise": {"r": 0.1, "s": "ten"}},
+            "driver 'drive': feedback_noise.s must be a finite number >= 0, got 'ten'",
+        ),
+        (
+            {"following_error": {"window": {"r": 0.001, "s": 0}}},
+            "driver 'drive': following_error.window.s must be a finite number > 0, got 0",
+        ),
+        (
+            {"following_error": {"window": -1}},
+            "driver 'drive': following_error.window must be a finite number > 0, got -1",
+        ),
+        (
+            {"feedback_noise": -1.0},
+            "driver 'drive': feedback_noise must be a finite number >= 0, got -1.0",
+        ),
+        (
+            {"feedback_noise": "ten"},
+            "driver 'drive': feedback_noise must be a number or {joint: number}, got 'ten'",
+        ),
+        (
+            {"limit_margin": -1},
+            "driver 'drive': limit_margin must be a finite number >= 0, got -1",
+        ),
+        (
+            {"feedback_jump": -1},
+            "driver 'drive': feedback_jump must be a number >= 0 (0 = off), got -1",
+        ),
+        (
+            {"frozen_feedback_ms": -1},
+            "driver 'drive': frozen_feedback_ms must be a number >= 0 (0 = off), got -1",
+        ),
+        (
+            {"following_error": {"time_ms": -1}},
+            "driver 'drive': following_error.time_ms must be a finite number >= 0, got -1",
+        ),
+        (
+            {"following_error": {"lag_ms": -1}},
+            "driver 'drive': following_error.lag_ms must be a finite number >= 0, got -1",
+        ),
+        (
+            {"following_error": {"stiffness": 0}},
+            "driver 'drive': following_error.stiffness must be a finite number > 0, got 0",
+        ),
+    ]:
+        with pytest.raises(ValueError) as info:
+            ScriptedFeedback(both, **params)
+        assert str(info.value) == text
+
+
+@pytest.mark.req("SR-HW-14")
+def test_the_window_is_widened_by_twice_the_noise_and_the_load_over_the_stiffness() -> None:
+    class Loaded(ScriptedFeedback):
+        def _read(self, now: float) -> tuple[Sequence[float], Sequence[float], Sequence[float]]:
+            return list(self.feedback), [0.0], [10.0]  # 10 N pushing back
+
+    def drive(**fe: Any) -> ScriptedFeedback:
+        d = Loaded(
+            [prismatic(velocity=10.0)],
+            heartbeat_ms=0,
+            frozen_feedback_ms=0,
+            feedback_jump=0,
+            feedback_noise=0.0001,
+            following_error={"window": 0.0005, "time_ms": 0, **fe},
+        )
+        d.configure()
+        d.activate()
+        d.feedback = [0.0]
+        d.read(0.0)
+        d.write([0.0], 0.001)
+        return d
+
+    # without a stiffness the load widens nothing: 0.5 + 2 x 0.1 mm
+    d = drive()
+    d.feedback = [0.0007]
+    d.read(0.002)
+    assert d.state is DriverState.ACTIVE
+    d.feedback = [0.00071]
+    with pytest.raises(DriverError, match=r"beyond its window 0\.0007 "):
+        d.read(0.003)
+    # 10 N on 1e4 N/m: 1 mm more, and not a hair beyond it
+    d = drive(stiffness=1.0e4)
+    d.feedback = [0.0017]
+    d.read(0.002)
+    assert d.state is DriverState.ACTIVE
+    d.feedback = [0.00171]
+    with pytest.raises(DriverError, match=r"beyond its window 0\.0017 "):
+        d.read(0.003)

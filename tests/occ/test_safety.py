@@ -10,7 +10,6 @@ from hypothesis import strategies as st
 
 from occ._native import class_doc
 from occ.clock import SimClock
-from occ.errors import StateError
 from occ.core.safety import (
     EVENTS,
     TRANSITIONS,
@@ -23,6 +22,7 @@ from occ.core.safety import (
     Verdict,
     Watchdog,
 )
+from occ.errors import StateError
 
 S = RobotState
 
@@ -942,6 +942,30 @@ def test_a_guard_refuses_with_its_reason_and_changes_nothing() -> None:
     assert sm.last_reason == "button"
 
 
+@pytest.mark.req("SR-STATE-1")
+def test_check_answers_what_a_request_would_do_and_changes_nothing() -> None:
+    sm = StateMachine(S.READY)
+    calls: list[tuple[RobotState, RobotState]] = []
+    asked: list[tuple[RobotState, str]] = []
+    sm.add_listener(lambda old, new, *_: calls.append((old, new)))
+    sm.add_guard(lambda state, event: asked.append((state, event)) or "")
+    sm.add_guard(lambda state, event: "drive 1 is busy" if event == "enable" else "")
+    # the event's spelling is normalised, the guards are asked with the state now
+    assert sm.check("E_Stop") is S.ESTOP
+    assert asked == [(S.READY, "estop")]
+    # a guard's refusal and the table's, with the texts request() would raise
+    with pytest.raises(StateError) as info:
+        sm.check("Enable")
+    assert str(info.value) == "'enable' refused in state READY: drive 1 is busy"
+    with pytest.raises(StateError) as info:
+        sm.check("run")
+    assert str(info.value).startswith("'run' refused in state READY; allowed from READY: ")
+    # nothing was carried out: no state change, no listener, no reason
+    assert sm.state is S.READY and calls == [] and sm.last_reason == ""
+    sm.request("estop", "button")
+    assert sm.check("reset") is S.READY and sm.state is S.ESTOP
+
+
 @pytest.mark.req("SR-LOSS-2")
 def test_arm_starts_the_deadline_without_a_packet() -> None:
     mon = LossMonitor()
@@ -1605,6 +1629,37 @@ def test_every_field_of_sequence_latch_and_deadline_only_resume_events() -> None
     mon.on_packet(None, None, 0.016)
     assert _ev(mon.check(0.016))[0] == "resume"  # type: ignore[index]
     assert mon.resumes == 2 and mon.holds == 2
+
+
+@pytest.mark.req("SR-LOSS-1")
+def test_a_sequence_latch_names_the_first_and_last_number_lost() -> None:
+    mon = LossMonitor()
+    mon.on_packet(1040, None, 0.000)
+    mon.on_packet(1044, None, 0.008)
+    ev = mon.check(0.008)
+    assert ev is not None and ev.lost == (1041, 1043) and mon.trip_event is ev
+    # across the wrap of the 32-bit numbers, each end masked on its own
+    mon = LossMonitor()
+    mon.on_packet(0xFFFFFFFE, None, 0.000)
+    mon.on_packet(2, None, 0.008)
+    ev = mon.check(0.008)
+    assert ev is not None and ev.cause == "3 consecutive packets lost (seq 4294967295-1 missing)"
+    assert ev.lost == (0xFFFFFFFF, 1)
+    mon = LossMonitor()
+    mon.on_packet(0xFFFFFFFD, None, 0.000)
+    mon.on_packet(1, None, 0.008)
+    ev = mon.check(0.008)
+    assert ev is not None and ev.lost == (0xFFFFFFFE, 0)
+    # a latch on a gap in the timestamps, or on silence, has no numbers to name
+    mon = LossMonitor()
+    mon.on_packet(None, 1.000, 0.000)
+    mon.on_packet(None, 1.008, 0.008)
+    ev = mon.check(0.008)
+    assert ev is not None and ev.kind == "latch" and ev.source == "timestamp" and ev.lost is None
+    mon = LossMonitor()
+    mon.on_packet(1, None, 0.0)
+    ev = mon.check(0.2)
+    assert ev is not None and ev.kind == "latch" and ev.source == "grace" and ev.lost is None
 
 
 @pytest.mark.req("SR-LOSS-2")

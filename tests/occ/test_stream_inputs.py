@@ -19,15 +19,15 @@ import numpy as np
 import pytest
 
 import igtl
-from occ.net.decoders import pose_sample
-from occ.errors import CommandError
-from occ.events import SphereList
-from occ.net.interfaces import Inbound
 from occ.core.loader import load_config, parse_config
 from occ.core.robot import Robot
 from occ.core.safety import RobotState
-from occ.samples import PoseSample, quaternion_to_rotation, rotation_to_quaternion
+from occ.errors import CommandError
+from occ.events import SphereList
+from occ.net.decoders import pose_sample
+from occ.net.interfaces import Inbound
 from occ.net.streams import POLL_LIMIT, StreamInputs, judge
+from occ.samples import PoseSample, quaternion_to_rotation, rotation_to_quaternion
 from occ_testkit.testing import SimRobot, loopback_robot
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -142,6 +142,31 @@ def test_every_sample_is_judged_and_followed_in_arrival_order_and_recorded(slave
     assert slave.seen.seqs() == [1, 2, 3, 4] and mon.duplicates == 1 and mon.received == 5
     assert len(slave.seen.recorded) == 5
     assert slave.seen.samples[-1][1] == 0.011
+
+
+def test_the_tap_sees_each_item_and_a_replay_takes_them_as_the_drain_did(slave: Slave) -> None:
+    """The black box's tap gets every item the loop takes, with its interface; a replay of
+    those items (occ/core/replay.py) on another robot judges, records and follows them as the
+    drain did."""
+    master = slave.sim.peer("master", address=MASTER)
+    tapped: list[tuple[Any, str]] = []
+    slave.streams.tap = lambda item, name: tapped.append((item, name))
+    slave.clock.set(0.009)
+    for seq in (1, 2):
+        master.send(slave.position(seq))
+    slave.drain(0.01)
+    assert [(item.event.seq, name) for item, name in tapped] == [(1, "master"), (2, "master")]
+    again = Slave()
+    try:
+        again.clock.set(0.01)
+        again.streams.replay(0.01, again.seen, [(name, item) for item, name in tapped])
+        assert again.seen.seqs() == [1, 2] and [now for _, now in again.seen.samples] == [0.01] * 2
+        assert [(r[1], r[2], r[3]) for r in again.seen.recorded] == [("in", "master", 0.01)] * 2
+        mon = again.streams.monitor
+        assert mon is not None and mon.received == 2 and mon.accepted == 2
+        assert mon.last_good == 0.01
+    finally:
+        again.close()
 
 
 def test_a_drain_without_a_recorder_still_follows(slave: Slave) -> None:
@@ -427,6 +452,24 @@ def test_only_the_owners_stream_moves_the_robot_the_other_is_judged_and_counted(
         assert not streams.holding and streams.events(5.0) == ()
     finally:
         t.s.close()
+
+
+def test_a_replay_follows_only_the_stream_in_control() -> None:
+    t = Trio()
+    tapped: list[tuple[Any, str]] = []
+    t.s.streams.tap = lambda item, name: tapped.append((item, name))
+    again = Slave(COLLAB)
+    try:
+        t.send(t.mentor, 1)
+        t.send(t.trainee, 11)
+        t.s.drain(0.01)
+        again.clock.set(0.01)
+        again.streams.replay(0.01, again.seen, [(name, item) for item, name in tapped])
+        assert again.seen.seqs() == [1]  # the trainee's is judged, not followed
+        assert again.streams.monitors["trainee"].accepted == 1
+    finally:
+        t.s.close()
+        again.close()
 
 
 def test_holding_is_the_monitor_of_the_stream_in_control() -> None:
