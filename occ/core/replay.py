@@ -201,8 +201,10 @@ class _Drives:
             if err is not None:
                 raise err
             row = self.row
-            if row is None:  # configuring: what the recorded robot read then
-                return self.built.get(name) or _unread(len(cols))
+            if row is None:  # configuring: what the recorded robot read then (a drive it
+                # never read holds the driver's empty reading: not one, as none)
+                got = self.built.get(name)
+                return got if got is not None and len(got[0]) == len(cols) else _unread(len(cols))
             return (
                 [float(row[p]) for p, _, _ in cols],
                 [float(row[v]) for _, v, _ in cols],

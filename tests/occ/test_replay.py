@@ -12,6 +12,7 @@ or damaged is refused with the reason (the CLI exits 1), and the CLI's exits 0 a
 from __future__ import annotations
 
 import json
+import math
 import re
 from collections.abc import Callable
 from fractions import Fraction
@@ -551,3 +552,30 @@ def test_each_outputs_sequence_is_a_slot_and_the_schedule_built_from_the_config_
     assert "robot.outputs.outputs[0].seq" in paths
     assert not any("_schedule" in p or "_due" in p for p in paths if p.startswith("robot.outputs"))
     assert not any(p.startswith("robot.operators.port.stats._entries") for p in paths)
+
+
+def test_a_drive_the_recorded_build_never_read_answers_unread_not_empty_lists() -> None:
+    """A drive the recorded robot had not read when it was built holds the driver's empty
+    reading ``((), (), ())`` (truthy: a tuple of three): the replay's configure-time read
+    answers NaN for each joint, as for a drive with no recorded reading at all, never lists of
+    the wrong length."""
+    from occ.core.replay import _Drives
+    from occ.recording.blackbox import tick_columns
+
+    sim = SimRobot(CONFIGS / "slave.yaml")
+    try:
+        robot = sim.robot
+        (drive, idx), *_ = robot.hardware.pairs
+        names = [robot.joints[i].name for i in idx]
+        paths = {id(drive): "robot.drive"}
+        columns = tick_columns(names)
+        for built in ({"robot.drive.raw": ((), (), ())}, {}):
+            _Drives(robot, columns, built, paths)
+            got = drive._read(0.0)
+            assert [len(x) for x in got] == [len(names)] * 3
+            assert all(math.isnan(v) for x in got for v in x)
+        recorded = ([0.1] * len(names), [0.0] * len(names), [0.0] * len(names))
+        _Drives(robot, columns, {"robot.drive.raw": recorded}, paths)
+        assert drive._read(0.0) == recorded  # a real recorded reading is answered as it was
+    finally:
+        sim.close()
