@@ -474,6 +474,11 @@ class Robot:
     state: str | None = None
     #: the name and text of the daemon's last state STATUS ("RUNNING -> STOPPED: <why>")
     status_state: str | None = None
+    #: state STATUS messages taken, and their count when a link last asked GetState on
+    #: connect: that answer is older than any STATUS taken since (another link's may come
+    #: first) and must not undo it
+    state_statuses: int = 0
+    state_asked_at: int = 0
     state_text: str = ""
     #: the daemon is STOPPED by this bridge's ``pause`` (and no alarm since): CRTK's
     #: ``resume`` and ``enable`` may Run it again; any other stop is the daemon's Run's
@@ -634,6 +639,8 @@ class Bridge:
                 # for the answer (a second at most)
                 robot.probing_until = time.monotonic() + PROBE_WAIT_S
                 self._send_command(robot, client, "GetStats", probe=True)
+            with robot.status_lock:
+                robot.state_asked_at = robot.state_statuses
             self._send_command(robot, client, "GetState", quiet=True)
 
         client = TCPClient(
@@ -833,6 +840,7 @@ class Bridge:
             if name in CRTK_STATE:
                 robot.state_text = text
                 robot.status_state = name
+                robot.state_statuses += 1
                 self._set_state(robot, name, stamp)
             elif name in (KEYFRAME_RUNNING, KEYFRAME_ENDED):
                 self._set_busy(robot, name == KEYFRAME_RUNNING, stamp)
@@ -1031,12 +1039,14 @@ class Bridge:
         text = msg.metadata.get("Message", "")
         name = pending.name if pending is not None else getattr(msg, "command_name", "")
         if name == "GetState" and status == "SUCCESS":
-            # "state=RUNNING; alert=...": the state, whoever asked
+            # "state=RUNNING; alert=...": the state, whoever asked; the answer to our own
+            # question on connect only while no state STATUS came since it was asked
             for part in text.split(";"):
                 key, _, value = part.strip().partition("=")
                 if key == "state" and value in CRTK_STATE:
                     with robot.status_lock:
-                        self._set_state(robot, value, stamp)
+                        if pending is not None or robot.state_statuses == robot.state_asked_at:
+                            self._set_state(robot, value, stamp)
         if pending is None:
             return  # our own GetState on connect
         if pending.probe:

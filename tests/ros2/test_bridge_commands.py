@@ -1444,6 +1444,9 @@ def test_a_daemon_on_two_links_has_each_status_published_once(
         assert bridge.wait_connected()
         robot = bridge.robots[namespace]
         assert poll(lambda: robot.counters.statuses == 2)  # both greetings handled
+        # operating_state waits for the answer to the bridge's GetStats probe (is a plan
+        # running?): the changes below are each published once it has come
+        assert poll(lambda: robot.probing_until == 0.0)
         for i, (state, text) in enumerate(
             [("ENABLED", "READY -> ENABLED"), ("RUNNING", "ENABLED -> RUNNING"),
              ("ALERT", "master late by 4.1 ms"), ("STOPPED", "RUNNING -> STOPPED: loss")]
@@ -1554,3 +1557,32 @@ def test_a_client_takes_only_its_own_reply_when_a_gone_clients_comes_first(
     got = [s.data for s in b_side.wait("command_reply", 2)]
     assert got == ["[A-1] Slow SUCCESS: for A", "[B-1] Slow SUCCESS: for B"]
     assert [r for r in got if r.startswith("[B-1] ")] == ["[B-1] Slow SUCCESS: for B"]
+
+
+@pytest.mark.req("SR-REPLY-1")
+def test_an_answer_to_getstate_on_connect_never_undoes_a_newer_status(
+    dds: tuple[int, Any], namespace: str
+) -> None:
+    """The bridge asks GetState as each link connects (a late joiner learns the state); on two
+    links that answer may be handled after a STATUS of a newer state (another link's thread):
+    it is then older news and must not set the state back. Without a STATUS since the
+    question, the answer is taken (a daemon that does not greet)."""
+    domain_id, dp = dds
+    daemon = DaemonPort(answer=lambda n, t: None if n == "GetState" else ok(n, t))
+    daemon.server.start()
+    ros = RosSide(dp, namespace)
+    link = [("127.0.0.1", daemon.port, namespace)]
+    with Bridge(link, link, domain_id=domain_id, tf=False) as bridge:
+        assert bridge.wait_connected()
+        robot = bridge.robots[namespace]
+        asked = [daemon.wait_command("GetState", 1), daemon.wait_command("GetState", 2)]
+        daemon.reply(asked[0], "SUCCESS", "state=READY; alert=none")  # no STATUS yet: taken
+        assert poll(lambda: robot.state == "READY")
+        daemon.status("ENABLED", "READY -> ENABLED", timestamp=1_700_000_100.0)
+        assert poll(lambda: robot.counters.statuses == 2)  # both links' copies handled
+        daemon.reply(asked[1], "SUCCESS", "state=READY; alert=none")  # the late answer
+        daemon.status("ALERT", "after the answer", timestamp=1_700_000_101.0)
+        assert poll(lambda: robot.counters.statuses == 4)  # each link handled the answer first
+        assert robot.state == "ENABLED"
+        assert [s.data for s in ros.take("state")] == ["READY", "ENABLED"]
+    daemon.server.stop()
