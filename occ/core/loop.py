@@ -193,6 +193,9 @@ class ControlLoop:
         #: tick)
         self.spare: Callable[[bool], bool] | None = None
         self.spare_min_s = 0.6 * self.period_s
+        #: called when a run ends, first, while the loop still has its real-time settings
+        #: (the robot's supervisor stops watching there)
+        self.on_end: Callable[[], None] | None = None
         self.realtime_report = ""
         self.missed_ticks = 0
         self.t0 = math.nan  # deadline k is t0 + k / rate_hz (updated by shift())
@@ -330,6 +333,8 @@ class ControlLoop:
         try:
             self._run(duration, ticks)
         finally:
+            if self.on_end is not None:
+                self.on_end()
             stats.end()
             restore()
             self._running = False

@@ -365,6 +365,9 @@ def build_loop(robot: Assembling) -> tuple[LoopStats, ControlLoop]:
         watchdog=robot.watchdog,
         realtime=realtime_settings(robot.config.robot.realtime),
     )
+    # the run ended on purpose: the supervisor stops watching before the loop gives up its
+    # priority (a loaded machine may then keep it off the CPU past the supervisor's timeout)
+    loop.on_end = robot.supervisor.disarm
     if robot.black_box.enabled:
         loop.spare = robot.black_box.spare  # its checkpoints, in the time a tick leaves
         if isinstance(robot.clock, RealClock):  # its dumps' writer: only when the loop is idle

@@ -66,3 +66,46 @@ def test_a_hung_tick_is_caught_by_the_supervisor_thread() -> None:
         robot.stop_loop()
         loop.join(10.0)
         robot.shutdown()
+
+
+@pytest.mark.req("SR-SUP-1")
+def test_a_loop_that_ends_on_purpose_is_not_taken_for_a_hung_one(monkeypatch) -> None:
+    """The end of a run (the loop leaves SCHED_FIFO, unfreezes the collector, logs) can be
+    slow on a loaded machine: once the loop has lost its priority, other processes may keep
+    it off the CPU for longer than the supervisor's timeout. The supervisor (SCHED_FIFO, one
+    above the loop) must not read that as a hung loop and fault a daemon that is shutting
+    down (a CI run: the master beside two CPU hogs exited FAULT at the end of its soak)."""
+    import occ.core.loop as loop_mod
+
+    slow_end = threading.Event()
+    real = loop_mod.apply_realtime
+
+    def apply_realtime(priority, cpu):
+        parts, restore = real(priority, cpu)
+
+        def slow_restore() -> None:
+            restore()
+            slow_end.set()
+            threading.Event().wait(0.15)  # kept off the CPU: many supervisor timeouts
+
+        return parts, slow_restore
+
+    monkeypatch.setattr(loop_mod, "apply_realtime", apply_realtime)
+    cfg = load_config(ROOT / "configs" / "slave.yaml")
+    ifaces = tuple(i.model_copy(update={"port": 0}) for i in cfg.interfaces)
+    rt = cfg.robot.realtime.model_copy(update={"fifo_priority": None})
+    cfg = cfg.model_copy(
+        update={"interfaces": ifaces, "robot": cfg.robot.model_copy(update={"realtime": rt})}
+    )
+    robot = build_robot(cfg, clock=RealClock(spin_us=0))
+    robot.configure()
+    robot.activate()
+    try:
+        robot.start_in("enable", "run")
+        robot.run(ticks=200)
+        assert slow_end.is_set()
+        assert not robot.supervisor.tripped, robot.supervisor.reason
+        assert robot.state is RobotState.RUNNING, robot.last_alert
+        assert all(d.state.value != "fault" for d in robot.hardware.drivers)
+    finally:
+        robot.shutdown()

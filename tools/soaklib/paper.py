@@ -14,7 +14,7 @@ from loopback import stop_processes, wait_port
 from loss_proxy import LossPattern, LossProxy
 from soakreport import Report
 
-from .common import MAX_TOLERATED
+from .common import MAX_TOLERATED, daemon_ends
 from .daemons import set_master_remote, start_occd, stop_proc, write_configs
 from .hogs import proc_cpu_s
 
@@ -371,7 +371,8 @@ def analyse_paper_real(
         and bool(slave_stats)
         and bool(master_stats),
         f"exit codes {codes}, "
-        f"statistics {'present' if slave_stats and master_stats else 'missing'}",
+        f"statistics {'present' if slave_stats and master_stats else 'missing'}; "
+        f"{daemon_ends(stats)}",
     )
     return traces
 

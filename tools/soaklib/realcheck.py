@@ -11,7 +11,7 @@ from typing import Any
 from loss_proxy import LossProxy
 from soakreport import Report, RunOutcome, histogram, summarize
 
-from .common import MAX_TOLERATED, STOP_WITHIN_MS
+from .common import MAX_TOLERATED, STOP_WITHIN_MS, daemon_ends
 
 _SEQ_RE = re.compile(r"(\d+) consecutive packets lost \(seq (\d+)-(\d+)(?: missing)?\)")
 _DEADLINE_RE = re.compile(r"no packet for ([\d.]+) ms")
@@ -305,7 +305,7 @@ def analyse_real(
         and codes.get("master") == 0
         and codes.get("slave") in (0, 4),
         f"exit codes {codes}, stats: slave {'ok' if slave_stats else 'missing'}, "
-        f"master {'ok' if master_stats else 'missing'}",
+        f"master {'ok' if master_stats else 'missing'}; {daemon_ends(stats)}",
     )
     rep.check(
         "no deadline stop without drops",
