@@ -17,7 +17,9 @@ a module is fresh when every unit of its files, as they are now, existed word fo
 qualified name, same code) somewhere in the project at the commit its row was made on; a move
 to another file or package (the rooms of issue 39, a module split into a package), a reworded
 docstring or a changed import keeps it fresh, any changed line of code makes it stale and is
-named. A file with no row under any of its names makes its module stale. Modules that score
+named. A file with no row under any of its names makes its module stale. A row counts for the
+module of the first file it names, not for another module that shares a file it names later
+(the `collab` row names occ/net/streams.py: it did not score `streams`). Modules that score
 parts of one file (`interfaces` and `roles`, `teleop` and `teleop6`) share its rows here. A
 scoped module (scripts/mutate's SCOPES, read with `scripts/mutate --scope MODULE`) is judged by
 the units its scope mutates, with the statements at the top of their files and the bodies of
@@ -246,6 +248,18 @@ def changed_units(path: str, row: datetime, commit: str | None = None) -> list[s
     return sorted({name for name, code in now if (name, code) not in old})
 
 
+#: the first path a row's module cell names: the module the row scored
+FIRST_PATH = re.compile(r"`([\w./]+\.py)`")
+
+
+def _first_path(cell: str) -> str | None:
+    """The file a row is about (its first path): a row counts for the module that file belongs
+    to, never for another module that merely shares a file it names (the `collab` row names
+    occ/net/streams.py, whose own module `streams` it did not score)."""
+    m = FIRST_PATH.search(cell)
+    return m.group(1) if m else None
+
+
 def main(argv: list[str]) -> int:
     verbose = "-v" in argv
     table = rows()
@@ -254,9 +268,14 @@ def main(argv: list[str]) -> int:
         late = []
         scoped = scope(name)
         own: dict[str, tuple[datetime, str | None] | None] = {}
+        mine = set().union(*(names(f) for f in files))
         for f in files:
             called = names(f)
-            scored = [(w, c) for cell, w, c in table if any(f"`{n}`" in cell for n in called)]
+            scored = [
+                (w, c)
+                for cell, w, c in table
+                if any(f"`{n}`" in cell for n in called) and _first_path(cell) in mine
+            ]
             own[f] = max(scored, key=lambda wc: wc[0]) if scored else None
         known = [w for w in own.values() if w is not None]
         last = max(known, key=lambda wc: wc[0]) if known else None

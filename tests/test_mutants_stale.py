@@ -155,3 +155,29 @@ def test_a_scoped_module_is_judged_by_the_units_its_scope_mutates() -> None:
     assert m.scope("safety") is None  # whole
     assert m.scope("cia402")["occ/drivers/cia402_protocol.py"] == ["*"]
     assert m.in_scope("x_anything", ["*"])
+
+
+def test_a_row_of_another_module_that_names_a_shared_file_does_not_count(  # type: ignore[no-untyped-def]
+    tmp_path: Path, capsys
+) -> None:
+    """Two modules share occ/judge.py; the only row after the change is about the other one
+    (its first file is occ/other.py) and names occ/judge.py later: judge stays stale."""
+    changed = BASE.replace("<= self.bound", "< self.bound")
+    root = repo(tmp_path, {"occ/judge.py": changed})
+    (root / "scripts" / "mutate").write_text(
+        'MODULES[judge]="occ/judge.py|tests/x.py"\n'
+        'MODULES[other]="occ/other.py occ/judge.py|tests/y.py"\n'
+        '[ "$1" = --scope ] && echo ""\n'
+    )
+    (root / "occ" / "other.py").write_text("X = 1\n")
+    (root / "docs" / "VERIFICATION.md").write_text(
+        "## Scores\n\n| module | date | t |\n|---|---|---|\n"
+        "| `occ/judge.py` | 2026-01-01 10:05 | x | 1 |\n"
+        "| `occ/other.py` (its functions in `occ/judge.py` too) | 2026-01-01 11:30 | x | 1 |\n"
+        "\n## Next\n"
+    )
+    m = load(root)
+    assert m.main([]) == 1
+    out = capsys.readouterr().out.splitlines()
+    judge = next(line for line in out if " judge " in line)
+    assert judge.startswith("STALE") and "2026-01-01 10:05" in judge
