@@ -17,7 +17,9 @@ a module is fresh when every unit of its files, as they are now, existed word fo
 qualified name, same code) somewhere in the project at the commit its row was made on; a move
 to another file or package (the rooms of issue 39, a module split into a package), a reworded
 docstring or a changed import keeps it fresh, any changed line of code makes it stale and is
-named. A file with no row under any of its names makes its module stale. A row counts for the
+named. A file with no row under any of its names makes its module stale. A module split into a
+package of its import name (occ/controllers/keyframe.py into occ/controllers/keyframe/) keeps
+its rows for the package's files: git follows a rename, not a split. A row counts for the
 module of the first file it names, not for another module that shares a file it names later
 (the `collab` row names occ/net/streams.py: it did not score `streams`). Modules that score
 parts of one file (`interfaces` and `roles`, `teleop` and `teleop6`) share its rows here. A
@@ -94,7 +96,14 @@ def git(*args: str) -> str:
 def names(path: str) -> frozenset[str]:
     """Every path the file had, as git follows its renames (the path now included)."""
     out = git("log", "--follow", "--name-only", "--format=", "--", path)
-    return frozenset({path} | {line for line in out.splitlines() if line.strip()})
+    found = {path} | {line for line in out.splitlines() if line.strip()}
+    # a module split into a package of the same import name (occ/controllers/keyframe.py into
+    # occ/controllers/keyframe/): the package's files were the module (git follows a rename,
+    # not a split)
+    parent = Path(path).parent
+    if parent.name and parent.name != "." and path.startswith(("occ/", "igtl/", "occ_ros2/")):
+        found.add(f"{parent.as_posix()}.py")
+    return frozenset(found)
 
 
 def _strip(body: list[ast.stmt], docstring: bool = True) -> list[ast.stmt]:

@@ -181,3 +181,29 @@ def test_a_row_of_another_module_that_names_a_shared_file_does_not_count(  # typ
     out = capsys.readouterr().out.splitlines()
     judge = next(line for line in out if " judge " in line)
     assert judge.startswith("STALE") and "2026-01-01 10:05" in judge
+
+
+def test_a_module_split_into_a_package_of_its_name_keeps_its_rows(  # type: ignore[no-untyped-def]
+    tmp_path: Path, capsys
+) -> None:
+    """occ/judge.py becomes the package occ/judge/ (a split git does not follow as a rename):
+    the module's row still counts for the package's files, judged unit by unit (scale.py, too
+    small a part of the old file for git to follow, has no row under any name of its own)."""
+    head, tail = BASE.split("\n\ndef scale", 1)
+    split = {
+        "occ/judge.py": "",
+        "occ/judge/__init__.py": '"""The judge, a package now."""\n',
+        "occ/judge/check.py": head + "\n",
+        "occ/judge/scale.py": "import math\n\n\ndef scale" + tail,
+    }
+    root = repo(tmp_path, split)
+    (root / "scripts" / "mutate").write_text(
+        'MODULES[judge]="occ/judge/scale.py|tests/x.py"\n'
+        '[ "$1" = --scope ] && echo ""\n'
+    )
+    m = load(root)
+    assert m.main([]) == 0, capsys.readouterr().out
+    # and a changed line in one of them is named
+    (root / "occ" / "judge" / "scale.py").write_text(split["occ/judge/scale.py"].replace("2", "3"))
+    assert m.main(["-v"]) == 1
+    assert "occ/judge/scale.py changed since 2026-01-01 10:05: scale" in capsys.readouterr().out
