@@ -198,8 +198,7 @@ def test_a_module_split_into_a_package_of_its_name_keeps_its_rows(  # type: igno
     }
     root = repo(tmp_path, split)
     (root / "scripts" / "mutate").write_text(
-        'MODULES[judge]="occ/judge/scale.py|tests/x.py"\n'
-        '[ "$1" = --scope ] && echo ""\n'
+        'MODULES[judge]="occ/judge/scale.py|tests/x.py"\n[ "$1" = --scope ] && echo ""\n'
     )
     m = load(root)
     assert m.main([]) == 0, capsys.readouterr().out
