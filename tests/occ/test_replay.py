@@ -558,8 +558,9 @@ def test_a_drive_the_recorded_build_never_read_answers_unread_not_empty_lists() 
     """A drive the recorded robot had not read when it was built holds the driver's empty
     reading ``((), (), ())`` (truthy: a tuple of three): the replay's configure-time read
     answers NaN for each joint, as for a drive with no recorded reading at all, never lists of
-    the wrong length."""
+    the wrong length. A read or write the recorded robot saw fail fails again, once."""
     from occ.core.replay import _Drives
+    from occ.errors import DriverError
     from occ.recording.blackbox import tick_columns
 
     sim = SimRobot(CONFIGS / "slave.yaml")
@@ -575,7 +576,17 @@ def test_a_drive_the_recorded_build_never_read_answers_unread_not_empty_lists() 
             assert [len(x) for x in got] == [len(names)] * 3
             assert all(math.isnan(v) for x in got for v in x)
         recorded = ([0.1] * len(names), [0.0] * len(names), [0.0] * len(names))
-        _Drives(robot, columns, {"robot.drive.raw": recorded}, paths)
+        drives = _Drives(robot, columns, {"robot.drive.raw": recorded}, paths)
         assert drive._read(0.0) == recorded  # a real recorded reading is answered as it was
+        # a read the recorded robot saw fail fails again, once, with its error; a recorded
+        # write failure is the write's, never the read's
+        drives.errors[(drive.name, "write")] = DriverError("bus off")
+        assert drive._read(0.0) == recorded
+        drives.errors[(drive.name, "read")] = DriverError("encoder lost")
+        with pytest.raises(DriverError, match="encoder lost"):
+            drive._read(0.0)
+        assert drive._read(0.0) == recorded and (drive.name, "read") not in drives.errors
+        with pytest.raises(DriverError, match="bus off"):
+            drive._write([0.0] * len(names), 0.0)
     finally:
         sim.close()
