@@ -294,3 +294,29 @@ def test_a_reset_of_cia402_drives_runs_off_the_loop_thread_and_is_refused_while_
     assert r.sim.command(r.op, "Enable").metadata["Status"] == "SUCCESS"
     r.ticks(20)
     assert r.robot.state is RobotState.ENABLED, r.robot.last_alert
+
+
+@pytest.mark.req("SR-HW-39")
+def test_start_whose_enable_fails_never_asks_run_and_says_why(
+    rig: type[Rig], caplog: pytest.LogCaptureFixture
+) -> None:
+    """``occd --start running`` with a node that never enables: the Enable's failure ends the
+    start (its words in the log); Run is never asked, so no second refusal follows it."""
+    r = rig(state_timeout_ms=100.0)
+    r.emu.refuse_enable(2)
+    with r.emu.held():
+        r.robot.start_in("enable", "run")
+        r.tick()
+        assert r.robot.effects.powering_up
+        # an operator's Enable meanwhile is refused, naming who is powering up: --start
+        cid = r.op.send_command("Enable")
+        r.ticks(2, settle=False)
+        answer = r.reply(cid)
+        assert answer is not None and not answer[0]
+        assert "the drives are powering up (--start)" in answer[1], answer
+    r.landed()
+    r.ticks(3)
+    assert r.robot.state is RobotState.FAULT and r.robot.effects.pending_start == []
+    lines = [m for rec in caplog.records if (m := rec.getMessage()).startswith("--start")]
+    assert len(lines) == 1 and lines[0].startswith("--start: enable refused or failed ("), lines
+    assert "node 2 (joint pitch) in SWITCHED ON" in lines[0]
