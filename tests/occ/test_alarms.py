@@ -318,3 +318,41 @@ def test_a_failure_that_faulted_the_robot_is_not_told_again_as_an_alert() -> Non
     assert rig.states.state is RobotState.FAULT
     rig.alarms.hardware_fault(failed)  # the next tick sees it again
     assert rig.sent == []
+
+
+@pytest.mark.req("SR-WD-2")
+def test_a_safety_stop_holds_a_moving_robot_faults_by_policy_and_tells_a_still_one(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """``policy: hold`` stops a RUNNING or ENABLED robot (the stop's transition runs with
+    ``safety_stopping`` set, so its listeners tell it from an operator's Stop); ``fault``
+    latches FAULT; a robot not moving is told why, as an ALERT, and nothing changes."""
+    caplog.set_level(logging.ERROR, logger="occ.core.robot")
+    for state in (RobotState.RUNNING, RobotState.ENABLED):
+        rig = Rig(state)
+        seen: list[bool] = []
+        ask = rig.states.try_request
+
+        def watching(
+            event: str, reason: str, rig: Rig = rig, ask: Any = ask, seen: list[bool] = seen
+        ) -> None:
+            seen.append(rig.alarms.safety_stopping)
+            ask(event, reason)
+
+        rig.states.try_request = watching  # type: ignore[method-assign]
+        rig.alarms.safety_stop("watchdog: 20 consecutive overruns", "hold")
+        assert rig.states.asked == [("stop", "watchdog: 20 consecutive overruns")]
+        assert seen == [True] and rig.alarms.safety_stopping is False
+        assert rig.sent == [] and rig.alarms.last_alert == "watchdog: 20 consecutive overruns"
+    rig = Rig(RobotState.RUNNING)
+    rig.alarms.safety_stop("collision: link 3 inside its margin", "fault")
+    assert rig.states.asked == [("fault", "collision: link 3 inside its margin")]
+    for state in (RobotState.READY, RobotState.STOPPED):
+        rig = Rig(state)
+        rig.alarms.safety_stop("gap of 60.000 ms between ticks", "hold")
+        assert rig.states.asked == []
+        assert rig.heard() == [
+            ("ALERT", "gap of 60.000 ms between ticks", igtl.StatusCode.TIME_OUT)
+        ]
+        assert rig.alarms.last_alert == "gap of 60.000 ms between ticks"
+    assert "SAFETY STOP: gap of 60.000 ms between ticks" in [r.getMessage() for r in caplog.records]

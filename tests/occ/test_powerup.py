@@ -320,3 +320,58 @@ def test_start_whose_enable_fails_never_asks_run_and_says_why(
     lines = [m for rec in caplog.records if (m := rec.getMessage()).startswith("--start")]
     assert len(lines) == 1 and lines[0].startswith("--start: enable refused or failed ("), lines
     assert "node 2 (joint pitch) in SWITCHED ON" in lines[0]
+
+
+class _Drive:
+    """A driver's face as a PowerUp sees it: what it was asked, in order."""
+
+    def __init__(self, name: str, state: DriverState = DriverState.INACTIVE) -> None:
+        self.name = name
+        self.state = state
+        self.asked: list[tuple[str, str]] = []
+
+    def cancel_activation(self, why: str) -> None:
+        self.asked.append(("cancel", why))
+
+    def safe_stop(self, why: str) -> None:
+        self.asked.append(("safe_stop", why))
+
+
+@pytest.mark.req("SR-HW-39")
+def test_a_power_up_cancelled_then_stopped_answers_once_and_stops_each_drive_once() -> None:
+    """A Disable (cancel) then an EStop (stop) while the drives come up: each activation is
+    cancelled with the Disable's words, then each drive safe-stopped once with the EStop's;
+    the operator's Enable is refused once, naming the first; the drives that came up all the
+    same (ACTIVE) are the leftovers the loop switches off."""
+    from occ.core.powerup import PowerUp
+    from occ.net.commands import Deferred
+
+    a, b = _Drive("arm"), _Drive("tool", DriverState.ACTIVE)
+    answer = Deferred()
+    pu = PowerUp([a, b], "operator Enable", answer)  # type: ignore[list-item]
+    pu.cancel("operator Disable", stop=False)
+    assert a.asked == b.asked == [("cancel", "operator Disable")]
+    assert answer.result == (
+        False,
+        "Enable cancelled while the drives worked: operator Disable",
+    )
+    pu.cancel("EStop", stop=True)
+    pu.cancel("shutdown", stop=True)  # idempotent: stopped once
+    assert a.asked == b.asked == [("cancel", "operator Disable"), ("safe_stop", "EStop")]
+    assert pu.cancelled == "operator Disable" and pu.stopped is True
+    assert answer.result[1].endswith("operator Disable")  # type: ignore[index]
+    assert pu.leftovers() == [b]
+
+
+@pytest.mark.req("SR-HW-39")
+def test_a_reset_cancelled_leaves_its_drives_alone_and_says_reset() -> None:
+    from occ.core.powerup import PowerUp
+    from occ.net.commands import Deferred
+
+    a = _Drive("arm", DriverState.FAULT)
+    answer = Deferred()
+    pu = PowerUp([a], "operator Reset", answer, action="reset")  # type: ignore[list-item]
+    pu.cancel("EStop", stop=True)
+    assert a.asked == [] and pu.stopped is False
+    assert answer.result == (False, "Reset cancelled while the drives worked: EStop")
+    assert pu.leftovers() == []
