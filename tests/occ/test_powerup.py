@@ -375,3 +375,33 @@ def test_a_reset_cancelled_leaves_its_drives_alone_and_says_reset() -> None:
     assert a.asked == [] and pu.stopped is False
     assert answer.result == (False, "Reset cancelled while the drives worked: EStop")
     assert pu.leftovers() == []
+
+
+@pytest.mark.req("SR-HW-39")
+@pytest.mark.parametrize("stop", ["Disable", "EStop"])
+def test_a_drive_that_came_up_after_the_power_up_was_called_off_is_switched_off(
+    rig: type[Rig], monkeypatch: pytest.MonkeyPatch, stop: str
+) -> None:
+    """A drive whose activation cannot be called back (its driver ignores the cancel) comes
+    up all the same after a Disable or an EStop: the loop, collecting the power-up, switches
+    it off (Disable: INACTIVE, READY) or latches it FAULT (EStop: ESTOP); the Enable is
+    refused, and no node is left OPERATION ENABLED."""
+    r = rig()
+    monkeypatch.setattr(r.arm, "cancel_activation", lambda why: None)
+    with r.emu.held():
+        cid = r.op.send_command("Enable")
+        r.ticks(2, settle=False)
+        sid = r.op.send_command(stop)
+        r.ticks(2, settle=False)
+    r.landed()
+    answer = r.reply(cid)
+    assert answer is not None and not answer[0]
+    assert answer[1].startswith("Enable cancelled while the drives worked: "), answer
+    assert r.reply(sid) is not None and r.reply(sid)[0]  # type: ignore[index]
+    r.ticks(3)
+    assert all(s != "OPERATION ENABLED" for s in r.states()), r.states()
+    if stop == "Disable":
+        assert r.robot.state is RobotState.READY and r.arm.state is DriverState.INACTIVE
+    else:
+        assert r.robot.state is RobotState.ESTOP and r.arm.state is DriverState.FAULT
+    assert r.robot.hardware.all_safe()
