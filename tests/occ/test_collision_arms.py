@@ -4,11 +4,15 @@ docs/SAFETY.md SR-ARMS-1..3).
 Two UR5 (configs/ur5.yaml) face each other, bases 1.6 m apart along x (the second turned half
 round, its wrist on the first's line): at home they are well apart, stretched out they overlap.
 
-- The peer arm's geometry from its ``frame:`` configuration by the own arm's rules; a peer that
-  cannot be used is refused; its pairs are lower bounds of coal's distances, exact near.
+- The peer arm's geometry from its ``frame:`` configuration by the own arm's rules (hulls or
+  meshes, the capsules' radius, its base link); a peer that cannot be used is refused; its
+  pairs are lower bounds of coal's distances, exact near, each counted once; ``arm_distance``
+  (the cell's plan check) names the nearest pair at the state it is given; a peer is placed
+  once per state.
 - The guard: an arm never heard of, or heard of too long ago, holds and says why; a peer that
   left the cell is no longer checked; what the peer can have moved since its state counts
-  against half the clearance; a new verdict only when due.
+  against half the clearance; a new verdict only when due (at exactly a quarter used); a state
+  exactly ``stale_s`` old is not stale; the arms' epoch never comes back.
 - Two guards fed each other's states in simulated time, driven toward each other at their
   velocity limits: both stop, never closer than half the margin; the same with two robots
   whose keyframe plans, each checked against the other standing at home, run into each other.
