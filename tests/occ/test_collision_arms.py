@@ -4,11 +4,15 @@ docs/SAFETY.md SR-ARMS-1..3).
 Two UR5 (configs/ur5.yaml) face each other, bases 1.6 m apart along x (the second turned half
 round, its wrist on the first's line): at home they are well apart, stretched out they overlap.
 
-- The peer arm's geometry from its ``frame:`` configuration by the own arm's rules; a peer that
-  cannot be used is refused; its pairs are lower bounds of coal's distances, exact near.
+- The peer arm's geometry from its ``frame:`` configuration by the own arm's rules (hulls or
+  meshes, the capsules' radius, its base link); a peer that cannot be used is refused; its
+  pairs are lower bounds of coal's distances, exact near, each counted once; ``arm_distance``
+  (the cell's plan check) names the nearest pair at the state it is given; a peer is placed
+  once per state.
 - The guard: an arm never heard of, or heard of too long ago, holds and says why; a peer that
   left the cell is no longer checked; what the peer can have moved since its state counts
-  against half the clearance; a new verdict only when due.
+  against half the clearance; a new verdict only when due (at exactly a quarter used); a state
+  exactly ``stale_s`` old is not stale; the arms' epoch never comes back.
 - Two guards fed each other's states in simulated time, driven toward each other at their
   velocity limits: both stop, never closer than half the margin; the same with two robots
   whose keyframe plans, each checked against the other standing at home, run into each other.
@@ -18,6 +22,7 @@ round, its wrist on the first's line): at home they are well apart, stretched ou
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 import coal
@@ -26,11 +31,12 @@ import pinocchio as pin
 import pytest
 import yaml
 
-from occ.config import CollisionConfig
+from occ.config import CollisionConfig, FrameConfig
 from occ.core.assembly import build_hardware
 from occ.core.loader import load_config
 from occ.core.safety import RobotState
 from occ.errors import ConfigError
+from occ.kinematics import collision
 from occ.kinematics.collision import (
     STALE_S,
     CollisionGuard,
@@ -38,6 +44,8 @@ from occ.kinematics.collision import (
     Contact,
     PeerState,
     Verdict,
+    plane_region,
+    sphere_region,
 )
 from occ_testkit.cellarms import PeerFeed
 from occ_testkit.testing import CONFIGS, SimRobot
@@ -193,6 +201,210 @@ def test_a_contact_with_another_arm_names_both_links() -> None:
     assert Contact("a", "arm:b:c", -0.001).describe().startswith("link 'a' penetrates link 'c'")
     assert Contact("a", "self:b", 0.0).pair == "a vs b"
     assert Contact("a", "ceiling", 0.0).pair == "a vs ceiling"
+    # a link name with a colon (a tf prefix): the arm's name never has one
+    assert Contact("a", "arm:ur5-b:left:flange", 0.002).describe() == (
+        "link 'a' is 2.00 mm from link 'left:flange' of the arm 'ur5-b' (a vs ur5-b:left:flange)"
+    )
+
+
+def named_distances(
+    cm: CollisionModel, arm: Any, q: Any, base: Any, st: PeerState
+) -> dict[tuple[str, str], float]:
+    """Every (own link, peer link) distance, by coal, no broad phase, the peer at ``st``."""
+
+    def placed(model: Any, geom: Any, q: Any, world: pin.SE3) -> list[Any]:
+        data, gdata = model.createData(), pin.GeometryData(geom)
+        pin.updateGeometryPlacements(model, data, geom, gdata, np.asarray(q, dtype=float))
+        return [coal.Transform3s(world * m) for m in gdata.oMg]
+
+    own_world = pin.SE3(base) * cm.base_inv if cm.base_inv is not None else pin.SE3(base)
+    peer_world = pin.SE3(st.base)
+    if arm.arm.base_inv is not None:
+        peer_world = peer_world * arm.arm.base_inv
+    a = placed(cm.model, cm.geom, q, own_world)
+    b = placed(arm.arm.model, arm.arm.geom, st.q, peer_world)
+    out = {}
+    for i, ga in enumerate(cm.geom.geometryObjects):
+        for j, gb in enumerate(arm.arm.geom.geometryObjects):
+            res = coal.DistanceResult()
+            d = coal.distance(ga.geometry, a[i], gb.geometry, b[j], coal.DistanceRequest(), res)
+            out[(cm.links[i].name, arm.arm.links[j].name)] = d
+    return out
+
+
+def shifted(base: np.ndarray) -> np.ndarray:
+    """``base`` moved 0.4 m along y and 0.1 m down: neither arm stands at the origin."""
+    out = np.eye(4)
+    out[:3, 3] = [0.0, 0.4, -0.1]
+    return out @ base
+
+
+@pytest.mark.req("SR-ARMS-1")
+def test_arm_distance_is_the_nearest_pair_of_the_two_arms_at_the_state_given() -> None:
+    """The cell's plan check asks one arm at a configuration against another at a planned
+    state: the smallest distance (a lower bound where far, coal's own number near) and the
+    nearest pair, no regions and no self pairs, every pair counted once."""
+    cm = pair_model()
+    cm.define("t", [sphere_region("s", [0.0, 400.0, -100.0], 50.0)])  # around the own base
+    arm = cm.peer("ur5-b")
+    arm.update(HOME, b_base(), 0.0)  # its last known state: not the one asked
+    checker = cm.checker()
+    n_pairs = len(cm.links) * len(arm.arm.links)
+    own_base, peer_base = shifted(np.eye(4)), shifted(b_base())
+    rng = np.random.default_rng(11)
+    near_seen = 0
+    for _ in range(25):
+        q = np.array(REACH) + rng.normal(0.0, 0.25, 6)
+        st = PeerState(tuple(np.array(REACH) + rng.normal(0.0, 0.25, 6)), peer_base, 0.0)
+        d, c = checker.arm_distance(q.tolist(), own_base, arm, st)
+        truth = named_distances(cm, arm, q, own_base, st)
+        nearest = min(truth, key=lambda k: truth[k])
+        assert c is not None and c.distance == d and c.region.startswith("arm:ur5-b:")
+        assert d <= truth[nearest] + 1e-9
+        assert checker.exact + checker.bounded == n_pairs
+        assert checker.exact >= sum(e <= cm.margin + 0.05 for e in truth.values())
+        if truth[nearest] <= cm.margin + 0.05:
+            near_seen += 1
+            assert d == pytest.approx(truth[nearest], abs=1e-9)
+            assert (c.link, c.region) == (nearest[0], f"arm:ur5-b:{nearest[1]}")
+    assert near_seen > 3
+    # far apart: every pair settled by the balls, the nearest balls' pair named
+    far = PeerState(tuple(HOME), shifted(b_base()) @ _moved(-5.0), 0.0)
+    d, c = checker.arm_distance(HOME, own_base, arm, far)
+    truth = named_distances(cm, arm, HOME, own_base, far)
+    assert (checker.exact, checker.bounded) == (0, n_pairs)
+    assert c is not None and c.distance == d and 3.0 < d <= min(truth.values())
+
+
+def _moved(x: float) -> np.ndarray:
+    out = np.eye(4)
+    out[0, 3] = x
+    return out
+
+
+@pytest.mark.req("SR-ARMS-1")
+def test_with_every_pair_near_each_is_coal_s_distance_and_the_counts_add_up() -> None:
+    """A margin of two metres: every pair of the two arms is near and computed by coal; the
+    clearance counts each pair of regions, own links and the peer's links once."""
+    cm = pair_model(margin_mm=2000.0)
+    arm = cm.peer("ur5-b")
+    checker = cm.checker()
+    st = PeerState(tuple(REACH), b_base(), 0.0)
+    d, c = checker.arm_distance(HOME, np.eye(4), arm, st)
+    truth = named_distances(cm, arm, HOME, np.eye(4), st)
+    nearest = min(truth, key=lambda k: truth[k])
+    n_pairs = len(cm.links) * len(arm.arm.links)
+    assert (checker.exact, checker.bounded) == (n_pairs, 0)
+    assert d == pytest.approx(truth[nearest], abs=1e-9) and c == Contact(
+        nearest[0], f"arm:ur5-b:{nearest[1]}", d
+    )
+    # regions, self pairs and the peer in one clearance: every pair once, some far, some near
+    cm = pair_model()
+    cm.define("t", [plane_region("ceiling", (0.0, 0.0, 560.0), (0.0, 0.0, -1.0))])
+    arm = cm.peer("ur5-b")
+    arm.update(REACH, b_base(), 0.0)
+    checker = cm.checker()
+    checker.clearance(REACH, np.eye(4))
+    n_links = len(cm.links)
+    total = n_links + len(cm.self_pairs) + n_links * len(arm.arm.links)
+    assert checker.exact + checker.bounded == total
+    assert checker.exact > 1 and checker.bounded > 1
+    # only the peer, far: the clearance's slack is its lower bound less the margin
+    cm = model(self_collision=False)
+    arm = cm.add_peer("ur5-b", UR5.frame, velocities=VEL)
+    arm.update(HOME, b_base() @ _moved(-3.0), 0.0)
+    slack, gap, worst = cm.checker().clearance(HOME, np.eye(4))
+    assert worst is not None and worst.region.startswith("arm:ur5-b:")
+    assert 2.0 < gap == worst.distance and slack == gap - cm.margin
+
+
+MOUNTED = """<robot name="mounted">
+  <link name="world"/>
+  <joint name="mount" type="fixed"><parent link="world"/><child link="plate"/>
+    <origin xyz="0.1 -0.2 0.3" rpy="0 0 0.5"/></joint>
+  <link name="plate"/>
+  <joint name="j1" type="revolute"><parent link="plate"/><child link="l1"/>
+    <origin xyz="0 0 0.1"/><axis xyz="0 0 1"/>
+    <limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+  <link name="l1"/>
+  <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/>
+    <origin xyz="0 0 0.2"/><axis xyz="0 1 0"/>
+    <limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+  <link name="l2"/>
+  <joint name="tip_joint" type="fixed"><parent link="l2"/><child link="tip"/>
+    <origin xyz="0.3 0 0"/></joint>
+  <link name="tip"/>
+</robot>
+"""
+
+
+@pytest.mark.req("SR-ARMS-1")
+def test_a_peer_takes_the_configured_link_radius_and_meshes_and_stands_on_its_base_link(
+    tmp_path: Path,
+) -> None:
+    """The own arm's ``convex: false`` and ``link_radius_mm`` make the peers' geometry too;
+    a peer whose base link is not its URDF's root (a plate 0.3 m up, turned; no collision
+    geometry: capsules) is placed from that link, as coal finds it placed by hand."""
+    urdf = tmp_path / "mounted.urdf"
+    urdf.write_text(MOUNTED)
+    cm = model(margin_mm=2000.0, convex=False, link_radius_mm=12.0)
+    ur5b = cm.add_peer("ur5-b", UR5.frame, velocities=VEL)
+    kinds = [type(g.geometry).__name__ for g in ur5b.arm.geom.geometryObjects]
+    assert "BVHModelOBBRSS" in kinds and "Convex" not in kinds  # the meshes as they are
+    fc = FrameConfig(urdf=urdf, tip_link="tip", base_link="plate")
+    mnt = cm.add_peer("mnt", fc, velocities=[1.0, 1.0])
+    caps = [g.geometry for g in mnt.arm.geom.geometryObjects]
+    assert [type(g).__name__ for g in caps] == ["Capsule"] * 3
+    assert [g.radius for g in caps] == [0.012] * 3
+    assert mnt.arm.base_inv is not None and np.linalg.norm(mnt.arm.base_inv.translation) > 0.3
+    checker = cm.checker()
+    for q, pq in (([0.3, -1.0, 1.2, -1.0, 0.5, 0.0], [0.4, -0.7]), (HOME, [-1.0, 0.9])):
+        st = PeerState(tuple(pq), shifted(np.eye(4)), 0.0)
+        d, c = checker.arm_distance(q, np.eye(4), mnt, st)
+        truth = named_distances(cm, mnt, q, np.eye(4), st)
+        nearest = min(truth, key=lambda k: truth[k])
+        assert d == pytest.approx(truth[nearest], abs=1e-9)
+        assert c is not None and (c.link, c.region) == (nearest[0], f"arm:mnt:{nearest[1]}")
+
+
+@pytest.mark.req("SR-ARMS-1")
+def test_a_peer_is_placed_once_per_state_and_its_data_made_once_per_checker(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """What the broad phase promises for its cost: a peer's links are placed once per state
+    it is checked at, however many checks use that state, and its pinocchio data and balls
+    are made once per checker."""
+    cm = pair_model()
+    arm = cm.peer("ur5-b")
+    placed: list[Any] = []
+    balls: list[Any] = []
+    real_place, real_balls = pin.updateGeometryPlacements, collision._balls
+
+    def place(model: Any, *rest: Any) -> Any:
+        if model is arm.arm.model:
+            placed.append(rest[-1])
+        return real_place(model, *rest)
+
+    def count_balls(objs: Any) -> Any:
+        balls.append(objs)
+        return real_balls(objs)
+
+    monkeypatch.setattr(pin, "updateGeometryPlacements", place)
+    monkeypatch.setattr(collision, "_balls", count_balls)
+    checker = cm.checker()
+    assert len(balls) == 1  # the own arm's
+    arm.update(REACH, b_base(), 0.0)
+    for q in (HOME, REACH, HOME):
+        checker.clearance(q, np.eye(4))
+    assert len(placed) == 1 and len(balls) == 2
+    st = PeerState(tuple(HOME), b_base(), 0.0)
+    first = checker.arm_distance(REACH, np.eye(4), arm, st)
+    assert checker.arm_distance(REACH, np.eye(4), arm, st) == first
+    assert len(placed) == 2 and len(balls) == 2
+    arm.update(HOME, b_base(), 0.001)  # a new state (the same place): placed again
+    checker.clearance(HOME, np.eye(4))
+    assert len(placed) == 3 and len(balls) == 2
+    assert cm.checker() is not checker and len(balls) == 3  # a new checker: its own
 
 
 # ------------------------------------------------------------------------------ the guard
@@ -263,6 +475,7 @@ def test_what_the_peer_can_have_moved_since_its_state_counts_against_half_the_cl
     assert not guard.admit(moved, eye, t_quarter + 1e-6)
     # without a time nothing can be aged: held
     assert not guard.admit(HOME, eye)
+    assert guard.held_for == "no time to age the other arms' states by"
     # a hand-made verdict: a state of t = 0, at 0.5 s: exactly half of the distance is held
     old = PeerState(tuple(REACH), b_base(), 0.0)
     for d_half, ok in ((arm.speed * 0.5, False), (arm.speed * 0.5 * (1 + 1e-9), True)):
@@ -290,12 +503,121 @@ def test_a_new_verdict_is_due_only_when_something_changed_or_a_quarter_is_used()
     assert 0.26 * d < 0.25 * v.gap and guard.due(v, toward, eye, 2.0)
     guard.peer_update("ur5-b", REACH, b_base(), 2.0 + 0.1 * d / arm.speed)
     assert not guard.due(v, HOME, eye, 2.0 + 0.2 * d / arm.speed)  # newer, little used
+    guard.publish(HOME, eye, 2.0 + 0.2 * d / arm.speed)  # so not checked again
+    assert guard.verdicts == 1 and guard.skipped == 2
     assert guard.due(v, HOME, eye, 2.0 + 0.26 * d / arm.speed)
     own = [HOME[0] + 0.26 * v.gap / cm.reach[0], *HOME[1:]]
     assert guard.due(v, own, eye, 2.0)  # the own motion alone
     assert guard.due(v, HOME, b_base(), 2.0)  # another base pose
     cm.define("x", [])
     assert guard.due(v, HOME, eye, 2.0)  # other regions
+
+
+@pytest.mark.req("SR-ARMS-2")
+def test_a_verdict_is_due_at_exactly_a_quarter_of_each_clearance() -> None:
+    """Hand-made verdicts at the boundary: the own motion using exactly a quarter of the
+    clearance to the regions and own links, or of the distance to the peer, and the two arms'
+    possible motion using exactly a quarter since the state the verdict used: due; a hair
+    less: covered."""
+    cm = pair_model()
+    arm = cm.peer("ur5-b")
+    arm.update(REACH, b_base(), 1.0)
+    st = arm.state
+    assert st is not None
+    guard = CollisionGuard(cm, inline=True, stale_s=10.0)
+    eye = np.eye(4)
+    q = [HOME[0] + 0.01, *HOME[1:]]
+    own = cm.bound(q, HOME)
+    big = 10.0
+
+    def due(gap: float, d: float, seen: PeerState) -> bool:
+        peers = ((arm, seen, d),)
+        v = Verdict(tuple(HOME), eye, 1.0, gap, None, cm.version, peers, cm.peer_epoch)
+        return guard.due(v, q, eye, 1.0)
+
+    assert due(4.0 * own, big, st) and not due(math.nextafter(4.0 * own, big), big, st)
+    assert due(big, 4.0 * own, st) and not due(big, math.nextafter(4.0 * own, big), st)
+    older = PeerState(st.q, st.base, 0.5)  # the verdict's state; the arm has a newer one
+    used = own + arm.speed * (1.0 - older.t)
+    assert due(big, 4.0 * used, older) and not due(big, math.nextafter(4.0 * used, 99.0), older)
+
+
+@pytest.mark.req("SR-ARMS-2")
+def test_each_arm_is_looked_at_past_one_that_left_or_is_unknown() -> None:
+    """Three arms: one that left the cell or is unknown does not end the look at the others
+    (the checker's, the guard's alert, a verdict due for the last one's newer state)."""
+    cm = pair_model()
+    b = cm.peer("ur5-b")
+    c = cm.add_peer("ur5-c", UR5.frame, velocities=VEL)
+    guard = CollisionGuard(cm, inline=True, stale_s=10.0)
+    eye = np.eye(4)
+    far_c = b_base() @ _moved(-3.0)
+    b.gone()
+    assert guard.peer_problem(1.0) == (
+        "the arm 'ur5-c': where it is is unknown (an unknown obstacle)"
+    )
+    c.update(HOME, far_c, 1.0)
+    checker = cm.checker()
+    checker.clearance(HOME, eye)
+    assert [(a.name, st is c.state) for a, st, _d in checker.peer_seen] == [("ur5-c", True)]
+    b.present = True  # back, nothing known of it yet
+    checker.clearance(HOME, eye)
+    assert [(a.name, st) for a, st, _d in checker.peer_seen][0] == ("ur5-b", None)
+    assert [a.name for a, st, d in checker.peer_seen[1:] if st is c.state and d < 9.0] == ["ur5-c"]
+    b.update(REACH, b_base(), 2.0)
+    c.update(HOME, far_c, 2.0)
+    guard.publish(HOME, eye, 2.0)
+    v = guard.verdict
+    assert v is not None and [a.name for a, _s, _d in v.peers] == ["ur5-b", "ur5-c"]
+    dc = v.peers[1][2]
+    c.update(HOME, far_c, 2.1)  # newer for the second arm only
+    assert guard.due(v, HOME, eye, 2.0 + 0.3 * dc / c.speed)
+    assert not guard.due(v, HOME, eye, 2.0 + 0.2 * dc / c.speed)
+
+
+@pytest.mark.req("SR-ARMS-2")
+def test_a_state_is_stale_only_past_stale_s_and_the_hold_says_its_age() -> None:
+    cm = pair_model()
+    guard = CollisionGuard(cm, inline=True, stale_s=0.25)
+    eye = np.eye(4)
+    guard.publish(HOME, eye, 1.0)  # the arm unknown to this verdict
+    guard.peer_update("ur5-b", HOME, b_base(), 1.0)  # its first state: the same arms
+    assert cm.peer_epoch == 1
+    assert not guard.admit(HOME, eye, 1.0)  # the verdict did not know where it was
+    assert guard.held_for == "the arm 'ur5-b': where it is is unknown (an unknown obstacle)"
+    assert guard.peer_problem(1.25) is None  # exactly stale_s old: not stale yet
+    stale = "the arm 'ur5-b': its state is {} ms old (stale after 250 ms): an unknown obstacle"
+    assert guard.peer_problem(math.nextafter(1.25, 2.0)) == stale.format(250)
+    assert guard.peer_problem(2.0) == stale.format(1000)
+    assert guard.peer_problem(2.9) == stale.format(1900)
+
+
+@pytest.mark.req("SR-ARMS-2")
+def test_every_change_of_the_cells_arms_voids_the_verdicts_before_it() -> None:
+    """The arms' epoch never comes back to a value a verdict may carry: an arm added, one
+    that leaves, one that comes back; a verdict for the arms before an addition holds."""
+    cm = pair_model()
+    guard = CollisionGuard(cm, inline=True, stale_s=10.0)
+    eye = np.eye(4)
+    epochs = [cm.peer_epoch]
+    guard.peer_update("ur5-b", HOME, b_base(), 1.0)
+    guard.publish(HOME, eye, 1.0)
+    assert guard.admit(HOME, eye, 1.0)
+    cm.add_peer("ur5-c", UR5.frame, velocities=VEL)
+    epochs.append(cm.peer_epoch)
+    assert not guard.admit(HOME, eye, 1.0)
+    assert guard.held_for == "no verdict for these regions and arms yet"
+    guard.peer_gone("ur5-b")
+    epochs.append(cm.peer_epoch)
+    guard.peer_update("ur5-b", HOME, b_base(), 1.0)  # back
+    epochs.append(cm.peer_epoch)
+    guard.peer_gone("ur5-c")
+    epochs.append(cm.peer_epoch)
+    assert len(set(epochs)) == len(epochs), epochs
+    with pytest.raises(ValueError, match=r"^no peer arm 'x' \(peer arms: ur5-b, ur5-c\)$"):
+        cm.peer("x")
+    with pytest.raises(ValueError, match=r"^no peer arm 'x' \(peer arms: none\)$"):
+        model().peer("x")
 
 
 def drive(

@@ -30,8 +30,16 @@ import pinocchio as pin
 import pytest
 
 import igtl
-from occ.core.assembly import build_hardware
 from occ.clock import SimClock
+from occ.config import CollisionConfig, RegionConfig
+from occ.core.assembly import build_hardware
+from occ.core.data import RobotData
+from occ.core.loader import load_config
+from occ.core.safety import RobotState
+from occ.core.supervision import Worker
+from occ.errors import ConfigError
+from occ.kinematics.armgeom import rotation_to as _rotation_to
+from occ.kinematics.armgeom import srdf_disabled as _srdf_disabled
 from occ.kinematics.collision import (
     BROAD_PAD_M,
     ESCAPE_TOLERANCE_M,
@@ -49,16 +57,8 @@ from occ.kinematics.collision import (
     regions_from_event,
     sphere_region,
 )
-from occ.config import CollisionConfig, RegionConfig
-from occ.kinematics.armgeom import rotation_to as _rotation_to
-from occ.kinematics.armgeom import srdf_disabled as _srdf_disabled
-from occ.core.data import RobotData
-from occ.net.decoders import event_of
-from occ.errors import ConfigError
 from occ.kinematics.frame import Frame
-from occ.core.loader import load_config
-from occ.core.safety import RobotState
-from occ.core.supervision import Worker
+from occ.net.decoders import event_of
 from occ_testkit.testing import CONFIGS, SimRobot
 
 HOME = [0.0, -1.2, 1.5, -1.9, -1.57, 0.0]
@@ -971,9 +971,11 @@ def test_the_guard_admits_within_half_the_last_clearance_for_its_regions_and_bas
     far[1] -= 2.0 * step
     assert guard.admit(near, base) and guard.holds == 1
     assert not guard.admit(far, base) and guard.holds == 2
+    assert guard.held_for == "the setpoint left half the last verdict's clearance"
     moved = base.copy()
     moved[0, 3] = 0.001
     assert not guard.admit(HOME, moved) and guard.holds == 3  # another base pose: hold
+    assert guard.held_for == "no verdict for this base pose yet"
     # exactly half the clearance away: held (the bound must stay under it)
     r5 = cm.reach[5]
     guard.verdict = Verdict(tuple(HOME), base, 0.0, r5, None, cm.version)
@@ -1247,8 +1249,8 @@ def test_a_robot_on_the_real_clock_checks_on_a_worker_thread_of_its_own() -> Non
 
     from occ.clock import RealClock
     from occ.core.loader import parse_config
-    from occ.recording.record import writer_priority
     from occ.core.robot import build_robot
+    from occ.recording.record import writer_priority
     from occ_testkit.testing import inproc_config
 
     cfg = parse_config(yaml.safe_dump(ur5_collision(margin_mm=5.0)), base_dir=CONFIGS)
@@ -1284,6 +1286,35 @@ def test_a_margin_a_link_can_cross_in_one_tick_is_a_config_error() -> None:
     assert str(err.value).endswith(f"({step * 500:.3g} mm), got {round(step * 500 * 0.99, 3):g}")
     sim = SimRobot(ur5_collision(margin_mm=round(step * 500 * 1.01, 3)))
     sim.close()
+
+
+@pytest.mark.req("SR-COLL-2")
+def test_a_margin_of_exactly_half_a_ticks_motion_is_refused() -> None:
+    """The margin must exceed half of what a link can move in one tick: equal is refused,
+    a hair more is taken (one joint moving, its velocity set to the float that makes the step
+    exactly twice the margin, then to the next float down that makes it less)."""
+    period = 1e-3
+    cc = CollisionConfig(margin_mm=10.0)
+    cm = ur5(margin_mm=10.0)
+    vel = [0.0] * 5 + [2.0 * cm.margin / (period * cm.reach[5])]
+    for _ in range(8):
+        step = cm.step_bound(vel, period)
+        if step == 2.0 * cm.margin:
+            break
+        vel[5] = math.nextafter(vel[5], 0.0 if step > 2.0 * cm.margin else math.inf)
+    assert step == 2.0 * cm.margin
+
+    def build() -> CollisionGuard | None:
+        return CollisionGuard.build(
+            cc, UR5.frame, UR5_FRAME, vel, period, real=False, fifo_priority=None, name="t"
+        )
+
+    with pytest.raises(ConfigError, match="must exceed half of what a link can move"):
+        build()
+    while cm.step_bound(vel, period) == step:
+        vel[5] = math.nextafter(vel[5], 0.0)
+    guard = build()
+    assert guard is not None and guard.cm.margin == cm.margin
 
 
 def test_the_statistics() -> None:
