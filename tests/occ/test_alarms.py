@@ -226,16 +226,18 @@ def test_a_plugin_error_faults_once_naming_it_and_its_log_is_bounded(
     assert rig.states.asked == [("fault", reason)] and rig.alarms.last_alert == reason
     first = [r for r in caplog.records if r.getMessage() == reason]
     assert len(first) == 1 and first[0].exc_info is not None and first[0].exc_info[1] is err
+    assert f"FAULT: {reason}" in [r.getMessage() for r in caplog.records]
     # in FAULT already: no second transition, and the log stops after 20 lines
     caplog.clear()
     for _ in range(30):
         rig.alarms.plugin_error("controller teleop.update", err)
     assert rig.states.asked == [("fault", reason)]
     assert sum(r.getMessage() == reason for r in caplog.records) == 19
-    rig.alarms.cleared()  # a Reset that succeeded: the next errors are logged again
+    rig.alarms.cleared()  # a Reset that succeeded: the next errors are logged again, 20
     caplog.clear()
-    rig.alarms.plugin_error("controller teleop.update", err)
-    assert sum(r.getMessage() == reason for r in caplog.records) == 1
+    for _ in range(25):
+        rig.alarms.plugin_error("controller teleop.update", err)
+    assert sum(r.getMessage() == reason for r in caplog.records) == 20
 
 
 @pytest.mark.req("SR-HW-17")
@@ -356,3 +358,14 @@ def test_a_safety_stop_holds_a_moving_robot_faults_by_policy_and_tells_a_still_o
         ]
         assert rig.alarms.last_alert == "gap of 60.000 ms between ticks"
     assert "SAFETY STOP: gap of 60.000 ms between ticks" in [r.getMessage() for r in caplog.records]
+
+
+@pytest.mark.req("SR-BOX-2")
+def test_a_black_box_dump_is_told_ok_or_as_a_resource_error() -> None:
+    rig = Rig()
+    rig.alarms.black_box_written("black box of fault written to /tmp/x", True)
+    rig.alarms.black_box_written("black box not written: disk full", False)
+    assert rig.heard() == [
+        ("BLACKBOX", "black box of fault written to /tmp/x", igtl.StatusCode.OK),
+        ("BLACKBOX", "black box not written: disk full", igtl.StatusCode.RESOURCE_ERROR),
+    ]

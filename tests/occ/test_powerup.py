@@ -393,6 +393,19 @@ def test_a_drive_that_came_up_after_the_power_up_was_called_off_is_switched_off(
         r.ticks(2, settle=False)
         sid = r.op.send_command(stop)
         r.ticks(2, settle=False)
+        if stop == "Disable":  # called off, still under way: another Enable, a Reset wait
+            again, reset = r.op.send_command("Enable"), r.op.send_command("Reset")
+            r.ticks(2, settle=False)
+            refused = r.reply(again)
+            assert refused is not None and not refused[0]
+            assert "the drives are powering up (" in refused[1], refused
+            assert "; cancelled: " in refused[1] and refused[1].endswith("(disable))"), refused
+            no = r.reply(reset)
+            assert no is not None and not no[0]
+            assert (
+                "'reset' refused in state READY: the drives are still working (activate, "
+                in (no[1])
+            ), no
     r.landed()
     answer = r.reply(cid)
     assert answer is not None and not answer[0]
@@ -405,3 +418,83 @@ def test_a_drive_that_came_up_after_the_power_up_was_called_off_is_switched_off(
     else:
         assert r.robot.state is RobotState.ESTOP and r.arm.state is DriverState.FAULT
     assert r.robot.hardware.all_safe()
+
+
+class _Activating(_Drive):
+    """A drive whose activation runs on the PowerUp's thread: it fails (``err``), waits for
+    ``release`` or comes up; it notes the thread it ran on."""
+
+    def __init__(self, name: str, err: Exception | None = None, release: Any = None) -> None:
+        super().__init__(name)
+        self.err = err
+        self.release = release
+        self.thread: Any = None
+
+    def activate(self) -> None:
+        import threading
+
+        self.thread = threading.current_thread()
+        if self.release is not None:
+            self.release.wait(10.0)
+        if self.err is not None:
+            raise self.err
+        self.state = DriverState.ACTIVE
+
+
+@pytest.mark.req("SR-HW-39")
+def test_each_activation_runs_on_a_daemon_thread_of_its_own_and_its_failure_is_named() -> None:
+    """Each drive on a thread named for it, a daemon (a hung activation never keeps the
+    daemon's process alive at exit); failures in the drives' order, an error without words
+    named by its type; the time taken measured from the start to the last one's end."""
+    import threading
+
+    from occ.core.powerup import PowerUp
+
+    gate = threading.Event()
+    a = _Activating("arm", RuntimeError("node 2: no answer"))
+    b = _Activating("tool", ValueError(), release=gate)
+    c = _Activating("wrist")
+    t0 = time.perf_counter()
+    pu = PowerUp([a, b, c], "operator Enable").start()  # type: ignore[list-item]
+    assert pu.action == "activate" and pu.reason == "operator Enable"
+    assert not pu.wait(0.05) and not pu.done and pu.took_s is None  # tool still waits
+    gate.set()
+    assert pu.wait(10.0) and pu.done
+    elapsed = time.perf_counter() - t0
+    assert [str(f) for f in pu.failures()] == [
+        "driver arm: activate failed: node 2: no answer",
+        "driver tool: activate failed: ValueError",
+    ]
+    assert [(d.thread.name, d.thread.daemon) for d in (a, b, c)] == [
+        ("occ-power-up-arm", True),
+        ("occ-power-up-tool", True),
+        ("occ-power-up-wrist", True),
+    ]
+    assert pu.took_s is not None and 0.0 < pu.took_s <= elapsed
+    assert pu.leftovers() == [c]
+
+
+def test_waiting_for_no_power_up_is_at_once_true() -> None:
+    sim = SimRobot(CONFIGS / "slave.yaml")
+    try:
+        assert sim.robot.effects.powerup is None and sim.robot.effects.await_power_up(0.0)
+    finally:
+        sim.close()
+
+
+@pytest.mark.req("SR-HW-39")
+def test_a_start_event_refused_ends_the_start_with_its_words(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """``--start`` asking Run of a READY robot: refused by the state machine, logged with
+    the event and the refusal, and nothing of the start is left."""
+    sim = SimRobot(CONFIGS / "slave.yaml")
+    try:
+        sim.robot.start_in("run", "enable")
+        sim.tick()
+        assert sim.robot.state is RobotState.READY and sim.robot.effects.pending_start == []
+        (line,) = [m for r in caplog.records if (m := r.getMessage()).startswith("--start")]
+        assert line.startswith("--start: run refused or failed ('run' "), line
+        assert "READY" in line
+    finally:
+        sim.close()
