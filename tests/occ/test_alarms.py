@@ -369,3 +369,99 @@ def test_a_black_box_dump_is_told_ok_or_as_a_resource_error() -> None:
         ("BLACKBOX", "black box of fault written to /tmp/x", igtl.StatusCode.OK),
         ("BLACKBOX", "black box not written: disk full", igtl.StatusCode.RESOURCE_ERROR),
     ]
+
+
+@dataclass
+class Monitor:
+    resets: list[Any] = field(default_factory=list)
+
+    def reset(self, now: Any) -> None:
+        self.resets.append(now)
+
+
+@pytest.mark.parametrize("state", [RobotState.READY, RobotState.STOPPED, RobotState.ENABLED])
+def test_a_bystanders_loss_while_not_running_only_rearms_its_monitor(state: RobotState) -> None:
+    """A master not in control (collaboration) moves nothing: out of RUNNING its latch only
+    re-arms its monitor (it may be handed control later), and nobody is told."""
+    rig = Rig(state)
+    rig.streams.input = "mentor"
+    mon = Monitor()
+    for kind in ("hold", "resume", "latch"):
+        rig.alarms.bystander_loss("trainee", mon, event(kind), state)  # type: ignore[arg-type]
+    assert mon.resets == [None] and rig.sent == [] and rig.states.asked == []
+    assert [n[1]["owner"] for n in rig.notes] == ["mentor"] * 3
+    assert all(n[1]["stream"] == "trainee" and n[1]["state"] == state.value for n in rig.notes)
+
+
+def test_a_bystanders_loss_while_running_alerts_and_never_stops_the_robot() -> None:
+    rig = Rig()
+    rig.streams.input = "mentor"
+    mon = Monitor()
+    rig.alarms.bystander_loss("trainee", mon, event("hold"), RobotState.RUNNING)  # type: ignore[arg-type]
+    assert rig.sent == [] and mon.resets == []
+    rig.alarms.bystander_loss(
+        "trainee",
+        mon,  # type: ignore[arg-type]
+        event("latch", "3 packets lost (seq 7-9)"),
+        RobotState.RUNNING,
+    )
+    rig.alarms.bystander_loss(
+        "trainee",
+        mon,  # type: ignore[arg-type]
+        event("resume", "back after 9 ms"),
+        RobotState.RUNNING,
+    )
+    assert mon.resets == [None]
+    assert rig.heard() == [
+        (
+            "ALERT",
+            "stream trainee (not in control) lost: 3 packets lost (seq 7-9); following mentor",
+            igtl.StatusCode.TIME_OUT,
+        ),
+        ("STREAM", "stream trainee: back after 9 ms", igtl.StatusCode.OK),
+    ]
+    assert rig.states.asked == [] and rig.alarms.last_alert == ""
+
+
+@pytest.mark.req("SR-COLL-2")
+@pytest.mark.parametrize(("policy", "event_"), [("hold", "stop"), ("fault", "fault")])
+def test_a_collision_is_a_collision_alert_then_the_safety_stop(policy: str, event_: str) -> None:
+    rig = Rig()
+    why = "link wrist_3 within 4.0 mm of region table (margin 10.0 mm)"
+    rig.alarms.collision_stop(why, policy)
+    assert rig.heard() == [("COLLISION", why, igtl.StatusCode.ILLEGAL_INSTRUCTION)]
+    assert rig.states.asked == [(event_, why)] and rig.alarms.last_alert == why
+
+
+@pytest.mark.req("SR-REC-1")
+def test_a_recording_that_failed_is_a_recording_status_and_moves_nothing() -> None:
+    rig = Rig()
+    rig.alarms.recording_failed("recording to /data/x.igtl failed: [Errno 28] No space left")
+    assert rig.heard() == [
+        (
+            "RECORDING",
+            "recording to /data/x.igtl failed: [Errno 28] No space left",
+            igtl.StatusCode.RESOURCE_ERROR,
+        )
+    ]
+    assert rig.states.asked == [] and rig.alarms.last_alert == ""
+
+
+@pytest.mark.req("SR-WD-1")
+def test_a_watchdog_alert_is_a_watchdog_status_with_its_reason(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    caplog.set_level(logging.WARNING, logger="occ.core.robot")
+    rig = Rig()
+    rig.alarms.watchdog_alert("overrun: compute 1.200 ms > budget 1.000 ms (3 consecutive)", 7)
+    assert rig.heard() == [
+        (
+            "WATCHDOG",
+            "watchdog: overrun: compute 1.200 ms > budget 1.000 ms (3 consecutive)",
+            igtl.StatusCode.TIME_OUT,
+        )
+    ]
+    assert rig.states.asked == []
+    assert [r.getMessage() for r in caplog.records] == [
+        "watchdog: overrun: compute 1.200 ms > budget 1.000 ms (3 consecutive) (7 overruns so far)"
+    ]
