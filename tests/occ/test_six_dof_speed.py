@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 import pytest
+import yaml
 
 from occ.core.assembly import build_hardware
 from occ.core.loader import load_config
@@ -240,6 +241,43 @@ def test_a_servo_target_moves_the_ur5_together_and_keeps_its_tools_orientation()
         rig.close()
 
 
+@pytest.mark.req("SR-SIXDOF-2")
+def test_the_servo_keeps_the_orientation_of_when_control_started_not_the_ways() -> None:
+    """``orientation: follow``: a target taken on the way to another keeps the orientation of
+    when the source took control (the joint line's own, mid-way, is off it by 5e-6 rad on a
+    60 mm way); Run after a Stop on the way takes the orientation the tool was held in."""
+    rig = servo_rig(CONFIGS / "ur5.yaml", mapping="absolute", phase_lock_us=None, max_jump_mm=100.0)
+    try:
+        frame = rig.robot.frame
+
+        def rotation() -> np.ndarray:
+            return np.asarray(frame.fk(rig.robot.data.setpoint))[:3, :3]
+
+        r0, start = rotation(), rig.world_tip_mm()
+        far, near = (start + [40.0, -35.0, 30.0]).tolist(), (start + [2.0, 3.0, -4.0]).tolist()
+        rig.target = far
+        rig.step(30)
+        assert angle(r0, rotation()) > 1e-6  # on the joint line, not in the pose's orientation
+        rig.target = near
+        rig.step(200)
+        assert rig.world_tip_mm().tolist() == pytest.approx(near, abs=1e-4)
+        assert angle(r0, rotation()) < 1e-9
+        rig.target = far
+        rig.step(30)
+        rig.command("Stop")
+        held = rotation()
+        assert angle(r0, held) > 1e-6
+        rig.step(10)
+        rig.target = near
+        rig.command("Run")
+        rig.step(200)
+        assert rig.world_tip_mm().tolist() == pytest.approx(near, abs=1e-4)
+        assert angle(held, rotation()) < 1e-9
+        assert rig.ctl.stats()["ik_clamped"] == 0
+    finally:
+        rig.close()
+
+
 def rcm_rig(**params: Any) -> SlaveRig:
     port = port_up_the_axis()
     return servo_rig(CONFIGS / "ur5.yaml", mapping="absolute", orientation="rcm",
@@ -278,6 +316,37 @@ def test_a_servo_target_on_the_rcm_tool_keeps_the_port_on_the_way(move_mm: Any) 
         limit = np.array([0.9 * j.limits.velocity * PERIOD for j in rig.robot.joints])
         assert (np.abs(np.diff(np.array(written), axis=0)) <= limit * (1 + 1e-9)).all()
         assert rig.world_tip_mm().tolist() == pytest.approx(rig.target, abs=1e-4)
+        stats = rig.ctl.stats()
+        assert stats["ik_failures"] == 0 and stats["ik_clamped"] == 0
+        assert rig.robot.state is RobotState.RUNNING
+    finally:
+        rig.close()
+
+
+@pytest.mark.req("SR-SIXDOF-3")
+def test_a_joint_held_at_its_limit_on_the_rcm_tools_way_is_counted_once_a_sample(
+    tmp_path: Path,
+) -> None:
+    """The tool's roll joint (wrist 3) allowed no lower than where it is at home: the way to
+    an oblique target through the port holds it at that limit, the axis still in the port;
+    GetStats' ``ik_clamped`` counts each sample of the target once (its first solve, then each
+    repeat), not each tick of the way."""
+    cfg = yaml.safe_load((CONFIGS / "ur5.yaml").read_text())
+    cfg["robot"]["joints"][5]["limits"].update({"min": 0.0})  # home 0.0
+    path = tmp_path / "ur5_roll_from_home.yaml"
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    port = port_up_the_axis()
+    rig = servo_rig(path, mapping="absolute", orientation="rcm", rcm_mm=(port * 1e3).tolist(),
+                    phase_lock_us=None)  # fmt: skip
+    try:
+        rig.target = (rig.world_tip_mm() + [6.0, -5.0, 5.0]).tolist()
+        written = rig.step(1)  # the target's first sample and its first solve
+        assert rig.ctl.stats()["ik_clamped"] == 1
+        written += rig.step(59)  # 29 more samples of it
+        assert rig.ctl.stats()["ik_clamped"] == 30
+        assert min(q[5] for q in written) == 0.0
+        frame = rig.robot.frame
+        assert max(off_port(np.asarray(frame.fk(q)), port) for q in written) < 1e-8
         assert rig.robot.state is RobotState.RUNNING and rig.ctl.stats()["ik_failures"] == 0
     finally:
         rig.close()
@@ -334,6 +403,7 @@ def test_a_servo_target_beyond_max_jump_on_the_way_is_refused_and_the_tool_holds
         assert list(rig.robot.data.setpoint) == held
         assert off_port(np.asarray(frame.fk(held)), port) < 1e-8
         assert rig.ctl.stats()["servo_refused"] == 21
+        assert rig.ctl.stats()["ik_failures"] == 0  # refused, not failed
         alerts = [a for a in rig.alerts() if "servo target" in a]
         assert alerts == ["servo target 10.5 mm from the tip refused (max_jump_mm 10): holding"]
         assert rig.robot.state is RobotState.RUNNING
