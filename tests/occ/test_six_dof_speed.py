@@ -353,6 +353,40 @@ def test_a_joint_held_at_its_limit_on_the_rcm_tools_way_is_counted_once_a_sample
 
 
 @pytest.mark.req("SR-SIXDOF-3")
+def test_while_rejoining_after_a_hold_the_rcm_servo_keeps_its_own_way() -> None:
+    """The source quiet for 20 ms on the way to a target 9.5 mm off (the robot holds), then
+    back: while the setpoint re-joins at half the velocity limits (occ/core/motion.py), the
+    servo goes on through the port from its own last solution at 0.9 of them, leading the
+    setpoint by more than 2 mm (stepped from the trailing setpoint it led by 0.2 mm); every
+    pose it tells keeps the axis in the port, and the tip ends at the target."""
+    port = port_up_the_axis()
+    rig = rcm_rig()
+    try:
+        (ctl,) = rig.robot.controller.controllers
+        frame = rig.robot.frame
+        rig.target = (rig.world_tip_mm() + [0.0, 0.0, 9.5]).tolist()
+        rig.step(4)
+        rig.sending = False
+        rig.step(20)
+        rig.sending = True
+        lead, told = 0.0, []
+        for _ in range(40):
+            rig.step(1)
+            told.append(list(ctl._q_last))
+            gap = np.subtract(
+                frame.tip_position(told[-1]), frame.tip_position(rig.robot.data.setpoint)
+            )
+            lead = max(lead, float(np.linalg.norm(gap)))
+        assert lead > 2e-3, lead
+        assert max(off_port(np.asarray(frame.fk(q)), port) for q in told) < 1e-8
+        rig.step(200)
+        assert rig.world_tip_mm().tolist() == pytest.approx(rig.target, abs=1e-4)
+        assert rig.robot.state is RobotState.RUNNING and rig.ctl.stats()["ik_failures"] == 0
+    finally:
+        rig.close()
+
+
+@pytest.mark.req("SR-SIXDOF-3")
 def test_a_servo_stream_on_the_rcm_tool_keeps_the_port_and_at_the_port_is_no_target() -> None:
     """A servo stream drawing a 20 mm circle at 1 Hz around the tip (a new target every 2 ms)
     keeps the tool's axis in the port at every tick; a target at the port itself (no axis) is
