@@ -1,5 +1,5 @@
-"""The gripper channel (issue 37, item 5; occ/haptics/gripper.py): the master's handle opens and closes
-the slave's grippers, as the German Heart Center's handle switch did.
+"""The gripper channel (issue 37, item 5; occ/haptics/gripper.py): the master's handle opens and
+closes the slave's grippers, as the German Heart Center's handle switch did.
 
 - The master's value from each source: a joint (mapped between its open and closed positions,
   limited to 0..1), the ``Grip`` command (open/close/a number; anything else refused with a
@@ -23,10 +23,10 @@ from typing import Any
 import pytest
 import yaml
 
-from occ.errors import ConfigError
-from occ.haptics.gripper import GripperFollower, GripperSource, parse_gripper
 from occ.core.loader import parse_config
 from occ.core.safety import RobotState
+from occ.errors import ConfigError
+from occ.haptics.gripper import GripperFollower, GripperSource, parse_gripper
 from occ_testkit.testing import CONFIGS, SimPair, SimRobot
 
 pytestmark = pytest.mark.req("SR-FORCE-23")
@@ -279,5 +279,38 @@ def test_the_simulated_hand_closes_and_opens_it_on_the_stream() -> None:
         p.run_for(0.25)
         jaw.append(p.slave.robot.data.setpoint[3])
         assert jaw[0] != jaw[1]
+    finally:
+        p.close()
+
+
+def test_the_simulated_hands_value_holds_while_the_master_is_stopped_without_energy() -> None:
+    """The simulated hand's value on a master that sends no energy (``passivity`` off: no
+    ``energy_j`` on its stream) reaches the slave all the same; while the master is stopped its
+    hand's time stands still, so the value the slave gets holds (it ran on to 1.0 before),
+    and Run resumes it from there."""
+    cfg = yaml.safe_load((CONFIGS / "master.yaml").read_text())
+    cfg["controller"]["params"]["gripper"] = {"source": "sim", "period_s": 1.0}
+    cfg["controller"]["params"]["passivity"] = False
+    p = SimPair(cfg, jaw_slave())
+    try:
+        p.start()
+        assert p.master.robot.controller.controllers[0].display.energy_out() is None
+        follower = p.slave.robot.controller.controllers[0].gripper
+        p.run_for(0.3)
+        assert follower.value is not None and 0.0 < follower.value < 1.0
+        stop = p.m_op.send_command("Stop", "")
+        p.step(1)
+        assert p.m_op.reply_to(stop).metadata["Status"] == "SUCCESS"
+        held = follower.value
+        values = []
+        for _ in range(300):
+            p.step(1)
+            values.append(follower.value)
+        assert values == [held] * 300
+        run = p.m_op.send_command("Run", "")
+        p.step(2)
+        assert p.m_op.reply_to(run).metadata["Status"] == "SUCCESS"
+        assert p.master.robot.data.state is RobotState.RUNNING
+        assert abs(follower.value - held) < 0.01  # on from where it held, no jump
     finally:
         p.close()
