@@ -410,6 +410,7 @@ def test_a_servo_stream_on_the_rcm_tool_keeps_the_port_and_at_the_port_is_no_tar
         rig.step(20)
         assert list(rig.robot.data.setpoint) == held
         assert rig.ctl.stats()["ik_failures"] == 10
+        assert rig.ctl.stats()["ik_clamped"] == 0  # failed, not clamped
         assert rig.robot.state is RobotState.RUNNING
     finally:
         rig.close()
