@@ -314,3 +314,28 @@ def test_the_simulated_hands_value_holds_while_the_master_is_stopped_without_ene
         assert abs(follower.value - held) < 0.01  # on from where it held, no jump
     finally:
         p.close()
+
+
+def test_a_masters_joint_gives_the_value_on_the_stream() -> None:
+    """A ``joint`` source on the master (here its handle's z axis, open at -0.1 m, closed at
+    0.1 m, as the simulated hand moves it): the slave gets the joint's measured position mapped
+    to 0..1 with every sample (0.6 at its 20 mm), to the stream's three decimals."""
+    cfg = yaml.safe_load((CONFIGS / "master.yaml").read_text())
+    cfg["controller"]["params"]["gripper"] = {
+        "source": "joint", "joint": "z", "open": -0.1, "closed": 0.1,
+    }  # fmt: skip
+    p = SimPair(cfg, jaw_slave())
+    try:
+        p.start()
+        follower = p.slave.robot.controller.controllers[0].gripper
+        master = p.master.robot.data
+        values, wanted = [], []
+        for _ in range(500):
+            p.step(1)
+            values.append(follower.value)
+            wanted.append((master.q[2] + 0.1) / 0.2)
+        assert values[-1] == pytest.approx(wanted[-1], abs=2e-3)
+        assert 0.0 < values[-1] < 1.0  # mapped, not at an end
+        assert p.master.robot.data.state is RobotState.RUNNING
+    finally:
+        p.close()
