@@ -23,10 +23,12 @@ from typing import Any
 import pytest
 import yaml
 
+import igtl
 from occ.core.loader import parse_config
 from occ.core.safety import RobotState
 from occ.errors import ConfigError
 from occ.haptics.gripper import GripperFollower, GripperSource, parse_gripper
+from occ_testkit.rigs import SlaveRig
 from occ_testkit.testing import CONFIGS, SimPair, SimRobot
 
 pytestmark = pytest.mark.req("SR-FORCE-23")
@@ -339,3 +341,39 @@ def test_a_masters_joint_gives_the_value_on_the_stream() -> None:
         assert p.master.robot.data.state is RobotState.RUNNING
     finally:
         p.close()
+
+
+def test_a_refused_servo_target_holds_the_jaw_with_the_arm() -> None:
+    """An external source (``mapping: absolute``) closing the jaw, then sending a target 15 mm
+    away (beyond ``max_jump_mm``) with the jaw's value open: the arm holds where it was told
+    to be and the jaw with it, where the close had taken it."""
+    rig = SlaveRig(
+        jaw_slave(), params={"mapping": "absolute", "max_jump_mm": 10.0, "phase_lock_us": None}
+    )
+    value = ["0.000"]
+
+    def send() -> None:  # the rig's sample with the gripper value beside run and clutch
+        rig.seq += 1
+        x, y, z = rig.target
+        meta = {"run": "1", "clutch": "0", "gripper": value[0]}
+        rig.source.send(
+            igtl.PositionMessage((x, y, z), (0.0, 0.0, 0.0, 1.0), 24, device_name="Master",
+                                 header_version=2, message_id=rig.seq, metadata=meta)
+        )  # fmt: skip
+
+    rig.send = send  # type: ignore[method-assign]
+    try:
+        rig.running()
+        value[0] = "1.000"
+        rig.step(100)
+        closing = rig.robot.data.setpoint[3]
+        assert CLOSED < closing < OPEN - 0.2  # on its way to closed
+        arm = rig.robot.data.setpoint[:3]
+        rig.target = (rig.world_tip_mm() + [0.0, 0.0, 15.0]).tolist()
+        value[0] = "0.000"
+        rig.step(100)
+        assert rig.ctl.stats()["servo_refused"] == 50
+        assert rig.robot.data.setpoint[:3] == arm and rig.robot.data.setpoint[3] == closing
+        assert rig.robot.state is RobotState.RUNNING
+    finally:
+        rig.close()
