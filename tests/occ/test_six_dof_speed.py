@@ -301,7 +301,8 @@ def test_a_servo_target_on_the_rcm_tool_keeps_the_port_on_the_way(move_mm: Any) 
     up to 9.5 mm away: at every tick of the way (tens of them, at 0.9 of the wrist's limits)
     the tool's axis passes within 0.05 mm of the port (1e-5 mm here), the tip on the straight
     line to the target (within 0.05 mm) and at it in the end; the axis still through the
-    port there, the robot RUNNING. One pose solve a tick: only the first slowed step solves
+    port there, the robot RUNNING; every tick but the first and the last at 0.9 of the
+    fastest joint's limit. One pose solve a tick: only the first slowed step solves
     the full pose too (the oblique way: 76 solves in 75 ticks; 155 when each slowed step
     within the limits made the next one solve the full pose again)."""
     port = port_up_the_axis()
@@ -337,7 +338,12 @@ def test_a_servo_target_on_the_rcm_tool_keeps_the_port_on_the_way(move_mm: Any) 
         moving = int((np.abs(np.diff(np.array(written), axis=0)).max(axis=1) > 0).sum())
         assert moving > 20, moving
         limit = np.array([0.9 * j.limits.velocity * PERIOD for j in rig.robot.joints])
-        assert (np.abs(np.diff(np.array(written), axis=0)) <= limit * (1 + 1e-9)).all()
+        steps = (np.abs(np.diff(np.array(written), axis=0)) / limit).max(axis=1)
+        assert steps.max() <= 1 + 1e-9
+        # from the second tick (the first: the full solve's share) to the one before the
+        # last, the fastest joint at 0.9 of its limit (oblique: 0.984 on the second tick when
+        # a first step within the limits was taken as the limits' reach)
+        assert steps[1 : moving - 1].min() > 1 - 1e-3, steps[1 : moving - 1].min()
         assert rig.world_tip_mm().tolist() == pytest.approx(rig.target, abs=1e-4)
         stats = rig.ctl.stats()
         assert stats["ik_failures"] == 0 and stats["ik_clamped"] == 0
