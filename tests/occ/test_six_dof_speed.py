@@ -179,6 +179,33 @@ def test_a_slowed_tool_through_its_port_keeps_its_axis_in_it() -> None:
         pair.close()
 
 
+@pytest.mark.req("SR-SIXDOF-1")
+def test_a_slowed_step_through_the_port_keeps_the_roll_of_the_last_solution() -> None:
+    """The pose solve of the UR5 through its port, the last solution rolled 0.05 rad about
+    the tool's axis from the setpoint (a solution leading a setpoint that trails it): the
+    first slowed step toward a tip 5 mm off keeps the last solution's roll (0.9 mrad toward
+    the setpoint's when it took that), and its axis in the port."""
+    port = port_up_the_axis()
+    rig = rcm_rig()
+    try:
+        (ctl,) = rig.robot.controller.controllers
+        frame = rig.robot.frame
+        last = list(rig.robot.data.setpoint)
+        last[5] += 0.05  # wrist 3: the tool about its own axis, the tip and axis where they were
+        rolled = np.asarray(frame.fk(last))
+        target = tuple((rolled[:3, 3] + [0.004, -0.003, 0.0]).tolist())
+        q, clamped, slowed = ctl.six.solve(target, last)
+        assert slowed and not clamped
+        pose = np.asarray(frame.fk(q))
+        z = pose[:3, 2]
+        x = rolled[:3, 0] - float(rolled[:3, 0] @ z) * z
+        x /= np.linalg.norm(x)
+        assert float(np.linalg.norm(np.cross(x, pose[:3, 0]))) < 1e-6  # the same roll
+        assert off_port(pose, port) < 1e-8
+    finally:
+        rig.close()
+
+
 # ------------------------------------------------------------------ servo targets
 
 
