@@ -126,6 +126,29 @@ def test_the_limit_holds_alone_when_the_loop_shakes_and_alerts_once_per_episode(
 
 
 @pytest.mark.req("SR-FORCE-7")
+def test_the_tool_is_shaped_between_samples_too() -> None:
+    """The delayed loop of the test above shaking the tool against the wall, the 500 Hz stream
+    on the 1 kHz loop: the contact's shaping moves the setpoint on ticks without a new sample
+    too (418 of the 2000 such ticks here), not only when a sample comes."""
+    pair = _pair(5.0, 50.0, master_params={"passivity": False},
+                 slave_params={"max_tissue_force_n": 10.0})  # fmt: skip
+    try:
+        ctl = _slave_ctl(pair)
+        data = pair.slave.robot.data
+        pair.start()
+        samples, setpoint, between = ctl.samples, list(data.setpoint), 0
+        for _ in range(4000):
+            pair.step(1)
+            if ctl.samples == samples and list(data.setpoint) != setpoint:
+                between += 1
+            samples, setpoint = ctl.samples, list(data.setpoint)
+        assert between > 100, between
+        assert pair.slave.robot.state is RobotState.RUNNING
+    finally:
+        pair.close()
+
+
+@pytest.mark.req("SR-FORCE-7")
 def test_reaching_the_limit_alerts_once_per_episode() -> None:
     """The paper's motion on a 10 N/mm wall presses ~7 N; with a 5 N limit the slave stops at
     it (the hand's force follows the instrument's), one ForceLimit alert a turn, re-armed only
