@@ -206,6 +206,27 @@ def test_a_slowed_step_through_the_port_keeps_the_roll_of_the_last_solution() ->
         rig.close()
 
 
+@pytest.mark.req("SR-SIX-1")
+def test_a_mapped_target_at_the_port_is_counted_once_a_sample_and_the_tool_holds() -> None:
+    """The master moved so that the mapped tip is the port itself (no axis for the tool): each
+    of its samples is counted as a failure (five in ten ticks), the tool holds where it was
+    told to be and the robot keeps running."""
+    port = port_up_the_axis()
+    rig = servo_rig(CONFIGS / "ur5.yaml", orientation="rcm", rcm_mm=(port * 1e3).tolist(),
+                    phase_lock_us=None)  # fmt: skip
+    try:
+        (ctl,) = rig.robot.controller.controllers
+        away = np.linalg.solve(np.array(ctl._sr), port - np.array(ctl.slave_ref))
+        held = list(rig.robot.data.setpoint)
+        rig.target = ((np.array(ctl.master_ref) + away) * 1e3).tolist()  # the master's mm
+        rig.step(10)
+        assert rig.ctl.stats()["ik_failures"] == 5
+        assert list(rig.robot.data.setpoint) == held
+        assert rig.robot.state is RobotState.RUNNING
+    finally:
+        rig.close()
+
+
 # ------------------------------------------------------------------ servo targets
 
 
