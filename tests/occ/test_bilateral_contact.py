@@ -48,6 +48,22 @@ def test_the_hardest_conditions_of_the_sweep_hold(
 
 
 @pytest.mark.req("SR-FORCE-4")
+def test_the_slaves_port_runs_on_the_energy_the_masters_stream_carries() -> None:
+    """The shipped master (passivity on) streaming to a slave on the wall: the slave's port
+    takes the hand's energy from the stream's ``energy_j`` and is active from the first
+    samples (GetStats' ``instrument.passivity``), none of them refused."""
+    pair = _pair(10.0, 0.0)
+    try:
+        ctl = _slave_ctl(pair)
+        pair.start()
+        pair.step(100)
+        port = ctl.stats()["instrument"]["passivity"]
+        assert port["on"] is True and port["active"] is True and port["bad_energy"] == 0
+    finally:
+        pair.close()
+
+
+@pytest.mark.req("SR-FORCE-4")
 def test_the_sweeps_bars_catch_the_one_port_controller_of_before() -> None:
     """The bars can fail: with the master's controller off (observed only, no energy sent)
     the stiffest, longest condition gives the hand energy and the handle oscillates."""
