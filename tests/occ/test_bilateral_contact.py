@@ -48,6 +48,22 @@ def test_the_hardest_conditions_of_the_sweep_hold(
 
 
 @pytest.mark.req("SR-FORCE-4")
+def test_the_slaves_port_runs_on_the_energy_the_masters_stream_carries() -> None:
+    """The shipped master (passivity on) streaming to a slave on the wall: the slave's port
+    takes the hand's energy from the stream's ``energy_j`` and is active from the first
+    samples (GetStats' ``instrument.passivity``), none of them refused."""
+    pair = _pair(10.0, 0.0)
+    try:
+        ctl = _slave_ctl(pair)
+        pair.start()
+        pair.step(100)
+        port = ctl.stats()["instrument"]["passivity"]
+        assert port["on"] is True and port["active"] is True and port["bad_energy"] == 0
+    finally:
+        pair.close()
+
+
+@pytest.mark.req("SR-FORCE-4")
 def test_the_sweeps_bars_catch_the_one_port_controller_of_before() -> None:
     """The bars can fail: with the master's controller off (observed only, no energy sent)
     the stiffest, longest condition gives the hand energy and the handle oscillates."""
@@ -123,6 +139,29 @@ def test_the_limit_holds_alone_when_the_loop_shakes_and_alerts_once_per_episode(
         assert peak > 12.0 and not alerts and st["limit_ticks"] == 0
         return
     assert peak < 10.0 and len(alerts) == st["limit_hits"]
+
+
+@pytest.mark.req("SR-FORCE-7")
+def test_the_tool_is_shaped_between_samples_too() -> None:
+    """The delayed loop of the test above shaking the tool against the wall, the 500 Hz stream
+    on the 1 kHz loop: the contact's shaping moves the setpoint on ticks without a new sample
+    too (418 of the 2000 such ticks here), not only when a sample comes."""
+    pair = _pair(5.0, 50.0, master_params={"passivity": False},
+                 slave_params={"max_tissue_force_n": 10.0})  # fmt: skip
+    try:
+        ctl = _slave_ctl(pair)
+        data = pair.slave.robot.data
+        pair.start()
+        samples, setpoint, between = ctl.samples, list(data.setpoint), 0
+        for _ in range(4000):
+            pair.step(1)
+            if ctl.samples == samples and list(data.setpoint) != setpoint:
+                between += 1
+            samples, setpoint = ctl.samples, list(data.setpoint)
+        assert between > 100, between
+        assert pair.slave.robot.state is RobotState.RUNNING
+    finally:
+        pair.close()
 
 
 @pytest.mark.req("SR-FORCE-7")

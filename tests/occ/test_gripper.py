@@ -1,5 +1,5 @@
-"""The gripper channel (issue 37, item 5; occ/haptics/gripper.py): the master's handle opens and closes
-the slave's grippers, as the German Heart Center's handle switch did.
+"""The gripper channel (issue 37, item 5; occ/haptics/gripper.py): the master's handle opens and
+closes the slave's grippers, as the German Heart Center's handle switch did.
 
 - The master's value from each source: a joint (mapped between its open and closed positions,
   limited to 0..1), the ``Grip`` command (open/close/a number; anything else refused with a
@@ -23,10 +23,12 @@ from typing import Any
 import pytest
 import yaml
 
-from occ.errors import ConfigError
-from occ.haptics.gripper import GripperFollower, GripperSource, parse_gripper
+import igtl
 from occ.core.loader import parse_config
 from occ.core.safety import RobotState
+from occ.errors import ConfigError
+from occ.haptics.gripper import GripperFollower, GripperSource, parse_gripper
+from occ_testkit.rigs import SlaveRig
 from occ_testkit.testing import CONFIGS, SimPair, SimRobot
 
 pytestmark = pytest.mark.req("SR-FORCE-23")
@@ -281,3 +283,97 @@ def test_the_simulated_hand_closes_and_opens_it_on_the_stream() -> None:
         assert jaw[0] != jaw[1]
     finally:
         p.close()
+
+
+def test_the_simulated_hands_value_holds_while_the_master_is_stopped_without_energy() -> None:
+    """The simulated hand's value on a master that sends no energy (``passivity`` off: no
+    ``energy_j`` on its stream) reaches the slave all the same; while the master is stopped its
+    hand's time stands still, so the value the slave gets holds (it ran on to 1.0 before),
+    and Run resumes it from there."""
+    cfg = yaml.safe_load((CONFIGS / "master.yaml").read_text())
+    cfg["controller"]["params"]["gripper"] = {"source": "sim", "period_s": 1.0}
+    cfg["controller"]["params"]["passivity"] = False
+    p = SimPair(cfg, jaw_slave())
+    try:
+        p.start()
+        assert p.master.robot.controller.controllers[0].display.energy_out() is None
+        follower = p.slave.robot.controller.controllers[0].gripper
+        p.run_for(0.3)
+        assert follower.value is not None and 0.0 < follower.value < 1.0
+        stop = p.m_op.send_command("Stop", "")
+        p.step(1)
+        assert p.m_op.reply_to(stop).metadata["Status"] == "SUCCESS"
+        held = follower.value
+        values = []
+        for _ in range(300):
+            p.step(1)
+            values.append(follower.value)
+        assert values == [held] * 300
+        run = p.m_op.send_command("Run", "")
+        p.step(2)
+        assert p.m_op.reply_to(run).metadata["Status"] == "SUCCESS"
+        assert p.master.robot.data.state is RobotState.RUNNING
+        assert abs(follower.value - held) < 0.01  # on from where it held, no jump
+    finally:
+        p.close()
+
+
+def test_a_masters_joint_gives_the_value_on_the_stream() -> None:
+    """A ``joint`` source on the master (here its handle's z axis, open at -0.1 m, closed at
+    0.1 m, as the simulated hand moves it): the slave gets the joint's measured position mapped
+    to 0..1 with every sample (0.6 at its 20 mm), to the stream's three decimals."""
+    cfg = yaml.safe_load((CONFIGS / "master.yaml").read_text())
+    cfg["controller"]["params"]["gripper"] = {
+        "source": "joint", "joint": "z", "open": -0.1, "closed": 0.1,
+    }  # fmt: skip
+    p = SimPair(cfg, jaw_slave())
+    try:
+        p.start()
+        follower = p.slave.robot.controller.controllers[0].gripper
+        master = p.master.robot.data
+        values, wanted = [], []
+        for _ in range(500):
+            p.step(1)
+            values.append(follower.value)
+            wanted.append((master.q[2] + 0.1) / 0.2)
+        assert values[-1] == pytest.approx(wanted[-1], abs=2e-3)
+        assert 0.0 < values[-1] < 1.0  # mapped, not at an end
+        assert p.master.robot.data.state is RobotState.RUNNING
+    finally:
+        p.close()
+
+
+def test_a_refused_servo_target_holds_the_jaw_with_the_arm() -> None:
+    """An external source (``mapping: absolute``) closing the jaw, then sending a target 15 mm
+    away (beyond ``max_jump_mm``) with the jaw's value open: the arm holds where it was told
+    to be and the jaw with it, where the close had taken it."""
+    rig = SlaveRig(
+        jaw_slave(), params={"mapping": "absolute", "max_jump_mm": 10.0, "phase_lock_us": None}
+    )
+    value = ["0.000"]
+
+    def send() -> None:  # the rig's sample with the gripper value beside run and clutch
+        rig.seq += 1
+        x, y, z = rig.target
+        meta = {"run": "1", "clutch": "0", "gripper": value[0]}
+        rig.source.send(
+            igtl.PositionMessage((x, y, z), (0.0, 0.0, 0.0, 1.0), 24, device_name="Master",
+                                 header_version=2, message_id=rig.seq, metadata=meta)
+        )  # fmt: skip
+
+    rig.send = send  # type: ignore[method-assign]
+    try:
+        rig.running()
+        value[0] = "1.000"
+        rig.step(100)
+        closing = rig.robot.data.setpoint[3]
+        assert CLOSED < closing < OPEN - 0.2  # on its way to closed
+        arm = rig.robot.data.setpoint[:3]
+        rig.target = (rig.world_tip_mm() + [0.0, 0.0, 15.0]).tolist()
+        value[0] = "0.000"
+        rig.step(100)
+        assert rig.ctl.stats()["servo_refused"] == 50
+        assert rig.robot.data.setpoint[:3] == arm and rig.robot.data.setpoint[3] == closing
+        assert rig.robot.state is RobotState.RUNNING
+    finally:
+        rig.close()

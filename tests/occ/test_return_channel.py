@@ -139,6 +139,22 @@ def test_a_master_whose_slave_never_answers_is_told(master) -> None:
     assert st["tool_mm"] is None and st["slave_tip"]["status"] == "lost"
 
 
+def test_the_grace_of_a_slave_silent_since_a_stop_counts_from_run(master) -> None:
+    """The slave answered until the master stopped, then fell silent: stopped for 80 ms, the
+    master runs again and the alert comes a grace (100 ms) after Run, not after the Stop."""
+    master.run()
+    assert master.ctl.stats()["slave_tip"]["status"] == "fresh"
+    assert master.command("Stop").metadata["Status"] == "SUCCESS"
+    master.feed.paused = True
+    master.feed.step(80)
+    assert master.command("Run").metadata["Status"] == "SUCCESS"
+    master.feed.step(90)
+    assert master.sim.robot.state is RobotState.RUNNING and not master.alerts("ALERT")
+    master.feed.step(30)
+    (alert,) = master.alerts("ALERT")
+    assert "slave tip on slave lost" in alert
+
+
 def test_a_slave_that_does_not_follow_this_master_gives_no_force(master) -> None:
     master.run()
     keepout(master)

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 import pytest
+import yaml
 
 from occ.core.assembly import build_hardware
 from occ.core.loader import load_config
@@ -64,11 +65,14 @@ class Told:
         self.full: list[list[float] | None] = []
         self._last_full: list[float] | None = None
         self._limited: list[bool] = []
+        #: how many pose solves each tick made
+        self.solves: list[int] = []
         update = slave.controller.update
         solution = self.ctl.six.pose_solution
 
         def tell(now: float, current: Any) -> Any:
             self._last_full = None
+            self.solves.append(0)
             target = update(now, current)
             self.told.append(list(target) if target is not None else self.told[-1])
             self.full.append(self._last_full)
@@ -76,6 +80,7 @@ class Told:
 
         def solved(*args: Any) -> Any:
             q, clamped = solution(*args)
+            self.solves[-1] += 1
             if self._last_full is None:  # the first of a tick: toward the sample's target
                 self._last_full = list(q)
             return q, clamped
@@ -149,7 +154,8 @@ def test_the_shipped_stream_drives_the_wrist_at_0_9_of_its_limit_all_joints_alik
 def test_a_slowed_tool_through_its_port_keeps_its_axis_in_it() -> None:
     """``orientation: rcm``, the master's circle at 2 Hz (the tool asked to swing up to 1.6
     rad/s about the port): at 0.9 of the wrist's limits every told pose keeps the axis through
-    the port to 1e-5 mm (a share of the joint line to the far solution left it by 1.7 mm)."""
+    the port to 1e-5 mm (a share of the joint line to the far solution left it by 1.7 mm), with
+    one pose solve a tick."""
     port = port_up_the_axis()
     pair = fast_pair(
         frequency_hz=2.0, slave={"orientation": "rcm", "rcm_mm": (port * 1e3).tolist()}
@@ -165,9 +171,60 @@ def test_a_slowed_tool_through_its_port_keeps_its_axis_in_it() -> None:
         assert steps.max() <= 1.0 + 1e-9
         assert t.sustained() >= 0.85, t.sustained()
         assert t.ctl.stats()["rate_limited"] > 1000
+        # a slowed step after the first goes as far as the last went at the limits: one pose
+        # solve a tick, not a full solve and then the step's (2 ticks of 1500 had two, measured)
+        assert sum(n > 1 for n in t.solves) < 10, sum(n > 1 for n in t.solves)
         assert t.slave.state is RobotState.RUNNING and t.ctl.ik_failures == 0
     finally:
         pair.close()
+
+
+@pytest.mark.req("SR-SIXDOF-1")
+def test_a_slowed_step_through_the_port_keeps_the_roll_of_the_last_solution() -> None:
+    """The pose solve of the UR5 through its port, the last solution rolled 0.05 rad about
+    the tool's axis from the setpoint (a solution leading a setpoint that trails it): the
+    first slowed step toward a tip 5 mm off keeps the last solution's roll (0.9 mrad toward
+    the setpoint's when it took that), and its axis in the port."""
+    port = port_up_the_axis()
+    rig = rcm_rig()
+    try:
+        (ctl,) = rig.robot.controller.controllers
+        frame = rig.robot.frame
+        last = list(rig.robot.data.setpoint)
+        last[5] += 0.05  # wrist 3: the tool about its own axis, the tip and axis where they were
+        rolled = np.asarray(frame.fk(last))
+        target = tuple((rolled[:3, 3] + [0.004, -0.003, 0.0]).tolist())
+        q, clamped, slowed = ctl.six.solve(target, last)
+        assert slowed and not clamped
+        pose = np.asarray(frame.fk(q))
+        z = pose[:3, 2]
+        x = rolled[:3, 0] - float(rolled[:3, 0] @ z) * z
+        x /= np.linalg.norm(x)
+        assert float(np.linalg.norm(np.cross(x, pose[:3, 0]))) < 1e-6  # the same roll
+        assert off_port(pose, port) < 1e-8
+    finally:
+        rig.close()
+
+
+@pytest.mark.req("SR-SIX-1")
+def test_a_mapped_target_at_the_port_is_counted_once_a_sample_and_the_tool_holds() -> None:
+    """The master moved so that the mapped tip is the port itself (no axis for the tool): each
+    of its samples is counted as a failure (five in ten ticks), the tool holds where it was
+    told to be and the robot keeps running."""
+    port = port_up_the_axis()
+    rig = servo_rig(CONFIGS / "ur5.yaml", orientation="rcm", rcm_mm=(port * 1e3).tolist(),
+                    phase_lock_us=None)  # fmt: skip
+    try:
+        (ctl,) = rig.robot.controller.controllers
+        away = np.linalg.solve(np.array(ctl._sr), port - np.array(ctl.slave_ref))
+        held = list(rig.robot.data.setpoint)
+        rig.target = ((np.array(ctl.master_ref) + away) * 1e3).tolist()  # the master's mm
+        rig.step(10)
+        assert rig.ctl.stats()["ik_failures"] == 5
+        assert list(rig.robot.data.setpoint) == held
+        assert rig.robot.state is RobotState.RUNNING
+    finally:
+        rig.close()
 
 
 # ------------------------------------------------------------------ servo targets
@@ -240,6 +297,43 @@ def test_a_servo_target_moves_the_ur5_together_and_keeps_its_tools_orientation()
         rig.close()
 
 
+@pytest.mark.req("SR-SIXDOF-2")
+def test_the_servo_keeps_the_orientation_of_when_control_started_not_the_ways() -> None:
+    """``orientation: follow``: a target taken on the way to another keeps the orientation of
+    when the source took control (the joint line's own, mid-way, is off it by 5e-6 rad on a
+    60 mm way); Run after a Stop on the way takes the orientation the tool was held in."""
+    rig = servo_rig(CONFIGS / "ur5.yaml", mapping="absolute", phase_lock_us=None, max_jump_mm=100.0)
+    try:
+        frame = rig.robot.frame
+
+        def rotation() -> np.ndarray:
+            return np.asarray(frame.fk(rig.robot.data.setpoint))[:3, :3]
+
+        r0, start = rotation(), rig.world_tip_mm()
+        far, near = (start + [40.0, -35.0, 30.0]).tolist(), (start + [2.0, 3.0, -4.0]).tolist()
+        rig.target = far
+        rig.step(30)
+        assert angle(r0, rotation()) > 1e-6  # on the joint line, not in the pose's orientation
+        rig.target = near
+        rig.step(200)
+        assert rig.world_tip_mm().tolist() == pytest.approx(near, abs=1e-4)
+        assert angle(r0, rotation()) < 1e-9
+        rig.target = far
+        rig.step(30)
+        rig.command("Stop")
+        held = rotation()
+        assert angle(r0, held) > 1e-6
+        rig.step(10)
+        rig.target = near
+        rig.command("Run")
+        rig.step(200)
+        assert rig.world_tip_mm().tolist() == pytest.approx(near, abs=1e-4)
+        assert angle(held, rotation()) < 1e-9
+        assert rig.ctl.stats()["ik_clamped"] == 0
+    finally:
+        rig.close()
+
+
 def rcm_rig(**params: Any) -> SlaveRig:
     port = port_up_the_axis()
     return servo_rig(CONFIGS / "ur5.yaml", mapping="absolute", orientation="rcm",
@@ -255,14 +349,30 @@ def test_a_servo_target_on_the_rcm_tool_keeps_the_port_on_the_way(move_mm: Any) 
     up to 9.5 mm away: at every tick of the way (tens of them, at 0.9 of the wrist's limits)
     the tool's axis passes within 0.05 mm of the port (1e-5 mm here), the tip on the straight
     line to the target (within 0.05 mm) and at it in the end; the axis still through the
-    port there, the robot RUNNING."""
+    port there, the robot RUNNING; every tick but the first and the last at 0.9 of the
+    fastest joint's limit. One pose solve a tick: only the first slowed step solves
+    the full pose too (the oblique way: 76 solves in 75 ticks; 155 when each slowed step
+    within the limits made the next one solve the full pose again)."""
     port = port_up_the_axis()
     rig = rcm_rig()
     try:
         frame = rig.robot.frame
+        (ctl,) = rig.robot.controller.controllers
+        solution, calls = ctl.six.pose_solution, [0]
+
+        def counted(*args: Any) -> Any:
+            calls[0] += 1
+            return solution(*args)
+
+        ctl.six.pose_solution = counted
         start = rig.world_tip_mm()
         rig.target = (start + list(move_mm)).tolist()
-        written = [list(rig.robot.data.setpoint)] + rig.step(200)
+        written, twice = [list(rig.robot.data.setpoint)], 0
+        for _ in range(200):
+            calls[0] = 0
+            written += rig.step(1)
+            twice += calls[0] > 1
+        assert twice <= 1, twice
         poses = [np.asarray(frame.fk(q)) for q in written]
         worst = max(off_port(p, port) for p in poses)
         assert worst < 0.05e-3, worst
@@ -276,7 +386,77 @@ def test_a_servo_target_on_the_rcm_tool_keeps_the_port_on_the_way(move_mm: Any) 
         moving = int((np.abs(np.diff(np.array(written), axis=0)).max(axis=1) > 0).sum())
         assert moving > 20, moving
         limit = np.array([0.9 * j.limits.velocity * PERIOD for j in rig.robot.joints])
-        assert (np.abs(np.diff(np.array(written), axis=0)) <= limit * (1 + 1e-9)).all()
+        steps = (np.abs(np.diff(np.array(written), axis=0)) / limit).max(axis=1)
+        assert steps.max() <= 1 + 1e-9
+        # from the second tick (the first: the full solve's share) to the one before the
+        # last, the fastest joint at 0.9 of its limit (oblique: 0.984 on the second tick when
+        # a first step within the limits was taken as the limits' reach)
+        assert steps[1 : moving - 1].min() > 1 - 1e-3, steps[1 : moving - 1].min()
+        assert rig.world_tip_mm().tolist() == pytest.approx(rig.target, abs=1e-4)
+        stats = rig.ctl.stats()
+        assert stats["ik_failures"] == 0 and stats["ik_clamped"] == 0
+        assert rig.robot.state is RobotState.RUNNING
+    finally:
+        rig.close()
+
+
+@pytest.mark.req("SR-SIXDOF-3")
+def test_a_joint_held_at_its_limit_on_the_rcm_tools_way_is_counted_once_a_sample(
+    tmp_path: Path,
+) -> None:
+    """The tool's roll joint (wrist 3) allowed no lower than where it is at home: the way to
+    an oblique target through the port holds it at that limit, the axis still in the port;
+    GetStats' ``ik_clamped`` counts each sample of the target once (its first solve, then each
+    repeat), not each tick of the way."""
+    cfg = yaml.safe_load((CONFIGS / "ur5.yaml").read_text())
+    cfg["robot"]["joints"][5]["limits"].update({"min": 0.0})  # home 0.0
+    path = tmp_path / "ur5_roll_from_home.yaml"
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    port = port_up_the_axis()
+    rig = servo_rig(path, mapping="absolute", orientation="rcm", rcm_mm=(port * 1e3).tolist(),
+                    phase_lock_us=None)  # fmt: skip
+    try:
+        rig.target = (rig.world_tip_mm() + [6.0, -5.0, 5.0]).tolist()
+        written = rig.step(1)  # the target's first sample and its first solve
+        assert rig.ctl.stats()["ik_clamped"] == 1
+        written += rig.step(59)  # 29 more samples of it
+        assert rig.ctl.stats()["ik_clamped"] == 30
+        assert min(q[5] for q in written) == 0.0
+        frame = rig.robot.frame
+        assert max(off_port(np.asarray(frame.fk(q)), port) for q in written) < 1e-8
+        assert rig.robot.state is RobotState.RUNNING and rig.ctl.stats()["ik_failures"] == 0
+    finally:
+        rig.close()
+
+
+@pytest.mark.req("SR-SIXDOF-3")
+def test_while_rejoining_after_a_hold_the_rcm_servo_keeps_its_own_way() -> None:
+    """The source quiet for 20 ms on the way to a target 9.5 mm off (the robot holds), then
+    back: while the setpoint re-joins at half the velocity limits (occ/core/motion.py), the
+    servo goes on through the port from its own last solution at 0.9 of them, leading the
+    setpoint by more than 2 mm (stepped from the trailing setpoint it led by 0.2 mm); every
+    pose it tells keeps the axis in the port, and the tip ends at the target."""
+    port = port_up_the_axis()
+    rig = rcm_rig()
+    try:
+        (ctl,) = rig.robot.controller.controllers
+        frame = rig.robot.frame
+        rig.target = (rig.world_tip_mm() + [0.0, 0.0, 9.5]).tolist()
+        rig.step(4)
+        rig.sending = False
+        rig.step(20)
+        rig.sending = True
+        lead, told = 0.0, []
+        for _ in range(40):
+            rig.step(1)
+            told.append(list(ctl._q_last))
+            gap = np.subtract(
+                frame.tip_position(told[-1]), frame.tip_position(rig.robot.data.setpoint)
+            )
+            lead = max(lead, float(np.linalg.norm(gap)))
+        assert lead > 2e-3, lead
+        assert max(off_port(np.asarray(frame.fk(q)), port) for q in told) < 1e-8
+        rig.step(200)
         assert rig.world_tip_mm().tolist() == pytest.approx(rig.target, abs=1e-4)
         assert rig.robot.state is RobotState.RUNNING and rig.ctl.stats()["ik_failures"] == 0
     finally:
@@ -307,6 +487,7 @@ def test_a_servo_stream_on_the_rcm_tool_keeps_the_port_and_at_the_port_is_no_tar
         rig.step(20)
         assert list(rig.robot.data.setpoint) == held
         assert rig.ctl.stats()["ik_failures"] == 10
+        assert rig.ctl.stats()["ik_clamped"] == 0  # failed, not clamped
         assert rig.robot.state is RobotState.RUNNING
     finally:
         rig.close()
@@ -334,6 +515,7 @@ def test_a_servo_target_beyond_max_jump_on_the_way_is_refused_and_the_tool_holds
         assert list(rig.robot.data.setpoint) == held
         assert off_port(np.asarray(frame.fk(held)), port) < 1e-8
         assert rig.ctl.stats()["servo_refused"] == 21
+        assert rig.ctl.stats()["ik_failures"] == 0  # refused, not failed
         alerts = [a for a in rig.alerts() if "servo target" in a]
         assert alerts == ["servo target 10.5 mm from the tip refused (max_jump_mm 10): holding"]
         assert rig.robot.state is RobotState.RUNNING
