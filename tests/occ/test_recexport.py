@@ -1405,3 +1405,126 @@ def test_a_damaged_recording_is_salvaged_into_an_existing_csv_directory(
     rows = len(state_path.read_text().splitlines()) - 1
     rows += len(msg_path.read_text().splitlines()) - 1
     assert rows == 10
+
+
+# ------------------------------------------------------------------------------ outputs
+def test_the_refusals_of_an_output_name_word_for_word(tmp_path: Path) -> None:
+    """The refusal is what the user reads: a NRRD name (``.nrrd`` and ``.nhdr``, in any case)
+    gets the reason Slicer cannot read it before the supported forms; another file suffix gets
+    the supported forms alone."""
+    from occ.recording.export import SUPPORTED, ExportError, output_format
+
+    nrrd = (
+        "3D Slicer reads a transform sequence only from a MetaImage header (.seq.mha); "
+        "its NRRD sequences are image volumes. "
+    )
+    for name, why in [
+        ("X.seq.nrrd", nrrd),
+        ("X.nhdr", nrrd),
+        ("Y.NHDR", nrrd),
+        ("X.csv", ""),
+        ("X.json", ""),
+    ]:
+        with pytest.raises(ExportError) as caught:
+            output_format(tmp_path / name)
+        assert str(caught.value) == f"cannot write {name!r}: {why}{SUPPORTED}"
+        assert caught.value.code == 2
+
+
+def test_a_csv_export_reports_its_two_files_and_replaces_them_only_with_force(
+    recording: Path, tmp_path: Path
+) -> None:
+    """``export`` to a directory says the paths of the two files it wrote; run again, it
+    refuses to replace them, and with ``force`` replaces them."""
+    from occ.recording.export import ExportError, export
+
+    out = tmp_path / "csv"
+    paths = {"state": str(out / "state.csv"), "messages": str(out / "messages.csv")}
+    assert export(recording, out) == paths
+    for name in ("state.csv", "messages.csv"):
+        (out / name).write_text("an earlier export\n")
+    with pytest.raises(ExportError, match="state.csv exists; not overwriting"):
+        export(recording, out)
+    assert (out / "state.csv").read_text() == "an earlier export\n"
+    assert export(recording, out, force=True) == paths
+    for name in ("state.csv", "messages.csv"):
+        assert (out / name).read_text() != "an earlier export\n"
+
+
+@pytest.mark.req("SR-REC-2")
+def test_write_whole_writes_aside_and_any_failure_keeps_its_own_error(
+    tmp_path: Path, monkeypatch
+) -> None:  # type: ignore[no-untyped-def]
+    """The part being written is a hidden ``.NAME.*.part`` beside the output (same file
+    system, so the final rename is atomic; a reader of the directory sees what it is). When the
+    writing fails, the caller gets the writer's error even when the writer had already removed
+    or replaced its part, the directories made for the output are removed, and a directory
+    that existed before (even empty) stays."""
+    import tempfile
+
+    from occ.recording.export import write_whole
+
+    class WriterFailed(Exception):
+        pass
+
+    parts: list[Path] = []
+
+    def into_file(tmp: Path) -> None:
+        parts.append(tmp)
+        tmp.write_text("whole")
+
+    def into_dir(tmp: Path) -> None:
+        parts.append(tmp)
+        (tmp / "f.csv").write_text("whole")
+
+    for out, write, directory in [
+        (tmp_path / "a.seq.mha", into_file, False),
+        (tmp_path / "d", into_dir, True),
+    ]:
+        parts.clear()
+        write_whole(out, write, directory=directory)
+        (part,) = parts
+        assert part.parent == out.parent
+        assert part.name.startswith(f".{out.name}.") and part.name.endswith(".part"), part
+        assert not part.exists()
+    assert (tmp_path / "a.seq.mha").read_text() == "whole"
+    assert (tmp_path / "d" / "f.csv").read_text() == "whole"
+
+    def removes_its_part_and_fails(tmp: Path) -> None:
+        tmp.unlink()
+        raise WriterFailed("disk gone")
+
+    with pytest.raises(WriterFailed):
+        write_whole(tmp_path / "new" / "b.seq.mha", removes_its_part_and_fails)
+    assert not (tmp_path / "new").exists()
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+
+    def replaces_its_part_by_a_link_and_fails(tmp: Path) -> None:
+        tmp.rmdir()
+        tmp.symlink_to(elsewhere, target_is_directory=True)
+        raise WriterFailed("disk gone")
+
+    with pytest.raises(WriterFailed):
+        write_whole(tmp_path / "e", replaces_its_part_by_a_link_and_fails, directory=True)
+    assert elsewhere.is_dir() and not (tmp_path / "e").exists()
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+
+    def fails(tmp: Path) -> None:
+        raise WriterFailed("disk gone")
+
+    for directory in (False, True):
+        with pytest.raises(WriterFailed):
+            write_whole(empty / "c", fails, directory=directory)
+        assert empty.is_dir() and list(empty.iterdir()) == []
+
+    def no_temporary_file(*args: Any, **kwargs: Any) -> Any:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(tempfile, "mkstemp", no_temporary_file)
+    with pytest.raises(OSError, match="No space left on device"):
+        write_whole(tmp_path / "made" / "deeper" / "f.seq.mha", into_file)
+    assert not (tmp_path / "made").exists()
