@@ -1528,3 +1528,82 @@ def test_write_whole_writes_aside_and_any_failure_keeps_its_own_error(
     with pytest.raises(OSError, match="No space left on device"):
         write_whole(tmp_path / "made" / "deeper" / "f.seq.mha", into_file)
     assert not (tmp_path / "made").exists()
+
+
+def test_a_bag_is_written_in_time_order_poses_before_forces_before_state_rows(
+    handmade: Path, tmp_path: Path
+) -> None:
+    """In the file (the order ``ros2 bag play`` publishes equal log times in), the messages go
+    by log time, and within one log time the Base, then the Tip, then the other poses, then
+    the forces, then the state rows: the hand-made recording receives a tracker's Base and a
+    slave's Force at the same time every tick."""
+    require("rosbags", "pip install -e .[record]")
+    from mcap.reader import make_reader
+
+    from occ.recording.export import export
+
+    out = tmp_path / "rig.mcap"
+    export(handmade, out)
+    ns = "/occ/rig_7"
+
+    def rank(topic: str) -> int:
+        if topic == f"{ns}/base/measured_cp":
+            return 0
+        if topic == f"{ns}/measured_cp":
+            return 1
+        if topic.endswith("/measured_cp"):
+            return 2
+        if topic.endswith("/measured_cf"):
+            return 3
+        return 4  # measured_js, setpoint_js, state
+
+    with open(out, "rb") as f:
+        written = [
+            (message.log_time, channel.topic)
+            for _, channel, message in make_reader(f).iter_messages(log_time_order=False)
+            if channel.topic != "/tf"
+        ]
+    assert [t for t, _ in written] == sorted(t for t, _ in written)
+    ranks: dict[int, list[int]] = {}
+    for t, topic in written:
+        ranks.setdefault(t, []).append(rank(topic))
+    assert all(r == sorted(r) for r in ranks.values()), ranks
+    # the case that tells, a pose and a force at one time: at least the tracker's and the
+    # slave's of each of the ten ticks
+    assert len([r for r in ranks.values() if 2 in r and 3 in r]) >= 10
+
+
+def test_the_wall_clock_offset_comes_from_the_first_stamped_sample(tmp_path: Path) -> None:
+    """A daemon on a board without a real-time clock starts its wall clock at 0 (1970): its
+    first stamps are under a second. The offset (wall clock - daemon clock) that the bag's log
+    times take is the first stamped state row's, or without state rows the first stamped
+    output pose's, however small its stamp; later samples (their stamps taken a little later
+    in the tick) do not change it."""
+    from occ.recording.export import read_content
+
+    def recorded(name: str, with_rows: bool) -> Path:
+        path = tmp_path / name
+        rec = Recorder(path).start()
+        for t, stamp in [(0.25, 0.5), (1.25, 1.5002), (2.25, 2.5003)]:
+            if with_rows:
+                row = igtl.NDArrayMessage(
+                    array=np.array([t, 1.0]), device_name=STATE_DEVICE, header_version=2,
+                    metadata={"columns": "t,state"}, timestamp=stamp,
+                )  # fmt: skip
+                rec.record_message(row, "out", "*", t)
+            tip = igtl.TransformMessage.from_matrix(
+                np.eye(4), device_name="Tip", header_version=2, timestamp=stamp + 0.0001
+            )
+            seen = igtl.PositionMessage(
+                (1.0, 2.0, 3.0), device_name="Master", header_version=2, timestamp=0.2
+            )
+            rec.record_message(seen, "in", "master", t)  # an input's stamp is the peer's
+            rec.record_message(tip, "out", "slicer", t)
+        rec.close()
+        return path
+
+    # (a stamp is 32.32 fixed point on the wire: exact to 1e-9 s)
+    offset = read_content(recorded("rows.igtl", True)).wall_offset
+    assert offset == pytest.approx(0.5 - 0.25, abs=1e-6)
+    offset = read_content(recorded("poses.igtl", False)).wall_offset
+    assert offset == pytest.approx(0.5 + 0.0001 - 0.25, abs=1e-6)
