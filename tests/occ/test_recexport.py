@@ -1368,7 +1368,8 @@ def test_a_bag_export_that_fails_midway_leaves_nothing_and_raises_its_own_error(
 ) -> None:  # type: ignore[no-untyped-def]
     """The bag is begun (its directory made by rosbags' writer) and the export fails: the
     error is the export's own, and neither the bag's directory nor the output is left, for a
-    single file and for a directory bag alike."""
+    single file and for a directory bag alike; and when the clean-up meets what it cannot
+    remove."""
     require("rosbags", "pip install -e .[record]")
     import occ.recording.export as export_module
 
@@ -1384,6 +1385,21 @@ def test_a_bag_export_that_fails_midway_leaves_nothing_and_raises_its_own_error(
         with pytest.raises(OSError, match="No space left on device"):
             export_module.write_mcap(content, tmp_path / name)
         assert list(tmp_path.iterdir()) == []
+    # the clean-up cannot remove what it finds (the bag's directory replaced by a link): the
+    # error is still the export's own
+    elsewhere = tmp_path / "elsewhere"
+
+    def fails_after_a_link(bag: Any, content: Any, robot: str) -> dict[str, Any]:
+        bag.writer.open()
+        bag_dir = tmp_path / "two.mcap.bagdir"
+        bag_dir.rename(elsewhere)
+        bag_dir.symlink_to(elsewhere, target_is_directory=True)
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(export_module, "_fill_bag", fails_after_a_link)
+    with pytest.raises(OSError, match="No space left on device"):
+        export_module.write_mcap(content, tmp_path / "two.mcap")
+    assert not (tmp_path / "two.mcap").exists()
 
 
 @pytest.mark.req("SR-REC-2")
