@@ -1427,8 +1427,9 @@ def test_a_damaged_recording_is_salvaged_into_an_existing_csv_directory(
 def test_the_refusals_of_an_output_name_word_for_word(tmp_path: Path) -> None:
     """The refusal is what the user reads: a NRRD name (``.nrrd`` and ``.nhdr``, in any case)
     gets the reason Slicer cannot read it before the supported forms; another file suffix gets
-    the supported forms alone."""
-    from occ.recording.export import SUPPORTED, ExportError, output_format
+    the supported forms alone; an unknown ``--format`` names the known ones; the CSV export
+    refuses a file in the way and a recording with nothing readable."""
+    from occ.recording.export import SUPPORTED, ExportError, export_csv, output_format
 
     nrrd = (
         "3D Slicer reads a transform sequence only from a MetaImage header (.seq.mha); "
@@ -1445,6 +1446,22 @@ def test_the_refusals_of_an_output_name_word_for_word(tmp_path: Path) -> None:
             output_format(tmp_path / name)
         assert str(caught.value) == f"cannot write {name!r}: {why}{SUPPORTED}"
         assert caught.value.code == 2
+    with pytest.raises(ExportError) as caught:
+        output_format(tmp_path / "x.seq.mha", "nrrd")
+    assert str(caught.value) == "unknown format 'nrrd' (one of csv, seq, mcap)"
+    assert caught.value.code == 2
+    # the CSV export's own refusals
+    taken = tmp_path / "taken"
+    taken.write_text("a file")
+    with pytest.raises(ExportError) as caught:
+        export_csv(tmp_path / "any.igtl", taken)
+    assert str(caught.value) == f"{taken} exists and is not a directory"
+    empty = tmp_path / "empty.igtl"
+    empty.write_bytes(b"")
+    with pytest.raises(ExportError) as caught:
+        export_csv(empty, tmp_path / "csv")
+    assert str(caught.value) == "nothing to export: no message could be read"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.igtl", "taken"]
 
 
 def test_a_csv_export_reports_its_two_files_and_replaces_them_only_with_force(
