@@ -1368,7 +1368,8 @@ def test_a_bag_export_that_fails_midway_leaves_nothing_and_raises_its_own_error(
 ) -> None:  # type: ignore[no-untyped-def]
     """The bag is begun (its directory made by rosbags' writer) and the export fails: the
     error is the export's own, and neither the bag's directory nor the output is left, for a
-    single file and for a directory bag alike."""
+    single file and for a directory bag alike; and when the clean-up meets what it cannot
+    remove."""
     require("rosbags", "pip install -e .[record]")
     import occ.recording.export as export_module
 
@@ -1384,6 +1385,21 @@ def test_a_bag_export_that_fails_midway_leaves_nothing_and_raises_its_own_error(
         with pytest.raises(OSError, match="No space left on device"):
             export_module.write_mcap(content, tmp_path / name)
         assert list(tmp_path.iterdir()) == []
+    # the clean-up cannot remove what it finds (the bag's directory replaced by a link): the
+    # error is still the export's own
+    elsewhere = tmp_path / "elsewhere"
+
+    def fails_after_a_link(bag: Any, content: Any, robot: str) -> dict[str, Any]:
+        bag.writer.open()
+        bag_dir = tmp_path / "two.mcap.bagdir"
+        bag_dir.rename(elsewhere)
+        bag_dir.symlink_to(elsewhere, target_is_directory=True)
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(export_module, "_fill_bag", fails_after_a_link)
+    with pytest.raises(OSError, match="No space left on device"):
+        export_module.write_mcap(content, tmp_path / "two.mcap")
+    assert not (tmp_path / "two.mcap").exists()
 
 
 @pytest.mark.req("SR-REC-2")
@@ -1405,3 +1421,222 @@ def test_a_damaged_recording_is_salvaged_into_an_existing_csv_directory(
     rows = len(state_path.read_text().splitlines()) - 1
     rows += len(msg_path.read_text().splitlines()) - 1
     assert rows == 10
+
+
+# ------------------------------------------------------------------------------ outputs
+def test_the_refusals_of_an_output_name_word_for_word(tmp_path: Path) -> None:
+    """The refusal is what the user reads: a NRRD name (``.nrrd`` and ``.nhdr``, in any case)
+    gets the reason Slicer cannot read it before the supported forms; another file suffix gets
+    the supported forms alone; an unknown ``--format`` names the known ones; the CSV export
+    refuses a file in the way and a recording with nothing readable."""
+    from occ.recording.export import SUPPORTED, ExportError, export_csv, output_format
+
+    nrrd = (
+        "3D Slicer reads a transform sequence only from a MetaImage header (.seq.mha); "
+        "its NRRD sequences are image volumes. "
+    )
+    for name, why in [
+        ("X.seq.nrrd", nrrd),
+        ("X.nhdr", nrrd),
+        ("Y.NHDR", nrrd),
+        ("X.csv", ""),
+        ("X.json", ""),
+    ]:
+        with pytest.raises(ExportError) as caught:
+            output_format(tmp_path / name)
+        assert str(caught.value) == f"cannot write {name!r}: {why}{SUPPORTED}"
+        assert caught.value.code == 2
+    with pytest.raises(ExportError) as caught:
+        output_format(tmp_path / "x.seq.mha", "nrrd")
+    assert str(caught.value) == "unknown format 'nrrd' (one of csv, seq, mcap)"
+    assert caught.value.code == 2
+    # the CSV export's own refusals
+    taken = tmp_path / "taken"
+    taken.write_text("a file")
+    with pytest.raises(ExportError) as caught:
+        export_csv(tmp_path / "any.igtl", taken)
+    assert str(caught.value) == f"{taken} exists and is not a directory"
+    empty = tmp_path / "empty.igtl"
+    empty.write_bytes(b"")
+    with pytest.raises(ExportError) as caught:
+        export_csv(empty, tmp_path / "csv")
+    assert str(caught.value) == "nothing to export: no message could be read"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.igtl", "taken"]
+
+
+def test_a_csv_export_reports_its_two_files_and_replaces_them_only_with_force(
+    recording: Path, tmp_path: Path
+) -> None:
+    """``export`` to a directory says the paths of the two files it wrote; run again, it
+    refuses to replace them, and with ``force`` replaces them."""
+    from occ.recording.export import ExportError, export
+
+    out = tmp_path / "csv"
+    paths = {"state": str(out / "state.csv"), "messages": str(out / "messages.csv")}
+    assert export(recording, out) == paths
+    for name in ("state.csv", "messages.csv"):
+        (out / name).write_text("an earlier export\n")
+    with pytest.raises(ExportError, match="state.csv exists; not overwriting"):
+        export(recording, out)
+    assert (out / "state.csv").read_text() == "an earlier export\n"
+    assert export(recording, out, force=True) == paths
+    for name in ("state.csv", "messages.csv"):
+        assert (out / name).read_text() != "an earlier export\n"
+
+
+@pytest.mark.req("SR-REC-2")
+def test_write_whole_writes_aside_and_any_failure_keeps_its_own_error(
+    tmp_path: Path, monkeypatch
+) -> None:  # type: ignore[no-untyped-def]
+    """The part being written is a hidden ``.NAME.*.part`` beside the output (same file
+    system, so the final rename is atomic; a reader of the directory sees what it is). When the
+    writing fails, the caller gets the writer's error even when the writer had already removed
+    or replaced its part, the directories made for the output are removed, and a directory
+    that existed before (even empty) stays."""
+    import tempfile
+
+    from occ.recording.export import write_whole
+
+    class WriterFailed(Exception):
+        pass
+
+    parts: list[Path] = []
+
+    def into_file(tmp: Path) -> None:
+        parts.append(tmp)
+        tmp.write_text("whole")
+
+    def into_dir(tmp: Path) -> None:
+        parts.append(tmp)
+        (tmp / "f.csv").write_text("whole")
+
+    for out, write, directory in [
+        (tmp_path / "a.seq.mha", into_file, False),
+        (tmp_path / "d", into_dir, True),
+    ]:
+        parts.clear()
+        write_whole(out, write, directory=directory)
+        (part,) = parts
+        assert part.parent == out.parent
+        assert part.name.startswith(f".{out.name}.") and part.name.endswith(".part"), part
+        assert not part.exists()
+    assert (tmp_path / "a.seq.mha").read_text() == "whole"
+    assert (tmp_path / "d" / "f.csv").read_text() == "whole"
+
+    def removes_its_part_and_fails(tmp: Path) -> None:
+        tmp.unlink()
+        raise WriterFailed("disk gone")
+
+    with pytest.raises(WriterFailed):
+        write_whole(tmp_path / "new" / "b.seq.mha", removes_its_part_and_fails)
+    assert not (tmp_path / "new").exists()
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+
+    def replaces_its_part_by_a_link_and_fails(tmp: Path) -> None:
+        tmp.rmdir()
+        tmp.symlink_to(elsewhere, target_is_directory=True)
+        raise WriterFailed("disk gone")
+
+    with pytest.raises(WriterFailed):
+        write_whole(tmp_path / "e", replaces_its_part_by_a_link_and_fails, directory=True)
+    assert elsewhere.is_dir() and not (tmp_path / "e").exists()
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+
+    def fails(tmp: Path) -> None:
+        raise WriterFailed("disk gone")
+
+    for directory in (False, True):
+        with pytest.raises(WriterFailed):
+            write_whole(empty / "c", fails, directory=directory)
+        assert empty.is_dir() and list(empty.iterdir()) == []
+
+    def no_temporary_file(*args: Any, **kwargs: Any) -> Any:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(tempfile, "mkstemp", no_temporary_file)
+    with pytest.raises(OSError, match="No space left on device"):
+        write_whole(tmp_path / "made" / "deeper" / "f.seq.mha", into_file)
+    assert not (tmp_path / "made").exists()
+
+
+def test_a_bag_is_written_in_time_order_poses_before_forces_before_state_rows(
+    handmade: Path, tmp_path: Path
+) -> None:
+    """In the file (the order ``ros2 bag play`` publishes equal log times in), the messages go
+    by log time, and within one log time the Base, then the Tip, then the other poses, then
+    the forces, then the state rows: the hand-made recording receives a tracker's Base and a
+    slave's Force at the same time every tick."""
+    require("rosbags", "pip install -e .[record]")
+    from mcap.reader import make_reader
+
+    from occ.recording.export import export
+
+    out = tmp_path / "rig.mcap"
+    export(handmade, out)
+    ns = "/occ/rig_7"
+
+    def rank(topic: str) -> int:
+        if topic == f"{ns}/base/measured_cp":
+            return 0
+        if topic == f"{ns}/measured_cp":
+            return 1
+        if topic.endswith("/measured_cp"):
+            return 2
+        if topic.endswith("/measured_cf"):
+            return 3
+        return 4  # measured_js, setpoint_js, state
+
+    with open(out, "rb") as f:
+        written = [
+            (message.log_time, channel.topic)
+            for _, channel, message in make_reader(f).iter_messages(log_time_order=False)
+            if channel.topic != "/tf"
+        ]
+    assert [t for t, _ in written] == sorted(t for t, _ in written)
+    ranks: dict[int, list[int]] = {}
+    for t, topic in written:
+        ranks.setdefault(t, []).append(rank(topic))
+    assert all(r == sorted(r) for r in ranks.values()), ranks
+    # the case that tells, a pose and a force at one time: at least the tracker's and the
+    # slave's of each of the ten ticks
+    assert len([r for r in ranks.values() if 2 in r and 3 in r]) >= 10
+
+
+def test_the_wall_clock_offset_comes_from_the_first_stamped_sample(tmp_path: Path) -> None:
+    """A daemon on a board without a real-time clock starts its wall clock at 0 (1970): its
+    first stamps are under a second. The offset (wall clock - daemon clock) that the bag's log
+    times take is the first stamped state row's, or without state rows the first stamped
+    output pose's, however small its stamp; later samples (their stamps taken a little later
+    in the tick) do not change it."""
+    from occ.recording.export import read_content
+
+    def recorded(name: str, with_rows: bool) -> Path:
+        path = tmp_path / name
+        rec = Recorder(path).start()
+        for t, stamp in [(0.25, 0.5), (1.25, 1.5002), (2.25, 2.5003)]:
+            if with_rows:
+                row = igtl.NDArrayMessage(
+                    array=np.array([t, 1.0]), device_name=STATE_DEVICE, header_version=2,
+                    metadata={"columns": "t,state"}, timestamp=stamp,
+                )  # fmt: skip
+                rec.record_message(row, "out", "*", t)
+            tip = igtl.TransformMessage.from_matrix(
+                np.eye(4), device_name="Tip", header_version=2, timestamp=stamp + 0.0001
+            )
+            seen = igtl.PositionMessage(
+                (1.0, 2.0, 3.0), device_name="Master", header_version=2, timestamp=0.2
+            )
+            rec.record_message(seen, "in", "master", t)  # an input's stamp is the peer's
+            rec.record_message(tip, "out", "slicer", t)
+        rec.close()
+        return path
+
+    # (a stamp is 32.32 fixed point on the wire: exact to 1e-9 s)
+    offset = read_content(recorded("rows.igtl", True)).wall_offset
+    assert offset == pytest.approx(0.5 - 0.25, abs=1e-6)
+    offset = read_content(recorded("poses.igtl", False)).wall_offset
+    assert offset == pytest.approx(0.5 + 0.0001 - 0.25, abs=1e-6)
