@@ -387,6 +387,12 @@ def test_a_fault_in_one_member_drops_the_others_run_before_its_start(cell: PlanC
     name = cell.write("turns.yaml", TURNS)
     out = cell.coordinate(name, lead_s=1.0)
     assert out.ok, out.why
+    ka = cell.kf(cell.a)
+    # acknowledged as a cell plan (its identity's first 12 characters) that starts later
+    head = f"plan {ka.active.id} (cell plan {ka.cell.running[:12]}) running (starts in "
+    assert len(ka.cell.running) > 12 and ka.status.startswith(head), ka.status
+    lead = float(ka.status[len(head) :].split(" s, ")[0])
+    assert 0.0 < lead <= 1.0 and ka.status.endswith(" s, 5.000 s)"), ka.status
     qa0 = list(cell.a.robot.data.setpoint)
     assert cell.links[1].ask("EStop")[0]
     cell.step(1500)

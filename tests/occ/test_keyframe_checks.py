@@ -15,15 +15,29 @@ import math
 import threading
 import time
 from collections.abc import Iterator
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 import pytest
 
 from occ.controllers.keyframe import KeyframeController
-from occ.controllers.keyframe.plan import _where
-from occ.errors import KinematicsError
+from occ.controllers.keyframe.pacer import Pacer
+from occ.controllers.keyframe.plan import (
+    PlanRefused,
+    _TickChecks,
+    _where,
+    ack_ready,
+    build_plan,
+    pose_ik,
+    run_tick,
+)
+from occ.controllers.keyframe.sets import make_set
 from occ.core.safety import RobotState
+from occ.errors import CommandError, KinematicsError
+from occ.joint import JointLimits
+from occ.kinematics.port import SHAFT_BOUND_M, PortTrajectory, port_plan
+from occ.kinematics.trajectory import Keyframe
 
 from .test_keyframe import HOME, Session, xml
 
@@ -915,3 +929,297 @@ def test_while_the_loop_runs_the_planner_works_only_in_the_quiet_part_of_its_per
         assert s.kf.stats()["planner_waits"] == waits
     finally:
         s.close()
+
+
+# --------------------------------------------------------------------------- one tick's checks
+# _TickChecks and pose_ik called directly: the edges of their tolerances and the refusals'
+# words for inputs the daemon's plans rarely produce (a tip off the x = 0 plane, two joints
+# at their limits at once, a residual exactly at the bound)
+
+
+def _tick_checks(**over: Any) -> _TickChecks:
+    fields: dict[str, Any] = {
+        "joint_names": ("a", "b"),
+        "limits": (JointLimits(-1.0, 1.0, 2.0), JointLimits(-0.5, 0.5, 4.0)),
+        "velocity_scale": 1.0,
+        "period": 0.001,
+        "port": None,
+        "port_min_depth": 0.01,
+        "workspace": None,
+        "forbidden": (),
+    }
+    fields.update(over)
+    return _TickChecks(SimpleNamespace(**fields), [0.0, 1.0], ["K0", "K1"])  # type: ignore[arg-type]
+
+
+def test_a_joint_sample_within_the_rounding_margin_of_a_limit_passes() -> None:
+    checks = _tick_checks()
+    checks.joints(0.5, [-1.0 - 1e-12, 0.5 + 1e-12])  # the margin itself: within
+    checks.joints(0.5, [1.0 + 1e-12, -0.5 - 1e-12])
+    with pytest.raises(PlanRefused) as low:
+        checks.joints(0.5, [math.nextafter(-1.0 - 1e-12, -2.0), 0.0])
+    assert str(low.value) == (
+        "joint 'a' position -1 is outside its limits [-1, 1] at t=0.500 s, between K0 and K1"
+    )
+    with pytest.raises(PlanRefused) as high:
+        checks.joints(1.0, [0.0, math.nextafter(0.5 + 1e-12, 1.0)])
+    assert str(high.value) == "joint 'b' position 0.5 is outside its limits [-0.5, 0.5] at K1"
+
+
+def test_a_clamped_sample_names_every_joint_at_a_limit_and_the_tip_in_mm() -> None:
+    checks = _tick_checks()
+    with pytest.raises(PlanRefused) as both:
+        checks.clamped(0.0, (0.0125, -0.25, 0.5), [-1.0 + 1e-12, 0.5 - 1e-12])
+    assert str(both.value) == (
+        "the tip leaves the workspace at K0: (12.50, -250.00, 500.00) mm needs joint a, b "
+        "beyond its limits"
+    )
+    with pytest.raises(PlanRefused) as upper:
+        checks.clamped(1.0, (0.001, 0.002, 0.003), [0.0, 0.5 - 1e-12])
+    assert str(upper.value).endswith("(1.00, 2.00, 3.00) mm needs joint b beyond its limits")
+    # just inside both margins: the IK said clamped but no joint is at a limit
+    inside = [math.nextafter(-1.0 + 1e-12, 0.0), math.nextafter(0.5 - 1e-12, 0.0)]
+    with pytest.raises(PlanRefused) as none:
+        checks.clamped(1.0, (0.0, 0.0, 0.0), inside)
+    assert str(none.value).endswith("(0.00, 0.00, 0.00) mm needs joint ? beyond its limits")
+
+
+class _FakeIK:
+    """A frame whose DLS answer is set by the test (residual, clamped)."""
+
+    def __init__(self, error: float, clamped: list[int]) -> None:
+        self.error, self.clamped = error, clamped
+        self.asked: list[tuple[np.ndarray, list[float], dict[str, Any]]] = []
+
+    def solve_ik(self, pose: np.ndarray, seed: list[float], **kw: Any) -> Any:
+        self.asked.append((pose, seed, kw))
+        return SimpleNamespace(q=np.array([0.25, -0.5]), error=self.error, clamped=self.clamped)
+
+
+class _StillTraj:
+    def position(self, t: float) -> np.ndarray:
+        return np.array([0.1, 0.2, 0.3])
+
+    def orientation(self, t: float) -> np.ndarray:
+        return np.array([0.0, 0.0, math.sin(0.25), math.cos(0.25)])  # 0.5 rad about z
+
+
+def test_pose_ik_accepts_a_residual_of_exactly_its_bound_and_refuses_more() -> None:
+    traj: Any = _StillTraj()
+    frame = _FakeIK(1e-6, [])
+    assert pose_ik(frame, traj, 0.0, (0.0, 0.0)) == ([0.25, -0.5], False)  # type: ignore[arg-type]
+    ((pose, seed, kw),) = frame.asked
+    assert seed == [0.0, 0.0] and kw == {"clamp": True, "method": "dls"}
+    assert pose[:3, 3].tolist() == [0.1, 0.2, 0.3]
+    c, s_ = math.cos(0.5), math.sin(0.5)
+    assert np.allclose(pose[:3, :3], [[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]], atol=1e-15)
+    with pytest.raises(KinematicsError, match=r"the pose is not reached \(residual 1e-06\)"):
+        pose_ik(_FakeIK(math.nextafter(1e-6, 1.0), []), traj, 0.0, (0.0, 0.0))  # type: ignore[arg-type]
+    # a residual left by a joint held at its limit is the clamp's, said by the caller
+    assert pose_ik(_FakeIK(0.5, [1]), traj, 0.0, (0.0, 0.0)) == ([0.25, -0.5], True)  # type: ignore[arg-type]
+
+
+def test_the_tip_may_come_to_exactly_the_ports_least_depth_and_no_closer() -> None:
+    checks = _tick_checks(port=np.array([0.0, 0.0, 0.0]), port_min_depth=0.01)
+    checks.depth(0.0, (0.01, 0.0, 0.0))
+    with pytest.raises(PlanRefused) as near:
+        checks.depth(1.0, (0.0, 0.0, 0.005))
+    assert str(near.value) == (
+        "the tip comes 5 mm from the port at K1, closer than rcm_min_depth_mm (10)"
+    )
+    _tick_checks().depth(0.0, (0.0, 0.0, 0.0))  # no port: no depth to keep
+
+
+def test_a_step_of_exactly_the_velocity_limit_passes_and_the_first_joint_wins_a_tie() -> None:
+    still = _tick_checks()
+    still.step(0.0, [0.0, 0.0], [0.0, 0.0])  # a plan that moves no joint names the first
+    assert (still.peak_joint, still.peak_share) == (0, 0.0)
+    checks = _tick_checks(period=1.0)
+    # joint a: 2 rad/s is its limit, joint b: 4 rad/s; both at half theirs: the first is named
+    checks.step(0.0, [1.0, 2.0], [0.0, 0.0])
+    assert (checks.peak_joint, checks.peak_share) == (0, 0.5)
+    checks.step(0.0, [1.0, 0.0], [0.0, 2.0])  # b's half again, from the other side
+    assert (checks.peak_joint, checks.peak_share) == (0, 0.5)
+    checks.step(0.0, [0.0, 2.0 + 1e-9], [0.0, 0.0])  # b a little more: b is the peak
+    assert checks.peak_joint == 1
+    checks.step(0.0, [2.0 * (1.0 + 1e-9), 0.0], [0.0, 0.0])  # the rounding margin itself
+    assert (checks.peak_joint, checks.peak_share) == (0, 1.0 + 1e-9)
+    with pytest.raises(PlanRefused) as fast:
+        checks.step(1.0, [0.0, math.nextafter(-4.0 * (1.0 + 1e-9), -5.0)], [0.0, 0.0])
+    assert str(fast.value) == (
+        "joint 'b' velocity 4 exceeds its limit 4 at K1; give that segment more time"
+    )
+    scaled = _tick_checks(period=1.0, velocity_scale=0.5)
+    with pytest.raises(PlanRefused) as slow:
+        scaled.step(0.5, [1.5, 0.0], [0.0, 0.0])
+    assert str(slow.value) == (
+        "joint 'a' velocity 1.5 exceeds its limit 1 (velocity_scale 0.5 of 2) at K0; give that "
+        "segment more time"
+    )
+    assert (scaled.peak_joint, scaled.peak_share) == (0, 0.75)  # of the unscaled limit
+
+
+def test_the_workspace_box_is_closed_and_a_forbidden_region_says_what_it_hits() -> None:
+    box = ((-0.1, -0.2, -0.3), (0.1, 0.2, 0.3))
+    checks = _tick_checks(workspace=box)
+    for corner in [(-0.1, -0.2, -0.3), (0.1, 0.2, 0.3), (-0.1, 0.2, -0.3), (0.1, -0.2, 0.3)]:
+        checks.tip(0.0, corner)
+    for axis in range(3):
+        for side, sign in ((0, -1.0), (1, 1.0)):
+            tip = [0.0, 0.0, 0.0]
+            tip[axis] = math.nextafter(box[side][axis], sign)
+            with pytest.raises(PlanRefused, match=r"^the tip leaves workspace_mm at K0: \("):
+                checks.tip(0.0, (tip[0], tip[1], tip[2]))
+    with pytest.raises(PlanRefused) as out:
+        checks.tip(1.0, (0.0125, 0.0, 0.5))
+    assert str(out.value) == "the tip leaves workspace_mm at K1: (12.50, 0.00, 500.00) mm"
+    regions = (lambda p: None, lambda p: "the table" if p[2] < 0.0 else False, lambda p: True)
+    named = _tick_checks(forbidden=regions[:2])
+    named.tip(0.0, (0.0, 0.0, 0.0))
+    with pytest.raises(PlanRefused) as hit:
+        named.tip(1.0, (0.0125, 0.002, -0.003))
+    assert str(hit.value) == (
+        "the tip enters a forbidden region (the table) at K1: (12.50, 2.00, -3.00) mm"
+    )
+    with pytest.raises(PlanRefused) as unnamed:
+        _tick_checks(forbidden=regions).tip(0.0, (0.0, 0.0, 0.0))
+    assert str(unnamed.value) == "the tip enters a forbidden region at K0: (0.00, 0.00, 0.00) mm"
+
+
+def test_an_acknowledgement_is_ready_only_seen_running_and_within_1e_9_of_the_start() -> None:
+    plan: Any = SimpleNamespace(id=7, q_start=(0.0, 0.0))
+
+    def data(state: str, setpoint: list[float]) -> Any:
+        return SimpleNamespace(state=SimpleNamespace(value=state), setpoint=setpoint)
+
+    ack_ready(plan, data("RUNNING", [1e-9, 0.0]), False)  # the tolerance itself
+    ack_ready(plan, data("RUNNING", [0.0, -1e-9]), False)
+    with pytest.raises(CommandError) as moved:
+        ack_ready(plan, data("RUNNING", [0.0, math.nextafter(-1e-9, -1.0)]), False)
+    assert str(moved.value) == (
+        "KeyframeAck: the robot moved since plan 7 was checked (1e-09 rad/m); plan again"
+    )
+    with pytest.raises(CommandError) as stopped:
+        ack_ready(plan, data("FAULT", [0.0, 0.0]), False)
+    assert str(stopped.value) == (
+        "KeyframeAck: the robot is FAULT; send Run first (it holds until a plan is acknowledged)"
+    )
+    with pytest.raises(CommandError) as unseen:
+        ack_ready(plan, data("RUNNING", [0.0, 0.0]), True)
+    assert str(unseen.value) == (
+        "KeyframeAck: plan 7 has not been previewed yet (its preview goes out with the next "
+        "keyframe-path output); look at it, then acknowledge"
+    )
+
+
+def test_a_run_tick_the_ik_clamps_holds_the_last_joints_and_counts_an_ik_failure() -> None:
+    """Checked offline, a run's tick could still clamp at a joint limit if the IK were
+    seeded differently: the tick holds the last joints and names the counter and the status
+    the run ends with (no error of its own: the clamp is not an exception)."""
+
+    class Clamps:
+        def ik_clamped(self, tip: tuple[float, float, float], seed: list[float]) -> Any:
+            return [9.0, 9.0], True
+
+    traj = SimpleNamespace(position=lambda t: np.array([0.1, 0.2, 0.3]), has_rotation=False)
+    run: Any = SimpleNamespace(id=4, space="cartesian", traj=traj)
+    q, why = run_tick(Clamps(), run, 0.5, [0.25, -0.5])  # type: ignore[arg-type]
+    assert q == [0.25, -0.5]
+    assert why == ("ik_failures", "tip unreachable", None)
+
+
+def test_the_plan_an_acknowledgement_runs_is_noted_for_the_black_box(session: Session) -> None:
+    """The loop runs the planner's result from the acknowledged tick: the black box is told
+    which plan, from when and for how long (a replay runs the same plan from the record)."""
+    s = session
+    notes: list[tuple[str, Any]] = []
+    assert s.kf.ctx is not None
+    s.kf.ctx = dataclasses.replace(s.kf.ctx, note=lambda what, obj: notes.append((what, obj)))
+    s.start()
+    s.ok("KeyframeAdd", T=1.0, Pose="0.2 0.35 0.05")
+    s.plan_and_ack()
+    assert notes == [("plan", {"id": 1, "t0": s.kf._t0, "duration": 1.0})]
+    s.step(1100)
+    assert len(notes) == 1  # a run is noted once, at its start
+
+
+def test_a_run_tick_through_a_port_holds_at_most_the_shafts_bound_from_it() -> None:
+    """A port plan's tick whose joints put the shaft exactly SHAFT_BOUND_M (0.05 mm) from the
+    port runs; a little more stops the run, saying how far in mm (port_stops)."""
+    turn = np.array([0.0, 0.0, 0.0, 1.0])
+    port = np.array([0.0, 0.0, 0.1])
+    frames = [Keyframe(0.0, np.zeros(3), turn), Keyframe(1.0, np.array([0.0, 0.0, -0.01]), turn)]
+    traj = port_plan(frames, port)
+
+    class Tool:
+        """Any pose is reached; the tool's pose (axis down, past the port) is set by the test."""
+
+        off = 0.0
+
+        def solve_ik(self, pose: np.ndarray, seed: list[float], **kw: Any) -> Any:
+            return SimpleNamespace(q=np.array([0.5, 0.5]), error=0.0, clamped=[])
+
+        def fk(self, q: list[float]) -> np.ndarray:
+            pose = np.diag([1.0, -1.0, -1.0, 1.0])
+            pose[0, 3] = self.off
+            return pose
+
+    tool = Tool()
+    run: Any = SimpleNamespace(id=6, space="cartesian", traj=traj)
+    tool.off = SHAFT_BOUND_M
+    assert run_tick(tool, run, 0.5, [0.0, 0.0]) == ([0.5, 0.5], None)  # type: ignore[arg-type]
+    tool.off = 0.0001
+    q, why = run_tick(tool, run, 0.5, [0.0, 0.0])  # type: ignore[arg-type]
+    text = "the tool's shaft 0.1 mm from the port (bound 0.05 mm)"
+    assert q == [0.0, 0.0]
+    assert why == ("port_stops", text, f"plan 6: {text} at t=0.500 s")
+
+
+def test_a_plan_through_a_port_is_timed_with_the_steepness_and_ramp_asked_for() -> None:
+    from .test_keyframe_port import _request, _ur5
+
+    frame, home_q = _ur5()
+    home = np.asarray(frame.fk(home_q))
+    port = home[:3, 3] - 0.1 * home[:3, 2]
+    tip_mm = (home[:3, 3] * 1e3).tolist()
+    kset = make_set(
+        "cartesian",
+        [(0.5, [tip_mm[0] + 5.0, tip_mm[1], tip_mm[2]], "side")],
+        "test",
+        joints=6,
+        max_keyframes=4,
+    )
+    req = dataclasses.replace(_request(frame, home_q, kset, port), steepness=3.0, ramp=0.4)
+    traj = build_plan(req, frame.copy()).traj
+    assert isinstance(traj, PortTrajectory)
+    assert (traj.interpolation, traj.mode, traj.steepness, traj.ramp) == (
+        "linear",
+        "stop",
+        3.0,
+        0.4,
+    )
+    # what the planner itself refuses (KeyframePlan's own check comes first) is a refusal
+    with pytest.raises(PlanRefused, match=r"^cannot plan: .*steepness") as bad:
+        build_plan(dataclasses.replace(req, steepness=-1.0), frame.copy())
+    assert isinstance(bad.value.__cause__, ValueError)
+
+
+def test_the_whole_arm_check_is_given_every_sample_the_base_and_the_planners_pacer(
+    session: Session,
+) -> None:
+    """A PathCheck gets the plan's joints at every period, the base pose and the Pacer the
+    plan is checked with (a long check keeps out of the loop's tick as the sampling does)."""
+    s = session
+    seen: list[tuple[int, np.ndarray, Any]] = []
+
+    class Recorder:
+        def check_path(self, qs: Any, base: np.ndarray, pace: Any, /) -> None:
+            seen.append((len(qs), np.array(base), pace))
+
+    s.kf.add_forbidden_check(Recorder())
+    s.ok("KeyframeAdd", T=0.5, Pose="0.2 0.35 0.05")
+    s.ok("KeyframePlan")
+    ((samples, base, pace),) = seen
+    assert samples == round(0.5 / s.kf.ctx.period_s) + 1
+    assert np.array_equal(base, s.robot.data.base)
+    assert isinstance(pace, Pacer)

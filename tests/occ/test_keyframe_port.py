@@ -326,6 +326,8 @@ def test_a_keyframe_whose_orientation_contradicts_the_port_is_refused_with_its_a
         arm.ok("Run")
         text = arm.ok("KeyframePlan")
         assert "turned onto the port's axis (at most 0.3 deg)" in text, text
+        # the summary's notes, one after the other
+        assert "(at most 0.3 deg); the tool's shaft within " in text, text
         setpoints, _ = arm.run(8.2)
         assert max(arm.offset(q) for q in setpoints) < 1e-8
         for k in _square(home, base_port, [0.0, 0.4, -0.3, 0.6, 0.0])[1:]:
