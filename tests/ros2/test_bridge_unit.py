@@ -19,6 +19,7 @@ from cyclonedds.topic import Topic  # noqa: E402
 
 from occ_ros2 import msgs  # noqa: E402
 from occ_ros2.bridge import (  # noqa: E402
+    HELD,
     QOS_DEFAULT,
     QOS_LATCHED,
     Bridge,
@@ -353,10 +354,10 @@ def test_a_move_becomes_the_daemons_keyframe_commands() -> None:
 def test_a_slaves_tip_force_becomes_measured_cf_in_the_world(
     dds: tuple[int, Any], namespace: str
 ) -> None:
-    """TRANSFORM ``TipForce`` (occ/haptics/forceviz.py) -> WrenchStamped from its metadata ``force_n``,
-    frame_id the world frame; one in header version 1 (no metadata: before the daemon reads the
-    bridge's v2 greeting) is counted apart, one without a readable ``force_n`` or in another
-    frame is refused and counted; neither is published."""
+    """TRANSFORM ``TipForce`` (occ/haptics/forceviz.py) -> WrenchStamped from its metadata
+    ``force_n``, frame_id the world frame; one in header version 1 (no metadata: before the
+    daemon reads the bridge's v2 greeting) is counted apart, one without a readable
+    ``force_n`` or in another frame is refused and counted; neither is published."""
     import dataclasses
 
     import igtl
@@ -389,3 +390,156 @@ def test_a_slaves_tip_force_becomes_measured_cf_in_the_world(
     assert (force.x, force.y, force.z) == f and (torque.x, torque.y, torque.z) == (0, 0, 0)
     st = bridge.stats()[namespace]
     assert st["forces"] == 1 and st["forces_refused"] == 3 and st["forces_v1"] == 1
+
+
+class _Recorder:
+    """A DDS writer's stand-in: what the bridge publishes on one leaf."""
+
+    def __init__(self, leaf: str, out: list[tuple[str, Any]]) -> None:
+        self.leaf, self.out = leaf, out
+
+    def write(self, sample: Any) -> None:
+        self.out.append((self.leaf, sample))
+
+
+class _Writers(dict[str, _Recorder]):
+    def __init__(self) -> None:
+        super().__init__()
+        self.out: list[tuple[str, Any]] = []
+
+    def __missing__(self, leaf: str) -> _Recorder:
+        self[leaf] = _Recorder(leaf, self.out)
+        return self[leaf]
+
+
+class _Link:
+    """An operator link's stand-in: each command it is given, sent (1) or not (0)."""
+
+    def __init__(self) -> None:
+        self.up = 1
+        self.sent: list[Any] = []
+
+    def send(self, msg: Any) -> int:
+        self.sent.append(msg)
+        return self.up
+
+
+def _offline_bridge(ack_moves: bool) -> tuple[Bridge, Any, _Link, _Writers]:
+    """A bridge without DDS or sockets: its robot's writers record, its operator link is a
+    stand-in; the daemon's answers are given to ``_on_reply`` by the test."""
+    import threading
+    from collections import OrderedDict
+
+    from occ_ros2.bridge import Robot
+
+    bridge = Bridge.__new__(Bridge)
+    bridge.world_frame, bridge.move_joint_speed, bridge.move_tip_speed = "world", 0.05, 0.01
+    bridge.ack_moves = ack_moves
+    bridge._lock, bridge._cmd_id, bridge._pending = threading.Lock(), 0, OrderedDict()
+    robot = Robot(ns="/occ/rid", leaf="rid")
+    writers = _Writers()
+    robot.writers = writers
+    link = _Link()
+    robot.operator = link
+    robot.joints = (["yaw"], [0.0])
+    bridge.robots = {robot.ns: robot}
+    return bridge, robot, link, writers
+
+
+def _answer(bridge: Bridge, robot: Any, link: _Link, status: str, text: str) -> None:
+    import igtl
+
+    cmd = link.sent[-1]
+    reply = igtl.RTSCommandMessage(
+        command_id=cmd.command_id,
+        command_name=cmd.command_name,
+        header_version=2,
+        metadata={"Status": status, "Message": text},
+    )
+    bridge._on_reply(robot, reply, msgs.Time.from_seconds(1.0))
+
+
+def _replies(writers: _Writers) -> list[str]:
+    found = [str(s.data) for leaf, s in writers.out if leaf == "command_reply"]
+    writers.out.clear()
+    return found
+
+
+@pytest.mark.req("SR-REPLY-2")
+def test_every_refusal_and_answer_carries_the_clients_request_id() -> None:
+    """Issue 41's promise on each of the bridge's own paths, without DDS: a command's
+    refusal (not a name, no operator port, the link down, the state not known), a CRTK
+    refusal out of a stop not its own, and a move's refusals and answers (no operator port,
+    the link down, the daemon's FAIL, a plan without a number, the Ack's SUCCESS) each begin
+    with the request id the client gave."""
+    bridge, robot, link, writers = _offline_bridge(ack_moves=True)
+    ns = robot.ns
+
+    bridge.command(ns, "[c1] _")  # underscores alone are no command name
+    assert _replies(writers) == ["[c1] _ FAIL: not a command name"] and not link.sent
+    link.up = 0
+    bridge.command(ns, "[c2] GetState")
+    assert _replies(writers) == ["[c2] GetState FAIL: operator interface not connected"]
+    bridge.command(ns, "[c3] enable")  # a CRTK word before the daemon's state is known
+    assert _replies(writers) == [
+        "[c3] enable FAIL: the daemon's state is not known yet (not connected)"
+    ]
+    link.up = 1
+    robot.state, robot.state_text, robot.paused_by_bridge = "STOPPED", "", False
+    refused = robot.counters.commands_refused
+    bridge.command(ns, "[c4] resume")  # a stop without words: still named
+    why = "a stop"
+    assert _replies(writers)[0] == f"[c4] resume FAIL: {HELD.format(why=why, word='resume')}"
+    assert robot.counters.commands_refused == refused + 1
+
+    goal = msgs.JointState(name=["yaw"], position=[0.1])
+    goal.header.stamp = msgs.Time(sec=5, nanosec=7)
+    rid = "[5.000000007]"
+    link.up = 0
+    bridge.move(ns, "move_jp", goal)
+    assert _replies(writers) == [f"{rid} move_jp FAIL: operator interface not connected"]
+    link.up = 1
+    bridge.move(ns, "move_jp", goal)  # KeyframeClear sent; the daemon refuses it
+    _answer(bridge, robot, link, "FAIL", "KeyframeClear: busy")
+    assert _replies(writers) == [f"{rid} move_jp FAIL: KeyframeClear: busy"]
+    bridge.move(ns, "move_jp", goal)
+    _answer(bridge, robot, link, "SUCCESS", "cleared")
+    _answer(bridge, robot, link, "SUCCESS", "added")
+    _answer(bridge, robot, link, "SUCCESS", "planned")  # KeyframePlan: no plan number
+    assert _replies(writers) == [
+        f"{rid} move_jp FAIL: KeyframePlan answered 'planned': no plan number"
+    ]
+    bridge.move(ns, "move_jp", goal)
+    for text in ("cleared", "added", "plan 3: 1 keyframe"):
+        _answer(bridge, robot, link, "SUCCESS", text)
+    assert link.sent[-1].command_name == "KeyframeAck"
+    _answer(bridge, robot, link, "SUCCESS", "plan 3 runs")
+    assert _replies(writers) == [f"{rid} move_jp SUCCESS: plan 3 runs"]
+
+    robot.operator = None
+    bridge.command(ns, "[c5] enable")
+    assert _replies(writers) == [
+        f"[c5] enable FAIL: no operator interface for {ns} (occ-ros2 --operator)"
+    ]
+    bridge.move(ns, "move_jp", goal)
+    assert _replies(writers) == [
+        f"{rid} move_jp FAIL: no operator interface for {ns} (occ-ros2 --operator)"
+    ]
+
+
+def test_operating_state_follows_the_answer_to_each_state_command() -> None:
+    """A CRTK client waits for an operating_state after a command that may change the state:
+    the daemon's answer to Enable, Disable, Stop, Run or Hold, forwarded as the daemon's own
+    command, is followed by one (changed or not); the answer to any other command is not."""
+    bridge, robot, link, writers = _offline_bridge(ack_moves=False)
+    robot.state = "ENABLED"
+    for n, name in enumerate(("Enable", "Disable", "Stop", "Run", "Hold", "GetStats", "enable_")):
+        bridge.command(robot.ns, f"[s{n}] {name}")
+        assert link.sent[-1].command_name == name
+        _answer(bridge, robot, link, "SUCCESS", "done")
+        leaves = [leaf for leaf, _ in writers.out]
+        assert _replies(writers) == [f"[s{n}] {name} SUCCESS: done"]
+        state_command = name[0].isupper() and name != "GetStats"
+        assert leaves == (
+            ["command_reply", "operating_state"] if state_command else ["command_reply"]
+        ), name
