@@ -465,3 +465,58 @@ def test_a_watchdog_alert_is_a_watchdog_status_with_its_reason(
     assert [r.getMessage() for r in caplog.records] == [
         "watchdog: overrun: compute 1.200 ms > budget 1.000 ms (3 consecutive) (7 overruns so far)"
     ]
+
+
+class Recorder:
+    def __init__(self) -> None:
+        self.recorded: list[tuple[Any, str, str, float]] = []
+        self.failure_hook: Any = None
+
+    def record_message(self, msg: Any, direction: str, iface: str, t: float) -> None:
+        self.recorded.append((msg, direction, iface, t))
+
+    def on_failure(self, hook: Any) -> None:
+        self.failure_hook = hook
+
+
+@pytest.mark.req("SR-REC-1")
+def test_every_status_sent_is_recorded_and_tapped_as_going_out_to_everyone() -> None:
+    """A broadcast goes to every viewer and operator, into the recording (direction ``out``,
+    interface ``*``, the loop clock's time) and to the black box's tap; a recorder that fails
+    is announced by the alarms that watch it."""
+    rig = Rig()
+    rec = Recorder()
+    assert rig.alarms.watch_recording(rec) is rec and rig.alarms.recorder is rec
+    tapped: list[tuple[Any, str]] = []
+    rig.alarms.tap = lambda msg, iface: tapped.append((msg, iface))
+    rig.alarms.broadcast("ALERT", "one", igtl.StatusCode.TIME_OUT)
+    rig.alarms.broadcast("STOPPED", "two", igtl.StatusCode.OK, timestamp=77.5)
+    first, second = rig.sent
+    assert (first.timestamp, second.timestamp) == (1000.25, 77.5)
+    assert (first.code, first.error_name, first.status_message) == (
+        igtl.StatusCode.TIME_OUT,
+        "ALERT",
+        "one",
+    )
+    assert rec.recorded == [(first, "out", "*", 12.5), (second, "out", "*", 12.5)]
+    assert tapped == [(first, "*"), (second, "*")]
+    rec.failure_hook("recording to x failed: disk full")  # the recorder's failure: heard
+    assert rig.heard()[-1] == (
+        "RECORDING",
+        "recording to x failed: disk full",
+        igtl.StatusCode.RESOURCE_ERROR,
+    )
+    assert rig.alarms.watch_recording(None) is None and rig.alarms.recorder is None
+    rig.alarms.broadcast("ALERT", "three", igtl.StatusCode.OK)
+    assert len(rec.recorded) == 3  # the failure's own STATUS; none after it was unwatched
+
+
+def test_a_new_alarms_is_not_stopping_and_notes_a_bystanders_loss_as_a_loss() -> None:
+    rig = Rig()
+    assert rig.alarms.safety_stopping is False and rig.alarms.recorder is None
+    rec = Recorder()
+    given = Alarms("x", rig.states, Clock(), rig._send, rig.drives, rig.streams, recorder=rec)  # type: ignore[arg-type]
+    assert given.recorder is rec
+    rig.alarms.bystander_loss("trainee", Monitor(), event("hold"), RobotState.RUNNING)  # type: ignore[arg-type]
+    ((what, obj),) = rig.notes
+    assert what == "loss" and obj["event"].kind == "hold" and obj["owner"] == "master"

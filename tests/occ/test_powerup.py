@@ -17,6 +17,7 @@ from typing import Any
 
 import pytest
 
+import igtl
 from occ.clock import SimClock
 from occ.core.loader import load_config
 from occ.core.safety import RobotState
@@ -498,3 +499,76 @@ def test_a_start_event_refused_ends_the_start_with_its_words(
         assert "READY" in line
     finally:
         sim.close()
+
+
+@pytest.mark.req("SR-HW-3")
+def test_enable_with_a_joint_never_measured_is_refused_and_told_to_every_operator() -> None:
+    """The guard, on the slave in simulated time: a joint whose drive never reported a
+    position refuses Enable (servos would hold a position nobody measured), the requester
+    gets the refusal, every operator an ALERT naming the drive and its joints; READY stays.
+    Run, Stop and the other events are not guarded by it."""
+    sim = SimRobot(CONFIGS / "slave.yaml")
+    try:
+        robot = sim.robot
+        op, viewer = sim.peer("operator"), sim.peer("slicer")
+        sim.tick()
+        joint = robot.joints[2]
+        drive = robot.hardware.pairs[0][0].name
+        missing = f"driver {drive} joints ['{joint.name}']"  # as HardwareSet.unmeasured says
+        asked: list[list[str]] = []
+
+        def unmeasured(joints: Any) -> str:
+            asked.append([j.name for j in joints])
+            return missing
+
+        robot.hardware.unmeasured = unmeasured  # type: ignore[method-assign]
+        cid = op.send_command("Enable")
+        sim.tick()
+        reply = op.reply_to(cid)
+        assert reply is not None and reply.metadata.get("Status") != "SUCCESS"
+        assert robot.state is RobotState.READY
+        alerts = [
+            (m.error_name, m.status_message, m.code)
+            for m in viewer.messages("STATUS")
+            if m.error_name == "ALERT"
+        ]
+        assert asked == [[j.name for j in robot.joints]]
+        assert alerts == [
+            (
+                "ALERT",
+                f"enable refused: no measurement yet from driver {drive} joints "
+                f"['{joint.name}'] (are the drives on and answering?)",
+                igtl.StatusCode.NOT_READY,
+            )
+        ]
+        assert robot.effects.may_power(RobotState.READY, "run") == "" and len(asked) == 1
+        missing = ""
+        assert robot.effects.may_power(RobotState.READY, "enable") == ""
+    finally:
+        sim.close()
+
+
+@pytest.mark.req("SR-HW-39")
+def test_a_shutdown_while_powering_up_stops_every_drive_and_refuses_the_enable(
+    rig: type[Rig],
+) -> None:
+    r = rig()
+    with r.emu.held():
+        r.op.send_command("Enable")
+        r.ticks(2, settle=False)
+        assert r.robot.effects.powering_up
+        pu = r.robot.effects.powerup
+        assert pu is not None and pu.answer is not None
+        # the shutdown stops the power-up (the drives' safe stop) and waits for it
+        import threading
+
+        done = threading.Event()
+        threading.Thread(
+            target=lambda: (r.robot.effects.finish(timeout=10.0), done.set()), daemon=True
+        ).start()
+        wait_for(lambda: pu.cancelled is not None)
+    assert done.wait(10.0)
+    assert pu.cancelled == "shutdown" and pu.stopped is True
+    assert pu.answer.result == (False, "Enable cancelled while the drives worked: shutdown")
+    assert r.robot.effects.powerup is None
+    assert r.arm.state is DriverState.FAULT and r.robot.hardware.all_safe()
