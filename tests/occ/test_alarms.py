@@ -520,3 +520,34 @@ def test_a_new_alarms_is_not_stopping_and_notes_a_bystanders_loss_as_a_loss() ->
     rig.alarms.bystander_loss("trainee", Monitor(), event("hold"), RobotState.RUNNING)  # type: ignore[arg-type]
     ((what, obj),) = rig.notes
     assert what == "loss" and obj["event"].kind == "hold" and obj["owner"] == "master"
+
+
+@pytest.mark.req("SR-HW-19")
+def test_a_failure_told_before_a_reset_is_news_again_after_it() -> None:
+    """On the simulated slave: a drive's read failure faults the robot; Reset brings it back to
+    READY, and with it every failure becomes news again: the same drive failing the same way in
+    a later FAULT is an ALERT to every operator, not something told already."""
+    from occ_testkit import CONFIGS
+    from occ_testkit.testing import SimRobot
+
+    sim = SimRobot(CONFIGS / "slave.yaml")
+    try:
+        robot = sim.robot
+        op, viewer = sim.peer("operator"), sim.peer("slicer")
+        sim.tick()
+        drive = robot.hardware.pairs[0][0].name
+        failure = HardwareFailure(drive, "read", "encoder lost")
+        robot.alarms.hardware_fault([failure])
+        assert robot.state is RobotState.FAULT
+        robot.alarms.hardware_fault([failure])  # told already in this FAULT: no ALERT
+        cid = op.send_command("Reset")
+        sim.tick()
+        sim.tick()
+        assert robot.state is RobotState.READY, (op.reply_to(cid), robot.last_alert)
+        robot.alarms.fault("an operator's test fault")
+        assert robot.state is RobotState.FAULT
+        robot.alarms.hardware_fault([failure])
+        alerts = [m.status_message for m in viewer.messages("STATUS") if m.error_name == "ALERT"]
+        assert alerts == [f"while FAULT: driver {drive}: read failed: encoder lost"], alerts
+    finally:
+        sim.close()
