@@ -140,10 +140,8 @@ class Robot:
         )
 
     def run(self, duration: float | None = None, ticks: int | None = None) -> LoopStats:
-        try:
-            return self.loop.run(duration=duration, ticks=ticks)
-        finally:
-            self.supervisor.disarm()  # the loop ended on purpose: nothing to watch
+        # a run's end disarms the supervisor (the loop's on_end, occ/core/wiring.py)
+        return self.loop.run(duration=duration, ticks=ticks)
 
     def start_in(self, *events: str) -> None:
         """Transitions for the loop's first tick (``occd --start``): Enable writes to the
