@@ -101,7 +101,7 @@ def names(path: str) -> frozenset[str]:
     # occ/controllers/keyframe/): the package's files were the module (git follows a rename,
     # not a split)
     parent = Path(path).parent
-    if parent.name and parent.name != "." and path.startswith(("occ/", "igtl/", "occ_ros2/")):
+    if parent.name and path.startswith(tuple(f"{d}/" for d in CODE_DIRS)):
         found.add(f"{parent.as_posix()}.py")
     return frozenset(found)
 
