@@ -18,6 +18,8 @@ import igtl
 from occ.core.alarms import Alarms
 from occ.core.hardware import HardwareFailure
 from occ.core.safety import LossEvent, RobotState
+from occ_testkit import CONFIGS
+from occ_testkit.testing import SimRobot
 
 
 @dataclass
@@ -527,9 +529,6 @@ def test_a_failure_told_before_a_reset_is_news_again_after_it() -> None:
     """On the simulated slave: a drive's read failure faults the robot; Reset brings it back to
     READY, and with it every failure becomes news again: the same drive failing the same way in
     a later FAULT is an ALERT to every operator, not something told already."""
-    from occ_testkit import CONFIGS
-    from occ_testkit.testing import SimRobot
-
     sim = SimRobot(CONFIGS / "slave.yaml")
     try:
         robot = sim.robot

@@ -49,6 +49,7 @@ from occ.kinematics.collision import (
 )
 from occ_testkit.cellarms import PeerFeed
 from occ_testkit.testing import CONFIGS, SimRobot
+from tests.occ.test_collision_model import MOUNTED
 
 HOME = [0.0, -1.2, 1.5, -1.9, -1.57, 0.0]
 #: stretched out along the base's x: the tip ~0.89 m out
@@ -316,26 +317,6 @@ def test_with_every_pair_near_each_is_coal_s_distance_and_the_counts_add_up() ->
     slack, gap, worst = cm.checker().clearance(HOME, np.eye(4))
     assert worst is not None and worst.region.startswith("arm:ur5-b:")
     assert 2.0 < gap == worst.distance and slack == gap - cm.margin
-
-
-MOUNTED = """<robot name="mounted">
-  <link name="world"/>
-  <joint name="mount" type="fixed"><parent link="world"/><child link="plate"/>
-    <origin xyz="0.1 -0.2 0.3" rpy="0 0 0.5"/></joint>
-  <link name="plate"/>
-  <joint name="j1" type="revolute"><parent link="plate"/><child link="l1"/>
-    <origin xyz="0 0 0.1"/><axis xyz="0 0 1"/>
-    <limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
-  <link name="l1"/>
-  <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/>
-    <origin xyz="0 0 0.2"/><axis xyz="0 1 0"/>
-    <limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
-  <link name="l2"/>
-  <joint name="tip_joint" type="fixed"><parent link="l2"/><child link="tip"/>
-    <origin xyz="0.3 0 0"/></joint>
-  <link name="tip"/>
-</robot>
-"""
 
 
 @pytest.mark.req("SR-ARMS-1")

@@ -11,6 +11,7 @@ ticks the test counts are its own.
 from __future__ import annotations
 
 import itertools
+import threading
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -432,8 +433,6 @@ class _Activating(_Drive):
         self.thread: Any = None
 
     def activate(self) -> None:
-        import threading
-
         self.thread = threading.current_thread()
         if self.release is not None:
             self.release.wait(10.0)
@@ -447,8 +446,6 @@ def test_each_activation_runs_on_a_daemon_thread_of_its_own_and_its_failure_is_n
     """Each drive on a thread named for it, a daemon (a hung activation never keeps the
     daemon's process alive at exit); failures in the drives' order, an error without words
     named by its type; the time taken measured from the start to the last one's end."""
-    import threading
-
     from occ.core.powerup import PowerUp
 
     gate = threading.Event()
@@ -560,8 +557,6 @@ def test_a_shutdown_while_powering_up_stops_every_drive_and_refuses_the_enable(
         pu = r.robot.effects.powerup
         assert pu is not None and pu.answer is not None
         # the shutdown stops the power-up (the drives' safe stop) and waits for it
-        import threading
-
         done = threading.Event()
         threading.Thread(
             target=lambda: (r.robot.effects.finish(timeout=10.0), done.set()), daemon=True

@@ -12,7 +12,7 @@ import pytest
 
 from occ.clock import RealClock
 from occ.core.loader import load_config
-from occ.core.robot import build_robot
+from occ.core.robot import Robot, build_robot
 from occ.core.safety import RobotState
 from occ_testkit.testing import wait_until as wait_for
 
@@ -21,15 +21,20 @@ ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.realtime
 
 
-@pytest.mark.req("SR-SUP-1")
-def test_a_hung_tick_is_caught_by_the_supervisor_thread() -> None:
+def _slave() -> Robot:
+    """The shipped slave on the real clock, on free ports, without SCHED_FIFO."""
     cfg = load_config(ROOT / "configs" / "slave.yaml")
     ifaces = tuple(i.model_copy(update={"port": 0}) for i in cfg.interfaces)
     rt = cfg.robot.realtime.model_copy(update={"fifo_priority": None})
     cfg = cfg.model_copy(
         update={"interfaces": ifaces, "robot": cfg.robot.model_copy(update={"realtime": rt})}
     )
-    robot = build_robot(cfg, clock=RealClock(spin_us=0))
+    return build_robot(cfg, clock=RealClock(spin_us=0))
+
+
+@pytest.mark.req("SR-SUP-1")
+def test_a_hung_tick_is_caught_by_the_supervisor_thread() -> None:
+    robot = _slave()
     release = threading.Event()
     hung = threading.Event()
     update = robot.controller.update  # the set of the one controller (a plain Python class)
@@ -91,13 +96,7 @@ def test_a_loop_that_ends_on_purpose_is_not_taken_for_a_hung_one(monkeypatch) ->
         return parts, slow_restore
 
     monkeypatch.setattr(loop_mod, "apply_realtime", apply_realtime)
-    cfg = load_config(ROOT / "configs" / "slave.yaml")
-    ifaces = tuple(i.model_copy(update={"port": 0}) for i in cfg.interfaces)
-    rt = cfg.robot.realtime.model_copy(update={"fifo_priority": None})
-    cfg = cfg.model_copy(
-        update={"interfaces": ifaces, "robot": cfg.robot.model_copy(update={"realtime": rt})}
-    )
-    robot = build_robot(cfg, clock=RealClock(spin_us=0))
+    robot = _slave()
     robot.configure()
     robot.activate()
     try:
