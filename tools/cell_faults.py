@@ -13,11 +13,15 @@ UDP (5 ms heartbeats, 100 ms grace). Then, ``--count`` times (default 100), one 
 
 and for each: the time from the fault (this tool's wall clock just before it acts) to each other
 member's hold (its GetStats ``cell.last_stop.wall``: the same host's clock), whether it held
-and named the origin; then the origin is brought back (Reset, Enable, Run; a killed one
-restarted) and the others ``Run`` again, which they may only once the origin runs: each of
-their Runs before that is refused (checked, counted). Prints p50/p99/max per kind and writes
-``--out`` JSON. Exit 1 when any fault did not stop every other member, a Run was taken too
-early, or a hold was later than its bound (20 ms; the silent kinds grace + 10 ms).
+and named the origin, and the origin's silence at the hold (the hold's wall time minus the send
+time of the origin's last heartbeat that member took, ``cell.last_stop.origin_sent_wall``): for
+the silent kinds at least the grace, though the time from the fault may be up to a heartbeat
+period and the origin's last lateness less. Then the origin is brought back (Reset, Enable, Run;
+a killed one restarted) and the others ``Run`` again, which they may only once the origin runs:
+each of their Runs before that is refused (checked, counted). Prints p50/p99/max per kind and
+writes ``--out`` JSON. Exit 1 when any fault did not stop every other member, a Run was taken
+too early, a silent origin was held for before its grace (``early_silences``), or a hold was
+later than its bound (20 ms; the silent kinds grace + 10 ms).
 
     python tools/cell_faults.py --count 100 --out /tmp/cell_faults.json
 """
@@ -127,8 +131,8 @@ def wait(cond: Any, timeout: float, step: float = 0.02) -> bool:
     return False
 
 
-def inject(kind: str, origin: Member) -> float:
-    """The fault; the wall time just before it."""
+def inject(kind: str, origin: Member) -> tuple[float, float]:
+    """The fault; the wall times just before and just after it."""
     assert origin.proc is not None
     t = time.time()
     if kind == "drive":
@@ -141,7 +145,7 @@ def inject(kind: str, origin: Member) -> float:
         origin.proc.wait(5.0)
     elif kind == "stop":
         origin.proc.send_signal(signal.SIGSTOP)
-    return t
+    return t, time.time()
 
 
 def recover(kind: str, origin: Member) -> None:
@@ -161,8 +165,9 @@ def recover(kind: str, origin: Member) -> None:
 
 def one_fault(kind: str, origin: Member, others: list[Member]) -> dict[str, Any]:
     before = {m.name: (m.stats()["cell"]["last_stop"] or {}).get("wall") for m in others}
-    t0 = inject(kind, origin)
-    row: dict[str, Any] = {"kind": kind, "held": {}, "ms": {}, "named": {}, "early_runs": 0}
+    t0, t1 = inject(kind, origin)
+    row: dict[str, Any] = {"kind": kind, "held": {}, "ms": {}, "named": {}, "early_runs": 0,
+                           "silence_ms": {}, "sent_after_fault": {}}  # fmt: skip
     for m in others:
 
         def held(m: Member = m) -> bool:
@@ -176,6 +181,13 @@ def one_fault(kind: str, origin: Member, others: list[Member]) -> dict[str, Any]
             last = m.stats()["cell"]["last_stop"]
             row["ms"][m.name] = (last["wall"] - t0) * 1e3
             row["named"][m.name] = last["origin"] == origin.name
+            sent = last.get("origin_sent_wall")
+            if sent is not None:
+                # how long the origin had been silent when this member held, from the send time
+                # of its last heartbeat taken here; one sent after the fault was over would be
+                # a heartbeat the fault should have silenced (or a clock that lies)
+                row["silence_ms"][m.name] = (last["wall"] - sent) * 1e3
+                row["sent_after_fault"][m.name] = sent > t1
     # the others may not run before the origin does
     for m in others:
         reply = m.op.command("Run")
@@ -209,6 +221,10 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
         }
     out["early_runs"] = sum(r["early_runs"] for r in rows)
     out["unnamed"] = sum(1 for r in rows for v in r["named"].values() if not v)
+    silent = [r for r in rows if r["kind"] in ("kill", "stop")]
+    out["early_silences"] = sum(
+        1 for r in silent for v in r["silence_ms"].values() if v < GRACE_MS - 1.0
+    ) + sum(1 for r in silent for v in r["sent_after_fault"].values() if v)
     return out
 
 
@@ -295,6 +311,7 @@ def main(argv: list[str] | None = None) -> int:
     failed = (
         s["early_runs"]
         or s["unnamed"]
+        or s["early_silences"]
         or any(v["missed"] or v["over_bound"] for k, v in s.items() if isinstance(v, dict))
     )
     return 1 if failed else 0

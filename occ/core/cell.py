@@ -89,6 +89,8 @@ class Member:
     cause: str = ""
     origin: str = ""
     stop_wall: float = 0.0
+    #: the sender's wall clock on the last heartbeat taken (0: none yet)
+    sent_wall: float = 0.0
     their_chain: str = ""
     #: it left (its own command, announced), or was forgotten here (an operator's command)
     left: bool = False
@@ -125,6 +127,9 @@ class LastStop:
     cause: str
     wall: float
     propagation_ms: float | None
+    #: the wall time the origin sent the last heartbeat this daemon took from it (None: never
+    #: heard): for a silent origin, the hold's ``wall`` is at least ``grace_ms`` after it
+    origin_sent_wall: float | None = None
 
 
 @dataclass
@@ -283,7 +288,7 @@ class Cell:
                 return
             m.lost += step - 1
         m.seq = beat.seq
-        m.heard = beat.t_rx
+        m.heard, m.sent_wall = beat.t_rx, beat.sent_wall
         m.state, m.cause, m.origin, m.stop_wall = (
             beat.state,
             beat.cause,
@@ -367,7 +372,9 @@ class Cell:
         """A new stop from ``origin``: told to every operator; held with ``stop-all``."""
         wall = self.clock.wall_time()
         prop = (wall - stop_wall) * 1e3 if stop_wall > 0.0 else None
-        self.last_stop = LastStop(origin, why, wall, prop)
+        m = self.members.get(origin)
+        sent = m.sent_wall if m is not None and m.sent_wall > 0.0 else None
+        self.last_stop = LastStop(origin, why, wall, prop, sent)
         state = self.states.state
         hold = self.stop_all and state in _POWERED
         text = f"cell {self.name}: {why}" + ("; holding" if hold else "")
@@ -496,6 +503,7 @@ class Cell:
                 "cause": last.cause,
                 "wall": last.wall,
                 "propagation_ms": last.propagation_ms,
+                "origin_sent_wall": last.origin_sent_wall,
             },
             "propagation_ms": {
                 "n": len(props),

@@ -173,7 +173,8 @@ def test_stats_count_each_hold_and_its_propagation(judge: Judge) -> None:
     assert props == {"n": 4, "p50": near(3.0, abs=1e-3), "max": near(4.0, abs=1e-3)}
     last = st.pop("last_stop")
     assert last == {"origin": "arm1", "cause": "arm1 FAULT: 1", "wall": wall,
-                    "propagation_ms": near(2.0, abs=1e-3)}  # fmt: skip
+                    "propagation_ms": near(2.0, abs=1e-3),
+                    "origin_sent_wall": wall}  # the stop's heartbeat sent in that tick  # fmt: skip
     members = st.pop("members")
     assert set(members) == {"arm1", "arm2"} and members["arm1"]["state"] == "RUNNING"
     assert st == {"name": "or1", "me": "arm0", "policy": "stop-all", "left": False,
@@ -186,9 +187,13 @@ def test_stats_count_each_hold_and_its_propagation(judge: Judge) -> None:
 @pytest.mark.req("SR-CELL-4")
 def test_a_silence_has_no_propagation_and_an_alert_without_a_hold_says_so(judge: Judge) -> None:
     judge.both_running()  # arm0 READY: nothing of it is powered, nothing to hold
+    sent = WALL0 + judge.sim.k * judge.sim.period - judge.sim.period  # the tick that took them
     judge.sim.step(101)
     last = judge.cell.stats()["last_stop"]
     assert last["propagation_ms"] is None and last["origin"] == "arm2"
+    # the silence is dated by the origin's last heartbeat: the hold at least the grace after it
+    assert last["origin_sent_wall"] == pytest.approx(sent, abs=1e-6)
+    assert last["wall"] - last["origin_sent_wall"] > 0.1
     assert judge.alerts() == [
         "cell or1: arm1 silent (nothing for over 100 ms)",
         "cell or1: arm2 silent (nothing for over 100 ms)",
