@@ -584,3 +584,31 @@ def test_the_shipped_cells_arm_check_is_fed_by_the_heartbeats_until_forgotten() 
     finally:
         for sim in sims:
             sim.close()
+
+
+@pytest.mark.req("SR-CELL-4")
+def test_a_stops_origin_is_dated_by_its_own_last_heartbeat_never_the_relays() -> None:
+    """``last_stop.origin_sent_wall`` is when the origin itself last sent a heartbeat taken
+    here: none for an origin relayed but never heard, the origin's own for one heard, whoever
+    relays it."""
+    j = Judge(4)
+    try:
+        # arm3 never heard: arm1 relays its stop
+        j.beat("arm1", "STOPPED", cause="FAULT: drive", origin="arm3", stop_wall=WALL0)
+        j.sim.tick()
+        last = j.cell.stats()["last_stop"]
+        assert (last["origin"], last["origin_sent_wall"]) == ("arm3", None)
+        # arm3 heard (stopped), arm1 running again; arm3's stop relayed by arm2 ten ticks
+        # later: dated by arm3's heartbeat, not arm2's
+        sent3 = WALL0 + j.next_t
+        j.beat("arm3", "STOPPED")
+        j.beat("arm1")
+        j.sim.tick()
+        j.sim.step(9)
+        j.beat("arm2", "STOPPED", cause="FAULT: joint", origin="arm3", stop_wall=sent3)
+        j.sim.tick()
+        last = j.cell.stats()["last_stop"]
+        assert last["origin"] == "arm3" and last["cause"] == "FAULT: joint (via arm2)"
+        assert last["origin_sent_wall"] == pytest.approx(sent3, abs=1e-9)
+    finally:
+        j.close()
