@@ -26,6 +26,9 @@ parts of one file (`interfaces` and `roles`, `teleop` and `teleop6`) share its r
 scoped module (scripts/mutate's SCOPES, read with `scripts/mutate --scope MODULE`) is judged by
 the units its scope mutates, with the statements at the top of their files and the bodies of
 their classes; `-v` lists its changed units outside the scope.
+
+It also checks docs/VERIFICATION.md's register of the files no module mutates: every Python file
+of the code is in a module or in the register (with what verifies it instead), never both.
 """
 
 from __future__ import annotations
@@ -269,10 +272,56 @@ def _first_path(cell: str) -> str | None:
     return m.group(1) if m else None
 
 
+#: the heading of docs/VERIFICATION.md's list of the files no module mutates
+REGISTER = "## The files no module mutates, and how each is verified"
+REGISTER_PATH = re.compile(r"`([\w/]+\.py)`")
+
+
+def register() -> dict[str, list[str]]:
+    """The files docs/VERIFICATION.md says no module mutates: path -> that row's cells (what
+    it is, verified by, why no score)."""
+    text = (ROOT / "docs" / "VERIFICATION.md").read_text(encoding="utf-8")
+    start = text.find(REGISTER)
+    if start < 0:
+        return {}
+    out: dict[str, list[str]] = {}
+    for line in text[start:].split("\n## ", 1)[0].splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if not line.startswith("| `") or len(cells) < 4:
+            continue
+        for path in REGISTER_PATH.findall(cells[0]):
+            out[path] = cells[1:]
+    return out
+
+
+def code_files() -> list[str]:
+    """Every Python file of the project's code, as git tracks it."""
+    listed = git("ls-files", "--", *CODE_DIRS).split()
+    return sorted(f for f in listed if f.endswith(".py"))
+
+
+def register_problems() -> list[str]:
+    """A code file in no module and not in the register, one in both, one the register names
+    that is not there, or a row with an empty cell."""
+    mutated = {f for files in modules().values() for f in files}
+    listed = register()
+    code = code_files()
+    out = [f"{f}: in no module of scripts/mutate and not in the register" for f in code
+           if f not in mutated and f not in listed]  # fmt: skip
+    out += [f"{f}: in the register and in a module" for f in sorted(listed) if f in mutated]
+    out += [f"{f}: in the register, not in the code" for f in sorted(listed) if f not in code]
+    out += [f"{f}: a row with an empty cell" for f, cells in sorted(listed.items())
+            if not all(cells[:3])]  # fmt: skip
+    return out
+
+
 def main(argv: list[str]) -> int:
     verbose = "-v" in argv
     table = rows()
     stale = 0
+    problems = register_problems()
+    for problem in problems:
+        print(f"REGISTER {problem}")
     for name, files in sorted(modules().items()):
         late = []
         scoped = scope(name)
@@ -309,7 +358,7 @@ def main(argv: list[str]) -> int:
         stale += bool(late)
         shown = newest.strftime("%Y-%m-%d %H:%M") if newest else "no row"
         print(f"{'STALE' if late else 'ok':5} {name:12} newest row {shown}", *late, sep="; ")
-    return 1 if stale else 0
+    return 1 if stale or problems else 0
 
 
 if __name__ == "__main__":

@@ -200,9 +200,49 @@ def test_a_module_split_into_a_package_of_its_name_keeps_its_rows(  # type: igno
     (root / "scripts" / "mutate").write_text(
         'MODULES[judge]="occ/judge/scale.py|tests/x.py"\n[ "$1" = --scope ] && echo ""\n'
     )
+    doc = root / "docs" / "VERIFICATION.md"  # the package's other files are in no module
+    doc.write_text(
+        doc.read_text()
+        + REGISTER
+        + "| `occ/judge/__init__.py`, `occ/judge/check.py` | a | b | c |\n"
+    )
     m = load(root)
     assert m.main([]) == 0, capsys.readouterr().out
     # and a changed line in one of them is named
     (root / "occ" / "judge" / "scale.py").write_text(split["occ/judge/scale.py"].replace("2", "3"))
     assert m.main(["-v"]) == 1
     assert "occ/judge/scale.py changed since 2026-01-01 10:05: scale" in capsys.readouterr().out
+
+
+REGISTER = (
+    "\n## The files no module mutates, and how each is verified\n\n"
+    "| File | What | Verified by | Why |\n|---|---|---|---|\n"
+)
+
+
+def test_every_code_file_is_mutated_or_in_the_register_never_both(tmp_path: Path) -> None:
+    """A file in no module and not in the register is named, as is one in both, one the
+    register names that is gone, and a row with an empty cell; one in either is not."""
+    root = repo(tmp_path, {"occ/judge.py": BASE, "occ/extra.py": BASE, "occ/both.py": BASE})
+    (root / "scripts" / "mutate").write_text(
+        'MODULES[judge]="occ/judge.py occ/both.py|tests/x.py"\n[ "$1" = --scope ] && echo ""\n'
+    )
+    doc = root / "docs" / "VERIFICATION.md"
+    doc.write_text(doc.read_text() + REGISTER + "| `occ/both.py` | a | b | c |\n"
+                   "| `occ/gone.py`, `occ/empty.py` | a |  | c |\n")  # fmt: skip
+    m = load(root)
+    assert m.register_problems() == [
+        "occ/extra.py: in no module of scripts/mutate and not in the register",
+        "occ/both.py: in the register and in a module",
+        "occ/empty.py: in the register, not in the code",
+        "occ/gone.py: in the register, not in the code",
+        "occ/empty.py: a row with an empty cell",
+        "occ/gone.py: a row with an empty cell",
+    ]
+    doc.write_text(doc.read_text().split("| `occ/both.py`")[0] + "| `occ/extra.py` | a | b | c |\n")
+    assert m.register_problems() == []
+
+
+def test_the_projects_register_names_every_file_no_module_mutates() -> None:
+    problems = load().register_problems()
+    assert problems == [], "\n".join(problems)
