@@ -44,7 +44,7 @@ from occ.kinematics.frame import Frame, chain_hash
 from occ.net.collab import Collaboration
 from occ.net.interfaces import InterfaceManager
 from occ.net.operators import OperatorDesk
-from occ.net.outputs import BuiltinSources, OutputScheduler
+from occ.net.outputs import BuiltinFn, BuiltinSources, OutputScheduler, SourceFn
 from occ.net.streams import StreamInputs
 from occ.recording.blackbox import BlackBox, DumpWriter
 from occ.recording.control import RecordingControl
@@ -289,7 +289,7 @@ def build_black_box(robot: Assembling, controllers: Sequence[Controller]) -> Bla
     return box
 
 
-def checkpointer(robot: Any) -> Checkpointer:
+def checkpointer(robot: Assembling) -> Checkpointer:
     """What a checkpoint of ``robot`` takes (occ/core/checkpoint.py): every part but its I/O
     and its records (the interfaces and the cell's link, the recorders, the black box, the
     State Data Table, the loop and its clock, the report worker), the plugins' modules with
@@ -422,7 +422,7 @@ def controller_context(robot: Assembling, environment: Environment | None) -> Co
 
 def build_outputs(robot: Assembling) -> OutputScheduler:
     """The robot's scheduled outputs: the built-in sources and its controllers'."""
-    sources = {
+    sources: dict[str, SourceFn | BuiltinFn] = {
         **BuiltinSources(robot.data, robot.operators.describe_state).table(),
         **robot.controller.outputs(),
     }

@@ -9,7 +9,7 @@ loses its own oldest messages inside the transport, OCC's per-subscriber ``Fq``)
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -55,11 +55,12 @@ class Output:
     seq: int = 0
 
 
-#: what a source returns: a typed value occ/net/packers.py packs as the output's type (a pose, a
-#: point list, a polyline, readings, a model, a matrix), or a message the built-in sources
-#: below build themselves
-Outgoing = PoseSample | PointsOut | PolylineOut | VectorOut | MeshOut | TransformOut | Message
+#: what a controller's source returns: a typed value occ/net/packers.py packs as the output's
+#: type (a pose, a point list, a polyline, readings, a model, a matrix); never a message
+Outgoing = PoseSample | PointsOut | PolylineOut | VectorOut | MeshOut | TransformOut
 SourceFn = Callable[[Output, float], Outgoing | None]
+#: the built-in sources below, at the edge, build their messages themselves
+BuiltinFn = Callable[[Output, float], Message | None]
 
 
 def pose_to_message(
@@ -106,7 +107,7 @@ class BuiltinSources:
         self.data = data
         self.describe = describe
 
-    def table(self) -> dict[str, SourceFn]:
+    def table(self) -> dict[str, BuiltinFn]:
         return {
             "tip": self.tip,
             "base": self.base,
@@ -189,7 +190,9 @@ class OutputScheduler:
     #: the outputs themselves are, through ``outputs``: each one's ``seq``)
     checkpoint_fixed = ("_due", "_schedule")
 
-    def __init__(self, outputs: Sequence[Output], sources: dict[str, SourceFn]) -> None:
+    def __init__(
+        self, outputs: Sequence[Output], sources: Mapping[str, SourceFn | BuiltinFn]
+    ) -> None:
         for out in outputs:
             if out.source not in sources:
                 raise OCCError(
@@ -210,7 +213,10 @@ class OutputScheduler:
 
     @classmethod
     def for_interfaces(
-        cls, interfaces: Iterable[Interface], rate_hz: float, sources: dict[str, SourceFn]
+        cls,
+        interfaces: Iterable[Interface],
+        rate_hz: float,
+        sources: Mapping[str, SourceFn | BuiltinFn],
     ) -> OutputScheduler:
         """The outputs every interface's config lists, each every ``rate_hz / its rate`` ticks."""
         outputs = [

@@ -13,7 +13,7 @@ from __future__ import annotations
 import itertools
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import pytest
@@ -25,19 +25,11 @@ from occ.core.safety import RobotState
 from occ.drivers.base import DriverState
 from occ.drivers.cia402_sim import DriveEmulator
 from occ_testkit import CONFIGS
-from occ_testkit.testing import SimPeer, SimRobot
+from occ_testkit.testing import SimPeer, SimRobot, wait_until
 
 _channels = itertools.count(1)
 #: where the emulated joints start (counts): yaw 0, pitch 0.1 rad, insertion 50 mm
 START = {1: 0.0, 2: 0.1 * 52152.0, 3: 0.05 * 2.0e6}
-
-
-def wait_for(what: Callable[[], bool], timeout: float = 5.0) -> None:
-    """Wall clock, no tick: until ``what()`` (the activation's thread has got that far)."""
-    give_up = time.monotonic() + timeout
-    while not what():
-        assert time.monotonic() < give_up, "timed out"
-        time.sleep(0.001)
 
 
 class Rig:
@@ -174,7 +166,9 @@ def test_an_estop_while_powering_up_wins_every_node_off_and_estop(rig: type[Rig]
         enable = r.op.send_command("Enable")
         r.ticks(5, settle=False)
         assert r.robot.effects.powering_up
-        wait_for(lambda: r.arm.activating)  # its thread is waiting for the drives
+        assert wait_until(
+            lambda: r.arm.activating, 5.0, 0.001
+        )  # its thread is waiting for the drives
         estop = r.op.send_command("EStop")
         r.tick(settle=False)
         assert r.robot.state is RobotState.ESTOP
@@ -208,7 +202,7 @@ def test_a_disable_while_powering_up_cancels_it_and_the_drives_stay_usable(
     with r.emu.held():
         enable = r.op.send_command("Enable")
         r.ticks(3, settle=False)
-        wait_for(lambda: r.arm.activating)
+        assert wait_until(lambda: r.arm.activating, 5.0, 0.001)
         disable = r.op.send_command("Disable")
         again = r.op.send_command("Enable")  # same tick: refused, the power-up has not ended
         r.tick(settle=False)
@@ -239,7 +233,7 @@ def test_the_supervisors_safe_stop_while_powering_up_switches_every_node_off(
         r.op.send_command("Enable")
         r.tick(settle=False)
         assert r.robot.effects.powering_up
-        wait_for(lambda: r.arm.activating)
+        assert wait_until(lambda: r.arm.activating, 5.0, 0.001)
         # the supervisor's thread (as Alarms.supervisor_trip does): every drive's safe stop
         assert r.robot.hardware.safe_stop("loop hung") == []
         assert r.robot.effects.await_power_up(10.0)
@@ -561,7 +555,7 @@ def test_a_shutdown_while_powering_up_stops_every_drive_and_refuses_the_enable(
         threading.Thread(
             target=lambda: (r.robot.effects.finish(timeout=10.0), done.set()), daemon=True
         ).start()
-        wait_for(lambda: pu.cancelled is not None)
+        assert wait_until(lambda: pu.cancelled is not None, 5.0, 0.001)
     assert done.wait(10.0)
     assert pu.cancelled == "shutdown" and pu.stopped is True
     assert pu.answer.result == (False, "Enable cancelled while the drives worked: shutdown")

@@ -89,8 +89,7 @@ _CODE_DROPPED = 15
 
 
 class KeyframeController(Controller):
-    """Keyframe trajectories: stored keyframes planned, checked, previewed in Slicer, run
-    after the operator's acknowledgement (issue 11; the package docstring has the details)."""
+    """Keyframes planned, checked, previewed in Slicer, run once acknowledged (issue 11)."""
 
     name = "keyframe"
     Params = KeyframeParams
