@@ -201,3 +201,35 @@ def test_a_members_cell_statistics_say_its_set_paths_check_and_run() -> None:
     assert role.stats() == {
         "cell_set": None, "cell_paths": [], "cell_checked": None, "cell_running": "r" * 64,
     }  # fmt: skip
+
+
+@pytest.mark.req("SR-CELLPLAN-3")
+def test_a_part_is_acknowledged_only_with_its_passed_checks_identity_and_a_common_start() -> None:
+    role = CellRole(threading.Lock())
+    cset = SimpleNamespace(name="turns")
+    plan, other = SimpleNamespace(id=3), SimpleNamespace(id=4)
+    ident = "i" * 64
+    alone = (
+        "KeyframeAck: plan 3 is a part of cell set turns: it runs only as one with the others "
+        "(Cell=<the identity KeyframeCellCheck gave> and StartAt=<unix time>)"
+    )
+    unchecked = (
+        "KeyframeAck: plan 3 has not passed KeyframeCellCheck against the other members' paths"
+    )
+
+    def refused(args: dict[str, str]) -> str:
+        with pytest.raises(CommandError) as err:
+            role._identity(cset, plan, args)  # type: ignore[arg-type]
+        return str(err.value)
+
+    for args in ({}, {"cell": ident}, {"startat": "1"}, {"cell": " ", "startat": "1"}):
+        assert refused(args) == alone, args
+    assert refused({"cell": ident, "startat": "1"}) == unchecked  # no check passed yet
+    role.checked = CellCheck(other, ident, {})  # type: ignore[arg-type]
+    assert refused({"cell": ident, "startat": "1"}) == unchecked  # passed for another plan
+    role.checked = CellCheck(plan, ident, {})  # type: ignore[arg-type]
+    assert refused({"cell": "j" * 64, "startat": "1"}) == (
+        "KeyframeAck: Cell=jjjjjjjjjjjj.. is not this member's cell plan iiiiiiiiiiii..: the "
+        "members planned or checked different plans"
+    )
+    assert role._identity(cset, plan, {"cell": f" {ident} ", "startat": "1"}) == ident  # type: ignore[arg-type]
