@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Print the hardware fault matrix: every drive fault injected into the shipped slave, and what
-the robot did (occ_testkit/faultmatrix.py; docs/SAFETY.md SR-HW-1..13).
+the robot did (occ_testkit/faultmatrix.py; docs/SAFETY.md SR-HW-1..22, SR-HW-30..39).
 
     python tools/fault_matrix.py                 # every row, a Markdown table
     python tools/fault_matrix.py --row nan jump  # some rows

@@ -1,4 +1,5 @@
-"""The hardware fault matrix (occ_testkit/faultmatrix.py; docs/SAFETY.md SR-HW-1..13), one test a row.
+"""The hardware fault matrix (occ_testkit/faultmatrix.py; docs/SAFETY.md SR-HW-1..22 and
+SR-HW-30..39), one test a row.
 
 Each fault is injected into the drive ``tool`` of the shipped slave, whose other drive
 ``arm`` stays healthy. Every row must end with: every drive safe in the tick the robot
