@@ -15,6 +15,7 @@ robot's parts, and with which arguments.
 from __future__ import annotations
 
 import itertools
+import logging
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -29,6 +30,7 @@ from occ.core.loader import load_config
 from occ.core.safety import RobotState
 from occ.drivers.base import DriverState
 from occ.drivers.cia402_sim import DriveEmulator
+from occ.net.commands import Deferred
 from occ_testkit import CONFIGS
 from occ_testkit.testing import SimPeer, SimRobot
 
@@ -592,17 +594,18 @@ def test_a_shutdown_while_powering_up_stops_every_drive_and_refuses_the_enable(
 TICK, CLOCK_NOW, WALL = 3.25, 7.0, 1000.5
 
 
-class _Resetting(_Drive):
+class _Resetting(_Activating):
     """A drive latched FAULT whose fault reset runs on the PowerUp's thread: it fails with
-    ``err`` or clears the fault."""
+    ``reset_err`` or clears the fault; then it powers up as an _Activating one."""
 
-    def __init__(self, name: str, err: Exception | None = None) -> None:
-        super().__init__(name, DriverState.FAULT)
-        self.err = err
+    def __init__(self, name: str, reset_err: Exception | None = None, release: Any = None) -> None:
+        super().__init__(name, release=release)
+        self.state = DriverState.FAULT
+        self.reset_err = reset_err
 
     def reset(self) -> None:
-        if self.err is not None:
-            raise self.err
+        if self.reset_err is not None:
+            raise self.reset_err
         self.state = DriverState.INACTIVE
 
 
@@ -617,6 +620,7 @@ class _Hardware:
         self.calls: list[tuple[Any, ...]] = []
         self.stop_failures: list[Any] = []
         self.verify_error: Exception | None = None
+        self.reset_error: Exception | None = None
 
     def waiting(self, state: DriverState = DriverState.INACTIVE) -> list[Any]:
         return [d for d in self.slow if d.state is state and d not in self.busy]
@@ -646,6 +650,8 @@ class _Hardware:
 
     def reset(self, now: float | None = None, prior: Any = ()) -> list[Any]:
         self.calls.append(("reset", now, list(prior)))
+        if self.reset_error is not None:
+            raise self.reset_error
         return list(prior)
 
     def unsafe(self) -> list[Any]:
@@ -730,15 +736,19 @@ class _Effects:
 
 
 @pytest.mark.req("SR-HOLD-1")
-def test_each_state_change_tells_each_part_its_old_and_new_state_at_the_ticks_time() -> None:
+def test_each_state_change_tells_each_part_its_old_and_new_state_at_the_ticks_time(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     """The setpoints (Motion.on_state decides the held setpoint from both states: the
     measured position on power-up, what the drives were last told on a stop from RUNNING),
     the controllers (both states and the tick's time, as a replay sees it), the streams
     (re-armed on entering RUNNING only: the first packet after Run arms the loss monitor) and
     every operator (a STATUS named for the new state, ``old -> new`` and the reason if one
-    was given, stamped with the transition's time)."""
+    was given, stamped with the transition's time). The log says each one, a warning when
+    the robot stops."""
     from occ.net.outputs import STATE_STATUS_CODE
 
+    caplog.set_level(logging.INFO, logger="occ.core.robot")
     e = _Effects(RobotState.READY)
     assert e.fx.request("enable", "") == "READY -> ENABLED"
     assert e.fx.request("run", "operator Run") == "ENABLED -> RUNNING"
@@ -759,6 +769,11 @@ def test_each_state_change_tells_each_part_its_old_and_new_state_at_the_ticks_ti
         ("broadcast", "STOPPED", "RUNNING -> STOPPED: operator Stop", code[S], WALL),
     ]
     assert e.parts.state is S  # the data's state: what the tick reads
+    assert [(r.levelno, r.getMessage()) for r in caplog.records] == [
+        (logging.INFO, "state READY -> ENABLED (enable)"),
+        (logging.INFO, "state ENABLED -> RUNNING (run): operator Run"),
+        (logging.WARNING, "state RUNNING -> STOPPED (stop): operator Stop"),
+    ]
 
 
 @pytest.mark.req("SR-HW-19")
@@ -795,7 +810,6 @@ def test_a_power_up_off_the_loop_lands_with_its_reason_its_time_and_a_fresh_read
     completes with the operator's reason (the ENABLED STATUS says it), the held setpoint
     starts from verify's fresh reading, and GetStats's ``last_ms`` is the time it took in
     milliseconds to the microsecond. A second power-up is counted too."""
-    from occ.net.commands import Deferred
 
     arm = _Activating("arm")
     e = _Effects(RobotState.READY, [arm])
@@ -864,19 +878,26 @@ def test_a_drive_up_after_an_estop_stopped_its_power_up_is_stopped_again_in_thos
 
 
 @pytest.mark.req("SR-EXC-1")
-def test_a_part_that_raises_as_a_power_up_lands_answers_the_enable_and_is_a_plugin_error() -> None:
-    """An exception (not a refusal) from the transition that completes a power-up: the
-    operator's Enable is answered with it, and it is a plugin error (FAULT naming it) saying
-    it came from the power-up off the loop thread."""
-    arm = _Activating("arm")
-    e = _Effects(RobotState.READY, [arm])
+@pytest.mark.parametrize("event", ["enable", "reset"])
+def test_a_part_that_raises_as_a_power_up_lands_answers_it_and_is_a_plugin_error(
+    event: str,
+) -> None:
+    """An exception (not a refusal) from the transition that completes a power-up or a
+    reset off the loop thread: the operator's Enable or Reset is answered with it, and it is a
+    plugin error (FAULT naming it) saying where it came from."""
+    enable = event == "enable"
+    arm = _Activating("arm") if enable else _Resetting("arm")
+    e = _Effects(RobotState.READY if enable else RobotState.FAULT, [arm])
     err = RuntimeError("the bus is gone")
-    e.hw.verify_error = err
-    answer = e.fx.request("enable", "operator Enable")
+    if enable:
+        e.hw.verify_error = err
+    else:
+        e.hw.reset_error = err
+    answer = e.fx.request(event, f"operator {event}")
     e.landed()
-    assert answer.result == (False, "enable failed: the bus is gone")  # type: ignore[union-attr]
+    assert answer.result == (False, f"{event} failed: the bus is gone")  # type: ignore[union-attr]
     ((where, raised),) = e.parts.of("plugin_error")
-    assert where == "enable (off the loop thread)" and raised is err
+    assert where == f"{event} (off the loop thread)" and raised is err
 
 
 @pytest.mark.req("SR-HW-39")
@@ -884,7 +905,6 @@ def test_a_reset_off_the_loop_is_completed_with_its_failures_and_its_reason() ->
     """Reset of a drive latched FAULT whose fault reset waits: a Deferred; landed, the loop's
     reset is given what failed on the thread (that drive is not reset twice), vetoed while
     it failed; a Reset that worked says its reason in the READY STATUS."""
-    from occ.net.commands import Deferred
 
     arm = _Resetting("arm", RuntimeError("node 2: still FAULT"))
     e = _Effects(RobotState.FAULT, [arm])
@@ -895,7 +915,7 @@ def test_a_reset_off_the_loop_is_completed_with_its_failures_and_its_reason() ->
     assert e.hw.calls == [("reset", TICK, [failure])]
     assert e.states.state is RobotState.FAULT
     assert first.result is not None and not first.result[0]
-    arm.err = None
+    arm.reset_err = None
     second = e.fx.request("reset", "operator Reset")
     e.landed()
     assert second.result == (True, "FAULT -> READY")  # type: ignore[union-attr]
@@ -914,3 +934,66 @@ def test_other_events_in_fault_go_through_at_once_whatever_drives_wait(event: st
     new = {"estop": "ESTOP", "shutdown": "SHUTDOWN", "fault": "FAULT"}[event]
     assert e.fx.request(event, "test") == f"FAULT -> {new}"
     assert e.fx.powerup is None and arm.state is DriverState.FAULT
+
+
+@pytest.mark.req("SR-HW-39")
+def test_a_disable_or_a_stop_during_a_power_up_cancels_it_and_is_answered_at_once() -> None:
+    """A Disable (or a Stop) while a drive powers up: no transition (READY stays), each
+    activation cancelled in the operator's words, the reply at once; a second one changes
+    nothing. The drive that came up all the same is switched off (not safe-stopped: nothing
+    latches) when the loop collects it."""
+    gate = threading.Event()
+    arm = _Activating("arm", release=gate)
+    e = _Effects(RobotState.READY, [arm])
+    answer = e.fx.request("enable", "operator Enable")
+    wait_for(lambda: arm.thread is not None)
+    said = "READY: the power-up is cancelled; its drives go off as it ends"
+    assert e.fx.request("disable", "operator Disable") == said
+    assert e.fx.request("Stop", "operator Stop") == said
+    assert arm.asked == [("cancel", "operator Disable (disable)")]
+    assert answer.result == (  # type: ignore[union-attr]
+        False,
+        "Enable cancelled while the drives worked: operator Disable (disable)",
+    )
+    gate.set()
+    e.landed()
+    assert e.states.state is RobotState.READY and arm.state is DriverState.INACTIVE
+    assert e.hw.calls == [("deactivate",)] and arm.asked == [
+        ("cancel", "operator Disable (disable)")
+    ]
+    assert e.parts.of("broadcast") == []
+
+
+@pytest.mark.req("SR-HW-39")
+def test_an_estop_after_a_reset_landed_still_stops_the_next_power_up() -> None:
+    """A Reset completed off the loop, then an Enable whose drive powers up, then an EStop:
+    the EStop stops that power-up at once (the drive's safe stop, the Enable refused), as it
+    would had no Reset come before; what the landed Reset left behind decides nothing."""
+    gate = threading.Event()
+    arm = _Resetting("arm", release=gate)
+    e = _Effects(RobotState.FAULT, [arm])
+    assert isinstance(e.fx.request("reset", "operator Reset"), Deferred)
+    e.landed()
+    assert e.states.state is RobotState.READY
+    answer = e.fx.request("enable", "operator Enable")
+    wait_for(lambda: arm.thread is not None)
+    assert e.fx.request("estop", "operator EStop") == "READY -> ESTOP"
+    why = "estop: READY -> ESTOP"
+    assert arm.asked == [("safe_stop", why)]
+    assert answer.result == (False, f"Enable cancelled while the drives worked: {why}")  # type: ignore[union-attr]
+    gate.set()
+    e.landed()
+    assert e.states.state is RobotState.ESTOP
+    assert arm.asked == [("safe_stop", why), ("safe_stop", why)]
+
+
+@pytest.mark.req("SR-HW-39")
+def test_a_power_up_without_an_answer_can_be_stopped() -> None:
+    """A PowerUp asked by no operator (no answer to give) is stopped like any other: each
+    drive safe-stopped, nothing to refuse."""
+    from occ.core.powerup import PowerUp
+
+    a = _Drive("arm")
+    pu = PowerUp([a], "--start")  # type: ignore[list-item]
+    pu.cancel("EStop", stop=True)
+    assert a.asked == [("safe_stop", "EStop")] and pu.cancelled == "EStop" and pu.answer is None
