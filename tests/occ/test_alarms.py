@@ -513,6 +513,18 @@ def test_every_status_sent_is_recorded_and_tapped_as_going_out_to_everyone() -> 
     assert len(rec.recorded) == 3  # the failure's own STATUS; none after it was unwatched
 
 
+def test_a_robot_name_longer_than_a_device_name_is_cut_to_its_20_bytes() -> None:
+    """OpenIGTLink's device name holds 20 bytes: every STATUS of a robot named longer carries
+    the name's first 20 characters, and packs (one character more would not)."""
+    rig = Rig()
+    name = "slave-left-arm-of-cell-3"  # 24 characters
+    alarms = Alarms(name, rig.states, Clock(), rig._send, rig.drives, rig.streams)  # type: ignore[arg-type]
+    alarms.broadcast("ALERT", "one", igtl.StatusCode.OK)
+    (m,) = rig.sent
+    assert m.device_name == name[:20] == "slave-left-arm-of-ce"
+    assert igtl.unpack(m.pack()).device_name == name[:20]
+
+
 def test_a_new_alarms_is_not_stopping_and_notes_a_bystanders_loss_as_a_loss() -> None:
     rig = Rig()
     assert rig.alarms.safety_stopping is False and rig.alarms.recorder is None

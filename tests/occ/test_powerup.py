@@ -6,11 +6,16 @@ The emulator's own thread answers the activation's SYNCs; a test holds it
 (:meth:`DriveEmulator.held`) to keep the activation waiting while the loop ticks, and waits on
 the wall clock for the activation's thread (``StateEffects.await_power_up``) without ticking, so the
 ticks the test counts are its own.
+
+The last part takes :class:`~occ.core.transitions.StateEffects` alone, on recording fakes of
+its narrow ports and the real state machine: what each transition asks of the drives and the
+robot's parts, and with which arguments.
 """
 
 from __future__ import annotations
 
 import itertools
+import logging
 import threading
 import time
 from collections.abc import Iterator
@@ -20,10 +25,12 @@ import pytest
 
 import igtl
 from occ.clock import SimClock
+from occ.core.hardware import HardwareFailure
 from occ.core.loader import load_config
 from occ.core.safety import RobotState
 from occ.drivers.base import DriverState
 from occ.drivers.cia402_sim import DriveEmulator
+from occ.net.commands import Deferred
 from occ_testkit import CONFIGS
 from occ_testkit.testing import SimPeer, SimRobot, wait_until
 
@@ -470,6 +477,12 @@ def test_waiting_for_no_power_up_is_at_once_true() -> None:
     sim = SimRobot(CONFIGS / "slave.yaml")
     try:
         assert sim.robot.effects.powerup is None and sim.robot.effects.await_power_up(0.0)
+        # GetStats before any power-up: none under way, none counted, no time taken (null)
+        assert sim.robot.snapshot()["power_up"] == {
+            "under_way": False,
+            "count": 0,
+            "last_ms": None,
+        }
     finally:
         sim.close()
 
@@ -561,3 +574,420 @@ def test_a_shutdown_while_powering_up_stops_every_drive_and_refuses_the_enable(
     assert pu.answer.result == (False, "Enable cancelled while the drives worked: shutdown")
     assert r.robot.effects.powerup is None
     assert r.arm.state is DriverState.FAULT and r.robot.hardware.all_safe()
+
+
+# ------------------------------------------------ StateEffects alone, with recording fakes
+# What each state change asks of the drives and of the robot's parts, and with which
+# arguments: the HardwareSet, the data, the controllers, the setpoints, the streams and the
+# alarms are small fakes recording each call; the state machine is the real one, wired to the
+# effects as occ/core/wiring.py ``build_effects`` does. The slow drives are _Activating ones,
+# on the PowerUp's real threads (waited for on the wall clock, no tick).
+
+#: the tick under way (``tick_now``), the clock's own time and its wall time: three values, so
+#: each use says which one it took
+TICK, CLOCK_NOW, WALL = 3.25, 7.0, 1000.5
+
+
+class _Resetting(_Activating):
+    """A drive latched FAULT whose fault reset runs on the PowerUp's thread: it fails with
+    ``reset_err`` or clears the fault; then it powers up as an _Activating one."""
+
+    def __init__(self, name: str, reset_err: Exception | None = None, release: Any = None) -> None:
+        super().__init__(name, release=release)
+        self.state = DriverState.FAULT
+        self.reset_err = reset_err
+
+    def reset(self) -> None:
+        if self.reset_err is not None:
+            raise self.reset_err
+        self.state = DriverState.INACTIVE
+
+
+class _Hardware:
+    """The HardwareSet as StateEffects uses it: ``slow`` are the drives whose activation
+    waits; each call is recorded with its arguments; activate and reset fail with what they
+    were given (the power-up's failures), deactivate with ``stop_failures``."""
+
+    def __init__(self, slow: list[Any]) -> None:
+        self.slow = slow
+        self.busy: frozenset[Any] = frozenset()
+        self.calls: list[tuple[Any, ...]] = []
+        self.stop_failures: list[Any] = []
+        self.verify_error: Exception | None = None
+        self.reset_error: Exception | None = None
+
+    def waiting(self, state: DriverState = DriverState.INACTIVE) -> list[Any]:
+        return [d for d in self.slow if d.state is state and d not in self.busy]
+
+    def hold(self, drivers: Any) -> None:
+        self.busy = self.busy | frozenset(drivers)
+
+    def release(self, drivers: Any) -> None:
+        self.busy = self.busy - frozenset(drivers)
+
+    def activate(self, prior: Any = ()) -> list[Any]:
+        self.calls.append(("activate", list(prior)))
+        return list(prior)
+
+    def verify(self, joints: Any, now: float, effort: bool = False) -> list[Any]:
+        self.calls.append(("verify", now, effort))
+        if self.verify_error is not None:
+            raise self.verify_error
+        return []
+
+    def deactivate(self) -> list[Any]:
+        self.calls.append(("deactivate",))
+        for d in self.slow:
+            if d.state is DriverState.ACTIVE:
+                d.state = DriverState.INACTIVE
+        return list(self.stop_failures)
+
+    def reset(self, now: float | None = None, prior: Any = ()) -> list[Any]:
+        self.calls.append(("reset", now, list(prior)))
+        if self.reset_error is not None:
+            raise self.reset_error
+        return list(prior)
+
+    def unsafe(self) -> list[Any]:
+        return []
+
+    def unmeasured(self, joints: Any) -> str:
+        return ""
+
+
+class _Parts:
+    """The data, controllers, setpoints (motion), streams and alarms: one recorder of every
+    call made to any of them, in order."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[Any, ...]] = []
+        self.state: RobotState | None = None  # the data's
+        self.commands_effort = False  # the controllers'
+
+    # data
+    def measured_from(self, joints: Any) -> None:
+        self.calls.append(("measured_from",))
+
+    # controllers, motion
+    def on_state(self, *args: Any) -> None:
+        self.calls.append(("controller" if len(args) == 3 else "motion", *args))
+
+    # streams
+    def reset(self) -> None:
+        self.calls.append(("streams.reset",))
+
+    # alarms
+    def broadcast(self, name: str, text: str, code: int, timestamp: float | None = None) -> None:
+        self.calls.append(("broadcast", name, text, code, timestamp))
+
+    def cleared(self) -> None:
+        self.calls.append(("cleared",))
+
+    def fault(self, reason: str) -> None:
+        self.calls.append(("fault", reason))
+
+    def hardware_alert(self, failures: Any) -> None:
+        self.calls.append(("hardware_alert", list(failures)))
+
+    def plugin_error(self, where: str, err: BaseException) -> None:
+        self.calls.append(("plugin_error", where, err))
+
+    def of(self, kind: str) -> list[tuple[Any, ...]]:
+        return [c[1:] for c in self.calls if c[0] == kind]
+
+
+class _Clock:
+    def now(self) -> float:
+        return CLOCK_NOW
+
+    def wall_time(self) -> float:
+        return WALL
+
+
+class _Effects:
+    """StateEffects on the fakes, in ``state``, in the middle of a tick at TICK."""
+
+    def __init__(self, state: RobotState, slow: list[Any] | None = None) -> None:
+        from occ.core.safety import StateMachine
+        from occ.core.transitions import StateEffects
+
+        self.hw = _Hardware(slow or [])
+        self.parts = p = _Parts()
+        self.states = StateMachine(state, clock=_Clock())
+        fx = StateEffects(self.hw, [], _Clock(), p, p, p, p, p)  # type: ignore[arg-type]
+        fx.states = self.states
+        self.states.add_listener(fx.on_transition)
+        self.states.add_guard(fx.may_power)
+        self.states.set_effector(fx.effect)
+        fx.tick_now = TICK
+        self.fx = fx
+
+    def landed(self) -> None:
+        """The power-up's threads have ended (wall clock); the loop's tick collects it."""
+        assert self.fx.await_power_up(10.0)
+        self.fx.land()
+        assert self.fx.powerup is None
+
+
+@pytest.mark.req("SR-HOLD-1")
+def test_each_state_change_tells_each_part_its_old_and_new_state_at_the_ticks_time(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The setpoints (Motion.on_state decides the held setpoint from both states: the
+    measured position on power-up, what the drives were last told on a stop from RUNNING),
+    the controllers (both states and the tick's time, as a replay sees it), the streams
+    (re-armed on entering RUNNING only: the first packet after Run arms the loss monitor) and
+    every operator (a STATUS named for the new state, ``old -> new`` and the reason if one
+    was given, stamped with the transition's time). The log says each one, a warning when
+    the robot stops."""
+    from occ.net.outputs import STATE_STATUS_CODE
+
+    caplog.set_level(logging.INFO, logger="occ.core.robot")
+    e = _Effects(RobotState.READY)
+    assert e.fx.request("enable", "") == "READY -> ENABLED"
+    assert e.fx.request("run", "operator Run") == "ENABLED -> RUNNING"
+    assert e.fx.request("stop", "operator Stop") == "RUNNING -> STOPPED"
+    seen = [c for c in e.parts.calls if c[0] != "measured_from"]
+    R, E, RUN, S = RobotState.READY, RobotState.ENABLED, RobotState.RUNNING, RobotState.STOPPED
+    code = STATE_STATUS_CODE
+    assert seen == [
+        ("motion", R, E),
+        ("controller", R, E, TICK),
+        ("broadcast", "ENABLED", "READY -> ENABLED", code[E], WALL),
+        ("motion", E, RUN),
+        ("streams.reset",),
+        ("controller", E, RUN, TICK),
+        ("broadcast", "RUNNING", "ENABLED -> RUNNING: operator Run", code[RUN], WALL),
+        ("motion", RUN, S),
+        ("controller", RUN, S, TICK),
+        ("broadcast", "STOPPED", "RUNNING -> STOPPED: operator Stop", code[S], WALL),
+    ]
+    assert e.parts.state is S  # the data's state: what the tick reads
+    assert [(r.levelno, r.getMessage()) for r in caplog.records] == [
+        (logging.INFO, "state READY -> ENABLED (enable)"),
+        (logging.INFO, "state ENABLED -> RUNNING (run): operator Run"),
+        (logging.WARNING, "state RUNNING -> STOPPED (stop): operator Stop"),
+    ]
+
+
+@pytest.mark.req("SR-HW-19")
+def test_failures_are_news_again_only_after_fault_or_estop_is_left_not_after_a_disable() -> None:
+    """``Alarms.cleared`` (failures told become news again) follows a Reset out of FAULT or
+    ESTOP, never a Disable out of ENABLED: a drive that failed to stop in that Disable has
+    been told once, and stays told in the FAULT that follows."""
+    e = _Effects(RobotState.ENABLED)
+    e.fx.request("disable", "operator Disable")
+    assert e.parts.of("cleared") == []
+    for latched in ("fault", "estop"):
+        e.fx.request(latched, "test")
+        e.fx.request("reset", "operator Reset")
+        assert e.states.state is RobotState.READY
+        assert e.parts.of("cleared") == [()] * (1 if latched == "fault" else 2)
+
+
+@pytest.mark.req("SR-HW-16")
+@pytest.mark.parametrize("effort", [False, True])
+def test_enable_is_verified_as_the_controllers_command_position_or_effort(effort: bool) -> None:
+    """An Enable powered in the tick is proven by a checked read and a write of what the
+    controllers command: the held position, or zero effort on an effort drive (verify's
+    ``effort``); the reading it used is already the loop's, not taken again."""
+    e = _Effects(RobotState.READY)
+    e.parts.commands_effort = effort
+    assert e.fx.request("enable", "operator Enable") == "READY -> ENABLED"
+    assert e.hw.calls == [("activate", []), ("verify", TICK, effort)]
+    assert e.parts.of("measured_from") == []
+
+
+@pytest.mark.req("SR-HW-39")
+def test_a_power_up_off_the_loop_lands_with_its_reason_its_time_and_a_fresh_reading() -> None:
+    """Enable with a drive whose activation waits: a Deferred, counted; landed, the Enable
+    completes with the operator's reason (the ENABLED STATUS says it), the held setpoint
+    starts from verify's fresh reading, and GetStats's ``last_ms`` is the time it took in
+    milliseconds to the microsecond. A second power-up is counted too."""
+
+    arm = _Activating("arm")
+    e = _Effects(RobotState.READY, [arm])
+    assert e.fx.last_powerup_ms is None and e.fx.powerups == 0
+    answer = e.fx.request("enable", "operator Enable")
+    assert isinstance(answer, Deferred) and e.fx.powerups == 1
+    assert e.hw.busy == {arm} and e.hw.calls == []
+    assert e.fx.await_power_up(10.0)
+    assert e.fx.powerup is not None
+    e.fx.powerup.took_s = 0.0123456  # measured on the wall clock: fixed here
+    e.landed()
+    assert answer.result == (True, "READY -> ENABLED")
+    assert e.fx.last_powerup_ms == 12.346
+    assert e.hw.busy == frozenset()
+    assert e.hw.calls == [("activate", []), ("verify", TICK, False)]
+    assert e.parts.of("measured_from") == [()]
+    (status,) = e.parts.of("broadcast")
+    assert status[:2] == ("ENABLED", "READY -> ENABLED: operator Enable")
+    e.fx.request("disable", "operator Disable")
+    again = e.fx.request("enable", "--start")
+    assert isinstance(again, Deferred) and e.fx.powerups == 2
+    e.landed()
+    assert again.result == (True, "READY -> ENABLED")
+    assert e.parts.of("broadcast")[-1][:2] == ("ENABLED", "READY -> ENABLED: --start")
+
+
+@pytest.mark.req("SR-HW-39")
+def test_a_power_up_that_failed_off_the_loop_vetoes_enable_with_its_failure() -> None:
+    """A drive whose activation failed on its thread: the loop's Enable is given that failure
+    (the HardwareSet powers nothing else and switches off what came up), vetoed, FAULT, and the
+    operator's reply names the drive and its cause."""
+    arm = _Activating("arm", RuntimeError("node 2 in SWITCHED ON"))
+    e = _Effects(RobotState.READY, [arm])
+    answer = e.fx.request("enable", "operator Enable")
+    e.landed()
+    failure = HardwareFailure("arm", "activate", "node 2 in SWITCHED ON")
+    assert e.hw.calls[0] == ("activate", [failure])
+    assert e.states.state is RobotState.FAULT
+    assert answer.result is not None and not answer.result[0]  # type: ignore[union-attr]
+    assert "driver arm: activate failed: node 2 in SWITCHED ON" in answer.result[1]  # type: ignore[union-attr]
+
+
+@pytest.mark.req("SR-HW-39", "SR-HW-17")
+def test_a_drive_up_after_an_estop_stopped_its_power_up_is_stopped_again_in_those_words() -> None:
+    """An EStop while a drive powers up: its safe stop, in the EStop's words; the drive comes
+    up all the same (its activation had got past the stop), so the loop, collecting the
+    power-up, safe-stops it again in the same words and switches every drive off; a drive
+    whose switch-off fails there is an alert naming it."""
+    gate = threading.Event()
+    arm = _Activating("arm", release=gate)
+    e = _Effects(RobotState.READY, [arm])
+    answer = e.fx.request("enable", "operator Enable")
+    wait_for(lambda: arm.thread is not None)  # its activation has begun: the stop is too late
+    assert e.fx.request("estop", "operator EStop") == "READY -> ESTOP"
+    why = "estop: READY -> ESTOP"
+    assert arm.asked == [("safe_stop", why)]
+    assert answer.result == (False, f"Enable cancelled while the drives worked: {why}")  # type: ignore[union-attr]
+    failed = [HardwareFailure("tool", "deactivate", "bus off")]
+    e.hw.stop_failures = failed
+    gate.set()
+    e.landed()
+    assert arm.asked == [("safe_stop", why), ("safe_stop", why)]
+    assert e.hw.calls == [("deactivate",)]
+    assert e.parts.of("hardware_alert") == [(failed,)]
+    assert e.states.state is RobotState.ESTOP
+
+
+@pytest.mark.req("SR-EXC-1")
+@pytest.mark.parametrize("event", ["enable", "reset"])
+def test_a_part_that_raises_as_a_power_up_lands_answers_it_and_is_a_plugin_error(
+    event: str,
+) -> None:
+    """An exception (not a refusal) from the transition that completes a power-up or a
+    reset off the loop thread: the operator's Enable or Reset is answered with it, and it is a
+    plugin error (FAULT naming it) saying where it came from."""
+    enable = event == "enable"
+    arm = _Activating("arm") if enable else _Resetting("arm")
+    e = _Effects(RobotState.READY if enable else RobotState.FAULT, [arm])
+    err = RuntimeError("the bus is gone")
+    if enable:
+        e.hw.verify_error = err
+    else:
+        e.hw.reset_error = err
+    answer = e.fx.request(event, f"operator {event}")
+    e.landed()
+    assert answer.result == (False, f"{event} failed: the bus is gone")  # type: ignore[union-attr]
+    ((where, raised),) = e.parts.of("plugin_error")
+    assert where == f"{event} (off the loop thread)" and raised is err
+
+
+@pytest.mark.req("SR-HW-39")
+def test_a_reset_off_the_loop_is_completed_with_its_failures_and_its_reason() -> None:
+    """Reset of a drive latched FAULT whose fault reset waits: a Deferred; landed, the loop's
+    reset is given what failed on the thread (that drive is not reset twice), vetoed while
+    it failed; a Reset that worked says its reason in the READY STATUS."""
+
+    arm = _Resetting("arm", RuntimeError("node 2: still FAULT"))
+    e = _Effects(RobotState.FAULT, [arm])
+    first = e.fx.request("reset", "operator Reset")
+    assert isinstance(first, Deferred)
+    e.landed()
+    failure = HardwareFailure("arm", "reset", "node 2: still FAULT")
+    assert e.hw.calls == [("reset", TICK, [failure])]
+    assert e.states.state is RobotState.FAULT
+    assert first.result is not None and not first.result[0]
+    arm.reset_err = None
+    second = e.fx.request("reset", "operator Reset")
+    e.landed()
+    assert second.result == (True, "FAULT -> READY")  # type: ignore[union-attr]
+    assert e.hw.calls[-1] == ("reset", TICK, [])
+    assert e.parts.of("broadcast")[-1][:2] == ("READY", "FAULT -> READY: operator Reset")
+    assert e.fx.powerups == 0  # a reset is no power-up
+
+
+@pytest.mark.req("SR-STATE-1")
+@pytest.mark.parametrize("event", ["estop", "shutdown", "fault"])
+def test_other_events_in_fault_go_through_at_once_whatever_drives_wait(event: str) -> None:
+    """Only a Reset of FAULT or ESTOP waits for drives whose fault reset waits: an EStop, a
+    shutdown or a Fault in FAULT is the state machine's at once, no power-up started."""
+    arm = _Resetting("arm")
+    e = _Effects(RobotState.FAULT, [arm])
+    new = {"estop": "ESTOP", "shutdown": "SHUTDOWN", "fault": "FAULT"}[event]
+    assert e.fx.request(event, "test") == f"FAULT -> {new}"
+    assert e.fx.powerup is None and arm.state is DriverState.FAULT
+
+
+@pytest.mark.req("SR-HW-39")
+def test_a_disable_or_a_stop_during_a_power_up_cancels_it_and_is_answered_at_once() -> None:
+    """A Disable (or a Stop) while a drive powers up: no transition (READY stays), each
+    activation cancelled in the operator's words, the reply at once; a second one changes
+    nothing. The drive that came up all the same is switched off (not safe-stopped: nothing
+    latches) when the loop collects it."""
+    gate = threading.Event()
+    arm = _Activating("arm", release=gate)
+    e = _Effects(RobotState.READY, [arm])
+    answer = e.fx.request("enable", "operator Enable")
+    wait_for(lambda: arm.thread is not None)
+    said = "READY: the power-up is cancelled; its drives go off as it ends"
+    assert e.fx.request("disable", "operator Disable") == said
+    assert e.fx.request("Stop", "operator Stop") == said
+    assert arm.asked == [("cancel", "operator Disable (disable)")]
+    assert answer.result == (  # type: ignore[union-attr]
+        False,
+        "Enable cancelled while the drives worked: operator Disable (disable)",
+    )
+    gate.set()
+    e.landed()
+    assert e.states.state is RobotState.READY and arm.state is DriverState.INACTIVE
+    assert e.hw.calls == [("deactivate",)] and arm.asked == [
+        ("cancel", "operator Disable (disable)")
+    ]
+    assert e.parts.of("broadcast") == []
+
+
+@pytest.mark.req("SR-HW-39")
+def test_an_estop_after_a_reset_landed_still_stops_the_next_power_up() -> None:
+    """A Reset completed off the loop, then an Enable whose drive powers up, then an EStop:
+    the EStop stops that power-up at once (the drive's safe stop, the Enable refused), as it
+    would had no Reset come before; what the landed Reset left behind decides nothing."""
+    gate = threading.Event()
+    arm = _Resetting("arm", release=gate)
+    e = _Effects(RobotState.FAULT, [arm])
+    assert isinstance(e.fx.request("reset", "operator Reset"), Deferred)
+    e.landed()
+    assert e.states.state is RobotState.READY
+    answer = e.fx.request("enable", "operator Enable")
+    wait_for(lambda: arm.thread is not None)
+    assert e.fx.request("estop", "operator EStop") == "READY -> ESTOP"
+    why = "estop: READY -> ESTOP"
+    assert arm.asked == [("safe_stop", why)]
+    assert answer.result == (False, f"Enable cancelled while the drives worked: {why}")  # type: ignore[union-attr]
+    gate.set()
+    e.landed()
+    assert e.states.state is RobotState.ESTOP
+    assert arm.asked == [("safe_stop", why), ("safe_stop", why)]
+
+
+@pytest.mark.req("SR-HW-39")
+def test_a_power_up_without_an_answer_can_be_stopped() -> None:
+    """A PowerUp asked by no operator (no answer to give) is stopped like any other: each
+    drive safe-stopped, nothing to refuse."""
+    from occ.core.powerup import PowerUp
+
+    a = _Drive("arm")
+    pu = PowerUp([a], "--start")  # type: ignore[list-item]
+    pu.cancel("EStop", stop=True)
+    assert a.asked == [("safe_stop", "EStop")] and pu.cancelled == "EStop" and pu.answer is None
