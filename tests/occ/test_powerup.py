@@ -856,7 +856,9 @@ def test_a_drive_up_after_an_estop_stopped_its_power_up_is_stopped_again_in_thos
     arm = _Activating("arm", release=gate)
     e = _Effects(RobotState.READY, [arm])
     answer = e.fx.request("enable", "operator Enable")
-    wait_for(lambda: arm.thread is not None)  # its activation has begun: the stop is too late
+    assert wait_until(
+        lambda: arm.thread is not None, 5.0, 0.001
+    )  # its activation has begun: the stop is too late
     assert e.fx.request("estop", "operator EStop") == "READY -> ESTOP"
     why = "estop: READY -> ESTOP"
     assert arm.asked == [("safe_stop", why)]
@@ -940,7 +942,7 @@ def test_a_disable_or_a_stop_during_a_power_up_cancels_it_and_is_answered_at_onc
     arm = _Activating("arm", release=gate)
     e = _Effects(RobotState.READY, [arm])
     answer = e.fx.request("enable", "operator Enable")
-    wait_for(lambda: arm.thread is not None)
+    assert wait_until(lambda: arm.thread is not None, 5.0, 0.001)
     said = "READY: the power-up is cancelled; its drives go off as it ends"
     assert e.fx.request("disable", "operator Disable") == said
     assert e.fx.request("Stop", "operator Stop") == said
@@ -970,7 +972,7 @@ def test_an_estop_after_a_reset_landed_still_stops_the_next_power_up() -> None:
     e.landed()
     assert e.states.state is RobotState.READY
     answer = e.fx.request("enable", "operator Enable")
-    wait_for(lambda: arm.thread is not None)
+    assert wait_until(lambda: arm.thread is not None, 5.0, 0.001)
     assert e.fx.request("estop", "operator EStop") == "READY -> ESTOP"
     why = "estop: READY -> ESTOP"
     assert arm.asked == [("safe_stop", why)]
