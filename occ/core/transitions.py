@@ -38,6 +38,8 @@ from occ.net.outputs import STATE_STATUS_CODE
 from occ.net.streams import StreamInputs
 
 log = logging.getLogger("occ.core.robot")
+#: the states whose entry switches every drive still ACTIVE off, whatever the state before
+_STOPS = frozenset({RobotState.FAULT, RobotState.ESTOP})
 
 
 class StateEffects:
@@ -264,8 +266,12 @@ class StateEffects:
                     # the drives powered up off the loop were not read meanwhile: the held
                     # setpoint starts from verify's fresh reading, not the one before
                     self.data.measured_from(self.joints)
-        elif new not in POWERED and old in POWERED and (stopped := hw.deactivate()):
-            self.alarms.hardware_alert(stopped)
+        elif (old in POWERED or new in _STOPS) and new not in POWERED:
+            # off on leaving POWERED; and on entering FAULT or ESTOP from any state, every drive
+            # still ACTIVE (one powered by a transition that raised after activate: the robot
+            # never became ENABLED, yet its drives are on)
+            if stopped := hw.deactivate():
+                self.alarms.hardware_alert(stopped)
         if new is RobotState.READY and old in (RobotState.FAULT, RobotState.ESTOP):
             failures = hw.reset(self._now(), landed or ())
         return describe(failures)

@@ -22,12 +22,12 @@ import pytest
 
 import igtl
 from occ.clock import SimClock
+from occ.core.hardware import HardwareSet
+from occ.core.safety import RobotState
 from occ.drivers import register_driver
 from occ.drivers.base import DriverState
 from occ.drivers.sim import SimDriver
-from occ.core.hardware import HardwareSet
 from occ.joint import Joint, JointLimits
-from occ.core.safety import RobotState
 from occ_testkit.faultmatrix import slave_config
 from occ_testkit.testing import SimPeer, SimRobot
 
@@ -377,3 +377,29 @@ def test_getstats_reports_safety_of_every_drive(bench_factory: Any) -> None:
     hw = b.stats()["hardware"]
     assert hw["unsafe"] == {} and hw["all_safe"] is True
     json.dumps(hw)  # GetStats is JSON
+
+
+@pytest.mark.req("SR-HW-16")
+def test_a_power_up_that_raises_after_its_drives_came_up_leaves_none_of_them_on() -> None:
+    """Enable's check after the drives came up raises instead of naming a failure (a plugin's
+    bug): the robot is FAULT with the exception's words, and no drive is left ACTIVE, though
+    the robot never became ENABLED."""
+    sim = SimRobot(slave_config("sim"))
+    try:
+        op = sim.peer("operator")
+        sim.tick()
+
+        def broken(*args: Any, **kwargs: Any) -> list[Any]:
+            raise RuntimeError("verify broke")
+
+        sim.robot.hardware.verify = broken  # type: ignore[method-assign]
+        reply = sim.command(op, "Enable")
+        assert reply.metadata["Status"] == "FAIL" and "verify broke" in reply.metadata["Error"]
+        assert sim.robot.state_machine.state is RobotState.FAULT
+        drives = sim.robot.hardware.drivers
+        assert drives and all(d.state is not DriverState.ACTIVE for d in drives), [
+            (d.name, d.state) for d in drives
+        ]
+        assert sim.robot.hardware.all_safe()
+    finally:
+        sim.close()

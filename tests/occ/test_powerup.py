@@ -856,9 +856,8 @@ def test_a_drive_up_after_an_estop_stopped_its_power_up_is_stopped_again_in_thos
     arm = _Activating("arm", release=gate)
     e = _Effects(RobotState.READY, [arm])
     answer = e.fx.request("enable", "operator Enable")
-    assert wait_until(
-        lambda: arm.thread is not None, 5.0, 0.001
-    )  # its activation has begun: the stop is too late
+    # its activation has begun: the stop is too late
+    assert wait_until(lambda: arm.thread is not None, 5.0, 0.001)
     assert e.fx.request("estop", "operator EStop") == "READY -> ESTOP"
     why = "estop: READY -> ESTOP"
     assert arm.asked == [("safe_stop", why)]
@@ -868,7 +867,9 @@ def test_a_drive_up_after_an_estop_stopped_its_power_up_is_stopped_again_in_thos
     gate.set()
     e.landed()
     assert arm.asked == [("safe_stop", why), ("safe_stop", why)]
-    assert e.hw.calls == [("deactivate",)]
+    # entering ESTOP switched off what was ACTIVE (the arm, busy, is the power-up's); then
+    # the landing switched everything off again
+    assert e.hw.calls == [("deactivate",), ("deactivate",)]
     assert e.parts.of("hardware_alert") == [(failed,)]
     assert e.states.state is RobotState.ESTOP
 
