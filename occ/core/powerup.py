@@ -105,9 +105,10 @@ class PowerUp:
                 self._failures[driver.name] = failure
         finally:
             with self._lock:
-                self._left -= 1
-                if self._left == 0:
+                # the time first: the loop reads `done` without the lock, then `took_s`
+                if self._left == 1:
                     self.took_s = time.perf_counter() - self.started_at
+                self._left -= 1
 
     @property
     def done(self) -> bool:
