@@ -233,3 +233,47 @@ def test_a_part_is_acknowledged_only_with_its_passed_checks_identity_and_a_commo
         "members planned or checked different plans"
     )
     assert role._identity(cset, plan, {"cell": f" {ident} ", "startat": "1"}) == ident  # type: ignore[arg-type]
+
+
+@pytest.mark.req("SR-CELLPLAN-4")
+def test_an_acknowledged_plan_starts_at_the_loops_first_tick_after_its_start_at() -> None:
+    """A plan of no cell set starts now without ``StartAt``, and at the loop's first tick
+    at or after it with one; a cell set's part at the first tick after its common start."""
+    wall, now = 1_700_000_000.0, 50.0004
+    ctx = SimpleNamespace(
+        clock=SimpleNamespace(wall_time=lambda: wall), loop_t0=lambda: 2.0, period_s=0.002
+    )
+    role = CellRole(threading.Lock())
+    plan = SimpleNamespace(id=3)
+    kset = object()
+    assert role.ack(kset, plan, {}, ctx, now, 30.0) == (None, now)  # type: ignore[arg-type]
+    ident, t = role.ack(kset, plan, {"startat": f"{wall + 1.5}"}, ctx, now, 30.0)  # type: ignore[arg-type]
+    assert ident is None and t == pytest.approx(51.502, abs=1e-9)  # 51.5004 on 2 ms ticks
+    role.cset = SimpleNamespace(own=kset, name="turns")  # type: ignore[assignment]
+    role.checked = CellCheck(plan, "i" * 64, {})  # type: ignore[arg-type]
+    args = {"cell": "i" * 64, "startat": f"{wall + 0.25}"}
+    ident, t = role.ack(kset, plan, args, ctx, now, 30.0)  # type: ignore[arg-type]
+    assert ident == "i" * 64 and t == pytest.approx(50.252, abs=1e-9)
+    with pytest.raises(CommandError, match="runs only as one"):
+        role.ack(kset, plan, {"cell": "i" * 64}, ctx, now, 30.0)  # type: ignore[arg-type]
+
+
+#: SHA-256 of b"occ-cell-plan/1", b"arm0\0", the period, the shape (u8) and the base pose and
+#: the samples as little-endian float64 (computed by hand from that construction)
+PATH_DIGEST = "7093ef852adb38e36060b9a3a5e3f08c9e68d060a50ca8ca89bdfd815ea079e2"
+#: SHA-256 of b"occ-cell-plan/1/cell\0" + the set's digest, then b"\0" + member + b"=" + its
+#: path's digest for each member by name
+CELL_IDENTITY = "6c89b67beb3634f6d23e1c78b1f62da948a9153b45b972ca026f52028193b997"
+CELL_IDENTITY_UTF8 = "5e9d293be7f288549d609748741c48a02173783bf70232ba88a563e278d4ef91"
+
+
+@pytest.mark.req("SR-CELLPLAN-3")
+def test_the_identities_are_the_documented_hashes_so_builds_agree() -> None:
+    """A path's digest and a cell plan's identity, pinned: members running different builds
+    must compute them alike (a separator or an encoding changed would split the cell)."""
+    p = ArmPath("arm0", np.array([[0.0, 0.5], [0.25, -1.0]]), np.eye(4), 0.001)
+    assert path_digest(p) == PATH_DIGEST
+    plans = {"arm1": "b" * 64, "arm0": "a" * 64}
+    assert cell_identity("s" * 64, plans) == CELL_IDENTITY
+    # the same, member names not ASCII
+    assert cell_identity("s" * 64, {"bras-é": "a" * 64}) == CELL_IDENTITY_UTF8
