@@ -63,7 +63,7 @@ class Streams:
     policy: str = "hold"
 
 
-class Rig:
+class AlarmsRig:
     def __init__(self, state: RobotState = RobotState.RUNNING) -> None:
         self.states = States(state)
         self.sent: list[igtl.StatusMessage] = []
@@ -100,7 +100,7 @@ def event(kind: str, cause: str = "no packet for 100.00 ms") -> LossEvent:
 def test_a_loss_is_only_counted_when_the_stream_does_not_move_the_robot(
     state: RobotState,
 ) -> None:
-    rig = Rig(state)
+    rig = AlarmsRig(state)
     for kind in ("latch", "hold", "resume", "refused"):
         rig.alarms.loss_event(event(kind), state)
     assert rig.sent == [] and rig.states.asked == [] and rig.alarms.last_alert == ""
@@ -112,7 +112,7 @@ def test_a_loss_is_only_counted_when_the_stream_does_not_move_the_robot(
 @pytest.mark.req("SR-LOSS-1")
 @pytest.mark.parametrize("policy", ["hold", "fault"])
 def test_a_latched_loss_while_running_stops_the_robot_naming_the_stream(policy: str) -> None:
-    rig = Rig()
+    rig = AlarmsRig()
     rig.streams.policy = policy
     ev = event("latch", "3 packets lost (seq 10-12)")
     rig.alarms.loss_event(ev, RobotState.RUNNING)
@@ -125,7 +125,7 @@ def test_a_latched_loss_while_running_stops_the_robot_naming_the_stream(policy: 
 
 @pytest.mark.req("SR-LOSS-2")
 def test_a_hold_is_silent_and_a_resume_or_a_refusal_is_a_stream_warning() -> None:
-    rig = Rig()
+    rig = AlarmsRig()
     rig.alarms.loss_event(event("hold", "overdue"), RobotState.RUNNING)
     assert rig.sent == [] and rig.states.asked == []
     rig.alarms.loss_event(event("resume", "back after 9 ms"), RobotState.RUNNING)
@@ -141,7 +141,7 @@ def test_a_hold_is_silent_and_a_resume_or_a_refusal_is_a_stream_warning() -> Non
 
 @pytest.mark.req("SR-HW-18")
 def test_a_supervisor_trip_alerts_first_then_stops_every_drive_and_names_the_unproven() -> None:
-    rig = Rig()
+    rig = AlarmsRig()
     rig.alarms.on_supervisor_trip = lambda text: rig.order.append(f"cell {text}")
     rig.drives.safe_stop = lambda reason: (  # type: ignore[method-assign]
         rig.order.append(f"stop {reason}") or [HardwareFailure("arm", "stop", "no answer in 50 ms")]
@@ -171,7 +171,7 @@ def test_a_supervisor_trip_alerts_first_then_stops_every_drive_and_names_the_unp
 
 @pytest.mark.req("SR-SUP-1")
 def test_a_supervisor_trip_with_every_drive_stopped_is_one_status() -> None:
-    rig = Rig()
+    rig = AlarmsRig()
     rig.alarms.supervisor_trip("hung")
     assert rig.heard() == [("SUPERVISOR", "supervisor: hung", igtl.StatusCode.HARDWARE_FAILURE)]
     assert rig.drives.stops == ["hung"]
@@ -201,7 +201,7 @@ class Sup:
 def test_the_loop_back_after_a_trip_faults_unless_nothing_was_powered(
     state: RobotState, powered: bool, latched: bool
 ) -> None:
-    rig = Rig(state)
+    rig = AlarmsRig(state)
     rig.drives.powered = powered
     sup = Sup()
     assert rig.alarms.supervisor_back(sup) is latched  # type: ignore[arg-type]
@@ -220,7 +220,7 @@ def test_the_loop_back_after_a_trip_faults_unless_nothing_was_powered(
 def test_a_plugin_error_faults_once_naming_it_and_its_log_is_bounded(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    rig = Rig()
+    rig = AlarmsRig()
     caplog.set_level(logging.ERROR, logger="occ.core.robot")
     err = ZeroDivisionError("division by zero")
     rig.alarms.plugin_error("controller teleop.update", err)
@@ -244,7 +244,7 @@ def test_a_plugin_error_faults_once_naming_it_and_its_log_is_bounded(
 
 @pytest.mark.req("SR-HW-17")
 def test_drives_that_failed_to_stop_are_an_alert_and_are_not_told_again_while_faulted() -> None:
-    rig = Rig(RobotState.FAULT)
+    rig = AlarmsRig(RobotState.FAULT)
     failed = [HardwareFailure("arm", "stop", "bus off"), HardwareFailure("wrist", "stop", "EMCY")]
     rig.alarms.hardware_alert(failed)
     text = (
@@ -261,7 +261,7 @@ def test_drives_that_failed_to_stop_are_an_alert_and_are_not_told_again_while_fa
 def test_a_drive_failure_faults_naming_each_drive_and_is_noted_for_the_black_box(
     state: RobotState,
 ) -> None:
-    rig = Rig(state)
+    rig = AlarmsRig(state)
     failed = [HardwareFailure("arm", "read", "timeout"), HardwareFailure("tool", "write", "EMCY")]
     rig.alarms.hardware_fault(failed)
     reason = "driver arm: read failed: timeout; driver tool: write failed: EMCY"
@@ -280,7 +280,7 @@ def test_a_new_failure_while_faulted_is_an_alert_once_and_repeats_are_logged_bou
     while FAULT, are an ALERT to every operator, once each (drive and operation), never a
     transition; a failure told already is only logged, at most 20 times until a Reset."""
     caplog.set_level(logging.ERROR, logger="occ.core.robot")
-    rig = Rig(state)
+    rig = AlarmsRig(state)
     first = HardwareFailure("arm", "read", "timeout")
     rig.alarms.hardware_fault([first])
     w = state.value
@@ -316,7 +316,7 @@ def test_a_new_failure_while_faulted_is_an_alert_once_and_repeats_are_logged_bou
 
 @pytest.mark.req("SR-HW-19")
 def test_a_failure_that_faulted_the_robot_is_not_told_again_as_an_alert() -> None:
-    rig = Rig(RobotState.RUNNING)
+    rig = AlarmsRig(RobotState.RUNNING)
     failed = [HardwareFailure("arm", "write", "bus off")]
     rig.alarms.hardware_fault(failed)  # FAULT (the transition's STATUS names it)
     assert rig.states.state is RobotState.FAULT
@@ -333,12 +333,12 @@ def test_a_safety_stop_holds_a_moving_robot_faults_by_policy_and_tells_a_still_o
     latches FAULT; a robot not moving is told why, as an ALERT, and nothing changes."""
     caplog.set_level(logging.ERROR, logger="occ.core.robot")
     for state in (RobotState.RUNNING, RobotState.ENABLED):
-        rig = Rig(state)
+        rig = AlarmsRig(state)
         seen: list[bool] = []
         ask = rig.states.try_request
 
         def watching(
-            event: str, reason: str, rig: Rig = rig, ask: Any = ask, seen: list[bool] = seen
+            event: str, reason: str, rig: AlarmsRig = rig, ask: Any = ask, seen: list[bool] = seen
         ) -> None:
             seen.append(rig.alarms.safety_stopping)
             ask(event, reason)
@@ -348,11 +348,11 @@ def test_a_safety_stop_holds_a_moving_robot_faults_by_policy_and_tells_a_still_o
         assert rig.states.asked == [("stop", "watchdog: 20 consecutive overruns")]
         assert seen == [True] and rig.alarms.safety_stopping is False
         assert rig.sent == [] and rig.alarms.last_alert == "watchdog: 20 consecutive overruns"
-    rig = Rig(RobotState.RUNNING)
+    rig = AlarmsRig(RobotState.RUNNING)
     rig.alarms.safety_stop("collision: link 3 inside its margin", "fault")
     assert rig.states.asked == [("fault", "collision: link 3 inside its margin")]
     for state in (RobotState.READY, RobotState.STOPPED):
-        rig = Rig(state)
+        rig = AlarmsRig(state)
         rig.alarms.safety_stop("gap of 60.000 ms between ticks", "hold")
         assert rig.states.asked == []
         assert rig.heard() == [
@@ -364,7 +364,7 @@ def test_a_safety_stop_holds_a_moving_robot_faults_by_policy_and_tells_a_still_o
 
 @pytest.mark.req("SR-BOX-2")
 def test_a_black_box_dump_is_told_ok_or_as_a_resource_error() -> None:
-    rig = Rig()
+    rig = AlarmsRig()
     rig.alarms.black_box_written("black box of fault written to /tmp/x", True)
     rig.alarms.black_box_written("black box not written: disk full", False)
     assert rig.heard() == [
@@ -385,7 +385,7 @@ class Monitor:
 def test_a_bystanders_loss_while_not_running_only_rearms_its_monitor(state: RobotState) -> None:
     """A master not in control (collaboration) moves nothing: out of RUNNING its latch only
     re-arms its monitor (it may be handed control later), and nobody is told."""
-    rig = Rig(state)
+    rig = AlarmsRig(state)
     rig.streams.input = "mentor"
     mon = Monitor()
     for kind in ("hold", "resume", "latch"):
@@ -396,7 +396,7 @@ def test_a_bystanders_loss_while_not_running_only_rearms_its_monitor(state: Robo
 
 
 def test_a_bystanders_loss_while_running_alerts_and_never_stops_the_robot() -> None:
-    rig = Rig()
+    rig = AlarmsRig()
     rig.streams.input = "mentor"
     mon = Monitor()
     rig.alarms.bystander_loss("trainee", mon, event("hold"), RobotState.RUNNING)  # type: ignore[arg-type]
@@ -428,7 +428,7 @@ def test_a_bystanders_loss_while_running_alerts_and_never_stops_the_robot() -> N
 @pytest.mark.req("SR-COLL-2")
 @pytest.mark.parametrize(("policy", "event_"), [("hold", "stop"), ("fault", "fault")])
 def test_a_collision_is_a_collision_alert_then_the_safety_stop(policy: str, event_: str) -> None:
-    rig = Rig()
+    rig = AlarmsRig()
     why = "link wrist_3 within 4.0 mm of region table (margin 10.0 mm)"
     rig.alarms.collision_stop(why, policy)
     assert rig.heard() == [("COLLISION", why, igtl.StatusCode.ILLEGAL_INSTRUCTION)]
@@ -437,7 +437,7 @@ def test_a_collision_is_a_collision_alert_then_the_safety_stop(policy: str, even
 
 @pytest.mark.req("SR-REC-1")
 def test_a_recording_that_failed_is_a_recording_status_and_moves_nothing() -> None:
-    rig = Rig()
+    rig = AlarmsRig()
     rig.alarms.recording_failed("recording to /data/x.igtl failed: [Errno 28] No space left")
     assert rig.heard() == [
         (
@@ -454,7 +454,7 @@ def test_a_watchdog_alert_is_a_watchdog_status_with_its_reason(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     caplog.set_level(logging.WARNING, logger="occ.core.robot")
-    rig = Rig()
+    rig = AlarmsRig()
     rig.alarms.watchdog_alert("overrun: compute 1.200 ms > budget 1.000 ms (3 consecutive)", 7)
     assert rig.heard() == [
         (
@@ -486,7 +486,7 @@ def test_every_status_sent_is_recorded_and_tapped_as_going_out_to_everyone() -> 
     """A broadcast goes to every viewer and operator, into the recording (direction ``out``,
     interface ``*``, the loop clock's time) and to the black box's tap; a recorder that fails
     is announced by the alarms that watch it."""
-    rig = Rig()
+    rig = AlarmsRig()
     rec = Recorder()
     assert rig.alarms.watch_recording(rec) is rec and rig.alarms.recorder is rec
     tapped: list[tuple[Any, str]] = []
@@ -516,7 +516,7 @@ def test_every_status_sent_is_recorded_and_tapped_as_going_out_to_everyone() -> 
 def test_a_robot_name_longer_than_a_device_name_is_cut_to_its_20_bytes() -> None:
     """OpenIGTLink's device name holds 20 bytes: every STATUS of a robot named longer carries
     the name's first 20 characters, and packs (one character more would not)."""
-    rig = Rig()
+    rig = AlarmsRig()
     name = "slave-left-arm-of-cell-3"  # 24 characters
     alarms = Alarms(name, rig.states, Clock(), rig._send, rig.drives, rig.streams)  # type: ignore[arg-type]
     alarms.broadcast("ALERT", "one", igtl.StatusCode.OK)
@@ -526,7 +526,7 @@ def test_a_robot_name_longer_than_a_device_name_is_cut_to_its_20_bytes() -> None
 
 
 def test_a_new_alarms_is_not_stopping_and_notes_a_bystanders_loss_as_a_loss() -> None:
-    rig = Rig()
+    rig = AlarmsRig()
     assert rig.alarms.safety_stopping is False and rig.alarms.recorder is None
     rec = Recorder()
     given = Alarms("x", rig.states, Clock(), rig._send, rig.drives, rig.streams, recorder=rec)  # type: ignore[arg-type]

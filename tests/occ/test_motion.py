@@ -64,7 +64,7 @@ class Scripted(Controller):
             setpoint[:] = self.release
 
 
-class Rig:
+class MotionRig:
     def __init__(self, effort: bool = False, drives: bool = True, split: bool = False) -> None:
         self.joints = [
             Joint(f"j{i}", limits=JointLimits(-3.0, 3.0, velocity=v)) for i, v in enumerate(VMAX)
@@ -110,7 +110,7 @@ def test_the_drives_are_powered_in_enabled_running_and_stopped_only() -> None:
 
 # ------------------------------------------------------------------ positions
 def test_nothing_is_written_while_the_drives_are_off() -> None:
-    rig = Rig()
+    rig = MotionRig()
     rig.ctl.target = (1.0, 1.0, 1.0)
     for state in (S.INIT, S.READY, S.FAULT, S.ESTOP, S.SHUTDOWN):
         assert rig.tick(state, 0.0) is None
@@ -118,7 +118,7 @@ def test_nothing_is_written_while_the_drives_are_off() -> None:
 
 
 def test_enabled_holds_where_the_joints_were_at_power_up() -> None:
-    rig = Rig()
+    rig = MotionRig()
     rig.data.q[:] = [0.5, -0.5, 1.0]
     rig.enter(S.READY, S.ENABLED)
     rig.data.q[:] = [0.6, -0.4, 1.1]  # the joints sag: the hold is where they were
@@ -129,7 +129,7 @@ def test_enabled_holds_where_the_joints_were_at_power_up() -> None:
 
 
 def test_running_starts_from_the_hold_and_rejoins_the_target_at_half_the_velocity_limits() -> None:
-    rig = Rig()
+    rig = MotionRig()
     rig.enter(S.READY, S.ENABLED)
     sp = rig.data.setpoint
     rig.enter(S.RUNNING)
@@ -160,7 +160,7 @@ def test_running_starts_from_the_hold_and_rejoins_the_target_at_half_the_velocit
 
 @pytest.mark.req("SR-LOSS-2")
 def test_a_late_stream_holds_the_setpoint_and_the_resumed_one_rejoins_without_a_jump() -> None:
-    rig = Rig()
+    rig = MotionRig()
     rig.enter(S.READY, S.ENABLED, S.RUNNING)
     rig.ctl.target = (0.1, 0.2, 0.3)
     rig.tick(S.RUNNING, 0.001)
@@ -180,7 +180,7 @@ def test_a_late_stream_holds_the_setpoint_and_the_resumed_one_rejoins_without_a_
 
 
 def test_a_controller_that_holds_leaves_the_setpoint_where_it_is() -> None:
-    rig = Rig()
+    rig = MotionRig()
     rig.enter(S.READY, S.ENABLED, S.RUNNING)
     rig.ctl.target = None
     assert rig.tick(S.RUNNING, 0.001) == [0.1, 0.2, 0.3]
@@ -188,7 +188,7 @@ def test_a_controller_that_holds_leaves_the_setpoint_where_it_is() -> None:
 
 
 def test_a_stop_holds_what_the_drives_were_last_told_not_where_they_lag() -> None:
-    rig = Rig()
+    rig = MotionRig()
     rig.enter(S.READY, S.ENABLED, S.RUNNING)
     rig.ctl.target = (0.1, 0.2, 0.3)
     rig.tick(S.RUNNING, 0.001)
@@ -214,7 +214,7 @@ def test_while_stopped_the_controllers_may_move_the_held_setpoint_and_that_is_wr
     """STOPPED asks the controllers' ``hold`` each tick with its time and the held setpoint
     (a slave in contact lets go of the tissue); what they leave there is what the drives are
     told. ENABLED holds without asking them."""
-    rig = Rig()
+    rig = MotionRig()
     rig.data.q[:] = [0.1, 0.2, 0.3]
     rig.enter(S.READY, S.ENABLED)
     assert rig.tick(S.ENABLED, 0.001) == [0.1, 0.2, 0.3]
@@ -232,7 +232,7 @@ def test_while_stopped_the_controllers_may_move_the_held_setpoint_and_that_is_wr
 
 
 def test_running_back_to_enabled_holds_the_last_setpoint() -> None:
-    rig = Rig()
+    rig = MotionRig()
     rig.enter(S.READY, S.ENABLED, S.RUNNING)
     rig.ctl.target = (0.1, 0.2, 0.3)
     rig.tick(S.RUNNING, 0.001)
@@ -247,7 +247,7 @@ def test_running_back_to_enabled_holds_the_last_setpoint() -> None:
 def test_a_stop_from_enabled_holds_where_the_joints_are() -> None:
     """ENABLED -> STOPPED (a stop before Run): nothing was told while RUNNING, the hold is
     the measured position; STOPPED -> ENABLED (Reset) keeps it."""
-    rig = Rig()
+    rig = MotionRig()
     rig.enter(S.READY, S.ENABLED)
     rig.data.setpoint[:] = [7.0, 7.0, 7.0]
     rig.data.q[:] = [0.3, 0.2, 0.1]
@@ -260,7 +260,7 @@ def test_a_stop_from_enabled_holds_where_the_joints_are() -> None:
 
 
 def test_powering_up_again_after_a_fault_holds_where_the_joints_are_then() -> None:
-    rig = Rig()
+    rig = MotionRig()
     rig.enter(S.READY, S.ENABLED, S.RUNNING)
     rig.ctl.target = (0.1, 0.2, 0.3)
     rig.tick(S.RUNNING, 0.001)
@@ -273,7 +273,7 @@ def test_powering_up_again_after_a_fault_holds_where_the_joints_are_then() -> No
 
 
 def test_a_setpoint_the_collision_guard_does_not_admit_is_not_written() -> None:
-    rig = Rig()
+    rig = MotionRig()
     seen: list[list[float]] = []
     allow = [True]
 
@@ -312,7 +312,7 @@ def test_a_setpoint_the_collision_guard_does_not_admit_is_not_written() -> None:
 
 
 def test_a_hand_moved_device_is_never_written_its_controllers_run_while_following() -> None:
-    rig = Rig(drives=False)
+    rig = MotionRig(drives=False)
     assert not rig.set.drives_joints
     rig.enter(S.READY, S.ENABLED, S.RUNNING)
     rig.ctl.target = (1.0, 1.0, 1.0)
@@ -326,7 +326,7 @@ def test_a_hand_moved_device_is_never_written_its_controllers_run_while_followin
 def test_joints_a_controller_holds_keep_their_setpoint_while_the_others_follow() -> None:
     """Two controllers, each commanding its own joints: one that holds (None) leaves its
     joints where the robot last told them."""
-    rig = Rig(split=True)
+    rig = MotionRig(split=True)
     rig.enter(S.READY, S.ENABLED, S.RUNNING)
     rig.ctl.target = (0.1, 9.0, 9.0)  # only its joint 0 is taken
     rig.other.target = None
@@ -340,7 +340,7 @@ def test_joints_a_controller_holds_keep_their_setpoint_while_the_others_follow()
 
 # ------------------------------------------------------------------ efforts
 def test_a_haptic_master_gets_its_efforts_while_running_and_zero_otherwise() -> None:
-    rig = Rig(effort=True)
+    rig = MotionRig(effort=True)
     assert rig.set.commands_effort
     eff = rig.data.effort_command
     assert eff is not None
@@ -368,7 +368,7 @@ def test_a_haptic_master_gets_its_efforts_while_running_and_zero_otherwise() -> 
 
 
 def test_a_haptic_master_whose_controllers_share_the_joints_gets_each_ones_efforts() -> None:
-    rig = Rig(effort=True, split=True)
+    rig = MotionRig(effort=True, split=True)
     rig.enter(S.READY, S.ENABLED, S.RUNNING)
     eff = rig.data.effort_command
     assert eff is not None
@@ -407,7 +407,7 @@ def _drivers(effort_iface: bool, gains: bool) -> HardwareSet:
 def test_a_driver_that_cannot_take_the_controllers_commands_is_refused_at_build(
     effort_ctl: bool, effort_iface: bool, gains: bool, error: str | None
 ) -> None:
-    rig = Rig(effort=effort_ctl)
+    rig = MotionRig(effort=effort_ctl)
     hw = _drivers(effort_iface, gains)
     if error is None:
         Motion.check_command_kinds(rig.set, hw)
@@ -419,12 +419,12 @@ def test_a_driver_that_cannot_take_the_controllers_commands_is_refused_at_build(
 
 def test_a_hand_moved_device_on_effort_drives_without_gains_is_accepted() -> None:
     """It commands nothing: its drives need no PID gains for positions."""
-    rig = Rig(drives=False)
+    rig = MotionRig(drives=False)
     Motion.check_command_kinds(rig.set, _drivers(True, False))
 
 
 def test_efforts_to_effort_drives_need_no_gains() -> None:
-    rig = Rig(effort=True)
+    rig = MotionRig(effort=True)
     joints = [Joint(f"j{i}", limits=JointLimits(-3.0, 3.0, velocity=1.0)) for i in range(3)]
     Motion.check_command_kinds(
         rig.set, HardwareSet([(SimDriver("h", joints, command_interface="effort"), [0, 1, 2])])

@@ -39,7 +39,7 @@ _channels = itertools.count(1)
 START = {1: 0.0, 2: 0.1 * 52152.0, 3: 0.05 * 2.0e6}
 
 
-class Rig:
+class PowerUpRig:
     """The CiA 402 slave and its three emulated drives on one simulated clock."""
 
     def __init__(self, **params: Any) -> None:
@@ -102,10 +102,10 @@ class Rig:
 
 
 @pytest.fixture
-def rig() -> Iterator[type[Rig]]:
-    made: list[Rig] = []
+def rig() -> Iterator[type[PowerUpRig]]:
+    made: list[PowerUpRig] = []
 
-    class Made(Rig):
+    class Made(PowerUpRig):
         def __init__(self, **params: Any) -> None:
             made.append(self)
             super().__init__(**params)
@@ -116,7 +116,7 @@ def rig() -> Iterator[type[Rig]]:
 
 
 @pytest.mark.req("SR-HW-39")
-def test_enable_powers_the_drives_up_while_the_loop_goes_on_ticking(rig: type[Rig]) -> None:
+def test_enable_powers_the_drives_up_while_the_loop_goes_on_ticking(rig: type[PowerUpRig]) -> None:
     r = rig()
     assert r.arm.activation_waits
     with r.emu.held():  # the drives answer nothing yet: the activation waits
@@ -145,7 +145,7 @@ def test_enable_powers_the_drives_up_while_the_loop_goes_on_ticking(rig: type[Ri
 
 @pytest.mark.req("SR-HW-39")
 def test_a_node_that_never_enables_vetoes_enable_and_every_node_goes_off(
-    rig: type[Rig],
+    rig: type[PowerUpRig],
 ) -> None:
     r = rig(state_timeout_ms=100.0)
     r.emu.refuse_enable(2)
@@ -167,7 +167,7 @@ def test_a_node_that_never_enables_vetoes_enable_and_every_node_goes_off(
 
 
 @pytest.mark.req("SR-HW-39")
-def test_an_estop_while_powering_up_wins_every_node_off_and_estop(rig: type[Rig]) -> None:
+def test_an_estop_while_powering_up_wins_every_node_off_and_estop(rig: type[PowerUpRig]) -> None:
     r = rig()
     with r.emu.held():
         enable = r.op.send_command("Enable")
@@ -203,7 +203,7 @@ def test_an_estop_while_powering_up_wins_every_node_off_and_estop(rig: type[Rig]
 
 @pytest.mark.req("SR-HW-39")
 def test_a_disable_while_powering_up_cancels_it_and_the_drives_stay_usable(
-    rig: type[Rig],
+    rig: type[PowerUpRig],
 ) -> None:
     r = rig()
     with r.emu.held():
@@ -233,7 +233,7 @@ def test_a_disable_while_powering_up_cancels_it_and_the_drives_stay_usable(
 
 @pytest.mark.req("SR-HW-39")
 def test_the_supervisors_safe_stop_while_powering_up_switches_every_node_off(
-    rig: type[Rig],
+    rig: type[PowerUpRig],
 ) -> None:
     r = rig()
     with r.emu.held():
@@ -253,7 +253,7 @@ def test_the_supervisors_safe_stop_while_powering_up_switches_every_node_off(
 
 
 @pytest.mark.req("SR-HW-39")
-def test_start_enabled_powers_up_then_runs(rig: type[Rig]) -> None:
+def test_start_enabled_powers_up_then_runs(rig: type[PowerUpRig]) -> None:
     """``occd --start running``: Enable powers up off the loop thread, Run follows it."""
     r = rig()
     r.robot.start_in("enable", "run")
@@ -266,7 +266,7 @@ def test_start_enabled_powers_up_then_runs(rig: type[Rig]) -> None:
 
 @pytest.mark.req("SR-HW-39")
 def test_a_reset_of_cia402_drives_runs_off_the_loop_thread_and_is_refused_while_the_cause_persists(
-    rig: type[Rig],
+    rig: type[PowerUpRig],
 ) -> None:
     r = rig(state_timeout_ms=200.0)
     assert r.sim.command(r.op, "Enable").metadata["Status"] == "SUCCESS"
@@ -301,7 +301,7 @@ def test_a_reset_of_cia402_drives_runs_off_the_loop_thread_and_is_refused_while_
 
 @pytest.mark.req("SR-HW-39")
 def test_start_whose_enable_fails_never_asks_run_and_says_why(
-    rig: type[Rig], caplog: pytest.LogCaptureFixture
+    rig: type[PowerUpRig], caplog: pytest.LogCaptureFixture
 ) -> None:
     """``occd --start running`` with a node that never enables: the Enable's failure ends the
     start (its words in the log); Run is never asked, so no second refusal follows it."""
@@ -383,7 +383,7 @@ def test_a_reset_cancelled_leaves_its_drives_alone_and_says_reset() -> None:
 @pytest.mark.req("SR-HW-39")
 @pytest.mark.parametrize("stop", ["Disable", "Stop", "EStop"])
 def test_a_drive_that_came_up_after_the_power_up_was_called_off_is_switched_off(
-    rig: type[Rig], monkeypatch: pytest.MonkeyPatch, stop: str
+    rig: type[PowerUpRig], monkeypatch: pytest.MonkeyPatch, stop: str
 ) -> None:
     """A drive whose activation cannot be called back (its driver ignores the cancel) comes
     up all the same after a Disable or an EStop: the loop, collecting the power-up, switches
@@ -554,7 +554,7 @@ def test_enable_with_a_joint_never_measured_is_refused_and_told_to_every_operato
 
 @pytest.mark.req("SR-HW-39")
 def test_a_shutdown_while_powering_up_stops_every_drive_and_refuses_the_enable(
-    rig: type[Rig],
+    rig: type[PowerUpRig],
 ) -> None:
     r = rig()
     with r.emu.held():
