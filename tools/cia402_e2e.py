@@ -11,6 +11,13 @@ CiA 402 drive emulator in another process, on python-can's ``udp_multicast`` bus
 4. with ``--fault`` (e.g. ``"emcy 2 0x2310"``), type that on the emulator's standard input
    and wait for the slave to latch FAULT naming the node and the cause.
 
+The report's ``cycle`` is the slave's cycle as the emulated drives received it over the watched
+seconds (the emulator's ``timing`` command; occ/drivers/cia402_sim.py, ``CycleTimes``): per
+SYNC, the time from the cycle's first RPDO to the SYNC (``rpdo_to_sync_us``), from its last
+RPDO to the SYNC (``setpoints_ready_us``: how long before the SYNC every setpoint was there),
+and from the SYNC's arrival to the drives' last TPDO answering it (``sync_to_tpdo_us``), each
+as count, min, p50, p99, p99.9 and max in µs.
+
 The report also has each process's CPU over the watched seconds (``cpu_percent``, from
 /proc/PID/stat) and the slave's loop lateness (GetStats): ``--slave configs/slave.yaml`` runs
 the same with the simulated drives (no emulator), the benchmark's other half
@@ -57,6 +64,22 @@ def cpu_seconds(pid: int) -> float:
     """User + system CPU time of a process so far, s (/proc/PID/stat)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def emulator_says(proc: subprocess.Popen[bytes], log: Path, line: str, prefix: str) -> str:
+    """``line`` typed on the emulator's standard input, and the first line of its output
+    after that which starts with ``prefix`` (within 10 s)."""
+    assert proc.stdin is not None
+    seen = len(log.read_bytes())
+    proc.stdin.write((line + "\n").encode())
+    proc.stdin.flush()
+    end = time.monotonic() + 10.0
+    while time.monotonic() < end:
+        for out in log.read_bytes()[seen:].decode(errors="replace").splitlines():
+            if out.startswith(prefix):
+                return out
+        time.sleep(0.05)
+    raise AssertionError(f"the emulator did not answer {line!r}")
 
 
 def run(
@@ -123,6 +146,8 @@ def run(
         pids = {"slave": slave.pid, "master": master.pid}
         if emulator is not None:
             pids["emulator"] = emulator.pid
+        if emulator is not None:  # the master's cycle as the drives receive it, from here
+            emulator_says(emulator, logs["emulator"], "timing reset", "ok: timing reset")
         cpu0 = {name: cpu_seconds(pid) for name, pid in pids.items()}
         t0 = time.monotonic()
         while time.monotonic() - t0 < seconds:
@@ -147,6 +172,9 @@ def run(
             name: round(100.0 * (cpu_seconds(pid) - cpu0[name]) / window, 1)
             for name, pid in pids.items()
         }
+        if emulator is not None:
+            said = emulator_says(emulator, logs["emulator"], "timing", "cia402 emulator timing: ")
+            report["cycle"] = json.loads(said.split(": ", 1)[1])
         last = operator.stats()
         report["samples"] = samples
         report["first_tip_mm"] = first
