@@ -110,7 +110,7 @@ from occ.drivers.cia402_protocol import (
 )
 from occ.drivers.cia402_setup import DEFAULT_EDS
 
-__all__ = ["CycleTimes", "DriveEmulator", "EmulatedNode", "DEFAULT_EDS", "main"]
+__all__ = ["DriveEmulator", "EmulatedNode", "DEFAULT_EDS", "main"]
 
 logger = logging.getLogger(__name__)
 
