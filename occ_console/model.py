@@ -22,6 +22,9 @@ start):
   its contact force (the controller's ``force``: the force on the instrument, its magnitude and
   source) and what a master reports of the force on the hand (displayed, the slave's feedback,
   the fixtures', the clamp, the passivity controller's state: on, engaged this poll, energy).
+- drives (CANopen CiA 402, issue 38): :func:`drives_of` lists each node a driver reports
+  (``drivers.NAME.nodes``: the cia402 driver's) with its CiA 402 state, NMT state, statusword
+  and last EMCY (code, meaning); an EMCY count that grew between two answers is a log line.
 
 A daemon that restarted (its tick counter went down) starts the rates and the histogram again.
 """
@@ -127,6 +130,70 @@ def forces_of(stats: dict[str, Any], previous: dict[str, Any] | None = None) -> 
             },
         }
     return out
+
+
+def _text(value: Any) -> str | None:
+    return value if isinstance(value, str) else None
+
+
+def drives_of(stats: dict[str, Any]) -> list[dict[str, Any]] | None:
+    """The drives panel from one ``GetStats`` answer (the module docstring): per driver that
+    reports nodes (occ/drivers/cia402.py's ``stats``), its bus load, its last fault and each
+    node's state and last EMCY; None when no driver does."""
+    drivers = stats.get("drivers")
+    if not isinstance(drivers, dict):
+        return None
+    out = []
+    for name, drv in drivers.items():
+        if not isinstance(drv, dict) or not isinstance(drv.get("nodes"), dict):
+            continue
+        nodes = []
+        for joint, node in drv["nodes"].items():
+            if not isinstance(node, dict):
+                continue
+            raw = node.get("last_emcy")
+            emcy = raw if isinstance(raw, dict) else None
+            nodes.append({
+                "joint": str(joint),
+                "node_id": node.get("node_id"),
+                "state": _text(node.get("cia402")),
+                "statusword": _text(node.get("statusword")),
+                "nmt": _text(node.get("nmt")),
+                "last_emcy": None if emcy is None else {
+                    "code": _text(emcy.get("code")),
+                    "meaning": _text(emcy.get("meaning")),
+                    "register": _text(emcy.get("register")),
+                },
+                "emcys": node.get("emcys"),
+            })  # fmt: skip
+        load = drv.get("bus_load")
+        out.append({
+            "driver": str(name),
+            "bus_load": load if isinstance(load, int | float) and not isinstance(load, bool)
+            else None,
+            "last_fault": _text(drv.get("last_fault")),
+            "nodes": nodes,
+        })  # fmt: skip
+    return out or None
+
+
+def emcy_events(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    """A line for each node whose EMCY count grew between two answers, with its last EMCY."""
+    lines = []
+    before = {d["driver"]: d for d in drives_of(old) or []}
+    for drv in drives_of(new) or []:
+        prev = {n["joint"]: n for n in (before.get(drv["driver"]) or {"nodes": []})["nodes"]}
+        for node in drv["nodes"]:
+            count, was = node["emcys"], (prev.get(node["joint"]) or {}).get("emcys")
+            if not isinstance(count, int) or not isinstance(was, int) or count <= was:
+                continue
+            emcy = node["last_emcy"] or {}
+            what = f"{emcy.get('code')} ({emcy.get('meaning')})" if emcy else "error reset"
+            lines.append(
+                f"{drv['driver']}: node {node['node_id']} (joint {node['joint']}): EMCY {what}, "
+                f"+{count - was} since the last poll; now {node['state']}"
+            )
+    return lines
 
 
 #: the loss monitor's counters whose growth between two answers is logged as an event
@@ -379,6 +446,8 @@ class DaemonView:
                 what = ", ".join(f"{k} +{v}" for k, v in grew.items())
                 totals = ", ".join(f"{k} {int(_number(loss_new.get(k)))}" for k in grew)
                 self._log(t, "loss", "LOSS", f"{what} in {dt:.1f} s (totals: {totals})")
+        for line in emcy_events(old, new):
+            self._log(t, "alert", "EMCY", line)
 
     def _log(self, t: float, kind: str, name: str, text: str, code: int = 0) -> None:
         self.log.append(LogEntry(t, kind, name, text, code))
@@ -488,6 +557,7 @@ class DaemonView:
             "highlights": self.highlights(),
             "forces": self.forces or None,
             "cell": cell_of(s),
+            "drives": drives_of(s),
             "controller": s.get("controller"),
             "log": [e.as_dict() for e in self.log],
             "last_reply": self.last_reply,

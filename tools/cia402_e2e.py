@@ -11,6 +11,15 @@ CiA 402 drive emulator in another process, on python-can's ``udp_multicast`` bus
 4. with ``--fault`` (e.g. ``"emcy 2 0x2310"``), type that on the emulator's standard input
    and wait for the slave to latch FAULT naming the node and the cause.
 
+The report's ``cycle`` is the slave's cycle as the emulated drives received it over the watched
+seconds (the emulator's ``timing`` command; occ/drivers/cia402_sim.py, ``CycleTimes``): per
+SYNC, the time from the cycle's first RPDO to the SYNC (``rpdo_to_sync_us``), from its last
+RPDO to the SYNC (``setpoints_ready_us``: how long before the SYNC every setpoint was there),
+and from the SYNC's arrival to the drives' last TPDO answering it (``sync_to_tpdo_us``), each
+as count, min, p50, p99, p99.9 and max in µs. With ``--profile`` the slave runs under
+tools/profiled.py and the report's ``profile`` is its loop thread's time over the watched
+seconds, per owner (python-can's ``udp_multicast``, canopen, the driver, the rest).
+
 The report also has each process's CPU over the watched seconds (``cpu_percent``, from
 /proc/PID/stat) and the slave's loop lateness (GetStats): ``--slave configs/slave.yaml`` runs
 the same with the simulated drives (no emulator), the benchmark's other half
@@ -29,6 +38,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -42,6 +52,7 @@ sys.path.insert(0, str(ROOT / "tools"))
 
 from fixture_e2e import Client, loopback_up  # noqa: E402
 from loopback import stop_processes, wait_port  # noqa: E402
+from profiled import summary  # noqa: E402
 
 SLAVE = ROOT / "configs" / "slave-cia402.yaml"
 MASTER = ROOT / "configs" / "master.yaml"
@@ -59,8 +70,28 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def emulator_says(proc: subprocess.Popen[bytes], log: Path, line: str, prefix: str) -> str:
+    """``line`` typed on the emulator's standard input, and the first line of its output
+    after that which starts with ``prefix`` (within 10 s)."""
+    assert proc.stdin is not None
+    seen = len(log.read_bytes())
+    proc.stdin.write((line + "\n").encode())
+    proc.stdin.flush()
+    end = time.monotonic() + 10.0
+    while time.monotonic() < end:
+        for out in log.read_bytes()[seen:].decode(errors="replace").splitlines():
+            if out.startswith(prefix):
+                return out
+        time.sleep(0.05)
+    raise AssertionError(f"the emulator did not answer {line!r}")
+
+
 def run(
-    seconds: float, fault: str | None, out_dir: Path, slave_cfg: Path = SLAVE
+    seconds: float,
+    fault: str | None,
+    out_dir: Path,
+    slave_cfg: Path = SLAVE,
+    profile: bool = False,
 ) -> dict[str, Any]:
     report: dict[str, Any] = {"slave_config": str(slave_cfg)}
     drivers = yaml.safe_load(slave_cfg.read_text())["robot"]["drivers"]
@@ -92,9 +123,11 @@ def run(
             while "cia402 emulator: nodes" not in logs["emulator"].read_text():
                 assert emulator.poll() is None and time.monotonic() < end, "no emulator"
                 time.sleep(0.05)
+        prof = out_dir / "slave.prof"
+        wrap = [str(ROOT / "tools" / "profiled.py"), str(prof)] if profile else []
         slave = start(
             "slave",
-            [sys.executable, "-m", "occ.cli", str(slave_cfg), "--log-level", "WARNING"],
+            [sys.executable, *wrap, "-m", "occ.cli", str(slave_cfg), "--log-level", "WARNING"],
         )
         assert wait_port(OPERATOR, 30.0, slave), "the slave did not listen"
         master = start(
@@ -123,7 +156,12 @@ def run(
         pids = {"slave": slave.pid, "master": master.pid}
         if emulator is not None:
             pids["emulator"] = emulator.pid
+        if emulator is not None:  # the master's cycle as the drives receive it, from here
+            emulator_says(emulator, logs["emulator"], "timing reset", "ok: timing reset")
         cpu0 = {name: cpu_seconds(pid) for name, pid in pids.items()}
+        if profile:
+            prof.with_name(prof.name + ".json").unlink(missing_ok=True)
+            slave.send_signal(signal.SIGUSR1)  # the profiler on (tools/profiled.py)
         t0 = time.monotonic()
         while time.monotonic() - t0 < seconds:
             time.sleep(0.5)
@@ -143,10 +181,20 @@ def run(
             if snap["state"] == "STOPPED":
                 operator.command("Run")  # a late master on a loaded machine: go on
         window = time.monotonic() - t0
+        if profile:
+            slave.send_signal(signal.SIGUSR1)  # and off: the statistics written
+            done = prof.with_name(prof.name + ".json")
+            end = time.monotonic() + 30.0
+            while not done.exists() and time.monotonic() < end:
+                time.sleep(0.1)
+            report["profile"] = summary(prof)
         report["cpu_percent"] = {
             name: round(100.0 * (cpu_seconds(pid) - cpu0[name]) / window, 1)
             for name, pid in pids.items()
         }
+        if emulator is not None:
+            said = emulator_says(emulator, logs["emulator"], "timing", "cia402 emulator timing: ")
+            report["cycle"] = json.loads(said.split(": ", 1)[1])
         last = operator.stats()
         report["samples"] = samples
         report["first_tip_mm"] = first
@@ -187,12 +235,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--lo-up", action="store_true", help="loopback up, multicast routed to it")
     p.add_argument("--out-dir", type=Path, default=Path("."), help="the processes' logs")
     p.add_argument("--json", type=Path, default=None, help="write the report here")
+    p.add_argument(
+        "--profile",
+        action="store_true",
+        help="cProfile the slave's loop thread over the watched seconds (tools/profiled.py)",
+    )
     args = p.parse_args(argv)
     if args.lo_up:
         loopback_up()
         subprocess.run(["ip", "route", "add", "239.0.0.0/8", "dev", "lo"], check=True)
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    report = run(args.seconds, args.fault, args.out_dir, args.slave)
+    report = run(args.seconds, args.fault, args.out_dir, args.slave, args.profile)
     text = json.dumps(report, indent=1)
     if args.json is not None:
         args.json.write_text(text)

@@ -39,6 +39,7 @@ from occ.drivers.cia402_protocol import (
     master_sends,
     sdo_abort_meaning,
 )
+from occ.drivers.eds_lines import eds_refusal
 from occ.errors import DriverError
 from occ.joint import Joint
 
@@ -529,9 +530,8 @@ def parse_nodes(
         try:
             node.od = load_od(str(node.eds))
         except Exception as err:  # noqa: BLE001 - a broken EDS, whatever the parser says
-            raise ValueError(
-                f"{where}: nodes.{joint.name}: eds {str(node.eds)!r} does not load: {err}"
-            ) from err
+            # the file and line of what is wrong (occ/drivers/eds_lines.py), else its words
+            raise ValueError(f"{where}: nodes.{joint.name}: {eds_refusal(node.eds, err)}") from err
         needed = [0x1000, 0x1016, 0x1017, 0x1400, 0x1600, 0x1800, 0x1801, 0x1A00, 0x1A01,
                   0x6040, 0x6041, 0x6060, 0x6064, 0x606C, 0x6077, 0x60C2,
                   0x6071 if effort else 0x607A]  # fmt: skip

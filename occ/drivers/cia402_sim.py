@@ -54,12 +54,17 @@ and type fault commands on its standard input, one a line (``help`` lists them):
     emcy 2 0x2310          fault bit 3   heartbeat 2 off   tpdo 1 off   pause 1 50
     stall 3                nmt 2 pre     refuse 1          abort 2 0x6060 0 0x06090030
     second 1 500           clear 2       status
+
+and ``timing`` (``timing reset``) for the master's cycle as the drives receive it: the time
+from the cycle's first and last RPDO to its SYNC and from the SYNC to the TPDOs answering it
+(:class:`CycleTimes`), one JSON line.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import logging
 import math
 import os
@@ -67,6 +72,7 @@ import struct
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -593,6 +599,91 @@ class EmulatedNode:
         }
 
 
+class CycleTimes:
+    """The master's cycle as the emulated drives receive it, per SYNC (tools/cia402_e2e.py
+    reports it; docs/BENCHMARKS.md, "CiA 402 drives"):
+
+    - ``rpdo_to_sync``: from the first RPDO received since the previous SYNC to this SYNC (the
+      span of the master's setpoints and SYNC on the bus);
+    - ``setpoints_ready``: from the last RPDO received since the previous SYNC to this SYNC (how
+      long before the SYNC every setpoint of the cycle was there: the margin a drive has);
+    - ``sync_to_tpdo``: from this SYNC's arrival to the emulator's last TPDO answering it
+      handed to the bus (the drive's reply time, as a master would see it less the wire).
+
+    Arrival is a frame's receive timestamp (the kernel's on ``udp_multicast`` and SocketCAN; the
+    sender's on ``virtual``), so the time a frame waited for the emulator's thread counts in
+    ``sync_to_tpdo`` and not in the other two. A SYNC with no RPDO before it (the driver's SYNC
+    while not servoing, or a lost cycle) is counted in ``syncs_without_rpdo``. Per frame it costs
+    a comparison or two and, per SYNC, two appends to bounded deques; the percentiles are worked
+    out only when :meth:`summary` is asked.
+    """
+
+    KEEP = 100_000  # SYNCs kept: 200 s at a 2 ms SYNC
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        """Start again (the tool does so when the motion it watches begins)."""
+        self.rpdos = 0
+        self.first = self.last = 0.0
+        self.syncs = 0
+        self.syncs_without_rpdo = 0
+        self.rpdo_to_sync: deque[float] = deque(maxlen=self.KEEP)
+        self.setpoints_ready: deque[float] = deque(maxlen=self.KEEP)
+        self.sync_to_tpdo: deque[float] = deque(maxlen=self.KEEP)
+
+    def copy(self) -> CycleTimes:
+        """A copy to summarise away from the emulator's lock."""
+        other = CycleTimes()
+        other.syncs, other.syncs_without_rpdo = self.syncs, self.syncs_without_rpdo
+        other.rpdo_to_sync.extend(self.rpdo_to_sync)
+        other.setpoints_ready.extend(self.setpoints_ready)
+        other.sync_to_tpdo.extend(self.sync_to_tpdo)
+        return other
+
+    def rpdo(self, at: float) -> None:
+        if not self.rpdos:
+            self.first = at
+        self.last = at
+        self.rpdos += 1
+
+    def sync(self, at: float, answered: float | None) -> None:
+        """A SYNC that arrived ``at``; ``answered``: when its last TPDO was sent (None: none)."""
+        self.syncs += 1
+        if self.rpdos:
+            self.rpdo_to_sync.append(at - self.first)
+            self.setpoints_ready.append(at - self.last)
+            self.rpdos = 0
+        else:
+            self.syncs_without_rpdo += 1
+        if answered is not None:
+            self.sync_to_tpdo.append(answered - at)
+
+    @staticmethod
+    def _percentiles(values: Sequence[float]) -> dict[str, float] | None:
+        if not values:
+            return None
+        ordered = sorted(values)
+        n = len(ordered)
+
+        def at(q: float) -> float:  # nearest rank
+            return round(ordered[min(n - 1, max(0, math.ceil(q * n) - 1))] * 1e6, 1)
+
+        return {"n": n, "min": at(0.0), "p50": at(0.5), "p99": at(0.99), "p99.9": at(0.999),
+                "max": round(ordered[-1] * 1e6, 1)}  # fmt: skip
+
+    def summary(self) -> dict[str, Any]:
+        """Every figure in µs (count, min, p50, p99, p99.9, max), and the SYNC counts."""
+        return {
+            "syncs": self.syncs,
+            "syncs_without_rpdo": self.syncs_without_rpdo,
+            "rpdo_to_sync_us": self._percentiles(self.rpdo_to_sync),
+            "setpoints_ready_us": self._percentiles(self.setpoints_ready),
+            "sync_to_tpdo_us": self._percentiles(self.sync_to_tpdo),
+        }
+
+
 class DriveEmulator:
     """Emulated CiA 402 drives (one per node id) on one python-can bus (module docstring).
 
@@ -633,6 +724,8 @@ class DriveEmulator:
                 nid, eds, lambda cob, data: self._send(cob, data), **node_kwargs
             )
         self._rpdo_of: dict[int, tuple[EmulatedNode, int]] = {}
+        #: the master's cycle as received (:class:`CycleTimes`)
+        self.cycle = CycleTimes()
 
     # ------------------------------------------------------------ life
     def start(self) -> DriveEmulator:
@@ -738,12 +831,28 @@ class DriveEmulator:
 
     def handle(self, msg: can.Message) -> None:
         """One received frame (a frame the emulator cannot handle is logged and counted: the
-        emulator goes on, as a drive would)."""
+        emulator goes on, as a drive would); a SYNC or an RPDO timed (:attr:`cycle`)."""
+        sent = self.frames_out
         try:
             self._handle(msg)
         except Exception:  # noqa: BLE001 - one bad frame must not stop the emulated drives
             self.errors += 1
             logger.exception("cia402 emulator: frame %s not handled", msg)
+        cob = msg.arbitration_id
+        if cob == COB_SYNC or (cob & 0x780) in COB_RPDO:
+            self._time(msg, sent)
+
+    def _time(self, msg: can.Message, sent: int) -> None:
+        """A SYNC's or an RPDO's arrival into :attr:`cycle` (an RPDO: one to a node emulated
+        here; a SYNC: with when its TPDOs went, if it caused any)."""
+        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+            return
+        at = msg.timestamp or time.time()
+        cob = msg.arbitration_id
+        if cob == COB_SYNC:
+            self.cycle.sync(at, time.time() if self.frames_out > sent else None)
+        elif cob & 0x7F in self.nodes:
+            self.cycle.rpdo(at)
 
     def _handle(self, msg: can.Message) -> None:
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
@@ -914,6 +1023,20 @@ def _fifo(priority: int) -> str:
     return f"cia402 emulator: SCHED_FIFO {priority}"
 
 
+def _timing(emulator: DriveEmulator, line: str) -> str:
+    """The process's own commands (not faults): ``timing`` prints the master's cycle as
+    received (:class:`CycleTimes`, one JSON line), ``timing reset`` starts it again."""
+    words = line.split()
+    if not words or words[0].lower() != "timing":
+        return ""
+    with emulator.held():  # the drives answer nothing meanwhile: only copy
+        if words[1:] == ["reset"]:
+            emulator.cycle.reset()
+            return "ok: timing reset"
+        cycle = emulator.cycle.copy()
+    return "cia402 emulator timing: " + json.dumps(cycle.summary())
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m occ.drivers.cia402_sim", description="CiA 402 drive emulator"
@@ -956,7 +1079,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for line in args.fault:
             print(emulator.command(line), flush=True)
         for line in sys.stdin:
-            out = emulator.command(line)
+            out = _timing(emulator, line) or emulator.command(line)
             if out:
                 print(out, flush=True)
         # standard input closed (e.g. /dev/null): run until stopped by a signal

@@ -101,6 +101,25 @@ function cellHtml(c) {
   return kvTable(rows);
 }
 
+// the drives panel: each CANopen node's CiA 402 state, NMT state and last EMCY, per driver
+function drivesHtml(drives) {
+  if (!drives) return "<p class=\"muted\">no drive reports its nodes</p>";
+  return drives.map((drv) => {
+    const load = drv.bus_load === null ? "" : ` · bus load ${num(drv.bus_load * 100, 0)} %`;
+    const fault = drv.last_fault ? `<div class="alert">last fault: ${esc(drv.last_fault)}</div>` : "";
+    const rows = drv.nodes.map((n) => {
+      const e = n.last_emcy;
+      const emcy = e ? `<b>${esc(e.code)}</b> ${esc(e.meaning)} (register ${esc(e.register)})` : "none";
+      const enabled = n.state === "OPERATION ENABLED" ? "" : " class=\"off\"";
+      return `<tr><td>${esc(n.joint)}</td><td>${num(n.node_id)}</td><td${enabled}>${esc(n.state)}</td>` +
+        `<td>${esc(n.statusword)}</td><td>${esc(n.nmt)}</td><td>${emcy} · ${num(n.emcys)} in all</td></tr>`;
+    }).join("");
+    return `<div class="muted">${esc(drv.driver)}${load}</div>${fault}` +
+      "<table><tr><th>joint</th><th>node</th><th>CiA 402 state</th><th>statusword</th>" +
+      `<th>NMT</th><th>last EMCY</th></tr>${rows}</table>`;
+  }).join("");
+}
+
 function render(card, d) {
   const el = (sel) => card.querySelector(sel);
   card.classList.toggle("stale", !d.connected);
@@ -153,6 +172,7 @@ function render(card, d) {
 
   el(".forces").innerHTML = forcesHtml(d.forces);
   el(".cell").innerHTML = cellHtml(d.cell);
+  el(".drives").innerHTML = drivesHtml(d.drives);
 
   const hl = Object.entries(d.highlights || {});
   el(".highlights").innerHTML = hl.length

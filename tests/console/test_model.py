@@ -271,3 +271,70 @@ def test_the_cell_panel_shows_members_states_and_the_last_stops_origin() -> None
     bad = DaemonView("2", "127.0.0.1", 2)
     bad.on_stats(1.0, 0.0, {"cell": {"members": "nonsense"}})
     assert bad.snapshot(now=1.0)["cell"] is None
+
+
+# ------------------------------------------------------------------------------ drives
+def _as_sent(value: dict[str, Any]) -> dict[str, Any]:
+    """What the console gets of a GetStats answer: JSON, as the daemon sends it."""
+    import json
+
+    return dict(json.loads(json.dumps(value)))
+
+
+def test_the_drives_panel_shows_each_nodes_state_and_last_emcy() -> None:
+    """The cia402 driver on three emulated nodes (tests/occ/test_cia402.py's rig), its
+    statistics where GetStats carries them (``drivers.arm``): all OPERATION ENABLED, then an
+    EMCY 0x2310 from node 2 faults the driver; the panel shows each node's CiA 402 and NMT
+    state and pitch's EMCY with its meaning, and the log has a line for it."""
+    from tests.occ.test_cia402 import Rig
+
+    r = Rig([1, 2, 3], {})
+    view = DaemonView("0", "127.0.0.1", 18947)
+    try:
+        r.enabled()
+        r.ticks(20, r.here())  # a heartbeat from each (every 10 ms)
+        view.on_stats(1000.0, 0.0, _as_sent(stats(100, 0, drivers={"arm": r.drv.stats()})))
+        (arm,) = view.snapshot(now=1000.0)["drives"]
+        assert arm["driver"] == "arm" and arm["bus_load"] == pytest.approx(0.57, abs=0.01)
+        assert arm["last_fault"] is None
+        assert [(n["joint"], n["node_id"]) for n in arm["nodes"]] == [
+            ("yaw", 1), ("pitch", 2), ("insertion", 3)
+        ]  # fmt: skip
+        for n in arm["nodes"]:
+            assert (n["state"], n["nmt"], n["last_emcy"], n["emcys"]) == (
+                "OPERATION ENABLED", "OPERATIONAL", None, 0
+            )  # fmt: skip
+            assert n["statusword"] is not None and n["statusword"].startswith("0x")
+        r.emu.inject_emcy(2, 0x2310)
+        r.until_fault(20, lambda k: r.here())
+        r.ticks(2)
+        view.on_stats(1001.0, 1.0, _as_sent(stats(200, 0, drivers={"arm": r.drv.stats()})))
+    finally:
+        r.close()
+    (arm,) = view.snapshot(now=1001.0)["drives"]
+    nodes = {n["joint"]: n for n in arm["nodes"]}
+    pitch = nodes["pitch"]
+    assert pitch["state"] == "FAULT" and pitch["emcys"] == 1
+    assert pitch["last_emcy"]["code"] == "0x2310"
+    assert pitch["last_emcy"]["meaning"].startswith("continuous overcurrent")
+    assert nodes["yaw"]["state"] != "OPERATION ENABLED" and nodes["yaw"]["last_emcy"] is None
+    assert "node 2 (joint pitch): EMCY 0x2310" in arm["last_fault"]
+    (line,) = [e for e in view.snapshot(now=1001.0)["log"] if e["name"] == "EMCY"]
+    assert line["kind"] == "alert" and line["text"].startswith(
+        "arm: node 2 (joint pitch): EMCY 0x2310 (continuous overcurrent"
+    )
+    assert line["text"].endswith("+1 since the last poll; now FAULT")
+
+
+def test_the_drives_panel_is_empty_without_nodes_and_survives_nonsense() -> None:
+    view = DaemonView("0", "h", 1)
+    view.on_stats(1.0, 0.0, stats(1, 0, drivers={"sim": {"reads": 5, "writes": 5}}))
+    assert view.snapshot(now=1.0)["drives"] is None  # the sim driver reports no nodes
+    odd = {"arm": {"bus_load": True, "nodes": {"yaw": "x", "pitch": {"last_emcy": 7}}}}
+    view.on_stats(2.0, 1.0, stats(2, 0, drivers=odd))
+    (arm,) = view.snapshot(now=2.0)["drives"]
+    assert arm["bus_load"] is None and [n["joint"] for n in arm["nodes"]] == ["pitch"]
+    assert arm["nodes"][0]["last_emcy"] is None and arm["nodes"][0]["state"] is None
+    view.on_stats(3.0, 2.0, stats(3, 0, drivers="nonsense"))
+    assert view.snapshot(now=3.0)["drives"] is None
+    assert not [e for e in view.log if e.name == "EMCY"]

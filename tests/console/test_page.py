@@ -11,13 +11,14 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from .conftest import poll, require_browser
+from .conftest import WebServer, free_port, poll, require_browser
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tools"))
@@ -180,3 +181,50 @@ def test_page_shows_the_contact_force(browser: Any, console_on_tissue_slave: str
     assert poll(lambda: "0.50 N (-0.500, 0, 0)" in forces(), 10.0), forces()
     assert "tissue" in forces()
     assert "displayed (hand)" not in forces()  # a slave: no hand
+
+
+def test_page_shows_each_drives_state_and_last_emcy(browser: Any) -> None:
+    """The Drives panel drawn from the cia402 driver's own statistics (three nodes emulated
+    in-process, tests/occ/test_cia402.py's rig, one faulted by an EMCY), put in the console's
+    view of a daemon as GetStats would: the page names each node's state and pitch's EMCY."""
+    import json
+
+    from selenium.webdriver.common.by import By
+
+    from occ_console.link import Console
+    from tests.occ.test_cia402 import Rig
+
+    r = Rig([1, 2, 3], {})
+    try:
+        r.enabled()
+        r.ticks(20, r.here())
+        r.emu.inject_emcy(2, 0x2310)
+        r.until_fault(20, lambda k: r.here())
+        r.ticks(2)
+        answer = json.loads(json.dumps({"ticks": 1, "drivers": {"arm": r.drv.stats()}}))
+    finally:
+        r.close()
+    console = Console([("127.0.0.1", free_port())], poll_hz=5.0)  # nobody there: no link
+    web = WebServer(console)
+    try:
+        view = console.links[0].view
+        with view.lock:
+            view.on_stats(time.time(), 0.0, answer)
+        console._changed()
+        b = browser
+        b.get(web.url)
+
+        def drives() -> str:
+            found = b.find_elements(By.CSS_SELECTOR, '[data-daemon="0"] .drives')
+            return str(found[0].text) if found else ""
+
+        assert poll(lambda: "pitch" in drives(), 20.0), b.page_source[:2000]
+        text = drives()
+        assert "arm · bus load 57 %" in text, text
+        assert "0x2310 continuous overcurrent" in text, text
+        rows = {line.split()[0]: line for line in text.splitlines() if line.split()}
+        assert " 2 FAULT " in rows["pitch"], rows
+        assert "OPERATION ENABLED" not in rows["yaw"] and "OPERATIONAL" in rows["yaw"], rows
+        assert "last fault: cia402 driver 'arm': node 2 (joint pitch): EMCY 0x2310" in text
+    finally:
+        web.stop()

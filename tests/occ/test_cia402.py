@@ -507,8 +507,8 @@ def test_the_bus_budget_takes_three_nodes_and_refuses_eight() -> None:
 def test_occd_check_takes_the_cia402_slave_and_refuses_an_overloaded_bus(tmp_path: Path) -> None:
     import yaml
 
-    from occ.errors import ConfigError
     from occ.core.loader import load_config
+    from occ.errors import ConfigError
 
     path = ROOT / "configs" / "slave-cia402.yaml"
     config = load_config(path)
@@ -520,6 +520,44 @@ def test_occd_check_takes_the_cia402_slave_and_refuses_an_overloaded_bus(tmp_pat
     with pytest.raises(ConfigError) as info:
         load_config(bad)
     assert "bus load" in "\n".join(info.value.errors)
+
+
+@pytest.mark.req("SR-HW-35")
+@pytest.mark.parametrize("sync_every", [1, 2])
+def test_occd_check_refuses_eight_nodes_on_one_bus_with_the_load(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], sync_every: int
+) -> None:
+    """The shipped slave with five more joints on its one 1 Mbit/s bus, at 1 kHz: ``occd
+    --check`` (the console script's function) refuses it, exit 2, with the load and the advice
+    on the driver's line; the shipped three pass the same command."""
+    import yaml
+
+    from occ.cli import main
+
+    assert main(["--check", str(ROOT / "configs" / "slave-cia402.yaml")]) == 0
+    raw = yaml.safe_load((ROOT / "configs" / "slave-cia402.yaml").read_text())
+    robot = raw["robot"]
+    assert robot["rate_hz"] == 1000
+    limits = {"min": -1.0, "max": 1.0, "velocity": 1.5, "effort": 20.0}
+    extra = [f"j{k}" for k in range(3, 8)]
+    robot["joints"] += [{"name": n, "type": "revolute", "limits": limits} for n in extra]
+    params = robot["drivers"][0]["params"]
+    assert params["bitrate"] == 1_000_000 and params["period"] == 0.001
+    params["sync_every"] = sync_every
+    robot["drivers"][0]["joints"] += extra
+    for k, n in enumerate(extra, 4):
+        params["nodes"][n] = {"node_id": k, "eds": "drive.eds", "counts_per_unit": 52152.0}
+    path = tmp_path / "eight.yaml"
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    capsys.readouterr()
+    assert main(["--check", str(path)]) == 2
+    err = capsys.readouterr().err
+    load, most = {1: ("287%", "1 node"), 2: ("146%", "3 nodes")}[sync_every]
+    assert f"bus load {load} exceeds bus_load_limit 70%" in err, err
+    assert "8 nodes x" in err and f"at most {most} per bus" in err
+    assert "sync_every: 5 (62%)" in err
+    line = next(i for i, t in enumerate(path.read_text().splitlines(), 1) if "cia402" in t)
+    assert f"{path}:{line} robot.drivers[0]" in err
 
 
 def test_params_are_checked_when_the_driver_is_built() -> None:

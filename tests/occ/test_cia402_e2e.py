@@ -63,6 +63,20 @@ def test_the_slave_runs_on_three_emulated_cia402_nodes_and_moves(report: dict[st
     assert report["arm"]["echoes"] > 0  # udp_multicast handed the slave its own frames
 
 
+def test_the_emulator_times_the_slaves_cycle(report: dict[str, Any]) -> None:
+    """The cycle as the drives received it while the slave followed (the emulator's ``timing``):
+    a SYNC every 2 ms with three RPDOs before it, each answered by TPDOs."""
+    cycle = report["cycle"]
+    syncs = cycle["syncs"]
+    assert syncs > 0 and cycle["syncs_without_rpdo"] <= syncs // 100, cycle
+    for key in ("rpdo_to_sync_us", "setpoints_ready_us", "sync_to_tpdo_us"):
+        figures = cycle[key]
+        assert figures["n"] >= syncs - cycle["syncs_without_rpdo"] - 1, (key, cycle)
+        assert 0.0 <= figures["min"] <= figures["p50"] <= figures["p99"] <= figures["max"]
+    # the first RPDO of a cycle comes no later than its last
+    assert cycle["rpdo_to_sync_us"]["p50"] >= cycle["setpoints_ready_us"]["p50"]
+
+
 @pytest.mark.req("SR-HW-33")
 def test_an_emcy_from_the_emulator_process_faults_the_slave_naming_the_node(
     report: dict[str, Any],

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import struct
+import time
 from typing import Any
 
 import can
@@ -641,3 +642,64 @@ def test_the_emulator_takes_each_frame_to_the_node_and_object_it_names() -> None
     assert three.rpdos == 0 and three.get(0x607A, 0) != 777 and emu.ignored == 5
     emu.handle(frame(0x7F0 & 0x780 | 0x01, bytes([0x05])))  # a heartbeat of node 1: not ours
     assert emu.ignored == 6 and emu.errors == 0
+
+
+# ----------------------------------------------------------------------------- cycle timing
+def test_the_masters_cycle_is_timed_from_each_frames_arrival() -> None:
+    """:class:`CycleTimes` through :meth:`DriveEmulator.handle`: per SYNC, the first and the
+    last RPDO since the previous SYNC to it, from the frames' timestamps; the SYNC to the
+    TPDOs it caused, to when they were sent; a SYNC without RPDOs counted, not timed; another
+    node's RPDO and the emulator's own TPDOs not taken for setpoints."""
+    import json
+
+    from occ.drivers.cia402_sim import _timing
+
+    with can.Bus(interface="virtual", channel="occ-cia402-cycle") as bus:
+        emu = DriveEmulator([1, 2], DEFAULT_EDS, bus=bus, clock=lambda: 0.0)
+        for nid in (1, 2):
+            node = emu.node(nid)
+            for sub, entry in enumerate((0x60400010, 0x607A0020), 1):
+                node.set(0x1600, sub, entry)
+            node.set(0x1600, 0, 2)
+            node.set(0x1A00, 1, 0x60410010)
+            node.set(0x1A00, 0, 1)
+            node.set(0x1400, 1, 0x200 + nid)
+            node.set(0x1400, 2, 1)
+            node.set(0x1800, 1, 0x180 + nid)
+            node.set(0x1800, 2, 1)
+            node.nmt = NMT_OPERATIONAL
+        t0 = 1_000_000.0  # the frames' own timestamps: what is timed is their differences
+
+        def sync(at: float) -> tuple[float, float]:
+            before = time.time()
+            emu.handle(frame(0x080, timestamp=at))
+            return before - at, time.time() - at
+
+        sync(t0)  # no RPDO before it
+        emu.handle(frame(0x201, rpdo(0x0F, 10), timestamp=t0 + 0.0100))
+        emu.handle(frame(0x202, rpdo(0x0F, 20), timestamp=t0 + 0.0101))
+        emu.handle(frame(0x203, rpdo(0x0F, 30), timestamp=t0 + 0.0102))  # node 3: not ours
+        low, high = sync(t0 + 0.0103)
+        emu.handle(frame(0x181, bytes(2), timestamp=t0 + 0.0104))  # a TPDO echoed: no setpoint
+        emu.handle(frame(0x202, rpdo(0x0F, 21), timestamp=t0 + 0.0120))
+        emu.node(1).nmt = emu.node(2).nmt = NMT_PRE_OPERATIONAL  # no TPDO answers the next
+        sync(t0 + 0.0125)
+        cycle = emu.cycle
+        assert cycle.syncs == 3 and cycle.syncs_without_rpdo == 1
+        assert [round(v * 1e6, 1) for v in cycle.rpdo_to_sync] == [300.0, 500.0]
+        assert [round(v * 1e6, 1) for v in cycle.setpoints_ready] == [200.0, 500.0]
+        assert len(cycle.sync_to_tpdo) == 2  # the first two SYNCs: two TPDOs each
+        assert low <= cycle.sync_to_tpdo[1] <= high
+        assert emu.node(1).get(0x607A, 0) == 10 and emu.node(2).get(0x607A, 0) == 20
+        summary = cycle.summary()
+        assert summary["rpdo_to_sync_us"] == {
+            "n": 2, "min": 300.0, "p50": 300.0, "p99": 500.0, "p99.9": 500.0, "max": 500.0
+        }  # fmt: skip
+        assert summary["setpoints_ready_us"]["p50"] == 200.0
+        line = _timing(emu, "timing")
+        assert line.startswith("cia402 emulator timing: ")
+        assert json.loads(line.split(": ", 1)[1]) == summary
+        assert _timing(emu, "timing reset") == "ok: timing reset"
+        assert emu.cycle.syncs == 0 and not emu.cycle.rpdo_to_sync and not emu.cycle.sync_to_tpdo
+        assert emu.cycle.summary()["sync_to_tpdo_us"] is None
+        assert _timing(emu, "status") == "" and _timing(emu, "") == ""
