@@ -332,3 +332,78 @@ def test_the_release_never_backs_out_farther_than_release_max_mm() -> None:
         assert "release_max_mm" in still
     finally:
         pair.close()
+
+
+@pytest.mark.req("SR-FORCE-6")
+def test_each_stop_in_contact_lets_go_with_its_own_release_max_mm() -> None:
+    """Two stops in contact, Run between them, on a 10 N/mm wall: the second backs the tool
+    out again from its own ``release_max_mm`` (1.2 mm here; the first release takes 0.84 mm
+    from 3 N, the second 0.60 mm from 1.3 N), not from what the first one left (0.36 mm: the
+    tool would stop short, still pressing about 0.9 N, and alert)."""
+    pair = _pair(10.0, 0.0, slave_params={"release_max_mm": 1.2})
+    try:
+        env = pair.slave.robot.hardware.environment
+        ctl = _slave_ctl(pair)
+        pair.start()
+        # after the first Run the re-index keeps the tool where it let go: the hand's circle
+        # then presses only about 1.4 N
+        for turn, force_n in ((1, 3.0), (2, 1.3)):
+            _press(pair, force_n)
+            pair.s_op.send_command("Stop")
+            pair.run_for(0.3)
+            assert pair.slave.robot.state is RobotState.STOPPED
+            st = ctl.stats()["instrument"]
+            assert math.hypot(*env.force_n) < 0.5, turn
+            assert st["releases"] == turn and 0.3 < st["released_mm"] < 1.1, (turn, st)
+            pair.s_op.send_command("Run")
+            pair.step(2)
+            assert pair.slave.robot.state is RobotState.RUNNING
+        release = _statuses(pair.s_op, "Release")
+        assert sum("let go" in a for a in release) == 2, release
+        assert not [a for a in release if "still pressing" in a], release
+    finally:
+        pair.close()
+
+
+@pytest.mark.req("SR-FORCE-6")
+def test_run_during_a_release_ends_it_in_the_stats() -> None:
+    """Run while the tool is still backing out: GetStats' ``instrument`` no longer says it
+    releases, and counts no travel for a stop that is over."""
+    pair = _pair(2.0, 0.0)
+    try:
+        ctl = _slave_ctl(pair)
+        pair.start()
+        _press(pair, 3.0)
+        pair.s_op.send_command("Stop")
+        pair.step(10)  # 10 ms at 40 mm/s: 0.4 mm of the 1.4 mm
+        st = ctl.stats()["instrument"]
+        assert st["releasing"] and st["released_mm"] > 0.1, st
+        pair.s_op.send_command("Run")
+        pair.step(2)
+        assert pair.slave.robot.state is RobotState.RUNNING
+        st = ctl.stats()["instrument"]
+        assert st["releasing"] is False and st["released_mm"] == 0.0, st
+        assert st["releases"] == 1
+    finally:
+        pair.close()
+
+
+@pytest.mark.req("SR-FORCE-4")
+def test_a_new_master_is_not_the_ports_until_its_energy_comes() -> None:
+    """A hand-over: the first sample of another master clears the port's activity, which is
+    false (not unknown) in GetStats until that master's ``energy_j`` comes."""
+    from occ.controllers.teleop import SlaveController
+    from occ.samples import PoseSample
+
+    # no phase lock: it reads the loop's clock, which a controller alone has not
+    ctl = SlaveController(SlaveController.Params.model_validate({"phase_lock_us": None}))
+
+    def port() -> Any:
+        return ctl.shaper.stats()["passivity"]["active"]
+
+    ctl.on_sample(PoseSample("m1", None, "Tool", (0.0, 0.0, 0.0), meta={"energy_j": "0.001"}), 0.0)
+    assert port() is True
+    ctl.on_sample(PoseSample("m2", None, "Tool", (1.0, 0.0, 0.0)), 0.001)
+    assert port() is False and ctl.source == "m2"
+    ctl.on_sample(PoseSample("m2", None, "Tool", (1.0, 0.0, 0.0), meta={"energy_j": "0.0"}), 0.002)
+    assert port() is True
