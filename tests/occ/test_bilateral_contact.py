@@ -9,6 +9,7 @@ latched in contact lets go of the tissue within 200 ms and tells the hand."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -407,3 +408,64 @@ def test_a_new_master_is_not_the_ports_until_its_energy_comes() -> None:
     assert port() is False and ctl.source == "m2"
     ctl.on_sample(PoseSample("m2", None, "Tool", (1.0, 0.0, 0.0), meta={"energy_j": "0.0"}), 0.002)
     assert port() is True
+
+
+@pytest.mark.req("SR-FORCE-7")
+def test_tissue_pressing_onto_the_tool_is_backed_out_of_on_every_tick() -> None:
+    """The tool rests in contact under the limit (2 N, no gap: the master's passivity off)
+    and the tissue moves 0.4 mm onto it (6 N, over 90 % of the 5 N limit): from the first tick
+    that reads the force, the commanded tip moves out along it every tick, a new master
+    sample or not, until the force is under 90 % of the limit."""
+    pair = _pair(10.0, 0.0, master_params={"passivity": False},
+                 slave_params={"max_tissue_force_n": 5.0})  # fmt: skip
+    try:
+        env = pair.slave.robot.hardware.environment
+        ctl = _slave_ctl(pair)
+        robot = pair.slave.robot
+        pair.start()
+        _press(pair, 2.0)
+        (wall,) = [c for c in env.contacts if c.name == "wall"]
+        assert ctl.shaper.cmd == ctl.shaper.raw  # nothing to give back: no reason to shape
+        moved = dataclasses.replace(wall, point=(wall.point[0] - 0.4, *wall.point[1:]))
+        env.define("wall", [moved])
+        over = idle = 0
+        for _ in range(40):
+            f = ctl.shaper.force_base()  # what the next tick reads
+            before = robot.frame.tip_position(list(robot.data.setpoint))
+            samples = ctl.samples
+            pair.step(1)
+            if f is None or math.hypot(*f) < 4.5:
+                continue
+            over += 1
+            idle += ctl.samples == samples
+            after = robot.frame.tip_position(list(robot.data.setpoint))
+            out = sum((a - b) * c for a, b, c in zip(after, before, f, strict=True))
+            assert out > 0.0, (over, ctl.samples == samples)
+        assert over >= 20 and idle >= 10, (over, idle)
+    finally:
+        pair.close()
+
+
+def test_a_clamped_target_in_contact_is_counted_once_a_sample() -> None:
+    """The pitch joint's limit raised to 0.30 rad clamps the tool's target while it presses
+    on the wall (the paper's motion takes pitch from 0.35 to 0.24 rad): GetStats'
+    ``ik_clamped`` counts each sample whose target was clamped once; a tick between samples,
+    its target left as it was, is not a new target and is neither solved nor counted."""
+    cfg = sweep.wall_config(10.0)
+    cfg["robot"]["joints"][1]["limits"]["min"] = 0.30
+    pair = SimPair(CONFIGS / "master.yaml", cfg, master_params={"passivity": False})
+    try:
+        ctl = _slave_ctl(pair)
+        env = pair.slave.robot.hardware.environment
+        pair.start()
+        in_contact = between = 0
+        for _ in range(4000):
+            samples, clamped = ctl.samples, ctl.clamped
+            pair.step(1)
+            if ctl.clamped > clamped:
+                in_contact += env.in_contact
+                between += ctl.samples == samples
+        assert ctl.stats()["ik_clamped"] == ctl.clamped
+        assert in_contact > 500 and between == 0, (in_contact, between)
+    finally:
+        pair.close()
