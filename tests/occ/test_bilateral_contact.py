@@ -9,6 +9,7 @@ latched in contact lets go of the tissue within 200 ms and tells the hand."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -330,5 +331,141 @@ def test_the_release_never_backs_out_farther_than_release_max_mm() -> None:
         assert math.hypot(*env.force_n) > 2.0  # 1.5 mm deep at 2 N/mm: still pressing
         (still,) = [a for a in _statuses(pair.s_op, "Release") if "still pressing" in a]
         assert "release_max_mm" in still
+    finally:
+        pair.close()
+
+
+@pytest.mark.req("SR-FORCE-6")
+def test_each_stop_in_contact_lets_go_with_its_own_release_max_mm() -> None:
+    """Two stops in contact, Run between them, on a 10 N/mm wall: the second backs the tool
+    out again from its own ``release_max_mm`` (1.2 mm here; the first release takes 0.84 mm
+    from 3 N, the second 0.60 mm from 1.3 N), not from what the first one left (0.36 mm: the
+    tool would stop short, still pressing about 0.9 N, and alert)."""
+    pair = _pair(10.0, 0.0, slave_params={"release_max_mm": 1.2})
+    try:
+        env = pair.slave.robot.hardware.environment
+        ctl = _slave_ctl(pair)
+        pair.start()
+        # after the first Run the re-index keeps the tool where it let go: the hand's circle
+        # then presses only about 1.4 N
+        for turn, force_n in ((1, 3.0), (2, 1.3)):
+            _press(pair, force_n)
+            pair.s_op.send_command("Stop")
+            pair.run_for(0.3)
+            assert pair.slave.robot.state is RobotState.STOPPED
+            st = ctl.stats()["instrument"]
+            assert math.hypot(*env.force_n) < 0.5, turn
+            assert st["releases"] == turn and 0.3 < st["released_mm"] < 1.1, (turn, st)
+            pair.s_op.send_command("Run")
+            pair.step(2)
+            assert pair.slave.robot.state is RobotState.RUNNING
+        release = _statuses(pair.s_op, "Release")
+        assert sum("let go" in a for a in release) == 2, release
+        assert not [a for a in release if "still pressing" in a], release
+    finally:
+        pair.close()
+
+
+@pytest.mark.req("SR-FORCE-6")
+def test_run_during_a_release_ends_it_in_the_stats() -> None:
+    """Run while the tool is still backing out: GetStats' ``instrument`` no longer says it
+    releases, and counts no travel for a stop that is over."""
+    pair = _pair(2.0, 0.0)
+    try:
+        ctl = _slave_ctl(pair)
+        pair.start()
+        _press(pair, 3.0)
+        pair.s_op.send_command("Stop")
+        pair.step(10)  # 10 ms at 40 mm/s: 0.4 mm of the 1.4 mm
+        st = ctl.stats()["instrument"]
+        assert st["releasing"] and st["released_mm"] > 0.1, st
+        pair.s_op.send_command("Run")
+        pair.step(2)
+        assert pair.slave.robot.state is RobotState.RUNNING
+        st = ctl.stats()["instrument"]
+        assert st["releasing"] is False and st["released_mm"] == 0.0, st
+        assert st["releases"] == 1
+    finally:
+        pair.close()
+
+
+@pytest.mark.req("SR-FORCE-4")
+def test_a_new_master_is_not_the_ports_until_its_energy_comes() -> None:
+    """A hand-over: the first sample of another master clears the port's activity, which is
+    false (not unknown) in GetStats until that master's ``energy_j`` comes."""
+    from occ.controllers.teleop import SlaveController
+    from occ.samples import PoseSample
+
+    # no phase lock: it reads the loop's clock, which a controller alone has not
+    ctl = SlaveController(SlaveController.Params.model_validate({"phase_lock_us": None}))
+
+    def port() -> Any:
+        return ctl.shaper.stats()["passivity"]["active"]
+
+    ctl.on_sample(PoseSample("m1", None, "Tool", (0.0, 0.0, 0.0), meta={"energy_j": "0.001"}), 0.0)
+    assert port() is True
+    ctl.on_sample(PoseSample("m2", None, "Tool", (1.0, 0.0, 0.0)), 0.001)
+    assert port() is False and ctl.source == "m2"
+    ctl.on_sample(PoseSample("m2", None, "Tool", (1.0, 0.0, 0.0), meta={"energy_j": "0.0"}), 0.002)
+    assert port() is True
+
+
+@pytest.mark.req("SR-FORCE-7")
+def test_tissue_pressing_onto_the_tool_is_backed_out_of_on_every_tick() -> None:
+    """The tool rests in contact under the limit (2 N, no gap: the master's passivity off)
+    and the tissue moves 0.4 mm onto it (6 N, over 90 % of the 5 N limit): from the first tick
+    that reads the force, the commanded tip moves out along it every tick, a new master
+    sample or not, until the force is under 90 % of the limit."""
+    pair = _pair(10.0, 0.0, master_params={"passivity": False},
+                 slave_params={"max_tissue_force_n": 5.0})  # fmt: skip
+    try:
+        env = pair.slave.robot.hardware.environment
+        ctl = _slave_ctl(pair)
+        robot = pair.slave.robot
+        pair.start()
+        _press(pair, 2.0)
+        (wall,) = [c for c in env.contacts if c.name == "wall"]
+        assert ctl.shaper.cmd == ctl.shaper.raw  # nothing to give back: no reason to shape
+        moved = dataclasses.replace(wall, point=(wall.point[0] - 0.4, *wall.point[1:]))
+        env.define("wall", [moved])
+        over = idle = 0
+        for _ in range(40):
+            f = ctl.shaper.force_base()  # what the next tick reads
+            before = robot.frame.tip_position(list(robot.data.setpoint))
+            samples = ctl.samples
+            pair.step(1)
+            if f is None or math.hypot(*f) < 4.5:
+                continue
+            over += 1
+            idle += ctl.samples == samples
+            after = robot.frame.tip_position(list(robot.data.setpoint))
+            out = sum((a - b) * c for a, b, c in zip(after, before, f, strict=True))
+            assert out > 0.0, (over, ctl.samples == samples)
+        assert over >= 20 and idle >= 10, (over, idle)
+    finally:
+        pair.close()
+
+
+def test_a_clamped_target_in_contact_is_counted_once_a_sample() -> None:
+    """The pitch joint's limit raised to 0.30 rad clamps the tool's target while it presses
+    on the wall (the paper's motion takes pitch from 0.35 to 0.24 rad): GetStats'
+    ``ik_clamped`` counts each sample whose target was clamped once; a tick between samples,
+    its target left as it was, is not a new target and is neither solved nor counted."""
+    cfg = sweep.wall_config(10.0)
+    cfg["robot"]["joints"][1]["limits"]["min"] = 0.30
+    pair = SimPair(CONFIGS / "master.yaml", cfg, master_params={"passivity": False})
+    try:
+        ctl = _slave_ctl(pair)
+        env = pair.slave.robot.hardware.environment
+        pair.start()
+        in_contact = between = 0
+        for _ in range(4000):
+            samples, clamped = ctl.samples, ctl.clamped
+            pair.step(1)
+            if ctl.clamped > clamped:
+                in_contact += env.in_contact
+                between += ctl.samples == samples
+        assert ctl.stats()["ik_clamped"] == ctl.clamped
+        assert in_contact > 500 and between == 0, (in_contact, between)
     finally:
         pair.close()
