@@ -16,13 +16,16 @@ import numpy as np
 import pytest
 
 from occ.controllers.keyframe.cellset import (
+    MAX_SAMPLES,
     CellCheck,
     CellRole,
+    _meta_path,
     first_tick,
     previewed,
     start_time,
 )
 from occ.errors import CommandError
+from occ.events import ArrayInput
 from occ.kinematics.cellpaths import (
     ArmPath,
     Clash,
@@ -31,6 +34,7 @@ from occ.kinematics.cellpaths import (
     cross_check,
     path_digest,
 )
+from occ.net.commands import Deferred
 
 BASE = np.eye(4)
 
@@ -567,3 +571,167 @@ def test_a_distance_with_no_pair_named_is_checked_and_its_clash_names_no_link() 
                       checker=Pairs(lambda a, b: 0.5 + 2 / 64, named=False))  # fmt: skip
     assert res.clash == Clash(0.0, "arm0", "?", "arm1", "?", 0.5 + 2 / 64, 3 / 64, 0.5)
     assert res.closest_pair == ""
+
+
+# ------------------------------------------------------------------ another member's path, as given
+SET = "s" * 64
+
+
+def given(p: ArmPath, **meta: str) -> ArrayInput:
+    """``p`` as an NDARRAY ``CellPath`` names it: its member, set, period, base and digest,
+    ``meta`` replacing any of them (``""``: left out)."""
+    names = {
+        "member": p.member,
+        "set": SET,
+        "period": repr(p.period),
+        "base": ",".join(repr(float(v)) for v in p.base.ravel()),
+        "digest": path_digest(p),
+    }
+    names.update(meta)
+    kept = {k: v for k, v in names.items() if v != ""}
+    return ArrayInput("op", None, 0.0, "NDARRAY", "CellPath", kept, p.qs)
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_a_given_path_is_read_from_its_metadata_and_its_samples_as_float() -> None:
+    """Integer samples are taken as float64 (the digest's values), the base as 4 x 4."""
+    p = ArmPath("arm1", np.array([[0, 1], [2, 3]]), OTHER_BASE, 0.25)
+    read, claimed = _meta_path(given(p))
+    assert read.member == "arm1" and read.period == 0.25 and claimed == path_digest(p)
+    assert read.qs.dtype == np.float64 and read.qs.tolist() == [[0.0, 1.0], [2.0, 3.0]]
+    assert read.base.dtype == np.float64 and (read.base == OTHER_BASE).all()
+    assert path_digest(read) == claimed
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+@pytest.mark.parametrize(
+    ("meta", "says"),
+    [
+        ({"member": ""}, "'member'"),
+        ({"period": ""}, "'period'"),
+        ({"base": ""}, "'base'"),
+        ({"digest": ""}, "'digest'"),
+        ({"period": "soon"}, "could not convert string to float: 'soon'"),
+        ({"base": "1,0,0"}, "cannot reshape array of size 3 into shape (4,4)"),
+    ],
+)
+def test_a_given_path_without_what_names_it_is_refused_saying_what(
+    meta: dict[str, str], says: str
+) -> None:
+    with pytest.raises(ValueError) as err:
+        _meta_path(given(arm("arm1", [0, 1]), **meta))
+    assert str(err.value) == f"NDARRAY 'CellPath': metadata member, period, base, digest: {says}"
+
+
+def member_set(others: tuple[str, ...] = ("arm1",)) -> Any:
+    return SimpleNamespace(me="arm0", others=others, digest=SET, name="turns")
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_a_path_of_at_most_max_samples_matching_its_digest_is_taken() -> None:
+    longest = ArmPath("arm1", np.zeros((MAX_SAMPLES, 1)), OTHER_BASE, 0.001)
+    paths, digests = CellRole._validated(member_set(), {"arm1": given(longest)})
+    assert [len(p.qs) for p in paths] == [MAX_SAMPLES] and digests == {"arm1": path_digest(longest)}
+    over = ArmPath("arm1", np.zeros((MAX_SAMPLES + 1, 1)), OTHER_BASE, 0.001)
+    with pytest.raises(ValueError) as err:
+        CellRole._validated(member_set(), {"arm1": given(over)})
+    assert str(err.value) == f"arm1's path has more than {MAX_SAMPLES} samples"
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_a_path_given_as_anothers_or_not_matching_its_digest_is_refused() -> None:
+    p, q = arm("arm1", [0, 1]), arm("arm2", [5])
+    paths, digests = CellRole._validated(
+        member_set(("arm1", "arm2")), {"arm2": given(q), "arm1": given(p)}
+    )
+    assert [x.member for x in paths] == ["arm1", "arm2"]
+    assert digests == {"arm1": path_digest(p), "arm2": path_digest(q)}
+    with pytest.raises(ValueError) as err:
+        CellRole._validated(member_set(), {"arm1": given(q)})
+    assert str(err.value) == "the path given as arm1's names arm2"
+    with pytest.raises(ValueError) as err:
+        CellRole._validated(member_set(), {"arm1": given(p, digest="d" * 64)})
+    assert str(err.value) == "arm1's path does not match its digest dddddddddddd"
+    with pytest.raises(ValueError) as err:
+        CellRole._validated(member_set(), {"arm1": given(p, period="0.5")})
+    assert "arm1's path does not match its digest" in str(err.value)
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_a_path_is_kept_only_from_another_member_of_the_loaded_cell_set() -> None:
+    kset = object()
+    role = CellRole(threading.Lock())
+    p = arm("arm1", [0, 1])
+
+    def refused(event: ArrayInput, loaded: Any = kset) -> str:
+        with pytest.raises(CommandError) as err:
+            role.take_path(event, loaded)  # type: ignore[arg-type]
+        return str(err.value)
+
+    assert refused(given(p)) == "NDARRAY 'CellPath': no cell keyframe set is loaded"
+    role.cset = SimpleNamespace(  # type: ignore[assignment]
+        own=kset, digest=SET, others=("arm1", "arm2"), name="turns"
+    )
+    assert refused(given(p), object()) == "NDARRAY 'CellPath': no cell keyframe set is loaded"
+    assert refused(given(p, set="t" * 64)) == (
+        "NDARRAY 'CellPath' of arm1: for another cell set (its digest tttttttttttt, this "
+        "member's ssssssssssss)"
+    )
+    assert refused(given(p, set="", member="")) == (
+        "NDARRAY 'CellPath' of ?: for another cell set (its digest ?, this member's ssssssssssss)"
+    )
+    assert refused(given(p, member="")) == (
+        "NDARRAY 'CellPath': '' is not another member of cell set turns (arm1, arm2)"
+    )
+    assert refused(given(p, member="arm0")) == (
+        "NDARRAY 'CellPath': 'arm0' is not another member of cell set turns (arm1, arm2)"
+    )
+    assert role.paths == {}
+    role.checked = CellCheck(SimpleNamespace(id=3), "i" * 64, {})  # type: ignore[arg-type]
+    event = given(p)
+    role.take_path(event, kset)  # type: ignore[arg-type]
+    assert role.paths == {"arm1": event} and role.checked is None
+
+
+def job_for(role: CellRole, cm: Any, paths: dict[str, ArrayInput]) -> Deferred:
+    """``KeyframeCellCheck``'s job for plan 3 (arm0's one sample) run here, its answer."""
+    kset = object()
+    cset = SimpleNamespace(own=kset, me="arm0", others=tuple(sorted(paths)), digest=SET,
+                           name="turns")  # fmt: skip
+    role.cset = cset  # type: ignore[assignment]
+    role.paths = dict(paths)
+    plan = SimpleNamespace(id=3, qs=np.array([[0.0]]), digest="p" * 64, base=OWN_BASE,
+                           period=0.25, kset=kset)  # fmt: skip
+    answer = Deferred()
+    role.check_job(cset, plan, cm, 0.0, None, lambda c: c is plan)(answer)  # type: ignore[arg-type]
+    return answer
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_a_refused_cross_check_is_said_and_kept_as_the_last_check() -> None:
+    role = CellRole(threading.Lock())
+    near = Pairs(lambda a, b: 0.25)
+    cm = cell(0.5, 1.0, {"arm1": 0.0}, lambda: near)
+    answer = job_for(role, cm, {"arm1": given(arm("arm1", [0]))})
+    text = (
+        "cell plan refused: at t=0.000 s link 'tool' of arm0 comes 250.00 mm from link 'q0' of "
+        "arm1 (arm0:tool vs arm1:q0; margin 500 mm)"
+    )
+    assert answer.result == (False, text) and role.last_check == text
+    assert role.checked is None
+    bad = given(arm("arm1", [0]), digest="d" * 64)
+    answer = job_for(role, cm, {"arm1": bad})
+    text = "cell plan refused: arm1's path does not match its digest dddddddddddd"
+    assert answer.result == (False, text) and role.last_check == text
+    # clear: the identity kept and said (another member: a role keeps its first checker)
+    role = CellRole(threading.Lock())
+    far = Pairs(lambda a, b: 0.75)
+    p = arm("arm1", [0])
+    answer = job_for(role, cell(0.5, 1.0, {"arm1": 0.0}, lambda: far), {"arm1": given(p)})
+    ident = cell_identity(SET, {"arm0": "p" * 64, "arm1": path_digest(p)})
+    assert role.checked is not None and role.checked.identity == ident == role.last_check
+    assert answer.result is not None and answer.result[0]
+    assert answer.result[1].startswith(f"cell plan {ident}: set ssssssssssss, plans arm0 ")
+    assert (
+        "(1 samples checked, closest 750.0 mm (tool vs arm1:q0 at t=0.000 s))" in (answer.result[1])
+    )
