@@ -1,7 +1,9 @@
 """The cell plan's pieces one by one (issue 40, item 5; occ/kinematics/cellpaths.py,
 occ/controllers/keyframe/cellset.py): a path and its digest, the cell identity, a clash's
-words, the common start on the loop's ticks, what a member says of its cell set. The whole
-(members planning, exchanging and checking on loopback) is test_cell_plan.py's."""
+words, the time-aligned cross-check against a stand-in geometry (every sample, window and
+skip known exactly), the common start on the loop's ticks, what a member says of its cell
+set. The whole (members planning, exchanging and checking on loopback) is
+test_cell_plan.py's."""
 
 from __future__ import annotations
 
@@ -14,14 +16,25 @@ import numpy as np
 import pytest
 
 from occ.controllers.keyframe.cellset import (
+    MAX_SAMPLES,
     CellCheck,
     CellRole,
+    _meta_path,
     first_tick,
     previewed,
     start_time,
 )
 from occ.errors import CommandError
-from occ.kinematics.cellpaths import ArmPath, Clash, _links, cell_identity, path_digest
+from occ.events import ArrayInput
+from occ.kinematics.cellpaths import (
+    ArmPath,
+    Clash,
+    _links,
+    cell_identity,
+    cross_check,
+    path_digest,
+)
+from occ.net.commands import Deferred
 
 BASE = np.eye(4)
 
@@ -277,3 +290,448 @@ def test_the_identities_are_the_documented_hashes_so_builds_agree() -> None:
     assert cell_identity("s" * 64, plans) == CELL_IDENTITY
     # the same, member names not ASCII
     assert cell_identity("s" * 64, {"bras-é": "a" * 64}) == CELL_IDENTITY_UTF8
+
+
+# ------------------------------------------------------------------ the time-aligned check itself
+# A stand-in geometry of one joint per arm: each arm's reach (m per unit of q) and a distance
+# given as a function of the two arms' joint values (its slope within their reaches, as a real
+# arm's distance is), so every sample checked, every window and every skip is known exactly.
+# Periods and values are binary fractions: the sums below are exact.
+
+
+class Pairs:
+    """A checker: the distance ``dist(own q, other q)`` and a pair naming the other's q; it
+    records every call (own q, own base, the other arm, its q, its base)."""
+
+    def __init__(self, dist: Any, named: bool = True) -> None:
+        self.dist, self.named = dist, named
+        self.calls: list[tuple[float, Any, str, float, Any]] = []
+
+    def arm_distance(self, q: Any, base: Any, arm: Any, st: Any) -> tuple[float, Any]:
+        self.calls.append((q[0], base, arm.name, st.q[0], st.base))
+        d = float(self.dist(q[0], st.q[0]))
+        if math.isinf(d) or not self.named:
+            return d, None
+        return d, SimpleNamespace(pair=f"tool vs {arm.name}:q{st.q[0]:g}")
+
+    def own(self) -> list[float]:
+        return [c[0] for c in self.calls]
+
+    def other(self) -> list[float]:
+        return [c[3] for c in self.calls]
+
+
+def unused() -> Any:
+    raise AssertionError("cross_check built its own checker: the one given was not used")
+
+
+def cell(margin: float, reach: float, peers: dict[str, float], checker: Any = unused) -> Any:
+    """A collision model of one-joint arms: this arm's reach, each peer's by name."""
+    arms = {
+        name: SimpleNamespace(name=name, nq=1, arm=SimpleNamespace(reach=(r,)))
+        for name, r in peers.items()
+    }
+    return SimpleNamespace(margin=margin, reach=(reach,), peer=arms.__getitem__, checker=checker)
+
+
+OWN_BASE = np.diag([1.0, 1.0, 1.0, 1.0]) + np.eye(4, k=3) * 0.5
+OTHER_BASE = np.diag([1.0, 1.0, 1.0, 1.0]) + np.eye(4, k=3) * 2.0
+
+
+def arm(member: str, qs: list[float], period: float = 0.25) -> ArmPath:
+    base = OWN_BASE if member == "arm0" else OTHER_BASE
+    return ArmPath(member, np.array([[v] for v in qs]), base, period)
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_at_the_margin_every_sample_is_checked_up_to_the_later_end_of_the_two() -> None:
+    """Slack 0 skips nothing: one check per own period up to the longer path's end, own and
+    other at their samples at that time (each at rest past its end), both bases given."""
+    at_margin = Pairs(lambda a, b: 0.5)
+    cm = cell(0.5, 1.0, {"arm1": 0.0})  # the other's reach 0: no skew motion
+    res = cross_check(cm, arm("arm0", [0, 1, 2]), [arm("arm1", [10, 11, 12, 13, 14])], 0.0,
+                      checker=at_margin)  # fmt: skip
+    assert res.checked == 5 and res.clash is None
+    assert at_margin.own() == [0, 1, 2, 2, 2]
+    assert at_margin.other() == [10, 11, 12, 13, 14]  # its last sample (t = 1.0) too
+    for _q, base, name, _qb, other_base in at_margin.calls:
+        assert base is not None and (base == OWN_BASE).all() and name == "arm1"
+        assert (other_base == OTHER_BASE).all()
+    # the closest: the first of equals, its time and pair
+    assert (res.closest, res.closest_at, res.closest_pair) == (0.5, 0.0, "tool vs arm1:q10")
+    # the own path the longer: its every sample, the other resting at its last
+    rest = Pairs(lambda a, b: 0.5)
+    res = cross_check(cm, arm("arm0", [0, 1, 2, 3, 4]), [arm("arm1", [10, 11])], 0.0,
+                      checker=rest)  # fmt: skip
+    assert res.checked == 5 and rest.own() == [0, 1, 2, 3, 4]
+    assert rest.other() == [10, 11, 11, 11, 11]
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_the_other_arm_is_taken_at_its_sample_nearest_each_own_time() -> None:
+    """Another period: the other's sample nearest ``j P`` (``t / P_other`` rounded), never
+    before its first nor past its last; the own path's period sets the times."""
+    seen = Pairs(lambda a, b: 0.5)
+    cm = cell(0.5, 1.0, {"arm1": 0.0})
+    own = arm("arm0", [0, 1, 2, 3, 4, 5, 6], period=0.25)
+    res = cross_check(cm, own, [arm("arm1", [10, 11, 12], period=0.5)], 0.0, checker=seen)
+    assert res.checked == 7
+    # t = 0, .25, .5, .75, 1, 1.25, 1.5: t / 0.5 rounded half to even, clipped to 0..2
+    assert seen.other() == [10, 10, 11, 12, 12, 12, 12]
+    assert res.closest_at == 0.0
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+@pytest.mark.parametrize(
+    ("own", "other", "checked", "others_seen"),
+    [
+        ([0], [10], 1, [10]),  # both one sample: one check at t = 0
+        ([0], [10, 11], 2, [10, 11]),
+        ([0, 1, 2], [10], 3, [10, 10, 10]),
+    ],
+)
+def test_a_path_of_one_sample_is_checked_at_its_only_sample(
+    own: list[float], other: list[float], checked: int, others_seen: list[float]
+) -> None:
+    seen = Pairs(lambda a, b: 0.5)
+    res = cross_check(cell(0.5, 1.0, {"arm1": 0.0}), arm("arm0", own), [arm("arm1", other)],
+                      0.0, checker=seen)  # fmt: skip
+    assert res.checked == checked and seen.other() == others_seen
+    assert res.clash is None and res.closest == 0.5
+
+
+#: the other arm's joint (reach 1 m per unit): steps of 1, 2, 4, 8, 16 / 64 m, 0.25 s apart
+RAMP = [0, 1 / 64, 3 / 64, 7 / 64, 15 / 64, 31 / 64]
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_only_the_other_arms_motion_within_the_skew_makes_it_refuse() -> None:
+    """Distance 0.5 + 26/64 m throughout, margin 0.5 m. Without skew the window is a sample
+    either side: at most 24/64 m (t = 1.0), clear. With a skew of one period, two either
+    side: 30/64 m at t = 0.75 leaves 0.5 - 4/64 m, a clash of which the skew took 30/64."""
+    d = 0.5 + 26 / 64
+    cm = cell(0.5, 1.0, {"arm1": 1.0})
+    own, other = arm("arm0", [0]), arm("arm1", RAMP)
+    seen = Pairs(lambda a, b: d)
+    res = cross_check(cm, own, [other], 0.0, checker=seen)
+    assert res.clash is None
+    # checked at t = 0 and next at t = 1.0, where the other may have moved the slack
+    assert res.checked == 2 and seen.other() == [0, RAMP[4]]
+    assert (res.closest, res.closest_at) == (d - 24 / 64, 1.0)
+    assert res.closest_pair == f"tool vs arm1:q{RAMP[4]:g}"
+
+    seen = Pairs(lambda a, b: d)
+    res = cross_check(cm, own, [other], 0.25, checker=seen)
+    assert res.checked == 2 and seen.other() == [0, RAMP[3]]
+    assert res.clash == Clash(0.75, "arm0", "tool", "arm1", f"q{RAMP[3]:g}", d, 30 / 64, 0.5)
+    assert (res.closest, res.closest_at) == (d - 30 / 64, 0.75)
+    assert res.closest_pair == f"tool vs arm1:q{RAMP[3]:g}"
+    # a skew just over one period: three either side (7/64 at t = 0), the rest far within
+    # the slack
+    res = cross_check(cm, own, [other], 0.2500001, checker=Pairs(lambda a, b: 2.0))
+    assert res.clash is None and (res.closest, res.checked) == (2.0 - 7 / 64, 1)
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_the_skew_window_before_the_others_start_begins_at_its_first_sample() -> None:
+    """At t = 0 a skew of one period reaches its samples 0..2 (3/64 m), none before its
+    start: 0.5 + 2/64 m is a clash at the first sample, 0.5 + 3/64 m clear there."""
+    cm = cell(0.5, 1.0, {"arm1": 1.0})
+    own, other = arm("arm0", [0]), arm("arm1", RAMP)
+    res = cross_check(cm, own, [other], 0.25, checker=Pairs(lambda a, b: 0.5 + 2 / 64))
+    assert res.clash == Clash(0.0, "arm0", "tool", "arm1", "q0", 0.5 + 2 / 64, 3 / 64, 0.5)
+    assert (res.checked, res.closest, res.closest_at) == (1, 0.5 - 1 / 64, 0.0)
+    seen = Pairs(lambda a, b: 0.5 + 3 / 64 if b == 0 else 2.0)
+    res = cross_check(cm, own, [other], 0.25, checker=seen)
+    assert res.clash is None and (res.closest, res.closest_at) == (0.5, 0.0)
+    # the window at t = 0.25 (its samples 0..3: 7/64) is the next check's
+    assert seen.other() == [0, RAMP[1]] and res.checked == 2
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_a_clash_at_the_very_last_sample_is_found() -> None:
+    """The own arm moves 0.95 m onto the other at its last sample (t = 1.0): checked there
+    (its motion from t = 0 reaches the slack) and refused."""
+    cm = cell(0.125, 1.0, {"arm1": 1.0})
+    seen = Pairs(lambda a, b: 1.0 - a)
+    res = cross_check(cm, arm("arm0", [0, 0, 0, 0, 0.95]), [arm("arm1", [0])], 0.0,
+                      checker=seen)  # fmt: skip
+    assert res.checked == 2 and seen.own() == [0, 0.95]
+    assert res.clash is not None and res.clash.t == 1.0
+    assert res.clash.distance == pytest.approx(0.05, abs=1e-15) and res.clash.skew_motion == 0.0
+    assert res.closest == res.clash.distance and res.closest_at == 1.0
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_samples_are_skipped_only_while_the_own_motion_is_under_the_slack() -> None:
+    """Slack 0.25 m, the own arm 1/8 m a sample: every second sample is checked (its motion
+    reaching the slack exactly counts); 1/1024 m a sample over 300 samples with slack 1/8:
+    samples 0, 128 and 256, past the blocks the search reads at a time."""
+    cm = cell(0.5, 1.0, {"arm1": 1.0})
+    seen = Pairs(lambda a, b: 0.75)
+    res = cross_check(cm, arm("arm0", [k / 8 for k in range(17)]), [arm("arm1", [0])], 0.0,
+                      checker=seen)  # fmt: skip
+    assert seen.own() == [k / 4 for k in range(9)] and res.checked == 9
+    seen = Pairs(lambda a, b: 0.625)
+    res = cross_check(cm, arm("arm0", [k / 1024 for k in range(300)]), [arm("arm1", [0])],
+                      0.0, checker=seen)  # fmt: skip
+    assert seen.own() == [0.0, 0.125, 0.25] and res.checked == 3
+    # the own reach counts: half of it, every fourth sample of the first path
+    seen = Pairs(lambda a, b: 0.75)
+    res = cross_check(cell(0.5, 0.5, {"arm1": 1.0}), arm("arm0", [k / 8 for k in range(17)]),
+                      [arm("arm1", [0])], 0.0, checker=seen)  # fmt: skip
+    assert seen.own() == [k / 2 for k in range(5)] and res.checked == 5
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_the_other_arms_motion_from_its_checked_sample_brings_the_next_check() -> None:
+    """The own arm still: after t = 0 (the other at its sample 0) the next check is the first
+    time whose window reaches as far from sample 0 as the slack (t = 0.5, its window's end at
+    sample 3: 7/64 m), and from there the next (t = 0.75, 12/64 m more), a clash."""
+    cm = cell(0.5, 1.0, {"arm1": 1.0})
+    seen = Pairs(lambda a, b: 0.5 + 7 / 64)  # slack 7/64: the window's end at sample 3
+    res = cross_check(cm, arm("arm0", [0]), [arm("arm1", RAMP)], 0.0, checker=seen)
+    assert seen.other() == [0, RAMP[2], RAMP[3]] and res.checked == 3
+    assert res.clash == Clash(0.75, "arm0", "tool", "arm1", f"q{RAMP[3]:g}", 0.5 + 7 / 64,
+                              12 / 64, 0.5)  # fmt: skip
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_each_other_arm_is_checked_and_counted_the_closest_kept_and_a_clash_ends_it() -> None:
+    cm = cell(0.5, 1.0, {"arm1": 0.0, "arm2": 0.0})
+    one, two = arm("arm1", [10, 11, 12]), arm("arm2", [20, 21])
+    seen = Pairs(lambda a, b: 0.5)
+    res = cross_check(cm, arm("arm0", [0]), [one, two], 0.0, checker=seen)
+    assert [c[2] for c in seen.calls] == ["arm1"] * 3 + ["arm2"] * 2
+    assert res == type(res)(None, 0.5, 0.0, "tool vs arm1:q10", 5)  # the first of equals
+    seen = Pairs(lambda a, b: 0.5 if b < 20 else 0.75 - (b - 20) / 8)
+    res = cross_check(cm, arm("arm0", [0]), [one, two], 0.0, checker=seen)
+    assert (res.closest, res.closest_at, res.closest_pair) == (0.5, 0.0, "tool vs arm1:q10")
+    # nearer the second: its closest (the own arm moving 1 m a sample: each checked)
+    seen = Pairs(lambda a, b: 0.75 if b < 20 else 0.625 - a / 16)
+    res = cross_check(cm, arm("arm0", [0, 1]), [one, two], 0.0, checker=seen)
+    assert [(c[2], c[3]) for c in seen.calls] == [
+        ("arm1", 10), ("arm1", 11), ("arm2", 20), ("arm2", 21)
+    ]  # fmt: skip
+    assert res.clash is None and res.checked == 2 + 2
+    assert (res.closest, res.closest_at, res.closest_pair) == (0.5625, 0.25, "tool vs arm2:q21")
+    # a clash with the second: its result, the samples of both counted
+    seen = Pairs(lambda a, b: 0.75 if b < 20 else 0.25)
+    res = cross_check(cm, arm("arm0", [0]), [one, two], 0.0, checker=seen)
+    assert res.clash == Clash(0.0, "arm0", "tool", "arm2", "q20", 0.25, 0.0, 0.5)
+    assert (res.closest, res.closest_at, res.closest_pair, res.checked) == (
+        0.25, 0.0, "tool vs arm2:q20", 1 + 1,
+    )  # fmt: skip
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_arms_never_near_leave_no_closest_and_no_other_arm_checks_nothing() -> None:
+    """A distance of infinity (no pair near): one check, no closest, no pair, no time."""
+    cm = cell(0.5, 1.0, {"arm1": 1.0})
+    far = Pairs(lambda a, b: math.inf)
+    res = cross_check(cm, arm("arm0", [0, 1]), [arm("arm1", [0, 1, 2])], 0.0, checker=far)
+    assert res == type(res)(None, math.inf, 0.0, "", 1) and len(far.calls) == 1
+    assert cross_check(cm, arm("arm0", [0]), [], 0.0, checker=far) == type(res)(
+        None, math.inf, 0.0, "", 0
+    )
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_the_checker_and_the_pace_given_are_used_and_without_one_the_models() -> None:
+    beats: list[int] = []
+    seen = Pairs(lambda a, b: 0.5)
+    cm = cell(0.5, 1.0, {"arm1": 0.0})
+    res = cross_check(cm, arm("arm0", [0, 1, 2]), [arm("arm1", [0])], 0.0, checker=seen,
+                      pace=lambda: beats.append(1))  # fmt: skip
+    assert res.checked == 3 and len(beats) == 3 and len(seen.calls) == 3
+    own = Pairs(lambda a, b: 0.5)
+    res = cross_check(cell(0.5, 1.0, {"arm1": 0.0}, lambda: own), arm("arm0", [0, 1]),
+                      [arm("arm1", [0])], 0.0)  # fmt: skip
+    assert res.checked == 2 and len(own.calls) == 2
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_another_arms_path_of_other_joints_than_its_arm_is_refused() -> None:
+    other = ArmPath("arm1", np.zeros((2, 2)), OTHER_BASE, 0.25)
+    with pytest.raises(ValueError) as err:
+        cross_check(cell(0.5, 1.0, {"arm1": 1.0}), arm("arm0", [0]), [other], 0.0,
+                    checker=Pairs(lambda a, b: 1.0))  # fmt: skip
+    assert str(err.value) == "arm1: its path has 2 joints, its arm 1"
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_a_distance_with_no_pair_named_is_checked_and_its_clash_names_no_link() -> None:
+    """Far pairs give a lower bound and no contact: the closest names no pair, and a clash
+    (the skew window taking it under the margin) says '?' for both links."""
+    cm = cell(0.5, 1.0, {"arm1": 1.0})
+    res = cross_check(cm, arm("arm0", [0]), [arm("arm1", [0])], 0.0,
+                      checker=Pairs(lambda a, b: 0.75, named=False))  # fmt: skip
+    assert res == type(res)(None, 0.75, 0.0, "", 1)
+    res = cross_check(cm, arm("arm0", [0]), [arm("arm1", RAMP)], 0.25,
+                      checker=Pairs(lambda a, b: 0.5 + 2 / 64, named=False))  # fmt: skip
+    assert res.clash == Clash(0.0, "arm0", "?", "arm1", "?", 0.5 + 2 / 64, 3 / 64, 0.5)
+    assert res.closest_pair == ""
+
+
+# ------------------------------------------------------------------ another member's path, as given
+SET = "s" * 64
+
+
+def given(p: ArmPath, **meta: str) -> ArrayInput:
+    """``p`` as an NDARRAY ``CellPath`` names it: its member, set, period, base and digest,
+    ``meta`` replacing any of them (``""``: left out)."""
+    names = {
+        "member": p.member,
+        "set": SET,
+        "period": repr(p.period),
+        "base": ",".join(repr(float(v)) for v in p.base.ravel()),
+        "digest": path_digest(p),
+    }
+    names.update(meta)
+    kept = {k: v for k, v in names.items() if v != ""}
+    return ArrayInput("op", None, 0.0, "NDARRAY", "CellPath", kept, p.qs)
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_a_given_path_is_read_from_its_metadata_and_its_samples_as_float() -> None:
+    """Integer samples are taken as float64 (the digest's values), the base as 4 x 4."""
+    p = ArmPath("arm1", np.array([[0, 1], [2, 3]]), OTHER_BASE, 0.25)
+    read, claimed = _meta_path(given(p))
+    assert read.member == "arm1" and read.period == 0.25 and claimed == path_digest(p)
+    assert read.qs.dtype == np.float64 and read.qs.tolist() == [[0.0, 1.0], [2.0, 3.0]]
+    assert read.base.dtype == np.float64 and (read.base == OTHER_BASE).all()
+    assert path_digest(read) == claimed
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+@pytest.mark.parametrize(
+    ("meta", "says"),
+    [
+        ({"member": ""}, "'member'"),
+        ({"period": ""}, "'period'"),
+        ({"base": ""}, "'base'"),
+        ({"digest": ""}, "'digest'"),
+        ({"period": "soon"}, "could not convert string to float: 'soon'"),
+        ({"base": "1,0,0"}, "cannot reshape array of size 3 into shape (4,4)"),
+    ],
+)
+def test_a_given_path_without_what_names_it_is_refused_saying_what(
+    meta: dict[str, str], says: str
+) -> None:
+    with pytest.raises(ValueError) as err:
+        _meta_path(given(arm("arm1", [0, 1]), **meta))
+    assert str(err.value) == f"NDARRAY 'CellPath': metadata member, period, base, digest: {says}"
+
+
+def member_set(others: tuple[str, ...] = ("arm1",)) -> Any:
+    return SimpleNamespace(me="arm0", others=others, digest=SET, name="turns")
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_a_path_of_at_most_max_samples_matching_its_digest_is_taken() -> None:
+    longest = ArmPath("arm1", np.zeros((MAX_SAMPLES, 1)), OTHER_BASE, 0.001)
+    paths, digests = CellRole._validated(member_set(), {"arm1": given(longest)})
+    assert [len(p.qs) for p in paths] == [MAX_SAMPLES] and digests == {"arm1": path_digest(longest)}
+    over = ArmPath("arm1", np.zeros((MAX_SAMPLES + 1, 1)), OTHER_BASE, 0.001)
+    with pytest.raises(ValueError) as err:
+        CellRole._validated(member_set(), {"arm1": given(over)})
+    assert str(err.value) == f"arm1's path has more than {MAX_SAMPLES} samples"
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_a_path_given_as_anothers_or_not_matching_its_digest_is_refused() -> None:
+    p, q = arm("arm1", [0, 1]), arm("arm2", [5])
+    paths, digests = CellRole._validated(
+        member_set(("arm1", "arm2")), {"arm2": given(q), "arm1": given(p)}
+    )
+    assert [x.member for x in paths] == ["arm1", "arm2"]
+    assert digests == {"arm1": path_digest(p), "arm2": path_digest(q)}
+    with pytest.raises(ValueError) as err:
+        CellRole._validated(member_set(), {"arm1": given(q)})
+    assert str(err.value) == "the path given as arm1's names arm2"
+    with pytest.raises(ValueError) as err:
+        CellRole._validated(member_set(), {"arm1": given(p, digest="d" * 64)})
+    assert str(err.value) == "arm1's path does not match its digest dddddddddddd"
+    with pytest.raises(ValueError) as err:
+        CellRole._validated(member_set(), {"arm1": given(p, period="0.5")})
+    assert "arm1's path does not match its digest" in str(err.value)
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_a_path_is_kept_only_from_another_member_of_the_loaded_cell_set() -> None:
+    kset = object()
+    role = CellRole(threading.Lock())
+    p = arm("arm1", [0, 1])
+
+    def refused(event: ArrayInput, loaded: Any = kset) -> str:
+        with pytest.raises(CommandError) as err:
+            role.take_path(event, loaded)  # type: ignore[arg-type]
+        return str(err.value)
+
+    assert refused(given(p)) == "NDARRAY 'CellPath': no cell keyframe set is loaded"
+    role.cset = SimpleNamespace(  # type: ignore[assignment]
+        own=kset, digest=SET, others=("arm1", "arm2"), name="turns"
+    )
+    assert refused(given(p), object()) == "NDARRAY 'CellPath': no cell keyframe set is loaded"
+    assert refused(given(p, set="t" * 64)) == (
+        "NDARRAY 'CellPath' of arm1: for another cell set (its digest tttttttttttt, this "
+        "member's ssssssssssss)"
+    )
+    assert refused(given(p, set="", member="")) == (
+        "NDARRAY 'CellPath' of ?: for another cell set (its digest ?, this member's ssssssssssss)"
+    )
+    assert refused(given(p, member="")) == (
+        "NDARRAY 'CellPath': '' is not another member of cell set turns (arm1, arm2)"
+    )
+    assert refused(given(p, member="arm0")) == (
+        "NDARRAY 'CellPath': 'arm0' is not another member of cell set turns (arm1, arm2)"
+    )
+    assert role.paths == {}
+    role.checked = CellCheck(SimpleNamespace(id=3), "i" * 64, {})  # type: ignore[arg-type]
+    event = given(p)
+    role.take_path(event, kset)  # type: ignore[arg-type]
+    assert role.paths == {"arm1": event} and role.checked is None
+
+
+def job_for(role: CellRole, cm: Any, paths: dict[str, ArrayInput]) -> Deferred:
+    """``KeyframeCellCheck``'s job for plan 3 (arm0's one sample) run here, its answer."""
+    kset = object()
+    cset = SimpleNamespace(own=kset, me="arm0", others=tuple(sorted(paths)), digest=SET,
+                           name="turns")  # fmt: skip
+    role.cset = cset  # type: ignore[assignment]
+    role.paths = dict(paths)
+    plan = SimpleNamespace(id=3, qs=np.array([[0.0]]), digest="p" * 64, base=OWN_BASE,
+                           period=0.25, kset=kset)  # fmt: skip
+    answer = Deferred()
+    role.check_job(cset, plan, cm, 0.0, None, lambda c: c is plan)(answer)  # type: ignore[arg-type]
+    return answer
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_a_refused_cross_check_is_said_and_kept_as_the_last_check() -> None:
+    role = CellRole(threading.Lock())
+    near = Pairs(lambda a, b: 0.25)
+    cm = cell(0.5, 1.0, {"arm1": 0.0}, lambda: near)
+    answer = job_for(role, cm, {"arm1": given(arm("arm1", [0]))})
+    text = (
+        "cell plan refused: at t=0.000 s link 'tool' of arm0 comes 250.00 mm from link 'q0' of "
+        "arm1 (arm0:tool vs arm1:q0; margin 500 mm)"
+    )
+    assert answer.result == (False, text) and role.last_check == text
+    assert role.checked is None
+    bad = given(arm("arm1", [0]), digest="d" * 64)
+    answer = job_for(role, cm, {"arm1": bad})
+    text = "cell plan refused: arm1's path does not match its digest dddddddddddd"
+    assert answer.result == (False, text) and role.last_check == text
+    # clear: the identity kept and said (another member: a role keeps its first checker)
+    role = CellRole(threading.Lock())
+    far = Pairs(lambda a, b: 0.75)
+    p = arm("arm1", [0])
+    answer = job_for(role, cell(0.5, 1.0, {"arm1": 0.0}, lambda: far), {"arm1": given(p)})
+    ident = cell_identity(SET, {"arm0": "p" * 64, "arm1": path_digest(p)})
+    assert role.checked is not None and role.checked.identity == ident == role.last_check
+    assert answer.result is not None and answer.result[0]
+    assert answer.result[1].startswith(f"cell plan {ident}: set ssssssssssss, plans arm0 ")
+    assert (
+        "(1 samples checked, closest 750.0 mm (tool vs arm1:q0 at t=0.000 s))" in (answer.result[1])
+    )
