@@ -34,7 +34,7 @@ def _master_config() -> DaemonConfig:
     return cfg.with_params(slaves=list(SIDES))
 
 
-class Rig:
+class ToggleRig:
     def __init__(self) -> None:
         self.master = SimRobot(_master_config())
         self.op = self.master.peer("operator", address=("127.0.0.1", 41000))
@@ -78,8 +78,8 @@ class Rig:
 
 
 @pytest.fixture
-def rig() -> Iterator[Rig]:
-    r = Rig()
+def rig() -> Iterator[ToggleRig]:
+    r = ToggleRig()
     try:
         for side in SIDES:
             for cmd in ("Enable", "Run"):
@@ -96,7 +96,7 @@ def runs(msgs: list[igtl.Message]) -> set[str]:
     return {m.metadata["run"] for m in msgs}
 
 
-def test_only_the_selected_slave_follows_and_numbers_stay_consecutive(rig: Rig) -> None:
+def test_only_the_selected_slave_follows_and_numbers_stay_consecutive(rig: ToggleRig) -> None:
     n = {s: len(rig.streams[s]) for s in SIDES}
     start = {s: rig.tip_mm(s) for s in SIDES}
     rig.tick(1000)
@@ -116,7 +116,7 @@ def test_only_the_selected_slave_follows_and_numbers_stay_consecutive(rig: Rig) 
         assert slave.streams.monitor is not None and slave.streams.monitor.lost_total == 0
 
 
-def test_toggle_select_and_a_clutch_tap_switch_without_a_jump(rig: Rig) -> None:
+def test_toggle_select_and_a_clutch_tap_switch_without_a_jump(rig: ToggleRig) -> None:
     rig.tick(500)
     before = rig.tip_mm("right")
     reply = rig.command(rig.op, "Toggle")
