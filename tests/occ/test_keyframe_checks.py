@@ -25,7 +25,9 @@ from occ.controllers.keyframe import KeyframeController, KeyframeParams
 from occ.controllers.keyframe.pacer import Pacer
 from occ.controllers.keyframe.plan import (
     PlanRefused,
+    _join_start,
     _TickChecks,
+    _Timeline,
     _where,
     ack_ready,
     build_plan,
@@ -586,13 +588,17 @@ def test_the_last_keyframe_itself_is_checked(session: Session) -> None:
     assert "forbidden region (the target) at keyframe 0 'last' (t=1 s)" in s.refused("KeyframePlan")
 
 
-@pytest.mark.parametrize(("duration", "points"), [(0.2, 201), (1.021, None), (2.041, None)])
+@pytest.mark.parametrize(
+    ("duration", "points"), [(0.2, 201), (1.019, 256), (1.021, None), (2.041, None)]
+)
 def test_the_preview_has_every_tick_when_it_fits_and_never_more_than_preview_points(
     session: Session, duration: float, points: int | None
 ) -> None:
     """preview_points (256): a plan of 201 ticks is drawn tick by tick; longer ones are
     decimated to at most 256 points (1021 and 2041 ticks: where a stride one smaller would
-    give 257), the last keyframe always the last point."""
+    give 257), the last keyframe always the last point. The stride is the smallest that fits:
+    1020 samples (255 strides of 4) give 255 points and the last, where a stride of 5 would
+    give 205."""
     s = session
     s.ok("KeyframeAdd", T=duration, Pose="0.02 0.36 0.05")
     s.ok("KeyframePlan")
@@ -1333,3 +1339,47 @@ def test_the_same_plan_set_again_is_not_previewed_again() -> None:
     assert kf._preview.sent
     kf._set_plan(None)
     assert kf.plan is None and kf._preview._due(out, 0.2) is not None  # type: ignore[arg-type]
+
+
+def test_the_planner_paces_itself_once_before_and_once_per_sample(
+    session: Session, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The Pacer a KeyframePlan is checked with is asked once before the plan (``begin``) and
+    once before each of the plan's samples (0.5 s at 1 ms: 501), so a long check gives the
+    interpreter back to the loop throughout."""
+    import occ.controllers.keyframe.plan as plan_module
+
+    calls: list[str] = []
+
+    class Counting:
+        sleeps = 0
+
+        def __init__(self, *args: Any) -> None:
+            pass
+
+        def begin(self) -> None:
+            calls.append("begin")
+
+        def __call__(self) -> None:
+            calls.append("sample")
+
+    monkeypatch.setattr(plan_module, "Pacer", Counting)
+    s = session
+    s.ok("KeyframeAdd", T=0.5, Pose="0.2 0.35 0.05")
+    s.ok("KeyframePlan")
+    assert calls == ["begin"] + ["sample"] * 501
+
+
+def test_a_keyframe_at_t0_turned_exactly_as_the_tool_is_taken_though_its_dot_rounds_over_1() -> (
+    None
+):
+    """The tool's turn from keyframe 0 is 2 acos |q0 . q|; for two equal unit quaternions the
+    dot product may round to 1 + 2**-52, which acos refuses: it is taken as 1 (no turn)."""
+    q = (0.21424427007839497, 0.5093606231982168, 0.20485384406841475, -0.8078898754434874)
+    first = Keyframe(0.0, [0.1, 0.2, 0.3], q)
+    here_rot = np.array(first.rotation)
+    assert abs(float(np.dot(first.rotation, here_rot))) > 1.0  # the rounding this is about
+    req: Any = SimpleNamespace(start_tolerance_rad=0.0087, start_tolerance_mm=0.5)
+    tl = _Timeline([first], ["keyframe 0"], ["K0"], cart=True, oriented=True)
+    _join_start(req, tl, (0.1, 0.2, 0.3), here_rot)
+    assert tl.frames[0].rotation == first.rotation and tl.notes == []
