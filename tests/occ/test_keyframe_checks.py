@@ -1383,3 +1383,37 @@ def test_a_keyframe_at_t0_turned_exactly_as_the_tool_is_taken_though_its_dot_rou
     tl = _Timeline([first], ["keyframe 0"], ["K0"], cart=True, oriented=True)
     _join_start(req, tl, (0.1, 0.2, 0.3), here_rot)
     assert tl.frames[0].rotation == first.rotation and tl.notes == []
+
+
+def test_a_keyframe_at_t0_exactly_the_tolerance_away_is_replaced_by_where_the_robot_is() -> None:
+    """The start tolerances are closed: keyframe 0 exactly ``start_tolerance`` from the
+    robot's joints, or turned exactly ``start_tolerance_rad`` from the tool, is replaced by
+    the robot's pose; with a tolerance one float smaller it is refused."""
+    gap = float(np.linalg.norm(np.subtract([0.501, 0.2], [0.5, 0.2])))  # 1e-3 and a little
+    req: Any = SimpleNamespace(start_tolerance=gap, start_tolerance_mm=0.5)
+    tl = _Timeline(
+        [Keyframe(0.0, [0.501, 0.2])], ["keyframe 0"], ["K0"], cart=False, oriented=False
+    )
+    _join_start(req, tl, (0.5, 0.2), None)
+    assert tl.frames[0].pose == (0.5, 0.2)
+    assert tl.notes == [f"keyframe 0 replaced by the robot's pose ({gap:.3g} rad/m away)"]
+    req.start_tolerance = math.nextafter(gap, 0.0)
+    tl = _Timeline(
+        [Keyframe(0.0, [0.501, 0.2])], ["keyframe 0"], ["K0"], cart=False, oriented=False
+    )
+    with pytest.raises(PlanRefused, match="^keyframe 0 is 0.001 rad/m from where the robot is"):
+        _join_start(req, tl, (0.5, 0.2), None)
+
+    half = math.radians(0.25)
+    turned = Keyframe(0.0, [0.1, 0.2, 0.3], (0.0, 0.0, math.sin(half), math.cos(half)))
+    tool = np.array([0.0, 0.0, 0.0, 1.0])
+    turn = 2.0 * math.acos(abs(float(np.dot(turned.rotation, tool))))  # about 0.5 degrees
+    for tolerance, refused in ((turn, False), (math.nextafter(turn, 0.0), True)):
+        req = SimpleNamespace(start_tolerance_rad=tolerance, start_tolerance_mm=0.5)
+        tl = _Timeline([turned], ["keyframe 0"], ["K0"], cart=True, oriented=True)
+        if refused:
+            with pytest.raises(PlanRefused, match="^keyframe 0 is turned 0.5 deg from the tool"):
+                _join_start(req, tl, (0.1, 0.2, 0.3), tool)
+        else:
+            _join_start(req, tl, (0.1, 0.2, 0.3), tool)
+            assert tl.frames[0].rotation == (0.0, 0.0, 0.0, 1.0)
