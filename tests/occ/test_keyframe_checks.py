@@ -21,22 +21,26 @@ from typing import Any
 import numpy as np
 import pytest
 
-from occ.controllers.keyframe import KeyframeController
+from occ.controllers.keyframe import KeyframeController, KeyframeParams
 from occ.controllers.keyframe.pacer import Pacer
 from occ.controllers.keyframe.plan import (
     PlanRefused,
+    _join_start,
     _TickChecks,
+    _Timeline,
     _where,
     ack_ready,
     build_plan,
+    plan_request,
     pose_ik,
     run_tick,
 )
-from occ.controllers.keyframe.sets import make_set
+from occ.controllers.keyframe.preview import Preview
+from occ.controllers.keyframe.sets import PlanSettings, make_set
 from occ.core.safety import RobotState
 from occ.errors import CommandError, KinematicsError
 from occ.joint import JointLimits
-from occ.kinematics.port import SHAFT_BOUND_M, PortTrajectory, port_plan
+from occ.kinematics.port import SHAFT_BOUND_M, PortTrajectory, port_in_base, port_plan
 from occ.kinematics.trajectory import Keyframe
 
 from .test_keyframe import HOME, Session, xml
@@ -584,13 +588,17 @@ def test_the_last_keyframe_itself_is_checked(session: Session) -> None:
     assert "forbidden region (the target) at keyframe 0 'last' (t=1 s)" in s.refused("KeyframePlan")
 
 
-@pytest.mark.parametrize(("duration", "points"), [(0.2, 201), (1.021, None), (2.041, None)])
+@pytest.mark.parametrize(
+    ("duration", "points"), [(0.2, 201), (1.019, 256), (1.021, None), (2.041, None)]
+)
 def test_the_preview_has_every_tick_when_it_fits_and_never_more_than_preview_points(
     session: Session, duration: float, points: int | None
 ) -> None:
     """preview_points (256): a plan of 201 ticks is drawn tick by tick; longer ones are
     decimated to at most 256 points (1021 and 2041 ticks: where a stride one smaller would
-    give 257), the last keyframe always the last point."""
+    give 257), the last keyframe always the last point. The stride is the smallest that fits:
+    1020 samples (255 strides of 4) give 255 points and the last, where a stride of 5 would
+    give 205."""
     s = session
     s.ok("KeyframeAdd", T=duration, Pose="0.02 0.36 0.05")
     s.ok("KeyframePlan")
@@ -1223,3 +1231,189 @@ def test_the_whole_arm_check_is_given_every_sample_the_base_and_the_planners_pac
     assert samples == round(0.5 / s.kf.ctx.period_s) + 1
     assert np.array_equal(base, s.robot.data.base)
     assert isinstance(pace, Pacer)
+
+
+# --------------------------------------------------------------------------- the run's end
+# _end_run called directly on a controller in a cell (its context has cell_stop): which ends
+# stop the other members
+
+
+@pytest.mark.req("SR-CELLPLAN-5")
+@pytest.mark.parametrize(
+    ("identity", "code", "stops"),
+    [("c0ffee" * 4, 15, True), ("c0ffee" * 4, 1, False), (None, 15, False), (None, 1, False)],
+)
+def test_only_a_cell_plan_dropped_stops_the_cell(
+    identity: str | None, code: int, stops: bool
+) -> None:
+    kf = KeyframeController()
+    told: list[str] = []
+    kf.ctx = SimpleNamespace(cell_stop=told.append, cell_member="left", alert=None)  # type: ignore[assignment]
+    kf.cell.running = identity
+    kf.active = SimpleNamespace(id=3)  # type: ignore[assignment]
+    kf._end_run("runs_stopped", "plan 3 stopped", code)
+    assert told == (["cell plan c0ffeec0ffee dropped in left: plan 3 stopped"] if stops else [])
+    assert (kf.active, kf.cell.running, kf.status) == (None, None, "plan 3 stopped")
+    assert kf.counters["runs_stopped"] == 1
+
+
+def test_a_cell_plan_dropped_outside_a_cell_stops_nothing() -> None:
+    kf = KeyframeController()
+    kf.ctx = SimpleNamespace(cell_stop=None, cell_member=None, alert=None)  # type: ignore[assignment]
+    kf.cell.running = "ab" * 8
+    kf._end_run("runs_stopped", "plan 1 stopped", 15)
+    assert kf.cell.running is None
+
+
+def test_a_refused_plan_is_never_reported_as_previewed() -> None:
+    """PlannerPort.plan_done with no checked plan keeps the refusal and answers False, as a
+    checked plan of an older generation does (the port's contract, whoever calls it)."""
+    kf = KeyframeController()
+    req: Any = SimpleNamespace(id=2, pace=None)
+    assert kf.plan_done(req, 0, None, "plan 2 refused: too far") is False
+    assert (kf.status, kf.last_error) == ("plan 2 refused: too far", "plan 2 refused: too far")
+    assert kf.plan_done(req, 1, None, "plan 2 refused: again") is False
+    assert (kf.status, kf.last_error) == ("plan 2 refused: too far", "plan 2 refused: again")
+    assert kf.counters["plans_refused"] == 2 and kf.plan is None
+
+
+def test_a_plan_request_takes_the_ports_rules_from_the_params_in_radians_and_metres() -> None:
+    """The port in the base frame, its tolerance in radians and its least depth in metres,
+    each from its own parameter (none left at the request's defaults)."""
+    params = KeyframeParams(
+        rcm_mm=(10.0, 20.0, 300.0), rcm_tolerance_deg=2.0, rcm_min_depth_mm=25.0
+    )
+    base = np.eye(4)
+    base[:3, 3] = [0.1, 0.0, -0.2]
+    data: Any = SimpleNamespace(commanded=lambda: [0.1, 0.2], base=base, joint_names=("a", "b"))
+    ctx: Any = SimpleNamespace(period_s=0.002, loop_t0=None)
+    kset = make_set("joint", [(1.0, [0.0, 0.0], "")], "test", joints=2, max_keyframes=4)
+    settings = PlanSettings("linear", "stop", 6.0, 0.25)
+    req = plan_request(7, kset, settings, params, data, ctx, (), ((), ()))
+    assert req.port is not None
+    assert np.allclose(req.port, port_in_base((10.0, 20.0, 300.0), base))
+    assert req.port_tolerance_rad == pytest.approx(math.radians(2.0))
+    assert req.port_min_depth == pytest.approx(0.025)
+    assert (req.id, req.q_start, req.period) == (7, (0.1, 0.2), 0.002)
+
+
+# --------------------------------------------------------------------------- the preview's timing
+
+
+def test_the_preview_goes_out_once_per_plan_and_again_exactly_every_repeat() -> None:
+    """Per output: nothing before a plan was ever shown; a new plan at once; the same plan
+    again when exactly ``repeat_s`` has passed, not before; an empty one once when the plan
+    is dropped; with no repeat, once."""
+    out_a, out_b = object(), object()
+    preview = Preview(5.0)
+    assert preview._due(out_a, 0.0) is None  # type: ignore[arg-type]
+    plan: Any = SimpleNamespace(id=1)
+    preview.show(plan)
+    assert not preview.sent
+    first = preview._due(out_a, 1.0)  # type: ignore[arg-type]
+    assert first is not None and first.plan is plan and preview.sent
+    assert preview._due(out_a, 1.0) is None  # type: ignore[arg-type]
+    assert preview._due(out_a, math.nextafter(6.0, 0.0)) is None  # type: ignore[arg-type]
+    assert preview._due(out_a, 6.0) is first  # type: ignore[arg-type]
+    assert preview._due(out_b, 6.5) is first  # type: ignore[arg-type]  # each output its own
+    preview.show(None)
+    dropped = preview._due(out_a, 7.0)  # type: ignore[arg-type]
+    assert dropped is not None and dropped.plan is None
+    assert preview._due(out_a, 20.0) is None  # type: ignore[arg-type]  # an empty one once
+    preview.show(None)  # nothing shown: nothing new to clear
+    assert preview._due(out_a, 30.0) is None  # type: ignore[arg-type]
+    once = Preview(None)
+    once.show(plan)
+    assert once._due(out_a, 0.0) is not None  # type: ignore[arg-type]
+    assert once._due(out_a, 100.0) is None  # type: ignore[arg-type]
+
+
+def test_the_same_plan_set_again_is_not_previewed_again() -> None:
+    kf = KeyframeController()
+    out = object()
+    plan: Any = SimpleNamespace(id=1)
+    kf._set_plan(plan)
+    assert kf._preview._due(out, 0.0) is not None  # type: ignore[arg-type]
+    kf._set_plan(plan)  # the same object: nothing new to show
+    assert kf._preview._due(out, 0.1) is None  # type: ignore[arg-type]
+    assert kf._preview.sent
+    kf._set_plan(None)
+    assert kf.plan is None and kf._preview._due(out, 0.2) is not None  # type: ignore[arg-type]
+
+
+def test_the_planner_paces_itself_once_before_and_once_per_sample(
+    session: Session, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The Pacer a KeyframePlan is checked with is asked once before the plan (``begin``) and
+    once before each of the plan's samples (0.5 s at 1 ms: 501), so a long check gives the
+    interpreter back to the loop throughout."""
+    import occ.controllers.keyframe.plan as plan_module
+
+    calls: list[str] = []
+
+    class Counting:
+        sleeps = 0
+
+        def __init__(self, *args: Any) -> None:
+            pass
+
+        def begin(self) -> None:
+            calls.append("begin")
+
+        def __call__(self) -> None:
+            calls.append("sample")
+
+    monkeypatch.setattr(plan_module, "Pacer", Counting)
+    s = session
+    s.ok("KeyframeAdd", T=0.5, Pose="0.2 0.35 0.05")
+    s.ok("KeyframePlan")
+    assert calls == ["begin"] + ["sample"] * 501
+
+
+def test_a_keyframe_at_t0_turned_exactly_as_the_tool_is_taken_though_its_dot_rounds_over_1() -> (
+    None
+):
+    """The tool's turn from keyframe 0 is 2 acos |q0 . q|; for two equal unit quaternions the
+    dot product may round to 1 + 2**-52, which acos refuses: it is taken as 1 (no turn)."""
+    q = (0.21424427007839497, 0.5093606231982168, 0.20485384406841475, -0.8078898754434874)
+    first = Keyframe(0.0, [0.1, 0.2, 0.3], q)
+    here_rot = np.array(first.rotation)
+    assert abs(float(np.dot(first.rotation, here_rot))) > 1.0  # the rounding this is about
+    req: Any = SimpleNamespace(start_tolerance_rad=0.0087, start_tolerance_mm=0.5)
+    tl = _Timeline([first], ["keyframe 0"], ["K0"], cart=True, oriented=True)
+    _join_start(req, tl, (0.1, 0.2, 0.3), here_rot)
+    assert tl.frames[0].rotation == first.rotation and tl.notes == []
+
+
+def test_a_keyframe_at_t0_exactly_the_tolerance_away_is_replaced_by_where_the_robot_is() -> None:
+    """The start tolerances are closed: keyframe 0 exactly ``start_tolerance`` from the
+    robot's joints, or turned exactly ``start_tolerance_rad`` from the tool, is replaced by
+    the robot's pose; with a tolerance one float smaller it is refused."""
+    gap = float(np.linalg.norm(np.subtract([0.501, 0.2], [0.5, 0.2])))  # 1e-3 and a little
+    req: Any = SimpleNamespace(start_tolerance=gap, start_tolerance_mm=0.5)
+    tl = _Timeline(
+        [Keyframe(0.0, [0.501, 0.2])], ["keyframe 0"], ["K0"], cart=False, oriented=False
+    )
+    _join_start(req, tl, (0.5, 0.2), None)
+    assert tl.frames[0].pose == (0.5, 0.2)
+    assert tl.notes == [f"keyframe 0 replaced by the robot's pose ({gap:.3g} rad/m away)"]
+    req.start_tolerance = math.nextafter(gap, 0.0)
+    tl = _Timeline(
+        [Keyframe(0.0, [0.501, 0.2])], ["keyframe 0"], ["K0"], cart=False, oriented=False
+    )
+    with pytest.raises(PlanRefused, match="^keyframe 0 is 0.001 rad/m from where the robot is"):
+        _join_start(req, tl, (0.5, 0.2), None)
+
+    half = math.radians(0.25)
+    turned = Keyframe(0.0, [0.1, 0.2, 0.3], (0.0, 0.0, math.sin(half), math.cos(half)))
+    tool = np.array([0.0, 0.0, 0.0, 1.0])
+    turn = 2.0 * math.acos(abs(float(np.dot(turned.rotation, tool))))  # about 0.5 degrees
+    for tolerance, refused in ((turn, False), (math.nextafter(turn, 0.0), True)):
+        req = SimpleNamespace(start_tolerance_rad=tolerance, start_tolerance_mm=0.5)
+        tl = _Timeline([turned], ["keyframe 0"], ["K0"], cart=True, oriented=True)
+        if refused:
+            with pytest.raises(PlanRefused, match="^keyframe 0 is turned 0.5 deg from the tool"):
+                _join_start(req, tl, (0.1, 0.2, 0.3), tool)
+        else:
+            _join_start(req, tl, (0.1, 0.2, 0.3), tool)
+            assert tl.frames[0].rotation == (0.0, 0.0, 0.0, 1.0)

@@ -16,9 +16,9 @@ import pytest
 
 import igtl
 from occ.config import DaemonConfig
-from occ.errors import ConfigError
 from occ.core.loader import load_config
 from occ.core.safety import RobotState
+from occ.errors import ConfigError
 from occ_testkit.testing import SimPeer, SimRobot
 
 ROOT = Path(__file__).resolve().parents[2]
