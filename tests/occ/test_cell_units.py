@@ -7,6 +7,8 @@ test_cell_plan.py's."""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import threading
 from types import SimpleNamespace
@@ -735,3 +737,40 @@ def test_a_refused_cross_check_is_said_and_kept_as_the_last_check() -> None:
     assert (
         "(1 samples checked, closest 750.0 mm (tool vs arm1:q0 at t=0.000 s))" in (answer.result[1])
     )
+
+
+# ------------------------------------------------------------------ a member's part of a cell set
+@pytest.mark.req("SR-CELLPLAN-1")
+def test_a_members_part_keeps_the_sets_canonical_digest_its_space_and_its_plan() -> None:
+    """Each member keeps its own part as a set (named in its source with the set's digest),
+    the part's space or else the file's, the file's plan settings, and one digest of the
+    whole file's content however it is written: SHA-256 of its canonical JSON (keys sorted, no
+    spaces)."""
+    from occ.controllers.keyframe.cellset import CellKeyframeFile, cell_set
+    from occ.controllers.keyframe.sets import PlanSettings
+
+    arms = {
+        "arm0": {"keyframes": [{"t": 0.0, "pose": [0.0, 0.1]}, {"t": 1.0, "pose": [0.2, 0.1]}]},
+        "arm1": {"space": "cartesian", "keyframes": [{"t": 0.0, "pose": [1.0, 2.0, 3.0]}]},
+    }
+    raw = {"cell": "or1", "space": "joint", "arms": arms,
+           "plan": {"interpolation": "spline", "mode": "continuous", "steepness": 4.0,
+                    "ramp": 0.125}}  # fmt: skip
+    cf = CellKeyframeFile.model_validate(raw)
+    shuffled = CellKeyframeFile.model_validate(dict(reversed(list(raw.items()))))
+    canonical = json.dumps(cf.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+    digest = hashlib.sha256(canonical.encode("utf-8")).hexdigest()
+    assert '"arms":{"arm0":' in canonical and ", " not in canonical
+    a0 = cell_set(cf, "two.yaml", "arm0", "cartesian", 2, 100)
+    a1 = cell_set(shuffled, "two.yaml", "arm1", "joint", 2, 100)
+    assert (a0.name, a0.me, a0.digest, a0.file) == ("two.yaml", "arm0", digest, cf)
+    assert a1.digest == digest and a1.members == ("arm0", "arm1") and a1.others == ("arm0",)
+    assert a0.own.space == "joint"  # the file's space, not the robot's default
+    assert a1.own.space == "cartesian"  # the part's own
+    assert [k.t for k in a0.own.keyframes] == [0.0, 1.0]
+    assert a0.own.source == f"cell set two.yaml ({digest[:12]}), part arm0"
+    assert a0.own.settings == PlanSettings("spline", "continuous", 4.0, 0.125)
+    # without a plan in the file: the robot's defaults (none kept with the set), its own digest
+    del raw["plan"]
+    plain = cell_set(CellKeyframeFile.model_validate(raw), "two.yaml", "arm0", "joint", 2, 100)
+    assert plain.own.settings is None and plain.digest != digest
