@@ -1184,19 +1184,9 @@ def test_a_run_tick_through_a_port_holds_at_most_the_shafts_bound_from_it() -> N
 
 
 def test_a_plan_through_a_port_is_timed_with_the_steepness_and_ramp_asked_for() -> None:
-    from .test_keyframe_port import _request, _ur5
+    from .test_keyframe_port import _request, _side_set
 
-    frame, home_q = _ur5()
-    home = np.asarray(frame.fk(home_q))
-    port = home[:3, 3] - 0.1 * home[:3, 2]
-    tip_mm = (home[:3, 3] * 1e3).tolist()
-    kset = make_set(
-        "cartesian",
-        [(0.5, [tip_mm[0] + 5.0, tip_mm[1], tip_mm[2]], "side")],
-        "test",
-        joints=6,
-        max_keyframes=4,
-    )
+    frame, home_q, _, port, kset = _side_set(5.0, 0.5)
     req = dataclasses.replace(_request(frame, home_q, kset, port), steepness=3.0, ramp=0.4)
     traj = build_plan(req, frame.copy()).traj
     assert isinstance(traj, PortTrajectory)

@@ -385,6 +385,18 @@ def test_a_tool_off_its_port_a_tip_drawn_to_the_port_and_a_short_arm_are_refused
         parse_config(yaml.safe_dump(cfg, sort_keys=False), base_dir=CONFIGS)
 
 
+def _side_set(dx_mm: float, t: float) -> tuple[Any, list[float], np.ndarray, np.ndarray, Any]:
+    """The UR5 at home, its port 100 mm up the tool's axis from the tip, and a set of one
+    Cartesian keyframe ``dx_mm`` to the side at ``t``: (frame, home_q, home, port, kset)."""
+    frame, home_q = _ur5()
+    home = np.asarray(frame.fk(home_q))
+    port = home[:3, 3] - 0.1 * home[:3, 2]
+    tip_mm = (home[:3, 3] * 1e3).tolist()
+    side = [tip_mm[0] + dx_mm, tip_mm[1], tip_mm[2]]
+    kset = make_set("cartesian", [(t, side, "side")], "test", joints=6, max_keyframes=10)
+    return frame, home_q, home, port, kset
+
+
 def _request(frame: Any, home_q: list[float], kset: Any, port: np.ndarray) -> PlanRequest:
     from occ.joint import JointLimits
 
@@ -422,17 +434,7 @@ def test_a_sample_off_the_port_refuses_the_plan_naming_the_worst(
     shaft of every sample's joints (FK), refuses it naming the worst sample (where the tilt
     times the tip's depth is largest), its time and distance; a fifth of the tilt (within the
     bound) passes."""
-    frame, home_q = _ur5()
-    home = np.asarray(frame.fk(home_q))
-    port = home[:3, 3] - 0.1 * home[:3, 2]
-    tip_mm = (home[:3, 3] * 1e3).tolist()
-    kset = make_set(
-        "cartesian",
-        [(2.0, [tip_mm[0] + 30.0, tip_mm[1], tip_mm[2]], "side")],
-        "test",
-        joints=6,
-        max_keyframes=10,
-    )
+    frame, home_q, home, port, kset = _side_set(30.0, 2.0)
     real = PortTrajectory.rotation
 
     def tilted(amplitude: float) -> Any:
