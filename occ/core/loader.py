@@ -20,6 +20,7 @@ import os
 import re
 import sys
 import types
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
@@ -369,7 +370,7 @@ def _plugin_problems(
     from occ.controllers import load_controller_class
     from occ.core.assembly import build_joint
     from occ.core.data import RobotData
-    from occ.drivers import create_driver
+    from occ.drivers import create_driver, load_driver_class
 
     problems: list[tuple[int, Loc, str]] = []
     shape = config.controller
@@ -421,7 +422,12 @@ def _plugin_problems(
             owners[claim] = cc.plugin
     joints = {j.name: build_joint(j) for j in config.robot.joints}
     for i, dc in enumerate(config.robot.drivers):
-        loc = ("robot", "drivers", i, "params")
+        try:
+            load_driver_class(dc.plugin)
+        except (OCCError, ValueError, TypeError, KeyError) as err:
+            where = ("robot", "drivers", i, "plugin")
+            problems.append((_line_of(root, where), where, str(err)))
+            continue
         try:
             drv = create_driver(
                 dc.plugin,
@@ -431,11 +437,26 @@ def _plugin_problems(
                 on_limit=dc.on_limit,
             )
         except (OCCError, ValueError, TypeError, KeyError) as err:
-            where = loc if "param" in str(err) else ("robot", "drivers", i, "plugin")
+            where = _param_named(("robot", "drivers", i, "params"), dc.params, str(err))
             problems.append((_line_of(root, where), where, str(err)))
         else:
             del drv  # never configured: nothing was opened
     return problems
+
+
+def _param_named(at: Loc, params: Mapping[str, Any], message: str) -> Loc:
+    """Where a driver's refusal belongs: the deepest key of its ``params`` the message names
+    after its subject ("cia402 driver 'arm': nodes.yaw: eds ..." -> ``params.nodes.yaw``; a
+    dotted name or a bare key the message begins with), else ``params`` itself. A refusal of
+    the whole (a bus load of all the nodes) stays on ``params``."""
+    _, sep, rest = message.partition(": ")
+    head = rest.split(":", 1)[0].split(" ", 1)[0] if sep else ""
+    loc, node = at, params
+    for part in head.split(".") if head else ():
+        if not isinstance(node, Mapping) or part not in node:
+            break
+        loc, node = (*loc, part), node[part]
+    return loc
 
 
 def _main(argv: list[str]) -> int:

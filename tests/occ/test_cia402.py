@@ -522,6 +522,40 @@ def test_occd_check_takes_the_cia402_slave_and_refuses_an_overloaded_bus(tmp_pat
     assert "bus load" in "\n".join(info.value.errors)
 
 
+def test_occd_check_puts_a_drivers_refusal_on_the_line_of_what_it_names(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A refusal that names a node or a key of the driver's params is reported on that line;
+    one of the whole driver on its ``params:`` line; an unknown plugin on its ``plugin:``
+    line. An operator fixing the file goes straight to the line at fault."""
+    import yaml
+
+    from occ.cli import main
+
+    shipped = (ROOT / "configs" / "slave-cia402.yaml").read_text()
+    cases = [
+        # (what is spoilt, the text that finds the line, the path reported)
+        ("eds: drive.eds, counts_per_unit: 2.0e6", "insertion:", "params.nodes.insertion"),
+        ("sync_every: 2", "sync_every:", "params.sync_every"),
+        ("plugin: cia402", "plugin:", "plugin"),
+    ]
+    spoilt = {
+        "eds: drive.eds, counts_per_unit: 2.0e6": "eds: none.eds, counts_per_unit: 2.0e6",
+        "sync_every: 2": "sync_every: 0",
+        "plugin: cia402": "plugin: cia403",
+    }
+    for old, finder, reported in cases:
+        assert shipped.count(old) == 1, old
+        path = tmp_path / "spoilt.yaml"
+        path.write_text(shipped.replace(old, spoilt[old]))
+        yaml.safe_load(path.read_text())  # still YAML: only the value is wrong
+        capsys.readouterr()
+        assert main(["--check", str(path)]) == 2
+        err = capsys.readouterr().err
+        line = next(i for i, t in enumerate(path.read_text().splitlines(), 1) if finder in t)
+        assert f"{path}:{line} robot.drivers[0].{reported}:" in err, (old, err)
+
+
 @pytest.mark.req("SR-HW-35")
 @pytest.mark.parametrize("sync_every", [1, 2])
 def test_occd_check_refuses_eight_nodes_on_one_bus_with_the_load(
@@ -556,8 +590,9 @@ def test_occd_check_refuses_eight_nodes_on_one_bus_with_the_load(
     assert f"bus load {load} exceeds bus_load_limit 70%" in err, err
     assert "8 nodes x" in err and f"at most {most} per bus" in err
     assert "sync_every: 5 (62%)" in err
-    line = next(i for i, t in enumerate(path.read_text().splitlines(), 1) if "cia402" in t)
-    assert f"{path}:{line} robot.drivers[0]" in err
+    # a refusal of the whole bus sits on the driver's params, not on its plugin name
+    line = next(i for i, t in enumerate(path.read_text().splitlines(), 1) if "params:" in t)
+    assert f"{path}:{line} robot.drivers[0].params: cia402 driver" in err, err
 
 
 def test_params_are_checked_when_the_driver_is_built() -> None:
