@@ -77,6 +77,15 @@ class PowerUpRig:
         for _ in range(n):
             self.tick(settle)
 
+    def enable_waiting(self, ticks: int) -> int:
+        """Inside ``emu.held()``: an operator's Enable, ``ticks`` ticks, and the power-up's
+        thread waiting on the drives; the Enable's command id."""
+        cid = self.op.send_command("Enable")
+        self.ticks(ticks, settle=False)
+        assert self.robot.effects.powering_up
+        assert wait_until(lambda: self.arm.activating, 5.0, 0.001)  # its thread waits
+        return cid
+
     def landed(self) -> None:
         """The activation's thread has ended (wall clock, no tick), and the tick that
         completes the power-up has run."""
@@ -170,12 +179,7 @@ def test_a_node_that_never_enables_vetoes_enable_and_every_node_goes_off(
 def test_an_estop_while_powering_up_wins_every_node_off_and_estop(rig: type[PowerUpRig]) -> None:
     r = rig()
     with r.emu.held():
-        enable = r.op.send_command("Enable")
-        r.ticks(5, settle=False)
-        assert r.robot.effects.powering_up
-        assert wait_until(
-            lambda: r.arm.activating, 5.0, 0.001
-        )  # its thread is waiting for the drives
+        enable = r.enable_waiting(5)
         estop = r.op.send_command("EStop")
         r.tick(settle=False)
         assert r.robot.state is RobotState.ESTOP
@@ -207,9 +211,7 @@ def test_a_disable_while_powering_up_cancels_it_and_the_drives_stay_usable(
 ) -> None:
     r = rig()
     with r.emu.held():
-        enable = r.op.send_command("Enable")
-        r.ticks(3, settle=False)
-        assert wait_until(lambda: r.arm.activating, 5.0, 0.001)
+        enable = r.enable_waiting(3)
         disable = r.op.send_command("Disable")
         again = r.op.send_command("Enable")  # same tick: refused, the power-up has not ended
         r.tick(settle=False)
@@ -237,10 +239,7 @@ def test_the_supervisors_safe_stop_while_powering_up_switches_every_node_off(
 ) -> None:
     r = rig()
     with r.emu.held():
-        r.op.send_command("Enable")
-        r.tick(settle=False)
-        assert r.robot.effects.powering_up
-        assert wait_until(lambda: r.arm.activating, 5.0, 0.001)
+        r.enable_waiting(1)
         # the supervisor's thread (as Alarms.supervisor_trip does): every drive's safe stop
         assert r.robot.hardware.safe_stop("loop hung") == []
         assert r.robot.effects.await_power_up(10.0)
