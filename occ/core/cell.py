@@ -21,7 +21,9 @@ What the others do (``policy: stop-all``)
     ``CELL`` alert to every operator naming the origin and its cause. The origin stays latched
     here: ``Run`` is refused, naming it, until the origin is heard RUNNING, or its own stop is
     only a relay of one that started here (two members that lost each other), or it left the
-    cell (``CellLeave`` on it, or ``CellForget <member>`` here for one that is gone). A member
+    cell (``CellLeave`` on it, or ``CellForget <member>`` here for one that is gone). A relay
+    whose origin is not in this daemon's member list (the members' files disagree) holds too,
+    until no member relays it: its recovery cannot be seen from here. A member
     not heard since this daemon started refuses ``Run`` too (the cell is incomplete), without
     a latch. A member whose chain hash differs from its configured URDF's refuses Run and holds
     (where its arm is cannot be checked). ``alert-only``: the alerts without the hold.
@@ -325,15 +327,25 @@ class Cell:
                 origin = m.origin
                 if origin != m.name and self._recovered(origin, now):
                     continue  # a relay of a stop this daemon sees is over
-                # a member's own stop says what happened to it; a relay names its origin
-                why = f"{origin} {m.cause}" if origin == m.name else f"{m.cause} (via {m.name})"
+                # a member's own stop says what happened to it; a relay names its origin, and
+                # an origin this daemon's cell list lacks (the members' files disagree) is held
+                # for all the same: its recovery cannot be seen here, only the relay's end
+                if origin == m.name:
+                    why = f"{origin} {m.cause}"
+                elif origin in self.members:
+                    why = f"{m.cause} (via {m.name})"
+                else:
+                    why = f"{m.cause} (via {m.name}; {origin} is not in this member's cell list)"
                 out.setdefault(origin, (why, m.stop_wall))
         return out
 
     def _recovered(self, origin: str, now: float) -> bool:
-        """``origin`` is heard here, running with no stop of its own, or is out of the cell."""
+        """``origin`` is heard here, running with no stop of its own, or is out of the cell.
+        An origin not in this daemon's list is never seen to recover: its relay stands."""
         m = self.members.get(origin)
-        if m is None or m.out:
+        if m is None:
+            return False
+        if m.out:
             return True
         return (
             m.heard is not None
@@ -401,6 +413,11 @@ class Cell:
             return ""
         if self.latched:
             origin, why = next(iter(self.latched.items()))
+            if origin not in self.members:
+                return (
+                    f"cell {self.name}: {why}; Run once no member relays {origin}'s stop "
+                    "(the members' cell lists should agree)"
+                )
             return (
                 f"cell {self.name}: {why}; Run once {origin} runs again or leaves the cell "
                 f"(CellLeave there, or CellForget {origin} here)"

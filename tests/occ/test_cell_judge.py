@@ -241,6 +241,35 @@ def test_a_relay_of_a_member_never_heard_holds(judge: Judge) -> None:
 
 
 @pytest.mark.req("SR-CELL-2")
+def test_a_relay_of_an_origin_missing_from_this_members_list_holds_until_no_one_relays_it(
+    judge: Judge,
+) -> None:
+    """The members' files disagree: arm2's lists an arm9 that arm0's does not. arm2 relays a
+    stop of arm9's; arm0 cannot see arm9 recover, so it holds while any member relays the stop,
+    says why, refuses Run with a way out that works (CellForget cannot name arm9 here), and lets
+    go once no member relays it."""
+    judge.run()
+    judge.beat("arm1")
+    judge.beat("arm2", "STOPPED", cause="FAULT: drive", origin="arm9", stop_wall=WALL0)
+    judge.sim.tick()
+    why = "FAULT: drive (via arm2; arm9 is not in this member's cell list)"
+    assert judge.state is S.STOPPED and judge.cell.latched == {"arm9": why}
+    assert judge.alerts() == [f"cell or1: {why}; holding"]
+    refusal = error_of(judge.command("Run"))
+    assert f"{why}; Run once no member relays arm9's stop" in refusal, refusal
+    assert "CellForget" not in refusal
+    # arm1 takes the relay up (arm2 runs again): still held, the latch keeps its first words
+    judge.beat("arm1", "STOPPED", cause="FAULT: drive", origin="arm9", stop_wall=WALL0)
+    judge.beat("arm2")
+    judge.sim.tick()
+    assert set(judge.cell.latched) == {"arm9"} and judge.state is S.STOPPED
+    assert not ok(judge.command("Run"))
+    judge.beat("arm1")  # no member relays arm9 any more
+    judge.sim.tick()
+    assert judge.cell.latched == {} and ok(judge.command("Run"))
+
+
+@pytest.mark.req("SR-CELL-2")
 def test_a_latch_stands_through_a_restart_until_running_and_ends_when_the_origin_leaves(
     judge: Judge,
 ) -> None:
