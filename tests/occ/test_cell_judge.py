@@ -256,7 +256,10 @@ def test_a_relay_of_an_origin_missing_from_this_members_list_holds_until_no_one_
     assert judge.state is S.STOPPED and judge.cell.latched == {"arm9": why}
     assert judge.alerts() == [f"cell or1: {why}; holding"]
     refusal = error_of(judge.command("Run"))
-    assert f"{why}; Run once no member relays arm9's stop" in refusal, refusal
+    assert refusal.endswith(
+        f"cell or1: {why}; Run once no member relays arm9's stop (the members' cell lists "
+        "should agree)"
+    ), refusal
     assert "CellForget" not in refusal
     # arm1 takes the relay up (arm2 runs again): still held, the latch keeps its first words
     judge.beat("arm1", "STOPPED", cause="FAULT: drive", origin="arm9", stop_wall=WALL0)
