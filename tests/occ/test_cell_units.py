@@ -878,6 +878,23 @@ def replace_ns(ns: Any, **changes: Any) -> Any:
 
 
 @pytest.mark.req("SR-CELLPLAN-2")
+def test_a_check_without_the_arms_geometry_or_every_others_path_is_refused_saying_what() -> None:
+    role = CellRole(threading.Lock())
+    plan = loaded(role, others=("arm1", "arm2", "arm3"))
+    role.paths = {"arm2": given(arm("arm2", [0]))}
+    with pytest.raises(CommandError) as err:
+        role.check_job(role.cset, plan, None, 0.0, None, lambda c: True)  # type: ignore[arg-type]
+    assert str(err.value) == "the cross-check needs safety.collision (the arms' geometry)"
+    cm = cell(0.5, 1.0, {"arm1": 0.0, "arm2": 0.0, "arm3": 0.0}, unused)
+    with pytest.raises(CommandError) as err:
+        role.check_job(role.cset, plan, cm, 0.0, None, lambda c: True)  # type: ignore[arg-type]
+    assert str(err.value) == (
+        "no path yet from arm1, arm3: give this member every other member's CellPath "
+        "(KeyframeCellPath on each) first"
+    )
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
 def test_the_check_runs_paced_on_the_planner_with_one_checker_kept_for_the_next() -> None:
     """``KeyframeCellCheck`` hands the job to the planner; the job begins the pacer once and
     paces each sample checked; the geometry's checker is built once per member (the planner
@@ -1011,12 +1028,18 @@ def test_a_file_with_arms_is_read_as_a_cell_set_and_one_without_as_a_keyframe_fi
 
 # ------------------------------------------------------------------ another arm of the cell
 @pytest.mark.req("SR-ARMS-1")
-def test_a_peer_of_a_builtin_model_has_its_kinematics() -> None:
+def test_a_peer_of_a_builtin_model_has_its_kinematics_and_a_frame_refused_is_named() -> None:
     from occ.config import FrameConfig
+    from occ.errors import ConfigError
     from occ.kinematics.peers import peer_frame
 
     frame = peer_frame(FrameConfig(model="occ_slave"), "peer arm 'x'")
     assert frame.tip_link == "tool_tip" and frame.model.nq == 3
+    with pytest.raises(ConfigError) as err:  # a model the schema would refuse: named by key
+        peer_frame(SimpleNamespace(model="nosuch"), "peer arm 'x'")  # type: ignore[arg-type]
+    assert str(err.value) == (
+        "peer arm 'x': unknown built-in model 'nosuch'; known: master3, occ_slave"
+    )
 
 
 def stand_in_arm(limits: list[float], reach: tuple[float, ...] = (0.5, 0.25)) -> Any:
