@@ -55,7 +55,6 @@ class PeerArm:
         self.nq = int(arm.model.nq)
         #: the fastest any point of its geometry can move at its velocity limits (m/s)
         self.speed = sum(v * r for v, r in zip(velocities, arm.reach, strict=True))
-        self.velocities = tuple(velocities)
         self.state: PeerState | None = None
         self.present = True
 

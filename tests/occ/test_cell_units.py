@@ -36,7 +36,7 @@ from occ.kinematics.cellpaths import (
     cross_check,
     path_digest,
 )
-from occ.net.commands import Deferred
+from occ.net.commands import ArrayReply, Deferred
 
 BASE = np.eye(4)
 
@@ -203,18 +203,21 @@ def test_a_members_cell_statistics_say_its_set_paths_check_and_run() -> None:
     role = CellRole(threading.Lock())
     assert role.stats() == {
         "cell_set": None, "cell_paths": [], "cell_checked": None, "cell_running": None,
+        "cell_paths_refused": 0, "cell_last_check": "",
     }  # fmt: skip
     role.cset = SimpleNamespace(digest="d" * 64)  # type: ignore[assignment]
     role.paths = {"arm2": object(), "arm1": object()}  # type: ignore[dict-item]
     role.checked = CellCheck(SimpleNamespace(id=3), "i" * 64, {})  # type: ignore[arg-type]
     role.running = "r" * 64
+    role.refused_paths, role.last_check = 2, "i" * 64
     assert role.stats() == {
         "cell_set": "d" * 64, "cell_paths": ["arm1", "arm2"], "cell_checked": "i" * 64,
-        "cell_running": "r" * 64,
+        "cell_running": "r" * 64, "cell_paths_refused": 2, "cell_last_check": "i" * 64,
     }  # fmt: skip
-    role.install(None)  # another set: nothing of the cell's kept
+    role.install(None)  # another set: nothing of the cell's kept but what it has said
     assert role.stats() == {
         "cell_set": None, "cell_paths": [], "cell_checked": None, "cell_running": "r" * 64,
+        "cell_paths_refused": 2, "cell_last_check": "i" * 64,
     }  # fmt: skip
 
 
@@ -774,3 +777,316 @@ def test_a_members_part_keeps_the_sets_canonical_digest_its_space_and_its_plan()
     del raw["plan"]
     plain = cell_set(CellKeyframeFile.model_validate(raw), "two.yaml", "arm0", "joint", 2, 100)
     assert plain.own.settings is None and plain.digest != digest
+
+
+# ------------------------------------------------------------------ the role's commands and job
+class Pace:
+    """A stand-in pacer: how often the job began and how often it was paced."""
+
+    def __init__(self) -> None:
+        self.begun = 0
+        self.beats = 0
+
+    def begin(self) -> None:
+        self.begun += 1
+
+    def __call__(self) -> None:
+        self.beats += 1
+
+
+class Planner:
+    """The controller's side of ``KeyframeCellCheck``: its previewed plan, and a planner
+    thread that runs each job at once (here, on the test's thread)."""
+
+    def __init__(self, plan: Any) -> None:
+        self.plan = plan
+
+    def start(self, job: Any) -> Deferred:
+        answer = Deferred()
+        job(answer)
+        return answer
+
+
+def loaded(role: CellRole, others: tuple[str, ...] = ("arm1",), qs: Any = None) -> Any:
+    """A cell set of arm0 and ``others`` loaded in ``role``, and its part's previewed plan 3
+    (arm0's one sample unless ``qs``)."""
+    kset = object()
+    role.cset = SimpleNamespace(  # type: ignore[assignment]
+        own=kset, me="arm0", others=others, members=("arm0", *others), digest=SET, name="turns"
+    )
+    return SimpleNamespace(id=3, qs=np.array([[0.0]]) if qs is None else qs, digest="p" * 64,
+                           base=OWN_BASE, period=0.25, kset=kset)  # fmt: skip
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_each_command_names_itself_when_its_plan_is_not_the_previewed_one() -> None:
+    role = CellRole(threading.Lock())
+    plan = loaded(role)
+    ctx = SimpleNamespace(collision=cell(0.5, 1.0, {"arm1": 0.0}))
+    for key, name in (("keyframecellpath", "KeyframeCellPath"),
+                      ("keyframecellcheck", "KeyframeCellCheck")):  # fmt: skip
+        with pytest.raises(CommandError) as err:
+            role.command(key, {}, plan.kset, plan, ctx, 0.0, Pace(), Planner(plan))  # type: ignore[arg-type]
+        assert str(err.value) == f"{name} needs Plan (the number of the previewed plan)"
+        with pytest.raises(CommandError) as err:
+            role.command(key, {"plan": "4"}, plan.kset, plan, ctx, 0.0, Pace(), Planner(plan))  # type: ignore[arg-type]
+        assert str(err.value) == f"{name}: plan 4 is not the previewed plan (plan 3 is previewed)"
+    with pytest.raises(CommandError) as err:
+        role.command("keyframecellpath", {"plan": "3"}, object(), plan, ctx, 0.0, Pace(),  # type: ignore[arg-type]
+                     Planner(plan))  # fmt: skip
+    assert str(err.value) == "no cell keyframe set is loaded (KeyframeLoad File=<a cell set>)"
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_the_path_answered_is_the_previewed_plans_with_what_names_it() -> None:
+    role = CellRole(threading.Lock())
+    qs = np.array([[0.0], [0.5], [1.0]])
+    plan = loaded(role, qs=qs)
+    reply = role.command("keyframecellpath", {"plan": "3"}, plan.kset, plan, SimpleNamespace(),  # type: ignore[arg-type]
+                         0.0, Pace(), Planner(plan))  # fmt: skip
+    assert isinstance(reply, ArrayReply)
+    assert reply.array is qs and reply.device == "CellPath"
+    assert reply.meta == {
+        "member": "arm0", "set": SET, "plan": "3", "digest": "p" * 64, "period": "0.25",
+        "base": "1.0,0.0,0.0,0.5,0.0,1.0,0.0,0.0,0.0,0.0,1.0,0.0,0.0,0.0,0.0,1.0",
+    }  # fmt: skip
+    assert reply.text == (
+        f"CellPath of arm0: plan 3, 3 samples, digest {'p' * 64}; give it to the other "
+        "members of cell set turns"
+    )
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_a_plan_that_kept_no_path_or_no_digest_is_neither_answered_nor_checked() -> None:
+    """Either one missing refuses: a path without its digest cannot be named to the others,
+    a digest without its path cannot be checked."""
+    role = CellRole(threading.Lock())
+    plan = loaded(role)
+    cm = cell(0.5, 1.0, {"arm1": 0.0}, unused)
+    role.paths = {"arm1": given(arm("arm1", [0]))}
+    for broken in (replace_ns(plan, qs=None), replace_ns(plan, digest="")):
+        with pytest.raises(CommandError) as err:
+            role.path_reply(role.cset, broken, "arm0")  # type: ignore[arg-type]
+        assert str(err.value) == "plan 3 kept no path: plan again"
+        with pytest.raises(CommandError) as err:
+            role.check_job(role.cset, broken, cm, 0.0, None, lambda c: True)  # type: ignore[arg-type]
+        assert str(err.value) == "plan 3 kept no path: plan again"
+
+
+def replace_ns(ns: Any, **changes: Any) -> Any:
+    return SimpleNamespace(**{**vars(ns), **changes})
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_a_check_without_the_arms_geometry_or_every_others_path_is_refused_saying_what() -> None:
+    role = CellRole(threading.Lock())
+    plan = loaded(role, others=("arm1", "arm2", "arm3"))
+    role.paths = {"arm2": given(arm("arm2", [0]))}
+    with pytest.raises(CommandError) as err:
+        role.check_job(role.cset, plan, None, 0.0, None, lambda c: True)  # type: ignore[arg-type]
+    assert str(err.value) == "the cross-check needs safety.collision (the arms' geometry)"
+    cm = cell(0.5, 1.0, {"arm1": 0.0, "arm2": 0.0, "arm3": 0.0}, unused)
+    with pytest.raises(CommandError) as err:
+        role.check_job(role.cset, plan, cm, 0.0, None, lambda c: True)  # type: ignore[arg-type]
+    assert str(err.value) == (
+        "no path yet from arm1, arm3: give this member every other member's CellPath "
+        "(KeyframeCellPath on each) first"
+    )
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_the_check_runs_paced_on_the_planner_with_one_checker_kept_for_the_next() -> None:
+    """``KeyframeCellCheck`` hands the job to the planner; the job begins the pacer once and
+    paces each sample checked; the geometry's checker is built once per member (the planner
+    thread's) and used again by the next check."""
+    built: list[Pairs] = []
+
+    def checker() -> Pairs:
+        built.append(Pairs(lambda a, b: 0.75))
+        return built[-1]
+
+    role = CellRole(threading.Lock())
+    plan = loaded(role, qs=np.array([[0.0], [1.0], [2.0]]))
+    role.paths = {"arm1": given(arm("arm1", [0]))}
+    ctx = SimpleNamespace(collision=cell(0.5, 1.0, {"arm1": 0.0}, checker))
+    pace = Pace()
+    answer = role.command("keyframecellcheck", {"plan": "3"}, plan.kset, plan, ctx, 0.0, pace,  # type: ignore[arg-type]
+                          Planner(plan))  # fmt: skip
+    assert isinstance(answer, Deferred) and answer.result is not None and answer.result[0]
+    assert len(built) == 1 and len(built[0].calls) == 3
+    assert (pace.begun, pace.beats) == (1, 3)
+    answer = job_for(role, ctx.collision, {"arm1": given(arm("arm1", [0]))})
+    assert answer.result is not None and answer.result[0]
+    assert len(built) == 1 and len(built[0].calls) == 4  # the same checker, once more
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_a_check_whose_plan_or_set_changed_meanwhile_keeps_nothing() -> None:
+    """The job's result is kept only while its plan is still the previewed one of the same
+    cell set: either changed, it is refused and no identity is kept."""
+    far = cell(0.5, 1.0, {"arm1": 0.0}, lambda: Pairs(lambda a, b: 0.75))
+    for superseded, reloaded in ((True, False), (False, True)):
+        role = CellRole(threading.Lock())
+        plan = loaded(role)
+        role.paths = {"arm1": given(arm("arm1", [0]))}
+        job = role.check_job(role.cset, plan, far, 0.0, None, lambda c, s=superseded: not s)  # type: ignore[arg-type,misc]
+        if reloaded:
+            role.cset = replace_ns(role.cset)  # another set of the same content
+        answer = Deferred()
+        job(answer)
+        assert answer.result == (False, "plan 3 is no longer previewed: plan again")
+        assert role.checked is None and role.last_check == ""
+
+
+@pytest.mark.req("SR-CELLPLAN-3")
+def test_a_passed_check_keeps_every_members_digest_and_says_the_whole_answer() -> None:
+    role = CellRole(threading.Lock())
+    p, q = arm("arm1", [0]), arm("arm2", [5])
+    cm = cell(0.5, 1.0, {"arm1": 0.0, "arm2": 0.0}, lambda: Pairs(lambda a, b: 0.75))
+    answer = job_for(role, cm, {"arm1": given(p), "arm2": given(q)})
+    digests = {"arm0": "p" * 64, "arm1": path_digest(p), "arm2": path_digest(q)}
+    ident = cell_identity(SET, digests)
+    assert role.checked is not None and dict(role.checked.plans) == digests
+    assert answer.result == (True, (
+        f"cell plan {ident}: set ssssssssssss, plans arm0 pppppppppppp, "
+        f"arm1 {digests['arm1'][:12]}, arm2 {digests['arm2'][:12]}; clear of arm1, arm2 at the "
+        "same times (2 samples checked, closest 750.0 mm (tool vs arm1:q0 at t=0.000 s)); "
+        f"KeyframeAck Plan=3 StartAt=<unix time> Cell={ident} on every member"
+    ))  # fmt: skip
+    never = cell(0.5, 1.0, {"arm1": 0.0}, lambda: Pairs(lambda a, b: math.inf))
+    answer = job_for(CellRole(threading.Lock()), never, {"arm1": given(p)})
+    ident = cell_identity(SET, {"arm0": "p" * 64, "arm1": digests["arm1"]})
+    assert answer.result == (True, (
+        f"cell plan {ident}: set ssssssssssss, plans arm0 pppppppppppp, "
+        f"arm1 {digests['arm1'][:12]}; clear of arm1 at the same times (1 samples checked, "
+        f"the arms never near); KeyframeAck Plan=3 StartAt=<unix time> Cell={ident} on every "
+        "member"
+    ))  # fmt: skip
+
+
+@pytest.mark.req("SR-CELLPLAN-2")
+def test_a_refused_path_is_counted_and_the_last_check_reported() -> None:
+    """A path refused on arrival is the sender's mistake: counted (GetStats
+    ``cell_paths_refused``) as well as refused; ``cell_last_check`` says the last cross-check's
+    outcome, its identity or why it refused."""
+    role = CellRole(threading.Lock())
+    assert (role.stats()["cell_paths_refused"], role.stats()["cell_last_check"]) == (0, "")
+    kset = object()
+    p = arm("arm1", [0])
+    for event, loaded_set in ((given(p), kset), (given(p), object())):
+        with pytest.raises(CommandError):
+            role.take_path(event, loaded_set)  # type: ignore[arg-type]
+    assert role.stats()["cell_paths_refused"] == 2
+    role.cset = SimpleNamespace(own=kset, digest=SET, others=("arm1",), name="turns")  # type: ignore[assignment]
+    for event in (given(p, set="t" * 64), given(p, member="arm2")):
+        with pytest.raises(CommandError):
+            role.take_path(event, kset)  # type: ignore[arg-type]
+    role.take_path(given(p), kset)  # type: ignore[arg-type]
+    assert role.stats()["cell_paths_refused"] == 4 and role.paths == {"arm1": given(p)}
+    near = cell(0.5, 1.0, {"arm1": 0.0}, lambda: Pairs(lambda a, b: 0.25))
+    job_for(role, near, {"arm1": given(p)})
+    assert role.stats()["cell_last_check"].startswith("cell plan refused: at t=0.000 s")
+
+
+@pytest.mark.req("SR-CELLPLAN-1")
+def test_the_desk_is_told_the_loaded_cell_set_the_paths_given_and_the_plan_checked() -> None:
+    role = CellRole(threading.Lock())
+    plan = loaded(role, others=("arm1", "arm2"))
+    assert role.describe(object()) == []  # type: ignore[arg-type]
+    assert role.describe(plan.kset) == [
+        "cell set: turns ssssssssssss, parts arm0, arm1, arm2; paths from none"
+    ]
+    role.paths = {"arm2": object(), "arm1": object()}  # type: ignore[dict-item]
+    role.checked = CellCheck(plan, "i" * 64, {})
+    assert role.describe(plan.kset) == [
+        "cell set: turns ssssssssssss, parts arm0, arm1, arm2; paths from arm1, arm2",
+        f"cell plan: {'i' * 64} (plan 3)",
+    ]
+
+
+# ------------------------------------------------------------------ a keyframe file of either kind
+@pytest.mark.req("SR-CELLPLAN-1")
+def test_a_file_with_arms_is_read_as_a_cell_set_and_one_without_as_a_keyframe_file(
+    tmp_path: Any,
+) -> None:
+    from occ.controllers.keyframe.cellset import CellKeyframeFile, read_any_keyframe_file
+    from occ.controllers.keyframe.sets import KeyframeFile
+
+    plain = tmp_path / "plain.yaml"
+    plain.write_text("space: joint\nkeyframes:\n  - {t: 0.0, pose: [0.0, 0.1]}\n")
+    bare = tmp_path / "bare.yaml"
+    bare.write_text("- {t: 0.0, pose: [0.0, 0.1]}\n")
+    two = tmp_path / "two.yaml"
+    two.write_text(
+        "arms:\n  arm0: {keyframes: [{t: 0.0, pose: [0.0]}]}\n"
+        "  arm1: {keyframes: [{t: 0.0, pose: [1.0]}]}\n"
+    )
+    assert type(read_any_keyframe_file(plain)) is KeyframeFile
+    assert type(read_any_keyframe_file(bare)) is KeyframeFile
+    assert type(read_any_keyframe_file(two)) is CellKeyframeFile
+
+
+# ------------------------------------------------------------------ another arm of the cell
+@pytest.mark.req("SR-ARMS-1")
+def test_a_peer_of_a_builtin_model_has_its_kinematics_and_a_frame_refused_is_named() -> None:
+    from occ.config import FrameConfig
+    from occ.errors import ConfigError
+    from occ.kinematics.peers import peer_frame
+
+    frame = peer_frame(FrameConfig(model="occ_slave"), "peer arm 'x'")
+    assert frame.tip_link == "tool_tip" and frame.model.nq == 3
+    with pytest.raises(ConfigError) as err:  # a model the schema would refuse: named by key
+        peer_frame(SimpleNamespace(model="nosuch"), "peer arm 'x'")  # type: ignore[arg-type]
+    assert str(err.value) == (
+        "peer arm 'x': unknown built-in model 'nosuch'; known: master3, occ_slave"
+    )
+
+
+def stand_in_arm(limits: list[float], reach: tuple[float, ...] = (0.5, 0.25)) -> Any:
+    """An arm's geometry as the peer needs it: its joints, their URDF limits, their reach."""
+    return SimpleNamespace(
+        model=SimpleNamespace(nq=len(reach), velocityLimit=limits), reach=reach, links=()
+    )
+
+
+@pytest.mark.req("SR-ARMS-1")
+def test_a_peers_urdf_limits_are_used_only_when_each_is_a_number_over_0(monkeypatch: Any) -> None:
+    """Without velocities the URDF's: 1.0 and 0.5 rad/s give its speed bound; a limit of 0,
+    infinity or NaN is none, refused naming the arm. Its kinematics and geometry are asked
+    for with the arm's name for their own refusals."""
+    import occ.kinematics.peers as peers
+    from occ.errors import ConfigError
+
+    asked: list[tuple[str, str]] = []
+    geometry = stand_in_arm([1.0, 0.5])
+
+    def frame(cfg: Any, key: str) -> str:
+        asked.append(("frame", key))
+        return "kinematics"
+
+    def load_arm(cfg: Any, fr: Any, *, convex: bool, link_radius: float, tool: Any = None,
+                 key: str = "safety.collision") -> Any:  # fmt: skip
+        assert fr == "kinematics"
+        asked.append(("geometry", key))
+        return geometry
+
+    monkeypatch.setattr(peers, "peer_frame", frame)
+    monkeypatch.setattr(peers, "load_arm", load_arm)
+    peer = peers.build_peer("ur5-b", object(), convex=True, link_radius=0.05)  # type: ignore[arg-type]
+    assert asked == [("frame", "peer arm 'ur5-b'"), ("geometry", "peer arm 'ur5-b'")]
+    assert peer.speed == 1.0 * 0.5 + 0.5 * 0.25
+    for limits in ([0.0, 1.0], [1.0, math.inf], [math.nan, 1.0], [1.0, -0.5]):
+        geometry = stand_in_arm(limits)
+        with pytest.raises(ConfigError) as err:
+            peers.build_peer("ur5-b", object(), convex=True, link_radius=0.05)  # type: ignore[arg-type]
+        assert str(err.value) == "peer arm 'ur5-b': its URDF gives no velocity limits; give them"
+
+
+@pytest.mark.req("SR-ARMS-2")
+def test_a_peers_speed_bound_needs_a_limit_for_every_joint() -> None:
+    """Fewer limits than joints would leave a joint's motion out of the bound: refused."""
+    from occ.kinematics.peers import PeerArm
+
+    assert PeerArm("b", stand_in_arm([]), [2.0, 4.0]).speed == 2.0 * 0.5 + 4.0 * 0.25
+    with pytest.raises(ValueError):
+        PeerArm("b", stand_in_arm([]), [2.0])

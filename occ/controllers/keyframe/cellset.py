@@ -169,7 +169,9 @@ class CellRole:
         #: the identity of the acknowledged cell plan running (or waiting for its start)
         self.running: str | None = None
         self._checker: Checker | None = None  # the planner thread's
+        #: the other members' paths refused on arrival (GetStats: a sender's mistake is counted)
         self.refused_paths = 0
+        #: the last cross-check's outcome: the identity it passed with, or why it refused
         self.last_check = ""
 
     def install(self, cset: CellSet | None) -> None:
@@ -230,23 +232,32 @@ class CellRole:
     def take_path(self, event: ArrayInput, kset: KeyframeSet | None) -> None:
         """An NDARRAY ``CellPath`` given to this member: kept for the cross-check (O(1) here;
         its digest and values are checked by the cross-check's job); CommandError when it is
-        not one of the stored cell set's other members."""
+        not one of the stored cell set's other members (counted in ``refused_paths``)."""
         cset = self.current(kset)
         who = event.meta.get("member", "")
+        why = self._path_refusal(event, cset, who)
+        if why is not None:
+            self.refused_paths += 1
+            raise CommandError(why)
+        self.paths[who] = event
+        self.checked = None
+
+    @staticmethod
+    def _path_refusal(event: ArrayInput, cset: CellSet | None, who: str) -> str | None:
+        """Why a path given by ``who`` is not kept for the cell set ``cset``, or None."""
         if cset is None:
-            raise CommandError(f"{event.describe()}: no cell keyframe set is loaded")
+            return f"{event.describe()}: no cell keyframe set is loaded"
         if event.meta.get("set") != cset.digest:
-            raise CommandError(
+            return (
                 f"{event.describe()} of {who or '?'}: for another cell set (its digest "
                 f"{event.meta.get('set', '?')[:12]}, this member's {cset.digest[:12]})"
             )
         if who not in cset.others:
-            raise CommandError(
+            return (
                 f"{event.describe()}: {who!r} is not another member of cell set {cset.name} "
                 f"({', '.join(cset.others)})"
             )
-        self.paths[who] = event
-        self.checked = None
+        return None
 
     # one function: the checks before the cross-check, each refusal with its reason
     def check_job(
@@ -397,6 +408,8 @@ class CellRole:
             "cell_paths": sorted(self.paths),
             "cell_checked": None if self.checked is None else self.checked.identity,
             "cell_running": self.running,
+            "cell_paths_refused": self.refused_paths,
+            "cell_last_check": self.last_check,
         }
 
 
