@@ -368,9 +368,7 @@ def _plugin_problems(
     rest of the file); driver ``params`` through the driver's constructor, which opens no
     hardware (that happens in ``configure``). Unknown plugin names are problems too."""
     from occ.controllers import load_controller_class
-    from occ.core.assembly import build_joint
     from occ.core.data import RobotData
-    from occ.drivers import create_driver, load_driver_class
 
     problems: list[tuple[int, Loc, str]] = []
     shape = config.controller
@@ -420,6 +418,16 @@ def _plugin_problems(
                 )
                 break
             owners[claim] = cc.plugin
+    return problems + _driver_problems(config, root)
+
+
+def _driver_problems(config: DaemonConfig, root: yaml.Node | None) -> list[tuple[int, Loc, str]]:
+    """Each driver's ``params`` through its constructor, which opens no hardware (that happens
+    in ``configure``); an unknown plugin on its ``plugin:`` line."""
+    from occ.core.assembly import build_joint
+    from occ.drivers import create_driver, load_driver_class
+
+    problems: list[tuple[int, Loc, str]] = []
     joints = {j.name: build_joint(j) for j in config.robot.joints}
     for i, dc in enumerate(config.robot.drivers):
         try:
