@@ -445,8 +445,8 @@ def _driver_problems(config: DaemonConfig, root: yaml.Node | None) -> list[tuple
                 on_limit=dc.on_limit,
             )
         except (OCCError, ValueError, TypeError, KeyError) as err:
-            where = _param_named(("robot", "drivers", i, "params"), dc.params, str(err))
-            problems.append((_line_of(root, where), where, str(err)))
+            at = _param_named(("robot", "drivers", i, "params"), dc.params, str(err))
+            problems.append((_line_of(root, at), at, str(err)))
         else:
             del drv  # never configured: nothing was opened
     return problems
