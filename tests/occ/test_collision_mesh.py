@@ -176,7 +176,9 @@ def test_a_long_mesh_is_cut_across_its_length_into_parts_with_their_balls() -> N
     """A ribbon 2048 mm long along z (4096 triangles, far off the origin in x and y) is cut
     across its length, by median splits, into 8 parts of exactly MESH_PART triangles, each 256
     mm of the ribbon; each part's ball is centred on its box and reaches its farthest vertex;
-    together they are the whole mesh. A mesh of exactly MESH_PART triangles is one hierarchy."""
+    together they are the whole mesh; the region's ball is centred on the box around the parts'
+    balls and reaches the farthest of them. A mesh of exactly MESH_PART triangles is one
+    hierarchy."""
     v, t = z_strip(2048, 5000.0, -5000.0)
     assert len(t) == 8 * MESH_PART
     region = mesh_region("Ribbon", v, t)
@@ -192,6 +194,15 @@ def test_a_long_mesh_is_cut_across_its_length_into_parts_with_their_balls() -> N
         assert ball[3] == pytest.approx(float(np.linalg.norm(pv - centre, axis=1).max()), abs=1e-12)
         spans.append((round(float(lo[2]) * 1e3), round(float(hi[2]) * 1e3)))
     assert sorted(spans) == [(-256 * (i + 1), -256 * i) for i in reversed(range(8))]
+    # the region's own ball (the broad phase's bound, which settles a far link without asking
+    # a part): centred on the box around the parts' balls, reaching the farthest of them
+    lo = (balls[:, :3] - balls[:, 3:]).min(axis=0)
+    hi = (balls[:, :3] + balls[:, 3:]).max(axis=0)
+    centre = (lo + hi) / 2.0
+    reach = float((np.linalg.norm(balls[:, :3] - centre, axis=1) + balls[:, 3]).max())
+    assert region.bound == pytest.approx((*centre.tolist(), 0.0, reach), abs=1e-12)
+    assert centre * 1e3 == pytest.approx([5000.5, -5000.0, -1024.0], abs=1e-6)
+    assert np.linalg.norm(v * 1e-3 - centre, axis=1).max() <= reach
     one = mesh_region("One", *z_strip(MESH_PART // 2, 0.0, 0.0))
     assert one.geometry is not None and one.parts == () and one.triangles == MESH_PART
 
