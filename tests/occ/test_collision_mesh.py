@@ -176,13 +176,19 @@ def test_a_long_mesh_is_cut_across_its_length_into_parts_with_their_balls() -> N
     """A ribbon 2048 mm long along z (4096 triangles, far off the origin in x and y) is cut
     across its length, by median splits, into 8 parts of exactly MESH_PART triangles, each 256
     mm of the ribbon; each part's ball is centred on its box and reaches its farthest vertex;
-    together they are the whole mesh; the region's ball is centred on the box around the parts'
-    balls and reaches the farthest of them. A mesh of exactly MESH_PART triangles is one
-    hierarchy."""
+    together they are the whole mesh, with its links excluded and its source; the region's
+    ball is centred on the box around the parts' balls and reaches the farthest of them. A mesh
+    of exactly MESH_PART triangles is one hierarchy."""
     v, t = z_strip(2048, 5000.0, -5000.0)
     assert len(t) == 8 * MESH_PART
-    region = mesh_region("Ribbon", v, t)
+    region = mesh_region("Ribbon", v, t, exclude=["tool"], source="Organs")
     assert region.geometry is None and region.triangles == len(t)
+    assert (region.name, region.kind, region.exclude, region.source) == (
+        "Ribbon",
+        "mesh",
+        {"tool"},
+        "Organs",
+    )
     assert [int(g.num_tris) for g in region.parts] == [MESH_PART] * 8
     balls = np.asarray(region.part_balls)
     spans = []
