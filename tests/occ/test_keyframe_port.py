@@ -4,6 +4,10 @@
   base frame, the shortest turn; a :class:`PortTrajectory`'s axis passes through the port at
   every time, its tip path is the plan's without the port, every keyframe's pose is met, the
   roll is kept when none is given and interpolated between those given.
+- The geometry's edges (no robot): a tip 1 um from the port and at it, a turn past a right
+  angle and one that turns the tool over, the first of equally bad samples named, the first
+  keyframe's orientation taken as the tool's, a turn exactly at the tolerance, rolls that go
+  the short way across 180 deg, and what port_plan refuses.
 - The plan (configs/ur5-keyframe.yaml's UR5 with ``rcm_mm``, the keyframes of the shipped
   configs/keyframes/ur5-port.yaml, in simulated time): checked, acknowledged and run; at every
   tick the shaft of the commanded pose (and of the measured one) is within 0.05 mm of the port.
@@ -34,7 +38,10 @@ from occ.core.safety import RobotState
 from occ.errors import ConfigError
 from occ.kinematics.port import (
     SHAFT_BOUND_M,
+    PortMismatch,
     PortTrajectory,
+    ShaftWatch,
+    axis,
     keyframes_through_port,
     port_in_base,
     port_plan,
@@ -89,6 +96,153 @@ def test_the_shafts_distance_from_the_port_and_the_port_in_the_base_frame() -> N
     assert np.allclose(swing(a, b) @ a, b) and np.allclose(swing(a, a), np.eye(3))
     with pytest.raises(ValueError, match="turn over"):
         swing(a, -a)
+
+
+# ------------------------------------------------------------------ the geometry's edges
+_UP = np.array([0.0, 0.0, 1.0])
+
+
+def _at(tip: Any, rotation: Any = (0.0, 0.0, 0.0, 1.0), t: float = 0.0) -> Keyframe:
+    return Keyframe(t, tuple(float(v) for v in tip), tuple(rotation))
+
+
+@pytest.mark.req("SR-PORTPLAN-1")
+def test_the_axis_is_defined_from_one_micrometre_off_the_port_and_not_at_it() -> None:
+    """A tip 1 um from the port (exactly the limit) has an axis, the unit vector from the
+    port to it; a tip at the port has none, and a plan with a keyframe there is refused
+    saying so; a keyframe 1 um from the port is planned with its axis through it."""
+    port = np.array([0.1, 0.2, 0.3])
+    um = np.array([1e-6, 0.0, 0.0])
+    assert np.array_equal(axis(um, np.zeros(3)), [1.0, 0.0, 0.0])
+    with pytest.raises(
+        ValueError, match="^the tip is at the port: the tool's axis is not defined$"
+    ):
+        axis(port, port)
+    with pytest.raises(
+        ValueError, match="^the tip is at the port: the tool's axis is not defined$"
+    ):
+        port_plan([_at(port + 0.05 * _UP), _at(port, t=1.0)], port)
+    traj = port_plan([_at(um), _at(um + [0.0, 0.0, 0.05], t=1.0)], np.zeros(3))
+    assert np.allclose(traj.rotation(0.0)[:, 2], [1.0, 0.0, 0.0], atol=1e-12)
+
+
+@pytest.mark.req("SR-PORTPLAN-1")
+def test_the_shortest_turn_goes_past_a_right_angle_and_never_turns_the_tool_over() -> None:
+    """The shortest turn takes an axis 120 deg away (past a right angle: any turn short of
+    turning over is a turn); a plan whose keyframe is across the port from the start (its axis
+    turned over) is refused, whatever orientation it is given."""
+    a = _UP
+    b = np.array([math.sin(math.radians(120.0)), 0.0, math.cos(math.radians(120.0))])
+    r = swing(a, b)
+    assert np.allclose(r @ a, b, atol=1e-12) and np.allclose(r.T @ r, np.eye(3), atol=1e-12)
+    port = np.zeros(3)
+    over = r"^the tool's axis would turn over \(180 deg about the port\)$"
+    with pytest.raises(ValueError, match=over):
+        swing(a, -a)
+    with pytest.raises(ValueError, match=over):
+        port_plan([_at(0.05 * _UP), _at(-0.05 * _UP, (1.0, 0.0, 0.0, 0.0), t=1.0)], port)
+    # 120 deg from the start's axis is planned, and its axis passes through the port
+    traj = port_plan([_at(0.05 * _UP), _at(0.05 * b, t=1.0)], port)
+    assert np.allclose(traj.rotation(1.0)[:, 2], b, atol=1e-12)
+
+
+@pytest.mark.req("SR-PORTPLAN-3")
+def test_the_shaft_watch_names_the_first_of_the_worst_samples() -> None:
+    """The worst shaft offset of a plan's samples and where: the first sample is the worst
+    until another is farther; of equally far samples the first is named; every sample is
+    counted."""
+    port = np.zeros(3)
+    watch = ShaftWatch(port)
+
+    def pose(dx: float) -> np.ndarray:
+        return _pose(np.eye(3), np.array([dx, 0.0, 0.1]))
+
+    watch.see(0, pose(0.0))  # on the port
+    assert (watch.worst, watch.worst_at, watch.seen) == (0.0, 0, 1)
+    watch.see(1, pose(0.0))
+    assert watch.worst_at == 0
+    watch.see(2, pose(2e-5))
+    watch.see(3, pose(1e-5))
+    watch.see(4, pose(2e-5))
+    assert (watch.worst, watch.worst_at, watch.seen) == (pytest.approx(2e-5), 2, 5)
+    first = ShaftWatch(port)
+    first.see(7, pose(3e-5))
+    first.see(8, pose(1e-5))
+    assert (first.worst, first.worst_at) == (pytest.approx(3e-5), 7)
+
+
+@pytest.mark.req("SR-PORTPLAN-2")
+def test_the_keyframes_turned_onto_the_port_start_from_the_tools_orientation() -> None:
+    """The keyframes' orientations through the port: the first must be the tool's (none given:
+    refused, as is no keyframe at all), and it is never refused for being off the port's axis
+    (it is where the tool is; the start check bounds it); a later one exactly at the tolerance
+    is turned onto the axis, one past it refused with its index and angle."""
+    port = np.zeros(3)
+    with pytest.raises(ValueError, match="^the first keyframe needs the tool's orientation$"):
+        keyframes_through_port([], port, 0.01)
+    with pytest.raises(ValueError, match="^the first keyframe needs the tool's orientation$"):
+        keyframes_through_port([Keyframe(0.0, (0.0, 0.0, 0.05))], port, 0.01)
+    c, s = math.cos(0.1), math.sin(0.1)
+    tilt = rotation_to_quaternion(np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]]))
+    frames, turns = keyframes_through_port([_at(0.05 * _UP, tilt)], port, 0.01)
+    assert turns[0] == pytest.approx(0.1, abs=1e-12)
+    z = quaternion_to_rotation(frames[0].rotation)[:, 2]
+    assert np.allclose(z, _UP, atol=1e-12)
+    keys = [_at(0.05 * _UP), _at(0.06 * _UP, tilt, t=1.0)]
+    exact = keyframes_through_port(keys, port, 1.0)[1][1]
+    frames, turns = keyframes_through_port(keys, port, exact)
+    assert turns[1] == exact and np.allclose(quaternion_to_rotation(frames[1].rotation)[:, 2], _UP)
+    with pytest.raises(PortMismatch) as err:
+        keyframes_through_port(keys, port, math.nextafter(exact, 0.0))
+    assert err.value.index == 1 and err.value.angle == exact
+
+
+@pytest.mark.req("SR-PORTPLAN-1")
+def test_the_roll_goes_the_short_way_between_keyframes() -> None:
+    """Keyframes whose rolls about the axis are 0, 2, -2, 2 and 0 rad: from 2 to -2 the roll
+    goes the short way, through 180 deg (to 2 pi - 2 rad), not back through 0; the tool's
+    orientation halfway between them is rolled by 180 deg; each keyframe's orientation is met.
+    The plan's orientation as a quaternion is its rotation's; the plan says it keeps a port."""
+    port = np.zeros(3)
+    rolls = [0.0, 2.0, -2.0, 2.0, 0.0]
+    tips = [0.05 * _UP + [0.01 * i, 0.0, 0.0] for i in range(5)]
+    frames = []
+    for i, (tip, roll) in enumerate(zip(tips, rolls, strict=True)):
+        c, s = math.cos(roll), math.sin(roll)
+        turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        r = swing(_UP, axis(tip, port)) @ turn
+        frames.append(_at(tip, rotation_to_quaternion(r), t=float(i)))
+    traj = port_plan(frames, port, "linear", "stop")
+    assert traj.rolls == pytest.approx([0.0, 2.0, 2.0 * math.pi - 2.0, 2.0, 0.0], abs=1e-9)
+    for k in frames:
+        assert np.allclose(traj.rotation(k.t), quaternion_to_rotation(k.rotation), atol=1e-12)
+    mid = traj.rotation(1.5)
+    x_ref = swing(_UP, mid[:, 2]) @ np.array([1.0, 0.0, 0.0])
+    assert float(mid[:, 0] @ x_ref) == pytest.approx(-1.0, abs=1e-9)  # rolled by pi
+    for t in (0.0, 0.7, 2.5, 4.0):
+        q = traj.orientation(t)
+        assert q.dtype == np.float64 and q.shape == (4,)
+        assert np.allclose(quaternion_to_rotation(q), traj.rotation(t), atol=1e-12)
+    assert repr(traj).startswith("PortTrajectory(5 keyframes, linear, stop")
+
+
+@pytest.mark.req("SR-PORTPLAN-1")
+def test_a_port_plan_needs_a_tip_and_a_turn_at_every_keyframe_and_a_port_of_three_numbers() -> None:
+    """port_plan refuses keyframes of six values (joints, not a tip), keyframes without an
+    orientation, and a port that is not three finite numbers, each saying what it needs."""
+    port = np.zeros(3)
+    first = _at(0.05 * _UP)
+    joints = [
+        Keyframe(float(t), (0.0, 0.0, 0.05, 0.0, 0.0, t), (0.0, 0.0, 0.0, 1.0)) for t in (0, 1)
+    ]
+    with pytest.raises(ValueError, match="keyframe 0: a plan through a port needs a tip"):
+        port_plan(joints, port)
+    bare = [Keyframe(0.0, (0.0, 0.0, 0.05)), Keyframe(1.0, (0.0, 0.0, 0.06))]
+    with pytest.raises(ValueError, match="keyframe 0: a plan through a port needs a tip"):
+        port_plan(bare, port)
+    for bad in ([0.0, 0.0], [0.0, math.nan, 0.0], [0.0, 0.0, math.inf]):
+        with pytest.raises(ValueError, match="the port must be x y z"):
+            port_plan([first, _at(0.06 * _UP, t=1.0)], np.array(bad))
 
 
 def _square(home: np.ndarray, port: np.ndarray, rolls: list[float] | None) -> list[Keyframe]:
