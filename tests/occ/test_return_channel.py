@@ -705,6 +705,7 @@ def test_the_return_source_numbers_each_output_and_builds_each_metadata_once() -
     assert len(src._return_meta) == 1  # cleared, then this one
 
 
+@pytest.mark.req("SR-FORCE-1")
 def test_the_return_source_sends_the_force_the_energy_and_a_torque_when_there_is_one() -> None:
     from types import SimpleNamespace
 

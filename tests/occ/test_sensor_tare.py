@@ -475,6 +475,7 @@ def test_the_slaves_force_is_built_from_every_force_parameter() -> None:
     assert alerts == [("ALERT", "x", 1)]
 
 
+@pytest.mark.req("SR-FORCE-20")
 def test_force_tare_is_judged_on_the_tips_linear_speed_the_efforts_and_the_deepest_tissue() -> None:
     """occ/controllers/teleop/instrument.py's ``tare``: the force source is given the drives'
     efforts, the tip's linear speed (m/s: the Jacobian's first three rows, not its angular
