@@ -416,9 +416,10 @@ def test_the_hand_is_told_when_its_slave_stops_while_pressing() -> None:
 
     for stop in ("STOPPED", "FAULT", "ESTOP"):
         d, data, jac, alerts = _display(force_scale=2.0)
-        _news(d, 0.0, "RUNNING", (0.0, 0.15, 0.0))  # 0.3 N on the hand
+        # 0.3 N on the hand: (0, 0.09, 0.12) turned to (-0.09, 0, 0.12), x 2
+        _news(d, 0.0, "RUNNING", (0.0, 0.09, 0.12))
         assert alerts == []
-        _news(d, 0.001, stop, (0.0, 0.15, 0.0))
+        _news(d, 0.001, stop, (0.0, 0.09, 0.12))
         assert alerts == [
             (
                 "ALERT",
@@ -427,17 +428,19 @@ def test_the_hand_is_told_when_its_slave_stops_while_pressing() -> None:
                 int(igtl.StatusCode.TIME_OUT),
             )
         ]
-        _news(d, 0.002, stop, (0.0, 0.15, 0.0))  # the same state again: said once
+        _news(d, 0.002, stop, (0.0, 0.09, 0.12))  # the same state again: said once
         assert len(alerts) == 1
     d, data, jac, alerts = _display()
     _news(d, 0.0, "RUNNING", (0.0, 0.19, 0.0))  # 0.19 N: not pressing
     _news(d, 0.001, "STOPPED", (0.0, 0.19, 0.0))
-    _news(d, 0.002, "RUNNING", (0.0, 0.5, 0.0))
-    _news(d, 0.003, "PAUSED", (0.0, 0.5, 0.0))  # no stop
+    _news(d, 0.002, "RUNNING", (0.0, 0.0, 0.2))  # 0.2 N exactly: not over it
+    _news(d, 0.003, "ESTOP", (0.0, 0.0, 0.2))
     _news(d, 0.004, "RUNNING", (0.0, 0.5, 0.0))
+    _news(d, 0.005, "PAUSED", (0.0, 0.5, 0.0))  # no stop
+    _news(d, 0.006, "RUNNING", (0.0, 0.5, 0.0))
     data.state = RobotState.STOPPED  # the master itself stopped: nothing on its hand
-    _news(d, 0.005, "STOPPED", (0.0, 0.5, 0.0))
-    _news(d, 0.006, "STOPPED", (0.0, 0.5, 0.0))
+    _news(d, 0.007, "STOPPED", (0.0, 0.5, 0.0))
+    _news(d, 0.008, "STOPPED", (0.0, 0.5, 0.0))
     assert alerts == []
     d, data, jac, alerts = _display()
     _news(d, 0.0, "STOPPED", (0.0, 0.5, 0.0))  # a stop not from RUNNING
