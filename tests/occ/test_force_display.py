@@ -385,6 +385,12 @@ def test_the_fixtures_gain_and_the_feedbacks_rise_and_fall_with_the_link() -> No
     link.status = "fresh"
     d.tick(0.055, None, False)  # no driving slave at all: no fixtures' force
     assert d.gain == 0.0 and d.fixtures.force_n == (0.0, 0.0, 0.0)
+    for t in (0.06, 0.08):  # fresh and following again: both back to 1
+        d.tick(t, link, False)
+    assert (d.gain, d.feedback_gain) == (1.0, 1.0)
+    link.status = "none"  # no tip at all: both 0 at once
+    d.tick(0.081, link, False)
+    assert (d.gain, d.feedback_gain) == (0.0, 0.0)
 
 
 def test_without_a_fade_the_gains_jump_and_a_stop_resets_them() -> None:
@@ -482,8 +488,12 @@ def test_the_slaves_torque_is_gated_turned_clamped_and_added_on_rotational_axes(
     for t in (0.0, 0.02, 0.04):
         d3.tick(t, link3, False)
     assert d3.feedback_torque_nm == (0.0, 0.0, 0.0)
-    d4, *_ = _display(nq=6, force_output=False)
+    d4, *_ = _display(nq=6, force_output=False)  # no force on a hand: the torque in the stats
     assert not d4.rotational
+    link4 = _link(torque=(0.4, 0.0, 0.0))
+    assert d4.tick(0.0, link4, False) is None and d4.tick(0.02, link4, False) is None
+    assert d4.feedback_torque_nm == pytest.approx((0.0, 0.4, 0.0))
+    assert d4.stats(0.02)["feedback_torque_nm"] == [0.0, 0.4, 0.0]
 
 
 @pytest.mark.req("SR-FORCE-1")
