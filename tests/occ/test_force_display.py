@@ -310,6 +310,10 @@ def test_the_display_counts_the_external_force_and_reports_every_stat_to_its_pla
     assert d.external(servo_cf("ServoCF"), 1.0) is True
     assert d.external(servo_cf("ServoCF"), 1.001) is True
     assert d.external_samples == 2 and d.external_n == (0.25, -0.5, 1.5)
+    # shown with the slave's force, each axis added
+    d.tick(1.001, _link(force=(0.5, -1.0, 2.0)), False)  # the gains at 0 on the first tick
+    d.tick(1.021, _link(force=(0.5, -1.0, 2.0)), False)  # 20 ms: the slave's force whole
+    assert d.displayed_n == pytest.approx((1.0 + 0.25, 0.5 - 0.5, 2.0 + 1.5))
     d.displayed_n = (1.234567, -2.345678, 0.1)
     d.fixtures.force_n = (0.123456, 0.0, -0.654321)
     d.feedback_n = (1.111111, 2.222222, -3.333333)
@@ -538,3 +542,21 @@ def test_a_cartesian_master_takes_its_constant_jacobian_once() -> None:
             jac[:3, :3] = 0.0  # the Jacobian taken once: the model's is not asked again
             assert d.tick(0.03, _link(), False) == pytest.approx([1.0, 3.0, 3.0]) == eff
     assert isinstance(d, HapticDisplay)
+
+
+@pytest.mark.req("SR-FORCE-1")
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_the_passivity_controller_watches_a_force_along_any_single_axis(axis: int) -> None:
+    """A slave's force of 2 N along one of the master's axes alone, on a handle moving with it
+    at 0.1 m/s, with no energy from the slave: the first tick shows it whole (nothing to
+    observe yet), the next observes the 0.2 mJ it gave the hand and cuts it to nothing."""
+    d, data, jac, _ = _display(passivity=True, tip_fade_ms=0.0)
+    slave = [(0.0, -2.0, 0.0), (2.0, 0.0, 0.0), (0.0, 0.0, 2.0)][axis]  # the map turns it
+    data.qdot = [0.1 if i == axis else 0.0 for i in range(3)]
+    d.tick(0.0, _link(force=slave), False)
+    assert d.displayed_n[axis] == pytest.approx(2.0) and d.passivity.shown[axis] == 2.0
+    data.q = [1e-4 if i == axis else 0.0 for i in range(3)]
+    d.tick(0.001, _link(force=slave), False)
+    assert d.passivity.account.e_out == pytest.approx(2e-4)
+    assert d.displayed_n == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
+    assert d.passivity.active_ticks == 1
