@@ -560,3 +560,24 @@ def test_the_passivity_controller_watches_a_force_along_any_single_axis(axis: in
     assert d.passivity.account.e_out == pytest.approx(2e-4)
     assert d.displayed_n == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
     assert d.passivity.active_ticks == 1
+
+
+@pytest.mark.req("SR-FORCE-22")
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_the_torque_on_a_turning_handle_is_cut_or_observed_about_any_axis(axis: int) -> None:
+    """0.2 N m about one of the master's axes on a handle turning with it at 1 rad/s: the
+    first tick shows it whole; the next, with passivity, cuts it to nothing (nothing came in
+    through this channel), and without passivity shows it and observes the 0.2 mJ given."""
+    slave = [(0.0, -0.2, 0.0), (0.2, 0.0, 0.0), (0.0, 0.0, 0.2)][axis]  # the map turns it
+    for passive in (True, False):
+        d, data, jac, _ = _display(nq=6, passivity=passive, tip_fade_ms=0.0)
+        data.qdot = [1.0 if i == 3 + axis else 0.0 for i in range(6)]
+        d.tick(0.0, _link(torque=slave), False)
+        assert d.displayed_torque_nm[axis] == pytest.approx(0.2)
+        d.tick(0.001, _link(torque=slave), False)
+        if passive:
+            assert d.displayed_torque_nm == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
+            assert d.torque_passivity.active_ticks == 1
+        else:
+            assert d.displayed_torque_nm[axis] == pytest.approx(0.2)
+            assert d.torque_passivity.account.e_out == pytest.approx(2e-4)
