@@ -581,3 +581,31 @@ def test_the_torque_on_a_turning_handle_is_cut_or_observed_about_any_axis(axis: 
         else:
             assert d.displayed_torque_nm[axis] == pytest.approx(0.2)
             assert d.torque_passivity.account.e_out == pytest.approx(2e-4)
+
+
+@pytest.mark.req("SR-FIX-1")
+def test_the_sum_is_clamped_counted_and_the_port_told_what_was_shown() -> None:
+    """Fixtures plus the slave's force over max_force_n (10 N) is scaled down to it, the same
+    direction, each clamped tick counted; the passivity port is told the slave's part as
+    really shown (scaled alike), and the whole of it again once under the limit. After a
+    reset the first tick starts the fades from zero."""
+    d, data, jac, _ = _display(tip_fade_ms=0.0)
+    d.fixtures.raw_force_n = (6.0, 0.0, 0.0)
+    d.tick(0.0, _link(force=(0.0, 0.0, 8.0)), False)  # (6, 0, 8): 10 N, not over
+    assert d.displayed_n == pytest.approx((6.0, 0.0, 8.0)) and d.clamped_ticks == 0
+    d.tick(0.001, _link(force=(0.0, 0.0, 18.0)), False)  # (6, 0, 18): scaled by 10 / 18.97
+    k = 10.0 / math.hypot(6.0, 18.0)
+    assert d.displayed_n == pytest.approx((6.0 * k, 0.0, 18.0 * k)) and d.clamped_ticks == 1
+    assert d.passivity.shown == pytest.approx((0.0, 0.0, 18.0 * k))
+    d.tick(0.002, _link(force=(0.0, 0.0, 2.0)), False)
+    assert d.passivity.shown == (0.0, 0.0, 2.0) and d.clamped_ticks == 1
+    assert d.stats(0.002)["force_clamped_ticks"] == 1
+    d2, *_ = _display()  # the fades, reset in the middle of one
+    d2.tick(0.0, _link(), False)
+    d2.tick(0.01, _link(), False)
+    assert d2.gain == pytest.approx(0.5)
+    d2.reset()
+    d2.tick(1.0, _link(), False)  # the first tick after the reset: from zero, no jump
+    assert (d2.gain, d2.feedback_gain) == (0.0, 0.0)
+    d2.tick(1.005, _link(), False)
+    assert d2.gain == pytest.approx(0.25)
