@@ -303,17 +303,17 @@ def test_the_display_counts_the_external_force_and_reports_every_stat_to_its_pla
     d, data, jac, _ = _display()
 
     def servo_cf(device: str) -> Any:
-        m = igtl.SensorMessage((0.25, -0.5, 1.5), NEWTON, device_name=device, header_version=2)
+        m = igtl.SensorMessage((0.123456, -0.5, 1.5), NEWTON, device_name=device, header_version=2)
         return event_of(m)
 
     assert d.external(servo_cf("Other"), 0.0) is False and d.external_samples == 0
     assert d.external(servo_cf("ServoCF"), 1.0) is True
     assert d.external(servo_cf("ServoCF"), 1.001) is True
-    assert d.external_samples == 2 and d.external_n == (0.25, -0.5, 1.5)
+    assert d.external_samples == 2 and d.external_n == (0.123456, -0.5, 1.5)
     # shown with the slave's force, each axis added
     d.tick(1.001, _link(force=(0.5, -1.0, 2.0)), False)  # the gains at 0 on the first tick
     d.tick(1.021, _link(force=(0.5, -1.0, 2.0)), False)  # 20 ms: the slave's force whole
-    assert d.displayed_n == pytest.approx((1.0 + 0.25, 0.5 - 0.5, 2.0 + 1.5))
+    assert d.displayed_n == pytest.approx((1.0 + 0.123456, 0.5 - 0.5, 2.0 + 1.5))
     d.displayed_n = (1.234567, -2.345678, 0.1)
     d.fixtures.force_n = (0.123456, 0.0, -0.654321)
     d.feedback_n = (1.111111, 2.222222, -3.333333)
@@ -334,7 +334,7 @@ def test_the_display_counts_the_external_force_and_reports_every_stat_to_its_pla
             "torque_nm": [0.00111, 0.00222, -0.00333],
             "passivity": d.torque_passivity.stats(),
         },
-        "external_n": [0.25, -0.5, 1.5],
+        "external_n": [0.1235, -0.5, 1.5],
         "external_samples": 2,
         "external_fresh": True,
         "force_clamped_ticks": 3,
@@ -572,9 +572,9 @@ def test_the_torque_on_a_turning_handle_is_cut_or_observed_about_any_axis(axis: 
     for passive in (True, False):
         d, data, jac, _ = _display(nq=6, passivity=passive, tip_fade_ms=0.0)
         data.qdot = [1.0 if i == 3 + axis else 0.0 for i in range(6)]
-        d.tick(0.0, _link(torque=slave), False)
+        d.tick(1.0, _link(torque=slave), False)
         assert d.displayed_torque_nm[axis] == pytest.approx(0.2)
-        d.tick(0.001, _link(torque=slave), False)
+        d.tick(1.001, _link(torque=slave), False)
         if passive:
             assert d.displayed_torque_nm == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
             assert d.torque_passivity.active_ticks == 1
@@ -609,3 +609,17 @@ def test_the_sum_is_clamped_counted_and_the_port_told_what_was_shown() -> None:
     assert (d2.gain, d2.feedback_gain) == (0.0, 0.0)
     d2.tick(1.005, _link(), False)
     assert d2.gain == pytest.approx(0.25)
+
+
+@pytest.mark.req("SR-FORCE-2")
+def test_an_external_force_is_shown_to_the_end_of_its_timeout_and_no_longer() -> None:
+    from igtl.messages.sensor import NEWTON
+    from occ.net.decoders import event_of
+
+    d, *_ = _display(external_force_timeout_ms=125.0)
+    m = igtl.SensorMessage((0.0, 0.0, 1.5), NEWTON, device_name="ServoCF", header_version=2)
+    d.external(event_of(m), 0.5)
+    assert d.show(0.625, (0.0, 0.0, 0.0)) == (0.0, 0.0, 1.5)  # 125 ms after it came: shown
+    assert d.stats(0.625)["external_fresh"] is True
+    assert d.show(0.626, (0.0, 0.0, 0.0)) == (0.0, 0.0, 0.0)
+    assert d.stats(0.626)["external_fresh"] is False
