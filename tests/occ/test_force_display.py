@@ -528,6 +528,7 @@ def test_a_cartesian_master_takes_its_constant_jacobian_once() -> None:
         ([0.0, 0.0, 0.0], False),
         ([0.0, 2e-6, 0.0], True),
         ([0.0, 5e-7, 0.0], False),
+        ([0.0, -1e-6, 0.0], False),  # moved by more than 1e-6 only
     ):
         d, data, jac, _ = _display()
         data.q = q
@@ -542,6 +543,24 @@ def test_a_cartesian_master_takes_its_constant_jacobian_once() -> None:
             jac[:3, :3] = 0.0  # the Jacobian taken once: the model's is not asked again
             assert d.tick(0.03, _link(), False) == pytest.approx([1.0, 3.0, 3.0]) == eff
     assert isinstance(d, HapticDisplay)
+
+    # a Jacobian that changes with q (an entry of 0 by 1e-10 only, or the whole of it, but the
+    # same at 1 rad as at q): the model's is asked each time
+    def jacobian(q: Any, c: float) -> Any:
+        j = np.eye(6, 3)
+        if q[0]:
+            j[0, 1] += c
+            j[:3, :3] *= 1.0 + c
+        return j
+
+    for q, changed in (([0.3, 0.0, 0.0], 1e-10), ([1.0, 1.0, 1.0], 0.5)):
+        d, data, jac, _ = _display()
+        data.q = q
+        varying = SimpleNamespace(nq=3, jacobian=lambda q, c=changed: jacobian(q, c))
+        d.bind(data, SimpleNamespace(frame=varying, clock=d.ctx.clock))
+        assert d._jt is None, q
+    d, *_ = _display()
+    assert d.stats(0.0)["external_fresh"] is False  # none came yet
 
 
 @pytest.mark.req("SR-FORCE-1")
@@ -593,13 +612,16 @@ def test_the_sum_is_clamped_counted_and_the_port_told_what_was_shown() -> None:
     d.fixtures.raw_force_n = (6.0, 0.0, 0.0)
     d.tick(0.0, _link(force=(0.0, 0.0, 8.0)), False)  # (6, 0, 8): 10 N, not over
     assert d.displayed_n == pytest.approx((6.0, 0.0, 8.0)) and d.clamped_ticks == 0
-    d.tick(0.001, _link(force=(0.0, 0.0, 18.0)), False)  # (6, 0, 18): scaled by 10 / 18.97
-    k = 10.0 / math.hypot(6.0, 18.0)
-    assert d.displayed_n == pytest.approx((6.0 * k, 0.0, 18.0 * k)) and d.clamped_ticks == 1
+    d.fixtures.raw_force_n = (6.0, 3.0, 0.0)
+    d.tick(0.001, _link(force=(0.0, 0.0, 18.0)), False)  # (6, 3, 18): scaled by 10 / 19.2
+    k = 10.0 / math.hypot(6.0, 3.0, 18.0)
+    assert d.displayed_n == pytest.approx((6.0 * k, 3.0 * k, 18.0 * k)) and d.clamped_ticks == 1
     assert d.passivity.shown == pytest.approx((0.0, 0.0, 18.0 * k))
+    d.tick(0.0015, _link(force=(0.0, 0.0, 18.0)), False)
+    assert d.clamped_ticks == 2
     d.tick(0.002, _link(force=(0.0, 0.0, 2.0)), False)
-    assert d.passivity.shown == (0.0, 0.0, 2.0) and d.clamped_ticks == 1
-    assert d.stats(0.002)["force_clamped_ticks"] == 1
+    assert d.passivity.shown == (0.0, 0.0, 2.0) and d.clamped_ticks == 2
+    assert d.stats(0.002)["force_clamped_ticks"] == 2
     d2, *_ = _display()  # the fades, reset in the middle of one
     d2.tick(0.0, _link(), False)
     d2.tick(0.01, _link(), False)
