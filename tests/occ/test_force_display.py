@@ -645,3 +645,25 @@ def test_an_external_force_is_shown_to_the_end_of_its_timeout_and_no_longer() ->
     assert d.stats(0.625)["external_fresh"] is True
     assert d.show(0.626, (0.0, 0.0, 0.0)) == (0.0, 0.0, 0.0)
     assert d.stats(0.626)["external_fresh"] is False
+
+
+def test_the_first_tick_after_a_reset_shows_an_external_force_and_a_torque_whole() -> None:
+    """After a reset (a change of state) nothing has been displayed: the first tick shows an
+    external force and, without a fade, the slave's torque whole, with passivity on (nothing
+    to passivate yet), and the fresh display's statistics read zero."""
+    from igtl.messages.sensor import NEWTON
+    from occ.net.decoders import event_of
+
+    d, data, jac, _ = _display(nq=6, passivity=True, tip_fade_ms=0.0)
+    st = d.stats(0.0)
+    assert st["force_n"] == st["feedback_n"] == st["feedback_torque_nm"] == [0.0, 0.0, 0.0]
+    assert st["torque"]["torque_nm"] == [0.0, 0.0, 0.0]
+    link = _link(torque=(0.0, -0.2, 0.0), force=(0.0, 0.0, 0.0))
+    d.tick(0.0, link, False)
+    d.tick(0.001, _link(torque=(0.0, -0.2, 0.0), force=(0.0, 0.0, 0.0)), False)
+    d.reset()
+    m = igtl.SensorMessage((0.0, 0.0, 1.5), NEWTON, device_name="ServoCF", header_version=2)
+    d.external(event_of(m), 5.0)
+    d.tick(5.0, _link(torque=(0.0, -0.2, 0.0), force=(0.0, 0.0, 0.0)), False)
+    assert d.displayed_n == (0.0, 0.0, 1.5)
+    assert d.displayed_torque_nm == pytest.approx((0.2, 0.0, 0.0))
