@@ -667,3 +667,25 @@ def test_the_first_tick_after_a_reset_shows_an_external_force_and_a_torque_whole
     d.tick(5.0, _link(torque=(0.0, -0.2, 0.0), force=(0.0, 0.0, 0.0)), False)
     assert d.displayed_n == (0.0, 0.0, 1.5)
     assert d.displayed_torque_nm == pytest.approx((0.2, 0.0, 0.0))
+
+
+@pytest.mark.req("SR-FORCE-1")
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_the_port_acts_on_the_tick_a_force_appears_and_observes_the_tick_it_goes(axis: int) -> None:
+    """The passivity port is skipped only when no force is shown now or was last tick: a force
+    of exactly 1 N that appears on a handle moving with it is cut on its first tick (the ticks
+    before it timed the handle); one the hand pushes against is observed over its last tick
+    too, the tick it is gone."""
+    slave = [(0.0, -1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)][axis]  # the map turns it
+    d, data, jac, _ = _display(passivity=True, tip_fade_ms=0.0)
+    data.qdot = [0.1 if i == axis else 0.0 for i in range(3)]
+    d.tick(0.0, _link(force=None), False)
+    d.tick(0.001, _link(force=slave), False)
+    assert d.displayed_n == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
+    d, data, jac, _ = _display(passivity=True, tip_fade_ms=0.0)
+    data.qdot = [-0.1 if i == axis else 0.0 for i in range(3)]  # the hand pushes into it
+    for i, (t, f) in enumerate(((0.0, slave), (0.001, slave), (0.002, None))):
+        data.q = [-1e-4 * i if j == axis else 0.0 for j in range(3)]
+        d.tick(t, _link(force=f), False)
+    assert d.displayed_n == (0.0, 0.0, 0.0)
+    assert d.passivity.account.e_in == pytest.approx(2e-4)  # two ticks of 1 N over 0.1 mm
