@@ -494,3 +494,37 @@ def test_a_normal_is_made_unit_in_every_component_and_a_nan_plane_is_refused() -
     with pytest.raises(ValueError, match="not a transform"):
         tissue_from_event(event_of(igtl.TransformMessage.from_matrix(
             m, device_name="N", header_version=2, metadata={"kind": "tissue"})))  # fmt: skip
+
+
+# ------------------------------------------------------------------ the slave's tissue handler
+def test_define_tissue_puts_slicers_tissue_in_the_world_or_refuses_it_saying_why(caplog) -> None:
+    """occ/controllers/teleop/instrument.py's ``define_tissue`` alone: a tissue definition is
+    put in the simulated world by its name (True, one log line), any other message is not its
+    (False, nothing defined), and a robot without a simulated world refuses it naming it."""
+    from types import SimpleNamespace
+
+    from occ.controllers.teleop.instrument import define_tissue
+    from occ.errors import CommandError
+
+    defined: list[tuple[str, int]] = []
+    world = SimpleNamespace(define=lambda name, shapes: defined.append((name, len(shapes))))
+    ctx = SimpleNamespace(environment=world)
+    tissue = event_of(slicer_points(((0.0, 0.0, 0.0), 5.0), ((9.0, 0.0, 0.0), 2.0), kind="tissue"))
+    with caplog.at_level("INFO", logger="occ.controllers.teleop.slave"):
+        assert define_tissue(tissue, ctx) is True
+    assert defined == [("Tumour", 2)]
+    assert [r.getMessage() for r in caplog.records] == [
+        "tissue 'Tumour': 2 shape(s) from 3D Slicer"
+    ]
+    assert define_tissue(event_of(slicer_points(((0.0, 0.0, 0.0), 5.0))), ctx) is False
+    assert defined == [("Tumour", 2)]
+    for none in (None, SimpleNamespace(environment=None)):
+        with pytest.raises(CommandError) as err:
+            define_tissue(tissue, none)
+        assert str(err.value) == (
+            "tissue 'Tumour': this robot has no simulated world (config `environment`)"
+        )
+    bad = event_of(slicer_points(((0.0, 0.0, 0.0), 5.0), kind="tissue", stiffness="soft"))
+    with pytest.raises(CommandError, match="stiffness 'soft' is not a number") as err:
+        define_tissue(bad, ctx)
+    assert isinstance(err.value.__cause__, ValueError)

@@ -89,6 +89,38 @@ def test_the_jaw_steps_toward_the_value_only_while_following() -> None:
     }  # fmt: skip
 
 
+def test_the_sources_defaults_a_first_nan_read_and_the_stats_places() -> None:
+    j = GripperSource("joint", joint=0)  # the defaults: 0 open, 1 closed
+    assert j.stats() == {"source": "joint", "value": 0.0}  # open before any read
+    assert j.update([math.nan], 0.0) == 0.0  # a first read of NaN: open, not closed, not None
+    assert j.update([0.25], 0.0) == 0.25 and j.update([0.0], 0.0) == 0.0
+    assert j.update([1.0], 0.0) == 1.0 and j.update([2.0], 0.0) == 1.0
+    j.update([0.12345], 0.0)
+    assert j.stats()["value"] == 0.123  # three places, as on the stream
+    s = GripperSource("sim")  # the default period: 4 s
+    assert [s.update([], t) for t in (1.0, 2.0, 4.0)] == pytest.approx([0.5, 1.0, 0.0], abs=1e-12)
+    with pytest.raises(ValueError, match=r"^gripper source 'joint' needs a joint$"):
+        GripperSource("joint")
+
+
+def test_the_jaw_lands_on_its_goal_one_step_away_and_reports_before_its_first_tick() -> None:
+    g = GripperFollower(0, "jaw", 0.0, 1.0, 0.35)
+    assert g.stats() == {
+        "joint": "jaw", "value": None, "setpoint": None, "samples": 0, "refused": 0,
+        "last_error": "",
+    }  # fmt: skip
+    g.on_meta("0.45")
+    # exactly one step away (0.45 - 0.1 == 0.35 in floats): the goal itself, not a step that
+    # rounds to 0.44999999999999996
+    assert g.apply([0.1], True)[0] == 0.45
+    g2 = GripperFollower(0, "jaw", 0.0, 1.0, 0.5)
+    g2.on_meta("0.1234567")
+    g2.apply([0.0], True)
+    assert g2.stats()["setpoint"] == 0.123457  # six places
+    g2.on_meta("not-a-number-at-all-xyz")  # quoted to its first 20 characters
+    assert g2.last_error == "gripper 'not-a-number-at-all-' is not a number from 0 to 1"
+
+
 # ------------------------------------------------------------------------------ configs
 def jaw_slave(**gripper: Any) -> dict[str, Any]:
     """configs/slave.yaml on the jaw model: the arm's joints and the jaw (0 to 1.2 rad,

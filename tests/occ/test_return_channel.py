@@ -10,6 +10,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 import igtl
@@ -637,3 +638,90 @@ def test_an_external_force_across_stop_and_run_is_shown_from_the_first_tick_afte
     master.feed.step(5)
     assert master.sim.robot.state is RobotState.RUNNING
     assert master.ctl.display.displayed_n[2] == pytest.approx(1.5, abs=0.05)
+
+
+# ------------------------------------------------------------------ the slave's return source
+def _return_source(force: Any = None) -> Any:
+    """occ/controllers/teleop/returnsrc.py's ReturnSource on stand-ins for the robot: a tip at
+    (1, -2, 3) m turned 90 degrees about z, a base moved by the test, a clock at 1234.5 s."""
+    from types import SimpleNamespace
+
+    from occ.controllers.teleop.returnsrc import ReturnSource
+
+    rows = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    data = SimpleNamespace(
+        base=np.eye(4), state=RobotState.RUNNING, q=[0.1], qdot=[0.2], effort=[0.3],
+        tip=np.eye(4), world_tip_pose=lambda: (rows, (1.0, -2.0, 3.0)),
+    )  # fmt: skip
+    ctx = SimpleNamespace(frame="frame", clock=SimpleNamespace(wall_time=lambda: 1234.5))
+    port = SimpleNamespace(account=SimpleNamespace(e_in=0.0123456789012))
+    src = ReturnSource(0.5, np.eye(3), port)
+    src.bind(force, data, ctx)
+    return src, data
+
+
+def test_the_return_source_numbers_each_output_and_builds_each_metadata_once() -> None:
+    from types import SimpleNamespace
+
+    from occ.errors import OCCError
+
+    src, data = _return_source()
+    iface = SimpleNamespace(name="slave", stream_owner=None, sends_to_owner=True)
+    out_a = SimpleNamespace(type="POSITION", interface=iface, device="Tip")
+    out_b = SimpleNamespace(type="POSITION", interface=iface, device="Tip2")
+    # a link back to its stream's owner: nobody to send to until a master streams to it
+    assert src.check(out_a) is False
+    iface.stream_owner = ("127.0.0.1", 5)
+    assert src.check(out_a) is True
+    iface.sends_to_owner = False  # a fixed remote: always someone
+    assert src.check(out_a) is True
+    iface.stream_owner = None
+    assert src.check(out_a) is True
+    with pytest.raises(OCCError) as err:
+        src.check(SimpleNamespace(type="TRANSFORM", interface=iface))
+    assert str(err.value) == "teleop-return output must be of type POSITION"
+    a1, a2, b1 = (
+        src.sample(out_a, 0.0, True),
+        src.sample(out_a, 0.0, True),
+        src.sample(out_b, 0.0, False),
+    )
+    assert (a1.seq, a2.seq, b1.seq) == (1, 2, 1) and src.returned == 3
+    assert (a1.interface, a1.device, b1.device) == ("slave", "Tip", "Tip2")
+    assert a1.position_mm == pytest.approx((1000.0, -2000.0, 3000.0))
+    assert a1.quaternion == pytest.approx((0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5)))
+    assert a1.t_sample == 1234.5
+    assert dict(a1.meta) == {"following": "1", "state": "RUNNING", "map": "0.5,0,0,0,0.5,0,0,0,0.5"}
+    assert dict(b1.meta)["following"] == "0"
+    assert a1.meta is a2.meta  # built once per (following, state, map), not per sample
+    src._return_seqs[id(out_a)] = 0xFFFFFFFF
+    assert src.sample(out_a, 0.0, True).seq == 0  # 32 bits, as on the wire
+    # a tracker moving the base: a new map each time, the metadata kept to 65 kinds at most
+    for i in range(63):  # two kinds so far (following and not), 65 after these
+        data.base = np.eye(4) * (2.0 + i)
+        src.meta(True, 0.0)
+    assert len(src._return_meta) == 65
+    data.base = np.eye(4) * 100.0
+    src.meta(True, 0.0)
+    assert len(src._return_meta) == 1  # cleared, then this one
+
+
+@pytest.mark.req("SR-FORCE-1")
+def test_the_return_source_sends_the_force_the_energy_and_a_torque_when_there_is_one() -> None:
+    from types import SimpleNamespace
+
+    calls: list[Any] = []
+
+    def estimate(now: float, frame: Any, q: Any, qdot: Any, effort: Any, base: Any, rot: Any):
+        calls.append((now, frame, q, qdot, effort, base is data.base, rot().shape))
+        return (1.234567, -0.5, 2.0)
+
+    force = SimpleNamespace(estimate=estimate, torque_nm=None)
+    src, data = _return_source(force)
+    meta = src.meta(False, 7.0)
+    assert dict(meta) == {
+        "following": "0", "state": "RUNNING", "map": "0.5,0,0,0,0.5,0,0,0,0.5",
+        "force_n": "1.2346,-0.5000,2.0000", "energy_j": "0.0123456789",
+    }  # fmt: skip
+    assert calls == [(7.0, "frame", [0.1], [0.2], [0.3], True, (3, 3))]
+    force.torque_nm = (0.001, -0.0025, 0.1)
+    assert src.meta(False, 8.0)["torque_nm"] == "0.00100,-0.00250,0.10000"

@@ -436,3 +436,77 @@ def test_the_operators_tare_through_the_slave_refused_in_motion_and_contact() ->
         assert st["tool"] == {"mass_kg": MASS, "com_mm": [4.0, -2.0, 60.0]}
     finally:
         b.sim.close()
+
+
+# ------------------------------------------------------------------ the slave's instrument
+def test_the_slaves_force_is_built_from_every_force_parameter() -> None:
+    """occ/controllers/teleop/instrument.py's ``build_force``: each ``force`` parameter reaches
+    the force source in its unit (ms and mm/s to s and m/s, mm to m), none left at its default;
+    the pose it removes the weight at is the robot's tip and base now."""
+    from types import SimpleNamespace
+
+    from occ.controllers.teleop.instrument import build_force
+
+    fp = SimpleNamespace(
+        sources=("sensor", "effort"), sensor_interface="ft", sensor_device="Nano17",
+        sensor_frame="tool", sensor_timeout_ms=35.0, damping=3e-4,
+        effort_damping=(0.1, 0.2), effort_inertia=(0.3, 0.4), tool_mass_kg=0.25,
+        tool_com_mm=(1.0, -2.0, 30.0), gravity_mps2=(0.0, -9.8, 0.0), tare_window_ms=250.0,
+        tare_max_speed_mm_s=0.8, tare_max_spread_n=0.07, tare_max_offset_n=2.5,
+    )  # fmt: skip
+    data = SimpleNamespace(tip=np.eye(4), base=np.eye(4) * 2.0)
+    alerts: list[Any] = []
+    ctx = SimpleNamespace(environment="world", alert=lambda *a: alerts.append(a))
+    src = build_force(fp, data, ctx)
+    assert src.sources == ("sensor", "effort") and src.sensor_interface == "ft"
+    assert src.sensor_device == "Nano17" and src.sensor_frame == "tool"
+    assert src.sensor_timeout_s == pytest.approx(0.035) and src.damping == 3e-4
+    assert src.effort_damping == (0.1, 0.2) and src.effort_inertia == (0.3, 0.4)
+    assert src.environment == "world" and src.tool_mass_kg == 0.25
+    assert src.tool_com_m == pytest.approx((0.001, -0.002, 0.03))
+    assert src.gravity == (0.0, -9.8, 0.0) and src.tare_window_s == pytest.approx(0.25)
+    assert src.tare_max_speed == pytest.approx(0.8e-3) and src.tare_max_spread_n == 0.07
+    assert src.tare_max_offset_n == 2.5
+    assert src._pose is not None
+    tip, base = src._pose()
+    assert tip is data.tip and base is data.base
+    assert src.alert is not None
+    src.alert("ALERT", "x", 1)
+    assert alerts == [("ALERT", "x", 1)]
+
+
+@pytest.mark.req("SR-FORCE-20")
+def test_force_tare_is_judged_on_the_tips_linear_speed_the_efforts_and_the_deepest_tissue() -> None:
+    """occ/controllers/teleop/instrument.py's ``tare``: the force source is given the drives'
+    efforts, the tip's linear speed (m/s: the Jacobian's first three rows, not its angular
+    ones), and the deepest simulated tissue by name and depth; its refusal is a CommandError
+    caused by it."""
+    from types import SimpleNamespace
+
+    from occ.controllers.teleop.instrument import tare
+    from occ.errors import CommandError
+
+    asked: list[Any] = []
+
+    class Source:
+        def tare_all(self, now: float, effort: Any, speed: float, contact: Any) -> str:
+            asked.append((now, effort, speed, contact))
+            if contact is not None:
+                raise TareRefused(f"in contact: {contact}")
+            return "taken"
+
+    # the tip's linear velocity (3, 4, 0) mm/s; the angular rows turn fast (10 rad/s): no speed
+    jac = np.array([[3e-3, 0.0], [0.0, 4e-3], [0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [0.0, 0.0]])
+    frame = SimpleNamespace(jacobian=lambda q: jac)
+    data = SimpleNamespace(q=[0.0, 0.0], qdot=[1.0, 1.0], effort=[0.5, -0.25])
+    ctx = SimpleNamespace(frame=frame, environment=None)
+    assert tare(Source(), data, ctx, 2.0) == "taken"
+    assert asked == [(2.0, [0.5, -0.25], pytest.approx(5e-3, abs=1e-15), None)]
+    env = SimpleNamespace(in_contact=True, depth_mm={"zeta": 0.5, "alpha": 1.25, "mid": 0.75})
+    ctx = SimpleNamespace(frame=frame, environment=env)
+    with pytest.raises(CommandError) as err:
+        tare(Source(), data, ctx, 3.0)
+    assert str(err.value) == "in contact: simulated tissue 'alpha' 1.25 mm deep"
+    assert isinstance(err.value.__cause__, TareRefused)
+    env.in_contact = False  # tissue defined, none touching: no contact said
+    assert tare(Source(), data, ctx, 4.0) == "taken" and asked[-1][3] is None
