@@ -104,8 +104,9 @@ def main(argv: list[str]) -> int:
         print(
             f"{source.relative_to(root / 'mutants')}: {n} mutants, killed {killed} "
             f"({100 * killed / max(n, 1):.1f} %), survived {alive} "
-            f"(behaviour {behaviour}, text {counts['survived: text']}, log {counts['survived: log']}"
-            f", gc {counts['survived: gc']}), no tests {counts['no tests']}, not run {counts['not run']}; "
+            f"(behaviour {behaviour}, text {counts['survived: text']}, "
+            f"log {counts['survived: log']}, gc {counts['survived: gc']}), "
+            f"no tests {counts['no tests']}, not run {counts['not run']}; "
             f"killed of all but log/text/gc: {100 * killed / max(n - alive + behaviour, 1):.1f} %"
         )
         total.update(counts)

@@ -1,5 +1,6 @@
 """House rules as tests: ``mypy``, ``ruff check`` and ``ruff format --check`` are clean on igtl,
-occ, occ_ros2, occ_console and occ_testkit (and the two ruff checks on tools and benchmarks).
+occ, occ_ros2, occ_console and occ_testkit (and the two ruff checks on tools, benchmarks and
+scripts).
 
 Both tools come with the ``test`` extra (``pip install -e .[test]``, which the README's test
 command runs); they read their settings from pyproject.toml, so they run from the repository root.
@@ -19,7 +20,7 @@ pytestmark = pytest.mark.slow  # subprocesses; mypy alone takes ~30 s on a cold 
 
 PACKAGES = ("igtl", "occ", "occ_ros2", "occ_console", "occ_testkit")
 #: held to ruff too (not to mypy: scripts and measurements)
-SCRIPTS = ("tools", "benchmarks")
+SCRIPTS = ("tools", "benchmarks", "scripts")
 
 
 def _run(tool: str, *args: str, paths: tuple[str, ...] = PACKAGES) -> None:
