@@ -5,9 +5,9 @@
 
 The shipped slave (configs/slave.yaml) RUNNING on its 500 Hz master stream for one second
 more than ``--seconds``, so its ring is full; then an operator's ``DumpBlackBox``, written
-inline as in simulated time (on the real clock the black box's own thread writes it, handing
-the interpreter lock back every 16 ticks packed). Prints the dump's wall and CPU time, its
-ticks, events and size. The per-tick cost on the loop is ``bench_tick.py``'s ``slave`` against
+inline as in simulated time (on the real clock a forked child writes it: occ/recording/dump.py,
+``write_dump_forked``). Prints the dump's wall and CPU time, its ticks, events and size, and
+each file's size. The per-tick cost on the loop is ``bench_tick.py``'s ``slave`` against
 ``slave-no-bb``.
 """
 
@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import tempfile
 import time
+from pathlib import Path
 
 import yaml
 
@@ -39,10 +40,17 @@ def main() -> None:
             rig.sim.command(rig.operator, "DumpBlackBox")
             wall, cpu = time.perf_counter() - wall, time.thread_time() - cpu
             (said,) = [a for a in rig.alerts() if "written to" in a]
+            files = sorted(
+                (f.stat().st_size, str(f.relative_to(scratch)))
+                for f in Path(scratch).rglob("*")
+                if f.is_file()
+            )
         finally:
             rig.close()
     print(f"dump of {args.seconds:g} s: wall {wall:.2f} s, CPU {cpu:.2f} s")
     print(said)
+    for size, name in reversed(files):  # the largest first
+        print(f"  {size / 1e6:8.2f} MB  {name}")
 
 
 if __name__ == "__main__":
